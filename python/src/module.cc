@@ -1,0 +1,9 @@
+#include <pybind11/pybind11.h>
+
+#include "python/src/bindings.h"
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() = "trackcal native core: pose math and runtime corrections";
+  m.attr("__version__") = TRACKCAL_VERSION;
+  trackcal::python::BindCore(m);
+}
