@@ -1,5 +1,6 @@
 #include "core/json_reader.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -39,6 +40,25 @@ nlohmann::json ParseJsonText(const std::string& text, const std::string& source_
     }
     throw JsonInputError(source_name + ":" + std::to_string(line) + ":" + std::to_string(column) +
                          ": invalid JSON: " + what);
+  } catch (const nlohmann::json::out_of_range& e) {
+    // Number overflow ("number overflow parsing '1e999'"): locate the literal for line and column.
+    const std::string what = e.what();
+    const size_t q0 = what.find('\'');
+    const size_t q1 = q0 == std::string::npos ? q0 : what.find('\'', q0 + 1);
+    std::string where = source_name;
+    std::string literal;
+    if (q1 != std::string::npos) {
+      literal = what.substr(q0 + 1, q1 - q0 - 1);
+      const size_t at = text.find(literal);
+      if (at != std::string::npos) {
+        const size_t line = 1 + static_cast<size_t>(std::count(text.begin(), text.begin() + at, '\n'));
+        const size_t line_start = text.rfind('\n', at);
+        const size_t column = line_start == std::string::npos ? at + 1 : at - line_start;
+        where += ":" + std::to_string(line) + ":" + std::to_string(column);
+      }
+    }
+    throw JsonInputError(where + ": invalid JSON: number " + literal +
+                         " overflows a double; numbers must be finite");
   }
 }
 
@@ -69,7 +89,11 @@ double JsonFiniteNumber(const nlohmann::json& value, const std::string& source,
                        JsonSnippet(value));
   }
   const double v = value.get<double>();
-  if (!std::isfinite(v)) ThrowJsonError(source, path, "number must be finite, got " + value.dump());
+  if (!std::isfinite(v)) {
+    ThrowJsonError(source, path,
+                   std::string("number must be finite, got ") +
+                       (std::isnan(v) ? "NaN" : (v > 0 ? "Infinity" : "-Infinity")));
+  }
   return v;
 }
 

@@ -25,11 +25,9 @@ std::string AxisProblem(const std::vector<double>& a, size_t* bad_index) {
     }
     if (i > 0 && !(a[i] > a[i - 1])) {
       *bad_index = i;
-      char buf[160];
-      std::snprintf(buf, sizeof(buf),
-                    "axis values must be strictly increasing: %.17g at index %zu follows %.17g", a[i],
-                    i, a[i - 1]);
-      return buf;
+      // Shortest round-trip form, as the value is written in the file.
+      return "axis values must be strictly increasing: " + nlohmann::json(a[i]).dump() +
+             " at index " + std::to_string(i) + " follows " + nlohmann::json(a[i - 1]).dump();
     }
   }
   return "";
