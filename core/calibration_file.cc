@@ -322,6 +322,11 @@ void WriteCalibrationFile(const std::filesystem::path& path, const Calibration& 
   WriteFileAtomically(path, text);
 }
 
+Provenance ParseProvenanceJson(const nlohmann::json& value, const std::string& source,
+                               const std::string& path) {
+  return ParseProvenance(JsonObjectReader(value, source, path));
+}
+
 std::string CurrentUtcTimestamp() {
   const std::time_t now = std::time(nullptr);
   std::tm tm{};

@@ -70,6 +70,10 @@ std::string CalibrationToJsonText(const Calibration& calibration);
 // trackcal calibration file.
 void WriteCalibrationFile(const std::filesystem::path& path, const Calibration& calibration);
 
+// Reads a "provenance" object (as in the file) with errors naming `source` and `path`.
+Provenance ParseProvenanceJson(const nlohmann::json& value, const std::string& source,
+                               const std::string& path);
+
 // Current UTC time as "YYYY-MM-DDTHH:MM:SSZ" for provenance.created_utc.
 std::string CurrentUtcTimestamp();
 
