@@ -270,7 +270,11 @@ void WriteFileAtomically(const std::filesystem::path& path, const std::string& c
     throw std::runtime_error(path.string() + ": exists; refusing to overwrite it");
   }
   const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
-  std::string tmpl = (dir / ("." + path.filename().string() + ".tmp-XXXXXX")).string();
+  // Hidden temporary name next to the target, so the final rename stays on one file system.
+  std::string hidden_name = path.filename().string();
+  hidden_name.insert(hidden_name.begin(), '.');
+  hidden_name.append(".tmp-XXXXXX");
+  std::string tmpl = (dir / hidden_name).string();
   const int fd = mkstemp(tmpl.data());
   if (fd < 0) throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string());
   size_t written = 0;

@@ -171,13 +171,22 @@ Simulator::Simulator(Scene scene)
                scene_.tracker.signal_noise, SolverOptions(scene_)),
       receiver_from_body_(scene_.hidden.sensor_offset ? scene_.hidden.receiver_from_body
                                                       : Rigid3d()) {
-  Rng rng(scene_.seed, "trajectory");
-  for (int i = 0; i < 3; ++i) trajectory_phase_(i) = rng.Uniform(0.0, 2.0 * std::numbers::pi);
-  for (int i = 0; i < 3; ++i) trajectory_rot_phase_(i) = rng.Uniform(0.0, 2.0 * std::numbers::pi);
-  trajectory_base_rotation_ = rng.UniformRotation();
+  for (int r = 0; r < kMaxReceivers; ++r) {
+    Rng rng(scene_.seed, r == 0 ? std::string("trajectory") : "trajectory_" + std::to_string(r));
+    Trajectory t;
+    for (int i = 0; i < 3; ++i) t.phase(i) = rng.Uniform(0.0, 2.0 * std::numbers::pi);
+    for (int i = 0; i < 3; ++i) t.rotation_phase(i) = rng.Uniform(0.0, 2.0 * std::numbers::pi);
+    t.base_rotation = rng.UniformRotation();
+    trajectories_.push_back(t);
+  }
 }
 
-Rigid3d Simulator::TruePoseAt(double time_s) const {
+Rigid3d Simulator::TruePoseAt(double time_s, int receiver) const {
+  if (receiver < 0 || receiver >= kMaxReceivers) {
+    throw std::invalid_argument("TruePoseAt: receiver " + std::to_string(receiver) +
+                                " is not in [0, " + std::to_string(kMaxReceivers) + ")");
+  }
+  const Trajectory& tr = trajectories_[receiver];
   const StreamConfig& s = scene_.capture.stream;
   const double two_pi = 2.0 * std::numbers::pi;
   Eigen::Vector3d p = s.center_in_transmitter;
@@ -185,14 +194,14 @@ Rigid3d Simulator::TruePoseAt(double time_s) const {
   // Incommensurate rotation periods so the orientation does not repeat with the position.
   const Eigen::Vector3d rot_periods = s.rotation_period_s * Eigen::Vector3d(1.0, 1.37, 0.81);
   for (int i = 0; i < 3; ++i) {
-    p(i) += s.amplitude_m(i) * std::sin(two_pi * time_s / s.period_s(i) + trajectory_phase_(i));
+    p(i) += s.amplitude_m(i) * std::sin(two_pi * time_s / s.period_s(i) + tr.phase(i));
     w(i) = s.rotation_amplitude_rad *
-           std::sin(two_pi * time_s / rot_periods(i) + trajectory_rot_phase_(i));
+           std::sin(two_pi * time_s / rot_periods(i) + tr.rotation_phase(i));
   }
   const double angle = w.norm();
   const Eigen::Quaterniond dq = angle > 0 ? Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle))
                                           : Eigen::Quaterniond::Identity();
-  return Rigid3d((trajectory_base_rotation_ * dq).normalized(), p);
+  return Rigid3d((tr.base_rotation * dq).normalized(), p);
 }
 
 SimulatedCapture Simulator::Generate() const {

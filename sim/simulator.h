@@ -12,7 +12,6 @@
 
 #include <filesystem>
 #include <nlohmann/json.hpp>
-#include <optional>
 #include <string>
 #include <vector>
 
@@ -98,8 +97,11 @@ class Simulator {
   // Reference body pose relative to the receiver coil (identity unless sensor_offset is on).
   const Rigid3d& receiver_from_body() const { return receiver_from_body_; }
 
-  // True receiver pose on the stream trajectory at time t (tracker clock) [s].
-  Rigid3d TruePoseAt(double time_s) const;
+  // True receiver pose on a smooth trajectory at time t (tracker clock) [s]. Receiver 0 follows
+  // the trajectory of the capture's streams; receivers 1..kMaxReceivers-1 (the other stations of
+  // a Fastrak) follow their own seeded trajectories of the same amplitudes around the same centre.
+  static constexpr int kMaxReceivers = 4;
+  Rigid3d TruePoseAt(double time_s, int receiver = 0) const;
 
   // Generates every file of a capture from the scene.
   SimulatedCapture Generate() const;
@@ -108,9 +110,12 @@ class Simulator {
   Scene scene_;
   TrackerModel tracker_;
   Rigid3d receiver_from_body_;
-  Eigen::Vector3d trajectory_phase_;       // per-axis position phase [rad]
-  Eigen::Vector3d trajectory_rot_phase_;   // per-axis rotation phase [rad]
-  Eigen::Quaterniond trajectory_base_rotation_;
+  struct Trajectory {
+    Eigen::Vector3d phase;             // per-axis position phase [rad]
+    Eigen::Vector3d rotation_phase;    // per-axis rotation phase [rad]
+    Eigen::Quaterniond base_rotation;  // orientation the rotation sinusoids perturb
+  };
+  std::vector<Trajectory> trajectories_;  // one per receiver
 };
 
 // Writes a capture folder: poses.csv, markers.csv, tracker.csv, tracker_stream.csv,

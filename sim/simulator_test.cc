@@ -274,6 +274,9 @@ TEST(TrajectoryPose, IsSmooth) {
     EXPECT_LT(PositionErrorNorm(a, b), 2e-3);
     EXPECT_LT(OrientationErrorAngle(a, b), 1e-2);
   }
+  // Each receiver has its own trajectory.
+  EXPECT_GT(PositionErrorNorm(sim.TruePoseAt(1.0, 0), sim.TruePoseAt(1.0, 1)), 1e-3);
+  EXPECT_THROW(sim.TruePoseAt(1.0, Simulator::kMaxReceivers), std::invalid_argument);
 }
 
 TEST(TrackcalSimulate, CommandLine) {
