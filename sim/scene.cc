@@ -10,6 +10,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "core/capture.h"
 #include "sim/presets.h"
 #include "sim/scene_visit.h"
 
@@ -210,10 +211,7 @@ class YamlReader {
 // ---- YAML writer. ----
 class YamlWriter {
  public:
-  YamlWriter() {
-    out_.SetDoublePrecision(17);
-    out_ << YAML::BeginMap;
-  }
+  YamlWriter() { out_ << YAML::BeginMap; }
   std::string Finish() {
     out_ << YAML::EndMap;
     return std::string(out_.c_str()) + "\n";
@@ -250,9 +248,11 @@ class YamlWriter {
   void Write(bool b) { out_ << (b ? "true" : "false"); }
   void Write(int i) { out_ << i; }
   void Write(uint64_t i) { out_ << i; }
-  void Write(double d) { out_ << d; }
+  // Shortest round-trip text: readable, and ParseScene reads back the same double.
+  void Write(double d) { out_ << FormatNumber(d); }
   void Write(const Eigen::Vector3d& v) {
-    out_ << YAML::Flow << YAML::BeginSeq << v.x() << v.y() << v.z() << YAML::EndSeq;
+    out_ << YAML::Flow << YAML::BeginSeq << FormatNumber(v.x()) << FormatNumber(v.y())
+         << FormatNumber(v.z()) << YAML::EndSeq;
   }
   void Write(const Eigen::Vector3i& v) {
     out_ << YAML::Flow << YAML::BeginSeq << v.x() << v.y() << v.z() << YAML::EndSeq;
@@ -260,14 +260,15 @@ class YamlWriter {
   void Write(const Eigen::Matrix3d& m) {
     out_ << YAML::BeginSeq;
     for (int r = 0; r < 3; ++r) {
-      out_ << YAML::Flow << YAML::BeginSeq << m(r, 0) << m(r, 1) << m(r, 2) << YAML::EndSeq;
+      out_ << YAML::Flow << YAML::BeginSeq << FormatNumber(m(r, 0)) << FormatNumber(m(r, 1))
+           << FormatNumber(m(r, 2)) << YAML::EndSeq;
     }
     out_ << YAML::EndSeq;
   }
   void Write(const Rigid3d& pose) {
     out_ << YAML::BeginMap << YAML::Key << "rotation_xyzw" << YAML::Value << YAML::Flow
-         << YAML::BeginSeq << pose.rotation.x() << pose.rotation.y() << pose.rotation.z()
-         << pose.rotation.w() << YAML::EndSeq << YAML::Key << "translation" << YAML::Value;
+         << YAML::BeginSeq << FormatNumber(pose.rotation.x()) << FormatNumber(pose.rotation.y())
+         << FormatNumber(pose.rotation.z()) << FormatNumber(pose.rotation.w()) << YAML::EndSeq << YAML::Key << "translation" << YAML::Value;
     Write(pose.translation);
     out_ << YAML::EndMap;
   }
