@@ -99,10 +99,10 @@ int main(int argc, char** argv) {
           "validation, uncorrected: position mean %.1f std %.1f max %.1f mm; orientation mean "
           "%.2f std %.2f max %.2f deg\n"
           "validation, noise floor: position mean %.2f mm; orientation mean %.3f deg\n",
-          u["position_mean_mm"].get<double>(), u["position_std_mm"].get<double>(),
-          u["position_max_mm"].get<double>(), u["orientation_mean_deg"].get<double>(),
-          u["orientation_std_deg"].get<double>(), u["orientation_max_deg"].get<double>(),
-          f["position_mean_mm"].get<double>(), f["orientation_mean_deg"].get<double>());
+          u["position_mm"]["mean"].get<double>(), u["position_mm"]["std"].get<double>(),
+          u["position_mm"]["max"].get<double>(), u["orientation_deg"]["mean"].get<double>(),
+          u["orientation_deg"]["std"].get<double>(), u["orientation_deg"]["max"].get<double>(),
+          f["position_mm"]["mean"].get<double>(), f["orientation_deg"]["mean"].get<double>());
     }
   } catch (const std::exception& e) {
     std::cerr << "trackcal-simulate: " << e.what() << "\n";

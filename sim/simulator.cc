@@ -45,12 +45,6 @@ nlohmann::json FieldModelJson(const FieldModel& f) {
           {"objects", objects}};
 }
 
-double Mean(const std::vector<double>& v) {
-  double s = 0;
-  for (double x : v) s += x;
-  return v.empty() ? 0.0 : s / static_cast<double>(v.size());
-}
-
 }  // namespace
 
 // ---------------------------------------------------------------------------------------------
@@ -85,52 +79,27 @@ TrackerSolution TrackerModel::Report(const Rigid3d& transmitter_from_receiver, i
 }
 
 // ---------------------------------------------------------------------------------------------
-nlohmann::json ErrorStatistics::ToJson() const {
-  return {{"count", count},
-          {"position_mean_mm", position_mean_mm},
-          {"position_std_mm", position_std_mm},
-          {"position_rms_mm", position_rms_mm},
-          {"position_max_mm", position_max_mm},
-          {"orientation_mean_deg", orientation_mean_deg},
-          {"orientation_std_deg", orientation_std_deg},
-          {"orientation_rms_deg", orientation_rms_deg},
-          {"orientation_max_deg", orientation_max_deg}};
+namespace {
+nlohmann::json ErrorSummaryJson(const ErrorSummary& e) {
+  return {{"mean", e.mean}, {"std", e.std},       {"max", e.max},
+          {"rms", e.rms},   {"median", e.median}, {"p95", e.p95}};
+}
+}  // namespace
+
+nlohmann::json SummaryToJson(const PoseErrorSummary& summary) {
+  return {{"count", summary.position_mm.count},
+          {"position_mm", ErrorSummaryJson(summary.position_mm)},
+          {"orientation_deg", ErrorSummaryJson(summary.orientation_deg)}};
 }
 
-ErrorStatistics ComputeErrorStatistics(const std::vector<double>& position_errors_m,
-                                       const std::vector<double>& orientation_errors_rad) {
-  ErrorStatistics s;
-  s.count = static_cast<int>(position_errors_m.size());
-  auto fill = [](const std::vector<double>& v, double scale, double* mean, double* std,
-                 double* rms, double* max) {
-    if (v.empty()) return;
-    const double m = Mean(v);
-    double ss = 0, sq = 0, mx = 0;
-    for (double x : v) {
-      ss += (x - m) * (x - m);
-      sq += x * x;
-      mx = std::max(mx, x);
-    }
-    *mean = scale * m;
-    *std = v.size() > 1 ? scale * std::sqrt(ss / static_cast<double>(v.size() - 1)) : 0.0;
-    *rms = scale * std::sqrt(sq / static_cast<double>(v.size()));
-    *max = scale * mx;
-  };
-  fill(position_errors_m, 1000.0, &s.position_mean_mm, &s.position_std_mm, &s.position_rms_mm,
-       &s.position_max_mm);
-  fill(orientation_errors_rad, kDegPerRad, &s.orientation_mean_deg, &s.orientation_std_deg,
-       &s.orientation_rms_deg, &s.orientation_max_deg);
-  return s;
-}
-
-ErrorStatistics UncorrectedStatistics(const PoseCapture& poses, const std::string& set) {
-  std::vector<double> dp, dq;
+PoseErrorSummary UncorrectedSummary(const PoseCapture& poses, const std::string& set) {
+  std::vector<Rigid3d> reported, reference;
   for (const PoseRecord& r : poses.records) {
     if (r.set != set) continue;
-    dp.push_back(PositionErrorNorm(r.reference, r.reported));
-    dq.push_back(OrientationErrorAngle(r.reference, r.reported));
+    reported.push_back(r.reported);
+    reference.push_back(r.reference);
   }
-  return ComputeErrorStatistics(dp, dq);
+  return SummarizePoseErrors(reported, reference);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -303,15 +272,16 @@ SimulatedCapture Simulator::Generate() const {
     rec.reference = reference;
     out.poses.records.push_back(rec);
 
-    // The error a perfect model of this scene would leave: tracker and reference noise only.
+    // The error a perfect model of this scene would leave: tracker and reference noise only
+    // (mm and degrees, like every summary).
     const Eigen::Vector3d floor_p = (reference.translation - reported.translation) -
                                     (truth.transmitter_from_body.translation -
                                      truth.reported_noise_free.translation);
     const Eigen::Quaterniond e_capture = reference.rotation * reported.rotation.conjugate();
     const Eigen::Quaterniond e_model =
         truth.transmitter_from_body.rotation * truth.reported_noise_free.rotation.conjugate();
-    floor_errors[truth.set].first.push_back(floor_p.norm());
-    floor_errors[truth.set].second.push_back(AngularDistance(e_capture, e_model));
+    floor_errors[truth.set].first.push_back(1e3 * floor_p.norm());
+    floor_errors[truth.set].second.push_back(kDegPerRad * AngularDistance(e_capture, e_model));
 
     if (truth.set == "reg") {
       TrackerRecord tr;
@@ -386,8 +356,10 @@ SimulatedCapture Simulator::Generate() const {
   for (const std::string set : {"calib", "valid", "reg"}) {
     const auto it = floor_errors.find(set);
     if (it == floor_errors.end()) continue;
-    stats[set] = {{"uncorrected", UncorrectedStatistics(out.poses, set).ToJson()},
-                  {"noise_floor", ComputeErrorStatistics(it->second.first, it->second.second).ToJson()}};
+    const PoseErrorSummary floor{SummarizeErrors(it->second.first),
+                                 SummarizeErrors(it->second.second)};
+    stats[set] = {{"uncorrected", SummaryToJson(UncorrectedSummary(out.poses, set))},
+                  {"noise_floor", SummaryToJson(floor)}};
   }
   nlohmann::json stations = nlohmann::json::array();
   for (const StationTruth& t : out.stations) {

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "core/capture.h"
+#include "core/error_statistics.h"
 #include "core/pose.h"
 #include "sim/field.h"
 #include "sim/random.h"
@@ -50,19 +51,10 @@ class TrackerModel {
   TrackerSolverOptions solver_;
 };
 
-// Error statistics of a set of paired poses, in report units (mm, degrees).
-struct ErrorStatistics {
-  int count = 0;
-  double position_mean_mm = 0, position_std_mm = 0, position_rms_mm = 0, position_max_mm = 0;
-  double orientation_mean_deg = 0, orientation_std_deg = 0, orientation_rms_deg = 0,
-         orientation_max_deg = 0;
-  nlohmann::json ToJson() const;
-};
-// From per-station error magnitudes (metres, radians); std is the sample standard deviation.
-ErrorStatistics ComputeErrorStatistics(const std::vector<double>& position_errors_m,
-                                       const std::vector<double>& orientation_errors_rad);
-// Uncorrected statistics (|p_ref - p_rep|, angle(q_ref conj(q_rep))) of the records of one set.
-ErrorStatistics UncorrectedStatistics(const PoseCapture& poses, const std::string& set);
+// Uncorrected errors (|p_ref - p_rep| in mm, angle(q_ref conj(q_rep)) in deg) of one set's records.
+PoseErrorSummary UncorrectedSummary(const PoseCapture& poses, const std::string& set);
+// {"count", "position_mm": {mean, std, max, rms, median, p95}, "orientation_deg": {...}}.
+nlohmann::json SummaryToJson(const PoseErrorSummary& summary);
 
 // What the simulator knows about one static station.
 struct StationTruth {
