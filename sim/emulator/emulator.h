@@ -1,0 +1,155 @@
+// The Fastrak emulator process: a FastrakDevice on a pseudo-terminal, streaming the poses of a
+// PoseSource through a MeasurementModel in real time, with a line-based control socket for moving
+// stations and injecting faults. Usage, protocol and formats: docs/emulator.md.
+
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <random>
+#include <string>
+#include <variant>
+#include <vector>
+
+#include "sim/emulator/fastrak_device.h"
+#include "sim/emulator/pose_source.h"
+#include "sim/emulator/pty.h"
+
+namespace trackcal::emulator {
+
+// Control socket commands (one line each; see ParseControlCommand).
+struct MoveCommand {
+  int station = 1;
+  Rigid3d transmitter_from_receiver;
+};
+struct ReleaseCommand {
+  int station = 1;
+};
+struct ButtonCommand {
+  int station = 1;
+  bool pressed = false;
+};
+struct GarbageFault {
+  int num_bytes = 0;
+};
+struct StallFault {
+  double seconds = 0;
+};
+struct DisconnectFault {
+  double seconds = 0;
+};
+struct TruncateFault {
+  int keep_bytes = -1;  // bytes of the next record that are sent; -1 = half of it
+};
+struct StatusCommand {};
+struct HelpCommand {};
+using ControlCommand = std::variant<MoveCommand, ReleaseCommand, ButtonCommand, GarbageFault,
+                                    StallFault, DisconnectFault, TruncateFault, StatusCommand, HelpCommand>;
+
+// Parses one control line:
+//   move STATION x y z qw qx qy qz   (metres; quaternion scalar first, normalised)
+//   release STATION                  (back to the trajectory/static pose)
+//   button STATION 0|1
+//   fault garbage N | fault stall SECONDS | fault disconnect SECONDS | fault truncate [BYTES]
+//   status | help
+// Throws std::invalid_argument naming the field.
+ControlCommand ParseControlCommand(const std::string& line);
+
+struct EmulatorOptions {
+  // The device model (stations plugged in, power-up state, status record fields).
+  FastrakDeviceOptions device;
+  // Measurement cycles per second; a Fastrak makes 120 and shares them among the active stations.
+  double update_rate_hz = 120.0;
+  // true: one station per cycle, round robin (the Fastrak); false: every active station every cycle.
+  bool divide_rate_among_stations = true;
+  // If set, a symbolic link to the slave device, replaced atomically on reconnect, removed at exit.
+  std::string link_path;
+  // If set, path of the Unix stream socket of the control protocol.
+  std::string control_socket_path;
+  // Device output waiting for the host beyond this is dropped as whole records (a real serial line
+  // loses data nobody reads; a pty would otherwise block the emulator).
+  size_t max_pending_output_bytes = 4096;
+  // Seed of the garbage-byte generator.
+  uint64_t seed = 1;
+
+  // Throws std::invalid_argument naming the field.
+  void Check() const;
+};
+
+struct EmulatorStats {
+  int64_t records_sent = 0;      // complete records queued for the host
+  int64_t records_dropped = 0;   // records lost because the host did not read
+  int64_t bytes_received = 0;    // bytes the host wrote
+  int64_t reconnects = 0;        // completed disconnect faults
+};
+
+class Emulator {
+ public:
+  // `source` and `model` must outlive the emulator.
+  Emulator(EmulatorOptions options, PoseSource* source, MeasurementModel* model);
+  ~Emulator();
+
+  // Opens the pty (and link, control socket). Throws std::runtime_error.
+  void Start();
+  // Serves until RequestStop(); then removes the link and the control socket.
+  void Run();
+  // Async-signal-safe and thread-safe.
+  void RequestStop();
+
+  // Called with the slave path each time a pty is opened (start and reconnect).
+  std::function<void(const std::string&)> on_device_path;
+  // Called with each log line (device commands, faults), prefixed with the time in seconds.
+  std::function<void(const std::string&)> on_log;
+
+  // Executes one control line and returns the one-line reply ("ok ..." or "error: ...").
+  // Called by the control socket; must be called on the Run() thread.
+  std::string HandleControlLine(const std::string& line);
+
+  // Seconds since Start() on the steady clock (the PoseSource's time).
+  double Now() const;
+  EmulatorStats stats() const { return stats_; }
+  const FastrakDevice& device() const { return device_; }
+
+ private:
+  struct ControlClient {
+    int fd = -1;
+    std::string input;
+    std::string output;
+  };
+
+  void OpenPty();
+  void ClosePty();
+  void OpenControlSocket();
+  void Log(const std::string& message);
+  void ReadHost(double now);
+  void WriteHost();
+  void StreamRecords(double now);
+  void QueueRecord(int station, double now);
+  void ServiceControl(short revents_listen, const std::vector<short>& revents_clients);
+  std::string StatusLine();
+
+  EmulatorOptions options_;
+  PoseSource* source_;
+  MeasurementModel* model_;
+  FastrakDevice device_;
+  std::unique_ptr<PseudoTerminal> pty_;
+  std::string current_slave_path_;
+  std::string pending_output_;
+  bool was_continuous_ = false;
+  double next_cycle_s_ = 0;
+  size_t round_robin_ = 0;
+  double stall_until_s_ = -1;
+  double reconnect_at_s_ = -1;
+  int truncate_next_ = 0;  // 0 = none, >0 keep that many bytes, -1 keep half
+  std::mt19937_64 rng_;
+  int listen_fd_ = -1;
+  std::vector<ControlClient> clients_;
+  int wake_pipe_[2] = {-1, -1};
+  std::atomic<bool> stop_{false};
+  int64_t start_ns_ = 0;
+  EmulatorStats stats_;
+};
+
+}  // namespace trackcal::emulator
