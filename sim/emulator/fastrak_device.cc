@@ -95,7 +95,13 @@ std::string Printable(std::string_view s) {
 void AppendAsciiField(double v, const char* format, std::string* out) {
   char buf[32];
   std::snprintf(buf, sizeof(buf), format, v);
-  *out += buf;
+  std::string field = buf;
+  // A value that rounds to zero is printed without a sign ("  -0.00" -> "   0.00").
+  if (field.find_first_not_of(" -0.") == std::string::npos) {
+    const size_t minus = field.find('-');
+    if (minus != std::string::npos) field[minus] = ' ';
+  }
+  *out += field;
 }
 
 }  // namespace
