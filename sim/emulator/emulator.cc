@@ -192,7 +192,9 @@ void Emulator::ClosePty() {
   if (!pty_) return;
   if (!options_.link_path.empty()) RemoveSymlinkIfTarget(current_slave_path_, options_.link_path);
   pty_.reset();
-  pending_output_.clear();
+  output_queue_.clear();
+  output_head_sent_ = 0;
+  output_bytes_ = 0;
 }
 
 void Emulator::OpenControlSocket() {
@@ -250,7 +252,7 @@ void Emulator::Run() {
     fds.push_back({wake_pipe_[0], POLLIN, 0});
     const int pty_index = (pty_ && !stalled) ? static_cast<int>(fds.size()) : -1;
     if (pty_index >= 0) {
-      fds.push_back({pty_->master_fd(), static_cast<short>(POLLIN | (pending_output_.empty() ? 0 : POLLOUT)), 0});
+      fds.push_back({pty_->master_fd(), static_cast<short>(POLLIN | (output_queue_.empty() ? 0 : POLLOUT)), 0});
     }
     const int listen_index = listen_fd_ >= 0 ? static_cast<int>(fds.size()) : -1;
     if (listen_index >= 0) fds.push_back({listen_fd_, POLLIN, 0});
@@ -285,18 +287,39 @@ void Emulator::ReadHost(double now) {
     const ssize_t n = read(pty_->master_fd(), buffer, sizeof(buffer));
     if (n <= 0) break;  // EAGAIN: nothing more; EIO cannot happen while our slave fd is open
     stats_.bytes_received += n;
-    pending_output_ += device_.Receive(std::string_view(buffer, n), [&](int station) {
+    const bool was_continuous = device_.continuous();
+    std::string reply = device_.Receive(std::string_view(buffer, n), [&](int station) {
       return Measure(*source_, *model_, station, now);
     });
+    if (was_continuous && !device_.continuous()) DropUnstartedOutput();
+    if (!reply.empty()) Enqueue(std::move(reply));
     for (const std::string& line : device_.TakeLog()) Log(line);
   }
 }
 
 void Emulator::WriteHost() {
-  while (pty_ && !pending_output_.empty()) {
-    const ssize_t n = write(pty_->master_fd(), pending_output_.data(), pending_output_.size());
+  while (pty_ && !output_queue_.empty()) {
+    const std::string& head = output_queue_.front();
+    const ssize_t n = write(pty_->master_fd(), head.data() + output_head_sent_, head.size() - output_head_sent_);
     if (n <= 0) break;  // the host is not reading: keep it (bounded) for later
-    pending_output_.erase(0, n);
+    output_head_sent_ += n;
+    output_bytes_ -= n;
+    if (output_head_sent_ == head.size()) {
+      output_queue_.pop_front();
+      output_head_sent_ = 0;
+    }
+  }
+}
+
+void Emulator::Enqueue(std::string bytes) {
+  output_bytes_ += bytes.size();
+  output_queue_.push_back(std::move(bytes));
+}
+
+void Emulator::DropUnstartedOutput() {
+  while (output_queue_.size() > (output_head_sent_ > 0 ? 1u : 0u)) {
+    output_bytes_ -= output_queue_.back().size();
+    output_queue_.pop_back();
   }
 }
 
@@ -326,7 +349,7 @@ void Emulator::StreamRecords(double now) {
 
 void Emulator::QueueRecord(int station, double t_s) {
   std::string record = device_.FormatRecord(station, Measure(*source_, *model_, station, t_s));
-  if (pending_output_.size() + record.size() > options_.max_pending_output_bytes) {
+  if (output_bytes_ + record.size() > options_.max_pending_output_bytes) {
     ++stats_.records_dropped;
     return;
   }
@@ -340,7 +363,7 @@ void Emulator::QueueRecord(int station, double t_s) {
   } else {
     ++stats_.records_sent;
   }
-  pending_output_ += record;
+  Enqueue(std::move(record));
 }
 
 void Emulator::ServiceControl(short revents_listen, const std::vector<short>& revents_clients) {
@@ -443,7 +466,7 @@ std::string Emulator::HandleControlLine(const std::string& line) {
       if (!e->pty_) return "error: disconnected";
       std::string bytes(f.num_bytes, '\0');
       for (char& b : bytes) b = static_cast<char>(e->rng_() & 0xff);
-      e->pending_output_ += bytes;  // between two records, whatever the output backlog
+      e->Enqueue(std::move(bytes));  // between two records, whatever the output backlog
       e->Log("fault: " + std::to_string(f.num_bytes) + " garbage bytes");
       return "ok";
     }

@@ -6,6 +6,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <deque>
 #include <functional>
 #include <memory>
 #include <random>
@@ -126,6 +127,10 @@ class Emulator {
   void ReadHost(double now);
   void WriteHost();
   void StreamRecords(double now);
+  void Enqueue(std::string bytes);
+  // Drops queued output that has not started to go out (a device that stops streaming finishes
+  // the record on the wire and sends no more).
+  void DropUnstartedOutput();
   void QueueRecord(int station, double now);
   void ServiceControl(short revents_listen, const std::vector<short>& revents_clients);
   std::string StatusLine();
@@ -136,7 +141,11 @@ class Emulator {
   FastrakDevice device_;
   std::unique_ptr<PseudoTerminal> pty_;
   std::string current_slave_path_;
-  std::string pending_output_;
+  // Device output not yet written: whole items (records, replies, garbage); the head may be
+  // partly written (output_head_sent_ bytes of it).
+  std::deque<std::string> output_queue_;
+  size_t output_head_sent_ = 0;
+  size_t output_bytes_ = 0;
   bool was_continuous_ = false;
   double next_cycle_s_ = 0;
   size_t round_robin_ = 0;
