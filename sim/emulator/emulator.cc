@@ -130,6 +130,7 @@ void EmulatorOptions::Check() const {
   if (!(update_rate_hz > 0 && update_rate_hz <= 100000)) {
     throw std::invalid_argument("EmulatorOptions.update_rate_hz: must be in (0, 100000]");
   }
+  if (!std::isfinite(run_seconds)) throw std::invalid_argument("EmulatorOptions.run_seconds: not finite");
   if (max_pending_output_bytes < 64) {
     throw std::invalid_argument("EmulatorOptions.max_pending_output_bytes: must be at least 64");
   }
@@ -228,11 +229,18 @@ void Emulator::Run() {
   if (!pty_ && reconnect_at_s_ < 0) Start();
   while (!stop_.load()) {
     double now = Now();
+    if (options_.run_seconds > 0 && now >= options_.run_seconds) break;
     if (reconnect_at_s_ >= 0 && now >= reconnect_at_s_) {
-      reconnect_at_s_ = -1;
-      OpenPty();
-      ++stats_.reconnects;
-      next_cycle_s_ = now;
+      try {
+        OpenPty();
+        reconnect_at_s_ = -1;
+        ++stats_.reconnects;
+        next_cycle_s_ = now;
+      } catch (const std::runtime_error& e) {
+        // Keep serving the control socket and try again, as a re-plugged adapter would reappear.
+        Log(std::string("reconnect failed, retrying in 1 s: ") + e.what());
+        reconnect_at_s_ = now + 1.0;
+      }
     }
     const bool stalled = stall_until_s_ > now;
     if (!stalled && stall_until_s_ >= 0) {
@@ -246,6 +254,7 @@ void Emulator::Run() {
     if (pty_ && !stalled && device_.continuous()) wake_at = std::min(wake_at, next_cycle_s_);
     if (stalled) wake_at = std::min(wake_at, stall_until_s_);
     if (reconnect_at_s_ >= 0) wake_at = std::min(wake_at, reconnect_at_s_);
+    if (options_.run_seconds > 0) wake_at = std::min(wake_at, options_.run_seconds);
     const int timeout_ms = std::max(0, static_cast<int>(std::ceil((wake_at - now) * 1000.0)));
 
     std::vector<pollfd> fds;
@@ -397,10 +406,7 @@ void Emulator::ServiceControl(short revents_listen, const std::vector<short>& re
       if (n > 0) c.output.erase(0, n);
       if (n < 0 && errno != EAGAIN) closed = true;
     }
-    if (closed && c.output.empty()) {
-      close(c.fd);
-      c.fd = -1;
-    } else if (closed) {
+    if (closed) {
       close(c.fd);
       c.fd = -1;
     }

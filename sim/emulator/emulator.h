@@ -74,6 +74,8 @@ struct EmulatorOptions {
   size_t max_pending_output_bytes = 4096;
   // Seed of the garbage-byte generator.
   uint64_t seed = 1;
+  // Run() returns after this many seconds; <= 0 runs until RequestStop().
+  double run_seconds = 0;
 
   // Throws std::invalid_argument naming the field.
   void Check() const;
@@ -110,6 +112,8 @@ class Emulator {
 
   // Seconds since Start() on the steady clock (the PoseSource's time).
   double Now() const;
+  // Only on the Run() thread or after Run() returned (the control `status` line is the
+  // thread-safe way to look from outside).
   EmulatorStats stats() const { return stats_; }
   const FastrakDevice& device() const { return device_; }
 

@@ -257,13 +257,15 @@ TEST_F(EmulatorTest, Nominal) {
   const std::string device_bytes = ReadFile(Transcript07() / "serial_device_to_host.bin");
   stream_ += client.ReadExactly(960 - stream_.size(), 2.0);
   EXPECT_EQ(stream_, device_bytes.substr(55, 960));
-  // Rate: 120 Hz shared by 2 stations; 0.5 s gives 60 +- a few records (scheduler jitter).
+  // Rate: 120 Hz shared by 2 stations; 0.5 s gives 60 records. The margin covers the records in
+  // flight at both ends and a loaded machine (the schedule restarts after a 0.1 s lag); a burst or a
+  // wrong rate (60 or 240 Hz) falls outside.
   stream_.clear();
   int n = 0;
   std::string more = client.ReadFor(0.5);
   const std::vector<std::string> records = {device_bytes.substr(55, 32), device_bytes.substr(87, 32)};
   EXPECT_TRUE(StripRecords(&more, records, &n).empty());
-  EXPECT_GE(n, 50);
+  EXPECT_GE(n, 40);
   EXPECT_LE(n, 70);
   EXPECT_NE(Control("status").find("continuous=1 format=binary units=inches active=1,2"), std::string::npos);
 }

@@ -151,6 +151,7 @@ int Main(int argc, char** argv) {
                std::to_string(source_stations));
   }
   options.device.num_stations = stations;
+  options.run_seconds = duration;
   options.Check();
 
   ControlledPoseSource source(std::move(base));
@@ -164,10 +165,6 @@ int Main(int argc, char** argv) {
   sigemptyset(&sa.sa_mask);
   sigaction(SIGINT, &sa, nullptr);
   sigaction(SIGTERM, &sa, nullptr);
-  if (duration > 0) {
-    sigaction(SIGALRM, &sa, nullptr);
-    alarm(static_cast<unsigned>(std::ceil(duration)));
-  }
   std::signal(SIGPIPE, SIG_IGN);
   emulator.Start();
   emulator.Run();
