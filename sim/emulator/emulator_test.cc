@@ -270,6 +270,56 @@ TEST_F(EmulatorTest, Nominal) {
   EXPECT_NE(Control("status").find("continuous=1 format=binary units=inches active=1,2"), std::string::npos);
 }
 
+TEST_F(EmulatorTest, PolledAsciiAndBinary) {
+  options_.device.continuous = false;  // Fastrak power-up: polled, ASCII, list 2,4,1
+  Start();
+  SerialClient client(options_.link_path);
+  ASSERT_TRUE(client.ok());
+  EXPECT_EQ(client.ReadFor(0.1), "") << "a polled device must stay silent";
+  client.Write("P");
+  const std::string ascii = client.ReadExactly(2 * 47, 1.0);
+  ASSERT_EQ(ascii.size(), 2 * 47u);
+  // Station 1 at (10, -5, 20) in; Euler angles of (4, 1, 2, 3)/sqrt(30) are checked in the device test.
+  EXPECT_EQ(ascii.substr(0, 24), "01   10.00  -5.00  20.00");
+  EXPECT_EQ(ascii.substr(45, 5), "\r\n02 ");
+  EXPECT_EQ(ascii.substr(47, 24), "02    1.50   2.50  -3.50");
+  client.Write("fO1,2,11,0\rO2,2,11,0\rP");
+  const std::string binary = client.ReadExactly(64, 1.0);
+  const std::string device_bytes = ReadFile(Transcript07() / "serial_device_to_host.bin");
+  EXPECT_EQ(binary, device_bytes.substr(55, 64));
+  EXPECT_EQ(client.ReadFor(0.1), "");
+}
+
+TEST_F(EmulatorTest, FollowsTrajectory) {
+  // Station 1 moves along x from 0.10 m to 0.30 m in 1 s, then holds.
+  std::vector<std::vector<TrajectoryKeyframe>> frames(1, std::vector<TrajectoryKeyframe>(2));
+  frames[0][0].transmitter_from_receiver.translation = {0.10, 0, 0};
+  frames[0][1].t_s = 1.0;
+  frames[0][1].transmitter_from_receiver.translation = {0.30, 0, 0};
+  source_ = std::make_unique<ControlledPoseSource>(std::make_unique<TrajectoryPoseSource>(frames, false));
+  options_.device.num_stations = 1;
+  options_.device.continuous = false;
+  Start();
+  SerialClient client(options_.link_path);
+  ASSERT_TRUE(client.ok());
+  client.Write("O1,2,11,0\rfC");
+  const std::string bytes = client.ReadExactly(32 * 150, 3.0);  // 120 Hz: 1.25 s
+  ASSERT_EQ(bytes.size(), 32u * 150);
+  double previous = 0;
+  for (size_t i = 0; i < bytes.size(); i += 32) {
+    ASSERT_EQ(bytes.substr(i, 3), "01 ");
+    const double x_m = ReadFloat32Le(&bytes[i + 3]) * kMetresPerInch;
+    // float32 inches: ~1e-7 relative; 1e-6 m absolute covers it.
+    EXPECT_GE(x_m, previous - 1e-6) << i / 32;
+    EXPECT_LE(x_m, 0.30 + 1e-6);
+    previous = x_m;
+  }
+  // Started near the first keyframe (the host's commands came a few ms after t = 0; 0.5 s of
+  // margin for a loaded machine), ended held at the last keyframe.
+  EXPECT_LT(ReadFloat32Le(&bytes[3]) * kMetresPerInch, 0.20);
+  EXPECT_NEAR(previous, 0.30, 1e-6);
+}
+
 TEST_F(EmulatorTest, MoveAndStylusButton) {
   Start();
   SerialClient client(options_.link_path);
