@@ -130,6 +130,7 @@ void EmulatorOptions::Check() const {
   if (!(update_rate_hz > 0 && update_rate_hz <= 100000)) {
     throw std::invalid_argument("EmulatorOptions.update_rate_hz: must be in (0, 100000]");
   }
+  if (baud < 0) throw std::invalid_argument("EmulatorOptions.baud: must be >= 0");
   if (!std::isfinite(run_seconds)) throw std::invalid_argument("EmulatorOptions.run_seconds: not finite");
   if (max_pending_output_bytes < 64) {
     throw std::invalid_argument("EmulatorOptions.max_pending_output_bytes: must be at least 64");
@@ -252,6 +253,10 @@ void Emulator::Run() {
     // Wait for host bytes, control traffic, the next record or the end of a fault.
     double wake_at = now + 1.0;
     if (pty_ && !stalled && device_.continuous()) wake_at = std::min(wake_at, next_cycle_s_);
+    const bool line_free = line_busy_until_s_ <= now;
+    if (pty_ && !stalled && !output_queue_.empty() && !line_free) {
+      wake_at = std::min(wake_at, line_busy_until_s_);
+    }
     if (stalled) wake_at = std::min(wake_at, stall_until_s_);
     if (reconnect_at_s_ >= 0) wake_at = std::min(wake_at, reconnect_at_s_);
     if (options_.run_seconds > 0) wake_at = std::min(wake_at, options_.run_seconds);
@@ -261,7 +266,7 @@ void Emulator::Run() {
     fds.push_back({wake_pipe_[0], POLLIN, 0});
     const int pty_index = (pty_ && !stalled) ? static_cast<int>(fds.size()) : -1;
     if (pty_index >= 0) {
-      fds.push_back({pty_->master_fd(), static_cast<short>(POLLIN | (output_queue_.empty() ? 0 : POLLOUT)), 0});
+      fds.push_back({pty_->master_fd(), static_cast<short>(POLLIN | (output_queue_.empty() || !line_free ? 0 : POLLOUT)), 0});
     }
     const int listen_index = listen_fd_ >= 0 ? static_cast<int>(fds.size()) : -1;
     if (listen_index >= 0) fds.push_back({listen_fd_, POLLIN, 0});
@@ -281,7 +286,7 @@ void Emulator::Run() {
     if (pty_index >= 0 && pty_ && (fds[pty_index].revents & POLLIN)) ReadHost(now);
     if (pty_ && stall_until_s_ < 0) {
       StreamRecords(now);
-      WriteHost();
+      WriteHost(now);
     }
     std::vector<short> client_revents;
     for (size_t i = first_client; i < fds.size(); ++i) client_revents.push_back(fds[i].revents);
@@ -306,11 +311,14 @@ void Emulator::ReadHost(double now) {
   }
 }
 
-void Emulator::WriteHost() {
+void Emulator::WriteHost(double now) {
+  const double seconds_per_byte = options_.baud > 0 ? 10.0 / options_.baud : 0.0;
   while (pty_ && !output_queue_.empty()) {
+    if (line_busy_until_s_ > now) break;  // the wire is still busy with earlier bytes
     const std::string& head = output_queue_.front();
     const ssize_t n = write(pty_->master_fd(), head.data() + output_head_sent_, head.size() - output_head_sent_);
     if (n <= 0) break;  // the host is not reading: keep it (bounded) for later
+    line_busy_until_s_ = std::max(line_busy_until_s_, now) + n * seconds_per_byte;
     output_head_sent_ += n;
     output_bytes_ -= n;
     if (output_head_sent_ == head.size()) {

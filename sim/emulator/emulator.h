@@ -65,6 +65,10 @@ struct EmulatorOptions {
   double update_rate_hz = 120.0;
   // true: one station per cycle, round robin (the Fastrak); false: every active station every cycle.
   bool divide_rate_among_stations = true;
+  // Serial line speed of the device (its I/O select switches), bits per second with 10 bits per
+  // byte (8N1): output leaves at most this fast, one whole item at a time. 0 = unlimited. A pty
+  // ignores the host's speed setting, so this is the only pacing of the line.
+  int baud = 115200;
   // If set, a symbolic link to the slave device, replaced atomically on reconnect, removed at exit.
   std::string link_path;
   // If set, path of the Unix stream socket of the control protocol.
@@ -129,7 +133,7 @@ class Emulator {
   void OpenControlSocket();
   void Log(const std::string& message);
   void ReadHost(double now);
-  void WriteHost();
+  void WriteHost(double now);
   void StreamRecords(double now);
   void Enqueue(std::string bytes);
   // Drops queued output that has not started to go out (a device that stops streaming finishes
@@ -150,6 +154,7 @@ class Emulator {
   std::deque<std::string> output_queue_;
   size_t output_head_sent_ = 0;
   size_t output_bytes_ = 0;
+  double line_busy_until_s_ = 0;  // when the bytes already written have left the emulated wire
   bool was_continuous_ = false;
   double next_cycle_s_ = 0;
   size_t round_robin_ = 0;

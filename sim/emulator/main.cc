@@ -37,6 +37,7 @@ const char kUsage[] =
     "  --link PATH            symlink to the device, replaced atomically, removed at exit\n"
     "  --control PATH         Unix socket for the control protocol (move, button, fault, status)\n"
     "  --rate HZ              measurement cycles per second (default 120, shared among stations)\n"
+    "  --baud BPS             serial line speed of the device, paces output (default 115200, 0 = off)\n"
     "  --rate-per-station     every active station in every cycle instead of round robin\n"
     "  --binary --continuous --metric   power-up state (default ASCII, polled, inches)\n"
     "  --seed N               seed of the garbage-byte fault\n"
@@ -104,6 +105,8 @@ int Main(int argc, char** argv) {
       options.control_socket_path = value();
     } else if (arg == "--rate") {
       options.update_rate_hz = ParseDouble(value(), arg);
+    } else if (arg == "--baud") {
+      options.baud = static_cast<int>(ParseDouble(value(), arg));
     } else if (arg == "--rate-per-station") {
       options.divide_rate_among_stations = false;
     } else if (arg == "--binary") {
