@@ -44,14 +44,20 @@ PseudoTerminal::PseudoTerminal() {
     ThrowErrno("open " + slave_path_);
   }
   termios tio{};
-  if (tcgetattr(slave_fd_, &tio) != 0) ThrowErrno("tcgetattr " + slave_path_);
-  cfmakeraw(&tio);
-  tio.c_cflag |= CLOCAL | CREAD;
-  tio.c_cc[VMIN] = 0;
-  tio.c_cc[VTIME] = 0;
-  cfsetispeed(&tio, B115200);
-  cfsetospeed(&tio, B115200);
-  if (tcsetattr(slave_fd_, TCSANOW, &tio) != 0) ThrowErrno("tcsetattr " + slave_path_);
+  if (tcgetattr(slave_fd_, &tio) == 0) {
+    cfmakeraw(&tio);
+    tio.c_cflag |= CLOCAL | CREAD;
+    tio.c_cc[VMIN] = 0;
+    tio.c_cc[VTIME] = 0;
+    cfsetispeed(&tio, B115200);
+    cfsetospeed(&tio, B115200);
+    if (tcsetattr(slave_fd_, TCSANOW, &tio) == 0) return;
+  }
+  const int saved = errno;
+  close(slave_fd_);
+  close(master_fd_);
+  errno = saved;
+  ThrowErrno("raw mode on " + slave_path_);
 }
 
 PseudoTerminal::~PseudoTerminal() {
