@@ -52,8 +52,9 @@ double ParseNumber(const std::string& token, const std::string& field) {
 int ParseInteger(const std::string& token, const std::string& field, int min, int max) {
   const double v = ParseNumber(token, field);
   if (v != std::floor(v) || v < min || v > max) {
-    throw std::invalid_argument("field '" + field + "': must be an integer in [" + std::to_string(min) +
-                                ", " + std::to_string(max) + "], got '" + token + "'");
+    throw std::invalid_argument("field '" + field + "': must be an integer in [" +
+                                std::to_string(min) + ", " + std::to_string(max) + "], got '" +
+                                token + "'");
   }
   return static_cast<int>(v);
 }
@@ -76,8 +77,9 @@ ControlCommand ParseControlCommand(const std::string& line) {
     c.station = ParseInteger(t[1], "station", 1, kMaxStations);
     c.transmitter_from_receiver.translation =
         Eigen::Vector3d(ParseNumber(t[2], "x"), ParseNumber(t[3], "y"), ParseNumber(t[4], "z"));
-    const Eigen::Quaterniond q = QuaternionFromWxyz(ParseNumber(t[5], "qw"), ParseNumber(t[6], "qx"),
-                                                    ParseNumber(t[7], "qy"), ParseNumber(t[8], "qz"));
+    const Eigen::Quaterniond q =
+        QuaternionFromWxyz(ParseNumber(t[5], "qw"), ParseNumber(t[6], "qx"),
+                           ParseNumber(t[7], "qy"), ParseNumber(t[8], "qz"));
     if (q.norm() < 1e-9) throw std::invalid_argument("fields 'qw qx qy qz': zero quaternion");
     c.transmitter_from_receiver.rotation = q.normalized();
     return c;
@@ -97,7 +99,8 @@ ControlCommand ParseControlCommand(const std::string& line) {
   }
   if (verb == "help") return HelpCommand{};
   if (verb == "fault") {
-    if (t.size() < 2) throw std::invalid_argument("usage: fault garbage|stall|disconnect|truncate ...");
+    if (t.size() < 2)
+      throw std::invalid_argument("usage: fault garbage|stall|disconnect|truncate ...");
     const std::string& kind = t[1];
     if (kind == "garbage") {
       ExpectArgs(t, 3, "fault garbage N");
@@ -131,7 +134,8 @@ void EmulatorOptions::Check() const {
     throw std::invalid_argument("EmulatorOptions.update_rate_hz: must be in (0, 100000]");
   }
   if (baud < 0) throw std::invalid_argument("EmulatorOptions.baud: must be >= 0");
-  if (!std::isfinite(run_seconds)) throw std::invalid_argument("EmulatorOptions.run_seconds: not finite");
+  if (!std::isfinite(run_seconds))
+    throw std::invalid_argument("EmulatorOptions.run_seconds: not finite");
   if (max_pending_output_bytes < 64) {
     throw std::invalid_argument("EmulatorOptions.max_pending_output_bytes: must be at least 64");
   }
@@ -186,7 +190,8 @@ void Emulator::OpenPty() {
   pty_ = std::make_unique<PseudoTerminal>();
   current_slave_path_ = pty_->slave_path();
   if (!options_.link_path.empty()) ReplaceSymlink(current_slave_path_, options_.link_path);
-  Log("pty " + current_slave_path_ + (options_.link_path.empty() ? "" : " <- " + options_.link_path));
+  Log("pty " + current_slave_path_ +
+      (options_.link_path.empty() ? "" : " <- " + options_.link_path));
   if (on_device_path) on_device_path(current_slave_path_);
 }
 
@@ -266,7 +271,9 @@ void Emulator::Run() {
     fds.push_back({wake_pipe_[0], POLLIN, 0});
     const int pty_index = (pty_ && !stalled) ? static_cast<int>(fds.size()) : -1;
     if (pty_index >= 0) {
-      fds.push_back({pty_->master_fd(), static_cast<short>(POLLIN | (output_queue_.empty() || !line_free ? 0 : POLLOUT)), 0});
+      fds.push_back(
+          {pty_->master_fd(),
+           static_cast<short>(POLLIN | (output_queue_.empty() || !line_free ? 0 : POLLOUT)), 0});
     }
     const int listen_index = listen_fd_ >= 0 ? static_cast<int>(fds.size()) : -1;
     if (listen_index >= 0) fds.push_back({listen_fd_, POLLIN, 0});
@@ -316,7 +323,8 @@ void Emulator::WriteHost(double now) {
   while (pty_ && !output_queue_.empty()) {
     if (line_busy_until_s_ > now) break;  // the wire is still busy with earlier bytes
     const std::string& head = output_queue_.front();
-    const ssize_t n = write(pty_->master_fd(), head.data() + output_head_sent_, head.size() - output_head_sent_);
+    const ssize_t n =
+        write(pty_->master_fd(), head.data() + output_head_sent_, head.size() - output_head_sent_);
     if (n <= 0) break;  // the host is not reading: keep it (bounded) for later
     line_busy_until_s_ = std::max(line_busy_until_s_, now) + n * seconds_per_byte;
     output_head_sent_ += n;
@@ -419,7 +427,8 @@ void Emulator::ServiceControl(short revents_listen, const std::vector<short>& re
       c.fd = -1;
     }
   }
-  clients_.erase(std::remove_if(clients_.begin(), clients_.end(), [](const ControlClient& c) { return c.fd < 0; }),
+  clients_.erase(std::remove_if(clients_.begin(), clients_.end(),
+                                [](const ControlClient& c) { return c.fd < 0; }),
                  clients_.end());
   if (revents_listen & POLLIN) {
     while (true) {
@@ -433,8 +442,9 @@ void Emulator::ServiceControl(short revents_listen, const std::vector<short>& re
 
 std::string Emulator::StatusLine() {
   std::ostringstream ss;
-  ss << "ok path=" << (pty_ ? current_slave_path_ : std::string("-")) << " connected=" << (pty_ ? 1 : 0)
-     << " stalled=" << (stall_until_s_ >= 0 ? 1 : 0) << " continuous=" << device_.continuous()
+  ss << "ok path=" << (pty_ ? current_slave_path_ : std::string("-"))
+     << " connected=" << (pty_ ? 1 : 0) << " stalled=" << (stall_until_s_ >= 0 ? 1 : 0)
+     << " continuous=" << device_.continuous()
      << " format=" << (device_.binary() ? "binary" : "ascii")
      << " units=" << (device_.metric() ? "cm" : "inches") << " active=";
   const std::vector<int> active = device_.ActiveStations();
@@ -491,7 +501,8 @@ std::string Emulator::HandleControlLine(const std::string& line) {
     }
     std::string operator()(const DisconnectFault& f) {
       if (!e->pty_) return "error: already disconnected";
-      e->Log("fault: disconnect " + e->current_slave_path_ + " for " + std::to_string(f.seconds) + " s");
+      e->Log("fault: disconnect " + e->current_slave_path_ + " for " + std::to_string(f.seconds) +
+             " s");
       e->ClosePty();
       e->reconnect_at_s_ = now + f.seconds;
       return "ok";

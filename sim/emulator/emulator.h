@@ -46,8 +46,9 @@ struct TruncateFault {
 };
 struct StatusCommand {};
 struct HelpCommand {};
-using ControlCommand = std::variant<MoveCommand, ReleaseCommand, ButtonCommand, GarbageFault,
-                                    StallFault, DisconnectFault, TruncateFault, StatusCommand, HelpCommand>;
+using ControlCommand =
+    std::variant<MoveCommand, ReleaseCommand, ButtonCommand, GarbageFault, StallFault,
+                 DisconnectFault, TruncateFault, StatusCommand, HelpCommand>;
 
 // Parses one control line:
 //   move STATION x y z qw qx qy qz   (metres; quaternion scalar first, normalised)
@@ -63,7 +64,8 @@ struct EmulatorOptions {
   FastrakDeviceOptions device;
   // Measurement cycles per second; a Fastrak makes 120 and shares them among the active stations.
   double update_rate_hz = 120.0;
-  // true: one station per cycle, round robin (the Fastrak); false: every active station every cycle.
+  // true: one station per cycle, round robin (the Fastrak); false: every active station every
+  // cycle.
   bool divide_rate_among_stations = true;
   // Serial line speed of the device (its I/O select switches), bits per second with 10 bits per
   // byte (8N1): output leaves at most this fast, one whole item at a time. 0 = unlimited. A pty
@@ -86,10 +88,10 @@ struct EmulatorOptions {
 };
 
 struct EmulatorStats {
-  int64_t records_sent = 0;      // complete records queued for the host
-  int64_t records_dropped = 0;   // records lost because the host did not read
-  int64_t bytes_received = 0;    // bytes the host wrote
-  int64_t reconnects = 0;        // completed disconnect faults
+  int64_t records_sent = 0;     // complete records queued for the host
+  int64_t records_dropped = 0;  // records lost because the host did not read
+  int64_t bytes_received = 0;   // bytes the host wrote
+  int64_t reconnects = 0;       // completed disconnect faults
 };
 
 class Emulator {

@@ -1,10 +1,12 @@
 // The emulator over a real pseudo-terminal: a test client behaves like VRPN's vrpn_Tracker_Fastrak
-// (port settings of FASTRAK.md section 2, reset sequence of section 4 without its sleeps) and checks
-// records byte by byte; each fault is injected through the control socket and observed on the line.
+// (port settings of FASTRAK.md section 2, reset sequence of section 4 without its sleeps) and
+// checks records byte by byte; each fault is injected through the control socket and observed on
+// the line.
 
 #include "sim/emulator/emulator.h"
 
 #include <fcntl.h>
+#include <gtest/gtest.h>
 #include <poll.h>
 #include <signal.h>
 #include <spawn.h>
@@ -13,8 +15,6 @@
 #include <sys/wait.h>
 #include <termios.h>
 #include <unistd.h>
-
-#include <gtest/gtest.h>
 
 #include <chrono>
 #include <fstream>
@@ -44,9 +44,10 @@ std::filesystem::path Transcript07() {
 
 // The two stations of transcripts 07/08 (FASTRAK.md section 11), in metres.
 std::vector<Rigid3d> TranscriptPoses() {
-  return {Rigid3d(QuaternionFromWxyz(4.0, 1.0, 2.0, 3.0).normalized(),
-                  Eigen::Vector3d(10, -5, 20) * kMetresPerInch),
-          Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(1.5, 2.5, -3.5) * kMetresPerInch)};
+  return {
+      Rigid3d(QuaternionFromWxyz(4.0, 1.0, 2.0, 3.0).normalized(),
+              Eigen::Vector3d(10, -5, 20) * kMetresPerInch),
+      Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(1.5, 2.5, -3.5) * kMetresPerInch)};
 }
 
 // A serial port opened and configured the way the reference driver does it.
@@ -91,13 +92,15 @@ class SerialClient {
   }
 
   // Reads what arrives during `duration_s`; `arrivals` gets (time, bytes so far) per chunk.
-  std::string ReadFor(double duration_s, std::vector<std::pair<double, size_t>>* arrivals = nullptr) {
+  std::string ReadFor(double duration_s,
+                      std::vector<std::pair<double, size_t>>* arrivals = nullptr) {
     std::string out;
     const auto t0 = Clock::now();
     while (!hung_up_) {
       const double left = duration_s - SecondsSince(t0);
       if (left <= 0) break;
-      if (ReadSome(1 << 16, left, &out) && arrivals) arrivals->push_back({SecondsSince(t0), out.size()});
+      if (ReadSome(1 << 16, left, &out) && arrivals)
+        arrivals->push_back({SecondsSince(t0), out.size()});
     }
     return out;
   }
@@ -187,7 +190,8 @@ class EmulatorTest : public ::testing::Test {
     options_.device.num_stations = 2;
     // Power-up state chosen to exercise the driver's `c` + flush: ASCII records stream at once.
     options_.device.continuous = true;
-    source_ = std::make_unique<ControlledPoseSource>(std::make_unique<StaticPoseSource>(TranscriptPoses()));
+    source_ = std::make_unique<ControlledPoseSource>(
+        std::make_unique<StaticPoseSource>(TranscriptPoses()));
   }
   void TearDown() override { Stop(); }
 
@@ -206,8 +210,8 @@ class EmulatorTest : public ::testing::Test {
     return emulator::Control(options_.control_socket_path, line);
   }
 
-  // The reset sequence of transcript 07 with the driver's flushes but none of its sleeps. Leaves the
-  // client with a record-aligned binary stream started.
+  // The reset sequence of transcript 07 with the driver's flushes but none of its sleeps. Leaves
+  // the client with a record-aligned binary stream started.
   void Handshake(SerialClient* client, const std::string& host_lines) {
     const std::string device_bytes = ReadFile(Transcript07() / "serial_device_to_host.bin");
     client->Write("c");
@@ -258,16 +262,18 @@ TEST_F(EmulatorTest, Nominal) {
   stream_ += client.ReadExactly(960 - stream_.size(), 2.0);
   EXPECT_EQ(stream_, device_bytes.substr(55, 960));
   // Rate: 120 Hz shared by 2 stations; 0.5 s gives 60 records. The margin covers the records in
-  // flight at both ends and a loaded machine (the schedule restarts after a 0.1 s lag); a burst or a
-  // wrong rate (60 or 240 Hz) falls outside.
+  // flight at both ends and a loaded machine (the schedule restarts after a 0.1 s lag); a burst or
+  // a wrong rate (60 or 240 Hz) falls outside.
   stream_.clear();
   int n = 0;
   std::string more = client.ReadFor(0.5);
-  const std::vector<std::string> records = {device_bytes.substr(55, 32), device_bytes.substr(87, 32)};
+  const std::vector<std::string> records = {device_bytes.substr(55, 32),
+                                            device_bytes.substr(87, 32)};
   EXPECT_TRUE(StripRecords(&more, records, &n).empty());
   EXPECT_GE(n, 40);
   EXPECT_LE(n, 70);
-  EXPECT_NE(Control("status").find("continuous=1 format=binary units=inches active=1,2"), std::string::npos);
+  EXPECT_NE(Control("status").find("continuous=1 format=binary units=inches active=1,2"),
+            std::string::npos);
 }
 
 TEST_F(EmulatorTest, PolledAsciiAndBinary) {
@@ -279,7 +285,8 @@ TEST_F(EmulatorTest, PolledAsciiAndBinary) {
   client.Write("P");
   const std::string ascii = client.ReadExactly(2 * 47, 1.0);
   ASSERT_EQ(ascii.size(), 2 * 47u);
-  // Station 1 at (10, -5, 20) in; Euler angles of (4, 1, 2, 3)/sqrt(30) are checked in the device test.
+  // Station 1 at (10, -5, 20) in; Euler angles of (4, 1, 2, 3)/sqrt(30) are checked in the device
+  // test.
   EXPECT_EQ(ascii.substr(0, 24), "01   10.00  -5.00  20.00");
   EXPECT_EQ(ascii.substr(45, 5), "\r\n02 ");
   EXPECT_EQ(ascii.substr(47, 24), "02    1.50   2.50  -3.50");
@@ -316,7 +323,8 @@ TEST_F(EmulatorTest, FollowsTrajectory) {
   frames[0][0].transmitter_from_receiver.translation = {0.10, 0, 0};
   frames[0][1].t_s = 1.0;
   frames[0][1].transmitter_from_receiver.translation = {0.30, 0, 0};
-  source_ = std::make_unique<ControlledPoseSource>(std::make_unique<TrajectoryPoseSource>(frames, false));
+  source_ =
+      std::make_unique<ControlledPoseSource>(std::make_unique<TrajectoryPoseSource>(frames, false));
   options_.device.num_stations = 1;
   options_.device.continuous = false;
   Start();
@@ -366,7 +374,8 @@ TEST_F(EmulatorTest, GarbageAndTruncatedRecord) {
   ASSERT_TRUE(client.ok());
   Handshake(&client, Transcript07Lines());
   const std::string device_bytes = ReadFile(Transcript07() / "serial_device_to_host.bin");
-  const std::vector<std::string> records = {device_bytes.substr(55, 32), device_bytes.substr(87, 32)};
+  const std::vector<std::string> records = {device_bytes.substr(55, 32),
+                                            device_bytes.substr(87, 32)};
   int n = 0;
   stream_ += client.ReadFor(0.1);
   ASSERT_TRUE(StripRecords(&stream_, records, &n).empty());
@@ -403,7 +412,8 @@ TEST_F(EmulatorTest, Stall) {
   ASSERT_GE(arrivals.size(), 2u);
   // The silence may start before the first read (counted from the start of reading).
   double longest = arrivals[0].first;
-  for (size_t i = 1; i < arrivals.size(); ++i) longest = std::max(longest, arrivals[i].first - arrivals[i - 1].first);
+  for (size_t i = 1; i < arrivals.size(); ++i)
+    longest = std::max(longest, arrivals[i].first - arrivals[i - 1].first);
   // The gap spans the stall minus the control round trip, at most one record period (8.3 ms)
   // already on the way, and poll's millisecond rounding; 0.45 s leaves margin for all.
   EXPECT_GE(longest, 0.45);
@@ -436,7 +446,8 @@ TEST_F(EmulatorTest, DisconnectAndReconnect) {
   std::string got = client.ReadExactly(320, 1.0);
   const std::string device_bytes = ReadFile(Transcript07() / "serial_device_to_host.bin");
   int n = 0;
-  EXPECT_TRUE(StripRecords(&got, {device_bytes.substr(55, 32), device_bytes.substr(87, 32)}, &n).empty());
+  EXPECT_TRUE(
+      StripRecords(&got, {device_bytes.substr(55, 32), device_bytes.substr(87, 32)}, &n).empty());
   EXPECT_EQ(n, 10);
   EXPECT_NE(Control("status").find("reconnects=1"), std::string::npos);
 }
@@ -465,7 +476,8 @@ TEST(ParseControlCommand, Nominal) {
   EXPECT_EQ(std::get<StallFault>(ParseControlCommand("fault stall 1.5")).seconds, 1.5);
   EXPECT_EQ(std::get<TruncateFault>(ParseControlCommand("fault truncate")).keep_bytes, -1);
   EXPECT_EQ(std::get<GarbageFault>(ParseControlCommand("  fault   garbage 3 ")).num_bytes, 3);
-  EXPECT_THROW(ParseControlCommand("move 1 0 0 0 0 0 0 0"), std::invalid_argument);  // zero quaternion
+  EXPECT_THROW(ParseControlCommand("move 1 0 0 0 0 0 0 0"),
+               std::invalid_argument);  // zero quaternion
   EXPECT_THROW(ParseControlCommand("fault garbage 1.5"), std::invalid_argument);
   EXPECT_THROW(ParseControlCommand("fault stall -1"), std::invalid_argument);
   EXPECT_THROW(ParseControlCommand("button 1 2"), std::invalid_argument);
@@ -485,7 +497,8 @@ TEST(TrackcalEmulate, SigtermRemovesLink) {
   posix_spawn_file_actions_init(&actions);
   posix_spawn_file_actions_adddup2(&actions, out[1], 1);
   posix_spawn_file_actions_addclose(&actions, out[0]);
-  std::vector<std::string> args = {exe, "--link", link, "--stations", "1", "--pose", "1=0.2,0,0,1,0,0,0"};
+  std::vector<std::string> args = {exe,      "--link",           link, "--stations", "1",
+                                   "--pose", "1=0.2,0,0,1,0,0,0"};
   std::vector<char*> argv;
   for (std::string& a : args) argv.push_back(a.data());
   argv.push_back(nullptr);

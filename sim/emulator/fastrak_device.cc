@@ -53,7 +53,8 @@ std::vector<std::string> SplitCommas(std::string_view s) {
   size_t start = 0;
   while (true) {
     const size_t comma = s.find(',', start);
-    parts.push_back(Trim(s.substr(start, comma == std::string_view::npos ? s.npos : comma - start)));
+    parts.push_back(
+        Trim(s.substr(start, comma == std::string_view::npos ? s.npos : comma - start)));
     if (comma == std::string_view::npos) break;
     start = comma + 1;
   }
@@ -115,7 +116,8 @@ void AppendFloat32Le(float v, std::string* out) {
 
 float ReadFloat32Le(const char* bytes) {
   uint32_t bits = 0;
-  for (int i = 0; i < 4; ++i) bits |= static_cast<uint32_t>(static_cast<unsigned char>(bytes[i])) << (8 * i);
+  for (int i = 0; i < 4; ++i)
+    bits |= static_cast<uint32_t>(static_cast<unsigned char>(bytes[i])) << (8 * i);
   return std::bit_cast<float>(bits);
 }
 
@@ -306,7 +308,8 @@ void FastrakDevice::HandleLine(const std::string& line) {
       break;
     }
     case 'H': {
-      if (!ParseStationCommand(args, &s, &rest) || rest.size() != 3) return ignore("expects station,x,y,z");
+      if (!ParseStationCommand(args, &s, &rest) || rest.size() != 3)
+        return ignore("expects station,x,y,z");
       Eigen::Vector3d h;
       for (int i = 0; i < 3; ++i) {
         if (!ParseDouble(rest[i], &h[i])) return ignore("bad component '" + rest[i] + "'");
@@ -325,7 +328,8 @@ void FastrakDevice::HandleLine(const std::string& line) {
     }
     case 'e': {
       int function = 0;
-      if (!ParseStationCommand(args, &s, &rest) || rest.size() != 1 || !ParseInt(rest[0], &function)) {
+      if (!ParseStationCommand(args, &s, &rest) || rest.size() != 1 ||
+          !ParseInt(rest[0], &function)) {
         return ignore("expects station,function");
       }
       stations_[s - 1].stylus_function = function;

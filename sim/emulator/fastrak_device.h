@@ -2,15 +2,17 @@
 // with no I/O and no clock, so every byte it answers is unit-testable without a pseudo-terminal.
 //
 // Facts come from ../shared/vrpn/FASTRAK.md (copied knowledge, see docs/emulator.md): what the VRPN
-// reference driver sends and accepts was verified byte for byte against its transcripts; the rest of
-// the command set (ASCII records, Euler angles, direction cosines, hemisphere, `l`) is general Polhemus
-// knowledge, implemented as documented in docs/emulator.md and not verified against hardware.
+// reference driver sends and accepts was verified byte for byte against its transcripts; the rest
+// of the command set (ASCII records, Euler angles, direction cosines, hemisphere, `l`) is general
+// Polhemus knowledge, implemented as documented in docs/emulator.md and not verified against
+// hardware.
 //
 // Command framing (what a Fastrak does, as far as the driver needs it):
 // - single-character commands act at once, with or without a following CR: `c` `C` `P` `S` `f` `F`
 //   `u` `U` `t` `Y` and Ctrl-Y (0x19, reinitialise);
 // - every other printable character starts a line command that ends at CR or LF (`O1,2,11,0\r`);
-//   CR LF, LF CR, bare CR and blank lines are all accepted; an unknown command is ignored and counted.
+//   CR LF, LF CR, bare CR and blank lines are all accepted; an unknown command is ignored and
+//   counted.
 
 #pragma once
 
@@ -30,15 +32,15 @@ inline constexpr double kCentimetresPerInch = 2.54;
 
 // Output list items (the numbers of the `O` command).
 enum OutputItem : int {
-  kItemSpace = 0,          // one space character
-  kItemCrLf = 1,           // CR LF
-  kItemPosition = 2,       // x, y, z in the current units
-  kItemEulerAngles = 4,    // azimuth, elevation, roll in degrees (ZYX)
+  kItemSpace = 0,              // one space character
+  kItemCrLf = 1,               // CR LF
+  kItemPosition = 2,           // x, y, z in the current units
+  kItemEulerAngles = 4,        // azimuth, elevation, roll in degrees (ZYX)
   kItemXDirectionCosines = 5,  // first row of the rotation matrix (x components of the axes)
   kItemYDirectionCosines = 6,  // second row
   kItemZDirectionCosines = 7,  // third row
-  kItemQuaternion = 11,    // w, x, y, z
-  kItemStylusSwitch = 16,  // ' ' then '0' or '1' (binary and ASCII)
+  kItemQuaternion = 11,        // w, x, y, z
+  kItemStylusSwitch = 16,      // ' ' then '0' or '1' (binary and ASCII)
 };
 
 // True for the output items this emulator can format.
@@ -70,12 +72,12 @@ struct FastrakDeviceOptions {
 
 // One station's configuration.
 struct StationState {
-  bool connected = false;                  // a receiver is plugged in
-  bool active = false;                     // reported in records (`l` command)
-  std::vector<int> output_list;            // `O` command, items in order
-  Eigen::Vector3d hemisphere{1, 0, 0};     // `H` command; zero vector = hemisphere tracking
+  bool connected = false;                    // a receiver is plugged in
+  bool active = false;                       // reported in records (`l` command)
+  std::vector<int> output_list;              // `O` command, items in order
+  Eigen::Vector3d hemisphere{1, 0, 0};       // `H` command; zero vector = hemisphere tracking
   Eigen::Vector3d last_position_m{1, 0, 0};  // for hemisphere tracking
-  int stylus_function = 0;                 // `e` command, stored only
+  int stylus_function = 0;                   // `e` command, stored only
 };
 
 class FastrakDevice {
@@ -134,7 +136,7 @@ class FastrakDevice {
   bool metric_ = false;
   std::string position_filter_;
   std::string attitude_filter_;
-  std::string line_;        // line command being received
+  std::string line_;  // line command being received
   bool in_line_ = false;
   bool line_overflow_ = false;
   int64_t commands_accepted_ = 0;

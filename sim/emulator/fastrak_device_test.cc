@@ -24,8 +24,8 @@ std::filesystem::path TranscriptDir(const std::string& name) {
 }
 
 // The poses the reference emulator streamed in transcripts 07 and 08 (FASTRAK.md section 11):
-// station 1 at (10, -5, 20) in with W,X,Y,Z = (4, 1, 2, 3) / sqrt(30); station 2 at (1.5, 2.5, -3.5) in,
-// identity.
+// station 1 at (10, -5, 20) in with W,X,Y,Z = (4, 1, 2, 3) / sqrt(30); station 2 at (1.5, 2.5,
+// -3.5) in, identity.
 StationMeasurement TranscriptStation(int station) {
   StationMeasurement m;
   if (station == 1) {
@@ -37,7 +37,9 @@ StationMeasurement TranscriptStation(int station) {
   return m;
 }
 
-FastrakDevice::Measure TranscriptMeasure() { return [](int s) { return TranscriptStation(s); }; }
+FastrakDevice::Measure TranscriptMeasure() {
+  return [](int s) { return TranscriptStation(s); };
+}
 
 std::string Hex(std::string_view bytes) {
   std::string out;
@@ -84,7 +86,8 @@ std::vector<std::vector<double>> ReadClientCsv(const std::filesystem::path& path
 TEST(FastrakDevice, Nominal) {
   // Transcript 07: what the reference driver wrote produces the status record and the record stream
   // the driver accepted, byte for byte.
-  const std::string host = ReadFile(TranscriptDir("07_fastrak_emulated_tcp") / "serial_host_to_device.bin");
+  const std::string host =
+      ReadFile(TranscriptDir("07_fastrak_emulated_tcp") / "serial_host_to_device.bin");
   const std::string device_bytes =
       ReadFile(TranscriptDir("07_fastrak_emulated_tcp") / "serial_device_to_host.bin");
   ASSERT_EQ(device_bytes.size(), 1024u);
@@ -125,14 +128,16 @@ TEST(FastrakDevice, Nominal) {
 }
 
 TEST(FastrakDevice, ByteByByteEqualsOneChunk) {
-  const std::string host = ReadFile(TranscriptDir("07_fastrak_emulated_tcp") / "serial_host_to_device.bin");
+  const std::string host =
+      ReadFile(TranscriptDir("07_fastrak_emulated_tcp") / "serial_host_to_device.bin");
   FastrakDevice whole(FastrakDeviceOptions{});
   FastrakDevice bytewise(FastrakDeviceOptions{});
   const std::string a = whole.Receive(host, TranscriptMeasure());
   std::string b;
   for (const char c : host) b += bytewise.Receive(std::string_view(&c, 1), TranscriptMeasure());
   EXPECT_EQ(a, b);
-  EXPECT_EQ(whole.FormatRecord(1, TranscriptStation(1)), bytewise.FormatRecord(1, TranscriptStation(1)));
+  EXPECT_EQ(whole.FormatRecord(1, TranscriptStation(1)),
+            bytewise.FormatRecord(1, TranscriptStation(1)));
 }
 
 TEST(FastrakDevice, StylusCentimetresTranscript) {
@@ -143,7 +148,8 @@ TEST(FastrakDevice, StylusCentimetresTranscript) {
   const std::string reply = device.Receive(host, TranscriptMeasure());
   // The status record is the same as in transcript 07 (same power-up state when `S` arrives).
   const std::string status07 =
-      ReadFile(TranscriptDir("07_fastrak_emulated_tcp") / "serial_device_to_host.bin").substr(0, 55);
+      ReadFile(TranscriptDir("07_fastrak_emulated_tcp") / "serial_device_to_host.bin")
+          .substr(0, 55);
   EXPECT_EQ(reply, status07);
   EXPECT_TRUE(device.metric());
   EXPECT_EQ(device.station(1).output_list, (std::vector<int>{2, 11, 16, 0}));
@@ -259,7 +265,8 @@ TEST(FastrakDevice, BinaryEulerAndDirectionCosines) {
   device.Receive("fO1,4,5,6,7\r", TranscriptMeasure());
   StationMeasurement m;
   m.transmitter_from_receiver.translation = Eigen::Vector3d(0.2, 0, 0);
-  m.transmitter_from_receiver.rotation = Eigen::Quaterniond(Eigen::AngleAxisd(0.5, Eigen::Vector3d(1, 2, 3).normalized()));
+  m.transmitter_from_receiver.rotation =
+      Eigen::Quaterniond(Eigen::AngleAxisd(0.5, Eigen::Vector3d(1, 2, 3).normalized()));
   const std::string r = device.FormatRecord(1, m);
   ASSERT_EQ(r.size(), 3 + 48u);
   ASSERT_EQ(device.BinaryRecordSize(1), r.size());
@@ -337,7 +344,10 @@ TEST(FastrakDevice, CtrlYReinitialises) {
   EXPECT_EQ(device.station(1).output_list, (std::vector<int>{2, 4, 1}));
   EXPECT_EQ(device.station(2).output_list, (std::vector<int>{2, 4, 1}));
   // The escalating reset of the driver (CR, Y, t, ^Y, c) leaves a device that answers S.
-  const std::string reply = device.Receive("\rYt\x19" "cS", TranscriptMeasure());
+  const std::string reply = device.Receive(
+      "\rYt\x19"
+      "cS",
+      TranscriptMeasure());
   EXPECT_EQ(reply.size(), 55u);
 }
 

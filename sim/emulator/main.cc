@@ -28,16 +28,19 @@ void OnSignal(int) {
 
 const char kUsage[] =
     "usage: trackcal-emulate [options]\n"
-    "Emulates a Polhemus Fastrak on a pseudo-terminal; prints the device path on stdout (again after\n"
+    "Emulates a Polhemus Fastrak on a pseudo-terminal; prints the device path on stdout (again "
+    "after\n"
     "each reconnect).\n"
     "  --stations N           receivers plugged in, 1-4 (default: from the pose source, else 2)\n"
     "  --pose S=x,y,z,qw,qx,qy,qz  static pose of station S in metres (repeatable)\n"
-    "  --trajectory FILE      CSV keyframes t,station,x,y,z,qw,qx,qy,qz[,button] (metres, seconds)\n"
+    "  --trajectory FILE      CSV keyframes t,station,x,y,z,qw,qx,qy,qz[,button] (metres, "
+    "seconds)\n"
     "  --loop                 repeat the trajectory\n"
     "  --link PATH            symlink to the device, replaced atomically, removed at exit\n"
     "  --control PATH         Unix socket for the control protocol (move, button, fault, status)\n"
     "  --rate HZ              measurement cycles per second (default 120, shared among stations)\n"
-    "  --baud BPS             serial line speed of the device, paces output (default 115200, 0 = off)\n"
+    "  --baud BPS             serial line speed of the device, paces output (default 115200, 0 = "
+    "off)\n"
     "  --rate-per-station     every active station in every cycle instead of round robin\n"
     "  --binary --continuous --metric   power-up state (default ASCII, polled, inches)\n"
     "  --seed N               seed of the garbage-byte fault\n"
@@ -61,14 +64,16 @@ double ParseDouble(const std::string& s, const std::string& option) {
 
 std::pair<int, Rigid3d> ParsePose(const std::string& text) {
   const size_t eq = text.find('=');
-  if (eq == std::string::npos) UsageError("--pose: expected S=x,y,z,qw,qx,qy,qz, got '" + text + "'");
+  if (eq == std::string::npos)
+    UsageError("--pose: expected S=x,y,z,qw,qx,qy,qz, got '" + text + "'");
   const int station = static_cast<int>(ParseDouble(text.substr(0, eq), "--pose station"));
   if (station < 1 || station > kMaxStations) UsageError("--pose: station must be 1 to 4");
   std::vector<double> v;
   std::stringstream ss(text.substr(eq + 1));
   std::string item;
   while (std::getline(ss, item, ',')) v.push_back(ParseDouble(item, "--pose"));
-  if (v.size() != 7) UsageError("--pose: expected 7 numbers after '=', got " + std::to_string(v.size()));
+  if (v.size() != 7)
+    UsageError("--pose: expected 7 numbers after '=', got " + std::to_string(v.size()));
   const Eigen::Quaterniond q = trackcal::QuaternionFromWxyz(v[3], v[4], v[5], v[6]);
   if (q.norm() < 1e-9) UsageError("--pose: zero quaternion");
   return {station, Rigid3d(q.normalized(), Eigen::Vector3d(v[0], v[1], v[2]))};
@@ -134,7 +139,8 @@ int Main(int argc, char** argv) {
     source_stations = t->num_stations();
     base = std::move(t);
   } else {
-    // Unspecified stations sit 30 cm in front of the transmitter, 10 cm apart, in the +x hemisphere.
+    // Unspecified stations sit 30 cm in front of the transmitter, 10 cm apart, in the +x
+    // hemisphere.
     std::vector<Rigid3d> fixed(kMaxStations);
     for (int s = 0; s < kMaxStations; ++s) {
       fixed[s].translation = Eigen::Vector3d(0.3, 0.1 * s - 0.15, 0.1);

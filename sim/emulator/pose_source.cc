@@ -65,8 +65,8 @@ TrajectoryPoseSource::TrajectoryPoseSource(std::vector<std::vector<TrajectoryKey
   }
 }
 
-std::unique_ptr<TrajectoryPoseSource> TrajectoryPoseSource::ReadCsv(const std::filesystem::path& path,
-                                                                    bool loop) {
+std::unique_ptr<TrajectoryPoseSource> TrajectoryPoseSource::ReadCsv(
+    const std::filesystem::path& path, bool loop) {
   std::ifstream in(path);
   if (!in) throw std::invalid_argument(path.string() + ": cannot open trajectory file");
   const std::vector<std::string> required = {"t", "station", "x", "y", "z", "qw", "qx", "qy", "qz"};
@@ -89,7 +89,8 @@ std::unique_ptr<TrajectoryPoseSource> TrajectoryPoseSource::ReadCsv(const std::f
         }
       }
       for (const std::string& name : required) {
-        if (!column.count(name)) throw std::invalid_argument(where + ": missing column '" + name + "'");
+        if (!column.count(name))
+          throw std::invalid_argument(where + ": missing column '" + name + "'");
       }
       have_header = true;
       continue;
@@ -103,7 +104,8 @@ std::unique_ptr<TrajectoryPoseSource> TrajectoryPoseSource::ReadCsv(const std::f
       char* end = nullptr;
       const double v = std::strtod(cell.c_str(), &end);
       if (cell.empty() || *end != '\0' || !std::isfinite(v)) {
-        throw std::invalid_argument(where + ": field '" + name + "': not a finite number: '" + cell + "'");
+        throw std::invalid_argument(where + ": field '" + name + "': not a finite number: '" +
+                                    cell + "'");
       }
       return v;
     };
@@ -114,8 +116,10 @@ std::unique_ptr<TrajectoryPoseSource> TrajectoryPoseSource::ReadCsv(const std::f
     }
     TrajectoryKeyframe k;
     k.t_s = number("t");
-    k.transmitter_from_receiver.translation = Eigen::Vector3d(number("x"), number("y"), number("z"));
-    Eigen::Quaterniond q = QuaternionFromWxyz(number("qw"), number("qx"), number("qy"), number("qz"));
+    k.transmitter_from_receiver.translation =
+        Eigen::Vector3d(number("x"), number("y"), number("z"));
+    Eigen::Quaterniond q =
+        QuaternionFromWxyz(number("qw"), number("qx"), number("qy"), number("qz"));
     if (q.norm() < 1e-9) throw std::invalid_argument(where + ": fields 'qw..qz': zero quaternion");
     k.transmitter_from_receiver.rotation = q.normalized();
     if (column.count("button")) {
@@ -125,8 +129,8 @@ std::unique_ptr<TrajectoryPoseSource> TrajectoryPoseSource::ReadCsv(const std::f
     }
     std::vector<TrajectoryKeyframe>& frames = by_station[station];
     if (!frames.empty() && !(k.t_s > frames.back().t_s)) {
-      throw std::invalid_argument(where + ": field 't': times of station " + std::to_string(station) +
-                                  " must increase strictly");
+      throw std::invalid_argument(where + ": field 't': times of station " +
+                                  std::to_string(station) + " must increase strictly");
     }
     frames.push_back(k);
   }
@@ -158,14 +162,17 @@ Rigid3d TrajectoryPoseSource::TruePose(int station, double t_s) {
   const double t = LocalTime(station, t_s);
   if (t <= frames.front().t_s) return frames.front().transmitter_from_receiver;
   if (t >= frames.back().t_s) return frames.back().transmitter_from_receiver;
-  const auto next = std::upper_bound(frames.begin(), frames.end(), t,
-                                     [](double v, const TrajectoryKeyframe& k) { return v < k.t_s; });
+  const auto next =
+      std::upper_bound(frames.begin(), frames.end(), t,
+                       [](double v, const TrajectoryKeyframe& k) { return v < k.t_s; });
   const TrajectoryKeyframe& b = *next;
   const TrajectoryKeyframe& a = *(next - 1);
   const double u = (t - a.t_s) / (b.t_s - a.t_s);
   Rigid3d pose;
-  pose.translation = (1 - u) * a.transmitter_from_receiver.translation + u * b.transmitter_from_receiver.translation;
-  pose.rotation = a.transmitter_from_receiver.rotation.slerp(u, b.transmitter_from_receiver.rotation);
+  pose.translation = (1 - u) * a.transmitter_from_receiver.translation +
+                     u * b.transmitter_from_receiver.translation;
+  pose.rotation =
+      a.transmitter_from_receiver.rotation.slerp(u, b.transmitter_from_receiver.rotation);
   return pose;
 }
 
@@ -173,13 +180,15 @@ bool TrajectoryPoseSource::StylusButton(int station, double t_s) {
   CheckStation(station, keyframes_.size(), "TrajectoryPoseSource");
   const std::vector<TrajectoryKeyframe>& frames = keyframes_[station - 1];
   const double t = LocalTime(station, t_s);
-  const auto next = std::upper_bound(frames.begin(), frames.end(), t,
-                                     [](double v, const TrajectoryKeyframe& k) { return v < k.t_s; });
+  const auto next =
+      std::upper_bound(frames.begin(), frames.end(), t,
+                       [](double v, const TrajectoryKeyframe& k) { return v < k.t_s; });
   if (next == frames.begin()) return frames.front().stylus_button;
   return (next - 1)->stylus_button;
 }
 
-ControlledPoseSource::ControlledPoseSource(std::unique_ptr<PoseSource> base) : base_(std::move(base)) {
+ControlledPoseSource::ControlledPoseSource(std::unique_ptr<PoseSource> base)
+    : base_(std::move(base)) {
   if (!base_) throw std::invalid_argument("ControlledPoseSource: base source is null");
 }
 

@@ -1,7 +1,7 @@
 // Where the emulator's stations are: a PoseSource gives the true pose of each receiver over time
-// (static, scripted trajectory, or moved through the control socket), and a MeasurementModel turns a
-// true pose into what the tracker reports (perfect by default; the physics simulator plugs in here:
-// reported = tracker solver applied to the distorted field at the true pose, plus noise).
+// (static, scripted trajectory, or moved through the control socket), and a MeasurementModel turns
+// a true pose into what the tracker reports (perfect by default; the physics simulator plugs in
+// here: reported = tracker solver applied to the distorted field at the true pose, plus noise).
 //
 // Poses are transmitter_from_receiver in metres; time is seconds since the emulator started.
 // Stations are numbered 1..4 like the Fastrak's.
@@ -76,7 +76,8 @@ class TrajectoryPoseSource final : public PoseSource {
   // keyframes[i] is station i + 1; each station needs at least one keyframe.
   TrajectoryPoseSource(std::vector<std::vector<TrajectoryKeyframe>> keyframes, bool loop);
   // Throws std::invalid_argument naming the file, line and column of the first error.
-  static std::unique_ptr<TrajectoryPoseSource> ReadCsv(const std::filesystem::path& path, bool loop);
+  static std::unique_ptr<TrajectoryPoseSource> ReadCsv(const std::filesystem::path& path,
+                                                       bool loop);
 
   Rigid3d TruePose(int station, double t_s) override;
   bool StylusButton(int station, double t_s) override;

@@ -65,21 +65,24 @@ TEST(TrajectoryPoseSource, Loop) {
 TEST(TrajectoryPoseSource, ErrorsNameFileLineField) {
   EXPECT_NE(ErrorOf(WriteFile("a.csv", "t,station,x,y,z,qw,qx,qy\n")).find("missing column 'qz'"),
             std::string::npos);
-  const std::string bad_number =
-      ErrorOf(WriteFile("b.csv", "t,station,x,y,z,qw,qx,qy,qz\n0,1,0,0,0,1,0,0,0\n1,1,abc,0,0,1,0,0,0\n"));
+  const std::string bad_number = ErrorOf(
+      WriteFile("b.csv", "t,station,x,y,z,qw,qx,qy,qz\n0,1,0,0,0,1,0,0,0\n1,1,abc,0,0,1,0,0,0\n"));
   EXPECT_NE(bad_number.find("b.csv:3"), std::string::npos) << bad_number;
   EXPECT_NE(bad_number.find("'x'"), std::string::npos) << bad_number;
-  const std::string bad_time =
-      ErrorOf(WriteFile("c.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,1,0,0,0,1,0,0,0\n1,1,0,0,0,1,0,0,0\n"));
+  const std::string bad_time = ErrorOf(
+      WriteFile("c.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,1,0,0,0,1,0,0,0\n1,1,0,0,0,1,0,0,0\n"));
   EXPECT_NE(bad_time.find("c.csv:3: field 't'"), std::string::npos) << bad_time;
   const std::string bad_station =
       ErrorOf(WriteFile("d.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,5,0,0,0,1,0,0,0\n"));
   EXPECT_NE(bad_station.find("field 'station'"), std::string::npos) << bad_station;
-  const std::string gap = ErrorOf(WriteFile("e.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,2,0,0,0,1,0,0,0\n"));
+  const std::string gap =
+      ErrorOf(WriteFile("e.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,2,0,0,0,1,0,0,0\n"));
   EXPECT_NE(gap.find("station 1 has no keyframe"), std::string::npos) << gap;
-  const std::string zero_q = ErrorOf(WriteFile("f.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,1,0,0,0,0,0,0,0\n"));
+  const std::string zero_q =
+      ErrorOf(WriteFile("f.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,1,0,0,0,0,0,0,0\n"));
   EXPECT_NE(zero_q.find("zero quaternion"), std::string::npos) << zero_q;
-  const std::string short_row = ErrorOf(WriteFile("g.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,1,0,0\n"));
+  const std::string short_row =
+      ErrorOf(WriteFile("g.csv", "t,station,x,y,z,qw,qx,qy,qz\n1,1,0,0\n"));
   EXPECT_NE(short_row.find("g.csv:2: expected 9 fields"), std::string::npos) << short_row;
   EXPECT_NE(ErrorOf("/nonexistent/traj.csv").find("cannot open"), std::string::npos);
 }

@@ -69,7 +69,8 @@ void ReplaceSymlink(const std::string& target, const std::filesystem::path& link
   std::error_code ec;
   const auto status = std::filesystem::symlink_status(link, ec);
   if (!ec && std::filesystem::exists(status) && !std::filesystem::is_symlink(status)) {
-    throw std::runtime_error(link.string() + ": exists and is not a symbolic link; not replacing it");
+    throw std::runtime_error(link.string() +
+                             ": exists and is not a symbolic link; not replacing it");
   }
   std::filesystem::path tmp = link;
   tmp += ".tmp" + std::to_string(getpid());

@@ -1,7 +1,7 @@
 // A pseudo-terminal that looks like a serial port to a driver: the slave is put in raw mode at once
-// and kept open by the emulator (FASTRAK.md section 11, pitfall 2: a fresh pty echoes, maps CR to LF
-// and eats 0x11/0x13 as flow control until someone configures it; and a master whose slave has no
-// open fd reads EIO).
+// and kept open by the emulator (FASTRAK.md section 11, pitfall 2: a fresh pty echoes, maps CR to
+// LF and eats 0x11/0x13 as flow control until someone configures it; and a master whose slave has
+// no open fd reads EIO).
 
 #pragma once
 
@@ -28,9 +28,9 @@ class PseudoTerminal {
   std::string slave_path_;
 };
 
-// Points the symbolic link `link` at `target`, atomically (a new link renamed over the old one), so a
-// driver never sees the link missing. Refuses (std::runtime_error) to replace anything that is not a
-// symbolic link.
+// Points the symbolic link `link` at `target`, atomically (a new link renamed over the old one), so
+// a driver never sees the link missing. Refuses (std::runtime_error) to replace anything that is
+// not a symbolic link.
 void ReplaceSymlink(const std::string& target, const std::filesystem::path& link);
 
 // Removes `link` if it is a symbolic link to `target` (so a link re-pointed by someone else stays).
