@@ -226,7 +226,7 @@ void Emulator::OpenControlSocket() {
 }
 
 void Emulator::RequestStop() {
-  stop_.store(true);
+  stop_.store(true);  // (no lock: async-signal-safe)
   const char byte = 1;
   [[maybe_unused]] const ssize_t n = write(wake_pipe_[1], &byte, 1);
 }
@@ -298,8 +298,55 @@ void Emulator::Run() {
     std::vector<short> client_revents;
     for (size_t i = first_client; i < fds.size(); ++i) client_revents.push_back(fds[i].revents);
     ServiceControl(listen_index >= 0 ? fds[listen_index].revents : 0, client_revents);
+    ServicePosted();
   }
   ClosePty();
+  // Callers still waiting get an answer instead of a timeout.
+  std::lock_guard<std::mutex> lock(posted_mutex_);
+  for (auto& [line, reply] : posted_) reply.set_value("error: emulator not running");
+  posted_.clear();
+}
+
+void Emulator::ServicePosted() {
+  std::deque<std::pair<std::string, std::promise<std::string>>> posted;
+  {
+    std::lock_guard<std::mutex> lock(posted_mutex_);
+    posted.swap(posted_);
+  }
+  for (auto& [line, reply] : posted) reply.set_value(HandleControlLine(line));
+}
+
+std::string Emulator::Control(const std::string& line) {
+  std::future<std::string> reply;
+  {
+    std::lock_guard<std::mutex> lock(posted_mutex_);
+    if (stop_.load()) return "error: emulator not running";
+    posted_.emplace_back(line, std::promise<std::string>());
+    reply = posted_.back().second.get_future();
+  }
+  const char byte = 2;
+  [[maybe_unused]] const ssize_t n = write(wake_pipe_[1], &byte, 1);
+  if (reply.wait_for(std::chrono::seconds(5)) != std::future_status::ready) {
+    return "error: emulator not running";
+  }
+  return reply.get();
+}
+
+BackgroundEmulator::BackgroundEmulator(EmulatorOptions options, std::unique_ptr<PoseSource> source,
+                                       std::unique_ptr<MeasurementModel> model)
+    : source_(std::make_unique<ControlledPoseSource>(std::move(source))),
+      model_(model ? std::move(model) : std::make_unique<PerfectMeasurement>()) {
+  emulator_ = std::make_unique<Emulator>(std::move(options), source_.get(), model_.get());
+  emulator_->on_device_path = [this](const std::string& path) {
+    if (initial_device_path_.empty()) initial_device_path_ = path;
+  };
+  emulator_->Start();
+  thread_ = std::thread([this] { emulator_->Run(); });
+}
+
+BackgroundEmulator::~BackgroundEmulator() {
+  emulator_->RequestStop();
+  thread_.join();
 }
 
 void Emulator::ReadHost(double now) {

@@ -8,7 +8,10 @@
 #include <cstdint>
 #include <deque>
 #include <functional>
+#include <future>
 #include <memory>
+#include <mutex>
+#include <thread>
 #include <random>
 #include <string>
 #include <variant>
@@ -115,6 +118,9 @@ class Emulator {
   // Executes one control line and returns the one-line reply ("ok ..." or "error: ...").
   // Called by the control socket; must be called on the Run() thread.
   std::string HandleControlLine(const std::string& line);
+  // The same from any other thread while Run() is serving: queued to the Run() thread, waits for
+  // the reply (at most 5 s; "error: emulator not running" otherwise).
+  std::string Control(const std::string& line);
 
   // Seconds since Start() on the steady clock (the PoseSource's time).
   double Now() const;
@@ -143,6 +149,7 @@ class Emulator {
   void DropUnstartedOutput();
   void QueueRecord(int station, double now);
   void ServiceControl(short revents_listen, const std::vector<short>& revents_clients);
+  void ServicePosted();
   std::string StatusLine();
 
   EmulatorOptions options_;
@@ -167,9 +174,36 @@ class Emulator {
   int listen_fd_ = -1;
   std::vector<ControlClient> clients_;
   int wake_pipe_[2] = {-1, -1};
+  std::mutex posted_mutex_;
+  std::deque<std::pair<std::string, std::promise<std::string>>> posted_;
   std::atomic<bool> stop_{false};
   int64_t start_ns_ = 0;
   EmulatorStats stats_;
+};
+
+// An emulator serving on its own thread, for end-to-end tests of drivers and servers: the pty is
+// open when the constructor returns and everything is closed (link removed) by the destructor.
+class BackgroundEmulator {
+ public:
+  // `model` defaults to PerfectMeasurement. The source is wrapped in a ControlledPoseSource so
+  // `move`/`button` work.
+  BackgroundEmulator(EmulatorOptions options, std::unique_ptr<PoseSource> source,
+                     std::unique_ptr<MeasurementModel> model = nullptr);
+  ~BackgroundEmulator();
+  BackgroundEmulator(const BackgroundEmulator&) = delete;
+  BackgroundEmulator& operator=(const BackgroundEmulator&) = delete;
+
+  // The device path at start ("/dev/pts/N"); after a disconnect fault use the link or `status`.
+  const std::string& initial_device_path() const { return initial_device_path_; }
+  // A control-protocol line (see ParseControlCommand), executed on the emulator thread.
+  std::string Control(const std::string& line) { return emulator_->Control(line); }
+
+ private:
+  std::unique_ptr<ControlledPoseSource> source_;
+  std::unique_ptr<MeasurementModel> model_;
+  std::unique_ptr<Emulator> emulator_;
+  std::string initial_device_path_;
+  std::thread thread_;
 };
 
 }  // namespace trackcal::emulator

@@ -528,3 +528,32 @@ TEST(TrackcalEmulate, SigtermRemovesLink) {
 
 }  // namespace
 }  // namespace trackcal::emulator
+
+namespace trackcal::emulator {
+namespace {
+
+TEST(BackgroundEmulator, Nominal) {
+  EmulatorOptions options;
+  options.device.num_stations = 1;
+  std::string path;
+  {
+    BackgroundEmulator emulator(options, std::make_unique<StaticPoseSource>(TranscriptPoses()));
+    path = emulator.initial_device_path();
+    ASSERT_EQ(path.rfind("/dev/pts/", 0), 0u) << path;
+    EXPECT_NE(emulator.Control("status").find("connected=1"), std::string::npos);
+    EXPECT_EQ(emulator.Control("move 1 0.0254 0 0 1 0 0 0"), "ok");
+    EXPECT_EQ(emulator.Control("move 0 0 0 0 1 0 0 0").rfind("error:", 0), 0u);
+    SerialClient client(path);
+    ASSERT_TRUE(client.ok());
+    client.Write("fO1,2\rP");
+    const std::string record = client.ReadExactly(15, 1.0);
+    ASSERT_EQ(record.size(), 15u);
+    EXPECT_EQ(ReadFloat32Le(&record[3]), 1.0f);  // 0.0254 m = 1 inch
+  }
+  // The destructor closed the pty: the path is gone or belongs to someone else now.
+  SerialClient after(path);
+  EXPECT_TRUE(!after.ok() || after.ReadFor(0.05).empty());
+}
+
+}  // namespace
+}  // namespace trackcal::emulator
