@@ -100,7 +100,7 @@ ControlCommand ParseControlCommand(const std::string& line) {
   if (verb == "help") return HelpCommand{};
   if (verb == "fault") {
     if (t.size() < 2)
-      throw std::invalid_argument("usage: fault garbage|stall|disconnect|truncate ...");
+      throw std::invalid_argument("usage: fault garbage|stall|powercycle|disconnect|truncate ...");
     const std::string& kind = t[1];
     if (kind == "garbage") {
       ExpectArgs(t, 3, "fault garbage N");
@@ -111,6 +111,12 @@ ControlCommand ParseControlCommand(const std::string& line) {
       const double s = ParseNumber(t[2], "SECONDS");
       if (s <= 0 || s > 3600) throw std::invalid_argument("field 'SECONDS': must be in (0, 3600]");
       return StallFault{s};
+    }
+    if (kind == "powercycle") {
+      ExpectArgs(t, 3, "fault powercycle SECONDS");
+      const double s = ParseNumber(t[2], "SECONDS");
+      if (s <= 0 || s > 3600) throw std::invalid_argument("field 'SECONDS': must be in (0, 3600]");
+      return PowerCycleFault{s};
     }
     if (kind == "disconnect") {
       ExpectArgs(t, 3, "fault disconnect SECONDS");
@@ -252,7 +258,19 @@ void Emulator::Run() {
     if (!stalled && stall_until_s_ >= 0) {
       stall_until_s_ = -1;
       next_cycle_s_ = now;
-      Log("stall over");
+      if (power_off_) {
+        // Power on: what the host sent meanwhile was never received; power-up state.
+        power_off_ = false;
+        if (pty_) {
+          char drain[1024];
+          while (read(pty_->master_fd(), drain, sizeof(drain)) > 0) {
+          }
+        }
+        device_.Reinitialise();
+        Log("power on");
+      } else {
+        Log("stall over");
+      }
     }
 
     // Wait for host bytes, control traffic, the next record or the end of a fault.
@@ -491,7 +509,7 @@ std::string Emulator::StatusLine() {
   std::ostringstream ss;
   ss << "ok path=" << (pty_ ? current_slave_path_ : std::string("-"))
      << " connected=" << (pty_ ? 1 : 0) << " stalled=" << (stall_until_s_ >= 0 ? 1 : 0)
-     << " continuous=" << device_.continuous()
+     << " power=" << (power_off_ ? "off" : "on") << " continuous=" << device_.continuous()
      << " format=" << (device_.binary() ? "binary" : "ascii")
      << " units=" << (device_.metric() ? "cm" : "inches") << " active=";
   const std::vector<int> active = device_.ActiveStations();
@@ -546,6 +564,16 @@ std::string Emulator::HandleControlLine(const std::string& line) {
       e->Log("fault: stall for " + std::to_string(f.seconds) + " s");
       return "ok";
     }
+    std::string operator()(const PowerCycleFault& f) {
+      e->stall_until_s_ = now + f.seconds;
+      e->power_off_ = true;
+      // Whatever had not left the device is lost, a record on the wire included.
+      e->output_queue_.clear();
+      e->output_head_sent_ = 0;
+      e->output_bytes_ = 0;
+      e->Log("fault: power off for " + std::to_string(f.seconds) + " s");
+      return "ok";
+    }
     std::string operator()(const DisconnectFault& f) {
       if (!e->pty_) return "error: already disconnected";
       e->Log("fault: disconnect " + e->current_slave_path_ + " for " + std::to_string(f.seconds) +
@@ -561,7 +589,8 @@ std::string Emulator::HandleControlLine(const std::string& line) {
     std::string operator()(const StatusCommand&) { return e->StatusLine(); }
     std::string operator()(const HelpCommand&) {
       return "ok commands: move STATION x y z qw qx qy qz | release STATION | button STATION 0|1 | "
-             "fault garbage N | fault stall SECONDS | fault disconnect SECONDS | "
+             "fault garbage N | fault stall SECONDS | fault powercycle SECONDS | "
+             "fault disconnect SECONDS | "
              "fault truncate [BYTES] | status";
     }
   };

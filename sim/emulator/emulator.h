@@ -11,9 +11,9 @@
 #include <future>
 #include <memory>
 #include <mutex>
-#include <thread>
 #include <random>
 #include <string>
+#include <thread>
 #include <variant>
 #include <vector>
 
@@ -41,6 +41,9 @@ struct GarbageFault {
 struct StallFault {
   double seconds = 0;
 };
+struct PowerCycleFault {
+  double seconds = 0;  // off time
+};
 struct DisconnectFault {
   double seconds = 0;
 };
@@ -51,13 +54,14 @@ struct StatusCommand {};
 struct HelpCommand {};
 using ControlCommand =
     std::variant<MoveCommand, ReleaseCommand, ButtonCommand, GarbageFault, StallFault,
-                 DisconnectFault, TruncateFault, StatusCommand, HelpCommand>;
+                 PowerCycleFault, DisconnectFault, TruncateFault, StatusCommand, HelpCommand>;
 
 // Parses one control line:
 //   move STATION x y z qw qx qy qz   (metres; quaternion scalar first, normalised)
 //   release STATION                  (back to the trajectory/static pose)
 //   button STATION 0|1
-//   fault garbage N | fault stall SECONDS | fault disconnect SECONDS | fault truncate [BYTES]
+//   fault garbage N | fault stall SECONDS | fault powercycle SECONDS | fault disconnect SECONDS |
+//   fault truncate [BYTES]
 //   status | help
 // Throws std::invalid_argument naming the field.
 ControlCommand ParseControlCommand(const std::string& line);
@@ -168,6 +172,7 @@ class Emulator {
   double next_cycle_s_ = 0;
   size_t round_robin_ = 0;
   double stall_until_s_ = -1;
+  bool power_off_ = false;  // the stall is a power cycle: reinitialise when it ends
   double reconnect_at_s_ = -1;
   int truncate_next_ = 0;  // 0 = none, >0 keep that many bytes, -1 keep half
   std::mt19937_64 rng_;

@@ -421,6 +421,28 @@ TEST_F(EmulatorTest, Stall) {
   EXPECT_GT(arrivals.back().first, 0.5) << "streaming did not resume";
 }
 
+TEST_F(EmulatorTest, PowerCycle) {
+  options_.device.continuous = false;  // the Fastrak's power-up state
+  Start();
+  SerialClient client(options_.link_path);
+  ASSERT_TRUE(client.ok());
+  Handshake(&client, Transcript07Lines());
+  client.ReadFor(0.05);
+  ASSERT_EQ(Control("fault powercycle 0.3"), "ok");
+  const std::string off = Control("status");
+  EXPECT_NE(off.find("power=off"), std::string::npos) << off;
+  client.FlushInput();  // what had reached the host before the power went
+  client.Write("S");    // lost: the device is off
+  // Off, then back in its power-up state: polled, so silent.
+  EXPECT_EQ(client.ReadFor(0.6), "");
+  EXPECT_NE(Control("status").find("power=on continuous=0 format=ascii"), std::string::npos);
+  client.Write("S");
+  const std::string status = client.ReadExactly(55, 1.0);
+  EXPECT_EQ(status, ReadFile(Transcript07() / "serial_device_to_host.bin").substr(0, 55));
+  client.Write("P");
+  EXPECT_EQ(client.ReadExactly(2 * 47, 1.0).size(), 2 * 47u);  // ASCII, output list 2,4,1
+}
+
 TEST_F(EmulatorTest, DisconnectAndReconnect) {
   Start();
   {
