@@ -19,6 +19,7 @@
 #include <chrono>
 #include <fstream>
 #include <iterator>
+#include <set>
 #include <thread>
 
 #include "tests/test_utils.h"
@@ -546,6 +547,60 @@ TEST(TrackcalEmulate, SigtermRemovesLink) {
   ASSERT_EQ(waitpid(pid, &status, 0), pid);
   EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
   EXPECT_FALSE(std::filesystem::exists(std::filesystem::symlink_status(link)));
+}
+
+// --trajectory with the example file, --duration: the command exits by itself and cleans up.
+TEST(TrackcalEmulate, TrajectoryAndDuration) {
+  const std::string exe =
+      (std::filesystem::read_symlink("/proc/self/exe").parent_path() / "trackcal-emulate").string();
+  const std::filesystem::path dir = testing::MakeTempDir("emulate_cli");
+  const std::string link = (dir / "fastrak").string();
+  const std::string trajectory =
+      (testing::SourceDir() / "tests/data/fastrak/example_trajectory.csv").string();
+  std::vector<std::string> args = {exe,          "--link", link,       "--trajectory", trajectory,
+                                   "--duration", "0.5",    "--binary", "--continuous"};
+  std::vector<char*> argv;
+  for (std::string& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, 1, "/dev/null", O_WRONLY, 0);
+  pid_t pid = 0;
+  ASSERT_EQ(posix_spawn(&pid, exe.c_str(), &actions, nullptr, argv.data(), environ), 0);
+  posix_spawn_file_actions_destroy(&actions);
+  const auto t0 = Clock::now();
+  while (!std::filesystem::exists(link) && SecondsSince(t0) < 2.0) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  {
+    SerialClient client(link);
+    ASSERT_TRUE(client.ok());
+    // Default output list 2,4,1 in binary: 3 + 12 + 12 + 2 bytes, stations 1 and 2 alternating.
+    const std::string bytes = client.ReadExactly(4 * 29, 1.0);
+    ASSERT_EQ(bytes.size(), 4 * 29u);
+    std::set<std::string> stations;
+    for (size_t i = 0; i < bytes.size(); i += 29) stations.insert(bytes.substr(i, 2));
+    EXPECT_EQ(stations, (std::set<std::string>{"01", "02"}));
+  }
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+  EXPECT_FALSE(std::filesystem::exists(std::filesystem::symlink_status(link)));
+}
+
+// Bad input: exit code 2 and a message naming file, line and field.
+TEST(TrackcalEmulate, BadTrajectoryIsAUserError) {
+  const std::string exe =
+      (std::filesystem::read_symlink("/proc/self/exe").parent_path() / "trackcal-emulate").string();
+  const std::filesystem::path dir = testing::MakeTempDir("emulate_cli");
+  std::ofstream(dir / "bad.csv")
+      << "t,station,x,y,z,qw,qx,qy,qz\n0,1,0.3,0,0,1,0,0,0\n1,1,0.3,oops,0,1,0,0,0\n";
+  const std::string command =
+      exe + " --trajectory " + (dir / "bad.csv").string() + " 2>" + (dir / "err.txt").string();
+  const int status = std::system(command.c_str());
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 2) << status;
+  const std::string err = ReadFile(dir / "err.txt");
+  EXPECT_NE(err.find("bad.csv:3: field 'y'"), std::string::npos) << err;
 }
 
 }  // namespace
