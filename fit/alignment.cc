@@ -12,8 +12,8 @@ Eigen::Matrix3d NearestRotation(const Eigen::Matrix3d& m) {
   return svd.matrixU() * d * svd.matrixV().transpose();
 }
 
-Rigid3d AlignPoints(const std::vector<Eigen::Vector3d>& from, const std::vector<Eigen::Vector3d>& to,
-                    const std::vector<double>& weights) {
+Rigid3d AlignPoints(const std::vector<Eigen::Vector3d>& from,
+                    const std::vector<Eigen::Vector3d>& to, const std::vector<double>& weights) {
   if (from.size() != to.size() || from.empty() ||
       (!weights.empty() && weights.size() != from.size())) {
     throw std::invalid_argument("AlignPoints: need equally many (>= 1) points and weights");

@@ -87,9 +87,9 @@ TEST(MarkerPositionCost, MatchesRigidComposition) {
   double q0[4], q[4];
   QuaternionToXyzwArray(optical_from_transmitter.rotation, q0);
   QuaternionToXyzwArray(transmitter_from_receiver.rotation, q);
-  const Eigen::Vector3d predicted = PredictMarkerInOptical(
-      q0, optical_from_transmitter.translation.data(), q, transmitter_from_receiver.translation.data(),
-      r.data());
+  const Eigen::Vector3d predicted =
+      PredictMarkerInOptical(q0, optical_from_transmitter.translation.data(), q,
+                             transmitter_from_receiver.translation.data(), r.data());
   EXPECT_TRUE(predicted.isApprox(expected, 1e-14));
 
   // Autodiff Jacobian against central differences (no analytic Jacobian exists to compare).
@@ -102,8 +102,8 @@ TEST(MarkerPositionCost, MatchesRigidComposition) {
   ASSERT_TRUE(f->Evaluate(params, residual.data(), jacobians));
   EXPECT_LT(residual.norm(), 1e-14);
   // Residual is linear in r with slope R0 R.
-  const Eigen::Matrix3d slope = (optical_from_transmitter.rotation *
-                                 transmitter_from_receiver.rotation).toRotationMatrix();
+  const Eigen::Matrix3d slope =
+      (optical_from_transmitter.rotation * transmitter_from_receiver.rotation).toRotationMatrix();
   EXPECT_TRUE(Eigen::Matrix3d(j_r).isApprox(slope, 1e-14));
 }
 

@@ -88,7 +88,8 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   std::vector<int> sizes;
   for (const CovarianceBlock& b : blocks) {
     if (b.values == nullptr || !problem->HasParameterBlock(b.values)) {
-      throw std::invalid_argument("ComputeCovariance: block '" + b.name + "' is not in the problem");
+      throw std::invalid_argument("ComputeCovariance: block '" + b.name +
+                                  "' is not in the problem");
     }
     if (problem->IsParameterBlockConstant(b.values)) {
       throw std::invalid_argument("ComputeCovariance: block '" + b.name + "' is constant");
@@ -107,8 +108,8 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     result.block_offsets.push_back(static_cast<int>(result.coordinate_names.size()));
     for (int i = 0; i < size; ++i) {
       result.coordinate_names.push_back(
-          b.name + "." + (b.coordinate_names.empty() ? "[" + std::to_string(i) + "]"
-                                                      : b.coordinate_names[i]));
+          b.name + "." +
+          (b.coordinate_names.empty() ? "[" + std::to_string(i) + "]" : b.coordinate_names[i]));
     }
     sizes.push_back(size);
   }
@@ -194,8 +195,9 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   }
 
   if (!have_covariance) {
-    result.message += "no covariance: Ceres failed and the problem is too large for the dense "
-                      "fallback (max_dense_dimension)";
+    result.message +=
+        "no covariance: Ceres failed and the problem is too large for the dense "
+        "fallback (max_dense_dimension)";
     return result;
   }
 
@@ -213,9 +215,9 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     for (int i = 0; i < sizes[b]; ++i) {
       const int k = result.block_offsets[b] + i;
       if (result.stddev(k) > blocks[b].max_stddev) {
-        result.flags.push_back({result.coordinate_names[k],
-                                "std " + Format("%.3g", result.stddev(k)) + " > " +
-                                    Format("%.3g", blocks[b].max_stddev)});
+        result.flags.push_back(
+            {result.coordinate_names[k], "std " + Format("%.3g", result.stddev(k)) + " > " +
+                                             Format("%.3g", blocks[b].max_stddev)});
       }
     }
   }
@@ -249,8 +251,19 @@ std::string CovarianceResult::ToString() const {
   }
   out << "\n";
   if (!message.empty()) out << "  " << message << "\n";
+  // One line per coordinate, all its reasons together.
+  std::vector<std::pair<std::string, std::string>> grouped;
   for (const IdentifiabilityFlag& f : flags) {
-    out << "  poorly identified: " << f.coordinate << ": " << f.reason << "\n";
+    auto it = std::find_if(grouped.begin(), grouped.end(),
+                           [&](const auto& g) { return g.first == f.coordinate; });
+    if (it == grouped.end()) {
+      grouped.emplace_back(f.coordinate, f.reason);
+    } else {
+      it->second += "; " + f.reason;
+    }
+  }
+  for (const auto& [coordinate, reasons] : grouped) {
+    out << "  poorly identified: " << coordinate << ": " << reasons << "\n";
   }
   return out.str();
 }

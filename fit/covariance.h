@@ -5,8 +5,8 @@
 // the manifolds. ComputeCovariance
 //   - asks ceres::Covariance for the joint covariance of the requested blocks;
 //   - analyses H densely (eigen-decomposition) when the problem is small enough: its numerical
-//     rank, and the weak directions (eigenvalues below weak_direction_ratio * largest), named by the
-//     coordinates they move most;
+//     rank, and the weak directions (eigenvalues below weak_direction_ratio * largest), named by
+//     the coordinates they move most;
 //   - falls back to the pseudo-inverse of H (dropping the null space) when Ceres reports a
 //     rank-deficient Jacobian, so a degenerate problem still yields standard deviations for the
 //     coordinates that are determined, and flags the ones that are not;
@@ -28,10 +28,10 @@ namespace trackcal::fit {
 
 // A parameter block whose uncertainty is wanted.
 struct CovarianceBlock {
-  const double* values = nullptr;         // the block as added to the problem
-  std::string name;                       // used in flags and reports, e.g. "optical_from_transmitter.rotation"
+  const double* values = nullptr;  // the block as added to the problem
+  std::string name;  // used in flags and reports, e.g. "optical_from_transmitter.rotation"
   std::vector<std::string> coordinate_names;  // one per tangent coordinate; default "<name>[i]"
-  double tangent_scale = 1.0;             // physical units per tangent unit (2 for quaternions)
+  double tangent_scale = 1.0;                 // physical units per tangent unit (2 for quaternions)
   double max_stddev = std::numeric_limits<double>::infinity();  // larger std => poorly identified
 };
 
@@ -40,7 +40,8 @@ struct CovarianceOptions {
   double rank_tolerance = 1e-12;
   // Eigen-directions below this fraction of the largest eigenvalue are reported as weak.
   double weak_direction_ratio = 1e-9;
-  // A coordinate is "moved" by a weak direction when its share of that unit eigenvector exceeds this.
+  // A coordinate is "moved" by a weak direction when its share of that unit eigenvector exceeds
+  // this.
   double weak_component_threshold = 0.1;
   // Dense analysis (rank, weak directions, fallback) only up to this many tangent coordinates.
   int max_dense_dimension = 3000;
@@ -52,7 +53,7 @@ struct CovarianceOptions {
 // One poorly identified coordinate and why.
 struct IdentifiabilityFlag {
   std::string coordinate;  // "<block>.<coordinate>"
-  std::string reason;      // "std 3.2e-03 > 1.0e-03" or "in weak direction 1 (eigenvalue ratio 1e-17)"
+  std::string reason;  // "std 3.2e-03 > 1.0e-03" or "in weak direction 1 (eigenvalue ratio 1e-17)"
 };
 
 struct CovarianceResult {
@@ -64,11 +65,11 @@ struct CovarianceResult {
   double reciprocal_condition = 0.0;  // smallest / largest eigenvalue of H (dense analysis only)
   // Joint covariance of the requested blocks in physical tangent units, blocks in request order.
   Eigen::MatrixXd covariance;
-  Eigen::VectorXd stddev;                   // sqrt(diag(covariance))
-  std::vector<int> block_offsets;           // first row of each requested block in covariance
+  Eigen::VectorXd stddev;                     // sqrt(diag(covariance))
+  std::vector<int> block_offsets;             // first row of each requested block in covariance
   std::vector<std::string> coordinate_names;  // one per row of covariance
-  std::vector<IdentifiabilityFlag> flags;   // poorly identified coordinates
-  std::string message;                      // failure reason or notes
+  std::vector<IdentifiabilityFlag> flags;     // poorly identified coordinates
+  std::string message;                        // failure reason or notes
 
   // Multi-line human-readable summary: method, rank, flags.
   std::string ToString() const;

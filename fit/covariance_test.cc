@@ -96,9 +96,9 @@ TEST(ComputeCovariance, QuaternionStddevInRadians) {
   problem.AddResidualBlock(
       Whitened<PosePriorCost>::Create(DiagonalSqrtInformation<6>(sigmas), measured), nullptr, q,
       t.data());
-  const CovarianceResult c = ComputeCovariance(
-      &problem, {{q, "q", {"rx", "ry", "rz"}, kQuaternionTangentToRotationVector},
-                 {t.data(), "t", {"x", "y", "z"}}});
+  const CovarianceResult c =
+      ComputeCovariance(&problem, {{q, "q", {"rx", "ry", "rz"}, kQuaternionTangentToRotationVector},
+                                   {t.data(), "t", {"x", "y", "z"}}});
   ASSERT_TRUE(c.success) << c.ToString();
   for (int i = 0; i < 3; ++i) EXPECT_NEAR(c.stddev(i), sigma_rad, 1e-9);  // at the prior: exact
   for (int i = 3; i < 6; ++i) EXPECT_NEAR(c.stddev(i), sigma_m, 1e-12);

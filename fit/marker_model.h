@@ -73,8 +73,8 @@ class PosePriorCost : public AutoDiffCostFunctor<PosePriorCost, 6, 4, 3> {
     Eigen::Map<Vector3<T>> position(residuals);
     Eigen::Map<Vector3<T>> orientation(residuals + 3);
     position = Eigen::Map<const Vector3<T>>(t) - measured_.translation.cast<T>();
-    orientation = RotationVectorBetween<T>(
-        QuaternionFromXyzwArray(q), measured_.rotation.cast<T>());
+    orientation =
+        RotationVectorBetween<T>(QuaternionFromXyzwArray(q), measured_.rotation.cast<T>());
     return true;
   }
 

@@ -21,10 +21,14 @@ bool PoseExtractionOptions::Check() const {
 
 const char* PoseStatusName(PoseStatus status) {
   switch (status) {
-    case PoseStatus::kOk: return "ok";
-    case PoseStatus::kTooFewMarkers: return "too_few_markers";
-    case PoseStatus::kDegenerate: return "degenerate";
-    case PoseStatus::kBadFit: return "bad_fit";
+    case PoseStatus::kOk:
+      return "ok";
+    case PoseStatus::kTooFewMarkers:
+      return "too_few_markers";
+    case PoseStatus::kDegenerate:
+      return "degenerate";
+    case PoseStatus::kBadFit:
+      return "bad_fit";
   }
   return "unknown";
 }
@@ -73,8 +77,8 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
   const double spread = sv(1) / std::sqrt(static_cast<double>(pose.num_markers));
   if (spread < options.min_marker_spread_m) {
     pose.status = PoseStatus::kDegenerate;
-    pose.message = "visible markers nearly collinear (spread " + std::to_string(spread * 1e3) +
-                   " mm)";
+    pose.message =
+        "visible markers nearly collinear (spread " + std::to_string(spread * 1e3) + " mm)";
     return pose;
   }
 
@@ -141,8 +145,8 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
   pose.marker_rms_m = std::sqrt(sum_sq / pose.num_markers);
   if (pose.marker_rms_m > options.max_marker_rms_m) {
     pose.status = PoseStatus::kBadFit;
-    pose.message = "marker residual RMS " + std::to_string(pose.marker_rms_m * 1e3) +
-                   " mm above " + std::to_string(options.max_marker_rms_m * 1e3) + " mm";
+    pose.message = "marker residual RMS " + std::to_string(pose.marker_rms_m * 1e3) + " mm above " +
+                   std::to_string(options.max_marker_rms_m * 1e3) + " mm";
   } else {
     pose.status = PoseStatus::kOk;
   }

@@ -1,11 +1,11 @@
 // Receiver pose from optical marker positions (Ikits et al. 2001, section 3.2).
 //
-// With the registration known (optical_from_transmitter and marker_in_receiver), the markers seen at
-// a station give the receiver pose transmitter_from_receiver by inverting eq. 10: the measured
+// With the registration known (optical_from_transmitter and marker_in_receiver), the markers seen
+// at a station give the receiver pose transmitter_from_receiver by inverting eq. 10: the measured
 // markers are mapped into the transmitter frame and aligned with the registered marker positions
-// (closed form, Horn/Kabsch), then refined by Ceres on the optical residuals whitened by the optical
-// noise, which also yields the pose covariance. No tracker reading is used, so the result is an
-// independent reference for the tracker's report at that station.
+// (closed form, Horn/Kabsch), then refined by Ceres on the optical residuals whitened by the
+// optical noise, which also yields the pose covariance. No tracker reading is used, so the result
+// is an independent reference for the tracker's report at that station.
 
 #pragma once
 
@@ -36,10 +36,10 @@ struct PoseExtractionOptions {
 };
 
 enum class PoseStatus {
-  kOk,              // pose estimated and residuals within max_marker_rms_m
-  kTooFewMarkers,   // fewer than min_markers visible: no pose
-  kDegenerate,      // visible markers (nearly) collinear: no reliable orientation
-  kBadFit,          // pose estimated but residual RMS above max_marker_rms_m
+  kOk,             // pose estimated and residuals within max_marker_rms_m
+  kTooFewMarkers,  // fewer than min_markers visible: no pose
+  kDegenerate,     // visible markers (nearly) collinear: no reliable orientation
+  kBadFit,         // pose estimated but residual RMS above max_marker_rms_m
 };
 const char* PoseStatusName(PoseStatus status);
 
@@ -48,12 +48,12 @@ struct ExtractedPose {
   PoseStatus status = PoseStatus::kTooFewMarkers;
   Rigid3d transmitter_from_receiver;  // valid for kOk and kBadFit
   int num_markers = 0;
-  double marker_rms_m = 0.0;          // RMS of residual vector norms [m]
+  double marker_rms_m = 0.0;  // RMS of residual vector norms [m]
   double max_marker_residual_m = 0.0;
   // [rotation vector (rad) of a left perturbation about transmitter axes; position (m)], from the
   // optical noise alone (the registration's own uncertainty is not propagated).
   Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();
-  std::string message;                // why the status is not kOk
+  std::string message;  // why the status is not kOk
   bool HasPose() const { return status == PoseStatus::kOk || status == PoseStatus::kBadFit; }
 };
 

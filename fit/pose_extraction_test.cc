@@ -40,8 +40,8 @@ TEST(ExtractPose, NoisyErrorMatchesCovariance) {
   int n = 0;
   double max_position_error = 0.0;
   for (std::size_t i = 0; i < data.stations.size(); ++i) {
-    const ExtractedPose p = ExtractPose(data.stations[i].station, data.stations[i].markers,
-                                        Truth(data), o);
+    const ExtractedPose p =
+        ExtractPose(data.stations[i].station, data.stations[i].markers, Truth(data), o);
     ASSERT_EQ(p.status, PoseStatus::kOk) << p.message;
     const Rigid3d& truth = data.true_transmitter_from_receiver[i];
     Eigen::Matrix<double, 6, 1> e;

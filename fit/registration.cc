@@ -20,11 +20,10 @@ namespace trackcal::fit {
 
 bool RegistrationOptions::Check() const {
   return optical_noise_m > 0.0 && tracker_position_noise_m > 0.0 &&
-         tracker_orientation_noise_rad > 0.0 && min_markers_per_station >= 1 &&
-         min_stations >= 1 && max_num_iterations > 0 && function_tolerance > 0.0 &&
-         parameter_tolerance > 0.0 && max_translation_stddev_m > 0.0 &&
-         max_rotation_stddev_rad > 0.0 && max_marker_stddev_m > 0.0 && covariance.Check() &&
-         num_threads >= 1;
+         tracker_orientation_noise_rad > 0.0 && min_markers_per_station >= 1 && min_stations >= 1 &&
+         max_num_iterations > 0 && function_tolerance > 0.0 && parameter_tolerance > 0.0 &&
+         max_translation_stddev_m > 0.0 && max_rotation_stddev_rad > 0.0 &&
+         max_marker_stddev_m > 0.0 && covariance.Check() && num_threads >= 1;
 }
 
 double RegistrationResult::ChiSquareZ() const {
@@ -70,9 +69,9 @@ void ValidateStations(const std::vector<RegistrationStation>& stations) {
 // Working copy of the problem: dense marker indices and the parameter blocks.
 struct Problem {
   std::vector<const RegistrationStation*> stations;
-  std::vector<int> marker_ids;            // index -> id
-  std::map<int, int> marker_index;        // id -> index
-  std::vector<int> marker_observations;   // per marker index
+  std::vector<int> marker_ids;           // index -> id
+  std::map<int, int> marker_index;       // id -> index
+  std::vector<int> marker_observations;  // per marker index
   int num_observations = 0;
 };
 
@@ -90,8 +89,8 @@ bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical
   };
   std::vector<Row> rows;
   for (const RegistrationStation* s : p.stations) {
-    const Eigen::Matrix3d rt = s->tracker_transmitter_from_receiver.rotation.toRotationMatrix()
-                                   .transpose();
+    const Eigen::Matrix3d rt =
+        s->tracker_transmitter_from_receiver.rotation.toRotationMatrix().transpose();
     for (std::size_t a = 0; a < s->markers.size(); ++a) {
       for (std::size_t b = a + 1; b < s->markers.size(); ++b) {
         const MarkerObservation* ma = &s->markers[a];
@@ -221,12 +220,14 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   // Closed-form start: rotation, then markers and translation.
   Eigen::Quaterniond r0;
   if (RotationFromMarkerDifferences(p, &r0)) {
-    result.initialisation = "rotation from marker differences, markers and translation by linear "
-                            "least squares";
+    result.initialisation =
+        "rotation from marker differences, markers and translation by linear "
+        "least squares";
   } else {
     r0 = RotationFromCentroids(p);
-    result.initialisation = "rotation from marker centroids (stations lack orientation diversity), "
-                            "markers and translation by linear least squares";
+    result.initialisation =
+        "rotation from marker centroids (stations lack orientation diversity), "
+        "markers and translation by linear least squares";
   }
   std::vector<Eigen::Vector3d> markers;
   Eigen::Vector3d t0;
@@ -236,7 +237,8 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   double q0[4];
   QuaternionToXyzwArray(r0, q0);
   std::vector<double> marker_blocks(3 * nm);
-  for (int j = 0; j < nm; ++j) std::copy(markers[j].data(), markers[j].data() + 3, &marker_blocks[3 * j]);
+  for (int j = 0; j < nm; ++j)
+    std::copy(markers[j].data(), markers[j].data() + 3, &marker_blocks[3 * j]);
   const int ns = static_cast<int>(p.stations.size());
   std::vector<double> pose_q(4 * ns), pose_t(3 * ns);
   for (int i = 0; i < ns; ++i) {
@@ -265,8 +267,8 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
     for (const MarkerObservation& m : p.stations[i]->markers) {
       double* r = &marker_blocks[3 * p.marker_index[m.marker]];
       station_residuals[i].push_back(problem.AddResidualBlock(
-          Whitened<MarkerPositionCost>::Create(optical_sqrt_info, m.marker_in_optical), nullptr,
-          q0, t0.data(), q, t, r));
+          Whitened<MarkerPositionCost>::Create(optical_sqrt_info, m.marker_in_optical), nullptr, q0,
+          t0.data(), q, t, r));
     }
   }
 
@@ -287,13 +289,22 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
 
   // Covariance of the transform and the markers.
   std::vector<CovarianceBlock> blocks;
-  blocks.push_back({q0, "optical_from_transmitter.rotation", {"rx", "ry", "rz"},
-                    kQuaternionTangentToRotationVector, options.max_rotation_stddev_rad});
-  blocks.push_back({t0.data(), "optical_from_transmitter.translation", {"x", "y", "z"}, 1.0,
+  blocks.push_back({q0,
+                    "optical_from_transmitter.rotation",
+                    {"rx", "ry", "rz"},
+                    kQuaternionTangentToRotationVector,
+                    options.max_rotation_stddev_rad});
+  blocks.push_back({t0.data(),
+                    "optical_from_transmitter.translation",
+                    {"x", "y", "z"},
+                    1.0,
                     options.max_translation_stddev_m});
   for (int j = 0; j < nm; ++j) {
-    blocks.push_back({&marker_blocks[3 * j], "marker_" + std::to_string(p.marker_ids[j]),
-                      {"x", "y", "z"}, 1.0, options.max_marker_stddev_m});
+    blocks.push_back({&marker_blocks[3 * j],
+                      "marker_" + std::to_string(p.marker_ids[j]),
+                      {"x", "y", "z"},
+                      1.0,
+                      options.max_marker_stddev_m});
   }
   result.covariance = ComputeCovariance(&problem, blocks, options.covariance);
   if (result.covariance.success) {
@@ -324,9 +335,8 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   for (int i = 0; i < ns; ++i) {
     RegisteredStation s;
     s.station = p.stations[i]->station;
-    s.transmitter_from_receiver =
-        Rigid3d(QuaternionFromXyzwArray(&pose_q[4 * i]).normalized(),
-                Eigen::Map<const Eigen::Vector3d>(&pose_t[3 * i]));
+    s.transmitter_from_receiver = Rigid3d(QuaternionFromXyzwArray(&pose_q[4 * i]).normalized(),
+                                          Eigen::Map<const Eigen::Vector3d>(&pose_t[3 * i]));
     s.num_markers = static_cast<int>(p.stations[i]->markers.size());
     double sum_sq = 0.0;
     for (const MarkerObservation& m : p.stations[i]->markers) {
@@ -338,7 +348,8 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
     s.marker_rms_m = std::sqrt(sum_sq / s.num_markers);
     const Rigid3d& reading = p.stations[i]->tracker_transmitter_from_receiver;
     s.tracker_position_residual_m = PositionErrorNorm(s.transmitter_from_receiver, reading);
-    s.tracker_orientation_residual_rad = OrientationErrorAngle(s.transmitter_from_receiver, reading);
+    s.tracker_orientation_residual_rad =
+        OrientationErrorAngle(s.transmitter_from_receiver, reading);
     for (ceres::ResidualBlockId id : station_residuals[i]) {
       double cost = 0.0;
       problem.EvaluateResidualBlock(id, /*apply_loss_function=*/true, &cost, nullptr, nullptr);
@@ -360,16 +371,16 @@ std::string RegistrationResult::ToString() const {
       << Fmt("%.3f", optical_from_transmitter_stddev(4) * 1e3) << " "
       << Fmt("%.3f", optical_from_transmitter_stddev(5) * 1e3) << "\n";
   for (const RegisteredMarker& m : markers) {
-    out << "  marker " << m.marker << " in receiver [mm]: "
-        << Fmt("%.3f", m.marker_in_receiver.x() * 1e3) << " "
+    out << "  marker " << m.marker
+        << " in receiver [mm]: " << Fmt("%.3f", m.marker_in_receiver.x() * 1e3) << " "
         << Fmt("%.3f", m.marker_in_receiver.y() * 1e3) << " "
-        << Fmt("%.3f", m.marker_in_receiver.z() * 1e3) << "  std [mm]: "
-        << Fmt("%.3f", m.stddev.x() * 1e3) << " " << Fmt("%.3f", m.stddev.y() * 1e3) << " "
-        << Fmt("%.3f", m.stddev.z() * 1e3) << "  (" << m.num_observations << " stations)\n";
+        << Fmt("%.3f", m.marker_in_receiver.z() * 1e3)
+        << "  std [mm]: " << Fmt("%.3f", m.stddev.x() * 1e3) << " "
+        << Fmt("%.3f", m.stddev.y() * 1e3) << " " << Fmt("%.3f", m.stddev.z() * 1e3) << "  ("
+        << m.num_observations << " stations)\n";
   }
-  out << "chi-square " << Fmt("%.2f", chi_square) << ", expected nu = " << Fmt("%.0f", nu)
-      << " +- " << Fmt("%.2f", chi_square_stddev) << " (z = " << Fmt("%.2f", ChiSquareZ())
-      << ")\n";
+  out << "chi-square " << Fmt("%.2f", chi_square) << ", expected nu = " << Fmt("%.0f", nu) << " +- "
+      << Fmt("%.2f", chi_square_stddev) << " (z = " << Fmt("%.2f", ChiSquareZ()) << ")\n";
   out << "stations used " << stations.size() << ", skipped " << skipped_stations.size()
       << ", marker observations " << num_marker_observations << "\n";
   out << "solver: " << solver_report << (converged ? "" : " (NOT CONVERGED)") << "\n";

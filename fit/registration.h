@@ -34,7 +34,7 @@ namespace trackcal::fit {
 
 // One optical marker measurement.
 struct MarkerObservation {
-  int marker = 0;                                                 // marker id (markers.csv "marker")
+  int marker = 0;                                               // marker id (markers.csv "marker")
   Eigen::Vector3d marker_in_optical = Eigen::Vector3d::Zero();  // [m], optical frame
 };
 
@@ -87,12 +87,12 @@ struct RegisteredMarker {
 
 struct RegisteredStation {
   int station = 0;
-  Rigid3d transmitter_from_receiver;   // total-least-squares estimate of the true receiver pose
+  Rigid3d transmitter_from_receiver;  // total-least-squares estimate of the true receiver pose
   int num_markers = 0;
-  double marker_rms_m = 0.0;           // RMS of the optical residual vectors' norms [m]
-  double tracker_position_residual_m = 0.0;     // |estimate - tracker reading| [m]
+  double marker_rms_m = 0.0;                      // RMS of the optical residual vectors' norms [m]
+  double tracker_position_residual_m = 0.0;       // |estimate - tracker reading| [m]
   double tracker_orientation_residual_rad = 0.0;  // angle between estimate and reading [rad]
-  double chi_square = 0.0;             // this station's whitened squared residuals (optical + prior)
+  double chi_square = 0.0;  // this station's whitened squared residuals (optical + prior)
 };
 
 struct RegistrationResult {
@@ -114,8 +114,8 @@ struct RegistrationResult {
   // (chi_square - nu) / sqrt(2 nu): beyond about +-3 the noise model or the data are suspect.
   double ChiSquareZ() const;
 
-  bool converged = false;     // the solver reported convergence
-  bool identifiable = false;  // full-rank information matrix and no flagged transform coordinate
+  bool converged = false;       // the solver reported convergence
+  bool identifiable = false;    // full-rank information matrix and no flagged transform coordinate
   CovarianceResult covariance;  // transform + markers, with rank report and flags
   std::string initialisation;   // which closed form gave the starting point
   std::string solver_report;    // ceres BriefReport

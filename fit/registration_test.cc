@@ -2,6 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <iostream>
+
 #include "fit/rotation.h"
 #include "fit/synthetic_registration.h"
 #include "tests/test_utils.h"
@@ -22,8 +25,8 @@ Eigen::Matrix<double, 6, 1> TransformError(const Rigid3d& estimate, const Rigid3
 
 SyntheticRegistrationOptions NoisyOptions() {
   SyntheticRegistrationOptions o;
-  o.optical_noise_m = 1.5e-4;                       // Optotrak-like, paper section 3.1
-  o.tracker_position_noise_m = 8e-4;                // Fastrak static accuracy, ~0.03 in
+  o.optical_noise_m = 1.5e-4;         // Optotrak-like, paper section 3.1
+  o.tracker_position_noise_m = 8e-4;  // Fastrak static accuracy, ~0.03 in
   o.tracker_orientation_noise_rad = 0.15 * kRadPerDeg;
   return o;
 }
@@ -85,10 +88,46 @@ TEST(RegisterOpticalToTransmitter, NoisyChiSquareAndCovarianceAreConsistent) {
     sum_d2 += d2;
     sum_z += r.ChiSquareZ();
   }
+  std::cout << "mean Mahalanobis^2 of the transform error " << sum_d2 / kTrials
+            << " (expected 6), mean chi-square z " << sum_z / kTrials << " (expected 0)\n";
   // Mean of 30 chi-square(6) draws: 6 +- sqrt(12 / 30) = 0.63; 4 sigma band.
   EXPECT_NEAR(sum_d2 / kTrials, 6.0, 4 * 0.63);
   // Mean of 30 standard z values: 0 +- 0.18; 4 sigma band.
   EXPECT_NEAR(sum_z / kTrials, 0.0, 4 * 0.18);
+}
+
+TEST(RegisterOpticalToTransmitter, TiltedPlatformConvergesFromClosedForm) {
+  // A platform only tilted up to 30 degrees around one orientation: less diversity for the
+  // marker-difference rotation, still a unique solution.
+  for (int trial = 0; trial < 5; ++trial) {
+    SyntheticRegistrationOptions s = NoisyOptions();
+    s.max_rotation_from_nominal_rad = 30.0 * kRadPerDeg;
+    const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+    const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, MatchingOptions(s));
+    ASSERT_TRUE(r.converged) << r.ToString();
+    EXPECT_NE(r.initialisation.find("marker differences"), std::string::npos);
+    EXPECT_LT(std::abs(r.ChiSquareZ()), 5.0) << r.ToString();  // 5 sigma, as above
+    const Eigen::Matrix<double, 6, 1> e =
+        TransformError(r.registration.optical_from_transmitter, data.optical_from_transmitter);
+    // 99.99 % quantile of chi-square(6), as above.
+    EXPECT_LT(e.dot(r.optical_from_transmitter_covariance.ldlt().solve(e)), 27.86) << r.ToString();
+  }
+}
+
+TEST(RegisterOpticalToTransmitter, DisplacedMarkerStandsOutInItsStation) {
+  SyntheticRegistrationOptions s = NoisyOptions();
+  SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  data.stations[6].markers[0].marker_in_optical += Eigen::Vector3d(0.0, 0.003, 0.0);  // 3 mm
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, MatchingOptions(s));
+  ASSERT_TRUE(r.converged);
+  // 3 mm is 20 optical sigmas: the whole fit fails the chi-square test...
+  EXPECT_GT(r.ChiSquareZ(), 5.0) << r.ToString();
+  // ...and the displaced station carries the largest share of chi-square.
+  const auto worst = std::max_element(r.stations.begin(), r.stations.end(),
+                                      [](const RegisteredStation& a, const RegisteredStation& b) {
+                                        return a.chi_square < b.chi_square;
+                                      });
+  EXPECT_EQ(worst->station, data.stations[6].station);
 }
 
 TEST(RegisterOpticalToTransmitter, UnderestimatedNoiseShowsInChiSquare) {
@@ -108,8 +147,8 @@ TEST(RegisterOpticalToTransmitter, StationsWithTooFewMarkersAreSkipped) {
   data.stations[4].markers.resize(2);
   data.stations[7].markers.clear();
   const RegistrationResult r = RegisterOpticalToTransmitter(data.stations);
-  EXPECT_EQ(r.skipped_stations, (std::vector<int>{data.stations[4].station,
-                                                  data.stations[7].station}));
+  EXPECT_EQ(r.skipped_stations,
+            (std::vector<int>{data.stations[4].station, data.stations[7].station}));
   EXPECT_EQ(r.stations.size(), data.stations.size() - 2);
   EXPECT_TRUE(testing::PosesNear(data.optical_from_transmitter,
                                  r.registration.optical_from_transmitter, 1e-8, 1e-8));

@@ -8,7 +8,8 @@
 //
 // Tangent convention of EigenQuaternionManifold: q ⊞ d = [cos|d|, sin|d| d/|d|] * q, a left
 // (transmitter- or world-frame) perturbation whose rotation angle is 2|d|. Covariances in that
-// tangent space are converted to rotation vectors (radians) with kQuaternionTangentToRotationVector.
+// tangent space are converted to rotation vectors (radians) with
+// kQuaternionTangentToRotationVector.
 
 #pragma once
 
@@ -50,8 +51,8 @@ void RotationVectorToQuaternion(const T* rotation_vector, T* q_xyzw) {
   q_xyzw[3] = q_wxyz[0];
 }
 
-// Rotation vector of a * conj(b): the world-frame (left) rotation taking b to a, in radians. This is
-// the exact-angle counterpart of the paper's error vector (eq. 3, 6) and the residual trackcal
+// Rotation vector of a * conj(b): the world-frame (left) rotation taking b to a, in radians. This
+// is the exact-angle counterpart of the paper's error vector (eq. 3, 6) and the residual trackcal
 // whitens with an orientation noise in radians.
 template <typename T>
 Vector3<T> RotationVectorBetween(const Eigen::Quaternion<T>& a, const Eigen::Quaternion<T>& b) {

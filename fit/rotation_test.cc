@@ -57,8 +57,8 @@ TEST(EigenQuaternionManifold, TangentIsHalfAngleLeftPerturbation) {
   ceres::EigenQuaternionManifold manifold;
   ASSERT_TRUE(manifold.Plus(xyzw, d.data(), out));
   const Eigen::Quaterniond moved = QuaternionFromXyzwArray(out);
-  EXPECT_TRUE(RotationVectorBetween<double>(moved, q)
-                  .isApprox(kQuaternionTangentToRotationVector * d, 1e-9));
+  EXPECT_TRUE(RotationVectorBetween<double>(moved, q).isApprox(
+      kQuaternionTangentToRotationVector * d, 1e-9));
 }
 
 }  // namespace

@@ -27,7 +27,8 @@ SyntheticRegistration MakeSyntheticRegistration(const SyntheticRegistrationOptio
                                                 std::mt19937_64* rng) {
   std::uniform_real_distribution<double> unit(-1.0, 1.0);
   SyntheticRegistration data;
-  const Eigen::Vector3d direction = Eigen::Vector3d(unit(*rng), unit(*rng), unit(*rng)).normalized();
+  const Eigen::Vector3d direction =
+      Eigen::Vector3d(unit(*rng), unit(*rng), unit(*rng)).normalized();
   data.optical_from_transmitter =
       Rigid3d(UniformRotation(rng), options.optical_distance_m * direction);
 
@@ -52,8 +53,13 @@ SyntheticRegistration MakeSyntheticRegistration(const SyntheticRegistrationOptio
     if (options.identical_stations && i > 0) {
       truth = data.true_transmitter_from_receiver.front();
     } else {
-      const Eigen::Quaterniond q =
-          options.random_orientations ? UniformRotation(rng) : fixed_orientation;
+      Eigen::Quaterniond q = options.random_orientations ? UniformRotation(rng) : fixed_orientation;
+      if (options.random_orientations && options.max_rotation_from_nominal_rad > 0.0) {
+        // Uniform direction, angle uniform in [0, max]: a tilt around the nominal orientation.
+        const Eigen::Vector3d axis = Gaussian3(1.0, rng).normalized();
+        std::uniform_real_distribution<double> angle(0.0, options.max_rotation_from_nominal_rad);
+        q = QuaternionFromRotationVector(angle(*rng) * axis) * fixed_orientation;
+      }
       const Eigen::Vector3d p =
           options.station_center_in_transmitter +
           options.station_half_size_m * Eigen::Vector3d(unit(*rng), unit(*rng), unit(*rng));
@@ -63,8 +69,8 @@ SyntheticRegistration MakeSyntheticRegistration(const SyntheticRegistrationOptio
 
     RegistrationStation station;
     station.station = i + 1;
-    const Eigen::Quaterniond noise_q = QuaternionFromRotationVector(
-        Gaussian3(options.tracker_orientation_noise_rad, rng));
+    const Eigen::Quaterniond noise_q =
+        QuaternionFromRotationVector(Gaussian3(options.tracker_orientation_noise_rad, rng));
     station.tracker_transmitter_from_receiver =
         Rigid3d((noise_q * truth.rotation).normalized(),
                 truth.translation + Gaussian3(options.tracker_position_noise_m, rng));
