@@ -145,6 +145,9 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     }
   }
 
+  auto Wanted = [&](std::size_t i, std::size_t j) {
+    return i == j || (blocks[i].cross_covariance && blocks[j].cross_covariance);
+  };
   bool have_covariance = false;
   if (!result.rank_deficient) {
     ceres::Covariance::Options copt;
@@ -155,7 +158,7 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     std::vector<std::pair<const double*, const double*>> pairs;
     for (std::size_t i = 0; i < blocks.size(); ++i) {
       for (std::size_t j = i; j < blocks.size(); ++j) {
-        pairs.emplace_back(blocks[i].values, blocks[j].values);
+        if (Wanted(i, j)) pairs.emplace_back(blocks[i].values, blocks[j].values);
       }
     }
     if (covariance.Compute(pairs, problem)) {
@@ -163,6 +166,7 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
       have_covariance = true;
       for (std::size_t i = 0; i < blocks.size() && have_covariance; ++i) {
         for (std::size_t j = i; j < blocks.size(); ++j) {
+          if (!Wanted(i, j)) continue;
           Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> c(sizes[i],
                                                                                    sizes[j]);
           if (!covariance.GetCovarianceBlockInTangentSpace(blocks[i].values, blocks[j].values,
@@ -190,6 +194,14 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     Eigen::MatrixXd rows(n, dense.rank);
     for (int k = 0; k < n; ++k) rows.row(k) = dense.scale(full_index[k]) * v.row(full_index[k]);
     result.covariance = rows * inv.asDiagonal() * rows.transpose();
+    for (std::size_t i = 0; i < blocks.size(); ++i) {
+      for (std::size_t j = 0; j < blocks.size(); ++j) {
+        if (Wanted(i, j)) continue;
+        result.covariance
+            .block(result.block_offsets[i], result.block_offsets[j], sizes[i], sizes[j])
+            .setZero();
+      }
+    }
     result.method = "dense_pseudo_inverse";
     have_covariance = true;
   }

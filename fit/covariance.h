@@ -33,6 +33,9 @@ struct CovarianceBlock {
   std::vector<std::string> coordinate_names;  // one per tangent coordinate; default "<name>[i]"
   double tangent_scale = 1.0;                 // physical units per tangent unit (2 for quaternions)
   double max_stddev = std::numeric_limits<double>::infinity();  // larger std => poorly identified
+  // false: only this block's own covariance is computed; its cross-covariances with the other
+  // requested blocks are left zero (keeps many per-station blocks cheap).
+  bool cross_covariance = true;
 };
 
 struct CovarianceOptions {
@@ -63,7 +66,8 @@ struct CovarianceResult {
   int rank = -1;                // numerical rank of H (-1: dense analysis skipped)
   bool rank_deficient = false;  // rank < tangent_dimension (or Ceres refused the inverse)
   double reciprocal_condition = 0.0;  // smallest / largest eigenvalue of H (dense analysis only)
-  // Joint covariance of the requested blocks in physical tangent units, blocks in request order.
+  // Joint covariance of the requested blocks in physical tangent units, blocks in request order
+  // (cross terms of blocks with cross_covariance = false are zero).
   Eigen::MatrixXd covariance;
   Eigen::VectorXd stddev;                     // sqrt(diag(covariance))
   std::vector<int> block_offsets;             // first row of each requested block in covariance

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <memory>
 #include <set>
 #include <sstream>
@@ -306,6 +307,23 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
                       1.0,
                       options.max_marker_stddev_m});
   }
+  const std::size_t first_station_block = blocks.size();
+  for (int i = 0; i < ns; ++i) {
+    const std::string name = "station_" + std::to_string(p.stations[i]->station);
+    // Receiver poses are nuisance parameters here: own covariance only, never flagged.
+    blocks.push_back({&pose_q[4 * i],
+                      name + ".rotation",
+                      {"rx", "ry", "rz"},
+                      kQuaternionTangentToRotationVector,
+                      std::numeric_limits<double>::infinity(),
+                      /*cross_covariance=*/false});
+    blocks.push_back({&pose_t[3 * i],
+                      name + ".position",
+                      {"x", "y", "z"},
+                      1.0,
+                      std::numeric_limits<double>::infinity(),
+                      /*cross_covariance=*/false});
+  }
   result.covariance = ComputeCovariance(&problem, blocks, options.covariance);
   if (result.covariance.success) {
     result.optical_from_transmitter_covariance = result.covariance.covariance.topLeftCorner<6, 6>();
@@ -338,6 +356,12 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
     s.transmitter_from_receiver = Rigid3d(QuaternionFromXyzwArray(&pose_q[4 * i]).normalized(),
                                           Eigen::Map<const Eigen::Vector3d>(&pose_t[3 * i]));
     s.num_markers = static_cast<int>(p.stations[i]->markers.size());
+    if (result.covariance.success) {
+      const int rotation = result.covariance.block_offsets[first_station_block + 2 * i];
+      const int position = result.covariance.block_offsets[first_station_block + 2 * i + 1];
+      s.stddev << result.covariance.stddev.segment<3>(rotation),
+          result.covariance.stddev.segment<3>(position);
+    }
     double sum_sq = 0.0;
     for (const MarkerObservation& m : p.stations[i]->markers) {
       const Eigen::Vector3d predicted =

@@ -88,6 +88,8 @@ struct RegisteredMarker {
 struct RegisteredStation {
   int station = 0;
   Rigid3d transmitter_from_receiver;  // total-least-squares estimate of the true receiver pose
+  // Its standard deviations: [rotation vector (rad) about transmitter axes; position (m)].
+  Eigen::Matrix<double, 6, 1> stddev = Eigen::Matrix<double, 6, 1>::Zero();
   int num_markers = 0;
   double marker_rms_m = 0.0;                      // RMS of the optical residual vectors' norms [m]
   double tracker_position_residual_m = 0.0;       // |estimate - tracker reading| [m]

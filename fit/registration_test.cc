@@ -70,7 +70,8 @@ TEST(RegisterOpticalToTransmitter, NoisyChiSquareAndCovarianceAreConsistent) {
   // Over many independent captures: chi-square is near nu, and the transform error's Mahalanobis
   // distance under the reported covariance behaves like chi-square with 6 degrees of freedom.
   const int kTrials = 30;
-  double sum_d2 = 0.0, sum_z = 0.0;
+  double sum_d2 = 0.0, sum_z = 0.0, sum_station_z2 = 0.0;
+  int num_station_z = 0;
   for (int trial = 0; trial < kTrials; ++trial) {
     const SyntheticRegistrationOptions s = NoisyOptions();
     const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
@@ -87,13 +88,27 @@ TEST(RegisterOpticalToTransmitter, NoisyChiSquareAndCovarianceAreConsistent) {
     EXPECT_LT(d2, 27.86) << "trial " << trial << "\n" << r.ToString();
     sum_d2 += d2;
     sum_z += r.ChiSquareZ();
+    for (std::size_t i = 0; i < r.stations.size(); ++i) {
+      const Rigid3d& truth = data.true_transmitter_from_receiver[i];
+      const Rigid3d& estimate = r.stations[i].transmitter_from_receiver;
+      Eigen::Matrix<double, 6, 1> es;
+      es << RotationVectorBetween<double>(estimate.rotation, truth.rotation),
+          estimate.translation - truth.translation;
+      sum_station_z2 += es.cwiseQuotient(r.stations[i].stddev).squaredNorm();
+      num_station_z += 6;
+    }
   }
   std::cout << "mean Mahalanobis^2 of the transform error " << sum_d2 / kTrials
-            << " (expected 6), mean chi-square z " << sum_z / kTrials << " (expected 0)\n";
+            << " (expected 6), mean chi-square z " << sum_z / kTrials
+            << " (expected 0), station pose mean squared z " << sum_station_z2 / num_station_z
+            << " (expected 1)\n";
   // Mean of 30 chi-square(6) draws: 6 +- sqrt(12 / 30) = 0.63; 4 sigma band.
   EXPECT_NEAR(sum_d2 / kTrials, 6.0, 4 * 0.63);
   // Mean of 30 standard z values: 0 +- 0.18; 4 sigma band.
   EXPECT_NEAR(sum_z / kTrials, 0.0, 4 * 0.18);
+  // Station pose errors in units of their reported std: mean square 1. The 3600 values are
+  // correlated within a station, so the band is wider than 4 sqrt(2 / 3600) = 0.09: 0.2.
+  EXPECT_NEAR(sum_station_z2 / num_station_z, 1.0, 0.2);
 }
 
 TEST(RegisterOpticalToTransmitter, TiltedPlatformConvergesFromClosedForm) {
