@@ -15,6 +15,8 @@
 namespace trackcal::fastrak::testing {
 namespace {
 
+constexpr size_t kStatusSize = 55;
+
 void AppendFloat32Le(float v, std::string* out) {
   uint32_t bits;
   std::memcpy(&bits, &v, sizeof(bits));
@@ -124,6 +126,11 @@ void FakeFastrak::SetMute(bool mute) {
   mute_ = mute;
 }
 
+void FakeFastrak::SetCorruptStatus(bool corrupt) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  corrupt_status_ = corrupt;
+}
+
 void FakeFastrak::SetStylus(bool pressed) {
   std::lock_guard<std::mutex> lock(mutex_);
   stylus_pressed_ = pressed;
@@ -228,7 +235,7 @@ void FakeFastrak::HandleInput(const char* data, size_t n, std::string* reply) {
         break;
       case 'S':
         ++status_requests_;
-        *reply += MakeStatusRecord();
+        *reply += corrupt_status_ ? MakeStatusRecord().substr(0, kStatusSize - 1) : MakeStatusRecord();
         break;
       case 0x19:
         PowerUp();
