@@ -333,9 +333,9 @@ class FastrakDriver::Session {
   }
   void Write(char c) { Write(std::string_view(&c, 1)); }
 
-  // Reads everything available now (non-blocking). A hang-up or read error is PortLost.
-  // `after_readable`: poll() just reported data, so an empty read means end of file.
-  size_t ReadAvailable(std::vector<uint8_t>* out, bool after_readable = true) {
+  // Reads everything available after poll() reported data (non-blocking). A hang-up or read error
+  // is PortLost.
+  size_t ReadAvailable(std::vector<uint8_t>* out) {
     size_t total = 0;
     std::array<uint8_t, 4096> buffer;
     while (true) {
@@ -353,7 +353,6 @@ class FastrakDriver::Session {
     }
     // poll() said readable but nothing came, repeatedly: the line is gone (some USB adapters
     // report end-of-file this way instead of POLLHUP).
-    if (!after_readable) return total;
     empty_reads_ = total == 0 ? empty_reads_ + 1 : 0;
     if (empty_reads_ >= 3) throw PortLost{"readable but no data (end of file)"};
     return total;
@@ -375,8 +374,7 @@ class FastrakDriver::Session {
         Emit(Severity::kInfo, "opened at " + std::to_string(options_.baud) + " baud");
         return;
       }
-      Emit(Severity::kError, "cannot open (" + error + "); retrying every " + FormatSeconds(delay) +
-                                 " or less");
+      Emit(Severity::kError, "cannot open (" + error + "); next attempt in " + FormatSeconds(delay));
       Sleep(delay);
       delay = std::min(2.0 * delay, timings_.reopen_backoff_max_s);
     }
@@ -386,18 +384,30 @@ class FastrakDriver::Session {
   // instead of spending seconds on a reset.
   bool TryResume() {
     SetState(DriverState::kResetting);
+    size_t bytes_seen = 0;
+    return ListenForStream(timings_.resume_probe_s, "after reopening", &bytes_seen);
+  }
+
+  // Reads (and otherwise discards) what arrives for `seconds`. If the device has been configured by
+  // this driver and two valid records in our format arrive, it is still streaming as we set it up
+  // (its cable was out, or it missed our `c`): resume at once and return true. Only used in waits
+  // that start at least one preamble settle after `c`, so records in flight before `c` are not
+  // mistaken for a live stream; input is flushed first.
+  bool ListenForStream(double seconds, const char* when, size_t* bytes_seen) {
+    FlushInput();
     parser_.Clear();
     std::vector<FastrakReport> reports;
-    const SteadyClock::time_point deadline = SteadyClock::now() + Seconds(timings_.resume_probe_s);
+    const SteadyClock::time_point deadline = SteadyClock::now() + Seconds(seconds);
     std::vector<uint8_t> bytes;
-    while (reports.size() < 2) {
+    while (!configured_once_ || reports.size() < 2) {
       if (Wait(deadline, true) == WaitResult::kTimeout) return false;
       bytes.clear();
-      ReadAvailable(&bytes);
-      parser_.Feed(bytes, wake_time_, &reports);
+      *bytes_seen += ReadAvailable(&bytes);
+      if (configured_once_) parser_.Feed(bytes, wake_time_, &reports);
     }
     Count(&DriverStats::resumes);
-    Emit(Severity::kInfo, "tracker still streaming after reopening; resumed without reset");
+    reset_attempts_ = 0;
+    Emit(Severity::kInfo, std::string("tracker still streaming ") + when + "; resumed without reset");
     SetState(DriverState::kStreaming);
     last_button_.fill(std::nullopt);
     DeliverReports(reports);
@@ -405,7 +415,8 @@ class FastrakDriver::Session {
     return true;
   }
 
-  // The reference reset sequence with its escalation; true when continuous output was started.
+  // The reference reset sequence with its escalation; true when continuous output was started (or
+  // the device turned out to be streaming in our format, see ListenForStream).
   bool Reset() {
     SetState(DriverState::kResetting);
     const int attempt = ++reset_attempts_;
@@ -426,13 +437,15 @@ class FastrakDriver::Session {
       Write(c);
       Sleep(timings_.settle_after_preamble_s);
     }
-    if (ResetPreambleReinitialises(attempt)) Sleep(timings_.reinitialise_wait_s);
-    FlushInput();
-    Sleep(timings_.settle_after_flush_s);
-    std::vector<uint8_t> leftover;
-    ReadAvailable(&leftover, /*after_readable=*/false);
-    if (!leftover.empty()) {
-      Emit(Severity::kWarning, "got " + std::to_string(leftover.size()) +
+    size_t leftover = 0;
+    if (ResetPreambleReinitialises(attempt) &&
+        ListenForStream(timings_.reinitialise_wait_s, "during the reset", &leftover)) {
+      return true;
+    }
+    leftover = 0;
+    if (ListenForStream(timings_.settle_after_flush_s, "during the reset", &leftover)) return true;
+    if (leftover > 0) {
+      Emit(Severity::kWarning, "got " + std::to_string(leftover) +
                                    " characters after stopping output; flushing");
       FlushInput();
     }

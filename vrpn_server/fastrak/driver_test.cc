@@ -268,11 +268,51 @@ TEST(FastrakDriver, WatchdogResetsAfterSilenceAndEscalates) {
   ASSERT_NE(first, std::string::npos) << sent;
   EXPECT_NE(sent.find("\rcS", first), std::string::npos);
   EXPECT_NE(sent.find("\r\x19" "cS", first), std::string::npos);
+  // The unit comes back still streaming in our format (it never saw our commands, like a unit whose
+  // RS-232 cable was out): the driver takes the stream up without finishing a reset.
+  // Unmute right after a failed status check, i.e. in the probe that follows it (a `c` reaching the
+  // unit later in an attempt would legitimately stop it and lead to a full reset instead).
+  auto bad_status_count = [&] {
+    int n = 0;
+    for (const auto& m : collector.messages()) n += m.text.find("bad status") != std::string::npos;
+    return n;
+  };
+  const int bad_before = bad_status_count();
+  ASSERT_TRUE(WaitUntil([&] { return bad_status_count() > bad_before; }, 10.0));
   const size_t before = collector.reports().size();
+  const auto unmuted_at = SteadyClock::now();
   fake.SetMute(false);
+  ASSERT_TRUE(collector.WaitForReports(before + 10, 15.0));
+  const double resume_s =
+      std::chrono::duration<double>(collector.report_times()[before] - unmuted_at).count();
+  EXPECT_LT(resume_s, 2.0);
+  for (const FastrakReport& r : Since(collector, before)) ExpectTranscriptPose(r);
+  EXPECT_EQ(driver.stats().resets_completed, 1u);
+  EXPECT_EQ(driver.stats().resumes, 1u);
+  EXPECT_TRUE(collector.HasMessage("resumed without reset"));
+  driver.Stop();
+}
+
+TEST(FastrakDriver, SilentThenReinitialisedUnitGetsAFullReset) {
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  options.timings.watchdog_s = 0.3;
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(5, 10.0));
+  fake.SetMute(true);
+  ASSERT_TRUE(WaitUntil([&] { return driver.stats().resets_started >= 2; }, 10.0));
+  // Power cycle while silent: polled ASCII after power-up, so it needs the whole sequence again.
+  fake.Unplug();
+  fake.Plug(/*power_cycled=*/true);
+  fake.SetMute(false);
+  const size_t before = collector.reports().size();
   ASSERT_TRUE(collector.WaitForReports(before + 10, 15.0));
   for (const FastrakReport& r : Since(collector, before)) ExpectTranscriptPose(r);
   EXPECT_EQ(driver.stats().resets_completed, 2u);
+  EXPECT_EQ(driver.stats().resumes, 0u);
   driver.Stop();
 }
 
