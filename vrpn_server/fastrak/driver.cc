@@ -218,6 +218,13 @@ class FastrakDriver::Session {
       Emit(Severity::kInfo, std::string("extra commands switch the tracker to ") + UnitsName(units_) +
                                 "; positions are converted from " + UnitsName(units_));
     }
+    for (const std::string& cmd : options_.extra_commands) {
+      if (cmd.front() == 'O') {
+        Emit(Severity::kWarning, "extra command '" + cmd +
+                                     "' changes an output list; records that do not match 2,11[,16],0 "
+                                     "are discarded");
+      }
+    }
     while (true) {
       try {
         if (fd_ < 0) OpenWithBackoff();
