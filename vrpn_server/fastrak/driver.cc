@@ -462,8 +462,13 @@ class FastrakDriver::Session {
     std::string why;
     const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
     if (!status) {
-      Emit(Severity::kError, "bad status report (" + (reply.empty() ? std::string("no reply") : why) +
-                                 "), retrying reset");
+      std::string text = "bad status report (" + (reply.empty() ? std::string("no reply") : why) +
+                         "), retrying reset";
+      if (attempt >= 4) {
+        text += "; if this persists, check the cable and that the baud rate matches the unit's "
+                "switches, then power-cycle the Fastrak";
+      }
+      Emit(Severity::kError, text);
       return false;
     }
     reset_attempts_ = 0;
