@@ -2,6 +2,8 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
+#include <pthread.h>
+#include <time.h>
 #include <netinet/tcp.h>
 #include <sys/epoll.h>
 #include <sys/eventfd.h>
@@ -168,6 +170,9 @@ void VrpnServer::Start() {
   Log("serving on " + options_.bind_address + ":" + std::to_string(port_) + " (TCP and UDP)" +
       (impl_->allow.empty() ? "" : ", allow-list active"));
   thread_ = std::thread([this] { Run(); });
+  // Reports queued before Start() wake the loop once.
+  const std::uint64_t wake = 1;
+  [[maybe_unused]] auto n = ::write(event_fd_, &wake, sizeof(wake));
 }
 
 void VrpnServer::Stop() {
@@ -244,6 +249,15 @@ ServerStats VrpnServer::stats() const {
 }
 
 void VrpnServer::Log(const std::string& line) { log_(line); }
+
+double VrpnServer::NetworkThreadCpuSeconds() const {
+  if (!running_) return 0.0;
+  clockid_t clock;
+  if (::pthread_getcpuclockid(const_cast<std::thread&>(thread_).native_handle(), &clock) != 0) return 0.0;
+  timespec ts{};
+  ::clock_gettime(clock, &ts);
+  return ts.tv_sec + 1e-9 * ts.tv_nsec;
+}
 
 void VrpnServer::Run() {
   epoll_event events[64];
@@ -463,6 +477,7 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
       if (n <= 0) break;
       if (e.session) e.session->OnDatagram(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)));
     }
+    Flush(e);  // replies to messages that came over UDP travel on TCP
     return;
   }
   if (e.connecting) {

@@ -88,6 +88,8 @@ class VrpnServer {
   void PublishButton(int button, int index, bool pressed, Timestamp time);
 
   ServerStats stats() const;
+  // CPU time the network thread has used [s] (for the idle-CPU benchmark); 0 when not running.
+  double NetworkThreadCpuSeconds() const;
 
  private:
   struct Endpoint;
