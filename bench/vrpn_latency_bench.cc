@@ -195,7 +195,7 @@ int main(int argc, char** argv) {
   // The correction's own cost, per call, against the device hand-over without correction.
   {
     PolynomialStandIn corrector;
-    Rigid3d pose(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.3, 0.1, 0.2));
+    trackcal::Rigid3d pose(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.3, 0.1, 0.2));
     const int n = 200000;
     const auto t0 = std::chrono::steady_clock::now();
     double sink = 0;
