@@ -83,9 +83,9 @@ void TrackerDevice::OnText(TextSeverity severity, const std::string& text) {
   if (raw_tracker_) server_->PublishText(*raw_tracker_, severity, text);
 }
 
-NullTracker::NullTracker(TrackerDevice* device, int num_sensors, double rate_hz, Rigid3d pose)
-    : device_(device), num_sensors_(num_sensors), rate_hz_(rate_hz), pose_(pose) {
-  if (device_ == nullptr) throw std::invalid_argument("NullTracker: device is null");
+NullTracker::NullTracker(ReportFunction report, int num_sensors, double rate_hz, Rigid3d pose)
+    : report_(std::move(report)), num_sensors_(num_sensors), rate_hz_(rate_hz), pose_(pose) {
+  if (!report_) throw std::invalid_argument("NullTracker: report function is empty");
   if (num_sensors_ < 1) throw std::invalid_argument("NullTracker: num_sensors must be >= 1");
   if (!(rate_hz_ >= 0) || rate_hz_ > 10000) {
     throw std::invalid_argument("NullTracker: rate must be in [0, 10000] Hz");
@@ -105,7 +105,7 @@ void NullTracker::Start() {
     while (!stop_) {
       lock.unlock();
       const Timestamp now = Timestamp::Now();
-      for (int s = 0; s < num_sensors_; ++s) device_->OnReport(s, pose_, now);
+      for (int s = 0; s < num_sensors_; ++s) report_(s, pose_, now);
       lock.lock();
       next += period;
       cv_.wait_until(lock, next, [this] { return stop_; });

@@ -14,6 +14,7 @@
 #include <condition_variable>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -88,13 +89,14 @@ class TrackerDevice {
 // identity). Rate 0 never reports.
 class NullTracker {
  public:
-  NullTracker(TrackerDevice* device, int num_sensors, double rate_hz, Rigid3d pose = Rigid3d());
+  using ReportFunction = std::function<void(int sensor, const Rigid3d& pose, Timestamp time)>;
+  NullTracker(ReportFunction report, int num_sensors, double rate_hz, Rigid3d pose = Rigid3d());
   ~NullTracker();
   void Start();
   void Stop();
 
  private:
-  TrackerDevice* device_;
+  ReportFunction report_;
   int num_sensors_;
   double rate_hz_;
   Rigid3d pose_;

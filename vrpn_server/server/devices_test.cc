@@ -92,7 +92,7 @@ TEST(TrackerDevice, ServesCorrectedAndRawNames) {
 TEST(NullTracker, ReportsEverySensorAtRate) {
   Fixture f;
   TrackerDevice device(f.server.get(), f.corrected, std::nullopt);
-  NullTracker null(&device, 2, 200.0);
+  NullTracker null([&](int s, const Rigid3d& p, Timestamp t) { device.OnReport(s, p, t); }, 2, 200.0);
   VrpnTrackerClient client(f.Name("Tracker0"));
   std::vector<TrackerReport> got;
   client.SetPoseCallback([&](const TrackerReport& r) { got.push_back(r); });
