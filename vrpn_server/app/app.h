@@ -46,9 +46,10 @@ std::unique_ptr<ReportSource> MakeNullSource(int num_sensors, double rate_hz, Ri
 // Reports of a tracker served by another VRPN server (any connect mode of VrpnTrackerClient).
 std::unique_ptr<ReportSource> MakePassthroughSource(const std::string& vrpn_name);
 
-// Loads a calibration file into a corrector; throws with the reason on a bad file.
-using CorrectorLoader =
-    std::function<std::shared_ptr<const PoseCorrector>(const std::filesystem::path& path)>;
+// Loads a calibration file into a corrector; throws with the reason on a bad file. `outside`
+// overrides the file's behaviour outside the calibrated volume ("clamp" or "fade") when set.
+using CorrectorLoader = std::function<std::shared_ptr<const PoseCorrector>(
+    const std::filesystem::path& path, const std::optional<std::string>& outside)>;
 
 struct TrackerSetup {
   // Device name of the corrected stream (the name clients already use).
@@ -59,6 +60,8 @@ struct TrackerSetup {
   std::optional<std::string> raw_name;
   // Calibration file; none = reports are served unchanged.
   std::optional<std::filesystem::path> calibration;
+  // Override of the calibration's extrapolation policy ("clamp" or "fade").
+  std::optional<std::string> outside;
   // Builds the report source (called once, at Start).
   std::function<std::unique_ptr<ReportSource>()> make_source;
   // Button devices fed by the source's stylus events: (device name, sensor).

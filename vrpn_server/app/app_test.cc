@@ -25,7 +25,8 @@ class OffsetCorrector : public PoseCorrector {
   Eigen::Vector3d d_;
 };
 
-std::shared_ptr<const PoseCorrector> LoadOffset(const std::filesystem::path& path) {
+std::shared_ptr<const PoseCorrector> LoadOffset(const std::filesystem::path& path,
+                                                const std::optional<std::string>&) {
   std::ifstream in(path);
   Eigen::Vector3d d;
   if (!(in >> d.x() >> d.y() >> d.z())) throw std::invalid_argument(path.string() + ": expected dx dy dz");
