@@ -36,8 +36,8 @@ TEST(DipoleCoupling, Nominal) {
     const Eigen::Vector3d x = RandomPoint(-2, 2);
     const Matrix3<double> d = DipoleCoupling<double>(x);
     for (int j = 0; j < 3; ++j) {
-      EXPECT_TRUE(d.col(j).isApprox(DipoleFieldAt(Eigen::Vector3d::Unit(j), Eigen::Vector3d::Zero(), x),
-                                    1e-12));
+      EXPECT_TRUE(d.col(j).isApprox(
+          DipoleFieldAt(Eigen::Vector3d::Unit(j), Eigen::Vector3d::Zero(), x), 1e-12));
     }
   }
 }
@@ -50,8 +50,8 @@ TEST(PlaneImageField, MatchesImageDipoleClosedForm) {
     const Eigen::Vector3d x = RandomPoint(-1, 1);
     // Closed form: mirror point of the origin and moment alpha (m - 2 (m.n) n).
     const Eigen::Vector3d mirror = 2.0 * point.dot(n) * n;
-    const Matrix3<double> b =
-        PlaneImageField<double>(1.0, point, 3.0 * n /* not normalised on purpose */, attenuation, x);
+    const Matrix3<double> b = PlaneImageField<double>(
+        1.0, point, 3.0 * n /* not normalised on purpose */, attenuation, x);
     for (int j = 0; j < 3; ++j) {
       const Eigen::Vector3d m = Eigen::Vector3d::Unit(j);
       const Eigen::Vector3d image_moment = attenuation * (m - 2.0 * m.dot(n) * n);
@@ -160,7 +160,8 @@ TEST(FieldModel, SumOfSourcesAndAutodiff) {
   const double h = 1e-6;
   for (int i = 0; i < 3; ++i) {
     const Eigen::Vector3d dx = h * Eigen::Vector3d::Unit(i);
-    const Matrix3<double> numeric = (model.Field<double>(x + dx) - model.Field<double>(x - dx)) / (2 * h);
+    const Matrix3<double> numeric =
+        (model.Field<double>(x + dx) - model.Field<double>(x - dx)) / (2 * h);
     for (int r = 0; r < 3; ++r) {
       for (int c = 0; c < 3; ++c) {
         // Central differences: truncation O(h^2 f''') ~ 1e-10 against derivatives of order 10.

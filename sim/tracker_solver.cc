@@ -102,8 +102,9 @@ void Refine(const Eigen::Matrix3d& signal, const Eigen::Matrix3d& gain, const Fi
       const Eigen::Vector3d w = step.tail<3>();
       const double angle = w.norm();
       const Eigen::Matrix3d r_new =
-          angle > 0 ? NearestRotation(rotation * Eigen::AngleAxisd(angle, w / angle).toRotationMatrix())
-                    : rotation;
+          angle > 0
+              ? NearestRotation(rotation * Eigen::AngleAxisd(angle, w / angle).toRotationMatrix())
+              : rotation;
       const double cost_new = cost_at(p_new, r_new);
       // Near the minimum the cost cannot resolve steps below sqrt(eps) of the residual; tiny
       // Gauss-Newton steps are taken on the gradient's word so the pose converges to rounding.

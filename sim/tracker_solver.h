@@ -21,8 +21,8 @@ namespace trackcal::sim {
 struct TrackerSolverOptions {
   double field_constant = 1.0;  // k assumed by the tracker (the free-space model's only parameter)
   Eigen::Vector3d hemisphere_in_transmitter = Eigen::Vector3d::UnitX();  // reported p has p.h >= 0
-  int max_iterations = 50;              // Levenberg-Marquardt iterations after the closed form
-  double step_tolerance = 1e-15;        // stop when the step (m and rad) is below this
+  int max_iterations = 50;        // Levenberg-Marquardt iterations after the closed form
+  double step_tolerance = 1e-15;  // stop when the step (m and rad) is below this
   // Throws std::invalid_argument naming the field.
   void Check() const;
 };
@@ -55,8 +55,8 @@ TrackerSolution SolvePoseInField(const Eigen::Matrix3d& signal, const FieldModel
 // the full model to it is not enough: it drops the free-space fit's residual, centimetres in the
 // paper room.) Fixed-point iteration x <- x + (reported - report(x)) in position and world-frame
 // rotation, from x = reported; it contracts while the distortion's Jacobian is below 1.
-// `converged` is false if the correction step is still above `tolerance_m` (and the same in radians)
-// after `max_iterations`.
+// `converged` is false if the correction step is still above `tolerance_m` (and the same in
+// radians) after `max_iterations`.
 TrackerSolution InvertReportedPose(const Rigid3d& reported, const FieldModel& field,
                                    const Eigen::Matrix3d& receiver_gain_matrix,
                                    const TrackerSolverOptions& options = {},
