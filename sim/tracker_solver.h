@@ -22,7 +22,7 @@ struct TrackerSolverOptions {
   double field_constant = 1.0;  // k assumed by the tracker (the free-space model's only parameter)
   Eigen::Vector3d hemisphere_in_transmitter = Eigen::Vector3d::UnitX();  // reported p has p.h >= 0
   int max_iterations = 50;        // Levenberg-Marquardt iterations after the closed form
-  double step_tolerance = 1e-15;  // stop when the step (m and rad) is below this
+  double step_tolerance = 1e-12;  // stop when a step is below this times max(1 m, |p|)
   // Throws std::invalid_argument naming the field.
   void Check() const;
 };
