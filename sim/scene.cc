@@ -429,6 +429,19 @@ std::vector<std::string> HiddenEffects::EnabledNames() const {
   return out;
 }
 
+Rigid3d HiddenEffects::DefaultReceiverFromBody() {
+  // About 2.9 degrees and 2.5 cm: a marker body glued on slightly askew.
+  return Rigid3d(QuaternionFromXyzw(0.02, -0.015, 0.01, 0.99966).normalized(),
+                 Eigen::Vector3d(0.012, -0.008, 0.02));
+}
+
+Eigen::Matrix3d HiddenEffects::DefaultReceiverGainMatrix() {
+  // Gains within 2% and coil axes about 1 degree off orthogonal.
+  Eigen::Matrix3d g;
+  g << 1.02, 0.01, 0.0, -0.005, 0.98, 0.015, 0.0, 0.008, 1.01;
+  return g;
+}
+
 void HiddenEffects::Check() const {
   Require(receiver_from_body.translation.allFinite(), "hidden.sensor_offset.receiver_from_body",
           "must be finite");

@@ -38,7 +38,9 @@ struct ReferenceConfig {
   int samples_per_station = 100;       // samples averaged per static station
   double update_rate_hz = 100.0;       // stream sample rate
   Rigid3d optical_from_transmitter;    // pose of the transmitter in the optical frame
-  std::vector<Eigen::Vector3d> markers_in_body;  // marker positions in the reference body frame
+  // Marker positions in the reference body frame; default: the paper's six, 6 cm along +-x, y, z.
+  std::vector<Eigen::Vector3d> markers_in_body = {{0.06, 0, 0},  {-0.06, 0, 0}, {0, 0.06, 0},
+                                                  {0, -0.06, 0}, {0, 0, 0.06},  {0, 0, -0.06}};
   double visibility_cos_min = 0.0;  // marker seen when cos(its outward axis, line to camera) > this
   void Check() const;
 };
@@ -73,33 +75,38 @@ struct CaptureProtocol {
   void Check() const;
 };
 
-// Physics switched on top of a scene; names are those of the --hidden option.
+// Physics switched on top of a scene; names are those of the --hidden option. The defaults are
+// effects of a plausible size (the paper preset uses the same), so `--hidden NAME` on any scene
+// produces a visible effect.
 struct HiddenEffects {
   // "sensor_offset": the optical body is not at the receiver coil.
   bool sensor_offset = false;
-  Rigid3d receiver_from_body;
+  Rigid3d receiver_from_body = DefaultReceiverFromBody();
   // "receiver_gains": receiver coil gains and non-orthogonality G (replaces the tracker's G).
   bool receiver_gains = false;
-  Eigen::Matrix3d receiver_gain_matrix = Eigen::Matrix3d::Identity();
+  Eigen::Matrix3d receiver_gain_matrix = DefaultReceiverGainMatrix();
   // "ferromagnetic_object": an extra induced dipole near the workspace.
   bool ferromagnetic_object = false;
-  InducedDipole object;
+  InducedDipole object = {"steel_toolbox", Eigen::Vector3d(0.6, 0.95, -0.5), 0.002};
   // "finite_transmitter_coils": octupole term of each transmitter coil (added to the
   // environment's).
   bool finite_transmitter_coils = false;
-  Eigen::Vector3d octupole_m2 = Eigen::Vector3d::Zero();
+  Eigen::Vector3d octupole_m2 = Eigen::Vector3d(-0.000675, -0.0006, -0.00075);
   // "clock_offset": reference stream time = tracker stream time + offset.
   bool clock_offset = false;
-  double reference_minus_tracker_s = 0.0;
+  double reference_minus_tracker_s = 0.037;
   // "hemisphere_flips": this many calibration/validation stations are reported at -p.
   bool hemisphere_flips = false;
-  int flip_count = 0;
+  int flip_count = 3;
 
   // Enables an effect by name; throws std::invalid_argument listing the names if unknown.
   void Enable(const std::string& name);
   static const std::vector<std::string>& Names();
   std::vector<std::string> EnabledNames() const;
   void Check() const;
+
+  static Rigid3d DefaultReceiverFromBody();
+  static Eigen::Matrix3d DefaultReceiverGainMatrix();
 };
 
 struct Scene {

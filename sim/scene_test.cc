@@ -110,3 +110,21 @@ TEST(HiddenEffects, EnableByName) {
 
 }  // namespace
 }  // namespace trackcal::sim
+
+namespace trackcal::sim {
+namespace {
+
+TEST(HiddenEffects, DefaultsMatchThePaperPresetAndAreVisible) {
+  // A scene without a hidden section still gets effects of a plausible size.
+  const HiddenEffects defaults;
+  const Scene paper = LoadScene("paper");
+  EXPECT_EQ(SceneToJson(Scene{.hidden = defaults})["hidden"].dump(),
+            SceneToJson(Scene{.hidden = paper.hidden})["hidden"].dump());
+  EXPECT_GT(defaults.receiver_from_body.translation.norm(), 0.01);
+  EXPECT_GT((defaults.receiver_gain_matrix - Eigen::Matrix3d::Identity()).norm(), 0.01);
+  EXPECT_GT(defaults.flip_count, 0);
+  EXPECT_NE(defaults.reference_minus_tracker_s, 0.0);
+}
+
+}  // namespace
+}  // namespace trackcal::sim
