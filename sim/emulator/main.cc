@@ -43,7 +43,8 @@ const char kUsage[] =
     "off)\n"
     "  --rate-per-station     every active station in every cycle instead of round robin\n"
     "  --binary --continuous --metric   power-up state (default ASCII, polled, inches)\n"
-    "  --seed N               seed of the garbage-byte fault\n"
+    "  --noise-mm MM --noise-deg DEG  white noise per axis on reported position / orientation\n"
+    "  --seed N               seed of the noise and of the garbage-byte fault\n"
     "  --duration SECONDS     exit after this time (default: run until SIGINT/SIGTERM)\n"
     "  --verbose              log commands and faults to stderr\n";
 
@@ -87,6 +88,8 @@ int Main(int argc, char** argv) {
   bool loop = false;
   bool verbose = false;
   double duration = -1;
+  double noise_mm = 0;
+  double noise_deg = 0;
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     auto value = [&]() -> std::string {
@@ -120,6 +123,10 @@ int Main(int argc, char** argv) {
       options.device.continuous = true;
     } else if (arg == "--metric") {
       options.device.metric = true;
+    } else if (arg == "--noise-mm") {
+      noise_mm = ParseDouble(value(), arg);
+    } else if (arg == "--noise-deg") {
+      noise_deg = ParseDouble(value(), arg);
     } else if (arg == "--seed") {
       options.seed = static_cast<uint64_t>(ParseDouble(value(), arg));
     } else if (arg == "--duration") {
@@ -164,7 +171,9 @@ int Main(int argc, char** argv) {
   options.Check();
 
   ControlledPoseSource source(std::move(base));
-  PerfectMeasurement model;
+  // Noise shares --seed with the garbage fault, from a different stream of numbers.
+  NoisyMeasurement model(nullptr, noise_mm * 1e-3, noise_deg * trackcal::kRadPerDeg,
+                         options.seed ^ 0x9e3779b97f4a7c15ULL);
   Emulator emulator(options, &source, &model);
   emulator.on_device_path = [](const std::string& path) { std::cout << path << std::endl; };
   if (verbose) emulator.on_log = [](const std::string& line) { std::cerr << line << std::endl; };
