@@ -37,6 +37,8 @@ the calibration files attached with trackcal_Calibration lines (docs/vrpn.md, do
   --allow CIDR     accept clients from this network only; repeatable (default: everyone)
   --record DIR     record raw and corrected streams of every tracker to DIR as CSV
   --max-clients N  refuse connections beyond N (default 256)
+  --realtime-priority P
+                   run the network thread SCHED_FIFO at priority P (1-99; needs CAP_SYS_NICE)
   -h, --help       this text
 
 Signals: SIGHUP reloads every calibration file (a changed file is also reloaded on its own);
@@ -82,6 +84,8 @@ Args ParseArgs(int argc, char** argv) {
       a.app.record_dir = value(arg);
     } else if (arg == "--max-clients") {
       a.app.server.max_clients = ParseInt(value(arg), arg, 1, 100000);
+    } else if (arg == "--realtime-priority") {
+      a.app.server.realtime_priority = ParseInt(value(arg), arg, 1, 99);
     } else if (arg == "-warn" || arg == "-v" || arg == "-q") {
       std::cerr << "trackcal-server: note: " << arg << " ignored\n";
     } else if (arg == "-millisleep" || arg == "-li" || arg == "-lo") {
