@@ -1,12 +1,176 @@
+// Bindings of core/: pose helpers, corrections and the calibration file. Batches of poses cross the
+// boundary as numpy arrays (N x 3 positions, N x 4 x, y, z, w quaternions) and are corrected in C++
+// with the GIL released; user errors (bad shapes, bad files) raise ValueError naming the problem.
 #include <pybind11/eigen.h>
+#include <pybind11/numpy.h>
 #include <pybind11/stl.h>
+#include <pybind11/stl/filesystem.h>
 
+#include <sstream>
+
+#include "core/calibration_file.h"
+#include "core/file_util.h"
+#include "core/lut.h"
+#include "core/polynomial.h"
 #include "core/pose.h"
 #include "python/src/bindings.h"
 
 namespace py = pybind11;
 
 namespace trackcal::python {
+
+namespace {
+
+using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
+
+std::string ShapeString(const py::array& a) {
+  std::ostringstream s;
+  s << "(";
+  for (py::ssize_t i = 0; i < a.ndim(); ++i) {
+    if (i) s << ", ";
+    s << a.shape(i);
+  }
+  if (a.ndim() == 1) s << ",";
+  s << ")";
+  return s.str();
+}
+
+std::string ExpectedShape(const std::vector<py::ssize_t>& shape) {
+  std::ostringstream s;
+  s << "(";
+  for (size_t i = 0; i < shape.size(); ++i) {
+    if (i) s << ", ";
+    if (shape[i] < 0) {
+      s << "N";
+    } else {
+      s << shape[i];
+    }
+  }
+  if (shape.size() == 1) s << ",";
+  s << ")";
+  return s.str();
+}
+
+// A C-contiguous float64 view of `obj` with the given shape (-1: any length); ValueError otherwise.
+DoubleArray AsArray(const py::handle& obj, const std::string& name,
+                    const std::vector<py::ssize_t>& shape, const std::string& note = "") {
+  DoubleArray a = DoubleArray::ensure(obj);
+  if (!a) {
+    PyErr_Clear();
+    throw py::value_error(name + " must be a numeric array of shape " + ExpectedShape(shape) +
+                          note);
+  }
+  bool ok = a.ndim() == static_cast<py::ssize_t>(shape.size());
+  for (size_t i = 0; ok && i < shape.size(); ++i) ok = shape[i] < 0 || a.shape(i) == shape[i];
+  if (!ok) {
+    throw py::value_error(name + " must have shape " + ExpectedShape(shape) + note + ", got " +
+                          ShapeString(a));
+  }
+  return a;
+}
+
+Eigen::Vector3d AsVector3(const py::handle& obj, const std::string& name) {
+  const DoubleArray a = AsArray(obj, name, {3});
+  return Eigen::Vector3d(a.at(0), a.at(1), a.at(2));
+}
+
+std::vector<double> Flatten(const DoubleArray& a) {
+  return std::vector<double>(a.data(), a.data() + a.size());
+}
+
+py::array_t<double> ToArray(const std::vector<double>& v, std::vector<py::ssize_t> shape) {
+  py::array_t<double> a(shape);
+  std::copy(v.begin(), v.end(), a.mutable_data());
+  return a;
+}
+
+py::array_t<double> ToArray(const Eigen::Vector3d& v) {
+  return ToArray(std::vector<double>{v.x(), v.y(), v.z()}, {3});
+}
+
+// Splits a (n x 6) node-major array into its position (first 3) or orientation (last 3) columns.
+std::vector<double> Columns(const std::vector<double>& v, int first) {
+  std::vector<double> out;
+  out.reserve(v.size() / 2);
+  for (size_t i = 0; i < v.size(); i += 6) {
+    for (int k = 0; k < 3; ++k) out.push_back(v[i + first + k]);
+  }
+  return out;
+}
+
+// Corrects a batch through `apply` (a Correction or Calibration ApplyBatch) with the GIL released.
+template <typename Apply>
+py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quaternions_obj,
+                       const Apply& apply) {
+  const DoubleArray positions = AsArray(positions_obj, "positions", {-1, 3});
+  const py::ssize_t n = positions.shape(0);
+  const DoubleArray quaternions =
+      AsArray(quaternions_obj, "quaternions_xyzw", {n, 4},
+              " (N = " + std::to_string(n) + " rows like positions, columns x, y, z, w)");
+  py::array_t<double> out_positions({n, py::ssize_t{3}});
+  py::array_t<double> out_quaternions({n, py::ssize_t{4}});
+  py::array_t<bool> extrapolated(n);
+  static_assert(sizeof(bool) == sizeof(uint8_t));
+  {
+    const double* p = positions.data();
+    const double* q = quaternions.data();
+    double* po = out_positions.mutable_data();
+    double* qo = out_quaternions.mutable_data();
+    auto* flags = reinterpret_cast<uint8_t*>(extrapolated.mutable_data());
+    py::gil_scoped_release release;
+    apply(static_cast<size_t>(n), p, q, po, qo, flags);
+  }
+  return py::make_tuple(out_positions, out_quaternions, extrapolated);
+}
+
+py::object JsonToPython(const nlohmann::json& j) {
+  return py::module_::import("json").attr("loads")(j.dump());
+}
+
+nlohmann::json PythonToJson(const py::handle& obj, const std::string& name) {
+  std::string text;
+  try {
+    text = py::module_::import("json").attr("dumps")(obj, py::arg("allow_nan") = false).cast<std::string>();
+  } catch (const py::error_already_set& e) {
+    throw py::value_error(name + " must be JSON-serialisable with finite numbers: " +
+                          std::string(e.what()));
+  }
+  return nlohmann::json::parse(text);
+}
+
+Calibration MakeCalibration(const std::vector<std::shared_ptr<Correction>>& corrections,
+                            const py::handle& volume_min, const py::handle& volume_max,
+                            const std::string& extrapolation, double fade_distance,
+                            const std::string& description, const py::object& fit_statistics,
+                            const py::object& provenance) {
+  Calibration cal;
+  cal.description = description;
+  for (const auto& c : corrections) {
+    if (!c) throw py::value_error("corrections must not contain None");
+    cal.chain.Append(c->Clone());
+  }
+  CalibratedVolume volume;
+  volume.min = AsVector3(volume_min, "volume_min");
+  volume.max = AsVector3(volume_max, "volume_max");
+  volume.extrapolation = ExtrapolationPolicyFromName(extrapolation);
+  volume.fade_distance = fade_distance;
+  cal.chain.SetVolume(volume);
+  if (!fit_statistics.is_none()) {
+    cal.fit_statistics = PythonToJson(fit_statistics, "fit_statistics");
+    if (!cal.fit_statistics.is_object()) throw py::value_error("fit_statistics must be a dict");
+  }
+  if (provenance.is_none()) {
+    cal.provenance.tool = "trackcal-python";
+    cal.provenance.tool_version = TRACKCAL_VERSION;
+    cal.provenance.created_utc = CurrentUtcTimestamp();
+  } else {
+    cal.provenance = ParseProvenanceJson(PythonToJson(provenance, "provenance"), "provenance", "$");
+  }
+  cal.Check();
+  return cal;
+}
+
+}  // namespace
 
 void BindCore(py::module_& m) {
   m.def(
@@ -17,6 +181,183 @@ void BindCore(py::module_& m) {
       },
       py::arg("a_xyzw"), py::arg("b_xyzw"),
       "Angle in radians between two rotations given as x, y, z, w quaternions; q and -q are equal.");
+
+  m.def("num_polynomial_terms", &NumPolynomialTerms, py::arg("degree"),
+        "Number of terms (r+1)(r+2)(r+3)/6 of a complete degree-r polynomial in x, y, z.");
+  m.def(
+      "polynomial_term_exponents",
+      [](int degree) {
+        const auto terms = PolynomialTermExponents(degree);
+        py::array_t<int> out({static_cast<py::ssize_t>(terms.size()), py::ssize_t{3}});
+        auto r = out.mutable_unchecked<2>();
+        for (size_t j = 0; j < terms.size(); ++j) {
+          for (int k = 0; k < 3; ++k) r(j, k) = terms[j][k];
+        }
+        return out;
+      },
+      py::arg("degree"),
+      "(R, 3) powers of x, y, z of every term in the canonical order (graded by total degree, then "
+      "descending power of x, then of y).");
+  m.def("sha256_file", &Sha256HexOfFile, py::arg("path"),
+        "Lower-case hex SHA-256 of a file (for provenance inputs).");
+
+  py::class_<Correction, std::shared_ptr<Correction>>(
+      m, "Correction", "One correction term (polynomial, LUT, ...): reported pose -> corrected pose.")
+      .def_property_readonly("type", &Correction::TypeName, "The term's \"type\" in the file.")
+      .def(
+          "to_json", [](const Correction& c) { return c.ToJson().dump(2); },
+          "The term's entry of the file's corrections array, as JSON text.")
+      .def(
+          "correct",
+          [](const Correction& c, const py::handle& positions, const py::handle& quaternions) {
+            return CorrectBatch(positions, quaternions,
+                                [&c](size_t n, const double* p, const double* q, double* po,
+                                     double* qo, uint8_t* f) { c.ApplyBatch(n, p, q, po, qo, f); });
+          },
+          py::arg("positions"), py::arg("quaternions_xyzw"),
+          "Applies this term alone (no calibrated volume): (positions, quaternions, extrapolated).");
+
+  py::class_<PolynomialCorrection, Correction, std::shared_ptr<PolynomialCorrection>>(
+      m, "PolynomialCorrection",
+      "Complete degree-r vector polynomial of the normalised reported position u = (p - "
+      "input_offset) / input_scale (Ikits et al. 2001, eq. 7), for the position error [m] and the "
+      "vector part of the world-frame error quaternion q_e = q_ref * conj(q_reported).")
+      .def(py::init([](int degree, const py::handle& position_coefficients,
+                       const py::handle& orientation_coefficients, const py::handle& input_offset,
+                       const py::handle& input_scale) {
+             CheckPolynomialDegree(degree);
+             const py::ssize_t r = NumPolynomialTerms(degree);
+             const std::string note = " for degree " + std::to_string(degree);
+             const DoubleArray pc = AsArray(position_coefficients, "position_coefficients", {r, 3}, note);
+             const DoubleArray oc =
+                 AsArray(orientation_coefficients, "orientation_coefficients", {r, 3}, note);
+             return std::shared_ptr<PolynomialCorrection>(
+                 PolynomialCorrection::FromPositionAndOrientation(
+                     degree, AsVector3(input_offset, "input_offset"),
+                     AsVector3(input_scale, "input_scale"), Flatten(pc), Flatten(oc)));
+           }),
+           py::arg("degree"), py::arg("position_coefficients"), py::arg("orientation_coefficients"),
+           py::arg("input_offset") = py::make_tuple(0.0, 0.0, 0.0),
+           py::arg("input_scale") = py::make_tuple(1.0, 1.0, 1.0),
+           "Coefficients are (R, 3) arrays in the canonical term order (polynomial_term_exponents).")
+      .def_property_readonly("degree", &PolynomialCorrection::degree)
+      .def_property_readonly("input_offset",
+                             [](const PolynomialCorrection& p) { return ToArray(p.input_offset()); })
+      .def_property_readonly("input_scale",
+                             [](const PolynomialCorrection& p) { return ToArray(p.input_scale()); })
+      .def_property_readonly("position_coefficients",
+                             [](const PolynomialCorrection& p) {
+                               return ToArray(Columns(p.coefficients(), 0), {p.num_terms(), 3});
+                             })
+      .def_property_readonly("orientation_coefficients", [](const PolynomialCorrection& p) {
+        return ToArray(Columns(p.coefficients(), 3), {p.num_terms(), 3});
+      });
+
+  py::class_<TrilinearLutCorrection, Correction, std::shared_ptr<TrilinearLutCorrection>>(
+      m, "TrilinearLutCorrection",
+      "Trilinear lookup table over a grid of reported positions holding the position error [m] "
+      "and the vector part of q_e at each node.")
+      .def(py::init([](const py::handle& x, const py::handle& y, const py::handle& z,
+                       const py::handle& position_error, const py::handle& orientation_error) {
+             std::array<std::vector<double>, 3> axes = {
+                 Flatten(AsArray(x, "x", {-1})), Flatten(AsArray(y, "y", {-1})),
+                 Flatten(AsArray(z, "z", {-1}))};
+             const std::vector<py::ssize_t> shape = {static_cast<py::ssize_t>(axes[0].size()),
+                                                     static_cast<py::ssize_t>(axes[1].size()),
+                                                     static_cast<py::ssize_t>(axes[2].size()), 3};
+             const std::string note = " = (len(x), len(y), len(z), 3)";
+             const DoubleArray pe = AsArray(position_error, "position_error", shape, note);
+             const DoubleArray oe = AsArray(orientation_error, "orientation_error", shape, note);
+             return std::shared_ptr<TrilinearLutCorrection>(
+                 TrilinearLutCorrection::FromPositionAndOrientation(LutGrid(std::move(axes)),
+                                                                    Flatten(pe), Flatten(oe)));
+           }),
+           py::arg("x"), py::arg("y"), py::arg("z"), py::arg("position_error"),
+           py::arg("orientation_error"),
+           "Axes: strictly increasing node coordinates [m]; errors: (nx, ny, nz, 3) arrays.")
+      .def_property_readonly("axes",
+                             [](const TrilinearLutCorrection& l) {
+                               py::list axes;
+                               for (int k = 0; k < 3; ++k) {
+                                 axes.append(ToArray(l.grid().axis(k), {l.grid().size(k)}));
+                               }
+                               return py::tuple(axes);
+                             })
+      .def_property_readonly("position_error",
+                             [](const TrilinearLutCorrection& l) {
+                               const LutGrid& g = l.grid();
+                               return ToArray(Columns(l.node_values(), 0),
+                                              {g.size(0), g.size(1), g.size(2), 3});
+                             })
+      .def_property_readonly("orientation_error", [](const TrilinearLutCorrection& l) {
+        const LutGrid& g = l.grid();
+        return ToArray(Columns(l.node_values(), 3), {g.size(0), g.size(1), g.size(2), 3});
+      });
+
+  py::class_<Calibration>(
+      m, "Calibration",
+      "A calibration: a chain of corrections guarded by the calibrated volume, with fit statistics "
+      "and provenance (docs/calibration-file.md).")
+      .def(py::init(&MakeCalibration), py::arg("corrections"), py::arg("volume_min"),
+           py::arg("volume_max"), py::arg("extrapolation") = "clamp",
+           py::arg("fade_distance") = 0.0, py::arg("description") = "",
+           py::arg("fit_statistics") = py::none(), py::arg("provenance") = py::none(),
+           "Builds a calibration from correction terms (applied in order) and the box of reported "
+           "positions they are valid in; extrapolation is 'clamp' or 'fade'.")
+      .def_static(
+          "load", [](const std::filesystem::path& path) { return ReadCalibrationFile(path); },
+          py::arg("path"), "Reads a calibration file; errors name the file and the JSON path.")
+      .def_static("from_json", &ParseCalibrationJson, py::arg("text"),
+                  py::arg("source_name") = "<string>")
+      .def(
+          "save",
+          [](const Calibration& c, const std::filesystem::path& path) {
+            WriteCalibrationFile(path, c);
+          },
+          py::arg("path"),
+          "Writes atomically; refuses to overwrite an input listed in the provenance.")
+      .def("to_json", &CalibrationToJsonText)
+      .def(
+          "correct",
+          [](const Calibration& c, const py::handle& positions, const py::handle& quaternions) {
+            return CorrectBatch(positions, quaternions,
+                                [&c](size_t n, const double* p, const double* q, double* po,
+                                     double* qo, uint8_t* f) { c.ApplyBatch(n, p, q, po, qo, f); });
+          },
+          py::arg("positions"), py::arg("quaternions_xyzw"),
+          "Corrects N reported poses: positions (N, 3) [m] and quaternions (N, 4) ordered x, y, z, "
+          "w. Returns (positions (N, 3), quaternions (N, 4), extrapolated (N,) bool).")
+      .def_property_readonly("corrections",
+                             [](const Calibration& c) {
+                               std::vector<std::shared_ptr<Correction>> out;
+                               for (size_t i = 0; i < c.chain.size(); ++i) {
+                                 out.emplace_back(c.chain.term(i).Clone());
+                               }
+                               return out;
+                             })
+      .def_property_readonly("volume_min", [](const Calibration& c) { return ToArray(c.volume().min); })
+      .def_property_readonly("volume_max", [](const Calibration& c) { return ToArray(c.volume().max); })
+      .def_property_readonly(
+          "extrapolation",
+          [](const Calibration& c) { return ExtrapolationPolicyName(c.volume().extrapolation); })
+      .def_property_readonly("fade_distance",
+                             [](const Calibration& c) { return c.volume().fade_distance; })
+      .def_readwrite("description", &Calibration::description)
+      .def_property_readonly("fit_statistics",
+                             [](const Calibration& c) { return JsonToPython(c.fit_statistics); })
+      .def_property_readonly("provenance",
+                             [](const Calibration& c) {
+                               return JsonToPython(CalibrationToJson(c).at("provenance"));
+                             })
+      .def("__repr__", [](const Calibration& c) {
+        std::string terms;
+        for (size_t i = 0; i < c.chain.size(); ++i) {
+          if (i) terms += ", ";
+          terms += c.chain.term(i).TypeName();
+        }
+        return "Calibration(corrections=[" + terms + "], extrapolation='" +
+               ExtrapolationPolicyName(c.volume().extrapolation) + "')";
+      });
 }
 
 }  // namespace trackcal::python

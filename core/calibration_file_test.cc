@@ -1,0 +1,313 @@
+#include "core/calibration_file.h"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <functional>
+
+#include "core/file_util.h"
+#include "core/lut.h"
+#include "core/polynomial.h"
+#include "tests/test_utils.h"
+
+namespace trackcal {
+namespace {
+
+using testing::TestRng;
+
+std::filesystem::path ExamplePath() {
+  return testing::SourceDir() / "tests/data/calibration/example.json";
+}
+
+nlohmann::json ExampleJson() { return nlohmann::json::parse(ReadFileToString(ExamplePath())); }
+
+// Parses the example after `edit` and returns the error message ("" if it parsed).
+std::string ErrorAfterEdit(const std::function<void(nlohmann::json&)>& edit) {
+  nlohmann::json j = ExampleJson();
+  edit(j);
+  try {
+    ParseCalibrationJson(j.dump(), "calib.json");
+  } catch (const JsonInputError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+std::string ErrorForText(const std::string& text) {
+  try {
+    ParseCalibrationJson(text, "calib.json");
+  } catch (const JsonInputError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+Calibration RandomCalibration() {
+  std::normal_distribution<double> n(0.0, 0.01);
+  const int r = 4;
+  std::vector<double> c(6 * NumPolynomialTerms(r));
+  for (double& v : c) v = n(TestRng());
+  Calibration cal;
+  cal.description = "random";
+  cal.chain.Append(std::make_unique<PolynomialCorrection>(r, Eigen::Vector3d(0.01, -0.02, 0.3),
+                                                          Eigen::Vector3d(0.7, 0.6, 0.5), c));
+  LutGrid grid({std::vector<double>{-0.7, -0.2, 0.1, 0.7}, std::vector<double>{-0.6, 0.6},
+                std::vector<double>{-0.2, 0.0, 0.3, 0.5, 0.8}});
+  std::vector<double> values(6 * grid.num_nodes());
+  for (double& v : values) v = n(TestRng()) / 3.0;  // not exactly representable in short decimal
+  cal.chain.Append(std::make_unique<TrilinearLutCorrection>(std::move(grid), values));
+  CalibratedVolume volume;
+  volume.min = Eigen::Vector3d(-0.65, -0.55, -0.15);
+  volume.max = Eigen::Vector3d(0.65, 0.55, 0.75);
+  volume.extrapolation = ExtrapolationPolicy::kClamp;
+  cal.chain.SetVolume(volume);
+  cal.fit_statistics = {{"num_samples", 100}, {"position_residual_m", {{"rms", 0.0012}}}};
+  cal.provenance.tool = "calibration_file_test";
+  cal.provenance.tool_version = "0.1.0";
+  cal.provenance.created_utc = "2026-11-21T12:00:00Z";
+  cal.provenance.inputs.push_back({"capture.csv", Sha256Hex("capture"), "calibration_capture"});
+  return cal;
+}
+
+TEST(ReadCalibrationFile, Nominal) {
+  const Calibration cal = ReadCalibrationFile(ExamplePath());
+  ASSERT_EQ(cal.chain.size(), 2u);
+  EXPECT_EQ(cal.chain.term(0).TypeName(), "polynomial");
+  EXPECT_EQ(cal.chain.term(1).TypeName(), "trilinear_lut");
+  const auto& poly = dynamic_cast<const PolynomialCorrection&>(cal.chain.term(0));
+  EXPECT_EQ(poly.degree(), 2);
+  EXPECT_EQ(poly.input_offset(), Eigen::Vector3d(0.0, 0.0, 0.3));
+  // Coefficient (term x, position x) and (term z, orientation x), from the file.
+  EXPECT_EQ(poly.coefficients()[6 * 1 + 0], 0.0102);
+  EXPECT_EQ(poly.coefficients()[6 * 3 + 3], 0.0009);
+  const auto& lut = dynamic_cast<const TrilinearLutCorrection&>(cal.chain.term(1));
+  EXPECT_EQ(lut.grid().size(2), 3);
+  EXPECT_EQ(cal.volume().extrapolation, ExtrapolationPolicy::kFade);
+  EXPECT_EQ(cal.volume().fade_distance, 0.15);
+  EXPECT_EQ(cal.volume().max, Eigen::Vector3d(0.6, 0.5, 0.7));
+  EXPECT_EQ(cal.fit_statistics.at("num_samples"), 480);
+  ASSERT_EQ(cal.provenance.inputs.size(), 2u);
+  EXPECT_EQ(cal.provenance.inputs[1].role, "validation_capture");
+  EXPECT_EQ(cal.provenance.tool, "trackcal-fit");
+}
+
+TEST(CalibrationDoc, ExampleInDocIsTheTestedExample) {
+  // docs/calibration-file.md shows the example verbatim between these markers.
+  const std::string doc = ReadFileToString(testing::SourceDir() / "docs/calibration-file.md");
+  const std::string begin_marker = "<!-- example: tests/data/calibration/example.json -->\n```json\n";
+  const size_t begin = doc.find(begin_marker);
+  ASSERT_NE(begin, std::string::npos);
+  const size_t start = begin + begin_marker.size();
+  const size_t end = doc.find("```", start);
+  ASSERT_NE(end, std::string::npos);
+  EXPECT_EQ(doc.substr(start, end - start), ReadFileToString(ExamplePath()));
+}
+
+TEST(WriteCalibrationFile, RoundTripIsBitExact) {
+  const Calibration cal = RandomCalibration();
+  const auto dir = testing::MakeTempDir("calib");
+  const auto path = dir / "out.json";
+  WriteCalibrationFile(path, cal);
+  const Calibration back = ReadCalibrationFile(path);
+  EXPECT_EQ(CalibrationToJson(back), CalibrationToJson(cal));
+  EXPECT_EQ(CalibrationToJsonText(back), ReadFileToString(path));
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (int i = 0; i < 200; ++i) {
+    const Rigid3d reported(testing::RandomRotation(TestRng()),
+                           Eigen::Vector3d(u(TestRng()), u(TestRng()), u(TestRng())));
+    const CorrectedPose a = cal.Apply(reported);
+    const CorrectedPose b = back.Apply(reported);
+    EXPECT_EQ(a.pose.translation, b.pose.translation);
+    EXPECT_EQ(a.pose.rotation.coeffs(), b.pose.rotation.coeffs());
+    EXPECT_EQ(a.extrapolated, b.extrapolated);
+  }
+  // The example survives a parse/write cycle unchanged in content.
+  const Calibration example = ReadCalibrationFile(ExamplePath());
+  EXPECT_EQ(CalibrationToJson(ParseCalibrationJson(CalibrationToJsonText(example), "again")),
+            ExampleJson());
+}
+
+TEST(ParseCalibrationJson, RejectsUnknownFormatAndVersion) {
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["format"] = "trackcal-capture"; }),
+            "calib.json: $.format: unknown format \"trackcal-capture\"; expected "
+            "\"trackcal-calibration\"");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["version"] = 2; }),
+            "calib.json: $.version: unsupported version 2; this reader supports version 1");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["version"] = "1"; }),
+            "calib.json: $.version: expected an integer, got string \"1\"");
+  EXPECT_EQ(ErrorForText("[1, 2]"), "calib.json: $: expected an object, got array [1,2]");
+}
+
+TEST(ParseCalibrationJson, RejectsMissingAndUnknownFields) {
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j.erase("units"); }),
+            "calib.json: $.units: missing required field");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][1].erase("axes"); }),
+            "calib.json: $.corrections[1].axes: missing required field");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["provenance"]["inputs"][1].erase("sha256"); }),
+            "calib.json: $.provenance.inputs[1].sha256: missing required field");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["colour"] = "red"; }),
+            "calib.json: $.colour: unknown field");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][0]["degre"] = 4; }),
+            "calib.json: $.corrections[0].degre: unknown field");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["calibrated_volume"]["fade"] = 0.1; }),
+            "calib.json: $.calibrated_volume.fade: unknown field");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][1]["axes"]["w"] = {0, 1}; }),
+            "calib.json: $.corrections[1].axes.w: unknown field");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["units"]["length"] = "mm"; }),
+            "calib.json: $.units.length: unknown value \"mm\"; expected one of \"m\"");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][0]["type"] = "spline"; }),
+            "calib.json: $.corrections[0].type: unknown correction type \"spline\"; known: "
+            "\"polynomial\", \"trilinear_lut\"");
+}
+
+TEST(ParseCalibrationJson, RejectsWrongArraySizes) {
+  // The example: a degree-4 polynomial with 34 position coefficients.
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
+              auto& c = j["corrections"][0];
+              c["degree"] = 4;
+              c["position_coefficients"] = nlohmann::json::array();
+              c["orientation_coefficients"] = nlohmann::json::array();
+              for (int i = 0; i < 35; ++i) {
+                if (i < 34) c["position_coefficients"].push_back({0.0, 0.0, 0.0});
+                c["orientation_coefficients"].push_back({0.0, 0.0, 0.0});
+              }
+            }),
+            "calib.json: $.corrections[0].position_coefficients: degree 4 needs 35 entries, got 34");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
+              j["corrections"][0]["orientation_coefficients"][3] = {0.1, 0.2};
+            }),
+            "calib.json: $.corrections[0].orientation_coefficients[3]: expected 3 numbers [x, y, "
+            "z], got [0.1,0.2]");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
+              j["corrections"][1]["position_error"].erase(0);
+            }),
+            "calib.json: $.corrections[1].position_error: a 2 x 2 x 3 grid needs 12 entries, got 11");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["calibrated_volume"]["min"] = {0, 0}; }),
+            "calib.json: $.calibrated_volume.min: expected 3 numbers [x, y, z], got 2");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][0]["degree"] = 13; }),
+            "calib.json: $.corrections[0].degree: must be in [0, 12], got 13");
+}
+
+TEST(ParseCalibrationJson, RejectsNonFiniteNumbers) {
+  std::string text = ReadFileToString(ExamplePath());
+  const std::string needle = "[0.0102, 0.0007, -0.0011]";
+  ASSERT_NE(text.find(needle), std::string::npos);
+  std::string nan_text = text;
+  nan_text.replace(nan_text.find(needle), needle.size(), "[0.0102, NaN, -0.0011]");
+  const std::string nan_error = ErrorForText(nan_text);
+  EXPECT_EQ(nan_error.rfind("calib.json:27:18:", 0), 0u) << nan_error;  // line 27 of the example
+  EXPECT_NE(nan_error.find("non-finite number (NaN or Infinity) is not allowed"), std::string::npos)
+      << nan_error;
+  std::string inf_text = text;
+  inf_text.replace(inf_text.find(needle), needle.size(), "[0.0102, 1e999, -0.0011]");
+  const std::string inf_error = ErrorForText(inf_text);
+  EXPECT_EQ(inf_error,
+            "calib.json:27:18: invalid JSON: number 1e999 overflows a double; numbers must be "
+            "finite");
+  // Free-form sections are checked too.
+  std::string stats_text = text;
+  stats_text.replace(stats_text.find("\"rms\": 0.0038"), 13, "\"rms\": -1e400");
+  const std::string stats_error = ErrorForText(stats_text);
+  EXPECT_NE(stats_error.find("invalid JSON: number -1e400 overflows a double"), std::string::npos)
+      << stats_error;
+  // The reader's own finiteness check (reachable for documents built in memory).
+  nlohmann::json stats = {{"rms", std::numeric_limits<double>::infinity()}};
+  try {
+    CheckJsonNumbersFinite(stats, "calib.json", "$.fit_statistics");
+    FAIL();
+  } catch (const JsonInputError& e) {
+    EXPECT_STREQ(e.what(), "calib.json: $.fit_statistics.rms: number must be finite, got Infinity");
+  }
+  EXPECT_EQ(ErrorForText("{\"format\": "),
+            "calib.json:1:12: invalid JSON: [json.exception.parse_error.101] parse error at line 1, "
+            "column 12: syntax error while parsing value - unexpected end of input; expected '[', "
+            "'{', or a literal");
+}
+
+TEST(ParseCalibrationJson, RejectsNonIncreasingAxesAndEmptyVolume) {
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
+              j["corrections"][1]["axes"]["z"] = {-0.1, 0.2, 0.2};
+            }),
+            "calib.json: $.corrections[1].axes.z[2]: axis values must be strictly increasing: 0.2 at index 2 follows 0.2");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][1]["axes"]["x"] = {0.5}; }),
+            "calib.json: $.corrections[1].axes.x: an axis needs at least 2 nodes, got 1");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["calibrated_volume"]["max"][1] = -0.5; }),
+            "calib.json: $.calibrated_volume.max: empty volume: max.y = -0.5 is not above min.y = "
+            "-0.5");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["calibrated_volume"]["fade_distance"] = 0; }),
+            "calib.json: $.calibrated_volume.fade_distance: must be positive for extrapolation "
+            "\"fade\", got 0");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
+              j["calibrated_volume"]["extrapolation"] = "hold";
+            }),
+            "calib.json: $.calibrated_volume.extrapolation: unknown value \"hold\"; expected one "
+            "of \"clamp\", \"fade\"");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][0]["input_scale"][2] = 0; }),
+            "calib.json: $.corrections[0].input_scale: entries must be positive, got [0.6,0.5,0]");
+}
+
+TEST(ParseCalibrationJson, RejectsBadProvenance) {
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
+              j["provenance"]["inputs"][0]["sha256"] = "abc";
+            }),
+            "calib.json: $.provenance.inputs[0].sha256: expected 64 lower-case hexadecimal "
+            "digits, got \"abc\"");
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["provenance"]["created_utc"] = "yesterday"; }),
+            "calib.json: $.provenance.created_utc: expected an ISO 8601 UTC time "
+            "\"YYYY-MM-DDTHH:MM:SSZ\", got \"yesterday\"");
+}
+
+TEST(ReadCalibrationFile, MissingFileNamesPath) {
+  try {
+    ReadCalibrationFile("/nonexistent/calib.json");
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_EQ(std::string(e.what()).rfind("/nonexistent/calib.json: cannot open", 0), 0u)
+        << e.what();
+  }
+}
+
+TEST(WriteCalibrationFile, NeverOverwritesAnInput) {
+  const auto dir = testing::MakeTempDir("calib");
+  Calibration cal = RandomCalibration();
+  const auto capture = dir / "capture.csv";
+  WriteFileAtomically(capture, "t,x,y,z\n0,1,2,3\n");
+  cal.provenance.inputs = {{capture.string(), Sha256HexOfFile(capture), "calibration_capture"}};
+  // Same path.
+  EXPECT_THROW(WriteCalibrationFile(capture, cal), std::invalid_argument);
+  // Same file through another spelling of the path.
+  EXPECT_THROW(WriteCalibrationFile(dir / "." / "capture.csv", cal), std::invalid_argument);
+  // A copy of an input (same digest) elsewhere.
+  const auto copy = dir / "copy.json";
+  WriteFileAtomically(copy, "t,x,y,z\n0,1,2,3\n");
+  EXPECT_THROW(WriteCalibrationFile(copy, cal), std::invalid_argument);
+  // Any existing non-calibration file.
+  const auto notes = dir / "notes.json";
+  WriteFileAtomically(notes, "{\"mine\": true}");
+  EXPECT_THROW(WriteCalibrationFile(notes, cal), std::invalid_argument);
+  EXPECT_EQ(ReadFileToString(capture), "t,x,y,z\n0,1,2,3\n");
+  EXPECT_EQ(ReadFileToString(notes), "{\"mine\": true}");
+  // An existing calibration output may be replaced.
+  const auto out = dir / "calib.json";
+  WriteCalibrationFile(out, cal);
+  cal.description = "second";
+  WriteCalibrationFile(out, cal);
+  EXPECT_EQ(ReadCalibrationFile(out).description, "second");
+}
+
+TEST(WriteCalibrationFile, RejectsIncompleteCalibration) {
+  Calibration cal = RandomCalibration();
+  cal.chain.ClearVolume();
+  const auto dir = testing::MakeTempDir("calib");
+  EXPECT_THROW(WriteCalibrationFile(dir / "x.json", cal), std::invalid_argument);
+  EXPECT_FALSE(std::filesystem::exists(dir / "x.json"));
+  cal = RandomCalibration();
+  cal.provenance.inputs[0].sha256 = "nothex";
+  EXPECT_THROW(WriteCalibrationFile(dir / "x.json", cal), std::invalid_argument);
+  cal = RandomCalibration();
+  cal.fit_statistics["bad"] = std::nan("");
+  EXPECT_THROW(WriteCalibrationFile(dir / "x.json", cal), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace trackcal

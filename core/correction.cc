@@ -1,0 +1,203 @@
+#include "core/correction.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+
+#include "core/lut.h"
+#include "core/polynomial.h"
+
+namespace trackcal {
+
+void Correction::ApplyBatch(size_t n, const double* positions, const double* quaternions_xyzw,
+                            double* out_positions, double* out_quaternions_xyzw,
+                            uint8_t* extrapolated) const {
+  for (size_t i = 0; i < n; ++i) {
+    const Rigid3d reported(QuaternionFromXyzwArray(quaternions_xyzw + 4 * i),
+                           Eigen::Vector3d(positions[3 * i], positions[3 * i + 1],
+                                           positions[3 * i + 2]));
+    const CorrectedPose out = Apply(reported);
+    QuaternionToXyzwArray(out.pose.rotation, out_quaternions_xyzw + 4 * i);
+    out_positions[3 * i] = out.pose.translation.x();
+    out_positions[3 * i + 1] = out.pose.translation.y();
+    out_positions[3 * i + 2] = out.pose.translation.z();
+    if (extrapolated != nullptr) extrapolated[i] = out.extrapolated ? 1 : 0;
+  }
+}
+
+std::string ExtrapolationPolicyName(ExtrapolationPolicy policy) {
+  switch (policy) {
+    case ExtrapolationPolicy::kClamp:
+      return "clamp";
+    case ExtrapolationPolicy::kFade:
+      return "fade";
+  }
+  throw std::logic_error("unknown ExtrapolationPolicy");
+}
+
+ExtrapolationPolicy ExtrapolationPolicyFromName(const std::string& name) {
+  if (name == "clamp") return ExtrapolationPolicy::kClamp;
+  if (name == "fade") return ExtrapolationPolicy::kFade;
+  throw std::invalid_argument("extrapolation: unknown policy \"" + name +
+                              "\"; expected \"clamp\" or \"fade\"");
+}
+
+void CalibratedVolume::Check() const {
+  static const char* kAxis[3] = {"x", "y", "z"};
+  if (!min.allFinite()) throw std::invalid_argument("calibrated volume: min must be finite");
+  if (!max.allFinite()) throw std::invalid_argument("calibrated volume: max must be finite");
+  for (int k = 0; k < 3; ++k) {
+    if (!(min[k] < max[k])) {
+      throw std::invalid_argument(std::string("calibrated volume: empty volume: min.") + kAxis[k] +
+                                  " = " + std::to_string(min[k]) + " is not below max." +
+                                  kAxis[k] + " = " + std::to_string(max[k]));
+    }
+  }
+  if (extrapolation == ExtrapolationPolicy::kFade &&
+      !(std::isfinite(fade_distance) && fade_distance > 0.0)) {
+    throw std::invalid_argument(
+        "calibrated volume: fade_distance must be positive and finite for the fade policy, got " +
+        std::to_string(fade_distance));
+  }
+  if (!(std::isfinite(fade_distance) && fade_distance >= 0.0)) {
+    throw std::invalid_argument("calibrated volume: fade_distance must be >= 0 and finite");
+  }
+}
+
+double CalibratedVolume::Weight(double distance) const {
+  if (extrapolation == ExtrapolationPolicy::kClamp) return 1.0;
+  const double s = std::clamp(distance / fade_distance, 0.0, 1.0);
+  return 1.0 - s * s * (3.0 - 2.0 * s);
+}
+
+CorrectionChain::CorrectionChain(const CorrectionChain& other) : volume_(other.volume_) {
+  for (const auto& t : other.terms_) terms_.push_back(t->Clone());
+}
+
+CorrectionChain& CorrectionChain::operator=(const CorrectionChain& other) {
+  if (this != &other) {
+    CorrectionChain copy(other);
+    *this = std::move(copy);
+  }
+  return *this;
+}
+
+void CorrectionChain::Append(std::unique_ptr<Correction> term) {
+  if (term == nullptr) throw std::invalid_argument("CorrectionChain::Append: null correction");
+  terms_.push_back(std::move(term));
+}
+
+void CorrectionChain::SetVolume(const CalibratedVolume& volume) {
+  volume.Check();
+  volume_ = volume;
+}
+
+CorrectedPose CorrectionChain::ApplyTerms(const Rigid3d& pose) const {
+  CorrectedPose out{pose, false};
+  for (const auto& term : terms_) {
+    const CorrectedPose step = term->Apply(out.pose);
+    out.pose = step.pose;
+    out.extrapolated = out.extrapolated || step.extrapolated;
+  }
+  return out;
+}
+
+CorrectedPose CorrectionChain::Apply(const Rigid3d& reported) const {
+  if (!volume_.has_value() || volume_->Contains(reported.translation)) return ApplyTerms(reported);
+  // Outside: evaluate the whole chain at the nearest point of the box, then transfer its correction.
+  const Eigen::Vector3d& p = reported.translation;
+  const Eigen::Quaterniond& q = reported.rotation;
+  const Eigen::Vector3d p_boundary = volume_->Nearest(p);
+  const double weight = volume_->Weight((p - p_boundary).norm());
+  const CorrectedPose at_boundary = ApplyTerms(Rigid3d(q, p_boundary));
+  const Eigen::Vector3d position_error = at_boundary.pose.translation - p_boundary;
+  // q_e = q_out * conj(q); normalised so that a slightly non-unit report does not scale it.
+  const Eigen::Quaterniond q_e = (at_boundary.pose.rotation * q.conjugate()).normalized();
+  CorrectedPose out;
+  out.extrapolated = true;
+  out.pose.translation = p + weight * position_error;
+  if (weight == 1.0) {
+    out.pose.rotation = at_boundary.pose.rotation;
+  } else {
+    const Eigen::Vector3d v = weight * VectorPart(q_e);
+    out.pose.rotation = QuaternionFromVectorPart<double>(v) * q;
+  }
+  return out;
+}
+
+void CorrectionChain::ApplyBatch(size_t n, const double* positions,
+                                 const double* quaternions_xyzw, double* out_positions,
+                                 double* out_quaternions_xyzw, uint8_t* extrapolated) const {
+  Correction::ApplyBatch(n, positions, quaternions_xyzw, out_positions, out_quaternions_xyzw,
+                         extrapolated);
+}
+
+nlohmann::json CorrectionChain::ToJson() const {
+  nlohmann::json terms = nlohmann::json::array();
+  for (const auto& t : terms_) terms.push_back(t->ToJson());
+  return {{"type", kTypeName}, {"corrections", terms}};
+}
+
+std::unique_ptr<Correction> CorrectionChain::Clone() const {
+  return std::make_unique<CorrectionChain>(*this);
+}
+
+CorrectionRegistry& CorrectionRegistry::Global() {
+  static CorrectionRegistry* registry = [] {
+    auto* r = new CorrectionRegistry();
+    r->Register(PolynomialCorrection::kTypeName, &PolynomialCorrection::FromJson);
+    r->Register(TrilinearLutCorrection::kTypeName, &TrilinearLutCorrection::FromJson);
+    return r;
+  }();
+  return *registry;
+}
+
+void CorrectionRegistry::Register(const std::string& type_name, CorrectionParser parser) {
+  if (type_name.empty()) throw std::invalid_argument("CorrectionRegistry: empty type name");
+  if (!parser) throw std::invalid_argument("CorrectionRegistry: null parser for " + type_name);
+  std::lock_guard<std::mutex> lock(mutex_);
+  for (const auto& [name, unused] : parsers_) {
+    if (name == type_name) {
+      throw std::invalid_argument("CorrectionRegistry: type \"" + type_name +
+                                  "\" is already registered");
+    }
+  }
+  parsers_.emplace_back(type_name, std::move(parser));
+}
+
+bool CorrectionRegistry::Contains(const std::string& type_name) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  for (const auto& [name, unused] : parsers_) {
+    if (name == type_name) return true;
+  }
+  return false;
+}
+
+std::vector<std::string> CorrectionRegistry::TypeNames() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<std::string> names;
+  for (const auto& [name, unused] : parsers_) names.push_back(name);
+  return names;
+}
+
+std::unique_ptr<Correction> CorrectionRegistry::Parse(const nlohmann::json& value,
+                                                      const std::string& source,
+                                                      const std::string& path) const {
+  JsonObjectReader reader(value, source, path);
+  const std::string type = reader.String("type");
+  CorrectionParser parser;
+  std::string known;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const auto& [name, p] : parsers_) {
+      known += (known.empty() ? "\"" : ", \"") + name + "\"";
+      if (name == type) parser = p;
+    }
+  }
+  if (!parser) reader.Fail("type", "unknown correction type \"" + type + "\"; known: " + known);
+  std::unique_ptr<Correction> correction = parser(reader);
+  reader.CheckNoUnknownKeys();
+  return correction;
+}
+
+}  // namespace trackcal

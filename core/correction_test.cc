@@ -1,0 +1,265 @@
+#include "core/correction.h"
+
+#include <gtest/gtest.h>
+
+#include "core/lut.h"
+#include "core/polynomial.h"
+#include "tests/test_utils.h"
+
+namespace trackcal {
+namespace {
+
+using testing::RandomRotation;
+using testing::TestRng;
+
+// Degree-1 polynomial: position error = a + b * x (x in metres, offset 0, scale 1), no rotation.
+std::unique_ptr<PolynomialCorrection> LinearInX(double a, double b) {
+  std::vector<double> c(6 * 4, 0.0);
+  c[0] = a;      // term 1, position x
+  c[6 * 1] = b;  // term x, position x
+  return std::make_unique<PolynomialCorrection>(1, Eigen::Vector3d::Zero(),
+                                                Eigen::Vector3d::Ones(), c);
+}
+
+// A degree-2 polynomial with position and orientation parts, for the volume tests.
+std::unique_ptr<PolynomialCorrection> Curved() {
+  std::vector<double> c(6 * 10, 0.0);
+  c[0] = 0.01;
+  c[6 * 4 + 1] = 0.02;   // x^2 -> position y
+  c[6 * 9 + 2] = -0.03;  // z^2 -> position z
+  c[6 * 3 + 3] = 0.02;   // z -> orientation x
+  c[6 * 5 + 5] = 0.01;   // xy -> orientation z
+  return std::make_unique<PolynomialCorrection>(2, Eigen::Vector3d::Zero(),
+                                                Eigen::Vector3d::Ones(), c);
+}
+
+CalibratedVolume UnitBox(ExtrapolationPolicy policy, double fade = 0.0) {
+  CalibratedVolume v;
+  v.min = Eigen::Vector3d(-0.5, -0.5, -0.5);
+  v.max = Eigen::Vector3d(0.5, 0.5, 0.5);
+  v.extrapolation = policy;
+  v.fade_distance = fade;
+  return v;
+}
+
+TEST(CorrectionChain, Nominal) {
+  // Terms apply in order, each to the output of the previous one.
+  CorrectionChain ab, ba;
+  ab.Append(LinearInX(0.1, 0.0));
+  ab.Append(LinearInX(0.0, 0.5));
+  ba.Append(LinearInX(0.0, 0.5));
+  ba.Append(LinearInX(0.1, 0.0));
+  const Rigid3d reported(RandomRotation(TestRng()), Eigen::Vector3d(0.2, 0.3, 0.4));
+  // a then b: x -> x + 0.1 -> (x + 0.1) * 1.5; b then a: x -> 1.5 x -> 1.5 x + 0.1.
+  EXPECT_NEAR(ab.Apply(reported).pose.translation.x(), 0.45, 1e-15);
+  EXPECT_NEAR(ba.Apply(reported).pose.translation.x(), 0.4, 1e-15);
+  EXPECT_FALSE(ab.Apply(reported).extrapolated);
+}
+
+TEST(CorrectionChain, RotationsComposeInOrder) {
+  const Eigen::Quaterniond qa(Eigen::AngleAxisd(0.1, Eigen::Vector3d::UnitX()));
+  const Eigen::Quaterniond qb(Eigen::AngleAxisd(0.2, Eigen::Vector3d::UnitY()));
+  auto constant = [](const Eigen::Quaterniond& q) {
+    return std::make_unique<PolynomialCorrection>(
+        0, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones(),
+        std::vector<double>{0, 0, 0, q.x(), q.y(), q.z()});
+  };
+  CorrectionChain chain;
+  chain.Append(constant(qa));
+  chain.Append(constant(qb));
+  const Rigid3d reported(RandomRotation(TestRng()), Eigen::Vector3d(0.1, 0.1, 0.1));
+  EXPECT_TRUE(testing::RotationsNear(qb * qa * reported.rotation,
+                                     chain.Apply(reported).pose.rotation, 1e-14));
+  EXPECT_FALSE(testing::RotationsNear(qa * qb * reported.rotation,
+                                      chain.Apply(reported).pose.rotation, 1e-3));
+}
+
+TEST(CorrectionChain, ClampHoldsBoundaryCorrection) {
+  CorrectionChain chain;
+  chain.Append(Curved());
+  chain.SetVolume(UnitBox(ExtrapolationPolicy::kClamp));
+  for (int i = 0; i < 50; ++i) {
+    const Eigen::Quaterniond q = RandomRotation(TestRng());
+    const Eigen::Vector3d inside(0.3, -0.2, 0.45);
+    const CorrectedPose in = chain.Apply(Rigid3d(q, inside));
+    EXPECT_FALSE(in.extrapolated);
+    EXPECT_TRUE(testing::PosesNear(Curved()->Apply(Rigid3d(q, inside)).pose, in.pose, 0, 0));
+
+    const Eigen::Vector3d outside(2.0, -0.2, -3.0);
+    const Eigen::Vector3d nearest(0.5, -0.2, -0.5);
+    const CorrectedPose out = chain.Apply(Rigid3d(q, outside));
+    EXPECT_TRUE(out.extrapolated);
+    const CorrectedPose at_boundary = Curved()->Apply(Rigid3d(q, nearest));
+    // Same position offset and the same world-frame rotation as at the nearest point of the box.
+    // Offsets of ~0.03 recovered by subtracting positions of ~3: rounding ~1e-15 absolute.
+    EXPECT_LT(((out.pose.translation - outside) - (at_boundary.pose.translation - nearest)).norm(),
+              2e-15);
+    EXPECT_TRUE(testing::RotationsNear(at_boundary.pose.rotation, out.pose.rotation, 1e-14));
+  }
+}
+
+TEST(CorrectionChain, FadeReachesIdentitySmoothly) {
+  const double fade = 0.2;
+  CorrectionChain chain;
+  chain.Append(Curved());
+  chain.SetVolume(UnitBox(ExtrapolationPolicy::kFade, fade));
+  const Eigen::Quaterniond q = RandomRotation(TestRng());
+  const Eigen::Vector3d boundary(0.5, 0.1, 0.2);
+  const CorrectedPose at_boundary = chain.Apply(Rigid3d(q, boundary));
+  const Eigen::Vector3d e_boundary = at_boundary.pose.translation - boundary;
+  const double angle_boundary = AngularDistance(at_boundary.pose.rotation, q);
+  ASSERT_GT(e_boundary.norm(), 1e-3);
+  ASSERT_GT(angle_boundary, 1e-3);
+  double previous = 1.0;
+  for (double d : {1e-9, 0.05, 0.1, 0.15, 0.199}) {
+    const Eigen::Vector3d p = boundary + Eigen::Vector3d(d, 0, 0);
+    const CorrectedPose out = chain.Apply(Rigid3d(q, p));
+    EXPECT_TRUE(out.extrapolated);
+    const double s = d / fade;
+    const double w = 1 - s * s * (3 - 2 * s);
+    // Absolute tolerances: rounding of positions ~1 and of quaternion products, not relative to w.
+    EXPECT_LT(((out.pose.translation - p) - w * e_boundary).norm(), 2e-15) << d;
+    // The rotation's vector part is scaled by w.
+    const Eigen::Quaterniond q_e = out.pose.rotation * q.conjugate();
+    const Eigen::Quaterniond q_e_boundary = at_boundary.pose.rotation * q.conjugate();
+    EXPECT_LT((VectorPart(q_e) - w * VectorPart(q_e_boundary)).norm(), 1e-15) << d;
+    EXPECT_LE(w, previous);
+    previous = w;
+  }
+  // Continuous at the box (1e-9 outside differs from the boundary by ~1e-9 only).
+  const CorrectedPose just_outside =
+      chain.Apply(Rigid3d(q, boundary + Eigen::Vector3d(1e-9, 0, 0)));
+  EXPECT_NEAR((just_outside.pose.translation - boundary - e_boundary).norm(), 0.0, 2e-9);
+  // Identity at and beyond fade_distance.
+  for (double d : {0.2, 0.5, 100.0}) {
+    const Eigen::Vector3d p = boundary + Eigen::Vector3d(0, 0, 0) + Eigen::Vector3d(d, 0, 0);
+    const CorrectedPose out = chain.Apply(Rigid3d(q, p));
+    EXPECT_TRUE(out.extrapolated);
+    EXPECT_TRUE(testing::PosesNear(Rigid3d(q, p), out.pose, 0.0, 1e-15)) << d;
+  }
+}
+
+TEST(CorrectionChain, BatchMatchesSingle) {
+  CorrectionChain chain;
+  chain.Append(Curved());
+  chain.Append(LinearInX(0.01, 0.02));
+  chain.SetVolume(UnitBox(ExtrapolationPolicy::kFade, 0.3));
+  const size_t n = 40;
+  std::vector<double> pos(3 * n), quat(4 * n), out_pos(3 * n), out_quat(4 * n);
+  std::vector<uint8_t> flags(n);
+  std::uniform_real_distribution<double> u(-0.9, 0.9);
+  for (size_t i = 0; i < n; ++i) {
+    for (int k = 0; k < 3; ++k) pos[3 * i + k] = u(TestRng());
+    QuaternionToXyzwArray(RandomRotation(TestRng()), &quat[4 * i]);
+  }
+  chain.ApplyBatch(n, pos.data(), quat.data(), out_pos.data(), out_quat.data(), flags.data());
+  int flagged = 0;
+  for (size_t i = 0; i < n; ++i) {
+    const Eigen::Vector3d p(pos[3 * i], pos[3 * i + 1], pos[3 * i + 2]);
+    const CorrectedPose single = chain.Apply(Rigid3d(QuaternionFromXyzwArray(&quat[4 * i]), p));
+    EXPECT_EQ(flags[i] != 0, single.extrapolated);
+    EXPECT_EQ(single.extrapolated, !chain.volume()->Contains(p));
+    flagged += flags[i];
+    EXPECT_EQ(single.pose.translation,
+              Eigen::Vector3d(out_pos[3 * i], out_pos[3 * i + 1], out_pos[3 * i + 2]));
+  }
+  EXPECT_GT(flagged, 0);
+  EXPECT_LT(flagged, static_cast<int>(n));
+}
+
+TEST(CorrectionChain, LutOutsideItsGridFlagsEvenWithoutVolume) {
+  const LutGrid grid({std::vector<double>{0, 1}, std::vector<double>{0, 1},
+                      std::vector<double>{0, 1}});
+  CorrectionChain chain;
+  chain.Append(std::make_unique<TrilinearLutCorrection>(grid, std::vector<double>(48, 0.001)));
+  EXPECT_FALSE(chain.Apply(Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.5, 0.5, 0.5)))
+                   .extrapolated);
+  EXPECT_TRUE(chain.Apply(Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(1.5, 0.5, 0.5)))
+                  .extrapolated);
+}
+
+TEST(CalibratedVolume, RejectsEmptyAndBadFade) {
+  CalibratedVolume v = UnitBox(ExtrapolationPolicy::kClamp);
+  EXPECT_NO_THROW(v.Check());
+  v.max.y() = v.min.y();
+  EXPECT_THROW(v.Check(), std::invalid_argument);
+  v = UnitBox(ExtrapolationPolicy::kFade, 0.0);
+  EXPECT_THROW(v.Check(), std::invalid_argument);
+  v.fade_distance = std::numeric_limits<double>::infinity();
+  EXPECT_THROW(v.Check(), std::invalid_argument);
+  CorrectionChain chain;
+  EXPECT_THROW(chain.SetVolume(v), std::invalid_argument);
+  EXPECT_EQ(ExtrapolationPolicyFromName("fade"), ExtrapolationPolicy::kFade);
+  EXPECT_THROW(ExtrapolationPolicyFromName("hold"), std::invalid_argument);
+}
+
+// A term type added from outside core, the way fit/ adds physical models.
+class ConstantShift : public Correction {
+ public:
+  explicit ConstantShift(const Eigen::Vector3d& shift) : shift_(shift) {}
+  static std::unique_ptr<Correction> FromJson(const JsonObjectReader& r) {
+    r.Get("type");
+    return std::make_unique<ConstantShift>(r.Vector3("shift"));
+  }
+  std::string TypeName() const override { return "test_constant_shift"; }
+  CorrectedPose Apply(const Rigid3d& in) const override {
+    return {Rigid3d(in.rotation, in.translation + shift_), false};
+  }
+  nlohmann::json ToJson() const override {
+    return {{"type", TypeName()}, {"shift", {shift_.x(), shift_.y(), shift_.z()}}};
+  }
+  std::unique_ptr<Correction> Clone() const override {
+    return std::make_unique<ConstantShift>(*this);
+  }
+
+ private:
+  Eigen::Vector3d shift_;
+};
+
+TEST(CorrectionRegistry, ExtensibleByName) {
+  CorrectionRegistry& registry = CorrectionRegistry::Global();
+  EXPECT_TRUE(registry.Contains("polynomial"));
+  EXPECT_TRUE(registry.Contains("trilinear_lut"));
+  if (!registry.Contains("test_constant_shift")) {
+    registry.Register("test_constant_shift", &ConstantShift::FromJson);
+  }
+  EXPECT_THROW(registry.Register("test_constant_shift", &ConstantShift::FromJson),
+               std::invalid_argument);
+  const nlohmann::json j = {{"type", "test_constant_shift"}, {"shift", {0.1, 0.2, 0.3}}};
+  const auto c = registry.Parse(j, "mem", "$.corrections[0]");
+  EXPECT_EQ(c->TypeName(), "test_constant_shift");
+  EXPECT_EQ(c->ToJson(), j);
+  // The registry rejects fields the parser did not read.
+  nlohmann::json extra = j;
+  extra["sihft"] = 1;
+  try {
+    registry.Parse(extra, "mem", "$.corrections[0]");
+    FAIL();
+  } catch (const JsonInputError& e) {
+    EXPECT_STREQ(e.what(), "mem: $.corrections[0].sihft: unknown field");
+  }
+  try {
+    registry.Parse({{"type", "dipole_v9"}}, "mem", "$.corrections[2]");
+    FAIL();
+  } catch (const JsonInputError& e) {
+    const std::string what = e.what();
+    EXPECT_EQ(what.rfind("mem: $.corrections[2].type: unknown correction type \"dipole_v9\"", 0),
+              0u)
+        << what;
+    EXPECT_NE(what.find("\"polynomial\""), std::string::npos) << what;
+  }
+}
+
+TEST(CorrectionChain, CopyIsDeep) {
+  CorrectionChain chain;
+  chain.Append(LinearInX(0.1, 0.0));
+  chain.SetVolume(UnitBox(ExtrapolationPolicy::kClamp));
+  CorrectionChain copy = chain;
+  chain.Append(LinearInX(0.1, 0.0));
+  EXPECT_EQ(copy.size(), 1u);
+  EXPECT_EQ(chain.size(), 2u);
+  EXPECT_TRUE(copy.volume().has_value());
+}
+
+}  // namespace
+}  // namespace trackcal

@@ -1,0 +1,231 @@
+#include "core/file_util.h"
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <fstream>
+#include <stdexcept>
+#include <vector>
+
+namespace trackcal {
+
+namespace {
+
+std::string ErrnoText() { return std::strerror(errno); }
+
+// Closes a descriptor and removes a temporary file unless released.
+class TempFileGuard {
+ public:
+  TempFileGuard(int fd, std::string path) : fd_(fd), path_(std::move(path)) {}
+  ~TempFileGuard() {
+    if (fd_ >= 0) ::close(fd_);
+    if (!released_) ::unlink(path_.c_str());
+  }
+  int fd() const { return fd_; }
+  int ReleaseFd() {
+    const int fd = fd_;
+    fd_ = -1;
+    return fd;
+  }
+  void Release() { released_ = true; }
+
+ private:
+  int fd_;
+  std::string path_;
+  bool released_ = false;
+};
+
+constexpr std::array<uint32_t, 64> kRoundConstants = {
+    0x428a2f98, 0x71374491, 0xb5c0fbcf, 0xe9b5dba5, 0x3956c25b, 0x59f111f1, 0x923f82a4, 0xab1c5ed5,
+    0xd807aa98, 0x12835b01, 0x243185be, 0x550c7dc3, 0x72be5d74, 0x80deb1fe, 0x9bdc06a7, 0xc19bf174,
+    0xe49b69c1, 0xefbe4786, 0x0fc19dc6, 0x240ca1cc, 0x2de92c6f, 0x4a7484aa, 0x5cb0a9dc, 0x76f988da,
+    0x983e5152, 0xa831c66d, 0xb00327c8, 0xbf597fc7, 0xc6e00bf3, 0xd5a79147, 0x06ca6351, 0x14292967,
+    0x27b70a85, 0x2e1b2138, 0x4d2c6dfc, 0x53380d13, 0x650a7354, 0x766a0abb, 0x81c2c92e, 0x92722c85,
+    0xa2bfe8a1, 0xa81a664b, 0xc24b8b70, 0xc76c51a3, 0xd192e819, 0xd6990624, 0xf40e3585, 0x106aa070,
+    0x19a4c116, 0x1e376c08, 0x2748774c, 0x34b0bcb5, 0x391c0cb3, 0x4ed8aa4a, 0x5b9cca4f, 0x682e6ff3,
+    0x748f82ee, 0x78a5636f, 0x84c87814, 0x8cc70208, 0x90befffa, 0xa4506ceb, 0xbef9a3f7, 0xc67178f2};
+
+inline uint32_t RotateRight(uint32_t x, int n) { return (x >> n) | (x << (32 - n)); }
+
+}  // namespace
+
+std::string ReadFileToString(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw std::invalid_argument(path.string() + ": cannot open for reading: " + ErrnoText());
+  std::string contents((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (in.bad()) throw std::invalid_argument(path.string() + ": read error: " + ErrnoText());
+  return contents;
+}
+
+void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents) {
+  const std::filesystem::path dir =
+      path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
+  std::string temp_name = ".";
+  temp_name += path.filename().string();
+  temp_name += ".tmp-XXXXXX";
+  std::string temp = (dir / temp_name).string();
+  const int fd = ::mkstemp(temp.data());
+  if (fd < 0) {
+    throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string() +
+                             ": " + ErrnoText());
+  }
+  TempFileGuard guard(fd, temp);
+  // mkstemp creates mode 0600; give the output the mode a plain open() would have.
+  const mode_t mask = ::umask(0);
+  ::umask(mask);
+  if (::fchmod(fd, 0666 & ~mask) != 0) {
+    throw std::runtime_error(temp + ": cannot set permissions: " + ErrnoText());
+  }
+  size_t written = 0;
+  while (written < contents.size()) {
+    const ssize_t n = ::write(fd, contents.data() + written, contents.size() - written);
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      throw std::runtime_error(path.string() + ": write failed: " + ErrnoText());
+    }
+    written += static_cast<size_t>(n);
+  }
+  if (::fsync(fd) != 0) throw std::runtime_error(path.string() + ": fsync failed: " + ErrnoText());
+  if (::close(guard.ReleaseFd()) != 0) {
+    throw std::runtime_error(path.string() + ": close failed: " + ErrnoText());
+  }
+  if (::rename(temp.c_str(), path.c_str()) != 0) {
+    throw std::runtime_error(path.string() + ": cannot rename the temporary file into place: " +
+                             ErrnoText());
+  }
+  guard.Release();
+  // Persist the rename itself; failure here does not lose data, so it is not an error.
+  const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY);
+  if (dir_fd >= 0) {
+    ::fsync(dir_fd);
+    ::close(dir_fd);
+  }
+}
+
+Sha256::Sha256()
+    : state_{0x6a09e667, 0xbb67ae85, 0x3c6ef372, 0xa54ff53a, 0x510e527f, 0x9b05688c, 0x1f83d9ab,
+             0x5be0cd19} {}
+
+void Sha256::ProcessBlock(const uint8_t* block) {
+  uint32_t w[64];
+  for (int i = 0; i < 16; ++i) {
+    w[i] = (uint32_t{block[4 * i]} << 24) | (uint32_t{block[4 * i + 1]} << 16) |
+           (uint32_t{block[4 * i + 2]} << 8) | uint32_t{block[4 * i + 3]};
+  }
+  for (int i = 16; i < 64; ++i) {
+    const uint32_t s0 = RotateRight(w[i - 15], 7) ^ RotateRight(w[i - 15], 18) ^ (w[i - 15] >> 3);
+    const uint32_t s1 = RotateRight(w[i - 2], 17) ^ RotateRight(w[i - 2], 19) ^ (w[i - 2] >> 10);
+    w[i] = w[i - 16] + s0 + w[i - 7] + s1;
+  }
+  uint32_t a = state_[0], b = state_[1], c = state_[2], d = state_[3];
+  uint32_t e = state_[4], f = state_[5], g = state_[6], h = state_[7];
+  for (int i = 0; i < 64; ++i) {
+    const uint32_t s1 = RotateRight(e, 6) ^ RotateRight(e, 11) ^ RotateRight(e, 25);
+    const uint32_t ch = (e & f) ^ (~e & g);
+    const uint32_t t1 = h + s1 + ch + kRoundConstants[i] + w[i];
+    const uint32_t s0 = RotateRight(a, 2) ^ RotateRight(a, 13) ^ RotateRight(a, 22);
+    const uint32_t maj = (a & b) ^ (a & c) ^ (b & c);
+    const uint32_t t2 = s0 + maj;
+    h = g;
+    g = f;
+    f = e;
+    e = d + t1;
+    d = c;
+    c = b;
+    b = a;
+    a = t1 + t2;
+  }
+  state_[0] += a;
+  state_[1] += b;
+  state_[2] += c;
+  state_[3] += d;
+  state_[4] += e;
+  state_[5] += f;
+  state_[6] += g;
+  state_[7] += h;
+}
+
+void Sha256::Update(const void* data, size_t size) {
+  if (finished_) throw std::logic_error("Sha256::Update after Finish");
+  const auto* bytes = static_cast<const uint8_t*>(data);
+  total_bytes_ += size;
+  if (buffer_size_ > 0) {
+    const size_t take = std::min(size, buffer_.size() - buffer_size_);
+    std::memcpy(buffer_.data() + buffer_size_, bytes, take);
+    buffer_size_ += take;
+    bytes += take;
+    size -= take;
+    if (buffer_size_ < buffer_.size()) return;
+    ProcessBlock(buffer_.data());
+    buffer_size_ = 0;
+  }
+  while (size >= 64) {
+    ProcessBlock(bytes);
+    bytes += 64;
+    size -= 64;
+  }
+  std::memcpy(buffer_.data(), bytes, size);
+  buffer_size_ = size;
+}
+
+std::array<uint8_t, 32> Sha256::Finish() {
+  if (finished_) throw std::logic_error("Sha256::Finish called twice");
+  const uint64_t bit_length = total_bytes_ * 8;
+  uint8_t pad[72] = {0x80};
+  // Pad to 56 mod 64, then the 64-bit big-endian message length.
+  const size_t pad_size = (buffer_size_ < 56 ? 56 - buffer_size_ : 120 - buffer_size_);
+  Update(pad, pad_size);
+  uint8_t length[8];
+  for (int i = 0; i < 8; ++i) length[i] = static_cast<uint8_t>(bit_length >> (56 - 8 * i));
+  Update(length, 8);
+  finished_ = true;
+  std::array<uint8_t, 32> digest;
+  for (int i = 0; i < 8; ++i) {
+    for (int j = 0; j < 4; ++j) digest[4 * i + j] = static_cast<uint8_t>(state_[i] >> (24 - 8 * j));
+  }
+  return digest;
+}
+
+std::string Sha256::FinishHex() {
+  static constexpr char kHex[] = "0123456789abcdef";
+  const std::array<uint8_t, 32> digest = Finish();
+  std::string hex;
+  hex.reserve(64);
+  for (uint8_t byte : digest) {
+    hex.push_back(kHex[byte >> 4]);
+    hex.push_back(kHex[byte & 15]);
+  }
+  return hex;
+}
+
+std::string Sha256Hex(std::string_view data) {
+  Sha256 sha;
+  sha.Update(data);
+  return sha.FinishHex();
+}
+
+std::string Sha256HexOfFile(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw std::invalid_argument(path.string() + ": cannot open for reading: " + ErrnoText());
+  Sha256 sha;
+  std::vector<char> chunk(1 << 16);
+  while (in) {
+    in.read(chunk.data(), static_cast<std::streamsize>(chunk.size()));
+    sha.Update(chunk.data(), static_cast<size_t>(in.gcount()));
+  }
+  if (in.bad()) throw std::invalid_argument(path.string() + ": read error: " + ErrnoText());
+  return sha.FinishHex();
+}
+
+bool IsSha256Hex(std::string_view text) {
+  if (text.size() != 64) return false;
+  for (char c : text) {
+    if (!((c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'))) return false;
+  }
+  return true;
+}
+
+}  // namespace trackcal

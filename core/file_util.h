@@ -1,0 +1,54 @@
+// File helpers every module that writes outputs or records provenance uses: atomic writes (a crash or a
+// full disk never leaves a half-written output in place of a good one) and SHA-256 digests of inputs.
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <filesystem>
+#include <string>
+#include <string_view>
+
+namespace trackcal {
+
+// Reads a whole file; throws std::invalid_argument naming the path if it cannot be read.
+std::string ReadFileToString(const std::filesystem::path& path);
+
+// Writes `contents` to `path` atomically: a temporary file in the same directory is written, fsync'ed
+// and renamed over `path`, then the directory is fsync'ed. Readers see either the old or the new file.
+// The new file gets mode 0666 minus the umask. Throws std::runtime_error naming the path on failure
+// (the temporary file is removed).
+void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents);
+
+// Incremental SHA-256 (FIPS 180-4).
+class Sha256 {
+ public:
+  Sha256();
+  void Update(const void* data, size_t size);
+  void Update(std::string_view data) { Update(data.data(), data.size()); }
+  // The 32-byte digest; the object must not be updated afterwards.
+  std::array<uint8_t, 32> Finish();
+  // Lower-case hexadecimal digest (64 characters).
+  std::string FinishHex();
+
+ private:
+  void ProcessBlock(const uint8_t* block);
+
+  std::array<uint32_t, 8> state_;
+  std::array<uint8_t, 64> buffer_{};
+  size_t buffer_size_ = 0;
+  uint64_t total_bytes_ = 0;
+  bool finished_ = false;
+};
+
+// Lower-case hexadecimal SHA-256 of a byte string.
+std::string Sha256Hex(std::string_view data);
+
+// Lower-case hexadecimal SHA-256 of a file's contents, streamed; throws std::invalid_argument naming
+// the path if it cannot be read.
+std::string Sha256HexOfFile(const std::filesystem::path& path);
+
+// True if `text` is 64 lower-case hexadecimal characters.
+bool IsSha256Hex(std::string_view text);
+
+}  // namespace trackcal

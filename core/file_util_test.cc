@@ -1,0 +1,105 @@
+#include "core/file_util.h"
+
+#include <gtest/gtest.h>
+#include <sys/stat.h>
+
+#include <fstream>
+
+#include "tests/test_utils.h"
+
+namespace trackcal {
+namespace {
+
+// FIPS 180-2 / NIST CAVP example vectors.
+TEST(Sha256, Nominal) {
+  EXPECT_EQ(Sha256Hex("abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
+}
+
+TEST(Sha256, StandardVectors) {
+  EXPECT_EQ(Sha256Hex(""), "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
+  EXPECT_EQ(Sha256Hex("abcdbcdecdefdefgefghfghighijhijkijkljklmklmnlmnomnopnopq"),
+            "248d6a61d20638b8e5c026930c3e6039a33ce45964ff2167f6ecedd419db06c1");
+  EXPECT_EQ(Sha256Hex("abcdefghbcdefghicdefghijdefghijkefghijklfghijklmghijklmnhijklmnoijklmnopjklmnopqk"
+                      "lmnopqrlmnopqrsmnopqrstnopqrstu"),
+            "cf5b16a778af8380036ce59e7b0492370b249b11e8f07a51afac45037afee9d1");
+  EXPECT_EQ(Sha256Hex(std::string(1000000, 'a')),
+            "cdc76e5c9914fb9281a1c7e284d73e67f1809a48a497200e046d39ccc7112cd0");
+}
+
+TEST(Sha256, IncrementalEqualsOneShotAcrossBlockBoundaries) {
+  std::string data;
+  for (int i = 0; i < 1000; ++i) data.push_back(static_cast<char>(i * 37 + 11));
+  for (size_t chunk : {1u, 3u, 55u, 56u, 63u, 64u, 65u, 127u}) {
+    Sha256 sha;
+    for (size_t pos = 0; pos < data.size(); pos += chunk) sha.Update(data.substr(pos, chunk));
+    EXPECT_EQ(sha.FinishHex(), Sha256Hex(data)) << "chunk " << chunk;
+  }
+  // Lengths around the padding boundary (55/56 bytes need one or two final blocks).
+  for (size_t n : {55u, 56u, 57u, 64u}) {
+    Sha256 a;
+    a.Update(data.substr(0, n));
+    EXPECT_NE(a.FinishHex(), Sha256Hex(data.substr(0, n + 1)));
+  }
+}
+
+TEST(Sha256, FileMatchesString) {
+  const auto dir = testing::MakeTempDir("sha");
+  const std::string contents(200000, 'x');
+  WriteFileAtomically(dir / "f.bin", contents);
+  EXPECT_EQ(Sha256HexOfFile(dir / "f.bin"), Sha256Hex(contents));
+  EXPECT_THROW(Sha256HexOfFile(dir / "missing.bin"), std::invalid_argument);
+}
+
+TEST(IsSha256Hex, RejectsMalformed) {
+  EXPECT_TRUE(IsSha256Hex(Sha256Hex("abc")));
+  EXPECT_FALSE(IsSha256Hex("ABC"));
+  std::string upper = Sha256Hex("abc");
+  upper[0] = 'B';
+  EXPECT_FALSE(IsSha256Hex(upper));
+  EXPECT_FALSE(IsSha256Hex(Sha256Hex("abc").substr(1)));
+}
+
+TEST(WriteFileAtomically, Nominal) {
+  const auto dir = testing::MakeTempDir("atomic");
+  const auto path = dir / "out.txt";
+  WriteFileAtomically(path, "first");
+  EXPECT_EQ(ReadFileToString(path), "first");
+  WriteFileAtomically(path, "second, longer");
+  EXPECT_EQ(ReadFileToString(path), "second, longer");
+  // No temporary file is left behind.
+  int count = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
+    (void)entry;
+    ++count;
+  }
+  EXPECT_EQ(count, 1);
+  // Mode follows the umask like a plain open(), not mkstemp's 0600.
+  struct stat st;
+  ASSERT_EQ(::stat(path.c_str(), &st), 0);
+  const mode_t mask = ::umask(0);
+  ::umask(mask);
+  EXPECT_EQ(st.st_mode & 0777, 0666 & ~mask);
+}
+
+TEST(WriteFileAtomically, MissingDirectoryThrowsNamingPath) {
+  const auto dir = testing::MakeTempDir("atomic");
+  const auto path = dir / "no" / "such" / "out.txt";
+  try {
+    WriteFileAtomically(path, "x");
+    FAIL() << "expected an exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find(path.string()), std::string::npos) << e.what();
+  }
+}
+
+TEST(ReadFileToString, MissingFileNamesPath) {
+  try {
+    ReadFileToString("/nonexistent/trackcal/file.json");
+    FAIL() << "expected an exception";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("/nonexistent/trackcal/file.json"), std::string::npos);
+  }
+}
+
+}  // namespace
+}  // namespace trackcal

@@ -1,0 +1,234 @@
+#include "core/json_reader.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+namespace trackcal {
+
+namespace {
+
+const char* TypeName(const nlohmann::json& v) { return v.type_name(); }
+
+}  // namespace
+
+nlohmann::json ParseJsonText(const std::string& text, const std::string& source_name) {
+  try {
+    return nlohmann::json::parse(text);
+  } catch (const nlohmann::json::parse_error& e) {
+    // e.byte is the 1-based position of the offending byte; turn it into line and column.
+    const size_t byte = e.byte == 0 ? 0 : std::min<size_t>(e.byte - 1, text.size());
+    size_t line = 1, column = 1;
+    for (size_t i = 0; i < byte && i < text.size(); ++i) {
+      if (text[i] == '\n') {
+        ++line;
+        column = 1;
+      } else {
+        ++column;
+      }
+    }
+    // Find the start of the token that failed, to recognise NaN / Infinity.
+    size_t token_start = byte;
+    while (token_start > 0 && std::isalpha(static_cast<unsigned char>(text[token_start - 1]))) {
+      --token_start;
+    }
+    const std::string token = text.substr(token_start, 9);
+    std::string what = e.what();
+    if (token.rfind("NaN", 0) == 0 || token.rfind("Infinity", 0) == 0 ||
+        token.rfind("nan", 0) == 0 || token.rfind("inf", 0) == 0) {
+      what = "non-finite number (NaN or Infinity) is not allowed";
+    }
+    throw JsonInputError(source_name + ":" + std::to_string(line) + ":" + std::to_string(column) +
+                         ": invalid JSON: " + what);
+  } catch (const nlohmann::json::out_of_range& e) {
+    // Number overflow ("number overflow parsing '1e999'"): locate the literal for line and column.
+    const std::string what = e.what();
+    const size_t q0 = what.find('\'');
+    const size_t q1 = q0 == std::string::npos ? q0 : what.find('\'', q0 + 1);
+    std::string where = source_name;
+    std::string literal;
+    if (q1 != std::string::npos) {
+      literal = what.substr(q0 + 1, q1 - q0 - 1);
+      const size_t at = text.find(literal);
+      if (at != std::string::npos) {
+        const size_t line = 1 + static_cast<size_t>(std::count(text.begin(), text.begin() + at, '\n'));
+        const size_t line_start = text.rfind('\n', at);
+        const size_t column = line_start == std::string::npos ? at + 1 : at - line_start;
+        where += ":" + std::to_string(line) + ":" + std::to_string(column);
+      }
+    }
+    throw JsonInputError(where + ": invalid JSON: number " + literal +
+                         " overflows a double; numbers must be finite");
+  }
+}
+
+std::string JsonIndexPath(const std::string& path, size_t index) {
+  return path + "[" + std::to_string(index) + "]";
+}
+
+std::string JsonKeyPath(const std::string& path, const std::string& key) {
+  return path + "." + key;
+}
+
+void ThrowJsonError(const std::string& source, const std::string& path,
+                    const std::string& message) {
+  throw JsonInputError(source + ": " + path + ": " + message);
+}
+
+std::string JsonSnippet(const nlohmann::json& value) {
+  std::string s = value.dump();
+  if (s.size() > 40) s = s.substr(0, 37) + "...";
+  return s;
+}
+
+double JsonFiniteNumber(const nlohmann::json& value, const std::string& source,
+                        const std::string& path) {
+  if (!value.is_number()) {
+    ThrowJsonError(source, path,
+                   std::string("expected a number, got ") + TypeName(value) + " " +
+                       JsonSnippet(value));
+  }
+  const double v = value.get<double>();
+  if (!std::isfinite(v)) {
+    ThrowJsonError(source, path,
+                   std::string("number must be finite, got ") +
+                       (std::isnan(v) ? "NaN" : (v > 0 ? "Infinity" : "-Infinity")));
+  }
+  return v;
+}
+
+void CheckJsonNumbersFinite(const nlohmann::json& value, const std::string& source,
+                            const std::string& path) {
+  if (value.is_number()) {
+    JsonFiniteNumber(value, source, path);
+  } else if (value.is_array()) {
+    for (size_t i = 0; i < value.size(); ++i) {
+      CheckJsonNumbersFinite(value[i], source, JsonIndexPath(path, i));
+    }
+  } else if (value.is_object()) {
+    for (const auto& [key, item] : value.items()) {
+      CheckJsonNumbersFinite(item, source, JsonKeyPath(path, key));
+    }
+  }
+}
+
+JsonObjectReader::JsonObjectReader(const nlohmann::json& value, std::string source,
+                                   std::string path)
+    : value_(value), source_(std::move(source)), path_(std::move(path)) {
+  if (!value_.is_object()) {
+    ThrowJsonError(source_, path_,
+                   std::string("expected an object, got ") + TypeName(value_) + " " +
+                       JsonSnippet(value_));
+  }
+}
+
+void JsonObjectReader::Fail(const std::string& key, const std::string& message) const {
+  ThrowJsonError(source_, key.empty() ? path_ : PathOf(key), message);
+}
+
+bool JsonObjectReader::Has(const std::string& key) const { return value_.contains(key); }
+
+const nlohmann::json& JsonObjectReader::Get(const std::string& key) const {
+  const auto it = value_.find(key);
+  if (it == value_.end()) Fail(key, "missing required field");
+  read_keys_.insert(key);
+  return *it;
+}
+
+JsonObjectReader JsonObjectReader::Object(const std::string& key) const {
+  return JsonObjectReader(Get(key), source_, PathOf(key));
+}
+
+std::string JsonObjectReader::String(const std::string& key) const {
+  const nlohmann::json& v = Get(key);
+  if (!v.is_string()) {
+    Fail(key, std::string("expected a string, got ") + TypeName(v) + " " + JsonSnippet(v));
+  }
+  return v.get<std::string>();
+}
+
+std::string JsonObjectReader::Enum(const std::string& key,
+                                   const std::vector<std::string>& allowed) const {
+  const std::string s = String(key);
+  for (const auto& a : allowed) {
+    if (s == a) return s;
+  }
+  std::string list;
+  for (size_t i = 0; i < allowed.size(); ++i) list += (i ? ", \"" : "\"") + allowed[i] + "\"";
+  Fail(key, "unknown value \"" + s + "\"; expected one of " + list);
+}
+
+double JsonObjectReader::Number(const std::string& key) const {
+  return JsonFiniteNumber(Get(key), source_, PathOf(key));
+}
+
+double JsonObjectReader::PositiveNumber(const std::string& key) const {
+  const double v = Number(key);
+  if (!(v > 0.0)) Fail(key, "must be positive, got " + Get(key).dump());
+  return v;
+}
+
+int JsonObjectReader::Integer(const std::string& key) const {
+  const nlohmann::json& v = Get(key);
+  if (!v.is_number_integer()) {
+    Fail(key, std::string("expected an integer, got ") + TypeName(v) + " " + JsonSnippet(v));
+  }
+  const int64_t i = v.get<int64_t>();
+  if (i < std::numeric_limits<int>::min() || i > std::numeric_limits<int>::max()) {
+    Fail(key, "integer out of range: " + v.dump());
+  }
+  return static_cast<int>(i);
+}
+
+std::vector<double> JsonObjectReader::NumberArray(const std::string& key) const {
+  const nlohmann::json& v = Get(key);
+  if (!v.is_array()) {
+    Fail(key, std::string("expected an array of numbers, got ") + TypeName(v) + " " +
+                  JsonSnippet(v));
+  }
+  std::vector<double> out;
+  out.reserve(v.size());
+  for (size_t i = 0; i < v.size(); ++i) {
+    out.push_back(JsonFiniteNumber(v[i], source_, JsonIndexPath(PathOf(key), i)));
+  }
+  return out;
+}
+
+Eigen::Vector3d JsonObjectReader::Vector3(const std::string& key) const {
+  const std::vector<double> v = NumberArray(key);
+  if (v.size() != 3) Fail(key, "expected 3 numbers [x, y, z], got " + std::to_string(v.size()));
+  return Eigen::Vector3d(v[0], v[1], v[2]);
+}
+
+std::vector<double> JsonObjectReader::Vector3Array(const std::string& key, size_t expected_count,
+                                                   const std::string& what) const {
+  const nlohmann::json& v = Get(key);
+  if (!v.is_array()) {
+    Fail(key, std::string("expected an array of [x, y, z] entries, got ") + TypeName(v) + " " +
+                  JsonSnippet(v));
+  }
+  if (v.size() != expected_count) {
+    Fail(key, what + " needs " + std::to_string(expected_count) + " entries, got " +
+                  std::to_string(v.size()));
+  }
+  std::vector<double> out;
+  out.reserve(3 * v.size());
+  for (size_t i = 0; i < v.size(); ++i) {
+    const std::string item_path = JsonIndexPath(PathOf(key), i);
+    if (!v[i].is_array() || v[i].size() != 3) {
+      ThrowJsonError(source_, item_path, "expected 3 numbers [x, y, z], got " + JsonSnippet(v[i]));
+    }
+    for (size_t k = 0; k < 3; ++k) {
+      out.push_back(JsonFiniteNumber(v[i][k], source_, JsonIndexPath(item_path, k)));
+    }
+  }
+  return out;
+}
+
+void JsonObjectReader::CheckNoUnknownKeys() const {
+  for (const auto& [key, unused] : value_.items()) {
+    if (read_keys_.count(key) == 0) Fail(key, "unknown field");
+  }
+}
+
+}  // namespace trackcal

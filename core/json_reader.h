@@ -1,0 +1,84 @@
+// Strict reading of JSON documents with errors that name the source and the JSON path of the problem,
+// e.g. "calib.json: $.corrections[0].degree: expected an integer, got \"four\"". Every object read
+// through a JsonObjectReader must have all its keys consumed; CheckNoUnknownKeys() names the first
+// key nobody read, so a misspelt optional field is an error instead of being silently ignored.
+#pragma once
+
+#include <Eigen/Core>
+#include <nlohmann/json.hpp>
+#include <set>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace trackcal {
+
+// Thrown for malformed user input; derives from std::invalid_argument so Python sees ValueError.
+class JsonInputError : public std::invalid_argument {
+ public:
+  using std::invalid_argument::invalid_argument;
+};
+
+// Parses JSON text; a syntax error names the source, line and column. NaN/Infinity literals are
+// reported as such (they are not JSON, but Python's json module writes them).
+nlohmann::json ParseJsonText(const std::string& text, const std::string& source_name);
+
+// "$.a.b" + "[3]" style path helpers.
+std::string JsonIndexPath(const std::string& path, size_t index);
+std::string JsonKeyPath(const std::string& path, const std::string& key);
+
+// Throws JsonInputError("<source>: <path>: <message>").
+[[noreturn]] void ThrowJsonError(const std::string& source, const std::string& path,
+                                 const std::string& message);
+
+// Short rendering of a JSON value for error messages (truncated).
+std::string JsonSnippet(const nlohmann::json& value);
+
+// A finite number at `path` (integers accepted); throws otherwise.
+double JsonFiniteNumber(const nlohmann::json& value, const std::string& source,
+                        const std::string& path);
+
+// Checks that every number anywhere below `value` is finite (for free-form sections).
+void CheckJsonNumbersFinite(const nlohmann::json& value, const std::string& source,
+                            const std::string& path);
+
+class JsonObjectReader {
+ public:
+  // Throws if `value` is not an object. `value` must outlive the reader.
+  JsonObjectReader(const nlohmann::json& value, std::string source, std::string path);
+
+  const std::string& source() const { return source_; }
+  const std::string& path() const { return path_; }
+  std::string PathOf(const std::string& key) const { return JsonKeyPath(path_, key); }
+
+  // Error at this object (key empty) or at one of its keys.
+  [[noreturn]] void Fail(const std::string& key, const std::string& message) const;
+
+  bool Has(const std::string& key) const;
+  // The raw value of a required key (marks it read).
+  const nlohmann::json& Get(const std::string& key) const;
+  JsonObjectReader Object(const std::string& key) const;
+  std::string String(const std::string& key) const;
+  // A string that must be one of `allowed`.
+  std::string Enum(const std::string& key, const std::vector<std::string>& allowed) const;
+  double Number(const std::string& key) const;
+  double PositiveNumber(const std::string& key) const;
+  int Integer(const std::string& key) const;
+  Eigen::Vector3d Vector3(const std::string& key) const;
+  std::vector<double> NumberArray(const std::string& key) const;
+  // An array of `expected_count` 3-vectors, flattened; `what` explains the count in the error
+  // ("degree 4 needs 35 entries").
+  std::vector<double> Vector3Array(const std::string& key, size_t expected_count,
+                                   const std::string& what) const;
+
+  // Throws naming the first key that was never read.
+  void CheckNoUnknownKeys() const;
+
+ private:
+  const nlohmann::json& value_;
+  std::string source_;
+  std::string path_;
+  mutable std::set<std::string> read_keys_;
+};
+
+}  // namespace trackcal

@@ -1,0 +1,283 @@
+#include "fit/covariance.h"
+
+#include <ceres/covariance.h>
+#include <ceres/crs_matrix.h>
+
+#include <Eigen/Eigenvalues>
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <map>
+#include <sstream>
+#include <stdexcept>
+#include <utility>
+
+namespace trackcal::fit {
+
+bool CovarianceOptions::Check() const {
+  return rank_tolerance > 0.0 && rank_tolerance < 1.0 && weak_direction_ratio >= rank_tolerance &&
+         weak_direction_ratio < 1.0 && weak_component_threshold > 0.0 &&
+         weak_component_threshold <= 1.0 && max_dense_dimension >= 0 && num_threads >= 1;
+}
+
+namespace {
+
+std::string Format(const char* fmt, double value) {
+  char buf[64];
+  std::snprintf(buf, sizeof(buf), fmt, value);
+  return buf;
+}
+
+struct DenseAnalysis {
+  bool done = false;
+  int rank = 0;
+  double reciprocal_condition = 0.0;
+  Eigen::VectorXd scale;         // D^-1/2: column scaling that makes diag(H) one
+  Eigen::VectorXd eigenvalues;   // of the scaled information matrix, ascending
+  Eigen::MatrixXd eigenvectors;  // columns, scaled coordinates
+  std::vector<int> weak;         // indices of weak eigen-directions
+};
+
+// Information matrix of the whitened problem over `columns` blocks (tangent coordinates), its
+// eigen-decomposition after Jacobi scaling (so rank and weak directions do not depend on units).
+DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& columns,
+                           int dimension, const CovarianceOptions& options) {
+  DenseAnalysis a;
+  ceres::Problem::EvaluateOptions eval;
+  eval.parameter_blocks = columns;
+  eval.apply_loss_function = true;
+  eval.num_threads = options.num_threads;
+  ceres::CRSMatrix crs;
+  double cost = 0.0;
+  if (!problem->Evaluate(eval, &cost, nullptr, nullptr, &crs)) return a;
+  if (crs.num_cols != dimension) return a;
+  Eigen::MatrixXd jacobian = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
+  for (int r = 0; r < crs.num_rows; ++r) {
+    for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) jacobian(r, crs.cols[k]) = crs.values[k];
+  }
+  const Eigen::MatrixXd information = jacobian.transpose() * jacobian;
+  a.scale = Eigen::VectorXd::Ones(dimension);
+  for (int i = 0; i < dimension; ++i) {
+    if (information(i, i) > 0.0) a.scale(i) = 1.0 / std::sqrt(information(i, i));
+  }
+  const Eigen::MatrixXd scaled = a.scale.asDiagonal() * information * a.scale.asDiagonal();
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(scaled);
+  if (eig.info() != Eigen::Success) return a;
+  a.eigenvalues = eig.eigenvalues();
+  a.eigenvectors = eig.eigenvectors();
+  const double largest = dimension > 0 ? a.eigenvalues(dimension - 1) : 0.0;
+  a.rank = 0;
+  for (int i = 0; i < dimension; ++i) {
+    if (a.eigenvalues(i) > options.rank_tolerance * largest) ++a.rank;
+    if (a.eigenvalues(i) <= options.weak_direction_ratio * largest) a.weak.push_back(i);
+  }
+  a.reciprocal_condition = largest > 0.0 ? std::max(0.0, a.eigenvalues(0)) / largest : 0.0;
+  a.done = true;
+  return a;
+}
+
+}  // namespace
+
+CovarianceResult ComputeCovariance(ceres::Problem* problem,
+                                   const std::vector<CovarianceBlock>& blocks,
+                                   const CovarianceOptions& options) {
+  if (!options.Check()) throw std::invalid_argument("CovarianceOptions: invalid options");
+  CovarianceResult result;
+
+  // Requested blocks: sizes and names.
+  std::vector<int> sizes;
+  for (const CovarianceBlock& b : blocks) {
+    if (b.values == nullptr || !problem->HasParameterBlock(b.values)) {
+      throw std::invalid_argument("ComputeCovariance: block '" + b.name +
+                                  "' is not in the problem");
+    }
+    if (problem->IsParameterBlockConstant(b.values)) {
+      throw std::invalid_argument("ComputeCovariance: block '" + b.name + "' is constant");
+    }
+    const int size = problem->ParameterBlockTangentSize(b.values);
+    if (!b.coordinate_names.empty() && static_cast<int>(b.coordinate_names.size()) != size) {
+      throw std::invalid_argument("ComputeCovariance: block '" + b.name + "' has " +
+                                  std::to_string(b.coordinate_names.size()) +
+                                  " coordinate names for a tangent size of " +
+                                  std::to_string(size));
+    }
+    if (!(b.tangent_scale > 0.0)) {
+      throw std::invalid_argument("ComputeCovariance: block '" + b.name +
+                                  "' needs tangent_scale > 0");
+    }
+    result.block_offsets.push_back(static_cast<int>(result.coordinate_names.size()));
+    for (int i = 0; i < size; ++i) {
+      result.coordinate_names.push_back(
+          b.name + "." +
+          (b.coordinate_names.empty() ? "[" + std::to_string(i) + "]" : b.coordinate_names[i]));
+    }
+    sizes.push_back(size);
+  }
+  const int n = static_cast<int>(result.coordinate_names.size());
+
+  // All free blocks of the problem, in a fixed column order.
+  std::vector<double*> all_blocks;
+  problem->GetParameterBlocks(&all_blocks);
+  std::vector<double*> columns;
+  std::map<const double*, int> column_offset;
+  for (double* block : all_blocks) {
+    if (problem->IsParameterBlockConstant(block)) continue;
+    column_offset[block] = result.tangent_dimension;
+    columns.push_back(block);
+    result.tangent_dimension += problem->ParameterBlockTangentSize(block);
+  }
+
+  DenseAnalysis dense;
+  if (result.tangent_dimension <= options.max_dense_dimension) {
+    dense = AnalyseDense(problem, columns, result.tangent_dimension, options);
+  }
+  if (dense.done) {
+    result.rank = dense.rank;
+    result.rank_deficient = dense.rank < result.tangent_dimension;
+    result.reciprocal_condition = dense.reciprocal_condition;
+  }
+
+  // Row in the full tangent vector of each requested coordinate.
+  std::vector<int> full_index(n);
+  for (std::size_t b = 0; b < blocks.size(); ++b) {
+    for (int i = 0; i < sizes[b]; ++i) {
+      full_index[result.block_offsets[b] + i] = column_offset.at(blocks[b].values) + i;
+    }
+  }
+
+  auto Wanted = [&](std::size_t i, std::size_t j) {
+    return i == j || (blocks[i].cross_covariance && blocks[j].cross_covariance);
+  };
+  bool have_covariance = false;
+  if (!result.rank_deficient) {
+    ceres::Covariance::Options copt;
+    copt.algorithm_type = ceres::SPARSE_QR;
+    copt.num_threads = options.num_threads;
+    copt.apply_loss_function = true;
+    ceres::Covariance covariance(copt);
+    std::vector<std::pair<const double*, const double*>> pairs;
+    for (std::size_t i = 0; i < blocks.size(); ++i) {
+      for (std::size_t j = i; j < blocks.size(); ++j) {
+        if (Wanted(i, j)) pairs.emplace_back(blocks[i].values, blocks[j].values);
+      }
+    }
+    if (covariance.Compute(pairs, problem)) {
+      result.covariance = Eigen::MatrixXd::Zero(n, n);
+      have_covariance = true;
+      for (std::size_t i = 0; i < blocks.size() && have_covariance; ++i) {
+        for (std::size_t j = i; j < blocks.size(); ++j) {
+          if (!Wanted(i, j)) continue;
+          Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> c(sizes[i],
+                                                                                   sizes[j]);
+          if (!covariance.GetCovarianceBlockInTangentSpace(blocks[i].values, blocks[j].values,
+                                                           c.data())) {
+            have_covariance = false;
+            break;
+          }
+          result.covariance.block(result.block_offsets[i], result.block_offsets[j], sizes[i],
+                                  sizes[j]) = c;
+          result.covariance.block(result.block_offsets[j], result.block_offsets[i], sizes[j],
+                                  sizes[i]) = c.transpose();
+        }
+      }
+      if (have_covariance) result.method = "ceres_sparse_qr";
+    } else {
+      result.rank_deficient = true;
+      result.message = "ceres::Covariance refused the Jacobian (rank deficient); ";
+    }
+  }
+
+  if (!have_covariance && dense.done) {
+    // Pseudo-inverse in the scaled coordinates: H^+ = S V_r diag(1/l_r) V_r^T S.
+    const Eigen::MatrixXd v = dense.eigenvectors.rightCols(dense.rank);
+    const Eigen::VectorXd inv = dense.eigenvalues.tail(dense.rank).cwiseInverse();
+    Eigen::MatrixXd rows(n, dense.rank);
+    for (int k = 0; k < n; ++k) rows.row(k) = dense.scale(full_index[k]) * v.row(full_index[k]);
+    result.covariance = rows * inv.asDiagonal() * rows.transpose();
+    for (std::size_t i = 0; i < blocks.size(); ++i) {
+      for (std::size_t j = 0; j < blocks.size(); ++j) {
+        if (Wanted(i, j)) continue;
+        result.covariance
+            .block(result.block_offsets[i], result.block_offsets[j], sizes[i], sizes[j])
+            .setZero();
+      }
+    }
+    result.method = "dense_pseudo_inverse";
+    have_covariance = true;
+  }
+
+  if (!have_covariance) {
+    result.message +=
+        "no covariance: Ceres failed and the problem is too large for the dense "
+        "fallback (max_dense_dimension)";
+    return result;
+  }
+
+  // Physical units.
+  Eigen::VectorXd unit(n);
+  for (std::size_t b = 0; b < blocks.size(); ++b) {
+    unit.segment(result.block_offsets[b], sizes[b]).setConstant(blocks[b].tangent_scale);
+  }
+  result.covariance = unit.asDiagonal() * result.covariance * unit.asDiagonal();
+  result.stddev = result.covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
+  result.success = true;
+
+  // Flags: large standard deviations, then coordinates moved by weak directions.
+  for (std::size_t b = 0; b < blocks.size(); ++b) {
+    for (int i = 0; i < sizes[b]; ++i) {
+      const int k = result.block_offsets[b] + i;
+      if (result.stddev(k) > blocks[b].max_stddev) {
+        result.flags.push_back(
+            {result.coordinate_names[k], "std " + Format("%.3g", result.stddev(k)) + " > " +
+                                             Format("%.3g", blocks[b].max_stddev)});
+      }
+    }
+  }
+  if (dense.done) {
+    const double largest = dense.eigenvalues(result.tangent_dimension - 1);
+    for (std::size_t w = 0; w < dense.weak.size(); ++w) {
+      const int e = dense.weak[w];
+      const double ratio = largest > 0.0 ? std::max(0.0, dense.eigenvalues(e)) / largest : 0.0;
+      for (int k = 0; k < n; ++k) {
+        if (std::abs(dense.eigenvectors(full_index[k], e)) > options.weak_component_threshold) {
+          result.flags.push_back({result.coordinate_names[k],
+                                  "moved by weak direction " + std::to_string(w) +
+                                      " (eigenvalue ratio " + Format("%.2g", ratio) + ")"});
+        }
+      }
+    }
+    if (!dense.weak.empty()) {
+      result.message += std::to_string(dense.weak.size()) + " weak direction(s) in the problem";
+    }
+  }
+  return result;
+}
+
+std::string CovarianceResult::ToString() const {
+  std::ostringstream out;
+  out << "covariance: " << (success ? method : "FAILED") << ", tangent dimension "
+      << tangent_dimension;
+  if (rank >= 0) {
+    out << ", rank " << rank << (rank_deficient ? " (RANK DEFICIENT)" : "")
+        << ", reciprocal condition " << Format("%.3g", reciprocal_condition);
+  }
+  out << "\n";
+  if (!message.empty()) out << "  " << message << "\n";
+  // One line per coordinate, all its reasons together.
+  std::vector<std::pair<std::string, std::string>> grouped;
+  for (const IdentifiabilityFlag& f : flags) {
+    auto it = std::find_if(grouped.begin(), grouped.end(),
+                           [&](const auto& g) { return g.first == f.coordinate; });
+    if (it == grouped.end()) {
+      grouped.emplace_back(f.coordinate, f.reason);
+    } else {
+      it->second += "; " + f.reason;
+    }
+  }
+  for (const auto& [coordinate, reasons] : grouped) {
+    out << "  poorly identified: " << coordinate << ": " << reasons << "\n";
+  }
+  return out.str();
+}
+
+}  // namespace trackcal::fit

@@ -1,0 +1,88 @@
+// Parameter uncertainty and identifiability of a solved ceres::Problem.
+//
+// With whitened residuals (fit/cost_functor.h), the a-posteriori covariance of the parameters is
+// the inverse of the information matrix H = J^T J at the solution, J taken in the tangent spaces of
+// the manifolds. ComputeCovariance
+//   - asks ceres::Covariance for the joint covariance of the requested blocks;
+//   - analyses H densely (eigen-decomposition) when the problem is small enough: its numerical
+//     rank, and the weak directions (eigenvalues below weak_direction_ratio * largest), named by
+//     the coordinates they move most;
+//   - falls back to the pseudo-inverse of H (dropping the null space) when Ceres reports a
+//     rank-deficient Jacobian, so a degenerate problem still yields standard deviations for the
+//     coordinates that are determined, and flags the ones that are not;
+//   - flags every coordinate whose standard deviation exceeds the scale the caller gives for it, or
+//     which a weak direction moves.
+// Standard deviations are in physical units: each block's tangent coordinates are multiplied by
+// its tangent_scale (2 for EigenQuaternionManifold blocks, giving rotation vectors in radians).
+
+#pragma once
+
+#include <ceres/problem.h>
+
+#include <Eigen/Core>
+#include <limits>
+#include <string>
+#include <vector>
+
+namespace trackcal::fit {
+
+// A parameter block whose uncertainty is wanted.
+struct CovarianceBlock {
+  const double* values = nullptr;  // the block as added to the problem
+  std::string name;  // used in flags and reports, e.g. "optical_from_transmitter.rotation"
+  std::vector<std::string> coordinate_names;  // one per tangent coordinate; default "<name>[i]"
+  double tangent_scale = 1.0;                 // physical units per tangent unit (2 for quaternions)
+  double max_stddev = std::numeric_limits<double>::infinity();  // larger std => poorly identified
+  // false: only this block's own covariance is computed; its cross-covariances with the other
+  // requested blocks are left zero (keeps many per-station blocks cheap).
+  bool cross_covariance = true;
+};
+
+struct CovarianceOptions {
+  // Eigenvalues of H below this fraction of the largest count as null space (rank deficiency).
+  double rank_tolerance = 1e-12;
+  // Eigen-directions below this fraction of the largest eigenvalue are reported as weak.
+  double weak_direction_ratio = 1e-9;
+  // A coordinate is "moved" by a weak direction when its share of that unit eigenvector exceeds
+  // this.
+  double weak_component_threshold = 0.1;
+  // Dense analysis (rank, weak directions, fallback) only up to this many tangent coordinates.
+  int max_dense_dimension = 3000;
+  // Threads for ceres::Covariance.
+  int num_threads = 1;
+  bool Check() const;
+};
+
+// One poorly identified coordinate and why.
+struct IdentifiabilityFlag {
+  std::string coordinate;  // "<block>.<coordinate>"
+  std::string reason;  // "std 3.2e-03 > 1.0e-03" or "in weak direction 1 (eigenvalue ratio 1e-17)"
+};
+
+struct CovarianceResult {
+  bool success = false;         // a covariance (full or pseudo-inverse) was computed
+  std::string method;           // "ceres_sparse_qr", "ceres_dense_svd" or "dense_pseudo_inverse"
+  int tangent_dimension = 0;    // tangent coordinates of all non-constant blocks in the problem
+  int rank = -1;                // numerical rank of H (-1: dense analysis skipped)
+  bool rank_deficient = false;  // rank < tangent_dimension (or Ceres refused the inverse)
+  double reciprocal_condition = 0.0;  // smallest / largest eigenvalue of H (dense analysis only)
+  // Joint covariance of the requested blocks in physical tangent units, blocks in request order
+  // (cross terms of blocks with cross_covariance = false are zero).
+  Eigen::MatrixXd covariance;
+  Eigen::VectorXd stddev;                     // sqrt(diag(covariance))
+  std::vector<int> block_offsets;             // first row of each requested block in covariance
+  std::vector<std::string> coordinate_names;  // one per row of covariance
+  std::vector<IdentifiabilityFlag> flags;     // poorly identified coordinates
+  std::string message;                        // failure reason or notes
+
+  // Multi-line human-readable summary: method, rank, flags.
+  std::string ToString() const;
+};
+
+// Covariance of `blocks` at the current parameter values of a solved problem whose residuals are
+// whitened. Throws std::invalid_argument if a block is not in the problem or is constant.
+CovarianceResult ComputeCovariance(ceres::Problem* problem,
+                                   const std::vector<CovarianceBlock>& blocks,
+                                   const CovarianceOptions& options = {});
+
+}  // namespace trackcal::fit

@@ -1,0 +1,117 @@
+#include "fit/covariance.h"
+
+#include <ceres/ceres.h>
+#include <gtest/gtest.h>
+
+#include "fit/cost_functor.h"
+#include "fit/marker_model.h"
+#include "fit/rotation.h"
+#include "tests/test_utils.h"
+
+namespace trackcal::fit {
+namespace {
+
+// y = a + b * x, residual a + b x - y.
+struct LineCost : AutoDiffCostFunctor<LineCost, 1, 1, 1> {
+  LineCost(double x, double y) : x(x), y(y) {}
+  template <typename T>
+  bool operator()(const T* a, const T* b, T* r) const {
+    r[0] = a[0] + b[0] * T(x) - T(y);
+    return true;
+  }
+  double x, y;
+};
+
+TEST(ComputeCovariance, Nominal) {
+  // Straight-line fit with sigma: the covariance is sigma^2 (X^T X)^-1.
+  const double sigma = 0.2;
+  double a = 0.0, b = 0.0;
+  ceres::Problem problem;
+  Eigen::Matrix<double, 5, 2> x;
+  for (int i = 0; i < 5; ++i) {
+    x.row(i) << 1.0, i;
+    problem.AddResidualBlock(
+        Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(sigma), i, 1.0 + 2.0 * i), nullptr,
+        &a, &b);
+  }
+  const CovarianceResult c =
+      ComputeCovariance(&problem, {{&a, "a", {}, 1.0, 10.0}, {&b, "b", {}, 1.0, 10.0}});
+  ASSERT_TRUE(c.success) << c.ToString();
+  EXPECT_EQ(c.method, "ceres_sparse_qr");
+  EXPECT_EQ(c.rank, 2);
+  EXPECT_FALSE(c.rank_deficient);
+  EXPECT_TRUE(c.flags.empty()) << c.ToString();
+  const Eigen::Matrix2d expected = sigma * sigma * (x.transpose() * x).inverse();
+  EXPECT_TRUE(c.covariance.isApprox(expected, 1e-10)) << c.covariance;  // same algebra, rounding
+  EXPECT_NEAR(c.stddev(1), std::sqrt(expected(1, 1)), 1e-12);
+  EXPECT_EQ(c.coordinate_names[0], "a.[0]");
+}
+
+TEST(ComputeCovariance, LargeStddevIsFlagged) {
+  double a = 0.0, b = 0.0;
+  ceres::Problem problem;
+  for (int i = 0; i < 5; ++i) {
+    problem.AddResidualBlock(Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(1.0), i, i),
+                             nullptr, &a, &b);
+  }
+  const CovarianceResult c =
+      ComputeCovariance(&problem, {{&a, "a", {"offset"}, 1.0, 0.1}, {&b, "b", {"slope"}, 1.0, 10}});
+  ASSERT_TRUE(c.success);
+  ASSERT_EQ(c.flags.size(), 1u) << c.ToString();
+  EXPECT_EQ(c.flags[0].coordinate, "a.offset");
+}
+
+TEST(ComputeCovariance, RankDeficientFallsBackToPseudoInverseAndFlags) {
+  // Every residual sees only a + b: one direction (a - b) is unobservable.
+  double d = 0.0, e = 0.0;
+  ceres::Problem degenerate;
+  for (int i = 0; i < 4; ++i) {
+    degenerate.AddResidualBlock(
+        Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(0.5), 1.0, 3.0), nullptr, &d, &e);
+  }
+  const CovarianceResult c =
+      ComputeCovariance(&degenerate, {{&d, "d", {}, 1.0, 1e9}, {&e, "e", {}, 1.0, 1e9}});
+  ASSERT_TRUE(c.success) << c.ToString();
+  EXPECT_EQ(c.method, "dense_pseudo_inverse");
+  EXPECT_TRUE(c.rank_deficient);
+  EXPECT_EQ(c.rank, 1);
+  // Both coordinates are moved by the null direction (d - e) / sqrt(2).
+  ASSERT_EQ(c.flags.size(), 2u) << c.ToString();
+  // The determined combination d + e has variance sigma^2 / 4 = 0.0625: u^T C u with u = (1, 1).
+  EXPECT_NEAR(c.covariance.sum(), 0.0625, 1e-12);
+}
+
+TEST(ComputeCovariance, QuaternionStddevInRadians) {
+  // A pose prior with orientation noise sigma: the rotation-vector std must come out as sigma,
+  // which checks the factor 2 between the manifold's tangent and a rotation vector.
+  const double sigma_rad = 0.01, sigma_m = 0.002;
+  const Rigid3d measured(testing::RandomRotation(testing::TestRng()), Eigen::Vector3d(1, 2, 3));
+  double q[4];
+  QuaternionToXyzwArray(measured.rotation, q);
+  Eigen::Vector3d t = measured.translation;
+  ceres::Problem problem;
+  SetQuaternionManifold(&problem, q);
+  Eigen::Matrix<double, 6, 1> sigmas;
+  sigmas << Eigen::Vector3d::Constant(sigma_m), Eigen::Vector3d::Constant(sigma_rad);
+  problem.AddResidualBlock(
+      Whitened<PosePriorCost>::Create(DiagonalSqrtInformation<6>(sigmas), measured), nullptr, q,
+      t.data());
+  const CovarianceResult c =
+      ComputeCovariance(&problem, {{q, "q", {"rx", "ry", "rz"}, kQuaternionTangentToRotationVector},
+                                   {t.data(), "t", {"x", "y", "z"}}});
+  ASSERT_TRUE(c.success) << c.ToString();
+  for (int i = 0; i < 3; ++i) EXPECT_NEAR(c.stddev(i), sigma_rad, 1e-9);  // at the prior: exact
+  for (int i = 3; i < 6; ++i) EXPECT_NEAR(c.stddev(i), sigma_m, 1e-12);
+}
+
+TEST(ComputeCovariance, UnknownOrConstantBlockThrows) {
+  double a = 0.0, b = 0.0, stray = 0.0;
+  ceres::Problem problem;
+  problem.AddResidualBlock(LineCost::Create(1.0, 2.0), nullptr, &a, &b);
+  EXPECT_THROW(ComputeCovariance(&problem, {{&stray, "stray", {}}}), std::invalid_argument);
+  problem.SetParameterBlockConstant(&b);
+  EXPECT_THROW(ComputeCovariance(&problem, {{&b, "b", {}}}), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace trackcal::fit

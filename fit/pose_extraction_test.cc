@@ -1,0 +1,138 @@
+#include "fit/pose_extraction.h"
+
+#include <gtest/gtest.h>
+
+#include "fit/rotation.h"
+#include "fit/synthetic_registration.h"
+#include "tests/test_utils.h"
+
+namespace trackcal::fit {
+namespace {
+
+using testing::TestRng;
+
+OpticalRegistration Truth(const SyntheticRegistration& data) {
+  return {data.optical_from_transmitter, data.marker_in_receiver};
+}
+
+TEST(ExtractPose, Nominal) {
+  const SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  const std::vector<ExtractedPose> poses = ExtractPoses(data.stations, Truth(data));
+  ASSERT_EQ(poses.size(), data.stations.size());
+  for (std::size_t i = 0; i < poses.size(); ++i) {
+    EXPECT_EQ(poses[i].status, PoseStatus::kOk) << poses[i].message;
+    EXPECT_EQ(poses[i].station, data.stations[i].station);
+    // Noise-free: the closed form is exact to rounding; 1e-9 m / rad leaves room for the SVD.
+    EXPECT_TRUE(testing::PosesNear(data.true_transmitter_from_receiver[i],
+                                   poses[i].transmitter_from_receiver, 1e-9, 1e-9));
+    EXPECT_LT(poses[i].marker_rms_m, 1e-9);
+  }
+}
+
+TEST(ExtractPose, NoisyErrorMatchesCovariance) {
+  SyntheticRegistrationOptions s;
+  s.num_stations = 200;
+  s.optical_noise_m = 1.5e-4;
+  const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  PoseExtractionOptions o;
+  o.optical_noise_m = s.optical_noise_m;
+  double sum_d2 = 0.0;
+  int n = 0;
+  double max_position_error = 0.0;
+  for (std::size_t i = 0; i < data.stations.size(); ++i) {
+    const ExtractedPose p =
+        ExtractPose(data.stations[i].station, data.stations[i].markers, Truth(data), o);
+    ASSERT_EQ(p.status, PoseStatus::kOk) << p.message;
+    const Rigid3d& truth = data.true_transmitter_from_receiver[i];
+    Eigen::Matrix<double, 6, 1> e;
+    e << RotationVectorBetween<double>(p.transmitter_from_receiver.rotation, truth.rotation),
+        p.transmitter_from_receiver.translation - truth.translation;
+    sum_d2 += e.dot(p.covariance.ldlt().solve(e));
+    max_position_error = std::max(max_position_error, e.tail<3>().norm());
+    ++n;
+  }
+  // Mean Mahalanobis distance of 200 chi-square(6) draws: 6 +- 0.245; 4 sigma band.
+  EXPECT_NEAR(sum_d2 / n, 6.0, 4 * 0.245);
+  // 0.15 mm markers ~6 cm apart: position error stays well below a millimetre.
+  EXPECT_LT(max_position_error, 1e-3);
+}
+
+TEST(ExtractPose, TooFewMarkers) {
+  const SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  std::vector<MarkerObservation> two(data.stations[0].markers.begin(),
+                                     data.stations[0].markers.begin() + 2);
+  const ExtractedPose p = ExtractPose(7, two, Truth(data));
+  EXPECT_EQ(p.status, PoseStatus::kTooFewMarkers);
+  EXPECT_FALSE(p.HasPose());
+  EXPECT_NE(p.message.find("2 marker"), std::string::npos) << p.message;
+}
+
+TEST(ExtractPose, CollinearMarkersAreDegenerate) {
+  SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  // Markers 1 and 2 lie on the receiver's +-x axis; put marker 3 on that line too.
+  OpticalRegistration reg = Truth(data);
+  reg.marker_in_receiver[1] = Eigen::Vector3d(0.06, 0, 0);
+  reg.marker_in_receiver[2] = Eigen::Vector3d(-0.06, 0, 0);
+  reg.marker_in_receiver[3] = Eigen::Vector3d(0.02, 0, 0);
+  const Rigid3d& pose = data.true_transmitter_from_receiver[0];
+  std::vector<MarkerObservation> markers;
+  for (int id : {1, 2, 3}) {
+    markers.push_back({id, reg.optical_from_transmitter * (pose * reg.marker_in_receiver[id])});
+  }
+  const ExtractedPose p = ExtractPose(1, markers, reg);
+  EXPECT_EQ(p.status, PoseStatus::kDegenerate) << p.message;
+}
+
+TEST(ExtractPose, DisplacedMarkerIsABadFit) {
+  SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  std::vector<MarkerObservation> markers = data.stations[0].markers;
+  while (markers.size() < 4) {  // need redundancy for a residual to show
+    data = MakeSyntheticRegistration({}, &TestRng());
+    markers = data.stations[0].markers;
+  }
+  markers[0].marker_in_optical += Eigen::Vector3d(0.005, 0, 0);  // a 5 mm reflection
+  const ExtractedPose p = ExtractPose(1, markers, Truth(data));
+  EXPECT_EQ(p.status, PoseStatus::kBadFit) << p.marker_rms_m;
+  EXPECT_TRUE(p.HasPose());
+}
+
+TEST(ExtractPose, UnknownMarkerThrows) {
+  const SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  std::vector<MarkerObservation> markers = data.stations[0].markers;
+  markers[0].marker = 42;
+  try {
+    ExtractPose(9, markers, Truth(data));
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("station 9, marker 42"), std::string::npos) << e.what();
+  }
+}
+
+TEST(RegistrationThenExtraction, RecoversReceiverPoses) {
+  // End to end: register on noisy data, then extract every station's pose from its markers alone.
+  SyntheticRegistrationOptions s;
+  s.optical_noise_m = 1.5e-4;
+  s.tracker_position_noise_m = 8e-4;
+  s.tracker_orientation_noise_rad = 0.15 * kRadPerDeg;
+  const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  RegistrationOptions ro;
+  ro.optical_noise_m = s.optical_noise_m;
+  ro.tracker_position_noise_m = s.tracker_position_noise_m;
+  ro.tracker_orientation_noise_rad = s.tracker_orientation_noise_rad;
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, ro);
+  ASSERT_TRUE(r.identifiable) << r.ToString();
+  const std::vector<ExtractedPose> poses = ExtractPoses(data.stations, r.registration);
+  for (std::size_t i = 0; i < poses.size(); ++i) {
+    ASSERT_TRUE(poses[i].HasPose()) << poses[i].message;
+    // Each pose carries its own optical noise (0.15 mm over ~6 cm lever arms: ~0.15 deg and
+    // ~0.1 mm per axis, see the pose covariance) plus the registration's error, whose receiver
+    // frame follows the tracker (0.8 mm and 0.15 deg per station, averaged over 20). 1 mm and
+    // 0.6 deg are about four standard deviations of the sum.
+    EXPECT_TRUE(testing::PosesNear(data.true_transmitter_from_receiver[i],
+                                   poses[i].transmitter_from_receiver, 1e-3, 0.6 * kRadPerDeg))
+        << "station " << i;
+  }
+}
+
+}  // namespace
+}  // namespace trackcal::fit

@@ -1,0 +1,416 @@
+#include "fit/registration.h"
+
+#include <ceres/ceres.h>
+
+#include <Eigen/Dense>
+#include <Eigen/SVD>
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <memory>
+#include <set>
+#include <sstream>
+#include <stdexcept>
+
+#include "fit/alignment.h"
+#include "fit/marker_model.h"
+#include "fit/rotation.h"
+
+namespace trackcal::fit {
+
+bool RegistrationOptions::Check() const {
+  return optical_noise_m > 0.0 && tracker_position_noise_m > 0.0 &&
+         tracker_orientation_noise_rad > 0.0 && min_markers_per_station >= 1 && min_stations >= 1 &&
+         max_num_iterations > 0 && function_tolerance > 0.0 && parameter_tolerance > 0.0 &&
+         max_translation_stddev_m > 0.0 && max_rotation_stddev_rad > 0.0 &&
+         max_marker_stddev_m > 0.0 && covariance.Check() && num_threads >= 1;
+}
+
+double RegistrationResult::ChiSquareZ() const {
+  return chi_square_stddev > 0.0 ? (chi_square - nu) / chi_square_stddev : 0.0;
+}
+
+namespace {
+
+std::string StationField(const RegistrationStation& s, const std::string& field) {
+  return "registration station " + std::to_string(s.station) + ", " + field;
+}
+
+void ValidateStations(const std::vector<RegistrationStation>& stations) {
+  std::set<int> ids;
+  for (const RegistrationStation& s : stations) {
+    if (!ids.insert(s.station).second) {
+      throw std::invalid_argument("registration station " + std::to_string(s.station) +
+                                  ": duplicate station id");
+    }
+    const Rigid3d& t = s.tracker_transmitter_from_receiver;
+    if (!t.translation.allFinite()) {
+      throw std::invalid_argument(StationField(s, "tracker x/y/z: not finite"));
+    }
+    if (!t.rotation.coeffs().allFinite() || std::abs(t.rotation.norm() - 1.0) > 1e-6) {
+      throw std::invalid_argument(
+          StationField(s, "tracker qw/qx/qy/qz: not a unit quaternion (norm " +
+                              std::to_string(t.rotation.norm()) + ")"));
+    }
+    std::set<int> markers;
+    for (const MarkerObservation& m : s.markers) {
+      if (!markers.insert(m.marker).second) {
+        throw std::invalid_argument(StationField(s, "marker " + std::to_string(m.marker)) +
+                                    ": measured twice");
+      }
+      if (!m.marker_in_optical.allFinite()) {
+        throw std::invalid_argument(StationField(s, "marker " + std::to_string(m.marker)) +
+                                    ": x/y/z not finite");
+      }
+    }
+  }
+}
+
+// Working copy of the problem: dense marker indices and the parameter blocks.
+struct Problem {
+  std::vector<const RegistrationStation*> stations;
+  std::vector<int> marker_ids;           // index -> id
+  std::map<int, int> marker_index;       // id -> index
+  std::vector<int> marker_observations;  // per marker index
+  int num_observations = 0;
+};
+
+// Rotation R0 of optical_from_transmitter from marker differences alone: for two markers j, k seen
+// at station i, d = y_ij - y_ik = R0 R_i (r_j - r_k), so R_i^T R0^T d equals the same unknown
+// e_jk = r_j - r_k at every station. Stacking R_i^T M d_ijk - e_jk = 0 gives a homogeneous linear
+// system in (vec(M), e); its null vector is (vec(R0^T), e) up to scale. Needs stations with several
+// orientations; returns false when the null space is not one-dimensional.
+bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical_from_transmitter) {
+  std::map<std::pair<int, int>, int> pair_index;
+  struct Row {
+    Eigen::Matrix3d r_transpose;
+    Eigen::Vector3d d;
+    int pair;
+  };
+  std::vector<Row> rows;
+  for (const RegistrationStation* s : p.stations) {
+    const Eigen::Matrix3d rt =
+        s->tracker_transmitter_from_receiver.rotation.toRotationMatrix().transpose();
+    for (std::size_t a = 0; a < s->markers.size(); ++a) {
+      for (std::size_t b = a + 1; b < s->markers.size(); ++b) {
+        const MarkerObservation* ma = &s->markers[a];
+        const MarkerObservation* mb = &s->markers[b];
+        if (ma->marker > mb->marker) std::swap(ma, mb);
+        const auto key = std::make_pair(ma->marker, mb->marker);
+        auto it = pair_index.emplace(key, static_cast<int>(pair_index.size())).first;
+        rows.push_back({rt, ma->marker_in_optical - mb->marker_in_optical, it->second});
+      }
+    }
+  }
+  const int num_unknowns = 9 + 3 * static_cast<int>(pair_index.size());
+  const int num_rows = 3 * static_cast<int>(rows.size());
+  if (num_rows < num_unknowns + 1) return false;
+  Eigen::MatrixXd a = Eigen::MatrixXd::Zero(num_rows, num_unknowns);
+  for (std::size_t r = 0; r < rows.size(); ++r) {
+    // M d = sum_c d_c M.col(c) -> coefficient of vec(M) (column-major) is d_c * I.
+    for (int c = 0; c < 3; ++c) {
+      a.block<3, 3>(3 * r, 3 * c) = rows[r].d(c) * rows[r].r_transpose;
+    }
+    a.block<3, 3>(3 * r, 9 + 3 * rows[r].pair) = -Eigen::Matrix3d::Identity();
+  }
+  Eigen::BDCSVD<Eigen::MatrixXd> svd(a, Eigen::ComputeThinV);
+  const Eigen::VectorXd& sv = svd.singularValues();
+  const int n = num_unknowns;
+  // The true solution makes the smallest singular value ~noise; a second small one means the
+  // stations do not constrain the rotation (e.g. all with the same orientation).
+  if (!(sv(n - 2) > 1e-3 * sv(0)) || !(sv(n - 1) < 0.1 * sv(n - 2))) return false;
+  const Eigen::VectorXd z = svd.matrixV().col(n - 1);
+  Eigen::Matrix3d m = Eigen::Map<const Eigen::Matrix3d>(z.data());
+  if (m.norm() < 1e-6) return false;
+  if (m.determinant() < 0.0) m = -m;
+  const Eigen::Matrix3d rotation = NearestRotation(m).transpose();
+  *optical_from_transmitter = Eigen::Quaterniond(rotation).normalized();
+  return true;
+}
+
+// Rotation R0 from receiver positions: the tracker's p_i against the centroid of the visible
+// markers. The centroid is off by the marker offsets (centimetres), so this is only a start.
+Eigen::Quaterniond RotationFromCentroids(const Problem& p) {
+  std::vector<Eigen::Vector3d> from, to;
+  for (const RegistrationStation* s : p.stations) {
+    Eigen::Vector3d c = Eigen::Vector3d::Zero();
+    for (const MarkerObservation& m : s->markers) c += m.marker_in_optical;
+    from.push_back(s->tracker_transmitter_from_receiver.translation);
+    to.push_back(c / static_cast<double>(s->markers.size()));
+  }
+  return AlignPoints(from, to).rotation;
+}
+
+// Given R0 and the tracker poses, y_ij = R0 (R_i r_j + p_i) + t0 is linear in (r_j, u = R0^T t0):
+// R0^T y_ij - p_i = R_i r_j + u. Minimum-norm least squares if the geometry is degenerate.
+void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
+                                std::vector<Eigen::Vector3d>* markers, Eigen::Vector3d* t0) {
+  const int nm = static_cast<int>(p.marker_ids.size());
+  Eigen::MatrixXd a = Eigen::MatrixXd::Zero(3 * p.num_observations, 3 * nm + 3);
+  Eigen::VectorXd b(3 * p.num_observations);
+  const Eigen::Matrix3d r0t = r0.toRotationMatrix().transpose();
+  int row = 0;
+  for (const RegistrationStation* s : p.stations) {
+    const Rigid3d& x = s->tracker_transmitter_from_receiver;
+    const Eigen::Matrix3d ri = x.rotation.toRotationMatrix();
+    for (const MarkerObservation& m : s->markers) {
+      const int j = p.marker_index.at(m.marker);
+      a.block<3, 3>(row, 3 * j) = ri;
+      a.block<3, 3>(row, 3 * nm) = Eigen::Matrix3d::Identity();
+      b.segment<3>(row) = r0t * m.marker_in_optical - x.translation;
+      row += 3;
+    }
+  }
+  const Eigen::VectorXd z = a.completeOrthogonalDecomposition().solve(b);
+  markers->resize(nm);
+  for (int j = 0; j < nm; ++j) (*markers)[j] = z.segment<3>(3 * j);
+  *t0 = r0 * Eigen::Vector3d(z.segment<3>(3 * nm));
+}
+
+std::string Fmt(const char* fmt, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof(buf), fmt, v);
+  return buf;
+}
+
+}  // namespace
+
+RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
+                                                const RegistrationOptions& options) {
+  if (!options.Check()) throw std::invalid_argument("RegistrationOptions: invalid options");
+  ValidateStations(stations);
+
+  RegistrationResult result;
+  Problem p;
+  std::set<int> ids;
+  for (const RegistrationStation& s : stations) {
+    if (static_cast<int>(s.markers.size()) < options.min_markers_per_station) {
+      result.skipped_stations.push_back(s.station);
+      continue;
+    }
+    p.stations.push_back(&s);
+    for (const MarkerObservation& m : s.markers) ids.insert(m.marker);
+    p.num_observations += static_cast<int>(s.markers.size());
+  }
+  if (static_cast<int>(p.stations.size()) < options.min_stations) {
+    throw std::invalid_argument(
+        "registration: " + std::to_string(p.stations.size()) + " station(s) with at least " +
+        std::to_string(options.min_markers_per_station) + " visible markers, need at least " +
+        std::to_string(options.min_stations));
+  }
+  for (int id : ids) {
+    p.marker_index[id] = static_cast<int>(p.marker_ids.size());
+    p.marker_ids.push_back(id);
+  }
+  p.marker_observations.assign(p.marker_ids.size(), 0);
+  for (const RegistrationStation* s : p.stations) {
+    for (const MarkerObservation& m : s->markers) ++p.marker_observations[p.marker_index[m.marker]];
+  }
+  const int nm = static_cast<int>(p.marker_ids.size());
+  result.num_marker_observations = p.num_observations;
+  result.num_parameters = 6 + 3 * nm;
+  result.nu = 3.0 * p.num_observations - result.num_parameters;
+  if (result.nu <= 0.0) {
+    throw std::invalid_argument("registration: " + std::to_string(p.num_observations) +
+                                " marker observations cannot determine " +
+                                std::to_string(result.num_parameters) + " parameters");
+  }
+  result.chi_square_stddev = std::sqrt(2.0 * result.nu);
+
+  // Closed-form start: rotation, then markers and translation.
+  Eigen::Quaterniond r0;
+  if (RotationFromMarkerDifferences(p, &r0)) {
+    result.initialisation =
+        "rotation from marker differences, markers and translation by linear "
+        "least squares";
+  } else {
+    r0 = RotationFromCentroids(p);
+    result.initialisation =
+        "rotation from marker centroids (stations lack orientation diversity), "
+        "markers and translation by linear least squares";
+  }
+  std::vector<Eigen::Vector3d> markers;
+  Eigen::Vector3d t0;
+  SolveMarkersAndTranslation(p, r0, &markers, &t0);
+
+  // Parameter blocks.
+  double q0[4];
+  QuaternionToXyzwArray(r0, q0);
+  std::vector<double> marker_blocks(3 * nm);
+  for (int j = 0; j < nm; ++j)
+    std::copy(markers[j].data(), markers[j].data() + 3, &marker_blocks[3 * j]);
+  const int ns = static_cast<int>(p.stations.size());
+  std::vector<double> pose_q(4 * ns), pose_t(3 * ns);
+  for (int i = 0; i < ns; ++i) {
+    const Rigid3d& x = p.stations[i]->tracker_transmitter_from_receiver;
+    QuaternionToXyzwArray(x.rotation.normalized(), &pose_q[4 * i]);
+    std::copy(x.translation.data(), x.translation.data() + 3, &pose_t[3 * i]);
+  }
+
+  ceres::Problem problem;
+  SetQuaternionManifold(&problem, q0);
+  problem.AddParameterBlock(t0.data(), 3);
+  const auto optical_sqrt_info = IsotropicSqrtInformation<3>(options.optical_noise_m);
+  Eigen::Matrix<double, 6, 1> prior_sigmas;
+  prior_sigmas << Eigen::Vector3d::Constant(options.tracker_position_noise_m),
+      Eigen::Vector3d::Constant(options.tracker_orientation_noise_rad);
+  const auto prior_sqrt_info = DiagonalSqrtInformation<6>(prior_sigmas);
+  std::vector<std::vector<ceres::ResidualBlockId>> station_residuals(ns);
+  for (int i = 0; i < ns; ++i) {
+    double* q = &pose_q[4 * i];
+    double* t = &pose_t[3 * i];
+    SetQuaternionManifold(&problem, q);
+    station_residuals[i].push_back(problem.AddResidualBlock(
+        Whitened<PosePriorCost>::Create(prior_sqrt_info,
+                                        p.stations[i]->tracker_transmitter_from_receiver),
+        nullptr, q, t));
+    for (const MarkerObservation& m : p.stations[i]->markers) {
+      double* r = &marker_blocks[3 * p.marker_index[m.marker]];
+      station_residuals[i].push_back(problem.AddResidualBlock(
+          Whitened<MarkerPositionCost>::Create(optical_sqrt_info, m.marker_in_optical), nullptr, q0,
+          t0.data(), q, t, r));
+    }
+  }
+
+  ceres::Solver::Options solver_options;
+  solver_options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+  solver_options.max_num_iterations = options.max_num_iterations;
+  solver_options.function_tolerance = options.function_tolerance;
+  solver_options.parameter_tolerance = options.parameter_tolerance;
+  solver_options.gradient_tolerance = 1e-14;
+  solver_options.num_threads = options.num_threads;
+  solver_options.logging_type = ceres::SILENT;
+  ceres::Solver::Summary summary;
+  ceres::Solve(solver_options, &problem, &summary);
+  result.converged = summary.termination_type == ceres::CONVERGENCE;
+  result.solver_report = summary.BriefReport();
+  result.num_iterations = static_cast<int>(summary.iterations.size()) - 1;
+  result.chi_square = 2.0 * summary.final_cost;
+
+  // Covariance of the transform and the markers.
+  std::vector<CovarianceBlock> blocks;
+  blocks.push_back({q0,
+                    "optical_from_transmitter.rotation",
+                    {"rx", "ry", "rz"},
+                    kQuaternionTangentToRotationVector,
+                    options.max_rotation_stddev_rad});
+  blocks.push_back({t0.data(),
+                    "optical_from_transmitter.translation",
+                    {"x", "y", "z"},
+                    1.0,
+                    options.max_translation_stddev_m});
+  for (int j = 0; j < nm; ++j) {
+    blocks.push_back({&marker_blocks[3 * j],
+                      "marker_" + std::to_string(p.marker_ids[j]),
+                      {"x", "y", "z"},
+                      1.0,
+                      options.max_marker_stddev_m});
+  }
+  const std::size_t first_station_block = blocks.size();
+  for (int i = 0; i < ns; ++i) {
+    const std::string name = "station_" + std::to_string(p.stations[i]->station);
+    // Receiver poses are nuisance parameters here: own covariance only, never flagged.
+    blocks.push_back({&pose_q[4 * i],
+                      name + ".rotation",
+                      {"rx", "ry", "rz"},
+                      kQuaternionTangentToRotationVector,
+                      std::numeric_limits<double>::infinity(),
+                      /*cross_covariance=*/false});
+    blocks.push_back({&pose_t[3 * i],
+                      name + ".position",
+                      {"x", "y", "z"},
+                      1.0,
+                      std::numeric_limits<double>::infinity(),
+                      /*cross_covariance=*/false});
+  }
+  result.covariance = ComputeCovariance(&problem, blocks, options.covariance);
+  if (result.covariance.success) {
+    result.optical_from_transmitter_covariance = result.covariance.covariance.topLeftCorner<6, 6>();
+    result.optical_from_transmitter_stddev = result.covariance.stddev.head<6>();
+  }
+  bool transform_flagged = false;
+  for (const IdentifiabilityFlag& f : result.covariance.flags) {
+    if (f.coordinate.rfind("optical_from_transmitter", 0) == 0) transform_flagged = true;
+  }
+  result.identifiable =
+      result.covariance.success && !result.covariance.rank_deficient && !transform_flagged;
+
+  // Outputs.
+  result.registration.optical_from_transmitter =
+      Rigid3d(QuaternionFromXyzwArray(q0).normalized(), t0);
+  for (int j = 0; j < nm; ++j) {
+    RegisteredMarker m;
+    m.marker = p.marker_ids[j];
+    m.marker_in_receiver = Eigen::Map<const Eigen::Vector3d>(&marker_blocks[3 * j]);
+    if (result.covariance.success) {
+      m.stddev = result.covariance.stddev.segment<3>(result.covariance.block_offsets[2 + j]);
+    }
+    m.num_observations = p.marker_observations[j];
+    result.registration.marker_in_receiver[m.marker] = m.marker_in_receiver;
+    result.markers.push_back(m);
+  }
+  for (int i = 0; i < ns; ++i) {
+    RegisteredStation s;
+    s.station = p.stations[i]->station;
+    s.transmitter_from_receiver = Rigid3d(QuaternionFromXyzwArray(&pose_q[4 * i]).normalized(),
+                                          Eigen::Map<const Eigen::Vector3d>(&pose_t[3 * i]));
+    s.num_markers = static_cast<int>(p.stations[i]->markers.size());
+    if (result.covariance.success) {
+      const int rotation = result.covariance.block_offsets[first_station_block + 2 * i];
+      const int position = result.covariance.block_offsets[first_station_block + 2 * i + 1];
+      s.stddev << result.covariance.stddev.segment<3>(rotation),
+          result.covariance.stddev.segment<3>(position);
+    }
+    double sum_sq = 0.0;
+    for (const MarkerObservation& m : p.stations[i]->markers) {
+      const Eigen::Vector3d predicted =
+          result.registration.optical_from_transmitter *
+          (s.transmitter_from_receiver * result.registration.marker_in_receiver.at(m.marker));
+      sum_sq += (predicted - m.marker_in_optical).squaredNorm();
+    }
+    s.marker_rms_m = std::sqrt(sum_sq / s.num_markers);
+    const Rigid3d& reading = p.stations[i]->tracker_transmitter_from_receiver;
+    s.tracker_position_residual_m = PositionErrorNorm(s.transmitter_from_receiver, reading);
+    s.tracker_orientation_residual_rad =
+        OrientationErrorAngle(s.transmitter_from_receiver, reading);
+    for (ceres::ResidualBlockId id : station_residuals[i]) {
+      double cost = 0.0;
+      problem.EvaluateResidualBlock(id, /*apply_loss_function=*/true, &cost, nullptr, nullptr);
+      s.chi_square += 2.0 * cost;
+    }
+    result.stations.push_back(s);
+  }
+  return result;
+}
+
+std::string RegistrationResult::ToString() const {
+  std::ostringstream out;
+  const Rigid3d& t = registration.optical_from_transmitter;
+  out << "optical_from_transmitter: " << t.ToString() << "\n";
+  out << "  rotation std [deg]: " << Fmt("%.4f", optical_from_transmitter_stddev(0) * kDegPerRad)
+      << " " << Fmt("%.4f", optical_from_transmitter_stddev(1) * kDegPerRad) << " "
+      << Fmt("%.4f", optical_from_transmitter_stddev(2) * kDegPerRad)
+      << "  translation std [mm]: " << Fmt("%.3f", optical_from_transmitter_stddev(3) * 1e3) << " "
+      << Fmt("%.3f", optical_from_transmitter_stddev(4) * 1e3) << " "
+      << Fmt("%.3f", optical_from_transmitter_stddev(5) * 1e3) << "\n";
+  for (const RegisteredMarker& m : markers) {
+    out << "  marker " << m.marker
+        << " in receiver [mm]: " << Fmt("%.3f", m.marker_in_receiver.x() * 1e3) << " "
+        << Fmt("%.3f", m.marker_in_receiver.y() * 1e3) << " "
+        << Fmt("%.3f", m.marker_in_receiver.z() * 1e3)
+        << "  std [mm]: " << Fmt("%.3f", m.stddev.x() * 1e3) << " "
+        << Fmt("%.3f", m.stddev.y() * 1e3) << " " << Fmt("%.3f", m.stddev.z() * 1e3) << "  ("
+        << m.num_observations << " stations)\n";
+  }
+  out << "chi-square " << Fmt("%.2f", chi_square) << ", expected nu = " << Fmt("%.0f", nu) << " +- "
+      << Fmt("%.2f", chi_square_stddev) << " (z = " << Fmt("%.2f", ChiSquareZ()) << ")\n";
+  out << "stations used " << stations.size() << ", skipped " << skipped_stations.size()
+      << ", marker observations " << num_marker_observations << "\n";
+  out << "solver: " << solver_report << (converged ? "" : " (NOT CONVERGED)") << "\n";
+  out << "initialisation: " << initialisation << "\n";
+  out << (identifiable ? "identifiable" : "NOT IDENTIFIABLE") << "; " << covariance.ToString();
+  return out.str();
+}
+
+}  // namespace trackcal::fit

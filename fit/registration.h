@@ -1,0 +1,137 @@
+// Optical registration (Ikits et al. 2001, section 3.1 and appendix A).
+//
+// At ~20 registration stations near the transmitter, where field distortion is small, the tracker
+// reports the receiver pose transmitter_from_receiver and the optical system measures the positions
+// of the markers rigidly mounted around the receiver. RegisterOpticalToTransmitter estimates
+//   - optical_from_transmitter (p0, q0 of eq. 10), and
+//   - marker_in_receiver for every marker (r_j),
+// by total least squares (eq. 14): the true receiver poses are parameters too, pulled towards the
+// tracker readings (whitened by the tracker's position and orientation noise), while the predicted
+// marker positions are pulled towards the optical measurements (whitened by the optical noise).
+// Quaternions live on ceres::EigenQuaternionManifold, which plays the role of the paper's dynamic
+// reparameterisation (appendix B).
+//
+// Gauge: nothing else fixes the receiver frame: moving every receiver pose by a common transform
+// and the markers by its inverse leaves the optical predictions unchanged, so the receiver frame is
+// the one the tracker reports, defined through the tracker priors.
+//
+// Goodness of fit: chi_square is the sum of squared whitened residuals at the solution; with
+// Gaussian noise of the stated sizes it has expected value nu = (number of optical coordinates) -
+// (6 + 3 * number of markers) and standard deviation sqrt(2 nu) (appendix A; the tracker priors and
+// the receiver poses add as many residuals as parameters and cancel).
+
+#pragma once
+
+#include <Eigen/Core>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "core/pose.h"
+#include "fit/covariance.h"
+
+namespace trackcal::fit {
+
+// One optical marker measurement.
+struct MarkerObservation {
+  int marker = 0;                                               // marker id (markers.csv "marker")
+  Eigen::Vector3d marker_in_optical = Eigen::Vector3d::Zero();  // [m], optical frame
+};
+
+// One registration station: the tracker reading and the markers seen at the same receiver pose.
+struct RegistrationStation {
+  int station = 0;                            // station id (the "station" column)
+  Rigid3d tracker_transmitter_from_receiver;  // tracker reading (the noisy input of eq. 14)
+  std::vector<MarkerObservation> markers;     // visible markers (the output of eq. 14)
+};
+
+struct RegistrationOptions {
+  // Standard deviation of each coordinate of an optical marker position [m].
+  double optical_noise_m = 1.5e-4;
+  // Standard deviation of each coordinate of the tracker's reported position [m].
+  double tracker_position_noise_m = 8e-4;
+  // Standard deviation of each component of the tracker's orientation error rotation vector [rad].
+  double tracker_orientation_noise_rad = 0.15 * kRadPerDeg;
+  // Stations with fewer visible markers are left out (and listed in the result).
+  int min_markers_per_station = 3;
+  // At least this many usable stations are required.
+  int min_stations = 3;
+  // Levenberg-Marquardt iteration limit.
+  int max_num_iterations = 200;
+  // Ceres convergence tolerances (relative cost change, relative step size).
+  double function_tolerance = 1e-14;
+  double parameter_tolerance = 1e-12;
+  // Transform and markers whose standard deviation exceeds these are flagged poorly identified.
+  double max_translation_stddev_m = 1e-3;
+  double max_rotation_stddev_rad = 1e-3;
+  double max_marker_stddev_m = 1e-3;
+  // Rank and weak-direction thresholds of the covariance analysis.
+  CovarianceOptions covariance;
+  // Threads for Ceres.
+  int num_threads = 1;
+  bool Check() const;
+};
+
+// The result of a registration that later steps need (pose extraction, calibration files).
+struct OpticalRegistration {
+  Rigid3d optical_from_transmitter;
+  std::map<int, Eigen::Vector3d> marker_in_receiver;  // marker id -> r_j [m]
+};
+
+struct RegisteredMarker {
+  int marker = 0;
+  Eigen::Vector3d marker_in_receiver = Eigen::Vector3d::Zero();  // [m]
+  Eigen::Vector3d stddev = Eigen::Vector3d::Zero();              // [m], per coordinate
+  int num_observations = 0;                                      // stations that saw it
+};
+
+struct RegisteredStation {
+  int station = 0;
+  Rigid3d transmitter_from_receiver;  // total-least-squares estimate of the true receiver pose
+  // Its standard deviations: [rotation vector (rad) about transmitter axes; position (m)].
+  Eigen::Matrix<double, 6, 1> stddev = Eigen::Matrix<double, 6, 1>::Zero();
+  int num_markers = 0;
+  double marker_rms_m = 0.0;                      // RMS of the optical residual vectors' norms [m]
+  double tracker_position_residual_m = 0.0;       // |estimate - tracker reading| [m]
+  double tracker_orientation_residual_rad = 0.0;  // angle between estimate and reading [rad]
+  double chi_square = 0.0;  // this station's whitened squared residuals (optical + prior)
+};
+
+struct RegistrationResult {
+  OpticalRegistration registration;
+  // Covariance of optical_from_transmitter as a 6-vector [rotation vector (rad) of a left
+  // perturbation, i.e. about optical-frame axes; translation (m)].
+  Eigen::Matrix<double, 6, 6> optical_from_transmitter_covariance =
+      Eigen::Matrix<double, 6, 6>::Zero();
+  Eigen::Matrix<double, 6, 1> optical_from_transmitter_stddev = Eigen::Matrix<double, 6, 1>::Zero();
+  std::vector<RegisteredMarker> markers;    // sorted by id
+  std::vector<RegisteredStation> stations;  // used stations, input order
+  std::vector<int> skipped_stations;        // ids with too few markers
+
+  int num_marker_observations = 0;  // optical measurements used (each 3 coordinates)
+  int num_parameters = 0;           // M = 6 + 3 * number of markers
+  double chi_square = 0.0;          // at the solution (eq. 14)
+  double nu = 0.0;                  // expected chi-square: 3 * observations - M
+  double chi_square_stddev = 0.0;   // sqrt(2 nu)
+  // (chi_square - nu) / sqrt(2 nu): beyond about +-3 the noise model or the data are suspect.
+  double ChiSquareZ() const;
+
+  bool converged = false;       // the solver reported convergence
+  bool identifiable = false;    // full-rank information matrix and no flagged transform coordinate
+  CovarianceResult covariance;  // transform + markers, with rank report and flags
+  std::string initialisation;   // which closed form gave the starting point
+  std::string solver_report;    // ceres BriefReport
+  int num_iterations = 0;
+
+  // Multi-line summary: transform with standard deviations, chi-square against nu, flags.
+  std::string ToString() const;
+};
+
+// Throws std::invalid_argument for invalid options or input (non-finite values, duplicate
+// station or marker ids, a non-unit tracker quaternion, too few usable stations), naming the
+// station, marker and field. A rank-deficient geometry is not an error: it is reported through
+// `identifiable` and the covariance flags.
+RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
+                                                const RegistrationOptions& options = {});
+
+}  // namespace trackcal::fit

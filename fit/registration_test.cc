@@ -1,0 +1,242 @@
+#include "fit/registration.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <iostream>
+
+#include "fit/rotation.h"
+#include "fit/synthetic_registration.h"
+#include "tests/test_utils.h"
+
+namespace trackcal::fit {
+namespace {
+
+using testing::TestRng;
+
+// Error of an estimated optical_from_transmitter as the 6-vector of the reported covariance:
+// [rotation vector of estimate * conj(truth) (rad), translation difference (m)].
+Eigen::Matrix<double, 6, 1> TransformError(const Rigid3d& estimate, const Rigid3d& truth) {
+  Eigen::Matrix<double, 6, 1> e;
+  e << RotationVectorBetween<double>(estimate.rotation, truth.rotation),
+      estimate.translation - truth.translation;
+  return e;
+}
+
+SyntheticRegistrationOptions NoisyOptions() {
+  SyntheticRegistrationOptions o;
+  o.optical_noise_m = 1.5e-4;         // Optotrak-like, paper section 3.1
+  o.tracker_position_noise_m = 8e-4;  // Fastrak static accuracy, ~0.03 in
+  o.tracker_orientation_noise_rad = 0.15 * kRadPerDeg;
+  return o;
+}
+
+RegistrationOptions MatchingOptions(const SyntheticRegistrationOptions& s) {
+  RegistrationOptions o;
+  o.optical_noise_m = s.optical_noise_m;
+  o.tracker_position_noise_m = s.tracker_position_noise_m;
+  o.tracker_orientation_noise_rad = s.tracker_orientation_noise_rad;
+  return o;
+}
+
+TEST(RegisterOpticalToTransmitter, Nominal) {
+  // Noise-free data; the noise options only weight the residuals.
+  for (int trial = 0; trial < 5; ++trial) {
+    const SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+    const RegistrationResult r = RegisterOpticalToTransmitter(data.stations);
+    ASSERT_TRUE(r.converged) << r.ToString();
+    EXPECT_TRUE(r.identifiable) << r.ToString();
+    EXPECT_TRUE(r.skipped_stations.empty());
+    // Exact data: limited by the solver's tolerances and rounding, 1e-8 m / rad is ample.
+    EXPECT_TRUE(testing::PosesNear(data.optical_from_transmitter,
+                                   r.registration.optical_from_transmitter, 1e-8, 1e-8))
+        << r.ToString();
+    ASSERT_EQ(r.markers.size(), data.marker_in_receiver.size());
+    for (const RegisteredMarker& m : r.markers) {
+      EXPECT_LT((m.marker_in_receiver - data.marker_in_receiver.at(m.marker)).norm(), 1e-8);
+    }
+    for (std::size_t i = 0; i < r.stations.size(); ++i) {
+      EXPECT_TRUE(testing::PosesNear(data.true_transmitter_from_receiver[i],
+                                     r.stations[i].transmitter_from_receiver, 1e-8, 1e-8));
+    }
+    EXPECT_LT(r.chi_square, 1e-10);
+    EXPECT_EQ(r.num_parameters, 6 + 3 * 6);
+    EXPECT_DOUBLE_EQ(r.nu, 3.0 * r.num_marker_observations - 24.0);
+    EXPECT_NE(r.initialisation.find("marker differences"), std::string::npos);
+  }
+}
+
+TEST(RegisterOpticalToTransmitter, NoisyChiSquareAndCovarianceAreConsistent) {
+  // Over many independent captures: chi-square is near nu, and the transform error's Mahalanobis
+  // distance under the reported covariance behaves like chi-square with 6 degrees of freedom.
+  const int kTrials = 30;
+  double sum_d2 = 0.0, sum_z = 0.0, sum_station_z2 = 0.0;
+  int num_station_z = 0;
+  for (int trial = 0; trial < kTrials; ++trial) {
+    const SyntheticRegistrationOptions s = NoisyOptions();
+    const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+    const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, MatchingOptions(s));
+    ASSERT_TRUE(r.converged) << r.ToString();
+    ASSERT_TRUE(r.identifiable) << r.ToString();
+    // |z| < 5: a 5-sigma band of the chi-square distribution (nu ~ 250, nearly Gaussian).
+    EXPECT_LT(std::abs(r.ChiSquareZ()), 5.0) << r.ToString();
+    const Eigen::Matrix<double, 6, 1> e =
+        TransformError(r.registration.optical_from_transmitter, data.optical_from_transmitter);
+    const double d2 = e.dot(r.optical_from_transmitter_covariance.ldlt().solve(e));
+    // 99.99 % quantile of chi-square(6) is 27.86: a single trial beyond it means the covariance
+    // is too optimistic.
+    EXPECT_LT(d2, 27.86) << "trial " << trial << "\n" << r.ToString();
+    sum_d2 += d2;
+    sum_z += r.ChiSquareZ();
+    for (std::size_t i = 0; i < r.stations.size(); ++i) {
+      const Rigid3d& truth = data.true_transmitter_from_receiver[i];
+      const Rigid3d& estimate = r.stations[i].transmitter_from_receiver;
+      Eigen::Matrix<double, 6, 1> es;
+      es << RotationVectorBetween<double>(estimate.rotation, truth.rotation),
+          estimate.translation - truth.translation;
+      sum_station_z2 += es.cwiseQuotient(r.stations[i].stddev).squaredNorm();
+      num_station_z += 6;
+    }
+  }
+  std::cout << "mean Mahalanobis^2 of the transform error " << sum_d2 / kTrials
+            << " (expected 6), mean chi-square z " << sum_z / kTrials
+            << " (expected 0), station pose mean squared z " << sum_station_z2 / num_station_z
+            << " (expected 1)\n";
+  // Mean of 30 chi-square(6) draws: 6 +- sqrt(12 / 30) = 0.63; 4 sigma band.
+  EXPECT_NEAR(sum_d2 / kTrials, 6.0, 4 * 0.63);
+  // Mean of 30 standard z values: 0 +- 0.18; 4 sigma band.
+  EXPECT_NEAR(sum_z / kTrials, 0.0, 4 * 0.18);
+  // Station pose errors in units of their reported std: mean square 1. The 3600 values are
+  // correlated within a station, so the band is wider than 4 sqrt(2 / 3600) = 0.09: 0.2.
+  EXPECT_NEAR(sum_station_z2 / num_station_z, 1.0, 0.2);
+}
+
+TEST(RegisterOpticalToTransmitter, TiltedPlatformConvergesFromClosedForm) {
+  // A platform only tilted up to 30 degrees around one orientation: less diversity for the
+  // marker-difference rotation, still a unique solution.
+  for (int trial = 0; trial < 5; ++trial) {
+    SyntheticRegistrationOptions s = NoisyOptions();
+    s.max_rotation_from_nominal_rad = 30.0 * kRadPerDeg;
+    const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+    const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, MatchingOptions(s));
+    ASSERT_TRUE(r.converged) << r.ToString();
+    EXPECT_NE(r.initialisation.find("marker differences"), std::string::npos);
+    EXPECT_LT(std::abs(r.ChiSquareZ()), 5.0) << r.ToString();  // 5 sigma, as above
+    const Eigen::Matrix<double, 6, 1> e =
+        TransformError(r.registration.optical_from_transmitter, data.optical_from_transmitter);
+    // 99.99 % quantile of chi-square(6), as above.
+    EXPECT_LT(e.dot(r.optical_from_transmitter_covariance.ldlt().solve(e)), 27.86) << r.ToString();
+  }
+}
+
+TEST(RegisterOpticalToTransmitter, DisplacedMarkerStandsOutInItsStation) {
+  SyntheticRegistrationOptions s = NoisyOptions();
+  SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  data.stations[6].markers[0].marker_in_optical += Eigen::Vector3d(0.0, 0.003, 0.0);  // 3 mm
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, MatchingOptions(s));
+  ASSERT_TRUE(r.converged);
+  // 3 mm is 20 optical sigmas: the whole fit fails the chi-square test...
+  EXPECT_GT(r.ChiSquareZ(), 5.0) << r.ToString();
+  // ...and the displaced station carries the largest share of chi-square.
+  const auto worst = std::max_element(r.stations.begin(), r.stations.end(),
+                                      [](const RegisteredStation& a, const RegisteredStation& b) {
+                                        return a.chi_square < b.chi_square;
+                                      });
+  EXPECT_EQ(worst->station, data.stations[6].station);
+}
+
+TEST(RegisterOpticalToTransmitter, UnderestimatedNoiseShowsInChiSquare) {
+  SyntheticRegistrationOptions s = NoisyOptions();
+  s.optical_noise_m = 3 * 1.5e-4;
+  const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  RegistrationOptions o = MatchingOptions(s);
+  o.optical_noise_m = 1.5e-4;  // three times too small
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, o);
+  ASSERT_TRUE(r.converged);
+  // chi-square ~ 9 nu: z ~ 8 nu / sqrt(2 nu) ~ 90 for nu ~ 250; 20 is far outside any noise.
+  EXPECT_GT(r.ChiSquareZ(), 20.0) << r.ToString();
+}
+
+TEST(RegisterOpticalToTransmitter, StationsWithTooFewMarkersAreSkipped) {
+  SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  data.stations[4].markers.resize(2);
+  data.stations[7].markers.clear();
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations);
+  EXPECT_EQ(r.skipped_stations,
+            (std::vector<int>{data.stations[4].station, data.stations[7].station}));
+  EXPECT_EQ(r.stations.size(), data.stations.size() - 2);
+  EXPECT_TRUE(testing::PosesNear(data.optical_from_transmitter,
+                                 r.registration.optical_from_transmitter, 1e-8, 1e-8));
+
+  for (auto& station : data.stations) {
+    if (station.markers.size() > 2) station.markers.resize(2);
+  }
+  try {
+    RegisterOpticalToTransmitter(data.stations);
+    FAIL() << "expected std::invalid_argument";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("need at least"), std::string::npos) << e.what();
+  }
+}
+
+TEST(RegisterOpticalToTransmitter, IdenticalStationsAreNotIdentifiable) {
+  SyntheticRegistrationOptions s;
+  s.identical_stations = true;
+  s.min_visible = 6;
+  const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations);
+  EXPECT_FALSE(r.identifiable);
+  EXPECT_TRUE(r.covariance.rank_deficient) << r.ToString();
+  EXPECT_FALSE(r.covariance.flags.empty());
+  EXPECT_NE(r.ToString().find("NOT IDENTIFIABLE"), std::string::npos);
+}
+
+TEST(RegisterOpticalToTransmitter, SingleOrientationFallsBackAndFlagsTranslation) {
+  // Without orientation diversity the rotation still follows from the station positions, but the
+  // translation trades off against the marker offsets (t0 + R0 R r_j): a 3-dimensional null space.
+  SyntheticRegistrationOptions s;
+  s.random_orientations = false;
+  const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations);
+  EXPECT_NE(r.initialisation.find("centroids"), std::string::npos);
+  EXPECT_FALSE(r.identifiable);
+  EXPECT_EQ(r.covariance.rank, r.covariance.tangent_dimension - 3) << r.ToString();
+  EXPECT_TRUE(testing::RotationsNear(data.optical_from_transmitter.rotation,
+                                     r.registration.optical_from_transmitter.rotation, 1e-8));
+  bool translation_flagged = false;
+  for (const auto& f : r.covariance.flags) {
+    if (f.coordinate.find("optical_from_transmitter.translation") == 0) translation_flagged = true;
+  }
+  EXPECT_TRUE(translation_flagged) << r.ToString();
+}
+
+TEST(RegisterOpticalToTransmitter, InvalidInputThrowsNamingStationAndField) {
+  SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  auto expect_message = [](const std::vector<RegistrationStation>& stations,
+                           const std::string& needle) {
+    try {
+      RegisterOpticalToTransmitter(stations);
+      ADD_FAILURE() << "expected std::invalid_argument containing " << needle;
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  };
+  auto duplicate = data.stations;
+  duplicate[2].markers.push_back(duplicate[2].markers.front());
+  expect_message(duplicate, "station 3, marker");
+  auto not_unit = data.stations;
+  not_unit[5].tracker_transmitter_from_receiver.rotation.coeffs() *= 1.5;
+  expect_message(not_unit, "station 6, tracker qw/qx/qy/qz");
+  auto nan = data.stations;
+  nan[0].markers[0].marker_in_optical.x() = std::nan("");
+  expect_message(nan, "station 1, marker");
+  auto same_id = data.stations;
+  same_id[1].station = same_id[0].station;
+  expect_message(same_id, "duplicate station id");
+  RegistrationOptions bad;
+  bad.optical_noise_m = 0.0;
+  EXPECT_THROW(RegisterOpticalToTransmitter(data.stations, bad), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace trackcal::fit

@@ -1,0 +1,227 @@
+"""The trackcal package's calibration API: loading, correcting batches, building and saving, and the
+error messages users see."""
+
+import json
+import math
+import os
+import pathlib
+
+import numpy as np
+import pytest
+
+import trackcal
+from trackcal import numpy_reference
+
+REPO = pathlib.Path(__file__).resolve().parents[2]
+EXAMPLE = REPO / "tests" / "data" / "calibration" / "example.json"
+
+
+def random_poses(rng, n, half_extent=0.4, centre=(0.0, 0.0, 0.3)):
+    positions = np.asarray(centre) + rng.uniform(-half_extent, half_extent, size=(n, 3))
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return positions, q
+
+
+def degree4(rng):
+    r = trackcal.num_polynomial_terms(4)
+    pc = rng.normal(scale=0.005, size=(r, 3))
+    oc = rng.normal(scale=0.003, size=(r, 3))
+    return pc, oc
+
+
+def rotation_angles(a, b):
+    """Angles between rows of (N, 4) quaternion arrays, sign-invariant."""
+    d = np.abs(np.sum(a * b, axis=1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)))
+    return 2.0 * np.arccos(np.clip(d, -1.0, 1.0))
+
+
+def test_load_example_nominal():
+    cal = trackcal.Calibration.load(EXAMPLE)
+    assert [c.type for c in cal.corrections] == ["polynomial", "trilinear_lut"]
+    assert cal.extrapolation == "fade"
+    assert cal.fade_distance == 0.15
+    np.testing.assert_array_equal(cal.volume_max, [0.6, 0.5, 0.7])
+    assert cal.fit_statistics["num_samples"] == 480
+    assert cal.provenance["inputs"][0]["role"] == "calibration_capture"
+    poly = cal.corrections[0]
+    assert poly.degree == 2
+    assert poly.position_coefficients.shape == (10, 3)
+    assert poly.position_coefficients[1, 0] == 0.0102
+    lut = cal.corrections[1]
+    assert lut.position_error.shape == (2, 2, 3, 3)
+    assert [len(a) for a in lut.axes] == [2, 2, 3]
+    # Node (ix=0, iy=1, iz=2) is entry (0 * 2 + 1) * 3 + 2 = 5 of the file's list.
+    doc = json.loads(EXAMPLE.read_text())
+    np.testing.assert_array_equal(lut.position_error[0, 1, 2], doc["corrections"][1]["position_error"][5])
+
+
+def test_correct_matches_numpy_reference():
+    rng = np.random.default_rng(1)
+    pc, oc = degree4(rng)
+    offset, scale = (0.0, 0.0, 0.3), (0.5, 0.5, 0.5)
+    poly = trackcal.PolynomialCorrection(4, pc, oc, offset, scale)
+    cal = trackcal.Calibration([poly], volume_min=(-0.5, -0.5, -0.2), volume_max=(0.5, 0.5, 0.8))
+    positions, quats = random_poses(rng, 1000)
+    p, q, extrapolated = cal.correct(positions, quats)
+    assert p.shape == (1000, 3) and q.shape == (1000, 4) and extrapolated.dtype == np.bool_
+    assert not extrapolated.any()
+    p_ref, q_ref = numpy_reference.correct_polynomial(4, pc, oc, offset, scale, positions, quats)
+    # Same polynomial, different summation order: rounding of sums of 35 terms of ~0.01.
+    np.testing.assert_allclose(p, p_ref, rtol=0, atol=1e-15)
+    assert rotation_angles(q, q_ref).max() < 1e-7  # arccos of |dot| near 1 resolves only ~1e-8
+    np.testing.assert_allclose(q, q_ref, rtol=0, atol=1e-15)
+    # Inputs are not modified.
+    p2, _, _ = cal.correct(positions, quats)
+    np.testing.assert_array_equal(p, p2)
+
+
+def test_correct_flags_and_clamps_outside_volume():
+    rng = np.random.default_rng(2)
+    pc, oc = degree4(rng)
+    poly = trackcal.PolynomialCorrection(4, pc, oc, (0, 0, 0), (0.5, 0.5, 0.5))
+    cal = trackcal.Calibration([poly], (-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), extrapolation="clamp")
+    positions = np.array([[0.1, 0.2, 0.3], [3.0, 0.2, 0.3], [0.5, 0.2, 0.3]])
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (3, 1))
+    p, q, extrapolated = cal.correct(positions, quats)
+    assert extrapolated.tolist() == [False, True, False]
+    # Held boundary value: the outside pose gets the correction of the nearest box point.
+    np.testing.assert_allclose(p[1] - positions[1], p[2] - positions[2], atol=1e-15)
+    np.testing.assert_allclose(q[1], q[2], atol=1e-15)
+
+    fade = trackcal.Calibration([poly], (-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), extrapolation="fade",
+                                fade_distance=0.5)
+    p, q, extrapolated = fade.correct(positions, quats)
+    assert extrapolated.tolist() == [False, True, False]
+    np.testing.assert_array_equal(p[1], positions[1])  # 2.5 m beyond: identity
+    np.testing.assert_array_equal(q[1], quats[1])
+
+
+def test_bad_shapes_raise_value_error_with_expected_shape():
+    cal = trackcal.Calibration.load(EXAMPLE)
+    with pytest.raises(ValueError, match=r"positions must have shape \(N, 3\), got \(4, 4\)"):
+        cal.correct(np.zeros((4, 4)), np.zeros((4, 4)))
+    with pytest.raises(ValueError, match=r"positions must have shape \(N, 3\), got \(3,\)"):
+        cal.correct(np.zeros(3), np.zeros((1, 4)))
+    with pytest.raises(ValueError,
+                       match=r"quaternions_xyzw must have shape \(5, 4\) \(N = 5 rows like positions"
+                             r".*got \(4, 4\)"):
+        cal.correct(np.zeros((5, 3)), np.zeros((4, 4)))
+    with pytest.raises(ValueError, match=r"positions must be a numeric array of shape \(N, 3\)"):
+        cal.correct([["a", "b", "c"]], np.zeros((1, 4)))
+    with pytest.raises(ValueError,
+                       match=r"position_coefficients must have shape \(35, 3\) for degree 4, got \(34, 3\)"):
+        trackcal.PolynomialCorrection(4, np.zeros((34, 3)), np.zeros((35, 3)))
+    with pytest.raises(ValueError, match=r"position_error must have shape \(2, 3, 2, 3\)"):
+        trackcal.TrilinearLutCorrection([0, 1], [0, 1, 2], [0, 1], np.zeros((2, 2, 3, 3)),
+                                        np.zeros((2, 3, 2, 3)))
+
+
+def test_accepts_other_dtypes_and_layouts():
+    cal = trackcal.Calibration.load(EXAMPLE)
+    rng = np.random.default_rng(3)
+    positions, quats = random_poses(rng, 10)
+    expected = cal.correct(positions, quats)
+    got = cal.correct(np.asfortranarray(positions.astype(np.float32).astype(np.float64)),
+                      quats.tolist())
+    np.testing.assert_allclose(got[0], cal.correct(positions.astype(np.float32).astype(np.float64), quats)[0])
+    np.testing.assert_allclose(got[1], expected[1], atol=1e-15)
+    empty = cal.correct(np.zeros((0, 3)), np.zeros((0, 4)))
+    assert empty[0].shape == (0, 3) and empty[1].shape == (0, 4) and empty[2].shape == (0,)
+
+
+def test_file_errors_are_value_errors_naming_path(tmp_path):
+    doc = json.loads(EXAMPLE.read_text())
+    doc["corrections"][0]["position_coefficients"].pop()
+    bad = tmp_path / "calib.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(ValueError) as info:
+        trackcal.Calibration.load(bad)
+    assert str(info.value) == (f"{bad}: $.corrections[0].position_coefficients: degree 2 needs 10 "
+                               "entries, got 9")
+    with pytest.raises(ValueError, match=r"missing\.json: cannot open"):
+        trackcal.Calibration.load(tmp_path / "missing.json")
+    doc = json.loads(EXAMPLE.read_text())
+    doc["version"] = 2
+    with pytest.raises(ValueError, match=r"<string>: \$\.version: unsupported version 2"):
+        trackcal.Calibration.from_json(json.dumps(doc))
+    # Python's json writes NaN literals; the reader names them.
+    doc = json.loads(EXAMPLE.read_text())
+    doc["calibrated_volume"]["fade_distance"] = float("nan")
+    with pytest.raises(ValueError, match="non-finite number"):
+        trackcal.Calibration.from_json(json.dumps(doc), "nan.json")
+
+
+def test_build_save_load_round_trip(tmp_path):
+    rng = np.random.default_rng(4)
+    pc, oc = degree4(rng)
+    poly = trackcal.PolynomialCorrection(4, pc, oc, (0, 0, 0.3), (0.5, 0.5, 0.5))
+    x = np.linspace(-0.5, 0.5, 5)
+    y = np.array([-0.5, -0.1, 0.0, 0.5])
+    z = np.linspace(-0.2, 0.8, 3)
+    pe = rng.normal(scale=0.001, size=(5, 4, 3, 3))
+    oe = rng.normal(scale=0.001, size=(5, 4, 3, 3))
+    lut = trackcal.TrilinearLutCorrection(x, y, z, pe, oe)
+    np.testing.assert_array_equal(lut.position_error, pe)
+    capture = tmp_path / "capture.csv"
+    capture.write_text("t,x\n0,1\n")
+    provenance = {
+        "tool": "pytest",
+        "tool_version": trackcal.__version__,
+        "created_utc": "2026-11-21T12:00:00Z",
+        "inputs": [{"path": str(capture), "sha256": trackcal.sha256_file(capture),
+                    "role": "calibration_capture"}],
+    }
+    cal = trackcal.Calibration([poly, lut], (-0.5, -0.5, -0.2), (0.5, 0.5, 0.8), "fade", 0.1,
+                               description="round trip", fit_statistics={"num_samples": 12},
+                               provenance=provenance)
+    out = tmp_path / "calib.json"
+    cal.save(out)
+    back = trackcal.Calibration.load(out)
+    assert back.to_json() == cal.to_json() == out.read_text()
+    assert back.description == "round trip"
+    positions, quats = random_poses(rng, 500, half_extent=0.7)
+    a = cal.correct(positions, quats)
+    b = back.correct(positions, quats)
+    for x_a, x_b in zip(a, b):
+        np.testing.assert_array_equal(x_a, x_b)
+    assert a[2].any() and not a[2].all()
+    # The chain applies the polynomial, then the LUT to its output.
+    p1, q1, _ = poly.correct(positions, quats)
+    p2, q2, _ = lut.correct(p1, q1)
+    inside = ~a[2]
+    np.testing.assert_allclose(a[0][inside], p2[inside], atol=1e-15)
+    # Never overwrites an input.
+    with pytest.raises(ValueError, match="refusing to overwrite input file"):
+        cal.save(capture)
+    assert capture.read_text() == "t,x\n0,1\n"
+
+
+def test_constructor_errors():
+    poly = trackcal.PolynomialCorrection(0, np.zeros((1, 3)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="empty volume"):
+        trackcal.Calibration([poly], (0, 0, 0), (1, 0, 1))
+    with pytest.raises(ValueError, match="unknown policy \"hold\""):
+        trackcal.Calibration([poly], (0, 0, 0), (1, 1, 1), extrapolation="hold")
+    with pytest.raises(ValueError, match="fade_distance must be positive"):
+        trackcal.Calibration([poly], (0, 0, 0), (1, 1, 1), extrapolation="fade")
+    with pytest.raises(ValueError, match="polynomial degree must be in"):
+        trackcal.PolynomialCorrection(13, np.zeros((1, 3)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="input_scale must be positive"):
+        trackcal.PolynomialCorrection(0, np.zeros((1, 3)), np.zeros((1, 3)), input_scale=(1, 0, 1))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        trackcal.TrilinearLutCorrection([0, 1], [1, 0], [0, 1], np.zeros((2, 2, 2, 3)),
+                                        np.zeros((2, 2, 2, 3)))
+    with pytest.raises(ValueError, match="fit_statistics must be JSON-serialisable"):
+        trackcal.Calibration([poly], (0, 0, 0), (1, 1, 1), fit_statistics={"rms": math.nan})
+    with pytest.raises(ValueError, match=r"provenance: \$\.tool_version: missing required field"):
+        trackcal.Calibration([poly], (0, 0, 0), (1, 1, 1),
+                             provenance={"tool": "x", "created_utc": "2026-01-01T00:00:00Z",
+                                         "inputs": []})
+
+
+def test_term_exponents_match_reference_order():
+    for r in range(0, 9):
+        np.testing.assert_array_equal(trackcal.polynomial_term_exponents(r),
+                                      numpy_reference.term_exponents(r))
+        assert trackcal.num_polynomial_terms(r) == (r + 1) * (r + 2) * (r + 3) // 6
