@@ -4,10 +4,10 @@
 // report (what a physical-model correction runs per pose).
 #include <benchmark/benchmark.h>
 
-#include "sim/field.h"
+#include "core/field.h"
 #include "sim/scene.h"
 #include "sim/simulator.h"
-#include "sim/tracker_solver.h"
+#include "core/tracker_solver.h"
 
 namespace {
 
@@ -20,13 +20,13 @@ void BM_FreeSpaceField(benchmark::State& state) {  // baseline
   Eigen::Vector3d p = kPoint;
   for (auto _ : state) {
     benchmark::DoNotOptimize(p);
-    benchmark::DoNotOptimize(sim::DipoleCoupling<double>(p));
+    benchmark::DoNotOptimize(trackcal::DipoleCoupling<double>(p));
   }
 }
 BENCHMARK(BM_FreeSpaceField);
 
 void BM_PaperRoomField(benchmark::State& state) {
-  const sim::FieldModel model = sim::LoadScene("paper").environment;
+  const trackcal::FieldModel model = sim::LoadScene("paper").environment;
   Eigen::Vector3d p = kPoint;
   for (auto _ : state) {
     benchmark::DoNotOptimize(p);
@@ -41,7 +41,7 @@ void BM_FreeSpaceSolve(benchmark::State& state) {
       Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized())), kPoint);
   const Eigen::Matrix3d s = simulator.tracker().Signal(truth);
   for (auto _ : state) {
-    benchmark::DoNotOptimize(sim::SolveFreeSpacePose(s, simulator.tracker().solver_options()));
+    benchmark::DoNotOptimize(trackcal::SolveFreeSpacePose(s, simulator.tracker().solver_options()));
   }
 }
 BENCHMARK(BM_FreeSpaceSolve);
@@ -52,7 +52,7 @@ void BM_InvertReportedPose(benchmark::State& state) {
       Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized())), kPoint);
   const Rigid3d reported = simulator.tracker().Report(truth).transmitter_from_receiver;
   for (auto _ : state) {
-    benchmark::DoNotOptimize(sim::InvertReportedPose(reported, simulator.tracker().field(),
+    benchmark::DoNotOptimize(trackcal::InvertReportedPose(reported, simulator.tracker().field(),
                                                      simulator.tracker().receiver_gain_matrix(),
                                                      simulator.tracker().solver_options()));
   }

@@ -16,7 +16,7 @@
 #include <vector>
 
 #include "core/pose.h"
-#include "sim/field.h"
+#include "core/field.h"
 
 namespace trackcal::sim {
 

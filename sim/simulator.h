@@ -18,10 +18,10 @@
 #include "core/capture.h"
 #include "core/error_statistics.h"
 #include "core/pose.h"
-#include "sim/field.h"
+#include "core/field.h"
 #include "sim/random.h"
 #include "sim/scene.h"
-#include "sim/tracker_solver.h"
+#include "core/tracker_solver.h"
 
 namespace trackcal::sim {
 

@@ -1,10 +1,10 @@
-#include "sim/tracker_solver.h"
+#include "core/tracker_solver.h"
 
 #include <gtest/gtest.h>
 
 #include <cmath>
 
-#include "sim/field.h"
+#include "core/field.h"
 #include "sim/random.h"
 #include "sim/scene.h"
 #include "sim/simulator.h"

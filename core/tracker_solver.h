@@ -14,9 +14,9 @@
 #include <Eigen/Core>
 
 #include "core/pose.h"
-#include "sim/field.h"
+#include "core/field.h"
 
-namespace trackcal::sim {
+namespace trackcal {
 
 struct TrackerSolverOptions {
   double field_constant = 1.0;  // k assumed by the tracker (the free-space model's only parameter)
@@ -62,4 +62,4 @@ TrackerSolution InvertReportedPose(const Rigid3d& reported, const FieldModel& fi
                                    const TrackerSolverOptions& options = {},
                                    int max_iterations = 50, double tolerance = 1e-12);
 
-}  // namespace trackcal::sim
+}  // namespace trackcal

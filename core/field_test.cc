@@ -1,4 +1,4 @@
-#include "sim/field.h"
+#include "core/field.h"
 
 #include <ceres/jet.h>
 #include <gtest/gtest.h>
@@ -7,7 +7,7 @@
 
 #include "tests/test_utils.h"
 
-namespace trackcal::sim {
+namespace trackcal {
 namespace {
 
 using testing::TestRng;
@@ -193,9 +193,9 @@ TEST(SignalMatrix, IsGRTransposeB) {
 }
 
 }  // namespace
-}  // namespace trackcal::sim
+}  // namespace trackcal
 
-namespace trackcal::sim {
+namespace trackcal {
 namespace {
 
 // Every physical parameter can be a Ceres Jet (fit/ fits them): derivatives against central
@@ -240,4 +240,4 @@ TEST(FieldFunctions, DifferentiableInEveryParameter) {
 }
 
 }  // namespace
-}  // namespace trackcal::sim
+}  // namespace trackcal

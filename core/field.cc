@@ -1,9 +1,9 @@
-#include "sim/field.h"
+#include "core/field.h"
 
 #include <cmath>
 #include <stdexcept>
 
-namespace trackcal::sim {
+namespace trackcal {
 
 namespace {
 void Require(bool ok, const std::string& field, const std::string& what) {
@@ -37,4 +37,4 @@ void FieldModel::Check() const {
   }
 }
 
-}  // namespace trackcal::sim
+}  // namespace trackcal

@@ -41,7 +41,7 @@
 
 #include "core/pose.h"
 
-namespace trackcal::sim {
+namespace trackcal {
 
 template <typename T>
 using Matrix3 = Eigen::Matrix<T, 3, 3>;
@@ -167,4 +167,4 @@ struct FieldModel {
   }
 };
 
-}  // namespace trackcal::sim
+}  // namespace trackcal

@@ -1,4 +1,4 @@
-#include "sim/tracker_solver.h"
+#include "core/tracker_solver.h"
 
 #include <ceres/jet.h>
 
@@ -8,9 +8,9 @@
 #include <limits>
 #include <stdexcept>
 
-#include "sim/field.h"
+#include "core/field.h"
 
-namespace trackcal::sim {
+namespace trackcal {
 
 void TrackerSolverOptions::Check() const {
   if (!(std::isfinite(field_constant) && field_constant > 0)) {
@@ -220,4 +220,4 @@ TrackerSolution InvertReportedPose(const Rigid3d& reported, const FieldModel& fi
   return solution;
 }
 
-}  // namespace trackcal::sim
+}  // namespace trackcal
