@@ -157,7 +157,7 @@ TEST(ParseCalibrationJson, RejectsMissingAndUnknownFields) {
             "calib.json: $.units.length: unknown value \"mm\"; expected one of \"m\"");
   EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][0]["type"] = "spline"; }),
             "calib.json: $.corrections[0].type: unknown correction type \"spline\"; known: "
-            "\"polynomial\", \"trilinear_lut\"");
+            "\"polynomial\", \"trilinear_lut\", \"physical\"");
 }
 
 TEST(ParseCalibrationJson, RejectsWrongArraySizes) {

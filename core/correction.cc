@@ -5,6 +5,7 @@
 #include <stdexcept>
 
 #include "core/lut.h"
+#include "core/physical_correction.h"
 #include "core/polynomial.h"
 
 namespace trackcal {
@@ -181,6 +182,7 @@ CorrectionRegistry& CorrectionRegistry::Global() {
     auto* r = new CorrectionRegistry();
     r->Register(PolynomialCorrection::kTypeName, &PolynomialCorrection::FromJson);
     r->Register(TrilinearLutCorrection::kTypeName, &TrilinearLutCorrection::FromJson);
+    r->Register(PhysicalCorrection::kTypeName, &PhysicalCorrection::FromJson);
     return r;
   }();
   return *registry;

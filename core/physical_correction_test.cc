@@ -1,0 +1,188 @@
+#include "core/physical_correction.h"
+
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include "core/calibration_file.h"
+#include "core/correction.h"
+#include "core/tracker_solver.h"
+#include "tests/test_utils.h"
+
+namespace trackcal {
+namespace {
+
+using testing::TestRng;
+
+// A room like the paper's (sim/scenes/paper.yaml) plus finite coils and a close object, so every
+// kind of source is inverted.
+FieldModel RoomField() {
+  FieldModel field;
+  field.field_constant = 1.0;
+  field.transmitter_octupole_m2 = Eigen::Vector3d(-0.000675, -0.0006, -0.00075);
+  field.planes.push_back({"floor", Eigen::Vector3d(0, 0, 0.8), Eigen::Vector3d(0, 0, 1), 0.27});
+  field.planes.push_back({"door", Eigen::Vector3d(0, -2.1, 0), Eigen::Vector3d(0, 1, 0), 0.18});
+  field.objects.push_back({"crt", Eigen::Vector3d(1.6, 1.0, -0.5), 0.04});
+  field.objects.push_back({"frame", Eigen::Vector3d(0.5, 0.0, 0.35), -0.009});
+  field.objects.push_back({"toolbox", Eigen::Vector3d(0.6, 0.95, -0.5), 0.002});
+  return field;
+}
+
+Eigen::Matrix3d SkewedGain() {
+  Eigen::Matrix3d g;
+  g << 1.03, 0.01, -0.02, 0.0, 0.97, 0.015, 0.01, -0.01, 1.01;
+  return g;
+}
+
+TrackerSolverOptions UpHemisphere() {
+  TrackerSolverOptions options;
+  options.hemisphere_in_transmitter = Eigen::Vector3d(0, 0, -1);
+  return options;
+}
+
+// A true pose in the paper's calibrated volume (x, y within +-0.8 x +-0.6 m, 0.35-0.8 m above the
+// transmitter, z down). Within 0.3 m of the toolbox two true poses can share one report (found at y = 0.7),
+// where no inverse is unique.
+Rigid3d RandomTruePose() {
+  std::uniform_real_distribution<double> x(-0.8, 0.8);
+  std::uniform_real_distribution<double> y(-0.6, 0.6);
+  std::uniform_real_distribution<double> z(-0.8, -0.35);
+  return Rigid3d(testing::RandomRotation(TestRng()),
+                 Eigen::Vector3d(x(TestRng()), y(TestRng()), z(TestRng())));
+}
+
+Rigid3d NoiseFreeReport(const Rigid3d& truth, const FieldModel& field, const Eigen::Matrix3d& g) {
+  const Eigen::Matrix3d s = SignalMatrix<double>(g, truth.rotation.toRotationMatrix(),
+                                                 field.Field<double>(truth.translation));
+  const TrackerSolution report = SolveFreeSpacePose(s, UpHemisphere());
+  EXPECT_TRUE(report.converged);
+  return report.transmitter_from_receiver;
+}
+
+TEST(PhysicalCorrection, Nominal) {
+  // reported = solver(S(true)) without noise: the correction returns the true pose. The report is
+  // converged to 1e-12 (solver step tolerance) and Newton to rounding, so 1e-9 m / rad is a
+  // thousandfold margin; the uncorrected error is centimetres.
+  const FieldModel field = RoomField();
+  const PhysicalCorrection correction(field, SkewedGain());
+  double max_uncorrected = 0;
+  for (int i = 0; i < 50; ++i) {
+    const Rigid3d truth = RandomTruePose();
+    const Rigid3d reported = NoiseFreeReport(truth, field, SkewedGain());
+    max_uncorrected = std::max(max_uncorrected, PositionErrorNorm(truth, reported));
+    const CorrectedPose corrected = correction.Apply(reported);
+    EXPECT_FALSE(corrected.extrapolated);
+    EXPECT_TRUE(testing::PosesNear(truth, corrected.pose, 1e-9, 1e-9))
+        << i << " report of the corrected pose differs from the report by "
+        << PositionErrorNorm(NoiseFreeReport(corrected.pose, field, SkewedGain()), reported);
+  }
+  EXPECT_GT(max_uncorrected, 0.01);  // the test is not trivially passing
+}
+
+TEST(PhysicalCorrection, AgreesWithFixedPointInverse) {
+  const FieldModel field = RoomField();
+  const PhysicalCorrection correction(field, SkewedGain());
+  for (int i = 0; i < 10; ++i) {
+    const Rigid3d reported = NoiseFreeReport(RandomTruePose(), field, SkewedGain());
+    const TrackerSolution fixed_point =
+        InvertReportedPose(reported, field, SkewedGain(), UpHemisphere());
+    ASSERT_TRUE(fixed_point.converged);
+    Rigid3d newton;
+    int iterations = 0;
+    ASSERT_TRUE(correction.InvertReport(reported, &newton, &iterations));
+    // Both converge to rounding (1e-12 tolerances); 1e-9 leaves margin for conditioning.
+    EXPECT_TRUE(testing::PosesNear(fixed_point.transmitter_from_receiver, newton, 1e-9, 1e-9));
+    EXPECT_LE(iterations, 6);  // quadratic convergence from the report
+  }
+}
+
+TEST(PhysicalCorrection, SensorOffsetIsAppliedAfterTheInverse) {
+  const FieldModel field = RoomField();
+  const Rigid3d receiver_from_body(
+      Eigen::Quaterniond(Eigen::AngleAxisd(0.1, Eigen::Vector3d(1, 2, 3).normalized())),
+      Eigen::Vector3d(0.01, -0.02, 0.015));
+  const PhysicalCorrection correction(field, Eigen::Matrix3d::Identity(), receiver_from_body);
+  const Rigid3d truth = RandomTruePose();
+  const Rigid3d reported = NoiseFreeReport(truth, field, Eigen::Matrix3d::Identity());
+  EXPECT_TRUE(testing::PosesNear(truth * receiver_from_body, correction.Apply(reported).pose,
+                                 1e-9, 1e-9));
+}
+
+TEST(PhysicalCorrection, JsonRoundTripThroughTheRegistry) {
+  const Rigid3d receiver_from_body(Eigen::Quaterniond(Eigen::AngleAxisd(0.2, Eigen::Vector3d::UnitY())),
+                                   Eigen::Vector3d(0.0, 0.03, 0.0));
+  const PhysicalCorrection original(RoomField(), SkewedGain(), receiver_from_body);
+  const nlohmann::json j = original.ToJson();
+  const std::unique_ptr<Correction> parsed =
+      CorrectionRegistry::Global().Parse(j, "calib.json", "$.corrections[0]");
+  ASSERT_EQ(parsed->TypeName(), "physical");
+  EXPECT_EQ(parsed->ToJson(), j);  // doubles are written with round-trip precision
+  for (int i = 0; i < 5; ++i) {
+    const Rigid3d reported = NoiseFreeReport(RandomTruePose(), RoomField(), SkewedGain());
+    EXPECT_TRUE(testing::PosesNear(original.Apply(reported).pose, parsed->Apply(reported).pose,
+                                   0.0, 0.0));
+  }
+}
+
+// Parses `j` and expects a JSON input error whose message contains `expected`.
+void ExpectRejected(const nlohmann::json& j, const std::string& expected) {
+  try {
+    CorrectionRegistry::Global().Parse(j, "calib.json", "$.corrections[0]");
+    ADD_FAILURE() << "accepted: " << j.dump();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find(expected), std::string::npos) << e.what();
+  }
+}
+
+TEST(PhysicalCorrection, JsonRejection) {
+  const nlohmann::json good = PhysicalCorrection(RoomField(), SkewedGain()).ToJson();
+  nlohmann::json j = good;
+  j["planes"][1]["attenuation"] = 1.5;
+  ExpectRejected(j, "calib.json: $.corrections[0].planes[1].attenuation: must be in [-1, 1]");
+  j = good;
+  j["planes"][0]["normal_in_transmitter"] = {0, 0, 0};
+  ExpectRejected(j, "$.corrections[0].planes[0].normal_in_transmitter");
+  j = good;
+  j["planes"][0]["point_in_transmitter"] = {1, 1, 0};  // floor normal z: through the transmitter
+  ExpectRejected(j, "$.corrections[0].planes[0].point_in_transmitter");
+  j = good;
+  j["objects"][2]["polarisabilty_m3"] = 0.1;  // misspelt
+  ExpectRejected(j, "$.corrections[0].objects[2]");
+  j = good;
+  j["objects"][0]["location_in_transmitter"] = {0, 0, 0};
+  ExpectRejected(j, "$.corrections[0].objects[0].location_in_transmitter");
+  j = good;
+  j["receiver_gain_matrix"][1] = {0, 1};
+  ExpectRejected(j, "$.corrections[0].receiver_gain_matrix[1]");
+  j = good;
+  j["receiver_gain_matrix"][2][2] = -1.0;
+  ExpectRejected(j, "$.corrections[0].receiver_gain_matrix: must have a positive determinant");
+  j = good;
+  j["receiver_gain_matrix"][0][0] = "one";
+  ExpectRejected(j, "$.corrections[0].receiver_gain_matrix[0][0]");
+  j = good;
+  j["field_constant"] = 0;
+  ExpectRejected(j, "$.corrections[0].field_constant");
+  j = good;
+  j["receiver_from_body"] = {{"rotation_xyzw", {0, 0, 0, 2}}, {"translation", {0, 0, 0}}};
+  ExpectRejected(j, "$.corrections[0].receiver_from_body.rotation_xyzw: must be a unit quaternion");
+  j = good;
+  j["max_iterations"] = 0;
+  ExpectRejected(j, "max_iterations");
+  j = good;
+  j.erase("planes");
+  ExpectRejected(j, "$.corrections[0].planes: missing required field");
+  j = good;
+  j["extra"] = 1;
+  ExpectRejected(j, "extra");
+}
+
+TEST(PhysicalCorrection, NonFiniteReportIsFlagged) {
+  const PhysicalCorrection correction(RoomField(), Eigen::Matrix3d::Identity());
+  const Rigid3d bad(Eigen::Quaterniond::Identity(),
+                    Eigen::Vector3d(std::numeric_limits<double>::quiet_NaN(), 0, -0.5));
+  EXPECT_TRUE(correction.Apply(bad).extrapolated);
+}
+
+}  // namespace
+}  // namespace trackcal
