@@ -88,6 +88,14 @@ void BM_PhysicalPaperRoom(benchmark::State& state) {
       Rigid3d(Eigen::Quaterniond(Eigen::AngleAxisd(0.05, Eigen::Vector3d::UnitX())),
               Eigen::Vector3d(0.01, 0.0, 0.02)));
   RunPerPose(state, physical);
+  double iterations = 0;
+  for (const Rigid3d& reported : Reports()) {
+    Rigid3d x;
+    int n = 0;
+    physical.InvertReport(reported, &x, &n);
+    iterations += n;
+  }
+  state.counters["newton_steps"] = iterations / Reports().size();  // mean steps per pose
 }
 BENCHMARK(BM_PhysicalPaperRoom);
 

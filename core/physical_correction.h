@@ -22,6 +22,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "core/correction.h"
 #include "core/field.h"
@@ -32,7 +33,8 @@ namespace trackcal {
 
 struct PhysicalCorrectionOptions {
   int max_iterations = 8;      // Newton steps per pose (converges in 3-4 in a room like the paper's)
-  double tolerance_m = 1e-9;  // stop when a Newton step is below this [m] (and the same in rad)
+  // Stop when the remaining error, estimated as (Newton step)^2 / 1 m, is below this [m, rad].
+  double tolerance_m = 1e-12;
   // Throws std::invalid_argument naming the field.
   void Check() const;
 };
@@ -73,7 +75,17 @@ class PhysicalCorrection : public Correction {
   const PhysicalCorrectionOptions& options() const { return options_; }
 
  private:
+  // A distortion source as seen by the inverse: B += D(p - center) * moment, with the constant
+  // moment (k times the image's moments, or k polarisability D(location)) computed once.
+  struct Source {
+    Eigen::Vector3d center;
+    Eigen::Matrix3d moment;
+  };
+  void Precompute();
+
   FieldModel field_;
+  std::vector<Source> sources_;  // planes then objects, equal to field_.Field() to rounding
+  bool has_octupole_ = false;
   Eigen::Matrix3d receiver_gain_matrix_;
   std::optional<Rigid3d> receiver_from_body_;
   PhysicalCorrectionOptions options_;
