@@ -316,8 +316,12 @@ PhysicalFitResult FitPhysicalModel(const PhysicalCorrection& initial,
   for (const PhysicalObservation& obs : observations) {
     ceres::LossFunction* loss =
         options.robust_loss_sigmas > 0 ? new ceres::CauchyLoss(options.robust_loss_sigmas) : nullptr;
-    problem.AddResidualBlock(new ImplicitPoseCost(&initial, &layout, obs, options.position_sigma_m,
-                                                  options.orientation_sigma_rad),
+    const double position_sigma =
+        obs.position_sigma_m > 0 ? obs.position_sigma_m : options.position_sigma_m;
+    const double orientation_sigma =
+        obs.orientation_sigma_rad > 0 ? obs.orientation_sigma_rad : options.orientation_sigma_rad;
+    problem.AddResidualBlock(new ImplicitPoseCost(&initial, &layout, obs, position_sigma,
+                                                  orientation_sigma),
                              loss, theta.data());
   }
   for (size_t i = 0; i < layout.planes.size(); ++i) {

@@ -32,8 +32,10 @@ namespace trackcal::fit {
 
 // One station: what the tracker reported and the reference (body) pose.
 struct PhysicalObservation {
-  Rigid3d reported;          // transmitter_from_receiver as reported
-  Rigid3d reference;         // transmitter_from_body from the optical reference
+  Rigid3d reported;                  // transmitter_from_receiver as reported
+  Rigid3d reference;                 // transmitter_from_body from the optical reference
+  double position_sigma_m = 0.0;     // this station's noise per axis [m]; 0: the options' value
+  double orientation_sigma_rad = 0.0;  // [rad]; 0: the options' value
 };
 
 // Which parameters are free. Planes and objects of `initial` beyond the free ones stay fixed.
