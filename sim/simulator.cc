@@ -414,7 +414,9 @@ void WriteCaptureFolder(const Simulator& simulator, const SimulatedCapture& capt
                              ": exists and is not an empty folder; refusing to "
                              "overwrite a capture");
   }
-  const fs::path absolute = fs::absolute(dir);
+  // "out/" and "out" are the same folder: drop a trailing separator before taking the name.
+  fs::path absolute = fs::absolute(dir).lexically_normal();
+  if (absolute.filename().empty()) absolute = absolute.parent_path();
   const fs::path parent = absolute.parent_path();
   fs::create_directories(parent);
   std::string tmpl = (parent / ("." + absolute.filename().string() + ".tmp-XXXXXX")).string();

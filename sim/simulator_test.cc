@@ -182,10 +182,20 @@ TEST(WriteCaptureFolder, RefusesToOverwrite) {
   const std::string before = ReadText(dir / "capture" / kPosesCsv);
   EXPECT_THROW(WriteCaptureFolder(sim, c, dir / "capture"), std::runtime_error);
   EXPECT_EQ(ReadText(dir / "capture" / kPosesCsv), before);
-  // An existing empty folder is fine (mkdir first, then simulate into it).
+  // An existing empty folder is fine (mkdir first, then simulate into it), also spelt "empty/".
   std::filesystem::create_directory(dir / "empty");
-  WriteCaptureFolder(sim, c, dir / "empty");
+  WriteCaptureFolder(sim, c, (dir / "empty").string() + "/");
   EXPECT_TRUE(std::filesystem::exists(dir / "empty" / "truth.json"));
+  EXPECT_THROW(WriteCaptureFolder(sim, c, (dir / "empty").string() + "/"), std::runtime_error);
+  // A folder whose parents do not exist yet is created; nothing else is left behind.
+  WriteCaptureFolder(sim, c, dir / "new" / "deeper" / "capture");
+  EXPECT_TRUE(std::filesystem::exists(dir / "new" / "deeper" / "capture" / kPosesCsv));
+  int entries = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir / "new" / "deeper")) {
+    (void)e;
+    ++entries;
+  }
+  EXPECT_EQ(entries, 1);
 }
 
 // ---- Hidden effects: each changes the data the way its physics says, and the truth records it.
