@@ -6,7 +6,15 @@
 //
 // For the emulator and other live users, TrackerModel answers "what does the tracker report for a
 // receiver at this true pose", with or without noise, and Simulator::TruePoseAt gives the smooth
-// trajectory the streams follow.
+// trajectory the streams follow, one per receiver. An emulator station at time t:
+//
+//   const Simulator sim(LoadScene("paper"));
+//   Rng noise(sim.scene().seed, "emulator");         // one stream per user; not thread-safe
+//   const Rigid3d truth = sim.TruePoseAt(t, station - 1);
+//   const Rigid3d reported = sim.tracker().Report(truth, /*samples=*/1, &noise)
+//                                .transmitter_from_receiver;
+//
+// TrackerModel and Simulator are immutable after construction and safe to share between threads.
 
 #pragma once
 

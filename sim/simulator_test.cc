@@ -136,6 +136,22 @@ TEST(Simulator, IdealSceneReportsTheTruth) {
   }
 }
 
+TEST(Simulator, NoiseFloorIsWhatAnUndistortedRoomLeaves) {
+  // Without distortion the tracker is right but for noise: uncorrected errors are the noise floor.
+  Scene ideal = LoadScene("ideal");
+  ideal.capture.stream.duration_s = 0;
+  const nlohmann::json stats = Simulator(ideal).Generate().truth["statistics"]["valid"];
+  for (const char* q : {"position_mm", "orientation_deg"}) {
+    for (const char* k : {"mean", "max"}) {
+      // The noise-free report equals the truth to 1e-9 m / rad, i.e. 1e-6 mm and 6e-8 deg.
+      EXPECT_NEAR(stats["uncorrected"][q][k].get<double>(), stats["noise_floor"][q][k].get<double>(),
+                  1e-5)
+          << q << " " << k;
+    }
+  }
+  EXPECT_GT(stats["noise_floor"]["position_mm"]["mean"].get<double>(), 0.01);
+}
+
 TEST(Simulator, TrackerModelIsTheCapturePhysics) {
   // The emulator's entry point gives what the capture's noise-free truth records.
   const Simulator sim(LoadScene("paper"));
