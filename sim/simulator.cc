@@ -364,7 +364,9 @@ SimulatedCapture Simulator::Generate() const {
     if (it == floor_errors.end()) continue;
     const PoseErrorSummary floor{SummarizeErrors(it->second.first),
                                  SummarizeErrors(it->second.second)};
-    stats[set] = {{"uncorrected", SummaryToJson(UncorrectedSummary(out.poses, set))},
+    out.uncorrected[set] = UncorrectedSummary(out.poses, set);
+    out.noise_floor[set] = floor;
+    stats[set] = {{"uncorrected", SummaryToJson(out.uncorrected[set])},
                   {"noise_floor", SummaryToJson(floor)}};
   }
   nlohmann::json stations = nlohmann::json::array();

@@ -19,6 +19,7 @@
 #pragma once
 
 #include <filesystem>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -82,6 +83,10 @@ struct SimulatedCapture {
   TrackerStream tracker_stream;  // empty when the scene has no stream
   ReferenceStream reference_stream;
   std::vector<StationTruth> stations;  // truth per static station, same order as poses
+  // Per set ("calib", "valid", "reg"): errors before correction, and the noise floor, the errors a
+  // perfect model of the scene would leave (tracker and reference noise only). A fit cannot beat it.
+  std::map<std::string, PoseErrorSummary> uncorrected;
+  std::map<std::string, PoseErrorSummary> noise_floor;
   nlohmann::json truth;                // truth.json: scene, effective physics, stats, noise floor
 };
 

@@ -83,6 +83,12 @@ TEST(Simulator, Nominal) {
   EXPECT_GT(stats["noise_floor"]["position_mm"]["mean"].get<double>(), 0.01);
   EXPECT_LT(stats["noise_floor"]["position_mm"]["mean"].get<double>(),
             0.05 * stats["uncorrected"]["position_mm"]["mean"].get<double>());
+  // The typed summaries are the ones written to truth.json.
+  EXPECT_EQ(c.noise_floor.at("valid").position_mm.mean,
+            stats["noise_floor"]["position_mm"]["mean"].get<double>());
+  EXPECT_EQ(c.uncorrected.at("calib").orientation_deg.max,
+            c.truth["statistics"]["calib"]["uncorrected"]["orientation_deg"]["max"].get<double>());
+  EXPECT_EQ(c.uncorrected.at("valid").position_mm.count, 120);
 }
 
 TEST(Simulator, PaperPresetResemblesTable1) {
