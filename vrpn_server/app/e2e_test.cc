@@ -104,6 +104,9 @@ class EndToEnd : public ::testing::Test {
     for (auto& t : truth_) t.rotation.normalize();
     emulator::EmulatorOptions eo;
     eo.device.num_stations = 2;
+    // The symlink survives `fault disconnect`; the /dev/pts/N path may be reused by another
+    // process's pty meanwhile (a different emulator's poses were read that way).
+    eo.link_path = (dir_ / "fastrak").string();
     emulator_ = std::make_unique<emulator::BackgroundEmulator>(
         eo, std::make_unique<emulator::StaticPoseSource>(truth_), std::make_unique<RigidDistortion>());
     TrackerSetup setup;
@@ -113,7 +116,7 @@ class EndToEnd : public ::testing::Test {
     setup.calibration = dir_ / "calib.json";
     setup.origin = "e2e";
     fastrak::FastrakOptions fo;
-    fo.port = emulator_->initial_device_path();
+    fo.port = eo.link_path;
     fo.timings = fastrak::FastrakTimings::Fast();
     setup.make_source = [fo] { return MakeFastrakSource(fo); };
     AppOptions ao;
