@@ -9,7 +9,7 @@
 // correction's added cost as a difference against the uncorrected run of the same process, and the
 // network thread's CPU use while idle with 32 connected clients.
 //
-//   vrpn_latency_bench [seconds_per_configuration=5]
+//   vrpn_latency_bench [seconds_per_configuration=5] [realtime_priority=0]
 //
 // The emulator's pty hop (serial write -> driver read) is not included here; see docs/vrpn.md.
 
@@ -34,6 +34,7 @@ namespace {
 using Clock = std::chrono::steady_clock;
 // Marks measured reports (header usec field); warm-up reports use 0.
 constexpr std::uint32_t kTagUsec = 777777;
+int g_realtime_priority = 0;
 
 // Stand-in correction of realistic cost: a degree-4 polynomial in reported position for the
 // position error (35 monomials x 3) and the orientation error vector (35 x 3), applied as eq. 4.
@@ -76,6 +77,7 @@ double Percentile(std::vector<double> v, double q) {
 
 struct Result {
   double p50_us, p99_us, max_us;
+  double server_p50_us, server_p99_us;  // hand-over -> last client's send() returned
   std::uint64_t published, dropped;
 };
 
@@ -90,6 +92,7 @@ Result RunConfiguration(int num_clients, bool correction, bool lob, double secon
   ServerOptions options;
   options.bind_address = "127.0.0.1";
   options.port = 0;
+  options.realtime_priority = g_realtime_priority;
   auto server = std::make_unique<VrpnServer>(catalog, options, [](const std::string&) {});
   server->Start();
   TrackerDevice device(server.get(), tracker, std::nullopt);
@@ -97,8 +100,8 @@ Result RunConfiguration(int num_clients, bool correction, bool lob, double secon
 
   const std::size_t max_reports = static_cast<std::size_t>(seconds * 120 * 1.2) + 1000;
   std::vector<std::atomic<std::int64_t>> sent_ns(max_reports);
-  std::mutex mutex;
-  std::vector<double> latencies;
+  // One latency list per client (no shared lock on the clients' threads).
+  std::vector<std::vector<double>> latencies(num_clients);
   std::vector<std::vector<char>> seen(num_clients, std::vector<char>(max_reports, 0));
   std::atomic<bool> measuring{false};
 
@@ -114,10 +117,7 @@ Result RunConfiguration(int num_clients, bool correction, bool lob, double secon
       const double us = std::chrono::duration<double, std::micro>(
                             now - std::chrono::nanoseconds(sent_ns[seq].load())).count();
       seen[c][seq] = 1;
-      if (measuring) {
-        std::lock_guard<std::mutex> lock(mutex);
-        latencies.push_back(us);
-      }
+      if (measuring) latencies[c].push_back(us);
     });
     clients.back()->Start();
   }
@@ -131,6 +131,7 @@ Result RunConfiguration(int num_clients, bool correction, bool lob, double secon
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
   }
   std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  server->TakeFanoutMicros();
   measuring = true;
   std::uint64_t seq = 0;
   const auto period = std::chrono::microseconds(33333);  // 30 Hz per station
@@ -148,22 +149,28 @@ Result RunConfiguration(int num_clients, bool correction, bool lob, double secon
   }
   std::this_thread::sleep_for(std::chrono::milliseconds(500));  // let the last reports arrive
   measuring = false;
+  for (auto& c : clients) c->Stop();  // joins the client threads before reading their lists
   Result r{};
   r.published = seq;
   for (int c = 0; c < num_clients; ++c) {
     for (std::uint64_t i = 0; i < seq; ++i) r.dropped += seen[c][i] ? 0 : 1;
   }
-  {
-    std::lock_guard<std::mutex> lock(mutex);
-    r.p50_us = Percentile(latencies, 0.50);
-    r.p99_us = Percentile(latencies, 0.99);
-    r.max_us = latencies.empty() ? NAN : *std::max_element(latencies.begin(), latencies.end());
-  }
+  std::vector<double> all;
+  for (const auto& l : latencies) all.insert(all.end(), l.begin(), l.end());
+  r.p50_us = Percentile(all, 0.50);
+  r.p99_us = Percentile(all, 0.99);
+  r.max_us = all.empty() ? NAN : *std::max_element(all.begin(), all.end());
+  const auto fanout = server->TakeFanoutMicros();
+  const std::vector<double> fanout_d(fanout.begin(), fanout.end());
+  r.server_p50_us = Percentile(fanout_d, 0.50);
+  r.server_p99_us = Percentile(fanout_d, 0.99);
   if (keep_clients && keep_server) {
+    for (auto& c : clients) {
+      c->SetPoseCallback(nullptr);  // the lists above go out of scope
+      c->Start();
+    }
     *keep_clients = std::move(clients);
     *keep_server = std::move(server);
-  } else {
-    for (auto& c : clients) c->Stop();
   }
   return r;
 }
@@ -174,18 +181,20 @@ Result RunConfiguration(int num_clients, bool correction, bool lob, double secon
 int main(int argc, char** argv) {
   using namespace trackcal::vrpn;
   const double seconds = argc > 1 ? std::atof(argv[1]) : 5.0;
-  std::printf("VRPN end-to-end latency, OnReport -> client decode, loopback, 4 stations x 30 Hz, %.0f s each\n",
-              seconds);
-  std::printf("%-8s %-5s %-10s %10s %10s %10s %10s %8s\n", "clients", "mode", "correction", "p50[us]",
-              "p99[us]", "max[us]", "reports", "dropped");
+  g_realtime_priority = argc > 2 ? std::atoi(argv[2]) : 0;
+  std::printf("VRPN end-to-end latency, OnReport -> client decode, loopback, 4 stations x 30 Hz, %.0f s each, "
+              "network thread real-time priority %d\n", seconds, g_realtime_priority);
+  std::printf("%-8s %-5s %-10s %10s %10s %10s %10s %8s %12s %12s\n", "clients", "mode", "correction",
+              "p50[us]", "p99[us]", "max[us]", "reports", "dropped", "srv_p50[us]", "srv_p99[us]");
   for (bool lob : {false, true}) {
     for (int n : {1, 8, 32}) {
       double p50_off = 0;
       for (bool corr : {false, true}) {
         const Result r = RunConfiguration(n, corr, lob, seconds);
-        std::printf("%-8d %-5s %-10s %10.1f %10.1f %10.1f %10llu %8llu", n, lob ? "lob" : "tcp",
+        std::printf("%-8d %-5s %-10s %10.1f %10.1f %10.1f %10llu %8llu %12.1f %12.1f", n, lob ? "lob" : "tcp",
                     corr ? "on" : "off", r.p50_us, r.p99_us, r.max_us,
-                    static_cast<unsigned long long>(r.published), static_cast<unsigned long long>(r.dropped));
+                    static_cast<unsigned long long>(r.published), static_cast<unsigned long long>(r.dropped),
+                    r.server_p50_us, r.server_p99_us);
         if (corr) std::printf("   correction adds %.1f us at p50", r.p50_us - p50_off);
         std::printf("\n");
         p50_off = r.p50_us;

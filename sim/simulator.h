@@ -68,13 +68,13 @@ struct StationTruth {
 };
 
 struct SimulatedCapture {
-  PoseCapture poses;                  // calib, valid and reg stations
-  MarkerCapture markers;              // registration stations, optical frame
-  TrackerCapture tracker;             // registration stations
-  TrackerStream tracker_stream;       // empty when the scene has no stream
+  PoseCapture poses;             // calib, valid and reg stations
+  MarkerCapture markers;         // registration stations, optical frame
+  TrackerCapture tracker;        // registration stations
+  TrackerStream tracker_stream;  // empty when the scene has no stream
   ReferenceStream reference_stream;
   std::vector<StationTruth> stations;  // truth per static station, same order as poses
-  nlohmann::json truth;               // truth.json: scene, effective physics, stats, noise floor
+  nlohmann::json truth;                // truth.json: scene, effective physics, stats, noise floor
 };
 
 class Simulator {

@@ -56,12 +56,15 @@ TEST(Simulator, Nominal) {
   const auto calib = OfSet(c.poses, "calib");
   std::set<std::tuple<long, long, long>> nodes;
   for (size_t i = 0; i + 1 < calib.size(); ++i) {
-    const Eigen::Vector3d a = c.stations[calib[i]->station - 1].transmitter_from_receiver.translation;
-    const Eigen::Vector3d b = c.stations[calib[i + 1]->station - 1].transmitter_from_receiver.translation;
+    const Eigen::Vector3d a =
+        c.stations[calib[i]->station - 1].transmitter_from_receiver.translation;
+    const Eigen::Vector3d b =
+        c.stations[calib[i + 1]->station - 1].transmitter_from_receiver.translation;
     EXPECT_NEAR((a - b).norm(), 0.15, 1e-12) << "station " << calib[i]->station;
   }
   for (const auto* r : calib) {
-    const Eigen::Vector3d p = c.stations[r->station - 1].transmitter_from_receiver.translation / 0.15;
+    const Eigen::Vector3d p =
+        c.stations[r->station - 1].transmitter_from_receiver.translation / 0.15;
     nodes.insert({std::lround(p.x() * 2), std::lround(p.y() * 2), std::lround(p.z() * 2)});
   }
   EXPECT_EQ(nodes.size(), 480u);
@@ -93,12 +96,13 @@ TEST(Simulator, PaperPresetResemblesTable1) {
                          {"position_mm", "max", 97.5},     {"orientation_deg", "mean", 4.72},
                          {"orientation_deg", "std", 2.51}, {"orientation_deg", "max", 10.71}};
   const Scene paper = LoadScene("paper");
-  for (uint64_t seed : {paper.seed, uint64_t{1}, uint64_t{2}, uint64_t{3}, uint64_t{4},
-                        uint64_t{987654321}}) {
+  for (uint64_t seed :
+       {paper.seed, uint64_t{1}, uint64_t{2}, uint64_t{3}, uint64_t{4}, uint64_t{987654321}}) {
     Scene s = paper;
     s.seed = seed;
     s.capture.stream.duration_s = 0;
-    const nlohmann::json stats = Simulator(s).Generate().truth["statistics"]["valid"]["uncorrected"];
+    const nlohmann::json stats =
+        Simulator(s).Generate().truth["statistics"]["valid"]["uncorrected"];
     EXPECT_EQ(stats["count"].get<int>(), 120);
     for (const Stat& st : table1) {
       const double v = stats[st.quantity][st.key].get<double>();
@@ -138,9 +142,9 @@ TEST(Simulator, TrackerModelIsTheCapturePhysics) {
   const SimulatedCapture c = sim.Generate();
   for (size_t i = 0; i < c.stations.size(); i += 37) {
     const StationTruth& t = c.stations[i];
-    EXPECT_TRUE(PosesNear(t.reported_noise_free,
-                          sim.tracker().Report(t.transmitter_from_receiver).transmitter_from_receiver,
-                          0, 0));
+    EXPECT_TRUE(PosesNear(
+        t.reported_noise_free,
+        sim.tracker().Report(t.transmitter_from_receiver).transmitter_from_receiver, 0, 0));
   }
 }
 
@@ -205,7 +209,8 @@ TEST(HiddenEffects, SensorOffset) {
 TEST(HiddenEffects, ReceiverGains) {
   const SimulatedCapture c = WithHidden("receiver_gains");
   double max_error = 0;
-  for (const PoseRecord& r : c.poses.records) max_error = std::max(max_error, OrientationErrorAngle(r.reported, r.reference));
+  for (const PoseRecord& r : c.poses.records)
+    max_error = std::max(max_error, OrientationErrorAngle(r.reported, r.reference));
   // Gains of 2% and a 1.5% skew tilt the reported orientation by about a degree.
   EXPECT_GT(max_error, 0.2 * kRadPerDeg);
   EXPECT_EQ(c.truth["effective"]["receiver_gain_matrix"][0][0].get<double>(), 1.02);
@@ -232,7 +237,8 @@ TEST(HiddenEffects, FiniteTransmitterCoilsMatterNearTheSource) {
   const Simulator sim(scene);
   // Relative error falls as 1/r^2, so position error as ~1/r: larger near the transmitter.
   auto error_at = [&](double r) {
-    const Rigid3d truth(Eigen::Quaterniond::Identity(), r * Eigen::Vector3d(0.3, 0.2, -1).normalized());
+    const Rigid3d truth(Eigen::Quaterniond::Identity(),
+                        r * Eigen::Vector3d(0.3, 0.2, -1).normalized());
     return PositionErrorNorm(sim.tracker().Report(truth).transmitter_from_receiver, truth);
   };
   EXPECT_GT(error_at(0.2), 1e-3);
@@ -261,7 +267,8 @@ TEST(HiddenEffects, HemisphereFlips) {
     const bool is_flipped = std::find(flipped.begin(), flipped.end(), r.station) != flipped.end();
     if (r.reported.translation.dot(scene.tracker.hemisphere_in_transmitter) < 0) ++wrong_side;
     if (is_flipped) {
-      EXPECT_TRUE(PosesNear(Rigid3d(r.reference.rotation, -r.reference.translation), r.reported, 1e-9, 1e-9));
+      EXPECT_TRUE(PosesNear(Rigid3d(r.reference.rotation, -r.reference.translation), r.reported,
+                            1e-9, 1e-9));
     }
   }
   EXPECT_EQ(wrong_side, scene.hidden.flip_count);
@@ -287,8 +294,8 @@ TEST(TrackcalSimulate, CommandLine) {
   const std::string exe = std::string(bin) + "/sim/trackcal-simulate";
   const auto dir = MakeTempDir("simulate_cli");
   const std::string out = (dir / "cap").string();
-  const std::string run = exe + " --scene paper --hidden sensor_offset,clock_offset --seed 3 -o " + out +
-                          " > " + (dir / "log").string() + " 2>&1";
+  const std::string run = exe + " --scene paper --hidden sensor_offset,clock_offset --seed 3 -o " +
+                          out + " > " + (dir / "log").string() + " 2>&1";
   ASSERT_EQ(std::system(run.c_str()), 0) << ReadText(dir / "log");
   const nlohmann::json truth = nlohmann::json::parse(ReadText(dir / "cap" / "truth.json"));
   EXPECT_EQ(truth["scene"]["seed"].get<uint64_t>(), 3u);
@@ -299,8 +306,14 @@ TEST(TrackcalSimulate, CommandLine) {
   EXPECT_NE(ReadText(dir / "log").find("refusing to overwrite"), std::string::npos);
   EXPECT_EQ(ReadText(dir / "cap" / kPosesCsv), before);
   // Unknown effects and bad seeds are user errors.
-  EXPECT_NE(std::system((exe + " --scene paper --hidden latency -o " + (dir / "x").string() + " 2>/dev/null").c_str()), 0);
-  EXPECT_NE(std::system((exe + " --scene paper --seed -1 -o " + (dir / "y").string() + " 2>/dev/null").c_str()), 0);
+  EXPECT_NE(std::system((exe + " --scene paper --hidden latency -o " + (dir / "x").string() +
+                         " 2>/dev/null")
+                            .c_str()),
+            0);
+  EXPECT_NE(
+      std::system(
+          (exe + " --scene paper --seed -1 -o " + (dir / "y").string() + " 2>/dev/null").c_str()),
+      0);
   EXPECT_FALSE(std::filesystem::exists(dir / "x"));
 }
 

@@ -15,13 +15,10 @@
 #include <vector>
 
 #include "vrpn_server/app/app.h"
+#include "vrpn_server/app/calibration_corrector.h"
 #include "vrpn_server/app/config_setup.h"
 #include "vrpn_server/config.h"
 
-#if __has_include("core/calibration_file.h")
-#include "core/calibration_file.h"
-#define TRACKCAL_HAVE_CALIBRATION_FILE 1
-#endif
 
 namespace trackcal::vrpn {
 namespace {
@@ -37,6 +34,8 @@ the calibration files attached with trackcal_Calibration lines (docs/vrpn.md, do
   --allow CIDR     accept clients from this network only; repeatable (default: everyone)
   --record DIR     record raw and corrected streams of every tracker to DIR as CSV
   --max-clients N  refuse connections beyond N (default 256)
+  --realtime-priority P
+                   run the network thread SCHED_FIFO at priority P (1-99; needs CAP_SYS_NICE)
   -h, --help       this text
 
 Signals: SIGHUP reloads every calibration file (a changed file is also reloaded on its own);
@@ -82,6 +81,8 @@ Args ParseArgs(int argc, char** argv) {
       a.app.record_dir = value(arg);
     } else if (arg == "--max-clients") {
       a.app.server.max_clients = ParseInt(value(arg), arg, 1, 100000);
+    } else if (arg == "--realtime-priority") {
+      a.app.server.realtime_priority = ParseInt(value(arg), arg, 1, 99);
     } else if (arg == "-warn" || arg == "-v" || arg == "-q") {
       std::cerr << "trackcal-server: note: " << arg << " ignored\n";
     } else if (arg == "-millisleep" || arg == "-li" || arg == "-lo") {
@@ -97,45 +98,6 @@ Args ParseArgs(int argc, char** argv) {
   a.app.server.Check();
   return a;
 }
-
-#ifdef TRACKCAL_HAVE_CALIBRATION_FILE
-class CalibrationCorrector : public PoseCorrector {
- public:
-  CalibrationCorrector(Calibration calibration, std::string description)
-      : calibration_(std::move(calibration)), description_(std::move(description)) {}
-  Rigid3d Correct(const Rigid3d& reported) const override { return calibration_.Apply(reported).pose; }
-  std::string Describe() const override { return description_; }
-
- private:
-  Calibration calibration_;
-  std::string description_;
-};
-
-std::shared_ptr<const PoseCorrector> LoadCalibration(const std::filesystem::path& path,
-                                                     const std::optional<std::string>& outside) {
-  Calibration calibration = ReadCalibrationFile(path);
-  if (outside) {
-    CalibratedVolume volume = calibration.volume();
-    volume.extrapolation = ExtrapolationPolicyFromName(*outside);
-    volume.Check();  // fade needs the file's fade_distance
-    calibration.chain.SetVolume(volume);
-  }
-  std::string terms;
-  for (std::size_t i = 0; i < calibration.chain.size(); ++i) {
-    terms += (i ? "+" : "") + calibration.chain.term(i).TypeName();
-  }
-  return std::make_shared<CalibrationCorrector>(
-      std::move(calibration),
-      path.string() + " (" + terms + ", outside: " +
-          ExtrapolationPolicyName(calibration.volume().extrapolation) + ")");
-}
-#else
-std::shared_ptr<const PoseCorrector> LoadCalibration(const std::filesystem::path& path,
-                                                     const std::optional<std::string>&) {
-  throw std::invalid_argument(path.string() +
-                              ": this build of trackcal-server has no calibration file support");
-}
-#endif
 
 int Run(int argc, char** argv) {
   const Args args = ParseArgs(argc, argv);
@@ -158,7 +120,7 @@ int Run(int argc, char** argv) {
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
   const int sfd = ::signalfd(-1, &signals, SFD_CLOEXEC);
 
-  TrackcalServerApp app(std::move(setup.trackers), args.app, LoadCalibration);
+  TrackcalServerApp app(std::move(setup.trackers), args.app, LoadCalibrationCorrector);
   app.Start();
 
   const int ifd = ::inotify_init1(IN_NONBLOCK | IN_CLOEXEC);

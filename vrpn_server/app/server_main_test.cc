@@ -7,11 +7,15 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cmath>
 #include <cstdlib>
 #include <fstream>
 #include <sstream>
 #include <thread>
 
+#include "core/calibration_file.h"
+#include "core/file_util.h"
+#include "core/polynomial.h"
 #include "tests/test_utils.h"
 #include "vrpn_server/client/tracker_client.h"
 #include "vrpn_server/net/socket_util.h"
@@ -97,6 +101,66 @@ TEST(TrackcalServerMain, ServesNullTrackerWarnsOnUnknownLineAndStopsOnSigterm) {
   EXPECT_NE(err.find("vrpn.cfg:2"), std::string::npos) << err;
   EXPECT_NE(err.find("vrpn_Tracker_Liberty"), std::string::npos) << err;
   EXPECT_NE(err.find("SIGHUP"), std::string::npos) << err;
+}
+
+// A calibration that adds `offset` to every position (degree-0 polynomial).
+void WriteOffsetCalibration(const std::filesystem::path& path, const Eigen::Vector3d& offset) {
+  Calibration cal;
+  cal.chain.Append(PolynomialCorrection::FromPositionAndOrientation(
+      0, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones(), {offset.x(), offset.y(), offset.z()},
+      {0.0, 0.0, 0.0}));
+  CalibratedVolume volume;
+  volume.min = Eigen::Vector3d(-1, -1, -1);
+  volume.max = Eigen::Vector3d(1, 1, 1);
+  cal.chain.SetVolume(volume);
+  cal.provenance.tool = "server_main_test";
+  cal.provenance.tool_version = "0";
+  cal.provenance.created_utc = CurrentUtcTimestamp();
+  cal.provenance.inputs.push_back({"none", Sha256Hex("x"), "calibration_capture"});
+  const auto tmp = path.string() + ".new";
+  std::filesystem::remove(tmp);
+  WriteCalibrationFile(tmp, cal);
+  std::filesystem::rename(tmp, path);  // replaced as a whole, as trackcal-fit's atomic writes do
+}
+
+TEST(TrackcalServerMain, CalibrationRawNameAndReloadOnChangeAndSighup) {
+  const auto dir = testing::MakeTempDir("server_main_calib");
+  WriteOffsetCalibration(dir / "calib.json", Eigen::Vector3d(0.1, 0, 0));
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
+                                     "trackcal_Calibration Tracker0 calib.json raw=Tracker0_raw\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), std::to_string(port), "--bind",
+                  "127.0.0.1"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
+  VrpnTrackerClient raw("Tracker0_raw@tcp://127.0.0.1:" + std::to_string(port));
+  double x = NAN, raw_x = NAN;
+  corrected.SetPoseCallback([&](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
+  raw.SetPoseCallback([&](const TrackerReport& r) { raw_x = r.transmitter_from_receiver.translation.x(); });
+  auto wait_for = [&](double expected) {
+    const auto end = Clock::now() + std::chrono::seconds(15);
+    while (Clock::now() < end && (x != expected || std::isnan(raw_x))) {
+      corrected.Poll(0.005);
+      raw.Poll(0.0);
+    }
+    return x == expected && !std::isnan(raw_x);
+  };
+  EXPECT_TRUE(wait_for(0.1)) << server.Stderr();
+  EXPECT_EQ(raw_x, 0.0);
+  // A changed file is picked up on its own.
+  WriteOffsetCalibration(dir / "calib.json", Eigen::Vector3d(0.2, 0, 0));
+  EXPECT_TRUE(wait_for(0.2)) << server.Stderr();
+  // A bad file is rejected; SIGHUP does not make it active either.
+  std::ofstream(dir / "calib.json.new") << "{}";
+  std::filesystem::rename(dir / "calib.json.new", dir / "calib.json");
+  ::kill(server.pid, SIGHUP);
+  for (int i = 0; i < 100; ++i) corrected.Poll(0.005);
+  EXPECT_EQ(x, 0.2);
+  EXPECT_EQ(corrected.connections(), 1u);
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+  const std::string err = server.Stderr();
+  EXPECT_NE(err.find("rejected"), std::string::npos) << err;
 }
 
 TEST(TrackcalServerMain, BadArgumentsAndBusyPortFail) {

@@ -41,7 +41,8 @@ struct FastrakTimings {
   double filter_settle_s = 1.0;          // after each filter line (`x`, `v`)
   double extras_settle_s = 2.0;          // after the extra commands, if there are any
   double watchdog_s = 2.0;               // no complete record for this long -> reopen and reset
-  double resume_probe_s = 0.5;           // after reopening: listen this long for records before resetting
+  double resume_probe_s = 2.0;           // after reopening: listen up to this long for records before
+                                         // resetting (ends at the second record; covers short stalls)
   double reopen_backoff_min_s = 0.1;     // first retry delay when the port cannot be opened
   double reopen_backoff_max_s = 1.0;     // cap of the doubling retry delay
   double message_interval_s = 1.0;       // at most one text per interval to clients

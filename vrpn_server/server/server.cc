@@ -3,6 +3,7 @@
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <pthread.h>
+#include <sched.h>
 #include <time.h>
 #include <netinet/tcp.h>
 #include <sys/epoll.h>
@@ -52,6 +53,9 @@ void ServerOptions::Check() const {
     throw std::invalid_argument("ServerOptions.max_message_length: must hold a text message (1056)");
   }
   if (listen_backlog < 1) throw std::invalid_argument("ServerOptions.listen_backlog: must be >= 1");
+  if (realtime_priority < 0 || realtime_priority > 99) {
+    throw std::invalid_argument("ServerOptions.realtime_priority: must be in [0, 99]");
+  }
   if (!(handshake_timeout_s > 0)) {
     throw std::invalid_argument("ServerOptions.handshake_timeout_s: must be > 0");
   }
@@ -66,6 +70,7 @@ struct VrpnServer::Event {
   TextSeverity severity = TextSeverity::kNormal;
   std::string text;
   bool pressed = false;
+  Clock::time_point enqueued;
 };
 
 struct VrpnServer::Endpoint {
@@ -96,6 +101,7 @@ struct VrpnServer::Impl {
   std::vector<std::vector<std::int32_t>> button_states;
   std::vector<std::uint8_t> encoded;
   int refused_logged = 0;
+  std::vector<float> fanout_us;  // guarded by the server's stats_mutex_
 };
 
 void LogToStderr(const std::string& line) {
@@ -189,6 +195,7 @@ void VrpnServer::Stop() {
 }
 
 void VrpnServer::Push(Event event) {
+  event.enqueued = Clock::now();
   bool was_empty;
   {
     std::lock_guard<std::mutex> lock(impl_->queue_mutex);
@@ -260,6 +267,12 @@ double VrpnServer::NetworkThreadCpuSeconds() const {
 }
 
 void VrpnServer::Run() {
+  if (options_.realtime_priority > 0) {
+    sched_param param{};
+    param.sched_priority = options_.realtime_priority;
+    const int rc = ::pthread_setschedparam(::pthread_self(), SCHED_FIFO, &param);
+    if (rc != 0) Log("cannot use real-time priority " + std::to_string(options_.realtime_priority) + ": " + ErrnoText(rc));
+  }
   epoll_event events[64];
   while (running_) {
     // Block indefinitely unless a handshake deadline is pending: no periodic wake-ups when idle.
@@ -601,6 +614,7 @@ void VrpnServer::DrainEvents() {
   }
   if (impl_->work.empty()) return;
   const TypeIds& types = catalog_->types();
+  const Clock::time_point first_enqueued = impl_->work.front().enqueued;
   std::uint64_t reports = 0;
   std::vector<std::uint8_t>& msg = impl_->encoded;
   for (const Event& ev : impl_->work) {
@@ -665,6 +679,16 @@ void VrpnServer::DrainEvents() {
     }
     Flush(e);
   }
+  const float us = std::chrono::duration<float, std::micro>(Clock::now() - first_enqueued).count();
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  if (impl_->fanout_us.size() < 1000000) impl_->fanout_us.push_back(us);
+}
+
+std::vector<float> VrpnServer::TakeFanoutMicros() {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  std::vector<float> out;
+  out.swap(impl_->fanout_us);
+  return out;
 }
 
 }  // namespace trackcal::vrpn

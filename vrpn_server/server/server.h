@@ -51,6 +51,10 @@ struct ServerOptions {
   // A connection that has not completed its cookie exchange (or call-back connect) in this time
   // is dropped [s].
   double handshake_timeout_s = 10.0;
+  // Real-time (SCHED_FIFO) priority for the network thread, 1..99; 0 keeps the normal scheduler.
+  // Keeps client processes on the same host from preempting a fan-out halfway; needs
+  // CAP_SYS_NICE (a warning is logged and the server runs normally without it).
+  int realtime_priority = 0;
   void Check() const;  // throws std::invalid_argument naming the field
 };
 
@@ -88,6 +92,9 @@ class VrpnServer {
   void PublishButton(int button, int index, bool pressed, Timestamp time);
 
   ServerStats stats() const;
+  // Server-side latency of every report batch since the last call [us]: from the first report's
+  // hand-over (Publish*) to the last client's send() returning. Kept for at most 1e6 batches.
+  std::vector<float> TakeFanoutMicros();
   // CPU time the network thread has used [s] (for the idle-CPU benchmark); 0 when not running.
   double NetworkThreadCpuSeconds() const;
 
