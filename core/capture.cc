@@ -1,0 +1,459 @@
+#include "core/capture.h"
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <array>
+#include <cerrno>
+#include <charconv>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <map>
+#include <sstream>
+#include <stdexcept>
+
+namespace trackcal {
+
+namespace {
+
+std::string Trim(std::string_view s) {
+  size_t b = 0;
+  size_t e = s.size();
+  while (b < e && (s[b] == ' ' || s[b] == '\t')) ++b;
+  while (e > b && (s[e - 1] == ' ' || s[e - 1] == '\t' || s[e - 1] == '\r')) --e;
+  return std::string(s.substr(b, e - b));
+}
+
+std::vector<std::string> Split(const std::string& line) {
+  std::vector<std::string> out;
+  size_t start = 0;
+  while (true) {
+    const size_t comma = line.find(',', start);
+    out.push_back(Trim(std::string_view(line).substr(start, comma - start)));
+    if (comma == std::string::npos) break;
+    start = comma + 1;
+  }
+  return out;
+}
+
+// A parsed CSV file with named columns: the standard ones and the extras.
+class CsvTable {
+ public:
+  CsvTable(const std::filesystem::path& path, const std::vector<std::string>& required)
+      : name_(path.filename().string()) {
+    std::ifstream in(path);
+    if (!in) throw std::runtime_error(path.string() + ": cannot open file");
+    std::string line;
+    int line_number = 0;
+    bool have_header = false;
+    while (std::getline(in, line)) {
+      ++line_number;
+      if (Trim(line).empty()) continue;
+      if (!have_header) {
+        header_line_ = line_number;
+        header_ = Split(line);
+        have_header = true;
+        continue;
+      }
+      rows_.push_back({line_number, Split(line)});
+    }
+    if (!have_header) throw std::invalid_argument(name_ + ":1: empty file, expected a header");
+    for (size_t i = 0; i < header_.size(); ++i) {
+      if (header_[i].empty())
+        Fail(header_line_, "header", "column " + std::to_string(i + 1) + " has no name");
+      if (!index_.emplace(header_[i], i).second) {
+        Fail(header_line_, "column " + header_[i], "appears twice in the header");
+      }
+    }
+    for (const std::string& r : required) {
+      if (!index_.count(r)) Fail(header_line_, "column " + r, "missing from the header");
+    }
+    for (size_t i = 0; i < header_.size(); ++i) {
+      bool standard = false;
+      for (const std::string& r : required) standard |= (r == header_[i]);
+      if (!standard) {
+        extra_names_.push_back(header_[i]);
+        extra_index_.push_back(i);
+      }
+    }
+    for (const Row& row : rows_) {
+      if (row.fields.size() != header_.size()) {
+        Fail(row.line, "row",
+             "expected " + std::to_string(header_.size()) + " fields, found " +
+                 std::to_string(row.fields.size()));
+      }
+    }
+  }
+
+  struct Row {
+    int line;
+    std::vector<std::string> fields;
+  };
+  const std::vector<Row>& rows() const { return rows_; }
+  const std::vector<std::string>& extra_columns() const { return extra_names_; }
+
+  const std::string& Text(const Row& row, const std::string& column) const {
+    return row.fields[index_.at(column)];
+  }
+
+  double Number(const Row& row, const std::string& column) const {
+    return ParseNumber(row, column, Text(row, column));
+  }
+
+  int Integer(const Row& row, const std::string& column) const {
+    const std::string& s = Text(row, column);
+    int value = 0;
+    const auto [end, ec] = std::from_chars(s.data(), s.data() + s.size(), value);
+    if (s.empty() || ec != std::errc() || end != s.data() + s.size()) {
+      Fail(row.line, "column " + column, "'" + s + "' is not an integer");
+    }
+    return value;
+  }
+
+  Eigen::Vector3d Vector(const Row& row, const std::string& prefix) const {
+    return Eigen::Vector3d(Number(row, prefix + "x"), Number(row, prefix + "y"),
+                           Number(row, prefix + "z"));
+  }
+
+  Eigen::Quaterniond Quaternion(const Row& row, const std::string& prefix) const {
+    const double w = Number(row, prefix + "qw");
+    const double x = Number(row, prefix + "qx");
+    const double y = Number(row, prefix + "qy");
+    const double z = Number(row, prefix + "qz");
+    Eigen::Quaterniond q = QuaternionFromWxyz(w, x, y, z);
+    // Hand-edited or low-precision files carry a few digits; anything further from unit is an
+    // error.
+    if (std::abs(q.norm() - 1.0) > 1e-3) {
+      char buf[64];
+      std::snprintf(buf, sizeof(buf), "%.6g", q.norm());
+      Fail(row.line,
+           "columns " + prefix + "qw, " + prefix + "qx, " + prefix + "qy, " + prefix + "qz",
+           std::string("quaternion norm ") + buf + " is not 1");
+    }
+    if (std::abs(q.norm() - 1.0) > 1e-12) q.normalize();  // keep written values bit for bit
+    return q;
+  }
+
+  Rigid3d Pose(const Row& row, const std::string& prefix) const {
+    return Rigid3d(Quaternion(row, prefix), Vector(row, prefix));
+  }
+
+  std::vector<double> Extras(const Row& row) const {
+    std::vector<double> out;
+    out.reserve(extra_index_.size());
+    for (size_t i = 0; i < extra_index_.size(); ++i) {
+      out.push_back(ParseNumber(row, extra_names_[i], row.fields[extra_index_[i]], true));
+    }
+    return out;
+  }
+
+  [[noreturn]] void Fail(int line, const std::string& what, const std::string& problem) const {
+    throw std::invalid_argument(name_ + ":" + std::to_string(line) + ": " + what + ": " + problem);
+  }
+
+ private:
+  double ParseNumber(const Row& row, const std::string& column, const std::string& s,
+                     bool allow_nan = false) const {
+    double value = 0;
+    const char* begin = s.data() + (s.size() > 1 && s[0] == '+' ? 1 : 0);
+    const auto [end, ec] = std::from_chars(begin, s.data() + s.size(), value);
+    if (s.empty() || ec != std::errc() || end != s.data() + s.size()) {
+      Fail(row.line, "column " + column, "'" + s + "' is not a number");
+    }
+    // Extra columns may mark a missing reading with nan; standard columns must be finite.
+    if (!std::isfinite(value) && !(allow_nan && std::isnan(value))) {
+      Fail(row.line, "column " + column, "'" + s + "' is not a finite number");
+    }
+    return value;
+  }
+
+  std::string name_;
+  int header_line_ = 1;
+  std::vector<std::string> header_;
+  std::map<std::string, size_t> index_;
+  std::vector<std::string> extra_names_;
+  std::vector<size_t> extra_index_;
+  std::vector<Row> rows_;
+};
+
+const std::vector<std::string> kPoseColumns = {
+    "station", "set",    "sensor", "time",  "rep_x", "rep_y",  "rep_z",  "rep_qw", "rep_qx",
+    "rep_qy",  "rep_qz", "ref_x",  "ref_y", "ref_z", "ref_qw", "ref_qx", "ref_qy", "ref_qz"};
+const std::vector<std::string> kMarkerColumns = {"station", "marker", "x", "y", "z"};
+const std::vector<std::string> kTrackerColumns = {"station", "sensor", "x",  "y", "z",
+                                                  "qw",      "qx",     "qy", "qz"};
+const std::vector<std::string> kTrackerStreamColumns = {"time", "sensor", "x",  "y", "z",
+                                                        "qw",   "qx",     "qy", "qz"};
+const std::vector<std::string> kReferenceStreamColumns = {"time", "x",  "y",  "z",
+                                                          "qw",   "qx", "qy", "qz"};
+
+bool IsKnownSet(const std::string& set) { return set == "calib" || set == "valid" || set == "reg"; }
+
+// ---- Writing. ----
+class CsvWriter {
+ public:
+  CsvWriter(const std::filesystem::path& path, const std::vector<std::string>& columns,
+            const std::vector<std::string>& extra_columns)
+      : name_(path.filename().string()), extra_count_(extra_columns.size()) {
+    for (const std::string& e : extra_columns) {
+      for (const std::string& c : columns) {
+        if (e == c)
+          throw std::invalid_argument(name_ + ": extra column " + e + " is a standard column");
+      }
+      if (e.empty() || e.find_first_of(",\n\r") != std::string::npos) {
+        throw std::invalid_argument(name_ + ": extra column name '" + e + "' is not a valid name");
+      }
+    }
+    std::vector<std::string> all = columns;
+    all.insert(all.end(), extra_columns.begin(), extra_columns.end());
+    for (size_t i = 0; i < all.size(); ++i) out_ << (i ? "," : "") << all[i];
+    out_ << '\n';
+  }
+  CsvWriter& Int(int v) {
+    Sep();
+    out_ << v;
+    return *this;
+  }
+  CsvWriter& Text(const std::string& s) {
+    Sep();
+    out_ << s;
+    return *this;
+  }
+  CsvWriter& Num(double v) {
+    Sep();
+    out_ << FormatNumber(v);
+    return *this;
+  }
+  CsvWriter& Vec(const Eigen::Vector3d& v) { return Num(v.x()).Num(v.y()).Num(v.z()); }
+  CsvWriter& Pose(const Rigid3d& p) {
+    const Eigen::Quaterniond& q = p.rotation;
+    return Vec(p.translation).Num(q.w()).Num(q.x()).Num(q.y()).Num(q.z());
+  }
+  void End(const std::vector<double>& extra, size_t record) {
+    if (extra.size() != extra_count_) {
+      throw std::invalid_argument(name_ + ": record " + std::to_string(record) + " has " +
+                                  std::to_string(extra.size()) + " extra values, expected " +
+                                  std::to_string(extra_count_));
+    }
+    for (double v : extra) Num(v);
+    out_ << '\n';
+    first_ = true;
+  }
+  void Commit(const std::filesystem::path& path, const CaptureWriteOptions& options) {
+    WriteFileAtomically(path, out_.str(), options.overwrite);
+  }
+
+ private:
+  void Sep() {
+    if (!first_) out_ << ',';
+    first_ = false;
+  }
+  std::string name_;
+  size_t extra_count_;
+  std::ostringstream out_;
+  bool first_ = true;
+};
+
+}  // namespace
+
+std::string FormatNumber(double value) {
+  std::array<char, 64> buf;
+  const auto [end, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), value);
+  if (ec != std::errc()) throw std::runtime_error("cannot format number");
+  return std::string(buf.data(), end);
+}
+
+void WriteFileAtomically(const std::filesystem::path& path, const std::string& contents,
+                         bool overwrite) {
+  namespace fs = std::filesystem;
+  if (!overwrite && fs::exists(path)) {
+    throw std::runtime_error(path.string() + ": exists; refusing to overwrite it");
+  }
+  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
+  // Hidden temporary name next to the target, so the final rename stays on one file system.
+  std::string hidden_name = path.filename().string();
+  hidden_name.insert(hidden_name.begin(), '.');
+  hidden_name.append(".tmp-XXXXXX");
+  std::string tmpl = (dir / hidden_name).string();
+  const int fd = mkstemp(tmpl.data());
+  if (fd < 0)
+    throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string());
+  size_t written = 0;
+  while (written < contents.size()) {
+    const ssize_t n = ::write(fd, contents.data() + written, contents.size() - written);
+    if (n <= 0) {
+      ::close(fd);
+      ::unlink(tmpl.c_str());
+      throw std::runtime_error(path.string() + ": write failed");
+    }
+    written += static_cast<size_t>(n);
+  }
+  // mkstemp creates the file 0600; a capture gets the permissions of any new file.
+  const mode_t mask = ::umask(0);
+  ::umask(mask);
+  ::fchmod(fd, 0666 & ~mask);
+  const bool synced = ::fsync(fd) == 0;
+  ::close(fd);
+  if (!synced) {
+    ::unlink(tmpl.c_str());
+    throw std::runtime_error(path.string() + ": fsync failed");
+  }
+  if (overwrite) {
+    if (std::rename(tmpl.c_str(), path.c_str()) != 0) {
+      ::unlink(tmpl.c_str());
+      throw std::runtime_error(path.string() + ": cannot rename the temporary file into place");
+    }
+    return;
+  }
+  // link() fails if the target exists, so a file that appeared meanwhile is never replaced.
+  const int rc = ::link(tmpl.c_str(), path.c_str());
+  ::unlink(tmpl.c_str());
+  if (rc != 0) {
+    throw std::runtime_error(path.string() + (errno == EEXIST
+                                                  ? ": exists; refusing to overwrite it"
+                                                  : ": cannot move the temporary file into place"));
+  }
+}
+
+PoseCapture ReadPoses(const std::filesystem::path& path) {
+  CsvTable t(path, kPoseColumns);
+  PoseCapture c;
+  c.extra_columns = t.extra_columns();
+  for (const auto& row : t.rows()) {
+    PoseRecord r;
+    r.station = t.Integer(row, "station");
+    r.set = t.Text(row, "set");
+    if (!IsKnownSet(r.set)) {
+      t.Fail(row.line, "column set", "'" + r.set + "' is not one of calib, valid, reg");
+    }
+    r.sensor = t.Integer(row, "sensor");
+    r.time = t.Number(row, "time");
+    r.reported = t.Pose(row, "rep_");
+    r.reference = t.Pose(row, "ref_");
+    r.extra = t.Extras(row);
+    c.records.push_back(std::move(r));
+  }
+  return c;
+}
+
+MarkerCapture ReadMarkers(const std::filesystem::path& path) {
+  CsvTable t(path, kMarkerColumns);
+  MarkerCapture c;
+  c.extra_columns = t.extra_columns();
+  for (const auto& row : t.rows()) {
+    MarkerRecord r;
+    r.station = t.Integer(row, "station");
+    r.marker = t.Integer(row, "marker");
+    r.position_in_optical = t.Vector(row, "");
+    r.extra = t.Extras(row);
+    c.records.push_back(std::move(r));
+  }
+  return c;
+}
+
+TrackerCapture ReadTracker(const std::filesystem::path& path) {
+  CsvTable t(path, kTrackerColumns);
+  TrackerCapture c;
+  c.extra_columns = t.extra_columns();
+  for (const auto& row : t.rows()) {
+    TrackerRecord r;
+    r.station = t.Integer(row, "station");
+    r.sensor = t.Integer(row, "sensor");
+    r.transmitter_from_receiver = t.Pose(row, "");
+    r.extra = t.Extras(row);
+    c.records.push_back(std::move(r));
+  }
+  return c;
+}
+
+TrackerStream ReadTrackerStream(const std::filesystem::path& path) {
+  CsvTable t(path, kTrackerStreamColumns);
+  TrackerStream c;
+  c.extra_columns = t.extra_columns();
+  for (const auto& row : t.rows()) {
+    TrackerStreamSample r;
+    r.time = t.Number(row, "time");
+    r.sensor = t.Integer(row, "sensor");
+    r.transmitter_from_receiver = t.Pose(row, "");
+    r.extra = t.Extras(row);
+    c.records.push_back(std::move(r));
+  }
+  return c;
+}
+
+ReferenceStream ReadReferenceStream(const std::filesystem::path& path) {
+  CsvTable t(path, kReferenceStreamColumns);
+  ReferenceStream c;
+  c.extra_columns = t.extra_columns();
+  for (const auto& row : t.rows()) {
+    ReferenceStreamSample r;
+    r.time = t.Number(row, "time");
+    r.transmitter_from_body = t.Pose(row, "");
+    r.extra = t.Extras(row);
+    c.records.push_back(std::move(r));
+  }
+  return c;
+}
+
+void WritePoses(const std::filesystem::path& path, const PoseCapture& capture,
+                const CaptureWriteOptions& options) {
+  CsvWriter w(path, kPoseColumns, capture.extra_columns);
+  for (size_t i = 0; i < capture.records.size(); ++i) {
+    const PoseRecord& r = capture.records[i];
+    if (!IsKnownSet(r.set)) {
+      throw std::invalid_argument(path.filename().string() + ": record " + std::to_string(i) +
+                                  ": set '" + r.set + "' is not one of calib, valid, reg");
+    }
+    w.Int(r.station).Text(r.set).Int(r.sensor).Num(r.time).Pose(r.reported).Pose(r.reference);
+    w.End(r.extra, i);
+  }
+  w.Commit(path, options);
+}
+
+void WriteMarkers(const std::filesystem::path& path, const MarkerCapture& capture,
+                  const CaptureWriteOptions& options) {
+  CsvWriter w(path, kMarkerColumns, capture.extra_columns);
+  for (size_t i = 0; i < capture.records.size(); ++i) {
+    const MarkerRecord& r = capture.records[i];
+    w.Int(r.station).Int(r.marker).Vec(r.position_in_optical);
+    w.End(r.extra, i);
+  }
+  w.Commit(path, options);
+}
+
+void WriteTracker(const std::filesystem::path& path, const TrackerCapture& capture,
+                  const CaptureWriteOptions& options) {
+  CsvWriter w(path, kTrackerColumns, capture.extra_columns);
+  for (size_t i = 0; i < capture.records.size(); ++i) {
+    const TrackerRecord& r = capture.records[i];
+    w.Int(r.station).Int(r.sensor).Pose(r.transmitter_from_receiver);
+    w.End(r.extra, i);
+  }
+  w.Commit(path, options);
+}
+
+void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& capture,
+                        const CaptureWriteOptions& options) {
+  CsvWriter w(path, kTrackerStreamColumns, capture.extra_columns);
+  for (size_t i = 0; i < capture.records.size(); ++i) {
+    const TrackerStreamSample& r = capture.records[i];
+    w.Num(r.time).Int(r.sensor).Pose(r.transmitter_from_receiver);
+    w.End(r.extra, i);
+  }
+  w.Commit(path, options);
+}
+
+void WriteReferenceStream(const std::filesystem::path& path, const ReferenceStream& capture,
+                          const CaptureWriteOptions& options) {
+  CsvWriter w(path, kReferenceStreamColumns, capture.extra_columns);
+  for (size_t i = 0; i < capture.records.size(); ++i) {
+    const ReferenceStreamSample& r = capture.records[i];
+    w.Num(r.time).Pose(r.transmitter_from_body);
+    w.End(r.extra, i);
+  }
+  w.Commit(path, options);
+}
+
+}  // namespace trackcal

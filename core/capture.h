@@ -1,0 +1,125 @@
+// Capture files: what a calibration session records and every other part of trackcal reads.
+// Formats documented in docs/captures.md.
+//
+//   poses.csv            station,set,sensor,time,rep_x..rep_qz,ref_x..ref_qz  paired static poses
+//   markers.csv          station,marker,x,y,z                                optical markers (reg.)
+//   tracker.csv          station,sensor,x,y,z,qw,qx,qy,qz                    tracker at reg.
+//   stations tracker_stream.csv   time,sensor,x,y,z,qw,qx,qy,qz                       tracker
+//   stream reference_stream.csv time,x,y,z,qw,qx,qy,qz                              reference
+//   stream
+//
+// Metres and seconds; poses are transmitter_from_receiver (reference: transmitter_from_body) in the
+// transmitter frame, markers in the optical frame. Columns are found by name in any order; any
+// other column must be numeric on every row and is kept (`extra_columns`, `extra` per record) and
+// written back after the standard ones. Errors name file, line and column:
+//   poses.csv:17: column rep_qw: 'abc' is not a number
+// Writers are atomic (temporary file + rename) and refuse to replace an existing file unless
+// `overwrite` is set.
+
+#pragma once
+
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "core/pose.h"
+
+namespace trackcal {
+
+// One paired static station: the tracker's report and the optical reference, both averaged.
+struct PoseRecord {
+  int station = 0;            // station id, unique per capture
+  std::string set;            // "calib", "valid" or "reg"
+  int sensor = 1;             // tracker station (receiver) number
+  double time = 0.0;          // station time on the tracker clock [s]
+  Rigid3d reported;           // transmitter_from_receiver reported by the tracker
+  Rigid3d reference;          // transmitter_from_receiver measured by the reference
+  std::vector<double> extra;  // values of the extra columns, in extra_columns order
+};
+
+// One optical marker reading (registration stations).
+struct MarkerRecord {
+  int station = 0;                                                // station id
+  int marker = 0;                                                 // marker id on the body
+  Eigen::Vector3d position_in_optical = Eigen::Vector3d::Zero();  // [m]
+  std::vector<double> extra;
+};
+
+// The tracker's report at a registration station.
+struct TrackerRecord {
+  int station = 0;
+  int sensor = 1;
+  Rigid3d transmitter_from_receiver;
+  std::vector<double> extra;
+};
+
+// A tracker stream sample (tracker clock).
+struct TrackerStreamSample {
+  double time = 0.0;  // [s]
+  int sensor = 1;
+  Rigid3d transmitter_from_receiver;
+  std::vector<double> extra;
+};
+
+// A reference stream sample (reference clock), registered into the transmitter frame.
+struct ReferenceStreamSample {
+  double time = 0.0;  // [s]
+  Rigid3d transmitter_from_body;
+  std::vector<double> extra;
+};
+
+// A whole file: the records and the names of the extra numeric columns they carry.
+template <typename Record>
+struct CaptureTable {
+  std::vector<std::string> extra_columns;
+  std::vector<Record> records;
+};
+
+using PoseCapture = CaptureTable<PoseRecord>;
+using MarkerCapture = CaptureTable<MarkerRecord>;
+using TrackerCapture = CaptureTable<TrackerRecord>;
+using TrackerStream = CaptureTable<TrackerStreamSample>;
+using ReferenceStream = CaptureTable<ReferenceStreamSample>;
+
+struct CaptureWriteOptions {
+  bool overwrite = false;  // replace an existing file (never the default: captures are precious)
+};
+
+// The standard file names of a capture folder.
+inline constexpr const char* kPosesCsv = "poses.csv";
+inline constexpr const char* kMarkersCsv = "markers.csv";
+inline constexpr const char* kTrackerCsv = "tracker.csv";
+inline constexpr const char* kTrackerStreamCsv = "tracker_stream.csv";
+inline constexpr const char* kReferenceStreamCsv = "reference_stream.csv";
+
+// Readers throw std::invalid_argument "file:line: column name: problem" on bad input and
+// std::runtime_error when the file cannot be read.
+PoseCapture ReadPoses(const std::filesystem::path& path);
+MarkerCapture ReadMarkers(const std::filesystem::path& path);
+TrackerCapture ReadTracker(const std::filesystem::path& path);
+TrackerStream ReadTrackerStream(const std::filesystem::path& path);
+ReferenceStream ReadReferenceStream(const std::filesystem::path& path);
+
+// Writers throw std::invalid_argument on inconsistent records (extra values not matching
+// extra_columns, unknown set) and std::runtime_error when the file exists (without overwrite) or
+// cannot be written. Numbers are written in shortest round-trip form, so read(write(x)) == x.
+void WritePoses(const std::filesystem::path& path, const PoseCapture& capture,
+                const CaptureWriteOptions& options = {});
+void WriteMarkers(const std::filesystem::path& path, const MarkerCapture& capture,
+                  const CaptureWriteOptions& options = {});
+void WriteTracker(const std::filesystem::path& path, const TrackerCapture& capture,
+                  const CaptureWriteOptions& options = {});
+void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& capture,
+                        const CaptureWriteOptions& options = {});
+void WriteReferenceStream(const std::filesystem::path& path, const ReferenceStream& capture,
+                          const CaptureWriteOptions& options = {});
+
+// Writes `contents` to `path` atomically (temporary file in the same folder, then rename or link);
+// without overwrite, fails with std::runtime_error if `path` exists, even if it appears meanwhile.
+void WriteFileAtomically(const std::filesystem::path& path, const std::string& contents,
+                         bool overwrite);
+
+// Shortest decimal text that reads back to exactly `value`.
+std::string FormatNumber(double value);
+
+}  // namespace trackcal

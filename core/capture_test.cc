@@ -1,0 +1,217 @@
+#include "core/capture.h"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <sstream>
+
+#include "tests/test_utils.h"
+
+namespace trackcal {
+namespace {
+
+using testing::MakeTempDir;
+using testing::RandomRotation;
+using testing::TestRng;
+
+std::string ReadText(const std::filesystem::path& p) {
+  std::ifstream in(p);
+  std::stringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+void WriteText(const std::filesystem::path& p, const std::string& text) {
+  std::ofstream(p) << text;
+}
+
+std::string ErrorOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const std::exception& e) {
+    return e.what();
+  }
+  return "";
+}
+
+PoseCapture RandomPoses() {
+  PoseCapture c;
+  c.extra_columns = {"temperature_c"};
+  const char* sets[] = {"calib", "valid", "reg"};
+  for (int i = 0; i < 30; ++i) {
+    PoseRecord r;
+    r.station = i + 1;
+    r.set = sets[i % 3];
+    r.sensor = 1 + i % 2;
+    r.time = 0.1 * i + 1.0 / 3.0;
+    r.reported = Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(0.1 * i, -1.0 / 7, 2e-9));
+    r.reference = Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(1.0 / 3, 0.25, -0.75 * i));
+    r.extra = {20.0 + i / 9.0};
+    c.records.push_back(r);
+  }
+  return c;
+}
+
+TEST(PosesCsv, Nominal) {
+  const auto dir = MakeTempDir("capture_test");
+  const PoseCapture written = RandomPoses();
+  WritePoses(dir / "poses.csv", written);
+  const std::string text = ReadText(dir / "poses.csv");
+  EXPECT_EQ(
+      text.substr(0, text.find('\n')),
+      "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
+      "ref_qw,ref_qx,ref_qy,ref_qz,temperature_c");
+  const PoseCapture read = ReadPoses(dir / "poses.csv");
+  ASSERT_EQ(read.records.size(), written.records.size());
+  EXPECT_EQ(read.extra_columns, written.extra_columns);
+  for (size_t i = 0; i < read.records.size(); ++i) {
+    const PoseRecord& a = written.records[i];
+    const PoseRecord& b = read.records[i];
+    EXPECT_EQ(a.station, b.station);
+    EXPECT_EQ(a.set, b.set);
+    EXPECT_EQ(a.sensor, b.sensor);
+    // Shortest round-trip formatting: every number reads back bit for bit.
+    EXPECT_EQ(a.time, b.time);
+    EXPECT_EQ(a.reported.translation, b.reported.translation);
+    EXPECT_EQ(a.reported.rotation.coeffs(), b.reported.rotation.coeffs());
+    EXPECT_EQ(a.reference.translation, b.reference.translation);
+    EXPECT_EQ(a.reference.rotation.coeffs(), b.reference.rotation.coeffs());
+    EXPECT_EQ(a.extra, b.extra);
+  }
+  // Writing what was read reproduces the file byte for byte.
+  WritePoses(dir / "again.csv", read);
+  EXPECT_EQ(ReadText(dir / "again.csv"), text);
+}
+
+TEST(PosesCsv, ColumnsByNameInAnyOrderWithExtras) {
+  const auto dir = MakeTempDir("capture_test");
+  WriteText(
+      dir / "poses.csv",
+      "ref_qz,ref_qy,ref_qx,ref_qw,ref_z,ref_y,ref_x,humidity,rep_qw,rep_qx,rep_qy,rep_qz,rep_x,"
+      "rep_y,rep_z,time,sensor,set,station\r\n"
+      "0,0,0,1,0.3,0.2,0.1,45.5,0,1,0,0,1.5,2.5,3.5,12.25,2,valid,7\r\n"
+      "\n");
+  const PoseCapture c = ReadPoses(dir / "poses.csv");
+  ASSERT_EQ(c.records.size(), 1u);
+  const PoseRecord& r = c.records[0];
+  EXPECT_EQ(r.station, 7);
+  EXPECT_EQ(r.set, "valid");
+  EXPECT_EQ(r.sensor, 2);
+  EXPECT_EQ(r.time, 12.25);
+  EXPECT_EQ(r.reported.translation, Eigen::Vector3d(1.5, 2.5, 3.5));
+  EXPECT_EQ(r.reported.rotation.x(), 1.0);
+  EXPECT_EQ(r.reference.translation, Eigen::Vector3d(0.1, 0.2, 0.3));
+  EXPECT_EQ(c.extra_columns, std::vector<std::string>{"humidity"});
+  EXPECT_EQ(r.extra, std::vector<double>{45.5});
+}
+
+TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
+  const auto dir = MakeTempDir("capture_test");
+  const std::string header =
+      "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
+      "ref_qw,ref_qx,ref_qy,ref_qz\n";
+  const std::string good = "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n";
+  const auto path = dir / "poses.csv";
+  auto error_for = [&](const std::string& text) {
+    WriteText(path, text);
+    return ErrorOf([&] { ReadPoses(path); });
+  };
+  EXPECT_EQ(error_for(header + good + "2,calib,1,0,0.1,0.2,0.3,abc,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:3: column rep_qw: 'abc' is not a number");
+  EXPECT_EQ(error_for(header + good + "2,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0\n"),
+            "poses.csv:3: row: expected 18 fields, found 17");
+  EXPECT_EQ(error_for(header + "1,train,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:2: column set: 'train' is not one of calib, valid, reg");
+  EXPECT_EQ(error_for(header + "x1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:2: column station: 'x1' is not an integer");
+  EXPECT_EQ(error_for(header + "1,calib,1,0,0.1,0.2,0.3,0.5,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:2: columns rep_qw, rep_qx, rep_qy, rep_qz: quaternion norm 0.5 is not 1");
+  EXPECT_EQ(error_for(header + "1,calib,1,inf,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:2: column time: 'inf' is not a finite number");
+  EXPECT_EQ(error_for("station,set\n1,calib\n"),
+            "poses.csv:1: column sensor: missing from the header");
+  EXPECT_EQ(error_for(""), "poses.csv:1: empty file, expected a header");
+  EXPECT_EQ(error_for(header.substr(0, header.size() - 1) + ",temp\n" +
+                      "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,warm\n"),
+            "poses.csv:2: column temp: 'warm' is not a number");
+  EXPECT_EQ(error_for("station,station\n"),
+            "poses.csv:1: column station: appears twice in the header");
+}
+
+TEST(CaptureWriters, RefuseToOverwrite) {
+  const auto dir = MakeTempDir("capture_test");
+  const PoseCapture c = RandomPoses();
+  WritePoses(dir / "poses.csv", c);
+  const std::string before = ReadText(dir / "poses.csv");
+  PoseCapture other = c;
+  other.records.resize(1);
+  EXPECT_NE(ErrorOf([&] { WritePoses(dir / "poses.csv", other); }).find("refusing to overwrite"),
+            std::string::npos);
+  EXPECT_EQ(ReadText(dir / "poses.csv"), before);
+  WritePoses(dir / "poses.csv", other, {.overwrite = true});
+  EXPECT_EQ(ReadPoses(dir / "poses.csv").records.size(), 1u);
+  // No temporary files are left behind.
+  int files = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir)) {
+    (void)e;
+    ++files;
+  }
+  EXPECT_EQ(files, 1);
+  // Inconsistent records are rejected before anything is written.
+  other.records[0].extra.clear();
+  EXPECT_THROW(WritePoses(dir / "bad.csv", other), std::invalid_argument);
+  EXPECT_FALSE(std::filesystem::exists(dir / "bad.csv"));
+}
+
+TEST(OtherCaptureFiles, RoundTrip) {
+  const auto dir = MakeTempDir("capture_test");
+  MarkerCapture markers;
+  TrackerCapture tracker;
+  TrackerStream tracker_stream;
+  ReferenceStream reference_stream;
+  reference_stream.extra_columns = {"frame"};
+  for (int i = 0; i < 10; ++i) {
+    markers.records.push_back({i / 3 + 1, i % 6 + 1, Eigen::Vector3d(0.1 * i, 1.0 / 3, -2.0), {}});
+    tracker.records.push_back(
+        {i + 1, 1, Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(i, 0, 1)), {}});
+    tracker_stream.records.push_back(
+        {i / 120.0, 2, Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(0, i, 1)), {}});
+    reference_stream.records.push_back(
+        {0.037 + i / 100.0,
+         Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(1, 0, i)),
+         {double(i)}});
+  }
+  WriteMarkers(dir / kMarkersCsv, markers);
+  WriteTracker(dir / kTrackerCsv, tracker);
+  WriteTrackerStream(dir / kTrackerStreamCsv, tracker_stream);
+  WriteReferenceStream(dir / kReferenceStreamCsv, reference_stream);
+  EXPECT_EQ(ReadText(dir / kMarkersCsv).substr(0, 21), "station,marker,x,y,z\n");
+  const MarkerCapture m = ReadMarkers(dir / kMarkersCsv);
+  const TrackerCapture t = ReadTracker(dir / kTrackerCsv);
+  const TrackerStream ts = ReadTrackerStream(dir / kTrackerStreamCsv);
+  const ReferenceStream rs = ReadReferenceStream(dir / kReferenceStreamCsv);
+  ASSERT_EQ(m.records.size(), 10u);
+  ASSERT_EQ(rs.records.size(), 10u);
+  for (int i = 0; i < 10; ++i) {
+    EXPECT_EQ(m.records[i].position_in_optical, markers.records[i].position_in_optical);
+    EXPECT_EQ(m.records[i].marker, markers.records[i].marker);
+    EXPECT_EQ(t.records[i].transmitter_from_receiver.rotation.coeffs(),
+              tracker.records[i].transmitter_from_receiver.rotation.coeffs());
+    EXPECT_EQ(ts.records[i].time, tracker_stream.records[i].time);
+    EXPECT_EQ(ts.records[i].sensor, 2);
+    EXPECT_EQ(rs.records[i].time, reference_stream.records[i].time);
+    EXPECT_EQ(rs.records[i].transmitter_from_body.translation,
+              reference_stream.records[i].transmitter_from_body.translation);
+    EXPECT_EQ(rs.records[i].extra, reference_stream.records[i].extra);
+  }
+}
+
+TEST(FormatNumber, ShortestRoundTrip) {
+  EXPECT_EQ(FormatNumber(0.1), "0.1");
+  EXPECT_EQ(FormatNumber(-2.5e-7), "-2.5e-07");
+  const double third = 1.0 / 3.0;
+  EXPECT_EQ(std::stod(FormatNumber(third)), third);
+}
+
+}  // namespace
+}  // namespace trackcal

@@ -1,0 +1,553 @@
+#include "sim/scene.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <charconv>
+#include <cmath>
+#include <fstream>
+#include <functional>
+#include <set>
+#include <sstream>
+#include <stdexcept>
+
+#include "core/capture.h"
+#include "sim/presets.h"
+#include "sim/scene_visit.h"
+
+namespace trackcal::sim {
+
+namespace {
+
+void Require(bool ok, const std::string& field, const std::string& what) {
+  if (!ok) throw std::invalid_argument("scene: " + field + ": " + what);
+}
+bool Positive(double x) { return std::isfinite(x) && x > 0; }
+bool NonNegative(double x) { return std::isfinite(x) && x >= 0; }
+
+// ---- YAML reader: applies the keys present in a document to a Scene. ----
+class YamlReader {
+ public:
+  YamlReader(const YAML::Node& root, std::string source) : source_(std::move(source)) {
+    frames_.push_back(Frame{root, "", {}});
+  }
+
+  void Finish() { CheckUnknownKeys(frames_.back()); }
+
+  template <typename T>
+  void Field(const char* key, T& value) {
+    Frame& f = frames_.back();
+    f.seen.insert(key);
+    const YAML::Node node = f.node[key];
+    if (!node) return;
+    Parse(node, Join(f.path, key), value);
+  }
+
+  template <typename F>
+  void Object(const char* key, F visit) {
+    Frame& f = frames_.back();
+    f.seen.insert(key);
+    const YAML::Node node = f.node[key];
+    if (!node) return;
+    const std::string path = Join(f.path, key);
+    if (!node.IsMap()) Fail(node, path, "expected a mapping");
+    frames_.push_back(Frame{node, path, {}});
+    visit();
+    CheckUnknownKeys(frames_.back());
+    frames_.pop_back();
+  }
+
+  template <typename E, typename F>
+  void List(const char* key, std::vector<E>& items, F visit) {
+    Frame& f = frames_.back();
+    f.seen.insert(key);
+    const YAML::Node node = f.node[key];
+    if (!node) return;
+    const std::string path = Join(f.path, key);
+    if (node.IsNull()) {
+      items.clear();
+      return;
+    }
+    if (!node.IsSequence()) Fail(node, path, "expected a list");
+    items.assign(node.size(), E{});
+    for (size_t i = 0; i < node.size(); ++i) {
+      const std::string item_path = path + "[" + std::to_string(i) + "]";
+      if (!node[i].IsMap()) Fail(node[i], item_path, "expected a mapping");
+      frames_.push_back(Frame{node[i], item_path, {}});
+      visit(items[i]);
+      CheckUnknownKeys(frames_.back());
+      frames_.pop_back();
+    }
+  }
+
+  [[noreturn]] void Fail(const YAML::Node& node, const std::string& path,
+                         const std::string& what) const {
+    const int line = node.Mark().line >= 0 ? node.Mark().line + 1 : 0;
+    throw std::invalid_argument(source_ + ":" + std::to_string(line) + ": " + path + ": " + what);
+  }
+
+ private:
+  struct Frame {
+    YAML::Node node;
+    std::string path;
+    std::set<std::string> seen;
+  };
+
+  static std::string Join(const std::string& path, const char* key) {
+    return path.empty() ? std::string(key) : path + "." + key;
+  }
+
+  void CheckUnknownKeys(const Frame& f) const {
+    if (!f.node.IsMap()) return;
+    for (const auto& kv : f.node) {
+      const std::string key = kv.first.as<std::string>();
+      if (f.path.empty() && key == "base") continue;
+      if (!f.seen.count(key)) Fail(kv.first, Join(f.path, key.c_str()), "unknown key");
+    }
+  }
+
+  std::string Scalar(const YAML::Node& node, const std::string& path) const {
+    if (!node.IsScalar()) Fail(node, path, "expected a single value");
+    return node.Scalar();
+  }
+
+  void Parse(const YAML::Node& node, const std::string& path, std::string& out) const {
+    out = Scalar(node, path);
+  }
+  void Parse(const YAML::Node& node, const std::string& path, bool& out) const {
+    const std::string s = Scalar(node, path);
+    if (s == "true") {
+      out = true;
+    } else if (s == "false") {
+      out = false;
+    } else {
+      Fail(node, path, "expected true or false, got '" + s + "'");
+    }
+  }
+  template <typename I>
+  requires std::is_integral_v<I>
+  void Parse(const YAML::Node& node, const std::string& path, I& out) const {
+    const std::string s = Scalar(node, path);
+    I value{};
+    const auto [end, ec] = std::from_chars(s.data(), s.data() + s.size(), value);
+    if (ec != std::errc() || end != s.data() + s.size()) {
+      Fail(node, path, "expected an integer, got '" + s + "'");
+    }
+    out = value;
+  }
+  void Parse(const YAML::Node& node, const std::string& path, double& out) const {
+    const std::string s = Scalar(node, path);
+    const char* begin = s.data() + (s.size() > 1 && s[0] == '+' ? 1 : 0);
+    double value = 0;
+    const auto [end, ec] = std::from_chars(begin, s.data() + s.size(), value);
+    if (ec != std::errc() || end != s.data() + s.size() || !std::isfinite(value)) {
+      Fail(node, path, "expected a number, got '" + s + "'");
+    }
+    out = value;
+  }
+  template <int N>
+  void ParseNumbers(const YAML::Node& node, const std::string& path, double* out) const {
+    if (!node.IsSequence() || node.size() != N) {
+      Fail(node, path, "expected a list of " + std::to_string(N) + " numbers");
+    }
+    for (int i = 0; i < N; ++i) {
+      Parse(node[i], path + "[" + std::to_string(i) + "]", out[i]);
+    }
+  }
+  void Parse(const YAML::Node& node, const std::string& path, Eigen::Vector3d& out) const {
+    ParseNumbers<3>(node, path, out.data());
+  }
+  void Parse(const YAML::Node& node, const std::string& path, Eigen::Vector3i& out) const {
+    if (!node.IsSequence() || node.size() != 3) Fail(node, path, "expected a list of 3 integers");
+    for (int i = 0; i < 3; ++i) Parse(node[i], path + "[" + std::to_string(i) + "]", out(i));
+  }
+  void Parse(const YAML::Node& node, const std::string& path, Eigen::Matrix3d& out) const {
+    if (!node.IsSequence() || node.size() != 3) {
+      Fail(node, path, "expected 3 rows of 3 numbers");
+    }
+    for (int r = 0; r < 3; ++r) {
+      double row[3];
+      ParseNumbers<3>(node[r], path + "[" + std::to_string(r) + "]", row);
+      for (int c = 0; c < 3; ++c) out(r, c) = row[c];
+    }
+  }
+  void Parse(const YAML::Node& node, const std::string& path, Rigid3d& out) const {
+    if (!node.IsMap()) Fail(node, path, "expected a mapping with rotation_xyzw and translation");
+    for (const auto& kv : node) {
+      const std::string key = kv.first.as<std::string>();
+      if (key != "rotation_xyzw" && key != "translation") {
+        Fail(kv.first, path + "." + key, "unknown key");
+      }
+    }
+    if (const YAML::Node q = node["rotation_xyzw"]) {
+      double xyzw[4];
+      ParseNumbers<4>(q, path + ".rotation_xyzw", xyzw);
+      Eigen::Quaterniond rotation = QuaternionFromXyzwArray(xyzw);
+      // Hand-typed quaternions carry a few digits; anything further from unit is a mistake.
+      if (std::abs(rotation.norm() - 1.0) > 1e-3) {
+        Fail(q, path + ".rotation_xyzw",
+             "not a unit quaternion (norm " + std::to_string(rotation.norm()) + ")");
+      }
+      // An exactly unit quaternion is kept as is, so a written scene reads back bit for bit.
+      if (std::abs(rotation.norm() - 1.0) > 1e-12) rotation.normalize();
+      out.rotation = rotation;
+    }
+    if (const YAML::Node t = node["translation"]) {
+      Parse(t, path + ".translation", out.translation);
+    }
+  }
+  void Parse(const YAML::Node& node, const std::string& path,
+             std::vector<Eigen::Vector3d>& out) const {
+    if (!node.IsSequence()) Fail(node, path, "expected a list of [x, y, z]");
+    out.assign(node.size(), Eigen::Vector3d::Zero());
+    for (size_t i = 0; i < node.size(); ++i) {
+      Parse(node[i], path + "[" + std::to_string(i) + "]", out[i]);
+    }
+  }
+
+  std::string source_;
+  std::vector<Frame> frames_;
+};
+
+// ---- YAML writer. ----
+class YamlWriter {
+ public:
+  YamlWriter() { out_ << YAML::BeginMap; }
+  std::string Finish() {
+    out_ << YAML::EndMap;
+    return std::string(out_.c_str()) + "\n";
+  }
+  template <typename T>
+  void Field(const char* key, T& value) {
+    out_ << YAML::Key << key << YAML::Value;
+    Write(value);
+  }
+  template <typename F>
+  void Object(const char* key, F visit) {
+    out_ << YAML::Key << key << YAML::Value << YAML::BeginMap;
+    visit();
+    out_ << YAML::EndMap;
+  }
+  template <typename E, typename F>
+  void List(const char* key, std::vector<E>& items, F visit) {
+    out_ << YAML::Key << key << YAML::Value;
+    if (items.empty()) {
+      out_ << YAML::Flow << YAML::BeginSeq << YAML::EndSeq;
+      return;
+    }
+    out_ << YAML::BeginSeq;
+    for (E& item : items) {
+      out_ << YAML::BeginMap;
+      visit(item);
+      out_ << YAML::EndMap;
+    }
+    out_ << YAML::EndSeq;
+  }
+
+ private:
+  void Write(const std::string& s) { out_ << YAML::DoubleQuoted << s; }
+  void Write(bool b) { out_ << (b ? "true" : "false"); }
+  void Write(int i) { out_ << i; }
+  void Write(uint64_t i) { out_ << i; }
+  // Shortest round-trip text: readable, and ParseScene reads back the same double.
+  void Write(double d) { out_ << FormatNumber(d); }
+  void Write(const Eigen::Vector3d& v) {
+    out_ << YAML::Flow << YAML::BeginSeq << FormatNumber(v.x()) << FormatNumber(v.y())
+         << FormatNumber(v.z()) << YAML::EndSeq;
+  }
+  void Write(const Eigen::Vector3i& v) {
+    out_ << YAML::Flow << YAML::BeginSeq << v.x() << v.y() << v.z() << YAML::EndSeq;
+  }
+  void Write(const Eigen::Matrix3d& m) {
+    out_ << YAML::BeginSeq;
+    for (int r = 0; r < 3; ++r) {
+      out_ << YAML::Flow << YAML::BeginSeq << FormatNumber(m(r, 0)) << FormatNumber(m(r, 1))
+           << FormatNumber(m(r, 2)) << YAML::EndSeq;
+    }
+    out_ << YAML::EndSeq;
+  }
+  void Write(const Rigid3d& pose) {
+    out_ << YAML::BeginMap << YAML::Key << "rotation_xyzw" << YAML::Value << YAML::Flow
+         << YAML::BeginSeq << FormatNumber(pose.rotation.x()) << FormatNumber(pose.rotation.y())
+         << FormatNumber(pose.rotation.z()) << FormatNumber(pose.rotation.w()) << YAML::EndSeq
+         << YAML::Key << "translation" << YAML::Value;
+    Write(pose.translation);
+    out_ << YAML::EndMap;
+  }
+  void Write(const std::vector<Eigen::Vector3d>& vs) {
+    out_ << YAML::BeginSeq;
+    for (const Eigen::Vector3d& v : vs) Write(v);
+    out_ << YAML::EndSeq;
+  }
+
+  YAML::Emitter out_;
+};
+
+// ---- JSON writer. ----
+class JsonWriter {
+ public:
+  nlohmann::json Finish() { return root_; }
+  template <typename T>
+  void Field(const char* key, T& value) {
+    (*current_)[key] = ToJson(value);
+  }
+  template <typename F>
+  void Object(const char* key, F visit) {
+    nlohmann::json* parent = current_;
+    (*parent)[key] = nlohmann::json::object();
+    current_ = &(*parent)[key];
+    visit();
+    current_ = parent;
+  }
+  template <typename E, typename F>
+  void List(const char* key, std::vector<E>& items, F visit) {
+    nlohmann::json* parent = current_;
+    nlohmann::json list = nlohmann::json::array();
+    for (E& item : items) {
+      nlohmann::json element = nlohmann::json::object();
+      current_ = &element;
+      visit(item);
+      list.push_back(element);
+    }
+    current_ = parent;
+    (*parent)[key] = list;
+  }
+
+ private:
+  static nlohmann::json ToJson(const std::string& s) { return s; }
+  static nlohmann::json ToJson(bool b) { return b; }
+  static nlohmann::json ToJson(int i) { return i; }
+  static nlohmann::json ToJson(uint64_t i) { return i; }
+  static nlohmann::json ToJson(double d) { return d; }
+  static nlohmann::json ToJson(const Eigen::Vector3d& v) { return {v.x(), v.y(), v.z()}; }
+  static nlohmann::json ToJson(const Eigen::Vector3i& v) { return {v.x(), v.y(), v.z()}; }
+  static nlohmann::json ToJson(const Eigen::Matrix3d& m) {
+    nlohmann::json rows = nlohmann::json::array();
+    for (int r = 0; r < 3; ++r) rows.push_back({m(r, 0), m(r, 1), m(r, 2)});
+    return rows;
+  }
+  static nlohmann::json ToJson(const Rigid3d& p) {
+    return {{"rotation_xyzw", {p.rotation.x(), p.rotation.y(), p.rotation.z(), p.rotation.w()}},
+            {"translation", ToJson(p.translation)}};
+  }
+  static nlohmann::json ToJson(const std::vector<Eigen::Vector3d>& vs) {
+    nlohmann::json list = nlohmann::json::array();
+    for (const auto& v : vs) list.push_back(ToJson(v));
+    return list;
+  }
+
+  nlohmann::json root_ = nlohmann::json::object();
+  nlohmann::json* current_ = &root_;
+};
+
+}  // namespace
+
+void TrackerConfig::Check() const {
+  Require(receiver_gain_matrix.allFinite() && std::abs(receiver_gain_matrix.determinant()) > 1e-6,
+          "tracker.receiver_gain_matrix", "must be finite and invertible");
+  Require(NonNegative(signal_noise), "tracker.signal_noise", "must be >= 0");
+  Require(samples_per_station >= 1, "tracker.samples_per_station", "must be >= 1");
+  Require(hemisphere_in_transmitter.allFinite() && hemisphere_in_transmitter.norm() > 1e-9,
+          "tracker.hemisphere_in_transmitter", "must be a non-zero vector");
+  Require(sensor >= 1, "tracker.sensor", "must be >= 1");
+  Require(Positive(update_rate_hz), "tracker.update_rate_hz", "must be > 0");
+}
+
+void ReferenceConfig::Check() const {
+  Require(NonNegative(position_noise_m), "reference.position_noise_m", "must be >= 0");
+  Require(NonNegative(orientation_noise_rad), "reference.orientation_noise_rad", "must be >= 0");
+  Require(NonNegative(marker_noise_m), "reference.marker_noise_m", "must be >= 0");
+  Require(samples_per_station >= 1, "reference.samples_per_station", "must be >= 1");
+  Require(Positive(update_rate_hz), "reference.update_rate_hz", "must be > 0");
+  Require(optical_from_transmitter.translation.allFinite() &&
+              std::abs(optical_from_transmitter.rotation.norm() - 1.0) < 1e-9,
+          "reference.optical_from_transmitter", "must be a finite rigid transform");
+  Require(markers_in_body.size() >= 3, "reference.markers_in_body", "needs at least 3 markers");
+  for (size_t i = 0; i < markers_in_body.size(); ++i) {
+    Require(markers_in_body[i].allFinite() && markers_in_body[i].norm() > 1e-6,
+            "reference.markers_in_body[" + std::to_string(i) + "]",
+            "must be finite and away from the body origin");
+  }
+  Require(std::isfinite(visibility_cos_min) && visibility_cos_min <= 0.0,
+          "reference.visibility_cos_min",
+          "must be <= 0 (markers around the receiver then keep at least 3 visible)");
+}
+
+void CaptureProtocol::Check() const {
+  Require((calibration.counts.array() >= 1).all(), "capture.calibration.counts", "must be >= 1");
+  Require(calibration.origin_in_transmitter.allFinite(),
+          "capture.calibration.origin_in_transmitter", "must be finite");
+  Require(Positive(calibration.spacing_m), "capture.calibration.spacing_m", "must be > 0");
+  auto check_random = [](const RandomStations& r, const std::string& name) {
+    Require(r.count >= 0, "capture." + name + ".count", "must be >= 0");
+    Require(r.min_in_transmitter.allFinite() && r.max_in_transmitter.allFinite() &&
+                (r.min_in_transmitter.array() <= r.max_in_transmitter.array()).all(),
+            "capture." + name + ".max_in_transmitter", "must be finite and >= min_in_transmitter");
+  };
+  check_random(validation, "validation");
+  check_random(registration, "registration");
+  Require(Positive(station_period_s), "capture.station_period_s", "must be > 0");
+  Require(NonNegative(stream.duration_s), "capture.stream.duration_s", "must be >= 0");
+  Require(stream.center_in_transmitter.allFinite() && stream.amplitude_m.allFinite(),
+          "capture.stream.center_in_transmitter", "must be finite");
+  Require((stream.period_s.array() > 0).all() && stream.period_s.allFinite(),
+          "capture.stream.period_s", "must be > 0");
+  Require(NonNegative(stream.rotation_amplitude_rad), "capture.stream.rotation_amplitude_rad",
+          "must be >= 0");
+  Require(Positive(stream.rotation_period_s), "capture.stream.rotation_period_s", "must be > 0");
+}
+
+const std::vector<std::string>& HiddenEffects::Names() {
+  static const std::vector<std::string> names = {"sensor_offset",        "receiver_gains",
+                                                 "ferromagnetic_object", "finite_transmitter_coils",
+                                                 "clock_offset",         "hemisphere_flips"};
+  return names;
+}
+
+void HiddenEffects::Enable(const std::string& name) {
+  bool* flags[] = {&sensor_offset,        &receiver_gains,
+                   &ferromagnetic_object, &finite_transmitter_coils,
+                   &clock_offset,         &hemisphere_flips};
+  for (size_t i = 0; i < Names().size(); ++i) {
+    if (Names()[i] == name) {
+      *flags[i] = true;
+      return;
+    }
+  }
+  std::string known;
+  for (const auto& n : Names()) known += (known.empty() ? "" : ", ") + n;
+  throw std::invalid_argument("unknown hidden effect '" + name + "' (known: " + known + ")");
+}
+
+std::vector<std::string> HiddenEffects::EnabledNames() const {
+  const bool flags[] = {sensor_offset,        receiver_gains,
+                        ferromagnetic_object, finite_transmitter_coils,
+                        clock_offset,         hemisphere_flips};
+  std::vector<std::string> out;
+  for (size_t i = 0; i < Names().size(); ++i) {
+    if (flags[i]) out.push_back(Names()[i]);
+  }
+  return out;
+}
+
+Rigid3d HiddenEffects::DefaultReceiverFromBody() {
+  // About 2.9 degrees and 2.5 cm: a marker body glued on slightly askew.
+  return Rigid3d(QuaternionFromXyzw(0.02, -0.015, 0.01, 0.99966).normalized(),
+                 Eigen::Vector3d(0.012, -0.008, 0.02));
+}
+
+Eigen::Matrix3d HiddenEffects::DefaultReceiverGainMatrix() {
+  // Gains within 2% and coil axes about 1 degree off orthogonal.
+  Eigen::Matrix3d g;
+  g << 1.02, 0.01, 0.0, -0.005, 0.98, 0.015, 0.0, 0.008, 1.01;
+  return g;
+}
+
+void HiddenEffects::Check() const {
+  Require(receiver_from_body.translation.allFinite(), "hidden.sensor_offset.receiver_from_body",
+          "must be finite");
+  Require(receiver_gain_matrix.allFinite() && std::abs(receiver_gain_matrix.determinant()) > 1e-6,
+          "hidden.receiver_gains.receiver_gain_matrix", "must be finite and invertible");
+  Require(
+      object.location_in_transmitter.allFinite() && object.location_in_transmitter.norm() > 1e-3,
+      "hidden.ferromagnetic_object.location_in_transmitter",
+      "must be finite and away from the transmitter");
+  Require(std::isfinite(object.polarisability_m3), "hidden.ferromagnetic_object.polarisability_m3",
+          "must be finite");
+  Require(octupole_m2.allFinite(), "hidden.finite_transmitter_coils.octupole_m2", "must be finite");
+  Require(std::isfinite(reference_minus_tracker_s), "hidden.clock_offset.reference_minus_tracker_s",
+          "must be finite");
+  Require(flip_count >= 0, "hidden.hemisphere_flips.count", "must be >= 0");
+}
+
+void Scene::Check() const {
+  environment.Check();
+  tracker.Check();
+  reference.Check();
+  capture.Check();
+  hidden.Check();
+}
+
+std::vector<std::string> PresetNames() {
+  std::vector<std::string> names;
+  for (const auto& p : internal::Presets()) names.push_back(p.name);
+  return names;
+}
+
+const std::string& PresetYaml(const std::string& name) {
+  for (const auto& p : internal::Presets()) {
+    if (p.name == name) return p.yaml;
+  }
+  std::string known;
+  for (const auto& n : PresetNames()) known += (known.empty() ? "" : ", ") + n;
+  throw std::invalid_argument("unknown scene preset '" + name + "' (presets: " + known + ")");
+}
+
+Scene ParseScene(const std::string& yaml_text, const std::string& source, const Scene& base) {
+  YAML::Node root;
+  try {
+    root = YAML::Load(yaml_text);
+  } catch (const YAML::Exception& e) {
+    throw std::invalid_argument(source + ":" + std::to_string(e.mark.line + 1) +
+                                ": YAML syntax error: " + e.msg);
+  }
+  if (!root.IsMap()) {
+    throw std::invalid_argument(source + ":1: a scene must be a YAML mapping");
+  }
+  Scene scene = base;
+  if (const YAML::Node b = root["base"]) {
+    if (!b.IsScalar()) {
+      throw std::invalid_argument(source + ":" + std::to_string(b.Mark().line + 1) +
+                                  ": base: expected a preset name");
+    }
+    try {
+      scene = ParseScene(PresetYaml(b.Scalar()), "preset " + b.Scalar());
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(source + ":" + std::to_string(b.Mark().line + 1) +
+                                  ": base: " + e.what());
+    }
+  }
+  YamlReader reader(root, source);
+  internal::VisitScene(reader, scene);
+  reader.Finish();
+  try {
+    scene.Check();
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(source + ": " + e.what());
+  }
+  return scene;
+}
+
+Scene LoadScene(const std::string& preset_or_path) {
+  const std::filesystem::path path(preset_or_path);
+  std::error_code ec;
+  if (std::filesystem::is_regular_file(path, ec)) {
+    std::ifstream in(path);
+    if (!in) throw std::invalid_argument(preset_or_path + ": cannot open scene file");
+    std::stringstream text;
+    text << in.rdbuf();
+    return ParseScene(text.str(), path.string());
+  }
+  for (const auto& name : PresetNames()) {
+    if (name == preset_or_path) return ParseScene(PresetYaml(name), "preset " + name);
+  }
+  std::string known;
+  for (const auto& n : PresetNames()) known += (known.empty() ? "" : ", ") + n;
+  throw std::invalid_argument("scene '" + preset_or_path +
+                              "' is neither a scene file nor a preset (presets: " + known + ")");
+}
+
+std::string SceneToYaml(const Scene& scene) {
+  Scene copy = scene;
+  YamlWriter writer;
+  internal::VisitScene(writer, copy);
+  return "# trackcal scene (docs/scene.md)\n" + writer.Finish();
+}
+
+nlohmann::json SceneToJson(const Scene& scene) {
+  Scene copy = scene;
+  JsonWriter writer;
+  internal::VisitScene(writer, copy);
+  return writer.Finish();
+}
+
+}  // namespace trackcal::sim

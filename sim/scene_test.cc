@@ -1,0 +1,130 @@
+#include "sim/scene.h"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+
+#include "tests/test_utils.h"
+
+namespace trackcal::sim {
+namespace {
+
+std::string ErrorOf(const std::string& yaml) {
+  try {
+    ParseScene(yaml, "bad.yaml");
+  } catch (const std::invalid_argument& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST(LoadScene, Nominal) {
+  const Scene paper = LoadScene("paper");
+  EXPECT_EQ(paper.name, "paper");
+  // 480 calibration stations (the paper's count; see the preset on its "12 x 10 x 5 grid").
+  EXPECT_EQ(paper.capture.calibration.counts, Eigen::Vector3i(12, 10, 4));
+  EXPECT_EQ(paper.capture.calibration.spacing_m, 0.15);
+  EXPECT_EQ(paper.capture.validation.count, 120);
+  EXPECT_EQ(paper.capture.registration.count, 20);
+  EXPECT_EQ(paper.reference.markers_in_body.size(), 6u);
+  EXPECT_GE(paper.environment.planes.size(), 2u);
+  EXPECT_FALSE(paper.hidden.sensor_offset);
+  // The distortion sources of the paper's room, at the distances it gives.
+  bool floor = false, door = false;
+  for (const auto& p : paper.environment.planes) {
+    const double distance =
+        std::abs(p.point_in_transmitter.dot(p.normal_in_transmitter.normalized()));
+    floor |= p.name.find("floor") != std::string::npos && std::abs(distance - 0.8) < 1e-12;
+    door |= p.name.find("door") != std::string::npos && std::abs(distance - 2.1) < 1e-12;
+  }
+  EXPECT_TRUE(floor);
+  EXPECT_TRUE(door);
+  for (const auto& o : paper.environment.objects) {
+    if (o.name.find("monitor") != std::string::npos) {
+      EXPECT_GE(o.location_in_transmitter.norm(), 1.8) << o.name;
+    }
+  }
+  EXPECT_NE(std::find(PresetNames().begin(), PresetNames().end(), "paper"), PresetNames().end());
+}
+
+TEST(SceneToYaml, RoundTripIsBitExact) {
+  Scene scene = LoadScene("paper");
+  scene.seed = 12345678901234ULL;
+  scene.hidden.Enable("sensor_offset");
+  scene.environment.objects.push_back(
+      {"odd", Eigen::Vector3d(0.1 / 3, 2.0 / 7, -1e-17 + 1), 1.0 / 3});
+  const Scene again = ParseScene(SceneToYaml(scene), "written.yaml");
+  EXPECT_EQ(SceneToJson(scene).dump(), SceneToJson(again).dump());
+  EXPECT_EQ(again.environment.objects.back().polarisability_m3, 1.0 / 3);
+}
+
+TEST(ParseScene, BaseAndOverrides) {
+  const Scene s = ParseScene(
+      "base: paper\n"
+      "seed: 5\n"
+      "environment:\n"
+      "  objects: []\n"
+      "tracker:\n"
+      "  signal_noise: 0\n",
+      "override.yaml");
+  const Scene paper = LoadScene("paper");
+  EXPECT_EQ(s.seed, 5u);
+  EXPECT_TRUE(s.environment.objects.empty());
+  EXPECT_EQ(s.tracker.signal_noise, 0.0);
+  EXPECT_EQ(s.environment.planes.size(), paper.environment.planes.size());
+  EXPECT_EQ(s.capture.validation.count, paper.capture.validation.count);
+}
+
+TEST(ParseScene, ErrorsNameFileLineAndField) {
+  EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  signal_noise: abc\n"),
+            "bad.yaml:3: tracker.signal_noise: expected a number, got 'abc'");
+  EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  signal_nois: 1\n"),
+            "bad.yaml:3: tracker.signal_nois: unknown key");
+  EXPECT_EQ(
+      ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: x\n      attenuation: [1]\n"),
+      "bad.yaml:5: environment.planes[0].attenuation: expected a single value");
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  calibration:\n    counts: [1, 2]\n"),
+            "bad.yaml:4: capture.calibration.counts: expected a list of 3 integers");
+  EXPECT_EQ(ErrorOf("base: nowhere\n").rfind("bad.yaml:1: base: unknown scene preset 'nowhere'", 0),
+            0u);
+  // Semantic checks name the file and the field.
+  EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  samples_per_station: 0\n"),
+            "bad.yaml: scene: tracker.samples_per_station: must be >= 1");
+  EXPECT_NE(ErrorOf("tracker: [\n").find("bad.yaml:"), std::string::npos);
+}
+
+TEST(LoadScene, FileAndUnknownName) {
+  const auto dir = testing::MakeTempDir("scene_test");
+  const auto path = dir / "mine.yaml";
+  std::ofstream(path) << "base: paper\nseed: 9\n";
+  EXPECT_EQ(LoadScene(path.string()).seed, 9u);
+  EXPECT_THROW(LoadScene("no_such_preset"), std::invalid_argument);
+}
+
+TEST(HiddenEffects, EnableByName) {
+  HiddenEffects h;
+  for (const auto& name : HiddenEffects::Names()) h.Enable(name);
+  EXPECT_EQ(h.EnabledNames(), HiddenEffects::Names());
+  EXPECT_THROW(h.Enable("latency"), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace trackcal::sim
+
+namespace trackcal::sim {
+namespace {
+
+TEST(HiddenEffects, DefaultsMatchThePaperPresetAndAreVisible) {
+  // A scene without a hidden section still gets effects of a plausible size.
+  const HiddenEffects defaults;
+  const Scene paper = LoadScene("paper");
+  EXPECT_EQ(SceneToJson(Scene{.hidden = defaults})["hidden"].dump(),
+            SceneToJson(Scene{.hidden = paper.hidden})["hidden"].dump());
+  EXPECT_GT(defaults.receiver_from_body.translation.norm(), 0.01);
+  EXPECT_GT((defaults.receiver_gain_matrix - Eigen::Matrix3d::Identity()).norm(), 0.01);
+  EXPECT_GT(defaults.flip_count, 0);
+  EXPECT_NE(defaults.reference_minus_tracker_s, 0.0);
+}
+
+}  // namespace
+}  // namespace trackcal::sim

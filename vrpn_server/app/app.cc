@@ -1,0 +1,239 @@
+#include "vrpn_server/app/app.h"
+
+#include <set>
+#include <stdexcept>
+
+namespace trackcal::vrpn {
+namespace {
+
+class NullSource : public ReportSource {
+ public:
+  NullSource(int num_sensors, double rate_hz, Rigid3d pose)
+      : num_sensors_(num_sensors), rate_hz_(rate_hz), pose_(pose) {}
+  void Start(SourceCallbacks callbacks) override {
+    callbacks_ = std::move(callbacks);
+    tracker_ = std::make_unique<NullTracker>(
+        [this](int s, const Rigid3d& p, Timestamp t) { callbacks_.on_pose(s, p, t); }, num_sensors_,
+        rate_hz_, pose_);
+    tracker_->Start();
+  }
+  void Stop() override {
+    if (tracker_) tracker_->Stop();
+  }
+  std::string Describe() const override {
+    return "NULL tracker, " + std::to_string(num_sensors_) + " sensor(s) at " +
+           std::to_string(rate_hz_) + " Hz";
+  }
+
+ private:
+  int num_sensors_;
+  double rate_hz_;
+  Rigid3d pose_;
+  SourceCallbacks callbacks_;
+  std::unique_ptr<NullTracker> tracker_;
+};
+
+class PassthroughSource : public ReportSource {
+ public:
+  explicit PassthroughSource(std::string name) : name_(std::move(name)) {
+    ParseVrpnName(name_);  // throws for a malformed name
+  }
+  void Start(SourceCallbacks callbacks) override {
+    callbacks_ = std::move(callbacks);
+    client_ = std::make_unique<VrpnTrackerClient>(name_);
+    client_->SetPoseCallback([this](const TrackerReport& r) {
+      callbacks_.on_pose(r.sensor, r.transmitter_from_receiver, r.time);
+    });
+    client_->SetMessageCallback([this](const ReceivedMessage& m) {
+      if (m.type != kTextType || !callbacks_.on_text) return;
+      if (auto text = DecodeText(m.payload)) callbacks_.on_text(text->severity, text->text);
+    });
+    client_->Start();
+  }
+  void Stop() override {
+    if (client_) client_->Stop();
+  }
+  std::string Describe() const override { return "pass-through of " + name_; }
+
+ private:
+  std::string name_;
+  SourceCallbacks callbacks_;
+  std::unique_ptr<VrpnTrackerClient> client_;
+};
+
+struct FileSignature {
+  bool exists = false;
+  std::int64_t size = 0, mtime_ns = 0;
+  std::uint64_t inode = 0;
+  bool operator==(const FileSignature&) const = default;
+};
+
+FileSignature Signature(const std::filesystem::path& path) {
+  struct stat st {};
+  FileSignature s;
+  if (::stat(path.c_str(), &st) != 0) return s;
+  s.exists = true;
+  s.size = st.st_size;
+  s.mtime_ns = static_cast<std::int64_t>(st.st_mtim.tv_sec) * 1000000000 + st.st_mtim.tv_nsec;
+  s.inode = st.st_ino;
+  return s;
+}
+
+}  // namespace
+
+std::unique_ptr<ReportSource> MakeNullSource(int num_sensors, double rate_hz, Rigid3d pose) {
+  return std::make_unique<NullSource>(num_sensors, rate_hz, pose);
+}
+
+std::unique_ptr<ReportSource> MakePassthroughSource(const std::string& vrpn_name) {
+  return std::make_unique<PassthroughSource>(vrpn_name);
+}
+
+struct TrackcalServerApp::Tracker {
+  TrackerSetup setup;
+  std::unique_ptr<TrackerDevice> device;
+  std::unique_ptr<ReportSource> source;
+  std::vector<std::pair<int, int>> buttons;  // (sensor, catalog button index)
+  FileSignature signature;
+};
+
+TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOptions options,
+                                     CorrectorLoader loader, LogFunction log)
+    : options_(std::move(options)),
+      loader_(std::move(loader)),
+      log_(log ? std::move(log) : LogFunction(LogToStderr)),
+      catalog_(std::make_shared<ServerCatalog>()) {
+  std::set<std::string> names;
+  auto claim = [&](const std::string& name, const std::string& origin) {
+    if (!names.insert(name).second) {
+      throw std::invalid_argument(origin + ": device name '" + name + "' is served twice");
+    }
+  };
+  std::vector<std::pair<int, std::optional<int>>> indices;
+  for (TrackerSetup& setup : trackers) {
+    if (!setup.make_source) throw std::invalid_argument(setup.origin + ": tracker has no source");
+    claim(setup.name, setup.origin);
+    TrackerSpec spec;
+    spec.name = setup.name;
+    spec.num_sensors = setup.num_sensors;
+    const int index = catalog_->AddTracker(spec);
+    std::optional<int> raw;
+    if (setup.raw_name) {
+      claim(*setup.raw_name, setup.origin);
+      spec.name = *setup.raw_name;
+      raw = catalog_->AddTracker(spec);
+    }
+    indices.emplace_back(index, raw);
+    auto t = std::make_unique<Tracker>();
+    for (const auto& [button_name, sensor] : setup.buttons) {
+      claim(button_name, setup.origin);
+      t->buttons.emplace_back(sensor, catalog_->AddButton(ButtonSpec{button_name, 1}));
+    }
+    t->setup = std::move(setup);
+    trackers_.push_back(std::move(t));
+  }
+  server_ = std::make_unique<VrpnServer>(catalog_, options_.server, log_);
+  for (std::size_t i = 0; i < trackers_.size(); ++i) {
+    Tracker& t = *trackers_[i];
+    t.device = std::make_unique<TrackerDevice>(server_.get(), indices[i].first, indices[i].second);
+    if (t.setup.calibration) {
+      if (!loader_) throw std::invalid_argument(t.setup.origin + ": no calibration loader");
+      try {
+        t.signature = Signature(*t.setup.calibration);
+        auto corrector = loader_(*t.setup.calibration, t.setup.outside);
+        t.device->SetCorrector(corrector);
+        Log(t.setup.name + ": correction " + corrector->Describe());
+      } catch (const std::exception& e) {
+        throw std::invalid_argument(t.setup.origin + ": calibration of '" + t.setup.name + "': " +
+                                    e.what());
+      }
+    }
+    if (options_.record_dir) {
+      std::unique_ptr<StreamRecorder> raw =
+          std::make_unique<StreamRecorder>(*options_.record_dir, t.setup.name + "_raw");
+      std::unique_ptr<StreamRecorder> corrected =
+          std::make_unique<StreamRecorder>(*options_.record_dir, t.setup.name + "_corrected");
+      t.device->SetRecorders(std::move(raw), std::move(corrected));
+    }
+  }
+}
+
+TrackcalServerApp::~TrackcalServerApp() { Stop(); }
+
+void TrackcalServerApp::Start() {
+  server_->Start();
+  for (auto& tp : trackers_) {
+    Tracker& t = *tp;
+    t.source = t.setup.make_source();
+    Log("serving " + t.setup.name + (t.setup.raw_name ? " (raw: " + *t.setup.raw_name + ")" : "") +
+        " from " + t.source->Describe() +
+        (t.setup.calibration ? ", calibration " + t.setup.calibration->string() : ", uncorrected"));
+    SourceCallbacks callbacks;
+    TrackerDevice* device = t.device.get();
+    callbacks.on_pose = [device](int sensor, const Rigid3d& pose, Timestamp time) {
+      device->OnReport(sensor, pose, time);
+    };
+    callbacks.on_text = [this, device, name = t.setup.name](TextSeverity severity, const std::string& text) {
+      Log(name + ": " + text);
+      device->OnText(severity, text);
+    };
+    callbacks.on_button = [this, &t](int sensor, bool pressed, Timestamp time) {
+      for (const auto& [s, index] : t.buttons) {
+        if (s == sensor) server_->PublishButton(index, 0, pressed, time);
+      }
+    };
+    t.source->Start(std::move(callbacks));
+  }
+}
+
+void TrackcalServerApp::Stop() {
+  for (auto& t : trackers_) {
+    if (t->source) t->source->Stop();
+  }
+  if (server_) server_->Stop();
+  for (auto& t : trackers_) {
+    if (t->device) t->device->SetRecorders(nullptr, nullptr);  // closes and publishes the files
+  }
+}
+
+bool TrackcalServerApp::Reload(Tracker& t, bool only_if_changed) {
+  if (!t.setup.calibration) return false;
+  const FileSignature now = Signature(*t.setup.calibration);
+  if (only_if_changed && now == t.signature) return false;
+  t.signature = now;
+  try {
+    auto corrector = loader_(*t.setup.calibration, t.setup.outside);
+    t.device->SetCorrector(corrector);
+    Log(t.setup.name + ": reloaded " + t.setup.calibration->string() + " (" + corrector->Describe() + ")");
+    return true;
+  } catch (const std::exception& e) {
+    Log(t.setup.name + ": rejected new " + t.setup.calibration->string() + ", keeping the previous correction: " +
+        e.what());
+    return false;
+  }
+}
+
+int TrackcalServerApp::ReloadCalibrations() {
+  int n = 0;
+  for (auto& t : trackers_) n += Reload(*t, /*only_if_changed=*/false);
+  return n;
+}
+
+int TrackcalServerApp::ReloadChangedCalibrations() {
+  int n = 0;
+  for (auto& t : trackers_) n += Reload(*t, /*only_if_changed=*/true);
+  return n;
+}
+
+std::vector<std::filesystem::path> TrackcalServerApp::CalibrationDirectories() const {
+  std::set<std::filesystem::path> dirs;
+  for (const auto& t : trackers_) {
+    if (t->setup.calibration) {
+      auto dir = t->setup.calibration->parent_path();
+      dirs.insert(dir.empty() ? std::filesystem::path(".") : dir);
+    }
+  }
+  return {dirs.begin(), dirs.end()};
+}
+
+}  // namespace trackcal::vrpn

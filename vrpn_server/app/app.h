@@ -1,0 +1,113 @@
+// trackcal-server assembled from its pieces, independent of where the device list comes from
+// (vrpn.cfg in main.cc, code in tests): report sources (Fastrak driver, NULL tracker, pass-through
+// from another VRPN server) feed TrackerDevices, which apply the calibration and publish through
+// one VrpnServer. Calibrations are reloaded on request (SIGHUP) or when their file changes; a bad
+// new file is rejected with a logged reason and the old correction stays active.
+
+#pragma once
+
+#include <sys/stat.h>
+
+#include <chrono>
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "vrpn_server/client/tracker_client.h"
+#include "vrpn_server/server/devices.h"
+#include "vrpn_server/server/server.h"
+
+namespace trackcal::vrpn {
+
+// What a source reports, on its own thread.
+struct SourceCallbacks {
+  std::function<void(int sensor, const Rigid3d& transmitter_from_receiver, Timestamp time)> on_pose;
+  std::function<void(TextSeverity severity, const std::string& text)> on_text;
+  // Stylus/button of a sensor changed.
+  std::function<void(int sensor, bool pressed, Timestamp time)> on_button;
+};
+
+// A producer of tracker reports (a driver thread, a timer, a network client).
+class ReportSource {
+ public:
+  virtual ~ReportSource() = default;
+  // Starts producing; callbacks run on the source's own thread and must return quickly.
+  virtual void Start(SourceCallbacks callbacks) = 0;
+  // Stops and joins; idempotent.
+  virtual void Stop() = 0;
+  virtual std::string Describe() const = 0;
+};
+
+// vrpn_Tracker_NULL: `pose` for every sensor at a fixed rate.
+std::unique_ptr<ReportSource> MakeNullSource(int num_sensors, double rate_hz, Rigid3d pose = Rigid3d());
+// Reports of a tracker served by another VRPN server (any connect mode of VrpnTrackerClient).
+std::unique_ptr<ReportSource> MakePassthroughSource(const std::string& vrpn_name);
+
+// Loads a calibration file into a corrector; throws with the reason on a bad file. `outside`
+// overrides the file's behaviour outside the calibrated volume ("clamp" or "fade") when set.
+using CorrectorLoader = std::function<std::shared_ptr<const PoseCorrector>(
+    const std::filesystem::path& path, const std::optional<std::string>& outside)>;
+
+struct TrackerSetup {
+  // Device name of the corrected stream (the name clients already use).
+  std::string name;
+  // Sensors (for Unit_To_Sensor answers); reports of any sensor number are served.
+  int num_sensors = 1;
+  // Also serve the uncorrected reports under this name.
+  std::optional<std::string> raw_name;
+  // Calibration file; none = reports are served unchanged.
+  std::optional<std::filesystem::path> calibration;
+  // Override of the calibration's extrapolation policy ("clamp" or "fade").
+  std::optional<std::string> outside;
+  // Builds the report source (called once, at Start).
+  std::function<std::unique_ptr<ReportSource>()> make_source;
+  // Button devices fed by the source's stylus events: (device name, sensor).
+  std::vector<std::pair<std::string, int>> buttons;
+  // Where it was configured ("vrpn.cfg:12"), for messages.
+  std::string origin;
+};
+
+struct AppOptions {
+  ServerOptions server;
+  // Record raw and corrected streams of every tracker here (tracker stream CSV format).
+  std::optional<std::filesystem::path> record_dir;
+};
+
+class TrackcalServerApp {
+ public:
+  // Validates the setup (names, duplicates) and loads every calibration: a bad calibration at start
+  // is an error (std::invalid_argument naming the tracker's origin and the file).
+  TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOptions options, CorrectorLoader loader,
+                    LogFunction log = nullptr);
+  ~TrackcalServerApp();
+
+  // Binds the server and starts every source.
+  void Start();
+  void Stop();
+  int port() const { return server_->port(); }
+  VrpnServer& server() { return *server_; }
+
+  // Reloads every calibration file (SIGHUP). Returns how many were replaced.
+  int ReloadCalibrations();
+  // Reloads the calibrations whose file changed (size, time or inode) since the last load.
+  int ReloadChangedCalibrations();
+  // Directories holding calibration files (to watch for changes).
+  std::vector<std::filesystem::path> CalibrationDirectories() const;
+
+ private:
+  struct Tracker;
+  bool Reload(Tracker& t, bool only_if_changed);
+  void Log(const std::string& line) { log_(line); }
+
+  AppOptions options_;
+  CorrectorLoader loader_;
+  LogFunction log_;
+  std::shared_ptr<ServerCatalog> catalog_;
+  std::unique_ptr<VrpnServer> server_;
+  std::vector<std::unique_ptr<Tracker>> trackers_;
+};
+
+}  // namespace trackcal::vrpn

@@ -1,0 +1,18 @@
+// A trackcal calibration file (core/calibration_file.h) as the server's PoseCorrector.
+#pragma once
+
+#include <filesystem>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "vrpn_server/server/devices.h"
+
+namespace trackcal::vrpn {
+
+// Reads the file (throws with the file, JSON path and reason on a bad file); `outside` ("clamp" or
+// "fade") overrides the file's extrapolation policy. Matches CorrectorLoader.
+std::shared_ptr<const PoseCorrector> LoadCalibrationCorrector(const std::filesystem::path& path,
+                                                              const std::optional<std::string>& outside);
+
+}  // namespace trackcal::vrpn

@@ -1,0 +1,171 @@
+// trackcal-server: a drop-in for vrpn_server that serves corrected (and, on request, raw) tracker
+// poses. Usage: see kUsage below and docs/vrpn.md.
+
+#include <poll.h>
+#include <signal.h>
+#include <sys/inotify.h>
+#include <sys/signalfd.h>
+#include <unistd.h>
+
+#include <charconv>
+#include <cstring>
+#include <iostream>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "vrpn_server/app/app.h"
+#include "vrpn_server/app/calibration_corrector.h"
+#include "vrpn_server/app/config_setup.h"
+#include "vrpn_server/config.h"
+
+
+namespace trackcal::vrpn {
+namespace {
+
+constexpr const char* kUsage = R"(usage: trackcal-server [-f vrpn.cfg] [port] [options]
+
+Serves the trackers of a vrpn.cfg over VRPN (TCP and UDP on one port, default 3883), corrected by
+the calibration files attached with trackcal_Calibration lines (docs/vrpn.md, docs/vrpn-config.md).
+
+  -f FILE          device configuration (default: vrpn.cfg)
+  port             TCP/UDP port (default 3883)
+  --bind ADDR      listen on this IPv4 address only (default 0.0.0.0; vrpn_server's -NIC ADDR too)
+  --allow CIDR     accept clients from this network only; repeatable (default: everyone)
+  --record DIR     record raw and corrected streams of every tracker to DIR as CSV
+  --max-clients N  refuse connections beyond N (default 256)
+  --realtime-priority P
+                   run the network thread SCHED_FIFO at priority P (1-99; needs CAP_SYS_NICE)
+  -h, --help       this text
+
+Signals: SIGHUP reloads every calibration file (a changed file is also reloaded on its own);
+a bad new file is rejected with a logged reason and the previous correction stays active.
+Accepted and ignored for vrpn_server compatibility: -warn, -v, -q, -millisleep N, -li F, -lo F.
+)";
+
+struct Args {
+  std::string config = "vrpn.cfg";
+  AppOptions app;
+};
+
+int ParseInt(const std::string& text, const std::string& what, int lo, int hi) {
+  int v = 0;
+  auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
+  if (ec != std::errc() || ptr != text.data() + text.size() || v < lo || v > hi) {
+    throw std::invalid_argument(what + " '" + text + "': expected an integer in [" +
+                                std::to_string(lo) + ", " + std::to_string(hi) + "]");
+  }
+  return v;
+}
+
+Args ParseArgs(int argc, char** argv) {
+  Args a;
+  a.app.server.port = kDefaultPort;
+  bool port_given = false;
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    auto value = [&](const std::string& name) -> std::string {
+      if (i + 1 >= argc) throw std::invalid_argument(name + ": missing value");
+      return argv[++i];
+    };
+    if (arg == "-h" || arg == "--help") {
+      std::cout << kUsage;
+      std::exit(0);
+    } else if (arg == "-f") {
+      a.config = value(arg);
+    } else if (arg == "--bind" || arg == "-NIC") {
+      a.app.server.bind_address = value(arg);
+    } else if (arg == "--allow") {
+      a.app.server.allow.push_back(value(arg));
+    } else if (arg == "--record") {
+      a.app.record_dir = value(arg);
+    } else if (arg == "--max-clients") {
+      a.app.server.max_clients = ParseInt(value(arg), arg, 1, 100000);
+    } else if (arg == "--realtime-priority") {
+      a.app.server.realtime_priority = ParseInt(value(arg), arg, 1, 99);
+    } else if (arg == "-warn" || arg == "-v" || arg == "-q") {
+      std::cerr << "trackcal-server: note: " << arg << " ignored\n";
+    } else if (arg == "-millisleep" || arg == "-li" || arg == "-lo") {
+      value(arg);
+      std::cerr << "trackcal-server: note: " << arg << " ignored (event-driven server, no logging)\n";
+    } else if (!arg.empty() && arg[0] != '-' && !port_given) {
+      a.app.server.port = ParseInt(arg, "port", 1, 65535);
+      port_given = true;
+    } else {
+      throw std::invalid_argument("unknown argument '" + arg + "' (see --help)");
+    }
+  }
+  a.app.server.Check();
+  return a;
+}
+
+int Run(int argc, char** argv) {
+  const Args args = ParseArgs(argc, argv);
+  const VrpnConfig config = ReadVrpnConfig(args.config);
+  const std::string self_host =
+      args.app.server.bind_address == "0.0.0.0" ? "127.0.0.1" : args.app.server.bind_address;
+  ConfigSetup setup = SetupFromConfig(config, self_host + ":" + std::to_string(args.app.server.port));
+  for (const auto& w : setup.warnings) LogToStderr(w);
+  if (setup.trackers.empty()) {
+    throw std::invalid_argument(args.config + ": no device trackcal-server can serve");
+  }
+
+  // Signals are handled by the main thread through a signalfd; every thread inherits the mask.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGHUP);
+  sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGPIPE);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+  const int sfd = ::signalfd(-1, &signals, SFD_CLOEXEC);
+
+  TrackcalServerApp app(std::move(setup.trackers), args.app, LoadCalibrationCorrector);
+  app.Start();
+
+  const int ifd = ::inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
+  for (const auto& dir : app.CalibrationDirectories()) {
+    if (::inotify_add_watch(ifd, dir.c_str(), IN_CLOSE_WRITE | IN_MOVED_TO | IN_CREATE) < 0) {
+      LogToStderr("cannot watch " + dir.string() + " for calibration changes: " + std::strerror(errno) +
+                  " (SIGHUP still reloads)");
+    }
+  }
+  for (;;) {
+    pollfd fds[2] = {{sfd, POLLIN, 0}, {ifd, POLLIN, 0}};
+    if (::poll(fds, 2, -1) < 0) {
+      if (errno == EINTR) continue;
+      throw std::runtime_error(std::string("poll: ") + std::strerror(errno));
+    }
+    if (fds[1].revents & POLLIN) {
+      alignas(inotify_event) char buf[4096];
+      while (::read(ifd, buf, sizeof(buf)) > 0) {
+      }
+      app.ReloadChangedCalibrations();
+    }
+    if (fds[0].revents & POLLIN) {
+      signalfd_siginfo info{};
+      if (::read(sfd, &info, sizeof(info)) != sizeof(info)) continue;
+      if (info.ssi_signo == SIGHUP) {
+        LogToStderr("SIGHUP: reloading calibrations");
+        app.ReloadCalibrations();
+      } else if (info.ssi_signo == SIGINT || info.ssi_signo == SIGTERM) {
+        LogToStderr("stopping");
+        break;
+      }
+    }
+  }
+  app.Stop();
+  return 0;
+}
+
+}  // namespace
+}  // namespace trackcal::vrpn
+
+int main(int argc, char** argv) {
+  try {
+    return trackcal::vrpn::Run(argc, argv);
+  } catch (const std::exception& e) {
+    std::cerr << "trackcal-server: error: " << e.what() << "\n";
+    return 1;
+  }
+}

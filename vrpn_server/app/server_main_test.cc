@@ -1,0 +1,194 @@
+// trackcal-server as a process: vrpn.cfg in, VRPN out, signals.
+#include <arpa/inet.h>
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstdlib>
+#include <fstream>
+#include <sstream>
+#include <thread>
+
+#include "core/calibration_file.h"
+#include "core/file_util.h"
+#include "core/polynomial.h"
+#include "tests/test_utils.h"
+#include "vrpn_server/client/tracker_client.h"
+#include "vrpn_server/net/socket_util.h"
+
+namespace trackcal::vrpn {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+std::string ServerBinary() {
+  const char* dir = std::getenv("TRACKCAL_BINARY_DIR");
+  return std::string(dir ? dir : ".") + "/vrpn_server/app/trackcal-server";
+}
+
+int FreePort() {
+  UniqueFd fd(::socket(AF_INET, SOCK_STREAM, 0));
+  sockaddr_in sa = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  ::bind(fd.get(), reinterpret_cast<sockaddr*>(&sa), sizeof(sa));
+  socklen_t len = sizeof(sa);
+  ::getsockname(fd.get(), reinterpret_cast<sockaddr*>(&sa), &len);
+  return ntohs(sa.sin_port);
+}
+
+struct Process {
+  pid_t pid = -1;
+  std::filesystem::path stderr_path;
+  Process(const std::vector<std::string>& args, const std::filesystem::path& err) : stderr_path(err) {
+    pid = ::fork();
+    if (pid == 0) {
+      FILE* f = std::fopen(err.c_str(), "w");
+      ::dup2(fileno(f), 2);
+      std::vector<char*> argv;
+      for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+      argv.push_back(nullptr);
+      ::execv(argv[0], argv.data());
+      std::_Exit(127);
+    }
+  }
+  int Wait() {
+    int status = 0;
+    ::waitpid(pid, &status, 0);
+    pid = -1;
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -WTERMSIG(status);
+  }
+  ~Process() {
+    if (pid > 0) {
+      ::kill(pid, SIGKILL);
+      Wait();
+    }
+  }
+  std::string Stderr() const {
+    std::ifstream in(stderr_path);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ss.str();
+  }
+};
+
+TEST(TrackcalServerMain, ServesNullTrackerWarnsOnUnknownLineAndStopsOnSigterm) {
+  const auto dir = testing::MakeTempDir("server_main");
+  std::ofstream(dir / "vrpn.cfg") << "# lab config\n"
+                                     "vrpn_Tracker_Liberty Liberty0 /dev/ttyS9 115200\n"
+                                     "vrpn_Tracker_NULL Tracker0 2 60.0\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), std::to_string(port), "--bind",
+                  "127.0.0.1", "--allow", "127.0.0.0/8"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient client("Tracker0@127.0.0.1:" + std::to_string(port));
+  int reports = 0;
+  client.SetPoseCallback([&](const TrackerReport&) { ++reports; });
+  const auto end = Clock::now() + std::chrono::seconds(15);
+  while (Clock::now() < end && reports < 10) client.Poll(0.01);
+  EXPECT_GE(reports, 10);
+  EXPECT_TRUE(client.pong_received());
+  ::kill(server.pid, SIGHUP);  // no calibration attached: a no-op reload, the server keeps serving
+  const int before = reports;
+  const auto end2 = Clock::now() + std::chrono::seconds(10);
+  while (Clock::now() < end2 && reports < before + 10) client.Poll(0.01);
+  EXPECT_GE(reports, before + 10);
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+  const std::string err = server.Stderr();
+  EXPECT_NE(err.find("vrpn.cfg:2"), std::string::npos) << err;
+  EXPECT_NE(err.find("vrpn_Tracker_Liberty"), std::string::npos) << err;
+  EXPECT_NE(err.find("SIGHUP"), std::string::npos) << err;
+}
+
+// A calibration that adds `offset` to every position (degree-0 polynomial).
+void WriteOffsetCalibration(const std::filesystem::path& path, const Eigen::Vector3d& offset) {
+  Calibration cal;
+  cal.chain.Append(PolynomialCorrection::FromPositionAndOrientation(
+      0, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones(), {offset.x(), offset.y(), offset.z()},
+      {0.0, 0.0, 0.0}));
+  CalibratedVolume volume;
+  volume.min = Eigen::Vector3d(-1, -1, -1);
+  volume.max = Eigen::Vector3d(1, 1, 1);
+  cal.chain.SetVolume(volume);
+  cal.provenance.tool = "server_main_test";
+  cal.provenance.tool_version = "0";
+  cal.provenance.created_utc = CurrentUtcTimestamp();
+  cal.provenance.inputs.push_back({"none", Sha256Hex("x"), "calibration_capture"});
+  const auto tmp = path.string() + ".new";
+  std::filesystem::remove(tmp);
+  WriteCalibrationFile(tmp, cal);
+  std::filesystem::rename(tmp, path);  // replaced as a whole, as trackcal-fit's atomic writes do
+}
+
+TEST(TrackcalServerMain, CalibrationRawNameAndReloadOnChangeAndSighup) {
+  const auto dir = testing::MakeTempDir("server_main_calib");
+  WriteOffsetCalibration(dir / "calib.json", Eigen::Vector3d(0.1, 0, 0));
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
+                                     "trackcal_Calibration Tracker0 calib.json raw=Tracker0_raw\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), std::to_string(port), "--bind",
+                  "127.0.0.1"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
+  VrpnTrackerClient raw("Tracker0_raw@tcp://127.0.0.1:" + std::to_string(port));
+  double x = NAN, raw_x = NAN;
+  corrected.SetPoseCallback([&](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
+  raw.SetPoseCallback([&](const TrackerReport& r) { raw_x = r.transmitter_from_receiver.translation.x(); });
+  auto wait_for = [&](double expected) {
+    const auto end = Clock::now() + std::chrono::seconds(15);
+    while (Clock::now() < end && (x != expected || std::isnan(raw_x))) {
+      corrected.Poll(0.005);
+      raw.Poll(0.0);
+    }
+    return x == expected && !std::isnan(raw_x);
+  };
+  EXPECT_TRUE(wait_for(0.1)) << server.Stderr();
+  EXPECT_EQ(raw_x, 0.0);
+  // A changed file is picked up on its own.
+  WriteOffsetCalibration(dir / "calib.json", Eigen::Vector3d(0.2, 0, 0));
+  EXPECT_TRUE(wait_for(0.2)) << server.Stderr();
+  // A bad file is rejected; SIGHUP does not make it active either.
+  std::ofstream(dir / "calib.json.new") << "{}";
+  std::filesystem::rename(dir / "calib.json.new", dir / "calib.json");
+  ::kill(server.pid, SIGHUP);
+  for (int i = 0; i < 100; ++i) corrected.Poll(0.005);
+  EXPECT_EQ(x, 0.2);
+  EXPECT_EQ(corrected.connections(), 1u);
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+  const std::string err = server.Stderr();
+  EXPECT_NE(err.find("rejected"), std::string::npos) << err;
+}
+
+TEST(TrackcalServerMain, BadArgumentsAndBusyPortFail) {
+  const auto dir = testing::MakeTempDir("server_main_bad");
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 10.0\n";
+  {
+    Process p({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), "--allow", "10.0.0.0/99"}, dir / "e1.txt");
+    EXPECT_EQ(p.Wait(), 1);
+    EXPECT_NE(p.Stderr().find("10.0.0.0/99"), std::string::npos);
+  }
+  {
+    UniqueFd busy(::socket(AF_INET, SOCK_STREAM, 0));
+    sockaddr_in sa = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+    ::bind(busy.get(), reinterpret_cast<sockaddr*>(&sa), sizeof(sa));
+    ::listen(busy.get(), 1);
+    socklen_t len = sizeof(sa);
+    ::getsockname(busy.get(), reinterpret_cast<sockaddr*>(&sa), &len);
+    const std::string port = std::to_string(ntohs(sa.sin_port));
+    Process p({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), port, "--bind", "127.0.0.1"}, dir / "e2.txt");
+    EXPECT_EQ(p.Wait(), 1);
+    EXPECT_NE(p.Stderr().find(port), std::string::npos) << p.Stderr();
+  }
+  {
+    Process p({ServerBinary(), "-f", (dir / "missing.cfg").string()}, dir / "e3.txt");
+    EXPECT_EQ(p.Wait(), 1);
+    EXPECT_NE(p.Stderr().find("missing.cfg"), std::string::npos);
+  }
+}
+
+}  // namespace
+}  // namespace trackcal::vrpn

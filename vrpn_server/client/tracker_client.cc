@@ -1,0 +1,367 @@
+#include "vrpn_server/client/tracker_client.h"
+
+#include <arpa/inet.h>
+#include <netdb.h>
+#include <netinet/tcp.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <charconv>
+#include <chrono>
+#include <optional>
+#include <stdexcept>
+#include <vector>
+
+#include "vrpn_server/net/socket_util.h"
+
+namespace trackcal::vrpn {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+Clock::duration Seconds(double s) {
+  return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
+}
+
+int ParsePort(const std::string& text, const std::string& name) {
+  int port = 0;
+  auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), port);
+  if (ec != std::errc() || ptr != text.data() + text.size() || port < 1 || port > 65535) {
+    throw std::invalid_argument("VRPN name '" + name + "': bad port '" + text + "'");
+  }
+  return port;
+}
+
+}  // namespace
+
+VrpnName ParseVrpnName(const std::string& name) {
+  const auto at = name.rfind('@');
+  if (at == std::string::npos || at == 0 || at + 1 == name.size()) {
+    throw std::invalid_argument("VRPN name '" + name + "': expected Device@host[:port]");
+  }
+  VrpnName n;
+  n.device = name.substr(0, at);
+  std::string rest = name.substr(at + 1);
+  n.tcp = rest.find("tcp:") != std::string::npos;
+  for (const char* prefix : {"tcp://", "x-vrpn://", "tcp:"}) {
+    if (rest.starts_with(prefix)) {
+      rest = rest.substr(std::char_traits<char>::length(prefix));
+      break;
+    }
+  }
+  const auto colon = rest.rfind(':');
+  if (colon != std::string::npos) {
+    n.port = ParsePort(rest.substr(colon + 1), name);
+    rest = rest.substr(0, colon);
+  }
+  if (rest.empty()) throw std::invalid_argument("VRPN name '" + name + "': empty host");
+  n.host = rest;
+  if (n.device.size() > kMaxNameLength) {
+    throw std::invalid_argument("VRPN name '" + name + "': device name over 95 characters");
+  }
+  return n;
+}
+
+void TrackerClientOptions::Check() const {
+  if (!(ping_interval_s > 0)) throw std::invalid_argument("TrackerClientOptions.ping_interval_s: must be > 0");
+  if (!(lob_retry_s > 0)) throw std::invalid_argument("TrackerClientOptions.lob_retry_s: must be > 0");
+  if (!(reconnect_delay_s >= 0)) {
+    throw std::invalid_argument("TrackerClientOptions.reconnect_delay_s: must be >= 0");
+  }
+  if (max_message_length < kHeaderSize + kTextSize) {
+    throw std::invalid_argument("TrackerClientOptions.max_message_length: must hold a text message");
+  }
+}
+
+struct VrpnTrackerClient::Impl {
+  enum class State { kIdle, kConnecting, kLobWaiting, kConnected } state = State::kIdle;
+  std::shared_ptr<NameRegistry> names = std::make_shared<NameRegistry>();
+  std::int32_t device_id = 0, ping_type = 0;
+  std::int32_t request_types[3] = {};
+  std::unique_ptr<Connection> connection;
+  UniqueFd tcp, listen, udp;
+  std::size_t out_offset = 0;
+  std::optional<sockaddr_in> server;
+  in_addr local_ip{};
+  Clock::time_point next_retry = Clock::time_point::min();
+  Clock::time_point next_lob = Clock::time_point::max();
+  Clock::time_point next_ping = Clock::time_point::max();
+  bool request_pending = false;
+};
+
+VrpnTrackerClient::VrpnTrackerClient(const std::string& name, TrackerClientOptions options)
+    : name_(ParseVrpnName(name)), options_(options), impl_(std::make_unique<Impl>()) {
+  options_.Check();
+  auto& n = *impl_->names;
+  n.AddSender(kControlSender);
+  impl_->device_id = n.AddSender(name_.device);
+  for (auto t : {kPosQuatType, kVelocityType, kAccelerationType, kToRoomType, kUnitToSensorType,
+                 kRequestToRoomType, kRequestUnitToSensorType, kWorkspaceType, kRequestWorkspaceType,
+                 kSetUpdateRateType, kResetOriginType, kTextType, kPingType, kPongType,
+                 kButtonChangeType, kButtonStatesType}) {
+    n.AddType(t);
+  }
+  impl_->ping_type = *n.FindType(kPingType);
+  impl_->request_types[0] = *n.FindType(kRequestToRoomType);
+  impl_->request_types[1] = *n.FindType(kRequestUnitToSensorType);
+  impl_->request_types[2] = *n.FindType(kRequestWorkspaceType);
+}
+
+VrpnTrackerClient::~VrpnTrackerClient() { Stop(); }
+
+void VrpnTrackerClient::Start() {
+  if (running_.exchange(true)) return;
+  thread_ = std::thread([this] {
+    while (running_) Poll(0.05);
+  });
+}
+
+void VrpnTrackerClient::Stop() {
+  if (running_.exchange(false) && thread_.joinable()) thread_.join();
+}
+
+void VrpnTrackerClient::RequestStaticInfo() {
+  impl_->request_pending = true;
+  if (connected_) {
+    for (auto t : impl_->request_types) impl_->connection->Pack(impl_->device_id, t, Timestamp::Now(), {});
+    impl_->request_pending = false;
+    FlushTcp();
+  }
+}
+
+void VrpnTrackerClient::Reset(const std::string& /*why*/) {
+  impl_->tcp.Reset();
+  impl_->listen.Reset();
+  impl_->udp.Reset();
+  impl_->connection.reset();
+  impl_->out_offset = 0;
+  impl_->state = Impl::State::kIdle;
+  impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
+  impl_->next_lob = impl_->next_ping = Clock::time_point::max();
+  connected_ = false;
+  pong_received_ = false;
+  udp_active_ = false;
+}
+
+void VrpnTrackerClient::BeginConnect() {
+  if (!impl_->server) {
+    addrinfo hints{};
+    hints.ai_family = AF_INET;
+    hints.ai_socktype = SOCK_STREAM;
+    addrinfo* res = nullptr;
+    if (::getaddrinfo(name_.host.c_str(), nullptr, &hints, &res) != 0 || res == nullptr) {
+      impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
+      return;
+    }
+    impl_->server = MakeSockaddr(reinterpret_cast<sockaddr_in*>(res->ai_addr)->sin_addr, name_.port);
+    ::freeaddrinfo(res);
+  }
+  const sockaddr_in server = *impl_->server;
+  if (name_.tcp) {
+    UniqueFd fd(::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+    int one = 1;
+    ::setsockopt(fd.get(), IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
+    const int rc = ::connect(fd.get(), reinterpret_cast<const sockaddr*>(&server), sizeof(server));
+    if (rc != 0 && errno != EINPROGRESS) {
+      Reset("connect failed");
+      return;
+    }
+    impl_->tcp = std::move(fd);
+    impl_->state = Impl::State::kConnecting;
+    if (rc == 0) OnTcpConnected();
+    return;
+  }
+  // Lob: find our address towards the server, listen there, then send the request datagram.
+  UniqueFd probe(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0));
+  sockaddr_in local{};
+  socklen_t len = sizeof(local);
+  if (::connect(probe.get(), reinterpret_cast<const sockaddr*>(&server), sizeof(server)) != 0 ||
+      ::getsockname(probe.get(), reinterpret_cast<sockaddr*>(&local), &len) != 0) {
+    Reset("no route to server");
+    return;
+  }
+  impl_->local_ip = local.sin_addr;
+  UniqueFd listener(::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+  sockaddr_in la = MakeSockaddr(local.sin_addr, 0);
+  if (::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)) != 0 ||
+      ::listen(listener.get(), 4) != 0) {
+    Reset("cannot listen for the call-back");
+    return;
+  }
+  impl_->listen = std::move(listener);
+  impl_->state = Impl::State::kLobWaiting;
+  impl_->next_lob = Clock::now();  // send at once
+}
+
+void VrpnTrackerClient::OnTcpConnected() {
+  impl_->state = Impl::State::kConnected;
+  impl_->connection = std::make_unique<Connection>(
+      impl_->names, Connection::Options{.max_message_length = options_.max_message_length});
+  std::optional<std::pair<std::string, int>> our_udp;
+  if (!name_.tcp && options_.udp_channel) {
+    UniqueFd udp(::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+    sockaddr_in ua = MakeSockaddr(impl_->local_ip, 0);
+    socklen_t len = sizeof(ua);
+    if (udp.valid() && ::bind(udp.get(), reinterpret_cast<sockaddr*>(&ua), sizeof(ua)) == 0 &&
+        ::getsockname(udp.get(), reinterpret_cast<sockaddr*>(&ua), &len) == 0) {
+      our_udp = std::make_pair(FormatIpv4(ua.sin_addr), static_cast<int>(ntohs(ua.sin_port)));
+      impl_->udp = std::move(udp);
+    }
+  }
+  impl_->connection->Start(our_udp);
+  ++connections_;
+  FlushTcp();
+}
+
+void VrpnTrackerClient::FlushTcp() {
+  if (impl_->state != Impl::State::kConnected) return;
+  auto& out = impl_->connection->tcp_output();
+  while (impl_->out_offset < out.size()) {
+    const ssize_t n = ::send(impl_->tcp.get(), out.data() + impl_->out_offset,
+                             out.size() - impl_->out_offset, MSG_NOSIGNAL | MSG_DONTWAIT);
+    if (n < 0) {
+      if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) return;
+      Reset("write failed");
+      return;
+    }
+    impl_->out_offset += static_cast<std::size_t>(n);
+  }
+  out.clear();
+  impl_->out_offset = 0;
+}
+
+void VrpnTrackerClient::HandleMessage(const ReceivedMessage& m) {
+  if (m.sender != name_.device) return;  // other devices on the same server
+  if (m.type == kPosQuatType) {
+    const auto p = DecodePosQuat(m.payload);
+    if (!p) return;
+    ++reports_;
+    if (m.via_udp) udp_active_ = true;
+    if (on_pose_) on_pose_(TrackerReport{p->sensor, p->transmitter_from_receiver, m.time, m.via_udp});
+    return;
+  }
+  if (m.type == kPongType) pong_received_ = true;
+  if (on_message_) on_message_(m);
+}
+
+void VrpnTrackerClient::Poll(double timeout_s) {
+  auto now = Clock::now();
+  if (impl_->state == Impl::State::kIdle && now >= impl_->next_retry) BeginConnect();
+  auto deadline = now + Seconds(std::max(0.0, timeout_s));
+
+  // Timers.
+  if (impl_->state == Impl::State::kLobWaiting && now >= impl_->next_lob) {
+    // A fresh UDP socket per attempt, as the reference does.
+    UniqueFd s(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0));
+    sockaddr_in la{};
+    socklen_t len = sizeof(la);
+    ::getsockname(impl_->listen.get(), reinterpret_cast<sockaddr*>(&la), &len);
+    const auto dgram = EncodeLobRequest(LobRequest{FormatIpv4(impl_->local_ip), ntohs(la.sin_port)});
+    ::sendto(s.get(), dgram.data(), dgram.size(), 0, reinterpret_cast<const sockaddr*>(&*impl_->server),
+             sizeof(sockaddr_in));
+    impl_->next_lob = now + Seconds(options_.lob_retry_s);
+  }
+  if (connected_ && !pong_received_ && now >= impl_->next_ping) {
+    impl_->connection->Pack(impl_->device_id, impl_->ping_type, Timestamp::Now(), {});
+    impl_->next_ping = now + Seconds(options_.ping_interval_s);
+    FlushTcp();
+  }
+  auto wake = deadline;
+  if (impl_->state == Impl::State::kIdle) wake = std::min(wake, impl_->next_retry);
+  if (impl_->state == Impl::State::kLobWaiting) wake = std::min(wake, impl_->next_lob);
+  if (connected_ && !pong_received_) wake = std::min(wake, impl_->next_ping);
+
+  pollfd fds[3];
+  int nfds = 0;
+  int tcp_index = -1, listen_index = -1, udp_index = -1;
+  if (impl_->tcp.valid()) {
+    short ev = POLLIN;
+    if (impl_->state == Impl::State::kConnecting ||
+        (impl_->connection && impl_->out_offset < impl_->connection->tcp_output().size())) {
+      ev |= POLLOUT;
+    }
+    tcp_index = nfds;
+    fds[nfds++] = pollfd{impl_->tcp.get(), ev, 0};
+  }
+  if (impl_->listen.valid()) {
+    listen_index = nfds;
+    fds[nfds++] = pollfd{impl_->listen.get(), POLLIN, 0};
+  }
+  if (impl_->udp.valid()) {
+    udp_index = nfds;
+    fds[nfds++] = pollfd{impl_->udp.get(), POLLIN, 0};
+  }
+  const auto wait = std::chrono::duration_cast<std::chrono::milliseconds>(wake - Clock::now()).count();
+  const int rc = ::poll(fds, static_cast<nfds_t>(nfds), static_cast<int>(std::max<long long>(0, wait)));
+  if (rc <= 0) return;
+  auto handler = [this](const ReceivedMessage& m) { HandleMessage(m); };
+
+  if (listen_index >= 0 && (fds[listen_index].revents & POLLIN)) {
+    const int fd = ::accept4(impl_->listen.get(), nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC);
+    if (fd >= 0) {
+      impl_->tcp.Reset(fd);
+      impl_->listen.Reset();
+      int one = 1;
+      ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
+      impl_->next_lob = Clock::time_point::max();
+      OnTcpConnected();
+      return;
+    }
+  }
+  if (tcp_index >= 0 && fds[tcp_index].revents) {
+    if (impl_->state == Impl::State::kConnecting) {
+      int err = 0;
+      socklen_t len = sizeof(err);
+      ::getsockopt(impl_->tcp.get(), SOL_SOCKET, SO_ERROR, &err, &len);
+      if (err != 0 || (fds[tcp_index].revents & (POLLERR | POLLHUP))) {
+        Reset("connect failed");
+        return;
+      }
+      OnTcpConnected();
+      return;
+    }
+    if (fds[tcp_index].revents & (POLLIN | POLLHUP | POLLERR)) {
+      std::uint8_t buf[65536];
+      for (int burst = 0; burst < 16; ++burst) {
+        const ssize_t n = ::read(impl_->tcp.get(), buf, sizeof(buf));
+        if (n == 0 || (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) {
+          Reset("connection closed");
+          return;
+        }
+        if (n < 0) break;
+        const bool was = impl_->connection->handshake_done();
+        if (!impl_->connection->OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                           handler)) {
+          Reset(impl_->connection->error());
+          return;
+        }
+        if (!was && impl_->connection->handshake_done()) {
+          connected_ = true;
+          impl_->next_ping = Clock::now();
+          if (impl_->request_pending) RequestStaticInfo();
+        }
+        if (static_cast<std::size_t>(n) < sizeof(buf)) break;
+      }
+    }
+    FlushTcp();
+  }
+  if (udp_index >= 0 && impl_->udp.valid() && (fds[udp_index].revents & POLLIN) && impl_->connection) {
+    std::uint8_t buf[kMaxDatagramSize + 64];
+    for (int burst = 0; burst < 64; ++burst) {
+      const ssize_t n = ::recv(impl_->udp.get(), buf, sizeof(buf), MSG_DONTWAIT);
+      if (n <= 0) break;
+      impl_->connection->OnDatagram(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)), handler);
+    }
+  }
+  // Send a ping right after the handshake rather than waiting for the next Poll.
+  if (connected_ && !pong_received_ && Clock::now() >= impl_->next_ping) {
+    impl_->connection->Pack(impl_->device_id, impl_->ping_type, Timestamp::Now(), {});
+    impl_->next_ping = Clock::now() + Seconds(options_.ping_interval_s);
+    FlushTcp();
+  }
+}
+
+}  // namespace trackcal::vrpn

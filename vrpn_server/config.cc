@@ -1,0 +1,432 @@
+#include "vrpn_server/config.h"
+
+#include <charconv>
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <sstream>
+#include <stdexcept>
+
+namespace trackcal::vrpn {
+namespace {
+
+constexpr std::string_view kWhitespace = " \t\r\f\v";
+
+std::string_view TrimRight(std::string_view s) {
+  const size_t end = s.find_last_not_of(kWhitespace);
+  return end == std::string_view::npos ? std::string_view() : s.substr(0, end + 1);
+}
+
+std::string_view Trim(std::string_view s) {
+  s = TrimRight(s);
+  const size_t begin = s.find_first_not_of(kWhitespace);
+  return begin == std::string_view::npos ? std::string_view() : s.substr(begin);
+}
+
+std::vector<std::string> Tokenize(std::string_view s) {
+  std::vector<std::string> tokens;
+  size_t i = 0;
+  while (i < s.size()) {
+    i = s.find_first_not_of(kWhitespace, i);
+    if (i == std::string_view::npos) break;
+    size_t end = s.find_first_of(kWhitespace, i);
+    if (end == std::string_view::npos) end = s.size();
+    tokens.emplace_back(s.substr(i, end - i));
+    i = end;
+  }
+  return tokens;
+}
+
+[[noreturn]] void Fail(const ConfigLocation& where, std::string_view field, const std::string& what) {
+  std::ostringstream msg;
+  msg << where.ToString() << ": ";
+  if (!field.empty()) msg << "field '" << field << "': ";
+  msg << what;
+  throw std::invalid_argument(msg.str());
+}
+
+int ParseInt(const std::string& token, const ConfigLocation& where, std::string_view field) {
+  int value = 0;
+  const auto [end, ec] = std::from_chars(token.data(), token.data() + token.size(), value);
+  if (ec != std::errc() || end != token.data() + token.size()) {
+    Fail(where, field, "expected an integer, got '" + token + "'");
+  }
+  return value;
+}
+
+double ParseDouble(const std::string& token, const ConfigLocation& where, std::string_view field) {
+  // std::from_chars for double is available in GCC 11+, but strtod also accepts what C users expect.
+  char* end = nullptr;
+  const double value = std::strtod(token.c_str(), &end);
+  if (token.empty() || end != token.c_str() + token.size() || !std::isfinite(value)) {
+    Fail(where, field, "expected a number, got '" + token + "'");
+  }
+  return value;
+}
+
+// A physical line of the file: text without the line end and trailing blanks, 1-based number.
+struct Line {
+  std::string_view text;
+  int number = 0;
+};
+
+bool IsCommentOrBlank(std::string_view text) {
+  const std::string_view t = Trim(text);
+  return t.empty() || t.front() == '#';
+}
+
+// Continuation character of a (right-trimmed) line: '\\', '/' or 0.
+char ContinuationOf(std::string_view text) {
+  if (text.empty()) return 0;
+  const char c = text.back();
+  return (c == '\\' || c == '/') ? c : 0;
+}
+
+class Parser {
+ public:
+  Parser(std::string_view text, const std::string& file_name) : file_name_(file_name) {
+    size_t start = 0;
+    int number = 1;
+    while (start < text.size()) {  // a final line end does not start another line
+      size_t end = text.find('\n', start);
+      if (end == std::string_view::npos) end = text.size();
+      lines_.push_back({TrimRight(text.substr(start, end - start)), number++});
+      start = end + 1;
+    }
+  }
+
+  VrpnConfig Parse() {
+    while (next_ < lines_.size()) {
+      const Line line = lines_[next_++];
+      if (IsCommentOrBlank(line.text)) continue;
+      const ConfigLocation where = Where(line);
+      const std::vector<std::string> tokens = Tokenize(line.text);
+      const std::string& keyword = tokens.front();
+      if (keyword == "vrpn_Tracker_Fastrak") {
+        ParseFastrak(line);
+      } else if (keyword == "vrpn_Tracker_NULL") {
+        ParseNull(tokens, where);
+      } else if (keyword == "trackcal_Calibration") {
+        ParseCalibration(tokens, where);
+      } else if (keyword == "trackcal_Tracker_Passthrough") {
+        ParsePassthrough(tokens, where);
+      } else {
+        const int skipped = SkipContinuation(ContinuationOf(line.text));
+        std::string message = "unknown device type '" + keyword + "'; line ignored";
+        if (skipped > 0) {
+          message += " with its " + std::to_string(skipped) + " continuation line(s)";
+        }
+        message += " (other devices are still served)";
+        config_.warnings.push_back({where, message});
+      }
+    }
+    CheckCalibrations();
+    return std::move(config_);
+  }
+
+ private:
+  ConfigLocation Where(const Line& line) const { return {file_name_, line.number}; }
+
+  // Next line that is not a comment (comments are allowed inside continuation blocks), or null.
+  const Line* NextContinuationLine() {
+    while (next_ < lines_.size()) {
+      const Line& line = lines_[next_++];
+      const std::string_view t = Trim(line.text);
+      if (!t.empty() && t.front() == '#') continue;
+      return &line;
+    }
+    return nullptr;
+  }
+
+  int SkipContinuation(char continuation) {
+    int skipped = 0;
+    while (continuation != 0) {
+      const Line* line = NextContinuationLine();
+      if (line == nullptr) break;
+      ++skipped;
+      continuation = ContinuationOf(line->text);
+    }
+    return skipped;
+  }
+
+  void RegisterName(const std::string& name, const ConfigLocation& where, std::string_view field) {
+    if (name.empty()) Fail(where, field, "empty device name");
+    const auto [it, inserted] = names_.emplace(name, where);
+    if (!inserted) {
+      Fail(where, field, "device name '" + name + "' is already used at " + it->second.ToString());
+    }
+  }
+
+  void ParseFastrak(const Line& line) {
+    const ConfigLocation where = Where(line);
+    std::string_view body = line.text;
+    char continuation = ContinuationOf(body);
+    if (continuation != 0) body = TrimRight(body.substr(0, body.size() - 1));
+    std::vector<std::string> tokens = Tokenize(body);
+    // The reference also accepts the continuation character as a separate token before the end.
+    if (tokens.size() > 4 && (tokens.back() == "\\" || tokens.back() == "/")) tokens.pop_back();
+    if (tokens.size() < 4) {
+      static constexpr const char* kFields[] = {"", "name", "serial_port", "baud"};
+      Fail(where, kFields[tokens.size()],
+           "missing; expected 'vrpn_Tracker_Fastrak <name> <serial_port> <baud> [IS900time]'");
+    }
+    FastrakTrackerSpec spec;
+    spec.location = where;
+    spec.name = tokens[1];
+    spec.port = tokens[2];
+    spec.baud = ParseInt(tokens[3], where, "baud");
+    if (!IsSupportedBaudRate(spec.baud)) {
+      Fail(where, "baud",
+           std::to_string(spec.baud) +
+               " is not a supported rate (300, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)");
+    }
+    for (size_t i = 4; i < tokens.size(); ++i) {
+      if (tokens[i] == "IS900time" && !spec.is900_time) {
+        spec.is900_time = true;
+      } else {
+        Fail(where, "option", "unexpected token '" + tokens[i] + "' (only IS900time may follow the baud rate)");
+      }
+    }
+    RegisterName(spec.name, where, "name");
+
+    // '\' lines: extra reset commands; the last one may end with '/' to start device lines.
+    while (continuation == '\\') {
+      const Line* cmd_line = NextContinuationLine();
+      if (cmd_line == nullptr) {
+        Fail(where, "extra commands", "the line ends with '\\' but the file ends before the command line");
+      }
+      const ConfigLocation cmd_where = Where(*cmd_line);
+      std::string_view text = cmd_line->text;
+      continuation = ContinuationOf(text);
+      if (continuation != 0) text.remove_suffix(1);
+      const std::string command(Trim(text));
+      if (command.empty()) {
+        config_.warnings.push_back({cmd_where, "empty extra command line ignored"});
+        continue;
+      }
+      if (command.front() == '*') {
+        const double seconds = ParseDouble(command.substr(1), cmd_where, "sleep");
+        if (seconds < 0.0) Fail(cmd_where, "sleep", "a '*N' sleep must not be negative");
+      }
+      spec.extra_commands.push_back(command);
+    }
+
+    // '/' lines: button devices on this tracker's sensors.
+    while (continuation == '/') {
+      const Line* dev_line = NextContinuationLine();
+      if (dev_line == nullptr) {
+        Fail(where, "device line", "a line ends with '/' but the file ends before the device line");
+      }
+      const ConfigLocation dev_where = Where(*dev_line);
+      std::string_view text = dev_line->text;
+      continuation = ContinuationOf(text);
+      if (continuation == '\\') {
+        Fail(dev_where, "device line", "a device line cannot be followed by '\\' command lines");
+      }
+      if (continuation != 0) text.remove_suffix(1);
+      spec.buttons.push_back(ParseButton(Tokenize(text), dev_where));
+    }
+    config_.fastrak_trackers.push_back(std::move(spec));
+  }
+
+  ButtonDeviceSpec ParseButton(const std::vector<std::string>& tokens, const ConfigLocation& where) {
+    if (tokens.empty()) Fail(where, "device line", "empty device line after '/'");
+    ButtonDeviceSpec button;
+    button.location = where;
+    size_t expected = 3;
+    if (tokens[0] == "FTStylus") {
+      button.kind = ButtonDeviceKind::kFastrakStylus;
+    } else if (tokens[0] == "Stylus") {
+      button.kind = ButtonDeviceKind::kIs900Stylus;
+    } else if (tokens[0] == "Wand") {
+      button.kind = ButtonDeviceKind::kIs900Wand;
+      expected = 11;
+    } else {
+      Fail(where, "device line",
+           "unknown device '" + tokens[0] + "' after '/' (expected FTStylus, Stylus or Wand)");
+    }
+    if (tokens.size() != expected) {
+      Fail(where, tokens[0],
+           "expected " + std::to_string(expected - 1) + " values after '" + tokens[0] + "', got " +
+               std::to_string(tokens.size() - 1));
+    }
+    button.name = tokens[1];
+    button.sensor = ParseInt(tokens[2], where, "sensor");
+    if (button.sensor < 0 || button.sensor > 3) {
+      Fail(where, "sensor", "must be 0..3 (Fastrak stations 1..4), got " + tokens[2]);
+    }
+    for (size_t i = 3; i < tokens.size(); ++i) {
+      button.wand_ranges[i - 3] = ParseDouble(tokens[i], where, "wand range");
+    }
+    RegisterName(button.name, where, "button name");
+    return button;
+  }
+
+  void ParseNull(const std::vector<std::string>& tokens, const ConfigLocation& where) {
+    if (tokens.size() != 4) {
+      Fail(where, "vrpn_Tracker_NULL", "expected 'vrpn_Tracker_NULL <name> <sensors> <rate_hz>'");
+    }
+    NullTrackerSpec spec;
+    spec.location = where;
+    spec.name = tokens[1];
+    spec.sensors = ParseInt(tokens[2], where, "sensors");
+    if (spec.sensors < 1) Fail(where, "sensors", "must be at least 1");
+    spec.rate_hz = ParseDouble(tokens[3], where, "rate");
+    if (spec.rate_hz < 0.0) Fail(where, "rate", "must not be negative");
+    RegisterName(spec.name, where, "name");
+    config_.null_trackers.push_back(std::move(spec));
+  }
+
+  void ParseCalibration(const std::vector<std::string>& tokens, const ConfigLocation& where) {
+    if (tokens.size() < 3) {
+      Fail(where, tokens.size() < 2 ? "tracker" : "calibration_file",
+           "missing; expected 'trackcal_Calibration <tracker> <calibration_file> [raw=<name>] "
+           "[outside=clamp|fade] [fade_distance=<metres>]'");
+    }
+    CalibrationSpec spec;
+    spec.location = where;
+    spec.tracker = tokens[1];
+    spec.file = tokens[2];
+    if (spec.file.is_relative()) {
+      spec.file = std::filesystem::path(file_name_).parent_path() / spec.file;
+    }
+    for (size_t i = 3; i < tokens.size(); ++i) {
+      const std::string& option = tokens[i];
+      const size_t eq = option.find('=');
+      const std::string key = option.substr(0, eq);
+      const std::string value = eq == std::string::npos ? std::string() : option.substr(eq + 1);
+      if (eq == std::string::npos || value.empty()) {
+        Fail(where, key, "expected key=value, got '" + option + "'");
+      }
+      if (key == "raw") {
+        if (spec.raw_name) Fail(where, "raw", "given twice");
+        RegisterName(value, where, "raw");
+        spec.raw_name = value;
+      } else if (key == "outside") {
+        if (value == "clamp") {
+          spec.outside = OutsidePolicy::kClamp;
+        } else if (value == "fade") {
+          spec.outside = OutsidePolicy::kFade;
+        } else {
+          Fail(where, "outside", "expected clamp or fade, got '" + value + "'");
+        }
+      } else if (key == "fade_distance") {
+        const double d = ParseDouble(value, where, "fade_distance");
+        if (!(d > 0.0)) Fail(where, "fade_distance", "must be a positive distance in metres");
+        spec.fade_distance_m = d;
+      } else {
+        Fail(where, key,
+             "unknown option (expected raw=<name>, outside=clamp|fade or fade_distance=<metres>)");
+      }
+    }
+    config_.calibrations.push_back(std::move(spec));
+  }
+
+  void ParsePassthrough(const std::vector<std::string>& tokens, const ConfigLocation& where) {
+    if (tokens.size() != 3) {
+      Fail(where, tokens.size() < 2 ? "name" : (tokens.size() < 3 ? "source" : "source"),
+           "expected 'trackcal_Tracker_Passthrough <name> <source>' with source "
+           "Device@host[:port] or *Device");
+    }
+    PassthroughSpec spec;
+    spec.location = where;
+    spec.name = tokens[1];
+    spec.source = tokens[2];
+    std::string_view s = spec.source;
+    const bool star = !s.empty() && s.front() == '*';
+    if (star) s.remove_prefix(1);
+    const size_t at = s.find('@');
+    spec.source_device = std::string(s.substr(0, at));
+    if (spec.source_device.empty()) Fail(where, "source", "missing device name in '" + spec.source + "'");
+    if (at == std::string_view::npos) {
+      if (!star) {
+        Fail(where, "source",
+             "'" + spec.source + "' names no server; write Device@host[:port], or *Device for a "
+             "device of this server");
+      }
+      if (spec.source_device == spec.name) {
+        Fail(where, "source", "a pass-through cannot read its own name");
+      }
+    } else {
+      std::string_view host = s.substr(at + 1);
+      if (host.substr(0, 6) == "tcp://") {
+        spec.source_tcp_only = true;
+        host.remove_prefix(6);
+      }
+      const size_t colon = host.rfind(':');
+      if (colon != std::string_view::npos) {
+        const std::string port(host.substr(colon + 1));
+        spec.source_port = ParseInt(port, where, "source port");
+        if (spec.source_port < 1 || spec.source_port > 65535) {
+          Fail(where, "source port", "must be 1..65535, got " + port);
+        }
+        host = host.substr(0, colon);
+      }
+      if (host.empty()) Fail(where, "source", "missing host after '@' in '" + spec.source + "'");
+      spec.source_host = std::string(host);
+    }
+    RegisterName(spec.name, where, "name");
+    config_.passthroughs.push_back(std::move(spec));
+  }
+
+  void CheckCalibrations() {
+    std::map<std::string, ConfigLocation> seen;
+    for (const CalibrationSpec& c : config_.calibrations) {
+      bool is_tracker = false;
+      for (const auto& t : config_.fastrak_trackers) is_tracker |= t.name == c.tracker;
+      for (const auto& t : config_.null_trackers) is_tracker |= t.name == c.tracker;
+      for (const auto& t : config_.passthroughs) is_tracker |= t.name == c.tracker;
+      if (!is_tracker) {
+        Fail(c.location, "tracker", "no tracker named '" + c.tracker + "' is defined in this file");
+      }
+      const auto [it, inserted] = seen.emplace(c.tracker, c.location);
+      if (!inserted) {
+        Fail(c.location, "tracker",
+             "tracker '" + c.tracker + "' already has a calibration at " + it->second.ToString());
+      }
+    }
+  }
+
+  std::string file_name_;
+  std::vector<Line> lines_;
+  size_t next_ = 0;
+  std::map<std::string, ConfigLocation> names_;
+  VrpnConfig config_;
+};
+
+}  // namespace
+
+std::string ConfigLocation::ToString() const { return file + ":" + std::to_string(line); }
+
+std::string ConfigWarning::ToString() const {
+  return location.ToString() + ": warning: " + message;
+}
+
+const CalibrationSpec* VrpnConfig::FindCalibration(std::string_view name) const {
+  for (const CalibrationSpec& c : calibrations) {
+    if (c.tracker == name) return &c;
+  }
+  return nullptr;
+}
+
+bool IsSupportedBaudRate(int baud) {
+  for (int b : {300, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200}) {
+    if (baud == b) return true;
+  }
+  return false;
+}
+
+VrpnConfig ParseVrpnConfig(std::string_view text, const std::string& file_name) {
+  return Parser(text, file_name).Parse();
+}
+
+VrpnConfig ReadVrpnConfig(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw std::runtime_error(path.string() + ": cannot open the VRPN configuration file");
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (in.bad()) throw std::runtime_error(path.string() + ": read error");
+  return ParseVrpnConfig(text.str(), path.string());
+}
+
+}  // namespace trackcal::vrpn

@@ -1,0 +1,230 @@
+#include "vrpn_server/config.h"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <stdexcept>
+
+#include "tests/test_utils.h"
+
+namespace trackcal::vrpn {
+namespace {
+
+// Message of the std::invalid_argument thrown by parsing `text` (empty if none was thrown).
+std::string ParseError(const std::string& text) {
+  try {
+    ParseVrpnConfig(text, "lab.cfg");
+  } catch (const std::invalid_argument& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST(ParseVrpnConfig, Nominal) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "# plain Fastrak\n"
+      "vrpn_Tracker_Fastrak  Tracker0  /dev/ttyS0  115200\n",
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 1u);
+  const FastrakTrackerSpec& t = config.fastrak_trackers[0];
+  EXPECT_EQ(t.name, "Tracker0");
+  EXPECT_EQ(t.port, "/dev/ttyS0");
+  EXPECT_EQ(t.baud, 115200);
+  EXPECT_FALSE(t.is900_time);
+  EXPECT_TRUE(t.extra_commands.empty());
+  EXPECT_TRUE(t.buttons.empty());
+  EXPECT_EQ(t.location.line, 2);
+  EXPECT_EQ(t.location.file, "lab.cfg");
+  EXPECT_TRUE(config.warnings.empty());
+}
+
+TEST(ParseVrpnConfig, ReferenceTranscriptFiles) {
+  const auto dir = testing::SourceDir() / "tests/data/fastrak/driver";
+  const VrpnConfig c07 = ReadVrpnConfig(dir / "07_fastrak_emulated_tcp/vrpn.cfg");
+  ASSERT_EQ(c07.fastrak_trackers.size(), 1u);
+  EXPECT_EQ(c07.fastrak_trackers[0].port, "/dev/pts/0");
+
+  const VrpnConfig c08 = ReadVrpnConfig(dir / "08_fastrak_emulated_udp_lob_stylus_cm/vrpn.cfg");
+  ASSERT_EQ(c08.fastrak_trackers.size(), 1u);
+  const FastrakTrackerSpec& t = c08.fastrak_trackers[0];
+  EXPECT_EQ(t.extra_commands, (std::vector<std::string>{"H1,1,0,0", "*1", "u"}));
+  ASSERT_EQ(t.buttons.size(), 1u);
+  EXPECT_EQ(t.buttons[0].kind, ButtonDeviceKind::kFastrakStylus);
+  EXPECT_EQ(t.buttons[0].name, "Stylus0");
+  EXPECT_EQ(t.buttons[0].sensor, 0);
+  EXPECT_EQ(t.buttons[0].location.line, 5);
+}
+
+TEST(ParseVrpnConfig, ContinuationToleratesTrailingSpacesAndCrlf) {
+  // The reference ends the continuation at a trailing space or CR; we must not.
+  const std::string lf =
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyUSB0 115200 \\\nH1,1,0,0\\\n*1\\\nu/\nFTStylus Stylus0 0\n";
+  const std::string messy =
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyUSB0 115200 \\  \r\nH1,1,0,0 \\\t\r\n*1\\ \r\n"
+      "u /  \r\nFTStylus Stylus0 0\r\n";
+  for (const std::string& text : {lf, messy}) {
+    SCOPED_TRACE(text);
+    const VrpnConfig config = ParseVrpnConfig(text, "lab.cfg");
+    ASSERT_EQ(config.fastrak_trackers.size(), 1u);
+    EXPECT_EQ(config.fastrak_trackers[0].extra_commands,
+              (std::vector<std::string>{"H1,1,0,0", "*1", "u"}));
+    ASSERT_EQ(config.fastrak_trackers[0].buttons.size(), 1u);
+    EXPECT_EQ(config.fastrak_trackers[0].buttons[0].name, "Stylus0");
+    EXPECT_TRUE(config.warnings.empty());
+  }
+}
+
+TEST(ParseVrpnConfig, DeviceLinesAndIs900Options) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 9600 IS900time /\n"
+      "# comment inside the block\n"
+      "Stylus Stylus0 1 /\n"
+      "Wand Wand0 2 -1 -0.1 0.1 1 -1 -0.2 0.2 1\n"
+      "vrpn_Tracker_Fastrak Tracker1 /dev/ttyS1 115200 /\n"
+      "FTStylus Pen 3\n",
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 2u);
+  const FastrakTrackerSpec& t0 = config.fastrak_trackers[0];
+  EXPECT_TRUE(t0.is900_time);
+  EXPECT_EQ(t0.baud, 9600);
+  ASSERT_EQ(t0.buttons.size(), 2u);
+  EXPECT_EQ(t0.buttons[0].kind, ButtonDeviceKind::kIs900Stylus);
+  EXPECT_EQ(t0.buttons[0].sensor, 1);
+  EXPECT_EQ(t0.buttons[1].kind, ButtonDeviceKind::kIs900Wand);
+  EXPECT_EQ(t0.buttons[1].sensor, 2);
+  EXPECT_DOUBLE_EQ(t0.buttons[1].wand_ranges[1], -0.1);
+  EXPECT_DOUBLE_EQ(t0.buttons[1].wand_ranges[6], 0.2);
+  EXPECT_EQ(t0.buttons[1].location.line, 4);
+  const FastrakTrackerSpec& t1 = config.fastrak_trackers[1];
+  EXPECT_EQ(t1.location.line, 5);
+  ASSERT_EQ(t1.buttons.size(), 1u);
+  EXPECT_EQ(t1.buttons[0].sensor, 3);
+}
+
+TEST(ParseVrpnConfig, SeparateContinuationTokenAndAttachedOne) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak A /dev/a 115200\\\n"
+      "U\n"
+      "vrpn_Tracker_Fastrak B /dev/b 115200 / \n"
+      "FTStylus BS 0\n",
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 2u);
+  EXPECT_EQ(config.fastrak_trackers[0].extra_commands, std::vector<std::string>{"U"});
+  EXPECT_EQ(config.fastrak_trackers[1].buttons.size(), 1u);
+}
+
+TEST(ParseVrpnConfig, TrackcalLines) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200\n"
+      "trackcal_Calibration Tracker0 calib/lab.json raw=Tracker0_raw outside=fade fade_distance=0.05\n"
+      "trackcal_Tracker_Passthrough Remote0 *Tracker0@lab-pc:3884\n"
+      "trackcal_Tracker_Passthrough Remote1 Head@tcp://10.0.0.2\n"
+      "trackcal_Tracker_Passthrough Local0 *Tracker0\n"
+      "trackcal_Calibration Remote0 /abs/remote.json\n"
+      "vrpn_Tracker_NULL Null0 2 5.0\n",
+      "/etc/trackcal/vrpn.cfg");
+  ASSERT_EQ(config.calibrations.size(), 2u);
+  const CalibrationSpec* c = config.FindCalibration("Tracker0");
+  ASSERT_NE(c, nullptr);
+  EXPECT_EQ(c->file, std::filesystem::path("/etc/trackcal/calib/lab.json"));
+  EXPECT_EQ(c->raw_name, "Tracker0_raw");
+  EXPECT_EQ(c->outside, OutsidePolicy::kFade);
+  EXPECT_EQ(c->fade_distance_m, std::optional<double>(0.05));
+  EXPECT_EQ(c->location.line, 2);
+  const CalibrationSpec* r = config.FindCalibration("Remote0");
+  ASSERT_NE(r, nullptr);
+  EXPECT_EQ(r->file, std::filesystem::path("/abs/remote.json"));
+  EXPECT_FALSE(r->raw_name.has_value());
+  EXPECT_EQ(r->outside, OutsidePolicy::kDefault);
+  EXPECT_FALSE(r->fade_distance_m.has_value());
+  EXPECT_EQ(config.FindCalibration("Remote1"), nullptr);
+
+  ASSERT_EQ(config.passthroughs.size(), 3u);
+  EXPECT_EQ(config.passthroughs[0].source_device, "Tracker0");
+  EXPECT_EQ(config.passthroughs[0].source_host, "lab-pc");
+  EXPECT_EQ(config.passthroughs[0].source_port, 3884);
+  EXPECT_FALSE(config.passthroughs[0].source_tcp_only);
+  EXPECT_EQ(config.passthroughs[1].source_device, "Head");
+  EXPECT_EQ(config.passthroughs[1].source_host, "10.0.0.2");
+  EXPECT_EQ(config.passthroughs[1].source_port, 3883);
+  EXPECT_TRUE(config.passthroughs[1].source_tcp_only);
+  EXPECT_EQ(config.passthroughs[2].source_host, "");
+  EXPECT_EQ(config.passthroughs[2].source_device, "Tracker0");
+
+  ASSERT_EQ(config.null_trackers.size(), 1u);
+  EXPECT_EQ(config.null_trackers[0].sensors, 2);
+  EXPECT_DOUBLE_EQ(config.null_trackers[0].rate_hz, 5.0);
+}
+
+TEST(ParseVrpnConfig, UnknownDeviceIsAWarningAndTheRestIsParsed) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Joylin Joy0 /dev/input/js0\n"
+      "vrpn_Tracker_Liberty Lib0 /dev/ttyS1 115200 \\\n"
+      "U\\\n"
+      "*2\n"
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200\n",
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 1u);
+  EXPECT_EQ(config.fastrak_trackers[0].name, "Tracker0");
+  ASSERT_EQ(config.warnings.size(), 2u);
+  EXPECT_EQ(config.warnings[0].location.line, 1);
+  EXPECT_NE(config.warnings[0].ToString().find("lab.cfg:1: warning: unknown device type 'vrpn_Joylin'"),
+            std::string::npos)
+      << config.warnings[0].ToString();
+  EXPECT_EQ(config.warnings[1].location.line, 2);
+  EXPECT_NE(config.warnings[1].message.find("2 continuation line(s)"), std::string::npos);
+}
+
+TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
+  struct Case {
+    std::string text;
+    std::string expected;  // substring of the message
+  };
+  const std::vector<Case> cases = {
+      {"\nvrpn_Tracker_Fastrak T /dev/ttyS0 12345\n", "lab.cfg:2: field 'baud': 12345 is not a supported"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 fast\n", "lab.cfg:1: field 'baud': expected an integer"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0\n", "lab.cfg:1: field 'baud': missing"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 IS600\n", "lab.cfg:1: field 'option'"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 \\\n*x\n", "lab.cfg:2: field 'sleep'"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 \\\n", "lab.cfg:1: field 'extra commands'"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 /\n# c\nFTStylus S 4\n", "lab.cfg:3: field 'sensor'"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 /\nButton B 0\n", "lab.cfg:2: field 'device line'"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 /\nFTStylus S\n", "lab.cfg:2: field 'FTStylus'"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 /\n", "lab.cfg:1: field 'device line'"},
+      {"vrpn_Tracker_Fastrak T /dev/a 115200\nvrpn_Tracker_Fastrak T /dev/b 115200\n",
+       "lab.cfg:2: field 'name': device name 'T' is already used at lab.cfg:1"},
+      {"trackcal_Calibration Nope c.json\n", "lab.cfg:1: field 'tracker': no tracker named 'Nope'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json outside=wrap\n", "lab.cfg:2: field 'outside'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json raw=T\n", "lab.cfg:2: field 'raw'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json colour=red\n", "lab.cfg:2: field 'colour'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T a.json\ntrackcal_Calibration T b.json\n",
+       "lab.cfg:3: field 'tracker': tracker 'T' already has a calibration at lab.cfg:2"},
+      {"trackcal_Calibration T\n", "lab.cfg:1: field 'calibration_file'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json fade_distance=-1\n", "lab.cfg:2: field 'fade_distance'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json fade_distance=\n", "lab.cfg:2: field 'fade_distance'"},
+      {"trackcal_Tracker_Passthrough P Tracker0\n", "lab.cfg:1: field 'source'"},
+      {"trackcal_Tracker_Passthrough P Tracker0@host:99999\n", "lab.cfg:1: field 'source port'"},
+      {"trackcal_Tracker_Passthrough P Tracker0@\n", "lab.cfg:1: field 'source'"},
+      {"trackcal_Tracker_Passthrough P *P\n", "lab.cfg:1: field 'source'"},
+      {"vrpn_Tracker_NULL N zero 1\n", "lab.cfg:1: field 'sensors'"},
+  };
+  for (const Case& c : cases) {
+    const std::string error = ParseError(c.text);
+    EXPECT_NE(error.find(c.expected), std::string::npos)
+        << "input:\n" << c.text << "error: '" << error << "'\nexpected: '" << c.expected << "'";
+  }
+}
+
+TEST(ParseVrpnConfig, EmptyCommandLineIsWarnedAndSkipped) {
+  const VrpnConfig config =
+      ParseVrpnConfig("vrpn_Tracker_Fastrak T /dev/a 115200 \\\n\\\n  \\\nH1,1,0,0\n", "lab.cfg");
+  EXPECT_EQ(config.fastrak_trackers.at(0).extra_commands, std::vector<std::string>{"H1,1,0,0"});
+  EXPECT_EQ(config.warnings.size(), 2u);
+}
+
+TEST(ReadVrpnConfig, MissingFileThrows) {
+  EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
+}
+
+}  // namespace
+}  // namespace trackcal::vrpn

@@ -1,0 +1,638 @@
+#include "vrpn_server/fastrak/driver.h"
+
+#include <fcntl.h>
+#include <poll.h>
+#include <termios.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cerrno>
+#include <cmath>
+#include <cstring>
+#include <optional>
+#include <sstream>
+#include <stdexcept>
+
+#include "vrpn_server/config.h"
+
+namespace trackcal::fastrak {
+namespace {
+
+using SteadyClock = std::chrono::steady_clock;
+using SystemClock = std::chrono::system_clock;
+
+SteadyClock::duration Seconds(double s) {
+  return std::chrono::duration_cast<SteadyClock::duration>(std::chrono::duration<double>(s));
+}
+
+std::string FormatSeconds(double s) {
+  std::ostringstream out;
+  out.precision(3);
+  out << s << " s";
+  return out.str();
+}
+
+// Thrown inside the driver thread to unwind to the main loop.
+struct StopRequested {};
+struct PortLost {
+  std::string reason;
+};
+
+speed_t BaudConstant(int baud) {
+  switch (baud) {
+    case 300:
+      return B300;
+    case 1200:
+      return B1200;
+    case 2400:
+      return B2400;
+    case 4800:
+      return B4800;
+    case 9600:
+      return B9600;
+    case 19200:
+      return B19200;
+    case 38400:
+      return B38400;
+    case 57600:
+      return B57600;
+    case 115200:
+      return B115200;
+    default:
+      throw std::invalid_argument("unsupported baud rate " + std::to_string(baud));
+  }
+}
+
+// open() + termios exactly as the reference (FASTRAK.md section 2): 8N1, no flow control, raw,
+// VMIN = VTIME = 0. Returns -1 and sets *error on failure.
+int OpenSerialPort(const std::string& path, int baud, std::string* error) {
+  const int fd = ::open(path.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
+  if (fd < 0) {
+    *error = std::strerror(errno);
+    return -1;
+  }
+  termios tio{};
+  if (::tcgetattr(fd, &tio) != 0) {
+    *error = std::string("not a serial port (") + std::strerror(errno) + ")";
+    ::close(fd);
+    return -1;
+  }
+  tio.c_iflag = IGNBRK | IGNPAR;
+  tio.c_oflag = 0;
+  tio.c_lflag = 0;
+  tio.c_cflag = CS8 | CREAD | CLOCAL;
+  tio.c_cc[VMIN] = 0;
+  tio.c_cc[VTIME] = 0;
+  const speed_t speed = BaudConstant(baud);
+  if (::cfsetispeed(&tio, speed) != 0 || ::cfsetospeed(&tio, speed) != 0 ||
+      ::tcsetattr(fd, TCSANOW, &tio) != 0) {
+    *error = std::string("cannot configure the line (") + std::strerror(errno) + ")";
+    ::close(fd);
+    return -1;
+  }
+  ::tcflush(fd, TCIFLUSH);
+  return fd;
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Options
+
+FastrakTimings FastrakTimings::Fast() {
+  FastrakTimings t;
+  t.settle_after_preamble_s = 0.05;
+  t.reinitialise_wait_s = 0.1;
+  t.settle_after_flush_s = 0.05;
+  t.status_timeout_s = 0.5;
+  t.command_gap_s = 0.005;
+  t.filter_settle_s = 0.02;
+  t.extras_settle_s = 0.05;
+  t.resume_probe_s = 0.3;
+  return t;
+}
+
+void FastrakTimings::Check() const {
+  const std::pair<const char*, double> fields[] = {
+      {"settle_after_preamble_s", settle_after_preamble_s},
+      {"reinitialise_wait_s", reinitialise_wait_s},
+      {"settle_after_flush_s", settle_after_flush_s},
+      {"status_timeout_s", status_timeout_s},
+      {"command_gap_s", command_gap_s},
+      {"filter_settle_s", filter_settle_s},
+      {"extras_settle_s", extras_settle_s},
+      {"watchdog_s", watchdog_s},
+      {"resume_probe_s", resume_probe_s},
+      {"reopen_backoff_min_s", reopen_backoff_min_s},
+      {"reopen_backoff_max_s", reopen_backoff_max_s},
+      {"message_interval_s", message_interval_s},
+  };
+  for (const auto& [name, value] : fields) {
+    if (!std::isfinite(value) || value < 0.0) {
+      throw std::invalid_argument(std::string("FastrakTimings.") + name + " must be finite and >= 0");
+    }
+  }
+  if (status_timeout_s <= 0.0) throw std::invalid_argument("FastrakTimings.status_timeout_s must be > 0");
+  if (watchdog_s <= 0.0) throw std::invalid_argument("FastrakTimings.watchdog_s must be > 0");
+  if (reopen_backoff_min_s <= 0.0) {
+    throw std::invalid_argument("FastrakTimings.reopen_backoff_min_s must be > 0 (no busy reopen loop)");
+  }
+  if (reopen_backoff_max_s < reopen_backoff_min_s) {
+    throw std::invalid_argument("FastrakTimings.reopen_backoff_max_s must be >= reopen_backoff_min_s");
+  }
+}
+
+void FastrakOptions::Check() const {
+  if (port.empty()) throw std::invalid_argument("FastrakOptions.port is empty");
+  if (!vrpn::IsSupportedBaudRate(baud)) {
+    throw std::invalid_argument("FastrakOptions.baud " + std::to_string(baud) +
+                                " is not 300, 1200, 2400, 4800, 9600, 19200, 38400, 57600 or 115200");
+  }
+  if (num_stations < 1 || num_stations > kMaxStations) {
+    throw std::invalid_argument("FastrakOptions.num_stations must be 1..4");
+  }
+  for (int s : stylus_sensors) {
+    if (s < 0 || s >= num_stations) {
+      throw std::invalid_argument("FastrakOptions.stylus_sensors: sensor " + std::to_string(s) +
+                                  " is not one of the configured stations");
+    }
+  }
+  for (const std::string& cmd : extra_commands) {
+    if (cmd.empty()) throw std::invalid_argument("FastrakOptions.extra_commands: empty command");
+    if (cmd.front() == '*') {
+      char* end = nullptr;
+      const double s = std::strtod(cmd.c_str() + 1, &end);
+      if (end == cmd.c_str() + 1 || *end != '\0' || !std::isfinite(s) || s < 0.0) {
+        throw std::invalid_argument("FastrakOptions.extra_commands: '" + cmd +
+                                    "' is not a valid '*N' sleep");
+      }
+    }
+    if (cmd.find_first_of("\r\n") != std::string::npos) {
+      throw std::invalid_argument("FastrakOptions.extra_commands: a command contains CR or LF");
+    }
+  }
+  timings.Check();
+}
+
+Units FastrakOptions::EffectiveUnits() const {
+  Units result = units;
+  for (const std::string& cmd : extra_commands) {
+    if (cmd == "u") result = Units::kCentimetres;
+    if (cmd == "U") result = Units::kInches;
+  }
+  return result;
+}
+
+const char* DriverStateName(DriverState state) {
+  switch (state) {
+    case DriverState::kStopped:
+      return "stopped";
+    case DriverState::kOpening:
+      return "opening";
+    case DriverState::kResetting:
+      return "resetting";
+    case DriverState::kStreaming:
+      return "streaming";
+  }
+  return "?";
+}
+
+// ---------------------------------------------------------------------------------------------
+// Session: everything the thread owns.
+
+class FastrakDriver::Session {
+ public:
+  explicit Session(FastrakDriver* driver)
+      : driver_(driver),
+        options_(driver->options_),
+        timings_(options_.timings),
+        units_(options_.EffectiveUnits()),
+        parser_(StylusStations(options_), units_),
+        limiter_(Seconds(timings_.message_interval_s)) {}
+
+  ~Session() { ClosePort(); }
+
+  void Run() {
+    if (units_ != options_.units) {
+      Emit(Severity::kInfo, std::string("extra commands switch the tracker to ") + UnitsName(units_) +
+                                "; positions are converted from " + UnitsName(units_));
+    }
+    for (const std::string& cmd : options_.extra_commands) {
+      if (cmd.front() == 'O') {
+        Emit(Severity::kWarning, "extra command '" + cmd +
+                                     "' changes an output list; records that do not match 2,11[,16],0 "
+                                     "are discarded");
+      }
+    }
+    while (true) {
+      try {
+        if (fd_ < 0) OpenWithBackoff();
+        bool streaming = configured_once_ && TryResume();
+        if (!streaming) streaming = Reset();
+        if (streaming) {
+          Stream();
+          // Watchdog: reopen the port like the reference (a USB adapter may have re-enumerated).
+          ClosePort();
+        }
+      } catch (const PortLost& lost) {
+        Count(&DriverStats::port_losses);
+        Emit(Severity::kError, "serial port " + options_.port + " lost (" + lost.reason +
+                                   "); reopening");
+        ClosePort();
+      } catch (const StopRequested&) {
+        break;
+      }
+    }
+    ClosePort();
+  }
+
+ private:
+  static std::array<bool, kMaxStations> StylusStations(const FastrakOptions& options) {
+    std::array<bool, kMaxStations> stylus{};
+    for (int s : options.stylus_sensors) stylus[s] = true;
+    return stylus;
+  }
+
+  void SetState(DriverState state) { driver_->state_.store(state); }
+
+  void Count(uint64_t DriverStats::*field, uint64_t n = 1) {
+    std::lock_guard<std::mutex> lock(driver_->stats_mutex_);
+    driver_->stats_.*field += n;
+  }
+
+  void Deliver(const DriverMessage& m) {
+    if (driver_->callbacks_.on_message) driver_->callbacks_.on_message(m.severity, m.text);
+  }
+
+  void Emit(Severity severity, std::string text) {
+    if (auto m = limiter_.Submit({severity, "Fastrak " + options_.port + ": " + text}, SteadyClock::now())) {
+      Deliver(*m);
+    }
+    {
+      std::lock_guard<std::mutex> lock(driver_->stats_mutex_);
+      driver_->stats_.messages_suppressed = limiter_.suppressed();
+    }
+  }
+
+  void PollLimiter() {
+    if (auto m = limiter_.Poll(SteadyClock::now())) Deliver(*m);
+  }
+
+  void ClosePort() {
+    if (fd_ >= 0) ::close(fd_);
+    fd_ = -1;
+  }
+
+  enum class WaitResult { kTimeout, kReadable };
+
+  // Waits until `deadline`, or until the port has data if `want_data`. Always watches the port for
+  // a hang-up (PortLost) and the stop pipe (StopRequested), and releases held messages on time.
+  WaitResult Wait(SteadyClock::time_point deadline, bool want_data) {
+    while (true) {
+      if (driver_->stop_.load()) throw StopRequested{};
+      PollLimiter();
+      const SteadyClock::time_point now = SteadyClock::now();
+      SteadyClock::time_point until = deadline;
+      if (auto held = limiter_.NextDeadline()) until = std::min(until, std::max(*held, now));
+      if (now >= deadline) return WaitResult::kTimeout;
+      // Round up so we never wake just before the deadline and spin.
+      const auto ms = std::chrono::ceil<std::chrono::milliseconds>(until - now).count();
+      pollfd fds[2] = {{driver_->wake_pipe_[0], POLLIN, 0}, {fd_, static_cast<short>(want_data ? POLLIN : 0), 0}};
+      const int n = ::poll(fds, fd_ >= 0 ? 2 : 1, static_cast<int>(std::max<int64_t>(ms, 0)));
+      if (n < 0) {
+        if (errno == EINTR) continue;
+        throw PortLost{std::string("poll: ") + std::strerror(errno)};
+      }
+      wake_time_ = SystemClock::now();
+      if (fds[0].revents != 0) throw StopRequested{};
+      if (fd_ >= 0) {
+        if (fds[1].revents & (POLLERR | POLLNVAL)) throw PortLost{"error condition on the port"};
+        if (want_data && (fds[1].revents & POLLIN)) return WaitResult::kReadable;
+        if (fds[1].revents & POLLHUP) throw PortLost{"hang-up"};
+      }
+    }
+  }
+
+  void Sleep(double seconds) {
+    if (seconds <= 0.0) return;
+    Wait(SteadyClock::now() + Seconds(seconds), false);
+  }
+
+  void Write(std::string_view bytes) {
+    while (!bytes.empty()) {
+      const ssize_t n = ::write(fd_, bytes.data(), bytes.size());
+      if (n > 0) {
+        bytes.remove_prefix(static_cast<size_t>(n));
+        continue;
+      }
+      if (n < 0 && errno == EINTR) continue;
+      if (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK) {
+        throw PortLost{std::string("write: ") + std::strerror(errno)};
+      }
+      // Output buffer full: wait for room (a stuck line is a lost port).
+      pollfd fds[2] = {{driver_->wake_pipe_[0], POLLIN, 0}, {fd_, POLLOUT, 0}};
+      const int r = ::poll(fds, 2, 1000);
+      if (r == 0) throw PortLost{"write timed out"};
+      if (fds[0].revents != 0) throw StopRequested{};
+      if (fds[1].revents & (POLLERR | POLLHUP | POLLNVAL)) throw PortLost{"hang-up while writing"};
+    }
+  }
+  void Write(char c) { Write(std::string_view(&c, 1)); }
+
+  // Reads everything available after poll() reported data (non-blocking). A hang-up or read error
+  // is PortLost.
+  size_t ReadAvailable(std::vector<uint8_t>* out) {
+    size_t total = 0;
+    std::array<uint8_t, 4096> buffer;
+    while (true) {
+      const ssize_t n = ::read(fd_, buffer.data(), buffer.size());
+      if (n > 0) {
+        out->insert(out->end(), buffer.begin(), buffer.begin() + n);
+        total += static_cast<size_t>(n);
+        continue;
+      }
+      if (n < 0 && errno == EINTR) continue;
+      if (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK) {
+        throw PortLost{std::string("read: ") + std::strerror(errno)};
+      }
+      break;  // 0 (VMIN = VTIME = 0: nothing there) or EAGAIN
+    }
+    // poll() said readable but nothing came, repeatedly: the line is gone (some USB adapters
+    // report end-of-file this way instead of POLLHUP).
+    empty_reads_ = total == 0 ? empty_reads_ + 1 : 0;
+    if (empty_reads_ >= 3) throw PortLost{"readable but no data (end of file)"};
+    return total;
+  }
+
+  void FlushInput() { ::tcflush(fd_, TCIFLUSH); }
+
+  void OpenWithBackoff() {
+    SetState(DriverState::kOpening);
+    double delay = timings_.reopen_backoff_min_s;
+    while (true) {
+      if (driver_->stop_.load()) throw StopRequested{};
+      Count(&DriverStats::open_attempts);
+      std::string error;
+      fd_ = OpenSerialPort(options_.port, options_.baud, &error);
+      if (fd_ >= 0) {
+        Count(&DriverStats::opens);
+        empty_reads_ = 0;
+        Emit(Severity::kInfo, "opened at " + std::to_string(options_.baud) + " baud");
+        return;
+      }
+      Emit(Severity::kError, "cannot open (" + error + "); next attempt in " + FormatSeconds(delay));
+      Sleep(delay);
+      delay = std::min(2.0 * delay, timings_.reopen_backoff_max_s);
+    }
+  }
+
+  // After a reopen: a Fastrak that kept its configuration is still streaming our records; take them
+  // instead of spending seconds on a reset.
+  bool TryResume() {
+    SetState(DriverState::kResetting);
+    size_t bytes_seen = 0;
+    return ListenForStream(timings_.resume_probe_s, "after reopening", &bytes_seen);
+  }
+
+  // Reads (and otherwise discards) what arrives for `seconds`. If the device has been configured by
+  // this driver and two valid records in our format arrive, it is still streaming as we set it up
+  // (its cable was out, or it missed our `c`): resume at once and return true. Only used in waits
+  // that start at least one preamble settle after `c`, so records in flight before `c` are not
+  // mistaken for a live stream; input is flushed first.
+  bool ListenForStream(double seconds, const char* when, size_t* bytes_seen) {
+    FlushInput();
+    parser_.Clear();
+    std::vector<FastrakReport> reports;
+    const SteadyClock::time_point deadline = SteadyClock::now() + Seconds(seconds);
+    std::vector<uint8_t> bytes;
+    while (!configured_once_ || reports.size() < 2) {
+      if (Wait(deadline, true) == WaitResult::kTimeout) return false;
+      bytes.clear();
+      *bytes_seen += ReadAvailable(&bytes);
+      if (configured_once_) parser_.Feed(bytes, wake_time_, &reports);
+    }
+    Count(&DriverStats::resumes);
+    reset_attempts_ = 0;
+    Emit(Severity::kInfo, std::string("tracker still streaming ") + when + "; resumed without reset");
+    SetState(DriverState::kStreaming);
+    last_button_.fill(std::nullopt);
+    DeliverReports(reports);
+    stream_already_started_ = true;
+    return true;
+  }
+
+  // The reference reset sequence with its escalation; true when continuous output was started (or
+  // the device turned out to be streaming in our format, see ListenForStream).
+  bool Reset() {
+    SetState(DriverState::kResetting);
+    const int attempt = ++reset_attempts_;
+    Count(&DriverStats::resets_started);
+    Emit(Severity::kWarning, "resetting the tracker (attempt " + std::to_string(attempt) + ")");
+    const std::array<bool, kMaxStations> stylus = StylusStations(options_);
+    if (!stylus_lists_written_) {
+      // The reference writes the stylus output list once at configuration time, before any reset.
+      for (int s = 0; s < options_.num_stations; ++s) {
+        if (stylus[s]) {
+          Write(OutputListCommand(s + 1, true));
+          Sleep(timings_.command_gap_s);
+        }
+      }
+      stylus_lists_written_ = true;
+    }
+    for (char c : ResetPreamble(attempt)) {
+      Write(c);
+      Sleep(timings_.settle_after_preamble_s);
+    }
+    size_t leftover = 0;
+    if (ResetPreambleReinitialises(attempt) &&
+        ListenForStream(timings_.reinitialise_wait_s, "during the reset", &leftover)) {
+      return true;
+    }
+    leftover = 0;
+    if (ListenForStream(timings_.settle_after_flush_s, "during the reset", &leftover)) return true;
+    if (leftover > 0) {
+      Emit(Severity::kWarning, "got " + std::to_string(leftover) +
+                                   " characters after stopping output; flushing");
+      FlushInput();
+    }
+
+    Write(kRequestStatus);
+    const std::string reply = ReadStatusReply();
+    std::string why;
+    const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
+    if (!status) {
+      std::string text = "bad status report (" + (reply.empty() ? std::string("no reply") : why) +
+                         "), retrying reset";
+      if (attempt >= 4) {
+        text += "; if this persists, check the cable and that the baud rate matches the unit's "
+                "switches, then power-cycle the Fastrak";
+      }
+      Emit(Severity::kError, text);
+      return false;
+    }
+    reset_attempts_ = 0;
+    {
+      std::ostringstream text;
+      text << "status OK: firmware '" << status->firmware_version << "', system id '"
+           << status->system_id << "', configuration 0x" << std::hex << status->configuration;
+      Emit(Severity::kInfo, text.str());
+    }
+    if (status->bit_errors != 0) {
+      std::ostringstream text;
+      text << "built-in test reports errors 0x" << std::hex << status->bit_errors;
+      Emit(Severity::kWarning, text.str());
+    }
+
+    for (int s = 0; s < options_.num_stations; ++s) {
+      Write(OutputListCommand(s + 1, stylus[s]));
+      Sleep(timings_.command_gap_s);
+    }
+    for (int s = 0; s < options_.num_stations; ++s) {
+      if (!stylus[s]) continue;
+      // The reference always writes e1,0 (station 1); we address the stylus's own station.
+      Write(StylusModeCommand(s + 1));
+      Sleep(timings_.command_gap_s);
+    }
+    Write(kPositionFilterCommand);
+    Sleep(timings_.filter_settle_s);
+    Write(kAttitudeFilterCommand);
+    Sleep(timings_.filter_settle_s);
+    for (const std::string& cmd : options_.extra_commands) {
+      if (cmd.front() == '*') {
+        Sleep(std::strtod(cmd.c_str() + 1, nullptr));
+      } else {
+        Write(cmd + "\r");
+      }
+    }
+    if (!options_.extra_commands.empty()) Sleep(timings_.extras_settle_s);
+    FlushInput();
+    if (options_.force_units) Write(UnitsCommand(units_));
+    Write(kBinaryFormat);
+    Write(kStartContinuous);
+    parser_.Clear();
+    configured_once_ = true;
+    stream_already_started_ = false;
+    Count(&DriverStats::resets_completed);
+    Emit(Severity::kInfo, std::string("reset completed; binary records in ") + UnitsName(units_));
+    return true;
+  }
+
+  // Reads until the reply's LF or the status timeout; returns what arrived.
+  std::string ReadStatusReply() {
+    const SteadyClock::time_point deadline = SteadyClock::now() + Seconds(timings_.status_timeout_s);
+    std::vector<uint8_t> bytes;
+    while (std::find(bytes.begin(), bytes.end(), '\n') == bytes.end() && bytes.size() < 4096) {
+      if (Wait(deadline, true) == WaitResult::kTimeout) break;
+      ReadAvailable(&bytes);
+    }
+    auto lf = std::find(bytes.begin(), bytes.end(), '\n');
+    if (lf != bytes.end()) ++lf;
+    return std::string(bytes.begin(), lf);
+  }
+
+  void DeliverReports(const std::vector<FastrakReport>& reports) {
+    if (reports.empty()) return;
+    Count(&DriverStats::records, reports.size());
+    for (const FastrakReport& report : reports) {
+      if (driver_->callbacks_.on_report) driver_->callbacks_.on_report(report);
+      if (report.stylus_pressed) {
+        std::optional<bool>& last = last_button_[report.sensor];
+        if (last != report.stylus_pressed) {
+          last = report.stylus_pressed;
+          if (driver_->callbacks_.on_button) {
+            driver_->callbacks_.on_button(report.sensor, *report.stylus_pressed, report.time);
+          }
+        }
+      }
+    }
+  }
+
+  void Stream() {
+    SetState(DriverState::kStreaming);
+    if (!stream_already_started_) last_button_.fill(std::nullopt);
+    SteadyClock::time_point watchdog = SteadyClock::now() + Seconds(timings_.watchdog_s);
+    std::vector<uint8_t> bytes;
+    std::vector<FastrakReport> reports;
+    uint64_t reported_discards = parser_.discarded_bytes();
+    while (true) {
+      if (Wait(watchdog, true) == WaitResult::kTimeout) {
+        Count(&DriverStats::watchdog_timeouts);
+        Emit(Severity::kError, "no record for " + FormatSeconds(timings_.watchdog_s) +
+                                   "; reopening and resetting the tracker");
+        return;
+      }
+      bytes.clear();
+      reports.clear();
+      ReadAvailable(&bytes);
+      parser_.Feed(bytes, wake_time_, &reports);
+      if (!reports.empty()) watchdog = SteadyClock::now() + Seconds(timings_.watchdog_s);
+      DeliverReports(reports);
+      if (parser_.discarded_bytes() != reported_discards) {
+        const uint64_t n = parser_.discarded_bytes() - reported_discards;
+        Count(&DriverStats::discarded_bytes, n);
+        reported_discards = parser_.discarded_bytes();
+        Emit(Severity::kWarning, "skipped " + std::to_string(n) +
+                                     " bytes that were not part of a valid record (resynchronised)");
+      }
+    }
+  }
+
+  FastrakDriver* driver_;
+  const FastrakOptions& options_;
+  const FastrakTimings& timings_;
+  const Units units_;
+  RecordParser parser_;
+  MessageLimiter limiter_;
+  int fd_ = -1;
+  int reset_attempts_ = 0;
+  int empty_reads_ = 0;
+  bool configured_once_ = false;
+  bool stylus_lists_written_ = false;
+  bool stream_already_started_ = false;
+  SystemClock::time_point wake_time_;
+  std::array<std::optional<bool>, kMaxStations> last_button_;
+};
+
+// ---------------------------------------------------------------------------------------------
+
+FastrakDriver::FastrakDriver(FastrakOptions options, Callbacks callbacks)
+    : options_(std::move(options)), callbacks_(std::move(callbacks)) {
+  options_.Check();
+}
+
+FastrakDriver::~FastrakDriver() { Stop(); }
+
+void FastrakDriver::Start() {
+  if (thread_.joinable()) throw std::logic_error("FastrakDriver::Start called twice");
+  if (::pipe2(wake_pipe_, O_CLOEXEC | O_NONBLOCK) != 0) {
+    throw std::runtime_error(std::string("FastrakDriver: pipe: ") + std::strerror(errno));
+  }
+  stop_.store(false);
+  state_.store(DriverState::kOpening);
+  thread_ = std::thread([this] { Run(); });
+}
+
+void FastrakDriver::Run() {
+  Session session(this);
+  session.Run();
+  state_.store(DriverState::kStopped);
+}
+
+void FastrakDriver::Stop() {
+  if (!thread_.joinable()) return;
+  stop_.store(true);
+  const char byte = 1;
+  [[maybe_unused]] const ssize_t n = ::write(wake_pipe_[1], &byte, 1);
+  thread_.join();
+  ::close(wake_pipe_[0]);
+  ::close(wake_pipe_[1]);
+  wake_pipe_[0] = wake_pipe_[1] = -1;
+}
+
+DriverStats FastrakDriver::stats() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return stats_;
+}
+
+}  // namespace trackcal::fastrak

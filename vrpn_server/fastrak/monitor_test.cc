@@ -1,0 +1,58 @@
+// trackcal-fastrak-monitor end to end: the installed tool against the scripted pty Fastrak.
+
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <sstream>
+#include <string>
+
+#include "tests/test_utils.h"
+#include "vrpn_server/fastrak/fake_fastrak.h"
+
+namespace trackcal::fastrak {
+namespace {
+
+std::string RunCommand(const std::string& command) {
+  FILE* pipe = ::popen(command.c_str(), "r");
+  EXPECT_NE(pipe, nullptr);
+  std::string out;
+  char buffer[4096];
+  size_t n;
+  while ((n = std::fread(buffer, 1, sizeof(buffer), pipe)) > 0) out.append(buffer, n);
+  EXPECT_EQ(::pclose(pipe), 0) << command;
+  return out;
+}
+
+TEST(FastrakMonitor, Nominal) {
+  const char* binary_dir = std::getenv("TRACKCAL_BINARY_DIR");
+  ASSERT_NE(binary_dir, nullptr);
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_monitor");
+  testing::FakeFastrak fake(dir / "tty", testing::FakeFastrakOptions{});
+  const std::string out = RunCommand(std::string(binary_dir) +
+                                     "/vrpn_server/fastrak/trackcal-fastrak-monitor " +
+                                     (dir / "tty").string() + " --fast --units cm --seconds 1 2>/dev/null");
+  std::istringstream lines(out);
+  std::string line;
+  ASSERT_TRUE(std::getline(lines, line));
+  EXPECT_EQ(line, "host_time_s,sensor,x,y,z,qw,qx,qy,qz,status,stylus");
+  int sensor0 = 0;
+  while (std::getline(lines, line)) {
+    double t, x, y, z, qw, qx, qy, qz;
+    int sensor;
+    ASSERT_EQ(std::sscanf(line.c_str(), "%lf,%d,%lf,%lf,%lf,%lf,%lf,%lf,%lf", &t, &sensor, &x, &y, &z,
+                          &qw, &qx, &qy, &qz), 9) << line;
+    if (sensor != 0) continue;
+    ++sensor0;
+    // %.7g printing: 7 significant digits.
+    EXPECT_NEAR(x, 0.254, 1e-6);
+    EXPECT_NEAR(y, -0.127, 1e-6);
+    EXPECT_NEAR(z, 0.508, 1e-6);
+    EXPECT_NEAR(qw, 4 / std::sqrt(30.0), 1e-6);
+  }
+  EXPECT_GT(sensor0, 10);
+  EXPECT_TRUE(fake.metric());  // --units cm was sent as `u`
+}
+
+}  // namespace
+}  // namespace trackcal::fastrak

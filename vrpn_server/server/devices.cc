@@ -1,0 +1,125 @@
+#include "vrpn_server/server/devices.h"
+
+#include <chrono>
+#include <iomanip>
+#include <stdexcept>
+
+namespace trackcal::vrpn {
+
+StreamRecorder::StreamRecorder(const std::filesystem::path& dir, const std::string& device_name) {
+  if (!std::filesystem::is_directory(dir)) {
+    throw std::invalid_argument("--record " + dir.string() + ": not a directory");
+  }
+  final_path_ = dir / (device_name + "_tracker_stream.csv");
+  partial_path_ = final_path_;
+  partial_path_ += ".partial";
+  if (std::filesystem::exists(final_path_) || std::filesystem::exists(partial_path_)) {
+    throw std::invalid_argument("--record: " + final_path_.string() +
+                                " already exists; recordings are never overwritten");
+  }
+  out_.open(partial_path_);
+  if (!out_) throw std::runtime_error(partial_path_.string() + ": cannot create");
+  out_ << "time,sensor,x,y,z,qw,qx,qy,qz\n" << std::setprecision(17);
+}
+
+StreamRecorder::~StreamRecorder() { Close(); }
+
+void StreamRecorder::Write(int sensor, const Rigid3d& pose, Timestamp time) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!out_.is_open()) return;
+  const auto& t = pose.translation;
+  const auto& q = pose.rotation;
+  out_ << time.sec << '.' << std::setw(6) << std::setfill('0') << time.usec << std::setfill(' ')
+       << ',' << sensor + 1 << ',' << t.x() << ',' << t.y() << ',' << t.z() << ',' << q.w() << ','
+       << q.x() << ',' << q.y() << ',' << q.z() << '\n';
+}
+
+void StreamRecorder::Close() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!out_.is_open()) return;
+  out_.close();
+  std::error_code ec;
+  std::filesystem::rename(partial_path_, final_path_, ec);
+}
+
+TrackerDevice::TrackerDevice(VrpnServer* server, int tracker, std::optional<int> raw_tracker)
+    : server_(server), tracker_(tracker), raw_tracker_(raw_tracker) {
+  if (server_ == nullptr) throw std::invalid_argument("TrackerDevice: server is null");
+}
+
+void TrackerDevice::SetCorrector(std::shared_ptr<const PoseCorrector> corrector) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  corrector_ = std::move(corrector);
+}
+
+std::shared_ptr<const PoseCorrector> TrackerDevice::corrector() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return corrector_;
+}
+
+void TrackerDevice::SetRecorders(std::unique_ptr<StreamRecorder> raw,
+                                 std::unique_ptr<StreamRecorder> corrected) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  raw_recorder_ = std::move(raw);
+  corrected_recorder_ = std::move(corrected);
+}
+
+void TrackerDevice::OnReport(int sensor, const Rigid3d& reported, Timestamp time) {
+  std::shared_ptr<const PoseCorrector> corrector;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    corrector = corrector_;
+  }
+  if (raw_tracker_) server_->PublishPose(*raw_tracker_, sensor, reported, time);
+  const Rigid3d corrected = corrector ? corrector->Correct(reported) : reported;
+  server_->PublishPose(tracker_, sensor, corrected, time);
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (raw_recorder_) raw_recorder_->Write(sensor, reported, time);
+  if (corrected_recorder_) corrected_recorder_->Write(sensor, corrected, time);
+}
+
+void TrackerDevice::OnText(TextSeverity severity, const std::string& text) {
+  server_->PublishText(tracker_, severity, text);
+  if (raw_tracker_) server_->PublishText(*raw_tracker_, severity, text);
+}
+
+NullTracker::NullTracker(ReportFunction report, int num_sensors, double rate_hz, Rigid3d pose)
+    : report_(std::move(report)), num_sensors_(num_sensors), rate_hz_(rate_hz), pose_(pose) {
+  if (!report_) throw std::invalid_argument("NullTracker: report function is empty");
+  if (num_sensors_ < 1) throw std::invalid_argument("NullTracker: num_sensors must be >= 1");
+  if (!(rate_hz_ >= 0) || rate_hz_ > 10000) {
+    throw std::invalid_argument("NullTracker: rate must be in [0, 10000] Hz");
+  }
+}
+
+NullTracker::~NullTracker() { Stop(); }
+
+void NullTracker::Start() {
+  if (rate_hz_ == 0 || thread_.joinable()) return;
+  stop_ = false;
+  thread_ = std::thread([this] {
+    const auto period = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+        std::chrono::duration<double>(1.0 / rate_hz_));
+    auto next = std::chrono::steady_clock::now();
+    std::unique_lock<std::mutex> lock(mutex_);
+    while (!stop_) {
+      lock.unlock();
+      const Timestamp now = Timestamp::Now();
+      for (int s = 0; s < num_sensors_; ++s) report_(s, pose_, now);
+      lock.lock();
+      next += period;
+      cv_.wait_until(lock, next, [this] { return stop_; });
+    }
+  });
+}
+
+void NullTracker::Stop() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stop_ = true;
+  }
+  cv_.notify_all();
+  if (thread_.joinable()) thread_.join();
+}
+
+}  // namespace trackcal::vrpn

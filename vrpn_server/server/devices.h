@@ -1,0 +1,109 @@
+// Server-side devices: what turns a tracker's reports into VRPN messages.
+//
+// - TrackerDevice: one physical tracker served as its corrected device under the configured name
+//   and, on request, its raw device under a second name (so a validation run records both live).
+//   The correction is swappable at any time (calibration reload) without touching the clients.
+// - NullTracker: identity (or fixed) poses at a fixed rate, like vrpn_Tracker_NULL; for tests,
+//   demos and replaying the reference transcripts.
+// - StreamRecorder: writes raw and corrected reports to CSV files in the tracker stream format
+//   (time,sensor,x,y,z,qw,qx,qy,qz; sensor is the 1-based station number) for later validation.
+
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+
+#include "core/pose.h"
+#include "vrpn_server/protocol/wire.h"
+#include "vrpn_server/server/server.h"
+
+namespace trackcal::vrpn {
+
+// Maps a reported pose (transmitter_from_receiver) to the corrected pose. Apply may be called from
+// several device threads at once; implementations must be immutable after construction.
+class PoseCorrector {
+ public:
+  virtual ~PoseCorrector() = default;
+  virtual Rigid3d Correct(const Rigid3d& reported) const = 0;
+  // One line for logs, e.g. "calib.json (polynomial degree 4)".
+  virtual std::string Describe() const = 0;
+};
+
+// Appends reports of one device to <dir>/<device>_tracker_stream.csv. The file is written as
+// "<name>.partial" and renamed when the recorder closes, so a complete file never appears half
+// written; an existing file is never overwritten (the constructor throws).
+class StreamRecorder {
+ public:
+  StreamRecorder(const std::filesystem::path& dir, const std::string& device_name);
+  ~StreamRecorder();
+  void Write(int sensor, const Rigid3d& pose, Timestamp time);
+  void Close();
+  const std::filesystem::path& path() const { return final_path_; }
+
+ private:
+  std::mutex mutex_;
+  std::filesystem::path final_path_;
+  std::filesystem::path partial_path_;
+  std::ofstream out_;
+};
+
+class TrackerDevice {
+ public:
+  // `tracker` is the catalog index of the corrected device; `raw_tracker` that of the raw one.
+  TrackerDevice(VrpnServer* server, int tracker, std::optional<int> raw_tracker);
+
+  // Replaces the correction (nullptr: serve reports unchanged). Thread-safe; takes effect with the
+  // next report.
+  void SetCorrector(std::shared_ptr<const PoseCorrector> corrector);
+  std::shared_ptr<const PoseCorrector> corrector() const;
+  // Record raw and corrected streams (either may be null).
+  void SetRecorders(std::unique_ptr<StreamRecorder> raw, std::unique_ptr<StreamRecorder> corrected);
+
+  // Called by the driver thread for every report: publishes raw (if served) and corrected poses.
+  void OnReport(int sensor, const Rigid3d& reported, Timestamp time);
+  // Device status text for clients of both names.
+  void OnText(TextSeverity severity, const std::string& text);
+
+  int tracker() const { return tracker_; }
+  std::optional<int> raw_tracker() const { return raw_tracker_; }
+
+ private:
+  VrpnServer* server_;
+  int tracker_;
+  std::optional<int> raw_tracker_;
+  mutable std::mutex mutex_;
+  std::shared_ptr<const PoseCorrector> corrector_;
+  std::unique_ptr<StreamRecorder> raw_recorder_;
+  std::unique_ptr<StreamRecorder> corrected_recorder_;
+};
+
+// Reports `pose` for every sensor at a fixed rate from its own thread (vrpn_Tracker_NULL reports
+// identity). Rate 0 never reports.
+class NullTracker {
+ public:
+  using ReportFunction = std::function<void(int sensor, const Rigid3d& pose, Timestamp time)>;
+  NullTracker(ReportFunction report, int num_sensors, double rate_hz, Rigid3d pose = Rigid3d());
+  ~NullTracker();
+  void Start();
+  void Stop();
+
+ private:
+  ReportFunction report_;
+  int num_sensors_;
+  double rate_hz_;
+  Rigid3d pose_;
+  std::thread thread_;
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  bool stop_ = false;
+};
+
+}  // namespace trackcal::vrpn

@@ -1,0 +1,694 @@
+#include "vrpn_server/server/server.h"
+
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <pthread.h>
+#include <sched.h>
+#include <time.h>
+#include <netinet/tcp.h>
+#include <sys/epoll.h>
+#include <sys/eventfd.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <chrono>
+#include <cstring>
+#include <ctime>
+#include <iostream>
+#include <map>
+#include <set>
+#include <stdexcept>
+
+#include "vrpn_server/net/socket_util.h"
+
+namespace trackcal::vrpn {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+// epoll user data: id << 3 | kind.
+enum Kind : std::uint64_t { kTcpListen = 0, kUdpLob = 1, kWake = 2, kEndpointTcp = 3, kEndpointUdp = 4 };
+std::uint64_t Tag(std::uint64_t id, Kind kind) { return (id << 3) | kind; }
+
+void SetNoDelay(int fd) {
+  int one = 1;
+  ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
+}
+
+}  // namespace
+
+void ServerOptions::Check() const {
+  if (!ParseIpv4(bind_address)) {
+    throw std::invalid_argument("ServerOptions.bind_address '" + bind_address +
+                                "': not an IPv4 address");
+  }
+  if (port < 0 || port > 65535) throw std::invalid_argument("ServerOptions.port: must be in [0, 65535]");
+  AllowList::Parse(allow);  // throws naming the entry
+  if (max_clients < 1) throw std::invalid_argument("ServerOptions.max_clients: must be >= 1");
+  if (max_output_bytes < 4096) {
+    throw std::invalid_argument("ServerOptions.max_output_bytes: must be >= 4096");
+  }
+  if (max_message_length < kHeaderSize + kTextSize) {
+    throw std::invalid_argument("ServerOptions.max_message_length: must hold a text message (1056)");
+  }
+  if (listen_backlog < 1) throw std::invalid_argument("ServerOptions.listen_backlog: must be >= 1");
+  if (realtime_priority < 0 || realtime_priority > 99) {
+    throw std::invalid_argument("ServerOptions.realtime_priority: must be in [0, 99]");
+  }
+  if (!(handshake_timeout_s > 0)) {
+    throw std::invalid_argument("ServerOptions.handshake_timeout_s: must be > 0");
+  }
+}
+
+struct VrpnServer::Event {
+  enum Type { kPose, kText, kButton } type = kPose;
+  int device = 0;
+  int index = 0;  // sensor or button
+  Rigid3d pose;
+  Timestamp time;
+  TextSeverity severity = TextSeverity::kNormal;
+  std::string text;
+  bool pressed = false;
+  Clock::time_point enqueued;
+};
+
+struct VrpnServer::Endpoint {
+  std::uint64_t id = 0;
+  UniqueFd fd;
+  UniqueFd udp_fd;  // our UDP data socket (lob connections only)
+  bool connecting = false;
+  bool lob = false;
+  std::string label;
+  sockaddr_in peer{};
+  std::string callback_key;  // "ip:port" of a lob call-back, for de-duplication
+  std::unique_ptr<ServerSession> session;
+  std::size_t out_offset = 0;
+  bool want_write = false;
+  Clock::time_point deadline;
+  std::optional<sockaddr_in> udp_peer;
+  std::vector<std::uint8_t> datagram;
+};
+
+struct VrpnServer::Impl {
+  AllowList allow;
+  std::map<std::uint64_t, std::unique_ptr<Endpoint>> endpoints;
+  std::set<std::string> callback_keys;
+  std::uint64_t next_id = 1;
+  std::mutex queue_mutex;
+  std::vector<Event> queue;
+  std::vector<Event> work;
+  std::vector<std::vector<std::int32_t>> button_states;
+  std::vector<std::uint8_t> encoded;
+  int refused_logged = 0;
+  std::vector<float> fanout_us;  // guarded by the server's stats_mutex_
+};
+
+void LogToStderr(const std::string& line) {
+  const std::time_t now = std::time(nullptr);
+  std::tm tm{};
+  ::gmtime_r(&now, &tm);
+  char stamp[32];
+  std::strftime(stamp, sizeof(stamp), "%Y-%m-%dT%H:%M:%SZ", &tm);
+  std::cerr << stamp << " trackcal-server: " << line << std::endl;
+}
+
+VrpnServer::VrpnServer(std::shared_ptr<const ServerCatalog> catalog, ServerOptions options,
+                       LogFunction log)
+    : catalog_(std::move(catalog)),
+      options_(std::move(options)),
+      log_(log ? std::move(log) : LogFunction(LogToStderr)),
+      impl_(std::make_unique<Impl>()) {
+  if (!catalog_) throw std::invalid_argument("VrpnServer: catalog is null");
+  options_.Check();
+  impl_->allow = AllowList::Parse(options_.allow);
+  for (const auto& b : catalog_->buttons()) {
+    impl_->button_states.emplace_back(static_cast<std::size_t>(b.num_buttons), 0);
+  }
+}
+
+VrpnServer::~VrpnServer() { Stop(); }
+
+void VrpnServer::Start() {
+  if (running_) return;
+  const in_addr bind_ip = *ParseIpv4(options_.bind_address);
+  const std::string where = options_.bind_address + ":" + std::to_string(options_.port);
+  UniqueFd tcp(::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+  if (!tcp.valid()) throw std::runtime_error("socket: " + ErrnoText(errno));
+  int one = 1;
+  ::setsockopt(tcp.get(), SOL_SOCKET, SO_REUSEADDR, &one, sizeof(one));
+  sockaddr_in sa = MakeSockaddr(bind_ip, options_.port);
+  if (::bind(tcp.get(), reinterpret_cast<sockaddr*>(&sa), sizeof(sa)) != 0) {
+    throw std::runtime_error("cannot bind TCP " + where + ": " + ErrnoText(errno));
+  }
+  if (::listen(tcp.get(), options_.listen_backlog) != 0) {
+    throw std::runtime_error("cannot listen on " + where + ": " + ErrnoText(errno));
+  }
+  socklen_t len = sizeof(sa);
+  ::getsockname(tcp.get(), reinterpret_cast<sockaddr*>(&sa), &len);
+  port_ = ntohs(sa.sin_port);
+
+  UniqueFd udp(::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+  if (!udp.valid()) throw std::runtime_error("socket: " + ErrnoText(errno));
+  ::setsockopt(udp.get(), SOL_SOCKET, SO_REUSEADDR, &one, sizeof(one));
+  sa = MakeSockaddr(bind_ip, port_);
+  if (::bind(udp.get(), reinterpret_cast<sockaddr*>(&sa), sizeof(sa)) != 0) {
+    throw std::runtime_error("cannot bind UDP " + options_.bind_address + ":" +
+                             std::to_string(port_) + ": " + ErrnoText(errno));
+  }
+  UniqueFd ep(::epoll_create1(EPOLL_CLOEXEC));
+  UniqueFd ev(::eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC));
+  if (!ep.valid() || !ev.valid()) throw std::runtime_error("epoll/eventfd: " + ErrnoText(errno));
+  auto add = [&](int fd, Kind kind) {
+    epoll_event e{};
+    e.events = EPOLLIN;
+    e.data.u64 = Tag(0, kind);
+    ::epoll_ctl(ep.get(), EPOLL_CTL_ADD, fd, &e);
+  };
+  add(tcp.get(), kTcpListen);
+  add(udp.get(), kUdpLob);
+  add(ev.get(), kWake);
+  tcp_fd_ = tcp.Release();
+  udp_fd_ = udp.Release();
+  epoll_fd_ = ep.Release();
+  event_fd_ = ev.Release();
+  running_ = true;
+  Log("serving on " + options_.bind_address + ":" + std::to_string(port_) + " (TCP and UDP)" +
+      (impl_->allow.empty() ? "" : ", allow-list active"));
+  thread_ = std::thread([this] { Run(); });
+  // Reports queued before Start() wake the loop once.
+  const std::uint64_t wake = 1;
+  [[maybe_unused]] auto n = ::write(event_fd_, &wake, sizeof(wake));
+}
+
+void VrpnServer::Stop() {
+  if (!running_.exchange(false)) return;
+  const std::uint64_t one = 1;
+  [[maybe_unused]] auto n = ::write(event_fd_, &one, sizeof(one));
+  if (thread_.joinable()) thread_.join();
+  impl_->endpoints.clear();
+  impl_->callback_keys.clear();
+  for (int* fd : {&tcp_fd_, &udp_fd_, &event_fd_, &epoll_fd_}) {
+    if (*fd >= 0) ::close(*fd);
+    *fd = -1;
+  }
+}
+
+void VrpnServer::Push(Event event) {
+  event.enqueued = Clock::now();
+  bool was_empty;
+  {
+    std::lock_guard<std::mutex> lock(impl_->queue_mutex);
+    was_empty = impl_->queue.empty();
+    impl_->queue.push_back(std::move(event));
+  }
+  // One wake-up per batch: the loop drains everything queued when it runs.
+  if (was_empty && event_fd_ >= 0) {
+    const std::uint64_t one = 1;
+    [[maybe_unused]] auto n = ::write(event_fd_, &one, sizeof(one));
+  }
+}
+
+void VrpnServer::PublishPose(int tracker, int sensor, const Rigid3d& pose, Timestamp time) {
+  if (tracker < 0 || tracker >= static_cast<int>(catalog_->trackers().size())) {
+    throw std::invalid_argument("PublishPose: tracker index " + std::to_string(tracker) + " unknown");
+  }
+  Event e;
+  e.type = Event::kPose;
+  e.device = tracker;
+  e.index = sensor;
+  e.pose = pose;
+  e.time = time;
+  Push(std::move(e));
+}
+
+void VrpnServer::PublishText(int tracker, TextSeverity severity, std::string text) {
+  if (tracker < 0 || tracker >= static_cast<int>(catalog_->trackers().size())) {
+    throw std::invalid_argument("PublishText: tracker index " + std::to_string(tracker) + " unknown");
+  }
+  Event e;
+  e.type = Event::kText;
+  e.device = tracker;
+  e.severity = severity;
+  e.text = std::move(text);
+  e.time = Timestamp::Now();
+  Push(std::move(e));
+}
+
+void VrpnServer::PublishButton(int button, int index, bool pressed, Timestamp time) {
+  if (button < 0 || button >= static_cast<int>(catalog_->buttons().size()) || index < 0 ||
+      index >= catalog_->buttons()[button].num_buttons) {
+    throw std::invalid_argument("PublishButton: button " + std::to_string(button) + "/" +
+                                std::to_string(index) + " unknown");
+  }
+  Event e;
+  e.type = Event::kButton;
+  e.device = button;
+  e.index = index;
+  e.pressed = pressed;
+  e.time = time;
+  Push(std::move(e));
+}
+
+ServerStats VrpnServer::stats() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return stats_;
+}
+
+void VrpnServer::Log(const std::string& line) { log_(line); }
+
+double VrpnServer::NetworkThreadCpuSeconds() const {
+  if (!running_) return 0.0;
+  clockid_t clock;
+  if (::pthread_getcpuclockid(const_cast<std::thread&>(thread_).native_handle(), &clock) != 0) return 0.0;
+  timespec ts{};
+  ::clock_gettime(clock, &ts);
+  return ts.tv_sec + 1e-9 * ts.tv_nsec;
+}
+
+void VrpnServer::Run() {
+  if (options_.realtime_priority > 0) {
+    sched_param param{};
+    param.sched_priority = options_.realtime_priority;
+    const int rc = ::pthread_setschedparam(::pthread_self(), SCHED_FIFO, &param);
+    if (rc != 0) Log("cannot use real-time priority " + std::to_string(options_.realtime_priority) + ": " + ErrnoText(rc));
+  }
+  epoll_event events[64];
+  while (running_) {
+    // Block indefinitely unless a handshake deadline is pending: no periodic wake-ups when idle.
+    int timeout_ms = -1;
+    for (const auto& [id, e] : impl_->endpoints) {
+      if (e->connecting || !e->session || !e->session->connection().handshake_done()) {
+        timeout_ms = 250;
+        break;
+      }
+    }
+    const int n = ::epoll_wait(epoll_fd_, events, 64, timeout_ms);
+    if (n < 0 && errno != EINTR) {
+      Log("epoll_wait: " + ErrnoText(errno));
+      break;
+    }
+    for (int i = 0; i < n && running_; ++i) {
+      const std::uint64_t tag = events[i].data.u64;
+      const auto kind = static_cast<Kind>(tag & 7);
+      switch (kind) {
+        case kTcpListen:
+          HandleAccept();
+          break;
+        case kUdpLob:
+          HandleLob();
+          break;
+        case kWake: {
+          std::uint64_t v;
+          while (::read(event_fd_, &v, sizeof(v)) > 0) {
+          }
+          DrainEvents();
+          break;
+        }
+        case kEndpointTcp:
+          HandleEndpoint(tag >> 3, events[i].events, /*udp=*/false);
+          break;
+        case kEndpointUdp:
+          HandleEndpoint(tag >> 3, events[i].events, /*udp=*/true);
+          break;
+      }
+    }
+    if (timeout_ms >= 0) CheckDeadlines();
+  }
+}
+
+void VrpnServer::HandleAccept() {
+  for (int burst = 0; burst < 256; ++burst) {
+    sockaddr_in peer{};
+    socklen_t len = sizeof(peer);
+    const int fd = ::accept4(tcp_fd_, reinterpret_cast<sockaddr*>(&peer), &len,
+                             SOCK_NONBLOCK | SOCK_CLOEXEC);
+    if (fd < 0) {
+      if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR && errno != ECONNABORTED) {
+        Log("accept: " + ErrnoText(errno));
+      }
+      return;
+    }
+    UniqueFd conn(fd);
+    if (!impl_->allow.Allows(peer.sin_addr) ||
+        static_cast<int>(impl_->endpoints.size()) >= options_.max_clients) {
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.refused;
+      if (impl_->refused_logged++ < 100) {
+        Log("refused TCP connection from " + FormatEndpoint(peer) +
+            (impl_->allow.Allows(peer.sin_addr) ? " (client limit reached)" : " (not in allow-list)"));
+      }
+      continue;
+    }
+    SetNoDelay(fd);
+    auto e = std::make_unique<Endpoint>();
+    e->id = impl_->next_id++;
+    e->fd = std::move(conn);
+    e->peer = peer;
+    e->label = "tcp client " + FormatEndpoint(peer);
+    e->deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                     std::chrono::duration<double>(options_.handshake_timeout_s));
+    epoll_event ev{};
+    ev.events = EPOLLIN | EPOLLRDHUP;
+    ev.data.u64 = Tag(e->id, kEndpointTcp);
+    ::epoll_ctl(epoll_fd_, EPOLL_CTL_ADD, e->fd.get(), &ev);
+    Endpoint& ref = *e;
+    impl_->endpoints.emplace(e->id, std::move(e));
+    StartSession(ref);
+  }
+}
+
+void VrpnServer::HandleLob() {
+  std::uint8_t buf[512];
+  for (int burst = 0; burst < 256; ++burst) {
+    sockaddr_in src{};
+    socklen_t len = sizeof(src);
+    const ssize_t n = ::recvfrom(udp_fd_, buf, sizeof(buf), 0, reinterpret_cast<sockaddr*>(&src), &len);
+    if (n < 0) return;
+    auto refuse = [&](const std::string& why) {
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.refused;
+      if (impl_->refused_logged++ < 100) Log("ignored lob datagram from " + FormatEndpoint(src) + ": " + why);
+    };
+    if (!impl_->allow.Allows(src.sin_addr)) {
+      refuse("not in allow-list");
+      continue;
+    }
+    const auto request = DecodeLobRequest(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)));
+    if (!request) {
+      refuse("not a VRPN connection request");
+      continue;
+    }
+    // Call back only to the address the datagram came from: the server never opens connections
+    // to third parties on a client's say-so (the reference trusts the text).
+    const auto target = ParseIpv4(request->host);
+    if (!target || target->s_addr != src.sin_addr.s_addr) {
+      refuse("call-back address " + request->host + " differs from the sender");
+      continue;
+    }
+    const std::string key = request->host + ":" + std::to_string(request->port);
+    if (impl_->callback_keys.count(key)) continue;  // a re-sent request while we already serve it
+    if (static_cast<int>(impl_->endpoints.size()) >= options_.max_clients) {
+      refuse("client limit reached");
+      continue;
+    }
+    UniqueFd fd(::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+    if (!fd.valid()) {
+      Log("socket: " + ErrnoText(errno));
+      return;
+    }
+    const in_addr bind_ip = *ParseIpv4(options_.bind_address);
+    if (bind_ip.s_addr != htonl(INADDR_ANY)) {
+      sockaddr_in local = MakeSockaddr(bind_ip, 0);
+      ::bind(fd.get(), reinterpret_cast<sockaddr*>(&local), sizeof(local));
+    }
+    SetNoDelay(fd.get());
+    sockaddr_in dst = MakeSockaddr(*target, request->port);
+    const int rc = ::connect(fd.get(), reinterpret_cast<sockaddr*>(&dst), sizeof(dst));
+    if (rc != 0 && errno != EINPROGRESS) {
+      refuse("call-back connect: " + ErrnoText(errno));
+      continue;
+    }
+    auto e = std::make_unique<Endpoint>();
+    e->id = impl_->next_id++;
+    e->fd = std::move(fd);
+    e->peer = dst;
+    e->lob = true;
+    e->connecting = true;
+    e->callback_key = key;
+    e->label = "lob client " + FormatEndpoint(dst);
+    e->deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
+                                     std::chrono::duration<double>(options_.handshake_timeout_s));
+    epoll_event ev{};
+    ev.events = EPOLLOUT | EPOLLRDHUP;
+    ev.data.u64 = Tag(e->id, kEndpointTcp);
+    ::epoll_ctl(epoll_fd_, EPOLL_CTL_ADD, e->fd.get(), &ev);
+    impl_->callback_keys.insert(key);
+    Endpoint& ref = *e;
+    impl_->endpoints.emplace(e->id, std::move(e));
+    if (rc == 0) OnConnected(ref);
+  }
+}
+
+void VrpnServer::OnConnected(Endpoint& e) {
+  e.connecting = false;
+  // Our UDP data socket, on the address the client reached us at.
+  sockaddr_in local{};
+  socklen_t len = sizeof(local);
+  ::getsockname(e.fd.get(), reinterpret_cast<sockaddr*>(&local), &len);
+  if (options_.udp_data_channel) {
+    UniqueFd udp(::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+    sockaddr_in ua = MakeSockaddr(local.sin_addr, 0);
+    if (udp.valid() && ::bind(udp.get(), reinterpret_cast<sockaddr*>(&ua), sizeof(ua)) == 0) {
+      epoll_event ev{};
+      ev.events = EPOLLIN;
+      ev.data.u64 = Tag(e.id, kEndpointUdp);
+      ::epoll_ctl(epoll_fd_, EPOLL_CTL_ADD, udp.get(), &ev);
+      e.udp_fd = std::move(udp);
+    }
+  }
+  StartSession(e);
+}
+
+void VrpnServer::StartSession(Endpoint& e) {
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    ++stats_.connections_total;
+    stats_.clients = static_cast<int>(impl_->endpoints.size());
+  }
+  e.session = std::make_unique<ServerSession>(
+      catalog_, Connection::Options{.max_message_length = options_.max_message_length}, e.label,
+      [this](const std::string& line) { Log(line); });
+  std::optional<std::pair<std::string, int>> our_udp;
+  if (e.udp_fd.valid()) {
+    sockaddr_in ua{};
+    socklen_t len = sizeof(ua);
+    ::getsockname(e.udp_fd.get(), reinterpret_cast<sockaddr*>(&ua), &len);
+    our_udp = std::make_pair(FormatIpv4(ua.sin_addr), static_cast<int>(ntohs(ua.sin_port)));
+  }
+  e.session->Start(our_udp, impl_->button_states);
+  Log("connected " + e.label);
+  UpdateInterest(e);
+  Flush(e);
+}
+
+void VrpnServer::UpdateInterest(Endpoint& e) {
+  epoll_event ev{};
+  ev.events = EPOLLIN | EPOLLRDHUP | (e.want_write || e.connecting ? static_cast<std::uint32_t>(EPOLLOUT) : 0u);
+  ev.data.u64 = Tag(e.id, kEndpointTcp);
+  ::epoll_ctl(epoll_fd_, EPOLL_CTL_MOD, e.fd.get(), &ev);
+}
+
+void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp) {
+  auto it = impl_->endpoints.find(id);
+  if (it == impl_->endpoints.end()) return;  // closed earlier in this batch
+  Endpoint& e = *it->second;
+  if (udp) {
+    std::uint8_t buf[kMaxDatagramSize + 64];
+    for (int burst = 0; burst < 64; ++burst) {
+      const ssize_t n = ::recv(e.udp_fd.get(), buf, sizeof(buf), 0);
+      if (n <= 0) break;
+      if (e.session) e.session->OnDatagram(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)));
+    }
+    Flush(e);  // replies to messages that came over UDP travel on TCP
+    return;
+  }
+  if (e.connecting) {
+    int err = 0;
+    socklen_t len = sizeof(err);
+    ::getsockopt(e.fd.get(), SOL_SOCKET, SO_ERROR, &err, &len);
+    if (err != 0 || (events & (EPOLLERR | EPOLLHUP))) {
+      Close(id, "call-back connect failed: " + ErrnoText(err ? err : ECONNREFUSED));
+      return;
+    }
+    if (events & EPOLLOUT) OnConnected(e);
+    return;
+  }
+  if (events & EPOLLIN) {
+    std::uint8_t buf[65536];
+    for (int burst = 0; burst < 16; ++burst) {
+      const ssize_t n = ::read(e.fd.get(), buf, sizeof(buf));
+      if (n == 0) {
+        Close(id, "client closed the connection");
+        return;
+      }
+      if (n < 0) {
+        if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) break;
+        Close(id, "read: " + ErrnoText(errno));
+        return;
+      }
+      const bool was_done = e.session->connection().handshake_done();
+      if (!e.session->OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)))) {
+        {
+          std::lock_guard<std::mutex> lock(stats_mutex_);
+          ++stats_.closed_protocol;
+        }
+        Close(id, e.session->error());
+        return;
+      }
+      if (!was_done && e.session->connection().handshake_done()) {
+        e.deadline = Clock::time_point::max();
+      }
+      // Use the client's UDP port once described, if it is on the client's own address.
+      if (e.udp_fd.valid() && !e.udp_peer && e.session->connection().peer_udp()) {
+        const auto& [host, port] = *e.session->connection().peer_udp();
+        const auto ip = ParseIpv4(host);
+        if (ip && ip->s_addr == e.peer.sin_addr.s_addr) {
+          e.udp_peer = MakeSockaddr(*ip, port);
+        } else {
+          Log(e.label + ": ignoring UDP description for " + host + " (not the client's address)");
+        }
+      }
+      if (static_cast<std::size_t>(n) < sizeof(buf)) break;
+    }
+    Flush(e);
+    if (impl_->endpoints.count(id) == 0) return;
+  } else if (events & (EPOLLERR | EPOLLHUP | EPOLLRDHUP)) {
+    Close(id, "connection lost");
+    return;
+  }
+  if (events & EPOLLOUT) Flush(e);
+}
+
+void VrpnServer::Flush(Endpoint& e) {
+  if (e.connecting || !e.session) return;
+  auto& out = e.session->connection().tcp_output();
+  while (e.out_offset < out.size()) {
+    const ssize_t n = ::send(e.fd.get(), out.data() + e.out_offset, out.size() - e.out_offset,
+                             MSG_NOSIGNAL | MSG_DONTWAIT);
+    if (n < 0) {
+      if (errno == EAGAIN || errno == EWOULDBLOCK) break;
+      if (errno == EINTR) continue;
+      Close(e.id, "write: " + ErrnoText(errno));
+      return;
+    }
+    e.out_offset += static_cast<std::size_t>(n);
+  }
+  const std::size_t pending = out.size() - e.out_offset;
+  if (pending == 0) {
+    out.clear();
+    e.out_offset = 0;
+  } else if (e.out_offset > 65536 && e.out_offset > pending) {
+    out.erase(out.begin(), out.begin() + static_cast<std::ptrdiff_t>(e.out_offset));
+    e.out_offset = 0;
+  }
+  if (pending > options_.max_output_bytes) {
+    {
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.dropped_slow;
+    }
+    Close(e.id, "not reading (" + std::to_string(pending) + " bytes waiting): dropped");
+    return;
+  }
+  const bool want = pending > 0;
+  if (want != e.want_write) {
+    e.want_write = want;
+    UpdateInterest(e);
+  }
+}
+
+void VrpnServer::Close(std::uint64_t id, const std::string& why) {
+  auto it = impl_->endpoints.find(id);
+  if (it == impl_->endpoints.end()) return;
+  Log("closed " + it->second->label + ": " + why);
+  if (!it->second->callback_key.empty()) impl_->callback_keys.erase(it->second->callback_key);
+  // Closing the fds removes them from the epoll set.
+  impl_->endpoints.erase(it);
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.clients = static_cast<int>(impl_->endpoints.size());
+}
+
+void VrpnServer::CheckDeadlines() {
+  const auto now = Clock::now();
+  std::vector<std::uint64_t> expired;
+  for (const auto& [id, e] : impl_->endpoints) {
+    if (e->deadline < now) expired.push_back(id);
+  }
+  for (auto id : expired) Close(id, "handshake timed out");
+}
+
+void VrpnServer::DrainEvents() {
+  {
+    std::lock_guard<std::mutex> lock(impl_->queue_mutex);
+    impl_->work.swap(impl_->queue);
+  }
+  if (impl_->work.empty()) return;
+  const TypeIds& types = catalog_->types();
+  const Clock::time_point first_enqueued = impl_->work.front().enqueued;
+  std::uint64_t reports = 0;
+  std::vector<std::uint8_t>& msg = impl_->encoded;
+  for (const Event& ev : impl_->work) {
+    msg.clear();
+    bool low_latency = false;
+    switch (ev.type) {
+      case Event::kPose: {
+        std::uint8_t payload[kPosQuatSize];
+        EncodePosQuatInto(PosQuat{ev.index, ev.pose}, payload);
+        AppendMessage(&msg, ev.time, catalog_->tracker_sender(ev.device), types.pos_quat, 0, payload);
+        low_latency = true;
+        ++reports;
+        break;
+      }
+      case Event::kText:
+        AppendMessage(&msg, ev.time, catalog_->tracker_sender(ev.device), types.text, 0,
+                      EncodeText(TextMessage{ev.severity, 0, ev.text}));
+        break;
+      case Event::kButton:
+        impl_->button_states[ev.device][ev.index] = ev.pressed ? 1 : 0;
+        AppendMessage(&msg, ev.time, catalog_->button_sender(ev.device), types.button_change, 0,
+                      EncodeButtonChange(ButtonChange{ev.index, ev.pressed ? 1 : 0}));
+        break;
+    }
+    for (auto& [id, e] : impl_->endpoints) {
+      if (e->connecting || !e->session) continue;
+      if (low_latency && e->udp_peer) {
+        if (e->datagram.size() + msg.size() > kMaxDatagramSize) {
+          // Flush a full datagram before adding more.
+          if (::sendto(e->udp_fd.get(), e->datagram.data(), e->datagram.size(), MSG_DONTWAIT,
+                       reinterpret_cast<const sockaddr*>(&*e->udp_peer), sizeof(sockaddr_in)) < 0) {
+            std::lock_guard<std::mutex> lock(stats_mutex_);
+            ++stats_.udp_send_failures;
+          }
+          e->datagram.clear();
+        }
+        e->session->connection().PackEncodedUdp(msg, &e->datagram);
+      } else {
+        e->session->connection().PackEncoded(msg);
+      }
+    }
+  }
+  impl_->work.clear();
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    stats_.reports_published += reports;
+  }
+  std::vector<std::uint64_t> ids;
+  ids.reserve(impl_->endpoints.size());
+  for (auto& [id, e] : impl_->endpoints) ids.push_back(id);
+  for (std::uint64_t id : ids) {
+    auto it = impl_->endpoints.find(id);
+    if (it == impl_->endpoints.end()) continue;
+    Endpoint& e = *it->second;
+    if (!e.datagram.empty()) {
+      if (::sendto(e.udp_fd.get(), e.datagram.data(), e.datagram.size(), MSG_DONTWAIT,
+                   reinterpret_cast<const sockaddr*>(&*e.udp_peer), sizeof(sockaddr_in)) < 0) {
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        ++stats_.udp_send_failures;
+      }
+      e.datagram.clear();
+    }
+    Flush(e);
+  }
+  const float us = std::chrono::duration<float, std::micro>(Clock::now() - first_enqueued).count();
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  if (impl_->fanout_us.size() < 1000000) impl_->fanout_us.push_back(us);
+}
+
+std::vector<float> VrpnServer::TakeFanoutMicros() {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  std::vector<float> out;
+  out.swap(impl_->fanout_us);
+  return out;
+}
+
+}  // namespace trackcal::vrpn

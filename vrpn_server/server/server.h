@@ -1,0 +1,140 @@
+// The event-driven VRPN server core: one network thread around epoll, no polling loop.
+//
+// - TCP listener (SO_REUSEADDR, large backlog, TCP_NODELAY on every connection) and the UDP "lob"
+//   listener on the same port; a lob datagram makes the server connect back (non-blocking connect)
+//   to the client's TCP port.
+// - Every connection is an independent ServerSession with a bounded output buffer: a client that
+//   stops reading is dropped when its buffer overflows, it never blocks the others.
+// - On lob connections the server opens a UDP socket, announces it, and sends low-latency messages
+//   (Pos_Quat) over UDP once the client has described its own UDP port.
+// - Devices publish from their own threads (Publish* are thread-safe): reports go through a
+//   mutex-protected queue and an eventfd wakes the loop, which encodes each report once and writes
+//   it to every client.
+// - Exposure: bind address, and an allow-list of client networks checked for accepted connections,
+//   lob datagrams and call-back targets.
+
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/pose.h"
+#include "vrpn_server/protocol/payloads.h"
+#include "vrpn_server/protocol/wire.h"
+#include "vrpn_server/server/catalog.h"
+#include "vrpn_server/server/server_session.h"
+
+namespace trackcal::vrpn {
+
+struct ServerOptions {
+  // IPv4 address to bind the TCP and UDP listeners to ("0.0.0.0" = all interfaces).
+  std::string bind_address = "0.0.0.0";
+  // TCP and UDP port; 0 picks a free port (tests), see VrpnServer::port().
+  int port = kDefaultPort;
+  // Allowed client networks as CIDR ("192.168.1.0/24"); empty allows everyone, like VRPN.
+  std::vector<std::string> allow;
+  // Connections beyond this are refused (the reference limit is 256 endpoints).
+  int max_clients = 256;
+  // Per-client bytes waiting to be written; a client that lets more pile up is dropped.
+  std::size_t max_output_bytes = 1 << 20;
+  // Largest accepted message from a client (header length field); larger closes that client.
+  std::uint32_t max_message_length = kDefaultMaxMessageLength;
+  // Send Pos_Quat over UDP to lob clients that describe a UDP port.
+  bool udp_data_channel = true;
+  // TCP listen backlog (the reference uses 1, which serialises connection bursts).
+  int listen_backlog = 1024;
+  // A connection that has not completed its cookie exchange (or call-back connect) in this time
+  // is dropped [s].
+  double handshake_timeout_s = 10.0;
+  // Real-time (SCHED_FIFO) priority for the network thread, 1..99; 0 keeps the normal scheduler.
+  // Keeps client processes on the same host from preempting a fan-out halfway; needs
+  // CAP_SYS_NICE (a warning is logged and the server runs normally without it).
+  int realtime_priority = 0;
+  void Check() const;  // throws std::invalid_argument naming the field
+};
+
+struct ServerStats {
+  int clients = 0;                    // connections currently open
+  std::uint64_t connections_total = 0;
+  std::uint64_t refused = 0;          // allow-list, client limit, bad lob requests
+  std::uint64_t dropped_slow = 0;     // closed because the output buffer overflowed
+  std::uint64_t closed_protocol = 0;  // closed for a bad cookie or length field
+  std::uint64_t reports_published = 0;
+  std::uint64_t udp_send_failures = 0;
+};
+
+class VrpnServer {
+ public:
+  VrpnServer(std::shared_ptr<const ServerCatalog> catalog, ServerOptions options,
+             LogFunction log = nullptr);
+  ~VrpnServer();
+  VrpnServer(const VrpnServer&) = delete;
+  VrpnServer& operator=(const VrpnServer&) = delete;
+
+  // Binds the listeners (throws std::runtime_error naming address and port on failure) and starts
+  // the network thread.
+  void Start();
+  // Stops the network thread and closes every connection. Idempotent.
+  void Stop();
+  // The bound port (useful with options.port = 0).
+  int port() const { return port_; }
+
+  // Thread-safe: queue a report for every client. Pos_Quat with the header timestamp `time`.
+  void PublishPose(int tracker, int sensor, const Rigid3d& transmitter_from_receiver, Timestamp time);
+  // Thread-safe: a text message from a tracker's name to every client (reliable channel).
+  void PublishText(int tracker, TextSeverity severity, std::string text);
+  // Thread-safe: a button change; new clients get the current states on connect.
+  void PublishButton(int button, int index, bool pressed, Timestamp time);
+
+  ServerStats stats() const;
+  // Server-side latency of every report batch since the last call [us]: from the first report's
+  // hand-over (Publish*) to the last client's send() returning. Kept for at most 1e6 batches.
+  std::vector<float> TakeFanoutMicros();
+  // CPU time the network thread has used [s] (for the idle-CPU benchmark); 0 when not running.
+  double NetworkThreadCpuSeconds() const;
+
+ private:
+  struct Endpoint;
+  struct Event;
+  struct Impl;
+  void Push(Event event);
+  void Run();
+  void HandleAccept();
+  void HandleLob();
+  void HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp);
+  void OnConnected(Endpoint& e);
+  void StartSession(Endpoint& e);
+  void Flush(Endpoint& e);
+  void Close(std::uint64_t id, const std::string& why);
+  void DrainEvents();
+  void CheckDeadlines();
+  void UpdateInterest(Endpoint& e);
+  void Log(const std::string& line);
+
+  std::shared_ptr<const ServerCatalog> catalog_;
+  ServerOptions options_;
+  LogFunction log_;
+  int port_ = 0;
+
+  int epoll_fd_ = -1;
+  int tcp_fd_ = -1;
+  int udp_fd_ = -1;
+  int event_fd_ = -1;
+  std::thread thread_;
+  std::atomic<bool> running_{false};
+
+  std::unique_ptr<Impl> impl_;
+
+  mutable std::mutex stats_mutex_;
+  ServerStats stats_;
+};
+
+// Writes "<UTC time> trackcal-server: line" to stderr.
+void LogToStderr(const std::string& line);
+
+}  // namespace trackcal::vrpn

@@ -1,0 +1,63 @@
+// One client endpoint of the server, without sockets: the cookie and descriptions sent at once,
+// answers to pings and tracker requests, and the rules for what a client may send.
+//
+// Nothing a client sends changes anything beyond its own session: unknown or malformed messages are
+// dropped with a (rate-limited) log line, state-changing requests (set_update_rate, Reset_Origin)
+// are logged and ignored, and a length field out of range makes OnTcpBytes return false so the owner
+// closes this connection only.
+
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "vrpn_server/protocol/connection.h"
+#include "vrpn_server/server/catalog.h"
+
+namespace trackcal::vrpn {
+
+using LogFunction = std::function<void(const std::string&)>;
+
+class ServerSession {
+ public:
+  // Per-session cap on log lines about client misbehaviour; later ones are counted, not printed.
+  static constexpr int kMaxLogLines = 20;
+
+  ServerSession(std::shared_ptr<const ServerCatalog> catalog, Connection::Options options,
+                std::string peer_label, LogFunction log);
+
+  // Queues cookie, our UDP description (lob connections), all descriptions, and the current state
+  // of every button device (as the reference does on a new connection).
+  void Start(std::optional<std::pair<std::string, int>> our_udp,
+             std::span<const std::vector<std::int32_t>> button_states);
+
+  // Feeds received TCP bytes; replies are appended to connection().tcp_output(). False: close.
+  bool OnTcpBytes(std::span<const std::uint8_t> bytes);
+  void OnDatagram(std::span<const std::uint8_t> datagram);
+
+  Connection& connection() { return connection_; }
+  const std::string& peer_label() const { return peer_label_; }
+  std::uint64_t pings_answered() const { return pings_answered_; }
+  std::uint64_t dropped_messages() const { return dropped_messages_; }
+  std::string error() const { return connection_.error(); }
+
+ private:
+  void Handle(const ReceivedMessage& m);
+  void Log(const std::string& line);
+
+  std::shared_ptr<const ServerCatalog> catalog_;
+  Connection connection_;
+  std::string peer_label_;
+  LogFunction log_;
+  int log_lines_ = 0;
+  std::uint64_t pings_answered_ = 0;
+  std::uint64_t dropped_messages_ = 0;
+  std::uint64_t last_unknown_id_count_ = 0;
+};
+
+}  // namespace trackcal::vrpn

@@ -1,0 +1,166 @@
+// The server endpoint against the reference client's bytes (tests/data/vrpn/), and its rules for
+// misbehaving clients.
+#include "vrpn_server/server/server_session.h"
+
+#include <gtest/gtest.h>
+
+#include <map>
+#include <set>
+#include <tuple>
+
+#include "vrpn_server/protocol/payloads.h"
+#include "vrpn_server/protocol/transcript_testing.h"
+
+namespace trackcal::vrpn {
+namespace {
+
+TrackerSpec Tracker0() {
+  TrackerSpec spec;
+  spec.name = "Tracker0";
+  return spec;
+}
+
+using Reply = std::tuple<std::string, std::string, std::size_t>;  // sender, type, payload size
+
+// Replies = everything but descriptions and the device's own stream (reports, device text).
+bool IsReply(int32_t type, std::string_view type_name) {
+  if (type == kSenderDescription || type == kTypeDescription) return false;
+  return type_name != kPosQuatType && type_name != kVelocityType &&
+         type_name != kAccelerationType && type_name != kTextType;
+}
+
+std::multiset<Reply> RepliesIn(std::span<const std::uint8_t> server_bytes) {
+  std::multiset<Reply> replies;
+  MessageStreamParser parser;
+  std::map<int32_t, std::string> senders, types;
+  EXPECT_EQ(parser.Feed(server_bytes,
+                        [&](const Message& m) {
+                          if (m.header.type == kSenderDescription) {
+                            senders[m.header.sender] = *DecodeDescription(m.payload);
+                          } else if (m.header.type == kTypeDescription) {
+                            types[m.header.sender] = *DecodeDescription(m.payload);
+                          } else if (m.header.type == kUdpDescription) {
+                            replies.insert({"<system>", "UDP description", 0});
+                          } else if (IsReply(m.header.type, types[m.header.type])) {
+                            replies.insert({senders[m.header.sender], types[m.header.type],
+                                            m.payload.size()});
+                          }
+                        }),
+            MessageStreamParser::Status::kOk);
+  return replies;
+}
+
+std::shared_ptr<ServerCatalog> CatalogFor(const std::string& scenario) {
+  auto catalog = std::make_shared<ServerCatalog>();
+  TrackerSpec tracker;
+  tracker.name = "Tracker0";
+  // Sensor counts from each scenario's vrpn.cfg / commands.txt.
+  tracker.num_sensors = (scenario.starts_with("03") || scenario.starts_with("04") ||
+                         scenario.starts_with("05") || scenario.starts_with("10"))
+                            ? 1
+                            : 2;
+  catalog->AddTracker(tracker);
+  if (scenario.starts_with("08")) catalog->AddButton(ButtonSpec{"Stylus0", 1});
+  return catalog;
+}
+
+TEST(ServerSession, RepliesToReferenceClientMatchReferenceServer) {
+  int compared = 0;
+  for (const auto& dir : testing::TranscriptScenarios()) {
+    const std::string scenario = dir.filename().string();
+    // Scenario 10's server is a deliberately minimal test server that never answers pings.
+    if (scenario.starts_with("10")) continue;
+    SCOPED_TRACE(scenario);
+    const bool lob = std::filesystem::exists(dir / "client_to_server_udp_lob.bin");
+    std::vector<std::string> log;
+    ServerSession session(CatalogFor(scenario), Connection::Options{}, "test",
+                          [&](const std::string& l) { log.push_back(l); });
+    std::vector<std::vector<std::int32_t>> buttons(scenario.starts_with("08") ? 1 : 0,
+                                                   std::vector<std::int32_t>{1});
+    session.Start(lob ? std::optional(std::make_pair(std::string("127.0.0.1"), 40000))
+                      : std::nullopt,
+                  buttons);
+    // Feed in odd-sized pieces, as TCP may deliver them.
+    const auto client = testing::ReadBytes(dir / "client_to_server.bin");
+    for (std::size_t i = 0; i < client.size(); i += 77) {
+      ASSERT_TRUE(session.OnTcpBytes(std::span(client).subspan(i, std::min<std::size_t>(77, client.size() - i))));
+    }
+    const auto ours = RepliesIn(session.connection().tcp_output());
+    const auto reference = RepliesIn(testing::ReadBytes(dir / "server_to_client.bin"));
+    EXPECT_EQ(ours, reference);
+    EXPECT_EQ(session.dropped_messages(), 0u);
+    ++compared;
+  }
+  EXPECT_EQ(compared, 9);
+}
+
+TEST(ServerSession, NoPongForUnservedDevice) {
+  auto catalog = std::make_shared<ServerCatalog>();
+  catalog->AddTracker(Tracker0());
+  // A client asking for Tracker9 describes that sender and pings from it.
+  auto client_names = std::make_shared<NameRegistry>();
+  const int32_t t9 = client_names->AddSender("Tracker9");
+  const int32_t t0 = client_names->AddSender("Tracker0");
+  const int32_t ping = client_names->AddType(kPingType);
+  Connection client(client_names, Connection::Options{});
+  client.Start();
+  client.Pack(t9, ping, Timestamp::Now(), {});
+  std::vector<std::string> log;
+  ServerSession session(catalog, Connection::Options{}, "peer",
+                        [&](const std::string& l) { log.push_back(l); });
+  session.Start(std::nullopt, {});
+  ASSERT_TRUE(session.OnTcpBytes(client.tcp_output()));
+  EXPECT_EQ(session.pings_answered(), 0u);
+  EXPECT_TRUE(RepliesIn(session.connection().tcp_output()).empty());
+  ASSERT_FALSE(log.empty());
+  EXPECT_NE(log.back().find("Tracker9"), std::string::npos);
+
+  client.tcp_output().clear();
+  client.Pack(t0, ping, Timestamp::Now(), {});
+  ASSERT_TRUE(session.OnTcpBytes(client.tcp_output()));
+  EXPECT_EQ(session.pings_answered(), 1u);
+  EXPECT_EQ(RepliesIn(session.connection().tcp_output()),
+            (std::multiset<Reply>{{"Tracker0", std::string(kPongType), 0}}));
+}
+
+TEST(ServerSession, GarbageAndOversizedCloseOnlyWithLog) {
+  auto catalog = std::make_shared<ServerCatalog>();
+  catalog->AddTracker(Tracker0());
+  std::vector<std::string> log;
+  ServerSession session(catalog, Connection::Options{.max_message_length = 4096}, "peer",
+                        [&](const std::string& l) { log.push_back(l); });
+  session.Start(std::nullopt, {});
+  const auto cookie = MakeCookie();
+  std::vector<std::uint8_t> bytes(cookie.begin(), cookie.end());
+  // Undescribed ids and an unknown system type: dropped, connection stays.
+  AppendMessage(&bytes, Timestamp{}, 5, 9, 0, std::vector<std::uint8_t>(16, 0));
+  AppendMessage(&bytes, Timestamp{}, 0, -77, 0, {});
+  ASSERT_TRUE(session.OnTcpBytes(bytes));
+  EXPECT_EQ(session.dropped_messages(), 1u);
+  std::vector<std::uint8_t> huge(24, 0);
+  StoreU32(100000, huge.data());
+  EXPECT_FALSE(session.OnTcpBytes(huge));
+  EXPECT_NE(log.back().find("over the limit"), std::string::npos);
+}
+
+TEST(ServerSession, StateChangingRequestsAreIgnoredAndLogSpamIsCapped) {
+  auto catalog = std::make_shared<ServerCatalog>();
+  catalog->AddTracker(Tracker0());
+  std::vector<std::string> log;
+  ServerSession session(catalog, Connection::Options{}, "peer",
+                        [&](const std::string& l) { log.push_back(l); });
+  session.Start(std::nullopt, {});
+  auto names = std::make_shared<NameRegistry>();
+  const int32_t t0 = names->AddSender("Tracker0");
+  const int32_t rate = names->AddType(kSetUpdateRateType);
+  Connection client(names, Connection::Options{});
+  client.Start();
+  for (int i = 0; i < 100; ++i) client.Pack(t0, rate, Timestamp{}, std::vector<std::uint8_t>(8, 0));
+  const std::size_t before = session.connection().tcp_output().size();
+  ASSERT_TRUE(session.OnTcpBytes(client.tcp_output()));
+  EXPECT_EQ(session.connection().tcp_output().size(), before);  // no reply, no state change
+  EXPECT_EQ(log.size(), static_cast<std::size_t>(ServerSession::kMaxLogLines) + 1);
+}
+
+}  // namespace
+}  // namespace trackcal::vrpn
