@@ -104,6 +104,8 @@ class EndToEnd : public ::testing::Test {
     for (auto& t : truth_) t.rotation.normalize();
     emulator::EmulatorOptions eo;
     eo.device.num_stations = 2;
+    // The driver opens the symlink: after a disconnect fault the new pty has another path.
+    eo.link_path = (dir_ / "fastrak").string();
     emulator_ = std::make_unique<emulator::BackgroundEmulator>(
         eo, std::make_unique<emulator::StaticPoseSource>(truth_), std::make_unique<RigidDistortion>());
     TrackerSetup setup;
@@ -113,7 +115,7 @@ class EndToEnd : public ::testing::Test {
     setup.calibration = dir_ / "calib.json";
     setup.origin = "e2e";
     fastrak::FastrakOptions fo;
-    fo.port = emulator_->initial_device_path();
+    fo.port = eo.link_path;
     fo.timings = fastrak::FastrakTimings::Fast();
     setup.make_source = [fo] { return MakeFastrakSource(fo); };
     AppOptions ao;
