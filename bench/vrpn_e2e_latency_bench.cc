@@ -7,7 +7,8 @@
 //
 // 4 stations (a Fastrak's 120 records/s shared, 30 Hz each); 1, 8 and 32 clients over lob/UDP and
 // direct TCP; correction off and on (a degree-4 polynomial from a calibration file, with zero
-// position terms so the record number survives). Prints p50/p99/max and missing reports.
+// position terms so the record number survives). Prints p50/p99/max and missing reports, and the
+// server's own share (srv_*: from the driver's hand-over to the last client's send() returning).
 //
 //   vrpn_e2e_latency_bench [seconds_per_configuration=5] [realtime_priority=0]
 
@@ -97,8 +98,8 @@ int main(int argc, char** argv) {
 
   std::printf("emulator record -> client decode, 4 stations x 30 Hz, %.0f s per row, network thread RT priority %d\n",
               seconds, rt);
-  std::printf("%-8s %-5s %-10s %10s %10s %10s %9s %8s\n", "clients", "mode", "correction", "p50[us]", "p99[us]",
-              "max[us]", "received", "missing");
+  std::printf("%-8s %-5s %-10s %10s %10s %10s %9s %8s %12s %12s\n", "clients", "mode", "correction", "p50[us]",
+              "p99[us]", "max[us]", "received", "missing", "srv_p50[us]", "srv_p99[us]");
   for (bool correction : {false, true}) {
     TrackerSetup setup;
     setup.name = "Tracker0";
@@ -142,11 +143,14 @@ int main(int argc, char** argv) {
           if (ready) break;
           std::this_thread::sleep_for(std::chrono::milliseconds(20));
         }
+        app.server().TakeFanoutMicros();
         measuring = true;
         std::this_thread::sleep_for(std::chrono::duration<double>(std::min(seconds, 9.0)));
         measuring = false;
         std::this_thread::sleep_for(std::chrono::milliseconds(100));
         for (auto& c : clients) c->Stop();
+        const auto fanout = app.server().TakeFanoutMicros();
+        const std::vector<double> fanout_d(fanout.begin(), fanout.end());
         // Missing: per client, gaps in the record numbers it received (records come in order).
         std::uint64_t missing = 0, received = 0;
         std::vector<double> all;
@@ -157,10 +161,11 @@ int main(int argc, char** argv) {
             missing += (got[c][i] + 1200 - got[c][i - 1] - 1) % 1200;
           }
         }
-        std::printf("%-8d %-5s %-10s %10.1f %10.1f %10.1f %9llu %8llu\n", n, lob ? "lob" : "tcp",
+        std::printf("%-8d %-5s %-10s %10.1f %10.1f %10.1f %9llu %8llu %12.1f %12.1f\n", n, lob ? "lob" : "tcp",
                     correction ? "on" : "off", Percentile(all, 0.5), Percentile(all, 0.99),
                     all.empty() ? NAN : *std::max_element(all.begin(), all.end()),
-                    static_cast<unsigned long long>(received), static_cast<unsigned long long>(missing));
+                    static_cast<unsigned long long>(received), static_cast<unsigned long long>(missing),
+                    Percentile(fanout_d, 0.5), Percentile(fanout_d, 0.99));
       }
     }
     app.Stop();
