@@ -9,6 +9,7 @@
 #include <sys/epoll.h>
 #include <sys/eventfd.h>
 #include <sys/socket.h>
+#include <sys/uio.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -102,6 +103,9 @@ struct VrpnServer::Impl {
   std::vector<std::uint8_t> encoded;
   int refused_logged = 0;
   std::vector<float> fanout_us;  // guarded by the server's stats_mutex_
+  std::vector<mmsghdr> mmsg;     // DrainEvents scratch
+  std::vector<iovec> iovs;
+  std::vector<std::uint64_t> ids;
 };
 
 void LogToStderr(const std::string& line) {
@@ -662,22 +666,47 @@ void VrpnServer::DrainEvents() {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.reports_published += reports;
   }
-  std::vector<std::uint64_t> ids;
-  ids.reserve(impl_->endpoints.size());
-  for (auto& [id, e] : impl_->endpoints) ids.push_back(id);
+  // All UDP datagrams of this batch leave in one sendmmsg() from the server's port: one system call
+  // instead of one per client, so the woken clients cannot interleave with the fan-out. Clients
+  // accept data datagrams from any source port (the reference's own sending port differs from the
+  // port it announces too).
+  std::vector<mmsghdr>& headers = impl_->mmsg;
+  std::vector<iovec>& iovs = impl_->iovs;
+  headers.clear();
+  iovs.clear();
+  std::vector<std::uint64_t>& ids = impl_->ids;
+  ids.clear();
+  for (auto& [id, e] : impl_->endpoints) {
+    ids.push_back(id);
+    if (!e->datagram.empty()) iovs.push_back(iovec{e->datagram.data(), e->datagram.size()});
+  }
+  std::size_t k = 0;
+  for (auto& [id, e] : impl_->endpoints) {
+    if (e->datagram.empty()) continue;
+    mmsghdr h{};
+    h.msg_hdr.msg_name = &*e->udp_peer;
+    h.msg_hdr.msg_namelen = sizeof(sockaddr_in);
+    h.msg_hdr.msg_iov = &iovs[k++];
+    h.msg_hdr.msg_iovlen = 1;
+    headers.push_back(h);
+  }
+  for (std::size_t sent = 0; sent < headers.size();) {
+    const int n = ::sendmmsg(udp_fd_, headers.data() + sent, static_cast<unsigned>(headers.size() - sent),
+                             MSG_DONTWAIT);
+    if (n <= 0) {
+      // Skip the datagram that failed (full buffer, unreachable client) and carry on.
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.udp_send_failures;
+      ++sent;
+      continue;
+    }
+    sent += static_cast<std::size_t>(n);
+  }
+  for (auto& [id, e] : impl_->endpoints) e->datagram.clear();
   for (std::uint64_t id : ids) {
     auto it = impl_->endpoints.find(id);
     if (it == impl_->endpoints.end()) continue;
-    Endpoint& e = *it->second;
-    if (!e.datagram.empty()) {
-      if (::sendto(e.udp_fd.get(), e.datagram.data(), e.datagram.size(), MSG_DONTWAIT,
-                   reinterpret_cast<const sockaddr*>(&*e.udp_peer), sizeof(sockaddr_in)) < 0) {
-        std::lock_guard<std::mutex> lock(stats_mutex_);
-        ++stats_.udp_send_failures;
-      }
-      e.datagram.clear();
-    }
-    Flush(e);
+    Flush(*it->second);
   }
   const float us = std::chrono::duration<float, std::micro>(Clock::now() - first_enqueued).count();
   std::lock_guard<std::mutex> lock(stats_mutex_);
