@@ -89,6 +89,9 @@ struct VrpnServer::Endpoint {
   Clock::time_point deadline;
   std::optional<sockaddr_in> udp_peer;
   std::vector<std::uint8_t> datagram;
+  // wants[sender id]: the client described that device name (it uses a remote object for it).
+  std::vector<bool> wants;
+  std::uint64_t wants_version = ~std::uint64_t{0};
 };
 
 struct VrpnServer::Impl {
@@ -661,8 +664,19 @@ void VrpnServer::DrainEvents() {
                       EncodeButtonChange(ButtonChange{ev.index, ev.pressed ? 1 : 0}));
         break;
     }
+    const std::int32_t sender = static_cast<std::int32_t>(LoadU32(msg.data() + 12));
     for (auto& [id, e] : impl_->endpoints) {
       if (e->connecting || !e->session) continue;
+      // Only clients that use this device get its messages (a VRPN client describes the device
+      // names it opens; the reference sends everything to everyone and lets clients filter).
+      const PeerNameTable& peer = e->session->connection().peer_senders();
+      if (e->wants_version != peer.version()) {
+        const auto& names = catalog_->names()->senders();
+        e->wants.assign(names.size(), false);
+        for (std::size_t i = 0; i < names.size(); ++i) e->wants[i] = peer.Contains(names[i]);
+        e->wants_version = peer.version();
+      }
+      if (sender < 0 || static_cast<std::size_t>(sender) >= e->wants.size() || !e->wants[sender]) continue;
       if (low_latency && e->udp_peer) {
         if (e->datagram.size() + msg.size() > kMaxDatagramSize) {
           // Flush a full datagram before adding more.
