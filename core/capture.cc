@@ -52,6 +52,8 @@ class CsvTable {
       ++line_number;
       if (Trim(line).empty()) continue;
       if (!have_header) {
+        // A UTF-8 byte order mark (spreadsheet exports) is not part of the first column's name.
+        if (line.rfind("\xEF\xBB\xBF", 0) == 0) line.erase(0, 3);
         header_line_ = line_number;
         header_ = Split(line);
         have_header = true;
@@ -61,7 +63,8 @@ class CsvTable {
     }
     if (!have_header) throw std::invalid_argument(name_ + ":1: empty file, expected a header");
     for (size_t i = 0; i < header_.size(); ++i) {
-      if (header_[i].empty()) Fail(header_line_, "header", "column " + std::to_string(i + 1) + " has no name");
+      if (header_[i].empty())
+        Fail(header_line_, "header", "column " + std::to_string(i + 1) + " has no name");
       if (!index_.emplace(header_[i], i).second) {
         Fail(header_line_, "column " + header_[i], "appears twice in the header");
       }
@@ -79,8 +82,9 @@ class CsvTable {
     }
     for (const Row& row : rows_) {
       if (row.fields.size() != header_.size()) {
-        Fail(row.line, "row", "expected " + std::to_string(header_.size()) + " fields, found " +
-                                  std::to_string(row.fields.size()));
+        Fail(row.line, "row",
+             "expected " + std::to_string(header_.size()) + " fields, found " +
+                 std::to_string(row.fields.size()));
       }
     }
   }
@@ -121,7 +125,8 @@ class CsvTable {
     const double y = Number(row, prefix + "qy");
     const double z = Number(row, prefix + "qz");
     Eigen::Quaterniond q = QuaternionFromWxyz(w, x, y, z);
-    // Hand-edited or low-precision files carry a few digits; anything further from unit is an error.
+    // Hand-edited or low-precision files carry a few digits; anything further from unit is an
+    // error.
     if (std::abs(q.norm() - 1.0) > 1e-3) {
       char buf[64];
       std::snprintf(buf, sizeof(buf), "%.6g", q.norm());
@@ -176,8 +181,8 @@ class CsvTable {
 };
 
 const std::vector<std::string> kPoseColumns = {
-    "station", "set",    "sensor", "time",   "rep_x",  "rep_y",  "rep_z",  "rep_qw", "rep_qx",
-    "rep_qy",  "rep_qz", "ref_x",  "ref_y",  "ref_z",  "ref_qw", "ref_qx", "ref_qy", "ref_qz"};
+    "station", "set",    "sensor", "time",  "rep_x", "rep_y",  "rep_z",  "rep_qw", "rep_qx",
+    "rep_qy",  "rep_qz", "ref_x",  "ref_y", "ref_z", "ref_qw", "ref_qx", "ref_qy", "ref_qz"};
 const std::vector<std::string> kMarkerColumns = {"station", "marker", "x", "y", "z"};
 const std::vector<std::string> kTrackerColumns = {"station", "sensor", "x",  "y", "z",
                                                   "qw",      "qx",     "qy", "qz"};
@@ -186,9 +191,7 @@ const std::vector<std::string> kTrackerStreamColumns = {"time", "sensor", "x",  
 const std::vector<std::string> kReferenceStreamColumns = {"time", "x",  "y",  "z",
                                                           "qw",   "qx", "qy", "qz"};
 
-bool IsKnownSet(const std::string& set) {
-  return set == "calib" || set == "valid" || set == "reg";
-}
+bool IsKnownSet(const std::string& set) { return set == "calib" || set == "valid" || set == "reg"; }
 
 // ---- Writing. ----
 class CsvWriter {
@@ -198,7 +201,8 @@ class CsvWriter {
       : name_(path.filename().string()), extra_count_(extra_columns.size()) {
     for (const std::string& e : extra_columns) {
       for (const std::string& c : columns) {
-        if (e == c) throw std::invalid_argument(name_ + ": extra column " + e + " is a standard column");
+        if (e == c)
+          throw std::invalid_argument(name_ + ": extra column " + e + " is a standard column");
       }
       if (e.empty() || e.find_first_of(",\n\r") != std::string::npos) {
         throw std::invalid_argument(name_ + ": extra column name '" + e + "' is not a valid name");
@@ -276,7 +280,8 @@ void WriteFileAtomically(const std::filesystem::path& path, const std::string& c
   hidden_name.append(".tmp-XXXXXX");
   std::string tmpl = (dir / hidden_name).string();
   const int fd = mkstemp(tmpl.data());
-  if (fd < 0) throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string());
+  if (fd < 0)
+    throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string());
   size_t written = 0;
   while (written < contents.size()) {
     const ssize_t n = ::write(fd, contents.data() + written, contents.size() - written);
@@ -308,8 +313,9 @@ void WriteFileAtomically(const std::filesystem::path& path, const std::string& c
   const int rc = ::link(tmpl.c_str(), path.c_str());
   ::unlink(tmpl.c_str());
   if (rc != 0) {
-    throw std::runtime_error(path.string() + (errno == EEXIST ? ": exists; refusing to overwrite it"
-                                                              : ": cannot move the temporary file into place"));
+    throw std::runtime_error(path.string() + (errno == EEXIST
+                                                  ? ": exists; refusing to overwrite it"
+                                                  : ": cannot move the temporary file into place"));
   }
 }
 

@@ -3,14 +3,15 @@
 //
 //   poses.csv            station,set,sensor,time,rep_x..rep_qz,ref_x..ref_qz  paired static poses
 //   markers.csv          station,marker,x,y,z                                optical markers (reg.)
-//   tracker.csv          station,sensor,x,y,z,qw,qx,qy,qz                    tracker at reg. stations
-//   tracker_stream.csv   time,sensor,x,y,z,qw,qx,qy,qz                       tracker stream
-//   reference_stream.csv time,x,y,z,qw,qx,qy,qz                              reference stream
+//   tracker.csv          station,sensor,x,y,z,qw,qx,qy,qz                    tracker at reg.
+//   stations tracker_stream.csv   time,sensor,x,y,z,qw,qx,qy,qz                       tracker
+//   stream reference_stream.csv time,x,y,z,qw,qx,qy,qz                              reference
+//   stream
 //
 // Metres and seconds; poses are transmitter_from_receiver (reference: transmitter_from_body) in the
-// transmitter frame, markers in the optical frame. Columns are found by name in any order; any other
-// column must be numeric on every row and is kept (`extra_columns`, `extra` per record) and written
-// back after the standard ones. Errors name file, line and column:
+// transmitter frame, markers in the optical frame. Columns are found by name in any order; any
+// other column must be numeric on every row and is kept (`extra_columns`, `extra` per record) and
+// written back after the standard ones. Errors name file, line and column:
 //   poses.csv:17: column rep_qw: 'abc' is not a number
 // Writers are atomic (temporary file + rename) and refuse to replace an existing file unless
 // `overwrite` is set.
@@ -27,12 +28,12 @@ namespace trackcal {
 
 // One paired static station: the tracker's report and the optical reference, both averaged.
 struct PoseRecord {
-  int station = 0;        // station id, unique per capture
-  std::string set;        // "calib", "valid" or "reg"
-  int sensor = 1;         // tracker station (receiver) number
-  double time = 0.0;      // station time on the tracker clock [s]
-  Rigid3d reported;       // transmitter_from_receiver reported by the tracker
-  Rigid3d reference;      // transmitter_from_receiver measured by the reference
+  int station = 0;            // station id, unique per capture
+  std::string set;            // "calib", "valid" or "reg"
+  int sensor = 1;             // tracker station (receiver) number
+  double time = 0.0;          // station time on the tracker clock [s]
+  Rigid3d reported;           // transmitter_from_receiver reported by the tracker
+  Rigid3d reference;          // transmitter_from_receiver measured by the reference
   std::vector<double> extra;  // values of the extra columns, in extra_columns order
 };
 

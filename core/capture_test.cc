@@ -21,7 +21,9 @@ std::string ReadText(const std::filesystem::path& p) {
   return s.str();
 }
 
-void WriteText(const std::filesystem::path& p, const std::string& text) { std::ofstream(p) << text; }
+void WriteText(const std::filesystem::path& p, const std::string& text) {
+  std::ofstream(p) << text;
+}
 
 std::string ErrorOf(const std::function<void()>& f) {
   try {
@@ -55,9 +57,10 @@ TEST(PosesCsv, Nominal) {
   const PoseCapture written = RandomPoses();
   WritePoses(dir / "poses.csv", written);
   const std::string text = ReadText(dir / "poses.csv");
-  EXPECT_EQ(text.substr(0, text.find('\n')),
-            "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
-            "ref_qw,ref_qx,ref_qy,ref_qz,temperature_c");
+  EXPECT_EQ(
+      text.substr(0, text.find('\n')),
+      "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
+      "ref_qw,ref_qx,ref_qy,ref_qz,temperature_c");
   const PoseCapture read = ReadPoses(dir / "poses.csv");
   ASSERT_EQ(read.records.size(), written.records.size());
   EXPECT_EQ(read.extra_columns, written.extra_columns);
@@ -82,13 +85,17 @@ TEST(PosesCsv, Nominal) {
 
 TEST(PosesCsv, ColumnsByNameInAnyOrderWithExtras) {
   const auto dir = MakeTempDir("capture_test");
-  WriteText(dir / "poses.csv",
-            "ref_qz,ref_qy,ref_qx,ref_qw,ref_z,ref_y,ref_x,humidity,rep_qw,rep_qx,rep_qy,rep_qz,rep_x,"
-            "rep_y,rep_z,time,sensor,set,station\r\n"
-            "0,0,0,1,0.3,0.2,0.1,45.5,0,1,0,0,1.5,2.5,3.5,12.25,2,valid,7\r\n"
-            "\n");
+  WriteText(
+      dir / "poses.csv",
+      "ref_qz,ref_qy,ref_qx,ref_qw,ref_z,ref_y,ref_x,humidity,rep_qw,rep_qx,rep_qy,rep_qz,rep_x,"
+      "rep_y,rep_z,time,sensor,set,station\r\n"
+      "0,0,0,1,0.3,0.2,0.1,45.5,0,1,0,0,1.5,2.5,3.5,12.25,2,valid,7\r\n"
+      "\n");
   const PoseCapture c = ReadPoses(dir / "poses.csv");
   ASSERT_EQ(c.records.size(), 1u);
+  // A spreadsheet's byte order mark before the header is ignored.
+  WriteText(dir / "bom.csv", "\xEF\xBB\xBF" + ReadText(dir / "poses.csv"));
+  EXPECT_EQ(ReadPoses(dir / "bom.csv").records.size(), 1u);
   const PoseRecord& r = c.records[0];
   EXPECT_EQ(r.station, 7);
   EXPECT_EQ(r.set, "valid");
@@ -124,12 +131,14 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
             "poses.csv:2: columns rep_qw, rep_qx, rep_qy, rep_qz: quaternion norm 0.5 is not 1");
   EXPECT_EQ(error_for(header + "1,calib,1,inf,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
             "poses.csv:2: column time: 'inf' is not a finite number");
-  EXPECT_EQ(error_for("station,set\n1,calib\n"), "poses.csv:1: column sensor: missing from the header");
+  EXPECT_EQ(error_for("station,set\n1,calib\n"),
+            "poses.csv:1: column sensor: missing from the header");
   EXPECT_EQ(error_for(""), "poses.csv:1: empty file, expected a header");
   EXPECT_EQ(error_for(header.substr(0, header.size() - 1) + ",temp\n" +
                       "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,warm\n"),
             "poses.csv:2: column temp: 'warm' is not a number");
-  EXPECT_EQ(error_for("station,station\n"), "poses.csv:1: column station: appears twice in the header");
+  EXPECT_EQ(error_for("station,station\n"),
+            "poses.csv:1: column station: appears twice in the header");
 }
 
 TEST(CaptureWriters, RefuseToOverwrite) {
@@ -166,11 +175,14 @@ TEST(OtherCaptureFiles, RoundTrip) {
   reference_stream.extra_columns = {"frame"};
   for (int i = 0; i < 10; ++i) {
     markers.records.push_back({i / 3 + 1, i % 6 + 1, Eigen::Vector3d(0.1 * i, 1.0 / 3, -2.0), {}});
-    tracker.records.push_back({i + 1, 1, Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(i, 0, 1)), {}});
+    tracker.records.push_back(
+        {i + 1, 1, Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(i, 0, 1)), {}});
     tracker_stream.records.push_back(
         {i / 120.0, 2, Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(0, i, 1)), {}});
     reference_stream.records.push_back(
-        {0.037 + i / 100.0, Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(1, 0, i)), {double(i)}});
+        {0.037 + i / 100.0,
+         Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(1, 0, i)),
+         {double(i)}});
   }
   WriteMarkers(dir / kMarkersCsv, markers);
   WriteTracker(dir / kTrackerCsv, tracker);

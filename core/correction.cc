@@ -128,8 +128,42 @@ CorrectedPose CorrectionChain::Apply(const Rigid3d& reported) const {
 void CorrectionChain::ApplyBatch(size_t n, const double* positions,
                                  const double* quaternions_xyzw, double* out_positions,
                                  double* out_quaternions_xyzw, uint8_t* extrapolated) const {
-  Correction::ApplyBatch(n, positions, quaternions_xyzw, out_positions, out_quaternions_xyzw,
-                         extrapolated);
+  // Chunks whose reported positions are all inside the volume (the normal case) go through each
+  // term's batch kernel in turn, in place on the output; a chunk with a pose outside takes the
+  // per-pose path, which handles clamp and fade.
+  constexpr size_t kChunk = 256;
+  uint8_t term_flags[kChunk];
+  for (size_t start = 0; start < n; start += kChunk) {
+    const size_t count = std::min(kChunk, n - start);
+    const double* p_in = positions + 3 * start;
+    const double* q_in = quaternions_xyzw + 4 * start;
+    double* p_out = out_positions + 3 * start;
+    double* q_out = out_quaternions_xyzw + 4 * start;
+    uint8_t* flags = extrapolated == nullptr ? nullptr : extrapolated + start;
+    bool all_inside = true;
+    if (volume_.has_value()) {
+      for (size_t i = 0; i < count && all_inside; ++i) {
+        all_inside = volume_->Contains(Eigen::Vector3d(p_in[3 * i], p_in[3 * i + 1], p_in[3 * i + 2]));
+      }
+    }
+    if (!all_inside) {
+      Correction::ApplyBatch(count, p_in, q_in, p_out, q_out, flags);
+      continue;
+    }
+    if (terms_.empty()) {
+      std::copy(p_in, p_in + 3 * count, p_out);
+      std::copy(q_in, q_in + 4 * count, q_out);
+    }
+    if (flags != nullptr) std::fill(flags, flags + count, uint8_t{0});
+    for (size_t t = 0; t < terms_.size(); ++t) {
+      // The first term reads the inputs; later terms correct the previous output in place.
+      terms_[t]->ApplyBatch(count, t == 0 ? p_in : p_out, t == 0 ? q_in : q_out, p_out, q_out,
+                            term_flags);
+      if (flags != nullptr) {
+        for (size_t i = 0; i < count; ++i) flags[i] |= term_flags[i];
+      }
+    }
+  }
 }
 
 nlohmann::json CorrectionChain::ToJson() const {

@@ -53,6 +53,10 @@ inline uint32_t RotateRight(uint32_t x, int n) { return (x >> n) | (x << (32 - n
 }  // namespace
 
 std::string ReadFileToString(const std::filesystem::path& path) {
+  std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) {
+    throw std::invalid_argument(path.string() + ": cannot read: is a directory");
+  }
   std::ifstream in(path, std::ios::binary);
   if (!in) throw std::invalid_argument(path.string() + ": cannot open for reading: " + ErrnoText());
   std::string contents((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());

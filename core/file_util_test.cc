@@ -92,6 +92,11 @@ TEST(WriteFileAtomically, MissingDirectoryThrowsNamingPath) {
   }
 }
 
+TEST(ReadFileToString, DirectoryIsAnError) {
+  const auto dir = testing::MakeTempDir("read");
+  EXPECT_THROW(ReadFileToString(dir), std::invalid_argument);
+}
+
 TEST(ReadFileToString, MissingFileNamesPath) {
   try {
     ReadFileToString("/nonexistent/trackcal/file.json");

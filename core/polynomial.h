@@ -147,6 +147,9 @@ class PolynomialCorrection : public Correction {
   Eigen::Vector3d input_scale_;
   Eigen::Vector3d inverse_scale_;
   std::vector<double> coefficients_;
+  // The fast path's copy, zero-padded to a multiple of 4 terms.
+  int padded_terms_ = 0;
+  std::vector<double> padded_coefficients_;
 };
 
 }  // namespace trackcal

@@ -33,6 +33,8 @@ double RegistrationResult::ChiSquareZ() const {
 
 namespace {
 
+constexpr int kInitialAlternations = 5;
+
 std::string StationField(const RegistrationStation& s, const std::string& field) {
   return "registration station " + std::to_string(s.station) + ", " + field;
 }
@@ -168,6 +170,36 @@ void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
   *t0 = r0 * Eigen::Vector3d(z.segment<3>(3 * nm));
 }
 
+// optical_from_transmitter aligning the markers placed by the tracker poses with their
+// measurements: the optical least-squares transform for given markers and exact tracker poses.
+Rigid3d AlignMarkers(const Problem& p, const std::vector<Eigen::Vector3d>& markers) {
+  std::vector<Eigen::Vector3d> in_transmitter, in_optical;
+  for (const RegistrationStation* s : p.stations) {
+    for (const MarkerObservation& m : s->markers) {
+      in_transmitter.push_back(s->tracker_transmitter_from_receiver *
+                               markers[p.marker_index.at(m.marker)]);
+      in_optical.push_back(m.marker_in_optical);
+    }
+  }
+  return AlignPoints(in_transmitter, in_optical);
+}
+
+// Sum of squared optical residuals [m^2] with the tracker poses taken as exact.
+double OpticalSumOfSquares(const Problem& p, const Eigen::Quaterniond& r0,
+                           const Eigen::Vector3d& t0, const std::vector<Eigen::Vector3d>& markers) {
+  const Rigid3d optical_from_transmitter(r0, t0);
+  double sse = 0.0;
+  for (const RegistrationStation* s : p.stations) {
+    for (const MarkerObservation& m : s->markers) {
+      const Eigen::Vector3d predicted =
+          optical_from_transmitter *
+          (s->tracker_transmitter_from_receiver * markers[p.marker_index.at(m.marker)]);
+      sse += (predicted - m.marker_in_optical).squaredNorm();
+    }
+  }
+  return sse;
+}
+
 std::string Fmt(const char* fmt, double v) {
   char buf[64];
   std::snprintf(buf, sizeof(buf), fmt, v);
@@ -218,21 +250,40 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   }
   result.chi_square_stddev = std::sqrt(2.0 * result.nu);
 
-  // Closed-form start: rotation, then markers and translation.
-  Eigen::Quaterniond r0;
-  if (RotationFromMarkerDifferences(p, &r0)) {
-    result.initialisation =
-        "rotation from marker differences, markers and translation by linear "
-        "least squares";
-  } else {
-    r0 = RotationFromCentroids(p);
-    result.initialisation =
-        "rotation from marker centroids (stations lack orientation diversity), "
-        "markers and translation by linear least squares";
+  // Closed-form start: candidate rotations, each completed with markers and translation by
+  // linear least squares; the one that best explains the optical data (tracker poses fixed) wins,
+  // so a marker-difference rotation spoiled by noise cannot beat a cruder but sound one.
+  struct Start {
+    std::string name;
+    Eigen::Quaterniond r0;
+    std::vector<Eigen::Vector3d> markers;
+    Eigen::Vector3d t0;
+    double sse = 0.0;
+  };
+  std::vector<Start> starts;
+  Eigen::Quaterniond candidate;
+  if (RotationFromMarkerDifferences(p, &candidate)) {
+    starts.push_back({"rotation from marker differences", candidate, {}, {}, 0.0});
   }
-  std::vector<Eigen::Vector3d> markers;
-  Eigen::Vector3d t0;
-  SolveMarkersAndTranslation(p, r0, &markers, &t0);
+  starts.push_back({"rotation from marker centroids", RotationFromCentroids(p), {}, {}, 0.0});
+  for (Start& start : starts) {
+    SolveMarkersAndTranslation(p, start.r0, &start.markers, &start.t0);
+    // A few alternations of two exact partial minimisers (rotation and translation by Horn
+    // alignment given the markers, markers and translation given the rotation) polish the start.
+    for (int k = 0; k < kInitialAlternations; ++k) {
+      start.r0 = AlignMarkers(p, start.markers).rotation;
+      SolveMarkersAndTranslation(p, start.r0, &start.markers, &start.t0);
+    }
+    start.sse = OpticalSumOfSquares(p, start.r0, start.t0, start.markers);
+  }
+  const Start& best = *std::min_element(
+      starts.begin(), starts.end(), [](const Start& a, const Start& b) { return a.sse < b.sse; });
+  result.initialisation = best.name +
+                          (starts.size() == 1 ? " (stations lack orientation diversity)" : "") +
+                          ", markers and translation by linear least squares";
+  const Eigen::Quaterniond r0 = best.r0;
+  const std::vector<Eigen::Vector3d> markers = best.markers;
+  Eigen::Vector3d t0 = best.t0;
 
   // Parameter blocks.
   double q0[4];

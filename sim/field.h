@@ -7,8 +7,8 @@
 //   B_free(p) = k D(p),   D(d) = (3 u u^T - I) / |d|^3,  u = d / |d|,
 //
 // with k the field constant (field units times m^3; the simulator uses k = 1, so fields are in
-// units of "field of a coil at 1 m on its equator"). Distortion adds, to first order (sources do not
-// see each other's fields):
+// units of "field of a coil at 1 m on its equator"). Distortion adds, to first order (sources do
+// not see each other's fields):
 //
 // - ConductingPlane (floor reinforcement, a metal door, a wall): the eddy currents of a perfectly
 //   conducting plane make the normal field vanish on it, which is the field of an image dipole at
@@ -18,14 +18,15 @@
 // - InducedDipole (a monitor, a steel cabinet, a tool): a small object in the transmitter field B_c
 //   becomes a dipole of moment `polarisability` * B_c. Polarisability is in m^3: a^3 for a
 //   ferromagnetic sphere of radius a, -a^3/2 for a perfectly conducting one.
-// - Finite transmitter coils: a coil of finite size adds the next multipole of its axially symmetric
+// - Finite transmitter coils: a coil of finite size adds the next multipole of its axially
+// symmetric
 //   field. Its scalar potential is k [ (e.x) / r^3 + c P3(e.u) / r^4 ]; c = `octupole_m2` per coil,
-//   c = -3/4 a^2 for a circular loop of radius a. The error it causes falls as 1/r^2 relative to the
-//   dipole, so it matters only near the source.
+//   c = -3/4 a^2 for a circular loop of radius a. The error it causes falls as 1/r^2 relative to
+//   the dipole, so it matters only near the source.
 //
 // The receiver is three orthogonal coils with orientation R (= transmitter_from_receiver rotation);
-// it measures the signal matrix S = G R^T B(p): row i is receiver coil i, column j transmitter coil j.
-// G holds the receiver coil gains and non-orthogonality (identity for an ideal receiver).
+// it measures the signal matrix S = G R^T B(p): row i is receiver coil i, column j transmitter coil
+// j. G holds the receiver coil gains and non-orthogonality (identity for an ideal receiver).
 //
 // Every function is templated on the scalar type so fit/ can differentiate it with Ceres autodiff
 // (ceres::Jet) and core/ can invert it per pose; none allocates and none branches on values. A
@@ -59,8 +60,9 @@ Matrix3<T> DipoleCoupling(const Vector3<T>& d) {
   return m;
 }
 
-// Free-space field matrix of the transmitter, including the finite-coil (octupole) term of each coil.
-// `octupole_m2(j)` is the octupole coefficient c_j of coil j [m^2]; zero gives the ideal dipoles.
+// Free-space field matrix of the transmitter, including the finite-coil (octupole) term of each
+// coil. `octupole_m2(j)` is the octupole coefficient c_j of coil j [m^2]; zero gives the ideal
+// dipoles.
 template <typename T>
 Matrix3<T> TransmitterField(const T& field_constant, const Vector3<T>& octupole_m2,
                             const Vector3<T>& p_in_transmitter) {
@@ -93,7 +95,8 @@ Matrix3<T> PlaneImageField(const T& field_constant, const Vector3<T>& plane_poin
   const Vector3<T> image_in_transmitter = (T(2) * plane_point_in_transmitter.dot(n)) * n;
   Matrix3<T> image_moments = -(T(2) * attenuation) * (n * n.transpose());
   image_moments.diagonal().array() += attenuation;
-  return field_constant * DipoleCoupling<T>(p_in_transmitter - image_in_transmitter) * image_moments;
+  return field_constant * DipoleCoupling<T>(p_in_transmitter - image_in_transmitter) *
+         image_moments;
 }
 
 // Field matrix of the dipole induced in a small object at `location` with scalar polarisability
@@ -116,25 +119,25 @@ Matrix3<T> SignalMatrix(const Matrix3<T>& receiver_gain_matrix,
 
 // A conducting (or, with negative attenuation, ferromagnetic) plane.
 struct ConductingPlane {
-  std::string name;                                              // label in scenes and reports
-  Eigen::Vector3d point_in_transmitter = Eigen::Vector3d::Zero();  // any point of the plane [m]
+  std::string name;                                                  // label in scenes and reports
+  Eigen::Vector3d point_in_transmitter = Eigen::Vector3d::Zero();    // any point of the plane [m]
   Eigen::Vector3d normal_in_transmitter = Eigen::Vector3d::UnitZ();  // plane normal (any sign)
   double attenuation = 0.0;  // image strength: 1 perfect conductor, < 0 ferromagnetic, 0 none
 };
 
 // A small object polarised by the transmitter field.
 struct InducedDipole {
-  std::string name;                                                  // label
+  std::string name;                                                   // label
   Eigen::Vector3d location_in_transmitter = Eigen::Vector3d::Zero();  // object centre [m]
   double polarisability_m3 = 0.0;  // > 0 ferromagnetic, < 0 conducting (eddy currents) [m^3]
 };
 
 // Everything that shapes the field the receiver sits in: transmitter and distortion sources.
 struct FieldModel {
-  double field_constant = 1.0;                                   // k [field units m^3]
+  double field_constant = 1.0;                                        // k [field units m^3]
   Eigen::Vector3d transmitter_octupole_m2 = Eigen::Vector3d::Zero();  // finite-coil term per coil
-  std::vector<ConductingPlane> planes;                           // image dipoles
-  std::vector<InducedDipole> objects;                            // induced dipoles
+  std::vector<ConductingPlane> planes;                                // image dipoles
+  std::vector<InducedDipole> objects;                                 // induced dipoles
 
   // Throws std::invalid_argument naming the offending field.
   void Check() const;
@@ -144,8 +147,7 @@ struct FieldModel {
   template <typename T>
   Matrix3<T> Field(const Vector3<T>& p_in_transmitter) const {
     const T k(field_constant);
-    Matrix3<T> b =
-        TransmitterField<T>(k, transmitter_octupole_m2.cast<T>(), p_in_transmitter);
+    Matrix3<T> b = TransmitterField<T>(k, transmitter_octupole_m2.cast<T>(), p_in_transmitter);
     for (const ConductingPlane& plane : planes) {
       b += PlaneImageField<T>(k, plane.point_in_transmitter.cast<T>(),
                               plane.normal_in_transmitter.cast<T>(), T(plane.attenuation),

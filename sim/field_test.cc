@@ -36,8 +36,8 @@ TEST(DipoleCoupling, Nominal) {
     const Eigen::Vector3d x = RandomPoint(-2, 2);
     const Matrix3<double> d = DipoleCoupling<double>(x);
     for (int j = 0; j < 3; ++j) {
-      EXPECT_TRUE(d.col(j).isApprox(DipoleFieldAt(Eigen::Vector3d::Unit(j), Eigen::Vector3d::Zero(), x),
-                                    1e-12));
+      EXPECT_TRUE(d.col(j).isApprox(
+          DipoleFieldAt(Eigen::Vector3d::Unit(j), Eigen::Vector3d::Zero(), x), 1e-12));
     }
   }
 }
@@ -50,8 +50,8 @@ TEST(PlaneImageField, MatchesImageDipoleClosedForm) {
     const Eigen::Vector3d x = RandomPoint(-1, 1);
     // Closed form: mirror point of the origin and moment alpha (m - 2 (m.n) n).
     const Eigen::Vector3d mirror = 2.0 * point.dot(n) * n;
-    const Matrix3<double> b =
-        PlaneImageField<double>(1.0, point, 3.0 * n /* not normalised on purpose */, attenuation, x);
+    const Matrix3<double> b = PlaneImageField<double>(
+        1.0, point, 3.0 * n /* not normalised on purpose */, attenuation, x);
     for (int j = 0; j < 3; ++j) {
       const Eigen::Vector3d m = Eigen::Vector3d::Unit(j);
       const Eigen::Vector3d image_moment = attenuation * (m - 2.0 * m.dot(n) * n);
@@ -160,7 +160,8 @@ TEST(FieldModel, SumOfSourcesAndAutodiff) {
   const double h = 1e-6;
   for (int i = 0; i < 3; ++i) {
     const Eigen::Vector3d dx = h * Eigen::Vector3d::Unit(i);
-    const Matrix3<double> numeric = (model.Field<double>(x + dx) - model.Field<double>(x - dx)) / (2 * h);
+    const Matrix3<double> numeric =
+        (model.Field<double>(x + dx) - model.Field<double>(x - dx)) / (2 * h);
     for (int r = 0; r < 3; ++r) {
       for (int c = 0; c < 3; ++c) {
         // Central differences: truncation O(h^2 f''') ~ 1e-10 against derivatives of order 10.
@@ -189,6 +190,53 @@ TEST(SignalMatrix, IsGRTransposeB) {
   g(2, 2) = 1.02;
   const Eigen::Matrix3d b = DipoleCoupling<double>(Eigen::Vector3d(0.3, 0.2, -0.5));
   EXPECT_TRUE(SignalMatrix<double>(g, rotation, b).isApprox(g * rotation.transpose() * b, 1e-15));
+}
+
+}  // namespace
+}  // namespace trackcal::sim
+
+namespace trackcal::sim {
+namespace {
+
+// Every physical parameter can be a Ceres Jet (fit/ fits them): derivatives against central
+// differences for plane point/normal/attenuation, object location/polarisability, octupole, k.
+TEST(FieldFunctions, DifferentiableInEveryParameter) {
+  using Jet = ceres::Jet<double, 14>;
+  // Parameters: k, plane point (3), plane normal (3), attenuation, object location (3),
+  // polarisability, octupole x, octupole z.
+  const double params[14] = {1.1, 0.1, -0.2, 0.8,  0.1,  0.05,  1.0,
+                             0.4, 1.5, 1.0,  -0.3, 0.03, -1e-3, -2e-3};
+  const Eigen::Vector3d x(0.3, 0.2, -0.5);
+  const auto field = [&x](const auto* q) {
+    using T = std::remove_const_t<std::remove_pointer_t<decltype(q)>>;
+    const Vector3<T> p = x.cast<T>();
+    const Vector3<T> octupole(q[12], T(0.0), q[13]);
+    return Matrix3<T>(TransmitterField<T>(q[0], octupole, p) +
+                      PlaneImageField<T>(q[0], Vector3<T>(q[1], q[2], q[3]),
+                                         Vector3<T>(q[4], q[5], q[6]), q[7], p) +
+                      InducedDipoleField<T>(q[0], Vector3<T>(q[8], q[9], q[10]), q[11], p));
+  };
+  Jet jets[14];
+  for (int i = 0; i < 14; ++i) jets[i] = Jet(params[i], i);
+  const Matrix3<Jet> b = field(static_cast<const Jet*>(jets));
+  for (int i = 0; i < 14; ++i) {
+    double plus[14], minus[14];
+    std::copy(params, params + 14, plus);
+    std::copy(params, params + 14, minus);
+    const double h = 1e-6 * std::max(1e-3, std::abs(params[i]));
+    plus[i] += h;
+    minus[i] -= h;
+    const Matrix3<double> numeric =
+        (field(static_cast<const double*>(plus)) - field(static_cast<const double*>(minus))) /
+        (2 * h);
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) {
+        // Central differences with relative step 1e-6: truncation ~1e-12, rounding ~1e-10 / h.
+        EXPECT_NEAR(b(r, c).v(i), numeric(r, c), 1e-5 * std::max(1.0, std::abs(numeric(r, c))))
+            << "parameter " << i;
+      }
+    }
+  }
 }
 
 }  // namespace

@@ -19,11 +19,11 @@ class Rng {
  public:
   Rng(uint64_t seed, std::string_view stream);
 
-  double Uniform();                       // in [0, 1)
-  double Uniform(double lo, double hi);   // in [lo, hi)
-  double Normal();                        // standard normal (Box-Muller)
-  Eigen::Vector3d Normal3();              // three independent standard normals
-  Eigen::Quaterniond UniformRotation();   // uniform on SO(3), scalar part >= 0
+  double Uniform();                      // in [0, 1)
+  double Uniform(double lo, double hi);  // in [lo, hi)
+  double Normal();                       // standard normal (Box-Muller)
+  Eigen::Vector3d Normal3();             // three independent standard normals
+  Eigen::Quaterniond UniformRotation();  // uniform on SO(3), scalar part >= 0
   // Rotation by a random vector with independent normal components of std `sigma_rad`.
   Eigen::Quaterniond SmallRotation(double sigma_rad);
 

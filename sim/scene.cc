@@ -124,7 +124,7 @@ class YamlReader {
     }
   }
   template <typename I>
-    requires std::is_integral_v<I>
+  requires std::is_integral_v<I>
   void Parse(const YAML::Node& node, const std::string& path, I& out) const {
     const std::string s = Scalar(node, path);
     I value{};
@@ -184,8 +184,8 @@ class YamlReader {
       Eigen::Quaterniond rotation = QuaternionFromXyzwArray(xyzw);
       // Hand-typed quaternions carry a few digits; anything further from unit is a mistake.
       if (std::abs(rotation.norm() - 1.0) > 1e-3) {
-        Fail(q, path + ".rotation_xyzw", "not a unit quaternion (norm " +
-                                             std::to_string(rotation.norm()) + ")");
+        Fail(q, path + ".rotation_xyzw",
+             "not a unit quaternion (norm " + std::to_string(rotation.norm()) + ")");
       }
       // An exactly unit quaternion is kept as is, so a written scene reads back bit for bit.
       if (std::abs(rotation.norm() - 1.0) > 1e-12) rotation.normalize();
@@ -268,7 +268,8 @@ class YamlWriter {
   void Write(const Rigid3d& pose) {
     out_ << YAML::BeginMap << YAML::Key << "rotation_xyzw" << YAML::Value << YAML::Flow
          << YAML::BeginSeq << FormatNumber(pose.rotation.x()) << FormatNumber(pose.rotation.y())
-         << FormatNumber(pose.rotation.z()) << FormatNumber(pose.rotation.w()) << YAML::EndSeq << YAML::Key << "translation" << YAML::Value;
+         << FormatNumber(pose.rotation.z()) << FormatNumber(pose.rotation.w()) << YAML::EndSeq
+         << YAML::Key << "translation" << YAML::Value;
     Write(pose.translation);
     out_ << YAML::EndMap;
   }
@@ -373,8 +374,8 @@ void ReferenceConfig::Check() const {
 
 void CaptureProtocol::Check() const {
   Require((calibration.counts.array() >= 1).all(), "capture.calibration.counts", "must be >= 1");
-  Require(calibration.origin_in_transmitter.allFinite(), "capture.calibration.origin_in_transmitter",
-          "must be finite");
+  Require(calibration.origin_in_transmitter.allFinite(),
+          "capture.calibration.origin_in_transmitter", "must be finite");
   Require(Positive(calibration.spacing_m), "capture.calibration.spacing_m", "must be > 0");
   auto check_random = [](const RandomStations& r, const std::string& name) {
     Require(r.count >= 0, "capture." + name + ".count", "must be >= 0");
@@ -396,15 +397,16 @@ void CaptureProtocol::Check() const {
 }
 
 const std::vector<std::string>& HiddenEffects::Names() {
-  static const std::vector<std::string> names = {
-      "sensor_offset", "receiver_gains", "ferromagnetic_object", "finite_transmitter_coils",
-      "clock_offset",  "hemisphere_flips"};
+  static const std::vector<std::string> names = {"sensor_offset",        "receiver_gains",
+                                                 "ferromagnetic_object", "finite_transmitter_coils",
+                                                 "clock_offset",         "hemisphere_flips"};
   return names;
 }
 
 void HiddenEffects::Enable(const std::string& name) {
-  bool* flags[] = {&sensor_offset,            &receiver_gains, &ferromagnetic_object,
-                   &finite_transmitter_coils, &clock_offset,   &hemisphere_flips};
+  bool* flags[] = {&sensor_offset,        &receiver_gains,
+                   &ferromagnetic_object, &finite_transmitter_coils,
+                   &clock_offset,         &hemisphere_flips};
   for (size_t i = 0; i < Names().size(); ++i) {
     if (Names()[i] == name) {
       *flags[i] = true;
@@ -417,8 +419,9 @@ void HiddenEffects::Enable(const std::string& name) {
 }
 
 std::vector<std::string> HiddenEffects::EnabledNames() const {
-  const bool flags[] = {sensor_offset,            receiver_gains, ferromagnetic_object,
-                        finite_transmitter_coils, clock_offset,   hemisphere_flips};
+  const bool flags[] = {sensor_offset,        receiver_gains,
+                        ferromagnetic_object, finite_transmitter_coils,
+                        clock_offset,         hemisphere_flips};
   std::vector<std::string> out;
   for (size_t i = 0; i < Names().size(); ++i) {
     if (flags[i]) out.push_back(Names()[i]);
@@ -426,14 +429,28 @@ std::vector<std::string> HiddenEffects::EnabledNames() const {
   return out;
 }
 
+Rigid3d HiddenEffects::DefaultReceiverFromBody() {
+  // About 2.9 degrees and 2.5 cm: a marker body glued on slightly askew.
+  return Rigid3d(QuaternionFromXyzw(0.02, -0.015, 0.01, 0.99966).normalized(),
+                 Eigen::Vector3d(0.012, -0.008, 0.02));
+}
+
+Eigen::Matrix3d HiddenEffects::DefaultReceiverGainMatrix() {
+  // Gains within 2% and coil axes about 1 degree off orthogonal.
+  Eigen::Matrix3d g;
+  g << 1.02, 0.01, 0.0, -0.005, 0.98, 0.015, 0.0, 0.008, 1.01;
+  return g;
+}
+
 void HiddenEffects::Check() const {
   Require(receiver_from_body.translation.allFinite(), "hidden.sensor_offset.receiver_from_body",
           "must be finite");
   Require(receiver_gain_matrix.allFinite() && std::abs(receiver_gain_matrix.determinant()) > 1e-6,
           "hidden.receiver_gains.receiver_gain_matrix", "must be finite and invertible");
-  Require(object.location_in_transmitter.allFinite() && object.location_in_transmitter.norm() > 1e-3,
-          "hidden.ferromagnetic_object.location_in_transmitter",
-          "must be finite and away from the transmitter");
+  Require(
+      object.location_in_transmitter.allFinite() && object.location_in_transmitter.norm() > 1e-3,
+      "hidden.ferromagnetic_object.location_in_transmitter",
+      "must be finite and away from the transmitter");
   Require(std::isfinite(object.polarisability_m3), "hidden.ferromagnetic_object.polarisability_m3",
           "must be finite");
   Require(octupole_m2.allFinite(), "hidden.finite_transmitter_coils.octupole_m2", "must be finite");

@@ -32,7 +32,8 @@ TEST(LoadScene, Nominal) {
   // The distortion sources of the paper's room, at the distances it gives.
   bool floor = false, door = false;
   for (const auto& p : paper.environment.planes) {
-    const double distance = std::abs(p.point_in_transmitter.dot(p.normal_in_transmitter.normalized()));
+    const double distance =
+        std::abs(p.point_in_transmitter.dot(p.normal_in_transmitter.normalized()));
     floor |= p.name.find("floor") != std::string::npos && std::abs(distance - 0.8) < 1e-12;
     door |= p.name.find("door") != std::string::npos && std::abs(distance - 2.1) < 1e-12;
   }
@@ -50,7 +51,8 @@ TEST(SceneToYaml, RoundTripIsBitExact) {
   Scene scene = LoadScene("paper");
   scene.seed = 12345678901234ULL;
   scene.hidden.Enable("sensor_offset");
-  scene.environment.objects.push_back({"odd", Eigen::Vector3d(0.1 / 3, 2.0 / 7, -1e-17 + 1), 1.0 / 3});
+  scene.environment.objects.push_back(
+      {"odd", Eigen::Vector3d(0.1 / 3, 2.0 / 7, -1e-17 + 1), 1.0 / 3});
   const Scene again = ParseScene(SceneToYaml(scene), "written.yaml");
   EXPECT_EQ(SceneToJson(scene).dump(), SceneToJson(again).dump());
   EXPECT_EQ(again.environment.objects.back().polarisability_m3, 1.0 / 3);
@@ -78,15 +80,27 @@ TEST(ParseScene, ErrorsNameFileLineAndField) {
             "bad.yaml:3: tracker.signal_noise: expected a number, got 'abc'");
   EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  signal_nois: 1\n"),
             "bad.yaml:3: tracker.signal_nois: unknown key");
-  EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: x\n      attenuation: [1]\n"),
-            "bad.yaml:5: environment.planes[0].attenuation: expected a single value");
+  EXPECT_EQ(
+      ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: x\n      attenuation: [1]\n"),
+      "bad.yaml:5: environment.planes[0].attenuation: expected a single value");
   EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  calibration:\n    counts: [1, 2]\n"),
             "bad.yaml:4: capture.calibration.counts: expected a list of 3 integers");
-  EXPECT_EQ(ErrorOf("base: nowhere\n").rfind("bad.yaml:1: base: unknown scene preset 'nowhere'", 0), 0u);
+  EXPECT_EQ(ErrorOf("base: nowhere\n").rfind("bad.yaml:1: base: unknown scene preset 'nowhere'", 0),
+            0u);
   // Semantic checks name the file and the field.
   EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  samples_per_station: 0\n"),
             "bad.yaml: scene: tracker.samples_per_station: must be >= 1");
   EXPECT_NE(ErrorOf("tracker: [\n").find("bad.yaml:"), std::string::npos);
+}
+
+TEST(LoadScene, IdealPresetHasNoDistortion) {
+  const Scene ideal = LoadScene("ideal");
+  const Scene paper = LoadScene("paper");
+  EXPECT_EQ(ideal.name, "ideal");
+  EXPECT_TRUE(ideal.environment.planes.empty());
+  EXPECT_TRUE(ideal.environment.objects.empty());
+  EXPECT_EQ(ideal.tracker.signal_noise, paper.tracker.signal_noise);
+  EXPECT_EQ(ideal.capture.validation.count, paper.capture.validation.count);
 }
 
 TEST(LoadScene, FileAndUnknownName) {
@@ -102,6 +116,24 @@ TEST(HiddenEffects, EnableByName) {
   for (const auto& name : HiddenEffects::Names()) h.Enable(name);
   EXPECT_EQ(h.EnabledNames(), HiddenEffects::Names());
   EXPECT_THROW(h.Enable("latency"), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace trackcal::sim
+
+namespace trackcal::sim {
+namespace {
+
+TEST(HiddenEffects, DefaultsMatchThePaperPresetAndAreVisible) {
+  // A scene without a hidden section still gets effects of a plausible size.
+  const HiddenEffects defaults;
+  const Scene paper = LoadScene("paper");
+  EXPECT_EQ(SceneToJson(Scene{.hidden = defaults})["hidden"].dump(),
+            SceneToJson(Scene{.hidden = paper.hidden})["hidden"].dump());
+  EXPECT_GT(defaults.receiver_from_body.translation.norm(), 0.01);
+  EXPECT_GT((defaults.receiver_gain_matrix - Eigen::Matrix3d::Identity()).norm(), 0.01);
+  EXPECT_GT(defaults.flip_count, 0);
+  EXPECT_NE(defaults.reference_minus_tracker_s, 0.0);
 }
 
 }  // namespace

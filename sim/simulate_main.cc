@@ -18,7 +18,8 @@
 namespace {
 
 void PrintUsage(std::ostream& out) {
-  out << "usage: trackcal-simulate --scene PRESET|FILE [--hidden EFFECT[,EFFECT...]] [--seed N] -o DIR\n"
+  out << "usage: trackcal-simulate --scene PRESET|FILE [--hidden EFFECT[,EFFECT...]] [--seed N] -o "
+         "DIR\n"
          "  --scene   a preset (";
   const auto presets = trackcal::sim::PresetNames();
   for (size_t i = 0; i < presets.size(); ++i) out << (i ? ", " : "") << presets[i];

@@ -56,7 +56,8 @@ TrackerModel::TrackerModel(FieldModel field, const Eigen::Matrix3d& receiver_gai
       solver_(solver) {
   field_.Check();
   solver_.Check();
-  if (!(signal_noise_ >= 0)) throw std::invalid_argument("tracker model: signal_noise must be >= 0");
+  if (!(signal_noise_ >= 0))
+    throw std::invalid_argument("tracker model: signal_noise must be >= 0");
 }
 
 Eigen::Matrix3d TrackerModel::Signal(const Rigid3d& transmitter_from_receiver) const {
@@ -203,7 +204,8 @@ SimulatedCapture Simulator::Generate() const {
       Rng rng(sc.seed, stream);
       for (int s = 0; s < r.count; ++s) {
         Eigen::Vector3d p;
-        for (int i = 0; i < 3; ++i) p(i) = rng.Uniform(r.min_in_transmitter(i), r.max_in_transmitter(i));
+        for (int i = 0; i < 3; ++i)
+          p(i) = rng.Uniform(r.min_in_transmitter(i), r.max_in_transmitter(i));
         plan.push_back({set, Rigid3d(rng.UniformRotation(), p)});
       }
     };
@@ -222,7 +224,8 @@ SimulatedCapture Simulator::Generate() const {
     Rng rng(sc.seed, "hemisphere_flips");
     const size_t count = std::min(candidates.size(), static_cast<size_t>(sc.hidden.flip_count));
     for (size_t i = 0; i < count; ++i) {
-      const size_t j = i + static_cast<size_t>(rng.Uniform() * static_cast<double>(candidates.size() - i));
+      const size_t j =
+          i + static_cast<size_t>(rng.Uniform() * static_cast<double>(candidates.size() - i));
       std::swap(candidates[i], candidates[std::min(j, candidates.size() - 1)]);
       flipped[candidates[i]] = true;
     }
@@ -251,9 +254,8 @@ SimulatedCapture Simulator::Generate() const {
     truth.transmitter_from_body = plan[i].pose * receiver_from_body_;
     truth.hemisphere_flipped = flipped[i];
     truth.reported_noise_free = tracker_.Report(plan[i].pose).transmitter_from_receiver;
-    Rigid3d reported =
-        tracker_.Report(plan[i].pose, sc.tracker.samples_per_station, &tracker_noise)
-            .transmitter_from_receiver;
+    Rigid3d reported = tracker_.Report(plan[i].pose, sc.tracker.samples_per_station, &tracker_noise)
+                           .transmitter_from_receiver;
     if (flipped[i]) {
       truth.reported_noise_free.translation = -truth.reported_noise_free.translation;
       reported.translation = -reported.translation;
@@ -261,7 +263,8 @@ SimulatedCapture Simulator::Generate() const {
     }
     Rigid3d reference = truth.transmitter_from_body;
     reference.translation += sigma_ref_p * reference_noise.Normal3();
-    reference.rotation = (reference_noise.SmallRotation(sigma_ref_q) * reference.rotation).normalized();
+    reference.rotation =
+        (reference_noise.SmallRotation(sigma_ref_q) * reference.rotation).normalized();
 
     PoseRecord rec;
     rec.station = id;
@@ -274,9 +277,9 @@ SimulatedCapture Simulator::Generate() const {
 
     // The error a perfect model of this scene would leave: tracker and reference noise only
     // (mm and degrees, like every summary).
-    const Eigen::Vector3d floor_p = (reference.translation - reported.translation) -
-                                    (truth.transmitter_from_body.translation -
-                                     truth.reported_noise_free.translation);
+    const Eigen::Vector3d floor_p =
+        (reference.translation - reported.translation) -
+        (truth.transmitter_from_body.translation - truth.reported_noise_free.translation);
     const Eigen::Quaterniond e_capture = reference.rotation * reported.rotation.conjugate();
     const Eigen::Quaterniond e_model =
         truth.transmitter_from_body.rotation * truth.reported_noise_free.rotation.conjugate();
@@ -299,7 +302,8 @@ SimulatedCapture Simulator::Generate() const {
         facing.push_back({outward.dot((camera_in_optical - x).normalized()), m});
       }
       std::vector<std::pair<double, size_t>> ranked = facing;
-      std::sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) { return a.first > b.first; });
+      std::sort(ranked.begin(), ranked.end(),
+                [](const auto& a, const auto& b) { return a.first > b.first; });
       std::vector<bool> visible(markers.size(), false);
       for (size_t r = 0; r < ranked.size(); ++r) {
         visible[ranked[r].second] = r < 3 || ranked[r].first > sc.reference.visibility_cos_min;
@@ -330,7 +334,8 @@ SimulatedCapture Simulator::Generate() const {
       TrackerStreamSample s;
       s.time = t;
       s.sensor = sc.tracker.sensor;
-      s.transmitter_from_receiver = tracker_.Report(TruePoseAt(t), 1, &stream_tracker).transmitter_from_receiver;
+      s.transmitter_from_receiver =
+          tracker_.Report(TruePoseAt(t), 1, &stream_tracker).transmitter_from_receiver;
       out.tracker_stream.records.push_back(s);
     }
     Rng stream_reference(sc.seed, "stream_reference_noise");
@@ -343,7 +348,8 @@ SimulatedCapture Simulator::Generate() const {
       Rigid3d body = TruePoseAt(t) * receiver_from_body_;
       body.translation += sc.reference.position_noise_m * stream_reference.Normal3();
       body.rotation =
-          (stream_reference.SmallRotation(sc.reference.orientation_noise_rad) * body.rotation).normalized();
+          (stream_reference.SmallRotation(sc.reference.orientation_noise_rad) * body.rotation)
+              .normalized();
       ReferenceStreamSample s;
       s.time = t + offset;
       s.transmitter_from_body = body;
@@ -358,7 +364,9 @@ SimulatedCapture Simulator::Generate() const {
     if (it == floor_errors.end()) continue;
     const PoseErrorSummary floor{SummarizeErrors(it->second.first),
                                  SummarizeErrors(it->second.second)};
-    stats[set] = {{"uncorrected", SummaryToJson(UncorrectedSummary(out.poses, set))},
+    out.uncorrected[set] = UncorrectedSummary(out.poses, set);
+    out.noise_floor[set] = floor;
+    stats[set] = {{"uncorrected", SummaryToJson(out.uncorrected[set])},
                   {"noise_floor", SummaryToJson(floor)}};
   }
   nlohmann::json stations = nlohmann::json::array();
@@ -404,15 +412,19 @@ void WriteCaptureFolder(const Simulator& simulator, const SimulatedCapture& capt
   namespace fs = std::filesystem;
   std::error_code ec;
   if (fs::exists(dir, ec) && !(fs::is_directory(dir, ec) && fs::is_empty(dir, ec))) {
-    throw std::runtime_error(dir.string() + ": exists and is not an empty folder; refusing to "
-                                           "overwrite a capture");
+    throw std::runtime_error(dir.string() +
+                             ": exists and is not an empty folder; refusing to "
+                             "overwrite a capture");
   }
-  const fs::path absolute = fs::absolute(dir);
+  // "out/" and "out" are the same folder: drop a trailing separator before taking the name.
+  fs::path absolute = fs::absolute(dir).lexically_normal();
+  if (absolute.filename().empty()) absolute = absolute.parent_path();
   const fs::path parent = absolute.parent_path();
   fs::create_directories(parent);
   std::string tmpl = (parent / ("." + absolute.filename().string() + ".tmp-XXXXXX")).string();
   if (mkdtemp(tmpl.data()) == nullptr) {
-    throw std::runtime_error(dir.string() + ": cannot create a temporary folder in " + parent.string());
+    throw std::runtime_error(dir.string() + ": cannot create a temporary folder in " +
+                             parent.string());
   }
   const fs::path tmp(tmpl);
   try {
@@ -430,8 +442,9 @@ void WriteCaptureFolder(const Simulator& simulator, const SimulatedCapture& capt
     ::chmod(tmp.c_str(), 0777 & ~mask);
     // rename() replaces only an empty folder, so a capture that appeared meanwhile survives.
     if (std::rename(tmp.c_str(), absolute.c_str()) != 0) {
-      throw std::runtime_error(dir.string() + ": cannot move the capture into place (exists and "
-                                             "not empty?)");
+      throw std::runtime_error(dir.string() +
+                               ": cannot move the capture into place (exists and "
+                               "not empty?)");
     }
   } catch (...) {
     fs::remove_all(tmp, ec);

@@ -56,12 +56,15 @@ TEST(Simulator, Nominal) {
   const auto calib = OfSet(c.poses, "calib");
   std::set<std::tuple<long, long, long>> nodes;
   for (size_t i = 0; i + 1 < calib.size(); ++i) {
-    const Eigen::Vector3d a = c.stations[calib[i]->station - 1].transmitter_from_receiver.translation;
-    const Eigen::Vector3d b = c.stations[calib[i + 1]->station - 1].transmitter_from_receiver.translation;
+    const Eigen::Vector3d a =
+        c.stations[calib[i]->station - 1].transmitter_from_receiver.translation;
+    const Eigen::Vector3d b =
+        c.stations[calib[i + 1]->station - 1].transmitter_from_receiver.translation;
     EXPECT_NEAR((a - b).norm(), 0.15, 1e-12) << "station " << calib[i]->station;
   }
   for (const auto* r : calib) {
-    const Eigen::Vector3d p = c.stations[r->station - 1].transmitter_from_receiver.translation / 0.15;
+    const Eigen::Vector3d p =
+        c.stations[r->station - 1].transmitter_from_receiver.translation / 0.15;
     nodes.insert({std::lround(p.x() * 2), std::lround(p.y() * 2), std::lround(p.z() * 2)});
   }
   EXPECT_EQ(nodes.size(), 480u);
@@ -80,6 +83,12 @@ TEST(Simulator, Nominal) {
   EXPECT_GT(stats["noise_floor"]["position_mm"]["mean"].get<double>(), 0.01);
   EXPECT_LT(stats["noise_floor"]["position_mm"]["mean"].get<double>(),
             0.05 * stats["uncorrected"]["position_mm"]["mean"].get<double>());
+  // The typed summaries are the ones written to truth.json.
+  EXPECT_EQ(c.noise_floor.at("valid").position_mm.mean,
+            stats["noise_floor"]["position_mm"]["mean"].get<double>());
+  EXPECT_EQ(c.uncorrected.at("calib").orientation_deg.max,
+            c.truth["statistics"]["calib"]["uncorrected"]["orientation_deg"]["max"].get<double>());
+  EXPECT_EQ(c.uncorrected.at("valid").position_mm.count, 120);
 }
 
 TEST(Simulator, PaperPresetResemblesTable1) {
@@ -93,12 +102,13 @@ TEST(Simulator, PaperPresetResemblesTable1) {
                          {"position_mm", "max", 97.5},     {"orientation_deg", "mean", 4.72},
                          {"orientation_deg", "std", 2.51}, {"orientation_deg", "max", 10.71}};
   const Scene paper = LoadScene("paper");
-  for (uint64_t seed : {paper.seed, uint64_t{1}, uint64_t{2}, uint64_t{3}, uint64_t{4},
-                        uint64_t{987654321}}) {
+  for (uint64_t seed :
+       {paper.seed, uint64_t{1}, uint64_t{2}, uint64_t{3}, uint64_t{4}, uint64_t{987654321}}) {
     Scene s = paper;
     s.seed = seed;
     s.capture.stream.duration_s = 0;
-    const nlohmann::json stats = Simulator(s).Generate().truth["statistics"]["valid"]["uncorrected"];
+    const nlohmann::json stats =
+        Simulator(s).Generate().truth["statistics"]["valid"]["uncorrected"];
     EXPECT_EQ(stats["count"].get<int>(), 120);
     for (const Stat& st : table1) {
       const double v = stats[st.quantity][st.key].get<double>();
@@ -132,15 +142,31 @@ TEST(Simulator, IdealSceneReportsTheTruth) {
   }
 }
 
+TEST(Simulator, NoiseFloorIsWhatAnUndistortedRoomLeaves) {
+  // Without distortion the tracker is right but for noise: uncorrected errors are the noise floor.
+  Scene ideal = LoadScene("ideal");
+  ideal.capture.stream.duration_s = 0;
+  const nlohmann::json stats = Simulator(ideal).Generate().truth["statistics"]["valid"];
+  for (const char* q : {"position_mm", "orientation_deg"}) {
+    for (const char* k : {"mean", "max"}) {
+      // The noise-free report equals the truth to 1e-9 m / rad, i.e. 1e-6 mm and 6e-8 deg.
+      EXPECT_NEAR(stats["uncorrected"][q][k].get<double>(), stats["noise_floor"][q][k].get<double>(),
+                  1e-5)
+          << q << " " << k;
+    }
+  }
+  EXPECT_GT(stats["noise_floor"]["position_mm"]["mean"].get<double>(), 0.01);
+}
+
 TEST(Simulator, TrackerModelIsTheCapturePhysics) {
   // The emulator's entry point gives what the capture's noise-free truth records.
   const Simulator sim(LoadScene("paper"));
   const SimulatedCapture c = sim.Generate();
   for (size_t i = 0; i < c.stations.size(); i += 37) {
     const StationTruth& t = c.stations[i];
-    EXPECT_TRUE(PosesNear(t.reported_noise_free,
-                          sim.tracker().Report(t.transmitter_from_receiver).transmitter_from_receiver,
-                          0, 0));
+    EXPECT_TRUE(PosesNear(
+        t.reported_noise_free,
+        sim.tracker().Report(t.transmitter_from_receiver).transmitter_from_receiver, 0, 0));
   }
 }
 
@@ -178,10 +204,20 @@ TEST(WriteCaptureFolder, RefusesToOverwrite) {
   const std::string before = ReadText(dir / "capture" / kPosesCsv);
   EXPECT_THROW(WriteCaptureFolder(sim, c, dir / "capture"), std::runtime_error);
   EXPECT_EQ(ReadText(dir / "capture" / kPosesCsv), before);
-  // An existing empty folder is fine (mkdir first, then simulate into it).
+  // An existing empty folder is fine (mkdir first, then simulate into it), also spelt "empty/".
   std::filesystem::create_directory(dir / "empty");
-  WriteCaptureFolder(sim, c, dir / "empty");
+  WriteCaptureFolder(sim, c, (dir / "empty").string() + "/");
   EXPECT_TRUE(std::filesystem::exists(dir / "empty" / "truth.json"));
+  EXPECT_THROW(WriteCaptureFolder(sim, c, (dir / "empty").string() + "/"), std::runtime_error);
+  // A folder whose parents do not exist yet is created; nothing else is left behind.
+  WriteCaptureFolder(sim, c, dir / "new" / "deeper" / "capture");
+  EXPECT_TRUE(std::filesystem::exists(dir / "new" / "deeper" / "capture" / kPosesCsv));
+  int entries = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir / "new" / "deeper")) {
+    (void)e;
+    ++entries;
+  }
+  EXPECT_EQ(entries, 1);
 }
 
 // ---- Hidden effects: each changes the data the way its physics says, and the truth records it.
@@ -205,7 +241,8 @@ TEST(HiddenEffects, SensorOffset) {
 TEST(HiddenEffects, ReceiverGains) {
   const SimulatedCapture c = WithHidden("receiver_gains");
   double max_error = 0;
-  for (const PoseRecord& r : c.poses.records) max_error = std::max(max_error, OrientationErrorAngle(r.reported, r.reference));
+  for (const PoseRecord& r : c.poses.records)
+    max_error = std::max(max_error, OrientationErrorAngle(r.reported, r.reference));
   // Gains of 2% and a 1.5% skew tilt the reported orientation by about a degree.
   EXPECT_GT(max_error, 0.2 * kRadPerDeg);
   EXPECT_EQ(c.truth["effective"]["receiver_gain_matrix"][0][0].get<double>(), 1.02);
@@ -232,7 +269,8 @@ TEST(HiddenEffects, FiniteTransmitterCoilsMatterNearTheSource) {
   const Simulator sim(scene);
   // Relative error falls as 1/r^2, so position error as ~1/r: larger near the transmitter.
   auto error_at = [&](double r) {
-    const Rigid3d truth(Eigen::Quaterniond::Identity(), r * Eigen::Vector3d(0.3, 0.2, -1).normalized());
+    const Rigid3d truth(Eigen::Quaterniond::Identity(),
+                        r * Eigen::Vector3d(0.3, 0.2, -1).normalized());
     return PositionErrorNorm(sim.tracker().Report(truth).transmitter_from_receiver, truth);
   };
   EXPECT_GT(error_at(0.2), 1e-3);
@@ -261,7 +299,8 @@ TEST(HiddenEffects, HemisphereFlips) {
     const bool is_flipped = std::find(flipped.begin(), flipped.end(), r.station) != flipped.end();
     if (r.reported.translation.dot(scene.tracker.hemisphere_in_transmitter) < 0) ++wrong_side;
     if (is_flipped) {
-      EXPECT_TRUE(PosesNear(Rigid3d(r.reference.rotation, -r.reference.translation), r.reported, 1e-9, 1e-9));
+      EXPECT_TRUE(PosesNear(Rigid3d(r.reference.rotation, -r.reference.translation), r.reported,
+                            1e-9, 1e-9));
     }
   }
   EXPECT_EQ(wrong_side, scene.hidden.flip_count);
@@ -287,8 +326,8 @@ TEST(TrackcalSimulate, CommandLine) {
   const std::string exe = std::string(bin) + "/sim/trackcal-simulate";
   const auto dir = MakeTempDir("simulate_cli");
   const std::string out = (dir / "cap").string();
-  const std::string run = exe + " --scene paper --hidden sensor_offset,clock_offset --seed 3 -o " + out +
-                          " > " + (dir / "log").string() + " 2>&1";
+  const std::string run = exe + " --scene paper --hidden sensor_offset,clock_offset --seed 3 -o " +
+                          out + " > " + (dir / "log").string() + " 2>&1";
   ASSERT_EQ(std::system(run.c_str()), 0) << ReadText(dir / "log");
   const nlohmann::json truth = nlohmann::json::parse(ReadText(dir / "cap" / "truth.json"));
   EXPECT_EQ(truth["scene"]["seed"].get<uint64_t>(), 3u);
@@ -299,8 +338,14 @@ TEST(TrackcalSimulate, CommandLine) {
   EXPECT_NE(ReadText(dir / "log").find("refusing to overwrite"), std::string::npos);
   EXPECT_EQ(ReadText(dir / "cap" / kPosesCsv), before);
   // Unknown effects and bad seeds are user errors.
-  EXPECT_NE(std::system((exe + " --scene paper --hidden latency -o " + (dir / "x").string() + " 2>/dev/null").c_str()), 0);
-  EXPECT_NE(std::system((exe + " --scene paper --seed -1 -o " + (dir / "y").string() + " 2>/dev/null").c_str()), 0);
+  EXPECT_NE(std::system((exe + " --scene paper --hidden latency -o " + (dir / "x").string() +
+                         " 2>/dev/null")
+                            .c_str()),
+            0);
+  EXPECT_NE(
+      std::system(
+          (exe + " --scene paper --seed -1 -o " + (dir / "y").string() + " 2>/dev/null").c_str()),
+      0);
   EXPECT_FALSE(std::filesystem::exists(dir / "x"));
 }
 

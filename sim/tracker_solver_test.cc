@@ -6,6 +6,7 @@
 
 #include "sim/field.h"
 #include "sim/random.h"
+#include "sim/scene.h"
 #include "sim/simulator.h"
 #include "tests/test_utils.h"
 
@@ -55,16 +56,18 @@ TEST(SolveFreeSpacePose, HemisphereChoice) {
                         plus_x.transmitter_from_receiver, 1e-9, 1e-9));
   TrackerSolverOptions minus_x;
   minus_x.hemisphere_in_transmitter = Eigen::Vector3d(-1, 0, 0);
-  EXPECT_TRUE(PosesNear(truth, SolveFreeSpacePose(FreeSpaceSignal(truth), minus_x)
-                                   .transmitter_from_receiver, 1e-9, 1e-9));
+  EXPECT_TRUE(PosesNear(
+      truth, SolveFreeSpacePose(FreeSpaceSignal(truth), minus_x).transmitter_from_receiver, 1e-9,
+      1e-9));
   // Any hemisphere vector: up (-z in a Fastrak frame) keeps z <= 0.
   TrackerSolverOptions up;
   up.hemisphere_in_transmitter = Eigen::Vector3d(0.1, 0, -1);
   for (int i = 0; i < 50; ++i) {
     const Rigid3d t = RandomPoseInHemisphere(up.hemisphere_in_transmitter.normalized(), 0.1, 2.0);
     const Rigid3d mirrored(t.rotation, -t.translation);
-    EXPECT_TRUE(PosesNear(t, SolveFreeSpacePose(FreeSpaceSignal(mirrored), up)
-                                 .transmitter_from_receiver, 1e-9, 1e-9));
+    EXPECT_TRUE(
+        PosesNear(t, SolveFreeSpacePose(FreeSpaceSignal(mirrored), up).transmitter_from_receiver,
+                  1e-9, 1e-9));
   }
 }
 
@@ -90,7 +93,8 @@ TEST(SolveFreeSpacePose, RefinementFitsDistortedSignalBetterThanClosedForm) {
                                                    DipoleCoupling<double>(truth.translation));
     const TrackerSolution sol = SolveFreeSpacePose(s);
     const auto residual = [&](const Rigid3d& p) {
-      return (s - p.rotation.toRotationMatrix().transpose() * DipoleCoupling<double>(p.translation)).norm();
+      return (s - p.rotation.toRotationMatrix().transpose() * DipoleCoupling<double>(p.translation))
+          .norm();
     };
     EXPECT_TRUE(sol.converged);
     EXPECT_LE(residual(sol.transmitter_from_receiver), residual(sol.closed_form) + 1e-15);
@@ -110,17 +114,72 @@ TEST(TrackerModel, PositionJitterGrowsAsRToTheFourth) {
     double sum2 = 0;
     const int n = 2000;
     for (int i = 0; i < n; ++i) {
-      sum2 += (tracker.Report(truth, 1, &rng).transmitter_from_receiver.translation - truth.translation)
-                  .squaredNorm();
+      sum2 +=
+          (tracker.Report(truth, 1, &rng).transmitter_from_receiver.translation - truth.translation)
+              .squaredNorm();
     }
     jitter.push_back(std::sqrt(sum2 / n));
   }
-  const double slope = std::log(jitter.back() / jitter.front()) / std::log(radii.back() / radii.front());
+  const double slope =
+      std::log(jitter.back() / jitter.front()) / std::log(radii.back() / radii.front());
   // An RMS from 2000 samples is within ~2% (1/sqrt(2n)); over a factor 4 in r that moves the slope
   // by about 0.03. 0.15 leaves room and still rejects r^3 or r^5.
   EXPECT_NEAR(slope, 4.0, 0.15);
   const double mid_slope = std::log(jitter[1] / jitter[0]) / std::log(2.0);
   EXPECT_NEAR(mid_slope, 4.0, 0.2);
+}
+
+}  // namespace
+}  // namespace trackcal::sim
+
+namespace trackcal::sim {
+namespace {
+
+TEST(SolvePoseInField, InvertsTheDistortedModel) {
+  // The paper room: the free-space solver is centimetres off, the full model recovers the truth.
+  const Scene paper = LoadScene("paper");
+  Eigen::Matrix3d g = Eigen::Matrix3d::Identity();
+  g(0, 1) = 0.01;
+  g(2, 2) = 0.98;
+  const TrackerModel tracker(
+      paper.environment, g, 0.0,
+      {.hemisphere_in_transmitter = paper.tracker.hemisphere_in_transmitter});
+  double worst_free = 0;
+  double worst_reconstructed = 0;
+  int max_iterations = 0;
+  for (int i = 0; i < 50; ++i) {
+    const Rigid3d truth = RandomPoseInHemisphere(Eigen::Vector3d(0, 0, -1), 0.3, 1.3);
+    const Eigen::Matrix3d s = tracker.Signal(truth);
+    const TrackerSolution reported = SolveFreeSpacePose(s, tracker.solver_options());
+    worst_free = std::max(worst_free, PositionErrorNorm(truth, reported.transmitter_from_receiver));
+    const TrackerSolution inverted =
+        SolvePoseInField(s, paper.environment, g, reported.transmitter_from_receiver);
+    EXPECT_TRUE(inverted.converged);
+    // Exact data, exact model: the truth to rounding through a well-conditioned 6x6 solve.
+    EXPECT_TRUE(PosesNear(truth, inverted.transmitter_from_receiver, 1e-9, 1e-9));
+    // A runtime correction only has the report, not S: rebuilding S from the report as a
+    // free-space signal drops the free-space fit residual, so the inverse is approximate.
+    const Rigid3d& rep = reported.transmitter_from_receiver;
+    const Eigen::Matrix3d s_rep =
+        rep.rotation.toRotationMatrix().transpose() * DipoleCoupling<double>(rep.translation);
+    const TrackerSolution approx = SolvePoseInField(s_rep, paper.environment, g, rep);
+    worst_reconstructed =
+        std::max(worst_reconstructed, PositionErrorNorm(truth, approx.transmitter_from_receiver));
+    // The exact inverse of the report.
+    const TrackerSolution exact =
+        InvertReportedPose(rep, paper.environment, g, tracker.solver_options());
+    EXPECT_TRUE(exact.converged);
+    // Fixed point to 1e-12 per step; the 1e-9 of the round trip bounds the rest.
+    EXPECT_TRUE(PosesNear(truth, exact.transmitter_from_receiver, 1e-9, 1e-9)) << exact.iterations;
+    max_iterations = std::max(max_iterations, exact.iterations);
+  }
+  EXPECT_GT(worst_free, 0.01);  // the distortion is real (centimetres)
+  // Rebuilding S from the report is not a correction (documented in InvertReportedPose).
+  EXPECT_GT(worst_reconstructed, 0.005);
+  std::printf(
+      "free-space worst %.2f mm, S rebuilt from the report worst %.3f mm, exact inverse in <= %d "
+      "iterations\n",
+      1e3 * worst_free, 1e3 * worst_reconstructed, max_iterations);
 }
 
 }  // namespace

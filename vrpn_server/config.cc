@@ -281,7 +281,7 @@ class Parser {
     if (tokens.size() < 3) {
       Fail(where, tokens.size() < 2 ? "tracker" : "calibration_file",
            "missing; expected 'trackcal_Calibration <tracker> <calibration_file> [raw=<name>] "
-           "[outside=clamp|fade]'");
+           "[outside=clamp|fade] [fade_distance=<metres>]'");
     }
     CalibrationSpec spec;
     spec.location = where;
@@ -310,8 +310,13 @@ class Parser {
         } else {
           Fail(where, "outside", "expected clamp or fade, got '" + value + "'");
         }
+      } else if (key == "fade_distance") {
+        const double d = ParseDouble(value, where, "fade_distance");
+        if (!(d > 0.0)) Fail(where, "fade_distance", "must be a positive distance in metres");
+        spec.fade_distance_m = d;
       } else {
-        Fail(where, key, "unknown option (expected raw=<name> or outside=clamp|fade)");
+        Fail(where, key,
+             "unknown option (expected raw=<name>, outside=clamp|fade or fade_distance=<metres>)");
       }
     }
     config_.calibrations.push_back(std::move(spec));

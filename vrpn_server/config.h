@@ -7,6 +7,7 @@
 //                           Wand <name> <sensor> c0min c0lo c0hi c0max c1min c1lo c1hi c1max
 //   vrpn_Tracker_NULL <name> <sensors> <rate_hz>
 //   trackcal_Calibration <tracker> <calibration_file> [raw=<raw_name>] [outside=clamp|fade]
+//                        [fade_distance=<metres>]
 //   trackcal_Tracker_Passthrough <name> <source>        source: [*]Device@host[:port] or *Device
 //   # comment, blank lines
 //
@@ -74,13 +75,14 @@ enum class OutsidePolicy {
   kFade,     // fade the correction out to zero outside the volume
 };
 
-// trackcal_Calibration <tracker> <file> [raw=<name>] [outside=clamp|fade]: serve <tracker> corrected
+// trackcal_Calibration <tracker> <file> [raw=<name>] [outside=clamp|fade] [fade_distance=<m>]: serve <tracker> corrected
 // by the calibration file, and optionally also its uncorrected reports under <raw=name>.
 struct CalibrationSpec {
   std::string tracker;                  // name of a tracker device defined in this file
   std::filesystem::path file;           // calibration file; relative paths are relative to vrpn.cfg
   std::optional<std::string> raw_name;  // serve the raw reports too, under this device name
   OutsidePolicy outside = OutsidePolicy::kDefault;
+  std::optional<double> fade_distance_m;  // fade_distance=<m>: where `fade` reaches no correction
   ConfigLocation location;
 };
 

@@ -116,7 +116,7 @@ TEST(ParseVrpnConfig, SeparateContinuationTokenAndAttachedOne) {
 TEST(ParseVrpnConfig, TrackcalLines) {
   const VrpnConfig config = ParseVrpnConfig(
       "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200\n"
-      "trackcal_Calibration Tracker0 calib/lab.json raw=Tracker0_raw outside=fade\n"
+      "trackcal_Calibration Tracker0 calib/lab.json raw=Tracker0_raw outside=fade fade_distance=0.05\n"
       "trackcal_Tracker_Passthrough Remote0 *Tracker0@lab-pc:3884\n"
       "trackcal_Tracker_Passthrough Remote1 Head@tcp://10.0.0.2\n"
       "trackcal_Tracker_Passthrough Local0 *Tracker0\n"
@@ -129,12 +129,14 @@ TEST(ParseVrpnConfig, TrackcalLines) {
   EXPECT_EQ(c->file, std::filesystem::path("/etc/trackcal/calib/lab.json"));
   EXPECT_EQ(c->raw_name, "Tracker0_raw");
   EXPECT_EQ(c->outside, OutsidePolicy::kFade);
+  EXPECT_EQ(c->fade_distance_m, std::optional<double>(0.05));
   EXPECT_EQ(c->location.line, 2);
   const CalibrationSpec* r = config.FindCalibration("Remote0");
   ASSERT_NE(r, nullptr);
   EXPECT_EQ(r->file, std::filesystem::path("/abs/remote.json"));
   EXPECT_FALSE(r->raw_name.has_value());
   EXPECT_EQ(r->outside, OutsidePolicy::kDefault);
+  EXPECT_FALSE(r->fade_distance_m.has_value());
   EXPECT_EQ(config.FindCalibration("Remote1"), nullptr);
 
   ASSERT_EQ(config.passthroughs.size(), 3u);
@@ -198,6 +200,8 @@ TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
       {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T a.json\ntrackcal_Calibration T b.json\n",
        "lab.cfg:3: field 'tracker': tracker 'T' already has a calibration at lab.cfg:2"},
       {"trackcal_Calibration T\n", "lab.cfg:1: field 'calibration_file'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json fade_distance=-1\n", "lab.cfg:2: field 'fade_distance'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json fade_distance=\n", "lab.cfg:2: field 'fade_distance'"},
       {"trackcal_Tracker_Passthrough P Tracker0\n", "lab.cfg:1: field 'source'"},
       {"trackcal_Tracker_Passthrough P Tracker0@host:99999\n", "lab.cfg:1: field 'source port'"},
       {"trackcal_Tracker_Passthrough P Tracker0@\n", "lab.cfg:1: field 'source'"},

@@ -225,3 +225,20 @@ def test_term_exponents_match_reference_order():
         np.testing.assert_array_equal(trackcal.polynomial_term_exponents(r),
                                       numpy_reference.term_exponents(r))
         assert trackcal.num_polynomial_terms(r) == (r + 1) * (r + 2) * (r + 3) // 6
+
+
+def test_lut_exact_at_nodes_and_flags_outside_grid():
+    rng = np.random.default_rng(5)
+    x, y, z = np.linspace(-0.5, 0.5, 4), np.array([-0.3, 0.0, 0.4]), np.linspace(0.0, 0.6, 3)
+    pe = rng.normal(scale=0.01, size=(4, 3, 3, 3))
+    oe = rng.normal(scale=0.01, size=(4, 3, 3, 3))
+    lut = trackcal.TrilinearLutCorrection(x, y, z, pe, oe)
+    grid = np.stack(np.meshgrid(x, y, z, indexing="ij"), axis=-1).reshape(-1, 3)
+    identity = np.tile([0.0, 0.0, 0.0, 1.0], (len(grid), 1))
+    p, q, flags = lut.correct(grid, identity)
+    # Node weights are exactly 0 and 1; only the addition p + e and its subtraction round.
+    np.testing.assert_allclose(p - grid, pe.reshape(-1, 3), rtol=0, atol=1e-16)
+    np.testing.assert_allclose(q[:, :3], oe.reshape(-1, 3), atol=1e-17)
+    assert not flags.any()
+    _, _, flags = lut.correct([[0.0, 0.0, 0.7], [0.0, 0.0, 0.3]], [[0, 0, 0, 1]] * 2)
+    assert flags.tolist() == [True, False]

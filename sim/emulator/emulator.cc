@@ -25,6 +25,8 @@ constexpr size_t kMaxControlLine = 4096;
 // If the loop falls this far behind the record schedule (a stalled machine), it restarts the
 // schedule instead of sending a burst the real device could not have produced.
 constexpr double kMaxScheduleLagS = 0.1;
+// How late a write may be and still count as back-to-back on the emulated serial line.
+constexpr double kLineSlackS = 0.002;
 
 int64_t SteadyNowNs() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(
@@ -391,7 +393,9 @@ void Emulator::WriteHost(double now) {
     const ssize_t n =
         write(pty_->master_fd(), head.data() + output_head_sent_, head.size() - output_head_sent_);
     if (n <= 0) break;  // the host is not reading: keep it (bounded) for later
-    line_busy_until_s_ = std::max(line_busy_until_s_, now) + n * seconds_per_byte;
+    // A wake-up a little late (poll has millisecond resolution) continues the line's timeline, so
+    // the long-run throughput is the line's; a longer idle line starts afresh.
+    line_busy_until_s_ = std::max(line_busy_until_s_, now - kLineSlackS) + n * seconds_per_byte;
     output_head_sent_ += n;
     output_bytes_ -= n;
     if (output_head_sent_ == head.size()) {

@@ -588,6 +588,46 @@ TEST(TrackcalEmulate, TrajectoryAndDuration) {
   EXPECT_FALSE(std::filesystem::exists(std::filesystem::symlink_status(link)));
 }
 
+// The default: the paper scene's physics and trajectories, in the scene's hemisphere (-z).
+TEST(TrackcalEmulate, DefaultIsPaperScene) {
+  const std::string exe =
+      (std::filesystem::read_symlink("/proc/self/exe").parent_path() / "trackcal-emulate").string();
+  const std::filesystem::path dir = testing::MakeTempDir("emulate_cli");
+  const std::string link = (dir / "fastrak").string();
+  std::vector<std::string> args = {exe, "--link", link, "--stations", "1", "--duration", "1.5"};
+  std::vector<char*> argv;
+  for (std::string& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, 1, "/dev/null", O_WRONLY, 0);
+  pid_t pid = 0;
+  ASSERT_EQ(posix_spawn(&pid, exe.c_str(), &actions, nullptr, argv.data(), environ), 0);
+  posix_spawn_file_actions_destroy(&actions);
+  const auto t0 = Clock::now();
+  while (!std::filesystem::exists(link) && SecondsSince(t0) < 5.0) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  {
+    SerialClient client(link);
+    ASSERT_TRUE(client.ok());
+    client.Write("O1,2,11,0\rfC");
+    const std::string bytes = client.ReadExactly(32 * 30, 1.0);
+    ASSERT_EQ(bytes.size(), 32u * 30);
+    const float z_first = ReadFloat32Le(&bytes[11]);
+    bool moved = false;
+    for (size_t i = 0; i < bytes.size(); i += 32) {
+      ASSERT_EQ(bytes.substr(i, 3), "01 ");
+      EXPECT_LE(ReadFloat32Le(&bytes[i + 11]), 0.0f);  // hemisphere H1,0,0,-1 of the scene
+      moved = moved || ReadFloat32Le(&bytes[i + 11]) != z_first;
+    }
+    EXPECT_TRUE(moved) << "the scene trajectory should move the receiver";
+  }
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+}
+
 // Bad input: exit code 2 and a message naming file, line and field.
 TEST(TrackcalEmulate, BadTrajectoryIsAUserError) {
   const std::string exe =

@@ -129,6 +129,9 @@ void FastrakDeviceOptions::Check() const {
   if (firmware_version.size() > 6) {
     throw std::invalid_argument("FastrakDeviceOptions.firmware_version: at most 6 characters");
   }
+  if (!hemisphere.allFinite()) {
+    throw std::invalid_argument("FastrakDeviceOptions.hemisphere: not finite");
+  }
   if (system_id.size() > 32) {
     throw std::invalid_argument("FastrakDeviceOptions.system_id: at most 32 characters");
   }
@@ -151,6 +154,8 @@ void FastrakDevice::Reinitialise() {
     s.connected = i < options_.num_stations;
     s.active = s.connected;
     s.output_list = DefaultOutputList();
+    s.hemisphere = options_.hemisphere;
+    if (!s.hemisphere.isZero()) s.last_position_m = s.hemisphere;
   }
   line_.clear();
   in_line_ = false;

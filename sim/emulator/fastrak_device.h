@@ -65,6 +65,9 @@ struct FastrakDeviceOptions {
   bool continuous = false;
   // Power-up units: false = inches (the default), true = centimetres.
   bool metric = false;
+  // Power-up hemisphere of every station (`H` command); a Fastrak's factory default is +x. A scene
+  // with the transmitter above the volume sets its own, as a lab's saved configuration would.
+  Eigen::Vector3d hemisphere = Eigen::Vector3d::UnitX();
 
   // Throws std::invalid_argument naming the field.
   void Check() const;

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "sim/emulator/emulator.h"
+#include "sim/emulator/simulated_tracker.h"
 
 namespace {
 
@@ -28,22 +29,23 @@ void OnSignal(int) {
 
 const char kUsage[] =
     "usage: trackcal-emulate [options]\n"
-    "Emulates a Polhemus Fastrak on a pseudo-terminal; prints the device path on stdout (again "
-    "after\n"
-    "each reconnect).\n"
+    "Emulates a Polhemus Fastrak on a pseudo-terminal; prints the device path on stdout (again\n"
+    "after each reconnect). Default: the 'paper' scene's physics and trajectories.\n"
+    "  --scene NAME|FILE|none  physics of the tracker (sim/ scene preset or YAML file); none = a\n"
+    "                          perfect tracker (default: paper)\n"
+    "  --hidden EFFECT[,...]  physical effects switched on in the scene (as trackcal-simulate)\n"
     "  --stations N           receivers plugged in, 1-4 (default: from the pose source, else 2)\n"
-    "  --pose S=x,y,z,qw,qx,qy,qz  static pose of station S in metres (repeatable)\n"
-    "  --trajectory FILE      CSV keyframes t,station,x,y,z,qw,qx,qy,qz[,button] (metres, "
-    "seconds)\n"
+    "  --pose S=x,y,z,qw,qx,qy,qz  static true pose of station S in metres (repeatable)\n"
+    "  --trajectory FILE      CSV keyframes t,station,x,y,z,qw,qx,qy,qz[,button] (m, s)\n"
     "  --loop                 repeat the trajectory\n"
     "  --link PATH            symlink to the device, replaced atomically, removed at exit\n"
     "  --control PATH         Unix socket for the control protocol (move, button, fault, status)\n"
-    "  --rate HZ              measurement cycles per second (default 120, shared among stations)\n"
-    "  --baud BPS             serial line speed of the device, paces output (default 115200, 0 = "
-    "off)\n"
+    "  --rate HZ              measurement cycles per second (default: the scene's, else 120)\n"
+    "  --baud BPS             serial line speed of the device (default 115200, 0 = unpaced)\n"
     "  --rate-per-station     every active station in every cycle instead of round robin\n"
     "  --binary --continuous --metric   power-up state (default ASCII, polled, inches)\n"
-    "  --seed N               seed of the garbage-byte fault\n"
+    "  --noise-mm MM --noise-deg DEG  extra white noise per axis on reported position/orientation\n"
+    "  --seed N               seed of the noise and of the garbage-byte fault (default: scene's)\n"
     "  --duration SECONDS     exit after this time (default: run until SIGINT/SIGTERM)\n"
     "  --verbose              log commands and faults to stderr\n";
 
@@ -87,6 +89,12 @@ int Main(int argc, char** argv) {
   bool loop = false;
   bool verbose = false;
   double duration = -1;
+  double noise_mm = 0;
+  std::string scene_name;
+  std::string hidden;
+  bool seed_given = false;
+  bool rate_given = false;
+  double noise_deg = 0;
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     auto value = [&]() -> std::string {
@@ -96,6 +104,10 @@ int Main(int argc, char** argv) {
     if (arg == "--help" || arg == "-h") {
       std::cout << kUsage;
       return 0;
+    } else if (arg == "--scene") {
+      scene_name = value();
+    } else if (arg == "--hidden") {
+      hidden = value();
     } else if (arg == "--stations") {
       stations = static_cast<int>(ParseDouble(value(), arg));
     } else if (arg == "--pose") {
@@ -110,6 +122,7 @@ int Main(int argc, char** argv) {
       options.control_socket_path = value();
     } else if (arg == "--rate") {
       options.update_rate_hz = ParseDouble(value(), arg);
+      rate_given = true;
     } else if (arg == "--baud") {
       options.baud = static_cast<int>(ParseDouble(value(), arg));
     } else if (arg == "--rate-per-station") {
@@ -120,8 +133,13 @@ int Main(int argc, char** argv) {
       options.device.continuous = true;
     } else if (arg == "--metric") {
       options.device.metric = true;
+    } else if (arg == "--noise-mm") {
+      noise_mm = ParseDouble(value(), arg);
+    } else if (arg == "--noise-deg") {
+      noise_deg = ParseDouble(value(), arg);
     } else if (arg == "--seed") {
       options.seed = static_cast<uint64_t>(ParseDouble(value(), arg));
+      seed_given = true;
     } else if (arg == "--duration") {
       duration = ParseDouble(value(), arg);
     } else if (arg == "--verbose") {
@@ -132,12 +150,34 @@ int Main(int argc, char** argv) {
   }
   if (!trajectory.empty() && !poses.empty()) UsageError("--pose and --trajectory are exclusive");
 
+  // Physics: a sim/ scene unless "none"; the default when no poses are given is the paper scene.
+  if (scene_name.empty() && trajectory.empty() && poses.empty()) scene_name = "paper";
+  std::shared_ptr<const trackcal::sim::Simulator> simulator;
+  if (!scene_name.empty() && scene_name != "none") {
+    trackcal::sim::Scene scene = trackcal::sim::LoadScene(scene_name);
+    std::stringstream effects(hidden);
+    std::string effect;
+    while (std::getline(effects, effect, ',')) {
+      if (!effect.empty()) scene.hidden.Enable(effect);
+    }
+    if (!seed_given) options.seed = scene.seed;
+    if (!rate_given) options.update_rate_hz = scene.tracker.update_rate_hz;
+    // The scene's hemisphere as the power-up `H` of every station (a lab's saved configuration).
+    options.device.hemisphere = scene.tracker.hemisphere_in_transmitter;
+    simulator = std::make_shared<const trackcal::sim::Simulator>(scene);
+  } else if (!hidden.empty()) {
+    UsageError("--hidden needs a --scene");
+  }
+
   std::unique_ptr<PoseSource> base;
   int source_stations = 0;
   if (!trajectory.empty()) {
     auto t = TrajectoryPoseSource::ReadCsv(trajectory, loop);
     source_stations = t->num_stations();
     base = std::move(t);
+  } else if (poses.empty() && simulator) {
+    base = std::make_unique<SceneTrajectorySource>(simulator);
+    source_stations = kMaxStations;
   } else {
     // Unspecified stations sit 30 cm in front of the transmitter, 10 cm apart, in the +x
     // hemisphere.
@@ -164,7 +204,11 @@ int Main(int argc, char** argv) {
   options.Check();
 
   ControlledPoseSource source(std::move(base));
-  PerfectMeasurement model;
+  std::unique_ptr<MeasurementModel> tracker;
+  if (simulator) tracker = std::make_unique<SimulatedTracker>(simulator, options.seed);
+  // Extra white noise on top (none by default), from its own stream of numbers.
+  NoisyMeasurement model(std::move(tracker), noise_mm * 1e-3, noise_deg * trackcal::kRadPerDeg,
+                         options.seed ^ 0x9e3779b97f4a7c15ULL);
   Emulator emulator(options, &source, &model);
   emulator.on_device_path = [](const std::string& path) { std::cout << path << std::endl; };
   if (verbose) emulator.on_log = [](const std::string& line) { std::cerr << line << std::endl; };

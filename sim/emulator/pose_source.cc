@@ -34,6 +34,34 @@ std::vector<std::string> SplitCsvLine(const std::string& line) {
 
 }  // namespace
 
+NoisyMeasurement::NoisyMeasurement(std::unique_ptr<MeasurementModel> base, double position_std_m,
+                                   double orientation_std_rad, uint64_t seed)
+    : base_(base ? std::move(base) : std::make_unique<PerfectMeasurement>()),
+      position_std_m_(position_std_m),
+      orientation_std_rad_(orientation_std_rad),
+      rng_(seed) {
+  if (!(position_std_m >= 0 && std::isfinite(position_std_m))) {
+    throw std::invalid_argument("NoisyMeasurement.position_std_m: must be finite and >= 0");
+  }
+  if (!(orientation_std_rad >= 0 && std::isfinite(orientation_std_rad))) {
+    throw std::invalid_argument("NoisyMeasurement.orientation_std_rad: must be finite and >= 0");
+  }
+}
+
+Rigid3d NoisyMeasurement::Reported(int station, const Rigid3d& true_pose, double t_s) {
+  Rigid3d reported = base_->Reported(station, true_pose, t_s);
+  Eigen::Vector3d dp, w;
+  for (int i = 0; i < 3; ++i) dp[i] = position_std_m_ * normal_(rng_);
+  for (int i = 0; i < 3; ++i) w[i] = orientation_std_rad_ * normal_(rng_);
+  reported.translation += dp;
+  const double angle = w.norm();
+  if (angle > 0) {
+    reported.rotation =
+        (Eigen::Quaterniond(Eigen::AngleAxisd(angle, w / angle)) * reported.rotation).normalized();
+  }
+  return reported;
+}
+
 StaticPoseSource::StaticPoseSource(std::vector<Rigid3d> poses) : poses_(std::move(poses)) {
   if (poses_.empty() || poses_.size() > kMaxStations) {
     throw std::invalid_argument("StaticPoseSource: 1 to 4 station poses required");

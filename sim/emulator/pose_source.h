@@ -13,6 +13,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -43,6 +44,23 @@ class PerfectMeasurement final : public MeasurementModel {
   Rigid3d Reported(int /*station*/, const Rigid3d& true_pose, double /*t_s*/) override {
     return true_pose;
   }
+};
+
+// Another model's report plus white noise: isotropic Gaussian position noise and a rotation by a
+// Gaussian rotation vector (per axis std), from a seeded generator (reproducible per seed).
+class NoisyMeasurement final : public MeasurementModel {
+ public:
+  // `base` null = PerfectMeasurement. Throws std::invalid_argument for negative or non-finite std.
+  NoisyMeasurement(std::unique_ptr<MeasurementModel> base, double position_std_m,
+                   double orientation_std_rad, uint64_t seed);
+  Rigid3d Reported(int station, const Rigid3d& true_pose, double t_s) override;
+
+ private:
+  std::unique_ptr<MeasurementModel> base_;
+  double position_std_m_;
+  double orientation_std_rad_;
+  std::mt19937_64 rng_;
+  std::normal_distribution<double> normal_;
 };
 
 // Every station at a fixed pose.

@@ -101,6 +101,31 @@ TEST(ControlledPoseSource, MoveOverridesUntilReleased) {
   EXPECT_THROW(source.Move(5, moved), std::out_of_range);
 }
 
+TEST(NoisyMeasurement, Statistics) {
+  NoisyMeasurement model(nullptr, 0.001, 0.002, /*seed=*/7);
+  const Rigid3d truth(testing::RandomRotation(testing::TestRng()), {0.3, 0.1, -0.2});
+  constexpr int kSamples = 20000;
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  double sum_sq = 0, angle_sq = 0;
+  for (int i = 0; i < kSamples; ++i) {
+    const Rigid3d r = model.Reported(1, truth, 0.0);
+    const Eigen::Vector3d d = r.translation - truth.translation;
+    sum += d;
+    sum_sq += d.squaredNorm();
+    angle_sq += std::pow(AngularDistance(r.rotation, truth.rotation), 2);
+  }
+  // Mean ~0 (std of the mean 1e-3/sqrt(2e4) = 7e-6 m per axis; 5 sigma); per-axis variance 1e-6 m^2
+  // and per-axis rotation variance 4e-6 rad^2 within 3 % (the variance estimate's relative std is
+  // sqrt(2/(3*2e4)) = 0.6 %).
+  EXPECT_LT(sum.norm() / kSamples, 3.5e-5);
+  EXPECT_NEAR(sum_sq / kSamples / 3, 1e-6, 3e-8);
+  EXPECT_NEAR(angle_sq / kSamples / 3, 4e-6, 1.2e-7);
+  // Same seed, same numbers.
+  NoisyMeasurement a(nullptr, 0.001, 0.002, 9), b(nullptr, 0.001, 0.002, 9);
+  EXPECT_TRUE(testing::PosesNear(a.Reported(1, truth, 0), b.Reported(1, truth, 0), 0, 0));
+  EXPECT_THROW(NoisyMeasurement(nullptr, -1, 0, 1), std::invalid_argument);
+}
+
 TEST(Measure, AppliesModelToTruePose) {
   struct Offset final : MeasurementModel {
     Rigid3d Reported(int station, const Rigid3d& true_pose, double t_s) override {

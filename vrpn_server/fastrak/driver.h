@@ -41,7 +41,8 @@ struct FastrakTimings {
   double filter_settle_s = 1.0;          // after each filter line (`x`, `v`)
   double extras_settle_s = 2.0;          // after the extra commands, if there are any
   double watchdog_s = 2.0;               // no complete record for this long -> reopen and reset
-  double resume_probe_s = 0.5;           // after reopening: listen this long for records before resetting
+  double resume_probe_s = 2.0;           // after reopening: listen up to this long for records before
+                                         // resetting (ends at the second record; covers short stalls)
   double reopen_backoff_min_s = 0.1;     // first retry delay when the port cannot be opened
   double reopen_backoff_max_s = 1.0;     // cap of the doubling retry delay
   double message_interval_s = 1.0;       // at most one text per interval to clients
@@ -102,8 +103,10 @@ class FastrakDriver {
     std::function<void(const FastrakReport&)> on_report;
     // Stylus switch of a sensor changed (and its first state after each (re)start of streaming).
     std::function<void(int sensor, bool pressed, std::chrono::system_clock::time_point time)> on_button;
-    // Status/error text for clients and the log, at most one per timings.message_interval_s.
+    // Status/error text for clients, at most one per timings.message_interval_s.
     std::function<void(Severity severity, const std::string& text)> on_message;
+    // Optional: every text at once, not rate-limited (for the server's own log file).
+    std::function<void(Severity severity, const std::string& text)> on_log;
   };
 
   // Checks the options (throws std::invalid_argument).

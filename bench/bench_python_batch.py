@@ -1,0 +1,73 @@
+#!/usr/bin/env python3
+"""Batch correction throughput: 1M poses through trackcal's native batch path and through a plain
+numpy implementation of the same degree-4 polynomial (trackcal.numpy_reference), in the same run.
+
+    .venv/bin/python bench/bench_python_batch.py [--poses 1000000] [--repeats 5]
+
+Prints the best-of-repeats time per pose of each and their ratio. Pin to one core for the
+single-core figure: `taskset -c 0 .venv/bin/python bench/bench_python_batch.py`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+import trackcal
+from trackcal import numpy_reference
+
+
+def best_time(fn, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--poses", type=int, default=1_000_000)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--degree", type=int, default=4)
+    args = parser.parse_args()
+
+    rng = np.random.default_rng(20010313)
+    n = args.poses
+    r = trackcal.num_polynomial_terms(args.degree)
+    pc = rng.normal(scale=0.005, size=(r, 3))
+    oc = rng.normal(scale=0.003, size=(r, 3))
+    offset, scale = (0.0, 0.0, 0.3), (0.5, 0.5, 0.5)
+    positions = np.asarray(offset) + rng.uniform(-0.45, 0.45, size=(n, 3))
+    quats = rng.normal(size=(n, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+
+    poly = trackcal.PolynomialCorrection(args.degree, pc, oc, offset, scale)
+    cal = trackcal.Calibration([poly], (-0.5, -0.5, -0.2), (0.5, 0.5, 0.8))
+
+    # Same answer first: the benchmark compares equal work.
+    p_native, q_native, _ = cal.correct(positions[:1000], quats[:1000])
+    p_np, q_np = numpy_reference.correct_polynomial(args.degree, pc, oc, offset, scale,
+                                                    positions[:1000], quats[:1000])
+    assert np.abs(p_native - p_np).max() < 1e-14 and np.abs(q_native - q_np).max() < 1e-14
+
+    t_native = best_time(lambda: cal.correct(positions, quats), args.repeats)
+    t_numpy = best_time(
+        lambda: numpy_reference.correct_polynomial(args.degree, pc, oc, offset, scale, positions,
+                                                   quats),
+        args.repeats)
+    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
+    print(f"degree-{args.degree} polynomial, position + orientation, {n} poses, best of "
+          f"{args.repeats}, {affinity} CPU(s) allowed")
+    print(f"  trackcal Calibration.correct: {t_native * 1e3:9.1f} ms  {t_native / n * 1e9:7.1f} ns/pose")
+    print(f"  numpy reference             : {t_numpy * 1e3:9.1f} ms  {t_numpy / n * 1e9:7.1f} ns/pose")
+    print(f"  ratio numpy / trackcal      : {t_numpy / t_native:9.1f} x")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

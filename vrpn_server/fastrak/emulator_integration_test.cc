@@ -1,0 +1,239 @@
+// FastrakDriver against the full Fastrak emulator (sim/emulator, BackgroundEmulator on a pty, output
+// paced at 115200 baud): poses, units, stylus and the emulator's fault injections.
+
+#include <gtest/gtest.h>
+
+#include <condition_variable>
+#include <iostream>
+#include <mutex>
+#include <optional>
+#include <thread>
+
+#include "sim/emulator/emulator.h"
+#include "sim/emulator/pose_source.h"
+#include "tests/test_utils.h"
+#include "vrpn_server/fastrak/driver.h"
+
+namespace trackcal::fastrak {
+namespace {
+
+using SteadyClock = std::chrono::steady_clock;
+
+// The poses of transcript 07, in metres.
+std::vector<Rigid3d> TranscriptPoses() {
+  const double s = std::sqrt(30.0);
+  return {Rigid3d(QuaternionFromWxyz(4 / s, 1 / s, 2 / s, 3 / s), Eigen::Vector3d(0.254, -0.127, 0.508)),
+          Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.0381, 0.0635, -0.0889))};
+}
+
+// The emulator converts metres to float32 inches or centimetres and the driver converts back:
+// float32 spacing at 20 in is 2e-6 in = 5e-8 m, plus the double->float rounding of the pose:
+// 1e-6 m and 1e-6 rad leave a wide margin while catching any unit or order mistake.
+constexpr double kPositionTolM = 1e-6;
+constexpr double kAngleTolRad = 1e-6;
+
+class Collector {
+ public:
+  FastrakDriver::Callbacks Callbacks() {
+    FastrakDriver::Callbacks c;
+    c.on_report = [this](const FastrakReport& r) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      reports_.push_back(r);
+      times_.push_back(SteadyClock::now());
+      cv_.notify_all();
+    };
+    c.on_button = [this](int sensor, bool pressed, std::chrono::system_clock::time_point) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      buttons_.emplace_back(sensor, pressed);
+      cv_.notify_all();
+    };
+    c.on_message = [](Severity severity, const std::string& text) {
+      std::cerr << SeverityName(severity) << ": " << text << "\n";
+    };
+    return c;
+  }
+  bool WaitForReports(size_t n, double timeout_s) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    return cv_.wait_for(lock, std::chrono::duration<double>(timeout_s), [&] { return reports_.size() >= n; });
+  }
+  bool WaitForButton(bool pressed, double timeout_s) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    return cv_.wait_for(lock, std::chrono::duration<double>(timeout_s), [&] {
+      return !buttons_.empty() && buttons_.back().second == pressed;
+    });
+  }
+  size_t size() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return reports_.size();
+  }
+  std::vector<FastrakReport> reports() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return reports_;
+  }
+  SteadyClock::time_point time(size_t i) const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return times_.at(i);
+  }
+  // Time of the first report, from index `from` on, that follows a silence of at least `gap_s`
+  // (records already queued when a fault starts still arrive before the silence).
+  std::optional<SteadyClock::time_point> FirstAfterGap(size_t from, double gap_s) const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (size_t i = std::max<size_t>(from, 1); i < times_.size(); ++i) {
+      if (times_[i] - times_[i - 1] >= std::chrono::duration<double>(gap_s)) return times_[i];
+    }
+    return std::nullopt;
+  }
+
+ private:
+  mutable std::mutex mutex_;
+  std::condition_variable cv_;
+  std::vector<FastrakReport> reports_;
+  std::vector<SteadyClock::time_point> times_;
+  std::vector<std::pair<int, bool>> buttons_;
+};
+
+template <typename Pred>
+bool WaitUntil(Pred pred, double timeout_s) {
+  const auto deadline = SteadyClock::now() + std::chrono::duration<double>(timeout_s);
+  while (!pred()) {
+    if (SteadyClock::now() > deadline) return false;
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return true;
+}
+
+void ExpectPoses(const std::vector<FastrakReport>& reports) {
+  const std::vector<Rigid3d> poses = TranscriptPoses();
+  for (const FastrakReport& r : reports) {
+    ASSERT_GE(r.sensor, 0);
+    ASSERT_LT(r.sensor, 2);
+    EXPECT_LT((r.position_m - poses[r.sensor].translation).norm(), kPositionTolM)
+        << "sensor " << r.sensor << ": " << r.position_m.transpose();
+    EXPECT_LT(AngularDistance(r.rotation, poses[r.sensor].rotation), kAngleTolRad);
+  }
+}
+
+struct Fixture {
+  explicit Fixture(const std::string& name) : dir(trackcal::testing::MakeTempDir(name)) {
+    emulator::EmulatorOptions options;
+    options.link_path = (dir / "fastrak").string();
+    emulator = std::make_unique<emulator::BackgroundEmulator>(
+        options, std::make_unique<emulator::StaticPoseSource>(TranscriptPoses()));
+  }
+  FastrakOptions DriverOptions() const {
+    FastrakOptions o;
+    o.port = (dir / "fastrak").string();
+    o.timings = FastrakTimings::Fast();
+    return o;
+  }
+  std::filesystem::path dir;
+  std::unique_ptr<emulator::BackgroundEmulator> emulator;
+};
+
+TEST(FastrakDriverWithEmulator, Nominal) {
+  Fixture f("fastrak_emulator");
+  for (Units units : {Units::kInches, Units::kCentimetres}) {
+    SCOPED_TRACE(UnitsName(units));
+    Collector collector;
+    FastrakOptions options = f.DriverOptions();
+    options.units = units;
+    FastrakDriver driver(options, collector.Callbacks());
+    driver.Start();
+    ASSERT_TRUE(collector.WaitForReports(30, 15.0));
+    driver.Stop();
+    ExpectPoses(collector.reports());
+    EXPECT_EQ(driver.stats().discarded_bytes, 0u);
+  }
+}
+
+TEST(FastrakDriverWithEmulator, Stylus) {
+  Fixture f("fastrak_emulator");
+  Collector collector;
+  FastrakOptions options = f.DriverOptions();
+  options.stylus_sensors = {0};
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(10, 15.0));
+  ASSERT_TRUE(collector.WaitForButton(false, 2.0));
+  f.emulator->Control("button 1 1");
+  EXPECT_TRUE(collector.WaitForButton(true, 2.0));
+  f.emulator->Control("button 1 0");
+  EXPECT_TRUE(collector.WaitForButton(false, 2.0));
+  driver.Stop();
+  ExpectPoses(collector.reports());
+}
+
+TEST(FastrakDriverWithEmulator, DisconnectGarbageTruncationAndStall) {
+  Fixture f("fastrak_emulator");
+  Collector collector;
+  FastrakOptions options = f.DriverOptions();
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(10, 15.0));
+
+  // Unplug for 1 s: the emulator keeps its state, so the driver resumes without a reset.
+  size_t n = collector.size();
+  auto t_fault = SteadyClock::now();
+  f.emulator->Control("fault disconnect 1.0");
+  ASSERT_TRUE(WaitUntil([&] { return collector.FirstAfterGap(n, 0.5).has_value(); }, 10.0));
+  // Back 1 s after the fault; reports must follow within 2 s of that.
+  double since_back =
+      std::chrono::duration<double>(*collector.FirstAfterGap(n, 0.5) - t_fault).count() - 1.0;
+  std::cout << "disconnect 1 s: reports resumed " << since_back << " s after the device came back\n";
+  EXPECT_LT(since_back, 2.0);
+  EXPECT_GE(driver.stats().port_losses, 1u);
+  EXPECT_EQ(driver.stats().resets_completed, 1u);
+
+  n = collector.size();
+  f.emulator->Control("fault garbage 200");
+  f.emulator->Control("fault truncate");
+  ASSERT_TRUE(collector.WaitForReports(n + 20, 5.0));
+  EXPECT_GT(driver.stats().discarded_bytes, 0u);
+
+  // 3 s of silence: watchdog, probe, reset attempts; streaming resumes after the stall.
+  n = collector.size();
+  t_fault = SteadyClock::now();
+  f.emulator->Control("fault stall 3");
+  ASSERT_TRUE(WaitUntil([&] { return collector.FirstAfterGap(n, 2.0).has_value(); }, 20.0));
+  since_back = std::chrono::duration<double>(*collector.FirstAfterGap(n, 2.0) - t_fault).count() - 3.0;
+  std::cout << "stall 3 s: reports resumed " << since_back << " s after the device came back\n";
+  EXPECT_LT(since_back, 2.0);
+  EXPECT_GE(driver.stats().watchdog_timeouts, 1u);
+  driver.Stop();
+  ExpectPoses(collector.reports());
+}
+
+TEST(FastrakDriverWithEmulator, ReferenceTimingsStartAndUnplug) {
+  // The default profile (the reference's waits, meant for real units) against the emulator, which
+  // paces its output like a 115200 baud line: start-up, then a 2 s unplug of the port.
+  Fixture f("fastrak_emulator");
+  Collector collector;
+  FastrakOptions options = f.DriverOptions();
+  options.timings = FastrakTimings::Reference();
+  FastrakDriver driver(options, collector.Callbacks());
+  const auto started = SteadyClock::now();
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(10, 20.0));
+  // c, 2 s, flush, 2 s, S, lists 0.2 s, x 1 s, v 1 s: about 6.2 s (the status wait ends at its LF).
+  const double startup_s = std::chrono::duration<double>(collector.time(0) - started).count();
+  std::cout << "reference timings: first report " << startup_s << " s after Start\n";
+  EXPECT_GT(startup_s, 6.0);
+  EXPECT_LT(startup_s, 9.0);
+
+  const size_t n = collector.size();
+  const auto t_fault = SteadyClock::now();
+  f.emulator->Control("fault disconnect 2.0");
+  ASSERT_TRUE(WaitUntil([&] { return collector.FirstAfterGap(n, 1.0).has_value(); }, 10.0));
+  const double since_back =
+      std::chrono::duration<double>(*collector.FirstAfterGap(n, 1.0) - t_fault).count() - 2.0;
+  std::cout << "reference timings, disconnect 2 s: reports resumed " << since_back
+            << " s after the device came back\n";
+  EXPECT_LT(since_back, 2.0);
+  EXPECT_EQ(driver.stats().resets_completed, 1u);
+  EXPECT_EQ(driver.stats().resumes, 1u);
+  driver.Stop();
+  ExpectPoses(collector.reports());
+}
+
+}  // namespace
+}  // namespace trackcal::fastrak
