@@ -291,6 +291,38 @@ TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
   EXPECT_EQ(counts.count("Tracker1"), 0u);
 }
 
+TEST(VrpnServer, ClientDescribingNoNamesGetsEveryDevice) {
+  // A minimal third-party client that sends its cookie and never describes a sender filters by
+  // itself, as with the reference server: it must still get every device's reports.
+  auto catalog = MakeCatalog();
+  TrackerSpec other;
+  other.name = "Tracker1";
+  const int tracker1 = catalog->AddTracker(other);
+  VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  auto fd = RawConnect(server.port());
+  Connection conn(std::make_shared<NameRegistry>(), Connection::Options{});
+  conn.Start();
+  ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
+  std::map<std::string, int> counts;
+  std::uint8_t buf[65536];
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (Clock::now() < end && (counts["Tracker0"] < 20 || counts["Tracker1"] < 20)) {
+    server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
+    server.PublishPose(tracker1, 0, Rigid3d(), Timestamp::Now());
+    pollfd p{fd.get(), POLLIN, 0};
+    if (::poll(&p, 1, 10) <= 0) continue;
+    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+    ASSERT_GT(n, 0);
+    ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                [&](const ReceivedMessage& m) {
+                                  if (m.type == kPosQuatType) ++counts[std::string(m.sender)];
+                                }));
+  }
+  EXPECT_GE(counts["Tracker0"], 20);
+  EXPECT_GE(counts["Tracker1"], 20);
+}
+
 TEST(VrpnServer, AllowListRefusesOtherNetworks) {
   ServerOptions options = LoopbackOptions();
   options.allow = {"10.0.0.0/8"};

@@ -91,6 +91,9 @@ struct VrpnServer::Endpoint {
   std::vector<std::uint8_t> datagram;
   // wants[sender id]: the client described that device name (it uses a remote object for it).
   std::vector<bool> wants;
+  // The client described none of our device names: a minimal client that filters by itself; it
+  // gets every device's messages, as from the reference server.
+  bool wants_everything = true;
   std::uint64_t wants_version = ~std::uint64_t{0};
 };
 
@@ -668,15 +671,25 @@ void VrpnServer::DrainEvents() {
     for (auto& [id, e] : impl_->endpoints) {
       if (e->connecting || !e->session) continue;
       // Only clients that use this device get its messages (a VRPN client describes the device
-      // names it opens; the reference sends everything to everyone and lets clients filter).
+      // names it opens; the reference sends everything to everyone and lets clients filter). A
+      // client that described none of our names still gets everything, as from the reference.
       const PeerNameTable& peer = e->session->connection().peer_senders();
       if (e->wants_version != peer.version()) {
         const auto& names = catalog_->names()->senders();
         e->wants.assign(names.size(), false);
-        for (std::size_t i = 0; i < names.size(); ++i) e->wants[i] = peer.Contains(names[i]);
+        e->wants_everything = true;
+        for (std::size_t i = 0; i < names.size(); ++i) {
+          e->wants[i] = peer.Contains(names[i]);
+          if (e->wants[i]) e->wants_everything = false;
+        }
         e->wants_version = peer.version();
       }
-      if (sender < 0 || static_cast<std::size_t>(sender) >= e->wants.size() || !e->wants[sender]) continue;
+      // Before the client's cookie (and the descriptions that follow it) arrived, nothing is sent.
+      if (!e->session->connection().handshake_done()) continue;
+      const bool wanted = e->wants_everything ||
+                          (sender >= 0 && static_cast<std::size_t>(sender) < e->wants.size() &&
+                           e->wants[sender]);
+      if (!wanted) continue;
       if (low_latency && e->udp_peer) {
         if (e->datagram.size() + msg.size() > kMaxDatagramSize) {
           // Flush a full datagram before adding more.
