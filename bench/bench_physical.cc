@@ -1,9 +1,10 @@
-// Cost of correcting one pose with the physical model ("type": "physical", core/physical_correction.h)
-// against the degree-4 polynomial correction in the same binary (the baseline). The physical model
-// is the paper room (two planes, four induced dipoles) plus finite transmitter coils, a fifth object
-// and a skewed receiver, with a sensor offset: every term the runtime inverse evaluates. Poses are
-// noise-free reports of true poses in the paper's volume, cycled so the inputs are not constant.
-// Target: at most 10 us per pose (the issue); report the ratio to BM_Polynomial4.
+// Cost of correcting one pose with the physical model ("type": "physical",
+// core/physical_correction.h) against the degree-4 polynomial correction in the same binary (the
+// baseline). The physical model is the paper room (two planes, four induced dipoles) plus finite
+// transmitter coils, a fifth object and a skewed receiver, with a sensor offset: every term the
+// runtime inverse evaluates. Poses are noise-free reports of true poses in the paper's volume,
+// cycled so the inputs are not constant. Target: at most 10 us per pose (the issue); report the
+// ratio to BM_Polynomial4.
 //
 //   build/bench/bench_physical --benchmark_min_time=0.5
 #include <benchmark/benchmark.h>
@@ -49,8 +50,7 @@ const std::vector<Rigid3d>& Reports() {
     solver.hemisphere_in_transmitter = Eigen::Vector3d(0, 0, -1);
     const FieldModel field = RoomField();
     while (out.size() < kNumPoses) {
-      const Eigen::Quaterniond q =
-          QuaternionFromXyzw(n(rng), n(rng), n(rng), n(rng)).normalized();
+      const Eigen::Quaterniond q = QuaternionFromXyzw(n(rng), n(rng), n(rng), n(rng)).normalized();
       const Eigen::Vector3d p(x(rng), y(rng), z(rng));
       const TrackerSolution s = SolveFreeSpacePose(
           SignalMatrix<double>(Gain(), q.toRotationMatrix(), field.Field<double>(p)), solver);

@@ -104,9 +104,9 @@ void PhysicalCorrection::Precompute() {
   }
   for (const InducedDipole& object : field_.objects) {
     // InducedDipoleField: moment polarisability * D(location) (the transmitter's field there).
-    sources_.push_back({object.location_in_transmitter,
-                        (k * object.polarisability_m3) *
-                            DipoleCoupling<double>(object.location_in_transmitter)});
+    sources_.push_back(
+        {object.location_in_transmitter,
+         (k * object.polarisability_m3) * DipoleCoupling<double>(object.location_in_transmitter)});
   }
   has_octupole_ = !field_.transmitter_octupole_m2.isZero(0.0);
 }
@@ -136,9 +136,10 @@ bool PhysicalCorrection::InvertReport(const Rigid3d& reported, Rigid3d* transmit
     // d/dw_i [G Exp(-w) R^T B] = -G [e_i]x R^T B.
     Vector3<Jet3> pj;
     for (int i = 0; i < 3; ++i) pj(i) = Jet3(p(i), i);
-    Matrix3<Jet3> b = has_octupole_ ? TransmitterField<Jet3>(
-                                          Jet3(k.a), field_.transmitter_octupole_m2.cast<Jet3>(), pj)
-                                    : Matrix3<Jet3>(Jet3(k.a) * DipoleCoupling<Jet3>(pj));
+    Matrix3<Jet3> b =
+        has_octupole_
+            ? TransmitterField<Jet3>(Jet3(k.a), field_.transmitter_octupole_m2.cast<Jet3>(), pj)
+            : Matrix3<Jet3>(Jet3(k.a) * DipoleCoupling<Jet3>(pj));
     for (const Source& source : sources_) {
       const Matrix3<Jet3> d = DipoleCoupling<Jet3>(pj - source.center.cast<Jet3>());
       for (int c = 0; c < 3; ++c) {
@@ -301,8 +302,9 @@ std::unique_ptr<Correction> PhysicalCorrection::FromJson(const JsonObjectReader&
     }
   }
   if (!(gain.determinant() > 1e-6)) {
-    reader.Fail("receiver_gain_matrix", "must have a positive determinant (a reversed or missing "
-                                        "coil is a wiring fault, not a calibration)");
+    reader.Fail("receiver_gain_matrix",
+                "must have a positive determinant (a reversed or missing "
+                "coil is a wiring fault, not a calibration)");
   }
 
   std::optional<Rigid3d> receiver_from_body;
@@ -312,8 +314,8 @@ std::unique_ptr<Correction> PhysicalCorrection::FromJson(const JsonObjectReader&
     if (q.size() != 4) r.Fail("rotation_xyzw", "expected 4 numbers (x, y, z, w)");
     const Eigen::Quaterniond rotation = QuaternionFromXyzw(q[0], q[1], q[2], q[3]);
     if (std::abs(rotation.norm() - 1.0) > 1e-6) {
-      r.Fail("rotation_xyzw", "must be a unit quaternion (|q| = " +
-                                  std::to_string(rotation.norm()) + ")");
+      r.Fail("rotation_xyzw",
+             "must be a unit quaternion (|q| = " + std::to_string(rotation.norm()) + ")");
     }
     receiver_from_body = Rigid3d(rotation.normalized(), r.Vector3("translation"));
     r.CheckNoUnknownKeys();

@@ -32,7 +32,7 @@
 namespace trackcal {
 
 struct PhysicalCorrectionOptions {
-  int max_iterations = 8;      // Newton steps per pose (converges in 3-4 in a room like the paper's)
+  int max_iterations = 8;  // Newton steps per pose (converges in 3-4 in a room like the paper's)
   // Stop when the remaining error, estimated as (Newton step)^2 / 1 m, is below this [m, rad].
   double tolerance_m = 1e-12;
   // Throws std::invalid_argument naming the field.

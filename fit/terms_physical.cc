@@ -20,9 +20,9 @@ using Jet = ceres::Jet<double, kSlots>;
 
 // Where each free term sits in the parameter vector theta (-1: fixed).
 struct Layout {
-  int sensor_offset = -1;  // omega (3, rotation chart), translation (3)
-  int receiver_gain = -1;  // G row-major (9)
-  int near_field = -1;     // octupole per coil (3)
+  int sensor_offset = -1;    // omega (3, rotation chart), translation (3)
+  int receiver_gain = -1;    // G row-major (9)
+  int near_field = -1;       // octupole per coil (3)
   std::vector<int> planes;   // per plane: distance (1), normal chart (2), attenuation (1)
   std::vector<int> objects;  // per object: location (3), polarisability (1)
   int size = 0;
@@ -31,7 +31,8 @@ struct Layout {
 
 // Orthonormal tangent basis of the sphere at n.
 void TangentBasis(const Eigen::Vector3d& n, Eigen::Vector3d* t1, Eigen::Vector3d* t2) {
-  const Eigen::Vector3d a = std::abs(n.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
+  const Eigen::Vector3d a =
+      std::abs(n.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
   *t1 = n.cross(a).normalized();
   *t2 = n.cross(*t1);
 }
@@ -44,8 +45,8 @@ struct Model {
   const T* theta;
 
   Eigen::Quaternion<T> OffsetRotation() const {
-    const Eigen::Quaterniond q0 =
-        base->receiver_from_body() ? base->receiver_from_body()->rotation : Eigen::Quaterniond::Identity();
+    const Eigen::Quaterniond q0 = base->receiver_from_body() ? base->receiver_from_body()->rotation
+                                                             : Eigen::Quaterniond::Identity();
     if (layout->sensor_offset < 0) return q0.cast<T>();
     const T* w = theta + layout->sensor_offset;
     // Chart q0 * normalize(1, w / 2): smooth at w = 0, first order equal to Exp(w).
@@ -55,8 +56,9 @@ struct Model {
   }
   Vector3<T> OffsetTranslation() const {
     if (layout->sensor_offset < 0) {
-      return base->receiver_from_body() ? Vector3<T>(base->receiver_from_body()->translation.cast<T>())
-                                        : Vector3<T>::Zero();
+      return base->receiver_from_body()
+                 ? Vector3<T>(base->receiver_from_body()->translation.cast<T>())
+                 : Vector3<T>::Zero();
     }
     const T* t = theta + layout->sensor_offset + 3;
     return Vector3<T>(t[0], t[1], t[2]);
@@ -115,7 +117,7 @@ Layout MakeLayout(const PhysicalCorrection& initial, const PhysicalFitOptions& o
   };
   if (options.sensor_offset) {
     l.sensor_offset = add("sensor_offset.", {"rotation.x", "rotation.y", "rotation.z",
-                                              "translation.x", "translation.y", "translation.z"});
+                                             "translation.x", "translation.y", "translation.z"});
   }
   if (options.receiver_gain) {
     std::vector<std::string> c;
@@ -141,14 +143,17 @@ Layout MakeLayout(const PhysicalCorrection& initial, const PhysicalFitOptions& o
 std::vector<double> InitialTheta(const PhysicalCorrection& initial, const Layout& l) {
   std::vector<double> theta(l.size, 0.0);
   if (l.sensor_offset >= 0 && initial.receiver_from_body()) {
-    for (int i = 0; i < 3; ++i) theta[l.sensor_offset + 3 + i] = initial.receiver_from_body()->translation(i);
+    for (int i = 0; i < 3; ++i)
+      theta[l.sensor_offset + 3 + i] = initial.receiver_from_body()->translation(i);
   }
   if (l.receiver_gain >= 0) {
     for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c) theta[l.receiver_gain + 3 * r + c] = initial.receiver_gain_matrix()(r, c);
+      for (int c = 0; c < 3; ++c)
+        theta[l.receiver_gain + 3 * r + c] = initial.receiver_gain_matrix()(r, c);
   }
   if (l.near_field >= 0) {
-    for (int i = 0; i < 3; ++i) theta[l.near_field + i] = initial.field().transmitter_octupole_m2(i);
+    for (int i = 0; i < 3; ++i)
+      theta[l.near_field + i] = initial.field().transmitter_octupole_m2(i);
   }
   for (size_t i = 0; i < l.planes.size(); ++i) {
     if (l.planes[i] < 0) continue;
@@ -198,8 +203,8 @@ PhysicalCorrection Unpack(const PhysicalCorrection& base, const Layout& l, const
 // Pose x (+ tangent slots 0..5) as Jets: position p + dp, rotation q * normalize(1, dw / 2).
 void PerturbedPose(const Rigid3d& x, Vector3<Jet>* p, Eigen::Quaternion<Jet>* q) {
   for (int i = 0; i < 3; ++i) (*p)(i) = Jet(x.translation(i), i);
-  Eigen::Quaternion<Jet> dq =
-      QuaternionFromWxyz<Jet>(Jet(1.0), Jet(0.0, 3) / Jet(2), Jet(0.0, 4) / Jet(2), Jet(0.0, 5) / Jet(2));
+  Eigen::Quaternion<Jet> dq = QuaternionFromWxyz<Jet>(Jet(1.0), Jet(0.0, 3) / Jet(2),
+                                                      Jet(0.0, 4) / Jet(2), Jet(0.0, 5) / Jet(2));
   dq.normalize();
   *q = x.rotation.cast<Jet>() * dq;
 }
@@ -209,7 +214,10 @@ class ImplicitPoseCost : public ceres::CostFunction {
  public:
   ImplicitPoseCost(const PhysicalCorrection* base, const Layout* layout, PhysicalObservation obs,
                    double position_sigma, double orientation_sigma)
-      : base_(base), layout_(layout), obs_(obs), position_sigma_(position_sigma),
+      : base_(base),
+        layout_(layout),
+        obs_(obs),
+        position_sigma_(position_sigma),
         orientation_sigma_(orientation_sigma) {
     set_num_residuals(6);
     mutable_parameter_block_sizes()->push_back(layout->size);
@@ -290,10 +298,12 @@ class ImplicitPoseCost : public ceres::CostFunction {
 void PhysicalFitOptions::Check(const PhysicalCorrection& initial) const {
   const auto fail = [](const std::string& m) { throw std::invalid_argument("physical fit: " + m); };
   for (int i : free_objects) {
-    if (i < 0 || i >= static_cast<int>(initial.field().objects.size())) fail("free_objects: index out of range");
+    if (i < 0 || i >= static_cast<int>(initial.field().objects.size()))
+      fail("free_objects: index out of range");
   }
   for (int i : free_planes) {
-    if (i < 0 || i >= static_cast<int>(initial.field().planes.size())) fail("free_planes: index out of range");
+    if (i < 0 || i >= static_cast<int>(initial.field().planes.size()))
+      fail("free_planes: index out of range");
   }
   if (!(position_sigma_m > 0)) fail("position_sigma_m must be positive");
   if (!(orientation_sigma_rad > 0)) fail("orientation_sigma_rad must be positive");
@@ -314,15 +324,16 @@ PhysicalFitResult FitPhysicalModel(const PhysicalCorrection& initial,
   std::vector<double> theta = InitialTheta(initial, layout);
   ceres::Problem problem;
   for (const PhysicalObservation& obs : observations) {
-    ceres::LossFunction* loss =
-        options.robust_loss_sigmas > 0 ? new ceres::CauchyLoss(options.robust_loss_sigmas) : nullptr;
+    ceres::LossFunction* loss = options.robust_loss_sigmas > 0
+                                    ? new ceres::CauchyLoss(options.robust_loss_sigmas)
+                                    : nullptr;
     const double position_sigma =
         obs.position_sigma_m > 0 ? obs.position_sigma_m : options.position_sigma_m;
     const double orientation_sigma =
         obs.orientation_sigma_rad > 0 ? obs.orientation_sigma_rad : options.orientation_sigma_rad;
-    problem.AddResidualBlock(new ImplicitPoseCost(&initial, &layout, obs, position_sigma,
-                                                  orientation_sigma),
-                             loss, theta.data());
+    problem.AddResidualBlock(
+        new ImplicitPoseCost(&initial, &layout, obs, position_sigma, orientation_sigma), loss,
+        theta.data());
   }
   for (size_t i = 0; i < layout.planes.size(); ++i) {
     if (layout.planes[i] < 0) continue;
@@ -336,14 +347,15 @@ PhysicalFitResult FitPhysicalModel(const PhysicalCorrection& initial,
   ceres::Solver::Summary summary;
   ceres::Solve(solver_options, &problem, &summary);
 
-  PhysicalFitResult result{summary.IsSolutionUsable() && summary.termination_type == ceres::CONVERGENCE,
-                           Unpack(initial, layout, theta.data()),
-                           layout.names,
-                           Eigen::Map<Eigen::VectorXd>(theta.data(), layout.size),
-                           Eigen::VectorXd::Constant(layout.size, std::nan("")),
-                           {},
-                           summary.final_cost,
-                           summary.BriefReport()};
+  PhysicalFitResult result{
+      summary.IsSolutionUsable() && summary.termination_type == ceres::CONVERGENCE,
+      Unpack(initial, layout, theta.data()),
+      layout.names,
+      Eigen::Map<Eigen::VectorXd>(theta.data(), layout.size),
+      Eigen::VectorXd::Constant(layout.size, std::nan("")),
+      {},
+      summary.final_cost,
+      summary.BriefReport()};
   CovarianceBlock block;
   block.values = theta.data();
   block.name = "physical";

@@ -32,24 +32,24 @@ namespace trackcal::fit {
 
 // One station: what the tracker reported and the reference (body) pose.
 struct PhysicalObservation {
-  Rigid3d reported;                  // transmitter_from_receiver as reported
-  Rigid3d reference;                 // transmitter_from_body from the optical reference
-  double position_sigma_m = 0.0;     // this station's noise per axis [m]; 0: the options' value
+  Rigid3d reported;                    // transmitter_from_receiver as reported
+  Rigid3d reference;                   // transmitter_from_body from the optical reference
+  double position_sigma_m = 0.0;       // this station's noise per axis [m]; 0: the options' value
   double orientation_sigma_rad = 0.0;  // [rad]; 0: the options' value
 };
 
 // Which parameters are free. Planes and objects of `initial` beyond the free ones stay fixed.
 struct PhysicalFitOptions {
-  bool sensor_offset = false;         // fit receiver_from_body
-  bool receiver_gain = false;         // fit G (9 entries)
-  bool near_field = false;            // fit the octupole coefficients (3)
-  std::vector<int> free_objects;      // indices into initial.field.objects to fit
-  std::vector<int> free_planes;       // indices into initial.field.planes to fit
-  double position_sigma_m = 1e-3;     // whitening: position noise per axis [m]
+  bool sensor_offset = false;           // fit receiver_from_body
+  bool receiver_gain = false;           // fit G (9 entries)
+  bool near_field = false;              // fit the octupole coefficients (3)
+  std::vector<int> free_objects;        // indices into initial.field.objects to fit
+  std::vector<int> free_planes;         // indices into initial.field.planes to fit
+  double position_sigma_m = 1e-3;       // whitening: position noise per axis [m]
   double orientation_sigma_rad = 1e-3;  // whitening: orientation noise per axis [rad]
   // Robust loss scale in sigmas (Cauchy); 0 disables. Hemisphere flips are outliers of 1000 sigma.
   double robust_loss_sigmas = 0.0;
-  int max_iterations = 100;           // Ceres iterations
+  int max_iterations = 100;  // Ceres iterations
   // Throws std::invalid_argument naming the field.
   void Check(const PhysicalCorrection& initial) const;
 };

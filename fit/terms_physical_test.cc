@@ -28,18 +28,19 @@ Dataset Simulate(const sim::Scene& scene, int calibration_count, int validation_
   const Eigen::Vector3d hi = scene.capture.validation.max_in_transmitter;
   Dataset d;
   for (int i = 0; i < calibration_count + validation_count; ++i) {
-    const Rigid3d truth(poses.UniformRotation(),
-                        Eigen::Vector3d(poses.Uniform(lo.x(), hi.x()), poses.Uniform(lo.y(), hi.y()),
-                                        poses.Uniform(lo.z(), hi.z())));
-    const TrackerSolution report =
-        tracker.Report(truth, scene.tracker.samples_per_station, &noise);
-    PhysicalObservation obs{report.transmitter_from_receiver, truth * simulator.receiver_from_body()};
+    const Rigid3d truth(poses.UniformRotation(), Eigen::Vector3d(poses.Uniform(lo.x(), hi.x()),
+                                                                 poses.Uniform(lo.y(), hi.y()),
+                                                                 poses.Uniform(lo.z(), hi.z())));
+    const TrackerSolution report = tracker.Report(truth, scene.tracker.samples_per_station, &noise);
+    PhysicalObservation obs{report.transmitter_from_receiver,
+                            truth * simulator.receiver_from_body()};
     (i < calibration_count ? d.calibration : d.validation).push_back(obs);
   }
   return d;
 }
 
-double RmsPositionError(const PhysicalCorrection& model, const std::vector<PhysicalObservation>& set) {
+double RmsPositionError(const PhysicalCorrection& model,
+                        const std::vector<PhysicalObservation>& set) {
   double sum = 0;
   for (const PhysicalObservation& o : set) {
     sum += (model.Apply(o.reported).pose.translation - o.reference.translation).squaredNorm();
@@ -52,7 +53,8 @@ double RmsPositionError(const PhysicalCorrection& model, const std::vector<Physi
 // the model's errors on `set` divided by those laws; they are written into every observation of
 // `sets`, and the per-axis RMS goes into the options as the fallback.
 void SetNoiseSigmas(const PhysicalCorrection& model, const std::vector<PhysicalObservation>& set,
-                    std::vector<std::vector<PhysicalObservation>*> sets, PhysicalFitOptions* options) {
+                    std::vector<std::vector<PhysicalObservation>*> sets,
+                    PhysicalFitOptions* options) {
   double sp = 0, so = 0, cp = 0, co = 0;
   for (const PhysicalObservation& o : set) {
     const PoseError e = ComputePoseError(model.Apply(o.reported).pose, o.reference);
@@ -91,7 +93,8 @@ TEST(FitPhysicalModel, FerromagneticObjectIsRecovered) {
 
   // The matching term, started 15-20 cm and a factor 2 away from the truth.
   FieldModel start = twin.environment;
-  start.objects.push_back({"object", truth.location_in_transmitter + Eigen::Vector3d(0.15, -0.1, 0.1),
+  start.objects.push_back({"object",
+                           truth.location_in_transmitter + Eigen::Vector3d(0.15, -0.1, 0.1),
                            0.5 * truth.polarisability_m3});
   options.free_objects = {static_cast<int>(start.objects.size()) - 1};
   const PhysicalFitResult fit = FitPhysicalModel(
@@ -106,8 +109,8 @@ TEST(FitPhysicalModel, FerromagneticObjectIsRecovered) {
     const double t = k < 3 ? truth.location_in_transmitter(k) : truth.polarisability_m3;
     EXPECT_TRUE(std::isfinite(fit.stddev(k))) << fit.parameter_names[k];
     EXPECT_LT(std::abs(fit.values(k) - t), 3.0 * fit.stddev(k))
-        << fit.parameter_names[k] << " = " << fit.values(k) << " +- " << fit.stddev(k)
-        << ", truth " << t;
+        << fit.parameter_names[k] << " = " << fit.values(k) << " +- " << fit.stddev(k) << ", truth "
+        << t;
   }
 }
 
@@ -162,8 +165,8 @@ TEST(FitPhysicalModel, SensorOffsetIsRecovered) {
   for (int k = 0; k < 6; ++k) {
     const double t = k < 3 ? w_truth(k) : truth.translation(k - 3);
     EXPECT_LT(std::abs(fit.values(k) - t), 3.0 * fit.stddev(k))
-        << fit.parameter_names[k] << " = " << fit.values(k) << " +- " << fit.stddev(k)
-        << ", truth " << t;
+        << fit.parameter_names[k] << " = " << fit.values(k) << " +- " << fit.stddev(k) << ", truth "
+        << t;
   }
 }
 
@@ -171,7 +174,8 @@ TEST(FitPhysicalModel, FiniteTransmitterCoilsAreRecovered) {
   sim::Scene twin = sim::LoadScene("paper");
   sim::Scene hidden = twin;
   hidden.hidden.Enable("finite_transmitter_coils");
-  const Eigen::Vector3d truth = twin.environment.transmitter_octupole_m2 + hidden.hidden.octupole_m2;
+  const Eigen::Vector3d truth =
+      twin.environment.transmitter_octupole_m2 + hidden.hidden.octupole_m2;
   const Dataset clean = Simulate(twin, 240, 120);
   Dataset data = Simulate(hidden, 240, 120);
   const PhysicalCorrection base(twin.environment, twin.tracker.receiver_gain_matrix);
