@@ -1,0 +1,125 @@
+#include "fit/terms_polynomial.h"
+
+#include <Eigen/QR>
+#include <cmath>
+#include <stdexcept>
+
+namespace trackcal::fit {
+
+void PolynomialTermOptions::Check() const {
+  CheckPolynomialDegree(degree);
+  if (!position && !orientation) {
+    throw std::invalid_argument("polynomial: at least one of position, orientation must be enabled");
+  }
+}
+
+PolynomialTerm::PolynomialTerm(const PolynomialTermOptions& options) : options_(options) {
+  options_.Check();
+  num_terms_ = NumPolynomialTerms(options_.degree);
+  const auto exponents = PolynomialTermExponents(options_.degree);
+  auto make_block = [&](const std::string& name, const char* axis_prefix, const std::string& unit) {
+    ParameterBlock block;
+    block.name = name;
+    block.values.assign(static_cast<size_t>(num_terms_) * 3, 0.0);
+    block.unit = unit;
+    for (int j = 0; j < num_terms_; ++j) {
+      for (int k = 0; k < 3; ++k) {
+        block.coordinate_names.push_back(std::string(axis_prefix) + "xyz"[k] + "[" +
+                                         PolynomialTermName(exponents[static_cast<size_t>(j)]) +
+                                         "]");
+      }
+    }
+    blocks_.push_back(std::move(block));
+    return static_cast<int>(blocks_.size()) - 1;
+  };
+  if (options_.position) position_block_ = make_block("position_coefficients", "p", "m");
+  if (options_.orientation) orientation_block_ = make_block("orientation_coefficients", "q", "1");
+}
+
+std::unique_ptr<ModelTerm> PolynomialTerm::FromYaml(const YamlMapReader& reader) {
+  PolynomialTermOptions options;
+  options.degree = reader.GetIntOr("degree", options.degree);
+  options.position = reader.GetBoolOr("position", options.position);
+  options.orientation = reader.GetBoolOr("orientation", options.orientation);
+  try {
+    options.Check();
+  } catch (const std::invalid_argument& e) {
+    reader.Fail("degree", e.what());
+  }
+  return std::make_unique<PolynomialTerm>(options);
+}
+
+void PolynomialTerm::Prepare(const std::vector<FitStation>& inputs) {
+  if (!std::isnan(options_.input_offset[0]) && !std::isnan(options_.input_scale[0])) return;
+  if (inputs.empty()) throw std::invalid_argument("polynomial: no calibration stations");
+  Eigen::Vector3d lo = inputs[0].reported.translation, hi = lo;
+  for (const auto& s : inputs) {
+    lo = lo.cwiseMin(s.reported.translation);
+    hi = hi.cwiseMax(s.reported.translation);
+  }
+  options_.input_offset = 0.5 * (lo + hi);
+  // Half the extent maps the box to [-1, 1]; a flat axis keeps scale 1 m (its powers are constant).
+  options_.input_scale = (0.5 * (hi - lo)).unaryExpr([](double v) { return v > 1e-9 ? v : 1.0; });
+}
+
+bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
+                                      const Eigen::Vector2d& /*noise_sigmas*/) {
+  const int n = static_cast<int>(inputs.size());
+  if (n < num_terms_) return false;
+  Eigen::MatrixXd a(n, num_terms_);
+  Eigen::MatrixXd b_position(n, 3), b_orientation(n, 3);
+  std::vector<double> monomials(static_cast<size_t>(num_terms_));
+  for (int i = 0; i < n; ++i) {
+    const FitStation& s = inputs[static_cast<size_t>(i)];
+    double u[3];
+    NormalizePolynomialInput(s.reported.translation.data(), options_.input_offset,
+                             options_.input_scale, u);
+    EvaluateMonomials(options_.degree, u, monomials.data());
+    for (int j = 0; j < num_terms_; ++j) a(i, j) = monomials[static_cast<size_t>(j)];
+    const PoseError e = ComputePoseError(s.reported, s.reference);
+    b_position.row(i) = e.position.transpose();
+    b_orientation.row(i) = e.orientation.transpose();
+  }
+  // Column-pivoting QR on the normalised basis: the paper's eq. 9 without forming A^T A (squaring
+  // the condition number).
+  const Eigen::ColPivHouseholderQR<Eigen::MatrixXd> qr(a);
+  if (qr.rank() < num_terms_) return false;
+  auto store = [&](int block_index, const Eigen::MatrixXd& b) {
+    if (block_index < 0 || blocks_[static_cast<size_t>(block_index)].fixed) return;
+    const Eigen::MatrixXd c = qr.solve(b);  // num_terms x 3
+    auto& values = blocks_[static_cast<size_t>(block_index)].values;
+    for (int j = 0; j < num_terms_; ++j) {
+      for (int k = 0; k < 3; ++k) values[static_cast<size_t>(j * 3 + k)] = c(j, k);
+    }
+  };
+  store(position_block_, b_position);
+  store(orientation_block_, b_orientation);
+  return true;
+}
+
+std::vector<double> PolynomialTerm::PositionCoefficients() const {
+  return position_block_ >= 0 ? blocks_[static_cast<size_t>(position_block_)].values
+                              : std::vector<double>(static_cast<size_t>(num_terms_) * 3, 0.0);
+}
+
+std::vector<double> PolynomialTerm::OrientationCoefficients() const {
+  return orientation_block_ >= 0 ? blocks_[static_cast<size_t>(orientation_block_)].values
+                                 : std::vector<double>(static_cast<size_t>(num_terms_) * 3, 0.0);
+}
+
+std::unique_ptr<Correction> PolynomialTerm::ToCorrection() const {
+  return PolynomialCorrection::FromPositionAndOrientation(
+      options_.degree, options_.input_offset, options_.input_scale, PositionCoefficients(),
+      OrientationCoefficients());
+}
+
+nlohmann::json PolynomialTerm::Describe() const {
+  return {{"degree", options_.degree},
+          {"num_terms", num_terms_},
+          {"position", options_.position},
+          {"orientation", options_.orientation},
+          {"input_offset", {options_.input_offset[0], options_.input_offset[1], options_.input_offset[2]}},
+          {"input_scale", {options_.input_scale[0], options_.input_scale[1], options_.input_scale[2]}}};
+}
+
+}  // namespace trackcal::fit
