@@ -273,6 +273,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   }
 
   // (3) covariance.
+  const auto covariance_start = std::chrono::steady_clock::now();
+  result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
   std::vector<CovarianceBlock> cov_blocks;
   std::vector<std::pair<size_t, size_t>> cov_index;  // (term, block) of each requested block
   for (size_t t = 0; t < spec->terms.size(); ++t) {
@@ -308,6 +310,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       }
     }
   }
+  result.seconds_covariance =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - covariance_start).count();
   for (const auto& term : spec->terms) {
     for (const auto& block : term->blocks()) {
       ParameterReport r;
@@ -441,6 +445,8 @@ nlohmann::json FitResult::ToJson() const {
           {"num_free_parameters", num_free_parameters},
           {"chi2_per_dof", NumberOrNull(chi2_per_dof)},
           {"seconds", seconds},
+          {"seconds_solve", seconds_solve},
+          {"seconds_covariance", seconds_covariance},
           {"rank_deficient", rank_deficient},
           {"covariance_message", covariance_message},
           {"identifiability_flags", flags},

@@ -58,6 +58,8 @@ struct FitResult {
   int num_free_parameters = 0;
   double chi2_per_dof = 0.0;  // 2 * final_cost / (num_residuals - num_free_parameters)
   double seconds = 0.0;       // wall time of the fit (initialisation, solve, covariance)
+  double seconds_solve = 0.0;       // of which initialisation and solve
+  double seconds_covariance = 0.0;  // of which covariance
   std::vector<ParameterReport> parameters;
   std::vector<IdentifiabilityFlag> identifiability_flags;
   bool rank_deficient = false;

@@ -1,5 +1,7 @@
 #include "fit/terms_polynomial.h"
 
+#include <ceres/jet.h>
+
 #include <Eigen/QR>
 #include <cmath>
 #include <stdexcept>
@@ -94,6 +96,72 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   };
   store(position_block_, b_position);
   store(orientation_block_, b_orientation);
+  return true;
+}
+
+bool PolynomialTerm::Evaluate(const StationBinding& binding, const double* const* block_values,
+                              const AmbientPose& input, bool jacobians,
+                              TermEvaluation* result) const {
+  if (!jacobians) return Apply<double>(binding, block_values, input.data(), result->output.data());
+  using J3 = ceres::Jet<double, 3>;
+  using J7 = ceres::Jet<double, 7>;
+  J3 p[3], u[3];
+  for (int k = 0; k < 3; ++k) p[k] = J3(input[k], k);
+  NormalizePolynomialInput(p, options_.input_offset, options_.input_scale, u);
+  std::vector<J3> monomials(static_cast<size_t>(num_terms_));
+  EvaluateMonomials(options_.degree, u, monomials.data());
+  J3 e_p[3], e_o[3];
+  auto sum = [&](int block, J3* out) {
+    for (int k = 0; k < 3; ++k) out[k] = J3(0.0);
+    if (block < 0) return;
+    const double* c = block_values[block];
+    for (int j = 0; j < num_terms_; ++j) {
+      for (int k = 0; k < 3; ++k) out[k] += monomials[static_cast<size_t>(j)] * c[j * 3 + k];
+    }
+  };
+  sum(position_block_, e_p);
+  sum(orientation_block_, e_o);
+  // q_out = Q(e_o) * q_in with derivatives over (e_o, q_in).
+  Vector3<J7> e_o7;
+  for (int k = 0; k < 3; ++k) e_o7[k] = J7(e_o[k].a, k);
+  J7 q_in[4];
+  for (int k = 0; k < 4; ++k) q_in[k] = J7(input[3 + k], 3 + k);
+  const Eigen::Quaternion<J7> q_out =
+      QuaternionFromVectorPart<J7>(e_o7) * QuaternionFromXyzwArray(q_in);
+  J7 q_out_xyzw[4];
+  QuaternionToXyzwArray(q_out, q_out_xyzw);
+  Eigen::Matrix<double, 4, 3> dq_deo;
+  auto& d_in = result->d_output_d_input;
+  d_in.setZero();
+  for (int k = 0; k < 3; ++k) {
+    result->output[k] = input[k] + e_p[k].a;
+    d_in.block<1, 3>(k, 0) = e_p[k].v.transpose();
+    d_in(k, k) += 1.0;
+  }
+  Eigen::Matrix<double, 3, 3> deo_dp;
+  for (int k = 0; k < 3; ++k) deo_dp.row(k) = e_o[k].v.transpose();
+  for (int r = 0; r < 4; ++r) {
+    result->output[3 + r] = q_out_xyzw[r].a;
+    dq_deo.row(r) = q_out_xyzw[r].v.head<3>().transpose();
+    d_in.block<1, 4>(3 + r, 3) = q_out_xyzw[r].v.tail<4>().transpose();
+  }
+  d_in.block<4, 3>(3, 0) = dq_deo * deo_dp;
+  result->d_output_d_blocks.resize(binding.blocks.size());
+  for (size_t b = 0; b < binding.blocks.size(); ++b) {
+    const int index = binding.blocks[b];
+    auto& d = result->d_output_d_blocks[b];
+    d.setZero(kAmbientPoseSize, num_terms_ * 3);
+    for (int j = 0; j < num_terms_; ++j) {
+      const double m = monomials[static_cast<size_t>(j)].a;
+      for (int k = 0; k < 3; ++k) {
+        if (index == position_block_) {
+          d(k, j * 3 + k) = m;
+        } else {
+          d.block<4, 1>(3, j * 3 + k) = m * dq_deo.col(k);
+        }
+      }
+    }
+  }
   return true;
 }
 

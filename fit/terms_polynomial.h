@@ -39,6 +39,10 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
                         const Eigen::Vector2d& noise_sigmas) override;
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
+  // Analytic in the coefficients (the output is linear in them); Jets of size 3 and 7 only for the
+  // monomials' and the quaternion product's derivatives: ~30x faster than AutoDiffModelTerm's.
+  bool Evaluate(const StationBinding& binding, const double* const* block_values,
+                const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
 
   template <typename T>
   bool Apply(const StationBinding& binding, const T* const* block_values, const T* input7,
