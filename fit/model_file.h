@@ -4,7 +4,7 @@
 //   noise: {position_mm: 1.0, orientation_deg: 0.2}   # whitening of the station residuals
 //   loss: {type: huber, scale: 3}                     # robust loss, scale in sigmas (optional)
 //   solver: {max_iterations: 100}
-//   time_offset: {value: 0.0, fixed: true}            # tracker clock - reference clock [s] (optional)
+//   time_offset: {value: 0.0, fixed: true}            # t_reference - t_tracker [s] (optional)
 //   terms:
 //     - type: polynomial
 //       degree: 4
@@ -113,7 +113,7 @@ struct BlockSettings {
 };
 
 struct TimeOffsetSpec {
-  double value = 0.0;  // tracker clock minus reference clock [s]
+  double value = 0.0;  // reference clock minus tracker clock [s]: t_reference = t_tracker + value
   bool fixed = true;   // false: estimated when pairing streams
   double search_range = 0.5;  // [s] half-width of the search interval around `value`
 };
