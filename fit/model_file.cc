@@ -223,15 +223,21 @@ void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* t
   for (const BlockSettings& s : settings) {
     ParameterBlock* block = nullptr;
     std::string known;
+    std::vector<ParameterBlock*> matched;
     for (auto& b : term->blocks()) {
-      known += (known.empty() ? "" : ", ") + b.name;
-      if (b.name == s.block) block = &b;
+      // "node_values" names every "node_values[...]" block of a LUT.
+      const std::string family = b.name.substr(0, b.name.find('['));
+      if (known.find(family) == std::string::npos) known += (known.empty() ? "" : ", ") + family;
+      if (b.name == s.block || family == s.block) matched.push_back(&b);
     }
+    if (!matched.empty()) block = matched.front();
     if (block == nullptr) {
       throw std::invalid_argument(s.where + ": term '" + term->name() +
                                   "' has no parameter block '" + s.block + "' (blocks: " + known +
                                   ")");
     }
+    for (ParameterBlock* target : matched) {
+    block = target;
     const size_t n = block->values.size();
     auto expand = [&](const std::vector<double>& v, const char* field) {
       if (v.size() == 1) return std::vector<double>(n, v[0]);
@@ -254,6 +260,7 @@ void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* t
       block->Check(term->name());
     } catch (const std::invalid_argument& e) {
       throw std::invalid_argument(s.where + ": " + e.what());
+    }
     }
   }
 }
