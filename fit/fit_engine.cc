@@ -234,7 +234,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   solver_options.parameter_tolerance = 1e-12;
   solver_options.num_threads = options.num_threads;
   solver_options.linear_solver_type =
-      num_free > 400 ? ceres::SPARSE_NORMAL_CHOLESKY : ceres::DENSE_QR;
+      num_free > 400 ? ceres::SPARSE_NORMAL_CHOLESKY : ceres::DENSE_NORMAL_CHOLESKY;
   ProgressCallback callback(options.progress ? options.progress : [](int, double) {});
   if (options.progress) {
     solver_options.callbacks.push_back(&callback);
