@@ -135,6 +135,46 @@ class ProgressCallback : public ceres::IterationCallback {
   std::function<void(int, double)> f_;
 };
 
+// Parameter reports, term descriptions, the chain with its calibrated volume, timing.
+void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
+                  std::chrono::steady_clock::time_point start, FitResult* out) {
+  FitResult& result = *out;
+  for (const auto& term : spec->terms) {
+    for (const auto& block : term->blocks()) {
+      ParameterReport r;
+      r.term = term->name();
+      r.block = block.name;
+      r.unit = block.unit;
+      r.fixed = block.fixed;
+      r.coordinate_names = block.coordinate_names;
+      r.values = block.values;
+      r.stddev = block.stddev;
+      result.parameters.push_back(std::move(r));
+    }
+    nlohmann::json d = term->Describe();
+    d["name"] = term->name();
+    d["type"] = term->type();
+    result.terms.push_back(d);
+  }
+
+  result.chain = ModelToChain(spec->terms);
+  CalibratedVolume volume;
+  volume.min = volume.max = stations[0].reported.translation;
+  for (const auto& s : stations) {
+    volume.min = volume.min.cwiseMin(s.reported.translation);
+    volume.max = volume.max.cwiseMax(s.reported.translation);
+  }
+  // A flat axis (all stations in one plane) still needs a non-empty box.
+  for (int k = 0; k < 3; ++k) {
+    if (volume.max[k] <= volume.min[k]) {
+      volume.min[k] -= 1e-3;
+      volume.max[k] += 1e-3;
+    }
+  }
+  result.chain.SetVolume(volume);
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
 }  // namespace
 
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -146,13 +186,60 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   const Eigen::Vector2d sigmas(spec->position_sigma, spec->orientation_sigma);
 
   // (1) prepare and initialise term by term.
+  std::vector<bool> linear_ok;
   for (size_t k = 0; k < spec->terms.size(); ++k) {
     ModelTerm& term = *spec->terms[k];
     const std::vector<FitStation> inputs = InputsOfTerm(stations, *spec, k);
     term.Prepare(inputs);
     if (k < spec->block_settings.size()) ApplyBlockSettings(spec->block_settings[k], &term);
-    term.InitializeLinear(inputs, sigmas);
+    linear_ok.push_back(term.InitializeLinear(inputs, sigmas));
     for (const auto& block : term.blocks()) block.Check(term.name());
+  }
+
+  // Fast path: a lone linear term (the paper's method) is solved by its linear least squares.
+  if (spec->terms.size() == 1 && linear_ok[0] && spec->terms[0]->SolvesAloneLinearly() &&
+      spec->loss.type == LossType::kNone) {
+    bool plain = true;
+    for (const auto& block : spec->terms[0]->blocks()) {
+      plain = plain && block.lower.empty() && block.upper.empty() && block.prior_mean.empty();
+    }
+    if (plain) {
+      FitResult result;
+      ModelTerm& term = *spec->terms[0];
+      result.converged = true;
+      result.solver_message = "linear least squares (paper eq. 9)";
+      const auto correction = term.ToCorrection();
+      const double limit = 5.0;
+      for (const auto& s : stations) {
+        const Rigid3d c = correction->Apply(s.reported).pose;
+        const AmbientPose a = ToAmbient(c);
+        double r[6];
+        StationResidual<double>(a.data(), s.reference, spec->position_sigma,
+                                spec->orientation_sigma, r);
+        double s2 = 0.0;
+        for (double v : r) s2 += v * v;
+        result.final_cost += 0.5 * s2;
+        if (std::sqrt(s2 / 6.0) > limit) result.outliers.push_back({s.station, std::sqrt(s2 / 6.0)});
+      }
+      result.initial_cost = result.final_cost;
+      result.num_residuals = 6 * static_cast<int>(stations.size());
+      for (auto& block : term.blocks()) {
+        block.stddev.assign(block.values.size(), std::numeric_limits<double>::quiet_NaN());
+        if (!block.fixed) result.num_free_parameters += block.size();
+      }
+      const int dof = result.num_residuals - result.num_free_parameters;
+      result.chi2_per_dof =
+          dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
+      const auto covariance_start = std::chrono::steady_clock::now();
+      result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
+      if (options.compute_covariance && !term.LinearCovariance(sigmas)) {
+        result.covariance_message = "linear covariance unavailable";
+      }
+      result.seconds_covariance =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - covariance_start).count();
+      FinishResult(stations, spec, start, &result);
+      return result;
+    }
   }
 
   // (2) the joint problem.
@@ -312,40 +399,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   }
   result.seconds_covariance =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - covariance_start).count();
-  for (const auto& term : spec->terms) {
-    for (const auto& block : term->blocks()) {
-      ParameterReport r;
-      r.term = term->name();
-      r.block = block.name;
-      r.unit = block.unit;
-      r.fixed = block.fixed;
-      r.coordinate_names = block.coordinate_names;
-      r.values = block.values;
-      r.stddev = block.stddev;
-      result.parameters.push_back(std::move(r));
-    }
-    nlohmann::json d = term->Describe();
-    d["name"] = term->name();
-    d["type"] = term->type();
-    result.terms.push_back(d);
-  }
-
-  result.chain = ModelToChain(spec->terms);
-  CalibratedVolume volume;
-  volume.min = volume.max = stations[0].reported.translation;
-  for (const auto& s : stations) {
-    volume.min = volume.min.cwiseMin(s.reported.translation);
-    volume.max = volume.max.cwiseMax(s.reported.translation);
-  }
-  // A flat axis (all stations in one plane) still needs a non-empty box.
-  for (int k = 0; k < 3; ++k) {
-    if (volume.max[k] <= volume.min[k]) {
-      volume.min[k] -= 1e-3;
-      volume.max[k] += 1e-3;
-    }
-  }
-  result.chain.SetVolume(volume);
-  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  FinishResult(stations, spec, start, &result);
   return result;
 }
 

@@ -69,6 +69,29 @@ TEST(FitModel, Nominal_NoiseFreePolynomialRecoveredTo1e6Relative) {
   for (double s : result.parameters[0].stddev) EXPECT_TRUE(std::isfinite(s));
   EXPECT_FALSE(result.rank_deficient);
   EXPECT_TRUE(result.outliers.empty());
+  EXPECT_EQ(result.solver_message, "linear least squares (paper eq. 9)");
+
+  // A prior too weak to matter forces the joint Ceres path: same coefficients, same position stds
+  // (the position residual is linear in its coefficients, so its covariance is exactly sigma^2
+  // (A^T A)^-1 on both paths; 1e-3 relative allows the prior's 1e-6 relative contribution).
+  ModelSpec joint = ParseModelYaml(R"(terms:
+  - type: polynomial
+    degree: 3
+    parameters:
+      position_coefficients: {prior: {mean: 0, sigma: 1000}}
+)",
+                                   "m");
+  joint.terms[0] = std::make_unique<PolynomialTerm>(options);
+  const FitResult ceres_result = FitModel(stations, &joint);
+  EXPECT_NE(ceres_result.solver_message, result.solver_message);
+  const auto& joint_fitted = dynamic_cast<const PolynomialCorrection&>(ceres_result.chain.term(0));
+  for (size_t i = 0; i < expected.size(); ++i) {
+    EXPECT_NEAR(joint_fitted.coefficients()[i], expected[i], /*rtol=*/1e-6 * scale) << i;
+  }
+  for (size_t i = 0; i < result.parameters[0].stddev.size(); ++i) {
+    EXPECT_NEAR(ceres_result.parameters[0].stddev[i], result.parameters[0].stddev[i],
+                1e-3 * result.parameters[0].stddev[i]);
+  }
 }
 
 TEST(FitModel, FlagsUnidentifiableCoefficients) {

@@ -52,6 +52,8 @@ bool ModelTerm::InitializeLinear(const std::vector<FitStation>& /*inputs*/,
   return false;
 }
 
+bool ModelTerm::LinearCovariance(const Eigen::Vector2d& /*noise_sigmas*/) { return false; }
+
 StationBinding ModelTerm::Bind(const AmbientPose& /*input*/) const {
   StationBinding binding;
   for (size_t i = 0; i < blocks_.size(); ++i) binding.blocks.push_back(static_cast<int>(i));

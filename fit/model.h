@@ -124,6 +124,14 @@ class ModelTerm {
   virtual bool InitializeLinear(const std::vector<FitStation>& inputs,
                                 const Eigen::Vector2d& noise_sigmas);
 
+  // True if, when this term is the model's only term and the fit has no robust loss, priors or bounds,
+  // a successful InitializeLinear() is the fit (the paper's linear least squares): the engine then
+  // skips the nonlinear solve and asks LinearCovariance() for the standard deviations. Default false.
+  virtual bool SolvesAloneLinearly() const { return false; }
+  // Fills every free block's `stddev` from the linear least-squares covariance of the last
+  // InitializeLinear() (noise_sigmas: position [m], orientation [rad]). Default: false (unavailable).
+  virtual bool LinearCovariance(const Eigen::Vector2d& noise_sigmas);
+
   // The blocks the residual of a station whose pose at this term's input is `input` depends on. The
   // default binds every block.
   virtual StationBinding Bind(const AmbientPose& input) const;

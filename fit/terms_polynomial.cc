@@ -4,6 +4,7 @@
 
 #include <Eigen/QR>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 
 namespace trackcal::fit {
@@ -96,6 +97,30 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   };
   store(position_block_, b_position);
   store(orientation_block_, b_orientation);
+  // diag((A^T A)^-1) = diag(P R^-1 R^-T P^T): row norms of R^-1, permuted.
+  const Eigen::MatrixXd r = qr.matrixR().topLeftCorner(num_terms_, num_terms_).triangularView<Eigen::Upper>();
+  const Eigen::MatrixXd r_inverse =
+      r.triangularView<Eigen::Upper>().solve(Eigen::MatrixXd::Identity(num_terms_, num_terms_));
+  const Eigen::VectorXd d = r_inverse.rowwise().squaredNorm();
+  inverse_normal_diagonal_ = qr.colsPermutation() * d;
+  return true;
+}
+
+bool PolynomialTerm::LinearCovariance(const Eigen::Vector2d& noise_sigmas) {
+  if (inverse_normal_diagonal_.size() != num_terms_) return false;
+  auto fill = [&](int block_index, double sigma) {
+    if (block_index < 0) return;
+    auto& block = blocks_[static_cast<size_t>(block_index)];
+    block.stddev.assign(block.values.size(), std::numeric_limits<double>::quiet_NaN());
+    if (block.fixed) return;
+    for (int j = 0; j < num_terms_; ++j) {
+      for (int k = 0; k < 3; ++k) {
+        block.stddev[static_cast<size_t>(j * 3 + k)] = sigma * std::sqrt(inverse_normal_diagonal_[j]);
+      }
+    }
+  };
+  fill(position_block_, noise_sigmas[0]);
+  fill(orientation_block_, noise_sigmas[1]);
   return true;
 }
 

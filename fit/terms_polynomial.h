@@ -39,6 +39,10 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
                         const Eigen::Vector2d& noise_sigmas) override;
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
+  bool SolvesAloneLinearly() const override { return true; }
+  // sigma^2 (A^T A)^-1 per part from the QR of the monomial matrix A (for the orientation part, of
+  // the paper's linear model of the vector part of q_e).
+  bool LinearCovariance(const Eigen::Vector2d& noise_sigmas) override;
   // Analytic in the coefficients (the output is linear in them); Jets of size 3 and 7 only for the
   // monomials' and the quaternion product's derivatives: ~30x faster than AutoDiffModelTerm's.
   bool Evaluate(const StationBinding& binding, const double* const* block_values,
@@ -58,6 +62,7 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   int num_terms_ = 0;
   int position_block_ = -1;     // index in blocks_, -1 if disabled
   int orientation_block_ = -1;  // index in blocks_, -1 if disabled
+  Eigen::VectorXd inverse_normal_diagonal_;  // diag((A^T A)^-1) of the last InitializeLinear()
 };
 
 template <typename T>
