@@ -15,6 +15,7 @@ void LutTermOptions::Check() const {
   } else if (!(cell_size > 0.0) || !std::isfinite(cell_size)) {
     throw std::invalid_argument("lut: cell_size_mm must be > 0");
   }
+  if (!(ridge >= 0.0) || !std::isfinite(ridge)) throw std::invalid_argument("lut: ridge must be >= 0");
   if (!(smoothness >= 0.0) || !std::isfinite(smoothness)) {
     throw std::invalid_argument("lut: smoothness must be >= 0");
   }
@@ -38,6 +39,7 @@ std::unique_ptr<ModelTerm> LutTerm::FromYaml(const YamlMapReader& reader) {
     options.nodes = counts;
   }
   options.smoothness = reader.GetDoubleOr("smoothness", options.smoothness);
+  options.ridge = reader.GetDoubleOr("ridge", options.ridge);
   try {
     options.Check();
   } catch (const std::invalid_argument& e) {
@@ -105,6 +107,15 @@ StationBinding LutTerm::Bind(const AmbientPose& input) const {
 }
 
 namespace {
+struct Ridge {
+  Eigen::Matrix<double, 6, 1> weight;  // ridge / sigma per component
+  template <typename T>
+  bool operator()(const T* v, T* r) const {
+    for (int i = 0; i < 6; ++i) r[i] = T(weight[i]) * v[i];
+    return true;
+  }
+};
+
 struct SecondDifference {
   Eigen::Matrix<double, 6, 1> weight;  // smoothness / sigma per component
   template <typename T>
@@ -116,10 +127,19 @@ struct SecondDifference {
 }  // namespace
 
 int LutTerm::AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& /*inputs*/) {
-  if (options_.smoothness == 0.0) return 0;
+  int added = 0;
+  if (options_.ridge > 0.0) {
+    Ridge ridge;
+    for (int i = 0; i < 6; ++i) ridge.weight[i] = options_.ridge / sigmas_[i < 3 ? 0 : 1];
+    for (auto& block : blocks_) {
+      problem->AddResidualBlock(new ceres::AutoDiffCostFunction<Ridge, 6, 6>(new Ridge(ridge)),
+                                nullptr, block.values.data());
+      ++added;
+    }
+  }
+  if (options_.smoothness == 0.0) return added;
   SecondDifference functor;
   for (int i = 0; i < 6; ++i) functor.weight[i] = options_.smoothness / sigmas_[i < 3 ? 0 : 1];
-  int added = 0;
   const int n[3] = {grid_->size(0), grid_->size(1), grid_->size(2)};
   for (int ix = 0; ix < n[0]; ++ix) {
     for (int iy = 0; iy < n[1]; ++iy) {
@@ -152,7 +172,7 @@ std::unique_ptr<Correction> LutTerm::ToCorrection() const {
 }
 
 nlohmann::json LutTerm::Describe() const {
-  nlohmann::json d = {{"smoothness", options_.smoothness}};
+  nlohmann::json d = {{"smoothness", options_.smoothness}, {"ridge", options_.ridge}};
   if (grid_) {
     d["nodes"] = {grid_->size(0), grid_->size(1), grid_->size(2)};
     d["min"] = {grid_->axis(0).front(), grid_->axis(1).front(), grid_->axis(2).front()};

@@ -10,6 +10,7 @@
 // Smoothness: for every node with neighbours on both sides along an axis, a residual
 // smoothness * (v[i-1] - 2 v[i] + v[i+1]) / sigma per component (sigma: the model's position or
 // orientation noise), i.e. whitened like the station residuals. It also fixes nodes without data.
+// A weak ridge (LutTermOptions::ridge) removes the LUT/polynomial gauge freedom.
 #pragma once
 
 #include <array>
@@ -28,6 +29,11 @@ struct LutTermOptions {
   double cell_size = 0.1;              // [m] largest node spacing (used unless nodes is set)
   std::optional<std::array<int, 3>> nodes;  // explicit node count per axis (>= 2 each)
   double smoothness = 1.0;             // weight of the second-difference residuals (>= 0)
+  // Weight of residuals ridge * v / sigma pulling every node value to zero (>= 0). Multilinear fields
+  // (1, x, y, z, xy, xz, yz, xyz) are reproduced exactly by both a LUT and a polynomial and have no
+  // second differences, so with a polynomial in the chain they are otherwise unidentifiable; the
+  // ridge hands them to the polynomial.
+  double ridge = 1.0;
   void Check() const;                  // throws std::invalid_argument
 };
 

@@ -30,6 +30,7 @@ TEST(LutTerm, Nominal_RecoversNoiseFreeNodeValues) {
   LutTermOptions options;
   options.nodes = std::array<int, 3>{4, 4, 3};
   options.smoothness = 0.0;
+  options.ridge = 0.0;
   LutTerm truth(options);
   truth.Prepare(stations);
   std::normal_distribution<double> normal;
@@ -62,7 +63,7 @@ TEST(LutTerm, SmoothnessFillsEmptyCellsAndGridFollowsCellSize) {
     s.reference = s.reported;
     s.reference.translation += 0.01 * s.reported.translation;
   }
-  ModelSpec spec = ParseModelYaml("terms: [{type: lut, cell_size_mm: 300, smoothness: 10}]", "m");
+  ModelSpec spec = ParseModelYaml("terms: [{type: lut, cell_size_mm: 300, smoothness: 10, ridge: 0}]", "m");
   const FitResult result = FitModel(stations, &spec);
   const auto& lut = dynamic_cast<const LutTerm&>(*spec.terms[0]);
   EXPECT_EQ(lut.grid().size(0), 5);  // ~1 m / 0.3 m -> 4 cells
