@@ -27,6 +27,7 @@
 #include "fit/model_file.h"
 #include "fit/pose_extraction.h"
 #include "fit/registration.h"
+#include "fit/registration_io.h"
 #include "fit/stream_pairing.h"
 
 namespace fs = std::filesystem;
@@ -298,37 +299,15 @@ int RunRegister(int argc, char** argv) {
   const fs::path tracker_path = args.Get("--tracker");
   const fs::path output = args.Get("-o");
   CheckOutputIsNotInput(output, {markers_path, tracker_path});
-  const MarkerCapture markers = ReadMarkers(markers_path);
-  const TrackerCapture tracker = ReadTracker(tracker_path);
-  std::map<int, RegistrationStation> by_station;
-  for (const auto& t : tracker.records) {
-    auto& s = by_station[t.station];
-    s.station = t.station;
-    s.tracker_transmitter_from_receiver = t.transmitter_from_receiver;
-  }
-  for (const auto& m : markers.records) {
-    auto it = by_station.find(m.station);
-    if (it == by_station.end()) continue;  // markers of stations without a tracker reading
-    it->second.markers.push_back({m.marker, m.position_in_optical});
-  }
-  std::vector<RegistrationStation> stations;
-  for (auto& [id, s] : by_station) stations.push_back(std::move(s));
+  const std::vector<RegistrationStation> stations =
+      ReadRegistrationStations(markers_path, tracker_path);
   const RegistrationResult registration = RegisterOpticalToTransmitter(stations);
   const auto extracted = ExtractPoses(stations, registration.registration);
-  PoseCapture poses;
-  int without_pose = 0;
-  for (size_t i = 0; i < stations.size(); ++i) {
-    if (!extracted[i].HasPose()) {
-      ++without_pose;
-      continue;
-    }
-    PoseRecord r;
-    r.station = stations[i].station;
-    r.set = args.GetOr("--set", "calib");
-    r.reported = stations[i].tracker_transmitter_from_receiver;
-    r.reference = extracted[i].transmitter_from_receiver;
-    poses.records.push_back(r);
-  }
+  PoseRecordOptions record_options;
+  record_options.set = args.GetOr("--set", "calib");
+  const PoseRecords records = MakePoseRecords(stations, extracted, {}, record_options);
+  const PoseCapture& poses = records.capture;
+  const int without_pose = static_cast<int>(records.left_out.size());
   WritePoses(output, poses);
   if (args.Flag("--json")) {
     std::cout << nlohmann::json{{"command", "register"},

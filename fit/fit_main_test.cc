@@ -94,6 +94,19 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
   EXPECT_EQ(RunCommand(fit_ + " frobnicate 2> /dev/null"), 2);
 }
 
+TEST_F(FitCliTest, RegisterWritesReferencePoses) {
+  const fs::path json = dir_ / "reg.json";
+  ASSERT_EQ(RunCommand(fit_ + " register --markers " + (dir_ / "cap" / "markers.csv").string() +
+                       " --tracker " + (dir_ / "cap" / "tracker.csv").string() + " -o " +
+                       (dir_ / "reg_poses.csv").string() + " --json > " + json.string()),
+            0);
+  const auto doc = nlohmann::json::parse(ReadFileToString(json));
+  EXPECT_TRUE(doc["converged"].get<bool>());
+  const PoseCapture poses = ReadPoses(dir_ / "reg_poses.csv");
+  EXPECT_EQ(static_cast<int>(poses.records.size()), doc["num_poses"].get<int>());
+  EXPECT_GT(poses.records.size(), 0u);
+}
+
 TEST_F(FitCliTest, PairJson) {
   const fs::path json = dir_ / "pair.json";
   ASSERT_EQ(RunCommand((BinaryDir() / "sim" / "trackcal-simulate").string() +

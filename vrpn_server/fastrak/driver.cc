@@ -266,7 +266,9 @@ class FastrakDriver::Session {
   }
 
   void Emit(Severity severity, std::string text) {
-    if (auto m = limiter_.Submit({severity, "Fastrak " + options_.port + ": " + text}, SteadyClock::now())) {
+    text = "Fastrak " + options_.port + ": " + text;
+    if (driver_->callbacks_.on_log) driver_->callbacks_.on_log(severity, text);
+    if (auto m = limiter_.Submit({severity, std::move(text)}, SteadyClock::now())) {
       Deliver(*m);
     }
     {

@@ -103,8 +103,10 @@ class FastrakDriver {
     std::function<void(const FastrakReport&)> on_report;
     // Stylus switch of a sensor changed (and its first state after each (re)start of streaming).
     std::function<void(int sensor, bool pressed, std::chrono::system_clock::time_point time)> on_button;
-    // Status/error text for clients and the log, at most one per timings.message_interval_s.
+    // Status/error text for clients, at most one per timings.message_interval_s.
     std::function<void(Severity severity, const std::string& text)> on_message;
+    // Optional: every text at once, not rate-limited (for the server's own log file).
+    std::function<void(Severity severity, const std::string& text)> on_log;
   };
 
   // Checks the options (throws std::invalid_argument).

@@ -61,6 +61,10 @@ class Collector {
       messages_.push_back({SteadyClock::now(), severity, text});
       cv_.notify_all();
     };
+    c.on_log = [this](Severity, const std::string&) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++log_lines_;
+    };
     return c;
   }
 
@@ -108,6 +112,13 @@ class Collector {
   std::vector<SteadyClock::time_point> report_steady_;
   std::vector<Message> messages_;
   std::vector<Button> buttons_;
+  size_t log_lines_ = 0;
+
+ public:
+  size_t log_lines() const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return log_lines_;
+  }
 };
 
 // Transcript 07's emulated poses (see record_parser_test.cc for the tolerance).
@@ -385,6 +396,9 @@ TEST(FastrakDriver, UnplugBacksOffLimitsTextsAndResumesWithoutReset) {
         << window[i].text;
   }
   EXPECT_LE(window.size(), 7u);
+  // The unthrottled log got every text: at least one failed open per attempt.
+  EXPECT_GE(collector.log_lines(), during.open_attempts - before.open_attempts);
+  EXPECT_GT(collector.log_lines(), collector.messages().size());
 }
 
 TEST(FastrakDriver, PowerCycledDeviceIsResetAfterReplug) {

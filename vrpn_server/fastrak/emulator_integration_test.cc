@@ -203,5 +203,37 @@ TEST(FastrakDriverWithEmulator, DisconnectGarbageTruncationAndStall) {
   ExpectPoses(collector.reports());
 }
 
+TEST(FastrakDriverWithEmulator, ReferenceTimingsStartAndUnplug) {
+  // The default profile (the reference's waits, meant for real units) against the emulator, which
+  // paces its output like a 115200 baud line: start-up, then a 2 s unplug of the port.
+  Fixture f("fastrak_emulator");
+  Collector collector;
+  FastrakOptions options = f.DriverOptions();
+  options.timings = FastrakTimings::Reference();
+  FastrakDriver driver(options, collector.Callbacks());
+  const auto started = SteadyClock::now();
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(10, 20.0));
+  // c, 2 s, flush, 2 s, S, lists 0.2 s, x 1 s, v 1 s: about 6.2 s (the status wait ends at its LF).
+  const double startup_s = std::chrono::duration<double>(collector.time(0) - started).count();
+  std::cout << "reference timings: first report " << startup_s << " s after Start\n";
+  EXPECT_GT(startup_s, 6.0);
+  EXPECT_LT(startup_s, 9.0);
+
+  const size_t n = collector.size();
+  const auto t_fault = SteadyClock::now();
+  f.emulator->Control("fault disconnect 2.0");
+  ASSERT_TRUE(WaitUntil([&] { return collector.FirstAfterGap(n, 1.0).has_value(); }, 10.0));
+  const double since_back =
+      std::chrono::duration<double>(*collector.FirstAfterGap(n, 1.0) - t_fault).count() - 2.0;
+  std::cout << "reference timings, disconnect 2 s: reports resumed " << since_back
+            << " s after the device came back\n";
+  EXPECT_LT(since_back, 2.0);
+  EXPECT_EQ(driver.stats().resets_completed, 1u);
+  EXPECT_EQ(driver.stats().resumes, 1u);
+  driver.Stop();
+  ExpectPoses(collector.reports());
+}
+
 }  // namespace
 }  // namespace trackcal::fastrak
