@@ -232,7 +232,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
           dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
       const auto covariance_start = std::chrono::steady_clock::now();
       result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
-      if (options.compute_covariance && !term.LinearCovariance(sigmas)) {
+      if (options.compute_covariance && spec->covariance && !term.LinearCovariance(sigmas)) {
         result.covariance_message = "linear covariance unavailable";
       }
       result.seconds_covariance =
@@ -378,7 +378,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       cov_index.emplace_back(t, b);
     }
   }
-  if (options.compute_covariance && !cov_blocks.empty()) {
+  if (options.compute_covariance && spec->covariance && !cov_blocks.empty()) {
     CovarianceOptions co;
     co.num_threads = options.num_threads;
     const CovarianceResult cov = ComputeCovariance(&problem, cov_blocks, co);

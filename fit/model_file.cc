@@ -310,6 +310,7 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     if (spec.max_iterations < 1) solver.Fail("max_iterations", "must be >= 1");
     spec.function_tolerance = solver.GetDoubleOr("function_tolerance", spec.function_tolerance);
     if (!(spec.function_tolerance > 0.0)) solver.Fail("function_tolerance", "must be > 0");
+    spec.covariance = solver.GetBoolOr("covariance", spec.covariance);
     solver.Finish();
   }
   auto parse_time_offset = [&](const YamlMapReader& r) {

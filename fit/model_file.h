@@ -125,6 +125,7 @@ struct ModelSpec {
   LossOptions loss;
   int max_iterations = 100;
   double function_tolerance = 1e-12;
+  bool covariance = true;  // standard deviations (solver.covariance; dense analysis costs seconds for big LUTs)
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;
   std::vector<std::vector<BlockSettings>> block_settings;  // one list per term

@@ -23,7 +23,7 @@ TEST(ParseModelYaml, Nominal) {
   const ModelSpec spec = ParseModelYaml(R"(
 noise: {position_mm: 2.0, orientation_deg: 0.5}
 loss: {type: huber, scale: 4}
-solver: {max_iterations: 20}
+solver: {max_iterations: 20, covariance: false}
 time_offset: {value: 0.01, fixed: false}
 terms:
   - type: polynomial
@@ -38,6 +38,7 @@ terms:
   EXPECT_EQ(spec.loss.type, LossType::kHuber);
   EXPECT_DOUBLE_EQ(spec.loss.scale, 4.0);
   EXPECT_EQ(spec.max_iterations, 20);
+  EXPECT_FALSE(spec.covariance);
   ASSERT_TRUE(spec.time_offset.has_value());
   EXPECT_FALSE(spec.time_offset->fixed);
   ASSERT_EQ(spec.terms.size(), 1u);
