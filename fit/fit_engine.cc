@@ -1,0 +1,512 @@
+#include "fit/fit_engine.h"
+
+#include <ceres/ceres.h>
+#include <ceres/normal_prior.h>
+
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+
+namespace trackcal::fit {
+namespace {
+
+// One bound block of one term for one station.
+struct BoundTerm {
+  const ModelTerm* term;
+  StationBinding binding;
+};
+
+// The station residual ((p_c - p_ref) / sigma_p, VectorPart(q_c conj(q_ref)) / sigma_o) and its
+// derivative with respect to the corrected pose (6 x 7), by forward-mode Jets.
+template <typename T>
+void StationResidual(const T* pose7, const Rigid3d& reference, double sigma_p, double sigma_o,
+                     T* residual6) {
+  for (int k = 0; k < 3; ++k) residual6[k] = (pose7[k] - T(reference.translation[k])) / T(sigma_p);
+  const Eigen::Quaternion<T> q = QuaternionFromXyzwArray(pose7 + 3);
+  const Eigen::Quaternion<T> q_ref = reference.rotation.cast<T>();
+  const Vector3<T> v = OrientationErrorVector<T>(q, q_ref);
+  for (int k = 0; k < 3; ++k) residual6[3 + k] = v[k] / T(sigma_o);
+}
+
+// Chains the terms: forward through them, Jacobians composed by the chain rule.
+class StationCost : public ceres::CostFunction {
+ public:
+  StationCost(std::vector<BoundTerm> terms, const FitStation& station, double sigma_p,
+              double sigma_o)
+      : terms_(std::move(terms)), station_(station), sigma_p_(sigma_p), sigma_o_(sigma_o) {
+    set_num_residuals(6);
+    for (const auto& t : terms_) {
+      for (int b : t.binding.blocks) {
+        mutable_parameter_block_sizes()->push_back(t.term->blocks()[static_cast<size_t>(b)].size());
+      }
+    }
+  }
+
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    const bool want = jacobians != nullptr;
+    AmbientPose pose = ToAmbient(station_.reported);
+    // d pose / d block for every block so far (7 x size, row-major).
+    std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> d_pose;
+    TermEvaluation eval;
+    size_t p = 0;
+    for (const auto& t : terms_) {
+      const size_t count = t.binding.blocks.size();
+      if (!t.term->Evaluate(t.binding, parameters + p, pose, want, &eval)) return false;
+      if (want) {
+        for (auto& d : d_pose) d = eval.d_output_d_input * d;
+        for (size_t b = 0; b < count; ++b) d_pose.push_back(eval.d_output_d_blocks[b]);
+      }
+      pose = eval.output;
+      p += count;
+    }
+    if (!want) {
+      StationResidual<double>(pose.data(), station_.reference, sigma_p_, sigma_o_, residuals);
+      return true;
+    }
+    using Jet = ceres::Jet<double, 7>;
+    Jet pose_jet[7];
+    for (int k = 0; k < 7; ++k) pose_jet[k] = Jet(pose[k], k);
+    Jet r[6];
+    StationResidual<Jet>(pose_jet, station_.reference, sigma_p_, sigma_o_, r);
+    Eigen::Matrix<double, 6, 7, Eigen::RowMajor> d_r;
+    for (int i = 0; i < 6; ++i) {
+      residuals[i] = r[i].a;
+      d_r.row(i) = r[i].v.transpose();
+    }
+    for (size_t b = 0; b < d_pose.size(); ++b) {
+      if (jacobians[b] == nullptr) continue;
+      Eigen::Map<Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor>> j(
+          jacobians[b], 6, d_pose[b].cols());
+      j.noalias() = d_r * d_pose[b];
+    }
+    return true;
+  }
+
+ private:
+  std::vector<BoundTerm> terms_;
+  FitStation station_;
+  double sigma_p_, sigma_o_;
+};
+
+// Each station's pose at the input of term `k` (terms 0..k-1 applied with their current values).
+std::vector<FitStation> InputsOfTerm(const std::vector<FitStation>& stations,
+                                     const ModelSpec& spec, size_t k) {
+  std::vector<FitStation> out = stations;
+  if (k == 0) return out;
+  for (auto& s : out) {
+    AmbientPose pose = ToAmbient(s.reported);
+    TermEvaluation eval;
+    for (size_t t = 0; t < k; ++t) {
+      const ModelTerm& term = *spec.terms[t];
+      const StationBinding binding = term.Bind(pose);
+      std::vector<const double*> values;
+      for (int b : binding.blocks) values.push_back(term.blocks()[static_cast<size_t>(b)].values.data());
+      if (!term.Evaluate(binding, values.data(), pose, false, &eval)) {
+        throw std::runtime_error("term '" + term.name() + "' cannot be evaluated at station " +
+                                 std::to_string(s.station));
+      }
+      pose = eval.output;
+    }
+    s.reported = FromAmbient(pose);
+  }
+  return out;
+}
+
+ceres::LossFunction* MakeLoss(const LossOptions& loss) {
+  switch (loss.type) {
+    case LossType::kNone: return nullptr;
+    case LossType::kHuber: return new ceres::HuberLoss(loss.scale);
+    case LossType::kCauchy: return new ceres::CauchyLoss(loss.scale);
+  }
+  return nullptr;
+}
+
+class ProgressCallback : public ceres::IterationCallback {
+ public:
+  explicit ProgressCallback(std::function<void(int, double)> f) : f_(std::move(f)) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary& s) override {
+    f_(s.iteration, s.cost);
+    return ceres::SOLVER_CONTINUE;
+  }
+
+ private:
+  std::function<void(int, double)> f_;
+};
+
+// Parameter reports, term descriptions, the chain with its calibrated volume, timing.
+void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
+                  std::chrono::steady_clock::time_point start, FitResult* out) {
+  FitResult& result = *out;
+  for (const auto& term : spec->terms) {
+    for (const auto& block : term->blocks()) {
+      ParameterReport r;
+      r.term = term->name();
+      r.block = block.name;
+      r.unit = block.unit;
+      r.fixed = block.fixed;
+      r.coordinate_names = block.coordinate_names;
+      r.values = block.values;
+      r.stddev = block.stddev;
+      result.parameters.push_back(std::move(r));
+    }
+    nlohmann::json d = term->Describe();
+    d["name"] = term->name();
+    d["type"] = term->type();
+    result.terms.push_back(d);
+  }
+
+  result.chain = ModelToChain(spec->terms);
+  CalibratedVolume volume;
+  volume.min = volume.max = stations[0].reported.translation;
+  for (const auto& s : stations) {
+    volume.min = volume.min.cwiseMin(s.reported.translation);
+    volume.max = volume.max.cwiseMax(s.reported.translation);
+  }
+  // A flat axis (all stations in one plane) still needs a non-empty box.
+  for (int k = 0; k < 3; ++k) {
+    if (volume.max[k] <= volume.min[k]) {
+      volume.min[k] -= 1e-3;
+      volume.max[k] += 1e-3;
+    }
+  }
+  result.chain.SetVolume(volume);
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+}  // namespace
+
+FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
+                   const FitOptions& options) {
+  if (!options.Check()) throw std::invalid_argument("FitOptions: num_threads must be >= 1");
+  if (spec->terms.empty()) throw std::invalid_argument("model has no terms");
+  if (stations.empty()) throw std::invalid_argument("no calibration stations");
+  const auto start = std::chrono::steady_clock::now();
+  const Eigen::Vector2d sigmas(spec->position_sigma, spec->orientation_sigma);
+
+  // (1) prepare and initialise term by term.
+  std::vector<bool> linear_ok;
+  for (size_t k = 0; k < spec->terms.size(); ++k) {
+    ModelTerm& term = *spec->terms[k];
+    const std::vector<FitStation> inputs = InputsOfTerm(stations, *spec, k);
+    term.Prepare(inputs);
+    if (k < spec->block_settings.size()) ApplyBlockSettings(spec->block_settings[k], &term);
+    linear_ok.push_back(term.InitializeLinear(inputs, sigmas));
+    for (const auto& block : term.blocks()) block.Check(term.name());
+  }
+
+  // Fast path: a lone linear term (the paper's method) is solved by its linear least squares.
+  if (spec->terms.size() == 1 && linear_ok[0] && spec->terms[0]->SolvesAloneLinearly() &&
+      spec->loss.type == LossType::kNone) {
+    bool plain = true;
+    for (const auto& block : spec->terms[0]->blocks()) {
+      plain = plain && block.lower.empty() && block.upper.empty() && block.prior_mean.empty();
+    }
+    if (plain) {
+      FitResult result;
+      ModelTerm& term = *spec->terms[0];
+      result.converged = true;
+      result.solver_message = "linear least squares (paper eq. 9)";
+      const auto correction = term.ToCorrection();
+      const double limit = 5.0;
+      for (const auto& s : stations) {
+        const Rigid3d c = correction->Apply(s.reported).pose;
+        const AmbientPose a = ToAmbient(c);
+        double r[6];
+        StationResidual<double>(a.data(), s.reference, spec->position_sigma,
+                                spec->orientation_sigma, r);
+        double s2 = 0.0;
+        for (double v : r) s2 += v * v;
+        result.final_cost += 0.5 * s2;
+        if (std::sqrt(s2 / 6.0) > limit) result.outliers.push_back({s.station, std::sqrt(s2 / 6.0)});
+      }
+      result.initial_cost = result.final_cost;
+      result.num_residuals = 6 * static_cast<int>(stations.size());
+      for (auto& block : term.blocks()) {
+        block.stddev.assign(block.values.size(), std::numeric_limits<double>::quiet_NaN());
+        if (!block.fixed) result.num_free_parameters += block.size();
+      }
+      const int dof = result.num_residuals - result.num_free_parameters;
+      result.chi2_per_dof =
+          dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
+      const auto covariance_start = std::chrono::steady_clock::now();
+      result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
+      if (options.compute_covariance && spec->covariance && !term.LinearCovariance(sigmas)) {
+        result.covariance_message = "linear covariance unavailable";
+      }
+      result.seconds_covariance =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - covariance_start).count();
+      FinishResult(stations, spec, start, &result);
+      return result;
+    }
+  }
+
+  // (2) the joint problem.
+  ceres::Problem::Options problem_options;
+  ceres::Problem problem(problem_options);
+  int num_free = 0;
+  for (auto& term : spec->terms) {
+    for (auto& block : term->blocks()) {
+      if (block.values.empty()) continue;
+      problem.AddParameterBlock(block.values.data(), block.size());
+      if (block.make_manifold) problem.SetManifold(block.values.data(), block.make_manifold());
+    }
+  }
+  FitResult result;
+  std::vector<ceres::ResidualBlockId> station_blocks;
+  {
+    // The bindings are fixed at the initial values (a LUT cell per station).
+    std::vector<std::vector<BoundTerm>> bound(stations.size());
+    for (size_t i = 0; i < stations.size(); ++i) {
+      AmbientPose pose = ToAmbient(stations[i].reported);
+      TermEvaluation eval;
+      for (const auto& term : spec->terms) {
+        BoundTerm b{term.get(), term->Bind(pose)};
+        std::vector<const double*> values;
+        for (int j : b.binding.blocks) values.push_back(term->blocks()[static_cast<size_t>(j)].values.data());
+        term->Evaluate(b.binding, values.data(), pose, false, &eval);
+        pose = eval.output;
+        bound[i].push_back(std::move(b));
+      }
+    }
+    for (size_t i = 0; i < stations.size(); ++i) {
+      std::vector<double*> blocks;
+      for (const auto& b : bound[i]) {
+        for (int j : b.binding.blocks) {
+          blocks.push_back(const_cast<ModelTerm*>(b.term)->blocks()[static_cast<size_t>(j)].values.data());
+        }
+      }
+      station_blocks.push_back(problem.AddResidualBlock(
+          new StationCost(bound[i], stations[i], spec->position_sigma, spec->orientation_sigma),
+          MakeLoss(spec->loss), blocks));
+    }
+  }
+  for (size_t k = 0; k < spec->terms.size(); ++k) {
+    spec->terms[k]->AddExtraResiduals(&problem, InputsOfTerm(stations, *spec, k));
+  }
+  for (auto& term : spec->terms) {
+    for (auto& block : term->blocks()) {
+      if (block.values.empty() || !problem.HasParameterBlock(block.values.data())) continue;
+      double* data = block.values.data();
+      if (block.fixed) {
+        problem.SetParameterBlockConstant(data);
+        continue;
+      }
+      num_free += problem.ParameterBlockTangentSize(data);
+      for (int i = 0; i < block.size(); ++i) {
+        if (!block.lower.empty() && std::isfinite(block.lower[static_cast<size_t>(i)])) {
+          problem.SetParameterLowerBound(data, i, block.lower[static_cast<size_t>(i)]);
+        }
+        if (!block.upper.empty() && std::isfinite(block.upper[static_cast<size_t>(i)])) {
+          problem.SetParameterUpperBound(data, i, block.upper[static_cast<size_t>(i)]);
+        }
+      }
+      if (!block.prior_mean.empty()) {
+        Eigen::MatrixXd a = Eigen::MatrixXd::Zero(block.size(), block.size());
+        Eigen::VectorXd b(block.size());
+        for (int i = 0; i < block.size(); ++i) {
+          a(i, i) = 1.0 / block.prior_sigma[static_cast<size_t>(i)];
+          b[i] = block.prior_mean[static_cast<size_t>(i)];
+        }
+        problem.AddResidualBlock(new ceres::NormalPrior(a, b), nullptr, data);
+      }
+    }
+  }
+
+  ceres::Solver::Options solver_options;
+  solver_options.max_num_iterations = spec->max_iterations;
+  solver_options.function_tolerance = spec->function_tolerance;
+  solver_options.gradient_tolerance = 1e-14;
+  solver_options.parameter_tolerance = 1e-12;
+  solver_options.num_threads = options.num_threads;
+  solver_options.linear_solver_type =
+      num_free > 400 ? ceres::SPARSE_NORMAL_CHOLESKY : ceres::DENSE_NORMAL_CHOLESKY;
+  ProgressCallback callback(options.progress ? options.progress : [](int, double) {});
+  if (options.progress) {
+    solver_options.callbacks.push_back(&callback);
+    solver_options.update_state_every_iteration = false;
+  }
+  ceres::Solver::Summary summary;
+  if (num_free > 0) ceres::Solve(solver_options, &problem, &summary);
+  result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE;
+  result.solver_message = num_free == 0 ? "no free parameters" : summary.message;
+  result.iterations = num_free == 0 ? 0 : static_cast<int>(summary.iterations.size()) - 1;
+  result.num_residuals = problem.NumResiduals();
+  result.num_free_parameters = num_free;
+  {
+    double cost = 0.0;
+    problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, nullptr);
+    result.final_cost = cost;
+    result.initial_cost = num_free == 0 ? cost : summary.initial_cost;
+  }
+  const int dof = result.num_residuals - num_free;
+  result.chi2_per_dof = dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
+
+  // Outliers: the raw (un-robustified) whitened station residual.
+  {
+    ceres::Problem::EvaluateOptions eo;
+    eo.residual_blocks = station_blocks;
+    eo.apply_loss_function = false;
+    std::vector<double> residuals;
+    problem.Evaluate(eo, nullptr, &residuals, nullptr, nullptr);
+    const double limit = spec->loss.type == LossType::kNone ? 5.0 : spec->loss.scale;
+    for (size_t i = 0; i < stations.size(); ++i) {
+      double s2 = 0.0;
+      for (int k = 0; k < 6; ++k) s2 += residuals[i * 6 + static_cast<size_t>(k)] * residuals[i * 6 + static_cast<size_t>(k)];
+      const double rms = std::sqrt(s2 / 6.0);
+      if (rms > limit) result.outliers.push_back({stations[i].station, rms});
+    }
+  }
+
+  // (3) covariance.
+  const auto covariance_start = std::chrono::steady_clock::now();
+  result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
+  std::vector<CovarianceBlock> cov_blocks;
+  std::vector<std::pair<size_t, size_t>> cov_index;  // (term, block) of each requested block
+  for (size_t t = 0; t < spec->terms.size(); ++t) {
+    auto& blocks = spec->terms[t]->blocks();
+    for (size_t b = 0; b < blocks.size(); ++b) {
+      blocks[b].stddev.assign(blocks[b].values.size(), std::numeric_limits<double>::quiet_NaN());
+      if (blocks[b].fixed || blocks[b].values.empty()) continue;
+      CovarianceBlock cb;
+      cb.values = blocks[b].values.data();
+      cb.name = spec->terms[t]->name() + "." + blocks[b].name;
+      cb.coordinate_names = blocks[b].coordinate_names;
+      cb.max_stddev = blocks[b].identifiability_scale;
+      cov_blocks.push_back(cb);
+      cov_index.emplace_back(t, b);
+    }
+  }
+  if (options.compute_covariance && spec->covariance && !cov_blocks.empty()) {
+    CovarianceOptions co;
+    co.num_threads = options.num_threads;
+    const CovarianceResult cov = ComputeCovariance(&problem, cov_blocks, co);
+    result.covariance_message = cov.message;
+    result.rank_deficient = cov.rank_deficient;
+    result.identifiability_flags = cov.flags;
+    if (cov.success) {
+      // Scale by chi2/dof when the noise model is off? No: the model's sigmas are the noise model; the
+      // reported std assumes them (chi2_per_dof tells whether they fit).
+      for (size_t i = 0; i < cov_blocks.size(); ++i) {
+        auto& block = spec->terms[cov_index[i].first]->blocks()[cov_index[i].second];
+        const int offset = cov.block_offsets[i];
+        const int tangent = problem.ParameterBlockTangentSize(block.values.data());
+        if (tangent != block.size()) continue;  // manifold blocks: std in tangent space only
+        for (int k = 0; k < block.size(); ++k) block.stddev[static_cast<size_t>(k)] = cov.stddev[offset + k];
+      }
+    }
+  }
+  result.seconds_covariance =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - covariance_start).count();
+  FinishResult(stations, spec, start, &result);
+  return result;
+}
+
+Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,
+                      const std::string& set_name) {
+  std::vector<Rigid3d> reported, corrected, reference;
+  for (const auto& s : stations) {
+    reported.push_back(s.reported);
+    corrected.push_back(chain.Apply(s.reported).pose);
+    reference.push_back(s.reference);
+  }
+  Table1 table;
+  table.set_name = set_name;
+  table.before = SummarizePoseErrors(reported, reference);
+  table.after = SummarizePoseErrors(corrected, reference);
+  return table;
+}
+
+Table1 CrossValidate(const std::vector<FitStation>& stations,
+                     const std::function<ModelSpec()>& make_spec, int folds,
+                     const std::function<void(int)>& on_fold) {
+  if (folds < 2) throw std::invalid_argument("cross-validation needs at least 2 folds");
+  if (static_cast<int>(stations.size()) < folds) {
+    throw std::invalid_argument("cross-validation: fewer stations (" +
+                                std::to_string(stations.size()) + ") than folds (" +
+                                std::to_string(folds) + ")");
+  }
+  std::vector<Rigid3d> reported, corrected, reference;
+  for (int f = 0; f < folds; ++f) {
+    if (on_fold) on_fold(f);
+    std::vector<FitStation> train, test;
+    for (size_t i = 0; i < stations.size(); ++i) {
+      (static_cast<int>(i % static_cast<size_t>(folds)) == f ? test : train).push_back(stations[i]);
+    }
+    ModelSpec spec = make_spec();
+    FitOptions options;
+    options.compute_covariance = false;
+    const FitResult fit = FitModel(train, &spec, options);
+    for (const auto& s : test) {
+      reported.push_back(s.reported);
+      corrected.push_back(fit.chain.Apply(s.reported).pose);
+      reference.push_back(s.reference);
+    }
+  }
+  Table1 table;
+  table.set_name = "cross-validation (" + std::to_string(folds) + "-fold)";
+  table.before = SummarizePoseErrors(reported, reference);
+  table.after = SummarizePoseErrors(corrected, reference);
+  return table;
+}
+
+namespace {
+nlohmann::json SummaryToJson(const ErrorSummary& s) {
+  return {{"count", s.count}, {"mean", s.mean}, {"std", s.std},     {"max", s.max},
+          {"rms", s.rms},     {"median", s.median}, {"p95", s.p95}};
+}
+nlohmann::json PoseSummaryToJson(const PoseErrorSummary& s) {
+  return {{"position_mm", SummaryToJson(s.position_mm)},
+          {"orientation_deg", SummaryToJson(s.orientation_deg)}};
+}
+nlohmann::json NumberOrNull(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(); }
+}  // namespace
+
+nlohmann::json Table1ToJson(const Table1& table) {
+  return {{"set", table.set_name},
+          {"before", PoseSummaryToJson(table.before)},
+          {"after", PoseSummaryToJson(table.after)},
+          {"improvement_percent",
+           {{"position_mean", ImprovementPercent(table.before.position_mm.mean, table.after.position_mm.mean)},
+            {"orientation_mean",
+             ImprovementPercent(table.before.orientation_deg.mean, table.after.orientation_deg.mean)}}}};
+}
+
+nlohmann::json FitResult::ToJson() const {
+  nlohmann::json params = nlohmann::json::array();
+  for (const auto& p : parameters) {
+    nlohmann::json values = nlohmann::json::array();
+    for (size_t i = 0; i < p.values.size(); ++i) {
+      values.push_back({{"name", i < p.coordinate_names.size() ? p.coordinate_names[i]
+                                                               : p.block + "[" + std::to_string(i) + "]"},
+                        {"value", p.values[i]},
+                        {"stddev", NumberOrNull(i < p.stddev.size() ? p.stddev[i] : NAN)}});
+    }
+    params.push_back({{"term", p.term}, {"block", p.block}, {"unit", p.unit}, {"fixed", p.fixed},
+                      {"values", values}});
+  }
+  nlohmann::json flags = nlohmann::json::array();
+  for (const auto& f : identifiability_flags) flags.push_back({{"coordinate", f.coordinate}, {"reason", f.reason}});
+  nlohmann::json out_flags = nlohmann::json::array();
+  for (const auto& o : outliers) out_flags.push_back({{"station", o.station}, {"whitened_rms", o.whitened_rms}});
+  return {{"converged", converged},
+          {"solver_message", solver_message},
+          {"iterations", iterations},
+          {"initial_cost", initial_cost},
+          {"final_cost", final_cost},
+          {"num_residuals", num_residuals},
+          {"num_free_parameters", num_free_parameters},
+          {"chi2_per_dof", NumberOrNull(chi2_per_dof)},
+          {"seconds", seconds},
+          {"seconds_solve", seconds_solve},
+          {"seconds_covariance", seconds_covariance},
+          {"rank_deficient", rank_deficient},
+          {"covariance_message", covariance_message},
+          {"identifiability_flags", flags},
+          {"outliers", out_flags},
+          {"terms", terms},
+          {"parameters", params}};
+}
+
+}  // namespace trackcal::fit

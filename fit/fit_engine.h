@@ -1,0 +1,92 @@
+// The fitting engine: estimates all terms of a model (fit/model.h) jointly with Ceres.
+//
+//   ModelSpec spec = ReadModelFile("model.yaml");
+//   FitResult result = FitModel(calibration_stations, &spec, {});
+//   result.chain.Apply(reported);   // the runtime correction, guarded by the calibrated volume
+//
+// Steps: (1) each term in order is prepared (normalisation, grid) and initialised by its linear least
+// squares from the poses the preceding terms produce; (2) one residual block per station
+// ((corrected - reference) whitened by the model's noise, with the model's robust loss), the terms'
+// extra residuals (regularisers) and the priors form one problem, solved by Levenberg-Marquardt;
+// (3) the covariance gives a standard deviation per estimate and flags poorly identified ones
+// (fit/covariance.h); stations whose whitened residual exceeds the loss scale are flagged as outliers.
+#pragma once
+
+#include <functional>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "core/correction.h"
+#include "core/error_statistics.h"
+#include "fit/covariance.h"
+#include "fit/model.h"
+#include "fit/model_file.h"
+
+namespace trackcal::fit {
+
+struct FitOptions {
+  bool compute_covariance = true;  // standard deviations and identifiability flags
+  // Called with (iteration, cost) after each solver iteration (progress on stderr in the CLI).
+  std::function<void(int, double)> progress;
+  int num_threads = 1;  // Ceres threads
+  bool Check() const { return num_threads >= 1; }
+};
+
+struct StationFlag {
+  int station = 0;              // station id
+  double whitened_rms = 0.0;    // |r| / sqrt(6) of the whitened station residual
+};
+
+struct ParameterReport {
+  std::string term;       // term name
+  std::string block;      // block name
+  std::string unit;
+  bool fixed = false;
+  std::vector<std::string> coordinate_names;
+  std::vector<double> values;
+  std::vector<double> stddev;  // NaN where unavailable (fixed block, covariance failed)
+};
+
+struct FitResult {
+  bool converged = false;     // the solver reported convergence
+  std::string solver_message;
+  int iterations = 0;
+  double initial_cost = 0.0;  // 0.5 * sum of squared whitened residuals (after the linear init)
+  double final_cost = 0.0;
+  int num_residuals = 0;
+  int num_free_parameters = 0;
+  double chi2_per_dof = 0.0;  // 2 * final_cost / (num_residuals - num_free_parameters)
+  double seconds = 0.0;       // wall time of the fit (initialisation, solve, covariance)
+  double seconds_solve = 0.0;       // of which initialisation and solve
+  double seconds_covariance = 0.0;  // of which covariance
+  std::vector<ParameterReport> parameters;
+  std::vector<IdentifiabilityFlag> identifiability_flags;
+  bool rank_deficient = false;
+  std::string covariance_message;
+  std::vector<StationFlag> outliers;  // stations beyond the loss scale
+  CorrectionChain chain;              // the fitted correction, with the calibrated volume
+  nlohmann::json terms = nlohmann::json::array();  // Describe() of every term
+
+  nlohmann::json ToJson() const;  // everything above except the chain
+};
+
+// Fits `spec`'s terms to `stations` (the calibration set). The terms keep the fitted values. Throws
+// std::invalid_argument for too few stations or inconsistent settings.
+FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
+                   const FitOptions& options = {});
+
+// Table 1 of the paper for one set: errors of the reported and of the corrected poses.
+Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,
+                      const std::string& set_name);
+
+// k-fold cross-validation: station i goes to fold i % k (deterministic, stations in file order); each
+// fold is corrected by a model fitted on the others (made fresh by make_spec), and the errors of all
+// folds form one table "cross-validation (k-fold)". Throws if a training set is too small.
+Table1 CrossValidate(const std::vector<FitStation>& stations,
+                     const std::function<ModelSpec()>& make_spec, int folds,
+                     const std::function<void(int)>& on_fold = {});
+
+nlohmann::json Table1ToJson(const Table1& table);
+
+}  // namespace trackcal::fit

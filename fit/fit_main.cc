@@ -1,0 +1,351 @@
+// trackcal-fit: fits a correction model to a capture, registers the optical frame, pairs streams.
+//
+//   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] [--json]
+//   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv [--json]
+//   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
+//                     [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv [--json]
+//
+// Human-readable output (Table 1 of the paper, parameters with standard deviations) goes to stdout,
+// progress to stderr; with --json stdout carries exactly one JSON document. Bad input exits with 1 and
+// a message naming file, line and field; bad usage exits with 2.
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <iomanip>
+#include <iostream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "core/calibration_file.h"
+#include "core/capture.h"
+#include "core/file_util.h"
+#include "fit/fit_engine.h"
+#include "fit/model_file.h"
+#include "fit/pose_extraction.h"
+#include "fit/registration.h"
+#include "fit/registration_io.h"
+#include "fit/stream_pairing.h"
+
+namespace fs = std::filesystem;
+using namespace trackcal;
+using namespace trackcal::fit;
+
+namespace {
+
+constexpr const char* kVersion = "0.1.0";
+
+struct UsageError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+
+void PrintUsage(std::ostream& out) {
+  out << "usage:\n"
+         "  trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] "
+         "[--json]\n"
+         "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv "
+         "[--json]\n"
+         "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
+         "                    [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv "
+         "[--json]\n"
+         "Model file format: docs/model-file.md; tool reference: docs/fit.md.\n";
+}
+
+// --key value options and --flags.
+struct Args {
+  std::map<std::string, std::string> values;
+  std::map<std::string, bool> flags;
+  std::string Get(const std::string& key) const {
+    auto it = values.find(key);
+    if (it == values.end()) throw UsageError("missing " + key);
+    return it->second;
+  }
+  std::string GetOr(const std::string& key, const std::string& fallback) const {
+    auto it = values.find(key);
+    return it == values.end() ? fallback : it->second;
+  }
+  bool Flag(const std::string& key) const { return flags.count(key) > 0; }
+};
+
+Args ParseArgs(int argc, char** argv, const std::vector<std::string>& value_keys,
+               const std::vector<std::string>& flag_keys) {
+  Args args;
+  for (int i = 2; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (std::find(flag_keys.begin(), flag_keys.end(), a) != flag_keys.end()) {
+      args.flags[a] = true;
+    } else if (std::find(value_keys.begin(), value_keys.end(), a) != value_keys.end()) {
+      if (i + 1 >= argc) throw UsageError(a + " needs a value");
+      args.values[a] = argv[++i];
+    } else {
+      throw UsageError("unknown argument '" + a + "'");
+    }
+  }
+  return args;
+}
+
+double ParseNumber(const std::string& option, const std::string& text) {
+  size_t used = 0;
+  double v = 0.0;
+  try {
+    v = std::stod(text, &used);
+  } catch (const std::exception&) {
+    used = 0;
+  }
+  if (used != text.size() || !std::isfinite(v)) throw UsageError(option + ": not a number: " + text);
+  return v;
+}
+
+// Refuses to write over an input file.
+void CheckOutputIsNotInput(const fs::path& output, const std::vector<fs::path>& inputs) {
+  std::error_code ec;
+  for (const auto& in : inputs) {
+    if (fs::exists(output, ec) && fs::equivalent(output, in, ec)) {
+      throw std::invalid_argument(output.string() + ": output would overwrite the input " +
+                                  in.string());
+    }
+  }
+}
+
+std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::string& set) {
+  std::vector<FitStation> out;
+  for (const auto& r : poses.records) {
+    if (r.set == set) out.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
+  }
+  return out;
+}
+
+void PrintParameters(const FitResult& result, std::ostream& out) {
+  out << "Parameters (value +- standard deviation):\n";
+  for (const auto& p : result.parameters) {
+    out << "  " << p.term << "." << p.block << " [" << p.unit << "]" << (p.fixed ? " (fixed)" : "")
+        << ": " << p.values.size() << " values\n";
+    const size_t shown = std::min<size_t>(p.values.size(), 12);
+    for (size_t i = 0; i < shown; ++i) {
+      out << "    " << std::left << std::setw(22)
+          << (i < p.coordinate_names.size() ? p.coordinate_names[i] : std::to_string(i))
+          << std::right << std::setw(14) << std::setprecision(6) << p.values[i];
+      if (i < p.stddev.size() && std::isfinite(p.stddev[i])) out << " +- " << p.stddev[i];
+      out << "\n";
+    }
+    if (shown < p.values.size()) out << "    ... (all values in --json and the calibration file)\n";
+  }
+  if (!result.identifiability_flags.empty()) {
+    out << "Poorly identified (" << result.identifiability_flags.size() << "):\n";
+    for (size_t i = 0; i < result.identifiability_flags.size() && i < 10; ++i) {
+      out << "  " << result.identifiability_flags[i].coordinate << ": "
+          << result.identifiability_flags[i].reason << "\n";
+    }
+  }
+}
+
+int RunFit(int argc, char** argv) {
+  const Args args = ParseArgs(argc, argv, {"--data", "--model", "-o", "--folds"}, {"--json", "--quiet"});
+  const fs::path data = args.Get("--data");
+  const fs::path model_path = args.Get("--model");
+  const fs::path output = args.Get("-o");
+  const int folds = static_cast<int>(ParseNumber("--folds", args.GetOr("--folds", "5")));
+  if (folds < 2) throw UsageError("--folds must be at least 2");
+  const bool json = args.Flag("--json");
+  const bool quiet = args.Flag("--quiet");
+
+  const std::string model_text = ReadFileToString(model_path);
+  auto make_spec = [&] { return ParseModelYaml(model_text, model_path.string()); };
+  ModelSpec spec = make_spec();
+
+  // Data: poses.csv, a folder with poses.csv, or a folder with streams to pair.
+  fs::path poses_path = data;
+  std::vector<fs::path> inputs = {model_path};
+  PoseCapture poses;
+  std::optional<double> paired_offset;
+  if (fs::is_directory(data)) {
+    poses_path = data / kPosesCsv;
+    if (!fs::exists(poses_path) && fs::exists(data / kTrackerStreamCsv)) {
+      StreamPairingOptions pairing;
+      if (spec.time_offset) {
+        pairing.time_offset = spec.time_offset->value;
+        pairing.estimate_time_offset = !spec.time_offset->fixed;
+        pairing.search_range = spec.time_offset->search_range;
+      }
+      const auto result = PairStreams(ReadTrackerStream(data / kTrackerStreamCsv),
+                                      ReadReferenceStream(data / kReferenceStreamCsv), pairing);
+      poses = result.poses;
+      paired_offset = result.time_offset;
+      inputs.push_back(data / kTrackerStreamCsv);
+      inputs.push_back(data / kReferenceStreamCsv);
+    }
+  }
+  if (poses.records.empty()) {
+    poses = ReadPoses(poses_path);
+    inputs.push_back(poses_path);
+  }
+  CheckOutputIsNotInput(output, inputs);
+  const auto calib = StationsOfSet(poses, "calib");
+  const auto valid = StationsOfSet(poses, "valid");
+  if (calib.empty()) {
+    throw std::invalid_argument(poses_path.string() + ": no stations with set 'calib'");
+  }
+
+  FitOptions options;
+  if (!quiet) {
+    options.progress = [](int iteration, double cost) {
+      std::cerr << "trackcal-fit: iteration " << iteration << ", cost " << cost << "\n";
+    };
+  }
+  FitResult result = FitModel(calib, &spec, options);
+  std::vector<Table1> tables = {EvaluateTable1(result.chain, calib, "calib")};
+  if (!valid.empty()) {
+    tables.push_back(EvaluateTable1(result.chain, valid, "valid"));
+  } else {
+    tables.push_back(CrossValidate(calib, make_spec, folds, [&](int f) {
+      if (!quiet) std::cerr << "trackcal-fit: cross-validation fold " << f + 1 << "/" << folds << "\n";
+    }));
+  }
+
+  Calibration calibration;
+  calibration.description = "fitted by trackcal-fit from " + poses_path.filename().string() +
+                            " with model " + model_path.filename().string();
+  calibration.chain = result.chain;
+  nlohmann::json stats = nlohmann::json::object();
+  nlohmann::json table_json = nlohmann::json::array();
+  for (const auto& t : tables) table_json.push_back(Table1ToJson(t));
+  stats["tables"] = table_json;
+  stats["chi2_per_dof"] = std::isfinite(result.chi2_per_dof) ? nlohmann::json(result.chi2_per_dof)
+                                                             : nlohmann::json();
+  stats["num_calib_stations"] = calib.size();
+  stats["num_valid_stations"] = valid.size();
+  stats["converged"] = result.converged;
+  stats["num_outliers"] = result.outliers.size();
+  stats["num_poorly_identified"] = result.identifiability_flags.size();
+  if (paired_offset) stats["time_offset_s"] = *paired_offset;
+  calibration.fit_statistics = stats;
+  calibration.provenance.tool = "trackcal-fit";
+  calibration.provenance.tool_version = kVersion;
+  calibration.provenance.created_utc = CurrentUtcTimestamp();
+  {
+    std::string cmd;
+    for (int i = 0; i < argc; ++i) cmd += (i ? " " : "") + std::string(argv[i]);
+    calibration.provenance.command_line = cmd;
+  }
+  for (size_t i = 0; i < inputs.size(); ++i) {
+    const std::string role = i == 0 ? "model_file" : "calibration_capture";
+    calibration.provenance.inputs.push_back(
+        {inputs[i].string(), Sha256HexOfFile(inputs[i]), role});
+  }
+  WriteCalibrationFile(output, calibration);
+
+  if (json) {
+    nlohmann::json doc = {{"command", "fit"},
+                          {"output", output.string()},
+                          {"tables", table_json},
+                          {"fit", result.ToJson()}};
+    if (paired_offset) doc["time_offset_s"] = *paired_offset;
+    std::cout << doc.dump(2) << "\n";
+    return 0;
+  }
+  for (const auto& t : tables) std::cout << FormatTable1(t) << "\n";
+  std::cout << "Fit: " << (result.converged ? "converged" : "NOT converged") << " after "
+            << result.iterations << " iterations in " << std::setprecision(3)
+            << result.seconds * 1e3 << " ms; chi2/dof " << result.chi2_per_dof << "\n";
+  if (!result.outliers.empty()) {
+    std::cout << "Outlier stations (" << result.outliers.size() << "):";
+    for (const auto& o : result.outliers) std::cout << " " << o.station;
+    std::cout << "\n";
+  }
+  PrintParameters(result, std::cout);
+  std::cout << "Wrote " << output.string() << "\n";
+  return 0;
+}
+
+int RunPair(int argc, char** argv) {
+  const Args args = ParseArgs(argc, argv, {"--tracker", "--reference", "-o", "--time-offset", "--set"},
+                              {"--json", "--estimate-time-offset"});
+  const fs::path tracker_path = args.Get("--tracker");
+  const fs::path reference_path = args.Get("--reference");
+  const fs::path output = args.Get("-o");
+  CheckOutputIsNotInput(output, {tracker_path, reference_path});
+  StreamPairingOptions options;
+  options.time_offset = ParseNumber("--time-offset", args.GetOr("--time-offset", "0"));
+  options.estimate_time_offset = args.Flag("--estimate-time-offset");
+  options.set = args.GetOr("--set", "calib");
+  const auto result =
+      PairStreams(ReadTrackerStream(tracker_path), ReadReferenceStream(reference_path), options);
+  WritePoses(output, result.poses);
+  if (args.Flag("--json")) {
+    std::cout << nlohmann::json{{"command", "pair"},
+                                {"output", output.string()},
+                                {"num_poses", result.poses.records.size()},
+                                {"dropped", result.dropped},
+                                {"time_offset_s", result.time_offset},
+                                {"estimated", options.estimate_time_offset},
+                                {"position_difference_variance_m2", result.cost}}
+                     .dump(2)
+              << "\n";
+  } else {
+    std::cout << "Paired " << result.poses.records.size() << " samples (" << result.dropped
+              << " without reference), time offset " << std::setprecision(6) << result.time_offset
+              << " s" << (options.estimate_time_offset ? " (estimated)" : "") << "\nWrote "
+              << output.string() << "\n";
+  }
+  return 0;
+}
+
+int RunRegister(int argc, char** argv) {
+  const Args args = ParseArgs(argc, argv, {"--markers", "--tracker", "-o", "--set"}, {"--json"});
+  const fs::path markers_path = args.Get("--markers");
+  const fs::path tracker_path = args.Get("--tracker");
+  const fs::path output = args.Get("-o");
+  CheckOutputIsNotInput(output, {markers_path, tracker_path});
+  const std::vector<RegistrationStation> stations =
+      ReadRegistrationStations(markers_path, tracker_path);
+  const RegistrationResult registration = RegisterOpticalToTransmitter(stations);
+  const auto extracted = ExtractPoses(stations, registration.registration);
+  PoseRecordOptions record_options;
+  record_options.set = args.GetOr("--set", "calib");
+  const PoseRecords records = MakePoseRecords(stations, extracted, {}, record_options);
+  const PoseCapture& poses = records.capture;
+  const int without_pose = static_cast<int>(records.left_out.size());
+  WritePoses(output, poses);
+  if (args.Flag("--json")) {
+    std::cout << nlohmann::json{{"command", "register"},
+                                {"output", output.string()},
+                                {"num_poses", poses.records.size()},
+                                {"stations_without_pose", without_pose},
+                                {"converged", registration.converged},
+                                {"identifiable", registration.identifiable},
+                                {"chi_square", registration.chi_square},
+                                {"nu", registration.nu}}
+                     .dump(2)
+              << "\n";
+  } else {
+    std::cout << registration.ToString() << "\nWrote " << poses.records.size() << " poses to "
+              << output.string() << "\n";
+  }
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc < 2 || std::string(argv[1]) == "--help" || std::string(argv[1]) == "-h") {
+    PrintUsage(argc < 2 ? std::cerr : std::cout);
+    return argc < 2 ? 2 : 0;
+  }
+  const std::string command = argv[1];
+  try {
+    if (command == "fit") return RunFit(argc, argv);
+    if (command == "pair") return RunPair(argc, argv);
+    if (command == "register") return RunRegister(argc, argv);
+    throw UsageError("unknown command '" + command + "'");
+  } catch (const UsageError& e) {
+    std::cerr << "trackcal-fit: " << e.what() << "\n";
+    PrintUsage(std::cerr);
+    return 2;
+  } catch (const std::exception& e) {
+    std::cerr << "trackcal-fit: error: " << e.what() << "\n";
+    return 1;
+  }
+}

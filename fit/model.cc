@@ -1,0 +1,76 @@
+#include "fit/model.h"
+
+#include <cmath>
+#include <stdexcept>
+
+namespace trackcal::fit {
+
+AmbientPose ToAmbient(const Rigid3d& pose) {
+  AmbientPose a;
+  a.head<3>() = pose.translation;
+  a[3] = pose.rotation.x();
+  a[4] = pose.rotation.y();
+  a[5] = pose.rotation.z();
+  a[6] = pose.rotation.w();
+  return a;
+}
+
+Rigid3d FromAmbient(const AmbientPose& a) {
+  Rigid3d pose;
+  pose.translation = a.head<3>();
+  pose.rotation = Eigen::Quaterniond(a[6], a[3], a[4], a[5]).normalized();
+  return pose;
+}
+
+void ParameterBlock::Check(const std::string& term_name) const {
+  const std::string where = term_name + "." + name;
+  const size_t n = values.size();
+  auto fail = [&](const std::string& message) {
+    throw std::invalid_argument("parameter block " + where + ": " + message);
+  };
+  if (!coordinate_names.empty() && coordinate_names.size() != n) fail("wrong number of names");
+  if (!lower.empty() && lower.size() != n) fail("lower bound needs one value per coordinate");
+  if (!upper.empty() && upper.size() != n) fail("upper bound needs one value per coordinate");
+  if (prior_mean.size() != prior_sigma.size()) fail("prior needs both mean and sigma");
+  if (!prior_mean.empty() && prior_mean.size() != n) fail("prior needs one value per coordinate");
+  for (size_t i = 0; i < n; ++i) {
+    if (!std::isfinite(values[i])) fail("value " + std::to_string(i) + " is not finite");
+    const double lo = lower.empty() ? -INFINITY : lower[i];
+    const double hi = upper.empty() ? INFINITY : upper[i];
+    if (lo > hi) fail("lower bound above upper bound at " + std::to_string(i));
+    if (values[i] < lo || values[i] > hi) {
+      fail("value " + std::to_string(values[i]) + " outside its bounds at " + std::to_string(i));
+    }
+    if (!prior_sigma.empty() && !(prior_sigma[i] > 0.0)) fail("prior sigma must be > 0");
+  }
+}
+
+void ModelTerm::Prepare(const std::vector<FitStation>& /*inputs*/) {}
+
+bool ModelTerm::InitializeLinear(const std::vector<FitStation>& /*inputs*/,
+                                 const Eigen::Vector2d& /*noise_sigmas*/) {
+  return false;
+}
+
+bool ModelTerm::LinearCovariance(const Eigen::Vector2d& /*noise_sigmas*/) { return false; }
+
+StationBinding ModelTerm::Bind(const AmbientPose& /*input*/) const {
+  StationBinding binding;
+  for (size_t i = 0; i < blocks_.size(); ++i) binding.blocks.push_back(static_cast<int>(i));
+  return binding;
+}
+
+int ModelTerm::AddExtraResiduals(ceres::Problem* /*problem*/,
+                                 const std::vector<FitStation>& /*inputs*/) {
+  return 0;
+}
+
+nlohmann::json ModelTerm::Describe() const { return nlohmann::json::object(); }
+
+CorrectionChain ModelToChain(const std::vector<std::unique_ptr<ModelTerm>>& terms) {
+  CorrectionChain chain;
+  for (const auto& term : terms) chain.Append(term->ToCorrection());
+  return chain;
+}
+
+}  // namespace trackcal::fit

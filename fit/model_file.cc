@@ -1,0 +1,371 @@
+#include "fit/model_file.h"
+
+#include <algorithm>
+#include <cmath>
+#include <fstream>
+#include <sstream>
+#include <stdexcept>
+
+namespace trackcal::fit {
+namespace {
+
+std::string MarkString(const std::string& source, const YAML::Mark& mark) {
+  if (mark.is_null()) return source;
+  return source + ":" + std::to_string(mark.line + 1) + ":" + std::to_string(mark.column + 1);
+}
+
+}  // namespace
+
+YamlMapReader::YamlMapReader(YAML::Node node, std::string source, std::string path)
+    : node_(std::move(node)), source_(std::move(source)), path_(std::move(path)) {
+  if (!node_.IsMap()) {
+    throw std::invalid_argument(MarkString(source_, node_.Mark()) + ": " + path_ +
+                                ": expected a mapping");
+  }
+}
+
+void YamlMapReader::Fail(const std::string& key, const std::string& message) const {
+  YAML::Mark mark = node_.Mark();
+  std::string field = path_;
+  if (!key.empty()) {
+    field += "." + key;
+    const YAML::Node value = node_[key];
+    if (value.IsDefined()) mark = value.Mark();
+  }
+  throw std::invalid_argument(MarkString(source_, mark) + ": " + field + ": " + message);
+}
+
+bool YamlMapReader::Has(const std::string& key) const {
+  read_.insert(key);
+  return node_[key].IsDefined() && !node_[key].IsNull();
+}
+
+YAML::Node YamlMapReader::Get(const std::string& key) const {
+  read_.insert(key);
+  const YAML::Node value = node_[key];
+  if (!value.IsDefined() || value.IsNull()) Fail(key, "missing required field");
+  return value;
+}
+
+double YamlMapReader::GetDouble(const std::string& key) const {
+  const YAML::Node value = Get(key);
+  double out = 0.0;
+  if (!value.IsScalar() || !YAML::convert<double>::decode(value, out) || !std::isfinite(out)) {
+    Fail(key, "expected a finite number");
+  }
+  return out;
+}
+
+double YamlMapReader::GetDoubleOr(const std::string& key, double fallback) const {
+  return Has(key) ? GetDouble(key) : fallback;
+}
+
+int YamlMapReader::GetInt(const std::string& key) const {
+  const YAML::Node value = Get(key);
+  int out = 0;
+  if (!value.IsScalar() || !YAML::convert<int>::decode(value, out)) Fail(key, "expected an integer");
+  return out;
+}
+
+int YamlMapReader::GetIntOr(const std::string& key, int fallback) const {
+  return Has(key) ? GetInt(key) : fallback;
+}
+
+bool YamlMapReader::GetBoolOr(const std::string& key, bool fallback) const {
+  if (!Has(key)) return fallback;
+  const YAML::Node value = Get(key);
+  bool out = false;
+  if (!value.IsScalar() || !YAML::convert<bool>::decode(value, out)) {
+    Fail(key, "expected true or false");
+  }
+  return out;
+}
+
+std::string YamlMapReader::GetString(const std::string& key) const {
+  const YAML::Node value = Get(key);
+  if (!value.IsScalar()) Fail(key, "expected a string");
+  return value.Scalar();
+}
+
+std::string YamlMapReader::GetStringOr(const std::string& key, const std::string& fallback) const {
+  return Has(key) ? GetString(key) : fallback;
+}
+
+std::vector<double> YamlMapReader::GetDoubleList(const std::string& key) const {
+  const YAML::Node value = Get(key);
+  std::vector<double> out;
+  auto decode = [&](const YAML::Node& item) {
+    double v = 0.0;
+    if (!item.IsScalar() || !YAML::convert<double>::decode(item, v) || !std::isfinite(v)) {
+      Fail(key, "expected a finite number or a list of finite numbers");
+    }
+    out.push_back(v);
+  };
+  if (value.IsSequence()) {
+    for (const auto& item : value) decode(item);
+  } else {
+    decode(value);
+  }
+  return out;
+}
+
+YamlMapReader YamlMapReader::GetMap(const std::string& key) const {
+  const YAML::Node value = Get(key);
+  if (!value.IsMap()) Fail(key, "expected a mapping");
+  return YamlMapReader(value, source_, path_ + "." + key);
+}
+
+void YamlMapReader::Finish() const {
+  for (const auto& item : node_) {
+    const std::string key = item.first.Scalar();
+    if (!read_.count(key)) {
+      throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ + "." +
+                                  key + ": unknown key");
+    }
+  }
+}
+
+// --- registry -------------------------------------------------------------------------------
+
+void RegisterBuiltinTerms(TermRegistry* registry);  // fit/terms_builtin.cc
+
+TermRegistry& TermRegistry::Global() {
+  static TermRegistry* registry = [] {
+    auto* r = new TermRegistry();
+    RegisterBuiltinTerms(r);
+    return r;
+  }();
+  return *registry;
+}
+
+void TermRegistry::Register(const std::string& type, TermFactory factory) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (type.empty()) throw std::invalid_argument("TermRegistry: empty term type");
+  for (const auto& [name, f] : factories_) {
+    if (name == type) throw std::invalid_argument("TermRegistry: term type '" + type + "' taken");
+  }
+  factories_.emplace_back(type, std::move(factory));
+}
+
+bool TermRegistry::Contains(const std::string& type) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return std::any_of(factories_.begin(), factories_.end(),
+                     [&](const auto& f) { return f.first == type; });
+}
+
+std::vector<std::string> TermRegistry::Types() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<std::string> out;
+  for (const auto& f : factories_) out.push_back(f.first);
+  return out;
+}
+
+std::unique_ptr<ModelTerm> TermRegistry::Create(const std::string& type,
+                                                const YamlMapReader& reader) const {
+  TermFactory factory;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const auto& f : factories_) {
+      if (f.first == type) factory = f.second;
+    }
+  }
+  if (!factory) {
+    std::string known;
+    for (const auto& t : Types()) known += (known.empty() ? "" : ", ") + t;
+    reader.Fail("type", "unknown term type '" + type + "' (known: " + known + ", time_offset)");
+  }
+  return factory(reader);
+}
+
+// --- parser ---------------------------------------------------------------------------------
+
+std::string LossTypeName(LossType type) {
+  switch (type) {
+    case LossType::kNone: return "none";
+    case LossType::kHuber: return "huber";
+    case LossType::kCauchy: return "cauchy";
+  }
+  return "none";
+}
+
+namespace {
+
+std::vector<BlockSettings> ParseBlockSettings(const YamlMapReader& parameters) {
+  std::vector<BlockSettings> out;
+  for (const auto& item : parameters.node()) {
+    const std::string block = item.first.Scalar();
+    const YamlMapReader r = parameters.GetMap(block);
+    BlockSettings s;
+    s.block = block;
+    s.where = MarkString(r.source(), r.node().Mark()) + ": " + r.path();
+    if (r.Has("value")) s.value = r.GetDoubleList("value");
+    if (r.Has("fixed")) s.fixed = r.GetBoolOr("fixed", false);
+    if (r.Has("lower")) s.lower = r.GetDoubleList("lower");
+    if (r.Has("upper")) s.upper = r.GetDoubleList("upper");
+    if (r.Has("prior")) {
+      const YamlMapReader p = r.GetMap("prior");
+      s.prior_mean = p.GetDoubleList("mean");
+      s.prior_sigma = p.GetDoubleList("sigma");
+      for (double sigma : *s.prior_sigma) {
+        if (!(sigma > 0.0)) p.Fail("sigma", "must be > 0");
+      }
+      p.Finish();
+    }
+    r.Finish();
+    out.push_back(std::move(s));
+  }
+  return out;
+}
+
+}  // namespace
+
+void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* term) {
+  for (const BlockSettings& s : settings) {
+    ParameterBlock* block = nullptr;
+    std::string known;
+    std::vector<ParameterBlock*> matched;
+    for (auto& b : term->blocks()) {
+      // "node_values" names every "node_values[...]" block of a LUT.
+      const std::string family = b.name.substr(0, b.name.find('['));
+      if (known.find(family) == std::string::npos) known += (known.empty() ? "" : ", ") + family;
+      if (b.name == s.block || family == s.block) matched.push_back(&b);
+    }
+    if (!matched.empty()) block = matched.front();
+    if (block == nullptr) {
+      throw std::invalid_argument(s.where + ": term '" + term->name() +
+                                  "' has no parameter block '" + s.block + "' (blocks: " + known +
+                                  ")");
+    }
+    for (ParameterBlock* target : matched) {
+    block = target;
+    const size_t n = block->values.size();
+    auto expand = [&](const std::vector<double>& v, const char* field) {
+      if (v.size() == 1) return std::vector<double>(n, v[0]);
+      if (v.size() != n) {
+        throw std::invalid_argument(s.where + "." + field + ": expected 1 or " +
+                                    std::to_string(n) + " values, got " +
+                                    std::to_string(v.size()));
+      }
+      return v;
+    };
+    if (s.value) block->values = expand(*s.value, "value");
+    if (s.fixed) block->fixed = *s.fixed;
+    if (s.lower) block->lower = expand(*s.lower, "lower");
+    if (s.upper) block->upper = expand(*s.upper, "upper");
+    if (s.prior_mean) {
+      block->prior_mean = expand(*s.prior_mean, "prior.mean");
+      block->prior_sigma = expand(*s.prior_sigma, "prior.sigma");
+    }
+    try {
+      block->Check(term->name());
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(s.where + ": " + e.what());
+    }
+    }
+  }
+}
+
+ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name) {
+  YAML::Node root;
+  try {
+    root = YAML::Load(text);
+  } catch (const YAML::Exception& e) {
+    throw std::invalid_argument(MarkString(source_name, e.mark) + ": YAML syntax error: " + e.msg);
+  }
+  if (!root.IsMap()) {
+    throw std::invalid_argument(source_name + ": the model file must be a mapping with 'terms'");
+  }
+  const YamlMapReader top(root, source_name, "$");
+  ModelSpec spec;
+  spec.source = source_name;
+  if (top.Has("noise")) {
+    const YamlMapReader noise = top.GetMap("noise");
+    const double p = noise.GetDoubleOr("position_mm", spec.position_sigma * 1e3);
+    const double o = noise.GetDoubleOr("orientation_deg", spec.orientation_sigma * 180.0 / M_PI);
+    if (!(p > 0.0)) noise.Fail("position_mm", "must be > 0");
+    if (!(o > 0.0)) noise.Fail("orientation_deg", "must be > 0");
+    spec.position_sigma = p * 1e-3;
+    spec.orientation_sigma = o * M_PI / 180.0;
+    noise.Finish();
+  }
+  if (top.Has("loss")) {
+    const YamlMapReader loss = top.GetMap("loss");
+    const std::string type = loss.GetString("type");
+    if (type == "none") {
+      spec.loss.type = LossType::kNone;
+    } else if (type == "huber") {
+      spec.loss.type = LossType::kHuber;
+    } else if (type == "cauchy") {
+      spec.loss.type = LossType::kCauchy;
+    } else {
+      loss.Fail("type", "unknown loss '" + type + "' (known: none, huber, cauchy)");
+    }
+    spec.loss.scale = loss.GetDoubleOr("scale", spec.loss.scale);
+    if (!(spec.loss.scale > 0.0)) loss.Fail("scale", "must be > 0");
+    loss.Finish();
+  }
+  if (top.Has("solver")) {
+    const YamlMapReader solver = top.GetMap("solver");
+    spec.max_iterations = solver.GetIntOr("max_iterations", spec.max_iterations);
+    if (spec.max_iterations < 1) solver.Fail("max_iterations", "must be >= 1");
+    spec.function_tolerance = solver.GetDoubleOr("function_tolerance", spec.function_tolerance);
+    if (!(spec.function_tolerance > 0.0)) solver.Fail("function_tolerance", "must be > 0");
+    spec.covariance = solver.GetBoolOr("covariance", spec.covariance);
+    solver.Finish();
+  }
+  auto parse_time_offset = [&](const YamlMapReader& r) {
+    TimeOffsetSpec t;
+    t.value = r.GetDoubleOr("value", 0.0);
+    t.fixed = r.GetBoolOr("fixed", true);
+    t.search_range = r.GetDoubleOr("search_range", t.search_range);
+    if (!(t.search_range > 0.0)) r.Fail("search_range", "must be > 0");
+    if (spec.time_offset) r.Fail("", "time_offset given twice");
+    spec.time_offset = t;
+  };
+  if (top.Has("time_offset")) parse_time_offset(top.GetMap("time_offset"));
+
+  const YAML::Node terms = root["terms"];
+  top.MarkRead("terms");
+  if (!terms.IsDefined() || !terms.IsSequence()) {
+    top.Fail("terms", terms.IsDefined() ? "expected a list of terms" : "missing required field");
+  }
+  std::set<std::string> names;
+  for (size_t i = 0; i < terms.size(); ++i) {
+    const YamlMapReader r(terms[i], source_name, "$.terms[" + std::to_string(i) + "]");
+    const std::string type = r.GetString("type");
+    if (type == "time_offset") {
+      parse_time_offset(r);
+      r.Finish();
+      continue;
+    }
+    std::unique_ptr<ModelTerm> term = TermRegistry::Global().Create(type, r);
+    std::string name = r.GetStringOr("name", type);
+    if (names.count(name)) {
+      // Repeated types (several dipoles) are numbered unless named.
+      if (r.Has("name")) r.Fail("name", "duplicate term name '" + name + "'");
+      int k = 2;
+      while (names.count(type + "_" + std::to_string(k))) ++k;
+      name = type + "_" + std::to_string(k);
+    }
+    names.insert(name);
+    term->set_name(name);
+    std::vector<BlockSettings> settings;
+    if (r.Has("parameters")) settings = ParseBlockSettings(r.GetMap("parameters"));
+    r.Finish();
+    spec.terms.push_back(std::move(term));
+    spec.block_settings.push_back(std::move(settings));
+  }
+  if (spec.terms.empty()) top.Fail("terms", "the model needs at least one correction term");
+  top.Finish();
+  return spec;
+}
+
+ModelSpec ReadModelFile(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  if (!in) throw std::invalid_argument(path.string() + ": cannot open model file");
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  return ParseModelYaml(buffer.str(), path.string());
+}
+
+}  // namespace trackcal::fit

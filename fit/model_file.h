@@ -1,0 +1,143 @@
+// The model file (YAML): which terms the correction has, in order, and how they are fitted.
+// Format reference: docs/model-file.md.
+//
+//   noise: {position_mm: 1.0, orientation_deg: 0.2}   # whitening of the station residuals
+//   loss: {type: huber, scale: 3}                     # robust loss, scale in sigmas (optional)
+//   solver: {max_iterations: 100}
+//   time_offset: {value: 0.0, fixed: true}            # t_reference - t_tracker [s] (optional)
+//   terms:
+//     - type: polynomial
+//       degree: 4
+//     - type: lut
+//       cell_size_mm: 100
+//       smoothness: 1.0
+//       parameters:                # generic per-block settings, for every term type
+//         node_values: {fixed: false}
+//
+// Term types are looked up in TermRegistry::Global(): fit/ registers polynomial and lut; other modules
+// (physical terms) register theirs without touching the parser. Every error names the file, line,
+// column and field; unknown keys are rejected.
+#pragma once
+
+#include <yaml-cpp/yaml.h>
+
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "fit/model.h"
+
+namespace trackcal::fit {
+
+// Reads one YAML mapping, remembers which keys were read, and rejects the rest in Finish(). Every
+// error is std::invalid_argument "FILE:LINE:COLUMN: PATH: message".
+class YamlMapReader {
+ public:
+  YamlMapReader(YAML::Node node, std::string source, std::string path);
+
+  const std::string& source() const { return source_; }
+  const std::string& path() const { return path_; }
+  const YAML::Node& node() const { return node_; }
+
+  bool Has(const std::string& key) const;
+  // Typed reads; the *Or variants return `fallback` when the key is absent.
+  double GetDouble(const std::string& key) const;
+  double GetDoubleOr(const std::string& key, double fallback) const;
+  int GetInt(const std::string& key) const;
+  int GetIntOr(const std::string& key, int fallback) const;
+  bool GetBoolOr(const std::string& key, bool fallback) const;
+  std::string GetString(const std::string& key) const;
+  std::string GetStringOr(const std::string& key, const std::string& fallback) const;
+  std::vector<double> GetDoubleList(const std::string& key) const;
+  // A nested mapping (throws if absent or not a mapping).
+  YamlMapReader GetMap(const std::string& key) const;
+  // Marks a key as read without reading it (handled elsewhere).
+  void MarkRead(const std::string& key) const { read_.insert(key); }
+
+  // Throws naming the first key that was not read.
+  void Finish() const;
+
+  // Throws "FILE:LINE:COLUMN: PATH.key: message" at `key` (or at the map if key is empty).
+  [[noreturn]] void Fail(const std::string& key, const std::string& message) const;
+
+ private:
+  YAML::Node Get(const std::string& key) const;
+  YAML::Node node_;
+  std::string source_;
+  std::string path_;
+  mutable std::set<std::string> read_;
+};
+
+// Builds a term from its mapping in the model file. The reader is positioned on the term's mapping;
+// "type", "name" and "parameters" are handled by the parser, the factory reads every other key it
+// accepts (the parser rejects the rest).
+using TermFactory = std::function<std::unique_ptr<ModelTerm>(const YamlMapReader& reader)>;
+
+class TermRegistry {
+ public:
+  // Holds polynomial and lut on first use.
+  static TermRegistry& Global();
+  // Throws std::invalid_argument if the name is empty or taken.
+  void Register(const std::string& type, TermFactory factory);
+  bool Contains(const std::string& type) const;
+  std::vector<std::string> Types() const;
+  // Throws (through reader.Fail) for an unknown type, naming the known ones.
+  std::unique_ptr<ModelTerm> Create(const std::string& type, const YamlMapReader& reader) const;
+
+ private:
+  TermRegistry() = default;
+  mutable std::mutex mutex_;
+  std::vector<std::pair<std::string, TermFactory>> factories_;
+};
+
+enum class LossType { kNone, kHuber, kCauchy };
+
+struct LossOptions {
+  LossType type = LossType::kNone;
+  double scale = 3.0;  // in sigmas of the whitened residual: a station beyond it is down-weighted
+};
+
+// Settings of one parameter block from the file's `parameters:` mapping, applied after Prepare().
+struct BlockSettings {
+  std::string block;  // block name
+  std::string where;  // "FILE:LINE:COLUMN: PATH" for errors found when applying
+  std::optional<std::vector<double>> value;  // one value (broadcast) or one per coordinate
+  std::optional<bool> fixed;
+  std::optional<std::vector<double>> lower, upper;
+  std::optional<std::vector<double>> prior_mean, prior_sigma;
+};
+
+struct TimeOffsetSpec {
+  double value = 0.0;  // reference clock minus tracker clock [s]: t_reference = t_tracker + value
+  bool fixed = true;   // false: estimated when pairing streams
+  double search_range = 0.5;  // [s] half-width of the search interval around `value`
+};
+
+struct ModelSpec {
+  std::string source;  // file name (or "<string>")
+  double position_sigma = 1e-3;     // [m] position noise for whitening
+  double orientation_sigma = 3.4906585039886591e-3;  // [rad] (0.2 deg) orientation noise
+  LossOptions loss;
+  int max_iterations = 100;
+  double function_tolerance = 1e-12;
+  bool covariance = true;  // standard deviations (solver.covariance; dense analysis costs seconds for big LUTs)
+  std::optional<TimeOffsetSpec> time_offset;
+  std::vector<std::unique_ptr<ModelTerm>> terms;
+  std::vector<std::vector<BlockSettings>> block_settings;  // one list per term
+};
+
+// Parses the model file; throws std::invalid_argument "FILE:LINE:COLUMN: PATH: message".
+ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name);
+ModelSpec ReadModelFile(const std::filesystem::path& path);
+
+// Applies a term's block settings (after Prepare()); throws naming the file position of the setting.
+void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* term);
+
+std::string LossTypeName(LossType type);
+
+}  // namespace trackcal::fit

@@ -1,0 +1,108 @@
+#include "fit/model_file.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include "fit/terms_polynomial.h"
+
+namespace trackcal::fit {
+namespace {
+
+using ::testing::HasSubstr;
+
+std::string ErrorOf(const std::string& text) {
+  try {
+    ParseModelYaml(text, "model.yaml");
+  } catch (const std::invalid_argument& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST(ParseModelYaml, Nominal) {
+  const ModelSpec spec = ParseModelYaml(R"(
+noise: {position_mm: 2.0, orientation_deg: 0.5}
+loss: {type: huber, scale: 4}
+solver: {max_iterations: 20, covariance: false}
+time_offset: {value: 0.01, fixed: false}
+terms:
+  - type: polynomial
+    degree: 3
+    orientation: false
+    parameters:
+      position_coefficients: {prior: {mean: 0, sigma: 1}}
+)",
+                                        "model.yaml");
+  EXPECT_DOUBLE_EQ(spec.position_sigma, 2e-3);
+  EXPECT_NEAR(spec.orientation_sigma, 0.5 * M_PI / 180.0, 1e-15);
+  EXPECT_EQ(spec.loss.type, LossType::kHuber);
+  EXPECT_DOUBLE_EQ(spec.loss.scale, 4.0);
+  EXPECT_EQ(spec.max_iterations, 20);
+  EXPECT_FALSE(spec.covariance);
+  ASSERT_TRUE(spec.time_offset.has_value());
+  EXPECT_FALSE(spec.time_offset->fixed);
+  ASSERT_EQ(spec.terms.size(), 1u);
+  const auto& poly = dynamic_cast<const PolynomialTerm&>(*spec.terms[0]);
+  EXPECT_EQ(poly.options().degree, 3);
+  EXPECT_FALSE(poly.options().orientation);
+  ASSERT_EQ(poly.blocks().size(), 1u);
+  EXPECT_EQ(poly.blocks()[0].values.size(), 20u * 3u);
+  ASSERT_EQ(spec.block_settings[0].size(), 1u);
+}
+
+TEST(ParseModelYaml, RepeatedTermsAreNumbered) {
+  const ModelSpec spec = ParseModelYaml(
+      "terms:\n  - {type: polynomial, degree: 1}\n  - {type: polynomial, degree: 2}\n", "m");
+  ASSERT_EQ(spec.terms.size(), 2u);
+  EXPECT_EQ(spec.terms[0]->name(), "polynomial");
+  EXPECT_EQ(spec.terms[1]->name(), "polynomial_2");
+}
+
+TEST(ParseModelYaml, ErrorsNameFileLineAndField) {
+  EXPECT_THAT(ErrorOf("terms:\n  - type: polynomial\n    degre: 4\n"),
+              HasSubstr("model.yaml:3:5: $.terms[0].degre: unknown key"));
+  EXPECT_THAT(ErrorOf("terms:\n  - type: polynomial\n    degree: 99\n"),
+              HasSubstr("model.yaml:3:13: $.terms[0].degree"));
+  EXPECT_THAT(ErrorOf("terms:\n  - type: warp\n"),
+              HasSubstr("model.yaml:2:11: $.terms[0].type: unknown term type 'warp'"));
+  EXPECT_THAT(ErrorOf("terms: []\n"), HasSubstr("at least one correction term"));
+  EXPECT_THAT(ErrorOf("noise: {position_mm: -1}\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:1:22: $.noise.position_mm: must be > 0"));
+  EXPECT_THAT(ErrorOf("terms: [{type: polynomial}]\nextra: 1\n"),
+              HasSubstr("model.yaml:2:1: $.extra: unknown key"));
+  EXPECT_THAT(ErrorOf("terms: [{type: polynomial\n"), HasSubstr("YAML syntax error"));
+  EXPECT_THAT(ErrorOf("loss: {type: l1}\nterms: [{type: polynomial}]\n"),
+              HasSubstr("$.loss.type: unknown loss 'l1'"));
+}
+
+TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
+  ModelSpec spec = ParseModelYaml(R"(terms:
+  - type: polynomial
+    degree: 1
+    parameters:
+      nodes: {fixed: true}
+)",
+                                  "m.yaml");
+  try {
+    ApplyBlockSettings(spec.block_settings[0], spec.terms[0].get());
+    FAIL() << "expected an error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_THAT(e.what(), HasSubstr("m.yaml:5:14"));
+    EXPECT_THAT(e.what(), HasSubstr("no parameter block 'nodes'"));
+  }
+  spec = ParseModelYaml(
+      "terms:\n  - type: polynomial\n    degree: 1\n    parameters:\n"
+      "      position_coefficients: {value: [1, 2]}\n",
+      "m.yaml");
+  EXPECT_THROW(ApplyBlockSettings(spec.block_settings[0], spec.terms[0].get()),
+               std::invalid_argument);
+}
+
+TEST(TermRegistry, RejectsDuplicateType) {
+  EXPECT_TRUE(TermRegistry::Global().Contains("polynomial"));
+  EXPECT_THROW(TermRegistry::Global().Register("polynomial", &PolynomialTerm::FromYaml),
+               std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace trackcal::fit

@@ -1,0 +1,13 @@
+// Registers the term types of fit/ itself (physical terms register elsewhere).
+#include "fit/model_file.h"
+#include "fit/terms_lut.h"
+#include "fit/terms_polynomial.h"
+
+namespace trackcal::fit {
+
+void RegisterBuiltinTerms(TermRegistry* registry) {
+  registry->Register(PolynomialTerm::kType, &PolynomialTerm::FromYaml);
+  registry->Register(LutTerm::kType, &LutTerm::FromYaml);
+}
+
+}  // namespace trackcal::fit

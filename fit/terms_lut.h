@@ -1,0 +1,101 @@
+// Local distortion as a model term: a trilinear lookup table (core/lut.h) over the bounding box of the
+// data's input positions, whose node values (6 per node: position error [m], vector part of q_e) are
+// fitted jointly with the other terms, regularised by a smoothness penalty on second differences.
+//
+// Grid: per axis, nodes spaced at most cell_size apart from the data's minimum to its maximum (at least
+// 2 nodes), or an explicit node count per axis. One parameter block per node, named
+// "node_values[ix,iy,iz]" (a model file's `parameters: {node_values: ...}` applies to all of them), so
+// each station's residual touches only the 8 nodes of its cell and the problem stays sparse.
+//
+// Smoothness: for every node with neighbours on both sides along an axis, a residual
+// smoothness * (v[i-1] - 2 v[i] + v[i+1]) / sigma per component (sigma: the model's position or
+// orientation noise), i.e. whitened like the station residuals. It also fixes nodes without data.
+// A weak ridge (LutTermOptions::ridge) removes the LUT/polynomial gauge freedom.
+#pragma once
+
+#include <array>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/lut.h"
+#include "fit/model.h"
+#include "fit/model_file.h"
+
+namespace trackcal::fit {
+
+struct LutTermOptions {
+  double cell_size = 0.1;              // [m] largest node spacing (used unless nodes is set)
+  std::optional<std::array<int, 3>> nodes;  // explicit node count per axis (>= 2 each)
+  double smoothness = 1.0;             // weight of the second-difference residuals (>= 0)
+  // Weight of residuals ridge * v / sigma pulling every node value to zero (>= 0). Multilinear fields
+  // (1, x, y, z, xy, xz, yz, xyz) are reproduced exactly by both a LUT and a polynomial and have no
+  // second differences, so with a polynomial in the chain they are otherwise unidentifiable; the
+  // ridge hands them to the polynomial.
+  double ridge = 1.0;
+  void Check() const;                  // throws std::invalid_argument
+};
+
+class LutTerm : public AutoDiffModelTerm<LutTerm> {
+ public:
+  static constexpr const char* kType = "lut";
+  explicit LutTerm(const LutTermOptions& options);
+  static std::unique_ptr<ModelTerm> FromYaml(const YamlMapReader& reader);
+
+  std::string type() const override { return kType; }
+  void Prepare(const std::vector<FitStation>& inputs) override;
+  bool InitializeLinear(const std::vector<FitStation>& inputs,
+                        const Eigen::Vector2d& noise_sigmas) override;
+  StationBinding Bind(const AmbientPose& input) const override;
+  int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
+  std::unique_ptr<Correction> ToCorrection() const override;
+  nlohmann::json Describe() const override;
+
+  // The 8 bound blocks are the corners of the cell in `binding.tag`, (a, b, c) in {0,1}^3, c fastest.
+  template <typename T>
+  bool Apply(const StationBinding& binding, const T* const* block_values, const T* input7,
+             T* output7) const;
+
+  const LutGrid& grid() const { return *grid_; }
+
+ private:
+  LutTermOptions options_;
+  std::optional<LutGrid> grid_;
+  Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);
+};
+
+template <typename T>
+bool LutTerm::Apply(const StationBinding& binding, const T* const* block_values, const T* input7,
+                    T* output7) const {
+  const int nz = grid_->size(2), ny = grid_->size(1);
+  const int cell[3] = {static_cast<int>(binding.tag / (ny * nz)),
+                       static_cast<int>((binding.tag / nz) % ny), static_cast<int>(binding.tag % nz)};
+  T t[3];
+  for (int k = 0; k < 3; ++k) {
+    const double x0 = grid_->axis(k)[static_cast<size_t>(cell[k])];
+    const double x1 = grid_->axis(k)[static_cast<size_t>(cell[k] + 1)];
+    t[k] = (input7[k] - T(x0)) / T(x1 - x0);
+  }
+  T e[6];
+  for (int i = 0; i < 6; ++i) e[i] = T(0);
+  for (int a = 0; a < 2; ++a) {
+    const T wa = a ? t[0] : T(1) - t[0];
+    for (int b = 0; b < 2; ++b) {
+      const T wb = b ? t[1] : T(1) - t[1];
+      for (int c = 0; c < 2; ++c) {
+        const T w = wa * wb * (c ? t[2] : T(1) - t[2]);
+        const T* v = block_values[a * 4 + b * 2 + c];
+        for (int i = 0; i < 6; ++i) e[i] += w * v[i];
+      }
+    }
+  }
+  Vector3<T> position(input7[0], input7[1], input7[2]);
+  Eigen::Quaternion<T> rotation = QuaternionFromXyzwArray(input7 + 3);
+  ApplyPoseError<T>(Vector3<T>(e[0], e[1], e[2]), Vector3<T>(e[3], e[4], e[5]), &position, &rotation);
+  for (int k = 0; k < 3; ++k) output7[k] = position[k];
+  QuaternionToXyzwArray(rotation, output7 + 3);
+  return true;
+}
+
+}  // namespace trackcal::fit

@@ -1,0 +1,91 @@
+// The paper's global correction (Ikits et al. 2001, eq. 7-9) as a model term: complete degree-r
+// polynomials of the normalised reported position (core/polynomial.h) predicting the position error
+// [m] and the vector part of the orientation error q_e; either part may be disabled (held at zero).
+//
+// Blocks: "position_coefficients" and "orientation_coefficients", NumPolynomialTerms(r) x 3 each,
+// term-major in core's canonical order. InitializeLinear() is the paper's linear least-squares fit
+// (QR on the normalised basis), exact when the polynomial is the only term.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/polynomial.h"
+#include "fit/model.h"
+#include "fit/model_file.h"
+
+namespace trackcal::fit {
+
+struct PolynomialTermOptions {
+  int degree = 4;              // r, 0 .. kMaxPolynomialDegree
+  bool position = true;        // fit the position part
+  bool orientation = true;     // fit the orientation part
+  // Normalisation of the input (NaN: from the bounding box of the data in Prepare()).
+  Eigen::Vector3d input_offset = Eigen::Vector3d::Constant(NAN);
+  Eigen::Vector3d input_scale = Eigen::Vector3d::Constant(NAN);
+  void Check() const;  // throws std::invalid_argument
+};
+
+class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
+ public:
+  static constexpr const char* kType = "polynomial";
+  explicit PolynomialTerm(const PolynomialTermOptions& options);
+  static std::unique_ptr<ModelTerm> FromYaml(const YamlMapReader& reader);
+
+  std::string type() const override { return kType; }
+  void Prepare(const std::vector<FitStation>& inputs) override;
+  bool InitializeLinear(const std::vector<FitStation>& inputs,
+                        const Eigen::Vector2d& noise_sigmas) override;
+  std::unique_ptr<Correction> ToCorrection() const override;
+  nlohmann::json Describe() const override;
+  bool SolvesAloneLinearly() const override { return true; }
+  // sigma^2 (A^T A)^-1 per part from the QR of the monomial matrix A (for the orientation part, of
+  // the paper's linear model of the vector part of q_e).
+  bool LinearCovariance(const Eigen::Vector2d& noise_sigmas) override;
+  // Analytic in the coefficients (the output is linear in them); Jets of size 3 and 7 only for the
+  // monomials' and the quaternion product's derivatives: ~30x faster than AutoDiffModelTerm's.
+  bool Evaluate(const StationBinding& binding, const double* const* block_values,
+                const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
+
+  template <typename T>
+  bool Apply(const StationBinding& binding, const T* const* block_values, const T* input7,
+             T* output7) const;
+
+  const PolynomialTermOptions& options() const { return options_; }
+  // Coefficients (R x 3, term-major) of each part; zeros for a disabled part.
+  std::vector<double> PositionCoefficients() const;
+  std::vector<double> OrientationCoefficients() const;
+
+ private:
+  PolynomialTermOptions options_;
+  int num_terms_ = 0;
+  int position_block_ = -1;     // index in blocks_, -1 if disabled
+  int orientation_block_ = -1;  // index in blocks_, -1 if disabled
+  Eigen::VectorXd inverse_normal_diagonal_;  // diag((A^T A)^-1) of the last InitializeLinear()
+};
+
+template <typename T>
+bool PolynomialTerm::Apply(const StationBinding& /*binding*/, const T* const* block_values,
+                           const T* input7, T* output7) const {
+  T u[3];
+  NormalizePolynomialInput(input7, options_.input_offset, options_.input_scale, u);
+  Vector3<T> position_error = Vector3<T>::Zero();
+  Vector3<T> orientation_error = Vector3<T>::Zero();
+  if (position_block_ >= 0) {
+    EvaluateVectorPolynomial<T, 3>(options_.degree, block_values[position_block_], u,
+                                   position_error.data());
+  }
+  if (orientation_block_ >= 0) {
+    EvaluateVectorPolynomial<T, 3>(options_.degree, block_values[orientation_block_], u,
+                                   orientation_error.data());
+  }
+  Vector3<T> position(input7[0], input7[1], input7[2]);
+  Eigen::Quaternion<T> rotation = QuaternionFromXyzwArray(input7 + 3);
+  ApplyPoseError<T>(position_error, orientation_error, &position, &rotation);
+  for (int k = 0; k < 3; ++k) output7[k] = position[k];
+  QuaternionToXyzwArray(rotation, output7 + 3);
+  return true;
+}
+
+}  // namespace trackcal::fit
