@@ -98,13 +98,18 @@ def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[flo
     v = orientation_vectors[sel] * deg
     ax.scatter(p[:, 0], p[:, 1], s=6, color="gray")
     if len(p):
-        ax.quiver(p[:, 0], p[:, 1], v[:, 0], v[:, 1], color="tab:red", angles="xy", label="before",
-                  width=0.004)
+        # One scale for before and after (so arrow lengths compare): the largest before-vector is
+        # drawn 0.1 m long, with a key arrow giving the scale in degrees.
+        vmax = float(np.max(np.linalg.norm(v[:, :2], axis=1))) or 1.0
+        scale = vmax / 0.1
+        kw = dict(angles="xy", scale_units="xy", scale=scale, width=0.004)
+        q = ax.quiver(p[:, 0], p[:, 1], v[:, 0], v[:, 1], color="tab:red", label="before", **kw)
         if after_vectors is not None:
             a = after_vectors[sel] * deg
-            ax.quiver(p[:, 0], p[:, 1], a[:, 0], a[:, 1], color="tab:blue", angles="xy", label="after",
-                      width=0.004)
-        ax.legend(fontsize=8)
+            ax.quiver(p[:, 0], p[:, 1], a[:, 0], a[:, 1], color="tab:blue", label="after", **kw)
+        key = float(f"{vmax / 2:.1g}")
+        ax.quiverkey(q, 0.02, -0.1, key, f"{key:g} deg", labelpos="E", coordinates="axes")
+        ax.legend(fontsize=8, loc="lower right")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
