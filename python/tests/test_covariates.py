@@ -79,7 +79,7 @@ def test_orientation_frame_covariates_separate_receiver_side_effect():
     pos_err = np.column_stack([2e-3 * d, np.zeros(n), np.zeros(n)]) + rng.normal(scale=2e-4, size=(n, 3))
     r = validation.Residuals(pos_err, np.zeros((n, 3)) + rng.normal(scale=1e-5, size=(n, 3)),
                              np.linalg.norm(pos_err, axis=1) * 1e3, np.full(n, 0.001))
-    effects = validation.covariate_analysis(r, covs, n_permutations=49, seed=2)
+    effects = validation.covariate_analysis(r, covs, n_permutations=99, seed=2)
     sig = {e.covariate for e in effects if e.significant and e.target == "position_vector"}
     assert "tx_direction_in_rx.x" in sig
     assert not sig & {"x", "y", "z", "distance", "time"}

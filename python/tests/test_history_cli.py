@@ -82,3 +82,28 @@ def test_cli_errors_name_file_line_column(tmp_path):
     assert "poses.csv:3: column ref_y: 'zz' is not a number" in r.stderr
     r = run_cli("validate", tmp_path / "missing.csv", check=False)
     assert r.returncode == 2 and "missing.csv" in r.stderr
+
+
+def test_cli_colour_only_on_a_terminal(tmp_path):
+    """On a pseudo-terminal the output is coloured; without one (the other tests) it is plain."""
+    import pty
+    cap_dir = simulate(tmp_path / "capture", seed=42)
+    exe = shutil.which("trackcal")
+    cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
+    out = bytearray()
+
+    def read(fd):
+        data = os.read(fd, 65536)
+        out.extend(data)
+        return data
+
+    env_before = os.environ.pop("NO_COLOR", None)
+    try:
+        status = pty.spawn(cmd + ["diagnose", str(cap_dir), "--permutations", "9"], read)
+    finally:
+        if env_before is not None:
+            os.environ["NO_COLOR"] = env_before
+    assert os.waitstatus_to_exitcode(status) == 0
+    text = out.decode(errors="replace")
+    assert "\033[1mBy distance from the transmitter" in text
+    assert "all set (600 poses), no correction" in text

@@ -101,21 +101,21 @@ def cmd_diagnose(args, term, candidates=None) -> int:
     cols = ["label", "count", "before_position_mm", "before_orientation_deg"]
     if v.after is not None:
         cols += ["after_position_mm", "after_orientation_deg"]
-    print(term.c("\nBy distance from the transmitter", "1"))
+    print("\n" + term.c("By distance from the transmitter", "1"))
     print(_fmt_rows(v.by_distance, cols))
-    print(term.c("\nBy region (octants around the volume centre)", "1"))
+    print("\n" + term.c("By region (octants around the volume centre)", "1"))
     print(_fmt_rows(v.by_region, cols))
-    print(term.c(f"\nWorst {len(v.worst)} stations", "1"))
+    print("\n" + term.c(f"Worst {len(v.worst)} stations", "1"))
     print(_fmt_rows(v.worst, ["station", "set", "sensor", "x", "y", "z", "distance", "position_mm",
                               "orientation_deg", "extrapolated"]))
-    print(term.c("\nResidual structure (cross-validated R², permutation test)", "1"))
+    print("\n" + term.c("Residual structure (cross-validated R², permutation test)", "1"))
     sig = [e for e in v.covariate_effects if e.significant]
     if not sig:
         print("  no covariate explains the residuals beyond noise")
     for e in sig[:args.top]:
         print("  " + term.c(f"{e.covariate:<24}", "31") + f" {e.target:<20} R²={e.r2:.3f}  p={e.p_value:.3g}")
     if candidates is not None:
-        print(term.c("\nCandidate effects", "1"))
+        print("\n" + term.c("Candidate effects", "1"))
         rows = candidates(v)
         print(_fmt_rows(rows, list(rows[0].keys()) if rows else []))
     return 0

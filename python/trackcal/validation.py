@@ -77,10 +77,18 @@ class Table1:
     after_orientation_deg: Optional[dict] = None
 
     def format(self) -> str:
-        after_p = self.after_position_mm or self.before_position_mm
-        after_o = self.after_orientation_deg or self.before_orientation_deg
-        return _core.format_table1(self.set_name, self.before_position_mm, self.before_orientation_deg,
-                                   after_p, after_o)
+        """The paper's layout (core/error_statistics.h FormatTable1); without a correction only the
+        original errors."""
+        if self.after_position_mm is not None and self.after_orientation_deg is not None:
+            return _core.format_table1(self.set_name, self.before_position_mm, self.before_orientation_deg,
+                                       self.after_position_mm, self.after_orientation_deg)
+        lines = [f"{self.set_name} set ({self.before_position_mm['count']} poses), no correction"]
+        for title, s in (("Position error (mm)", self.before_position_mm),
+                         ("Orientation error (deg)", self.before_orientation_deg)):
+            lines.append(f"{title:<22} {'Original':>10}")
+            for name, key in (("Mean", "mean"), ("Standard dev.", "std"), ("Maximum", "max")):
+                lines.append(f"  {name:<20} {s[key]:10.3f}")
+        return "\n".join(lines) + "\n"
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -204,7 +212,8 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     # The smallest reachable p is 1 / (n_permutations + 1): with the default 199 permutations and
     # 4 targets x ~20 covariates, Bonferroni at alpha = 0.01 needs p <= 1.25e-4, which a finite
     # permutation count cannot reach; so a covariate whose observed r2 beats every permutation is
-    # also checked against a normal approximation of the permutation distribution (z-score).
+    # also checked against a normal approximation of the permutation distribution (z-score), when
+    # there are at least 99 permutations to estimate its spread.
     level = alpha / n_tests
     from statistics import NormalDist
     z_needed = NormalDist().inv_cdf(1.0 - level)
@@ -225,7 +234,9 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
             p = (1.0 + np.sum(null >= obs)) / (n_permutations + 1.0)
             sd = null.std()
             z = (obs - null.mean()) / sd if sd > 0 else (np.inf if obs > null.mean() else 0.0)
-            sig = bool(obs >= min_r2 and (p <= level or (np.all(null < obs) and z >= z_needed)))
+            # The normal approximation needs enough permutations to estimate the null's spread.
+            z_ok = n_permutations >= 99 and bool(np.all(null < obs)) and z >= z_needed
+            sig = bool(obs >= min_r2 and (p <= level or z_ok))
             effects.append(CovariateEffect(name, tname, float(obs), float(p), sig, int(ok.sum())))
             done += 1
             if progress:
