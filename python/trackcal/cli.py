@@ -81,8 +81,33 @@ def _validation(args, term, covariates: bool):
     return capture, cal, v
 
 
+def candidate_source():
+    """The fit engine's ranking of missing physical effects, if installed: a module
+    ``trackcal.candidates`` with ``rank(validation) -> list of dict rows``; None otherwise."""
+    import importlib
+    try:
+        mod = importlib.import_module("trackcal.candidates")
+    except ModuleNotFoundError as e:
+        if e.name != "trackcal.candidates":
+            raise
+        return None
+    return mod.rank
+
+
+def _record_history(args, v) -> None:
+    if not getattr(args, "workdir", None) or getattr(args, "command", "") != "validate":
+        return
+    from trackcal.history import record_fit, scores_from_validation
+    if not args.calibration:
+        raise ValueError("--workdir records a fit: give its calibration with -c")
+    data = v.capture.path
+    record_fit(args.workdir, model=args.calibration, data=[(data, "validation_capture")],
+               scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name)
+
+
 def cmd_validate(args, term) -> int:
     _, _, v = _validation(args, term, covariates=False)
+    _record_history(args, v)
     for t in v.tables:
         print(term.c(t.format(), "1") if t.set_name == "valid" else t.format())
     print(f"stations outside the calibrated volume: {int(v.extrapolated.sum())} of {len(v.extrapolated)}")
@@ -127,7 +152,7 @@ def cmd_report(args, term) -> int:
     capture, cal, v = _validation(args, term, covariates=not args.no_covariates)
     hist = load_history(args.workdir) if args.workdir else None
     path = write_report(v, args.output, inputs=[args.capture, args.calibration], history_entries=hist,
-                        progress=term.progress("figures"))
+                        candidates=candidate_source(), progress=term.progress("figures"))
     print(f"wrote {path}")
     return 0
 
@@ -176,6 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("validate", help="Table 1 before/after for the calibration and validation sets")
     common(sp, covariates=False)
     sp.add_argument("--json", action="store_true", help="also print the tables as JSON")
+    sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl")
+    sp.add_argument("--label", help="what changed in this fit (history label; default: file name)")
     sp = sub.add_parser("diagnose", help="compare and see where it fails: breakdowns, worst stations, covariates")
     common(sp)
     sp.add_argument("--top", type=int, default=15, help="significant covariates to list")
@@ -203,6 +230,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     term = Terminal()
     try:
+        if args.command == "diagnose":
+            return cmd_diagnose(args, term, candidates=candidate_source())
         return COMMANDS[args.command](args, term)
     except (ValueError, KeyError, RuntimeError, FileNotFoundError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
