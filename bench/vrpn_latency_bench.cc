@@ -24,6 +24,8 @@
 #include <thread>
 #include <vector>
 
+#include "core/correction.h"
+#include "core/polynomial.h"
 #include "vrpn_server/client/tracker_client.h"
 #include "vrpn_server/server/devices.h"
 #include "vrpn_server/server/server.h"
@@ -36,36 +38,26 @@ using Clock = std::chrono::steady_clock;
 constexpr std::uint32_t kTagUsec = 777777;
 int g_realtime_priority = 0;
 
-// Stand-in correction of realistic cost: a degree-4 polynomial in reported position for the
-// position error (35 monomials x 3) and the orientation error vector (35 x 3), applied as eq. 4.
-// (The core module's own corrections are benchmarked there; this measures the server's share.)
-class PolynomialStandIn : public PoseCorrector {
+// The runtime correction of a calibration file: core's degree-4 polynomial (35 terms x 6 outputs),
+// with small coefficients as a fit produces, inside a calibrated volume.
+class PolynomialCorrector : public PoseCorrector {
  public:
-  PolynomialStandIn() {
-    for (int i = 0; i < 35 * 6; ++i) c_[i] = 1e-4 * std::sin(0.7 * i);
+  PolynomialCorrector() {
+    const int degree = 4;
+    std::vector<double> c(6 * NumPolynomialTerms(degree));
+    for (std::size_t i = 0; i < c.size(); ++i) c[i] = 1e-4 * std::sin(0.7 * static_cast<double>(i));
+    chain_.Append(std::make_unique<PolynomialCorrection>(degree, Eigen::Vector3d(0, 0, 0.2),
+                                                         Eigen::Vector3d(0.6, 0.6, 0.6), c));
+    CalibratedVolume volume;
+    volume.min = Eigen::Vector3d(-0.6, -0.6, -0.4);
+    volume.max = Eigen::Vector3d(0.6, 0.6, 0.8);
+    chain_.SetVolume(volume);
   }
-  Rigid3d Correct(const Rigid3d& reported) const override {
-    const Eigen::Vector3d& p = reported.translation;
-    double m[35];
-    int k = 0;
-    for (int i = 0; i <= 4; ++i)
-      for (int j = 0; j <= 4 - i; ++j)
-        for (int l = 0; l <= 4 - i - j; ++l) m[k++] = std::pow(p.x(), i) * std::pow(p.y(), j) * std::pow(p.z(), l);
-    Eigen::Vector3d ep = Eigen::Vector3d::Zero(), eq = Eigen::Vector3d::Zero();
-    for (int t = 0; t < 35; ++t) {
-      for (int a = 0; a < 3; ++a) {
-        ep[a] += c_[t * 6 + a] * m[t];
-        eq[a] += c_[t * 6 + 3 + a] * m[t];
-      }
-    }
-    Rigid3d out = reported;
-    ApplyPoseError<double>(ep, eq, &out.translation, &out.rotation);
-    return out;
-  }
-  std::string Describe() const override { return "degree-4 polynomial stand-in"; }
+  Rigid3d Correct(const Rigid3d& reported) const override { return chain_.Apply(reported).pose; }
+  std::string Describe() const override { return "core polynomial degree 4 in a calibrated volume"; }
 
  private:
-  double c_[35 * 6];
+  CorrectionChain chain_;
 };
 
 double Percentile(std::vector<double> v, double q) {
@@ -96,7 +88,7 @@ Result RunConfiguration(int num_clients, bool correction, bool lob, double secon
   auto server = std::make_unique<VrpnServer>(catalog, options, [](const std::string&) {});
   server->Start();
   TrackerDevice device(server.get(), tracker, std::nullopt);
-  if (correction) device.SetCorrector(std::make_shared<PolynomialStandIn>());
+  if (correction) device.SetCorrector(std::make_shared<PolynomialCorrector>());
 
   const std::size_t max_reports = static_cast<std::size_t>(seconds * 120 * 1.2) + 1000;
   std::vector<std::atomic<std::int64_t>> sent_ns(max_reports);
@@ -203,7 +195,7 @@ int main(int argc, char** argv) {
   }
   // The correction's own cost, per call, against the device hand-over without correction.
   {
-    PolynomialStandIn corrector;
+    PolynomialCorrector corrector;
     trackcal::Rigid3d pose(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.3, 0.1, 0.2));
     const int n = 200000;
     const auto t0 = std::chrono::steady_clock::now();

@@ -52,6 +52,8 @@ class CsvTable {
       ++line_number;
       if (Trim(line).empty()) continue;
       if (!have_header) {
+        // A UTF-8 byte order mark (spreadsheet exports) is not part of the first column's name.
+        if (line.rfind("\xEF\xBB\xBF", 0) == 0) line.erase(0, 3);
         header_line_ = line_number;
         header_ = Split(line);
         have_header = true;

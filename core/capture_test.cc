@@ -93,6 +93,9 @@ TEST(PosesCsv, ColumnsByNameInAnyOrderWithExtras) {
       "\n");
   const PoseCapture c = ReadPoses(dir / "poses.csv");
   ASSERT_EQ(c.records.size(), 1u);
+  // A spreadsheet's byte order mark before the header is ignored.
+  WriteText(dir / "bom.csv", "\xEF\xBB\xBF" + ReadText(dir / "poses.csv"));
+  EXPECT_EQ(ReadPoses(dir / "bom.csv").records.size(), 1u);
   const PoseRecord& r = c.records[0];
   EXPECT_EQ(r.station, 7);
   EXPECT_EQ(r.set, "valid");

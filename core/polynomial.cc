@@ -1,6 +1,7 @@
 #include "core/polynomial.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <stdexcept>
 
@@ -248,6 +249,8 @@ void CorrectBatchBaseline(const PolynomialKernelArgs& a, size_t n, const double*
   CorrectBatchTiles<false>(a, n, p_in, q_in, p_out, q_out);
 }
 
+std::atomic<bool> force_baseline_kernel{false};
+
 #if defined(__x86_64__) && defined(__GNUC__)
 #define TRACKCAL_HAVE_AVX2_KERNEL 1
 __attribute__((target("avx2,fma"))) void CorrectBatchAvx2Fma(const PolynomialKernelArgs& a,
@@ -268,6 +271,8 @@ bool CpuHasAvx2Fma() {
 
 }  // namespace
 
+void internal::ForceBaselinePolynomialKernel(bool force) { force_baseline_kernel = force; }
+
 CorrectedPose PolynomialCorrection::Apply(const Rigid3d& reported) const {
   double e[6];
   EvaluateError(reported.translation.data(), e);
@@ -286,7 +291,7 @@ void PolynomialCorrection::ApplyBatch(size_t n, const double* positions,
     args.inverse_scale[k] = inverse_scale_[k];
   }
 #ifdef TRACKCAL_HAVE_AVX2_KERNEL
-  if (CpuHasAvx2Fma()) {
+  if (CpuHasAvx2Fma() && !force_baseline_kernel.load(std::memory_order_relaxed)) {
     CorrectBatchAvx2Fma(args, n, positions, quaternions_xyzw, out_positions,
                         out_quaternions_xyzw);
   } else {

@@ -105,6 +105,12 @@ void EvaluatePolynomialError(int degree, const T* coefficients, const Eigen::Vec
   EvaluateVectorPolynomial<T, 6>(degree, coefficients, u, error6);
 }
 
+namespace internal {
+// Tests only: make PolynomialCorrection::ApplyBatch use the baseline-ISA kernel even on a CPU with
+// AVX2 + FMA, so both kernels are exercised on one machine.
+void ForceBaselinePolynomialKernel(bool force);
+}  // namespace internal
+
 class PolynomialCorrection : public Correction {
  public:
   static constexpr const char* kTypeName = "polynomial";

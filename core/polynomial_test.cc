@@ -175,6 +175,40 @@ TEST(PolynomialCorrection, BatchMatchesSingleAndRunsInPlace) {
   EXPECT_EQ(quat, out_quat);
 }
 
+TEST(PolynomialCorrection, BothBatchKernelsMatchSinglePose) {
+  // Degrees 0..kMax, batch sizes that leave partial tiles; the baseline kernel forced, then the
+  // machine's best (AVX2 + FMA where available).
+  std::normal_distribution<double> n(0.0, 0.01);
+  for (int r = 0; r <= kMaxPolynomialDegree; r += 3) {
+    std::vector<double> c(6 * NumPolynomialTerms(r));
+    for (double& v : c) v = n(TestRng()) / (1 + r);
+    const PolynomialCorrection poly(r, Eigen::Vector3d(0.1, 0, 0.2), Eigen::Vector3d(0.6, 0.5, 0.4),
+                                    c);
+    const size_t count = 13;
+    std::vector<double> pos(3 * count), quat(4 * count);
+    for (size_t i = 0; i < count; ++i) {
+      const Eigen::Vector3d p = RandomPoint(0.5);
+      for (int k = 0; k < 3; ++k) pos[3 * i + k] = p[k];
+      QuaternionToXyzwArray(RandomRotation(TestRng()), &quat[4 * i]);
+    }
+    for (bool force_baseline : {true, false}) {
+      internal::ForceBaselinePolynomialKernel(force_baseline);
+      std::vector<double> out_pos(3 * count), out_quat(4 * count);
+      poly.ApplyBatch(count, pos.data(), quat.data(), out_pos.data(), out_quat.data(), nullptr);
+      for (size_t i = 0; i < count; ++i) {
+        const CorrectedPose single = poly.Apply(Rigid3d(
+            QuaternionFromXyzwArray(&quat[4 * i]), Eigen::Vector3d(&pos[3 * i])));
+        const Rigid3d batch(QuaternionFromXyzwArray(&out_quat[4 * i]),
+                            Eigen::Vector3d(&out_pos[3 * i]));
+        // Different summation order and FMA: rounding of sums of up to 455 terms of ~0.01.
+        EXPECT_TRUE(testing::PosesNear(single.pose, batch, 1e-15, 1e-15))
+            << "degree " << r << " pose " << i << " baseline " << force_baseline;
+      }
+    }
+    internal::ForceBaselinePolynomialKernel(false);
+  }
+}
+
 TEST(PolynomialCorrection, RejectsBadParameters) {
   const std::vector<double> c35(6 * 35, 0.0);
   EXPECT_NO_THROW(PolynomialCorrection(4, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones(), c35));

@@ -34,6 +34,9 @@ double RegistrationResult::ChiSquareZ() const {
 namespace {
 
 constexpr int kInitialAlternations = 5;
+// Tracker quaternions are normalised; a norm further than this from one is a corrupt reading (a
+// Fastrak prints 4-5 decimals, so rounding alone stays below 1e-4).
+constexpr double kMaxQuaternionNormError = 1e-3;
 
 std::string StationField(const RegistrationStation& s, const std::string& field) {
   return "registration station " + std::to_string(s.station) + ", " + field;
@@ -50,7 +53,8 @@ void ValidateStations(const std::vector<RegistrationStation>& stations) {
     if (!t.translation.allFinite()) {
       throw std::invalid_argument(StationField(s, "tracker x/y/z: not finite"));
     }
-    if (!t.rotation.coeffs().allFinite() || std::abs(t.rotation.norm() - 1.0) > 1e-6) {
+    if (!t.rotation.coeffs().allFinite() ||
+        std::abs(t.rotation.norm() - 1.0) > kMaxQuaternionNormError) {
       throw std::invalid_argument(
           StationField(s, "tracker qw/qx/qy/qz: not a unit quaternion (norm " +
                               std::to_string(t.rotation.norm()) + ")"));
@@ -71,10 +75,10 @@ void ValidateStations(const std::vector<RegistrationStation>& stations) {
 
 // Working copy of the problem: dense marker indices and the parameter blocks.
 struct Problem {
-  std::vector<const RegistrationStation*> stations;
-  std::vector<int> marker_ids;           // index -> id
-  std::map<int, int> marker_index;       // id -> index
-  std::vector<int> marker_observations;  // per marker index
+  std::vector<RegistrationStation> stations;  // usable stations, tracker quaternions normalised
+  std::vector<int> marker_ids;                // index -> id
+  std::map<int, int> marker_index;            // id -> index
+  std::vector<int> marker_observations;       // per marker index
   int num_observations = 0;
 };
 
@@ -91,13 +95,13 @@ bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical
     int pair;
   };
   std::vector<Row> rows;
-  for (const RegistrationStation* s : p.stations) {
+  for (const RegistrationStation& s : p.stations) {
     const Eigen::Matrix3d rt =
-        s->tracker_transmitter_from_receiver.rotation.toRotationMatrix().transpose();
-    for (std::size_t a = 0; a < s->markers.size(); ++a) {
-      for (std::size_t b = a + 1; b < s->markers.size(); ++b) {
-        const MarkerObservation* ma = &s->markers[a];
-        const MarkerObservation* mb = &s->markers[b];
+        s.tracker_transmitter_from_receiver.rotation.toRotationMatrix().transpose();
+    for (std::size_t a = 0; a < s.markers.size(); ++a) {
+      for (std::size_t b = a + 1; b < s.markers.size(); ++b) {
+        const MarkerObservation* ma = &s.markers[a];
+        const MarkerObservation* mb = &s.markers[b];
         if (ma->marker > mb->marker) std::swap(ma, mb);
         const auto key = std::make_pair(ma->marker, mb->marker);
         auto it = pair_index.emplace(key, static_cast<int>(pair_index.size())).first;
@@ -135,11 +139,11 @@ bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical
 // markers. The centroid is off by the marker offsets (centimetres), so this is only a start.
 Eigen::Quaterniond RotationFromCentroids(const Problem& p) {
   std::vector<Eigen::Vector3d> from, to;
-  for (const RegistrationStation* s : p.stations) {
+  for (const RegistrationStation& s : p.stations) {
     Eigen::Vector3d c = Eigen::Vector3d::Zero();
-    for (const MarkerObservation& m : s->markers) c += m.marker_in_optical;
-    from.push_back(s->tracker_transmitter_from_receiver.translation);
-    to.push_back(c / static_cast<double>(s->markers.size()));
+    for (const MarkerObservation& m : s.markers) c += m.marker_in_optical;
+    from.push_back(s.tracker_transmitter_from_receiver.translation);
+    to.push_back(c / static_cast<double>(s.markers.size()));
   }
   return AlignPoints(from, to).rotation;
 }
@@ -153,10 +157,10 @@ void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
   Eigen::VectorXd b(3 * p.num_observations);
   const Eigen::Matrix3d r0t = r0.toRotationMatrix().transpose();
   int row = 0;
-  for (const RegistrationStation* s : p.stations) {
-    const Rigid3d& x = s->tracker_transmitter_from_receiver;
+  for (const RegistrationStation& s : p.stations) {
+    const Rigid3d& x = s.tracker_transmitter_from_receiver;
     const Eigen::Matrix3d ri = x.rotation.toRotationMatrix();
-    for (const MarkerObservation& m : s->markers) {
+    for (const MarkerObservation& m : s.markers) {
       const int j = p.marker_index.at(m.marker);
       a.block<3, 3>(row, 3 * j) = ri;
       a.block<3, 3>(row, 3 * nm) = Eigen::Matrix3d::Identity();
@@ -174,9 +178,9 @@ void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
 // measurements: the optical least-squares transform for given markers and exact tracker poses.
 Rigid3d AlignMarkers(const Problem& p, const std::vector<Eigen::Vector3d>& markers) {
   std::vector<Eigen::Vector3d> in_transmitter, in_optical;
-  for (const RegistrationStation* s : p.stations) {
-    for (const MarkerObservation& m : s->markers) {
-      in_transmitter.push_back(s->tracker_transmitter_from_receiver *
+  for (const RegistrationStation& s : p.stations) {
+    for (const MarkerObservation& m : s.markers) {
+      in_transmitter.push_back(s.tracker_transmitter_from_receiver *
                                markers[p.marker_index.at(m.marker)]);
       in_optical.push_back(m.marker_in_optical);
     }
@@ -189,11 +193,11 @@ double OpticalSumOfSquares(const Problem& p, const Eigen::Quaterniond& r0,
                            const Eigen::Vector3d& t0, const std::vector<Eigen::Vector3d>& markers) {
   const Rigid3d optical_from_transmitter(r0, t0);
   double sse = 0.0;
-  for (const RegistrationStation* s : p.stations) {
-    for (const MarkerObservation& m : s->markers) {
+  for (const RegistrationStation& s : p.stations) {
+    for (const MarkerObservation& m : s.markers) {
       const Eigen::Vector3d predicted =
           optical_from_transmitter *
-          (s->tracker_transmitter_from_receiver * markers[p.marker_index.at(m.marker)]);
+          (s.tracker_transmitter_from_receiver * markers[p.marker_index.at(m.marker)]);
       sse += (predicted - m.marker_in_optical).squaredNorm();
     }
   }
@@ -221,7 +225,8 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
       result.skipped_stations.push_back(s.station);
       continue;
     }
-    p.stations.push_back(&s);
+    p.stations.push_back(s);
+    p.stations.back().tracker_transmitter_from_receiver.rotation.normalize();
     for (const MarkerObservation& m : s.markers) ids.insert(m.marker);
     p.num_observations += static_cast<int>(s.markers.size());
   }
@@ -236,8 +241,8 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
     p.marker_ids.push_back(id);
   }
   p.marker_observations.assign(p.marker_ids.size(), 0);
-  for (const RegistrationStation* s : p.stations) {
-    for (const MarkerObservation& m : s->markers) ++p.marker_observations[p.marker_index[m.marker]];
+  for (const RegistrationStation& s : p.stations) {
+    for (const MarkerObservation& m : s.markers) ++p.marker_observations[p.marker_index[m.marker]];
   }
   const int nm = static_cast<int>(p.marker_ids.size());
   result.num_marker_observations = p.num_observations;
@@ -294,7 +299,7 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   const int ns = static_cast<int>(p.stations.size());
   std::vector<double> pose_q(4 * ns), pose_t(3 * ns);
   for (int i = 0; i < ns; ++i) {
-    const Rigid3d& x = p.stations[i]->tracker_transmitter_from_receiver;
+    const Rigid3d& x = p.stations[i].tracker_transmitter_from_receiver;
     QuaternionToXyzwArray(x.rotation.normalized(), &pose_q[4 * i]);
     std::copy(x.translation.data(), x.translation.data() + 3, &pose_t[3 * i]);
   }
@@ -314,9 +319,9 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
     SetQuaternionManifold(&problem, q);
     station_residuals[i].push_back(problem.AddResidualBlock(
         Whitened<PosePriorCost>::Create(prior_sqrt_info,
-                                        p.stations[i]->tracker_transmitter_from_receiver),
+                                        p.stations[i].tracker_transmitter_from_receiver),
         nullptr, q, t));
-    for (const MarkerObservation& m : p.stations[i]->markers) {
+    for (const MarkerObservation& m : p.stations[i].markers) {
       double* r = &marker_blocks[3 * p.marker_index[m.marker]];
       station_residuals[i].push_back(problem.AddResidualBlock(
           Whitened<MarkerPositionCost>::Create(optical_sqrt_info, m.marker_in_optical), nullptr, q0,
@@ -360,7 +365,7 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   }
   const std::size_t first_station_block = blocks.size();
   for (int i = 0; i < ns; ++i) {
-    const std::string name = "station_" + std::to_string(p.stations[i]->station);
+    const std::string name = "station_" + std::to_string(p.stations[i].station);
     // Receiver poses are nuisance parameters here: own covariance only, never flagged.
     blocks.push_back({&pose_q[4 * i],
                       name + ".rotation",
@@ -403,10 +408,10 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   }
   for (int i = 0; i < ns; ++i) {
     RegisteredStation s;
-    s.station = p.stations[i]->station;
+    s.station = p.stations[i].station;
     s.transmitter_from_receiver = Rigid3d(QuaternionFromXyzwArray(&pose_q[4 * i]).normalized(),
                                           Eigen::Map<const Eigen::Vector3d>(&pose_t[3 * i]));
-    s.num_markers = static_cast<int>(p.stations[i]->markers.size());
+    s.num_markers = static_cast<int>(p.stations[i].markers.size());
     if (result.covariance.success) {
       const int rotation = result.covariance.block_offsets[first_station_block + 2 * i];
       const int position = result.covariance.block_offsets[first_station_block + 2 * i + 1];
@@ -414,14 +419,14 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
           result.covariance.stddev.segment<3>(position);
     }
     double sum_sq = 0.0;
-    for (const MarkerObservation& m : p.stations[i]->markers) {
+    for (const MarkerObservation& m : p.stations[i].markers) {
       const Eigen::Vector3d predicted =
           result.registration.optical_from_transmitter *
           (s.transmitter_from_receiver * result.registration.marker_in_receiver.at(m.marker));
       sum_sq += (predicted - m.marker_in_optical).squaredNorm();
     }
     s.marker_rms_m = std::sqrt(sum_sq / s.num_markers);
-    const Rigid3d& reading = p.stations[i]->tracker_transmitter_from_receiver;
+    const Rigid3d& reading = p.stations[i].tracker_transmitter_from_receiver;
     s.tracker_position_residual_m = PositionErrorNorm(s.transmitter_from_receiver, reading);
     s.tracker_orientation_residual_rad =
         OrientationErrorAngle(s.transmitter_from_receiver, reading);

@@ -244,6 +244,10 @@ TEST(RegisterOpticalToTransmitter, InvalidInputThrowsNamingStationAndField) {
   auto not_unit = data.stations;
   not_unit[5].tracker_transmitter_from_receiver.rotation.coeffs() *= 1.5;
   expect_message(not_unit, "station 6, tracker qw/qx/qy/qz");
+  // Rounded readings (a Fastrak prints 4-5 decimals) are accepted and normalised.
+  auto rounded = data.stations;
+  rounded[5].tracker_transmitter_from_receiver.rotation.coeffs() *= 1.0 + 5e-5;
+  EXPECT_NO_THROW(RegisterOpticalToTransmitter(rounded));
   auto nan = data.stations;
   nan[0].markers[0].marker_in_optical.x() = std::nan("");
   expect_message(nan, "station 1, marker");

@@ -93,6 +93,16 @@ TEST(ParseScene, ErrorsNameFileLineAndField) {
   EXPECT_NE(ErrorOf("tracker: [\n").find("bad.yaml:"), std::string::npos);
 }
 
+TEST(LoadScene, IdealPresetHasNoDistortion) {
+  const Scene ideal = LoadScene("ideal");
+  const Scene paper = LoadScene("paper");
+  EXPECT_EQ(ideal.name, "ideal");
+  EXPECT_TRUE(ideal.environment.planes.empty());
+  EXPECT_TRUE(ideal.environment.objects.empty());
+  EXPECT_EQ(ideal.tracker.signal_noise, paper.tracker.signal_noise);
+  EXPECT_EQ(ideal.capture.validation.count, paper.capture.validation.count);
+}
+
 TEST(LoadScene, FileAndUnknownName) {
   const auto dir = testing::MakeTempDir("scene_test");
   const auto path = dir / "mine.yaml";

@@ -364,7 +364,9 @@ SimulatedCapture Simulator::Generate() const {
     if (it == floor_errors.end()) continue;
     const PoseErrorSummary floor{SummarizeErrors(it->second.first),
                                  SummarizeErrors(it->second.second)};
-    stats[set] = {{"uncorrected", SummaryToJson(UncorrectedSummary(out.poses, set))},
+    out.uncorrected[set] = UncorrectedSummary(out.poses, set);
+    out.noise_floor[set] = floor;
+    stats[set] = {{"uncorrected", SummaryToJson(out.uncorrected[set])},
                   {"noise_floor", SummaryToJson(floor)}};
   }
   nlohmann::json stations = nlohmann::json::array();
@@ -414,7 +416,9 @@ void WriteCaptureFolder(const Simulator& simulator, const SimulatedCapture& capt
                              ": exists and is not an empty folder; refusing to "
                              "overwrite a capture");
   }
-  const fs::path absolute = fs::absolute(dir);
+  // "out/" and "out" are the same folder: drop a trailing separator before taking the name.
+  fs::path absolute = fs::absolute(dir).lexically_normal();
+  if (absolute.filename().empty()) absolute = absolute.parent_path();
   const fs::path parent = absolute.parent_path();
   fs::create_directories(parent);
   std::string tmpl = (parent / ("." + absolute.filename().string() + ".tmp-XXXXXX")).string();

@@ -6,11 +6,20 @@
 //
 // For the emulator and other live users, TrackerModel answers "what does the tracker report for a
 // receiver at this true pose", with or without noise, and Simulator::TruePoseAt gives the smooth
-// trajectory the streams follow.
+// trajectory the streams follow, one per receiver. An emulator station at time t:
+//
+//   const Simulator sim(LoadScene("paper"));
+//   Rng noise(sim.scene().seed, "emulator");         // one stream per user; not thread-safe
+//   const Rigid3d truth = sim.TruePoseAt(t, station - 1);
+//   const Rigid3d reported = sim.tracker().Report(truth, /*samples=*/1, &noise)
+//                                .transmitter_from_receiver;
+//
+// TrackerModel and Simulator are immutable after construction and safe to share between threads.
 
 #pragma once
 
 #include <filesystem>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -74,6 +83,10 @@ struct SimulatedCapture {
   TrackerStream tracker_stream;  // empty when the scene has no stream
   ReferenceStream reference_stream;
   std::vector<StationTruth> stations;  // truth per static station, same order as poses
+  // Per set ("calib", "valid", "reg"): errors before correction, and the noise floor, the errors a
+  // perfect model of the scene would leave (tracker and reference noise only). A fit cannot beat it.
+  std::map<std::string, PoseErrorSummary> uncorrected;
+  std::map<std::string, PoseErrorSummary> noise_floor;
   nlohmann::json truth;                // truth.json: scene, effective physics, stats, noise floor
 };
 

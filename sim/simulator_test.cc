@@ -83,6 +83,12 @@ TEST(Simulator, Nominal) {
   EXPECT_GT(stats["noise_floor"]["position_mm"]["mean"].get<double>(), 0.01);
   EXPECT_LT(stats["noise_floor"]["position_mm"]["mean"].get<double>(),
             0.05 * stats["uncorrected"]["position_mm"]["mean"].get<double>());
+  // The typed summaries are the ones written to truth.json.
+  EXPECT_EQ(c.noise_floor.at("valid").position_mm.mean,
+            stats["noise_floor"]["position_mm"]["mean"].get<double>());
+  EXPECT_EQ(c.uncorrected.at("calib").orientation_deg.max,
+            c.truth["statistics"]["calib"]["uncorrected"]["orientation_deg"]["max"].get<double>());
+  EXPECT_EQ(c.uncorrected.at("valid").position_mm.count, 120);
 }
 
 TEST(Simulator, PaperPresetResemblesTable1) {
@@ -136,6 +142,22 @@ TEST(Simulator, IdealSceneReportsTheTruth) {
   }
 }
 
+TEST(Simulator, NoiseFloorIsWhatAnUndistortedRoomLeaves) {
+  // Without distortion the tracker is right but for noise: uncorrected errors are the noise floor.
+  Scene ideal = LoadScene("ideal");
+  ideal.capture.stream.duration_s = 0;
+  const nlohmann::json stats = Simulator(ideal).Generate().truth["statistics"]["valid"];
+  for (const char* q : {"position_mm", "orientation_deg"}) {
+    for (const char* k : {"mean", "max"}) {
+      // The noise-free report equals the truth to 1e-9 m / rad, i.e. 1e-6 mm and 6e-8 deg.
+      EXPECT_NEAR(stats["uncorrected"][q][k].get<double>(), stats["noise_floor"][q][k].get<double>(),
+                  1e-5)
+          << q << " " << k;
+    }
+  }
+  EXPECT_GT(stats["noise_floor"]["position_mm"]["mean"].get<double>(), 0.01);
+}
+
 TEST(Simulator, TrackerModelIsTheCapturePhysics) {
   // The emulator's entry point gives what the capture's noise-free truth records.
   const Simulator sim(LoadScene("paper"));
@@ -182,10 +204,20 @@ TEST(WriteCaptureFolder, RefusesToOverwrite) {
   const std::string before = ReadText(dir / "capture" / kPosesCsv);
   EXPECT_THROW(WriteCaptureFolder(sim, c, dir / "capture"), std::runtime_error);
   EXPECT_EQ(ReadText(dir / "capture" / kPosesCsv), before);
-  // An existing empty folder is fine (mkdir first, then simulate into it).
+  // An existing empty folder is fine (mkdir first, then simulate into it), also spelt "empty/".
   std::filesystem::create_directory(dir / "empty");
-  WriteCaptureFolder(sim, c, dir / "empty");
+  WriteCaptureFolder(sim, c, (dir / "empty").string() + "/");
   EXPECT_TRUE(std::filesystem::exists(dir / "empty" / "truth.json"));
+  EXPECT_THROW(WriteCaptureFolder(sim, c, (dir / "empty").string() + "/"), std::runtime_error);
+  // A folder whose parents do not exist yet is created; nothing else is left behind.
+  WriteCaptureFolder(sim, c, dir / "new" / "deeper" / "capture");
+  EXPECT_TRUE(std::filesystem::exists(dir / "new" / "deeper" / "capture" / kPosesCsv));
+  int entries = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir / "new" / "deeper")) {
+    (void)e;
+    ++entries;
+  }
+  EXPECT_EQ(entries, 1);
 }
 
 // ---- Hidden effects: each changes the data the way its physics says, and the truth records it.

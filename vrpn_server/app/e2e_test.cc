@@ -104,6 +104,8 @@ class EndToEnd : public ::testing::Test {
     for (auto& t : truth_) t.rotation.normalize();
     emulator::EmulatorOptions eo;
     eo.device.num_stations = 2;
+    // The driver opens the symlink: after a disconnect fault the new pty has another path.
+    eo.link_path = (dir_ / "fastrak").string();
     emulator_ = std::make_unique<emulator::BackgroundEmulator>(
         eo, std::make_unique<emulator::StaticPoseSource>(truth_), std::make_unique<RigidDistortion>());
     TrackerSetup setup;
@@ -112,8 +114,10 @@ class EndToEnd : public ::testing::Test {
     setup.num_sensors = 4;
     setup.calibration = dir_ / "calib.json";
     setup.origin = "e2e";
+    setup.buttons = {{"Stylus0", 0}};  // FTStylus on station 1
     fastrak::FastrakOptions fo;
-    fo.port = emulator_->initial_device_path();
+    fo.stylus_sensors = {0};
+    fo.port = eo.link_path;
     fo.timings = fastrak::FastrakTimings::Fast();
     setup.make_source = [fo] { return MakeFastrakSource(fo); };
     AppOptions ao;
@@ -167,6 +171,47 @@ TEST_F(EndToEnd, RawMatchesEmulatorCorrectedMatchesTruthBothModes) {
   }
   EXPECT_TRUE(c1->pong_received());
   EXPECT_TRUE(c2->pong_received());
+}
+
+TEST_F(EndToEnd, StylusServedAsButton) {
+  Collector unused;
+  auto stylus = Client("Stylus0", /*tcp=*/true, unused);
+  std::mutex mutex;
+  std::vector<ButtonChange> changes;
+  stylus->Stop();  // set the callback while the client thread is not running
+  stylus->SetMessageCallback([&](const ReceivedMessage& m) {
+    if (m.type != kButtonChangeType) return;
+    std::lock_guard<std::mutex> lock(mutex);
+    changes.push_back(*DecodeButtonChange(m.payload));
+  });
+  stylus->Start();
+  auto wait = [&](std::size_t n) {
+    const auto end = Clock::now() + std::chrono::seconds(10);
+    while (Clock::now() < end) {
+      {
+        std::lock_guard<std::mutex> lock(mutex);
+        if (changes.size() >= n) return true;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    return false;
+  };
+  const auto pong_by = Clock::now() + std::chrono::seconds(10);
+  while (Clock::now() < pong_by && !stylus->pong_received()) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  ASSERT_TRUE(stylus->pong_received());
+  ASSERT_EQ(emulator_->Control("button 1 1").rfind("ok", 0), 0u);
+  ASSERT_TRUE(wait(1));
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    // The driver reports the first state after streaming starts (released) and then the press.
+    EXPECT_EQ(changes.back().button, 0);
+    EXPECT_EQ(changes.back().state, 1);
+  }
+  const std::size_t before = changes.size();
+  ASSERT_EQ(emulator_->Control("button 1 0").rfind("ok", 0), 0u);
+  ASSERT_TRUE(wait(before + 1));
+  std::lock_guard<std::mutex> lock(mutex);
+  EXPECT_EQ(changes.back().state, 0);
 }
 
 TEST_F(EndToEnd, ReloadWithoutDroppingClients) {

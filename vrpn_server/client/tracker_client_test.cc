@@ -4,11 +4,13 @@
 
 #include <arpa/inet.h>
 #include <gtest/gtest.h>
+#include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #include <chrono>
 #include <functional>
+#include <map>
 #include <memory>
 #include <thread>
 
@@ -233,10 +235,14 @@ TEST(VrpnServer, StalledClientIsDroppedWithoutBlockingOthers) {
   Collected got;
   Attach(good, got);
   ASSERT_TRUE(PollUntil({&good}, [&] { return good.pong_received(); }));
-  // Sends its cookie, then never reads.
+  // Sends its cookie and describes Tracker0 (so the server streams to it), then never reads.
   auto stalled = RawConnect(server.port(), /*rcvbuf=*/4096);
-  const auto cookie = MakeCookie();
-  ASSERT_EQ(::send(stalled.get(), cookie.data(), cookie.size(), 0), 24);
+  auto names = std::make_shared<NameRegistry>();
+  names->AddSender("Tracker0");
+  Connection hello(names, Connection::Options{});
+  hello.Start();
+  ASSERT_EQ(::send(stalled.get(), hello.tcp_output().data(), hello.tcp_output().size(), 0),
+            static_cast<ssize_t>(hello.tcp_output().size()));
   ASSERT_TRUE(PollUntil({&good}, [&] { return server.stats().clients == 2; }));
   // Publish until the stalled client's socket buffers and max_output_bytes overflow (loopback
   // buffers auto-tune to several MB, so the count needed is not fixed), polling the good client.
@@ -249,6 +255,72 @@ TEST(VrpnServer, StalledClientIsDroppedWithoutBlockingOthers) {
   ASSERT_TRUE(PollUntil({&good}, [&] { return static_cast<int>(got.reports.size()) == n; }, 30.0));
   EXPECT_EQ(server.stats().dropped_slow, 1u);
   EXPECT_EQ(server.stats().clients, 1);
+}
+
+TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
+  auto catalog = MakeCatalog();
+  TrackerSpec other;
+  other.name = "Tracker1";
+  const int tracker1 = catalog->AddTracker(other);
+  VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  // A raw client that describes only Tracker0 and counts Pos_Quat per sender.
+  auto fd = RawConnect(server.port());
+  auto names = std::make_shared<NameRegistry>();
+  names->AddSender("Tracker0");
+  Connection conn(names, Connection::Options{});
+  conn.Start();
+  ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
+  // Once the server has our description, it streams Tracker0 to us, never Tracker1.
+  std::map<std::string, int> counts;
+  std::uint8_t buf[65536];
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (Clock::now() < end && counts["Tracker0"] < 20) {
+    server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
+    server.PublishPose(tracker1, 0, Rigid3d(), Timestamp::Now());
+    pollfd p{fd.get(), POLLIN, 0};
+    if (::poll(&p, 1, 10) <= 0) continue;
+    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+    ASSERT_GT(n, 0);
+    ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                [&](const ReceivedMessage& m) {
+                                  if (m.type == kPosQuatType) ++counts[std::string(m.sender)];
+                                }));
+  }
+  EXPECT_GE(counts["Tracker0"], 20);
+  EXPECT_EQ(counts.count("Tracker1"), 0u);
+}
+
+TEST(VrpnServer, ClientDescribingNoNamesGetsEveryDevice) {
+  // A minimal third-party client that sends its cookie and never describes a sender filters by
+  // itself, as with the reference server: it must still get every device's reports.
+  auto catalog = MakeCatalog();
+  TrackerSpec other;
+  other.name = "Tracker1";
+  const int tracker1 = catalog->AddTracker(other);
+  VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  auto fd = RawConnect(server.port());
+  Connection conn(std::make_shared<NameRegistry>(), Connection::Options{});
+  conn.Start();
+  ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
+  std::map<std::string, int> counts;
+  std::uint8_t buf[65536];
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (Clock::now() < end && (counts["Tracker0"] < 20 || counts["Tracker1"] < 20)) {
+    server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
+    server.PublishPose(tracker1, 0, Rigid3d(), Timestamp::Now());
+    pollfd p{fd.get(), POLLIN, 0};
+    if (::poll(&p, 1, 10) <= 0) continue;
+    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+    ASSERT_GT(n, 0);
+    ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                [&](const ReceivedMessage& m) {
+                                  if (m.type == kPosQuatType) ++counts[std::string(m.sender)];
+                                }));
+  }
+  EXPECT_GE(counts["Tracker0"], 20);
+  EXPECT_GE(counts["Tracker1"], 20);
 }
 
 TEST(VrpnServer, AllowListRefusesOtherNetworks) {

@@ -38,11 +38,20 @@ bool PeerNameTable::Set(std::int32_t id, std::string name) {
   auto it = names_.find(id);
   if (it != names_.end()) {
     it->second = std::move(name);
+    ++version_;
     return true;
   }
   if (names_.size() >= kMaxEntries) return false;
   names_.emplace(id, std::move(name));
+  ++version_;
   return true;
+}
+
+bool PeerNameTable::Contains(std::string_view name) const {
+  for (const auto& [id, n] : names_) {
+    if (n == name) return true;
+  }
+  return false;
 }
 
 const std::string* PeerNameTable::Find(std::int32_t id) const {

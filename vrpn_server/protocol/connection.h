@@ -48,10 +48,15 @@ class PeerNameTable {
   // False when the table is full (the description is dropped).
   bool Set(std::int32_t id, std::string name);
   const std::string* Find(std::int32_t id) const;
+  // True when some id carries this name.
+  bool Contains(std::string_view name) const;
   std::size_t size() const { return names_.size(); }
+  // Changes with every Set (lets owners cache what they derive from the table).
+  std::uint64_t version() const { return version_; }
 
  private:
   std::unordered_map<std::int32_t, std::string> names_;
+  std::uint64_t version_ = 0;
 };
 
 // A message with the peer's ids resolved to names.

@@ -6,6 +6,7 @@
 #include <fstream>
 #include <functional>
 
+#include "core/capture.h"
 #include "tests/test_utils.h"
 #include "vrpn_server/client/tracker_client.h"
 
@@ -122,6 +123,12 @@ TEST(StreamRecorder, WritesStreamFormatAndNeverOverwrites) {
   std::getline(in, row);
   EXPECT_EQ(header, "time,sensor,x,y,z,qw,qx,qy,qz");
   EXPECT_EQ(row, "12.000034,1,0.10000000000000001,0.20000000000000001,0.29999999999999999,0,0,0,1");
+  // The capture reader of core reads it back (sensor = station number 1).
+  const TrackerStream stream = ReadTrackerStream(dir / "Tracker0_tracker_stream.csv");
+  ASSERT_EQ(stream.records.size(), 1u);
+  EXPECT_EQ(stream.records[0].sensor, 1);
+  EXPECT_DOUBLE_EQ(stream.records[0].time, 12.000034);
+  EXPECT_EQ(stream.records[0].transmitter_from_receiver.translation.z(), 0.3);
   EXPECT_THROW(StreamRecorder(dir, "Tracker0"), std::invalid_argument);
   EXPECT_THROW(StreamRecorder(dir / "missing", "Tracker0"), std::invalid_argument);
 }

@@ -9,6 +9,7 @@
 #include <sys/epoll.h>
 #include <sys/eventfd.h>
 #include <sys/socket.h>
+#include <sys/uio.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -88,9 +89,18 @@ struct VrpnServer::Endpoint {
   Clock::time_point deadline;
   std::optional<sockaddr_in> udp_peer;
   std::vector<std::uint8_t> datagram;
+  // wants[sender id]: the client described that device name (it uses a remote object for it).
+  std::vector<bool> wants;
+  // The client described none of our device names: a minimal client that filters by itself; it
+  // gets every device's messages, as from the reference server.
+  bool wants_everything = true;
+  std::uint64_t wants_version = ~std::uint64_t{0};
 };
 
 struct VrpnServer::Impl {
+  // Guards everything below but the queue: held by the network thread while it handles events and
+  // by a device thread that fans its report out directly.
+  std::mutex net_mutex;
   AllowList allow;
   std::map<std::uint64_t, std::unique_ptr<Endpoint>> endpoints;
   std::set<std::string> callback_keys;
@@ -102,6 +112,9 @@ struct VrpnServer::Impl {
   std::vector<std::uint8_t> encoded;
   int refused_logged = 0;
   std::vector<float> fanout_us;  // guarded by the server's stats_mutex_
+  std::vector<mmsghdr> mmsg;     // DrainEvents scratch
+  std::vector<iovec> iovs;
+  std::vector<std::uint64_t> ids;
 };
 
 void LogToStderr(const std::string& line) {
@@ -186,6 +199,7 @@ void VrpnServer::Stop() {
   const std::uint64_t one = 1;
   [[maybe_unused]] auto n = ::write(event_fd_, &one, sizeof(one));
   if (thread_.joinable()) thread_.join();
+  std::lock_guard<std::mutex> net(impl_->net_mutex);
   impl_->endpoints.clear();
   impl_->callback_keys.clear();
   for (int* fd : {&tcp_fd_, &udp_fd_, &event_fd_, &epoll_fd_}) {
@@ -201,6 +215,16 @@ void VrpnServer::Push(Event event) {
     std::lock_guard<std::mutex> lock(impl_->queue_mutex);
     was_empty = impl_->queue.empty();
     impl_->queue.push_back(std::move(event));
+  }
+  // Fast path: if the network thread is idle, send from this thread at once (saves a thread
+  // wake-up, tens of microseconds on a busy host). Never waits: when the loop is busy the report
+  // stays queued and the loop sends it, in order, right after.
+  if (options_.direct_fanout && running_) {
+    std::unique_lock<std::mutex> net(impl_->net_mutex, std::try_to_lock);
+    if (net.owns_lock() && running_) {
+      DrainEvents();
+      return;
+    }
   }
   // One wake-up per batch: the loop drains everything queued when it runs.
   if (was_empty && event_fd_ >= 0) {
@@ -277,10 +301,13 @@ void VrpnServer::Run() {
   while (running_) {
     // Block indefinitely unless a handshake deadline is pending: no periodic wake-ups when idle.
     int timeout_ms = -1;
-    for (const auto& [id, e] : impl_->endpoints) {
-      if (e->connecting || !e->session || !e->session->connection().handshake_done()) {
-        timeout_ms = 250;
-        break;
+    {
+      std::lock_guard<std::mutex> net(impl_->net_mutex);
+      for (const auto& [id, e] : impl_->endpoints) {
+        if (e->connecting || !e->session || !e->session->connection().handshake_done()) {
+          timeout_ms = 250;
+          break;
+        }
       }
     }
     const int n = ::epoll_wait(epoll_fd_, events, 64, timeout_ms);
@@ -288,6 +315,7 @@ void VrpnServer::Run() {
       Log("epoll_wait: " + ErrnoText(errno));
       break;
     }
+    std::lock_guard<std::mutex> net(impl_->net_mutex);
     for (int i = 0; i < n && running_; ++i) {
       const std::uint64_t tag = events[i].data.u64;
       const auto kind = static_cast<Kind>(tag & 7);
@@ -639,8 +667,29 @@ void VrpnServer::DrainEvents() {
                       EncodeButtonChange(ButtonChange{ev.index, ev.pressed ? 1 : 0}));
         break;
     }
+    const std::int32_t sender = static_cast<std::int32_t>(LoadU32(msg.data() + 12));
     for (auto& [id, e] : impl_->endpoints) {
       if (e->connecting || !e->session) continue;
+      // Only clients that use this device get its messages (a VRPN client describes the device
+      // names it opens; the reference sends everything to everyone and lets clients filter). A
+      // client that described none of our names still gets everything, as from the reference.
+      const PeerNameTable& peer = e->session->connection().peer_senders();
+      if (e->wants_version != peer.version()) {
+        const auto& names = catalog_->names()->senders();
+        e->wants.assign(names.size(), false);
+        e->wants_everything = true;
+        for (std::size_t i = 0; i < names.size(); ++i) {
+          e->wants[i] = peer.Contains(names[i]);
+          if (e->wants[i]) e->wants_everything = false;
+        }
+        e->wants_version = peer.version();
+      }
+      // Before the client's cookie (and the descriptions that follow it) arrived, nothing is sent.
+      if (!e->session->connection().handshake_done()) continue;
+      const bool wanted = e->wants_everything ||
+                          (sender >= 0 && static_cast<std::size_t>(sender) < e->wants.size() &&
+                           e->wants[sender]);
+      if (!wanted) continue;
       if (low_latency && e->udp_peer) {
         if (e->datagram.size() + msg.size() > kMaxDatagramSize) {
           // Flush a full datagram before adding more.
@@ -662,22 +711,47 @@ void VrpnServer::DrainEvents() {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.reports_published += reports;
   }
-  std::vector<std::uint64_t> ids;
-  ids.reserve(impl_->endpoints.size());
-  for (auto& [id, e] : impl_->endpoints) ids.push_back(id);
+  // All UDP datagrams of this batch leave in one sendmmsg() from the server's port: one system call
+  // instead of one per client, so the woken clients cannot interleave with the fan-out. Clients
+  // accept data datagrams from any source port (the reference's own sending port differs from the
+  // port it announces too).
+  std::vector<mmsghdr>& headers = impl_->mmsg;
+  std::vector<iovec>& iovs = impl_->iovs;
+  headers.clear();
+  iovs.clear();
+  std::vector<std::uint64_t>& ids = impl_->ids;
+  ids.clear();
+  for (auto& [id, e] : impl_->endpoints) {
+    ids.push_back(id);
+    if (!e->datagram.empty()) iovs.push_back(iovec{e->datagram.data(), e->datagram.size()});
+  }
+  std::size_t k = 0;
+  for (auto& [id, e] : impl_->endpoints) {
+    if (e->datagram.empty()) continue;
+    mmsghdr h{};
+    h.msg_hdr.msg_name = &*e->udp_peer;
+    h.msg_hdr.msg_namelen = sizeof(sockaddr_in);
+    h.msg_hdr.msg_iov = &iovs[k++];
+    h.msg_hdr.msg_iovlen = 1;
+    headers.push_back(h);
+  }
+  for (std::size_t sent = 0; sent < headers.size();) {
+    const int n = ::sendmmsg(udp_fd_, headers.data() + sent, static_cast<unsigned>(headers.size() - sent),
+                             MSG_DONTWAIT);
+    if (n <= 0) {
+      // Skip the datagram that failed (full buffer, unreachable client) and carry on.
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.udp_send_failures;
+      ++sent;
+      continue;
+    }
+    sent += static_cast<std::size_t>(n);
+  }
+  for (auto& [id, e] : impl_->endpoints) e->datagram.clear();
   for (std::uint64_t id : ids) {
     auto it = impl_->endpoints.find(id);
     if (it == impl_->endpoints.end()) continue;
-    Endpoint& e = *it->second;
-    if (!e.datagram.empty()) {
-      if (::sendto(e.udp_fd.get(), e.datagram.data(), e.datagram.size(), MSG_DONTWAIT,
-                   reinterpret_cast<const sockaddr*>(&*e.udp_peer), sizeof(sockaddr_in)) < 0) {
-        std::lock_guard<std::mutex> lock(stats_mutex_);
-        ++stats_.udp_send_failures;
-      }
-      e.datagram.clear();
-    }
-    Flush(e);
+    Flush(*it->second);
   }
   const float us = std::chrono::duration<float, std::micro>(Clock::now() - first_enqueued).count();
   std::lock_guard<std::mutex> lock(stats_mutex_);

@@ -7,9 +7,11 @@
 //   stops reading is dropped when its buffer overflows, it never blocks the others.
 // - On lob connections the server opens a UDP socket, announces it, and sends low-latency messages
 //   (Pos_Quat) over UDP once the client has described its own UDP port.
-// - Devices publish from their own threads (Publish* are thread-safe): reports go through a
-//   mutex-protected queue and an eventfd wakes the loop, which encodes each report once and writes
-//   it to every client.
+// - Devices publish from their own threads (Publish* are thread-safe and never block on the
+//   network): if the network thread is idle the publishing thread fans the report out itself
+//   (saving a thread wake-up); otherwise the report goes through a mutex-protected queue and an
+//   eventfd wakes the loop. Either way each report is encoded once, written to every client, and
+//   reports keep their order.
 // - Exposure: bind address, and an allow-list of client networks checked for accepted connections,
 //   lob datagrams and call-back targets.
 
@@ -55,6 +57,9 @@ struct ServerOptions {
   // Keeps client processes on the same host from preempting a fan-out halfway; needs
   // CAP_SYS_NICE (a warning is logged and the server runs normally without it).
   int realtime_priority = 0;
+  // A device thread publishing while the network thread is idle sends to the clients itself
+  // (never waiting for the network thread); false always hands reports to the network thread.
+  bool direct_fanout = true;
   void Check() const;  // throws std::invalid_argument naming the field
 };
 
@@ -70,6 +75,8 @@ struct ServerStats {
 
 class VrpnServer {
  public:
+  // `log` may be called from the network thread and from publishing threads: it must be
+  // thread-safe (the default, LogToStderr, is).
   VrpnServer(std::shared_ptr<const ServerCatalog> catalog, ServerOptions options,
              LogFunction log = nullptr);
   ~VrpnServer();

@@ -1,0 +1,94 @@
+#include "fit/registration_io.h"
+
+#include <algorithm>
+#include <set>
+#include <stdexcept>
+
+namespace trackcal::fit {
+
+std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& markers,
+                                                         const TrackerCapture& tracker, int sensor,
+                                                         const std::string& markers_name,
+                                                         const std::string& tracker_name) {
+  std::map<int, RegistrationStation> stations;
+  for (const TrackerRecord& t : tracker.records) {
+    if (t.sensor != sensor) continue;
+    RegistrationStation s;
+    s.station = t.station;
+    s.tracker_transmitter_from_receiver = t.transmitter_from_receiver;
+    if (!stations.emplace(t.station, s).second) {
+      throw std::invalid_argument(tracker_name + ": station " + std::to_string(t.station) +
+                                  ", sensor " + std::to_string(sensor) +
+                                  ": more than one row for this station and sensor");
+    }
+  }
+  std::set<std::pair<int, int>> seen;
+  for (const MarkerRecord& m : markers.records) {
+    const auto it = stations.find(m.station);
+    if (it == stations.end()) {
+      throw std::invalid_argument(markers_name + ": station " + std::to_string(m.station) +
+                                  ", marker " + std::to_string(m.marker) + ": no row in " +
+                                  tracker_name + " for this station and sensor " +
+                                  std::to_string(sensor));
+    }
+    if (!seen.emplace(m.station, m.marker).second) {
+      throw std::invalid_argument(markers_name + ": station " + std::to_string(m.station) +
+                                  ", column marker: marker " + std::to_string(m.marker) +
+                                  " appears twice");
+    }
+    it->second.markers.push_back({m.marker, m.position_in_optical});
+  }
+  std::vector<RegistrationStation> out;
+  out.reserve(stations.size());
+  for (auto& [id, s] : stations) out.push_back(std::move(s));
+  return out;
+}
+
+std::vector<RegistrationStation> ReadRegistrationStations(const std::filesystem::path& markers_csv,
+                                                          const std::filesystem::path& tracker_csv,
+                                                          int sensor) {
+  return PairRegistrationRecords(ReadMarkers(markers_csv), ReadTracker(tracker_csv), sensor,
+                                 markers_csv.filename().string(), tracker_csv.filename().string());
+}
+
+bool PoseRecordOptions::Check() const { return set == "calib" || set == "valid" || set == "reg"; }
+
+PoseRecords MakePoseRecords(const std::vector<RegistrationStation>& stations,
+                            const std::vector<ExtractedPose>& poses,
+                            const std::map<int, double>& station_times,
+                            const PoseRecordOptions& options) {
+  if (!options.Check()) {
+    throw std::invalid_argument("PoseRecordOptions: set '" + options.set +
+                                "' is not one of calib, valid, reg");
+  }
+  if (stations.size() != poses.size()) {
+    throw std::invalid_argument("MakePoseRecords: " + std::to_string(stations.size()) +
+                                " stations but " + std::to_string(poses.size()) + " poses");
+  }
+  PoseRecords out;
+  for (std::size_t i = 0; i < stations.size(); ++i) {
+    if (stations[i].station != poses[i].station) {
+      throw std::invalid_argument(
+          "MakePoseRecords: station " + std::to_string(stations[i].station) +
+          " paired with the pose of station " + std::to_string(poses[i].station));
+    }
+    const bool usable = poses[i].status == PoseStatus::kOk ||
+                        (options.include_bad_fit && poses[i].status == PoseStatus::kBadFit);
+    if (!usable) {
+      out.left_out.push_back(stations[i].station);
+      continue;
+    }
+    PoseRecord r;
+    r.station = stations[i].station;
+    r.set = options.set;
+    r.sensor = options.sensor;
+    const auto t = station_times.find(r.station);
+    r.time = t == station_times.end() ? 0.0 : t->second;
+    r.reported = stations[i].tracker_transmitter_from_receiver;
+    r.reference = poses[i].transmitter_from_receiver;
+    out.capture.records.push_back(r);
+  }
+  return out;
+}
+
+}  // namespace trackcal::fit

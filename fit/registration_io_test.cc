@@ -1,0 +1,143 @@
+#include "fit/registration_io.h"
+
+#include <gtest/gtest.h>
+
+#include "fit/synthetic_registration.h"
+#include "tests/test_utils.h"
+
+namespace trackcal::fit {
+namespace {
+
+using testing::TestRng;
+
+// markers.csv / tracker.csv records of a synthetic capture.
+void ToRecords(const SyntheticRegistration& data, int sensor, MarkerCapture* markers,
+               TrackerCapture* tracker) {
+  for (const RegistrationStation& s : data.stations) {
+    TrackerRecord t;
+    t.station = s.station;
+    t.sensor = sensor;
+    t.transmitter_from_receiver = s.tracker_transmitter_from_receiver;
+    tracker->records.push_back(t);
+    for (const MarkerObservation& m : s.markers) {
+      MarkerRecord r;
+      r.station = s.station;
+      r.marker = m.marker;
+      r.position_in_optical = m.marker_in_optical;
+      markers->records.push_back(r);
+    }
+  }
+}
+
+TEST(RegistrationIo, Nominal) {
+  // Files -> stations -> registration -> poses -> poses.csv -> read back.
+  SyntheticRegistrationOptions s;
+  s.optical_noise_m = 1.5e-4;
+  s.tracker_position_noise_m = 8e-4;
+  s.tracker_orientation_noise_rad = 0.15 * kRadPerDeg;
+  const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  MarkerCapture markers;
+  TrackerCapture tracker;
+  ToRecords(data, /*sensor=*/2, &markers, &tracker);
+  // A second receiver's rows must be ignored.
+  TrackerRecord other = tracker.records.front();
+  other.sensor = 1;
+  other.transmitter_from_receiver.translation.x() += 1.0;
+  tracker.records.push_back(other);
+
+  const auto dir = testing::MakeTempDir("registration_io");
+  WriteMarkers(dir / kMarkersCsv, markers);
+  WriteTracker(dir / kTrackerCsv, tracker);
+  const std::vector<RegistrationStation> stations =
+      ReadRegistrationStations(dir / kMarkersCsv, dir / kTrackerCsv, /*sensor=*/2);
+  ASSERT_EQ(stations.size(), data.stations.size());
+  for (std::size_t i = 0; i < stations.size(); ++i) {
+    EXPECT_EQ(stations[i].station, data.stations[i].station);
+    EXPECT_EQ(stations[i].markers.size(), data.stations[i].markers.size());
+    // The CSV writer round-trips doubles exactly; the reader normalises quaternions (1 ulp).
+    EXPECT_TRUE(testing::PosesNear(data.stations[i].tracker_transmitter_from_receiver,
+                                   stations[i].tracker_transmitter_from_receiver, 0.0, 1e-15));
+  }
+
+  RegistrationOptions ro;
+  ro.optical_noise_m = s.optical_noise_m;
+  ro.tracker_position_noise_m = s.tracker_position_noise_m;
+  ro.tracker_orientation_noise_rad = s.tracker_orientation_noise_rad;
+  const RegistrationResult reg = RegisterOpticalToTransmitter(stations, ro);
+  ASSERT_TRUE(reg.identifiable) << reg.ToString();
+  const std::vector<ExtractedPose> poses = ExtractPoses(stations, reg.registration);
+  std::map<int, double> times = {{stations[0].station, 12.5}};
+  const PoseRecords records = MakePoseRecords(stations, poses, times, {"reg", 2});
+  EXPECT_TRUE(records.left_out.empty());
+  WritePoses(dir / kPosesCsv, records.capture);
+  EXPECT_THROW(WritePoses(dir / kPosesCsv, records.capture), std::runtime_error);  // no overwrite
+
+  const PoseCapture back = ReadPoses(dir / kPosesCsv);
+  ASSERT_EQ(back.records.size(), stations.size());
+  EXPECT_EQ(back.records[0].time, 12.5);
+  EXPECT_EQ(back.records[1].time, 0.0);
+  for (std::size_t i = 0; i < back.records.size(); ++i) {
+    const PoseRecord& r = back.records[i];
+    EXPECT_EQ(r.set, "reg");
+    EXPECT_EQ(r.sensor, 2);
+    EXPECT_TRUE(
+        testing::PosesNear(stations[i].tracker_transmitter_from_receiver, r.reported, 0.0, 1e-15));
+    // Reference = extracted pose; against the truth within optical + registration error (see
+    // pose_extraction_test: 1 mm and 0.6 deg are about four standard deviations).
+    EXPECT_TRUE(testing::PosesNear(data.true_transmitter_from_receiver[i], r.reference, 1e-3,
+                                   0.6 * kRadPerDeg));
+  }
+}
+
+TEST(RegistrationIo, PairingErrorsNameFileStationAndField) {
+  const SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  MarkerCapture markers;
+  TrackerCapture tracker;
+  ToRecords(data, 1, &markers, &tracker);
+  auto expect_message = [](const MarkerCapture& m, const TrackerCapture& t,
+                           const std::string& needle) {
+    try {
+      PairRegistrationRecords(m, t);
+      ADD_FAILURE() << "expected std::invalid_argument containing " << needle;
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  };
+  TrackerCapture missing = tracker;
+  missing.records.erase(missing.records.begin() + 3);
+  expect_message(markers, missing, "markers.csv: station 4, marker");
+  TrackerCapture twice = tracker;
+  twice.records.push_back(twice.records[5]);
+  expect_message(markers, twice, "tracker.csv: station 6, sensor 1: more than one row");
+  MarkerCapture duplicate = markers;
+  duplicate.records.push_back(duplicate.records[0]);
+  expect_message(duplicate, tracker, "markers.csv: station 1, column marker");
+
+  // A tracker row without markers is a station with none: the registration skips it.
+  MarkerCapture fewer;
+  for (const MarkerRecord& m : markers.records) {
+    if (m.station != 2) fewer.records.push_back(m);
+  }
+  const auto stations = PairRegistrationRecords(fewer, tracker);
+  ASSERT_EQ(stations.size(), data.stations.size());
+  EXPECT_TRUE(stations[1].markers.empty());
+  EXPECT_EQ(RegisterOpticalToTransmitter(stations).skipped_stations, std::vector<int>{2});
+}
+
+TEST(MakePoseRecords, LeavesOutStationsWithoutAPose) {
+  const SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
+  std::vector<RegistrationStation> stations(data.stations.begin(), data.stations.begin() + 3);
+  stations[1].markers.resize(2);
+  const OpticalRegistration truth{data.optical_from_transmitter, data.marker_in_receiver};
+  const std::vector<ExtractedPose> poses = ExtractPoses(stations, truth);
+  const PoseRecords records = MakePoseRecords(stations, poses);
+  EXPECT_EQ(records.capture.records.size(), 2u);
+  EXPECT_EQ(records.left_out, std::vector<int>{stations[1].station});
+  EXPECT_THROW(MakePoseRecords(stations, {poses[0]}), std::invalid_argument);
+  PoseRecordOptions bad;
+  bad.set = "calibration";
+  EXPECT_THROW(MakePoseRecords(stations, poses, {}, bad), std::invalid_argument);
+}
+
+}  // namespace
+}  // namespace trackcal::fit

@@ -1,0 +1,91 @@
+// The registration on captures from the physics simulator (sim/): markers.csv and tracker.csv as a
+// calibration session records them, the true optical_from_transmitter known from the scene.
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <iostream>
+
+#include "fit/registration_io.h"
+#include "fit/rotation.h"
+#include "sim/simulator.h"
+#include "tests/test_utils.h"
+
+namespace trackcal::fit {
+namespace {
+
+struct SimRun {
+  RegistrationResult result;
+  Rigid3d truth;
+  double mahalanobis2 = 0.0;
+  double rotation_error_deg = 0.0;
+  double translation_error_mm = 0.0;
+};
+
+SimRun RegisterScene(const sim::Scene& scene, const RegistrationOptions& options) {
+  sim::Simulator simulator(scene);
+  const sim::SimulatedCapture capture = simulator.Generate();
+  const std::vector<RegistrationStation> stations =
+      PairRegistrationRecords(capture.markers, capture.tracker, scene.tracker.sensor);
+  SimRun run;
+  run.result = RegisterOpticalToTransmitter(stations, options);
+  run.truth = scene.reference.optical_from_transmitter;
+  Eigen::Matrix<double, 6, 1> e;
+  e << RotationVectorBetween<double>(run.result.registration.optical_from_transmitter.rotation,
+                                     run.truth.rotation),
+      run.result.registration.optical_from_transmitter.translation - run.truth.translation;
+  run.mahalanobis2 = e.dot(run.result.optical_from_transmitter_covariance.ldlt().solve(e));
+  run.rotation_error_deg = e.head<3>().norm() * kDegPerRad;
+  run.translation_error_mm = e.tail<3>().norm() * 1e3;
+  return run;
+}
+
+RegistrationOptions OptionsFor(const sim::Scene& scene) {
+  RegistrationOptions o;
+  // Markers averaged over the station's samples.
+  o.optical_noise_m =
+      scene.reference.marker_noise_m / std::sqrt(double(scene.reference.samples_per_station));
+  return o;
+}
+
+TEST(RegistrationOnSimulatedCapture, DistortionFreeSceneWithinCovariance) {
+  // The paper scene without its distortion sources: the tracker is only noisy, as the paper's
+  // registration assumes. Its noise at 0.2-0.45 m from the transmitter (120 averaged samples) is
+  // about 0.04 mm and 0.01 deg per axis (truth.json noise floor of the reg set).
+  sim::Scene scene = sim::LoadScene("paper");
+  scene.environment.planes.clear();
+  scene.environment.objects.clear();
+  RegistrationOptions o = OptionsFor(scene);
+  o.tracker_position_noise_m = 5e-5;
+  o.tracker_orientation_noise_rad = 0.01 * kRadPerDeg;
+  for (uint64_t seed : {20010313ull, 1ull, 2ull}) {
+    scene.seed = seed;
+    const SimRun run = RegisterScene(scene, o);
+    ASSERT_TRUE(run.result.converged) << run.result.ToString();
+    EXPECT_TRUE(run.result.identifiable) << run.result.ToString();
+    // 99.99 % quantile of chi-square(6).
+    EXPECT_LT(run.mahalanobis2, 27.86) << run.result.ToString();
+    // The noise is not exactly Gaussian per axis (it grows with distance), so allow 5 sigma.
+    EXPECT_LT(std::abs(run.result.ChiSquareZ()), 5.0) << run.result.ToString();
+  }
+}
+
+TEST(RegistrationOnSimulatedCapture, PaperSceneDistortionBiasesTheTransform) {
+  // With the paper scene's distortion (the workbench frame 0.35 m below the transmitter), the
+  // tracker is off by ~2 mm and ~0.5 deg at the registration stations, coherently enough to look
+  // like a rotated transmitter frame: no registration from these data alone can remove it, and
+  // the covariance (random noise only) does not cover it. This test records the size of the
+  // effect so a change shows; docs/registration.md discusses it.
+  const sim::Scene scene = sim::LoadScene("paper");
+  const SimRun run = RegisterScene(scene, OptionsFor(scene));
+  ASSERT_TRUE(run.result.converged);
+  std::cout << "paper scene: rotation error " << run.rotation_error_deg
+            << " deg, translation error " << run.translation_error_mm << " mm, Mahalanobis^2 "
+            << run.mahalanobis2 << ", chi-square z " << run.result.ChiSquareZ() << "\n";
+  // Measured 0.52 deg and 0.95 mm (seeds 1-5: 0.27-0.49 deg, 0.43-1.05 mm); bounds at about 2x.
+  EXPECT_LT(run.rotation_error_deg, 1.0);
+  EXPECT_LT(run.translation_error_mm, 2.0);
+}
+
+}  // namespace
+}  // namespace trackcal::fit
