@@ -6,5 +6,7 @@
 namespace trackcal::python {
 
 void BindCore(pybind11::module_& m);
+void BindCapture(pybind11::module_& m);
+void BindVrpn(pybind11::module_& m);
 
 }  // namespace trackcal::python

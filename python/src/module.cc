@@ -6,4 +6,6 @@ PYBIND11_MODULE(_core, m) {
   m.doc() = "trackcal native core: pose math and runtime corrections";
   m.attr("__version__") = TRACKCAL_VERSION;
   trackcal::python::BindCore(m);
+  trackcal::python::BindCapture(m);
+  trackcal::python::BindVrpn(m);
 }

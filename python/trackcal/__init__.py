@@ -6,6 +6,15 @@ Correcting poses::
 
     cal = trackcal.Calibration.load("calib.json")
     positions, quaternions_xyzw, extrapolated = cal.correct(positions, quaternions_xyzw)
+
+Validation, diagnosis and reports (docs/understand.md; the ``trackcal`` command)::
+
+    from trackcal import captures, validation, report
+    v = validation.validate(captures.load_poses("capture/"), cal)
+    report.write_report(v, "report/")
+
+Modules: ``captures`` (capture files), ``validation`` (Table 1, breakdowns, covariate analysis),
+``figures``, ``report``, ``history`` (fit history of a work folder), ``record`` (live VRPN streams).
 """
 
 from trackcal._core import (

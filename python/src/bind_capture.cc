@@ -1,0 +1,225 @@
+// Bindings of core/capture.h and core/error_statistics.h: the one CSV reader/writer and the one
+// implementation of the paper's Table 1 statistics, so Python and C++ tools agree to the bit.
+// Captures cross the boundary as dicts of numpy arrays (positions (N, 3), quaternions (N, 4) ordered
+// x, y, z, w); reader errors keep the C++ text "file:line: column name: problem" (ValueError).
+#include <pybind11/numpy.h>
+#include <pybind11/stl.h>
+#include <pybind11/stl/filesystem.h>
+
+#include <stdexcept>
+
+#include "core/capture.h"
+#include "core/error_statistics.h"
+#include "python/src/bindings.h"
+
+namespace py = pybind11;
+
+namespace trackcal::python {
+namespace {
+
+using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
+
+py::array_t<double> Positions(size_t n, const auto& get) {
+  py::array_t<double> a({static_cast<py::ssize_t>(n), py::ssize_t{3}});
+  auto r = a.mutable_unchecked<2>();
+  for (size_t i = 0; i < n; ++i) {
+    const Eigen::Vector3d& p = get(i).translation;
+    for (int k = 0; k < 3; ++k) r(i, k) = p[k];
+  }
+  return a;
+}
+
+py::array_t<double> Quaternions(size_t n, const auto& get) {
+  py::array_t<double> a({static_cast<py::ssize_t>(n), py::ssize_t{4}});
+  auto r = a.mutable_unchecked<2>();
+  for (size_t i = 0; i < n; ++i) {
+    double xyzw[4];
+    QuaternionToXyzwArray(get(i).rotation, xyzw);
+    for (int k = 0; k < 4; ++k) r(i, k) = xyzw[k];
+  }
+  return a;
+}
+
+template <typename Record>
+py::array_t<double> Extra(const CaptureTable<Record>& table) {
+  const size_t n = table.records.size(), m = table.extra_columns.size();
+  py::array_t<double> a({static_cast<py::ssize_t>(n), static_cast<py::ssize_t>(m)});
+  auto r = a.mutable_unchecked<2>();
+  for (size_t i = 0; i < n; ++i) {
+    for (size_t k = 0; k < m; ++k) r(i, k) = table.records[i].extra[k];
+  }
+  return a;
+}
+
+// Reads an (N, 3) and an (N, 4) array into poses; ValueError naming the arrays otherwise.
+std::vector<Rigid3d> ToPoses(const py::handle& positions_obj, const py::handle& quaternions_obj,
+                             const std::string& name) {
+  const DoubleArray p = DoubleArray::ensure(positions_obj);
+  const DoubleArray q = DoubleArray::ensure(quaternions_obj);
+  if (!p || !q || p.ndim() != 2 || p.shape(1) != 3 || q.ndim() != 2 || q.shape(1) != 4 ||
+      p.shape(0) != q.shape(0)) {
+    PyErr_Clear();
+    throw py::value_error(name + ": positions must be (N, 3) and quaternions (N, 4) x, y, z, w");
+  }
+  std::vector<Rigid3d> poses(p.shape(0));
+  for (py::ssize_t i = 0; i < p.shape(0); ++i) {
+    poses[i].translation = Eigen::Vector3d(p.at(i, 0), p.at(i, 1), p.at(i, 2));
+    poses[i].rotation = QuaternionFromXyzw(q.at(i, 0), q.at(i, 1), q.at(i, 2), q.at(i, 3)).normalized();
+  }
+  return poses;
+}
+
+py::dict SummaryToDict(const ErrorSummary& s) {
+  py::dict d;
+  d["count"] = s.count;
+  d["mean"] = s.mean;
+  d["std"] = s.std;
+  d["max"] = s.max;
+  d["rms"] = s.rms;
+  d["median"] = s.median;
+  d["p95"] = s.p95;
+  return d;
+}
+
+ErrorSummary SummaryFromDict(const py::dict& d) {
+  ErrorSummary s;
+  s.count = d["count"].cast<int>();
+  s.mean = d["mean"].cast<double>();
+  s.std = d["std"].cast<double>();
+  s.max = d["max"].cast<double>();
+  return s;
+}
+
+}  // namespace
+
+void BindCapture(py::module_& m) {
+  m.def(
+      "read_poses",
+      [](const std::filesystem::path& path) {
+        const PoseCapture c = ReadPoses(path);
+        const size_t n = c.records.size();
+        py::dict d;
+        py::array_t<int> station(n), sensor(n);
+        py::array_t<double> time(n);
+        py::list sets;
+        for (size_t i = 0; i < n; ++i) {
+          station.mutable_at(i) = c.records[i].station;
+          sensor.mutable_at(i) = c.records[i].sensor;
+          time.mutable_at(i) = c.records[i].time;
+          sets.append(c.records[i].set);
+        }
+        d["station"] = station;
+        d["set"] = sets;
+        d["sensor"] = sensor;
+        d["time"] = time;
+        d["reported_positions"] = Positions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reported; });
+        d["reported_quaternions_xyzw"] = Quaternions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reported; });
+        d["reference_positions"] = Positions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reference; });
+        d["reference_quaternions_xyzw"] = Quaternions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reference; });
+        d["extra_columns"] = c.extra_columns;
+        d["extra"] = Extra(c);
+        return d;
+      },
+      py::arg("path"),
+      "Reads poses.csv (core/capture.h) into a dict of arrays: station, set (list), sensor, time, "
+      "reported_/reference_positions (N, 3) [m], reported_/reference_quaternions_xyzw (N, 4), "
+      "extra_columns (list) and extra (N, K). Errors: ValueError 'file:line: column c: problem'.");
+
+  m.def(
+      "read_tracker_stream",
+      [](const std::filesystem::path& path) {
+        const TrackerStream c = ReadTrackerStream(path);
+        const size_t n = c.records.size();
+        py::dict d;
+        py::array_t<int> sensor(n);
+        py::array_t<double> time(n);
+        for (size_t i = 0; i < n; ++i) {
+          sensor.mutable_at(i) = c.records[i].sensor;
+          time.mutable_at(i) = c.records[i].time;
+        }
+        d["time"] = time;
+        d["sensor"] = sensor;
+        auto get = [&](size_t i) -> const Rigid3d& { return c.records[i].transmitter_from_receiver; };
+        d["positions"] = Positions(n, get);
+        d["quaternions_xyzw"] = Quaternions(n, get);
+        d["extra_columns"] = c.extra_columns;
+        d["extra"] = Extra(c);
+        return d;
+      },
+      py::arg("path"), "Reads tracker_stream.csv into time, sensor, positions, quaternions_xyzw, extra.");
+
+  m.def(
+      "write_tracker_stream",
+      [](const std::filesystem::path& path, const py::handle& time_obj, const py::handle& sensor_obj,
+         const py::handle& positions, const py::handle& quaternions, bool overwrite) {
+        const std::vector<Rigid3d> poses = ToPoses(positions, quaternions, "write_tracker_stream");
+        const DoubleArray time = DoubleArray::ensure(time_obj);
+        const py::array_t<int, py::array::c_style | py::array::forcecast> sensor =
+            py::array_t<int, py::array::c_style | py::array::forcecast>::ensure(sensor_obj);
+        if (!time || !sensor || time.ndim() != 1 || sensor.ndim() != 1 ||
+            time.shape(0) != static_cast<py::ssize_t>(poses.size()) ||
+            sensor.shape(0) != static_cast<py::ssize_t>(poses.size())) {
+          PyErr_Clear();
+          throw py::value_error("write_tracker_stream: time and sensor must be (N,) like positions");
+        }
+        TrackerStream s;
+        s.records.resize(poses.size());
+        for (size_t i = 0; i < poses.size(); ++i) {
+          s.records[i].time = time.at(i);
+          s.records[i].sensor = sensor.at(i);
+          s.records[i].transmitter_from_receiver = poses[i];
+        }
+        WriteTrackerStream(path, s, CaptureWriteOptions{.overwrite = overwrite});
+      },
+      py::arg("path"), py::arg("time"), py::arg("sensor"), py::arg("positions"),
+      py::arg("quaternions_xyzw"), py::arg("overwrite") = false,
+      "Writes tracker_stream.csv atomically; refuses to replace an existing file unless overwrite.");
+
+  m.def(
+      "summarize_errors",
+      [](const py::handle& values) {
+        const DoubleArray v = DoubleArray::ensure(values);
+        if (!v || v.ndim() != 1) {
+          PyErr_Clear();
+          throw py::value_error("values must be a 1-D numeric array");
+        }
+        return SummaryToDict(SummarizeErrors(std::span<const double>(v.data(), v.size())));
+      },
+      py::arg("values"),
+      "count, mean, std (n - 1), max, rms, median, p95 of error magnitudes (core/error_statistics.h).");
+
+  m.def(
+      "error_magnitudes",
+      [](const py::handle& est_p, const py::handle& est_q, const py::handle& ref_p,
+         const py::handle& ref_q) {
+        const auto est = ToPoses(est_p, est_q, "estimated");
+        const auto ref = ToPoses(ref_p, ref_q, "reference");
+        std::vector<double> pos_mm, ori_deg;
+        ComputeErrorMagnitudes(est, ref, &pos_mm, &ori_deg);
+        return py::make_tuple(py::array_t<double>(pos_mm.size(), pos_mm.data()),
+                              py::array_t<double>(ori_deg.size(), ori_deg.data()));
+      },
+      py::arg("estimated_positions"), py::arg("estimated_quaternions_xyzw"),
+      py::arg("reference_positions"), py::arg("reference_quaternions_xyzw"),
+      "Per-pose position error [mm] and orientation error angle [deg] (paper eq. 1, 3).");
+
+  m.def("improvement_percent", &ImprovementPercent, py::arg("before"), py::arg("after"));
+
+  m.def(
+      "format_table1",
+      [](const std::string& set_name, const py::dict& before_pos, const py::dict& before_ori,
+         const py::dict& after_pos, const py::dict& after_ori) {
+        Table1 t;
+        t.set_name = set_name;
+        t.before.position_mm = SummaryFromDict(before_pos);
+        t.before.orientation_deg = SummaryFromDict(before_ori);
+        t.after.position_mm = SummaryFromDict(after_pos);
+        t.after.orientation_deg = SummaryFromDict(after_ori);
+        return FormatTable1(t);
+      },
+      py::arg("set_name"), py::arg("before_position_mm"), py::arg("before_orientation_deg"),
+      py::arg("after_position_mm"), py::arg("after_orientation_deg"),
+      "The paper's Table 1 layout from summarize_errors dicts.");
+}
+
+}  // namespace trackcal::python

@@ -1,0 +1,140 @@
+"""History round trip, the trackcal command (validate/diagnose/report/history) and its errors."""
+
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from trackcal import captures, history, validation
+from understand_support import simulate
+
+
+def run_cli(*args, check=True):
+    exe = shutil.which("trackcal")
+    cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
+    r = subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=300)
+    if check:
+        assert r.returncode == 0, r.stderr
+    return r
+
+
+def test_history_round_trip(tmp_path):
+    data = tmp_path / "poses.csv"
+    data.write_text("x\n")
+    model = tmp_path / "model.json"
+    model.write_text("{}\n")
+    s1 = {"valid": {"position_mm": {"mean": 10.0}, "orientation_deg": {"mean": 2.0}}}
+    s2 = {"valid": {"position_mm": {"mean": 4.0}, "orientation_deg": {"mean": 1.5}}}
+    history.record_fit(tmp_path / "work", model=model, data=[(data, "calibration_capture")], scores=s1,
+                       label="polynomial")
+    model.write_text('{"changed": true}\n')
+    history.record_fit(tmp_path / "work", model=model, data=[(data, "calibration_capture")], scores=s2,
+                       label="+ sensor offset")
+    entries = history.load_history(tmp_path / "work")
+    assert [e["label"] for e in entries] == ["polynomial", "+ sensor offset"]
+    assert entries[0]["model"]["sha256"] != entries[1]["model"]["sha256"]
+    assert entries[0]["data"][0]["sha256"] == entries[1]["data"][0]["sha256"]
+    assert entries[1]["scores"] == s2
+    table = history.history_table(entries)
+    assert "-60.0%" in table and "-25.0%" in table  # 10 -> 4 mm, 2 -> 1.5 deg
+    r = run_cli("history", tmp_path / "work", "--plot", tmp_path / "h.png")
+    assert "+ sensor offset" in r.stdout
+    assert (tmp_path / "h.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_history_bad_line_names_file_and_line(tmp_path):
+    (tmp_path / "history.jsonl").write_text('{"scores": {}}\n{"scores": \n')
+    with pytest.raises(ValueError, match=r"history\.jsonl:2: column \d+: not JSON"):
+        history.load_history(tmp_path)
+    r = run_cli("history", tmp_path, check=False)
+    assert r.returncode == 2 and "history.jsonl:2:" in r.stderr
+
+
+def test_cli_validate_diagnose_report(tmp_path):
+    cap_dir = simulate(tmp_path / "capture", seed=41)
+    cap = captures.load_poses(cap_dir)
+    cal_path = tmp_path / "cal.json"
+    validation.fit_polynomial(cap.select_set("calib"), degree=3).save(cal_path)
+    r = run_cli("validate", cap_dir, "-c", cal_path, "--cross-validate", "5", "--json")
+    assert "valid set (120 poses)" in r.stdout and "cross-validation (5-fold)" in r.stdout
+    assert "\033[" not in r.stdout  # not a terminal: no colour codes
+    r = run_cli("diagnose", cap_dir, "-c", cal_path, "--permutations", "19")
+    for heading in ("By distance from the transmitter", "By region", "Worst 10 stations", "Residual structure"):
+        assert heading in r.stdout
+    r = run_cli("report", cap_dir, "-c", cal_path, "-o", tmp_path / "rep", "--permutations", "19")
+    assert (tmp_path / "rep" / "report.html").exists()
+    assert (tmp_path / "rep" / "fig4_position_error_vs_distance.png").exists()
+
+
+def test_cli_errors_name_file_line_column(tmp_path):
+    p = tmp_path / "poses.csv"
+    header = ("station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,"
+              "ref_x,ref_y,ref_z,ref_qw,ref_qx,ref_qy,ref_qz")
+    good = "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0"
+    bad = "2,calib,1,1,0.1,0.2,0.3,1,0,0,0,0.1,zz,0.3,1,0,0,0"
+    p.write_text("\n".join([header, good, bad]) + "\n")
+    r = run_cli("validate", p, check=False)
+    assert r.returncode == 2
+    assert "poses.csv:3: column ref_y: 'zz' is not a number" in r.stderr
+    r = run_cli("validate", tmp_path / "missing.csv", check=False)
+    assert r.returncode == 2 and "missing.csv" in r.stderr
+
+
+def test_cli_colour_only_on_a_terminal(tmp_path):
+    """On a pseudo-terminal the output is coloured; without one (the other tests) it is plain."""
+    import pty
+    cap_dir = simulate(tmp_path / "capture", seed=42)
+    exe = shutil.which("trackcal")
+    cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
+    out = bytearray()
+
+    def read(fd):
+        data = os.read(fd, 65536)
+        out.extend(data)
+        return data
+
+    env_before = os.environ.pop("NO_COLOR", None)
+    try:
+        status = pty.spawn(cmd + ["diagnose", str(cap_dir), "--permutations", "9"], read)
+    finally:
+        if env_before is not None:
+            os.environ["NO_COLOR"] = env_before
+    assert os.waitstatus_to_exitcode(status) == 0
+    text = out.decode(errors="replace")
+    assert "\033[1mBy distance from the transmitter" in text
+    assert "all set (600 poses), no correction" in text
+
+
+def test_validate_records_history_and_candidates_slot(tmp_path, monkeypatch, capsys):
+    import types
+    from trackcal import cli
+    cap_dir = simulate(tmp_path / "capture", seed=43)
+    cap = captures.load_poses(cap_dir)
+    cal1, cal3 = tmp_path / "r1.json", tmp_path / "r3.json"
+    validation.fit_polynomial(cap.select_set("calib"), degree=1).save(cal1)
+    validation.fit_polynomial(cap.select_set("calib"), degree=3).save(cal3)
+    work = tmp_path / "work"
+    assert cli.main(["validate", str(cap_dir), "-c", str(cal1), "--workdir", str(work), "--label", "r=1"]) == 0
+    assert cli.main(["validate", str(cap_dir), "-c", str(cal3), "--workdir", str(work), "--label", "r=3"]) == 0
+    entries = history.load_history(work)
+    assert [e["label"] for e in entries] == ["r=1", "r=3"]
+    # The higher degree lowers the validation error: the history shows the fall.
+    assert history.headline_scores(entries[1])[0] < history.headline_scores(entries[0])[0]
+    assert entries[0]["data"][0]["sha256"] == trackcal_sha(cap_dir / "poses.csv")
+    # A fit engine's candidate ranking slots into diagnose.
+    fake = types.ModuleType("trackcal.candidates")
+    fake.rank = lambda v: [{"effect": "sensor_offset", "r2_gain": 0.5, "n": len(v.capture)}]
+    monkeypatch.setitem(sys.modules, "trackcal.candidates", fake)
+    capsys.readouterr()
+    assert cli.main(["diagnose", str(cap_dir), "-c", str(cal3), "--permutations", "9"]) == 0
+    out = capsys.readouterr().out
+    assert "Candidate effects" in out and "sensor_offset" in out and "600" in out
+
+
+def trackcal_sha(path):
+    import hashlib
+    return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()

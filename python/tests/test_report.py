@@ -1,0 +1,91 @@
+"""The HTML report renders in headless Chromium with every figure loaded; the check itself fails
+on a broken figure."""
+
+import base64
+import os
+import pathlib
+import re
+import shutil
+import subprocess
+
+import pytest
+
+import trackcal
+from trackcal import captures, report, validation
+from trackcal.history import record_fit, load_history, scores_from_validation
+from understand_support import simulate
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+
+
+def dump_dom(html_path: pathlib.Path, profile: pathlib.Path) -> str:
+    if not os.path.exists(CHROMIUM):
+        pytest.fail("chromium is required (scripts/install-deps.sh installs it)")
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={profile}", "--virtual-time-budget=5000", "--dump-dom", html_path.as_uri()]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r.stdout
+
+
+@pytest.fixture(scope="module")
+def written_report(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("report")
+    cap_dir = simulate(tmp / "capture", seed=31)
+    cap = captures.load_poses(cap_dir)
+    cal = validation.fit_polynomial(cap.select_set("calib"), degree=3)
+    cal_path = tmp / "calibration.json"
+    cal.save(cal_path)
+    work = tmp / "work"
+    v = validation.validate(cap, cal, covariate_options={"n_permutations": 49})
+    record_fit(work, model=cal_path, data=[(cap_dir / "poses.csv", "calibration_capture")],
+               scores=scores_from_validation(validation.validate(cap, None, analyse_covariates=False)),
+               label="uncorrected")
+    record_fit(work, model=cal_path, data=[(cap_dir / "poses.csv", "calibration_capture")],
+               scores=scores_from_validation(v), label="polynomial r=3")
+    out = tmp / "out"
+    html = report.write_report(v, out, inputs=[cap_dir / "poses.csv", cal_path],
+                               history_entries=load_history(work),
+                               candidates=lambda val: [{"effect": "sensor_offset", "score": 1.0}])
+    return html
+
+
+def test_report_renders_every_figure(written_report, tmp_path):
+    text = written_report.read_text()
+    n_img = text.count("<img ")
+    # fig 4, 5, 7, 6, two residual maps, two covariate charts, history.
+    assert n_img == 9
+    assert "http://" not in text and "https://" not in text  # self-contained, opens offline
+    assert "Candidate effects" in text and "sensor_offset" in text
+    pngs = sorted(p.name for p in written_report.parent.glob("*.png"))
+    assert len(pngs) == n_img and "fig6_distortion_field.png" in pngs
+    dom = dump_dom(written_report, tmp_path / "profile")
+    m = re.search(r'<body[^>]*\sdata-figures-ok="(\d+)"', dom)
+    assert m and int(m.group(1)) == n_img, dom[:500]
+    assert not re.search(r"<body[^>]*data-figures-broken", dom)
+
+
+def test_render_check_detects_a_broken_figure(written_report, tmp_path):
+    text = written_report.read_text()
+    first = re.search(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", text)
+    broken = text.replace(first.group(1), base64.b64encode(b"not a png").decode(), 1)
+    page = tmp_path / "broken.html"
+    page.write_text(broken)
+    dom = dump_dom(page, tmp_path / "profile")
+    m = re.search(r'<body[^>]*\sdata-figures-broken="([^"]*)"', dom)
+    assert m and m.group(1) == "fig4_position_error_vs_distance.png"
+    assert not re.search(r"<body[^>]*data-figures-ok", dom)
+
+
+def test_report_refuses_to_overwrite_an_input(tmp_path):
+    cap_dir = simulate(tmp_path / "capture", seed=32)
+    cap = captures.load_poses(cap_dir)
+    v = validation.validate(cap, None, analyse_covariates=False)
+    # Pretend the capture itself is named like the report: it must not be replaced.
+    fake = tmp_path / "out" / "report.html"
+    fake.parent.mkdir()
+    fake.write_text("precious")
+    with pytest.raises(ValueError, match="refusing to overwrite an input"):
+        report.write_report(v, tmp_path / "out", inputs=[fake])
+    assert fake.read_text() == "precious"

@@ -1,0 +1,105 @@
+"""Validation statistics against hand-computed values, capture loading (extra columns, errors naming
+file/line/column) and cross-validation on simulated data."""
+
+import math
+import pathlib
+import types
+
+import numpy as np
+import pytest
+
+import trackcal
+from trackcal import captures, validation
+from understand_support import quat_about_z_xyzw, simulate, write_poses
+
+
+def hand_capture(tmp_path):
+    """Four stations: reported 1, 2, 3, 4 mm short along x and rotated 1, 2, 3, 4 degrees about z
+    from the reference; two calib, two valid."""
+    n = 4
+    ref_p = np.array([[0.3, 0.0, 0.2], [0.4, 0.1, 0.2], [0.5, -0.1, 0.3], [0.6, 0.2, 0.4]])
+    rep_p = ref_p - np.array([[1e-3 * (i + 1), 0, 0] for i in range(n)])
+    ref_q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    rep_q = quat_about_z_xyzw(-np.radians([1.0, 2.0, 3.0, 4.0]))
+    cap = types.SimpleNamespace(station=np.arange(1, n + 1), set=["calib", "calib", "valid", "valid"],
+                                sensor=np.ones(n, int), time=np.arange(n, dtype=float), reported_positions=rep_p,
+                                reported_quaternions_xyzw=rep_q, reference_positions=ref_p,
+                                reference_quaternions_xyzw=ref_q)
+    return write_poses(tmp_path / "poses.csv", cap, extra={"temperature": [20.0, 21.0, 22.0, 23.5]})
+
+
+def test_table1_hand_computed(tmp_path):
+    cap = captures.load_poses(hand_capture(tmp_path))
+    assert cap.extra_columns == ["temperature"]
+    np.testing.assert_array_equal(cap.column("temperature"), [20.0, 21.0, 22.0, 23.5])
+    # A constant correction of +1 mm along x (degree-0 polynomial): errors become 0, 1, 2, 3 mm.
+    poly = trackcal.PolynomialCorrection(0, [[1e-3, 0.0, 0.0]], [[0.0, 0.0, 0.0]])
+    cal = trackcal.Calibration([poly], (-1, -1, -1), (1, 1, 1))
+    v = validation.validate(cap, cal, analyse_covariates=False)
+    tables = {t.set_name: t for t in v.tables}
+    # Hand values (1e-9 mm: float rounding of mm-sized differences of ~0.5 m coordinates).
+    tol = 1e-9
+    allt = tables["all"]
+    assert allt.before_position_mm["count"] == 4
+    assert allt.before_position_mm["mean"] == pytest.approx(2.5, abs=tol)
+    assert allt.before_position_mm["std"] == pytest.approx(math.sqrt(5.0 / 3.0), abs=tol)
+    assert allt.before_position_mm["max"] == pytest.approx(4.0, abs=tol)
+    assert allt.after_position_mm["mean"] == pytest.approx(1.5, abs=tol)
+    assert allt.after_position_mm["max"] == pytest.approx(3.0, abs=tol)
+    # Orientation: 1..4 degrees, the correction leaves orientation alone (1e-9 deg: acos-free angle).
+    assert allt.before_orientation_deg["mean"] == pytest.approx(2.5, abs=1e-9)
+    assert allt.after_orientation_deg["max"] == pytest.approx(4.0, abs=1e-9)
+    assert tables["calib"].before_position_mm["mean"] == pytest.approx(1.5, abs=tol)
+    assert tables["valid"].after_position_mm["mean"] == pytest.approx(2.5, abs=tol)
+    text = tables["valid"].format()
+    assert "valid set (2 poses)" in text and "Position error (mm)" in text
+    # Error vectors: p_ref - p_rep along +x; orientation vector part sin(angle/2) about +z.
+    np.testing.assert_allclose(v.before.position[:, 0], [1e-3, 2e-3, 3e-3, 4e-3], atol=1e-15)
+    np.testing.assert_allclose(v.before.orientation[:, 2], np.sin(np.radians([1, 2, 3, 4]) / 2), atol=1e-12)
+    assert v.worst[0]["station"] == 4 and v.worst[0]["position_mm"] == pytest.approx(3.0, abs=tol)
+    assert not v.extrapolated.any()
+
+
+def test_extrapolated_stations_flagged(tmp_path):
+    cap = captures.load_poses(hand_capture(tmp_path))
+    poly = trackcal.PolynomialCorrection(0, [[0.0, 0.0, 0.0]], [[0.0, 0.0, 0.0]])
+    cal = trackcal.Calibration([poly], (0.0, -1, -1), (0.45, 1, 1))  # stations 3, 4 lie beyond x = 0.45
+    v = validation.validate(cap, cal, analyse_covariates=False)
+    assert v.extrapolated.tolist() == [False, False, True, True]
+
+
+def test_breakdowns_partition_the_stations(tmp_path):
+    cap = captures.load_poses(simulate(tmp_path / "sim", seed=11))
+    cal = validation.fit_polynomial(cap.select_set("calib"), degree=3)
+    v = validation.validate(cap, cal, analyse_covariates=False)
+    n = len(v.capture)
+    assert sum(r["count"] for r in v.by_distance) == n
+    assert sum(r["count"] for r in v.by_region) == n
+    # Band means recombine to the overall mean (same numbers, weighted by counts; 1e-9 rounding).
+    total = sum(r["count"] * r["after_position_mm"] for r in v.by_distance) / n
+    assert total == pytest.approx(v.after.position_mm.mean(), rel=1e-9)
+    assert "reg" not in set(v.capture.set)
+    tables = {t.set_name: t for t in v.tables}
+    # The paper's degree-3 polynomial removes most of the simulated distortion on held-out stations.
+    assert tables["valid"].after_position_mm["mean"] < 0.5 * tables["valid"].before_position_mm["mean"]
+
+
+def test_cross_validation_held_out_is_worse_than_in_sample(tmp_path):
+    cap = captures.load_poses(simulate(tmp_path / "sim", seed=12))
+    cv = validation.cross_validate(cap, folds=5)
+    cal = validation.fit_polynomial(cap.subset(cap.set != "reg"), degree=3)
+    v = validation.validate(cap, cal, analyse_covariates=False)
+    in_sample = {t.set_name: t for t in v.tables}["all"].after_position_mm["mean"]
+    assert cv.after_position_mm["mean"] > in_sample  # held-out error cannot beat in-sample
+    assert cv.after_position_mm["mean"] < cv.before_position_mm["mean"]
+
+
+def test_bad_capture_error_names_file_line_column(tmp_path):
+    p = hand_capture(tmp_path)
+    lines = p.read_text().splitlines()
+    fields = lines[2].split(",")
+    fields[7] = "abc"  # rep_qw of the second station (line 3)
+    lines[2] = ",".join(fields)
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"poses\.csv:3: column rep_qw: 'abc' is not a number"):
+        captures.load_poses(p)

@@ -1,0 +1,202 @@
+"""Figures of a validation (matplotlib, Agg backend, no display needed). Each function returns a
+matplotlib Figure; ``save_png`` writes it atomically.
+
+- ``error_vs_distance``: error magnitude against distance from the transmitter, before and after
+  (the paper's figures 4 and 5 for position and orientation).
+- ``orientation_vectors_slice``: orientation error vectors of the stations in a z-slab (figure 7).
+- ``distortion_field``: the fitted position correction on a z-slice as arrows over its magnitude
+  (figure 6), computed from a calibration.
+- ``residual_map``: stations coloured by their residual, seen from above and from the side.
+- ``covariate_bars``: share of the residual variance each covariate explains.
+- ``history_plot``: error after each fit of a work folder.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import pathlib
+import tempfile
+from typing import List, Optional, Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def save_png(fig, path, dpi: int = 110) -> pathlib.Path:
+    """Writes fig as PNG atomically (temporary file in the same folder, then rename)."""
+    path = pathlib.Path(path)
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            fig.savefig(f, format="png", dpi=dpi)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def png_bytes(fig, dpi: int = 110) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
+
+
+def _binned(x, y, n=12):
+    if len(x) < 2:
+        return np.array([]), np.array([])
+    edges = np.linspace(x.min(), x.max(), n + 1)
+    ids = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n - 1)
+    cnt = np.bincount(ids, minlength=n)
+    mean = np.bincount(ids, weights=y, minlength=n) / np.maximum(cnt, 1)
+    centre = 0.5 * (edges[:-1] + edges[1:])
+    return centre[cnt > 0], mean[cnt > 0]
+
+
+def error_vs_distance(distance, before, after=None, *, quantity: str = "position", unit: str = "mm",
+                      title: Optional[str] = None):
+    """Figures 4 (position) and 5 (orientation): magnitude against distance, with binned means."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    ax.scatter(distance, before, s=8, alpha=0.45, color="tab:red", label="before")
+    xb, yb = _binned(distance, before)
+    ax.plot(xb, yb, color="darkred", lw=2, label="before (binned mean)")
+    if after is not None:
+        ax.scatter(distance, after, s=8, alpha=0.45, color="tab:blue", label="after")
+        xa, ya = _binned(distance, after)
+        ax.plot(xa, ya, color="navy", lw=2, label="after (binned mean)")
+    ax.set_xlabel("distance from transmitter [m]")
+    ax.set_ylabel(f"{quantity} error [{unit}]")
+    ax.set_title(title or f"{quantity.capitalize()} error vs distance")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def _slab(positions, z: Optional[float], thickness: Optional[float]):
+    zs = positions[:, 2]
+    if z is None:
+        z = float(np.median(zs))
+    if thickness is None:
+        thickness = max(0.1, 0.25 * float(np.ptp(zs))) if len(zs) else 0.1
+    return z, thickness, np.abs(zs - z) <= 0.5 * thickness
+
+
+def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[float] = None,
+                              thickness: Optional[float] = None, after_vectors=None):
+    """Figure 7: the x, y components of the orientation error vectors (vector part of q_e, shown as
+    twice it, i.e. the small-angle rotation vector in degrees) of stations in a z-slab."""
+    z, thickness, sel = _slab(positions, z, thickness)
+    fig, ax = plt.subplots(figsize=(6.4, 5.4))
+    deg = 2.0 * 180.0 / np.pi
+    p = positions[sel]
+    v = orientation_vectors[sel] * deg
+    ax.scatter(p[:, 0], p[:, 1], s=6, color="gray")
+    if len(p):
+        # One scale for before and after (so arrow lengths compare): the largest before-vector is
+        # drawn 0.1 m long, with a key arrow giving the scale in degrees.
+        vmax = float(np.max(np.linalg.norm(v[:, :2], axis=1))) or 1.0
+        scale = vmax / 0.1
+        kw = dict(angles="xy", scale_units="xy", scale=scale, width=0.004)
+        q = ax.quiver(p[:, 0], p[:, 1], v[:, 0], v[:, 1], color="tab:red", label="before", **kw)
+        if after_vectors is not None:
+            a = after_vectors[sel] * deg
+            ax.quiver(p[:, 0], p[:, 1], a[:, 0], a[:, 1], color="tab:blue", label="after", **kw)
+        key = float(f"{vmax / 2:.1g}")
+        ax.quiverkey(q, 0.02, -0.1, key, f"{key:g} deg", labelpos="E", coordinates="axes")
+        ax.legend(fontsize=8, loc="lower right")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(f"Orientation error vectors, z = {z:.2f} ± {thickness / 2:.2f} m ({int(sel.sum())} stations)")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def distortion_field(calibration, *, z: Optional[float] = None, n: int = 25, streamlines: bool = True):
+    """Figure 6: the calibration's position correction (corrected - reported) on a z-slice of its
+    volume, arrows (or streamlines) of the x, y components over a map of the full magnitude [mm]."""
+    lo, hi = np.asarray(calibration.volume_min), np.asarray(calibration.volume_max)
+    if z is None:
+        z = 0.5 * (lo[2] + hi[2])
+    xs, ys = np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n)
+    gx, gy = np.meshgrid(xs, ys)
+    pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)])
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(pts), 1))
+    cp, _, _ = calibration.correct(pts, quats)
+    d = (cp - pts) * 1e3
+    mag = np.linalg.norm(d, axis=1).reshape(gx.shape)
+    fig, ax = plt.subplots(figsize=(6.4, 5.4))
+    im = ax.pcolormesh(gx, gy, mag, shading="auto", cmap="viridis")
+    fig.colorbar(im, ax=ax, label="|correction| [mm]")
+    u, v = d[:, 0].reshape(gx.shape), d[:, 1].reshape(gx.shape)
+    if streamlines and np.any(np.hypot(u, v) > 0):
+        ax.streamplot(xs, ys, u, v, color="white", density=1.0, linewidth=0.8)
+    else:
+        ax.quiver(gx, gy, u, v, color="white")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_title(f"Fitted distortion (position correction), z = {z:.2f} m")
+    fig.tight_layout()
+    return fig
+
+
+def residual_map(positions, values, *, label: str = "position error [mm]", title: str = "Residual map"):
+    """Stations coloured by a residual: top view (x, y) and side view (x, z)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
+    vmax = float(np.percentile(values, 98)) if len(values) else 1.0
+    for ax, (i, j, names) in zip(axes, [(0, 1, ("x", "y")), (0, 2, ("x", "z"))]):
+        sc = ax.scatter(positions[:, i], positions[:, j], c=values, s=14, cmap="magma_r", vmin=0,
+                        vmax=max(vmax, 1e-12))
+        ax.set_xlabel(f"{names[0]} [m]")
+        ax.set_ylabel(f"{names[1]} [m]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+    fig.colorbar(sc, ax=axes, label=label)
+    fig.suptitle(title)
+    return fig
+
+
+def covariate_bars(effects, *, target: str = "position_mm", top: int = 15):
+    """Cross-validated R^2 of each covariate for one residual target; significant ones filled."""
+    rows = [e for e in effects if e.target == target][:top]
+    fig, ax = plt.subplots(figsize=(6.4, 0.3 * max(len(rows), 3) + 1.2))
+    names = [e.covariate for e in rows][::-1]
+    vals = [max(e.r2, 0.0) for e in rows][::-1]
+    colors = ["tab:orange" if e.significant else "lightgray" for e in rows][::-1]
+    ax.barh(names, vals, color=colors)
+    ax.set_xlabel("share of residual variance explained (cross-validated R²)")
+    ax.set_title(f"Residual structure: {target} (orange = significant)")
+    ax.grid(alpha=0.3, axis="x")
+    fig.tight_layout()
+    return fig
+
+
+def history_plot(entries: Sequence[dict]):
+    """Error after each recorded fit (mean position mm and orientation deg of the held-out or
+    validation set when recorded, else the calibration set)."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    x = np.arange(1, len(entries) + 1)
+    from trackcal.history import headline_scores
+    pos = [headline_scores(e)[0] for e in entries]
+    ori = [headline_scores(e)[1] for e in entries]
+    ax.plot(x, pos, "o-", color="tab:blue", label="position mean [mm]")
+    ax.set_xlabel("fit #")
+    ax.set_ylabel("position error mean [mm]", color="tab:blue")
+    ax2 = ax.twinx()
+    ax2.plot(x, ori, "s--", color="tab:red", label="orientation mean [deg]")
+    ax2.set_ylabel("orientation error mean [deg]", color="tab:red")
+    ax.set_xticks(x)
+    ax.set_xticklabels([str(e.get("label") or i) for i, e in zip(x, entries)], rotation=30, ha="right",
+                       fontsize=8)
+    ax.set_title("Error after each change")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig

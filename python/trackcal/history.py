@@ -1,0 +1,119 @@
+"""The fit history of a work folder: ``history.jsonl``, one JSON object per line, one line per fit.
+
+Each entry: ``time_utc``, ``label`` (what changed), ``model`` (path and SHA-256 of the model or
+calibration file), ``data`` (a list of {path, role, sha256} of the captures used) and ``scores``
+({set name: {"position_mm": {mean, std, max, ...}, "orientation_deg": {...}}}). The file is
+rewritten atomically on every record, so an interrupted write never loses earlier fits.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import os
+import pathlib
+import tempfile
+from typing import Dict, List, Optional, Sequence, Tuple
+
+from trackcal import _core
+
+HISTORY_FILE = "history.jsonl"
+
+
+def _sha(path) -> str:
+    return _core.sha256_file(pathlib.Path(path))
+
+
+def load_history(workdir) -> List[dict]:
+    """Entries of a work folder's history.jsonl ([] if there is none). Errors name file and line."""
+    path = pathlib.Path(workdir) / HISTORY_FILE
+    if not path.exists():
+        return []
+    entries = []
+    with open(path, encoding="utf-8") as f:
+        for lineno, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            try:
+                e = json.loads(line)
+            except json.JSONDecodeError as err:
+                raise ValueError(f"{path}:{lineno}: column {err.colno}: not JSON: {err.msg}") from None
+            if not isinstance(e, dict) or "scores" not in e:
+                raise ValueError(f"{path}:{lineno}: field scores: missing (not a fit record)")
+            entries.append(e)
+    return entries
+
+
+def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[str, dict],
+               label: str = "", extra: Optional[dict] = None) -> dict:
+    """Appends a fit to the work folder's history. ``data`` is [(path, role)]; ``scores`` maps a set
+    name to Table 1 summaries ({"position_mm": {...}, "orientation_deg": {...}})."""
+    workdir = pathlib.Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    entry = {
+        "time_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "label": label,
+        "model": {"path": str(model), "sha256": _sha(model)} if model is not None else None,
+        "data": [{"path": str(p), "role": role, "sha256": _sha(p)} for p, role in data],
+        "scores": scores,
+    }
+    if extra:
+        entry["extra"] = extra
+    json.dumps(entry, allow_nan=False)  # refuse NaN before touching the file
+    path = workdir / HISTORY_FILE
+    old = path.read_bytes() if path.exists() else b""
+    if old and not old.endswith(b"\n"):
+        old += b"\n"
+    fd, tmp = tempfile.mkstemp(prefix=".history.", dir=workdir)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(old)
+            f.write((json.dumps(entry, sort_keys=True) + "\n").encode())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return entry
+
+
+def scores_from_validation(validation) -> Dict[str, dict]:
+    """Table 1 summaries of a trackcal.validation.Validation, keyed by set (the 'after' numbers
+    when it has a calibration, else the 'before' ones)."""
+    out = {}
+    for t in validation.tables:
+        out[t.set_name] = {"position_mm": t.after_position_mm or t.before_position_mm,
+                           "orientation_deg": t.after_orientation_deg or t.before_orientation_deg}
+    return out
+
+
+def headline_scores(entry: dict) -> Tuple[float, float]:
+    """(position mean mm, orientation mean deg) of the most telling set: held-out first."""
+    scores = entry.get("scores", {})
+    for key in ("valid", "cross-validation", "all", "calib"):
+        for name, s in scores.items():
+            if name.startswith(key):
+                return float(s["position_mm"]["mean"]), float(s["orientation_deg"]["mean"])
+    if scores:
+        s = next(iter(scores.values()))
+        return float(s["position_mm"]["mean"]), float(s["orientation_deg"]["mean"])
+    return math.nan, math.nan
+
+
+def history_table(entries: Sequence[dict]) -> str:
+    """Plain-text table: one row per fit with the headline error and its change from the previous."""
+    lines = [f"{'#':>3}  {'time (UTC)':<20}  {'label':<28} {'pos mean mm':>12} {'change':>8} "
+             f"{'ori mean deg':>13} {'change':>8}  model"]
+    prev = None
+    for i, e in enumerate(entries, 1):
+        p, o = headline_scores(e)
+        dp = f"{100 * (p - prev[0]) / prev[0]:+.1f}%" if prev and prev[0] else ""
+        do = f"{100 * (o - prev[1]) / prev[1]:+.1f}%" if prev and prev[1] else ""
+        model = (e.get("model") or {}).get("path", "")
+        lines.append(f"{i:>3}  {e.get('time_utc', ''):<20}  {str(e.get('label', ''))[:28]:<28} {p:>12.3f} "
+                     f"{dp:>8} {o:>13.3f} {do:>8}  {model}")
+        prev = (p, o)
+    return "\n".join(lines)

@@ -1,0 +1,56 @@
+"""Recording live streams from a running VRPN server (trackcal-server) for a later validation: the
+raw and the corrected tracker of a ``trackcal_Calibration ... raw=<name>`` line, each written as a
+tracker_stream.csv (docs/captures.md) with the server's header time."""
+
+from __future__ import annotations
+
+import pathlib
+import time
+from typing import Callable, Dict, Optional
+
+from trackcal import _core
+from trackcal.captures import TrackerStream, save_tracker_stream
+
+
+def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, connect_timeout_s: float = 10.0,
+                   progress: Optional[Callable[[float, float], None]] = None) -> Dict[str, pathlib.Path]:
+    """Records every named device (label -> 'Tracker0@tcp://host:port') for ``duration_s`` seconds
+    after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir (which must
+    not hold such files already: recordings are never overwritten). Returns label -> path.
+    Raises RuntimeError if a device does not connect or sends no report."""
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    targets = {label: out_dir / f"{label}_tracker_stream.csv" for label in devices}
+    for p in targets.values():
+        if p.exists():
+            raise ValueError(f"{p}: exists; recordings are never overwritten")
+    recorders = {label: _core.TrackerRecorder(name) for label, name in devices.items()}
+    for r in recorders.values():
+        r.start()
+    try:
+        deadline = time.monotonic() + connect_timeout_s
+        while not all(len(r) > 0 for r in recorders.values()):
+            if time.monotonic() > deadline:
+                missing = [f"{label} ({devices[label]})" for label, r in recorders.items() if len(r) == 0]
+                raise RuntimeError(f"no report within {connect_timeout_s} s from: {', '.join(missing)}")
+            time.sleep(0.02)
+        for r in recorders.values():
+            r.take()  # start all streams at the same moment
+        t0 = time.monotonic()
+        while (elapsed := time.monotonic() - t0) < duration_s:
+            if progress:
+                progress(elapsed, duration_s)
+            time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
+    finally:
+        for r in recorders.values():
+            r.stop()
+    out = {}
+    for label, r in recorders.items():
+        d = r.take()
+        if len(d["time"]) == 0:
+            raise RuntimeError(f"{devices[label]}: no report during the recording")
+        # VRPN numbers sensors from 0; capture files (and trackcal-server --record) from 1.
+        save_tracker_stream(targets[label], TrackerStream(d["time"], d["sensor"] + 1, d["positions"],
+                                                          d["quaternions_xyzw"]))
+        out[label] = targets[label]
+    return out

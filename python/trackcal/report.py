@@ -1,0 +1,187 @@
+"""Self-contained HTML report of a validation: every figure embedded as a base64 PNG (no external
+resource, opens offline) and also written as a PNG file next to it. Files are written atomically and
+the report never replaces one of its inputs (a capture, a calibration).
+
+The page carries a small script that, once every image has loaded, writes
+``data-figures-ok="<count>"`` (or ``data-figures-broken``) on <body>: headless browsers and tests read it.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime
+import html
+import os
+import pathlib
+import tempfile
+from typing import Callable, List, Optional, Sequence
+
+import numpy as np
+
+from trackcal import figures as F
+
+CandidateSource = Callable[[object], List[dict]]
+
+
+def _atomic_write(path: pathlib.Path, data: bytes, inputs: Sequence[pathlib.Path]) -> None:
+    target = path.resolve()
+    for p in inputs:
+        if p is not None and pathlib.Path(p).resolve() == target:
+            raise ValueError(f"{path}: refusing to overwrite an input of the report")
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _table(rows: List[dict], columns: Optional[List[str]] = None, fmt: str = "{:.3f}") -> str:
+    if not rows:
+        return "<p><em>none</em></p>"
+    columns = columns or list(rows[0].keys())
+    out = ["<table><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in columns) + "</tr>"]
+    for r in rows:
+        cells = []
+        for c in columns:
+            v = r.get(c, "")
+            if isinstance(v, (float, np.floating)):
+                v = fmt.format(v)
+            cells.append(f"<td>{html.escape(str(v))}</td>")
+        out.append("<tr>" + "".join(cells) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+def _table1_html(t) -> str:
+    rows = []
+    for title, b, a in (("Position error (mm)", t.before_position_mm, t.after_position_mm),
+                        ("Orientation error (deg)", t.before_orientation_deg, t.after_orientation_deg)):
+        for stat, name in (("mean", "Mean"), ("std", "Standard dev."), ("max", "Maximum"), ("p95", "95th percentile")):
+            row = {"quantity": title, "statistic": name, "original": b[stat]}
+            if a is not None:
+                row["corrected"] = a[stat]
+                row["improvement %"] = 100.0 * (b[stat] - a[stat]) / b[stat] if b[stat] > 0 else 0.0
+            rows.append(row)
+    return f"<h3>{html.escape(t.set_name)} ({t.before_position_mm['count']} stations)</h3>" + _table(rows)
+
+
+STYLE = """
+body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#222}
+table{border-collapse:collapse;margin:.5em 0 1em 0;font-size:90%}
+td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}th{background:#eee}
+figure{display:inline-block;margin:.5em;vertical-align:top}figcaption{font-size:85%;max-width:640px}
+img{max-width:100%;border:1px solid #ddd}.sig{color:#b35900;font-weight:bold}
+"""
+
+CHECK_SCRIPT = """
+(function(){function check(){var imgs=document.images,ok=0,bad=[];
+for(var i=0;i<imgs.length;i++){if(imgs[i].complete&&imgs[i].naturalWidth>0){ok++;}else{bad.push(imgs[i].alt);}}
+if(bad.length){document.body.setAttribute('data-figures-broken',bad.join('|'));}
+else{document.body.setAttribute('data-figures-ok',String(ok));}}
+if(document.readyState==='complete'){check();}else{window.addEventListener('load',check);}})();
+"""
+
+
+def build_figures(v, history_entries: Optional[Sequence[dict]] = None) -> List[tuple]:
+    """[(file name, caption, Figure)] for a Validation."""
+    import matplotlib.pyplot as plt  # noqa: F401  (figures configures Agg)
+    data = v.capture
+    dist = np.linalg.norm(data.reported_positions, axis=1)
+    after = v.after
+    figs = [
+        ("fig4_position_error_vs_distance.png",
+         "Figure 4: position error magnitude against distance from the transmitter, before (red) and "
+         "after (blue) the correction, with binned means.",
+         F.error_vs_distance(dist, v.before.position_mm, after.position_mm if after else None,
+                             quantity="position", unit="mm")),
+        ("fig5_orientation_error_vs_distance.png",
+         "Figure 5: orientation error angle against distance from the transmitter, before and after.",
+         F.error_vs_distance(dist, v.before.orientation_deg, after.orientation_deg if after else None,
+                             quantity="orientation", unit="deg")),
+        ("fig7_orientation_vectors_slice.png",
+         "Figure 7: orientation error vectors (x, y components of the small-angle rotation, degrees) of "
+         "the stations in a horizontal slab through the median height.",
+         F.orientation_vectors_slice(data.reported_positions, v.before.orientation,
+                                     after_vectors=after.orientation if after else None)),
+    ]
+    if v.calibration is not None:
+        figs.append(("fig6_distortion_field.png",
+                     "Figure 6: the calibration's position correction on the horizontal mid-plane of its "
+                     "volume: magnitude as colour, x-y direction as streamlines.",
+                     F.distortion_field(v.calibration)))
+    final = v.final
+    figs.append(("residual_map_position.png",
+                 "Residual map: remaining position error per station (top and side views).",
+                 F.residual_map(data.reported_positions, final.position_mm, title="Position residuals")))
+    figs.append(("residual_map_orientation.png",
+                 "Residual map: remaining orientation error per station.",
+                 F.residual_map(data.reported_positions, final.orientation_deg, label="orientation error [deg]",
+                                title="Orientation residuals")))
+    if v.covariate_effects:
+        for target in ("position_mm", "orientation_deg"):
+            figs.append((f"covariates_{target}.png",
+                         f"Residual structure: cross-validated share of the {target} variance each covariate "
+                         "explains; orange bars pass the permutation test.",
+                         F.covariate_bars(v.covariate_effects, target=target)))
+    if history_entries:
+        figs.append(("history.png", "Error after each recorded fit of the work folder.",
+                     F.history_plot(history_entries)))
+    return figs
+
+
+def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence = (),
+                 history_entries: Optional[Sequence[dict]] = None,
+                 candidates: Optional[CandidateSource] = None,
+                 progress: Optional[Callable[[int, int], None]] = None) -> pathlib.Path:
+    """Writes out_dir/report.html and one PNG per figure; returns the HTML path.
+
+    ``candidates`` (optional) is called with the Validation and returns rows for the "Candidate
+    effects" table (the fit engine's ranking of missing physical effects)."""
+    import matplotlib.pyplot as plt
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    input_paths = [pathlib.Path(p) for p in inputs if p is not None]
+    if v.capture.path is not None:
+        input_paths.append(pathlib.Path(v.capture.path))
+    figs = build_figures(v, history_entries)
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+             f"<style>{STYLE}</style></head><body>",
+             f"<h1>{html.escape(title)}</h1>",
+             f"<p>Generated {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}. "
+             f"Capture: {html.escape(str(v.capture.path))}; calibration: "
+             f"{html.escape(str(getattr(v.calibration, 'description', None) or ('none' if v.calibration is None else 'yes')))}.</p>",
+             "<h2>Table 1: errors before and after</h2>"]
+    parts += [_table1_html(t) for t in v.tables]
+    n_out = int(v.extrapolated.sum())
+    parts.append(f"<p>Stations outside the calibrated volume: <b>{n_out}</b> of {len(v.extrapolated)}.</p>")
+    parts.append("<h2>By distance from the transmitter</h2>" + _table(v.by_distance))
+    parts.append("<h2>By region of the volume (octants)</h2>" + _table(v.by_region))
+    parts.append("<h2>Worst stations</h2>" + _table(v.worst))
+    if v.covariate_effects:
+        rows = [{"covariate": e.covariate, "residual": e.target, "R² (cv)": e.r2, "p": e.p_value,
+                 "significant": "yes" if e.significant else ""} for e in v.covariate_effects
+                if e.significant or e.r2 > 0.01][:40]
+        parts.append("<h2>Residual structure (covariates)</h2>"
+                     "<p>Share of the remaining residual variance each covariate explains (binned means, "
+                     "5-fold cross-validated), with a permutation test; only significant or R² &gt; 0.01 shown.</p>"
+                     + _table(rows))
+    if candidates is not None:
+        parts.append("<h2>Candidate effects</h2>" + _table(candidates(v)))
+    parts.append("<h2>Figures</h2>")
+    for i, (name, caption, fig) in enumerate(figs):
+        data = F.png_bytes(fig)
+        plt.close(fig)
+        _atomic_write(out_dir / name, data, input_paths)
+        b64 = base64.b64encode(data).decode("ascii")
+        parts.append(f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,{b64}'>"
+                     f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+        if progress:
+            progress(i + 1, len(figs))
+    parts.append(f"<script>{CHECK_SCRIPT}</script></body></html>")
+    path = out_dir / "report.html"
+    _atomic_write(path, "\n".join(parts).encode("utf-8"), input_paths)
+    return path

@@ -1,0 +1,409 @@
+"""Validation and diagnosis of a calibration against a capture: the paper's Table 1 before and after
+(computed by the C++ statistics of core/error_statistics.h), per-station residuals, breakdowns by
+distance from the transmitter and by region of the volume, the worst stations, stations outside the
+calibrated volume, and which covariates explain the residuals (``covariate_analysis``).
+
+Conventions (docs/developing.md): position error ``p_ref - p``, orientation error the vector part of
+``q_ref * conj(q)`` in the transmitter frame (paper eq. 1, 3, 6); magnitudes in mm and degrees.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, Dict, List, Optional, Sequence
+
+import numpy as np
+
+from trackcal import _core
+from trackcal.captures import PoseCapture
+from trackcal.numpy_reference import quaternion_multiply_xyzw
+
+
+# ---------------------------------------------------------------------------------------------
+# Quaternion helpers (x, y, z, w arrays)
+
+def conjugate_xyzw(q: np.ndarray) -> np.ndarray:
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
+def orientation_error_vectors(q_reference: np.ndarray, q_estimated: np.ndarray) -> np.ndarray:
+    """(N, 3) vector part of q_ref * conj(q) with the sign that makes w >= 0 (eq. 3, 6)."""
+    e = quaternion_multiply_xyzw(q_reference, conjugate_xyzw(q_estimated))
+    e = e / np.linalg.norm(e, axis=1, keepdims=True)
+    return np.where(e[:, 3:4] < 0, -e[:, :3], e[:, :3])
+
+
+def rotation_matrices(q: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) active rotation matrices of (N, 4) x, y, z, w quaternions."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Residuals and Table 1
+
+@dataclasses.dataclass
+class Residuals:
+    """Per-station errors of an estimate against the reference."""
+
+    position: np.ndarray      # (N, 3) p_ref - p [m]
+    orientation: np.ndarray   # (N, 3) vector part of q_ref conj(q)
+    position_mm: np.ndarray   # (N,) |position| [mm]
+    orientation_deg: np.ndarray  # (N,) rotation angle of q_ref conj(q) [deg]
+
+
+def residuals(positions, quaternions_xyzw, reference_positions, reference_quaternions_xyzw) -> Residuals:
+    pos_mm, ori_deg = _core.error_magnitudes(positions, quaternions_xyzw, reference_positions,
+                                             reference_quaternions_xyzw)
+    return Residuals(position=np.asarray(reference_positions) - np.asarray(positions),
+                     orientation=orientation_error_vectors(np.asarray(reference_quaternions_xyzw),
+                                                           np.asarray(quaternions_xyzw)),
+                     position_mm=pos_mm, orientation_deg=ori_deg)
+
+
+@dataclasses.dataclass
+class Table1:
+    """The paper's Table 1 for one set: summaries (count, mean, std, max, rms, median, p95)."""
+
+    set_name: str
+    before_position_mm: dict
+    before_orientation_deg: dict
+    after_position_mm: Optional[dict] = None
+    after_orientation_deg: Optional[dict] = None
+
+    def format(self) -> str:
+        """The paper's layout (core/error_statistics.h FormatTable1); without a correction only the
+        original errors."""
+        if self.after_position_mm is not None and self.after_orientation_deg is not None:
+            return _core.format_table1(self.set_name, self.before_position_mm, self.before_orientation_deg,
+                                       self.after_position_mm, self.after_orientation_deg)
+        lines = [f"{self.set_name} set ({self.before_position_mm['count']} poses), no correction"]
+        for title, s in (("Position error (mm)", self.before_position_mm),
+                         ("Orientation error (deg)", self.before_orientation_deg)):
+            lines.append(f"{title:<22} {'Original':>10}")
+            for name, key in (("Mean", "mean"), ("Standard dev.", "std"), ("Maximum", "max")):
+                lines.append(f"  {name:<20} {s[key]:10.3f}")
+        return "\n".join(lines) + "\n"
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def table1(set_name: str, before: Residuals, after: Optional[Residuals] = None) -> Table1:
+    t = Table1(set_name, _core.summarize_errors(before.position_mm),
+               _core.summarize_errors(before.orientation_deg))
+    if after is not None:
+        t.after_position_mm = _core.summarize_errors(after.position_mm)
+        t.after_orientation_deg = _core.summarize_errors(after.orientation_deg)
+    return t
+
+
+# ---------------------------------------------------------------------------------------------
+# Covariates and the residual-vs-covariate analysis
+
+def covariates(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None) -> Dict[str, np.ndarray]:
+    """Every covariate the capture offers, per station.
+
+    Position (reported, transmitter frame), distance from the transmitter, the receiver's x and z
+    axes in the transmitter frame (its orientation as the transmitter sees it), the direction of the
+    transmitter in the receiver frame (the field direction the coils see: separates receiver-side
+    effects such as coil gains from transmitter-side ones, paper section 2.1), time, visiting order,
+    sensor, and every extra numeric column.
+    """
+    p = capture.reported_positions
+    r = rotation_matrices(capture.reported_quaternions_xyzw)
+    dist = np.linalg.norm(p, axis=1)
+    to_tx_in_rx = np.einsum("nji,nj->ni", r, -p / np.maximum(dist, 1e-12)[:, None])
+    cov = {
+        "x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "distance": dist,
+        "rx_x_axis_in_tx.x": r[:, 0, 0], "rx_x_axis_in_tx.y": r[:, 1, 0], "rx_x_axis_in_tx.z": r[:, 2, 0],
+        "rx_z_axis_in_tx.x": r[:, 0, 2], "rx_z_axis_in_tx.y": r[:, 1, 2], "rx_z_axis_in_tx.z": r[:, 2, 2],
+        "tx_direction_in_rx.x": to_tx_in_rx[:, 0], "tx_direction_in_rx.y": to_tx_in_rx[:, 1],
+        "tx_direction_in_rx.z": to_tx_in_rx[:, 2],
+        "time": capture.time.astype(float),
+        "visiting_order": np.argsort(np.argsort(capture.time, kind="stable"), kind="stable").astype(float),
+        "sensor": capture.sensor.astype(float),
+    }
+    if stream_speed is not None:
+        cov["speed"] = np.asarray(stream_speed, dtype=float)
+    for k, name in enumerate(capture.extra_columns):
+        cov[name] = capture.extra[:, k].astype(float)
+    return cov
+
+
+CATEGORICAL = {"sensor"}
+
+
+def _bin_ids(x: np.ndarray, n_bins: int, categorical: bool) -> np.ndarray:
+    """Bin index of every value: categories, or quantile bins of x. The bins use x alone (never the
+    residual), so computing them on all stations leaks nothing into the cross-validation."""
+    if categorical:
+        return np.unique(x, return_inverse=True)[1].ravel()
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, n_bins + 1))[1:-1])
+    return np.searchsorted(edges, x, side="right")
+
+
+def _cv_r2(ids: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> float:
+    """Cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, bin means
+    from the training folds (the training mean for a bin without training stations); SST around the
+    training mean, so a covariate that explains nothing scores about 0 or below."""
+    nb = int(ids.max()) + 1
+    sse = sst = 0.0
+    for f in range(n_folds):
+        test = folds == f
+        train = ~test
+        it = ids[train]
+        counts = np.bincount(it, minlength=nb).astype(float)
+        mean_all = y[train].mean(axis=0)
+        table = np.empty((nb, y.shape[1]))
+        for d in range(y.shape[1]):
+            sums = np.bincount(it, weights=y[train, d], minlength=nb)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                table[:, d] = np.where(counts > 0, sums / np.maximum(counts, 1), mean_all[d])
+        pred = table[ids[test]]
+        sse += float(np.sum((y[test] - pred) ** 2))
+        sst += float(np.sum((y[test] - mean_all) ** 2))
+    return 1.0 - sse / sst if sst > 0 else 0.0
+
+
+@dataclasses.dataclass
+class CovariateEffect:
+    covariate: str
+    target: str           # which residual: position_mm, position_vector, orientation_deg, orientation_vector
+    r2: float             # cross-validated share of the residual variance the covariate explains
+    p_value: float        # permutation p-value of r2
+    significant: bool     # p below the Bonferroni-corrected level and r2 above min_r2
+    count: int
+
+
+def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_bins: int = 8,
+                       n_folds: int = 5, n_permutations: int = 199, alpha: float = 0.01,
+                       min_r2: float = 0.02, seed: int = 0,
+                       progress: Optional[Callable[[int, int], None]] = None) -> List[CovariateEffect]:
+    """How much of the residuals each covariate explains, with a permutation test.
+
+    For every covariate and every target (position error magnitude and vector, orientation error
+    magnitude and angle vector), the cross-validated R^2 of the binned-means predictor is compared
+    with the same statistic after shuffling the covariate (the null of no dependence). A dependence
+    is reported as significant when its permutation p-value is below ``alpha`` divided by the number
+    of tests (Bonferroni) and it explains at least ``min_r2`` of the variance, so noise is not
+    reported as structure. Results are sorted by r2, largest first.
+    """
+    targets = {
+        "position_mm": residuals_.position_mm[:, None],
+        "position_vector": residuals_.position * 1e3,
+        "orientation_deg": residuals_.orientation_deg[:, None],
+        "orientation_vector": residuals_.orientation * (2.0 * 180.0 / np.pi),
+    }
+    rng = np.random.default_rng(seed)
+    n = len(residuals_.position_mm)
+    usable = {}
+    for name, x in covs.items():
+        x = np.asarray(x, dtype=float)
+        ok = np.isfinite(x)
+        if ok.sum() >= max(20, 2 * n_folds) and np.unique(x[ok]).size >= 2:
+            usable[name] = x
+    n_tests = max(1, len(usable) * len(targets))
+    # The smallest reachable p is 1 / (n_permutations + 1): with the default 199 permutations and
+    # 4 targets x ~20 covariates, Bonferroni at alpha = 0.01 needs p <= 1.25e-4, which a finite
+    # permutation count cannot reach; so a covariate whose observed r2 beats every permutation is
+    # also checked against a normal approximation of the permutation distribution (z-score), when
+    # there are at least 99 permutations to estimate its spread.
+    level = alpha / n_tests
+    from statistics import NormalDist
+    z_needed = NormalDist().inv_cdf(1.0 - level)
+    effects = []
+    total = len(usable) * len(targets)
+    done = 0
+    for name, x in usable.items():
+        ok = np.isfinite(x)
+        xs = x[ok]
+        categorical = name in CATEGORICAL or np.unique(xs).size <= n_bins
+        folds = rng.permutation(np.arange(ok.sum()) % n_folds)
+        ids = _bin_ids(xs, n_bins, categorical)
+        perms = [rng.permutation(ids) for _ in range(n_permutations)]
+        for tname, y in targets.items():
+            ys = y[ok]
+            obs = _cv_r2(ids, ys, folds, n_folds)
+            null = np.array([_cv_r2(pid, ys, folds, n_folds) for pid in perms])
+            p = (1.0 + np.sum(null >= obs)) / (n_permutations + 1.0)
+            sd = null.std()
+            z = (obs - null.mean()) / sd if sd > 0 else (np.inf if obs > null.mean() else 0.0)
+            # The normal approximation needs enough permutations to estimate the null's spread.
+            z_ok = n_permutations >= 99 and bool(np.all(null < obs)) and z >= z_needed
+            sig = bool(obs >= min_r2 and (p <= level or z_ok))
+            effects.append(CovariateEffect(name, tname, float(obs), float(p), sig, int(ok.sum())))
+            done += 1
+            if progress:
+                progress(done, total)
+    effects.sort(key=lambda e: -e.r2)
+    return effects
+
+
+# ---------------------------------------------------------------------------------------------
+# Breakdowns
+
+def _summary_row(label: str, idx: np.ndarray, before: Residuals, after: Optional[Residuals]) -> dict:
+    row = {"label": label, "count": int(idx.sum()),
+           "before_position_mm": float(before.position_mm[idx].mean()) if idx.any() else float("nan"),
+           "before_orientation_deg": float(before.orientation_deg[idx].mean()) if idx.any() else float("nan")}
+    if after is not None:
+        row["after_position_mm"] = float(after.position_mm[idx].mean()) if idx.any() else float("nan")
+        row["after_orientation_deg"] = float(after.orientation_deg[idx].mean()) if idx.any() else float("nan")
+    return row
+
+
+def distance_breakdown(distance: np.ndarray, before: Residuals, after: Optional[Residuals],
+                       step_m: float = 0.25) -> List[dict]:
+    """Mean errors per distance band of width ``step_m`` from the transmitter."""
+    rows = []
+    if len(distance) == 0:
+        return rows
+    top = np.ceil(distance.max() / step_m) * step_m
+    for lo in np.arange(0.0, top, step_m):
+        idx = (distance >= lo) & (distance < lo + step_m)
+        if idx.any():
+            rows.append(_summary_row(f"{lo:.2f}-{lo + step_m:.2f} m", idx, before, after))
+    return rows
+
+
+def region_breakdown(positions: np.ndarray, before: Residuals, after: Optional[Residuals],
+                     centre: Optional[np.ndarray] = None) -> List[dict]:
+    """Mean errors per octant of the volume around ``centre`` (default: median station position)."""
+    c = np.median(positions, axis=0) if centre is None else np.asarray(centre)
+    rows = []
+    for sx in "-+":
+        for sy in "-+":
+            for sz in "-+":
+                idx = np.ones(len(positions), bool)
+                for k, s in enumerate((sx, sy, sz)):
+                    idx &= (positions[:, k] >= c[k]) if s == "+" else (positions[:, k] < c[k])
+                if idx.any():
+                    rows.append(_summary_row(f"x{sx} y{sy} z{sz}", idx, before, after))
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole validation
+
+@dataclasses.dataclass
+class Validation:
+    capture: PoseCapture
+    calibration: Optional[object]
+    corrected_positions: Optional[np.ndarray]
+    corrected_quaternions_xyzw: Optional[np.ndarray]
+    extrapolated: np.ndarray
+    before: Residuals
+    after: Optional[Residuals]
+    tables: List[Table1]
+    by_distance: List[dict]
+    by_region: List[dict]
+    worst: List[dict]
+    covariate_effects: List[CovariateEffect] = dataclasses.field(default_factory=list)
+
+    @property
+    def final(self) -> Residuals:
+        """The residuals left: after the calibration if there is one, else before."""
+        return self.after if self.after is not None else self.before
+
+    def summary_text(self) -> str:
+        out = [t.format() for t in self.tables]
+        return "\n".join(out)
+
+
+def _sub(r: Residuals, idx) -> Residuals:
+    return Residuals(r.position[idx], r.orientation[idx], r.position_mm[idx], r.orientation_deg[idx])
+
+
+def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("calib", "valid"),
+             worst_count: int = 10, analyse_covariates: bool = True, covariate_options: Optional[dict] = None,
+             progress: Optional[Callable[[int, int], None]] = None) -> Validation:
+    """Applies ``calibration`` (a trackcal.Calibration or None) to the capture's reported poses and
+    computes everything ``trackcal diagnose`` shows. Registration stations (set 'reg') are left out
+    of the breakdowns and the covariate analysis (they are not calibration data)."""
+    data = capture.subset(capture.set != "reg") if "reg" in capture.sets else capture
+    if len(data) == 0:
+        raise ValueError(f"{capture.path}: no calibration or validation stations")
+    before = residuals(data.reported_positions, data.reported_quaternions_xyzw,
+                       data.reference_positions, data.reference_quaternions_xyzw)
+    after = None
+    cp = cq = None
+    extrapolated = np.zeros(len(data), bool)
+    if calibration is not None:
+        cp, cq, extrapolated = calibration.correct(data.reported_positions, data.reported_quaternions_xyzw)
+        after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
+    tables = []
+    for s in sets:
+        idx = data.set == s
+        if idx.any():
+            tables.append(table1(s, _sub(before, idx), _sub(after, idx) if after is not None else None))
+    tables.append(table1("all", before, after))
+    final = after if after is not None else before
+    distance = np.linalg.norm(data.reported_positions, axis=1)
+    order = np.argsort(-final.position_mm)[:worst_count]
+    worst = [{"station": int(data.station[i]), "set": str(data.set[i]), "sensor": int(data.sensor[i]),
+              "x": float(data.reported_positions[i, 0]), "y": float(data.reported_positions[i, 1]),
+              "z": float(data.reported_positions[i, 2]), "distance": float(distance[i]),
+              "position_mm": float(final.position_mm[i]), "orientation_deg": float(final.orientation_deg[i]),
+              "extrapolated": bool(extrapolated[i])} for i in order]
+    centre = None
+    if calibration is not None:
+        centre = 0.5 * (np.asarray(calibration.volume_min) + np.asarray(calibration.volume_max))
+    v = Validation(capture=data, calibration=calibration, corrected_positions=cp, corrected_quaternions_xyzw=cq,
+                   extrapolated=np.asarray(extrapolated, bool), before=before, after=after, tables=tables,
+                   by_distance=distance_breakdown(distance, before, after),
+                   by_region=region_breakdown(data.reported_positions, before, after, centre), worst=worst)
+    if analyse_covariates:
+        v.covariate_effects = covariate_analysis(final, covariates(data), progress=progress,
+                                                 **(covariate_options or {}))
+    return v
+
+
+# ---------------------------------------------------------------------------------------------
+# A baseline fit for cross-validation when a capture has no validation set
+
+def fit_polynomial(capture: PoseCapture, degree: int = 3):
+    """The paper's eq. 7 by linear least squares: a degree-r polynomial of the normalised reported
+    position for the position error and the error-quaternion vector part. Returns a Calibration
+    valid over the capture's bounding box. A baseline for cross-validation, not the fit engine."""
+    p = capture.reported_positions
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    offset = 0.5 * (lo + hi)
+    scale = np.maximum(0.5 * (hi - lo), 1e-6)
+    from trackcal.numpy_reference import monomials
+    a = monomials(degree, (p - offset) / scale)
+    r = residuals(p, capture.reported_quaternions_xyzw, capture.reference_positions,
+                  capture.reference_quaternions_xyzw)
+    if a.shape[0] < a.shape[1]:
+        raise ValueError(f"{capture.path}: {a.shape[0]} stations cannot fit a degree-{degree} polynomial "
+                         f"({a.shape[1]} terms)")
+    pc = np.linalg.lstsq(a, r.position, rcond=None)[0]
+    oc = np.linalg.lstsq(a, r.orientation, rcond=None)[0]
+    poly = _core.PolynomialCorrection(degree, pc, oc, offset, scale)
+    return _core.Calibration([poly], lo, hi, extrapolation="clamp",
+                             description=f"numpy least-squares degree-{degree} polynomial")
+
+
+def cross_validate(capture: PoseCapture, fit: Callable[[PoseCapture], object] = fit_polynomial,
+                   folds: int = 5, seed: int = 0) -> Table1:
+    """k-fold cross-validation of a fit procedure on the non-registration stations: every station is
+    corrected by a model fitted without it; returns the Table 1 of the held-out corrections."""
+    data = capture.subset(capture.set != "reg")
+    rng = np.random.default_rng(seed)
+    fold = rng.permutation(np.arange(len(data)) % folds)
+    cp = np.empty_like(data.reported_positions)
+    cq = np.empty_like(data.reported_quaternions_xyzw)
+    for f in range(folds):
+        test = fold == f
+        cal = fit(data.subset(~test))
+        p, q, _ = cal.correct(data.reported_positions[test], data.reported_quaternions_xyzw[test])
+        cp[test], cq[test] = p, q
+    before = residuals(data.reported_positions, data.reported_quaternions_xyzw, data.reference_positions,
+                       data.reference_quaternions_xyzw)
+    after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
+    return table1(f"cross-validation ({folds}-fold)", before, after)
