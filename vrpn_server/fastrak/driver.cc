@@ -109,7 +109,9 @@ FastrakTimings FastrakTimings::Fast() {
   t.command_gap_s = 0.005;
   t.filter_settle_s = 0.02;
   t.extras_settle_s = 0.05;
-  t.resume_probe_s = 0.3;
+  // Ends at the second record (about 17 ms with the emulator), so the length only matters when
+  // the device is not streaming; 1 s lets a resume succeed on a heavily loaded host.
+  t.resume_probe_s = 1.0;
   return t;
 }
 
@@ -208,7 +210,7 @@ class FastrakDriver::Session {
         options_(driver->options_),
         timings_(options_.timings),
         units_(options_.EffectiveUnits()),
-        parser_(StylusStations(options_), units_),
+        parser_(StylusStations(options_), units_, options_.num_stations),
         limiter_(Seconds(timings_.message_interval_s)) {}
 
   ~Session() { ClosePort(); }
@@ -281,9 +283,11 @@ class FastrakDriver::Session {
     if (auto m = limiter_.Poll(SteadyClock::now())) Deliver(*m);
   }
 
+  // Also drops partial input: a record is never assembled from bytes of two port openings.
   void ClosePort() {
     if (fd_ >= 0) ::close(fd_);
     fd_ = -1;
+    parser_.Clear();
   }
 
   enum class WaitResult { kTimeout, kReadable };
