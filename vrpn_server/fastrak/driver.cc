@@ -2,6 +2,8 @@
 
 #include <fcntl.h>
 #include <poll.h>
+#include <sys/file.h>
+#include <sys/stat.h>
 #include <termios.h>
 #include <unistd.h>
 
@@ -72,6 +74,27 @@ int OpenSerialPort(const std::string& path, int baud, std::string* error) {
     *error = std::strerror(errno);
     return -1;
   }
+  // `path` may be a symbolic link that is removed or re-pointed while we open it (an unplugged
+  // adapter, the emulator's disconnect). Resolving the link and opening its target are two steps:
+  // if the old target's device number was meanwhile given to another device (pty numbers are
+  // reused at once), we would stream someone else's records. Only keep the fd if the path still
+  // names the device we opened.
+  struct stat opened {}, named {};
+  if (::fstat(fd, &opened) != 0 || ::stat(path.c_str(), &named) != 0 ||
+      opened.st_rdev != named.st_rdev || opened.st_ino != named.st_ino) {
+    *error = "the device behind the path changed while opening it";
+    ::close(fd);
+    return -1;
+  }
+  // One driver per device: an advisory lock on the device node (held until close) makes a second
+  // trackcal driver that reaches the same port (a stale link to a reused pty number, two servers
+  // configured with one port) fail and retry instead of sharing the byte stream and the commands.
+  if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+    *error = errno == EWOULDBLOCK ? std::string("in use by another trackcal driver")
+                                  : std::string("cannot lock (") + std::strerror(errno) + ")";
+    ::close(fd);
+    return -1;
+  }
   termios tio{};
   if (::tcgetattr(fd, &tio) != 0) {
     *error = std::string("not a serial port (") + std::strerror(errno) + ")";
@@ -105,7 +128,9 @@ FastrakTimings FastrakTimings::Fast() {
   t.settle_after_preamble_s = 0.05;
   t.reinitialise_wait_s = 0.1;
   t.settle_after_flush_s = 0.05;
-  t.status_timeout_s = 0.5;
+  // Ends at the reply's LF; only a missing or corrupt reply waits it out. 2 s so that a loaded
+  // host does not turn a slow answer into a failed reset.
+  t.status_timeout_s = 2.0;
   t.command_gap_s = 0.005;
   t.filter_settle_s = 0.02;
   t.extras_settle_s = 0.05;

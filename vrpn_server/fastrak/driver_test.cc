@@ -9,6 +9,7 @@
 #include <condition_variable>
 #include <fstream>
 #include <iostream>
+#include <memory>
 #include <thread>
 
 #include "tests/test_utils.h"
@@ -442,6 +443,32 @@ TEST(FastrakDriver, GarbageAndTruncatedRecordsInTheStream) {
   EXPECT_GE(driver.stats().discarded_bytes, 18u + 20u);
   EXPECT_EQ(driver.stats().watchdog_timeouts, 0u);
   EXPECT_TRUE(collector.HasMessage("skipped"));
+}
+
+TEST(FastrakDriver, SecondDriverOnTheSameDeviceWaitsInsteadOfSharingIt) {
+  // Two drivers reaching one device (a stale link to a reused pty number, or two servers given one
+  // port) would split its records and interleave their commands. The second one must not open it
+  // while the first holds it, and must take over once the first has stopped.
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector first_collector, second_collector;
+  auto first = std::make_unique<FastrakDriver>(FastOptions(dir / "tty"), first_collector.Callbacks());
+  first->Start();
+  ASSERT_TRUE(first_collector.WaitForReports(10, 20.0));
+  FastrakDriver second(FastOptions(dir / "tty"), second_collector.Callbacks());
+  second.Start();
+  ASSERT_TRUE(WaitUntil([&] { return second.stats().open_attempts >= 2; }, 20.0));
+  EXPECT_EQ(second.stats().opens, 0u);
+  EXPECT_TRUE(second_collector.HasMessage("in use by another trackcal driver"));
+  const size_t first_reports = first_collector.reports().size();
+  ASSERT_TRUE(first_collector.WaitForReports(first_reports + 10, 20.0));  // undisturbed
+  first->Stop();
+  first.reset();
+  ASSERT_TRUE(second_collector.WaitForReports(10, 20.0));
+  EXPECT_EQ(second.stats().opens, 1u);
+  second.Stop();
+  for (const FastrakReport& r : first_collector.reports()) ExpectTranscriptPose(r);
+  for (const FastrakReport& r : second_collector.reports()) ExpectTranscriptPose(r);
 }
 
 TEST(FastrakDriver, StopInterruptsAReferenceTimedResetAtOnce) {
