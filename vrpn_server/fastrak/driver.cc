@@ -2,6 +2,8 @@
 
 #include <fcntl.h>
 #include <poll.h>
+#include <sys/file.h>
+#include <sys/stat.h>
 #include <termios.h>
 #include <unistd.h>
 
@@ -72,6 +74,27 @@ int OpenSerialPort(const std::string& path, int baud, std::string* error) {
     *error = std::strerror(errno);
     return -1;
   }
+  // `path` may be a symbolic link that is removed or re-pointed while we open it (an unplugged
+  // adapter, the emulator's disconnect). Resolving the link and opening its target are two steps:
+  // if the old target's device number was meanwhile given to another device (pty numbers are
+  // reused at once), we would stream someone else's records. Only keep the fd if the path still
+  // names the device we opened.
+  struct stat opened {}, named {};
+  if (::fstat(fd, &opened) != 0 || ::stat(path.c_str(), &named) != 0 ||
+      opened.st_rdev != named.st_rdev || opened.st_ino != named.st_ino) {
+    *error = "the device behind the path changed while opening it";
+    ::close(fd);
+    return -1;
+  }
+  // One driver per device: an advisory lock on the device node (held until close) makes a second
+  // trackcal driver that reaches the same port (a stale link to a reused pty number, two servers
+  // configured with one port) fail and retry instead of sharing the byte stream and the commands.
+  if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+    *error = errno == EWOULDBLOCK ? std::string("in use by another trackcal driver")
+                                  : std::string("cannot lock (") + std::strerror(errno) + ")";
+    ::close(fd);
+    return -1;
+  }
   termios tio{};
   if (::tcgetattr(fd, &tio) != 0) {
     *error = std::string("not a serial port (") + std::strerror(errno) + ")";
@@ -105,11 +128,15 @@ FastrakTimings FastrakTimings::Fast() {
   t.settle_after_preamble_s = 0.05;
   t.reinitialise_wait_s = 0.1;
   t.settle_after_flush_s = 0.05;
-  t.status_timeout_s = 0.5;
+  // Ends at the reply's LF; only a missing or corrupt reply waits it out. 2 s so that a loaded
+  // host does not turn a slow answer into a failed reset.
+  t.status_timeout_s = 2.0;
   t.command_gap_s = 0.005;
   t.filter_settle_s = 0.02;
   t.extras_settle_s = 0.05;
-  t.resume_probe_s = 0.3;
+  // Ends at the second record (about 17 ms with the emulator), so the length only matters when
+  // the device is not streaming; 1 s lets a resume succeed on a heavily loaded host.
+  t.resume_probe_s = 1.0;
   return t;
 }
 
@@ -208,7 +235,7 @@ class FastrakDriver::Session {
         options_(driver->options_),
         timings_(options_.timings),
         units_(options_.EffectiveUnits()),
-        parser_(StylusStations(options_), units_),
+        parser_(StylusStations(options_), units_, options_.num_stations),
         limiter_(Seconds(timings_.message_interval_s)) {}
 
   ~Session() { ClosePort(); }
@@ -281,9 +308,11 @@ class FastrakDriver::Session {
     if (auto m = limiter_.Poll(SteadyClock::now())) Deliver(*m);
   }
 
+  // Also drops partial input: a record is never assembled from bytes of two port openings.
   void ClosePort() {
     if (fd_ >= 0) ::close(fd_);
     fd_ = -1;
+    parser_.Clear();
   }
 
   enum class WaitResult { kTimeout, kReadable };

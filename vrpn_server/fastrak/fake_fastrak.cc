@@ -69,6 +69,8 @@ FakeFastrak::~FakeFastrak() {
   const char b = 1;
   [[maybe_unused]] ssize_t n = ::write(wake_[1], &b, 1);
   thread_.join();
+  std::error_code ec;
+  std::filesystem::remove(link_, ec);  // (a stale link would name a reused pty number)
   ClosePty();
   ::close(wake_[0]);
   ::close(wake_[1]);
@@ -148,8 +150,11 @@ void FakeFastrak::TruncateNextRecord(size_t keep_bytes) {
 
 void FakeFastrak::Unplug() {
   std::lock_guard<std::mutex> lock(mutex_);
+  // Link first: once the pty is closed its number can go to another process's pty at once, and a
+  // driver retrying the link must never reach that one.
+  std::error_code ec;
+  std::filesystem::remove(link_, ec);
   ClosePty();
-  std::filesystem::remove(link_);
 }
 
 void FakeFastrak::Plug(bool power_cycled) {

@@ -83,10 +83,13 @@ float ReadFloat32Le(const uint8_t* bytes);
 // These checks are what lets the parser find record boundaries again after garbage.
 std::optional<RawRecord> DecodeRecord(const uint8_t* bytes, size_t size);
 
-// The Fastrak outputs normalised quaternions (float32, so |q| = 1 within ~1e-7); 0.05 accepts any
-// plausible device rounding while rejecting almost every misaligned window of float bytes.
-inline constexpr double kMaxQuaternionNormError = 0.05;
-// Larger than any Fastrak range (30 ft = 914 cm with the long-range transmitter) in either unit.
-inline constexpr double kMaxPositionUnits = 2000.0;
+// The Fastrak outputs normalised quaternions (float32, so |q| = 1 within ~1e-7); 1e-3 is 10^4 times
+// that, so any device rounding passes, while a quaternion whose last component was replaced by
+// other bytes (a merged record) fails unless that component was below 0.045 (2.6 deg). The old
+// 0.05 let a component up to 0.31 (36 deg of rotation) vanish unnoticed.
+inline constexpr double kMaxQuaternionNormError = 1e-3;
+// Per-axis bound in device units, larger than any Fastrak range (30 ft = 914 cm with the long-range
+// transmitter) in either unit; RecordParser also bounds |position| in metres (kMaxRangeM).
+inline constexpr double kMaxPositionUnits = 1000.0;
 
 }  // namespace trackcal::fastrak

@@ -1,5 +1,8 @@
 #include "vrpn_server/fastrak/record_parser.h"
 
+#include <algorithm>
+#include <cmath>
+
 #include "core/pose.h"
 
 namespace trackcal::fastrak {
@@ -17,8 +20,8 @@ FastrakReport ConvertRecord(const RawRecord& raw, Units units,
   return report;
 }
 
-RecordParser::RecordParser(std::array<bool, kMaxStations> stylus, Units units)
-    : stylus_(stylus), units_(units) {}
+RecordParser::RecordParser(std::array<bool, kMaxStations> stylus, Units units, int num_stations)
+    : stylus_(stylus), units_(units), num_stations_(std::clamp(num_stations, 1, kMaxStations)) {}
 
 void RecordParser::Clear() {
   bytes_.clear();
@@ -33,21 +36,45 @@ void RecordParser::Compact() {
   head_ = 0;
 }
 
-bool RecordParser::ConfirmedByWhatFollows(const uint8_t* p, size_t size, size_t available) const {
-  // Without a checksum a truncated record plus the start of the next one can pass every check
-  // (e.g. a record cut 3 bytes short, an identity quaternion whose last float absorbs "0N", and the
-  // next record's status space as the final byte). When the bytes after the candidate are already
-  // here and are not a record header, prefer a valid record starting inside the candidate.
-  // Waiting for bytes that have not arrived would add latency, so a lone candidate is accepted.
-  if (available < size + 2) return true;
-  const uint8_t* next = p + size;
-  if (next[0] == '0' && next[1] >= '1' && next[1] <= '0' + kMaxStations) return true;
-  for (size_t j = 1; j + 1 < size; ++j) {
-    if (p[j] != '0' || p[j + 1] < '1' || p[j + 1] > '0' + kMaxStations) continue;
+bool RecordParser::IsHeader(const uint8_t* p) const {
+  return p[0] == '0' && p[1] >= '1' && p[1] <= '0' + num_stations_;
+}
+
+std::optional<RawRecord> RecordParser::Plausible(size_t at, size_t size) const {
+  const uint8_t* p = bytes_.data() + at;
+  if (!IsHeader(p)) return std::nullopt;
+  std::optional<RawRecord> raw = DecodeRecord(p, size);
+  if (!raw) return std::nullopt;
+  const double scale = MetresPerUnit(units_);
+  const double range_m =
+      std::sqrt(static_cast<double>(raw->position[0]) * raw->position[0] +
+                static_cast<double>(raw->position[1]) * raw->position[1] +
+                static_cast<double>(raw->position[2]) * raw->position[2]) * scale;
+  if (!(range_m <= kMaxRangeM)) return std::nullopt;
+  if (times_[at + size - 1] - times_[at] > kMaxRecordSpread) return std::nullopt;
+  return raw;
+}
+
+RecordParser::Verdict RecordParser::Judge(size_t at, size_t size) const {
+  const uint8_t* p = bytes_.data() + at;
+  const size_t available = bytes_.size() - at;
+  const bool followed_by_header = available >= size + 2 && IsHeader(p + size);
+  // Every record header inside the candidate must be ruled out: a truncated record followed by a
+  // fresh one looks like this, and can pass every field check (no checksum).
+  for (size_t j = 1; j < size; ++j) {
+    if (p[j] != '0') continue;
+    if (j + 1 >= available) return Verdict::kWait;  // a '0' at the very end: header or not?
+    if (!IsHeader(p + j)) continue;
     const size_t inner_size = RecordSize(stylus_[p[j + 1] - '1']);
-    if (j + inner_size <= available && DecodeRecord(p + j, inner_size)) return false;
+    if (j + inner_size > available) return Verdict::kWait;
+    if (!Plausible(at + j, inner_size)) continue;
+    // Both are plausible; at most one is real. The candidate wins only if it is followed by a
+    // header and the inner record is known not to be.
+    if (!followed_by_header) return Verdict::kReject;
+    if (j + inner_size + 2 > available) return Verdict::kWait;
+    if (IsHeader(p + j + inner_size)) return Verdict::kReject;
   }
-  return true;
+  return Verdict::kAccept;
 }
 
 void RecordParser::Feed(std::span<const uint8_t> bytes, TimePoint read_time,
@@ -63,15 +90,24 @@ void RecordParser::Feed(std::span<const uint8_t> bytes, TimePoint read_time,
       continue;
     }
     if (available < 2) break;
-    if (p[1] < '1' || p[1] > '0' + kMaxStations) {
+    if (!IsHeader(p)) {
       ++head_;
       ++discarded_bytes_;
       continue;
     }
     const size_t size = RecordSize(stylus_[p[1] - '1']);
     if (available < size) break;
-    std::optional<RawRecord> raw = DecodeRecord(p, size);
-    if (raw && !ConfirmedByWhatFollows(p, size, available)) raw.reset();
+    std::optional<RawRecord> raw = Plausible(head_, size);
+    if (raw) {
+      const Verdict verdict = Judge(head_, size);
+      if (verdict == Verdict::kWait) break;
+      if (verdict == Verdict::kReject) {
+        raw.reset();
+        ++rejected_candidates_;
+      }
+    } else if (DecodeRecord(p, size)) {
+      ++rejected_candidates_;  // well framed but implausible
+    }
     if (!raw) {
       // Drop only the false start: the next record may begin inside this window.
       ++head_;

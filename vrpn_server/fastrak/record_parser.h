@@ -1,11 +1,22 @@
 // Incremental parser of the Fastrak's continuous binary records. Bytes are fed as they are read;
 // records come out converted to trackcal conventions (metres, Eigen quaternion, 0-based sensor).
 //
-// Resynchronisation: a candidate record must pass every framing check of DecodeRecord; when one
-// fails, only its first byte is dropped and the search restarts at the next byte, so good records
-// that follow garbage (or a truncated record) in the same read are kept. (The reference driver
-// flushes the whole input buffer instead and loses them.) A candidate followed, in bytes already
-// received, by something other than a record header loses to a valid record starting inside it.
+// Resynchronisation: a candidate record must pass every framing check of DecodeRecord and the
+// plausibility checks below; when one fails, only its first byte is dropped and the search restarts
+// at the next byte, so good records that follow garbage (or a truncated record) in the same read
+// are kept. (The reference driver flushes the whole input buffer instead and loses them.)
+//
+// There is no checksum in the binary format, so a truncated record followed by a fresh one can
+// pass every field check (the fresh record's header and status space absorbed into the last
+// float). Such a merged window always contains the header of the real record that follows it.
+// Hence the rule that makes a silently wrong pose impossible from truncation or a reconnect: a
+// candidate is only emitted once every record header inside it has been ruled out, which may mean
+// waiting for up to one more record's bytes (latency only when the float bytes of a record happen
+// to contain "0<station>"). A candidate that a valid record inside it contradicts is dropped, unless
+// the candidate is followed by a record header and the inner one is not.
+// Plausibility (docs/fastrak-driver.md "What the driver rejects"): configured station, status
+// space or letter, finite values, |q| within kMaxQuaternionNormError of 1, position within
+// kMaxRangeM of the transmitter, and the record's bytes read within kMaxRecordSpread of each other.
 
 #pragma once
 
@@ -41,14 +52,25 @@ class RecordParser {
  public:
   using TimePoint = std::chrono::system_clock::time_point;
 
-  // `stylus[s]`: station s+1 has output item 16 (34-byte records).
-  RecordParser(std::array<bool, kMaxStations> stylus, Units units);
+  // `stylus[s]`: station s+1 has output item 16 (34-byte records). Records of stations above
+  // `num_stations` (not configured) are rejected.
+  RecordParser(std::array<bool, kMaxStations> stylus, Units units, int num_stations = kMaxStations);
+
+  // A record whose first and last bytes were read further apart than this is rejected: at any
+  // baud rate >= 9600 a record takes < 40 ms on the line, so a gap this long means the device (or
+  // the cable) stopped in the middle of a record, and the rest is not the same record. Generous,
+  // so that a reader thread descheduled on a loaded host does not drop records.
+  static constexpr std::chrono::milliseconds kMaxRecordSpread{1000};
+  // No Fastrak measures beyond 30 ft (9.14 m, long-range transmitter); |position| above this
+  // (in metres, after unit conversion) is a mis-framed record.
+  static constexpr double kMaxRangeM = 10.0;
 
   // Appends bytes read at `read_time` (every byte of the chunk is stamped with it; a record takes
   // the stamp of its first byte) and appends every complete valid record to *reports.
   void Feed(std::span<const uint8_t> bytes, TimePoint read_time, std::vector<FastrakReport>* reports);
 
-  // Drops buffered bytes (after a flush of the port or a reset).
+  // Drops buffered bytes (after a flush of the port, a reset, or a port close/reopen: a record is
+  // never assembled from bytes of two port openings).
   void Clear();
 
   void set_units(Units units) { units_ = units; }
@@ -58,20 +80,29 @@ class RecordParser {
   uint64_t discarded_bytes() const { return discarded_bytes_; }
   // Valid records produced since construction.
   uint64_t records() const { return records_; }
+  // Candidates that passed DecodeRecord but were rejected (implausible, or contradicted by a
+  // record starting inside them), since construction.
+  uint64_t rejected_candidates() const { return rejected_candidates_; }
   // Bytes waiting for the rest of their record.
   size_t buffered_bytes() const { return bytes_.size() - head_; }
 
  private:
+  enum class Verdict { kAccept, kReject, kWait };
   void Compact();
-  bool ConfirmedByWhatFollows(const uint8_t* p, size_t size, size_t available) const;
+  bool IsHeader(const uint8_t* p) const;  // '0' then a configured station digit
+  // DecodeRecord plus the parser's plausibility checks on the record at buffer offset `at`.
+  std::optional<RawRecord> Plausible(size_t at, size_t size) const;
+  Verdict Judge(size_t at, size_t size) const;
 
   std::array<bool, kMaxStations> stylus_;
   Units units_;
+  int num_stations_;
   std::vector<uint8_t> bytes_;
   std::vector<TimePoint> times_;  // read time of each buffered byte
   size_t head_ = 0;
   uint64_t discarded_bytes_ = 0;
   uint64_t records_ = 0;
+  uint64_t rejected_candidates_ = 0;
 };
 
 }  // namespace trackcal::fastrak

@@ -184,6 +184,152 @@ TEST(RecordParser, TruncatedRecordLosesOnlyItself) {
   }
 }
 
+// A record of station 1 cut 3 bytes short, then a fresh record of station 2: the 32-byte window at
+// the cut record's start has the fresh record's "02" as the high bytes of its last quaternion float
+// (so that component becomes ~1e-8) and the fresh record's status space as its final byte, i.e. it
+// passes every field check of the format. Fed as the reader sees it when it wakes after the first
+// 3 bytes of the fresh record, then the rest.
+struct MergedRecordCase {
+  std::string cut, fresh, next;
+};
+MergedRecordCase MakeMergedRecordCase(const std::array<float, 4>& cut_wxyz) {
+  MergedRecordCase c;
+  c.cut = MakeRecord(1, {10, -5, 20}, cut_wxyz).substr(0, 29);
+  c.fresh = MakeRecord(2, {1.5f, 2.5f, -3.5f}, {1, 0, 0, 0});
+  c.next = MakeRecord(1, {10, -5, 20}, {0.73029674f, 0.18257418f, 0.36514837f, 0.54772256f});
+  return c;
+}
+
+TEST(RecordParser, TruncatedPlusFreshRecordIsNeverMergedIntoAWrongPose) {
+  // qz = 0.2 (23 deg about z): the merged window's quaternion (w, x, y, ~0) has |q| = 0.98, which
+  // the former 0.05 norm tolerance accepted: a pose 23 deg off, reported as valid.
+  const float w = std::sqrt(1.0f - 0.2f * 0.2f);
+  const MergedRecordCase c = MakeMergedRecordCase({w, 0, 0, 0.2f});
+  const std::string merged = c.cut + c.fresh.substr(0, 3);
+  // The tighter norm check alone now rejects this window (see the next test for one it cannot).
+  EXPECT_FALSE(DecodeRecord(reinterpret_cast<const uint8_t*>(merged.data()), merged.size()));
+  RecordParser parser({}, Units::kInches);
+  std::vector<FastrakReport> reports;
+  parser.Feed(Bytes(merged), TimePoint(), &reports);
+  parser.Feed(Bytes(c.fresh.substr(3) + c.next), TimePoint(), &reports);
+  ASSERT_EQ(reports.size(), 2u);
+  ExpectTranscriptPoses(reports);
+  EXPECT_EQ(reports[0].sensor, 1);
+  EXPECT_EQ(reports[1].sensor, 0);
+}
+
+TEST(RecordParser, MergedWindowThatPassesEveryFieldCheckIsRejectedByStructure) {
+  // qz = 0.02 (2.3 deg): |(w, x, y, ~0)| = 0.9998 passes even the tight norm check, so only the
+  // header of the fresh record inside the window can tell. The parser waits for that inner record
+  // and drops the window; the old parser emitted it at once (a pose 2.3 deg off).
+  const float w = std::sqrt(1.0f - 0.02f * 0.02f);
+  const MergedRecordCase c = MakeMergedRecordCase({w, 0, 0, 0.02f});
+  const std::string merged = c.cut + c.fresh.substr(0, 3);
+  ASSERT_TRUE(DecodeRecord(reinterpret_cast<const uint8_t*>(merged.data()), merged.size()));
+  RecordParser parser({}, Units::kInches);
+  std::vector<FastrakReport> reports;
+  parser.Feed(Bytes(merged), TimePoint(), &reports);
+  EXPECT_TRUE(reports.empty()) << "emitted before the record inside it was ruled out";
+  parser.Feed(Bytes(c.fresh.substr(3) + c.next), TimePoint(), &reports);
+  ASSERT_EQ(reports.size(), 2u);
+  ExpectTranscriptPoses(reports);
+  EXPECT_EQ(reports[0].sensor, 1);
+  EXPECT_GE(parser.rejected_candidates(), 1u);
+}
+
+TEST(RecordParser, EveryTruncationAndChunkingYieldsOnlyTrueRecords) {
+  // Worst case for a parser without a checksum: a record cut to every length (cable pulled, or
+  // the tail of a record at a reopen) followed by good records, fed one byte at a time and in one
+  // piece. Every report must be one of the true records; all good records come through.
+  const std::array<std::array<float, 4>, 3> rotations = {
+      {{0.73029674f, 0.18257418f, 0.36514837f, 0.54772256f},
+       {std::sqrt(1.0f - 0.02f * 0.02f), 0, 0, 0.02f},
+       {1, 0, 0, 0}}};
+  const std::string good = MakeRecord(2, {1.5f, 2.5f, -3.5f}, {1, 0, 0, 0}) +
+                           MakeRecord(1, {10, -5, 20}, rotations[0]) +
+                           MakeRecord(2, {1.5f, 2.5f, -3.5f}, {1, 0, 0, 0});
+  for (const auto& q : rotations) {
+    const std::string cut_from = MakeRecord(1, {10, -5, 20}, q);
+    for (size_t keep = 1; keep < cut_from.size(); ++keep) {
+      for (const bool head : {true, false}) {  // the record's start (truncated) or its end (reopen)
+        const std::string part = head ? cut_from.substr(0, keep) : cut_from.substr(keep);
+        for (const bool byte_by_byte : {true, false}) {
+          SCOPED_TRACE("keep " + std::to_string(keep) + (head ? " head" : " tail") +
+                       (byte_by_byte ? " byte by byte" : " one piece"));
+          RecordParser parser({}, Units::kInches);
+          std::vector<FastrakReport> reports;
+          const std::string stream = part + good;
+          if (byte_by_byte) {
+            for (char ch : stream) parser.Feed(Bytes(std::string(1, ch)), TimePoint(), &reports);
+          } else {
+            parser.Feed(Bytes(stream), TimePoint(), &reports);
+          }
+          // The last record is emitted without waiting: its bytes contain no record header.
+          ASSERT_EQ(reports.size(), 3u);
+          ExpectTranscriptPoses(reports);
+          EXPECT_EQ(reports[0].sensor, 1);
+          EXPECT_EQ(reports[1].sensor, 0);
+        }
+      }
+    }
+  }
+}
+
+TEST(RecordParser, RejectsImplausibleRecords) {
+  const std::array<float, 4> identity{1, 0, 0, 0};
+  const std::string next = MakeRecord(1, {1, 2, 3}, identity);
+  auto count = [&](const std::string& record, int num_stations = kMaxStations,
+                   std::chrono::milliseconds gap = std::chrono::milliseconds(0)) {
+    RecordParser parser({}, Units::kInches, num_stations);
+    std::vector<FastrakReport> reports;
+    const TimePoint t0;
+    parser.Feed(Bytes(record.substr(0, 10)), t0, &reports);
+    parser.Feed(Bytes(record.substr(10) + next), t0 + gap, &reports);
+    return reports.size();
+  };
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity)), 2u);  // control
+  // Station 2 is not configured when only one station is.
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity), 1), 1u);
+  EXPECT_EQ(count(MakeRecord(1, {1, 2, 3}, identity), 1), 2u);
+  // Status byte neither space nor letter.
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity, '#')), 1u);
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity, 'E')), 2u);
+  // Non-finite values.
+  EXPECT_EQ(count(MakeRecord(2, {INFINITY, 2, 3}, identity)), 1u);
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, {NAN, 0, 0, 0})), 1u);
+  // Quaternion norm: 1 + 5e-4 passes, 1 + 2e-3 (and 0.98, which the former 0.05 tolerance took)
+  // do not.
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, {1.0005f, 0, 0, 0})), 2u);
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, {1.002f, 0, 0, 0})), 1u);
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, {0.98f, 0, 0, 0})), 1u);
+  // Beyond the Fastrak's 9.14 m: 400 in = 10.16 m; 390 in = 9.9 m is still accepted.
+  EXPECT_EQ(count(MakeRecord(2, {390, 0, 0}, identity)), 2u);
+  EXPECT_EQ(count(MakeRecord(2, {400, 0, 0}, identity)), 1u);
+  EXPECT_EQ(count(MakeRecord(2, {300, 300, 0}, identity)), 1u);  // |p| = 10.8 m
+  // The second half of the record read 1.5 s after the first: not one record.
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity), kMaxStations, std::chrono::milliseconds(1500)),
+            1u);
+  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity), kMaxStations, std::chrono::milliseconds(200)),
+            2u);
+}
+
+TEST(RecordParser, ClearDropsAPartialRecord) {
+  // After a reopen the driver clears the parser: the start of a record from the previous opening
+  // must not be completed by bytes of the new one.
+  const std::array<float, 4> identity{1, 0, 0, 0};
+  const std::string a = MakeRecord(1, {10, -5, 20}, identity);
+  const std::string b = MakeRecord(2, {1.5f, 2.5f, -3.5f}, identity);
+  RecordParser parser({}, Units::kInches);
+  std::vector<FastrakReport> reports;
+  parser.Feed(Bytes(a.substr(0, 20)), TimePoint(), &reports);
+  EXPECT_EQ(parser.buffered_bytes(), 20u);
+  parser.Clear();
+  EXPECT_EQ(parser.buffered_bytes(), 0u);
+  parser.Feed(Bytes(a.substr(20) + b), TimePoint(), &reports);
+  ASSERT_EQ(reports.size(), 1u);
+  EXPECT_EQ(reports[0].sensor, 1);
+}
+
 TEST(RecordParser, StylusRecords) {
   const std::array<float, 4> identity{1, 0, 0, 0};
   RecordParser parser({true, false, false, false}, Units::kInches);
