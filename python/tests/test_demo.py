@@ -24,7 +24,10 @@ def test_demo_without_serving_writes_a_fresh_work_folder(tmp_path, capsys):
     assert len(runs) == 2, "a second run must not reuse the first run's folder"
     for run in runs:
         assert (run / "capture" / "poses.csv").is_file()
-    assert "validation, uncorrected" in capsys.readouterr().out
+        assert (run / "paper_polynomial.json").is_file()
+    out = capsys.readouterr().out
+    assert "validation, uncorrected" in out
+    assert "Position error" in out or "position" in out.lower()
 
 
 def test_demo_serves_with_the_emulator_until_told_to_stop(tmp_path):
@@ -33,4 +36,5 @@ def test_demo_serves_with_the_emulator_until_told_to_stop(tmp_path):
     run = next(p for p in tmp_path.iterdir() if p.is_dir())
     cfg = (run / "vrpn.cfg").read_text()
     assert "vrpn_Tracker_Fastrak Tracker0" in cfg
+    assert "trackcal_Calibration Tracker0" in cfg and "raw=Tracker0_raw" in cfg
     assert "opened at 115200 baud" in (run / "server.log").read_text()

@@ -6,6 +6,7 @@ hardware and the optical reference:
 1. simulate a paper-protocol capture (sim/ preset ``paper``) in a room with an effect the paper's
    polynomial model lacks (``--hidden``, default a ferromagnetic object near the volume);
 2. fit the paper's degree-4 polynomial with ``trackcal-fit`` and show Table 1 before and after;
+   write the HTML report (figures 4-7 of the paper, residual structure against every covariate);
 3. serve: start the Fastrak emulator on a pseudo-terminal (same scene, same hidden effect) and
    ``trackcal-server`` with a vrpn.cfg that attaches the calibration, so any VRPN client gets
    ``Tracker0@localhost`` (corrected) and ``Tracker0_raw@localhost`` until interrupted.
@@ -64,7 +65,7 @@ PAPER_MODEL = """\
 # The paper's method (Ikits et al. 2001, eq. 7-9): degree-4 polynomials of the reported position
 # for the position error and the vector part of the orientation error quaternion.
 terms:
-  - term: polynomial
+  - type: polynomial
     degree: 4
 """
 
@@ -162,9 +163,11 @@ def main(argv: list[str] | None = None) -> int:
     work = _fresh_work_dir(args.work)
     print(f"trackcal demo: work folder {work}")
     capture = simulate(work, args.hidden, args.seed)
-    calib = None
-    if shutil.which("trackcal-fit"):
-        calib = fit(work, capture, PAPER_MODEL, "paper_polynomial")
+    calib = fit(work, capture, PAPER_MODEL, "paper_polynomial")
+    report = work / "report"
+    print(_run([_tool("trackcal"), "report", str(capture), "-c", str(calib), "-o", str(report)],
+               log=work / "report.log"), end="")
+    print(f"Report: {report / 'report.html'}")
     if not args.no_serve:
         serve(work, calib, args.hidden, args.seed, args.port, args.serve_seconds)
     return 0
