@@ -128,8 +128,11 @@ TEST(HiddenEffects, DefaultsMatchThePaperPresetAndAreVisible) {
   // A scene without a hidden section still gets effects of a plausible size.
   const HiddenEffects defaults;
   const Scene paper = LoadScene("paper");
-  EXPECT_EQ(SceneToJson(Scene{.hidden = defaults})["hidden"].dump(),
-            SceneToJson(Scene{.hidden = paper.hidden})["hidden"].dump());
+  Scene with_defaults;
+  with_defaults.hidden = defaults;
+  Scene with_paper;
+  with_paper.hidden = paper.hidden;
+  EXPECT_EQ(SceneToJson(with_defaults)["hidden"].dump(), SceneToJson(with_paper)["hidden"].dump());
   EXPECT_GT(defaults.receiver_from_body.translation.norm(), 0.01);
   EXPECT_GT((defaults.receiver_gain_matrix - Eigen::Matrix3d::Identity()).norm(), 0.01);
   EXPECT_GT(defaults.flip_count, 0);
