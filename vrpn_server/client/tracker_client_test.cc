@@ -257,6 +257,30 @@ TEST(VrpnServer, StalledClientIsDroppedWithoutBlockingOthers) {
   EXPECT_EQ(server.stats().clients, 1);
 }
 
+// Publishes poses of Tracker0 (device 0) and `tracker1` until done(counts) or 10 s, counting the
+// Pos_Quat messages per sender that arrive on the raw connection `fd` decoded by `conn`.
+std::map<std::string, int> CountPosQuatPerSender(
+    VrpnServer& server, int tracker1, int fd, Connection& conn,
+    const std::function<bool(std::map<std::string, int>&)>& done) {
+  std::map<std::string, int> counts;
+  std::uint8_t buf[65536];
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (Clock::now() < end && !done(counts)) {
+    server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
+    server.PublishPose(tracker1, 0, Rigid3d(), Timestamp::Now());
+    pollfd p{fd, POLLIN, 0};
+    if (::poll(&p, 1, 10) <= 0) continue;
+    const ssize_t n = ::recv(fd, buf, sizeof(buf), 0);
+    EXPECT_GT(n, 0);
+    if (n <= 0) break;
+    EXPECT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                [&](const ReceivedMessage& m) {
+                                  if (m.type == kPosQuatType) ++counts[std::string(m.sender)];
+                                }));
+  }
+  return counts;
+}
+
 TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
   auto catalog = MakeCatalog();
   TrackerSpec other;
@@ -272,21 +296,8 @@ TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
   conn.Start();
   ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
   // Once the server has our description, it streams Tracker0 to us, never Tracker1.
-  std::map<std::string, int> counts;
-  std::uint8_t buf[65536];
-  const auto end = Clock::now() + std::chrono::seconds(10);
-  while (Clock::now() < end && counts["Tracker0"] < 20) {
-    server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
-    server.PublishPose(tracker1, 0, Rigid3d(), Timestamp::Now());
-    pollfd p{fd.get(), POLLIN, 0};
-    if (::poll(&p, 1, 10) <= 0) continue;
-    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
-    ASSERT_GT(n, 0);
-    ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
-                                [&](const ReceivedMessage& m) {
-                                  if (m.type == kPosQuatType) ++counts[std::string(m.sender)];
-                                }));
-  }
+  auto counts = CountPosQuatPerSender(server, tracker1, fd.get(), conn,
+                                      [](auto& c) { return c["Tracker0"] >= 20; });
   EXPECT_GE(counts["Tracker0"], 20);
   EXPECT_EQ(counts.count("Tracker1"), 0u);
 }
@@ -304,21 +315,9 @@ TEST(VrpnServer, ClientDescribingNoNamesGetsEveryDevice) {
   Connection conn(std::make_shared<NameRegistry>(), Connection::Options{});
   conn.Start();
   ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
-  std::map<std::string, int> counts;
-  std::uint8_t buf[65536];
-  const auto end = Clock::now() + std::chrono::seconds(10);
-  while (Clock::now() < end && (counts["Tracker0"] < 20 || counts["Tracker1"] < 20)) {
-    server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
-    server.PublishPose(tracker1, 0, Rigid3d(), Timestamp::Now());
-    pollfd p{fd.get(), POLLIN, 0};
-    if (::poll(&p, 1, 10) <= 0) continue;
-    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
-    ASSERT_GT(n, 0);
-    ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
-                                [&](const ReceivedMessage& m) {
-                                  if (m.type == kPosQuatType) ++counts[std::string(m.sender)];
-                                }));
-  }
+  auto counts = CountPosQuatPerSender(server, tracker1, fd.get(), conn, [](auto& c) {
+    return c["Tracker0"] >= 20 && c["Tracker1"] >= 20;
+  });
   EXPECT_GE(counts["Tracker0"], 20);
   EXPECT_GE(counts["Tracker1"], 20);
 }
