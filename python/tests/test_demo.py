@@ -1,14 +1,20 @@
-"""The README's main job, run as a script would: --no-serve, and a short serve."""
+"""The README's main job, run as a script would: --no-serve, and a short serve; the model-file edits
+of its loop."""
 
+import json
 import shutil
 import socket
+from pathlib import Path
 
 import pytest
 
 from trackcal import demo
 
-pytestmark = pytest.mark.skipif(shutil.which("trackcal-simulate") is None,
-                                reason="command-line tools not installed (run scripts/build.sh)")
+ROOT = Path(__file__).resolve().parents[2]
+SMALL_SCENE = ROOT / "tests" / "data" / "workflow" / "paper_small.yaml"
+
+tools = pytest.mark.skipif(shutil.which("trackcal-simulate") is None,
+                           reason="command-line tools not installed (run scripts/build.sh)")
 
 
 def _free_port() -> int:
@@ -17,22 +23,98 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+# ---- model-file edits (contract B's model_change / insert_index) ----
+
+def test_apply_model_change_inserts_a_term_before_the_given_index():
+    text = demo.apply_model_change(
+        demo.PAPER_MODEL, "- type: dipole\n  location_in_transmitter: [0.6, 0.95, -0.5]\n", 0)
+    lines = text.splitlines()
+    i = lines.index("  - type: dipole")
+    assert lines[i + 1] == "    location_in_transmitter: [0.6, 0.95, -0.5]"
+    assert lines[i + 2] == "  - type: polynomial", "the physical term goes before the polynomial"
+    assert text.startswith("# The paper's method"), "comments are kept"
+    text = demo.apply_model_change(text, "- type: plane\n", 1)
+    assert [l.strip() for l in text.splitlines() if "- type:" in l] == \
+        ["- type: dipole", "- type: plane", "- type: polynomial"]
+    end = demo.apply_model_change(text, "- type: lut\n  cell_size_mm: 100\n", None)
+    assert end.rstrip().endswith("  - type: lut\n    cell_size_mm: 100")
+
+
+def test_apply_model_change_adds_or_replaces_a_top_level_key():
+    text = demo.apply_model_change(demo.PAPER_MODEL, "loss:\n  type: cauchy\n  scale: 3\n", None)
+    lines = text.splitlines()
+    assert lines.index("loss:") < lines.index("terms:")
+    assert "  scale: 3" in lines
+    text = demo.apply_model_change(text, "loss:\n  type: huber\n", None)
+    assert text.count("loss:") == 1 and "  type: huber" in text and "cauchy" not in text
+
+
+@pytest.mark.parametrize("change,index,message", [
+    ("- type: dipole\n", 5, "outside"),
+    ("   \n", 0, "empty"),
+    ("[1, 2]\n", None, "neither"),
+])
+def test_apply_model_change_rejects_what_it_cannot_place(change, index, message):
+    with pytest.raises(ValueError, match=message):
+        demo.apply_model_change(demo.PAPER_MODEL, change, index)
+
+
+def test_apply_model_change_needs_a_terms_list():
+    with pytest.raises(ValueError, match="terms"):
+        demo.apply_model_change("noise:\n  position_mm: 1\n", "- type: plane\n", 0)
+
+
+def test_top_significant_takes_the_verdicts_candidate():
+    doc = {"candidates": [{"effect": "plane", "significant": False},
+                          {"effect": "dipole", "significant": True},
+                          {"effect": "near_field", "significant": True}],
+           "verdict": {"effect": "dipole"}}
+    assert demo.top_significant(doc)["effect"] == "dipole"
+    doc["candidates"][1]["significant"] = doc["candidates"][2]["significant"] = False
+    doc["verdict"] = {"effect": None}
+    assert demo.top_significant(doc) is None
+
+
+def test_write_new_never_overwrites(tmp_path):
+    p = demo._write_new(tmp_path / "m.yaml", "a\n")
+    with pytest.raises(SystemExit, match="not overwriting"):
+        demo._write_new(p, "b\n")
+    assert p.read_text() == "a\n"
+    assert [x.name for x in tmp_path.iterdir()] == ["m.yaml"], "no temporary file left behind"
+
+
+# ---- the main job ----
+
+@tools
 def test_demo_without_serving_writes_a_fresh_work_folder(tmp_path, capsys):
-    assert demo.main(["--work", str(tmp_path), "--no-serve", "--seed", "7"]) == 0
-    assert demo.main(["--work", str(tmp_path), "--no-serve", "--seed", "7"]) == 0
+    args = ["--work", str(tmp_path), "--no-serve", "--seed", "7", "--scene", str(SMALL_SCENE)]
+    assert demo.main(args + ["--max-steps", "0"]) == 0
+    assert demo.main(args) == 0
     runs = sorted(p for p in tmp_path.iterdir() if p.is_dir())
     assert len(runs) == 2, "a second run must not reuse the first run's folder"
     for run in runs:
         assert (run / "capture" / "poses.csv").is_file()
-        assert (run / "paper_polynomial.json").is_file()
+        assert (run / "report" / "report.html").is_file()
     out = capsys.readouterr().out
-    assert "validation, uncorrected" in out
-    assert "Position error" in out or "position" in out.lower()
+    if demo.diagnosis_available():
+        first, second = (json.loads(l) for l in
+                         ((r / "history.jsonl").read_text().splitlines()[-1] for r in runs))
+        assert first["label"] == "base"
+        models = sorted((runs[1] / "models").glob("step*.yaml"))
+        assert len(models) >= 2, "the loop added at least the hidden object"
+        assert "missing effect:" in out and "model-file change:" in out
+        assert "noise floor (truth)" in out, "the table compares with the simulator's floor"
+    else:
+        for run in runs:
+            assert (run / "paper_polynomial.json").is_file()
+        assert "validation, uncorrected" in out
 
 
+@tools
 def test_demo_serves_with_the_emulator_until_told_to_stop(tmp_path):
     port = _free_port()
-    assert demo.main(["--work", str(tmp_path), "--serve-seconds", "3", "--port", str(port)]) == 0
+    assert demo.main(["--work", str(tmp_path), "--serve-seconds", "3", "--port", str(port),
+                      "--max-steps", "0", "--scene", str(SMALL_SCENE)]) == 0
     run = next(p for p in tmp_path.iterdir() if p.is_dir())
     cfg = (run / "vrpn.cfg").read_text()
     assert "vrpn_Tracker_Fastrak Tracker0" in cfg

@@ -5,29 +5,55 @@ hardware and the optical reference:
 
 1. simulate a paper-protocol capture (sim/ preset ``paper``) in a room with an effect the paper's
    polynomial model lacks (``--hidden``, default a ferromagnetic object near the volume);
-2. fit the paper's degree-4 polynomial with ``trackcal-fit`` and show Table 1 before and after;
-   write the HTML report (figures 4-7 of the paper, residual structure against every covariate);
-3. serve: start the Fastrak emulator on a pseudo-terminal (same scene, same hidden effect) and
-   ``trackcal-server`` with a vrpn.cfg that attaches the calibration, so any VRPN client gets
+2. fit the base model (the paper's degree-4 polynomial, ``--base``) with ``trackcal-fit``;
+3. diagnose: rank the catalog effects the model lacks (``trackcal.diagnose_candidates`` in
+   process, else ``trackcal-fit diagnose --json``), name the top significant one and show the
+   model-file change; write the changed model as a new file, refit, and repeat until nothing
+   significant is left (at most ``--max-steps`` changes);
+4. show the error after every change (validation set, against the simulator's noise floor), record
+   every fit in the work folder's ``history.jsonl`` and write the HTML report of the final model;
+5. serve: start the Fastrak emulator on a pseudo-terminal (same scene, same hidden effect) and
+   ``trackcal-server`` with a vrpn.cfg that attaches the final calibration, so any VRPN client gets
    ``Tracker0@localhost`` (corrected) and ``Tracker0_raw@localhost`` until interrupted.
 
-Every run writes into a fresh work folder (never over an earlier one). ``--no-serve`` stops after
-the fit, for scripts.
+Every run writes into a fresh work folder (never over an earlier one); every model and calibration
+is a new file. ``--no-serve`` stops before serving, for scripts.
+
+The loop itself is :func:`follow_diagnosis`, used by the workflow tests (python/tests/test_workflow.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as _dt
+import json
+import math
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
+from typing import Callable, Dict, List, Optional
 
 DEFAULT_HIDDEN = "ferromagnetic_object"
+DEFAULT_MAX_STEPS = 8
+
+PAPER_MODEL = """\
+# The paper's method (Ikits et al. 2001, eq. 7-9): degree-4 polynomials of the reported position
+# for the position error and the vector part of the orientation error quaternion.
+terms:
+  - type: polynomial
+    degree: 4
+"""
+
+
+# ----------------------------------------------------------------------------------------------
+# Small helpers
 
 
 def _tool(name: str) -> str:
@@ -38,15 +64,34 @@ def _tool(name: str) -> str:
     return path
 
 
-def _run(cmd: list[str], log: Path | None = None) -> str:
-    print("$ " + " ".join(cmd), flush=True)
+def _run(cmd: List[str], log: Optional[Path] = None, echo: bool = True) -> str:
+    if echo:
+        print("$ " + " ".join(cmd), flush=True)
     proc = subprocess.run(cmd, text=True, capture_output=True)
     if log is not None:
-        log.write_text(proc.stdout + proc.stderr)
+        _write_new(log, proc.stdout + proc.stderr)
     if proc.returncode != 0:
         sys.stderr.write(proc.stdout + proc.stderr)
         raise SystemExit(f"trackcal demo: {Path(cmd[0]).name} failed with exit code {proc.returncode}")
     return proc.stdout
+
+
+def _write_new(path: Path, text: str) -> Path:
+    """Writes a new file atomically (temporary file + link): refuses to replace an existing file."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)  # fails if path exists: never overwrites
+        except FileExistsError:
+            raise SystemExit(f"trackcal demo: {path} exists; not overwriting it") from None
+    finally:
+        os.unlink(tmp)
+    return path
 
 
 def _fresh_work_dir(base: Path) -> Path:
@@ -61,18 +106,327 @@ def _fresh_work_dir(base: Path) -> Path:
     raise SystemExit(f"trackcal demo: cannot make a fresh work folder under {base}")
 
 
-PAPER_MODEL = """\
-# The paper's method (Ikits et al. 2001, eq. 7-9): degree-4 polynomials of the reported position
-# for the position error and the vector part of the orientation error quaternion.
-terms:
-  - type: polynomial
-    degree: 4
-"""
+# ----------------------------------------------------------------------------------------------
+# Model-file edits: the candidate's YAML goes into the model text, nothing else changes.
+
+_TOP_KEY = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*:")
 
 
-def simulate(work: Path, hidden: str, seed: int | None) -> Path:
+def _split_top_level(text: str) -> List[tuple]:
+    """[(key or None, lines)] blocks of a YAML mapping: a block starts at an unindented key; comment
+    and blank lines before a key belong to the block before it (None: the file's header)."""
+    blocks: List[tuple] = [(None, [])]
+    for line in text.splitlines():
+        m = _TOP_KEY.match(line)
+        if m:
+            blocks.append((m.group(1), [line]))
+        else:
+            blocks[-1][1].append(line)
+    return blocks
+
+
+def apply_model_change(model_text: str, change: str, insert_index: Optional[int]) -> str:
+    """The model text with a diagnose candidate's ``model_change`` applied (contract B).
+
+    A change that is a list item (``- type: dipole ...``) goes into ``terms:`` before the item at
+    ``insert_index`` (``None``: at the end); a change that is a top-level mapping (``loss: ...``,
+    ``time_offset: ...``) replaces that key or is added before ``terms:``. Raises ValueError when the
+    model has no ``terms:`` list or the index is out of range."""
+    change = change.rstrip("\n")
+    if not change.strip():
+        raise ValueError("empty model change")
+    blocks = _split_top_level(model_text)
+    keys = [k for k, _ in blocks]
+    if "terms" not in keys:
+        raise ValueError("model has no top-level 'terms:' list")
+    if change.lstrip().startswith("- "):
+        ti = keys.index("terms")
+        lines = blocks[ti][1]
+        head, body = lines[0], lines[1:]
+        if head.split(":", 1)[1].strip():
+            raise ValueError("'terms:' is written inline; expected a block list")
+        # Items start at the first line whose content starts with '- ' at the list's indentation.
+        item_starts = [i for i, l in enumerate(body) if l.lstrip().startswith("- ")
+                       and len(l) - len(l.lstrip()) == _indent_of_items(body)]
+        n = len(item_starts)
+        idx = n if insert_index is None else int(insert_index)
+        if idx < 0 or idx > n:
+            raise ValueError(f"insert_index {idx} is outside the {n} terms")
+        indent = " " * (_indent_of_items(body) if body else 2)
+        new_lines = [indent + l if l.strip() else l for l in change.splitlines()]
+        at = item_starts[idx] if idx < n else len(_rstrip_blank(body))
+        body = body[:at] + new_lines + body[at:]
+        blocks[ti] = ("terms", [head] + body)
+    else:
+        m = _TOP_KEY.match(change)
+        if not m:
+            raise ValueError(f"model change is neither a term nor a top-level key: {change!r}")
+        new_block = (m.group(1), change.splitlines())
+        if m.group(1) in keys:
+            i = keys.index(m.group(1))
+            blocks[i] = (m.group(1), new_block[1])
+        else:
+            blocks.insert(keys.index("terms"), new_block)
+    out = []
+    for _, lines in blocks:
+        out.extend(lines)
+    return "\n".join(out).rstrip("\n") + "\n"
+
+
+def _indent_of_items(body: List[str]) -> int:
+    for l in body:
+        if l.lstrip().startswith("- "):
+            return len(l) - len(l.lstrip())
+    return 2
+
+
+def _rstrip_blank(lines: List[str]) -> List[str]:
+    out = list(lines)
+    while out and not out[-1].strip():
+        out.pop()
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The engine: fits through trackcal-fit (it writes the calibration file), diagnosis in process
+# (contract C) when the Python package has it, else through `trackcal-fit diagnose --json` (B).
+
+
+def diagnosis_available() -> bool:
+    """True when a candidate ranking can be run (Python API or trackcal-fit diagnose)."""
+    return _python_diagnose() is not None or _cli_diagnose_available()
+
+
+def _python_diagnose() -> Optional[Callable]:
+    try:
+        import trackcal
+    except ImportError:  # pragma: no cover - the package is what runs this
+        return None
+    f = getattr(trackcal, "diagnose_candidates", None)
+    available = getattr(getattr(trackcal, "diagnosis", None), "candidates_available", None)
+    if f is None or (available is not None and not available()):
+        return None
+    return f
+
+
+_cli_diagnose_cache: Dict[str, bool] = {}
+
+
+def _cli_diagnose_available() -> bool:
+    exe = shutil.which("trackcal-fit")
+    if exe is None:
+        return False
+    if exe not in _cli_diagnose_cache:
+        proc = subprocess.run([exe, "diagnose", "--help"], text=True, capture_output=True)
+        text = proc.stdout + proc.stderr
+        _cli_diagnose_cache[exe] = proc.returncode == 0 and "diagnose" in text and "unknown" not in text.lower()
+    return _cli_diagnose_cache[exe]
+
+
+def run_fit(data: Path, model: Path, calibration: Path, log: Path, folds: int = 5) -> dict:
+    """trackcal-fit fit --json: returns its JSON document (tables, fit)."""
+    out = _run([_tool("trackcal-fit"), "fit", "--data", str(data), "--model", str(model), "-o",
+                str(calibration), "--folds", str(folds), "--json", "--quiet"], log=log, echo=False)
+    return json.loads(out)
+
+
+def run_diagnose(data: Path, model: Path, log: Path, folds: int = 5) -> dict:
+    """The ranked candidates (contract B's JSON document as a dict)."""
+    f = _python_diagnose()
+    if f is not None:
+        doc = f(str(data), str(model), folds=folds)
+        _write_new(log, json.dumps(doc, indent=1, default=str) + "\n")
+        return doc
+    out = _run([_tool("trackcal-fit"), "diagnose", "--data", str(data), "--model", str(model),
+                "--folds", str(folds), "--json"], echo=False)
+    _write_new(log, out)
+    return json.loads(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scores
+
+
+def held_out_table(fit_doc: dict) -> dict:
+    """The held-out table of a trackcal-fit document: the validation set, else cross-validation."""
+    tables = fit_doc.get("tables", [])
+    for want in ("valid", "cross"):
+        for t in tables:
+            if str(t.get("set", "")).startswith(want):
+                return t
+    if not tables:
+        raise ValueError("trackcal-fit printed no error table")
+    return tables[-1]
+
+
+def _mean(stats: dict, key: str) -> float:
+    return float(stats[key]["mean"])
+
+
+def noise_floor(capture: Path) -> Optional[dict]:
+    """The simulator's noise floor of the validation set (truth.json), or None for real data."""
+    truth = Path(capture) / "truth.json"
+    if not truth.is_file():
+        return None
+    stats = json.loads(truth.read_text()).get("statistics", {}).get("valid", {})
+    return stats.get("noise_floor")
+
+
+@dataclasses.dataclass
+class Step:
+    """One fit of the loop and what the diagnosis said after it."""
+    index: int
+    label: str                      # what changed ("base" for the first fit)
+    model_path: Path
+    calibration_path: Path
+    fit: dict                       # trackcal-fit fit --json document
+    diagnosis: Optional[dict] = None
+    added: Optional[dict] = None    # the candidate added after this fit (its JSON object)
+
+    @property
+    def held_out(self) -> dict:
+        return held_out_table(self.fit)
+
+    @property
+    def position_mm(self) -> float:
+        return _mean(self.held_out["after"], "position_mm")
+
+    @property
+    def orientation_deg(self) -> float:
+        return _mean(self.held_out["after"], "orientation_deg")
+
+
+def top_significant(diagnosis: dict) -> Optional[dict]:
+    """The best candidate the diagnosis calls significant, or None."""
+    verdict = diagnosis.get("verdict") or {}
+    cands = diagnosis.get("candidates") or []
+    sig = [c for c in cands if c.get("significant")]
+    if not sig:
+        return None
+    want = verdict.get("effect")
+    for c in sig:  # the verdict names the top significant effect; take that row
+        if want is None or c.get("effect") == want:
+            return c
+    return sig[0]
+
+
+def _data_files(capture: Path) -> List[tuple]:
+    capture = Path(capture)
+    if capture.is_file():
+        return [(capture, "calib+valid")]
+    files = [(capture / "poses.csv", "poses")] if (capture / "poses.csv").is_file() else []
+    if not files:
+        files = [(p, "stream") for p in sorted(capture.glob("*_stream.csv"))]
+    return files
+
+
+def _record(work: Path, step: Step, data: Path) -> None:
+    from trackcal import history
+    scores = {}
+    for t in step.fit.get("tables", []):
+        scores[str(t["set"])] = {"position_mm": t["after"]["position_mm"],
+                                 "orientation_deg": t["after"]["orientation_deg"]}
+    history.record_fit(work, model=step.model_path, data=_data_files(data), scores=scores,
+                       label=step.label,
+                       extra={"calibration": str(step.calibration_path),
+                              "calibration_sha256": _sha(step.calibration_path),
+                              "step": step.index})
+
+
+def _sha(path: Path) -> str:
+    from trackcal import _core
+    return _core.sha256_file(Path(path))
+
+
+def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int = DEFAULT_MAX_STEPS,
+                     folds: int = 5, record: bool = True,
+                     say: Callable[[str], None] = print) -> List[Step]:
+    """The workflow of docs/understand.md, "The main job": fit the base model, diagnose, add the
+    top significant candidate to the model file, refit, and repeat until the diagnosis finds nothing
+    significant or ``max_steps`` changes were made. Every model and calibration is a new file in
+    ``work/models``; every fit is recorded in ``work/history.jsonl`` when ``record``."""
+    if not diagnosis_available():
+        raise RuntimeError("no candidate ranking: neither trackcal.diagnose_candidates nor "
+                           "'trackcal-fit diagnose' is installed")
+    work = Path(work)
+    models = work / "models"
+    models.mkdir(parents=True, exist_ok=True)
+    steps: List[Step] = []
+    text, label = base_model, "base"
+    seen_changes = set()
+    for i in range(max_steps + 1):
+        model = _write_new(models / f"step{i}.yaml", text)
+        calib = models / f"step{i}.json"
+        t0 = time.monotonic()
+        doc = run_fit(data, model, calib, models / f"step{i}.fit.log", folds=folds)
+        step = Step(i, label, model, calib, doc)
+        steps.append(step)
+        if record:
+            _record(work, step, data)
+        say(f"step {i} ({label}): fitted in {time.monotonic() - t0:.1f} s; held-out error "
+            f"{step.position_mm:.3f} mm, {step.orientation_deg:.4f} deg")
+        if i == max_steps:
+            say(f"stopping after {max_steps} changes (--max-steps)")
+            break
+        t0 = time.monotonic()
+        step.diagnosis = run_diagnose(data, model, models / f"step{i}.diagnose.json", folds=folds)
+        best = top_significant(step.diagnosis)
+        say(f"  diagnosed in {time.monotonic() - t0:.1f} s")
+        if best is None:
+            verdict = (step.diagnosis.get("verdict") or {}).get("text") or \
+                "no candidate effect is significant"
+            say("  diagnosis: " + verdict)
+            break
+        key = (best.get("effect"), best.get("model_change"))
+        if key in seen_changes:  # the same change again means the ranking is not converging
+            say(f"  diagnosis proposes {best.get('effect')} again with the same change; stopping")
+            break
+        seen_changes.add(key)
+        step.added = best
+        say(f"  missing effect: {best.get('effect')}: {best.get('statement') or ''}".rstrip(": "))
+        if best.get("reason"):
+            say(f"  because {best['reason']}")
+        say("  model-file change:\n" + "\n".join("    + " + l for l in
+                                                 str(best.get("model_change", "")).rstrip().splitlines()))
+        text = apply_model_change(text, best["model_change"], best.get("insert_index"))
+        label = f"+{best.get('effect')}"
+    return steps
+
+
+def steps_table(steps: List[Step], floor: Optional[dict] = None) -> str:
+    """Before/after table: the held-out error after every change (and against the noise floor)."""
+    fp = _mean(floor, "position_mm") if floor else None
+    fo = _mean(floor, "orientation_deg") if floor else None
+    head = f"{'step':>4}  {'change':<22} {'pos mean mm':>11} {'change':>8} {'ori mean deg':>12} {'change':>8}"
+    if fp:
+        head += f" {'x floor':>8}"
+    lines = [head]
+    first = steps[0].held_out
+    lines.append(f"{'':>4}  {'uncorrected':<22} {_mean(first['before'], 'position_mm'):>11.3f} {'':>8} "
+                 f"{_mean(first['before'], 'orientation_deg'):>12.4f} {'':>8}"
+                 + (f" {_mean(first['before'], 'position_mm') / fp:>8.1f}" if fp else ""))
+    prev = None
+    for s in steps:
+        p, o = s.position_mm, s.orientation_deg
+        dp = f"{100 * (p - prev[0]) / prev[0]:+.1f}%" if prev else ""
+        do = f"{100 * (o - prev[1]) / prev[1]:+.1f}%" if prev else ""
+        row = f"{s.index:>4}  {s.label[:22]:<22} {p:>11.3f} {dp:>8} {o:>12.4f} {do:>8}"
+        if fp:
+            row += f" {p / fp:>8.2f}"
+        lines.append(row)
+        prev = (p, o)
+    if fp:
+        lines.append(f"{'':>4}  {'noise floor (truth)':<22} {fp:>11.3f} {'':>8} {fo:>12.4f} {'':>8} {1.0:>8.2f}")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# The main job
+
+
+def simulate(work: Path, hidden: str, seed: Optional[int], scene: str = "paper") -> Path:
     capture = work / "capture"
-    cmd = [_tool("trackcal-simulate"), "--scene", "paper", "-o", str(capture)]
+    cmd = [_tool("trackcal-simulate"), "--scene", scene, "-o", str(capture)]
     if hidden:
         cmd += ["--hidden", hidden]
     if seed is not None:
@@ -82,8 +436,8 @@ def simulate(work: Path, hidden: str, seed: int | None) -> Path:
 
 
 def fit(work: Path, capture: Path, model_text: str, name: str) -> Path:
-    model = work / f"{name}.yaml"
-    model.write_text(model_text)
+    """One fit with trackcal-fit, its Table 1 printed (the main job without a candidate ranking)."""
+    model = _write_new(work / f"{name}.yaml", model_text)
     calib = work / f"{name}.json"
     out = _run([_tool("trackcal-fit"), "fit", "--data", str(capture), "--model", str(model), "-o",
                 str(calib)], log=work / f"{name}.log")
@@ -91,10 +445,10 @@ def fit(work: Path, capture: Path, model_text: str, name: str) -> Path:
     return calib
 
 
-def serve(work: Path, calib: Path | None, hidden: str, seed: int | None, port: int,
-          seconds: float | None) -> None:
+def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], port: int,
+          seconds: Optional[float], scene: str = "paper") -> None:
     device = work / "fastrak"
-    emulate_cmd = [_tool("trackcal-emulate"), "--scene", "paper", "--link", str(device), "--binary",
+    emulate_cmd = [_tool("trackcal-emulate"), "--scene", scene, "--link", str(device), "--binary",
                    "--continuous"]
     if hidden:
         emulate_cmd += ["--hidden", hidden]
@@ -107,8 +461,8 @@ def serve(work: Path, calib: Path | None, hidden: str, seed: int | None, port: i
     ]
     if calib is not None:
         lines.append(f"trackcal_Calibration Tracker0 {calib} raw=Tracker0_raw")
-    cfg.write_text("\n".join(lines) + "\n")
-    procs: list[subprocess.Popen] = []
+    _write_new(cfg, "\n".join(lines) + "\n")
+    procs: List[subprocess.Popen] = []
     try:
         print("$ " + " ".join(emulate_cmd), flush=True)
         procs.append(subprocess.Popen(emulate_cmd, stdout=subprocess.DEVNULL,
@@ -147,29 +501,51 @@ def serve(work: Path, calib: Path | None, hidden: str, seed: int | None, port: i
                 p.kill()
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="trackcal demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=Path("demo-runs"),
                         help="folder under which a fresh, timestamped work folder is made")
+    parser.add_argument("--scene", default="paper", help="scene preset or file (trackcal-simulate --scene)")
     parser.add_argument("--hidden", default=DEFAULT_HIDDEN,
                         help="effect the base model lacks, as trackcal-simulate --hidden ('' for none)")
     parser.add_argument("--seed", type=int, default=None, help="simulation seed (default: the scene's)")
+    parser.add_argument("--base", type=Path, default=None,
+                        help="base model file (default: the paper's degree-4 polynomial)")
+    parser.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS,
+                        help="at most this many model changes")
+    parser.add_argument("--folds", type=int, default=5, help="cross-validation folds of the diagnosis")
     parser.add_argument("--port", type=int, default=3883, help="VRPN port of the server")
-    parser.add_argument("--no-serve", action="store_true", help="stop after the fit (for scripts)")
+    parser.add_argument("--no-serve", action="store_true", help="stop after the report (for scripts)")
     parser.add_argument("--serve-seconds", type=float, default=None,
                         help="serve this long, then stop (default: until Ctrl-C)")
     args = parser.parse_args(argv)
+    if args.max_steps < 0:
+        parser.error("--max-steps must be >= 0")
 
+    base_text = PAPER_MODEL if args.base is None else args.base.read_text()
     work = _fresh_work_dir(args.work)
     print(f"trackcal demo: work folder {work}")
-    capture = simulate(work, args.hidden, args.seed)
-    calib = fit(work, capture, PAPER_MODEL, "paper_polynomial")
+    capture = simulate(work, args.hidden, args.seed, args.scene)
+    floor = noise_floor(capture)
+    if diagnosis_available():
+        print("\nThe loop: fit, diagnose, add the missing effect, refit.")
+        steps = follow_diagnosis(capture, base_text, work, max_steps=args.max_steps, folds=args.folds)
+        final = steps[-1]
+        print("\nHeld-out error after each change (" + str(final.held_out.get("set")) + " set):")
+        print(steps_table(steps, floor))
+        print(f"\nFinal model: {final.model_path}\nFinal calibration: {final.calibration_path}")
+        calib = final.calibration_path
+    else:
+        print("\ntrackcal demo: no candidate ranking installed (trackcal-fit diagnose); fitting the "
+              "base model only")
+        calib = fit(work, capture, base_text, "paper_polynomial")
     report = work / "report"
-    print(_run([_tool("trackcal"), "report", str(capture), "-c", str(calib), "-o", str(report)],
-               log=work / "report.log"), end="")
+    print(_run([_tool("trackcal"), "report", str(capture), "-c", str(calib), "-o", str(report),
+                "--workdir", str(work)], log=work / "report.log"), end="")
     print(f"Report: {report / 'report.html'}")
+    print(f"History: trackcal history {work}")
     if not args.no_serve:
-        serve(work, calib, args.hidden, args.seed, args.port, args.serve_seconds)
+        serve(work, calib, args.hidden, args.seed, args.port, args.serve_seconds, args.scene)
     return 0
 
 

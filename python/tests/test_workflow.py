@@ -1,0 +1,362 @@
+"""The workflow a user follows (issue #6), on simulated data with a hidden effect.
+
+Start from the paper's degree-4 polynomial, diagnose, add the top significant candidate, refit,
+and repeat until the diagnosis finds nothing significant (``trackcal.demo.follow_diagnosis``, the
+main job's loop). For every hidden effect of the simulator and three seeds, following it must
+
+1. end by itself: the last diagnosis finds nothing significant (not the step cap);
+2. add the term of the hidden effect, with every physical parameter within 3 standard deviations
+   (the final fit's own standard deviations) of truth.json;
+3. add no spurious physical term (rule below);
+4. end within 1.5 times the noise floor on held-out data (position and orientation means);
+5. record every fit in the work folder's history.
+
+**Spurious** = a physical term of the final model that matches no true source of truth.json. The
+true sources are the hidden effect *and the room's own* (the paper room's floor and door planes,
+CRT monitors and workbench frame): a degree-4 polynomial leaves ~30-40x the noise floor in the
+paper room (measured: 2.77 mm on the paper preset, 2.86 mm on this file's capture; a degree 6, 8 or
+10 polynomial overfits and extrapolates worse: 7.1, 29, 68 mm; a 150 mm LUT after the polynomial
+still leaves 2.25 mm), so the loop can only reach the floor by discovering the room, and a term
+for a real plane or object is a true finding. Matching (each true source matches at most one term):
+
+- ``sensor_offset``, ``receiver_gain``, ``near_field``: the truth has that effect (offset not the
+  identity, G not the identity, octupole not zero);
+- ``dipole``: a true object whose location is within 3 sigma on every axis or within
+  ``ROOM_MATCH_M`` of the fitted location;
+- ``plane``: a true plane whose normal is within ``ROOM_MATCH_DEG`` (sign-free) and whose distance
+  from the transmitter along it is within 3 sigma or ``ROOM_MATCH_M``.
+
+The geometric tolerances are for the room's sources only, which share the volume with the
+polynomial and other terms; the hidden effect's own term must pass the strict 3-sigma test of 2.
+
+**Noise floor** = the error the true model leaves on the same data: truth.json's
+``statistics.valid.noise_floor`` for static captures; for the clock offset (stream-only data) the
+true physical model (a calibration file built from truth.json) applied to the streams paired at
+the true clock offset. Flipped stations (hemisphere_flips) are left out of the final error: no
+correction of a reported pose can undo the solver's hemisphere ambiguity (the robust loss keeps
+them from biasing the fit), and the floor counts them as if they were known.
+
+Capture: ``tests/data/workflow/paper_small.yaml`` (the paper room with 252 calibration and 60
+validation stations instead of 480 + 120, so 18 loops fit the CI time).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trackcal import demo
+
+ROOT = Path(__file__).resolve().parents[2]
+SCENE = ROOT / "tests" / "data" / "workflow" / "paper_small.yaml"
+
+# Room sources: a term within this distance of a true object's location (or of a true plane's
+# distance along its normal) represents it. 0.15 m is a quarter of the distance from the nearest
+# room source to the volume; two true objects of the room are > 0.9 m apart, so it cannot pick
+# the wrong one.
+ROOM_MATCH_M = 0.15
+ROOM_MATCH_DEG = 10.0  # planes: normal direction; the room's two planes are 90 deg apart
+SIGMAS = 3.0           # the issue's "within three standard deviations"
+FLOOR_FACTOR = 1.5     # the issue's "within 1.5 times the noise floor"
+
+HIDDEN_EFFECTS = ["sensor_offset", "receiver_gains", "ferromagnetic_object",
+                  "finite_transmitter_coils", "clock_offset", "hemisphere_flips"]
+SEEDS = [1, 2, 3]
+
+pytestmark = [
+    pytest.mark.skipif(shutil.which("trackcal-simulate") is None or shutil.which("trackcal-fit") is None,
+                       reason="command-line tools not installed (run scripts/build.sh)"),
+    pytest.mark.skipif(not demo.diagnosis_available(),
+                       reason="no candidate ranking in this build (trackcal-fit diagnose)"),
+]
+
+
+# ----------------------------------------------------------------------------------------------
+# Data
+
+
+def _simulate(out: Path, hidden: str, seed: int) -> Path:
+    subprocess.run(["trackcal-simulate", "--scene", str(SCENE), "--hidden", hidden, "--seed", str(seed),
+                    "-o", str(out)], check=True, capture_output=True, text=True)
+    return out
+
+
+def _stream_only(capture: Path, out: Path) -> Path:
+    """A folder with only the two streams: trackcal-fit pairs them with the model's time offset."""
+    out.mkdir()
+    for name in ("tracker_stream.csv", "reference_stream.csv"):
+        shutil.copy(capture / name, out / name)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Parameters of the final fit
+
+
+def _blocks(fit_doc: dict) -> dict:
+    """{term name: {block name: (values, stddevs)}} from trackcal-fit --json's fit.parameters
+    (values as [{name, value, stddev}] or as contract B's parallel lists)."""
+    out: dict = {}
+    for b in fit_doc["fit"]["parameters"]:
+        if isinstance(b.get("values"), list) and b["values"] and isinstance(b["values"][0], dict):
+            vals = [v["value"] for v in b["values"]]
+            sds = [v.get("stddev") for v in b["values"]]
+        else:
+            vals, sds = list(b["values"]), list(b.get("stddev") or [None] * len(b["values"]))
+        sds = [math.nan if s is None else float(s) for s in sds]
+        out.setdefault(b["term"], {})[b["block"]] = (np.asarray(vals, float), np.asarray(sds, float))
+    return out
+
+
+_BLOCK_KIND = {"location_in_transmitter": "dipole", "polarisability_m3": "dipole", "distance_m": "plane",
+               "normal_in_transmitter": "plane", "attenuation": "plane", "gain_matrix": "receiver_gain",
+               "octupole_m2": "near_field", "translation": "sensor_offset", "rotation": "sensor_offset"}
+
+
+def _physical_terms(fit_doc: dict) -> list:
+    """[(kind, term name, blocks)] of the physical terms of a fit."""
+    terms = []
+    for name, blocks in _blocks(fit_doc).items():
+        kinds = {_BLOCK_KIND[b] for b in blocks if b in _BLOCK_KIND}
+        if kinds:
+            assert len(kinds) == 1, f"term {name} mixes blocks of {kinds}"
+            terms.append((kinds.pop(), name, blocks))
+    return terms
+
+
+def _rotation_vector_xyzw(q) -> np.ndarray:
+    q = np.asarray(q, float)
+    q = q / np.linalg.norm(q)
+    if q[3] < 0:
+        q = -q
+    s = np.linalg.norm(q[:3])
+    if s < 1e-15:
+        return 2 * q[:3]
+    return 2 * math.atan2(s, q[3]) * q[:3] / s
+
+
+def _within(values, sds, truth, what: str) -> list:
+    """Failures of |value - truth| <= SIGMAS sd per coordinate."""
+    values, sds, truth = (np.asarray(x, float).ravel() for x in (values, sds, truth))
+    fails = []
+    for i, (v, s, t) in enumerate(zip(values, sds, truth)):
+        if not (abs(v - t) <= SIGMAS * s):
+            fails.append(f"{what}[{i}] = {v:.6g} +- {s:.3g}, truth {t:.6g} ({abs(v - t) / s:.1f} sigma)")
+    return fails
+
+
+def _normal_of(blocks) -> np.ndarray:
+    n = np.asarray(blocks["normal_in_transmitter"][0], float)
+    return n / np.linalg.norm(n)
+
+
+# ----------------------------------------------------------------------------------------------
+# Truth
+
+
+def _truth(capture: Path) -> dict:
+    return json.loads((capture / "truth.json").read_text())
+
+
+def _true_sources(truth: dict) -> list:
+    """[(kind, name, parameters)] of every true source: the room's and the hidden ones."""
+    eff = truth["effective"]
+    fm = eff["field_model"]
+    out = [("dipole", o["name"], o) for o in fm["objects"]]
+    out += [("plane", p["name"], p) for p in fm["planes"]]
+    if np.any(np.abs(fm["transmitter_octupole_m2"]) > 0):
+        out.append(("near_field", "octupole", fm["transmitter_octupole_m2"]))
+    if not np.allclose(eff["receiver_gain_matrix"], np.eye(3)):
+        out.append(("receiver_gain", "G", eff["receiver_gain_matrix"]))
+    rfb = eff["receiver_from_body"]
+    if np.any(np.abs(rfb["translation"]) > 0) or abs(abs(rfb["rotation_xyzw"][3]) - 1) > 0:
+        out.append(("sensor_offset", "receiver_from_body", rfb))
+    return out
+
+
+def _matches(kind: str, blocks: dict, source) -> bool:
+    skind, _, p = source
+    if skind != kind:
+        return False
+    if kind == "dipole":
+        loc, sd = blocks["location_in_transmitter"]
+        true_loc = np.asarray(p["location_in_transmitter"], float)
+        return bool(np.all(np.abs(loc - true_loc) <= SIGMAS * sd)
+                    or np.linalg.norm(loc - true_loc) <= ROOM_MATCH_M)
+    if kind == "plane":
+        n = _normal_of(blocks)
+        tn = np.asarray(p["normal_in_transmitter"], float)
+        tn /= np.linalg.norm(tn)
+        cos = float(np.clip(abs(n @ tn), 0, 1))
+        if math.degrees(math.acos(cos)) > ROOM_MATCH_DEG:
+            return False
+        true_d = abs(float(np.asarray(p["point_in_transmitter"]) @ tn))
+        d, sd = blocks["distance_m"]
+        return bool(abs(abs(d[0]) - true_d) <= max(SIGMAS * sd[0], ROOM_MATCH_M))
+    return True  # sensor_offset, receiver_gain, near_field: the truth has the effect
+
+
+def _spurious_terms(fit_doc: dict, truth: dict) -> list:
+    free = _true_sources(truth)
+    spurious = []
+    for kind, name, blocks in _physical_terms(fit_doc):
+        hit = next((s for s in free if _matches(kind, blocks, s)), None)
+        if hit is None:
+            spurious.append(f"{name} ({kind}): {_describe(blocks)}")
+        else:
+            free.remove(hit)
+    return spurious
+
+
+def _describe(blocks: dict) -> str:
+    return ", ".join(f"{b}={np.array2string(v, precision=4)}+-{np.array2string(s, precision=2)}"
+                     for b, (v, s) in blocks.items())
+
+
+def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
+    """Why the hidden effect's term is missing or off (empty: present, within 3 sigma)."""
+    eff = truth["effective"]
+    terms = _physical_terms(final.fit)
+    if hidden == "hemisphere_flips":
+        text = final.model_path.read_text()
+        return [] if any(line.startswith("loss:") for line in text.splitlines()) else \
+            ["no robust loss in the final model"]
+    if hidden == "clock_offset":
+        blocks = _blocks(final.fit)
+        to = next((b for n, b in blocks.items() if "time_offset" in n or "time_offset" in b), None)
+        if to is None:
+            return ["no estimated time offset in the final fit"]
+        v, s = next(iter(to.values()))
+        return _within(v[:1], s[:1], [eff["reference_minus_tracker_s"]], "time_offset")
+    if hidden == "sensor_offset":
+        cands = [b for k, _, b in terms if k == "sensor_offset"]
+        if not cands:
+            return ["no sensor_offset term"]
+        b, rfb = cands[0], eff["receiver_from_body"]
+        rot_v, rot_s = b["rotation"]
+        rot = _rotation_vector_xyzw(rot_v) if rot_v.size == 4 else rot_v
+        return (_within(b["translation"][0], b["translation"][1], rfb["translation"], "translation")
+                + _within(rot, rot_s, _rotation_vector_xyzw(rfb["rotation_xyzw"]), "rotation vector"))
+    if hidden == "receiver_gains":
+        cands = [b for k, _, b in terms if k == "receiver_gain"]
+        if not cands:
+            return ["no receiver_gain term"]
+        v, s = cands[0]["gain_matrix"]
+        return _within(v, s, np.asarray(eff["receiver_gain_matrix"]).ravel(), "gain_matrix")
+    if hidden == "finite_transmitter_coils":
+        cands = [b for k, _, b in terms if k == "near_field"]
+        if not cands:
+            return ["no near_field term"]
+        v, s = cands[0]["octupole_m2"]
+        return _within(v, s, eff["field_model"]["transmitter_octupole_m2"], "octupole_m2")
+    if hidden == "ferromagnetic_object":
+        obj = next(o for o in eff["field_model"]["objects"]
+                   if o["name"] == truth["scene"]["hidden"]["ferromagnetic_object"]["name"])
+        best = None
+        for k, _, b in terms:
+            if k != "dipole":
+                continue
+            f = (_within(*b["location_in_transmitter"], obj["location_in_transmitter"], "location")
+                 + _within(*b["polarisability_m3"], [obj["polarisability_m3"]], "polarisability"))
+            if best is None or len(f) < len(best):
+                best = f
+        return ["no dipole term"] if best is None else best
+    raise AssertionError(f"unknown hidden effect {hidden}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Held-out error and the floor
+
+
+def _true_calibration(truth: dict) -> dict:
+    """The true model as a calibration file (core/physical_correction.h entry)."""
+    eff = truth["effective"]
+    fm = eff["field_model"]
+    return {
+        "format": "trackcal-calibration", "version": 1, "description": "truth of a simulated capture",
+        "units": {"length": "m"},
+        "frames": {"pose": "transmitter_from_receiver", "errors": "transmitter"},
+        "calibrated_volume": {"min": [-5, -5, -5], "max": [5, 5, 5], "extrapolation": "clamp",
+                              "fade_distance": 0.0},
+        "corrections": [{
+            "type": "physical", "field_constant": fm["field_constant"],
+            "transmitter_octupole_m2": fm["transmitter_octupole_m2"],
+            "planes": fm["planes"], "objects": fm["objects"],
+            "receiver_gain_matrix": eff["receiver_gain_matrix"],
+            "receiver_from_body": eff["receiver_from_body"]}],
+        "fit_statistics": {}, "provenance": {"tool": "test_workflow"},
+    }
+
+
+def _errors(capture_poses, calibration_path: Path, keep=None):
+    import trackcal
+    from trackcal import validation
+    cal = trackcal.Calibration.load(str(calibration_path))
+    cap = capture_poses if keep is None else capture_poses.subset(keep)
+    p, q, _ = cal.correct(cap.reported_positions, cap.reported_quaternions_xyzw)
+    r = validation.residuals(p, q, cap.reference_positions, cap.reference_quaternions_xyzw)
+    return float(np.mean(r.position_mm)), float(np.mean(r.orientation_deg))
+
+
+def _floor_and_final(hidden: str, capture: Path, data: Path, final: "demo.Step", tmp: Path):
+    """((floor pos mm, floor ori deg), (final pos mm, final ori deg)) on held-out data."""
+    from trackcal import captures
+    truth = _truth(capture)
+    if hidden == "clock_offset":
+        paired = tmp / "true_pairs.csv"
+        subprocess.run(["trackcal-fit", "pair", "--tracker", str(capture / "tracker_stream.csv"),
+                        "--reference", str(capture / "reference_stream.csv"), "--time-offset",
+                        repr(truth["effective"]["reference_minus_tracker_s"]), "-o", str(paired)],
+                       check=True, capture_output=True, text=True)
+        true_cal = tmp / "truth_calibration.json"
+        true_cal.write_text(json.dumps(_true_calibration(truth)))
+        floor = _errors(captures.load_poses(str(paired)), true_cal)
+        held = final.held_out["after"]  # cross-validation of the stream pairs
+        return floor, (held["position_mm"]["mean"], held["orientation_deg"]["mean"])
+    nf = truth["statistics"]["valid"]["noise_floor"]
+    poses = captures.load_poses(str(capture))
+    flipped = set(truth["effective"].get("hemisphere_flipped_stations", []))
+    keep = (poses.set == "valid") & ~np.isin(poses.station, sorted(flipped))
+    return (nf["position_mm"]["mean"], nf["orientation_deg"]["mean"]), \
+        _errors(poses, final.calibration_path, keep)
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("hidden", HIDDEN_EFFECTS)
+def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path):
+    capture = _simulate(tmp_path / "capture", hidden, seed)
+    data = _stream_only(capture, tmp_path / "streams") if hidden == "clock_offset" else capture
+    work = tmp_path / "work"
+    log = []
+    steps = demo.follow_diagnosis(data, demo.PAPER_MODEL, work, say=log.append)
+    final = steps[-1]
+    story = "\n".join(log) + "\n" + demo.steps_table(steps)
+    truth = _truth(capture)
+
+    # 1. The loop ended because nothing significant was left, not at the cap.
+    assert final.diagnosis is not None and demo.top_significant(final.diagnosis) is None, story
+    # 5. One history entry per fit, in order.
+    from trackcal import history
+    entries = history.load_history(work)
+    assert [e["label"] for e in entries] == [s.label for s in steps], story
+    # 2. The hidden effect's term, within 3 sigma of the truth.
+    failures = _hidden_term_failures(hidden, final, truth)
+    assert not failures, f"{hidden} seed {seed}: " + "; ".join(failures) + "\n" + story
+    # 3. No spurious physical term.
+    spurious = _spurious_terms(final.fit, truth)
+    assert not spurious, f"{hidden} seed {seed}: spurious " + "; ".join(spurious) + "\n" + story
+    # 4. Within 1.5x the noise floor on held-out data.
+    (fp, fo), (p, o) = _floor_and_final(hidden, capture, data, final, tmp_path)
+    assert p <= FLOOR_FACTOR * fp and o <= FLOOR_FACTOR * fo, (
+        f"{hidden} seed {seed}: final {p:.4f} mm / {o:.4f} deg, floor {fp:.4f} mm / {fo:.4f} deg "
+        f"({p / fp:.2f}x / {o / fo:.2f}x)\n" + story)
