@@ -120,3 +120,49 @@ def test_demo_serves_with_the_emulator_until_told_to_stop(tmp_path):
     assert "vrpn_Tracker_Fastrak Tracker0" in cfg
     assert "trackcal_Calibration Tracker0" in cfg and "raw=Tracker0_raw" in cfg
     assert "opened at 115200 baud" in (run / "server.log").read_text()
+
+
+@tools
+def test_the_loop_adds_the_proposed_change_refits_and_records_every_fit(tmp_path, monkeypatch):
+    """The loop's mechanics with a stand-in ranking that proposes one change (a LUT after the
+    polynomial, a term every build accepts) and then nothing: a new model file per step, one
+    history entry per fit, the error after each change."""
+    import subprocess
+    capture = tmp_path / "capture"
+    subprocess.run(["trackcal-simulate", "--scene", str(SMALL_SCENE), "--seed", "3", "-o", str(capture)],
+                   check=True, capture_output=True)
+    calls = []
+
+    def ranking(data, model, log, folds=5):
+        calls.append(Path(model).read_text())
+        significant = len(calls) == 1
+        doc = {"candidates": [{"effect": "lut", "model_change": "- type: lut\n  cell_size_mm: 300\n",
+                               "insert_index": None, "significant": significant,
+                               "statement": "a coarse lookup table", "reason": "stand-in"}],
+               "verdict": {"effect": "lut" if significant else None,
+                           "text": None if significant else "nothing significant (stand-in)"}}
+        demo._write_new(log, json.dumps(doc))
+        return doc
+
+    monkeypatch.setattr(demo, "diagnosis_available", lambda: True)
+    monkeypatch.setattr(demo, "run_diagnose", ranking)
+    said = []
+    steps = demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append)
+    assert [s.label for s in steps] == ["base", "+lut"]
+    assert steps[0].added["effect"] == "lut" and steps[1].added is None
+    assert "type: lut" not in calls[0] and "  - type: lut\n    cell_size_mm: 300" in calls[1]
+    assert calls[1] == steps[1].model_path.read_text()
+    assert steps[0].model_path.read_text() == demo.PAPER_MODEL, "earlier model files stay as they were"
+    for s in steps:
+        assert s.calibration_path.is_file() and s.position_mm > 0
+    from trackcal import history
+    entries = history.load_history(tmp_path / "work")
+    assert [e["label"] for e in entries] == ["base", "+lut"]
+    assert entries[1]["model"]["path"] == str(steps[1].model_path)
+    assert entries[1]["data"][0]["sha256"] == history._sha(capture / "poses.csv")
+    assert "nothing significant (stand-in)" in "\n".join(said)
+    table = demo.steps_table(steps, demo.noise_floor(capture))
+    assert "+lut" in table and "noise floor (truth)" in table and "uncorrected" in table
+    # Run again on the same work folder: the model files of the first run are never overwritten.
+    with pytest.raises(SystemExit, match="not overwriting"):
+        demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append)
