@@ -334,5 +334,112 @@ TEST(PhysicalTerms, CalibrationFileRoundTripWithPolynomial) {
   }
 }
 
+// Acceptance (c): a dipole given without a start is found by the search (the room's floor given as
+// a fixed plane), then refined by the joint fit to the truth.
+TEST(PhysicalTerms, DipoleWithoutStartIsFoundBySearch) {
+  PhysicalTruth truth;
+  truth.field.planes.push_back({"floor", Eigen::Vector3d(0, 0, 0.8), Eigen::Vector3d(0, 0, 1), 0.27});
+  truth.field.objects.push_back({"toolbox", Eigen::Vector3d(0.6, 0.95, -0.5), 0.002});
+  const auto stations = NoiseFreeStations(truth, 480);
+  ModelSpec spec = ParseModelYaml(R"(noise: {position_mm: 0.1, orientation_deg: 0.01}
+terms:
+  - type: plane
+    name: floor
+    point_in_transmitter: [0, 0, 0.8]
+    normal_in_transmitter: [0, 0, 1]
+    attenuation: 0.27
+    parameters:
+      distance_m: {fixed: true}
+      normal_in_transmitter: {fixed: true}
+      attenuation: {fixed: true}
+  - type: dipole
+)",
+                                  "m.yaml");
+  // The search alone (before the joint fit) lands near the object: within one grid spacing.
+  {
+    ModelSpec search_only = ParseModelYaml(R"(terms:
+  - type: plane
+    point_in_transmitter: [0, 0, 0.8]
+    normal_in_transmitter: [0, 0, 1]
+    attenuation: 0.27
+    parameters: {distance_m: {fixed: true}, normal_in_transmitter: {fixed: true}, attenuation: {fixed: true}}
+  - type: dipole
+)",
+                                           "m.yaml");
+    ModelTerm& term = *search_only.terms[0];
+    term.Prepare(stations);
+    ApplyBlockSettings(search_only.block_settings[0], &term);
+    term.InitializeLinear(stations, Eigen::Vector2d(1e-4, 1.745e-4));
+    const auto& location = term.blocks()[3].values;
+    ASSERT_EQ(term.blocks()[3].name, "location_in_transmitter");
+    EXPECT_LT((Eigen::Vector3d(location[0], location[1], location[2]) -
+               truth.field.objects[0].location_in_transmitter)
+                  .norm(),
+              0.15);
+  }
+  const FitResult result = FitModel(stations, &spec);
+  ASSERT_TRUE(result.converged) << result.solver_message;
+  const auto& location = Find(result, "dipole", "location_in_transmitter");
+  for (int k = 0; k < 3; ++k) {
+    // Noise-free: exact to the solver's tolerance (see the recovery test above).
+    EXPECT_NEAR(location.values[static_cast<size_t>(k)],
+                truth.field.objects[0].location_in_transmitter(k), 1e-6);
+  }
+  EXPECT_NEAR(Find(result, "dipole", "polarisability_m3").values[0], 0.002, 1e-9);
+  // The fixed floor is reported with its values and no std.
+  const auto& floor = Find(result, "floor", "attenuation");
+  EXPECT_TRUE(floor.fixed);
+  EXPECT_TRUE(std::isnan(floor.stddev[0]));
+}
+
+// A plane given without point and normal is found by the search over normals and distances.
+TEST(PhysicalTerms, PlaneWithoutStartIsFoundBySearch) {
+  PhysicalTruth truth;
+  truth.field.planes.push_back(
+      {"wall", Eigen::Vector3d(0, -1.6, 0), Eigen::Vector3d(0.1, 1, 0).normalized(), 0.3});
+  const auto stations = NoiseFreeStations(truth, 300);
+  ModelSpec spec = ParseModelYaml(R"(noise: {position_mm: 0.1, orientation_deg: 0.01}
+terms:
+  - type: plane
+)",
+                                  "m.yaml");
+  const FitResult result = FitModel(stations, &spec);
+  ASSERT_TRUE(result.converged) << result.solver_message;
+  const auto& n = Find(result, "plane", "normal_in_transmitter").values;
+  const double d = Find(result, "plane", "distance_m").values[0];
+  const Eigen::Vector3d normal(n[0], n[1], n[2]);
+  const Eigen::Vector3d n_true = truth.field.planes[0].normal_in_transmitter;
+  // (d, n) and (-d, -n) are the same plane.
+  const double sign = normal.dot(n_true) > 0 ? 1.0 : -1.0;
+  EXPECT_LT((sign * normal - n_true).norm(), 1e-6);
+  EXPECT_NEAR(sign * d, truth.field.planes[0].point_in_transmitter.dot(n_true), 1e-6);
+  EXPECT_NEAR(Find(result, "plane", "attenuation").values[0], 0.3, 1e-6);
+}
+
+// A dipole far outside the data: its location and strength trade, and the fit says so.
+TEST(PhysicalTerms, FarDipoleIsFlaggedAsPoorlyIdentified) {
+  PhysicalTruth truth;
+  truth.field.objects.push_back({"far", Eigen::Vector3d(6.0, 4.0, -0.5), 0.2});
+  auto stations = NoiseFreeStations(truth, 200);
+  // 0.1 mm / 0.01 deg noise, so the fit has an uncertainty to speak of.
+  std::normal_distribution<double> noise(0.0, 1e-4);
+  for (auto& s : stations) {
+    for (int k = 0; k < 3; ++k) s.reference.translation(k) += noise(trackcal::testing::TestRng());
+  }
+  ModelSpec spec = ParseModelYaml(R"(noise: {position_mm: 0.1, orientation_deg: 0.01}
+terms:
+  - type: dipole
+    location_in_transmitter: [6.0, 4.0, -0.5]
+    polarisability_m3: 0.2
+)",
+                                  "m.yaml");
+  const FitResult result = FitModel(stations, &spec);
+  bool location_flagged = false;
+  for (const auto& f : result.identifiability_flags) {
+    location_flagged = location_flagged || f.coordinate.find("dipole.location_in_transmitter") == 0;
+  }
+  EXPECT_TRUE(location_flagged) << result.ToJson().dump();
+}
+
 }  // namespace
 }  // namespace trackcal::fit
