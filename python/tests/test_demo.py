@@ -133,7 +133,7 @@ def test_the_loop_adds_the_proposed_change_refits_and_records_every_fit(tmp_path
                    check=True, capture_output=True)
     calls = []
 
-    def ranking(data, model, log, folds=5):
+    def ranking(data, model, log, folds=5, cross_validate_top=0):
         calls.append(Path(model).read_text())
         significant = len(calls) == 1
         doc = {"candidates": [{"effect": "lut", "model_change": "- type: lut\n  cell_size_mm: 300\n",

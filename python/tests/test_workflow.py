@@ -28,10 +28,11 @@ finding. Matching (each true source matches at most one term):
 
 - ``sensor_offset``, ``receiver_gain``, ``near_field``: the truth has that effect (offset not the
   identity, G not the identity, octupole not zero);
-- ``dipole``: a true object whose location is within 3 sigma on every axis or within
-  ``ROOM_MATCH_M`` of the fitted location;
+- ``dipole``: a true object within ``ROOM_MATCH_M`` of the fitted location, or the only true
+  object within 3 sigma of it on every axis (a term whose uncertainty spans several sources
+  represents none of them);
 - ``plane``: a true plane whose normal is within ``ROOM_MATCH_DEG`` (sign-free) and whose distance
-  from the transmitter along it is within 3 sigma or ``ROOM_MATCH_M``.
+  from the transmitter along it is within ``ROOM_MATCH_M``.
 
 The geometric tolerances are for the room's sources only, which share the volume with the
 polynomial and other terms; the hidden effect's own term must pass the strict 3-sigma test of 2.
@@ -189,33 +190,53 @@ def _true_sources(truth: dict) -> list:
     return out
 
 
-def _matches(kind: str, blocks: dict, source) -> bool:
+def _close(kind: str, blocks: dict, source) -> bool:
+    """Within ROOM_MATCH_M (planes: and ROOM_MATCH_DEG) of a true source of the same kind."""
     skind, _, p = source
     if skind != kind:
         return False
     if kind == "dipole":
-        loc, sd = blocks["location_in_transmitter"]
-        true_loc = np.asarray(p["location_in_transmitter"], float)
-        return bool(np.all(np.abs(loc - true_loc) <= SIGMAS * sd)
-                    or np.linalg.norm(loc - true_loc) <= ROOM_MATCH_M)
+        loc = blocks["location_in_transmitter"][0]
+        return bool(np.linalg.norm(loc - np.asarray(p["location_in_transmitter"], float)) <= ROOM_MATCH_M)
     if kind == "plane":
-        n = _normal_of(blocks)
         tn = np.asarray(p["normal_in_transmitter"], float)
         tn /= np.linalg.norm(tn)
-        cos = float(np.clip(abs(n @ tn), 0, 1))
-        if math.degrees(math.acos(cos)) > ROOM_MATCH_DEG:
+        if math.degrees(math.acos(float(np.clip(abs(_normal_of(blocks) @ tn), 0, 1)))) > ROOM_MATCH_DEG:
             return False
-        true_d = abs(float(np.asarray(p["point_in_transmitter"]) @ tn))
-        d, sd = blocks["distance_m"]
-        return bool(abs(abs(d[0]) - true_d) <= max(SIGMAS * sd[0], ROOM_MATCH_M))
+        true_d = abs(float(np.asarray(p["point_in_transmitter"], float) @ tn))
+        return abs(abs(blocks["distance_m"][0][0]) - true_d) <= ROOM_MATCH_M
     return True  # sensor_offset, receiver_gain, near_field: the truth has the effect
 
 
+def _within_sigmas(kind: str, blocks: dict, source) -> bool:
+    """Dipoles: the true location within 3 sigma of the fitted one on every axis."""
+    skind, _, p = source
+    if skind != kind or kind != "dipole":
+        return False
+    loc, sd = blocks["location_in_transmitter"]
+    return bool(np.all(np.abs(loc - np.asarray(p["location_in_transmitter"], float)) <= SIGMAS * sd))
+
+
+def _match(kind: str, blocks: dict, sources: list, all_sources: list):
+    """The true source a term represents, or None. Close (ROOM_MATCH_M) counts; so does 3 sigma,
+    but only when exactly one true source lies within the 3-sigma box: a term whose uncertainty
+    spans several sources (a dipole at 1.8 m +- 1.3 m standing in for the floor's image) says
+    nothing about any of them."""
+    close = [s for s in sources if _close(kind, blocks, s)]
+    if close:
+        return close[0]
+    inside = [s for s in all_sources if _within_sigmas(kind, blocks, s)]
+    if len(inside) == 1 and inside[0] in sources:
+        return inside[0]
+    return None
+
+
 def _spurious_terms(fit_doc: dict, truth: dict) -> list:
-    free = _true_sources(truth)
+    all_sources = _true_sources(truth)
+    free = list(all_sources)
     spurious = []
     for kind, name, blocks in _physical_terms(fit_doc):
-        hit = next((s for s in free if _matches(kind, blocks, s)), None)
+        hit = _match(kind, blocks, free, all_sources)
         if hit is None:
             spurious.append(f"{name} ({kind}): {_describe(blocks)}")
         else:
@@ -237,12 +258,15 @@ def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
         return [] if any(line.startswith("loss:") for line in text.splitlines()) else \
             ["no robust loss in the final model"]
     if hidden == "clock_offset":
-        blocks = _blocks(final.fit)
-        to = next((b for n, b in blocks.items() if "time_offset" in n or "time_offset" in b), None)
-        if to is None:
+        # trackcal-fit fit --json: "time_offset_s" (the pairing's estimate) and, when the pairing
+        # reports one, its standard deviation "time_offset_stddev_s".
+        if final.fit.get("time_offset_s") is None:
             return ["no estimated time offset in the final fit"]
-        v, s = next(iter(to.values()))
-        return _within(v[:1], s[:1], [eff["reference_minus_tracker_s"]], "time_offset")
+        sd = final.fit.get("time_offset_stddev_s")
+        if sd is None:
+            return [f"time offset {final.fit['time_offset_s']:.6f} s (truth "
+                    f"{eff['reference_minus_tracker_s']} s) has no standard deviation to test it against"]
+        return _within([final.fit["time_offset_s"]], [sd], [eff["reference_minus_tracker_s"]], "time_offset")
     if hidden == "sensor_offset":
         cands = [b for k, _, b in terms if k == "sensor_offset"]
         if not cands:
