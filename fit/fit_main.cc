@@ -128,8 +128,16 @@ void PrintParameters(const FitResult& result, std::ostream& out) {
       out << "    " << std::left << std::setw(22)
           << (i < p.coordinate_names.size() ? p.coordinate_names[i] : std::to_string(i))
           << std::right << std::setw(14) << std::setprecision(6) << p.values[i];
-      if (i < p.stddev.size() && std::isfinite(p.stddev[i])) out << " +- " << p.stddev[i];
+      if (p.stddev_names.empty() && i < p.stddev.size() && std::isfinite(p.stddev[i])) {
+        out << " +- " << p.stddev[i];
+      }
       out << "\n";
+    }
+    // Manifold blocks (quaternion, unit normal): stds of the tangent coordinates.
+    for (size_t i = 0; i < p.stddev_names.size() && i < p.stddev.size(); ++i) {
+      if (!std::isfinite(p.stddev[i])) continue;
+      out << "    " << std::left << std::setw(22) << p.stddev_names[i] << std::right
+          << std::setw(14) << "std" << " " << p.stddev[i] << " " << p.stddev_unit << "\n";
     }
     if (shown < p.values.size()) out << "    ... (all values in --json and the calibration file)\n";
   }
