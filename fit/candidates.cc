@@ -298,6 +298,41 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
   return "";
 }
 
+YAML::Node FlowList(const std::vector<double>& v, int precision) {
+  YAML::Node list(YAML::NodeType::Sequence);
+  for (double x : v) list.push_back(FormatNumber(x, precision));
+  list.SetStyle(YAML::EmitterStyle::Flow);
+  return list;
+}
+
+// Writes the fitted values of a searched term (dipole, plane) into its mapping as start values, so
+// the model change reproduces this fit without the search. False if the blocks are not there.
+bool AddFittedStart(const std::string& type, const std::vector<ParameterReport>& p, YAML::Node* term) {
+  if (type == "dipole") {
+    const ParameterReport* l = FindBlock(p, "location_in_transmitter");
+    const ParameterReport* a = FindBlock(p, "polarisability_m3");
+    if (!l || !a || l->values.size() != 3 || a->values.size() != 1) return false;
+    (*term)["location_in_transmitter"] = FlowList(l->values, 4);  // 0.1 mm
+    (*term)["polarisability_m3"] = FormatSignificant(a->values[0], 4);
+    return true;
+  }
+  if (type == "plane") {
+    const ParameterReport* d = FindBlock(p, "distance_m");
+    const ParameterReport* n = FindBlock(p, "normal_in_transmitter");
+    const ParameterReport* a = FindBlock(p, "attenuation");
+    if (!d || !n || !a || d->values.size() != 1 || n->values.size() != 3 || a->values.size() != 1) {
+      return false;
+    }
+    const Eigen::Vector3d normal = Eigen::Vector3d(n->values[0], n->values[1], n->values[2]).normalized();
+    const Eigen::Vector3d point = d->values[0] * normal;
+    (*term)["point_in_transmitter"] = FlowList({point.x(), point.y(), point.z()}, 4);
+    (*term)["normal_in_transmitter"] = FlowList({normal.x(), normal.y(), normal.z()}, 5);
+    (*term)["attenuation"] = FormatSignificant(a->values[0], 4);
+    return true;
+  }
+  return false;
+}
+
 std::string Statement(const CatalogEffect& effect, const Candidate& c, double loss_scale) {
   if (effect.kind == CandidateKind::kRobustLoss) {
     std::string ids;
@@ -655,6 +690,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         }
       }
       if (c.kind != CandidateKind::kTimeOffset) c.statement = Statement(*p.effect, c, options.robust_loss.scale);
+      if (c.kind == CandidateKind::kTerm &&
+          AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &p.term)) {
+        c.model_change = TermListItem(p.term);
+      }
     } catch (const std::exception& ex) {
       c.error = ex.what();
     }
