@@ -364,6 +364,7 @@ struct PreparedCandidate {
   std::vector<FitStation> stations; // kTimeOffset: the re-paired stations (else empty: the base's)
   std::vector<int> base_index;      // per own station: the base station it is (-1: none)
   double time_offset_s = 0.0;
+  bool flexible = false;            // a flexible fallback, not an effect
 };
 
 }  // namespace
@@ -385,6 +386,11 @@ std::vector<CatalogEffect> DefaultCatalog() {
   };
 }
 
+std::vector<CatalogEffect> DefaultFlexibleFallback() {
+  return {{"polynomial_3", CandidateKind::kTerm, "{type: polynomial, degree: 3}", false, true,
+           "a smooth field (degree-3 polynomial) beyond the catalog"}};
+}
+
 void CandidateOptions::Check() const {
   if (folds < 2) throw std::invalid_argument("CandidateOptions.folds: must be at least 2");
   if (!(family_alpha > 0 && family_alpha < 1)) {
@@ -403,7 +409,9 @@ void CandidateOptions::Check() const {
     throw std::invalid_argument("CandidateOptions.robust_loss: needs a loss type and a scale > 0");
   }
   std::set<std::string> names;
-  for (const auto& e : catalog) {
+  std::vector<CatalogEffect> all = catalog;
+  all.insert(all.end(), flexible.begin(), flexible.end());
+  for (const auto& e : all) {
     if (e.effect.empty() || !names.insert(e.effect).second) {
       throw std::invalid_argument("CandidateOptions.catalog: empty or repeated effect name '" +
                                   e.effect + "'");
@@ -490,13 +498,18 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   std::set<std::string> present;
   for (const auto& t : base_spec.terms) present.insert(t->type());
   std::vector<PreparedCandidate> prepared;
-  for (const CatalogEffect& e : options.catalog) {
-    if (!options.effects.empty() &&
+  std::vector<std::pair<const CatalogEffect*, bool>> to_test;  // (effect, flexible)
+  for (const CatalogEffect& e : options.catalog) to_test.emplace_back(&e, false);
+  for (const CatalogEffect& e : options.flexible) to_test.emplace_back(&e, true);
+  for (const auto& [effect, flexible] : to_test) {
+    const CatalogEffect& e = *effect;
+    if (!flexible && !options.effects.empty() &&
         std::find(options.effects.begin(), options.effects.end(), e.effect) == options.effects.end()) {
       continue;
     }
     PreparedCandidate p;
     p.effect = &e;
+    p.flexible = flexible;
     p.candidate.effect = e.effect;
     p.candidate.kind = e.kind;
     YAML::Node changed = YAML::Load(model_text);  // a deep copy to modify
@@ -703,7 +716,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // Which candidates are cross-validated.
   std::vector<PreparedCandidate*> to_validate;
   for (auto& p : prepared) {
-    if (p.candidate.fitted) to_validate.push_back(&p);
+    if (p.candidate.fitted && !p.flexible) to_validate.push_back(&p);
   }
   if (options.cross_validate_top > 0 &&
       static_cast<int>(to_validate.size()) > options.cross_validate_top) {
@@ -713,10 +726,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                      });
     to_validate.resize(static_cast<size_t>(options.cross_validate_top));
   }
+  for (auto& p : prepared) {
+    if (p.candidate.fitted && p.flexible) to_validate.push_back(&p);
+  }
   // Bonferroni over every candidate tested (fitted), screened-out ones included: screening looked at
   // them too.
   int tested = 0;
-  for (const auto& p : prepared) tested += p.candidate.fitted ? 1 : 0;
+  for (const auto& p : prepared) tested += p.candidate.fitted && !p.flexible ? 1 : 0;
   d.p_threshold = options.family_alpha / std::max(1, tested);
 
   for (PreparedCandidate* p : to_validate) {
@@ -802,7 +818,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
 
   // Ranking.
   std::vector<Candidate> ranked;
-  for (auto& p : prepared) ranked.push_back(std::move(p.candidate));
+  for (auto& p : prepared) {
+    (p.flexible ? d.flexible : ranked).push_back(std::move(p.candidate));
+  }
   auto key = [](const Candidate& c) {
     return std::make_tuple(c.significant ? 0 : 1, c.cross_validated ? 0 : 1, c.fitted ? 0 : 1,
                            std::isfinite(c.cv_whitened_mean) ? c.cv_whitened_mean
@@ -850,7 +868,18 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     }
     v << ". ";
     const double chi2_dof = d.base.chi2_per_dof;
-    if (std::isfinite(chi2_dof) && chi2_dof < 2.0) {
+    const Candidate* flexible = nullptr;
+    for (const auto& f : d.flexible) {
+      if (f.significant && (!flexible || f.cv_whitened_mean < flexible->cv_whitened_mean)) flexible = &f;
+    }
+    if (flexible) {
+      v << "The structure that remains is real: a flexible " << flexible->effect
+        << " term lowers the held-out error by " << FormatNumber(flexible->drop_position_percent, 1)
+        << " % (position) and " << FormatNumber(flexible->drop_orientation_percent, 1)
+        << " % (orientation), p = " << FormatSignificant(flexible->p_value, 2)
+        << ", but it is not one of the catalog's effects: look at which covariate the residual follows "
+           "(trackcal diagnose), or keep the flexible term.";
+    } else if (std::isfinite(chi2_dof) && chi2_dof < 2.0) {
       v << "The model fits to within its noise model (chi2/dof " << FormatNumber(chi2_dof, 2)
         << "): nothing is missing that these data can show.";
     } else {
@@ -864,9 +893,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   return d;
 }
 
-nlohmann::json Diagnosis::ToJson() const {
-  nlohmann::json cands = nlohmann::json::array();
-  for (const auto& c : candidates) {
+namespace {
+nlohmann::json CandidateToJson(const Candidate& c) {
+  {
     nlohmann::json params = nlohmann::json::array();
     for (const auto& p : c.parameters) {
       nlohmann::json stddev = nlohmann::json::array();
@@ -879,7 +908,7 @@ nlohmann::json Diagnosis::ToJson() const {
                         {"stddev", stddev},
                         {"fixed", p.fixed}});
     }
-    cands.push_back({
+    return {
         {"effect", c.effect},
         {"kind", c.kind == CandidateKind::kTerm         ? "term"
                  : c.kind == CandidateKind::kRobustLoss ? "loss"
@@ -906,8 +935,16 @@ nlohmann::json Diagnosis::ToJson() const {
         {"outlier_stations", c.outlier_stations},
         {"statement", c.statement},
         {"seconds", c.seconds},
-    });
+    };
   }
+}
+}  // namespace
+
+nlohmann::json Diagnosis::ToJson() const {
+  nlohmann::json cands = nlohmann::json::array();
+  for (const auto& c : candidates) cands.push_back(CandidateToJson(c));
+  nlohmann::json flex = nlohmann::json::array();
+  for (const auto& c : flexible) flex.push_back(CandidateToJson(c));
   nlohmann::json verdict = {{"effect", verdict_effect ? nlohmann::json(*verdict_effect) : nlohmann::json()},
                             {"text", verdict_text}};
   return {{"command", "diagnose"},
@@ -927,6 +964,7 @@ nlohmann::json Diagnosis::ToJson() const {
             {"converged", base.converged},
             {"table1", Table1ToJson(base.table1)}}},
           {"candidates", cands},
+          {"flexible_fallback", flex},
           {"skipped", skipped},
           {"p_threshold", p_threshold},
           {"verdict", verdict},
@@ -963,6 +1001,19 @@ std::string FormatDiagnosis(const Diagnosis& d) {
     if (!c.fitted) out << "      " << c.reason << "\n";
   }
   for (const auto& s : d.skipped) out << "  (not tested: " << s << ")\n";
+  for (const auto& f : d.flexible) {
+    out << "Flexible fallback (not an effect): " << f.effect;
+    if (f.cross_validated) {
+      out << ": held-out " << FormatNumber(f.cv_position_mm_mean, 3) << " mm ("
+          << FormatNumber(f.drop_position_percent, 1) << " %), " << FormatNumber(f.cv_orientation_deg_mean, 3)
+          << " deg (" << FormatNumber(f.drop_orientation_percent, 1) << " %), p = "
+          << FormatSignificant(f.p_value, 2) << ", delta BIC " << FormatNumber(f.delta_bic, 1)
+          << (f.significant ? ": the remaining structure is real" : ": nothing more to gain");
+    } else {
+      out << ": " << f.reason;
+    }
+    out << "\n";
+  }
   out << "\nVerdict: " << d.verdict_text << "\n";
   if (d.verdict_effect) {
     const Candidate& top = d.candidates.front();

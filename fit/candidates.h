@@ -63,12 +63,19 @@ struct CatalogEffect {
 // Term types that are not registered in TermRegistry::Global() are skipped (Diagnosis::skipped).
 std::vector<CatalogEffect> DefaultCatalog();
 
+// The flexible fallback: a degree-3 polynomial appended after the model's terms. Not an effect and
+// never ranked with them; scored the same way, it tells whether the structure that remains is real
+// when no catalog effect explains it.
+std::vector<CatalogEffect> DefaultFlexibleFallback();
+
 struct CandidateOptions {
   int folds = 5;  // k of the k-fold cross-validation (>= 2)
   // Effects to test (names of the catalog); empty: every applicable one.
   std::vector<std::string> effects;
   // The catalog (default: DefaultCatalog()).
   std::vector<CatalogEffect> catalog = DefaultCatalog();
+  // Flexible terms scored separately (Diagnosis::flexible); empty: none.
+  std::vector<CatalogEffect> flexible = DefaultFlexibleFallback();
   // Family-wise level of the held-out test: each candidate's p must be below family_alpha / m for m
   // candidates tested (Bonferroni), so the chance of any false claim is at most family_alpha.
   double family_alpha = 0.01;
@@ -143,6 +150,7 @@ struct Diagnosis {
   int num_stations = 0;
   BaseScores base;
   std::vector<Candidate> candidates;  // ranked: significant first, then by held-out error
+  std::vector<Candidate> flexible;    // flexible fallback (not effects), same scores
   std::vector<std::string> skipped;   // "near_field: model has it", "plane: term type not available"
   double p_threshold = 0.0;           // family_alpha / number of candidates tested
   std::optional<std::string> verdict_effect;  // top significant candidate

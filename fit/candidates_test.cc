@@ -113,6 +113,9 @@ TEST(DiagnoseCandidates, NothingIsClaimedWhenTheModelFits) {
     }
     EXPECT_FALSE(d.verdict_effect.has_value());
     EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("No catalog effect explains"));
+    // Nor is a flexible term: there is no structure left.
+    ASSERT_EQ(d.flexible.size(), 1u);
+    EXPECT_FALSE(d.flexible[0].significant) << seed << ": " << d.flexible[0].reason;
     // chi2/dof of a right model with its true noise is ~1 (6 x 300 residuals: +-0.1 at 3 sigma).
     EXPECT_NEAR(d.base.chi2_per_dof, 1.0, 0.15) << seed;
   }
@@ -230,6 +233,7 @@ TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
   for (const char* key : {"term", "block", "unit", "coordinate_names", "values", "stddev", "fixed"}) {
     EXPECT_TRUE(p.contains(key)) << key;
   }
+  EXPECT_TRUE(j["flexible_fallback"].is_array());
   EXPECT_TRUE(j["verdict"].contains("effect"));
   EXPECT_TRUE(j["verdict"].contains("text"));
 }
