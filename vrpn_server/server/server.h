@@ -21,6 +21,7 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <span>
 #include <string>
 #include <thread>
 #include <vector>
@@ -73,6 +74,14 @@ struct ServerStats {
   std::uint64_t udp_send_failures = 0;
 };
 
+// One Pos_Quat to publish: tracker (catalog index), sensor, pose and header timestamp.
+struct PoseUpdate {
+  int tracker = 0;
+  int sensor = 0;
+  Rigid3d transmitter_from_receiver;
+  Timestamp time;
+};
+
 class VrpnServer {
  public:
   // `log` may be called from the network thread and from publishing threads: it must be
@@ -93,6 +102,11 @@ class VrpnServer {
 
   // Thread-safe: queue a report for every client. Pos_Quat with the header timestamp `time`.
   void PublishPose(int tracker, int sensor, const Rigid3d& transmitter_from_receiver, Timestamp time);
+  // Thread-safe: several reports that arrived together (the records of one serial read, raw and
+  // corrected names of one record). They are fanned out together: each is encoded once, and every
+  // client gets all of them in one send() (lob clients: one datagram), instead of one system call
+  // per report and client. Throws std::invalid_argument for an unknown tracker (nothing is sent).
+  void PublishPoses(std::span<const PoseUpdate> poses);
   // Thread-safe: a text message from a tracker's name to every client (reliable channel).
   void PublishText(int tracker, TextSeverity severity, std::string text);
   // Thread-safe: a button change; new clients get the current states on connect.
@@ -110,6 +124,8 @@ class VrpnServer {
   struct Event;
   struct Impl;
   void Push(Event event);
+  // After events were queued: fan out from this thread if the network thread is idle, else wake it.
+  void Kick(bool queue_was_empty);
   void Run();
   void HandleAccept();
   void HandleLob();
