@@ -222,8 +222,10 @@ void VrpnServer::Push(Event event) {
 void VrpnServer::Kick(bool queue_was_empty) {
   // Fast path: if the network thread is idle, send from this thread at once (saves a thread
   // wake-up, tens of microseconds on a busy host). Never waits: when the loop is busy the report
-  // stays queued and the loop sends it, in order, right after.
-  if (options_.direct_fanout && running_) {
+  // stays queued and the loop sends it, in order, right after. Not with a real-time network
+  // thread: a fan-out on the device thread (normal priority) can be preempted halfway by the
+  // very clients it wakes, which is what the real-time priority is there to prevent.
+  if (options_.direct_fanout && options_.realtime_priority == 0 && running_) {
     std::unique_lock<std::mutex> net(impl_->net_mutex, std::try_to_lock);
     if (net.owns_lock() && running_) {
       DrainEvents();

@@ -60,6 +60,7 @@ struct ServerOptions {
   int realtime_priority = 0;
   // A device thread publishing while the network thread is idle sends to the clients itself
   // (never waiting for the network thread); false always hands reports to the network thread.
+  // Ignored with a realtime_priority: the real-time network thread then does every fan-out.
   bool direct_fanout = true;
   void Check() const;  // throws std::invalid_argument naming the field
 };
