@@ -178,10 +178,11 @@ int main(int argc, char** argv) {
                       r.clients.p99_us, r.clients.max_us, static_cast<unsigned long long>(r.published),
                       static_cast<unsigned long long>(r.clients.missing), r.server_p50_us, r.server_p99_us);
         }
-        std::printf("%-8d %-5s %-5s %-11s %10.2f %10.2f %10s %9s %8s %12.2f %12.2f\n", n, lob ? "lob" : "tcp",
-                    corr ? "on" : "off", "ratio b/p", per[1].clients.p50_us / per[0].clients.p50_us,
-                    per[1].clients.p99_us / per[0].clients.p99_us, "", "", "",
-                    per[1].server_p50_us / per[0].server_p50_us, per[1].server_p99_us / per[0].server_p99_us);
+        // Client latencies are both counted from the burst's hand-over, so their ratio compares
+        // the two; srv_* are per fan-out (one report per-report, four batched): no ratio.
+        std::printf("%-8d %-5s %-5s %-11s %10.2f %10.2f\n", n, lob ? "lob" : "tcp", corr ? "on" : "off",
+                    "ratio b/p", per[1].clients.p50_us / per[0].clients.p50_us,
+                    per[1].clients.p99_us / per[0].clients.p99_us);
         std::fflush(stdout);
       }
     }
