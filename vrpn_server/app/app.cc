@@ -184,6 +184,7 @@ void TrackcalServerApp::Start() {
         if (s == sensor) server_->PublishButton(index, 0, pressed, time);
       }
     };
+    if (options_.server.realtime_priority > 0) t.source->SetRealtimePriority(options_.server.realtime_priority);
     t.source->Start(std::move(callbacks));
   }
 }

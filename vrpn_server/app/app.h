@@ -43,6 +43,9 @@ class ReportSource {
   // Stops and joins; idempotent.
   virtual void Stop() = 0;
   virtual std::string Describe() const = 0;
+  // Called before Start with the server's --realtime-priority (> 0): a source with its own
+  // reading thread (the Fastrak driver) runs it at that priority too. Default: ignored.
+  virtual void SetRealtimePriority(int /*priority*/) {}
 };
 
 // vrpn_Tracker_NULL: `pose` for every sensor at a fixed rate.

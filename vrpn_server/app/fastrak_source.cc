@@ -55,6 +55,10 @@ class FastrakSource : public ReportSource {
     driver_ = std::make_unique<fastrak::FastrakDriver>(options_, std::move(cb));
     driver_->Start();
   }
+  void SetRealtimePriority(int priority) override {
+    options_.realtime_priority = priority;
+    options_.Check();
+  }
   void Stop() override {
     if (driver_) driver_->Stop();
   }

@@ -1,6 +1,8 @@
 #include "vrpn_server/fastrak/driver.h"
 
 #include <fcntl.h>
+#include <pthread.h>
+#include <sched.h>
 #include <poll.h>
 #include <sys/file.h>
 #include <sys/stat.h>
@@ -186,6 +188,9 @@ void FastrakOptions::Check() const {
     throw std::invalid_argument("FastrakOptions.baud " + std::to_string(baud) +
                                 " is not 300, 1200, 2400, 4800, 9600, 19200, 38400, 57600 or 115200");
   }
+  if (realtime_priority < 0 || realtime_priority > 99) {
+    throw std::invalid_argument("FastrakOptions.realtime_priority must be 0..99");
+  }
   if (num_stations < 1 || num_stations > kMaxStations) {
     throw std::invalid_argument("FastrakOptions.num_stations must be 1..4");
   }
@@ -251,6 +256,15 @@ class FastrakDriver::Session {
   ~Session() { ClosePort(); }
 
   void Run() {
+    if (options_.realtime_priority > 0) {
+      sched_param param{};
+      param.sched_priority = options_.realtime_priority;
+      const int rc = ::pthread_setschedparam(::pthread_self(), SCHED_FIFO, &param);
+      if (rc != 0) {
+        Emit(Severity::kWarning, "cannot use real-time priority " + std::to_string(options_.realtime_priority) +
+                                     " (" + std::strerror(rc) + "); running at normal priority");
+      }
+    }
     if (units_ != options_.units) {
       Emit(Severity::kInfo, std::string("extra commands switch the tracker to ") + UnitsName(units_) +
                                 "; positions are converted from " + UnitsName(units_));

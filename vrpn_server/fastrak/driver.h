@@ -82,6 +82,10 @@ struct FastrakOptions {
   // unit reads its commands in order, so the reply shows the filters were taken), instead of the
   // reference's blind filter_settle_s after each of them; false: the reference's bytes and waits.
   bool confirm_filters = true;
+  // Real-time (SCHED_FIFO) priority of the driver thread, 1..99; 0 keeps the normal scheduler.
+  // trackcal-server gives it the network thread's --realtime-priority, so a record is read and
+  // handed over without waiting behind other programs. Needs CAP_SYS_NICE (else a warning).
+  int realtime_priority = 0;
   FastrakTimings timings;
 
   // Throws std::invalid_argument naming the field.

@@ -5,7 +5,10 @@
 #include "vrpn_server/fastrak/driver.h"
 
 #include <gtest/gtest.h>
+#include <pthread.h>
+#include <sched.h>
 
+#include <atomic>
 #include <condition_variable>
 #include <fstream>
 #include <iostream>
@@ -468,6 +471,31 @@ TEST(FastrakDriver, ConfirmedFiltersReplaceTheBlindWaits) {
   for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
 }
 
+TEST(FastrakDriver, RealtimePriorityIsUsedOrWarned) {
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  options.realtime_priority = 5;
+  FastrakDriver::Callbacks callbacks = collector.Callbacks();
+  std::atomic<int> policy{-1};
+  auto on_report = callbacks.on_report;
+  callbacks.on_report = [&](const FastrakReport& r) {
+    int p = 0;
+    sched_param param{};
+    ::pthread_getschedparam(::pthread_self(), &p, &param);
+    policy = p;
+    on_report(r);
+  };
+  FastrakDriver driver(options, callbacks);
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(5, 10.0));
+  driver.Stop();
+  // With CAP_SYS_NICE the driver thread runs SCHED_FIFO; without it, normally and says so.
+  EXPECT_TRUE(policy.load() == SCHED_FIFO || collector.HasLog("cannot use real-time priority")) << policy.load();
+  for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
+}
+
 TEST(FastrakDriver, GarbageAndTruncatedRecordsInTheStream) {
   const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
   FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
@@ -580,6 +608,9 @@ TEST(FastrakOptions, CheckNamesTheField) {
   bad = o;
   bad.timings.reopen_backoff_min_s = 0;
   EXPECT_NE(error(bad).find("reopen_backoff_min_s"), std::string::npos);
+  bad = o;
+  bad.realtime_priority = 100;
+  EXPECT_NE(error(bad).find("realtime_priority"), std::string::npos);
   bad = o;
   bad.timings.restart_poll_s = bad.timings.restart_settle_s;
   EXPECT_NE(error(bad).find("restart_poll_s"), std::string::npos);
