@@ -244,7 +244,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
 
   // Fast path: a lone linear term (the paper's method) is solved by its linear least squares.
   if (spec->terms.size() == 1 && linear_ok[0] && spec->terms[0]->SolvesAloneLinearly() &&
-      spec->loss.type == LossType::kNone && !fit_time_offset) {
+      spec->loss.type == LossType::kNone && spec->position_range_exponent == 0.0 &&
+      spec->orientation_range_exponent == 0.0 && !fit_time_offset) {
     bool plain = true;
     for (const auto& block : spec->terms[0]->blocks()) {
       plain = plain && block.lower.empty() && block.upper.empty() && block.prior_mean.empty();
@@ -324,8 +325,9 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
         }
       }
       if (fit_time_offset) blocks.push_back(&time_offset);
+      const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
       station_blocks.push_back(problem.AddResidualBlock(
-          new StationCost(bound[i], stations[i], spec->position_sigma, spec->orientation_sigma,
+          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1],
                           time_offset0),
           MakeLoss(spec->loss), blocks));
     }

@@ -8,10 +8,10 @@
 
 #include <cmath>
 #include <iostream>
+#include <sstream>
 
 #include "fit/registration_io.h"
 #include "fit/rotation.h"
-#include "fit/terms_physical.h"
 #include "sim/random.h"
 #include "sim/simulator.h"
 #include "tests/test_utils.h"
@@ -87,34 +87,51 @@ double Mahalanobis2(const RegistrationResult& r, const Rigid3d& truth) {
   return e.dot(r.optical_from_transmitter_covariance.ldlt().solve(e));
 }
 
-// A physical model of the room: the far sources (floor, door, monitors) as a previous calibration
-// found them, the workbench frame and the floor free, started away from the truth.
-CorrectionFitter PhysicalFitter(const FieldModel& truth) {
-  FieldModel start = truth;
-  int frame = -1;
-  for (size_t i = 0; i < start.objects.size(); ++i) {
-    if (start.objects[i].name == "workbench_frame") frame = static_cast<int>(i);
+// A physical model file of the room: the far sources (floor, door, monitors) at the values a
+// previous calibration found (here: the truth), fixed; the workbench frame (a dipole) and the
+// floor's plane free, started 10 cm and 40 % (frame) and 5 cm (floor) away from the truth.
+std::string Vec3(const Eigen::Vector3d& v) {
+  std::ostringstream out;
+  out.precision(17);
+  out << "[" << v.x() << ", " << v.y() << ", " << v.z() << "]";
+  return out.str();
+}
+
+std::string PhysicalModelYaml(const FieldModel& truth) {
+  std::ostringstream y;
+  y.precision(17);
+  y << "noise: {position_mm: 0.1, orientation_deg: 0.02}\nterms:\n";
+  for (size_t i = 0; i < truth.planes.size(); ++i) {
+    const ConductingPlane& p = truth.planes[i];
+    const bool free = i == 0;
+    y << "  - type: plane\n    name: " << (p.name.empty() ? "plane" + std::to_string(i) : p.name)
+      << "\n    point_in_transmitter: "
+      << Vec3(p.point_in_transmitter + (free ? Eigen::Vector3d(0, 0, 0.05) : Eigen::Vector3d::Zero()))
+      << "\n    normal_in_transmitter: " << Vec3(p.normal_in_transmitter)
+      << "\n    attenuation: " << p.attenuation << "\n";
+    if (!free) {
+      y << "    parameters:\n      distance_m: {fixed: true}\n      normal_in_transmitter: {fixed: "
+           "true}\n      attenuation: {fixed: true}\n";
+    }
   }
-  EXPECT_GE(frame, 0);
-  start.objects[frame].location_in_transmitter += Eigen::Vector3d(0.08, -0.05, 0.05);
-  start.objects[frame].polarisability_m3 *= 0.6;
-  start.planes[0].point_in_transmitter += Eigen::Vector3d(0, 0, 0.05);
-  return [start, frame](const std::vector<FitStation>& stations) {
-    std::vector<PhysicalObservation> obs;
-    for (const FitStation& s : stations) obs.push_back({s.reported, s.reference});
-    PhysicalFitOptions options;
-    options.free_objects = {frame};
-    options.free_planes = {0};
-    options.position_sigma_m = 1e-4;
-    options.orientation_sigma_rad = 3e-4;
-    const PhysicalFitResult fit =
-        FitPhysicalModel(PhysicalCorrection(start, Eigen::Matrix3d::Identity()), obs, options);
-    FittedCorrection out;
-    out.chain.Append(fit.model.Clone());
-    out.converged = fit.converged;
-    out.description = "physical: workbench frame + floor, " + fit.report;
-    return out;
-  };
+  for (size_t i = 0; i < truth.objects.size(); ++i) {
+    const InducedDipole& o = truth.objects[i];
+    const bool free = o.name == "workbench_frame";
+    y << "  - type: dipole\n    name: " << o.name << "\n    location_in_transmitter: "
+      << Vec3(o.location_in_transmitter +
+              (free ? Eigen::Vector3d(0.08, -0.05, 0.05) : Eigen::Vector3d::Zero()))
+      << "\n    polarisability_m3: " << o.polarisability_m3 * (free ? 0.6 : 1.0) << "\n";
+    if (!free) {
+      y << "    parameters:\n      location_in_transmitter: {fixed: true}\n      "
+           "polarisability_m3: {fixed: true}\n";
+    }
+  }
+  return y.str();
+}
+
+CorrectionFitter PhysicalFitter(const FieldModel& truth) {
+  const std::string yaml = PhysicalModelYaml(truth);
+  return MakeEngineFitter([yaml] { return ParseModelYaml(yaml, "room.yaml"); });
 }
 
 // 99.7 % quantile of chi-square with 6 degrees of freedom.
