@@ -166,3 +166,10 @@ def test_the_loop_adds_the_proposed_change_refits_and_records_every_fit(tmp_path
     # Run again on the same work folder: the model files of the first run are never overwritten.
     with pytest.raises(SystemExit, match="not overwriting"):
         demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append)
+
+
+def test_the_default_scene_is_the_workflow_tests_scene():
+    """demo.DEFAULT_SCENE and tests/data/workflow/paper_small.yaml are one scene (comments aside)."""
+    def keys(text):
+        return [l.rstrip() for l in text.splitlines() if l.strip() and not l.lstrip().startswith("#")]
+    assert keys(demo.DEFAULT_SCENE) == keys(SMALL_SCENE.read_text())

@@ -79,12 +79,21 @@ HIDDEN_EFFECTS = ["sensor_offset", "receiver_gains", "ferromagnetic_object",
                   "finite_transmitter_coils", "clock_offset", "hemisphere_flips"]
 SEEDS = [1, 2, 3]
 
+# Cost: one loop (4-5 fits and diagnoses of 240 stations, every catalog candidate with its dipole
+# and plane searches) took 25-30 min on the 2 shared cores of the development machine (load ~11;
+# the diagnoses 92, 360, 390 s and more as terms accumulate), so the 18 loops need hours, far
+# beyond CI's budget. They run when TRACKCAL_WORKFLOW_TESTS is set: "full" for every effect on 3
+# seeds, or a comma-separated list of effects (3 seeds each).
+_SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip()
+
 pytestmark = [
     pytest.mark.skipif(shutil.which("trackcal-simulate") is None or shutil.which("trackcal-fit") is None,
                        reason="command-line tools not installed (run scripts/build.sh)"),
-    pytest.mark.skipif(not demo.diagnosis_available(),
-                       reason="no candidate ranking in this build (trackcal-fit diagnose)"),
 ]
+
+
+def _selected(hidden: str) -> bool:
+    return _SELECTED == "full" or hidden in [x.strip() for x in _SELECTED.split(",")]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -368,6 +377,11 @@ def _floor_and_final(hidden: str, capture: Path, data: Path, final: "demo.Step",
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("hidden", HIDDEN_EFFECTS)
 def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path):
+    if not demo.diagnosis_available():
+        pytest.skip("no candidate ranking in this build (trackcal-fit diagnose)")
+    if not _selected(hidden):
+        pytest.skip("a loop takes 25-30 min on the shared development machine; "
+                    "set TRACKCAL_WORKFLOW_TESTS=full (or a list of effects) to run it")
     capture = _simulate(tmp_path / "capture", hidden, seed)
     data = _stream_only(capture, tmp_path / "streams") if hidden == "clock_offset" else capture
     work = tmp_path / "work"
@@ -394,3 +408,53 @@ def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path)
     assert p <= FLOOR_FACTOR * fp and o <= FLOOR_FACTOR * fo, (
         f"{hidden} seed {seed}: final {p:.4f} mm / {o:.4f} deg, floor {fp:.4f} mm / {fo:.4f} deg "
         f"({p / fp:.2f}x / {o / fo:.2f}x)\n" + story)
+
+
+# ----------------------------------------------------------------------------------------------
+# The rules above, on hand-made fit documents (fast; no ranking needed)
+
+
+def _fit_doc(*terms) -> dict:
+    """A trackcal-fit --json document with the given (term name, {block: (values, stddevs)})."""
+    params = []
+    for name, blocks in terms:
+        for block, (v, sd) in blocks.items():
+            sd = list(sd) if len(sd) == len(v) else [None] * len(v)  # a normal: tangent stddevs only
+            params.append({"term": name, "block": block, "fixed": False, "unit": "",
+                           "values": [{"name": str(i), "value": a, "stddev": b}
+                                      for i, (a, b) in enumerate(zip(v, sd))]})
+    return {"fit": {"parameters": params}}
+
+
+@pytest.fixture(scope="module")
+def toolbox_truth(tmp_path_factory):
+    return _truth(_simulate(tmp_path_factory.mktemp("truth") / "capture", "ferromagnetic_object", 1))
+
+
+def test_room_sources_are_findings_and_each_is_matched_once(toolbox_truth):
+    frame = ("dipole", {"location_in_transmitter": ([0.46, 0.0, 0.41], [0.03, 0.02, 0.02]),
+                        "polarisability_m3": ([-0.0127], [0.002])})
+    floor = ("plane", {"distance_m": ([0.78], [0.01]), "normal_in_transmitter": ([0.02, 0.0, 1.0], [0.01, 0.01]),
+                       "attenuation": ([0.27], [0.01])})
+    assert _spurious_terms(_fit_doc(frame, floor), toolbox_truth) == []
+    twice = _spurious_terms(_fit_doc(frame, ("dipole_2", frame[1])), toolbox_truth)
+    assert len(twice) == 1 and twice[0].startswith("dipole_2"), "one true source, one term"
+
+
+def test_a_term_that_represents_no_true_source_is_spurious(toolbox_truth):
+    # A dipole standing in for the floor's image: its 3-sigma box spans several true objects.
+    vague = ("dipole", {"location_in_transmitter": ([-0.25, 0.04, 1.78], [0.74, 0.60, 1.27]),
+                        "polarisability_m3": ([-1.7], [8.0])})
+    tilted = ("plane", {"distance_m": ([0.69], [0.14]), "normal_in_transmitter": ([0.49, 0.80, -0.34], [0.7, 0.7]),
+                        "attenuation": ([-0.004], [0.013])})
+    offset = ("sensor_offset", {"translation": ([0.001, 0.0, 0.0], [0.001, 0.001, 0.001])})
+    assert len(_spurious_terms(_fit_doc(vague, tilted, offset), toolbox_truth)) == 3
+
+
+def test_the_hidden_term_must_be_within_three_sigma(toolbox_truth):
+    def final(loc, sd):
+        step = demo.Step(0, "x", Path("m.yaml"), Path("c.json"), _fit_doc(
+            ("dipole", {"location_in_transmitter": (loc, [sd] * 3), "polarisability_m3": ([0.002], [0.0001])})))
+        return _hidden_term_failures("ferromagnetic_object", step, toolbox_truth)
+    assert final([0.6 + 0.02, 0.95, -0.5], 0.01) == []            # 2 sigma off
+    assert "location[0]" in final([0.6 + 0.04, 0.95, -0.5], 0.01)[0]  # 4 sigma off
