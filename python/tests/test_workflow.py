@@ -403,7 +403,8 @@ def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path)
     data = _stream_only(capture, tmp_path / "streams") if hidden == "clock_offset" else capture
     work = tmp_path / "work"
     log = []
-    steps = demo.follow_diagnosis(data, demo.PAPER_MODEL, work, say=log.append)
+    steps = demo.follow_diagnosis(data, demo.PAPER_MODEL, work, say=log.append,
+                                  cross_validate_top=demo.DEFAULT_CROSS_VALIDATE_TOP)
     final = steps[-1]
     story = "\n".join(log) + "\n" + demo.steps_table(steps)
     truth = _truth(capture)
