@@ -5,11 +5,16 @@
 #include "fit/registration_refinement.h"
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
+#include <cstdlib>
+#include <filesystem>
 #include <iostream>
 #include <sstream>
 
+#include "core/capture.h"
+#include "core/file_util.h"
 #include "fit/registration_io.h"
 #include "fit/rotation.h"
 #include "sim/random.h"
@@ -26,6 +31,7 @@ namespace {
 // markers facing the camera, at least the best three, averaged noise).
 struct Capture {
   sim::Scene scene;
+  sim::SimulatedCapture simulated;
   std::vector<RegistrationStation> registration;
   std::vector<RegistrationStation> calibration;
   FieldModel field;
@@ -36,6 +42,7 @@ Capture MakeCapture(const sim::Scene& scene) {
   const sim::SimulatedCapture capture = simulator.Generate();
   Capture c;
   c.scene = scene;
+  c.simulated = capture;
   c.field = simulator.tracker().field();
   c.registration = PairRegistrationRecords(capture.markers, capture.tracker, scene.tracker.sensor);
   sim::Rng noise(scene.seed, "refinement_test_markers");
@@ -106,7 +113,8 @@ std::string PhysicalModelYaml(const FieldModel& truth) {
     const bool free = i == 0;
     y << "  - type: plane\n    name: " << (p.name.empty() ? "plane" + std::to_string(i) : p.name)
       << "\n    point_in_transmitter: "
-      << Vec3(p.point_in_transmitter + (free ? Eigen::Vector3d(0, 0, 0.05) : Eigen::Vector3d::Zero()))
+      << Vec3(p.point_in_transmitter +
+              (free ? Eigen::Vector3d(0, 0, 0.05) : Eigen::Vector3d::Zero()))
       << "\n    normal_in_transmitter: " << Vec3(p.normal_in_transmitter)
       << "\n    attenuation: " << p.attenuation << "\n";
     if (!free) {
@@ -190,6 +198,58 @@ TEST(RefineRegistration, PolynomialDivergesAndTheInitialRegistrationIsKept) {
   EXPECT_EQ(AngularDistance(r.refined.registration.optical_from_transmitter.rotation,
                             r.initial.registration.optical_from_transmitter.rotation),
             0.0);
+}
+
+TEST(RefineRegistration, CommandLineWithAPhysicalModelFile) {
+  // trackcal-fit register --poses --model on a capture with markers at every calibration station.
+  namespace fs = std::filesystem;
+  sim::Scene scene = sim::LoadScene("paper");
+  const Capture c = MakeCapture(scene);
+  const fs::path dir =
+      fs::temp_directory_path() / ("trackcal_refine_cli_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  MarkerCapture markers = c.simulated.markers;
+  TrackerCapture tracker = c.simulated.tracker;
+  for (const RegistrationStation& s : c.calibration) {
+    tracker.records.push_back(
+        {s.station, scene.tracker.sensor, s.tracker_transmitter_from_receiver, {}});
+    for (const MarkerObservation& m : s.markers) {
+      markers.records.push_back({s.station, m.marker, m.marker_in_optical, {}});
+    }
+  }
+  WriteMarkers(dir / "markers.csv", markers);
+  WriteTracker(dir / "tracker.csv", tracker);
+  WritePoses(dir / "poses.csv", c.simulated.poses);
+  WriteFileAtomically(dir / "room.yaml", PhysicalModelYaml(c.field), false);
+  const char* binary_dir = std::getenv("TRACKCAL_BINARY_DIR");
+  ASSERT_NE(binary_dir, nullptr);
+  const std::string command =
+      (fs::path(binary_dir) / "fit" / "trackcal-fit").string() + " register --markers " +
+      (dir / "markers.csv").string() + " --tracker " + (dir / "tracker.csv").string() +
+      " --poses " + (dir / "poses.csv").string() + " --model " + (dir / "room.yaml").string() +
+      " -o " + (dir / "out.csv").string() + " --json --quiet > " + (dir / "out.json").string();
+  ASSERT_EQ(WEXITSTATUS(std::system(command.c_str())), 0) << command;
+  const auto doc = nlohmann::json::parse(ReadFileToString(dir / "out.json"));
+  ASSERT_TRUE(doc["refinement"]["converged"].get<bool>()) << doc["refinement"].dump(2);
+  // The refined transform within its reported covariance (the JSON's own numbers).
+  const auto& t = doc["registration"]["optical_from_transmitter"];
+  const Rigid3d estimate(
+      QuaternionFromXyzw<double>(t["rotation_xyzw"][0], t["rotation_xyzw"][1],
+                                 t["rotation_xyzw"][2], t["rotation_xyzw"][3]),
+      Eigen::Vector3d(t["translation"][0], t["translation"][1], t["translation"][2]));
+  Eigen::Matrix<double, 6, 6> covariance;
+  for (int r = 0; r < 6; ++r)
+    for (int k = 0; k < 6; ++k) covariance(r, k) = t["covariance"][r][k].get<double>();
+  const Rigid3d& truth = scene.reference.optical_from_transmitter;
+  Eigen::Matrix<double, 6, 1> e;
+  e << RotationVectorBetween<double>(estimate.rotation, truth.rotation),
+      estimate.translation - truth.translation;
+  EXPECT_LT(e.dot(covariance.ldlt().solve(e)), kChiSquare6Dof997);
+  // Every station written with its set from poses.csv: 20 reg + 480 calib.
+  const PoseCapture out = ReadPoses(dir / "out.csv");
+  EXPECT_EQ(out.records.size(), c.registration.size() + c.calibration.size());
+  fs::remove_all(dir);
 }
 
 TEST(RefineRegistration, TooFewCalibrationStationsThrows) {
