@@ -702,11 +702,14 @@ namespace {
 
 // Gauge of G against the sensor offset's rotation: G R^T = P (R U^T)^T for the polar decomposition
 // G = P U, so only the symmetric part P of G is seen once the offset rotation is free. This
-// residual holds G symmetric (its antisymmetric part, whitened by 1e-6).
+// residual holds G symmetric (its antisymmetric part, whitened by 1e-4). The data carry no
+// information along the gauge, so any weight pins it at zero at the optimum; 1e-4 is of the order
+// of the stds of G from a capture, keeping the information matrix well conditioned for the
+// covariance.
 struct SymmetricGainResidual {
   template <typename T>
   bool operator()(const T* g, T* r) const {
-    const T scale(1e6);
+    const T scale(1e4);
     r[0] = (g[1] - g[3]) * scale;
     r[1] = (g[2] - g[6]) * scale;
     r[2] = (g[5] - g[7]) * scale;
@@ -887,7 +890,7 @@ void PhysicalGroupTerm::RefineAlone(const std::vector<FitStation>& inputs,
   // on what it leaves, and the joint solve only polishes (a chain with a LUT converges in a few
   // iterations instead of ~30 sparse factorisations). Robust (Cauchy, 5 sigma) so hemisphere flips
   // do not drag the start; priors and the joint loss act in the joint solve.
-  const StationBinding binding = Bind(AmbientPose());
+  const StationBinding binding = Bind(AmbientPose::Zero());
   if (binding.blocks.empty() || inputs.empty()) return;
   ceres::Problem problem;
   for (int b : binding.blocks) {
