@@ -226,6 +226,19 @@ std::string GenericStatement(const std::vector<ParameterReport>& blocks) {
 
 double At(const std::vector<double>& v, size_t i) { return i < v.size() ? v[i] : NAN; }
 
+// A report derived from another block (display values computed from it).
+ParameterReport Derived(const ParameterReport& from, const std::string& block, const std::string& unit,
+                        std::vector<double> values, std::vector<double> stddev) {
+  ParameterReport r;
+  r.term = from.term;
+  r.block = block;
+  r.unit = unit;
+  r.fixed = from.fixed;
+  r.values = std::move(values);
+  r.stddev = std::move(stddev);
+  return r;
+}
+
 // Statements of the physical term types (block names of fit/terms_physical.h); empty if a block is
 // missing (then the generic statement is used).
 std::string PhysicalStatement(const std::string& type, const std::vector<ParameterReport>& p) {
@@ -237,8 +250,7 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     const Eigen::Quaterniond q = QuaternionFromXyzwArray(r->values.data());
     const Eigen::AngleAxisd aa(q.w() < 0 ? Eigen::Quaterniond(-q.coeffs()) : q);
     const Eigen::Vector3d rv = aa.angle() * aa.axis();
-    const ParameterReport rotation{r->term, r->block, "rad", r->fixed, {},
-                                   {rv.x(), rv.y(), rv.z()}, r->stddev};
+    const ParameterReport rotation = Derived(*r, r->block, "rad", {rv.x(), rv.y(), rv.z()}, r->stddev);
     return "a sensor offset of " + BlockStatement(*t, 1e3, "mm") + ", rotated by " +
            BlockStatement(rotation, kDegPerRad, "deg") + " (rotation vector)";
   }
@@ -247,12 +259,12 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     if (!g || g->values.size() != 9) return "";
     // Rows of G are the coils' sensitivity axes: the diagonal is each coil's gain, the symmetric
     // off-diagonal sum the coils' departure from orthogonality (small angles).
-    ParameterReport gains{g->term, "gains", "%", g->fixed, {}, {}, {}};
+    ParameterReport gains = Derived(*g, "gains", "%", {}, {});
     for (int i = 0; i < 3; ++i) {
       gains.values.push_back(g->values[static_cast<size_t>(4 * i)] - 1.0);
       gains.stddev.push_back(At(g->stddev, static_cast<size_t>(4 * i)));
     }
-    ParameterReport skew{g->term, "non_orthogonality", "deg", g->fixed, {}, {}, {}};
+    ParameterReport skew = Derived(*g, "non_orthogonality", "deg", {}, {});
     const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
     for (const auto& pr : pairs) {
       const size_t ij = static_cast<size_t>(3 * pr[0] + pr[1]), ji = static_cast<size_t>(3 * pr[1] + pr[0]);
@@ -278,7 +290,7 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     if (!d || !n || !a || n->values.size() != 3 || a->values.empty()) return "";
     double sigma_deg = NAN;  // the normal's tangent-space stddev: two angles [rad]
     if (n->stddev.size() >= 2) sigma_deg = std::hypot(n->stddev[0], n->stddev[1]) * kDegPerRad;
-    const ParameterReport normal{n->term, n->block, "", n->fixed, {}, n->values, {}};
+    const ParameterReport normal = Derived(*n, n->block, "", n->values, {});
     std::string out = "a conducting plane " + BlockStatement(*d, 1.0, "m") +
                       " from the transmitter along the normal " + BlockStatement(normal, 1.0, "");
     if (std::isfinite(sigma_deg)) out += " +- " + FormatNumber(sigma_deg, 2) + " deg";
@@ -365,6 +377,7 @@ struct PreparedCandidate {
   std::vector<int> base_index;      // per own station: the base station it is (-1: none)
   double time_offset_s = 0.0;
   bool flexible = false;            // a flexible fallback, not an effect
+  YAML::Node root;                  // the candidate model file
 };
 
 }  // namespace
@@ -401,6 +414,9 @@ void CandidateOptions::Check() const {
   }
   if (!std::isfinite(max_delta_bic)) {
     throw std::invalid_argument("CandidateOptions.max_delta_bic: must be finite");
+  }
+  if (!(max_outlier_fraction >= 0 && max_outlier_fraction < 0.5)) {
+    throw std::invalid_argument("CandidateOptions.max_outlier_fraction: must be in [0, 0.5)");
   }
   if (cross_validate_top < 0) {
     throw std::invalid_argument("CandidateOptions.cross_validate_top: must be >= 0");
@@ -492,11 +508,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   ModelSpec base_spec = ParseModelYaml(model_text, model_source);
   const double sigma_p = base_spec.position_sigma;
   const double sigma_o = base_spec.orientation_sigma;
-  YAML::Node root = YAML::Load(model_text);
 
-  // The candidates.
+  // The candidates. Term types as written in the file (the engine may merge several file terms
+  // into one, e.g. consecutive physical terms into one field model).
   std::set<std::string> present;
-  for (const auto& t : base_spec.terms) present.insert(t->type());
+  for (const auto& t : YAML::Load(model_text)["terms"]) {
+    if (t.IsMap() && t["type"]) present.insert(t["type"].as<std::string>());
+  }
   std::vector<PreparedCandidate> prepared;
   std::vector<std::pair<const CatalogEffect*, bool>> to_test;  // (effect, flexible)
   for (const CatalogEffect& e : options.catalog) to_test.emplace_back(&e, false);
@@ -584,6 +602,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       p.candidate.model_change = TermListItem(p.term);
     }
     p.candidate.model_text = Emit(changed);
+    p.root = changed;
     prepared.push_back(std::move(p));
   }
 
@@ -635,7 +654,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   }
 
   // Candidates: fit on all stations (parameters, BIC).
-  for (auto& p : prepared) {
+  auto fit_candidate = [&](PreparedCandidate& p) {
     Candidate& c = p.candidate;
     const auto t0 = Clock::now();
     try {
@@ -675,7 +694,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       }
       Progress(options, c.effect + ": fit on " + std::to_string(own.size()) + " stations");
       ModelSpec spec = ParseModelYaml(c.model_text, model_source + " + " + c.effect);
-      const FitResult fit = FitModel(own, &spec, {});
+      FitOptions fo;
+      fo.compute_covariance = !p.flexible;  // a flexible term's parameters are not reported
+      const FitResult fit = FitModel(own, &spec, fo);
       c.fitted = true;
       c.converged = fit.converged;
       StationErrors full = MakeErrors(own.size());
@@ -705,15 +726,25 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       if (c.kind != CandidateKind::kTimeOffset) c.statement = Statement(*p.effect, c, options.robust_loss.scale);
       if (c.kind == CandidateKind::kTerm &&
           AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &p.term)) {
+        // The change carries the fitted start, and the cross-validation evaluates exactly that
+        // change: each fold's fit starts there instead of searching again. (A search per fold can
+        // land a dipole inside the volume, where the inverse has no meaning; the start uses the
+        // held-out stations only to pick the basin, the fold's fit finds its own optimum.)
         c.model_change = TermListItem(p.term);
+        YAML::Node term = p.root["terms"][static_cast<size_t>(*c.insert_index)];
+        AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &term);
+        c.model_text = Emit(p.root);
       }
     } catch (const std::exception& ex) {
       c.error = ex.what();
     }
     c.seconds = SecondsSince(t0);
-  }
+  };
 
-  // Which candidates are cross-validated.
+  // Which candidates are cross-validated: all, or the best by BIC (cross_validate_top).
+  for (auto& p : prepared) {
+    if (!p.flexible) fit_candidate(p);
+  }
   std::vector<PreparedCandidate*> to_validate;
   for (auto& p : prepared) {
     if (p.candidate.fitted && !p.flexible) to_validate.push_back(&p);
@@ -726,16 +757,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                      });
     to_validate.resize(static_cast<size_t>(options.cross_validate_top));
   }
-  for (auto& p : prepared) {
-    if (p.candidate.fitted && p.flexible) to_validate.push_back(&p);
-  }
   // Bonferroni over every candidate tested (fitted), screened-out ones included: screening looked at
   // them too.
   int tested = 0;
   for (const auto& p : prepared) tested += p.candidate.fitted && !p.flexible ? 1 : 0;
   d.p_threshold = options.family_alpha / std::max(1, tested);
 
-  for (PreparedCandidate* p : to_validate) {
+  auto validate_candidate = [&](PreparedCandidate* p) {
     Candidate& c = p->candidate;
     const auto t0 = Clock::now();
     try {
@@ -775,26 +803,30 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       c.error = std::string("cross-validation failed: ") + ex.what();
     }
     c.seconds += SecondsSince(t0);
-  }
+  };
 
   // Significance and the reason in words.
-  for (auto& p : prepared) {
+  auto judge = [&](PreparedCandidate& p) {
     Candidate& c = p.candidate;
     if (!c.fitted) {
       c.reason = "fit failed: " + c.error;
-      continue;
+      return;
     }
     if (!c.cross_validated) {
       c.reason = c.error.empty() ? "screened out by BIC (delta " + FormatNumber(c.delta_bic, 1) +
                                        "); not cross-validated"
                                  : c.error;
-      continue;
+      return;
     }
     const double drop = std::max(c.drop_position_percent, c.drop_orientation_percent);
+    const double outlier_fraction =
+        static_cast<double>(c.outlier_stations.size()) / static_cast<double>(stations.size());
+    const bool outliers_ok =
+        c.kind != CandidateKind::kRobustLoss || outlier_fraction <= options.max_outlier_fraction;
     const bool p_ok = c.p_value < d.p_threshold;
     const bool drop_ok = drop >= options.min_drop_percent;
     const bool bic_ok = c.delta_bic < options.max_delta_bic;
-    c.significant = p_ok && drop_ok && bic_ok;
+    c.significant = p_ok && drop_ok && bic_ok && outliers_ok;
     std::ostringstream r;
     r << "held-out error " << (c.drop_position_percent >= 0 ? "falls " : "rises ")
       << FormatNumber(std::abs(c.drop_position_percent), 1) << " % (position), "
@@ -809,11 +841,35 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         why.push_back("the held-out drop is below " + FormatNumber(options.min_drop_percent, 0) + " %");
       }
       if (!bic_ok) why.push_back("BIC does not support it (needs < " + FormatNumber(options.max_delta_bic, 0) + ")");
+      if (!outliers_ok) {
+        why.push_back(FormatNumber(100 * outlier_fraction, 0) +
+                      " % of the stations exceed the loss scale: that is structure the model lacks, "
+                      "not outliers");
+      }
       r << ". Not claimed: ";
       for (size_t i = 0; i < why.size(); ++i) r << (i ? ", " : "") << why[i];
     }
     if (!c.converged) r << " (the fit did not converge)";
     c.reason = r.str();
+  };
+
+  for (PreparedCandidate* p : to_validate) validate_candidate(p);
+  bool any_significant = false;
+  for (auto& p : prepared) {
+    if (p.flexible) continue;
+    judge(p);
+    any_significant = any_significant || p.candidate.significant;
+  }
+  // The flexible fallback only matters when no effect is claimed (it is the costliest fit).
+  for (auto& p : prepared) {
+    if (!p.flexible) continue;
+    if (any_significant) {
+      p.candidate.reason = "not fitted: a catalog effect is significant";
+      continue;
+    }
+    fit_candidate(p);
+    if (p.candidate.fitted) validate_candidate(&p);
+    judge(p);
   }
 
   // Ranking.
@@ -906,6 +962,8 @@ nlohmann::json CandidateToJson(const Candidate& c) {
                         {"coordinate_names", p.coordinate_names},
                         {"values", p.values},
                         {"stddev", stddev},
+                        {"stddev_names", p.stddev_names},  // manifold blocks: tangent coordinates
+                        {"stddev_unit", p.stddev_unit},
                         {"fixed", p.fixed}});
     }
     return {

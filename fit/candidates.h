@@ -20,8 +20,10 @@
 // verdict names the top significant candidate, or says plainly that none explains what remains.
 //
 // The candidate model is the model file's YAML with the effect's term inserted into `terms:`
-// (physical terms before explicit ones: polynomial, lut) or its `loss:` set; `model_change` is that
-// YAML, with the fitted values as starting values where the term takes them.
+// (physical terms before explicit ones: polynomial, lut) or its `loss:` / `time_offset:` set;
+// `model_change` is that YAML, with the fitted values as start values where the term searches them
+// (dipole, plane), and the cross-validation evaluates exactly that change. A flexible fallback (a
+// degree-3 polynomial) is scored apart when no effect is significant. Reference: docs/diagnose.md.
 #pragma once
 
 #include <functional>
@@ -84,9 +86,15 @@ struct CandidateOptions {
   double min_drop_percent = 5.0;
   // delta BIC must be below this: -10 is "very strong" evidence (Kass & Raftery 1995, 2 ln B > 10).
   double max_delta_bic = -10.0;
+  // robust_loss is claimed only if at most this fraction of the stations exceed the loss scale:
+  // outliers are rare by definition (flips, bad reference poses); when many stations exceed it, a
+  // robust loss only hides an effect the model lacks.
+  double max_outlier_fraction = 0.05;
   // 0: cross-validate every candidate. N > 0: fit all on the full set first, then cross-validate only
-  // the N with the lowest delta BIC (the rest are reported screened out, never significant).
-  int cross_validate_top = 0;
+  // the N with the lowest delta BIC (the rest are reported screened out, never significant). 3 by
+  // default: a physical candidate's fit costs ~0.5-1 s CPU on the paper preset, and cross-validating
+  // all six triples the run (docs/diagnose.md, Speed).
+  int cross_validate_top = 3;
   // Loss of the robust_loss candidate: Cauchy (an outlier's pull vanishes; a Huber loss still pulls
   // with the scale), scale 3 sigma of the whitened residual.
   LossOptions robust_loss = {LossType::kCauchy, 3.0};
