@@ -1,8 +1,8 @@
 // Acceptance of the candidate ranking on the simulator's paper preset (docs/diagnose.md): from a
-// model that fits the effect-free scene (the paper room's planes and objects as fixed physical terms
-// plus a degree-1 polynomial), each hidden effect ranks first, is significant and is fitted within 3
-// sigma of the truth; without a hidden effect nothing is claimed (3 seeds). The ferromagnetic object
-// is disabled (see there: a physical-term fitting issue, not the ranking).
+// model that fits the effect-free scene (the paper room's planes and objects as fixed physical
+// terms plus a degree-1 polynomial), each hidden effect ranks first, is significant and is fitted
+// within 3 sigma of the truth; without a hidden effect nothing is claimed (3 seeds). The
+// ferromagnetic object is disabled (see there: a physical-term fitting issue, not the ranking).
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
@@ -35,16 +35,19 @@ std::string RoomModel(const sim::Scene& scene, const PoseErrorSummary& noise_flo
   m << "noise: {position_mm: " << sigma_p_mm << ", orientation_deg: " << sigma_o_deg << "}\n";
   m << "terms:\n";
   for (const auto& p : scene.environment.planes) {
-    m << "  - type: plane\n    name: " << p.name << "\n    point_in_transmitter: "
-      << Vec(p.point_in_transmitter) << "\n    normal_in_transmitter: " << Vec(p.normal_in_transmitter)
+    m << "  - type: plane\n    name: " << p.name
+      << "\n    point_in_transmitter: " << Vec(p.point_in_transmitter)
+      << "\n    normal_in_transmitter: " << Vec(p.normal_in_transmitter)
       << "\n    attenuation: " << p.attenuation
       << "\n    parameters:\n      distance_m: {fixed: true}\n      normal_in_transmitter: {fixed: "
          "true}\n      attenuation: {fixed: true}\n";
   }
   for (const auto& o : scene.environment.objects) {
-    m << "  - type: dipole\n    name: " << o.name << "\n    location_in_transmitter: "
-      << Vec(o.location_in_transmitter) << "\n    polarisability_m3: " << o.polarisability_m3
-      << "\n    parameters:\n      location_in_transmitter: {fixed: true}\n      polarisability_m3: "
+    m << "  - type: dipole\n    name: " << o.name
+      << "\n    location_in_transmitter: " << Vec(o.location_in_transmitter)
+      << "\n    polarisability_m3: " << o.polarisability_m3
+      << "\n    parameters:\n      location_in_transmitter: {fixed: true}\n      "
+         "polarisability_m3: "
          "{fixed: true}\n";
   }
   m << "  - type: polynomial\n    degree: 1\n";
@@ -65,7 +68,8 @@ PaperRun Diagnose(const std::string& hidden, uint64_t seed) {
   const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
   std::vector<FitStation> stations;
   for (const auto& r : capture.poses.records) {
-    if (r.set == "calib") stations.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
+    if (r.set == "calib")
+      stations.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
   }
   CandidateOptions options;
   // Test time: cross-validate the 2 best candidates by BIC (the rest are screened out, never
@@ -73,7 +77,8 @@ PaperRun Diagnose(const std::string& hidden, uint64_t seed) {
   options.cross_validate_top = 2;
   options.flexible.clear();
   const std::string model = RoomModel(twin, clean.noise_floor.at("calib"));
-  PaperRun run{DiagnoseCandidates(stations, model, "room.yaml", "paper+" + hidden, options), scene.hidden};
+  PaperRun run{DiagnoseCandidates(stations, model, "room.yaml", "paper+" + hidden, options),
+               scene.hidden};
   std::cout << "hidden " << (hidden.empty() ? "none" : hidden) << ", seed " << seed << ":\n"
             << FormatDiagnosis(run.diagnosis) << "\n";
   return run;
