@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# CPU time of `trackcal-fit diagnose` on the paper preset against `trackcal-fit fit` (one fit plus its
-# 5-fold cross-validation: the baseline every candidate repeats) in the same run (docs/diagnose.md).
+# CPU time of `trackcal-fit diagnose` on the paper preset against `trackcal-fit fit` of the same model
+# (one fit of the base model, evaluated on the validation set) in the same run (docs/diagnose.md).
 #
 #   bench/bench_diagnose.sh [BUILD_DIR] [HIDDEN_EFFECT]      # e.g. build ferromagnetic_object
 #
@@ -37,9 +37,12 @@ open(f"{work}/room.yaml", "w").write(m)
 EOF
 
 cpu() {  # user+sys CPU seconds of a command
-  /usr/bin/env time -f "%U %S" -o "$work/time" "$@" > /dev/null 2>&1 || true
+  if ! /usr/bin/env time -f "%U %S" -o "$work/time" "$@" > /dev/null 2> "$work/err"; then
+    cat "$work/err" >&2
+    exit 1
+  fi
   awk '{print $1+$2}' "$work/time"
 }
 fit_s=$(cpu "$build/fit/trackcal-fit" fit --data "$work/cap" --model "$work/room.yaml" -o "$work/c.json" --quiet)
 diag_s=$(cpu "$build/fit/trackcal-fit" diagnose --data "$work/cap" --model "$work/room.yaml" --quiet)
-python3 -c "f=$fit_s; d=$diag_s; print(f'fit + 5-fold CV: {f:.2f} s CPU; diagnose: {d:.2f} s CPU; ratio {d/f:.1f}')"
+python3 -c "f=$fit_s; d=$diag_s; print(f'fit: {f:.2f} s CPU; diagnose: {d:.2f} s CPU; ratio {d/f:.1f}')"
