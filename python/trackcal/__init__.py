@@ -35,6 +35,7 @@ from trackcal._core import (
     polynomial_term_exponents,
     sha256_file,
 )
+from trackcal.diagnosis import diagnose_candidates
 from trackcal.fitting import FitReport, Pairing, Registration, fit, pair, register
 
 __all__ = [
@@ -47,6 +48,7 @@ __all__ = [
     "TrilinearLutCorrection",
     "__version__",
     "angular_distance",
+    "diagnose_candidates",
     "fit",
     "num_polynomial_terms",
     "pair",
