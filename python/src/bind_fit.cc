@@ -276,6 +276,23 @@ struct LoadedData {
   std::optional<double> time_offset;      // when streams were paired
 };
 
+// Stream pairing with the model's time offset, as trackcal-fit pairs a folder of streams.
+fit::StreamPairingOptions PairingFor(const ModelSpec& spec) {
+  fit::StreamPairingOptions pairing;
+  if (spec.time_offset) {
+    pairing.time_offset = spec.time_offset->value;
+    pairing.estimate_time_offset = !spec.time_offset->fixed;
+    pairing.search_range = spec.time_offset->search_range;
+  }
+  return pairing;
+}
+
+// True for a capture folder holding streams and no poses.csv (its stations are paired).
+bool IsStreamFolder(const DataSource& data) {
+  return data.path && fs::is_directory(*data.path) && !fs::exists(*data.path / kPosesCsv) &&
+         fs::exists(*data.path / kTrackerStreamCsv);
+}
+
 LoadedData LoadData(const DataSource& data, const ModelSpec& spec) {
   LoadedData out;
   out.name = "in-memory capture";
@@ -291,12 +308,7 @@ LoadedData LoadData(const DataSource& data, const ModelSpec& spec) {
   if (fs::is_directory(*data.path)) {
     poses_path = *data.path / kPosesCsv;
     if (!fs::exists(poses_path) && fs::exists(*data.path / kTrackerStreamCsv)) {
-      fit::StreamPairingOptions pairing;
-      if (spec.time_offset) {
-        pairing.time_offset = spec.time_offset->value;
-        pairing.estimate_time_offset = !spec.time_offset->fixed;
-        pairing.search_range = spec.time_offset->search_range;
-      }
+      const fit::StreamPairingOptions pairing = PairingFor(spec);
       const fs::path tracker = *data.path / kTrackerStreamCsv;
       const fs::path reference = *data.path / kReferenceStreamCsv;
       const auto paired =
@@ -504,6 +516,21 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
       if (calib.empty())
         throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
       const std::string data_name = data.path ? data.path->string() : loaded.name;
+      if (IsStreamFolder(data)) {
+        // The time_offset candidate pairs the streams again with its own offset setting.
+        auto tracker = std::make_shared<TrackerStream>(ReadTrackerStream(*data.path / kTrackerStreamCsv));
+        auto reference =
+            std::make_shared<ReferenceStream>(ReadReferenceStream(*data.path / kReferenceStreamCsv));
+        const fit::StreamPairingOptions pairing = PairingFor(spec);
+        options.pair_streams = [tracker, reference, pairing](const fit::TimeOffsetSpec& t) {
+          fit::StreamPairingOptions o = pairing;
+          o.time_offset = t.value;
+          o.estimate_time_offset = !t.fixed;
+          o.search_range = t.search_range;
+          const fit::StreamPairingResult r = fit::PairStreams(*tracker, *reference, o);
+          return fit::PairedStations{StationsOfSet(r.poses, "calib"), r.time_offset};
+        };
+      }
       doc = fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options)
                 .ToJson();
     });

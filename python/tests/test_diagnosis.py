@@ -77,6 +77,18 @@ def test_verdict_nothing_significant():
         diagnosis.verdict(None, TEMPERATURE)["text"]
 
 
+def test_verdict_names_a_flexible_fallback_when_no_covariate_explains():
+    doc = contract_b_doc(False)
+    doc["flexible_fallback"] = [{"effect": "polynomial", "significant": True, "model_change": "- type: polynomial\n",
+                                 "insert_index": 1, "cv_drop_percent": {"position": 22.5}}]
+    quiet = [CovariateEffect("x", "position_mm", 0.01, 0.3, False, 600)]
+    v = diagnosis.verdict(doc, quiet)
+    assert v["source"] == "flexible" and "held-out error by 22.5 %" in v["text"]
+    assert v["text"].startswith("no catalog effect explains the remaining structure")
+    # A covariate, when there is one, says more than the flexible term.
+    assert diagnosis.verdict(doc, TEMPERATURE)["source"] == "covariate"
+
+
 def test_model_change_is_inserted_where_the_candidate_says():
     change = "- type: dipole\n  location_in_transmitter: [0.6, 0.9, -0.5]\n"
     new = diagnosis.model_with_change(MODEL, change, 0)

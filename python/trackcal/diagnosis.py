@@ -90,7 +90,10 @@ def _covariate_phrase(rows: List[dict]) -> str:
 def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     """Combines the candidate ranking (None: not run) and the covariate analysis.
 
-    Returns {"source": "candidate" | "covariate" | None, "effect", "covariate", "text",
+    Without a significant candidate or covariate, a significant flexible fallback of the ranking
+    (a polynomial appended to the model: structure in position that no catalog effect has) is named.
+
+    Returns {"source": "candidate" | "covariate" | "flexible" | None, "effect", "covariate", "text",
     "model_change", "insert_index"}."""
     rows = covariate_findings(covariate_effects)
     top = top_candidate(candidates_doc)
@@ -108,6 +111,15 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
         lead = ("no catalog effect explains the remaining structure; " if candidates_doc is not None
                 else "the remaining structure is not noise (catalog effects not tested); ")
         out.update(source="covariate", text=lead + _covariate_phrase(rows))
+        return out
+    flexible = next((f for f in (candidates_doc or {}).get("flexible_fallback", []) if f.get("significant")), None)
+    if flexible is not None:
+        drop = (flexible.get("cv_drop_percent") or {}).get("position")
+        out.update(source="flexible",
+                   text="no catalog effect explains the remaining structure; it follows position (a flexible "
+                        f"{flexible.get('effect', 'term')} lowers the held-out error"
+                        + (f" by {drop:.1f} %" if isinstance(drop, (int, float)) else "") + ")",
+                   model_change=flexible.get("model_change"), insert_index=flexible.get("insert_index"))
         return out
     out["text"] = ("nothing significant remains" if candidates_doc is not None
                    else "nothing significant remains in the covariates (catalog effects not tested)")

@@ -106,7 +106,7 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
 
 def _data_files(data) -> List[Tuple[pathlib.Path, str]]:
     """The capture files a fit read from ``data`` (folder or poses.csv)."""
-    p = pathlib.Path(data)
+    p = pathlib.Path(data).resolve()
     if p.is_dir():
         if (p / "poses.csv").is_file():
             return [(p / "poses.csv", "calibration_capture")]
@@ -146,7 +146,8 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
             label = "same model"
         else:
             label = term_change(previous["terms"], terms) or "settings"
-    model_path = model if (isinstance(model, (str, os.PathLike)) and report.model["source"] != "<string>") else None
+    model_path = (pathlib.Path(model).resolve()
+                  if isinstance(model, (str, os.PathLike)) and report.model["source"] != "<string>" else None)
     fields = {"model": {"sha256": sha, "copy": str(copy.relative_to(workdir)), "terms": terms},
               "terms": terms,
               "fit": {"converged": report.converged, "chi2_per_dof": report.chi2_per_dof,
@@ -155,7 +156,7 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     if model_path is None:  # model given as text: the copy is the model file
         fields["model"]["path"] = str(copy.relative_to(workdir))
     if calibration is not None:
-        fields["calibration"] = {"path": str(calibration), "sha256": _sha(calibration)}
+        fields["calibration"] = {"path": str(pathlib.Path(calibration).resolve()), "sha256": _sha(calibration)}
     return record_fit(workdir, model=model_path,
                       data=_data_files(data) if isinstance(data, (str, os.PathLike)) else [],
                       scores=report.scores(), label=label, fields=fields)
@@ -193,7 +194,8 @@ def history_table(entries: Sequence[dict]) -> str:
         p, o = headline_scores(e)
         dp = f"{100 * (p - prev[0]) / prev[0]:+.1f}%" if prev and prev[0] else ""
         do = f"{100 * (o - prev[1]) / prev[1]:+.1f}%" if prev and prev[1] else ""
-        model = (e.get("model") or {}).get("path", "")
+        m = e.get("model") or {}
+        model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
         lines.append(f"{i:>3}  {e.get('time_utc', ''):<20}  {str(e.get('label', ''))[:28]:<28} {p:>12.3f} "
                      f"{dp:>8} {o:>13.3f} {do:>8}  {model}")
         prev = (p, o)
