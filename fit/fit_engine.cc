@@ -142,13 +142,17 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
   for (const auto& term : spec->terms) {
     for (const auto& block : term->blocks()) {
       ParameterReport r;
-      r.term = term->name();
+      r.term = block.term.empty() ? term->name() : block.term;
       r.block = block.name;
       r.unit = block.unit;
       r.fixed = block.fixed;
       r.coordinate_names = block.coordinate_names;
       r.values = block.values;
       r.stddev = block.stddev;
+      if (block.stddev.size() != block.values.size()) {  // a manifold block: tangent stds
+        r.stddev_names = block.tangent_names;
+        r.stddev_unit = block.tangent_unit;
+      }
       result.parameters.push_back(std::move(r));
     }
     nlohmann::json d = term->Describe();
@@ -371,8 +375,13 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       if (blocks[b].fixed || blocks[b].values.empty()) continue;
       CovarianceBlock cb;
       cb.values = blocks[b].values.data();
-      cb.name = spec->terms[t]->name() + "." + blocks[b].name;
+      cb.name = (blocks[b].term.empty() ? spec->terms[t]->name() : blocks[b].term) + "." +
+                blocks[b].name;
       cb.coordinate_names = blocks[b].coordinate_names;
+      if (blocks[b].make_manifold) {
+        cb.coordinate_names = blocks[b].tangent_names;
+        cb.tangent_scale = blocks[b].tangent_scale;
+      }
       cb.max_stddev = blocks[b].identifiability_scale;
       cov_blocks.push_back(cb);
       cov_index.emplace_back(t, b);
@@ -391,9 +400,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       for (size_t i = 0; i < cov_blocks.size(); ++i) {
         auto& block = spec->terms[cov_index[i].first]->blocks()[cov_index[i].second];
         const int offset = cov.block_offsets[i];
+        // Manifold blocks: one std per tangent coordinate (tangent_names, tangent_unit).
         const int tangent = problem.ParameterBlockTangentSize(block.values.data());
-        if (tangent != block.size()) continue;  // manifold blocks: std in tangent space only
-        for (int k = 0; k < block.size(); ++k) block.stddev[static_cast<size_t>(k)] = cov.stddev[offset + k];
+        block.stddev.resize(static_cast<size_t>(tangent));
+        for (int k = 0; k < tangent; ++k) block.stddev[static_cast<size_t>(k)] = cov.stddev[offset + k];
       }
     }
   }
@@ -481,10 +491,25 @@ nlohmann::json FitResult::ToJson() const {
       values.push_back({{"name", i < p.coordinate_names.size() ? p.coordinate_names[i]
                                                                : p.block + "[" + std::to_string(i) + "]"},
                         {"value", p.values[i]},
-                        {"stddev", NumberOrNull(i < p.stddev.size() ? p.stddev[i] : NAN)}});
+                        {"stddev", NumberOrNull(p.stddev_names.empty() && i < p.stddev.size()
+                                                    ? p.stddev[i]
+                                                    : NAN)}});
     }
-    params.push_back({{"term", p.term}, {"block", p.block}, {"unit", p.unit}, {"fixed", p.fixed},
-                      {"values", values}});
+    nlohmann::json entry = {{"term", p.term}, {"block", p.block}, {"unit", p.unit},
+                            {"fixed", p.fixed}, {"values", values}};
+    if (!p.stddev_names.empty()) {
+      // A manifold block: the stds are of its tangent coordinates, not of its values.
+      nlohmann::json tangent = nlohmann::json::array();
+      for (size_t i = 0; i < p.stddev_names.size(); ++i) {
+        tangent.push_back({{"name", p.stddev_names[i]},
+                           {"stddev", NumberOrNull(p.stddev_names.empty() && i < p.stddev.size()
+                                                    ? p.stddev[i]
+                                                    : NAN)}});
+      }
+      entry["tangent"] = tangent;
+      entry["tangent_unit"] = p.stddev_unit;
+    }
+    params.push_back(entry);
   }
   nlohmann::json flags = nlohmann::json::array();
   for (const auto& f : identifiability_flags) flags.push_back({{"coordinate", f.coordinate}, {"reason", f.reason}});

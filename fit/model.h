@@ -65,8 +65,19 @@ struct ParameterBlock {
   double identifiability_scale = std::numeric_limits<double>::infinity();
   // Manifold of the block (null: Euclidean). Called once per problem; the problem takes ownership.
   std::function<ceres::Manifold*()> make_manifold;
-  // Standard deviations after a fit (one per value; NaN for fixed values or unavailable covariance).
+  // Standard deviations after a fit: one per value, or for a manifold block one per tangent
+  // coordinate (named by tangent_names, in tangent_unit); NaN for fixed values or unavailable
+  // covariance.
   std::vector<double> stddev;
+  // Manifold blocks: names and unit of the tangent coordinates ("rotation_vector.x", "rad"), and
+  // the physical units per tangent unit (2 for EigenQuaternionManifold: rotation vectors in rad).
+  std::vector<std::string> tangent_names;
+  std::string tangent_unit;
+  double tangent_scale = 1.0;
+  // The model-file term the block belongs to when its ModelTerm groups several file terms (the
+  // physical effects of fit/terms_physical.h); empty: the ModelTerm's own name. Reports and
+  // `parameters:` settings use it.
+  std::string term;
 
   int size() const { return static_cast<int>(values.size()); }
   // Throws std::invalid_argument naming the block on inconsistent sizes, non-finite values, lower >

@@ -6,6 +6,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "fit/terms_physical.h"
+
 namespace trackcal::fit {
 namespace {
 
@@ -225,6 +227,7 @@ void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* t
     std::string known;
     std::vector<ParameterBlock*> matched;
     for (auto& b : term->blocks()) {
+      if (!s.term.empty() && b.term != s.term) continue;  // another effect of a physical group
       // "node_values" names every "node_values[...]" block of a LUT.
       const std::string family = b.name.substr(0, b.name.find('['));
       if (known.find(family) == std::string::npos) known += (known.empty() ? "" : ", ") + family;
@@ -232,7 +235,7 @@ void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* t
     }
     if (!matched.empty()) block = matched.front();
     if (block == nullptr) {
-      throw std::invalid_argument(s.where + ": term '" + term->name() +
+      throw std::invalid_argument(s.where + ": term '" + (s.term.empty() ? term->name() : s.term) +
                                   "' has no parameter block '" + s.block + "' (blocks: " + known +
                                   ")");
     }
@@ -330,6 +333,7 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     top.Fail("terms", terms.IsDefined() ? "expected a list of terms" : "missing required field");
   }
   std::set<std::string> names;
+  bool saw_explicit = false;  // physical terms must come before polynomial / LUT terms
   for (size_t i = 0; i < terms.size(); ++i) {
     const YamlMapReader r(terms[i], source_name, "$.terms[" + std::to_string(i) + "]");
     const std::string type = r.GetString("type");
@@ -352,6 +356,50 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     std::vector<BlockSettings> settings;
     if (r.Has("parameters")) settings = ParseBlockSettings(r.GetMap("parameters"));
     r.Finish();
+    const int line = terms[i].Mark().is_null() ? 0 : terms[i].Mark().line + 1;
+    spec.file_terms.push_back({type, name, line, static_cast<int>(spec.terms.size())});
+    // Consecutive physical terms form one forward field model: one PhysicalGroupTerm.
+    if (auto* group = dynamic_cast<PhysicalGroupTerm*>(term.get())) {
+      if (saw_explicit) {
+        r.Fail("type", "physical term '" + type +
+                           "' after an explicit term (polynomial, lut): physical terms must come "
+                           "first, they correct the raw report");
+      }
+      group->SetEffectName(name, line);
+      for (BlockSettings& setting : settings) {
+        setting.term = name;
+        std::string known;
+        bool exists = false;
+        for (const auto& b : group->blocks()) {
+          known += (known.empty() ? "" : ", ") + b.name;
+          exists = exists || b.name == setting.block;
+        }
+        if (!exists) {  // physical blocks exist before Prepare(): check them at once
+          throw std::invalid_argument(setting.where + ": term '" + name +
+                                      "' has no parameter block '" + setting.block +
+                                      "' (blocks: " + known + ")");
+        }
+        if (setting.value) group->MarkStartGiven(name, setting.block);
+      }
+      auto* previous =
+          spec.terms.empty() ? nullptr : dynamic_cast<PhysicalGroupTerm*>(spec.terms.back().get());
+      if (previous != nullptr) {
+        try {
+          previous->Absorb(std::move(*group));
+        } catch (const std::invalid_argument& e) {
+          r.Fail("type", e.what());
+        }
+        spec.file_terms.back().model_term = static_cast<int>(spec.terms.size()) - 1;
+        for (BlockSettings& setting : settings) spec.block_settings.back().push_back(setting);
+        continue;
+      }
+      std::string group_name = PhysicalGroupTerm::kType;
+      while (names.count(group_name)) group_name += "_group";
+      names.insert(group_name);
+      term->set_name(group_name);
+    } else {
+      saw_explicit = true;
+    }
     spec.terms.push_back(std::move(term));
     spec.block_settings.push_back(std::move(settings));
   }

@@ -105,6 +105,7 @@ struct LossOptions {
 // Settings of one parameter block from the file's `parameters:` mapping, applied after Prepare().
 struct BlockSettings {
   std::string block;  // block name
+  std::string term;   // applies only to blocks whose ParameterBlock::term is this (empty: any)
   std::string where;  // "FILE:LINE:COLUMN: PATH" for errors found when applying
   std::optional<std::vector<double>> value;  // one value (broadcast) or one per coordinate
   std::optional<bool> fixed;
@@ -118,6 +119,14 @@ struct TimeOffsetSpec {
   double search_range = 0.5;  // [s] half-width of the search interval around `value`
 };
 
+// One entry of the file's `terms:` list as written (before physical terms are grouped).
+struct ModelFileTerm {
+  std::string type;  // "dipole", "polynomial", ...
+  std::string name;  // instance name (unique)
+  int line = 0;      // 1-based line of the entry in the file
+  int model_term = 0;  // index into ModelSpec::terms of the term that holds it
+};
+
 struct ModelSpec {
   std::string source;  // file name (or "<string>")
   double position_sigma = 1e-3;     // [m] position noise for whitening
@@ -129,6 +138,9 @@ struct ModelSpec {
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;
   std::vector<std::vector<BlockSettings>> block_settings;  // one list per term
+  // The file's terms in order; consecutive physical terms share one ModelTerm (a
+  // PhysicalGroupTerm, fit/terms_physical.h), so terms.size() <= file_terms.size().
+  std::vector<ModelFileTerm> file_terms;
 };
 
 // Parses the model file; throws std::invalid_argument "FILE:LINE:COLUMN: PATH: message".

@@ -1,74 +1,131 @@
-// Physical-effect terms estimated with Ceres: the parameters of core/physical_correction.h.
+// Physical effects as terms of the fitting engine (fit/model.h): the parameters of the runtime
+// correction core/physical_correction.h, written in the model file (docs/model-file.md) as
 //
-// Each term is one physical effect with named parameters that can be free or fixed:
-//   - sensor_offset: receiver_from_body (rotation on EigenQuaternionManifold, translation) [m];
-//   - receiver_gain: the 3 x 3 receiver matrix G (gains and non-orthogonality). Its overall scale
-//     is the gauge of the field constant (S = G R^T k B / k'): k stays fixed, G is free;
-//   - dipole: an induced dipole (location [m], polarisability [m^3]); may repeat;
-//   - plane: a conducting plane (point [m], unit normal on SphereManifold, attenuation);
-//   - near_field: the transmitter octupole coefficient of each coil [m^2].
+//   - type: sensor_offset   # receiver_from_body: rotation (quaternion) and translation [m]
+//   - type: receiver_gain   # G, 3 x 3 (receiver coil gains and non-orthogonality)
+//   - type: dipole          # an induced dipole: location [m], polarisability [m^3]; may repeat
+//   - type: plane           # a conducting plane: distance [m], normal (unit), attenuation in [-1, 1]
+//   - type: near_field      # the transmitter octupole coefficient of each coil [m^2]
 //
-// Residuals live in correction space: for one station the corrected pose x*(theta) (the true
-// receiver pose behind the report, the inverse core/ runs at run time, composed with the sensor
-// offset) minus the reference pose, whitened by the position and orientation noise. x*(theta)
-// solves the tracker's normal equations g(x, theta) = J_y^T vec(S(x; theta) - S_free(y)) = 0 (see
-// core/physical_correction.h); its Jacobian comes from the implicit function theorem,
-// dx/dtheta = -(dg/dx)^-1 dg/dtheta, with dg/dx and dg/dtheta from ceres::Jet autodiff of the
-// same templated field code (core/field.h). The inverse itself runs in double.
+// Every term type creates a PhysicalGroupTerm with one effect; the model-file parser merges
+// consecutive physical terms into one group (MergePhysicalGroups), so a station runs ONE inverse of
+// ONE forward field model, and the calibration file holds one `physical` entry. Each block keeps the
+// name of the effect it belongs to (ParameterBlock::term), so reports and `parameters:` settings
+// address "dipole_2.location_in_transmitter" as written in the file.
+//
+// Evaluate(): the corrected pose is x*(theta, y) composed with the sensor offset, where x* is the
+// true receiver pose behind the report y: it solves the tracker's normal equations
+// g(x, theta, y) = J_y^T vec(S(x; theta) - S_free(y)) = 0 (core/physical_correction.h; the inverse
+// runs there, in double). Its derivatives come from the implicit function theorem,
+//   dx/dtheta = -(dg/dx)^-1 dg/dtheta,   dx/dy = -(dg/dx)^-1 dg/dy,
+// with dg/dx, dg/dtheta by ceres::Jet autodiff of the templated field code (core/field.h) and dg/dy
+// (which needs the derivative of J_y, i.e. second derivatives of S_free) by nested Jets.
+//
+// Start values by search (InitializeLinear): a dipole without a location, or a plane without a
+// point and normal, is placed by scoring a grid of candidates by the linearised least-squares fit
+// of its strength to the residual the group leaves without it, then refining the best few
+// candidates on the same linearisation (docs/model-file.md, "Start values by search").
 #pragma once
 
-#include <ceres/problem.h>
-
-#include <Eigen/Core>
+#include <memory>
 #include <string>
 #include <vector>
 
-#include "core/field.h"
 #include "core/physical_correction.h"
-#include "core/pose.h"
-#include "fit/covariance.h"
+#include "fit/model.h"
+#include "fit/model_file.h"
 
 namespace trackcal::fit {
 
-// One station: what the tracker reported and the reference (body) pose.
-struct PhysicalObservation {
-  Rigid3d reported;                    // transmitter_from_receiver as reported
-  Rigid3d reference;                   // transmitter_from_body from the optical reference
-  double position_sigma_m = 0.0;       // this station's noise per axis [m]; 0: the options' value
-  double orientation_sigma_rad = 0.0;  // [rad]; 0: the options' value
+enum class PhysicalEffect { kSensorOffset, kReceiverGain, kDipole, kPlane, kNearField };
+
+// "sensor_offset", "receiver_gain", "dipole", "plane", "near_field".
+const char* PhysicalEffectType(PhysicalEffect effect);
+// The physical term types in model-file order of the table above.
+const std::vector<std::string>& PhysicalTermTypes();
+
+// Options of the start-value search (InitializeLinear).
+struct PhysicalSearchOptions {
+  double margin_m = 1.0;         // candidates up to this far outside the data's bounding box
+  double dipole_spacing_m = 0.15;  // grid spacing of dipole candidate locations
+  double min_station_distance_m = 0.1;  // candidates closer than this to a station are skipped
+  int refine_candidates = 5;     // best candidates refined on the linearisation
+  int plane_normals = 60;        // normals on the half sphere (plus the 3 axes)
+  double plane_distance_step_m = 0.1;  // distance grid step beyond the data
+  bool Check() const;
 };
 
-// Which parameters are free. Planes and objects of `initial` beyond the free ones stay fixed.
-struct PhysicalFitOptions {
-  bool sensor_offset = false;           // fit receiver_from_body
-  bool receiver_gain = false;           // fit G (9 entries)
-  bool near_field = false;              // fit the octupole coefficients (3)
-  std::vector<int> free_objects;        // indices into initial.field.objects to fit
-  std::vector<int> free_planes;         // indices into initial.field.planes to fit
-  double position_sigma_m = 1e-3;       // whitening: position noise per axis [m]
-  double orientation_sigma_rad = 1e-3;  // whitening: orientation noise per axis [rad]
-  // Robust loss scale in sigmas (Cauchy); 0 disables. Hemisphere flips are outliers of 1000 sigma.
-  double robust_loss_sigmas = 0.0;
-  int max_iterations = 100;  // Ceres iterations
-  // Throws std::invalid_argument naming the field.
-  void Check(const PhysicalCorrection& initial) const;
+class PhysicalGroupTerm : public ModelTerm {
+ public:
+  static constexpr const char* kType = "physical";
+
+  // One effect of the group and where its blocks are.
+  struct Effect {
+    PhysicalEffect kind;
+    std::string name;     // the file-level term name ("dipole_2")
+    int first_block = 0;  // index of its first block in blocks()
+    int line = 0;         // model-file line (1-based; 0 unknown), for errors
+    bool search_location = false;  // dipole: location not given -> searched
+    bool search_plane = false;     // plane: point (distance) not given -> searched
+    bool normal_given = false;     // plane: normal given (a search keeps it)
+    bool strength_given = true;    // polarisability / attenuation given in the file
+  };
+
+  // A group of one effect with its default start values (identity offset and gain, zero octupole,
+  // a dipole/plane to be searched).
+  explicit PhysicalGroupTerm(PhysicalEffect effect);
+  // Factory of the registry: reads the effect's optional start values from the term's mapping.
+  static std::unique_ptr<ModelTerm> FromYaml(PhysicalEffect effect, const YamlMapReader& reader);
+
+  std::string type() const override { return kType; }
+  const std::vector<Effect>& effects() const { return effects_; }
+  // Names the (single) effect and its blocks; used by the parser before merging.
+  void SetEffectName(const std::string& name, int line);
+  // Marks a block's start value as given (a `parameters: {block: {value: ...}}` setting).
+  void MarkStartGiven(const std::string& effect_name, const std::string& block);
+  // Moves the effects and blocks of `other` (a later group) into this one. Throws
+  // std::invalid_argument if an effect that may occur once (sensor_offset, receiver_gain,
+  // near_field) would occur twice.
+  void Absorb(PhysicalGroupTerm&& other);
+
+  void Prepare(const std::vector<FitStation>& inputs) override;
+  // Runs the start-value searches (dipoles and planes not given). Returns true.
+  bool InitializeLinear(const std::vector<FitStation>& inputs,
+                        const Eigen::Vector2d& noise_sigmas) override;
+  // Binds the free blocks only; fixed blocks are read from blocks() in Evaluate().
+  StationBinding Bind(const AmbientPose& input) const override;
+  bool Evaluate(const StationBinding& binding, const double* const* block_values,
+                const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
+  // With both receiver_gain and sensor_offset free, holds G symmetric: its rotation part is the
+  // same as a rotation of the sensor offset (a gauge), see the .cc.
+  int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
+  std::unique_ptr<Correction> ToCorrection() const override;
+  nlohmann::json Describe() const override;
+
+  // The runtime correction at the given block values (all blocks, blocks() order). Throws
+  // std::invalid_argument if they leave the model's domain.
+  PhysicalCorrection MakeCorrection(const double* const* all_values,
+                                    PhysicalCorrectionOptions options = {}) const;
+
+  PhysicalSearchOptions& search_options() { return search_options_; }
+
+ private:
+  // Adds the blocks of one effect.
+  void AddEffectBlocks(Effect* effect);
+  int Block(const Effect& e, int k) const { return e.first_block + k; }
+  void SearchDipole(const Effect& effect, const std::vector<FitStation>& inputs,
+                    const Eigen::Vector2d& sigmas);
+  void SearchPlane(const Effect& effect, const std::vector<FitStation>& inputs,
+                   const Eigen::Vector2d& sigmas);
+
+  std::vector<Effect> effects_;
+  PhysicalSearchOptions search_options_;
+  Eigen::Vector3d data_min_ = Eigen::Vector3d::Zero(), data_max_ = Eigen::Vector3d::Zero();
+  // Effects switched off while the search runs (strength held at 0 in MakeCorrection()).
+  std::vector<bool> disabled_;
 };
 
-struct PhysicalFitResult {
-  bool converged = false;                    // Ceres reported convergence
-  PhysicalCorrection model;                  // the fitted correction
-  std::vector<std::string> parameter_names;  // e.g. "objects[2].location_in_transmitter.x"
-  Eigen::VectorXd values;                    // physical values (quaternions as rotation vectors
-                                             // of the change from the initial value) [SI]
-  Eigen::VectorXd stddev;                    // standard deviations, same order
-  std::vector<IdentifiabilityFlag> flags;    // poorly identifiable parameters
-  double final_cost = 0.0;                   // 0.5 sum of squared whitened residuals
-  std::string report;                        // Ceres brief report
-};
-
-// Fits the free parameters of `initial` to the observations.
-PhysicalFitResult FitPhysicalModel(const PhysicalCorrection& initial,
-                                   const std::vector<PhysicalObservation>& observations,
-                                   const PhysicalFitOptions& options);
+// Registers the five physical term types (called by the registry's built-in registration).
+void RegisterPhysicalTerms(TermRegistry* registry);
 
 }  // namespace trackcal::fit
