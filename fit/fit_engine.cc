@@ -202,7 +202,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
 
   // Fast path: a lone linear term (the paper's method) is solved by its linear least squares.
   if (spec->terms.size() == 1 && linear_ok[0] && spec->terms[0]->SolvesAloneLinearly() &&
-      spec->loss.type == LossType::kNone) {
+      spec->loss.type == LossType::kNone && spec->position_range_exponent == 0.0 &&
+      spec->orientation_range_exponent == 0.0) {
     bool plain = true;
     for (const auto& block : spec->terms[0]->blocks()) {
       plain = plain && block.lower.empty() && block.upper.empty() && block.prior_mean.empty();
@@ -281,8 +282,9 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
           blocks.push_back(const_cast<ModelTerm*>(b.term)->blocks()[static_cast<size_t>(j)].values.data());
         }
       }
+      const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
       station_blocks.push_back(problem.AddResidualBlock(
-          new StationCost(bound[i], stations[i], spec->position_sigma, spec->orientation_sigma),
+          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1]),
           MakeLoss(spec->loss), blocks));
     }
   }

@@ -2,6 +2,8 @@
 //
 //   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] [--json]
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv [--json]
+//   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
+//                         [--cross-validate-top N] [--json]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
 //                     [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv [--json]
 //
@@ -15,6 +17,7 @@
 #include <iomanip>
 #include <iostream>
 #include <map>
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <sstream>
 #include <string>
@@ -23,6 +26,7 @@
 #include "core/calibration_file.h"
 #include "core/capture.h"
 #include "core/file_util.h"
+#include "fit/candidates.h"
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
 #include "fit/pose_extraction.h"
@@ -46,12 +50,16 @@ void PrintUsage(std::ostream& out) {
   out << "usage:\n"
          "  trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] "
          "[--json]\n"
+         "  trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] "
+         "[--effects LIST]\n"
+         "                        [--cross-validate-top N] [--json] [--quiet]\n"
          "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv "
          "[--json]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv "
          "[--json]\n"
-         "Model file format: docs/model-file.md; tool reference: docs/fit.md.\n";
+         "Model file format: docs/model-file.md; tool reference: docs/fit.md; diagnose: "
+         "docs/diagnose.md.\n";
 }
 
 // --key value options and --flags.
@@ -128,8 +136,16 @@ void PrintParameters(const FitResult& result, std::ostream& out) {
       out << "    " << std::left << std::setw(22)
           << (i < p.coordinate_names.size() ? p.coordinate_names[i] : std::to_string(i))
           << std::right << std::setw(14) << std::setprecision(6) << p.values[i];
-      if (i < p.stddev.size() && std::isfinite(p.stddev[i])) out << " +- " << p.stddev[i];
+      if (p.stddev_names.empty() && i < p.stddev.size() && std::isfinite(p.stddev[i])) {
+        out << " +- " << p.stddev[i];
+      }
       out << "\n";
+    }
+    // Manifold blocks (quaternion, unit normal): stds of the tangent coordinates.
+    for (size_t i = 0; i < p.stddev_names.size() && i < p.stddev.size(); ++i) {
+      if (!std::isfinite(p.stddev[i])) continue;
+      out << "    " << std::left << std::setw(22) << p.stddev_names[i] << std::right
+          << std::setw(14) << "std" << " " << p.stddev[i] << " " << p.stddev_unit << "\n";
     }
     if (shown < p.values.size()) out << "    ... (all values in --json and the calibration file)\n";
   }
@@ -260,6 +276,83 @@ int RunFit(int argc, char** argv) {
   return 0;
 }
 
+// diagnose: which catalog effect is the model missing (fit/candidates.h, docs/diagnose.md).
+int RunDiagnose(int argc, char** argv) {
+  const Args args = ParseArgs(argc, argv,
+                              {"--data", "--model", "--folds", "--effects", "--cross-validate-top"},
+                              {"--json", "--quiet"});
+  const fs::path data = args.Get("--data");
+  const fs::path model_path = args.Get("--model");
+  CandidateOptions options;
+  options.folds = static_cast<int>(ParseNumber("--folds", args.GetOr("--folds", "5")));
+  if (options.folds < 2) throw UsageError("--folds must be at least 2");
+  options.cross_validate_top =
+      static_cast<int>(ParseNumber("--cross-validate-top", args.GetOr("--cross-validate-top", "0")));
+  if (options.cross_validate_top < 0) throw UsageError("--cross-validate-top must be >= 0");
+  if (args.values.count("--effects")) {
+    std::stringstream list(args.Get("--effects"));
+    for (std::string name; std::getline(list, name, ',');) {
+      if (!name.empty()) options.effects.push_back(name);
+    }
+    try {
+      options.Check();
+    } catch (const std::invalid_argument& e) {
+      throw UsageError(std::string("--effects: ") + e.what());
+    }
+  }
+  const bool quiet = args.Flag("--quiet");
+  if (!quiet) {
+    options.progress = [](const std::string& message) {
+      std::cerr << "trackcal-fit diagnose: " << message << "\n";
+    };
+  }
+  const std::string model_text = ReadFileToString(model_path);
+  const ModelSpec spec = ParseModelYaml(model_text, model_path.string());
+
+  // Data: poses.csv, a folder with poses.csv, or a folder with streams (paired with the model's
+  // time_offset, as `fit` does).
+  fs::path poses_path = data;
+  PoseCapture poses;
+  if (fs::is_directory(data)) {
+    poses_path = data / kPosesCsv;
+    if (!fs::exists(poses_path) && fs::exists(data / kTrackerStreamCsv)) {
+      StreamPairingOptions pairing;
+      if (spec.time_offset) {
+        pairing.time_offset = spec.time_offset->value;
+        pairing.estimate_time_offset = !spec.time_offset->fixed;
+        pairing.search_range = spec.time_offset->search_range;
+      }
+      auto tracker = std::make_shared<TrackerStream>(ReadTrackerStream(data / kTrackerStreamCsv));
+      auto reference =
+          std::make_shared<ReferenceStream>(ReadReferenceStream(data / kReferenceStreamCsv));
+      poses = PairStreams(*tracker, *reference, pairing).poses;
+      // The time_offset candidate pairs them again, estimating the offset.
+      options.pair_streams = [tracker, reference, pairing](const TimeOffsetSpec& t) {
+        StreamPairingOptions o = pairing;
+        o.time_offset = t.value;
+        o.estimate_time_offset = !t.fixed;
+        o.search_range = t.search_range;
+        const StreamPairingResult r = PairStreams(*tracker, *reference, o);
+        return PairedStations{StationsOfSet(r.poses, "calib"), r.time_offset};
+      };
+    }
+  }
+  if (poses.records.empty()) poses = ReadPoses(poses_path);
+  const auto calib = StationsOfSet(poses, "calib");
+  if (calib.empty()) {
+    throw std::invalid_argument(poses_path.string() + ": no stations with set 'calib'");
+  }
+  const Diagnosis diagnosis =
+      DiagnoseCandidates(calib, model_text, model_path.string(), data.string(), options);
+  if (args.Flag("--json")) {
+    std::cout << diagnosis.ToJson().dump(2) << "\n";
+  } else {
+    std::cout << FormatDiagnosis(diagnosis);
+    std::cout << "(" << std::setprecision(3) << diagnosis.seconds << " s)\n";
+  }
+  return 0;
+}
+
 int RunPair(int argc, char** argv) {
   const Args args = ParseArgs(argc, argv, {"--tracker", "--reference", "-o", "--time-offset", "--set"},
                               {"--json", "--estimate-time-offset"});
@@ -337,6 +430,7 @@ int main(int argc, char** argv) {
   const std::string command = argv[1];
   try {
     if (command == "fit") return RunFit(argc, argv);
+    if (command == "diagnose") return RunDiagnose(argc, argv);
     if (command == "pair") return RunPair(argc, argv);
     if (command == "register") return RunRegister(argc, argv);
     throw UsageError("unknown command '" + command + "'");

@@ -107,6 +107,37 @@ TEST_F(FitCliTest, RegisterWritesReferencePoses) {
   EXPECT_GT(poses.records.size(), 0u);
 }
 
+// diagnose: one JSON document with the contract's keys (docs/diagnose.md); a robust-loss candidate
+// is never claimed for a hemisphere-flip-free capture; the text output ends with the verdict.
+TEST_F(FitCliTest, DiagnoseJsonAndText) {
+  const fs::path json = dir_ / "diagnose.json";
+  ASSERT_EQ(RunCommand(fit_ + " diagnose --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "model.yaml").string() +
+                       " --folds 3 --effects robust_loss --json --quiet > " + json.string()),
+            0);
+  const auto doc = nlohmann::json::parse(ReadFileToString(json));  // exactly one document
+  EXPECT_EQ(doc["command"], "diagnose");
+  EXPECT_EQ(doc["folds"], 3);
+  EXPECT_EQ(doc["num_stations"], 480);
+  EXPECT_TRUE(doc["base"]["cv_position_mm_mean"].is_number());
+  EXPECT_EQ(doc["base"]["table1"]["set"], "cross-validation (3-fold)");
+  ASSERT_EQ(doc["candidates"].size(), 1u);
+  EXPECT_EQ(doc["candidates"][0]["effect"], "robust_loss");
+  EXPECT_TRUE(doc["candidates"][0]["insert_index"].is_null());
+  EXPECT_FALSE(doc["candidates"][0]["significant"].get<bool>());
+  EXPECT_TRUE(doc["verdict"]["effect"].is_null());
+
+  const fs::path text = dir_ / "diagnose.txt";
+  ASSERT_EQ(RunCommand(fit_ + " diagnose --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "model.yaml").string() + " --folds 3 --effects robust_loss > " +
+                       text.string() + " 2> /dev/null"),
+            0);
+  EXPECT_THAT(ReadFileToString(text), ::testing::HasSubstr("Verdict: No catalog effect explains"));
+  EXPECT_EQ(RunCommand(fit_ + " diagnose --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "model.yaml").string() + " --effects teleportation 2> /dev/null"),
+            2);
+}
+
 TEST_F(FitCliTest, PairJson) {
   const fs::path json = dir_ / "pair.json";
   ASSERT_EQ(RunCommand((BinaryDir() / "sim" / "trackcal-simulate").string() +

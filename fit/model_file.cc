@@ -289,6 +289,10 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     if (!(o > 0.0)) noise.Fail("orientation_deg", "must be > 0");
     spec.position_sigma = p * 1e-3;
     spec.orientation_sigma = o * M_PI / 180.0;
+    spec.position_range_exponent = noise.GetDoubleOr("position_range_exponent", 0.0);
+    spec.orientation_range_exponent = noise.GetDoubleOr("orientation_range_exponent", 0.0);
+    spec.noise_reference_range_m = noise.GetDoubleOr("reference_range_m", 1.0);
+    if (!(spec.noise_reference_range_m > 0.0)) noise.Fail("reference_range_m", "must be > 0");
     noise.Finish();
   }
   if (top.Has("loss")) {
@@ -406,6 +410,16 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
   if (spec.terms.empty()) top.Fail("terms", "the model needs at least one correction term");
   top.Finish();
   return spec;
+}
+
+Eigen::Vector2d ModelSpec::StationSigmas(const Rigid3d& reported) const {
+  Eigen::Vector2d sigmas(position_sigma, orientation_sigma);
+  if (position_range_exponent == 0.0 && orientation_range_exponent == 0.0) return sigmas;
+  // A station at the transmitter would get zero noise: 1 cm is closer than any tracker works.
+  const double range = std::max(reported.translation.norm(), 0.01) / noise_reference_range_m;
+  sigmas[0] *= std::pow(range, position_range_exponent);
+  sigmas[1] *= std::pow(range, orientation_range_exponent);
+  return sigmas;
 }
 
 ModelSpec ReadModelFile(const std::filesystem::path& path) {

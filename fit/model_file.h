@@ -131,6 +131,14 @@ struct ModelSpec {
   std::string source;  // file name (or "<string>")
   double position_sigma = 1e-3;     // [m] position noise for whitening
   double orientation_sigma = 3.4906585039886591e-3;  // [rad] (0.2 deg) orientation noise
+  // Range dependence of the noise: a station reported at distance r from the transmitter has
+  // sigma * (r / noise_reference_range_m)^exponent. An EM tracker's field falls as r^-3, so its
+  // position noise grows as r^4 and its orientation noise as r^3; 0 (default): constant noise.
+  double position_range_exponent = 0.0;
+  double orientation_range_exponent = 0.0;
+  double noise_reference_range_m = 1.0;
+  // (position, orientation) sigmas of a station reported at `reported`.
+  Eigen::Vector2d StationSigmas(const Rigid3d& reported) const;
   LossOptions loss;
   int max_iterations = 100;
   double function_tolerance = 1e-12;

@@ -1,0 +1,1032 @@
+#include "fit/candidates.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <iomanip>
+#include <limits>
+#include <map>
+#include <numeric>
+#include <set>
+#include <sstream>
+#include <stdexcept>
+
+#include "fit/model_file.h"
+
+namespace trackcal::fit {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double SecondsSince(Clock::time_point start) {
+  return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+nlohmann::json NumberOrNull(double v) {
+  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json();
+}
+
+// Per-station errors of a chain: magnitudes for the tables, whitened squared residuals (the fit's own
+// station residual, fit/model.h) for the paired test and BIC.
+struct StationErrors {
+  std::vector<double> position_mm;
+  std::vector<double> orientation_deg;
+  std::vector<double> whitened_sq;  // |r|^2 of the 6 whitened residuals
+  std::vector<Rigid3d> corrected;
+};
+
+void AppendErrors(const CorrectionChain& chain, const FitStation& s, double sigma_p, double sigma_o,
+                  StationErrors* out, size_t index) {
+  const Rigid3d c = chain.Apply(s.reported).pose;
+  const Eigen::Vector3d dp = c.translation - s.reference.translation;
+  const Eigen::Vector3d dq = OrientationErrorVector<double>(c.rotation, s.reference.rotation);
+  out->position_mm[index] = dp.norm() * 1e3;
+  out->orientation_deg[index] = OrientationErrorAngle(c, s.reference) * kDegPerRad;
+  out->whitened_sq[index] = dp.squaredNorm() / (sigma_p * sigma_p) + dq.squaredNorm() / (sigma_o * sigma_o);
+  out->corrected[index] = c;
+}
+
+StationErrors MakeErrors(size_t n) {
+  StationErrors e;
+  e.position_mm.assign(n, NAN);
+  e.orientation_deg.assign(n, NAN);
+  e.whitened_sq.assign(n, NAN);
+  e.corrected.assign(n, Rigid3d());
+  return e;
+}
+
+double Mean(const std::vector<double>& v) {
+  return v.empty() ? NAN : std::accumulate(v.begin(), v.end(), 0.0) / static_cast<double>(v.size());
+}
+
+// k-fold cross-validation of one model text: station i is held out in fold fold_of[i] (i % k for
+// the base; the same folds for every model, so per-station errors pair up).
+StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
+                                    const std::vector<int>& fold_of, const std::string& text,
+                                    const std::string& source, int folds, double sigma_p,
+                                    double sigma_o, const std::function<void(int)>& on_fold) {
+  StationErrors e = MakeErrors(stations.size());
+  for (int f = 0; f < folds; ++f) {
+    if (on_fold) on_fold(f);
+    std::vector<FitStation> train;
+    for (size_t i = 0; i < stations.size(); ++i) {
+      if (fold_of[i] != f) train.push_back(stations[i]);
+    }
+    ModelSpec spec = ParseModelYaml(text, source);
+    FitOptions fo;
+    fo.compute_covariance = false;
+    const FitResult fit = FitModel(train, &spec, fo);
+    for (size_t i = 0; i < stations.size(); ++i) {
+      if (fold_of[i] == f) AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &e, i);
+    }
+  }
+  return e;
+}
+
+// chi2 and the number of stations beyond the loss scale (0 without a loss): a robust loss is scored as
+// the mean-shift outlier model, in which every rejected station has its own 6 free parameters and
+// contributes nothing to chi2.
+struct Chi2 {
+  double chi2 = 0.0;
+  std::vector<int> outliers;  // station ids
+};
+
+Chi2 ComputeChi2(const std::vector<FitStation>& stations, const StationErrors& full,
+                 const LossOptions& loss, const std::vector<bool>& use = {}) {
+  Chi2 c;
+  for (size_t i = 0; i < stations.size(); ++i) {
+    if (!use.empty() && !use[i]) continue;
+    const double e = full.whitened_sq[i];
+    if (loss.type != LossType::kNone && std::sqrt(e / 6.0) > loss.scale) {
+      c.outliers.push_back(stations[i].station);
+      continue;
+    }
+    c.chi2 += e;
+  }
+  return c;
+}
+
+// BIC with the noise scale profiled out: the whitening sigmas of a model file are guesses, and a
+// common factor on them must not decide whether an effect is claimed. n ln(chi2 / n) + k ln(n).
+double Bic(double chi2, int n, int k) {
+  if (k >= n) return std::numeric_limits<double>::infinity();  // saturated: no evidence either way
+  const double floor = 1e-300;  // a perfect fit (noise-free tests) must not give -inf
+  return n * std::log(std::max(chi2, floor) / n) + k * std::log(static_cast<double>(n));
+}
+
+const std::set<std::string>& ExplicitTermTypes() {
+  static const std::set<std::string> types = {"polynomial", "lut"};
+  return types;
+}
+
+// Where a physical term goes: after the leading physical terms, before the first explicit one.
+int PhysicalInsertIndex(const YAML::Node& terms) {
+  int index = 0;
+  for (const auto& t : terms) {
+    if (t.IsMap() && t["type"] && ExplicitTermTypes().count(t["type"].as<std::string>())) break;
+    ++index;
+  }
+  return index;
+}
+
+std::string Emit(const YAML::Node& node) {
+  YAML::Emitter out;
+  out << node;
+  return std::string(out.c_str()) + "\n";
+}
+
+// The list item "- type: ...\n  key: ...\n" for a term mapping.
+std::string TermListItem(const YAML::Node& term) {
+  YAML::Node seq(YAML::NodeType::Sequence);
+  seq.push_back(term);
+  return Emit(seq);
+}
+
+std::string FormatNumber(double v, int precision) {
+  std::ostringstream s;
+  s << std::fixed << std::setprecision(precision) << v;
+  std::string out = s.str();
+  if (out == "-0" || out.rfind("-0.", 0) == 0) {
+    // "-0.00" reads as a sign that is not there.
+    bool all_zero = true;
+    for (char ch : out) all_zero = all_zero && (ch == '-' || ch == '0' || ch == '.');
+    if (all_zero) out = out.substr(1);
+  }
+  return out;
+}
+
+std::string FormatSignificant(double v, int digits) {
+  std::ostringstream s;
+  s << std::setprecision(digits) << v;
+  return s.str();
+}
+
+std::string FormatVector(const std::vector<double>& v, double scale, int precision) {
+  std::string out = "(";
+  for (size_t i = 0; i < v.size(); ++i) out += (i ? ", " : "") + FormatNumber(v[i] * scale, precision);
+  return out + ")";
+}
+
+const ParameterReport* FindBlock(const std::vector<ParameterReport>& blocks, const std::string& name) {
+  for (const auto& b : blocks) {
+    if (b.block == name) return &b;
+  }
+  return nullptr;
+}
+
+// Precision for values whose sigma is s (two significant digits of sigma).
+int PrecisionFor(const std::vector<double>& stddev, double scale) {
+  double smallest = std::numeric_limits<double>::infinity();
+  for (double s : stddev) {
+    if (std::isfinite(s) && s > 0) smallest = std::min(smallest, s * scale);
+  }
+  if (!std::isfinite(smallest)) return 3;
+  return std::clamp(static_cast<int>(std::ceil(-std::log10(smallest))) + 1, 0, 8);
+}
+
+// "(12.1, -7.0, 20.3) mm +- (0.3, 0.3, 0.4)" for one block, scaled to the display unit.
+std::string BlockStatement(const ParameterReport& b, double scale, const std::string& unit) {
+  const int precision = PrecisionFor(b.stddev, scale);
+  std::string out = (b.values.size() == 1 ? FormatNumber(b.values[0] * scale, precision)
+                                          : FormatVector(b.values, scale, precision)) +
+                    (unit.empty() ? "" : " " + unit);
+  bool any = false;
+  for (double s : b.stddev) any = any || std::isfinite(s);
+  if (any) {
+    std::vector<double> s = b.stddev;
+    out += " +- " + (s.size() == 1 ? FormatNumber(s[0] * scale, precision)
+                                   : FormatVector(s, scale, precision));
+  }
+  return out;
+}
+
+// Display unit of a stored unit: lengths in mm unless they are locations (m), angles in deg.
+std::pair<double, std::string> DisplayUnit(const ParameterReport& b) {
+  if (b.unit == "rad") return {kDegPerRad, "deg"};
+  if (b.unit == "m" && b.block.find("location") == std::string::npos &&
+      b.block.find("point") == std::string::npos) {
+    return {1e3, "mm"};
+  }
+  return {1.0, b.unit == "1" ? "" : b.unit};
+}
+
+// Generic statement: every free block of the added term.
+std::string GenericStatement(const std::vector<ParameterReport>& blocks) {
+  std::string out;
+  for (const auto& b : blocks) {
+    if (b.fixed) continue;
+    const auto [scale, unit] = DisplayUnit(b);
+    if (!out.empty()) out += "; ";
+    out += b.block + " " + BlockStatement(b, scale, unit);
+  }
+  return out;
+}
+
+double At(const std::vector<double>& v, size_t i) { return i < v.size() ? v[i] : NAN; }
+
+// Statements of the physical term types (block names of fit/terms_physical.h); empty if a block is
+// missing (then the generic statement is used).
+std::string PhysicalStatement(const std::string& type, const std::vector<ParameterReport>& p) {
+  if (type == "sensor_offset") {
+    const ParameterReport* t = FindBlock(p, "translation");
+    const ParameterReport* r = FindBlock(p, "rotation");
+    if (!t || !r || r->values.size() != 4) return "";
+    // Rotation: the quaternion's rotation vector [deg]; its stddev is in the tangent space (rad).
+    const Eigen::Quaterniond q = QuaternionFromXyzwArray(r->values.data());
+    const Eigen::AngleAxisd aa(q.w() < 0 ? Eigen::Quaterniond(-q.coeffs()) : q);
+    const Eigen::Vector3d rv = aa.angle() * aa.axis();
+    const ParameterReport rotation{r->term, r->block, "rad", r->fixed, {},
+                                   {rv.x(), rv.y(), rv.z()}, r->stddev};
+    return "a sensor offset of " + BlockStatement(*t, 1e3, "mm") + ", rotated by " +
+           BlockStatement(rotation, kDegPerRad, "deg") + " (rotation vector)";
+  }
+  if (type == "receiver_gain") {
+    const ParameterReport* g = FindBlock(p, "gain_matrix");
+    if (!g || g->values.size() != 9) return "";
+    // Rows of G are the coils' sensitivity axes: the diagonal is each coil's gain, the symmetric
+    // off-diagonal sum the coils' departure from orthogonality (small angles).
+    ParameterReport gains{g->term, "gains", "%", g->fixed, {}, {}, {}};
+    for (int i = 0; i < 3; ++i) {
+      gains.values.push_back(g->values[static_cast<size_t>(4 * i)] - 1.0);
+      gains.stddev.push_back(At(g->stddev, static_cast<size_t>(4 * i)));
+    }
+    ParameterReport skew{g->term, "non_orthogonality", "deg", g->fixed, {}, {}, {}};
+    const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    for (const auto& pr : pairs) {
+      const size_t ij = static_cast<size_t>(3 * pr[0] + pr[1]), ji = static_cast<size_t>(3 * pr[1] + pr[0]);
+      skew.values.push_back(g->values[ij] + g->values[ji]);
+      skew.stddev.push_back(std::hypot(At(g->stddev, ij), At(g->stddev, ji)));
+    }
+    return "receiver coil gains " + BlockStatement(gains, 100.0, "%") +
+           " (x, y, z coils), non-orthogonality " + BlockStatement(skew, kDegPerRad, "deg") +
+           " (xy, xz, yz)";
+  }
+  if (type == "dipole") {
+    const ParameterReport* l = FindBlock(p, "location_in_transmitter");
+    const ParameterReport* a = FindBlock(p, "polarisability_m3");
+    if (!l || !a || a->values.empty()) return "";
+    return std::string(a->values[0] >= 0 ? "a ferromagnetic" : "a conducting") + " object near " +
+           BlockStatement(*l, 1.0, "m") + " (transmitter frame), polarisability " +
+           BlockStatement(*a, 1.0, "m^3");
+  }
+  if (type == "plane") {
+    const ParameterReport* d = FindBlock(p, "distance_m");
+    const ParameterReport* n = FindBlock(p, "normal_in_transmitter");
+    const ParameterReport* a = FindBlock(p, "attenuation");
+    if (!d || !n || !a || n->values.size() != 3 || a->values.empty()) return "";
+    double sigma_deg = NAN;  // the normal's tangent-space stddev: two angles [rad]
+    if (n->stddev.size() >= 2) sigma_deg = std::hypot(n->stddev[0], n->stddev[1]) * kDegPerRad;
+    const ParameterReport normal{n->term, n->block, "", n->fixed, {}, n->values, {}};
+    std::string out = "a conducting plane " + BlockStatement(*d, 1.0, "m") +
+                      " from the transmitter along the normal " + BlockStatement(normal, 1.0, "");
+    if (std::isfinite(sigma_deg)) out += " +- " + FormatNumber(sigma_deg, 2) + " deg";
+    return out + ", attenuation " + BlockStatement(*a, 1.0, "") +
+           (a->values[0] >= 0 ? " (conducting)" : " (permeable)");
+  }
+  if (type == "near_field") {
+    const ParameterReport* o = FindBlock(p, "octupole_m2");
+    if (!o) return "";
+    // A loop of radius a has c = -3/4 a^2 (docs/scene.md): the equivalent coil radius.
+    double c = 0;
+    for (double v : o->values) c += std::abs(v) / static_cast<double>(o->values.size());
+    return "finite transmitter coils: octupole " + BlockStatement(*o, 1.0, "m^2") +
+           " per coil (x, y, z), like loops of radius ~" + FormatNumber(std::sqrt(c / 0.75) * 1e2, 1) +
+           " cm";
+  }
+  return "";
+}
+
+YAML::Node FlowList(const std::vector<double>& v, int precision) {
+  YAML::Node list(YAML::NodeType::Sequence);
+  for (double x : v) list.push_back(FormatNumber(x, precision));
+  list.SetStyle(YAML::EmitterStyle::Flow);
+  return list;
+}
+
+// Writes the fitted values of a searched term (dipole, plane) into its mapping as start values, so
+// the model change reproduces this fit without the search. False if the blocks are not there.
+bool AddFittedStart(const std::string& type, const std::vector<ParameterReport>& p, YAML::Node* term) {
+  if (type == "dipole") {
+    const ParameterReport* l = FindBlock(p, "location_in_transmitter");
+    const ParameterReport* a = FindBlock(p, "polarisability_m3");
+    if (!l || !a || l->values.size() != 3 || a->values.size() != 1) return false;
+    (*term)["location_in_transmitter"] = FlowList(l->values, 4);  // 0.1 mm
+    (*term)["polarisability_m3"] = FormatSignificant(a->values[0], 4);
+    return true;
+  }
+  if (type == "plane") {
+    const ParameterReport* d = FindBlock(p, "distance_m");
+    const ParameterReport* n = FindBlock(p, "normal_in_transmitter");
+    const ParameterReport* a = FindBlock(p, "attenuation");
+    if (!d || !n || !a || d->values.size() != 1 || n->values.size() != 3 || a->values.size() != 1) {
+      return false;
+    }
+    const Eigen::Vector3d normal = Eigen::Vector3d(n->values[0], n->values[1], n->values[2]).normalized();
+    const Eigen::Vector3d point = d->values[0] * normal;
+    (*term)["point_in_transmitter"] = FlowList({point.x(), point.y(), point.z()}, 4);
+    (*term)["normal_in_transmitter"] = FlowList({normal.x(), normal.y(), normal.z()}, 5);
+    (*term)["attenuation"] = FormatSignificant(a->values[0], 4);
+    return true;
+  }
+  return false;
+}
+
+std::string Statement(const CatalogEffect& effect, const Candidate& c, double loss_scale) {
+  if (effect.kind == CandidateKind::kRobustLoss) {
+    std::string ids;
+    for (size_t i = 0; i < c.outlier_stations.size() && i < 10; ++i) {
+      ids += (i ? ", " : "") + std::to_string(c.outlier_stations[i]);
+    }
+    if (c.outlier_stations.size() > 10) ids += ", ...";
+    return std::to_string(c.outlier_stations.size()) + " outlier station" +
+           (c.outlier_stations.size() == 1 ? "" : "s") + " beyond " +
+           FormatSignificant(loss_scale, 3) + " sigma" + (ids.empty() ? "" : " (" + ids + ")") +
+           ": hemisphere flips or bad reference poses";
+  }
+  if (effect.kind == CandidateKind::kTerm) {
+    const std::string type = YAML::Load(effect.term_yaml)["type"].as<std::string>();
+    const std::string physical = PhysicalStatement(type, c.parameters);
+    if (!physical.empty()) return physical;
+  }
+  return GenericStatement(c.parameters);
+}
+
+void Progress(const CandidateOptions& options, const std::string& message) {
+  if (options.progress) options.progress(message);
+}
+
+struct PreparedCandidate {
+  const CatalogEffect* effect = nullptr;
+  Candidate candidate;
+  YAML::Node term;                  // kTerm: the inserted mapping (for model_change)
+  std::vector<FitStation> stations; // kTimeOffset: the re-paired stations (else empty: the base's)
+  std::vector<int> base_index;      // per own station: the base station it is (-1: none)
+  double time_offset_s = 0.0;
+  bool flexible = false;            // a flexible fallback, not an effect
+};
+
+}  // namespace
+
+std::vector<CatalogEffect> DefaultCatalog() {
+  return {
+      {"sensor_offset", CandidateKind::kTerm, "type: sensor_offset", true, false,
+       "a sensor offset (the reference body is not at the receiver coil)"},
+      {"receiver_gain", CandidateKind::kTerm, "type: receiver_gain", true, false,
+       "receiver coil gains and non-orthogonality"},
+      {"dipole", CandidateKind::kTerm, "type: dipole", true, true, "a ferromagnetic or conducting object"},
+      {"plane", CandidateKind::kTerm, "type: plane", true, true, "a conducting plane (floor, wall, door)"},
+      {"near_field", CandidateKind::kTerm, "type: near_field", true, false,
+       "finite transmitter coils (near field)"},
+      {"robust_loss", CandidateKind::kRobustLoss, "", false, false,
+       "outlier stations (hemisphere flips or bad reference poses)"},
+      {"time_offset", CandidateKind::kTimeOffset, "", false, false,
+       "a clock offset between tracker and reference streams"},
+  };
+}
+
+std::vector<CatalogEffect> DefaultFlexibleFallback() {
+  return {{"polynomial_3", CandidateKind::kTerm, "{type: polynomial, degree: 3}", false, true,
+           "a smooth field (degree-3 polynomial) beyond the catalog"}};
+}
+
+void CandidateOptions::Check() const {
+  if (folds < 2) throw std::invalid_argument("CandidateOptions.folds: must be at least 2");
+  if (!(family_alpha > 0 && family_alpha < 1)) {
+    throw std::invalid_argument("CandidateOptions.family_alpha: must be in (0, 1)");
+  }
+  if (!(min_drop_percent >= 0 && min_drop_percent < 100)) {
+    throw std::invalid_argument("CandidateOptions.min_drop_percent: must be in [0, 100)");
+  }
+  if (!std::isfinite(max_delta_bic)) {
+    throw std::invalid_argument("CandidateOptions.max_delta_bic: must be finite");
+  }
+  if (cross_validate_top < 0) {
+    throw std::invalid_argument("CandidateOptions.cross_validate_top: must be >= 0");
+  }
+  if (robust_loss.type == LossType::kNone || !(robust_loss.scale > 0)) {
+    throw std::invalid_argument("CandidateOptions.robust_loss: needs a loss type and a scale > 0");
+  }
+  std::set<std::string> names;
+  std::vector<CatalogEffect> all = catalog;
+  all.insert(all.end(), flexible.begin(), flexible.end());
+  for (const auto& e : all) {
+    if (e.effect.empty() || !names.insert(e.effect).second) {
+      throw std::invalid_argument("CandidateOptions.catalog: empty or repeated effect name '" +
+                                  e.effect + "'");
+    }
+    if (e.kind == CandidateKind::kTerm) {
+      YAML::Node node;
+      try {
+        node = YAML::Load(e.term_yaml);
+      } catch (const YAML::Exception& ex) {
+        throw std::invalid_argument("CandidateOptions.catalog." + e.effect + ".term_yaml: " + ex.what());
+      }
+      if (!node.IsMap() || !node["type"]) {
+        throw std::invalid_argument("CandidateOptions.catalog." + e.effect +
+                                    ".term_yaml: must be a mapping with a 'type'");
+      }
+    }
+  }
+  for (const auto& name : effects) {
+    if (!names.count(name)) {
+      std::string known;
+      for (const auto& e : catalog) known += (known.empty() ? "" : ", ") + e.effect;
+      throw std::invalid_argument("CandidateOptions.effects: unknown effect '" + name +
+                                  "' (catalog: " + known + ")");
+    }
+  }
+}
+
+double WilcoxonSignedRankGreater(const std::vector<double>& differences) {
+  std::vector<double> d;
+  for (double v : differences) {
+    if (std::isfinite(v) && v != 0.0) d.push_back(v);
+  }
+  const size_t n = d.size();
+  if (n == 0) return 1.0;
+  std::vector<size_t> order(n);
+  std::iota(order.begin(), order.end(), 0);
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return std::abs(d[a]) < std::abs(d[b]); });
+  double w_plus = 0.0, tie_term = 0.0;
+  for (size_t i = 0; i < n;) {
+    size_t j = i;
+    while (j + 1 < n && std::abs(d[order[j + 1]]) == std::abs(d[order[i]])) ++j;
+    const double rank = 0.5 * static_cast<double>(i + j) + 1.0;  // average rank, 1-based
+    const double t = static_cast<double>(j - i + 1);
+    tie_term += t * t * t - t;
+    for (size_t k = i; k <= j; ++k) {
+      if (d[order[k]] > 0) w_plus += rank;
+    }
+    i = j + 1;
+  }
+  const double nn = static_cast<double>(n);
+  const double mean = nn * (nn + 1) / 4.0;
+  const double var = nn * (nn + 1) * (2 * nn + 1) / 24.0 - tie_term / 48.0;
+  if (var <= 0) return 1.0;
+  const double z = (w_plus - mean - 0.5) / std::sqrt(var);  // continuity correction
+  return 0.5 * std::erfc(z / std::sqrt(2.0));
+}
+
+Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std::string& model_text,
+                             const std::string& model_source, const std::string& data_source,
+                             const CandidateOptions& options) {
+  options.Check();
+  const auto start = Clock::now();
+  const size_t min_stations = std::max<size_t>(12, 2 * static_cast<size_t>(options.folds));
+  if (stations.size() < min_stations) {
+    throw std::invalid_argument(data_source + ": diagnose needs at least " +
+                                std::to_string(min_stations) + " calibration stations, got " +
+                                std::to_string(stations.size()));
+  }
+  Diagnosis d;
+  d.model = model_source;
+  d.data = data_source;
+  d.folds = options.folds;
+  d.num_stations = static_cast<int>(stations.size());
+  const int n_residuals = 6 * static_cast<int>(stations.size());
+
+  // The base model (also validates the file: errors name its lines).
+  ModelSpec base_spec = ParseModelYaml(model_text, model_source);
+  const double sigma_p = base_spec.position_sigma;
+  const double sigma_o = base_spec.orientation_sigma;
+  YAML::Node root = YAML::Load(model_text);
+
+  // The candidates.
+  std::set<std::string> present;
+  for (const auto& t : base_spec.terms) present.insert(t->type());
+  std::vector<PreparedCandidate> prepared;
+  std::vector<std::pair<const CatalogEffect*, bool>> to_test;  // (effect, flexible)
+  for (const CatalogEffect& e : options.catalog) to_test.emplace_back(&e, false);
+  for (const CatalogEffect& e : options.flexible) to_test.emplace_back(&e, true);
+  for (const auto& [effect, flexible] : to_test) {
+    const CatalogEffect& e = *effect;
+    if (!flexible && !options.effects.empty() &&
+        std::find(options.effects.begin(), options.effects.end(), e.effect) == options.effects.end()) {
+      continue;
+    }
+    PreparedCandidate p;
+    p.effect = &e;
+    p.flexible = flexible;
+    p.candidate.effect = e.effect;
+    p.candidate.kind = e.kind;
+    YAML::Node changed = YAML::Load(model_text);  // a deep copy to modify
+    if (e.kind == CandidateKind::kTimeOffset) {
+      if (!options.pair_streams) {
+        d.skipped.push_back(e.effect + ": the data are not streams");
+        continue;
+      }
+      if (base_spec.time_offset && !base_spec.time_offset->fixed) {
+        d.skipped.push_back(e.effect + ": the model estimates it");
+        continue;
+      }
+      const TimeOffsetSpec t = base_spec.time_offset.value_or(TimeOffsetSpec());
+      YAML::Node offset(YAML::NodeType::Map);
+      offset["value"] = FormatSignificant(t.value, 17);
+      offset["fixed"] = false;
+      offset["search_range"] = FormatSignificant(t.search_range, 17);
+      changed["time_offset"] = offset;
+    } else if (e.kind == CandidateKind::kRobustLoss) {
+      if (base_spec.loss.type != LossType::kNone) {
+        d.skipped.push_back(e.effect + ": the model has a robust loss");
+        continue;
+      }
+      YAML::Node loss(YAML::NodeType::Map);
+      loss["type"] = LossTypeName(options.robust_loss.type);
+      loss["scale"] = FormatSignificant(options.robust_loss.scale, 6);
+      changed["loss"] = loss;
+      YAML::Node item(YAML::NodeType::Map);
+      item["loss"] = loss;
+      p.candidate.model_change = Emit(item);
+    } else {
+      p.term = YAML::Load(e.term_yaml);
+      p.term.SetStyle(YAML::EmitterStyle::Block);
+      const std::string type = p.term["type"].as<std::string>();
+      if (!TermRegistry::Global().Contains(type)) {
+        d.skipped.push_back(e.effect + ": term type '" + type + "' is not available in this build");
+        continue;
+      }
+      if (!e.repeatable && present.count(type)) {
+        d.skipped.push_back(e.effect + ": the model has it");
+        continue;
+      }
+      YAML::Node terms = changed["terms"];
+      if (e.repeatable && !p.term["name"]) {
+        // A repeated type gets a name of its own so its parameters can be found in the reports
+        // (unnamed repeats are numbered type, type_2, ...: counting past them avoids a clash).
+        std::set<std::string> names;
+        int count = 0;
+        for (const auto& t : terms) {
+          if (t.IsMap() && t["name"]) names.insert(t["name"].as<std::string>());
+          if (t.IsMap() && t["type"] && t["type"].as<std::string>() == type) ++count;
+        }
+        if (count > 0) {
+          std::string name;
+          for (int k = count + 1; name.empty() || names.count(name); ++k) {
+            name = type + "_" + std::to_string(k);
+          }
+          p.term["name"] = name;
+        }
+      }
+      p.candidate.term_name = p.term["name"] ? p.term["name"].as<std::string>() : type;
+      const int index = e.physical ? PhysicalInsertIndex(terms) : static_cast<int>(terms.size());
+      YAML::Node seq(YAML::NodeType::Sequence);
+      int i = 0;
+      for (const auto& t : terms) {
+        if (i++ == index) seq.push_back(p.term);
+        seq.push_back(t);
+      }
+      if (index >= static_cast<int>(terms.size())) seq.push_back(p.term);
+      changed["terms"] = seq;
+      p.candidate.insert_index = index;
+      p.candidate.model_change = TermListItem(p.term);
+    }
+    p.candidate.model_text = Emit(changed);
+    prepared.push_back(std::move(p));
+  }
+
+  // Base: full fit (cost, BIC) and cross-validation.
+  StationErrors base_full = MakeErrors(stations.size());
+  int base_k = 0;  // free parameters of the base fit
+  {
+    const auto t0 = Clock::now();
+    Progress(options, "base model: fit on " + std::to_string(stations.size()) + " stations");
+    FitOptions fo;
+    fo.compute_covariance = false;
+    const FitResult fit = FitModel(stations, &base_spec, fo);
+    for (size_t i = 0; i < stations.size(); ++i) {
+      AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &base_full, i);
+    }
+    base_k = fit.num_free_parameters;
+    const Chi2 c = ComputeChi2(stations, base_full, base_spec.loss);
+    BaseScores& b = d.base;
+    b.converged = fit.converged;
+    b.final_cost = fit.final_cost;
+    b.num_residuals = n_residuals;
+    const int k = fit.num_free_parameters + 6 * static_cast<int>(c.outliers.size());
+    b.num_free_parameters = fit.num_free_parameters;
+    b.chi2 = c.chi2;
+    b.chi2_per_dof = n_residuals > k ? c.chi2 / (n_residuals - k) : NAN;
+    b.bic = Bic(c.chi2, n_residuals, k);
+    b.seconds = SecondsSince(t0);
+  }
+  std::vector<int> base_folds(stations.size());
+  for (size_t i = 0; i < stations.size(); ++i) base_folds[i] = static_cast<int>(i) % options.folds;
+  const StationErrors base_cv =
+      CrossValidateStations(stations, base_folds, model_text, model_source, options.folds, sigma_p, sigma_o,
+                            [&](int f) {
+                              Progress(options, "base model: fold " + std::to_string(f + 1) + "/" +
+                                                    std::to_string(options.folds));
+                            });
+  {
+    std::vector<Rigid3d> reported, reference;
+    for (const auto& s : stations) {
+      reported.push_back(s.reported);
+      reference.push_back(s.reference);
+    }
+    d.base.table1.set_name = "cross-validation (" + std::to_string(options.folds) + "-fold)";
+    d.base.table1.before = SummarizePoseErrors(reported, reference);
+    d.base.table1.after = SummarizePoseErrors(base_cv.corrected, reference);
+    d.base.cv_position_mm_mean = Mean(base_cv.position_mm);
+    d.base.cv_orientation_deg_mean = Mean(base_cv.orientation_deg);
+    d.base.seconds = SecondsSince(start);  // full fit and cross-validation
+  }
+
+  // Candidates: fit on all stations (parameters, BIC).
+  for (auto& p : prepared) {
+    Candidate& c = p.candidate;
+    const auto t0 = Clock::now();
+    try {
+      int extra_parameters = 0;
+      if (c.kind == CandidateKind::kTimeOffset) {
+        // The stations themselves change: pair the streams again, estimating the offset.
+        TimeOffsetSpec t = base_spec.time_offset.value_or(TimeOffsetSpec());
+        t.fixed = false;
+        Progress(options, c.effect + ": pairing the streams, estimating the clock offset");
+        PairedStations paired = options.pair_streams(t);
+        p.stations = std::move(paired.stations);
+        p.time_offset_s = paired.time_offset_s;
+        extra_parameters = 1;
+        YAML::Node item(YAML::NodeType::Map);
+        YAML::Node offset(YAML::NodeType::Map);
+        offset["value"] = FormatSignificant(paired.time_offset_s, 6);  // 0.037, not 0.03699999...
+        offset["fixed"] = false;
+        offset["search_range"] = FormatSignificant(t.search_range, 6);
+        item["time_offset"] = offset;
+        c.model_change = Emit(item);
+        c.statement = "a clock offset of " + FormatNumber(paired.time_offset_s * 1e3, 2) +
+                      " ms (reference minus tracker; estimated by the pairing's search, no standard "
+                      "deviation)";
+      }
+      const std::vector<FitStation>& own = p.stations.empty() ? stations : p.stations;
+      // Which base station each of the candidate's stations is (by tracker time when re-paired).
+      p.base_index.assign(own.size(), -1);
+      if (p.stations.empty()) {
+        std::iota(p.base_index.begin(), p.base_index.end(), 0);
+      } else {
+        std::map<double, int> by_time;
+        for (size_t i = 0; i < stations.size(); ++i) by_time[stations[i].time] = static_cast<int>(i);
+        for (size_t j = 0; j < own.size(); ++j) {
+          auto it = by_time.find(own[j].time);
+          if (it != by_time.end()) p.base_index[j] = it->second;
+        }
+      }
+      Progress(options, c.effect + ": fit on " + std::to_string(own.size()) + " stations");
+      ModelSpec spec = ParseModelYaml(c.model_text, model_source + " + " + c.effect);
+      const FitResult fit = FitModel(own, &spec, {});
+      c.fitted = true;
+      c.converged = fit.converged;
+      StationErrors full = MakeErrors(own.size());
+      for (size_t i = 0; i < own.size(); ++i) AppendErrors(fit.chain, own[i], sigma_p, sigma_o, &full, i);
+      // BIC on the stations both models have (all of them unless the streams were re-paired).
+      std::vector<bool> use_own(own.size()), use_base(stations.size(), false);
+      for (size_t j = 0; j < own.size(); ++j) {
+        use_own[j] = p.base_index[j] >= 0;
+        if (use_own[j]) use_base[static_cast<size_t>(p.base_index[j])] = true;
+      }
+      const Chi2 chi = ComputeChi2(own, full, spec.loss, use_own);
+      const Chi2 base_chi = ComputeChi2(stations, base_full, base_spec.loss, use_base);
+      const int n = 6 * static_cast<int>(std::count(use_own.begin(), use_own.end(), true));
+      c.num_free_parameters = fit.num_free_parameters + extra_parameters;
+      const int k = c.num_free_parameters + 6 * static_cast<int>(chi.outliers.size());
+      // Outliers are a minority by definition: when half the stations exceed the loss scale, the
+      // model is wrong, and the mean-shift model that explains them away is not scored.
+      c.bic = 2 * chi.outliers.size() > own.size() ? std::numeric_limits<double>::infinity()
+                                                   : Bic(chi.chi2, n, k);
+      c.delta_bic = c.bic - Bic(base_chi.chi2, n, base_k + 6 * static_cast<int>(base_chi.outliers.size()));
+      c.outlier_stations = chi.outliers;
+      if (c.insert_index) {
+        for (const auto& r : fit.parameters) {
+          if (r.term == c.term_name) c.parameters.push_back(r);
+        }
+      }
+      if (c.kind != CandidateKind::kTimeOffset) c.statement = Statement(*p.effect, c, options.robust_loss.scale);
+      if (c.kind == CandidateKind::kTerm &&
+          AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &p.term)) {
+        c.model_change = TermListItem(p.term);
+      }
+    } catch (const std::exception& ex) {
+      c.error = ex.what();
+    }
+    c.seconds = SecondsSince(t0);
+  }
+
+  // Which candidates are cross-validated.
+  std::vector<PreparedCandidate*> to_validate;
+  for (auto& p : prepared) {
+    if (p.candidate.fitted && !p.flexible) to_validate.push_back(&p);
+  }
+  if (options.cross_validate_top > 0 &&
+      static_cast<int>(to_validate.size()) > options.cross_validate_top) {
+    std::stable_sort(to_validate.begin(), to_validate.end(),
+                     [](const PreparedCandidate* a, const PreparedCandidate* b) {
+                       return a->candidate.delta_bic < b->candidate.delta_bic;
+                     });
+    to_validate.resize(static_cast<size_t>(options.cross_validate_top));
+  }
+  for (auto& p : prepared) {
+    if (p.candidate.fitted && p.flexible) to_validate.push_back(&p);
+  }
+  // Bonferroni over every candidate tested (fitted), screened-out ones included: screening looked at
+  // them too.
+  int tested = 0;
+  for (const auto& p : prepared) tested += p.candidate.fitted && !p.flexible ? 1 : 0;
+  d.p_threshold = options.family_alpha / std::max(1, tested);
+
+  for (PreparedCandidate* p : to_validate) {
+    Candidate& c = p->candidate;
+    const auto t0 = Clock::now();
+    try {
+      const std::vector<FitStation>& own = p->stations.empty() ? stations : p->stations;
+      std::vector<int> fold_of(own.size());
+      for (size_t j = 0; j < own.size(); ++j) {
+        const int b = p->base_index[j];
+        fold_of[j] = (b >= 0 ? b : static_cast<int>(j)) % options.folds;
+      }
+      const StationErrors cv = CrossValidateStations(
+          own, fold_of, c.model_text, model_source + " + " + c.effect, options.folds, sigma_p,
+          sigma_o, [&](int f) {
+            Progress(options, c.effect + ": fold " + std::to_string(f + 1) + "/" +
+                                  std::to_string(options.folds));
+          });
+      c.cross_validated = true;
+      // Means and the paired test over the stations both models have.
+      std::vector<double> cand_p, cand_o, cand_w, base_p, base_o, diff;
+      for (size_t j = 0; j < own.size(); ++j) {
+        const int b = p->base_index[j];
+        if (b < 0) continue;
+        const size_t bi = static_cast<size_t>(b);
+        cand_p.push_back(cv.position_mm[j]);
+        cand_o.push_back(cv.orientation_deg[j]);
+        cand_w.push_back(cv.whitened_sq[j]);
+        base_p.push_back(base_cv.position_mm[bi]);
+        base_o.push_back(base_cv.orientation_deg[bi]);
+        diff.push_back(base_cv.whitened_sq[bi] - cv.whitened_sq[j]);
+      }
+      c.cv_position_mm_mean = Mean(cand_p);
+      c.cv_orientation_deg_mean = Mean(cand_o);
+      c.cv_whitened_mean = Mean(cand_w);
+      c.drop_position_percent = ImprovementPercent(Mean(base_p), c.cv_position_mm_mean);
+      c.drop_orientation_percent = ImprovementPercent(Mean(base_o), c.cv_orientation_deg_mean);
+      c.p_value = WilcoxonSignedRankGreater(diff);
+    } catch (const std::exception& ex) {
+      c.error = std::string("cross-validation failed: ") + ex.what();
+    }
+    c.seconds += SecondsSince(t0);
+  }
+
+  // Significance and the reason in words.
+  for (auto& p : prepared) {
+    Candidate& c = p.candidate;
+    if (!c.fitted) {
+      c.reason = "fit failed: " + c.error;
+      continue;
+    }
+    if (!c.cross_validated) {
+      c.reason = c.error.empty() ? "screened out by BIC (delta " + FormatNumber(c.delta_bic, 1) +
+                                       "); not cross-validated"
+                                 : c.error;
+      continue;
+    }
+    const double drop = std::max(c.drop_position_percent, c.drop_orientation_percent);
+    const bool p_ok = c.p_value < d.p_threshold;
+    const bool drop_ok = drop >= options.min_drop_percent;
+    const bool bic_ok = c.delta_bic < options.max_delta_bic;
+    c.significant = p_ok && drop_ok && bic_ok;
+    std::ostringstream r;
+    r << "held-out error " << (c.drop_position_percent >= 0 ? "falls " : "rises ")
+      << FormatNumber(std::abs(c.drop_position_percent), 1) << " % (position), "
+      << (c.drop_orientation_percent >= 0 ? "falls " : "rises ")
+      << FormatNumber(std::abs(c.drop_orientation_percent), 1) << " % (orientation); p = "
+      << FormatSignificant(c.p_value, 2) << (p_ok ? " < " : " >= ")
+      << FormatSignificant(d.p_threshold, 2) << "; delta BIC " << FormatNumber(c.delta_bic, 1);
+    if (!c.significant) {
+      std::vector<std::string> why;
+      if (!p_ok) why.push_back("the held-out improvement is not significant");
+      if (!drop_ok) {
+        why.push_back("the held-out drop is below " + FormatNumber(options.min_drop_percent, 0) + " %");
+      }
+      if (!bic_ok) why.push_back("BIC does not support it (needs < " + FormatNumber(options.max_delta_bic, 0) + ")");
+      r << ". Not claimed: ";
+      for (size_t i = 0; i < why.size(); ++i) r << (i ? ", " : "") << why[i];
+    }
+    if (!c.converged) r << " (the fit did not converge)";
+    c.reason = r.str();
+  }
+
+  // Ranking.
+  std::vector<Candidate> ranked;
+  for (auto& p : prepared) {
+    (p.flexible ? d.flexible : ranked).push_back(std::move(p.candidate));
+  }
+  auto key = [](const Candidate& c) {
+    return std::make_tuple(c.significant ? 0 : 1, c.cross_validated ? 0 : 1, c.fitted ? 0 : 1,
+                           std::isfinite(c.cv_whitened_mean) ? c.cv_whitened_mean
+                                                             : std::numeric_limits<double>::infinity(),
+                           std::isfinite(c.delta_bic) ? c.delta_bic
+                                                      : std::numeric_limits<double>::infinity());
+  };
+  std::stable_sort(ranked.begin(), ranked.end(),
+                   [&](const Candidate& a, const Candidate& b) { return key(a) < key(b); });
+  d.candidates = std::move(ranked);
+
+  // Verdict.
+  auto description = [&](const std::string& effect) {
+    for (const auto& e : options.catalog) {
+      if (e.effect == effect) return e.description;
+    }
+    return effect;
+  };
+  if (!d.candidates.empty() && d.candidates.front().significant) {
+    const Candidate& top = d.candidates.front();
+    d.verdict_effect = top.effect;
+    std::ostringstream v;
+    std::string desc = description(top.effect);
+    if (!desc.empty()) desc[0] = static_cast<char>(std::toupper(static_cast<unsigned char>(desc[0])));
+    v << desc << " (" << top.effect << ") explains the remaining structure: held-out position error "
+      << FormatNumber(d.base.cv_position_mm_mean, 3) << " -> " << FormatNumber(top.cv_position_mm_mean, 3)
+      << " mm (" << FormatNumber(top.drop_position_percent, 1) << " %), orientation "
+      << FormatNumber(d.base.cv_orientation_deg_mean, 3) << " -> "
+      << FormatNumber(top.cv_orientation_deg_mean, 3) << " deg, p = " << FormatSignificant(top.p_value, 2)
+      << ", delta BIC " << FormatNumber(top.delta_bic, 1) << ".";
+    if (!top.statement.empty()) v << " Fitted: " << top.statement << ".";
+    int others = 0;
+    for (size_t i = 1; i < d.candidates.size(); ++i) others += d.candidates[i].significant ? 1 : 0;
+    if (others > 0) {
+      v << " " << others << " other candidate" << (others == 1 ? " is" : "s are")
+        << " also significant (often the same structure seen by a related effect): add the top one, "
+           "then diagnose again.";
+    }
+    d.verdict_text = v.str();
+  } else {
+    std::ostringstream v;
+    v << "No catalog effect explains the remaining structure";
+    if (d.candidates.empty()) {
+      v << " (no candidate could be tested)";
+    }
+    v << ". ";
+    const double chi2_dof = d.base.chi2_per_dof;
+    const Candidate* flexible = nullptr;
+    for (const auto& f : d.flexible) {
+      if (f.significant && (!flexible || f.cv_whitened_mean < flexible->cv_whitened_mean)) flexible = &f;
+    }
+    if (flexible) {
+      v << "The structure that remains is real: a flexible " << flexible->effect
+        << " term lowers the held-out error by " << FormatNumber(flexible->drop_position_percent, 1)
+        << " % (position) and " << FormatNumber(flexible->drop_orientation_percent, 1)
+        << " % (orientation), p = " << FormatSignificant(flexible->p_value, 2)
+        << ", but it is not one of the catalog's effects: look at which covariate the residual follows "
+           "(trackcal diagnose), or keep the flexible term.";
+    } else if (std::isfinite(chi2_dof) && chi2_dof < 2.0) {
+      v << "The model fits to within its noise model (chi2/dof " << FormatNumber(chi2_dof, 2)
+        << "): nothing is missing that these data can show.";
+    } else {
+      v << "The model leaves " << (std::isfinite(chi2_dof) ? "chi2/dof " + FormatNumber(chi2_dof, 2) : "residuals")
+        << " against its noise model; if that is more than noise, look at which covariate the residual "
+           "follows (trackcal diagnose) or add a flexible term (a higher polynomial degree, a lut).";
+    }
+    d.verdict_text = v.str();
+  }
+  d.seconds = SecondsSince(start);
+  return d;
+}
+
+namespace {
+nlohmann::json CandidateToJson(const Candidate& c) {
+  {
+    nlohmann::json params = nlohmann::json::array();
+    for (const auto& p : c.parameters) {
+      nlohmann::json stddev = nlohmann::json::array();
+      for (double s : p.stddev) stddev.push_back(NumberOrNull(s));
+      params.push_back({{"term", p.term},
+                        {"block", p.block},
+                        {"unit", p.unit},
+                        {"coordinate_names", p.coordinate_names},
+                        {"values", p.values},
+                        {"stddev", stddev},
+                        {"fixed", p.fixed}});
+    }
+    return {
+        {"effect", c.effect},
+        {"kind", c.kind == CandidateKind::kTerm         ? "term"
+                 : c.kind == CandidateKind::kRobustLoss ? "loss"
+                                                        : "time_offset"},
+        {"model_change", c.model_change},
+        {"insert_index", c.insert_index ? nlohmann::json(*c.insert_index) : nlohmann::json()},
+        {"cv_position_mm_mean", NumberOrNull(c.cv_position_mm_mean)},
+        {"cv_orientation_deg_mean", NumberOrNull(c.cv_orientation_deg_mean)},
+        {"cv_drop_percent",
+         {{"position", NumberOrNull(c.drop_position_percent)},
+          {"orientation", NumberOrNull(c.drop_orientation_percent)}}},
+        {"cv_whitened_mean", NumberOrNull(c.cv_whitened_mean)},
+        {"bic", NumberOrNull(c.bic)},
+        {"delta_bic", NumberOrNull(c.delta_bic)},
+        {"num_free_parameters", c.num_free_parameters},
+        {"p_value", NumberOrNull(c.p_value)},
+        {"significant", c.significant},
+        {"cross_validated", c.cross_validated},
+        {"fitted", c.fitted},
+        {"converged", c.converged},
+        {"error", c.error.empty() ? nlohmann::json() : nlohmann::json(c.error)},
+        {"reason", c.reason},
+        {"parameters", params},
+        {"outlier_stations", c.outlier_stations},
+        {"statement", c.statement},
+        {"seconds", c.seconds},
+    };
+  }
+}
+}  // namespace
+
+nlohmann::json Diagnosis::ToJson() const {
+  nlohmann::json cands = nlohmann::json::array();
+  for (const auto& c : candidates) cands.push_back(CandidateToJson(c));
+  nlohmann::json flex = nlohmann::json::array();
+  for (const auto& c : flexible) flex.push_back(CandidateToJson(c));
+  nlohmann::json verdict = {{"effect", verdict_effect ? nlohmann::json(*verdict_effect) : nlohmann::json()},
+                            {"text", verdict_text}};
+  return {{"command", "diagnose"},
+          {"model", model},
+          {"data", data},
+          {"folds", folds},
+          {"num_stations", num_stations},
+          {"base",
+           {{"cv_position_mm_mean", NumberOrNull(base.cv_position_mm_mean)},
+            {"cv_orientation_deg_mean", NumberOrNull(base.cv_orientation_deg_mean)},
+            {"final_cost", base.final_cost},
+            {"num_residuals", base.num_residuals},
+            {"num_free_parameters", base.num_free_parameters},
+            {"chi2", base.chi2},
+            {"chi2_per_dof", NumberOrNull(base.chi2_per_dof)},
+            {"bic", base.bic},
+            {"converged", base.converged},
+            {"table1", Table1ToJson(base.table1)}}},
+          {"candidates", cands},
+          {"flexible_fallback", flex},
+          {"skipped", skipped},
+          {"p_threshold", p_threshold},
+          {"verdict", verdict},
+          {"seconds", seconds}};
+}
+
+std::string FormatDiagnosis(const Diagnosis& d) {
+  std::ostringstream out;
+  out << "Base model " << d.model << " on " << d.data << " (" << d.num_stations << " stations, "
+      << d.folds << "-fold cross-validation): held-out error " << FormatNumber(d.base.cv_position_mm_mean, 3)
+      << " mm, " << FormatNumber(d.base.cv_orientation_deg_mean, 3) << " deg; " << d.base.num_free_parameters
+      << " free parameters, chi2/dof " << FormatNumber(d.base.chi2_per_dof, 2) << ", BIC "
+      << FormatNumber(d.base.bic, 1) << "\n\n";
+  out << "Candidate effects (ranked; significant: p < " << FormatSignificant(d.p_threshold, 2)
+      << ", held-out drop >= 5 %, delta BIC < -10):\n";
+  out << std::left << std::setw(4) << "#" << std::setw(16) << "effect" << std::right << std::setw(11)
+      << "pos [mm]" << std::setw(9) << "drop %" << std::setw(11) << "ori [deg]" << std::setw(9) << "drop %"
+      << std::setw(11) << "dBIC" << std::setw(10) << "p" << "  significant\n";
+  int rank = 1;
+  for (const auto& c : d.candidates) {
+    out << std::left << std::setw(4) << rank++ << std::setw(16) << c.effect << std::right;
+    if (c.cross_validated) {
+      out << std::setw(11) << FormatNumber(c.cv_position_mm_mean, 3) << std::setw(9)
+          << FormatNumber(c.drop_position_percent, 1) << std::setw(11)
+          << FormatNumber(c.cv_orientation_deg_mean, 3) << std::setw(9)
+          << FormatNumber(c.drop_orientation_percent, 1);
+    } else {
+      out << std::setw(40) << "(not cross-validated)";
+    }
+    out << std::setw(11) << (std::isfinite(c.delta_bic) ? FormatNumber(c.delta_bic, 1) : "-")
+        << std::setw(10) << (std::isfinite(c.p_value) ? FormatSignificant(c.p_value, 2) : "-") << "  "
+        << (c.significant ? "yes" : "no") << "\n";
+    if (!c.statement.empty()) out << "      " << c.statement << "\n";
+    if (!c.fitted) out << "      " << c.reason << "\n";
+  }
+  for (const auto& s : d.skipped) out << "  (not tested: " << s << ")\n";
+  for (const auto& f : d.flexible) {
+    out << "Flexible fallback (not an effect): " << f.effect;
+    if (f.cross_validated) {
+      out << ": held-out " << FormatNumber(f.cv_position_mm_mean, 3) << " mm ("
+          << FormatNumber(f.drop_position_percent, 1) << " %), " << FormatNumber(f.cv_orientation_deg_mean, 3)
+          << " deg (" << FormatNumber(f.drop_orientation_percent, 1) << " %), p = "
+          << FormatSignificant(f.p_value, 2) << ", delta BIC " << FormatNumber(f.delta_bic, 1)
+          << (f.significant ? ": the remaining structure is real" : ": nothing more to gain");
+    } else {
+      out << ": " << f.reason;
+    }
+    out << "\n";
+  }
+  out << "\nVerdict: " << d.verdict_text << "\n";
+  if (d.verdict_effect) {
+    const Candidate& top = d.candidates.front();
+    out << "\nAdd to " << d.model;
+    if (top.insert_index) {
+      out << " (in `terms:`, as item " << *top.insert_index << " counting from 0):\n";
+    } else {
+      out << " (top level):\n";
+    }
+    std::istringstream lines(top.model_change);
+    for (std::string line; std::getline(lines, line);) out << "  " << line << "\n";
+  }
+  return out.str();
+}
+
+}  // namespace trackcal::fit

@@ -1,0 +1,179 @@
+// Candidate effects: which physical effect is the model missing? (`trackcal-fit diagnose`)
+//
+//   Diagnosis d = DiagnoseCandidates(calibration_stations, model_text, "model.yaml", "capture/", {});
+//   std::cout << d.ToJson().dump(2);   // the document of docs/diagnose.md
+//
+// For every effect of the catalog (DefaultCatalog(): sensor_offset, receiver_gain, dipole, plane,
+// near_field, robust_loss, time_offset) that the model lacks, the model plus that one effect is fitted and scored
+// against the model itself:
+//   - k-fold cross-validation with the same folds for the base and every candidate (station i in fold
+//     i % k, as fit/fit_engine.h's CrossValidate): held-out mean position [mm] and orientation [deg]
+//     errors and their drop in percent;
+//   - a one-sided Wilcoxon signed-rank test of the per-station held-out whitened squared errors
+//     (base minus candidate > 0): p_value;
+//   - BIC with the noise scale profiled out, n ln(chi2 / n) + k ln(n), over the n = 6 N whitened
+//     station residuals of the fit on all stations (a robust loss counts its outliers as 6 free
+//     parameters each: the mean-shift outlier model);
+// and called significant only if the held-out improvement is real (p below alpha / number of
+// candidates tested, and the held-out mean error falls by at least min_drop_percent) and BIC prefers it
+// (delta_bic < max_delta_bic). Candidates are ranked significant first, then by held-out error. The
+// verdict names the top significant candidate, or says plainly that none explains what remains.
+//
+// The candidate model is the model file's YAML with the effect's term inserted into `terms:`
+// (physical terms before explicit ones: polynomial, lut) or its `loss:` set; `model_change` is that
+// YAML, with the fitted values as starting values where the term takes them.
+#pragma once
+
+#include <functional>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/error_statistics.h"
+#include "fit/fit_engine.h"
+#include "fit/model.h"
+
+namespace trackcal::fit {
+
+enum class CandidateKind {
+  kTerm,        // a term inserted into `terms:`
+  kRobustLoss,  // `loss:` set (the model has none): outliers such as hemisphere flips
+  kTimeOffset,  // `time_offset:` estimated (data paired from streams, CandidateOptions::pair_streams)
+};
+
+// Stations paired from streams with one time-offset setting (see CandidateOptions::pair_streams).
+struct PairedStations {
+  std::vector<FitStation> stations;  // the calib stations; `time` is the tracker sample's time
+  double time_offset_s = 0.0;        // the offset used (estimated if the setting asked for it)
+};
+
+// One effect of the catalog.
+struct CatalogEffect {
+  std::string effect;       // name in reports and --effects ("dipole", "robust_loss")
+  CandidateKind kind = CandidateKind::kTerm;
+  std::string term_yaml;    // kTerm: the term's mapping, e.g. "type: dipole" (YAML)
+  bool physical = true;     // kTerm: physical terms are inserted before the explicit ones
+  bool repeatable = false;  // kTerm: tested even when the model already has a term of this type
+  std::string description;  // for the verdict: "a ferromagnetic object", "a sensor offset"
+};
+
+// sensor_offset, receiver_gain, dipole (repeatable), plane (repeatable), near_field, robust_loss,
+// time_offset.
+// Term types that are not registered in TermRegistry::Global() are skipped (Diagnosis::skipped).
+std::vector<CatalogEffect> DefaultCatalog();
+
+// The flexible fallback: a degree-3 polynomial appended after the model's terms. Not an effect and
+// never ranked with them; scored the same way, it tells whether the structure that remains is real
+// when no catalog effect explains it.
+std::vector<CatalogEffect> DefaultFlexibleFallback();
+
+struct CandidateOptions {
+  int folds = 5;  // k of the k-fold cross-validation (>= 2)
+  // Effects to test (names of the catalog); empty: every applicable one.
+  std::vector<std::string> effects;
+  // The catalog (default: DefaultCatalog()).
+  std::vector<CatalogEffect> catalog = DefaultCatalog();
+  // Flexible terms scored separately (Diagnosis::flexible); empty: none.
+  std::vector<CatalogEffect> flexible = DefaultFlexibleFallback();
+  // Family-wise level of the held-out test: each candidate's p must be below family_alpha / m for m
+  // candidates tested (Bonferroni), so the chance of any false claim is at most family_alpha.
+  double family_alpha = 0.01;
+  // Minimum drop of the held-out mean position or orientation error [%]: a statistically sure but
+  // negligible gain (0.5 % of a 0.1 mm error) is not worth a model change.
+  double min_drop_percent = 5.0;
+  // delta BIC must be below this: -10 is "very strong" evidence (Kass & Raftery 1995, 2 ln B > 10).
+  double max_delta_bic = -10.0;
+  // 0: cross-validate every candidate. N > 0: fit all on the full set first, then cross-validate only
+  // the N with the lowest delta BIC (the rest are reported screened out, never significant).
+  int cross_validate_top = 0;
+  // Loss of the robust_loss candidate: Cauchy (an outlier's pull vanishes; a Huber loss still pulls
+  // with the scale), scale 3 sigma of the whitened residual.
+  LossOptions robust_loss = {LossType::kCauchy, 3.0};
+  // Set when the stations were paired from streams (fit/stream_pairing.h): pairs the streams again
+  // with the given time-offset setting. Enables the time_offset candidate (when the model's offset
+  // is absent or fixed), which is scored on the stations both pairings have (matched by time).
+  std::function<PairedStations(const TimeOffsetSpec&)> pair_streams;
+  // Progress messages ("fitting dipole (fold 3/5)"); the CLI prints them on stderr.
+  std::function<void(const std::string&)> progress;
+  // Throws std::invalid_argument naming the field.
+  void Check() const;
+};
+
+// Scores of the model itself.
+struct BaseScores {
+  bool converged = false;
+  double cv_position_mm_mean = 0.0;     // held-out mean position error [mm]
+  double cv_orientation_deg_mean = 0.0; // held-out mean orientation error [deg]
+  double final_cost = 0.0;              // the fit's cost on all stations
+  int num_residuals = 0;                // station residuals: 6 per station
+  int num_free_parameters = 0;          // tangent-space count, as the fit reports
+  double chi2 = 0.0;                    // sum of squared whitened station residuals (loss applied as inliers)
+  double chi2_per_dof = 0.0;
+  double bic = 0.0;                     // n ln(chi2 / n) + k ln(n)
+  Table1 table1;                        // cross-validation table (before / after)
+  double seconds = 0.0;
+};
+
+struct Candidate {
+  std::string effect;                 // catalog name
+  CandidateKind kind = CandidateKind::kTerm;
+  std::string model_change;           // YAML to add (a list item for terms, a `loss:` mapping)
+  std::optional<int> insert_index;    // kTerm: index in `terms:` before which it goes
+  std::string term_name;              // kTerm: the added term's name in reports
+  std::string model_text;             // the whole candidate model file
+  bool fitted = false;                // false: the fit failed (error says why)
+  std::string error;
+  bool converged = false;
+  bool cross_validated = false;       // false: screened out by BIC (cross_validate_top) or failed
+  double cv_position_mm_mean = NAN;
+  double cv_orientation_deg_mean = NAN;
+  double drop_position_percent = NAN;     // 100 (base - candidate) / base of the held-out mean
+  double drop_orientation_percent = NAN;
+  double cv_whitened_mean = NAN;          // mean held-out whitened squared error (ranking key)
+  double bic = NAN;
+  double delta_bic = NAN;                 // candidate BIC - base BIC (negative: better)
+  int num_free_parameters = 0;
+  double p_value = NAN;                   // one-sided Wilcoxon signed-rank, held-out errors
+  bool significant = false;
+  std::string reason;                     // why (not) significant, in words
+  std::vector<ParameterReport> parameters;  // the added term's blocks (empty for robust_loss)
+  std::vector<int> outlier_stations;      // robust_loss: stations beyond the loss scale
+  std::string statement;                  // physical summary with units and +- 1 sigma
+  double seconds = 0.0;
+};
+
+struct Diagnosis {
+  std::string model;  // model file name
+  std::string data;   // data name (capture folder or poses.csv)
+  int folds = 0;
+  int num_stations = 0;
+  BaseScores base;
+  std::vector<Candidate> candidates;  // ranked: significant first, then by held-out error
+  std::vector<Candidate> flexible;    // flexible fallback (not effects), same scores
+  std::vector<std::string> skipped;   // "near_field: model has it", "plane: term type not available"
+  double p_threshold = 0.0;           // family_alpha / number of candidates tested
+  std::optional<std::string> verdict_effect;  // top significant candidate
+  std::string verdict_text;
+  double seconds = 0.0;
+  // The JSON document of `trackcal-fit diagnose --json` (docs/diagnose.md).
+  nlohmann::json ToJson() const;
+};
+
+// Fits the model given as model-file text (`model_source` names it in errors) to `stations` (the
+// calibration set), then each candidate, scores and ranks them. Throws std::invalid_argument for a bad
+// model, bad options or too few stations (fewer than 2 per fold or 12 in all); a candidate whose fit
+// fails is reported with `error` set, not thrown.
+Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std::string& model_text,
+                             const std::string& model_source, const std::string& data_source,
+                             const CandidateOptions& options = {});
+
+// One-sided Wilcoxon signed-rank test that the differences d are positive (normal approximation with
+// tie and continuity corrections; zeros dropped). Returns the p-value (1 when no difference is
+// non-zero).
+double WilcoxonSignedRankGreater(const std::vector<double>& differences);
+
+// The terminal rendering: table, verdict, the YAML to add.
+std::string FormatDiagnosis(const Diagnosis& diagnosis);
+
+}  // namespace trackcal::fit

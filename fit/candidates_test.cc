@@ -1,0 +1,267 @@
+// Candidate ranking on synthetic stations whose truth is known: the scoring, the thresholds, the
+// YAML insertion and the JSON document, with explicit terms as catalog effects (independent of which
+// physical term types are registered).
+#include "fit/candidates.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <iostream>
+#include <numeric>
+#include <random>
+
+#include "fit/model_file.h"
+
+namespace trackcal::fit {
+namespace {
+
+// Noise of the synthetic stations, also the model's whitening (so chi2/dof ~ 1 for a right model).
+constexpr double kPositionNoise = 1e-4;     // [m]
+constexpr double kOrientationNoise = 3e-4;  // [rad] per axis of the error's vector part
+
+// Stations in a 1 x 1 x 0.5 m box with random orientations; the reference is the reported pose plus
+// a smooth orientation error (linear in position), `position_offset` and noise.
+std::vector<FitStation> Stations(int n, const Eigen::Vector3d& position_offset, int flips,
+                                 unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(-0.5, 0.5);
+  std::normal_distribution<double> g;
+  std::vector<FitStation> out;
+  for (int i = 0; i < n; ++i) {
+    FitStation s;
+    s.station = i;
+    s.reported.translation = Eigen::Vector3d(u(rng), u(rng), 0.5 + 0.5 * u(rng));
+    s.reported.rotation = Eigen::Quaterniond(g(rng), g(rng), g(rng), g(rng)).normalized();
+    const Eigen::Vector3d p = s.reported.translation;
+    const Eigen::Vector3d orientation_error(0.01 * p.x(), -0.02 * p.y() + 0.005, 0.01 * p.z());
+    s.reference.translation = p + position_offset +
+                              kPositionNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
+    // Noise on the vector part, which the model's orientation sigma whitens (fit/model.h).
+    const Eigen::Vector3d v =
+        0.5 * orientation_error + kOrientationNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
+    s.reference.rotation = QuaternionFromVectorPart<double>(v) * s.reported.rotation;
+    out.push_back(s);
+  }
+  // Hemisphere flips: the tracker reports -p (every 97th station, spread over the folds).
+  for (int f = 0; f < flips; ++f) {
+    auto& s = out[static_cast<size_t>(17 + 97 * f) % out.size()];
+    s.reported.translation = -s.reported.translation;
+  }
+  return out;
+}
+
+// The model: orientation only (so a position offset is missing).
+const char* kOrientationOnlyModel = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+terms:
+  - type: polynomial
+    degree: 1
+    position: false
+)";
+
+CandidateOptions TestOptions() {
+  CandidateOptions o;
+  o.catalog = {
+      {"position_offset", CandidateKind::kTerm, "{type: polynomial, degree: 0, orientation: false}",
+       false, true, "a constant position offset"},
+      {"robust_loss", CandidateKind::kRobustLoss, "", false, false, "outlier stations"},
+  };
+  return o;
+}
+
+TEST(DiagnoseCandidates, Nominal_MissingOffsetRanksFirstAndIsSignificant) {
+  const auto stations = Stations(300, Eigen::Vector3d(0.003, -0.002, 0.001), 0, 1);
+  const Diagnosis d = DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic",
+                                         TestOptions());
+  std::cout << FormatDiagnosis(d);
+  ASSERT_EQ(d.candidates.size(), 2u);
+  const Candidate& top = d.candidates[0];
+  EXPECT_EQ(top.effect, "position_offset");
+  EXPECT_TRUE(top.significant) << top.reason;
+  EXPECT_TRUE(d.verdict_effect.has_value());
+  EXPECT_EQ(*d.verdict_effect, "position_offset");
+  // A 3.7 mm offset against 0.1 mm noise: the held-out position error falls by over 90 %.
+  EXPECT_GT(top.drop_position_percent, 90.0);
+  EXPECT_LT(top.delta_bic, -100.0);
+  EXPECT_LT(top.p_value, 1e-10);
+  // The term goes at the end (not physical); the fitted offset is the truth within 3 sigma.
+  ASSERT_TRUE(top.insert_index.has_value());
+  EXPECT_EQ(*top.insert_index, 1);
+  EXPECT_THAT(top.model_change, ::testing::HasSubstr("type: polynomial"));
+  ModelSpec spec = ParseModelYaml(top.model_text, "candidate");
+  ASSERT_EQ(spec.terms.size(), 2u);
+  ASSERT_EQ(top.parameters.size(), 1u);
+  const ParameterReport& offset = top.parameters[0];
+  EXPECT_EQ(offset.block, "position_coefficients");
+  const Eigen::Vector3d truth(0.003, -0.002, 0.001);
+  for (int k = 0; k < 3; ++k) {
+    ASSERT_TRUE(std::isfinite(offset.stddev[k]));
+    EXPECT_LT(std::abs(offset.values[k] - truth[k]), 3.0 * offset.stddev[k]) << k;  // 3 sigma
+  }
+  // Every station is 37 sigma off: not outliers but a missing effect, so the robust loss buys nothing.
+  EXPECT_FALSE(d.candidates[1].significant) << d.candidates[1].reason;
+  EXPECT_THAT(FormatDiagnosis(d), ::testing::HasSubstr("Add to model.yaml"));
+}
+
+// Three seeds of data the model fits exactly (up to noise): nothing is claimed.
+TEST(DiagnoseCandidates, NothingIsClaimedWhenTheModelFits) {
+  for (unsigned seed : {2u, 3u, 4u}) {
+    const auto stations = Stations(300, Eigen::Vector3d::Zero(), 0, seed);
+    const Diagnosis d = DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml",
+                                           "synthetic", TestOptions());
+    for (const Candidate& c : d.candidates) {
+      EXPECT_FALSE(c.significant) << "seed " << seed << ": " << c.effect << ": " << c.reason;
+    }
+    EXPECT_FALSE(d.verdict_effect.has_value());
+    EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("No catalog effect explains"));
+    // Nor is a flexible term: there is no structure left.
+    ASSERT_EQ(d.flexible.size(), 1u);
+    EXPECT_FALSE(d.flexible[0].significant) << seed << ": " << d.flexible[0].reason;
+    // chi2/dof of a right model with its true noise is ~1 (6 x 300 residuals: +-0.1 at 3 sigma).
+    EXPECT_NEAR(d.base.chi2_per_dof, 1.0, 0.15) << seed;
+  }
+}
+
+TEST(DiagnoseCandidates, HemisphereFlipsCallForTheRobustLoss) {
+  const auto stations = Stations(300, Eigen::Vector3d(0.003, -0.002, 0.001), 3, 5);
+  const char* model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+terms:
+  - type: polynomial
+    degree: 1
+)";
+  CandidateOptions o = TestOptions();
+  o.effects = {"robust_loss"};
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  ASSERT_EQ(d.candidates.size(), 1u);
+  const Candidate& top = d.candidates[0];
+  EXPECT_EQ(top.effect, "robust_loss");
+  EXPECT_TRUE(top.significant) << top.reason;
+  EXPECT_FALSE(top.insert_index.has_value());
+  EXPECT_THAT(top.model_change, ::testing::HasSubstr("type: cauchy"));
+  EXPECT_THAT(top.outlier_stations, ::testing::ElementsAre(17, 114, 211));
+}
+
+// Streams paired with the wrong clock offset: the reference lags the tracker by 37 ms. The
+// time_offset candidate pairs again (here: a stand-in for PairStreams that knows the truth) and wins.
+TEST(DiagnoseCandidates, ClockOffsetOfStreamsIsFound) {
+  std::mt19937 rng(9);
+  std::normal_distribution<double> g;
+  auto truth_at = [](double t) {
+    return Rigid3d(Eigen::Quaterniond(Eigen::AngleAxisd(0.8 * std::sin(0.9 * t), Eigen::Vector3d::UnitZ())),
+                   Eigen::Vector3d(0.3 * std::sin(1.1 * t), 0.3 * std::cos(0.7 * t), 0.5));
+  };
+  auto paired = [&](double offset_s) {
+    std::vector<FitStation> out;
+    for (int i = 0; i < 600; ++i) {
+      const double t = 0.05 * i;
+      FitStation s;
+      s.station = i + 1;
+      s.time = t;
+      s.reported = truth_at(t);
+      s.reported.translation += kPositionNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
+      s.reference = truth_at(t + offset_s - 0.037);  // reference clock = tracker clock + 37 ms
+      out.push_back(s);
+    }
+    return out;
+  };
+  const auto stations = paired(0.0);
+  CandidateOptions o = TestOptions();
+  o.catalog = DefaultCatalog();
+  o.effects = {"time_offset"};
+  o.pair_streams = [&](const TimeOffsetSpec& t) {
+    EXPECT_FALSE(t.fixed);
+    return PairedStations{paired(0.037), 0.037};
+  };
+  const char* model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+terms:
+  - type: polynomial
+    degree: 0
+)";
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "streams", o);
+  ASSERT_EQ(d.candidates.size(), 1u);
+  EXPECT_EQ(d.candidates[0].effect, "time_offset");
+  EXPECT_TRUE(d.candidates[0].significant) << d.candidates[0].reason;
+  EXPECT_THAT(d.candidates[0].model_change, ::testing::HasSubstr("value: 0.037"));
+  EXPECT_THAT(d.candidates[0].statement, ::testing::HasSubstr("37.00 ms"));
+  // Without streams the candidate is not tested.
+  o.pair_streams = nullptr;
+  const Diagnosis none = DiagnoseCandidates(stations, model, "model.yaml", "poses", o);
+  EXPECT_TRUE(none.candidates.empty());
+  EXPECT_THAT(none.skipped, ::testing::ElementsAre(::testing::HasSubstr("not streams")));
+}
+
+TEST(DiagnoseCandidates, SkipsWhatTheModelHasAndUnknownTypes) {
+  CandidateOptions o = TestOptions();
+  o.catalog.push_back({"unknown", CandidateKind::kTerm, "type: no_such_term", true, false, "x"});
+  const char* model = R"(loss: {type: huber, scale: 3}
+terms:
+  - type: polynomial
+    degree: 1
+)";
+  const auto stations = Stations(60, Eigen::Vector3d::Zero(), 0, 6);
+  o.folds = 3;
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  ASSERT_EQ(d.candidates.size(), 1u);  // position_offset only
+  EXPECT_THAT(d.skipped, ::testing::UnorderedElementsAre(::testing::HasSubstr("robust_loss"),
+                                                         ::testing::HasSubstr("no_such_term")));
+}
+
+TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
+  const auto stations = Stations(60, Eigen::Vector3d(0.002, 0, 0), 0, 7);
+  CandidateOptions o = TestOptions();
+  o.folds = 3;
+  const nlohmann::json j =
+      DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic", o).ToJson();
+  EXPECT_EQ(j["command"], "diagnose");
+  EXPECT_EQ(j["model"], "model.yaml");
+  EXPECT_EQ(j["data"], "synthetic");
+  EXPECT_EQ(j["folds"], 3);
+  for (const char* key : {"cv_position_mm_mean", "cv_orientation_deg_mean", "final_cost",
+                          "num_residuals", "num_free_parameters", "bic", "table1"}) {
+    EXPECT_TRUE(j["base"].contains(key)) << key;
+  }
+  ASSERT_EQ(j["candidates"].size(), 2u);
+  for (const auto& c : j["candidates"]) {
+    for (const char* key : {"effect", "model_change", "insert_index", "cv_position_mm_mean",
+                            "cv_orientation_deg_mean", "cv_drop_percent", "delta_bic", "p_value",
+                            "significant", "reason", "parameters", "statement"}) {
+      EXPECT_TRUE(c.contains(key)) << key;
+    }
+    EXPECT_TRUE(c["cv_drop_percent"].contains("position"));
+    EXPECT_TRUE(c["cv_drop_percent"].contains("orientation"));
+  }
+  const auto& p = j["candidates"][0]["parameters"][0];
+  for (const char* key : {"term", "block", "unit", "coordinate_names", "values", "stddev", "fixed"}) {
+    EXPECT_TRUE(p.contains(key)) << key;
+  }
+  EXPECT_TRUE(j["flexible_fallback"].is_array());
+  EXPECT_TRUE(j["verdict"].contains("effect"));
+  EXPECT_TRUE(j["verdict"].contains("text"));
+}
+
+TEST(DiagnoseCandidates, BadOptionsAndTooFewStationsThrow) {
+  CandidateOptions o;
+  o.folds = 1;
+  EXPECT_THROW(o.Check(), std::invalid_argument);
+  o = CandidateOptions();
+  o.effects = {"teleportation"};
+  EXPECT_THROW(o.Check(), std::invalid_argument);
+  EXPECT_THROW(DiagnoseCandidates(Stations(8, Eigen::Vector3d::Zero(), 0, 8), kOrientationOnlyModel,
+                                  "m", "d", TestOptions()),
+               std::invalid_argument);
+}
+
+TEST(WilcoxonSignedRankGreater, Nominal) {
+  // d = 1..10: W+ = 55, mean 27.5, variance 96.25, z = (55 - 27.5 - 0.5) / 9.8107 = 2.7521,
+  // p = 1 - Phi(z) = 0.0029600 (normal approximation with continuity correction).
+  std::vector<double> d(10);
+  std::iota(d.begin(), d.end(), 1.0);
+  EXPECT_NEAR(WilcoxonSignedRankGreater(d), 0.0029600, 1e-6);
+  for (auto& v : d) v = -v;
+  EXPECT_GT(WilcoxonSignedRankGreater(d), 0.99);
+  EXPECT_EQ(WilcoxonSignedRankGreater({0.0, 0.0}), 1.0);
+  // Symmetric differences: p near 0.5.
+  EXPECT_NEAR(WilcoxonSignedRankGreater({-3, -2, -1, 1, 2, 3}), 0.5, 0.1);
+}
+
+}  // namespace
+}  // namespace trackcal::fit
