@@ -116,7 +116,8 @@ def test_diagnose_json_is_one_document_with_everything(tmp_path):
     cap = simulate(tmp_path / "capture", seed=71)
     model = tmp_path / "model.yaml"
     model.write_text(MODEL)
-    r = run_cli("diagnose", cap, "--model", model, "--json", "--permutations", "19", "--effects", "sensor_offset")
+    r = run_cli("diagnose", cap, "--model", model, "--json", "--permutations", "19", "--effects", "sensor_offset",
+                "--folds", "2")
     doc = json.loads(r.stdout)
     for key in ("tables", "outside_volume", "by_distance", "by_region", "worst", "covariates",
                 "covariate_findings", "candidates", "verdict", "fit"):

@@ -10,6 +10,7 @@ import sys
 import pytest
 
 import trackcal
+import trackcal.diagnosis
 from trackcal import history
 from understand_support import simulate
 
@@ -66,6 +67,18 @@ def test_fit_prints_table1_and_records_each_change(capture_dir, tmp_path):
     r = run_cli("history", work, "--plot", tmp_path / "h.png")
     assert "+lut" in r.stdout and "%" in r.stdout.splitlines()[2]
     assert (tmp_path / "h.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The report of the last fit carries the history (table and figure) and, with --model, the
+    # candidate ranking when the engine has it.
+    # (The first, lighter model keeps the ranking quick: sensor_offset alone, 2 folds.)
+    first = tmp_path / "first.yaml"
+    first.write_text(POLY)
+    r = run_cli("report", capture_dir, "-c", tmp_path / "c1.json", "--model", first, "--effects", "sensor_offset",
+                "--folds", "2", "--workdir", work, "-o", tmp_path / "rep", "--permutations", "19")
+    html = (tmp_path / "rep" / "report.html").read_text()
+    assert "History of fits" in html and "+lut" in html and (tmp_path / "rep" / "history.png").exists()
+    assert "Verdict" in html
+    if trackcal.diagnosis.candidates_available():
+        assert "Candidate effects" in html and (tmp_path / "rep" / "candidates.png").exists()
 
 
 def test_fit_json_is_the_engine_document(capture_dir, tmp_path):

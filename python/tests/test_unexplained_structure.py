@@ -28,7 +28,8 @@ def test_temperature_driven_gains_are_reported_as_unexplained(tmp_path):
 
     exe = shutil.which("trackcal")
     cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
-    r = subprocess.run(cmd + ["diagnose", str(cap), "--model", str(model), "--json", "--permutations", "99"],
+    r = subprocess.run(cmd + ["diagnose", str(cap), "--model", str(model), "--json", "--permutations", "99",
+                        "--folds", "3"],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)
