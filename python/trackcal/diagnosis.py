@@ -134,7 +134,8 @@ def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
         rows.append({"rank": i, "effect": c.get("effect"), "cv_pos_mm": c.get("cv_position_mm_mean"),
                      "cv_ori_deg": c.get("cv_orientation_deg_mean"), "drop_pos_%": drop.get("position"),
                      "drop_ori_%": drop.get("orientation"), "delta_BIC": c.get("delta_bic"),
-                     "p": c.get("p_value"), "significant": "yes" if c.get("significant") else "",
+                     "p": f"{c['p_value']:.2g}" if isinstance(c.get("p_value"), (int, float)) else "",
+                     "significant": "yes" if c.get("significant") else "",
                      "reason": c.get("reason", "")})
     return rows
 
