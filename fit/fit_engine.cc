@@ -6,7 +6,10 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <stdexcept>
+
+#include "fit/terms_time_offset.h"
 
 namespace trackcal::fit {
 namespace {
@@ -20,27 +23,36 @@ struct BoundTerm {
 // The station residual ((p_c - p_ref) / sigma_p, VectorPart(q_c conj(q_ref)) / sigma_o) and its
 // derivative with respect to the corrected pose (6 x 7), by forward-mode Jets.
 template <typename T>
-void StationResidual(const T* pose7, const Rigid3d& reference, double sigma_p, double sigma_o,
-                     T* residual6) {
-  for (int k = 0; k < 3; ++k) residual6[k] = (pose7[k] - T(reference.translation[k])) / T(sigma_p);
+void StationResidual(const T* pose7, const Vector3<T>& p_ref, const Eigen::Quaternion<T>& q_ref,
+                     double sigma_p, double sigma_o, T* residual6) {
+  for (int k = 0; k < 3; ++k) residual6[k] = (pose7[k] - p_ref[k]) / T(sigma_p);
   const Eigen::Quaternion<T> q = QuaternionFromXyzwArray(pose7 + 3);
-  const Eigen::Quaternion<T> q_ref = reference.rotation.cast<T>();
   const Vector3<T> v = OrientationErrorVector<T>(q, q_ref);
   for (int k = 0; k < 3; ++k) residual6[3 + k] = v[k] / T(sigma_o);
+}
+template <typename T>
+void StationResidual(const T* pose7, const Rigid3d& reference, double sigma_p, double sigma_o,
+                     T* residual6) {
+  StationResidual<T>(pose7, reference.translation.cast<T>(), reference.rotation.cast<T>(), sigma_p,
+                     sigma_o, residual6);
 }
 
 // Chains the terms: forward through them, Jacobians composed by the chain rule.
 class StationCost : public ceres::CostFunction {
  public:
+  // With `time_offset0` set, the last parameter block is the clock offset dt (size 1) and the
+  // reference moves by the station's velocity times dt - *time_offset0 (fit/terms_time_offset.h).
   StationCost(std::vector<BoundTerm> terms, const FitStation& station, double sigma_p,
-              double sigma_o)
-      : terms_(std::move(terms)), station_(station), sigma_p_(sigma_p), sigma_o_(sigma_o) {
+              double sigma_o, std::optional<double> time_offset0 = std::nullopt)
+      : terms_(std::move(terms)), station_(station), sigma_p_(sigma_p), sigma_o_(sigma_o),
+        time_offset0_(time_offset0) {
     set_num_residuals(6);
     for (const auto& t : terms_) {
       for (int b : t.binding.blocks) {
         mutable_parameter_block_sizes()->push_back(t.term->blocks()[static_cast<size_t>(b)].size());
       }
     }
+    if (time_offset0_) mutable_parameter_block_sizes()->push_back(1);
   }
 
   bool Evaluate(double const* const* parameters, double* residuals,
@@ -61,15 +73,33 @@ class StationCost : public ceres::CostFunction {
       pose = eval.output;
       p += count;
     }
+    Rigid3d reference = station_.reference;
+    const double dt = time_offset0_ ? parameters[p][0] - *time_offset0_ : 0.0;
+    if (time_offset0_) {
+      ShiftReference<double>(station_.reference, station_.reference_velocity,
+                             station_.reference_angular_velocity, dt, &reference.translation,
+                             &reference.rotation);
+      if (want && jacobians[p] != nullptr) {
+        using Jet1 = ceres::Jet<double, 1>;
+        Vector3<Jet1> p_ref;
+        Eigen::Quaternion<Jet1> q_ref;
+        ShiftReference<Jet1>(station_.reference, station_.reference_velocity,
+                             station_.reference_angular_velocity, Jet1(dt, 0), &p_ref, &q_ref);
+        Jet1 pose_const[7], r1[6];
+        for (int k = 0; k < 7; ++k) pose_const[k] = Jet1(pose[k]);
+        StationResidual<Jet1>(pose_const, p_ref, q_ref, sigma_p_, sigma_o_, r1);
+        for (int i = 0; i < 6; ++i) jacobians[p][i] = r1[i].v[0];
+      }
+    }
     if (!want) {
-      StationResidual<double>(pose.data(), station_.reference, sigma_p_, sigma_o_, residuals);
+      StationResidual<double>(pose.data(), reference, sigma_p_, sigma_o_, residuals);
       return true;
     }
     using Jet = ceres::Jet<double, 7>;
     Jet pose_jet[7];
     for (int k = 0; k < 7; ++k) pose_jet[k] = Jet(pose[k], k);
     Jet r[6];
-    StationResidual<Jet>(pose_jet, station_.reference, sigma_p_, sigma_o_, r);
+    StationResidual<Jet>(pose_jet, reference, sigma_p_, sigma_o_, r);
     Eigen::Matrix<double, 6, 7, Eigen::RowMajor> d_r;
     for (int i = 0; i < 6; ++i) {
       residuals[i] = r[i].a;
@@ -88,6 +118,7 @@ class StationCost : public ceres::CostFunction {
   std::vector<BoundTerm> terms_;
   FitStation station_;
   double sigma_p_, sigma_o_;
+  std::optional<double> time_offset0_;
 };
 
 // Each station's pose at the input of term `k` (terms 0..k-1 applied with their current values).
@@ -200,10 +231,21 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     for (const auto& block : term.blocks()) block.Check(term.name());
   }
 
+  // A clock offset fitted with the model: streams whose stations carry reference velocities and a
+  // model file whose time_offset is not fixed (fit/terms_time_offset.h).
+  bool moving = false;
+  for (const auto& s : stations) {
+    moving = moving || !s.reference_velocity.isZero() || !s.reference_angular_velocity.isZero();
+  }
+  const bool fit_time_offset = moving && spec->time_offset && !spec->time_offset->fixed;
+  double time_offset = fit_time_offset ? spec->time_offset->value : 0.0;
+  const std::optional<double> time_offset0 =
+      fit_time_offset ? std::optional<double>(spec->time_offset->value) : std::nullopt;
+
   // Fast path: a lone linear term (the paper's method) is solved by its linear least squares.
   if (spec->terms.size() == 1 && linear_ok[0] && spec->terms[0]->SolvesAloneLinearly() &&
       spec->loss.type == LossType::kNone && spec->position_range_exponent == 0.0 &&
-      spec->orientation_range_exponent == 0.0) {
+      spec->orientation_range_exponent == 0.0 && !fit_time_offset) {
     bool plain = true;
     for (const auto& block : spec->terms[0]->blocks()) {
       plain = plain && block.lower.empty() && block.upper.empty() && block.prior_mean.empty();
@@ -282,9 +324,11 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
           blocks.push_back(const_cast<ModelTerm*>(b.term)->blocks()[static_cast<size_t>(j)].values.data());
         }
       }
+      if (fit_time_offset) blocks.push_back(&time_offset);
       const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
       station_blocks.push_back(problem.AddResidualBlock(
-          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1]),
+          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1],
+                          time_offset0),
           MakeLoss(spec->loss), blocks));
     }
   }
@@ -320,6 +364,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     }
   }
 
+  if (fit_time_offset) num_free += 1;
   ceres::Solver::Options solver_options;
   solver_options.max_num_iterations = spec->max_iterations;
   solver_options.function_tolerance = spec->function_tolerance;
@@ -389,6 +434,14 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       cov_index.emplace_back(t, b);
     }
   }
+  if (fit_time_offset) {
+    CovarianceBlock cb;
+    cb.values = &time_offset;
+    cb.name = "time_offset";
+    cb.coordinate_names = {"dt"};
+    cov_blocks.push_back(cb);
+  }
+  double time_offset_stddev = std::numeric_limits<double>::quiet_NaN();
   if (options.compute_covariance && spec->covariance && !cov_blocks.empty()) {
     CovarianceOptions co;
     co.num_threads = options.num_threads;
@@ -399,7 +452,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     if (cov.success) {
       // Scale by chi2/dof when the noise model is off? No: the model's sigmas are the noise model; the
       // reported std assumes them (chi2_per_dof tells whether they fit).
-      for (size_t i = 0; i < cov_blocks.size(); ++i) {
+      if (fit_time_offset) time_offset_stddev = cov.stddev[cov.block_offsets[cov_index.size()]];
+      for (size_t i = 0; i < cov_index.size(); ++i) {
         auto& block = spec->terms[cov_index[i].first]->blocks()[cov_index[i].second];
         const int offset = cov.block_offsets[i];
         // Manifold blocks: one std per tangent coordinate (tangent_names, tangent_unit).
@@ -412,6 +466,17 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   result.seconds_covariance =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - covariance_start).count();
   FinishResult(stations, spec, start, &result);
+  if (fit_time_offset) {
+    spec->time_offset->value = time_offset;
+    ParameterReport r;
+    r.term = "time_offset";
+    r.block = "value";
+    r.unit = "s";
+    r.coordinate_names = {"dt"};
+    r.values = {time_offset};
+    r.stddev = {time_offset_stddev};
+    result.parameters.push_back(std::move(r));
+  }
   return result;
 }
 

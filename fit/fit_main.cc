@@ -1,7 +1,8 @@
 // trackcal-fit: fits a correction model to a capture, registers the optical frame, pairs streams.
 //
 //   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] [--json]
-//   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv [--json]
+//   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
+//                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
 //                         [--cross-validate-top N] [--json]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
@@ -18,6 +19,7 @@
 #include <iostream>
 #include <map>
 #include <memory>
+#include <optional>
 #include <nlohmann/json.hpp>
 #include <sstream>
 #include <string>
@@ -32,6 +34,7 @@
 #include "fit/pose_extraction.h"
 #include "fit/registration.h"
 #include "fit/registration_io.h"
+#include "fit/registration_refinement.h"
 #include "fit/stream_pairing.h"
 
 namespace fs = std::filesystem;
@@ -53,8 +56,8 @@ void PrintUsage(std::ostream& out) {
          "  trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] "
          "[--effects LIST]\n"
          "                        [--cross-validate-top N] [--json] [--quiet]\n"
-         "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv "
-         "[--json]\n"
+         "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv\n"
+         "                        [--set NAME | --poses poses.csv [--model model.yaml]] [--json]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv "
          "[--json]\n"
@@ -177,19 +180,40 @@ int RunFit(int argc, char** argv) {
   std::vector<fs::path> inputs = {model_path};
   PoseCapture poses;
   std::optional<double> paired_offset;
+  // Streams with a free time_offset: the offset estimated by pairing starts the fit, which then
+  // estimates it jointly with the terms (fit/terms_time_offset.h) and re-pairs if it moved.
+  std::optional<TrackerStream> tracker_stream;
+  std::optional<ReferenceStream> reference_stream;
+  StreamPairingOptions pairing;
+  std::vector<FitStation> stream_stations;
+  auto stations_of_pairing = [](const StreamPairingResult& r) {
+    std::vector<FitStation> out;
+    for (size_t i = 0; i < r.poses.records.size(); ++i) {
+      const PoseRecord& p = r.poses.records[i];
+      FitStation s{p.reported, p.reference, p.time, p.sensor, p.station};
+      s.reference_velocity = r.reference_velocity[i];
+      s.reference_angular_velocity = r.reference_angular_velocity[i];
+      out.push_back(s);
+    }
+    return out;
+  };
   if (fs::is_directory(data)) {
     poses_path = data / kPosesCsv;
     if (!fs::exists(poses_path) && fs::exists(data / kTrackerStreamCsv)) {
-      StreamPairingOptions pairing;
       if (spec.time_offset) {
         pairing.time_offset = spec.time_offset->value;
         pairing.estimate_time_offset = !spec.time_offset->fixed;
         pairing.search_range = spec.time_offset->search_range;
       }
-      const auto result = PairStreams(ReadTrackerStream(data / kTrackerStreamCsv),
-                                      ReadReferenceStream(data / kReferenceStreamCsv), pairing);
+      tracker_stream = ReadTrackerStream(data / kTrackerStreamCsv);
+      reference_stream = ReadReferenceStream(data / kReferenceStreamCsv);
+      const auto result = PairStreams(*tracker_stream, *reference_stream, pairing);
       poses = result.poses;
       paired_offset = result.time_offset;
+      if (spec.time_offset && !spec.time_offset->fixed) {
+        stream_stations = stations_of_pairing(result);
+        spec.time_offset->value = result.time_offset;
+      }
       inputs.push_back(data / kTrackerStreamCsv);
       inputs.push_back(data / kReferenceStreamCsv);
     }
@@ -199,7 +223,7 @@ int RunFit(int argc, char** argv) {
     inputs.push_back(poses_path);
   }
   CheckOutputIsNotInput(output, inputs);
-  const auto calib = StationsOfSet(poses, "calib");
+  auto calib = StationsOfSet(poses, "calib");
   const auto valid = StationsOfSet(poses, "valid");
   if (calib.empty()) {
     throw std::invalid_argument(poses_path.string() + ": no stations with set 'calib'");
@@ -211,7 +235,29 @@ int RunFit(int argc, char** argv) {
       std::cerr << "trackcal-fit: iteration " << iteration << ", cost " << cost << "\n";
     };
   }
-  FitResult result = FitModel(calib, &spec, options);
+  FitResult result;
+  if (stream_stations.empty()) {
+    result = FitModel(calib, &spec, options);
+  } else {
+    // Joint fit; re-pair at the estimate while it moves by more than the linearisation allows
+    // (1 ms: a 1 m/s^2 acceleration then errs by 0.5 um).
+    for (int round = 0;; ++round) {
+      const double paired_at = spec.time_offset->value;
+      result = FitModel(stream_stations, &spec, options);
+      if (std::abs(spec.time_offset->value - paired_at) < 1e-3 || round == 3) break;
+      StreamPairingOptions again = pairing;
+      again.time_offset = spec.time_offset->value;
+      again.estimate_time_offset = false;
+      const auto repaired = PairStreams(*tracker_stream, *reference_stream, again);
+      poses = repaired.poses;
+      stream_stations = stations_of_pairing(repaired);
+      ModelSpec fresh = make_spec();
+      fresh.time_offset->value = again.time_offset;
+      spec = std::move(fresh);
+    }
+    paired_offset = spec.time_offset->value;
+    calib = StationsOfSet(poses, "calib");
+  }
   std::vector<Table1> tables = {EvaluateTable1(result.chain, calib, "calib")};
   if (!valid.empty()) {
     tables.push_back(EvaluateTable1(result.chain, valid, "valid"));
@@ -374,48 +420,120 @@ int RunPair(int argc, char** argv) {
                                 {"dropped", result.dropped},
                                 {"time_offset_s", result.time_offset},
                                 {"estimated", options.estimate_time_offset},
+                                {"time_offset_stddev_s", result.time_offset_stddev},
                                 {"position_difference_variance_m2", result.cost}}
                      .dump(2)
               << "\n";
   } else {
     std::cout << "Paired " << result.poses.records.size() << " samples (" << result.dropped
               << " without reference), time offset " << std::setprecision(6) << result.time_offset
-              << " s" << (options.estimate_time_offset ? " (estimated)" : "") << "\nWrote "
+              << " s";
+    if (options.estimate_time_offset) {
+      std::cout << " +- " << result.time_offset_stddev << " s (estimated, "
+                << result.gauss_newton_steps << " Gauss-Newton steps)";
+    }
+    std::cout << "\nWrote "
               << output.string() << "\n";
   }
   return 0;
 }
 
 int RunRegister(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv, {"--markers", "--tracker", "-o", "--set"}, {"--json"});
+  const Args args = ParseArgs(argc, argv, {"--markers", "--tracker", "-o", "--set", "--poses", "--model"},
+                              {"--json", "--quiet"});
   const fs::path markers_path = args.Get("--markers");
   const fs::path tracker_path = args.Get("--tracker");
   const fs::path output = args.Get("-o");
-  CheckOutputIsNotInput(output, {markers_path, tracker_path});
+  const bool refine = args.values.count("--model") > 0;
+  const bool labelled = args.values.count("--poses") > 0;
+  if (refine && !labelled) {
+    throw UsageError("--model needs --poses: its set column tells the registration stations (reg) "
+                     "from the calibration stations (calib) the correction is fitted to");
+  }
+  if (labelled && args.values.count("--set")) throw UsageError("--set and --poses exclude each other");
+  std::vector<fs::path> inputs = {markers_path, tracker_path};
+  if (labelled) inputs.push_back(args.Get("--poses"));
+  if (refine) inputs.push_back(args.Get("--model"));
+  CheckOutputIsNotInput(output, inputs);
   const std::vector<RegistrationStation> stations =
       ReadRegistrationStations(markers_path, tracker_path);
-  const RegistrationResult registration = RegisterOpticalToTransmitter(stations);
+
+  // Set and time of each station: from --poses, else every station registers and gets --set.
+  std::map<int, std::string> set_of;
+  std::map<int, double> time_of;
+  const std::string default_set = args.GetOr("--set", "calib");
+  if (labelled) {
+    const fs::path poses_path = args.Get("--poses");
+    for (const PoseRecord& r : ReadPoses(poses_path).records) {
+      set_of[r.station] = r.set;
+      time_of[r.station] = r.time;
+    }
+    for (const RegistrationStation& s : stations) {
+      if (!set_of.count(s.station)) {
+        throw std::invalid_argument(poses_path.string() + ": column station: no row for station " +
+                                    std::to_string(s.station) + " of " +
+                                    markers_path.filename().string());
+      }
+    }
+  }
+  std::vector<RegistrationStation> registration_stations, calibration_stations;
+  for (const RegistrationStation& s : stations) {
+    if (!labelled || set_of[s.station] == "reg") registration_stations.push_back(s);
+    if (labelled && set_of[s.station] == "calib") calibration_stations.push_back(s);
+  }
+  if (registration_stations.empty()) {
+    throw std::invalid_argument(args.Get("--poses") + ": no station of " +
+                                markers_path.filename().string() + " has set 'reg'");
+  }
+
+  RegistrationResult registration;
+  std::optional<RegistrationRefinementResult> refinement;
+  if (refine) {
+    const fs::path model_path = args.Get("--model");
+    const std::string model_text = ReadFileToString(model_path);
+    ParseModelYaml(model_text, model_path.string());  // errors before any work
+    RegistrationRefinementOptions options;
+    CorrectionFitter engine =
+        MakeEngineFitter([model_text, model_path] { return ParseModelYaml(model_text, model_path.string()); });
+    const bool quiet = args.Flag("--quiet");
+    int round = 0;
+    CorrectionFitter fitter = [&](const std::vector<FitStation>& fit_stations) {
+      if (!quiet) std::cerr << "trackcal-fit: refinement round " << ++round << "\n";
+      return engine(fit_stations);
+    };
+    refinement = RefineRegistration(registration_stations, calibration_stations, fitter, options);
+    registration = refinement->refined;
+  } else {
+    registration = RegisterOpticalToTransmitter(registration_stations);
+  }
+
   const auto extracted = ExtractPoses(stations, registration.registration);
-  PoseRecordOptions record_options;
-  record_options.set = args.GetOr("--set", "calib");
-  const PoseRecords records = MakePoseRecords(stations, extracted, {}, record_options);
-  const PoseCapture& poses = records.capture;
-  const int without_pose = static_cast<int>(records.left_out.size());
+  PoseCapture poses;
+  std::vector<int> left_out;
+  for (size_t i = 0; i < stations.size(); ++i) {
+    PoseRecordOptions record_options;
+    record_options.set = labelled ? set_of[stations[i].station] : default_set;
+    const PoseRecords one = MakePoseRecords({stations[i]}, {extracted[i]}, time_of, record_options);
+    poses.records.insert(poses.records.end(), one.capture.records.begin(), one.capture.records.end());
+    left_out.insert(left_out.end(), one.left_out.begin(), one.left_out.end());
+  }
   WritePoses(output, poses);
   if (args.Flag("--json")) {
-    std::cout << nlohmann::json{{"command", "register"},
-                                {"output", output.string()},
-                                {"num_poses", poses.records.size()},
-                                {"stations_without_pose", without_pose},
-                                {"converged", registration.converged},
-                                {"identifiable", registration.identifiable},
-                                {"chi_square", registration.chi_square},
-                                {"nu", registration.nu}}
-                     .dump(2)
-              << "\n";
+    nlohmann::json doc = {{"command", "register"},
+                          {"output", output.string()},
+                          {"num_poses", poses.records.size()},
+                          {"stations_without_pose", left_out.size()},
+                          {"stations_left_out", left_out},
+                          {"converged", registration.converged},
+                          {"identifiable", registration.identifiable},
+                          {"chi_square", registration.chi_square},
+                          {"nu", registration.nu},
+                          {"registration", registration.ToJson()}};
+    if (refinement) doc["refinement"] = refinement->ToJson();
+    std::cout << doc.dump(2) << "\n";
   } else {
-    std::cout << registration.ToString() << "\nWrote " << poses.records.size() << " poses to "
-              << output.string() << "\n";
+    std::cout << (refinement ? refinement->ToString() : registration.ToString()) << "\nWrote "
+              << poses.records.size() << " poses to " << output.string() << "\n";
   }
   return 0;
 }

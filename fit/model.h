@@ -92,6 +92,10 @@ struct FitStation {
   double time = 0.0;  // tracker clock [s]
   int sensor = 1;     // receiver number
   int station = 0;    // station id (for reports)
+  // Streams only: the reference's velocity at the paired time [m/s] and angular velocity in the
+  // transmitter frame [rad/s], for a fitted clock offset (fit/terms_time_offset.h). Zero: static.
+  Eigen::Vector3d reference_velocity = Eigen::Vector3d::Zero();
+  Eigen::Vector3d reference_angular_velocity = Eigen::Vector3d::Zero();
 };
 
 // Which parameter blocks of a term a station's residual depends on, fixed when the problem is built.

@@ -204,6 +204,75 @@ double OpticalSumOfSquares(const Problem& p, const Eigen::Quaterniond& r0,
   return sse;
 }
 
+// Regularised incomplete beta function I_x(a, b) by its continued fraction (modified Lentz).
+double IncompleteBeta(double a, double b, double x) {
+  if (x <= 0.0) return 0.0;
+  if (x >= 1.0) return 1.0;
+  // The continued fraction converges fast for x < (a + 1) / (a + b + 2); else use symmetry.
+  if (x > (a + 1.0) / (a + b + 2.0)) return 1.0 - IncompleteBeta(b, a, 1.0 - x);
+  const double log_front =
+      std::lgamma(a + b) - std::lgamma(a) - std::lgamma(b) + a * std::log(x) + b * std::log1p(-x);
+  constexpr double kTiny = 1e-300;
+  double c = 1.0, d = 1.0 - (a + b) * x / (a + 1.0);
+  if (std::abs(d) < kTiny) d = kTiny;
+  d = 1.0 / d;
+  double f = d;
+  for (int m = 1; m <= 300; ++m) {
+    for (int k = 0; k < 2; ++k) {
+      const double num = k == 0 ? m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
+                                : -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1));
+      d = 1.0 + num * d;
+      if (std::abs(d) < kTiny) d = kTiny;
+      c = 1.0 + num / c;
+      if (std::abs(c) < kTiny) c = kTiny;
+      d = 1.0 / d;
+      f *= c * d;
+    }
+    if (std::abs(c * d - 1.0) < 1e-15) break;
+  }
+  return std::exp(log_front) * f / a;
+}
+
+}  // namespace
+
+double FDistributionUpperTail(double f, double d1, double d2) {
+  if (!(f > 0.0)) return 1.0;
+  return IncompleteBeta(0.5 * d2, 0.5 * d1, d2 / (d2 + d1 * f));
+}
+
+namespace {
+
+ResidualStructure AnalyseResidualStructure(const std::vector<RegisteredStation>& stations) {
+  ResidualStructure out;
+  const int n = static_cast<int>(stations.size());
+  out.trend_dof = 6 * 4;
+  out.residual_dof = 6 * n - out.trend_dof;
+  if (n <= 4) return out;
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+  for (const RegisteredStation& s : stations) centre += s.transmitter_from_receiver.translation;
+  centre /= n;
+  Eigen::MatrixXd x(n, 4);
+  Eigen::MatrixXd y(n, 6);
+  for (int i = 0; i < n; ++i) {
+    x(i, 0) = 1.0;
+    x.block<1, 3>(i, 1) = (stations[i].transmitter_from_receiver.translation - centre).transpose();
+    y.row(i) = stations[i].tracker_residual_whitened.transpose();
+  }
+  const Eigen::MatrixXd fitted = x * x.colPivHouseholderQr().solve(y);
+  const Eigen::MatrixXd rest = y - fitted;
+  out.explained = fitted.squaredNorm();
+  out.unexplained = rest.squaredNorm();
+  for (int c = 0; c < 6; ++c) {
+    const double total = y.col(c).squaredNorm();
+    out.explained_fraction[c] = total > 0.0 ? fitted.col(c).squaredNorm() / total : 0.0;
+  }
+  if (out.unexplained > 0.0) {
+    out.f_statistic = (out.explained / out.trend_dof) / (out.unexplained / out.residual_dof);
+    out.p_value = FDistributionUpperTail(out.f_statistic, out.trend_dof, out.residual_dof);
+  }
+  return out;
+}
+
 std::string Fmt(const char* fmt, double v) {
   char buf[64];
   std::snprintf(buf, sizeof(buf), fmt, v);
@@ -430,6 +499,10 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
     s.tracker_position_residual_m = PositionErrorNorm(s.transmitter_from_receiver, reading);
     s.tracker_orientation_residual_rad =
         OrientationErrorAngle(s.transmitter_from_receiver, reading);
+    s.tracker_residual_whitened << (s.transmitter_from_receiver.translation - reading.translation) /
+                                       options.tracker_position_noise_m,
+        RotationVectorBetween<double>(s.transmitter_from_receiver.rotation, reading.rotation) /
+            options.tracker_orientation_noise_rad;
     for (ceres::ResidualBlockId id : station_residuals[i]) {
       double cost = 0.0;
       problem.EvaluateResidualBlock(id, /*apply_loss_function=*/true, &cost, nullptr, nullptr);
@@ -437,6 +510,7 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
     }
     result.stations.push_back(s);
   }
+  result.residual_structure = AnalyseResidualStructure(result.stations);
   return result;
 }
 
@@ -461,12 +535,85 @@ std::string RegistrationResult::ToString() const {
   }
   out << "chi-square " << Fmt("%.2f", chi_square) << ", expected nu = " << Fmt("%.0f", nu) << " +- "
       << Fmt("%.2f", chi_square_stddev) << " (z = " << Fmt("%.2f", ChiSquareZ()) << ")\n";
+  const ResidualStructure& rs = residual_structure;
+  out << "tracker residual trend over station position: F = " << Fmt("%.2f", rs.f_statistic) << " ("
+      << rs.trend_dof << ", " << rs.residual_dof << " dof), p = " << Fmt("%.2g", rs.p_value)
+      << (rs.Flagged() ? "  DISTORTED: the tracker residuals vary smoothly over the stations"
+                       : "")
+      << "\n";
   out << "stations used " << stations.size() << ", skipped " << skipped_stations.size()
       << ", marker observations " << num_marker_observations << "\n";
   out << "solver: " << solver_report << (converged ? "" : " (NOT CONVERGED)") << "\n";
   out << "initialisation: " << initialisation << "\n";
   out << (identifiable ? "identifiable" : "NOT IDENTIFIABLE") << "; " << covariance.ToString();
   return out.str();
+}
+
+}  // namespace trackcal::fit
+
+namespace trackcal::fit {
+namespace {
+nlohmann::json Vec(const Eigen::VectorXd& v) {
+  nlohmann::json out = nlohmann::json::array();
+  for (Eigen::Index i = 0; i < v.size(); ++i) out.push_back(v[i]);
+  return out;
+}
+}  // namespace
+
+nlohmann::json RegistrationResult::ToJson() const {
+  const Rigid3d& t = registration.optical_from_transmitter;
+  nlohmann::json covariance_rows = nlohmann::json::array();
+  for (int r = 0; r < 6; ++r) covariance_rows.push_back(Vec(optical_from_transmitter_covariance.row(r).transpose()));
+  nlohmann::json marker_list = nlohmann::json::array();
+  for (const RegisteredMarker& m : markers) {
+    marker_list.push_back({{"marker", m.marker},
+                           {"marker_in_receiver", Vec(m.marker_in_receiver)},
+                           {"stddev", Vec(m.stddev)},
+                           {"num_observations", m.num_observations}});
+  }
+  nlohmann::json station_list = nlohmann::json::array();
+  for (const RegisteredStation& s : stations) {
+    station_list.push_back({{"station", s.station},
+                            {"num_markers", s.num_markers},
+                            {"chi_square", s.chi_square},
+                            {"marker_rms_mm", s.marker_rms_m * 1e3},
+                            {"tracker_position_residual_mm", s.tracker_position_residual_m * 1e3},
+                            {"tracker_orientation_residual_deg",
+                             s.tracker_orientation_residual_rad * kDegPerRad},
+                            {"tracker_residual_whitened", Vec(s.tracker_residual_whitened)}});
+  }
+  const ResidualStructure& rs = residual_structure;
+  nlohmann::json flags = nlohmann::json::array();
+  for (const IdentifiabilityFlag& f : covariance.flags) {
+    flags.push_back({{"coordinate", f.coordinate}, {"reason", f.reason}});
+  }
+  return {{"optical_from_transmitter",
+           {{"rotation_xyzw", {t.rotation.x(), t.rotation.y(), t.rotation.z(), t.rotation.w()}},
+            {"translation", Vec(t.translation)},
+            {"covariance_order", "rotation vector (rad, optical-frame axes), translation (m)"},
+            {"covariance", covariance_rows},
+            {"stddev", Vec(optical_from_transmitter_stddev)}}},
+          {"markers", marker_list},
+          {"stations", station_list},
+          {"skipped_stations", skipped_stations},
+          {"num_marker_observations", num_marker_observations},
+          {"num_parameters", num_parameters},
+          {"chi_square", chi_square},
+          {"nu", nu},
+          {"chi_square_z", ChiSquareZ()},
+          {"residual_structure",
+           {{"f_statistic", rs.f_statistic},
+            {"trend_dof", rs.trend_dof},
+            {"residual_dof", rs.residual_dof},
+            {"p_value", rs.p_value},
+            {"explained_fraction", Vec(rs.explained_fraction)},
+            {"flagged", rs.Flagged()}}},
+          {"converged", converged},
+          {"identifiable", identifiable},
+          {"identifiability_flags", flags},
+          {"initialisation", initialisation},
+          {"solver_report", solver_report},
+          {"num_iterations", num_iterations}};
 }
 
 }  // namespace trackcal::fit

@@ -15,6 +15,10 @@
 // and the markers by its inverse leaves the optical predictions unchanged, so the receiver frame is
 // the one the tracker reports, defined through the tracker priors.
 //
+// Residual structure (ResidualStructure): chi-square measures the size of the residuals against
+// the assumed noise, so a distortion hides in a generous tracker noise; the spatial trend of the
+// per-station tracker residuals does not depend on the assumed noise (an F test).
+//
 // Goodness of fit: chi_square is the sum of squared whitened residuals at the solution; with
 // Gaussian noise of the stated sizes it has expected value nu = (number of optical coordinates) -
 // (6 + 3 * number of markers) and standard deviation sqrt(2 nu) (appendix A; the tracker priors and
@@ -24,6 +28,7 @@
 
 #include <Eigen/Core>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
@@ -95,6 +100,28 @@ struct RegisteredStation {
   double tracker_position_residual_m = 0.0;       // |estimate - tracker reading| [m]
   double tracker_orientation_residual_rad = 0.0;  // angle between estimate and reading [rad]
   double chi_square = 0.0;  // this station's whitened squared residuals (optical + prior)
+  // Whitened tracker residual, estimate - reading: [position / tracker_position_noise_m;
+  // rotation vector of q_estimate * conj(q_reading) / tracker_orientation_noise_rad].
+  Eigen::Matrix<double, 6, 1> tracker_residual_whitened = Eigen::Matrix<double, 6, 1>::Zero();
+};
+
+// Is there spatial structure in the tracker residuals? Random noise scatters them independently
+// from station to station; a distorted field at the registration stations makes them vary smoothly
+// with position. Each component of the whitened tracker residuals is regressed on (1, x, y, z) of
+// the station position: F = (explained / trend_dof) / (unexplained / residual_dof), which does not
+// depend on the noise levels assumed, compared with the F(trend_dof, residual_dof) distribution.
+// The part of a distortion that looks like a rigid change of frame is absorbed by
+// optical_from_transmitter and cannot show here; what remains (its variation over the stations) does.
+struct ResidualStructure {
+  double explained = 0.0;    // sum of squares of the fitted trend
+  double unexplained = 0.0;  // sum of squares of what the trend leaves
+  int trend_dof = 0;         // 6 components x 4 regressors
+  int residual_dof = 0;      // 6 x stations - trend_dof
+  double f_statistic = 0.0;
+  double p_value = 1.0;  // P(F >= f_statistic) for noise alone
+  // Fraction of each component's sum of squares the trend explains (x, y, z, rx, ry, rz).
+  Eigen::Matrix<double, 6, 1> explained_fraction = Eigen::Matrix<double, 6, 1>::Zero();
+  bool Flagged(double alpha = 1e-3) const { return residual_dof > 0 && p_value < alpha; }
 };
 
 struct RegistrationResult {
@@ -113,6 +140,7 @@ struct RegistrationResult {
   double chi_square = 0.0;          // at the solution (eq. 14)
   double nu = 0.0;                  // expected chi-square: 3 * observations - M
   double chi_square_stddev = 0.0;   // sqrt(2 nu)
+  ResidualStructure residual_structure;  // spatial trend of the tracker residuals
   // (chi_square - nu) / sqrt(2 nu): beyond about +-3 the noise model or the data are suspect.
   double ChiSquareZ() const;
 
@@ -125,12 +153,18 @@ struct RegistrationResult {
 
   // Multi-line summary: transform with standard deviations, chi-square against nu, flags.
   std::string ToString() const;
+  // Everything above for --json: transform (rotation_xyzw, translation, covariance, stddev),
+  // markers, per-station residuals, chi-square, residual structure, solver and identifiability.
+  nlohmann::json ToJson() const;
 };
 
 // Throws std::invalid_argument for invalid options or input (non-finite values, duplicate
 // station or marker ids, a non-unit tracker quaternion, too few usable stations), naming the
 // station, marker and field. A rank-deficient geometry is not an error: it is reported through
 // `identifiable` and the covariance flags.
+// P(F >= f) for F distributed as F(d1, d2) (Snedecor), for the residual-structure test.
+double FDistributionUpperTail(double f, double d1, double d2);
+
 RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
                                                 const RegistrationOptions& options = {});
 

@@ -67,6 +67,8 @@ TEST(RegistrationOnSimulatedCapture, DistortionFreeSceneWithinCovariance) {
     EXPECT_LT(run.mahalanobis2, 27.86) << run.result.ToString();
     // The noise is not exactly Gaussian per axis (it grows with distance), so allow 5 sigma.
     EXPECT_LT(std::abs(run.result.ChiSquareZ()), 5.0) << run.result.ToString();
+    // No spatial structure in the tracker residuals (false alarm rate 0.1 % per seed).
+    EXPECT_FALSE(run.result.residual_structure.Flagged()) << run.result.ToString();
   }
 }
 
@@ -85,6 +87,33 @@ TEST(RegistrationOnSimulatedCapture, PaperSceneDistortionBiasesTheTransform) {
   // Measured 0.52 deg and 0.95 mm (seeds 1-5: 0.27-0.49 deg, 0.43-1.05 mm); bounds at about 2x.
   EXPECT_LT(run.rotation_error_deg, 1.0);
   EXPECT_LT(run.translation_error_mm, 2.0);
+  // The chi-square with the default (generous) tracker noise may miss it; the trend test of the
+  // per-station tracker residuals, which does not depend on the assumed noise, does not.
+  std::cout << "residual trend F " << run.result.residual_structure.f_statistic << ", p "
+            << run.result.residual_structure.p_value << "\n";
+  EXPECT_TRUE(run.result.residual_structure.Flagged()) << run.result.ToString();
+}
+
+TEST(RegistrationOnSimulatedCapture, TrendTestFlagsTheDistortionOnEverySeed) {
+  for (uint64_t seed : {1ull, 2ull, 3ull}) {
+    sim::Scene scene = sim::LoadScene("paper");
+    scene.seed = seed;
+    const SimRun run = RegisterScene(scene, OptionsFor(scene));
+    std::cout << "seed " << seed << ": chi-square z " << run.result.ChiSquareZ() << ", trend F "
+              << run.result.residual_structure.f_statistic << ", p "
+              << run.result.residual_structure.p_value << "\n";
+    EXPECT_TRUE(run.result.residual_structure.Flagged()) << run.result.ToString();
+  }
+}
+
+TEST(FDistributionUpperTail, KnownValues) {
+  // Closed forms: F(2, d2) has upper tail (1 + 2 f / d2)^(-d2 / 2); F(d1, 2) has 1 - (d1 f /
+  // (d1 f + 2))^(d1 / 2); F(1, infinity) is chi-square(1), tail 0.0455 at 4 (2 sigma).
+  EXPECT_NEAR(FDistributionUpperTail(1.0, 2.0, 2.0), 0.5, 1e-12);
+  EXPECT_NEAR(FDistributionUpperTail(3.0, 2.0, 96.0), std::pow(1.0 + 6.0 / 96.0, -48.0), 1e-12);
+  EXPECT_NEAR(FDistributionUpperTail(1.5, 24.0, 2.0), 1.0 - std::pow(36.0 / 38.0, 12.0), 1e-12);
+  EXPECT_NEAR(FDistributionUpperTail(4.0, 1.0, 1e7), 0.0455003, 1e-5);
+  EXPECT_DOUBLE_EQ(FDistributionUpperTail(0.0, 24.0, 96.0), 1.0);
 }
 
 }  // namespace

@@ -1,9 +1,13 @@
 #include "fit/stream_pairing.h"
 
+#include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
+#include <vector>
+
+#include "fit/rotation.h"
 
 namespace trackcal::fit {
 
@@ -18,6 +22,9 @@ bool StreamPairingOptions::Check(std::string* error) const {
   if (!(max_gap_s > 0.0)) return fail("max_gap_s must be > 0");
   if (decimate < 1) return fail("decimate must be >= 1");
   if (set.empty()) return fail("set must not be empty");
+  if (detrend_degree < -1 || detrend_degree > 6) return fail("detrend_degree must be in [-1, 6]");
+  if (max_gauss_newton_steps < 1) return fail("max_gauss_newton_steps must be >= 1");
+  if (!(correlation_time_s >= 0.0)) return fail("correlation_time_s must be >= 0");
   return true;
 }
 
@@ -35,31 +42,38 @@ std::optional<Rigid3d> InterpolateReference(const ReferenceStream& reference, do
   if (!(dt > 0.0) || dt > max_gap_s) return std::nullopt;
   const double s = std::clamp((t - a.time) / dt, 0.0, 1.0);
   Rigid3d out;
-  out.translation = (1.0 - s) * a.transmitter_from_body.translation + s * b.transmitter_from_body.translation;
+  out.translation =
+      (1.0 - s) * a.transmitter_from_body.translation + s * b.transmitter_from_body.translation;
   out.rotation = a.transmitter_from_body.rotation.slerp(s, b.transmitter_from_body.rotation);
   return out;
 }
 
 namespace {
 
-struct Pairing {
-  PoseCapture poses;
-  double cost = std::numeric_limits<double>::infinity();
-  int dropped = 0;
-};
-
-Pairing Pair(const TrackerStream& tracker, const ReferenceStream& reference,
-             const StreamPairingOptions& options, int sensor, double offset) {
-  Pairing out;
-  out.poses.extra_columns.clear();
-  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
-  double sum2 = 0.0;
-  int count = 0;
+// The tracker samples of one sensor (decimated), in stream order.
+std::vector<const TrackerStreamSample*> SelectSamples(const TrackerStream& tracker,
+                                                      const StreamPairingOptions& options,
+                                                      int sensor) {
+  std::vector<const TrackerStreamSample*> out;
   int index = 0;
   for (const auto& s : tracker.records) {
     if (s.sensor != sensor) continue;
     if (index++ % options.decimate != 0) continue;
-    const auto ref = InterpolateReference(reference, s.time + offset, options.max_gap_s);
+    out.push_back(&s);
+  }
+  return out;
+}
+
+// Pairs every selected sample at `offset`.
+StreamPairingResult Pair(const std::vector<const TrackerStreamSample*>& samples,
+                         const ReferenceStream& reference, const StreamPairingOptions& options,
+                         double offset) {
+  StreamPairingResult out;
+  out.time_offset = offset;
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  double sum2 = 0.0;
+  for (const TrackerStreamSample* s : samples) {
+    const auto ref = InterpolateReference(reference, s->time + offset, options.max_gap_s);
     if (!ref) {
       ++out.dropped;
       continue;
@@ -67,21 +81,169 @@ Pairing Pair(const TrackerStream& tracker, const ReferenceStream& reference,
     PoseRecord r;
     r.station = static_cast<int>(out.poses.records.size()) + 1;
     r.set = options.set;
-    r.sensor = s.sensor;
-    r.time = s.time;
-    r.reported = s.transmitter_from_receiver;
+    r.sensor = s->sensor;
+    r.time = s->time;
+    r.reported = s->transmitter_from_receiver;
     r.reference = *ref;
     const Eigen::Vector3d d = r.reported.translation - r.reference.translation;
     sum += d;
     sum2 += d.squaredNorm();
-    ++count;
     out.poses.records.push_back(std::move(r));
   }
-  if (count >= 2) {
-    const Eigen::Vector3d mean = sum / count;
-    out.cost = sum2 / count - mean.squaredNorm();
-  }
+  const double n = static_cast<double>(out.poses.records.size());
+  out.cost = n >= 2 ? sum2 / n - (sum / n).squaredNorm() : std::numeric_limits<double>::infinity();
   return out;
+}
+
+// The tracker error model of the offset estimate: for the samples `rows`, 3 rows each (x, y, z of
+// the position difference), the columns of a polynomial of the reported position (same for each
+// axis) and, optionally, R_reported (a body offset). Positions are centred and scaled to [-1, 1].
+class ErrorModel {
+ public:
+  ErrorModel(const std::vector<const TrackerStreamSample*>& samples,
+             const std::vector<size_t>& rows, const StreamPairingOptions& options) {
+    Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+    Eigen::Vector3d hi = -lo;
+    for (size_t i : rows) {
+      lo = lo.cwiseMin(samples[i]->transmitter_from_receiver.translation);
+      hi = hi.cwiseMax(samples[i]->transmitter_from_receiver.translation);
+    }
+    const Eigen::Vector3d centre = 0.5 * (lo + hi);
+    const Eigen::Vector3d half = (0.5 * (hi - lo)).cwiseMax(1e-6);
+    std::vector<Eigen::Vector3i> powers;
+    for (int a = 0; a <= options.detrend_degree; ++a)
+      for (int b = 0; a + b <= options.detrend_degree; ++b)
+        for (int c = 0; a + b + c <= options.detrend_degree; ++c) powers.emplace_back(a, b, c);
+    const int p = static_cast<int>(powers.size());
+    const int k = 3 * p + (options.detrend_body_offset ? 3 : 0);
+    a_.setZero(3 * static_cast<Eigen::Index>(rows.size()), k);
+    for (size_t r = 0; r < rows.size(); ++r) {
+      const Rigid3d& pose = samples[rows[r]]->transmitter_from_receiver;
+      const Eigen::Vector3d x = (pose.translation - centre).cwiseQuotient(half);
+      const Eigen::Index row = 3 * static_cast<Eigen::Index>(r);
+      for (int j = 0; j < p; ++j) {
+        const double m = std::pow(x.x(), powers[j].x()) * std::pow(x.y(), powers[j].y()) *
+                         std::pow(x.z(), powers[j].z());
+        for (int c = 0; c < 3; ++c) a_(row + c, 3 * j + c) = m;
+      }
+      if (options.detrend_body_offset) {
+        a_.block<3, 3>(row, 3 * p) = pose.rotation.normalized().toRotationMatrix();
+      }
+    }
+    if (k > 0) qr_.compute(a_);
+  }
+  // d minus its least-squares fit by the model.
+  Eigen::VectorXd Residual(const Eigen::VectorXd& d) const {
+    if (a_.cols() == 0) return d;
+    return d - a_ * qr_.solve(d);
+  }
+
+ private:
+  Eigen::MatrixXd a_;
+  Eigen::ColPivHouseholderQR<Eigen::MatrixXd> qr_;
+};
+
+// Position differences (3 per sample) at `offset` for the samples `rows`; false if one has no
+// reference there.
+bool Differences(const std::vector<const TrackerStreamSample*>& samples,
+                 const std::vector<size_t>& rows, const ReferenceStream& reference, double offset,
+                 double max_gap_s, Eigen::VectorXd* d) {
+  d->resize(3 * static_cast<Eigen::Index>(rows.size()));
+  for (size_t r = 0; r < rows.size(); ++r) {
+    const auto ref = InterpolateReference(reference, samples[rows[r]]->time + offset, max_gap_s);
+    if (!ref) return false;
+    d->segment<3>(3 * static_cast<Eigen::Index>(r)) =
+        samples[rows[r]]->transmitter_from_receiver.translation - ref->translation;
+  }
+  return true;
+}
+
+// Samples with a reference at every offset of [lo, hi] (and a step h beyond, for velocities).
+std::vector<size_t> RowsCovering(const std::vector<const TrackerStreamSample*>& samples,
+                                 const ReferenceStream& reference, double lo, double hi,
+                                 double max_gap_s) {
+  std::vector<size_t> rows;
+  const double first = reference.records.front().time;
+  const double last = reference.records.back().time;
+  for (size_t i = 0; i < samples.size(); ++i) {
+    const double t = samples[i]->time;
+    if (t + lo < first || t + hi > last) continue;
+    // Gaps: check the ends and the middle (gaps are rare; a sample in one is dropped).
+    if (!InterpolateReference(reference, t + lo, max_gap_s) ||
+        !InterpolateReference(reference, t + hi, max_gap_s) ||
+        !InterpolateReference(reference, t + 0.5 * (lo + hi), max_gap_s)) {
+      continue;
+    }
+    rows.push_back(i);
+  }
+  return rows;
+}
+
+double MedianReferencePeriod(const ReferenceStream& reference) {
+  std::vector<double> dt;
+  for (size_t i = 1; i < reference.records.size(); ++i) {
+    dt.push_back(reference.records[i].time - reference.records[i - 1].time);
+  }
+  std::nth_element(dt.begin(), dt.begin() + static_cast<long>(dt.size() / 2), dt.end());
+  return dt[dt.size() / 2];
+}
+
+struct OffsetEstimate {
+  double offset = 0.0;
+  double stddev = 0.0;
+  double cost = 0.0;
+  int steps = 0;
+};
+
+// Gauss-Newton on the offset jointly with the error model, from `start`.
+OffsetEstimate RefineOffset(const std::vector<const TrackerStreamSample*>& samples,
+                            const ReferenceStream& reference, const StreamPairingOptions& options,
+                            double start) {
+  const double h = 0.5 * MedianReferencePeriod(reference);
+  OffsetEstimate est;
+  est.offset = start;
+  const double tracker_rate =
+      samples.size() >= 2
+          ? (samples.size() - 1) / std::max(samples.back()->time - samples.front()->time, 1e-9)
+          : 1.0;
+  for (int step = 0; step < options.max_gauss_newton_steps; ++step) {
+    const std::vector<size_t> rows =
+        RowsCovering(samples, reference, est.offset - h, est.offset + h, options.max_gap_s);
+    const Eigen::Index n = static_cast<Eigen::Index>(rows.size());
+    if (n < 10)
+      throw std::invalid_argument("stream pairing: too few paired samples to estimate the offset");
+    Eigen::VectorXd d, before, after;
+    Differences(samples, rows, reference, est.offset, options.max_gap_s, &d);
+    Differences(samples, rows, reference, est.offset - h, options.max_gap_s, &before);
+    Differences(samples, rows, reference, est.offset + h, options.max_gap_s, &after);
+    // d(dt) ~ d(dt_k) - v (dt - dt_k), v the reference velocity: dd/d(dt) = (after - before) / 2h.
+    const Eigen::VectorXd dd = (after - before) / (2.0 * h);
+    const ErrorModel model(samples, rows, options);
+    // Frisch-Waugh-Lovell: regress the model out of both, then one coefficient.
+    const Eigen::VectorXd e0 = model.Residual(d);
+    const Eigen::VectorXd g = model.Residual(dd);
+    const double gg = g.squaredNorm();
+    if (!(gg > 0.0))
+      throw std::invalid_argument(
+          "stream pairing: the reference does not move, so the offset is undetermined");
+    const double delta = -g.dot(e0) / gg;
+    const Eigen::VectorXd e = e0 + g * delta;
+    est.cost = e.squaredNorm() / (3.0 * n);
+    // Newey-West variance of delta from per-sample scores s_i = g_i . e_i.
+    Eigen::VectorXd score(n);
+    for (Eigen::Index i = 0; i < n; ++i) score[i] = g.segment<3>(3 * i).dot(e.segment<3>(3 * i));
+    const int lags = static_cast<int>(options.correlation_time_s * tracker_rate);
+    double s = score.squaredNorm();
+    for (int l = 1; l <= lags && l < n; ++l) {
+      const double w = 1.0 - static_cast<double>(l) / (lags + 1);
+      s += 2.0 * w * score.head(n - l).dot(score.tail(n - l));
+    }
+    est.stddev = std::sqrt(std::max(s, 0.0)) / gg;
+    est.offset += delta;
+    est.steps = step + 1;
+    if (std::abs(delta) < options.tolerance) break;
+  }
+  return est;
 }
 
 }  // namespace
@@ -90,7 +252,8 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
                                 const StreamPairingOptions& options) {
   std::string error;
   if (!options.Check(&error)) throw std::invalid_argument("stream pairing: " + error);
-  if (tracker.records.size() < 2) throw std::invalid_argument("tracker stream has fewer than 2 samples");
+  if (tracker.records.size() < 2)
+    throw std::invalid_argument("tracker stream has fewer than 2 samples");
   if (reference.records.size() < 2) {
     throw std::invalid_argument("reference stream has fewer than 2 samples");
   }
@@ -101,46 +264,62 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     }
   }
   const int sensor = options.sensor != 0 ? options.sensor : tracker.records.front().sensor;
+  const std::vector<const TrackerStreamSample*> samples = SelectSamples(tracker, options, sensor);
   double offset = options.time_offset;
+  OffsetEstimate estimate;
   if (options.estimate_time_offset) {
-    // Coarse scan (step 1/40 of the range) to land in the right basin, then golden section.
+    // Coarse scan (step 1/40 of the range) of the detrended residual variance, over the samples
+    // paired at every scanned offset so that all offsets are scored on the same data.
     const int steps = 80;
-    const double lo0 = options.time_offset - options.search_range;
+    const double lo = options.time_offset - options.search_range;
     const double step = 2.0 * options.search_range / steps;
-    double best = lo0, best_cost = std::numeric_limits<double>::infinity();
-    for (int i = 0; i <= steps; ++i) {
-      const double o = lo0 + i * step;
-      const double c = Pair(tracker, reference, options, sensor, o).cost;
-      if (c < best_cost) best_cost = c, best = o;
-    }
-    double a = best - step, b = best + step;
-    const double g = (std::sqrt(5.0) - 1.0) / 2.0;
-    double c = b - g * (b - a), d = a + g * (b - a);
-    double fc = Pair(tracker, reference, options, sensor, c).cost;
-    double fd = Pair(tracker, reference, options, sensor, d).cost;
-    while (b - a > options.tolerance) {
-      if (fc < fd) {
-        b = d, d = c, fd = fc;
-        c = b - g * (b - a);
-        fc = Pair(tracker, reference, options, sensor, c).cost;
-      } else {
-        a = c, c = d, fc = fd;
-        d = a + g * (b - a);
-        fd = Pair(tracker, reference, options, sensor, d).cost;
+    std::vector<size_t> rows =
+        RowsCovering(samples, reference, lo, lo + 2.0 * options.search_range, options.max_gap_s);
+    double best = options.time_offset;
+    if (rows.size() >= 10) {
+      const ErrorModel model(samples, rows, options);
+      double best_cost = std::numeric_limits<double>::infinity();
+      Eigen::VectorXd d;
+      for (int i = 0; i <= steps; ++i) {
+        const double o = lo + i * step;
+        if (!Differences(samples, rows, reference, o, options.max_gap_s, &d)) continue;
+        const double c = model.Residual(d).squaredNorm();
+        if (c < best_cost) best_cost = c, best = o;
+      }
+    } else {
+      // Streams overlapping less than the search range: score each offset on what pairs there.
+      double best_cost = std::numeric_limits<double>::infinity();
+      for (int i = 0; i <= steps; ++i) {
+        const double o = lo + i * step;
+        const double c = Pair(samples, reference, options, o).cost;
+        if (c < best_cost) best_cost = c, best = o;
       }
     }
-    offset = 0.5 * (a + b);
+    estimate = RefineOffset(samples, reference, options, best);
+    offset = estimate.offset;
   }
-  Pairing p = Pair(tracker, reference, options, sensor, offset);
-  if (p.poses.records.empty()) {
+  StreamPairingResult result = Pair(samples, reference, options, offset);
+  if (result.poses.records.empty()) {
     throw std::invalid_argument("stream pairing: no tracker sample has a reference at offset " +
                                 std::to_string(offset) + " s (do the streams overlap in time?)");
   }
-  StreamPairingResult result;
-  result.poses = std::move(p.poses);
-  result.time_offset = offset;
-  result.cost = p.cost;
-  result.dropped = p.dropped;
+  const double h = 0.5 * MedianReferencePeriod(reference);
+  for (const PoseRecord& r : result.poses.records) {
+    const auto before = InterpolateReference(reference, r.time + offset - h, options.max_gap_s);
+    const auto after = InterpolateReference(reference, r.time + offset + h, options.max_gap_s);
+    Eigen::Vector3d v = Eigen::Vector3d::Zero(), w = Eigen::Vector3d::Zero();
+    if (before && after) {
+      v = (after->translation - before->translation) / (2.0 * h);
+      w = RotationVectorBetween<double>(after->rotation, before->rotation) / (2.0 * h);
+    }
+    result.reference_velocity.push_back(v);
+    result.reference_angular_velocity.push_back(w);
+  }
+  if (options.estimate_time_offset) {
+    result.cost = estimate.cost;
+    result.time_offset_stddev = estimate.stddev;
+    result.gauss_newton_steps = estimate.steps;
+  }
   return result;
 }
 

@@ -173,6 +173,8 @@ void TrackcalServerApp::Start() {
     callbacks.on_pose = [device](int sensor, const Rigid3d& pose, Timestamp time) {
       device->OnReport(sensor, pose, time);
     };
+    callbacks.on_poses = [device](std::span<const SensorReport> reports) { device->OnReports(reports); };
+    device->SetLog([this, name = t.setup.name](const std::string& line) { Log(name + ": " + line); });
     callbacks.on_text = [this, device, name = t.setup.name](TextSeverity severity, const std::string& text) {
       Log(name + ": " + text);
       device->OnText(severity, text);
@@ -182,6 +184,7 @@ void TrackcalServerApp::Start() {
         if (s == sensor) server_->PublishButton(index, 0, pressed, time);
       }
     };
+    if (options_.server.realtime_priority > 0) t.source->SetRealtimePriority(options_.server.realtime_priority);
     t.source->Start(std::move(callbacks));
   }
 }
@@ -223,6 +226,25 @@ int TrackcalServerApp::ReloadChangedCalibrations() {
   int n = 0;
   for (auto& t : trackers_) n += Reload(*t, /*only_if_changed=*/true);
   return n;
+}
+
+std::string TrackcalServerApp::StatusLine() const {
+  const ServerStats stats = server_->stats();
+  std::string line = "status: " + std::to_string(stats.clients) + " client(s), " +
+                     std::to_string(stats.connections_total) + " connection(s) so far, " +
+                     std::to_string(stats.dropped_slow) + " dropped for not reading, " +
+                     std::to_string(stats.reports_published) + " report(s) sent";
+  for (const auto& t : trackers_) {
+    line += "; " + t->setup.name + ": " + std::to_string(t->device->extrapolated_poses()) + " extrapolated";
+  }
+  return line;
+}
+
+std::uint64_t TrackcalServerApp::ExtrapolatedPoses(const std::string& name) const {
+  for (const auto& t : trackers_) {
+    if (t->setup.name == name) return t->device->extrapolated_poses();
+  }
+  return 0;
 }
 
 std::vector<std::filesystem::path> TrackcalServerApp::CalibrationDirectories() const {

@@ -13,6 +13,7 @@
 #include <functional>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -25,6 +26,9 @@ namespace trackcal::vrpn {
 // What a source reports, on its own thread.
 struct SourceCallbacks {
   std::function<void(int sensor, const Rigid3d& transmitter_from_receiver, Timestamp time)> on_pose;
+  // Optional: reports that arrived together (one serial read), published as one batch. A source
+  // that can batch calls this instead of on_pose when it is set.
+  std::function<void(std::span<const SensorReport> reports)> on_poses;
   std::function<void(TextSeverity severity, const std::string& text)> on_text;
   // Stylus/button of a sensor changed.
   std::function<void(int sensor, bool pressed, Timestamp time)> on_button;
@@ -39,6 +43,9 @@ class ReportSource {
   // Stops and joins; idempotent.
   virtual void Stop() = 0;
   virtual std::string Describe() const = 0;
+  // Called before Start with the server's --realtime-priority (> 0): a source with its own
+  // reading thread (the Fastrak driver) runs it at that priority too. Default: ignored.
+  virtual void SetRealtimePriority(int /*priority*/) {}
 };
 
 // vrpn_Tracker_NULL: `pose` for every sensor at a fixed rate.
@@ -94,6 +101,11 @@ class TrackcalServerApp {
   int ReloadCalibrations();
   // Reloads the calibrations whose file changed (size, time or inode) since the last load.
   int ReloadChangedCalibrations();
+  // One line for the log (SIGUSR1, stop): clients, reports, slow clients dropped, and per tracker
+  // the corrected poses that were extrapolated (VRPN has no field for that flag).
+  std::string StatusLine() const;
+  // Corrected poses of tracker `name` that were extrapolated since the start; 0 for unknown names.
+  std::uint64_t ExtrapolatedPoses(const std::string& name) const;
   // Directories holding calibration files (to watch for changes).
   std::vector<std::filesystem::path> CalibrationDirectories() const;
 

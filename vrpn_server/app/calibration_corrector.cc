@@ -10,6 +10,10 @@ class CalibrationCorrector : public PoseCorrector {
   CalibrationCorrector(Calibration calibration, std::string description)
       : calibration_(std::move(calibration)), description_(std::move(description)) {}
   Rigid3d Correct(const Rigid3d& reported) const override { return calibration_.Apply(reported).pose; }
+  CorrectionResult CorrectWithFlag(const Rigid3d& reported) const override {
+    const CorrectedPose c = calibration_.Apply(reported);
+    return {c.pose, c.extrapolated};
+  }
   std::string Describe() const override { return description_; }
 
  private:

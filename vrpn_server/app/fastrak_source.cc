@@ -1,6 +1,7 @@
 #include "vrpn_server/app/fastrak_source.h"
 
 #include <chrono>
+#include <vector>
 
 namespace trackcal::vrpn {
 namespace {
@@ -31,9 +32,20 @@ class FastrakSource : public ReportSource {
   void Start(SourceCallbacks callbacks) override {
     callbacks_ = std::move(callbacks);
     fastrak::FastrakDriver::Callbacks cb;
-    cb.on_report = [this](const fastrak::FastrakReport& r) {
-      callbacks_.on_pose(r.sensor, Rigid3d(r.rotation, r.position_m), ToTimestamp(r.time));
-    };
+    if (callbacks_.on_poses) {
+      // The records of one serial read go out as one batch (one send per client).
+      cb.on_reports = [this](std::span<const fastrak::FastrakReport> reports) {
+        batch_.clear();
+        for (const fastrak::FastrakReport& r : reports) {
+          batch_.push_back(SensorReport{r.sensor, Rigid3d(r.rotation, r.position_m), ToTimestamp(r.time)});
+        }
+        callbacks_.on_poses(batch_);
+      };
+    } else {
+      cb.on_report = [this](const fastrak::FastrakReport& r) {
+        callbacks_.on_pose(r.sensor, Rigid3d(r.rotation, r.position_m), ToTimestamp(r.time));
+      };
+    }
     cb.on_button = [this](int sensor, bool pressed, std::chrono::system_clock::time_point time) {
       if (callbacks_.on_button) callbacks_.on_button(sensor, pressed, ToTimestamp(time));
     };
@@ -42,6 +54,10 @@ class FastrakSource : public ReportSource {
     };
     driver_ = std::make_unique<fastrak::FastrakDriver>(options_, std::move(cb));
     driver_->Start();
+  }
+  void SetRealtimePriority(int priority) override {
+    options_.realtime_priority = priority;
+    options_.Check();
   }
   void Stop() override {
     if (driver_) driver_->Stop();
@@ -54,6 +70,7 @@ class FastrakSource : public ReportSource {
   fastrak::FastrakOptions options_;
   SourceCallbacks callbacks_;
   std::unique_ptr<fastrak::FastrakDriver> driver_;
+  std::vector<SensorReport> batch_;  // driver thread only
 };
 
 }  // namespace

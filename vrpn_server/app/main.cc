@@ -114,6 +114,7 @@ int Run(int argc, char** argv) {
   sigset_t signals;
   sigemptyset(&signals);
   sigaddset(&signals, SIGHUP);
+  sigaddset(&signals, SIGUSR1);
   sigaddset(&signals, SIGINT);
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGPIPE);
@@ -148,7 +149,10 @@ int Run(int argc, char** argv) {
       if (info.ssi_signo == SIGHUP) {
         LogToStderr("SIGHUP: reloading calibrations");
         app.ReloadCalibrations();
+      } else if (info.ssi_signo == SIGUSR1) {
+        LogToStderr(app.StatusLine());
       } else if (info.ssi_signo == SIGINT || info.ssi_signo == SIGTERM) {
+        LogToStderr(app.StatusLine());
         LogToStderr("stopping");
         break;
       }

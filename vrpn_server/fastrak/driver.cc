@@ -1,6 +1,8 @@
 #include "vrpn_server/fastrak/driver.h"
 
 #include <fcntl.h>
+#include <pthread.h>
+#include <sched.h>
 #include <poll.h>
 #include <sys/file.h>
 #include <sys/stat.h>
@@ -137,6 +139,10 @@ FastrakTimings FastrakTimings::Fast() {
   // Ends at the second record (about 17 ms with the emulator), so the length only matters when
   // the device is not streaming; 1 s lets a resume succeed on a heavily loaded host.
   t.resume_probe_s = 1.0;
+  // Status polls after a loss: the same as the reference timings except a shorter window, so
+  // tests of the full reset's escalation do not wait long (a stall of the emulator ends within it).
+  t.restart_window_s = 3.0;
+  t.restart_settle_s = 0.02;
   return t;
 }
 
@@ -151,6 +157,9 @@ void FastrakTimings::Check() const {
       {"extras_settle_s", extras_settle_s},
       {"watchdog_s", watchdog_s},
       {"resume_probe_s", resume_probe_s},
+      {"restart_window_s", restart_window_s},
+      {"restart_poll_s", restart_poll_s},
+      {"restart_settle_s", restart_settle_s},
       {"reopen_backoff_min_s", reopen_backoff_min_s},
       {"reopen_backoff_max_s", reopen_backoff_max_s},
       {"message_interval_s", message_interval_s},
@@ -162,6 +171,9 @@ void FastrakTimings::Check() const {
   }
   if (status_timeout_s <= 0.0) throw std::invalid_argument("FastrakTimings.status_timeout_s must be > 0");
   if (watchdog_s <= 0.0) throw std::invalid_argument("FastrakTimings.watchdog_s must be > 0");
+  if (restart_window_s > 0.0 && restart_poll_s <= restart_settle_s) {
+    throw std::invalid_argument("FastrakTimings.restart_poll_s must be > restart_settle_s");
+  }
   if (reopen_backoff_min_s <= 0.0) {
     throw std::invalid_argument("FastrakTimings.reopen_backoff_min_s must be > 0 (no busy reopen loop)");
   }
@@ -175,6 +187,9 @@ void FastrakOptions::Check() const {
   if (!vrpn::IsSupportedBaudRate(baud)) {
     throw std::invalid_argument("FastrakOptions.baud " + std::to_string(baud) +
                                 " is not 300, 1200, 2400, 4800, 9600, 19200, 38400, 57600 or 115200");
+  }
+  if (realtime_priority < 0 || realtime_priority > 99) {
+    throw std::invalid_argument("FastrakOptions.realtime_priority must be 0..99");
   }
   if (num_stations < 1 || num_stations > kMaxStations) {
     throw std::invalid_argument("FastrakOptions.num_stations must be 1..4");
@@ -241,6 +256,15 @@ class FastrakDriver::Session {
   ~Session() { ClosePort(); }
 
   void Run() {
+    if (options_.realtime_priority > 0) {
+      sched_param param{};
+      param.sched_priority = options_.realtime_priority;
+      const int rc = ::pthread_setschedparam(::pthread_self(), SCHED_FIFO, &param);
+      if (rc != 0) {
+        Emit(Severity::kWarning, "cannot use real-time priority " + std::to_string(options_.realtime_priority) +
+                                     " (" + std::strerror(rc) + "); running at normal priority");
+      }
+    }
     if (units_ != options_.units) {
       Emit(Severity::kInfo, std::string("extra commands switch the tracker to ") + UnitsName(units_) +
                                 "; positions are converted from " + UnitsName(units_));
@@ -256,6 +280,7 @@ class FastrakDriver::Session {
       try {
         if (fd_ < 0) OpenWithBackoff();
         bool streaming = configured_once_ && TryResume();
+        if (!streaming && configured_once_) streaming = QuickRestart();
         if (!streaming) streaming = Reset();
         if (streaming) {
           Stream();
@@ -515,6 +540,15 @@ class FastrakDriver::Session {
       Emit(Severity::kWarning, text.str());
     }
 
+    Configure();
+    return true;
+  }
+
+  // After the status check: output lists, stylus mode, filters, extra commands, units, binary,
+  // continuous. The unit answered its status, so it is alive; reports start within a few record
+  // periods of this (no blind waits unless confirm_filters is off or the unit does not confirm).
+  void Configure() {
+    const std::array<bool, kMaxStations> stylus = StylusStations(options_);
     for (int s = 0; s < options_.num_stations; ++s) {
       Write(OutputListCommand(s + 1, stylus[s]));
       Sleep(timings_.command_gap_s);
@@ -525,10 +559,28 @@ class FastrakDriver::Session {
       Write(StylusModeCommand(s + 1));
       Sleep(timings_.command_gap_s);
     }
-    Write(kPositionFilterCommand);
-    Sleep(timings_.filter_settle_s);
-    Write(kAttitudeFilterCommand);
-    Sleep(timings_.filter_settle_s);
+    if (options_.confirm_filters) {
+      // The reference sleeps 1 s after each filter line. A unit reads its commands in order, so
+      // its answer to `S` after them shows they were read: continue at the reply (a few ms), and
+      // fall back to the reference's waits only if no valid reply comes.
+      const SteadyClock::time_point start = SteadyClock::now();
+      Write(kPositionFilterCommand);
+      Write(kAttitudeFilterCommand);
+      FlushInput();
+      Write(kRequestStatus);
+      std::string why;
+      if (!ParseStatusRecord(ReadStatusReply(), &why)) {
+        Emit(Severity::kWarning, "no status reply after the filter commands; waiting " +
+                                     FormatSeconds(2 * timings_.filter_settle_s) + " instead");
+        const double waited = std::chrono::duration<double>(SteadyClock::now() - start).count();
+        Sleep(2 * timings_.filter_settle_s - waited);
+      }
+    } else {
+      Write(kPositionFilterCommand);
+      Sleep(timings_.filter_settle_s);
+      Write(kAttitudeFilterCommand);
+      Sleep(timings_.filter_settle_s);
+    }
     for (const std::string& cmd : options_.extra_commands) {
       if (cmd.front() == '*') {
         Sleep(std::strtod(cmd.c_str() + 1, nullptr));
@@ -546,12 +598,46 @@ class FastrakDriver::Session {
     stream_already_started_ = false;
     Count(&DriverStats::resets_completed);
     Emit(Severity::kInfo, std::string("reset completed; binary records in ") + UnitsName(units_));
-    return true;
   }
 
-  // Reads until the reply's LF or the status timeout; returns what arrived.
-  std::string ReadStatusReply() {
-    const SteadyClock::time_point deadline = SteadyClock::now() + Seconds(timings_.status_timeout_s);
+  // After a loss (watchdog, port lost) of a unit this driver had configured, when the probe found
+  // no stream: the unit may be back at any moment (a stall, a power cycle, a cable) and answer at
+  // once. Ask for its status every restart_poll_s (`c` to stop a stream we cannot parse, a short
+  // settle, flush, `S`) for restart_window_s; at the first valid reply configure it (Configure),
+  // so reports resume well within 2 s of the unit answering. Without a valid reply in the window:
+  // false, and the reference's full reset (with its escalation) follows.
+  bool QuickRestart() {
+    if (timings_.restart_window_s <= 0.0) return false;
+    SetState(DriverState::kResetting);
+    const SteadyClock::time_point end = SteadyClock::now() + Seconds(timings_.restart_window_s);
+    Emit(Severity::kWarning, "asking the tracker for its status (up to " +
+                                 FormatSeconds(timings_.restart_window_s) + ") before a full reset");
+    while (SteadyClock::now() < end) {
+      const SteadyClock::time_point poll_end = SteadyClock::now() + Seconds(timings_.restart_poll_s);
+      Write(kStopContinuous);
+      Sleep(timings_.restart_settle_s);
+      FlushInput();
+      Write(kRequestStatus);
+      const std::string reply = ReadStatusReply(poll_end);
+      std::string why;
+      if (const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why)) {
+        reset_attempts_ = 0;
+        Count(&DriverStats::quick_restarts);
+        Emit(Severity::kInfo, "tracker answered (firmware '" + status->firmware_version +
+                                  "'); configuring without the full reset");
+        Configure();
+        return true;
+      }
+      // Let the poll interval run out (a reply that came too late is flushed by the next poll).
+      Sleep(std::chrono::duration<double>(poll_end - SteadyClock::now()).count());
+    }
+    return false;
+  }
+
+  // Reads until the reply's LF or the status timeout (or `until`, if earlier); returns what arrived.
+  std::string ReadStatusReply(SteadyClock::time_point until = SteadyClock::time_point::max()) {
+    const SteadyClock::time_point deadline =
+        std::min(until, SteadyClock::now() + Seconds(timings_.status_timeout_s));
     std::vector<uint8_t> bytes;
     while (std::find(bytes.begin(), bytes.end(), '\n') == bytes.end() && bytes.size() < 4096) {
       if (Wait(deadline, true) == WaitResult::kTimeout) break;
@@ -565,8 +651,9 @@ class FastrakDriver::Session {
   void DeliverReports(const std::vector<FastrakReport>& reports) {
     if (reports.empty()) return;
     Count(&DriverStats::records, reports.size());
+    if (driver_->callbacks_.on_reports) driver_->callbacks_.on_reports(reports);
     for (const FastrakReport& report : reports) {
-      if (driver_->callbacks_.on_report) driver_->callbacks_.on_report(report);
+      if (!driver_->callbacks_.on_reports && driver_->callbacks_.on_report) driver_->callbacks_.on_report(report);
       if (report.stylus_pressed) {
         std::optional<bool>& last = last_button_[report.sensor];
         if (last != report.stylus_pressed) {

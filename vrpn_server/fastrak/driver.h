@@ -21,6 +21,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <span>
 #include <string>
 #include <thread>
 #include <vector>
@@ -38,11 +39,17 @@ struct FastrakTimings {
   double settle_after_flush_s = 2.0;     // after flushing input, before reading leftover bytes
   double status_timeout_s = 1.0;         // longest wait for the status reply (ends at its LF)
   double command_gap_s = 0.05;           // after each `O` and `e` line
-  double filter_settle_s = 1.0;          // after each filter line (`x`, `v`)
+  double filter_settle_s = 1.0;          // after each filter line (`x`, `v`), only when the
+                                         // status round trip after them fails or is disabled
   double extras_settle_s = 2.0;          // after the extra commands, if there are any
   double watchdog_s = 2.0;               // no complete record for this long -> reopen and reset
   double resume_probe_s = 2.0;           // after reopening: listen up to this long for records before
                                          // resetting (ends at the second record; covers short stalls)
+  double restart_window_s = 6.0;         // after a loss (the probe found no stream): ask the unit
+                                         // for its status this long before the full reset
+  double restart_poll_s = 0.5;           // one status request per this interval in that window
+  double restart_settle_s = 0.1;         // after `c` in that window, before flushing and `S` (a
+                                         // record in flight takes < 40 ms at 9600 baud)
   double reopen_backoff_min_s = 0.1;     // first retry delay when the port cannot be opened
   double reopen_backoff_max_s = 1.0;     // cap of the doubling retry delay
   double message_interval_s = 1.0;       // at most one text per interval to clients
@@ -71,6 +78,14 @@ struct FastrakOptions {
   // true: send `U`/`u` before `f` so the device is certainly in the unit we convert from;
   // false: send exactly the reference's bytes and only track `u`/`U` in extra_commands.
   bool force_units = true;
+  // true: after the filter lines send `S` and continue as soon as the status reply arrives (the
+  // unit reads its commands in order, so the reply shows the filters were taken), instead of the
+  // reference's blind filter_settle_s after each of them; false: the reference's bytes and waits.
+  bool confirm_filters = true;
+  // Real-time (SCHED_FIFO) priority of the driver thread, 1..99; 0 keeps the normal scheduler.
+  // trackcal-server gives it the network thread's --realtime-priority, so a record is read and
+  // handed over without waiting behind other programs. Needs CAP_SYS_NICE (else a warning).
+  int realtime_priority = 0;
   FastrakTimings timings;
 
   // Throws std::invalid_argument naming the field.
@@ -89,6 +104,7 @@ struct DriverStats {
   uint64_t resets_started = 0;    // reset attempts (each escalation step counts)
   uint64_t resets_completed = 0;  // resets that reached continuous mode
   uint64_t resumes = 0;           // reopens that found the device streaming (no reset)
+  uint64_t quick_restarts = 0;    // restarts after a loss through the short path (status, configure)
   uint64_t watchdog_timeouts = 0;
   uint64_t port_losses = 0;       // hang-ups and read/write errors
   uint64_t records = 0;           // valid records reported
@@ -101,6 +117,9 @@ class FastrakDriver {
   struct Callbacks {
     // Every valid record.
     std::function<void(const FastrakReport&)> on_report;
+    // Optional: the valid records of one read at once (several when they arrived together); when
+    // set it is called instead of on_report, so a server can send them to its clients together.
+    std::function<void(std::span<const FastrakReport>)> on_reports;
     // Stylus switch of a sensor changed (and its first state after each (re)start of streaming).
     std::function<void(int sensor, bool pressed, std::chrono::system_clock::time_point time)> on_button;
     // Status/error text for clients, at most one per timings.message_interval_s.

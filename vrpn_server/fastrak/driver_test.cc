@@ -5,7 +5,10 @@
 #include "vrpn_server/fastrak/driver.h"
 
 #include <gtest/gtest.h>
+#include <pthread.h>
+#include <sched.h>
 
+#include <atomic>
 #include <condition_variable>
 #include <fstream>
 #include <iostream>
@@ -177,6 +180,7 @@ TEST(FastrakDriver, Nominal) {
   Collector collector;
   FastrakOptions options = FastOptions(dir / "ttyFastrak");
   options.force_units = false;
+  options.confirm_filters = false;  // the reference's bytes
   options.timings.message_interval_s = 0.01;  // texts released while streaming, before Stop
   const auto before = std::chrono::system_clock::now();
   FastrakDriver driver(options, collector.Callbacks());
@@ -210,6 +214,7 @@ TEST(FastrakDriver, ForcedUnitsAddOneCommandBeforeBinaryMode) {
   Collector collector;
   FastrakOptions options = FastOptions(dir / "tty");
   options.units = Units::kCentimetres;  // force_units is the default
+  options.confirm_filters = false;      // compared with the reference's bytes
   FastrakDriver driver(options, collector.Callbacks());
   driver.Start();
   ASSERT_TRUE(collector.WaitForReports(10, 10.0));
@@ -236,6 +241,7 @@ TEST(FastrakDriver, Transcript08ExtrasStylusAndCentimetres) {
   options.port = (dir / "tty").string();
   options.timings = FastrakTimings::Fast();
   options.force_units = false;  // reference bytes
+  options.confirm_filters = false;
 
   FakeFastrakOptions fake_options;
   fake_options.start_streaming = true;  // as the emulator of transcript 08
@@ -274,6 +280,7 @@ TEST(FastrakDriver, WatchdogResetsAfterSilenceAndEscalates) {
   FastrakOptions options = FastOptions(dir / "tty");
   options.timings.watchdog_s = 0.3;
   options.timings.message_interval_s = 0.05;
+  options.timings.restart_window_s = 0;  // straight to the full reset, whose escalation is tested
   FastrakDriver driver(options, collector.Callbacks());
   driver.Start();
   ASSERT_TRUE(collector.WaitForReports(5, 10.0));
@@ -318,6 +325,7 @@ TEST(FastrakDriver, SilentThenReinitialisedUnitGetsAFullReset) {
   Collector collector;
   FastrakOptions options = FastOptions(dir / "tty");
   options.timings.watchdog_s = 0.3;
+  options.timings.restart_window_s = 0;  // the full reset is what this test is about
   FastrakDriver driver(options, collector.Callbacks());
   driver.Start();
   ASSERT_TRUE(collector.WaitForReports(5, 10.0));
@@ -427,7 +435,65 @@ TEST(FastrakDriver, PowerCycledDeviceIsResetAfterReplug) {
   for (const FastrakReport& r : Since(collector, before)) ExpectTranscriptPose(r);
   EXPECT_EQ(driver.stats().resets_completed, 2u);
   EXPECT_EQ(driver.stats().resumes, 0u);
+  // The unit answered its status at once: configured through the short path (no `c`, 2 s, flush,
+  // 2 s preamble), and the full reset's attempt counter was not touched.
+  EXPECT_EQ(driver.stats().quick_restarts, 1u);
+  EXPECT_EQ(driver.stats().resets_started, 1u);
   driver.Stop();
+}
+
+TEST(FastrakDriver, ConfirmedFiltersReplaceTheBlindWaits) {
+  // The reference sleeps filter_settle_s after `x` and after `v`. With confirm_filters (the
+  // default) the driver sends `S` after them and goes on at the reply. A 10 s filter settle makes
+  // the difference unmistakable: the blind waits alone would take 20 s.
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  options.force_units = false;
+  options.timings.filter_settle_s = 10.0;
+  const auto started = SteadyClock::now();
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(5, 15.0));
+  const double first_report_s = std::chrono::duration<double>(collector.report_times()[0] - started).count();
+  driver.Stop();
+  // The reference's bytes with one `S` after the attitude filter line.
+  std::string expected = ReadTranscript("07_fastrak_emulated_tcp", "serial_host_to_device.bin");
+  const size_t v_line = expected.find("v0.2,0.2,0.8,0.8\r");
+  ASSERT_NE(v_line, std::string::npos);
+  expected.insert(v_line + std::string("v0.2,0.2,0.8,0.8\r").size(), "S");
+  EXPECT_EQ(fake.received(), expected);
+  EXPECT_EQ(fake.status_requests(), 2);
+  // The requirement (reports within 2 s of the unit answering); the fast profile's waits
+  // before the status reply add about 0.1 s, the blind filter waits would add 20 s.
+  EXPECT_LT(first_report_s, 2.0);
+  for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
+}
+
+TEST(FastrakDriver, RealtimePriorityIsUsedOrWarned) {
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  options.realtime_priority = 5;
+  FastrakDriver::Callbacks callbacks = collector.Callbacks();
+  std::atomic<int> policy{-1};
+  auto on_report = callbacks.on_report;
+  callbacks.on_report = [&](const FastrakReport& r) {
+    int p = 0;
+    sched_param param{};
+    ::pthread_getschedparam(::pthread_self(), &p, &param);
+    policy = p;
+    on_report(r);
+  };
+  FastrakDriver driver(options, callbacks);
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(5, 10.0));
+  driver.Stop();
+  // With CAP_SYS_NICE the driver thread runs SCHED_FIFO; without it, normally and says so.
+  EXPECT_TRUE(policy.load() == SCHED_FIFO || collector.HasLog("cannot use real-time priority")) << policy.load();
+  for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
 }
 
 TEST(FastrakDriver, GarbageAndTruncatedRecordsInTheStream) {
@@ -542,6 +608,12 @@ TEST(FastrakOptions, CheckNamesTheField) {
   bad = o;
   bad.timings.reopen_backoff_min_s = 0;
   EXPECT_NE(error(bad).find("reopen_backoff_min_s"), std::string::npos);
+  bad = o;
+  bad.realtime_priority = 100;
+  EXPECT_NE(error(bad).find("realtime_priority"), std::string::npos);
+  bad = o;
+  bad.timings.restart_poll_s = bad.timings.restart_settle_s;
+  EXPECT_NE(error(bad).find("restart_poll_s"), std::string::npos);
   bad = o;
   bad.timings.watchdog_s = -1;
   EXPECT_NE(error(bad).find("watchdog_s"), std::string::npos);

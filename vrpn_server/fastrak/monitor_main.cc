@@ -172,9 +172,11 @@ int main(int argc, char** argv) {
     }
     driver.Stop();
     const fastrak::DriverStats st = driver.stats();
+    // Scripts parse this line: new counters go at its end.
     std::cerr << "records " << st.records << ", resets " << st.resets_completed << ", resumes "
               << st.resumes << ", watchdog timeouts " << st.watchdog_timeouts << ", port losses "
-              << st.port_losses << ", discarded bytes " << st.discarded_bytes << "\n";
+              << st.port_losses << ", discarded bytes " << st.discarded_bytes << ", quick restarts "
+              << st.quick_restarts << "\n";
     return 0;
   } catch (const std::exception& e) {
     std::cerr << "trackcal-fastrak-monitor: " << e.what() << "\n";

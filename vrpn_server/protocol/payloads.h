@@ -100,8 +100,9 @@ std::vector<std::uint8_t> EncodeText(const TextMessage& message);
 // Text is read up to the first NUL (bytes after it are garbage in the reference).
 std::optional<TextMessage> DecodeText(std::span<const std::uint8_t> payload);
 
-// vrpn_Button Change: int32 button, int32 state (0 released, 1 pressed). Layout from general VRPN
-// knowledge, not seen in a capture (unverified).
+// vrpn_Button Change: int32 button, int32 state (0 released, 1 pressed), 8 bytes. No capture shows
+// one; the layout is the reference's own encoder (vrpn_Button::encode_to, VRPN 07.x: vrpn_buffer of
+// the button number, then of the state), which its client decodes the same way.
 struct ButtonChange {
   std::int32_t button = 0;
   std::int32_t state = 0;

@@ -107,7 +107,14 @@ TEST(TextMessage, FixedSizeZeroFilledAndParsedUpToNul) {
 TEST(Buttons, RoundTrip) {
   const auto change = EncodeButtonChange(ButtonChange{2, 1});
   ASSERT_EQ(change.size(), kButtonChangeSize);
+  // The reference (vrpn_Button::encode_to in VRPN 07.x) buffers int32 button, then int32 state,
+  // big-endian, and nothing else: no count in front (a third-party protocol description shows
+  // one; the reference's encoder and its decoder, which reads exactly these two, do not).
+  EXPECT_EQ(change, Hex("0000000200000001"));
   EXPECT_EQ(DecodeButtonChange(change)->button, 2);
+  EXPECT_EQ(DecodeButtonChange(change)->state, 1);
+  EXPECT_EQ(EncodeButtonChange(ButtonChange{0, 0}), Hex("0000000000000000"));
+  EXPECT_FALSE(DecodeButtonChange(Hex("000000010000000000000001")));  // a count-prefixed form
   const std::vector<std::int32_t> states = {1};
   const auto sb = EncodeButtonStates(states);
   EXPECT_EQ(sb, Hex("0000000100000001"));  // transcript 08: Stylus0 states, 8 bytes

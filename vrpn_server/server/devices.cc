@@ -65,17 +65,78 @@ void TrackerDevice::SetRecorders(std::unique_ptr<StreamRecorder> raw,
 }
 
 void TrackerDevice::OnReport(int sensor, const Rigid3d& reported, Timestamp time) {
+  const SensorReport report{sensor, reported, time};
+  OnReports(std::span<const SensorReport>(&report, 1));
+}
+
+void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
+  if (reports.empty()) return;
   std::shared_ptr<const PoseCorrector> corrector;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     corrector = corrector_;
   }
-  if (raw_tracker_) server_->PublishPose(*raw_tracker_, sensor, reported, time);
-  const Rigid3d corrected = corrector ? corrector->Correct(reported) : reported;
-  server_->PublishPose(tracker_, sensor, corrected, time);
+  // Reused per device thread: no allocation per report once warm.
+  thread_local std::vector<PoseUpdate> updates;
+  thread_local std::vector<Rigid3d> corrected;
+  updates.clear();
+  corrected.clear();
+  std::uint64_t extrapolated = 0;
+  for (const SensorReport& r : reports) {
+    if (raw_tracker_)
+      updates.push_back(PoseUpdate{*raw_tracker_, r.sensor, r.transmitter_from_receiver, r.time});
+    if (corrector) {
+      const CorrectionResult c = corrector->CorrectWithFlag(r.transmitter_from_receiver);
+      extrapolated += c.extrapolated ? 1 : 0;
+      corrected.push_back(c.pose);
+    } else {
+      corrected.push_back(r.transmitter_from_receiver);
+    }
+    updates.push_back(PoseUpdate{tracker_, r.sensor, corrected.back(), r.time});
+  }
+  server_->PublishPoses(updates);
   std::lock_guard<std::mutex> lock(mutex_);
-  if (raw_recorder_) raw_recorder_->Write(sensor, reported, time);
-  if (corrected_recorder_) corrected_recorder_->Write(sensor, corrected, time);
+  for (std::size_t i = 0; i < reports.size(); ++i) {
+    const SensorReport& r = reports[i];
+    if (raw_recorder_) raw_recorder_->Write(r.sensor, r.transmitter_from_receiver, r.time);
+    if (corrected_recorder_) corrected_recorder_->Write(r.sensor, corrected[i], r.time);
+  }
+  CountExtrapolated(extrapolated);
+}
+
+void TrackerDevice::SetLog(std::function<void(const std::string&)> log) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  log_ = std::move(log);
+}
+
+// Called with mutex_ held, after every batch (so a pending count goes out with the next report
+// after the interval, even when that report is not extrapolated).
+void TrackerDevice::CountExtrapolated(std::uint64_t n) {
+  if (n > 0) {
+    extrapolated_total_ += n;
+    extrapolated_pending_ += n;
+  }
+  if (extrapolated_pending_ == 0) return;
+  const auto now = std::chrono::steady_clock::now();
+  if (last_notice_ != std::chrono::steady_clock::time_point{} &&
+      now - last_notice_ < kExtrapolationNoticeInterval) {
+    return;
+  }
+  const std::string text =
+      std::to_string(extrapolated_pending_) +
+      " corrected pose(s) extrapolated (outside the calibrated volume) " +
+      (last_notice_ == std::chrono::steady_clock::time_point{}
+           ? std::string("so far")
+           : "in the last " +
+                 std::to_string(
+                     std::chrono::duration_cast<std::chrono::milliseconds>(now - last_notice_)
+                         .count()) +
+                 " ms") +
+      "; " + std::to_string(extrapolated_total_.load()) + " in total";
+  last_notice_ = now;
+  extrapolated_pending_ = 0;
+  server_->PublishText(tracker_, TextSeverity::kWarning, text);
+  if (log_) log_(text);
 }
 
 void TrackerDevice::OnText(TextSeverity severity, const std::string& text) {

@@ -11,15 +11,19 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
+#include <cstdint>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <span>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "core/pose.h"
 #include "vrpn_server/protocol/wire.h"
@@ -27,12 +31,23 @@
 
 namespace trackcal::vrpn {
 
+// A corrected pose and whether the correction had to leave its calibrated domain.
+struct CorrectionResult {
+  Rigid3d pose;
+  bool extrapolated = false;  // outside the calibrated volume (clamped/faded) or not converged
+};
+
 // Maps a reported pose (transmitter_from_receiver) to the corrected pose. Apply may be called from
 // several device threads at once; implementations must be immutable after construction.
 class PoseCorrector {
  public:
   virtual ~PoseCorrector() = default;
   virtual Rigid3d Correct(const Rigid3d& reported) const = 0;
+  // The corrected pose with its extrapolation flag; correctors that cannot extrapolate keep the
+  // default (never flagged).
+  virtual CorrectionResult CorrectWithFlag(const Rigid3d& reported) const {
+    return {Correct(reported), false};
+  }
   // One line for logs, e.g. "calib.json (polynomial degree 4)".
   virtual std::string Describe() const = 0;
 };
@@ -55,6 +70,13 @@ class StreamRecorder {
   std::ofstream out_;
 };
 
+// One report of a source: 0-based sensor, pose as the tracker reported it, header timestamp.
+struct SensorReport {
+  int sensor = 0;
+  Rigid3d transmitter_from_receiver;
+  Timestamp time;
+};
+
 class TrackerDevice {
  public:
   // `tracker` is the catalog index of the corrected device; `raw_tracker` that of the raw one.
@@ -69,9 +91,21 @@ class TrackerDevice {
 
   // Called by the driver thread for every report: publishes raw (if served) and corrected poses.
   void OnReport(int sensor, const Rigid3d& reported, Timestamp time);
+  // The reports that arrived together (one serial read): corrected, then published as one batch
+  // (VrpnServer::PublishPoses: one send per client for all of them).
+  void OnReports(std::span<const SensorReport> reports);
   // Device status text for clients of both names.
   void OnText(TextSeverity severity, const std::string& text);
+  // Where the extrapolation notice also goes (the server's log); optional.
+  void SetLog(std::function<void(const std::string&)> log);
 
+  // VRPN's Pos_Quat has no field for the correction's extrapolated flag, so the device counts the
+  // corrected poses that were extrapolated (outside the calibrated volume) and, at most once per
+  // `kExtrapolationNoticeInterval`, logs and sends a text to the corrected name's clients with the
+  // count since the last notice and the total.
+  std::uint64_t extrapolated_poses() const { return extrapolated_total_.load(); }
+  static constexpr std::chrono::steady_clock::duration kExtrapolationNoticeInterval =
+      std::chrono::seconds(1);
   int tracker() const { return tracker_; }
   std::optional<int> raw_tracker() const { return raw_tracker_; }
 
@@ -83,6 +117,12 @@ class TrackerDevice {
   std::shared_ptr<const PoseCorrector> corrector_;
   std::unique_ptr<StreamRecorder> raw_recorder_;
   std::unique_ptr<StreamRecorder> corrected_recorder_;
+  std::function<void(const std::string&)> log_;
+  std::atomic<std::uint64_t> extrapolated_total_{0};
+  // Guarded by mutex_: poses extrapolated since the last notice, and when that notice went out.
+  std::uint64_t extrapolated_pending_ = 0;
+  std::chrono::steady_clock::time_point last_notice_{};
+  void CountExtrapolated(std::uint64_t n);
 };
 
 // Reports `pose` for every sensor at a fixed rate from its own thread (vrpn_Tracker_NULL reports

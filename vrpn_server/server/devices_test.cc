@@ -5,6 +5,8 @@
 #include <chrono>
 #include <fstream>
 #include <functional>
+#include <mutex>
+#include <thread>
 
 #include "core/capture.h"
 #include "tests/test_utils.h"
@@ -26,6 +28,30 @@ class OffsetCorrector : public PoseCorrector {
   Rigid3d offset_;
 };
 
+// Flags poses with x > 0.5 m as extrapolated (outside a calibrated volume) and leaves them as they
+// are.
+class BoxCorrector : public PoseCorrector {
+ public:
+  Rigid3d Correct(const Rigid3d& reported) const override { return reported; }
+  CorrectionResult CorrectWithFlag(const Rigid3d& reported) const override {
+    return {reported, reported.translation.x() > 0.5};
+  }
+  std::string Describe() const override { return "box"; }
+};
+
+// Fan-outs recorded by the server until at least `n` (the timing of a fan-out is recorded just
+// after its last send, so a client may see the reports first), plus any that follow within 0.1 s.
+std::size_t CountFanouts(VrpnServer& server, std::size_t n) {
+  std::size_t count = 0;
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (count < n && Clock::now() < end) {
+    count += server.TakeFanoutMicros().size();
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  return count + server.TakeFanoutMicros().size();
+}
+
 bool PollUntil(const std::vector<VrpnTrackerClient*>& clients, const std::function<bool()>& pred,
                double timeout_s = 10.0) {
   const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
@@ -39,7 +65,7 @@ struct Fixture {
   std::shared_ptr<ServerCatalog> catalog = std::make_shared<ServerCatalog>();
   std::unique_ptr<VrpnServer> server;
   int corrected = 0, raw = 0;
-  Fixture() {
+  explicit Fixture(int realtime_priority = 0) {
     TrackerSpec spec;
     spec.name = "Tracker0";
     spec.num_sensors = 2;
@@ -49,6 +75,7 @@ struct Fixture {
     ServerOptions o;
     o.bind_address = "127.0.0.1";
     o.port = 0;
+    o.realtime_priority = realtime_priority;
     server = std::make_unique<VrpnServer>(catalog, o, [](const std::string&) {});
     server->Start();
   }
@@ -60,7 +87,8 @@ struct Fixture {
 TEST(TrackerDevice, ServesCorrectedAndRawNames) {
   Fixture f;
   TrackerDevice device(f.server.get(), f.corrected, f.raw);
-  const Rigid3d offset(testing::RandomRotation(testing::TestRng()), Eigen::Vector3d(0.01, -0.02, 0.03));
+  const Rigid3d offset(testing::RandomRotation(testing::TestRng()),
+                       Eigen::Vector3d(0.01, -0.02, 0.03));
   device.SetCorrector(std::make_shared<OffsetCorrector>(offset));
   VrpnTrackerClient corrected_client(f.Name("Tracker0"));
   VrpnTrackerClient raw_client(f.Name("Tracker0_raw"));
@@ -70,11 +98,11 @@ TEST(TrackerDevice, ServesCorrectedAndRawNames) {
   ASSERT_TRUE(PollUntil({&corrected_client, &raw_client}, [&] {
     return corrected_client.pong_received() && raw_client.pong_received();
   }));
-  const Rigid3d reported(testing::RandomRotation(testing::TestRng()), Eigen::Vector3d(0.3, 0.1, -0.2));
+  const Rigid3d reported(testing::RandomRotation(testing::TestRng()),
+                         Eigen::Vector3d(0.3, 0.1, -0.2));
   device.OnReport(1, reported, Timestamp{100, 5});
-  ASSERT_TRUE(PollUntil({&corrected_client, &raw_client}, [&] {
-    return corrected.size() == 1 && raw.size() == 1;
-  }));
+  ASSERT_TRUE(PollUntil({&corrected_client, &raw_client},
+                        [&] { return corrected.size() == 1 && raw.size() == 1; }));
   const Rigid3d expected = offset * reported;
   // Only the wire's bit-exact doubles are between the correction and the client.
   EXPECT_EQ(corrected[0].transmitter_from_receiver.translation, expected.translation);
@@ -90,10 +118,109 @@ TEST(TrackerDevice, ServesCorrectedAndRawNames) {
   EXPECT_EQ(corrected_client.connections(), 1u);
 }
 
+TEST(TrackerDevice, ReportsReadTogetherGoOutInOneFanout) {
+  // With a real-time network thread (runs normally, with a logged warning, without CAP_SYS_NICE)
+  // every fan-out is made by that thread instead of the publishing one: same result.
+  for (int realtime_priority : {0, 5}) {
+    SCOPED_TRACE(realtime_priority);
+    Fixture f(realtime_priority);
+    TrackerDevice device(f.server.get(), f.corrected, f.raw);
+    VrpnTrackerClient client(f.Name("Tracker0"));
+    std::vector<TrackerReport> got;
+    client.SetPoseCallback([&](const TrackerReport& r) { got.push_back(r); });
+    ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
+    f.server->TakeFanoutMicros();
+    std::vector<SensorReport> batch;
+    for (int s = 0; s < 4; ++s) {
+      batch.push_back(
+          SensorReport{s, Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.1 * s, 0, 0)),
+                       Timestamp{200, static_cast<std::uint32_t>(s)}});
+    }
+    device.OnReports(batch);
+    ASSERT_TRUE(PollUntil({&client}, [&] { return got.size() == 4; }));
+    // Raw and corrected names of 4 stations: 8 messages, one fan-out (one send per client).
+    EXPECT_EQ(CountFanouts(*f.server, 1), 1u);
+    EXPECT_EQ(f.server->stats().reports_published, 8u);
+    for (int s = 0; s < 4; ++s) {
+      EXPECT_EQ(got[s].sensor, s);
+      EXPECT_EQ(got[s].time, (Timestamp{200, static_cast<std::uint32_t>(s)}));
+      EXPECT_EQ(got[s].transmitter_from_receiver.translation.x(), 0.1 * s);
+    }
+    // One at a time, the same reports take one fan-out each when the publishing thread sends
+    // them itself (the network thread is idle: the client sends nothing after its pong). A
+    // real-time network thread may find several queued when it wakes and send them together.
+    for (const SensorReport& r : batch)
+      device.OnReport(r.sensor, r.transmitter_from_receiver, r.time);
+    ASSERT_TRUE(PollUntil({&client}, [&] { return got.size() == 8; }));
+    const std::size_t fanouts = CountFanouts(*f.server, realtime_priority == 0 ? 4 : 1);
+    if (realtime_priority == 0) {
+      EXPECT_EQ(fanouts, 4u);
+    } else {
+      EXPECT_GE(fanouts, 1u);
+      EXPECT_LE(fanouts, 4u);
+    }
+    EXPECT_THROW(
+        f.server->PublishPoses(std::vector<PoseUpdate>{PoseUpdate{7, 0, Rigid3d(), Timestamp{}}}),
+        std::invalid_argument);
+  }
+}
+
+TEST(TrackerDevice, CountsExtrapolatedPosesAndTellsClientsAtMostOncePerSecond) {
+  Fixture f;
+  TrackerDevice device(f.server.get(), f.corrected, f.raw);
+  device.SetCorrector(std::make_shared<BoxCorrector>());
+  std::vector<std::string> log;
+  std::mutex log_mutex;
+  device.SetLog([&](const std::string& line) {
+    std::lock_guard<std::mutex> lock(log_mutex);
+    log.push_back(line);
+  });
+  VrpnTrackerClient client(f.Name("Tracker0"));
+  VrpnTrackerClient raw_client(f.Name("Tracker0_raw"));
+  std::vector<std::string> texts, raw_texts;
+  std::size_t poses = 0;
+  client.SetPoseCallback([&](const TrackerReport&) { ++poses; });
+  client.SetMessageCallback([&](const ReceivedMessage& m) {
+    if (m.type == kTextType) texts.push_back(DecodeText(m.payload)->text);
+  });
+  raw_client.SetMessageCallback([&](const ReceivedMessage& m) {
+    if (m.type == kTextType) raw_texts.push_back(DecodeText(m.payload)->text);
+  });
+  ASSERT_TRUE(PollUntil({&client, &raw_client},
+                        [&] { return client.pong_received() && raw_client.pong_received(); }));
+  const Rigid3d inside(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.2, 0, 0));
+  const Rigid3d outside(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.7, 0, 0));
+  // 3 outside, 2 inside: the first extrapolated pose is told at once (count 1), the rest of this
+  // burst is held because the next notice may only come a second later.
+  const auto t0 = std::chrono::steady_clock::now();
+  device.OnReport(0, outside, Timestamp{1, 0});
+  device.OnReport(0, inside, Timestamp{1, 1});
+  device.OnReport(1, outside, Timestamp{1, 2});
+  device.OnReport(1, outside, Timestamp{1, 3});
+  device.OnReport(2, inside, Timestamp{1, 4});
+  ASSERT_TRUE(PollUntil({&client, &raw_client}, [&] { return poses == 5 && !texts.empty(); }));
+  EXPECT_EQ(device.extrapolated_poses(), 3u);
+  ASSERT_EQ(texts.size(), 1u);
+  EXPECT_NE(texts[0].find("1 corrected pose(s) extrapolated"), std::string::npos) << texts[0];
+  // After the interval, the next report (even one inside) releases the held count of 2.
+  std::this_thread::sleep_until(t0 + TrackerDevice::kExtrapolationNoticeInterval +
+                                std::chrono::milliseconds(50));
+  device.OnReport(2, inside, Timestamp{2, 0});
+  ASSERT_TRUE(PollUntil({&client, &raw_client}, [&] { return texts.size() == 2; }));
+  EXPECT_NE(texts[1].find("2 corrected pose(s) extrapolated"), std::string::npos) << texts[1];
+  EXPECT_NE(texts[1].find("3 in total"), std::string::npos) << texts[1];
+  EXPECT_EQ(device.extrapolated_poses(), 3u);
+  // Raw poses are not corrected, so their clients are not told.
+  EXPECT_TRUE(raw_texts.empty());
+  std::lock_guard<std::mutex> lock(log_mutex);
+  EXPECT_EQ(log.size(), 2u);
+}
+
 TEST(NullTracker, ReportsEverySensorAtRate) {
   Fixture f;
   TrackerDevice device(f.server.get(), f.corrected, std::nullopt);
-  NullTracker null([&](int s, const Rigid3d& p, Timestamp t) { device.OnReport(s, p, t); }, 2, 200.0);
+  NullTracker null([&](int s, const Rigid3d& p, Timestamp t) { device.OnReport(s, p, t); }, 2,
+                   200.0);
   VrpnTrackerClient client(f.Name("Tracker0"));
   std::vector<TrackerReport> got;
   client.SetPoseCallback([&](const TrackerReport& r) { got.push_back(r); });

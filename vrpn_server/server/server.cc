@@ -216,10 +216,16 @@ void VrpnServer::Push(Event event) {
     was_empty = impl_->queue.empty();
     impl_->queue.push_back(std::move(event));
   }
+  Kick(was_empty);
+}
+
+void VrpnServer::Kick(bool queue_was_empty) {
   // Fast path: if the network thread is idle, send from this thread at once (saves a thread
   // wake-up, tens of microseconds on a busy host). Never waits: when the loop is busy the report
-  // stays queued and the loop sends it, in order, right after.
-  if (options_.direct_fanout && running_) {
+  // stays queued and the loop sends it, in order, right after. Not with a real-time network
+  // thread: a fan-out on the device thread (normal priority) can be preempted halfway by the
+  // very clients it wakes, which is what the real-time priority is there to prevent.
+  if (options_.direct_fanout && options_.realtime_priority == 0 && running_) {
     std::unique_lock<std::mutex> net(impl_->net_mutex, std::try_to_lock);
     if (net.owns_lock() && running_) {
       DrainEvents();
@@ -227,10 +233,35 @@ void VrpnServer::Push(Event event) {
     }
   }
   // One wake-up per batch: the loop drains everything queued when it runs.
-  if (was_empty && event_fd_ >= 0) {
+  if (queue_was_empty && event_fd_ >= 0) {
     const std::uint64_t one = 1;
     [[maybe_unused]] auto n = ::write(event_fd_, &one, sizeof(one));
   }
+}
+
+void VrpnServer::PublishPoses(std::span<const PoseUpdate> poses) {
+  for (const PoseUpdate& p : poses) {
+    if (p.tracker < 0 || p.tracker >= static_cast<int>(catalog_->trackers().size())) {
+      throw std::invalid_argument("PublishPoses: tracker index " + std::to_string(p.tracker) + " unknown");
+    }
+  }
+  if (poses.empty()) return;
+  const Clock::time_point now = Clock::now();
+  bool was_empty;
+  {
+    std::lock_guard<std::mutex> lock(impl_->queue_mutex);
+    was_empty = impl_->queue.empty();
+    for (const PoseUpdate& p : poses) {
+      Event& e = impl_->queue.emplace_back();
+      e.type = Event::kPose;
+      e.device = p.tracker;
+      e.index = p.sensor;
+      e.pose = p.transmitter_from_receiver;
+      e.time = p.time;
+      e.enqueued = now;
+    }
+  }
+  Kick(was_empty);
 }
 
 void VrpnServer::PublishPose(int tracker, int sensor, const Rigid3d& pose, Timestamp time) {

@@ -21,6 +21,7 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <span>
 #include <string>
 #include <thread>
 #include <vector>
@@ -59,6 +60,7 @@ struct ServerOptions {
   int realtime_priority = 0;
   // A device thread publishing while the network thread is idle sends to the clients itself
   // (never waiting for the network thread); false always hands reports to the network thread.
+  // Ignored with a realtime_priority: the real-time network thread then does every fan-out.
   bool direct_fanout = true;
   void Check() const;  // throws std::invalid_argument naming the field
 };
@@ -71,6 +73,14 @@ struct ServerStats {
   std::uint64_t closed_protocol = 0;  // closed for a bad cookie or length field
   std::uint64_t reports_published = 0;
   std::uint64_t udp_send_failures = 0;
+};
+
+// One Pos_Quat to publish: tracker (catalog index), sensor, pose and header timestamp.
+struct PoseUpdate {
+  int tracker = 0;
+  int sensor = 0;
+  Rigid3d transmitter_from_receiver;
+  Timestamp time;
 };
 
 class VrpnServer {
@@ -93,6 +103,11 @@ class VrpnServer {
 
   // Thread-safe: queue a report for every client. Pos_Quat with the header timestamp `time`.
   void PublishPose(int tracker, int sensor, const Rigid3d& transmitter_from_receiver, Timestamp time);
+  // Thread-safe: several reports that arrived together (the records of one serial read, raw and
+  // corrected names of one record). They are fanned out together: each is encoded once, and every
+  // client gets all of them in one send() (lob clients: one datagram), instead of one system call
+  // per report and client. Throws std::invalid_argument for an unknown tracker (nothing is sent).
+  void PublishPoses(std::span<const PoseUpdate> poses);
   // Thread-safe: a text message from a tracker's name to every client (reliable channel).
   void PublishText(int tracker, TextSeverity severity, std::string text);
   // Thread-safe: a button change; new clients get the current states on connect.
@@ -110,6 +125,8 @@ class VrpnServer {
   struct Event;
   struct Impl;
   void Push(Event event);
+  // After events were queued: fan out from this thread if the network thread is idle, else wake it.
+  void Kick(bool queue_was_empty);
   void Run();
   void HandleAccept();
   void HandleLob();
