@@ -28,8 +28,8 @@ nlohmann::json NumberOrNull(double v) {
   return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json();
 }
 
-// Per-station errors of a chain: magnitudes for the tables, whitened squared residuals (the fit's own
-// station residual, fit/model.h) for the paired test and BIC.
+// Per-station errors of a chain: magnitudes for the tables, whitened squared residuals (the fit's
+// own station residual, fit/model.h) for the paired test and BIC.
 struct StationErrors {
   std::vector<double> position_mm;
   std::vector<double> orientation_deg;
@@ -44,7 +44,8 @@ void AppendErrors(const CorrectionChain& chain, const FitStation& s, double sigm
   const Eigen::Vector3d dq = OrientationErrorVector<double>(c.rotation, s.reference.rotation);
   out->position_mm[index] = dp.norm() * 1e3;
   out->orientation_deg[index] = OrientationErrorAngle(c, s.reference) * kDegPerRad;
-  out->whitened_sq[index] = dp.squaredNorm() / (sigma_p * sigma_p) + dq.squaredNorm() / (sigma_o * sigma_o);
+  out->whitened_sq[index] =
+      dp.squaredNorm() / (sigma_p * sigma_p) + dq.squaredNorm() / (sigma_o * sigma_o);
   out->corrected[index] = c;
 }
 
@@ -85,9 +86,9 @@ StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
   return e;
 }
 
-// chi2 and the number of stations beyond the loss scale (0 without a loss): a robust loss is scored as
-// the mean-shift outlier model, in which every rejected station has its own 6 free parameters and
-// contributes nothing to chi2.
+// chi2 and the number of stations beyond the loss scale (0 without a loss): a robust loss is scored
+// as the mean-shift outlier model, in which every rejected station has its own 6 free parameters
+// and contributes nothing to chi2.
 struct Chi2 {
   double chi2 = 0.0;
   std::vector<int> outliers;  // station ids
@@ -165,11 +166,13 @@ std::string FormatSignificant(double v, int digits) {
 
 std::string FormatVector(const std::vector<double>& v, double scale, int precision) {
   std::string out = "(";
-  for (size_t i = 0; i < v.size(); ++i) out += (i ? ", " : "") + FormatNumber(v[i] * scale, precision);
+  for (size_t i = 0; i < v.size(); ++i)
+    out += (i ? ", " : "") + FormatNumber(v[i] * scale, precision);
   return out + ")";
 }
 
-const ParameterReport* FindBlock(const std::vector<ParameterReport>& blocks, const std::string& name) {
+const ParameterReport* FindBlock(const std::vector<ParameterReport>& blocks,
+                                 const std::string& name) {
   for (const auto& b : blocks) {
     if (b.block == name) return &b;
   }
@@ -226,6 +229,20 @@ std::string GenericStatement(const std::vector<ParameterReport>& blocks) {
 
 double At(const std::vector<double>& v, size_t i) { return i < v.size() ? v[i] : NAN; }
 
+// A report derived from another block (display values computed from it).
+ParameterReport Derived(const ParameterReport& from, const std::string& block,
+                        const std::string& unit, std::vector<double> values,
+                        std::vector<double> stddev) {
+  ParameterReport r;
+  r.term = from.term;
+  r.block = block;
+  r.unit = unit;
+  r.fixed = from.fixed;
+  r.values = std::move(values);
+  r.stddev = std::move(stddev);
+  return r;
+}
+
 // Statements of the physical term types (block names of fit/terms_physical.h); empty if a block is
 // missing (then the generic statement is used).
 std::string PhysicalStatement(const std::string& type, const std::vector<ParameterReport>& p) {
@@ -237,8 +254,8 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     const Eigen::Quaterniond q = QuaternionFromXyzwArray(r->values.data());
     const Eigen::AngleAxisd aa(q.w() < 0 ? Eigen::Quaterniond(-q.coeffs()) : q);
     const Eigen::Vector3d rv = aa.angle() * aa.axis();
-    const ParameterReport rotation{r->term, r->block, "rad", r->fixed, {},
-                                   {rv.x(), rv.y(), rv.z()}, r->stddev};
+    const ParameterReport rotation =
+        Derived(*r, r->block, "rad", {rv.x(), rv.y(), rv.z()}, r->stddev);
     return "a sensor offset of " + BlockStatement(*t, 1e3, "mm") + ", rotated by " +
            BlockStatement(rotation, kDegPerRad, "deg") + " (rotation vector)";
   }
@@ -247,15 +264,16 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     if (!g || g->values.size() != 9) return "";
     // Rows of G are the coils' sensitivity axes: the diagonal is each coil's gain, the symmetric
     // off-diagonal sum the coils' departure from orthogonality (small angles).
-    ParameterReport gains{g->term, "gains", "%", g->fixed, {}, {}, {}};
+    ParameterReport gains = Derived(*g, "gains", "%", {}, {});
     for (int i = 0; i < 3; ++i) {
       gains.values.push_back(g->values[static_cast<size_t>(4 * i)] - 1.0);
       gains.stddev.push_back(At(g->stddev, static_cast<size_t>(4 * i)));
     }
-    ParameterReport skew{g->term, "non_orthogonality", "deg", g->fixed, {}, {}, {}};
+    ParameterReport skew = Derived(*g, "non_orthogonality", "deg", {}, {});
     const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
     for (const auto& pr : pairs) {
-      const size_t ij = static_cast<size_t>(3 * pr[0] + pr[1]), ji = static_cast<size_t>(3 * pr[1] + pr[0]);
+      const size_t ij = static_cast<size_t>(3 * pr[0] + pr[1]),
+                   ji = static_cast<size_t>(3 * pr[1] + pr[0]);
       skew.values.push_back(g->values[ij] + g->values[ji]);
       skew.stddev.push_back(std::hypot(At(g->stddev, ij), At(g->stddev, ji)));
     }
@@ -278,7 +296,7 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     if (!d || !n || !a || n->values.size() != 3 || a->values.empty()) return "";
     double sigma_deg = NAN;  // the normal's tangent-space stddev: two angles [rad]
     if (n->stddev.size() >= 2) sigma_deg = std::hypot(n->stddev[0], n->stddev[1]) * kDegPerRad;
-    const ParameterReport normal{n->term, n->block, "", n->fixed, {}, n->values, {}};
+    const ParameterReport normal = Derived(*n, n->block, "", n->values, {});
     std::string out = "a conducting plane " + BlockStatement(*d, 1.0, "m") +
                       " from the transmitter along the normal " + BlockStatement(normal, 1.0, "");
     if (std::isfinite(sigma_deg)) out += " +- " + FormatNumber(sigma_deg, 2) + " deg";
@@ -292,8 +310,8 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     double c = 0;
     for (double v : o->values) c += std::abs(v) / static_cast<double>(o->values.size());
     return "finite transmitter coils: octupole " + BlockStatement(*o, 1.0, "m^2") +
-           " per coil (x, y, z), like loops of radius ~" + FormatNumber(std::sqrt(c / 0.75) * 1e2, 1) +
-           " cm";
+           " per coil (x, y, z), like loops of radius ~" +
+           FormatNumber(std::sqrt(c / 0.75) * 1e2, 1) + " cm";
   }
   return "";
 }
@@ -307,7 +325,8 @@ YAML::Node FlowList(const std::vector<double>& v, int precision) {
 
 // Writes the fitted values of a searched term (dipole, plane) into its mapping as start values, so
 // the model change reproduces this fit without the search. False if the blocks are not there.
-bool AddFittedStart(const std::string& type, const std::vector<ParameterReport>& p, YAML::Node* term) {
+bool AddFittedStart(const std::string& type, const std::vector<ParameterReport>& p,
+                    YAML::Node* term) {
   if (type == "dipole") {
     const ParameterReport* l = FindBlock(p, "location_in_transmitter");
     const ParameterReport* a = FindBlock(p, "polarisability_m3");
@@ -323,7 +342,8 @@ bool AddFittedStart(const std::string& type, const std::vector<ParameterReport>&
     if (!d || !n || !a || d->values.size() != 1 || n->values.size() != 3 || a->values.size() != 1) {
       return false;
     }
-    const Eigen::Vector3d normal = Eigen::Vector3d(n->values[0], n->values[1], n->values[2]).normalized();
+    const Eigen::Vector3d normal =
+        Eigen::Vector3d(n->values[0], n->values[1], n->values[2]).normalized();
     const Eigen::Vector3d point = d->values[0] * normal;
     (*term)["point_in_transmitter"] = FlowList({point.x(), point.y(), point.z()}, 4);
     (*term)["normal_in_transmitter"] = FlowList({normal.x(), normal.y(), normal.z()}, 5);
@@ -360,11 +380,12 @@ void Progress(const CandidateOptions& options, const std::string& message) {
 struct PreparedCandidate {
   const CatalogEffect* effect = nullptr;
   Candidate candidate;
-  YAML::Node term;                  // kTerm: the inserted mapping (for model_change)
-  std::vector<FitStation> stations; // kTimeOffset: the re-paired stations (else empty: the base's)
-  std::vector<int> base_index;      // per own station: the base station it is (-1: none)
+  YAML::Node term;                   // kTerm: the inserted mapping (for model_change)
+  std::vector<FitStation> stations;  // kTimeOffset: the re-paired stations (else empty: the base's)
+  std::vector<int> base_index;       // per own station: the base station it is (-1: none)
   double time_offset_s = 0.0;
-  bool flexible = false;            // a flexible fallback, not an effect
+  bool flexible = false;  // a flexible fallback, not an effect
+  YAML::Node root;        // the candidate model file
 };
 
 }  // namespace
@@ -375,8 +396,10 @@ std::vector<CatalogEffect> DefaultCatalog() {
        "a sensor offset (the reference body is not at the receiver coil)"},
       {"receiver_gain", CandidateKind::kTerm, "type: receiver_gain", true, false,
        "receiver coil gains and non-orthogonality"},
-      {"dipole", CandidateKind::kTerm, "type: dipole", true, true, "a ferromagnetic or conducting object"},
-      {"plane", CandidateKind::kTerm, "type: plane", true, true, "a conducting plane (floor, wall, door)"},
+      {"dipole", CandidateKind::kTerm, "type: dipole", true, true,
+       "a ferromagnetic or conducting object"},
+      {"plane", CandidateKind::kTerm, "type: plane", true, true,
+       "a conducting plane (floor, wall, door)"},
       {"near_field", CandidateKind::kTerm, "type: near_field", true, false,
        "finite transmitter coils (near field)"},
       {"robust_loss", CandidateKind::kRobustLoss, "", false, false,
@@ -402,6 +425,9 @@ void CandidateOptions::Check() const {
   if (!std::isfinite(max_delta_bic)) {
     throw std::invalid_argument("CandidateOptions.max_delta_bic: must be finite");
   }
+  if (!(max_outlier_fraction >= 0 && max_outlier_fraction < 0.5)) {
+    throw std::invalid_argument("CandidateOptions.max_outlier_fraction: must be in [0, 0.5)");
+  }
   if (cross_validate_top < 0) {
     throw std::invalid_argument("CandidateOptions.cross_validate_top: must be >= 0");
   }
@@ -421,7 +447,8 @@ void CandidateOptions::Check() const {
       try {
         node = YAML::Load(e.term_yaml);
       } catch (const YAML::Exception& ex) {
-        throw std::invalid_argument("CandidateOptions.catalog." + e.effect + ".term_yaml: " + ex.what());
+        throw std::invalid_argument("CandidateOptions.catalog." + e.effect +
+                                    ".term_yaml: " + ex.what());
       }
       if (!node.IsMap() || !node["type"]) {
         throw std::invalid_argument("CandidateOptions.catalog." + e.effect +
@@ -492,11 +519,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   ModelSpec base_spec = ParseModelYaml(model_text, model_source);
   const double sigma_p = base_spec.position_sigma;
   const double sigma_o = base_spec.orientation_sigma;
-  YAML::Node root = YAML::Load(model_text);
 
-  // The candidates.
+  // The candidates. Term types as written in the file (the engine may merge several file terms
+  // into one, e.g. consecutive physical terms into one field model).
   std::set<std::string> present;
-  for (const auto& t : base_spec.terms) present.insert(t->type());
+  for (const auto& t : YAML::Load(model_text)["terms"]) {
+    if (t.IsMap() && t["type"]) present.insert(t["type"].as<std::string>());
+  }
   std::vector<PreparedCandidate> prepared;
   std::vector<std::pair<const CatalogEffect*, bool>> to_test;  // (effect, flexible)
   for (const CatalogEffect& e : options.catalog) to_test.emplace_back(&e, false);
@@ -504,7 +533,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   for (const auto& [effect, flexible] : to_test) {
     const CatalogEffect& e = *effect;
     if (!flexible && !options.effects.empty() &&
-        std::find(options.effects.begin(), options.effects.end(), e.effect) == options.effects.end()) {
+        std::find(options.effects.begin(), options.effects.end(), e.effect) ==
+            options.effects.end()) {
       continue;
     }
     PreparedCandidate p;
@@ -584,6 +614,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       p.candidate.model_change = TermListItem(p.term);
     }
     p.candidate.model_text = Emit(changed);
+    p.root = changed;
     prepared.push_back(std::move(p));
   }
 
@@ -614,12 +645,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   }
   std::vector<int> base_folds(stations.size());
   for (size_t i = 0; i < stations.size(); ++i) base_folds[i] = static_cast<int>(i) % options.folds;
-  const StationErrors base_cv =
-      CrossValidateStations(stations, base_folds, model_text, model_source, options.folds, sigma_p, sigma_o,
-                            [&](int f) {
-                              Progress(options, "base model: fold " + std::to_string(f + 1) + "/" +
-                                                    std::to_string(options.folds));
-                            });
+  const StationErrors base_cv = CrossValidateStations(
+      stations, base_folds, model_text, model_source, options.folds, sigma_p, sigma_o, [&](int f) {
+        Progress(options,
+                 "base model: fold " + std::to_string(f + 1) + "/" + std::to_string(options.folds));
+      });
   {
     std::vector<Rigid3d> reported, reference;
     for (const auto& s : stations) {
@@ -635,7 +665,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   }
 
   // Candidates: fit on all stations (parameters, BIC).
-  for (auto& p : prepared) {
+  auto fit_candidate = [&](PreparedCandidate& p) {
     Candidate& c = p.candidate;
     const auto t0 = Clock::now();
     try {
@@ -656,9 +686,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         offset["search_range"] = FormatSignificant(t.search_range, 6);
         item["time_offset"] = offset;
         c.model_change = Emit(item);
-        c.statement = "a clock offset of " + FormatNumber(paired.time_offset_s * 1e3, 2) +
-                      " ms (reference minus tracker; estimated by the pairing's search, no standard "
-                      "deviation)";
+        c.statement =
+            "a clock offset of " + FormatNumber(paired.time_offset_s * 1e3, 2) +
+            " ms (reference minus tracker; estimated by the pairing's search, no standard "
+            "deviation)";
       }
       const std::vector<FitStation>& own = p.stations.empty() ? stations : p.stations;
       // Which base station each of the candidate's stations is (by tracker time when re-paired).
@@ -667,7 +698,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         std::iota(p.base_index.begin(), p.base_index.end(), 0);
       } else {
         std::map<double, int> by_time;
-        for (size_t i = 0; i < stations.size(); ++i) by_time[stations[i].time] = static_cast<int>(i);
+        for (size_t i = 0; i < stations.size(); ++i)
+          by_time[stations[i].time] = static_cast<int>(i);
         for (size_t j = 0; j < own.size(); ++j) {
           auto it = by_time.find(own[j].time);
           if (it != by_time.end()) p.base_index[j] = it->second;
@@ -675,11 +707,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       }
       Progress(options, c.effect + ": fit on " + std::to_string(own.size()) + " stations");
       ModelSpec spec = ParseModelYaml(c.model_text, model_source + " + " + c.effect);
-      const FitResult fit = FitModel(own, &spec, {});
+      FitOptions fo;
+      fo.compute_covariance = !p.flexible;  // a flexible term's parameters are not reported
+      const FitResult fit = FitModel(own, &spec, fo);
       c.fitted = true;
       c.converged = fit.converged;
       StationErrors full = MakeErrors(own.size());
-      for (size_t i = 0; i < own.size(); ++i) AppendErrors(fit.chain, own[i], sigma_p, sigma_o, &full, i);
+      for (size_t i = 0; i < own.size(); ++i)
+        AppendErrors(fit.chain, own[i], sigma_p, sigma_o, &full, i);
       // BIC on the stations both models have (all of them unless the streams were re-paired).
       std::vector<bool> use_own(own.size()), use_base(stations.size(), false);
       for (size_t j = 0; j < own.size(); ++j) {
@@ -695,25 +730,37 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       // model is wrong, and the mean-shift model that explains them away is not scored.
       c.bic = 2 * chi.outliers.size() > own.size() ? std::numeric_limits<double>::infinity()
                                                    : Bic(chi.chi2, n, k);
-      c.delta_bic = c.bic - Bic(base_chi.chi2, n, base_k + 6 * static_cast<int>(base_chi.outliers.size()));
+      c.delta_bic =
+          c.bic - Bic(base_chi.chi2, n, base_k + 6 * static_cast<int>(base_chi.outliers.size()));
       c.outlier_stations = chi.outliers;
       if (c.insert_index) {
         for (const auto& r : fit.parameters) {
           if (r.term == c.term_name) c.parameters.push_back(r);
         }
       }
-      if (c.kind != CandidateKind::kTimeOffset) c.statement = Statement(*p.effect, c, options.robust_loss.scale);
+      if (c.kind != CandidateKind::kTimeOffset)
+        c.statement = Statement(*p.effect, c, options.robust_loss.scale);
       if (c.kind == CandidateKind::kTerm &&
           AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &p.term)) {
+        // The change carries the fitted start, and the cross-validation evaluates exactly that
+        // change: each fold's fit starts there instead of searching again. (A search per fold can
+        // land a dipole inside the volume, where the inverse has no meaning; the start uses the
+        // held-out stations only to pick the basin, the fold's fit finds its own optimum.)
         c.model_change = TermListItem(p.term);
+        YAML::Node term = p.root["terms"][static_cast<size_t>(*c.insert_index)];
+        AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &term);
+        c.model_text = Emit(p.root);
       }
     } catch (const std::exception& ex) {
       c.error = ex.what();
     }
     c.seconds = SecondsSince(t0);
-  }
+  };
 
-  // Which candidates are cross-validated.
+  // Which candidates are cross-validated: all, or the best by BIC (cross_validate_top).
+  for (auto& p : prepared) {
+    if (!p.flexible) fit_candidate(p);
+  }
   std::vector<PreparedCandidate*> to_validate;
   for (auto& p : prepared) {
     if (p.candidate.fitted && !p.flexible) to_validate.push_back(&p);
@@ -726,16 +773,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                      });
     to_validate.resize(static_cast<size_t>(options.cross_validate_top));
   }
-  for (auto& p : prepared) {
-    if (p.candidate.fitted && p.flexible) to_validate.push_back(&p);
-  }
-  // Bonferroni over every candidate tested (fitted), screened-out ones included: screening looked at
-  // them too.
+  // Bonferroni over every candidate tested (fitted), screened-out ones included: screening looked
+  // at them too.
   int tested = 0;
   for (const auto& p : prepared) tested += p.candidate.fitted && !p.flexible ? 1 : 0;
   d.p_threshold = options.family_alpha / std::max(1, tested);
 
-  for (PreparedCandidate* p : to_validate) {
+  auto validate_candidate = [&](PreparedCandidate* p) {
     Candidate& c = p->candidate;
     const auto t0 = Clock::now();
     try {
@@ -745,12 +789,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         const int b = p->base_index[j];
         fold_of[j] = (b >= 0 ? b : static_cast<int>(j)) % options.folds;
       }
-      const StationErrors cv = CrossValidateStations(
-          own, fold_of, c.model_text, model_source + " + " + c.effect, options.folds, sigma_p,
-          sigma_o, [&](int f) {
-            Progress(options, c.effect + ": fold " + std::to_string(f + 1) + "/" +
-                                  std::to_string(options.folds));
-          });
+      const StationErrors cv =
+          CrossValidateStations(own, fold_of, c.model_text, model_source + " + " + c.effect,
+                                options.folds, sigma_p, sigma_o, [&](int f) {
+                                  Progress(options, c.effect + ": fold " + std::to_string(f + 1) +
+                                                        "/" + std::to_string(options.folds));
+                                });
       c.cross_validated = true;
       // Means and the paired test over the stations both models have.
       std::vector<double> cand_p, cand_o, cand_w, base_p, base_o, diff;
@@ -775,45 +819,77 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       c.error = std::string("cross-validation failed: ") + ex.what();
     }
     c.seconds += SecondsSince(t0);
-  }
+  };
 
   // Significance and the reason in words.
-  for (auto& p : prepared) {
+  auto judge = [&](PreparedCandidate& p) {
     Candidate& c = p.candidate;
     if (!c.fitted) {
       c.reason = "fit failed: " + c.error;
-      continue;
+      return;
     }
     if (!c.cross_validated) {
       c.reason = c.error.empty() ? "screened out by BIC (delta " + FormatNumber(c.delta_bic, 1) +
                                        "); not cross-validated"
                                  : c.error;
-      continue;
+      return;
     }
     const double drop = std::max(c.drop_position_percent, c.drop_orientation_percent);
+    const double outlier_fraction =
+        static_cast<double>(c.outlier_stations.size()) / static_cast<double>(stations.size());
+    const bool outliers_ok =
+        c.kind != CandidateKind::kRobustLoss || outlier_fraction <= options.max_outlier_fraction;
     const bool p_ok = c.p_value < d.p_threshold;
     const bool drop_ok = drop >= options.min_drop_percent;
     const bool bic_ok = c.delta_bic < options.max_delta_bic;
-    c.significant = p_ok && drop_ok && bic_ok;
+    c.significant = p_ok && drop_ok && bic_ok && outliers_ok;
     std::ostringstream r;
     r << "held-out error " << (c.drop_position_percent >= 0 ? "falls " : "rises ")
       << FormatNumber(std::abs(c.drop_position_percent), 1) << " % (position), "
       << (c.drop_orientation_percent >= 0 ? "falls " : "rises ")
-      << FormatNumber(std::abs(c.drop_orientation_percent), 1) << " % (orientation); p = "
-      << FormatSignificant(c.p_value, 2) << (p_ok ? " < " : " >= ")
+      << FormatNumber(std::abs(c.drop_orientation_percent), 1)
+      << " % (orientation); p = " << FormatSignificant(c.p_value, 2) << (p_ok ? " < " : " >= ")
       << FormatSignificant(d.p_threshold, 2) << "; delta BIC " << FormatNumber(c.delta_bic, 1);
     if (!c.significant) {
       std::vector<std::string> why;
       if (!p_ok) why.push_back("the held-out improvement is not significant");
       if (!drop_ok) {
-        why.push_back("the held-out drop is below " + FormatNumber(options.min_drop_percent, 0) + " %");
+        why.push_back("the held-out drop is below " + FormatNumber(options.min_drop_percent, 0) +
+                      " %");
       }
-      if (!bic_ok) why.push_back("BIC does not support it (needs < " + FormatNumber(options.max_delta_bic, 0) + ")");
+      if (!bic_ok)
+        why.push_back("BIC does not support it (needs < " + FormatNumber(options.max_delta_bic, 0) +
+                      ")");
+      if (!outliers_ok) {
+        why.push_back(
+            FormatNumber(100 * outlier_fraction, 0) +
+            " % of the stations exceed the loss scale: that is structure the model lacks, "
+            "not outliers");
+      }
       r << ". Not claimed: ";
       for (size_t i = 0; i < why.size(); ++i) r << (i ? ", " : "") << why[i];
     }
     if (!c.converged) r << " (the fit did not converge)";
     c.reason = r.str();
+  };
+
+  for (PreparedCandidate* p : to_validate) validate_candidate(p);
+  bool any_significant = false;
+  for (auto& p : prepared) {
+    if (p.flexible) continue;
+    judge(p);
+    any_significant = any_significant || p.candidate.significant;
+  }
+  // The flexible fallback only matters when no effect is claimed (it is the costliest fit).
+  for (auto& p : prepared) {
+    if (!p.flexible) continue;
+    if (any_significant) {
+      p.candidate.reason = "not fitted: a catalog effect is significant";
+      continue;
+    }
+    fit_candidate(p);
+    if (p.candidate.fitted) validate_candidate(&p);
+    judge(p);
   }
 
   // Ranking.
@@ -822,11 +898,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     (p.flexible ? d.flexible : ranked).push_back(std::move(p.candidate));
   }
   auto key = [](const Candidate& c) {
-    return std::make_tuple(c.significant ? 0 : 1, c.cross_validated ? 0 : 1, c.fitted ? 0 : 1,
-                           std::isfinite(c.cv_whitened_mean) ? c.cv_whitened_mean
-                                                             : std::numeric_limits<double>::infinity(),
-                           std::isfinite(c.delta_bic) ? c.delta_bic
-                                                      : std::numeric_limits<double>::infinity());
+    return std::make_tuple(
+        c.significant ? 0 : 1, c.cross_validated ? 0 : 1, c.fitted ? 0 : 1,
+        std::isfinite(c.cv_whitened_mean) ? c.cv_whitened_mean
+                                          : std::numeric_limits<double>::infinity(),
+        std::isfinite(c.delta_bic) ? c.delta_bic : std::numeric_limits<double>::infinity());
   };
   std::stable_sort(ranked.begin(), ranked.end(),
                    [&](const Candidate& a, const Candidate& b) { return key(a) < key(b); });
@@ -844,19 +920,24 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     d.verdict_effect = top.effect;
     std::ostringstream v;
     std::string desc = description(top.effect);
-    if (!desc.empty()) desc[0] = static_cast<char>(std::toupper(static_cast<unsigned char>(desc[0])));
-    v << desc << " (" << top.effect << ") explains the remaining structure: held-out position error "
-      << FormatNumber(d.base.cv_position_mm_mean, 3) << " -> " << FormatNumber(top.cv_position_mm_mean, 3)
-      << " mm (" << FormatNumber(top.drop_position_percent, 1) << " %), orientation "
+    if (!desc.empty())
+      desc[0] = static_cast<char>(std::toupper(static_cast<unsigned char>(desc[0])));
+    v << desc << " (" << top.effect
+      << ") explains the remaining structure: held-out position error "
+      << FormatNumber(d.base.cv_position_mm_mean, 3) << " -> "
+      << FormatNumber(top.cv_position_mm_mean, 3) << " mm ("
+      << FormatNumber(top.drop_position_percent, 1) << " %), orientation "
       << FormatNumber(d.base.cv_orientation_deg_mean, 3) << " -> "
-      << FormatNumber(top.cv_orientation_deg_mean, 3) << " deg, p = " << FormatSignificant(top.p_value, 2)
-      << ", delta BIC " << FormatNumber(top.delta_bic, 1) << ".";
+      << FormatNumber(top.cv_orientation_deg_mean, 3)
+      << " deg, p = " << FormatSignificant(top.p_value, 2) << ", delta BIC "
+      << FormatNumber(top.delta_bic, 1) << ".";
     if (!top.statement.empty()) v << " Fitted: " << top.statement << ".";
     int others = 0;
     for (size_t i = 1; i < d.candidates.size(); ++i) others += d.candidates[i].significant ? 1 : 0;
     if (others > 0) {
       v << " " << others << " other candidate" << (others == 1 ? " is" : "s are")
-        << " also significant (often the same structure seen by a related effect): add the top one, "
+        << " also significant (often the same structure seen by a related effect): add the top "
+           "one, "
            "then diagnose again.";
     }
     d.verdict_text = v.str();
@@ -870,22 +951,27 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     const double chi2_dof = d.base.chi2_per_dof;
     const Candidate* flexible = nullptr;
     for (const auto& f : d.flexible) {
-      if (f.significant && (!flexible || f.cv_whitened_mean < flexible->cv_whitened_mean)) flexible = &f;
+      if (f.significant && (!flexible || f.cv_whitened_mean < flexible->cv_whitened_mean))
+        flexible = &f;
     }
     if (flexible) {
       v << "The structure that remains is real: a flexible " << flexible->effect
         << " term lowers the held-out error by " << FormatNumber(flexible->drop_position_percent, 1)
         << " % (position) and " << FormatNumber(flexible->drop_orientation_percent, 1)
         << " % (orientation), p = " << FormatSignificant(flexible->p_value, 2)
-        << ", but it is not one of the catalog's effects: look at which covariate the residual follows "
+        << ", but it is not one of the catalog's effects: look at which covariate the residual "
+           "follows "
            "(trackcal diagnose), or keep the flexible term.";
     } else if (std::isfinite(chi2_dof) && chi2_dof < 2.0) {
       v << "The model fits to within its noise model (chi2/dof " << FormatNumber(chi2_dof, 2)
         << "): nothing is missing that these data can show.";
     } else {
-      v << "The model leaves " << (std::isfinite(chi2_dof) ? "chi2/dof " + FormatNumber(chi2_dof, 2) : "residuals")
-        << " against its noise model; if that is more than noise, look at which covariate the residual "
-           "follows (trackcal diagnose) or add a flexible term (a higher polynomial degree, a lut).";
+      v << "The model leaves "
+        << (std::isfinite(chi2_dof) ? "chi2/dof " + FormatNumber(chi2_dof, 2) : "residuals")
+        << " against its noise model; if that is more than noise, look at which covariate the "
+           "residual "
+           "follows (trackcal diagnose) or add a flexible term (a higher polynomial degree, a "
+           "lut).";
     }
     d.verdict_text = v.str();
   }
@@ -906,6 +992,8 @@ nlohmann::json CandidateToJson(const Candidate& c) {
                         {"coordinate_names", p.coordinate_names},
                         {"values", p.values},
                         {"stddev", stddev},
+                        {"stddev_names", p.stddev_names},  // manifold blocks: tangent coordinates
+                        {"stddev_unit", p.stddev_unit},
                         {"fixed", p.fixed}});
     }
     return {
@@ -945,8 +1033,9 @@ nlohmann::json Diagnosis::ToJson() const {
   for (const auto& c : candidates) cands.push_back(CandidateToJson(c));
   nlohmann::json flex = nlohmann::json::array();
   for (const auto& c : flexible) flex.push_back(CandidateToJson(c));
-  nlohmann::json verdict = {{"effect", verdict_effect ? nlohmann::json(*verdict_effect) : nlohmann::json()},
-                            {"text", verdict_text}};
+  nlohmann::json verdict = {
+      {"effect", verdict_effect ? nlohmann::json(*verdict_effect) : nlohmann::json()},
+      {"text", verdict_text}};
   return {{"command", "diagnose"},
           {"model", model},
           {"data", data},
@@ -974,15 +1063,17 @@ nlohmann::json Diagnosis::ToJson() const {
 std::string FormatDiagnosis(const Diagnosis& d) {
   std::ostringstream out;
   out << "Base model " << d.model << " on " << d.data << " (" << d.num_stations << " stations, "
-      << d.folds << "-fold cross-validation): held-out error " << FormatNumber(d.base.cv_position_mm_mean, 3)
-      << " mm, " << FormatNumber(d.base.cv_orientation_deg_mean, 3) << " deg; " << d.base.num_free_parameters
+      << d.folds << "-fold cross-validation): held-out error "
+      << FormatNumber(d.base.cv_position_mm_mean, 3) << " mm, "
+      << FormatNumber(d.base.cv_orientation_deg_mean, 3) << " deg; " << d.base.num_free_parameters
       << " free parameters, chi2/dof " << FormatNumber(d.base.chi2_per_dof, 2) << ", BIC "
       << FormatNumber(d.base.bic, 1) << "\n\n";
   out << "Candidate effects (ranked; significant: p < " << FormatSignificant(d.p_threshold, 2)
       << ", held-out drop >= 5 %, delta BIC < -10):\n";
-  out << std::left << std::setw(4) << "#" << std::setw(16) << "effect" << std::right << std::setw(11)
-      << "pos [mm]" << std::setw(9) << "drop %" << std::setw(11) << "ori [deg]" << std::setw(9) << "drop %"
-      << std::setw(11) << "dBIC" << std::setw(10) << "p" << "  significant\n";
+  out << std::left << std::setw(4) << "#" << std::setw(16) << "effect" << std::right
+      << std::setw(11) << "pos [mm]" << std::setw(9) << "drop %" << std::setw(11) << "ori [deg]"
+      << std::setw(9) << "drop %" << std::setw(11) << "dBIC" << std::setw(10) << "p"
+      << "  significant\n";
   int rank = 1;
   for (const auto& c : d.candidates) {
     out << std::left << std::setw(4) << rank++ << std::setw(16) << c.effect << std::right;
@@ -995,8 +1086,8 @@ std::string FormatDiagnosis(const Diagnosis& d) {
       out << std::setw(40) << "(not cross-validated)";
     }
     out << std::setw(11) << (std::isfinite(c.delta_bic) ? FormatNumber(c.delta_bic, 1) : "-")
-        << std::setw(10) << (std::isfinite(c.p_value) ? FormatSignificant(c.p_value, 2) : "-") << "  "
-        << (c.significant ? "yes" : "no") << "\n";
+        << std::setw(10) << (std::isfinite(c.p_value) ? FormatSignificant(c.p_value, 2) : "-")
+        << "  " << (c.significant ? "yes" : "no") << "\n";
     if (!c.statement.empty()) out << "      " << c.statement << "\n";
     if (!c.fitted) out << "      " << c.reason << "\n";
   }
@@ -1005,9 +1096,11 @@ std::string FormatDiagnosis(const Diagnosis& d) {
     out << "Flexible fallback (not an effect): " << f.effect;
     if (f.cross_validated) {
       out << ": held-out " << FormatNumber(f.cv_position_mm_mean, 3) << " mm ("
-          << FormatNumber(f.drop_position_percent, 1) << " %), " << FormatNumber(f.cv_orientation_deg_mean, 3)
-          << " deg (" << FormatNumber(f.drop_orientation_percent, 1) << " %), p = "
-          << FormatSignificant(f.p_value, 2) << ", delta BIC " << FormatNumber(f.delta_bic, 1)
+          << FormatNumber(f.drop_position_percent, 1) << " %), "
+          << FormatNumber(f.cv_orientation_deg_mean, 3) << " deg ("
+          << FormatNumber(f.drop_orientation_percent, 1)
+          << " %), p = " << FormatSignificant(f.p_value, 2) << ", delta BIC "
+          << FormatNumber(f.delta_bic, 1)
           << (f.significant ? ": the remaining structure is real" : ": nothing more to gain");
     } else {
       out << ": " << f.reason;

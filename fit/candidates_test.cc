@@ -1,6 +1,6 @@
 // Candidate ranking on synthetic stations whose truth is known: the scoring, the thresholds, the
-// YAML insertion and the JSON document, with explicit terms as catalog effects (independent of which
-// physical term types are registered).
+// YAML insertion and the JSON document, with explicit terms as catalog effects (independent of
+// which physical term types are registered).
 #include "fit/candidates.h"
 
 #include <gmock/gmock.h>
@@ -34,8 +34,8 @@ std::vector<FitStation> Stations(int n, const Eigen::Vector3d& position_offset, 
     s.reported.rotation = Eigen::Quaterniond(g(rng), g(rng), g(rng), g(rng)).normalized();
     const Eigen::Vector3d p = s.reported.translation;
     const Eigen::Vector3d orientation_error(0.01 * p.x(), -0.02 * p.y() + 0.005, 0.01 * p.z());
-    s.reference.translation = p + position_offset +
-                              kPositionNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
+    s.reference.translation =
+        p + position_offset + kPositionNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
     // Noise on the vector part, which the model's orientation sigma whitens (fit/model.h).
     const Eigen::Vector3d v =
         0.5 * orientation_error + kOrientationNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
@@ -70,8 +70,8 @@ CandidateOptions TestOptions() {
 
 TEST(DiagnoseCandidates, Nominal_MissingOffsetRanksFirstAndIsSignificant) {
   const auto stations = Stations(300, Eigen::Vector3d(0.003, -0.002, 0.001), 0, 1);
-  const Diagnosis d = DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic",
-                                         TestOptions());
+  const Diagnosis d =
+      DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic", TestOptions());
   std::cout << FormatDiagnosis(d);
   ASSERT_EQ(d.candidates.size(), 2u);
   const Candidate& top = d.candidates[0];
@@ -97,7 +97,8 @@ TEST(DiagnoseCandidates, Nominal_MissingOffsetRanksFirstAndIsSignificant) {
     ASSERT_TRUE(std::isfinite(offset.stddev[k]));
     EXPECT_LT(std::abs(offset.values[k] - truth[k]), 3.0 * offset.stddev[k]) << k;  // 3 sigma
   }
-  // Every station is 37 sigma off: not outliers but a missing effect, so the robust loss buys nothing.
+  // Every station is 37 sigma off: not outliers but a missing effect, so the robust loss buys
+  // nothing.
   EXPECT_FALSE(d.candidates[1].significant) << d.candidates[1].reason;
   EXPECT_THAT(FormatDiagnosis(d), ::testing::HasSubstr("Add to model.yaml"));
 }
@@ -141,13 +142,15 @@ terms:
 }
 
 // Streams paired with the wrong clock offset: the reference lags the tracker by 37 ms. The
-// time_offset candidate pairs again (here: a stand-in for PairStreams that knows the truth) and wins.
+// time_offset candidate pairs again (here: a stand-in for PairStreams that knows the truth) and
+// wins.
 TEST(DiagnoseCandidates, ClockOffsetOfStreamsIsFound) {
   std::mt19937 rng(9);
   std::normal_distribution<double> g;
   auto truth_at = [](double t) {
-    return Rigid3d(Eigen::Quaterniond(Eigen::AngleAxisd(0.8 * std::sin(0.9 * t), Eigen::Vector3d::UnitZ())),
-                   Eigen::Vector3d(0.3 * std::sin(1.1 * t), 0.3 * std::cos(0.7 * t), 0.5));
+    return Rigid3d(
+        Eigen::Quaterniond(Eigen::AngleAxisd(0.8 * std::sin(0.9 * t), Eigen::Vector3d::UnitZ())),
+        Eigen::Vector3d(0.3 * std::sin(1.1 * t), 0.3 * std::cos(0.7 * t), 0.5));
   };
   auto paired = [&](double offset_s) {
     std::vector<FitStation> out;
@@ -230,7 +233,8 @@ TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
     EXPECT_TRUE(c["cv_drop_percent"].contains("orientation"));
   }
   const auto& p = j["candidates"][0]["parameters"][0];
-  for (const char* key : {"term", "block", "unit", "coordinate_names", "values", "stddev", "fixed"}) {
+  for (const char* key :
+       {"term", "block", "unit", "coordinate_names", "values", "stddev", "fixed"}) {
     EXPECT_TRUE(p.contains(key)) << key;
   }
   EXPECT_TRUE(j["flexible_fallback"].is_array());

@@ -569,9 +569,7 @@ nlohmann::json FitResult::ToJson() const {
       nlohmann::json tangent = nlohmann::json::array();
       for (size_t i = 0; i < p.stddev_names.size(); ++i) {
         tangent.push_back({{"name", p.stddev_names[i]},
-                           {"stddev", NumberOrNull(p.stddev_names.empty() && i < p.stddev.size()
-                                                    ? p.stddev[i]
-                                                    : NAN)}});
+                           {"stddev", NumberOrNull(i < p.stddev.size() ? p.stddev[i] : NAN)}});
       }
       entry["tangent"] = tangent;
       entry["tangent_unit"] = p.stddev_unit;

@@ -333,7 +333,7 @@ int RunDiagnose(int argc, char** argv) {
   options.folds = static_cast<int>(ParseNumber("--folds", args.GetOr("--folds", "5")));
   if (options.folds < 2) throw UsageError("--folds must be at least 2");
   options.cross_validate_top =
-      static_cast<int>(ParseNumber("--cross-validate-top", args.GetOr("--cross-validate-top", "0")));
+      static_cast<int>(ParseNumber("--cross-validate-top", args.GetOr("--cross-validate-top", "3")));
   if (options.cross_validate_top < 0) throw UsageError("--cross-validate-top must be >= 0");
   if (args.values.count("--effects")) {
     std::stringstream list(args.Get("--effects"));

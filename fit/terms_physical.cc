@@ -2,7 +2,10 @@
 
 #include <ceres/autodiff_cost_function.h>
 #include <ceres/jet.h>
+#include <ceres/loss_function.h>
 #include <ceres/manifold.h>
+#include <ceres/problem.h>
+#include <ceres/solver.h>
 #include <ceres/sphere_manifold.h>
 
 #include <Eigen/LU>
@@ -699,11 +702,14 @@ namespace {
 
 // Gauge of G against the sensor offset's rotation: G R^T = P (R U^T)^T for the polar decomposition
 // G = P U, so only the symmetric part P of G is seen once the offset rotation is free. This
-// residual holds G symmetric (its antisymmetric part, whitened by 1e-6).
+// residual holds G symmetric (its antisymmetric part, whitened by 1e-4). The data carry no
+// information along the gauge, so any weight pins it at zero at the optimum; 1e-4 is of the order
+// of the stds of G from a capture, keeping the information matrix well conditioned for the
+// covariance.
 struct SymmetricGainResidual {
   template <typename T>
   bool operator()(const T* g, T* r) const {
-    const T scale(1e6);
+    const T scale(1e4);
     r[0] = (g[1] - g[3]) * scale;
     r[1] = (g[2] - g[6]) * scale;
     r[2] = (g[5] - g[7]) * scale;
@@ -829,7 +835,90 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     disabled_[i] = false;
   }
   disabled_.clear();
+  RefineAlone(inputs, noise_sigmas);
   return true;
+}
+
+namespace {
+
+// One station's whitened residual through the group alone (for RefineAlone).
+class GroupStationCost : public ceres::CostFunction {
+ public:
+  GroupStationCost(const PhysicalGroupTerm* term, const StationBinding* binding,
+                   const FitStation& station, const Eigen::Vector2d& sigmas)
+      : term_(term), binding_(binding), station_(station), sigmas_(sigmas) {
+    set_num_residuals(6);
+    for (int b : binding->blocks) {
+      mutable_parameter_block_sizes()->push_back(term->blocks()[static_cast<size_t>(b)].size());
+    }
+  }
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    TermEvaluation eval;
+    if (!term_->Evaluate(*binding_, parameters, ToAmbient(station_.reported), jacobians != nullptr,
+                         &eval)) {
+      return false;
+    }
+    Vector6 r;
+    Eigen::Matrix<double, 6, 7> d_r;
+    WhitenedResidual(eval.output, station_.reference, sigmas_, &r, &d_r);
+    Eigen::Map<Vector6> out(residuals);
+    out = r;
+    if (jacobians == nullptr) return true;
+    for (size_t b = 0; b < binding_->blocks.size(); ++b) {
+      if (jacobians[b] == nullptr) continue;
+      const auto& d = eval.d_output_d_blocks[b];
+      Eigen::Map<Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor>>(jacobians[b], 6,
+                                                                            d.cols()) = d_r * d;
+    }
+    return true;
+  }
+
+ private:
+  const PhysicalGroupTerm* term_;
+  const StationBinding* binding_;
+  FitStation station_;
+  Eigen::Vector2d sigmas_;
+};
+
+}  // namespace
+
+void PhysicalGroupTerm::RefineAlone(const std::vector<FitStation>& inputs,
+                                    const Eigen::Vector2d& sigmas) {
+  // The group is the first term of its model (physical terms come first), so its own fit to the
+  // references is the start the joint problem needs: the explicit terms after it then initialise
+  // on what it leaves, and the joint solve only polishes (a chain with a LUT converges in a few
+  // iterations instead of ~30 sparse factorisations). Robust (Cauchy, 5 sigma) so hemisphere flips
+  // do not drag the start; priors and the joint loss act in the joint solve.
+  const StationBinding binding = Bind(AmbientPose::Zero());
+  if (binding.blocks.empty() || inputs.empty()) return;
+  ceres::Problem problem;
+  for (int b : binding.blocks) {
+    ParameterBlock& block = blocks_[static_cast<size_t>(b)];
+    problem.AddParameterBlock(block.values.data(), block.size());
+    if (block.make_manifold) problem.SetManifold(block.values.data(), block.make_manifold());
+    for (int i = 0; i < block.size(); ++i) {
+      if (!block.lower.empty() && std::isfinite(block.lower[static_cast<size_t>(i)])) {
+        problem.SetParameterLowerBound(block.values.data(), i, block.lower[static_cast<size_t>(i)]);
+      }
+      if (!block.upper.empty() && std::isfinite(block.upper[static_cast<size_t>(i)])) {
+        problem.SetParameterUpperBound(block.values.data(), i, block.upper[static_cast<size_t>(i)]);
+      }
+    }
+  }
+  std::vector<double*> pointers;
+  for (int b : binding.blocks) pointers.push_back(blocks_[static_cast<size_t>(b)].values.data());
+  for (const FitStation& s : inputs) {
+    problem.AddResidualBlock(new GroupStationCost(this, &binding, s, sigmas),
+                             new ceres::CauchyLoss(5.0), pointers);
+  }
+  AddExtraResiduals(&problem, inputs);
+  ceres::Solver::Options options;
+  options.max_num_iterations = 50;
+  options.linear_solver_type = ceres::DENSE_QR;
+  options.function_tolerance = 1e-10;
+  ceres::Solver::Summary summary;
+  ceres::Solve(options, &problem, &summary);
 }
 
 void PhysicalGroupTerm::SearchDipole(const Effect& e, const std::vector<FitStation>& inputs,

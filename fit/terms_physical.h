@@ -89,7 +89,8 @@ class PhysicalGroupTerm : public ModelTerm {
   void Absorb(PhysicalGroupTerm&& other);
 
   void Prepare(const std::vector<FitStation>& inputs) override;
-  // Runs the start-value searches (dipoles and planes not given). Returns true.
+  // Runs the start-value searches (dipoles and planes not given), then fits the group alone to the
+  // references (it is the model's first term). Returns true.
   bool InitializeLinear(const std::vector<FitStation>& inputs,
                         const Eigen::Vector2d& noise_sigmas) override;
   // Binds the free blocks only; fixed blocks are read from blocks() in Evaluate().
@@ -117,6 +118,8 @@ class PhysicalGroupTerm : public ModelTerm {
                     const Eigen::Vector2d& sigmas);
   void SearchPlane(const Effect& effect, const std::vector<FitStation>& inputs,
                    const Eigen::Vector2d& sigmas);
+  // Fits the group's free blocks alone to the references (the start of the joint solve).
+  void RefineAlone(const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas);
 
   std::vector<Effect> effects_;
   PhysicalSearchOptions search_options_;

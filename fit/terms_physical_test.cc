@@ -295,6 +295,20 @@ terms:
   ASSERT_EQ(normal.stddev.size(), 2u);
   EXPECT_EQ(normal.stddev_unit, "rad");
   EXPECT_TRUE(std::isfinite(normal.stddev[0]));
+  // --json: every block with its term's name; manifold blocks carry their tangent stds.
+  const nlohmann::json json = result.ToJson();
+  bool found = false;
+  for (const auto& p : json["parameters"]) {
+    if (p["term"] == "sensor_offset" && p["block"] == "rotation") {
+      found = true;
+      ASSERT_EQ(p["tangent"].size(), 3u);
+      EXPECT_EQ(p["tangent"][0]["name"], "rotation_vector.x");
+      EXPECT_TRUE(p["tangent"][0]["stddev"].is_number()) << p.dump();
+      EXPECT_EQ(p["tangent_unit"], "rad");
+      EXPECT_TRUE(p["values"][0]["stddev"].is_null());  // no std per quaternion component
+    }
+  }
+  EXPECT_TRUE(found);
 }
 
 // The calibration file written from a fit holds the whole chain (physical, then polynomial) and

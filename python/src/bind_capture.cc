@@ -92,34 +92,35 @@ ErrorSummary SummaryFromDict(const py::dict& d) {
 
 }  // namespace
 
+py::dict PoseCaptureToDict(const PoseCapture& c) {
+  const size_t n = c.records.size();
+  py::dict d;
+  py::array_t<int> station(n), sensor(n);
+  py::array_t<double> time(n);
+  py::list sets;
+  for (size_t i = 0; i < n; ++i) {
+    station.mutable_at(i) = c.records[i].station;
+    sensor.mutable_at(i) = c.records[i].sensor;
+    time.mutable_at(i) = c.records[i].time;
+    sets.append(c.records[i].set);
+  }
+  d["station"] = station;
+  d["set"] = sets;
+  d["sensor"] = sensor;
+  d["time"] = time;
+  d["reported_positions"] = Positions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reported; });
+  d["reported_quaternions_xyzw"] = Quaternions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reported; });
+  d["reference_positions"] = Positions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reference; });
+  d["reference_quaternions_xyzw"] = Quaternions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reference; });
+  d["extra_columns"] = c.extra_columns;
+  d["extra"] = Extra(c);
+  return d;
+}
+
 void BindCapture(py::module_& m) {
   m.def(
       "read_poses",
-      [](const std::filesystem::path& path) {
-        const PoseCapture c = ReadPoses(path);
-        const size_t n = c.records.size();
-        py::dict d;
-        py::array_t<int> station(n), sensor(n);
-        py::array_t<double> time(n);
-        py::list sets;
-        for (size_t i = 0; i < n; ++i) {
-          station.mutable_at(i) = c.records[i].station;
-          sensor.mutable_at(i) = c.records[i].sensor;
-          time.mutable_at(i) = c.records[i].time;
-          sets.append(c.records[i].set);
-        }
-        d["station"] = station;
-        d["set"] = sets;
-        d["sensor"] = sensor;
-        d["time"] = time;
-        d["reported_positions"] = Positions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reported; });
-        d["reported_quaternions_xyzw"] = Quaternions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reported; });
-        d["reference_positions"] = Positions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reference; });
-        d["reference_quaternions_xyzw"] = Quaternions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reference; });
-        d["extra_columns"] = c.extra_columns;
-        d["extra"] = Extra(c);
-        return d;
-      },
+      [](const std::filesystem::path& path) { return PoseCaptureToDict(ReadPoses(path)); },
       py::arg("path"),
       "Reads poses.csv (core/capture.h) into a dict of arrays: station, set (list), sensor, time, "
       "reported_/reference_positions (N, 3) [m], reported_/reference_quaternions_xyzw (N, 4), "

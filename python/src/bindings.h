@@ -3,10 +3,17 @@
 
 #include <pybind11/pybind11.h>
 
+#include "core/capture.h"
+
 namespace trackcal::python {
 
 void BindCore(pybind11::module_& m);
 void BindCapture(pybind11::module_& m);
+void BindFit(pybind11::module_& m);
 void BindVrpn(pybind11::module_& m);
+
+// A poses.csv capture as the dict of arrays trackcal.captures.PoseCapture is built from (station,
+// set, sensor, time, reported_/reference_positions, ..._quaternions_xyzw, extra_columns, extra).
+pybind11::dict PoseCaptureToDict(const PoseCapture& capture);
 
 }  // namespace trackcal::python

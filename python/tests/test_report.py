@@ -45,19 +45,27 @@ def written_report(tmp_path_factory):
     record_fit(work, model=cal_path, data=[(cap_dir / "poses.csv", "calibration_capture")],
                scores=scores_from_validation(v), label="polynomial r=3")
     out = tmp / "out"
+    ranking = {"folds": 5, "base": {"cv_position_mm_mean": 2.0, "cv_orientation_deg_mean": 0.2},
+               "candidates": [{"effect": "sensor_offset", "cv_position_mm_mean": 1.2, "cv_orientation_deg_mean": 0.1,
+                               "cv_drop_percent": {"position": 40.0, "orientation": 50.0}, "delta_bic": -90.0,
+                               "p_value": 1e-6, "significant": True, "reason": "held-out error falls 40 %",
+                               "model_change": "- type: sensor_offset\n", "insert_index": 0}],
+               "verdict": {"effect": "sensor_offset", "text": "a sensor offset explains the remaining structure"}}
     html = report.write_report(v, out, inputs=[cap_dir / "poses.csv", cal_path],
-                               history_entries=load_history(work),
-                               candidates=lambda val: [{"effect": "sensor_offset", "score": 1.0}])
+                               history_entries=load_history(work), candidates=ranking,
+                               model_change={"yaml": "- type: sensor_offset\n", "diff": None})
     return html
 
 
 def test_report_renders_every_figure(written_report, tmp_path):
     text = written_report.read_text()
     n_img = text.count("<img ")
-    # fig 4, 5, 7, 6, two residual maps, two covariate charts, history.
-    assert n_img == 9
+    # fig 4, 5, 7, 6, two residual maps, two covariate charts, candidates, history.
+    assert n_img == 10
     assert "http://" not in text and "https://" not in text  # self-contained, opens offline
     assert "Candidate effects" in text and "sensor_offset" in text
+    assert "a sensor offset explains the remaining structure" in text  # the verdict
+    assert "History of fits" in text and "polynomial r=3" in text
     pngs = sorted(p.name for p in written_report.parent.glob("*.png"))
     assert len(pngs) == n_img and "fig6_distortion_field.png" in pngs
     dom = dump_dom(written_report, tmp_path / "profile")

@@ -44,3 +44,66 @@ def write_poses(path: pathlib.Path, capture, extra: dict = None) -> pathlib.Path
 def quat_about_z_xyzw(angle_rad):
     a = np.asarray(angle_rad, dtype=float)
     return np.stack([np.zeros_like(a), np.zeros_like(a), np.sin(a / 2), np.cos(a / 2)], axis=-1)
+
+
+def receiver_gain_at(delta_t, per_degree=0.004, anisotropy=(1.5, 0.5, 1.0)):
+    """Receiver coil gains G(T) = I + per_degree * (T - T0) * diag(anisotropy): every coil's gain
+    drifts with temperature, at its own rate."""
+    return np.diag([1.0 + per_degree * delta_t * a for a in anisotropy])
+
+
+def simulate_temperature_gains(out: pathlib.Path, *, levels=np.arange(18.0, 31.0, 2.0), seed: int = 5,
+                               per_degree: float = 0.004, base: str = "ideal") -> pathlib.Path:
+    """A capture whose receiver gains follow the room temperature, an effect outside the fit
+    engine's catalog (its receiver_gain term is one constant G).
+
+    How: the C++ simulator (trackcal-simulate, the physics of core/field.h and the Fastrak's
+    free-space solver) renders the same capture (same seed: same stations, orientations and noise)
+    once per temperature level, with tracker.receiver_gain_matrix = G(level) from
+    ``receiver_gain_at`` (levels symmetric around their mean T0, so the average gain is the
+    identity). Each station then takes its reported and reference poses from the rendering at a
+    randomly drawn level; its ``temperature`` column is that level plus a uniform +-0.5 degC reading
+    spread. A ``humidity`` column unrelated to anything is added as a control. Registration
+    stations come from the T0-nearest level. Writes ``out/poses.csv`` (written by ``write_poses``)
+    and returns the folder."""
+    import dataclasses
+
+    from trackcal import captures
+
+    exe = shutil.which("trackcal-simulate")
+    assert exe, "trackcal-simulate must be on PATH (scripts/build.sh installs it into the venv)"
+    out.mkdir(parents=True)
+    levels = np.asarray(levels, dtype=float)
+    t0 = float(levels.mean())
+    rendered = []
+    for k, level in enumerate(levels):
+        gain = receiver_gain_at(level - t0, per_degree)
+        rows = ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in gain)
+        scene = out / f"scene_{k}.yaml"
+        scene.write_text(f"base: {base}\nseed: {seed}\ntracker:\n  receiver_gain_matrix: [{rows}]\n"
+                         "capture:\n  stream:\n    duration_s: 0\n")
+        subprocess.run([exe, "--scene", str(scene), "-o", str(out / f"level_{k}")], check=True,
+                       capture_output=True)
+        rendered.append(captures.load_poses(out / f"level_{k}"))
+    first = rendered[0]
+    for r in rendered:
+        assert np.array_equal(r.station, first.station)
+    n = len(first)
+    rng = np.random.default_rng(seed)
+    level = rng.integers(0, len(levels), n)
+    level[first.set == "reg"] = int(np.argmin(np.abs(levels - t0)))
+    rows = np.arange(n)
+
+    def pick(name):
+        return np.stack([getattr(r, name) for r in rendered])[level, rows]
+
+    cap = dataclasses.replace(first, reported_positions=pick("reported_positions"),
+                              reported_quaternions_xyzw=pick("reported_quaternions_xyzw"),
+                              reference_positions=pick("reference_positions"),
+                              reference_quaternions_xyzw=pick("reference_quaternions_xyzw"))
+    capture_dir = out / "capture"
+    capture_dir.mkdir()
+    write_poses(capture_dir / "poses.csv", cap,
+                extra={"temperature": levels[level] + rng.uniform(-0.5, 0.5, n),
+                       "humidity": rng.uniform(30.0, 60.0, n)})
+    return capture_dir

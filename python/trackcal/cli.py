@@ -1,4 +1,4 @@
-"""The ``trackcal`` command: validate, diagnose, report, history, record (docs/understand.md).
+"""The ``trackcal`` command: fit, validate, diagnose, report, history, record (docs/understand.md).
 
 Colour and progress bars only when the stream is a terminal. User errors exit with status 2 and a
 one-line message naming the file, line and column (from the C++ readers).
@@ -45,6 +45,30 @@ class Terminal:
             self.err.flush()
         return update
 
+    def stage_progress(self) -> Callable[[str, int, int], None]:
+        """A trackcal.fit progress callback (stage, done, total): one bar per stage."""
+        bars = {}
+
+        def update(stage, done, total):
+            if stage not in bars:
+                bars[stage] = self.progress(stage)
+            bars[stage](done, total)
+        return update
+
+
+    def message_progress(self) -> Callable[[str], None]:
+        """A callback showing the latest progress message on stderr (on a terminal only)."""
+        def update(message):
+            if self.progress_enabled:
+                self.err.write("\r\033[K" + str(message)[:120])
+                self.err.flush()
+        return update
+
+    def end_progress(self) -> None:
+        if self.progress_enabled:
+            self.err.write("\r\033[K")
+            self.err.flush()
+
 
 def _load(args):
     from trackcal import Calibration
@@ -81,19 +105,6 @@ def _validation(args, term, covariates: bool):
     return capture, cal, v
 
 
-def candidate_source():
-    """The fit engine's ranking of missing physical effects, if installed: a module
-    ``trackcal.candidates`` with ``rank(validation) -> list of dict rows``; None otherwise."""
-    import importlib
-    try:
-        mod = importlib.import_module("trackcal.candidates")
-    except ModuleNotFoundError as e:
-        if e.name != "trackcal.candidates":
-            raise
-        return None
-    return mod.rank
-
-
 def _record_history(args, v) -> None:
     if not getattr(args, "workdir", None) or getattr(args, "command", "") != "validate":
         return
@@ -103,6 +114,67 @@ def _record_history(args, v) -> None:
     data = v.capture.path
     record_fit(args.workdir, model=args.calibration, data=[(data, "validation_capture")],
                scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name)
+
+
+def _has_valid_set(data) -> bool:
+    p = pathlib.Path(data)
+    poses = p / "poses.csv" if p.is_dir() else p
+    if not poses.is_file():
+        return False
+    from trackcal.captures import load_poses
+    return "valid" in load_poses(poses).sets
+
+
+def _colour_table(term, t, held_out: bool) -> str:
+    """Table 1 text with improvements green (better) or red (worse) and the held-out title bold."""
+    import re
+    text = t.format()
+    if not term.colour:
+        return text
+
+    def paint(m):
+        return term.c(m.group(0), "32" if float(m.group(1)) > 0 else "31")
+    lines = [re.sub(r"(-?\d+(?:\.\d+)?) %$", paint, line) for line in text.splitlines()]
+    if held_out and lines:
+        lines[0] = term.c(lines[0], "1")
+    return "\n".join(lines) + ("\n" if text.endswith("\n") else "")
+
+
+def cmd_fit(args, term) -> int:
+    import trackcal
+    from trackcal import history
+    folds = args.folds if args.folds is not None else (0 if _has_valid_set(args.data) else 5)
+    report = trackcal.fit(args.data, args.model, folds=folds, progress=term.stage_progress())
+    report.save(args.output, command_line="trackcal " + " ".join(sys.argv[1:]))
+    entry = None
+    if args.workdir:
+        entry = history.record_model_fit(args.workdir, report, model=args.model, data=args.data,
+                                         calibration=args.output, label=args.label)
+    if args.json:
+        print(json.dumps(report.to_dict(), indent=2))
+        return 0
+    held = report.held_out()
+    for t in report.tables:
+        print(_colour_table(term, t, t is held))
+    chi = f"{report.chi2_per_dof:.3g}" if report.chi2_per_dof is not None else "n/a"
+    status = term.c("converged", "32") if report.converged else term.c("NOT converged", "31")
+    print(f"Fit: {status} after {report.iterations} iterations in {report.seconds * 1e3:.3g} ms; chi2/dof {chi}")
+    if report.outliers:
+        print(term.c(f"Outlier stations ({len(report.outliers)}):", "33") + " " +
+              " ".join(str(o["station"]) for o in report.outliers))
+    from trackcal.fitting import format_parameters
+    print(format_parameters(report.parameters))
+    if report.identifiability_flags:
+        print(term.c(f"Poorly identified ({len(report.identifiability_flags)}):", "33"))
+        for f in report.identifiability_flags[:10]:
+            print(f"  {f['coordinate']}: {f['reason']}")
+    print(f"Wrote {args.output}")
+    if entry is not None:
+        entries = history.load_history(args.workdir)
+        print(f"Recorded fit #{len(entries)} in {pathlib.Path(args.workdir) / history.HISTORY_FILE}")
+        if len(entries) > 1:
+            print(history.history_table(entries[-2:]))
+    return 0
 
 
 def cmd_validate(args, term) -> int:
@@ -116,8 +188,57 @@ def cmd_validate(args, term) -> int:
     return 0
 
 
-def cmd_diagnose(args, term, candidates=None) -> int:
-    capture, cal, v = _validation(args, term, covariates=True)
+def _diagnosis(args, term):
+    """Runs everything diagnose and report show: the validation with covariates, the model's fit when
+    no calibration is given, the candidate ranking (with --model) and the verdict."""
+    import trackcal
+    from trackcal import diagnosis
+    from trackcal.validation import validate
+    capture, cal = _load(args)
+    model = getattr(args, "model", None)
+    fit_report = None
+    if model and cal is None:
+        fit_report = trackcal.fit(args.capture, model, progress=term.stage_progress())
+        cal = fit_report.calibration
+    covariates = not getattr(args, "no_covariates", False)
+    v = validate(capture, cal, analyse_covariates=covariates,
+                 covariate_options={"n_permutations": args.permutations, "seed": args.seed} if covariates else None,
+                 progress=term.progress("covariates") if covariates else None)
+    if getattr(args, "cross_validate", 0):
+        from trackcal.validation import cross_validate
+        v.tables.append(cross_validate(capture, model=model, folds=args.cross_validate))
+    doc = None
+    notes = []
+    if model:
+        if diagnosis.candidates_available():
+            effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
+            doc = diagnosis.diagnose_candidates(args.capture, model, folds=args.folds, effects=effects,
+                                                progress=term.message_progress())
+            term.end_progress()
+        else:
+            notes.append("candidate effects not ranked: this build has no fit/candidates.h")
+    else:
+        notes.append("catalog effects not tested: give --model to rank them")
+    verdict = diagnosis.verdict(doc, v.covariate_effects)
+    change = None
+    if verdict["source"] == "candidate" and verdict.get("model_change"):
+        info = trackcal._core.parse_model(model)
+        new_text = diagnosis.model_with_change(info["text"], verdict["model_change"], verdict.get("insert_index"))
+        name = pathlib.Path(model).name if info["source"] != "<string>" else "model.yaml"
+        change = {"effect": verdict["effect"], "yaml": verdict["model_change"],
+                  "insert_index": verdict.get("insert_index"), "model_text": new_text,
+                  "diff": diagnosis.model_diff(info["text"], new_text, name) if new_text else None}
+    return capture, cal, v, fit_report, doc, verdict, change, notes
+
+
+def cmd_diagnose(args, term) -> int:
+    from trackcal import diagnosis
+    capture, cal, v, fit_report, doc, verdict, change, notes = _diagnosis(args, term)
+    if args.json:
+        print(json.dumps(diagnosis.diagnosis_document(
+            v, capture=args.capture, calibration=args.calibration, model=args.model, fit_report=fit_report,
+            candidates_doc=doc, verdict_=verdict, model_change=change), indent=2, allow_nan=False))
+        return 0
     for t in v.tables:
         print(t.format())
     n_out = int(v.extrapolated.sum())
@@ -139,20 +260,31 @@ def cmd_diagnose(args, term, candidates=None) -> int:
         print("  no covariate explains the residuals beyond noise")
     for e in sig[:args.top]:
         print("  " + term.c(f"{e.covariate:<24}", "31") + f" {e.target:<20} R²={e.r2:.3f}  p={e.p_value:.3g}")
-    if candidates is not None:
-        print("\n" + term.c("Candidate effects", "1"))
-        rows = candidates(v)
-        print(_fmt_rows(rows, list(rows[0].keys()) if rows else []))
+    if doc is not None:
+        base = doc.get("base", {})
+        print("\n" + term.c("Candidate effects", "1") +
+              f" (the model alone: held-out {base.get('cv_position_mm_mean', float('nan')):.3f} mm, "
+              f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg)")
+        print(_fmt_rows(diagnosis.candidate_rows(doc), ["rank", "effect", "cv_pos_mm", "cv_ori_deg", "drop_pos_%",
+                                               "drop_ori_%", "delta_BIC", "p", "significant"]))
+    for n in notes:
+        print("\n" + term.c("note: ", "33") + n)
+    print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], "32" if verdict["source"] is None else "31"))
+    if change is not None:
+        print("\n" + term.c("Model-file change", "1") +
+              f" (add to terms: at index {change['insert_index']}):")
+        print(change["diff"] if change["diff"] else change["yaml"])
     return 0
 
 
 def cmd_report(args, term) -> int:
     from trackcal.history import load_history
     from trackcal.report import write_report
-    capture, cal, v = _validation(args, term, covariates=not args.no_covariates)
+    capture, cal, v, fit_report, doc, verdict, change, notes = _diagnosis(args, term)
     hist = load_history(args.workdir) if args.workdir else None
-    path = write_report(v, args.output, inputs=[args.capture, args.calibration], history_entries=hist,
-                        candidates=candidate_source(), progress=term.progress("figures"))
+    inputs = [args.capture, args.calibration, args.model if args.model and os.path.exists(args.model) else None]
+    path = write_report(v, args.output, inputs=inputs, history_entries=hist, candidates=doc,
+                        verdict=verdict, model_change=change, progress=term.progress("figures"))
     print(f"wrote {path}")
     return 0
 
@@ -193,7 +325,8 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("capture", help="capture folder or poses.csv")
         sp.add_argument("-c", "--calibration", help="calibration file (docs/calibration-file.md)")
         sp.add_argument("--cross-validate", type=int, default=0, metavar="K",
-                        help="also K-fold cross-validate a least-squares degree-3 polynomial")
+                        help="also K-fold cross-validate a model with the fit engine (--model, else "
+                             "the paper's degree-3 polynomial)")
         if covariates:
             sp.add_argument("--permutations", type=int, default=199, help="permutations per covariate test")
             sp.add_argument("--seed", type=int, default=0)
@@ -203,14 +336,33 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true", help="also print the tables as JSON")
     sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl")
     sp.add_argument("--label", help="what changed in this fit (history label; default: file name)")
-    sp = sub.add_parser("diagnose", help="compare and see where it fails: breakdowns, worst stations, covariates")
+    def model_args(sp):
+        sp.add_argument("--model", help="model file (docs/model-file.md): fitted when no -c is given, "
+                                        "and the catalog effects it lacks are ranked")
+        sp.add_argument("--folds", type=int, default=5, help="cross-validation folds of the candidate ranking")
+        sp.add_argument("--effects", help="comma-separated catalog effects to try (default: all)")
+
+    sp = sub.add_parser("diagnose", help="compare and see where it fails: breakdowns, worst stations, covariates, "
+                                         "candidate effects and the verdict")
     common(sp)
+    model_args(sp)
     sp.add_argument("--top", type=int, default=15, help="significant covariates to list")
+    sp.add_argument("--json", action="store_true", help="print the whole diagnosis as one JSON document")
     sp = sub.add_parser("report", help="write a self-contained HTML report and PNG figures")
     common(sp)
+    model_args(sp)
     sp.add_argument("-o", "--output", required=True, help="output folder")
     sp.add_argument("--workdir", help="work folder whose history.jsonl to plot")
     sp.add_argument("--no-covariates", action="store_true")
+    sp = sub.add_parser("fit", help="fit a model file with the fit engine, write the calibration, record the history")
+    sp.add_argument("--data", required=True, help="capture folder or poses.csv")
+    sp.add_argument("--model", required=True, help="model file (docs/model-file.md)")
+    sp.add_argument("-o", "--output", required=True, help="calibration file to write (never over an input)")
+    sp.add_argument("--folds", type=int, default=None,
+                    help="K-fold cross-validation (default: 5 when the capture has no validation set)")
+    sp.add_argument("--workdir", help="record the fit in WORKDIR/history.jsonl (model copy, data hashes, scores)")
+    sp.add_argument("--label", help="what changed (history label; default: the terms added or removed)")
+    sp.add_argument("--json", action="store_true", help="print trackcal-fit's --json document instead of text")
     sp = sub.add_parser("history", help="error after each recorded fit of a work folder")
     sp.add_argument("workdir")
     sp.add_argument("--plot", help="write the history plot to this PNG")
@@ -222,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-COMMANDS = {"validate": cmd_validate, "diagnose": cmd_diagnose, "report": cmd_report,
+COMMANDS = {"fit": cmd_fit, "validate": cmd_validate, "diagnose": cmd_diagnose, "report": cmd_report,
             "history": cmd_history, "record": cmd_record}
 
 
@@ -230,10 +382,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     term = Terminal()
     try:
-        if args.command == "diagnose":
-            return cmd_diagnose(args, term, candidates=candidate_source())
         return COMMANDS[args.command](args, term)
-    except (ValueError, KeyError, RuntimeError, FileNotFoundError) as e:
+    except (ValueError, KeyError, RuntimeError, FileNotFoundError, NotImplementedError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(term.c("error: ", "31") + str(msg), file=sys.stderr)
         return 2

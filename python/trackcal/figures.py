@@ -8,6 +8,7 @@ matplotlib Figure; ``save_png`` writes it atomically.
   (figure 6), computed from a calibration.
 - ``residual_map``: stations coloured by their residual, seen from above and from the side.
 - ``covariate_bars``: share of the residual variance each covariate explains.
+- ``candidate_bars``: held-out error of the model alone and with each candidate effect.
 - ``history_plot``: error after each fit of a work folder.
 """
 
@@ -198,5 +199,25 @@ def history_plot(entries: Sequence[dict]):
                        fontsize=8)
     ax.set_title("Error after each change")
     ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def candidate_bars(doc: dict, *, top: int = 12):
+    """Held-out mean position error of the model alone and with each candidate effect (contract B
+    document of trackcal.diagnose_candidates); significant candidates in orange."""
+    cands = list(doc.get("candidates", []))[:top]
+    base = doc.get("base", {}).get("cv_position_mm_mean")
+    names = ["model alone"] + [str(c.get("effect")) for c in cands]
+    vals = [base] + [c.get("cv_position_mm_mean") for c in cands]
+    vals = [float("nan") if x is None else float(x) for x in vals]
+    colors = ["tab:gray"] + ["tab:orange" if c.get("significant") else "lightsteelblue" for c in cands]
+    fig, ax = plt.subplots(figsize=(6.4, 0.32 * len(names) + 1.4))
+    ax.barh(names[::-1], vals[::-1], color=colors[::-1])
+    if base is not None:
+        ax.axvline(float(base), color="k", lw=1, ls="--")
+    ax.set_xlabel("held-out mean position error [mm]")
+    ax.set_title("Candidate effects (orange = significant)")
+    ax.grid(alpha=0.3, axis="x")
     fig.tight_layout()
     return fig

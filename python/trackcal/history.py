@@ -1,9 +1,13 @@
 """The fit history of a work folder: ``history.jsonl``, one JSON object per line, one line per fit.
 
 Each entry: ``time_utc``, ``label`` (what changed), ``model`` (path and SHA-256 of the model or
-calibration file), ``data`` (a list of {path, role, sha256} of the captures used) and ``scores``
-({set name: {"position_mm": {mean, std, max, ...}, "orientation_deg": {...}}}). The file is
-rewritten atomically on every record, so an interrupted write never loses earlier fits.
+calibration file; for a model-file fit also ``copy``, the model text kept in ``models/<sha>.yaml``
+of the work folder, so every earlier model can be recovered), ``data`` (a list of {path, role,
+sha256} of the captures used) and ``scores`` ({set name: {"position_mm": {mean, std, max, ...},
+"orientation_deg": {...}}}). Fits of a model file (``trackcal fit --workdir``) add ``terms`` (term
+names of the model), ``calibration`` ({path, sha256} of the file written) and ``fit`` (converged,
+chi2_per_dof, free parameters, outliers). The file is rewritten atomically on every record, so an
+interrupted write never loses earlier fits.
 """
 
 from __future__ import annotations
@@ -45,10 +49,25 @@ def load_history(workdir) -> List[dict]:
     return entries
 
 
+def _atomic_write(path: pathlib.Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
 def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[str, dict],
-               label: str = "", extra: Optional[dict] = None) -> dict:
+               label: str = "", extra: Optional[dict] = None, fields: Optional[dict] = None) -> dict:
     """Appends a fit to the work folder's history. ``data`` is [(path, role)]; ``scores`` maps a set
-    name to Table 1 summaries ({"position_mm": {...}, "orientation_deg": {...}})."""
+    name to Table 1 summaries ({"position_mm": {...}, "orientation_deg": {...}}); ``fields`` are
+    merged into the entry (``model`` keys included)."""
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     entry = {
@@ -60,6 +79,11 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
     }
     if extra:
         entry["extra"] = extra
+    for k, v in (fields or {}).items():
+        if k == "model" and isinstance(v, dict) and entry["model"]:
+            entry["model"].update(v)
+        else:
+            entry[k] = v
     json.dumps(entry, allow_nan=False)  # refuse NaN before touching the file
     path = workdir / HISTORY_FILE
     old = path.read_bytes() if path.exists() else b""
@@ -78,6 +102,64 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
             os.unlink(tmp)
         raise
     return entry
+
+
+def _data_files(data) -> List[Tuple[pathlib.Path, str]]:
+    """The capture files a fit read from ``data`` (folder or poses.csv)."""
+    p = pathlib.Path(data).resolve()
+    if p.is_dir():
+        if (p / "poses.csv").is_file():
+            return [(p / "poses.csv", "calibration_capture")]
+        return [(p / n, "calibration_capture") for n in ("tracker_stream.csv", "reference_stream.csv")
+                if (p / n).is_file()]
+    return [(p, "calibration_capture")]
+
+
+def term_change(previous: Optional[Sequence[str]], terms: Sequence[str]) -> str:
+    """'+dipole -lut' between two term lists ('' when equal; the list itself for the first fit)."""
+    if previous is None:
+        return " + ".join(terms)
+    added = [t for t in terms if t not in previous]
+    removed = [t for t in previous if t not in terms]
+    return " ".join([f"+{t}" for t in added] + [f"-{t}" for t in removed])
+
+
+def record_model_fit(workdir, report, *, model, data, calibration=None, label: Optional[str] = None) -> dict:
+    """Records a trackcal.fit FitReport: a copy of the model text (``models/<sha256[:16]>.yaml``,
+    written once), the SHA-256 of the model and of every capture file, the Table 1 scores, the term
+    names, the calibration written and fit figures. The label defaults to the term change from the
+    previous model-file fit ("+dipole"; "settings" when only settings changed)."""
+    workdir = pathlib.Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    text, sha = report.model["text"], report.model["sha256"]
+    models = workdir / "models"
+    models.mkdir(exist_ok=True)
+    copy = models / f"{sha[:16]}.yaml"
+    if not copy.exists():
+        _atomic_write(copy, text.encode("utf-8"))
+    terms = list(report.model["terms"])
+    if label is None:
+        previous = next((e for e in reversed(load_history(workdir)) if "terms" in e), None)
+        if previous is None:
+            label = term_change(None, terms)
+        elif previous.get("model", {}).get("sha256") == sha:
+            label = "same model"
+        else:
+            label = term_change(previous["terms"], terms) or "settings"
+    model_path = (pathlib.Path(model).resolve()
+                  if isinstance(model, (str, os.PathLike)) and report.model["source"] != "<string>" else None)
+    fields = {"model": {"sha256": sha, "copy": str(copy.relative_to(workdir)), "terms": terms},
+              "terms": terms,
+              "fit": {"converged": report.converged, "chi2_per_dof": report.chi2_per_dof,
+                      "num_free_parameters": report.num_free_parameters, "num_outliers": len(report.outliers),
+                      "iterations": report.iterations}}
+    if model_path is None:  # model given as text: the copy is the model file
+        fields["model"]["path"] = str(copy.relative_to(workdir))
+    if calibration is not None:
+        fields["calibration"] = {"path": str(pathlib.Path(calibration).resolve()), "sha256": _sha(calibration)}
+    return record_fit(workdir, model=model_path,
+                      data=_data_files(data) if isinstance(data, (str, os.PathLike)) else [],
+                      scores=report.scores(), label=label, fields=fields)
 
 
 def scores_from_validation(validation) -> Dict[str, dict]:
@@ -112,7 +194,8 @@ def history_table(entries: Sequence[dict]) -> str:
         p, o = headline_scores(e)
         dp = f"{100 * (p - prev[0]) / prev[0]:+.1f}%" if prev and prev[0] else ""
         do = f"{100 * (o - prev[1]) / prev[1]:+.1f}%" if prev and prev[1] else ""
-        model = (e.get("model") or {}).get("path", "")
+        m = e.get("model") or {}
+        model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
         lines.append(f"{i:>3}  {e.get('time_utc', ''):<20}  {str(e.get('label', ''))[:28]:<28} {p:>12.3f} "
                      f"{dp:>8} {o:>13.3f} {do:>8}  {model}")
         prev = (p, o)

@@ -1,8 +1,9 @@
 """Plain-numpy implementations of the runtime corrections, written from the documented conventions
 (docs/calibration-file.md) independently of the C++ code.
 
-They are the cross-check of the native path in the tests and the baseline of
-bench/bench_python_batch.py. They do not apply the calibrated volume.
+They are the cross-check of the native path in the tests and the baselines of the benchmarks
+(bench/bench_python_batch.py; ``fit_polynomial_lstsq`` for the fit engine's lone polynomial). They do
+not apply the calibrated volume.
 """
 
 from __future__ import annotations
@@ -70,3 +71,28 @@ def correct_polynomial(
     e_p = m @ position_coefficients
     v = m @ orientation_coefficients
     return positions + e_p, quaternion_multiply_xyzw(quaternion_from_vector_part(v), quaternions_xyzw)
+
+
+def orientation_error_vectors(q_reference: np.ndarray, q_estimated: np.ndarray) -> np.ndarray:
+    """(N, 3) vector part of q_ref * conj(q) with the sign that makes w >= 0 (eq. 3, 6)."""
+    e = quaternion_multiply_xyzw(q_reference, q_estimated * np.array([-1.0, -1.0, -1.0, 1.0]))
+    e = e / np.linalg.norm(e, axis=1, keepdims=True)
+    return np.where(e[:, 3:4] < 0, -e[:, :3], e[:, :3])
+
+
+def fit_polynomial_lstsq(degree: int, reported_positions: np.ndarray, reported_quaternions_xyzw: np.ndarray,
+                         reference_positions: np.ndarray, reference_quaternions_xyzw: np.ndarray):
+    """The paper's eq. 7 by plain numpy least squares on positions normalised to the stations'
+    bounding box: returns (position_coefficients (R, 3), orientation_coefficients (R, 3),
+    input_offset, input_scale). The fit engine's lone polynomial solves the same problem."""
+    p = np.asarray(reported_positions, dtype=float)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    offset = 0.5 * (lo + hi)
+    scale = np.maximum(0.5 * (hi - lo), 1e-6)
+    a = monomials(degree, (p - offset) / scale)
+    if a.shape[0] < a.shape[1]:
+        raise ValueError(f"{a.shape[0]} stations cannot fit a degree-{degree} polynomial ({a.shape[1]} terms)")
+    pc = np.linalg.lstsq(a, np.asarray(reference_positions) - p, rcond=None)[0]
+    oc = np.linalg.lstsq(a, orientation_error_vectors(np.asarray(reference_quaternions_xyzw),
+                                                      np.asarray(reported_quaternions_xyzw)), rcond=None)[0]
+    return pc, oc, offset, scale

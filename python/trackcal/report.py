@@ -20,8 +20,6 @@ import numpy as np
 
 from trackcal import figures as F
 
-CandidateSource = Callable[[object], List[dict]]
-
 
 def _atomic_write(path: pathlib.Path, data: bytes, inputs: Sequence[pathlib.Path]) -> None:
     target = path.resolve()
@@ -86,7 +84,8 @@ if(document.readyState==='complete'){check();}else{window.addEventListener('load
 """
 
 
-def build_figures(v, history_entries: Optional[Sequence[dict]] = None) -> List[tuple]:
+def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
+                  candidates: Optional[dict] = None) -> List[tuple]:
     """[(file name, caption, Figure)] for a Validation."""
     import matplotlib.pyplot as plt  # noqa: F401  (figures configures Agg)
     data = v.capture
@@ -127,6 +126,11 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None) -> List[t
                          f"Residual structure: cross-validated share of the {target} variance each covariate "
                          "explains; orange bars pass the permutation test.",
                          F.covariate_bars(v.covariate_effects, target=target)))
+    if candidates and candidates.get("candidates"):
+        figs.append(("candidates.png",
+                     "Candidate effects: held-out (cross-validated) mean position error of the model alone and "
+                     "with each catalog effect added; significant candidates in orange.",
+                     F.candidate_bars(candidates)))
     if history_entries:
         figs.append(("history.png", "Error after each recorded fit of the work folder.",
                      F.history_plot(history_entries)))
@@ -135,19 +139,24 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None) -> List[t
 
 def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence = (),
                  history_entries: Optional[Sequence[dict]] = None,
-                 candidates: Optional[CandidateSource] = None,
+                 candidates: Optional[dict] = None, verdict: Optional[dict] = None,
+                 model_change: Optional[dict] = None,
                  progress: Optional[Callable[[int, int], None]] = None) -> pathlib.Path:
     """Writes out_dir/report.html and one PNG per figure; returns the HTML path.
 
-    ``candidates`` (optional) is called with the Validation and returns rows for the "Candidate
-    effects" table (the fit engine's ranking of missing physical effects)."""
+    ``candidates`` (optional) is the fit engine's ranking of missing effects
+    (``trackcal.diagnose_candidates``), shown as the "Candidate effects" table and figure;
+    ``verdict`` (``trackcal.diagnosis.verdict``) and ``model_change`` (the edit for the top
+    candidate) are shown with it; ``history_entries`` gives the history table and plot."""
+    from trackcal import diagnosis
+    from trackcal.history import history_table
     import matplotlib.pyplot as plt
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     input_paths = [pathlib.Path(p) for p in inputs if p is not None]
     if v.capture.path is not None:
         input_paths.append(pathlib.Path(v.capture.path))
-    figs = build_figures(v, history_entries)
+    figs = build_figures(v, history_entries, candidates)
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
              f"<style>{STYLE}</style></head><body>",
              f"<h1>{html.escape(title)}</h1>",
@@ -170,7 +179,22 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                      "5-fold cross-validated), with a permutation test; only significant or R² &gt; 0.01 shown.</p>"
                      + _table(rows))
     if candidates is not None:
-        parts.append("<h2>Candidate effects</h2>" + _table(candidates(v)))
+        base = candidates.get("base", {})
+        parts.append("<h2>Candidate effects</h2>"
+                     "<p>The model refitted with each catalog effect it lacks, ranked by held-out error "
+                     f"({html.escape(str(candidates.get('folds', '')))}-fold cross-validation). The model alone: "
+                     f"{base.get('cv_position_mm_mean', float('nan')):.3f} mm, "
+                     f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg.</p>"
+                     + _table(diagnosis.candidate_rows(candidates)))
+    if verdict is None and (candidates is not None or v.covariate_effects):
+        verdict = diagnosis.verdict(candidates, v.covariate_effects)
+    if verdict is not None:
+        parts.append(f"<h2>Verdict</h2><p class='sig'>{html.escape(verdict['text'])}</p>")
+    if model_change is not None:
+        parts.append("<h3>Model-file change</h3><pre>"
+                     + html.escape(model_change.get("diff") or model_change.get("yaml") or "") + "</pre>")
+    if history_entries:
+        parts.append("<h2>History of fits</h2><pre>" + html.escape(history_table(history_entries)) + "</pre>")
     parts.append("<h2>Figures</h2>")
     for i, (name, caption, fig) in enumerate(figs):
         data = F.png_bytes(fig)

@@ -365,45 +365,36 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
 
 
 # ---------------------------------------------------------------------------------------------
-# A baseline fit for cross-validation when a capture has no validation set
+# Fits and cross-validation through the fit engine (trackcal.fit, fit/fit_engine.h)
+
+def polynomial_model(degree: int = 3) -> str:
+    """The model file text of the paper's eq. 7 polynomial of the given degree."""
+    return f"terms:\n  - type: polynomial\n    degree: {int(degree)}\n"
+
+
+def _as_calibration_set(capture: PoseCapture) -> PoseCapture:
+    """Every non-registration station of the capture labelled 'calib' (the set the engine fits)."""
+    data = capture.subset(capture.set != "reg")
+    if len(data) == 0:
+        raise ValueError(f"{capture.path}: no calibration or validation stations")
+    relabelled = dataclasses.replace(data, set=np.full(len(data), "calib", dtype=object))
+    return relabelled
+
 
 def fit_polynomial(capture: PoseCapture, degree: int = 3):
-    """The paper's eq. 7 by linear least squares: a degree-r polynomial of the normalised reported
-    position for the position error and the error-quaternion vector part. Returns a Calibration
-    valid over the capture's bounding box. A baseline for cross-validation, not the fit engine."""
-    p = capture.reported_positions
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    offset = 0.5 * (lo + hi)
-    scale = np.maximum(0.5 * (hi - lo), 1e-6)
-    from trackcal.numpy_reference import monomials
-    a = monomials(degree, (p - offset) / scale)
-    r = residuals(p, capture.reported_quaternions_xyzw, capture.reference_positions,
-                  capture.reference_quaternions_xyzw)
-    if a.shape[0] < a.shape[1]:
-        raise ValueError(f"{capture.path}: {a.shape[0]} stations cannot fit a degree-{degree} polynomial "
-                         f"({a.shape[1]} terms)")
-    pc = np.linalg.lstsq(a, r.position, rcond=None)[0]
-    oc = np.linalg.lstsq(a, r.orientation, rcond=None)[0]
-    poly = _core.PolynomialCorrection(degree, pc, oc, offset, scale)
-    return _core.Calibration([poly], lo, hi, extrapolation="clamp",
-                             description=f"numpy least-squares degree-{degree} polynomial")
+    """The paper's eq. 7 polynomial of the given degree fitted by the engine (linear least squares
+    for a lone polynomial) to every non-registration station of ``capture``. Returns a
+    trackcal.Calibration valid over the stations' bounding box."""
+    from trackcal.fitting import fit
+    return fit(_as_calibration_set(capture), polynomial_model(degree)).calibration
 
 
-def cross_validate(capture: PoseCapture, fit: Callable[[PoseCapture], object] = fit_polynomial,
-                   folds: int = 5, seed: int = 0) -> Table1:
-    """k-fold cross-validation of a fit procedure on the non-registration stations: every station is
-    corrected by a model fitted without it; returns the Table 1 of the held-out corrections."""
-    data = capture.subset(capture.set != "reg")
-    rng = np.random.default_rng(seed)
-    fold = rng.permutation(np.arange(len(data)) % folds)
-    cp = np.empty_like(data.reported_positions)
-    cq = np.empty_like(data.reported_quaternions_xyzw)
-    for f in range(folds):
-        test = fold == f
-        cal = fit(data.subset(~test))
-        p, q, _ = cal.correct(data.reported_positions[test], data.reported_quaternions_xyzw[test])
-        cp[test], cq[test] = p, q
-    before = residuals(data.reported_positions, data.reported_quaternions_xyzw, data.reference_positions,
-                       data.reference_quaternions_xyzw)
-    after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
-    return table1(f"cross-validation ({folds}-fold)", before, after)
+def cross_validate(capture: PoseCapture, model=None, folds: int = 5) -> Table1:
+    """k-fold cross-validation of a model (path or YAML text; default: degree-3 polynomial) on the
+    non-registration stations, by the engine: station i is corrected by the model fitted on the
+    stations of the other folds (fold i mod k). Returns the Table 1 of the held-out corrections."""
+    from trackcal.fitting import fit
+    if folds < 2:
+        raise ValueError(f"cross-validation needs at least 2 folds, got {folds}")
+    report = fit(_as_calibration_set(capture), model if model is not None else polynomial_model(3), folds=folds)
+    return report.table("cross-validation")

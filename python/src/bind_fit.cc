@@ -1,0 +1,776 @@
+// Bindings of fit/: the fitting engine (fit/fit_engine.h), the optical registration
+// (fit/registration_io.h) and stream pairing (fit/stream_pairing.h), in process.
+//
+// trackcal._core.fit() does exactly what `trackcal-fit fit` does (fit/fit_main.cc): the same data
+// resolution (poses.csv, a folder with poses.csv, or a folder with streams paired with the model's
+// time offset), the same fit of the `calib` set, the same Table 1 rows (calib, then valid, or
+// k-fold cross-validation), the same calibration file contents, and a to_dict() equal to the CLI's
+// --json document; the numbers are the same because the code is the same. Everything after the
+// input conversion runs with the GIL released; the progress callback re-acquires it. Bad input
+// raises ValueError with the C++ message (file, line, column and field).
+#include <pybind11/functional.h>
+#include <pybind11/numpy.h>
+#include <pybind11/stl.h>
+#include <pybind11/stl/filesystem.h>
+
+#include <exception>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/calibration_file.h"
+#include "core/capture.h"
+#include "core/file_util.h"
+#include "fit/fit_engine.h"
+#include "fit/model_file.h"
+#include "fit/pose_extraction.h"
+#include "fit/registration.h"
+#include "fit/registration_io.h"
+#include "fit/stream_pairing.h"
+#include "python/src/bindings.h"
+
+// The candidate ranking (fit/candidates.h) is bound when the engine has it.
+#if __has_include("fit/candidates.h")
+#include "fit/candidates.h"
+#define TRACKCAL_HAVE_CANDIDATES 1
+#endif
+
+namespace py = pybind11;
+namespace fs = std::filesystem;
+
+namespace trackcal::python {
+namespace {
+
+using fit::FitOptions;
+using fit::FitResult;
+using fit::FitStation;
+using fit::ModelSpec;
+
+py::object JsonToPython(const nlohmann::json& j) {
+  return py::module_::import("json").attr("loads")(j.dump());
+}
+
+bool IsPathLike(const py::handle& obj) {
+  return py::isinstance<py::str>(obj) ||
+         py::isinstance(obj, py::module_::import("os").attr("PathLike"));
+}
+
+fs::path ToPath(const py::handle& obj) {
+  return fs::path(py::str(py::module_::import("os").attr("fspath")(obj)).cast<std::string>());
+}
+
+// A model given as a path or as YAML text: a path object is a path; a string is a path when it
+// names an existing file or looks like a file name, YAML text when it has a newline or a colon.
+struct ModelSource {
+  std::string text;
+  std::string source_name;       // file name or "<string>" for errors
+  std::optional<fs::path> path;  // the file, if the model came from one
+};
+
+ModelSource ResolveModel(const py::handle& model) {
+  ModelSource out;
+  if (py::isinstance<py::str>(model)) {
+    const std::string s = model.cast<std::string>();
+    std::error_code ec;
+    const bool looks_like_text =
+        s.find('\n') != std::string::npos || s.find(':') != std::string::npos;
+    if (!(looks_like_text && !fs::is_regular_file(s, ec))) out.path = fs::path(s);
+    if (!out.path) {
+      out.text = s;
+      out.source_name = "<string>";
+      return out;
+    }
+  } else if (IsPathLike(model)) {
+    out.path = ToPath(model);
+  } else {
+    throw py::value_error("model must be a model file path or its YAML text (docs/model-file.md)");
+  }
+  out.text = ReadFileToString(*out.path);
+  out.source_name = out.path->string();
+  return out;
+}
+
+// A quaternion from x, y, z, w, normalised only when it is not unit already (as the poses.csv
+// reader does), so a capture read by the reader and passed back in memory gives the same fit bit
+// for bit.
+Eigen::Quaterniond UnitQuaternion(double x, double y, double z, double w) {
+  Eigen::Quaterniond q = QuaternionFromXyzw(x, y, z, w);
+  if (std::abs(q.norm() - 1.0) > 1e-12) q.normalize();
+  return q;
+}
+
+// PoseCapture-like Python object (trackcal.captures.PoseCapture) -> C++ PoseCapture.
+PoseCapture PoseCaptureFromPython(const py::handle& obj) {
+  using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
+  using IntArray = py::array_t<long, py::array::c_style | py::array::forcecast>;
+  for (const char* attr :
+       {"station", "set", "sensor", "time", "reported_positions", "reported_quaternions_xyzw",
+        "reference_positions", "reference_quaternions_xyzw"}) {
+    if (!py::hasattr(obj, attr)) {
+      throw py::value_error(std::string("data must be a capture folder, a poses.csv path or a "
+                                        "trackcal.captures.PoseCapture (missing attribute '") +
+                            attr + "')");
+    }
+  }
+  const IntArray station = IntArray::ensure(obj.attr("station"));
+  const IntArray sensor = IntArray::ensure(obj.attr("sensor"));
+  const DoubleArray time = DoubleArray::ensure(obj.attr("time"));
+  const DoubleArray rp = DoubleArray::ensure(obj.attr("reported_positions"));
+  const DoubleArray rq = DoubleArray::ensure(obj.attr("reported_quaternions_xyzw"));
+  const DoubleArray fp = DoubleArray::ensure(obj.attr("reference_positions"));
+  const DoubleArray fq = DoubleArray::ensure(obj.attr("reference_quaternions_xyzw"));
+  if (!station || !sensor || !time || !rp || !rq || !fp || !fq) {
+    PyErr_Clear();
+    throw py::value_error("PoseCapture: station, sensor, time and pose arrays must be numeric");
+  }
+  const py::ssize_t n = station.size();
+  auto shape_ok = [n](const DoubleArray& a, py::ssize_t cols) {
+    return a.ndim() == 2 && a.shape(0) == n && a.shape(1) == cols;
+  };
+  if (sensor.size() != n || time.size() != n || !shape_ok(rp, 3) || !shape_ok(rq, 4) ||
+      !shape_ok(fp, 3) || !shape_ok(fq, 4)) {
+    throw py::value_error("PoseCapture: every array needs one row per station (" +
+                          std::to_string(n) + "): positions (N, 3), quaternions (N, 4) x, y, z, w");
+  }
+  const py::sequence sets = py::reinterpret_borrow<py::sequence>(py::list(obj.attr("set")));
+  if (static_cast<py::ssize_t>(sets.size()) != n) {
+    throw py::value_error("PoseCapture: set needs one entry per station");
+  }
+  PoseCapture capture;
+  py::ssize_t num_extra = 0;
+  std::optional<DoubleArray> extra;
+  if (py::hasattr(obj, "extra_columns") && !obj.attr("extra_columns").is_none()) {
+    capture.extra_columns = obj.attr("extra_columns").cast<std::vector<std::string>>();
+    num_extra = static_cast<py::ssize_t>(capture.extra_columns.size());
+    if (num_extra > 0) {
+      extra = DoubleArray::ensure(obj.attr("extra"));
+      if (!*extra || extra->ndim() != 2 || extra->shape(0) != n || extra->shape(1) != num_extra) {
+        PyErr_Clear();
+        throw py::value_error("PoseCapture: extra must be (N, len(extra_columns))");
+      }
+    }
+  }
+  capture.records.resize(static_cast<size_t>(n));
+  for (py::ssize_t i = 0; i < n; ++i) {
+    PoseRecord& r = capture.records[static_cast<size_t>(i)];
+    r.station = static_cast<int>(station.at(i));
+    r.sensor = static_cast<int>(sensor.at(i));
+    r.time = time.at(i);
+    r.set = py::str(sets[static_cast<size_t>(i)]).cast<std::string>();
+    r.reported.translation = Eigen::Vector3d(rp.at(i, 0), rp.at(i, 1), rp.at(i, 2));
+    r.reported.rotation = UnitQuaternion(rq.at(i, 0), rq.at(i, 1), rq.at(i, 2), rq.at(i, 3));
+    r.reference.translation = Eigen::Vector3d(fp.at(i, 0), fp.at(i, 1), fp.at(i, 2));
+    r.reference.rotation = UnitQuaternion(fq.at(i, 0), fq.at(i, 1), fq.at(i, 2), fq.at(i, 3));
+    for (py::ssize_t k = 0; k < num_extra; ++k) r.extra.push_back(extra->at(i, k));
+    if (!r.reported.translation.allFinite() || !r.reference.translation.allFinite() ||
+        !r.reported.rotation.coeffs().allFinite() || !r.reference.rotation.coeffs().allFinite()) {
+      throw py::value_error("PoseCapture: station " + std::to_string(r.station) +
+                            ": pose is not finite (or a quaternion is zero)");
+    }
+  }
+  return capture;
+}
+
+// Where the stations come from: a file (listed in the provenance and protected from being
+// overwritten) or an in-memory capture.
+struct DataSource {
+  std::optional<fs::path> path;          // folder or poses.csv as given
+  std::optional<PoseCapture> in_memory;  // a Python PoseCapture
+  std::optional<fs::path> loaded_from;   // its .path attribute (protected, not hashed as input)
+};
+
+DataSource ResolveData(const py::handle& data) {
+  DataSource out;
+  if (IsPathLike(data)) {
+    out.path = ToPath(data);
+  } else {
+    out.in_memory = PoseCaptureFromPython(data);
+    if (py::hasattr(data, "path") && !data.attr("path").is_none()) {
+      out.loaded_from = ToPath(data.attr("path"));
+    }
+  }
+  return out;
+}
+
+std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::string& set) {
+  std::vector<FitStation> out;
+  for (const auto& r : poses.records) {
+    if (r.set == set) out.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
+  }
+  return out;
+}
+
+// One fit as `trackcal-fit fit` runs it, and what it produced.
+struct FitRun {
+  FitResult result;
+  std::vector<Table1> tables;
+  Calibration calibration;
+  std::vector<fs::path> protected_paths;  // never written over by save()
+  std::optional<double> time_offset;      // when streams were paired
+  std::optional<fs::path> output;         // set by save()
+  int num_calib = 0;
+  int num_valid = 0;
+
+  nlohmann::json TablesJson() const {
+    nlohmann::json t = nlohmann::json::array();
+    for (const auto& table : tables) t.push_back(fit::Table1ToJson(table));
+    return t;
+  }
+  // The document `trackcal-fit fit --json` prints ("output": null until saved).
+  nlohmann::json ToJson() const {
+    nlohmann::json doc = {{"command", "fit"},
+                          {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
+                          {"tables", TablesJson()},
+                          {"fit", result.ToJson()}};
+    if (time_offset) doc["time_offset_s"] = *time_offset;
+    return doc;
+  }
+};
+
+// Calls a Python progress callback from C++ threads that do not hold the GIL. A Python exception
+// raised by the callback is kept (later calls are skipped) and re-raised after the fit; between
+// cross-validation folds it stops the run.
+class ProgressRelay {
+ public:
+  explicit ProgressRelay(py::object callback) : callback_(std::move(callback)) {}
+  bool enabled() const { return !callback_.is_none(); }
+  void Call(const char* stage, int done, int total) {
+    if (!enabled() || error_) return;
+    py::gil_scoped_acquire acquire;
+    try {
+      callback_(stage, done, total);
+      if (PyErr_CheckSignals() != 0) throw py::error_already_set();
+    } catch (py::error_already_set& e) {
+      error_ = std::make_unique<py::error_already_set>(std::move(e));
+    }
+  }
+  bool failed() const { return error_ != nullptr; }
+  void RethrowIfFailed() {
+    if (error_) {
+      std::unique_ptr<py::error_already_set> e = std::move(error_);
+      throw std::move(*e);
+    }
+  }
+  ~ProgressRelay() {
+    if (error_) {
+      py::gil_scoped_acquire acquire;
+      error_.reset();
+    }
+  }
+
+ private:
+  py::object callback_;
+  std::unique_ptr<py::error_already_set> error_;
+};
+
+struct StoppedByCallback : std::exception {};
+
+// The stations of a data source, resolved as `trackcal-fit` does: poses.csv, a folder with
+// poses.csv, or a folder with streams paired with the model's time offset.
+struct LoadedData {
+  PoseCapture poses;
+  std::string name;                       // for messages and the description
+  std::vector<CalibrationInput> inputs;   // files read, with digests (provenance)
+  std::vector<fs::path> protected_paths;  // never written over
+  std::optional<double> time_offset;      // when streams were paired
+};
+
+// Stream pairing with the model's time offset, as trackcal-fit pairs a folder of streams.
+fit::StreamPairingOptions PairingFor(const ModelSpec& spec) {
+  fit::StreamPairingOptions pairing;
+  if (spec.time_offset) {
+    pairing.time_offset = spec.time_offset->value;
+    pairing.estimate_time_offset = !spec.time_offset->fixed;
+    pairing.search_range = spec.time_offset->search_range;
+  }
+  return pairing;
+}
+
+// True for a capture folder holding streams and no poses.csv (its stations are paired).
+bool IsStreamFolder(const DataSource& data) {
+  return data.path && fs::is_directory(*data.path) && !fs::exists(*data.path / kPosesCsv) &&
+         fs::exists(*data.path / kTrackerStreamCsv);
+}
+
+LoadedData LoadData(const DataSource& data, const ModelSpec& spec) {
+  LoadedData out;
+  out.name = "in-memory capture";
+  if (!data.path) {
+    out.poses = *data.in_memory;
+    if (data.loaded_from) {
+      out.protected_paths.push_back(*data.loaded_from);
+      out.name = data.loaded_from->filename().string() + " (in memory)";
+    }
+    return out;
+  }
+  fs::path poses_path = *data.path;
+  if (fs::is_directory(*data.path)) {
+    poses_path = *data.path / kPosesCsv;
+    if (!fs::exists(poses_path) && fs::exists(*data.path / kTrackerStreamCsv)) {
+      const fit::StreamPairingOptions pairing = PairingFor(spec);
+      const fs::path tracker = *data.path / kTrackerStreamCsv;
+      const fs::path reference = *data.path / kReferenceStreamCsv;
+      const auto paired =
+          fit::PairStreams(ReadTrackerStream(tracker), ReadReferenceStream(reference), pairing);
+      out.poses = paired.poses;
+      out.time_offset = paired.time_offset;
+      for (const auto& p : {tracker, reference}) {
+        out.inputs.push_back({p.string(), Sha256HexOfFile(p), "calibration_capture"});
+        out.protected_paths.push_back(p);
+      }
+      out.name = data.path->filename().string();
+      return out;
+    }
+  }
+  out.poses = ReadPoses(poses_path);
+  out.inputs.push_back({poses_path.string(), Sha256HexOfFile(poses_path), "calibration_capture"});
+  out.protected_paths.push_back(poses_path);
+  out.name = poses_path.filename().string();
+  return out;
+}
+
+std::shared_ptr<FitRun> RunFit(const DataSource& data, const ModelSource& model, int folds,
+                               ProgressRelay* relay) {
+  if (folds == 1 || folds < 0) {
+    throw std::invalid_argument("folds must be 0 (no cross-validation) or at least 2, got " +
+                                std::to_string(folds));
+  }
+  auto make_spec = [&] { return fit::ParseModelYaml(model.text, model.source_name); };
+  ModelSpec spec = make_spec();
+  auto run = std::make_shared<FitRun>();
+  std::vector<CalibrationInput> inputs;
+  if (model.path) {
+    inputs.push_back({model.path->string(), Sha256HexOfFile(*model.path), "model_file"});
+    run->protected_paths.push_back(*model.path);
+  } else {
+    inputs.push_back({"<model text>", Sha256Hex(model.text), "model_text"});
+  }
+  LoadedData loaded = LoadData(data, spec);
+  inputs.insert(inputs.end(), loaded.inputs.begin(), loaded.inputs.end());
+  run->protected_paths.insert(run->protected_paths.end(), loaded.protected_paths.begin(),
+                              loaded.protected_paths.end());
+  run->time_offset = loaded.time_offset;
+  const PoseCapture& poses = loaded.poses;
+  const std::string& data_name = loaded.name;
+  const auto calib = StationsOfSet(poses, "calib");
+  const auto valid = StationsOfSet(poses, "valid");
+  if (calib.empty()) throw std::invalid_argument(data_name + ": no stations with set 'calib'");
+  run->num_calib = static_cast<int>(calib.size());
+  run->num_valid = static_cast<int>(valid.size());
+
+  FitOptions options;
+  if (relay->enabled()) {
+    const int max_iterations = spec.max_iterations;
+    options.progress = [relay, max_iterations](int iteration, double) {
+      relay->Call("fit", iteration, max_iterations);
+    };
+  }
+  run->result = fit::FitModel(calib, &spec, options);
+  run->tables.push_back(fit::EvaluateTable1(run->result.chain, calib, "calib"));
+  if (!valid.empty()) run->tables.push_back(fit::EvaluateTable1(run->result.chain, valid, "valid"));
+  if (folds >= 2) {
+    run->tables.push_back(fit::CrossValidate(calib, make_spec, folds, [&](int f) {
+      if (relay->failed()) throw StoppedByCallback();
+      relay->Call("cross-validation", f + 1, folds);
+      if (relay->failed()) throw StoppedByCallback();
+    }));
+  }
+
+  Calibration& cal = run->calibration;
+  cal.description = "fitted by trackcal.fit from " + data_name + " with model " +
+                    (model.path ? model.path->filename().string() : std::string("<model text>"));
+  cal.chain = run->result.chain;
+  nlohmann::json stats = nlohmann::json::object();
+  stats["tables"] = run->TablesJson();
+  stats["chi2_per_dof"] = std::isfinite(run->result.chi2_per_dof)
+                              ? nlohmann::json(run->result.chi2_per_dof)
+                              : nlohmann::json();
+  stats["num_calib_stations"] = calib.size();
+  stats["num_valid_stations"] = valid.size();
+  stats["converged"] = run->result.converged;
+  stats["num_outliers"] = run->result.outliers.size();
+  stats["num_poorly_identified"] = run->result.identifiability_flags.size();
+  if (run->time_offset) stats["time_offset_s"] = *run->time_offset;
+  cal.fit_statistics = stats;
+  cal.provenance.tool = "trackcal-python";
+  cal.provenance.tool_version = TRACKCAL_VERSION;
+  cal.provenance.created_utc = CurrentUtcTimestamp();
+  cal.provenance.inputs = inputs;
+  return run;
+}
+
+// Refuses to write over one of the files a result was computed from.
+void CheckNotAnInput(const fs::path& output, const std::vector<fs::path>& inputs) {
+  std::error_code ec;
+  if (!fs::exists(output, ec)) return;
+  for (const auto& in : inputs) {
+    if (fs::equivalent(output, in, ec)) {
+      throw std::invalid_argument(output.string() + ": output would overwrite the input " +
+                                  in.string());
+    }
+  }
+}
+
+py::dict PoseCaptureDict(const PoseCapture& c) { return PoseCaptureToDict(c); }
+
+// Runs f, turning the C++ library's std::runtime_error (a file that cannot be read, an output that
+// exists) into ValueError like its std::invalid_argument: both are the user's input.
+template <typename F>
+auto ValueErrors(F&& f) -> decltype(f()) {
+  try {
+    return f();
+  } catch (const std::runtime_error& e) {
+    throw py::value_error(e.what());
+  }
+}
+
+// --- registration --------------------------------------------------------------------------
+
+struct RegistrationRun {
+  fit::RegistrationResult registration;
+  std::vector<fit::ExtractedPose> extracted;
+  PoseCapture poses;
+  std::vector<int> left_out;
+  std::vector<fs::path> inputs;
+  std::optional<fs::path> output;
+  nlohmann::json ToJson() const {
+    return {{"command", "register"},
+            {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
+            {"num_poses", poses.records.size()},
+            {"stations_without_pose", left_out.size()},
+            {"converged", registration.converged},
+            {"identifiable", registration.identifiable},
+            {"chi_square", registration.chi_square},
+            {"nu", registration.nu}};
+  }
+};
+
+struct PairRun {
+  fit::StreamPairingResult result;
+  bool estimated = false;
+  std::vector<fs::path> inputs;
+  std::optional<fs::path> output;
+  nlohmann::json ToJson() const {
+    return {{"command", "pair"},
+            {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
+            {"num_poses", result.poses.records.size()},
+            {"dropped", result.dropped},
+            {"time_offset_s", result.time_offset},
+            {"estimated", estimated},
+            {"position_difference_variance_m2", result.cost}};
+  }
+};
+
+py::array_t<double> Vec(const Eigen::VectorXd& v) {
+  py::array_t<double> a(v.size());
+  std::copy(v.data(), v.data() + v.size(), a.mutable_data());
+  return a;
+}
+
+py::dict RigidDict(const Rigid3d& t) {
+  py::dict d;
+  py::array_t<double> q(4), p(3);
+  QuaternionToXyzwArray(t.rotation, q.mutable_data());
+  std::copy(t.translation.data(), t.translation.data() + 3, p.mutable_data());
+  d["rotation_xyzw"] = q;
+  d["translation"] = p;
+  return d;
+}
+
+void WritePosesChecked(const fs::path& path, const PoseCapture& poses,
+                       const std::vector<fs::path>& inputs) {
+  CheckNotAnInput(path, inputs);
+  WritePoses(path, poses);  // atomic; refuses an existing file
+}
+
+#ifdef TRACKCAL_HAVE_CANDIDATES
+// Progress messages of the ranking ("fitting dipole (fold 3/5)") for a Python callback; a Python
+// exception is kept and re-raised after the run (the ranking cannot be interrupted in between).
+nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource& model, int folds,
+                                      const std::vector<std::string>& effects,
+                                      const py::object& progress) {
+  fit::CandidateOptions options;
+  options.folds = folds;
+  options.effects = effects;
+  std::unique_ptr<py::error_already_set> error;
+  if (!progress.is_none()) {
+    options.progress = [&progress, &error](const std::string& message) {
+      if (error) return;
+      py::gil_scoped_acquire acquire;
+      try {
+        progress(message);
+      } catch (py::error_already_set& e) {
+        error = std::make_unique<py::error_already_set>(std::move(e));
+      }
+    };
+  }
+  options.Check();
+  nlohmann::json doc;
+  {
+    py::gil_scoped_release release;
+    ValueErrors([&] {
+      const ModelSpec spec = fit::ParseModelYaml(model.text, model.source_name);
+      const LoadedData loaded = LoadData(data, spec);
+      const auto calib = StationsOfSet(loaded.poses, "calib");
+      if (calib.empty())
+        throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
+      const std::string data_name = data.path ? data.path->string() : loaded.name;
+      if (IsStreamFolder(data)) {
+        // The time_offset candidate pairs the streams again with its own offset setting.
+        auto tracker = std::make_shared<TrackerStream>(ReadTrackerStream(*data.path / kTrackerStreamCsv));
+        auto reference =
+            std::make_shared<ReferenceStream>(ReadReferenceStream(*data.path / kReferenceStreamCsv));
+        const fit::StreamPairingOptions pairing = PairingFor(spec);
+        options.pair_streams = [tracker, reference, pairing](const fit::TimeOffsetSpec& t) {
+          fit::StreamPairingOptions o = pairing;
+          o.time_offset = t.value;
+          o.estimate_time_offset = !t.fixed;
+          o.search_range = t.search_range;
+          const fit::StreamPairingResult r = fit::PairStreams(*tracker, *reference, o);
+          return fit::PairedStations{StationsOfSet(r.poses, "calib"), r.time_offset};
+        };
+      }
+      doc = fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options)
+                .ToJson();
+    });
+  }
+  if (error) throw std::move(*error);
+  return doc;
+}
+#endif
+
+}  // namespace
+
+void BindFit(py::module_& m) {
+  py::class_<FitRun, std::shared_ptr<FitRun>>(
+      m, "NativeFitReport",
+      "Result of trackcal._core.fit (wrapped by trackcal.FitReport): tables, fit, calibration.")
+      .def(
+          "to_dict", [](const FitRun& r) { return JsonToPython(r.ToJson()); },
+          "The document `trackcal-fit fit --json` prints (output: the path of the last save()).")
+      .def_property_readonly("tables", [](const FitRun& r) { return JsonToPython(r.TablesJson()); })
+      .def_property_readonly("fit", [](const FitRun& r) { return JsonToPython(r.result.ToJson()); })
+      .def_property_readonly(
+          "calibration", [](const FitRun& r) { return r.calibration; },
+          "A copy of the fitted calibration (trackcal.Calibration).")
+      .def_property_readonly("time_offset_s", [](const FitRun& r) { return r.time_offset; })
+      .def_property_readonly("num_calib_stations", [](const FitRun& r) { return r.num_calib; })
+      .def_property_readonly("num_valid_stations", [](const FitRun& r) { return r.num_valid; })
+      .def_property_readonly("protected_paths", [](const FitRun& r) { return r.protected_paths; })
+      .def_property_readonly("output", [](const FitRun& r) { return r.output; })
+      .def(
+          "save",
+          [](FitRun& r, const fs::path& path, const std::string& command_line) {
+            ValueErrors([&] {
+              CheckNotAnInput(path, r.protected_paths);
+              Calibration cal = r.calibration;
+              cal.provenance.command_line = command_line;
+              WriteCalibrationFile(path, cal);
+            });
+            r.output = path;
+          },
+          py::arg("path"), py::arg("command_line") = "",
+          "Writes the calibration file atomically; refuses to overwrite any input (model, "
+          "capture).");
+
+  m.def(
+      "fit",
+      [](const py::object& data, const py::object& model, int folds, const py::object& progress) {
+        const DataSource source = ResolveData(data);
+        const ModelSource model_source = ValueErrors([&] { return ResolveModel(model); });
+        ProgressRelay relay(progress);
+        std::shared_ptr<FitRun> run;
+        try {
+          py::gil_scoped_release release;
+          run = ValueErrors([&] { return RunFit(source, model_source, folds, &relay); });
+        } catch (const StoppedByCallback&) {
+        }
+        relay.RethrowIfFailed();
+        return run;
+      },
+      py::arg("data"), py::arg("model"), py::kw_only(), py::arg("folds") = 0,
+      py::arg("progress") = py::none(),
+      "Fits a model file to the calib set of a capture, as `trackcal-fit fit` does. data: capture "
+      "folder, poses.csv path or PoseCapture; model: path or YAML text; folds >= 2 adds k-fold "
+      "cross-validation; progress(stage, done, total) is called per solver iteration and fold.");
+
+#ifdef TRACKCAL_HAVE_CANDIDATES
+  m.def(
+      "diagnose_candidates",
+      [](const py::object& data, const py::object& model, int folds,
+         const std::optional<std::vector<std::string>>& effects, const py::object& progress) {
+        const DataSource source = ResolveData(data);
+        const ModelSource model_source = ValueErrors([&] { return ResolveModel(model); });
+        return JsonToPython(DiagnoseCandidatesJson(
+            source, model_source, folds, effects.value_or(std::vector<std::string>{}), progress));
+      },
+      py::arg("data"), py::arg("model"), py::kw_only(), py::arg("folds") = 5,
+      py::arg("effects") = py::none(), py::arg("progress") = py::none(),
+      "Ranks the catalog effects the model lacks (fit/candidates.h): the document of "
+      "`trackcal-fit diagnose --json` as a dict. progress(message) gets the ranking's messages.");
+#endif
+
+  m.def(
+      "parse_model",
+      [](const py::object& model) {
+        const ModelSource source = ValueErrors([&] { return ResolveModel(model); });
+        const ModelSpec spec = fit::ParseModelYaml(source.text, source.source_name);
+        py::list types;
+        for (const auto& t : spec.terms) types.append(t->name());
+        py::dict d;
+        d["source"] = source.source_name;
+        d["text"] = source.text;
+        d["sha256"] = Sha256Hex(source.text);
+        d["terms"] = types;
+        return d;
+      },
+      py::arg("model"),
+      "Checks a model (path or YAML text): {source, text, sha256, terms: term names}; ValueError "
+      "naming file, line, column and field otherwise.");
+
+  py::class_<RegistrationRun, std::shared_ptr<RegistrationRun>>(
+      m, "NativeRegistration", "Result of trackcal._core.register (wrapped by trackcal.register).")
+      .def("to_dict", [](const RegistrationRun& r) { return JsonToPython(r.ToJson()); })
+      .def_property_readonly("poses",
+                             [](const RegistrationRun& r) { return PoseCaptureDict(r.poses); })
+      .def_property_readonly("left_out", [](const RegistrationRun& r) { return r.left_out; })
+      .def_property_readonly("converged",
+                             [](const RegistrationRun& r) { return r.registration.converged; })
+      .def_property_readonly("identifiable",
+                             [](const RegistrationRun& r) { return r.registration.identifiable; })
+      .def_property_readonly("chi_square",
+                             [](const RegistrationRun& r) { return r.registration.chi_square; })
+      .def_property_readonly("nu", [](const RegistrationRun& r) { return r.registration.nu; })
+      .def_property_readonly(
+          "optical_from_transmitter",
+          [](const RegistrationRun& r) {
+            return RigidDict(r.registration.registration.optical_from_transmitter);
+          })
+      .def_property_readonly(
+          "optical_from_transmitter_stddev",
+          [](const RegistrationRun& r) {
+            return Vec(r.registration.optical_from_transmitter_stddev);
+          },
+          "[rotation vector (rad, optical axes); translation (m)].")
+      .def_property_readonly("markers",
+                             [](const RegistrationRun& r) {
+                               py::list out;
+                               for (const auto& mk : r.registration.markers) {
+                                 py::dict d;
+                                 d["marker"] = mk.marker;
+                                 d["marker_in_receiver"] = Vec(mk.marker_in_receiver);
+                                 d["stddev"] = Vec(mk.stddev);
+                                 d["num_observations"] = mk.num_observations;
+                                 out.append(d);
+                               }
+                               return out;
+                             })
+      .def_property_readonly("identifiability_flags",
+                             [](const RegistrationRun& r) {
+                               py::list out;
+                               for (const auto& f : r.registration.covariance.flags) {
+                                 out.append(py::dict(py::arg("coordinate") = f.coordinate,
+                                                     py::arg("reason") = f.reason));
+                               }
+                               return out;
+                             })
+      .def("summary", [](const RegistrationRun& r) { return r.registration.ToString(); })
+      .def(
+          "save",
+          [](RegistrationRun& r, const fs::path& path) {
+            ValueErrors([&] { WritePosesChecked(path, r.poses, r.inputs); });
+            r.output = path;
+          },
+          py::arg("path"), "Writes poses.csv atomically; never over an existing file or an input.");
+
+  m.def(
+      "register",
+      [](const py::object& markers, const py::object& tracker, int sensor, const std::string& set,
+         double optical_noise_m, double tracker_position_noise_m,
+         double tracker_orientation_noise_deg, int min_markers_per_station) {
+        auto run = std::make_shared<RegistrationRun>();
+        const fs::path markers_path = ToPath(markers), tracker_path = ToPath(tracker);
+        run->inputs = {markers_path, tracker_path};
+        fit::RegistrationOptions options;
+        options.optical_noise_m = optical_noise_m;
+        options.tracker_position_noise_m = tracker_position_noise_m;
+        options.tracker_orientation_noise_rad = tracker_orientation_noise_deg * kRadPerDeg;
+        options.min_markers_per_station = min_markers_per_station;
+        if (!options.Check())
+          throw py::value_error("register: invalid options (noise must be > 0)");
+        fit::PoseRecordOptions record_options;
+        record_options.set = set;
+        record_options.sensor = sensor;
+        if (!record_options.Check())
+          throw py::value_error("register: set must be calib, valid or reg");
+        py::gil_scoped_release release;
+        ValueErrors([&] {
+          const auto stations = fit::ReadRegistrationStations(markers_path, tracker_path, sensor);
+          run->registration = fit::RegisterOpticalToTransmitter(stations, options);
+          fit::PoseExtractionOptions extraction;
+          extraction.optical_noise_m = optical_noise_m;
+          run->extracted = fit::ExtractPoses(stations, run->registration.registration, extraction);
+          fit::PoseRecords records =
+              fit::MakePoseRecords(stations, run->extracted, {}, record_options);
+          run->poses = std::move(records.capture);
+          run->left_out = std::move(records.left_out);
+        });
+        return run;
+      },
+      py::arg("markers"), py::arg("tracker"), py::kw_only(), py::arg("sensor") = 1,
+      py::arg("set") = "calib", py::arg("optical_noise_m") = 1.5e-4,
+      py::arg("tracker_position_noise_m") = 8e-4, py::arg("tracker_orientation_noise_deg") = 0.15,
+      py::arg("min_markers_per_station") = 3,
+      "Registers the optical frame to the transmitter from markers.csv and tracker.csv and "
+      "extracts "
+      "each station's reference pose, as `trackcal-fit register` does.");
+
+  py::class_<PairRun, std::shared_ptr<PairRun>>(
+      m, "NativePairing", "Result of trackcal._core.pair (wrapped by trackcal.pair).")
+      .def("to_dict", [](const PairRun& r) { return JsonToPython(r.ToJson()); })
+      .def_property_readonly("poses",
+                             [](const PairRun& r) { return PoseCaptureDict(r.result.poses); })
+      .def_property_readonly("time_offset_s", [](const PairRun& r) { return r.result.time_offset; })
+      .def_property_readonly("dropped", [](const PairRun& r) { return r.result.dropped; })
+      .def_property_readonly("cost", [](const PairRun& r) { return r.result.cost; })
+      .def(
+          "save",
+          [](PairRun& r, const fs::path& path) {
+            ValueErrors([&] { WritePosesChecked(path, r.result.poses, r.inputs); });
+            r.output = path;
+          },
+          py::arg("path"), "Writes poses.csv atomically; never over an existing file or an input.");
+
+  m.def(
+      "pair",
+      [](const py::object& tracker, const py::object& reference, double time_offset,
+         bool estimate_time_offset, double search_range, double max_gap_s, int sensor,
+         const std::string& set, int decimate) {
+        auto run = std::make_shared<PairRun>();
+        const fs::path tracker_path = ToPath(tracker), reference_path = ToPath(reference);
+        run->inputs = {tracker_path, reference_path};
+        fit::StreamPairingOptions options;
+        options.time_offset = time_offset;
+        options.estimate_time_offset = estimate_time_offset;
+        options.search_range = search_range;
+        options.max_gap_s = max_gap_s;
+        options.sensor = sensor;
+        options.set = set;
+        options.decimate = decimate;
+        run->estimated = estimate_time_offset;
+        py::gil_scoped_release release;
+        ValueErrors([&] {
+          run->result = fit::PairStreams(ReadTrackerStream(tracker_path),
+                                         ReadReferenceStream(reference_path), options);
+        });
+        return run;
+      },
+      py::arg("tracker"), py::arg("reference"), py::kw_only(), py::arg("time_offset") = 0.0,
+      py::arg("estimate_time_offset") = false, py::arg("search_range") = 0.5,
+      py::arg("max_gap_s") = 0.1, py::arg("sensor") = 0, py::arg("set") = "calib",
+      py::arg("decimate") = 1,
+      "Pairs tracker_stream.csv with reference_stream.csv by time, as `trackcal-fit pair` does.");
+}
+
+}  // namespace trackcal::python

@@ -1,0 +1,133 @@
+"""The verdict of `trackcal diagnose` (candidate ranking + covariate analysis), the model-file change
+it prints, and --json as one document with every part of the diagnosis."""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+import trackcal
+from trackcal import diagnosis
+from trackcal.validation import CovariateEffect
+from understand_support import simulate
+
+MODEL = """noise: {position_mm: 1.0}
+terms:
+  # the paper's polynomial
+  - type: polynomial
+    degree: 3
+
+solver:
+  max_iterations: 50
+"""
+
+
+def contract_b_doc(significant: bool):
+    """A ranking in the shape of trackcal-fit diagnose --json (docs/contract B)."""
+    return {
+        "command": "diagnose", "model": "model.yaml", "data": "cap", "folds": 5,
+        "base": {"cv_position_mm_mean": 3.0, "cv_orientation_deg_mean": 0.3, "final_cost": 10.0,
+                 "num_residuals": 2880, "num_free_parameters": 40, "bic": 300.0, "table1": {}},
+        "candidates": [
+            {"effect": "dipole", "model_change": "- type: dipole\n  polarisability_m3: 0.002\n",
+             "insert_index": 0, "cv_position_mm_mean": 1.0 if significant else 2.98,
+             "cv_orientation_deg_mean": 0.1, "cv_drop_percent": {"position": 66.7, "orientation": 66.7},
+             "delta_bic": -500.0 if significant else 12.0, "p_value": 1e-9 if significant else 0.4,
+             "significant": significant, "reason": "held-out error falls 66.7 %", "parameters": [],
+             "statement": "an object near (0.6, 0.9, -0.5) m"},
+            {"effect": "sensor_offset", "model_change": "- type: sensor_offset\n", "insert_index": 0,
+             "cv_position_mm_mean": 2.99, "cv_orientation_deg_mean": 0.3,
+             "cv_drop_percent": {"position": 0.3, "orientation": 0.0}, "delta_bic": 30.0, "p_value": 0.7,
+             "significant": False, "reason": "no change", "parameters": [], "statement": ""},
+        ],
+        "verdict": {"effect": "dipole" if significant else None,
+                    "text": "a ferromagnetic object explains the remaining structure" if significant else
+                    "no catalog effect explains the remaining structure"},
+    }
+
+
+TEMPERATURE = [CovariateEffect("temperature", "position_mm", 0.41, 0.005, True, 600),
+               CovariateEffect("temperature", "position_vector", 0.2, 0.005, True, 600),
+               CovariateEffect("distance", "position_mm", 0.08, 0.005, True, 600),
+               CovariateEffect("humidity", "position_mm", 0.001, 0.6, False, 600)]
+
+
+def test_verdict_names_the_top_significant_candidate():
+    v = diagnosis.verdict(contract_b_doc(True), TEMPERATURE)
+    assert v["source"] == "candidate" and v["effect"] == "dipole"
+    assert v["text"].startswith("a ferromagnetic object") and v["insert_index"] == 0
+    assert v["model_change"].startswith("- type: dipole")
+
+
+def test_verdict_falls_back_to_the_covariate():
+    v = diagnosis.verdict(contract_b_doc(False), TEMPERATURE)
+    assert v["source"] == "covariate" and v["effect"] is None and v["covariate"] == "temperature"
+    assert v["text"].startswith("no catalog effect explains the remaining structure; it follows covariate "
+                                "temperature (R^2 0.41 of the position error magnitude)")
+    assert "distance (R^2 0.08)" in v["text"] and "humidity" not in v["text"]
+
+
+def test_verdict_nothing_significant():
+    quiet = [CovariateEffect("x", "position_mm", 0.01, 0.3, False, 600)]
+    assert diagnosis.verdict(contract_b_doc(False), quiet)["text"] == "nothing significant remains"
+    assert diagnosis.verdict(None, quiet)["text"].startswith("nothing significant remains")
+    assert "(catalog effects not tested); it follows covariate temperature" in \
+        diagnosis.verdict(None, TEMPERATURE)["text"]
+
+
+def test_verdict_names_a_flexible_fallback_when_no_covariate_explains():
+    doc = contract_b_doc(False)
+    doc["flexible_fallback"] = [{"effect": "polynomial", "significant": True, "model_change": "- type: polynomial\n",
+                                 "insert_index": 1, "cv_drop_percent": {"position": 22.5}}]
+    quiet = [CovariateEffect("x", "position_mm", 0.01, 0.3, False, 600)]
+    v = diagnosis.verdict(doc, quiet)
+    assert v["source"] == "flexible" and "held-out error by 22.5 %" in v["text"]
+    assert v["text"].startswith("no catalog effect explains the remaining structure")
+    # A covariate, when there is one, says more than the flexible term.
+    assert diagnosis.verdict(doc, TEMPERATURE)["source"] == "covariate"
+
+
+def test_model_change_is_inserted_where_the_candidate_says():
+    change = "- type: dipole\n  location_in_transmitter: [0.6, 0.9, -0.5]\n"
+    new = diagnosis.model_with_change(MODEL, change, 0)
+    assert new.count("- type: dipole") == 1
+    assert new.index("- type: dipole") < new.index("- type: polynomial")
+    assert "  - type: dipole\n    location_in_transmitter: [0.6, 0.9, -0.5]\n  # the paper" not in new
+    assert "  - type: dipole\n    location_in_transmitter: [0.6, 0.9, -0.5]\n  - type: polynomial" in new
+    appended = diagnosis.model_with_change(MODEL, "- type: lut\n  cell_size_mm: 200\n", None)
+    assert "    degree: 3\n  - type: lut\n    cell_size_mm: 200\n\nsolver:" in appended
+    # The result is a model file the engine accepts, with the new term at its place.
+    assert trackcal._core.parse_model(appended)["terms"] == ["polynomial", "lut"]
+    assert diagnosis.model_with_change("terms: [{type: polynomial}]\n", change, 0) is None
+    assert "+  - type: lut" in diagnosis.model_diff(MODEL, appended)
+
+
+def run_cli(*args):
+    exe = shutil.which("trackcal")
+    cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
+    r = subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return r
+
+
+def test_diagnose_json_is_one_document_with_everything(tmp_path):
+    cap = simulate(tmp_path / "capture", seed=71)
+    model = tmp_path / "model.yaml"
+    model.write_text(MODEL)
+    r = run_cli("diagnose", cap, "--model", model, "--json", "--permutations", "19", "--effects", "sensor_offset",
+                "--folds", "2")
+    doc = json.loads(r.stdout)
+    for key in ("tables", "outside_volume", "by_distance", "by_region", "worst", "covariates",
+                "covariate_findings", "candidates", "verdict", "fit"):
+        assert key in doc, key
+    assert doc["command"] == "diagnose" and doc["model"] == str(model)
+    assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all"]
+    assert doc["fit"]["converged"] is True  # the model was fitted (no -c given)
+    assert len(doc["worst"]) == 10 and doc["verdict"]["text"]
+    if diagnosis.candidates_available():
+        assert doc["candidates"]["command"] == "diagnose"
+        assert {c["effect"] for c in doc["candidates"]["candidates"]} <= {"sensor_offset"}
+    else:
+        assert doc["candidates"] is None

@@ -1,0 +1,216 @@
+"""trackcal.fit / register / pair run the C++ engine in process and agree with the trackcal-fit
+command line on the same data: same tables, same parameters, same calibration, same poses."""
+
+import json
+import pathlib
+import shutil
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import trackcal
+from trackcal import captures
+from understand_support import simulate, write_poses
+
+MODEL = "terms:\n  - type: polynomial\n    degree: 3\n"
+# Wall-clock figures differ between runs; everything else is the same computation on the same input.
+TIMING_KEYS = {"seconds", "seconds_solve", "seconds_covariance"}
+
+
+def run_fit_cli(*args):
+    exe = shutil.which("trackcal-fit")
+    assert exe, "trackcal-fit must be on PATH (scripts/build.sh installs it into the venv)"
+    r = subprocess.run([exe, *map(str, args)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def without_timings(doc):
+    if isinstance(doc, dict):
+        return {k: without_timings(v) for k, v in doc.items() if k not in TIMING_KEYS}
+    if isinstance(doc, list):
+        return [without_timings(v) for v in doc]
+    return doc
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    return simulate(tmp_path_factory.mktemp("fit") / "capture", seed=51)
+
+
+@pytest.fixture
+def model_file(tmp_path):
+    p = tmp_path / "model.yaml"
+    p.write_text(MODEL)
+    return p
+
+
+def calib_only_capture(capture_dir, tmp_path):
+    """The capture's calib stations alone (no validation set: the tools cross-validate)."""
+    cap = captures.load_poses(capture_dir)
+    return write_poses(tmp_path / "calib_only.csv", cap.select_set("calib"))
+
+
+def test_fit_matches_the_command_line(capture_dir, model_file, tmp_path):
+    cli = run_fit_cli("fit", "--data", capture_dir, "--model", model_file, "-o", tmp_path / "cli.json",
+                      "--json", "--quiet")
+    report = trackcal.fit(capture_dir, model_file)
+    out = report.save(tmp_path / "py.json")
+    doc = report.to_dict()
+    assert doc["output"] == str(out)
+    # The same code on the same input with a deterministic single-threaded solver: the documents are
+    # equal number for number (only the output path and wall-clock timings differ).
+    assert without_timings({**doc, "output": None}) == without_timings({**cli, "output": None})
+    assert [t.set_name for t in report.tables] == ["calib", "valid"]
+    valid = report.table("valid")
+    assert valid.after_position_mm["mean"] == cli["tables"][1]["after"]["position_mm"]["mean"]
+    # The calibration files hold the same correction and statistics (provenance differs: tool, time).
+    a = json.loads((tmp_path / "cli.json").read_text())
+    b = json.loads(out.read_text())
+    for key in ("corrections", "calibrated_volume", "fit_statistics"):
+        assert a[key] == b[key], key
+    assert {i["role"] for i in b["provenance"]["inputs"]} == {"model_file", "calibration_capture"}
+    # The in-memory calibration corrects as the saved one.
+    cap = captures.load_poses(capture_dir)
+    p1, q1, _ = report.calibration.correct(cap.reported_positions, cap.reported_quaternions_xyzw)
+    p2, q2, _ = trackcal.Calibration.load(tmp_path / "cli.json").correct(cap.reported_positions,
+                                                                          cap.reported_quaternions_xyzw)
+    np.testing.assert_array_equal(p1, p2)
+    np.testing.assert_array_equal(q1, q2)
+    # Parameters with standard deviations, as the command line reports them.
+    poly = [p for p in report.parameters if p.block == "position_coefficients"][0]
+    assert poly.values.shape == (3 * trackcal.num_polynomial_terms(3),)
+    assert np.all(np.isfinite(poly.stddev)) and np.all(poly.stddev > 0)
+    assert report.converged and "Parameters" in report.format()
+
+
+def test_cross_validation_matches_the_command_line(capture_dir, model_file, tmp_path):
+    data = calib_only_capture(capture_dir, tmp_path)
+    cli = run_fit_cli("fit", "--data", data, "--model", model_file, "-o", tmp_path / "cli.json",
+                      "--folds", "4", "--json", "--quiet")
+    stages = []
+    report = trackcal.fit(data, model_file, folds=4, progress=lambda s, d, t: stages.append((s, d, t)))
+    assert [t["set"] for t in cli["tables"]] == ["calib", "cross-validation (4-fold)"]
+    assert without_timings(report.to_dict()["tables"]) == without_timings(cli["tables"])
+    assert report.held_out().set_name == "cross-validation (4-fold)"
+    assert [s for s in stages if s[0] == "cross-validation"] == [("cross-validation", k, 4) for k in (1, 2, 3, 4)]
+
+
+def test_model_text_and_in_memory_capture_give_the_same_fit(capture_dir, model_file):
+    by_path = trackcal.fit(capture_dir / "poses.csv", model_file)
+    by_object = trackcal.fit(captures.load_poses(capture_dir), MODEL)
+    assert without_timings(by_object.to_dict()) == without_timings(by_path.to_dict())
+    assert by_object.model["source"] == "<string>" and by_object.model["terms"] == ["polynomial"]
+
+
+def test_user_errors_name_file_line_and_field(capture_dir, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("terms:\n  - type: polynomial\n    degre: 3\n")
+    with pytest.raises(ValueError, match=r"bad\.yaml:3:\d+: .*degre"):
+        trackcal.fit(capture_dir, bad)
+    with pytest.raises(ValueError, match=r"<string>:2:\d+: .*nonsense"):
+        trackcal.fit(capture_dir, "terms:\n  - type: nonsense\n")
+    with pytest.raises(ValueError, match="missing.yaml"):
+        trackcal.fit(capture_dir, tmp_path / "missing.yaml")
+    with pytest.raises(ValueError, match="folds"):
+        trackcal.fit(capture_dir, MODEL, folds=1)
+    broken = tmp_path / "poses.csv"
+    lines = (capture_dir / "poses.csv").read_text().splitlines()
+    fields = lines[5].split(",")
+    fields[4] = "oops"
+    lines[5] = ",".join(fields)
+    broken.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"poses\.csv:6: column rep_x: 'oops' is not a number"):
+        trackcal.fit(broken, MODEL)
+    cap = captures.load_poses(capture_dir).select_set("valid")
+    with pytest.raises(ValueError, match="no stations with set 'calib'"):
+        trackcal.fit(cap, MODEL)
+
+
+def test_save_never_overwrites_an_input(capture_dir, model_file, tmp_path):
+    data = tmp_path / "poses.csv"
+    shutil.copy(capture_dir / "poses.csv", data)
+    report = trackcal.fit(data, model_file)
+    before_model, before_data = model_file.read_bytes(), data.read_bytes()
+    for target in (model_file, data):
+        with pytest.raises(ValueError, match="input"):
+            report.save(target)
+    assert model_file.read_bytes() == before_model and data.read_bytes() == before_data
+    out = report.save(tmp_path / "calib.json")
+    assert trackcal.Calibration.load(out).fit_statistics["num_calib_stations"] == report.num_calib_stations
+    assert report.to_dict()["output"] == str(out)
+
+
+def test_progress_exception_stops_the_run(capture_dir):
+    calls = []
+
+    def progress(stage, done, total):
+        calls.append(stage)
+        if stage == "cross-validation":
+            raise KeyError("stop here")
+
+    with pytest.raises(KeyError, match="stop here"):
+        trackcal.fit(captures.load_poses(capture_dir).select_set("calib"), MODEL, folds=5, progress=progress)
+    assert calls.count("cross-validation") == 1  # stopped before the second fold
+
+
+def test_fit_releases_the_gil(capture_dir):
+    """Another Python thread keeps running while the engine computes a cross-validation fold: the
+    longest pause it sees between two of its loop iterations during the fold stays far below the
+    fold's duration (holding the GIL would stop it for the whole fold, about a second here)."""
+    cap = captures.load_poses(capture_dir).select_set("calib")
+    lut_model = "terms:\n  - type: lut\n    cell_size_mm: 150\nsolver: {covariance: false}\n"
+    state = {"window": False, "max_gap": 0.0, "stop": False}
+    folds = []
+
+    def spin():
+        last = time.monotonic()
+        while not state["stop"]:
+            now = time.monotonic()
+            if state["window"]:
+                state["max_gap"] = max(state["max_gap"], now - last)
+            last = now
+
+    def progress(stage, done, total):
+        if stage == "cross-validation":
+            folds.append(time.monotonic())
+            state["window"] = done == 1  # open during fold 1, closed when fold 2 starts
+
+    t = threading.Thread(target=spin)
+    t.start()
+    try:
+        trackcal.fit(cap, lut_model, folds=2, progress=progress)
+    finally:
+        state["stop"] = True
+        t.join()
+    fold_seconds = folds[1] - folds[0]
+    # Half the fold: scheduling pauses of a loaded machine are tens of milliseconds, a held GIL the
+    # whole fold.
+    assert state["max_gap"] < 0.5 * fold_seconds, (state["max_gap"], fold_seconds)
+
+
+def test_register_and_pair_match_the_command_line(capture_dir, tmp_path):
+    cli = run_fit_cli("register", "--markers", capture_dir / "markers.csv", "--tracker",
+                      capture_dir / "tracker.csv", "-o", tmp_path / "cli_reg.csv", "--json")
+    reg = trackcal.register(capture_dir / "markers.csv", capture_dir / "tracker.csv")
+    reg.save(tmp_path / "py_reg.csv")
+    assert {**reg.to_dict(), "output": None} == {**cli, "output": None}
+    assert (tmp_path / "py_reg.csv").read_bytes() == (tmp_path / "cli_reg.csv").read_bytes()
+    assert reg.converged and len(reg.poses) == cli["num_poses"]
+    assert reg.markers and reg.optical_from_transmitter["rotation_xyzw"].shape == (4,)
+    with pytest.raises(ValueError):
+        reg.save(tmp_path / "py_reg.csv")  # never over an existing file
+
+    cli = run_fit_cli("pair", "--tracker", capture_dir / "tracker_stream.csv", "--reference",
+                      capture_dir / "reference_stream.csv", "--estimate-time-offset",
+                      "-o", tmp_path / "cli_pair.csv", "--json")
+    paired = trackcal.pair(capture_dir / "tracker_stream.csv", capture_dir / "reference_stream.csv",
+                           estimate_time_offset=True)
+    paired.save(tmp_path / "py_pair.csv")
+    assert {**paired.to_dict(), "output": None} == {**cli, "output": None}
+    assert (tmp_path / "py_pair.csv").read_bytes() == (tmp_path / "cli_pair.csv").read_bytes()
+    with pytest.raises(ValueError, match=r"missing\.csv"):
+        trackcal.pair(tmp_path / "missing.csv", capture_dir / "reference_stream.csv")

@@ -1,0 +1,107 @@
+"""`trackcal fit`: fits through the binding, prints Table 1, writes the calibration and records every
+fit in the work folder's history (model copy, data hashes, scores), which `trackcal history` shows."""
+
+import hashlib
+import json
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+import trackcal
+import trackcal.diagnosis
+from trackcal import history
+from understand_support import simulate
+
+POLY = "terms:\n  - type: polynomial\n    degree: 2\n"
+POLY_LUT = POLY + "  - type: lut\n    cell_size_mm: 300\nsolver: {covariance: false}\n"
+
+
+def run_cli(*args, check=True):
+    exe = shutil.which("trackcal")
+    cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
+    r = subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=300)
+    if check:
+        assert r.returncode == 0, r.stderr
+    return r
+
+
+def sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    return simulate(tmp_path_factory.mktemp("fitcli") / "capture", seed=61)
+
+
+def test_fit_prints_table1_and_records_each_change(capture_dir, tmp_path):
+    model = tmp_path / "model.yaml"
+    work = tmp_path / "work"
+    model.write_text(POLY)
+    r = run_cli("fit", "--data", capture_dir, "--model", model, "-o", tmp_path / "c1.json", "--workdir", work)
+    assert "calib set (480 poses)" in r.stdout and "valid set (120 poses)" in r.stdout
+    assert "Parameters (value +- standard deviation)" in r.stdout
+    assert "\033[" not in r.stdout  # not a terminal: no colour
+    # The user edits the model file in place and fits again.
+    model.write_text(POLY_LUT)
+    r = run_cli("fit", "--data", capture_dir, "--model", model, "-o", tmp_path / "c2.json", "--workdir", work)
+    assert "Recorded fit #2" in r.stdout
+    entries = history.load_history(work)
+    assert [e["label"] for e in entries] == ["polynomial", "+lut"]
+    assert [e["terms"] for e in entries] == [["polynomial"], ["polynomial", "lut"]]
+    # Each entry keeps the model it was fitted with, whatever the file says now.
+    assert (work / entries[0]["model"]["copy"]).read_text() == POLY
+    assert (work / entries[1]["model"]["copy"]).read_text() == POLY_LUT
+    assert entries[0]["model"]["sha256"] == hashlib.sha256(POLY.encode()).hexdigest()
+    assert entries[0]["data"] == [{"path": str(capture_dir / "poses.csv"), "role": "calibration_capture",
+                                   "sha256": sha(capture_dir / "poses.csv")}]
+    assert entries[1]["calibration"]["sha256"] == sha(tmp_path / "c2.json")
+    # Scores are the Table 1 of the calibration file the fit wrote.
+    saved = trackcal.Calibration.load(tmp_path / "c2.json").fit_statistics["tables"]
+    valid = next(t for t in saved if t["set"] == "valid")
+    assert entries[1]["scores"]["valid"]["position_mm"] == valid["after"]["position_mm"]
+    # The LUT on top of the polynomial lowers the held-out error: the history shows the fall.
+    assert history.headline_scores(entries[1])[0] < history.headline_scores(entries[0])[0]
+    r = run_cli("history", work, "--plot", tmp_path / "h.png")
+    assert "+lut" in r.stdout and "%" in r.stdout.splitlines()[2]
+    assert (tmp_path / "h.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # The report of the last fit carries the history (table and figure) and, with --model, the
+    # candidate ranking when the engine has it.
+    # (The first, lighter model keeps the ranking quick: sensor_offset alone, 2 folds.)
+    first = tmp_path / "first.yaml"
+    first.write_text(POLY)
+    r = run_cli("report", capture_dir, "-c", tmp_path / "c1.json", "--model", first, "--effects", "sensor_offset",
+                "--folds", "2", "--workdir", work, "-o", tmp_path / "rep", "--permutations", "19")
+    html = (tmp_path / "rep" / "report.html").read_text()
+    assert "History of fits" in html and "+lut" in html and (tmp_path / "rep" / "history.png").exists()
+    assert "Verdict" in html
+    if trackcal.diagnosis.candidates_available():
+        assert "Candidate effects" in html and (tmp_path / "rep" / "candidates.png").exists()
+
+
+def test_fit_json_is_the_engine_document(capture_dir, tmp_path):
+    model = tmp_path / "model.yaml"
+    model.write_text(POLY)
+    r = run_cli("fit", "--data", capture_dir / "poses.csv", "--model", model, "-o", tmp_path / "c.json", "--json")
+    doc = json.loads(r.stdout)  # exactly one JSON document on stdout
+    assert doc["command"] == "fit" and doc["output"] == str(tmp_path / "c.json")
+    direct = trackcal.fit(capture_dir / "poses.csv", model).to_dict()
+    assert doc["tables"] == direct["tables"]
+    assert doc["fit"]["parameters"] == direct["fit"]["parameters"]
+
+
+def test_fit_errors_exit_2_and_keep_inputs(capture_dir, tmp_path):
+    data = tmp_path / "poses.csv"
+    shutil.copy(capture_dir / "poses.csv", data)
+    model = tmp_path / "model.yaml"
+    model.write_text(POLY)
+    before = data.read_bytes()
+    r = run_cli("fit", "--data", data, "--model", model, "-o", data, check=False)
+    assert r.returncode == 2 and "would overwrite the input" in r.stderr
+    assert data.read_bytes() == before
+    model.write_text("terms:\n  - type: polynomial\n    degree: many\n")
+    r = run_cli("fit", "--data", data, "--model", model, "-o", tmp_path / "c.json", check=False)
+    assert r.returncode == 2 and "model.yaml:3:" in r.stderr and "degree" in r.stderr
+    assert not (tmp_path / "c.json").exists()

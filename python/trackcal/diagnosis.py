@@ -1,0 +1,235 @@
+"""Which physical effect is missing: the fit engine's ranking of candidate effects (contract B,
+``trackcal-fit diagnose``), combined with the residual-vs-covariate analysis of
+``trackcal.validation`` into one verdict, and the whole diagnosis as one JSON document.
+
+- :func:`diagnose_candidates` fits the model, then the model plus each catalog effect it lacks, and
+  ranks them by held-out error (the C++ ranking of fit/candidates.h, in process).
+- :func:`verdict` combines the two analyses: the top significant candidate when there is one;
+  otherwise, when a covariate explains residual structure, "no catalog effect explains the remaining
+  structure; it follows covariate X (R^2 ..)"; otherwise "nothing significant remains".
+- :func:`model_with_change` applies a candidate's ``model_change`` to the model text (the exact
+  model-file edit to make), :func:`diagnosis_document` assembles everything ``trackcal diagnose
+  --json`` prints.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Callable, Dict, List, Optional, Sequence
+
+import numpy as np
+
+from trackcal import _core
+
+CandidatesDoc = Dict[str, object]
+
+
+def candidates_available() -> bool:
+    """True when this build has the engine's candidate ranking (fit/candidates.h)."""
+    return hasattr(_core, "diagnose_candidates")
+
+
+def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[str]] = None,
+                        progress: Optional[Callable[[str], None]] = None) -> CandidatesDoc:
+    """The ranking of candidate effects as a dict (the JSON document of ``trackcal-fit diagnose
+    --json``): ``base`` (the model's own scores), ``candidates`` (best first: effect, model_change,
+    insert_index, cross-validated errors, cv_drop_percent, delta_bic, p_value, significant, reason,
+    parameters, statement) and ``verdict`` ({effect or None, text}).
+
+    ``data``: capture folder, poses.csv or PoseCapture; ``model``: path or YAML text; ``effects``:
+    restrict the catalog to these term types (None: all); ``progress(message)`` receives the
+    ranking's progress messages ("fitting dipole (fold 3/5)")."""
+    if not candidates_available():
+        raise NotImplementedError("this trackcal build has no candidate ranking (fit/candidates.h); "
+                                  "the covariate analysis (trackcal diagnose) still works")
+    kwargs = {"folds": folds, "effects": list(effects) if effects else None}
+    if progress is not None:
+        kwargs["progress"] = progress
+    return _core.diagnose_candidates(data, model, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# The verdict
+
+TARGET_WORDS = {"position_mm": "position error magnitude", "position_vector": "position error vector",
+                "orientation_deg": "orientation error angle", "orientation_vector": "orientation error vector"}
+
+
+def covariate_findings(effects) -> List[dict]:
+    """Significant covariates, one row each (its best residual target), strongest first."""
+    best: Dict[str, object] = {}
+    for e in effects:
+        if e.significant and (e.covariate not in best or e.r2 > best[e.covariate].r2):
+            best[e.covariate] = e
+    rows = [{"covariate": e.covariate, "target": e.target, "r2": float(e.r2), "p_value": float(e.p_value),
+             "count": int(e.count)} for e in best.values()]
+    rows.sort(key=lambda r: -r["r2"])
+    return rows
+
+
+def top_candidate(doc: Optional[CandidatesDoc]) -> Optional[dict]:
+    """The best significant candidate of a ranking (ranked best first), or None."""
+    if not doc:
+        return None
+    for c in doc.get("candidates", []):
+        if c.get("significant"):
+            return c
+    return None
+
+
+def _covariate_phrase(rows: List[dict]) -> str:
+    head = rows[0]
+    text = (f"it follows covariate {head['covariate']} (R^2 {head['r2']:.2f} of the "
+            f"{TARGET_WORDS.get(head['target'], head['target'])})")
+    if len(rows) > 1:
+        text += "; also " + ", ".join(f"{r['covariate']} (R^2 {r['r2']:.2f})" for r in rows[1:4])
+    return text
+
+
+def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
+    """Combines the candidate ranking (None: not run) and the covariate analysis.
+
+    Without a significant candidate or covariate, a significant flexible fallback of the ranking
+    (a polynomial appended to the model: structure in position that no catalog effect has) is named.
+
+    Returns {"source": "candidate" | "covariate" | "flexible" | None, "effect", "covariate", "text",
+    "model_change", "insert_index"}."""
+    rows = covariate_findings(covariate_effects)
+    top = top_candidate(candidates_doc)
+    out = {"source": None, "effect": None, "covariate": rows[0]["covariate"] if rows else None,
+           "text": "", "model_change": None, "insert_index": None}
+    if top is not None:
+        engine_text = ((candidates_doc or {}).get("verdict") or {}).get("text")
+        text = engine_text or f"{top['effect']} explains the remaining structure: {top.get('reason', '')}"
+        if top.get("statement"):
+            text += f" ({top['statement']})" if top["statement"] not in text else ""
+        out.update(source="candidate", effect=top["effect"], text=text,
+                   model_change=top.get("model_change"), insert_index=top.get("insert_index"))
+        return out
+    if rows:
+        lead = ("no catalog effect explains the remaining structure; " if candidates_doc is not None
+                else "the remaining structure is not noise (catalog effects not tested); ")
+        out.update(source="covariate", text=lead + _covariate_phrase(rows))
+        return out
+    flexible = next((f for f in (candidates_doc or {}).get("flexible_fallback", []) if f.get("significant")), None)
+    if flexible is not None:
+        drop = (flexible.get("cv_drop_percent") or {}).get("position")
+        out.update(source="flexible",
+                   text="no catalog effect explains the remaining structure; it follows position (a flexible "
+                        f"{flexible.get('effect', 'term')} lowers the held-out error"
+                        + (f" by {drop:.1f} %" if isinstance(drop, (int, float)) else "") + ")",
+                   model_change=flexible.get("model_change"), insert_index=flexible.get("insert_index"))
+        return out
+    out["text"] = ("nothing significant remains" if candidates_doc is not None
+                   else "nothing significant remains in the covariates (catalog effects not tested)")
+    return out
+
+
+def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
+    """One table row per ranked candidate (rank, effect, held-out errors, drops, delta BIC, p)."""
+    rows = []
+    for i, c in enumerate((doc or {}).get("candidates", []), 1):
+        drop = c.get("cv_drop_percent") or {}
+        rows.append({"rank": i, "effect": c.get("effect"), "cv_pos_mm": c.get("cv_position_mm_mean"),
+                     "cv_ori_deg": c.get("cv_orientation_deg_mean"), "drop_pos_%": drop.get("position"),
+                     "drop_ori_%": drop.get("orientation"), "delta_BIC": c.get("delta_bic"),
+                     "p": f"{c['p_value']:.2g}" if isinstance(c.get("p_value"), (int, float)) else "",
+                     "significant": "yes" if c.get("significant") else "",
+                     "reason": c.get("reason", "")})
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# The model-file change
+
+_TERMS_RE = re.compile(r"^terms:\s*(#.*)?$")
+
+
+def model_with_change(model_text: str, change: str, insert_index: Optional[int]) -> Optional[str]:
+    """The model text with a candidate's YAML (a ``- type: ...`` list item) inserted in ``terms:``
+    before item ``insert_index`` (None or past the end: appended). Works on block-style term lists
+    (``terms:`` followed by ``- `` items); returns None for other layouts (flow style), where the
+    change must be made by hand."""
+    lines = model_text.splitlines()
+    start = next((i for i, l in enumerate(lines) if _TERMS_RE.match(l)), None)
+    if start is None:
+        return None
+    items, indent, end = [], None, len(lines)
+    for i in range(start + 1, len(lines)):
+        text = lines[i].strip()
+        if not text or text.startswith("#"):
+            continue
+        lead = len(lines[i]) - len(lines[i].lstrip())
+        is_item = text == "-" or text.startswith("- ")
+        if indent is None:
+            if not is_item:
+                return None
+            indent = lead
+        if is_item and lead == indent:
+            items.append(i)
+        elif lead <= indent:
+            end = i  # the next key after the list
+            break
+    if indent is None:
+        return None
+    # Trailing blank/comment lines before the next top-level key belong after the list.
+    while end > start + 1 and (not lines[end - 1].strip() or lines[end - 1].lstrip().startswith("#")):
+        end -= 1
+    at = items[insert_index] if insert_index is not None and 0 <= insert_index < len(items) else end
+    block = [(" " * indent + l) if l.strip() else l for l in change.rstrip("\n").splitlines()]
+    new = lines[:at] + block + lines[at:]
+    return "\n".join(new) + ("\n" if model_text.endswith("\n") else "")
+
+
+def model_diff(model_text: str, new_text: str, name: str = "model.yaml") -> str:
+    import difflib
+    return "".join(difflib.unified_diff(model_text.splitlines(True), new_text.splitlines(True),
+                                        fromfile=name, tofile=name + " (with the change)"))
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole diagnosis as one document
+
+def _finite(x):
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_report=None,
+                       candidates_doc: Optional[CandidatesDoc] = None, verdict_: Optional[dict] = None,
+                       model_change: Optional[dict] = None) -> dict:
+    """Everything ``trackcal diagnose`` shows, as one JSON-serialisable dict: Table 1 per set,
+    stations outside the calibrated volume, breakdowns by distance and region, worst stations,
+    every covariate test and the significant findings, the candidate ranking (contract B, or None
+    when no model was given), the verdict and the model-file change."""
+    doc = {
+        "command": "diagnose",
+        "capture": None if capture is None else str(capture),
+        "calibration": None if calibration is None else str(calibration),
+        "model": model,
+        "tables": [t.to_dict() for t in v.tables],
+        "outside_volume": {"count": int(v.extrapolated.sum()), "of": int(len(v.extrapolated))},
+        "by_distance": v.by_distance,
+        "by_region": v.by_region,
+        "worst": v.worst,
+        "covariates": [{"covariate": e.covariate, "target": e.target, "r2": e.r2, "p_value": e.p_value,
+                        "significant": e.significant, "count": e.count} for e in v.covariate_effects],
+        "covariate_findings": covariate_findings(v.covariate_effects),
+        "fit": None if fit_report is None else {"tables": [t.to_dict() for t in fit_report.tables],
+                                                "converged": fit_report.converged,
+                                                "chi2_per_dof": fit_report.chi2_per_dof},
+        "candidates": candidates_doc,
+        "verdict": verdict_ if verdict_ is not None else verdict(candidates_doc, v.covariate_effects),
+        "model_change": model_change,
+    }
+    return _finite(doc)

@@ -1,0 +1,265 @@
+"""The fitting engine in process: ``trackcal.fit``, ``trackcal.register``, ``trackcal.pair``.
+
+They run the C++ code of ``trackcal-fit`` (fit/fit_engine.h, fit/registration_io.h,
+fit/stream_pairing.h) inside the Python process with the GIL released, so a fit gives the same
+numbers as the command-line tool, and ``FitReport.to_dict()`` is the document ``trackcal-fit fit
+--json`` prints. Bad input raises ``ValueError`` with the C++ message naming the file, line, column
+and field (``model.yaml:3:5: terms[0].degree: ...``).
+
+::
+
+    report = trackcal.fit("capture/", "model.yaml", folds=5)
+    print(report.format())                  # Table 1 rows: calib, valid, cross-validation
+    report.save("calib.json")               # atomic; never over the model or the capture
+    cal = report.calibration                # a trackcal.Calibration
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+from typing import Callable, Dict, List, Optional, Union
+
+import numpy as np
+
+from trackcal import _core
+from trackcal.captures import PoseCapture
+
+PathLike = Union[str, os.PathLike]
+Progress = Callable[[str, int, int], None]
+
+
+def _table1(d: dict):
+    from trackcal.validation import Table1
+    return Table1(d["set"], d["before"]["position_mm"], d["before"]["orientation_deg"],
+                  d["after"]["position_mm"], d["after"]["orientation_deg"])
+
+
+def _capture_from_dict(d: dict, path=None) -> PoseCapture:
+    return PoseCapture(path=pathlib.Path(path) if path is not None else None,
+                       station=np.asarray(d["station"]), set=np.asarray(d["set"], dtype=object),
+                       sensor=np.asarray(d["sensor"]), time=np.asarray(d["time"]),
+                       reported_positions=d["reported_positions"],
+                       reported_quaternions_xyzw=d["reported_quaternions_xyzw"],
+                       reference_positions=d["reference_positions"],
+                       reference_quaternions_xyzw=d["reference_quaternions_xyzw"],
+                       extra_columns=list(d["extra_columns"]), extra=d["extra"])
+
+
+@dataclasses.dataclass
+class Parameter:
+    """One parameter block of a fitted term: values with standard deviations (NaN: not available,
+    e.g. fixed blocks or manifold blocks whose uncertainty is reported in the tangent space)."""
+
+    term: str
+    block: str
+    unit: str
+    fixed: bool
+    names: List[str]
+    values: np.ndarray
+    stddev: np.ndarray
+
+
+class FitReport:
+    """The result of :func:`fit`.
+
+    Attributes: ``tables`` (Table 1 rows as ``trackcal.validation.Table1``: calib, valid when the
+    capture has one, cross-validation when ``folds`` >= 2), ``parameters`` (:class:`Parameter`),
+    ``identifiability_flags`` ([{coordinate, reason}]), ``outliers`` ([{station, whitened_rms}]),
+    ``converged``, ``chi2_per_dof``, ``terms`` (each term's description), ``calibration`` (a
+    ``trackcal.Calibration``), ``model`` ({source, text, sha256, terms}).
+    """
+
+    def __init__(self, native, model_info: dict):
+        self._native = native
+        self.model = model_info
+        fit = native.fit
+        self.fit = fit
+        self.tables = [_table1(t) for t in native.tables]
+        self.converged: bool = fit["converged"]
+        self.iterations: int = fit["iterations"]
+        self.final_cost: float = fit["final_cost"]
+        self.chi2_per_dof: Optional[float] = fit["chi2_per_dof"]
+        self.num_residuals: int = fit["num_residuals"]
+        self.num_free_parameters: int = fit["num_free_parameters"]
+        self.rank_deficient: bool = fit["rank_deficient"]
+        self.seconds: float = fit["seconds"]
+        self.identifiability_flags: List[dict] = fit["identifiability_flags"]
+        self.outliers: List[dict] = fit["outliers"]
+        self.terms: List[dict] = fit["terms"]
+        self.parameters = [
+            Parameter(p["term"], p["block"], p["unit"], p["fixed"], [v["name"] for v in p["values"]],
+                      np.array([v["value"] for v in p["values"]], dtype=float),
+                      np.array([np.nan if v["stddev"] is None else v["stddev"] for v in p["values"]],
+                               dtype=float))
+            for p in fit["parameters"]]
+        self.time_offset_s: Optional[float] = native.time_offset_s
+        self.num_calib_stations: int = native.num_calib_stations
+        self.num_valid_stations: int = native.num_valid_stations
+
+    @property
+    def calibration(self):
+        """The fitted correction chain with its calibrated volume (a ``trackcal.Calibration``)."""
+        return self._native.calibration
+
+    @property
+    def output(self) -> Optional[pathlib.Path]:
+        return self._native.output
+
+    def table(self, name: str):
+        """The Table 1 of a set by name prefix ('calib', 'valid', 'cross-validation')."""
+        for t in self.tables:
+            if t.set_name.startswith(name):
+                return t
+        raise KeyError(f"no table {name!r} (have: {', '.join(t.set_name for t in self.tables)})")
+
+    def held_out(self):
+        """The most telling Table 1: validation set, else cross-validation, else calib."""
+        for key in ("valid", "cross-validation", "calib"):
+            for t in self.tables:
+                if t.set_name.startswith(key):
+                    return t
+        return self.tables[0]
+
+    def scores(self) -> Dict[str, dict]:
+        """{set name: {"position_mm": summary, "orientation_deg": summary}} of the corrected poses
+        (the history's scores)."""
+        return {t.set_name: {"position_mm": t.after_position_mm, "orientation_deg": t.after_orientation_deg}
+                for t in self.tables}
+
+    def save(self, path: PathLike, command_line: str = "") -> pathlib.Path:
+        """Writes the calibration file atomically. Refuses (ValueError) to overwrite the model file,
+        the capture, or an existing file that is not a trackcal calibration."""
+        p = pathlib.Path(path)
+        self._native.save(p, command_line)
+        return p
+
+    def to_dict(self) -> dict:
+        """The document ``trackcal-fit fit --json`` prints (``output``: the last save() path)."""
+        return self._native.to_dict()
+
+    def format(self) -> str:
+        """Table 1 rows, the solver summary, outliers and parameters as text."""
+        out = [t.format() for t in self.tables]
+        chi = f"{self.chi2_per_dof:.3g}" if self.chi2_per_dof is not None else "n/a"
+        out.append(f"Fit: {'converged' if self.converged else 'NOT converged'} after {self.iterations} "
+                   f"iterations in {self.seconds * 1e3:.3g} ms; chi2/dof {chi}")
+        if self.outliers:
+            out.append(f"Outlier stations ({len(self.outliers)}): "
+                       + " ".join(str(o["station"]) for o in self.outliers))
+        out.append(format_parameters(self.parameters))
+        if self.identifiability_flags:
+            out.append(f"Poorly identified ({len(self.identifiability_flags)}):")
+            out += [f"  {f['coordinate']}: {f['reason']}" for f in self.identifiability_flags[:10]]
+        return "\n".join(out)
+
+    def __repr__(self) -> str:
+        t = self.held_out()
+        return (f"FitReport(terms={self.model['terms']}, {t.set_name}: {t.after_position_mm['mean']:.3f} mm / {t.after_orientation_deg['mean']:.3f} deg)")
+
+
+def format_parameters(parameters: List[Parameter], max_values: int = 12) -> str:
+    lines = ["Parameters (value +- standard deviation):"]
+    for p in parameters:
+        lines.append(f"  {p.term}.{p.block} [{p.unit}]{' (fixed)' if p.fixed else ''}: {len(p.values)} values")
+        for name, v, s in list(zip(p.names, p.values, p.stddev))[:max_values]:
+            lines.append(f"    {name:<22}{v:14.6g}" + (f" +- {s:.3g}" if np.isfinite(s) else ""))
+        if len(p.values) > max_values:
+            lines.append("    ... (all values in to_dict() and the calibration file)")
+    return "\n".join(lines)
+
+
+def _data_arg(data):
+    if isinstance(data, (str, os.PathLike)):
+        return data
+    if isinstance(data, PoseCapture) or hasattr(data, "reported_positions"):
+        return data
+    raise ValueError("data must be a capture folder, a poses.csv path or a trackcal.captures.PoseCapture")
+
+
+def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None) -> FitReport:
+    """Fits a model file (docs/model-file.md) to the ``calib`` stations of a capture.
+
+    ``data``: capture folder (poses.csv, or tracker/reference streams paired with the model's
+    time offset), poses.csv path, or a :class:`trackcal.captures.PoseCapture`. ``model``: model
+    file path or its YAML text. ``folds`` >= 2 adds a k-fold cross-validation table (station i in
+    fold i mod k, as ``trackcal-fit``); the validation set, when present, is always evaluated.
+    ``progress(stage, done, total)`` is called after each solver iteration (stage "fit") and
+    cross-validation fold (stage "cross-validation"); an exception it raises stops the run.
+    """
+    info = _core.parse_model(model)
+    native = _core.fit(_data_arg(data), model, folds=folds, progress=progress)
+    return FitReport(native, info)
+
+
+class Registration:
+    """The result of :func:`register`: the registration and the extracted reference poses."""
+
+    def __init__(self, native):
+        self._native = native
+        self.poses: PoseCapture = _capture_from_dict(native.poses)
+        self.left_out: List[int] = list(native.left_out)
+        self.converged: bool = native.converged
+        self.identifiable: bool = native.identifiable
+        self.chi_square: float = native.chi_square
+        self.nu: float = native.nu
+        self.optical_from_transmitter: dict = native.optical_from_transmitter
+        self.optical_from_transmitter_stddev: np.ndarray = native.optical_from_transmitter_stddev
+        self.markers: List[dict] = native.markers
+        self.identifiability_flags: List[dict] = native.identifiability_flags
+
+    def summary(self) -> str:
+        return self._native.summary()
+
+    def save(self, path: PathLike) -> pathlib.Path:
+        """Writes poses.csv atomically; refuses an existing file or an input."""
+        p = pathlib.Path(path)
+        self._native.save(p)
+        return p
+
+    def to_dict(self) -> dict:
+        """The document ``trackcal-fit register --json`` prints."""
+        return self._native.to_dict()
+
+
+def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str = "calib",
+             optical_noise_m: float = 1.5e-4, tracker_position_noise_m: float = 8e-4,
+             tracker_orientation_noise_deg: float = 0.15, min_markers_per_station: int = 3) -> Registration:
+    """Optical-to-transmitter registration (paper section 3) from markers.csv and tracker.csv, and
+    the reference pose of every station from its markers, as ``trackcal-fit register``."""
+    return Registration(_core.register(markers, tracker, sensor=sensor, set=set,
+                                       optical_noise_m=optical_noise_m,
+                                       tracker_position_noise_m=tracker_position_noise_m,
+                                       tracker_orientation_noise_deg=tracker_orientation_noise_deg,
+                                       min_markers_per_station=min_markers_per_station))
+
+
+class Pairing:
+    """The result of :func:`pair`: paired poses, the clock offset used, dropped samples."""
+
+    def __init__(self, native):
+        self._native = native
+        self.poses: PoseCapture = _capture_from_dict(native.poses)
+        self.time_offset_s: float = native.time_offset_s
+        self.dropped: int = native.dropped
+        self.cost: float = native.cost
+
+    def save(self, path: PathLike) -> pathlib.Path:
+        p = pathlib.Path(path)
+        self._native.save(p)
+        return p
+
+    def to_dict(self) -> dict:
+        """The document ``trackcal-fit pair --json`` prints."""
+        return self._native.to_dict()
+
+
+def pair(tracker: PathLike, reference: PathLike, *, time_offset: float = 0.0,
+         estimate_time_offset: bool = False, search_range: float = 0.5, max_gap_s: float = 0.1,
+         sensor: int = 0, set: str = "calib", decimate: int = 1) -> Pairing:
+    """Pairs tracker_stream.csv with reference_stream.csv by time (reference pose interpolated at
+    t + time_offset), estimating the offset if asked, as ``trackcal-fit pair``."""
+    return Pairing(_core.pair(tracker, reference, time_offset=time_offset,
+                              estimate_time_offset=estimate_time_offset, search_range=search_range,
+                              max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate))
