@@ -472,6 +472,21 @@ def steps_table(steps: List[Step], floor: Optional[dict] = None) -> str:
 # The main job
 
 
+def write_report(capture: Path, calibration: Path, diagnosis_doc: dict, work: Path, out: Path) -> Path:
+    """The HTML report of the final calibration with the last diagnosis (candidate table, verdict)
+    and the work folder's history plot, without ranking the candidates again."""
+    import trackcal
+    from trackcal import captures, diagnosis, history, report, validation
+    v = validation.validate(captures.load_poses(str(capture)), trackcal.Calibration.load(str(calibration)))
+    verdict = diagnosis.verdict(diagnosis_doc, v.covariate_effects)
+    path = report.write_report(v, out, inputs=[capture, calibration],
+                               history_entries=history.load_history(work), candidates=diagnosis_doc,
+                               verdict=verdict)
+    print(f"wrote {path}")
+    return path
+
+
+
 def simulate(work: Path, hidden: str, seed: Optional[int], scene: str = "paper") -> Path:
     capture = work / "capture"
     cmd = [_tool("trackcal-simulate"), "--scene", scene, "-o", str(capture)]
@@ -581,6 +596,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         args.scene = str(_write_new(work / "scene.yaml", DEFAULT_SCENE))
     capture = simulate(work, args.hidden, args.seed, args.scene)
     floor = noise_floor(capture)
+    final = None
     if diagnosis_available():
         print("\nThe loop: fit, diagnose, add the missing effect, refit.")
         steps = follow_diagnosis(capture, base_text, work, max_steps=args.max_steps, folds=args.folds,
@@ -595,8 +611,11 @@ def main(argv: Optional[List[str]] = None) -> int:
               "base model only")
         calib = fit(work, capture, base_text, "paper_polynomial")
     report = work / "report"
-    print(_run([_tool("trackcal"), "report", str(capture), "-c", str(calib), "-o", str(report),
-                "--workdir", str(work)], log=work / "report.log"), end="")
+    if final is not None and final.diagnosis is not None:
+        write_report(capture, calib, final.diagnosis, work, report)
+    else:
+        print(_run([_tool("trackcal"), "report", str(capture), "-c", str(calib), "-o", str(report),
+                    "--workdir", str(work)], log=work / "report.log"), end="")
     print(f"Report: {report / 'report.html'}")
     print(f"History: trackcal history {work}")
     if not args.no_serve:
