@@ -274,7 +274,26 @@ struct LoadedData {
   std::vector<CalibrationInput> inputs;   // files read, with digests (provenance)
   std::vector<fs::path> protected_paths;  // never written over
   std::optional<double> time_offset;      // when streams were paired
+  // Streams paired with a free time offset: kept for the joint fit (fit/terms_time_offset.h).
+  std::shared_ptr<TrackerStream> tracker_stream;
+  std::shared_ptr<ReferenceStream> reference_stream;
+  std::optional<fit::StreamPairingOptions> pairing;
+  std::vector<FitStation> stream_stations;  // the pairing's calib stations with velocities
 };
+
+// The calib stations of a stream pairing with the reference velocities a time-offset term needs.
+std::vector<FitStation> StationsOfPairing(const fit::StreamPairingResult& r) {
+  std::vector<FitStation> out;
+  for (size_t i = 0; i < r.poses.records.size(); ++i) {
+    const PoseRecord& p = r.poses.records[i];
+    if (p.set != "calib") continue;
+    FitStation s{p.reported, p.reference, p.time, p.sensor, p.station};
+    s.reference_velocity = r.reference_velocity[i];
+    s.reference_angular_velocity = r.reference_angular_velocity[i];
+    out.push_back(s);
+  }
+  return out;
+}
 
 // Stream pairing with the model's time offset, as trackcal-fit pairs a folder of streams.
 fit::StreamPairingOptions PairingFor(const ModelSpec& spec) {
@@ -311,10 +330,15 @@ LoadedData LoadData(const DataSource& data, const ModelSpec& spec) {
       const fit::StreamPairingOptions pairing = PairingFor(spec);
       const fs::path tracker = *data.path / kTrackerStreamCsv;
       const fs::path reference = *data.path / kReferenceStreamCsv;
-      const auto paired =
-          fit::PairStreams(ReadTrackerStream(tracker), ReadReferenceStream(reference), pairing);
+      out.tracker_stream = std::make_shared<TrackerStream>(ReadTrackerStream(tracker));
+      out.reference_stream = std::make_shared<ReferenceStream>(ReadReferenceStream(reference));
+      const auto paired = fit::PairStreams(*out.tracker_stream, *out.reference_stream, pairing);
       out.poses = paired.poses;
       out.time_offset = paired.time_offset;
+      if (spec.time_offset && !spec.time_offset->fixed) {
+        out.pairing = pairing;
+        out.stream_stations = StationsOfPairing(paired);
+      }
       for (const auto& p : {tracker, reference}) {
         out.inputs.push_back({p.string(), Sha256HexOfFile(p), "calibration_capture"});
         out.protected_paths.push_back(p);
@@ -351,13 +375,12 @@ std::shared_ptr<FitRun> RunFit(const DataSource& data, const ModelSource& model,
   run->protected_paths.insert(run->protected_paths.end(), loaded.protected_paths.begin(),
                               loaded.protected_paths.end());
   run->time_offset = loaded.time_offset;
-  const PoseCapture& poses = loaded.poses;
+  PoseCapture& poses = loaded.poses;
   const std::string& data_name = loaded.name;
-  const auto calib = StationsOfSet(poses, "calib");
+  if (!loaded.stream_stations.empty()) spec.time_offset->value = *loaded.time_offset;
+  auto calib = StationsOfSet(poses, "calib");
   const auto valid = StationsOfSet(poses, "valid");
   if (calib.empty()) throw std::invalid_argument(data_name + ": no stations with set 'calib'");
-  run->num_calib = static_cast<int>(calib.size());
-  run->num_valid = static_cast<int>(valid.size());
 
   FitOptions options;
   if (relay->enabled()) {
@@ -366,7 +389,33 @@ std::shared_ptr<FitRun> RunFit(const DataSource& data, const ModelSource& model,
       relay->Call("fit", iteration, max_iterations);
     };
   }
-  run->result = fit::FitModel(calib, &spec, options);
+  if (loaded.stream_stations.empty()) {
+    run->result = fit::FitModel(calib, &spec, options);
+  } else {
+    // Streams with a free time offset, as trackcal-fit: the offset the pairing estimated starts a
+    // joint fit of the terms and the offset; the streams are re-paired at the estimate while it
+    // moves by more than 1 ms (at most 3 times).
+    std::vector<FitStation> stations = loaded.stream_stations;
+    for (int round = 0;; ++round) {
+      const double paired_at = spec.time_offset->value;
+      run->result = fit::FitModel(stations, &spec, options);
+      if (std::abs(spec.time_offset->value - paired_at) < 1e-3 || round == 3) break;
+      fit::StreamPairingOptions again = *loaded.pairing;
+      again.time_offset = spec.time_offset->value;
+      again.estimate_time_offset = false;
+      const auto repaired =
+          fit::PairStreams(*loaded.tracker_stream, *loaded.reference_stream, again);
+      poses = repaired.poses;
+      stations = StationsOfPairing(repaired);
+      ModelSpec fresh = make_spec();
+      fresh.time_offset->value = again.time_offset;
+      spec = std::move(fresh);
+    }
+    run->time_offset = spec.time_offset->value;
+    calib = StationsOfSet(poses, "calib");
+  }
+  run->num_calib = static_cast<int>(calib.size());
+  run->num_valid = static_cast<int>(valid.size());
   run->tables.push_back(fit::EvaluateTable1(run->result.chain, calib, "calib"));
   if (!valid.empty()) run->tables.push_back(fit::EvaluateTable1(run->result.chain, valid, "valid"));
   if (folds >= 2) {
@@ -439,10 +488,12 @@ struct RegistrationRun {
             {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
             {"num_poses", poses.records.size()},
             {"stations_without_pose", left_out.size()},
+            {"stations_left_out", left_out},
             {"converged", registration.converged},
             {"identifiable", registration.identifiable},
             {"chi_square", registration.chi_square},
-            {"nu", registration.nu}};
+            {"nu", registration.nu},
+            {"registration", registration.ToJson()}};
   }
 };
 
@@ -458,6 +509,7 @@ struct PairRun {
             {"dropped", result.dropped},
             {"time_offset_s", result.time_offset},
             {"estimated", estimated},
+            {"time_offset_stddev_s", result.time_offset_stddev},
             {"position_difference_variance_m2", result.cost}};
   }
 };
@@ -518,9 +570,10 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
       const std::string data_name = data.path ? data.path->string() : loaded.name;
       if (IsStreamFolder(data)) {
         // The time_offset candidate pairs the streams again with its own offset setting.
-        auto tracker = std::make_shared<TrackerStream>(ReadTrackerStream(*data.path / kTrackerStreamCsv));
-        auto reference =
-            std::make_shared<ReferenceStream>(ReadReferenceStream(*data.path / kReferenceStreamCsv));
+        auto tracker =
+            std::make_shared<TrackerStream>(ReadTrackerStream(*data.path / kTrackerStreamCsv));
+        auto reference = std::make_shared<ReferenceStream>(
+            ReadReferenceStream(*data.path / kReferenceStreamCsv));
         const fit::StreamPairingOptions pairing = PairingFor(spec);
         options.pair_streams = [tracker, reference, pairing](const fit::TimeOffsetSpec& t) {
           fit::StreamPairingOptions o = pairing;
