@@ -546,6 +546,12 @@ int main(int argc, char** argv) {
     return argc < 2 ? 2 : 0;
   }
   const std::string command = argv[1];
+  for (int i = 2; i < argc; ++i) {  // `trackcal-fit fit --help` asks, it is not a usage error
+    if (std::string(argv[i]) == "--help" || std::string(argv[i]) == "-h") {
+      PrintUsage(std::cout);
+      return 0;
+    }
+  }
   try {
     if (command == "fit") return RunFit(argc, argv);
     if (command == "diagnose") return RunDiagnose(argc, argv);

@@ -94,6 +94,12 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
   EXPECT_EQ(RunCommand(fit_ + " frobnicate 2> /dev/null"), 2);
 }
 
+TEST_F(FitCliTest, HelpAfterACommandPrintsTheUsageAndSucceeds) {
+  const fs::path out = dir_ / "help.txt";
+  EXPECT_EQ(RunCommand(fit_ + " diagnose --help > " + out.string()), 0);
+  EXPECT_THAT(ReadFileToString(out), ::testing::HasSubstr("trackcal-fit diagnose --data"));
+}
+
 TEST_F(FitCliTest, RegisterWritesReferencePoses) {
   const fs::path json = dir_ / "reg.json";
   ASSERT_EQ(RunCommand(fit_ + " register --markers " + (dir_ / "cap" / "markers.csv").string() +
