@@ -186,17 +186,6 @@ int RunFit(int argc, char** argv) {
   std::optional<ReferenceStream> reference_stream;
   StreamPairingOptions pairing;
   std::vector<FitStation> stream_stations;
-  auto stations_of_pairing = [](const StreamPairingResult& r) {
-    std::vector<FitStation> out;
-    for (size_t i = 0; i < r.poses.records.size(); ++i) {
-      const PoseRecord& p = r.poses.records[i];
-      FitStation s{p.reported, p.reference, p.time, p.sensor, p.station};
-      s.reference_velocity = r.reference_velocity[i];
-      s.reference_angular_velocity = r.reference_angular_velocity[i];
-      out.push_back(s);
-    }
-    return out;
-  };
   if (fs::is_directory(data)) {
     poses_path = data / kPosesCsv;
     if (!fs::exists(poses_path) && fs::exists(data / kTrackerStreamCsv)) {
@@ -211,7 +200,7 @@ int RunFit(int argc, char** argv) {
       poses = result.poses;
       paired_offset = result.time_offset;
       if (spec.time_offset && !spec.time_offset->fixed) {
-        stream_stations = stations_of_pairing(result);
+        stream_stations = FitStationsOfPairing(result);
         spec.time_offset->value = result.time_offset;
       }
       inputs.push_back(data / kTrackerStreamCsv);
@@ -250,7 +239,7 @@ int RunFit(int argc, char** argv) {
       again.estimate_time_offset = false;
       const auto repaired = PairStreams(*tracker_stream, *reference_stream, again);
       poses = repaired.poses;
-      stream_stations = stations_of_pairing(repaired);
+      stream_stations = FitStationsOfPairing(repaired);
       ModelSpec fresh = make_spec();
       fresh.time_offset->value = again.time_offset;
       spec = std::move(fresh);

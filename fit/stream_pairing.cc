@@ -323,4 +323,18 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   return result;
 }
 
+std::vector<FitStation> FitStationsOfPairing(const StreamPairingResult& result,
+                                             const std::string& set) {
+  std::vector<FitStation> out;
+  for (size_t i = 0; i < result.poses.records.size(); ++i) {
+    const PoseRecord& p = result.poses.records[i];
+    if (!set.empty() && p.set != set) continue;
+    FitStation s{p.reported, p.reference, p.time, p.sensor, p.station};
+    s.reference_velocity = result.reference_velocity[i];
+    s.reference_angular_velocity = result.reference_angular_velocity[i];
+    out.push_back(s);
+  }
+  return out;
+}
+
 }  // namespace trackcal::fit

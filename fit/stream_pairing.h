@@ -26,6 +26,7 @@
 #include <vector>
 
 #include "core/capture.h"
+#include "fit/model.h"
 
 namespace trackcal::fit {
 
@@ -65,6 +66,11 @@ struct StreamPairingResult {
 // Throws std::invalid_argument for bad options or streams with fewer than 2 samples.
 StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStream& reference,
                                 const StreamPairingOptions& options);
+
+// The paired records as fit stations carrying the reference velocities a fitted clock offset needs
+// (fit/terms_time_offset.h); only records of `set` when it is not empty.
+std::vector<FitStation> FitStationsOfPairing(const StreamPairingResult& result,
+                                             const std::string& set = {});
 
 // The reference pose at reference time t, or nullopt outside the stream or in a gap > max_gap_s.
 std::optional<Rigid3d> InterpolateReference(const ReferenceStream& reference, double t,

@@ -63,19 +63,6 @@ TEST(PairStreamsOnSimulatedCapture, PlainVarianceIsUnbiasedWithoutDistortion) {
   EXPECT_LT(p.time_offset_stddev, 0.05e-3);
 }
 
-// Stream samples as fit stations with the reference velocities (what trackcal-fit does).
-std::vector<FitStation> StationsOf(const StreamPairingResult& r) {
-  std::vector<FitStation> out;
-  for (size_t i = 0; i < r.poses.records.size(); ++i) {
-    const PoseRecord& p = r.poses.records[i];
-    FitStation s{p.reported, p.reference, p.time, p.sensor, p.station};
-    s.reference_velocity = r.reference_velocity[i];
-    s.reference_angular_velocity = r.reference_angular_velocity[i];
-    out.push_back(s);
-  }
-  return out;
-}
-
 TEST(TimeOffsetInTheFit, RecoveredJointlyWithAPolynomial) {
   const double truth = sim::LoadScene("paper").hidden.reference_minus_tracker_s;
   for (uint64_t seed : {20010313ull, 1ull}) {
@@ -96,7 +83,7 @@ TEST(TimeOffsetInTheFit, RecoveredJointlyWithAPolynomial) {
               ", fixed: false}\n"
               "terms:\n  - type: polynomial\n    degree: 4\n",
           "model.yaml");
-      const FitResult fit = FitModel(StationsOf(paired), &spec);
+      const FitResult fit = FitModel(FitStationsOfPairing(paired), &spec);
       ASSERT_TRUE(fit.converged) << fit.solver_message;
       const ParameterReport& dt = fit.parameters.back();
       ASSERT_EQ(dt.term, "time_offset");

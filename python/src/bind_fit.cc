@@ -281,20 +281,6 @@ struct LoadedData {
   std::vector<FitStation> stream_stations;  // the pairing's calib stations with velocities
 };
 
-// The calib stations of a stream pairing with the reference velocities a time-offset term needs.
-std::vector<FitStation> StationsOfPairing(const fit::StreamPairingResult& r) {
-  std::vector<FitStation> out;
-  for (size_t i = 0; i < r.poses.records.size(); ++i) {
-    const PoseRecord& p = r.poses.records[i];
-    if (p.set != "calib") continue;
-    FitStation s{p.reported, p.reference, p.time, p.sensor, p.station};
-    s.reference_velocity = r.reference_velocity[i];
-    s.reference_angular_velocity = r.reference_angular_velocity[i];
-    out.push_back(s);
-  }
-  return out;
-}
-
 // Stream pairing with the model's time offset, as trackcal-fit pairs a folder of streams.
 fit::StreamPairingOptions PairingFor(const ModelSpec& spec) {
   fit::StreamPairingOptions pairing;
@@ -337,7 +323,7 @@ LoadedData LoadData(const DataSource& data, const ModelSpec& spec) {
       out.time_offset = paired.time_offset;
       if (spec.time_offset && !spec.time_offset->fixed) {
         out.pairing = pairing;
-        out.stream_stations = StationsOfPairing(paired);
+        out.stream_stations = fit::FitStationsOfPairing(paired, "calib");
       }
       for (const auto& p : {tracker, reference}) {
         out.inputs.push_back({p.string(), Sha256HexOfFile(p), "calibration_capture"});
@@ -406,7 +392,7 @@ std::shared_ptr<FitRun> RunFit(const DataSource& data, const ModelSource& model,
       const auto repaired =
           fit::PairStreams(*loaded.tracker_stream, *loaded.reference_stream, again);
       poses = repaired.poses;
-      stations = StationsOfPairing(repaired);
+      stations = fit::FitStationsOfPairing(repaired, "calib");
       ModelSpec fresh = make_spec();
       fresh.time_offset->value = again.time_offset;
       spec = std::move(fresh);
