@@ -155,10 +155,10 @@ TEST(DiagnoseCandidatesPaper, ReceiverGains) {
   const Candidate& top = ExpectTop(r.diagnosis, "receiver_gain");
   if (top.effect != "receiver_gain") return;
   // The room model ends in a polynomial, which absorbs a uniform gain (an isotropic scaling of
-  // positions): the fit holds det G = 1 (docs/model-file.md, gain_scale), so the truth is compared
-  // as G / det(G)^(1/3).
+  // positions): the fit holds trace G = 3 (docs/model-file.md, gain_scale), so the truth is
+  // compared as 3 G / trace(G).
   const Eigen::Matrix3d truth =
-      r.truth.receiver_gain_matrix / std::cbrt(r.truth.receiver_gain_matrix.determinant());
+      3.0 * r.truth.receiver_gain_matrix / r.truth.receiver_gain_matrix.trace();
   std::vector<double> g;
   for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j) g.push_back(truth(i, j));

@@ -430,10 +430,10 @@ std::unique_ptr<ModelTerm> PhysicalGroupTerm::FromYaml(PhysicalEffect effect,
           term->gain_scale_ = GainScale::kAuto;
         } else if (scale == "free") {
           term->gain_scale_ = GainScale::kFree;
-        } else if (scale == "unit_determinant") {
-          term->gain_scale_ = GainScale::kUnitDeterminant;
+        } else if (scale == "unit_mean") {
+          term->gain_scale_ = GainScale::kUnitMean;
         } else {
-          reader.Fail("gain_scale", "expected auto, free or unit_determinant, got '" + scale + "'");
+          reader.Fail("gain_scale", "expected auto, free or unit_mean, got '" + scale + "'");
         }
       }
       break;
@@ -733,18 +733,17 @@ struct SymmetricGainResidual {
 // Gauge of the uniform gain: a uniform gain g scales every measured field by g, and the dipole
 // field falls as r^-3, so the tracker reports p g^(-1/3): an isotropic scaling of positions, which a
 // polynomial (degree >= 1) or LUT after the group reproduces exactly. With such a term the data do
-// not fix det G; this residual holds det G = 1, so G reports the relative gains and the
-// non-orthogonality (G / det(G)^(1/3) of the truth), which the data do fix. Weight 1e8: the gauge
-// direction's std becomes 1e-8, two orders below the smallest stds of G seen from a capture (1e-6
-// on the paper preset with its true noise; 1e-4 with the default noise), so it does not inflate the
-// reported stds, and its information (1e16 against the data's 1e8-1e12 per entry of G) leaves the
-// covariance well conditioned in double.
-struct UnitDeterminantResidual {
+// not fix the scale of G; this residual holds the mean coil gain trace(G) / 3 at 1, so G reports the
+// relative gains and the non-orthogonality (3 G / trace(G) of the truth), which the data do fix.
+// The constraint is linear, so one Gauss-Newton step satisfies it exactly (a det G = 1 penalty is
+// cubic and upset the fast fold refits of fit/candidates.cc). Weight 1e8: the gauge direction's
+// std becomes 1e-8, two orders below the smallest stds of G seen from a capture (1e-6 on the paper
+// preset with its true noise; 1e-4 with the default noise), so it does not inflate the reported
+// stds.
+struct UnitMeanGainResidual {
   template <typename T>
   bool operator()(const T* g, T* r) const {
-    const T det = g[0] * (g[4] * g[8] - g[5] * g[7]) - g[1] * (g[3] * g[8] - g[5] * g[6]) +
-                  g[2] * (g[3] * g[7] - g[4] * g[6]);
-    r[0] = (det - T(1)) * T(1e8);
+    r[0] = (g[0] + g[4] + g[8] - T(3)) * T(1e8);
     return true;
   }
 };
@@ -763,7 +762,7 @@ bool PhysicalGroupTerm::GainScaleHeld() const {
   if (gain == nullptr || blocks_[static_cast<size_t>(Block(*gain, kGainMatrix))].fixed) return false;
   switch (gain_scale_) {
     case GainScale::kFree: return false;
-    case GainScale::kUnitDeterminant: return true;
+    case GainScale::kUnitMean: return true;
     case GainScale::kAuto: break;
   }
   bool absorbed = false;
@@ -786,7 +785,7 @@ int PhysicalGroupTerm::AddExtraResiduals(ceres::Problem* problem,
   later_absorbs_scaling_ = GainScaleHeld();
   if (later_absorbs_scaling_) {
     problem->AddResidualBlock(
-        new ceres::AutoDiffCostFunction<UnitDeterminantResidual, 1, 9>(new UnitDeterminantResidual),
+        new ceres::AutoDiffCostFunction<UnitMeanGainResidual, 1, 9>(new UnitMeanGainResidual),
         nullptr, g.values.data());
     ++added;
   }
@@ -809,10 +808,10 @@ nlohmann::json PhysicalGroupTerm::Describe() const {
   for (const auto& e : effects_) {
     nlohmann::json entry = {{"type", PhysicalEffectType(e.kind)}, {"name", e.name}};
     if (e.kind == PhysicalEffect::kReceiverGain) {
-      static const char* const kScale[] = {"auto", "free", "unit_determinant"};
+      static const char* const kScale[] = {"auto", "free", "unit_mean"};
       entry["gain_scale"] = kScale[static_cast<int>(gain_scale_)];
-      // What the fit did: det G held at 1 (G = relative gains) or the uniform gain estimated.
-      entry["unit_determinant"] = later_absorbs_scaling_;
+      // What the fit did: trace G held at 3 (G = relative gains) or the uniform gain estimated.
+      entry["unit_mean_gain"] = later_absorbs_scaling_;
     }
     effects.push_back(entry);
   }
@@ -905,15 +904,14 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   }
   disabled_.clear();
   RefineAlone(inputs, noise_sigmas);
-  // Start on the gauge (det G = 1): the later terms initialise on what the group then leaves.
+  // Start on the gauge (trace G = 3): the later terms initialise on what the group then leaves.
   if (GainScaleHeld()) {
     for (const auto& e : effects_) {
       if (e.kind != PhysicalEffect::kReceiverGain) continue;
       auto& g = blocks_[static_cast<size_t>(Block(e, kGainMatrix))].values;
-      const double det =
-          Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(g.data()).determinant();
-      if (det > 0.0) {
-        for (double& x : g) x /= std::cbrt(det);
+      const double mean = (g[0] + g[4] + g[8]) / 3.0;
+      if (mean > 0.0) {
+        for (double& x : g) x /= mean;
       }
     }
   }

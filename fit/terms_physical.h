@@ -76,9 +76,9 @@ class PhysicalGroupTerm : public ModelTerm {
   // which an explicit term after the group (polynomial of degree >= 1 with its position part, LUT)
   // reproduces. The data then cannot tell g apart from that term.
   enum class GainScale {
-    kAuto,             // det G = 1 if a later term absorbs the scaling (the default), else free
-    kFree,             // always estimated (only the physical model identifies it)
-    kUnitDeterminant,  // always det G = 1: G reports relative gains and non-orthogonality
+    kAuto,      // trace G = 3 if a later term absorbs the scaling (the default), else free
+    kFree,      // always estimated (only the physical model identifies it)
+    kUnitMean,  // always trace G = 3 (mean coil gain 1): relative gains and non-orthogonality
   };
 
   // A group of one effect with its default start values (identity offset and gain, zero octupole,
@@ -109,11 +109,11 @@ class PhysicalGroupTerm : public ModelTerm {
                 const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
   // With both receiver_gain and sensor_offset free, holds G symmetric: its rotation part is the
   // same as a rotation of the sensor offset (a gauge), see the .cc. With GainScaleHeld(), holds
-  // det G = 1 (the uniform-gain gauge).
+  // trace G = 3 (the uniform-gain gauge: mean coil gain 1).
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
   // Remembers whether a later term absorbs an isotropic scaling (for GainScale::kAuto).
   void SetFollowingTerms(const std::vector<const ModelTerm*>& later) override;
-  // True if the group has a free receiver_gain whose uniform scale is held (det G = 1).
+  // True if the group has a free receiver_gain whose uniform scale is held (trace G = 3).
   bool GainScaleHeld() const;
   GainScale gain_scale() const { return gain_scale_; }
   std::unique_ptr<Correction> ToCorrection() const override;
