@@ -316,6 +316,12 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   const auto start = std::chrono::steady_clock::now();
   const Eigen::Vector2d sigmas(spec->position_sigma, spec->orientation_sigma);
 
+  for (size_t k = 0; k < spec->terms.size(); ++k) {
+    std::vector<const ModelTerm*> later;
+    for (size_t j = k + 1; j < spec->terms.size(); ++j) later.push_back(spec->terms[j].get());
+    spec->terms[k]->SetFollowingTerms(later);
+  }
+
   // (1) prepare and initialise term by term.
   std::vector<bool> linear_ok;
   for (size_t k = 0; k < spec->terms.size(); ++k) {
