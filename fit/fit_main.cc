@@ -3,6 +3,7 @@
 //   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] [--json]
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json]
+//                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
 //                         [--cross-validate-top N] [--json]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
@@ -58,6 +59,8 @@ void PrintUsage(std::ostream& out) {
          "                        [--cross-validate-top N] [--json] [--quiet]\n"
          "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv\n"
          "                        [--set NAME | --poses poses.csv [--model model.yaml]] [--json]\n"
+         "                        [--optical-noise-mm S] [--tracker-noise-mm S] "
+         "[--tracker-noise-deg S]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv "
          "[--json]\n"
@@ -428,8 +431,23 @@ int RunPair(int argc, char** argv) {
 }
 
 int RunRegister(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv, {"--markers", "--tracker", "-o", "--set", "--poses", "--model"},
+  const Args args = ParseArgs(argc, argv,
+                              {"--markers", "--tracker", "-o", "--set", "--poses", "--model",
+                               "--optical-noise-mm", "--tracker-noise-mm", "--tracker-noise-deg"},
                               {"--json", "--quiet"});
+  // Noise of the averaged readings (fit/registration.h); they set the weights and the covariance.
+  RegistrationOptions registration_options;
+  auto noise = [&](const std::string& key, double scale, double* out) {
+    if (!args.values.count(key)) return;
+    const double v = ParseNumber(key, args.Get(key));
+    if (!(v > 0)) throw UsageError(key + " must be > 0");
+    *out = v * scale;
+  };
+  noise("--optical-noise-mm", 1e-3, &registration_options.optical_noise_m);
+  noise("--tracker-noise-mm", 1e-3, &registration_options.tracker_position_noise_m);
+  noise("--tracker-noise-deg", kRadPerDeg, &registration_options.tracker_orientation_noise_rad);
+  PoseExtractionOptions extraction_options;
+  extraction_options.optical_noise_m = registration_options.optical_noise_m;
   const fs::path markers_path = args.Get("--markers");
   const fs::path tracker_path = args.Get("--tracker");
   const fs::path output = args.Get("-o");
@@ -482,6 +500,8 @@ int RunRegister(int argc, char** argv) {
     const std::string model_text = ReadFileToString(model_path);
     ParseModelYaml(model_text, model_path.string());  // errors before any work
     RegistrationRefinementOptions options;
+    options.registration = registration_options;
+    options.extraction = extraction_options;
     CorrectionFitter engine =
         MakeEngineFitter([model_text, model_path] { return ParseModelYaml(model_text, model_path.string()); });
     const bool quiet = args.Flag("--quiet");
@@ -493,10 +513,10 @@ int RunRegister(int argc, char** argv) {
     refinement = RefineRegistration(registration_stations, calibration_stations, fitter, options);
     registration = refinement->refined;
   } else {
-    registration = RegisterOpticalToTransmitter(registration_stations);
+    registration = RegisterOpticalToTransmitter(registration_stations, registration_options);
   }
 
-  const auto extracted = ExtractPoses(stations, registration.registration);
+  const auto extracted = ExtractPoses(stations, registration.registration, extraction_options);
   PoseCapture poses;
   std::vector<int> left_out;
   for (size_t i = 0; i < stations.size(); ++i) {
