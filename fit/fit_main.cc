@@ -134,6 +134,10 @@ std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::strin
 
 void PrintParameters(const FitResult& result, std::ostream& out) {
   out << "Parameters (value +- standard deviation):\n";
+  if (!result.covariance_estimator.empty()) {
+    out << "  (standard deviations from the " << result.covariance_estimator
+        << " covariance; docs/fit.md, \"Standard deviations\")\n";
+  }
   for (const auto& p : result.parameters) {
     out << "  " << p.term << "." << p.block << " [" << p.unit << "]" << (p.fixed ? " (fixed)" : "")
         << ": " << p.values.size() << " values\n";

@@ -304,6 +304,7 @@ TEST_F(SimulatedSession, Nominal_RegisterWithTheRoomModelExtractPosesAndFit) {
   // 1.3: the extracted references carry the registration's share on top of the floor's noise.
   EXPECT_LT(calib_after["mean"].get<double>(), 1.3 * calib_floor);
   EXPECT_LT(valid_after["median"].get<double>(), 1.3 * valid_floor);
+  EXPECT_EQ(fit["fit"]["covariance_estimator"], "sandwich (CR2)");
 }
 
 }  // namespace
