@@ -5,6 +5,7 @@
 
 #include <Eigen/Eigenvalues>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -306,6 +307,24 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
   return out;
 }
 
+// True for stations that are samples of a stream rather than static stations: most of them
+// less than 0.5 s after the previous one (a static station averages a second or more of samples).
+// Stations without distinct times (all 0) count as static.
+bool SerialSamples(const std::vector<FitStation>& stations) {
+  std::vector<double> times;
+  for (const auto& s : stations) times.push_back(s.time);
+  std::sort(times.begin(), times.end());
+  int close = 0, distinct = 0;
+  for (size_t i = 1; i < times.size(); ++i) {
+    const double dt = times[i] - times[i - 1];
+    if (dt > 0.0) {
+      ++distinct;
+      if (dt < 0.5) ++close;
+    }
+  }
+  return distinct > 0 && 2 * distinct >= static_cast<int>(times.size()) && 2 * close > distinct;
+}
+
 }  // namespace
 
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -378,12 +397,19 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       result.chi2_per_dof =
           dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
       const bool covariance = options.compute_covariance && spec->covariance;
-      if (!covariance || spec->covariance_estimator == CovarianceEstimator::kModel) {
+      const bool stream_samples = SerialSamples(stations);  // see the covariance section below
+      if (!covariance || spec->covariance_estimator == CovarianceEstimator::kModel ||
+          stream_samples) {
         const auto covariance_start = std::chrono::steady_clock::now();
         result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
         if (covariance) {
           if (term.LinearCovariance(sigmas)) {
             result.covariance_estimator = "model";
+            if (stream_samples && spec->covariance_estimator == CovarianceEstimator::kSandwich) {
+              result.covariance_message =
+                  "stream samples (serially correlated): model covariance instead of the "
+                  "sandwich; ";
+            }
           } else {
             result.covariance_message = "linear covariance unavailable";
           }
@@ -492,11 +518,19 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   if (options.compute_covariance && spec->covariance && !cov_blocks.empty()) {
     CovarianceOptions co;
     co.num_threads = options.num_threads;
-    // One cluster per station: its 6 residuals share the station's noise.
+    // One cluster per station: its 6 residuals share the station's noise. Stream samples are not
+    // independent (the model's misfit is smooth in time), so a per-sample sandwich would be
+    // optimistic; they keep the model covariance until the sandwich clusters by time.
     co.estimator = spec->covariance_estimator;
     co.clusters = station_blocks;
+    const bool stream_samples = moving || SerialSamples(stations);
+    if (stream_samples) co.estimator = CovarianceEstimator::kModel;
     const CovarianceResult cov = ComputeCovariance(&problem, cov_blocks, co);
     result.covariance_message = cov.message;
+    if (stream_samples && spec->covariance_estimator == CovarianceEstimator::kSandwich) {
+      result.covariance_message +=
+          "stream samples (serially correlated): model covariance instead of the sandwich; ";
+    }
     if (cov.success) result.covariance_estimator = cov.estimator;
     result.rank_deficient = cov.rank_deficient;
     result.identifiability_flags = cov.flags;
