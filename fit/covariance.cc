@@ -1,6 +1,7 @@
 #include "fit/covariance.h"
 
 #include <ceres/covariance.h>
+#include <ceres/cost_function.h>
 #include <ceres/crs_matrix.h>
 
 #include <Eigen/Eigenvalues>
@@ -8,6 +9,7 @@
 #include <cmath>
 #include <cstdio>
 #include <map>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 #include <utility>
@@ -17,7 +19,12 @@ namespace trackcal::fit {
 bool CovarianceOptions::Check() const {
   return rank_tolerance > 0.0 && rank_tolerance < 1.0 && weak_direction_ratio >= rank_tolerance &&
          weak_direction_ratio < 1.0 && weak_component_threshold > 0.0 &&
-         weak_component_threshold <= 1.0 && max_dense_dimension >= 0 && num_threads >= 1;
+         weak_component_threshold <= 1.0 && max_dense_dimension >= 0 && num_threads >= 1 &&
+         max_sandwich_dimension >= 0 && max_leverage_flops >= 0.0;
+}
+
+std::string CovarianceEstimatorName(CovarianceEstimator estimator) {
+  return estimator == CovarianceEstimator::kSandwich ? "sandwich" : "model";
 }
 
 namespace {
@@ -26,6 +33,14 @@ std::string Format(const char* fmt, double value) {
   char buf[64];
   std::snprintf(buf, sizeof(buf), fmt, value);
   return buf;
+}
+
+Eigen::MatrixXd DenseJacobian(const ceres::CRSMatrix& crs) {
+  Eigen::MatrixXd jacobian = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
+  for (int r = 0; r < crs.num_rows; ++r) {
+    for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) jacobian(r, crs.cols[k]) = crs.values[k];
+  }
+  return jacobian;
 }
 
 struct DenseAnalysis {
@@ -51,10 +66,7 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
   double cost = 0.0;
   if (!problem->Evaluate(eval, &cost, nullptr, nullptr, &crs)) return a;
   if (crs.num_cols != dimension) return a;
-  Eigen::MatrixXd jacobian = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
-  for (int r = 0; r < crs.num_rows; ++r) {
-    for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) jacobian(r, crs.cols[k]) = crs.values[k];
-  }
+  const Eigen::MatrixXd jacobian = DenseJacobian(crs);
   const Eigen::MatrixXd information = jacobian.transpose() * jacobian;
   a.scale = Eigen::VectorXd::Ones(dimension);
   for (int i = 0; i < dimension; ++i) {
@@ -74,6 +86,84 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
   a.reciprocal_condition = largest > 0.0 ? std::max(0.0, a.eigenvalues(0)) / largest : 0.0;
   a.done = true;
   return a;
+}
+
+// The cluster-robust sandwich over all `columns` (see the header): H^+ M H^+ with H^+ the
+// rank-aware pseudo-inverse of the dense analysis. False (and why) if it cannot be computed.
+bool SandwichCovariance(ceres::Problem* problem, const std::vector<double*>& columns,
+                        int dimension, const DenseAnalysis& dense,
+                        const CovarianceOptions& options, Eigen::MatrixXd* full,
+                        std::string* estimator, std::string* why) {
+  const int rank = dense.rank;
+  const Eigen::MatrixXd sv = dense.scale.asDiagonal() * dense.eigenvectors.rightCols(rank);
+  const Eigen::VectorXd inv = dense.eigenvalues.tail(rank).cwiseInverse();
+  const Eigen::MatrixXd h_inv = sv * inv.asDiagonal() * sv.transpose();
+
+  ceres::Problem::EvaluateOptions eval;
+  eval.parameter_blocks = columns;
+  eval.residual_blocks = options.clusters;
+  eval.apply_loss_function = true;
+  eval.num_threads = options.num_threads;
+  ceres::CRSMatrix crs;
+  std::vector<double> residuals;
+  double cost = 0.0;
+  if (!problem->Evaluate(eval, &cost, &residuals, nullptr, &crs) || crs.num_cols != dimension) {
+    *why = "the clusters' residuals could not be evaluated";
+    return false;
+  }
+  const Eigen::MatrixXd jc = DenseJacobian(crs);
+  Eigen::MatrixXd meat = Eigen::MatrixXd::Zero(dimension, dimension);
+
+  // Residual blocks that are not clusters (priors, regularisers): their model information.
+  std::vector<ceres::ResidualBlockId> all, others;
+  problem->GetResidualBlocks(&all);
+  const std::set<ceres::ResidualBlockId> clustered(options.clusters.begin(),
+                                                   options.clusters.end());
+  for (ceres::ResidualBlockId id : all) {
+    if (!clustered.count(id)) others.push_back(id);
+  }
+  if (!others.empty()) {
+    eval.residual_blocks = others;
+    ceres::CRSMatrix crs_others;
+    if (!problem->Evaluate(eval, &cost, nullptr, nullptr, &crs_others)) {
+      *why = "the non-cluster residuals could not be evaluated";
+      return false;
+    }
+    const Eigen::MatrixXd jo = DenseJacobian(crs_others);
+    meat.noalias() += jo.transpose() * jo;
+  }
+
+  const int num_clusters = static_cast<int>(options.clusters.size());
+  const int num_rows = crs.num_rows;
+  const bool leverage =
+      static_cast<double>(num_rows) * dimension * dimension <= options.max_leverage_flops;
+  Eigen::MatrixXd scores(dimension, num_clusters);
+  int row = 0;
+  for (int g = 0; g < num_clusters; ++g) {
+    const int k = problem->GetCostFunctionForResidualBlock(options.clusters[g])->num_residuals();
+    const Eigen::MatrixXd jg = jc.middleRows(row, k);
+    Eigen::VectorXd u = Eigen::Map<const Eigen::VectorXd>(residuals.data() + row, k);
+    if (leverage) {
+      // u = (I - A)^-1/2 r; a leverage near 1 (a cluster that alone determines a direction) is
+      // capped so its residual is inflated at most 1000-fold.
+      const Eigen::MatrixXd a = jg * h_inv * jg.transpose();
+      Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(Eigen::MatrixXd::Identity(k, k) - a);
+      const Eigen::VectorXd scale =
+          eig.eigenvalues().cwiseMax(1e-6).cwiseSqrt().cwiseInverse();
+      u = eig.eigenvectors() * scale.asDiagonal() * eig.eigenvectors().transpose() * u;
+    }
+    scores.col(g) = jg.transpose() * u;
+    row += k;
+  }
+  double factor = 1.0;
+  if (!leverage) {
+    const double g = num_clusters, n = num_rows, p = rank;
+    factor = g > 1 && n > p ? g / (g - 1.0) * (n - 1.0) / (n - p) : 1.0;
+  }
+  meat.noalias() += factor * scores * scores.transpose();
+  *full = h_inv * meat * h_inv;
+  *estimator = leverage ? "sandwich (CR2)" : "sandwich (CR1)";
+  return true;
 }
 
 }  // namespace
@@ -115,9 +205,27 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   }
   const int n = static_cast<int>(result.coordinate_names.size());
 
-  // All free blocks of the problem, in a fixed column order.
+  // All free blocks of the problem, in a fixed column order: the requested blocks, then the others
+  // as the residual blocks (kept in insertion order) use them. Problem::GetParameterBlocks lists
+  // them by address, which differs between runs and would change the last bits of every sum.
   std::vector<double*> all_blocks;
-  problem->GetParameterBlocks(&all_blocks);
+  {
+    std::set<const double*> seen;
+    auto add = [&](double* block) {
+      if (seen.insert(block).second) all_blocks.push_back(block);
+    };
+    for (const CovarianceBlock& b : blocks) add(const_cast<double*>(b.values));
+    std::vector<ceres::ResidualBlockId> residual_blocks;
+    problem->GetResidualBlocks(&residual_blocks);
+    for (ceres::ResidualBlockId id : residual_blocks) {
+      std::vector<double*> used;
+      problem->GetParameterBlocksForResidualBlock(id, &used);
+      for (double* block : used) add(block);
+    }
+    std::vector<double*> by_address;
+    problem->GetParameterBlocks(&by_address);
+    for (double* block : by_address) add(block);  // blocks without residuals
+  }
   std::vector<double*> columns;
   std::map<const double*, int> column_offset;
   for (double* block : all_blocks) {
@@ -149,7 +257,43 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     return i == j || (blocks[i].cross_covariance && blocks[j].cross_covariance);
   };
   bool have_covariance = false;
-  if (!result.rank_deficient) {
+  if (options.estimator == CovarianceEstimator::kSandwich) {
+    std::string why;
+    if (result.tangent_dimension > options.max_sandwich_dimension) {
+      why = "tangent dimension " + std::to_string(result.tangent_dimension) +
+            " is above max_sandwich_dimension " + std::to_string(options.max_sandwich_dimension);
+    } else if (!dense.done) {
+      why = "the dense analysis was not possible";
+    } else if (options.clusters.size() < 2) {
+      why = "fewer than 2 clusters";
+    } else {
+      Eigen::MatrixXd full;
+      std::string estimator;
+      if (SandwichCovariance(problem, columns, result.tangent_dimension, dense, options, &full,
+                             &estimator, &why)) {
+        result.covariance = Eigen::MatrixXd::Zero(n, n);
+        for (std::size_t i = 0; i < blocks.size(); ++i) {
+          for (std::size_t j = 0; j < blocks.size(); ++j) {
+            if (!Wanted(i, j)) continue;
+            for (int a = 0; a < sizes[i]; ++a) {
+              for (int b = 0; b < sizes[j]; ++b) {
+                const int ra = result.block_offsets[i] + a, rb = result.block_offsets[j] + b;
+                result.covariance(ra, rb) = full(full_index[ra], full_index[rb]);
+              }
+            }
+          }
+        }
+        result.method = dense.rank < result.tangent_dimension ? "dense_pseudo_inverse_sandwich"
+                                                              : "dense_sandwich";
+        result.estimator = estimator;
+        have_covariance = true;
+      }
+    }
+    if (!have_covariance) {
+      result.message += "sandwich covariance unavailable (" + why + "), model covariance used; ";
+    }
+  }
+  if (!have_covariance && !result.rank_deficient) {
     ceres::Covariance::Options copt;
     copt.algorithm_type = ceres::SPARSE_QR;
     copt.num_threads = options.num_threads;
@@ -255,7 +399,8 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
 
 std::string CovarianceResult::ToString() const {
   std::ostringstream out;
-  out << "covariance: " << (success ? method : "FAILED") << ", tangent dimension "
+  out << "covariance: " << (success ? method + ", estimator " + estimator : "FAILED")
+      << ", tangent dimension "
       << tangent_dimension;
   if (rank >= 0) {
     out << ", rank " << rank << (rank_deficient ? " (RANK DEFICIENT)" : "")

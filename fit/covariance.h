@@ -14,10 +14,27 @@
 //     which a weak direction moves.
 // Standard deviations are in physical units: each block's tangent coordinates are multiplied by
 // its tangent_scale (2 for EigenQuaternionManifold blocks, giving rotation vectors in radians).
+//
+// Two estimators (CovarianceOptions::estimator):
+//   - kModel: H^-1. Exact when every residual is whitened by its true noise. The fit engine whitens
+//     by the model file's `noise:`, constant by default, while an EM tracker's noise grows about as
+//     r^4 with range, so on real-shaped data H^-1 is wrong (too small or too large, depending on
+//     which stations carry the estimate).
+//   - kSandwich: the cluster-robust ("heteroscedasticity-consistent") covariance
+//     H^-1 (sum_g J_g^T u_g u_g^T J_g + J_o^T J_o) H^-1. Each cluster g is one residual block (a
+//     station's 6 residuals, which share the station's noise and may be correlated); u_g is its
+//     residual at the solution, corrected for its leverage A_g = J_g H^-1 J_g^T as
+//     u_g = (I - A_g)^-1/2 r_g (Bell and McCaffrey's CR2: unbiased when the noise model happens to
+//     be right), or, when that costs too much, r_g scaled by G/(G-1) (N-1)/(N-K) (CR1). Residual
+//     blocks that are not clusters (priors, regularisers) enter with their model information J_o^T
+//     J_o. It needs no noise model, only independent clusters and a correct model (a misfit adds to
+//     it, as it should). It needs the dense analysis and at most max_sandwich_dimension tangent
+//     coordinates; otherwise the model covariance is used and CovarianceResult::estimator says so.
 
 #pragma once
 
 #include <ceres/problem.h>
+#include <ceres/types.h>
 
 #include <Eigen/Core>
 #include <limits>
@@ -38,7 +55,25 @@ struct CovarianceBlock {
   bool cross_covariance = true;
 };
 
+enum class CovarianceEstimator {
+  kModel,     // H^-1 with the residuals' whitening taken as the truth
+  kSandwich,  // cluster-robust sandwich over `clusters` (see the file comment)
+};
+
+// "model" or "sandwich".
+std::string CovarianceEstimatorName(CovarianceEstimator estimator);
+
 struct CovarianceOptions {
+  CovarianceEstimator estimator = CovarianceEstimator::kModel;
+  // kSandwich: the residual blocks that are independent observations, one cluster each (a
+  // station's residual block). Other residual blocks count as model information.
+  std::vector<ceres::ResidualBlockId> clusters;
+  // kSandwich only up to this many tangent coordinates (its dense products cost dimension^3;
+  // larger problems, such as fine LUTs, get the model covariance and a message saying so).
+  int max_sandwich_dimension = 800;
+  // kSandwich: the CR2 leverage correction costs about residual rows * dimension^2 flops; above
+  // this the CR1 scaling is used instead.
+  double max_leverage_flops = 4e9;
   // Eigenvalues of H below this fraction of the largest count as null space (rank deficiency).
   double rank_tolerance = 1e-12;
   // Eigen-directions below this fraction of the largest eigenvalue are reported as weak.
@@ -62,6 +97,9 @@ struct IdentifiabilityFlag {
 struct CovarianceResult {
   bool success = false;         // a covariance (full or pseudo-inverse) was computed
   std::string method;           // "ceres_sparse_qr", "ceres_dense_svd" or "dense_pseudo_inverse"
+  // The estimator used: "model", "sandwich (CR2)" or "sandwich (CR1)"; a sandwich that was asked
+  // for but could not be computed gives "model" and says why in `message`.
+  std::string estimator = "model";
   int tangent_dimension = 0;    // tangent coordinates of all non-constant blocks in the problem
   int rank = -1;                // numerical rank of H (-1: dense analysis skipped)
   bool rank_deficient = false;  // rank < tangent_dimension (or Ceres refused the inverse)

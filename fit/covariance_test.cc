@@ -47,6 +47,73 @@ TEST(ComputeCovariance, Nominal) {
   EXPECT_EQ(c.coordinate_names[0], "a.[0]");
 }
 
+// Sandwich on a straight line with heteroscedastic residuals: CR2 by its closed form for one
+// residual per cluster, (X^T X)^-1 X^T diag(r_i^2 / (1 - h_ii)) X (X^T X)^-1 with the leverages
+// h_ii = x_i^T (X^T X)^-1 x_i, and CR1 with its factor G/(G-1) (N-1)/(N-K). The whitening sigma
+// cancels: the sandwich does not depend on it.
+TEST(ComputeCovariance, SandwichMatchesItsClosedForm) {
+  const int n = 12;
+  Eigen::MatrixXd x(n, 2);
+  Eigen::VectorXd y(n);
+  for (int i = 0; i < n; ++i) {
+    x.row(i) << 1.0, 0.5 * i;
+    // Noise that grows with x, fixed values so the test is deterministic.
+    y(i) = 1.0 + 2.0 * x(i, 1) + 0.01 * (1 + i) * ((i * 7) % 5 - 2.0);
+  }
+  const Eigen::Vector2d beta = (x.transpose() * x).ldlt().solve(x.transpose() * y);
+  Eigen::VectorXd r = x * beta;
+  r -= y;
+  const Eigen::Matrix2d h_inv = (x.transpose() * x).inverse();
+  Eigen::Matrix2d meat2 = Eigen::Matrix2d::Zero(), meat1 = Eigen::Matrix2d::Zero();
+  for (int i = 0; i < n; ++i) {
+    const double h = x.row(i) * h_inv * x.row(i).transpose();
+    meat2 += x.row(i).transpose() * x.row(i) * r(i) * r(i) / (1.0 - h);
+    meat1 += x.row(i).transpose() * x.row(i) * r(i) * r(i);
+  }
+  const Eigen::Matrix2d cr2 = h_inv * meat2 * h_inv;
+  const Eigen::Matrix2d cr1 =
+      h_inv * meat1 * h_inv * (n / (n - 1.0)) * ((n - 1.0) / (n - 2.0));
+  for (const double sigma : {0.05, 3.0}) {
+    for (const bool leverage : {true, false}) {
+      double a = beta(0), b = beta(1);
+      ceres::Problem problem;
+      CovarianceOptions options;
+      options.estimator = CovarianceEstimator::kSandwich;
+      options.max_leverage_flops = leverage ? 1e9 : 0.0;
+      for (int i = 0; i < n; ++i) {
+        options.clusters.push_back(problem.AddResidualBlock(
+            Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(sigma), x(i, 1), y(i)),
+            nullptr, &a, &b));
+      }
+      const CovarianceResult c =
+          ComputeCovariance(&problem, {{&a, "a", {}, 1.0, 10.0}, {&b, "b", {}, 1.0, 10.0}},
+                            options);
+      ASSERT_TRUE(c.success) << c.ToString();
+      EXPECT_EQ(c.estimator, leverage ? "sandwich (CR2)" : "sandwich (CR1)");
+      EXPECT_EQ(c.method, "dense_sandwich");
+      // Same algebra in another order: rounding only.
+      EXPECT_TRUE(c.covariance.isApprox(leverage ? cr2 : cr1, 1e-9))
+          << c.covariance << "\nexpected\n" << (leverage ? cr2 : cr1);
+    }
+  }
+}
+
+TEST(ComputeCovariance, SandwichWithoutClustersFallsBackToTheModel) {
+  double a = 0.0, b = 0.0;
+  ceres::Problem problem;
+  for (int i = 0; i < 5; ++i) {
+    problem.AddResidualBlock(Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(1.0), i, i),
+                             nullptr, &a, &b);
+  }
+  CovarianceOptions options;
+  options.estimator = CovarianceEstimator::kSandwich;
+  const CovarianceResult c =
+      ComputeCovariance(&problem, {{&a, "a", {}, 1.0, 10.0}, {&b, "b", {}, 1.0, 10.0}}, options);
+  ASSERT_TRUE(c.success);
+  EXPECT_EQ(c.estimator, "model");
+  EXPECT_NE(c.message.find("sandwich covariance unavailable"), std::string::npos) << c.message;
+}
+
 TEST(ComputeCovariance, LargeStddevIsFlagged) {
   double a = 0.0, b = 0.0;
   ceres::Problem problem;

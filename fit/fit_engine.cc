@@ -5,6 +5,7 @@
 
 #include <Eigen/Eigenvalues>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -306,6 +307,24 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
   return out;
 }
 
+// True for stations that are samples of a stream rather than static stations: most of them
+// less than 0.5 s after the previous one (a static station averages a second or more of samples).
+// Stations without distinct times (all 0) count as static.
+bool SerialSamples(const std::vector<FitStation>& stations) {
+  std::vector<double> times;
+  for (const auto& s : stations) times.push_back(s.time);
+  std::sort(times.begin(), times.end());
+  int close = 0, distinct = 0;
+  for (size_t i = 1; i < times.size(); ++i) {
+    const double dt = times[i] - times[i - 1];
+    if (dt > 0.0) {
+      ++distinct;
+      if (dt < 0.5) ++close;
+    }
+  }
+  return distinct > 0 && 2 * distinct >= static_cast<int>(times.size()) && 2 * close > distinct;
+}
+
 }  // namespace
 
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -344,7 +363,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   const std::optional<double> time_offset0 =
       fit_time_offset ? std::optional<double>(spec->time_offset->value) : std::nullopt;
 
-  // Fast path: a lone linear term (the paper's method) is solved by its linear least squares.
+  // Fast path: a lone linear term (the paper's method) is solved by its linear least squares. Its
+  // model covariance is the term's own; a sandwich needs the station residual blocks, so then the
+  // problem below is built at the linear solution (not solved again) for the covariance alone.
+  std::optional<FitResult> linear_solution;
   if (spec->terms.size() == 1 && linear_ok[0] && spec->terms[0]->SolvesAloneLinearly() &&
       spec->loss.type == LossType::kNone && spec->position_range_exponent == 0.0 &&
       spec->orientation_range_exponent == 0.0 && !fit_time_offset) {
@@ -380,15 +402,31 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       const int dof = result.num_residuals - result.num_free_parameters;
       result.chi2_per_dof =
           dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
-      const auto covariance_start = std::chrono::steady_clock::now();
-      result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
-      if (options.compute_covariance && spec->covariance && !term.LinearCovariance(sigmas)) {
-        result.covariance_message = "linear covariance unavailable";
+      const bool covariance = options.compute_covariance && spec->covariance;
+      const bool stream_samples = SerialSamples(stations);  // see the covariance section below
+      if (!covariance || spec->covariance_estimator == CovarianceEstimator::kModel ||
+          stream_samples) {
+        const auto covariance_start = std::chrono::steady_clock::now();
+        result.seconds_solve = std::chrono::duration<double>(covariance_start - start).count();
+        if (covariance) {
+          if (term.LinearCovariance(sigmas)) {
+            result.covariance_estimator = "model";
+            if (stream_samples && spec->covariance_estimator == CovarianceEstimator::kSandwich) {
+              result.covariance_message =
+                  "stream samples (serially correlated): model covariance instead of the "
+                  "sandwich; ";
+            }
+          } else {
+            result.covariance_message = "linear covariance unavailable";
+          }
+        }
+        result.seconds_covariance = std::chrono::duration<double>(
+                                        std::chrono::steady_clock::now() - covariance_start)
+                                        .count();
+        FinishResult(stations, spec, start, &result);
+        return result;
       }
-      result.seconds_covariance =
-          std::chrono::duration<double>(std::chrono::steady_clock::now() - covariance_start).count();
-      FinishResult(stations, spec, start, &result);
-      return result;
+      linear_solution = std::move(result);
     }
   }
 
@@ -415,34 +453,39 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     solver_options.update_state_every_iteration = false;
   }
   ceres::Solver::Summary summary;
-  if (num_free > 0) ceres::Solve(solver_options, &problem, &summary);
-  result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE;
-  result.solver_message = num_free == 0 ? "no free parameters" : summary.message;
-  result.iterations = num_free == 0 ? 0 : static_cast<int>(summary.iterations.size()) - 1;
-  result.num_residuals = problem.NumResiduals();
-  result.num_free_parameters = num_free;
-  {
-    double cost = 0.0;
-    problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, nullptr);
-    result.final_cost = cost;
-    result.initial_cost = num_free == 0 ? cost : summary.initial_cost;
-  }
-  const int dof = result.num_residuals - num_free;
-  result.chi2_per_dof = dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
+  if (linear_solution) {
+    // Solved linearly above; the problem is only the covariance's.
+    result = std::move(*linear_solution);
+  } else {
+    if (num_free > 0) ceres::Solve(solver_options, &problem, &summary);
+    result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE;
+    result.solver_message = num_free == 0 ? "no free parameters" : summary.message;
+    result.iterations = num_free == 0 ? 0 : static_cast<int>(summary.iterations.size()) - 1;
+    result.num_residuals = problem.NumResiduals();
+    result.num_free_parameters = num_free;
+    {
+      double cost = 0.0;
+      problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, nullptr);
+      result.final_cost = cost;
+      result.initial_cost = num_free == 0 ? cost : summary.initial_cost;
+    }
+    const int dof = result.num_residuals - num_free;
+    result.chi2_per_dof = dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
 
-  // Outliers: the raw (un-robustified) whitened station residual.
-  {
-    ceres::Problem::EvaluateOptions eo;
-    eo.residual_blocks = station_blocks;
-    eo.apply_loss_function = false;
-    std::vector<double> residuals;
-    problem.Evaluate(eo, nullptr, &residuals, nullptr, nullptr);
-    const double limit = spec->loss.type == LossType::kNone ? 5.0 : spec->loss.scale;
-    for (size_t i = 0; i < stations.size(); ++i) {
-      double s2 = 0.0;
-      for (int k = 0; k < 6; ++k) s2 += residuals[i * 6 + static_cast<size_t>(k)] * residuals[i * 6 + static_cast<size_t>(k)];
-      const double rms = std::sqrt(s2 / 6.0);
-      if (rms > limit) result.outliers.push_back({stations[i].station, rms});
+    // Outliers: the raw (un-robustified) whitened station residual.
+    {
+      ceres::Problem::EvaluateOptions eo;
+      eo.residual_blocks = station_blocks;
+      eo.apply_loss_function = false;
+      std::vector<double> residuals;
+      problem.Evaluate(eo, nullptr, &residuals, nullptr, nullptr);
+      const double limit = spec->loss.type == LossType::kNone ? 5.0 : spec->loss.scale;
+      for (size_t i = 0; i < stations.size(); ++i) {
+        double s2 = 0.0;
+        for (int k = 0; k < 6; ++k) s2 += residuals[i * 6 + static_cast<size_t>(k)] * residuals[i * 6 + static_cast<size_t>(k)];
+        const double rms = std::sqrt(s2 / 6.0);
+        if (rms > limit) result.outliers.push_back({stations[i].station, rms});
+      }
     }
   }
 
@@ -481,13 +524,25 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   if (options.compute_covariance && spec->covariance && !cov_blocks.empty()) {
     CovarianceOptions co;
     co.num_threads = options.num_threads;
+    // One cluster per station: its 6 residuals share the station's noise. Stream samples are not
+    // independent (the model's misfit is smooth in time), so a per-sample sandwich would be
+    // optimistic; they keep the model covariance until the sandwich clusters by time.
+    co.estimator = spec->covariance_estimator;
+    co.clusters = station_blocks;
+    const bool stream_samples = moving || SerialSamples(stations);
+    if (stream_samples) co.estimator = CovarianceEstimator::kModel;
     const CovarianceResult cov = ComputeCovariance(&problem, cov_blocks, co);
     result.covariance_message = cov.message;
+    if (stream_samples && spec->covariance_estimator == CovarianceEstimator::kSandwich) {
+      result.covariance_message +=
+          "stream samples (serially correlated): model covariance instead of the sandwich; ";
+    }
+    if (cov.success) result.covariance_estimator = cov.estimator;
     result.rank_deficient = cov.rank_deficient;
     result.identifiability_flags = cov.flags;
     if (cov.success) {
-      // Scale by chi2/dof when the noise model is off? No: the model's sigmas are the noise model; the
-      // reported std assumes them (chi2_per_dof tells whether they fit).
+      // With the model estimator the stds assume the model's sigmas (chi2_per_dof tells whether
+      // they fit); the sandwich estimator does not (fit/covariance.h).
       if (fit_time_offset) time_offset_stddev = cov.stddev[cov.block_offsets[cov_index.size()]];
       for (size_t i = 0; i < cov_index.size(); ++i) {
         auto& block = spec->terms[cov_index[i].first]->blocks()[cov_index[i].second];
@@ -971,6 +1026,8 @@ nlohmann::json FitResult::ToJson() const {
           {"seconds_covariance", seconds_covariance},
           {"rank_deficient", rank_deficient},
           {"covariance_message", covariance_message},
+          {"covariance_estimator", covariance_estimator.empty() ? nlohmann::json()
+                                                                 : nlohmann::json(covariance_estimator)},
           {"identifiability_flags", flags},
           {"outliers", out_flags},
           {"terms", terms},

@@ -71,6 +71,9 @@ struct FitResult {
   std::vector<IdentifiabilityFlag> identifiability_flags;
   bool rank_deficient = false;
   std::string covariance_message;
+  // Which covariance gave the stds: "model" (H^-1 with the model file's noise), "sandwich (CR2)"
+  // or "sandwich (CR1)" (fit/covariance.h); empty when there are none.
+  std::string covariance_estimator;
   std::vector<StationFlag> outliers;  // stations beyond the loss scale
   CorrectionChain chain;              // the fitted correction, with the calibrated volume
   nlohmann::json terms = nlohmann::json::array();  // Describe() of every term

@@ -3,6 +3,7 @@
 //   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] [--json]
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json]
+//                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
 //                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
@@ -30,6 +31,7 @@
 #include "core/file_util.h"
 #include "fit/candidates.h"
 #include "fit/fit_engine.h"
+#include "fit/fit_run.h"
 #include "fit/model_file.h"
 #include "fit/pose_extraction.h"
 #include "fit/registration.h"
@@ -59,6 +61,8 @@ void PrintUsage(std::ostream& out) {
          "[--quiet]\n"
          "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv\n"
          "                        [--set NAME | --poses poses.csv [--model model.yaml]] [--json]\n"
+         "                        [--optical-noise-mm S] [--tracker-noise-mm S] "
+         "[--tracker-noise-deg S]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv "
          "[--json]\n"
@@ -122,16 +126,12 @@ void CheckOutputIsNotInput(const fs::path& output, const std::vector<fs::path>& 
   }
 }
 
-std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::string& set) {
-  std::vector<FitStation> out;
-  for (const auto& r : poses.records) {
-    if (r.set == set) out.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
-  }
-  return out;
-}
-
 void PrintParameters(const FitResult& result, std::ostream& out) {
   out << "Parameters (value +- standard deviation):\n";
+  if (!result.covariance_estimator.empty()) {
+    out << "  (standard deviations from the " << result.covariance_estimator
+        << " covariance; docs/fit.md, \"Standard deviations\")\n";
+  }
   for (const auto& p : result.parameters) {
     out << "  " << p.term << "." << p.block << " [" << p.unit << "]" << (p.fixed ? " (fixed)" : "")
         << ": " << p.values.size() << " values\n";
@@ -172,133 +172,44 @@ int RunFit(int argc, char** argv) {
   const bool json = args.Flag("--json");
   const bool quiet = args.Flag("--quiet");
 
-  const std::string model_text = ReadFileToString(model_path);
-  auto make_spec = [&] { return ParseModelYaml(model_text, model_path.string()); };
-  ModelSpec spec = make_spec();
-
-  // Data: poses.csv, a folder with poses.csv, or a folder with streams to pair.
-  fs::path poses_path = data;
+  // The pipeline (data resolution, stream pairing, joint clock offset, Table 1, calibration
+  // contents) is fit/fit_run.h, shared with the Python binding.
+  const FitModelSource model{ReadFileToString(model_path), model_path.string(), model_path};
+  LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt},
+                                     ParseModelYaml(model.text, model.source_name));
   std::vector<fs::path> inputs = {model_path};
-  PoseCapture poses;
-  std::optional<double> paired_offset;
-  // Streams with a free time_offset: the offset estimated by pairing starts the fit, which then
-  // estimates it jointly with the terms (fit/terms_time_offset.h) and re-pairs if it moved.
-  std::optional<TrackerStream> tracker_stream;
-  std::optional<ReferenceStream> reference_stream;
-  StreamPairingOptions pairing;
-  std::vector<FitStation> stream_stations;
-  if (fs::is_directory(data)) {
-    poses_path = data / kPosesCsv;
-    if (!fs::exists(poses_path) && fs::exists(data / kTrackerStreamCsv)) {
-      if (spec.time_offset) {
-        pairing.time_offset = spec.time_offset->value;
-        pairing.estimate_time_offset = !spec.time_offset->fixed;
-        pairing.search_range = spec.time_offset->search_range;
-      }
-      tracker_stream = ReadTrackerStream(data / kTrackerStreamCsv);
-      reference_stream = ReadReferenceStream(data / kReferenceStreamCsv);
-      const auto result = PairStreams(*tracker_stream, *reference_stream, pairing);
-      poses = result.poses;
-      paired_offset = result.time_offset;
-      if (spec.time_offset && !spec.time_offset->fixed) {
-        stream_stations = FitStationsOfPairing(result);
-        spec.time_offset->value = result.time_offset;
-      }
-      inputs.push_back(data / kTrackerStreamCsv);
-      inputs.push_back(data / kReferenceStreamCsv);
-    }
-  }
-  if (poses.records.empty()) {
-    poses = ReadPoses(poses_path);
-    inputs.push_back(poses_path);
-  }
+  inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
   CheckOutputIsNotInput(output, inputs);
-  auto calib = StationsOfSet(poses, "calib");
-  const auto valid = StationsOfSet(poses, "valid");
-  if (calib.empty()) {
-    throw std::invalid_argument(poses_path.string() + ": no stations with set 'calib'");
-  }
 
-  FitOptions options;
+  FitRunOptions options;
+  options.folds = folds;
+  options.cross_validate_with_validation_set = false;  // the valid set is the held-out table
+  options.tool = "trackcal-fit";
+  options.tool_version = kVersion;
+  options.description_tool = "trackcal-fit";
   if (!quiet) {
-    options.progress = [](int iteration, double cost) {
+    options.on_iteration = [](int iteration, double cost, int) {
       std::cerr << "trackcal-fit: iteration " << iteration << ", cost " << cost << "\n";
     };
+    options.on_fold = [](int f, int n) {
+      std::cerr << "trackcal-fit: cross-validation fold " << f + 1 << "/" << n << "\n";
+    };
   }
-  FitResult result;
-  if (stream_stations.empty()) {
-    result = FitModel(calib, &spec, options);
-  } else {
-    // Joint fit; re-pair at the estimate while it moves by more than the linearisation allows
-    // (1 ms: a 1 m/s^2 acceleration then errs by 0.5 um).
-    for (int round = 0;; ++round) {
-      const double paired_at = spec.time_offset->value;
-      result = FitModel(stream_stations, &spec, options);
-      if (std::abs(spec.time_offset->value - paired_at) < 1e-3 || round == 3) break;
-      StreamPairingOptions again = pairing;
-      again.time_offset = spec.time_offset->value;
-      again.estimate_time_offset = false;
-      const auto repaired = PairStreams(*tracker_stream, *reference_stream, again);
-      poses = repaired.poses;
-      stream_stations = FitStationsOfPairing(repaired);
-      ModelSpec fresh = make_spec();
-      fresh.time_offset->value = again.time_offset;
-      spec = std::move(fresh);
-    }
-    paired_offset = spec.time_offset->value;
-    calib = StationsOfSet(poses, "calib");
-  }
-  std::vector<Table1> tables = {EvaluateTable1(result.chain, calib, "calib")};
-  if (!valid.empty()) {
-    tables.push_back(EvaluateTable1(result.chain, valid, "valid"));
-  } else {
-    tables.push_back(CrossValidate(calib, make_spec, folds, [&](int f) {
-      if (!quiet) std::cerr << "trackcal-fit: cross-validation fold " << f + 1 << "/" << folds << "\n";
-    }));
-  }
-
-  Calibration calibration;
-  calibration.description = "fitted by trackcal-fit from " + poses_path.filename().string() +
-                            " with model " + model_path.filename().string();
-  calibration.chain = result.chain;
-  nlohmann::json stats = nlohmann::json::object();
-  nlohmann::json table_json = nlohmann::json::array();
-  for (const auto& t : tables) table_json.push_back(Table1ToJson(t));
-  stats["tables"] = table_json;
-  stats["chi2_per_dof"] = std::isfinite(result.chi2_per_dof) ? nlohmann::json(result.chi2_per_dof)
-                                                             : nlohmann::json();
-  stats["num_calib_stations"] = calib.size();
-  stats["num_valid_stations"] = valid.size();
-  stats["converged"] = result.converged;
-  stats["num_outliers"] = result.outliers.size();
-  stats["num_poorly_identified"] = result.identifiability_flags.size();
-  if (paired_offset) stats["time_offset_s"] = *paired_offset;
-  calibration.fit_statistics = stats;
-  calibration.provenance.tool = "trackcal-fit";
-  calibration.provenance.tool_version = kVersion;
-  calibration.provenance.created_utc = CurrentUtcTimestamp();
+  FitRunResult run = fit::RunFit(std::move(loaded), model, options);
+  const FitResult& result = run.result;
+  Calibration& calibration = run.calibration;
   {
     std::string cmd;
     for (int i = 0; i < argc; ++i) cmd += (i ? " " : "") + std::string(argv[i]);
     calibration.provenance.command_line = cmd;
   }
-  for (size_t i = 0; i < inputs.size(); ++i) {
-    const std::string role = i == 0 ? "model_file" : "calibration_capture";
-    calibration.provenance.inputs.push_back(
-        {inputs[i].string(), Sha256HexOfFile(inputs[i]), role});
-  }
   WriteCalibrationFile(output, calibration);
 
   if (json) {
-    nlohmann::json doc = {{"command", "fit"},
-                          {"output", output.string()},
-                          {"tables", table_json},
-                          {"fit", result.ToJson()}};
-    if (paired_offset) doc["time_offset_s"] = *paired_offset;
-    std::cout << doc.dump(2) << "\n";
+    std::cout << run.ToJson(output).dump(2) << "\n";
     return 0;
   }
-  for (const auto& t : tables) std::cout << FormatTable1(t) << "\n";
+  for (const auto& t : run.tables) std::cout << FormatTable1(t) << "\n";
   std::cout << "Fit: " << (result.converged ? "converged" : "NOT converged") << " after "
             << result.iterations << " iterations in " << std::setprecision(3)
             << result.seconds * 1e3 << " ms; chi2/dof " << result.chi2_per_dof << "\n";
@@ -350,38 +261,24 @@ int RunDiagnose(int argc, char** argv) {
   const std::string model_text = ReadFileToString(model_path);
   const ModelSpec spec = ParseModelYaml(model_text, model_path.string());
 
-  // Data: poses.csv, a folder with poses.csv, or a folder with streams (paired with the model's
-  // time_offset, as `fit` does).
-  fs::path poses_path = data;
-  PoseCapture poses;
-  if (fs::is_directory(data)) {
-    poses_path = data / kPosesCsv;
-    if (!fs::exists(poses_path) && fs::exists(data / kTrackerStreamCsv)) {
-      StreamPairingOptions pairing;
-      if (spec.time_offset) {
-        pairing.time_offset = spec.time_offset->value;
-        pairing.estimate_time_offset = !spec.time_offset->fixed;
-        pairing.search_range = spec.time_offset->search_range;
-      }
-      auto tracker = std::make_shared<TrackerStream>(ReadTrackerStream(data / kTrackerStreamCsv));
-      auto reference =
-          std::make_shared<ReferenceStream>(ReadReferenceStream(data / kReferenceStreamCsv));
-      poses = PairStreams(*tracker, *reference, pairing).poses;
-      // The time_offset candidate pairs them again, estimating the offset.
-      options.pair_streams = [tracker, reference, pairing](const TimeOffsetSpec& t) {
-        StreamPairingOptions o = pairing;
-        o.time_offset = t.value;
-        o.estimate_time_offset = !t.fixed;
-        o.search_range = t.search_range;
-        const StreamPairingResult r = PairStreams(*tracker, *reference, o);
-        return PairedStations{StationsOfSet(r.poses, "calib"), r.time_offset};
-      };
-    }
+  // Data resolved as `fit` resolves it (fit/fit_run.h); streams are paired with the model's
+  // time_offset.
+  const LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, spec);
+  if (loaded.tracker_stream) {
+    // The time_offset candidate pairs them again, estimating the offset.
+    options.pair_streams = [tracker = loaded.tracker_stream, reference = loaded.reference_stream,
+                            pairing = PairingOf(spec)](const TimeOffsetSpec& t) {
+      StreamPairingOptions o = pairing;
+      o.time_offset = t.value;
+      o.estimate_time_offset = !t.fixed;
+      o.search_range = t.search_range;
+      const StreamPairingResult r = PairStreams(*tracker, *reference, o);
+      return PairedStations{StationsOfSet(r.poses, "calib"), r.time_offset};
+    };
   }
-  if (poses.records.empty()) poses = ReadPoses(poses_path);
-  const auto calib = StationsOfSet(poses, "calib");
+  const auto calib = StationsOfSet(loaded.poses, "calib");
   if (calib.empty()) {
-    throw std::invalid_argument(poses_path.string() + ": no stations with set 'calib'");
+    throw std::invalid_argument(loaded.source + ": no stations with set 'calib'");
   }
   const Diagnosis diagnosis =
       DiagnoseCandidates(calib, model_text, model_path.string(), data.string(), options);
@@ -434,8 +331,23 @@ int RunPair(int argc, char** argv) {
 }
 
 int RunRegister(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv, {"--markers", "--tracker", "-o", "--set", "--poses", "--model"},
+  const Args args = ParseArgs(argc, argv,
+                              {"--markers", "--tracker", "-o", "--set", "--poses", "--model",
+                               "--optical-noise-mm", "--tracker-noise-mm", "--tracker-noise-deg"},
                               {"--json", "--quiet"});
+  // Noise of the averaged readings (fit/registration.h); they set the weights and the covariance.
+  RegistrationOptions registration_options;
+  auto noise = [&](const std::string& key, double scale, double* out) {
+    if (!args.values.count(key)) return;
+    const double v = ParseNumber(key, args.Get(key));
+    if (!(v > 0)) throw UsageError(key + " must be > 0");
+    *out = v * scale;
+  };
+  noise("--optical-noise-mm", 1e-3, &registration_options.optical_noise_m);
+  noise("--tracker-noise-mm", 1e-3, &registration_options.tracker_position_noise_m);
+  noise("--tracker-noise-deg", kRadPerDeg, &registration_options.tracker_orientation_noise_rad);
+  PoseExtractionOptions extraction_options;
+  extraction_options.optical_noise_m = registration_options.optical_noise_m;
   const fs::path markers_path = args.Get("--markers");
   const fs::path tracker_path = args.Get("--tracker");
   const fs::path output = args.Get("-o");
@@ -488,6 +400,8 @@ int RunRegister(int argc, char** argv) {
     const std::string model_text = ReadFileToString(model_path);
     ParseModelYaml(model_text, model_path.string());  // errors before any work
     RegistrationRefinementOptions options;
+    options.registration = registration_options;
+    options.extraction = extraction_options;
     CorrectionFitter engine =
         MakeEngineFitter([model_text, model_path] { return ParseModelYaml(model_text, model_path.string()); });
     const bool quiet = args.Flag("--quiet");
@@ -499,10 +413,10 @@ int RunRegister(int argc, char** argv) {
     refinement = RefineRegistration(registration_stations, calibration_stations, fitter, options);
     registration = refinement->refined;
   } else {
-    registration = RegisterOpticalToTransmitter(registration_stations);
+    registration = RegisterOpticalToTransmitter(registration_stations, registration_options);
   }
 
-  const auto extracted = ExtractPoses(stations, registration.registration);
+  const auto extracted = ExtractPoses(stations, registration.registration, extraction_options);
   PoseCapture poses;
   std::vector<int> left_out;
   for (size_t i = 0; i < stations.size(); ++i) {

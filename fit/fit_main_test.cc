@@ -7,6 +7,8 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <map>
+#include <set>
 
 #include "core/calibration_file.h"
 #include "core/capture.h"
@@ -200,12 +202,35 @@ TEST_F(FitCliTest, RegisterWithPosesLabelsAndFlagsTheDistortion) {
   EXPECT_TRUE(doc["registration"]["residual_structure"]["flagged"].get<bool>());
   EXPECT_EQ(doc["registration"]["optical_from_transmitter"]["covariance"].size(), 6u);
   EXPECT_EQ(doc["registration"]["stations"].size(), 20u);
-  for (const PoseRecord& r : ReadPoses(dir_ / "reg_poses.csv").records) EXPECT_EQ(r.set, "reg");
-  // --model needs calibration stations with markers: the simulator writes markers for the
-  // registration stations only, so this capture cannot be refined (exit 1, message says why).
+  // Every station has markers: each gets its pose, with its set and time from --poses.
+  std::map<int, const PoseRecord*> labelled;
+  const PoseCapture input = ReadPoses(dir_ / "cap" / "poses.csv");
+  for (const PoseRecord& r : input.records) labelled[r.station] = &r;
+  const PoseCapture registered = ReadPoses(dir_ / "reg_poses.csv");
+  EXPECT_EQ(registered.records.size(), input.records.size());
+  for (const PoseRecord& r : registered.records) {
+    ASSERT_TRUE(labelled.count(r.station)) << r.station;
+    EXPECT_EQ(r.set, labelled[r.station]->set);
+    EXPECT_EQ(r.time, labelled[r.station]->time);
+  }
+  // --model needs calibration stations with markers. The simulator writes markers at every
+  // station (fit/session_sim_test refines its folders); a capture with markers at the
+  // registration stations only cannot be refined (exit 1, message says why).
+  std::set<int> reg_stations;
+  for (const PoseRecord& r : ReadPoses(dir_ / "cap" / "poses.csv").records) {
+    if (r.set == "reg") reg_stations.insert(r.station);
+  }
+  MarkerCapture reg_only;
+  for (const MarkerRecord& m : ReadMarkers(dir_ / "cap" / "markers.csv").records) {
+    if (reg_stations.count(m.station)) reg_only.records.push_back(m);
+  }
+  WriteMarkers(dir_ / "reg_markers.csv", reg_only);
   const fs::path err = dir_ / "err.txt";
-  EXPECT_EQ(RunCommand(base + " --model " + (dir_ / "model.yaml").string() + " -o " +
-                       (dir_ / "refined.csv").string() + " --quiet 2> " + err.string()),
+  EXPECT_EQ(RunCommand(fit_ + " register --markers " + (dir_ / "reg_markers.csv").string() +
+                       " --tracker " + (dir_ / "cap" / "tracker.csv").string() + " --poses " +
+                       (dir_ / "cap" / "poses.csv").string() + " --model " +
+                       (dir_ / "model.yaml").string() + " -o " + (dir_ / "refined.csv").string() +
+                       " --quiet 2> " + err.string()),
             1);
   EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("calibration station"));
   EXPECT_FALSE(fs::exists(dir_ / "refined.csv"));

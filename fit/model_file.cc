@@ -318,6 +318,17 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     spec.function_tolerance = solver.GetDoubleOr("function_tolerance", spec.function_tolerance);
     if (!(spec.function_tolerance > 0.0)) solver.Fail("function_tolerance", "must be > 0");
     spec.covariance = solver.GetBoolOr("covariance", spec.covariance);
+    if (solver.Has("covariance_estimator")) {
+      const std::string estimator = solver.GetString("covariance_estimator");
+      if (estimator == "sandwich") {
+        spec.covariance_estimator = CovarianceEstimator::kSandwich;
+      } else if (estimator == "model") {
+        spec.covariance_estimator = CovarianceEstimator::kModel;
+      } else {
+        solver.Fail("covariance_estimator",
+                    "unknown estimator '" + estimator + "' (known: sandwich, model)");
+      }
+    }
     solver.Finish();
   }
   auto parse_time_offset = [&](const YamlMapReader& r) {

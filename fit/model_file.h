@@ -32,6 +32,7 @@
 #include <string>
 #include <vector>
 
+#include "fit/covariance.h"
 #include "fit/model.h"
 
 namespace trackcal::fit {
@@ -145,6 +146,9 @@ struct ModelSpec {
   int max_iterations = 100;
   double function_tolerance = 1e-12;
   bool covariance = true;  // standard deviations (solver.covariance; dense analysis costs seconds for big LUTs)
+  // How the standard deviations are computed (solver.covariance_estimator, fit/covariance.h):
+  // sandwich (default; honest when the noise is not the model's `noise:`) or model.
+  CovarianceEstimator covariance_estimator = CovarianceEstimator::kSandwich;
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;
   std::vector<std::vector<BlockSettings>> block_settings;  // one list per term

@@ -24,11 +24,9 @@
 namespace trackcal::fit {
 namespace {
 
-// A capture as a session that measures markers at every station records it: the simulator's
-// registration stations (markers.csv + tracker.csv), and its calibration stations with the
-// tracker's averaged reading (poses.csv rep_*) and the markers the optical system sees on the true
-// body pose (the simulator writes markers for registration stations only; these follow its rules:
-// markers facing the camera, at least the best three, averaged noise).
+// A simulated capture split as the refinement takes it: the registration stations and the
+// calibration stations, each with its tracker reading and its markers (the simulator writes both
+// for every station: markers facing the camera, at least the best three, averaged noise).
 struct Capture {
   sim::Scene scene;
   sim::SimulatedCapture simulated;
@@ -39,39 +37,15 @@ struct Capture {
 
 Capture MakeCapture(const sim::Scene& scene) {
   const sim::Simulator simulator(scene);
-  const sim::SimulatedCapture capture = simulator.Generate();
   Capture c;
   c.scene = scene;
-  c.simulated = capture;
+  c.simulated = simulator.Generate();
   c.field = simulator.tracker().field();
-  c.registration = PairRegistrationRecords(capture.markers, capture.tracker, scene.tracker.sensor);
-  sim::Rng noise(scene.seed, "refinement_test_markers");
-  const double sigma = scene.reference.marker_noise_m /
-                       std::sqrt(static_cast<double>(scene.reference.samples_per_station));
-  const Rigid3d& optical_from_transmitter = scene.reference.optical_from_transmitter;
-  const auto& markers = scene.reference.markers_in_body;
-  for (size_t i = 0; i < capture.stations.size(); ++i) {
-    const sim::StationTruth& truth = capture.stations[i];
-    if (truth.set != "calib") continue;
-    RegistrationStation s;
-    s.station = truth.station;
-    s.tracker_transmitter_from_receiver = capture.poses.records[i].reported;
-    const Rigid3d optical_from_body = optical_from_transmitter * truth.transmitter_from_body;
-    std::vector<std::pair<double, int>> facing;
-    for (size_t m = 0; m < markers.size(); ++m) {
-      const Eigen::Vector3d x = optical_from_body * markers[m];
-      const Eigen::Vector3d outward = optical_from_body.rotation * markers[m].normalized();
-      facing.push_back({outward.dot((-x).normalized()), static_cast<int>(m)});
-    }
-    std::sort(facing.rbegin(), facing.rend());
-    for (size_t r = 0; r < facing.size(); ++r) {
-      const Eigen::Vector3d n = sigma * noise.Normal3();
-      if (r >= 3 && facing[r].first <= scene.reference.visibility_cos_min) continue;
-      const int m = facing[r].second;
-      s.markers.push_back({m + 1, optical_from_body * markers[static_cast<size_t>(m)] + n});
-    }
-    c.calibration.push_back(s);
-  }
+  const int sensor = scene.tracker.sensor;
+  c.registration = PairRegistrationRecords(c.simulated.MarkersOfSet("reg"),
+                                           c.simulated.TrackerOfSet("reg"), sensor);
+  c.calibration = PairRegistrationRecords(c.simulated.MarkersOfSet("calib"),
+                                          c.simulated.TrackerOfSet("calib"), sensor);
   return c;
 }
 
@@ -209,17 +183,8 @@ TEST(RefineRegistration, CommandLineWithAPhysicalModelFile) {
       fs::temp_directory_path() / ("trackcal_refine_cli_" + std::to_string(::getpid()));
   fs::remove_all(dir);
   fs::create_directories(dir);
-  MarkerCapture markers = c.simulated.markers;
-  TrackerCapture tracker = c.simulated.tracker;
-  for (const RegistrationStation& s : c.calibration) {
-    tracker.records.push_back(
-        {s.station, scene.tracker.sensor, s.tracker_transmitter_from_receiver, {}});
-    for (const MarkerObservation& m : s.markers) {
-      markers.records.push_back({s.station, m.marker, m.marker_in_optical, {}});
-    }
-  }
-  WriteMarkers(dir / "markers.csv", markers);
-  WriteTracker(dir / "tracker.csv", tracker);
+  WriteMarkers(dir / "markers.csv", c.simulated.markers);
+  WriteTracker(dir / "tracker.csv", c.simulated.tracker);
   WritePoses(dir / "poses.csv", c.simulated.poses);
   WriteFileAtomically(dir / "room.yaml", PhysicalModelYaml(c.field), false);
   const char* binary_dir = std::getenv("TRACKCAL_BINARY_DIR");
@@ -246,9 +211,9 @@ TEST(RefineRegistration, CommandLineWithAPhysicalModelFile) {
   e << RotationVectorBetween<double>(estimate.rotation, truth.rotation),
       estimate.translation - truth.translation;
   EXPECT_LT(e.dot(covariance.ldlt().solve(e)), kChiSquare6Dof997);
-  // Every station written with its set from poses.csv: 20 reg + 480 calib.
+  // Every station written with its set from poses.csv: 20 reg + 480 calib + 120 valid.
   const PoseCapture out = ReadPoses(dir / "out.csv");
-  EXPECT_EQ(out.records.size(), c.registration.size() + c.calibration.size());
+  EXPECT_EQ(out.records.size(), c.simulated.poses.records.size());
   fs::remove_all(dir);
 }
 

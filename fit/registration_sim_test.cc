@@ -26,7 +26,8 @@ SimRun RegisterScene(const sim::Scene& scene, const RegistrationOptions& options
   sim::Simulator simulator(scene);
   const sim::SimulatedCapture capture = simulator.Generate();
   const std::vector<RegistrationStation> stations =
-      PairRegistrationRecords(capture.markers, capture.tracker, scene.tracker.sensor);
+      PairRegistrationRecords(capture.MarkersOfSet("reg"), capture.TrackerOfSet("reg"),
+                              scene.tracker.sensor);
   SimRun run;
   run.result = RegisterOpticalToTransmitter(stations, options);
   run.truth = scene.reference.optical_from_transmitter;

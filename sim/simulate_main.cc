@@ -2,8 +2,8 @@
 //
 //   trackcal-simulate --scene paper|FILE [--hidden EFFECT[,EFFECT]] [--seed N] -o DIR
 //
-// DIR gets poses.csv, markers.csv, tracker.csv, tracker_stream.csv, reference_stream.csv,
-// truth.json and scene.yaml (the effective scene: rerunning with --scene DIR/scene.yaml reproduces
+// DIR gets poses.csv, markers.csv and tracker.csv (every station: calib, valid and reg; the set of
+// each is in poses.csv), tracker_stream.csv, reference_stream.csv, truth.json and scene.yaml (the effective scene: rerunning with --scene DIR/scene.yaml reproduces
 // the capture bit for bit). An existing non-empty DIR is never overwritten.
 
 #include <charconv>

@@ -131,6 +131,36 @@ Scene Checked(Scene scene) {
   return scene;
 }
 
+// The markers the camera (at the optical origin) sees on a body: those facing it, and always the
+// three facing it best; each averaged marker gets noise sigma per axis. Noise is drawn for every
+// marker so visibility never shifts the random stream.
+void AppendMarkers(int station, const Rigid3d& optical_from_body, const ReferenceConfig& reference,
+                   double sigma, Rng* noise, MarkerCapture* out) {
+  const Eigen::Vector3d camera_in_optical = Eigen::Vector3d::Zero();
+  const auto& markers = reference.markers_in_body;
+  std::vector<std::pair<double, size_t>> ranked;
+  for (size_t m = 0; m < markers.size(); ++m) {
+    const Eigen::Vector3d x = optical_from_body * markers[m];
+    const Eigen::Vector3d outward = optical_from_body.rotation * markers[m].normalized();
+    ranked.push_back({outward.dot((camera_in_optical - x).normalized()), m});
+  }
+  std::sort(ranked.begin(), ranked.end(),
+            [](const auto& a, const auto& b) { return a.first > b.first; });
+  std::vector<bool> visible(markers.size(), false);
+  for (size_t r = 0; r < ranked.size(); ++r) {
+    visible[ranked[r].second] = r < 3 || ranked[r].first > reference.visibility_cos_min;
+  }
+  for (size_t m = 0; m < markers.size(); ++m) {
+    const Eigen::Vector3d n = sigma * noise->Normal3();
+    if (!visible[m]) continue;
+    MarkerRecord mr;
+    mr.station = station;
+    mr.marker = static_cast<int>(m) + 1;
+    mr.position_in_optical = optical_from_body * markers[m] + n;
+    out->records.push_back(mr);
+  }
+}
+
 }  // namespace
 
 Simulator::Simulator(Scene scene)
@@ -235,12 +265,12 @@ SimulatedCapture Simulator::Generate() const {
   Rng tracker_noise(sc.seed, "tracker_noise");
   Rng reference_noise(sc.seed, "reference_noise");
   Rng marker_noise(sc.seed, "marker_noise");
+  Rng station_marker_noise(sc.seed, "station_marker_noise");
   const double ref_n = std::sqrt(static_cast<double>(sc.reference.samples_per_station));
   const double sigma_ref_p = sc.reference.position_noise_m / ref_n;
   const double sigma_ref_q = sc.reference.orientation_noise_rad / ref_n;
   const double sigma_marker = sc.reference.marker_noise_m / ref_n;
   const Rigid3d& optical_from_transmitter = sc.reference.optical_from_transmitter;
-  const Eigen::Vector3d camera_in_optical = Eigen::Vector3d::Zero();
 
   std::map<std::string, std::pair<std::vector<double>, std::vector<double>>> floor_errors;
   for (size_t i = 0; i < plan.size(); ++i) {
@@ -286,39 +316,18 @@ SimulatedCapture Simulator::Generate() const {
     floor_errors[truth.set].first.push_back(1e3 * floor_p.norm());
     floor_errors[truth.set].second.push_back(kDegPerRad * AngularDistance(e_capture, e_model));
 
-    if (truth.set == "reg") {
-      TrackerRecord tr;
-      tr.station = id;
-      tr.sensor = sc.tracker.sensor;
-      tr.transmitter_from_receiver = reported;
-      out.tracker.records.push_back(tr);
-      // Markers facing the camera are visible; at least the three facing it best always are.
-      const Rigid3d optical_from_body = optical_from_transmitter * truth.transmitter_from_body;
-      const auto& markers = sc.reference.markers_in_body;
-      std::vector<std::pair<double, size_t>> facing;
-      for (size_t m = 0; m < markers.size(); ++m) {
-        const Eigen::Vector3d x = optical_from_body * markers[m];
-        const Eigen::Vector3d outward = optical_from_body.rotation * markers[m].normalized();
-        facing.push_back({outward.dot((camera_in_optical - x).normalized()), m});
-      }
-      std::vector<std::pair<double, size_t>> ranked = facing;
-      std::sort(ranked.begin(), ranked.end(),
-                [](const auto& a, const auto& b) { return a.first > b.first; });
-      std::vector<bool> visible(markers.size(), false);
-      for (size_t r = 0; r < ranked.size(); ++r) {
-        visible[ranked[r].second] = r < 3 || ranked[r].first > sc.reference.visibility_cos_min;
-      }
-      for (size_t m = 0; m < markers.size(); ++m) {
-        // Noise is drawn for every marker so visibility never shifts the random stream.
-        const Eigen::Vector3d noise = sigma_marker * marker_noise.Normal3();
-        if (!visible[m]) continue;
-        MarkerRecord mr;
-        mr.station = id;
-        mr.marker = static_cast<int>(m) + 1;
-        mr.position_in_optical = optical_from_body * markers[m] + noise;
-        out.markers.records.push_back(mr);
-      }
-    }
+    // Every station is seen by both systems, as in a session (paper section 3): the tracker's
+    // reading (tracker.csv) and the markers facing the camera (markers.csv). The registration
+    // stations draw their marker noise from "marker_noise" as before this change (their files
+    // are unchanged), the others from "station_marker_noise".
+    TrackerRecord tr;
+    tr.station = id;
+    tr.sensor = sc.tracker.sensor;
+    tr.transmitter_from_receiver = reported;
+    out.tracker.records.push_back(tr);
+    AppendMarkers(id, optical_from_transmitter * truth.transmitter_from_body, sc.reference,
+                  sigma_marker, truth.set == "reg" ? &marker_noise : &station_marker_noise,
+                  &out.markers);
     out.stations.push_back(truth);
   }
 
@@ -404,6 +413,30 @@ SimulatedCapture Simulator::Generate() const {
       {"statistics", stats},
       {"stations", stations}};
   return out;
+}
+
+namespace {
+template <typename Table>
+Table RowsOfSet(const Table& table, const std::vector<StationTruth>& stations,
+                const std::string& set) {
+  std::map<int, std::string> set_of;
+  for (const StationTruth& t : stations) set_of[t.station] = t.set;
+  Table out;
+  out.extra_columns = table.extra_columns;
+  for (const auto& r : table.records) {
+    const auto it = set_of.find(r.station);
+    if (it != set_of.end() && it->second == set) out.records.push_back(r);
+  }
+  return out;
+}
+}  // namespace
+
+MarkerCapture SimulatedCapture::MarkersOfSet(const std::string& set) const {
+  return RowsOfSet(markers, stations, set);
+}
+
+TrackerCapture SimulatedCapture::TrackerOfSet(const std::string& set) const {
+  return RowsOfSet(tracker, stations, set);
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -78,8 +78,10 @@ struct StationTruth {
 
 struct SimulatedCapture {
   PoseCapture poses;             // calib, valid and reg stations
-  MarkerCapture markers;         // registration stations, optical frame
-  TrackerCapture tracker;        // registration stations
+  // Every static station (calib, valid, reg), as a session that tracks the marker body at each
+  // station records them; the `set` of a station is in poses (and stations).
+  MarkerCapture markers;         // visible markers, optical frame
+  TrackerCapture tracker;        // the tracker's averaged reading (the same as poses' rep_*)
   TrackerStream tracker_stream;  // empty when the scene has no stream
   ReferenceStream reference_stream;
   std::vector<StationTruth> stations;  // truth per static station, same order as poses
@@ -88,6 +90,10 @@ struct SimulatedCapture {
   std::map<std::string, PoseErrorSummary> uncorrected;
   std::map<std::string, PoseErrorSummary> noise_floor;
   nlohmann::json truth;                // truth.json: scene, effective physics, stats, noise floor
+
+  // The rows of markers / tracker whose station is in `set` ("reg": the registration stations).
+  MarkerCapture MarkersOfSet(const std::string& set) const;
+  TrackerCapture TrackerOfSet(const std::string& set) const;
 };
 
 class Simulator {

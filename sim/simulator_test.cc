@@ -68,13 +68,23 @@ TEST(Simulator, Nominal) {
     nodes.insert({std::lround(p.x() * 2), std::lround(p.y() * 2), std::lround(p.z() * 2)});
   }
   EXPECT_EQ(nodes.size(), 480u);
-  // Registration stations: at least 3 markers each, all near the transmitter.
+  // Markers and a tracker reading at every station (480 calib, 120 valid, 20 reg), at least 3
+  // markers each; the 20 registration stations near the transmitter.
   std::map<int, int> markers_per_station;
   for (const auto& m : c.markers.records) ++markers_per_station[m.station];
-  EXPECT_EQ(markers_per_station.size(), 20u);
+  EXPECT_EQ(markers_per_station.size(), c.poses.records.size());
   for (const auto& [station, count] : markers_per_station) EXPECT_GE(count, 3) << station;
   for (const auto* r : OfSet(c.poses, "reg")) EXPECT_LT(r->reference.translation.norm(), 0.6);
-  EXPECT_EQ(c.tracker.records.size(), 20u);
+  ASSERT_EQ(c.tracker.records.size(), c.poses.records.size());
+  for (size_t i = 0; i < c.poses.records.size(); ++i) {
+    EXPECT_EQ(c.tracker.records[i].station, c.poses.records[i].station);
+    EXPECT_TRUE(PosesNear(c.tracker.records[i].transmitter_from_receiver,
+                          c.poses.records[i].reported, 0, 0));
+  }
+  EXPECT_EQ(c.TrackerOfSet("reg").records.size(), 20u);
+  std::set<int> reg_marker_stations;
+  for (const auto& m : c.MarkersOfSet("reg").records) reg_marker_stations.insert(m.station);
+  EXPECT_EQ(reg_marker_stations.size(), 20u);
   // Streams at their own rates (30 s at 120 Hz and 100 Hz).
   EXPECT_EQ(c.tracker_stream.records.size(), 3601u);
   EXPECT_NEAR(c.reference_stream.records.size(), 3000.0, 1.0);

@@ -1,7 +1,8 @@
 // Bindings of fit/: the fitting engine (fit/fit_engine.h), the optical registration
 // (fit/registration_io.h) and stream pairing (fit/stream_pairing.h), in process.
 //
-// trackcal._core.fit() does exactly what `trackcal-fit fit` does (fit/fit_main.cc): the same data
+// trackcal._core.fit() does exactly what `trackcal-fit fit` does, through the same library function
+// (fit/fit_run.h, also used by fit/fit_main.cc): the same data
 // resolution (poses.csv, a folder with poses.csv, or a folder with streams paired with the model's
 // time offset), the same fit of the `calib` set, the same Table 1 rows (calib, then valid, or
 // k-fold cross-validation), the same calibration file contents, and a to_dict() equal to the CLI's
@@ -23,6 +24,7 @@
 #include "core/capture.h"
 #include "core/file_util.h"
 #include "fit/fit_engine.h"
+#include "fit/fit_run.h"
 #include "fit/model_file.h"
 #include "fit/pose_extraction.h"
 #include "fit/registration.h"
@@ -173,12 +175,8 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
 }
 
 // Where the stations come from: a file (listed in the provenance and protected from being
-// overwritten) or an in-memory capture.
-struct DataSource {
-  std::optional<fs::path> path;          // folder or poses.csv as given
-  std::optional<PoseCapture> in_memory;  // a Python PoseCapture
-  std::optional<fs::path> loaded_from;   // its .path attribute (protected, not hashed as input)
-};
+// overwritten) or an in-memory capture (its .path attribute protected, not hashed as input).
+using DataSource = fit::FitData;
 
 DataSource ResolveData(const py::handle& data) {
   DataSource out;
@@ -193,39 +191,11 @@ DataSource ResolveData(const py::handle& data) {
   return out;
 }
 
-std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::string& set) {
-  std::vector<FitStation> out;
-  for (const auto& r : poses.records) {
-    if (r.set == set) out.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
-  }
-  return out;
-}
-
-// One fit as `trackcal-fit fit` runs it, and what it produced.
-struct FitRun {
-  FitResult result;
-  std::vector<Table1> tables;
-  Calibration calibration;
-  std::vector<fs::path> protected_paths;  // never written over by save()
-  std::optional<double> time_offset;      // when streams were paired
-  std::optional<fs::path> output;         // set by save()
-  int num_calib = 0;
-  int num_valid = 0;
-
-  nlohmann::json TablesJson() const {
-    nlohmann::json t = nlohmann::json::array();
-    for (const auto& table : tables) t.push_back(fit::Table1ToJson(table));
-    return t;
-  }
+// One fit as `trackcal-fit fit` runs it (fit/fit_run.h), and where save() wrote it.
+struct FitRun : fit::FitRunResult {
+  std::optional<fs::path> output;  // set by save()
   // The document `trackcal-fit fit --json` prints ("output": null until saved).
-  nlohmann::json ToJson() const {
-    nlohmann::json doc = {{"command", "fit"},
-                          {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
-                          {"tables", TablesJson()},
-                          {"fit", result.ToJson()}};
-    if (time_offset) doc["time_offset_s"] = *time_offset;
-    return doc;
-  }
+  nlohmann::json ToJson() const { return fit::FitRunResult::ToJson(output); }
 };
 
 // Calls a Python progress callback from C++ threads that do not hold the GIL. A Python exception
@@ -266,172 +236,34 @@ class ProgressRelay {
 
 struct StoppedByCallback : std::exception {};
 
-// The stations of a data source, resolved as `trackcal-fit` does: poses.csv, a folder with
-// poses.csv, or a folder with streams paired with the model's time offset.
-struct LoadedData {
-  PoseCapture poses;
-  std::string name;                       // for messages and the description
-  std::vector<CalibrationInput> inputs;   // files read, with digests (provenance)
-  std::vector<fs::path> protected_paths;  // never written over
-  std::optional<double> time_offset;      // when streams were paired
-  // Streams paired with a free time offset: kept for the joint fit (fit/terms_time_offset.h).
-  std::shared_ptr<TrackerStream> tracker_stream;
-  std::shared_ptr<ReferenceStream> reference_stream;
-  std::optional<fit::StreamPairingOptions> pairing;
-  std::vector<FitStation> stream_stations;  // the pairing's calib stations with velocities
-};
-
-// Stream pairing with the model's time offset, as trackcal-fit pairs a folder of streams.
-fit::StreamPairingOptions PairingFor(const ModelSpec& spec) {
-  fit::StreamPairingOptions pairing;
-  if (spec.time_offset) {
-    pairing.time_offset = spec.time_offset->value;
-    pairing.estimate_time_offset = !spec.time_offset->fixed;
-    pairing.search_range = spec.time_offset->search_range;
-  }
-  return pairing;
-}
-
-// True for a capture folder holding streams and no poses.csv (its stations are paired).
-bool IsStreamFolder(const DataSource& data) {
-  return data.path && fs::is_directory(*data.path) && !fs::exists(*data.path / kPosesCsv) &&
-         fs::exists(*data.path / kTrackerStreamCsv);
-}
-
-LoadedData LoadData(const DataSource& data, const ModelSpec& spec) {
-  LoadedData out;
-  out.name = "in-memory capture";
-  if (!data.path) {
-    out.poses = *data.in_memory;
-    if (data.loaded_from) {
-      out.protected_paths.push_back(*data.loaded_from);
-      out.name = data.loaded_from->filename().string() + " (in memory)";
-    }
-    return out;
-  }
-  fs::path poses_path = *data.path;
-  if (fs::is_directory(*data.path)) {
-    poses_path = *data.path / kPosesCsv;
-    if (!fs::exists(poses_path) && fs::exists(*data.path / kTrackerStreamCsv)) {
-      const fit::StreamPairingOptions pairing = PairingFor(spec);
-      const fs::path tracker = *data.path / kTrackerStreamCsv;
-      const fs::path reference = *data.path / kReferenceStreamCsv;
-      out.tracker_stream = std::make_shared<TrackerStream>(ReadTrackerStream(tracker));
-      out.reference_stream = std::make_shared<ReferenceStream>(ReadReferenceStream(reference));
-      const auto paired = fit::PairStreams(*out.tracker_stream, *out.reference_stream, pairing);
-      out.poses = paired.poses;
-      out.time_offset = paired.time_offset;
-      if (spec.time_offset && !spec.time_offset->fixed) {
-        out.pairing = pairing;
-        out.stream_stations = fit::FitStationsOfPairing(paired, "calib");
-      }
-      for (const auto& p : {tracker, reference}) {
-        out.inputs.push_back({p.string(), Sha256HexOfFile(p), "calibration_capture"});
-        out.protected_paths.push_back(p);
-      }
-      out.name = data.path->filename().string();
-      return out;
-    }
-  }
-  out.poses = ReadPoses(poses_path);
-  out.inputs.push_back({poses_path.string(), Sha256HexOfFile(poses_path), "calibration_capture"});
-  out.protected_paths.push_back(poses_path);
-  out.name = poses_path.filename().string();
-  return out;
-}
-
+// The fit of fit/fit_run.h (the pipeline of `trackcal-fit fit`), with Python's progress callback
+// and provenance; cross-validation whenever folds >= 2.
 std::shared_ptr<FitRun> RunFit(const DataSource& data, const ModelSource& model, int folds,
                                ProgressRelay* relay) {
-  if (folds == 1 || folds < 0) {
+  fit::FitRunOptions options;
+  options.folds = folds;
+  if (!options.Check()) {
     throw std::invalid_argument("folds must be 0 (no cross-validation) or at least 2, got " +
                                 std::to_string(folds));
   }
-  auto make_spec = [&] { return fit::ParseModelYaml(model.text, model.source_name); };
-  ModelSpec spec = make_spec();
-  auto run = std::make_shared<FitRun>();
-  std::vector<CalibrationInput> inputs;
-  if (model.path) {
-    inputs.push_back({model.path->string(), Sha256HexOfFile(*model.path), "model_file"});
-    run->protected_paths.push_back(*model.path);
-  } else {
-    inputs.push_back({"<model text>", Sha256Hex(model.text), "model_text"});
-  }
-  LoadedData loaded = LoadData(data, spec);
-  inputs.insert(inputs.end(), loaded.inputs.begin(), loaded.inputs.end());
-  run->protected_paths.insert(run->protected_paths.end(), loaded.protected_paths.begin(),
-                              loaded.protected_paths.end());
-  run->time_offset = loaded.time_offset;
-  PoseCapture& poses = loaded.poses;
-  const std::string& data_name = loaded.name;
-  if (!loaded.stream_stations.empty()) spec.time_offset->value = *loaded.time_offset;
-  auto calib = StationsOfSet(poses, "calib");
-  const auto valid = StationsOfSet(poses, "valid");
-  if (calib.empty()) throw std::invalid_argument(data_name + ": no stations with set 'calib'");
-
-  FitOptions options;
+  options.cross_validate_with_validation_set = true;
+  options.tool = "trackcal-python";
+  options.tool_version = TRACKCAL_VERSION;
+  options.description_tool = "trackcal.fit";
   if (relay->enabled()) {
-    const int max_iterations = spec.max_iterations;
-    options.progress = [relay, max_iterations](int iteration, double) {
+    options.on_iteration = [relay](int iteration, double, int max_iterations) {
       relay->Call("fit", iteration, max_iterations);
     };
   }
-  if (loaded.stream_stations.empty()) {
-    run->result = fit::FitModel(calib, &spec, options);
-  } else {
-    // Streams with a free time offset, as trackcal-fit: the offset the pairing estimated starts a
-    // joint fit of the terms and the offset; the streams are re-paired at the estimate while it
-    // moves by more than 1 ms (at most 3 times).
-    std::vector<FitStation> stations = loaded.stream_stations;
-    for (int round = 0;; ++round) {
-      const double paired_at = spec.time_offset->value;
-      run->result = fit::FitModel(stations, &spec, options);
-      if (std::abs(spec.time_offset->value - paired_at) < 1e-3 || round == 3) break;
-      fit::StreamPairingOptions again = *loaded.pairing;
-      again.time_offset = spec.time_offset->value;
-      again.estimate_time_offset = false;
-      const auto repaired =
-          fit::PairStreams(*loaded.tracker_stream, *loaded.reference_stream, again);
-      poses = repaired.poses;
-      stations = fit::FitStationsOfPairing(repaired, "calib");
-      ModelSpec fresh = make_spec();
-      fresh.time_offset->value = again.time_offset;
-      spec = std::move(fresh);
-    }
-    run->time_offset = spec.time_offset->value;
-    calib = StationsOfSet(poses, "calib");
-  }
-  run->num_calib = static_cast<int>(calib.size());
-  run->num_valid = static_cast<int>(valid.size());
-  run->tables.push_back(fit::EvaluateTable1(run->result.chain, calib, "calib"));
-  if (!valid.empty()) run->tables.push_back(fit::EvaluateTable1(run->result.chain, valid, "valid"));
-  if (folds >= 2) {
-    run->tables.push_back(fit::CrossValidate(calib, make_spec, folds, [&](int f) {
-      if (relay->failed()) throw StoppedByCallback();
-      relay->Call("cross-validation", f + 1, folds);
-      if (relay->failed()) throw StoppedByCallback();
-    }));
-  }
-
-  Calibration& cal = run->calibration;
-  cal.description = "fitted by trackcal.fit from " + data_name + " with model " +
-                    (model.path ? model.path->filename().string() : std::string("<model text>"));
-  cal.chain = run->result.chain;
-  nlohmann::json stats = nlohmann::json::object();
-  stats["tables"] = run->TablesJson();
-  stats["chi2_per_dof"] = std::isfinite(run->result.chi2_per_dof)
-                              ? nlohmann::json(run->result.chi2_per_dof)
-                              : nlohmann::json();
-  stats["num_calib_stations"] = calib.size();
-  stats["num_valid_stations"] = valid.size();
-  stats["converged"] = run->result.converged;
-  stats["num_outliers"] = run->result.outliers.size();
-  stats["num_poorly_identified"] = run->result.identifiability_flags.size();
-  if (run->time_offset) stats["time_offset_s"] = *run->time_offset;
-  cal.fit_statistics = stats;
-  cal.provenance.tool = "trackcal-python";
-  cal.provenance.tool_version = TRACKCAL_VERSION;
-  cal.provenance.created_utc = CurrentUtcTimestamp();
-  cal.provenance.inputs = inputs;
+  options.on_fold = [relay](int f, int n) {
+    if (relay->failed()) throw StoppedByCallback();
+    relay->Call("cross-validation", f + 1, n);
+    if (relay->failed()) throw StoppedByCallback();
+  };
+  const ModelSpec spec = fit::ParseModelYaml(model.text, model.source_name);
+  auto run = std::make_shared<FitRun>();
+  static_cast<fit::FitRunResult&>(*run) =
+      fit::RunFit(fit::LoadFitData(data, spec), {model.text, model.source_name, model.path}, options);
   return run;
 }
 
@@ -549,25 +381,22 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
     py::gil_scoped_release release;
     ValueErrors([&] {
       const ModelSpec spec = fit::ParseModelYaml(model.text, model.source_name);
-      const LoadedData loaded = LoadData(data, spec);
-      const auto calib = StationsOfSet(loaded.poses, "calib");
+      const fit::LoadedFitData loaded = fit::LoadFitData(data, spec);
+      const auto calib = fit::StationsOfSet(loaded.poses, "calib");
       if (calib.empty())
         throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
       const std::string data_name = data.path ? data.path->string() : loaded.name;
-      if (IsStreamFolder(data)) {
+      if (loaded.tracker_stream) {
         // The time_offset candidate pairs the streams again with its own offset setting.
-        auto tracker =
-            std::make_shared<TrackerStream>(ReadTrackerStream(*data.path / kTrackerStreamCsv));
-        auto reference = std::make_shared<ReferenceStream>(
-            ReadReferenceStream(*data.path / kReferenceStreamCsv));
-        const fit::StreamPairingOptions pairing = PairingFor(spec);
-        options.pair_streams = [tracker, reference, pairing](const fit::TimeOffsetSpec& t) {
+        options.pair_streams = [tracker = loaded.tracker_stream,
+                                reference = loaded.reference_stream,
+                                pairing = fit::PairingOf(spec)](const fit::TimeOffsetSpec& t) {
           fit::StreamPairingOptions o = pairing;
           o.time_offset = t.value;
           o.estimate_time_offset = !t.fixed;
           o.search_range = t.search_range;
           const fit::StreamPairingResult r = fit::PairStreams(*tracker, *reference, o);
-          return fit::PairedStations{StationsOfSet(r.poses, "calib"), r.time_offset};
+          return fit::PairedStations{fit::StationsOfSet(r.poses, "calib"), r.time_offset};
         };
       }
       doc = fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options)

@@ -85,6 +85,9 @@ class FitReport:
         self.num_free_parameters: int = fit["num_free_parameters"]
         self.rank_deficient: bool = fit["rank_deficient"]
         self.seconds: float = fit["seconds"]
+        # Which covariance gave the standard deviations: "sandwich (CR2)", "sandwich (CR1)" or
+        # "model" (docs/fit.md, "Standard deviations"); None without standard deviations.
+        self.covariance_estimator: Optional[str] = fit.get("covariance_estimator")
         self.identifiability_flags: List[dict] = fit["identifiability_flags"]
         self.outliers: List[dict] = fit["outliers"]
         self.terms: List[dict] = fit["terms"]
@@ -149,6 +152,8 @@ class FitReport:
             out.append(f"Outlier stations ({len(self.outliers)}): "
                        + " ".join(str(o["station"]) for o in self.outliers))
         out.append(format_parameters(self.parameters))
+        if self.covariance_estimator:
+            out.append(f"  (standard deviations from the {self.covariance_estimator} covariance)")
         if self.identifiability_flags:
             out.append(f"Poorly identified ({len(self.identifiability_flags)}):")
             out += [f"  {f['coordinate']}: {f['reason']}" for f in self.identifiability_flags[:10]]

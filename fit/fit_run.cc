@@ -1,0 +1,185 @@
+#include "fit/fit_run.h"
+
+#include <cmath>
+#include <stdexcept>
+
+#include "core/file_util.h"
+
+namespace trackcal::fit {
+
+namespace fs = std::filesystem;
+
+std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::string& set) {
+  std::vector<FitStation> out;
+  for (const auto& r : poses.records) {
+    if (r.set == set) out.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
+  }
+  return out;
+}
+
+StreamPairingOptions PairingOf(const ModelSpec& spec) {
+  StreamPairingOptions pairing;
+  if (spec.time_offset) {
+    pairing.time_offset = spec.time_offset->value;
+    pairing.estimate_time_offset = !spec.time_offset->fixed;
+    pairing.search_range = spec.time_offset->search_range;
+  }
+  return pairing;
+}
+
+bool IsStreamFolder(const fs::path& data) {
+  return fs::is_directory(data) && !fs::exists(data / kPosesCsv) &&
+         fs::exists(data / kTrackerStreamCsv);
+}
+
+LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
+  LoadedFitData out;
+  out.name = "in-memory capture";
+  if (!data.path) {
+    if (!data.in_memory) throw std::invalid_argument("LoadFitData: no data given");
+    out.poses = *data.in_memory;
+    if (data.loaded_from) {
+      out.protected_paths.push_back(*data.loaded_from);
+      out.name = data.loaded_from->filename().string() + " (in memory)";
+    }
+    out.source = out.name;
+    return out;
+  }
+  if (IsStreamFolder(*data.path)) {
+    const StreamPairingOptions pairing = PairingOf(spec);
+    const fs::path tracker = *data.path / kTrackerStreamCsv;
+    const fs::path reference = *data.path / kReferenceStreamCsv;
+    out.tracker_stream = std::make_shared<TrackerStream>(ReadTrackerStream(tracker));
+    out.reference_stream = std::make_shared<ReferenceStream>(ReadReferenceStream(reference));
+    const StreamPairingResult paired = PairStreams(*out.tracker_stream, *out.reference_stream, pairing);
+    out.poses = paired.poses;
+    out.time_offset = paired.time_offset;
+    if (spec.time_offset && !spec.time_offset->fixed) {
+      out.pairing = pairing;
+      out.stream_stations = FitStationsOfPairing(paired, "calib");
+    }
+    for (const auto& p : {tracker, reference}) {
+      out.inputs.push_back({p.string(), Sha256HexOfFile(p), "calibration_capture"});
+      out.protected_paths.push_back(p);
+    }
+    out.name = data.path->filename().string();
+    out.source = data.path->string();
+    return out;
+  }
+  const fs::path poses_path = fs::is_directory(*data.path) ? *data.path / kPosesCsv : *data.path;
+  out.poses = ReadPoses(poses_path);
+  out.inputs.push_back({poses_path.string(), Sha256HexOfFile(poses_path), "calibration_capture"});
+  out.protected_paths.push_back(poses_path);
+  out.name = poses_path.filename().string();
+  out.source = poses_path.string();
+  return out;
+}
+
+nlohmann::json FitRunResult::TablesJson() const {
+  nlohmann::json t = nlohmann::json::array();
+  for (const auto& table : tables) t.push_back(Table1ToJson(table));
+  return t;
+}
+
+nlohmann::json FitRunResult::ToJson(const std::optional<fs::path>& output) const {
+  nlohmann::json doc = {{"command", "fit"},
+                        {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
+                        {"tables", TablesJson()},
+                        {"fit", result.ToJson()}};
+  if (time_offset) doc["time_offset_s"] = *time_offset;
+  return doc;
+}
+
+FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRunOptions& options) {
+  if (!options.Check()) {
+    throw std::invalid_argument("folds must be 0 (no cross-validation) or at least 2, got " +
+                                std::to_string(options.folds));
+  }
+  auto make_spec = [&] { return ParseModelYaml(model.text, model.source_name); };
+  ModelSpec spec = make_spec();
+  FitRunResult run;
+  std::vector<CalibrationInput> inputs;
+  if (model.path) {
+    inputs.push_back({model.path->string(), Sha256HexOfFile(*model.path), "model_file"});
+    run.protected_paths.push_back(*model.path);
+  } else {
+    inputs.push_back({"<model text>", Sha256Hex(model.text), "model_text"});
+  }
+  inputs.insert(inputs.end(), data.inputs.begin(), data.inputs.end());
+  run.protected_paths.insert(run.protected_paths.end(), data.protected_paths.begin(),
+                             data.protected_paths.end());
+  run.time_offset = data.time_offset;
+  PoseCapture& poses = data.poses;
+  if (!data.stream_stations.empty()) spec.time_offset->value = *data.time_offset;
+  auto calib = StationsOfSet(poses, "calib");
+  const auto valid = StationsOfSet(poses, "valid");
+  if (calib.empty()) throw std::invalid_argument(data.source + ": no stations with set 'calib'");
+
+  FitOptions fit_options;
+  if (options.on_iteration) {
+    const int max_iterations = spec.max_iterations;
+    fit_options.progress = [&options, max_iterations](int iteration, double cost) {
+      options.on_iteration(iteration, cost, max_iterations);
+    };
+  }
+  if (data.stream_stations.empty()) {
+    run.result = FitModel(calib, &spec, fit_options);
+  } else {
+    // Joint fit of the terms and the clock offset; re-pair at the estimate while it moves by more
+    // than the linearisation allows (1 ms: a 1 m/s^2 acceleration then errs by 0.5 um).
+    std::vector<FitStation> stations = data.stream_stations;
+    for (int round = 0;; ++round) {
+      const double paired_at = spec.time_offset->value;
+      run.result = FitModel(stations, &spec, fit_options);
+      if (std::abs(spec.time_offset->value - paired_at) < 1e-3 || round == 3) break;
+      StreamPairingOptions again = *data.pairing;
+      again.time_offset = spec.time_offset->value;
+      again.estimate_time_offset = false;
+      const auto repaired = PairStreams(*data.tracker_stream, *data.reference_stream, again);
+      poses = repaired.poses;
+      stations = FitStationsOfPairing(repaired, "calib");
+      ModelSpec fresh = make_spec();
+      fresh.time_offset->value = again.time_offset;
+      spec = std::move(fresh);
+    }
+    run.time_offset = spec.time_offset->value;
+    calib = StationsOfSet(poses, "calib");
+  }
+  run.num_calib = static_cast<int>(calib.size());
+  run.num_valid = static_cast<int>(valid.size());
+  run.tables.push_back(EvaluateTable1(run.result.chain, calib, "calib"));
+  if (!valid.empty()) run.tables.push_back(EvaluateTable1(run.result.chain, valid, "valid"));
+  if (options.folds >= 2 && (options.cross_validate_with_validation_set || valid.empty())) {
+    run.tables.push_back(CrossValidate(calib, make_spec, options.folds, [&](int f) {
+      if (options.on_fold) options.on_fold(f, options.folds);
+    }));
+  }
+
+  Calibration& cal = run.calibration;
+  cal.description = "fitted by " + options.description_tool + " from " + data.name +
+                    " with model " +
+                    (model.path ? model.path->filename().string() : std::string("<model text>"));
+  cal.chain = run.result.chain;
+  nlohmann::json stats = nlohmann::json::object();
+  stats["tables"] = run.TablesJson();
+  stats["chi2_per_dof"] = std::isfinite(run.result.chi2_per_dof)
+                              ? nlohmann::json(run.result.chi2_per_dof)
+                              : nlohmann::json();
+  stats["num_calib_stations"] = calib.size();
+  stats["num_valid_stations"] = valid.size();
+  stats["converged"] = run.result.converged;
+  stats["num_outliers"] = run.result.outliers.size();
+  stats["num_poorly_identified"] = run.result.identifiability_flags.size();
+  if (!run.result.covariance_estimator.empty()) {
+    stats["covariance_estimator"] = run.result.covariance_estimator;
+  }
+  if (run.time_offset) stats["time_offset_s"] = *run.time_offset;
+  cal.fit_statistics = stats;
+  cal.provenance.tool = options.tool;
+  cal.provenance.tool_version = options.tool_version;
+  cal.provenance.created_utc = CurrentUtcTimestamp();
+  cal.provenance.inputs = inputs;
+  return run;
+}
+
+}  // namespace trackcal::fit

@@ -1,0 +1,113 @@
+// One fit as `trackcal-fit fit` (fit/fit_main.cc) and trackcal.fit (python/src/bind_fit.cc) run it,
+// so both give the same numbers by construction:
+//
+//   const ModelSpec spec = ParseModelYaml(text, "model.yaml");
+//   LoadedFitData data = LoadFitData({.path = "capture/"}, spec);   // poses.csv or streams
+//   FitRunResult run = RunFit(std::move(data), {text, "model.yaml", "model.yaml"}, options);
+//   run.tables;        // Table 1: calib, then valid and/or k-fold cross-validation
+//   run.calibration;   // the calibration file's contents (provenance without the command line)
+//   run.ToJson(out);   // the document `trackcal-fit fit --json` prints
+//
+// Data resolution: a poses.csv, a folder with poses.csv, or a folder with only the streams
+// (tracker_stream.csv, reference_stream.csv), which are paired with the model file's time_offset
+// (docs/fit.md, "Streams and the clock offset in the fit"); or a capture in memory. With streams
+// and a free time_offset the offset is fitted jointly with the terms and the streams are re-paired
+// at the estimate while it moves by more than 1 ms (at most 3 times).
+
+#pragma once
+
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/calibration_file.h"
+#include "core/capture.h"
+#include "core/error_statistics.h"
+#include "fit/fit_engine.h"
+#include "fit/model_file.h"
+#include "fit/stream_pairing.h"
+
+namespace trackcal::fit {
+
+// The stations of one set (`calib`, `valid`, `reg`) of a capture, in file order.
+std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::string& set);
+
+// Stream pairing as the model file's time_offset asks (default pairing without one).
+StreamPairingOptions PairingOf(const ModelSpec& spec);
+
+// True for a folder that holds the streams and no poses.csv (its stations are paired).
+bool IsStreamFolder(const std::filesystem::path& data);
+
+// Where the stations come from: a file or folder, or a capture in memory.
+struct FitData {
+  std::optional<std::filesystem::path> path;         // capture folder or poses.csv
+  std::optional<PoseCapture> in_memory;              // used when path is not set
+  std::optional<std::filesystem::path> loaded_from;  // in_memory's file (protected, not hashed)
+};
+
+// The stations of a FitData, resolved as described in the file comment.
+struct LoadedFitData {
+  PoseCapture poses;
+  std::string name;    // short name for the description ("poses.csv", the folder, "in-memory capture")
+  std::string source;  // for messages: the path read, or `name`
+  std::vector<CalibrationInput> inputs;                 // files read, with SHA-256 (provenance)
+  std::vector<std::filesystem::path> protected_paths;  // never to be written over
+  std::optional<double> time_offset;                    // when streams were paired
+  // Streams paired with a free time offset: kept for the joint fit (fit/terms_time_offset.h).
+  std::shared_ptr<TrackerStream> tracker_stream;
+  std::shared_ptr<ReferenceStream> reference_stream;
+  std::optional<StreamPairingOptions> pairing;
+  std::vector<FitStation> stream_stations;  // the pairing's calib stations with velocities
+};
+
+// Throws std::invalid_argument / std::runtime_error (file, line, column) for unreadable data.
+LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec);
+
+// The model file as text, its name for messages, and its file (provenance, protected) if any.
+struct FitModelSource {
+  std::string text;
+  std::string source_name;                    // "model.yaml" or "<string>"
+  std::optional<std::filesystem::path> path;  // the file the text came from
+};
+
+struct FitRunOptions {
+  // k-fold cross-validation (>= 2) adds a "cross-validation (k-fold)" table; 0: none.
+  int folds = 0;
+  // false: cross-validate only when the capture has no `valid` set (the command line).
+  bool cross_validate_with_validation_set = true;
+  // Called after each solver iteration: (iteration, cost, the model's max_iterations).
+  std::function<void(int, double, int)> on_iteration;
+  // Called before cross-validation fold f (0-based) of `folds`; may throw to stop the run.
+  std::function<void(int, int)> on_fold;
+  // Provenance and description of the calibration file.
+  std::string tool = "trackcal-fit";
+  std::string tool_version = "0.1.0";
+  std::string description_tool = "trackcal-fit";  // "fitted by <this> from <data> with model <m>"
+  bool Check() const { return folds == 0 || folds >= 2; }
+};
+
+// One fit and what it produced.
+struct FitRunResult {
+  FitResult result;
+  std::vector<Table1> tables;  // calib, then valid and/or cross-validation
+  Calibration calibration;     // chain, statistics, provenance (no command line)
+  std::optional<double> time_offset;  // the clock offset used (paired or fitted), with streams
+  int num_calib = 0;
+  int num_valid = 0;
+  std::vector<std::filesystem::path> protected_paths;  // model file and data files
+
+  nlohmann::json TablesJson() const;
+  // The document `trackcal-fit fit --json` prints ("output": null without a path).
+  nlohmann::json ToJson(const std::optional<std::filesystem::path>& output) const;
+};
+
+// Fits the model to the `calib` set of the data and evaluates Table 1. Throws
+// std::invalid_argument for invalid options, no `calib` stations, or what FitModel rejects.
+FitRunResult RunFit(LoadedFitData data, const FitModelSource& model,
+                    const FitRunOptions& options = {});
+
+}  // namespace trackcal::fit
