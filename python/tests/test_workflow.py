@@ -274,11 +274,15 @@ def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
         return [] if any(line.startswith("loss:") for line in text.splitlines()) else \
             ["no robust loss in the final model"]
     if hidden == "clock_offset":
-        # trackcal-fit fit --json: "time_offset_s" (the pairing's estimate) and, when the pairing
-        # reports one, its standard deviation "time_offset_stddev_s".
+        # trackcal-fit fit --json: "time_offset_s" (the offset the streams were paired at, which is
+        # the joint fit's estimate when the model frees it) and the joint fit's parameter block
+        # time_offset.value with its standard deviation (fit/fit_engine.cc).
         if final.fit.get("time_offset_s") is None:
             return ["no estimated time offset in the final fit"]
         sd = final.fit.get("time_offset_stddev_s")
+        joint = _blocks(final.fit).get("time_offset", {}).get("value")
+        if sd is None and joint is not None and math.isfinite(joint[1][0]):
+            return _within([joint[0][0]], [joint[1][0]], [eff["reference_minus_tracker_s"]], "time_offset")
         if sd is None:
             return [f"time offset {final.fit['time_offset_s']:.6f} s (truth "
                     f"{eff['reference_minus_tracker_s']} s) has no standard deviation to test it against"]
