@@ -398,6 +398,41 @@ TEST(AssessPhysicalEvidence, SensorOffsetRotationAloneAndTheNoiseScale) {
   EXPECT_TRUE(AssessPhysicalEvidence("polynomial", {}, {}).supported());
 }
 
+// The physical conditions in DiagnoseCandidates: a true sensor offset (1 to 2 cm in the receiver
+// frame) against a model without one. Claimed with its strength far beyond 3 sigma; with an
+// impossible strength threshold the same candidate is not claimed, the reason and the JSON say
+// why, and the verdict says the structure is there but its source is not identified.
+TEST(DiagnoseCandidates, PhysicalConditionsDecideTheClaim) {
+  auto stations = Stations(200, Eigen::Vector3d::Zero(), 0, 11);
+  const Eigen::Vector3d offset_in_receiver(0.01, -0.008, 0.02);
+  for (auto& s : stations) s.reference.translation += s.reported.rotation * offset_in_receiver;
+  CandidateOptions o = TestOptions();
+  o.catalog = {{"sensor_offset", CandidateKind::kTerm, "type: sensor_offset", true, false,
+                "a sensor offset"}};
+  o.flexible.clear();
+  o.folds = 3;
+  const Diagnosis claimed = DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml",
+                                               "synthetic", o);
+  ASSERT_EQ(claimed.candidates.size(), 1u) << FormatDiagnosis(claimed);
+  const Candidate& c = claimed.candidates[0];
+  EXPECT_TRUE(c.significant) << c.reason;
+  EXPECT_TRUE(c.evidence.assessed);
+  EXPECT_GT(c.evidence.strength_sigma, 30.0) << c.evidence.Describe();  // 2.3 cm against 0.1 mm noise
+  EXPECT_THAT(c.reason, ::testing::HasSubstr("sigma from its null value"));
+
+  o.min_strength_sigma = 1e6;
+  const Diagnosis rejected = DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml",
+                                                "synthetic", o);
+  const Candidate& r = rejected.candidates.at(0);
+  EXPECT_FALSE(r.significant);
+  EXPECT_FALSE(rejected.verdict_effect.has_value());
+  EXPECT_THAT(r.reason, ::testing::HasSubstr("(needs 1000000)"));
+  EXPECT_THAT(rejected.verdict_text, ::testing::HasSubstr("does not identify the source"));
+  const nlohmann::json j = rejected.ToJson();
+  EXPECT_FALSE(j["candidates"][0]["evidence"]["supported"].get<bool>());
+  EXPECT_FALSE(j["candidates"][0]["evidence"]["strength"]["ok"].get<bool>());
+}
+
 TEST(WilcoxonSignedRankGreater, Nominal) {
   // d = 1..10: W+ = 55, mean 27.5, variance 96.25, z = (55 - 27.5 - 0.5) / 9.8107 = 2.7521,
   // p = 1 - Phi(z) = 0.0029600 (normal approximation with continuity correction).
