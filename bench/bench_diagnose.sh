@@ -1,48 +1,66 @@
 #!/usr/bin/env bash
-# CPU time of `trackcal-fit diagnose` on the paper preset against `trackcal-fit fit` of the same model
-# (one fit of the base model, evaluated on the validation set) in the same run (docs/diagnose.md).
+# Time of `trackcal-fit diagnose` with the fast cross-validation (the default: folds refitted from
+# the full fit) against `--exact-cv` (every fold fitted from scratch) in the same run, on the
+# workflow tests' capture (tests/data/workflow/paper_small.yaml, 240 calibration stations) with a
+# hidden effect, for the workflow's first two steps: a degree-4 polynomial, then sensor_offset plus
+# the polynomial (docs/diagnose.md, Speed). Prints wall and CPU seconds, the ratios, and whether the
+# two modes agree (verdict, significant candidates in order, largest relative difference of the
+# held-out means).
 #
-#   bench/bench_diagnose.sh [BUILD_DIR] [HIDDEN_EFFECT]      # e.g. build ferromagnetic_object
+#   bench/bench_diagnose.sh [BUILD_DIR] [HIDDEN_EFFECT] [SEED] [THREADS]   # build sensor_offset 1 0
 #
-# The model is the paper room's planes and objects as fixed physical terms plus a degree-1
-# polynomial: a model that fits the effect-free scene. Pin to one core: taskset -c 0 bench/...
+# THREADS is diagnose's --threads (0: all cores). Say the machine's load when you quote the figures.
 set -euo pipefail
 build=${1:-build}
-hidden=${2:-ferromagnetic_object}
+hidden=${2:-sensor_offset}
+seed=${3:-1}
+threads=${4:-0}
+here=$(cd "$(dirname "$0")/.." && pwd)
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 
-"$build/sim/trackcal-simulate" --scene paper --hidden "$hidden" -o "$work/cap" > /dev/null
-# Noise of the effect-free twin (per axis; orientation: the error quaternion's vector part).
-"$build/sim/trackcal-simulate" --scene paper -o "$work/twin" > /dev/null
-python3 - "$work" <<'EOF'
-import json, math, sys
-work = sys.argv[1]
-floor = json.load(open(f"{work}/twin/truth.json"))["statistics"]["calib"]["noise_floor"]
-sp = floor["position_mm"]["rms"] / math.sqrt(3)
-so = 0.5 * floor["orientation_deg"]["rms"] / math.sqrt(3)
-scene = json.load(open(f"{work}/twin/truth.json"))["effective"]["field_model"]
-m = f"noise: {{position_mm: {sp}, orientation_deg: {so}}}\nterms:\n"
-for p in scene["planes"]:
-    m += (f"  - type: plane\n    name: {p['name']}\n    point_in_transmitter: {p['point_in_transmitter']}\n"
-          f"    normal_in_transmitter: {p['normal_in_transmitter']}\n    attenuation: {p['attenuation']}\n"
-          "    parameters: {distance_m: {fixed: true}, normal_in_transmitter: {fixed: true}, "
-          "attenuation: {fixed: true}}\n")
-for o in scene["objects"]:
-    m += (f"  - type: dipole\n    name: {o['name']}\n    location_in_transmitter: {o['location_in_transmitter']}\n"
-          f"    polarisability_m3: {o['polarisability_m3']}\n"
-          "    parameters: {location_in_transmitter: {fixed: true}, polarisability_m3: {fixed: true}}\n")
-m += "  - type: polynomial\n    degree: 1\n"
-open(f"{work}/room.yaml", "w").write(m)
-EOF
+"$build/sim/trackcal-simulate" --scene "$here/tests/data/workflow/paper_small.yaml" \
+  --hidden "$hidden" --seed "$seed" -o "$work/cap" > /dev/null
+printf 'terms:\n  - type: polynomial\n    degree: 4\n' > "$work/step1.yaml"
+printf 'terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 4\n' > "$work/step2.yaml"
 
-cpu() {  # user+sys CPU seconds of a command
-  if ! /usr/bin/env time -f "%U %S" -o "$work/time" "$@" > /dev/null 2> "$work/err"; then
-    cat "$work/err" >&2
+run() {  # run NAME ARGS...: diagnose --json into $work/NAME.json, "wall cpu" into $work/NAME.time
+  local name=$1
+  shift
+  if ! /usr/bin/env time -f "%e %U %S" -o "$work/$name.time" "$build/fit/trackcal-fit" diagnose \
+      --data "$work/cap" --threads "$threads" --json --quiet "$@" > "$work/$name.json" \
+      2> "$work/$name.err"; then
+    cat "$work/$name.err" >&2
     exit 1
   fi
-  awk '{print $1+$2}' "$work/time"
 }
-fit_s=$(cpu "$build/fit/trackcal-fit" fit --data "$work/cap" --model "$work/room.yaml" -o "$work/c.json" --quiet)
-diag_s=$(cpu "$build/fit/trackcal-fit" diagnose --data "$work/cap" --model "$work/room.yaml" --quiet)
-python3 -c "f=$fit_s; d=$diag_s; print(f'fit: {f:.2f} s CPU; diagnose: {d:.2f} s CPU; ratio {d/f:.1f}')"
+
+echo "load average before: $(cut -d' ' -f1-3 /proc/loadavg); threads: $threads; $(nproc) cores"
+for step in step1 step2; do
+  run "$step.fast" --model "$work/$step.yaml"
+  run "$step.exact" --model "$work/$step.yaml" --exact-cv
+  python3 - "$work" "$step" <<'EOF'
+import json, sys
+work, step = sys.argv[1], sys.argv[2]
+def load(mode):
+    wall, user, sys_ = map(float, open(f"{work}/{step}.{mode}.time").read().split())
+    return json.load(open(f"{work}/{step}.{mode}.json")), wall, user + sys_
+fast, fw, fc = load("fast")
+exact, ew, ec = load("exact")
+sig = lambda d: [c["effect"] for c in d["candidates"] if c["significant"]]
+worst = 0.0
+pairs = [(fast["base"], exact["base"])]
+by_effect = {c["effect"]: c for c in fast["candidates"]}
+pairs += [(by_effect[c["effect"]], c) for c in exact["candidates"] if c["cross_validated"]]
+for f, e in pairs:
+    for key in ("cv_position_mm_mean", "cv_orientation_deg_mean"):
+        worst = max(worst, abs(f[key] - e[key]) / abs(e[key]))
+same = fast["verdict"]["effect"] == exact["verdict"]["effect"] and sig(fast) == sig(exact)
+print(f"{step}: fast {fw:.2f} s wall, {fc:.2f} s CPU; exact {ew:.2f} s wall, {ec:.2f} s CPU; "
+      f"speed-up {ew / fw:.1f}x wall, {ec / fc:.1f}x CPU")
+print(f"  verdict {fast['verdict']['effect']} (exact: {exact['verdict']['effect']}), "
+      f"significant {sig(fast)} (exact: {sig(exact)}): {'same' if same else 'DIFFERENT'}; "
+      f"held-out means differ by at most {100 * worst:.3f} %")
+EOF
+done
+echo "load average after: $(cut -d' ' -f1-3 /proc/loadavg)"

@@ -5,15 +5,19 @@
 #include <Eigen/Eigenvalues>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <iomanip>
 #include <limits>
 #include <map>
+#include <memory>
+#include <mutex>
 #include <numeric>
 #include <set>
 #include <sstream>
 #include <stdexcept>
+#include <thread>
 
 #include "fit/model_file.h"
 
@@ -86,6 +90,68 @@ StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
     }
   }
   return e;
+}
+
+// The same, from the fit on all stations (`fitted`: the spec FitModel left): each fold re-estimated by
+// Gauss-Newton steps from the full fit (CandidateOptions::exact_cv false).
+StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
+                                        const std::vector<int>& fold_of, ModelSpec* fitted,
+                                        int folds, double sigma_p, double sigma_o,
+                                        const std::function<void(const std::string&)>& report) {
+  StationErrors e = MakeErrors(stations.size());
+  const std::vector<FoldRefit> refits = RefitFoldsFromFull(stations, fitted, fold_of, folds);
+  std::string steps;
+  int solver = 0, unconverged = 0;
+  for (const auto& r : refits) {
+    steps += (steps.empty() ? "" : ",") + std::to_string(r.steps);
+    solver += r.solver_refit ? 1 : 0;
+    unconverged += !r.solver_refit && !r.converged ? 1 : 0;
+  }
+  report("fold refits took " + steps + " steps" +
+         (unconverged ? "; " + std::to_string(unconverged) + " stopped at the step limit" : "") +
+         (solver ? "; " + std::to_string(solver) + " refitted by the solver" : ""));
+  for (size_t i = 0; i < stations.size(); ++i) {
+    AppendErrors(refits[static_cast<size_t>(fold_of[i])].chain, stations[i], sigma_p, sigma_o, &e, i);
+  }
+  return e;
+}
+
+// Whether the fast cross-validation applies: not to a clock offset fitted from streams (its fit
+// shifts the reference relative to the pairing's offset, which the fitted spec no longer holds).
+bool FastCrossValidationApplies(const std::vector<FitStation>& stations, const ModelSpec& spec) {
+  if (!spec.time_offset || spec.time_offset->fixed) return true;
+  for (const auto& s : stations) {
+    if (!s.reference_velocity.isZero() || !s.reference_angular_velocity.isZero()) return false;
+  }
+  return true;
+}
+
+// Runs task(0) ... task(n - 1) on up to `threads` threads (each task writes only its own results,
+// so the outcome does not depend on the schedule). The first exception is rethrown after all end.
+void ParallelFor(size_t n, int threads, const std::function<void(size_t)>& task) {
+  const size_t workers = std::min(n, static_cast<size_t>(std::max(1, threads)));
+  if (workers <= 1) {
+    for (size_t i = 0; i < n; ++i) task(i);
+    return;
+  }
+  std::atomic<size_t> next{0};
+  std::mutex mutex;
+  std::exception_ptr error;
+  std::vector<std::thread> pool;
+  for (size_t w = 0; w < workers; ++w) {
+    pool.emplace_back([&] {
+      for (size_t i = next++; i < n; i = next++) {
+        try {
+          task(i);
+        } catch (...) {
+          std::lock_guard<std::mutex> lock(mutex);
+          if (!error) error = std::current_exception();
+        }
+      }
+    });
+  }
+  for (auto& t : pool) t.join();
+  if (error) std::rethrow_exception(error);
 }
 
 // chi2 and the number of stations beyond the loss scale (0 without a loss): a robust loss is scored
@@ -439,7 +505,10 @@ std::vector<Eigen::Vector3d> ReportedPositions(const std::vector<FitStation>& st
 }
 
 void Progress(const CandidateOptions& options, const std::string& message) {
-  if (options.progress) options.progress(message);
+  static std::mutex mutex;  // the callback is called from worker threads, one call at a time
+  if (!options.progress) return;
+  std::lock_guard<std::mutex> lock(mutex);
+  options.progress(message);
 }
 
 struct PreparedCandidate {
@@ -452,6 +521,7 @@ struct PreparedCandidate {
   bool flexible = false;  // a flexible fallback, not an effect
   std::vector<double> cv_whitened_by_base;  // held-out whitened error per base station (NaN: none)
   YAML::Node root;        // the candidate model file
+  std::shared_ptr<ModelSpec> fitted;  // the fit on all stations (the fast cross-validation starts there)
 };
 
 }  // namespace
@@ -497,6 +567,7 @@ void CandidateOptions::Check() const {
   if (!(min_strength_sigma >= 0) || !std::isfinite(min_strength_sigma)) {
     throw std::invalid_argument("CandidateOptions.min_strength_sigma: must be finite and >= 0");
   }
+  if (num_threads < 0) throw std::invalid_argument("CandidateOptions.num_threads: must be >= 0");
   if (cross_validate_top < 0) {
     throw std::invalid_argument("CandidateOptions.cross_validate_top: must be >= 0");
   }
@@ -912,6 +983,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // Base: full fit (cost, BIC) and cross-validation.
   StationErrors base_full = MakeErrors(stations.size());
   int base_k = 0;  // free parameters of the base fit
+  bool base_linear = false;  // solved by linear least squares: its exact folds cost nothing
   {
     const auto t0 = Clock::now();
     Progress(options, "base model: fit on " + std::to_string(stations.size()) + " stations");
@@ -922,6 +994,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &base_full, i);
     }
     base_k = fit.num_free_parameters;
+    base_linear = fit.linear_least_squares;
     const Chi2 c = ComputeChi2(stations, base_full, base_spec.loss);
     BaseScores& b = d.base;
     b.converged = fit.converged;
@@ -936,12 +1009,30 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   }
   std::vector<int> base_folds(stations.size());
   for (size_t i = 0; i < stations.size(); ++i) base_folds[i] = static_cast<int>(i) % options.folds;
-  const StationErrors base_cv = CrossValidateStations(
-      stations, base_folds, model_text, model_source, options.folds, sigma_p, sigma_o, [&](int f) {
-        Progress(options,
-                 "base model: fold " + std::to_string(f + 1) + "/" + std::to_string(options.folds));
-      });
-  {
+  const int threads = options.num_threads > 0
+                          ? options.num_threads
+                          : std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
+  StationErrors base_cv;
+  double base_cv_seconds = 0.0;
+  auto validate_base = [&] {
+    const auto t0 = Clock::now();
+    if (!options.exact_cv && !base_linear && FastCrossValidationApplies(stations, base_spec)) {
+      Progress(options, "base model: " + std::to_string(options.folds) +
+                            " fold refits from the full fit");
+      base_cv = FastCrossValidateStations(
+          stations, base_folds, &base_spec, options.folds, sigma_p, sigma_o,
+          [&](const std::string& m) { Progress(options, "base model: " + m); });
+    } else {
+      base_cv = CrossValidateStations(stations, base_folds, model_text, model_source, options.folds,
+                                      sigma_p, sigma_o, [&](int f) {
+                                        Progress(options, "base model: fold " +
+                                                              std::to_string(f + 1) + "/" +
+                                                              std::to_string(options.folds));
+                                      });
+    }
+    base_cv_seconds = SecondsSince(t0);
+  };
+  auto base_table = [&] {
     std::vector<Rigid3d> reported, reference;
     for (const auto& s : stations) {
       reported.push_back(s.reported);
@@ -952,8 +1043,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     d.base.table1.after = SummarizePoseErrors(base_cv.corrected, reference);
     d.base.cv_position_mm_mean = Mean(base_cv.position_mm);
     d.base.cv_orientation_deg_mean = Mean(base_cv.orientation_deg);
-    d.base.seconds = SecondsSince(start);  // full fit and cross-validation
-  }
+    d.base.seconds += base_cv_seconds;  // full fit and cross-validation
+  };
 
   // Candidates: fit on all stations (parameters, BIC).
   auto fit_candidate = [&](PreparedCandidate& p) {
@@ -1029,6 +1120,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
           if (r.term == c.term_name) c.parameters.push_back(r);
         }
       }
+      if (!options.exact_cv && !fit.linear_least_squares && FastCrossValidationApplies(own, spec)) {
+        p.fitted = std::make_shared<ModelSpec>(std::move(spec));  // the folds start here
+      }
       if (c.kind != CandidateKind::kTimeOffset)
         c.statement = Statement(*p.effect, c, options.robust_loss.scale);
       if (c.kind == CandidateKind::kTerm && !p.flexible && options.min_strength_sigma > 0) {
@@ -1057,8 +1151,28 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   };
 
   // Which candidates are cross-validated: all, or the best by BIC (cross_validate_top).
-  for (auto& p : prepared) {
-    if (!p.flexible) fit_candidate(p);
+  // The base's cross-validation and the candidates' fits are independent tasks.
+  {
+    std::vector<PreparedCandidate*> to_fit;
+    for (auto& p : prepared) {
+      if (!p.flexible) to_fit.push_back(&p);
+    }
+    // Longest first, so the workers finish together: terms that search their start (dipole, plane)
+    // cost several times the others.
+    auto searched = [](const PreparedCandidate* p) {
+      if (p->candidate.kind != CandidateKind::kTerm) return false;
+      const std::string type = p->term["type"].as<std::string>();
+      return type == "dipole" || type == "plane";
+    };
+    std::stable_partition(to_fit.begin(), to_fit.end(), searched);
+    ParallelFor(to_fit.size() + 1, threads, [&](size_t i) {
+      if (i == 0) {
+        validate_base();
+      } else {
+        fit_candidate(*to_fit[i - 1]);
+      }
+    });
+    base_table();
   }
   std::vector<PreparedCandidate*> to_validate;
   for (auto& p : prepared) {
@@ -1093,12 +1207,21 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         const int b = p->base_index[j];
         fold_of[j] = (b >= 0 ? b : static_cast<int>(j)) % options.folds;
       }
-      const StationErrors cv =
-          CrossValidateStations(own, fold_of, c.model_text, model_source + " + " + c.effect,
-                                options.folds, sigma_p, sigma_o, [&](int f) {
-                                  Progress(options, c.effect + ": fold " + std::to_string(f + 1) +
-                                                        "/" + std::to_string(options.folds));
-                                });
+      StationErrors cv;
+      if (p->fitted) {
+        Progress(options, c.effect + ": " + std::to_string(options.folds) +
+                              " fold refits from the full fit");
+        cv = FastCrossValidateStations(
+            own, fold_of, p->fitted.get(), options.folds, sigma_p, sigma_o,
+            [&](const std::string& m) { Progress(options, c.effect + ": " + m); });
+      } else {
+        cv = CrossValidateStations(own, fold_of, c.model_text, model_source + " + " + c.effect,
+                                   options.folds, sigma_p, sigma_o, [&](int f) {
+                                     Progress(options, c.effect + ": fold " +
+                                                           std::to_string(f + 1) + "/" +
+                                                           std::to_string(options.folds));
+                                   });
+      }
       c.cross_validated = true;
       p->cv_whitened_by_base.assign(stations.size(), NAN);
       for (size_t j = 0; j < own.size(); ++j) {
@@ -1204,7 +1327,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     c.reason = r.str();
   };
 
-  for (PreparedCandidate* p : to_validate) validate_candidate(p);
+  ParallelFor(to_validate.size(), threads, [&](size_t i) { validate_candidate(to_validate[i]); });
   bool any_significant = false;
   for (auto& p : prepared) {
     if (p.flexible) continue;

@@ -162,7 +162,17 @@ struct CandidateOptions {
   // with the given time-offset setting. Enables the time_offset candidate (when the model's offset
   // is absent or fixed), which is scored on the stations both pairings have (matched by time).
   std::function<PairedStations(const TimeOffsetSpec&)> pair_streams;
-  // Progress messages ("fitting dipole (fold 3/5)"); the CLI prints them on stderr.
+  // Cross-validation method. false (default): each fold's model is re-estimated from the fit on all
+  // stations by Gauss-Newton steps with the fold's rows removed (fit/fit_engine.h,
+  // RefitFoldsFromFull: one step is exact for terms linear in their parameters, physical terms take
+  // steps until the fold's cost settles). true: every fold is fitted from scratch, as
+  // `trackcal-fit fit --folds` does (about 10 times the CPU; docs/diagnose.md, Speed).
+  bool exact_cv = false;
+  // Worker threads for the candidates' fits and cross-validations (0: the hardware's cores). The
+  // results do not depend on it: every candidate is computed alone, single-threaded.
+  int num_threads = 0;
+  // Progress messages ("fitting dipole (fold 3/5)"); the CLI prints them on stderr. Called from
+  // worker threads, one call at a time.
   std::function<void(const std::string&)> progress;
   // Throws std::invalid_argument naming the field.
   void Check() const;

@@ -3,10 +3,13 @@
 #include <ceres/ceres.h>
 #include <ceres/normal_prior.h>
 
+#include <Eigen/Eigenvalues>
+
 #include <chrono>
 #include <cmath>
 #include <limits>
 #include <optional>
+#include <set>
 #include <stdexcept>
 
 #include "fit/terms_time_offset.h"
@@ -166,6 +169,24 @@ class ProgressCallback : public ceres::IterationCallback {
   std::function<void(int, double)> f_;
 };
 
+// The calibrated volume: the box of the stations' reported positions.
+CalibratedVolume VolumeOf(const std::vector<FitStation>& stations) {
+  CalibratedVolume volume;
+  volume.min = volume.max = stations[0].reported.translation;
+  for (const auto& s : stations) {
+    volume.min = volume.min.cwiseMin(s.reported.translation);
+    volume.max = volume.max.cwiseMax(s.reported.translation);
+  }
+  // A flat axis (all stations in one plane) still needs a non-empty box.
+  for (int k = 0; k < 3; ++k) {
+    if (volume.max[k] <= volume.min[k]) {
+      volume.min[k] -= 1e-3;
+      volume.max[k] += 1e-3;
+    }
+  }
+  return volume;
+}
+
 // Parameter reports, term descriptions, the chain with its calibrated volume, timing.
 void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
                   std::chrono::steady_clock::time_point start, FitResult* out) {
@@ -194,21 +215,96 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
   }
 
   result.chain = ModelToChain(spec->terms);
-  CalibratedVolume volume;
-  volume.min = volume.max = stations[0].reported.translation;
-  for (const auto& s : stations) {
-    volume.min = volume.min.cwiseMin(s.reported.translation);
-    volume.max = volume.max.cwiseMax(s.reported.translation);
-  }
-  // A flat axis (all stations in one plane) still needs a non-empty box.
-  for (int k = 0; k < 3; ++k) {
-    if (volume.max[k] <= volume.min[k]) {
-      volume.min[k] -= 1e-3;
-      volume.max[k] += 1e-3;
+  result.chain.SetVolume(VolumeOf(stations));
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+// The joint problem of FitModel's step (2) over `stations`, with the terms' current values (no
+// preparation or initialisation: FitModel has done it, or a fold refit reuses the full fit's).
+// `time_offset` (with time_offset0 its reference value) is the clock offset block when it is fitted.
+struct BuiltProblem {
+  std::unique_ptr<ceres::Problem> problem;
+  std::vector<ceres::ResidualBlockId> station_blocks;  // one per station, in station order
+  int num_free = 0;  // tangent size of the free term blocks (the time offset not counted)
+};
+
+BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* spec,
+                          double* time_offset, std::optional<double> time_offset0) {
+  BuiltProblem out;
+  out.problem = std::make_unique<ceres::Problem>();
+  ceres::Problem& problem = *out.problem;
+  int& num_free = out.num_free;
+  std::vector<ceres::ResidualBlockId>& station_blocks = out.station_blocks;
+  for (auto& term : spec->terms) {
+    for (auto& block : term->blocks()) {
+      if (block.values.empty()) continue;
+      problem.AddParameterBlock(block.values.data(), block.size());
+      if (block.make_manifold) problem.SetManifold(block.values.data(), block.make_manifold());
     }
   }
-  result.chain.SetVolume(volume);
-  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  {
+    // The bindings are fixed at the initial values (a LUT cell per station).
+    std::vector<std::vector<BoundTerm>> bound(stations.size());
+    for (size_t i = 0; i < stations.size(); ++i) {
+      AmbientPose pose = ToAmbient(stations[i].reported);
+      TermEvaluation eval;
+      for (const auto& term : spec->terms) {
+        BoundTerm b{term.get(), term->Bind(pose)};
+        std::vector<const double*> values;
+        for (int j : b.binding.blocks) values.push_back(term->blocks()[static_cast<size_t>(j)].values.data());
+        term->Evaluate(b.binding, values.data(), pose, false, &eval);
+        pose = eval.output;
+        bound[i].push_back(std::move(b));
+      }
+    }
+    for (size_t i = 0; i < stations.size(); ++i) {
+      std::vector<double*> blocks;
+      for (const auto& b : bound[i]) {
+        for (int j : b.binding.blocks) {
+          blocks.push_back(const_cast<ModelTerm*>(b.term)->blocks()[static_cast<size_t>(j)].values.data());
+        }
+      }
+      if (time_offset) blocks.push_back(time_offset);
+      const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
+      station_blocks.push_back(problem.AddResidualBlock(
+          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1],
+                          time_offset0),
+          MakeLoss(spec->loss), blocks));
+    }
+  }
+  for (size_t k = 0; k < spec->terms.size(); ++k) {
+    spec->terms[k]->AddExtraResiduals(&problem, InputsOfTerm(stations, *spec, k));
+  }
+  for (auto& term : spec->terms) {
+    for (auto& block : term->blocks()) {
+      if (block.values.empty() || !problem.HasParameterBlock(block.values.data())) continue;
+      double* data = block.values.data();
+      if (block.fixed) {
+        problem.SetParameterBlockConstant(data);
+        continue;
+      }
+      num_free += problem.ParameterBlockTangentSize(data);
+      for (int i = 0; i < block.size(); ++i) {
+        if (!block.lower.empty() && std::isfinite(block.lower[static_cast<size_t>(i)])) {
+          problem.SetParameterLowerBound(data, i, block.lower[static_cast<size_t>(i)]);
+        }
+        if (!block.upper.empty() && std::isfinite(block.upper[static_cast<size_t>(i)])) {
+          problem.SetParameterUpperBound(data, i, block.upper[static_cast<size_t>(i)]);
+        }
+      }
+      if (!block.prior_mean.empty()) {
+        Eigen::MatrixXd a = Eigen::MatrixXd::Zero(block.size(), block.size());
+        Eigen::VectorXd b(block.size());
+        for (int i = 0; i < block.size(); ++i) {
+          a(i, i) = 1.0 / block.prior_sigma[static_cast<size_t>(i)];
+          b[i] = block.prior_mean[static_cast<size_t>(i)];
+        }
+        problem.AddResidualBlock(new ceres::NormalPrior(a, b), nullptr, data);
+      }
+    }
+  }
+
+  return out;
 }
 
 }  // namespace
@@ -256,6 +352,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       ModelTerm& term = *spec->terms[0];
       result.converged = true;
       result.solver_message = "linear least squares (paper eq. 9)";
+      result.linear_least_squares = true;
       const auto correction = term.ToCorrection();
       const double limit = 5.0;
       for (const auto& s : stations) {
@@ -291,79 +388,12 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   }
 
   // (2) the joint problem.
-  ceres::Problem::Options problem_options;
-  ceres::Problem problem(problem_options);
-  int num_free = 0;
-  for (auto& term : spec->terms) {
-    for (auto& block : term->blocks()) {
-      if (block.values.empty()) continue;
-      problem.AddParameterBlock(block.values.data(), block.size());
-      if (block.make_manifold) problem.SetManifold(block.values.data(), block.make_manifold());
-    }
-  }
   FitResult result;
-  std::vector<ceres::ResidualBlockId> station_blocks;
-  {
-    // The bindings are fixed at the initial values (a LUT cell per station).
-    std::vector<std::vector<BoundTerm>> bound(stations.size());
-    for (size_t i = 0; i < stations.size(); ++i) {
-      AmbientPose pose = ToAmbient(stations[i].reported);
-      TermEvaluation eval;
-      for (const auto& term : spec->terms) {
-        BoundTerm b{term.get(), term->Bind(pose)};
-        std::vector<const double*> values;
-        for (int j : b.binding.blocks) values.push_back(term->blocks()[static_cast<size_t>(j)].values.data());
-        term->Evaluate(b.binding, values.data(), pose, false, &eval);
-        pose = eval.output;
-        bound[i].push_back(std::move(b));
-      }
-    }
-    for (size_t i = 0; i < stations.size(); ++i) {
-      std::vector<double*> blocks;
-      for (const auto& b : bound[i]) {
-        for (int j : b.binding.blocks) {
-          blocks.push_back(const_cast<ModelTerm*>(b.term)->blocks()[static_cast<size_t>(j)].values.data());
-        }
-      }
-      if (fit_time_offset) blocks.push_back(&time_offset);
-      const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
-      station_blocks.push_back(problem.AddResidualBlock(
-          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1],
-                          time_offset0),
-          MakeLoss(spec->loss), blocks));
-    }
-  }
-  for (size_t k = 0; k < spec->terms.size(); ++k) {
-    spec->terms[k]->AddExtraResiduals(&problem, InputsOfTerm(stations, *spec, k));
-  }
-  for (auto& term : spec->terms) {
-    for (auto& block : term->blocks()) {
-      if (block.values.empty() || !problem.HasParameterBlock(block.values.data())) continue;
-      double* data = block.values.data();
-      if (block.fixed) {
-        problem.SetParameterBlockConstant(data);
-        continue;
-      }
-      num_free += problem.ParameterBlockTangentSize(data);
-      for (int i = 0; i < block.size(); ++i) {
-        if (!block.lower.empty() && std::isfinite(block.lower[static_cast<size_t>(i)])) {
-          problem.SetParameterLowerBound(data, i, block.lower[static_cast<size_t>(i)]);
-        }
-        if (!block.upper.empty() && std::isfinite(block.upper[static_cast<size_t>(i)])) {
-          problem.SetParameterUpperBound(data, i, block.upper[static_cast<size_t>(i)]);
-        }
-      }
-      if (!block.prior_mean.empty()) {
-        Eigen::MatrixXd a = Eigen::MatrixXd::Zero(block.size(), block.size());
-        Eigen::VectorXd b(block.size());
-        for (int i = 0; i < block.size(); ++i) {
-          a(i, i) = 1.0 / block.prior_sigma[static_cast<size_t>(i)];
-          b[i] = block.prior_mean[static_cast<size_t>(i)];
-        }
-        problem.AddResidualBlock(new ceres::NormalPrior(a, b), nullptr, data);
-      }
-    }
-  }
+  BuiltProblem built = BuildProblem(stations, spec, fit_time_offset ? &time_offset : nullptr,
+                                    time_offset0);
+  ceres::Problem& problem = *built.problem;
+  const std::vector<ceres::ResidualBlockId>& station_blocks = built.station_blocks;
+  int num_free = built.num_free;
 
   if (fit_time_offset) num_free += 1;
   ceres::Solver::Options solver_options;
@@ -486,6 +516,345 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     result.parameters.push_back(std::move(r));
   }
   return result;
+}
+
+namespace {
+
+// A free parameter block of a problem, in the order of the Jacobian's columns.
+struct FreeBlock {
+  double* values = nullptr;
+  int size = 0;
+  int tangent = 0;
+  int offset = 0;                              // first column
+  const ceres::Manifold* manifold = nullptr;  // null: Euclidean
+  const ParameterBlock* block = nullptr;      // bounds
+};
+
+// Cost, residuals and dense Jacobian (columns: the free blocks' tangent spaces) of `blocks`.
+// False if a term cannot be evaluated at the current values.
+bool EvaluateDense(ceres::Problem* problem, const std::vector<ceres::ResidualBlockId>& blocks,
+                   const std::vector<double*>& parameters, int columns, double* cost,
+                   Eigen::VectorXd* residuals, Eigen::MatrixXd* jacobian) {
+  ceres::Problem::EvaluateOptions eo;
+  eo.residual_blocks = blocks;
+  eo.parameter_blocks = parameters;
+  std::vector<double> r;
+  ceres::CRSMatrix crs;
+  if (!problem->Evaluate(eo, cost, residuals ? &r : nullptr, nullptr, jacobian ? &crs : nullptr)) {
+    return false;
+  }
+  if (!std::isfinite(*cost)) return false;
+  if (residuals) *residuals = Eigen::Map<const Eigen::VectorXd>(r.data(), static_cast<Eigen::Index>(r.size()));
+  if (jacobian) {
+    jacobian->setZero(crs.num_rows, columns);
+    for (int row = 0; row < crs.num_rows; ++row) {
+      for (int k = crs.rows[static_cast<size_t>(row)]; k < crs.rows[static_cast<size_t>(row) + 1]; ++k) {
+        (*jacobian)(row, crs.cols[static_cast<size_t>(k)]) = crs.values[static_cast<size_t>(k)];
+      }
+    }
+  }
+  return true;
+}
+
+// Copies the lower triangle (where rankUpdate writes) to the upper one.
+void Symmetrize(Eigen::MatrixXd* h) { *h = Eigen::MatrixXd(h->selfadjointView<Eigen::Lower>()); }
+
+// Steps of the normal equations H delta = -g for any Levenberg-Marquardt damping lambda from one
+// eigendecomposition of the Jacobi-scaled H (D H D, D = diag(H)^-1/2): delta(lambda) =
+// -D V (Lambda + lambda)^-1 V^T D g, i.e. (H + lambda diag(H)) delta = -g, so trying another
+// damping costs no factorisation. Eigenvalues below 1e-10 of the largest are dropped (pseudo-
+// inverse): directions the data do not determine (a coil gain the polynomial's linear term absorbs)
+// keep their values instead of taking huge steps that cancel only to first order; 1e-10 because
+// J^T J squares J's condition number, so smaller eigenvalues of the scaled matrix are rounding.
+class DampedSteps {
+ public:
+  DampedSteps(const Eigen::MatrixXd& h, const Eigen::VectorXd& g) {
+    const Eigen::Index n = h.rows();
+    d_.resize(n);
+    for (Eigen::Index i = 0; i < n; ++i) d_[i] = h(i, i) > 0 ? 1.0 / std::sqrt(h(i, i)) : 1.0;
+    const Eigen::MatrixXd a = d_.asDiagonal() * h * d_.asDiagonal();
+    const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> es(a);
+    lambda_ = es.eigenvalues();
+    v_ = es.eigenvectors();
+    max_lambda_ = std::max(lambda_.maxCoeff(), std::numeric_limits<double>::min());
+    b_ = v_.transpose() * (d_.asDiagonal() * g);
+  }
+  double max_eigenvalue() const { return max_lambda_; }
+  // The step for damping `mu` (in units of the scaled matrix) and the decrease of the quadratic
+  // model it predicts, -(g^T delta + delta^T H delta / 2).
+  Eigen::VectorXd Step(double mu, double* predicted) const {
+    Eigen::VectorXd y = Eigen::VectorXd::Zero(b_.size());
+    double p = 0.0;
+    for (Eigen::Index k = 0; k < b_.size(); ++k) {
+      if (!(lambda_[k] > 1e-10 * max_lambda_)) continue;
+      const double denominator = lambda_[k] + mu;
+      y[k] = -b_[k] / denominator;
+      p += b_[k] * b_[k] / denominator - 0.5 * lambda_[k] * y[k] * y[k];
+    }
+    *predicted = p;
+    return d_.asDiagonal() * (v_ * y);
+  }
+
+ private:
+  Eigen::VectorXd d_, lambda_, b_;
+  Eigen::MatrixXd v_;
+  double max_lambda_ = 0.0;
+};
+
+}  // namespace
+
+std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& stations, ModelSpec* spec,
+                                          const std::vector<int>& fold_of, int folds,
+                                          const FoldRefitOptions& options) {
+  if (!options.Check()) throw std::invalid_argument("FoldRefitOptions: invalid settings");
+  if (folds < 2) throw std::invalid_argument("fold refits need at least 2 folds");
+  if (fold_of.size() != stations.size()) {
+    throw std::invalid_argument("fold refits: one fold index per station needed");
+  }
+  std::vector<size_t> training_count(static_cast<size_t>(folds), 0);
+  for (int f : fold_of) {
+    if (f < 0 || f >= folds) throw std::invalid_argument("fold refits: fold index out of range");
+  }
+  for (int f = 0; f < folds; ++f) {
+    for (int g : fold_of) training_count[static_cast<size_t>(f)] += g != f ? 1 : 0;
+    if (training_count[static_cast<size_t>(f)] == 0) {
+      throw std::invalid_argument("fold refits: fold " + std::to_string(f) + " leaves no stations");
+    }
+  }
+  for (const auto& s : stations) {
+    if ((!s.reference_velocity.isZero() || !s.reference_angular_velocity.isZero()) &&
+        spec->time_offset && !spec->time_offset->fixed) {
+      // FitModel shifts the reference relative to the offset the streams were paired with, which
+      // the fitted spec no longer holds.
+      throw std::invalid_argument("fold refits: a fitted clock offset needs full refits");
+    }
+  }
+
+  BuiltProblem built = BuildProblem(stations, spec, nullptr, std::nullopt);
+  ceres::Problem& problem = *built.problem;
+  std::vector<FreeBlock> free;
+  std::vector<double*> parameters;
+  int n = 0;
+  for (auto& term : spec->terms) {
+    for (auto& block : term->blocks()) {
+      double* data = block.values.data();
+      if (block.values.empty() || !problem.HasParameterBlock(data) ||
+          problem.IsParameterBlockConstant(data)) {
+        continue;
+      }
+      FreeBlock fb;
+      fb.values = data;
+      fb.size = block.size();
+      fb.tangent = problem.ParameterBlockTangentSize(data);
+      fb.offset = n;
+      fb.manifold = problem.GetManifold(data);
+      fb.block = &block;
+      n += fb.tangent;
+      free.push_back(fb);
+      parameters.push_back(data);
+    }
+  }
+  std::vector<std::vector<double>> full_values;
+  for (const auto& fb : free) full_values.emplace_back(fb.values, fb.values + fb.size);
+  auto set_values = [&](const std::vector<std::vector<double>>& v) {
+    for (size_t b = 0; b < free.size(); ++b) std::copy(v[b].begin(), v[b].end(), free[b].values);
+  };
+  auto current_values = [&] {
+    std::vector<std::vector<double>> v;
+    for (const auto& fb : free) v.emplace_back(fb.values, fb.values + fb.size);
+    return v;
+  };
+  // theta (+) delta; false if a value leaves its bounds or the manifold refuses the step.
+  auto plus = [&](const std::vector<std::vector<double>>& theta, const Eigen::VectorXd& delta) {
+    for (size_t b = 0; b < free.size(); ++b) {
+      const FreeBlock& fb = free[b];
+      if (fb.manifold) {
+        if (!fb.manifold->Plus(theta[b].data(), delta.data() + fb.offset, fb.values)) return false;
+      } else {
+        for (int k = 0; k < fb.size; ++k) fb.values[k] = theta[b][static_cast<size_t>(k)] + delta[fb.offset + k];
+      }
+      const ParameterBlock& pb = *fb.block;
+      for (int k = 0; k < fb.size; ++k) {
+        const size_t kk = static_cast<size_t>(k);
+        if (!pb.lower.empty() && fb.values[k] < pb.lower[kk]) return false;
+        if (!pb.upper.empty() && fb.values[k] > pb.upper[kk]) return false;
+      }
+    }
+    return true;
+  };
+
+  std::vector<ceres::ResidualBlockId> all_blocks, others;
+  problem.GetResidualBlocks(&all_blocks);
+  {
+    std::set<ceres::ResidualBlockId> station_set(built.station_blocks.begin(),
+                                                 built.station_blocks.end());
+    for (auto id : all_blocks) {
+      if (!station_set.count(id)) others.push_back(id);
+    }
+  }
+  auto training_blocks = [&](int f) {
+    std::vector<ceres::ResidualBlockId> blocks;
+    for (size_t i = 0; i < stations.size(); ++i) {
+      if (fold_of[i] != f) blocks.push_back(built.station_blocks[i]);
+    }
+    blocks.insert(blocks.end(), others.begin(), others.end());
+    return blocks;
+  };
+  auto training_stations = [&](int f) {
+    std::vector<FitStation> train;
+    for (size_t i = 0; i < stations.size(); ++i) {
+      if (fold_of[i] != f) train.push_back(stations[i]);
+    }
+    return train;
+  };
+  auto finish = [&](const std::vector<FitStation>& train, FoldRefit* out) {
+    out->chain = ModelToChain(spec->terms);
+    out->chain.SetVolume(VolumeOf(train));
+  };
+  // The fallback: the solver on the fold's stations, from the current values (as FitModel's (2)).
+  auto solver_refit = [&](const std::vector<FitStation>& train, FoldRefit* out) {
+    out->solver_refit = true;
+    BuiltProblem fold = BuildProblem(train, spec, nullptr, std::nullopt);
+    if (fold.num_free > 0) {
+      ceres::Solver::Options so;
+      so.max_num_iterations = spec->max_iterations;
+      so.function_tolerance = spec->function_tolerance;
+      so.gradient_tolerance = 1e-14;
+      so.parameter_tolerance = 1e-12;
+      so.linear_solver_type =
+          fold.num_free > 400 ? ceres::SPARSE_NORMAL_CHOLESKY : ceres::DENSE_NORMAL_CHOLESKY;
+      ceres::Solver::Summary summary;
+      ceres::Solve(so, fold.problem.get(), &summary);
+    }
+    finish(train, out);
+  };
+
+  std::vector<FoldRefit> out(static_cast<size_t>(folds));
+  double full_cost = 0.0;
+  Eigen::VectorXd full_r;
+  Eigen::MatrixXd full_j;
+  std::vector<ceres::ResidualBlockId> ordered = built.station_blocks;  // station i: rows 6i..6i+5
+  ordered.insert(ordered.end(), others.begin(), others.end());
+  const bool dense = n > 0 && n <= options.max_dense_parameters &&
+                     EvaluateDense(&problem, ordered, parameters, n, &full_cost, &full_r, &full_j);
+  Eigen::MatrixXd full_h;
+  Eigen::VectorXd full_g;
+  if (dense) {
+    full_h = Eigen::MatrixXd::Zero(n, n);
+    full_h.selfadjointView<Eigen::Lower>().rankUpdate(full_j.transpose());
+    Symmetrize(&full_h);
+    full_g = full_j.transpose() * full_r;
+  }
+  // The tolerance in units of the scatter the full fit leaves: when the model's noise sigmas are
+  // too small (chi2/dof > 1), its parameters' real uncertainty is sqrt(chi2/dof) times larger, and
+  // so is a negligible step.
+  double tolerance = options.cost_tolerance;
+  if (dense && full_r.size() > n) {
+    tolerance *= std::max(1.0, full_r.squaredNorm() / static_cast<double>(full_r.size() - n));
+  }
+  for (int f = 0; f < folds; ++f) {
+    FoldRefit& result = out[static_cast<size_t>(f)];
+    set_values(full_values);
+    const std::vector<FitStation> train = training_stations(f);
+    if (n == 0) {
+      finish(train, &result);
+      continue;
+    }
+    if (!dense) {
+      solver_refit(train, &result);
+      continue;
+    }
+    const std::vector<ceres::ResidualBlockId> blocks = training_blocks(f);
+    // First linearisation: the full fit's, with the fold's station rows removed.
+    Eigen::Index held = 0;
+    for (int g : fold_of) held += g == f ? 6 : 0;
+    Eigen::MatrixXd jf(held, n);
+    Eigen::VectorXd rf(held);
+    {
+      Eigen::Index row = 0;
+      for (size_t i = 0; i < stations.size(); ++i) {
+        if (fold_of[i] != f) continue;
+        jf.middleRows(row, 6) = full_j.middleRows(static_cast<Eigen::Index>(6 * i), 6);
+        rf.segment(row, 6) = full_r.segment(static_cast<Eigen::Index>(6 * i), 6);
+        row += 6;
+      }
+    }
+    Eigen::MatrixXd h = full_h;
+    h.selfadjointView<Eigen::Lower>().rankUpdate(jf.transpose(), -1.0);
+    Symmetrize(&h);
+    Eigen::VectorXd g = full_g - jf.transpose() * rf;
+    double cost = 0.0;
+    bool ok = EvaluateDense(&problem, blocks, parameters, n, &cost, nullptr, nullptr);
+    bool converged = false;
+    std::vector<std::vector<double>> theta = full_values;
+    double mu = 0.0;  // damping: 0 is the Gauss-Newton step
+    for (int step = 0; ok && step < options.max_steps; ++step) {
+      if (step > 0) {
+        Eigen::VectorXd r;
+        Eigen::MatrixXd j;
+        if (!EvaluateDense(&problem, blocks, parameters, n, &cost, &r, &j)) {
+          ok = false;
+          break;
+        }
+        h.setZero();
+        h.selfadjointView<Eigen::Lower>().rankUpdate(j.transpose());
+        Symmetrize(&h);
+        g = j.transpose() * r;
+      }
+      const DampedSteps steps(h, g);
+      double gauss_newton_decrease = 0.0;
+      steps.Step(0.0, &gauss_newton_decrease);
+      if (!std::isfinite(gauss_newton_decrease)) {
+        ok = false;
+        break;
+      }
+      if (gauss_newton_decrease < tolerance) {  // at the fold's optimum, to the tolerance
+        converged = true;
+        break;
+      }
+      // Levenberg-Marquardt: raise the damping until the fold's cost falls (a physical term is not
+      // quadratic far from the full fit's values), lower it after steps the model predicted well.
+      bool accepted = false;
+      double predicted = 0.0, new_cost = cost;
+      for (int tries = 0; tries < 12 && !accepted; ++tries) {
+        const Eigen::VectorXd delta = steps.Step(mu, &predicted);
+        set_values(theta);
+        accepted = delta.allFinite() && plus(theta, delta) &&
+                   EvaluateDense(&problem, blocks, parameters, n, &new_cost, nullptr, nullptr) &&
+                   new_cost < cost;
+        if (!accepted) mu = mu > 0 ? 4.0 * mu : 1e-4 * steps.max_eigenvalue();
+      }
+      if (!accepted) {
+        set_values(theta);
+        ok = false;
+        break;
+      }
+      theta = current_values();
+      ++result.steps;
+      const double actual = cost - new_cost;
+      cost = new_cost;
+      const double ratio = actual / predicted;
+      const bool undamped = mu == 0.0;
+      if (ratio > 0.75) mu = mu < 1e-8 * steps.max_eigenvalue() ? 0.0 : mu / 4.0;
+      if (ratio < 0.25) mu = std::max(4.0 * mu, 1e-4 * steps.max_eigenvalue());
+      // Converged: the cost no longer falls by the tolerance (as the solver's function
+      // tolerance), or a Gauss-Newton step whose quadratic model was right to within it landed at
+      // the optimum (one step for a model linear in its parameters).
+      if (actual < tolerance || (undamped && std::abs(actual - predicted) < tolerance)) {
+        converged = true;
+        break;
+      }
+    }
+    set_values(theta);
+    result.converged = converged;
+    if (ok) {
+      finish(train, &result);  // converged, or the best values after max_steps
+    } else {
+      solver_refit(train, &result);  // a step that could not lower the cost: the solver decides
+    }
+  }
+  set_values(full_values);
+  return out;
 }
 
 Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,

@@ -57,6 +57,9 @@ struct ParameterReport {
 
 struct FitResult {
   bool converged = false;     // the solver reported convergence
+  // Solved by the lone term's linear least squares (the paper's eq. 9), without the solver: the
+  // optimum of a linearised cost, not of the station residuals the solver minimises.
+  bool linear_least_squares = false;
   std::string solver_message;
   int iterations = 0;
   double initial_cost = 0.0;  // 0.5 * sum of squared whitened residuals (after the linear init)
@@ -93,6 +96,47 @@ Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation
 Table1 CrossValidate(const std::vector<FitStation>& stations,
                      const std::function<ModelSpec()>& make_spec, int folds,
                      const std::function<void(int)>& on_fold = {});
+
+// Fast k-fold refits from a fit on all stations (trackcal-fit diagnose, docs/diagnose.md "Speed").
+// Each fold's model is re-estimated on the stations outside the fold, starting from the full fit's
+// values and keeping its preparation (polynomial normalisation, LUT grid, searched starts):
+// Levenberg-Marquardt steps on the solver's cost with the Jacobian of the whitened residuals, the
+// first from the full fit's normal equations with the fold's rows removed (a rank downdate of
+// J^T J and J^T r). For a model linear in its parameters one undamped step is the fold's
+// least-squares solution; nonlinear (physical) terms take steps until the fold's cost falls by
+// less than the tolerance. A fold whose cost cannot be lowered, or a model with more than
+// `max_dense_parameters` free parameters, is refitted by the solver from the same warm start.
+struct FoldRefitOptions {
+  // Steps per fold; a fold still moving after them keeps its best values (FoldRefit::converged
+  // false). Poorly determined models (a plane on a capture it does not explain) creep along flat
+  // valleys where more steps change the held-out errors little.
+  int max_steps = 10;
+  // Converged when a step lowers the fold's cost (0.5 chi2) by less than this times
+  // max(1, chi2/dof of the full fit), or when the Gauss-Newton step would: a remaining step below
+  // ~0.1 sigma of the fold's parameters (0.5 delta^T H delta < 0.005), sigma scaled by the scatter
+  // the full fit actually leaves.
+  double cost_tolerance = 5e-3;
+  // Above this many free parameters (dense normal equations cost O(n^3)), every fold is refitted by
+  // the solver from the full fit's values.
+  int max_dense_parameters = 800;
+  bool Check() const { return max_steps >= 1 && cost_tolerance > 0 && max_dense_parameters >= 0; }
+};
+
+// Per fold: the refitted correction (with the calibrated volume of the fold's training stations)
+// and how it was obtained.
+struct FoldRefit {
+  CorrectionChain chain;
+  int steps = 0;              // steps taken
+  bool converged = false;     // the steps converged (false: stopped at max_steps, or solver_refit)
+  bool solver_refit = false;  // refitted by the solver (fallback)
+};
+
+// `spec` holds the terms as FitModel left them after fitting all of `stations` (its values are
+// restored on return); the refits minimise the solver's cost, so after a linear least-squares fit
+// (FitResult::linear_least_squares) the exact folds are as cheap and are the consistent choice. Station i is held out in fold fold_of[i] (0 <= fold_of[i] < folds).
+std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& stations, ModelSpec* spec,
+                                          const std::vector<int>& fold_of, int folds,
+                                          const FoldRefitOptions& options = {});
 
 nlohmann::json Table1ToJson(const Table1& table);
 

@@ -4,7 +4,7 @@
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
-//                         [--cross-validate-top N] [--json]
+//                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
 //                     [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv [--json]
 //
@@ -55,7 +55,8 @@ void PrintUsage(std::ostream& out) {
          "[--json]\n"
          "  trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] "
          "[--effects LIST]\n"
-         "                        [--cross-validate-top N] [--json] [--quiet]\n"
+         "                        [--cross-validate-top N] [--exact-cv] [--threads N] [--json] "
+         "[--quiet]\n"
          "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv\n"
          "                        [--set NAME | --poses poses.csv [--model model.yaml]] [--json]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
@@ -314,8 +315,9 @@ int RunFit(int argc, char** argv) {
 // diagnose: which catalog effect is the model missing (fit/candidates.h, docs/diagnose.md).
 int RunDiagnose(int argc, char** argv) {
   const Args args = ParseArgs(argc, argv,
-                              {"--data", "--model", "--folds", "--effects", "--cross-validate-top"},
-                              {"--json", "--quiet"});
+                              {"--data", "--model", "--folds", "--effects", "--cross-validate-top",
+                               "--threads"},
+                              {"--json", "--quiet", "--exact-cv"});
   const fs::path data = args.Get("--data");
   const fs::path model_path = args.Get("--model");
   CandidateOptions options;
@@ -324,6 +326,10 @@ int RunDiagnose(int argc, char** argv) {
   options.cross_validate_top =
       static_cast<int>(ParseNumber("--cross-validate-top", args.GetOr("--cross-validate-top", "3")));
   if (options.cross_validate_top < 0) throw UsageError("--cross-validate-top must be >= 0");
+  // Every fold fitted from scratch instead of refitted from the full fit (docs/diagnose.md, Speed).
+  options.exact_cv = args.Flag("--exact-cv");
+  options.num_threads = static_cast<int>(ParseNumber("--threads", args.GetOr("--threads", "0")));
+  if (options.num_threads < 0) throw UsageError("--threads must be >= 0 (0: all cores)");
   if (args.values.count("--effects")) {
     std::stringstream list(args.Get("--effects"));
     for (std::string name; std::getline(list, name, ',');) {
