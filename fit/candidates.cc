@@ -496,11 +496,13 @@ double LargestSigma(const std::vector<double>& stddev, const std::vector<double>
   return s;
 }
 
-// Reported positions of the stations (transmitter frame): the measured volume.
-std::vector<Eigen::Vector3d> ReportedPositions(const std::vector<FitStation>& stations) {
+// Where the receiver was (the reference positions, transmitter frame): the measured volume. Not
+// the reported positions: a hemisphere flip reports -p and would stretch the box across the
+// transmitter, over the sources on the other side.
+std::vector<Eigen::Vector3d> MeasuredPositions(const std::vector<FitStation>& stations) {
   std::vector<Eigen::Vector3d> out;
   out.reserve(stations.size());
-  for (const auto& s : stations) out.push_back(s.reported.translation);
+  for (const auto& s : stations) out.push_back(s.reference.translation);
   return out;
 }
 
@@ -1130,7 +1132,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         const int dof = n - c.num_free_parameters;
         const double scale = dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / dof) : 1.0;
         c.evidence = AssessPhysicalEvidence(p.term["type"].as<std::string>(), c.parameters,
-                                            ReportedPositions(own), options.min_strength_sigma,
+                                            MeasuredPositions(own), options.min_strength_sigma,
                                             scale);
       }
       if (c.kind == CandidateKind::kTerm &&

@@ -87,7 +87,7 @@ std::vector<CatalogEffect> DefaultFlexibleFallback();
 //     (sensor_offset) take the strongest, Bonferroni-corrected;
 //   - location: a term that places a source (dipole location, plane distance and normal) must place
 //     it: the largest standard deviation of the source's position must not exceed its distance from
-//     the measured volume (the box of the stations' reported positions), otherwise the fit says
+//     the measured volume (the box of the stations' reference positions), otherwise the fit says
 //     "something out there" and not "this object".
 // Term types with no strength block (explicit terms, unknown types) are not assessed.
 struct PhysicalEvidence {
@@ -109,7 +109,7 @@ struct PhysicalEvidence {
 };
 
 // Assesses the added term of type `term_type` from its parameter reports (fit/fit_engine.h), with
-// `volume_points` the stations' reported positions in the transmitter frame. `noise_scale`
+// `volume_points` the stations' reference positions in the transmitter frame. `noise_scale`
 // multiplies every standard deviation: DiagnoseCandidates passes sqrt(chi2/dof) of the candidate's
 // fit, profiling the noise scale out as its BIC does (a model file's sigmas are guesses: the
 // default 1 mm against a tracker's 0.06 mm would make every standard deviation 17x too large).
