@@ -86,9 +86,16 @@ SEEDS = [1, 2, 3]
 # CI's budget, see LOOP_TIMES); "full": every effect on 3 seeds; "none": no loop; else a
 # comma-separated list of effects (3 seeds each) or effect:seed items ("clock_offset:2").
 _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
-# Measured loop times (wall, on the 2 shared cores of the development machine under a load of ~12
-# from other builds; main after the fast cross-validation, seed 1): LOOP_TIMES below.
-CI_LOOPS = {("sensor_offset", 1)}
+# Measured (seed 1, main after the fast cross-validation, with the physical claim conditions), wall
+# time on the 2 shared cores of the development machine under a load of ~12 from other builds:
+#   finite_transmitter_coils 174 s (passes: near_field, frame, floor; 1.11x the floor)
+#   hemisphere_flips           66 s (xfail: nothing claimed, see _XFAIL)
+#   sensor_offset             363 s (xfail: one spurious term, see _XFAIL)
+#   clock_offset             1284 s (passes, 0.99x the floor; stream pairing in every fit and the
+#                                    time_offset candidate's re-pairing make it the slowest)
+# CI runs the three that fit about 6 min there; the xfail ones still must run to their assertions
+# (xfail(raises=AssertionError): a crash fails the test).
+CI_LOOPS = {("finite_transmitter_coils", 1), ("hemisphere_flips", 1), ("sensor_offset", 1)}
 pytestmark = [
     pytest.mark.skipif(shutil.which("trackcal-simulate") is None or shutil.which("trackcal-fit") is None,
                        reason="command-line tools not installed (run scripts/build.sh)"),
@@ -405,22 +412,31 @@ def _floor_and_final(hidden: str, capture: Path, data: Path, final: "demo.Step",
 # cannot place (a second plane 0.51 +- 0.42 m away with its normal +- 186 deg; a dipole at
 # (0.4, -1.5, -3.6) +- (2.6, 3.1, 3.8) m), which the rule counts as spurious.
 _XFAIL = {
-    "ferromagnetic_object": "seed 1: the hidden toolbox ends up as a plane of attenuation -0.004 whose "
+    "ferromagnetic_object": "measured before the physical claim conditions (not re-run), seed 1: the hidden toolbox ends up as a plane of attenuation -0.004 whose "
                             "image is at the toolbox and the floor plane as a vague dipole (see comment); "
                             "final 0.068 mm vs floor 0.063 mm",
-    "receiver_gains": "seed 1: 13.70 mm -> +receiver_gain 0.733 -> +dipole (frame) 0.176 -> +plane (floor) "
+    "receiver_gains": "measured before the physical claim conditions (not re-run), seed 1: 13.70 mm -> +receiver_gain 0.733 -> +dipole (frame) 0.176 -> +plane (floor) "
                       "0.0774 -> +plane (0.51 +- 0.42 m, normal +- 186 deg: spurious) 0.0731 mm, floor "
                       "0.0632; the ranking keeps adding terms it cannot place; and G's diagonal is 7-9 sigma "
                       "low (1.0147 +- 0.0006 vs 1.02: its scale trades with the polynomial's linear terms)",
-    "sensor_offset": "seed 1: 25.76 mm -> +sensor_offset 0.853 -> +dipole (frame) 0.196 -> +plane (floor, "
-                     "12.9 deg tilted) 0.0847 -> +dipole at (0.4, -1.5, -3.6) +- (2.6, 3.1, 3.8) m "
-                     "(spurious) 0.0847 mm, floor 0.0633; the rotation (0.0400, -0.0301, 0.0200) rad, truth "
-                     "(0.0400, -0.0300, 0.0200), has no standard deviation in trackcal-fit --json",
+    "sensor_offset": "seed 1, with the physical claim conditions: 25.76 mm -> +sensor_offset (12.21, -8.17, "
+                     "20.38) mm, within 3 sigma, 0.852 -> +dipole (frame, (0.441, -0.005, 0.420) m) 0.196 -> "
+                     "+plane (floor: 0.75 m along (-0.08, -0.21, 0.98), attenuation 0.22; ranked over the "
+                     "dipole at its mirror image) 0.085 -> +plane_2 (1.65 m along (0.47, 0.85, 0.23), "
+                     "attenuation -0.30: the two CRT monitors taken as one permeable plane, spurious) 0.072 mm, "
+                     "floor 0.0633 (1.14x); the loop then ends by itself (363 s)",
+    "hemisphere_flips": "seed 1: nothing is claimed at step 0 (base 18.50 mm, the flipped stations ~1 m off "
+                        "dominate it): dipole (frame) and plane lower the held-out error 46-48 % but the paired "
+                        "test gives p 0.012 / 0.095 against 0.0017, and the robust loss (10 outliers) is "
+                        "screened out by BIC (-85 against -216 / -189: its mean-shift BIC counts 6 parameters "
+                        "per outlier; cross-validated anyway it lowers the other stations' error 1.1 %); "
+                        "final 2.13 mm, 33x the floor",
 }
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-@pytest.mark.parametrize("hidden", [pytest.param(h, marks=pytest.mark.xfail(reason=_XFAIL[h], strict=False))
+@pytest.mark.parametrize("hidden", [pytest.param(h, marks=pytest.mark.xfail(reason=_XFAIL[h], strict=False,
+                                                                            raises=AssertionError))
                                     if h in _XFAIL else h for h in HIDDEN_EFFECTS])
 def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path):
     if not demo.diagnosis_available():
