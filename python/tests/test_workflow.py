@@ -93,8 +93,11 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 #   sensor_offset             363 s (xfail: one spurious term, see _XFAIL)
 #   clock_offset             1284 s (passes, 0.99x the floor; stream pairing in every fit and the
 #                                    time_offset candidate's re-pairing make it the slowest)
-# CI runs the three that fit about 6 min there; the xfail ones still must run to their assertions
-# (xfail(raises=AssertionError): a crash fails the test).
+# CI runs the three that fit about 6 min there: the default run (TRACKCAL_WORKFLOW_TESTS unset)
+# took 302 s wall at a load of ~10 (sensor_offset 151 s, finite_transmitter_coils 107 s,
+# hemisphere_flips 40 s), in one pytest process: the diagnoses already use both cores (candidates
+# in parallel threads), so pytest-xdist would not help. The xfail ones still must run to their
+# assertions (xfail(raises=AssertionError): a crash fails the test).
 CI_LOOPS = {("finite_transmitter_coils", 1), ("hemisphere_flips", 1), ("sensor_offset", 1)}
 pytestmark = [
     pytest.mark.skipif(shutil.which("trackcal-simulate") is None or shutil.which("trackcal-fit") is None,
