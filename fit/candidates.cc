@@ -92,8 +92,9 @@ StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
   return e;
 }
 
-// The same, from the fit on all stations (`fitted`: the spec FitModel left): each fold re-estimated by
-// Gauss-Newton steps from the full fit (CandidateOptions::exact_cv false).
+// The same, from the fit on all stations (`fitted`: the spec FitModel left): each fold re-estimated
+// by Levenberg-Marquardt steps from the full fit (RefitFoldsFromFull; CandidateOptions::exact_cv
+// false). `report` gets the steps each fold took.
 StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
                                         const std::vector<int>& fold_of, ModelSpec* fitted,
                                         int folds, double sigma_p, double sigma_o,
@@ -103,7 +104,8 @@ StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
   std::string steps;
   int solver = 0, unconverged = 0;
   for (const auto& r : refits) {
-    steps += (steps.empty() ? "" : ",") + std::to_string(r.steps);
+    if (!steps.empty()) steps += ',';
+    steps += std::to_string(r.steps);
     solver += r.solver_refit ? 1 : 0;
     unconverged += !r.solver_refit && !r.converged ? 1 : 0;
   }
@@ -111,7 +113,8 @@ StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
          (unconverged ? "; " + std::to_string(unconverged) + " stopped at the step limit" : "") +
          (solver ? "; " + std::to_string(solver) + " refitted by the solver" : ""));
   for (size_t i = 0; i < stations.size(); ++i) {
-    AppendErrors(refits[static_cast<size_t>(fold_of[i])].chain, stations[i], sigma_p, sigma_o, &e, i);
+    AppendErrors(refits[static_cast<size_t>(fold_of[i])].chain, stations[i], sigma_p, sigma_o, &e,
+                 i);
   }
   return e;
 }
@@ -523,7 +526,8 @@ struct PreparedCandidate {
   bool flexible = false;  // a flexible fallback, not an effect
   std::vector<double> cv_whitened_by_base;  // held-out whitened error per base station (NaN: none)
   YAML::Node root;        // the candidate model file
-  std::shared_ptr<ModelSpec> fitted;  // the fit on all stations (the fast cross-validation starts there)
+  std::shared_ptr<ModelSpec>
+      fitted;  // the fit on all stations (the fast cross-validation starts there)
 };
 
 }  // namespace
@@ -984,7 +988,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
 
   // Base: full fit (cost, BIC) and cross-validation.
   StationErrors base_full = MakeErrors(stations.size());
-  int base_k = 0;  // free parameters of the base fit
+  int base_k = 0;            // free parameters of the base fit
   bool base_linear = false;  // solved by linear least squares: its exact folds cost nothing
   {
     const auto t0 = Clock::now();
@@ -1019,18 +1023,18 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   auto validate_base = [&] {
     const auto t0 = Clock::now();
     if (!options.exact_cv && !base_linear && FastCrossValidationApplies(stations, base_spec)) {
-      Progress(options, "base model: " + std::to_string(options.folds) +
-                            " fold refits from the full fit");
+      Progress(options,
+               "base model: " + std::to_string(options.folds) + " fold refits from the full fit");
       base_cv = FastCrossValidateStations(
           stations, base_folds, &base_spec, options.folds, sigma_p, sigma_o,
           [&](const std::string& m) { Progress(options, "base model: " + m); });
     } else {
-      base_cv = CrossValidateStations(stations, base_folds, model_text, model_source, options.folds,
-                                      sigma_p, sigma_o, [&](int f) {
-                                        Progress(options, "base model: fold " +
-                                                              std::to_string(f + 1) + "/" +
-                                                              std::to_string(options.folds));
-                                      });
+      base_cv =
+          CrossValidateStations(stations, base_folds, model_text, model_source, options.folds,
+                                sigma_p, sigma_o, [&](int f) {
+                                  Progress(options, "base model: fold " + std::to_string(f + 1) +
+                                                        "/" + std::to_string(options.folds));
+                                });
     }
     base_cv_seconds = SecondsSince(t0);
   };
@@ -1217,12 +1221,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
             own, fold_of, p->fitted.get(), options.folds, sigma_p, sigma_o,
             [&](const std::string& m) { Progress(options, c.effect + ": " + m); });
       } else {
-        cv = CrossValidateStations(own, fold_of, c.model_text, model_source + " + " + c.effect,
-                                   options.folds, sigma_p, sigma_o, [&](int f) {
-                                     Progress(options, c.effect + ": fold " +
-                                                           std::to_string(f + 1) + "/" +
-                                                           std::to_string(options.folds));
-                                   });
+        cv =
+            CrossValidateStations(own, fold_of, c.model_text, model_source + " + " + c.effect,
+                                  options.folds, sigma_p, sigma_o, [&](int f) {
+                                    Progress(options, c.effect + ": fold " + std::to_string(f + 1) +
+                                                          "/" + std::to_string(options.folds));
+                                  });
       }
       c.cross_validated = true;
       p->cv_whitened_by_base.assign(stations.size(), NAN);

@@ -152,8 +152,9 @@ struct CandidateOptions {
   double min_strength_sigma = 3.0;
   // 0: cross-validate every candidate. N > 0: fit all on the full set first, then cross-validate
   // only the N with the lowest delta BIC (the rest are reported screened out, never significant). 3
-  // by default: a physical candidate's fit costs ~0.5-1 s CPU on the paper preset, and
-  // cross-validating all six triples the run (docs/diagnose.md, Speed).
+  // by default: with exact folds (exact_cv) cross-validating all six triples the run; the fast
+  // folds make the others cheap, but screening also decides which candidates can be claimed, so
+  // the default is kept (docs/diagnose.md, Speed).
   int cross_validate_top = 3;
   // Loss of the robust_loss candidate: Cauchy (an outlier's pull vanishes; a Huber loss still pulls
   // with the scale), scale 3 sigma of the whitened residual.

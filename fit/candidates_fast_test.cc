@@ -29,7 +29,8 @@ std::vector<FitStation> PaperSmallStations(const std::string& hidden, uint64_t s
   const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
   std::vector<FitStation> stations;
   for (const auto& r : capture.poses.records) {
-    if (r.set == "calib") stations.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
+    if (r.set == "calib")
+      stations.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
   }
   return stations;
 }

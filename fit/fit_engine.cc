@@ -317,6 +317,12 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   const auto start = std::chrono::steady_clock::now();
   const Eigen::Vector2d sigmas(spec->position_sigma, spec->orientation_sigma);
 
+  for (size_t k = 0; k < spec->terms.size(); ++k) {
+    std::vector<const ModelTerm*> later;
+    for (size_t j = k + 1; j < spec->terms.size(); ++j) later.push_back(spec->terms[j].get());
+    spec->terms[k]->SetFollowingTerms(later);
+  }
+
   // (1) prepare and initialise term by term.
   std::vector<bool> linear_ok;
   for (size_t k = 0; k < spec->terms.size(); ++k) {
@@ -525,7 +531,7 @@ struct FreeBlock {
   double* values = nullptr;
   int size = 0;
   int tangent = 0;
-  int offset = 0;                              // first column
+  int offset = 0;                             // first column
   const ceres::Manifold* manifold = nullptr;  // null: Euclidean
   const ParameterBlock* block = nullptr;      // bounds
 };
@@ -544,11 +550,13 @@ bool EvaluateDense(ceres::Problem* problem, const std::vector<ceres::ResidualBlo
     return false;
   }
   if (!std::isfinite(*cost)) return false;
-  if (residuals) *residuals = Eigen::Map<const Eigen::VectorXd>(r.data(), static_cast<Eigen::Index>(r.size()));
+  if (residuals)
+    *residuals = Eigen::Map<const Eigen::VectorXd>(r.data(), static_cast<Eigen::Index>(r.size()));
   if (jacobian) {
     jacobian->setZero(crs.num_rows, columns);
     for (int row = 0; row < crs.num_rows; ++row) {
-      for (int k = crs.rows[static_cast<size_t>(row)]; k < crs.rows[static_cast<size_t>(row) + 1]; ++k) {
+      for (int k = crs.rows[static_cast<size_t>(row)]; k < crs.rows[static_cast<size_t>(row) + 1];
+           ++k) {
         (*jacobian)(row, crs.cols[static_cast<size_t>(k)]) = crs.values[static_cast<size_t>(k)];
       }
     }
@@ -671,7 +679,8 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
       if (fb.manifold) {
         if (!fb.manifold->Plus(theta[b].data(), delta.data() + fb.offset, fb.values)) return false;
       } else {
-        for (int k = 0; k < fb.size; ++k) fb.values[k] = theta[b][static_cast<size_t>(k)] + delta[fb.offset + k];
+        for (int k = 0; k < fb.size; ++k)
+          fb.values[k] = theta[b][static_cast<size_t>(k)] + delta[fb.offset + k];
       }
       const ParameterBlock& pb = *fb.block;
       for (int k = 0; k < fb.size; ++k) {

@@ -133,7 +133,8 @@ struct FoldRefit {
 
 // `spec` holds the terms as FitModel left them after fitting all of `stations` (its values are
 // restored on return); the refits minimise the solver's cost, so after a linear least-squares fit
-// (FitResult::linear_least_squares) the exact folds are as cheap and are the consistent choice. Station i is held out in fold fold_of[i] (0 <= fold_of[i] < folds).
+// (FitResult::linear_least_squares) the exact folds are as cheap and are the consistent choice.
+// Station i is held out in fold fold_of[i] (0 <= fold_of[i] < folds).
 std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& stations, ModelSpec* spec,
                                           const std::vector<int>& fold_of, int folds,
                                           const FoldRefitOptions& options = {});

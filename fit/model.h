@@ -171,6 +171,14 @@ class ModelTerm {
   // Term-specific summary for reports and --json (degree, grid, ...). Default: empty object.
   virtual nlohmann::json Describe() const;
 
+  // True if this term reproduces an isotropic scaling of the positions about the transmitter,
+  // p -> s p, exactly with free parameters (a polynomial of degree >= 1 with a free position part, a
+  // LUT): a uniform receiver gain before it is then not identifiable. Default: false.
+  virtual bool AbsorbsIsotropicScaling() const { return false; }
+  // Called by FitModel before Prepare() with the terms that follow this one in the chain (the
+  // physical group holds its gain gauge when one of them absorbs a scaling). Default: nothing.
+  virtual void SetFollowingTerms(const std::vector<const ModelTerm*>& /*later*/) {}
+
  protected:
   std::vector<ParameterBlock> blocks_;
 

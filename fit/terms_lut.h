@@ -48,6 +48,12 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   bool InitializeLinear(const std::vector<FitStation>& inputs,
                         const Eigen::Vector2d& noise_sigmas) override;
   StationBinding Bind(const AmbientPose& input) const override;
+  // Trilinear interpolation reproduces a linear field exactly (unless every node is fixed).
+  bool AbsorbsIsotropicScaling() const override {
+    bool any_free = blocks_.empty();  // before Prepare(): free unless the settings fix them
+    for (const auto& b : blocks_) any_free = any_free || !b.fixed;
+    return any_free;
+  }
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;

@@ -424,6 +424,18 @@ std::unique_ptr<ModelTerm> PhysicalGroupTerm::FromYaml(PhysicalEffect effect,
         }
         blocks[kGainMatrix].values = g;
       }
+      if (reader.Has("gain_scale")) {
+        const std::string scale = reader.GetString("gain_scale");
+        if (scale == "auto") {
+          term->gain_scale_ = GainScale::kAuto;
+        } else if (scale == "free") {
+          term->gain_scale_ = GainScale::kFree;
+        } else if (scale == "unit_mean") {
+          term->gain_scale_ = GainScale::kUnitMean;
+        } else {
+          reader.Fail("gain_scale", "expected auto, free or unit_mean, got '" + scale + "'");
+        }
+      }
       break;
     case PhysicalEffect::kNearField:
       if (reader.Has("octupole_m2")) blocks[kOctupole].values = ReadVector(reader, "octupole_m2", 3);
@@ -507,6 +519,7 @@ void PhysicalGroupTerm::Absorb(PhysicalGroupTerm&& other) {
         }
       }
     }
+    if (e.kind == PhysicalEffect::kReceiverGain) gain_scale_ = other.gain_scale_;
     const int offset = static_cast<int>(blocks_.size());
     e.first_block += offset;
     effects_.push_back(e);
@@ -717,7 +730,45 @@ struct SymmetricGainResidual {
   }
 };
 
+// Gauge of the uniform gain: a uniform gain g scales every measured field by g, and the dipole
+// field falls as r^-3, so the tracker reports p g^(-1/3): an isotropic scaling of positions, which a
+// polynomial (degree >= 1) or LUT after the group reproduces exactly. With such a term the data do
+// not fix the scale of G; this residual holds the mean coil gain trace(G) / 3 at 1, so G reports the
+// relative gains and the non-orthogonality (3 G / trace(G) of the truth), which the data do fix.
+// The constraint is linear, so one Gauss-Newton step satisfies it exactly (a det G = 1 penalty is
+// cubic and upset the fast fold refits of fit/candidates.cc). Weight 1e8: the gauge direction's
+// std becomes 1e-8, two orders below the smallest stds of G seen from a capture (1e-6 on the paper
+// preset with its true noise; 1e-4 with the default noise), so it does not inflate the reported
+// stds.
+struct UnitMeanGainResidual {
+  template <typename T>
+  bool operator()(const T* g, T* r) const {
+    r[0] = (g[0] + g[4] + g[8] - T(3)) * T(1e8);
+    return true;
+  }
+};
+
 }  // namespace
+
+void PhysicalGroupTerm::SetFollowingTerms(const std::vector<const ModelTerm*>& later) {
+  later_terms_ = later;
+}
+
+bool PhysicalGroupTerm::GainScaleHeld() const {
+  const Effect* gain = nullptr;
+  for (const auto& e : effects_) {
+    if (e.kind == PhysicalEffect::kReceiverGain) gain = &e;
+  }
+  if (gain == nullptr || blocks_[static_cast<size_t>(Block(*gain, kGainMatrix))].fixed) return false;
+  switch (gain_scale_) {
+    case GainScale::kFree: return false;
+    case GainScale::kUnitMean: return true;
+    case GainScale::kAuto: break;
+  }
+  bool absorbed = false;
+  for (const ModelTerm* t : later_terms_) absorbed = absorbed || t->AbsorbsIsotropicScaling();
+  return absorbed;
+}
 
 int PhysicalGroupTerm::AddExtraResiduals(ceres::Problem* problem,
                                          const std::vector<FitStation>& /*inputs*/) {
@@ -727,13 +778,23 @@ int PhysicalGroupTerm::AddExtraResiduals(ceres::Problem* problem,
     if (e.kind == PhysicalEffect::kReceiverGain) gain = &e;
     if (e.kind == PhysicalEffect::kSensorOffset) offset = &e;
   }
-  if (gain == nullptr || offset == nullptr) return 0;
+  if (gain == nullptr) return 0;
+  int added = 0;
   ParameterBlock& g = blocks_[static_cast<size_t>(Block(*gain, kGainMatrix))];
-  if (g.fixed || blocks_[static_cast<size_t>(Block(*offset, kOffsetRotation))].fixed) return 0;
+  // Evaluated now, when every term's block settings are applied; Describe() reports it.
+  later_absorbs_scaling_ = GainScaleHeld();
+  if (later_absorbs_scaling_) {
+    problem->AddResidualBlock(
+        new ceres::AutoDiffCostFunction<UnitMeanGainResidual, 1, 9>(new UnitMeanGainResidual),
+        nullptr, g.values.data());
+    ++added;
+  }
+  if (offset == nullptr) return added;
+  if (g.fixed || blocks_[static_cast<size_t>(Block(*offset, kOffsetRotation))].fixed) return added;
   problem->AddResidualBlock(
       new ceres::AutoDiffCostFunction<SymmetricGainResidual, 3, 9>(new SymmetricGainResidual),
       nullptr, g.values.data());
-  return 1;
+  return added + 1;
 }
 
 std::unique_ptr<Correction> PhysicalGroupTerm::ToCorrection() const {
@@ -745,7 +806,14 @@ std::unique_ptr<Correction> PhysicalGroupTerm::ToCorrection() const {
 nlohmann::json PhysicalGroupTerm::Describe() const {
   nlohmann::json effects = nlohmann::json::array();
   for (const auto& e : effects_) {
-    effects.push_back({{"type", PhysicalEffectType(e.kind)}, {"name", e.name}});
+    nlohmann::json entry = {{"type", PhysicalEffectType(e.kind)}, {"name", e.name}};
+    if (e.kind == PhysicalEffect::kReceiverGain) {
+      static const char* const kScale[] = {"auto", "free", "unit_mean"};
+      entry["gain_scale"] = kScale[static_cast<int>(gain_scale_)];
+      // What the fit did: trace G held at 3 (G = relative gains) or the uniform gain estimated.
+      entry["unit_mean_gain"] = later_absorbs_scaling_;
+    }
+    effects.push_back(entry);
   }
   return {{"effects", effects}};
 }
@@ -836,6 +904,17 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   }
   disabled_.clear();
   RefineAlone(inputs, noise_sigmas);
+  // Start on the gauge (trace G = 3): the later terms initialise on what the group then leaves.
+  if (GainScaleHeld()) {
+    for (const auto& e : effects_) {
+      if (e.kind != PhysicalEffect::kReceiverGain) continue;
+      auto& g = blocks_[static_cast<size_t>(Block(e, kGainMatrix))].values;
+      const double mean = (g[0] + g[4] + g[8]) / 3.0;
+      if (mean > 0.0) {
+        for (double& x : g) x /= mean;
+      }
+    }
+  }
   return true;
 }
 

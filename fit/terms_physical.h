@@ -71,6 +71,16 @@ class PhysicalGroupTerm : public ModelTerm {
     bool strength_given = true;    // polarisability / attenuation given in the file
   };
 
+  // receiver_gain's `gain_scale`: what fixes the uniform scale of G. A uniform gain g scales every
+  // measured field by g, so the tracker reports r g^(-1/3): an exact isotropic scaling of positions,
+  // which an explicit term after the group (polynomial of degree >= 1 with its position part, LUT)
+  // reproduces. The data then cannot tell g apart from that term.
+  enum class GainScale {
+    kAuto,      // trace G = 3 if a later term absorbs the scaling (the default), else free
+    kFree,      // always estimated (only the physical model identifies it)
+    kUnitMean,  // always trace G = 3 (mean coil gain 1): relative gains and non-orthogonality
+  };
+
   // A group of one effect with its default start values (identity offset and gain, zero octupole,
   // a dipole/plane to be searched).
   explicit PhysicalGroupTerm(PhysicalEffect effect);
@@ -98,8 +108,14 @@ class PhysicalGroupTerm : public ModelTerm {
   bool Evaluate(const StationBinding& binding, const double* const* block_values,
                 const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
   // With both receiver_gain and sensor_offset free, holds G symmetric: its rotation part is the
-  // same as a rotation of the sensor offset (a gauge), see the .cc.
+  // same as a rotation of the sensor offset (a gauge), see the .cc. With GainScaleHeld(), holds
+  // trace G = 3 (the uniform-gain gauge: mean coil gain 1).
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
+  // Remembers whether a later term absorbs an isotropic scaling (for GainScale::kAuto).
+  void SetFollowingTerms(const std::vector<const ModelTerm*>& later) override;
+  // True if the group has a free receiver_gain whose uniform scale is held (trace G = 3).
+  bool GainScaleHeld() const;
+  GainScale gain_scale() const { return gain_scale_; }
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
 
@@ -123,6 +139,10 @@ class PhysicalGroupTerm : public ModelTerm {
 
   std::vector<Effect> effects_;
   PhysicalSearchOptions search_options_;
+  GainScale gain_scale_ = GainScale::kAuto;
+  // Terms after the group (SetFollowingTerms; only valid during FitModel) and what they said.
+  std::vector<const ModelTerm*> later_terms_;
+  bool later_absorbs_scaling_ = false;
   Eigen::Vector3d data_min_ = Eigen::Vector3d::Zero(), data_max_ = Eigen::Vector3d::Zero();
   // Effects switched off while the search runs (strength held at 0 in MakeCorrection()).
   std::vector<bool> disabled_;

@@ -131,6 +131,8 @@ TEST(PhysicalTerms, RejectsBadValuesWithFileAndLine) {
   expect_error("terms:\n  - type: plane\n    normal_in_transmitter: [0, 0, 1]\n    attenuation: 1.5\n",
                "m.yaml:4:18: $.terms[0].attenuation");
   expect_error("terms:\n  - type: receiver_gain\n  - type: receiver_gain\n", "m.yaml:3:");
+  expect_error("terms:\n  - type: receiver_gain\n    gain_scale: fixed\n",
+               "m.yaml:3:17: $.terms[0].gain_scale");
   expect_error("terms:\n  - type: dipole\n    location_in_transmitter: [1, 2]\n", "m.yaml:3:");
   expect_error("terms:\n  - type: dipole\n    parameters:\n      strength: {fixed: true}\n",
                "has no parameter block 'strength'");

@@ -1,8 +1,11 @@
 #include "fit/terms_polynomial.h"
 
+#include <ceres/cost_function.h>
 #include <ceres/jet.h>
+#include <ceres/problem.h>
 
 #include <Eigen/QR>
+#include <Eigen/SVD>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
@@ -14,6 +17,15 @@ void PolynomialTermOptions::Check() const {
   if (!position && !orientation) {
     throw std::invalid_argument("polynomial: at least one of position, orientation must be enabled");
   }
+  if (!(ridge >= 0.0) || !std::isfinite(ridge)) {
+    throw std::invalid_argument("polynomial: ridge must be a number >= 0 or auto");
+  }
+}
+
+std::vector<double> PolynomialTerm::RidgeGrid() {
+  std::vector<double> grid = {0.0};
+  for (int k = -8; k <= 4; ++k) grid.push_back(std::pow(10.0, 0.5 * k));
+  return grid;
 }
 
 PolynomialTerm::PolynomialTerm(const PolynomialTermOptions& options) : options_(options) {
@@ -44,10 +56,20 @@ std::unique_ptr<ModelTerm> PolynomialTerm::FromYaml(const YamlMapReader& reader)
   options.degree = reader.GetIntOr("degree", options.degree);
   options.position = reader.GetBoolOr("position", options.position);
   options.orientation = reader.GetBoolOr("orientation", options.orientation);
+  if (reader.Has("ridge")) {
+    const YAML::Node node = reader.node()["ridge"];
+    if (node.IsScalar() && node.Scalar() == "auto") {
+      options.ridge_auto = true;
+      reader.MarkRead("ridge");
+    } else {
+      options.ridge = reader.GetDouble("ridge");
+    }
+  }
   try {
     options.Check();
   } catch (const std::invalid_argument& e) {
-    reader.Fail("degree", e.what());
+    reader.Fail(std::string(e.what()).find("ridge") != std::string::npos ? "ridge" : "degree",
+                e.what());
   }
   return std::make_unique<PolynomialTerm>(options);
 }
@@ -65,8 +87,59 @@ void PolynomialTerm::Prepare(const std::vector<FitStation>& inputs) {
   options_.input_scale = (0.5 * (hi - lo)).unaryExpr([](double v) { return v > 1e-9 ? v : 1.0; });
 }
 
+namespace {
+
+// Ridge regression of the columns `shrunk` of `a` (the others free) for every right-hand side of b,
+// at weight lambda: returns the coefficients (a.cols() x b.cols()) and, in *loo, each station's
+// squared leave-one-out residual summed over b's columns, (e_i / (1 - H_ii))^2 by the hat matrix H.
+// Free columns are projected out (Q0), the shrunk ones solved by the SVD of what remains.
+struct RidgeSolver {
+  Eigen::MatrixXd q0, r0, a0, a1;  // thin QR of the free columns; the columns
+  Eigen::MatrixXd u, v;            // SVD of (I - Q0 Q0^T) A1
+  Eigen::VectorXd s;
+  std::vector<int> free_cols, shrunk_cols;
+
+  RidgeSolver(const Eigen::MatrixXd& a, const std::vector<bool>& shrunk) {
+    for (int j = 0; j < a.cols(); ++j) (shrunk[static_cast<size_t>(j)] ? shrunk_cols : free_cols).push_back(j);
+    a0.resize(a.rows(), static_cast<Eigen::Index>(free_cols.size()));
+    a1.resize(a.rows(), static_cast<Eigen::Index>(shrunk_cols.size()));
+    for (size_t j = 0; j < free_cols.size(); ++j) a0.col(static_cast<Eigen::Index>(j)) = a.col(free_cols[j]);
+    for (size_t j = 0; j < shrunk_cols.size(); ++j) a1.col(static_cast<Eigen::Index>(j)) = a.col(shrunk_cols[j]);
+    const Eigen::HouseholderQR<Eigen::MatrixXd> qr(a0);
+    q0 = qr.householderQ() * Eigen::MatrixXd::Identity(a.rows(), a0.cols());
+    r0 = qr.matrixQR().topRows(a0.cols()).triangularView<Eigen::Upper>();
+    const Eigen::MatrixXd p1 = a1 - q0 * (q0.transpose() * a1);
+    const Eigen::BDCSVD<Eigen::MatrixXd> svd(p1, Eigen::ComputeThinU | Eigen::ComputeThinV);
+    u = svd.matrixU();
+    v = svd.matrixV();
+    s = svd.singularValues();
+  }
+
+  Eigen::MatrixXd Solve(const Eigen::MatrixXd& b, double lambda, Eigen::VectorXd* loo) const {
+    const Eigen::VectorXd f = s.array().square() / (s.array().square() + lambda * lambda);
+    const Eigen::VectorXd g =
+        (s.array() > 0).select(s.array() / (s.array().square() + lambda * lambda), 0.0);
+    const Eigen::MatrixXd b1 = b - q0 * (q0.transpose() * b);
+    const Eigen::MatrixXd c1 = v * (g.asDiagonal() * (u.transpose() * b1));
+    const Eigen::MatrixXd c0 = r0.triangularView<Eigen::Upper>().solve(q0.transpose() * (b - a1 * c1));
+    Eigen::MatrixXd c(static_cast<Eigen::Index>(free_cols.size() + shrunk_cols.size()), b.cols());
+    for (size_t j = 0; j < free_cols.size(); ++j) c.row(free_cols[j]) = c0.row(static_cast<Eigen::Index>(j));
+    for (size_t j = 0; j < shrunk_cols.size(); ++j) c.row(shrunk_cols[j]) = c1.row(static_cast<Eigen::Index>(j));
+    if (loo != nullptr) {
+      const Eigen::VectorXd h =
+          q0.rowwise().squaredNorm() + u.array().square().matrix() * f;
+      const Eigen::MatrixXd e = b - a0 * c0 - a1 * c1;
+      *loo = (e.array().colwise() / (1.0 - h.array().min(1.0 - 1e-9))).square().rowwise().sum();
+    }
+    return c;
+  }
+};
+
+}  // namespace
+
 bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
-                                      const Eigen::Vector2d& /*noise_sigmas*/) {
+                                      const Eigen::Vector2d& noise_sigmas) {
+  sigmas_ = noise_sigmas;
   const int n = static_cast<int>(inputs.size());
   if (n < num_terms_) return false;
   Eigen::MatrixXd a(n, num_terms_);
@@ -82,6 +155,48 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     const PoseError e = ComputePoseError(s.reported, s.reference);
     b_position.row(i) = e.position.transpose();
     b_orientation.row(i) = e.orientation.transpose();
+  }
+  if (options_.ridge > 0.0 || options_.ridge_auto) {
+    // Ridge on the coefficients of degree >= 2; ridge: auto picks the weight by leave-one-out.
+    const auto exponents = PolynomialTermExponents(options_.degree);
+    std::vector<bool> shrunk;
+    for (const auto& e : exponents) shrunk.push_back(e[0] + e[1] + e[2] >= 2);
+    const RidgeSolver solver(a, shrunk);
+    auto fit = [&](int block_index, const Eigen::MatrixXd& b, int part) {
+      if (block_index < 0 || blocks_[static_cast<size_t>(block_index)].fixed) return;
+      double lambda = options_.ridge;
+      Eigen::VectorXd loo;
+      if (options_.ridge_auto) {
+        // One-standard-error rule over the grid: mean and standard error of the per-station
+        // leave-one-out errors; the largest weight within one SE of the best.
+        std::vector<double> grid = RidgeGrid(), mean, se;
+        for (double l : grid) {
+          solver.Solve(b, l, &loo);
+          const double m = loo.mean();
+          mean.push_back(m);
+          se.push_back(std::sqrt((loo.array() - m).square().sum() / std::max(1, n - 1) / n));
+        }
+        size_t best = 0;
+        for (size_t k = 1; k < grid.size(); ++k) {
+          if (mean[k] < mean[best]) best = k;
+        }
+        lambda = grid[best];
+        for (size_t k = best + 1; k < grid.size(); ++k) {
+          if (mean[k] <= mean[best] + se[best]) lambda = grid[k];
+        }
+      }
+      const Eigen::MatrixXd c = solver.Solve(b, lambda, &loo);
+      auto& values = blocks_[static_cast<size_t>(block_index)].values;
+      for (int j = 0; j < num_terms_; ++j) {
+        for (int k = 0; k < 3; ++k) values[static_cast<size_t>(j * 3 + k)] = c(j, k);
+      }
+      ridge_used_[part] = lambda;
+      loo_rms_[part] = std::sqrt(loo.mean() / 3.0);
+    };
+    fit(position_block_, b_position, 0);
+    fit(orientation_block_, b_orientation, 1);
+    inverse_normal_diagonal_.resize(0);  // no linear covariance: the engine's covariance serves
+    return true;
   }
   // Column-pivoting QR on the normalised basis: the paper's eq. 9 without forming A^T A (squaring
   // the condition number).
@@ -190,6 +305,57 @@ bool PolynomialTerm::Evaluate(const StationBinding& binding, const double* const
   return true;
 }
 
+namespace {
+// ridge * c / sigma on the coefficients of degree >= 2 of one part (`mask` 1 where shrunk).
+struct PolynomialRidge {
+  Eigen::VectorXd weight;  // per coefficient: ridge / sigma, 0 where not shrunk
+  bool operator()(double const* const* c, double* r, double** jacobians) const {
+    const Eigen::Index m = weight.size();
+    for (Eigen::Index i = 0; i < m; ++i) r[i] = weight[i] * c[0][i];
+    if (jacobians != nullptr && jacobians[0] != nullptr) {
+      Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> j(
+          jacobians[0], m, m);
+      j.setZero();
+      j.diagonal() = weight;
+    }
+    return true;
+  }
+};
+class PolynomialRidgeCost : public ceres::CostFunction {
+ public:
+  explicit PolynomialRidgeCost(Eigen::VectorXd weight) : ridge_{std::move(weight)} {
+    set_num_residuals(static_cast<int>(ridge_.weight.size()));
+    mutable_parameter_block_sizes()->push_back(static_cast<int>(ridge_.weight.size()));
+  }
+  bool Evaluate(double const* const* p, double* r, double** j) const override { return ridge_(p, r, j); }
+
+ private:
+  PolynomialRidge ridge_;
+};
+}  // namespace
+
+int PolynomialTerm::AddExtraResiduals(ceres::Problem* problem,
+                                      const std::vector<FitStation>& /*inputs*/) {
+  int added = 0;
+  const auto exponents = PolynomialTermExponents(options_.degree);
+  for (int part = 0; part < 2; ++part) {
+    const int index = part == 0 ? position_block_ : orientation_block_;
+    const double lambda = options_.ridge_auto ? ridge_used_[part] : options_.ridge;
+    if (index < 0 || lambda <= 0.0) continue;
+    auto& block = blocks_[static_cast<size_t>(index)];
+    if (block.fixed) continue;
+    Eigen::VectorXd weight = Eigen::VectorXd::Zero(num_terms_ * 3);
+    for (int j = 0; j < num_terms_; ++j) {
+      const auto& e = exponents[static_cast<size_t>(j)];
+      if (e[0] + e[1] + e[2] < 2) continue;
+      for (int k = 0; k < 3; ++k) weight[j * 3 + k] = lambda / sigmas_[part];
+    }
+    problem->AddResidualBlock(new PolynomialRidgeCost(weight), nullptr, block.values.data());
+    ++added;
+  }
+  return added;
+}
+
 std::vector<double> PolynomialTerm::PositionCoefficients() const {
   return position_block_ >= 0 ? blocks_[static_cast<size_t>(position_block_)].values
                               : std::vector<double>(static_cast<size_t>(num_terms_) * 3, 0.0);
@@ -211,6 +377,8 @@ nlohmann::json PolynomialTerm::Describe() const {
           {"num_terms", num_terms_},
           {"position", options_.position},
           {"orientation", options_.orientation},
+          {"ridge", options_.ridge_auto ? nlohmann::json("auto") : nlohmann::json(options_.ridge)},
+          {"ridge_used", {ridge_used_[0], ridge_used_[1]}},
           {"input_offset", {options_.input_offset[0], options_.input_offset[1], options_.input_offset[2]}},
           {"input_scale", {options_.input_scale[0], options_.input_scale[1], options_.input_scale[2]}}};
 }

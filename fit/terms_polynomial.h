@@ -21,6 +21,17 @@ struct PolynomialTermOptions {
   int degree = 4;              // r, 0 .. kMaxPolynomialDegree
   bool position = true;        // fit the position part
   bool orientation = true;     // fit the orientation part
+  // Tikhonov (ridge) prior on the coefficients of degree >= 2 (the constant and linear ones are
+  // never shrunk): whitened residuals ridge * c / sigma per coefficient, sigma the model's position or
+  // orientation noise, i.e. a Gaussian prior N(0, (sigma / ridge)^2) on each. It removes the
+  // near-null directions a grid leaves (on the paper preset's 4 heights, z^4 equals a cubic at the
+  // stations), which a polynomial chained after a physical term otherwise fits to noise. 0: none.
+  double ridge = 0.0;
+  // ridge: auto: chosen per part at initialisation by leave-one-out on the term's linear least
+  // squares (exact, by the hat matrix) over kRidgeGrid, the largest ridge whose leave-one-out error
+  // is within one standard error of the smallest (held-out data cannot see a direction the stations
+  // do not sample, so the tie goes to the smoother polynomial).
+  bool ridge_auto = false;
   // Normalisation of the input (NaN: from the bounding box of the data in Prepare()).
   Eigen::Vector3d input_offset = Eigen::Vector3d::Constant(NAN);
   Eigen::Vector3d input_scale = Eigen::Vector3d::Constant(NAN);
@@ -39,7 +50,19 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
                         const Eigen::Vector2d& noise_sigmas) override;
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
-  bool SolvesAloneLinearly() const override { return true; }
+  // Without a ridge the linear least squares is the fit; with one the engine solves (the prior).
+  bool SolvesAloneLinearly() const override { return options_.ridge == 0.0 && !options_.ridge_auto; }
+  // The ridge residuals (options().ridge or the chosen one) on the free parts.
+  int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
+  // The ridge weights in use per part (position, orientation): the option, or the chosen ones.
+  const Eigen::Vector2d& ridge_used() const { return ridge_used_; }
+  // Candidate weights of ridge: auto (0, then 1e-4 .. 1e2 in steps of 10^0.5).
+  static std::vector<double> RidgeGrid();
+  // Degree >= 1 with a free position part: e_p = (s - 1) p is linear in p.
+  bool AbsorbsIsotropicScaling() const override {
+    return options_.degree >= 1 && position_block_ >= 0 &&
+           !blocks_[static_cast<size_t>(position_block_)].fixed;
+  }
   // sigma^2 (A^T A)^-1 per part from the QR of the monomial matrix A (for the orientation part, of
   // the paper's linear model of the vector part of q_e).
   bool LinearCovariance(const Eigen::Vector2d& noise_sigmas) override;
@@ -63,6 +86,9 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   int position_block_ = -1;     // index in blocks_, -1 if disabled
   int orientation_block_ = -1;  // index in blocks_, -1 if disabled
   Eigen::VectorXd inverse_normal_diagonal_;  // diag((A^T A)^-1) of the last InitializeLinear()
+  Eigen::Vector2d ridge_used_ = Eigen::Vector2d::Zero();
+  Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);  // the model's noise (ridge whitening)
+  Eigen::Vector2d loo_rms_ = Eigen::Vector2d::Constant(NAN);  // leave-one-out RMS at the chosen ridge
 };
 
 template <typename T>
