@@ -2,6 +2,8 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <Eigen/Eigenvalues>
+
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -442,6 +444,71 @@ std::string Statement(const CatalogEffect& effect, const Candidate& c, double lo
   return GenericStatement(c.parameters);
 }
 
+// Wald statistic of `v` (the block minus its null value) against the block's covariance `cov`
+// (row-major k x k; empty: the standard deviations alone, as uncorrelated), with the degrees of
+// freedom it has (directions of zero variance carry no information and are dropped). nullopt when
+// a standard deviation is missing.
+struct Wald {
+  double chi2 = 0.0;
+  int dof = 0;
+};
+std::optional<Wald> WaldOfBlock(const Eigen::VectorXd& v, const std::vector<double>& stddev,
+                                const std::vector<double>& cov) {
+  const Eigen::Index k = v.size();
+  if (static_cast<Eigen::Index>(stddev.size()) != k) return std::nullopt;
+  for (double s : stddev) {
+    if (!std::isfinite(s)) return std::nullopt;
+  }
+  Eigen::MatrixXd c = Eigen::MatrixXd::Zero(k, k);
+  if (static_cast<Eigen::Index>(cov.size()) == k * k) {
+    for (Eigen::Index r = 0; r < k; ++r) {
+      for (Eigen::Index q = 0; q < k; ++q) c(r, q) = cov[static_cast<size_t>(r * k + q)];
+    }
+    c = 0.5 * (c + c.transpose());
+  } else {
+    for (Eigen::Index r = 0; r < k; ++r) c(r, r) = stddev[static_cast<size_t>(r)] * stddev[static_cast<size_t>(r)];
+  }
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(c);
+  const double largest = eig.eigenvalues().cwiseAbs().maxCoeff();
+  Wald w;
+  for (Eigen::Index i = 0; i < k; ++i) {
+    const double lambda = eig.eigenvalues()(i);
+    // Relative cut: the covariance comes from a (pseudo-)inverse in double precision.
+    if (!(lambda > 1e-12 * largest)) continue;
+    const double u = eig.eigenvectors().col(i).dot(v);
+    w.chi2 += u * u / lambda;
+    ++w.dof;
+  }
+  if (w.dof == 0) return std::nullopt;
+  return w;
+}
+
+// Largest standard deviation of a block (the covariance's largest principal axis when given).
+double LargestSigma(const std::vector<double>& stddev, const std::vector<double>& cov) {
+  const Eigen::Index k = static_cast<Eigen::Index>(stddev.size());
+  double s = 0.0;
+  for (double x : stddev) s = std::max(s, std::isfinite(x) ? x : std::numeric_limits<double>::infinity());
+  if (k > 0 && static_cast<Eigen::Index>(cov.size()) == k * k && std::isfinite(s)) {
+    Eigen::MatrixXd c(k, k);
+    for (Eigen::Index r = 0; r < k; ++r) {
+      for (Eigen::Index q = 0; q < k; ++q) c(r, q) = cov[static_cast<size_t>(r * k + q)];
+    }
+    const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(0.5 * (c + c.transpose()));
+    s = std::sqrt(std::max(0.0, eig.eigenvalues().maxCoeff()));
+  }
+  return s;
+}
+
+// Where the receiver was (the reference positions, transmitter frame): the measured volume. Not
+// the reported positions: a hemisphere flip reports -p and would stretch the box across the
+// transmitter, over the sources on the other side.
+std::vector<Eigen::Vector3d> MeasuredPositions(const std::vector<FitStation>& stations) {
+  std::vector<Eigen::Vector3d> out;
+  out.reserve(stations.size());
+  for (const auto& s : stations) out.push_back(s.reference.translation);
+  return out;
+}
+
 void Progress(const CandidateOptions& options, const std::string& message) {
   static std::mutex mutex;  // the callback is called from worker threads, one call at a time
   if (!options.progress) return;
@@ -457,6 +524,7 @@ struct PreparedCandidate {
   std::vector<int> base_index;       // per own station: the base station it is (-1: none)
   double time_offset_s = 0.0;
   bool flexible = false;  // a flexible fallback, not an effect
+  std::vector<double> cv_whitened_by_base;  // held-out whitened error per base station (NaN: none)
   YAML::Node root;        // the candidate model file
   std::shared_ptr<ModelSpec>
       fitted;  // the fit on all stations (the fast cross-validation starts there)
@@ -501,6 +569,9 @@ void CandidateOptions::Check() const {
   }
   if (!(max_outlier_fraction >= 0 && max_outlier_fraction < 0.5)) {
     throw std::invalid_argument("CandidateOptions.max_outlier_fraction: must be in [0, 0.5)");
+  }
+  if (!(min_strength_sigma >= 0) || !std::isfinite(min_strength_sigma)) {
+    throw std::invalid_argument("CandidateOptions.min_strength_sigma: must be finite and >= 0");
   }
   if (num_threads < 0) throw std::invalid_argument("CandidateOptions.num_threads: must be >= 0");
   if (cross_validate_top < 0) {
@@ -570,6 +641,228 @@ double WilcoxonSignedRankGreater(const std::vector<double>& differences) {
   if (var <= 0) return 1.0;
   const double z = (w_plus - mean - 0.5) / std::sqrt(var);  // continuity correction
   return 0.5 * std::erfc(z / std::sqrt(2.0));
+}
+
+double ChiSquareUpperTail(double x, int dof) {
+  if (dof < 1) throw std::invalid_argument("ChiSquareUpperTail: dof must be >= 1");
+  if (!(x > 0)) return 1.0;
+  if (!std::isfinite(x)) return 0.0;
+  // Q(a, y) = Gamma(a, y) / Gamma(a), a = dof / 2, y = x / 2: the series of P below a + 1, the
+  // continued fraction of Q above (both converge fast there).
+  const double a = 0.5 * dof, y = 0.5 * x;
+  const double log_prefactor = -y + a * std::log(y) - std::lgamma(a);
+  if (y < a + 1.0) {
+    double term = 1.0 / a, sum = term;
+    for (int n = 1; n < 1000 && std::abs(term) > 1e-17 * std::abs(sum); ++n) {
+      term *= y / (a + n);
+      sum += term;
+    }
+    return std::clamp(1.0 - sum * std::exp(log_prefactor), 0.0, 1.0);
+  }
+  // Modified Lentz evaluation of the continued fraction for Q.
+  const double tiny = 1e-300;
+  double b = y + 1.0 - a, c = 1.0 / tiny, d = 1.0 / b, h = d;
+  for (int i = 1; i < 1000; ++i) {
+    const double an = -i * (i - a);
+    b += 2.0;
+    d = an * d + b;
+    if (std::abs(d) < tiny) d = tiny;
+    c = b + an / c;
+    if (std::abs(c) < tiny) c = tiny;
+    d = 1.0 / d;
+    const double delta = d * c;
+    h *= delta;
+    if (std::abs(delta - 1.0) < 1e-16) break;
+  }
+  return std::clamp(std::exp(log_prefactor) * h, 0.0, 1.0);
+}
+
+double TwoSidedNormalDeviate(double p) {
+  if (!(p > 0)) return std::numeric_limits<double>::infinity();
+  if (p >= 1) return 0.0;
+  // erfc(z / sqrt 2) = p is monotone in z: bisection to double precision.
+  double lo = 0.0, hi = 40.0;
+  for (int i = 0; i < 200 && hi - lo > 1e-12; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (std::erfc(mid / std::sqrt(2.0)) > p ? lo : hi) = mid;
+  }
+  return 0.5 * (lo + hi);
+}
+
+namespace {
+PhysicalEvidence AssessScaled(const std::string& term_type,
+                              const std::vector<ParameterReport>& blocks,
+                              const std::vector<Eigen::Vector3d>& volume_points,
+                              double min_strength_sigma, PhysicalEvidence e);
+}  // namespace
+
+PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
+                                        const std::vector<ParameterReport>& blocks,
+                                        const std::vector<Eigen::Vector3d>& volume_points,
+                                        double min_strength_sigma, double noise_scale) {
+  PhysicalEvidence e;
+  e.noise_scale = noise_scale;
+  // The fit's standard deviations and covariances, scaled.
+  std::vector<ParameterReport> scaled = blocks;
+  for (auto& b : scaled) {
+    for (double& x : b.stddev) x *= noise_scale;
+    for (double& x : b.covariance) x *= noise_scale * noise_scale;
+  }
+  return AssessScaled(term_type, scaled, volume_points, min_strength_sigma, std::move(e));
+}
+
+namespace {
+PhysicalEvidence AssessScaled(const std::string& term_type,
+                              const std::vector<ParameterReport>& blocks,
+                              const std::vector<Eigen::Vector3d>& volume_points,
+                              double min_strength_sigma, PhysicalEvidence e) {
+  // Strength blocks and their null values: (block, what, v = value - null in the stddev's
+  // coordinates).
+  struct Strength {
+    const ParameterReport* block;
+    std::string what;
+    Eigen::VectorXd v;
+  };
+  std::vector<Strength> strengths;
+  auto euclidean = [&](const std::string& name, const std::string& what,
+                       const std::vector<double>& null) {
+    const ParameterReport* b = FindBlock(blocks, name);
+    if (!b || b->fixed || b->values.size() != null.size()) return;
+    Eigen::VectorXd v(static_cast<Eigen::Index>(null.size()));
+    for (size_t i = 0; i < null.size(); ++i) v(static_cast<Eigen::Index>(i)) = b->values[i] - null[i];
+    strengths.push_back({b, what, v});
+  };
+  if (term_type == "dipole") {
+    euclidean("polarisability_m3", "polarisability_m3", {0.0});
+  } else if (term_type == "plane") {
+    euclidean("attenuation", "attenuation", {0.0});
+  } else if (term_type == "near_field") {
+    euclidean("octupole_m2", "octupole_m2", {0.0, 0.0, 0.0});
+  } else if (term_type == "receiver_gain") {
+    euclidean("gain_matrix", "gain_matrix - I", {1, 0, 0, 0, 1, 0, 0, 0, 1});
+  } else if (term_type == "sensor_offset") {
+    euclidean("translation", "translation", {0.0, 0.0, 0.0});
+    const ParameterReport* r = FindBlock(blocks, "rotation");
+    if (r && !r->fixed && r->values.size() == 4) {
+      // The tangent coordinates are rotation vectors [rad]; the null is the identity, reached from
+      // the estimate by minus its rotation vector (the sign does not matter to the quadratic form).
+      const Eigen::Quaterniond q = QuaternionFromXyzwArray(r->values.data());
+      const Eigen::AngleAxisd aa(q.w() < 0 ? Eigen::Quaterniond(-q.coeffs()) : q);
+      strengths.push_back({r, "rotation", aa.angle() * aa.axis()});
+    }
+  } else {
+    return e;  // no physical strength to test
+  }
+  e.assessed = true;
+  if (strengths.empty()) {
+    // The type has strength blocks, but they are fixed or missing: nothing was estimated.
+    e.strength_ok = false;
+    e.strength_what = "no free strength parameter";
+    return e;
+  }
+  double best_p = 2.0;
+  for (const auto& s : strengths) {
+    const std::optional<Wald> w = WaldOfBlock(s.v, s.block->stddev, s.block->covariance);
+    if (!w) continue;
+    const double p = ChiSquareUpperTail(w->chi2, w->dof);
+    if (best_p > 1.0 || p < best_p) {
+      best_p = p;
+      e.strength_what = s.what;
+      e.strength_chi2 = w->chi2;
+      e.strength_dof = w->dof;
+    }
+  }
+  if (best_p > 1.0) {
+    e.strength_ok = false;
+    e.strength_what = strengths.front().what + " (no standard deviation)";
+  } else {
+    e.strength_p = std::min(1.0, best_p * static_cast<double>(strengths.size()));  // Bonferroni
+    // Far in the tail p underflows: the deviate of a 1-dof statistic, sqrt(chi2), is then a floor.
+    e.strength_sigma = e.strength_p > 0 ? TwoSidedNormalDeviate(e.strength_p) : std::sqrt(e.strength_chi2);
+    e.strength_ok = e.strength_sigma >= min_strength_sigma;
+  }
+
+  // Location.
+  if (volume_points.empty() || min_strength_sigma <= 0) return e;
+  Eigen::Vector3d lo = volume_points.front(), hi = lo;
+  for (const auto& p : volume_points) {
+    lo = lo.cwiseMin(p);
+    hi = hi.cwiseMax(p);
+  }
+  if (term_type == "dipole") {
+    const ParameterReport* l = FindBlock(blocks, "location_in_transmitter");
+    if (!l || l->values.size() != 3) return e;
+    e.has_location = true;
+    const Eigen::Vector3d x(l->values[0], l->values[1], l->values[2]);
+    e.location_distance_m = (x - x.cwiseMax(lo).cwiseMin(hi)).norm();
+    e.location_sigma_m = l->fixed ? 0.0 : LargestSigma(l->stddev, l->covariance);
+  } else if (term_type == "plane") {
+    const ParameterReport* d = FindBlock(blocks, "distance_m");
+    const ParameterReport* n = FindBlock(blocks, "normal_in_transmitter");
+    if (!d || !n || d->values.size() != 1 || n->values.size() != 3) return e;
+    e.has_location = true;
+    const Eigen::Vector3d normal =
+        Eigen::Vector3d(n->values[0], n->values[1], n->values[2]).normalized();
+    double s_min = std::numeric_limits<double>::infinity(), s_max = -s_min;
+    for (const auto& p : volume_points) {
+      const double s = normal.dot(p) - d->values[0];
+      s_min = std::min(s_min, s);
+      s_max = std::max(s_max, s);
+    }
+    // A plane through the measured volume has distance 0 (the receiver cannot pass through it).
+    e.location_distance_m = s_min > 0 ? s_min : (s_max < 0 ? -s_max : 0.0);
+    // The plane's position at the volume: its distance's sigma, and the normal's angular sigma
+    // [rad] times the lever arm of the volume's centre across the normal.
+    const double sigma_d = d->fixed ? 0.0 : At(d->stddev, 0);
+    double sigma_angle = 0.0;
+    if (!n->fixed) {
+      sigma_angle = n->stddev.size() >= 2 ? std::hypot(n->stddev[0], n->stddev[1]) : NAN;
+    }
+    const Eigen::Vector3d c = 0.5 * (lo + hi);
+    const double lever = (c - normal.dot(c) * normal).norm();
+    e.location_sigma_m = std::hypot(sigma_d, sigma_angle * lever);
+  }
+  if (e.has_location) {
+    e.location_ok = std::isfinite(e.location_sigma_m) && e.location_distance_m > 0 &&
+                    e.location_sigma_m <= e.location_distance_m;
+  }
+  return e;
+}
+}  // namespace
+
+std::string PhysicalEvidence::Describe() const {
+  if (!assessed) return "";
+  std::ostringstream r;
+  if (std::isfinite(strength_sigma)) {
+    r << strength_what << " " << FormatNumber(strength_sigma, 1) << " sigma from its null value";
+  } else {
+    r << strength_what << ": strength not tested";
+  }
+  if (noise_scale != 1.0) r << " (sigmas x " << FormatSignificant(noise_scale, 2) << ", sqrt(chi2/dof))";
+  if (has_location) {
+    r << "; location +- " << FormatNumber(location_sigma_m, 3) << " m, "
+      << FormatNumber(location_distance_m, 3) << " m from the measured volume";
+  }
+  return r.str();
+}
+
+nlohmann::json PhysicalEvidence::ToJson() const {
+  if (!assessed) return nullptr;
+  nlohmann::json j = {{"strength",
+                       {{"what", strength_what},
+                        {"chi2", NumberOrNull(strength_chi2)},
+                        {"dof", strength_dof},
+                        {"p_value", NumberOrNull(strength_p)},
+                        {"sigma", NumberOrNull(strength_sigma)},
+                        {"ok", strength_ok}}},
+                      {"noise_scale", noise_scale},
+                      {"supported", supported()}};
+  j["location"] = has_location ? nlohmann::json{{"sigma_m", NumberOrNull(location_sigma_m)},
+                                                {"distance_from_volume_m",
+                                                 NumberOrNull(location_distance_m)},
+                                                {"determined", location_ok}}
+                               : nlohmann::json();
+  return j;
 }
 
 Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std::string& model_text,
@@ -838,6 +1131,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       }
       if (c.kind != CandidateKind::kTimeOffset)
         c.statement = Statement(*p.effect, c, options.robust_loss.scale);
+      if (c.kind == CandidateKind::kTerm && !p.flexible && options.min_strength_sigma > 0) {
+        // The noise scale profiled out (as in the BIC): sqrt(chi2/dof) of this fit.
+        const int dof = n - c.num_free_parameters;
+        const double scale = dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / dof) : 1.0;
+        c.evidence = AssessPhysicalEvidence(p.term["type"].as<std::string>(), c.parameters,
+                                            MeasuredPositions(own), options.min_strength_sigma,
+                                            scale);
+      }
       if (c.kind == CandidateKind::kTerm &&
           AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &p.term)) {
         // The change carries the fitted start, and the cross-validation evaluates exactly that
@@ -885,8 +1186,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   }
   if (options.cross_validate_top > 0 &&
       static_cast<int>(to_validate.size()) > options.cross_validate_top) {
+    // Candidates the physical conditions already reject (decided on the full fit) cannot be
+    // claimed: they do not take a cross-validation slot from one that can.
     std::stable_sort(to_validate.begin(), to_validate.end(),
                      [](const PreparedCandidate* a, const PreparedCandidate* b) {
+                       const bool sa = a->candidate.evidence.supported();
+                       const bool sb = b->candidate.evidence.supported();
+                       if (sa != sb) return sa;
                        return a->candidate.delta_bic < b->candidate.delta_bic;
                      });
     to_validate.resize(static_cast<size_t>(options.cross_validate_top));
@@ -923,6 +1229,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                                   });
       }
       c.cross_validated = true;
+      p->cv_whitened_by_base.assign(stations.size(), NAN);
+      for (size_t j = 0; j < own.size(); ++j) {
+        if (p->base_index[j] >= 0) {
+          p->cv_whitened_by_base[static_cast<size_t>(p->base_index[j])] = cv.whitened_sq[j];
+        }
+      }
       // Means and the paired test over the stations both models have.
       std::vector<double> cand_p, cand_o, cand_w, base_p, base_o, diff;
       for (size_t j = 0; j < own.size(); ++j) {
@@ -959,6 +1271,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       c.reason = c.error.empty() ? "screened out by BIC (delta " + FormatNumber(c.delta_bic, 1) +
                                        "); not cross-validated"
                                  : c.error;
+      if (c.error.empty() && !c.evidence.supported()) {
+        c.reason = "not cross-validated: the physical conditions reject it (" +
+                   c.evidence.Describe() + "); delta BIC " + FormatNumber(c.delta_bic, 1);
+      }
       return;
     }
     const double drop = std::max(c.drop_position_percent, c.drop_orientation_percent);
@@ -969,7 +1285,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     const bool p_ok = c.p_value < d.p_threshold;
     const bool drop_ok = drop >= options.min_drop_percent;
     const bool bic_ok = c.delta_bic < options.max_delta_bic;
-    c.significant = p_ok && drop_ok && bic_ok && outliers_ok;
+    const PhysicalEvidence& ev = c.evidence;
+    c.significant = p_ok && drop_ok && bic_ok && outliers_ok && ev.supported();
     std::ostringstream r;
     r << "held-out error " << (c.drop_position_percent >= 0 ? "falls " : "rises ")
       << FormatNumber(std::abs(c.drop_position_percent), 1) << " % (position), "
@@ -977,6 +1294,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       << FormatNumber(std::abs(c.drop_orientation_percent), 1)
       << " % (orientation); p = " << FormatSignificant(c.p_value, 2) << (p_ok ? " < " : " >= ")
       << FormatSignificant(d.p_threshold, 2) << "; delta BIC " << FormatNumber(c.delta_bic, 1);
+    if (ev.assessed) r << "; " << ev.Describe();
     if (!c.significant) {
       std::vector<std::string> why;
       if (!p_ok) why.push_back("the held-out improvement is not significant");
@@ -987,6 +1305,21 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       if (!bic_ok)
         why.push_back("BIC does not support it (needs < " + FormatNumber(options.max_delta_bic, 0) +
                       ")");
+      if (!ev.strength_ok) {
+        why.push_back(std::isfinite(ev.strength_sigma)
+                          ? "its strength (" + ev.strength_what + ") is " +
+                                FormatNumber(ev.strength_sigma, 1) + " sigma from its null value (needs " +
+                                FormatNumber(options.min_strength_sigma, 0) + ")"
+                          : "its strength cannot be tested (" + ev.strength_what + ")");
+      }
+      if (!ev.location_ok) {
+        why.push_back(
+            ev.location_distance_m > 0
+                ? "its location is not determined (+- " + FormatNumber(ev.location_sigma_m, 2) +
+                      " m, more than its " + FormatNumber(ev.location_distance_m, 2) +
+                      " m from the measured volume): not that object"
+                : "it lies in the measured volume, where no source can be: not that object");
+      }
       if (!outliers_ok) {
         why.push_back(
             FormatNumber(100 * outlier_fraction, 0) +
@@ -1019,14 +1352,60 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     judge(p);
   }
 
-  // Ranking.
+  // Ranking: significant first, then by held-out error. When the held-out best and another
+  // significant source term explain the same structure (the other's held-out errors are not
+  // significantly larger, paired test at family_alpha), the one whose strength is better
+  // determined goes first: a dipole at the floor's mirror image and the floor plane fit the same
+  // field, and the term whose fit pins its source down is the physical identification.
+  std::string promoted;  // the effect moved to the top by the tie rule (empty: none)
+  {
+    std::vector<PreparedCandidate*> sig;
+    for (auto& p : prepared) {
+      if (!p.flexible && p.candidate.significant) sig.push_back(&p);
+    }
+    std::stable_sort(sig.begin(), sig.end(), [](const PreparedCandidate* a, const PreparedCandidate* b) {
+      return a->candidate.cv_whitened_mean < b->candidate.cv_whitened_mean;
+    });
+    if (sig.size() >= 2 && sig.front()->candidate.evidence.has_location &&
+        std::isfinite(sig.front()->candidate.evidence.strength_sigma)) {
+      PreparedCandidate* best = sig.front();
+      std::string tie_note;
+      for (size_t i = 1; i < sig.size(); ++i) {
+        PreparedCandidate* o = sig[i];
+        const PhysicalEvidence& ev = o->candidate.evidence;
+        if (!ev.has_location || !(ev.strength_sigma > best->candidate.evidence.strength_sigma)) continue;
+        std::vector<double> worse;  // other minus held-out best, per station
+        for (size_t k = 0; k < stations.size(); ++k) {
+          const double a = o->cv_whitened_by_base.size() > k ? o->cv_whitened_by_base[k] : NAN;
+          const double b = sig.front()->cv_whitened_by_base.size() > k
+                               ? sig.front()->cv_whitened_by_base[k]
+                               : NAN;
+          if (std::isfinite(a) && std::isfinite(b)) worse.push_back(a - b);
+        }
+        const double p_worse = WilcoxonSignedRankGreater(worse);
+        if (p_worse < options.family_alpha) continue;
+        best = o;
+        tie_note = "ranked first over " + sig.front()->candidate.effect +
+                   ": their held-out errors do not differ (p = " + FormatSignificant(p_worse, 2) +
+                   " that it is worse) and its strength is better determined (" +
+                   FormatNumber(ev.strength_sigma, 1) + " against " +
+                   FormatNumber(sig.front()->candidate.evidence.strength_sigma, 1) + " sigma)";
+      }
+      if (best != sig.front()) {
+        best->candidate.reason += "; " + tie_note;
+        promoted = best->candidate.effect;  // catalog names are unique (CandidateOptions::Check)
+      }
+    }
+  }
   std::vector<Candidate> ranked;
   for (auto& p : prepared) {
     (p.flexible ? d.flexible : ranked).push_back(std::move(p.candidate));
   }
-  auto key = [](const Candidate& c) {
+  auto key = [&promoted](const Candidate& c) {
     return std::make_tuple(
-        c.significant ? 0 : 1, c.cross_validated ? 0 : 1, c.fitted ? 0 : 1,
+        c.significant ? 0 : 1, c.effect == promoted ? 0 : 1, c.evidence.supported() ? 0 : 1,
+        c.cross_validated ? 0 : 1,
+        c.fitted ? 0 : 1,
         std::isfinite(c.cv_whitened_mean) ? c.cv_whitened_mean
                                           : std::numeric_limits<double>::infinity(),
         std::isfinite(c.delta_bic) ? c.delta_bic : std::numeric_limits<double>::infinity());
@@ -1075,6 +1454,22 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       v << " (no candidate could be tested)";
     }
     v << ". ";
+    // Candidates that explain structure by the statistics but fail the physical conditions: the
+    // structure is there, its source is not identified.
+    for (const auto& c : d.candidates) {
+      // Only the held-out statistics show structure: BIC alone favours a searched source term on
+      // effect-free data (see "Significance" in docs/diagnose.md).
+      if (!c.cross_validated || c.evidence.supported() || !(c.delta_bic < options.max_delta_bic) ||
+          !(c.p_value < d.p_threshold) ||
+          std::max(c.drop_position_percent, c.drop_orientation_percent) < options.min_drop_percent) {
+        continue;
+      }
+      v << "A " << c.effect << " term fits structure that is there (held-out position error falls "
+        << FormatNumber(c.drop_position_percent, 1) << " %, delta BIC "
+        << FormatNumber(c.delta_bic, 1)
+        << "), but its fit does not identify the source (" << c.evidence.Describe()
+        << "), so it is not claimed. ";
+    }
     const double chi2_dof = d.base.chi2_per_dof;
     const Candidate* flexible = nullptr;
     for (const auto& f : d.flexible) {
@@ -1146,6 +1541,7 @@ nlohmann::json CandidateToJson(const Candidate& c) {
         {"converged", c.converged},
         {"error", c.error.empty() ? nlohmann::json() : nlohmann::json(c.error)},
         {"reason", c.reason},
+        {"evidence", c.evidence.ToJson()},
         {"parameters", params},
         {"outlier_stations", c.outlier_stations},
         {"statement", c.statement},
@@ -1196,7 +1592,7 @@ std::string FormatDiagnosis(const Diagnosis& d) {
       << " free parameters, chi2/dof " << FormatNumber(d.base.chi2_per_dof, 2) << ", BIC "
       << FormatNumber(d.base.bic, 1) << "\n\n";
   out << "Candidate effects (ranked; significant: p < " << FormatSignificant(d.p_threshold, 2)
-      << ", held-out drop >= 5 %, delta BIC < -10):\n";
+      << ", held-out drop >= 5 %, delta BIC < -10, strength >= 3 sigma, location determined):\n";
   out << std::left << std::setw(4) << "#" << std::setw(16) << "effect" << std::right
       << std::setw(11) << "pos [mm]" << std::setw(9) << "drop %" << std::setw(11) << "ori [deg]"
       << std::setw(9) << "drop %" << std::setw(11) << "dBIC" << std::setw(10) << "p"

@@ -17,9 +17,11 @@
 //     parameters each: the mean-shift outlier model);
 // and called significant only if the held-out improvement is real (p below alpha / number of
 // candidates tested, and the held-out mean error falls by at least min_drop_percent) and BIC
-// prefers it (delta_bic < max_delta_bic). Candidates are ranked significant first, then by held-out
-// error. The verdict names the top significant candidate, or says plainly that none explains what
-// remains.
+// prefers it (delta_bic < max_delta_bic) and the added term's fit identifies a physical source
+// (PhysicalEvidence: strength 3 sigma from its null value, location determined). Candidates are
+// ranked significant first, then by held-out error (between two source terms that explain the same
+// structure, the better-determined one first). The verdict names the top significant candidate, or
+// says plainly that none explains what remains.
 //
 // The candidate model is the model file's YAML with the effect's term inserted into `terms:`
 // (physical terms before explicit ones: polynomial, lut) or its `loss:` / `time_offset:` set;
@@ -28,6 +30,8 @@
 // degree-3 polynomial) is scored apart when no effect is significant. Reference: docs/diagnose.md.
 #pragma once
 
+#include <Eigen/Core>
+#include <cmath>
 #include <functional>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -73,6 +77,53 @@ std::vector<CatalogEffect> DefaultCatalog();
 // when no catalog effect explains it.
 std::vector<CatalogEffect> DefaultFlexibleFallback();
 
+// The physical evidence for an added term, decided from its fit on all stations (the claim rule's
+// physical conditions, docs/diagnose.md "Significance"):
+//   - strength: the term's physical strength must lie at least `min_strength_sigma` from its null
+//     value (dipole polarisability 0, plane attenuation 0, near_field octupole 0, receiver_gain
+//     G = I, sensor_offset translation 0 / rotation identity), by a joint Wald test on each strength
+//     block (the block's covariance; its standard deviations alone when that is unavailable),
+//     expressed as the equivalent two-sided normal deviate; terms with several strength blocks
+//     (sensor_offset) take the strongest, Bonferroni-corrected;
+//   - location: a term that places a source (dipole location, plane distance and normal) must place
+//     it: the largest standard deviation of the source's position must not exceed its distance from
+//     the measured volume (the box of the stations' reference positions), otherwise the fit says
+//     "something out there" and not "this object".
+// Term types with no strength block (explicit terms, unknown types) are not assessed.
+struct PhysicalEvidence {
+  bool assessed = false;           // the term type has a strength block
+  std::string strength_what;       // "polarisability_m3", "gain_matrix - I", ...
+  double strength_chi2 = NAN;      // Wald statistic of the strongest block
+  int strength_dof = 0;            // its degrees of freedom
+  double strength_p = NAN;         // its p-value (Bonferroni-corrected over the blocks)
+  double strength_sigma = NAN;     // the equivalent two-sided normal deviate of strength_p
+  bool has_location = false;       // the term places a source (dipole, plane)
+  double location_sigma_m = NAN;   // largest standard deviation of the source's position [m]
+  double location_distance_m = NAN;  // distance of the source from the measured volume [m]
+  double noise_scale = 1.0;        // factor applied to the fit's standard deviations
+  bool strength_ok = true;
+  bool location_ok = true;
+  bool supported() const { return strength_ok && location_ok; }
+  std::string Describe() const;  // in words, for `reason`
+  nlohmann::json ToJson() const;
+};
+
+// Assesses the added term of type `term_type` from its parameter reports (fit/fit_engine.h), with
+// `volume_points` the stations' reference positions in the transmitter frame. `noise_scale`
+// multiplies every standard deviation: DiagnoseCandidates passes sqrt(chi2/dof) of the candidate's
+// fit, profiling the noise scale out as its BIC does (a model file's sigmas are guesses: the
+// default 1 mm against a tracker's 0.06 mm would make every standard deviation 17x too large).
+PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
+                                        const std::vector<ParameterReport>& blocks,
+                                        const std::vector<Eigen::Vector3d>& volume_points,
+                                        double min_strength_sigma = 3.0, double noise_scale = 1.0);
+
+// P(chi2_dof > x): the upper tail of the chi-square distribution (regularised incomplete gamma).
+double ChiSquareUpperTail(double x, int dof);
+
+// The two-sided normal deviate z with P(|N(0,1)| > z) = p (p in (0, 1]); infinity for p = 0.
+double TwoSidedNormalDeviate(double p);
+
 struct CandidateOptions {
   int folds = 5;  // k of the k-fold cross-validation (>= 2)
   // Effects to test (names of the catalog); empty: every applicable one.
@@ -93,6 +144,12 @@ struct CandidateOptions {
   // outliers are rare by definition (flips, bad reference poses); when many stations exceed it, a
   // robust loss only hides an effect the model lacks.
   double max_outlier_fraction = 0.05;
+  // The added term's physical strength must lie at least this many standard deviations from its
+  // null value, and a source it places must be placed (PhysicalEvidence): a held-out gain from a
+  // term whose strength is 0.5 sigma from zero, or whose location is uncertain by more than its
+  // distance from the volume, is real structure but not evidence of that object. 3: the issue's
+  // "three standard deviations"; 0 disables the physical conditions.
+  double min_strength_sigma = 3.0;
   // 0: cross-validate every candidate. N > 0: fit all on the full set first, then cross-validate
   // only the N with the lowest delta BIC (the rest are reported screened out, never significant). 3
   // by default: with exact folds (exact_cv) cross-validating all six triples the run; the fast
@@ -159,6 +216,7 @@ struct Candidate {
   double p_value = NAN;  // one-sided Wilcoxon signed-rank, held-out errors
   bool significant = false;
   std::string reason;                       // why (not) significant, in words
+  PhysicalEvidence evidence;                // kTerm: strength and location tests of the added term
   std::vector<ParameterReport> parameters;  // the added term's blocks (empty for robust_loss)
   std::vector<int> outlier_stations;        // robust_loss: stations beyond the loss scale
   std::string statement;                    // physical summary with units and +- 1 sigma

@@ -202,6 +202,7 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
       r.coordinate_names = block.coordinate_names;
       r.values = block.values;
       r.stddev = block.stddev;
+      r.covariance = block.covariance;
       if (block.stddev.size() != block.values.size()) {  // a manifold block: tangent stds
         r.stddev_names = block.tangent_names;
         r.stddev_unit = block.tangent_unit;
@@ -498,6 +499,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     auto& blocks = spec->terms[t]->blocks();
     for (size_t b = 0; b < blocks.size(); ++b) {
       blocks[b].stddev.assign(blocks[b].values.size(), std::numeric_limits<double>::quiet_NaN());
+      blocks[b].covariance.clear();
       if (blocks[b].fixed || blocks[b].values.empty()) continue;
       CovarianceBlock cb;
       cb.values = blocks[b].values.data();
@@ -551,6 +553,12 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
         const int tangent = problem.ParameterBlockTangentSize(block.values.data());
         block.stddev.resize(static_cast<size_t>(tangent));
         for (int k = 0; k < tangent; ++k) block.stddev[static_cast<size_t>(k)] = cov.stddev[offset + k];
+        block.covariance.resize(static_cast<size_t>(tangent * tangent));
+        for (int r = 0; r < tangent; ++r) {
+          for (int k = 0; k < tangent; ++k) {
+            block.covariance[static_cast<size_t>(r * tangent + k)] = cov.covariance(offset + r, offset + k);
+          }
+        }
       }
     }
   }

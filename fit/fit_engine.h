@@ -46,6 +46,9 @@ struct ParameterReport {
   std::vector<std::string> coordinate_names;
   std::vector<double> values;
   std::vector<double> stddev;  // NaN where unavailable (fixed block, covariance failed)
+  // The block's own covariance, row-major over the coordinates of `stddev` (joint tests on a block);
+  // empty where unavailable. Not in ToJson().
+  std::vector<double> covariance;
   // Manifold blocks (quaternion, unit normal): stddev holds one value per tangent coordinate, named
   // here ("rotation_vector.x", "angle_a"), in stddev_unit ("rad"); empty for Euclidean blocks.
   std::vector<std::string> stddev_names;

@@ -69,6 +69,9 @@ struct ParameterBlock {
   // coordinate (named by tangent_names, in tangent_unit); NaN for fixed values or unavailable
   // covariance.
   std::vector<double> stddev;
+  // The block's own covariance after a fit, row-major over the same coordinates as `stddev`
+  // (joint tests on a block, fit/candidates.h); empty when unavailable.
+  std::vector<double> covariance;
   // Manifold blocks: names and unit of the tangent coordinates ("rotation_vector.x", "rad"), and
   // the physical units per tangent unit (2 for EigenQuaternionManifold: rotation vectors in rad).
   std::vector<std::string> tangent_names;

@@ -82,21 +82,36 @@ HIDDEN_EFFECTS = ["sensor_offset", "receiver_gains", "ferromagnetic_object",
                   "finite_transmitter_coils", "clock_offset", "hemisphere_flips"]
 SEEDS = [1, 2, 3]
 
-# Cost: one loop (4-5 fits and diagnoses of 240 stations, every catalog candidate with its dipole
-# and plane searches) took 25-30 min on the 2 shared cores of the development machine (load ~11;
-# the diagnoses 92, 360, 390 s and more as terms accumulate), so the 18 loops need hours, far
-# beyond CI's budget. They run when TRACKCAL_WORKFLOW_TESTS is set: "full" for every effect on 3
-# seeds, or a comma-separated list of effects (3 seeds each).
-_SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip()
-
+# Which loops run: TRACKCAL_WORKFLOW_TESTS unset or "ci": CI_LOOPS (one seed per effect, what fits
+# CI's budget, see LOOP_TIMES); "full": every effect on 3 seeds; "none": no loop; else a
+# comma-separated list of effects (3 seeds each) or effect:seed items ("clock_offset:2").
+_SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
+# Measured (seed 1, main after the fast cross-validation, with the physical claim conditions), wall
+# time on the 2 shared cores of the development machine under a load of ~12 from other builds:
+#   finite_transmitter_coils 174 s (passes: near_field, frame, floor; 1.11x the floor)
+#   hemisphere_flips           66 s (xfail: nothing claimed, see _XFAIL)
+#   sensor_offset             363 s (xfail: one spurious term, see _XFAIL)
+#   clock_offset             1284 s (passes, 0.99x the floor; stream pairing in every fit and the
+#                                    time_offset candidate's re-pairing make it the slowest)
+# CI runs the three that fit about 6 min there: the default run (TRACKCAL_WORKFLOW_TESTS unset)
+# took 302 s wall at a load of ~10 (sensor_offset 151 s, finite_transmitter_coils 107 s,
+# hemisphere_flips 40 s), in one pytest process: the diagnoses already use both cores (candidates
+# in parallel threads), so pytest-xdist would not help. The xfail ones still must run to their
+# assertions (xfail(raises=AssertionError): a crash fails the test).
+CI_LOOPS = {("finite_transmitter_coils", 1), ("hemisphere_flips", 1), ("sensor_offset", 1)}
 pytestmark = [
     pytest.mark.skipif(shutil.which("trackcal-simulate") is None or shutil.which("trackcal-fit") is None,
                        reason="command-line tools not installed (run scripts/build.sh)"),
 ]
 
 
-def _selected(hidden: str) -> bool:
-    return _SELECTED == "full" or hidden in [x.strip() for x in _SELECTED.split(",")]
+def _selected(hidden: str, seed: int) -> bool:
+    if _SELECTED == "ci":
+        return (hidden, seed) in CI_LOOPS
+    if _SELECTED in ("full", "none"):
+        return _SELECTED == "full"
+    items = [x.strip() for x in _SELECTED.split(",")]
+    return hidden in items or f"{hidden}:{seed}" in items
 
 
 # ----------------------------------------------------------------------------------------------
@@ -274,11 +289,15 @@ def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
         return [] if any(line.startswith("loss:") for line in text.splitlines()) else \
             ["no robust loss in the final model"]
     if hidden == "clock_offset":
-        # trackcal-fit fit --json: "time_offset_s" (the pairing's estimate) and, when the pairing
-        # reports one, its standard deviation "time_offset_stddev_s".
+        # trackcal-fit fit --json: "time_offset_s" (the offset the streams were paired at, which is
+        # the joint fit's estimate when the model frees it) and the joint fit's parameter block
+        # time_offset.value with its standard deviation (fit/fit_engine.cc).
         if final.fit.get("time_offset_s") is None:
             return ["no estimated time offset in the final fit"]
         sd = final.fit.get("time_offset_stddev_s")
+        joint = _blocks(final.fit).get("time_offset", {}).get("value")
+        if sd is None and joint is not None and math.isfinite(joint[1][0]):
+            return _within([joint[0][0]], [joint[1][0]], [eff["reference_minus_tracker_s"]], "time_offset")
         if sd is None:
             return [f"time offset {final.fit['time_offset_s']:.6f} s (truth "
                     f"{eff['reference_minus_tracker_s']} s) has no standard deviation to test it against"]
@@ -404,29 +423,38 @@ def _floor_and_final(hidden: str, capture: Path, data: Path, final: "demo.Step",
 # cannot place (a second plane 0.51 +- 0.42 m away with its normal +- 186 deg; a dipole at
 # (0.4, -1.5, -3.6) +- (2.6, 3.1, 3.8) m), which the rule counts as spurious.
 _XFAIL = {
-    "ferromagnetic_object": "seed 1: the hidden toolbox ends up as a plane of attenuation -0.004 whose "
+    "ferromagnetic_object": "measured before the physical claim conditions (not re-run), seed 1: the hidden toolbox ends up as a plane of attenuation -0.004 whose "
                             "image is at the toolbox and the floor plane as a vague dipole (see comment); "
                             "final 0.068 mm vs floor 0.063 mm",
-    "receiver_gains": "seed 1: 13.70 mm -> +receiver_gain 0.733 -> +dipole (frame) 0.176 -> +plane (floor) "
+    "receiver_gains": "measured before the physical claim conditions (not re-run), seed 1: 13.70 mm -> +receiver_gain 0.733 -> +dipole (frame) 0.176 -> +plane (floor) "
                       "0.0774 -> +plane (0.51 +- 0.42 m, normal +- 186 deg: spurious) 0.0731 mm, floor "
                       "0.0632; the ranking keeps adding terms it cannot place; and G's diagonal is 7-9 sigma "
                       "low (1.0147 +- 0.0006 vs 1.02: its scale trades with the polynomial's linear terms)",
-    "sensor_offset": "seed 1: 25.76 mm -> +sensor_offset 0.853 -> +dipole (frame) 0.196 -> +plane (floor, "
-                     "12.9 deg tilted) 0.0847 -> +dipole at (0.4, -1.5, -3.6) +- (2.6, 3.1, 3.8) m "
-                     "(spurious) 0.0847 mm, floor 0.0633; the rotation (0.0400, -0.0301, 0.0200) rad, truth "
-                     "(0.0400, -0.0300, 0.0200), has no standard deviation in trackcal-fit --json",
+    "sensor_offset": "seed 1, with the physical claim conditions: 25.76 mm -> +sensor_offset (12.21, -8.17, "
+                     "20.38) mm, within 3 sigma, 0.852 -> +dipole (frame, (0.441, -0.005, 0.420) m) 0.196 -> "
+                     "+plane (floor: 0.75 m along (-0.08, -0.21, 0.98), attenuation 0.22; ranked over the "
+                     "dipole at its mirror image) 0.085 -> +plane_2 (1.65 m along (0.47, 0.85, 0.23), "
+                     "attenuation -0.30: the two CRT monitors taken as one permeable plane, spurious) 0.072 mm, "
+                     "floor 0.0633 (1.14x); the loop then ends by itself (363 s)",
+    "hemisphere_flips": "seed 1: nothing is claimed at step 0 (base 18.50 mm, the flipped stations ~1 m off "
+                        "dominate it): dipole (frame) and plane lower the held-out error 46-48 % but the paired "
+                        "test gives p 0.012 / 0.095 against 0.0017, and the robust loss (10 outliers) is "
+                        "screened out by BIC (-85 against -216 / -189: its mean-shift BIC counts 6 parameters "
+                        "per outlier; cross-validated anyway it lowers the other stations' error 1.1 %); "
+                        "final 2.13 mm, 33x the floor",
 }
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-@pytest.mark.parametrize("hidden", [pytest.param(h, marks=pytest.mark.xfail(reason=_XFAIL[h], strict=False))
+@pytest.mark.parametrize("hidden", [pytest.param(h, marks=pytest.mark.xfail(reason=_XFAIL[h], strict=False,
+                                                                            raises=AssertionError))
                                     if h in _XFAIL else h for h in HIDDEN_EFFECTS])
 def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path):
     if not demo.diagnosis_available():
         pytest.skip("no candidate ranking in this build (trackcal-fit diagnose)")
-    if not _selected(hidden):
-        pytest.skip("a loop takes 25-30 min on the shared development machine; "
-                    "set TRACKCAL_WORKFLOW_TESTS=full (or a list of effects) to run it")
+    if not _selected(hidden, seed):
+        pytest.skip("not in this run's loops (TRACKCAL_WORKFLOW_TESTS: unset/ci runs CI_LOOPS, "
+                    "full runs all 18, or a list of effects or effect:seed items)")
     capture = _simulate(tmp_path / "capture", hidden, seed)
     data = _stream_only(capture, tmp_path / "streams") if hidden == "clock_offset" else capture
     work = tmp_path / "work"
