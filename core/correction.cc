@@ -26,6 +26,15 @@ void Correction::ApplyBatch(size_t n, const double* positions, const double* qua
   }
 }
 
+const char* CorrectionStatusName(CorrectionStatus status) {
+  switch (status) {
+    case CorrectionStatus::kConverged: return "converged";
+    case CorrectionStatus::kAmbiguous: return "ambiguous";
+    case CorrectionStatus::kNotConverged: return "not_converged";
+  }
+  return "unknown";
+}
+
 std::string ExtrapolationPolicyName(ExtrapolationPolicy policy) {
   switch (policy) {
     case ExtrapolationPolicy::kClamp:
@@ -99,6 +108,7 @@ CorrectedPose CorrectionChain::ApplyTerms(const Rigid3d& pose) const {
     const CorrectedPose step = term->Apply(out.pose);
     out.pose = step.pose;
     out.extrapolated = out.extrapolated || step.extrapolated;
+    out.status = std::max(out.status, step.status);
   }
   return out;
 }
@@ -116,6 +126,7 @@ CorrectedPose CorrectionChain::Apply(const Rigid3d& reported) const {
   const Eigen::Quaterniond q_e = (at_boundary.pose.rotation * q.conjugate()).normalized();
   CorrectedPose out;
   out.extrapolated = true;
+  out.status = at_boundary.status;
   out.pose.translation = p + weight * position_error;
   if (weight == 1.0) {
     out.pose.rotation = at_boundary.pose.rotation;

@@ -27,9 +27,22 @@
 
 namespace trackcal {
 
+// How a term that inverts a model (the physical correction, core/physical_correction.h) arrived at
+// its pose. Terms without an inverse always report kConverged. Ordered by severity: a chain reports
+// the worst status of its terms.
+enum class CorrectionStatus : uint8_t {
+  kConverged = 0,     // a unique true pose was found
+  kAmbiguous = 1,     // converged, but another true pose explains the same report (a fold of the
+                      // model near a strong object) or report noise is amplified beyond use
+  kNotConverged = 2,  // no true pose found: the pose is a bounded best guess (or the report itself)
+};
+// "converged", "ambiguous", "not_converged".
+const char* CorrectionStatusName(CorrectionStatus status);
+
 struct CorrectedPose {
   Rigid3d pose;               // corrected transmitter_from_receiver
   bool extrapolated = false;  // the reported position was outside the calibrated volume
+  CorrectionStatus status = CorrectionStatus::kConverged;  // of a model inverse (see above)
 };
 
 class Correction {

@@ -2,7 +2,9 @@
 
 #include <ceres/jet.h>
 
+#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 
@@ -15,6 +17,16 @@ void PhysicalCorrectionOptions::Check() const {
   }
   if (!(std::isfinite(tolerance_m) && tolerance_m > 0)) {
     throw std::invalid_argument("physical correction: tolerance_m must be positive and finite");
+  }
+  // Below 0.9 so that the bound keeps the corrected position away from the transmitter.
+  if (!(max_correction_fraction > 0 && max_correction_fraction <= 0.9)) {
+    throw std::invalid_argument("physical correction: max_correction_fraction must be in (0, 0.9]");
+  }
+  if (!(max_noise_gain >= 1 && std::isfinite(max_noise_gain))) {
+    throw std::invalid_argument("physical correction: max_noise_gain must be finite and >= 1");
+  }
+  if (!(fold_reach >= 0 && std::isfinite(fold_reach))) {
+    throw std::invalid_argument("physical correction: fold_reach must be finite and >= 0");
   }
 }
 
@@ -109,101 +121,221 @@ void PhysicalCorrection::Precompute() {
          (k * object.polarisability_m3) * DipoleCoupling<double>(object.location_in_transmitter)});
   }
   has_octupole_ = !field_.transmitter_octupole_m2.isZero(0.0);
+  object_radius_.clear();
+  for (const InducedDipole& object : field_.objects) {
+    // A sphere of radius a has polarisability a^3 (ferromagnetic) or -a^3 / 2 (conducting).
+    const double alpha = object.polarisability_m3;
+    object_radius_.push_back(std::cbrt(alpha >= 0.0 ? alpha : -2.0 * alpha));
+  }
 }
 
-bool PhysicalCorrection::InvertReport(const Rigid3d& reported, Rigid3d* transmitter_from_receiver,
-                                      int* iterations) const {
-  *transmitter_from_receiver = reported;
-  if (iterations != nullptr) *iterations = 0;
-  if (!reported.translation.allFinite() || !reported.rotation.coeffs().allFinite()) return false;
-  // The report's free-space signal and its Jacobian: the tracker's normal equations at y.
-  const Eigen::Matrix3d rotation_y = reported.rotation.normalized().toRotationMatrix();
-  const Jet6 k(field_.field_constant);
+struct PhysicalCorrection::ReportFrame {
   Vector9 s_free;
-  Matrix96 j_free;
-  Unpack(PerturbedRotationTranspose(rotation_y) *
-             (k * DipoleCoupling<Jet6>(PerturbedPosition(reported.translation))),
-         &s_free, &j_free);
-  const Eigen::Matrix<double, 6, 9> j_free_t = j_free.transpose();
+  Eigen::Matrix<double, 6, 9> j_free_t;
+  Matrix6 a_inverse;            // (J_y^T J_y)^-1: maps g to the report-pose error it stands for
+  Eigen::Vector3d p_y;          // reported position
+  double range = 1.0;           // |p_y| [m]
+  double max_correction = 0.5;  // bound on |p - p_y| [m]
+};
 
-  Eigen::Vector3d p = reported.translation;
-  Eigen::Matrix3d rotation = rotation_y;
+void PhysicalCorrection::NormalEquations(const ReportFrame& frame, const Eigen::Vector3d& p,
+                                         const Eigen::Matrix3d& rotation, Vector6* g,
+                                         Matrix6* h) const {
+  // B(p) and dB/dp by a 3-slot Jet; the rotation's derivative is analytic:
+  // d/dw_i [G Exp(-w) R^T B] = -G [e_i]x R^T B.
+  const double k = field_.field_constant;
+  Vector3<Jet3> pj;
+  for (int i = 0; i < 3; ++i) pj(i) = Jet3(p(i), i);
+  Matrix3<Jet3> b =
+      has_octupole_
+          ? TransmitterField<Jet3>(Jet3(k), field_.transmitter_octupole_m2.cast<Jet3>(), pj)
+          : Matrix3<Jet3>(Jet3(k) * DipoleCoupling<Jet3>(pj));
+  for (const Source& source : sources_) {
+    const Matrix3<Jet3> d = DipoleCoupling<Jet3>(pj - source.center.cast<Jet3>());
+    for (int c = 0; c < 3; ++c) {
+      for (int r = 0; r < 3; ++r) {
+        b(r, c) += d(r, 0) * source.moment(0, c) + d(r, 1) * source.moment(1, c) +
+                   d(r, 2) * source.moment(2, c);
+      }
+    }
+  }
+  const Eigen::Matrix3d gain_rt = receiver_gain_matrix_ * rotation.transpose();
+  Eigen::Matrix3d b_value;
+  Eigen::Matrix3d db[3];
+  for (int c = 0; c < 3; ++c) {
+    for (int r = 0; r < 3; ++r) {
+      b_value(r, c) = b(r, c).a;
+      for (int i = 0; i < 3; ++i) db[i](r, c) = b(r, c).v(i);
+    }
+  }
+  const Eigen::Matrix3d rt_b = rotation.transpose() * b_value;
+  const Eigen::Matrix3d s_value = receiver_gain_matrix_ * rt_b;
+  Eigen::Matrix3d ds[6];
+  for (int i = 0; i < 3; ++i) {
+    ds[i] = gain_rt * db[i];
+    Eigen::Matrix3d e_cross = Eigen::Matrix3d::Zero();  // [e_i]x
+    e_cross((i + 2) % 3, (i + 1) % 3) = 1.0;
+    e_cross((i + 1) % 3, (i + 2) % 3) = -1.0;
+    ds[3 + i] = -receiver_gain_matrix_ * (e_cross * rt_b);
+  }
   Vector9 s;
   Matrix96 j_s;
+  for (int c = 0; c < 3; ++c) {
+    for (int r = 0; r < 3; ++r) {
+      s(3 * c + r) = s_value(r, c);
+      for (int i = 0; i < 6; ++i) j_s(3 * c + r, i) = ds[i](r, c);
+    }
+  }
+  *g = frame.j_free_t * (s - frame.s_free);
+  *h = frame.j_free_t * j_s;
+}
+
+bool PhysicalCorrection::InDomain(const ReportFrame& frame, const Eigen::Vector3d& p) const {
+  if (!p.allFinite() || (p - frame.p_y).norm() > frame.max_correction) return false;
+  for (size_t i = 0; i < field_.objects.size(); ++i) {
+    if ((p - field_.objects[i].location_in_transmitter).norm() < object_radius_[i]) return false;
+  }
+  for (const ConductingPlane& plane : field_.planes) {
+    // The receiver is on the transmitter's side: (p - q).n has the sign of (0 - q).n.
+    const Eigen::Vector3d n = plane.normal_in_transmitter;
+    if ((p - plane.point_in_transmitter).dot(n) * plane.point_in_transmitter.dot(n) >= 0.0) {
+      return false;
+    }
+  }
+  return true;
+}
+
+PhysicalCorrection::Run PhysicalCorrection::Newton(const ReportFrame& frame,
+                                                   const Eigen::Vector3d& p_start,
+                                                   const Eigen::Matrix3d& rotation_start) const {
+  Run run{p_start, rotation_start, Matrix6::Zero(), 0, false};
+  if (!InDomain(frame, run.p)) return run;
+  Vector6 g;
+  NormalEquations(frame, run.p, run.rotation, &g, &run.h);
+  // A run that does not converge returns its last iterate (in the domain, hence bounded). Returning
+  // the iterate of least merit |D A^-1 g| instead was tried: it changes the fit's cost landscape
+  // near strong objects, and the noise-free dipole search of fit/terms_physical_test then ends in
+  // another basin.
+  const auto give_up = [&] { return run; };
   for (int it = 0; it < options_.max_iterations; ++it) {
-    if (iterations != nullptr) *iterations = it + 1;
-    // B(p) and dB/dp by a 3-slot Jet; the rotation's derivative is analytic:
-    // d/dw_i [G Exp(-w) R^T B] = -G [e_i]x R^T B.
-    Vector3<Jet3> pj;
-    for (int i = 0; i < 3; ++i) pj(i) = Jet3(p(i), i);
-    Matrix3<Jet3> b =
-        has_octupole_
-            ? TransmitterField<Jet3>(Jet3(k.a), field_.transmitter_octupole_m2.cast<Jet3>(), pj)
-            : Matrix3<Jet3>(Jet3(k.a) * DipoleCoupling<Jet3>(pj));
-    for (const Source& source : sources_) {
-      const Matrix3<Jet3> d = DipoleCoupling<Jet3>(pj - source.center.cast<Jet3>());
-      for (int c = 0; c < 3; ++c) {
-        for (int r = 0; r < 3; ++r) {
-          b(r, c) += d(r, 0) * source.moment(0, c) + d(r, 1) * source.moment(1, c) +
-                     d(r, 2) * source.moment(2, c);
-        }
-      }
+    run.iterations = it + 1;
+    Vector6 step = -run.h.partialPivLu().solve(g);
+    if (!step.allFinite()) return give_up();
+    // Trust region: a step longer than a quarter of the range or 1 rad leaves the region where the
+    // linearisation means anything, and is shortened (never the case for the paper room's
+    // centimetre corrections).
+    const double shrink = std::min({1.0, 0.25 * frame.range / step.head<3>().norm(),
+                                    1.0 / step.tail<3>().norm()});
+    step *= shrink;
+    // Damping: halved until the iterate is in the model's domain (at most 2^-10: a step that must
+    // shrink a thousandfold to stay in the domain means no root in it nearby). Full Newton steps
+    // are kept otherwise: a line search on the merit changes the root Newton reaches near strong
+    // objects (measured: the fit then loses the noise-free optimum of fit/terms_physical_test).
+    double alpha = 1.0;
+    Eigen::Vector3d p_new;
+    Eigen::Matrix3d rotation_new;
+    for (int halving = 0;; ++halving) {
+      p_new = run.p + alpha * step.head<3>();
+      rotation_new = run.rotation * ExpMap(alpha * step.tail<3>());
+      if (InDomain(frame, p_new)) break;
+      if (halving == 10) return give_up();
+      alpha *= 0.5;
     }
-    const Eigen::Matrix3d gain_rt = receiver_gain_matrix_ * rotation.transpose();
-    Eigen::Matrix3d b_value;
-    Eigen::Matrix3d db[3];
-    for (int c = 0; c < 3; ++c) {
-      for (int r = 0; r < 3; ++r) {
-        b_value(r, c) = b(r, c).a;
-        for (int i = 0; i < 3; ++i) db[i](r, c) = b(r, c).v(i);
-      }
-    }
-    const Eigen::Matrix3d rt_b = rotation.transpose() * b_value;
-    const Eigen::Matrix3d s_value = receiver_gain_matrix_ * rt_b;
-    Eigen::Matrix3d ds[6];
-    for (int i = 0; i < 3; ++i) {
-      ds[i] = gain_rt * db[i];
-      Eigen::Matrix3d e_cross = Eigen::Matrix3d::Zero();  // [e_i]x
-      e_cross((i + 2) % 3, (i + 1) % 3) = 1.0;
-      e_cross((i + 1) % 3, (i + 2) % 3) = -1.0;
-      ds[3 + i] = -receiver_gain_matrix_ * (e_cross * rt_b);
-    }
-    for (int c = 0; c < 3; ++c) {
-      for (int r = 0; r < 3; ++r) {
-        s(3 * c + r) = s_value(r, c);
-        for (int i = 0; i < 6; ++i) j_s(3 * c + r, i) = ds[i](r, c);
-      }
-    }
-    const Vector6 g = j_free_t * (s - s_free);
-    const Matrix6 h = j_free_t * j_s;
-    const Vector6 step = -h.partialPivLu().solve(g);
-    if (!step.allFinite()) return false;
-    p += step.head<3>();
-    rotation = rotation * ExpMap(step.tail<3>());
+    run.p = p_new;
+    run.rotation = rotation_new;
     // Newton converges quadratically: after a step of size s the remaining error is about
     // s^2 / L, with L the length over which the distortion's Jacobian changes (metres: the
     // distance to the sources). Stopping when s^2 / (1 m) < tolerance saves the confirming step;
     // the tests check the result against the truth to 1e-9.
-    const double step_size = std::max(step.head<3>().norm(), step.tail<3>().norm());
-    if (step_size * step_size < options_.tolerance_m) {
-      Eigen::Quaterniond q(rotation);
-      q.normalize();
-      *transmitter_from_receiver = Rigid3d(q, p);
-      return true;
+    const double size = alpha * std::max(step.head<3>().norm(), step.tail<3>().norm());
+    if (shrink == 1.0 && alpha == 1.0 && size * size < options_.tolerance_m) {
+      run.converged = true;
+      return run;
+    }
+    NormalEquations(frame, run.p, run.rotation, &g, &run.h);
+  }
+  return give_up();
+}
+
+PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported) const {
+  Inverse out;
+  out.transmitter_from_receiver = reported;
+  if (!reported.translation.allFinite() || !reported.rotation.coeffs().allFinite() ||
+      !(reported.translation.norm() > 0.0) || !(reported.rotation.norm() > 0.0)) {
+    return out;
+  }
+  // The report's free-space signal and its Jacobian: the tracker's normal equations at y.
+  const Eigen::Matrix3d rotation_y = reported.rotation.normalized().toRotationMatrix();
+  const Jet6 k(field_.field_constant);
+  ReportFrame frame;
+  Matrix96 j_free;
+  Unpack(PerturbedRotationTranspose(rotation_y) *
+             (k * DipoleCoupling<Jet6>(PerturbedPosition(reported.translation))),
+         &frame.s_free, &j_free);
+  frame.j_free_t = j_free.transpose();
+  frame.a_inverse = (frame.j_free_t * j_free).inverse();
+  frame.p_y = reported.translation;
+  frame.range = reported.translation.norm();
+  frame.max_correction = options_.max_correction_fraction * frame.range;
+
+  const Run run = Newton(frame, reported.translation, rotation_y);
+  out.iterations = run.iterations;
+  Eigen::Quaterniond q(run.rotation);
+  q.normalize();
+  out.transmitter_from_receiver = Rigid3d(q, run.p);
+  if (!run.converged) return out;
+
+  // dy/dx = A^-1 h (the report's response to the true pose), position scaled by the range.
+  Matrix6 m = frame.a_inverse * run.h;
+  m.topRightCorner<3, 3>() /= frame.range;
+  m.bottomLeftCorner<3, 3>() *= frame.range;
+  const Eigen::SelfAdjointEigenSolver<Matrix6> eig(m.transpose() * m, Eigen::EigenvaluesOnly);
+  out.noise_gain = 1.0 / std::sqrt(std::max(eig.eigenvalues()(0), 0.0));
+  out.status = CorrectionStatus::kConverged;
+  if (!(m.determinant() > 0.0) || !(out.noise_gain <= options_.max_noise_gain)) {
+    out.status = CorrectionStatus::kAmbiguous;
+    return out;
+  }
+  // A second root near an object whose fold zone is within reach (see the header).
+  const double r4 = std::pow(run.p.norm(), 4);
+  for (size_t i = 0; i < field_.objects.size(); ++i) {
+    const InducedDipole& object = field_.objects[i];
+    const Eigen::Vector3d& l = object.location_in_transmitter;
+    const double rho =
+        std::pow(2.0 * std::abs(object.polarisability_m3) * r4 / std::pow(l.norm(), 3), 0.25);
+    const Eigen::Vector3d away = run.p - l;
+    const double distance = away.norm();
+    if (!(distance < options_.fold_reach * rho) || !(rho > object_radius_[i])) continue;
+    // Starts in the fold zone between the object's surface a and rho, on the root's side: the
+    // folded sheet's root of a report lies there (near the surface for the strongest folds).
+    for (const double f : {0.05, 0.3}) {
+      const double from_centre = object_radius_[i] + f * (rho - object_radius_[i]);
+      const Eigen::Vector3d start = l + (from_centre / distance) * away;
+      const Run other = Newton(frame, start, run.rotation);
+      // 1 mm: far above the roots' rounding, far below any two distinct true poses.
+      if (other.converged && (other.p - run.p).norm() > 1e-3) {
+        out.status = CorrectionStatus::kAmbiguous;
+        return out;
+      }
     }
   }
-  Eigen::Quaterniond q(rotation);
-  q.normalize();
-  if (p.allFinite() && q.coeffs().allFinite()) *transmitter_from_receiver = Rigid3d(q, p);
-  return false;
+  return out;
+}
+
+bool PhysicalCorrection::InvertReport(const Rigid3d& reported, Rigid3d* transmitter_from_receiver,
+                                      int* iterations) const {
+  const Inverse inverse = Invert(reported);
+  *transmitter_from_receiver = inverse.transmitter_from_receiver;
+  if (iterations != nullptr) *iterations = inverse.iterations;
+  return inverse.status != CorrectionStatus::kNotConverged;
 }
 
 CorrectedPose PhysicalCorrection::Apply(const Rigid3d& reported) const {
+  const Inverse inverse = Invert(reported);
   CorrectedPose out;
-  Rigid3d transmitter_from_receiver;
-  out.extrapolated = !InvertReport(reported, &transmitter_from_receiver);
-  out.pose = receiver_from_body_ ? transmitter_from_receiver * *receiver_from_body_
-                                 : transmitter_from_receiver;
+  out.status = inverse.status;
+  out.pose = receiver_from_body_ ? inverse.transmitter_from_receiver * *receiver_from_body_
+                                 : inverse.transmitter_from_receiver;
   return out;
 }
 
@@ -239,6 +371,9 @@ nlohmann::json PhysicalCorrection::ToJson() const {
   }
   j["max_iterations"] = options_.max_iterations;
   j["tolerance_m"] = options_.tolerance_m;
+  j["max_correction_fraction"] = options_.max_correction_fraction;
+  j["max_noise_gain"] = options_.max_noise_gain;
+  j["fold_reach"] = options_.fold_reach;
   return j;
 }
 
@@ -324,6 +459,12 @@ std::unique_ptr<Correction> PhysicalCorrection::FromJson(const JsonObjectReader&
   PhysicalCorrectionOptions options;
   if (reader.Has("max_iterations")) options.max_iterations = reader.Integer("max_iterations");
   if (reader.Has("tolerance_m")) options.tolerance_m = reader.PositiveNumber("tolerance_m");
+  // Optional (files written before the bounded inverse lack them: defaults).
+  if (reader.Has("max_correction_fraction")) {
+    options.max_correction_fraction = reader.PositiveNumber("max_correction_fraction");
+  }
+  if (reader.Has("max_noise_gain")) options.max_noise_gain = reader.PositiveNumber("max_noise_gain");
+  if (reader.Has("fold_reach")) options.fold_reach = reader.Number("fold_reach");
   try {
     options.Check();
     field.Check();

@@ -15,9 +15,28 @@
 //
 // Equivalent to trackcal::InvertReportedPose (the fixed-point inverse of "report = solver(S(x))")
 // but without re-running the free-space solver per iteration; the test checks both agree.
+//
+// Robustness (held-out stations, poses next to a strong object or far outside the calibrated
+// volume). Steps are capped (a trust region of a quarter of the range and 1 rad) and halved until
+// the iterate is in the model's domain; a run that does not converge returns its last iterate.
+// The model's domain: within
+// `max_correction_fraction` of the report's range from the reported position (a larger correction
+// means a distortion as large as the field itself, where the report carries no range information),
+// outside every object's sphere (radius |polarisability|^(1/3), x2^(1/3) for a conductor: a
+// receiver cannot sit inside the object) and on the transmitter's side of every plane. The result is
+// therefore finite and bounded for every finite report, with a status:
+// - kNotConverged: no root within the domain in `max_iterations` (the best iterate is returned);
+// - kAmbiguous: a root, but the forward map folds there (det dy/dx <= 0), report noise is amplified
+//   more than `max_noise_gain` times, or a second root exists near an object: within about
+//   rho = (2 |alpha| r^4 / |l|^3)^(1/4) of an induced dipole at l the dipole's field gradient
+//   exceeds the transmitter's, so the map from true to reported pose folds and one report has
+//   several true poses (at 0.2 m from the paper's toolbox every true pose is on the folded sheet and
+//   Newton from the report finds another root 0.4-0.6 m from the object). For a root within
+//   `fold_reach` rho of such an object a second Newton run from the fold zone looks for another root.
 #pragma once
 
 #include <Eigen/Core>
+#include <cmath>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -35,6 +54,16 @@ struct PhysicalCorrectionOptions {
   int max_iterations = 8;  // Newton steps per pose (converges in 3-4 in a room like the paper's)
   // Stop when the remaining error, estimated as (Newton step)^2 / 1 m, is below this [m, rad].
   double tolerance_m = 1e-12;
+  // The corrected position stays within this fraction of the report's range |p_y| from the reported
+  // position. 0.5: the signal falls as r^-3, so a range off by half means a distortion at least as
+  // large as the field itself (the report then says nothing about the range).
+  double max_correction_fraction = 0.5;
+  // A root whose report-noise amplification (1 / smallest singular value of dy/dx, position scaled
+  // by the range; 1 in free space, <= 1.3 in the paper room) exceeds this is called ambiguous.
+  double max_noise_gain = 10.0;
+  // Roots within this many fold radii rho of an object are checked for a second root (see above;
+  // the other root of a folded report lay within 2.2 rho of the paper's toolbox).
+  double fold_reach = 3.0;
   // Throws std::invalid_argument naming the field.
   void Check() const;
 };
@@ -52,19 +81,28 @@ class PhysicalCorrection : public Correction {
 
   std::string TypeName() const override { return kTypeName; }
 
-  // The corrected pose; `extrapolated` is set when the Newton iteration did not converge (the
-  // pose is then the best iterate, or the report itself if an iterate became non-finite).
+  // The corrected pose with the inverse's status (the pose is the bounded best guess when not
+  // converged, the report itself when the report is not finite).
   CorrectedPose Apply(const Rigid3d& reported) const override;
 
-  // The true receiver-coil pose behind a report (no sensor offset). Returns false if the
-  // iteration did not converge. `iterations` (may be null) receives the Newton steps taken.
+  // The true receiver-coil pose behind a report (no sensor offset).
+  struct Inverse {
+    Rigid3d transmitter_from_receiver;  // finite and bounded for a finite report
+    CorrectionStatus status = CorrectionStatus::kNotConverged;
+    int iterations = 0;        // Newton steps of the main run
+    double noise_gain = NAN;   // report-noise amplification at the root (1 in free space)
+  };
+  Inverse Invert(const Rigid3d& reported) const;
+
+  // As Invert(); returns true unless the status is kNotConverged. `iterations` may be null.
   bool InvertReport(const Rigid3d& reported, Rigid3d* transmitter_from_receiver,
                     int* iterations = nullptr) const;
 
   // {"type": "physical", "field_constant", "transmitter_octupole_m2", "planes": [...],
   //  "objects": [...], "receiver_gain_matrix": [[...],[...],[...]] (row-major),
   //  "receiver_from_body": {"rotation_xyzw", "translation"} (optional), "max_iterations",
-  //  "tolerance_m"}.
+  //  "tolerance_m", "max_correction_fraction", "max_noise_gain", "fold_reach" (the last three
+  //  optional)}.
   nlohmann::json ToJson() const override;
   static std::unique_ptr<Correction> FromJson(const JsonObjectReader& reader);
   std::unique_ptr<Correction> Clone() const override;
@@ -81,10 +119,30 @@ class PhysicalCorrection : public Correction {
     Eigen::Vector3d center;
     Eigen::Matrix3d moment;
   };
+  // What a report fixes for the inverse: its free-space signal and Jacobian (the normal equations'
+  // constants), the merit's metric and the bound.
+  struct ReportFrame;
+  struct Run {
+    Eigen::Vector3d p;
+    Eigen::Matrix3d rotation;
+    Eigen::Matrix<double, 6, 6> h;  // dg/dx at the last evaluated iterate
+    int iterations = 0;
+    bool converged = false;
+  };
   void Precompute();
+  // Signal residual g = J_y^T (S(x) - S_free(y)) and h = dg/dx at (p, rotation).
+  void NormalEquations(const ReportFrame& frame, const Eigen::Vector3d& p,
+                       const Eigen::Matrix3d& rotation, Eigen::Matrix<double, 6, 1>* g,
+                       Eigen::Matrix<double, 6, 6>* h) const;
+  // True if p is in the model's domain for the report (bound, objects, planes).
+  bool InDomain(const ReportFrame& frame, const Eigen::Vector3d& p) const;
+  // Damped Newton from (p, rotation).
+  Run Newton(const ReportFrame& frame, const Eigen::Vector3d& p,
+             const Eigen::Matrix3d& rotation) const;
 
   FieldModel field_;
   std::vector<Source> sources_;  // planes then objects, equal to field_.Field() to rounding
+  std::vector<double> object_radius_;  // per object: the sphere a receiver cannot enter [m]
   bool has_octupole_ = false;
   Eigen::Matrix3d receiver_gain_matrix_;
   std::optional<Rigid3d> receiver_from_body_;

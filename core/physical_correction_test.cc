@@ -72,6 +72,15 @@ TEST(PhysicalCorrection, Nominal) {
     max_uncorrected = std::max(max_uncorrected, PositionErrorNorm(truth, reported));
     const CorrectedPose corrected = correction.Apply(reported);
     EXPECT_FALSE(corrected.extrapolated);
+    // Reports within reach of the toolbox's fold zone (3 rho, rho = (2 alpha r^4 / |l|^3)^(1/4) =
+    // 0.25 m here: 0.75 m) may have a second true pose in that zone, which the inverse's second run
+    // finds (measured: one at 0.46 m); that is the model's physics, not a failure. The pose found
+    // from the report is still the truth (checked below), and farther away the status is clean.
+    const double to_toolbox = (truth.translation - field.objects[2].location_in_transmitter).norm();
+    if (to_toolbox > 0.75) {
+      EXPECT_EQ(corrected.status, CorrectionStatus::kConverged) << i;
+    }
+    EXPECT_NE(corrected.status, CorrectionStatus::kNotConverged) << i;
     EXPECT_TRUE(testing::PosesNear(truth, corrected.pose, 1e-9, 1e-9))
         << i << " report of the corrected pose differs from the report by "
         << PositionErrorNorm(NoiseFreeReport(corrected.pose, field, SkewedGain()), reported);
@@ -181,7 +190,99 @@ TEST(PhysicalCorrection, NonFiniteReportIsFlagged) {
   const PhysicalCorrection correction(RoomField(), Eigen::Matrix3d::Identity());
   const Rigid3d bad(Eigen::Quaterniond::Identity(),
                     Eigen::Vector3d(std::numeric_limits<double>::quiet_NaN(), 0, -0.5));
-  EXPECT_TRUE(correction.Apply(bad).extrapolated);
+  EXPECT_EQ(correction.Apply(bad).status, CorrectionStatus::kNotConverged);
+}
+
+// The bounded inverse's promise for any finite report: a finite pose within the bound.
+void ExpectBounded(const PhysicalCorrection& correction, const Rigid3d& reported,
+                   const PhysicalCorrection::Inverse& inverse) {
+  const Rigid3d& x = inverse.transmitter_from_receiver;
+  ASSERT_TRUE(x.translation.allFinite() && x.rotation.coeffs().allFinite());
+  EXPECT_NEAR(x.rotation.norm(), 1.0, 1e-12);
+  // Bound of the options (0.5 of the range), plus rounding.
+  EXPECT_LE((x.translation - reported.translation).norm(),
+            correction.options().max_correction_fraction * reported.translation.norm() * (1 + 1e-12));
+}
+
+TEST(PhysicalCorrection, NextToAStrongObjectTheInverseIsAmbiguous) {
+  // True poses 0.2-0.25 m from the toolbox's centre (its sphere: 0.126 m): the field of the induced
+  // dipole changes faster there than the transmitter's, so the map from true to reported pose folds
+  // and each report has more than one true pose. The result must be finite, bounded and flagged.
+  const FieldModel field = RoomField();
+  const PhysicalCorrection correction(field, SkewedGain());
+  const Eigen::Vector3d toolbox = field.objects[2].location_in_transmitter;
+  int ambiguous = 0, total = 0;
+  for (const double distance : {0.2, 0.25}) {
+    int flagged = 0;
+    for (int i = 0; i < 20; ++i) {
+      const Rigid3d truth(testing::RandomRotation(TestRng()),
+                          toolbox - distance * Eigen::Vector3d(0.0, 1.0, 0.0));
+      const Rigid3d reported = NoiseFreeReport(truth, field, SkewedGain());
+      const PhysicalCorrection::Inverse inverse = correction.Invert(reported);
+      ExpectBounded(correction, reported, inverse);
+      ++total;
+      if (inverse.status == CorrectionStatus::kAmbiguous) ++ambiguous;
+      // Never a wrong pose called converged (near the fold Newton converges slowly: a best guess
+      // flagged kNotConverged after max_iterations is allowed).
+      if (inverse.status == CorrectionStatus::kConverged) {
+        EXPECT_TRUE(testing::PosesNear(truth, inverse.transmitter_from_receiver, 1e-9, 1e-9));
+      } else {
+        ++flagged;
+      }
+    }
+    // At 0.2 m every true pose is on the folded sheet (measured: the report's own root is another
+    // pose 0.4 m from the object), so every report must be flagged.
+    if (distance == 0.2) {
+      EXPECT_EQ(flagged, 20);
+    }
+  }
+  EXPECT_GT(ambiguous, total / 2);  // measured: 36 of 40
+}
+
+TEST(PhysicalCorrection, AdversarialReportsGiveBoundedResults) {
+  // Reports no true pose of the model explains, or only one far away: on the objects, inside a
+  // strong object's fold zone, far outside the volume, next to the transmitter, behind the floor.
+  const FieldModel field = RoomField();
+  const PhysicalCorrection correction(field, SkewedGain());
+  std::vector<Eigen::Vector3d> positions;
+  for (const InducedDipole& object : field.objects) {
+    positions.push_back(object.location_in_transmitter);
+    positions.push_back(object.location_in_transmitter + Eigen::Vector3d(0.0, -0.05, 0.0));
+  }
+  for (const double range : {3.0, 10.0, 1e3, 1e8}) {
+    positions.push_back(range * Eigen::Vector3d(0.3, 0.5, -0.8).normalized());
+  }
+  positions.push_back(Eigen::Vector3d(0.01, 0.0, -0.005));  // next to the transmitter
+  positions.push_back(Eigen::Vector3d(0.2, 0.1, 0.9));      // behind the floor
+  std::uniform_real_distribution<double> box(-3.0, 3.0);
+  for (int i = 0; i < 200; ++i) positions.emplace_back(box(TestRng()), box(TestRng()), box(TestRng()));
+  int not_converged = 0;
+  for (const Eigen::Vector3d& p : positions) {
+    const Rigid3d reported(testing::RandomRotation(TestRng()), p);
+    const PhysicalCorrection::Inverse inverse = correction.Invert(reported);
+    ExpectBounded(correction, reported, inverse);
+    if (inverse.status == CorrectionStatus::kNotConverged) ++not_converged;
+    const CorrectedPose applied = correction.Apply(reported);
+    EXPECT_EQ(applied.status, inverse.status);
+    EXPECT_TRUE(applied.pose.translation.allFinite());
+  }
+  // A report on an object: the model has no true pose there (the receiver would be inside it).
+  const Rigid3d on_object(Eigen::Quaterniond::Identity(), field.objects[0].location_in_transmitter);
+  EXPECT_EQ(correction.Invert(on_object).status, CorrectionStatus::kNotConverged);
+  // Behind the floor, the receiver would be under the floor: no true pose either.
+  const Rigid3d behind_floor(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.2, 0.1, 0.9));
+  EXPECT_EQ(correction.Invert(behind_floor).status, CorrectionStatus::kNotConverged);
+  EXPECT_GT(not_converged, 0);
+}
+
+TEST(PhysicalCorrection, AChainReportsTheWorstStatus) {
+  const FieldModel field = RoomField();
+  CorrectionChain chain;
+  chain.Append(std::make_unique<PhysicalCorrection>(field, SkewedGain()));
+  const Rigid3d on_object(Eigen::Quaterniond::Identity(), field.objects[0].location_in_transmitter);
+  EXPECT_EQ(chain.Apply(on_object).status, CorrectionStatus::kNotConverged);
+  const Rigid3d normal = NoiseFreeReport(RandomTruePose(), field, SkewedGain());
+  EXPECT_EQ(chain.Apply(normal).status, CorrectionStatus::kConverged);
 }
 
 }  // namespace

@@ -120,11 +120,18 @@ const Candidate& ExpectTop(const Diagnosis& d, const std::string& effect) {
   return top;
 }
 
-// Disabled: the dipole term's start search and joint fit (fit/terms_physical.cc) end in a basin
-// where the runtime inverse fails for many stations (chi2/dof 6487 against 4453 without the dipole;
-// started at the true toolbox the fit reaches 2.91), so the dipole candidate is correctly not
-// claimed, and no candidate is. Reproduce: trackcal-simulate --scene paper --hidden
-// ferromagnetic_object, then trackcal-fit diagnose with the room model of bench/bench_diagnose.sh.
+// Disabled: the searched dipole ends in a local minimum. Cause (measured with the bounded inverse of
+// core/physical_correction.h on this seed, room as fixed terms + searched dipole, constant noise):
+// six calibration stations 0.285-0.32 m from the toolbox sit next to its fold zone, where the
+// inverse amplifies report noise 30-45 times (station 350: 13.9 mm error under the TRUE model,
+// 95 % of the true model's chi2/n of 22). Whitened with the constant noise they dominate the cost,
+// which is then sharp and discontinuous in (location, polarisability): chi2/n 22 at the truth, 200
+// at +10 % polarisability. The fit from the search ends at (0.637, 0.916, -0.538) m, 0.00155 m^3,
+// chi2/dof 218. Leaving out the calibration stations within 0.45 m of the object (13 listed as
+// unresolved by FitResult::unresolved) gives (0.6002, 0.9504, -0.4996) +- (0.22, 0.21, 0.31) mm,
+// 0.002009 +- 0.0000033 m^3 (truth (0.6, 0.95, -0.5), 0.002), validation 0.117 mm against the
+// twin's 0.118. The general fix (not done): whiten each station by its inverse's noise gain, or
+// refit without the stations the fitted model calls unresolved.
 TEST(DiagnoseCandidatesPaper, DISABLED_FerromagneticObject) {
   const PaperRun r = Diagnose("ferromagnetic_object", 20010313);
   const Candidate& top = ExpectTop(r.diagnosis, "dipole");

@@ -217,6 +217,12 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
 
   result.chain = ModelToChain(spec->terms);
   result.chain.SetVolume(VolumeOf(stations));
+  // Stations whose physical inverse is not converged or ambiguous under the fitted model: their
+  // corrected pose is a bounded best guess or one of several, so their residual says little.
+  for (const auto& s : stations) {
+    const CorrectionStatus status = result.chain.Apply(s.reported).status;
+    if (status != CorrectionStatus::kConverged) result.unresolved.push_back({s.station, status});
+  }
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
@@ -1021,6 +1027,10 @@ nlohmann::json FitResult::ToJson() const {
   for (const auto& f : identifiability_flags) flags.push_back({{"coordinate", f.coordinate}, {"reason", f.reason}});
   nlohmann::json out_flags = nlohmann::json::array();
   for (const auto& o : outliers) out_flags.push_back({{"station", o.station}, {"whitened_rms", o.whitened_rms}});
+  nlohmann::json unresolved_json = nlohmann::json::array();
+  for (const auto& u : unresolved) {
+    unresolved_json.push_back({{"station", u.station}, {"status", CorrectionStatusName(u.status)}});
+  }
   return {{"converged", converged},
           {"solver_message", solver_message},
           {"iterations", iterations},
@@ -1038,6 +1048,7 @@ nlohmann::json FitResult::ToJson() const {
                                                                  : nlohmann::json(covariance_estimator)},
           {"identifiability_flags", flags},
           {"outliers", out_flags},
+          {"unresolved", unresolved_json},
           {"terms", terms},
           {"parameters", params}};
 }

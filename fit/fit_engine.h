@@ -38,6 +38,13 @@ struct StationFlag {
   double whitened_rms = 0.0;    // |r| / sqrt(6) of the whitened station residual
 };
 
+// A station whose corrected pose under the fitted model comes from a physical inverse that did not
+// converge or is ambiguous (core/physical_correction.h).
+struct UnresolvedStation {
+  int station = 0;
+  CorrectionStatus status = CorrectionStatus::kNotConverged;
+};
+
 struct ParameterReport {
   std::string term;       // term name
   std::string block;      // block name
@@ -78,6 +85,9 @@ struct FitResult {
   // or "sandwich (CR1)" (fit/covariance.h); empty when there are none.
   std::string covariance_estimator;
   std::vector<StationFlag> outliers;  // stations beyond the loss scale
+  // Calibration stations whose physical inverse is not converged or ambiguous under the fitted
+  // model (in --json: "unresolved": [{"station", "status"}]).
+  std::vector<UnresolvedStation> unresolved;
   CorrectionChain chain;              // the fitted correction, with the calibrated volume
   nlohmann::json terms = nlohmann::json::array();  // Describe() of every term
 

@@ -835,8 +835,9 @@ std::vector<SearchStation> LineariseStations(const PhysicalGroupTerm& term,
   out.reserve(inputs.size());
   for (const FitStation& s : inputs) {
     Rigid3d x;
-    model.InvertReport(s.reported, &x);
-    if (!x.translation.allFinite() || !x.rotation.coeffs().allFinite()) continue;
+    // A station without a converged inverse has no meaningful linearisation (its pose is a bounded
+    // best guess): left out of the search.
+    if (!model.InvertReport(s.reported, &x)) continue;
     const Rigid3d body = model.receiver_from_body() ? x * *model.receiver_from_body() : x;
     Vector6 r;
     Eigen::Matrix<double, 6, 7> d_r;

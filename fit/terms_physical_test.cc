@@ -402,6 +402,16 @@ terms:
                 truth.field.objects[0].location_in_transmitter(k), 1e-6);
   }
   EXPECT_NEAR(Find(result, "dipole", "polarisability_m3").values[0], 0.002, 1e-9);
+  // Stations near the toolbox have a second true pose in its fold zone (core/physical_correction.h):
+  // the fit names them, and only them (within 3 fold radii, 0.75 m, of the object).
+  EXPECT_FALSE(result.unresolved.empty());
+  for (const UnresolvedStation& u : result.unresolved) {
+    const FitStation& s = stations[static_cast<size_t>(u.station)];
+    ASSERT_EQ(s.station, u.station);
+    EXPECT_LT((s.reference.translation - truth.field.objects[0].location_in_transmitter).norm(), 0.75)
+        << u.station << " " << CorrectionStatusName(u.status);
+  }
+  EXPECT_EQ(result.ToJson()["unresolved"].size(), result.unresolved.size());
   // The fixed floor is reported with its values and no std.
   const auto& floor = Find(result, "floor", "attenuation");
   EXPECT_TRUE(floor.fixed);

@@ -235,7 +235,8 @@ std::string TrackcalServerApp::StatusLine() const {
                      std::to_string(stats.dropped_slow) + " dropped for not reading, " +
                      std::to_string(stats.reports_published) + " report(s) sent";
   for (const auto& t : trackers_) {
-    line += "; " + t->setup.name + ": " + std::to_string(t->device->extrapolated_poses()) + " extrapolated";
+    line += "; " + t->setup.name + ": " + std::to_string(t->device->extrapolated_poses()) +
+            " extrapolated, " + std::to_string(t->device->unresolved_poses()) + " unresolved";
   }
   return line;
 }

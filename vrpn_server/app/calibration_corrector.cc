@@ -12,7 +12,7 @@ class CalibrationCorrector : public PoseCorrector {
   Rigid3d Correct(const Rigid3d& reported) const override { return calibration_.Apply(reported).pose; }
   CorrectionResult CorrectWithFlag(const Rigid3d& reported) const override {
     const CorrectedPose c = calibration_.Apply(reported);
-    return {c.pose, c.extrapolated};
+    return {c.pose, c.extrapolated, c.status};
   }
   std::string Describe() const override { return description_; }
 

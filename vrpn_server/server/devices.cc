@@ -82,12 +82,14 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
   updates.clear();
   corrected.clear();
   std::uint64_t extrapolated = 0;
+  std::uint64_t unresolved = 0;
   for (const SensorReport& r : reports) {
     if (raw_tracker_)
       updates.push_back(PoseUpdate{*raw_tracker_, r.sensor, r.transmitter_from_receiver, r.time});
     if (corrector) {
       const CorrectionResult c = corrector->CorrectWithFlag(r.transmitter_from_receiver);
       extrapolated += c.extrapolated ? 1 : 0;
+      unresolved += c.status != CorrectionStatus::kConverged ? 1 : 0;
       corrected.push_back(c.pose);
     } else {
       corrected.push_back(r.transmitter_from_receiver);
@@ -101,7 +103,7 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
     if (raw_recorder_) raw_recorder_->Write(r.sensor, r.transmitter_from_receiver, r.time);
     if (corrected_recorder_) corrected_recorder_->Write(r.sensor, corrected[i], r.time);
   }
-  CountExtrapolated(extrapolated);
+  CountExtrapolated(extrapolated, unresolved);
 }
 
 void TrackerDevice::SetLog(std::function<void(const std::string&)> log) {
@@ -111,30 +113,45 @@ void TrackerDevice::SetLog(std::function<void(const std::string&)> log) {
 
 // Called with mutex_ held, after every batch (so a pending count goes out with the next report
 // after the interval, even when that report is not extrapolated).
-void TrackerDevice::CountExtrapolated(std::uint64_t n) {
+void TrackerDevice::CountExtrapolated(std::uint64_t n, std::uint64_t unresolved) {
   if (n > 0) {
     extrapolated_total_ += n;
     extrapolated_pending_ += n;
   }
-  if (extrapolated_pending_ == 0) return;
+  if (unresolved > 0) {
+    unresolved_total_ += unresolved;
+    unresolved_pending_ += unresolved;
+  }
+  if (extrapolated_pending_ == 0 && unresolved_pending_ == 0) return;
   const auto now = std::chrono::steady_clock::now();
   if (last_notice_ != std::chrono::steady_clock::time_point{} &&
       now - last_notice_ < kExtrapolationNoticeInterval) {
     return;
   }
-  const std::string text =
-      std::to_string(extrapolated_pending_) +
-      " corrected pose(s) extrapolated (outside the calibrated volume) " +
-      (last_notice_ == std::chrono::steady_clock::time_point{}
-           ? std::string("so far")
-           : "in the last " +
-                 std::to_string(
-                     std::chrono::duration_cast<std::chrono::milliseconds>(now - last_notice_)
-                         .count()) +
-                 " ms") +
-      "; " + std::to_string(extrapolated_total_.load()) + " in total";
+  const std::string period =
+      last_notice_ == std::chrono::steady_clock::time_point{}
+          ? std::string("so far")
+          : "in the last " +
+                std::to_string(
+                    std::chrono::duration_cast<std::chrono::milliseconds>(now - last_notice_)
+                        .count()) +
+                " ms";
+  std::string text;
+  if (extrapolated_pending_ > 0) {
+    text = std::to_string(extrapolated_pending_) +
+           " corrected pose(s) extrapolated (outside the calibrated volume) " + period + "; " +
+           std::to_string(extrapolated_total_.load()) + " in total";
+  }
+  if (unresolved_pending_ > 0) {
+    if (!text.empty()) text += "; ";
+    text += std::to_string(unresolved_pending_) +
+            " corrected pose(s) unresolved (the physical model's inverse did not converge or is "
+            "ambiguous) " +
+            period + "; " + std::to_string(unresolved_total_.load()) + " in total";
+  }
   last_notice_ = now;
   extrapolated_pending_ = 0;
+  unresolved_pending_ = 0;
   server_->PublishText(tracker_, TextSeverity::kWarning, text);
   if (log_) log_(text);
 }

@@ -25,6 +25,7 @@
 #include <thread>
 #include <vector>
 
+#include "core/correction.h"
 #include "core/pose.h"
 #include "vrpn_server/protocol/wire.h"
 #include "vrpn_server/server/server.h"
@@ -34,7 +35,10 @@ namespace trackcal::vrpn {
 // A corrected pose and whether the correction had to leave its calibrated domain.
 struct CorrectionResult {
   Rigid3d pose;
-  bool extrapolated = false;  // outside the calibrated volume (clamped/faded) or not converged
+  bool extrapolated = false;  // outside the calibrated volume (clamped/faded)
+  // A physical model's inverse: not converged (a bounded best guess) or ambiguous (another true
+  // pose gives the same report) make the pose "unresolved".
+  CorrectionStatus status = CorrectionStatus::kConverged;
 };
 
 // Maps a reported pose (transmitter_from_receiver) to the corrected pose. Apply may be called from
@@ -104,6 +108,9 @@ class TrackerDevice {
   // `kExtrapolationNoticeInterval`, logs and sends a text to the corrected name's clients with the
   // count since the last notice and the total.
   std::uint64_t extrapolated_poses() const { return extrapolated_total_.load(); }
+  // Likewise the corrected poses whose model inverse was not converged or ambiguous (counted and
+  // reported in the same notice).
+  std::uint64_t unresolved_poses() const { return unresolved_total_.load(); }
   static constexpr std::chrono::steady_clock::duration kExtrapolationNoticeInterval =
       std::chrono::seconds(1);
   int tracker() const { return tracker_; }
@@ -119,10 +126,13 @@ class TrackerDevice {
   std::unique_ptr<StreamRecorder> corrected_recorder_;
   std::function<void(const std::string&)> log_;
   std::atomic<std::uint64_t> extrapolated_total_{0};
-  // Guarded by mutex_: poses extrapolated since the last notice, and when that notice went out.
+  std::atomic<std::uint64_t> unresolved_total_{0};
+  // Guarded by mutex_: poses extrapolated / unresolved since the last notice, and when that notice
+  // went out.
   std::uint64_t extrapolated_pending_ = 0;
+  std::uint64_t unresolved_pending_ = 0;
   std::chrono::steady_clock::time_point last_notice_{};
-  void CountExtrapolated(std::uint64_t n);
+  void CountExtrapolated(std::uint64_t n, std::uint64_t unresolved = 0);
 };
 
 // Reports `pose` for every sensor at a fixed rate from its own thread (vrpn_Tracker_NULL reports

@@ -9,6 +9,7 @@
 #include <thread>
 
 #include "core/capture.h"
+#include "core/physical_correction.h"
 #include "tests/test_utils.h"
 #include "vrpn_server/client/tracker_client.h"
 
@@ -214,6 +215,51 @@ TEST(TrackerDevice, CountsExtrapolatedPosesAndTellsClientsAtMostOncePerSecond) {
   EXPECT_TRUE(raw_texts.empty());
   std::lock_guard<std::mutex> lock(log_mutex);
   EXPECT_EQ(log.size(), 2u);
+}
+
+// The physical model's inverse as the server applies it (CalibrationCorrector passes the status).
+class PhysicalCorrector : public PoseCorrector {
+ public:
+  PhysicalCorrector() : correction_(Field(), Eigen::Matrix3d::Identity()) {}
+  static FieldModel Field() {
+    FieldModel field;
+    field.objects.push_back({"toolbox", Eigen::Vector3d(0.6, 0.95, -0.5), 0.002});
+    return field;
+  }
+  Rigid3d Correct(const Rigid3d& reported) const override { return correction_.Apply(reported).pose; }
+  CorrectionResult CorrectWithFlag(const Rigid3d& reported) const override {
+    const CorrectedPose c = correction_.Apply(reported);
+    return {c.pose, c.extrapolated, c.status};
+  }
+  std::string Describe() const override { return "physical"; }
+
+ private:
+  PhysicalCorrection correction_;
+};
+
+TEST(TrackerDevice, CountsUnresolvedPosesOfAPhysicalInverse) {
+  Fixture f;
+  TrackerDevice device(f.server.get(), f.corrected, std::nullopt);
+  device.SetCorrector(std::make_shared<PhysicalCorrector>());
+  VrpnTrackerClient client(f.Name("Tracker0"));
+  std::vector<std::string> texts;
+  std::vector<TrackerReport> poses;
+  client.SetPoseCallback([&](const TrackerReport& r) { poses.push_back(r); });
+  client.SetMessageCallback([&](const ReceivedMessage& m) {
+    if (m.type == kTextType) texts.push_back(DecodeText(m.payload)->text);
+  });
+  ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
+  // Far from the object: converged. On the object: no true pose (a receiver cannot be inside it).
+  device.OnReport(0, Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(-0.5, -0.4, -0.6)),
+                  Timestamp{1, 0});
+  device.OnReport(0, Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.6, 0.95, -0.5)),
+                  Timestamp{1, 1});
+  ASSERT_TRUE(PollUntil({&client}, [&] { return poses.size() == 2 && !texts.empty(); }));
+  EXPECT_EQ(device.unresolved_poses(), 1u);
+  EXPECT_EQ(device.extrapolated_poses(), 0u);
+  EXPECT_NE(texts[0].find("1 corrected pose(s) unresolved"), std::string::npos) << texts[0];
+  // The unresolved pose is still served, finite.
+  for (const TrackerReport& r : poses) EXPECT_TRUE(r.transmitter_from_receiver.translation.allFinite());
 }
 
 TEST(NullTracker, ReportsEverySensorAtRate) {
