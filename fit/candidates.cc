@@ -1132,9 +1132,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       if (c.kind != CandidateKind::kTimeOffset)
         c.statement = Statement(*p.effect, c, options.robust_loss.scale);
       if (c.kind == CandidateKind::kTerm && !p.flexible && options.min_strength_sigma > 0) {
-        // The noise scale profiled out (as in the BIC): sqrt(chi2/dof) of this fit.
+        // The noise scale profiled out (as in the BIC): sqrt(chi2/dof) of this fit, for sigmas
+        // from the model covariance (the model file's noise). A sandwich covariance (the default,
+        // fit/covariance.h) already takes its scale from the residuals: scaling it again would
+        // shrink the sigmas by sqrt(chi2/dof) a second time.
         const int dof = n - c.num_free_parameters;
-        const double scale = dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / dof) : 1.0;
+        const bool empirical = fit.covariance_estimator.rfind("sandwich", 0) == 0;
+        const double scale =
+            !empirical && dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / dof) : 1.0;
         c.evidence = AssessPhysicalEvidence(p.term["type"].as<std::string>(), c.parameters,
                                             MeasuredPositions(own), options.min_strength_sigma,
                                             scale);
