@@ -14,58 +14,28 @@
 
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
+#include "fit/sim_test_support.h"
 #include "sim/scene.h"
 #include "sim/simulator.h"
 
 namespace trackcal::fit {
 namespace {
 
-std::string Vec3(const Eigen::Vector3d& v) {
-  std::ostringstream out;
-  out << std::setprecision(17) << "[" << v.x() << ", " << v.y() << ", " << v.z() << "]";
-  return out.str();
-}
-
-// The paper room as fixed physical terms (what a previous calibration of the room found; here the
-// truth), so the sensor offset is the only free effect and its estimate is unbiased.
-std::string RoomYaml(const FieldModel& room) {
-  std::ostringstream out;
-  out << std::setprecision(17);
-  for (const auto& p : room.planes) {
-    out << "  - type: plane\n    name: " << p.name << "\n    point_in_transmitter: "
-        << Vec3(p.point_in_transmitter) << "\n    normal_in_transmitter: "
-        << Vec3(p.normal_in_transmitter) << "\n    attenuation: " << p.attenuation
-        << "\n    parameters: {distance_m: {fixed: true}, normal_in_transmitter: {fixed: true}, "
-           "attenuation: {fixed: true}}\n";
-  }
-  for (const auto& o : room.objects) {
-    out << "  - type: dipole\n    name: " << o.name << "\n    location_in_transmitter: "
-        << Vec3(o.location_in_transmitter) << "\n    polarisability_m3: " << o.polarisability_m3
-        << "\n    parameters: {location_in_transmitter: {fixed: true}, polarisability_m3: {fixed: "
-           "true}}\n";
-  }
-  return out.str();
-}
-
-const ParameterReport& Find(const FitResult& result, const std::string& term,
-                            const std::string& block) {
-  for (const auto& p : result.parameters) {
-    if (p.term == term && p.block == block) return p;
-  }
-  throw std::runtime_error("no parameter " + term + "." + block);
-}
+using testing::FindParameter;
+using testing::FixedRoomTermsYaml;
+using testing::YamlVector3;
 
 // z-scores of the sensor offset's 6 coordinates (translation x, y, z; rotation vector x, y, z in
 // the tangent of the quaternion block) of one fit.
 std::vector<double> SensorOffsetZ(const FitResult& fit, const Rigid3d& truth) {
   std::vector<double> z;
-  const ParameterReport& t = Find(fit, "sensor_offset", "translation");
+  const ParameterReport& t = FindParameter(fit, "sensor_offset", "translation");
   for (int k = 0; k < 3; ++k) {
     z.push_back((t.values[static_cast<size_t>(k)] - truth.translation(k)) /
                 t.stddev[static_cast<size_t>(k)]);
   }
   // The tangent of EigenQuaternionManifold is a left (world) rotation vector.
-  const ParameterReport& r = Find(fit, "sensor_offset", "rotation");
+  const ParameterReport& r = FindParameter(fit, "sensor_offset", "rotation");
   const Eigen::AngleAxisd error(QuaternionFromXyzwArray(r.values.data()) *
                                 truth.rotation.conjugate());
   const Eigen::Vector3d w = error.angle() * error.axis();
@@ -91,7 +61,7 @@ TEST(StandardDeviationCoverage, Nominal_SandwichCoversTheSensorOffsetOverSeeds) 
   // The model file's default noise (constant 1 mm and 0.2 deg), as a user who does not know the
   // tracker's noise writes it.
   const std::string yaml =
-      "terms:\n" + RoomYaml(base.environment) + "  - type: sensor_offset\n";
+      "terms:\n" + FixedRoomTermsYaml(base.environment) + "  - type: sensor_offset\n";
   std::vector<std::vector<double>> z_model(6), z_sandwich(6);
   double chi2_per_dof_sum = 0;
   for (int seed = 1; seed <= kSeeds; ++seed) {
@@ -112,8 +82,8 @@ TEST(StandardDeviationCoverage, Nominal_SandwichCoversTheSensorOffsetOverSeeds) 
     EXPECT_EQ(with_model.covariance_estimator, "model");
     EXPECT_EQ(with_sandwich.covariance_estimator, "sandwich (CR2)");
     // Same estimates (the estimator changes only the covariance).
-    const auto& a = Find(with_model, "sensor_offset", "translation").values;
-    const auto& b = Find(with_sandwich, "sensor_offset", "translation").values;
+    const auto& a = FindParameter(with_model, "sensor_offset", "translation").values;
+    const auto& b = FindParameter(with_sandwich, "sensor_offset", "translation").values;
     for (size_t k = 0; k < 3; ++k) EXPECT_EQ(a[k], b[k]);
     const std::vector<double> zm = SensorOffsetZ(with_model, truth);
     const std::vector<double> zs = SensorOffsetZ(with_sandwich, truth);
