@@ -3,7 +3,6 @@
 #include <yaml-cpp/yaml.h>
 
 #include <Eigen/Eigenvalues>
-
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -466,7 +465,8 @@ std::optional<Wald> WaldOfBlock(const Eigen::VectorXd& v, const std::vector<doub
     }
     c = 0.5 * (c + c.transpose());
   } else {
-    for (Eigen::Index r = 0; r < k; ++r) c(r, r) = stddev[static_cast<size_t>(r)] * stddev[static_cast<size_t>(r)];
+    for (Eigen::Index r = 0; r < k; ++r)
+      c(r, r) = stddev[static_cast<size_t>(r)] * stddev[static_cast<size_t>(r)];
   }
   const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(c);
   const double largest = eig.eigenvalues().cwiseAbs().maxCoeff();
@@ -487,7 +487,8 @@ std::optional<Wald> WaldOfBlock(const Eigen::VectorXd& v, const std::vector<doub
 double LargestSigma(const std::vector<double>& stddev, const std::vector<double>& cov) {
   const Eigen::Index k = static_cast<Eigen::Index>(stddev.size());
   double s = 0.0;
-  for (double x : stddev) s = std::max(s, std::isfinite(x) ? x : std::numeric_limits<double>::infinity());
+  for (double x : stddev)
+    s = std::max(s, std::isfinite(x) ? x : std::numeric_limits<double>::infinity());
   if (k > 0 && static_cast<Eigen::Index>(cov.size()) == k * k && std::isfinite(s)) {
     Eigen::MatrixXd c(k, k);
     for (Eigen::Index r = 0; r < k; ++r) {
@@ -523,9 +524,9 @@ struct PreparedCandidate {
   std::vector<FitStation> stations;  // kTimeOffset: the re-paired stations (else empty: the base's)
   std::vector<int> base_index;       // per own station: the base station it is (-1: none)
   double time_offset_s = 0.0;
-  bool flexible = false;  // a flexible fallback, not an effect
+  bool flexible = false;                    // a flexible fallback, not an effect
   std::vector<double> cv_whitened_by_base;  // held-out whitened error per base station (NaN: none)
-  YAML::Node root;        // the candidate model file
+  YAML::Node root;                          // the candidate model file
   std::shared_ptr<ModelSpec>
       fitted;  // the fit on all stations (the fast cross-validation starts there)
 };
@@ -729,7 +730,8 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
     const ParameterReport* b = FindBlock(blocks, name);
     if (!b || b->fixed || b->values.size() != null.size()) return;
     Eigen::VectorXd v(static_cast<Eigen::Index>(null.size()));
-    for (size_t i = 0; i < null.size(); ++i) v(static_cast<Eigen::Index>(i)) = b->values[i] - null[i];
+    for (size_t i = 0; i < null.size(); ++i)
+      v(static_cast<Eigen::Index>(i)) = b->values[i] - null[i];
     strengths.push_back({b, what, v});
   };
   if (term_type == "dipole") {
@@ -778,7 +780,8 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
   } else {
     e.strength_p = std::min(1.0, best_p * static_cast<double>(strengths.size()));  // Bonferroni
     // Far in the tail p underflows: the deviate of a 1-dof statistic, sqrt(chi2), is then a floor.
-    e.strength_sigma = e.strength_p > 0 ? TwoSidedNormalDeviate(e.strength_p) : std::sqrt(e.strength_chi2);
+    e.strength_sigma =
+        e.strength_p > 0 ? TwoSidedNormalDeviate(e.strength_p) : std::sqrt(e.strength_chi2);
     e.strength_ok = e.strength_sigma >= min_strength_sigma;
   }
 
@@ -838,7 +841,8 @@ std::string PhysicalEvidence::Describe() const {
   } else {
     r << strength_what << ": strength not tested";
   }
-  if (noise_scale != 1.0) r << " (sigmas x " << FormatSignificant(noise_scale, 2) << ", sqrt(chi2/dof))";
+  if (noise_scale != 1.0)
+    r << " (sigmas x " << FormatSignificant(noise_scale, 2) << ", sqrt(chi2/dof))";
   if (has_location) {
     r << "; location +- " << FormatNumber(location_sigma_m, 3) << " m, "
       << FormatNumber(location_distance_m, 3) << " m from the measured volume";
@@ -857,12 +861,26 @@ nlohmann::json PhysicalEvidence::ToJson() const {
                         {"ok", strength_ok}}},
                       {"noise_scale", noise_scale},
                       {"supported", supported()}};
-  j["location"] = has_location ? nlohmann::json{{"sigma_m", NumberOrNull(location_sigma_m)},
-                                                {"distance_from_volume_m",
-                                                 NumberOrNull(location_distance_m)},
-                                                {"determined", location_ok}}
-                               : nlohmann::json();
+  j["location"] =
+      has_location ? nlohmann::json{{"sigma_m", NumberOrNull(location_sigma_m)},
+                                    {"distance_from_volume_m", NumberOrNull(location_distance_m)},
+                                    {"determined", location_ok}}
+                   : nlohmann::json();
   return j;
+}
+
+// The flexible fallback with the best held-out gain that the held-out test supports (p below the
+// threshold, drop at least min_drop_percent) although it is not significant (BIC); null if none.
+static const Candidate* FlexibleWithHeldOutGain(const Diagnosis& d,
+                                                const CandidateOptions& options) {
+  const Candidate* best = nullptr;
+  for (const auto& f : d.flexible) {
+    if (!f.cross_validated || !(f.p_value < d.p_threshold) ||
+        std::max(f.drop_position_percent, f.drop_orientation_percent) < options.min_drop_percent)
+      continue;
+    if (!best || f.cv_whitened_mean < best->cv_whitened_mean) best = &f;
+  }
+  return best;
 }
 
 Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std::string& model_text,
@@ -1140,9 +1158,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         const bool empirical = fit.covariance_estimator.rfind("sandwich", 0) == 0;
         const double scale =
             !empirical && dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / dof) : 1.0;
-        c.evidence = AssessPhysicalEvidence(p.term["type"].as<std::string>(), c.parameters,
-                                            MeasuredPositions(own), options.min_strength_sigma,
-                                            scale);
+        c.evidence =
+            AssessPhysicalEvidence(p.term["type"].as<std::string>(), c.parameters,
+                                   MeasuredPositions(own), options.min_strength_sigma, scale);
       }
       if (c.kind == CandidateKind::kTerm &&
           AddFittedStart(p.term["type"].as<std::string>(), c.parameters, &p.term)) {
@@ -1313,7 +1331,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       if (!ev.strength_ok) {
         why.push_back(std::isfinite(ev.strength_sigma)
                           ? "its strength (" + ev.strength_what + ") is " +
-                                FormatNumber(ev.strength_sigma, 1) + " sigma from its null value (needs " +
+                                FormatNumber(ev.strength_sigma, 1) +
+                                " sigma from its null value (needs " +
                                 FormatNumber(options.min_strength_sigma, 0) + ")"
                           : "its strength cannot be tested (" + ev.strength_what + ")");
       }
@@ -1368,9 +1387,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     for (auto& p : prepared) {
       if (!p.flexible && p.candidate.significant) sig.push_back(&p);
     }
-    std::stable_sort(sig.begin(), sig.end(), [](const PreparedCandidate* a, const PreparedCandidate* b) {
-      return a->candidate.cv_whitened_mean < b->candidate.cv_whitened_mean;
-    });
+    std::stable_sort(sig.begin(), sig.end(),
+                     [](const PreparedCandidate* a, const PreparedCandidate* b) {
+                       return a->candidate.cv_whitened_mean < b->candidate.cv_whitened_mean;
+                     });
     if (sig.size() >= 2 && sig.front()->candidate.evidence.has_location &&
         std::isfinite(sig.front()->candidate.evidence.strength_sigma)) {
       PreparedCandidate* best = sig.front();
@@ -1378,7 +1398,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       for (size_t i = 1; i < sig.size(); ++i) {
         PreparedCandidate* o = sig[i];
         const PhysicalEvidence& ev = o->candidate.evidence;
-        if (!ev.has_location || !(ev.strength_sigma > best->candidate.evidence.strength_sigma)) continue;
+        if (!ev.has_location || !(ev.strength_sigma > best->candidate.evidence.strength_sigma))
+          continue;
         std::vector<double> worse;  // other minus held-out best, per station
         for (size_t k = 0; k < stations.size(); ++k) {
           const double a = o->cv_whitened_by_base.size() > k ? o->cv_whitened_by_base[k] : NAN;
@@ -1409,8 +1430,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   auto key = [&promoted](const Candidate& c) {
     return std::make_tuple(
         c.significant ? 0 : 1, c.effect == promoted ? 0 : 1, c.evidence.supported() ? 0 : 1,
-        c.cross_validated ? 0 : 1,
-        c.fitted ? 0 : 1,
+        c.cross_validated ? 0 : 1, c.fitted ? 0 : 1,
         std::isfinite(c.cv_whitened_mean) ? c.cv_whitened_mean
                                           : std::numeric_limits<double>::infinity(),
         std::isfinite(c.delta_bic) ? c.delta_bic : std::numeric_limits<double>::infinity());
@@ -1466,14 +1486,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       // effect-free data (see "Significance" in docs/diagnose.md).
       if (!c.cross_validated || c.evidence.supported() || !(c.delta_bic < options.max_delta_bic) ||
           !(c.p_value < d.p_threshold) ||
-          std::max(c.drop_position_percent, c.drop_orientation_percent) < options.min_drop_percent) {
+          std::max(c.drop_position_percent, c.drop_orientation_percent) <
+              options.min_drop_percent) {
         continue;
       }
       v << "A " << c.effect << " term fits structure that is there (held-out position error falls "
         << FormatNumber(c.drop_position_percent, 1) << " %, delta BIC "
-        << FormatNumber(c.delta_bic, 1)
-        << "), but its fit does not identify the source (" << c.evidence.Describe()
-        << "), so it is not claimed. ";
+        << FormatNumber(c.delta_bic, 1) << "), but its fit does not identify the source ("
+        << c.evidence.Describe() << "), so it is not claimed. ";
     }
     const double chi2_dof = d.base.chi2_per_dof;
     const Candidate* flexible = nullptr;
@@ -1489,9 +1509,25 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         << ", but it is not one of the catalog's effects: look at which covariate the residual "
            "follows "
            "(trackcal diagnose), or keep the flexible term.";
-    } else if (std::isfinite(chi2_dof) && chi2_dof < 2.0) {
+    } else if (const Candidate* held_out = FlexibleWithHeldOutGain(d, options)) {
+      // Held-out data still prefer the flexible term, but BIC does not support its parameters:
+      // structure may remain that no catalog effect explains; say so rather than "nothing".
+      v << "A flexible " << held_out->effect << " term still lowers the held-out error by "
+        << FormatNumber(held_out->drop_position_percent, 1) << " % (position) and "
+        << FormatNumber(held_out->drop_orientation_percent, 1)
+        << " % (orientation), p = " << FormatSignificant(held_out->p_value, 2)
+        << ", but BIC does not support its "
+        << held_out->num_free_parameters - d.base.num_free_parameters
+        << " extra parameters (delta BIC " << FormatNumber(held_out->delta_bic, 1)
+        << "): some structure may remain that no catalog effect explains; look at which covariate "
+           "the residual follows (trackcal diagnose).";
+    } else if (std::isfinite(chi2_dof) && chi2_dof >= 0.5 && chi2_dof < 2.0) {
       v << "The model fits to within its noise model (chi2/dof " << FormatNumber(chi2_dof, 2)
         << "): nothing is missing that these data can show.";
+    } else if (std::isfinite(chi2_dof) && chi2_dof < 0.5) {
+      v << "No held-out test finds more structure. (chi2/dof " << FormatNumber(chi2_dof, 2)
+        << " is far below 1: the model file's noise is larger than the scatter the fit leaves, so "
+           "chi2 cannot tell whether anything is missing; give the tracker's noise in `noise:`.)";
     } else {
       v << "The model leaves "
         << (std::isfinite(chi2_dof) ? "chi2/dof " + FormatNumber(chi2_dof, 2) : "residuals")
