@@ -13,6 +13,7 @@
 #include <set>
 
 #include "fit/candidates.h"
+#include "fit/fit_run.h"
 #include "fit/model_file.h"
 #include "sim/scene.h"
 #include "sim/simulator.h"
@@ -27,11 +28,7 @@ std::vector<FitStation> PaperSmallStations(const std::string& hidden, uint64_t s
   scene.seed = seed;
   if (!hidden.empty()) scene.hidden.Enable(hidden);
   const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
-  std::vector<FitStation> stations;
-  for (const auto& r : capture.poses.records) {
-    if (r.set == "calib")
-      stations.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
-  }
+  std::vector<FitStation> stations = StationsOfSet(capture.poses, "calib");
   return stations;
 }
 

@@ -11,6 +11,7 @@
 #include <sstream>
 
 #include "fit/candidates.h"
+#include "fit/fit_run.h"
 #include "sim/scene.h"
 #include "sim/simulator.h"
 
@@ -66,11 +67,7 @@ PaperRun Diagnose(const std::string& hidden, uint64_t seed) {
   sim::Scene scene = twin;
   if (!hidden.empty()) scene.hidden.Enable(hidden);
   const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
-  std::vector<FitStation> stations;
-  for (const auto& r : capture.poses.records) {
-    if (r.set == "calib")
-      stations.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
-  }
+  std::vector<FitStation> stations = StationsOfSet(capture.poses, "calib");
   CandidateOptions options;
   // Test time: cross-validate the 2 best candidates by BIC (the rest are screened out, never
   // significant) and leave the flexible fallback to fit/candidates_test.
@@ -227,11 +224,7 @@ TEST(DiagnoseCandidatesPaperSmall, TheFloorIsClaimedAsAPlane) {
   scene.seed = 1;
   scene.hidden.Enable("sensor_offset");
   const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
-  std::vector<FitStation> stations;
-  for (const auto& r : capture.poses.records) {
-    if (r.set == "calib")
-      stations.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
-  }
+  std::vector<FitStation> stations = StationsOfSet(capture.poses, "calib");
   const std::string model = R"(terms:
   - type: sensor_offset
   - type: dipole

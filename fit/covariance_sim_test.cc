@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "fit/fit_engine.h"
+#include "fit/fit_run.h"
 #include "fit/model_file.h"
 #include "fit/sim_test_support.h"
 #include "sim/scene.h"
@@ -68,10 +69,7 @@ TEST(StandardDeviationCoverage, Nominal_SandwichCoversTheSensorOffsetOverSeeds) 
     sim::Scene scene = base;
     scene.seed = static_cast<uint64_t>(seed);
     const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
-    std::vector<FitStation> calib;
-    for (const PoseRecord& r : capture.poses.records) {
-      if (r.set == "calib") calib.push_back({r.reported, r.reference, r.time, r.sensor, r.station});
-    }
+    std::vector<FitStation> calib = StationsOfSet(capture.poses, "calib");
     // The estimator is chosen by the model file only: the same estimates, two covariances.
     ModelSpec model_spec =
         ParseModelYaml(yaml + "solver: {covariance_estimator: model}\n", "model.yaml");
