@@ -428,16 +428,7 @@ int RunRegister(int argc, char** argv) {
   }
   WritePoses(output, poses);
   if (args.Flag("--json")) {
-    nlohmann::json doc = {{"command", "register"},
-                          {"output", output.string()},
-                          {"num_poses", poses.records.size()},
-                          {"stations_without_pose", left_out.size()},
-                          {"stations_left_out", left_out},
-                          {"converged", registration.converged},
-                          {"identifiable", registration.identifiable},
-                          {"chi_square", registration.chi_square},
-                          {"nu", registration.nu},
-                          {"registration", registration.ToJson()}};
+    nlohmann::json doc = RegisterDocument(registration, output, poses.records.size(), left_out);
     if (refinement) doc["refinement"] = refinement->ToJson();
     std::cout << doc.dump(2) << "\n";
   } else {

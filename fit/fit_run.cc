@@ -51,7 +51,8 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
     const fs::path reference = *data.path / kReferenceStreamCsv;
     out.tracker_stream = std::make_shared<TrackerStream>(ReadTrackerStream(tracker));
     out.reference_stream = std::make_shared<ReferenceStream>(ReadReferenceStream(reference));
-    const StreamPairingResult paired = PairStreams(*out.tracker_stream, *out.reference_stream, pairing);
+    const StreamPairingResult paired =
+        PairStreams(*out.tracker_stream, *out.reference_stream, pairing);
     out.poses = paired.poses;
     out.time_offset = paired.time_offset;
     if (spec.time_offset && !spec.time_offset->fixed) {
@@ -180,6 +181,21 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
   cal.provenance.created_utc = CurrentUtcTimestamp();
   cal.provenance.inputs = inputs;
   return run;
+}
+
+nlohmann::json RegisterDocument(const RegistrationResult& registration,
+                                const std::optional<std::filesystem::path>& output,
+                                size_t num_poses, const std::vector<int>& stations_left_out) {
+  return {{"command", "register"},
+          {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
+          {"num_poses", num_poses},
+          {"stations_without_pose", stations_left_out.size()},
+          {"stations_left_out", stations_left_out},
+          {"converged", registration.converged},
+          {"identifiable", registration.identifiable},
+          {"chi_square", registration.chi_square},
+          {"nu", registration.nu},
+          {"registration", registration.ToJson()}};
 }
 
 }  // namespace trackcal::fit

@@ -29,6 +29,7 @@
 #include "core/error_statistics.h"
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
+#include "fit/registration.h"
 #include "fit/stream_pairing.h"
 
 namespace trackcal::fit {
@@ -52,11 +53,12 @@ struct FitData {
 // The stations of a FitData, resolved as described in the file comment.
 struct LoadedFitData {
   PoseCapture poses;
-  std::string name;    // short name for the description ("poses.csv", the folder, "in-memory capture")
-  std::string source;  // for messages: the path read, or `name`
-  std::vector<CalibrationInput> inputs;                 // files read, with SHA-256 (provenance)
+  // Short name for the description ("poses.csv", the folder, "in-memory capture").
+  std::string name;
+  std::string source;                                  // for messages: the path read, or `name`
+  std::vector<CalibrationInput> inputs;                // files read, with SHA-256 (provenance)
   std::vector<std::filesystem::path> protected_paths;  // never to be written over
-  std::optional<double> time_offset;                    // when streams were paired
+  std::optional<double> time_offset;                   // when streams were paired
   // Streams paired with a free time offset: kept for the joint fit (fit/terms_time_offset.h).
   std::shared_ptr<TrackerStream> tracker_stream;
   std::shared_ptr<ReferenceStream> reference_stream;
@@ -93,8 +95,8 @@ struct FitRunOptions {
 // One fit and what it produced.
 struct FitRunResult {
   FitResult result;
-  std::vector<Table1> tables;  // calib, then valid and/or cross-validation
-  Calibration calibration;     // chain, statistics, provenance (no command line)
+  std::vector<Table1> tables;         // calib, then valid and/or cross-validation
+  Calibration calibration;            // chain, statistics, provenance (no command line)
   std::optional<double> time_offset;  // the clock offset used (paired or fitted), with streams
   int num_calib = 0;
   int num_valid = 0;
@@ -109,5 +111,13 @@ struct FitRunResult {
 // std::invalid_argument for invalid options, no `calib` stations, or what FitModel rejects.
 FitRunResult RunFit(LoadedFitData data, const FitModelSource& model,
                     const FitRunOptions& options = {});
+
+// The `register` document of `trackcal-fit register --json` and of Python's
+// `trackcal.register(...).to_dict()`: the output file (null when none was written), the number of
+// poses extracted, the stations left without a pose, and the registration. The CLI adds
+// "refinement" when it refined the registration.
+nlohmann::json RegisterDocument(const RegistrationResult& registration,
+                                const std::optional<std::filesystem::path>& output,
+                                size_t num_poses, const std::vector<int>& stations_left_out);
 
 }  // namespace trackcal::fit

@@ -302,16 +302,7 @@ struct RegistrationRun {
   std::vector<fs::path> inputs;
   std::optional<fs::path> output;
   nlohmann::json ToJson() const {
-    return {{"command", "register"},
-            {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
-            {"num_poses", poses.records.size()},
-            {"stations_without_pose", left_out.size()},
-            {"stations_left_out", left_out},
-            {"converged", registration.converged},
-            {"identifiable", registration.identifiable},
-            {"chi_square", registration.chi_square},
-            {"nu", registration.nu},
-            {"registration", registration.ToJson()}};
+    return fit::RegisterDocument(registration, output, poses.records.size(), left_out);
   }
 };
 
