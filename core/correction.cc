@@ -113,26 +113,58 @@ CorrectedPose CorrectionChain::ApplyTerms(const Rigid3d& pose) const {
   return out;
 }
 
-CorrectedPose CorrectionChain::Apply(const Rigid3d& reported) const {
-  if (!volume_.has_value() || volume_->Contains(reported.translation)) return ApplyTerms(reported);
-  // Outside: evaluate the whole chain at the nearest point of the box, then transfer its correction.
-  const Eigen::Vector3d& p = reported.translation;
-  const Eigen::Quaterniond& q = reported.rotation;
+CorrectedPose CorrectionChain::ApplyGuardedRun(size_t begin, size_t end,
+                                               const Rigid3d& input) const {
+  CorrectedPose out{input, false};
+  const Eigen::Vector3d& p = input.translation;
+  const Eigen::Quaterniond& q = input.rotation;
   const Eigen::Vector3d p_boundary = volume_->Nearest(p);
+  const bool inside = volume_->Contains(p);
+  Rigid3d pose = inside ? input : Rigid3d(q, p_boundary);
+  for (size_t t = begin; t < end; ++t) {
+    const CorrectedPose step = terms_[t]->Apply(pose);
+    pose = step.pose;
+    out.extrapolated = out.extrapolated || step.extrapolated;
+    out.status = std::max(out.status, step.status);
+  }
+  if (inside) {
+    out.pose = pose;
+    return out;
+  }
+  // Transfer the boundary correction to the actual pose.
   const double weight = volume_->Weight((p - p_boundary).norm());
-  const CorrectedPose at_boundary = ApplyTerms(Rigid3d(q, p_boundary));
-  const Eigen::Vector3d position_error = at_boundary.pose.translation - p_boundary;
-  // q_e = q_out * conj(q); normalised so that a slightly non-unit report does not scale it.
-  const Eigen::Quaterniond q_e = (at_boundary.pose.rotation * q.conjugate()).normalized();
-  CorrectedPose out;
-  out.extrapolated = true;
-  out.status = at_boundary.status;
+  const Eigen::Vector3d position_error = pose.translation - p_boundary;
   out.pose.translation = p + weight * position_error;
   if (weight == 1.0) {
-    out.pose.rotation = at_boundary.pose.rotation;
+    out.pose.rotation = pose.rotation;
   } else {
+    // q_e = q_out * conj(q); normalised so that a slightly non-unit input does not scale it.
+    const Eigen::Quaterniond q_e = (pose.rotation * q.conjugate()).normalized();
     const Eigen::Vector3d v = weight * VectorPart(q_e);
     out.pose.rotation = QuaternionFromVectorPart<double>(v) * q;
+  }
+  return out;
+}
+
+CorrectedPose CorrectionChain::Apply(const Rigid3d& reported) const {
+  if (!volume_.has_value() || volume_->Contains(reported.translation)) return ApplyTerms(reported);
+  // Outside: unguarded (physical) terms at the actual pose, each run of guarded terms through the
+  // volume's guard at its own input.
+  CorrectedPose out{reported, true};
+  size_t t = 0;
+  while (t < terms_.size()) {
+    CorrectedPose step;
+    if (!terms_[t]->GuardedByVolume()) {
+      step = terms_[t]->Apply(out.pose);
+      ++t;
+    } else {
+      size_t end = t;
+      while (end < terms_.size() && terms_[end]->GuardedByVolume()) ++end;
+      step = ApplyGuardedRun(t, end, out.pose);
+      t = end;
+    }
+    out.pose = step.pose;
+    out.status = std::max(out.status, step.status);
   }
   return out;
 }

@@ -2,12 +2,15 @@
 // reported it) to a corrected pose. Concrete types: PolynomialCorrection (core/polynomial.h),
 // TrilinearLutCorrection (core/lut.h); fit/ adds physical-model terms through the registry below.
 //
-// A CorrectionChain applies its terms in order, each to the output of the previous one, and guards the
-// whole chain with the calibrated volume: an axis-aligned box in *reported* position outside which no
-// term is evaluated far from its data. Outside the box the chain is evaluated at the nearest point of
-// the box and the resulting correction (position offset and rotation q_e) is transferred to the actual
-// pose, either in full (`clamp`: the boundary value is held) or scaled down to identity over
-// `fade_distance` (`fade`). Such poses are flagged `extrapolated`.
+// A CorrectionChain applies its terms in order, each to the output of the previous one, and guards its
+// explicit terms (polynomial, LUT: fits that only interpolate their data) with the calibrated volume:
+// an axis-aligned box in *reported* position outside which no such term is evaluated far from its
+// data. For a report outside the box, each run of consecutive guarded terms is evaluated at the
+// nearest point of the box to its input and the resulting correction (position offset and rotation
+// q_e) is transferred to the actual pose, either in full (`clamp`: the boundary value is held) or
+// scaled down to identity over `fade_distance` (`fade`). Terms that are not guarded (a physical
+// model, whose field equations hold outside the data as well as inside) are applied at the actual
+// pose. Such poses are flagged `extrapolated`.
 #pragma once
 
 #include <Eigen/Core>
@@ -67,6 +70,10 @@ class Correction {
   virtual nlohmann::json ToJson() const = 0;
 
   virtual std::unique_ptr<Correction> Clone() const = 0;
+
+  // Whether a chain's calibrated volume guards this term (see above). True for terms that only
+  // interpolate their data; a physical model returns false and is applied at the actual pose.
+  virtual bool GuardedByVolume() const { return true; }
 };
 
 enum class ExtrapolationPolicy {
@@ -130,6 +137,9 @@ class CorrectionChain : public Correction {
 
  private:
   CorrectedPose ApplyTerms(const Rigid3d& pose) const;
+  // Terms [begin, end) (all guarded) applied to `input` outside the volume's guard: at the nearest
+  // point of the box when the input position lies outside it, the correction transferred.
+  CorrectedPose ApplyGuardedRun(size_t begin, size_t end, const Rigid3d& input) const;
 
   std::vector<std::unique_ptr<Correction>> terms_;
   std::optional<CalibratedVolume> volume_;

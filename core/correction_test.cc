@@ -271,6 +271,59 @@ TEST(CorrectionRegistry, ExtensibleByName) {
   }
 }
 
+// A term like a physical model: position-dependent, valid everywhere, so not guarded by the volume.
+class UnguardedScale : public Correction {
+ public:
+  explicit UnguardedScale(double k) : k_(k) {}
+  std::string TypeName() const override { return "test_unguarded_scale"; }
+  CorrectedPose Apply(const Rigid3d& in) const override {
+    return {Rigid3d(in.rotation, (1.0 + k_) * in.translation), false};
+  }
+  nlohmann::json ToJson() const override { return {{"type", TypeName()}, {"k", k_}}; }
+  std::unique_ptr<Correction> Clone() const override {
+    return std::make_unique<UnguardedScale>(*this);
+  }
+  bool GuardedByVolume() const override { return false; }
+
+ private:
+  double k_;
+};
+
+TEST(CorrectionChain, OutsideTheVolumeOnlyGuardedTermsAreClamped) {
+  const UnguardedScale physical(0.01);
+  CorrectionChain chain;
+  chain.Append(physical.Clone());
+  chain.Append(Curved());
+  chain.SetVolume(UnitBox(ExtrapolationPolicy::kClamp));
+  const Eigen::Quaterniond q = RandomRotation(TestRng());
+  const Rigid3d reported(q, Eigen::Vector3d(2.0, -0.2, -3.0));
+  const CorrectedPose out = chain.Apply(reported);
+  EXPECT_TRUE(out.extrapolated);
+  // The physical term at the actual pose (not at the box: that would give a 1 cm shift of the
+  // boundary point instead of 3.6 cm), then the polynomial's correction held from the nearest point
+  // of the box to its input.
+  const Rigid3d after_physical = physical.Apply(reported).pose;
+  const Eigen::Vector3d nearest = chain.volume()->Nearest(after_physical.translation);
+  const CorrectedPose at_boundary = Curved()->Apply(Rigid3d(q, nearest));
+  const Eigen::Vector3d expected =
+      after_physical.translation + (at_boundary.pose.translation - nearest);
+  // Positions ~3 m: rounding ~1e-15 absolute.
+  EXPECT_LT((out.pose.translation - expected).norm(), 4e-15);
+  EXPECT_TRUE(testing::RotationsNear(at_boundary.pose.rotation, out.pose.rotation, 1e-14));
+
+  // Far beyond a fade, the guarded term has faded to nothing while the physical one still applies.
+  chain.SetVolume(UnitBox(ExtrapolationPolicy::kFade, 0.2));
+  const CorrectedPose faded = chain.Apply(reported);
+  EXPECT_TRUE(faded.extrapolated);
+  EXPECT_TRUE(testing::PosesNear(after_physical, faded.pose, 1e-15, 1e-15));
+  // Inside the box the chain is unchanged by the volume.
+  const Rigid3d inside(q, Eigen::Vector3d(0.3, -0.2, 0.4));
+  CorrectionChain unguarded_chain;
+  unguarded_chain.Append(physical.Clone());
+  unguarded_chain.Append(Curved());
+  EXPECT_TRUE(testing::PosesNear(unguarded_chain.Apply(inside).pose, chain.Apply(inside).pose, 0, 0));
+}
+
 TEST(CorrectionChain, CopyIsDeep) {
   CorrectionChain chain;
   chain.Append(LinearInX(0.1, 0.0));

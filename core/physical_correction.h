@@ -106,6 +106,8 @@ class PhysicalCorrection : public Correction {
   nlohmann::json ToJson() const override;
   static std::unique_ptr<Correction> FromJson(const JsonObjectReader& reader);
   std::unique_ptr<Correction> Clone() const override;
+  // The field model holds outside the calibration data: applied at the actual pose, never clamped.
+  bool GuardedByVolume() const override { return false; }
 
   const FieldModel& field() const { return field_; }
   const Eigen::Matrix3d& receiver_gain_matrix() const { return receiver_gain_matrix_; }
