@@ -9,12 +9,15 @@
 #include <ceres/sphere_manifold.h>
 
 #include <Eigen/LU>
+#include <Eigen/QR>
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
 
 #include "core/field.h"
+#include "core/polynomial.h"
+#include "fit/terms_polynomial.h"
 
 namespace trackcal::fit {
 namespace {
@@ -199,11 +202,127 @@ void WhitenedResidual(const AmbientPose& pose, const Rigid3d& reference,
 
 // The linearisation of one station for the search: its residual r and the 6 x 9 map K with
 // d r / d strength = K vec(B_unit(p)) for a new source of unit strength with field matrix B_unit at
-// the station's true position p.
+// the station's true position p; `out` is the group's output position (the input of the explicit
+// terms after it) and `g` the residual's derivative along the group's free coordinates.
 struct SearchStation {
   Eigen::Vector3d p;
+  Eigen::Vector3d out;
   Vector6 r;
   Eigen::Matrix<double, 6, 9> k;
+  Eigen::Matrix<double, 6, Eigen::Dynamic> g;
+};
+
+// Orthonormal basis of the span of the columns of `a` (rank by column-pivoting QR: a relative
+// pivot below 1e-10 is a dependent column, e.g. z^4 on a grid of 4 heights).
+Eigen::MatrixXd OrthonormalBasis(const Eigen::MatrixXd& a) {
+  if (a.cols() == 0) return Eigen::MatrixXd(a.rows(), 0);
+  Eigen::ColPivHouseholderQR<Eigen::MatrixXd> qr(a);
+  qr.setThreshold(1e-10);
+  const Eigen::Index rank = qr.rank();
+  Eigen::MatrixXd q = qr.householderQ() * Eigen::MatrixXd::Identity(a.rows(), rank);
+  return q;
+}
+
+// Variable projection for the search: the orthogonal projector onto the complement of what the
+// group's refit absorbs anyway, on n x 6 residual matrices (row: station, column: whitened residual
+// component). A candidate is then scored by what it explains that neither the explicit terms after
+// the group (their coefficients are linear: projected out exactly) nor the group's other free
+// parameters (linearised at the current values) can. First the polynomials' monomials of the
+// group's output position (one basis per part, applied to the components that part corrects; a
+// polynomial's correction of the whitened residual is, to first order, its value divided by sigma,
+// which leaves the span unchanged), then the group's coordinates projected by the first.
+struct RefitProjector {
+  Eigen::MatrixXd poly[2];  // position, orientation part: n x rank, orthonormal (or empty)
+  Eigen::MatrixXd group;    // 6n x rank, orthonormal, column-major flattening of n x 6
+  std::string note;         // what was projected out, for the fit report
+
+  void Apply(Eigen::MatrixXd* x) const {
+    for (int c = 0; c < 6; ++c) {
+      const Eigen::MatrixXd& q = poly[c < 3 ? 0 : 1];
+      if (q.cols() > 0) x->col(c) -= q * (q.transpose() * x->col(c));
+    }
+    if (group.cols() > 0) {
+      Eigen::Map<Eigen::VectorXd> v(x->data(), x->size());
+      v -= group * (group.transpose() * v);
+    }
+  }
+};
+
+RefitProjector BuildRefitProjector(const std::vector<SearchStation>& stations,
+                                   const std::vector<const ModelTerm*>& later) {
+  RefitProjector out;
+  const auto n = static_cast<Eigen::Index>(stations.size());
+  if (n == 0) return out;
+  // The largest degree per part over the free polynomials after the group (their spans nest).
+  // Block settings of later terms are applied after their Prepare(), i.e. after this search: a
+  // polynomial fixed by the file's `parameters:` still counts as free here.
+  int degree[2] = {-1, -1};
+  for (const ModelTerm* t : later) {
+    const auto* poly = dynamic_cast<const PolynomialTerm*>(t);
+    if (poly == nullptr) continue;
+    for (const auto& b : poly->blocks()) {
+      if (b.fixed) continue;
+      const int part = b.name == "position_coefficients" ? 0 : 1;
+      degree[part] = std::max(degree[part], poly->options().degree);
+    }
+  }
+  Eigen::Vector3d lo = stations[0].out, hi = lo;
+  for (const auto& s : stations) {
+    lo = lo.cwiseMin(s.out);
+    hi = hi.cwiseMax(s.out);
+  }
+  const Eigen::Vector3d centre = 0.5 * (lo + hi);
+  const Eigen::Vector3d scale = (0.5 * (hi - lo)).unaryExpr([](double v) { return v > 1e-9 ? v : 1.0; });
+  static const char* const kPart[] = {"position", "orientation"};
+  for (int part = 0; part < 2; ++part) {
+    if (degree[part] < 0) continue;
+    const int terms = NumPolynomialTerms(degree[part]);
+    Eigen::MatrixXd a(n, terms);
+    std::vector<double> monomials(static_cast<size_t>(terms));
+    for (Eigen::Index i = 0; i < n; ++i) {
+      const Eigen::Vector3d u =
+          (stations[static_cast<size_t>(i)].out - centre).cwiseQuotient(scale);
+      EvaluateMonomials(degree[part], u.data(), monomials.data());
+      for (int j = 0; j < terms; ++j) a(i, j) = monomials[static_cast<size_t>(j)];
+    }
+    out.poly[part] = OrthonormalBasis(a);
+    out.note += std::string(out.note.empty() ? "" : ", ") + "polynomial degree " +
+                std::to_string(degree[part]) + " (" + kPart[part] + ", rank " +
+                std::to_string(out.poly[part].cols()) + ")";
+  }
+  const Eigen::Index k = stations[0].g.cols();
+  if (k > 0) {
+    Eigen::MatrixXd g(6 * n, k);
+    Eigen::Index kept = 0;
+    Eigen::MatrixXd column(n, 6);
+    for (Eigen::Index j = 0; j < k; ++j) {
+      for (Eigen::Index i = 0; i < n; ++i) column.row(i) = stations[static_cast<size_t>(i)].g.col(j).transpose();
+      // A coordinate the polynomials already reproduce adds nothing; one without effect (an effect
+      // still switched off, the quaternion's radial direction) neither.
+      const double before = column.norm();
+      RefitProjector poly_only;
+      poly_only.poly[0] = out.poly[0];
+      poly_only.poly[1] = out.poly[1];
+      poly_only.Apply(&column);
+      const double after = column.norm();
+      if (!(after > 1e-9 * before) || !(after > 0.0)) continue;
+      g.col(kept++) = Eigen::Map<const Eigen::VectorXd>(column.data(), 6 * n) / after;
+    }
+    out.group = OrthonormalBasis(g.leftCols(kept));
+    if (out.group.cols() > 0) {
+      out.note += std::string(out.note.empty() ? "" : ", ") + std::to_string(out.group.cols()) +
+                  " free coordinates of the group";
+    }
+  }
+  if (out.note.empty()) out.note = "nothing (no free coordinates, no polynomial after the group)";
+  return out;
+}
+
+// The stations of a search, the projector and the projected residual (n x 6).
+struct SearchSet {
+  std::vector<SearchStation> stations;
+  RefitProjector projector;
+  Eigen::MatrixXd residual;
 };
 
 // Candidate score: the cost reduction of the best strength, and that strength.
@@ -212,16 +331,23 @@ struct Score {
   double strength = 0.0;
 };
 
+// The cost reduction sum(u . P r)^2 / |P u|^2 of the candidate's column u (u_i = K_i vec(B_unit))
+// after the projection P, and its least-squares strength (the refit's linear parameters projected
+// out: variable projection).
 template <typename UnitField>
-Score ScoreCandidate(const std::vector<SearchStation>& stations, const UnitField& unit_field) {
-  double a = 0.0, c = 0.0;
-  for (const auto& s : stations) {
+Score ScoreCandidate(const SearchSet& set, const UnitField& unit_field) {
+  const auto n = static_cast<Eigen::Index>(set.stations.size());
+  if (n == 0) return {};
+  Eigen::MatrixXd u(n, 6);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const SearchStation& s = set.stations[static_cast<size_t>(i)];
     Matrix3<double> b;
     if (!unit_field(s.p, &b)) return {};
-    const Vector6 u = s.k * Vec<double>(b);
-    a += u.dot(s.r);
-    c += u.squaredNorm();
+    u.row(i) = (s.k * Vec<double>(b)).transpose();
   }
+  set.projector.Apply(&u);
+  const double a = (u.array() * set.residual.array()).sum();
+  const double c = u.squaredNorm();
   if (!(c > 0.0) || !std::isfinite(a) || !std::isfinite(c)) return {};
   return {a * a / c, -a / c};
 }
@@ -306,7 +432,8 @@ const std::vector<std::string>& PhysicalTermTypes() {
 
 bool PhysicalSearchOptions::Check() const {
   return margin_m >= 0.0 && dipole_spacing_m > 0.0 && min_station_distance_m >= 0.0 &&
-         refine_candidates >= 1 && plane_normals >= 0 && plane_distance_step_m > 0.0;
+         refine_candidates >= 1 && plane_normals >= 0 && plane_distance_step_m > 0.0 &&
+         reach_m > 0.0 && max_refinements >= 1;
 }
 
 PhysicalGroupTerm::PhysicalGroupTerm(PhysicalEffect effect) {
@@ -535,6 +662,11 @@ void PhysicalGroupTerm::Prepare(const std::vector<FitStation>& inputs) {
   for (const auto& s : inputs) {
     data_min_ = data_min_.cwiseMin(s.reported.translation);
     data_max_ = data_max_.cwiseMax(s.reported.translation);
+  }
+  station_min_ = station_max_ = inputs[0].reference.translation;
+  for (const auto& s : inputs) {
+    station_min_ = station_min_.cwiseMin(s.reference.translation);
+    station_max_ = station_max_.cwiseMax(s.reference.translation);
   }
 }
 
@@ -813,6 +945,9 @@ nlohmann::json PhysicalGroupTerm::Describe() const {
       // What the fit did: trace G held at 3 (G = relative gains) or the uniform gain estimated.
       entry["unit_mean_gain"] = later_absorbs_scaling_;
     }
+    // Which start of the search won, what was refused and why (InitializeLinear).
+    const auto report = search_reports_.find(e.name);
+    if (report != search_reports_.end()) entry["search"] = report->second;
     effects.push_back(entry);
   }
   return {{"effects", effects}};
@@ -822,16 +957,26 @@ nlohmann::json PhysicalGroupTerm::Describe() const {
 
 namespace {
 
-// Linearises every station at the group's current values (effects in `disabled` switched off).
-std::vector<SearchStation> LineariseStations(const PhysicalGroupTerm& term,
-                                             const std::vector<FitStation>& inputs,
-                                             const Eigen::Vector2d& sigmas) {
+// Linearises every station at the group's current values (effects in `disabled` switched off) and
+// builds the search's projector (project: false leaves the residual as it is).
+SearchSet MakeSearchSet(const PhysicalGroupTerm& term, const std::vector<FitStation>& inputs,
+                        const Eigen::Vector2d& sigmas, const std::vector<const ModelTerm*>& later,
+                        bool project) {
   std::vector<const double*> v;
   for (const auto& b : term.blocks()) v.push_back(b.values.data());
   PhysicalCorrectionOptions options;
   options.max_iterations = 50;
   const PhysicalCorrection model = term.MakeCorrection(v.data(), options);
-  std::vector<SearchStation> out;
+  // The group's free coordinates, whose refit absorbs part of any new source's signature.
+  const StationBinding binding = term.Bind(AmbientPose::Zero());
+  std::vector<const double*> free_values;
+  Eigen::Index num_free = 0;
+  for (int b : binding.blocks) {
+    free_values.push_back(term.blocks()[static_cast<size_t>(b)].values.data());
+    num_free += term.blocks()[static_cast<size_t>(b)].size();
+  }
+  SearchSet set;
+  std::vector<SearchStation>& out = set.stations;
   out.reserve(inputs.size());
   for (const FitStation& s : inputs) {
     Rigid3d x;
@@ -869,12 +1014,59 @@ std::vector<SearchStation> LineariseStations(const PhysicalGroupTerm& term,
     for (int c = 0; c < 3; ++c) gain_rt.block<3, 3>(3 * c, 3 * c) = grt;
     SearchStation st;
     st.p = x.translation;
+    st.out = body.translation;
     st.r = r;
     st.k = -(d_r * o_x) * g_x.partialPivLu().solve(j_free.transpose() * gain_rt);
     if (!st.k.allFinite() || !st.r.allFinite()) continue;
+    st.g.setZero(6, project ? num_free : 0);
+    if (project && num_free > 0) {
+      TermEvaluation eval;
+      if (!term.Evaluate(binding, free_values.data(), ToAmbient(s.reported), true, &eval)) continue;
+      Eigen::Index col = 0;
+      for (const auto& d : eval.d_output_d_blocks) {
+        st.g.middleCols(col, d.cols()) = d_r * d;
+        col += d.cols();
+      }
+      if (!st.g.allFinite()) continue;
+    }
     out.push_back(st);
   }
-  return out;
+  const auto n = static_cast<Eigen::Index>(out.size());
+  set.residual.resize(n, 6);
+  for (Eigen::Index i = 0; i < n; ++i) set.residual.row(i) = out[static_cast<size_t>(i)].r.transpose();
+  if (project) {
+    set.projector = BuildRefitProjector(out, later);
+    set.projector.Apply(&set.residual);
+  } else {
+    set.projector.note = "nothing (projection switched off)";
+  }
+  return set;
+}
+
+// The plane's range along its normal that holds the data and the transmitter: a conducting plane
+// must have both on one side (the model's inverse domain), so a start lies beyond it.
+std::pair<double, double> OccupiedRange(const std::vector<SearchStation>& stations,
+                                        const Eigen::Vector3d& n) {
+  double a = 0.0, b = 0.0;  // the transmitter at the origin
+  for (const auto& s : stations) {
+    a = std::min(a, s.p.dot(n));
+    b = std::max(b, s.p.dot(n));
+  }
+  return {a, b};
+}
+
+nlohmann::json StartJson(PhysicalEffect kind, const PhysicalSearchStart& s) {
+  nlohmann::json j;
+  if (kind == PhysicalEffect::kDipole) {
+    j["location_in_transmitter"] = {s.location.x(), s.location.y(), s.location.z()};
+    j["polarisability_m3"] = s.strength;
+  } else {
+    j["normal_in_transmitter"] = {s.normal.x(), s.normal.y(), s.normal.z()};
+    j["distance_m"] = s.distance;
+    j["attenuation"] = s.strength;
+  }
+  j["reduction"] = s.reduction;
+  return j;
 }
 
 }  // namespace
@@ -884,6 +1076,8 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   if (!search_options_.Check()) throw std::invalid_argument("physical terms: bad search options");
   // Effects still to be searched are switched off until their turn.
   disabled_.assign(effects_.size(), false);
+  search_bounded_.resize(blocks_.size(), false);
+  search_reports_.clear();
   for (size_t i = 0; i < effects_.size(); ++i) {
     const Effect& e = effects_[i];
     auto fixed = [&](int k) { return blocks_[static_cast<size_t>(Block(e, k))].fixed; };
@@ -894,17 +1088,73 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
                     ((e.search_plane && !fixed(kPlaneDistance)) ||
                      (!e.strength_given && !fixed(kPlaneAttenuation))));
   }
+  // Each searched effect against what the group leaves with the effects placed so far.
+  std::vector<std::vector<PhysicalSearchStart>> starts(effects_.size());
+  std::vector<size_t> searched;
   for (size_t i = 0; i < effects_.size(); ++i) {
     if (!disabled_[i]) continue;
-    if (effects_[i].kind == PhysicalEffect::kDipole) {
-      SearchDipole(effects_[i], inputs, noise_sigmas);
-    } else {
-      SearchPlane(effects_[i], inputs, noise_sigmas);
-    }
+    std::string note;
+    starts[i] = effects_[i].kind == PhysicalEffect::kDipole
+                    ? SearchDipole(effects_[i], inputs, noise_sigmas, &note)
+                    : SearchPlane(effects_[i], inputs, noise_sigmas, &note);
+    if (!starts[i].empty()) ApplyStart(effects_[i], starts[i][0]);
+    nlohmann::json report = {{"projected_out", note}, {"starts", nlohmann::json::array()},
+                             {"refused", nlohmann::json::array()}};
+    for (const auto& s : starts[i]) report["starts"].push_back(StartJson(effects_[i].kind, s));
+    search_reports_[effects_[i].name] = report;
+    searched.push_back(i);
     disabled_[i] = false;
   }
   disabled_.clear();
-  RefineAlone(inputs, noise_sigmas);
+  // The group's refinement from the starts; a start whose refinement leaves the physical bounds
+  // (or diverges) is refused and the effect's next start tried.
+  std::vector<size_t> chosen(effects_.size(), 0);
+  auto snapshot = [&] {
+    std::vector<std::vector<double>> v;
+    for (const auto& b : blocks_) v.push_back(b.values);
+    return v;
+  };
+  auto restore = [&](const std::vector<std::vector<double>>& v) {
+    for (size_t b = 0; b < blocks_.size(); ++b) blocks_[b].values = v[b];
+  };
+  if (searched.empty()) {
+    RefineAlone(inputs, noise_sigmas);
+  } else {
+    std::vector<std::vector<double>> start_values = snapshot();
+    bool accepted = false;
+    for (int attempt = 0; attempt < search_options_.max_refinements; ++attempt) {
+      const bool solved = RefineAlone(inputs, noise_sigmas);
+      std::string reason = solved ? "" : "the refinement failed";
+      size_t culprit = searched.back();
+      for (size_t i : searched) {
+        const std::string why = Unphysical(effects_[i], inputs);
+        if (!why.empty()) {
+          culprit = i;
+          reason = why;
+          break;
+        }
+      }
+      if (reason.empty()) {
+        accepted = true;
+        break;
+      }
+      search_reports_[effects_[culprit].name]["refused"].push_back(
+          {{"start", chosen[culprit]}, {"reason", reason}});
+      restore(start_values);
+      if (chosen[culprit] + 1 >= starts[culprit].size()) break;
+      ++chosen[culprit];
+      ApplyStart(effects_[culprit], starts[culprit][chosen[culprit]]);
+      start_values = snapshot();
+    }
+    // No start survived its refinement: the joint solve starts from the search's start, inside the
+    // bounds ApplyStart() set.
+    if (!accepted) restore(start_values);
+    for (size_t i : searched) {
+      auto& report = search_reports_[effects_[i].name];
+      report["won"] = starts[i].empty() ? nlohmann::json(nullptr) : nlohmann::json(chosen[i]);
+      report["refined"] = accepted;
+    }
+  }
   // Start on the gauge (trace G = 3): the later terms initialise on what the group then leaves.
   if (GainScaleHeld()) {
     for (const auto& e : effects_) {
@@ -917,6 +1167,110 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     }
   }
   return true;
+}
+
+void PhysicalGroupTerm::ApplyStart(const Effect& e, const PhysicalSearchStart& start) {
+  auto bound = [&](ParameterBlock& block, int index, double lower, double upper) {
+    // The file's bounds stay; the search's own are renewed with every start.
+    const auto b = static_cast<size_t>(&block - blocks_.data());
+    if (!block.lower.empty() && !search_bounded_[b]) return;
+    if (block.lower.empty()) {
+      block.lower.assign(block.values.size(), -std::numeric_limits<double>::infinity());
+      block.upper.assign(block.values.size(), std::numeric_limits<double>::infinity());
+    }
+    block.lower[static_cast<size_t>(index)] = lower;
+    block.upper[static_cast<size_t>(index)] = upper;
+    search_bounded_[b] = true;
+  };
+  const double reach = search_options_.reach_m;
+  if (e.kind == PhysicalEffect::kDipole) {
+    ParameterBlock& location = blocks_[static_cast<size_t>(Block(e, kDipoleLocation))];
+    ParameterBlock& strength = blocks_[static_cast<size_t>(Block(e, kDipolePolarisability))];
+    if (e.search_location && !location.fixed) {
+      location.values = {start.location.x(), start.location.y(), start.location.z()};
+      for (int k = 0; k < 3; ++k) {
+        bound(location, k, std::min(data_min_[k] - reach, start.location[k]),
+              std::max(data_max_[k] + reach, start.location[k]));
+      }
+    }
+    if (!e.strength_given && !strength.fixed) strength.values = {start.strength};
+    return;
+  }
+  ParameterBlock& distance = blocks_[static_cast<size_t>(Block(e, kPlaneDistance))];
+  ParameterBlock& normal = blocks_[static_cast<size_t>(Block(e, kPlaneNormal))];
+  ParameterBlock& attenuation = blocks_[static_cast<size_t>(Block(e, kPlaneAttenuation))];
+  if (e.search_plane && !distance.fixed) {
+    distance.values = {start.distance};
+    if (!normal.fixed) normal.values = {start.normal.x(), start.normal.y(), start.normal.z()};
+    // Beyond the data's box and the transmitter, at most `reach` further: a plane km away is no
+    // conducting surface of the room but a polynomial's stand-in.
+    double a = 0.0, b = 0.0;
+    for (int corner = 0; corner < 8; ++corner) {
+      const Eigen::Vector3d c((corner & 1) ? data_max_.x() : data_min_.x(),
+                              (corner & 2) ? data_max_.y() : data_min_.y(),
+                              (corner & 4) ? data_max_.z() : data_min_.z());
+      a = std::min(a, c.dot(start.normal));
+      b = std::max(b, c.dot(start.normal));
+    }
+    if (start.distance > 0.0) {
+      bound(distance, 0, std::min(start.distance, b), std::max(start.distance, b + reach));
+    } else {
+      bound(distance, 0, std::min(start.distance, a - reach), std::max(start.distance, a));
+    }
+  }
+  if (!e.strength_given && !attenuation.fixed) {
+    attenuation.values = {std::clamp(start.strength, -0.99, 0.99)};
+  }
+}
+
+std::string PhysicalGroupTerm::Unphysical(const Effect& e,
+                                          const std::vector<FitStation>& inputs) const {
+  auto at_bound = [](const ParameterBlock& block) {
+    // 1 mm: a refinement that stops within it of a bound was stopped by the bound.
+    for (size_t k = 0; k < block.values.size() && k < block.lower.size(); ++k) {
+      if (block.values[k] - block.lower[k] < 1e-3 || block.upper[k] - block.values[k] < 1e-3) {
+        return true;
+      }
+    }
+    return false;
+  };
+  for (int k = 0; k < (e.kind == PhysicalEffect::kDipole ? 2 : 3); ++k) {
+    for (double v : blocks_[static_cast<size_t>(Block(e, k))].values) {
+      if (!std::isfinite(v)) return "not finite";
+    }
+  }
+  const double gap = search_options_.min_station_distance_m;
+  if (e.kind == PhysicalEffect::kDipole) {
+    const ParameterBlock& location = blocks_[static_cast<size_t>(Block(e, kDipoleLocation))];
+    if (!e.search_location || location.fixed) return "";  // the file's location stands
+    const Eigen::Vector3d l(location.values[0], location.values[1], location.values[2]);
+    if (at_bound(location)) return "ran to the bound " + std::to_string(search_options_.reach_m) +
+                                   " m outside the data";
+    if ((l.array() > station_min_.array() - gap).all() &&
+        (l.array() < station_max_.array() + gap).all()) {
+      return "inside the measured volume";
+    }
+    for (const FitStation& s : inputs) {
+      if ((s.reference.translation - l).norm() < gap) return "closer than the minimum to a station";
+    }
+    return "";
+  }
+  const ParameterBlock& distance = blocks_[static_cast<size_t>(Block(e, kPlaneDistance))];
+  const ParameterBlock& normal_block = blocks_[static_cast<size_t>(Block(e, kPlaneNormal))];
+  if (!e.search_plane || distance.fixed) return "";  // the file's plane stands
+  if (at_bound(distance)) return "ran to the bound " + std::to_string(search_options_.reach_m) +
+                                 " m beyond the data";
+  const Eigen::Vector3d n =
+      Eigen::Vector3d(normal_block.values[0], normal_block.values[1], normal_block.values[2])
+          .normalized();
+  const double d = distance.values[0];
+  for (const FitStation& s : inputs) {
+    const double h = s.reference.translation.dot(n);
+    if ((d > 0.0 && h > d - 0.5 * gap) || (d < 0.0 && h < d + 0.5 * gap) || d == 0.0) {
+      return "cuts the measured volume";
+    }
+  }
+  return "";
 }
 
 namespace {
@@ -963,7 +1317,7 @@ class GroupStationCost : public ceres::CostFunction {
 
 }  // namespace
 
-void PhysicalGroupTerm::RefineAlone(const std::vector<FitStation>& inputs,
+bool PhysicalGroupTerm::RefineAlone(const std::vector<FitStation>& inputs,
                                     const Eigen::Vector2d& sigmas) {
   // The group is the first term of its model (physical terms come first), so its own fit to the
   // references is the start the joint problem needs: the explicit terms after it then initialise
@@ -971,7 +1325,7 @@ void PhysicalGroupTerm::RefineAlone(const std::vector<FitStation>& inputs,
   // iterations instead of ~30 sparse factorisations). Robust (Cauchy, 5 sigma) so hemisphere flips
   // do not drag the start; priors and the joint loss act in the joint solve.
   const StationBinding binding = Bind(AmbientPose::Zero());
-  if (binding.blocks.empty() || inputs.empty()) return;
+  if (binding.blocks.empty() || inputs.empty()) return true;
   ceres::Problem problem;
   for (int b : binding.blocks) {
     ParameterBlock& block = blocks_[static_cast<size_t>(b)];
@@ -999,142 +1353,186 @@ void PhysicalGroupTerm::RefineAlone(const std::vector<FitStation>& inputs,
   options.function_tolerance = 1e-10;
   ceres::Solver::Summary summary;
   ceres::Solve(options, &problem, &summary);
+  return summary.IsSolutionUsable() && std::isfinite(summary.final_cost);
 }
 
-void PhysicalGroupTerm::SearchDipole(const Effect& e, const std::vector<FitStation>& inputs,
-                                     const Eigen::Vector2d& sigmas) {
-  const std::vector<SearchStation> stations = LineariseStations(*this, inputs, sigmas);
-  ParameterBlock& location = blocks_[static_cast<size_t>(Block(e, kDipoleLocation))];
-  ParameterBlock& strength = blocks_[static_cast<size_t>(Block(e, kDipolePolarisability))];
+namespace {
+
+// Greedy choice of up to `count` candidates (best first) no two of which are `close`.
+template <typename Candidate, typename Close>
+std::vector<Candidate> WellSeparated(std::vector<std::pair<double, Candidate>> ranked, size_t count,
+                                     const Close& close) {
+  std::sort(ranked.begin(), ranked.end(),
+            [](const auto& a, const auto& b) { return a.first > b.first; });
+  std::vector<Candidate> out;
+  for (const auto& [score, c] : ranked) {
+    if (out.size() >= count) break;
+    bool separate = true;
+    for (const Candidate& o : out) separate = separate && !close(c, o);
+    if (separate) out.push_back(c);
+  }
+  return out;
+}
+
+}  // namespace
+
+std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchDipole(
+    const Effect& e, const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas,
+    std::string* note) {
+  const SearchSet set =
+      MakeSearchSet(*this, inputs, sigmas, later_terms_, search_options_.project_refit);
+  *note = set.projector.note;
+  const ParameterBlock& location = blocks_[static_cast<size_t>(Block(e, kDipoleLocation))];
   const double min_distance = search_options_.min_station_distance_m;
+  const Eigen::Vector3d inner_lo = station_min_.array() - min_distance;
+  const Eigen::Vector3d inner_hi = station_max_.array() + min_distance;
   auto score_at = [&](const Eigen::Vector3d& l) {
     if (l.norm() < min_distance) return Score{};
+    // Not inside the measured volume: an object there would sit among the stations.
+    if ((l.array() > inner_lo.array()).all() && (l.array() < inner_hi.array()).all()) return Score{};
     const Eigen::Matrix3d d_l = DipoleCoupling<double>(l);
-    return ScoreCandidate(stations, [&](const Eigen::Vector3d& p, Eigen::Matrix3d* b) {
+    return ScoreCandidate(set, [&](const Eigen::Vector3d& p, Eigen::Matrix3d* b) {
       const Eigen::Vector3d d = p - l;
       if (d.squaredNorm() < min_distance * min_distance) return false;
       *b = DipoleCoupling<double>(d) * d_l;
       return true;
     });
   };
-  Eigen::Vector3d best_location(location.values[0], location.values[1], location.values[2]);
-  Score best = score_at(best_location);
-  if (e.search_location && !location.fixed) {
-    const Eigen::Vector3d lo = data_min_.array() - search_options_.margin_m;
-    const Eigen::Vector3d hi = data_max_.array() + search_options_.margin_m;
-    const double h = search_options_.dipole_spacing_m;
-    const Eigen::Vector3i counts = ((hi - lo) / h).array().ceil().cast<int>() + 1;
-    std::vector<std::pair<double, Eigen::Vector3d>> ranked;
-    for (int ix = 0; ix < counts.x(); ++ix) {
-      for (int iy = 0; iy < counts.y(); ++iy) {
-        for (int iz = 0; iz < counts.z(); ++iz) {
-          const Eigen::Vector3d l = lo + h * Eigen::Vector3d(ix, iy, iz);
-          const Score s = score_at(l);
-          if (s.reduction > 0.0) ranked.emplace_back(s.reduction, l);
-        }
+  std::vector<PhysicalSearchStart> starts;
+  auto add = [&](const Eigen::Vector3d& l) {
+    const Score s = score_at(l);
+    if (!(s.reduction > 0.0)) return;
+    PhysicalSearchStart start;
+    start.location = l;
+    start.strength = s.strength;
+    start.reduction = s.reduction;
+    starts.push_back(start);
+  };
+  if (!e.search_location || location.fixed) {
+    add(Eigen::Vector3d(location.values[0], location.values[1], location.values[2]));
+    return starts;
+  }
+  const Eigen::Vector3d lo = data_min_.array() - search_options_.margin_m;
+  const Eigen::Vector3d hi = data_max_.array() + search_options_.margin_m;
+  const double h = search_options_.dipole_spacing_m;
+  const Eigen::Vector3i counts = ((hi - lo) / h).array().ceil().cast<int>() + 1;
+  std::vector<std::pair<double, Eigen::Vector3d>> ranked;
+  for (int ix = 0; ix < counts.x(); ++ix) {
+    for (int iy = 0; iy < counts.y(); ++iy) {
+      for (int iz = 0; iz < counts.z(); ++iz) {
+        const Eigen::Vector3d l = lo + h * Eigen::Vector3d(ix, iy, iz);
+        const Score s = score_at(l);
+        if (s.reduction > 0.0) ranked.emplace_back(s.reduction, l);
       }
     }
-    const size_t keep = std::min(ranked.size(), static_cast<size_t>(search_options_.refine_candidates));
-    std::partial_sort(ranked.begin(), ranked.begin() + static_cast<long>(keep), ranked.end(),
-                      [](const auto& a, const auto& b) { return a.first > b.first; });
-    best = Score{};
-    for (size_t c = 0; c < keep; ++c) {
-      const Eigen::Vector3d start = ranked[c].second;
-      const std::vector<double> refined = PatternSearch(
-          {start.x(), start.y(), start.z()}, {h / 2, h / 2, h / 2}, 1e-3 / h,
-          [&](const std::vector<double>& x) {
-            return -score_at(Eigen::Vector3d(x[0], x[1], x[2])).reduction;
-          });
-      const Eigen::Vector3d l(refined[0], refined[1], refined[2]);
-      const Score s = score_at(l);
-      if (s.reduction > best.reduction) {
-        best = s;
-        best_location = l;
-      }
-    }
-    location.values = {best_location.x(), best_location.y(), best_location.z()};
   }
-  if (!e.strength_given && !strength.fixed && best.reduction > 0.0) {
-    strength.values = {best.strength};
+  // Several sources: the best candidates at least two grid steps apart are refined separately, so
+  // a second object is a start of its own rather than a neighbour of the first's grid point.
+  const std::vector<Eigen::Vector3d> seeds = WellSeparated<Eigen::Vector3d>(
+      std::move(ranked), static_cast<size_t>(search_options_.refine_candidates),
+      [&](const Eigen::Vector3d& a, const Eigen::Vector3d& b) { return (a - b).norm() < 2.0 * h; });
+  for (const Eigen::Vector3d& seed : seeds) {
+    const std::vector<double> refined =
+        PatternSearch({seed.x(), seed.y(), seed.z()}, {h / 2, h / 2, h / 2}, 1e-3 / h,
+                      [&](const std::vector<double>& x) {
+                        return -score_at(Eigen::Vector3d(x[0], x[1], x[2])).reduction;
+                      });
+    add(Eigen::Vector3d(refined[0], refined[1], refined[2]));
   }
+  std::vector<std::pair<double, PhysicalSearchStart>> by_score;
+  for (const auto& s : starts) by_score.emplace_back(s.reduction, s);
+  return WellSeparated<PhysicalSearchStart>(
+      std::move(by_score), starts.size(),
+      [&](const PhysicalSearchStart& a, const PhysicalSearchStart& b) {
+        return (a.location - b.location).norm() < h;  // refined onto the same source
+      });
 }
 
-void PhysicalGroupTerm::SearchPlane(const Effect& e, const std::vector<FitStation>& inputs,
-                                    const Eigen::Vector2d& sigmas) {
-  const std::vector<SearchStation> stations = LineariseStations(*this, inputs, sigmas);
-  ParameterBlock& distance = blocks_[static_cast<size_t>(Block(e, kPlaneDistance))];
-  ParameterBlock& normal_block = blocks_[static_cast<size_t>(Block(e, kPlaneNormal))];
-  ParameterBlock& attenuation = blocks_[static_cast<size_t>(Block(e, kPlaneAttenuation))];
+std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchPlane(
+    const Effect& e, const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas,
+    std::string* note) {
+  const SearchSet set =
+      MakeSearchSet(*this, inputs, sigmas, later_terms_, search_options_.project_refit);
+  *note = set.projector.note;
+  const ParameterBlock& distance = blocks_[static_cast<size_t>(Block(e, kPlaneDistance))];
+  const ParameterBlock& normal_block = blocks_[static_cast<size_t>(Block(e, kPlaneNormal))];
+  const double reach = search_options_.reach_m;
   auto score_at = [&](const Eigen::Vector3d& n, double d) {
-    const Eigen::Vector3d image = 2.0 * d * n;
-    if (image.norm() < 1e-3) return Score{};
-    return ScoreCandidate(stations, [&](const Eigen::Vector3d& p, Eigen::Matrix3d* b) {
-      *b = PlaneImageField<double>(1.0, d * n, n, 1.0, p);
+    // Beyond the data and the transmitter (both on one side), within reach.
+    const auto [a, b] = OccupiedRange(set.stations, n);
+    if (!((d > b && d <= b + reach) || (d < a && d >= a - reach))) return Score{};
+    return ScoreCandidate(set, [&](const Eigen::Vector3d& p, Eigen::Matrix3d* field) {
+      *field = PlaneImageField<double>(1.0, d * n, n, 1.0, p);
       return true;
     });
   };
-  Eigen::Vector3d best_normal(normal_block.values[0], normal_block.values[1],
-                              normal_block.values[2]);
-  best_normal.normalize();
-  double best_distance = distance.values[0];
-  Score best = score_at(best_normal, best_distance);
-  if (e.search_plane && !distance.fixed) {
-    std::vector<Eigen::Vector3d> normals = {best_normal};
-    // A plane given by its normal alone keeps it; otherwise normals over the half sphere.
-    if (!e.normal_given && !normal_block.fixed) {
-      normals = HalfSphereDirections(search_options_.plane_normals);
-    }
-    std::vector<std::tuple<double, Eigen::Vector3d, double>> ranked;
-    const double step = search_options_.plane_distance_step_m;
-    const double reach = 3.0 * std::max(1.0, search_options_.margin_m);
-    for (const Eigen::Vector3d& n : normals) {
-      double a = std::numeric_limits<double>::infinity(), b = -a;
-      for (const auto& s : stations) {
-        a = std::min(a, s.p.dot(n));
-        b = std::max(b, s.p.dot(n));
-      }
-      for (double offset = step; offset <= reach; offset += step) {
-        for (double d : {b + offset, a - offset}) {
-          const Score s = score_at(n, d);
-          if (s.reduction > 0.0) ranked.emplace_back(s.reduction, n, d);
-        }
-      }
-    }
-    const size_t keep = std::min(ranked.size(), static_cast<size_t>(search_options_.refine_candidates));
-    std::partial_sort(ranked.begin(), ranked.begin() + static_cast<long>(keep), ranked.end(),
-                      [](const auto& x, const auto& y) { return std::get<0>(x) > std::get<0>(y); });
-    best = Score{};
-    const bool refine_normal = normals.size() > 1;
-    for (size_t c = 0; c < keep; ++c) {
-      const Eigen::Vector3d n0 = std::get<1>(ranked[c]);
-      Eigen::Vector3d t1, t2;
-      TangentBasis(n0, &t1, &t2);
-      auto unpack = [&](const std::vector<double>& x) {
-        return std::make_pair(
-            Eigen::Vector3d(refine_normal ? Eigen::Vector3d(n0 + x[1] * t1 + x[2] * t2).normalized()
-                                          : n0),
-            x[0]);
-      };
-      const std::vector<double> refined = PatternSearch(
-          {std::get<2>(ranked[c]), 0.0, 0.0}, {step / 2, 0.05, 0.05}, 1e-2,
-          [&](const std::vector<double>& x) {
-            const auto [n, d] = unpack(x);
-            return -score_at(n, d).reduction;
-          });
-      const auto [n, d] = unpack(refined);
-      const Score s = score_at(n, d);
-      if (s.reduction > best.reduction) {
-        best = s;
-        best_normal = n;
-        best_distance = d;
-      }
-    }
-    distance.values = {best_distance};
-    if (!normal_block.fixed) normal_block.values = {best_normal.x(), best_normal.y(), best_normal.z()};
+  std::vector<PhysicalSearchStart> starts;
+  auto add = [&](const Eigen::Vector3d& n, double d) {
+    const Score s = score_at(n, d);
+    if (!(s.reduction > 0.0)) return;
+    PhysicalSearchStart start;
+    start.normal = n;
+    start.distance = d;
+    start.strength = s.strength;
+    start.reduction = s.reduction;
+    starts.push_back(start);
+  };
+  Eigen::Vector3d given_normal(normal_block.values[0], normal_block.values[1],
+                               normal_block.values[2]);
+  given_normal.normalize();
+  if (!e.search_plane || distance.fixed) {
+    add(given_normal, distance.values[0]);
+    return starts;
   }
-  if (!e.strength_given && !attenuation.fixed && best.reduction > 0.0) {
-    attenuation.values = {std::clamp(best.strength, -0.99, 0.99)};
+  std::vector<Eigen::Vector3d> normals = {given_normal};
+  // A plane given by its normal alone keeps it; otherwise normals over the half sphere.
+  if (!e.normal_given && !normal_block.fixed) {
+    normals = HalfSphereDirections(search_options_.plane_normals);
   }
+  using Plane = std::pair<Eigen::Vector3d, double>;
+  std::vector<std::pair<double, Plane>> ranked;
+  const double step = search_options_.plane_distance_step_m;
+  for (const Eigen::Vector3d& n : normals) {
+    const auto [a, b] = OccupiedRange(set.stations, n);
+    for (double offset = step; offset <= reach; offset += step) {
+      for (double d : {b + offset, a - offset}) {
+        const Score s = score_at(n, d);
+        if (s.reduction > 0.0) ranked.emplace_back(s.reduction, Plane(n, d));
+      }
+    }
+  }
+  // Well separated: normals 20 degrees apart, or the same normal 0.3 m apart (a plane's signature
+  // changes slowly with distance: nearer starts are refined onto the same plane).
+  auto close = [](const Plane& x, const Plane& y) {
+    return x.first.dot(y.first) > std::cos(20.0 * kRadPerDeg) && std::abs(x.second - y.second) < 0.3;
+  };
+  const std::vector<Plane> seeds = WellSeparated<Plane>(
+      std::move(ranked), static_cast<size_t>(search_options_.refine_candidates), close);
+  const bool refine_normal = normals.size() > 1;
+  for (const auto& [n0, d0] : seeds) {
+    Eigen::Vector3d t1, t2;
+    TangentBasis(n0, &t1, &t2);
+    auto unpack = [&](const std::vector<double>& x) {
+      return std::make_pair(
+          Eigen::Vector3d(refine_normal ? Eigen::Vector3d(n0 + x[1] * t1 + x[2] * t2).normalized()
+                                        : n0),
+          x[0]);
+    };
+    const std::vector<double> refined = PatternSearch(
+        {d0, 0.0, 0.0}, {step / 2, 0.05, 0.05}, 1e-2, [&](const std::vector<double>& x) {
+          const auto [n, d] = unpack(x);
+          return -score_at(n, d).reduction;
+        });
+    const auto [n, d] = unpack(refined);
+    add(n, d);
+  }
+  std::vector<std::pair<double, PhysicalSearchStart>> by_score;
+  for (const auto& s : starts) by_score.emplace_back(s.reduction, s);
+  return WellSeparated<PhysicalSearchStart>(
+      std::move(by_score), starts.size(),
+      [&](const PhysicalSearchStart& x, const PhysicalSearchStart& y) {
+        return close(Plane(x.normal, x.distance), Plane(y.normal, y.distance));
+      });
 }
 
 void RegisterPhysicalTerms(TermRegistry* registry) {

@@ -23,10 +23,15 @@
 //
 // Start values by search (InitializeLinear): a dipole without a location, or a plane without a
 // point and normal, is placed by scoring a grid of candidates by the linearised least-squares fit
-// of its strength to the residual the group leaves without it, then refining the best few
-// candidates on the same linearisation (docs/model-file.md, "Start values by search").
+// of its strength to the residual the group leaves without it, in the orthogonal complement of
+// what the refit absorbs anyway (the group's other free parameters, linearised, and the
+// polynomials that follow the group: variable projection). The best few well-separated candidates
+// are refined on the same linearisation and kept as starts; the group's refinement tries them in
+// order, refusing any that leaves the physical bounds (docs/model-file.md, "Start values by
+// search").
 #pragma once
 
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -46,13 +51,30 @@ const std::vector<std::string>& PhysicalTermTypes();
 
 // Options of the start-value search (InitializeLinear).
 struct PhysicalSearchOptions {
-  double margin_m = 1.0;         // candidates up to this far outside the data's bounding box
+  double margin_m = 1.5;         // dipole candidates up to this far outside the data's bounding box
   double dipole_spacing_m = 0.15;  // grid spacing of dipole candidate locations
-  double min_station_distance_m = 0.1;  // candidates closer than this to a station are skipped
-  int refine_candidates = 5;     // best candidates refined on the linearisation
+  double min_station_distance_m = 0.1;  // sources closer than this to a station are refused
+  int refine_candidates = 5;     // well-separated best candidates refined and kept as starts
   int plane_normals = 60;        // normals on the half sphere (plus the 3 axes)
   double plane_distance_step_m = 0.1;  // distance grid step beyond the data
+  // A searched source is bounded to this far outside the data's bounding box (a plane: beyond the
+  // data and the transmitter); a refinement that reaches the bound is refused.
+  double reach_m = 3.0;
+  int max_refinements = 4;       // refinements of the group (one per start tried) at most
+  // Score in the orthogonal complement of what the refit absorbs (variable projection); false:
+  // against the raw residual (the behaviour before, for comparison).
+  bool project_refit = true;
   bool Check() const;
+};
+
+// One start a search found: a dipole location or a plane (normal, distance), the linearised
+// strength and the cost reduction it buys (in whitened units, after the projection).
+struct PhysicalSearchStart {
+  Eigen::Vector3d location = Eigen::Vector3d::Zero();  // dipole
+  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();   // plane
+  double distance = 0.0;                               // plane
+  double strength = 0.0;  // polarisability [m^3] or attenuation
+  double reduction = 0.0;
 };
 
 class PhysicalGroupTerm : public ModelTerm {
@@ -130,12 +152,21 @@ class PhysicalGroupTerm : public ModelTerm {
   // Adds the blocks of one effect.
   void AddEffectBlocks(Effect* effect);
   int Block(const Effect& e, int k) const { return e.first_block + k; }
-  void SearchDipole(const Effect& effect, const std::vector<FitStation>& inputs,
-                    const Eigen::Vector2d& sigmas);
-  void SearchPlane(const Effect& effect, const std::vector<FitStation>& inputs,
-                   const Eigen::Vector2d& sigmas);
-  // Fits the group's free blocks alone to the references (the start of the joint solve).
-  void RefineAlone(const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas);
+  // The starts of a search, best first (empty: the effect keeps its values); `note` says what was
+  // projected out.
+  std::vector<PhysicalSearchStart> SearchDipole(const Effect& effect,
+                                                const std::vector<FitStation>& inputs,
+                                                const Eigen::Vector2d& sigmas, std::string* note);
+  std::vector<PhysicalSearchStart> SearchPlane(const Effect& effect,
+                                               const std::vector<FitStation>& inputs,
+                                               const Eigen::Vector2d& sigmas, std::string* note);
+  // Writes a start into the effect's free blocks and bounds its searched blocks (see .cc).
+  void ApplyStart(const Effect& effect, const PhysicalSearchStart& start);
+  // Empty if the effect's current values are physical, else why not.
+  std::string Unphysical(const Effect& effect, const std::vector<FitStation>& inputs) const;
+  // Fits the group's free blocks alone to the references (the start of the joint solve). Returns
+  // false if the solve failed or its cost is not finite.
+  bool RefineAlone(const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas);
 
   std::vector<Effect> effects_;
   PhysicalSearchOptions search_options_;
@@ -144,8 +175,15 @@ class PhysicalGroupTerm : public ModelTerm {
   std::vector<const ModelTerm*> later_terms_;
   bool later_absorbs_scaling_ = false;
   Eigen::Vector3d data_min_ = Eigen::Vector3d::Zero(), data_max_ = Eigen::Vector3d::Zero();
+  // Bounding box of the stations' reference positions (where the receiver really was: reported
+  // positions near an object are pulled by it).
+  Eigen::Vector3d station_min_ = Eigen::Vector3d::Zero(), station_max_ = Eigen::Vector3d::Zero();
   // Effects switched off while the search runs (strength held at 0 in MakeCorrection()).
   std::vector<bool> disabled_;
+  // What the last search of each effect found and which start won (Describe(), by effect name).
+  std::map<std::string, nlohmann::json> search_reports_;
+  // Blocks whose bounds the search set (reset by the next search; the file's bounds are kept).
+  std::vector<bool> search_bounded_;
 };
 
 // Registers the five physical term types (called by the registry's built-in registration).
