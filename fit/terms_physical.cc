@@ -9,7 +9,9 @@
 #include <ceres/sphere_manifold.h>
 
 #include <Eigen/LU>
+#include <Eigen/Cholesky>
 #include <Eigen/QR>
+#include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -233,13 +235,18 @@ Eigen::MatrixXd OrthonormalBasis(const Eigen::MatrixXd& a) {
 // which leaves the span unchanged), then the group's coordinates projected by the first.
 struct RefitProjector {
   Eigen::MatrixXd poly[2];  // position, orientation part: n x rank, orthonormal (or empty)
+  // Per column of poly: 1 for an unregularised polynomial (a projection); with a ridge, the
+  // symmetric square root of I - H (H the ridge's hat matrix U diag(s^2) U^T) is
+  // I - U diag(1 - sqrt(1 - s^2)) U^T: what a ridge polynomial leaves of a column.
+  Eigen::VectorXd poly_weight[2];
   Eigen::MatrixXd group;    // 6n x rank, orthonormal, column-major flattening of n x 6
   std::string note;         // what was projected out, for the fit report
 
   void Apply(Eigen::MatrixXd* x) const {
     for (int c = 0; c < 6; ++c) {
       const Eigen::MatrixXd& q = poly[c < 3 ? 0 : 1];
-      if (q.cols() > 0) x->col(c) -= q * (q.transpose() * x->col(c));
+      const Eigen::VectorXd& w = poly_weight[c < 3 ? 0 : 1];
+      if (q.cols() > 0) x->col(c) -= q * (w.asDiagonal() * (q.transpose() * x->col(c)));
     }
     if (group.cols() > 0) {
       Eigen::Map<Eigen::VectorXd> v(x->data(), x->size());
@@ -256,14 +263,21 @@ RefitProjector BuildRefitProjector(const std::vector<SearchStation>& stations,
   // The largest degree per part over the free polynomials after the group (their spans nest).
   // Block settings of later terms are applied after their Prepare(), i.e. after this search: a
   // polynomial fixed by the file's `parameters:` still counts as free here.
+  // A ridge polynomial (PolynomialTermOptions::ridge, whitened like the station residuals) absorbs
+  // only part of a column; `ridge: auto` chooses its weight after the search, which then assumes
+  // the shrunk coefficients (degree >= 2) absorb nothing.
   int degree[2] = {-1, -1};
+  double ridge[2] = {0.0, 0.0};
   for (const ModelTerm* t : later) {
     const auto* poly = dynamic_cast<const PolynomialTerm*>(t);
     if (poly == nullptr) continue;
     for (const auto& b : poly->blocks()) {
       if (b.fixed) continue;
       const int part = b.name == "position_coefficients" ? 0 : 1;
-      degree[part] = std::max(degree[part], poly->options().degree);
+      if (poly->options().degree <= degree[part]) continue;
+      degree[part] = poly->options().degree;
+      ridge[part] = poly->options().ridge_auto ? std::numeric_limits<double>::infinity()
+                                               : poly->options().ridge;
     }
   }
   Eigen::Vector3d lo = stations[0].out, hi = lo;
@@ -285,10 +299,44 @@ RefitProjector BuildRefitProjector(const std::vector<SearchStation>& stations,
       EvaluateMonomials(degree[part], u.data(), monomials.data());
       for (int j = 0; j < terms; ++j) a(i, j) = monomials[static_cast<size_t>(j)];
     }
-    out.poly[part] = OrthonormalBasis(a);
+    std::string how;
+    if (ridge[part] == 0.0) {
+      out.poly[part] = OrthonormalBasis(a);
+      out.poly_weight[part] = Eigen::VectorXd::Ones(out.poly[part].cols());
+    } else {
+      const auto exponents = PolynomialTermExponents(degree[part]);
+      std::vector<Eigen::Index> free_cols;
+      for (int j = 0; j < terms; ++j) {
+        const auto& e = exponents[static_cast<size_t>(j)];
+        if (e[0] + e[1] + e[2] < 2) free_cols.push_back(j);
+      }
+      if (!std::isfinite(ridge[part])) {
+        Eigen::MatrixXd a0(n, static_cast<Eigen::Index>(free_cols.size()));
+        for (size_t j = 0; j < free_cols.size(); ++j) a0.col(static_cast<Eigen::Index>(j)) = a.col(free_cols[j]);
+        out.poly[part] = OrthonormalBasis(a0);
+        out.poly_weight[part] = Eigen::VectorXd::Ones(out.poly[part].cols());
+        how = ", ridge auto: degree <= 1 only";
+      } else {
+        // H = A (A^T A + ridge^2 S)^-1 A^T = B B^T with B = A L^-T (L L^T the Cholesky factor),
+        // B = U diag(s) V^T.
+        Eigen::MatrixXd k = a.transpose() * a;
+        for (int j = 0; j < terms; ++j) {
+          if (std::find(free_cols.begin(), free_cols.end(), j) == free_cols.end()) {
+            k(j, j) += ridge[part] * ridge[part];
+          }
+        }
+        const Eigen::LLT<Eigen::MatrixXd> llt(k);
+        const Eigen::MatrixXd b = llt.matrixL().solve(a.transpose()).transpose();
+        const Eigen::BDCSVD<Eigen::MatrixXd> svd(b, Eigen::ComputeThinU);
+        out.poly[part] = svd.matrixU();
+        out.poly_weight[part] = svd.singularValues().unaryExpr(
+            [](double v) { return 1.0 - std::sqrt(std::max(0.0, 1.0 - v * v)); });
+        how = ", ridge " + std::to_string(ridge[part]);
+      }
+    }
     out.note += std::string(out.note.empty() ? "" : ", ") + "polynomial degree " +
                 std::to_string(degree[part]) + " (" + kPart[part] + ", rank " +
-                std::to_string(out.poly[part].cols()) + ")";
+                std::to_string(out.poly[part].cols()) + how + ")";
   }
   const Eigen::Index k = stations[0].g.cols();
   if (k > 0) {
@@ -303,6 +351,8 @@ RefitProjector BuildRefitProjector(const std::vector<SearchStation>& stations,
       RefitProjector poly_only;
       poly_only.poly[0] = out.poly[0];
       poly_only.poly[1] = out.poly[1];
+      poly_only.poly_weight[0] = out.poly_weight[0];
+      poly_only.poly_weight[1] = out.poly_weight[1];
       poly_only.Apply(&column);
       const double after = column.norm();
       if (!(after > 1e-9 * before) || !(after > 0.0)) continue;
