@@ -13,6 +13,7 @@
 
 #include <ceres/jet.h>
 
+#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <random>
 #include <vector>
@@ -254,6 +255,62 @@ void BM_PhysicalPaperRoomNoFoldSearch(benchmark::State& state) {
 }
 BENCHMARK(BM_PhysicalPaperRoomNoFoldSearch);
 
+
+// The noise-gain step alone at a root, as it was (dy/dx = A^-1 h with A^-1 per pose, eigen-solve of
+// its normal matrix, determinant) and as it is (LU of h, dx/dy = h^-1 A, Frobenius bound; the
+// eigen-solve only above max_noise_gain): matrices like the paper room's (h = A (I + E), |E| ~ 0.1).
+struct NoiseGainInputs {
+  std::vector<Eigen::Matrix<double, 6, 6>> a, h;
+};
+const NoiseGainInputs& GainInputs() {
+  static const NoiseGainInputs inputs = [] {
+    NoiseGainInputs out;
+    std::mt19937_64 rng(7);
+    std::normal_distribution<double> n(0.0, 1.0);
+    for (int i = 0; i < 256; ++i) {
+      Eigen::Matrix<double, 6, 6> j;
+      for (int k = 0; k < 36; ++k) j(k) = n(rng);
+      Eigen::Matrix<double, 6, 6> e;
+      for (int k = 0; k < 36; ++k) e(k) = 0.1 * n(rng);
+      const Eigen::Matrix<double, 6, 6> a = j.transpose() * j;
+      out.a.push_back(a);
+      out.h.push_back(a * (Eigen::Matrix<double, 6, 6>::Identity() + e));
+    }
+    return out;
+  }();
+  return inputs;
+}
+
+void BM_NoiseGainEigenSolve(benchmark::State& state) {  // before
+  const NoiseGainInputs& in = GainInputs();
+  size_t i = 0;
+  for (auto _ : state) {
+    Eigen::Matrix<double, 6, 6> m = in.a[i].inverse() * in.h[i];
+    m.topRightCorner<3, 3>() /= 0.7;
+    m.bottomLeftCorner<3, 3>() *= 0.7;
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eig(m.transpose() * m,
+                                                                         Eigen::EigenvaluesOnly);
+    benchmark::DoNotOptimize(eig.eigenvalues()(0));
+    benchmark::DoNotOptimize(m.determinant());
+    i = (i + 1) % in.a.size();
+  }
+}
+BENCHMARK(BM_NoiseGainEigenSolve);
+
+void BM_NoiseGainFrobeniusBound(benchmark::State& state) {  // now (the bound decides)
+  const NoiseGainInputs& in = GainInputs();
+  size_t i = 0;
+  for (auto _ : state) {
+    const Eigen::PartialPivLU<Eigen::Matrix<double, 6, 6>> lu(in.h[i]);
+    benchmark::DoNotOptimize(lu.determinant());
+    Eigen::Matrix<double, 6, 6> dx_dy = lu.solve(in.a[i]);
+    dx_dy.topRightCorner<3, 3>() /= 0.7;
+    dx_dy.bottomLeftCorner<3, 3>() *= 0.7;
+    benchmark::DoNotOptimize(dx_dy.norm());
+    i = (i + 1) % in.a.size();
+  }
+}
+BENCHMARK(BM_NoiseGainFrobeniusBound);
 
 void BM_PhysicalFreeSpace(benchmark::State& state) {  // the inverse's fixed cost
   const PhysicalCorrection physical(FieldModel{}, Eigen::Matrix3d::Identity());
