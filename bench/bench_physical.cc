@@ -126,8 +126,8 @@ class PreBoundedInverse {
     for (int it = 0; it < 8; ++it) {
       Vector3<Jet3> pj3;
       for (int i = 0; i < 3; ++i) pj3(i) = Jet3(p(i), i);
-      Matrix3<Jet3> b = TransmitterField<Jet3>(
-          Jet3(k), field_.transmitter_octupole_m2.cast<Jet3>(), pj3);
+      Matrix3<Jet3> b =
+          TransmitterField<Jet3>(Jet3(k), field_.transmitter_octupole_m2.cast<Jet3>(), pj3);
       for (const Source& source : sources_) {
         const Matrix3<Jet3> d = DipoleCoupling<Jet3>(pj3 - source.center.cast<Jet3>());
         for (int c = 0; c < 3; ++c) {
@@ -232,10 +232,9 @@ void BM_PhysicalPaperRoom(benchmark::State& state) {
     iterations += inverse.iterations;
     ambiguous += inverse.status != CorrectionStatus::kConverged ? 1 : 0;
     if (inverse.status != CorrectionStatus::kConverged) continue;
-    max_difference =
-        std::max(max_difference, (physical.Apply(reported).pose.translation -
-                                  baseline.Apply(reported).pose.translation)
-                                     .norm());
+    max_difference = std::max(max_difference, (physical.Apply(reported).pose.translation -
+                                               baseline.Apply(reported).pose.translation)
+                                                  .norm());
   }
   const double n = static_cast<double>(Reports().size());
   state.counters["newton_steps"] = iterations / n;  // mean steps per pose
@@ -255,10 +254,10 @@ void BM_PhysicalPaperRoomNoFoldSearch(benchmark::State& state) {
 }
 BENCHMARK(BM_PhysicalPaperRoomNoFoldSearch);
 
-
 // The noise-gain step alone at a root, as it was (dy/dx = A^-1 h with A^-1 per pose, eigen-solve of
 // its normal matrix, determinant) and as it is (LU of h, dx/dy = h^-1 A, Frobenius bound; the
-// eigen-solve only above max_noise_gain): matrices like the paper room's (h = A (I + E), |E| ~ 0.1).
+// eigen-solve only above max_noise_gain): matrices like the paper room's (h = A (I + E), |E| ~
+// 0.1).
 struct NoiseGainInputs {
   std::vector<Eigen::Matrix<double, 6, 6>> a, h;
 };

@@ -292,7 +292,8 @@ TEST(PhysicalCorrection, BatchStatusMatchesApply) {
   const FieldModel field = RoomField();
   const Eigen::Vector3d toolbox = field.objects[2].location_in_transmitter;
   std::vector<Rigid3d> reports;
-  for (int i = 0; i < 20; ++i) reports.push_back(NoiseFreeReport(RandomTruePose(), field, SkewedGain()));
+  for (int i = 0; i < 20; ++i)
+    reports.push_back(NoiseFreeReport(RandomTruePose(), field, SkewedGain()));
   for (int i = 0; i < 10; ++i) {
     const Rigid3d truth(testing::RandomRotation(TestRng()), toolbox - Eigen::Vector3d(0, 0.2, 0));
     reports.push_back(NoiseFreeReport(truth, field, SkewedGain()));

@@ -117,12 +117,13 @@ const Candidate& ExpectTop(const Diagnosis& d, const std::string& effect) {
 }
 
 // The toolbox: six calibration stations 0.285-0.32 m from it sit next to its fold zone, where the
-// inverse amplifies report noise 30-45 times (station 350: 13.9 mm error under the TRUE model). With
-// the model file's constant noise alone they dominated the cost and the searched dipole ended in a
-// local minimum ((0.637, 0.916, -0.538) m, 0.00155 m^3, chi2/dof 218). The fit now whitens each
-// station by the noise its inverse amplifies (fit/fit_engine.cc, noise.amplification_threshold):
-// measured (0.60137, 0.94845, -0.50115) +- (0.0014, 0.0022, 0.0010) m, 0.001987 +- 0.000029 m^3
-// (truth (0.6, 0.95, -0.5), 0.002), held-out 4.27 -> 0.119 mm; 81 s wall, 12 s CPU under load.
+// inverse amplifies report noise 30-45 times (station 350: 13.9 mm error under the TRUE model).
+// With the model file's constant noise alone they dominated the cost and the searched dipole ended
+// in a local minimum ((0.637, 0.916, -0.538) m, 0.00155 m^3, chi2/dof 218). The fit now whitens
+// each station by the noise its inverse amplifies (fit/fit_engine.cc,
+// noise.amplification_threshold): measured (0.60137, 0.94845, -0.50115) +- (0.0014, 0.0022, 0.0010)
+// m, 0.001987 +- 0.000029 m^3 (truth (0.6, 0.95, -0.5), 0.002), held-out 4.27 -> 0.119 mm; 81 s
+// wall, 12 s CPU under load.
 TEST(DiagnoseCandidatesPaper, FerromagneticObject) {
   const PaperRun r = Diagnose("ferromagnetic_object", 20010313);
   const Candidate& top = ExpectTop(r.diagnosis, "dipole");

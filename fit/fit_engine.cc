@@ -54,8 +54,12 @@ class StationCost : public ceres::CostFunction {
   StationCost(std::vector<BoundTerm> terms, const FitStation& station, double sigma_p,
               double sigma_o, std::optional<double> time_offset0 = std::nullopt,
               std::optional<Matrix6> noise_whitening = std::nullopt)
-      : terms_(std::move(terms)), station_(station), sigma_p_(sigma_p), sigma_o_(sigma_o),
-        time_offset0_(time_offset0), noise_whitening_(noise_whitening) {
+      : terms_(std::move(terms)),
+        station_(station),
+        sigma_p_(sigma_p),
+        sigma_o_(sigma_o),
+        time_offset0_(time_offset0),
+        noise_whitening_(noise_whitening) {
     set_num_residuals(6);
     for (const auto& t : terms_) {
       for (int b : t.binding.blocks) {
@@ -77,7 +81,7 @@ class StationCost : public ceres::CostFunction {
       for (size_t b = 0; b < sizes.size(); ++b) {
         if (jacobians[b] == nullptr) continue;
         Eigen::Map<Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor>> j(jacobians[b], 6,
-                                                                                  sizes[b]);
+                                                                                sizes[b]);
         j = (w * j).eval();
       }
     }
@@ -201,9 +205,9 @@ std::optional<Matrix6> NoiseAmplification(const std::vector<BoundTerm>& terms,
 // paper room) is part of it. Along each direction u_i of the residual in which the chain amplifies
 // the report noise by s_i > threshold (A = U S V^T), the residual's sigma is raised by s_i /
 // threshold, so the station weighs what it can tell there (near a strong object's fold zone, a
-// station whose inverse amplifies the noise 30-45x would otherwise steer the fit). W = U diag(min(1,
-// threshold / s_i)) U^T; identity (null) when no s_i exceeds the threshold, so chains without such
-// stations are fitted exactly as without this step.
+// station whose inverse amplifies the noise 30-45x would otherwise steer the fit). W = U
+// diag(min(1, threshold / s_i)) U^T; identity (null) when no s_i exceeds the threshold, so chains
+// without such stations are fitted exactly as without this step.
 struct NoiseWhitening {
   std::optional<Matrix6> w;
   double gain = 1.0;  // largest s_i (NaN if the chain could not be evaluated)
@@ -383,10 +387,10 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       }
       out.noise_gain.push_back(whitening.gain);
       out.noise_whitened.push_back(whitening.w.has_value());
-      station_blocks.push_back(problem.AddResidualBlock(
-          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1],
-                          time_offset0, whitening.w),
-          MakeLoss(spec->loss), blocks));
+      station_blocks.push_back(
+          problem.AddResidualBlock(new StationCost(bound[i], stations[i], station_sigmas[0],
+                                                   station_sigmas[1], time_offset0, whitening.w),
+                                   MakeLoss(spec->loss), blocks));
     }
   }
   for (size_t k = 0; k < spec->terms.size(); ++k) {
@@ -566,8 +570,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
 
   // (2) the joint problem.
   FitResult result;
-  BuiltProblem built = BuildProblem(stations, spec, fit_time_offset ? &time_offset : nullptr,
-                                    time_offset0);
+  BuiltProblem built =
+      BuildProblem(stations, spec, fit_time_offset ? &time_offset : nullptr, time_offset0);
   int num_free = built.num_free;
 
   if (fit_time_offset) num_free += 1;
@@ -1198,8 +1202,8 @@ nlohmann::json FitResult::ToJson() const {
           {"seconds_covariance", seconds_covariance},
           {"rank_deficient", rank_deficient},
           {"covariance_message", covariance_message},
-          {"covariance_estimator", covariance_estimator.empty() ? nlohmann::json()
-                                                                 : nlohmann::json(covariance_estimator)},
+          {"covariance_estimator",
+           covariance_estimator.empty() ? nlohmann::json() : nlohmann::json(covariance_estimator)},
           {"identifiability_flags", flags},
           {"outliers", out_flags},
           {"unresolved", unresolved_json},

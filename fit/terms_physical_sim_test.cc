@@ -252,10 +252,9 @@ void FitFerromagneticOnProtocol(uint64_t seed) {
   const PhysicalCorrection exact(twin.environment, twin.tracker.receiver_gain_matrix);
   const double floor_twin = RmsPositionError(exact, twin_validation);
   const double before = RmsPositionError(exact, validation);
-  ModelSpec spec =
-      ParseModelYaml(NoiseYaml(exact, twin_calibration) + "terms:\n" +
-                         FixedRoomTermsYaml(twin.environment) + "  - type: dipole\n",
-                     "toolbox.yaml");
+  ModelSpec spec = ParseModelYaml(NoiseYaml(exact, twin_calibration) + "terms:\n" +
+                                      FixedRoomTermsYaml(twin.environment) + "  - type: dipole\n",
+                                  "toolbox.yaml");
   const FitResult fit = FitModel(calibration, &spec);
   EXPECT_TRUE(fit.converged) << fit.solver_message;
   CorrectionChain chain = fit.chain;
@@ -283,10 +282,10 @@ void FitFerromagneticOnProtocol(uint64_t seed) {
   std::cout << "seed " << seed << ": twin " << floor_twin * 1e3 << " mm, room model "
             << before * 1e3 << " mm, with the dipole " << after * 1e3 << " mm on the "
             << resolvable.size() << " stations the true model resolves (true model "
-            << RmsPositionError(truth_model, resolvable) * 1e3 << " mm); dipole at ("
-            << l.values[0] << ", " << l.values[1] << ", " << l.values[2] << ") +- (" << l.stddev[0]
-            << ", " << l.stddev[1] << ", " << l.stddev[2] << ") m, " << a.values[0] << " +- "
-            << a.stddev[0] << " m^3; " << fit.noise_whitened.size()
+            << RmsPositionError(truth_model, resolvable) * 1e3 << " mm); dipole at (" << l.values[0]
+            << ", " << l.values[1] << ", " << l.values[2] << ") +- (" << l.stddev[0] << ", "
+            << l.stddev[1] << ", " << l.stddev[2] << ") m, " << a.values[0] << " +- " << a.stddev[0]
+            << " m^3; " << fit.noise_whitened.size()
             << " stations whitened by their amplified noise, " << fit.whitening_passes
             << " solves, " << fit.unresolved.size() << " unresolved (" << fit.seconds << " s)\n";
   EXPECT_GT(before, 1.5 * floor_twin);  // the object is visible, so the test can fail

@@ -219,20 +219,23 @@ void BindCore(py::module_& m) {
 
   // pybind11 copies docstrings; these outlive the definitions anyway.
   const std::string term_correct_doc =
-      std::string("Applies this term alone (no calibrated volume): (positions, quaternions, "
-                  "extrapolated).") +
+      std::string(
+          "Applies this term alone (no calibrated volume): (positions, quaternions, "
+          "extrapolated).") +
       kStatusDoc;
   const std::string calibration_correct_doc =
-      std::string("Corrects N reported poses: positions (N, 3) [m] and quaternions (N, 4) ordered "
-                  "x, y, z, w. Returns (positions (N, 3), quaternions (N, 4), extrapolated (N,) "
-                  "bool).") +
+      std::string(
+          "Corrects N reported poses: positions (N, 3) [m] and quaternions (N, 4) ordered "
+          "x, y, z, w. Returns (positions (N, 3), quaternions (N, 4), extrapolated (N,) "
+          "bool).") +
       kStatusDoc;
   m.attr("correction_status_names") =
       py::make_tuple(CorrectionStatusName(CorrectionStatus::kConverged),
                      CorrectionStatusName(CorrectionStatus::kAmbiguous),
                      CorrectionStatusName(CorrectionStatus::kNotConverged));
   py::class_<Correction, std::shared_ptr<Correction>>(
-      m, "Correction", "One correction term (polynomial, LUT, ...): reported pose -> corrected pose.")
+      m, "Correction",
+      "One correction term (polynomial, LUT, ...): reported pose -> corrected pose.")
       .def_property_readonly("type", &Correction::TypeName, "The term's \"type\" in the file.")
       .def(
           "to_json", [](const Correction& c) { return c.ToJson().dump(2); },
@@ -241,11 +244,10 @@ void BindCore(py::module_& m) {
           "correct",
           [](const Correction& c, const py::handle& positions, const py::handle& quaternions,
              bool return_status) {
-            return CorrectBatch(positions, quaternions, return_status,
-                                [&c](size_t n, const double* p, const double* q, double* po,
-                                     double* qo, uint8_t* f, CorrectionStatus* st) {
-                                  c.ApplyBatchWithStatus(n, p, q, po, qo, f, st);
-                                });
+            return CorrectBatch(
+                positions, quaternions, return_status,
+                [&c](size_t n, const double* p, const double* q, double* po, double* qo, uint8_t* f,
+                     CorrectionStatus* st) { c.ApplyBatchWithStatus(n, p, q, po, qo, f, st); });
           },
           py::arg("positions"), py::arg("quaternions_xyzw"), py::arg("return_status") = false,
           term_correct_doc.c_str());
@@ -370,8 +372,10 @@ void BindCore(py::module_& m) {
                                }
                                return out;
                              })
-      .def_property_readonly("volume_min", [](const Calibration& c) { return ToArray(c.volume().min); })
-      .def_property_readonly("volume_max", [](const Calibration& c) { return ToArray(c.volume().max); })
+      .def_property_readonly("volume_min",
+                             [](const Calibration& c) { return ToArray(c.volume().min); })
+      .def_property_readonly("volume_max",
+                             [](const Calibration& c) { return ToArray(c.volume().max); })
       .def_property_readonly(
           "extrapolation",
           [](const Calibration& c) { return ExtrapolationPolicyName(c.volume().extrapolation); })
@@ -380,10 +384,9 @@ void BindCore(py::module_& m) {
       .def_readwrite("description", &Calibration::description)
       .def_property_readonly("fit_statistics",
                              [](const Calibration& c) { return JsonToPython(c.fit_statistics); })
-      .def_property_readonly("provenance",
-                             [](const Calibration& c) {
-                               return JsonToPython(CalibrationToJson(c).at("provenance"));
-                             })
+      .def_property_readonly(
+          "provenance",
+          [](const Calibration& c) { return JsonToPython(CalibrationToJson(c).at("provenance")); })
       .def("__repr__", [](const Calibration& c) {
         std::string terms;
         for (size_t i = 0; i < c.chain.size(); ++i) {
