@@ -13,6 +13,21 @@ namespace trackcal {
 void Correction::ApplyBatch(size_t n, const double* positions, const double* quaternions_xyzw,
                             double* out_positions, double* out_quaternions_xyzw,
                             uint8_t* extrapolated) const {
+  ApplyPerPose(n, positions, quaternions_xyzw, out_positions, out_quaternions_xyzw, extrapolated,
+               nullptr);
+}
+
+void Correction::ApplyBatchWithStatus(size_t n, const double* positions,
+                                      const double* quaternions_xyzw, double* out_positions,
+                                      double* out_quaternions_xyzw, uint8_t* extrapolated,
+                                      CorrectionStatus* status) const {
+  ApplyBatch(n, positions, quaternions_xyzw, out_positions, out_quaternions_xyzw, extrapolated);
+  if (status != nullptr) std::fill(status, status + n, CorrectionStatus::kConverged);
+}
+
+void Correction::ApplyPerPose(size_t n, const double* positions, const double* quaternions_xyzw,
+                              double* out_positions, double* out_quaternions_xyzw,
+                              uint8_t* extrapolated, CorrectionStatus* status) const {
   for (size_t i = 0; i < n; ++i) {
     const Rigid3d reported(QuaternionFromXyzwArray(quaternions_xyzw + 4 * i),
                            Eigen::Vector3d(positions[3 * i], positions[3 * i + 1],
@@ -23,6 +38,7 @@ void Correction::ApplyBatch(size_t n, const double* positions, const double* qua
     out_positions[3 * i + 1] = out.pose.translation.y();
     out_positions[3 * i + 2] = out.pose.translation.z();
     if (extrapolated != nullptr) extrapolated[i] = out.extrapolated ? 1 : 0;
+    if (status != nullptr) status[i] = out.status;
   }
 }
 
@@ -172,11 +188,20 @@ CorrectedPose CorrectionChain::Apply(const Rigid3d& reported) const {
 void CorrectionChain::ApplyBatch(size_t n, const double* positions,
                                  const double* quaternions_xyzw, double* out_positions,
                                  double* out_quaternions_xyzw, uint8_t* extrapolated) const {
+  ApplyBatchWithStatus(n, positions, quaternions_xyzw, out_positions, out_quaternions_xyzw,
+                       extrapolated, nullptr);
+}
+
+void CorrectionChain::ApplyBatchWithStatus(size_t n, const double* positions,
+                                           const double* quaternions_xyzw, double* out_positions,
+                                           double* out_quaternions_xyzw, uint8_t* extrapolated,
+                                           CorrectionStatus* status) const {
   // Chunks whose reported positions are all inside the volume (the normal case) go through each
   // term's batch kernel in turn, in place on the output; a chunk with a pose outside takes the
   // per-pose path, which handles clamp and fade.
   constexpr size_t kChunk = 256;
   uint8_t term_flags[kChunk];
+  CorrectionStatus term_status[kChunk];
   for (size_t start = 0; start < n; start += kChunk) {
     const size_t count = std::min(kChunk, n - start);
     const double* p_in = positions + 3 * start;
@@ -184,6 +209,7 @@ void CorrectionChain::ApplyBatch(size_t n, const double* positions,
     double* p_out = out_positions + 3 * start;
     double* q_out = out_quaternions_xyzw + 4 * start;
     uint8_t* flags = extrapolated == nullptr ? nullptr : extrapolated + start;
+    CorrectionStatus* chunk_status = status == nullptr ? nullptr : status + start;
     bool all_inside = true;
     if (volume_.has_value()) {
       for (size_t i = 0; i < count && all_inside; ++i) {
@@ -191,7 +217,7 @@ void CorrectionChain::ApplyBatch(size_t n, const double* positions,
       }
     }
     if (!all_inside) {
-      Correction::ApplyBatch(count, p_in, q_in, p_out, q_out, flags);
+      ApplyPerPose(count, p_in, q_in, p_out, q_out, flags, chunk_status);
       continue;
     }
     if (terms_.empty()) {
@@ -199,10 +225,22 @@ void CorrectionChain::ApplyBatch(size_t n, const double* positions,
       std::copy(q_in, q_in + 4 * count, q_out);
     }
     if (flags != nullptr) std::fill(flags, flags + count, uint8_t{0});
+    if (chunk_status != nullptr) {
+      std::fill(chunk_status, chunk_status + count, CorrectionStatus::kConverged);
+    }
     for (size_t t = 0; t < terms_.size(); ++t) {
       // The first term reads the inputs; later terms correct the previous output in place.
-      terms_[t]->ApplyBatch(count, t == 0 ? p_in : p_out, t == 0 ? q_in : q_out, p_out, q_out,
-                            term_flags);
+      const double* p_from = t == 0 ? p_in : p_out;
+      const double* q_from = t == 0 ? q_in : q_out;
+      if (chunk_status == nullptr) {
+        terms_[t]->ApplyBatch(count, p_from, q_from, p_out, q_out, term_flags);
+      } else {
+        terms_[t]->ApplyBatchWithStatus(count, p_from, q_from, p_out, q_out, term_flags,
+                                        term_status);
+        for (size_t i = 0; i < count; ++i) {
+          chunk_status[i] = std::max(chunk_status[i], term_status[i]);
+        }
+      }
       if (flags != nullptr) {
         for (size_t i = 0; i < count; ++i) flags[i] |= term_flags[i];
       }

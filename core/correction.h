@@ -66,6 +66,14 @@ class Correction {
                           double* out_positions, double* out_quaternions_xyzw,
                           uint8_t* extrapolated) const;
 
+  // As ApplyBatch, and each pose's status (n entries; may be null). The default runs ApplyBatch and
+  // reports kConverged: a term whose Apply can report another status (a model inverse) overrides
+  // it.
+  virtual void ApplyBatchWithStatus(size_t n, const double* positions,
+                                    const double* quaternions_xyzw, double* out_positions,
+                                    double* out_quaternions_xyzw, uint8_t* extrapolated,
+                                    CorrectionStatus* status) const;
+
   // The correction's entry of the file's "corrections" array, including "type".
   virtual nlohmann::json ToJson() const = 0;
 
@@ -74,6 +82,12 @@ class Correction {
   // Whether a chain's calibrated volume guards this term (see above). True for terms that only
   // interpolate their data; a physical model returns false and is applied at the actual pose.
   virtual bool GuardedByVolume() const { return true; }
+
+ protected:
+  // Pose by pose through Apply (the default ApplyBatch); `extrapolated` and `status` may be null.
+  void ApplyPerPose(size_t n, const double* positions, const double* quaternions_xyzw,
+                    double* out_positions, double* out_quaternions_xyzw, uint8_t* extrapolated,
+                    CorrectionStatus* status) const;
 };
 
 enum class ExtrapolationPolicy {
@@ -131,6 +145,10 @@ class CorrectionChain : public Correction {
   void ApplyBatch(size_t n, const double* positions, const double* quaternions_xyzw,
                   double* out_positions, double* out_quaternions_xyzw,
                   uint8_t* extrapolated) const override;
+  // The worst status of the terms per pose (as Apply).
+  void ApplyBatchWithStatus(size_t n, const double* positions, const double* quaternions_xyzw,
+                            double* out_positions, double* out_quaternions_xyzw,
+                            uint8_t* extrapolated, CorrectionStatus* status) const override;
   // {"type": "chain", "corrections": [...]} (the file stores the terms and the volume separately).
   nlohmann::json ToJson() const override;
   std::unique_ptr<Correction> Clone() const override;

@@ -132,7 +132,7 @@ void PhysicalCorrection::Precompute() {
 struct PhysicalCorrection::ReportFrame {
   Vector9 s_free;
   Eigen::Matrix<double, 6, 9> j_free_t;
-  Matrix6 a_inverse;            // (J_y^T J_y)^-1: maps g to the report-pose error it stands for
+  Matrix6 a;                    // J_y^T J_y: dg/dy at the report (g = A (y' - y) to first order)
   Eigen::Vector3d p_y;          // reported position
   double range = 1.0;           // |p_y| [m]
   double max_correction = 0.5;  // bound on |p - p_y| [m]
@@ -273,7 +273,7 @@ PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported) 
              (k * DipoleCoupling<Jet6>(PerturbedPosition(reported.translation))),
          &frame.s_free, &j_free);
   frame.j_free_t = j_free.transpose();
-  frame.a_inverse = (frame.j_free_t * j_free).inverse();
+  frame.a = frame.j_free_t * j_free;
   frame.p_y = reported.translation;
   frame.range = reported.translation.norm();
   frame.max_correction = options_.max_correction_fraction * frame.range;
@@ -285,14 +285,25 @@ PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported) 
   out.transmitter_from_receiver = Rigid3d(q, run.p);
   if (!run.converged) return out;
 
-  // dy/dx = A^-1 h (the report's response to the true pose), position scaled by the range.
-  Matrix6 m = frame.a_inverse * run.h;
-  m.topRightCorner<3, 3>() /= frame.range;
-  m.bottomLeftCorner<3, 3>() *= frame.range;
-  const Eigen::SelfAdjointEigenSolver<Matrix6> eig(m.transpose() * m, Eigen::EigenvaluesOnly);
-  out.noise_gain = 1.0 / std::sqrt(std::max(eig.eigenvalues()(0), 0.0));
+  // dy/dx = A^-1 h is the report's response to the true pose; the inverse's response to report
+  // noise is its inverse dx/dy = h^-1 A, position scaled by the range (D dx/dy D^-1, D = diag(I /
+  // range, I)). The noise gain is its 2-norm (1 / smallest singular value of dy/dx). Its Frobenius
+  // norm bounds it from above (within sqrt(6)), so the eigen-solve runs only when the bound exceeds
+  // max_noise_gain: never in a room like the paper's (bound <= ~3).
+  const Eigen::PartialPivLU<Matrix6> lu(run.h);
+  // det(dy/dx) = det(h) / det(A) with det(A) > 0 (A = J_y^T J_y): the fold is where det h <= 0.
+  const bool folded = !(lu.determinant() > 0.0);
+  Matrix6 dx_dy = lu.solve(frame.a);
+  dx_dy.topRightCorner<3, 3>() /= frame.range;
+  dx_dy.bottomLeftCorner<3, 3>() *= frame.range;
+  out.noise_gain = dx_dy.norm();
+  if (!folded && out.noise_gain > options_.max_noise_gain && dx_dy.allFinite()) {
+    const Eigen::SelfAdjointEigenSolver<Matrix6> eig(dx_dy.transpose() * dx_dy,
+                                                     Eigen::EigenvaluesOnly);
+    out.noise_gain = std::sqrt(std::max(eig.eigenvalues()(5), 0.0));
+  }
   out.status = CorrectionStatus::kConverged;
-  if (!(m.determinant() > 0.0) || !(out.noise_gain <= options_.max_noise_gain)) {
+  if (folded || !(out.noise_gain <= options_.max_noise_gain)) {
     out.status = CorrectionStatus::kAmbiguous;
     return out;
   }

@@ -84,13 +84,24 @@ class PhysicalCorrection : public Correction {
   // The corrected pose with the inverse's status (the pose is the bounded best guess when not
   // converged, the report itself when the report is not finite).
   CorrectedPose Apply(const Rigid3d& reported) const override;
+  // Pose by pose, with each pose's status.
+  void ApplyBatchWithStatus(size_t n, const double* positions, const double* quaternions_xyzw,
+                            double* out_positions, double* out_quaternions_xyzw,
+                            uint8_t* extrapolated, CorrectionStatus* status) const override {
+    ApplyPerPose(n, positions, quaternions_xyzw, out_positions, out_quaternions_xyzw, extrapolated,
+                 status);
+  }
 
   // The true receiver-coil pose behind a report (no sensor offset).
   struct Inverse {
     Rigid3d transmitter_from_receiver;  // finite and bounded for a finite report
     CorrectionStatus status = CorrectionStatus::kNotConverged;
     int iterations = 0;        // Newton steps of the main run
-    double noise_gain = NAN;   // report-noise amplification at the root (1 in free space)
+    // Report-noise amplification at the root (2-norm of dx/dy, position scaled by the range; 1
+    // in free space) when it exceeds max_noise_gain; below, the cheap upper bound that decided the
+    // status (Frobenius norm, within sqrt(6) of the 2-norm: sqrt(6) in free space). NaN unless
+    // converged.
+    double noise_gain = NAN;
   };
   Inverse Invert(const Rigid3d& reported) const;
 

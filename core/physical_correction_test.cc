@@ -285,5 +285,54 @@ TEST(PhysicalCorrection, AChainReportsTheWorstStatus) {
   EXPECT_EQ(chain.Apply(normal).status, CorrectionStatus::kConverged);
 }
 
+TEST(PhysicalCorrection, BatchStatusMatchesApply) {
+  // Reports of every status: room poses (converged), next to the toolbox (ambiguous), on an object
+  // (not converged). The batch path must give Apply's pose and status, through the chain's batch
+  // kernels (every report inside the volume) and through its per-pose path (some outside).
+  const FieldModel field = RoomField();
+  const Eigen::Vector3d toolbox = field.objects[2].location_in_transmitter;
+  std::vector<Rigid3d> reports;
+  for (int i = 0; i < 20; ++i)
+    reports.push_back(NoiseFreeReport(RandomTruePose(), field, SkewedGain()));
+  for (int i = 0; i < 10; ++i) {
+    const Rigid3d truth(testing::RandomRotation(TestRng()), toolbox - Eigen::Vector3d(0, 0.2, 0));
+    reports.push_back(NoiseFreeReport(truth, field, SkewedGain()));
+  }
+  reports.emplace_back(Eigen::Quaterniond::Identity(), field.objects[0].location_in_transmitter);
+  std::vector<double> positions, quaternions;
+  for (const Rigid3d& r : reports) {
+    positions.insert(positions.end(), r.translation.data(), r.translation.data() + 3);
+    const Eigen::Quaterniond q = r.rotation;
+    quaternions.insert(quaternions.end(), {q.x(), q.y(), q.z(), q.w()});
+  }
+  for (const double half_extent : {3.0, 0.7}) {
+    CorrectionChain chain;
+    chain.Append(std::make_unique<PhysicalCorrection>(field, SkewedGain()));
+    CalibratedVolume volume;
+    volume.min = Eigen::Vector3d::Constant(-half_extent);
+    volume.max = Eigen::Vector3d::Constant(half_extent);
+    chain.SetVolume(volume);
+    const size_t n = reports.size();
+    std::vector<double> out_p(3 * n), out_q(4 * n);
+    std::vector<uint8_t> flags(n);
+    std::vector<CorrectionStatus> status(n);
+    chain.ApplyBatchWithStatus(n, positions.data(), quaternions.data(), out_p.data(), out_q.data(),
+                               flags.data(), status.data());
+    int counts[3] = {0, 0, 0};
+    for (size_t i = 0; i < n; ++i) {
+      const CorrectedPose expected = chain.Apply(reports[i]);
+      EXPECT_EQ(status[i], expected.status) << i;
+      // Bit-identical: the same per-pose inverse.
+      EXPECT_EQ(Eigen::Vector3d(out_p[3 * i], out_p[3 * i + 1], out_p[3 * i + 2]),
+                expected.pose.translation)
+          << i;
+      ++counts[static_cast<int>(status[i])];
+    }
+    EXPECT_GT(counts[0], 0);
+    EXPECT_GT(counts[1], 0);
+    EXPECT_GT(counts[2], 0);
+  }
+}
+
 }  // namespace
 }  // namespace trackcal

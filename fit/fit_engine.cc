@@ -4,6 +4,7 @@
 #include <ceres/normal_prior.h>
 
 #include <Eigen/Eigenvalues>
+#include <Eigen/SVD>
 
 #include <algorithm>
 #include <chrono>
@@ -41,15 +42,24 @@ void StationResidual(const T* pose7, const Rigid3d& reference, double sigma_p, d
                      sigma_o, residual6);
 }
 
-// Chains the terms: forward through them, Jacobians composed by the chain rule.
+using Matrix6 = Eigen::Matrix<double, 6, 6>;
+
+// Chains the terms: forward through them, Jacobians composed by the chain rule. With a
+// `noise_whitening` W (see NoiseAmplification below) the residual and its Jacobians are W times
+// those of StationResidual.
 class StationCost : public ceres::CostFunction {
  public:
   // With `time_offset0` set, the last parameter block is the clock offset dt (size 1) and the
   // reference moves by the station's velocity times dt - *time_offset0 (fit/terms_time_offset.h).
   StationCost(std::vector<BoundTerm> terms, const FitStation& station, double sigma_p,
-              double sigma_o, std::optional<double> time_offset0 = std::nullopt)
-      : terms_(std::move(terms)), station_(station), sigma_p_(sigma_p), sigma_o_(sigma_o),
-        time_offset0_(time_offset0) {
+              double sigma_o, std::optional<double> time_offset0 = std::nullopt,
+              std::optional<Matrix6> noise_whitening = std::nullopt)
+      : terms_(std::move(terms)),
+        station_(station),
+        sigma_p_(sigma_p),
+        sigma_o_(sigma_o),
+        time_offset0_(time_offset0),
+        noise_whitening_(noise_whitening) {
     set_num_residuals(6);
     for (const auto& t : terms_) {
       for (int b : t.binding.blocks) {
@@ -61,6 +71,26 @@ class StationCost : public ceres::CostFunction {
 
   bool Evaluate(double const* const* parameters, double* residuals,
                 double** jacobians) const override {
+    if (!EvaluateUnwhitened(parameters, residuals, jacobians)) return false;
+    if (!noise_whitening_) return true;
+    const Matrix6& w = *noise_whitening_;
+    Eigen::Map<Eigen::Matrix<double, 6, 1>> r(residuals);
+    r = (w * r).eval();
+    if (jacobians != nullptr) {
+      const std::vector<int32_t>& sizes = parameter_block_sizes();
+      for (size_t b = 0; b < sizes.size(); ++b) {
+        if (jacobians[b] == nullptr) continue;
+        Eigen::Map<Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor>> j(jacobians[b], 6,
+                                                                                sizes[b]);
+        j = (w * j).eval();
+      }
+    }
+    return true;
+  }
+
+ private:
+  bool EvaluateUnwhitened(double const* const* parameters, double* residuals,
+                          double** jacobians) const {
     const bool want = jacobians != nullptr;
     AmbientPose pose = ToAmbient(station_.reported);
     // d pose / d block for every block so far (7 x size, row-major).
@@ -118,12 +148,84 @@ class StationCost : public ceres::CostFunction {
     return true;
   }
 
- private:
   std::vector<BoundTerm> terms_;
   FitStation station_;
   double sigma_p_, sigma_o_;
   std::optional<double> time_offset0_;
+  std::optional<Matrix6> noise_whitening_;
 };
+
+// How the chain at its current values passes a station's report noise into the whitened residual:
+// A = d r / d e, with r the station residual whitened by (sigma_p, sigma_o) and e the report's
+// error (position, world-frame rotation vector) in units of (sigma_p, 2 sigma_o) (the residual's
+// orientation part is the error quaternion's vector part, half the angle). A chain that passes the
+// report through has A = I; a physical term's inverse has A = dx/dy = (dy/dx)^-1 (its implicit
+// Jacobian d_output_d_input), whose largest singular value is the factor by which the station's
+// report noise reaches its residual. Null if a term cannot be evaluated.
+std::optional<Matrix6> NoiseAmplification(const std::vector<BoundTerm>& terms,
+                                          const FitStation& station, double sigma_p,
+                                          double sigma_o) {
+  AmbientPose pose = ToAmbient(station.reported);
+  Eigen::Matrix<double, 7, 7> d_pose = Eigen::Matrix<double, 7, 7>::Identity();
+  TermEvaluation eval;
+  for (const auto& t : terms) {
+    std::vector<const double*> values;
+    for (int b : t.binding.blocks) {
+      values.push_back(t.term->blocks()[static_cast<size_t>(b)].values.data());
+    }
+    if (!t.term->Evaluate(t.binding, values.data(), pose, true, &eval)) return std::nullopt;
+    d_pose = eval.d_output_d_input * d_pose;
+    pose = eval.output;
+  }
+  if (!pose.allFinite() || !d_pose.allFinite()) return std::nullopt;
+  // d ambient report / d e: position as is; rotation q' = Exp(e_w) q, dq/de_k = 0.5 (e_k, 0) q.
+  Eigen::Matrix<double, 7, 6> d_report = Eigen::Matrix<double, 7, 6>::Zero();
+  d_report.topLeftCorner<3, 3>() = sigma_p * Eigen::Matrix3d::Identity();
+  const Eigen::Quaterniond q = station.reported.rotation;
+  for (int k = 0; k < 3; ++k) {
+    Eigen::Vector3d e = Eigen::Vector3d::Zero();
+    e(k) = 0.5 * (2.0 * sigma_o);
+    const Eigen::Quaterniond dq = QuaternionFromXyzw(e.x(), e.y(), e.z(), 0.0) * q;
+    d_report.block<4, 1>(3, 3 + k) << dq.x(), dq.y(), dq.z(), dq.w();
+  }
+  using Jet = ceres::Jet<double, 7>;
+  Jet pose_jet[7], r[6];
+  for (int k = 0; k < 7; ++k) pose_jet[k] = Jet(pose[k], k);
+  StationResidual<Jet>(pose_jet, station.reference, sigma_p, sigma_o, r);
+  Eigen::Matrix<double, 6, 7> d_r;
+  for (int i = 0; i < 6; ++i) d_r.row(i) = r[i].v.transpose();
+  const Matrix6 a = d_r * d_pose * d_report;
+  if (!a.allFinite()) return std::nullopt;
+  return a;
+}
+
+// The extra whitening of a station whose chain amplifies its report noise (docs/model-file.md,
+// noise.amplification_threshold). The model file's noise is what a station shows after the
+// correction in the room as it is: amplification of the order of the room's (up to ~1.3 in the
+// paper room) is part of it. Along each direction u_i of the residual in which the chain amplifies
+// the report noise by s_i > threshold (A = U S V^T), the residual's sigma is raised by s_i /
+// threshold, so the station weighs what it can tell there (near a strong object's fold zone, a
+// station whose inverse amplifies the noise 30-45x would otherwise steer the fit). W = U
+// diag(min(1, threshold / s_i)) U^T; identity (null) when no s_i exceeds the threshold, so chains
+// without such stations are fitted exactly as without this step.
+struct NoiseWhitening {
+  std::optional<Matrix6> w;
+  double gain = 1.0;  // largest s_i (NaN if the chain could not be evaluated)
+};
+NoiseWhitening WhiteningOfAmplification(const std::optional<Matrix6>& a, double threshold) {
+  NoiseWhitening out;
+  if (!a) {
+    out.gain = std::numeric_limits<double>::quiet_NaN();
+    return out;
+  }
+  const Eigen::JacobiSVD<Matrix6> svd(*a, Eigen::ComputeFullU);
+  const Eigen::Matrix<double, 6, 1> s = svd.singularValues();  // decreasing
+  out.gain = s(0);
+  if (!(s(0) > threshold)) return out;
+  const Eigen::Matrix<double, 6, 1> f = (threshold / s.array()).min(1.0).matrix();
+  out.w = svd.matrixU() * f.asDiagonal() * svd.matrixU().transpose();
+  return out;
+}
 
 // Each station's pose at the input of term `k` (terms 0..k-1 applied with their current values).
 std::vector<FitStation> InputsOfTerm(const std::vector<FitStation>& stations,
@@ -233,6 +335,10 @@ struct BuiltProblem {
   std::unique_ptr<ceres::Problem> problem;
   std::vector<ceres::ResidualBlockId> station_blocks;  // one per station, in station order
   int num_free = 0;  // tangent size of the free term blocks (the time offset not counted)
+  // Per station: its report-noise amplification at the values the problem was built with, and
+  // whether its residual got the extra whitening (WhiteningOfAmplification).
+  std::vector<double> noise_gain;
+  std::vector<bool> noise_whitened;
 };
 
 BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -273,10 +379,18 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       }
       if (time_offset) blocks.push_back(time_offset);
       const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
-      station_blocks.push_back(problem.AddResidualBlock(
-          new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1],
-                          time_offset0),
-          MakeLoss(spec->loss), blocks));
+      NoiseWhitening whitening;
+      if (std::isfinite(spec->amplification_threshold)) {
+        whitening = WhiteningOfAmplification(
+            NoiseAmplification(bound[i], stations[i], station_sigmas[0], station_sigmas[1]),
+            spec->amplification_threshold);
+      }
+      out.noise_gain.push_back(whitening.gain);
+      out.noise_whitened.push_back(whitening.w.has_value());
+      station_blocks.push_back(
+          problem.AddResidualBlock(new StationCost(bound[i], stations[i], station_sigmas[0],
+                                                   station_sigmas[1], time_offset0, whitening.w),
+                                   MakeLoss(spec->loss), blocks));
     }
   }
   for (size_t k = 0; k < spec->terms.size(); ++k) {
@@ -312,6 +426,23 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
   }
 
   return out;
+}
+
+// Passes of FitModel's solve with the noise whitening rebuilt at the solution (IRLS): the first
+// solve and up to two re-whitened ones (the whitening of the ferromagnetic toolbox's stations
+// settles in one).
+constexpr int kMaxWhiteningPasses = 3;
+
+// True if the noise whitening of `after` differs from that of `before` by more than 10 % in any
+// station's largest amplification (or a station crossed the threshold): worth another solve.
+bool WhiteningChanged(const BuiltProblem& before, const BuiltProblem& after) {
+  for (size_t i = 0; i < before.noise_whitened.size(); ++i) {
+    if (before.noise_whitened[i] != after.noise_whitened[i]) return true;
+    if (!before.noise_whitened[i]) continue;
+    const double a = before.noise_gain[i], b = after.noise_gain[i];
+    if (!(std::abs(b - a) <= 0.1 * a)) return true;
+  }
+  return false;
 }
 
 // True for stations that are samples of a stream rather than static stations: most of them
@@ -439,10 +570,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
 
   // (2) the joint problem.
   FitResult result;
-  BuiltProblem built = BuildProblem(stations, spec, fit_time_offset ? &time_offset : nullptr,
-                                    time_offset0);
-  ceres::Problem& problem = *built.problem;
-  const std::vector<ceres::ResidualBlockId>& station_blocks = built.station_blocks;
+  BuiltProblem built =
+      BuildProblem(stations, spec, fit_time_offset ? &time_offset : nullptr, time_offset0);
   int num_free = built.num_free;
 
   if (fit_time_offset) num_free += 1;
@@ -463,18 +592,43 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   if (linear_solution) {
     // Solved linearly above; the problem is only the covariance's.
     result = std::move(*linear_solution);
-  } else {
-    if (num_free > 0) ceres::Solve(solver_options, &problem, &summary);
+  }
+  double first_initial_cost = 0.0;
+  if (!linear_solution && num_free > 0) {
+    ceres::Solve(solver_options, built.problem.get(), &summary);
+    first_initial_cost = summary.initial_cost;
+    result.iterations = static_cast<int>(summary.iterations.size()) - 1;
+    result.whitening_passes = 1;
+    // The noise whitening depends on the values (a station's amplification follows the fitted
+    // object): rebuilt at the solution and solved again while it changes, as iteratively
+    // reweighted least squares. A chain that amplifies no station's noise beyond the threshold
+    // (at the start nor at the solution) is solved once, as without the whitening.
+    for (; result.whitening_passes < kMaxWhiteningPasses; ++result.whitening_passes) {
+      BuiltProblem next =
+          BuildProblem(stations, spec, fit_time_offset ? &time_offset : nullptr, time_offset0);
+      if (!WhiteningChanged(built, next)) break;
+      built = std::move(next);
+      ceres::Solve(solver_options, built.problem.get(), &summary);
+      result.iterations += static_cast<int>(summary.iterations.size()) - 1;
+    }
+  }
+  ceres::Problem& problem = *built.problem;
+  const std::vector<ceres::ResidualBlockId>& station_blocks = built.station_blocks;
+  for (size_t i = 0; i < stations.size(); ++i) {
+    if (built.noise_whitened[i]) {
+      result.noise_whitened.push_back({stations[i].station, built.noise_gain[i]});
+    }
+  }
+  if (!linear_solution) {
     result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE;
     result.solver_message = num_free == 0 ? "no free parameters" : summary.message;
-    result.iterations = num_free == 0 ? 0 : static_cast<int>(summary.iterations.size()) - 1;
     result.num_residuals = problem.NumResiduals();
     result.num_free_parameters = num_free;
     {
       double cost = 0.0;
       problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, nullptr);
       result.final_cost = cost;
-      result.initial_cost = num_free == 0 ? cost : summary.initial_cost;
+      result.initial_cost = num_free == 0 ? cost : first_initial_cost;
     }
     const int dof = result.num_residuals - num_free;
     result.chi2_per_dof = dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
@@ -1031,6 +1185,10 @@ nlohmann::json FitResult::ToJson() const {
   for (const auto& u : unresolved) {
     unresolved_json.push_back({{"station", u.station}, {"status", CorrectionStatusName(u.status)}});
   }
+  nlohmann::json amplified_json = nlohmann::json::array();
+  for (const auto& a : noise_whitened) {
+    amplified_json.push_back({{"station", a.station}, {"gain", NumberOrNull(a.gain)}});
+  }
   return {{"converged", converged},
           {"solver_message", solver_message},
           {"iterations", iterations},
@@ -1044,11 +1202,13 @@ nlohmann::json FitResult::ToJson() const {
           {"seconds_covariance", seconds_covariance},
           {"rank_deficient", rank_deficient},
           {"covariance_message", covariance_message},
-          {"covariance_estimator", covariance_estimator.empty() ? nlohmann::json()
-                                                                 : nlohmann::json(covariance_estimator)},
+          {"covariance_estimator",
+           covariance_estimator.empty() ? nlohmann::json() : nlohmann::json(covariance_estimator)},
           {"identifiability_flags", flags},
           {"outliers", out_flags},
           {"unresolved", unresolved_json},
+          {"noise_amplified", amplified_json},
+          {"whitening_passes", whitening_passes},
           {"terms", terms},
           {"parameters", params}};
 }

@@ -45,6 +45,13 @@ struct UnresolvedStation {
   CorrectionStatus status = CorrectionStatus::kNotConverged;
 };
 
+// A station whose chain amplifies its report noise beyond the model's amplification_threshold:
+// its residual was whitened by the amplified noise (docs/model-file.md, `noise`).
+struct AmplifiedStation {
+  int station = 0;
+  double gain = 0.0;  // largest amplification of the report noise into the residual (1: none)
+};
+
 struct ParameterReport {
   std::string term;       // term name
   std::string block;      // block name
@@ -88,6 +95,11 @@ struct FitResult {
   // Calibration stations whose physical inverse is not converged or ambiguous under the fitted
   // model (in --json: "unresolved": [{"station", "status"}]).
   std::vector<UnresolvedStation> unresolved;
+  // Stations whose residual was whitened by the report noise the fitted chain amplifies into it
+  // (in --json: "noise_amplified": [{"station", "gain"}]), and the solves it took (1: the
+  // whitening did not change at the solution; 0: no solver run).
+  std::vector<AmplifiedStation> noise_whitened;
+  int whitening_passes = 0;
   CorrectionChain chain;              // the fitted correction, with the calibrated volume
   nlohmann::json terms = nlohmann::json::array();  // Describe() of every term
 

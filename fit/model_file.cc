@@ -293,6 +293,10 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     spec.orientation_range_exponent = noise.GetDoubleOr("orientation_range_exponent", 0.0);
     spec.noise_reference_range_m = noise.GetDoubleOr("reference_range_m", 1.0);
     if (!(spec.noise_reference_range_m > 0.0)) noise.Fail("reference_range_m", "must be > 0");
+    spec.amplification_threshold = noise.GetDoubleOr("amplification_threshold", 2.0);
+    if (!(spec.amplification_threshold >= 1.0)) {
+      noise.Fail("amplification_threshold", "must be >= 1 (1e9: no amplification whitening)");
+    }
     noise.Finish();
   }
   if (top.Has("loss")) {

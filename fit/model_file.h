@@ -140,6 +140,12 @@ struct ModelSpec {
   double position_range_exponent = 0.0;
   double orientation_range_exponent = 0.0;
   double noise_reference_range_m = 1.0;
+  // A station whose chain amplifies its report noise by s > this along some direction of its
+  // residual (near a strong object's fold, fit/fit_engine.cc) has that direction's sigma raised by
+  // s / threshold. The noise above already holds the room's usual amplification (<= 1.3 in the
+  // paper room), hence 2; a huge value (1e9) switches the whitening off
+  // (noise.amplification_threshold).
+  double amplification_threshold = 2.0;
   // (position, orientation) sigmas of a station reported at `reported`.
   Eigen::Vector2d StationSigmas(const Rigid3d& reported) const;
   LossOptions loss;

@@ -9,6 +9,7 @@
 #include <sstream>
 
 #include "fit/fit_engine.h"
+#include "fit/fit_run.h"
 #include "fit/model_file.h"
 #include "fit/sim_test_support.h"
 #include "fit/terms_physical.h"
@@ -227,6 +228,89 @@ TEST(PhysicalTermsOnSimulator, FerromagneticObjectFoundWithoutStart) {
   ExpectWithin3Sigma(FindParameter(fit, "dipole", "location_in_transmitter"),
                      {l.x(), l.y(), l.z()});
   ExpectWithin3Sigma(FindParameter(fit, "dipole", "polarisability_m3"), {truth.polarisability_m3});
+}
+
+// The toolbox on the paper protocol's stations (sim::Simulator::Generate: the calibration grid and
+// the validation stations of the preset), where six calibration stations 0.29-0.32 m from the
+// object sit just outside its fold zone and the inverse amplifies their report noise 30-45 times.
+// Whitened with the model file's noise alone they steer the searched dipole into a local minimum
+// (0.637, 0.916, -0.538) m, 0.00155 m^3 on seed 20010313; whitened by the noise the fitted
+// inverse amplifies (fit/fit_engine.cc, noise.amplification_threshold) the fit finds the object.
+// The acceptance per seed: validation within 10 % of the room model's error on the
+// effect-free twin, location and strength within 3 sigma.
+void FitFerromagneticOnProtocol(uint64_t seed) {
+  sim::Scene twin = sim::LoadScene("paper");
+  twin.seed = seed;
+  sim::Scene hidden = twin;
+  hidden.hidden.Enable("ferromagnetic_object");
+  const sim::SimulatedCapture clean = sim::Simulator(twin).Generate();
+  const sim::SimulatedCapture capture = sim::Simulator(hidden).Generate();
+  const std::vector<FitStation> twin_calibration = StationsOfSet(clean.poses, "calib");
+  const std::vector<FitStation> twin_validation = StationsOfSet(clean.poses, "valid");
+  const std::vector<FitStation> calibration = StationsOfSet(capture.poses, "calib");
+  const std::vector<FitStation> validation = StationsOfSet(capture.poses, "valid");
+  const PhysicalCorrection exact(twin.environment, twin.tracker.receiver_gain_matrix);
+  const double floor_twin = RmsPositionError(exact, twin_validation);
+  const double before = RmsPositionError(exact, validation);
+  ModelSpec spec = ParseModelYaml(NoiseYaml(exact, twin_calibration) + "terms:\n" +
+                                      FixedRoomTermsYaml(twin.environment) + "  - type: dipole\n",
+                                  "toolbox.yaml");
+  const FitResult fit = FitModel(calibration, &spec);
+  EXPECT_TRUE(fit.converged) << fit.solver_message;
+  CorrectionChain chain = fit.chain;
+  chain.ClearVolume();
+  // A validation station inside the object's fold zone has no true pose the true model can find
+  // from its report (seed 1: station 545, 0.22 m from the object, 7.7 mm off under the true model,
+  // not_converged): no model can reach the twin's error there, and the fitted model must say so.
+  // The acceptance holds on the stations the true model resolves.
+  FieldModel truth_field = twin.environment;
+  truth_field.objects.push_back(hidden.hidden.object);
+  const PhysicalCorrection truth_model(truth_field, twin.tracker.receiver_gain_matrix);
+  std::vector<FitStation> resolvable;
+  for (const FitStation& s : validation) {
+    if (truth_model.Apply(s.reported).status != CorrectionStatus::kNotConverged) {
+      resolvable.push_back(s);
+    } else {
+      EXPECT_NE(chain.Apply(s.reported).status, CorrectionStatus::kConverged) << s.station;
+    }
+  }
+  // At most 2 of the 120 (the fold zone holds ~1 % of the validation volume).
+  EXPECT_LE(validation.size() - resolvable.size(), 2u);
+  const double after = RmsPositionError(chain, resolvable);
+  const ParameterReport& l = FindParameter(fit, "dipole", "location_in_transmitter");
+  const ParameterReport& a = FindParameter(fit, "dipole", "polarisability_m3");
+  std::cout << "seed " << seed << ": twin " << floor_twin * 1e3 << " mm, room model "
+            << before * 1e3 << " mm, with the dipole " << after * 1e3 << " mm on the "
+            << resolvable.size() << " stations the true model resolves (true model "
+            << RmsPositionError(truth_model, resolvable) * 1e3 << " mm); dipole at (" << l.values[0]
+            << ", " << l.values[1] << ", " << l.values[2] << ") +- (" << l.stddev[0] << ", "
+            << l.stddev[1] << ", " << l.stddev[2] << ") m, " << a.values[0] << " +- " << a.stddev[0]
+            << " m^3; " << fit.noise_whitened.size()
+            << " stations whitened by their amplified noise, " << fit.whitening_passes
+            << " solves, " << fit.unresolved.size() << " unresolved (" << fit.seconds << " s)\n";
+  EXPECT_GT(before, 1.5 * floor_twin);  // the object is visible, so the test can fail
+  EXPECT_LT(after, 1.1 * floor_twin);   // the acceptance: within 10 % of the twin
+  const InducedDipole& truth = hidden.hidden.object;
+  const Eigen::Vector3d& t = truth.location_in_transmitter;
+  // 3 sigma for the location as a whole: each of its 3 coordinates gets the Bonferroni-corrected
+  // two-sided level 0.27 % / 3, 3.32 sigma (as fit/candidates_sim_test.cc); the strength 3.0.
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_LT(std::abs(l.values[static_cast<size_t>(k)] - t(k)),
+              3.32 * l.stddev[static_cast<size_t>(k)])
+        << "location[" << k << "] = " << l.values[static_cast<size_t>(k)] << " +- "
+        << l.stddev[static_cast<size_t>(k)] << ", truth " << t(k);
+  }
+  ExpectWithin3Sigma(a, {truth.polarisability_m3});
+  // The stations next to the fold zone are the ones whitened (six on seed 20010313, 0.29-0.32 m
+  // from the object): at least one, so the test exercises the whitening.
+  EXPECT_FALSE(fit.noise_whitened.empty());
+}
+
+TEST(PhysicalTermsOnSimulator, FerromagneticObjectOnThePaperProtocol) {
+  for (uint64_t seed : {20010313u, 1u, 2u}) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    FitFerromagneticOnProtocol(seed);
+  }
 }
 
 TEST(PhysicalTermsOnSimulator, FiniteTransmitterCoils) {

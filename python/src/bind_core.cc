@@ -98,10 +98,12 @@ std::vector<double> Columns(const std::vector<double>& v, int first) {
   return out;
 }
 
-// Corrects a batch through `apply` (a Correction or Calibration ApplyBatch) with the GIL released.
+// Corrects a batch through `apply` (a Correction's or a chain's ApplyBatchWithStatus) with the GIL
+// released. Returns (positions, quaternions, extrapolated) and, with `with_status`, the per-pose
+// CorrectionStatus as a uint8 array (0 converged, 1 ambiguous, 2 not_converged).
 template <typename Apply>
 py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quaternions_obj,
-                       const Apply& apply) {
+                       bool with_status, const Apply& apply) {
   const DoubleArray positions = AsArray(positions_obj, "positions", {-1, 3});
   const py::ssize_t n = positions.shape(0);
   const DoubleArray quaternions =
@@ -110,18 +112,32 @@ py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quater
   py::array_t<double> out_positions({n, py::ssize_t{3}});
   py::array_t<double> out_quaternions({n, py::ssize_t{4}});
   py::array_t<bool> extrapolated(n);
+  py::array_t<uint8_t> status(with_status ? n : py::ssize_t{0});
   static_assert(sizeof(bool) == sizeof(uint8_t));
+  static_assert(sizeof(CorrectionStatus) == sizeof(uint8_t));
   {
     const double* p = positions.data();
     const double* q = quaternions.data();
     double* po = out_positions.mutable_data();
     double* qo = out_quaternions.mutable_data();
     auto* flags = reinterpret_cast<uint8_t*>(extrapolated.mutable_data());
+    auto* statuses =
+        with_status ? reinterpret_cast<CorrectionStatus*>(status.mutable_data()) : nullptr;
     py::gil_scoped_release release;
-    apply(static_cast<size_t>(n), p, q, po, qo, flags);
+    apply(static_cast<size_t>(n), p, q, po, qo, flags, statuses);
   }
+  if (with_status) return py::make_tuple(out_positions, out_quaternions, extrapolated, status);
   return py::make_tuple(out_positions, out_quaternions, extrapolated);
 }
+
+// The docstring tail shared by both correct() methods.
+constexpr const char* kStatusDoc =
+    " With return_status=True a fourth array, status (N,) uint8, says how each pose's model "
+    "inverse (a physical term) arrived at it: 0 converged, 1 ambiguous (another true pose explains "
+    "the same report, or report noise is amplified more than max_noise_gain times: next to a "
+    "strong object), 2 not_converged (a bounded best guess); trackcal.correction_status_names "
+    "names them and trackcal.status_counts(status) counts them. Terms without an inverse always "
+    "report 0.";
 
 py::object JsonToPython(const nlohmann::json& j) {
   return py::module_::import("json").attr("loads")(j.dump());
@@ -201,21 +217,40 @@ void BindCore(py::module_& m) {
   m.def("sha256_file", &Sha256HexOfFile, py::arg("path"),
         "Lower-case hex SHA-256 of a file (for provenance inputs).");
 
+  // pybind11 copies docstrings; these outlive the definitions anyway.
+  const std::string term_correct_doc =
+      std::string(
+          "Applies this term alone (no calibrated volume): (positions, quaternions, "
+          "extrapolated).") +
+      kStatusDoc;
+  const std::string calibration_correct_doc =
+      std::string(
+          "Corrects N reported poses: positions (N, 3) [m] and quaternions (N, 4) ordered "
+          "x, y, z, w. Returns (positions (N, 3), quaternions (N, 4), extrapolated (N,) "
+          "bool).") +
+      kStatusDoc;
+  m.attr("correction_status_names") =
+      py::make_tuple(CorrectionStatusName(CorrectionStatus::kConverged),
+                     CorrectionStatusName(CorrectionStatus::kAmbiguous),
+                     CorrectionStatusName(CorrectionStatus::kNotConverged));
   py::class_<Correction, std::shared_ptr<Correction>>(
-      m, "Correction", "One correction term (polynomial, LUT, ...): reported pose -> corrected pose.")
+      m, "Correction",
+      "One correction term (polynomial, LUT, ...): reported pose -> corrected pose.")
       .def_property_readonly("type", &Correction::TypeName, "The term's \"type\" in the file.")
       .def(
           "to_json", [](const Correction& c) { return c.ToJson().dump(2); },
           "The term's entry of the file's corrections array, as JSON text.")
       .def(
           "correct",
-          [](const Correction& c, const py::handle& positions, const py::handle& quaternions) {
-            return CorrectBatch(positions, quaternions,
-                                [&c](size_t n, const double* p, const double* q, double* po,
-                                     double* qo, uint8_t* f) { c.ApplyBatch(n, p, q, po, qo, f); });
+          [](const Correction& c, const py::handle& positions, const py::handle& quaternions,
+             bool return_status) {
+            return CorrectBatch(
+                positions, quaternions, return_status,
+                [&c](size_t n, const double* p, const double* q, double* po, double* qo, uint8_t* f,
+                     CorrectionStatus* st) { c.ApplyBatchWithStatus(n, p, q, po, qo, f, st); });
           },
-          py::arg("positions"), py::arg("quaternions_xyzw"),
-          "Applies this term alone (no calibrated volume): (positions, quaternions, extrapolated).");
+          py::arg("positions"), py::arg("quaternions_xyzw"), py::arg("return_status") = false,
+          term_correct_doc.c_str());
 
   py::class_<PolynomialCorrection, Correction, std::shared_ptr<PolynomialCorrection>>(
       m, "PolynomialCorrection",
@@ -319,14 +354,16 @@ void BindCore(py::module_& m) {
       .def("to_json", &CalibrationToJsonText)
       .def(
           "correct",
-          [](const Calibration& c, const py::handle& positions, const py::handle& quaternions) {
-            return CorrectBatch(positions, quaternions,
+          [](const Calibration& c, const py::handle& positions, const py::handle& quaternions,
+             bool return_status) {
+            return CorrectBatch(positions, quaternions, return_status,
                                 [&c](size_t n, const double* p, const double* q, double* po,
-                                     double* qo, uint8_t* f) { c.ApplyBatch(n, p, q, po, qo, f); });
+                                     double* qo, uint8_t* f, CorrectionStatus* st) {
+                                  c.chain.ApplyBatchWithStatus(n, p, q, po, qo, f, st);
+                                });
           },
-          py::arg("positions"), py::arg("quaternions_xyzw"),
-          "Corrects N reported poses: positions (N, 3) [m] and quaternions (N, 4) ordered x, y, z, "
-          "w. Returns (positions (N, 3), quaternions (N, 4), extrapolated (N,) bool).")
+          py::arg("positions"), py::arg("quaternions_xyzw"), py::arg("return_status") = false,
+          calibration_correct_doc.c_str())
       .def_property_readonly("corrections",
                              [](const Calibration& c) {
                                std::vector<std::shared_ptr<Correction>> out;
@@ -335,8 +372,10 @@ void BindCore(py::module_& m) {
                                }
                                return out;
                              })
-      .def_property_readonly("volume_min", [](const Calibration& c) { return ToArray(c.volume().min); })
-      .def_property_readonly("volume_max", [](const Calibration& c) { return ToArray(c.volume().max); })
+      .def_property_readonly("volume_min",
+                             [](const Calibration& c) { return ToArray(c.volume().min); })
+      .def_property_readonly("volume_max",
+                             [](const Calibration& c) { return ToArray(c.volume().max); })
       .def_property_readonly(
           "extrapolation",
           [](const Calibration& c) { return ExtrapolationPolicyName(c.volume().extrapolation); })
@@ -345,10 +384,9 @@ void BindCore(py::module_& m) {
       .def_readwrite("description", &Calibration::description)
       .def_property_readonly("fit_statistics",
                              [](const Calibration& c) { return JsonToPython(c.fit_statistics); })
-      .def_property_readonly("provenance",
-                             [](const Calibration& c) {
-                               return JsonToPython(CalibrationToJson(c).at("provenance"));
-                             })
+      .def_property_readonly(
+          "provenance",
+          [](const Calibration& c) { return JsonToPython(CalibrationToJson(c).at("provenance")); })
       .def("__repr__", [](const Calibration& c) {
         std::string terms;
         for (size_t i = 0; i < c.chain.size(); ++i) {

@@ -242,3 +242,58 @@ def test_lut_exact_at_nodes_and_flags_outside_grid():
     assert not flags.any()
     _, _, flags = lut.correct([[0.0, 0.0, 0.7], [0.0, 0.0, 0.3]], [[0, 0, 0, 1]] * 2)
     assert flags.tolist() == [True, False]
+
+
+def physical_calibration(volume_min=(-0.8, -0.6, -0.8), volume_max=(0.8, 0.6, -0.35)):
+    """A calibration whose only term is a physical model: the paper room's floor and its toolbox
+    (a ferromagnetic object 0.126 m in radius at (0.6, 0.95, -0.5) m)."""
+    doc = json.loads(EXAMPLE.read_text())
+    doc["calibrated_volume"] = {"min": list(volume_min), "max": list(volume_max), "extrapolation": "clamp",
+                               "fade_distance": 0.0}
+    doc["corrections"] = [{
+        "type": "physical", "field_constant": 1.0, "transmitter_octupole_m2": [0, 0, 0],
+        "planes": [{"name": "floor", "point_in_transmitter": [0, 0, 0.8], "normal_in_transmitter": [0, 0, 1],
+                    "attenuation": 0.27}],
+        "objects": [{"name": "toolbox", "location_in_transmitter": [0.6, 0.95, -0.5], "polarisability_m3": 0.002}],
+        "receiver_gain_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}]
+    return trackcal.Calibration.from_json(json.dumps(doc))
+
+
+def test_correct_reports_the_status_of_the_model_inverse():
+    cal = physical_calibration()
+    toolbox = np.array([0.6, 0.95, -0.5])
+    # Reports away from the object (the volume's far corner and centre), on the object (no true pose:
+    # the receiver would be inside it), and along a line towards it through its fold zone, where a
+    # report has a second true pose or its noise is amplified more than 10 times.
+    positions = [[-0.6, -0.4, -0.5], [0.0, 0.0, -0.6], toolbox.tolist()]
+    positions += [(toolbox - d * np.array([0.0, 1.0, 0.0])).tolist() for d in np.linspace(0.13, 0.4, 28)]
+    positions = np.array(positions)
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(positions), 1))
+    p, q, extrapolated, status = cal.correct(positions, quats, return_status=True)
+    assert status.dtype == np.uint8 and status.shape == (len(positions),)
+    names = [trackcal.correction_status_names[s] for s in status]
+    assert names[:3] == ["converged", "converged", "not_converged"]
+    assert "ambiguous" in names[3:]
+    counts = trackcal.status_counts(status)
+    assert sum(counts.values()) == len(positions)
+    assert counts == {n: names.count(n) for n in trackcal.correction_status_names}
+    # The default call keeps its three arrays and the same poses.
+    p3, q3, e3 = cal.correct(positions, quats)
+    np.testing.assert_array_equal(p3, p)
+    np.testing.assert_array_equal(e3, extrapolated)
+    # The term alone (no volume) and the chain's per-pose path for poses outside the volume (every
+    # pose here but the first two is outside it) agree with the batch path.
+    _, _, _, term_status = cal.corrections[0].correct(positions, quats, return_status=True)
+    np.testing.assert_array_equal(term_status, status)
+    inside = physical_calibration(volume_min=(-1.0, -1.0, -1.0), volume_max=(1.0, 1.0, 0.0))
+    np.testing.assert_array_equal(inside.correct(positions, quats, return_status=True)[3], status)
+
+
+def test_status_of_terms_without_an_inverse_is_converged():
+    cal = trackcal.Calibration.load(EXAMPLE)
+    rng = np.random.default_rng(4)
+    positions, quats = random_poses(rng, 50)
+    _, _, _, status = cal.correct(positions, quats, return_status=True)
+    assert trackcal.status_counts(status) == {"converged": 50, "ambiguous": 0, "not_converged": 0}
+    with pytest.raises(ValueError, match="status codes"):
+        trackcal.status_counts([0, 3])

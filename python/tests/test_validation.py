@@ -58,6 +58,9 @@ def test_table1_hand_computed(tmp_path):
     np.testing.assert_allclose(v.before.orientation[:, 2], np.sin(np.radians([1, 2, 3, 4]) / 2), atol=1e-12)
     assert v.worst[0]["station"] == 4 and v.worst[0]["position_mm"] == pytest.approx(3.0, abs=tol)
     assert not v.extrapolated.any()
+    # A polynomial has no model inverse: every station's correction status is converged.
+    assert v.status_counts == {"converged": 4, "ambiguous": 0, "not_converged": 0}
+    assert v.worst[0]["status"] == "converged"
 
 
 def test_extrapolated_stations_flagged(tmp_path):

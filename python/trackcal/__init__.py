@@ -6,6 +6,10 @@ Correcting poses::
 
     cal = trackcal.Calibration.load("calib.json")
     positions, quaternions_xyzw, extrapolated = cal.correct(positions, quaternions_xyzw)
+    # With a physical term: how its model inverse arrived at each pose (0 converged, 1 ambiguous,
+    # 2 not_converged; trackcal.correction_status_names).
+    p, q, extrapolated, status = cal.correct(positions, quaternions_xyzw, return_status=True)
+    trackcal.status_counts(status)   # {"converged": ..., "ambiguous": ..., "not_converged": ...}
 
 Fitting a model file with the C++ engine in process (docs/python.md)::
 
@@ -31,12 +35,25 @@ from trackcal._core import (
     TrilinearLutCorrection,
     __version__,
     angular_distance,
+    correction_status_names,
     num_polynomial_terms,
     polynomial_term_exponents,
     sha256_file,
 )
 from trackcal.diagnosis import diagnose_candidates
 from trackcal.fitting import FitReport, Pairing, Registration, fit, pair, register
+
+
+def status_counts(status) -> dict:
+    """Counts of each correction status in a status array of ``correct(..., return_status=True)``:
+    ``{"converged": n0, "ambiguous": n1, "not_converged": n2}`` (ValueError for unknown codes)."""
+    import numpy as np
+    codes = np.asarray(status).ravel()
+    if codes.size and (codes.min() < 0 or codes.max() >= len(correction_status_names)):
+        raise ValueError(f"status codes must be 0..{len(correction_status_names) - 1}")
+    counts = np.bincount(codes.astype(np.int64), minlength=len(correction_status_names))
+    return {name: int(counts[i]) for i, name in enumerate(correction_status_names)}
+
 
 __all__ = [
     "Calibration",
@@ -48,6 +65,7 @@ __all__ = [
     "TrilinearLutCorrection",
     "__version__",
     "angular_distance",
+    "correction_status_names",
     "diagnose_candidates",
     "fit",
     "num_polynomial_terms",
@@ -55,4 +73,5 @@ __all__ = [
     "polynomial_term_exponents",
     "register",
     "sha256_file",
+    "status_counts",
 ]

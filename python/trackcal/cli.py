@@ -177,12 +177,21 @@ def cmd_fit(args, term) -> int:
     return 0
 
 
+def _unresolved_line(v) -> str:
+    """How many stations a physical term's model inverse could not resolve (correction status)."""
+    c = v.status_counts
+    n = c["ambiguous"] + c["not_converged"]
+    return (f"stations the model inverse does not resolve: {n} of {len(v.extrapolated)} "
+            f"(ambiguous {c['ambiguous']}, not converged {c['not_converged']})")
+
+
 def cmd_validate(args, term) -> int:
     _, _, v = _validation(args, term, covariates=False)
     _record_history(args, v)
     for t in v.tables:
         print(term.c(t.format(), "1") if t.set_name == "valid" else t.format())
     print(f"stations outside the calibrated volume: {int(v.extrapolated.sum())} of {len(v.extrapolated)}")
+    print(_unresolved_line(v))
     if args.json:
         print(json.dumps({t.set_name: t.to_dict() for t in v.tables}, indent=2))
     return 0
@@ -244,6 +253,8 @@ def cmd_diagnose(args, term) -> int:
     n_out = int(v.extrapolated.sum())
     msg = f"stations outside the calibrated volume: {n_out} of {len(v.extrapolated)}"
     print(term.c(msg, "33") if n_out else msg)
+    msg = _unresolved_line(v)
+    print(term.c(msg, "33") if v.status_counts["converged"] < len(v.extrapolated) else msg)
     cols = ["label", "count", "before_position_mm", "before_orientation_deg"]
     if v.after is not None:
         cols += ["after_position_mm", "after_orientation_deg"]

@@ -15,6 +15,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 
 from trackcal import _core
+from trackcal._core import correction_status_names
 from trackcal.captures import PoseCapture
 from trackcal.numpy_reference import quaternion_multiply_xyzw
 
@@ -305,6 +306,16 @@ class Validation:
     by_region: List[dict]
     worst: List[dict]
     covariate_effects: List[CovariateEffect] = dataclasses.field(default_factory=list)
+    # Per station: how the calibration's model inverse arrived at the corrected pose (uint8: 0
+    # converged, 1 ambiguous, 2 not_converged; trackcal.correction_status_names); all 0 without a
+    # calibration or without a physical term.
+    status: Optional[np.ndarray] = None
+
+    @property
+    def status_counts(self) -> dict:
+        """{"converged": n, "ambiguous": n, "not_converged": n} over the stations."""
+        from trackcal import status_counts
+        return status_counts(self.status if self.status is not None else np.zeros(len(self.extrapolated), np.uint8))
 
     @property
     def final(self) -> Residuals:
@@ -334,8 +345,10 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
     after = None
     cp = cq = None
     extrapolated = np.zeros(len(data), bool)
+    status = np.zeros(len(data), np.uint8)
     if calibration is not None:
-        cp, cq, extrapolated = calibration.correct(data.reported_positions, data.reported_quaternions_xyzw)
+        cp, cq, extrapolated, status = calibration.correct(data.reported_positions, data.reported_quaternions_xyzw,
+                                                           return_status=True)
         after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
     tables = []
     for s in sets:
@@ -350,14 +363,16 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
               "x": float(data.reported_positions[i, 0]), "y": float(data.reported_positions[i, 1]),
               "z": float(data.reported_positions[i, 2]), "distance": float(distance[i]),
               "position_mm": float(final.position_mm[i]), "orientation_deg": float(final.orientation_deg[i]),
-              "extrapolated": bool(extrapolated[i])} for i in order]
+              "extrapolated": bool(extrapolated[i]),
+              "status": correction_status_names[int(status[i])]} for i in order]
     centre = None
     if calibration is not None:
         centre = 0.5 * (np.asarray(calibration.volume_min) + np.asarray(calibration.volume_max))
     v = Validation(capture=data, calibration=calibration, corrected_positions=cp, corrected_quaternions_xyzw=cq,
                    extrapolated=np.asarray(extrapolated, bool), before=before, after=after, tables=tables,
                    by_distance=distance_breakdown(distance, before, after),
-                   by_region=region_breakdown(data.reported_positions, before, after, centre), worst=worst)
+                   by_region=region_breakdown(data.reported_positions, before, after, centre), worst=worst,
+                   status=np.asarray(status, np.uint8))
     if analyse_covariates:
         v.covariate_effects = covariate_analysis(final, covariates(data), progress=progress,
                                                  **(covariate_options or {}))
