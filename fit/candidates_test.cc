@@ -180,6 +180,63 @@ terms:
   EXPECT_THAT(top.outlier_stations, ::testing::ElementsAre(17, 114, 211));
 }
 
+// A flexible model bends to an isolated flip (it reports -p, where no other station is), so the
+// flip is no in-sample outlier; held out, it is off by 2 |p| (0.5-1.5 m). The robust loss is scored
+// on the held-out residuals: it is claimed, and names exactly the flipped stations.
+TEST(DiagnoseCandidates, FlipsAFlexibleModelAbsorbsAreFoundHeldOut) {
+  const auto stations = Stations(300, Eigen::Vector3d::Zero(), 3, 7);
+  const char* model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+terms:
+  - type: polynomial
+    degree: 4
+)";
+  CandidateOptions o = TestOptions();
+  o.effects = {"robust_loss"};
+  o.flexible.clear();
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  std::cout << FormatDiagnosis(d);
+  ASSERT_EQ(d.candidates.size(), 1u);
+  const Candidate& top = d.candidates[0];
+  EXPECT_TRUE(top.significant) << top.reason;
+  EXPECT_THAT(top.outlier_stations, ::testing::ElementsAre(17, 114, 211));
+  // Without the flips the held-out mean is the noise's (~0.16 mm for 0.1 mm per axis); with them,
+  // hundreds of mm: the stations it keeps are better than all of them by far more than 5 %.
+  EXPECT_GT(top.drop_position_percent, 90.0);
+  EXPECT_LT(top.delta_bic, -1000.0);
+  // The same stations without the flips (3 seeds): no held-out outlier, nothing claimed.
+  for (unsigned seed : {7u, 9u, 10u}) {
+    const Diagnosis clean = DiagnoseCandidates(Stations(300, Eigen::Vector3d::Zero(), 0, seed),
+                                               model, "model.yaml", "synthetic", o);
+    ASSERT_EQ(clean.candidates.size(), 1u);
+    EXPECT_FALSE(clean.candidates[0].significant) << seed << ": " << clean.candidates[0].reason;
+    EXPECT_TRUE(clean.candidates[0].outlier_stations.empty()) << seed;
+  }
+}
+
+// Once the model has a loss, the stations whose held-out error is a gross outlier stay out of every
+// candidate's comparison: the missing offset (3.7 mm against 0.1 mm noise) is claimed with the
+// drop of the other stations (the flips' 0.5-1.5 m held-out errors would swamp the means).
+TEST(DiagnoseCandidates, AModelWithALossLeavesItsHeldOutOutliersOutOfTheComparison) {
+  const auto stations = Stations(300, Eigen::Vector3d(0.003, -0.002, 0.001), 3, 8);
+  const char* model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+loss: {type: cauchy, scale: 3}
+terms:
+  - type: polynomial
+    degree: 1
+    position: false
+)";
+  CandidateOptions o = TestOptions();
+  o.flexible.clear();
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  std::cout << FormatDiagnosis(d);
+  ASSERT_EQ(d.candidates.size(), 1u);  // robust_loss is skipped: the model has one
+  const Candidate& top = d.candidates[0];
+  EXPECT_EQ(top.effect, "position_offset");
+  EXPECT_TRUE(top.significant) << top.reason;
+  // The kept stations go from ~3.7 mm to ~0.16 mm: over 90 %, as without flips (Nominal).
+  EXPECT_GT(top.drop_position_percent, 90.0);
+}
+
 // Streams paired with the wrong clock offset: the reference lags the tracker by 37 ms. The
 // time_offset candidate pairs again (here: a stand-in for PairStreams that knows the truth) and
 // wins.
