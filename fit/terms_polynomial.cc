@@ -172,9 +172,8 @@ std::vector<std::vector<int>> PolynomialTerm::BlockedFolds(const Eigen::MatrixXd
                                       0.25 * *std::max_element(gaps.begin(), gaps.end()));
     std::vector<int> layer_starts;  // ranks where a layer starts (after rank 0)
     for (int r = 1; r < n; ++r) {
-      if (gaps[static_cast<size_t>(r - 1)] > threshold && gaps[static_cast<size_t>(r - 1)] > 0.0) {
-        layer_starts.push_back(r);
-      }
+      const double gap = gaps[static_cast<size_t>(r - 1)];
+      if (gap > threshold && gap > 0.0) layer_starts.push_back(r);
     }
     // Cuts: every layer boundary when there are at most m layers; otherwise the layer boundary
     // nearest each quantile j n / m; without layers, the quantiles themselves (ties kept together).
@@ -227,7 +226,9 @@ std::vector<double> PolynomialTerm::BlockedRidgeCv(int degree, const Eigen::Matr
     if (folds < 2) continue;
     for (int f = 0; f < folds; ++f) {
       std::vector<Eigen::Index> held, kept;
-      for (Eigen::Index i = 0; i < n; ++i) (fold_of[static_cast<size_t>(i)] == f ? held : kept).push_back(i);
+      for (Eigen::Index i = 0; i < n; ++i) {
+        (fold_of[static_cast<size_t>(i)] == f ? held : kept).push_back(i);
+      }
       if (held.empty() || kept.empty()) continue;
       Eigen::Vector3d lo = u.row(kept[0]).transpose(), hi = lo;
       for (Eigen::Index i : kept) {
@@ -239,7 +240,8 @@ std::vector<double> PolynomialTerm::BlockedRidgeCv(int degree, const Eigen::Matr
       for (Eigen::Index i = 0; i < h; ++i) {
         a_held.row(i) = a.row(held[static_cast<size_t>(i)]);
         b_held.row(i) = b.row(held[static_cast<size_t>(i)]);
-        const Eigen::Vector3d uc = u.row(held[static_cast<size_t>(i)]).transpose().cwiseMax(lo).cwiseMin(hi);
+        const Eigen::Vector3d uc =
+            u.row(held[static_cast<size_t>(i)]).transpose().cwiseMax(lo).cwiseMin(hi);
         EvaluateMonomials(degree, uc.data(), monomials.data());
         for (Eigen::Index j = 0; j < r; ++j) a_clamped(i, j) = monomials[static_cast<size_t>(j)];
       }
