@@ -1,17 +1,25 @@
-// Acceptance of issue #5's best chain on the simulator's paper preset without hidden effects: a chain
-// found without truth values reaches a validation error within 1.5 times the noise floor (the error
-// the true model leaves on the same data, truth.json's statistics.valid.noise_floor).
+// Acceptance of issue #5's best chain on the simulator's paper preset without hidden effects: a
+// chain found without truth values reaches a validation error within 1.5 times the noise floor (the
+// error the true model leaves on the same data, truth.json's statistics.valid.noise_floor). Every
+// figure is of the calibration file as trackcal-fit writes it (its calibrated volume included):
+// what the server applies.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdlib>
 #include <fstream>
+#include <iomanip>
 #include <iostream>
+#include <limits>
 #include <sstream>
 
+#include "core/calibration_file.h"
 #include "core/error_statistics.h"
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
+#include "fit/sim_test_support.h"
+#include "fit/terms_polynomial.h"
 #include "sim/scene.h"
 #include "sim/simulator.h"
 
@@ -21,6 +29,9 @@ namespace {
 struct PaperCapture {
   std::vector<FitStation> calibration, validation;
   PoseErrorSummary floor;  // noise floor on the validation set
+  // Per validation station, the error the true model leaves (tracker and reference noise only,
+  // as the simulator computes the floor): position [mm], orientation [deg].
+  std::vector<double> floor_position_mm, floor_orientation_deg;
 };
 
 PaperCapture Simulate(uint64_t seed) {
@@ -28,46 +39,134 @@ PaperCapture Simulate(uint64_t seed) {
   scene.seed = seed;
   const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
   PaperCapture out;
-  for (const auto& r : capture.poses.records) {
+  for (size_t i = 0; i < capture.poses.records.size(); ++i) {
+    const auto& r = capture.poses.records[i];
     const FitStation s{r.reported, r.reference, r.time, r.sensor, r.station};
     if (r.set == "calib") out.calibration.push_back(s);
-    if (r.set == "valid") out.validation.push_back(s);
+    if (r.set != "valid") continue;
+    out.validation.push_back(s);
+    const sim::StationTruth& t = capture.stations[i];
+    const Eigen::Vector3d floor_p =
+        (r.reference.translation - r.reported.translation) -
+        (t.transmitter_from_body.translation - t.reported_noise_free.translation);
+    const Eigen::Quaterniond e_capture = r.reference.rotation * r.reported.rotation.conjugate();
+    const Eigen::Quaterniond e_model =
+        t.transmitter_from_body.rotation * t.reported_noise_free.rotation.conjugate();
+    out.floor_position_mm.push_back(1e3 * floor_p.norm());
+    out.floor_orientation_deg.push_back(kDegPerRad * AngularDistance(e_capture, e_model));
   }
   out.floor = capture.noise_floor.at("valid");
   return out;
 }
 
+// Validation means of a correction over the floor's, overall and split by whether the station's
+// reported position lies inside the calibrated volume (the calibration stations' box).
 struct Outcome {
   double position_ratio = 0, orientation_ratio = 0, seconds = 0;
+  double inside_position_ratio = 0, inside_orientation_ratio = 0;
+  double outside_position_ratio = 0, outside_orientation_ratio = 0;
+  int outside = 0;
 };
 
-// Fits `model` to the calibration set and returns the validation means over the floor's. The
-// calibrated-volume guard is cleared: about a third of the paper preset's validation stations lie
-// outside the calibration grid's box (its validation box is larger), and clamping would evaluate
-// the correction at the wrong place; even the true model leaves 7.5x the floor with the clamp.
-Outcome FitAndValidate(const PaperCapture& data, const std::string& model, const std::string& name) {
+// The calibration file exactly as trackcal-fit writes it (the chain with its calibrated volume),
+// through the file format and back: what the server applies.
+Calibration WrittenFile(const FitResult& fit) {
+  Calibration cal;
+  cal.chain = fit.chain;
+  cal.provenance.tool = "best_chain_sim_test";
+  cal.provenance.tool_version = "test";
+  cal.provenance.created_utc = CurrentUtcTimestamp();
+  return ParseCalibrationJson(CalibrationToJsonText(cal), "best_chain.json");
+}
+
+Outcome Validate(const PaperCapture& data, const CorrectionChain& chain,
+                 const CalibratedVolume& box, const std::string& name, bool print_worst) {
+  double sum[2][2] = {{0, 0}, {0, 0}}, floor_sum[2][2] = {{0, 0}, {0, 0}};  // [outside][pos/ori]
+  int count[2] = {0, 0};
+  struct Row {
+    double position_mm, orientation_deg, floor_mm, outside_mm;
+    int station;
+  };
+  std::vector<Row> rows;
+  for (size_t i = 0; i < data.validation.size(); ++i) {
+    const FitStation& s = data.validation[i];
+    const Rigid3d corrected = chain.Apply(s.reported).pose;
+    const double p = 1e3 * PositionErrorNorm(corrected, s.reference);
+    const double o = kDegPerRad * OrientationErrorAngle(corrected, s.reference);
+    const double d = 1e3 * (s.reported.translation - box.Nearest(s.reported.translation)).norm();
+    const int k = d > 0 ? 1 : 0;
+    sum[k][0] += p;
+    sum[k][1] += o;
+    floor_sum[k][0] += data.floor_position_mm[i];
+    floor_sum[k][1] += data.floor_orientation_deg[i];
+    ++count[k];
+    rows.push_back({p, o, data.floor_position_mm[i], d, s.station});
+  }
+  Outcome out;
+  out.outside = count[1];
+  out.position_ratio = (sum[0][0] + sum[1][0]) / (floor_sum[0][0] + floor_sum[1][0]);
+  out.orientation_ratio = (sum[0][1] + sum[1][1]) / (floor_sum[0][1] + floor_sum[1][1]);
+  out.inside_position_ratio = sum[0][0] / floor_sum[0][0];
+  out.inside_orientation_ratio = sum[0][1] / floor_sum[0][1];
+  if (count[1] > 0) {
+    out.outside_position_ratio = sum[1][0] / floor_sum[1][0];
+    out.outside_orientation_ratio = sum[1][1] / floor_sum[1][1];
+  }
+  const double n = static_cast<double>(data.validation.size());
+  std::cout << std::setprecision(3) << name << ": validation " << (sum[0][0] + sum[1][0]) / n
+            << " mm / " << (sum[0][1] + sum[1][1]) / n << " deg = " << out.position_ratio << "x / "
+            << out.orientation_ratio << "x the floor; inside the box (" << count[0] << ") "
+            << out.inside_position_ratio << "x / " << out.inside_orientation_ratio << "x; outside ("
+            << count[1] << ") " << out.outside_position_ratio << "x / "
+            << out.outside_orientation_ratio << "x\n";
+  if (print_worst) {
+    std::sort(rows.begin(), rows.end(), [](const Row& a, const Row& b) {
+      return a.position_mm - a.floor_mm > b.position_mm - b.floor_mm;
+    });
+    std::cout << "  worst (station: mm against the floor's, deg, mm outside the box):";
+    for (size_t i = 0; i < std::min<size_t>(6, rows.size()); ++i) {
+      std::cout << " " << rows[i].station << ": " << rows[i].position_mm << "/" << rows[i].floor_mm
+                << ", " << rows[i].orientation_deg << ", " << rows[i].outside_mm << ";";
+    }
+    std::cout << "\n";
+  }
+  return out;
+}
+
+// Fits `model` to the calibration set and validates the calibration file as written (the
+// polynomial and LUT clamped outside the calibrated volume, physical terms at the actual pose);
+// `also_unguarded` prints the same chain without the volume for comparison.
+Outcome FitAndValidate(const PaperCapture& data, const std::string& model, const std::string& name,
+                       bool also_unguarded = false) {
   ModelSpec spec = ParseModelYaml(model, name);
   FitOptions options;
   options.compute_covariance = false;
   const auto start = std::chrono::steady_clock::now();
   const FitResult fit = FitModel(data.calibration, &spec, options);
-  Outcome o;
-  o.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  CorrectionChain chain = fit.chain;
-  chain.ClearVolume();
-  std::vector<Rigid3d> corrected, reference;
-  for (const auto& s : data.validation) {
-    corrected.push_back(chain.Apply(s.reported).pose);
-    reference.push_back(s.reference);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const Calibration file = WrittenFile(fit);
+  Outcome o = Validate(data, file.chain, file.volume(), name + " (file)", true);
+  o.seconds = seconds;
+  if (also_unguarded) {
+    CorrectionChain chain = file.chain;
+    chain.ClearVolume();
+    Validate(data, chain, file.volume(), name + " (no volume)", false);
+    if (chain.size() >= 2 && !chain.term(0).GuardedByVolume()) {
+      // The volume as the box of what the explicit terms receive (the physical group's output)
+      // rather than of the reported positions.
+      CalibratedVolume inputs = file.volume();
+      inputs.min = inputs.max = chain.term(0).Apply(data.calibration[0].reported).pose.translation;
+      for (const auto& s : data.calibration) {
+        const Eigen::Vector3d p = chain.term(0).Apply(s.reported).pose.translation;
+        inputs.min = inputs.min.cwiseMin(p);
+        inputs.max = inputs.max.cwiseMax(p);
+      }
+      chain.SetVolume(inputs);
+      Validate(data, chain, file.volume(), name + " (volume of the explicit terms' inputs)", true);
+    }
   }
-  const PoseErrorSummary after = SummarizePoseErrors(corrected, reference);
-  o.position_ratio = after.position_mm.mean / data.floor.position_mm.mean;
-  o.orientation_ratio = after.orientation_deg.mean / data.floor.orientation_deg.mean;
-  std::cout << name << ": validation " << after.position_mm.mean << " mm / "
-            << after.orientation_deg.mean << " deg = " << o.position_ratio << "x / "
-            << o.orientation_ratio << "x the floor (" << data.floor.position_mm.mean << " mm / "
-            << data.floor.orientation_deg.mean << " deg); " << fit.iterations << " iterations, "
-            << o.seconds << " s\n";
+  std::cout << "  " << fit.iterations << " iterations, " << o.seconds << " s\n";
   for (const auto& t : fit.terms) {
     if (t.value("type", "") != "lut") std::cout << "  " << t.dump() << "\n";
   }
@@ -91,19 +190,38 @@ constexpr const char* kNoise =
 // The paper's method: a degree-4 polynomial alone.
 constexpr const char* kPaperPolynomial = "terms:\n  - type: polynomial\n    degree: 4\n";
 
-// The best chain found (seed 1, validation means over the floor, measured with this file's Explore):
-//   searched dipole + plane, degree 8, ridge 0.25 ........ 2.00x / 1.59x   (this chain)
-//   same, prior sigma 1 mm on every coefficient ............ 1.97x / 1.65x
-//   same, degree 6, ridge 0.25 ............................. 4.00x / 1.99x
-//   same, degree 8 / 6, ridge: auto (0.03 / 0.1 chosen) .... 20.8x / 4.9x: leave-one-out on the
-//     calibration grid cannot see extrapolation
-//   true floor + workbench frame held fixed, degree 8 prior . 2.40x / 1.86x
-//   searched dipole + plane, degree 4 (prior), LUT on the grid nodes (smoothness 0.03-0.3) 2.3-2.6x
-//   6 searched sources (2 planes, 4 dipoles) + degree 2 ..... 5.5x / 3.3x (the search misplaces them)
-// Inside the calibration grid's box the chain is at 1.2x (0.112 against 0.092 mm for the truth);
-// the rest comes from the third of the validation stations beyond the grid (up to 75 mm: the
-// preset's validation box is larger), 0.34 against 0.12 mm for the truth: a polynomial or LUT
-// extrapolates what only the true sources (the CRT monitors, the door) would.
+// Validation means over the floor's, measured with the calibration file as trackcal-fit writes it
+// (the polynomial clamped outside the calibrated volume, the physical group at the actual pose;
+// "unclamped": the same chain without the volume), this file's Explore and ChainChosen:
+//                                                     seed 1          seed 2          seed 3
+//   true room held fixed + degree 1 ............... 1.12x / 1.00x   1.05x / 1.02x   1.04x / 1.05x
+//   searched dipole + plane, degree 8, ridge 0.25 . 1.97x / 1.47x   2.68x / 1.89x   4.13x / 2.05x
+//     unclamped ................................... 1.75x / 1.41x   2.30x / 1.74x   2.88x / 1.75x
+//     inside the calibration box .................. 1.39x / 1.19x   1.78x / 1.31x   1.51x / 1.27x
+//     outside it (19 / 34 / 26 of 120 stations) ... 4.02x / 2.76x   3.93x / 3.18x   11.5x / 4.34x
+//   same, ridge: auto, blocked CV (3.2 / 3.2 chosen) 4.54x / 2.59x
+//   same, ridge: auto, leave-one-out (0.01 / 0.32) . 609x / 24.4x: it cannot see between the layers
+//   ChainChosen: degree by blocked CV (8), ridge: auto (3.2 / 1.0) 4.53x / 1.71x
+//   ChainChosen's second pass: the weight chosen again by blocked CV on what the joint fit's group
+//     leaves (0.32), refitted: 76x / 31x: the joint fit moved the plane off (normal (0.95, -0.30,
+//     0.07), attenuation 0.001) and let the polynomial take its part
+// Earlier, unclamped (session 3): degree 6 ridge 0.25 4.0x / 2.0x; degree 4 + LUT 2.3-2.6x; 6
+// searched sources + degree 2 5.5x / 3.3x.
+// Where the error is left: the stations outside the calibrated volume (the box of the calibration
+// stations' reported positions; the preset's validation box is 75 mm larger on every side) at
+// 3.9-11.5x in position, where the clamped polynomial holds the boundary value of what only the far
+// sources (the CRT monitors, the door) explain and the search does not find; inside the box
+// 1.4-1.8x. On seed 3 one station 57 mm outside (583) is 13.9 mm off, a third of the mean. The
+// clamp itself costs there: without the volume the chain is at 1.75-2.88x on the three seeds, and
+// with the volume taken as the box of the explicit terms' inputs (the group's output, Explore's
+// third line) rather than of the reported positions it is worse, 5.25x on seed 3 (583: 16.9 mm).
+// The true room (every source modelled physically) is at 1.0-1.1x
+// inside and outside alike.
+// Why ridge: auto over-smooths here: it is chosen when the polynomial is initialised, on what the
+// physical group fitted alone leaves (mm-scale structure the joint fit then moves into the group);
+// on that residual the blocked CV's optimum is a weight of 1-3. A weaker weight lets the joint fit
+// trade the physical terms for polynomial coefficients (the second pass above), so 0.25 on seed 1
+// is a fortunate hand-pick rather than a rule.
 constexpr const char* kBestChain =
     "terms:\n"
     "  - type: dipole\n"
@@ -114,20 +232,236 @@ constexpr const char* kBestChain =
 
 TEST(BestChainOnPaperPreset, SearchedNearSourcesAndARidgePolynomial) {
   // One seed: the chain's fit takes ~25 s of CPU (a searched dipole and plane, then 990
-  // polynomial coefficients jointly with them; 93 s wall on the loaded 2-core machine), and CI runs
-  // this test on every push.
+  // polynomial coefficients jointly with them; 78 s wall at load 12 on the shared 2-core machine;
+  // seed 2 needs 286 iterations, 951 s wall), and CI runs this test on every push.
   const PaperCapture data = Simulate(1);
-  const Outcome paper = FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
+  const Outcome paper =
+      FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
   const Outcome best = FitAndValidate(data, std::string(kNoise) + kBestChain, "best chain");
   // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
   EXPECT_GT(paper.position_ratio, 10.0);
   EXPECT_GT(paper.orientation_ratio, 5.0);
-  // Issue #5's acceptance is 1.5x the floor: NOT reached (2.00x / 1.59x on seed 1, see above). The
-  // bounds hold what is reached, with ~15 % for solver and platform differences, so a regression
-  // fails.
+  // Issue #5's acceptance is 1.5x the floor: NOT reached (1.97x / 1.47x on seed 1 with the file as
+  // written, see above). The bounds hold what is reached, with ~15 % for solver and platform
+  // differences, so a regression fails.
   EXPECT_LE(best.position_ratio, 2.3);
-  EXPECT_LE(best.orientation_ratio, 1.85);
+  EXPECT_LE(best.orientation_ratio, 1.7);
   EXPECT_LT(best.position_ratio, 0.1 * paper.position_ratio);
+}
+
+// The chain chosen by held-out calibration data, the same procedure for every capture: searched
+// physical sources (a dipole and a plane) followed by a polynomial of degree 4 .. 8 with ridge:
+// auto. The degree and, per degree, the ridge weight are scored by the polynomial's blocked
+// cross-validation (PolynomialTerm::BlockedRidgeCv: whole layers of the calibration grid held out
+// in turn, so held-out stations lie between and beyond the training stations as validation
+// stations do) on the poses the searched physical group leaves; the degree with the smallest
+// whitened held-out error (position and orientation parts together) is fitted jointly.
+struct ChosenChain {
+  int degree = 0;
+  std::vector<double> score;  // per degree 4 .. 8: whitened blocked-CV error at the best ridge
+  std::string model;          // the model file fitted
+};
+
+constexpr int kMinDegree = 4, kMaxDegree = 8;
+constexpr double kSigmaPositionM = 0.25e-3, kSigmaOrientationRad = 0.04 * kRadPerDeg;  // kNoise
+
+std::string ChainModel(int degree, int max_iterations) {
+  return "noise: {position_mm: 0.25, orientation_deg: 0.04, position_range_exponent: 4, "
+         "orientation_range_exponent: 3}\n"
+         "solver: {max_iterations: " +
+         std::to_string(max_iterations) +
+         ", covariance: false}\n"
+         "terms:\n  - type: dipole\n  - type: plane\n  - type: polynomial\n    degree: " +
+         std::to_string(degree) + "\n    ridge: auto\n";
+}
+
+// The blocked cross-validation of a degree-`degree` polynomial after `group` (the physical
+// correction) on the calibration stations: per part the summed squared held-out error per weight of
+// PolynomialTerm::RidgeGrid().
+struct GroupCv {
+  std::vector<double> position, orientation;
+  double BestPosition() const { return *std::min_element(position.begin(), position.end()); }
+  double BestOrientation() const {
+    return *std::min_element(orientation.begin(), orientation.end());
+  }
+  double PositionRidge() const {
+    return PolynomialTerm::RidgeGrid()[static_cast<size_t>(
+        std::min_element(position.begin(), position.end()) - position.begin())];
+  }
+};
+
+GroupCv BlockedCvAfter(const Correction& group, const std::vector<FitStation>& calibration,
+                       int degree) {
+  const int n = static_cast<int>(calibration.size());
+  Eigen::MatrixXd b_position(n, 3), b_orientation(n, 3), p(n, 3);
+  for (int i = 0; i < n; ++i) {
+    const Rigid3d input = group.Apply(calibration[static_cast<size_t>(i)].reported).pose;
+    const PoseError e = ComputePoseError(input, calibration[static_cast<size_t>(i)].reference);
+    b_position.row(i) = e.position.transpose();
+    b_orientation.row(i) = e.orientation.transpose();
+    p.row(i) = input.translation.transpose();
+  }
+  // The polynomial's normalisation: the inputs' box onto [-1, 1].
+  const Eigen::RowVector3d lo = p.colwise().minCoeff(), hi = p.colwise().maxCoeff();
+  const Eigen::MatrixXd u =
+      (p.rowwise() - 0.5 * (lo + hi)).array().rowwise() / (0.5 * (hi - lo)).array();
+  const int r = NumPolynomialTerms(degree);
+  Eigen::MatrixXd a(n, r);
+  std::vector<double> monomials(static_cast<size_t>(r));
+  for (int i = 0; i < n; ++i) {
+    const Eigen::Vector3d ui = u.row(i).transpose();
+    EvaluateMonomials(degree, ui.data(), monomials.data());
+    for (int j = 0; j < r; ++j) a(i, j) = monomials[static_cast<size_t>(j)];
+  }
+  std::vector<bool> shrunk;
+  for (const auto& e : PolynomialTermExponents(degree)) shrunk.push_back(e[0] + e[1] + e[2] >= 2);
+  const std::vector<double> grid = PolynomialTerm::RidgeGrid();
+  return {PolynomialTerm::BlockedRidgeCv(degree, u, a, b_position, shrunk, grid),
+          PolynomialTerm::BlockedRidgeCv(degree, u, a, b_orientation, shrunk, grid)};
+}
+
+ChosenChain ChooseChain(const std::vector<FitStation>& calibration) {
+  // The physical group as the engine initialises it (searched, then fitted alone; one joint
+  // iteration): what the explicit part will see.
+  ModelSpec first = ParseModelYaml(ChainModel(kMaxDegree, 1), "choose");
+  FitOptions options;
+  options.compute_covariance = false;
+  const FitResult fit = FitModel(calibration, &first, options);
+  ChosenChain out;
+  double best = std::numeric_limits<double>::infinity();
+  for (int degree = kMinDegree; degree <= kMaxDegree; ++degree) {
+    const GroupCv cv = BlockedCvAfter(fit.chain.term(0), calibration, degree);
+    const double score = cv.BestPosition() / (kSigmaPositionM * kSigmaPositionM) +
+                         cv.BestOrientation() / (kSigmaOrientationRad * kSigmaOrientationRad);
+    out.score.push_back(score / static_cast<double>(calibration.size()));
+    if (score < best) {
+      best = score;
+      out.degree = degree;
+    }
+  }
+  out.model = ChainModel(out.degree, 300);
+  return out;
+}
+
+// The chain chosen by held-out calibration data, the same procedure on every seed:
+// TRACKCAL_BEST_CHAIN_CHOOSE=1 [TRACKCAL_BEST_CHAIN_SEEDS=1,2,3]. Exploration, not run by default:
+// it does not beat the hand-picked ridge yet (figures above) and takes ~3 fits of CPU per seed.
+TEST(BestChainOnPaperPreset, ChainChosenByBlockedCrossValidation) {
+  if (std::getenv("TRACKCAL_BEST_CHAIN_CHOOSE") == nullptr)
+    GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_CHOOSE";
+  const char* seeds_env = std::getenv("TRACKCAL_BEST_CHAIN_SEEDS");
+  std::vector<uint64_t> seeds;
+  std::stringstream ss(seeds_env ? seeds_env : "1");
+  for (std::string s; std::getline(ss, s, ',');) seeds.push_back(std::stoull(s));
+  for (uint64_t seed : seeds) {
+    const PaperCapture data = Simulate(seed);
+    const auto start = std::chrono::steady_clock::now();
+    const ChosenChain chosen = ChooseChain(data.calibration);
+    const double choose_seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    std::cout << "seed " << seed << ": blocked-CV score per degree " << kMinDegree << ".."
+              << kMaxDegree << ":";
+    for (double v : chosen.score) std::cout << " " << v;
+    std::cout << " -> degree " << chosen.degree << " (" << choose_seconds << " s)\n";
+    const Outcome best =
+        FitAndValidate(data, chosen.model, "chosen chain seed " + std::to_string(seed));
+    (void)best;
+    // Second pass: the weight chosen again on what the jointly fitted group leaves.
+    ModelSpec spec = ParseModelYaml(chosen.model, "pass1");
+    FitOptions options;
+    options.compute_covariance = false;
+    const FitResult fit = FitModel(data.calibration, &spec, options);
+    const GroupCv cv = BlockedCvAfter(fit.chain.term(0), data.calibration, chosen.degree);
+    std::cout << "second pass cv rms position [mm] per ridge:";
+    for (double v : cv.position)
+      std::cout << " " << std::sqrt(v / (3.0 * data.calibration.size())) * 1e3;
+    std::cout << " -> ridge " << cv.PositionRidge() << "\n";
+    std::string model2 = chosen.model;
+    model2.replace(model2.find("ridge: auto"), 11, "ridge: " + std::to_string(cv.PositionRidge()));
+    FitAndValidate(data, model2, "second pass seed " + std::to_string(seed));
+  }
+}
+
+// Exploration of the ridge weight's selection: TRACKCAL_BEST_CHAIN_RIDGE=1 (seeds as above).
+// The explicit part's inputs from the physical group as ChooseChain gets them; per degree and
+// weight the polynomial's linear fit alone (no joint refinement), validated as the file would be,
+// beside the blocked cross-validation's scores for several slab counts.
+TEST(BestChainOnPaperPreset, ExploreRidge) {
+  if (std::getenv("TRACKCAL_BEST_CHAIN_RIDGE") == nullptr)
+    GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_RIDGE";
+  const char* seeds_env = std::getenv("TRACKCAL_BEST_CHAIN_SEEDS");
+  std::vector<uint64_t> seeds;
+  std::stringstream ss(seeds_env ? seeds_env : "1");
+  for (std::string s; std::getline(ss, s, ',');) seeds.push_back(std::stoull(s));
+  for (uint64_t seed : seeds) {
+    const PaperCapture data = Simulate(seed);
+    ModelSpec first = ParseModelYaml(ChainModel(kMaxDegree, 1), "choose");
+    FitOptions options;
+    options.compute_covariance = false;
+    const FitResult fit = FitModel(data.calibration, &first, options);
+    const Correction& group = fit.chain.term(0);
+    std::vector<FitStation> inputs;
+    for (const auto& s : data.calibration) {
+      FitStation t = s;
+      t.reported = group.Apply(s.reported).pose;
+      inputs.push_back(t);
+    }
+    const CalibratedVolume volume = *fit.chain.volume();
+    for (int degree : {6, 8}) {
+      for (double lambda : PolynomialTerm::RidgeGrid()) {
+        PolynomialTermOptions po;
+        po.degree = degree;
+        po.ridge = lambda;
+        PolynomialTerm term(po);
+        term.Prepare(inputs);
+        term.InitializeLinear(inputs, Eigen::Vector2d(kSigmaPositionM, kSigmaOrientationRad));
+        CorrectionChain chain;
+        chain.Append(group.Clone());
+        chain.Append(term.ToCorrection());
+        chain.SetVolume(volume);
+        Validate(data, chain, volume,
+                 "seed " + std::to_string(seed) + " degree " + std::to_string(degree) + " ridge " +
+                     std::to_string(lambda),
+                 false);
+      }
+      const int n = static_cast<int>(inputs.size());
+      const int r = NumPolynomialTerms(degree);
+      PolynomialTermOptions po;
+      po.degree = degree;
+      PolynomialTerm norm(po);
+      norm.Prepare(inputs);
+      Eigen::MatrixXd a(n, r), u(n, 3), bp(n, 3), bo(n, 3);
+      std::vector<double> monomials(static_cast<size_t>(r));
+      for (int i = 0; i < n; ++i) {
+        double ui[3];
+        NormalizePolynomialInput(inputs[static_cast<size_t>(i)].reported.translation.data(),
+                                 norm.options().input_offset, norm.options().input_scale, ui);
+        EvaluateMonomials(degree, ui, monomials.data());
+        for (int j = 0; j < r; ++j) a(i, j) = monomials[static_cast<size_t>(j)];
+        for (int k = 0; k < 3; ++k) u(i, k) = ui[k];
+        const PoseError e = ComputePoseError(inputs[static_cast<size_t>(i)].reported,
+                                             inputs[static_cast<size_t>(i)].reference);
+        bp.row(i) = e.position.transpose();
+        bo.row(i) = e.orientation.transpose();
+      }
+      std::vector<bool> shrunk;
+      for (const auto& e : PolynomialTermExponents(degree))
+        shrunk.push_back(e[0] + e[1] + e[2] >= 2);
+      for (int slabs : {4, 6, 12}) {
+        const auto cv_p = PolynomialTerm::BlockedRidgeCv(degree, u, a, bp, shrunk,
+                                                         PolynomialTerm::RidgeGrid(), slabs);
+        const auto cv_o = PolynomialTerm::BlockedRidgeCv(degree, u, a, bo, shrunk,
+                                                         PolynomialTerm::RidgeGrid(), slabs);
+        std::cout << "degree " << degree << " slabs " << slabs
+                  << " cv rms position [mm] / orientation [deg]:";
+        for (size_t g = 0; g < cv_p.size(); ++g) {
+          std::cout << " " << std::sqrt(cv_p[g] / (3.0 * n)) * 1e3 << "/"
+                    << std::sqrt(cv_o[g] / (3.0 * n)) * 2 * kDegPerRad;
+        }
+        std::cout << "\n";
+      }
+    }
+  }
 }
 
 // Exploration: TRACKCAL_BEST_CHAIN_MODELS=a.yaml,b.yaml TRACKCAL_BEST_CHAIN_SEEDS=1,2 fits each.
@@ -145,7 +479,13 @@ TEST(BestChainOnPaperPreset, Explore) {
       std::ifstream in(path);
       std::stringstream text;
       text << in.rdbuf();
-      FitAndValidate(data, text.str(), path + " seed " + std::to_string(seed));
+      // "{ROOM}" in a model stands for the scene's true planes and objects, held fixed.
+      std::string yaml = text.str();
+      const size_t room = yaml.find("{ROOM}");
+      if (room != std::string::npos) {
+        yaml.replace(room, 6, testing::FixedRoomTermsYaml(sim::LoadScene("paper").environment));
+      }
+      FitAndValidate(data, yaml, path + " seed " + std::to_string(seed), true);
     }
   }
 }

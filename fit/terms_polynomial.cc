@@ -4,8 +4,10 @@
 #include <ceres/jet.h>
 #include <ceres/problem.h>
 
+#include <Eigen/Cholesky>
 #include <Eigen/QR>
 #include <Eigen/SVD>
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
@@ -61,6 +63,16 @@ std::unique_ptr<ModelTerm> PolynomialTerm::FromYaml(const YamlMapReader& reader)
     if (node.IsScalar() && node.Scalar() == "auto") {
       options.ridge_auto = true;
       reader.MarkRead("ridge");
+      if (reader.Has("ridge_cv")) {
+        const std::string cv = reader.GetString("ridge_cv");
+        if (cv == "blocked") {
+          options.ridge_selection = PolynomialTermOptions::RidgeSelection::kBlocked;
+        } else if (cv == "leave_one_out") {
+          options.ridge_selection = PolynomialTermOptions::RidgeSelection::kLeaveOneOut;
+        } else {
+          reader.Fail("ridge_cv", "expected blocked or leave_one_out, got '" + cv + "'");
+        }
+      }
     } else {
       options.ridge = reader.GetDouble("ridge");
     }
@@ -137,20 +149,134 @@ struct RidgeSolver {
 
 }  // namespace
 
+std::vector<std::vector<int>> PolynomialTerm::BlockedFolds(const Eigen::MatrixXd& u,
+                                                           int slabs_per_axis) {
+  const int n = static_cast<int>(u.rows());
+  std::vector<std::vector<int>> folds(3, std::vector<int>(static_cast<size_t>(n), -1));
+  const int m = std::min(slabs_per_axis, n);
+  if (m < 2) return folds;
+  for (int k = 0; k < 3; ++k) {
+    std::vector<int> order(static_cast<size_t>(n));
+    for (int i = 0; i < n; ++i) order[static_cast<size_t>(i)] = i;
+    std::stable_sort(order.begin(), order.end(), [&](int i, int j) { return u(i, k) < u(j, k); });
+    auto value = [&](int rank) { return u(order[static_cast<size_t>(rank)], k); };
+    // Layers: a gap wider than 10 times the median gap between neighbouring coordinates and a
+    // quarter of the widest starts a new one (a grid's layers, however wobbly: their gaps are all
+    // about the spacing, a layer's own stragglers far less; uniform random data has almost no such
+    // gap).
+    std::vector<double> gaps;
+    for (int r = 1; r < n; ++r) gaps.push_back(value(r) - value(r - 1));
+    std::vector<double> sorted_gaps = gaps;
+    std::nth_element(sorted_gaps.begin(), sorted_gaps.begin() + (n - 1) / 2, sorted_gaps.end());
+    const double threshold = std::max(10.0 * sorted_gaps[static_cast<size_t>((n - 1) / 2)],
+                                      0.25 * *std::max_element(gaps.begin(), gaps.end()));
+    std::vector<int> layer_starts;  // ranks where a layer starts (after rank 0)
+    for (int r = 1; r < n; ++r) {
+      const double gap = gaps[static_cast<size_t>(r - 1)];
+      if (gap > threshold && gap > 0.0) layer_starts.push_back(r);
+    }
+    // Cuts: every layer boundary when there are at most m layers; otherwise the layer boundary
+    // nearest each quantile j n / m; without layers, the quantiles themselves (ties kept together).
+    std::vector<int> bounds;
+    if (!layer_starts.empty() && static_cast<int>(layer_starts.size()) + 1 <= m) {
+      bounds = layer_starts;
+    } else {
+      for (int j = 1; j < m; ++j) {
+        int q = j * n / m;
+        if (!layer_starts.empty()) {
+          q = *std::min_element(layer_starts.begin(), layer_starts.end(),
+                                [&](int x, int y) { return std::abs(x - q) < std::abs(y - q); });
+        } else {
+          while (q < n && value(q) == value(q - 1)) ++q;
+          if (q >= n) continue;
+        }
+        if (bounds.empty() || q > bounds.back()) bounds.push_back(q);
+      }
+    }
+    if (bounds.empty()) continue;  // a flat axis: no slabs
+    size_t slab = 0;
+    for (int r = 0; r < n; ++r) {
+      while (slab < bounds.size() && r >= bounds[slab]) ++slab;
+      folds[static_cast<size_t>(k)][static_cast<size_t>(order[static_cast<size_t>(r)])] =
+          static_cast<int>(slab);
+    }
+  }
+  return folds;
+}
+
+std::vector<double> PolynomialTerm::BlockedRidgeCv(int degree, const Eigen::MatrixXd& u,
+                                                   const Eigen::MatrixXd& a,
+                                                   const Eigen::MatrixXd& b,
+                                                   const std::vector<bool>& shrunk,
+                                                   const std::vector<double>& grid,
+                                                   int slabs_per_axis) {
+  const Eigen::Index n = a.rows(), r = a.cols();
+  std::vector<double> error(grid.size(), 0.0);
+  const Eigen::MatrixXd normal = a.transpose() * a;
+  const Eigen::MatrixXd rhs = a.transpose() * b;
+  Eigen::VectorXd d(r);
+  for (Eigen::Index j = 0; j < r; ++j) d[j] = shrunk[static_cast<size_t>(j)] ? 1.0 : 0.0;
+  // A relative 1e-12 on the diagonal keeps lambda = 0 solvable where a fold leaves a direction
+  // unsampled (its held-out error is then what such a fit does there).
+  const double jitter = 1e-12 * normal.diagonal().maxCoeff();
+  std::vector<double> monomials(static_cast<size_t>(r));
+  for (const std::vector<int>& fold_of : BlockedFolds(u, slabs_per_axis)) {
+    int folds = 0;
+    for (int f : fold_of) folds = std::max(folds, f + 1);
+    if (folds < 2) continue;
+    for (int f = 0; f < folds; ++f) {
+      std::vector<Eigen::Index> held, kept;
+      for (Eigen::Index i = 0; i < n; ++i) {
+        (fold_of[static_cast<size_t>(i)] == f ? held : kept).push_back(i);
+      }
+      if (held.empty() || kept.empty()) continue;
+      Eigen::Vector3d lo = u.row(kept[0]).transpose(), hi = lo;
+      for (Eigen::Index i : kept) {
+        lo = lo.cwiseMin(u.row(i).transpose());
+        hi = hi.cwiseMax(u.row(i).transpose());
+      }
+      const Eigen::Index h = static_cast<Eigen::Index>(held.size());
+      Eigen::MatrixXd a_held(h, r), a_clamped(h, r), b_held(h, b.cols());
+      for (Eigen::Index i = 0; i < h; ++i) {
+        a_held.row(i) = a.row(held[static_cast<size_t>(i)]);
+        b_held.row(i) = b.row(held[static_cast<size_t>(i)]);
+        const Eigen::Vector3d uc =
+            u.row(held[static_cast<size_t>(i)]).transpose().cwiseMax(lo).cwiseMin(hi);
+        EvaluateMonomials(degree, uc.data(), monomials.data());
+        for (Eigen::Index j = 0; j < r; ++j) a_clamped(i, j) = monomials[static_cast<size_t>(j)];
+      }
+      const Eigen::MatrixXd normal_kept = normal - a_held.transpose() * a_held;
+      const Eigen::MatrixXd rhs_kept = rhs - a_held.transpose() * b_held;
+      for (size_t g = 0; g < grid.size(); ++g) {
+        Eigen::MatrixXd m = normal_kept;
+        m.diagonal() += (grid[g] * grid[g]) * d + Eigen::VectorXd::Constant(r, jitter);
+        const Eigen::LDLT<Eigen::MatrixXd> ldlt(m);
+        const Eigen::MatrixXd c = ldlt.solve(rhs_kept);
+        const double e = (b_held - a_clamped * c).squaredNorm();
+        error[g] += (ldlt.info() == Eigen::Success && std::isfinite(e))
+                        ? e
+                        : std::numeric_limits<double>::infinity();
+      }
+    }
+  }
+  return error;
+}
+
 bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
                                       const Eigen::Vector2d& noise_sigmas) {
   sigmas_ = noise_sigmas;
   const int n = static_cast<int>(inputs.size());
   if (n < num_terms_) return false;
-  Eigen::MatrixXd a(n, num_terms_);
+  Eigen::MatrixXd a(n, num_terms_), u(n, 3);
   Eigen::MatrixXd b_position(n, 3), b_orientation(n, 3);
   std::vector<double> monomials(static_cast<size_t>(num_terms_));
   for (int i = 0; i < n; ++i) {
     const FitStation& s = inputs[static_cast<size_t>(i)];
-    double u[3];
+    double ui[3];
     NormalizePolynomialInput(s.reported.translation.data(), options_.input_offset,
-                             options_.input_scale, u);
-    EvaluateMonomials(options_.degree, u, monomials.data());
+                             options_.input_scale, ui);
+    EvaluateMonomials(options_.degree, ui, monomials.data());
+    for (int k = 0; k < 3; ++k) u(i, k) = ui[k];
     for (int j = 0; j < num_terms_; ++j) a(i, j) = monomials[static_cast<size_t>(j)];
     const PoseError e = ComputePoseError(s.reported, s.reference);
     b_position.row(i) = e.position.transpose();
@@ -166,7 +292,13 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
       if (block_index < 0 || blocks_[static_cast<size_t>(block_index)].fixed) return;
       double lambda = options_.ridge;
       Eigen::VectorXd loo;
-      if (options_.ridge_auto) {
+      if (options_.ridge_auto &&
+          options_.ridge_selection == PolynomialTermOptions::RidgeSelection::kBlocked) {
+        // The weight with the smallest blocked cross-validation error.
+        const std::vector<double> grid = RidgeGrid();
+        const std::vector<double> cv = BlockedRidgeCv(options_.degree, u, a, b, shrunk, grid);
+        lambda = grid[static_cast<size_t>(std::min_element(cv.begin(), cv.end()) - cv.begin())];
+      } else if (options_.ridge_auto) {
         // One-standard-error rule over the grid: mean and standard error of the per-station
         // leave-one-out errors; the largest weight within one SE of the best.
         std::vector<double> grid = RidgeGrid(), mean, se;
@@ -379,6 +511,11 @@ nlohmann::json PolynomialTerm::Describe() const {
           {"orientation", options_.orientation},
           {"ridge", options_.ridge_auto ? nlohmann::json("auto") : nlohmann::json(options_.ridge)},
           {"ridge_used", {ridge_used_[0], ridge_used_[1]}},
+          {"ridge_cv", !options_.ridge_auto ? nlohmann::json()
+                       : options_.ridge_selection ==
+                               PolynomialTermOptions::RidgeSelection::kBlocked
+                           ? nlohmann::json("blocked")
+                           : nlohmann::json("leave_one_out")},
           {"input_offset", {options_.input_offset[0], options_.input_offset[1], options_.input_offset[2]}},
           {"input_scale", {options_.input_scale[0], options_.input_scale[1], options_.input_scale[2]}}};
 }

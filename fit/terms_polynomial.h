@@ -27,11 +27,15 @@ struct PolynomialTermOptions {
   // near-null directions a grid leaves (on the paper preset's 4 heights, z^4 equals a cubic at the
   // stations), which a polynomial chained after a physical term otherwise fits to noise. 0: none.
   double ridge = 0.0;
-  // ridge: auto: chosen per part at initialisation by leave-one-out on the term's linear least
-  // squares (exact, by the hat matrix) over kRidgeGrid, the largest ridge whose leave-one-out error
-  // is within one standard error of the smallest (held-out data cannot see a direction the stations
-  // do not sample, so the tie goes to the smoother polynomial).
+  // ridge: auto: chosen per part at initialisation over RidgeGrid() by a cross-validation of the
+  // term's linear least squares (ridge_selection).
   bool ridge_auto = false;
+  // How ridge: auto scores a weight. kBlocked (the default): spatially blocked folds, so that
+  // held-out stations lie between or beyond the training stations as validation stations do
+  // (BlockedRidgeCv); kLeaveOneOut: leave-one-out by the hat matrix with the one-standard-error
+  // rule (blind to extrapolation: a station's neighbours are always in the training set).
+  enum class RidgeSelection { kBlocked, kLeaveOneOut };
+  RidgeSelection ridge_selection = RidgeSelection::kBlocked;
   // Normalisation of the input (NaN: from the bounding box of the data in Prepare()).
   Eigen::Vector3d input_offset = Eigen::Vector3d::Constant(NAN);
   Eigen::Vector3d input_scale = Eigen::Vector3d::Constant(NAN);
@@ -58,6 +62,25 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   const Eigen::Vector2d& ridge_used() const { return ridge_used_; }
   // Candidate weights of ridge: auto (0, then 1e-4 .. 1e2 in steps of 10^0.5).
   static std::vector<double> RidgeGrid();
+  // The blocked cross-validation of ridge: auto (docs/model-file.md, "Polynomial ridge"). Folds:
+  // per axis of the normalised inputs `u` (n x 3), up to kBlockedSlabsPerAxis slabs of about equal
+  // station count, each boundary moved to the widest gap between consecutive coordinates near its
+  // quantile (so a grid's layers stay whole); each slab is held out in turn. A held-out station is
+  // predicted where the runtime evaluates an explicit term, at the nearest point of the training
+  // stations' box (core/correction.h: the calibrated volume's clamp). Closed form per fold and
+  // weight on the normal equations: (A^T A - A_F^T A_F + lambda^2 D) c = A^T b - A_F^T b_F, D = 1 on
+  // the `shrunk` columns. Returns the summed squared held-out error per weight of `grid`
+  // (infinity where a fold's system is singular).
+  static constexpr int kBlockedSlabsPerAxis = 6;
+  static std::vector<double> BlockedRidgeCv(int degree, const Eigen::MatrixXd& u,
+                                            const Eigen::MatrixXd& a, const Eigen::MatrixXd& b,
+                                            const std::vector<bool>& shrunk,
+                                            const std::vector<double>& grid,
+                                            int slabs_per_axis = kBlockedSlabsPerAxis);
+  // The folds of BlockedRidgeCv: fold index per station (each axis's slabs are a partition; the
+  // result holds the 3 axes' partitions in turn, -1 for an axis with a single slab).
+  static std::vector<std::vector<int>> BlockedFolds(const Eigen::MatrixXd& u,
+                                                   int slabs_per_axis = kBlockedSlabsPerAxis);
   // Degree >= 1 with a free position part: e_p = (s - 1) p is linear in p.
   bool AbsorbsIsotropicScaling() const override {
     return options_.degree >= 1 && position_block_ >= 0 &&
