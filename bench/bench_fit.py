@@ -46,6 +46,16 @@ terms:
     cell_size_mm: 150
 """
 
+# fit/best_chain_sim_test's chain.
+RIDGE_CHAIN_MODEL = """noise: {position_mm: 1.0, orientation_deg: 0.2}
+terms:
+  - type: plane
+  - type: dipole
+  - type: polynomial
+    degree: 8
+    ridge: 0.25
+"""
+
 
 def run_timed(cmd):
     """Runs cmd; returns (stdout, CPU seconds of the child: user + system)."""
@@ -113,6 +123,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--build", default="build", help="CMake build folder")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--ridge-chain", action="store_true",
+                    help="also fit plane + dipole + a degree-8 polynomial with ridge 0.25 (slow)")
     ap.add_argument("--skip-default-chain", action="store_true",
                     help="skip the chain fitted with the default solver settings and covariance")
     args = ap.parse_args()
@@ -184,7 +196,7 @@ def main():
                 cpus.append(cpu)
             return doc, walls, cpus
 
-        def print_chain(label, doc, walls, cpus):
+        def print_chain(label, doc, walls, cpus, target=True):
             valid = doc["tables"][1]
             effects = {p["term"]: p for p in doc["fit"]["parameters"]}
             plane_d = effects["plane"]["values"][0]["value"] if "plane" in effects else float("nan")
@@ -198,10 +210,16 @@ def main():
                   f"{plane_d:.3f} m")
             print(f"ratio to numpy lstsq       : chain wall {min(walls) / base:.0f}x, "
                   f"chain CPU {min(cpus) / base:.0f}x")
-            print("chain fit time target (<= 5 s CPU):", "met" if min(cpus) <= 5.0 else "NOT met")
+            if target:  # the issue's target is for a chain with a LUT and two physical terms
+                print("chain fit time target (<= 5 s CPU):", "met" if min(cpus) <= 5.0 else "NOT met")
 
         doc, walls, cpus = run_chain("chain", CHAIN_MODEL, max(1, min(args.repeat, 3)))
         print_chain("trackcal plane+dipole+LUT", doc, walls, cpus)
+        if args.ridge_chain:
+            # The best chain of fit/best_chain_sim_test (a ridge polynomial after the physical terms):
+            # ~1000 parameters whose normal matrix is dense (docs/model-file.md, solver).
+            doc, walls, cpus = run_chain("ridge_chain", RIDGE_CHAIN_MODEL, 1)
+            print_chain("plane+dipole+ridge deg. 8", doc, walls, cpus, target=False)
         if not args.skip_default_chain:
             # The same chain as a user writes it: the default solver tolerance and the default
             # standard deviations (sandwich, which a LUT's size turns into the model covariance).

@@ -487,7 +487,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   solver_options.gradient_tolerance = 1e-14;
   solver_options.parameter_tolerance = 1e-12;
   solver_options.num_threads = options.num_threads;
-  solver_options.linear_solver_type = ChooseLinearSolver(problem, num_free);
+  solver_options.linear_solver_type =
+      options.linear_solver ? *options.linear_solver : ChooseLinearSolver(problem, num_free);
   ProgressCallback callback(options.progress ? options.progress : [](int, double) {});
   if (options.progress) {
     solver_options.callbacks.push_back(&callback);
@@ -498,7 +499,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     // Solved linearly above; the problem is only the covariance's.
     result = std::move(*linear_solution);
   } else {
-    if (num_free > 0) ceres::Solve(solver_options, &problem, &summary);
+    if (num_free > 0) {
+      ceres::Solve(solver_options, &problem, &summary);
+      result.linear_solver = ceres::LinearSolverTypeToString(solver_options.linear_solver_type);
+    }
     result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE;
     result.solver_message = num_free == 0 ? "no free parameters" : summary.message;
     result.iterations = num_free == 0 ? 0 : static_cast<int>(summary.iterations.size()) - 1;
@@ -1066,6 +1070,7 @@ nlohmann::json FitResult::ToJson() const {
   }
   return {{"converged", converged},
           {"solver_message", solver_message},
+          {"linear_solver", linear_solver},
           {"iterations", iterations},
           {"initial_cost", initial_cost},
           {"final_cost", final_cost},
