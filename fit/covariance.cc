@@ -349,8 +349,8 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   // would factor the same Jacobian a second time.
   if (!have_covariance && !result.rank_deficient && dense.done &&
       dense.reciprocal_condition >= options.min_reciprocal_condition_dense_inverse) {
-    result.covariance = DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes,
-                                     result.block_offsets);
+    result.covariance =
+        DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes, result.block_offsets);
     result.method = "dense_inverse";
     have_covariance = true;
   }
@@ -393,8 +393,8 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   }
 
   if (!have_covariance && dense.done) {
-    result.covariance = DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes,
-                                     result.block_offsets);
+    result.covariance =
+        DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes, result.block_offsets);
     result.method = "dense_pseudo_inverse";
     have_covariance = true;
   }

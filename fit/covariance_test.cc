@@ -78,8 +78,8 @@ TEST(ComputeCovariance, DenseInverseEqualsCeresSparseQr) {
   EXPECT_GT(dense.reciprocal_condition, 1e-6) << dense.ToString();
   EXPECT_LT(dense.reciprocal_condition, 1e-2) << dense.ToString();
   // Two factorisations of the same matrix: relative error ~ 1e-16 / reciprocal condition.
-  EXPECT_TRUE(dense.covariance.isApprox(sparse.covariance, 1e-10))
-      << dense.covariance << "\n" << sparse.covariance;
+  EXPECT_TRUE(dense.covariance.isApprox(sparse.covariance, 1e-10)) << dense.covariance << "\n"
+                                                                   << sparse.covariance;
 }
 
 // Sandwich on a straight line with heteroscedastic residuals: CR2 by its closed form for one

@@ -316,15 +316,15 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
 
 // The linear solver for the normal equations of `problem` (num_free tangent coordinates). Small
 // problems and problems whose J^T J is mostly filled (a polynomial's coefficient blocks and the
-// physical blocks are shared by every station) get dense Cholesky: a sparse factorisation of a dense
-// matrix pays the sparse bookkeeping (block outer products, supernode analysis) for no saving.
-// Problems with many local blocks (a LUT's nodes: each station touches the 8 of its cell) stay
-// sparse; above kMaxDenseNormal coordinates the dense matrix alone would cost too much memory and
-// O(n^3) time.
+// physical blocks are shared by every station) get dense Cholesky: a sparse factorisation of a
+// dense matrix pays the sparse bookkeeping (block outer products, supernode analysis) for no
+// saving. Problems with many local blocks (a LUT's nodes: each station touches the 8 of its cell)
+// stay sparse; above kMaxDenseNormal coordinates the dense matrix alone would cost too much memory
+// and O(n^3) time.
 ceres::LinearSolverType ChooseLinearSolver(const ceres::Problem& problem, int num_free) {
-  constexpr int kAlwaysDense = 400;     // dense below this size whatever the structure
+  constexpr int kAlwaysDense = 400;      // dense below this size whatever the structure
   constexpr int kMaxDenseNormal = 3000;  // 72 MB of normal matrix
-  constexpr double kDenseFill = 0.25;   // fraction of J^T J's entries that are structurally non-zero
+  constexpr double kDenseFill = 0.25;  // fraction of J^T J's entries that are structurally non-zero
   if (num_free <= kAlwaysDense) return ceres::DENSE_NORMAL_CHOLESKY;
   if (num_free > kMaxDenseNormal) return ceres::SPARSE_NORMAL_CHOLESKY;
   // Structural non-zeros of J^T J: every pair of free blocks that share a residual block.
@@ -1082,8 +1082,8 @@ nlohmann::json FitResult::ToJson() const {
           {"seconds_covariance", seconds_covariance},
           {"rank_deficient", rank_deficient},
           {"covariance_message", covariance_message},
-          {"covariance_estimator", covariance_estimator.empty() ? nlohmann::json()
-                                                                 : nlohmann::json(covariance_estimator)},
+          {"covariance_estimator",
+           covariance_estimator.empty() ? nlohmann::json() : nlohmann::json(covariance_estimator)},
           {"identifiability_flags", flags},
           {"outliers", out_flags},
           {"unresolved", unresolved_json},
