@@ -1,13 +1,18 @@
 #!/usr/bin/env bash
-# Time of `trackcal-fit diagnose` with the fast cross-validation (the default: folds refitted from
-# the full fit) against `--exact-cv` (every fold fitted from scratch) in the same run, on the
-# workflow tests' capture (tests/data/workflow/paper_small.yaml, 240 calibration stations) with a
-# hidden effect, for the workflow's first two steps: a degree-4 polynomial, then sensor_offset plus
-# the polynomial (docs/diagnose.md, Speed). Prints wall and CPU seconds, the ratios, and whether the
-# two modes agree (verdict, significant candidates in order, largest relative difference of the
-# held-out means).
+# Time of `trackcal-fit diagnose` against a baseline in the same run, on the workflow tests' capture
+# (tests/data/workflow/paper_small.yaml, 240 calibration stations) with a hidden effect, for the
+# workflow's first two steps: a degree-4 polynomial, then sensor_offset plus the polynomial
+# (docs/diagnose.md, Speed). The baseline is
+#   - by default `--exact-cv` of the same binary (every fold fitted from scratch), or
+#   - with BASELINE_FIT=path/to/trackcal-fit, another build's binary with the same options (a
+#     before/after comparison of a change: build the old commit elsewhere, or copy its binary).
+# The two runs alternate per step, so both see the same machine load. Prints wall and CPU seconds,
+# the ratios, and whether the two agree: verdict, significant candidates in order, the largest
+# relative difference of the held-out means, and (before/after mode) of the reported parameters
+# and their standard deviations.
 #
 #   bench/bench_diagnose.sh [BUILD_DIR] [HIDDEN_EFFECT] [SEED] [THREADS]   # build sensor_offset 1 0
+#   BASELINE_FIT=/tmp/old/trackcal-fit bench/bench_diagnose.sh build
 #
 # THREADS is diagnose's --threads (0: all cores). Say the machine's load when you quote the figures.
 set -euo pipefail
@@ -15,6 +20,7 @@ build=${1:-build}
 hidden=${2:-sensor_offset}
 seed=${3:-1}
 threads=${4:-0}
+baseline_fit=${BASELINE_FIT:-}
 here=$(cd "$(dirname "$0")/.." && pwd)
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
@@ -24,10 +30,10 @@ trap 'rm -rf "$work"' EXIT
 printf 'terms:\n  - type: polynomial\n    degree: 4\n' > "$work/step1.yaml"
 printf 'terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 4\n' > "$work/step2.yaml"
 
-run() {  # run NAME ARGS...: diagnose --json into $work/NAME.json, "wall cpu" into $work/NAME.time
-  local name=$1
-  shift
-  if ! /usr/bin/env time -f "%e %U %S" -o "$work/$name.time" "$build/fit/trackcal-fit" diagnose \
+run() {  # run NAME BINARY ARGS...: diagnose --json into $work/NAME.json, "wall cpu" into NAME.time
+  local name=$1 binary=$2
+  shift 2
+  if ! /usr/bin/env time -f "%e %U %S" -o "$work/$name.time" "$binary" diagnose \
       --data "$work/cap" --threads "$threads" --json --quiet "$@" > "$work/$name.json" \
       2> "$work/$name.err"; then
     cat "$work/$name.err" >&2
@@ -35,32 +41,67 @@ run() {  # run NAME ARGS...: diagnose --json into $work/NAME.json, "wall cpu" in
   fi
 }
 
-echo "load average before: $(cut -d' ' -f1-3 /proc/loadavg); threads: $threads; $(nproc) cores"
+if [[ -n "$baseline_fit" ]]; then
+  mode="before/after"
+  names=(after before)
+else
+  mode="fast/exact-cv"
+  names=(fast exact)
+fi
+echo "load average before: $(cut -d' ' -f1-3 /proc/loadavg); threads: $threads; $(nproc) cores;" \
+  "comparing $mode"
 for step in step1 step2; do
-  run "$step.fast" --model "$work/$step.yaml"
-  run "$step.exact" --model "$work/$step.yaml" --exact-cv
-  python3 - "$work" "$step" <<'EOF'
-import json, sys
-work, step = sys.argv[1], sys.argv[2]
+  if [[ -n "$baseline_fit" ]]; then
+    run "$step.after" "$build/fit/trackcal-fit" --model "$work/$step.yaml"
+    run "$step.before" "$baseline_fit" --model "$work/$step.yaml"
+  else
+    run "$step.fast" "$build/fit/trackcal-fit" --model "$work/$step.yaml"
+    run "$step.exact" "$build/fit/trackcal-fit" --model "$work/$step.yaml" --exact-cv
+  fi
+  python3 - "$work" "$step" "${names[0]}" "${names[1]}" <<'EOF'
+import json, math, sys
+work, step, new_name, old_name = sys.argv[1:5]
 def load(mode):
     wall, user, sys_ = map(float, open(f"{work}/{step}.{mode}.time").read().split())
     return json.load(open(f"{work}/{step}.{mode}.json")), wall, user + sys_
-fast, fw, fc = load("fast")
-exact, ew, ec = load("exact")
+new, nw, nc = load(new_name)
+old, ow, oc = load(old_name)
 sig = lambda d: [c["effect"] for c in d["candidates"] if c["significant"]]
+def rel(a, b):
+    if a is None or b is None:
+        return 0.0 if a is None and b is None else math.inf
+    return abs(a - b) / max(abs(b), 1e-300) if a != b else 0.0
 worst = 0.0
-pairs = [(fast["base"], exact["base"])]
-by_effect = {c["effect"]: c for c in fast["candidates"]}
-pairs += [(by_effect[c["effect"]], c) for c in exact["candidates"] if c["cross_validated"]]
+pairs = [(new["base"], old["base"])]
+by_effect = {c["effect"]: c for c in new["candidates"]}
+pairs += [(by_effect[c["effect"]], c) for c in old["candidates"] if c["cross_validated"]]
 for f, e in pairs:
     for key in ("cv_position_mm_mean", "cv_orientation_deg_mean"):
-        worst = max(worst, abs(f[key] - e[key]) / abs(e[key]))
-same = fast["verdict"]["effect"] == exact["verdict"]["effect"] and sig(fast) == sig(exact)
-print(f"{step}: fast {fw:.2f} s wall, {fc:.2f} s CPU; exact {ew:.2f} s wall, {ec:.2f} s CPU; "
-      f"speed-up {ew / fw:.1f}x wall, {ec / fc:.1f}x CPU")
-print(f"  verdict {fast['verdict']['effect']} (exact: {exact['verdict']['effect']}), "
-      f"significant {sig(fast)} (exact: {sig(exact)}): {'same' if same else 'DIFFERENT'}; "
-      f"held-out means differ by at most {100 * worst:.3f} %")
+        worst = max(worst, rel(f[key], e[key]))
+same = new["verdict"]["effect"] == old["verdict"]["effect"] and sig(new) == sig(old)
+print(f"{step}: {new_name} {nw:.2f} s wall, {nc:.2f} s CPU; {old_name} {ow:.2f} s wall, "
+      f"{oc:.2f} s CPU; speed-up {ow / nw:.2f}x wall, {oc / nc:.2f}x CPU")
+print(f"  verdict {new['verdict']['effect']} ({old_name}: {old['verdict']['effect']}), "
+      f"significant {sig(new)} ({old_name}: {sig(old)}): {'same' if same else 'DIFFERENT'}; "
+      f"held-out means differ by at most {100 * worst:.3g} %")
+if old_name == "before":
+    # Parameters and standard deviations of every fitted candidate, relative to the larger of the
+    # value and its standard deviation (a parameter near zero is compared on its own scale).
+    worst_value = worst_std = 0.0
+    for c in old["candidates"]:
+        n = by_effect.get(c["effect"])
+        if n is None or len(n["parameters"]) != len(c["parameters"]):
+            worst_value = math.inf
+            continue
+        for pn, po in zip(n["parameters"], c["parameters"]):
+            stds = [v for v in po["stddev"] if v is not None]
+            block_scale = max(stds) if stds else 0.0
+            for vn, vo in zip(pn["values"], po["values"]):
+                worst_value = max(worst_value, abs(vn - vo) / max(abs(vo), block_scale, 1e-300))
+            for sn, so in zip(pn["stddev"], po["stddev"]):
+                worst_std = max(worst_std, rel(sn, so))
+    print(f"  candidates' parameters differ by at most {worst_value:.2g} (relative), "
+          f"standard deviations by at most {worst_std:.2g} (relative)")
 EOF
 done
 echo "load average after: $(cut -d' ' -f1-3 /proc/loadavg)"

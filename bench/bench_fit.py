@@ -37,6 +37,24 @@ terms:
   - type: lut
     cell_size_mm: 150
 """
+# The chain as a user writes it, without the settings above.
+CHAIN_MODEL_DEFAULTS = """noise: {position_mm: 1.0, orientation_deg: 0.2}
+terms:
+  - type: plane
+  - type: dipole
+  - type: lut
+    cell_size_mm: 150
+"""
+
+# fit/best_chain_sim_test's chain.
+RIDGE_CHAIN_MODEL = """noise: {position_mm: 1.0, orientation_deg: 0.2}
+terms:
+  - type: plane
+  - type: dipole
+  - type: polynomial
+    degree: 8
+    ridge: 0.25
+"""
 
 
 def run_timed(cmd):
@@ -105,6 +123,10 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--build", default="build", help="CMake build folder")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--ridge-chain", action="store_true",
+                    help="also fit plane + dipole + a degree-8 polynomial with ridge 0.25 (slow)")
+    ap.add_argument("--skip-default-chain", action="store_true",
+                    help="skip the chain fitted with the default solver settings and covariance")
     args = ap.parse_args()
     sim = os.path.join(args.build, "sim", "trackcal-simulate")
     fit = os.path.join(args.build, "fit", "trackcal-fit")
@@ -152,32 +174,57 @@ def main():
               f"+ covariance {1e3 * min(tc_cov):.1f} ms, total {1e3 * min(tc_total):.1f} ms); "
               f"valid improvement position {valid['improvement_percent']['position_mean']:.1f} %, "
               f"orientation {valid['improvement_percent']['orientation_mean']:.1f} %")
-        ok = min(tc_solve) <= 0.050
-        print("fit time target (<= 50 ms):", "met" if ok else "NOT met")
-
-        chain_model = os.path.join(tmp, "chain.yaml")
-        with open(chain_model, "w") as f:
-            f.write(CHAIN_MODEL)
-        chain_wall, chain_cpu = [], []
-        for i in range(max(1, min(args.repeat, 3))):
-            stdout, cpu = run_timed([fit, "fit", "--data", cap, "--model", chain_model, "-o",
-                                     os.path.join(tmp, f"chain{i}.json"), "--json", "--quiet"])
-            doc = json.loads(stdout)
-            chain_wall.append(doc["fit"]["seconds"])
-            chain_cpu.append(cpu)
-        valid = doc["tables"][1]
-        effects = {p["term"]: p for p in doc["fit"]["parameters"]}
-        plane_d = effects["plane"]["values"][0]["value"] if "plane" in effects else float("nan")
-        print(f"trackcal plane+dipole+LUT  : fit {min(chain_wall):7.2f} s wall, {min(chain_cpu):.2f} s CPU "
-              f"(best of {len(chain_wall)}; {doc['fit']['iterations']} iterations, "
-              f"{doc['fit']['num_free_parameters']} parameters); valid position mean "
-              f"{valid['after']['position_mm']['mean']:.2f} mm (improvement "
-              f"{valid['improvement_percent']['position_mean']:.1f} %), orientation "
-              f"{valid['after']['orientation_deg']['mean']:.3f} deg; searched plane distance {plane_d:.3f} m")
         base = min(np_times)
-        print(f"ratio to numpy lstsq       : chain wall {min(chain_wall) / base:.0f}x, "
-              f"chain CPU {min(chain_cpu) / base:.0f}x")
-        print("chain fit time target (<= 5 s CPU):", "met" if min(chain_cpu) <= 5.0 else "NOT met")
+        print(f"ratio to numpy lstsq       : degree-4 solve {min(tc_solve) / base:.1f}x, "
+              f"with covariance {min(tc_total) / base:.1f}x")
+        # The issue's "fit time" is what `trackcal-fit fit` spends fitting: initialisation, solve and
+        # the standard deviations it reports by default (reading and writing files excluded).
+        ok = min(tc_total) <= 0.050
+        print("degree-4 fit time target (<= 50 ms, with covariance):", "met" if ok else "NOT met")
+
+        def run_chain(name, text, repeats):
+            """Fits the chain `repeats` times; returns (last JSON document, wall list, CPU list)."""
+            chain_model = os.path.join(tmp, f"{name}.yaml")
+            with open(chain_model, "w") as f:
+                f.write(text)
+            walls, cpus = [], []
+            for i in range(repeats):
+                stdout, cpu = run_timed([fit, "fit", "--data", cap, "--model", chain_model, "-o",
+                                         os.path.join(tmp, f"{name}{i}.json"), "--json", "--quiet"])
+                doc = json.loads(stdout)
+                walls.append(doc["fit"]["seconds"])
+                cpus.append(cpu)
+            return doc, walls, cpus
+
+        def print_chain(label, doc, walls, cpus, target=True):
+            valid = doc["tables"][1]
+            effects = {p["term"]: p for p in doc["fit"]["parameters"]}
+            plane_d = effects["plane"]["values"][0]["value"] if "plane" in effects else float("nan")
+            print(f"{label:27s}: fit {min(walls):7.2f} s wall, {min(cpus):.2f} s CPU "
+                  f"(best of {len(walls)}; covariance {doc['fit']['seconds_covariance']:.2f} s wall; "
+                  f"{doc['fit']['iterations']} iterations, "
+                  f"{doc['fit']['num_free_parameters']} parameters); valid position mean "
+                  f"{valid['after']['position_mm']['mean']:.2f} mm (improvement "
+                  f"{valid['improvement_percent']['position_mean']:.1f} %), orientation "
+                  f"{valid['after']['orientation_deg']['mean']:.3f} deg; searched plane distance "
+                  f"{plane_d:.3f} m")
+            print(f"ratio to numpy lstsq       : chain wall {min(walls) / base:.0f}x, "
+                  f"chain CPU {min(cpus) / base:.0f}x")
+            if target:  # the issue's target is for a chain with a LUT and two physical terms
+                print("chain fit time target (<= 5 s CPU):", "met" if min(cpus) <= 5.0 else "NOT met")
+
+        doc, walls, cpus = run_chain("chain", CHAIN_MODEL, max(1, min(args.repeat, 3)))
+        print_chain("trackcal plane+dipole+LUT", doc, walls, cpus)
+        if args.ridge_chain:
+            # The best chain of fit/best_chain_sim_test (a ridge polynomial after the physical terms):
+            # ~1000 parameters whose normal matrix is dense (docs/model-file.md, solver).
+            doc, walls, cpus = run_chain("ridge_chain", RIDGE_CHAIN_MODEL, 1)
+            print_chain("plane+dipole+ridge deg. 8", doc, walls, cpus, target=False)
+        if not args.skip_default_chain:
+            # The same chain as a user writes it: the default solver tolerance and the default
+            # standard deviations (sandwich, which a LUT's size turns into the model covariance).
+            doc, walls, cpus = run_chain("chain_defaults", CHAIN_MODEL_DEFAULTS, 1)
+            print_chain("  the same, solver defaults", doc, walls, cpus)
         return 0
 
 

@@ -20,7 +20,8 @@ bool CovarianceOptions::Check() const {
   return rank_tolerance > 0.0 && rank_tolerance < 1.0 && weak_direction_ratio >= rank_tolerance &&
          weak_direction_ratio < 1.0 && weak_component_threshold > 0.0 &&
          weak_component_threshold <= 1.0 && max_dense_dimension >= 0 && num_threads >= 1 &&
-         max_sandwich_dimension >= 0 && max_leverage_flops >= 0.0;
+         max_sandwich_dimension >= 0 && max_leverage_flops >= 0.0 &&
+         min_reciprocal_condition_dense_inverse >= 0.0;
 }
 
 std::string CovarianceEstimatorName(CovarianceEstimator estimator) {
@@ -51,6 +52,12 @@ struct DenseAnalysis {
   Eigen::VectorXd eigenvalues;   // of the scaled information matrix, ascending
   Eigen::MatrixXd eigenvectors;  // columns, scaled coordinates
   std::vector<int> weak;         // indices of weak eigen-directions
+  // The whitened (loss-applied) Jacobian and residuals of every residual block of the problem, in
+  // the problem's order, and each block's first row: the sandwich reuses them instead of evaluating
+  // the problem again.
+  Eigen::MatrixXd jacobian;
+  std::vector<double> residuals;
+  std::map<ceres::ResidualBlockId, int> first_row;
 };
 
 // Information matrix of the whitened problem over `columns` blocks (tangent coordinates), its
@@ -62,12 +69,21 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
   eval.parameter_blocks = columns;
   eval.apply_loss_function = true;
   eval.num_threads = options.num_threads;
+  problem->GetResidualBlocks(&eval.residual_blocks);  // all, in order, to know each block's rows
   ceres::CRSMatrix crs;
   double cost = 0.0;
-  if (!problem->Evaluate(eval, &cost, nullptr, nullptr, &crs)) return a;
+  if (!problem->Evaluate(eval, &cost, &a.residuals, nullptr, &crs)) return a;
   if (crs.num_cols != dimension) return a;
-  const Eigen::MatrixXd jacobian = DenseJacobian(crs);
-  const Eigen::MatrixXd information = jacobian.transpose() * jacobian;
+  int row = 0;
+  for (ceres::ResidualBlockId id : eval.residual_blocks) {
+    a.first_row[id] = row;
+    row += problem->GetCostFunctionForResidualBlock(id)->num_residuals();
+  }
+  a.jacobian = DenseJacobian(crs);
+  // J^T J by a symmetric rank update (half the flops of the product); the eigen-solver below reads
+  // the lower triangle only, the diagonal is used for the scaling.
+  Eigen::MatrixXd information = Eigen::MatrixXd::Zero(dimension, dimension);
+  information.selfadjointView<Eigen::Lower>().rankUpdate(a.jacobian.transpose());
   a.scale = Eigen::VectorXd::Ones(dimension);
   for (int i = 0; i < dimension; ++i) {
     if (information(i, i) > 0.0) a.scale(i) = 1.0 / std::sqrt(information(i, i));
@@ -99,61 +115,74 @@ bool SandwichCovariance(ceres::Problem* problem, const std::vector<double*>& col
   const Eigen::VectorXd inv = dense.eigenvalues.tail(rank).cwiseInverse();
   const Eigen::MatrixXd h_inv = sv * inv.asDiagonal() * sv.transpose();
 
-  ceres::Problem::EvaluateOptions eval;
-  eval.parameter_blocks = columns;
-  eval.residual_blocks = options.clusters;
-  eval.apply_loss_function = true;
-  eval.num_threads = options.num_threads;
-  ceres::CRSMatrix crs;
-  std::vector<double> residuals;
-  double cost = 0.0;
-  if (!problem->Evaluate(eval, &cost, &residuals, nullptr, &crs) || crs.num_cols != dimension) {
-    *why = "the clusters' residuals could not be evaluated";
-    return false;
+  // The clusters' rows and the other residual blocks' rows of the analysis' Jacobian (evaluated
+  // once for both, with the loss applied as the solver saw it).
+  std::vector<int> cluster_rows, cluster_sizes;
+  for (ceres::ResidualBlockId id : options.clusters) {
+    const auto it = dense.first_row.find(id);
+    if (it == dense.first_row.end()) {
+      *why = "a cluster is not a residual block of the problem";
+      return false;
+    }
+    cluster_rows.push_back(it->second);
+    cluster_sizes.push_back(problem->GetCostFunctionForResidualBlock(id)->num_residuals());
   }
-  const Eigen::MatrixXd jc = DenseJacobian(crs);
   Eigen::MatrixXd meat = Eigen::MatrixXd::Zero(dimension, dimension);
 
   // Residual blocks that are not clusters (priors, regularisers): their model information.
-  std::vector<ceres::ResidualBlockId> all, others;
-  problem->GetResidualBlocks(&all);
-  const std::set<ceres::ResidualBlockId> clustered(options.clusters.begin(),
-                                                   options.clusters.end());
-  for (ceres::ResidualBlockId id : all) {
-    if (!clustered.count(id)) others.push_back(id);
-  }
-  if (!others.empty()) {
-    eval.residual_blocks = others;
-    ceres::CRSMatrix crs_others;
-    if (!problem->Evaluate(eval, &cost, nullptr, nullptr, &crs_others)) {
-      *why = "the non-cluster residuals could not be evaluated";
-      return false;
+  {
+    const std::set<ceres::ResidualBlockId> clustered(options.clusters.begin(),
+                                                     options.clusters.end());
+    std::vector<std::pair<int, int>> other_rows;  // (first row, rows) in the problem's order
+    int num_other_rows = 0;
+    std::vector<ceres::ResidualBlockId> all;
+    problem->GetResidualBlocks(&all);
+    for (ceres::ResidualBlockId id : all) {
+      if (clustered.count(id)) continue;
+      const int k = problem->GetCostFunctionForResidualBlock(id)->num_residuals();
+      other_rows.emplace_back(dense.first_row.at(id), k);
+      num_other_rows += k;
     }
-    const Eigen::MatrixXd jo = DenseJacobian(crs_others);
-    meat.noalias() += jo.transpose() * jo;
+    if (num_other_rows > 0) {
+      Eigen::MatrixXd jo(num_other_rows, dimension);
+      int row = 0;
+      for (const auto& [first, k] : other_rows) {
+        jo.middleRows(row, k) = dense.jacobian.middleRows(first, k);
+        row += k;
+      }
+      meat.noalias() += jo.transpose() * jo;
+    }
   }
 
   const int num_clusters = static_cast<int>(options.clusters.size());
-  const int num_rows = crs.num_rows;
+  int num_rows = 0;
+  for (int k : cluster_sizes) num_rows += k;
   const bool leverage =
       static_cast<double>(num_rows) * dimension * dimension <= options.max_leverage_flops;
+  // Leverages A_g = J_g H^+ J_g^T = B_g B_g^T with B = J S V_r diag(l_r)^-1/2: one product for all
+  // clusters instead of one (k x dimension) (dimension x dimension) product per cluster.
+  Eigen::MatrixXd b;
+  if (leverage) {
+    const Eigen::MatrixXd half = sv * inv.cwiseSqrt().asDiagonal();
+    b = dense.jacobian * half;
+  }
   Eigen::MatrixXd scores(dimension, num_clusters);
-  int row = 0;
   for (int g = 0; g < num_clusters; ++g) {
-    const int k = problem->GetCostFunctionForResidualBlock(options.clusters[g])->num_residuals();
-    const Eigen::MatrixXd jg = jc.middleRows(row, k);
-    Eigen::VectorXd u = Eigen::Map<const Eigen::VectorXd>(residuals.data() + row, k);
+    const int k = cluster_sizes[static_cast<size_t>(g)];
+    const int first = cluster_rows[static_cast<size_t>(g)];
+    const auto jg = dense.jacobian.middleRows(first, k);
+    Eigen::VectorXd u = Eigen::Map<const Eigen::VectorXd>(dense.residuals.data() + first, k);
     if (leverage) {
       // u = (I - A)^-1/2 r; a leverage near 1 (a cluster that alone determines a direction) is
       // capped so its residual is inflated at most 1000-fold.
-      const Eigen::MatrixXd a = jg * h_inv * jg.transpose();
+      const auto bg = b.middleRows(first, k);
+      const Eigen::MatrixXd a = bg * bg.transpose();
       Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(Eigen::MatrixXd::Identity(k, k) - a);
       const Eigen::VectorXd scale =
           eig.eigenvalues().cwiseMax(1e-6).cwiseSqrt().cwiseInverse();
       u = eig.eigenvectors() * scale.asDiagonal() * eig.eigenvectors().transpose() * u;
     }
     scores.col(g) = jg.transpose() * u;
-    row += k;
   }
   double factor = 1.0;
   if (!leverage) {
@@ -164,6 +193,28 @@ bool SandwichCovariance(ceres::Problem* problem, const std::vector<double*>& col
   *full = h_inv * meat * h_inv;
   *estimator = leverage ? "sandwich (CR2)" : "sandwich (CR1)";
   return true;
+}
+
+// (Pseudo-)inverse in the scaled coordinates over the requested rows `full_index`, from the `rank`
+// largest eigenvalues: H^+ = S V_r diag(1/l_r) V_r^T S; pairs of blocks not `wanted` are zero.
+template <typename WantedFn>
+Eigen::MatrixXd DenseInverse(const DenseAnalysis& dense, const std::vector<int>& full_index,
+                             int rank, const WantedFn& wanted,
+                             const std::vector<CovarianceBlock>& blocks,
+                             const std::vector<int>& sizes, const std::vector<int>& offsets) {
+  const int n = static_cast<int>(full_index.size());
+  const Eigen::MatrixXd v = dense.eigenvectors.rightCols(rank);
+  const Eigen::VectorXd inv = dense.eigenvalues.tail(rank).cwiseInverse();
+  Eigen::MatrixXd rows(n, rank);
+  for (int k = 0; k < n; ++k) rows.row(k) = dense.scale(full_index[k]) * v.row(full_index[k]);
+  Eigen::MatrixXd covariance = rows * inv.asDiagonal() * rows.transpose();
+  for (std::size_t i = 0; i < blocks.size(); ++i) {
+    for (std::size_t j = 0; j < blocks.size(); ++j) {
+      if (wanted(i, j)) continue;
+      covariance.block(offsets[i], offsets[j], sizes[i], sizes[j]).setZero();
+    }
+  }
+  return covariance;
 }
 
 }  // namespace
@@ -293,6 +344,16 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
       result.message += "sandwich covariance unavailable (" + why + "), model covariance used; ";
     }
   }
+  // The model covariance H^-1 from the dense analysis' eigen-decomposition when H is well enough
+  // conditioned for it (relative error ~ machine epsilon / reciprocal condition); Ceres' sparse QR
+  // would factor the same Jacobian a second time.
+  if (!have_covariance && !result.rank_deficient && dense.done &&
+      dense.reciprocal_condition >= options.min_reciprocal_condition_dense_inverse) {
+    result.covariance =
+        DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes, result.block_offsets);
+    result.method = "dense_inverse";
+    have_covariance = true;
+  }
   if (!have_covariance && !result.rank_deficient) {
     ceres::Covariance::Options copt;
     copt.algorithm_type = ceres::SPARSE_QR;
@@ -332,20 +393,8 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   }
 
   if (!have_covariance && dense.done) {
-    // Pseudo-inverse in the scaled coordinates: H^+ = S V_r diag(1/l_r) V_r^T S.
-    const Eigen::MatrixXd v = dense.eigenvectors.rightCols(dense.rank);
-    const Eigen::VectorXd inv = dense.eigenvalues.tail(dense.rank).cwiseInverse();
-    Eigen::MatrixXd rows(n, dense.rank);
-    for (int k = 0; k < n; ++k) rows.row(k) = dense.scale(full_index[k]) * v.row(full_index[k]);
-    result.covariance = rows * inv.asDiagonal() * rows.transpose();
-    for (std::size_t i = 0; i < blocks.size(); ++i) {
-      for (std::size_t j = 0; j < blocks.size(); ++j) {
-        if (Wanted(i, j)) continue;
-        result.covariance
-            .block(result.block_offsets[i], result.block_offsets[j], sizes[i], sizes[j])
-            .setZero();
-      }
-    }
+    result.covariance =
+        DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes, result.block_offsets);
     result.method = "dense_pseudo_inverse";
     have_covariance = true;
   }

@@ -3,10 +3,10 @@
 // With whitened residuals (fit/cost_functor.h), the a-posteriori covariance of the parameters is
 // the inverse of the information matrix H = J^T J at the solution, J taken in the tangent spaces of
 // the manifolds. ComputeCovariance
-//   - asks ceres::Covariance for the joint covariance of the requested blocks;
 //   - analyses H densely (eigen-decomposition) when the problem is small enough: its numerical
 //     rank, and the weak directions (eigenvalues below weak_direction_ratio * largest), named by
-//     the coordinates they move most;
+//     the coordinates they move most; a well-conditioned H is inverted from that decomposition;
+//   - otherwise asks ceres::Covariance for the joint covariance of the requested blocks;
 //   - falls back to the pseudo-inverse of H (dropping the null space) when Ceres reports a
 //     rank-deficient Jacobian, so a degenerate problem still yields standard deviations for the
 //     coordinates that are determined, and flags the ones that are not;
@@ -83,6 +83,10 @@ struct CovarianceOptions {
   double weak_component_threshold = 0.1;
   // Dense analysis (rank, weak directions, fallback) only up to this many tangent coordinates.
   int max_dense_dimension = 3000;
+  // kModel: H^-1 is taken from the dense analysis' eigen-decomposition when its reciprocal
+  // condition is at least this (relative error about 1e-16 / 1e-6 = 1e-10), instead of factoring
+  // the Jacobian again with Ceres' sparse QR. Above 1: always Ceres.
+  double min_reciprocal_condition_dense_inverse = 1e-6;
   // Threads for ceres::Covariance.
   int num_threads = 1;
   bool Check() const;
@@ -96,7 +100,9 @@ struct IdentifiabilityFlag {
 
 struct CovarianceResult {
   bool success = false;         // a covariance (full or pseudo-inverse) was computed
-  std::string method;           // "ceres_sparse_qr", "ceres_dense_svd" or "dense_pseudo_inverse"
+  // "dense_inverse", "ceres_sparse_qr", "dense_pseudo_inverse", "dense_sandwich" or
+  // "dense_pseudo_inverse_sandwich"
+  std::string method;
   // The estimator used: "model", "sandwich (CR2)" or "sandwich (CR1)"; a sandwich that was asked
   // for but could not be computed gives "model" and says why in `message`.
   std::string estimator = "model";

@@ -37,7 +37,7 @@ TEST(ComputeCovariance, Nominal) {
   const CovarianceResult c =
       ComputeCovariance(&problem, {{&a, "a", {}, 1.0, 10.0}, {&b, "b", {}, 1.0, 10.0}});
   ASSERT_TRUE(c.success) << c.ToString();
-  EXPECT_EQ(c.method, "ceres_sparse_qr");
+  EXPECT_EQ(c.method, "dense_inverse");  // well conditioned: from the dense analysis
   EXPECT_EQ(c.rank, 2);
   EXPECT_FALSE(c.rank_deficient);
   EXPECT_TRUE(c.flags.empty()) << c.ToString();
@@ -45,6 +45,41 @@ TEST(ComputeCovariance, Nominal) {
   EXPECT_TRUE(c.covariance.isApprox(expected, 1e-10)) << c.covariance;  // same algebra, rounding
   EXPECT_NEAR(c.stddev(1), std::sqrt(expected(1, 1)), 1e-12);
   EXPECT_EQ(c.coordinate_names[0], "a.[0]");
+}
+
+// The model covariance from the dense analysis' eigen-decomposition equals Ceres' sparse QR of the
+// same Jacobian (forced by a reciprocal-condition threshold above 1) on a cubic fit whose normal
+// matrix has a reciprocal condition of ~1e-4 after Jacobi scaling.
+struct CubicCost {
+  double x, y;
+  template <typename T>
+  bool operator()(const T* c, T* r) const {
+    r[0] = (c[0] + T(x) * (c[1] + T(x) * (c[2] + T(x) * c[3])) - T(y)) / T(0.1);
+    return true;
+  }
+};
+TEST(ComputeCovariance, DenseInverseEqualsCeresSparseQr) {
+  double c[4] = {0.5, -1.0, 0.25, 2.0};
+  ceres::Problem problem;
+  for (int i = 0; i < 40; ++i) {
+    const double x = 0.05 * i;
+    problem.AddResidualBlock(
+        new ceres::AutoDiffCostFunction<CubicCost, 1, 4>(new CubicCost{x, std::sin(3.0 * x)}),
+        nullptr, c);
+  }
+  CovarianceOptions dense_options;
+  CovarianceOptions ceres_options;
+  ceres_options.min_reciprocal_condition_dense_inverse = 2.0;
+  const CovarianceResult dense = ComputeCovariance(&problem, {{c, "c"}}, dense_options);
+  const CovarianceResult sparse = ComputeCovariance(&problem, {{c, "c"}}, ceres_options);
+  ASSERT_TRUE(dense.success && sparse.success) << dense.ToString() << sparse.ToString();
+  EXPECT_EQ(dense.method, "dense_inverse");
+  EXPECT_EQ(sparse.method, "ceres_sparse_qr");
+  EXPECT_GT(dense.reciprocal_condition, 1e-6) << dense.ToString();
+  EXPECT_LT(dense.reciprocal_condition, 1e-2) << dense.ToString();
+  // Two factorisations of the same matrix: relative error ~ 1e-16 / reciprocal condition.
+  EXPECT_TRUE(dense.covariance.isApprox(sparse.covariance, 1e-10)) << dense.covariance << "\n"
+                                                                   << sparse.covariance;
 }
 
 // Sandwich on a straight line with heteroscedastic residuals: CR2 by its closed form for one

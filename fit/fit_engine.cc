@@ -474,6 +474,41 @@ bool WhiteningChanged(const BuiltProblem& before, const BuiltProblem& after) {
   return false;
 }
 
+// The linear solver for the normal equations of `problem` (num_free tangent coordinates). Small
+// problems and problems whose J^T J is mostly filled (a polynomial's coefficient blocks and the
+// physical blocks are shared by every station) get dense Cholesky: a sparse factorisation of a
+// dense matrix pays the sparse bookkeeping (block outer products, supernode analysis) for no
+// saving. Problems with many local blocks (a LUT's nodes: each station touches the 8 of its cell)
+// stay sparse; above kMaxDenseNormal coordinates the dense matrix alone would cost too much memory
+// and O(n^3) time.
+ceres::LinearSolverType ChooseLinearSolver(const ceres::Problem& problem, int num_free) {
+  constexpr int kAlwaysDense = 400;      // dense below this size whatever the structure
+  constexpr int kMaxDenseNormal = 3000;  // 72 MB of normal matrix
+  constexpr double kDenseFill = 0.25;  // fraction of J^T J's entries that are structurally non-zero
+  if (num_free <= kAlwaysDense) return ceres::DENSE_NORMAL_CHOLESKY;
+  if (num_free > kMaxDenseNormal) return ceres::SPARSE_NORMAL_CHOLESKY;
+  // Structural non-zeros of J^T J: every pair of free blocks that share a residual block.
+  std::vector<ceres::ResidualBlockId> residual_blocks;
+  problem.GetResidualBlocks(&residual_blocks);
+  std::set<std::pair<const double*, const double*>> pairs;
+  double nonzeros = 0.0;
+  std::vector<double*> used;
+  for (ceres::ResidualBlockId id : residual_blocks) {
+    problem.GetParameterBlocksForResidualBlock(id, &used);
+    for (double* a : used) {
+      if (problem.IsParameterBlockConstant(a)) continue;
+      for (double* b : used) {
+        if (problem.IsParameterBlockConstant(b) || !pairs.emplace(a, b).second) continue;
+        nonzeros += static_cast<double>(problem.ParameterBlockTangentSize(a)) *
+                    problem.ParameterBlockTangentSize(b);
+      }
+    }
+  }
+  const double n = num_free;
+  return nonzeros >= kDenseFill * n * n ? ceres::DENSE_NORMAL_CHOLESKY
+                                        : ceres::SPARSE_NORMAL_CHOLESKY;
+}
+
 // True for stations that are samples of a stream rather than static stations: most of them
 // less than 0.5 s after the previous one (a static station averages a second or more of samples).
 // Stations without distinct times (all 0) count as static.
@@ -622,7 +657,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   solver_options.parameter_tolerance = 1e-12;
   solver_options.num_threads = options.num_threads;
   solver_options.linear_solver_type =
-      num_free > 400 ? ceres::SPARSE_NORMAL_CHOLESKY : ceres::DENSE_NORMAL_CHOLESKY;
+      options.linear_solver ? *options.linear_solver : ChooseLinearSolver(*built.problem, num_free);
   ProgressCallback callback(options.progress ? options.progress : [](int, double) {});
   if (options.progress) {
     solver_options.callbacks.push_back(&callback);
@@ -636,6 +671,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   double first_initial_cost = 0.0;
   if (!linear_solution && num_free > 0) {
     ceres::Solve(solver_options, built.problem.get(), &summary);
+    result.linear_solver = ceres::LinearSolverTypeToString(solver_options.linear_solver_type);
     first_initial_cost = summary.initial_cost;
     result.iterations = static_cast<int>(summary.iterations.size()) - 1;
     result.whitening_passes = 1;
@@ -985,8 +1021,7 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
       so.function_tolerance = spec->function_tolerance;
       so.gradient_tolerance = 1e-14;
       so.parameter_tolerance = 1e-12;
-      so.linear_solver_type =
-          fold.num_free > 400 ? ceres::SPARSE_NORMAL_CHOLESKY : ceres::DENSE_NORMAL_CHOLESKY;
+      so.linear_solver_type = ChooseLinearSolver(*fold.problem, fold.num_free);
       ceres::Solver::Summary summary;
       ceres::Solve(so, fold.problem.get(), &summary);
     }
@@ -1231,6 +1266,7 @@ nlohmann::json FitResult::ToJson() const {
   }
   return {{"converged", converged},
           {"solver_message", solver_message},
+          {"linear_solver", linear_solver},
           {"iterations", iterations},
           {"initial_cost", initial_cost},
           {"final_cost", final_cost},

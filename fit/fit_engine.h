@@ -14,6 +14,7 @@
 
 #include <functional>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -30,6 +31,10 @@ struct FitOptions {
   // Called with (iteration, cost) after each solver iteration (progress on stderr in the CLI).
   std::function<void(int, double)> progress;
   int num_threads = 1;  // Ceres threads
+  // The solver's linear solver; unset: chosen from the problem's size and the fill of its normal
+  // matrix (dense Cholesky up to 400 coordinates, or up to 3000 when J^T J is a quarter filled;
+  // sparse Cholesky otherwise). Set it only to compare solvers.
+  std::optional<ceres::LinearSolverType> linear_solver;
   bool Check() const { return num_threads >= 1; }
 };
 
@@ -75,6 +80,9 @@ struct FitResult {
   // optimum of a linearised cost, not of the station residuals the solver minimises.
   bool linear_least_squares = false;
   std::string solver_message;
+  // Ceres' linear solver of the solve ("DENSE_NORMAL_CHOLESKY", "SPARSE_NORMAL_CHOLESKY"); empty
+  // without a solve (linear least squares, no free parameters).
+  std::string linear_solver;
   int iterations = 0;
   double initial_cost = 0.0;  // 0.5 * sum of squared whitened residuals (after the linear init)
   double final_cost = 0.0;
