@@ -501,6 +501,12 @@ def _floor_and_final(hidden: str, capture: Path, data: Path, final: "demo.Step",
 # cannot place (a second plane 0.51 +- 0.42 m away with its normal +- 186 deg; a dipole at
 # (0.4, -1.5, -3.6) +- (2.6, 3.1, 3.8) m), which the rule counts as spurious.
 _XFAIL = {
+    "hemisphere_flips": "seed 1 (main after the search's variable projection, session 4): +robust_loss (the "
+                        "flips, stations 33 and 135, rejected) -> +dipole (workbench frame) -> +dipole_2 at "
+                        "(-0.004, 0.085, 1.456) +- (0.03, 0.03, 0.07) m, -0.47 +- 0.14 m^3: the floor's mirror "
+                        "image of the transmitter, spurious (the floor is no longer offered as a plane). On "
+                        "branch loops, before the search change, seeds 1-3 passed (loss, frame dipole, floor "
+                        "plane)",
     "ferromagnetic_object": "seed 1 (branch loops): 0.640 mm -> +dipole (frame, (0.458, 0.000, 0.409) m) "
                             "0.121 mm; then nothing is claimed: the plane candidate (0.374 m along (0.28, "
                             "0.23, 0.93), 0.09 m from the frame) did not converge and is refused, and the "
