@@ -345,17 +345,22 @@ ChosenChain ChooseChain(const std::vector<FitStation>& calibration) {
   return out;
 }
 
+// Seeds of the opt-in explorations below: TRACKCAL_BEST_CHAIN_SEEDS=1,2,3 (default 1).
+std::vector<uint64_t> ExplorationSeeds() {
+  const char* seeds_env = std::getenv("TRACKCAL_BEST_CHAIN_SEEDS");
+  std::vector<uint64_t> seeds;
+  std::stringstream ss(seeds_env ? seeds_env : "1");
+  for (std::string s; std::getline(ss, s, ',');) seeds.push_back(std::stoull(s));
+  return seeds;
+}
+
 // The chain chosen by held-out calibration data, the same procedure on every seed:
 // TRACKCAL_BEST_CHAIN_CHOOSE=1 [TRACKCAL_BEST_CHAIN_SEEDS=1,2,3]. Exploration, not run by default:
 // it does not beat the hand-picked ridge yet (figures above) and takes ~3 fits of CPU per seed.
 TEST(BestChainOnPaperPreset, ChainChosenByBlockedCrossValidation) {
   if (std::getenv("TRACKCAL_BEST_CHAIN_CHOOSE") == nullptr)
     GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_CHOOSE";
-  const char* seeds_env = std::getenv("TRACKCAL_BEST_CHAIN_SEEDS");
-  std::vector<uint64_t> seeds;
-  std::stringstream ss(seeds_env ? seeds_env : "1");
-  for (std::string s; std::getline(ss, s, ',');) seeds.push_back(std::stoull(s));
-  for (uint64_t seed : seeds) {
+  for (uint64_t seed : ExplorationSeeds()) {
     const PaperCapture data = Simulate(seed);
     const auto start = std::chrono::steady_clock::now();
     const ChosenChain chosen = ChooseChain(data.calibration);
@@ -391,11 +396,7 @@ TEST(BestChainOnPaperPreset, ChainChosenByBlockedCrossValidation) {
 TEST(BestChainOnPaperPreset, ExploreRidge) {
   if (std::getenv("TRACKCAL_BEST_CHAIN_RIDGE") == nullptr)
     GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_RIDGE";
-  const char* seeds_env = std::getenv("TRACKCAL_BEST_CHAIN_SEEDS");
-  std::vector<uint64_t> seeds;
-  std::stringstream ss(seeds_env ? seeds_env : "1");
-  for (std::string s; std::getline(ss, s, ',');) seeds.push_back(std::stoull(s));
-  for (uint64_t seed : seeds) {
+  for (uint64_t seed : ExplorationSeeds()) {
     const PaperCapture data = Simulate(seed);
     ModelSpec first = ParseModelYaml(ChainModel(kMaxDegree, 1), "choose");
     FitOptions options;
@@ -470,11 +471,7 @@ TEST(BestChainOnPaperPreset, ExploreRidge) {
 TEST(BestChainOnPaperPreset, Explore) {
   const char* models = std::getenv("TRACKCAL_BEST_CHAIN_MODELS");
   if (models == nullptr) GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_MODELS to explore";
-  const char* seeds_env = std::getenv("TRACKCAL_BEST_CHAIN_SEEDS");
-  std::vector<uint64_t> seeds;
-  std::stringstream ss(seeds_env ? seeds_env : "1");
-  for (std::string s; std::getline(ss, s, ',');) seeds.push_back(std::stoull(s));
-  for (uint64_t seed : seeds) {
+  for (uint64_t seed : ExplorationSeeds()) {
     const PaperCapture data = Simulate(seed);
     std::stringstream ms(models);
     for (std::string path; std::getline(ms, path, ',');) {
