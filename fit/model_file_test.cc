@@ -73,6 +73,8 @@ TEST(ParseModelYaml, ErrorsNameFileLineAndField) {
   EXPECT_THAT(ErrorOf("terms: [{type: polynomial\n"), HasSubstr("YAML syntax error"));
   EXPECT_THAT(ErrorOf("loss: {type: l1}\nterms: [{type: polynomial}]\n"),
               HasSubstr("$.loss.type: unknown loss 'l1'"));
+  EXPECT_THAT(ErrorOf("noise: {amplification_threshold: 0.5}\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:1:34: $.noise.amplification_threshold: must be >= 1"));
 }
 
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
