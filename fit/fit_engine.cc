@@ -45,6 +45,78 @@ void StationResidual(const T* pose7, const Rigid3d& reference, double sigma_p, d
 
 using Matrix6 = Eigen::Matrix<double, 6, 6>;
 
+// The pose at the input of terms[from..] that they map to `target` (`parameters` from term
+// `from` on): a fixed number of fixed-point steps z <- z - (F(z) - target) (world-frame rotation
+// error for the orientation) from z = target. No convergence test and no branch, so the result is
+// a smooth function of the values; the terms after a physical group are corrections close to the
+// identity (a polynomial, a LUT: |dF/dz - I| of order 1e-2), so each step gains about two digits.
+// False if a term cannot be evaluated.
+constexpr int kPullBackSteps = 3;
+bool PullBack(const std::vector<BoundTerm>& terms, size_t from, double const* const* parameters,
+              const AmbientPose& target, AmbientPose* out) {
+  AmbientPose z = target;
+  const Eigen::Quaterniond q_target = QuaternionFromXyzwArray(target.data() + 3).normalized();
+  TermEvaluation eval;
+  for (int step = 0; step < kPullBackSteps; ++step) {
+    AmbientPose pose = z;
+    size_t p = 0;
+    for (size_t k = from; k < terms.size(); ++k) {
+      if (!terms[k].term->Evaluate(terms[k].binding, parameters + p, pose, false, &eval)) {
+        return false;
+      }
+      pose = eval.output;
+      p += terms[k].binding.blocks.size();
+    }
+    z.head<3>() -= pose.head<3>() - target.head<3>();
+    const Eigen::Quaterniond q_out = QuaternionFromXyzwArray(pose.data() + 3).normalized();
+    const Eigen::Quaterniond q_z = QuaternionFromXyzwArray(z.data() + 3).normalized();
+    const Eigen::Quaterniond q_next = (q_target * q_out.conjugate() * q_z).normalized();
+    z.segment<4>(3) << q_next.x(), q_next.y(), q_next.z(), q_next.w();
+  }
+  *out = z;
+  return z.allFinite();
+}
+
+// Maps `input` through the chain, a term that UsesTarget() toward the pose the rest of the chain
+// maps to `target` (PullBack; `target` itself for the last term): a physical group then gives a
+// residual continuous in its values (ModelTerm::EvaluateToward, fit/terms_physical.h).
+// `parameters` holds the bound blocks' values, term after term. With `want`, fills d output / d
+// block for every bound block (7 x size each) by the chain rule, and `d_output_d_input` if given.
+bool EvaluateChain(const std::vector<BoundTerm>& terms, double const* const* parameters,
+                   const AmbientPose& input, const AmbientPose& target, bool want,
+                   AmbientPose* output,
+                   std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>>* d_pose,
+                   Eigen::Matrix<double, 7, 7>* d_output_d_input = nullptr) {
+  AmbientPose pose = input;
+  if (d_output_d_input != nullptr) d_output_d_input->setIdentity();
+  TermEvaluation eval;
+  size_t p = 0;
+  for (size_t k = 0; k < terms.size(); ++k) {
+    const BoundTerm& t = terms[k];
+    const size_t count = t.binding.blocks.size();
+    bool ok = false;
+    if (!t.term->UsesTarget()) {
+      ok = t.term->Evaluate(t.binding, parameters + p, pose, want, &eval);
+    } else if (k + 1 == terms.size()) {
+      ok = t.term->EvaluateToward(t.binding, parameters + p, pose, target, want, &eval);
+    } else {
+      AmbientPose target_k;
+      ok = PullBack(terms, k + 1, parameters + p + count, target, &target_k) &&
+           t.term->EvaluateToward(t.binding, parameters + p, pose, target_k, want, &eval);
+    }
+    if (!ok) return false;
+    if (want) {
+      for (auto& d : *d_pose) d = eval.d_output_d_input * d;
+      for (size_t b = 0; b < count; ++b) d_pose->push_back(eval.d_output_d_blocks[b]);
+      if (d_output_d_input != nullptr) *d_output_d_input = eval.d_output_d_input * *d_output_d_input;
+    }
+    pose = eval.output;
+    p += count;
+  }
+  *output = pose;
+  return true;
+}
+
 // Chains the terms: forward through them, Jacobians composed by the chain rule. With a
 // `noise_whitening` W (see NoiseAmplification below) the residual and its Jacobians are W times
 // those of StationResidual.
@@ -93,27 +165,22 @@ class StationCost : public ceres::CostFunction {
   bool EvaluateUnwhitened(double const* const* parameters, double* residuals,
                           double** jacobians) const {
     const bool want = jacobians != nullptr;
-    AmbientPose pose = ToAmbient(station_.reported);
-    // d pose / d block for every block so far (7 x size, row-major).
-    std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> d_pose;
-    TermEvaluation eval;
     size_t p = 0;
-    for (const auto& t : terms_) {
-      const size_t count = t.binding.blocks.size();
-      if (!t.term->Evaluate(t.binding, parameters + p, pose, want, &eval)) return false;
-      if (want) {
-        for (auto& d : d_pose) d = eval.d_output_d_input * d;
-        for (size_t b = 0; b < count; ++b) d_pose.push_back(eval.d_output_d_blocks[b]);
-      }
-      pose = eval.output;
-      p += count;
-    }
+    for (const auto& t : terms_) p += t.binding.blocks.size();
     Rigid3d reference = station_.reference;
     const double dt = time_offset0_ ? parameters[p][0] - *time_offset0_ : 0.0;
     if (time_offset0_) {
       ShiftReference<double>(station_.reference, station_.reference_velocity,
                              station_.reference_angular_velocity, dt, &reference.translation,
                              &reference.rotation);
+    }
+    AmbientPose pose = ToAmbient(station_.reported);
+    // d pose / d block for every block so far (7 x size, row-major).
+    std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> d_pose;
+    if (!EvaluateChain(terms_, parameters, pose, ToAmbient(reference), want, &pose, &d_pose)) {
+      return false;
+    }
+    if (time_offset0_) {
       if (want && jacobians[p] != nullptr) {
         using Jet1 = ceres::Jet<double, 1>;
         Vector3<Jet1> p_ref;
@@ -166,17 +233,19 @@ class StationCost : public ceres::CostFunction {
 std::optional<Matrix6> NoiseAmplification(const std::vector<BoundTerm>& terms,
                                           const FitStation& station, double sigma_p,
                                           double sigma_o) {
-  AmbientPose pose = ToAmbient(station.reported);
-  Eigen::Matrix<double, 7, 7> d_pose = Eigen::Matrix<double, 7, 7>::Identity();
-  TermEvaluation eval;
+  // As the station's residual (EvaluateChain), with the input's derivative composed too.
+  std::vector<const double*> values;
   for (const auto& t : terms) {
-    std::vector<const double*> values;
     for (int b : t.binding.blocks) {
       values.push_back(t.term->blocks()[static_cast<size_t>(b)].values.data());
     }
-    if (!t.term->Evaluate(t.binding, values.data(), pose, true, &eval)) return std::nullopt;
-    d_pose = eval.d_output_d_input * d_pose;
-    pose = eval.output;
+  }
+  AmbientPose pose;
+  Eigen::Matrix<double, 7, 7> d_pose;
+  std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> unused;
+  if (!EvaluateChain(terms, values.data(), ToAmbient(station.reported),
+                     ToAmbient(station.reference), true, &pose, &unused, &d_pose)) {
+    return std::nullopt;
   }
   if (!pose.allFinite() || !d_pose.allFinite()) return std::nullopt;
   // d ambient report / d e: position as is; rotation q' = Exp(e_w) q, dq/de_k = 0.5 (e_k, 0) q.

@@ -159,6 +159,20 @@ class ModelTerm {
   // Returns false if the term cannot be evaluated there (the solver then shortens its step).
   virtual bool Evaluate(const StationBinding& binding, const double* const* block_values,
                         const AmbientPose& input, bool jacobians, TermEvaluation* result) const = 0;
+  // As Evaluate(), given `target`: the pose the chain must reach after this term (the station's
+  // reference when the term is the chain's last). A term whose output is defined implicitly (the
+  // physical group's inverse) linearises there instead of solving from `input`, so that its output
+  // is a continuous function of the values even where the solve from the input does not converge.
+  // The default ignores `target`.
+  // True if EvaluateToward() uses its target (the engine then also pulls the reference back through
+  // the terms after this one to give it one). Default false.
+  virtual bool UsesTarget() const { return false; }
+  virtual bool EvaluateToward(const StationBinding& binding, const double* const* block_values,
+                              const AmbientPose& input, const AmbientPose& target, bool jacobians,
+                              TermEvaluation* result) const {
+    (void)target;
+    return Evaluate(binding, block_values, input, jacobians, result);
+  }
 
   // Adds residual blocks other than the station residuals (regularisers, report-space residuals),
   // over this term's blocks as held in blocks() (their addresses are the problem's blocks). Returns

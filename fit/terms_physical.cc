@@ -778,6 +778,20 @@ PhysicalCorrection PhysicalGroupTerm::MakeCorrection(const double* const* v,
 bool PhysicalGroupTerm::Evaluate(const StationBinding& binding, const double* const* block_values,
                                  const AmbientPose& input, bool jacobians,
                                  TermEvaluation* result) const {
+  return EvaluateFrom(binding, block_values, input, nullptr, jacobians, result);
+}
+
+bool PhysicalGroupTerm::EvaluateToward(const StationBinding& binding,
+                                       const double* const* block_values, const AmbientPose& input,
+                                       const AmbientPose& target, bool jacobians,
+                                       TermEvaluation* result) const {
+  return EvaluateFrom(binding, block_values, input, &target, jacobians, result);
+}
+
+bool PhysicalGroupTerm::EvaluateFrom(const StationBinding& binding,
+                                     const double* const* block_values, const AmbientPose& input,
+                                     const AmbientPose* target, bool jacobians,
+                                     TermEvaluation* result) const {
   const size_t num_blocks = blocks_.size();
   std::vector<const double*> v(num_blocks);
   for (size_t i = 0; i < num_blocks; ++i) v[i] = blocks_[i].values.data();
@@ -792,16 +806,25 @@ bool PhysicalGroupTerm::Evaluate(const StationBinding& binding, const double* co
     PhysicalCorrectionOptions options;
     options.max_iterations = 50;
     const PhysicalCorrection model = MakeCorrection(v.data(), options);
-    // A non-converged inverse still yields the best iterate, and its residual is what the model
-    // explains there; only a non-finite one stops the step.
-    model.InvertReport(y, &x);
     offset = model.receiver_from_body();
+    if (target == nullptr) {
+      // A non-converged inverse still yields the best iterate, and its residual is what the model
+      // explains there; only a non-finite one stops the step.
+      model.InvertReport(y, &x);
+    } else {
+      // Linearised at the receiver pose behind the target (EvaluateToward()).
+      const Rigid3d body = FromAmbient(*target);
+      x = offset ? body * offset->Inverse() : body;
+      x.rotation.normalize();
+    }
   } catch (const std::invalid_argument&) {
     return false;  // the values left the model's domain: Ceres shortens the step
   }
   if (!x.translation.allFinite() || !x.rotation.coeffs().allFinite()) return false;
-  result->output = ToAmbient(offset ? x * *offset : x);
-  if (!jacobians) return true;
+  if (target == nullptr) {
+    result->output = ToAmbient(offset ? x * *offset : x);
+    if (!jacobians) return true;
+  }
 
   // Free coordinates (bound block, coordinate), in binding order.
   std::vector<std::pair<int, int>> coords;
@@ -810,7 +833,8 @@ bool PhysicalGroupTerm::Evaluate(const StationBinding& binding, const double* co
       coords.emplace_back(static_cast<int>(j), c);
     }
   }
-  const int n = static_cast<int>(coords.size());
+  // Without Jacobians (EvaluateToward()'s value) only the pose slots are needed.
+  const int n = jacobians ? static_cast<int>(coords.size()) : 0;
   Vector9 s_free;
   Matrix96 j_free;
   FreeSpaceSignal(y, &s_free, &j_free);
@@ -866,7 +890,19 @@ bool PhysicalGroupTerm::Evaluate(const StationBinding& binding, const double* co
     if (n == 0) break;
   }
   const Eigen::PartialPivLU<Matrix6> lu(g_x);
-  // Implicit function theorem: dx/dtheta = -(dg/dx)^-1 dg/dtheta, dx/dy likewise.
+  if (target != nullptr) {
+    // The Newton step from x_t: x1 = x_t [+] -(dg/dx)^-1 g in the chart of the Jets above.
+    const Vector6 step = -lu.solve(j_free_t * (s_at_x - s_free));
+    if (!step.allFinite()) return false;
+    Rigid3d x1;
+    x1.translation = x.translation + step.head<3>();
+    x1.rotation = RightPerturbed<double>(x.rotation, step(3), step(4), step(5)).normalized();
+    result->output = ToAmbient(offset ? x1 * *offset : x1);
+    if (!result->output.allFinite()) return false;
+    if (!jacobians) return true;
+  }
+  // Implicit function theorem: dx/dtheta = -(dg/dx)^-1 dg/dtheta, dx/dy likewise (at x_t for
+  // EvaluateToward(): x1's derivative up to terms of the order of g, which vanish at a fit).
   const Eigen::MatrixXd d_out_d_theta = o_theta - o_x * lu.solve(g_theta);
   result->d_output_d_blocks.resize(binding.blocks.size());
   for (size_t j = 0, k = 0; j < binding.blocks.size(); ++j) {
@@ -1339,8 +1375,9 @@ class GroupStationCost : public ceres::CostFunction {
   bool Evaluate(double const* const* parameters, double* residuals,
                 double** jacobians) const override {
     TermEvaluation eval;
-    if (!term_->Evaluate(*binding_, parameters, ToAmbient(station_.reported), jacobians != nullptr,
-                         &eval)) {
+    // Toward the reference, as the joint problem's station residual (fit/fit_engine.cc).
+    if (!term_->EvaluateToward(*binding_, parameters, ToAmbient(station_.reported),
+                               ToAmbient(station_.reference), jacobians != nullptr, &eval)) {
       return false;
     }
     Vector6 r;
