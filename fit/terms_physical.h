@@ -129,14 +129,15 @@ class PhysicalGroupTerm : public ModelTerm {
   StationBinding Bind(const AmbientPose& input) const override;
   bool Evaluate(const StationBinding& binding, const double* const* block_values,
                 const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
-  // The fit's form (the station's residual, RefineAlone): one Newton step of the normal equations
-  // from the receiver pose behind `target` (the reference composed with the inverse sensor offset),
-  // x1 = x_t - (dg/dx)^-1 g(x_t, theta, y), with no iteration to convergence and no branch, so the
-  // output is a smooth, deterministic function of theta, y and the target. x1 - x_t is the report's
-  // misfit y - y(x_t) mapped through the local inverse Jacobian dx/dy at x_t (to first order in
-  // it), and x1 equals Evaluate()'s root up to O(|x1 - x_t|^2 / range) (below 1e-7 m for a residual
-  // of 0.3 mm at 0.5 m). Where Newton from the report does not converge (a fold zone) the target
-  // still picks the root the reference lies at. Jacobians as Evaluate()'s, at x_t.
+  // The fit's form (the station's residual, RefineAlone): a fixed number of Newton steps (2, see
+  // kTowardSteps in the .cc) on the normal equations from x_t, the receiver pose behind `target`
+  // (the target composed with the inverse sensor offset), x_{k+1} = x_k - (dg/dx)^-1 g(x_k, theta, y),
+  // with no convergence test and no branch, so the output is a smooth, deterministic function of
+  // theta, y and the target. The first step is the report's misfit y - y(x_t) mapped through the
+  // local inverse Jacobian dx/dy at x_t; the root Evaluate() converges to is reached up to the square
+  // of the first step's relative error. Where Newton from the report does not converge (a fold
+  // zone) the target still picks the root the reference lies at. Jacobians as Evaluate()'s, at the
+  // last step's start.
   bool UsesTarget() const override { return true; }
   bool EvaluateToward(const StationBinding& binding, const double* const* block_values,
                       const AmbientPose& input, const AmbientPose& target, bool jacobians,
