@@ -824,6 +824,11 @@ bool PhysicalGroupTerm::EvaluateFrom(const StationBinding& binding,
       const Rigid3d body = FromAmbient(*target);
       x = offset ? body * offset->Inverse() : body;
       x.rotation.normalize();
+      // A report in the other hemisphere (a Fastrak's flip: -p has the same dipole signal) is
+      // taken from the mirrored pose, so its residual is what the runtime inverse from the report
+      // gives (the flip stays an outlier). The branch only switches across the plane through the
+      // transmitter normal to the report, never near a station (|x - y| << |y|).
+      if (x.translation.dot(y.translation) < 0.0) x.translation = -x.translation;
       Vector9 s_free;
       Matrix96 j_free;
       FreeSpaceSignal(y, &s_free, &j_free);

@@ -136,8 +136,9 @@ class PhysicalGroupTerm : public ModelTerm {
   // theta, y and the target. The first step is the report's misfit y - y(x_t) mapped through the
   // local inverse Jacobian dx/dy at x_t; the root Evaluate() converges to is reached up to the square
   // of the first step's relative error. Where Newton from the report does not converge (a fold
-  // zone) the target still picks the root the reference lies at. Jacobians as Evaluate()'s, at the
-  // last step's start.
+  // zone) the target still picks the root the reference lies at. A report in the other hemisphere
+  // than the target (a flip) starts from the mirrored position, as the runtime inverse would see
+  // it. Jacobians as Evaluate()'s, at the last step's start.
   bool UsesTarget() const override { return true; }
   bool EvaluateToward(const StationBinding& binding, const double* const* block_values,
                       const AmbientPose& input, const AmbientPose& target, bool jacobians,
