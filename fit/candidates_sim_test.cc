@@ -127,10 +127,10 @@ const Candidate& ExpectTop(const Diagnosis& d, const std::string& effect) {
 // Disabled in session 4 after the search's variable projection landed: the dipole ranked first,
 // held-out 4.27 -> 0.143 mm, but at (0.6039, 0.9440, -0.5044) +- (0.00066, 0.00074, 0.00096) m,
 // 0.001934 +- 0.000014 m^3, 4-8 sigma from the truth: the cost was discontinuous at stations whose
-// inverse did not converge near the object. With the station residual continuous (one Newton step
+// inverse did not converge near the object. With the station residual continuous (two Newton steps
 // from the reference, PhysicalGroupTerm::EvaluateToward; the polynomial after the group is pulled
-// back by fixed-point steps, fit/fit_engine.cc): (0.60007, 0.95036, -0.49984) +- (0.00015, 0.00018,
-// 0.00011) m, 0.0020080 +- 0.0000036 m^3, held-out 4.24 -> 0.126 mm; 18 s CPU.
+// back by fixed-point steps, fit/fit_engine.cc): (0.60021, 0.95027, -0.50014) +- (0.00015, 0.00022,
+// 0.00011) m, 0.0020070 +- 0.0000038 m^3, held-out 4.27 -> 0.139 mm; 97 s wall under load.
 TEST(DiagnoseCandidatesPaper, FerromagneticObject) {
   const PaperRun r = Diagnose("ferromagnetic_object", 20010313);
   const Candidate& top = ExpectTop(r.diagnosis, "dipole");

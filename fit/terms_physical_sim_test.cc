@@ -310,7 +310,7 @@ void FitFerromagneticOnProtocol(uint64_t seed) {
 // from the report (session 4: 2.27 mm against the twin's 0.115 mm; location y 4.5 sigma off): a
 // station whose inverse does not converge near the object (24-25 per seed) contributed Newton's
 // last iterate, which jumps with changes of 1e-7 in the values, and the fit stopped where its path
-// left it. The residual is now one Newton step from the reference (PhysicalGroupTerm::
+// left it. The residual is now two Newton steps from the reference (PhysicalGroupTerm::
 // EvaluateToward), continuous in the values.
 TEST(PhysicalTermsOnSimulator, FerromagneticObjectOnThePaperProtocol) {
   for (uint64_t seed : {1u, 20010313u, 2u}) {
