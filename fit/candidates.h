@@ -20,7 +20,8 @@
 // prefers it (delta_bic < max_delta_bic) and the added term's fit identifies a physical source
 // (PhysicalEvidence: strength 3 sigma from its null value, location determined). Candidates are
 // ranked significant first, then by held-out error (between two source terms that explain the same
-// structure, the better-determined one first). The verdict names the top significant candidate, or
+// structure, the one with the lower BIC on all stations first). The verdict names the top
+// significant candidate, or
 // says plainly that none explains what remains.
 //
 // The candidate model is the model file's YAML with the effect's term inserted into `terms:`

@@ -184,7 +184,15 @@ class PhysicalGroupTerm : public ModelTerm {
   std::string Unphysical(const Effect& effect, const std::vector<FitStation>& inputs) const;
   // Fits the group's free blocks alone to the references (the start of the joint solve). Returns
   // false if the solve failed or its cost is not finite.
-  bool RefineAlone(const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas);
+  // `hold`: blocks (indices into blocks_) that stand during this refinement.
+  bool RefineAlone(const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas,
+                   const std::vector<bool>& hold = {});
+  // RefineAlone with every block free, and with the sources' locations standing; keeps the one
+  // with the lower ProjectedCost (see terms_physical.cc).
+  bool RefineGroup(const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas);
+  // The cost of the stations after the explicit terms after the group and a linearised refit of
+  // the group's free coordinates (the search's projected residual).
+  double ProjectedCost(const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas) const;
 
   std::vector<Effect> effects_;
   PhysicalSearchOptions search_options_;
@@ -198,6 +206,8 @@ class PhysicalGroupTerm : public ModelTerm {
   Eigen::Vector3d station_min_ = Eigen::Vector3d::Zero(), station_max_ = Eigen::Vector3d::Zero();
   // Effects switched off while the search runs (strength held at 0 in MakeCorrection()).
   std::vector<bool> disabled_;
+  // The last RefineGroup's choice ({"kept", "cost_free", "cost_locations_held"}), for --json.
+  nlohmann::json last_refinement_;
   // What the last search of each effect found and which start won (Describe(), by effect name).
   std::map<std::string, nlohmann::json> search_reports_;
   // Blocks whose bounds the search set (reset by the next search; the file's bounds are kept).
