@@ -23,7 +23,7 @@ const std::vector<std::string>& CalibrationKeyOrder() {
       "format", "version", "description", "units", "frames", "calibrated_volume", "corrections",
       "fit_statistics", "provenance",
       // volume
-      "min", "max", "extrapolation", "fade_distance",
+      "min", "max", "extrapolation", "fade_distance", "linear_reach",
       // corrections
       "type", "degree", "term_order", "input_offset", "input_scale", "node_order", "axes",
       "position_coefficients", "orientation_coefficients", "position_error", "orientation_error",
@@ -109,7 +109,8 @@ CalibratedVolume ParseVolume(const JsonObjectReader& r) {
                         " = " + nlohmann::json(volume.min[k]).dump());
     }
   }
-  volume.extrapolation = ExtrapolationPolicyFromName(r.Enum("extrapolation", {"clamp", "fade"}));
+  volume.extrapolation =
+      ExtrapolationPolicyFromName(r.Enum("extrapolation", {"clamp", "fade", "linear"}));
   volume.fade_distance = r.Number("fade_distance");
   if (volume.extrapolation == ExtrapolationPolicy::kFade && !(volume.fade_distance > 0.0)) {
     r.Fail("fade_distance", "must be positive for extrapolation \"fade\", got " +
@@ -117,6 +118,14 @@ CalibratedVolume ParseVolume(const JsonObjectReader& r) {
   }
   if (volume.fade_distance < 0.0) {
     r.Fail("fade_distance", "must not be negative, got " + r.Get("fade_distance").dump());
+  }
+  // Optional (files before the linear policy do not have it); read whatever the policy so that a
+  // bad value is reported rather than ignored.
+  if (r.Has("linear_reach")) {
+    volume.linear_reach = r.Number("linear_reach");
+    if (volume.linear_reach < 0.0) {
+      r.Fail("linear_reach", "must not be negative, got " + r.Get("linear_reach").dump());
+    }
   }
   r.CheckNoUnknownKeys();
   return volume;
@@ -256,6 +265,10 @@ nlohmann::json CalibrationToJson(const Calibration& calibration) {
                               {"max", {v.max.x(), v.max.y(), v.max.z()}},
                               {"extrapolation", ExtrapolationPolicyName(v.extrapolation)},
                               {"fade_distance", v.fade_distance}};
+  // Only where it is used (files of the other policies stay as they were).
+  if (v.extrapolation == ExtrapolationPolicy::kLinear) {
+    doc["calibrated_volume"]["linear_reach"] = v.linear_reach;
+  }
   nlohmann::json corrections = nlohmann::json::array();
   for (size_t i = 0; i < calibration.chain.size(); ++i) {
     corrections.push_back(calibration.chain.term(i).ToJson());

@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <fstream>
 #include <functional>
 
@@ -241,9 +242,36 @@ TEST(ParseCalibrationJson, RejectsNonIncreasingAxesAndEmptyVolume) {
               j["calibrated_volume"]["extrapolation"] = "hold";
             }),
             "calib.json: $.calibrated_volume.extrapolation: unknown value \"hold\"; expected one "
-            "of \"clamp\", \"fade\"");
+            "of \"clamp\", \"fade\", \"linear\"");
   EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["corrections"][0]["input_scale"][2] = 0; }),
             "calib.json: $.corrections[0].input_scale: entries must be positive, got [0.6,0.5,0]");
+}
+
+TEST(ParseCalibrationJson, LinearPolicyAndItsReach) {
+  nlohmann::json j = ExampleJson();
+  j["calibrated_volume"]["extrapolation"] = "linear";
+  j["calibrated_volume"]["linear_reach"] = 0.05;
+  const Calibration cal = ParseCalibrationJson(j.dump(), "calib.json");
+  EXPECT_EQ(cal.volume().extrapolation, ExtrapolationPolicy::kLinear);
+  EXPECT_EQ(cal.volume().linear_reach, 0.05);
+  // Written back with its reach (bit-exact), and read again the same.
+  const nlohmann::json written = CalibrationToJson(cal);
+  EXPECT_EQ(written["calibrated_volume"]["linear_reach"], 0.05);
+  EXPECT_EQ(CalibrationToJson(ParseCalibrationJson(written.dump(), "again")), written);
+  // Optional: files written before the linear policy have no reach; the default applies.
+  j["calibrated_volume"].erase("linear_reach");
+  EXPECT_EQ(ParseCalibrationJson(j.dump(), "calib.json").volume().linear_reach,
+            CalibratedVolume::kDefaultLinearReach);
+  // Bad values name the file and the field.
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& e) {
+              e["calibrated_volume"]["extrapolation"] = "linear";
+              e["calibrated_volume"]["linear_reach"] = -0.1;
+            }),
+            "calib.json: $.calibrated_volume.linear_reach: must not be negative, got -0.1");
+  const std::string wrong_type = ErrorAfterEdit(
+      [](nlohmann::json& e) { e["calibrated_volume"]["linear_reach"] = "far"; });
+  EXPECT_EQ(wrong_type.rfind("calib.json: $.calibrated_volume.linear_reach: ", 0), 0u)
+      << wrong_type;
 }
 
 TEST(ParseCalibrationJson, RejectsBadProvenance) {

@@ -57,6 +57,8 @@ std::string ExtrapolationPolicyName(ExtrapolationPolicy policy) {
       return "clamp";
     case ExtrapolationPolicy::kFade:
       return "fade";
+    case ExtrapolationPolicy::kLinear:
+      return "linear";
   }
   throw std::logic_error("unknown ExtrapolationPolicy");
 }
@@ -64,8 +66,9 @@ std::string ExtrapolationPolicyName(ExtrapolationPolicy policy) {
 ExtrapolationPolicy ExtrapolationPolicyFromName(const std::string& name) {
   if (name == "clamp") return ExtrapolationPolicy::kClamp;
   if (name == "fade") return ExtrapolationPolicy::kFade;
+  if (name == "linear") return ExtrapolationPolicy::kLinear;
   throw std::invalid_argument("extrapolation: unknown policy \"" + name +
-                              "\"; expected \"clamp\" or \"fade\"");
+                              "\"; expected \"clamp\", \"fade\" or \"linear\"");
 }
 
 void CalibratedVolume::Check() const {
@@ -88,10 +91,14 @@ void CalibratedVolume::Check() const {
   if (!(std::isfinite(fade_distance) && fade_distance >= 0.0)) {
     throw std::invalid_argument("calibrated volume: fade_distance must be >= 0 and finite");
   }
+  if (!(std::isfinite(linear_reach) && linear_reach >= 0.0)) {
+    throw std::invalid_argument("calibrated volume: linear_reach must be >= 0 and finite, got " +
+                                std::to_string(linear_reach));
+  }
 }
 
 double CalibratedVolume::Weight(double distance) const {
-  if (extrapolation == ExtrapolationPolicy::kClamp) return 1.0;
+  if (extrapolation != ExtrapolationPolicy::kFade) return 1.0;
   const double s = std::clamp(distance / fade_distance, 0.0, 1.0);
   return 1.0 - s * s * (3.0 - 2.0 * s);
 }
@@ -129,6 +136,21 @@ CorrectedPose CorrectionChain::ApplyTerms(const Rigid3d& pose) const {
   return out;
 }
 
+namespace {
+
+// A run's correction at one input position as 6 numbers: the position offset p_out - p and the
+// vector part of q_e = q_out * conj(q) (scalar part non-negative).
+using RunCorrection = Eigen::Matrix<double, 6, 1>;
+
+RunCorrection CorrectionOf(const Rigid3d& input, const Rigid3d& output) {
+  RunCorrection c;
+  c.head<3>() = output.translation - input.translation;
+  c.tail<3>() = VectorPart<double>((output.rotation * input.rotation.conjugate()).normalized());
+  return c;
+}
+
+}  // namespace
+
 CorrectedPose CorrectionChain::ApplyGuardedRun(size_t begin, size_t end,
                                                const Rigid3d& input) const {
   CorrectedPose out{input, false};
@@ -136,15 +158,53 @@ CorrectedPose CorrectionChain::ApplyGuardedRun(size_t begin, size_t end,
   const Eigen::Quaterniond& q = input.rotation;
   const Eigen::Vector3d p_boundary = volume_->Nearest(p);
   const bool inside = volume_->Contains(p);
-  Rigid3d pose = inside ? input : Rigid3d(q, p_boundary);
-  for (size_t t = begin; t < end; ++t) {
-    const CorrectedPose step = terms_[t]->Apply(pose);
-    pose = step.pose;
-    out.extrapolated = out.extrapolated || step.extrapolated;
-    out.status = std::max(out.status, step.status);
-  }
+  // The run's terms in order from `from`; only the first evaluation's flags count (the linear
+  // policy's extra evaluations lie inside the box).
+  auto run = [&](const Rigid3d& from, CorrectedPose* flags) {
+    Rigid3d pose = from;
+    for (size_t t = begin; t < end; ++t) {
+      const CorrectedPose step = terms_[t]->Apply(pose);
+      pose = step.pose;
+      if (flags != nullptr) {
+        flags->extrapolated = flags->extrapolated || step.extrapolated;
+        flags->status = std::max(flags->status, step.status);
+      }
+    }
+    return pose;
+  };
+  const Rigid3d pose = run(inside ? input : Rigid3d(q, p_boundary), &out);
   if (inside) {
     out.pose = pose;
+    return out;
+  }
+  if (volume_->extrapolation == ExtrapolationPolicy::kLinear) {
+    // First order from the box: per axis on which p is outside, the derivative of the correction
+    // along the outward direction by the one-sided second-order difference (3 f(0) - 4 f(-h) +
+    // f(-2h)) / 2h on points inside the box (exact for a correction linear along the axis, as a
+    // LUT's last cell is when 2h stays in it; O(h^2) for a polynomial), times the distance out on
+    // that axis. The step along the displacement is capped at linear_reach.
+    const RunCorrection c0 = CorrectionOf(Rigid3d(q, p_boundary), pose);
+    const Eigen::Vector3d outward = p - p_boundary;
+    const double distance = outward.norm();
+    const double scale = distance > volume_->linear_reach ? volume_->linear_reach / distance : 1.0;
+    RunCorrection c = c0;
+    for (int k = 0; k < 3; ++k) {
+      if (outward[k] == 0.0) continue;
+      // 1 mm (far below the explicit terms' length scales, far above rounding: differences of
+      // ~1e-2 m corrections carry ~1e-17 m rounding, 1e-14 relative in the derivative), and at
+      // most a tenth of the box so that both points stay inside a thin box.
+      const double h = std::min(1e-3, 0.1 * (volume_->max[k] - volume_->min[k]));
+      const double sign = outward[k] > 0.0 ? 1.0 : -1.0;
+      Eigen::Vector3d x1 = p_boundary, x2 = p_boundary;
+      x1[k] -= sign * h;
+      x2[k] -= 2.0 * sign * h;
+      const RunCorrection c1 = CorrectionOf(Rigid3d(q, x1), run(Rigid3d(q, x1), nullptr));
+      const RunCorrection c2 = CorrectionOf(Rigid3d(q, x2), run(Rigid3d(q, x2), nullptr));
+      const RunCorrection slope = (3.0 * c0 - 4.0 * c1 + c2) / (2.0 * h);  // per metre outward
+      c += slope * (scale * std::abs(outward[k]));
+    }
+    out.pose.translation = p + c.head<3>();
+    out.pose.rotation = QuaternionFromVectorPart<double>(Eigen::Vector3d(c.tail<3>())) * q;
     return out;
   }
   // Transfer the boundary correction to the actual pose.

@@ -2,6 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <limits>
+#include <random>
+
 #include "core/lut.h"
 #include "core/polynomial.h"
 #include "tests/test_utils.h"
@@ -96,6 +99,125 @@ TEST(CorrectionChain, ClampHoldsBoundaryCorrection) {
               2e-15);
     EXPECT_TRUE(testing::RotationsNear(at_boundary.pose.rotation, out.pose.rotation, 1e-14));
   }
+}
+
+// A degree-1 polynomial with every position and orientation coefficient set (~1e-2).
+std::unique_ptr<PolynomialCorrection> Linear() {
+  std::vector<double> c(6 * 4);
+  std::normal_distribution<double> n(0.0, 0.01);
+  std::mt19937_64 rng(7);
+  for (double& v : c) v = n(rng);
+  return std::make_unique<PolynomialCorrection>(1, Eigen::Vector3d::Zero(),
+                                                Eigen::Vector3d::Ones(), c);
+}
+
+CalibratedVolume LinearBox(double reach) {
+  CalibratedVolume v = UnitBox(ExtrapolationPolicy::kLinear);
+  v.linear_reach = reach;
+  return v;
+}
+
+TEST(CorrectionChain, LinearPolicyReproducesALinearDistortionOutsideTheBox) {
+  // A linear distortion is its own first-order continuation: outside the box (on one, two or three
+  // axes, up to 3 m out) the guarded chain equals the polynomial applied everywhere; clamp does not.
+  CorrectionChain chain, clamped;
+  chain.Append(Linear());
+  chain.SetVolume(LinearBox(10.0));
+  clamped.Append(Linear());
+  clamped.SetVolume(UnitBox(ExtrapolationPolicy::kClamp));
+  const auto unguarded = Linear();
+  for (const Eigen::Vector3d& p :
+       {Eigen::Vector3d(2.0, -0.2, -3.0), Eigen::Vector3d(0.8, 0.9, 0.1),
+        Eigen::Vector3d(-0.7, 0.3, 0.2), Eigen::Vector3d(-1.5, -0.9, 0.6)}) {
+    const Rigid3d reported(RandomRotation(TestRng()), p);
+    const CorrectedPose out = chain.Apply(reported);
+    const Rigid3d expected = unguarded->Apply(reported).pose;
+    EXPECT_TRUE(out.extrapolated);
+    // The slopes come from differences of ~1e-2 corrections over 2 mm: rounding ~1e-17 / 2e-3 per
+    // metre, times a few metres out: ~1e-13; 1e-11 leaves room and is 1e-8 of the correction.
+    EXPECT_LT((out.pose.translation - expected.translation).norm(), 1e-11) << p.transpose();
+    EXPECT_TRUE(testing::RotationsNear(expected.rotation, out.pose.rotation, 1e-11))
+        << p.transpose();
+    // Holding the edge value is off by the slope (~1e-2) times the distance (>= 0.2 m): > 1 mm.
+    EXPECT_GT((clamped.Apply(reported).pose.translation - expected.translation).norm(), 1e-3)
+        << p.transpose();
+  }
+}
+
+TEST(CorrectionChain, LinearPolicyContinuesTheTangentOfACurvedCorrection) {
+  // Curved() out of the x = 0.5 face at (0.5 + d, y, z): the position correction's y part 0.02 x^2
+  // continues as its tangent 0.02 (0.25 + d) (the one-sided second-order difference is exact for a
+  // quadratic); the other parts are constant or linear in x and continue exactly.
+  CorrectionChain chain;
+  chain.Append(Curved());
+  chain.SetVolume(LinearBox(10.0));
+  const Eigen::Quaterniond q = RandomRotation(TestRng());
+  const double y = -0.2, z = 0.3;
+  for (double d : {1e-6, 0.01, 0.3, 2.0}) {
+    const Eigen::Vector3d p(0.5 + d, y, z);
+    const CorrectedPose out = chain.Apply(Rigid3d(q, p));
+    EXPECT_TRUE(out.extrapolated);
+    const Eigen::Vector3d expected_offset(0.01, 0.02 * (0.25 + d), -0.03 * z * z);
+    // Rounding as above (~1e-13 at 2 m out).
+    EXPECT_LT(((out.pose.translation - p) - expected_offset).norm(), 1e-12) << d;
+    const Eigen::Vector3d expected_vector(0.02 * z, 0.0, 0.01 * (0.5 + d) * y);
+    EXPECT_LT((VectorPart(out.pose.rotation * q.conjugate()) - expected_vector).norm(), 1e-12)
+        << d;
+  }
+}
+
+TEST(CorrectionChain, LinearPolicyHoldsBeyondItsReach) {
+  // Beyond linear_reach the continuation stops growing: the correction is the one at the point
+  // `reach` out along the way from the box, held.
+  const double reach = 0.2;
+  CorrectionChain chain;
+  chain.Append(Linear());
+  chain.SetVolume(LinearBox(reach));
+  const auto unguarded = Linear();
+  const Eigen::Quaterniond q = RandomRotation(TestRng());
+  const Eigen::Vector3d p(1.3, -0.9, 0.1), box_point(0.5, -0.5, 0.1);
+  const Eigen::Vector3d at_reach = box_point + reach * (p - box_point).normalized();
+  const Rigid3d held = unguarded->Apply(Rigid3d(q, at_reach)).pose;
+  const CorrectedPose out = chain.Apply(Rigid3d(q, p));
+  // Rounding as above, within 0.2 m.
+  EXPECT_LT(((out.pose.translation - p) - (held.translation - at_reach)).norm(), 1e-12);
+  EXPECT_TRUE(testing::RotationsNear(held.rotation, out.pose.rotation, 1e-12));
+  // Within the reach it is still the distortion itself.
+  const Eigen::Vector3d near = box_point + 0.5 * reach * (p - box_point).normalized();
+  EXPECT_TRUE(testing::PosesNear(unguarded->Apply(Rigid3d(q, near)).pose,
+                                 chain.Apply(Rigid3d(q, near)).pose, 1e-12, 1e-12));
+  // A zero reach is clamp.
+  chain.SetVolume(LinearBox(0.0));
+  CorrectionChain clamped;
+  clamped.Append(Linear());
+  clamped.SetVolume(UnitBox(ExtrapolationPolicy::kClamp));
+  EXPECT_TRUE(testing::PosesNear(clamped.Apply(Rigid3d(q, p)).pose, chain.Apply(Rigid3d(q, p)).pose,
+                                 1e-15, 1e-15));
+}
+
+TEST(CorrectionChain, LinearPolicyContinuesALutsLastCell) {
+  // A trilinear LUT is linear along an axis within a cell: out of the grid it continues its last
+  // cell's gradient (the 1 mm differences stay inside the 0.5 m cells). Grid = volume here.
+  const LutGrid grid({std::vector<double>{-0.5, 0.0, 0.5}, std::vector<double>{-0.5, 0.5},
+                      std::vector<double>{-0.5, 0.5}});
+  std::vector<double> values(6 * grid.num_nodes());
+  std::normal_distribution<double> noise(0.0, 0.005);
+  for (double& v : values) v = noise(TestRng());
+  const TrilinearLutCorrection lut(grid, values);
+  CorrectionChain chain;
+  chain.Append(lut.Clone());
+  chain.SetVolume(LinearBox(10.0));
+  const Eigen::Quaterniond q = RandomRotation(TestRng());
+  const Eigen::Vector3d b(0.5, 0.1, -0.2);
+  const Eigen::Vector3d e_b = lut.Apply(Rigid3d(q, b)).pose.translation - b;
+  const Eigen::Vector3d inner(0.25, 0.1, -0.2);  // halfway into the last cell
+  const Eigen::Vector3d e_inner = lut.Apply(Rigid3d(q, inner)).pose.translation - inner;
+  const double d = 0.4;
+  const Eigen::Vector3d p = b + Eigen::Vector3d(d, 0, 0);
+  const Eigen::Vector3d expected = e_b + (e_b - e_inner) / 0.25 * d;
+  // Rounding of ~5e-3 values over 2 mm differences, times 0.4 m: ~1e-14.
+  EXPECT_LT(((chain.Apply(Rigid3d(q, p)).pose.translation - p) - expected).norm(), 1e-12);
+  EXPECT_TRUE(chain.Apply(Rigid3d(q, p)).extrapolated);
 }
 
 TEST(CorrectionChain, FadeReachesIdentitySmoothly) {
@@ -214,6 +336,23 @@ TEST(CalibratedVolume, RejectsEmptyAndBadFade) {
   EXPECT_THROW(ExtrapolationPolicyFromName("hold"), std::invalid_argument);
 }
 
+TEST(CalibratedVolume, LinearIsTheDefaultAndItsReachIsChecked) {
+  const CalibratedVolume defaults;
+  EXPECT_EQ(defaults.extrapolation, ExtrapolationPolicy::kLinear);
+  EXPECT_EQ(defaults.linear_reach, CalibratedVolume::kDefaultLinearReach);
+  EXPECT_EQ(ExtrapolationPolicyFromName("linear"), ExtrapolationPolicy::kLinear);
+  EXPECT_EQ(ExtrapolationPolicyName(ExtrapolationPolicy::kLinear), "linear");
+  CalibratedVolume v = LinearBox(0.1);
+  EXPECT_NO_THROW(v.Check());
+  for (double bad : {-0.1, std::numeric_limits<double>::quiet_NaN(),
+                     std::numeric_limits<double>::infinity()}) {
+    v.linear_reach = bad;
+    EXPECT_THROW(v.Check(), std::invalid_argument) << bad;
+    CorrectionChain chain;
+    EXPECT_THROW(chain.SetVolume(v), std::invalid_argument) << bad;
+  }
+}
+
 // A term type added from outside core, the way fit/ adds physical models.
 class ConstantShift : public Correction {
  public:
@@ -316,6 +455,22 @@ TEST(CorrectionChain, OutsideTheVolumeOnlyGuardedTermsAreClamped) {
   const CorrectedPose faded = chain.Apply(reported);
   EXPECT_TRUE(faded.extrapolated);
   EXPECT_TRUE(testing::PosesNear(after_physical, faded.pose, 1e-15, 1e-15));
+  // Linear: the physical term still at the actual pose, the polynomial continued to first order
+  // from the nearest point of the box to its own input. Curved()'s parts are linear along the way
+  // out except the quadratics 0.02 x^2 (position y) and -0.03 z^2 (position z), whose tangents
+  // leave 0.02 dx^2 and -0.03 dz^2 (dx, dz: how far out the input is on x and z).
+  chain.SetVolume(LinearBox(10.0));
+  const CorrectedPose linear = chain.Apply(reported);
+  EXPECT_TRUE(linear.extrapolated);
+  const Rigid3d curved_everywhere = Curved()->Apply(after_physical).pose;
+  const Eigen::Vector3d out_by = after_physical.translation - nearest;
+  const Eigen::Vector3d second_order(0.0, 0.02 * out_by.x() * out_by.x(),
+                                     -0.03 * out_by.z() * out_by.z());
+  // Rounding as in LinearPolicyReproducesALinearDistortionOutsideTheBox, ~3 m out.
+  EXPECT_LT((linear.pose.translation - (curved_everywhere.translation - second_order)).norm(),
+            1e-11);
+  EXPECT_TRUE(testing::RotationsNear(curved_everywhere.rotation, linear.pose.rotation, 1e-11));
+
   // Inside the box the chain is unchanged by the volume.
   const Rigid3d inside(q, Eigen::Vector3d(0.3, -0.2, 0.4));
   CorrectionChain unguarded_chain;

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <iomanip>
 #include <iostream>
@@ -199,9 +200,29 @@ constexpr const char* kPaperPolynomial = "terms:\n  - type: polynomial\n    degr
 //     unclamped ................................... 1.75x / 1.41x   2.30x / 1.74x   2.88x / 1.75x
 //     inside the calibration box .................. 1.39x / 1.19x   1.78x / 1.31x   1.51x / 1.27x
 //     outside it (19 / 34 / 26 of 120 stations) ... 4.02x / 2.76x   3.93x / 3.18x   11.5x / 4.34x
+//   the same after the search's variable projection (session 4), clamped:
+//                                                   2.34x / 1.81x   4.19x / 2.54x   4.59x / 2.29x
+//     inside the calibration box .................. 1.60x / 1.36x   2.94x / 1.66x   1.88x / 1.44x
+//     outside it .................................. 4.94x / 3.88x   5.91x / 4.49x   12.2x / 4.79x
+//   the same fits, the linear policy (reach 0.1 m; PoliciesOnSavedFits, session 5):
+//                                                   2.03x / 1.70x   3.73x / 2.28x   2.97x / 1.73x
+//     outside the box ............................. 3.54x / 3.28x   4.82x / 3.65x   6.03x / 2.60x
+//     reach 0.01 / 0.03 / 1 m, position, all ...... 2.25 2.09 2.03  3.98 3.78 3.73  4.28 3.79 2.91
+//     fade over 0.1 m ............................. 3.26x / 2.30x   6.16x / 3.75x   10.2x / 5.08x
+//     the paper's degree-4 polynomial alone, clamp / linear 0.1 m / fade 0.1 m, position, all:
+//                                           111/124/116x    118/143/143x    115/142/119x
+//     (so trackcal-fit writes linear only for chains with a physical term: fit_engine.cc VolumeOf)
+//     seed 3's station 583 (57 mm out): 13.4 mm clamped, 1.66 mm linear; seed 2's worst outside
+//     stations (578: 3.7 mm, 56 mm out) do not change: what is left there is not the extrapolation
+//     of the explicit terms.
 //   same, ridge: auto, blocked CV (3.2 / 3.2 chosen) 4.54x / 2.59x
 //   same, ridge: auto, leave-one-out (0.01 / 0.32) . 609x / 24.4x: it cannot see between the layers
 //   ChainChosen: degree by blocked CV (8), ridge: auto (3.2 / 1.0) 4.53x / 1.71x
+//   ChainChosen after the search's variable projection, linear policy (session 5): degree 8, ridge
+//     0.1 / 0.1, 0.32 / 0.32, 0.1 / 0.1 ........... 3.00x / 3.22x   3.21x / 2.01x   2.86x / 1.68x
+//     ridge: auto's blocked CV predicting held-out slabs to first order as the runtime (a build
+//     passing linear_reach 0.1 in InitializeLinear; not kept):
+//     position ridge 0.1 on all three ........... 3.00x / 3.22x   12.9x / 2.26x   5.20x / 4.36x
 //   ChainChosen's second pass: the weight chosen again by blocked CV on what the joint fit's group
 //     leaves (0.32), refitted: 76x / 31x: the joint fit moved the plane off (normal (0.95, -0.30,
 //     0.07), attenuation 0.001) and let the polynomial take its part
@@ -216,7 +237,9 @@ constexpr const char* kPaperPolynomial = "terms:\n  - type: polynomial\n    degr
 // with the volume taken as the box of the explicit terms' inputs (the group's output, Explore's
 // third line) rather than of the reported positions it is worse, 5.25x on seed 3 (583: 16.9 mm).
 // The true room (every source modelled physically) is at 1.0-1.1x
-// inside and outside alike.
+// inside and outside alike. Session 5: the linear policy (the first-order continuation of the
+// explicit terms, now the default) takes the outside stations to 3.5-6.0x and 583 to 1.7 mm; what
+// is left is inside the box too (1.6-2.9x in position, seed 2 worst), where only the fit helps.
 // Why ridge: auto over-smooths here: it is chosen when the polynomial is initialised, on what the
 // physical group fitted alone leaves (mm-scale structure the joint fit then moves into the group);
 // on that residual the blocked CV's optimum is a weight of 1-3. A weaker weight lets the joint fit
@@ -231,24 +254,35 @@ constexpr const char* kBestChain =
     "    ridge: 0.25\n";
 
 TEST(BestChainOnPaperPreset, SearchedNearSourcesAndARidgePolynomial) {
-  // One seed: the chain's fit takes ~25 s of CPU (a searched dipole and plane, then 990
-  // polynomial coefficients jointly with them; 78 s wall at load 12 on the shared 2-core machine;
-  // seed 2 needs 286 iterations, 951 s wall), and CI runs this test on every push.
-  const PaperCapture data = Simulate(1);
-  const Outcome paper =
-      FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
-  const Outcome best = FitAndValidate(data, std::string(kNoise) + kBestChain, "best chain");
-  // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
-  EXPECT_GT(paper.position_ratio, 10.0);
-  EXPECT_GT(paper.orientation_ratio, 5.0);
-  // Issue #5's acceptance is 1.5x the floor: NOT reached. Seed 1 with the file as written: 1.97x /
-  // 1.47x before the search's variable projection, 2.34x / 1.81x after it (the searched plane and
-  // dipole start elsewhere; the main job, which that change was for, went from 3.24x to 1.29x). The
-  // bounds hold what is reached, with ~7 % for solver and platform differences, so a regression
-  // fails.
-  EXPECT_LE(best.position_ratio, 2.5);
-  EXPECT_LE(best.orientation_ratio, 1.95);
-  EXPECT_LT(best.position_ratio, 0.1 * paper.position_ratio);
+  // Three seeds: the chain's fit takes ~10-25 s of CPU per seed (a searched dipole and plane, then
+  // 990 polynomial coefficients jointly with them; the three took 51 s wall together on the shared
+  // 2-core machine), and CI runs this test on every push.
+  struct Bound {
+    uint64_t seed;
+    double position, orientation;
+  };
+  // Issue #5's acceptance is 1.5x the floor: NOT reached. Measured with the file as written (the
+  // linear policy outside the calibrated volume), all / inside the box / outside it, position /
+  // orientation:
+  //   seed 1: 2.03x / 1.70x   inside 1.60x / 1.36x   outside 3.54x / 3.28x   (clamp: 2.34x / 1.81x)
+  //   seed 2: 3.73x / 2.28x   inside 2.94x / 1.66x   outside 4.82x / 3.65x   (clamp: 4.19x / 2.54x)
+  //   seed 3: 2.97x / 1.73x   inside 1.88x / 1.44x   outside 6.03x / 2.60x   (clamp: 4.59x / 2.29x)
+  // The bounds hold what is reached, with ~7 % for solver and platform differences, so a
+  // regression fails.
+  const std::vector<Bound> bounds = {{1, 2.17, 1.82}, {2, 3.99, 2.44}, {3, 3.18, 1.85}};
+  for (const Bound& bound : bounds) {
+    SCOPED_TRACE("seed " + std::to_string(bound.seed));
+    const PaperCapture data = Simulate(bound.seed);
+    const Outcome paper =
+        FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
+    const Outcome best = FitAndValidate(data, std::string(kNoise) + kBestChain, "best chain");
+    // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
+    EXPECT_GT(paper.position_ratio, 10.0);
+    EXPECT_GT(paper.orientation_ratio, 5.0);
+    EXPECT_LE(best.position_ratio, bound.position);
+    EXPECT_LE(best.orientation_ratio, bound.orientation);
+    EXPECT_LT(best.position_ratio, 0.1 * paper.position_ratio);
+  }
 }
 
 // The chain chosen by held-out calibration data, the same procedure for every capture: searched
@@ -318,8 +352,16 @@ GroupCv BlockedCvAfter(const Correction& group, const std::vector<FitStation>& c
   std::vector<bool> shrunk;
   for (const auto& e : PolynomialTermExponents(degree)) shrunk.push_back(e[0] + e[1] + e[2] >= 2);
   const std::vector<double> grid = PolynomialTerm::RidgeGrid();
-  return {PolynomialTerm::BlockedRidgeCv(degree, u, a, b_position, shrunk, grid),
-          PolynomialTerm::BlockedRidgeCv(degree, u, a, b_orientation, shrunk, grid)};
+  // Held-out stations predicted as ridge: auto does (the box value held); with
+  // TRACKCAL_BEST_CHAIN_CV_LINEAR=1 continued to first order as the runtime's default policy.
+  const Eigen::Vector3d scale = (0.5 * (hi - lo)).transpose();
+  const int slabs = PolynomialTerm::kBlockedSlabsPerAxis;
+  const double reach = std::getenv("TRACKCAL_BEST_CHAIN_CV_LINEAR") != nullptr
+                           ? CalibratedVolume::kDefaultLinearReach
+                           : 0.0;
+  return {PolynomialTerm::BlockedRidgeCv(degree, u, a, b_position, shrunk, grid, slabs, scale, reach),
+          PolynomialTerm::BlockedRidgeCv(degree, u, a, b_orientation, shrunk, grid, slabs, scale,
+                                         reach)};
 }
 
 ChosenChain ChooseChain(const std::vector<FitStation>& calibration) {
@@ -464,6 +506,61 @@ TEST(BestChainOnPaperPreset, ExploreRidge) {
         std::cout << "\n";
       }
     }
+  }
+}
+
+// Exploration of the runtime policy outside the calibrated volume without refitting:
+// TRACKCAL_BEST_CHAIN_SAVE=DIR fits kBestChain once per seed (TRACKCAL_BEST_CHAIN_SEEDS) and writes
+// DIR/seed<N>.json; TRACKCAL_BEST_CHAIN_POLICIES=DIR then validates each saved file under every
+// extrapolation policy (the chain and box unchanged), split inside / outside the box.
+TEST(BestChainOnPaperPreset, SaveFits) {
+  const char* dir = std::getenv("TRACKCAL_BEST_CHAIN_SAVE");
+  if (dir == nullptr) GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_SAVE=DIR";
+  for (uint64_t seed : ExplorationSeeds()) {
+    const PaperCapture data = Simulate(seed);
+    // The best chain (seed<N>.json) and the paper's degree-4 polynomial (seed<N>_paper.json).
+    for (const auto& [model, suffix] :
+         std::vector<std::pair<std::string, std::string>>{{kBestChain, ""}, {kPaperPolynomial, "_paper"}}) {
+      ModelSpec spec = ParseModelYaml(std::string(kNoise) + model, "model");
+      FitOptions options;
+      options.compute_covariance = false;
+      const FitResult fit = FitModel(data.calibration, &spec, options);
+      const Calibration file = WrittenFile(fit);
+      WriteCalibrationFile(std::string(dir) + "/seed" + std::to_string(seed) + suffix + ".json",
+                           file);
+      Validate(data, file.chain, file.volume(),
+               "seed " + std::to_string(seed) + suffix + " (file)", true);
+    }
+  }
+}
+
+TEST(BestChainOnPaperPreset, PoliciesOnSavedFits) {
+  const char* dir = std::getenv("TRACKCAL_BEST_CHAIN_POLICIES");
+  if (dir == nullptr) GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_POLICIES=DIR";
+  for (uint64_t seed : ExplorationSeeds()) {
+    const PaperCapture data = Simulate(seed);
+   for (const std::string suffix : {"", "_paper"}) {
+    const std::filesystem::path path =
+        std::string(dir) + "/seed" + std::to_string(seed) + suffix + ".json";
+    if (!std::filesystem::exists(path)) continue;
+    const Calibration file = ReadCalibrationFile(path);
+    // clamp; fade over 0.1 m; linear with reaches from 0 (clamp) to beyond every station.
+    const std::vector<std::pair<std::string, double>> policies = {
+        {"clamp", 0.0},   {"fade", 0.1},    {"linear", 0.0},  {"linear", 0.01}, {"linear", 0.02},
+        {"linear", 0.03}, {"linear", 0.05}, {"linear", 0.1},  {"linear", 1.0}};
+    for (const auto& [policy, distance] : policies) {
+      CorrectionChain chain = file.chain;
+      CalibratedVolume volume = file.volume();
+      volume.extrapolation = ExtrapolationPolicyFromName(policy);
+      volume.fade_distance = policy == "fade" ? distance : 0.0;
+      volume.linear_reach = distance;
+      chain.SetVolume(volume);
+      Validate(data, chain, volume,
+               "seed " + std::to_string(seed) + suffix + " " + policy + " " +
+                   std::to_string(distance),
+               policy == "linear" && distance == CalibratedVolume::kDefaultLinearReach);
+    }
+   }
   }
 }
 

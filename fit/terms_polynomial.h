@@ -66,8 +66,10 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   // per axis of the normalised inputs `u` (n x 3), up to kBlockedSlabsPerAxis slabs of about equal
   // station count, each boundary moved to the widest gap between consecutive coordinates near its
   // quantile (so a grid's layers stay whole); each slab is held out in turn. A held-out station is
-  // predicted where the runtime evaluates an explicit term, at the nearest point of the training
-  // stations' box (core/correction.h: the calibrated volume's clamp). Closed form per fold and
+  // predicted the way the runtime applies an explicit term outside the calibrated volume
+  // (core/correction.h): from the nearest point of the training stations' box, continued to first
+  // order out to `linear_reach` [m] (the `linear` policy; `input_scale` [m per unit of u] converts
+  // the distance) and held beyond; linear_reach = 0 is the `clamp` policy. Closed form per fold and
   // weight on the normal equations: (A^T A - A_F^T A_F + lambda^2 D) c = A^T b - A_F^T b_F, D = 1 on
   // the `shrunk` columns. Returns the summed squared held-out error per weight of `grid`
   // (infinity where a fold's system is singular).
@@ -76,7 +78,10 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
                                             const Eigen::MatrixXd& a, const Eigen::MatrixXd& b,
                                             const std::vector<bool>& shrunk,
                                             const std::vector<double>& grid,
-                                            int slabs_per_axis = kBlockedSlabsPerAxis);
+                                            int slabs_per_axis = kBlockedSlabsPerAxis,
+                                            const Eigen::Vector3d& input_scale =
+                                                Eigen::Vector3d::Ones(),
+                                            double linear_reach = 0.0);
   // The folds of BlockedRidgeCv: fold index per station (each axis's slabs are a partition; the
   // result holds the 3 axes' partitions in turn, -1 for an axis with a single slab).
   static std::vector<std::vector<int>> BlockedFolds(const Eigen::MatrixXd& u,

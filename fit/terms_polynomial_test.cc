@@ -225,6 +225,50 @@ TEST(PolynomialTerm, BlockedFoldsKeepGridLayersWhole) {
   }
 }
 
+TEST(PolynomialTerm, BlockedRidgeCvPredictsHeldOutLayersAsTheLinearPolicy) {
+  // A distortion linear in the input, fitted by a degree-2 polynomial without noise: every fold
+  // recovers it, so a held-out slab predicted by the runtime's linear policy (first order from the
+  // fold's box, core/correction.h) has no error at lambda = 0, while held at the box (clamp) the
+  // outer slabs are off by the slope times their distance. The reach caps it again.
+  Eigen::MatrixXd u(6 * 5 * 4, 3), b(6 * 5 * 4, 3);
+  const Eigen::Matrix3d slope = (Eigen::Matrix3d() << 0.01, -0.02, 0.005, 0.003, 0.01, -0.01,
+                                 0.02, 0.0, 0.01).finished();
+  int i = 0;
+  for (int x = 0; x < 6; ++x) {
+    for (int y = 0; y < 5; ++y) {
+      for (int z = 0; z < 4; ++z, ++i) {
+        u.row(i) << -1 + x * 2.0 / 5, -1 + y * 2.0 / 4, -1 + z * 2.0 / 3;
+        b.row(i) = (slope * u.row(i).transpose() + Eigen::Vector3d(0.001, 0.002, -0.003)).transpose();
+      }
+    }
+  }
+  const int degree = 2, r = NumPolynomialTerms(degree);
+  Eigen::MatrixXd a(u.rows(), r);
+  std::vector<double> monomials(static_cast<size_t>(r));
+  for (Eigen::Index k = 0; k < u.rows(); ++k) {
+    const Eigen::Vector3d uk = u.row(k).transpose();
+    EvaluateMonomials(degree, uk.data(), monomials.data());
+    for (int j = 0; j < r; ++j) a(k, j) = monomials[static_cast<size_t>(j)];
+  }
+  std::vector<bool> shrunk;
+  for (const auto& e : PolynomialTermExponents(degree)) shrunk.push_back(e[0] + e[1] + e[2] >= 2);
+  const std::vector<double> grid = {0.0};
+  const Eigen::Vector3d scale(0.6, 0.5, 0.3);  // [m] per unit of u
+  const int slabs = PolynomialTerm::kBlockedSlabsPerAxis;
+  const double clamp = PolynomialTerm::BlockedRidgeCv(degree, u, a, b, shrunk, grid)[0];
+  const double linear =
+      PolynomialTerm::BlockedRidgeCv(degree, u, a, b, shrunk, grid, slabs, scale, 10.0)[0];
+  const double capped =
+      PolynomialTerm::BlockedRidgeCv(degree, u, a, b, shrunk, grid, slabs, scale, 0.01)[0];
+  // Noise-free: the linear prediction is exact to rounding of the normal equations (cond ~1e3 on
+  // 1e-2 values: ~1e-24 squared per station); the clamp's error is the slope (~1e-2) times a layer
+  // spacing (0.4-0.67 in u) on every outer station: ~1e-5 squared each.
+  EXPECT_LT(linear, 1e-20);
+  EXPECT_GT(clamp, 1e-4);
+  EXPECT_GT(capped, linear);
+  EXPECT_LT(capped, clamp);
+}
+
 // Leave-one-out cannot see what a weight does away from the stations: every held-out station has
 // training neighbours on all sides, and at a station the near-null directions of a layered grid
 // cost nothing. The blocked folds hold out whole layers (outer ones beyond the training box, inner
@@ -232,7 +276,7 @@ TEST(PolynomialTerm, BlockedFoldsKeepGridLayersWhole) {
 // the error field that of two far dipoles (not a polynomial, ~10 mm), the noise 0.1 mm, the
 // polynomial of degree 8 (position part). Test stations lie inside the box between the heights and
 // up to 75 mm beyond it (as the preset's validation stations), corrected as the runtime does (the
-// polynomial clamped to the calibrated volume).
+// calibrated volume's default policy: the polynomial continued to first order from the box).
 struct RidgeComparison {
   double ridge_blocked = 0, ridge_loo = 0;
   double blocked_mm = 0, loo_mm = 0;  // mean position error over the test stations
@@ -312,16 +356,17 @@ RidgeComparison CompareRidgeSelection(double layer_scatter_m) {
 TEST(PolynomialTerm, BlockedRidgeCvSeesWhatLeaveOneOutCannot) {
   // Stations exactly on the layers (a perfect physical term before the polynomial, noise only in
   // the reference): z^4 .. z^8 are exact combinations of lower powers at the stations. Leave-one-out
-  // sees no cost in them and keeps no ridge (measured: 0, ~7e10 mm off between the heights); the
-  // blocked folds pick a weight that holds the polynomial to the field (measured 0.01, 0.62 mm
-  // against the clamp's own 0.45 mm). The bounds are far from both: 1 mm, and 1000 mm.
+  // sees no cost in them and keeps no ridge (measured: 0, ~2e11 mm off between the heights); the
+  // blocked folds pick a weight that holds the polynomial to the field (measured 0.01, 0.42 mm
+  // with the linear policy outside the box, 0.62 mm when it was clamped, against the true field
+  // clamped: 0.45 mm). The bounds are far from both: 1 mm, and 1000 mm.
   const RidgeComparison exact = CompareRidgeSelection(0.0);
   EXPECT_GT(exact.ridge_blocked, exact.ridge_loo);
   EXPECT_LT(exact.blocked_mm, 1.0);
   EXPECT_GT(exact.loo_mm, 1000.0);
   // With 0.1 mm of scatter about the layers (what a real physical term leaves) the near-null
   // directions are visible to leave-one-out too on this smooth field: both pick the same weight
-  // (measured 0.1 each, 0.65 mm). The blocked choice must not be worse: within 2 % (one grid step
+  // (measured 0.1 each, 0.52 mm; 0.65 mm clamped). The blocked choice must not be worse: within 2 % (one grid step
   // of difference moves the mean by ~1 % here).
   const RidgeComparison scattered = CompareRidgeSelection(1e-4);
   EXPECT_LT(scattered.blocked_mm, 1.02 * scattered.loo_mm);
