@@ -1600,36 +1600,21 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   for (auto& p : prepared) {
     if (!p.flexible) judge(p);
   }
-  // Terms go in one at a time where one at a time works: a pair of terms is claimed only if it
-  // beats every significant single-term candidate, on held-out data (paired test of the stations'
-  // whitened errors at the same level as against the base) and by BIC (the same margin). Otherwise
-  // the single term goes in first and the next diagnosis searches the second with the first in
-  // the model; a pair wins where no single term identifies a source (two monitors side by side) or
-  // where the one that does (a plane standing in for both) explains clearly less.
+  // Terms go in one at a time where one at a time works: a pair of terms is claimed only when no
+  // single candidate is. Otherwise the single goes in first and the next diagnosis searches the
+  // second with it in the model. A pair that merely beats the single adds a second source the
+  // single did not need to identify (measured, finite_transmitter_coils seed 1, when the pair only
+  // had to beat every significant single on held-out data and BIC: the workbench frame plus a
+  // dipole at the floor's mirror image of the transmitter, claimed over the frame alone, spurious);
+  // the pair is for sources that no single term identifies (two monitors side by side).
   for (auto& p : prepared) {
     Candidate& c = p.candidate;
     if (p.flexible || p.effect->count <= 1 || !c.significant) continue;
     for (const auto& o : prepared) {
-      const Candidate& other = o.candidate;
-      if (&o == &p || o.flexible || o.effect->count > 1 || other.kind != CandidateKind::kTerm ||
-          !other.significant) {
-        continue;
-      }
-      std::vector<double> better;  // other minus pair, per station
-      for (size_t k = 0; k < stations.size(); ++k) {
-        const double a = o.cv_whitened_by_base.size() > k ? o.cv_whitened_by_base[k] : NAN;
-        const double b = p.cv_whitened_by_base.size() > k ? p.cv_whitened_by_base[k] : NAN;
-        if (std::isfinite(a) && std::isfinite(b)) better.push_back(a - b);
-      }
-      const double p_better = WilcoxonSignedRankGreater(better);
-      const double delta = c.bic - other.bic;
-      if (p_better < d.p_threshold && delta < options.max_delta_bic) continue;
+      if (&o == &p || o.flexible || o.effect->count > 1 || !o.candidate.significant) continue;
       c.significant = false;
-      c.reason += ". Not claimed: it does not beat the single " + other.effect +
-                  " candidate (held-out p = " + FormatSignificant(p_better, 2) +
-                  (p_better < d.p_threshold ? " < " : " >= ") +
-                  FormatSignificant(d.p_threshold, 2) + ", delta BIC against it " +
-                  FormatNumber(delta, 1) + "): add that first";
+      c.reason += ". Not claimed: a single candidate is (" + o.candidate.effect +
+                  "): terms go in one at a time, the pair only where no single one is claimed";
       break;
     }
   }

@@ -307,10 +307,10 @@ terms:
 }
 
 // A pair of terms goes in together (two terms, named apart, one model change), and is claimed
-// only when it beats every significant single-term candidate: a second constant offset explains
-// nothing the first does not, so the single offset is the verdict and the pair is refused with the
-// reason. Main before this change had no pairs (CatalogEffect::count).
-TEST(DiagnoseCandidates, APairIsClaimedOnlyWhenItBeatsItsSingleTerm) {
+// only when no single candidate is: the single offset is the verdict and the pair, significant
+// against the base alone, is refused with the reason. Main before this change had no pairs
+// (CatalogEffect::count).
+TEST(DiagnoseCandidates, APairIsClaimedOnlyWhenNoSingleTermIs) {
   const auto stations = Stations(200, Eigen::Vector3d(0.003, -0.002, 0.001), 0, 11);
   CandidateOptions o = TestOptions();
   o.catalog.push_back({"position_offset_pair", CandidateKind::kTerm,
@@ -330,7 +330,7 @@ TEST(DiagnoseCandidates, APairIsClaimedOnlyWhenItBeatsItsSingleTerm) {
   EXPECT_TRUE(pair->cross_validated);
   EXPECT_LT(pair->p_value, d.p_threshold);
   EXPECT_FALSE(pair->significant);
-  EXPECT_THAT(pair->reason, ::testing::HasSubstr("does not beat the single position_offset"));
+  EXPECT_THAT(pair->reason, ::testing::HasSubstr("a single candidate is (position_offset)"));
   // Two terms after the model's polynomial, named apart, both in the change and the model.
   EXPECT_THAT(pair->term_names, ::testing::ElementsAre("polynomial_2", "polynomial_3"));
   const YAML::Node change = YAML::Load(pair->model_change);
