@@ -3,8 +3,9 @@
 //   Diagnosis d = DiagnoseCandidates(calibration_stations, model_text, "model.yaml", "capture/",
 //   {}); std::cout << d.ToJson().dump(2);   // the document of docs/diagnose.md
 //
-// For every effect of the catalog (DefaultCatalog(): sensor_offset, receiver_gain, dipole, plane,
-// near_field, robust_loss, time_offset) that the model lacks, the model plus that one effect is
+// For every effect of the catalog (DefaultCatalog(): sensor_offset, receiver_gain, dipole,
+// dipole_pair, plane, near_field, robust_loss, time_offset) that the model lacks, the model plus
+// that one effect is
 // fitted and scored against the model itself:
 //   - k-fold cross-validation with the same folds for the base and every candidate (station i in
 //   fold
@@ -66,10 +67,15 @@ struct CatalogEffect {
   bool physical = true;     // kTerm: physical terms are inserted before the explicit ones
   bool repeatable = false;  // kTerm: tested even when the model already has a term of this type
   std::string description;  // for the verdict: "a ferromagnetic object", "a sensor offset"
+  // kTerm: how many terms of `term_yaml` go in together (> 1 needs `repeatable`). 2 is a pair of
+  // sources searched together (a dipole pair: two objects whose fields add up where neither alone
+  // is identified); the group searches the second with the first placed and projected out and
+  // refines both jointly (fit/terms_physical.h). Each term must pass the physical conditions.
+  int count = 1;
 };
 
-// sensor_offset, receiver_gain, dipole (repeatable), plane (repeatable), near_field, robust_loss,
-// time_offset.
+// sensor_offset, receiver_gain, dipole (repeatable), dipole_pair (two dipoles), plane
+// (repeatable), near_field, robust_loss, time_offset.
 // Term types that are not registered in TermRegistry::Global() are skipped (Diagnosis::skipped).
 std::vector<CatalogEffect> DefaultCatalog();
 
@@ -200,7 +206,8 @@ struct Candidate {
   CandidateKind kind = CandidateKind::kTerm;
   std::string model_change;         // YAML to add (a list item for terms, a `loss:` mapping)
   std::optional<int> insert_index;  // kTerm: index in `terms:` before which it goes
-  std::string term_name;            // kTerm: the added term's name in reports
+  std::string term_name;            // kTerm: the added term's name in reports (the first)
+  std::vector<std::string> term_names;  // kTerm: every added term's name (two for a pair)
   std::string model_text;           // the whole candidate model file
   bool fitted = false;              // false: the fit failed (error says why)
   std::string error;
@@ -217,7 +224,8 @@ struct Candidate {
   double p_value = NAN;  // one-sided Wilcoxon signed-rank, held-out errors
   bool significant = false;
   std::string reason;                       // why (not) significant, in words
-  PhysicalEvidence evidence;                // kTerm: strength and location tests of the added term
+  // kTerm: strength and location tests of the added term (of several: the weakest one's).
+  PhysicalEvidence evidence;
   std::vector<ParameterReport> parameters;  // the added term's blocks (empty for robust_loss)
   std::vector<int> outlier_stations;        // robust_loss: stations beyond the loss scale
   std::string statement;                    // physical summary with units and +- 1 sigma

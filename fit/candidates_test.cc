@@ -5,10 +5,12 @@
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <yaml-cpp/yaml.h>
 
 #include <iostream>
 #include <numeric>
 #include <random>
+#include <set>
 
 #include "fit/model_file.h"
 
@@ -304,6 +306,47 @@ terms:
                                                          ::testing::HasSubstr("no_such_term")));
 }
 
+// A pair of terms goes in together (two terms, named apart, one model change), and is claimed
+// only when no single candidate is: the single offset is the verdict and the pair, significant
+// against the base alone, is refused with the reason. Main before this change had no pairs
+// (CatalogEffect::count).
+TEST(DiagnoseCandidates, APairIsClaimedOnlyWhenNoSingleTermIs) {
+  const auto stations = Stations(200, Eigen::Vector3d(0.003, -0.002, 0.001), 0, 11);
+  CandidateOptions o = TestOptions();
+  o.catalog.push_back({"position_offset_pair", CandidateKind::kTerm,
+                       "{type: polynomial, degree: 0, orientation: false}", false, true,
+                       "two constant position offsets", 2});
+  const Diagnosis d =
+      DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic", o);
+  std::cout << FormatDiagnosis(d);
+  ASSERT_TRUE(d.verdict_effect.has_value());
+  EXPECT_EQ(*d.verdict_effect, "position_offset");
+  const Candidate* pair = nullptr;
+  for (const auto& c : d.candidates) {
+    if (c.effect == "position_offset_pair") pair = &c;
+  }
+  ASSERT_NE(pair, nullptr);
+  // Against the base alone it would pass (the offset is 37 sigma): the pair rule refuses it.
+  EXPECT_TRUE(pair->cross_validated);
+  EXPECT_LT(pair->p_value, d.p_threshold);
+  EXPECT_FALSE(pair->significant);
+  EXPECT_THAT(pair->reason, ::testing::HasSubstr("a single candidate is (position_offset)"));
+  // Two terms after the model's polynomial, named apart, both in the change and the model.
+  EXPECT_THAT(pair->term_names, ::testing::ElementsAre("polynomial_2", "polynomial_3"));
+  const YAML::Node change = YAML::Load(pair->model_change);
+  ASSERT_TRUE(change.IsSequence());
+  ASSERT_EQ(change.size(), 2u);
+  EXPECT_EQ(change[0]["name"].as<std::string>(), "polynomial_2");
+  EXPECT_EQ(change[1]["name"].as<std::string>(), "polynomial_3");
+  ModelSpec spec = ParseModelYaml(pair->model_text, "candidate");
+  EXPECT_EQ(spec.terms.size(), 3u);
+  // The parameters of both terms are reported.
+  std::set<std::string> terms;
+  for (const auto& p : pair->parameters) terms.insert(p.term);
+  EXPECT_THAT(terms, ::testing::ElementsAre("polynomial_2", "polynomial_3"));
+  EXPECT_EQ(d.ToJson()["candidates"][0]["term_names"], nlohmann::json({"polynomial_2"}));
+}
+
 TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
   const auto stations = Stations(60, Eigen::Vector3d(0.002, 0, 0), 0, 7);
   CandidateOptions o = TestOptions();
@@ -344,6 +387,14 @@ TEST(DiagnoseCandidates, BadOptionsAndTooFewStationsThrow) {
   EXPECT_THROW(o.Check(), std::invalid_argument);
   o = CandidateOptions();
   o.effects = {"teleportation"};
+  EXPECT_THROW(o.Check(), std::invalid_argument);
+  // A pair needs a repeatable term (a second sensor offset is no second source).
+  o = CandidateOptions();
+  o.catalog.push_back({"offset_pair", CandidateKind::kTerm, "type: sensor_offset", true, false,
+                       "two sensor offsets", 2});
+  EXPECT_THROW(o.Check(), std::invalid_argument);
+  o.catalog.back().repeatable = true;
+  o.catalog.back().count = 0;
   EXPECT_THROW(o.Check(), std::invalid_argument);
   EXPECT_THROW(DiagnoseCandidates(Stations(8, Eigen::Vector3d::Zero(), 0, 8), kOrientationOnlyModel,
                                   "m", "d", TestOptions()),

@@ -435,22 +435,56 @@ struct Score {
 // The cost reduction sum(u . P r)^2 / |P u|^2 of the candidate's column u (u_i = K_i vec(B_unit))
 // after the projection P, and its least-squares strength (the refit's linear parameters projected
 // out: variable projection).
+// The candidate's column u (n x 6, u_i = K_i vec(B_unit)) after the projection P; false where the
+// unit field is not defined.
 template <typename UnitField>
-Score ScoreCandidate(const SearchSet& set, const UnitField& unit_field) {
+bool ProjectedColumn(const SearchSet& set, const UnitField& unit_field, Eigen::MatrixXd* u) {
   const auto n = static_cast<Eigen::Index>(set.stations.size());
-  if (n == 0) return {};
-  Eigen::MatrixXd u(n, 6);
+  if (n == 0) return false;
+  u->resize(n, 6);
   for (Eigen::Index i = 0; i < n; ++i) {
     const SearchStation& s = set.stations[static_cast<size_t>(i)];
     Matrix3<double> b;
-    if (!unit_field(s.p, &b)) return {};
-    u.row(i) = (s.k * Vec<double>(b)).transpose();
+    if (!unit_field(s.p, &b)) return false;
+    u->row(i) = (s.k * Vec<double>(b)).transpose();
   }
-  set.projector.Apply(&u);
+  set.projector.Apply(u);
+  return true;
+}
+
+template <typename UnitField>
+Score ScoreCandidate(const SearchSet& set, const UnitField& unit_field) {
+  Eigen::MatrixXd u;
+  if (!ProjectedColumn(set, unit_field, &u)) return {};
   const double a = (u.array() * set.residual.array()).sum();
   const double c = u.squaredNorm();
   if (!(c > 0.0) || !std::isfinite(a) || !std::isfinite(c)) return {};
   return {a * a / c, -a / c};
+}
+
+// Two sources at once: both strengths are linear, so the pair's cost reduction is that of the
+// least-squares fit of the projected residual by both projected columns, r' U (U' U)^-1 U' r, and
+// its strengths -(U' U)^-1 U' r. Zero when the columns are (nearly) dependent: two sources that
+// cannot be told apart are one.
+struct PairScore {
+  double reduction = 0.0;
+  double strength[2] = {0.0, 0.0};
+};
+
+PairScore ScorePair(const SearchSet& set, const Eigen::MatrixXd& u0, const Eigen::MatrixXd& u1) {
+  const double g00 = u0.squaredNorm(), g11 = u1.squaredNorm();
+  const double g01 = (u0.array() * u1.array()).sum();
+  const double a0 = (u0.array() * set.residual.array()).sum();
+  const double a1 = (u1.array() * set.residual.array()).sum();
+  const double det = g00 * g11 - g01 * g01;
+  // 1e-6: columns within 0.06 deg of each other in the 6n-space.
+  if (!(g00 > 0.0) || !(g11 > 0.0) || !(det > 1e-6 * g00 * g11)) return {};
+  PairScore out;
+  out.strength[0] = -(g11 * a0 - g01 * a1) / det;
+  out.strength[1] = -(g00 * a1 - g01 * a0) / det;
+  out.reduction = -(a0 * out.strength[0] + a1 * out.strength[1]);
+  if (!std::isfinite(out.reduction)) return {};
+  return out;
 }
 
 // Pattern search minimising -reduction from x over its coordinates, steps halving to `min_step`.
@@ -533,8 +567,8 @@ const std::vector<std::string>& PhysicalTermTypes() {
 
 bool PhysicalSearchOptions::Check() const {
   return margin_m >= 0.0 && dipole_spacing_m > 0.0 && min_station_distance_m >= 0.0 &&
-         refine_candidates >= 1 && plane_normals >= 0 && plane_distance_step_m > 0.0 &&
-         reach_m > 0.0 && max_refinements >= 1;
+         refine_candidates >= 1 && pair_seeds >= 2 && plane_normals >= 0 &&
+         plane_distance_step_m > 0.0 && reach_m > 0.0 && max_refinements >= 1;
 }
 
 PhysicalGroupTerm::PhysicalGroupTerm(PhysicalEffect effect) {
@@ -1279,22 +1313,50 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
                     ((e.search_plane && !fixed(kPlaneDistance)) ||
                      (!e.strength_given && !fixed(kPlaneAttenuation))));
   }
-  // Each searched effect against what the group leaves with the effects placed so far.
+  // Each searched effect against what the group leaves with the effects placed so far; two
+  // consecutive dipoles whose locations are searched, as a pair (their starts go together: the
+  // k-th start of one with the k-th of the other).
   std::vector<std::vector<PhysicalSearchStart>> starts(effects_.size());
   std::vector<size_t> searched;
+  std::vector<int> partner(effects_.size(), -1);
+  auto searched_dipole = [&](size_t i) {
+    const Effect& e = effects_[i];
+    return disabled_[i] && e.kind == PhysicalEffect::kDipole && e.search_location &&
+           !blocks_[static_cast<size_t>(Block(e, kDipoleLocation))].fixed;
+  };
+  auto report_of = [&](size_t i, const std::string& note) {
+    nlohmann::json report = {{"projected_out", note}, {"starts", nlohmann::json::array()},
+                             {"refused", nlohmann::json::array()}};
+    for (const auto& s : starts[i]) report["starts"].push_back(StartJson(effects_[i].kind, s));
+    if (partner[i] >= 0) report["pair_with"] = effects_[static_cast<size_t>(partner[i])].name;
+    search_reports_[effects_[i].name] = report;
+    searched.push_back(i);
+    disabled_[i] = false;
+  };
   for (size_t i = 0; i < effects_.size(); ++i) {
     if (!disabled_[i]) continue;
     std::string note;
+    if (i + 1 < effects_.size() && searched_dipole(i) && searched_dipole(i + 1)) {
+      for (const auto& [a, b] : SearchDipolePair(inputs, noise_sigmas, &note)) {
+        starts[i].push_back(a);
+        starts[i + 1].push_back(b);
+      }
+      partner[i] = static_cast<int>(i + 1);
+      partner[i + 1] = static_cast<int>(i);
+      if (!starts[i].empty()) {
+        ApplyStart(effects_[i], starts[i][0]);
+        ApplyStart(effects_[i + 1], starts[i + 1][0]);
+      }
+      report_of(i, note);
+      report_of(i + 1, note);
+      ++i;
+      continue;
+    }
     starts[i] = effects_[i].kind == PhysicalEffect::kDipole
                     ? SearchDipole(effects_[i], inputs, noise_sigmas, &note)
                     : SearchPlane(effects_[i], inputs, noise_sigmas, &note);
     if (!starts[i].empty()) ApplyStart(effects_[i], starts[i][0]);
-    nlohmann::json report = {{"projected_out", note}, {"starts", nlohmann::json::array()},
-                             {"refused", nlohmann::json::array()}};
-    for (const auto& s : starts[i]) report["starts"].push_back(StartJson(effects_[i].kind, s));
-    search_reports_[effects_[i].name] = report;
-    searched.push_back(i);
-    disabled_[i] = false;
+    report_of(i, note);
   }
   disabled_.clear();
   // The group's refinement from the starts; a start whose refinement leaves the physical bounds
@@ -1335,6 +1397,11 @@ bool PhysicalGroupTerm::InitializeLinear(const std::vector<FitStation>& inputs,
       if (chosen[culprit] + 1 >= starts[culprit].size()) break;
       ++chosen[culprit];
       ApplyStart(effects_[culprit], starts[culprit][chosen[culprit]]);
+      if (partner[culprit] >= 0) {  // a pair's next start moves both
+        const auto other = static_cast<size_t>(partner[culprit]);
+        chosen[other] = chosen[culprit];
+        ApplyStart(effects_[other], starts[other][chosen[other]]);
+      }
       start_values = snapshot();
     }
     // No start survived its refinement: the joint solve starts from the search's start, inside the
@@ -1624,6 +1691,60 @@ std::vector<Candidate> WellSeparated(std::vector<std::pair<double, Candidate>> r
 
 }  // namespace
 
+namespace {
+
+// Where a dipole may be searched and its unit field: outside the measured volume (grown by the
+// minimum station distance), away from the transmitter and from every station.
+struct DipoleSite {
+  double min_distance;
+  Eigen::Vector3d inner_lo, inner_hi;
+  bool Allowed(const Eigen::Vector3d& l) const {
+    if (l.norm() < min_distance) return false;
+    // Not inside the measured volume: an object there would sit among the stations.
+    return !((l.array() > inner_lo.array()).all() && (l.array() < inner_hi.array()).all());
+  }
+  // The unit-strength field matrix at p of a dipole at l (false: too close to p).
+  auto UnitField(const Eigen::Vector3d& l) const {
+    const Eigen::Matrix3d d_l = DipoleCoupling<double>(l);
+    const double gap = min_distance;
+    return [l, d_l, gap](const Eigen::Vector3d& p, Eigen::Matrix3d* b) {
+      const Eigen::Vector3d d = p - l;
+      if (d.squaredNorm() < gap * gap) return false;
+      *b = DipoleCoupling<double>(d) * d_l;
+      return true;
+    };
+  }
+};
+
+// The dipole search's grid from `lo` to `hi` with spacing h (twice as coarse more than 1 m outside
+// the data's box [data_lo, data_hi]: a far source's score changes slowly with its location), each
+// point with its score, unsorted.
+template <typename ScoreAt>
+std::vector<std::pair<double, Eigen::Vector3d>> DipoleGrid(const Eigen::Vector3d& data_lo,
+                                                           const Eigen::Vector3d& data_hi,
+                                                           double margin, double h,
+                                                           const ScoreAt& score_at) {
+  const Eigen::Vector3d lo = data_lo.array() - margin;
+  const Eigen::Vector3d hi = data_hi.array() + margin;
+  const Eigen::Vector3i counts = ((hi - lo) / h).array().ceil().cast<int>() + 1;
+  const double fine_margin = std::min(1.0, margin);
+  std::vector<std::pair<double, Eigen::Vector3d>> ranked;
+  for (int ix = 0; ix < counts.x(); ++ix) {
+    for (int iy = 0; iy < counts.y(); ++iy) {
+      for (int iz = 0; iz < counts.z(); ++iz) {
+        const Eigen::Vector3d l = lo + h * Eigen::Vector3d(ix, iy, iz);
+        const double outside = (l - data_hi).cwiseMax(data_lo - l).maxCoeff();
+        if (outside > fine_margin && (ix % 2 != 0 || iy % 2 != 0 || iz % 2 != 0)) continue;
+        const Score s = score_at(l);
+        if (s.reduction > 0.0) ranked.emplace_back(s.reduction, l);
+      }
+    }
+  }
+  return ranked;
+}
+
+}  // namespace
+
 std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchDipole(
     const Effect& e, const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas,
     std::string* note) {
@@ -1635,19 +1756,11 @@ std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchDipole(
   }
   const ParameterBlock& location = blocks_[static_cast<size_t>(Block(e, kDipoleLocation))];
   const double min_distance = search_options_.min_station_distance_m;
-  const Eigen::Vector3d inner_lo = station_min_.array() - min_distance;
-  const Eigen::Vector3d inner_hi = station_max_.array() + min_distance;
+  const DipoleSite site{min_distance, station_min_.array() - min_distance,
+                        station_max_.array() + min_distance};
   auto score_at = [&](const Eigen::Vector3d& l) {
-    if (l.norm() < min_distance) return Score{};
-    // Not inside the measured volume: an object there would sit among the stations.
-    if ((l.array() > inner_lo.array()).all() && (l.array() < inner_hi.array()).all()) return Score{};
-    const Eigen::Matrix3d d_l = DipoleCoupling<double>(l);
-    return ScoreCandidate(set, [&](const Eigen::Vector3d& p, Eigen::Matrix3d* b) {
-      const Eigen::Vector3d d = p - l;
-      if (d.squaredNorm() < min_distance * min_distance) return false;
-      *b = DipoleCoupling<double>(d) * d_l;
-      return true;
-    });
+    if (!site.Allowed(l)) return Score{};
+    return ScoreCandidate(set, site.UnitField(l));
   };
   std::vector<PhysicalSearchStart> starts;
   auto add = [&](const Eigen::Vector3d& l) {
@@ -1663,25 +1776,11 @@ std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchDipole(
     add(Eigen::Vector3d(location.values[0], location.values[1], location.values[2]));
     return starts;
   }
-  const Eigen::Vector3d lo = data_min_.array() - search_options_.margin_m;
-  const Eigen::Vector3d hi = data_max_.array() + search_options_.margin_m;
   const double h = search_options_.dipole_spacing_m;
-  const Eigen::Vector3i counts = ((hi - lo) / h).array().ceil().cast<int>() + 1;
-  // More than 1 m outside the data the grid is twice as coarse (an eighth of the candidates): a far
-  // source's score changes slowly with its location, and the pattern search refines the seeds.
-  const double fine_margin = std::min(1.0, search_options_.margin_m);
-  std::vector<std::pair<double, Eigen::Vector3d>> ranked;
-  for (int ix = 0; ix < counts.x(); ++ix) {
-    for (int iy = 0; iy < counts.y(); ++iy) {
-      for (int iz = 0; iz < counts.z(); ++iz) {
-        const Eigen::Vector3d l = lo + h * Eigen::Vector3d(ix, iy, iz);
-        const double outside = (l - data_max_).cwiseMax(data_min_ - l).maxCoeff();
-        if (outside > fine_margin && (ix % 2 != 0 || iy % 2 != 0 || iz % 2 != 0)) continue;
-        const Score s = score_at(l);
-        if (s.reduction > 0.0) ranked.emplace_back(s.reduction, l);
-      }
-    }
-  }
+  // More than 1 m outside the data the grid is twice as coarse (an eighth of the candidates), and
+  // the pattern search refines the seeds.
+  std::vector<std::pair<double, Eigen::Vector3d>> ranked =
+      DipoleGrid(data_min_, data_max_, search_options_.margin_m, h, score_at);
   // Several sources: the best candidates at least two grid steps apart are refined separately, so
   // a second object is a start of its own rather than a neighbour of the first's grid point.
   const std::vector<Eigen::Vector3d> seeds = WellSeparated<Eigen::Vector3d>(
@@ -1702,6 +1801,91 @@ std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchDipole(
       [&](const PhysicalSearchStart& a, const PhysicalSearchStart& b) {
         return (a.location - b.location).norm() < h;  // refined onto the same source
       });
+}
+
+std::vector<std::pair<PhysicalSearchStart, PhysicalSearchStart>>
+PhysicalGroupTerm::SearchDipolePair(const std::vector<FitStation>& inputs,
+                                    const Eigen::Vector2d& sigmas, std::string* note) {
+  const SearchSet set =
+      MakeSearchSet(*this, inputs, sigmas, later_terms_, search_options_.project_refit);
+  *note = set.projector.note + "; searched as a pair";
+  const double min_distance = search_options_.min_station_distance_m;
+  const DipoleSite site{min_distance, station_min_.array() - min_distance,
+                        station_max_.array() + min_distance};
+  const double h = search_options_.dipole_spacing_m;
+  auto column_at = [&](const Eigen::Vector3d& l, Eigen::MatrixXd* u) {
+    return site.Allowed(l) && ProjectedColumn(set, site.UnitField(l), u);
+  };
+  // Seeds: the single search's best grid points, two grid steps apart (a pair's locations are
+  // local maxima of neither's single score: a monitor's neighbour is shadowed by the other).
+  std::vector<std::pair<double, Eigen::Vector3d>> ranked =
+      DipoleGrid(data_min_, data_max_, search_options_.margin_m, h, [&](const Eigen::Vector3d& l) {
+        if (!site.Allowed(l)) return Score{};
+        return ScoreCandidate(set, site.UnitField(l));
+      });
+  const std::vector<Eigen::Vector3d> seeds = WellSeparated<Eigen::Vector3d>(
+      std::move(ranked), static_cast<size_t>(search_options_.pair_seeds),
+      [&](const Eigen::Vector3d& a, const Eigen::Vector3d& b) { return (a - b).norm() < 2.0 * h; });
+  std::vector<Eigen::MatrixXd> columns(seeds.size());
+  for (size_t i = 0; i < seeds.size(); ++i) column_at(seeds[i], &columns[i]);
+  using Pair = std::pair<Eigen::Vector3d, Eigen::Vector3d>;
+  std::vector<std::pair<double, Pair>> pairs;
+  for (size_t i = 0; i < seeds.size(); ++i) {
+    for (size_t j = i + 1; j < seeds.size(); ++j) {
+      const PairScore s = ScorePair(set, columns[i], columns[j]);
+      if (s.reduction > 0.0) pairs.emplace_back(s.reduction, Pair(seeds[i], seeds[j]));
+    }
+  }
+  // Two pairs are the same start when each location is near one of the other's.
+  auto same = [](const Pair& a, const Pair& b, double d) {
+    return std::max((a.first - b.first).norm(), (a.second - b.second).norm()) < d ||
+           std::max((a.first - b.second).norm(), (a.second - b.first).norm()) < d;
+  };
+  const std::vector<Pair> best = WellSeparated<Pair>(
+      std::move(pairs), static_cast<size_t>(search_options_.refine_candidates),
+      [&](const Pair& a, const Pair& b) { return same(a, b, 2.0 * h); });
+  auto score = [&](const Pair& x) {
+    Eigen::MatrixXd u0, u1;
+    if ((x.first - x.second).norm() < 2.0 * min_distance || !column_at(x.first, &u0) ||
+        !column_at(x.second, &u1)) {
+      return PairScore{};
+    }
+    return ScorePair(set, u0, u1);
+  };
+  std::vector<std::pair<double, Pair>> refined;
+  std::vector<std::pair<Pair, PairScore>> scored;
+  for (const Pair& seed : best) {
+    const std::vector<double> x = PatternSearch(
+        {seed.first.x(), seed.first.y(), seed.first.z(), seed.second.x(), seed.second.y(),
+         seed.second.z()},
+        std::vector<double>(6, h / 2), 1e-3 / h, [&](const std::vector<double>& v) {
+          return -score(Pair(Eigen::Vector3d(v[0], v[1], v[2]), Eigen::Vector3d(v[3], v[4], v[5])))
+                      .reduction;
+        });
+    const Pair p(Eigen::Vector3d(x[0], x[1], x[2]), Eigen::Vector3d(x[3], x[4], x[5]));
+    const PairScore s = score(p);
+    if (!(s.reduction > 0.0)) continue;
+    refined.emplace_back(s.reduction, p);
+    scored.emplace_back(p, s);
+  }
+  const std::vector<Pair> kept = WellSeparated<Pair>(
+      std::move(refined), scored.size(),
+      [&](const Pair& a, const Pair& b) { return same(a, b, h); });  // refined onto the same pair
+  std::vector<std::pair<PhysicalSearchStart, PhysicalSearchStart>> out;
+  for (const Pair& p : kept) {
+    for (const auto& [q, s] : scored) {
+      if (q.first != p.first || q.second != p.second) continue;
+      PhysicalSearchStart a, b;
+      a.location = q.first;
+      b.location = q.second;
+      a.strength = s.strength[0];
+      b.strength = s.strength[1];
+      a.reduction = b.reduction = s.reduction;
+      out.emplace_back(a, b);
+      break;
+    }
+  }
+  return out;
 }
 
 std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchPlane(

@@ -28,7 +28,8 @@
 // polynomials that follow the group: variable projection). The best few well-separated candidates
 // are refined on the same linearisation and kept as starts; the group's refinement tries them in
 // order, refusing any that leaves the physical bounds (docs/model-file.md, "Start values by
-// search").
+// search"). Two consecutive dipoles to be searched are placed together: pairs of locations scored
+// by the joint fit of both strengths (SearchDipolePair).
 #pragma once
 
 #include <map>
@@ -55,6 +56,10 @@ struct PhysicalSearchOptions {
   double dipole_spacing_m = 0.15;  // grid spacing of dipole candidate locations
   double min_station_distance_m = 0.1;  // sources closer than this to a station are refused
   int refine_candidates = 5;     // well-separated best candidates refined and kept as starts
+  // Two consecutive dipoles to be searched are searched as a pair: the pairs of this many
+  // well-separated best grid points of the single search are scored jointly (two objects whose
+  // fields overlap over the volume: the single best location lies between them).
+  int pair_seeds = 24;
   int plane_normals = 60;        // normals on the half sphere (plus the 3 axes)
   double plane_distance_step_m = 0.1;  // distance grid step beyond the data
   // A searched source is bounded to this far outside the data's bounding box (a plane: beyond the
@@ -175,6 +180,11 @@ class PhysicalGroupTerm : public ModelTerm {
   std::vector<PhysicalSearchStart> SearchDipole(const Effect& effect,
                                                 const std::vector<FitStation>& inputs,
                                                 const Eigen::Vector2d& sigmas, std::string* note);
+  // Two dipoles at once (effects `first` and first + 1, both with searched locations): pairs of the
+  // single search's best grid points scored by the joint least-squares fit of both strengths, the
+  // best well-separated pairs refined jointly. (first, second) starts, best first.
+  std::vector<std::pair<PhysicalSearchStart, PhysicalSearchStart>> SearchDipolePair(
+      const std::vector<FitStation>& inputs, const Eigen::Vector2d& sigmas, std::string* note);
   std::vector<PhysicalSearchStart> SearchPlane(const Effect& effect,
                                                const std::vector<FitStation>& inputs,
                                                const Eigen::Vector2d& sigmas, std::string* note);

@@ -10,6 +10,8 @@ import pytest
 
 from trackcal import demo
 
+import test_workflow as workflow  # the workflow tests' rule for spurious terms
+
 ROOT = Path(__file__).resolve().parents[2]
 SMALL_SCENE = ROOT / "tests" / "data" / "workflow" / "paper_small.yaml"
 
@@ -111,16 +113,16 @@ def test_demo_without_serving_writes_a_fresh_work_folder(tmp_path, capsys):
         assert "validation, uncorrected" in out
 
 
-@tools
-def test_the_main_job_names_the_sensor_offset_first_and_ends_within_1_5_times_the_floor(tmp_path):
+@pytest.fixture(scope="module")
+def main_job(tmp_path_factory):
     """The main job's whole loop as ``./scripts/demo.sh --no-serve`` runs it (DEFAULT_SCENE, the
-    default hidden sensor offset and seed): the first change is the hidden effect, and the loop
-    ends within the issue's 1.5 times the noise floor on the validation set, position and
-    orientation. Measured (search branch): 1.29x / 1.11x after sensor offset, workbench frame,
-    floor plane and a plane for the +y monitors; main before it stopped at 3.24x / 1.85x when the
-    floor plane's search ran off. About 40 s of diagnoses."""
+    default hidden sensor offset and seed), run once for the tests below: (capture, floor, steps,
+    story). About 3 min of diagnoses on 2 shared cores."""
+    if shutil.which("trackcal-simulate") is None:
+        pytest.skip("command-line tools not installed (run scripts/build.sh)")
     if not demo.diagnosis_available():
         pytest.skip("no candidate ranking in this build")
+    tmp_path = tmp_path_factory.mktemp("main_job")
     scene = demo._write_new(tmp_path / "scene.yaml", demo.DEFAULT_SCENE)
     capture = demo.simulate(tmp_path, demo.DEFAULT_HIDDEN, None, str(scene))
     floor = demo.noise_floor(capture)
@@ -129,11 +131,38 @@ def test_the_main_job_names_the_sensor_offset_first_and_ends_within_1_5_times_th
                                   max_steps=demo.DEFAULT_MAX_STEPS, say=log.append, record=False,
                                   cross_validate_top=demo.DEFAULT_CROSS_VALIDATE_TOP)
     story = "\n".join(log) + "\n" + demo.steps_table(steps, floor)
+    return capture, floor, steps, story
+
+
+def test_the_main_job_names_the_sensor_offset_first_and_ends_within_1_5_times_the_floor(main_job):
+    """The first change is the hidden effect, and the loop ends within the issue's 1.5 times the
+    noise floor on the validation set, position and orientation. Measured (search branch): 1.29x /
+    1.11x after sensor offset, workbench frame, floor plane and a plane for the +y monitors; main
+    before it stopped at 3.24x / 1.85x when the floor plane's search ran off."""
+    capture, floor, steps, story = main_job
     assert len(steps) >= 2 and steps[1].label == "+sensor_offset", story
     final = steps[-1]
     assert final.held_out.get("set") == "valid", story
     assert final.position_mm <= 1.5 * floor["position_mm"]["mean"], story
     assert final.orientation_deg <= 1.5 * floor["orientation_deg"]["mean"], story
+
+
+@pytest.mark.xfail(strict=False, raises=AssertionError, reason=(
+    "measured (branch sources, with the dipole_pair candidate): sensor offset, workbench frame, "
+    "floor plane, then plane_2, 1.70 m along (0.46, 0.84, 0.28), attenuation -0.34 +- 0.075: a "
+    "permeable plane standing in for crt_monitor_1 and crt_monitor_2, which the workflow rule calls "
+    "spurious. The dipole pair explains more (held-out -35 % against the plane's -23 %, delta BIC "
+    "-923 against -491) but is not claimed: its best fit is a compromise of monitors 1 and 2 at "
+    "(1.65, 1.72, -0.29) m and a dipole near crt_monitor_3 at (-1.68, 1.60, -0.08) m, polarisabilities "
+    "2.9 and 2.0 sigma from 0; even three dipoles started at the true monitors end 0.8-2.2 sigma "
+    "from 0 on this capture (240 stations)"))
+def test_the_main_job_adds_no_spurious_term(main_job):
+    """Every physical term of the final model is one of the scene's sources: the hidden sensor
+    offset or the room's (workbench frame, floor, monitors, door), as test_workflow.py's rule
+    judges it (a plane never represents objects)."""
+    capture, floor, steps, story = main_job
+    spurious = workflow._spurious_terms(steps[-1].fit, workflow._truth(capture))
+    assert not spurious, "spurious " + "; ".join(spurious) + "\n" + story
 
 
 @tools
