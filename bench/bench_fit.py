@@ -171,7 +171,8 @@ def main():
               f"valid improvement position {100 * (1 - after_p / before_p):.1f} %, "
               f"orientation {100 * (1 - after_o / before_o):.1f} %")
         print(f"trackcal degree-4 fit      : fit {1e3 * min(tc_solve):7.2f} ms (best of {args.repeat}; "
-              f"+ covariance {1e3 * min(tc_cov):.1f} ms, total {1e3 * min(tc_total):.1f} ms); "
+              f"+ covariance {1e3 * min(tc_cov):.1f} ms ({doc['fit'].get('covariance_method')}), "
+              f"total {1e3 * min(tc_total):.1f} ms); "
               f"valid improvement position {valid['improvement_percent']['position_mean']:.1f} %, "
               f"orientation {valid['improvement_percent']['orientation_mean']:.1f} %")
         base = min(np_times)
@@ -201,7 +202,8 @@ def main():
             effects = {p["term"]: p for p in doc["fit"]["parameters"]}
             plane_d = effects["plane"]["values"][0]["value"] if "plane" in effects else float("nan")
             print(f"{label:27s}: fit {min(walls):7.2f} s wall, {min(cpus):.2f} s CPU "
-                  f"(best of {len(walls)}; covariance {doc['fit']['seconds_covariance']:.2f} s wall; "
+                  f"(best of {len(walls)}; covariance {doc['fit']['seconds_covariance']:.2f} s wall"
+                  f" ({doc['fit'].get('covariance_method')}); "
                   f"{doc['fit']['iterations']} iterations, "
                   f"{doc['fit']['num_free_parameters']} parameters); valid position mean "
                   f"{valid['after']['position_mm']['mean']:.2f} mm (improvement "

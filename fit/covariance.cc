@@ -11,6 +11,8 @@
 #include <map>
 #include <set>
 #include <sstream>
+#include <tuple>
+#include <limits>
 #include <stdexcept>
 #include <utility>
 
@@ -36,32 +38,91 @@ std::string Format(const char* fmt, double value) {
   return buf;
 }
 
-Eigen::MatrixXd DenseJacobian(const ceres::CRSMatrix& crs) {
-  Eigen::MatrixXd jacobian = Eigen::MatrixXd::Zero(crs.num_rows, crs.num_cols);
-  for (int r = 0; r < crs.num_rows; ++r) {
-    for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) jacobian(r, crs.cols[k]) = crs.values[k];
-  }
-  return jacobian;
-}
+// One group of columns that shares no residual row with the other groups: H is block diagonal over
+// the groups, so each is analysed (and inverted) on its own. A lone polynomial splits into its
+// position x, y and z coefficients (each row of a position residual touches one axis) and its
+// orientation coefficients; a problem whose blocks all meet in some residual is one group.
+struct Component {
+  std::vector<int> columns;       // columns of the full tangent vector, ascending
+  std::vector<int> rows;          // rows of the problem's residual vector that touch them
+  Eigen::MatrixXd jacobian;       // those rows x those columns
+  Eigen::VectorXd scale;          // D^-1/2: column scaling that makes diag(H) one
+  Eigen::VectorXd eigenvalues;    // of the scaled information matrix, ascending
+  Eigen::MatrixXd eigenvectors;   // columns, scaled coordinates
+  int rank = 0;                   // eigenvalues above rank_tolerance * the largest of all groups
+};
 
 struct DenseAnalysis {
   bool done = false;
   int rank = 0;
   double reciprocal_condition = 0.0;
-  Eigen::VectorXd scale;         // D^-1/2: column scaling that makes diag(H) one
-  Eigen::VectorXd eigenvalues;   // of the scaled information matrix, ascending
-  Eigen::MatrixXd eigenvectors;  // columns, scaled coordinates
-  std::vector<int> weak;         // indices of weak eigen-directions
-  // The whitened (loss-applied) Jacobian and residuals of every residual block of the problem, in
-  // the problem's order, and each block's first row: the sandwich reuses them instead of evaluating
-  // the problem again.
-  Eigen::MatrixXd jacobian;
+  double largest = 0.0;  // largest eigenvalue over all groups
+  std::vector<Component> components;
+  std::vector<int> component_of_column, local_of_column;
+  std::vector<int> component_of_row, local_of_row;  // -1: a row without non-zeros
+  // Weak eigen-directions as (group, eigen index), by ascending eigenvalue.
+  std::vector<std::pair<int, int>> weak;
+  // The whitened (loss-applied) residuals of every residual block of the problem, in the problem's
+  // order, and each block's first row: the sandwich reuses them instead of evaluating the problem
+  // again.
   std::vector<double> residuals;
   std::map<ceres::ResidualBlockId, int> first_row;
+
+  // Component `e` of the unit eigenvector of weak direction `w` at full column `column`.
+  double WeakComponent(const std::pair<int, int>& w, int column) const {
+    if (component_of_column[static_cast<size_t>(column)] != w.first) return 0.0;
+    return components[static_cast<size_t>(w.first)].eigenvectors(
+        local_of_column[static_cast<size_t>(column)], w.second);
+  }
+  double Eigenvalue(const std::pair<int, int>& w) const {
+    return components[static_cast<size_t>(w.first)].eigenvalues(w.second);
+  }
 };
 
-// Information matrix of the whitened problem over `columns` blocks (tangent coordinates), its
-// eigen-decomposition after Jacobi scaling (so rank and weak directions do not depend on units).
+// Groups of columns connected through the non-zeros of the rows (union-find).
+std::vector<std::vector<int>> ConnectedColumns(const ceres::CRSMatrix& crs, bool split) {
+  const int n = crs.num_cols;
+  std::vector<int> parent(static_cast<size_t>(n));
+  for (int i = 0; i < n; ++i) parent[static_cast<size_t>(i)] = split ? i : 0;
+  auto find = [&](int i) {
+    while (parent[static_cast<size_t>(i)] != i) {
+      parent[static_cast<size_t>(i)] = parent[static_cast<size_t>(parent[static_cast<size_t>(i)])];
+      i = parent[static_cast<size_t>(i)];
+    }
+    return i;
+  };
+  if (split) {
+    for (int r = 0; r < crs.num_rows; ++r) {
+      int first = -1;
+      for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) {
+        if (crs.values[k] == 0.0) continue;  // an exact zero couples nothing
+        if (first < 0) {
+          first = find(crs.cols[k]);
+          continue;
+        }
+        const int other = find(crs.cols[k]);
+        if (other != first) parent[static_cast<size_t>(std::max(other, first))] = std::min(other, first);
+        first = std::min(other, first);
+      }
+    }
+  }
+  std::map<int, int> index_of_root;
+  std::vector<std::vector<int>> groups;
+  for (int c = 0; c < n; ++c) {
+    const int root = find(c);
+    auto it = index_of_root.find(root);
+    if (it == index_of_root.end()) {
+      it = index_of_root.emplace(root, static_cast<int>(groups.size())).first;
+      groups.emplace_back();
+    }
+    groups[static_cast<size_t>(it->second)].push_back(c);
+  }
+  return groups;
+}
+
+// Information matrix of the whitened problem over `columns` blocks (tangent coordinates), group by
+// group (Component), each eigen-decomposed after Jacobi scaling (so rank and weak directions do not
+// depend on units).
 DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& columns,
                            int dimension, const CovarianceOptions& options) {
   DenseAnalysis a;
@@ -79,42 +140,111 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
     a.first_row[id] = row;
     row += problem->GetCostFunctionForResidualBlock(id)->num_residuals();
   }
-  a.jacobian = DenseJacobian(crs);
-  // J^T J by a symmetric rank update (half the flops of the product); the eigen-solver below reads
-  // the lower triangle only, the diagonal is used for the scaling.
-  Eigen::MatrixXd information = Eigen::MatrixXd::Zero(dimension, dimension);
-  information.selfadjointView<Eigen::Lower>().rankUpdate(a.jacobian.transpose());
-  a.scale = Eigen::VectorXd::Ones(dimension);
-  for (int i = 0; i < dimension; ++i) {
-    if (information(i, i) > 0.0) a.scale(i) = 1.0 / std::sqrt(information(i, i));
+  const std::vector<std::vector<int>> groups =
+      ConnectedColumns(crs, options.split_independent_columns);
+  a.component_of_column.assign(static_cast<size_t>(dimension), -1);
+  a.local_of_column.assign(static_cast<size_t>(dimension), -1);
+  a.component_of_row.assign(static_cast<size_t>(crs.num_rows), -1);
+  a.local_of_row.assign(static_cast<size_t>(crs.num_rows), -1);
+  a.components.resize(groups.size());
+  for (size_t g = 0; g < groups.size(); ++g) {
+    a.components[g].columns = groups[g];
+    for (size_t i = 0; i < groups[g].size(); ++i) {
+      a.component_of_column[static_cast<size_t>(groups[g][i])] = static_cast<int>(g);
+      a.local_of_column[static_cast<size_t>(groups[g][i])] = static_cast<int>(i);
+    }
   }
-  const Eigen::MatrixXd scaled = a.scale.asDiagonal() * information * a.scale.asDiagonal();
-  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(scaled);
-  if (eig.info() != Eigen::Success) return a;
-  a.eigenvalues = eig.eigenvalues();
-  a.eigenvectors = eig.eigenvectors();
-  const double largest = dimension > 0 ? a.eigenvalues(dimension - 1) : 0.0;
+  for (int r = 0; r < crs.num_rows; ++r) {
+    int g = -1;
+    for (int k = crs.rows[r]; k < crs.rows[r + 1] && g < 0; ++k) {
+      if (crs.values[k] != 0.0 || !options.split_independent_columns) {
+        g = a.component_of_column[static_cast<size_t>(crs.cols[k])];
+      }
+    }
+    if (g < 0) continue;
+    Component& c = a.components[static_cast<size_t>(g)];
+    a.component_of_row[static_cast<size_t>(r)] = g;
+    a.local_of_row[static_cast<size_t>(r)] = static_cast<int>(c.rows.size());
+    c.rows.push_back(r);
+  }
+  for (Component& c : a.components) {
+    const int m = static_cast<int>(c.columns.size());
+    c.jacobian = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(c.rows.size()), m);
+    for (size_t i = 0; i < c.rows.size(); ++i) {
+      const int r = c.rows[i];
+      for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) {
+        const size_t column = static_cast<size_t>(crs.cols[k]);
+        // A row's structural zeros may lie in another group's columns.
+        if (a.component_of_column[column] != a.component_of_row[static_cast<size_t>(r)]) continue;
+        c.jacobian(static_cast<Eigen::Index>(i), a.local_of_column[column]) = crs.values[k];
+      }
+    }
+    // J^T J by a symmetric rank update (half the flops of the product); the eigen-solver below
+    // reads the lower triangle only, the diagonal is used for the scaling.
+    Eigen::MatrixXd information = Eigen::MatrixXd::Zero(m, m);
+    information.selfadjointView<Eigen::Lower>().rankUpdate(c.jacobian.transpose());
+    c.scale = Eigen::VectorXd::Ones(m);
+    for (int i = 0; i < m; ++i) {
+      if (information(i, i) > 0.0) c.scale(i) = 1.0 / std::sqrt(information(i, i));
+    }
+    const Eigen::MatrixXd scaled = c.scale.asDiagonal() * information * c.scale.asDiagonal();
+    Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(scaled);
+    if (eig.info() != Eigen::Success) return a;
+    c.eigenvalues = eig.eigenvalues();
+    c.eigenvectors = eig.eigenvectors();
+    if (m > 0) a.largest = std::max(a.largest, c.eigenvalues(m - 1));
+  }
+  double smallest = std::numeric_limits<double>::infinity();
+  std::vector<std::tuple<double, int, int>> weak;
   a.rank = 0;
-  for (int i = 0; i < dimension; ++i) {
-    if (a.eigenvalues(i) > options.rank_tolerance * largest) ++a.rank;
-    if (a.eigenvalues(i) <= options.weak_direction_ratio * largest) a.weak.push_back(i);
+  for (size_t g = 0; g < a.components.size(); ++g) {
+    Component& c = a.components[g];
+    c.rank = 0;
+    for (int i = 0; i < c.eigenvalues.size(); ++i) {
+      const double l = c.eigenvalues(i);
+      smallest = std::min(smallest, l);
+      if (l > options.rank_tolerance * a.largest) ++c.rank;
+      if (l <= options.weak_direction_ratio * a.largest) weak.emplace_back(l, static_cast<int>(g), i);
+    }
+    a.rank += c.rank;
   }
-  a.reciprocal_condition = largest > 0.0 ? std::max(0.0, a.eigenvalues(0)) / largest : 0.0;
+  std::stable_sort(weak.begin(), weak.end(),
+                   [](const auto& x, const auto& y) { return std::get<0>(x) < std::get<0>(y); });
+  for (const auto& [l, g, i] : weak) a.weak.emplace_back(g, i);
+  a.reciprocal_condition = a.largest > 0.0 ? std::max(0.0, smallest) / a.largest : 0.0;
   a.done = true;
   return a;
 }
 
+// H^+ = S V_r diag(1/l_r)^power V_r^T S of one group, from its `rank` largest eigenvalues, with
+// power 1 (the pseudo-inverse) or, with half, the factor S V_r diag(l_r)^-1/2 whose outer product
+// it is.
+Eigen::MatrixXd GroupFactor(const Component& c) {
+  const Eigen::VectorXd inv_sqrt = c.eigenvalues.tail(c.rank).cwiseInverse().cwiseSqrt();
+  return c.scale.asDiagonal() * c.eigenvectors.rightCols(c.rank) * inv_sqrt.asDiagonal();
+}
+
+// The full (dimension x dimension, block diagonal over the groups) pseudo-inverse of H.
+Eigen::MatrixXd PseudoInverse(const DenseAnalysis& dense, int dimension) {
+  Eigen::MatrixXd h_inv = Eigen::MatrixXd::Zero(dimension, dimension);
+  for (const Component& c : dense.components) {
+    const Eigen::MatrixXd f = GroupFactor(c);
+    const Eigen::MatrixXd block = f * f.transpose();
+    for (size_t i = 0; i < c.columns.size(); ++i) {
+      for (size_t j = 0; j < c.columns.size(); ++j) {
+        h_inv(c.columns[i], c.columns[j]) =
+            block(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
+      }
+    }
+  }
+  return h_inv;
+}
+
 // The cluster-robust sandwich over all `columns` (see the header): H^+ M H^+ with H^+ the
 // rank-aware pseudo-inverse of the dense analysis. False (and why) if it cannot be computed.
-bool SandwichCovariance(ceres::Problem* problem, const std::vector<double*>& columns,
-                        int dimension, const DenseAnalysis& dense,
+bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnalysis& dense,
                         const CovarianceOptions& options, Eigen::MatrixXd* full,
                         std::string* estimator, std::string* why) {
-  const int rank = dense.rank;
-  const Eigen::MatrixXd sv = dense.scale.asDiagonal() * dense.eigenvectors.rightCols(rank);
-  const Eigen::VectorXd inv = dense.eigenvalues.tail(rank).cwiseInverse();
-  const Eigen::MatrixXd h_inv = sv * inv.asDiagonal() * sv.transpose();
-
   // The clusters' rows and the other residual blocks' rows of the analysis' Jacobian (evaluated
   // once for both, with the loss applied as the solver saw it).
   std::vector<int> cluster_rows, cluster_sizes;
@@ -127,30 +257,35 @@ bool SandwichCovariance(ceres::Problem* problem, const std::vector<double*>& col
     cluster_rows.push_back(it->second);
     cluster_sizes.push_back(problem->GetCostFunctionForResidualBlock(id)->num_residuals());
   }
-  Eigen::MatrixXd meat = Eigen::MatrixXd::Zero(dimension, dimension);
+  const int num_groups = static_cast<int>(dense.components.size());
 
-  // Residual blocks that are not clusters (priors, regularisers): their model information.
+  // Residual blocks that are not clusters (priors, regularisers): their model information, group
+  // by group (a row touches one group).
+  std::vector<Eigen::MatrixXd> other_information(static_cast<size_t>(num_groups));
+  bool have_other = false;
   {
     const std::set<ceres::ResidualBlockId> clustered(options.clusters.begin(),
                                                      options.clusters.end());
-    std::vector<std::pair<int, int>> other_rows;  // (first row, rows) in the problem's order
-    int num_other_rows = 0;
+    std::vector<std::vector<int>> other_local_rows(static_cast<size_t>(num_groups));
     std::vector<ceres::ResidualBlockId> all;
     problem->GetResidualBlocks(&all);
     for (ceres::ResidualBlockId id : all) {
       if (clustered.count(id)) continue;
+      const int first = dense.first_row.at(id);
       const int k = problem->GetCostFunctionForResidualBlock(id)->num_residuals();
-      other_rows.emplace_back(dense.first_row.at(id), k);
-      num_other_rows += k;
-    }
-    if (num_other_rows > 0) {
-      Eigen::MatrixXd jo(num_other_rows, dimension);
-      int row = 0;
-      for (const auto& [first, k] : other_rows) {
-        jo.middleRows(row, k) = dense.jacobian.middleRows(first, k);
-        row += k;
+      for (int r = first; r < first + k; ++r) {
+        const int g = dense.component_of_row[static_cast<size_t>(r)];
+        if (g >= 0) other_local_rows[static_cast<size_t>(g)].push_back(dense.local_of_row[static_cast<size_t>(r)]);
       }
-      meat.noalias() += jo.transpose() * jo;
+    }
+    for (int g = 0; g < num_groups; ++g) {
+      const auto& rows = other_local_rows[static_cast<size_t>(g)];
+      if (rows.empty()) continue;
+      const Component& c = dense.components[static_cast<size_t>(g)];
+      Eigen::MatrixXd jo(static_cast<Eigen::Index>(rows.size()), c.jacobian.cols());
+      for (size_t i = 0; i < rows.size(); ++i) jo.row(static_cast<Eigen::Index>(i)) = c.jacobian.row(rows[i]);
+      other_information[static_cast<size_t>(g)] = jo.transpose() * jo;
+      have_other = true;
     }
   }
 
@@ -159,55 +294,252 @@ bool SandwichCovariance(ceres::Problem* problem, const std::vector<double*>& col
   for (int k : cluster_sizes) num_rows += k;
   const bool leverage =
       static_cast<double>(num_rows) * dimension * dimension <= options.max_leverage_flops;
-  // Leverages A_g = J_g H^+ J_g^T = B_g B_g^T with B = J S V_r diag(l_r)^-1/2: one product for all
-  // clusters instead of one (k x dimension) (dimension x dimension) product per cluster.
-  Eigen::MatrixXd b;
-  if (leverage) {
-    const Eigen::MatrixXd half = sv * inv.cwiseSqrt().asDiagonal();
-    b = dense.jacobian * half;
+  // Leverages A_g = J_g H^+ J_g^T = B_g B_g^T with B = J S V_r diag(l_r)^-1/2 per group (H^+ is
+  // block diagonal): one product per group instead of one per cluster.
+  std::vector<Eigen::MatrixXd> factors, b;
+  for (const Component& c : dense.components) {
+    factors.push_back(GroupFactor(c));
+    if (leverage) b.push_back(c.jacobian * factors.back());
   }
-  Eigen::MatrixXd scores(dimension, num_clusters);
+  // Scores s_g = J_g^T u_g, premultiplied by H^+ group by group: T = H^+ S.
+  Eigen::MatrixXd scores = Eigen::MatrixXd::Zero(dimension, num_clusters);
   for (int g = 0; g < num_clusters; ++g) {
     const int k = cluster_sizes[static_cast<size_t>(g)];
     const int first = cluster_rows[static_cast<size_t>(g)];
-    const auto jg = dense.jacobian.middleRows(first, k);
     Eigen::VectorXd u = Eigen::Map<const Eigen::VectorXd>(dense.residuals.data() + first, k);
     if (leverage) {
       // u = (I - A)^-1/2 r; a leverage near 1 (a cluster that alone determines a direction) is
       // capped so its residual is inflated at most 1000-fold.
-      const auto bg = b.middleRows(first, k);
-      const Eigen::MatrixXd a = bg * bg.transpose();
+      Eigen::MatrixXd a = Eigen::MatrixXd::Zero(k, k);
+      for (int i = 0; i < k; ++i) {
+        const int gi = dense.component_of_row[static_cast<size_t>(first + i)];
+        if (gi < 0) continue;
+        const auto bi = b[static_cast<size_t>(gi)].row(dense.local_of_row[static_cast<size_t>(first + i)]);
+        for (int j = 0; j <= i; ++j) {
+          if (dense.component_of_row[static_cast<size_t>(first + j)] != gi) continue;
+          a(i, j) = a(j, i) =
+              bi.dot(b[static_cast<size_t>(gi)].row(dense.local_of_row[static_cast<size_t>(first + j)]));
+        }
+      }
       Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(Eigen::MatrixXd::Identity(k, k) - a);
       const Eigen::VectorXd scale =
           eig.eigenvalues().cwiseMax(1e-6).cwiseSqrt().cwiseInverse();
       u = eig.eigenvectors() * scale.asDiagonal() * eig.eigenvectors().transpose() * u;
     }
-    scores.col(g) = jg.transpose() * u;
+    for (int i = 0; i < k; ++i) {
+      const int gi = dense.component_of_row[static_cast<size_t>(first + i)];
+      if (gi < 0) continue;
+      const Component& c = dense.components[static_cast<size_t>(gi)];
+      const auto row = c.jacobian.row(dense.local_of_row[static_cast<size_t>(first + i)]);
+      for (size_t j = 0; j < c.columns.size(); ++j) {
+        scores(c.columns[j], g) += row(static_cast<Eigen::Index>(j)) * u(i);
+      }
+    }
   }
   double factor = 1.0;
   if (!leverage) {
-    const double g = num_clusters, n = num_rows, p = rank;
+    const double g = num_clusters, n = num_rows, p = dense.rank;
     factor = g > 1 && n > p ? g / (g - 1.0) * (n - 1.0) / (n - p) : 1.0;
   }
-  meat.noalias() += factor * scores * scores.transpose();
-  *full = h_inv * meat * h_inv;
+  // T = H^+ S, group by group; H^+ M H^+ = factor T T^T + H^+ M_other H^+.
+  Eigen::MatrixXd t = Eigen::MatrixXd::Zero(dimension, num_clusters);
+  for (int g = 0; g < num_groups; ++g) {
+    const Component& c = dense.components[static_cast<size_t>(g)];
+    const Eigen::MatrixXd& f = factors[static_cast<size_t>(g)];
+    const Eigen::Index m = static_cast<Eigen::Index>(c.columns.size());
+    Eigen::MatrixXd s(m, num_clusters);
+    for (Eigen::Index j = 0; j < m; ++j) s.row(j) = scores.row(c.columns[static_cast<size_t>(j)]);
+    const Eigen::MatrixXd tg = f * (f.transpose() * s);
+    for (Eigen::Index j = 0; j < m; ++j) t.row(c.columns[static_cast<size_t>(j)]) = tg.row(j);
+  }
+  *full = Eigen::MatrixXd::Zero(dimension, dimension);
+  full->selfadjointView<Eigen::Lower>().rankUpdate(t, factor);
+  *full = full->selfadjointView<Eigen::Lower>();
+  if (have_other) {
+    Eigen::MatrixXd meat = Eigen::MatrixXd::Zero(dimension, dimension);
+    for (int g = 0; g < num_groups; ++g) {
+      const Component& c = dense.components[static_cast<size_t>(g)];
+      const Eigen::MatrixXd& m = other_information[static_cast<size_t>(g)];
+      if (m.size() == 0) continue;
+      for (size_t i = 0; i < c.columns.size(); ++i) {
+        for (size_t j = 0; j < c.columns.size(); ++j) {
+          meat(c.columns[i], c.columns[j]) = m(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
+        }
+      }
+    }
+    const Eigen::MatrixXd h_inv = PseudoInverse(dense, dimension);
+    *full += h_inv * meat * h_inv;
+  }
   *estimator = leverage ? "sandwich (CR2)" : "sandwich (CR1)";
   return true;
 }
 
-// (Pseudo-)inverse in the scaled coordinates over the requested rows `full_index`, from the `rank`
-// largest eigenvalues: H^+ = S V_r diag(1/l_r) V_r^T S; pairs of blocks not `wanted` are zero.
+// The model covariance H^-1 of a problem too large for the dense analysis, when its columns are a
+// few "global" ones that many rows touch (a physical term's parameters, in every station's
+// residual) and local ones that fall into independent groups once the global columns are set
+// aside (a LUT's node values: position x, y, z and orientation, each coupled to its neighbours
+// only). With H = [[A, B], [B^T, C]], A block diagonal over the groups,
+//   H^-1 = [[A^-1 + X S^-1 X^T, -X S^-1], [-S^-1 X^T, S^-1]],  X = A^-1 B,  S = C - B^T X:
+// one dense Cholesky per group and one of S, instead of a sparse solve per column (Ceres'
+// SPARSE_QR covariance). False when the structure does not fit (a group above
+// max_dense_dimension, too many global columns) or a factorisation fails (H not positive definite:
+// the caller falls back to Ceres, which detects the rank deficiency).
+bool SchurInverse(ceres::Problem* problem, const std::vector<double*>& columns, int dimension,
+                  const CovarianceOptions& options, Eigen::MatrixXd* h_inv, int* num_groups) {
+  ceres::Problem::EvaluateOptions eval;
+  eval.parameter_blocks = columns;
+  eval.apply_loss_function = true;
+  eval.num_threads = options.num_threads;
+  ceres::CRSMatrix crs;
+  if (!problem->Evaluate(eval, nullptr, nullptr, nullptr, &crs)) return false;
+  if (crs.num_cols != dimension || dimension == 0) return false;
+  // Global columns: touched by many more rows than a typical column.
+  std::vector<int> count(static_cast<size_t>(dimension), 0);
+  for (size_t k = 0; k < crs.values.size(); ++k) {
+    if (crs.values[k] != 0.0) ++count[static_cast<size_t>(crs.cols[k])];
+  }
+  std::vector<int> sorted = count;
+  std::nth_element(sorted.begin(), sorted.begin() + dimension / 2, sorted.end());
+  const int median = std::max(1, sorted[static_cast<size_t>(dimension / 2)]);
+  constexpr int kGlobalFactor = 16;  // a LUT node sees ~20 rows, a physical parameter thousands
+  constexpr int kMaxGlobal = 200;    // S is dense: global^2 memory, global^3 flops
+  std::vector<int> global_index(static_cast<size_t>(dimension), -1);
+  std::vector<int> global_columns;
+  for (int c = 0; c < dimension; ++c) {
+    if (count[static_cast<size_t>(c)] > kGlobalFactor * median) {
+      global_index[static_cast<size_t>(c)] = static_cast<int>(global_columns.size());
+      global_columns.push_back(c);
+    }
+  }
+  if (static_cast<int>(global_columns.size()) > kMaxGlobal) return false;
+  // Groups of the local columns (union-find over the rows' local non-zeros).
+  std::vector<int> parent(static_cast<size_t>(dimension));
+  for (int i = 0; i < dimension; ++i) parent[static_cast<size_t>(i)] = i;
+  auto find = [&](int i) {
+    while (parent[static_cast<size_t>(i)] != i) {
+      parent[static_cast<size_t>(i)] = parent[static_cast<size_t>(parent[static_cast<size_t>(i)])];
+      i = parent[static_cast<size_t>(i)];
+    }
+    return i;
+  };
+  for (int r = 0; r < crs.num_rows; ++r) {
+    int root = -1;
+    for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) {
+      const int c = crs.cols[k];
+      if (crs.values[k] == 0.0 || global_index[static_cast<size_t>(c)] >= 0) continue;
+      const int other = find(c);
+      if (root < 0) {
+        root = other;
+      } else if (other != root) {
+        parent[static_cast<size_t>(std::max(other, root))] = std::min(other, root);
+        root = std::min(other, root);
+      }
+    }
+  }
+  std::vector<int> group_of(static_cast<size_t>(dimension), -1), local_of(static_cast<size_t>(dimension), -1);
+  std::vector<std::vector<int>> groups;
+  {
+    std::map<int, int> index_of_root;
+    for (int c = 0; c < dimension; ++c) {
+      if (global_index[static_cast<size_t>(c)] >= 0) continue;
+      const auto it = index_of_root.emplace(find(c), static_cast<int>(groups.size())).first;
+      if (it->second == static_cast<int>(groups.size())) groups.emplace_back();
+      group_of[static_cast<size_t>(c)] = it->second;
+      local_of[static_cast<size_t>(c)] = static_cast<int>(groups[static_cast<size_t>(it->second)].size());
+      groups[static_cast<size_t>(it->second)].push_back(c);
+    }
+  }
+  for (const auto& g : groups) {
+    if (static_cast<int>(g.size()) > options.max_dense_dimension) return false;
+  }
+  // H's blocks, row by row (a row's local non-zeros all lie in one group).
+  const int ng = static_cast<int>(global_columns.size());
+  std::vector<Eigen::MatrixXd> a(groups.size()), b(groups.size());
+  for (size_t g = 0; g < groups.size(); ++g) {
+    const Eigen::Index m = static_cast<Eigen::Index>(groups[g].size());
+    a[g] = Eigen::MatrixXd::Zero(m, m);
+    b[g] = Eigen::MatrixXd::Zero(m, ng);
+  }
+  Eigen::MatrixXd c = Eigen::MatrixXd::Zero(ng, ng);
+  for (int r = 0; r < crs.num_rows; ++r) {
+    for (int i = crs.rows[r]; i < crs.rows[r + 1]; ++i) {
+      const double vi = crs.values[i];
+      if (vi == 0.0) continue;
+      const size_t ci = static_cast<size_t>(crs.cols[i]);
+      for (int j = crs.rows[r]; j < crs.rows[r + 1]; ++j) {
+        const double vj = crs.values[j];
+        if (vj == 0.0) continue;
+        const size_t cj = static_cast<size_t>(crs.cols[j]);
+        if (global_index[ci] >= 0) {
+          if (global_index[cj] >= 0) c(global_index[ci], global_index[cj]) += vi * vj;
+        } else if (global_index[cj] >= 0) {
+          b[static_cast<size_t>(group_of[ci])](local_of[ci], global_index[cj]) += vi * vj;
+        } else {
+          a[static_cast<size_t>(group_of[ci])](local_of[ci], local_of[cj]) += vi * vj;
+        }
+      }
+    }
+  }
+  // X = A^-1 B and S = C - B^T X; A^-1 per group.
+  std::vector<Eigen::MatrixXd> x(groups.size()), a_inv(groups.size());
+  Eigen::MatrixXd s = c;
+  for (size_t g = 0; g < groups.size(); ++g) {
+    const Eigen::LLT<Eigen::MatrixXd> llt(a[g]);
+    if (llt.info() != Eigen::Success) return false;
+    x[g] = llt.solve(b[g]);
+    s.noalias() -= b[g].transpose() * x[g];
+    a_inv[g] = llt.solve(Eigen::MatrixXd::Identity(a[g].rows(), a[g].cols()));
+    if (!a_inv[g].allFinite()) return false;
+  }
+  Eigen::MatrixXd s_inv = Eigen::MatrixXd::Zero(ng, ng);
+  if (ng > 0) {
+    const Eigen::LLT<Eigen::MatrixXd> llt(s);
+    if (llt.info() != Eigen::Success) return false;
+    s_inv = llt.solve(Eigen::MatrixXd::Identity(ng, ng));
+  }
+  // Assemble over the full columns: X stacked over the groups, Y = X S^-1.
+  Eigen::MatrixXd x_full = Eigen::MatrixXd::Zero(dimension, ng);
+  for (size_t g = 0; g < groups.size(); ++g) {
+    for (size_t i = 0; i < groups[g].size(); ++i) x_full.row(groups[g][i]) = x[g].row(static_cast<Eigen::Index>(i));
+  }
+  const Eigen::MatrixXd y = x_full * s_inv;
+  *h_inv = y * x_full.transpose();  // X S^-1 X^T (zero in the global rows and columns)
+  for (size_t g = 0; g < groups.size(); ++g) {
+    for (size_t i = 0; i < groups[g].size(); ++i) {
+      for (size_t j = 0; j < groups[g].size(); ++j) {
+        (*h_inv)(groups[g][i], groups[g][j]) +=
+            a_inv[g](static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
+      }
+    }
+  }
+  for (int i = 0; i < ng; ++i) {
+    for (int k = 0; k < dimension; ++k) {
+      if (global_index[static_cast<size_t>(k)] >= 0) continue;
+      (*h_inv)(global_columns[static_cast<size_t>(i)], k) = -y(k, i);
+      (*h_inv)(k, global_columns[static_cast<size_t>(i)]) = -y(k, i);
+    }
+    for (int j = 0; j < ng; ++j) {
+      (*h_inv)(global_columns[static_cast<size_t>(i)], global_columns[static_cast<size_t>(j)]) =
+          s_inv(i, j);
+    }
+  }
+  *num_groups = static_cast<int>(groups.size()) + (ng > 0 ? 1 : 0);
+  return true;
+}
+
+// (Pseudo-)inverse over the requested rows `full_index`, from each group's eigenvalues above the
+// rank threshold: H^+ = S V_r diag(1/l_r) V_r^T S; pairs of blocks not `wanted` are zero.
 template <typename WantedFn>
-Eigen::MatrixXd DenseInverse(const DenseAnalysis& dense, const std::vector<int>& full_index,
-                             int rank, const WantedFn& wanted,
+Eigen::MatrixXd DenseInverse(const DenseAnalysis& dense, int dimension,
+                             const std::vector<int>& full_index, const WantedFn& wanted,
                              const std::vector<CovarianceBlock>& blocks,
                              const std::vector<int>& sizes, const std::vector<int>& offsets) {
   const int n = static_cast<int>(full_index.size());
-  const Eigen::MatrixXd v = dense.eigenvectors.rightCols(rank);
-  const Eigen::VectorXd inv = dense.eigenvalues.tail(rank).cwiseInverse();
-  Eigen::MatrixXd rows(n, rank);
-  for (int k = 0; k < n; ++k) rows.row(k) = dense.scale(full_index[k]) * v.row(full_index[k]);
-  Eigen::MatrixXd covariance = rows * inv.asDiagonal() * rows.transpose();
+  const Eigen::MatrixXd h_inv = PseudoInverse(dense, dimension);
+  Eigen::MatrixXd covariance(n, n);
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < n; ++j) covariance(i, j) = h_inv(full_index[i], full_index[j]);
+  }
   for (std::size_t i = 0; i < blocks.size(); ++i) {
     for (std::size_t j = 0; j < blocks.size(); ++j) {
       if (wanted(i, j)) continue;
@@ -292,6 +624,7 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   }
   if (dense.done) {
     result.rank = dense.rank;
+    result.num_groups = static_cast<int>(dense.components.size());
     result.rank_deficient = dense.rank < result.tangent_dimension;
     result.reciprocal_condition = dense.reciprocal_condition;
   }
@@ -320,7 +653,7 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     } else {
       Eigen::MatrixXd full;
       std::string estimator;
-      if (SandwichCovariance(problem, columns, result.tangent_dimension, dense, options, &full,
+      if (SandwichCovariance(problem, result.tangent_dimension, dense, options, &full,
                              &estimator, &why)) {
         result.covariance = Eigen::MatrixXd::Zero(n, n);
         for (std::size_t i = 0; i < blocks.size(); ++i) {
@@ -349,10 +682,30 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   // would factor the same Jacobian a second time.
   if (!have_covariance && !result.rank_deficient && dense.done &&
       dense.reciprocal_condition >= options.min_reciprocal_condition_dense_inverse) {
-    result.covariance =
-        DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes, result.block_offsets);
+    result.covariance = DenseInverse(dense, result.tangent_dimension, full_index, Wanted, blocks,
+                                     sizes, result.block_offsets);
     result.method = "dense_inverse";
     have_covariance = true;
+  }
+  if (!have_covariance && !result.rank_deficient && !dense.done && options.schur_large_problems) {
+    Eigen::MatrixXd h_inv;
+    int groups = 0;
+    if (SchurInverse(problem, columns, result.tangent_dimension, options, &h_inv, &groups)) {
+      result.covariance = Eigen::MatrixXd(n, n);
+      for (int i = 0; i < n; ++i) {
+        for (int j = 0; j < n; ++j) result.covariance(i, j) = h_inv(full_index[i], full_index[j]);
+      }
+      for (std::size_t i = 0; i < blocks.size(); ++i) {
+        for (std::size_t j = 0; j < blocks.size(); ++j) {
+          if (Wanted(i, j)) continue;
+          result.covariance.block(result.block_offsets[i], result.block_offsets[j], sizes[i], sizes[j])
+              .setZero();
+        }
+      }
+      result.method = "schur_dense_groups";
+      result.num_groups = groups;
+      have_covariance = true;
+    }
   }
   if (!have_covariance && !result.rank_deficient) {
     ceres::Covariance::Options copt;
@@ -393,8 +746,8 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
   }
 
   if (!have_covariance && dense.done) {
-    result.covariance =
-        DenseInverse(dense, full_index, dense.rank, Wanted, blocks, sizes, result.block_offsets);
+    result.covariance = DenseInverse(dense, result.tangent_dimension, full_index, Wanted, blocks,
+                                     sizes, result.block_offsets);
     result.method = "dense_pseudo_inverse";
     have_covariance = true;
   }
@@ -427,12 +780,13 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     }
   }
   if (dense.done) {
-    const double largest = dense.eigenvalues(result.tangent_dimension - 1);
+    const double largest = dense.largest;
     for (std::size_t w = 0; w < dense.weak.size(); ++w) {
-      const int e = dense.weak[w];
-      const double ratio = largest > 0.0 ? std::max(0.0, dense.eigenvalues(e)) / largest : 0.0;
+      const double ratio =
+          largest > 0.0 ? std::max(0.0, dense.Eigenvalue(dense.weak[w])) / largest : 0.0;
       for (int k = 0; k < n; ++k) {
-        if (std::abs(dense.eigenvectors(full_index[k], e)) > options.weak_component_threshold) {
+        if (std::abs(dense.WeakComponent(dense.weak[w], full_index[k])) >
+            options.weak_component_threshold) {
           result.flags.push_back({result.coordinate_names[k],
                                   "moved by weak direction " + std::to_string(w) +
                                       " (eigenvalue ratio " + Format("%.2g", ratio) + ")"});

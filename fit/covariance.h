@@ -3,10 +3,13 @@
 // With whitened residuals (fit/cost_functor.h), the a-posteriori covariance of the parameters is
 // the inverse of the information matrix H = J^T J at the solution, J taken in the tangent spaces of
 // the manifolds. ComputeCovariance
-//   - analyses H densely (eigen-decomposition) when the problem is small enough: its numerical
+//   - analyses H densely (eigen-decomposition, one per group of columns that share no residual
+//     with the others, since H is block diagonal over them) when the problem is small enough: its numerical
 //     rank, and the weak directions (eigenvalues below weak_direction_ratio * largest), named by
 //     the coordinates they move most; a well-conditioned H is inverted from that decomposition;
-//   - otherwise asks ceres::Covariance for the joint covariance of the requested blocks;
+//   - otherwise inverts H by a Schur complement on its few global columns when the others fall
+//     into independent groups of at most max_dense_dimension (a LUT after physical terms), or
+//     asks ceres::Covariance for the joint covariance of the requested blocks;
 //   - falls back to the pseudo-inverse of H (dropping the null space) when Ceres reports a
 //     rank-deficient Jacobian, so a degenerate problem still yields standard deviations for the
 //     coordinates that are determined, and flags the ones that are not;
@@ -87,6 +90,14 @@ struct CovarianceOptions {
   // condition is at least this (relative error about 1e-16 / 1e-6 = 1e-10), instead of factoring
   // the Jacobian again with Ceres' sparse QR. Above 1: always Ceres.
   double min_reciprocal_condition_dense_inverse = 1e-6;
+  // Analyse the groups of columns that share no residual row (H block diagonal: a lone polynomial's
+  // position x, y, z and orientation coefficients) one by one: the same covariance, rank and weak
+  // directions (up to rounding) for a fraction of the dense products. false: one group (tests).
+  bool split_independent_columns = true;
+  // Above max_dense_dimension: H^-1 by a Schur complement on the few columns most rows touch, the
+  // others in independent dense groups (a LUT after physical terms), before Ceres' sparse QR.
+  // false: Ceres only (tests).
+  bool schur_large_problems = true;
   // Threads for ceres::Covariance.
   int num_threads = 1;
   bool Check() const;
@@ -100,7 +111,7 @@ struct IdentifiabilityFlag {
 
 struct CovarianceResult {
   bool success = false;         // a covariance (full or pseudo-inverse) was computed
-  // "dense_inverse", "ceres_sparse_qr", "dense_pseudo_inverse", "dense_sandwich" or
+  // "dense_inverse", "schur_dense_groups", "ceres_sparse_qr", "dense_pseudo_inverse", "dense_sandwich" or
   // "dense_pseudo_inverse_sandwich"
   std::string method;
   // The estimator used: "model", "sandwich (CR2)" or "sandwich (CR1)"; a sandwich that was asked
@@ -108,6 +119,8 @@ struct CovarianceResult {
   std::string estimator = "model";
   int tangent_dimension = 0;    // tangent coordinates of all non-constant blocks in the problem
   int rank = -1;                // numerical rank of H (-1: dense analysis skipped)
+  // Groups of columns sharing no residual row, analysed one by one (0: dense analysis skipped).
+  int num_groups = 0;
   bool rank_deficient = false;  // rank < tangent_dimension (or Ceres refused the inverse)
   double reciprocal_condition = 0.0;  // smallest / largest eigenvalue of H (dense analysis only)
   // Joint covariance of the requested blocks in physical tangent units, blocks in request order

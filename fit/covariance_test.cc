@@ -1,7 +1,12 @@
 #include "fit/covariance.h"
 
 #include <ceres/ceres.h>
+#include <ceres/normal_prior.h>
 #include <gtest/gtest.h>
+
+#include <array>
+#include <string>
+#include <vector>
 
 #include "fit/cost_functor.h"
 #include "fit/marker_model.h"
@@ -204,6 +209,122 @@ TEST(ComputeCovariance, QuaternionStddevInRadians) {
   ASSERT_TRUE(c.success) << c.ToString();
   for (int i = 0; i < 3; ++i) EXPECT_NEAR(c.stddev(i), sigma_rad, 1e-9);  // at the prior: exact
   for (int i = 3; i < 6; ++i) EXPECT_NEAR(c.stddev(i), sigma_m, 1e-12);
+}
+
+// A residual block over two 3-vectors whose first three residuals see only `p` (one coordinate
+// each, as a polynomial's position rows see one axis) and whose last three mix `o` (as its
+// orientation rows do): the information matrix is block diagonal over p.x, p.y, p.z and o.
+struct SplitCost : AutoDiffCostFunctor<SplitCost, 6, 3, 3> {
+  SplitCost(double s, double t) : s(s), t(t) {}
+  template <typename T>
+  bool operator()(const T* p, const T* o, T* r) const {
+    for (int k = 0; k < 3; ++k) r[k] = p[k] * T(1.0 + s * (k + 1)) - T(std::sin(3.0 * s + k));
+    r[3] = o[0] + T(t) * o[1] - T(0.3 * s);
+    r[4] = o[1] * T(s) + o[2] * o[2] - T(t);
+    r[5] = o[0] * T(s * t) - o[2] + T(0.1);
+    return true;
+  }
+  double s, t;
+};
+
+// Splitting H into its independent groups gives the covariance of the one-group analysis: the
+// model and the sandwich (CR2 and CR1), a prior's model information, a rank-deficient group.
+TEST(ComputeCovariance, IndependentGroupsGiveTheOneGroupResult) {
+  for (const bool deficient : {false, true}) {
+    for (const auto estimator : {CovarianceEstimator::kModel, CovarianceEstimator::kSandwich}) {
+      for (const bool leverage : {true, false}) {
+        double p[3] = {0.1, -0.2, 0.3}, o[3] = {0.5, 0.25, -0.4}, d[2] = {0.0, 0.0};
+        ceres::Problem problem;
+        std::vector<ceres::ResidualBlockId> clusters;
+        for (int i = 0; i < 30; ++i) {
+          const double s = 0.1 * i, t = std::cos(1.7 * i);
+          clusters.push_back(problem.AddResidualBlock(SplitCost::Create(s, t), nullptr, p, o));
+          // `d` alone: with `deficient` only d[0] + d[1] is seen (a null direction).
+          problem.AddResidualBlock(LineCost::Create(deficient ? 1.0 : s, 2.0 + s), nullptr, d,
+                                   d + 1);
+        }
+        problem.AddResidualBlock(
+            new ceres::NormalPrior(Eigen::Matrix3d::Identity() * 2.0, Eigen::Vector3d(0.4, 0.2, -0.3)),
+            nullptr, o);
+        CovarianceOptions split;
+        split.estimator = estimator;
+        split.clusters = clusters;
+        split.max_leverage_flops = leverage ? 1e12 : 0.0;
+        CovarianceOptions one = split;
+        one.split_independent_columns = false;
+        const std::vector<CovarianceBlock> blocks = {
+            {p, "p", {}, 1.0, 1e9}, {o, "o", {}, 1.0, 1e9}, {d, "d0", {}, 1.0, 1e9},
+            {d + 1, "d1", {}, 1.0, 1e9}};
+        const CovarianceResult a = ComputeCovariance(&problem, blocks, split);
+        const CovarianceResult b = ComputeCovariance(&problem, blocks, one);
+        ASSERT_TRUE(a.success && b.success) << a.ToString() << b.ToString();
+        // p.x, p.y, p.z, o and d (the LineCost couples d0 and d1).
+        EXPECT_EQ(a.num_groups, 5);
+        EXPECT_EQ(b.num_groups, 1);
+        EXPECT_EQ(a.method, b.method);
+        EXPECT_EQ(a.estimator, b.estimator);
+        EXPECT_EQ(a.rank, b.rank);
+        EXPECT_EQ(a.rank, deficient ? 7 : 8);
+        EXPECT_NEAR(a.reciprocal_condition, b.reciprocal_condition,
+                    1e-9 * b.reciprocal_condition + 1e-15);
+        // The same algebra summed in another order, eigen-decompositions of the blocks instead
+        // of the whole (relative rounding ~1e-16 / reciprocal condition ~1e-3).
+        const double scale = b.covariance.cwiseAbs().maxCoeff();
+        EXPECT_LT((a.covariance - b.covariance).cwiseAbs().maxCoeff(), 1e-9 * scale)
+            << a.covariance << "\n\n" << b.covariance;
+        ASSERT_EQ(a.flags.size(), b.flags.size()) << a.ToString() << b.ToString();
+        for (size_t i = 0; i < a.flags.size(); ++i) {
+          EXPECT_EQ(a.flags[i].coordinate, b.flags[i].coordinate);
+        }
+        EXPECT_EQ(a.flags.empty(), !deficient) << a.ToString();
+      }
+    }
+  }
+}
+
+// Two neighbouring "nodes" (local blocks, as a LUT's) and a "physical" block every residual sees.
+struct NodePairCost : AutoDiffCostFunctor<NodePairCost, 2, 2, 2, 2> {
+  explicit NodePairCost(double s) : s(s) {}
+  template <typename T>
+  bool operator()(const T* a, const T* b, const T* g, T* r) const {
+    r[0] = a[0] + T(0.5) * b[0] + g[0] * T(s) - T(std::sin(s));
+    r[1] = a[1] - T(0.3) * b[1] + g[1] * T(s * s) + T(0.1) * g[0] - T(std::cos(s));
+    return true;
+  }
+  double s;
+};
+
+// Above max_dense_dimension, the Schur complement on the global block with the nodes' independent
+// groups gives Ceres' sparse-QR covariance.
+TEST(ComputeCovariance, SchurOnGlobalColumnsEqualsCeresSparseQr) {
+  constexpr int kNodes = 81;  // the global block's 80-160 rows against a node coordinate's 3
+  std::vector<std::array<double, 2>> nodes(kNodes, {0.0, 0.0});
+  double g[2] = {0.2, -0.1};
+  ceres::Problem problem;
+  for (int i = 0; i + 1 < kNodes; ++i) {
+    problem.AddResidualBlock(NodePairCost::Create(0.05 * i), nullptr, nodes[static_cast<size_t>(i)].data(),
+                             nodes[static_cast<size_t>(i) + 1].data(), g);
+  }
+  for (auto& node : nodes) {  // a weak pull to zero, as a LUT's ridge
+    problem.AddResidualBlock(new ceres::NormalPrior(Eigen::Matrix2d::Identity() * 0.1, Eigen::Vector2d::Zero()),
+                             nullptr, node.data());
+  }
+  std::vector<CovarianceBlock> blocks = {{g, "g", {}, 1.0, 1e9}};
+  for (int i = 0; i < kNodes; ++i) blocks.push_back({nodes[static_cast<size_t>(i)].data(), "n" + std::to_string(i), {}, 1.0, 1e9});
+  CovarianceOptions schur;
+  schur.max_dense_dimension = 100;  // 164 coordinates: above; each group of node coordinates (81) below
+  CovarianceOptions ceres_only = schur;
+  ceres_only.schur_large_problems = false;
+  const CovarianceResult a = ComputeCovariance(&problem, blocks, schur);
+  const CovarianceResult b = ComputeCovariance(&problem, blocks, ceres_only);
+  ASSERT_TRUE(a.success && b.success) << a.ToString() << b.ToString();
+  EXPECT_EQ(a.method, "schur_dense_groups");
+  EXPECT_EQ(b.method, "ceres_sparse_qr");
+  EXPECT_EQ(a.num_groups, 3);  // node coordinates 0, node coordinates 1, the global block
+  // Normal equations (Cholesky) against QR of the Jacobian: relative rounding ~ condition * 1e-16.
+  const double scale = b.covariance.cwiseAbs().maxCoeff();
+  EXPECT_LT((a.covariance - b.covariance).cwiseAbs().maxCoeff(), 1e-9 * scale);
+  for (int i = 0; i < a.stddev.size(); ++i) EXPECT_NEAR(a.stddev(i), b.stddev(i), 1e-9 * b.stddev(i));
 }
 
 TEST(ComputeCovariance, UnknownOrConstantBlockThrows) {

@@ -370,6 +370,28 @@ class ProgressCallback : public ceres::IterationCallback {
   std::function<void(int, double)> f_;
 };
 
+// Statistical convergence: stops the solver once a successful step lowers the cost (0.5 chi2) by
+// less than `fraction` times the chi2 per degree of freedom at that point, i.e. when what is left
+// to gain is a small fraction of one degree of freedom's share of the scatter: the parameters are
+// then within ~0.1 of their standard deviation of the optimum (FoldRefitOptions uses the same
+// rule). Ceres' function_tolerance is relative to the whole cost and, at its default 1e-12,
+// spends tens of iterations of a large LUT chain moving parameters by far less than that
+// (docs/benchmarks.md). Noise-free data (chi2/dof near 0) are left to Ceres' own tolerances.
+class StatisticalConvergence : public ceres::IterationCallback {
+ public:
+  StatisticalConvergence(int dof, double fraction) : dof_(dof), fraction_(fraction) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary& s) override {
+    if (s.iteration == 0 || !s.step_is_successful || dof_ <= 0) return ceres::SOLVER_CONTINUE;
+    const double chi2_per_dof = 2.0 * s.cost / dof_;
+    return s.cost_change < fraction_ * chi2_per_dof ? ceres::SOLVER_TERMINATE_SUCCESSFULLY
+                                                    : ceres::SOLVER_CONTINUE;
+  }
+
+ private:
+  int dof_;
+  double fraction_;
+};
+
 // The calibrated volume of `chain`: the box of the stations' reported positions. Outside it the
 // explicit terms continue to first order (linear) when they follow a physical term, whose residual
 // they model (paper preset's best chain, validation over the floor: 2.03-3.73x against 2.34-4.59x
@@ -701,6 +723,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
         if (covariance) {
           if (term.LinearCovariance(sigmas)) {
             result.covariance_estimator = "model";
+            result.covariance_method = "linear";
             if (stream_samples && spec->covariance_estimator == CovarianceEstimator::kSandwich) {
               result.covariance_message =
                   "stream samples (serially correlated): model covariance instead of the "
@@ -740,6 +763,9 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     solver_options.callbacks.push_back(&callback);
     solver_options.update_state_every_iteration = false;
   }
+  StatisticalConvergence statistical(built.problem->NumResiduals() - num_free,
+                                     spec->statistical_tolerance);
+  if (spec->statistical_tolerance > 0.0) solver_options.callbacks.push_back(&statistical);
   ceres::Solver::Summary summary;
   if (linear_solution) {
     // Solved linearly above; the problem is only the covariance's.
@@ -773,7 +799,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     }
   }
   if (!linear_solution) {
-    result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE;
+    result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE ||
+                       summary.termination_type == ceres::USER_SUCCESS;
     result.solver_message = num_free == 0 ? "no free parameters" : summary.message;
     result.num_residuals = problem.NumResiduals();
     result.num_free_parameters = num_free;
@@ -852,7 +879,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       result.covariance_message +=
           "stream samples (serially correlated): model covariance instead of the sandwich; ";
     }
-    if (cov.success) result.covariance_estimator = cov.estimator;
+    if (cov.success) {
+      result.covariance_estimator = cov.estimator;
+      result.covariance_method = cov.method;
+    }
     result.rank_deficient = cov.rank_deficient;
     result.identifiability_flags = cov.flags;
     if (cov.success) {
@@ -1357,6 +1387,8 @@ nlohmann::json FitResult::ToJson() const {
           {"covariance_message", covariance_message},
           {"covariance_estimator",
            covariance_estimator.empty() ? nlohmann::json() : nlohmann::json(covariance_estimator)},
+          {"covariance_method",
+           covariance_method.empty() ? nlohmann::json() : nlohmann::json(covariance_method)},
           {"identifiability_flags", flags},
           {"outliers", out_flags},
           {"unresolved", unresolved_json},

@@ -99,6 +99,9 @@ struct FitResult {
   // Which covariance gave the stds: "model" (H^-1 with the model file's noise), "sandwich (CR2)"
   // or "sandwich (CR1)" (fit/covariance.h); empty when there are none.
   std::string covariance_estimator;
+  // How it was computed (CovarianceResult::method: "dense_sandwich", "schur_dense_groups", ...;
+  // "linear" for the lone linear term's own); empty when there are none.
+  std::string covariance_method;
   std::vector<StationFlag> outliers;  // stations beyond the loss scale
   // Calibration stations whose physical inverse is not converged or ambiguous under the fitted
   // model (in --json: "unresolved": [{"station", "status"}]).

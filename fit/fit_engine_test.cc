@@ -287,6 +287,39 @@ TEST(FitModel, DenseSolverChoiceGivesTheSparseSolversParameters) {
   EXPECT_NEAR(dense.final_cost, sparse.final_cost, 1e-9 * sparse.final_cost);
 }
 
+// The statistical stop (opt-in) ends the solve once a step gains less than 5e-3 chi2/dof: no later than
+// Ceres' function tolerance alone, at parameters within a tenth of their standard deviation of
+// that solution (the rule's meaning: ~0.1 sigma left to gain; 0.1 allows for it).
+TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {
+  std::mt19937 rng(5);
+  const auto truth = RandomPolynomial(3, &rng);
+  auto stations = NoiseFreeStations(*truth, 300, &rng);
+  std::normal_distribution<double> noise(0.0, 1e-3);
+  for (auto& s : stations) {
+    s.reference.translation += Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
+  }
+  const std::string model = "terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 3\n";
+  ModelSpec stat_spec = ParseModelYaml("solver: {statistical_tolerance: 5.0e-3}\n" + model, "m");
+  ModelSpec tight_spec = ParseModelYaml(model, "m");
+  EXPECT_EQ(stat_spec.statistical_tolerance, 5e-3);
+  EXPECT_EQ(tight_spec.statistical_tolerance, 0.0);  // opt-in
+  const FitResult stat = FitModel(stations, &stat_spec, {});
+  const FitResult tight = FitModel(stations, &tight_spec, {});
+  ASSERT_TRUE(stat.converged && tight.converged) << stat.solver_message;
+  EXPECT_LE(stat.iterations, tight.iterations);
+  ASSERT_EQ(stat.parameters.size(), tight.parameters.size());
+  for (size_t b = 0; b < stat.parameters.size(); ++b) {
+    const auto& p = stat.parameters[b];
+    const auto& q = tight.parameters[b];
+    for (size_t i = 0; i < p.values.size() && i < q.stddev.size(); ++i) {
+      if (!std::isfinite(q.stddev[i]) || !q.stddev_names.empty()) continue;
+      EXPECT_LE(std::abs(p.values[i] - q.values[i]), 0.1 * q.stddev[i]) << p.block << "[" << i << "]";
+    }
+  }
+  EXPECT_THROW(ParseModelYaml("solver: {statistical_tolerance: -1}\n" + model, "m"),
+               std::invalid_argument);
+}
+
 TEST(CrossValidate, DeterministicFolds) {
   std::mt19937 rng(17);
   const auto truth = RandomPolynomial(1, &rng);

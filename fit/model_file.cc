@@ -321,6 +321,11 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     if (spec.max_iterations < 1) solver.Fail("max_iterations", "must be >= 1");
     spec.function_tolerance = solver.GetDoubleOr("function_tolerance", spec.function_tolerance);
     if (!(spec.function_tolerance > 0.0)) solver.Fail("function_tolerance", "must be > 0");
+    spec.statistical_tolerance =
+        solver.GetDoubleOr("statistical_tolerance", spec.statistical_tolerance);
+    if (!(spec.statistical_tolerance >= 0.0) || !std::isfinite(spec.statistical_tolerance)) {
+      solver.Fail("statistical_tolerance", "must be a number >= 0");
+    }
     spec.covariance = solver.GetBoolOr("covariance", spec.covariance);
     if (solver.Has("covariance_estimator")) {
       const std::string estimator = solver.GetString("covariance_estimator");
