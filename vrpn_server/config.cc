@@ -281,7 +281,7 @@ class Parser {
     if (tokens.size() < 3) {
       Fail(where, tokens.size() < 2 ? "tracker" : "calibration_file",
            "missing; expected 'trackcal_Calibration <tracker> <calibration_file> [raw=<name>] "
-           "[outside=clamp|fade] [fade_distance=<metres>]'");
+           "[outside=clamp|fade|linear] [fade_distance=<metres>]'");
     }
     CalibrationSpec spec;
     spec.location = where;
@@ -307,8 +307,10 @@ class Parser {
           spec.outside = OutsidePolicy::kClamp;
         } else if (value == "fade") {
           spec.outside = OutsidePolicy::kFade;
+        } else if (value == "linear") {
+          spec.outside = OutsidePolicy::kLinear;
         } else {
-          Fail(where, "outside", "expected clamp or fade, got '" + value + "'");
+          Fail(where, "outside", "expected clamp, fade or linear, got '" + value + "'");
         }
       } else if (key == "fade_distance") {
         const double d = ParseDouble(value, where, "fade_distance");
@@ -316,7 +318,7 @@ class Parser {
         spec.fade_distance_m = d;
       } else {
         Fail(where, key,
-             "unknown option (expected raw=<name>, outside=clamp|fade or fade_distance=<metres>)");
+             "unknown option (expected raw=<name>, outside=clamp|fade|linear or fade_distance=<metres>)");
       }
     }
     config_.calibrations.push_back(std::move(spec));

@@ -73,9 +73,10 @@ enum class OutsidePolicy {
   kDefault,  // not given: the calibration file's own setting
   kClamp,    // evaluate the correction at the nearest point of the volume
   kFade,     // fade the correction out to zero outside the volume
+  kLinear,   // continue the explicit terms to first order from the volume (up to the file's linear_reach)
 };
 
-// trackcal_Calibration <tracker> <file> [raw=<name>] [outside=clamp|fade] [fade_distance=<m>]: serve <tracker> corrected
+// trackcal_Calibration <tracker> <file> [raw=<name>] [outside=clamp|fade|linear] [fade_distance=<m>]: serve <tracker> corrected
 // by the calibration file, and optionally also its uncorrected reports under <raw=name>.
 struct CalibrationSpec {
   std::string tracker;                  // name of a tracker device defined in this file

@@ -138,6 +138,10 @@ TEST(ParseVrpnConfig, TrackcalLines) {
   EXPECT_EQ(r->outside, OutsidePolicy::kDefault);
   EXPECT_FALSE(r->fade_distance_m.has_value());
   EXPECT_EQ(config.FindCalibration("Remote1"), nullptr);
+  const VrpnConfig linear = ParseVrpnConfig(
+      "vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json outside=linear\n", "lab.cfg");
+  ASSERT_EQ(linear.calibrations.size(), 1u);
+  EXPECT_EQ(linear.calibrations[0].outside, OutsidePolicy::kLinear);
 
   ASSERT_EQ(config.passthroughs.size(), 3u);
   EXPECT_EQ(config.passthroughs[0].source_device, "Tracker0");

@@ -54,7 +54,7 @@ std::unique_ptr<ReportSource> MakeNullSource(int num_sensors, double rate_hz, Ri
 std::unique_ptr<ReportSource> MakePassthroughSource(const std::string& vrpn_name);
 
 // Loads a calibration file into a corrector; throws with the reason on a bad file. `outside`
-// overrides the file's behaviour outside the calibrated volume ("clamp" or "fade") when set.
+// overrides the file's behaviour outside the calibrated volume ("clamp", "fade" or "linear") when set.
 using CorrectorLoader = std::function<std::shared_ptr<const PoseCorrector>(
     const std::filesystem::path& path, const std::optional<std::string>& outside)>;
 
@@ -67,7 +67,7 @@ struct TrackerSetup {
   std::optional<std::string> raw_name;
   // Calibration file; none = reports are served unchanged.
   std::optional<std::filesystem::path> calibration;
-  // Override of the calibration's extrapolation policy ("clamp" or "fade").
+  // Override of the calibration's extrapolation policy ("clamp", "fade" or "linear").
   std::optional<std::string> outside;
   // Builds the report source (called once, at Start).
   std::function<std::unique_ptr<ReportSource>()> make_source;

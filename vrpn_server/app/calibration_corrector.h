@@ -10,8 +10,8 @@
 
 namespace trackcal::vrpn {
 
-// Reads the file (throws with the file, JSON path and reason on a bad file); `outside` ("clamp" or
-// "fade") overrides the file's extrapolation policy. Matches CorrectorLoader.
+// Reads the file (throws with the file, JSON path and reason on a bad file); `outside` ("clamp",
+// "fade" or "linear") overrides the file's extrapolation policy. Matches CorrectorLoader.
 std::shared_ptr<const PoseCorrector> LoadCalibrationCorrector(const std::filesystem::path& path,
                                                               const std::optional<std::string>& outside);
 

@@ -62,6 +62,7 @@ ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_se
     target->raw_name = spec.raw_name;
     if (spec.outside == OutsidePolicy::kClamp) target->outside = "clamp";
     if (spec.outside == OutsidePolicy::kFade) target->outside = "fade";
+    if (spec.outside == OutsidePolicy::kLinear) target->outside = "linear";
   }
   return out;
 }
