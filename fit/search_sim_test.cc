@@ -153,14 +153,20 @@ nlohmann::json SearchReport(const FitResult& fit, const std::string& effect) {
   return nullptr;
 }
 
-TEST(PhysicalSearch, TwoMonitorsComeOutAsTwoDipoles) {
-  const MonitorPairFit& r = MonitorPair();
+// Where the paper room's monitors 1 and 2 are, in that order.
+std::vector<Eigen::Vector3d> MonitorLocations(const sim::Scene& scene) {
   std::vector<Eigen::Vector3d> monitors;
   for (const char* name : {"crt_monitor_1", "crt_monitor_2"}) {
-    for (const auto& o : r.scene.environment.objects) {
+    for (const auto& o : scene.environment.objects) {
       if (o.name == name) monitors.push_back(o.location_in_transmitter);
     }
   }
+  return monitors;
+}
+
+TEST(PhysicalSearch, TwoMonitorsComeOutAsTwoDipoles) {
+  const MonitorPairFit& r = MonitorPair();
+  const std::vector<Eigen::Vector3d> monitors = MonitorLocations(r.scene);
   ASSERT_EQ(monitors.size(), 2u);
   const Eigen::Vector3d a = Vector(FindParameter(r.fit, "monitor_a", "location_in_transmitter"));
   const Eigen::Vector3d b = Vector(FindParameter(r.fit, "monitor_b", "location_in_transmitter"));
@@ -190,12 +196,7 @@ TEST(PhysicalSearch, TwoMonitorsComeOutAsTwoDipoles) {
 // report): the first at the single best location, the second against what that one left.
 TEST(PhysicalSearch, TwoDipolesAreSearchedAsAPair) {
   const MonitorPairFit& r = MonitorPair();
-  std::vector<Eigen::Vector3d> monitors;
-  for (const char* name : {"crt_monitor_1", "crt_monitor_2"}) {
-    for (const auto& o : r.scene.environment.objects) {
-      if (o.name == name) monitors.push_back(o.location_in_transmitter);
-    }
-  }
+  const std::vector<Eigen::Vector3d> monitors = MonitorLocations(r.scene);
   ASSERT_EQ(monitors.size(), 2u);
   const nlohmann::json a = SearchReport(r.fit, "monitor_a");
   const nlohmann::json b = SearchReport(r.fit, "monitor_b");
