@@ -95,7 +95,9 @@ std::vector<CatalogEffect> DefaultFlexibleFallback();
 //   - location: a term that places a source (dipole location, plane distance and normal) must place
 //     it: the largest standard deviation of the source's position must not exceed its distance from
 //     the measured volume (the box of the stations' reference positions), otherwise the fit says
-//     "something out there" and not "this object".
+//     "something out there" and not "this object"; a plane's normal must be determined too (its
+//     angular standard deviation at most `max_normal_sigma_rad`, the fit's own identifiability
+//     scale of a normal): a plane whose orientation is open by 20 deg is no particular wall.
 // Term types with no strength block (explicit terms, unknown types) are not assessed.
 struct PhysicalEvidence {
   bool assessed = false;           // the term type has a strength block
@@ -107,6 +109,11 @@ struct PhysicalEvidence {
   bool has_location = false;       // the term places a source (dipole, plane)
   double location_sigma_m = NAN;   // largest standard deviation of the source's position [m]
   double location_distance_m = NAN;  // distance of the source from the measured volume [m]
+  double normal_sigma_rad = NAN;     // plane: the normal's angular standard deviation [rad]
+  bool normal_ok = true;             // plane: the normal is determined (part of location_ok)
+  // Unit vector from the measured volume's centre towards the source (a dipole's location; a
+  // plane's nearest point); zero when unknown. The verdict names it for structure it cannot place.
+  Eigen::Vector3d direction = Eigen::Vector3d::Zero();
   double noise_scale = 1.0;        // factor applied to the fit's standard deviations
   bool strength_ok = true;
   bool location_ok = true;
@@ -120,10 +127,12 @@ struct PhysicalEvidence {
 // multiplies every standard deviation: DiagnoseCandidates passes sqrt(chi2/dof) of the candidate's
 // fit, profiling the noise scale out as its BIC does (a model file's sigmas are guesses: the
 // default 1 mm against a tracker's 0.06 mm would make every standard deviation 17x too large).
+// `max_normal_sigma_rad` bounds a plane's normal's angular standard deviation (after scaling).
 PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
                                         const std::vector<ParameterReport>& blocks,
                                         const std::vector<Eigen::Vector3d>& volume_points,
-                                        double min_strength_sigma = 3.0, double noise_scale = 1.0);
+                                        double min_strength_sigma = 3.0, double noise_scale = 1.0,
+                                        double max_normal_sigma_rad = 0.1);
 
 // P(chi2_dof > x): the upper tail of the chi-square distribution (regularised incomplete gamma).
 double ChiSquareUpperTail(double x, int dof);
@@ -157,6 +166,13 @@ struct CandidateOptions {
   // distance from the volume, is real structure but not evidence of that object. 3: the issue's
   // "three standard deviations"; 0 disables the physical conditions.
   double min_strength_sigma = 3.0;
+  // A plane candidate's normal must be known to this angular standard deviation [rad] (the hypot
+  // of its two tangent angles, noise-scaled as the strength): 0.1 rad (5.7 deg) is the fit's own
+  // identifiability scale of a normal (fit/terms_physical.cc, kNormalScaleRad: beyond it the fit
+  // flags the normal as poorly identified). Measured on the main job's capture after the sensor
+  // offset, workbench frame and floor: the floor's normal came out +- 3.0 deg; a plane standing in
+  // for the +y monitors +- 19.9 deg (docs/diagnose.md, condition 5).
+  double max_normal_sigma_rad = 0.1;
   // 0: cross-validate every candidate. N > 0: fit all on the full set first, then cross-validate
   // only the N with the lowest delta BIC (the rest are reported screened out, never significant). 3
   // by default: with exact folds (exact_cv) cross-validating all six triples the run; the fast

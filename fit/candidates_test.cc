@@ -396,6 +396,9 @@ TEST(DiagnoseCandidates, BadOptionsAndTooFewStationsThrow) {
   o.catalog.back().repeatable = true;
   o.catalog.back().count = 0;
   EXPECT_THROW(o.Check(), std::invalid_argument);
+  o = CandidateOptions();
+  o.max_normal_sigma_rad = 0.0;
+  EXPECT_THROW(o.Check(), std::invalid_argument);
   EXPECT_THROW(DiagnoseCandidates(Stations(8, Eigen::Vector3d::Zero(), 0, 8), kOrientationOnlyModel,
                                   "m", "d", TestOptions()),
                std::invalid_argument);
@@ -500,6 +503,47 @@ TEST(AssessPhysicalEvidence, AnUnplacedOrImpossibleLocationIsNotThatObject) {
                              PaperSmallVolume());
   EXPECT_NEAR(floor.location_distance_m, 1.075, /*abs=*/1e-9);
   EXPECT_TRUE(floor.supported()) << floor.Describe();
+}
+
+// The main job's capture (paper_small, hidden sensor offset, the scene's seed) after the sensor
+// offset, the workbench frame and the floor, as main's diagnosis fitted them: the floor (step 2)
+// and the plane standing in for the +y CRT monitors (step 3), which main claimed: its attenuation
+// is 4.5 sigma from 0 and its position at the volume +- 0.24 m against 1.20 m away, but its normal
+// is open by 19.9 deg (tangent sigmas 0.245 rad each), so it is no particular wall.
+TEST(AssessPhysicalEvidence, APlaneWhoseNormalIsNotDeterminedIsNotThatPlane) {
+  const auto floor = AssessPhysicalEvidence(
+      "plane",
+      {Report("distance_m", {0.832}, {0.038}),
+       Report("normal_in_transmitter", {-0.066, -0.233, 0.970}, {0.037, 0.037}),
+       Report("attenuation", {0.262}, {0.026})},
+      PaperSmallVolume());
+  EXPECT_TRUE(floor.supported()) << floor.Describe();
+  EXPECT_NEAR(floor.normal_sigma_rad, std::hypot(0.037, 0.037), /*abs=*/1e-12);
+  EXPECT_GT(floor.direction.z(), 0.9) << "the floor lies along +z from the volume";
+  const auto stand_in = AssessPhysicalEvidence(
+      "plane",
+      {Report("distance_m", {1.70}, {0.14}),
+       Report("normal_in_transmitter", {0.458, 0.843, 0.283}, {0.245, 0.245}),
+       Report("attenuation", {-0.340}, {0.075})},
+      PaperSmallVolume());
+  EXPECT_TRUE(stand_in.strength_ok) << stand_in.Describe();
+  // The position test alone passes it (0.24 m at the volume against 1.20 m away) ...
+  EXPECT_LT(stand_in.location_sigma_m, stand_in.location_distance_m);
+  // ... the normal does not: 19.9 deg against the fit's identifiability scale of 0.1 rad.
+  EXPECT_FALSE(stand_in.normal_ok);
+  EXPECT_FALSE(stand_in.location_ok);
+  EXPECT_FALSE(stand_in.supported());
+  EXPECT_THAT(stand_in.Describe(), ::testing::HasSubstr("normal +- 19.9 deg"));
+  EXPECT_GT(stand_in.direction.y(), 0.8) << "the structure comes from +y";
+  EXPECT_FALSE(stand_in.ToJson()["location"]["normal_determined"].get<bool>());
+  // A looser bound accepts it: the bound is the only thing that changed.
+  EXPECT_TRUE(AssessPhysicalEvidence("plane",
+                                     {Report("distance_m", {1.70}, {0.14}),
+                                      Report("normal_in_transmitter", {0.458, 0.843, 0.283},
+                                             {0.245, 0.245}),
+                                      Report("attenuation", {-0.340}, {0.075})},
+                                     PaperSmallVolume(), 3.0, 1.0, /*max_normal_sigma_rad=*/0.4)
+                  .supported());
 }
 
 TEST(AssessPhysicalEvidence, TheJointTestUsesTheBlockCovariance) {
