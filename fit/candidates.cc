@@ -1695,7 +1695,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // seed 1) has delta BIC -1179 / -2050 as a plane against -1150 / -1997 as a dipole at its image;
   // the workbench frame (receiver_gains seed 2) -4248 as a dipole against -4185 as a plane at 0.32
   // m whose image it is. The rule before (the better-determined strength) picked that plane
-  // (attenuation 43.7 sigma against the polarisability's 39.3), a spurious term.
+  // (attenuation 43.7 sigma against the polarisability's 39.3), a spurious term. BIC decides only
+  // when the difference is decisive (beyond |max_delta_bic|); within it the better-determined
+  // strength does (sensor_offset seed 3: the floor's image dipole -2362.5 against the plane's
+  // -2355.7, attenuation 11.4 sigma against 5.3: the plane).
   std::string promoted;  // the effect moved to the top by the tie rule (empty: none)
   {
     std::vector<PreparedCandidate*> sig;
@@ -1713,7 +1716,18 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       for (size_t i = 1; i < sig.size(); ++i) {
         PreparedCandidate* o = sig[i];
         const PhysicalEvidence& ev = o->candidate.evidence;
-        if (!ev.has_location || !(o->candidate.delta_bic < best->candidate.delta_bic)) continue;
+        if (!ev.has_location || !std::isfinite(ev.strength_sigma)) continue;
+        // Which of the two: the better likelihood when the fits to all stations differ decisively
+        // (by more than |max_delta_bic|, the evidence condition 3 asks of a claim), else the
+        // better-determined strength. Measured, sensor_offset seed 3 after the frame: the floor's
+        // mirror-image dipole fitted all stations 6.8 better than the floor plane (delta BIC
+        // -2362.5 against -2355.7, held-out equal) and was ranked first, a spurious dipole; the
+        // plane's attenuation is 11.4 sigma from 0, the dipole's polarisability 5.3.
+        const double bic_gap = best->candidate.delta_bic - o->candidate.delta_bic;  // > 0: o fits
+        const bool decisive = std::abs(bic_gap) > std::abs(options.max_delta_bic);
+        const bool better = decisive ? bic_gap > 0
+                                     : ev.strength_sigma > best->candidate.evidence.strength_sigma;
+        if (!better) continue;
         std::vector<double> worse;  // other minus held-out best, per station
         for (size_t k = 0; k < stations.size(); ++k) {
           const double a = o->cv_whitened_by_base.size() > k ? o->cv_whitened_by_base[k] : NAN;
@@ -1724,12 +1738,19 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         }
         const double p_worse = WilcoxonSignedRankGreater(worse);
         if (p_worse < options.family_alpha) continue;
-        best = o;
         tie_note = "ranked first over " + sig.front()->candidate.effect +
                    ": their held-out errors do not differ (p = " + FormatSignificant(p_worse, 2) +
-                   " that it is worse) and it fits all stations better (delta BIC " +
-                   FormatNumber(o->candidate.delta_bic, 1) + " against " +
-                   FormatNumber(sig.front()->candidate.delta_bic, 1) + ")";
+                   " that it is worse) and " +
+                   (decisive ? "it fits all stations better (delta BIC " +
+                                   FormatNumber(o->candidate.delta_bic, 1) + " against " +
+                                   FormatNumber(best->candidate.delta_bic, 1) + ")"
+                             : "their fits to all stations do not differ decisively (delta BIC " +
+                                   FormatNumber(o->candidate.delta_bic, 1) + " against " +
+                                   FormatNumber(best->candidate.delta_bic, 1) +
+                                   "), and its strength is better determined (" +
+                                   FormatNumber(ev.strength_sigma, 1) + " sigma against " +
+                                   FormatNumber(best->candidate.evidence.strength_sigma, 1) + ")");
+        best = o;
       }
       if (best != sig.front()) {
         best->candidate.reason += "; " + tie_note;
