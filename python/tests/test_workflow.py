@@ -517,22 +517,32 @@ _XFAIL = {
                       "down and G_yy up on every seed (measured on seeds 2-4 with the frame and floor "
                       "free: -2.5..-4.6 / +2.3..+5.4 sigma; with the monitors held at the truth, within "
                       "2 sigma; the true room alone leaves G within 3 sigma on seeds 1-7)",
-    "sensor_offset": "seeds 1-3 (branch sources, with the dipole_pair candidate, validation x floor position / "
-                     "orientation): seed 1: 406.7x -> +sensor_offset 13.46x -> +dipole (frame) 3.09x -> +plane "
-                     "(floor, 0.755 m) 1.34x -> +plane_2 1.14x / 1.07x; seed 2: 444.5x -> 15.76x -> 3.39x -> "
-                     "1.47x -> +plane_2 1.33x / 1.13x; seed 3: 423.2x -> 13.89x -> 3.27x -> 1.55x -> +plane_2 "
-                     "1.16x / 1.12x. Each ends by itself with the offset within 3 sigma and one spurious "
-                     "plane_2 for the +y monitors (1.65-1.72 m along (0.45-0.47, 0.83-0.85, 0.23-0.34), "
-                     "permeable; seed 2: 1.68 m along (0.28, -0.87, 0.41), ending at 2.91 m with attenuation "
-                     "1.0). The dipole pair is not claimed: its dipoles' polarisabilities are 0.0-1.4 sigma "
-                     "from 0 (seed 1's pair search lands a weak dipole beside the volume, delta BIC +56)",
+    # Seeds 1 and 2 pass (branch farsrc: the plane standing in for the monitors is refused because its
+    # normal is not determined): 406.7x -> +sensor_offset 13.46x -> +dipole (frame) 3.09x -> +plane
+    # (floor, 0.755 m) 1.338x / 1.127x; 444.5x -> 15.76x -> 3.39x -> +plane (floor, 0.771 m)
+    # 1.470x / 1.190x, then nothing.
+    "sensor_offset:3": "branch farsrc: 423.2x -> +sensor_offset 13.90x -> +dipole (frame) 3.27x -> +plane "
+                       "(floor, 0.733 m) 1.555x / 1.172x the floor, then nothing: the right terms, the "
+                       "offset within 3 sigma and nothing spurious, but 1.555x > 1.5x: the three CRT "
+                       "monitors (1.9 m) and the door, left to the polynomial, are not identified by "
+                       "this capture (on the main job's capture the dipole pair's dipoles land 3.4-8.4 "
+                       "sigma from the nearest monitors; the planes that stood in for them had their "
+                       "normals open by 11 deg, seed 2, and 20 deg, the main job)",
 }
 
 
-@pytest.mark.parametrize("seed", SEEDS)
-@pytest.mark.parametrize("hidden", [pytest.param(h, marks=pytest.mark.xfail(reason=_XFAIL[h], strict=False,
-                                                                            raises=AssertionError))
-                                    if h in _XFAIL else h for h in HIDDEN_EFFECTS])
+def _loop_params() -> list:
+    """(hidden, seed) for every loop, marked xfail by _XFAIL's effect or "effect:seed" key."""
+    out = []
+    for h in HIDDEN_EFFECTS:
+        for seed in SEEDS:
+            reason = _XFAIL.get(f"{h}:{seed}", _XFAIL.get(h))
+            marks = [pytest.mark.xfail(reason=reason, strict=False, raises=AssertionError)] if reason else []
+            out.append(pytest.param(h, seed, marks=marks, id=f"{h}-{seed}"))
+    return out
+
+
+@pytest.mark.parametrize("hidden,seed", _loop_params())
 def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path):
     if not demo.diagnosis_available():
         pytest.skip("no candidate ranking in this build (trackcal-fit diagnose)")
