@@ -97,6 +97,7 @@ bool LutTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   // position and, to first order in the error, for the orientation (q_e = Exp(e) ~ (e, 1)), so
   // the six components are six problems with one matrix: the stations' trilinear weights, the
   // smoothness and the ridge rows, each whitened by the component's sigma, which cancels.
+  if (has_following_terms_) return false;  // see SetFollowingTerms
   for (const auto& block : blocks_) {
     if (block.fixed || !block.prior_mean.empty() || !block.lower.empty() || !block.upper.empty()) {
       return false;  // settings the unconstrained solve below would ignore: start from zero

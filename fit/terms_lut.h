@@ -66,6 +66,11 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
     for (const auto& b : blocks_) any_free = any_free || !b.fixed;
     return any_free;
   }
+  // A LUT followed by other terms starts from zero (InitializeLinear fits the whole remaining
+  // error, which would hide it from the later terms' initialisation, a physical term's search).
+  void SetFollowingTerms(const std::vector<const ModelTerm*>& later) override {
+    has_following_terms_ = !later.empty();
+  }
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
@@ -81,6 +86,7 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   LutTermOptions options_;
   std::optional<LutGrid> grid_;
   Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);
+  bool has_following_terms_ = false;
 };
 
 template <typename T>

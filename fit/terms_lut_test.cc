@@ -113,6 +113,12 @@ TEST(LutTerm, InitializeLinearStartsAtTheLeastSquaresNodeValues) {
   held.blocks()[0].fixed = true;
   EXPECT_FALSE(held.InitializeLinear(stations, Eigen::Vector2d(1e-3, 3.5e-3)));
   EXPECT_EQ(held.blocks()[1].values[0], 0.0);
+  // So does a LUT with terms after it (their initialisation sees the error it leaves).
+  LutTerm first(options);
+  first.SetFollowingTerms({&truth});
+  first.Prepare(stations);
+  EXPECT_FALSE(first.InitializeLinear(stations, Eigen::Vector2d(1e-3, 3.5e-3)));
+  EXPECT_EQ(first.blocks()[1].values[0], 0.0);
 }
 
 // The analytic Jacobians against the autodiff of Apply they replace, inside a cell and outside the
