@@ -4,6 +4,9 @@
 // nested vectors). Report figures as ratios of these (docs: the paper needed 18 us per pose).
 //
 //   build/bench/bench_correction --benchmark_min_time=0.5
+//
+// BM_Calibration_*: the server's per-report path (chain and calibrated volume) inside the volume,
+// and outside it under `clamp` and `linear` (report the outside cases as ratios to the inside one).
 #include <benchmark/benchmark.h>
 
 #include <algorithm>
@@ -201,6 +204,80 @@ void BM_Calibration_Polynomial4(benchmark::State& state) {
   RunPerPose(state, [](const Rigid3d& r) { return cal.Apply(r); });
 }
 BENCHMARK(BM_Calibration_Polynomial4);
+
+// The server's per-report path outside the calibrated volume, as a ratio to the inside case above
+// (the same calibration, every report inside): `clamp` evaluates the chain at the nearest box point,
+// `linear` (what trackcal-fit writes for chains with a physical term) adds the explicit terms'
+// one-sided derivatives there times the distance out (a few extra term evaluations per axis out).
+// The reports lie 0-0.15 m beyond the box (beyond linear_reach for a third), every other one
+// outside two faces.
+const std::vector<Rigid3d>& OutsideReports() {
+  static const std::vector<Rigid3d> reports = [] {
+    std::vector<Rigid3d> r;
+    const Poses& poses = TestPoses();
+    for (size_t i = 0; i < kNumPoses; ++i) {
+      Eigen::Vector3d p = poses.positions[i];
+      p.x() = 0.5 + 0.15 * (p.x() + 0.45) / 0.9;
+      if (i % 2 == 1) p.y() = -0.5 - 0.15 * (p.y() + 0.45) / 0.9;
+      r.emplace_back(poses.rotations[i], p);
+    }
+    return r;
+  }();
+  return reports;
+}
+
+Calibration CalibrationOf(const Correction& term, ExtrapolationPolicy policy) {
+  Calibration c;
+  c.chain.Append(term.Clone());
+  CalibratedVolume v;
+  v.min = Eigen::Vector3d(-0.5, -0.5, -0.2);
+  v.max = Eigen::Vector3d(0.5, 0.5, 0.8);
+  v.extrapolation = policy;
+  c.chain.SetVolume(v);
+  return c;
+}
+
+void RunOutside(benchmark::State& state, const Calibration& cal) {
+  const std::vector<Rigid3d>& reports = OutsideReports();
+  size_t i = 0;
+  for (auto _ : state) {
+    auto out = cal.Apply(reports[i]);
+    benchmark::DoNotOptimize(out);
+    i = (i + 1) % kNumPoses;
+  }
+  state.SetItemsProcessed(state.iterations());
+}
+
+void BM_Calibration_Polynomial4_OutsideClamp(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Degree4(), ExtrapolationPolicy::kClamp);
+  RunOutside(state, cal);
+}
+BENCHMARK(BM_Calibration_Polynomial4_OutsideClamp);
+
+void BM_Calibration_Polynomial4_OutsideLinear(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Degree4(), ExtrapolationPolicy::kLinear);
+  RunOutside(state, cal);
+}
+BENCHMARK(BM_Calibration_Polynomial4_OutsideLinear);
+
+// The same three cases for the 21^3 LUT.
+void BM_Calibration_Lut21(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Lut(), ExtrapolationPolicy::kLinear);
+  RunPerPose(state, [](const Rigid3d& r) { return cal.Apply(r); });
+}
+BENCHMARK(BM_Calibration_Lut21);
+
+void BM_Calibration_Lut21_OutsideClamp(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Lut(), ExtrapolationPolicy::kClamp);
+  RunOutside(state, cal);
+}
+BENCHMARK(BM_Calibration_Lut21_OutsideClamp);
+
+void BM_Calibration_Lut21_OutsideLinear(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Lut(), ExtrapolationPolicy::kLinear);
+  RunOutside(state, cal);
+}
+BENCHMARK(BM_Calibration_Lut21_OutsideLinear);
 
 // Batch path on raw arrays (what the Python binding calls), per pose.
 void BM_Polynomial4_Batch(benchmark::State& state) {

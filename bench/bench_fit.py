@@ -3,7 +3,7 @@
 the paper's method (Ikits et al. 2001, eq. 7-9), in the same run, on the same simulated capture;
 and of a chain of two physical terms and a LUT on the same capture.
 
-    python bench/bench_fit.py --build build [--repeat 5]
+    python bench/bench_fit.py --build build [--repeat 5] [--before-fit OTHER/trackcal-fit]
 
 Runs trackcal-simulate --scene paper, then `trackcal-fit fit --json` (its reported solve time:
 linear initialisation + Ceres refinement, and the covariance time separately) and the numpy fit
@@ -127,6 +127,9 @@ def main():
                     help="also fit plane + dipole + a degree-8 polynomial with ridge 0.25 (slow)")
     ap.add_argument("--skip-default-chain", action="store_true",
                     help="skip the chain fitted with the default solver settings and covariance")
+    ap.add_argument("--before-fit", default=None,
+                    help="another trackcal-fit binary (e.g. main's) to fit the default chain with in "
+                         "the same run, for before/after ratios")
     args = ap.parse_args()
     sim = os.path.join(args.build, "sim", "trackcal-simulate")
     fit = os.path.join(args.build, "fit", "trackcal-fit")
@@ -183,7 +186,7 @@ def main():
         ok = min(tc_total) <= 0.050
         print("degree-4 fit time target (<= 50 ms, with covariance):", "met" if ok else "NOT met")
 
-        def run_chain(name, text, repeats):
+        def run_chain(name, text, repeats, fit=fit):
             """Fits the chain `repeats` times; returns (last JSON document, wall list, CPU list)."""
             chain_model = os.path.join(tmp, f"{name}.yaml")
             with open(chain_model, "w") as f:
@@ -199,8 +202,9 @@ def main():
 
         def print_chain(label, doc, walls, cpus, target=True):
             valid = doc["tables"][1]
-            effects = {p["term"]: p for p in doc["fit"]["parameters"]}
-            plane_d = effects["plane"]["values"][0]["value"] if "plane" in effects else float("nan")
+            blocks = {(p["term"], p["block"]): p for p in doc["fit"]["parameters"]}
+            plane = blocks.get(("plane", "distance_m"))
+            plane_d = plane["values"][0]["value"] if plane else float("nan")
             print(f"{label:27s}: fit {min(walls):7.2f} s wall, {min(cpus):.2f} s CPU "
                   f"(best of {len(walls)}; covariance {doc['fit']['seconds_covariance']:.2f} s wall"
                   f" ({doc['fit'].get('covariance_method')}); "
@@ -225,8 +229,32 @@ def main():
         if not args.skip_default_chain:
             # The same chain as a user writes it: the default solver tolerance and the default
             # standard deviations (sandwich, which a LUT's size turns into the model covariance).
-            doc, walls, cpus = run_chain("chain_defaults", CHAIN_MODEL_DEFAULTS, 1)
+            doc, walls, cpus = run_chain("chain_defaults", CHAIN_MODEL_DEFAULTS, max(1, min(args.repeat, 3)))
             print_chain("  the same, solver defaults", doc, walls, cpus)
+            if args.before_fit:
+                doc_b, walls_b, cpus_b = run_chain("chain_defaults_before", CHAIN_MODEL_DEFAULTS,
+                                                   max(1, min(args.repeat, 3)), fit=args.before_fit)
+                print_chain("  the same, --before-fit", doc_b, walls_b, cpus_b, target=False)
+                print(f"after / before (defaults)  : CPU {min(cpus) / min(cpus_b):.2f}x, "
+                      f"wall {min(walls) / min(walls_b):.2f}x")
+                # The fast path against the reference: the same fitted values to well below their
+                # standard deviations, the same standard deviations.
+                after = {(p["term"], p["block"]): p for p in doc["fit"]["parameters"]}
+                worst_value, worst_std = 0.0, 0.0
+                for p in doc_b["fit"]["parameters"]:
+                    q = after[(p["term"], p["block"])]
+                    for v, w in zip(p["values"], q["values"]):
+                        if not isinstance(v, dict) or not isinstance(w, dict):
+                            continue
+                        sb, sa = v.get("stddev"), w.get("stddev")
+                        v, w = v["value"], w["value"]
+                        if sb is not None and sa is not None and sb == sb and sb > 0:
+                            worst_value = max(worst_value, abs(v - w) / sb)
+                            worst_std = max(worst_std, abs(sa - sb) / sb)
+                print(f"after vs before (defaults) : largest value change {worst_value:.2g} sigma, "
+                      f"largest relative stddev change {worst_std:.2g}; valid position mean "
+                      f"{doc_b['tables'][1]['after']['position_mm']['mean']:.6f} -> "
+                      f"{doc['tables'][1]['after']['position_mm']['mean']:.6f} mm")
         return 0
 
 

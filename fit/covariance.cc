@@ -374,22 +374,102 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
   return true;
 }
 
+// H^-1(i, global g) = -(X S^-1)(i, g) for a local column i (SchurInverse below).
+double LocalGlobalEntry(int i, int g, const std::vector<int>& group_of,
+                          const std::vector<int>& local_of, const std::vector<Eigen::MatrixXd>& y) {
+  return -y[static_cast<size_t>(group_of[static_cast<size_t>(i)])](local_of[static_cast<size_t>(i)], g);
+}
+
+// A symmetric positive definite band matrix A (A(i, j) = 0 for |i - j| > width) and its Cholesky
+// factor, both in LAPACK's lower band storage: band(d, j) = A(j + d, j), 0 <= d <= width. Factoring,
+// solving and the band of A^-1 cost n width^2, n width per right-hand side and n width^2: a LUT's
+// node values ordered node by node have width ~ one layer of the grid (ny nz nodes), far below n.
+class BandCholesky {
+ public:
+  BandCholesky(int n, int width) : n_(n), width_(width), band_(Eigen::MatrixXd::Zero(width + 1, n)) {}
+  int width() const { return width_; }
+  // A(i, j), i >= j, i - j <= width (before Factor()).
+  double& Lower(int i, int j) { return band_(i - j, j); }
+  // A = L L^T in place; false if A is not (numerically) positive definite.
+  bool Factor() {
+    for (int j = 0; j < n_; ++j) {
+      const double d = band_(0, j);
+      if (!(d > 0.0) || !std::isfinite(d)) return false;
+      const double l = std::sqrt(d);
+      band_(0, j) = l;
+      const int k = std::min(width_, n_ - 1 - j);
+      band_.col(j).segment(1, k) /= l;
+      for (int c = 1; c <= k; ++c) {
+        band_.col(j + c).head(k - c + 1).noalias() -= band_(c, j) * band_.col(j).segment(c, k - c + 1);
+      }
+    }
+    return true;
+  }
+  // x = A^-1 x (after Factor()).
+  void Solve(Eigen::MatrixXd* x) const {
+    for (int j = 0; j < n_; ++j) {
+      x->row(j) /= band_(0, j);
+      const int k = std::min(width_, n_ - 1 - j);
+      if (k > 0) x->middleRows(j + 1, k).noalias() -= band_.col(j).segment(1, k) * x->row(j);
+    }
+    for (int j = n_ - 1; j >= 0; --j) {
+      const int k = std::min(width_, n_ - 1 - j);
+      if (k > 0) {
+        x->row(j).noalias() -= band_.col(j).segment(1, k).transpose() * x->middleRows(j + 1, k);
+      }
+      x->row(j) /= band_(0, j);
+    }
+  }
+  // The entries of A^-1 within the band, same storage (after Factor()): Z = A^-1 satisfies
+  // Z L = L^-T, upper triangular with diagonal 1 / L(j, j), so column j of Z's band follows from
+  // the columns right of it (Takahashi's recurrence), which stay within the band.
+  Eigen::MatrixXd BandOfInverse() const {
+    Eigen::MatrixXd z = Eigen::MatrixXd::Zero(width_ + 1, n_);
+    Eigen::VectorXd acc(width_ + 1);
+    for (int j = n_ - 1; j >= 0; --j) {
+      const int k = std::min(width_, n_ - 1 - j);
+      const double l = band_(0, j);
+      // acc(i) = sum_d Z(j + i, j + d) L(j + d, j), i, d in 1..k.
+      acc.setZero();
+      for (int d = 1; d <= k; ++d) {  // rows i >= d from column j + d of Z's band
+        acc.segment(d, k - d + 1).noalias() += band_(d, j) * z.col(j + d).head(k - d + 1);
+      }
+      for (int i = 1; i < k; ++i) {  // rows i < d: Z(j + i, j + d) = Z(j + d, j + i)
+        acc(i) += z.col(j + i).segment(1, k - i).dot(band_.col(j).segment(i + 1, k - i));
+      }
+      z.col(j).segment(1, k) = -acc.segment(1, k) / l;
+      z(0, j) = (1.0 / l - z.col(j).segment(1, k).dot(band_.col(j).segment(1, k))) / l;
+    }
+    return z;
+  }
+
+ private:
+  int n_, width_;
+  Eigen::MatrixXd band_;
+};
+
 // The model covariance H^-1 of a problem too large for the dense analysis, when its columns are a
 // few "global" ones that many rows touch (a physical term's parameters, in every station's
 // residual) and local ones that fall into independent groups once the global columns are set
-// aside (a LUT's node values: position x, y, z and orientation, each coupled to its neighbours
-// only). With H = [[A, B], [B^T, C]], A block diagonal over the groups,
+// aside, each a band matrix in column order (a LUT's node values: position x, y, z and orientation
+// node by node, each coupled to its cell's neighbours only; one group of all six when the
+// amplification whitening mixes a station's position and orientation rows). With
+// H = [[A, B], [B^T, C]], A block diagonal over the groups,
 //   H^-1 = [[A^-1 + X S^-1 X^T, -X S^-1], [-S^-1 X^T, S^-1]],  X = A^-1 B,  S = C - B^T X:
-// one dense Cholesky per group and one of S, instead of a sparse solve per column (Ceres'
-// SPARSE_QR covariance). False when the structure does not fit (a group above
-// max_dense_dimension, too many global columns) or a factorisation fails (H not positive definite:
-// the caller falls back to Ceres, which detects the rank deficiency).
+// one band Cholesky per group and one dense of S. Only the entries `wanted` asks for are formed
+// (the requested blocks' own covariances and the cross-covariances asked for): A^-1 within the
+// band from the band of the inverse, outside it by a solve per column. Fills `covariance`
+// (requested coordinates `full_index`). False when the structure does not fit (too many global
+// columns, bands too wide) or a factorisation fails (H not positive definite: the caller falls back
+// to Ceres, which detects the rank deficiency).
+template <typename WantedFn>
 bool SchurInverse(ceres::Problem* problem, const std::vector<double*>& columns, int dimension,
-                  const CovarianceOptions& options, Eigen::MatrixXd* h_inv, int* num_groups) {
+                  const std::vector<int>& full_index, const WantedFn& wanted,
+                  const std::vector<int>& sizes, const std::vector<int>& offsets,
+                  Eigen::MatrixXd* covariance, int* num_groups) {
   ceres::Problem::EvaluateOptions eval;
   eval.parameter_blocks = columns;
   eval.apply_loss_function = true;
-  eval.num_threads = options.num_threads;
   ceres::CRSMatrix crs;
   if (!problem->Evaluate(eval, nullptr, nullptr, nullptr, &crs)) return false;
   if (crs.num_cols != dimension || dimension == 0) return false;
@@ -403,6 +483,8 @@ bool SchurInverse(ceres::Problem* problem, const std::vector<double*>& columns, 
   const int median = std::max(1, sorted[static_cast<size_t>(dimension / 2)]);
   constexpr int kGlobalFactor = 16;  // a LUT node sees ~20 rows, a physical parameter thousands
   constexpr int kMaxGlobal = 200;    // S is dense: global^2 memory, global^3 flops
+  // Band factorisations above this many flops (sum of n width^2) are left to Ceres: ~1 s.
+  constexpr double kMaxBandFlops = 2e9;
   std::vector<int> global_index(static_cast<size_t>(dimension), -1);
   std::vector<int> global_columns;
   for (int c = 0; c < dimension; ++c) {
@@ -436,6 +518,7 @@ bool SchurInverse(ceres::Problem* problem, const std::vector<double*>& columns, 
       }
     }
   }
+  // Each group's columns in ascending order: position `local_of` in the group's band matrix.
   std::vector<int> group_of(static_cast<size_t>(dimension), -1), local_of(static_cast<size_t>(dimension), -1);
   std::vector<std::vector<int>> groups;
   {
@@ -449,16 +532,31 @@ bool SchurInverse(ceres::Problem* problem, const std::vector<double*>& columns, 
       groups[static_cast<size_t>(it->second)].push_back(c);
     }
   }
-  for (const auto& g : groups) {
-    if (static_cast<int>(g.size()) > options.max_dense_dimension) return false;
+  // Band widths: the largest distance of two local non-zeros of a row (all in one group).
+  std::vector<int> width(groups.size(), 0);
+  for (int r = 0; r < crs.num_rows; ++r) {
+    int lo = std::numeric_limits<int>::max(), hi = -1, g = -1;
+    for (int k = crs.rows[r]; k < crs.rows[r + 1]; ++k) {
+      const size_t c = static_cast<size_t>(crs.cols[k]);
+      if (crs.values[k] == 0.0 || global_index[c] >= 0) continue;
+      g = group_of[c];
+      lo = std::min(lo, local_of[c]);
+      hi = std::max(hi, local_of[c]);
+    }
+    if (g >= 0) width[static_cast<size_t>(g)] = std::max(width[static_cast<size_t>(g)], hi - lo);
   }
-  // H's blocks, row by row (a row's local non-zeros all lie in one group).
-  const int ng = static_cast<int>(global_columns.size());
-  std::vector<Eigen::MatrixXd> a(groups.size()), b(groups.size());
+  double flops = 0.0;
   for (size_t g = 0; g < groups.size(); ++g) {
-    const Eigen::Index m = static_cast<Eigen::Index>(groups[g].size());
-    a[g] = Eigen::MatrixXd::Zero(m, m);
-    b[g] = Eigen::MatrixXd::Zero(m, ng);
+    flops += static_cast<double>(groups[g].size()) * (width[g] + 1.0) * (width[g] + 1.0);
+  }
+  if (flops > kMaxBandFlops) return false;
+  // H's blocks, row by row: A's band per group, B per group, C.
+  const int ng = static_cast<int>(global_columns.size());
+  std::vector<BandCholesky> a;
+  std::vector<Eigen::MatrixXd> b(groups.size());
+  for (size_t g = 0; g < groups.size(); ++g) {
+    a.emplace_back(static_cast<int>(groups[g].size()), width[g]);
+    b[g] = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(groups[g].size()), ng);
   }
   Eigen::MatrixXd c = Eigen::MatrixXd::Zero(ng, ng);
   for (int r = 0; r < crs.num_rows; ++r) {
@@ -474,53 +572,71 @@ bool SchurInverse(ceres::Problem* problem, const std::vector<double*>& columns, 
           if (global_index[cj] >= 0) c(global_index[ci], global_index[cj]) += vi * vj;
         } else if (global_index[cj] >= 0) {
           b[static_cast<size_t>(group_of[ci])](local_of[ci], global_index[cj]) += vi * vj;
-        } else {
-          a[static_cast<size_t>(group_of[ci])](local_of[ci], local_of[cj]) += vi * vj;
+        } else if (local_of[ci] >= local_of[cj]) {
+          a[static_cast<size_t>(group_of[ci])].Lower(local_of[ci], local_of[cj]) += vi * vj;
         }
       }
     }
   }
-  // X = A^-1 B and S = C - B^T X; A^-1 per group.
-  std::vector<Eigen::MatrixXd> x(groups.size()), a_inv(groups.size());
+  // X = A^-1 B and S = C - B^T X per group; Y = X S^-1.
+  std::vector<Eigen::MatrixXd> x(groups.size()), y(groups.size()), z(groups.size());
   Eigen::MatrixXd s = c;
   for (size_t g = 0; g < groups.size(); ++g) {
-    const Eigen::LLT<Eigen::MatrixXd> llt(a[g]);
-    if (llt.info() != Eigen::Success) return false;
-    x[g] = llt.solve(b[g]);
+    if (!a[g].Factor()) return false;
+    x[g] = b[g];
+    a[g].Solve(&x[g]);
     s.noalias() -= b[g].transpose() * x[g];
-    a_inv[g] = llt.solve(Eigen::MatrixXd::Identity(a[g].rows(), a[g].cols()));
-    if (!a_inv[g].allFinite()) return false;
+    z[g] = a[g].BandOfInverse();
+    if (!z[g].allFinite()) return false;
   }
   Eigen::MatrixXd s_inv = Eigen::MatrixXd::Zero(ng, ng);
   if (ng > 0) {
     const Eigen::LLT<Eigen::MatrixXd> llt(s);
     if (llt.info() != Eigen::Success) return false;
     s_inv = llt.solve(Eigen::MatrixXd::Identity(ng, ng));
+    if (!s_inv.allFinite()) return false;
   }
-  // Assemble over the full columns: X stacked over the groups, Y = X S^-1.
-  Eigen::MatrixXd x_full = Eigen::MatrixXd::Zero(dimension, ng);
-  for (size_t g = 0; g < groups.size(); ++g) {
-    for (size_t i = 0; i < groups[g].size(); ++i) x_full.row(groups[g][i]) = x[g].row(static_cast<Eigen::Index>(i));
-  }
-  const Eigen::MatrixXd y = x_full * s_inv;
-  *h_inv = y * x_full.transpose();  // X S^-1 X^T (zero in the global rows and columns)
-  for (size_t g = 0; g < groups.size(); ++g) {
-    for (size_t i = 0; i < groups[g].size(); ++i) {
-      for (size_t j = 0; j < groups[g].size(); ++j) {
-        (*h_inv)(groups[g][i], groups[g][j]) +=
-            a_inv[g](static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
+  for (size_t g = 0; g < groups.size(); ++g) y[g] = x[g] * s_inv;
+  // Columns of A^-1 outside the band, solved when first asked for.
+  std::map<int, Eigen::VectorXd> solved;  // by full column
+  auto a_inverse = [&](int i, int j) -> double {  // A^-1(i, j), i and j local, one group
+    const size_t g = static_cast<size_t>(group_of[static_cast<size_t>(i)]);
+    const int li = local_of[static_cast<size_t>(i)], lj = local_of[static_cast<size_t>(j)];
+    if (std::abs(li - lj) <= width[g]) return z[g](std::abs(li - lj), std::min(li, lj));
+    auto it = solved.find(j);
+    if (it == solved.end()) {
+      Eigen::MatrixXd e = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(groups[g].size()), 1);
+      e(lj, 0) = 1.0;
+      a[g].Solve(&e);
+      it = solved.emplace(j, e.col(0)).first;
+    }
+    return it->second(li);
+  };
+  auto entry = [&](int i, int j) -> double {  // H^-1(i, j), full columns
+    const int gi = global_index[static_cast<size_t>(i)], gj = global_index[static_cast<size_t>(j)];
+    if (gi >= 0 && gj >= 0) return s_inv(gi, gj);
+    if (gi >= 0) return LocalGlobalEntry(j, gi, group_of, local_of, y);
+    if (gj >= 0) return LocalGlobalEntry(i, gj, group_of, local_of, y);
+    const size_t g = static_cast<size_t>(group_of[static_cast<size_t>(i)]);
+    const size_t h = static_cast<size_t>(group_of[static_cast<size_t>(j)]);
+    double v = ng > 0 ? x[g].row(local_of[static_cast<size_t>(i)]).dot(y[h].row(local_of[static_cast<size_t>(j)]))
+                      : 0.0;
+    if (g == h) v += a_inverse(i, j);
+    return v;
+  };
+  const int n = static_cast<int>(full_index.size());
+  *covariance = Eigen::MatrixXd::Zero(n, n);
+  for (size_t bi = 0; bi < sizes.size(); ++bi) {
+    for (size_t bj = bi; bj < sizes.size(); ++bj) {
+      if (!wanted(bi, bj)) continue;
+      for (int p = 0; p < sizes[bi]; ++p) {
+        for (int q = 0; q < sizes[bj]; ++q) {
+          const int ra = offsets[bi] + p, rb = offsets[bj] + q;
+          const double v = entry(full_index[static_cast<size_t>(ra)], full_index[static_cast<size_t>(rb)]);
+          (*covariance)(ra, rb) = v;
+          (*covariance)(rb, ra) = v;
+        }
       }
-    }
-  }
-  for (int i = 0; i < ng; ++i) {
-    for (int k = 0; k < dimension; ++k) {
-      if (global_index[static_cast<size_t>(k)] >= 0) continue;
-      (*h_inv)(global_columns[static_cast<size_t>(i)], k) = -y(k, i);
-      (*h_inv)(k, global_columns[static_cast<size_t>(i)]) = -y(k, i);
-    }
-    for (int j = 0; j < ng; ++j) {
-      (*h_inv)(global_columns[static_cast<size_t>(i)], global_columns[static_cast<size_t>(j)]) =
-          s_inv(i, j);
     }
   }
   *num_groups = static_cast<int>(groups.size()) + (ng > 0 ? 1 : 0);
@@ -688,21 +804,10 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     have_covariance = true;
   }
   if (!have_covariance && !result.rank_deficient && !dense.done && options.schur_large_problems) {
-    Eigen::MatrixXd h_inv;
     int groups = 0;
-    if (SchurInverse(problem, columns, result.tangent_dimension, options, &h_inv, &groups)) {
-      result.covariance = Eigen::MatrixXd(n, n);
-      for (int i = 0; i < n; ++i) {
-        for (int j = 0; j < n; ++j) result.covariance(i, j) = h_inv(full_index[i], full_index[j]);
-      }
-      for (std::size_t i = 0; i < blocks.size(); ++i) {
-        for (std::size_t j = 0; j < blocks.size(); ++j) {
-          if (Wanted(i, j)) continue;
-          result.covariance.block(result.block_offsets[i], result.block_offsets[j], sizes[i], sizes[j])
-              .setZero();
-        }
-      }
-      result.method = "schur_dense_groups";
+    if (SchurInverse(problem, columns, result.tangent_dimension, full_index, Wanted, sizes,
+                     result.block_offsets, &result.covariance, &groups)) {
+      result.method = "schur_banded_groups";
       result.num_groups = groups;
       have_covariance = true;
     }

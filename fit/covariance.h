@@ -8,8 +8,10 @@
 //     rank, and the weak directions (eigenvalues below weak_direction_ratio * largest), named by
 //     the coordinates they move most; a well-conditioned H is inverted from that decomposition;
 //   - otherwise inverts H by a Schur complement on its few global columns when the others fall
-//     into independent groups of at most max_dense_dimension (a LUT after physical terms), or
-//     asks ceres::Covariance for the joint covariance of the requested blocks;
+//     into independent groups that are band matrices in column order (a LUT after physical terms,
+//     also with whitened stations coupling a node's position and orientation), forming only the
+//     entries asked for, or asks ceres::Covariance for the joint covariance of the requested
+//     blocks;
 //   - falls back to the pseudo-inverse of H (dropping the null space) when Ceres reports a
 //     rank-deficient Jacobian, so a degenerate problem still yields standard deviations for the
 //     coordinates that are determined, and flags the ones that are not;
@@ -95,7 +97,7 @@ struct CovarianceOptions {
   // directions (up to rounding) for a fraction of the dense products. false: one group (tests).
   bool split_independent_columns = true;
   // Above max_dense_dimension: H^-1 by a Schur complement on the few columns most rows touch, the
-  // others in independent dense groups (a LUT after physical terms), before Ceres' sparse QR.
+  // others in independent band groups (a LUT after physical terms), before Ceres' sparse QR.
   // false: Ceres only (tests).
   bool schur_large_problems = true;
   // Threads for ceres::Covariance.
@@ -111,7 +113,7 @@ struct IdentifiabilityFlag {
 
 struct CovarianceResult {
   bool success = false;         // a covariance (full or pseudo-inverse) was computed
-  // "dense_inverse", "schur_dense_groups", "ceres_sparse_qr", "dense_pseudo_inverse", "dense_sandwich" or
+  // "dense_inverse", "schur_banded_groups", "ceres_sparse_qr", "dense_pseudo_inverse", "dense_sandwich" or
   // "dense_pseudo_inverse_sandwich"
   std::string method;
   // The estimator used: "model", "sandwich (CR2)" or "sandwich (CR1)"; a sandwich that was asked

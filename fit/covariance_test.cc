@@ -318,13 +318,70 @@ TEST(ComputeCovariance, SchurOnGlobalColumnsEqualsCeresSparseQr) {
   const CovarianceResult a = ComputeCovariance(&problem, blocks, schur);
   const CovarianceResult b = ComputeCovariance(&problem, blocks, ceres_only);
   ASSERT_TRUE(a.success && b.success) << a.ToString() << b.ToString();
-  EXPECT_EQ(a.method, "schur_dense_groups");
+  EXPECT_EQ(a.method, "schur_banded_groups");
   EXPECT_EQ(b.method, "ceres_sparse_qr");
   EXPECT_EQ(a.num_groups, 3);  // node coordinates 0, node coordinates 1, the global block
   // Normal equations (Cholesky) against QR of the Jacobian: relative rounding ~ condition * 1e-16.
   const double scale = b.covariance.cwiseAbs().maxCoeff();
   EXPECT_LT((a.covariance - b.covariance).cwiseAbs().maxCoeff(), 1e-9 * scale);
   for (int i = 0; i < a.stddev.size(); ++i) EXPECT_NEAR(a.stddev(i), b.stddev(i), 1e-9 * b.stddev(i));
+}
+
+// A row that mixes both coordinates of a node with the global block, as the amplification
+// whitening mixes a station's position and orientation residuals.
+struct MixedNodeCost : AutoDiffCostFunctor<MixedNodeCost, 1, 2, 2> {
+  explicit MixedNodeCost(double s) : s(s) {}
+  template <typename T>
+  bool operator()(const T* a, const T* g, T* r) const {
+    r[0] = T(0.8) * a[0] - T(0.6) * a[1] + g[1] * T(s) - T(s * s);
+    return true;
+  }
+  double s;
+};
+
+// The fast path of the LUT chain's covariance (a band Cholesky per group, entries formed only as
+// asked) against the reference (Ceres' sparse QR) when mixed rows join the nodes' coordinates into
+// one group above max_dense_dimension (main refused such a group and fell back to Ceres): the full
+// covariance, and each block's own covariance alone as the fit engine asks for it.
+TEST(ComputeCovariance, SchurWithMixedRowsEqualsCeresSparseQr) {
+  constexpr int kNodes = 81;
+  std::vector<std::array<double, 2>> nodes(kNodes, {0.0, 0.0});
+  double g[2] = {0.2, -0.1};
+  ceres::Problem problem;
+  for (int i = 0; i + 1 < kNodes; ++i) {
+    problem.AddResidualBlock(NodePairCost::Create(0.05 * i), nullptr, nodes[static_cast<size_t>(i)].data(),
+                             nodes[static_cast<size_t>(i) + 1].data(), g);
+  }
+  for (int i = 0; i < kNodes; i += 7) {
+    problem.AddResidualBlock(MixedNodeCost::Create(0.1 * i), nullptr, nodes[static_cast<size_t>(i)].data(), g);
+  }
+  for (auto& node : nodes) {
+    problem.AddResidualBlock(new ceres::NormalPrior(Eigen::Matrix2d::Identity() * 0.1, Eigen::Vector2d::Zero()),
+                             nullptr, node.data());
+  }
+  for (const bool cross : {true, false}) {
+    SCOPED_TRACE(cross ? "all cross-covariances" : "own covariances only");
+    std::vector<CovarianceBlock> blocks = {{g, "g", {}, 1.0, 1e9}};
+    for (int i = 0; i < kNodes; ++i) {
+      blocks.push_back({nodes[static_cast<size_t>(i)].data(), "n" + std::to_string(i), {}, 1.0, 1e9, cross});
+    }
+    CovarianceOptions schur;
+    schur.max_dense_dimension = 100;  // 164 coordinates, one node group of 162: both above
+    CovarianceOptions ceres_only = schur;
+    ceres_only.schur_large_problems = false;
+    const CovarianceResult a = ComputeCovariance(&problem, blocks, schur);
+    const CovarianceResult b = ComputeCovariance(&problem, blocks, ceres_only);
+    ASSERT_TRUE(a.success && b.success) << a.ToString() << b.ToString();
+    EXPECT_EQ(a.method, "schur_banded_groups");
+    EXPECT_EQ(b.method, "ceres_sparse_qr");
+    EXPECT_EQ(a.num_groups, 2);  // the nodes' coordinates, joined by the mixed rows; the global block
+    // Normal equations (Cholesky) against QR of the Jacobian: relative rounding ~ condition * 1e-16,
+    // far inside the 1e-6 relative the fit's standard deviations need.
+    const double scale = b.covariance.cwiseAbs().maxCoeff();
+    EXPECT_LT((a.covariance - b.covariance).cwiseAbs().maxCoeff(), 1e-9 * scale);
+    for (int i = 0; i < a.stddev.size(); ++i) EXPECT_NEAR(a.stddev(i), b.stddev(i), 1e-9 * b.stddev(i));
+    if (!cross) EXPECT_EQ(a.covariance(3, 5), 0.0);  // n0 x n1: not asked for
+  }
 }
 
 TEST(ComputeCovariance, UnknownOrConstantBlockThrows) {

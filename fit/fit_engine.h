@@ -99,7 +99,7 @@ struct FitResult {
   // Which covariance gave the stds: "model" (H^-1 with the model file's noise), "sandwich (CR2)"
   // or "sandwich (CR1)" (fit/covariance.h); empty when there are none.
   std::string covariance_estimator;
-  // How it was computed (CovarianceResult::method: "dense_sandwich", "schur_dense_groups", ...;
+  // How it was computed (CovarianceResult::method: "dense_sandwich", "schur_banded_groups", ...;
   // "linear" for the lone linear term's own); empty when there are none.
   std::string covariance_method;
   std::vector<StationFlag> outliers;  // stations beyond the loss scale

@@ -1,7 +1,11 @@
 #include "fit/terms_lut.h"
 
 #include <ceres/autodiff_cost_function.h>
+#include <ceres/jet.h>
 
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 
@@ -84,10 +88,96 @@ void LutTerm::Prepare(const std::vector<FitStation>& inputs) {
   }
 }
 
-bool LutTerm::InitializeLinear(const std::vector<FitStation>& /*inputs*/,
+bool LutTerm::InitializeLinear(const std::vector<FitStation>& inputs,
                                const Eigen::Vector2d& noise_sigmas) {
   sigmas_ = noise_sigmas;  // for the smoothness residuals
-  return false;            // node values start at zero; the problem is linear in them
+  // The node values that map each station's input to its reference, with the other terms held, by
+  // linear least squares (the engine then starts the joint solve from there instead of zero: the
+  // LUT chain's solve, docs/benchmarks.md). The output is linear in the node values for the
+  // position and, to first order in the error, for the orientation (q_e = Exp(e) ~ (e, 1)), so
+  // the six components are six problems with one matrix: the stations' trilinear weights, the
+  // smoothness and the ridge rows, each whitened by the component's sigma, which cancels.
+  if (has_following_terms_) return false;  // see SetFollowingTerms
+  for (const auto& block : blocks_) {
+    if (block.fixed || !block.prior_mean.empty() || !block.lower.empty() || !block.upper.empty()) {
+      return false;  // settings the unconstrained solve below would ignore: start from zero
+    }
+  }
+  const int num_nodes = static_cast<int>(blocks_.size());
+  // Each station's target error (position [m], orientation vector part) and its whitened size.
+  std::vector<Eigen::Matrix<double, 6, 1>> target(inputs.size());
+  std::vector<double> size(inputs.size());
+  for (size_t i = 0; i < inputs.size(); ++i) {
+    const PoseError e = ComputePoseError(inputs[i].reported, inputs[i].reference);
+    target[i] << e.position, e.orientation;
+    size[i] = std::hypot(e.position.norm() / noise_sigmas[0], e.orientation.norm() / noise_sigmas[1]);
+  }
+  // Gross outliers (a hemisphere flip's -p, metres off) are left out, so that a robust loss still
+  // sees them as outliers from the first iteration: beyond 20 times the median station's whitened
+  // error (and 20 sigma). The limit only decides where the solve starts: a station left out here
+  // still enters the fit.
+  std::vector<double> sorted = size;
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<long>(sorted.size() / 2), sorted.end());
+  const double limit = 20.0 * std::max(sorted[sorted.size() / 2], 1.0);
+  std::vector<Eigen::Triplet<double>> triplets;
+  Eigen::MatrixXd rhs = Eigen::MatrixXd::Zero(num_nodes, 6);
+  for (size_t i = 0; i < inputs.size(); ++i) {
+    if (!(size[i] <= limit)) continue;
+    const AmbientPose pose = ToAmbient(inputs[i].reported);
+    const StationBinding binding = Bind(pose);
+    const int nz = grid_->size(2), ny = grid_->size(1);
+    const int cell[3] = {static_cast<int>(binding.tag / (ny * nz)),
+                         static_cast<int>((binding.tag / nz) % ny), static_cast<int>(binding.tag % nz)};
+    double t[3];
+    for (int k = 0; k < 3; ++k) {
+      const double x0 = grid_->axis(k)[static_cast<size_t>(cell[k])];
+      const double x1 = grid_->axis(k)[static_cast<size_t>(cell[k] + 1)];
+      t[k] = (pose[k] - x0) / (x1 - x0);
+    }
+    double w[8];
+    for (int n = 0; n < 8; ++n) {
+      const int a = n / 4, b = (n / 2) % 2, c = n % 2;
+      w[n] = (a ? t[0] : 1.0 - t[0]) * (b ? t[1] : 1.0 - t[1]) * (c ? t[2] : 1.0 - t[2]);
+    }
+    for (int n = 0; n < 8; ++n) {
+      const int node = binding.blocks[static_cast<size_t>(n)];
+      rhs.row(node) += w[n] * target[i].transpose();
+      for (int m = 0; m < 8; ++m) triplets.emplace_back(node, binding.blocks[static_cast<size_t>(m)], w[n] * w[m]);
+    }
+  }
+  const int n[3] = {grid_->size(0), grid_->size(1), grid_->size(2)};
+  const double s2 = options_.smoothness * options_.smoothness;
+  for (int ix = 0; ix < n[0]; ++ix) {
+    for (int iy = 0; iy < n[1]; ++iy) {
+      for (int iz = 0; iz < n[2]; ++iz) {
+        const int idx[3] = {ix, iy, iz};
+        const int self = static_cast<int>(grid_->NodeIndex(ix, iy, iz));
+        triplets.emplace_back(self, self, options_.ridge * options_.ridge);
+        for (int axis = 0; axis < 3 && s2 > 0.0; ++axis) {
+          if (idx[axis] == 0 || idx[axis] == n[axis] - 1) continue;
+          int lo[3] = {ix, iy, iz}, hi[3] = {ix, iy, iz};
+          --lo[axis];
+          ++hi[axis];
+          const int row[3] = {static_cast<int>(grid_->NodeIndex(lo[0], lo[1], lo[2])), self,
+                              static_cast<int>(grid_->NodeIndex(hi[0], hi[1], hi[2]))};
+          const double coefficient[3] = {1.0, -2.0, 1.0};
+          for (int a = 0; a < 3; ++a) {
+            for (int b = 0; b < 3; ++b) triplets.emplace_back(row[a], row[b], s2 * coefficient[a] * coefficient[b]);
+          }
+        }
+      }
+    }
+  }
+  Eigen::SparseMatrix<double> normal(num_nodes, num_nodes);
+  normal.setFromTriplets(triplets.begin(), triplets.end());
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt(normal);
+  if (ldlt.info() != Eigen::Success) return false;
+  const Eigen::MatrixXd values = ldlt.solve(rhs);
+  if (ldlt.info() != Eigen::Success || !values.allFinite()) return false;
+  for (int node = 0; node < num_nodes; ++node) {
+    for (int k = 0; k < 6; ++k) blocks_[static_cast<size_t>(node)].values[static_cast<size_t>(k)] = values(node, k);
+  }
+  return true;
 }
 
 StationBinding LutTerm::Bind(const AmbientPose& input) const {
@@ -104,6 +194,70 @@ StationBinding LutTerm::Bind(const AmbientPose& input) const {
     }
   }
   return binding;
+}
+
+bool LutTerm::Evaluate(const StationBinding& binding, const double* const* block_values,
+                       const AmbientPose& input, bool jacobians, TermEvaluation* result) const {
+  if (!jacobians) return Apply(binding, block_values, input.data(), result->output.data());
+  // As Apply: trilinear weights w_abc(t) of the cell's corners, t_k = (x_k - x0_k) / (x1_k - x0_k).
+  const int nz = grid_->size(2), ny = grid_->size(1);
+  const int cell[3] = {static_cast<int>(binding.tag / (ny * nz)),
+                       static_cast<int>((binding.tag / nz) % ny), static_cast<int>(binding.tag % nz)};
+  double t[3], inv_width[3];
+  for (int k = 0; k < 3; ++k) {
+    const double x0 = grid_->axis(k)[static_cast<size_t>(cell[k])];
+    const double x1 = grid_->axis(k)[static_cast<size_t>(cell[k] + 1)];
+    inv_width[k] = 1.0 / (x1 - x0);
+    t[k] = (input[k] - x0) / (x1 - x0);
+  }
+  // e = sum_n w_n v_n and de / dx_k = sum_n (dw_n / dt_k) v_n / width_k.
+  Eigen::Matrix<double, 6, 1> e = Eigen::Matrix<double, 6, 1>::Zero();
+  Eigen::Matrix<double, 6, 3> de_dx = Eigen::Matrix<double, 6, 3>::Zero();
+  double weight[8];
+  for (int a = 0; a < 2; ++a) {
+    const double wa = a ? t[0] : 1.0 - t[0], da = a ? 1.0 : -1.0;
+    for (int b = 0; b < 2; ++b) {
+      const double wb = b ? t[1] : 1.0 - t[1], db = b ? 1.0 : -1.0;
+      for (int c = 0; c < 2; ++c) {
+        const double wc = c ? t[2] : 1.0 - t[2], dc = c ? 1.0 : -1.0;
+        const int n = a * 4 + b * 2 + c;
+        weight[n] = wa * wb * wc;
+        const Eigen::Map<const Eigen::Matrix<double, 6, 1>> v(block_values[n]);
+        e.noalias() += weight[n] * v;
+        de_dx.col(0).noalias() += (da * wb * wc * inv_width[0]) * v;
+        de_dx.col(1).noalias() += (wa * db * wc * inv_width[1]) * v;
+        de_dx.col(2).noalias() += (wa * wb * dc * inv_width[2]) * v;
+      }
+    }
+  }
+  // One forward pass of the pose error's application over (input pose, e).
+  using Jet = ceres::Jet<double, 13>;
+  Vector3<Jet> position, e_p, e_o;
+  for (int k = 0; k < 3; ++k) {
+    position[k] = Jet(input[k], k);
+    e_p[k] = Jet(e[k], 7 + k);
+    e_o[k] = Jet(e[3 + k], 10 + k);
+  }
+  Eigen::Quaternion<Jet> rotation = QuaternionFromXyzw<Jet>(Jet(input[3], 3), Jet(input[4], 4),
+                                                            Jet(input[5], 5), Jet(input[6], 6));
+  ApplyPoseError<Jet>(e_p, e_o, &position, &rotation);
+  Jet out[7];
+  for (int k = 0; k < 3; ++k) out[k] = position[k];
+  QuaternionToXyzwArray(rotation, out + 3);
+  Eigen::Matrix<double, 7, 7> d_input;
+  Eigen::Matrix<double, 7, 6> d_error;
+  for (int i = 0; i < 7; ++i) {
+    result->output[i] = out[i].a;
+    d_input.row(i) = out[i].v.head<7>().transpose();
+    d_error.row(i) = out[i].v.tail<6>().transpose();
+  }
+  d_input.leftCols<3>().noalias() += d_error * de_dx;
+  result->d_output_d_input = d_input;
+  result->d_output_d_blocks.resize(binding.blocks.size());
+  for (size_t n = 0; n < binding.blocks.size(); ++n) {
+    result->d_output_d_blocks[n] = weight[n] * d_error;
+  }
+  return true;
 }
 
 namespace {

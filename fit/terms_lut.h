@@ -48,11 +48,28 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   bool InitializeLinear(const std::vector<FitStation>& inputs,
                         const Eigen::Vector2d& noise_sigmas) override;
   StationBinding Bind(const AmbientPose& input) const override;
+  // Analytic Jacobians: the output is linear in the node values (weight of the node times d output
+  // / d error), so one forward pass over the input pose and the interpolated error (13 derivatives)
+  // replaces the 55-derivative autodiff of Apply (7 passes of 8): the LUT chain's Jacobian
+  // evaluation (docs/benchmarks.md, bench_fit.py). Equal to EvaluateAutoDiff to rounding.
+  bool Evaluate(const StationBinding& binding, const double* const* block_values,
+                const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
+  // The generic autodiff of Apply (AutoDiffModelTerm), the reference the analytic Evaluate is
+  // tested against.
+  bool EvaluateAutoDiff(const StationBinding& binding, const double* const* block_values,
+                        const AmbientPose& input, bool jacobians, TermEvaluation* result) const {
+    return AutoDiffModelTerm<LutTerm>::Evaluate(binding, block_values, input, jacobians, result);
+  }
   // Trilinear interpolation reproduces a linear field exactly (unless every node is fixed).
   bool AbsorbsIsotropicScaling() const override {
     bool any_free = blocks_.empty();  // before Prepare(): free unless the settings fix them
     for (const auto& b : blocks_) any_free = any_free || !b.fixed;
     return any_free;
+  }
+  // A LUT followed by other terms starts from zero (InitializeLinear fits the whole remaining
+  // error, which would hide it from the later terms' initialisation, a physical term's search).
+  void SetFollowingTerms(const std::vector<const ModelTerm*>& later) override {
+    has_following_terms_ = !later.empty();
   }
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
   std::unique_ptr<Correction> ToCorrection() const override;
@@ -69,6 +86,7 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   LutTermOptions options_;
   std::optional<LutGrid> grid_;
   Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);
+  bool has_following_terms_ = false;
 };
 
 template <typename T>

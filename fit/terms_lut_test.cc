@@ -75,6 +75,90 @@ TEST(LutTerm, SmoothnessFillsEmptyCellsAndGridFollowsCellSize) {
   EXPECT_LT(worst, 1e-7);  // linear field: reproduced to solver tolerance
 }
 
+// The linear initialisation: on noise-free stations of a LUT without regularisers it gives the
+// node values (before, they started at zero and the joint solve found them).
+TEST(LutTerm, InitializeLinearStartsAtTheLeastSquaresNodeValues) {
+  std::mt19937 rng(22);
+  auto stations = RandomStations(1500, &rng);
+  LutTermOptions options;
+  options.nodes = std::array<int, 3>{4, 4, 3};
+  options.smoothness = 0.0;
+  options.ridge = 0.0;
+  LutTerm truth(options);
+  truth.Prepare(stations);
+  std::normal_distribution<double> normal;
+  for (auto& block : truth.blocks()) {
+    for (int i = 0; i < 6; ++i) block.values[static_cast<size_t>(i)] = (i < 3 ? 0.005 : 0.01) * normal(rng);
+  }
+  const auto correction = truth.ToCorrection();
+  for (auto& s : stations) s.reference = correction->Apply(s.reported).pose;
+  // A hemisphere flip: metres off, left out of the start.
+  stations[0].reference.translation = -stations[0].reported.translation;
+
+  LutTerm lut(options);
+  lut.Prepare(stations);
+  ASSERT_TRUE(lut.InitializeLinear(stations, Eigen::Vector2d(1e-3, 3.5e-3)));
+  for (size_t b = 0; b < truth.blocks().size(); ++b) {
+    for (int i = 0; i < 6; ++i) {
+      const double t = truth.blocks()[b].values[static_cast<size_t>(i)];
+      // Noise-free: each station's target error (position, vector part of q_ref conj(q)) is the
+      // interpolated error exactly, so the least squares recover the nodes up to rounding.
+      EXPECT_NEAR(lut.blocks()[b].values[static_cast<size_t>(i)], t, 1e-9)
+          << truth.blocks()[b].coordinate_names[static_cast<size_t>(i)];
+    }
+  }
+  // A fixed node keeps the engine's zero start (the solve honours it; this one would not).
+  LutTerm held(options);
+  held.Prepare(stations);
+  held.blocks()[0].fixed = true;
+  EXPECT_FALSE(held.InitializeLinear(stations, Eigen::Vector2d(1e-3, 3.5e-3)));
+  EXPECT_EQ(held.blocks()[1].values[0], 0.0);
+  // So does a LUT with terms after it (their initialisation sees the error it leaves).
+  LutTerm first(options);
+  first.SetFollowingTerms({&truth});
+  first.Prepare(stations);
+  EXPECT_FALSE(first.InitializeLinear(stations, Eigen::Vector2d(1e-3, 3.5e-3)));
+  EXPECT_EQ(first.blocks()[1].values[0], 0.0);
+}
+
+// The analytic Jacobians against the autodiff of Apply they replace, inside a cell and outside the
+// grid (the cell at the edge, extrapolated).
+TEST(LutTerm, AnalyticJacobiansEqualAutoDiff) {
+  std::mt19937 rng(23);
+  auto stations = RandomStations(200, &rng);
+  LutTermOptions options;
+  options.nodes = std::array<int, 3>{5, 4, 3};
+  LutTerm lut(options);
+  lut.Prepare(stations);
+  std::normal_distribution<double> normal;
+  for (auto& block : lut.blocks()) {
+    for (int i = 0; i < 6; ++i) block.values[static_cast<size_t>(i)] = (i < 3 ? 0.005 : 0.05) * normal(rng);
+  }
+  std::vector<AmbientPose> inputs;
+  for (int i = 0; i < 20; ++i) inputs.push_back(ToAmbient(stations[static_cast<size_t>(i)].reported));
+  AmbientPose outside = inputs[0];
+  outside[0] = 0.7;  // beyond the grid's x
+  inputs.push_back(outside);
+  for (const AmbientPose& input : inputs) {
+    const StationBinding binding = lut.Bind(input);
+    std::vector<const double*> values;
+    for (int b : binding.blocks) values.push_back(lut.blocks()[static_cast<size_t>(b)].values.data());
+    TermEvaluation analytic, autodiff;
+    ASSERT_TRUE(lut.Evaluate(binding, values.data(), input, true, &analytic));
+    ASSERT_TRUE(lut.EvaluateAutoDiff(binding, values.data(), input, true, &autodiff));
+    // The same chain rule summed in another order: rounding, ~1e-16 of entries of order 1.
+    EXPECT_LT((analytic.output - autodiff.output).cwiseAbs().maxCoeff(), 1e-14);
+    EXPECT_LT((analytic.d_output_d_input - autodiff.d_output_d_input).cwiseAbs().maxCoeff(), 1e-12);
+    ASSERT_EQ(analytic.d_output_d_blocks.size(), autodiff.d_output_d_blocks.size());
+    for (size_t b = 0; b < analytic.d_output_d_blocks.size(); ++b) {
+      EXPECT_LT((analytic.d_output_d_blocks[b] - autodiff.d_output_d_blocks[b]).cwiseAbs().maxCoeff(), 1e-14);
+    }
+    TermEvaluation plain;
+    ASSERT_TRUE(lut.Evaluate(binding, values.data(), input, false, &plain));
+    EXPECT_LT((plain.output - analytic.output).cwiseAbs().maxCoeff(), 1e-15);
+  }
+}
+
 TEST(LutTerm, ModelFileErrors) {
   EXPECT_THROW(ParseModelYaml("terms: [{type: lut, cell_size_mm: 0}]", "m"), std::invalid_argument);
   EXPECT_THROW(ParseModelYaml("terms: [{type: lut, nodes: [2, 2]}]", "m"), std::invalid_argument);
