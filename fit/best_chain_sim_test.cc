@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <ctime>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -17,6 +18,7 @@
 
 #include "core/calibration_file.h"
 #include "core/error_statistics.h"
+#include "fit/chain_builder.h"
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
 #include "fit/sim_test_support.h"
@@ -564,6 +566,96 @@ TEST(BestChainOnPaperPreset, PoliciesOnSavedFits) {
   }
 }
 
+// The chain BuildChain (fit/chain_builder.h) builds from the calibration stations alone, with the
+// noise model of kNoise; prints the builder's steps and validates the file as written.
+Outcome BuildAndValidate(const PaperCapture& data, const ChainBuilderOptions& options,
+                         const std::string& name) {
+  FitOptions fit_options;
+  fit_options.compute_covariance = false;
+  const auto start = std::chrono::steady_clock::now();
+  const std::clock_t cpu_start = std::clock();
+  const BuiltChain built = BuildChain(data.calibration, options, fit_options);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double cpu = static_cast<double>(std::clock() - cpu_start) / CLOCKS_PER_SEC;
+  for (const auto& step : built.steps) {
+    std::cout << "  round " << step.round << " +" << (step.added.empty() ? "nothing" : step.added)
+              << ": score " << step.score << " (degree " << step.degree << ")"
+              << (step.kept ? " kept" : "") << ", " << step.seconds << " s\n";
+  }
+  std::cout << "  degree " << built.degree << ", ridge " << built.ridge.transpose() << "; "
+            << built.fit.iterations << " iterations; " << seconds << " s wall, " << cpu
+            << " s CPU\n";
+  const Calibration file = WrittenFile(built.fit);
+  Outcome o = Validate(data, file.chain, file.volume(), name, true);
+  o.seconds = seconds;
+  for (const auto& p : built.fit.parameters) {
+    if (p.term.rfind("polynomial", 0) == 0) continue;
+    std::cout << "  " << p.term << "." << p.block << " =";
+    for (double v : p.values) std::cout << " " << v;
+    std::cout << "\n";
+  }
+  if (std::getenv("TRACKCAL_BUILD_VARIANTS")) {
+    // The sources found, fitted jointly with a plain polynomial of a few degrees.
+    for (int degree : {0, 2, 4}) {
+      FitAndValidate(data,
+                     options.settings_yaml + "terms:\n" + built.sources +
+                         "  - type: polynomial\n    degree: " + std::to_string(degree) + "\n",
+                     name + " sources + degree " + std::to_string(degree));
+    }
+  }
+  return o;
+}
+
+// Exploration of the builder's options: TRACKCAL_BEST_CHAIN_BUILD=1 [TRACKCAL_BEST_CHAIN_SEEDS],
+// TRACKCAL_BUILD_TYPES=dipole,plane,dipole_pair, TRACKCAL_BUILD_REFIT=1 (joint final fit),
+// TRACKCAL_BUILD_REACH=0.1, TRACKCAL_BUILD_MAX_SOURCES=6, TRACKCAL_BUILD_GAIN=0.03.
+TEST(BestChainOnPaperPreset, ExploreBuilder) {
+  if (std::getenv("TRACKCAL_BEST_CHAIN_BUILD") == nullptr)
+    GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_BUILD";
+  ChainBuilderOptions options;
+  options.settings_yaml = kNoise;
+  if (const char* t = std::getenv("TRACKCAL_BUILD_TYPES")) {
+    options.source_types.clear();
+    std::stringstream ss(t);
+    for (std::string s; std::getline(ss, s, ',');) options.source_types.push_back(s);
+  }
+  if (std::getenv("TRACKCAL_BUILD_REFIT")) options.refit_group = true;
+  if (const char* r = std::getenv("TRACKCAL_BUILD_REACH")) options.cv_linear_reach = std::stod(r);
+  if (const char* m = std::getenv("TRACKCAL_BUILD_MAX_SOURCES")) options.max_sources = std::stoi(m);
+  if (const char* g = std::getenv("TRACKCAL_BUILD_GAIN")) options.min_relative_gain = std::stod(g);
+  if (const char* d = std::getenv("TRACKCAL_BUILD_SEARCH_DEGREE")) options.search_degree = std::stoi(d);
+  const FieldModel room = sim::LoadScene("paper").environment;
+  for (uint64_t seed : ExplorationSeeds()) {
+    const PaperCapture data = Simulate(seed);
+    if (std::getenv("TRACKCAL_BUILD_REFERENCE")) {
+      // The builder's score after the true room (held fixed): what noise alone leaves; after a
+      // searched dipole and plane with the true far sources; after a searched dipole and plane.
+      FieldModel far = room;
+      far.planes.erase(far.planes.begin());  // the floor
+      far.objects.pop_back();                // the workbench frame
+      for (const auto& [what, terms] : std::vector<std::pair<std::string, std::string>>{
+               {"true room", testing::FixedRoomTermsYaml(room)},
+               {"searched dipole + plane, true far", "  - type: dipole\n  - type: plane\n" +
+                                                         testing::FixedRoomTermsYaml(far)},
+               {"searched dipole + plane", "  - type: dipole\n  - type: plane\n"}}) {
+        ModelSpec spec = ParseModelYaml(
+            std::string(kNoise) + "terms:\n" + terms + "  - type: polynomial\n    degree: 0\n",
+            "room");
+        FitOptions fo;
+        fo.compute_covariance = false;
+        const FitResult fit = FitModel(data.calibration, &spec, fo);
+        const ExplicitCv cv = ExplicitTermCv(&fit.chain.term(0), data.calibration, spec, 0, 8,
+                                             options.cv_linear_reach);
+        std::cout << "seed " << seed << " " << what << ": score per degree 0..8:";
+        for (double v : cv.score) std::cout << " " << v;
+        std::cout << "\n";
+      }
+    }
+    BuildAndValidate(data, options, "built chain seed " + std::to_string(seed));
+  }
+}
+
 // Exploration: TRACKCAL_BEST_CHAIN_MODELS=a.yaml,b.yaml TRACKCAL_BEST_CHAIN_SEEDS=1,2 fits each.
 TEST(BestChainOnPaperPreset, Explore) {
   const char* models = std::getenv("TRACKCAL_BEST_CHAIN_MODELS");
@@ -575,11 +667,39 @@ TEST(BestChainOnPaperPreset, Explore) {
       std::ifstream in(path);
       std::stringstream text;
       text << in.rdbuf();
-      // "{ROOM}" in a model stands for the scene's true planes and objects, held fixed.
+      // Placeholders for the scene's true planes and objects: "{ROOM}" all of them, "{FAR}" those
+      // farther than kFarM from the transmitter (the door and the monitors), "{NEAR}" the others
+      // (the frame and the floor), held fixed; "{ROOM_FREE}", "{FAR_FREE}", "{NEAR_FREE}": the
+      // same, started at the truth and fitted.
       std::string yaml = text.str();
-      const size_t room = yaml.find("{ROOM}");
-      if (room != std::string::npos) {
-        yaml.replace(room, 6, testing::FixedRoomTermsYaml(sim::LoadScene("paper").environment));
+      const FieldModel room = sim::LoadScene("paper").environment;
+      constexpr double kFarM = 1.5;
+      FieldModel far = room, near = room;
+      far.planes.clear();
+      far.objects.clear();
+      near.planes.clear();
+      near.objects.clear();
+      for (const auto& p : room.planes) {
+        (std::abs(p.point_in_transmitter.dot(p.normal_in_transmitter)) > kFarM ? far : near)
+            .planes.push_back(p);
+      }
+      for (const auto& o : room.objects) {
+        (o.location_in_transmitter.norm() > kFarM ? far : near).objects.push_back(o);
+      }
+      const auto freed = [](std::string terms) {
+        for (size_t at; (at = terms.find("{fixed: true}")) != std::string::npos;)
+          terms.replace(at, 13, "{fixed: false}");
+        return terms;
+      };
+      for (const auto& [key, terms] : std::vector<std::pair<std::string, std::string>>{
+               {"{ROOM_FREE}", freed(testing::FixedRoomTermsYaml(room))},
+               {"{FAR_FREE}", freed(testing::FixedRoomTermsYaml(far))},
+               {"{NEAR_FREE}", freed(testing::FixedRoomTermsYaml(near))},
+               {"{ROOM}", testing::FixedRoomTermsYaml(room)},
+               {"{FAR}", testing::FixedRoomTermsYaml(far)},
+               {"{NEAR}", testing::FixedRoomTermsYaml(near)}}) {
+        const size_t at = yaml.find(key);
+        if (at != std::string::npos) yaml.replace(at, key.size(), terms);
       }
       FitAndValidate(data, yaml, path + " seed " + std::to_string(seed), true);
     }
