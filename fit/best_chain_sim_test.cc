@@ -247,6 +247,24 @@ constexpr const char* kPaperPolynomial = "terms:\n  - type: polynomial\n    degr
 // on that residual the blocked CV's optimum is a weight of 1-3. A weaker weight lets the joint fit
 // trade the physical terms for polynomial coefficients (the second pass above), so 0.25 on seed 1
 // is a fortunate hand-pick rather than a rule.
+// Session 6, where kBestChain's gap comes from (Explore with the {ROOM}/{FAR}/{NEAR} placeholders;
+// validation means over the floor's, position / orientation, the file as written):
+//                                                          seed 1          seed 2
+//   true room held fixed + degree 0 ....................... 1.00x / 0.99x   0.98x / 0.99x
+//   true room freed from the truth + degree 0 ............. 1.05x / 1.01x   1.02x / 1.01x
+//   true room freed + degree 2 ............................ 1.17x / 1.09x   1.09x / 1.07x
+//   true room held + degree 8 ridge 0.25 .................. 1.50x / 1.35x   1.62x / 1.68x
+//   searched dipole + plane, true far sources held, deg 0 . 1.03x / 1.00x   1.00x / 0.99x
+//     the same, degree 2 .................................. 1.12x / 1.08x   1.08x / 1.03x
+//     far sources freed, degree 2 ......................... 1.17x / 1.09x   1.09x / 1.07x
+//     far sources held, degree 8 ridge 0.25 ............... 1.65x / 1.60x   2.76x / 2.08x
+//   kBestChain (searched dipole + plane, degree 8 ridge) .. 2.03x / 1.70x   3.73x / 2.28x
+//     the same with the frame and floor started at the truth and freed: identical
+// So the search finds the frame and the floor; what is left is the far sources (monitors, door),
+// which the degree-8 polynomial absorbs badly (1.65 -> 2.03x, 2.76 -> 3.73x), and the degree-8
+// polynomial's own variance, even with nothing left to model (1.0 -> 1.5-1.65x; 1.0 -> 1.65-2.76x
+// with the near sources searched). The cure is the far sources as physical terms and a
+// low-degree explicit term: fit/chain_builder.h (TheChainBuiltByHeldOutError).
 constexpr const char* kBestChain =
     "terms:\n"
     "  - type: dipole\n"
@@ -254,38 +272,6 @@ constexpr const char* kBestChain =
     "  - type: polynomial\n"
     "    degree: 8\n"
     "    ridge: 0.25\n";
-
-TEST(BestChainOnPaperPreset, SearchedNearSourcesAndARidgePolynomial) {
-  // Three seeds: the chain's fit takes ~10-25 s of CPU per seed (a searched dipole and plane, then
-  // 990 polynomial coefficients jointly with them; the three took 51 s wall together on the shared
-  // 2-core machine), and CI runs this test on every push.
-  struct Bound {
-    uint64_t seed;
-    double position, orientation;
-  };
-  // Issue #5's acceptance is 1.5x the floor: NOT reached. Measured with the file as written (the
-  // linear policy outside the calibrated volume), all / inside the box / outside it, position /
-  // orientation:
-  //   seed 1: 2.03x / 1.70x   inside 1.60x / 1.36x   outside 3.54x / 3.28x   (clamp: 2.34x / 1.81x)
-  //   seed 2: 3.73x / 2.28x   inside 2.94x / 1.66x   outside 4.82x / 3.65x   (clamp: 4.19x / 2.54x)
-  //   seed 3: 2.97x / 1.73x   inside 1.88x / 1.44x   outside 6.03x / 2.60x   (clamp: 4.59x / 2.29x)
-  // The bounds hold what is reached, with ~7 % for solver and platform differences, so a
-  // regression fails.
-  const std::vector<Bound> bounds = {{1, 2.17, 1.82}, {2, 3.99, 2.44}, {3, 3.18, 1.85}};
-  for (const Bound& bound : bounds) {
-    SCOPED_TRACE("seed " + std::to_string(bound.seed));
-    const PaperCapture data = Simulate(bound.seed);
-    const Outcome paper =
-        FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
-    const Outcome best = FitAndValidate(data, std::string(kNoise) + kBestChain, "best chain");
-    // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
-    EXPECT_GT(paper.position_ratio, 10.0);
-    EXPECT_GT(paper.orientation_ratio, 5.0);
-    EXPECT_LE(best.position_ratio, bound.position);
-    EXPECT_LE(best.orientation_ratio, bound.orientation);
-    EXPECT_LT(best.position_ratio, 0.1 * paper.position_ratio);
-  }
-}
 
 // The chain chosen by held-out calibration data, the same procedure for every capture: searched
 // physical sources (a dipole and a plane) followed by a polynomial of degree 4 .. 8 with ridge:
@@ -605,6 +591,48 @@ Outcome BuildAndValidate(const PaperCapture& data, const ChainBuilderOptions& op
     }
   }
   return o;
+}
+
+// Issue #5's acceptance: the chain trackcal-fit build makes (fit/chain_builder.h: sources added
+// while the blocked cross-validation of the explicit term after them improves, then the explicit
+// term's degree and weights chosen the same way on what the final group leaves, the group held)
+// within 1.5x the noise floor on validation, on three seeds.
+TEST(BestChainOnPaperPreset, TheChainBuiltByHeldOutError) {
+  struct Bound {
+    uint64_t seed;
+    double position, orientation;
+  };
+  // Measured with the file as written (validation means over the floor's, position / orientation):
+  //   seed 1: 1.14x / 1.01x   inside the box 1.16x / 1.00x   outside 1.04x / 1.03x
+  //   seed 2: 1.06x / 1.04x   inside the box 1.10x / 1.03x   outside 1.01x / 1.04x
+  //   seed 3: 1.08x / 1.06x   inside the box 1.05x / 1.05x   outside 1.18x / 1.09x
+  // The builder found on every seed the workbench frame and the floor (a dipole + plane in round
+  // 1), the three CRT monitors within 2 cm (round 2's dipole, round 3's pair), and the door as a
+  // plane at 2.09-2.1 m (seeds 1, 2) or as a dipole pair beyond it (seed 3), plus one plane doing
+  // little (attenuation ~0 or a stand-in far off); the explicit term came out degree 2-3 with
+  // strong weights (ridge 31.6-100). CPU of the builder and its fit: 111 / 113 / 74 s (wall
+  // 192 / 244 / 146 s on the shared machine under load ~10).
+  // (kBestChain, the hand-picked searched dipole + plane + degree-8 ridge 0.25 polynomial this
+  // test ran before: 2.03x / 1.70x, 3.73x / 2.28x, 2.97x / 1.73x.) The bounds hold what is reached
+  // with ~7 % for solver and platform differences, so a regression fails; all are below the
+  // issue's 1.5x.
+  const std::vector<Bound> bounds = {{1, 1.22, 1.08}, {2, 1.13, 1.11}, {3, 1.16, 1.13}};
+  ChainBuilderOptions options;
+  options.settings_yaml = kNoise;
+  for (const Bound& bound : bounds) {
+    SCOPED_TRACE("seed " + std::to_string(bound.seed));
+    const PaperCapture data = Simulate(bound.seed);
+    const Outcome paper =
+        FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
+    const Outcome best = BuildAndValidate(data, options, "built chain");
+    // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
+    EXPECT_GT(paper.position_ratio, 10.0);
+    EXPECT_GT(paper.orientation_ratio, 5.0);
+    EXPECT_LE(best.position_ratio, bound.position);
+    EXPECT_LE(best.orientation_ratio, bound.orientation);
+    EXPECT_LE(best.position_ratio, 1.5);
+    EXPECT_LE(best.orientation_ratio, 1.5);
+  }
 }
 
 // Exploration of the builder's options: TRACKCAL_BEST_CHAIN_BUILD=1 [TRACKCAL_BEST_CHAIN_SEEDS],

@@ -6,7 +6,8 @@
 //
 // Greedy, without truth values:
 //   1. Sources. Starting from no physical term, each round tries every source type of
-//      `source_types` (a searched dipole, a searched plane, a searched dipole pair) added to the
+//      `source_types` (a searched dipole then plane, a searched dipole, a searched plane, a
+//      searched dipole pair) added to the
 //      sources found so far (given as start values, free). The physical group is initialised as
 //      the fitting engine does (the start-value searches of fit/terms_physical.h, then the group's
 //      refinement, projected against the polynomial that follows), and scored by what an explicit
@@ -36,9 +37,12 @@ struct ChainBuilderOptions {
   // The model file's settings other than `terms:` (noise, solver, loss), as YAML mapping lines;
   // the builder appends `terms:`. `solver.covariance` applies to the final fit only.
   std::string settings_yaml;
-  // Source types tried each round: "dipole", "plane", "dipole_pair".
-  std::vector<std::string> source_types = {"dipole", "plane", "dipole_pair"};
-  int max_sources = 6;  // physical sources at most (a pair counts as two)
+  // Source types tried each round: "dipole_plane" (a dipole, then a plane searched against what
+  // it leaves), "dipole", "plane", "dipole_pair" (two dipoles searched together). One at a time,
+  // the first source of a near object and a plane is a stand-in (on the paper preset a pair, the
+  // frame and the floor's image 1.6 m below the transmitter), which then blocks the floor.
+  std::vector<std::string> source_types = {"dipole_plane", "dipole", "plane", "dipole_pair"};
+  int max_sources = 8;  // physical sources at most (a pair counts as two)
   // A round's best addition is kept if it lowers the score by at least this fraction.
   double min_relative_gain = 0.03;
   // Degrees of the explicit polynomial scored (each at its best ridge weight).
