@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <ctime>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -17,6 +18,7 @@
 
 #include "core/calibration_file.h"
 #include "core/error_statistics.h"
+#include "fit/chain_builder.h"
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
 #include "fit/sim_test_support.h"
@@ -245,6 +247,24 @@ constexpr const char* kPaperPolynomial = "terms:\n  - type: polynomial\n    degr
 // on that residual the blocked CV's optimum is a weight of 1-3. A weaker weight lets the joint fit
 // trade the physical terms for polynomial coefficients (the second pass above), so 0.25 on seed 1
 // is a fortunate hand-pick rather than a rule.
+// Session 6, where kBestChain's gap comes from (Explore with the {ROOM}/{FAR}/{NEAR} placeholders;
+// validation means over the floor's, position / orientation, the file as written):
+//                                                          seed 1          seed 2
+//   true room held fixed + degree 0 ....................... 1.00x / 0.99x   0.98x / 0.99x
+//   true room freed from the truth + degree 0 ............. 1.05x / 1.01x   1.02x / 1.01x
+//   true room freed + degree 2 ............................ 1.17x / 1.09x   1.09x / 1.07x
+//   true room held + degree 8 ridge 0.25 .................. 1.50x / 1.35x   1.62x / 1.68x
+//   searched dipole + plane, true far sources held, deg 0 . 1.03x / 1.00x   1.00x / 0.99x
+//     the same, degree 2 .................................. 1.12x / 1.08x   1.08x / 1.03x
+//     far sources freed, degree 2 ......................... 1.17x / 1.09x   1.09x / 1.07x
+//     far sources held, degree 8 ridge 0.25 ............... 1.65x / 1.60x   2.76x / 2.08x
+//   kBestChain (searched dipole + plane, degree 8 ridge) .. 2.03x / 1.70x   3.73x / 2.28x
+//     the same with the frame and floor started at the truth and freed: identical
+// So the search finds the frame and the floor; what is left is the far sources (monitors, door),
+// which the degree-8 polynomial absorbs badly (1.65 -> 2.03x, 2.76 -> 3.73x), and the degree-8
+// polynomial's own variance, even with nothing left to model (1.0 -> 1.5-1.65x; 1.0 -> 1.65-2.76x
+// with the near sources searched). The cure is the far sources as physical terms and a
+// low-degree explicit term: fit/chain_builder.h (TheChainBuiltByHeldOutError).
 constexpr const char* kBestChain =
     "terms:\n"
     "  - type: dipole\n"
@@ -252,38 +272,6 @@ constexpr const char* kBestChain =
     "  - type: polynomial\n"
     "    degree: 8\n"
     "    ridge: 0.25\n";
-
-TEST(BestChainOnPaperPreset, SearchedNearSourcesAndARidgePolynomial) {
-  // Three seeds: the chain's fit takes ~10-25 s of CPU per seed (a searched dipole and plane, then
-  // 990 polynomial coefficients jointly with them; the three took 51 s wall together on the shared
-  // 2-core machine), and CI runs this test on every push.
-  struct Bound {
-    uint64_t seed;
-    double position, orientation;
-  };
-  // Issue #5's acceptance is 1.5x the floor: NOT reached. Measured with the file as written (the
-  // linear policy outside the calibrated volume), all / inside the box / outside it, position /
-  // orientation:
-  //   seed 1: 2.03x / 1.70x   inside 1.60x / 1.36x   outside 3.54x / 3.28x   (clamp: 2.34x / 1.81x)
-  //   seed 2: 3.73x / 2.28x   inside 2.94x / 1.66x   outside 4.82x / 3.65x   (clamp: 4.19x / 2.54x)
-  //   seed 3: 2.97x / 1.73x   inside 1.88x / 1.44x   outside 6.03x / 2.60x   (clamp: 4.59x / 2.29x)
-  // The bounds hold what is reached, with ~7 % for solver and platform differences, so a
-  // regression fails.
-  const std::vector<Bound> bounds = {{1, 2.17, 1.82}, {2, 3.99, 2.44}, {3, 3.18, 1.85}};
-  for (const Bound& bound : bounds) {
-    SCOPED_TRACE("seed " + std::to_string(bound.seed));
-    const PaperCapture data = Simulate(bound.seed);
-    const Outcome paper =
-        FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
-    const Outcome best = FitAndValidate(data, std::string(kNoise) + kBestChain, "best chain");
-    // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
-    EXPECT_GT(paper.position_ratio, 10.0);
-    EXPECT_GT(paper.orientation_ratio, 5.0);
-    EXPECT_LE(best.position_ratio, bound.position);
-    EXPECT_LE(best.orientation_ratio, bound.orientation);
-    EXPECT_LT(best.position_ratio, 0.1 * paper.position_ratio);
-  }
-}
 
 // The chain chosen by held-out calibration data, the same procedure for every capture: searched
 // physical sources (a dipole and a plane) followed by a polynomial of degree 4 .. 8 with ridge:
@@ -564,6 +552,138 @@ TEST(BestChainOnPaperPreset, PoliciesOnSavedFits) {
   }
 }
 
+// The chain BuildChain (fit/chain_builder.h) builds from the calibration stations alone, with the
+// noise model of kNoise; prints the builder's steps and validates the file as written.
+Outcome BuildAndValidate(const PaperCapture& data, const ChainBuilderOptions& options,
+                         const std::string& name) {
+  FitOptions fit_options;
+  fit_options.compute_covariance = false;
+  const auto start = std::chrono::steady_clock::now();
+  const std::clock_t cpu_start = std::clock();
+  const BuiltChain built = BuildChain(data.calibration, options, fit_options);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double cpu = static_cast<double>(std::clock() - cpu_start) / CLOCKS_PER_SEC;
+  for (const auto& step : built.steps) {
+    std::cout << "  round " << step.round << " +" << (step.added.empty() ? "nothing" : step.added)
+              << ": score " << step.score << " (degree " << step.degree << ")"
+              << (step.kept ? " kept" : "") << ", " << step.seconds << " s\n";
+  }
+  std::cout << "  degree " << built.degree << ", ridge " << built.ridge.transpose() << "; "
+            << built.fit.iterations << " iterations; " << seconds << " s wall, " << cpu
+            << " s CPU\n";
+  const Calibration file = WrittenFile(built.fit);
+  Outcome o = Validate(data, file.chain, file.volume(), name, true);
+  o.seconds = seconds;
+  for (const auto& p : built.fit.parameters) {
+    if (p.term.rfind("polynomial", 0) == 0) continue;
+    std::cout << "  " << p.term << "." << p.block << " =";
+    for (double v : p.values) std::cout << " " << v;
+    std::cout << "\n";
+  }
+  if (std::getenv("TRACKCAL_BUILD_VARIANTS")) {
+    // The sources found, fitted jointly with a plain polynomial of a few degrees.
+    for (int degree : {0, 2, 4}) {
+      FitAndValidate(data,
+                     options.settings_yaml + "terms:\n" + built.sources +
+                         "  - type: polynomial\n    degree: " + std::to_string(degree) + "\n",
+                     name + " sources + degree " + std::to_string(degree));
+    }
+  }
+  return o;
+}
+
+// Issue #5's acceptance: the chain trackcal-fit build makes (fit/chain_builder.h: sources added
+// while the blocked cross-validation of the explicit term after them improves, then the explicit
+// term's degree and weights chosen the same way on what the final group leaves, the group held)
+// within 1.5x the noise floor on validation, on three seeds.
+TEST(BestChainOnPaperPreset, TheChainBuiltByHeldOutError) {
+  struct Bound {
+    uint64_t seed;
+    double position, orientation;
+  };
+  // Measured with the file as written (validation means over the floor's, position / orientation):
+  //   seed 1: 1.14x / 1.01x   inside the box 1.16x / 1.00x   outside 1.04x / 1.03x
+  //   seed 2: 1.06x / 1.04x   inside the box 1.10x / 1.03x   outside 1.01x / 1.04x
+  //   seed 3: 1.08x / 1.06x   inside the box 1.05x / 1.05x   outside 1.18x / 1.09x
+  // The builder found on every seed the workbench frame and the floor (a dipole + plane in round
+  // 1), the three CRT monitors within 2 cm (round 2's dipole, round 3's pair), and the door as a
+  // plane at 2.09-2.1 m (seeds 1, 2) or as a dipole pair beyond it (seed 3), plus one plane doing
+  // little (attenuation ~0 or a stand-in far off); the explicit term came out degree 2-3 with
+  // strong weights (ridge 31.6-100). CPU of the builder and its fit: 111 / 113 / 74 s (wall
+  // 192 / 244 / 146 s on the shared machine under load ~10).
+  // (kBestChain, the hand-picked searched dipole + plane + degree-8 ridge 0.25 polynomial this
+  // test ran before: 2.03x / 1.70x, 3.73x / 2.28x, 2.97x / 1.73x.) The bounds hold what is reached
+  // with ~7 % for solver and platform differences, so a regression fails; all are below the
+  // issue's 1.5x.
+  const std::vector<Bound> bounds = {{1, 1.22, 1.08}, {2, 1.13, 1.11}, {3, 1.16, 1.13}};
+  ChainBuilderOptions options;
+  options.settings_yaml = kNoise;
+  for (const Bound& bound : bounds) {
+    SCOPED_TRACE("seed " + std::to_string(bound.seed));
+    const PaperCapture data = Simulate(bound.seed);
+    const Outcome paper =
+        FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
+    const Outcome best = BuildAndValidate(data, options, "built chain");
+    // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
+    EXPECT_GT(paper.position_ratio, 10.0);
+    EXPECT_GT(paper.orientation_ratio, 5.0);
+    EXPECT_LE(best.position_ratio, bound.position);
+    EXPECT_LE(best.orientation_ratio, bound.orientation);
+    EXPECT_LE(best.position_ratio, 1.5);
+    EXPECT_LE(best.orientation_ratio, 1.5);
+  }
+}
+
+// Exploration of the builder's options: TRACKCAL_BEST_CHAIN_BUILD=1 [TRACKCAL_BEST_CHAIN_SEEDS],
+// TRACKCAL_BUILD_TYPES=dipole,plane,dipole_pair, TRACKCAL_BUILD_REFIT=1 (joint final fit),
+// TRACKCAL_BUILD_REACH=0.1, TRACKCAL_BUILD_MAX_SOURCES=6, TRACKCAL_BUILD_GAIN=0.03.
+TEST(BestChainOnPaperPreset, ExploreBuilder) {
+  if (std::getenv("TRACKCAL_BEST_CHAIN_BUILD") == nullptr)
+    GTEST_SKIP() << "set TRACKCAL_BEST_CHAIN_BUILD";
+  ChainBuilderOptions options;
+  options.settings_yaml = kNoise;
+  if (const char* t = std::getenv("TRACKCAL_BUILD_TYPES")) {
+    options.source_types.clear();
+    std::stringstream ss(t);
+    for (std::string s; std::getline(ss, s, ',');) options.source_types.push_back(s);
+  }
+  if (std::getenv("TRACKCAL_BUILD_REFIT")) options.refit_group = true;
+  if (const char* r = std::getenv("TRACKCAL_BUILD_REACH")) options.cv_linear_reach = std::stod(r);
+  if (const char* m = std::getenv("TRACKCAL_BUILD_MAX_SOURCES")) options.max_sources = std::stoi(m);
+  if (const char* g = std::getenv("TRACKCAL_BUILD_GAIN")) options.min_relative_gain = std::stod(g);
+  if (const char* d = std::getenv("TRACKCAL_BUILD_SEARCH_DEGREE")) options.search_degree = std::stoi(d);
+  const FieldModel room = sim::LoadScene("paper").environment;
+  for (uint64_t seed : ExplorationSeeds()) {
+    const PaperCapture data = Simulate(seed);
+    if (std::getenv("TRACKCAL_BUILD_REFERENCE")) {
+      // The builder's score after the true room (held fixed): what noise alone leaves; after a
+      // searched dipole and plane with the true far sources; after a searched dipole and plane.
+      FieldModel far = room;
+      far.planes.erase(far.planes.begin());  // the floor
+      far.objects.pop_back();                // the workbench frame
+      for (const auto& [what, terms] : std::vector<std::pair<std::string, std::string>>{
+               {"true room", testing::FixedRoomTermsYaml(room)},
+               {"searched dipole + plane, true far", "  - type: dipole\n  - type: plane\n" +
+                                                         testing::FixedRoomTermsYaml(far)},
+               {"searched dipole + plane", "  - type: dipole\n  - type: plane\n"}}) {
+        ModelSpec spec = ParseModelYaml(
+            std::string(kNoise) + "terms:\n" + terms + "  - type: polynomial\n    degree: 0\n",
+            "room");
+        FitOptions fo;
+        fo.compute_covariance = false;
+        const FitResult fit = FitModel(data.calibration, &spec, fo);
+        const ExplicitCv cv = ExplicitTermCv(&fit.chain.term(0), data.calibration, spec, 0, 8,
+                                             options.cv_linear_reach);
+        std::cout << "seed " << seed << " " << what << ": score per degree 0..8:";
+        for (double v : cv.score) std::cout << " " << v;
+        std::cout << "\n";
+      }
+    }
+    BuildAndValidate(data, options, "built chain seed " + std::to_string(seed));
+  }
+}
+
 // Exploration: TRACKCAL_BEST_CHAIN_MODELS=a.yaml,b.yaml TRACKCAL_BEST_CHAIN_SEEDS=1,2 fits each.
 TEST(BestChainOnPaperPreset, Explore) {
   const char* models = std::getenv("TRACKCAL_BEST_CHAIN_MODELS");
@@ -575,11 +695,39 @@ TEST(BestChainOnPaperPreset, Explore) {
       std::ifstream in(path);
       std::stringstream text;
       text << in.rdbuf();
-      // "{ROOM}" in a model stands for the scene's true planes and objects, held fixed.
+      // Placeholders for the scene's true planes and objects: "{ROOM}" all of them, "{FAR}" those
+      // farther than kFarM from the transmitter (the door and the monitors), "{NEAR}" the others
+      // (the frame and the floor), held fixed; "{ROOM_FREE}", "{FAR_FREE}", "{NEAR_FREE}": the
+      // same, started at the truth and fitted.
       std::string yaml = text.str();
-      const size_t room = yaml.find("{ROOM}");
-      if (room != std::string::npos) {
-        yaml.replace(room, 6, testing::FixedRoomTermsYaml(sim::LoadScene("paper").environment));
+      const FieldModel room = sim::LoadScene("paper").environment;
+      constexpr double kFarM = 1.5;
+      FieldModel far = room, near = room;
+      far.planes.clear();
+      far.objects.clear();
+      near.planes.clear();
+      near.objects.clear();
+      for (const auto& p : room.planes) {
+        (std::abs(p.point_in_transmitter.dot(p.normal_in_transmitter)) > kFarM ? far : near)
+            .planes.push_back(p);
+      }
+      for (const auto& o : room.objects) {
+        (o.location_in_transmitter.norm() > kFarM ? far : near).objects.push_back(o);
+      }
+      const auto freed = [](std::string terms) {
+        for (size_t at; (at = terms.find("{fixed: true}")) != std::string::npos;)
+          terms.replace(at, 13, "{fixed: false}");
+        return terms;
+      };
+      for (const auto& [key, terms] : std::vector<std::pair<std::string, std::string>>{
+               {"{ROOM_FREE}", freed(testing::FixedRoomTermsYaml(room))},
+               {"{FAR_FREE}", freed(testing::FixedRoomTermsYaml(far))},
+               {"{NEAR_FREE}", freed(testing::FixedRoomTermsYaml(near))},
+               {"{ROOM}", testing::FixedRoomTermsYaml(room)},
+               {"{FAR}", testing::FixedRoomTermsYaml(far)},
+               {"{NEAR}", testing::FixedRoomTermsYaml(near)}}) {
+        const size_t at = yaml.find(key);
+        if (at != std::string::npos) yaml.replace(at, key.size(), terms);
       }
       FitAndValidate(data, yaml, path + " seed " + std::to_string(seed), true);
     }

@@ -30,6 +30,7 @@
 #include "core/capture.h"
 #include "core/file_util.h"
 #include "fit/candidates.h"
+#include "fit/chain_builder.h"
 #include "fit/fit_engine.h"
 #include "fit/fit_run.h"
 #include "fit/model_file.h"
@@ -55,6 +56,9 @@ void PrintUsage(std::ostream& out) {
   out << "usage:\n"
          "  trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] "
          "[--json]\n"
+         "  trackcal-fit build --data DIR|poses.csv --model settings.yaml -o calib.json "
+         "[--model-out model.yaml]\n"
+         "                     [--sources N] [--folds K] [--json] [--quiet]\n"
          "  trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] "
          "[--effects LIST]\n"
          "                        [--cross-validate-top N] [--exact-cv] [--threads N] [--json] "
@@ -66,6 +70,7 @@ void PrintUsage(std::ostream& out) {
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv "
          "[--json]\n"
+         "build chooses the terms itself (settings.yaml: noise, solver, loss; no terms:).\n"
          "Model file format: docs/model-file.md; tool reference: docs/fit.md; diagnose: "
          "docs/diagnose.md.\n";
 }
@@ -219,6 +224,107 @@ int RunFit(int argc, char** argv) {
     std::cout << "\n";
   }
   PrintParameters(result, std::cout);
+  std::cout << "Wrote " << output.string() << "\n";
+  return 0;
+}
+
+// build: the chain chosen by held-out error (fit/chain_builder.h, docs/model-file.md "Building a
+// chain"), then fitted and written as `fit` does.
+int RunBuild(int argc, char** argv) {
+  const Args args = ParseArgs(argc, argv, {"--data", "--model", "-o", "--model-out", "--sources",
+                                           "--folds"},
+                              {"--json", "--quiet"});
+  const fs::path data = args.Get("--data");
+  const fs::path settings_path = args.Get("--model");
+  const fs::path output = args.Get("-o");
+  const int folds = static_cast<int>(ParseNumber("--folds", args.GetOr("--folds", "5")));
+  if (folds < 2) throw UsageError("--folds must be at least 2");
+  ChainBuilderOptions builder;
+  builder.max_sources = static_cast<int>(
+      ParseNumber("--sources", args.GetOr("--sources", std::to_string(builder.max_sources))));
+  if (builder.max_sources < 0) throw UsageError("--sources must be >= 0");
+  const bool json = args.Flag("--json");
+  const bool quiet = args.Flag("--quiet");
+
+  builder.settings_yaml = ReadFileToString(settings_path);
+  {
+    const YAML::Node root = YAML::Load(builder.settings_yaml);
+    for (auto it = root.begin(); root.IsMap() && it != root.end(); ++it) {
+      if (it->first.as<std::string>() != "terms") continue;
+      throw std::invalid_argument(settings_path.string() + ":" +
+                                  std::to_string(it->first.Mark().line + 1) +
+                                  ": terms: build chooses the terms itself; give only noise, "
+                                  "solver and loss");
+    }
+  }
+  // The settings checked as a model file (errors name the file's own lines).
+  const ModelSpec settings = ParseModelYaml(
+      builder.settings_yaml + "\nterms:\n  - type: polynomial\n    degree: 0\n",
+      settings_path.string());
+  LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, settings);
+  std::vector<fs::path> inputs = {settings_path};
+  inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
+  CheckOutputIsNotInput(output, inputs);
+  const std::optional<fs::path> model_out =
+      args.values.count("--model-out") ? std::optional<fs::path>(args.Get("--model-out"))
+                                       : std::nullopt;
+  if (model_out) CheckOutputIsNotInput(*model_out, inputs);
+
+  const std::vector<FitStation> calib = StationsOfSet(loaded.poses, "calib");
+  if (calib.empty()) throw std::invalid_argument(loaded.source + ": no calib stations");
+  if (!quiet) std::cerr << "trackcal-fit: building the chain on " << calib.size() << " stations\n";
+  FitOptions quick;
+  quick.compute_covariance = false;
+  const BuiltChain built = BuildChain(calib, builder, quick);
+  if (model_out) WriteFileAtomically(*model_out, built.model_text);
+
+  FitRunOptions options;
+  options.folds = folds;
+  options.cross_validate_with_validation_set = false;
+  options.tool = "trackcal-fit";
+  options.tool_version = kVersion;
+  options.description_tool = "trackcal-fit build";
+  const FitModelSource model{built.model_text,
+                             model_out ? model_out->string() : std::string("<built model>"),
+                             std::nullopt};
+  FitRunResult run = fit::RunFit(std::move(loaded), model, options);
+  {
+    std::string cmd;
+    for (int i = 0; i < argc; ++i) cmd += (i ? " " : "") + std::string(argv[i]);
+    run.calibration.provenance.command_line = cmd;
+  }
+  WriteCalibrationFile(output, run.calibration);
+
+  nlohmann::json steps = nlohmann::json::array();
+  for (const auto& s : built.steps) {
+    steps.push_back({{"round", s.round}, {"added", s.added.empty() ? "nothing" : s.added},
+                     {"score", s.score}, {"degree", s.degree}, {"kept", s.kept},
+                     {"seconds", s.seconds}});
+  }
+  if (json) {
+    nlohmann::json doc = run.ToJson(output);
+    doc["build"] = {{"steps", steps},
+                    {"degree", built.degree},
+                    {"ridge", {built.ridge[0], built.ridge[1]}},
+                    {"score", built.score},
+                    {"model", built.model_text},
+                    {"seconds", built.seconds}};
+    std::cout << doc.dump(2) << "\n";
+    return 0;
+  }
+  std::cout << "Chain building (score: whitened held-out error per station of the explicit term "
+               "after the sources):\n";
+  for (const auto& s : built.steps) {
+    std::cout << "  round " << s.round << "  +" << std::left << std::setw(12)
+              << (s.added.empty() ? "nothing" : s.added) << std::right << std::setprecision(4)
+              << std::setw(10) << s.score << "  degree " << s.degree << (s.kept ? "  kept" : "")
+              << "\n";
+  }
+  std::cout << "Explicit term: degree " << built.degree << ", ridge " << built.ridge[0]
+            << " (position) / " << built.ridge[1] << " (orientation)\n\n";
+  for (const auto& t : run.tables) std::cout << FormatTable1(t) << "\n";
+  std::cout << "Model:\n" << built.model_text;
+  if (model_out) std::cout << "Wrote " << model_out->string() << "\n";
   std::cout << "Wrote " << output.string() << "\n";
   return 0;
 }
@@ -455,6 +561,7 @@ int main(int argc, char** argv) {
   try {
     if (command == "fit") return RunFit(argc, argv);
     if (command == "diagnose") return RunDiagnose(argc, argv);
+    if (command == "build") return RunBuild(argc, argv);
     if (command == "pair") return RunPair(argc, argv);
     if (command == "register") return RunRegister(argc, argv);
     throw UsageError("unknown command '" + command + "'");

@@ -146,6 +146,48 @@ TEST_F(FitCliTest, DiagnoseJsonAndText) {
             2);
 }
 
+// build: the builder's chain (fit/chain_builder.h) on the paper capture, two sources at most (the
+// CLI's plumbing; the builder's figures are fit/best_chain_sim_test's): it writes the model it built,
+// which fits again, and a calibration file; a settings file with terms is refused naming the file.
+TEST_F(FitCliTest, BuildWritesTheChainAndTheModel) {
+  std::ofstream(dir_ / "settings.yaml")
+      << "noise: {position_mm: 0.25, orientation_deg: 0.04, position_range_exponent: 4, "
+         "orientation_range_exponent: 3}\nsolver: {covariance: false}\n";
+  const fs::path out = dir_ / "calib.json", model = dir_ / "built.yaml", json = dir_ / "build.json";
+  ASSERT_EQ(RunCommand(fit_ + " build --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "settings.yaml").string() + " --sources 2 -o " + out.string() +
+                       " --model-out " + model.string() + " --json --quiet > " + json.string()),
+            0);
+  const auto doc = nlohmann::json::parse(ReadFileToString(json));
+  ASSERT_TRUE(doc["build"].is_object());
+  // The start (no source), then the first round's four candidates (dipole + plane, dipole, plane,
+  // dipole pair).
+  ASSERT_GE(doc["build"]["steps"].size(), 5u);
+  EXPECT_EQ(doc["build"]["steps"][0]["added"], "nothing");
+  EXPECT_EQ(doc["build"]["steps"][1]["added"], "dipole_plane");
+  EXPECT_EQ(doc["build"]["model"], ReadFileToString(model));
+  // The paper preset's uncorrected validation error is ~40 mm; the chain's is below a millimetre
+  // (the degree-4 polynomial alone leaves ~3 mm).
+  const auto& valid = doc["tables"][1];
+  EXPECT_EQ(valid["set"], "valid");
+  EXPECT_LT(valid["after"]["position_mm"]["mean"].get<double>(), 1.0);
+  const Calibration cal = ReadCalibrationFile(out);
+  EXPECT_EQ(cal.chain.term(0).TypeName(), "physical");
+  // The model written fits again.
+  EXPECT_EQ(RunCommand(fit_ + " fit --data " + (dir_ / "cap").string() + " --model " +
+                       model.string() + " -o " + (dir_ / "again.json").string() +
+                       " --quiet > /dev/null"),
+            0);
+
+  std::ofstream(dir_ / "with_terms.yaml") << "terms:\n  - type: polynomial\n    degree: 2\n";
+  const fs::path err = dir_ / "err.txt";
+  EXPECT_EQ(RunCommand(fit_ + " build --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "with_terms.yaml").string() + " -o " + out.string() + " 2> " +
+                       err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("with_terms.yaml:1: terms:"));
+}
+
 TEST_F(FitCliTest, PairJson) {
   const fs::path json = dir_ / "pair.json";
   ASSERT_EQ(RunCommand((BinaryDir() / "sim" / "trackcal-simulate").string() +

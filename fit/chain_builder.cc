@@ -1,0 +1,365 @@
+#include "fit/chain_builder.h"
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <iomanip>
+#include <limits>
+#include <optional>
+#include <sstream>
+#include <stdexcept>
+
+#include "core/polynomial.h"
+#include "fit/model_file.h"
+#include "fit/terms_physical.h"
+#include "fit/terms_polynomial.h"
+
+namespace trackcal::fit {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double SecondsSince(Clock::time_point start) {
+  return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+std::string Number(double v) {
+  std::ostringstream out;
+  out << std::setprecision(17) << v;
+  return out.str();
+}
+
+std::string Vector(const double* v) {
+  return "[" + Number(v[0]) + ", " + Number(v[1]) + ", " + Number(v[2]) + "]";
+}
+
+// The group's sources (dipoles and planes) as model-file term items with their current values as
+// start values (free: refined again with the next source).
+std::string SourcesYaml(const PhysicalGroupTerm& group) {
+  std::ostringstream out;
+  for (const auto& e : group.effects()) {
+    const auto& b = group.blocks();
+    if (e.kind == PhysicalEffect::kDipole) {
+      const auto& location = b[static_cast<size_t>(e.first_block)].values;
+      const auto& strength = b[static_cast<size_t>(e.first_block + 1)].values;
+      out << "  - type: dipole\n    location_in_transmitter: " << Vector(location.data())
+          << "\n    polarisability_m3: " << Number(strength[0]) << "\n";
+    } else if (e.kind == PhysicalEffect::kPlane) {
+      const double distance = b[static_cast<size_t>(e.first_block)].values[0];
+      const auto& n = b[static_cast<size_t>(e.first_block + 1)].values;
+      const Eigen::Vector3d normal = Eigen::Vector3d(n[0], n[1], n[2]).normalized();
+      const Eigen::Vector3d point = distance * normal;
+      out << "  - type: plane\n    point_in_transmitter: " << Vector(point.data())
+          << "\n    normal_in_transmitter: " << Vector(normal.data())
+          << "\n    attenuation: " << Number(b[static_cast<size_t>(e.first_block + 2)].values[0])
+          << "\n";
+    } else {
+      throw std::logic_error("chain builder: unexpected physical effect");
+    }
+  }
+  return out.str();
+}
+
+// The new source's term items.
+std::string SearchedYaml(const std::string& type) {
+  if (type == "dipole_pair") return "  - type: dipole\n  - type: dipole\n";
+  if (type == "dipole_plane") return "  - type: dipole\n  - type: plane\n";
+  return "  - type: " + type + "\n";
+}
+
+std::string PolynomialYaml(int degree, const std::string& ridge, const std::string& parts) {
+  std::string out = "  - type: polynomial\n    degree: " + std::to_string(degree) +
+                    "\n    ridge: " + ridge + "\n";
+  if (parts == "position") out += "    orientation: false\n";
+  if (parts == "orientation") out += "    position: false\n";
+  return out;
+}
+
+// The physical group of `sources_yaml` initialised as FitModel does before its joint solve (the
+// searches of sources without start values, then the group's refinement), with a degree
+// `search_degree` polynomial after it. Null when the text has no physical term.
+struct InitialisedGroup {
+  ModelSpec spec;
+  PhysicalGroupTerm* group = nullptr;
+};
+InitialisedGroup InitialiseGroup(const std::vector<FitStation>& stations,
+                                 const ChainBuilderOptions& options,
+                                 const std::string& sources_yaml) {
+  InitialisedGroup out;
+  out.spec = ParseModelYaml(options.settings_yaml + "\nterms:\n" + sources_yaml +
+                                PolynomialYaml(options.search_degree, "auto", "both"),
+                            "chain builder");
+  if (out.spec.terms.size() < 2) return out;
+  out.group = dynamic_cast<PhysicalGroupTerm*>(out.spec.terms[0].get());
+  if (out.group == nullptr) throw std::logic_error("chain builder: the first term is not physical");
+  std::vector<const ModelTerm*> later;
+  for (size_t j = 1; j < out.spec.terms.size(); ++j) later.push_back(out.spec.terms[j].get());
+  out.group->SetFollowingTerms(later);
+  out.group->Prepare(stations);
+  if (!out.spec.block_settings.empty()) ApplyBlockSettings(out.spec.block_settings[0], out.group);
+  const Eigen::Vector2d sigmas(out.spec.position_sigma, out.spec.orientation_sigma);
+  out.group->InitializeLinear(stations, sigmas);
+  return out;
+}
+
+}  // namespace
+
+void ChainBuilderOptions::Check() const {
+  if (source_types.empty() && max_sources > 0) {
+    throw std::invalid_argument("chain builder: source_types is empty");
+  }
+  for (const auto& t : source_types) {
+    if (t != "dipole" && t != "plane" && t != "dipole_pair" && t != "dipole_plane") {
+      throw std::invalid_argument("chain builder: source_types: expected dipole, plane, "
+                                  "dipole_pair or dipole_plane, got '" + t + "'");
+    }
+  }
+  if (max_sources < 0) throw std::invalid_argument("chain builder: max_sources must be >= 0");
+  if (!(min_relative_gain >= 0.0 && min_relative_gain < 1.0)) {
+    throw std::invalid_argument("chain builder: min_relative_gain must be in [0, 1)");
+  }
+  if (min_degree < 0 || max_degree < min_degree || max_degree > kMaxPolynomialDegree) {
+    throw std::invalid_argument("chain builder: need 0 <= min_degree <= max_degree <= " +
+                                std::to_string(kMaxPolynomialDegree));
+  }
+  if (search_degree < 0 || search_degree > kMaxPolynomialDegree) {
+    throw std::invalid_argument("chain builder: search_degree out of range");
+  }
+  if (!(cv_linear_reach >= 0.0)) {
+    throw std::invalid_argument("chain builder: cv_linear_reach must be >= 0");
+  }
+}
+
+namespace {
+
+// Blocked cross-validation of a ridge polynomial on whitened rows: `a` (n x r) and `b` (n x 3) are
+// already multiplied per station by its weight sigma / sigma_i (the fit's whitening relative to
+// the model's sigma), so (A^T A + lambda^2 D) c = A^T b is the fit's normal equations for a
+// `ridge: lambda` polynomial. A held-out station is predicted at the nearest point of the training
+// stations' box, continued to first order out to `linear_reach` [m] (the runtime's `linear`
+// policy), and its whitened squared error summed. Folds: PolynomialTerm::BlockedFolds. Returns the
+// summed error per weight of `grid`.
+std::vector<double> WeightedBlockedCv(int degree, const Eigen::MatrixXd& u,
+                                      const Eigen::VectorXd& weight, const Eigen::MatrixXd& a,
+                                      const Eigen::MatrixXd& b, const std::vector<bool>& shrunk,
+                                      const std::vector<double>& grid,
+                                      const Eigen::Vector3d& input_scale, double linear_reach) {
+  const Eigen::Index n = a.rows(), r = a.cols();
+  const std::vector<std::array<int, 3>> exponents = PolynomialTermExponents(degree);
+  std::vector<double> error(grid.size(), 0.0);
+  const Eigen::MatrixXd normal = a.transpose() * a;
+  const Eigen::MatrixXd rhs = a.transpose() * b;
+  Eigen::VectorXd d(r);
+  for (Eigen::Index j = 0; j < r; ++j) d[j] = shrunk[static_cast<size_t>(j)] ? 1.0 : 0.0;
+  const double jitter = 1e-12 * normal.diagonal().maxCoeff();
+  std::vector<double> monomials(static_cast<size_t>(r));
+  for (const std::vector<int>& fold_of : PolynomialTerm::BlockedFolds(u)) {
+    int folds = 0;
+    for (int f : fold_of) folds = std::max(folds, f + 1);
+    if (folds < 2) continue;
+    for (int f = 0; f < folds; ++f) {
+      std::vector<Eigen::Index> held, kept;
+      for (Eigen::Index i = 0; i < n; ++i) {
+        (fold_of[static_cast<size_t>(i)] == f ? held : kept).push_back(i);
+      }
+      if (held.empty() || kept.empty()) continue;
+      Eigen::Vector3d lo = u.row(kept[0]).transpose(), hi = lo;
+      for (Eigen::Index i : kept) {
+        lo = lo.cwiseMin(u.row(i).transpose());
+        hi = hi.cwiseMax(u.row(i).transpose());
+      }
+      const auto h = static_cast<Eigen::Index>(held.size());
+      Eigen::MatrixXd a_held(h, r), a_predict(h, r), b_held(h, b.cols());
+      for (Eigen::Index i = 0; i < h; ++i) {
+        const Eigen::Index k = held[static_cast<size_t>(i)];
+        a_held.row(i) = a.row(k);
+        b_held.row(i) = b.row(k);
+        const Eigen::Vector3d ui = u.row(k).transpose();
+        const Eigen::Vector3d uc = ui.cwiseMax(lo).cwiseMin(hi);
+        EvaluateMonomials(degree, uc.data(), monomials.data());
+        for (Eigen::Index j = 0; j < r; ++j) a_predict(i, j) = monomials[static_cast<size_t>(j)];
+        const Eigen::Vector3d step = ui - uc;
+        const double metres = step.cwiseProduct(input_scale).norm();
+        if (linear_reach > 0.0 && metres > 0.0) {
+          const double scale = std::min(1.0, linear_reach / metres);
+          for (Eigen::Index j = 0; j < r; ++j) {
+            const std::array<int, 3>& e = exponents[static_cast<size_t>(j)];
+            double derivative = 0.0;
+            for (int c = 0; c < 3; ++c) {
+              if (e[c] == 0 || step[c] == 0.0) continue;
+              double v = e[c];
+              for (int m = 0; m < 3; ++m) v *= std::pow(uc[m], e[m] - (m == c ? 1 : 0));
+              derivative += v * step[c];
+            }
+            a_predict(i, j) += scale * derivative;
+          }
+        }
+        a_predict.row(i) *= weight[k];
+      }
+      const Eigen::MatrixXd normal_kept = normal - a_held.transpose() * a_held;
+      const Eigen::MatrixXd rhs_kept = rhs - a_held.transpose() * b_held;
+      for (size_t g = 0; g < grid.size(); ++g) {
+        Eigen::MatrixXd m = normal_kept;
+        m.diagonal() += (grid[g] * grid[g]) * d + Eigen::VectorXd::Constant(r, jitter);
+        const Eigen::LDLT<Eigen::MatrixXd> ldlt(m);
+        const Eigen::MatrixXd c = ldlt.solve(rhs_kept);
+        const double e = (b_held - a_predict * c).squaredNorm();
+        error[g] += (ldlt.info() == Eigen::Success && std::isfinite(e))
+                        ? e
+                        : std::numeric_limits<double>::infinity();
+      }
+    }
+  }
+  return error;
+}
+
+}  // namespace
+
+ExplicitCv ExplicitTermCv(const Correction* group, const std::vector<FitStation>& stations,
+                          const ModelSpec& noise, int min_degree, int max_degree,
+                          double linear_reach) {
+  const int n = static_cast<int>(stations.size());
+  Eigen::MatrixXd b_position(n, 3), b_orientation(n, 3), p(n, 3);
+  Eigen::VectorXd w_position(n), w_orientation(n);
+  for (int i = 0; i < n; ++i) {
+    const FitStation& s = stations[static_cast<size_t>(i)];
+    const Rigid3d input = group != nullptr ? group->Apply(s.reported).pose : s.reported;
+    const PoseError e = ComputePoseError(input, s.reference);
+    // The fit's whitening relative to the model's sigmas (range-dependent noise).
+    const Eigen::Vector2d sigma = noise.StationSigmas(s.reported);
+    w_position[i] = noise.position_sigma / sigma[0];
+    w_orientation[i] = noise.orientation_sigma / sigma[1];
+    b_position.row(i) = w_position[i] * e.position.transpose();
+    b_orientation.row(i) = w_orientation[i] * e.orientation.transpose();
+    p.row(i) = input.translation.transpose();
+  }
+  // The polynomial's normalisation: the inputs' box onto [-1, 1] (PolynomialTerm::Prepare).
+  const Eigen::RowVector3d lo = p.colwise().minCoeff(), hi = p.colwise().maxCoeff();
+  const Eigen::RowVector3d half = (0.5 * (hi - lo)).cwiseMax(1e-9);
+  const Eigen::MatrixXd u = (p.rowwise() - 0.5 * (lo + hi)).array().rowwise() / half.array();
+  const std::vector<double> grid = PolynomialTerm::RidgeGrid();
+  ExplicitCv out;
+  out.best = std::numeric_limits<double>::infinity();
+  for (int degree = min_degree; degree <= max_degree; ++degree) {
+    const int r = NumPolynomialTerms(degree);
+    if (r >= n) break;
+    Eigen::MatrixXd a(n, r);
+    std::vector<double> monomials(static_cast<size_t>(r));
+    for (int i = 0; i < n; ++i) {
+      const Eigen::Vector3d ui = u.row(i).transpose();
+      EvaluateMonomials(degree, ui.data(), monomials.data());
+      for (int j = 0; j < r; ++j) a(i, j) = monomials[static_cast<size_t>(j)];
+    }
+    std::vector<bool> shrunk;
+    for (const auto& e : PolynomialTermExponents(degree)) shrunk.push_back(e[0] + e[1] + e[2] >= 2);
+    const Eigen::Vector3d scale = half.transpose();
+    const Eigen::MatrixXd a_position = w_position.asDiagonal() * a;
+    const Eigen::MatrixXd a_orientation = w_orientation.asDiagonal() * a;
+    const std::vector<double> cv_p = WeightedBlockedCv(degree, u, w_position, a_position,
+                                                       b_position, shrunk, grid, scale,
+                                                       linear_reach);
+    const std::vector<double> cv_o = WeightedBlockedCv(degree, u, w_orientation, a_orientation,
+                                                       b_orientation, shrunk, grid, scale,
+                                                       linear_reach);
+    const size_t ip = static_cast<size_t>(std::min_element(cv_p.begin(), cv_p.end()) - cv_p.begin());
+    const size_t io = static_cast<size_t>(std::min_element(cv_o.begin(), cv_o.end()) - cv_o.begin());
+    // Whitened as the fit's station residual: position / sigma_p, the vector part of q_e / sigma_o.
+    const double score = (cv_p[ip] / (noise.position_sigma * noise.position_sigma) +
+                          cv_o[io] / (noise.orientation_sigma * noise.orientation_sigma)) /
+                         static_cast<double>(n);
+    out.score.push_back(score);
+    if (score < out.best) {
+      out.best = score;
+      out.degree = degree;
+      out.ridge = Eigen::Vector2d(grid[ip], grid[io]);
+    }
+  }
+  return out;
+}
+
+BuiltChain BuildChain(const std::vector<FitStation>& stations, const ChainBuilderOptions& options,
+                      const FitOptions& fit_options) {
+  options.Check();
+  const auto start = Clock::now();
+  // The settings alone, for the sigmas.
+  const ModelSpec settings = ParseModelYaml(
+      options.settings_yaml + "\nterms:\n" + PolynomialYaml(0, "0", "both"), "chain builder");
+  BuiltChain out;
+
+  // The start: no source.
+  std::string sources;
+  ExplicitCv current = ExplicitTermCv(nullptr, stations, settings, options.min_degree,
+                                      options.max_degree, options.cv_linear_reach);
+  out.steps.push_back({0, "", current.best, current.degree, true, "", SecondsSince(start)});
+  int count = 0;
+  for (int round = 1; count < options.max_sources; ++round) {
+    struct Tried {
+      std::string type, sources;
+      ExplicitCv cv;
+    };
+    std::optional<Tried> best;
+    for (const std::string& type : options.source_types) {
+      const int adds = type == "dipole_pair" || type == "dipole_plane" ? 2 : 1;
+      if (count + adds > options.max_sources) continue;
+      const auto t0 = Clock::now();
+      ChainBuilderStep step{round, type, std::numeric_limits<double>::infinity(), 0, false, "", 0};
+      try {
+        InitialisedGroup g = InitialiseGroup(stations, options, sources + SearchedYaml(type));
+        const auto correction = g.group->ToCorrection();
+        const ExplicitCv cv = ExplicitTermCv(correction.get(), stations, settings,
+                                             options.min_degree, options.max_degree,
+                                             options.cv_linear_reach);
+        step.score = cv.best;
+        step.degree = cv.degree;
+        step.sources = SourcesYaml(*g.group);
+        if (std::isfinite(cv.best) && (!best || cv.best < best->cv.best)) {
+          best = Tried{type, step.sources, cv};
+        }
+      } catch (const std::invalid_argument&) {
+        // A candidate whose group leaves the model's domain is not kept (score infinite).
+      }
+      step.seconds = SecondsSince(t0);
+      out.steps.push_back(step);
+    }
+    if (!best || best->cv.best > (1.0 - options.min_relative_gain) * current.best) break;
+    for (auto it = out.steps.rbegin(); it != out.steps.rend() && it->round == round; ++it) {
+      if (it->added == best->type) it->kept = true;
+    }
+    sources = best->sources;
+    current = best->cv;
+    count += best->type == "dipole_pair" || best->type == "dipole_plane" ? 2 : 1;
+  }
+
+  // The explicit term after the final group: the cross-validation's degree and weights.
+  out.degree = current.degree;
+  out.ridge = current.ridge;
+  out.score = current.best;
+  out.sources = sources;
+  std::string group_yaml = sources;
+  if (!options.refit_group && !sources.empty()) {
+    // Held at the values found: every source block fixed.
+    std::string held;
+    std::istringstream in(sources);
+    for (std::string line; std::getline(in, line);) {
+      held += line + "\n";
+      if (line.rfind("  - type: dipole", 0) == 0) {
+        held += "    parameters: {location_in_transmitter: {fixed: true}, polarisability_m3: "
+                "{fixed: true}}\n";
+      } else if (line.rfind("  - type: plane", 0) == 0) {
+        held += "    parameters: {distance_m: {fixed: true}, normal_in_transmitter: {fixed: "
+                "true}, attenuation: {fixed: true}}\n";
+      }
+    }
+    group_yaml = held;
+  }
+  out.model_text = options.settings_yaml + "\nterms:\n" + group_yaml +
+                   PolynomialYaml(out.degree, Number(out.ridge[0]), "position") +
+                   PolynomialYaml(out.degree, Number(out.ridge[1]), "orientation");
+  ModelSpec spec = ParseModelYaml(out.model_text, "chain builder (final)");
+  out.fit = FitModel(stations, &spec, fit_options);
+  out.seconds = SecondsSince(start);
+  return out;
+}
+
+}  // namespace trackcal::fit
