@@ -118,8 +118,9 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 #                            builds at once, load 12-14): the same models and held-out errors step
 #                            by step (1.3707 / 0.6235 / 0.4962 mm); diagnoses 840 / 691 s (step 1
 #                            2.0x: its plane's folds no longer go to the solver), the last one and
-#                            the total not measured by the session's end. Seed 2: step 0 1369 s
-#                            (time_offset, 2.06 -> 0.79 mm), the rest not measured.
+#                            the total not measured by the session's end. Seed 2 (branch only):
+#                            diagnoses 1369 / 594 s, time_offset then the frame dipole (2.06 ->
+#                            0.79 -> 0.49 mm), the last diagnosis not measured.
 # The split: CI (TRACKCAL_WORKFLOW_TESTS unset) runs the two loops that pass and are cheapest,
 # finite_transmitter_coils and hemisphere_flips on seed 1 (391 s for both at load ~15 here; session
 # 3's whole pytest run with three loops, these two and sensor_offset, took 114 s on a quiet machine),
