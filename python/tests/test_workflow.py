@@ -116,9 +116,10 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 #                            frame dipole; diagnoses 689 / 1407 / 1236 s wall, fits 0 / 5 / 133 s).
 #                            Branch diagspeed (fold refits hold a bounded plane, two loops and
 #                            builds at once, load 12-14): the same models and held-out errors step
-#                            by step (1.3707 / 0.6235 / 0.4962 mm); diagnoses 840 / 691 s (step 1
-#                            2.0x: its plane's folds no longer go to the solver), the last one and
-#                            the total not measured by the session's end. Seed 2 (branch only):
+#                            by step (1.3707 / 0.6235 / 0.4962 mm); diagnoses 840 / 691 / 667 s
+#                            (step 1 2.0x: its plane's folds no longer go to the solver; steps 0
+#                            and 2 the same work, the load differed); 2458 s wall, 630 s CPU
+#                            (1.10x less CPU), passes. Seed 2 (branch only):
 #                            diagnoses 1369 / 594 s, time_offset then the frame dipole (2.06 ->
 #                            0.79 -> 0.49 mm), the last diagnosis not measured.
 # The split: CI (TRACKCAL_WORKFLOW_TESTS unset) runs the two loops that pass and are cheapest,
