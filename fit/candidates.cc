@@ -91,6 +91,22 @@ StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
   return e;
 }
 
+std::string FormatSeconds(double seconds) {
+  std::ostringstream s;
+  s << std::fixed << std::setprecision(1) << seconds;
+  return s.str();
+}
+
+// Where a fit's time went, for the progress messages (docs/diagnose.md, Speed).
+std::string FitTimeNote(const FitResult& fit) {
+  std::ostringstream s;
+  s << std::fixed << std::setprecision(1) << "fitted in " << fit.seconds << " s (start "
+    << fit.seconds_initialize << " s, solve " << fit.seconds_solve - fit.seconds_initialize
+    << " s in " << fit.iterations << " iterations, " << fit.whitening_passes
+    << " whitening passes; covariance " << fit.seconds_covariance << " s)";
+  return s.str();
+}
+
 // The same, from the fit on all stations (`fitted`: the spec FitModel left): each fold re-estimated
 // by Levenberg-Marquardt steps from the full fit (RefitFoldsFromFull; CandidateOptions::exact_cv
 // false). `report` gets the steps each fold took.
@@ -101,16 +117,22 @@ StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
   StationErrors e = MakeErrors(stations.size());
   const std::vector<FoldRefit> refits = RefitFoldsFromFull(stations, fitted, fold_of, folds);
   std::string steps;
-  int solver = 0, unconverged = 0;
+  int solver = 0, unconverged = 0, jacobians = 0, bound_folds = 0;
+  double seconds = 0.0;
   for (const auto& r : refits) {
     if (!steps.empty()) steps += ',';
     steps += std::to_string(r.steps);
+    jacobians += r.jacobian_evaluations;
+    bound_folds += r.bound_steps > 0 ? 1 : 0;
+    seconds += r.seconds;
     solver += r.solver_refit ? 1 : 0;
     unconverged += !r.solver_refit && !r.converged ? 1 : 0;
   }
-  report("fold refits took " + steps + " steps" +
+  report("fold refits took " + steps + " steps (" + std::to_string(jacobians) +
+         " Jacobians, " + FormatSeconds(seconds) + " s)" +
          (unconverged ? "; " + std::to_string(unconverged) + " stopped at the step limit" : "") +
-         (solver ? "; " + std::to_string(solver) + " refitted by the solver" : ""));
+         (solver ? "; " + std::to_string(solver) + " refitted by the solver" : "") +
+         (bound_folds ? "; " + std::to_string(bound_folds) + " held coordinates on a bound" : ""));
   for (size_t i = 0; i < stations.size(); ++i) {
     AppendErrors(refits[static_cast<size_t>(fold_of[i])].chain, stations[i], sigma_p, sigma_o, &e,
                  i);
@@ -1259,6 +1281,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       FitOptions fo;
       fo.compute_covariance = !p.flexible;  // a flexible term's parameters are not reported
       const FitResult fit = FitModel(own, &spec, fo);
+      Progress(options, c.effect + ": " + FitTimeNote(fit));
       c.fitted = true;
       c.converged = fit.converged;
       StationErrors full = MakeErrors(own.size());
@@ -1491,6 +1514,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                                   });
       }
       c.cross_validated = true;
+      Progress(options, c.effect + ": cross-validated in " +
+                            FormatNumber(SecondsSince(t0), 1) + " s");
       // Stations left out of the comparison: the gross outliers the model's loss rejects, and a
       // robust loss's own outliers (its held-out error is that of the stations it keeps; the base's
       // is that of all of them).

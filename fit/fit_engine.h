@@ -91,6 +91,7 @@ struct FitResult {
   double chi2_per_dof = 0.0;  // 2 * final_cost / (num_residuals - num_free_parameters)
   double seconds = 0.0;       // wall time of the fit (initialisation, solve, covariance)
   double seconds_solve = 0.0;       // of which initialisation and solve
+  double seconds_initialize = 0.0;  // of which initialisation (start searches, terms' own fits)
   double seconds_covariance = 0.0;  // of which covariance
   std::vector<ParameterReport> parameters;
   std::vector<IdentifiabilityFlag> identifiability_flags;
@@ -165,6 +166,9 @@ struct FoldRefit {
   int steps = 0;              // steps taken
   bool converged = false;     // the steps converged (false: stopped at max_steps, or solver_refit)
   bool solver_refit = false;  // refitted by the solver (fallback)
+  int jacobian_evaluations = 0;  // of the fold's stations (each costs about one solver iteration)
+  int bound_steps = 0;  // steps that held coordinates on a bound of the full fit (HeldAtBound)
+  double seconds = 0.0;           // wall time of the fold's refit
 };
 
 // `spec` holds the terms as FitModel left them after fitting all of `stations` (its values are

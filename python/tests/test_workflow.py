@@ -107,8 +107,24 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 # and earlier (seed 1, main before the clamp change, load ~12):
 #   finite_transmitter_coils 174 s (passes: near_field, frame, floor; 1.11x the floor)
 #   sensor_offset             363 s (xfail: one spurious term, see _XFAIL)
-#   clock_offset             1284 s (passes, 0.99x the floor; stream pairing in every fit and the
-#                                    time_offset candidate's re-pairing make it the slowest)
+#   clock_offset             1284 s (passes, 0.99x the floor). Not the pairing (the time_offset
+#                            candidate, pairing included, takes 0.6 s): every candidate is fitted
+#                            on the 2398 stream samples, 10x the static stations; the physical
+#                            candidates' start searches and solves take the time (docs/diagnose.md,
+#                            "Where the time goes on streams"). Session 6 (main adafed4, load
+#                            10-14, seed 1): 3474 s wall, 696 s CPU, passes (time_offset, then the
+#                            frame dipole; diagnoses 689 / 1407 / 1236 s wall, fits 0 / 5 / 133 s).
+#                            Branch diagspeed (fold refits hold a bounded plane, two loops and
+#                            builds at once, load 12-14): the same models and held-out errors step
+#                            by step (1.3707 / 0.6235 / 0.4962 mm); diagnoses 840 / 691 / 667 s
+#                            (step 1 2.0x: its plane's folds no longer go to the solver; steps 0
+#                            and 2 the same work, the load differed); 2458 s wall, 630 s CPU
+#                            (1.10x less CPU), passes. Seed 2 (branch only):
+#                            diagnoses 1369 / 594 / 333 s, 2491 s wall, 654 s CPU: time_offset
+#                            then the frame dipole (2.06 -> 0.79 -> 0.49 mm), nothing spurious, but
+#                            FAILS: the offset 35.71 +- 0.26 ms against 37 (5.0 sigma). The joint
+#                            fit's estimate (trackcal-fit fit), which this branch did not change;
+#                            main was not run on seed 2 (not verified there).
 # The split: CI (TRACKCAL_WORKFLOW_TESTS unset) runs the two loops that pass and are cheapest,
 # finite_transmitter_coils and hemisphere_flips on seed 1 (391 s for both at load ~15 here; session
 # 3's whole pytest run with three loops, these two and sensor_offset, took 114 s on a quiet machine),
