@@ -131,91 +131,6 @@ void ChainBuilderOptions::Check() const {
   }
 }
 
-namespace {
-
-// Blocked cross-validation of a ridge polynomial on whitened rows: `a` (n x r) and `b` (n x 3) are
-// already multiplied per station by its weight sigma / sigma_i (the fit's whitening relative to
-// the model's sigma), so (A^T A + lambda^2 D) c = A^T b is the fit's normal equations for a
-// `ridge: lambda` polynomial. A held-out station is predicted at the nearest point of the training
-// stations' box, continued to first order out to `linear_reach` [m] (the runtime's `linear`
-// policy), and its whitened squared error summed. Folds: PolynomialTerm::BlockedFolds. Returns the
-// summed error per weight of `grid`.
-std::vector<double> WeightedBlockedCv(int degree, const Eigen::MatrixXd& u,
-                                      const Eigen::VectorXd& weight, const Eigen::MatrixXd& a,
-                                      const Eigen::MatrixXd& b, const std::vector<bool>& shrunk,
-                                      const std::vector<double>& grid,
-                                      const Eigen::Vector3d& input_scale, double linear_reach) {
-  const Eigen::Index n = a.rows(), r = a.cols();
-  const std::vector<std::array<int, 3>> exponents = PolynomialTermExponents(degree);
-  std::vector<double> error(grid.size(), 0.0);
-  const Eigen::MatrixXd normal = a.transpose() * a;
-  const Eigen::MatrixXd rhs = a.transpose() * b;
-  Eigen::VectorXd d(r);
-  for (Eigen::Index j = 0; j < r; ++j) d[j] = shrunk[static_cast<size_t>(j)] ? 1.0 : 0.0;
-  const double jitter = 1e-12 * normal.diagonal().maxCoeff();
-  std::vector<double> monomials(static_cast<size_t>(r));
-  for (const std::vector<int>& fold_of : PolynomialTerm::BlockedFolds(u)) {
-    int folds = 0;
-    for (int f : fold_of) folds = std::max(folds, f + 1);
-    if (folds < 2) continue;
-    for (int f = 0; f < folds; ++f) {
-      std::vector<Eigen::Index> held, kept;
-      for (Eigen::Index i = 0; i < n; ++i) {
-        (fold_of[static_cast<size_t>(i)] == f ? held : kept).push_back(i);
-      }
-      if (held.empty() || kept.empty()) continue;
-      Eigen::Vector3d lo = u.row(kept[0]).transpose(), hi = lo;
-      for (Eigen::Index i : kept) {
-        lo = lo.cwiseMin(u.row(i).transpose());
-        hi = hi.cwiseMax(u.row(i).transpose());
-      }
-      const auto h = static_cast<Eigen::Index>(held.size());
-      Eigen::MatrixXd a_held(h, r), a_predict(h, r), b_held(h, b.cols());
-      for (Eigen::Index i = 0; i < h; ++i) {
-        const Eigen::Index k = held[static_cast<size_t>(i)];
-        a_held.row(i) = a.row(k);
-        b_held.row(i) = b.row(k);
-        const Eigen::Vector3d ui = u.row(k).transpose();
-        const Eigen::Vector3d uc = ui.cwiseMax(lo).cwiseMin(hi);
-        EvaluateMonomials(degree, uc.data(), monomials.data());
-        for (Eigen::Index j = 0; j < r; ++j) a_predict(i, j) = monomials[static_cast<size_t>(j)];
-        const Eigen::Vector3d step = ui - uc;
-        const double metres = step.cwiseProduct(input_scale).norm();
-        if (linear_reach > 0.0 && metres > 0.0) {
-          const double scale = std::min(1.0, linear_reach / metres);
-          for (Eigen::Index j = 0; j < r; ++j) {
-            const std::array<int, 3>& e = exponents[static_cast<size_t>(j)];
-            double derivative = 0.0;
-            for (int c = 0; c < 3; ++c) {
-              if (e[c] == 0 || step[c] == 0.0) continue;
-              double v = e[c];
-              for (int m = 0; m < 3; ++m) v *= std::pow(uc[m], e[m] - (m == c ? 1 : 0));
-              derivative += v * step[c];
-            }
-            a_predict(i, j) += scale * derivative;
-          }
-        }
-        a_predict.row(i) *= weight[k];
-      }
-      const Eigen::MatrixXd normal_kept = normal - a_held.transpose() * a_held;
-      const Eigen::MatrixXd rhs_kept = rhs - a_held.transpose() * b_held;
-      for (size_t g = 0; g < grid.size(); ++g) {
-        Eigen::MatrixXd m = normal_kept;
-        m.diagonal() += (grid[g] * grid[g]) * d + Eigen::VectorXd::Constant(r, jitter);
-        const Eigen::LDLT<Eigen::MatrixXd> ldlt(m);
-        const Eigen::MatrixXd c = ldlt.solve(rhs_kept);
-        const double e = (b_held - a_predict * c).squaredNorm();
-        error[g] += (ldlt.info() == Eigen::Success && std::isfinite(e))
-                        ? e
-                        : std::numeric_limits<double>::infinity();
-      }
-    }
-  }
-  return error;
-}
-
-}  // namespace
-
 ExplicitCv ExplicitTermCv(const Correction* group, const std::vector<FitStation>& stations,
                           const ModelSpec& noise, int min_degree, int max_degree,
                           double linear_reach) {
@@ -256,12 +171,14 @@ ExplicitCv ExplicitTermCv(const Correction* group, const std::vector<FitStation>
     const Eigen::Vector3d scale = half.transpose();
     const Eigen::MatrixXd a_position = w_position.asDiagonal() * a;
     const Eigen::MatrixXd a_orientation = w_orientation.asDiagonal() * a;
-    const std::vector<double> cv_p = WeightedBlockedCv(degree, u, w_position, a_position,
-                                                       b_position, shrunk, grid, scale,
-                                                       linear_reach);
-    const std::vector<double> cv_o = WeightedBlockedCv(degree, u, w_orientation, a_orientation,
-                                                       b_orientation, shrunk, grid, scale,
-                                                       linear_reach);
+    // Rows whitened like the fit's normal equations for a `ridge: lambda` polynomial; held-out
+    // stations predicted as the runtime's `linear` policy does (PolynomialTerm::BlockedRidgeCv).
+    const int slabs = PolynomialTerm::kBlockedSlabsPerAxis;
+    const std::vector<double> cv_p = PolynomialTerm::BlockedRidgeCv(
+        degree, u, a_position, b_position, shrunk, grid, slabs, scale, linear_reach, &w_position);
+    const std::vector<double> cv_o =
+        PolynomialTerm::BlockedRidgeCv(degree, u, a_orientation, b_orientation, shrunk, grid, slabs,
+                                       scale, linear_reach, &w_orientation);
     const size_t ip = static_cast<size_t>(std::min_element(cv_p.begin(), cv_p.end()) - cv_p.begin());
     const size_t io = static_cast<size_t>(std::min_element(cv_o.begin(), cv_o.end()) - cv_o.begin());
     // Whitened as the fit's station residual: position / sigma_p, the vector part of q_e / sigma_o.

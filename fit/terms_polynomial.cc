@@ -212,7 +212,8 @@ std::vector<double> PolynomialTerm::BlockedRidgeCv(int degree, const Eigen::Matr
                                                    const std::vector<double>& grid,
                                                    int slabs_per_axis,
                                                    const Eigen::Vector3d& input_scale,
-                                                   double linear_reach) {
+                                                   double linear_reach,
+                                                   const Eigen::VectorXd* row_weight) {
   const Eigen::Index n = a.rows(), r = a.cols();
   const std::vector<std::array<int, 3>> exponents = PolynomialTermExponents(degree);
   std::vector<double> error(grid.size(), 0.0);
@@ -267,6 +268,7 @@ std::vector<double> PolynomialTerm::BlockedRidgeCv(int degree, const Eigen::Matr
             a_clamped(i, j) += scale * derivative;
           }
         }
+        if (row_weight != nullptr) a_clamped.row(i) *= (*row_weight)[held[static_cast<size_t>(i)]];
       }
       const Eigen::MatrixXd normal_kept = normal - a_held.transpose() * a_held;
       const Eigen::MatrixXd rhs_kept = rhs - a_held.transpose() * b_held;

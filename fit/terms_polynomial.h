@@ -72,7 +72,8 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   // the distance) and held beyond; linear_reach = 0 is the `clamp` policy. Closed form per fold and
   // weight on the normal equations: (A^T A - A_F^T A_F + lambda^2 D) c = A^T b - A_F^T b_F, D = 1 on
   // the `shrunk` columns. Returns the summed squared held-out error per weight of `grid`
-  // (infinity where a fold's system is singular).
+  // (infinity where a fold's system is singular). `row_weight` (optional, n): rows of `a` and `b`
+  // already carry these per-station weights (whitening), so the held-out prediction rows get them too.
   static constexpr int kBlockedSlabsPerAxis = 6;
   static std::vector<double> BlockedRidgeCv(int degree, const Eigen::MatrixXd& u,
                                             const Eigen::MatrixXd& a, const Eigen::MatrixXd& b,
@@ -81,7 +82,8 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
                                             int slabs_per_axis = kBlockedSlabsPerAxis,
                                             const Eigen::Vector3d& input_scale =
                                                 Eigen::Vector3d::Ones(),
-                                            double linear_reach = 0.0);
+                                            double linear_reach = 0.0,
+                                            const Eigen::VectorXd* row_weight = nullptr);
   // The folds of BlockedRidgeCv: fold index per station (each axis's slabs are a partition; the
   // result holds the 3 axes' partitions in turn, -1 for an axis with a single slab).
   static std::vector<std::vector<int>> BlockedFolds(const Eigen::MatrixXd& u,
