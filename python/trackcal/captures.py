@@ -38,6 +38,11 @@ class PoseCapture:
     reference_quaternions_xyzw: np.ndarray
     extra_columns: list
     extra: np.ndarray
+    # Per station: the receiver's speed [m/s] when the stations were paired from streams (a
+    # covariate of the diagnosis), else None.
+    speed: Optional[np.ndarray] = None
+    # How the stations were obtained (``load``): {"kind": "poses" | "streams" | "markers", ...}.
+    origin: Optional[dict] = None
 
     def __len__(self) -> int:
         return len(self.station)
@@ -92,6 +97,88 @@ def load_poses(path: PathLike) -> PoseCapture:
         extra_columns=list(d["extra_columns"]),
         extra=d["extra"],
     )
+
+
+STREAM_FILES = ("tracker_stream.csv", "reference_stream.csv")
+MARKER_FILES = ("markers.csv", "tracker.csv")
+
+
+def capture_kind(path: PathLike) -> str:
+    """What a capture path holds, in the order ``load`` uses it: "poses" (a file, or a folder with
+    poses.csv), "streams" (tracker_stream.csv and reference_stream.csv) or "markers" (markers.csv
+    and tracker.csv). ValueError naming the path and the files looked for otherwise."""
+    p = pathlib.Path(path)
+    if not p.is_dir():
+        if not p.exists():
+            raise ValueError(f"{p}: no such file or folder")
+        return "poses"
+    if (p / "poses.csv").is_file():
+        return "poses"
+    if all((p / n).is_file() for n in STREAM_FILES):
+        return "streams"
+    if all((p / n).is_file() for n in MARKER_FILES):
+        return "markers"
+    raise ValueError(f"{p}: not a capture folder (no poses.csv, no {' + '.join(STREAM_FILES)}, "
+                     f"no {' + '.join(MARKER_FILES)})")
+
+
+def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: float = 0.5,
+         register_options: Optional[dict] = None) -> PoseCapture:
+    """Any capture as paired stations (docs/captures.md), whatever the folder holds:
+
+    - ``poses.csv`` (or a folder with one): read as it is;
+    - ``tracker_stream.csv`` + ``reference_stream.csv``: paired by time (``trackcal.pair``, first
+      sensor of the stream) at ``time_offset`` [s] (t_reference - t_tracker), or, when it is None,
+      at an offset estimated within +-``search_range`` s; every paired sample is a station of set
+      ``calib`` and carries its speed (``speed``, a covariate of the diagnosis);
+    - ``markers.csv`` + ``tracker.csv`` (raw optical markers): registered (``trackcal.register``,
+      paper section 3; ``register_options`` are its keyword options) and every station's reference
+      pose extracted; all stations are set ``calib``.
+
+    ``origin`` says which, with the offset used (and its source) or the registration's chi-square.
+    """
+    from trackcal.fitting import pair, register
+    kind = capture_kind(path)
+    p = pathlib.Path(path)
+    if kind == "poses":
+        cap = load_poses(p)
+        cap.origin = {"kind": "poses", "files": [str(cap.path)]}
+        return cap
+    if kind == "streams":
+        estimate = time_offset is None
+        result = pair(p / STREAM_FILES[0], p / STREAM_FILES[1], time_offset=0.0 if estimate else float(time_offset),
+                      estimate_time_offset=estimate, search_range=search_range)
+        cap = result.poses
+        stream = load_tracker_stream(p / STREAM_FILES[0])
+        first = int(cap.sensor[0]) if len(cap) else int(stream.sensor[0])
+        own = stream.sensor == first
+        cap.speed = np.interp(cap.time, stream.time[own], stream.speed()[own])
+        cap.path = p / STREAM_FILES[0]
+        cap.origin = {"kind": "streams", "files": [str(p / n) for n in STREAM_FILES],
+                      "time_offset_s": float(result.time_offset_s),
+                      "time_offset_source": "estimated" if estimate else "given",
+                      "paired": len(cap), "dropped": int(result.dropped), "sensor": int(first)}
+        return cap
+    result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], **(register_options or {}))
+    cap = result.poses
+    cap.path = p / MARKER_FILES[1]
+    cap.origin = {"kind": "markers", "files": [str(p / n) for n in MARKER_FILES],
+                  "registered": len(cap), "left_out": [int(s) for s in result.left_out],
+                  "converged": bool(result.converged), "chi_square": float(result.chi_square),
+                  "nu": float(result.nu)}
+    return cap
+
+
+def describe_origin(capture: PoseCapture) -> Optional[str]:
+    """One line saying how stations that were not read from a poses.csv were obtained."""
+    o = capture.origin or {}
+    if o.get("kind") == "streams":
+        return (f"streams paired at a time offset of {1e3 * o['time_offset_s']:.2f} ms ({o['time_offset_source']}): "
+                f"{o['paired']} samples of sensor {o['sensor']}, {o['dropped']} dropped")
+    if o.get("kind") == "markers":
+        return (f"raw markers registered (paper section 3): {o['registered']} stations, "
+                f"{len(o['left_out'])} left out, chi-square {o['chi_square']:.1f} for {o['nu']:.0f} degrees of freedom")
+    return None
 
 
 @dataclasses.dataclass

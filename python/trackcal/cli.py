@@ -70,12 +70,59 @@ class Terminal:
             self.err.flush()
 
 
-def _load(args):
+def _time_offset(args, cal, fit_report=None) -> Optional[float]:
+    """The clock offset to pair a stream capture at: --time-offset, else the one the model's fit
+    used, else the calibration's (fit_statistics.time_offset_s); None: estimate it."""
+    if getattr(args, "time_offset", None) is not None:
+        return args.time_offset
+    if fit_report is not None and fit_report.time_offset_s is not None:
+        return float(fit_report.time_offset_s)
+    if cal is not None:
+        t = (cal.fit_statistics or {}).get("time_offset_s")
+        if t is not None:
+            return float(t)
+    return None
+
+
+def _load(args, fit_report=None):
+    """The calibration (-c) and the capture: poses.csv, streams (paired) or raw markers
+    (registered), trackcal.captures.load."""
     from trackcal import Calibration
-    from trackcal.captures import load_poses
-    capture = load_poses(args.capture)
+    from trackcal.captures import load
     cal = Calibration.load(args.calibration) if args.calibration else None
+    if cal is None and fit_report is not None:
+        cal = fit_report.calibration
+    capture = load(args.capture, time_offset=_time_offset(args, cal, fit_report))
     return capture, cal
+
+
+def _capture_files(capture) -> List[str]:
+    """The files the stations were read from (for the history and the report's input guard)."""
+    o = capture.origin or {}
+    return list(o.get("files") or ([str(capture.path)] if capture.path is not None else []))
+
+
+def _print_origin(term, capture) -> None:
+    from trackcal.captures import describe_origin
+    line = describe_origin(capture)
+    if line:
+        print(term.c(line, "2"))
+
+
+def _print_outside(term, v, limit: int = 20) -> None:
+    n_out = int(v.extrapolated.sum())
+    msg = f"stations outside the calibrated volume: {n_out} of {len(v.extrapolated)}"
+    if n_out:
+        ids = v.outside_stations
+        msg += ": " + " ".join(str(i) for i in ids[:limit]) + (f" ... ({n_out - limit} more)" if n_out > limit else "")
+    print(term.c(msg, "33") if n_out else msg)
+
+
+def _write_residuals(args, v) -> None:
+    if getattr(args, "residuals", None):
+        inputs = _capture_files(v.capture) + [args.calibration, getattr(args, "model", None)]
+        path = v.write_residuals(args.residuals, inputs=inputs)
+        print(f"wrote the residuals of {len(v.capture)} stations to {path}", file=sys.stderr)
 
 
 def _fmt_rows(rows: List[dict], cols: List[str]) -> str:
@@ -111,8 +158,8 @@ def _record_history(args, v) -> None:
     from trackcal.history import record_fit, scores_from_validation
     if not args.calibration:
         raise ValueError("--workdir records a fit: give its calibration with -c")
-    data = v.capture.path
-    record_fit(args.workdir, model=args.calibration, data=[(data, "validation_capture")],
+    record_fit(args.workdir, model=args.calibration,
+               data=[(f, "validation_capture") for f in _capture_files(v.capture)],
                scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name)
 
 
@@ -188,9 +235,11 @@ def _unresolved_line(v) -> str:
 def cmd_validate(args, term) -> int:
     _, _, v = _validation(args, term, covariates=False)
     _record_history(args, v)
+    _write_residuals(args, v)
+    _print_origin(term, v.capture)
     for t in v.tables:
         print(term.c(t.format(), "1") if t.set_name == "valid" else t.format())
-    print(f"stations outside the calibrated volume: {int(v.extrapolated.sum())} of {len(v.extrapolated)}")
+    _print_outside(term, v)
     print(_unresolved_line(v))
     if args.json:
         print(json.dumps({t.set_name: t.to_dict() for t in v.tables}, indent=2))
@@ -203,12 +252,11 @@ def _diagnosis(args, term):
     import trackcal
     from trackcal import diagnosis
     from trackcal.validation import validate
-    capture, cal = _load(args)
     model = getattr(args, "model", None)
     fit_report = None
-    if model and cal is None:
+    if model and not args.calibration:
         fit_report = trackcal.fit(args.capture, model, progress=term.stage_progress())
-        cal = fit_report.calibration
+    capture, cal = _load(args, fit_report)
     covariates = not getattr(args, "no_covariates", False)
     v = validate(capture, cal, analyse_covariates=covariates,
                  covariate_options={"n_permutations": args.permutations, "seed": args.seed} if covariates else None,
@@ -243,16 +291,16 @@ def _diagnosis(args, term):
 def cmd_diagnose(args, term) -> int:
     from trackcal import diagnosis
     capture, cal, v, fit_report, doc, verdict, change, notes = _diagnosis(args, term)
+    _write_residuals(args, v)
     if args.json:
         print(json.dumps(diagnosis.diagnosis_document(
             v, capture=args.capture, calibration=args.calibration, model=args.model, fit_report=fit_report,
             candidates_doc=doc, verdict_=verdict, model_change=change), indent=2, allow_nan=False))
         return 0
+    _print_origin(term, v.capture)
     for t in v.tables:
         print(t.format())
-    n_out = int(v.extrapolated.sum())
-    msg = f"stations outside the calibrated volume: {n_out} of {len(v.extrapolated)}"
-    print(term.c(msg, "33") if n_out else msg)
+    _print_outside(term, v)
     msg = _unresolved_line(v)
     print(term.c(msg, "33") if v.status_counts["converged"] < len(v.extrapolated) else msg)
     cols = ["label", "count", "before_position_mm", "before_orientation_deg"]
@@ -292,8 +340,10 @@ def cmd_report(args, term) -> int:
     from trackcal.history import load_history
     from trackcal.report import write_report
     capture, cal, v, fit_report, doc, verdict, change, notes = _diagnosis(args, term)
+    _write_residuals(args, v)
     hist = load_history(args.workdir) if args.workdir else None
     inputs = [args.capture, args.calibration, args.model if args.model and os.path.exists(args.model) else None]
+    inputs += _capture_files(capture)
     path = write_report(v, args.output, inputs=inputs, history_entries=hist, candidates=doc,
                         verdict=verdict, model_change=change, progress=term.progress("figures"))
     print(f"wrote {path}")
@@ -333,11 +383,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp, covariates=True):
-        sp.add_argument("capture", help="capture folder or poses.csv")
+        sp.add_argument("capture", help="capture folder (poses.csv; or tracker_stream.csv + reference_stream.csv, "
+                                        "paired; or markers.csv + tracker.csv, registered) or a poses.csv")
         sp.add_argument("-c", "--calibration", help="calibration file (docs/calibration-file.md)")
         sp.add_argument("--cross-validate", type=int, default=0, metavar="K",
                         help="also K-fold cross-validate a model with the fit engine (--model, else "
                              "the paper's degree-3 polynomial)")
+        sp.add_argument("--time-offset", type=float, default=None, metavar="S",
+                        help="streams: pair at this clock offset t_reference - t_tracker [s] (default: the "
+                             "model fit's or the calibration's, else estimated)")
+        sp.add_argument("--residuals", metavar="CSV",
+                        help="write every station's residuals (before/after, vectors, outside flag) to this "
+                             "new CSV file")
         if covariates:
             sp.add_argument("--permutations", type=int, default=199, help="permutations per covariate test")
             sp.add_argument("--seed", type=int, default=0)

@@ -208,17 +208,20 @@ def _finite(x):
 def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_report=None,
                        candidates_doc: Optional[CandidatesDoc] = None, verdict_: Optional[dict] = None,
                        model_change: Optional[dict] = None) -> dict:
-    """Everything ``trackcal diagnose`` shows, as one JSON-serialisable dict: Table 1 per set,
-    stations outside the calibrated volume, breakdowns by distance and region, worst stations,
+    """Everything ``trackcal diagnose`` shows, as one JSON-serialisable dict: how the stations were
+    obtained (``capture_origin``), Table 1 per set, stations outside the calibrated volume (ids), breakdowns by distance and region, worst stations,
     every covariate test and the significant findings, the candidate ranking (contract B, or None
-    when no model was given), the verdict and the model-file change."""
+    when no model was given), the verdict, the model-file change and every station's residuals
+    (``stations``, the rows of ``Validation.station_rows``)."""
     doc = {
         "command": "diagnose",
         "capture": None if capture is None else str(capture),
         "calibration": None if calibration is None else str(calibration),
         "model": model,
         "tables": [t.to_dict() for t in v.tables],
-        "outside_volume": {"count": int(v.extrapolated.sum()), "of": int(len(v.extrapolated))},
+        "capture_origin": getattr(v.capture, "origin", None),
+        "outside_volume": {"count": int(v.extrapolated.sum()), "of": int(len(v.extrapolated)),
+                           "stations": v.outside_stations},
         "by_distance": v.by_distance,
         "by_region": v.by_region,
         "worst": v.worst,
@@ -231,5 +234,6 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
         "candidates": candidates_doc,
         "verdict": verdict_ if verdict_ is not None else verdict(candidates_doc, v.covariate_effects),
         "model_change": model_change,
+        "stations": v.station_rows(),
     }
     return _finite(doc)

@@ -114,7 +114,8 @@ def covariates(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None) 
     axes in the transmitter frame (its orientation as the transmitter sees it), the direction of the
     transmitter in the receiver frame (the field direction the coils see: separates receiver-side
     effects such as coil gains from transmitter-side ones, paper section 2.1), time, visiting order,
-    sensor, and every extra numeric column.
+    sensor, the receiver's speed for stations paired from streams (``stream_speed``, default the
+    capture's own ``speed``), and every extra numeric column.
     """
     p = capture.reported_positions
     r = rotation_matrices(capture.reported_quaternions_xyzw)
@@ -130,6 +131,8 @@ def covariates(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None) 
         "visiting_order": np.argsort(np.argsort(capture.time, kind="stable"), kind="stable").astype(float),
         "sensor": capture.sensor.astype(float),
     }
+    if stream_speed is None:
+        stream_speed = getattr(capture, "speed", None)
     if stream_speed is not None:
         cov["speed"] = np.asarray(stream_speed, dtype=float)
     for k, name in enumerate(capture.extra_columns):
@@ -321,6 +324,73 @@ class Validation:
     def final(self) -> Residuals:
         """The residuals left: after the calibration if there is one, else before."""
         return self.after if self.after is not None else self.before
+
+    @property
+    def outside_stations(self) -> List[int]:
+        """Station ids outside the calibrated volume (the correction extrapolates there)."""
+        return [int(s) for s in self.capture.station[self.extrapolated]]
+
+    def station_rows(self) -> List[dict]:
+        """The residuals of every station, one dict each: station, set, sensor, time, reported
+        position x, y, z [m] and distance, the error before (and after the calibration) as
+        magnitudes (position mm, orientation deg) and vectors (position p_ref - p in mm,
+        orientation the small-angle rotation vector of q_ref conj(q) in deg, transmitter frame),
+        outside (the calibrated volume) and status (of a physical term's model inverse)."""
+        c = self.capture
+        deg = 2.0 * 180.0 / np.pi
+        distance = np.linalg.norm(c.reported_positions, axis=1)
+        rows = []
+        for i in range(len(c)):
+            row = {"station": int(c.station[i]), "set": str(c.set[i]), "sensor": int(c.sensor[i]),
+                   "time": float(c.time[i]), "x": float(c.reported_positions[i, 0]),
+                   "y": float(c.reported_positions[i, 1]), "z": float(c.reported_positions[i, 2]),
+                   "distance": float(distance[i])}
+            for name, r in (("before", self.before), ("after", self.after)):
+                if r is None:
+                    continue
+                row[f"{name}_position_mm"] = float(r.position_mm[i])
+                row[f"{name}_orientation_deg"] = float(r.orientation_deg[i])
+                for k, axis in enumerate("xyz"):
+                    row[f"{name}_dp{axis}_mm"] = float(r.position[i, k] * 1e3)
+                for k, axis in enumerate("xyz"):
+                    row[f"{name}_dr{axis}_deg"] = float(r.orientation[i, k] * deg)
+            row["outside"] = bool(self.extrapolated[i])
+            row["status"] = correction_status_names[int(self.status[i])] if self.status is not None else "converged"
+            rows.append(row)
+        return rows
+
+    def write_residuals(self, path, inputs: Sequence = ()) -> "pathlib.Path":
+        """Writes ``station_rows()`` as CSV atomically. Refuses an existing file (a capture is never
+        overwritten) and any of ``inputs``."""
+        import csv
+        import io
+        import os
+        import pathlib
+        import tempfile
+        path = pathlib.Path(path)
+        if path.exists():
+            raise ValueError(f"{path}: exists; residuals are never written over an existing file")
+        for p in inputs:
+            if p is not None and pathlib.Path(p).resolve() == path.resolve():
+                raise ValueError(f"{path}: refusing to overwrite an input")
+        rows = self.station_rows()
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=list(rows[0].keys()) if rows else ["station"], lineterminator="\n")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in r.items()})
+        fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent if str(path.parent) else ".")
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(buf.getvalue())
+            if path.exists():  # created meanwhile: still never replaced
+                raise ValueError(f"{path}: exists; residuals are never written over an existing file")
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return path
 
     def summary_text(self) -> str:
         out = [t.format() for t in self.tables]

@@ -1,0 +1,110 @@
+"""Validation and diagnosis of every kind of capture a lab brings (docs/understand.md): a poses.csv, a
+folder of streams (paired by time, with the receiver's speed as a covariate), and per-station
+residuals (``--residuals`` and the ``stations`` of ``diagnose --json``)."""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import trackcal
+from trackcal import captures, validation
+from understand_support import simulate
+
+
+def run_cli(*args, check=True):
+    exe = shutil.which("trackcal")
+    cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
+    r = subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=600)
+    if check:
+        assert r.returncode == 0, r.stderr
+    return r
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """A paper capture (poses, markers and streams) and a folder holding its two streams only."""
+    tmp = tmp_path_factory.mktemp("kinds")
+    cap_dir = simulate(tmp / "capture", seed=51)
+    streams = tmp / "streams"
+    streams.mkdir()
+    for name in ("tracker_stream.csv", "reference_stream.csv"):
+        shutil.copy(cap_dir / name, streams / name)
+    cal = tmp / "cal.json"
+    validation.fit_polynomial(captures.load_poses(cap_dir).select_set("calib"), degree=3).save(cal)
+    return cap_dir, streams, cal
+
+
+def test_load_pairs_streams_and_keeps_their_speed(sim):
+    _, streams, _ = sim
+    cap = captures.load(streams, time_offset=0.0)
+    pairing = trackcal.pair(streams / "tracker_stream.csv", streams / "reference_stream.csv")
+    assert cap.origin["kind"] == "streams" and cap.origin["time_offset_source"] == "given"
+    assert len(cap) == len(pairing.poses) > 1000
+    np.testing.assert_array_equal(cap.reported_positions, pairing.poses.reported_positions)
+    # The simulated receiver moves smoothly at walking-hand speeds: 0 < v < 2 m/s at every sample.
+    assert cap.speed.shape == (len(cap),) and 0 < np.median(cap.speed) < 2.0
+    assert "speed" in validation.covariates(cap)
+    # Without an offset it is estimated; the paper scene has no clock offset (|offset| < 5 ms, the
+    # pairing's error on this scene is ~1 ms, docs/fit.md).
+    est = captures.load(streams)
+    assert est.origin["time_offset_source"] == "estimated" and abs(est.origin["time_offset_s"]) < 5e-3
+
+
+def test_capture_folder_without_any_capture_names_what_it_looked_for(tmp_path):
+    with pytest.raises(ValueError, match="not a capture folder .*tracker_stream.csv"):
+        captures.load(tmp_path)
+    r = run_cli("validate", tmp_path, check=False)
+    assert r.returncode == 2 and "not a capture folder" in r.stderr
+
+
+def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
+    _, streams, cal = sim
+    r = run_cli("validate", streams, "-c", cal)
+    assert "streams paired at a time offset of" in r.stdout and "(estimated)" in r.stdout
+    assert "calib set (" in r.stdout and "Corrected" in r.stdout
+    r = run_cli("validate", streams, "-c", cal, "--time-offset", "0.02")
+    assert "time offset of 20.00 ms (given)" in r.stdout
+    r = run_cli("diagnose", streams, "-c", cal, "--permutations", "9", "--json")
+    doc = json.loads(r.stdout)
+    assert doc["capture_origin"]["kind"] == "streams"
+    assert "speed" in {c["covariate"] for c in doc["covariates"]}
+    assert len(doc["stations"]) == doc["capture_origin"]["paired"]
+
+
+def test_diagnose_json_and_residuals_give_every_station(sim, tmp_path):
+    cap_dir, _, cal = sim
+    out = tmp_path / "residuals.csv"
+    r = run_cli("diagnose", cap_dir, "-c", cal, "--permutations", "9", "--json", "--residuals", out)
+    doc = json.loads(r.stdout)  # still one JSON document on stdout
+    cap = captures.load_poses(cap_dir)
+    v = validation.validate(cap, trackcal.Calibration.load(cal), analyse_covariates=False)
+    rows = doc["stations"]
+    assert len(rows) == len(v.capture) == 600  # 480 calib + 120 valid; reg stations left out
+    assert [r["station"] for r in rows] == v.capture.station.tolist()
+    np.testing.assert_allclose([r["after_position_mm"] for r in rows], v.after.position_mm, rtol=1e-12)
+    # The vector columns are the magnitudes' components (mm), so they recombine to the magnitude.
+    vec = np.array([[r[f"after_dp{a}_mm"] for a in "xyz"] for r in rows])
+    np.testing.assert_allclose(np.linalg.norm(vec, axis=1), v.after.position_mm, rtol=1e-9)
+    assert doc["outside_volume"]["stations"] == [r["station"] for r in rows if r["outside"]]
+    assert doc["outside_volume"]["count"] == len(doc["outside_volume"]["stations"])
+    text = out.read_text().splitlines()
+    assert text[0].startswith("station,set,sensor,time,x,y,z,distance,before_position_mm")
+    assert len(text) == 601
+    # A second run never writes over the file.
+    before = out.read_bytes()
+    r = run_cli("validate", cap_dir, "-c", cal, "--residuals", out, check=False)
+    assert r.returncode == 2 and "exists" in r.stderr and out.read_bytes() == before
+
+
+def test_outside_stations_are_listed(sim):
+    cap_dir, _, cal = sim
+    v = validation.validate(captures.load_poses(cap_dir), trackcal.Calibration.load(cal), analyse_covariates=False)
+    r = run_cli("validate", cap_dir, "-c", cal)
+    n = int(v.extrapolated.sum())
+    assert n > 0  # validation stations extend beyond the calib grid's bounding box
+    line = next(l for l in r.stdout.splitlines() if l.startswith("stations outside the calibrated volume"))
+    assert line.startswith(f"stations outside the calibrated volume: {n} of 600: {v.outside_stations[0]} ")
