@@ -207,8 +207,8 @@ def cmd_fit(args, term) -> int:
     status = term.c("converged", "32") if report.converged else term.c("NOT converged", "31")
     print(f"Fit: {status} after {report.iterations} iterations in {report.seconds * 1e3:.3g} ms; chi2/dof {chi}")
     if report.outliers:
-        print(term.c(f"Outlier stations ({len(report.outliers)}):", "33") + " " +
-              " ".join(str(o["station"]) for o in report.outliers))
+        from trackcal.fitting import format_outliers
+        print(term.c(format_outliers(report.outliers, report.num_calib_stations), "33"))
     from trackcal.fitting import format_parameters
     print(format_parameters(report.parameters))
     if report.identifiability_flags:
@@ -324,8 +324,13 @@ def cmd_diagnose(args, term) -> int:
         print("\n" + term.c("Candidate effects", "1") +
               f" (the model alone: held-out {base.get('cv_position_mm_mean', float('nan')):.3f} mm, "
               f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg)")
-        print(_fmt_rows(diagnosis.candidate_rows(doc), ["rank", "effect", "cv_pos_mm", "cv_ori_deg", "drop_pos_%",
-                                               "drop_ori_%", "delta_BIC", "p", "significant"]))
+        rows = diagnosis.candidate_rows(doc)
+        print(_fmt_rows(rows, ["rank", "effect", "cv_pos_mm", "cv_ori_deg", "drop_pos_%",
+                               "drop_ori_%", "delta_BIC", "p", "significant"]))
+        for r in rows:  # what each fit says about the room, and why it is (not) claimed
+            print(f"  {r['rank']:>2} {r['effect']}: " + (r["statement"] or "(no physical statement)"))
+            if r["reason"]:
+                print(term.c(f"     {r['reason']}", "2"))
     for n in notes:
         print("\n" + term.c("note: ", "33") + n)
     print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], "32" if verdict["source"] is None else "31"))

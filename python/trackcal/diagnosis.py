@@ -127,7 +127,8 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
 
 
 def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
-    """One table row per ranked candidate (rank, effect, held-out errors, drops, delta BIC, p)."""
+    """One table row per ranked candidate (rank, effect, held-out errors, drops, delta BIC, p,
+    significant, the fitted parameters stated physically, and why it is or is not claimed)."""
     rows = []
     for i, c in enumerate((doc or {}).get("candidates", []), 1):
         drop = c.get("cv_drop_percent") or {}
@@ -136,7 +137,7 @@ def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
                      "drop_ori_%": drop.get("orientation"), "delta_BIC": c.get("delta_bic"),
                      "p": f"{c['p_value']:.2g}" if isinstance(c.get("p_value"), (int, float)) else "",
                      "significant": "yes" if c.get("significant") else "",
-                     "reason": c.get("reason", "")})
+                     "statement": c.get("statement", ""), "reason": c.get("reason", "")})
     return rows
 
 

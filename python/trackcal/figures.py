@@ -182,10 +182,12 @@ def covariate_bars(effects, *, target: str = "position_mm", top: int = 15):
 
 def history_plot(entries: Sequence[dict]):
     """Error after each recorded fit (mean position mm and orientation deg of the held-out or
-    validation set when recorded, else the calibration set)."""
+    validation set when recorded, else the calibration set). When the errors span more than a
+    factor of 20 (a loop that starts at the uncorrected error and ends near the noise floor) the
+    axes are logarithmic, so the last changes stay visible."""
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     x = np.arange(1, len(entries) + 1)
-    from trackcal.history import headline_scores
+    from trackcal.history import headline_scores, headline_set
     pos = [headline_scores(e)[0] for e in entries]
     ori = [headline_scores(e)[1] for e in entries]
     ax.plot(x, pos, "o-", color="tab:blue", label="position mean [mm]")
@@ -194,10 +196,15 @@ def history_plot(entries: Sequence[dict]):
     ax2 = ax.twinx()
     ax2.plot(x, ori, "s--", color="tab:red", label="orientation mean [deg]")
     ax2.set_ylabel("orientation error mean [deg]", color="tab:red")
+    for axis, values in ((ax, pos), (ax2, ori)):
+        v = np.asarray([y for y in values if np.isfinite(y) and y > 0])
+        if len(v) >= 2 and v.max() > 20 * v.min():
+            axis.set_yscale("log")
     ax.set_xticks(x)
     ax.set_xticklabels([str(e.get("label") or i) for i, e in zip(x, entries)], rotation=30, ha="right",
                        fontsize=8)
-    ax.set_title("Error after each change")
+    sets = sorted({headline_set(e) for e in entries} - {None})
+    ax.set_title("Error after each change" + (f" ({', '.join(sets)})" if sets else ""))
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return fig

@@ -149,8 +149,7 @@ class FitReport:
         out.append(f"Fit: {'converged' if self.converged else 'NOT converged'} after {self.iterations} "
                    f"iterations in {self.seconds * 1e3:.3g} ms; chi2/dof {chi}")
         if self.outliers:
-            out.append(f"Outlier stations ({len(self.outliers)}): "
-                       + " ".join(str(o["station"]) for o in self.outliers))
+            out.append(format_outliers(self.outliers, self.num_calib_stations))
         out.append(format_parameters(self.parameters))
         if self.covariance_estimator:
             out.append(f"  (standard deviations from the {self.covariance_estimator} covariance)")
@@ -162,6 +161,18 @@ class FitReport:
     def __repr__(self) -> str:
         t = self.held_out()
         return (f"FitReport(terms={self.model['terms']}, {t.set_name}: {t.after_position_mm['mean']:.3f} mm / {t.after_orientation_deg['mean']:.3f} deg)")
+
+
+def format_outliers(outliers: List[dict], num_stations: int, limit: int = 20) -> str:
+    """'Outlier stations (12 of 480): 3 17 ...' listing the first ``limit`` ids (all of them are in
+    to_dict()). When most stations are outliers the model, not the stations, is what fails."""
+    n = len(outliers)
+    ids = " ".join(str(o["station"]) for o in outliers[:limit])
+    line = f"Outlier stations ({n} of {num_stations}): {ids}" + (f" ... ({n - limit} more)" if n > limit else "")
+    if num_stations and n > 0.5 * num_stations:
+        line += ("\n  (most stations are outliers: the model leaves far more than the noise; "
+                 "see trackcal diagnose)")
+    return line
 
 
 def format_parameters(parameters: List[Parameter], max_values: int = 12) -> str:

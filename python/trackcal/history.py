@@ -172,23 +172,31 @@ def scores_from_validation(validation) -> Dict[str, dict]:
     return out
 
 
-def headline_scores(entry: dict) -> Tuple[float, float]:
-    """(position mean mm, orientation mean deg) of the most telling set: held-out first."""
+def headline_set(entry: dict) -> Optional[str]:
+    """The set whose errors ``headline_scores`` reports: held-out first (valid, cross-validation),
+    then all, then calib."""
     scores = entry.get("scores", {})
     for key in ("valid", "cross-validation", "all", "calib"):
-        for name, s in scores.items():
+        for name in scores:
             if name.startswith(key):
-                return float(s["position_mm"]["mean"]), float(s["orientation_deg"]["mean"])
-    if scores:
-        s = next(iter(scores.values()))
-        return float(s["position_mm"]["mean"]), float(s["orientation_deg"]["mean"])
-    return math.nan, math.nan
+                return name
+    return next(iter(scores), None)
+
+
+def headline_scores(entry: dict) -> Tuple[float, float]:
+    """(position mean mm, orientation mean deg) of the most telling set: held-out first."""
+    name = headline_set(entry)
+    if name is None:
+        return math.nan, math.nan
+    s = entry["scores"][name]
+    return float(s["position_mm"]["mean"]), float(s["orientation_deg"]["mean"])
 
 
 def history_table(entries: Sequence[dict]) -> str:
-    """Plain-text table: one row per fit with the headline error and its change from the previous."""
+    """Plain-text table: one row per fit with the headline error (``set``: which set's, held-out
+    first) and its change from the previous."""
     lines = [f"{'#':>3}  {'time (UTC)':<20}  {'label':<28} {'pos mean mm':>12} {'change':>8} "
-             f"{'ori mean deg':>13} {'change':>8}  model"]
+             f"{'ori mean deg':>13} {'change':>8}  {'set':<12}  model"]
     prev = None
     for i, e in enumerate(entries, 1):
         p, o = headline_scores(e)
@@ -197,6 +205,6 @@ def history_table(entries: Sequence[dict]) -> str:
         m = e.get("model") or {}
         model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
         lines.append(f"{i:>3}  {e.get('time_utc', ''):<20}  {str(e.get('label', ''))[:28]:<28} {p:>12.3f} "
-                     f"{dp:>8} {o:>13.3f} {do:>8}  {model}")
+                     f"{dp:>8} {o:>13.3f} {do:>8}  {(headline_set(e) or '')[:12]:<12}  {model}")
         prev = (p, o)
     return "\n".join(lines)

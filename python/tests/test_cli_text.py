@@ -1,0 +1,77 @@
+"""What a lab engineer reads on the terminal: the candidates' physical statements in the text of
+``trackcal diagnose``, a readable outlier line from ``trackcal fit``, and a history whose last
+changes stay visible (log axes) and say which set's error they show."""
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from trackcal import figures, history
+from understand_support import simulate
+
+MODEL = "terms:\n  - type: polynomial\n    degree: 3\n"
+
+
+def run_cli(*args):
+    exe = shutil.which("trackcal")
+    cmd = [exe] if exe else [sys.executable, "-m", "trackcal.cli"]
+    r = subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    return r
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory):
+    return simulate(tmp_path_factory.mktemp("clitext") / "capture", seed=73, hidden="sensor_offset")
+
+
+def test_diagnose_text_states_every_candidate_physically(capture_dir, tmp_path):
+    model = tmp_path / "model.yaml"
+    model.write_text(MODEL)
+    r = run_cli("diagnose", capture_dir, "--model", model, "--permutations", "9", "--effects", "sensor_offset",
+                "--folds", "2")
+    text = r.stdout
+    table = text[text.index("Candidate effects"):text.index("Verdict")]
+    # Under the ranking table, each candidate's fit in physical words (the engine's statement) and
+    # the reason it is or is not claimed.
+    assert "1 sensor_offset: a sensor offset of (" in table
+    assert "held-out error falls" in table
+
+
+def test_fit_lists_a_readable_number_of_outliers(capture_dir, tmp_path):
+    model = tmp_path / "model.yaml"
+    # A degree-1 polynomial leaves most stations far beyond the noise in the paper room with an
+    # offset sensor: nearly all are outliers.
+    model.write_text("terms:\n  - type: polynomial\n    degree: 1\n")
+    r = run_cli("fit", "--data", capture_dir, "--model", model, "-o", tmp_path / "c.json")
+    line = next(l for l in r.stdout.splitlines() if l.startswith("Outlier stations"))
+    assert " of 480): " in line  # out of the calib stations
+    assert len(line.split(":", 1)[1].split()) <= 23  # 20 ids and "... (N more)"
+    assert "most stations are outliers" in r.stdout
+
+
+def entry(label, pos, ori, set_name="valid"):
+    return {"label": label, "scores": {"calib": {"position_mm": {"mean": pos / 2}, "orientation_deg": {"mean": ori / 2}},
+                                       set_name: {"position_mm": {"mean": pos}, "orientation_deg": {"mean": ori}}}}
+
+
+def test_history_plot_keeps_the_last_changes_visible():
+    # The main job's loop: 25.9 mm -> 0.09 mm. On a linear axis the last two changes are flat.
+    entries = [entry("base", 25.866, 3.227), entry("+sensor_offset", 0.877, 0.160),
+               entry("+dipole", 0.194, 0.036), entry("+plane", 0.090, 0.022)]
+    fig = figures.history_plot(entries)
+    left, right = fig.axes
+    assert left.get_yscale() == "log" and right.get_yscale() == "log"
+    assert "(valid)" in left.get_title()
+    # Errors within a factor of 20 stay linear.
+    fig = figures.history_plot([entry("a", 2.0, 0.2), entry("b", 1.5, 0.15)])
+    assert fig.axes[0].get_yscale() == "linear"
+
+
+def test_history_table_names_the_set_of_each_row():
+    rows = history.history_table([entry("base", 2.0, 0.2, "cross-validation (5-fold)"), entry("+x", 1.0, 0.1)])
+    lines = rows.splitlines()
+    assert " set " in lines[0]
+    assert "cross-valida" in lines[1] and "valid " in lines[2]
