@@ -172,7 +172,7 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
 def describe_origin(capture: PoseCapture) -> Optional[str]:
     """One line saying how stations that were not read from a poses.csv were obtained."""
     o = capture.origin or {}
-    if o.get("kind") == "streams":
+    if o.get("kind") in ("streams", "recording"):
         return (f"streams paired at a time offset of {1e3 * o['time_offset_s']:.2f} ms ({o['time_offset_source']}): "
                 f"{o['paired']} samples of sensor {o['sensor']}, {o['dropped']} dropped")
     if o.get("kind") == "markers":

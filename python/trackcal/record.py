@@ -41,6 +41,8 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
             if progress:
                 progress(elapsed, duration_s)
             time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
+        if progress:
+            progress(duration_s, duration_s)  # the bar ends at 100 % (and its line) before the summary
     finally:
         for r in recorders.values():
             r.stop()

@@ -403,10 +403,15 @@ def _sub(r: Residuals, idx) -> Residuals:
 
 def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("calib", "valid"),
              worst_count: int = 10, analyse_covariates: bool = True, covariate_options: Optional[dict] = None,
-             progress: Optional[Callable[[int, int], None]] = None) -> Validation:
+             progress: Optional[Callable[[int, int], None]] = None,
+             corrected_poses: Optional[tuple] = None) -> Validation:
     """Applies ``calibration`` (a trackcal.Calibration or None) to the capture's reported poses and
     computes everything ``trackcal diagnose`` shows. Registration stations (set 'reg') are left out
-    of the breakdowns and the covariate analysis (they are not calibration data)."""
+    of the breakdowns and the covariate analysis (they are not calibration data).
+
+    ``corrected_poses`` = (positions (N, 3), quaternions_xyzw (N, 4)), one per station of the
+    capture, are corrected poses obtained elsewhere (a server's corrected stream): they are
+    validated as they are, and the calibration, if any, only flags the stations outside its volume."""
     data = capture.subset(capture.set != "reg") if "reg" in capture.sets else capture
     if len(data) == 0:
         raise ValueError(f"{capture.path}: no calibration or validation stations")
@@ -419,6 +424,12 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
     if calibration is not None:
         cp, cq, extrapolated, status = calibration.correct(data.reported_positions, data.reported_quaternions_xyzw,
                                                            return_status=True)
+    if corrected_poses is not None:
+        keep = capture.set != "reg" if "reg" in capture.sets else np.ones(len(capture), bool)
+        cp, cq = (np.asarray(a, dtype=float)[keep] for a in corrected_poses)
+        if cp.shape != (len(data), 3) or cq.shape != (len(data), 4):
+            raise ValueError(f"corrected_poses: expected ({len(data)}, 3) positions and ({len(data)}, 4) quaternions")
+    if cp is not None:
         after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
     tables = []
     for s in sets:
@@ -447,6 +458,61 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
         v.covariate_effects = covariate_analysis(final, covariates(data), progress=progress,
                                                  **(covariate_options or {}))
     return v
+
+
+def validate_recording(raw, reference, *, corrected=None, calibration=None, time_offset: Optional[float] = None,
+                       search_range: float = 0.5, analyse_covariates: bool = False,
+                       covariate_options: Optional[dict] = None) -> Validation:
+    """Validates a live recording (``trackcal record``, ``trackcal.record.record_streams`` or
+    ``trackcal-server --record``) against the reference (optical) stream recorded beside it.
+
+    ``raw``: the raw tracker_stream.csv; ``reference``: reference_stream.csv, on its own clock;
+    ``corrected``: the server's corrected tracker_stream.csv of the same run (its reports carry the
+    raw ones' times); ``calibration``: a trackcal.Calibration, applied to the raw poses when no
+    corrected stream is given (else it only flags stations outside its volume). The raw stream is
+    paired with the reference (``trackcal.pair``, first sensor) at ``time_offset`` [s]
+    (t_reference - t_tracker), or at an offset estimated within +-``search_range`` s around 0 when
+    it is None; the corrected reports are matched to the paired raw samples by sensor and time.
+    Returns a Validation (Table 1 before and after, breakdowns, worst samples, ``capture.origin``
+    with the offset); ValueError if no corrected report matches a raw one."""
+    import pathlib
+    from trackcal.captures import load_tracker_stream
+    from trackcal.fitting import pair
+    estimate = time_offset is None
+    pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
+                   estimate_time_offset=estimate, search_range=search_range)
+    cap = pairing.poses
+    raw_stream = load_tracker_stream(raw)
+    sensor = int(cap.sensor[0]) if len(cap) else int(raw_stream.sensor[0])
+    own = raw_stream.sensor == sensor
+    cap.speed = np.interp(cap.time, raw_stream.time[own], raw_stream.speed()[own])
+    cap.path = pathlib.Path(raw)
+    cap.origin = {"kind": "recording", "files": [str(raw), str(reference)] + ([str(corrected)] if corrected else []),
+                  "time_offset_s": float(pairing.time_offset_s),
+                  "time_offset_source": "estimated" if estimate else "given",
+                  "paired": len(cap), "dropped": int(pairing.dropped), "sensor": sensor}
+    corrected_poses = None
+    if corrected is not None:
+        stream = load_tracker_stream(corrected)
+        mine = stream.sensor == sensor
+        t, p, q = stream.time[mine], stream.positions[mine], stream.quaternions_xyzw[mine]
+        if len(t) == 0:
+            raise ValueError(f"{corrected}: no report of sensor {sensor}")
+        order = np.argsort(t, kind="stable")
+        t, p, q = t[order], p[order], q[order]
+        idx = np.clip(np.searchsorted(t, cap.time), 0, len(t) - 1)
+        prev = np.clip(idx - 1, 0, len(t) - 1)
+        idx = np.where(np.abs(t[prev] - cap.time) < np.abs(t[idx] - cap.time), prev, idx)
+        # Both reports of a record are stamped with the same time; 1 us allows for a text round trip.
+        ok = np.abs(t[idx] - cap.time) <= 1e-6
+        if not ok.any():
+            raise ValueError(f"{corrected}: no report matches a raw report of {raw} in time (sensor {sensor}): "
+                             "record the raw and corrected trackers of the same server together")
+        cap = cap.subset(ok)
+        cap.origin["matched_corrected"] = int(ok.sum())
+        corrected_poses = (p[idx[ok]], q[idx[ok]])
+    return validate(cap, calibration, analyse_covariates=analyse_covariates, covariate_options=covariate_options,
+                    corrected_poses=corrected_poses)
 
 
 # ---------------------------------------------------------------------------------------------
