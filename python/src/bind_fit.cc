@@ -16,6 +16,7 @@
 
 #include <exception>
 #include <filesystem>
+#include <map>
 #include <optional>
 #include <string>
 #include <vector>
@@ -547,10 +548,14 @@ void BindFit(py::module_& m) {
       "register",
       [](const py::object& markers, const py::object& tracker, int sensor, const std::string& set,
          double optical_noise_m, double tracker_position_noise_m,
-         double tracker_orientation_noise_deg, int min_markers_per_station) {
+         double tracker_orientation_noise_deg, int min_markers_per_station,
+         const py::object& poses) {
         auto run = std::make_shared<RegistrationRun>();
         const fs::path markers_path = ToPath(markers), tracker_path = ToPath(tracker);
         run->inputs = {markers_path, tracker_path};
+        const bool labelled = !poses.is_none();
+        const fs::path poses_path = labelled ? ToPath(poses) : fs::path();
+        if (labelled) run->inputs.push_back(poses_path);
         fit::RegistrationOptions options;
         options.optical_noise_m = optical_noise_m;
         options.tracker_position_noise_m = tracker_position_noise_m;
@@ -566,24 +571,55 @@ void BindFit(py::module_& m) {
         py::gil_scoped_release release;
         ValueErrors([&] {
           const auto stations = fit::ReadRegistrationStations(markers_path, tracker_path, sensor);
-          run->registration = fit::RegisterOpticalToTransmitter(stations, options);
+          // With a poses.csv, as `trackcal-fit register --poses`: its `reg` stations register, and
+          // every station keeps its set and time; without, every station registers.
+          std::map<int, std::string> set_of;
+          std::map<int, double> time_of;
+          if (labelled) {
+            for (const PoseRecord& r : ReadPoses(poses_path).records) {
+              set_of[r.station] = r.set;
+              time_of[r.station] = r.time;
+            }
+            for (const fit::RegistrationStation& st : stations) {
+              if (!set_of.count(st.station)) {
+                throw std::invalid_argument(poses_path.string() + ": column station: no row for station " +
+                                            std::to_string(st.station) + " of " +
+                                            markers_path.filename().string());
+              }
+            }
+          }
+          std::vector<fit::RegistrationStation> registering;
+          for (const fit::RegistrationStation& st : stations) {
+            if (!labelled || set_of[st.station] == "reg") registering.push_back(st);
+          }
+          if (registering.empty()) {
+            throw std::invalid_argument(poses_path.string() + ": no station of " +
+                                        markers_path.filename().string() + " has set 'reg'");
+          }
+          run->registration = fit::RegisterOpticalToTransmitter(registering, options);
           fit::PoseExtractionOptions extraction;
           extraction.optical_noise_m = optical_noise_m;
           run->extracted = fit::ExtractPoses(stations, run->registration.registration, extraction);
-          fit::PoseRecords records =
-              fit::MakePoseRecords(stations, run->extracted, {}, record_options);
-          run->poses = std::move(records.capture);
-          run->left_out = std::move(records.left_out);
+          for (size_t i = 0; i < stations.size(); ++i) {
+            fit::PoseRecordOptions one_options = record_options;
+            if (labelled) one_options.set = set_of[stations[i].station];
+            fit::PoseRecords one =
+                fit::MakePoseRecords({stations[i]}, {run->extracted[i]}, time_of, one_options);
+            run->poses.records.insert(run->poses.records.end(), one.capture.records.begin(),
+                                      one.capture.records.end());
+            run->left_out.insert(run->left_out.end(), one.left_out.begin(), one.left_out.end());
+          }
         });
         return run;
       },
       py::arg("markers"), py::arg("tracker"), py::kw_only(), py::arg("sensor") = 1,
       py::arg("set") = "calib", py::arg("optical_noise_m") = 1.5e-4,
       py::arg("tracker_position_noise_m") = 8e-4, py::arg("tracker_orientation_noise_deg") = 0.15,
-      py::arg("min_markers_per_station") = 3,
+      py::arg("min_markers_per_station") = 3, py::arg("poses") = py::none(),
       "Registers the optical frame to the transmitter from markers.csv and tracker.csv and "
-      "extracts "
-      "each station's reference pose, as `trackcal-fit register` does.");
+      "extracts each station's reference pose, as `trackcal-fit register` does; with `poses` (a "
+      "poses.csv) only its `reg` stations register and every station keeps its set and time, as "
+      "`trackcal-fit register --poses`.");
 
   py::class_<PairRun, std::shared_ptr<PairRun>>(
       m, "NativePairing", "Result of trackcal._core.pair (wrapped by trackcal.pair).")

@@ -123,7 +123,7 @@ def capture_kind(path: PathLike) -> str:
 
 
 def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: float = 0.5,
-         register_options: Optional[dict] = None) -> PoseCapture:
+         register_markers: bool = False, register_options: Optional[dict] = None) -> PoseCapture:
     """Any capture as paired stations (docs/captures.md), whatever the folder holds:
 
     - ``poses.csv`` (or a folder with one): read as it is;
@@ -133,13 +133,21 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
       ``calib`` and carries its speed (``speed``, a covariate of the diagnosis);
     - ``markers.csv`` + ``tracker.csv`` (raw optical markers): registered (``trackcal.register``,
       paper section 3; ``register_options`` are its keyword options) and every station's reference
-      pose extracted; all stations are set ``calib``.
+      pose extracted. With ``register_markers`` this is done even when the folder has a poses.csv,
+      whose ``set`` column then says which stations register (``reg``) and which set each station
+      is in; without a poses.csv every station registers and is set ``calib``.
 
     ``origin`` says which, with the offset used (and its source) or the registration's chi-square.
     """
     from trackcal.fitting import pair, register
     kind = capture_kind(path)
     p = pathlib.Path(path)
+    labels = None
+    if register_markers:
+        if not (p.is_dir() and all((p / n).is_file() for n in MARKER_FILES)):
+            raise ValueError(f"{p}: register_markers needs a folder with {' and '.join(MARKER_FILES)}")
+        labels = p / "poses.csv" if (p / "poses.csv").is_file() else None
+        kind = "markers"
     if kind == "poses":
         cap = load_poses(p)
         cap.origin = {"kind": "poses", "files": [str(cap.path)]}
@@ -159,10 +167,11 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
                       "time_offset_source": "estimated" if estimate else "given",
                       "paired": len(cap), "dropped": int(result.dropped), "sensor": int(first)}
         return cap
-    result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], **(register_options or {}))
+    result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], poses=labels, **(register_options or {}))
     cap = result.poses
     cap.path = p / MARKER_FILES[1]
-    cap.origin = {"kind": "markers", "files": [str(p / n) for n in MARKER_FILES],
+    cap.origin = {"kind": "markers", "files": [str(p / n) for n in MARKER_FILES] + ([str(labels)] if labels else []),
+                  "registered_with": "the reg stations of poses.csv" if labels else "every station",
                   "registered": len(cap), "left_out": [int(s) for s in result.left_out],
                   "converged": bool(result.converged), "chi_square": float(result.chi_square),
                   "nu": float(result.nu)}
@@ -176,7 +185,7 @@ def describe_origin(capture: PoseCapture) -> Optional[str]:
         return (f"streams paired at a time offset of {1e3 * o['time_offset_s']:.2f} ms ({o['time_offset_source']}): "
                 f"{o['paired']} samples of sensor {o['sensor']}, {o['dropped']} dropped")
     if o.get("kind") == "markers":
-        return (f"raw markers registered (paper section 3): {o['registered']} stations, "
+        return (f"raw markers registered (paper section 3) with {o['registered_with']}: {o['registered']} stations, "
                 f"{len(o['left_out'])} left out, chi-square {o['chi_square']:.1f} for {o['nu']:.0f} degrees of freedom")
     return None
 

@@ -92,7 +92,8 @@ def _load(args, fit_report=None):
     cal = Calibration.load(args.calibration) if args.calibration else None
     if cal is None and fit_report is not None:
         cal = fit_report.calibration
-    capture = load(args.capture, time_offset=_time_offset(args, cal, fit_report))
+    capture = load(args.capture, time_offset=_time_offset(args, cal, fit_report),
+                   register_markers=getattr(args, "register_markers", False))
     return capture, cal
 
 
@@ -397,6 +398,9 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--time-offset", type=float, default=None, metavar="S",
                         help="streams: pair at this clock offset t_reference - t_tracker [s] (default: the "
                              "model fit's or the calibration's, else estimated)")
+        sp.add_argument("--register-markers", action="store_true",
+                        help="derive the reference poses from the folder's markers.csv + tracker.csv (registered "
+                             "with the reg stations of its poses.csv, if any) instead of reading poses.csv")
         sp.add_argument("--residuals", metavar="CSV",
                         help="write every station's residuals (before/after, vectors, outside flag) to this "
                              "new CSV file")

@@ -241,14 +241,21 @@ class Registration:
 
 def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str = "calib",
              optical_noise_m: float = 1.5e-4, tracker_position_noise_m: float = 8e-4,
-             tracker_orientation_noise_deg: float = 0.15, min_markers_per_station: int = 3) -> Registration:
+             tracker_orientation_noise_deg: float = 0.15, min_markers_per_station: int = 3,
+             poses: Optional[PathLike] = None) -> Registration:
     """Optical-to-transmitter registration (paper section 3) from markers.csv and tracker.csv, and
-    the reference pose of every station from its markers, as ``trackcal-fit register``."""
+    the reference pose of every station from its markers, as ``trackcal-fit register``.
+
+    Without ``poses`` every station registers and gets set ``set``. With ``poses`` (a poses.csv
+    whose ``set`` column labels every station of markers.csv), only its ``reg`` stations register
+    (the paper's ~20 stations near the transmitter, where the distortion is small) and every station
+    keeps its set and time, as ``trackcal-fit register --poses``: registering with distorted
+    stations biases the registration by their distortion."""
     return Registration(_core.register(markers, tracker, sensor=sensor, set=set,
                                        optical_noise_m=optical_noise_m,
                                        tracker_position_noise_m=tracker_position_noise_m,
                                        tracker_orientation_noise_deg=tracker_orientation_noise_deg,
-                                       min_markers_per_station=min_markers_per_station))
+                                       min_markers_per_station=min_markers_per_station, poses=poses))
 
 
 class Pairing:
