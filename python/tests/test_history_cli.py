@@ -59,8 +59,12 @@ def test_cli_validate_diagnose_report(tmp_path):
     cap = captures.load_poses(cap_dir)
     cal_path = tmp_path / "cal.json"
     validation.fit_polynomial(cap.select_set("calib"), degree=3).save(cal_path)
-    r = run_cli("validate", cap_dir, "-c", cal_path, "--cross-validate", "5", "--json")
+    r = run_cli("validate", cap_dir, "-c", cal_path, "--cross-validate", "5")
     assert "valid set (120 poses)" in r.stdout and "cross-validation (5-fold)" in r.stdout
+    # --json: one document a script can parse, nothing else on stdout.
+    doc = json.loads(run_cli("validate", cap_dir, "-c", cal_path, "--cross-validate", "5", "--json").stdout)
+    assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all", "cross-validation (5-fold)"]
+    assert doc["outside_volume"]["count"] == len(doc["outside_volume"]["stations"])
     assert "\033[" not in r.stdout  # not a terminal: no colour codes
     r = run_cli("diagnose", cap_dir, "-c", cal_path, "--permutations", "19")
     for heading in ("By distance from the transmitter", "By region", "Worst 10 stations", "Residual structure"):

@@ -237,13 +237,20 @@ def cmd_validate(args, term) -> int:
     _, _, v = _validation(args, term, covariates=False)
     _record_history(args, v)
     _write_residuals(args, v)
+    if args.json:  # one document on stdout, nothing else (as diagnose and fit), for scripts
+        from trackcal.diagnosis import _finite
+        print(json.dumps(_finite({
+            "command": "validate", "capture": str(args.capture), "calibration": args.calibration,
+            "capture_origin": v.capture.origin, "tables": [t.to_dict() for t in v.tables],
+            "outside_volume": {"count": int(v.extrapolated.sum()), "of": int(len(v.extrapolated)),
+                               "stations": v.outside_stations},
+            "model_inverse": v.status_counts}), indent=2, allow_nan=False))
+        return 0
     _print_origin(term, v.capture)
     for t in v.tables:
         print(term.c(t.format(), "1") if t.set_name == "valid" else t.format())
     _print_outside(term, v)
     print(_unresolved_line(v))
-    if args.json:
-        print(json.dumps({t.set_name: t.to_dict() for t in v.tables}, indent=2))
     return 0
 
 
@@ -410,7 +417,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("validate", help="Table 1 before/after for the calibration and validation sets")
     common(sp, covariates=False)
-    sp.add_argument("--json", action="store_true", help="also print the tables as JSON")
+    sp.add_argument("--json", action="store_true",
+                    help="print one JSON document (tables, outside-volume stations, capture origin) instead of text")
     sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl")
     sp.add_argument("--label", help="what changed in this fit (history label; default: file name)")
     def model_args(sp):
