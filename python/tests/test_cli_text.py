@@ -75,3 +75,18 @@ def test_history_table_names_the_set_of_each_row():
     lines = rows.splitlines()
     assert " set " in lines[0]
     assert "cross-valida" in lines[1] and "valid " in lines[2]
+
+
+def test_history_labels_name_the_effect_added(capture_dir, tmp_path):
+    """`trackcal fit --workdir` labels each fit by the effects added, as the user wrote them in the
+    model file (not the engine's internal 'physical' chain), and counts a second dipole as a change."""
+    assert history.term_change(["dipole", "polynomial"], ["dipole", "dipole", "polynomial"]) == "+dipole"
+    work = tmp_path / "work"
+    first, second = tmp_path / "m1.yaml", tmp_path / "m2.yaml"
+    first.write_text(MODEL)
+    second.write_text("terms:\n  - type: sensor_offset\n" + MODEL.split("\n", 1)[1])
+    run_cli("fit", "--data", capture_dir, "--model", first, "-o", tmp_path / "c1.json", "--workdir", work)
+    run_cli("fit", "--data", capture_dir, "--model", second, "-o", tmp_path / "c2.json", "--workdir", work)
+    entries = history.load_history(work)
+    assert [e["label"] for e in entries] == ["polynomial", "+sensor_offset"]
+    assert entries[1]["terms"] == ["sensor_offset", "polynomial"]

@@ -116,12 +116,28 @@ def _data_files(data) -> List[Tuple[pathlib.Path, str]]:
 
 
 def term_change(previous: Optional[Sequence[str]], terms: Sequence[str]) -> str:
-    """'+dipole -lut' between two term lists ('' when equal; the list itself for the first fit)."""
+    """'+dipole -lut' between two term lists, counted as multisets ('' when equal; the list itself
+    for the first fit)."""
     if previous is None:
         return " + ".join(terms)
-    added = [t for t in terms if t not in previous]
-    removed = [t for t in previous if t not in terms]
+    from collections import Counter
+    # As multisets: a second dipole is a change too.
+    added = list((Counter(terms) - Counter(previous)).elements())
+    removed = list((Counter(previous) - Counter(terms)).elements())
     return " ".join([f"+{t}" for t in added] + [f"-{t}" for t in removed])
+
+
+def effect_names(report) -> List[str]:
+    """The model's terms as a user wrote them: the physical chain's effects by type (sensor_offset,
+    dipole, plane, ...), then the other terms (polynomial, lut)."""
+    names = []
+    for t in getattr(report, "terms", None) or []:
+        effects = t.get("effects") if isinstance(t, dict) else None
+        if effects:
+            names += [str(e.get("type") or e.get("name")) for e in effects]
+        elif isinstance(t, dict):
+            names.append(str(t.get("type") or t.get("name")))
+    return names or list(report.model["terms"])
 
 
 def record_model_fit(workdir, report, *, model, data, calibration=None, label: Optional[str] = None) -> dict:
@@ -137,7 +153,7 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     copy = models / f"{sha[:16]}.yaml"
     if not copy.exists():
         _atomic_write(copy, text.encode("utf-8"))
-    terms = list(report.model["terms"])
+    terms = effect_names(report)
     if label is None:
         previous = next((e for e in reversed(load_history(workdir)) if "terms" in e), None)
         if previous is None:
