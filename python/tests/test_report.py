@@ -49,7 +49,10 @@ def written_report(tmp_path_factory):
                "candidates": [{"effect": "sensor_offset", "cv_position_mm_mean": 1.2, "cv_orientation_deg_mean": 0.1,
                                "cv_drop_percent": {"position": 40.0, "orientation": 50.0}, "delta_bic": -90.0,
                                "p_value": 1e-6, "significant": True, "reason": "held-out error falls 40 %",
-                               "model_change": "- type: sensor_offset\n", "insert_index": 0}],
+                               "model_change": "- type: sensor_offset\n", "insert_index": 0},
+                              {"effect": "robust_loss", "cv_position_mm_mean": None, "cv_orientation_deg_mean": None,
+                               "cv_drop_percent": None, "delta_bic": 661.5, "p_value": None, "significant": False,
+                               "reason": "not cross-validated: its fit rejects no station as a gross outlier"}],
                "verdict": {"effect": "sensor_offset", "text": "a sensor offset explains the remaining structure"}}
     html = report.write_report(v, out, inputs=[cap_dir / "poses.csv", cal_path],
                                history_entries=load_history(work), candidates=ranking,
@@ -64,6 +67,7 @@ def test_report_renders_every_figure(written_report, tmp_path):
     assert n_img == 10
     assert "http://" not in text and "https://" not in text  # self-contained, opens offline
     assert "Candidate effects" in text and "sensor_offset" in text
+    assert "<td>None</td>" not in text  # a candidate without held-out scores shows empty cells
     assert "a sensor offset explains the remaining structure" in text  # the verdict
     assert "History of fits" in text and "polynomial r=3" in text
     pngs = sorted(p.name for p in written_report.parent.glob("*.png"))

@@ -46,7 +46,9 @@ def _table(rows: List[dict], columns: Optional[List[str]] = None, fmt: str = "{:
         cells = []
         for c in columns:
             v = r.get(c, "")
-            if isinstance(v, (float, np.floating)):
+            if v is None:  # not computed (e.g. a candidate that was not cross-validated)
+                v = ""
+            elif isinstance(v, (float, np.floating)):
                 v = fmt.format(v)
             cells.append(f"<td>{html.escape(str(v))}</td>")
         out.append("<tr>" + "".join(cells) + "</tr>")
