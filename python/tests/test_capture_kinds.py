@@ -73,6 +73,9 @@ def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     assert doc["capture_origin"]["kind"] == "streams"
     assert "speed" in {c["covariate"] for c in doc["covariates"]}
     assert len(doc["stations"]) == doc["capture_origin"]["paired"]
+    run_cli("report", streams, "-c", cal, "--permutations", "9", "-o", tmp_path / "report")
+    page = (tmp_path / "report" / "report.html").read_text()
+    assert "Stations: streams paired at a time offset of" in page
 
 
 def test_diagnose_json_and_residuals_give_every_station(sim, tmp_path):

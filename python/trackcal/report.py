@@ -166,9 +166,16 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
              f"Capture: {html.escape(str(v.capture.path))}; calibration: "
              f"{html.escape(str(getattr(v.calibration, 'description', None) or ('none' if v.calibration is None else 'yes')))}.</p>",
              "<h2>Table 1: errors before and after</h2>"]
+    from trackcal.captures import describe_origin
+    origin = describe_origin(v.capture)
+    if origin:  # streams paired, markers registered: say how, with the offset or the chi-square
+        parts.insert(-1, f"<p>Stations: {html.escape(origin)}.</p>")
     parts += [_table1_html(t) for t in v.tables]
     n_out = int(v.extrapolated.sum())
-    parts.append(f"<p>Stations outside the calibrated volume: <b>{n_out}</b> of {len(v.extrapolated)}.</p>")
+    ids = v.outside_stations
+    listed = (": " + html.escape(" ".join(str(i) for i in ids[:50])) + (f" ... ({n_out - 50} more)" if n_out > 50 else "")
+              if n_out else "")
+    parts.append(f"<p>Stations outside the calibrated volume: <b>{n_out}</b> of {len(v.extrapolated)}{listed}.</p>")
     parts.append("<h2>By distance from the transmitter</h2>" + _table(v.by_distance))
     parts.append("<h2>By region of the volume (octants)</h2>" + _table(v.by_region))
     parts.append("<h2>Worst stations</h2>" + _table(v.worst))
