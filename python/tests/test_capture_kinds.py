@@ -67,7 +67,7 @@ def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     assert "streams paired at a time offset of" in r.stdout and "(estimated)" in r.stdout
     assert "calib set (" in r.stdout and "Corrected" in r.stdout
     r = run_cli("validate", streams, "-c", cal, "--time-offset", "0.02")
-    assert "time offset of 20.00 ms (given)" in r.stdout
+    assert "time offset of 20.00 ms (--time-offset)" in r.stdout
     r = run_cli("diagnose", streams, "-c", cal, "--permutations", "9", "--json")
     doc = json.loads(r.stdout)
     assert doc["capture_origin"]["kind"] == "streams"

@@ -70,18 +70,19 @@ class Terminal:
             self.err.flush()
 
 
-def _time_offset(args, cal, fit_report=None) -> Optional[float]:
-    """The clock offset to pair a stream capture at: --time-offset, else the one the model's fit
-    used, else the calibration's (fit_statistics.time_offset_s); None: estimate it."""
+def _time_offset(args, cal, fit_report=None):
+    """The clock offset to pair a stream capture at, and where it comes from: --time-offset, else
+    the one the model's fit used, else the calibration's (fit_statistics.time_offset_s); (None,
+    "estimated"): estimate it."""
     if getattr(args, "time_offset", None) is not None:
-        return args.time_offset
+        return args.time_offset, "--time-offset"
     if fit_report is not None and fit_report.time_offset_s is not None:
-        return float(fit_report.time_offset_s)
+        return float(fit_report.time_offset_s), "the model's fit"
     if cal is not None:
         t = (cal.fit_statistics or {}).get("time_offset_s")
         if t is not None:
-            return float(t)
-    return None
+            return float(t), "the calibration"
+    return None, "estimated"
 
 
 def _load(args, fit_report=None):
@@ -92,8 +93,10 @@ def _load(args, fit_report=None):
     cal = Calibration.load(args.calibration) if args.calibration else None
     if cal is None and fit_report is not None:
         cal = fit_report.calibration
-    capture = load(args.capture, time_offset=_time_offset(args, cal, fit_report),
-                   register_markers=getattr(args, "register_markers", False))
+    offset, source = _time_offset(args, cal, fit_report)
+    capture = load(args.capture, time_offset=offset, register_markers=getattr(args, "register_markers", False))
+    if (capture.origin or {}).get("kind") == "streams":
+        capture.origin["time_offset_source"] = source
     return capture, cal
 
 
