@@ -150,3 +150,13 @@ def test_raw_markers_register_with_the_reg_stations_like_trackcal_fit(sim, tmp_p
     # And the CLI validates such a folder directly.
     r = run_cli("validate", folder, "-c", cal)
     assert "raw markers registered (paper section 3) with every station" in r.stdout
+
+
+def test_validate_records_stream_files_by_absolute_path(sim, tmp_path, monkeypatch):
+    """A history entry must find its data again from another folder: both stream files, absolute."""
+    from trackcal import cli, history
+    _, streams, cal = sim
+    monkeypatch.chdir(streams.parent)
+    assert cli.main(["validate", streams.name, "-c", str(cal), "--workdir", str(tmp_path / "work")]) == 0
+    data = history.load_history(tmp_path / "work")[0]["data"]
+    assert [d["path"] for d in data] == [str(streams / "tracker_stream.csv"), str(streams / "reference_stream.csv")]

@@ -163,7 +163,7 @@ def _record_history(args, v) -> None:
     if not args.calibration:
         raise ValueError("--workdir records a fit: give its calibration with -c")
     record_fit(args.workdir, model=args.calibration,
-               data=[(f, "validation_capture") for f in _capture_files(v.capture)],
+               data=[(pathlib.Path(f).resolve(), "validation_capture") for f in _capture_files(v.capture)],
                scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name)
 
 
