@@ -13,6 +13,7 @@
 #include <map>
 #include <sstream>
 #include <stdexcept>
+#include <utility>
 
 namespace trackcal {
 
@@ -149,6 +150,20 @@ class CsvTable {
       out.push_back(ParseNumber(row, extra_names_[i], row.fields[extra_index_[i]], true));
     }
     return out;
+  }
+
+  // Rows are keyed by two integer columns (station and sensor, station and marker): a key seen
+  // twice is an error naming both lines, since which row to keep is the user's call, not ours.
+  void RequireUniqueKey(const Row& row, const std::string& first, int first_value,
+                        const std::string& second, int second_value,
+                        std::map<std::pair<int, int>, int>* seen) const {
+    const auto [it, inserted] = seen->emplace(std::make_pair(first_value, second_value), row.line);
+    if (!inserted) {
+      Fail(row.line, "columns " + first + ", " + second,
+           first + " " + std::to_string(first_value) + ", " + second + " " +
+               std::to_string(second_value) + " repeats line " + std::to_string(it->second) +
+               " (one row per " + first + " and " + second + ")");
+    }
   }
 
   [[noreturn]] void Fail(int line, const std::string& what, const std::string& problem) const {
@@ -323,6 +338,7 @@ PoseCapture ReadPoses(const std::filesystem::path& path) {
   CsvTable t(path, kPoseColumns);
   PoseCapture c;
   c.extra_columns = t.extra_columns();
+  std::map<std::pair<int, int>, int> seen;
   for (const auto& row : t.rows()) {
     PoseRecord r;
     r.station = t.Integer(row, "station");
@@ -331,6 +347,7 @@ PoseCapture ReadPoses(const std::filesystem::path& path) {
       t.Fail(row.line, "column set", "'" + r.set + "' is not one of calib, valid, reg");
     }
     r.sensor = t.Integer(row, "sensor");
+    t.RequireUniqueKey(row, "station", r.station, "sensor", r.sensor, &seen);
     r.time = t.Number(row, "time");
     r.reported = t.Pose(row, "rep_");
     r.reference = t.Pose(row, "ref_");
@@ -344,10 +361,12 @@ MarkerCapture ReadMarkers(const std::filesystem::path& path) {
   CsvTable t(path, kMarkerColumns);
   MarkerCapture c;
   c.extra_columns = t.extra_columns();
+  std::map<std::pair<int, int>, int> seen;
   for (const auto& row : t.rows()) {
     MarkerRecord r;
     r.station = t.Integer(row, "station");
     r.marker = t.Integer(row, "marker");
+    t.RequireUniqueKey(row, "station", r.station, "marker", r.marker, &seen);
     r.position_in_optical = t.Vector(row, "");
     r.extra = t.Extras(row);
     c.records.push_back(std::move(r));
@@ -359,10 +378,12 @@ TrackerCapture ReadTracker(const std::filesystem::path& path) {
   CsvTable t(path, kTrackerColumns);
   TrackerCapture c;
   c.extra_columns = t.extra_columns();
+  std::map<std::pair<int, int>, int> seen;
   for (const auto& row : t.rows()) {
     TrackerRecord r;
     r.station = t.Integer(row, "station");
     r.sensor = t.Integer(row, "sensor");
+    t.RequireUniqueKey(row, "station", r.station, "sensor", r.sensor, &seen);
     r.transmitter_from_receiver = t.Pose(row, "");
     r.extra = t.Extras(row);
     c.records.push_back(std::move(r));

@@ -141,6 +141,23 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
             "poses.csv:1: column station: appears twice in the header");
 }
 
+TEST(PosesCsv, RepeatedStationAndSensorIsAnErrorNamingBothLines) {
+  const auto dir = MakeTempDir("capture_test");
+  const std::string header =
+      "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
+      "ref_qw,ref_qx,ref_qy,ref_qz\n";
+  const std::string rest = ",0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n";
+  const auto path = dir / "poses.csv";
+  // A station may carry several sensors: (1, 1) and (1, 2) are two records.
+  WriteText(path, header + "1,calib,1" + rest + "1,calib,2" + rest + "2,valid,1" + rest);
+  EXPECT_EQ(ReadPoses(path).records.size(), 3u);
+  // The same station and sensor twice, even in another set, is ambiguous.
+  WriteText(path, header + "1,calib,1" + rest + "2,calib,1" + rest + "\n1,valid,1" + rest);
+  EXPECT_EQ(ErrorOf([&] { ReadPoses(path); }),
+            "poses.csv:5: columns station, sensor: station 1, sensor 1 repeats line 2 (one row "
+            "per station and sensor)");
+}
+
 TEST(CaptureWriters, RefuseToOverwrite) {
   const auto dir = MakeTempDir("capture_test");
   const PoseCapture c = RandomPoses();
@@ -207,6 +224,22 @@ TEST(OtherCaptureFiles, RoundTrip) {
               reference_stream.records[i].transmitter_from_body.translation);
     EXPECT_EQ(rs.records[i].extra, reference_stream.records[i].extra);
   }
+}
+
+TEST(OtherCaptureFiles, RepeatedKeyIsAnErrorNamingBothLines) {
+  const auto dir = MakeTempDir("capture_test");
+  WriteText(dir / kMarkersCsv, "station,marker,x,y,z\n1,1,0,0,0\n1,2,0,0,0\n2,1,0,0,0\n1,2,1,1,1\n");
+  EXPECT_EQ(ErrorOf([&] { ReadMarkers(dir / kMarkersCsv); }),
+            std::string(kMarkersCsv) +
+                ":5: columns station, marker: station 1, marker 2 repeats line 3 (one row per "
+                "station and marker)");
+  WriteText(dir / kTrackerCsv,
+            "station,sensor,x,y,z,qw,qx,qy,qz\n3,1,0,0,0,1,0,0,0\n3,2,0,0,0,1,0,0,0\n"
+            "3,1,0,0,0,1,0,0,0\n");
+  EXPECT_EQ(ErrorOf([&] { ReadTracker(dir / kTrackerCsv); }),
+            std::string(kTrackerCsv) +
+                ":4: columns station, sensor: station 3, sensor 1 repeats line 2 (one row per "
+                "station and sensor)");
 }
 
 TEST(FormatNumber, ShortestRoundTrip) {

@@ -106,3 +106,13 @@ def test_bad_capture_error_names_file_line_column(tmp_path):
     p.write_text("\n".join(lines) + "\n")
     with pytest.raises(ValueError, match=r"poses\.csv:3: column rep_qw: 'abc' is not a number"):
         captures.load_poses(p)
+
+
+def test_repeated_station_and_sensor_error_names_both_lines(tmp_path):
+    p = hand_capture(tmp_path)
+    lines = p.read_text().splitlines()
+    lines.append(lines[1])  # the first station's row again, on the last line
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=rf"poses\.csv:{len(lines)}: columns station, sensor: "
+                                         r"station \d+, sensor \d+ repeats line 2"):
+        captures.load_poses(p)
