@@ -395,6 +395,57 @@ ParameterReport Derived(const ParameterReport& from, const std::string& block,
   return r;
 }
 
+// The receiver gain matrix G (rows: the coils' sensitivity axes) split into what is a gain effect
+// and what is not. Near the identity G = (I + K)(I + S) with K antisymmetric and S symmetric: S's
+// diagonal holds the coil gains, its off-diagonal sums g_ij + g_ji the coils' non-orthogonality
+// (small angles); K, the antisymmetric part (g_ij - g_ji) / 2, turns the whole coil triad, which is
+// a rotation of the sensor (what sensor_offset's rotation models; docs/physical-model.md: with a
+// free sensor_offset G is held symmetric for that reason). Uncertainties come from the block's
+// covariance mapped linearly (its standard deviations alone when it has none).
+struct GainMatrixParts {
+  // g00 - 1, g11 - 1, g22 - 1, g01 + g10, g02 + g20, g12 + g21.
+  Eigen::Matrix<double, 6, 1> gain;
+  Eigen::Matrix<double, 6, 6> gain_covariance;
+  Eigen::Matrix<double, 6, 1> gain_stddev;
+  // The triad's rotation vector from K (w_x = (g21 - g12) / 2, ...), its angle and the angle's
+  // standard deviation (first order in the covariance).
+  Eigen::Vector3d rotation = Eigen::Vector3d::Zero();
+  double rotation_angle_rad = 0.0;
+  double rotation_angle_stddev_rad = NAN;
+};
+
+// g.values has the 9 entries of G (the callers check).
+GainMatrixParts SplitGainMatrix(const ParameterReport& g) {
+  Eigen::Matrix<double, 9, 9> c = Eigen::Matrix<double, 9, 9>::Zero();
+  if (g.covariance.size() == 81) {
+    for (int i = 0; i < 81; ++i) c(i / 9, i % 9) = g.covariance[static_cast<size_t>(i)];
+  } else {
+    for (int i = 0; i < 9; ++i) c(i, i) = std::pow(At(g.stddev, static_cast<size_t>(i)), 2);
+  }
+  Eigen::Matrix<double, 9, 1> v;
+  for (int i = 0; i < 9; ++i) v(i) = g.values[static_cast<size_t>(i)] - (i % 4 == 0 ? 1.0 : 0.0);
+  Eigen::Matrix<double, 6, 9> a = Eigen::Matrix<double, 6, 9>::Zero();
+  a(0, 0) = a(1, 4) = a(2, 8) = 1.0;
+  a(3, 1) = a(3, 3) = 1.0;  // xy
+  a(4, 2) = a(4, 6) = 1.0;  // xz
+  a(5, 5) = a(5, 7) = 1.0;  // yz
+  Eigen::Matrix<double, 3, 9> b = Eigen::Matrix<double, 3, 9>::Zero();
+  b(0, 7) = 0.5, b(0, 5) = -0.5;  // (g21 - g12) / 2
+  b(1, 2) = 0.5, b(1, 6) = -0.5;  // (g02 - g20) / 2
+  b(2, 3) = 0.5, b(2, 1) = -0.5;  // (g10 - g01) / 2
+  GainMatrixParts parts;
+  parts.gain = a * v;
+  parts.gain_covariance = a * c * a.transpose();
+  parts.gain_stddev = parts.gain_covariance.diagonal().cwiseMax(0.0).cwiseSqrt();
+  parts.rotation = b * v;
+  parts.rotation_angle_rad = parts.rotation.norm();
+  if (parts.rotation_angle_rad > 0) {
+    const Eigen::Vector3d u = parts.rotation / parts.rotation_angle_rad;
+    parts.rotation_angle_stddev_rad = std::sqrt(std::max(0.0, u.dot(b * c * b.transpose() * u)));
+  }
+  return parts;
+}
+
 // Statements of the physical term types (block names of fit/terms_physical.h); empty if a block is
 // missing (then the generic statement is used).
 std::string PhysicalStatement(const std::string& type, const std::vector<ParameterReport>& p) {
@@ -414,24 +465,25 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
   if (type == "receiver_gain") {
     const ParameterReport* g = FindBlock(p, "gain_matrix");
     if (!g || g->values.size() != 9) return "";
-    // Rows of G are the coils' sensitivity axes: the diagonal is each coil's gain, the symmetric
-    // off-diagonal sum the coils' departure from orthogonality (small angles).
+    const GainMatrixParts parts = SplitGainMatrix(*g);
     ParameterReport gains = Derived(*g, "gains", "%", {}, {});
-    for (int i = 0; i < 3; ++i) {
-      gains.values.push_back(g->values[static_cast<size_t>(4 * i)] - 1.0);
-      gains.stddev.push_back(At(g->stddev, static_cast<size_t>(4 * i)));
-    }
     ParameterReport skew = Derived(*g, "non_orthogonality", "deg", {}, {});
-    const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
-    for (const auto& pr : pairs) {
-      const size_t ij = static_cast<size_t>(3 * pr[0] + pr[1]),
-                   ji = static_cast<size_t>(3 * pr[1] + pr[0]);
-      skew.values.push_back(g->values[ij] + g->values[ji]);
-      skew.stddev.push_back(std::hypot(At(g->stddev, ij), At(g->stddev, ji)));
+    for (int i = 0; i < 6; ++i) {
+      ParameterReport& to = i < 3 ? gains : skew;
+      to.values.push_back(parts.gain(i));
+      to.stddev.push_back(parts.gain_stddev(i));
     }
-    return "receiver coil gains " + BlockStatement(gains, 100.0, "%") +
-           " (x, y, z coils), non-orthogonality " + BlockStatement(skew, kDegPerRad, "deg") +
-           " (xy, xz, yz)";
+    std::string out = "receiver coil gains " + BlockStatement(gains, 100.0, "%") +
+                      " (x, y, z coils), non-orthogonality " +
+                      BlockStatement(skew, kDegPerRad, "deg") + " (xy, xz, yz)";
+    // The rotation part is stated so the numbers account for all of G, but it is not a gain.
+    const ParameterReport turn = Derived(*g, "turn", "rad", {parts.rotation_angle_rad},
+                                         {parts.rotation_angle_stddev_rad});
+    if (parts.rotation_angle_rad > 0) {
+      out += "; the coil triad turned as a whole by " + BlockStatement(turn, kDegPerRad, "deg") +
+             " (a rotation of the sensor, which sensor_offset models, not a gain)";
+    }
+    return out;
   }
   if (type == "dipole") {
     const ParameterReport* l = FindBlock(p, "location_in_transmitter");
@@ -854,6 +906,9 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
     const ParameterReport* block;
     std::string what;
     Eigen::VectorXd v;
+    // The stddev and covariance of v: the block's own unless v is derived from it.
+    std::vector<double> stddev;
+    std::vector<double> covariance;
   };
   std::vector<Strength> strengths;
   auto euclidean = [&](const std::string& name, const std::string& what,
@@ -863,7 +918,7 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
     Eigen::VectorXd v(static_cast<Eigen::Index>(null.size()));
     for (size_t i = 0; i < null.size(); ++i)
       v(static_cast<Eigen::Index>(i)) = b->values[i] - null[i];
-    strengths.push_back({b, what, v});
+    strengths.push_back({b, what, v, b->stddev, b->covariance});
   };
   if (term_type == "dipole") {
     euclidean("polarisability_m3", "polarisability_m3", {0.0});
@@ -872,7 +927,25 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
   } else if (term_type == "near_field") {
     euclidean("octupole_m2", "octupole_m2", {0.0, 0.0, 0.0});
   } else if (term_type == "receiver_gain") {
-    euclidean("gain_matrix", "gain_matrix - I", {1, 0, 0, 0, 1, 0, 0, 0, 1});
+    // Only the symmetric part of G - I is a gain effect (SplitGainMatrix): a whole-triad rotation
+    // found by a model without sensor_offset is the sensor's rotation, which would otherwise make
+    // the gains "significant" while every gain is within its sigma of zero.
+    const ParameterReport* b = FindBlock(blocks, "gain_matrix");
+    if (b && !b->fixed && b->values.size() == 9) {
+      const GainMatrixParts parts = SplitGainMatrix(*b);
+      std::vector<double> stddev(parts.gain_stddev.data(), parts.gain_stddev.data() + 6);
+      std::vector<double> covariance;
+      if (b->covariance.size() == 81) {
+        for (int r = 0; r < 6; ++r) {
+          for (int q = 0; q < 6; ++q) covariance.push_back(parts.gain_covariance(r, q));
+        }
+      }
+      if (std::none_of(b->stddev.begin(), b->stddev.end(),
+                       [](double x) { return std::isfinite(x); })) {
+        stddev.assign(6, NAN);
+      }
+      strengths.push_back({b, "coil gains and non-orthogonality", parts.gain, stddev, covariance});
+    }
   } else if (term_type == "sensor_offset") {
     euclidean("translation", "translation", {0.0, 0.0, 0.0});
     const ParameterReport* r = FindBlock(blocks, "rotation");
@@ -881,7 +954,7 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
       // the estimate by minus its rotation vector (the sign does not matter to the quadratic form).
       const Eigen::Quaterniond q = QuaternionFromXyzwArray(r->values.data());
       const Eigen::AngleAxisd aa(q.w() < 0 ? Eigen::Quaterniond(-q.coeffs()) : q);
-      strengths.push_back({r, "rotation", aa.angle() * aa.axis()});
+      strengths.push_back({r, "rotation", aa.angle() * aa.axis(), r->stddev, r->covariance});
     }
   } else {
     return e;  // no physical strength to test
@@ -895,7 +968,7 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
   }
   double best_p = 2.0;
   for (const auto& s : strengths) {
-    const std::optional<Wald> w = WaldOfBlock(s.v, s.block->stddev, s.block->covariance);
+    const std::optional<Wald> w = WaldOfBlock(s.v, s.stddev, s.covariance);
     if (!w) continue;
     const double p = ChiSquareUpperTail(w->chi2, w->dof);
     if (best_p > 1.0 || p < best_p) {

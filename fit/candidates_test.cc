@@ -549,8 +549,8 @@ TEST(AssessPhysicalEvidence, APlaneWhoseNormalIsNotDeterminedIsNotThatPlane) {
 TEST(AssessPhysicalEvidence, TheJointTestUsesTheBlockCovariance) {
   // G - I = (0.02, -0.02) on the first two diagonal entries, each 2 sigma, correlated +0.99: the
   // difference of the two gains (0.04) is known to sqrt(2 (1 - 0.99)) 0.01 = 0.0014, so chi2 =
-  // 0.04^2 / 2e-6 = 800; without the correlation (standard deviations alone) chi2 = 8 on 9 dof,
-  // 1.1 sigma.
+  // 0.04^2 / 2e-6 = 800; without the correlation (standard deviations alone) chi2 = 8 on 6 dof
+  // (the symmetric part of G - I: three gains, three non-orthogonality sums), 1.3 sigma.
   std::vector<double> g = {1.02, 0, 0, 0, 0.98, 0, 0, 0, 1};
   std::vector<double> sd(9, 0.01);
   std::vector<double> cov(81, 0.0);
@@ -559,11 +559,33 @@ TEST(AssessPhysicalEvidence, TheJointTestUsesTheBlockCovariance) {
   const auto correlated =
       AssessPhysicalEvidence("receiver_gain", {Report("gain_matrix", g, sd, cov)}, {});
   EXPECT_NEAR(correlated.strength_chi2, 800.0, /*abs=*/800.0 * 1e-6);
-  EXPECT_EQ(correlated.strength_dof, 9);
+  EXPECT_EQ(correlated.strength_dof, 6);
   EXPECT_TRUE(correlated.supported()) << correlated.Describe();
   const auto diagonal = AssessPhysicalEvidence("receiver_gain", {Report("gain_matrix", g, sd)}, {});
   EXPECT_NEAR(diagonal.strength_chi2, 8.0, /*abs=*/1e-9);
   EXPECT_FALSE(diagonal.supported()) << diagonal.Describe();
+}
+
+TEST(AssessPhysicalEvidence, AReceiverTurnedAsAWholeIsNotAGainEffect) {
+  // What diagnose met on the paper preset with a hidden sensor offset (seed 3): without
+  // sensor_offset in the model, receiver_gain's G took the sensor's 2.9 deg rotation as its
+  // antisymmetric part, known to 0.01 deg, while every gain and non-orthogonality stayed within
+  // 1 sigma of zero; the test over all nine entries of G - I called that 254 sigma.
+  const double w = 0.05;  // rotation about z [rad]: g10 = w, g01 = -w
+  std::vector<double> g = {1.0005, -w, 0, w, 0.9995, 0, 0, 0, 1.0003};
+  std::vector<double> sd = {1e-3, 2e-4, 2e-4, 2e-4, 1e-3, 2e-4, 2e-4, 2e-4, 1e-3};
+  std::vector<double> cov(81, 0.0);
+  for (int i = 0; i < 9; ++i) cov[static_cast<size_t>(10 * i)] = sd[static_cast<size_t>(i)] * sd[static_cast<size_t>(i)];
+  const auto turned = AssessPhysicalEvidence("receiver_gain", {Report("gain_matrix", g, sd, cov)}, {});
+  EXPECT_EQ(turned.strength_dof, 6);
+  // chi2 = 0.5^2 + 0.5^2 + 0.3^2 = 0.59 (each gain's value over its 1e-3 sigma).
+  EXPECT_NEAR(turned.strength_chi2, 0.59, /*abs=*/1e-9);
+  EXPECT_FALSE(turned.supported()) << turned.Describe();
+  // A real coil gain of 1 % (10 sigma) on the same turned receiver is found.
+  g[8] = 1.01;
+  const auto gain = AssessPhysicalEvidence("receiver_gain", {Report("gain_matrix", g, sd, cov)}, {});
+  EXPECT_TRUE(gain.supported()) << gain.Describe();
+  EXPECT_GT(gain.strength_sigma, 9.0);
 }
 
 TEST(AssessPhysicalEvidence, SensorOffsetRotationAloneAndTheNoiseScale) {
