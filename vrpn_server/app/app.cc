@@ -1,5 +1,6 @@
 #include "vrpn_server/app/app.h"
 
+#include <cstdio>
 #include <set>
 #include <stdexcept>
 
@@ -235,8 +236,19 @@ std::string TrackcalServerApp::StatusLine() const {
                      std::to_string(stats.dropped_slow) + " dropped for not reading, " +
                      std::to_string(stats.reports_published) + " report(s) sent";
   for (const auto& t : trackers_) {
-    line += "; " + t->setup.name + ": " + std::to_string(t->device->extrapolated_poses()) +
-            " extrapolated, " + std::to_string(t->device->unresolved_poses()) + " unresolved";
+    // The share of corrected poses outside the calibrated volume: a correction mostly
+    // extrapolated is not the one the calibration's scores describe.
+    const std::uint64_t corrected = t->device->corrected_poses();
+    const std::uint64_t extrapolated = t->device->extrapolated_poses();
+    line += "; " + t->setup.name + ": " + std::to_string(corrected) + " corrected, " +
+            std::to_string(extrapolated) + " extrapolated";
+    if (corrected > 0) {
+      char share[32];
+      std::snprintf(share, sizeof(share), " (%.1f %%)",
+                    100.0 * static_cast<double>(extrapolated) / static_cast<double>(corrected));
+      line += share;
+    }
+    line += ", " + std::to_string(t->device->unresolved_poses()) + " unresolved";
   }
   return line;
 }

@@ -127,6 +127,12 @@ TEST(TrackcalServerApp, CorrectedRawAndReload) {
   corrected.Stop();
   raw.Stop();
   app.Stop();
+  // Every report was corrected; the offset correction has no volume, so none is extrapolated.
+  const std::string status = app.StatusLine();
+  EXPECT_NE(status.find("Tracker0: "), std::string::npos) << status;
+  EXPECT_EQ(status.find("Tracker0: 0 corrected"), std::string::npos) << status;
+  EXPECT_NE(status.find(" corrected, 0 extrapolated (0.0 %), 0 unresolved"), std::string::npos)
+      << status;
   // Both streams recorded.
   for (const char* f : {"Tracker0_raw_tracker_stream.csv", "Tracker0_corrected_tracker_stream.csv"}) {
     std::ifstream in(dir / f);

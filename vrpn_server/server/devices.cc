@@ -103,6 +103,7 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
     if (raw_recorder_) raw_recorder_->Write(r.sensor, r.transmitter_from_receiver, r.time);
     if (corrected_recorder_) corrected_recorder_->Write(r.sensor, corrected[i], r.time);
   }
+  if (corrector) corrected_total_ += reports.size();
   CountExtrapolated(extrapolated, unresolved);
 }
 

@@ -108,6 +108,8 @@ class TrackerDevice {
   // `kExtrapolationNoticeInterval`, logs and sends a text to the corrected name's clients with the
   // count since the last notice and the total.
   std::uint64_t extrapolated_poses() const { return extrapolated_total_.load(); }
+  // Every pose served corrected (the denominator of the two counts).
+  std::uint64_t corrected_poses() const { return corrected_total_.load(); }
   // Likewise the corrected poses whose model inverse was not converged or ambiguous (counted and
   // reported in the same notice).
   std::uint64_t unresolved_poses() const { return unresolved_total_.load(); }
@@ -125,6 +127,7 @@ class TrackerDevice {
   std::unique_ptr<StreamRecorder> raw_recorder_;
   std::unique_ptr<StreamRecorder> corrected_recorder_;
   std::function<void(const std::string&)> log_;
+  std::atomic<std::uint64_t> corrected_total_{0};
   std::atomic<std::uint64_t> extrapolated_total_{0};
   std::atomic<std::uint64_t> unresolved_total_{0};
   // Guarded by mutex_: poses extrapolated / unresolved since the last notice, and when that notice

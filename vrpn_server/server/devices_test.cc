@@ -211,6 +211,7 @@ TEST(TrackerDevice, CountsExtrapolatedPosesAndTellsClientsAtMostOncePerSecond) {
   EXPECT_NE(texts[1].find("2 corrected pose(s) extrapolated"), std::string::npos) << texts[1];
   EXPECT_NE(texts[1].find("3 in total"), std::string::npos) << texts[1];
   EXPECT_EQ(device.extrapolated_poses(), 3u);
+  EXPECT_EQ(device.corrected_poses(), 6u);
   // Raw poses are not corrected, so their clients are not told.
   EXPECT_TRUE(raw_texts.empty());
   std::lock_guard<std::mutex> lock(log_mutex);
