@@ -2,6 +2,7 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
 #include <charconv>
 #include <cmath>
 #include <fstream>
@@ -370,6 +371,28 @@ void ReferenceConfig::Check() const {
   Require(std::isfinite(visibility_cos_min) && visibility_cos_min <= 0.0,
           "reference.visibility_cos_min",
           "must be <= 0 (markers around the receiver then keep at least 3 visible)");
+}
+
+void StreamConfig::KeepWithin(const Eigen::Vector3d& min_in_transmitter,
+                              const Eigen::Vector3d& max_in_transmitter, const std::string& what) {
+  static const char* const kAxes[] = {"x", "y", "z"};
+  for (int i = 0; i < 3; ++i) {
+    const double lo = min_in_transmitter(i), hi = max_in_transmitter(i);
+    if (!std::isfinite(lo) || !std::isfinite(hi)) {
+      throw std::invalid_argument(what + ": " + kAxes[i] + " bounds must be finite");
+    }
+    if (!(hi > lo)) {
+      throw std::invalid_argument(what + ": max " + kAxes[i] + " (" + std::to_string(hi) +
+                                  ") must be above min " + kAxes[i] + " (" + std::to_string(lo) +
+                                  ")");
+    }
+    const double a = std::abs(amplitude_m(i));
+    double from = std::max(center_in_transmitter(i) - a, lo);
+    double to = std::min(center_in_transmitter(i) + a, hi);
+    if (from > to) from = lo, to = hi;  // the path lies beside the box: sweep the box instead
+    center_in_transmitter(i) = 0.5 * (from + to);
+    amplitude_m(i) = 0.5 * (to - from);
+  }
 }
 
 void CaptureProtocol::Check() const {

@@ -64,6 +64,12 @@ struct StreamConfig {
   Eigen::Vector3d period_s = Eigen::Vector3d(7.0, 5.0, 11.0);       // sinusoid period per axis
   double rotation_amplitude_rad = 0.0;  // amplitude of each axis of the rotation vector
   double rotation_period_s = 6.0;       // period of the rotation sinusoids
+  // Narrows the position sinusoids so the path stays inside the box [min, max] (transmitter
+  // frame): per axis the part of [center - amplitude, center + amplitude] inside the box, or the
+  // box's whole extent when the two do not overlap. Throws std::invalid_argument (naming `what`
+  // and the field) for a non-finite or empty box.
+  void KeepWithin(const Eigen::Vector3d& min_in_transmitter,
+                  const Eigen::Vector3d& max_in_transmitter, const std::string& what);
 };
 
 struct CaptureProtocol {

@@ -101,6 +101,50 @@ TEST(Simulator, Nominal) {
   EXPECT_EQ(c.uncorrected.at("valid").position_mm.count, 120);
 }
 
+TEST(StreamConfig, KeepWithinHoldsTheTrajectoriesInTheBox) {
+  Scene scene = LoadScene("paper");
+  // A box smaller than the paper's stream on every axis, shifted off its centre on x.
+  const Eigen::Vector3d lo(0.05, -0.2, -0.6), hi(0.35, 0.1, -0.4);
+  scene.capture.stream.KeepWithin(lo, hi, "--within");
+  const Simulator sim(scene);
+  Eigen::Vector3d seen_lo = Eigen::Vector3d::Constant(1e9), seen_hi = -seen_lo;
+  for (int r = 0; r < Simulator::kMaxReceivers; ++r) {
+    for (double t = 0; t < 120.0; t += 0.01) {
+      const Eigen::Vector3d p = sim.TruePoseAt(t, r).translation;
+      // 1e-12 m: rounding of centre + amplitude * sin.
+      EXPECT_TRUE(((p - lo).array() >= -1e-12).all() && ((hi - p).array() >= -1e-12).all())
+          << "receiver " << r << " at t = " << t << ": " << p.transpose();
+      seen_lo = seen_lo.cwiseMin(p);
+      seen_hi = seen_hi.cwiseMax(p);
+    }
+  }
+  // The path still sweeps the box: over 2 minutes each sinusoid reaches within 2 cm of both faces
+  // (the periods are 5-11 s, sampled every 10 ms).
+  EXPECT_LT((seen_lo - lo).maxCoeff(), 0.02) << seen_lo.transpose();
+  EXPECT_LT((hi - seen_hi).maxCoeff(), 0.02) << seen_hi.transpose();
+  // A path beside the box on an axis sweeps the box's extent on it.
+  StreamConfig beside;
+  beside.center_in_transmitter = Eigen::Vector3d(2.0, 0.0, 0.0);
+  beside.amplitude_m = Eigen::Vector3d(0.1, 0.5, 0.0);
+  beside.KeepWithin(lo, hi, "--within");
+  EXPECT_NEAR(beside.center_in_transmitter.x(), 0.2, 1e-12);
+  EXPECT_NEAR(beside.amplitude_m.x(), 0.15, 1e-12);
+  EXPECT_NEAR(beside.amplitude_m.y(), 0.15, 1e-12);
+  EXPECT_NEAR(beside.center_in_transmitter.z(), -0.5, 1e-12);  // a fixed z outside: the box's
+  EXPECT_NEAR(beside.amplitude_m.z(), 0.1, 1e-12);
+  StreamConfig fixed_inside;
+  fixed_inside.center_in_transmitter = Eigen::Vector3d(0.1, 0.0, -0.45);
+  fixed_inside.KeepWithin(lo, hi, "--within");
+  EXPECT_EQ(fixed_inside.center_in_transmitter, Eigen::Vector3d(0.1, 0.0, -0.45));  // inside: kept
+  EXPECT_EQ(fixed_inside.amplitude_m, Eigen::Vector3d::Zero());
+  try {
+    beside.KeepWithin(hi, lo, "--within");
+    ADD_FAILURE() << "an empty box was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("--within: max x"), std::string::npos) << e.what();
+  }
+}
+
 TEST(Simulator, PaperPresetResemblesTable1) {
   // Ikits et al. 2001, Table 1, validation set before correction. The issue asks for 25%.
   struct Stat {

@@ -508,11 +508,51 @@ def fit(work: Path, capture: Path, model_text: str, name: str) -> Path:
     return calib
 
 
+# How far inside the calibrated volume the emulated receivers stay while serving [m]. The volume is
+# the box of *reported* positions the fit saw, the emulator's box is of true positions: reported and
+# true differ by the room's distortion and the sensor offset (a few cm in the paper room), so
+# without a margin the poses near the faces are served extrapolated.
+SERVE_MARGIN_M = 0.05
+
+
+def serving_box(calibration: Path, margin_m: float = SERVE_MARGIN_M):
+    """The calibration's calibrated_volume shrunk by ``margin_m`` (at most a quarter of its extent
+    per axis), as (min, max) lists in metres, or None when the file has no volume."""
+    volume = json.loads(Path(calibration).read_text()).get("calibrated_volume")
+    if not volume:
+        return None
+    lo, hi = [float(v) for v in volume["min"]], [float(v) for v in volume["max"]]
+    m = [min(margin_m, (b - a) / 4.0) for a, b in zip(lo, hi)]
+    return [a + d for a, d in zip(lo, m)], [b - d for b, d in zip(hi, m)]
+
+
+_STATUS_COUNTS = re.compile(r"(\S+): (\d+) corrected, (\d+) extrapolated")
+
+
+def served_counts(server_log: Path, tracker: str = "Tracker0"):
+    """(corrected, extrapolated) from the last status line the server logged for ``tracker``, or
+    None when it logged none (it logs one at stop)."""
+    if not server_log.exists():
+        return None
+    counts = None
+    for line in server_log.read_text(errors="replace").splitlines():
+        if "status:" not in line:
+            continue
+        for name, corrected, extrapolated in _STATUS_COUNTS.findall(line):
+            if name == tracker:
+                counts = (int(corrected), int(extrapolated))
+    return counts
+
+
 def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], port: int,
           seconds: Optional[float], scene: str = "paper") -> None:
     device = work / "fastrak"
     emulate_cmd = [_tool("trackcal-emulate"), "--scene", scene, "--link", str(device), "--binary",
                    "--continuous"]
+    box = serving_box(calib) if calib is not None else None
+    if box is not None:
+        # Serve where the calibration was measured: poses outside its volume are extrapolated.
+        emulate_cmd += ["--within", ",".join(f"{v:.4f}" for v in box[0] + box[1])]
     if hidden:
         emulate_cmd += ["--hidden", hidden]
     if seed is not None:
@@ -562,9 +602,44 @@ def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], p
                 p.wait(timeout=5)
             except subprocess.TimeoutExpired:
                 p.kill()
+                p.wait()
+        counts = served_counts(work / "server.log") if calib is not None else None
+        if counts is not None and counts[0] > 0:
+            print(f"Served {counts[0]} corrected poses; {counts[1]} "
+                  f"({100.0 * counts[1] / counts[0]:.1f} %) extrapolated outside the calibrated volume.",
+                  flush=True)
+
+
+class Stopped(Exception):
+    """SIGTERM or SIGHUP arrived: unwinds the job so the children it started are stopped."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_stopped(signum, _frame):
+    raise Stopped(signum)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    """The main job; SIGTERM and SIGHUP stop it like Ctrl-C does, children included, and it exits
+    with 128 + the signal's number (143, 129), as a shell reports a process the signal ended."""
+    handled = (signal.SIGTERM, signal.SIGHUP)
+    previous = {s: signal.getsignal(s) for s in handled}
+    for s in handled:
+        signal.signal(s, _raise_stopped)
+    try:
+        return _main(argv)
+    except Stopped as e:
+        print(f"\ntrackcal demo: stopped by {e}", file=sys.stderr, flush=True)
+        return 128 + e.signum
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="trackcal demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=Path("demo-runs"),
                         help="folder under which a fresh, timestamped work folder is made")

@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -37,6 +38,8 @@ const char kUsage[] =
     "  --stations N           receivers plugged in, 1-4 (default: from the pose source, else 2)\n"
     "  --pose S=x,y,z,qw,qx,qy,qz  static true pose of station S in metres (repeatable)\n"
     "  --trajectory FILE      CSV keyframes t,station,x,y,z,qw,qx,qy,qz[,button] (m, s)\n"
+    "  --within XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX  keep the scene's trajectories inside this box\n"
+    "                         (true receiver positions, transmitter frame, metres)\n"
     "  --loop                 repeat the trajectory\n"
     "  --link PATH            symlink to the device, replaced atomically, removed at exit\n"
     "  --control PATH         Unix socket for the control protocol (move, button, fault, status)\n"
@@ -81,6 +84,31 @@ std::pair<int, Rigid3d> ParsePose(const std::string& text) {
   return {station, Rigid3d(q.normalized(), Eigen::Vector3d(v[0], v[1], v[2]))};
 }
 
+// "xmin,ymin,zmin,xmax,ymax,zmax" [m].
+std::pair<Eigen::Vector3d, Eigen::Vector3d> ParseBox(const std::string& text,
+                                                     const std::string& option) {
+  static const char* const kFields[] = {"xmin", "ymin", "zmin", "xmax", "ymax", "zmax"};
+  std::vector<double> v;
+  std::stringstream ss(text);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    if (v.size() == 6) break;
+    v.push_back(ParseDouble(item, option + " " + kFields[v.size()]));
+  }
+  if (v.size() != 6 || std::getline(ss, item, ',')) {
+    UsageError(option + ": expected xmin,ymin,zmin,xmax,ymax,zmax (6 numbers, metres), got '" +
+               text + "'");
+  }
+  const Eigen::Vector3d lo(v[0], v[1], v[2]), hi(v[3], v[4], v[5]);
+  for (int i = 0; i < 3; ++i) {
+    if (!(hi(i) > lo(i))) {
+      UsageError(option + ": " + kFields[3 + i] + " (" + std::to_string(hi(i)) +
+                 ") must be above " + kFields[i] + " (" + std::to_string(lo(i)) + ")");
+    }
+  }
+  return {lo, hi};
+}
+
 int Main(int argc, char** argv) {
   EmulatorOptions options;
   int stations = 0;
@@ -95,6 +123,7 @@ int Main(int argc, char** argv) {
   bool seed_given = false;
   bool rate_given = false;
   double noise_deg = 0;
+  std::optional<std::pair<Eigen::Vector3d, Eigen::Vector3d>> within;
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     auto value = [&]() -> std::string {
@@ -114,6 +143,8 @@ int Main(int argc, char** argv) {
       poses.push_back(ParsePose(value()));
     } else if (arg == "--trajectory") {
       trajectory = value();
+    } else if (arg == "--within") {
+      within = ParseBox(value(), arg);
     } else if (arg == "--loop") {
       loop = true;
     } else if (arg == "--link") {
@@ -162,11 +193,15 @@ int Main(int argc, char** argv) {
     }
     if (!seed_given) options.seed = scene.seed;
     if (!rate_given) options.update_rate_hz = scene.tracker.update_rate_hz;
+    if (within) scene.capture.stream.KeepWithin(within->first, within->second, "--within");
     // The scene's hemisphere as the power-up `H` of every station (a lab's saved configuration).
     options.device.hemisphere = scene.tracker.hemisphere_in_transmitter;
     simulator = std::make_shared<const trackcal::sim::Simulator>(scene);
   } else if (!hidden.empty()) {
     UsageError("--hidden needs a --scene");
+  }
+  if (within && (!simulator || !trajectory.empty() || !poses.empty())) {
+    UsageError("--within applies to the scene's trajectories (not --pose, --trajectory or --scene none)");
   }
 
   std::unique_ptr<PoseSource> base;
