@@ -300,7 +300,7 @@ def _diagnosis(args, term):
 
 
 def cmd_diagnose(args, term) -> int:
-    from trackcal import diagnosis
+    from trackcal import diagnosis, validation
     capture, cal, v, fit_report, doc, verdict, change, notes = _diagnosis(args, term)
     _write_residuals(args, v)
     if args.json:
@@ -324,7 +324,8 @@ def cmd_diagnose(args, term) -> int:
     print("\n" + term.c(f"Worst {len(v.worst)} stations", "1"))
     print(_fmt_rows(v.worst, ["station", "set", "sensor", "x", "y", "z", "distance", "position_mm",
                               "orientation_deg", "extrapolated"]))
-    print("\n" + term.c("Residual structure (cross-validated R², permutation test)", "1"))
+    method = validation.COVARIATE_METHOD_SERIAL if validation.serial_samples(v.capture) else validation.COVARIATE_METHOD
+    print("\n" + term.c(f"Residual structure ({method})", "1"))
     sig = [e for e in v.covariate_effects if e.significant]
     if not sig:
         print("  no covariate explains the residuals beyond noise")

@@ -19,6 +19,7 @@ from typing import Callable, List, Optional, Sequence
 import numpy as np
 
 from trackcal import figures as F
+from trackcal import validation
 
 
 def _atomic_write(path: pathlib.Path, data: bytes, inputs: Sequence[pathlib.Path]) -> None:
@@ -185,7 +186,10 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                 if e.significant or e.r2 > 0.01][:40]
         parts.append("<h2>Residual structure (covariates)</h2>"
                      "<p>Share of the remaining residual variance each covariate explains (binned means, "
-                     "5-fold cross-validated), with a permutation test; only significant or R² &gt; 0.01 shown.</p>"
+                     "5-fold cross-validated), with a permutation test; only significant or R² &gt; 0.01 shown."
+                     + (" Stream samples: the folds are contiguous stretches of time and the null shifts "
+                        "the covariate along time, since neighbouring samples share their misfit."
+                        if validation.serial_samples(v.capture) else "") + "</p>"
                      + _table(rows))
     if candidates is not None:
         base = candidates.get("base", {})

@@ -185,10 +185,22 @@ class CovariateEffect:
     count: int
 
 
+def serial_samples(capture: PoseCapture) -> bool:
+    """Whether the stations were paired from streams (they carry the receiver's speed): their
+    samples are serially correlated and ``covariate_analysis`` tests them along time."""
+    return getattr(capture, "speed", None) is not None
+
+
+COVARIATE_METHOD = "cross-validated R², permutation test"
+COVARIATE_METHOD_SERIAL = ("stream samples: folds are stretches of time, the null shifts the covariate "
+                           "along time")
+
+
 def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_bins: int = 8,
                        n_folds: int = 5, n_permutations: int = 199, alpha: float = 0.01,
                        min_r2: float = 0.02, seed: int = 0,
-                       progress: Optional[Callable[[int, int], None]] = None) -> List[CovariateEffect]:
+                       progress: Optional[Callable[[int, int], None]] = None,
+                       serial_time: Optional[np.ndarray] = None) -> List[CovariateEffect]:
     """How much of the residuals each covariate explains, with a permutation test.
 
     For every covariate and every target (position error magnitude and vector, orientation error
@@ -197,6 +209,14 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     is reported as significant when its permutation p-value is below ``alpha`` divided by the number
     of tests (Bonferroni) and it explains at least ``min_r2`` of the variance, so noise is not
     reported as structure. Results are sorted by r2, largest first.
+
+    ``serial_time``: the samples' times when they are serially correlated (stations paired from
+    streams: neighbours in time share their misfit). Random folds and shuffles would then make any
+    slowly varying covariate (time, visiting order, speed) look predictive: a test sample's
+    neighbours sit in the training folds, while shuffling breaks the serial structure that the null
+    must keep. So the folds are ``n_folds`` contiguous stretches of time, and the null shifts the
+    covariate circularly along time against the residuals (by 10-90 % of the samples), which keeps
+    both series' serial structure and breaks only their alignment.
     """
     targets = {
         "position_mm": residuals_.position_mm[:, None],
@@ -228,9 +248,21 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
         ok = np.isfinite(x)
         xs = x[ok]
         categorical = name in CATEGORICAL or np.unique(xs).size <= n_bins
-        folds = rng.permutation(np.arange(ok.sum()) % n_folds)
+        m = int(ok.sum())
         ids = _bin_ids(xs, n_bins, categorical)
-        perms = [rng.permutation(ids) for _ in range(n_permutations)]
+        if serial_time is None:
+            folds = rng.permutation(np.arange(m) % n_folds)
+            perms = [rng.permutation(ids) for _ in range(n_permutations)]
+        else:
+            by_time = np.argsort(np.asarray(serial_time, dtype=float)[ok], kind="stable")
+            folds = np.empty(m, dtype=int)
+            folds[by_time] = np.arange(m) * n_folds // m
+            shifts = rng.integers(max(1, m // 10), max(2, m - m // 10), size=n_permutations)
+            perms = []
+            for k in shifts:
+                shifted = np.empty_like(ids)
+                shifted[by_time] = np.roll(ids[by_time], int(k))
+                perms.append(shifted)
         for tname, y in targets.items():
             ys = y[ok]
             obs = _cv_r2(ids, ys, folds, n_folds)
@@ -455,8 +487,10 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
                    by_region=region_breakdown(data.reported_positions, before, after, centre), worst=worst,
                    status=np.asarray(status, np.uint8))
     if analyse_covariates:
+        # Stations paired from streams carry their speed: their samples are serially correlated.
+        serial = data.time if serial_samples(data) else None
         v.covariate_effects = covariate_analysis(final, covariates(data), progress=progress,
-                                                 **(covariate_options or {}))
+                                                 serial_time=serial, **(covariate_options or {}))
     return v
 
 
