@@ -34,6 +34,11 @@ std::string ErrorOf(const std::function<void()>& f) {
   return "";
 }
 
+// The standard columns of poses.csv, as a header line.
+const char kPosesHeader[] =
+    "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
+    "ref_qw,ref_qx,ref_qy,ref_qz\n";
+
 PoseCapture RandomPoses() {
   PoseCapture c;
   c.extra_columns = {"temperature_c"};
@@ -110,9 +115,7 @@ TEST(PosesCsv, ColumnsByNameInAnyOrderWithExtras) {
 
 TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
   const auto dir = MakeTempDir("capture_test");
-  const std::string header =
-      "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
-      "ref_qw,ref_qx,ref_qy,ref_qz\n";
+  const std::string header = kPosesHeader;
   const std::string good = "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n";
   const auto path = dir / "poses.csv";
   auto error_for = [&](const std::string& text) {
@@ -143,9 +146,7 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
 
 TEST(PosesCsv, RepeatedStationAndSensorIsAnErrorNamingBothLines) {
   const auto dir = MakeTempDir("capture_test");
-  const std::string header =
-      "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,"
-      "ref_qw,ref_qx,ref_qy,ref_qz\n";
+  const std::string header = kPosesHeader;
   const std::string rest = ",0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n";
   const auto path = dir / "poses.csv";
   // A station may carry several sensors: (1, 1) and (1, 2) are two records.
