@@ -568,7 +568,7 @@ TEST(AssessPhysicalEvidence, TheJointTestUsesTheBlockCovariance) {
 
 TEST(AssessPhysicalEvidence, AReceiverTurnedAsAWholeIsNotAGainEffect) {
   // What diagnose met on the paper preset with a hidden sensor offset (seed 3): without
-  // sensor_offset in the model, receiver_gain's G took the sensor's 2.9 deg rotation as its
+  // sensor_offset in the model, receiver_gain's G took the sensor's 3.1 deg rotation as its
   // antisymmetric part, known to 0.01 deg, while every gain and non-orthogonality stayed within
   // 1 sigma of zero; the test over all nine entries of G - I called that 254 sigma.
   const double w = 0.05;  // rotation about z [rad]: g10 = w, g01 = -w

@@ -453,7 +453,7 @@ std::vector<std::string> HiddenEffects::EnabledNames() const {
 }
 
 Rigid3d HiddenEffects::DefaultReceiverFromBody() {
-  // About 2.9 degrees and 2.5 cm: a marker body glued on slightly askew.
+  // About 3.1 degrees and 2.5 cm: a marker body glued on slightly askew.
   return Rigid3d(QuaternionFromXyzw(0.02, -0.015, 0.01, 0.99966).normalized(),
                  Eigen::Vector3d(0.012, -0.008, 0.02));
 }

@@ -5,7 +5,7 @@ hardware and the optical reference:
 
 1. simulate a paper-protocol capture (the room of sim/ preset ``paper``, a five-height grid:
    ``DEFAULT_SCENE``) with an effect the paper's polynomial model lacks (``--hidden``, default a
-   2.5 cm / 2.9 deg sensor offset);
+   2.5 cm / 3.1 deg sensor offset);
 2. fit the base model (the paper's degree-4 polynomial, ``--base``) with ``trackcal-fit``;
 3. diagnose: rank the catalog effects the model lacks (``trackcal.diagnose_candidates`` in
    process, else ``trackcal-fit diagnose --json``), name the top significant one and show the
