@@ -7,8 +7,9 @@ hardware and the optical reference:
    ``DEFAULT_SCENE``) with an effect the paper's polynomial model lacks (``--hidden``, default a
    2.5 cm / 3.1 deg sensor offset);
 2. fit the base model (the paper's degree-4 polynomial, ``--base``) with ``trackcal-fit``;
-3. diagnose: rank the catalog effects the model lacks (``trackcal.diagnose_candidates`` in
-   process, else ``trackcal-fit diagnose --json``), name the top significant one and show the
+3. diagnose: rank the catalog effects the model lacks (``trackcal-fit diagnose --json
+   --cross-validate-top N``; ``trackcal.diagnose_candidates`` in process only with
+   ``--cross-validate-top 0``, as it cannot screen), name the top significant one and show the
    model-file change; write the changed model as a new file, refit, and repeat until nothing
    significant is left (at most ``--max-steps`` changes);
 4. show the error after every change (validation set, against the simulator's noise floor), record
@@ -220,7 +221,8 @@ def _rstrip_blank(lines: List[str]) -> List[str]:
 
 # ----------------------------------------------------------------------------------------------
 # The engine: fits through trackcal-fit (it writes the calibration file), diagnosis in process
-# (contract C) when the Python package has it, else through `trackcal-fit diagnose --json` (B).
+# (contract C) when the Python package has it and no --cross-validate-top is asked for, else
+# through `trackcal-fit diagnose --json` (B).
 
 
 def diagnosis_available() -> bool:
