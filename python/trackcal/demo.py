@@ -76,8 +76,9 @@ capture:
 """
 
 PAPER_MODEL = """\
-# The paper's method (Ikits et al. 2001, eq. 7-9): degree-4 polynomials of the reported position
-# for the position error and the vector part of the orientation error quaternion.
+# The paper's method (Ikits et al. 2001, eq. 7-9) at degree 4: polynomials of the reported position
+# for the position error and the vector part of the orientation error quaternion. (`trackcal
+# validate --cross-validate` fits the same polynomial at degree 3: validation.polynomial_model.)
 terms:
   - type: polynomial
     degree: 4
