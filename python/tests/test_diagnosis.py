@@ -91,17 +91,68 @@ def test_verdict_names_a_flexible_fallback_when_no_covariate_explains():
 
 def test_model_change_is_inserted_where_the_candidate_says():
     change = "- type: dipole\n  location_in_transmitter: [0.6, 0.9, -0.5]\n"
-    new = diagnosis.model_with_change(MODEL, change, 0)
+    new = diagnosis.apply_model_change(MODEL, change, 0)
     assert new.count("- type: dipole") == 1
     assert new.index("- type: dipole") < new.index("- type: polynomial")
     assert "  - type: dipole\n    location_in_transmitter: [0.6, 0.9, -0.5]\n  # the paper" not in new
     assert "  - type: dipole\n    location_in_transmitter: [0.6, 0.9, -0.5]\n  - type: polynomial" in new
-    appended = diagnosis.model_with_change(MODEL, "- type: lut\n  cell_size_mm: 200\n", None)
+    appended = diagnosis.apply_model_change(MODEL, "- type: lut\n  cell_size_mm: 200\n", None)
     assert "    degree: 3\n  - type: lut\n    cell_size_mm: 200\n\nsolver:" in appended
     # The result is a model file the engine accepts, with the new term at its place.
     assert trackcal._core.parse_model(appended)["terms"] == ["polynomial", "lut"]
-    assert diagnosis.model_with_change("terms: [{type: polynomial}]\n", change, 0) is None
+    with pytest.raises(ValueError, match="flow style"):
+        diagnosis.apply_model_change("terms: [{type: polynomial}]\n", change, 0)
+    with pytest.raises(ValueError, match="no top-level 'terms:'"):
+        diagnosis.apply_model_change("noise: {position_mm: 1.0}\n", change, 0)
     assert "+  - type: lut" in diagnosis.model_diff(MODEL, appended)
+
+
+def _top_level(text):
+    """{key: the key's lines} of a model text's unindented keys, in order."""
+    out = {}
+    for line in text.splitlines():
+        if line[:1].isalpha():
+            out[line.split(":", 1)[0]] = [line]
+        elif out and line.strip() and not line.lstrip().startswith("#"):
+            out[list(out)[-1]].append(line)
+    return out
+
+
+def test_term_and_top_level_changes_give_a_model_with_the_change_in_its_place():
+    # A term (dipole) goes into terms: before the item the engine names.
+    term = diagnosis.apply_model_change(MODEL, "- type: dipole\n  polarisability_m3: 0.002\n", 0)
+    assert trackcal._core.parse_model(term)["terms"] == ["physical", "polynomial"]  # the chain, then the rest
+    assert _top_level(term)["terms"][1:3] == ["  - type: dipole", "    polarisability_m3: 0.002"]
+    # robust_loss's change is a top-level key (insert_index null): it goes beside terms:, not in it.
+    loss = diagnosis.apply_model_change(MODEL, "loss:\n  type: cauchy\n  scale: 3\n", None)
+    assert trackcal._core.parse_model(loss)["terms"] == ["polynomial"]  # parses: the YAML is valid
+    keys = _top_level(loss)
+    assert list(keys) == ["noise", "loss", "terms", "solver"]
+    assert keys["loss"] == ["loss:", "  type: cauchy", "  scale: 3"]
+    assert keys["terms"] == ["terms:", "  - type: polynomial", "    degree: 3"]
+    # The same key again replaces it; so does time_offset's change for a model with a fixed offset.
+    huber = diagnosis.apply_model_change(loss, "loss:\n  type: huber\n  scale: 2\n", None)
+    assert _top_level(huber)["loss"] == ["loss:", "  type: huber", "  scale: 2"]
+    assert huber.count("loss:") == 1 and "cauchy" not in huber
+    fixed = MODEL + "time_offset: {value: 0.0, fixed: true}\n"
+    freed = diagnosis.apply_model_change(fixed, "time_offset:\n  value: 0.037\n  fixed: false\n", None)
+    assert _top_level(freed)["time_offset"] == ["time_offset:", "  value: 0.037", "  fixed: false"]
+    assert freed.count("time_offset:") == 1
+    trackcal._core.parse_model(freed)
+    # Where each goes, in the words trackcal diagnose prints above the diff.
+    assert diagnosis.change_place("- type: dipole\n", 0) == "in terms:, as item 0 counting from 0"
+    assert diagnosis.change_place("- type: lut\n", None) == "in terms:, at the end"
+    assert diagnosis.change_place("loss:\n  type: cauchy\n", None) == "top-level key 'loss:', not in terms:"
+
+
+@pytest.mark.parametrize("change,index,message", [
+    ("- type: dipole\n", 2, "outside the 1 terms"),
+    ("\n", None, "empty"),
+    ("[1, 2]\n", None, "neither"),
+])
+def test_model_change_that_cannot_be_placed_is_a_value_error(change, index, message):
+    with pytest.raises(ValueError, match=message):
+        diagnosis.apply_model_change(MODEL, change, index)
 
 
 def run_cli(*args):
@@ -110,6 +161,25 @@ def run_cli(*args):
     r = subprocess.run(cmd + [str(a) for a in args], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     return r
+
+
+def test_diagnose_prints_and_applies_a_top_level_change_at_the_top_level(tmp_path):
+    # Hemisphere flips: robust_loss wins, and its change is a loss: block beside terms:.
+    cap = simulate(tmp_path / "capture", seed=73, hidden="hemisphere_flips")
+    model = tmp_path / "model.yaml"
+    model.write_text(MODEL)
+    args = ("diagnose", cap, "--model", model, "--permutations", "9", "--effects", "robust_loss", "--folds", "2")
+    if not diagnosis.candidates_available():
+        pytest.skip("this build has no candidate ranking")
+    doc = json.loads(run_cli(*args, "--json").stdout)
+    change = doc["model_change"]
+    assert doc["verdict"]["effect"] == "robust_loss" and change["insert_index"] is None
+    assert change["place"] == "top-level key 'loss:', not in terms:"
+    assert trackcal._core.parse_model(change["model_text"])["terms"] == ["polynomial"]
+    assert list(_top_level(change["model_text"])) == ["noise", "loss", "terms", "solver"]
+    text = run_cli(*args).stdout
+    assert "Model-file change (top-level key 'loss:', not in terms:):" in text
+    assert "\n+loss:\n+  type: cauchy\n" in text and "index None" not in text
 
 
 def test_diagnose_json_is_one_document_with_everything(tmp_path):

@@ -291,10 +291,17 @@ def _diagnosis(args, term):
     change = None
     if verdict["source"] == "candidate" and verdict.get("model_change"):
         info = trackcal._core.parse_model(model)
-        new_text = diagnosis.model_with_change(info["text"], verdict["model_change"], verdict.get("insert_index"))
         name = pathlib.Path(model).name if info["source"] != "<string>" else "model.yaml"
+        try:
+            new_text = diagnosis.apply_model_change(info["text"], verdict["model_change"],
+                                                    verdict.get("insert_index"))
+        except ValueError as e:  # e.g. a flow-style terms: list: the change is made by hand
+            new_text = None
+            notes.append(f"the model-file change is not applied to {name}: {e}")
         change = {"effect": verdict["effect"], "yaml": verdict["model_change"],
-                  "insert_index": verdict.get("insert_index"), "model_text": new_text,
+                  "insert_index": verdict.get("insert_index"),
+                  "place": diagnosis.change_place(verdict["model_change"], verdict.get("insert_index")),
+                  "model_text": new_text,
                   "diff": diagnosis.model_diff(info["text"], new_text, name) if new_text else None}
     return capture, cal, v, fit_report, doc, verdict, change, notes
 
@@ -348,7 +355,7 @@ def cmd_diagnose(args, term) -> int:
     print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], "32" if verdict["source"] is None else "31"))
     if change is not None:
         print("\n" + term.c("Model-file change", "1") +
-              f" (add to terms: at index {change['insert_index']}):")
+              f" ({change['place']}):")
         print(change["diff"] if change["diff"] else change["yaml"])
     return 0
 

@@ -43,6 +43,9 @@ import time
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
+# The model-file edit of every step; trackcal diagnose makes the same one.
+from trackcal.diagnosis import apply_model_change
+
 DEFAULT_HIDDEN = "sensor_offset"
 DEFAULT_MAX_STEPS = 8
 # The diagnosis fits every candidate once and cross-validates only the best 2 by BIC (trackcal-fit
@@ -137,87 +140,6 @@ def _fresh_work_dir(base: Path) -> Path:
         except FileExistsError:
             continue
     raise SystemExit(f"trackcal demo: cannot make a fresh work folder under {base}")
-
-
-# ----------------------------------------------------------------------------------------------
-# Model-file edits: the candidate's YAML goes into the model text, nothing else changes.
-
-_TOP_KEY = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*:")
-
-
-def _split_top_level(text: str) -> List[tuple]:
-    """[(key or None, lines)] blocks of a YAML mapping: a block starts at an unindented key; comment
-    and blank lines before a key belong to the block before it (None: the file's header)."""
-    blocks: List[tuple] = [(None, [])]
-    for line in text.splitlines():
-        m = _TOP_KEY.match(line)
-        if m:
-            blocks.append((m.group(1), [line]))
-        else:
-            blocks[-1][1].append(line)
-    return blocks
-
-
-def apply_model_change(model_text: str, change: str, insert_index: Optional[int]) -> str:
-    """The model text with a diagnose candidate's ``model_change`` applied (contract B).
-
-    A change that is a list item (``- type: dipole ...``) goes into ``terms:`` before the item at
-    ``insert_index`` (``None``: at the end); a change that is a top-level mapping (``loss: ...``,
-    ``time_offset: ...``) replaces that key or is added before ``terms:``. Raises ValueError when the
-    model has no ``terms:`` list or the index is out of range."""
-    change = change.rstrip("\n")
-    if not change.strip():
-        raise ValueError("empty model change")
-    blocks = _split_top_level(model_text)
-    keys = [k for k, _ in blocks]
-    if "terms" not in keys:
-        raise ValueError("model has no top-level 'terms:' list")
-    if change.lstrip().startswith("- "):
-        ti = keys.index("terms")
-        lines = blocks[ti][1]
-        head, body = lines[0], lines[1:]
-        if head.split(":", 1)[1].strip():
-            raise ValueError("'terms:' is written inline; expected a block list")
-        # Items start at the first line whose content starts with '- ' at the list's indentation.
-        item_starts = [i for i, l in enumerate(body) if l.lstrip().startswith("- ")
-                       and len(l) - len(l.lstrip()) == _indent_of_items(body)]
-        n = len(item_starts)
-        idx = n if insert_index is None else int(insert_index)
-        if idx < 0 or idx > n:
-            raise ValueError(f"insert_index {idx} is outside the {n} terms")
-        indent = " " * (_indent_of_items(body) if body else 2)
-        new_lines = [indent + l if l.strip() else l for l in change.splitlines()]
-        at = item_starts[idx] if idx < n else len(_rstrip_blank(body))
-        body = body[:at] + new_lines + body[at:]
-        blocks[ti] = ("terms", [head] + body)
-    else:
-        m = _TOP_KEY.match(change)
-        if not m:
-            raise ValueError(f"model change is neither a term nor a top-level key: {change!r}")
-        new_block = (m.group(1), change.splitlines())
-        if m.group(1) in keys:
-            i = keys.index(m.group(1))
-            blocks[i] = (m.group(1), new_block[1])
-        else:
-            blocks.insert(keys.index("terms"), new_block)
-    out = []
-    for _, lines in blocks:
-        out.extend(lines)
-    return "\n".join(out).rstrip("\n") + "\n"
-
-
-def _indent_of_items(body: List[str]) -> int:
-    for l in body:
-        if l.lstrip().startswith("- "):
-            return len(l) - len(l.lstrip())
-    return 2
-
-
-def _rstrip_blank(lines: List[str]) -> List[str]:
-    out = list(lines)
-    while out and not out[-1].strip():
-        out.pop()
-    return out
 
 
 # ----------------------------------------------------------------------------------------------

@@ -7,9 +7,9 @@
 - :func:`verdict` combines the two analyses: the top significant candidate when there is one;
   otherwise, when a covariate explains residual structure, "no catalog effect explains the remaining
   structure; it follows covariate X (R^2 ..)"; otherwise "nothing significant remains".
-- :func:`model_with_change` applies a candidate's ``model_change`` to the model text (the exact
-  model-file edit to make), :func:`diagnosis_document` assembles everything ``trackcal diagnose
-  --json`` prints.
+- :func:`apply_model_change` applies a candidate's ``model_change`` to the model text (the exact
+  model-file edit to make; used by ``trackcal diagnose`` and the main job's loop),
+  :func:`diagnosis_document` assembles everything ``trackcal diagnose --json`` prints.
 """
 
 from __future__ import annotations
@@ -144,43 +144,102 @@ def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
 # ---------------------------------------------------------------------------------------------
 # The model-file change
 
-_TERMS_RE = re.compile(r"^terms:\s*(#.*)?$")
+_TOP_KEY_RE = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*:")
 
 
-def model_with_change(model_text: str, change: str, insert_index: Optional[int]) -> Optional[str]:
-    """The model text with a candidate's YAML (a ``- type: ...`` list item) inserted in ``terms:``
-    before item ``insert_index`` (None or past the end: appended). Works on block-style term lists
-    (``terms:`` followed by ``- `` items); returns None for other layouts (flow style), where the
-    change must be made by hand."""
+def _is_item(text: str) -> bool:
+    return text == "-" or text.startswith("- ")
+
+
+def _is_filler(line: str) -> bool:
+    """A blank or comment line."""
+    return not line.strip() or line.lstrip().startswith("#")
+
+
+def change_is_term(change: str) -> bool:
+    """True when a candidate's ``model_change`` is a ``terms:`` list item (``- type: ...``), False
+    when it is a top-level key (``loss: ...``, ``time_offset: ...``)."""
+    first = next((l for l in change.splitlines() if not _is_filler(l)), "")
+    return _is_item(first.strip())
+
+
+def apply_model_change(model_text: str, change: str, insert_index: Optional[int]) -> str:
+    """The model text with a candidate's ``model_change`` applied (contract B), nothing else changed.
+
+    A change that is a list item (``- type: dipole ...``) goes into the block-style ``terms:`` list
+    before item ``insert_index`` (counting from 0; None: at the end). A change that is a top-level
+    key (``loss:``, ``time_offset:``; its ``insert_index`` is None) replaces that key's block when
+    the model has one, else goes directly before ``terms:`` (at the end when there is no
+    ``terms:``). Comments and blank lines are kept. Raises ValueError for an empty change, a change
+    that is neither, a term change to a model without a block-style ``terms:`` list (flow style
+    must be edited by hand) and an index outside the list."""
+    change_lines = change.rstrip("\n").splitlines()
+    if not any(l.strip() for l in change_lines):
+        raise ValueError("empty model change")
     lines = model_text.splitlines()
-    start = next((i for i, l in enumerate(lines) if _TERMS_RE.match(l)), None)
-    if start is None:
-        return None
-    items, indent, end = [], None, len(lines)
-    for i in range(start + 1, len(lines)):
-        text = lines[i].strip()
-        if not text or text.startswith("#"):
-            continue
-        lead = len(lines[i]) - len(lines[i].lstrip())
-        is_item = text == "-" or text.startswith("- ")
-        if indent is None:
-            if not is_item:
-                return None
-            indent = lead
-        if is_item and lead == indent:
-            items.append(i)
-        elif lead <= indent:
-            end = i  # the next key after the list
-            break
-    if indent is None:
-        return None
-    # Trailing blank/comment lines before the next top-level key belong after the list.
-    while end > start + 1 and (not lines[end - 1].strip() or lines[end - 1].lstrip().startswith("#")):
-        end -= 1
-    at = items[insert_index] if insert_index is not None and 0 <= insert_index < len(items) else end
-    block = [(" " * indent + l) if l.strip() else l for l in change.rstrip("\n").splitlines()]
-    new = lines[:at] + block + lines[at:]
-    return "\n".join(new) + ("\n" if model_text.endswith("\n") else "")
+    keys = {}  # top-level key -> line index (the first occurrence)
+    for i, l in enumerate(lines):
+        m = _TOP_KEY_RE.match(l)
+        if m:
+            keys.setdefault(m.group(1), i)
+    if change_is_term(change):
+        start = keys.get("terms")
+        if start is None:
+            raise ValueError("model has no top-level 'terms:' list")
+        if not _is_filler(lines[start].split(":", 1)[1]):
+            raise ValueError("model's 'terms:' is written inline (flow style); expected a block list "
+                             "(make the change by hand)")
+        items, indent, end = [], None, len(lines)
+        for i in range(start + 1, len(lines)):
+            if _is_filler(lines[i]):
+                continue
+            text = lines[i].strip()
+            lead = len(lines[i]) - len(lines[i].lstrip())
+            if indent is None and not _is_item(text):
+                if lead > 0:
+                    raise ValueError("model's 'terms:' is not a block list of '- ' items")
+                end = i  # an empty list
+                break
+            if indent is None:
+                indent = lead
+            if _is_item(text) and lead == indent:
+                items.append(i)
+            elif lead <= indent:
+                end = i  # the next key after the list
+                break
+        # Blank and comment lines before the next key stay after the list.
+        while end > start + 1 and _is_filler(lines[end - 1]):
+            end -= 1
+        n = len(items)
+        idx = n if insert_index is None else int(insert_index)
+        if not 0 <= idx <= n:
+            raise ValueError(f"insert_index {idx} is outside the {n} terms")
+        pad = " " * (2 if indent is None else indent)
+        block = [pad + l if l.strip() else l for l in change_lines]
+        at = items[idx] if idx < n else end
+    else:
+        m = _TOP_KEY_RE.match(next((l for l in change_lines if not _is_filler(l)), ""))
+        if not m:
+            raise ValueError(f"model change is neither a term nor a top-level key: {change!r}")
+        block = change_lines
+        old = keys.get(m.group(1))
+        if old is not None:  # replace the key's block, up to the next top-level key
+            stop = next((i for i in range(old + 1, len(lines)) if _TOP_KEY_RE.match(lines[i])), len(lines))
+            while stop > old + 1 and _is_filler(lines[stop - 1]):
+                stop -= 1
+            return "\n".join(lines[:old] + block + lines[stop:]) + "\n"
+        at = keys.get("terms", len(lines))
+    return "\n".join(lines[:at] + block + lines[at:]) + "\n"
+
+
+def change_place(change: str, insert_index: Optional[int]) -> str:
+    """Where ``apply_model_change`` puts a change, in words."""
+    if not change_is_term(change):
+        m = _TOP_KEY_RE.match(next((l for l in change.splitlines() if not _is_filler(l)), ""))
+        return f"top-level key '{m.group(1)}:', not in terms:" if m else "top level"
+    if insert_index is None:
+        return "in terms:, at the end"
+    return f"in terms:, as item {insert_index} counting from 0"
 
 
 def model_diff(model_text: str, new_text: str, name: str = "model.yaml") -> str:
