@@ -23,6 +23,7 @@ bool CovarianceOptions::Check() const {
          weak_direction_ratio < 1.0 && weak_component_threshold > 0.0 &&
          weak_component_threshold <= 1.0 && max_dense_dimension >= 0 && num_threads >= 1 &&
          max_sandwich_dimension >= 0 && max_leverage_flops >= 0.0 &&
+         (cluster_groups.empty() || cluster_groups.size() == clusters.size()) &&
          min_reciprocal_condition_dense_inverse >= 0.0;
 }
 
@@ -289,11 +290,31 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
     }
   }
 
-  const int num_clusters = static_cast<int>(options.clusters.size());
+  // The groups: clusters whose scores are summed before the outer product (clusters_group), each
+  // a list of (first row, rows) segments.
+  std::vector<std::vector<std::pair<int, int>>> groups;
+  if (options.cluster_groups.empty()) {
+    for (size_t c = 0; c < cluster_rows.size(); ++c) groups.push_back({{cluster_rows[c], cluster_sizes[c]}});
+  } else {
+    std::map<int, size_t> index_of_group;
+    for (size_t c = 0; c < cluster_rows.size(); ++c) {
+      const auto [it, added] = index_of_group.emplace(options.cluster_groups[c], groups.size());
+      if (added) groups.emplace_back();
+      groups[it->second].emplace_back(cluster_rows[c], cluster_sizes[c]);
+    }
+  }
+  const int num_clusters = static_cast<int>(groups.size());
   int num_rows = 0;
   for (int k : cluster_sizes) num_rows += k;
-  const bool leverage =
-      static_cast<double>(num_rows) * dimension * dimension <= options.max_leverage_flops;
+  // CR2 costs about 10 (rows of a group)^3 for its leverage besides rows * dimension^2 for the
+  // products.
+  double leverage_flops = static_cast<double>(num_rows) * dimension * dimension;
+  for (const auto& segments : groups) {
+    double k = 0;
+    for (const auto& seg : segments) k += seg.second;
+    leverage_flops += 10.0 * k * k * k;  // the eigen-decomposition of I - A_g
+  }
+  const bool leverage = leverage_flops <= options.max_leverage_flops;
   // Leverages A_g = J_g H^+ J_g^T = B_g B_g^T with B = J S V_r diag(l_r)^-1/2 per group (H^+ is
   // block diagonal): one product per group instead of one per cluster.
   std::vector<Eigen::MatrixXd> factors, b;
@@ -303,34 +324,42 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
   }
   // Scores s_g = J_g^T u_g, premultiplied by H^+ group by group: T = H^+ S.
   Eigen::MatrixXd scores = Eigen::MatrixXd::Zero(dimension, num_clusters);
+  std::vector<int> rows;
   for (int g = 0; g < num_clusters; ++g) {
-    const int k = cluster_sizes[static_cast<size_t>(g)];
-    const int first = cluster_rows[static_cast<size_t>(g)];
-    Eigen::VectorXd u = Eigen::Map<const Eigen::VectorXd>(dense.residuals.data() + first, k);
+    rows.clear();
+    for (const auto& [first, count] : groups[static_cast<size_t>(g)]) {
+      for (int r = first; r < first + count; ++r) rows.push_back(r);
+    }
+    const int k = static_cast<int>(rows.size());
+    Eigen::VectorXd u(k);
+    for (int i = 0; i < k; ++i) u(i) = dense.residuals[static_cast<size_t>(rows[static_cast<size_t>(i)])];
     if (leverage) {
       // u = (I - A)^-1/2 r; a leverage near 1 (a cluster that alone determines a direction) is
       // capped so its residual is inflated at most 1000-fold.
       Eigen::MatrixXd a = Eigen::MatrixXd::Zero(k, k);
       for (int i = 0; i < k; ++i) {
-        const int gi = dense.component_of_row[static_cast<size_t>(first + i)];
+        const int ri = rows[static_cast<size_t>(i)];
+        const int gi = dense.component_of_row[static_cast<size_t>(ri)];
         if (gi < 0) continue;
-        const auto bi = b[static_cast<size_t>(gi)].row(dense.local_of_row[static_cast<size_t>(first + i)]);
+        const auto bi = b[static_cast<size_t>(gi)].row(dense.local_of_row[static_cast<size_t>(ri)]);
         for (int j = 0; j <= i; ++j) {
-          if (dense.component_of_row[static_cast<size_t>(first + j)] != gi) continue;
+          const int rj = rows[static_cast<size_t>(j)];
+          if (dense.component_of_row[static_cast<size_t>(rj)] != gi) continue;
           a(i, j) = a(j, i) =
-              bi.dot(b[static_cast<size_t>(gi)].row(dense.local_of_row[static_cast<size_t>(first + j)]));
+              bi.dot(b[static_cast<size_t>(gi)].row(dense.local_of_row[static_cast<size_t>(rj)]));
         }
       }
       Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(Eigen::MatrixXd::Identity(k, k) - a);
       const Eigen::VectorXd scale =
           eig.eigenvalues().cwiseMax(1e-6).cwiseSqrt().cwiseInverse();
-      u = eig.eigenvectors() * scale.asDiagonal() * eig.eigenvectors().transpose() * u;
+      u = eig.eigenvectors() * scale.cwiseProduct(eig.eigenvectors().transpose() * u);
     }
     for (int i = 0; i < k; ++i) {
-      const int gi = dense.component_of_row[static_cast<size_t>(first + i)];
+      const int ri = rows[static_cast<size_t>(i)];
+      const int gi = dense.component_of_row[static_cast<size_t>(ri)];
       if (gi < 0) continue;
       const Component& c = dense.components[static_cast<size_t>(gi)];
-      const auto row = c.jacobian.row(dense.local_of_row[static_cast<size_t>(first + i)]);
+      const auto row = c.jacobian.row(dense.local_of_row[static_cast<size_t>(ri)]);
       for (size_t j = 0; j < c.columns.size(); ++j) {
         scores(c.columns[j], g) += row(static_cast<Eigen::Index>(j)) * u(i);
       }
@@ -370,7 +399,8 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
     const Eigen::MatrixXd h_inv = PseudoInverse(dense, dimension);
     *full += h_inv * meat * h_inv;
   }
-  *estimator = leverage ? "sandwich (CR2)" : "sandwich (CR1)";
+  *estimator = std::string("sandwich (") + (leverage ? "CR2" : "CR1") +
+               (options.cluster_groups.empty() ? "" : ", " + std::to_string(num_clusters) + " clusters") + ")";
   return true;
 }
 
@@ -764,7 +794,9 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
             " is above max_sandwich_dimension " + std::to_string(options.max_sandwich_dimension);
     } else if (!dense.done) {
       why = "the dense analysis was not possible";
-    } else if (options.clusters.size() < 2) {
+    } else if (options.clusters.size() < 2 ||
+               (!options.cluster_groups.empty() &&
+                std::set<int>(options.cluster_groups.begin(), options.cluster_groups.end()).size() < 2)) {
       why = "fewer than 2 clusters";
     } else {
       Eigen::MatrixXd full;

@@ -27,7 +27,8 @@
 //     which stations carry the estimate).
 //   - kSandwich: the cluster-robust ("heteroscedasticity-consistent") covariance
 //     H^-1 (sum_g J_g^T u_g u_g^T J_g + J_o^T J_o) H^-1. Each cluster g is one residual block (a
-//     station's 6 residuals, which share the station's noise and may be correlated); u_g is its
+//     station's 6 residuals, which share the station's noise and may be correlated), or a group
+//     of them (cluster_groups: neighbouring stations, which share the model's misfit); u_g is its
 //     residual at the solution, corrected for its leverage A_g = J_g H^-1 J_g^T as
 //     u_g = (I - A_g)^-1/2 r_g (Bell and McCaffrey's CR2: unbiased when the noise model happens to
 //     be right), or, when that costs too much, r_g scaled by G/(G-1) (N-1)/(N-K) (CR1). Residual
@@ -73,6 +74,10 @@ struct CovarianceOptions {
   // kSandwich: the residual blocks that are independent observations, one cluster each (a
   // station's residual block). Other residual blocks count as model information.
   std::vector<ceres::ResidualBlockId> clusters;
+  // kSandwich: the group of each entry of `clusters` (empty, or as many entries): blocks of one
+  // group are one cluster, their rows corrected for leverage together and their scores summed
+  // (stations that share the model's smooth misfit). The small-sample factor of CR1 counts groups.
+  std::vector<int> cluster_groups;
   // kSandwich only up to this many tangent coordinates (its dense products cost dimension^3;
   // larger problems, such as fine LUTs, get the model covariance and a message saying so).
   int max_sandwich_dimension = 800;
@@ -116,8 +121,9 @@ struct CovarianceResult {
   // "dense_inverse", "schur_banded_groups", "ceres_sparse_qr", "dense_pseudo_inverse", "dense_sandwich" or
   // "dense_pseudo_inverse_sandwich"
   std::string method;
-  // The estimator used: "model", "sandwich (CR2)" or "sandwich (CR1)"; a sandwich that was asked
-  // for but could not be computed gives "model" and says why in `message`.
+  // The estimator used: "model", "sandwich (CR2)" or "sandwich (CR1)", with ", N clusters" inside
+  // the parentheses when blocks were grouped; a sandwich that was asked for but could not be
+  // computed gives "model" and says why in `message`.
   std::string estimator = "model";
   int tangent_dimension = 0;    // tangent coordinates of all non-constant blocks in the problem
   int rank = -1;                // numerical rank of H (-1: dense analysis skipped)

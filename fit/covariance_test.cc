@@ -4,6 +4,7 @@
 #include <ceres/normal_prior.h>
 #include <gtest/gtest.h>
 
+#include <Eigen/Eigenvalues>
 #include <array>
 #include <string>
 #include <vector>
@@ -136,6 +137,127 @@ TEST(ComputeCovariance, SandwichMatchesItsClosedForm) {
           << c.covariance << "\nexpected\n" << (leverage ? cr2 : cr1);
     }
   }
+}
+
+// Grouped residual blocks (cluster_groups) are one cluster each: CR2 by its closed form,
+// (X^T X)^-1 sum_g X_g^T (I - H_gg)^-1/2 r_g r_g^T (I - H_gg)^-1/2 X_g (X^T X)^-1 with H_gg the
+// group's block of the hat matrix, and CR1 with G/(G-1) (N-1)/(N-K) counting groups.
+// (X_g, r_g, H_gg of one independent column group; CR1's N and K are the problem's totals.)
+// Per cluster the leverage-corrected scores X_g^T (I - H_gg)^-1/2 r_g (CR2) and the plain ones
+// X_g^T r_g (CR1), premultiplied by (X^T X)^-1, for one column group.
+struct GroupedScores {
+  std::vector<Eigen::VectorXd> cr2, cr1;
+};
+GroupedScores GroupedScoresOf(const Eigen::MatrixXd& x, const Eigen::VectorXd& r,
+                              const std::vector<int>& group, int groups) {
+  const Eigen::MatrixXd h_inv = (x.transpose() * x).inverse();
+  GroupedScores out;
+  for (int g = 0; g < groups; ++g) {
+    std::vector<int> rows;
+    for (int i = 0; i < static_cast<int>(group.size()); ++i) {
+      if (group[static_cast<size_t>(i)] == g) rows.push_back(i);
+    }
+    const int k = static_cast<int>(rows.size());
+    Eigen::MatrixXd xg(k, x.cols());
+    Eigen::VectorXd rg(k);
+    for (int i = 0; i < k; ++i) {
+      xg.row(i) = x.row(rows[static_cast<size_t>(i)]);
+      rg(i) = r(rows[static_cast<size_t>(i)]);
+    }
+    Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(Eigen::MatrixXd::Identity(k, k) -
+                                                       xg * h_inv * xg.transpose());
+    const Eigen::MatrixXd inv_sqrt = eig.eigenvectors() *
+                                     eig.eigenvalues().cwiseSqrt().cwiseInverse().asDiagonal() *
+                                     eig.eigenvectors().transpose();
+    out.cr2.push_back(h_inv * xg.transpose() * inv_sqrt * rg);
+    out.cr1.push_back(h_inv * xg.transpose() * rg);
+  }
+  return out;
+}
+
+// Two column groups that share no residual (a line a + b x and an offset c) whose residual blocks
+// share clusters, plus blocks that touch only constant parameters (rows of no column group) in the
+// same clusters, a cluster's rows spread over the problem: CR2 by its closed form per column group
+// (the hat matrix is block diagonal over them), the scores summed per cluster, and CR1 with
+// G/(G-1) (N-1)/(N-K) counting clusters. Shared clusters correlate the two groups' scores: the
+// sandwich has cross terms where the model covariance has none. The line's residuals share an
+// offset within each cluster (a misfit common to neighbours), which the per-block sandwich misses:
+// the grouped one must be the wider.
+TEST(ComputeCovariance, GroupedSandwichMatchesItsClosedForm) {
+  const int n = 12, groups = 4;
+  Eigen::MatrixXd x(n, 2), ones = Eigen::MatrixXd::Ones(n, 1);
+  Eigen::VectorXd y(n), w(n);
+  std::vector<int> group(n);
+  const double group_offset[groups] = {0.08, -0.05, 0.06, -0.09};
+  for (int i = 0; i < n; ++i) {
+    group[static_cast<size_t>(i)] = i / 3;  // neighbours: 0 0 0 1 1 1 ...
+    x.row(i) << 1.0, 0.5 * i;
+    y(i) = 1.0 + 2.0 * x(i, 1) + group_offset[i / 3] + 0.01 * ((i * 7) % 5 - 2.0);
+    w(i) = 0.3 + 0.02 * ((i * 3) % 7 - 3.0);
+  }
+  const Eigen::Vector2d beta = (x.transpose() * x).ldlt().solve(x.transpose() * y);
+  const double c_hat = w.mean();
+  const GroupedScores line = GroupedScoresOf(x, x * beta - y, group, groups);
+  const GroupedScores offset =
+      GroupedScoresOf(ones, Eigen::VectorXd::Constant(n, c_hat) - w, group, groups);
+  // CR1: N = 3n rows (the constant-only rows count), K = 3.
+  const double num_rows = 3.0 * n, k_free = 3.0;
+  const double cr1 = groups / (groups - 1.0) * (num_rows - 1.0) / (num_rows - k_free);
+  const int ids[groups] = {20, 0, 30, 10};  // cluster ids need not be 0..G-1 nor ordered
+  for (const bool leverage : {true, false}) {
+    Eigen::Matrix3d want = Eigen::Matrix3d::Zero();
+    for (int g = 0; g < groups; ++g) {
+      Eigen::Vector3d t;
+      t << (leverage ? line.cr2 : line.cr1)[static_cast<size_t>(g)],
+          (leverage ? offset.cr2 : offset.cr1)[static_cast<size_t>(g)];
+      want += t * t.transpose();
+    }
+    if (!leverage) want *= cr1;
+    double a = beta(0), b = beta(1), c = c_hat, zero = 0.0, fixed_a = 0.5, fixed_b = 0.1;
+    ceres::Problem problem;
+    CovarianceOptions options;
+    options.estimator = CovarianceEstimator::kSandwich;
+    options.max_leverage_flops = leverage ? 1e9 : 0.0;
+    for (int i = 0; i < n; ++i) {
+      const int id = ids[group[static_cast<size_t>(i)]];
+      options.clusters.push_back(problem.AddResidualBlock(
+          Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(0.05), x(i, 1), y(i)), nullptr,
+          &a, &b));
+      options.cluster_groups.push_back(id);
+      options.clusters.push_back(problem.AddResidualBlock(
+          Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(0.05), 0.0, w(i)), nullptr, &c,
+          &zero));
+      options.cluster_groups.push_back(id);
+      options.clusters.push_back(problem.AddResidualBlock(
+          Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(0.05), 1.0, 0.7 + 0.1 * i),
+          nullptr, &fixed_a, &fixed_b));
+      options.cluster_groups.push_back(id);
+    }
+    problem.SetParameterBlockConstant(&zero);
+    problem.SetParameterBlockConstant(&fixed_a);
+    problem.SetParameterBlockConstant(&fixed_b);
+    const std::vector<CovarianceBlock> blocks = {
+        {&a, "a", {}, 1.0, 10.0}, {&b, "b", {}, 1.0, 10.0}, {&c, "c", {}, 1.0, 10.0}};
+    const CovarianceResult got = ComputeCovariance(&problem, blocks, options);
+    ASSERT_TRUE(got.success) << got.ToString();
+    EXPECT_EQ(got.estimator,
+              leverage ? "sandwich (CR2, 4 clusters)" : "sandwich (CR1, 4 clusters)");
+    // Same algebra in another order: rounding only.
+    EXPECT_TRUE(got.covariance.isApprox(want, 1e-9)) << got.covariance << "\nexpected\n" << want;
+    EXPECT_GT(std::abs(got.covariance(1, 2)), 1e-3 * got.stddev(1) * got.stddev(2));
+    options.cluster_groups.clear();
+    const CovarianceResult single = ComputeCovariance(&problem, blocks, options);
+    ASSERT_TRUE(single.success) << single.ToString();
+    // Three residuals of one sign per cluster against one per block: the slope's std grows by
+    // up to sqrt(3); 1.5 leaves room for the noise term.
+    EXPECT_GT(got.stddev(1), 1.5 * single.stddev(1))
+        << got.stddev.transpose() << " vs " << single.stddev.transpose();
+  }
+  // As many groups as clusters or none.
+  CovarianceOptions bad;
+  bad.clusters.resize(3);
+  bad.cluster_groups = {0, 1};
+  EXPECT_FALSE(bad.Check());
 }
 
 TEST(ComputeCovariance, SandwichWithoutClustersFallsBackToTheModel) {

@@ -10,6 +10,7 @@
 #include <chrono>
 #include <cmath>
 #include <memory>
+#include <numeric>
 #include <limits>
 #include <optional>
 #include <set>
@@ -630,6 +631,43 @@ bool SerialSamples(const std::vector<FitStation>& stations) {
   return distinct > 0 && 2 * distinct >= static_cast<int>(times.size()) && 2 * close > distinct;
 }
 
+// The sandwich's clusters for stream samples (ModelSpec::stream_clusters): the cluster of each
+// sample, contiguous runs of about equal count in time, or empty (the model covariance) when
+// `max_clusters` is 0 or there are fewer than 5 samples per run. The model's misfit is smooth
+// along the path, so neighbouring samples' scores are correlated, and a sandwich over single
+// samples understates how far that shared misfit moves the estimates (docs/fit.md, "Standard
+// deviations"). Samples that share a time stay in one run (several sensors).
+std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters);
+
+// Why stream samples got the model covariance instead of the sandwich (covariance_message).
+std::string StreamModelCovarianceMessage(int num_samples, int max_clusters) {
+  return "stream samples (serially correlated): model covariance instead of the sandwich, " +
+         (max_clusters == 0 ? std::string("as solver.stream_clusters is 0")
+                            : std::to_string(num_samples) + " samples are too few for " +
+                                  std::to_string(max_clusters) + " time runs of 5") +
+         "; ";
+}
+
+std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters) {
+  constexpr int kMinSamplesPerCluster = 5;
+  const int n = static_cast<int>(stations.size());
+  if (max_clusters == 0 || n < kMinSamplesPerCluster * max_clusters) return {};
+  std::vector<int> order(static_cast<size_t>(n));
+  std::iota(order.begin(), order.end(), 0);
+  auto time = [&](int k) { return stations[static_cast<size_t>(order[static_cast<size_t>(k)])].time; };
+  std::stable_sort(order.begin(), order.end(), [&](int a, int b) {
+    return stations[static_cast<size_t>(a)].time < stations[static_cast<size_t>(b)].time;
+  });
+  std::vector<int> cluster(static_cast<size_t>(n), 0);
+  int run = 0;
+  for (int k = 0; k < n; ++k) {
+    const int wanted = static_cast<int>(static_cast<long>(k) * max_clusters / n);
+    if (wanted > run && time(k) != time(k - 1)) run = wanted;
+    cluster[static_cast<size_t>(order[static_cast<size_t>(k)])] = run;
+  }
+  return cluster;
+}
+
 }  // namespace
 
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -722,7 +760,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       result.chi2_per_dof =
           dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
       const bool covariance = options.compute_covariance && spec->covariance;
-      const bool stream_samples = SerialSamples(stations);  // see the covariance section below
+      // Stream samples without time runs keep the model covariance (see the covariance section
+      // below).
+      const bool stream_samples =
+          (moving || SerialSamples(stations)) && TimeClusters(stations, spec->stream_clusters).empty();
       if (!covariance || spec->covariance_estimator == CovarianceEstimator::kModel ||
           stream_samples) {
         const auto covariance_start = std::chrono::steady_clock::now();
@@ -733,9 +774,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
             result.covariance_estimator = "model";
             result.covariance_method = "linear";
             if (stream_samples && spec->covariance_estimator == CovarianceEstimator::kSandwich) {
-              result.covariance_message =
-                  "stream samples (serially correlated): model covariance instead of the "
-                  "sandwich; ";
+              result.covariance_message = StreamModelCovarianceMessage(
+                  static_cast<int>(stations.size()), spec->stream_clusters);
             }
           } else {
             result.covariance_message = "linear covariance unavailable";
@@ -888,18 +928,22 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   if (options.compute_covariance && spec->covariance && !cov_blocks.empty()) {
     CovarianceOptions co;
     co.num_threads = options.num_threads;
-    // One cluster per station: its 6 residuals share the station's noise. Stream samples are not
-    // independent (the model's misfit is smooth in time), so a per-sample sandwich would be
-    // optimistic; they keep the model covariance until the sandwich clusters by time.
+    // One cluster per static station: its 6 residuals share the station's noise. Stream samples
+    // are not independent (the model's misfit is smooth along the path): runs of them in time
+    // (TimeClusters), or, when there are too few (or stream_clusters is 0), the model covariance
+    // (a per-sample sandwich would be optimistic).
     co.estimator = spec->covariance_estimator;
     co.clusters = station_blocks;
     const bool stream_samples = moving || SerialSamples(stations);
-    if (stream_samples) co.estimator = CovarianceEstimator::kModel;
+    if (stream_samples) {
+      co.cluster_groups = TimeClusters(stations, spec->stream_clusters);
+      if (co.cluster_groups.empty()) co.estimator = CovarianceEstimator::kModel;
+    }
     const CovarianceResult cov = ComputeCovariance(&problem, cov_blocks, co);
     result.covariance_message = cov.message;
-    if (stream_samples && spec->covariance_estimator == CovarianceEstimator::kSandwich) {
+    if (co.estimator != spec->covariance_estimator) {
       result.covariance_message +=
-          "stream samples (serially correlated): model covariance instead of the sandwich; ";
+          StreamModelCovarianceMessage(static_cast<int>(stations.size()), spec->stream_clusters);
     }
     if (cov.success) {
       result.covariance_estimator = cov.estimator;

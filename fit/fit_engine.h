@@ -98,7 +98,8 @@ struct FitResult {
   bool rank_deficient = false;
   std::string covariance_message;
   // Which covariance gave the stds: "model" (H^-1 with the model file's noise), "sandwich (CR2)"
-  // or "sandwich (CR1)" (fit/covariance.h); empty when there are none.
+  // or "sandwich (CR1)" (one cluster per station), "sandwich (CR1, 32 clusters)" (stream samples
+  // in runs of time; fit/covariance.h); empty when there are none.
   std::string covariance_estimator;
   // How it was computed (CovarianceResult::method: "dense_sandwich", "schur_banded_groups", ...;
   // "linear" for the lone linear term's own); empty when there are none.

@@ -338,6 +338,12 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
                     "unknown estimator '" + estimator + "' (known: sandwich, model)");
       }
     }
+    spec.stream_clusters = solver.GetIntOr("stream_clusters", spec.stream_clusters);
+    if (spec.stream_clusters != 0 && spec.stream_clusters < 8) {
+      solver.Fail("stream_clusters",
+                  "must be 0 (the model covariance for streams) or >= 8 (fewer clusters give a "
+                  "sandwich too noisy to use)");
+    }
     solver.Finish();
   }
   auto parse_time_offset = [&](const YamlMapReader& r) {

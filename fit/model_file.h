@@ -161,6 +161,11 @@ struct ModelSpec {
   // How the standard deviations are computed (solver.covariance_estimator, fit/covariance.h):
   // sandwich (default; honest when the noise is not the model's `noise:`) or model.
   CovarianceEstimator covariance_estimator = CovarianceEstimator::kSandwich;
+  // Stream samples' sandwich (solver.stream_clusters): this many contiguous runs of samples in
+  // time, each one cluster, since the model's misfit is smooth along the path (fit/fit_engine.cc
+  // TimeClusters). 0, or fewer than 5 samples per run: the model covariance. Static stations are
+  // one cluster each.
+  int stream_clusters = 32;
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;
   std::vector<std::vector<BlockSettings>> block_settings;  // one list per term

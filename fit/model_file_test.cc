@@ -75,6 +75,12 @@ TEST(ParseModelYaml, ErrorsNameFileLineAndField) {
               HasSubstr("$.loss.type: unknown loss 'l1'"));
   EXPECT_THAT(ErrorOf("noise: {amplification_threshold: 0.5}\nterms: [{type: polynomial}]\n"),
               HasSubstr("model.yaml:1:34: $.noise.amplification_threshold: must be >= 1"));
+  EXPECT_THAT(ErrorOf("solver: {stream_clusters: 4}\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:1:27: $.solver.stream_clusters: must be 0"));
+  EXPECT_EQ(ParseModelYaml("terms: [{type: polynomial}]\n", "m").stream_clusters, 32);
+  EXPECT_EQ(
+      ParseModelYaml("solver: {stream_clusters: 0}\nterms: [{type: polynomial}]\n", "m").stream_clusters,
+      0);
 }
 
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
