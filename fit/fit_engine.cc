@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <map>
 #include <memory>
 #include <numeric>
 #include <limits>
@@ -614,21 +615,24 @@ ceres::LinearSolverType ChooseLinearSolver(const ceres::Problem& problem, int nu
 }
 
 // True for stations that are samples of a stream rather than static stations: most of them
-// less than 0.5 s after the previous one (a static station averages a second or more of samples).
-// Stations without distinct times (all 0) count as static.
+// less than 0.5 s after the previous one of the same sensor (a static station averages a second or
+// more of samples; several sensors sample at the same times). Stations without distinct times (all
+// 0) count as static.
 bool SerialSamples(const std::vector<FitStation>& stations) {
-  std::vector<double> times;
-  for (const auto& s : stations) times.push_back(s.time);
-  std::sort(times.begin(), times.end());
+  std::map<int, std::vector<double>> times_of_sensor;
+  for (const auto& s : stations) times_of_sensor[s.sensor].push_back(s.time);
   int close = 0, distinct = 0;
-  for (size_t i = 1; i < times.size(); ++i) {
-    const double dt = times[i] - times[i - 1];
-    if (dt > 0.0) {
-      ++distinct;
-      if (dt < 0.5) ++close;
+  for (auto& [sensor, times] : times_of_sensor) {
+    std::sort(times.begin(), times.end());
+    for (size_t i = 1; i < times.size(); ++i) {
+      const double dt = times[i] - times[i - 1];
+      if (dt > 0.0) {
+        ++distinct;
+        if (dt < 0.5) ++close;
+      }
     }
   }
-  return distinct > 0 && 2 * distinct >= static_cast<int>(times.size()) && 2 * close > distinct;
+  return distinct > 0 && 2 * distinct >= static_cast<int>(stations.size()) && 2 * close > distinct;
 }
 
 // The sandwich's clusters for stream samples (ModelSpec::stream_clusters): the cluster of each

@@ -141,6 +141,39 @@ TEST(FitModel, SandwichStdsOnTheLinearPathEqualTheJointPaths) {
   EXPECT_GT(ratio, 2.0);
 }
 
+// Samples of a stream (most less than 0.5 s after the previous one of their sensor) are not
+// independent: the sandwich clusters them in runs of time (32 by default; 0: the model
+// covariance). Two sensors sampled at the same times are a stream too. Static stations (2 s apart)
+// are one cluster each.
+TEST(FitModel, StreamSamplesAreClusteredInRunsOfTime) {
+  std::mt19937 rng(12);
+  const auto truth = RandomPolynomial(2, &rng);
+  std::vector<FitStation> stations = NoiseFreeStations(*truth, 200, &rng);
+  std::normal_distribution<double> normal;
+  for (auto& s : stations) s.reference.translation += 1e-4 * Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
+  auto estimator = [&](const std::vector<FitStation>& data, const std::string& solver) {
+    ModelSpec spec = ParseModelYaml(solver + "terms:\n  - type: polynomial\n    degree: 2\n", "m");
+    return FitModel(data, &spec).covariance_estimator;
+  };
+  std::vector<FitStation> one = stations, two;
+  for (size_t i = 0; i < one.size(); ++i) one[i].time = 0.01 * static_cast<double>(i);
+  for (size_t i = 0; i < one.size(); ++i) {
+    FitStation s = stations[i];
+    s.time = 0.01 * static_cast<double>(i / 2);
+    s.sensor = 1 + static_cast<int>(i % 2);
+    two.push_back(s);
+  }
+  std::vector<FitStation> still = stations;
+  for (size_t i = 0; i < still.size(); ++i) still[i].time = 2.0 * static_cast<double>(i);
+  EXPECT_EQ(estimator(one, ""), "sandwich (CR2, 32 clusters)");
+  EXPECT_EQ(estimator(two, ""), "sandwich (CR2, 32 clusters)");
+  EXPECT_EQ(estimator(one, "solver: {stream_clusters: 0}\n"), "model");
+  EXPECT_EQ(estimator(one, "solver: {stream_clusters: 8}\n"), "sandwich (CR2, 8 clusters)");
+  // 200 samples are too few for 50 runs of 5.
+  EXPECT_EQ(estimator(one, "solver: {stream_clusters: 50}\n"), "model");
+  EXPECT_EQ(estimator(still, ""), "sandwich (CR2)");
+}
+
 TEST(FitModel, FlagsUnidentifiableCoefficients) {
   // All stations on the plane z = 0.3: the z-dependent monomials are not identifiable.
   std::mt19937 rng(9);
