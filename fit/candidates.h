@@ -104,6 +104,8 @@ struct PhysicalEvidence {
   std::string strength_what;       // "polarisability_m3", "gain_matrix - I", ...
   double strength_chi2 = NAN;      // Wald statistic of the strongest block
   int strength_dof = 0;            // its degrees of freedom
+  // The sandwich's clusters the statistic refers to (Hotelling's T^2 over them); 0: chi-square.
+  int strength_clusters = 0;
   double strength_p = NAN;         // its p-value (Bonferroni-corrected over the blocks)
   double strength_sigma = NAN;     // the equivalent two-sided normal deviate of strength_p
   bool has_location = false;       // the term places a source (dipole, plane)
@@ -128,11 +130,23 @@ struct PhysicalEvidence {
 // fit, profiling the noise scale out as its BIC does (a model file's sigmas are guesses: the
 // default 1 mm against a tracker's 0.06 mm would make every standard deviation 17x too large).
 // `max_normal_sigma_rad` bounds a plane's normal's angular standard deviation (after scaling).
+// `num_clusters`: the sandwich covariance's clusters G (FitResult::covariance_clusters), whose
+// k x k block covariances rest on G - 1 degrees of freedom: a block's Wald statistic W is then
+// referred to Hotelling's T^2, W (G - k) / ((G - 1) k) ~ F(k, G - k), not to chi-square(k), which
+// would be optimistic with few clusters (32 runs of stream samples); G <= k: no test. 0: the
+// model covariance, chi-square.
 PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
                                         const std::vector<ParameterReport>& blocks,
                                         const std::vector<Eigen::Vector3d>& volume_points,
                                         double min_strength_sigma = 3.0, double noise_scale = 1.0,
-                                        double max_normal_sigma_rad = 0.1);
+                                        double max_normal_sigma_rad = 0.1, int num_clusters = 0);
+
+// P(F(d1, d2) > x): the upper tail of the F distribution (regularised incomplete beta).
+double FUpperTail(double x, double d1, double d2);
+
+// P(T^2 > w) for Hotelling's T^2 of `dof` coordinates from a covariance estimated over `clusters`
+// independent clusters: FUpperTail(w (G - k) / ((G - 1) k), k, G - k); 1 when G <= k.
+double HotellingUpperTail(double w, int dof, int clusters);
 
 // P(chi2_dof > x): the upper tail of the chi-square distribution (regularised incomplete gamma).
 double ChiSquareUpperTail(double x, int dof);

@@ -245,7 +245,7 @@ Eigen::MatrixXd PseudoInverse(const DenseAnalysis& dense, int dimension) {
 // rank-aware pseudo-inverse of the dense analysis. False (and why) if it cannot be computed.
 bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnalysis& dense,
                         const CovarianceOptions& options, Eigen::MatrixXd* full,
-                        std::string* estimator, std::string* why) {
+                        std::string* estimator, int* clusters, std::string* why) {
   // The clusters' rows and the other residual blocks' rows of the analysis' Jacobian (evaluated
   // once for both, with the loss applied as the solver saw it).
   std::vector<int> cluster_rows, cluster_sizes;
@@ -399,6 +399,7 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
     const Eigen::MatrixXd h_inv = PseudoInverse(dense, dimension);
     *full += h_inv * meat * h_inv;
   }
+  *clusters = num_clusters;
   *estimator = std::string("sandwich (") + (leverage ? "CR2" : "CR1") +
                (options.cluster_groups.empty() ? "" : ", " + std::to_string(num_clusters) + " clusters") + ")";
   return true;
@@ -801,8 +802,9 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     } else {
       Eigen::MatrixXd full;
       std::string estimator;
+      int clusters = 0;
       if (SandwichCovariance(problem, result.tangent_dimension, dense, options, &full,
-                             &estimator, &why)) {
+                             &estimator, &clusters, &why)) {
         result.covariance = Eigen::MatrixXd::Zero(n, n);
         for (std::size_t i = 0; i < blocks.size(); ++i) {
           for (std::size_t j = 0; j < blocks.size(); ++j) {
@@ -818,6 +820,7 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
         result.method = dense.rank < result.tangent_dimension ? "dense_pseudo_inverse_sandwich"
                                                               : "dense_sandwich";
         result.estimator = estimator;
+        result.num_clusters = clusters;
         have_covariance = true;
       }
     }

@@ -125,6 +125,7 @@ struct CovarianceResult {
   // the parentheses when blocks were grouped; a sandwich that was asked for but could not be
   // computed gives "model" and says why in `message`.
   std::string estimator = "model";
+  int num_clusters = 0;  // the sandwich's clusters (0: the model covariance)
   int tangent_dimension = 0;    // tangent coordinates of all non-constant blocks in the problem
   int rank = -1;                // numerical rank of H (-1: dense analysis skipped)
   // Groups of columns sharing no residual row, analysed one by one (0: dense analysis skipped).

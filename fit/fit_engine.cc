@@ -951,6 +951,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     }
     if (cov.success) {
       result.covariance_estimator = cov.estimator;
+      result.covariance_clusters = cov.num_clusters;
       result.covariance_method = cov.method;
     }
     result.rank_deficient = cov.rank_deficient;
@@ -1527,6 +1528,7 @@ nlohmann::json FitResult::ToJson() const {
           {"covariance_message", covariance_message},
           {"covariance_estimator",
            covariance_estimator.empty() ? nlohmann::json() : nlohmann::json(covariance_estimator)},
+          {"covariance_clusters", covariance_clusters},
           {"covariance_method",
            covariance_method.empty() ? nlohmann::json() : nlohmann::json(covariance_method)},
           {"identifiability_flags", flags},

@@ -101,6 +101,9 @@ struct FitResult {
   // or "sandwich (CR1)" (one cluster per station), "sandwich (CR1, 32 clusters)" (stream samples
   // in runs of time; fit/covariance.h); empty when there are none.
   std::string covariance_estimator;
+  // The sandwich's number of clusters (stations, or runs of stream samples); 0 for the model
+  // covariance. A Wald test of k coordinates refers to Hotelling's T^2 with it (fit/candidates.h).
+  int covariance_clusters = 0;
   // How it was computed (CovarianceResult::method: "dense_sandwich", "schur_banded_groups", ...;
   // "linear" for the lone linear term's own); empty when there are none.
   std::string covariance_method;
