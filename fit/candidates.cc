@@ -19,6 +19,7 @@
 #include <thread>
 
 #include "fit/model_file.h"
+#include "fit/registration.h"
 
 namespace trackcal::fit {
 namespace {
@@ -857,54 +858,11 @@ double ChiSquareUpperTail(double x, int dof) {
   return std::clamp(std::exp(log_prefactor) * h, 0.0, 1.0);
 }
 
-namespace {
-
-// I_z(a, b), the regularised incomplete beta function, by its continued fraction (modified Lentz),
-// which converges fast for z < (a + 1) / (a + b + 2); the symmetry I_z(a, b) = 1 - I_{1-z}(b, a)
-// covers the rest.
-double RegularisedIncompleteBeta(double z, double a, double b) {
-  if (!(z > 0)) return 0.0;
-  if (!(z < 1)) return 1.0;
-  if (z > (a + 1.0) / (a + b + 2.0)) return 1.0 - RegularisedIncompleteBeta(1.0 - z, b, a);
-  const double log_prefactor = std::lgamma(a + b) - std::lgamma(a) - std::lgamma(b) +
-                               a * std::log(z) + b * std::log1p(-z);
-  const double tiny = 1e-300;
-  double c = 1.0, d = 1.0 - (a + b) * z / (a + 1.0);
-  if (std::abs(d) < tiny) d = tiny;
-  d = 1.0 / d;
-  double h = d;
-  for (int m = 1; m < 10000; ++m) {
-    // The even and the odd step of the fraction.
-    for (const double coefficient :
-         {m * (b - m) * z / ((a + 2.0 * m - 1.0) * (a + 2.0 * m)),
-          -(a + m) * (a + b + m) * z / ((a + 2.0 * m) * (a + 2.0 * m + 1.0))}) {
-      d = 1.0 + coefficient * d;
-      if (std::abs(d) < tiny) d = tiny;
-      c = 1.0 + coefficient / c;
-      if (std::abs(c) < tiny) c = tiny;
-      d = 1.0 / d;
-      h *= d * c;
-    }
-    if (std::abs(d * c - 1.0) < 1e-16) break;
-  }
-  return std::clamp(std::exp(log_prefactor) * h / a, 0.0, 1.0);
-}
-
-}  // namespace
-
-double FUpperTail(double x, double d1, double d2) {
-  if (!(d1 > 0) || !(d2 > 0)) throw std::invalid_argument("FUpperTail: degrees of freedom must be > 0");
-  if (!(x > 0)) return 1.0;
-  if (!std::isfinite(x)) return 0.0;
-  // P(F > x) = I_{d2 / (d2 + d1 x)}(d2 / 2, d1 / 2).
-  return RegularisedIncompleteBeta(d2 / (d2 + d1 * x), 0.5 * d2, 0.5 * d1);
-}
-
 double HotellingUpperTail(double w, int dof, int clusters) {
   if (dof < 1) throw std::invalid_argument("HotellingUpperTail: dof must be >= 1");
   if (clusters <= dof) return 1.0;
   const double g = clusters, k = dof;
-  return FUpperTail(w * (g - k) / ((g - 1.0) * k), k, g - k);
+  return FDistributionUpperTail(w * (g - k) / ((g - 1.0) * k), k, g - k);
 }
 
 double TwoSidedNormalDeviate(double p) {

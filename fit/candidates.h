@@ -141,11 +141,9 @@ PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
                                         double min_strength_sigma = 3.0, double noise_scale = 1.0,
                                         double max_normal_sigma_rad = 0.1, int num_clusters = 0);
 
-// P(F(d1, d2) > x): the upper tail of the F distribution (regularised incomplete beta).
-double FUpperTail(double x, double d1, double d2);
-
 // P(T^2 > w) for Hotelling's T^2 of `dof` coordinates from a covariance estimated over `clusters`
-// independent clusters: FUpperTail(w (G - k) / ((G - 1) k), k, G - k); 1 when G <= k.
+// independent clusters: FDistributionUpperTail(w (G - k) / ((G - 1) k), k, G - k)
+// (fit/registration.h); 1 when G <= k.
 double HotellingUpperTail(double w, int dof, int clusters);
 
 // P(chi2_dof > x): the upper tail of the chi-square distribution (regularised incomplete gamma).

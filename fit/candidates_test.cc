@@ -13,6 +13,7 @@
 #include <set>
 
 #include "fit/model_file.h"
+#include "fit/registration.h"
 
 namespace trackcal::fit {
 namespace {
@@ -416,26 +417,6 @@ TEST(ChiSquareUpperTail, Nominal) {
   EXPECT_THROW(ChiSquareUpperTail(1.0, 0), std::invalid_argument);
 }
 
-// F tails with closed forms: d1 = 2 (1 + 2x/d2)^(-d2/2); d2 = 2 1 - (d1 x / (d1 x + 2))^(d1/2);
-// d1 = d2 = 1 the two-sided Cauchy tail 1 - 2 atan(sqrt x) / pi; and chi-square(k x, k) / k as
-// d2 grows. The x span both sides of the incomplete beta's symmetry switch.
-TEST(FUpperTail, Nominal) {
-  for (double x : {0.05, 0.3, 1.0, 2.9, 9.0, 40.0}) {
-    for (double d2 : {1.0, 3.0, 10.0, 31.0}) {
-      EXPECT_NEAR(FUpperTail(x, 2, d2), std::pow(1 + 2 * x / d2, -d2 / 2), 1e-12) << x << " " << d2;
-    }
-    for (double d1 : {1.0, 3.0, 6.0, 9.0}) {
-      EXPECT_NEAR(FUpperTail(x, d1, 2), 1 - std::pow(d1 * x / (d1 * x + 2), d1 / 2), 1e-12)
-          << x << " " << d1;
-    }
-    EXPECT_NEAR(FUpperTail(x, 1, 1), 1 - 2 * std::atan(std::sqrt(x)) / M_PI, 1e-12) << x;
-    // The F(k, d2) -> chi2(k) / k limit: 1e-5 is the O(1/d2) difference at d2 = 1e7 and below.
-    EXPECT_NEAR(FUpperTail(x, 6, 1e7), ChiSquareUpperTail(6 * x, 6), 1e-5) << x;
-  }
-  EXPECT_EQ(FUpperTail(0.0, 3, 5), 1.0);
-  EXPECT_THROW(FUpperTail(1.0, 0, 5), std::invalid_argument);
-}
-
 // Hotelling's T^2 over G clusters is wider than chi-square(k): with 32 clusters and k = 6 the 5 %
 // point of T^2 is 31 * 6 / 26 F(6, 26; 0.95) = 7.154 * 2.474 = 17.7 (tables) against chi-square's
 // 12.59; with many clusters they agree; G <= k tests nothing.
@@ -602,7 +583,7 @@ TEST(AssessPhysicalEvidence, TheJointTestUsesTheBlockCovariance) {
                                           3.0, 1.0, 0.1, /*num_clusters=*/10);
   EXPECT_NEAR(ten.strength_chi2, 800.0, /*abs=*/800.0 * 1e-6);
   EXPECT_EQ(ten.strength_clusters, 10);
-  EXPECT_NEAR(ten.strength_p, FUpperTail(800.0 * 4 / 54, 6, 4), 1e-12);
+  EXPECT_NEAR(ten.strength_p, FDistributionUpperTail(800.0 * 4 / 54, 6, 4), 1e-12);
   EXPECT_LT(ten.strength_sigma, correlated.strength_sigma);
   EXPECT_TRUE(ten.supported()) << ten.Describe();
   const auto six = AssessPhysicalEvidence("receiver_gain", {Report("gain_matrix", g, sd, cov)}, {},
