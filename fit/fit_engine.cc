@@ -641,17 +641,6 @@ bool SerialSamples(const std::vector<FitStation>& stations) {
 // along the path, so neighbouring samples' scores are correlated, and a sandwich over single
 // samples understates how far that shared misfit moves the estimates (docs/fit.md, "Standard
 // deviations"). Samples that share a time stay in one run (several sensors).
-std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters);
-
-// Why stream samples got the model covariance instead of the sandwich (covariance_message).
-std::string StreamModelCovarianceMessage(int num_samples, int max_clusters) {
-  return "stream samples (serially correlated): model covariance instead of the sandwich, " +
-         (max_clusters == 0 ? std::string("as solver.stream_clusters is 0")
-                            : std::to_string(num_samples) + " samples are too few for " +
-                                  std::to_string(max_clusters) + " time runs of 5") +
-         "; ";
-}
-
 std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters) {
   constexpr int kMinSamplesPerCluster = 5;
   const int n = static_cast<int>(stations.size());
@@ -670,6 +659,15 @@ std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_c
     cluster[static_cast<size_t>(order[static_cast<size_t>(k)])] = run;
   }
   return cluster;
+}
+
+// Why stream samples got the model covariance instead of the sandwich (covariance_message).
+std::string StreamModelCovarianceMessage(int num_samples, int max_clusters) {
+  return "stream samples (serially correlated): model covariance instead of the sandwich, " +
+         (max_clusters == 0 ? std::string("as solver.stream_clusters is 0")
+                            : std::to_string(num_samples) + " samples are too few for " +
+                                  std::to_string(max_clusters) + " time runs of 5") +
+         "; ";
 }
 
 }  // namespace
