@@ -1,11 +1,12 @@
 // trackcal-fit: fits a correction model to a capture, registers the optical frame, pairs streams.
 //
 //   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] [--json]
+//                    [--quiet]
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
-//                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json]
+//                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json] [--quiet]
 //                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
-//                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json]
+//                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json] [--quiet]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
 //                     [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv [--json]
 //
@@ -55,7 +56,7 @@ struct UsageError : std::runtime_error {
 void PrintUsage(std::ostream& out) {
   out << "usage:\n"
          "  trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] "
-         "[--json]\n"
+         "[--json] [--quiet]\n"
          "  trackcal-fit build --data DIR|poses.csv --model settings.yaml -o calib.json "
          "[--model-out model.yaml]\n"
          "                     [--sources N] [--folds K] [--json] [--quiet]\n"
@@ -64,7 +65,8 @@ void PrintUsage(std::ostream& out) {
          "                        [--cross-validate-top N] [--exact-cv] [--threads N] [--json] "
          "[--quiet]\n"
          "  trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv\n"
-         "                        [--set NAME | --poses poses.csv [--model model.yaml]] [--json]\n"
+         "                        [--set NAME | --poses poses.csv [--model model.yaml]] [--json] "
+         "[--quiet]\n"
          "                        [--optical-noise-mm S] [--tracker-noise-mm S] "
          "[--tracker-noise-deg S]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
