@@ -250,3 +250,5 @@ def test_stream_folder_with_free_time_offset_matches_the_command_line(capture_di
     assert "time_offset_s" in cli
     assert_same(without_timings({**report.to_dict(), "output": None}), without_timings({**cli, "output": None}))
     assert report.time_offset_s == pytest.approx(cli["time_offset_s"], rel=1e-9)
+    # Stream samples: the sandwich over 32 runs in time (docs/fit.md, "Standard deviations").
+    assert report.covariance_clusters == 32 and "32 clusters" in report.covariance_estimator

@@ -85,9 +85,12 @@ class FitReport:
         self.num_free_parameters: int = fit["num_free_parameters"]
         self.rank_deficient: bool = fit["rank_deficient"]
         self.seconds: float = fit["seconds"]
-        # Which covariance gave the standard deviations: "sandwich (CR2)", "sandwich (CR1)" or
+        # Which covariance gave the standard deviations: "sandwich (CR2)", "sandwich (CR1)" (one
+        # cluster per station), "sandwich (CR1, 32 clusters)" (stream samples in runs of time) or
         # "model" (docs/fit.md, "Standard deviations"); None without standard deviations.
         self.covariance_estimator: Optional[str] = fit.get("covariance_estimator")
+        # The sandwich's number of clusters (0: the model covariance).
+        self.covariance_clusters: int = fit.get("covariance_clusters", 0)
         self.identifiability_flags: List[dict] = fit["identifiability_flags"]
         self.outliers: List[dict] = fit["outliers"]
         self.terms: List[dict] = fit["terms"]
