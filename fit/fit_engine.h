@@ -98,7 +98,7 @@ struct FitResult {
   bool rank_deficient = false;
   std::string covariance_message;
   // Which covariance gave the stds: "model" (H^-1 with the model file's noise), "sandwich (CR2)"
-  // or "sandwich (CR1)" (one cluster per station), "sandwich (CR1, 32 clusters)" (stream samples
+  // or "sandwich (CR1)" (one cluster per station), "sandwich (CR2, 32 clusters)" (stream samples
   // in runs of time; fit/covariance.h); empty when there are none.
   std::string covariance_estimator;
   // The sandwich's number of clusters (stations, or runs of stream samples); 0 for the model

@@ -541,6 +541,12 @@ _XFAIL = {
     # normal is not determined): 406.7x -> +sensor_offset 13.46x -> +dipole (frame) 3.09x -> +plane
     # (floor, 0.755 m) 1.338x / 1.127x; 444.5x -> 15.76x -> 3.39x -> +plane (floor, 0.771 m)
     # 1.470x / 1.190x, then nothing.
+    "clock_offset:2": "main (session 9, time-run sandwich): time_offset, then the frame dipole (2.06 -> 0.79 "
+                      "-> 0.49 mm held out), nothing spurious, then a flexible polynomial_3 only; but the offset "
+                      "ends 35.71 +- 0.076 ms against 37 (16.9 sigma with CR2 over 32 time runs; the model "
+                      "covariance said +- 0.26, 5.0 sigma, as on branch diagspeed). The polynomial alone gives 39.69 +- 0.45 (6.0 "
+                      "sigma): this capture's 20 s stream does not pin the offset to its sigma with either "
+                      "model (docs/diagnose.md, Known limits)",
     "sensor_offset:3": "branch farsrc: 423.2x -> +sensor_offset 13.90x -> +dipole (frame) 3.27x -> +plane "
                        "(floor, 0.733 m) 1.555x / 1.172x the floor, then nothing: the right terms, the "
                        "offset within 3 sigma and nothing spurious, but 1.555x > 1.5x: the three CRT "

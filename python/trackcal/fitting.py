@@ -86,7 +86,7 @@ class FitReport:
         self.rank_deficient: bool = fit["rank_deficient"]
         self.seconds: float = fit["seconds"]
         # Which covariance gave the standard deviations: "sandwich (CR2)", "sandwich (CR1)" (one
-        # cluster per station), "sandwich (CR1, 32 clusters)" (stream samples in runs of time) or
+        # cluster per station), "sandwich (CR2, 32 clusters)" (stream samples in runs of time) or
         # "model" (docs/fit.md, "Standard deviations"); None without standard deviations.
         self.covariance_estimator: Optional[str] = fit.get("covariance_estimator")
         # The sandwich's number of clusters (0: the model covariance).
