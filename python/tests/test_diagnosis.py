@@ -182,6 +182,16 @@ def test_diagnose_prints_and_applies_a_top_level_change_at_the_top_level(tmp_pat
     assert "\n+loss:\n+  type: cauchy\n" in text and "index None" not in text
 
 
+def test_diagnose_json_carries_the_notes_the_text_prints(tmp_path):
+    # Without --model no catalog effect is tested: the text says so, and so must --json.
+    cap = simulate(tmp_path / "capture", seed=71)
+    args = ("diagnose", cap, "--permutations", "9")
+    doc = json.loads(run_cli(*args, "--json").stdout)
+    assert doc["candidates"] is None
+    assert doc["notes"] == ["catalog effects not tested: give --model to rank them"]
+    assert "catalog effects not tested: give --model to rank them" in run_cli(*args).stdout
+
+
 def test_diagnose_json_is_one_document_with_everything(tmp_path):
     cap = simulate(tmp_path / "capture", seed=71)
     model = tmp_path / "model.yaml"
@@ -190,7 +200,7 @@ def test_diagnose_json_is_one_document_with_everything(tmp_path):
                 "--folds", "2")
     doc = json.loads(r.stdout)
     for key in ("tables", "outside_volume", "by_distance", "by_region", "worst", "covariates",
-                "covariate_findings", "candidates", "verdict", "fit"):
+                "covariate_findings", "candidates", "verdict", "fit", "notes"):
         assert key in doc, key
     assert doc["command"] == "diagnose" and doc["model"] == str(model)
     assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all"]

@@ -313,7 +313,8 @@ def cmd_diagnose(args, term) -> int:
     if args.json:
         print(json.dumps(diagnosis.diagnosis_document(
             v, capture=args.capture, calibration=args.calibration, model=args.model, fit_report=fit_report,
-            candidates_doc=doc, verdict_=verdict, model_change=change), indent=2, allow_nan=False))
+            candidates_doc=doc, verdict_=verdict, model_change=change, notes=notes), indent=2,
+            allow_nan=False))
         return 0
     _print_origin(term, v.capture)
     for t in v.tables:

@@ -267,12 +267,13 @@ def _finite(x):
 
 def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_report=None,
                        candidates_doc: Optional[CandidatesDoc] = None, verdict_: Optional[dict] = None,
-                       model_change: Optional[dict] = None) -> dict:
+                       model_change: Optional[dict] = None, notes=()) -> dict:
     """Everything ``trackcal diagnose`` shows, as one JSON-serialisable dict: how the stations were
     obtained (``capture_origin``), Table 1 per set, stations outside the calibrated volume (ids), breakdowns by distance and region, worst stations,
     every covariate test and the significant findings, the candidate ranking (contract B, or None
-    when no model was given), the verdict, the model-file change and every station's residuals
-    (``stations``, the rows of ``Validation.station_rows``)."""
+    when no model was given), the verdict, the model-file change, the notes the text output prints
+    (why something was not done) and every station's residuals (``stations``, the rows of
+    ``Validation.station_rows``)."""
     doc = {
         "command": "diagnose",
         "capture": None if capture is None else str(capture),
@@ -294,6 +295,7 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
         "candidates": candidates_doc,
         "verdict": verdict_ if verdict_ is not None else verdict(candidates_doc, v.covariate_effects),
         "model_change": model_change,
+        "notes": list(notes),
         "stations": v.station_rows(),
     }
     return _finite(doc)
