@@ -290,7 +290,7 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
     }
   }
 
-  // The groups: clusters whose scores are summed before the outer product (clusters_group), each
+  // The groups: clusters whose scores are summed before the outer product (cluster_groups), each
   // a list of (first row, rows) segments.
   std::vector<std::vector<std::pair<int, int>>> groups;
   if (options.cluster_groups.empty()) {
