@@ -35,6 +35,17 @@ void FieldModel::Check() const {
             f + ".location_in_transmitter", "must be finite and away from the transmitter");
     Require(std::isfinite(o.polarisability_m3), f + ".polarisability_m3", "must be finite");
   }
+  if (background.present()) {
+    Require(background.degree <= kMaxBackgroundDegree, "background.degree",
+            "must be 0 .. " + std::to_string(kMaxBackgroundDegree));
+    const size_t n = 3 * static_cast<size_t>(BackgroundBasisSize(background.degree));
+    Require(background.coefficients.size() == n, "background.coefficients",
+            "expected " + std::to_string(n) + " numbers for degree " +
+                std::to_string(background.degree));
+    for (double c : background.coefficients) {
+      Require(std::isfinite(c), "background.coefficients", "must be finite");
+    }
+  }
 }
 
 }  // namespace trackcal

@@ -109,6 +109,68 @@ Matrix3<T> InducedDipoleField(const T& field_constant, const Vector3<T>& locatio
           DipoleCoupling<T>(location_in_transmitter));
 }
 
+// Background field: the field of sources too far, too many or too large to locate one by one (CRT
+// monitors across the room, a door, the building's steel), which over the tracked volume is smooth.
+// Between sources the field of each transmitter coil is curl- and divergence-free, the gradient of
+// a harmonic potential; column j of the background is therefore expanded as
+//
+//   B_bg(p)_j = sum_k c_jk grad h_k(p / 1 m),
+//
+// over the regular solid harmonics h_k of degrees 1 .. L + 1 (a field of polynomial degree L):
+// 3 + 5 + 7 = 15 per coil for L = 2, 8 for L = 1, 3 (a uniform field) for L = 0. The harmonic
+// polynomials of bounded degree are closed under translation, so the expansion about the
+// transmitter spans the same fields as one about the data's centre. Coefficients are in field units
+// (k m^-3); coefficient c_jk is element j * BackgroundBasisSize(L) + k.
+constexpr int kMaxBackgroundDegree = 2;
+constexpr int BackgroundBasisSize(int degree) { return (degree + 1) * (degree + 3); }
+
+// The basis fields grad h_k at p (column k), k < BackgroundBasisSize(degree), for 0 <= degree <= 2.
+template <typename T>
+Eigen::Matrix<T, 3, BackgroundBasisSize(kMaxBackgroundDegree)> BackgroundBasis(
+    int degree, const Vector3<T>& p) {
+  Eigen::Matrix<T, 3, BackgroundBasisSize(kMaxBackgroundDegree)> g;
+  g.setZero();
+  const T& x = p(0);
+  const T& y = p(1);
+  const T& z = p(2);
+  const T zero(0), one(1);
+  // Degree 1: x, y, z (a uniform field).
+  g.col(0) << one, zero, zero;
+  g.col(1) << zero, one, zero;
+  g.col(2) << zero, zero, one;
+  if (degree < 1) return g;
+  // Degree 2: xy, yz, zx, x^2 - y^2, 2z^2 - x^2 - y^2 (a uniform gradient).
+  g.col(3) << y, x, zero;
+  g.col(4) << zero, z, y;
+  g.col(5) << z, zero, x;
+  g.col(6) << T(2) * x, T(-2) * y, zero;
+  g.col(7) << T(-2) * x, T(-2) * y, T(4) * z;
+  if (degree < 2) return g;
+  // Degree 3: x^3 - 3xy^2, 3x^2y - y^3, xyz, z(x^2 - y^2), x(4z^2 - x^2 - y^2),
+  // y(4z^2 - x^2 - y^2), z(2z^2 - 3x^2 - 3y^2).
+  const T xx = x * x, yy = y * y, zz = z * z;
+  g.col(8) << T(3) * (xx - yy), T(-6) * x * y, zero;
+  g.col(9) << T(6) * x * y, T(3) * (xx - yy), zero;
+  g.col(10) << y * z, x * z, x * y;
+  g.col(11) << T(2) * x * z, T(-2) * y * z, xx - yy;
+  g.col(12) << T(4) * zz - T(3) * xx - yy, T(-2) * x * y, T(8) * x * z;
+  g.col(13) << T(-2) * x * y, T(4) * zz - xx - T(3) * yy, T(8) * y * z;
+  g.col(14) << T(-6) * x * z, T(-6) * y * z, T(6) * zz - T(3) * (xx + yy);
+  return g;
+}
+
+// The background field matrix at p: coefficients of type T, BackgroundBasisSize(degree) per coil.
+template <typename T, typename C>
+Matrix3<T> BackgroundFieldMatrix(int degree, const C* coefficients, const Vector3<T>& p) {
+  const auto basis = BackgroundBasis<T>(degree, p);
+  const int n = BackgroundBasisSize(degree);
+  Matrix3<T> b = Matrix3<T>::Zero();
+  for (int j = 0; j < 3; ++j) {
+    for (int k = 0; k < n; ++k) b.col(j) += basis.col(k) * T(coefficients[j * n + k]);
+  }
+  return b;
+}
+
 // Signal matrix S = G R^T B measured by a receiver with orientation `transmitter_from_receiver`.
 template <typename T>
 Matrix3<T> SignalMatrix(const Matrix3<T>& receiver_gain_matrix,
@@ -125,6 +187,13 @@ struct ConductingPlane {
   double attenuation = 0.0;  // image strength: 1 perfect conductor, < 0 ferromagnetic, 0 none
 };
 
+// The smooth field of distant sources (BackgroundBasis above); degree < 0: none.
+struct BackgroundField {
+  int degree = -1;                  // polynomial degree of the field, 0 .. kMaxBackgroundDegree
+  std::vector<double> coefficients;  // 3 * BackgroundBasisSize(degree) [k m^-3]
+  bool present() const { return degree >= 0; }
+};
+
 // A small object polarised by the transmitter field.
 struct InducedDipole {
   std::string name;                                                   // label
@@ -138,6 +207,7 @@ struct FieldModel {
   Eigen::Vector3d transmitter_octupole_m2 = Eigen::Vector3d::Zero();  // finite-coil term per coil
   std::vector<ConductingPlane> planes;                                // image dipoles
   std::vector<InducedDipole> objects;                                 // induced dipoles
+  BackgroundField background;                                         // distant sources
 
   // Throws std::invalid_argument naming the offending field.
   void Check() const;
@@ -156,6 +226,10 @@ struct FieldModel {
     for (const InducedDipole& object : objects) {
       b += InducedDipoleField<T>(k, object.location_in_transmitter.cast<T>(),
                                  T(object.polarisability_m3), p_in_transmitter);
+    }
+    if (background.present()) {
+      b += BackgroundFieldMatrix<T>(background.degree, background.coefficients.data(),
+                                    p_in_transmitter);
     }
     return b;
   }

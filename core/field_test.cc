@@ -3,6 +3,8 @@
 #include <ceres/jet.h>
 #include <gtest/gtest.h>
 
+#include <Eigen/LU>
+
 #include <numbers>
 
 #include "tests/test_utils.h"
@@ -180,6 +182,62 @@ TEST(FieldModel, CheckNamesTheField) {
   } catch (const std::invalid_argument& e) {
     EXPECT_NE(std::string(e.what()).find("planes[0].point_in_transmitter"), std::string::npos)
         << e.what();
+  }
+}
+
+TEST(BackgroundBasis, CurlAndDivergenceFreeAndIndependent) {
+  // A field between sources is the gradient of a harmonic potential: its Jacobian is symmetric
+  // (no curl) and traceless (no divergence). Checked by autodiff at random points, and the basis
+  // is independent: its 15 fields sampled at 10 points (30 rows) have full column rank.
+  using Jet = ceres::Jet<double, 3>;
+  constexpr int n = BackgroundBasisSize(kMaxBackgroundDegree);
+  static_assert(BackgroundBasisSize(0) == 3 && BackgroundBasisSize(1) == 8 && n == 15);
+  Eigen::MatrixXd samples(30, n);
+  for (int s = 0; s < 10; ++s) {
+    const Eigen::Vector3d x = RandomPoint(-1.0, 1.0);
+    Vector3<Jet> xj;
+    for (int i = 0; i < 3; ++i) xj(i) = Jet(x(i), i);
+    const auto basis = BackgroundBasis<Jet>(kMaxBackgroundDegree, xj);
+    for (int k = 0; k < n; ++k) {
+      Eigen::Matrix3d jacobian;  // d field_r / d x_i
+      for (int r = 0; r < 3; ++r) jacobian.row(r) = basis(r, k).v.transpose();
+      // Polynomials of degree <= 2 in coordinates <= 1: exact up to rounding (1e-15 x 10).
+      EXPECT_NEAR(jacobian.trace(), 0.0, 1e-13) << "basis field " << k;
+      EXPECT_LT((jacobian - jacobian.transpose()).norm(), 1e-13) << "basis field " << k;
+      for (int r = 0; r < 3; ++r) samples(3 * s + r, k) = basis(r, k).a;
+    }
+  }
+  EXPECT_EQ(Eigen::FullPivLU<Eigen::MatrixXd>(samples).rank(), n);
+  // A lower degree is the leading part of the higher one's basis; unused columns are zero.
+  const Eigen::Vector3d x(0.3, -0.2, -0.6);
+  const auto low = BackgroundBasis<double>(1, x);
+  const auto high = BackgroundBasis<double>(2, x);
+  EXPECT_TRUE(low.leftCols(8).isApprox(high.leftCols(8)));
+  EXPECT_TRUE(low.rightCols(n - 8).isZero(0.0));
+}
+
+TEST(FieldModel, BackgroundAddsItsExpansion) {
+  // Coil j's background column is sum_k c_jk grad h_k: with one coefficient set per coil the
+  // field matrix is the basis columns side by side.
+  FieldModel model;
+  model.background.degree = 1;
+  model.background.coefficients.assign(24, 0.0);
+  model.background.coefficients[0 * 8 + 0] = 2e-3;   // coil x: uniform field along x
+  model.background.coefficients[1 * 8 + 4] = -1e-3;  // coil y: grad(yz) = (0, z, y)
+  model.background.coefficients[2 * 8 + 7] = 5e-4;   // coil z: grad(2z^2 - x^2 - y^2)
+  model.Check();
+  const Eigen::Vector3d x(0.4, -0.3, -0.5);
+  Matrix3<double> expected = model.FreeSpaceField<double>(x);
+  expected.col(0) += Eigen::Vector3d(2e-3, 0, 0);
+  expected.col(1) += -1e-3 * Eigen::Vector3d(0, x.z(), x.y());
+  expected.col(2) += 5e-4 * Eigen::Vector3d(-2 * x.x(), -2 * x.y(), 4 * x.z());
+  EXPECT_TRUE(model.Field<double>(x).isApprox(expected, 1e-14));
+  model.background.coefficients.pop_back();
+  try {
+    model.Check();
+    FAIL() << "23 coefficients for degree 1 must be rejected";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("background.coefficients"), std::string::npos) << e.what();
   }
 }
 

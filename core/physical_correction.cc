@@ -159,6 +159,10 @@ void PhysicalCorrection::NormalEquations(const ReportFrame& frame, const Eigen::
       }
     }
   }
+  if (field_.background.present()) {
+    b += BackgroundFieldMatrix<Jet3>(field_.background.degree,
+                                     field_.background.coefficients.data(), pj);
+  }
   const Eigen::Matrix3d gain_rt = receiver_gain_matrix_ * rotation.transpose();
   Eigen::Matrix3d b_value;
   Eigen::Matrix3d db[3];
@@ -370,6 +374,10 @@ nlohmann::json PhysicalCorrection::ToJson() const {
                        {"polarisability_m3", object.polarisability_m3}});
   }
   j["objects"] = objects;
+  if (field_.background.present()) {
+    j["background"] = {{"degree", field_.background.degree},
+                       {"coefficients", field_.background.coefficients}};
+  }
   nlohmann::json gain = nlohmann::json::array();
   for (int r = 0; r < 3; ++r) {
     gain.push_back(VectorJson(receiver_gain_matrix_.row(r).transpose()));
@@ -431,6 +439,24 @@ std::unique_ptr<Correction> PhysicalCorrection::FromJson(const JsonObjectReader&
       r.Fail("location_in_transmitter", "must be away from the transmitter (> 1 mm)");
     }
     field.objects.push_back(object);
+  }
+
+  // Optional (files without distant sources, and those written before it, lack it).
+  if (reader.Has("background")) {
+    const JsonObjectReader r = reader.Object("background");
+    const int degree = r.Integer("degree");
+    if (degree < 0 || degree > kMaxBackgroundDegree) {
+      r.Fail("degree", "must be 0 .. " + std::to_string(kMaxBackgroundDegree));
+    }
+    field.background.degree = degree;
+    field.background.coefficients = r.NumberArray("coefficients");
+    const size_t n = 3 * static_cast<size_t>(BackgroundBasisSize(degree));
+    if (field.background.coefficients.size() != n) {
+      r.Fail("coefficients", "expected " + std::to_string(n) + " numbers for degree " +
+                                 std::to_string(degree) + ", got " +
+                                 std::to_string(field.background.coefficients.size()));
+    }
+    r.CheckNoUnknownKeys();
   }
 
   const nlohmann::json& gain_json = read_array("receiver_gain_matrix");

@@ -133,6 +133,42 @@ TEST(PhysicalCorrection, JsonRoundTripThroughTheRegistry) {
   }
 }
 
+// RoomField() with the smooth field of distant sources (core/field.h BackgroundBasis), of the size
+// the paper room's monitors and door give over its volume (~1e-3 of the transmitter's field at
+// 1 m).
+FieldModel RoomFieldWithBackground() {
+  FieldModel field = RoomField();
+  field.background.degree = 2;
+  std::uniform_real_distribution<double> c(-1e-3, 1e-3);
+  for (int i = 0; i < 3 * BackgroundBasisSize(2); ++i) {
+    field.background.coefficients.push_back(c(TestRng()));
+  }
+  return field;
+}
+
+TEST(PhysicalCorrection, BackgroundFieldInvertsAndRoundTrips) {
+  const FieldModel field = RoomFieldWithBackground();
+  const PhysicalCorrection correction(field, SkewedGain());
+  const std::unique_ptr<Correction> parsed =
+      CorrectionRegistry::Global().Parse(correction.ToJson(), "calib.json", "$.corrections[0]");
+  EXPECT_EQ(parsed->ToJson(), correction.ToJson());
+  for (int i = 0; i < 10; ++i) {
+    const Rigid3d truth = RandomTruePose();
+    const Rigid3d reported = NoiseFreeReport(truth, field, SkewedGain());
+    Rigid3d newton;
+    ASSERT_TRUE(correction.InvertReport(reported, &newton));
+    // The Newton inverse's field (NormalEquations) is FieldModel::Field: the truth back to the
+    // solvers' 1e-12 tolerances (1e-9 for conditioning).
+    EXPECT_TRUE(testing::PosesNear(truth, newton, 1e-9, 1e-9));
+    EXPECT_TRUE(testing::PosesNear(newton, parsed->Apply(reported).pose, 0.0, 0.0));
+  }
+  // Without it the distant sources' field is left in the pose (tens of micrometres to mm).
+  const PhysicalCorrection without(RoomField(), SkewedGain());
+  const Rigid3d truth = RandomTruePose();
+  const Rigid3d reported = NoiseFreeReport(truth, field, SkewedGain());
+  EXPECT_GT((without.Apply(reported).pose.translation - truth.translation).norm(), 1e-5);
+}
+
 // Parses `j` and expects a JSON input error whose message contains `expected`.
 void ExpectRejected(const nlohmann::json& j, const std::string& expected) {
   try {
@@ -184,6 +220,14 @@ TEST(PhysicalCorrection, JsonRejection) {
   j = good;
   j["extra"] = 1;
   ExpectRejected(j, "extra");
+  const nlohmann::json with_background =
+      PhysicalCorrection(RoomFieldWithBackground(), SkewedGain()).ToJson();
+  j = with_background;
+  j["background"]["coefficients"].erase(0);
+  ExpectRejected(j, "$.corrections[0].background.coefficients: expected 45 numbers for degree 2");
+  j = with_background;
+  j["background"]["degree"] = 3;
+  ExpectRejected(j, "$.corrections[0].background.degree: must be 0 .. 2");
 }
 
 TEST(PhysicalCorrection, NonFiniteReportIsFlagged) {
