@@ -508,6 +508,23 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     return out + ", attenuation " + BlockStatement(*a, 1.0, "") +
            (a->values[0] >= 0 ? " (conducting)" : " (permeable)");
   }
+  if (type == "background_field") {
+    const ParameterReport* c = FindBlock(p, "coefficients");
+    if (!c || c->values.size() % 3 != 0 || c->values.empty()) return "";
+    // The uniform part (core/field.h BackgroundBasis: the first 3 coefficients of each coil) as
+    // a fraction of the transmitter's field at 1 m on a coil's equator (k = 1 in these units).
+    const size_t n = c->values.size() / 3;
+    std::vector<double> uniform;
+    for (size_t j = 0; j < 3; ++j) {
+      double sq = 0;
+      for (size_t k = 0; k < 3 && k < n; ++k) sq += c->values[j * n + k] * c->values[j * n + k];
+      uniform.push_back(std::sqrt(sq));
+    }
+    const ParameterReport u = Derived(*c, "uniform_part", "", uniform, {});
+    return "distant sources: a smooth background field (" + std::to_string(c->values.size()) +
+           " harmonic coefficients), uniform part " + BlockStatement(u, 1e3, "") +
+           " x 1e-3 of the transmitter's field at 1 m (x, y, z coils)";
+  }
   if (type == "near_field") {
     const ParameterReport* o = FindBlock(p, "octupole_m2");
     if (!o) return "";
@@ -717,6 +734,11 @@ std::vector<CatalogEffect> DefaultCatalog() {
        "a conducting plane (floor, wall, door)"},
       {"near_field", CandidateKind::kTerm, "type: near_field", true, false,
        "finite transmitter coils (near field)"},
+      // Distant sources (monitors across the room, a door): their field over the volume is smooth
+      // and mostly a polynomial's, but the receiver gains, a sensor offset and nearby sources
+      // interact with it, so leaving it out biases their parameters (docs/diagnose.md).
+      {"background_field", CandidateKind::kTerm, "type: background_field", true, false,
+       "distant sources (a smooth background field over the volume)"},
       {"robust_loss", CandidateKind::kRobustLoss, "", false, false,
        "outlier stations (hemisphere flips or bad reference poses)"},
       {"time_offset", CandidateKind::kTimeOffset, "", false, false,
@@ -935,6 +957,10 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
     euclidean("attenuation", "attenuation", {0.0});
   } else if (term_type == "near_field") {
     euclidean("octupole_m2", "octupole_m2", {0.0, 0.0, 0.0});
+  } else if (term_type == "background_field") {
+    const ParameterReport* b = FindBlock(blocks, "coefficients");
+    if (b) euclidean("coefficients", "background field coefficients",
+                     std::vector<double>(b->values.size(), 0.0));
   } else if (term_type == "receiver_gain") {
     // Only the symmetric part of G - I is a gain effect (SplitGainMatrix): a whole-triad rotation
     // found by a model without sensor_offset is the sensor's rotation, which would otherwise make

@@ -40,6 +40,12 @@ constexpr int kGainMatrix = 0;
 constexpr int kOctupole = 0;
 constexpr int kDipoleLocation = 0, kDipolePolarisability = 1;
 constexpr int kPlaneDistance = 0, kPlaneNormal = 1, kPlaneAttenuation = 2;
+constexpr int kBackgroundCoefficients = 0;
+// background_field's degree when the file gives none: a field varying quadratically over the
+// volume (15 coefficients per coil). Fitted to the paper room's three CRT monitors and its door
+// (1.9 to 2.1 m away) over the workflow scene's 1.05 x 0.75 x 0.6 m volume, degree 0 leaves 61 %
+// of their field, degree 1 14 %, degree 2 5 %.
+constexpr int kDefaultBackgroundDegree = 1;
 
 // Identifiability scales: a dipole location or plane distance known worse than 10 cm, a normal worse
 // than 0.1 rad (6 deg), is flagged: at that point the term describes no definite object.
@@ -172,6 +178,8 @@ struct GroupModel {
         const T* l = v[e.first_block + kDipoleLocation];
         b += InducedDipoleField<T>(k, Vector3<T>(l[0], l[1], l[2]),
                                    v[e.first_block + kDipolePolarisability][0], p);
+      } else if (e.kind == PhysicalEffect::kBackground) {
+        b += BackgroundFieldMatrix<T>(e.degree, v[e.first_block + kBackgroundCoefficients], p);
       }
     }
     return b;
@@ -555,13 +563,14 @@ const char* PhysicalEffectType(PhysicalEffect effect) {
     case PhysicalEffect::kDipole: return "dipole";
     case PhysicalEffect::kPlane: return "plane";
     case PhysicalEffect::kNearField: return "near_field";
+    case PhysicalEffect::kBackground: return "background_field";
   }
   return "";
 }
 
 const std::vector<std::string>& PhysicalTermTypes() {
   static const std::vector<std::string> types = {"sensor_offset", "receiver_gain", "dipole",
-                                                 "plane", "near_field"};
+                                                 "plane",         "near_field",    "background_field"};
   return types;
 }
 
@@ -580,6 +589,8 @@ PhysicalGroupTerm::PhysicalGroupTerm(PhysicalEffect effect) {
   } else if (effect == PhysicalEffect::kPlane) {
     e.search_plane = true;
     e.strength_given = false;
+  } else if (effect == PhysicalEffect::kBackground) {
+    e.degree = kDefaultBackgroundDegree;
   }
   AddEffectBlocks(&e);
   effects_.push_back(e);
@@ -617,6 +628,17 @@ void PhysicalGroupTerm::AddEffectBlocks(Effect* e) {
       location.identifiability_scale = kLocationScaleM;
       add(std::move(location));
       add(MakeBlock("polarisability_m3", {0}, {"polarisability"}, "m^3"));
+      break;
+    }
+    case PhysicalEffect::kBackground: {
+      // Coefficient k of coil j: "coil_x.3" (core/field.h BackgroundBasis), zero to start.
+      const int n = BackgroundBasisSize(e->degree);
+      std::vector<std::string> names;
+      for (const char* coil : {"coil_x", "coil_y", "coil_z"}) {
+        for (int k = 0; k < n; ++k) names.push_back(std::string(coil) + "." + std::to_string(k));
+      }
+      add(MakeBlock("coefficients", std::vector<double>(3 * static_cast<size_t>(n), 0.0),
+                    std::move(names), "k m^-3 (field)"));
       break;
     }
     case PhysicalEffect::kPlane: {
@@ -702,6 +724,22 @@ std::unique_ptr<ModelTerm> PhysicalGroupTerm::FromYaml(PhysicalEffect effect,
     case PhysicalEffect::kNearField:
       if (reader.Has("octupole_m2")) blocks[kOctupole].values = ReadVector(reader, "octupole_m2", 3);
       break;
+    case PhysicalEffect::kBackground: {
+      if (reader.Has("degree")) {
+        const int degree = reader.GetInt("degree");
+        if (degree < 0 || degree > kMaxBackgroundDegree) {
+          reader.Fail("degree", "must be 0 .. " + std::to_string(kMaxBackgroundDegree));
+        }
+        e.degree = degree;
+        blocks.clear();
+        term->AddEffectBlocks(&e);
+      }
+      if (reader.Has("coefficients")) {
+        const size_t n = 3 * static_cast<size_t>(BackgroundBasisSize(e.degree));
+        blocks[kBackgroundCoefficients].values = ReadVector(reader, "coefficients", n);
+      }
+      break;
+    }
     case PhysicalEffect::kDipole:
       if (reader.Has("location_in_transmitter")) {
         blocks[kDipoleLocation].values = ReadVector(reader, "location_in_transmitter", 3);
@@ -772,7 +810,8 @@ void PhysicalGroupTerm::Absorb(PhysicalGroupTerm&& other) {
   for (Effect e : other.effects_) {
     const bool single = e.kind == PhysicalEffect::kSensorOffset ||
                         e.kind == PhysicalEffect::kReceiverGain ||
-                        e.kind == PhysicalEffect::kNearField;
+                        e.kind == PhysicalEffect::kNearField ||
+                        e.kind == PhysicalEffect::kBackground;
     if (single) {
       for (const Effect& mine : effects_) {
         if (mine.kind == e.kind) {
@@ -845,6 +884,12 @@ PhysicalCorrection PhysicalGroupTerm::MakeCorrection(const double* const* v,
       case PhysicalEffect::kNearField:
         field.transmitter_octupole_m2 = Eigen::Vector3d(v[Block(e, kOctupole)]);
         break;
+      case PhysicalEffect::kBackground: {
+        const double* c = v[Block(e, kBackgroundCoefficients)];
+        field.background.degree = e.degree;
+        field.background.coefficients.assign(c, c + 3 * BackgroundBasisSize(e.degree));
+        break;
+      }
       case PhysicalEffect::kPlane: {
         if (off) break;
         const Eigen::Vector3d n = Eigen::Vector3d(v[Block(e, kPlaneNormal)]);
@@ -1156,6 +1201,7 @@ nlohmann::json PhysicalGroupTerm::Describe() const {
       // What the fit did: trace G held at 3 (G = relative gains) or the uniform gain estimated.
       entry["unit_mean_gain"] = later_absorbs_scaling_;
     }
+    if (e.kind == PhysicalEffect::kBackground) entry["degree"] = e.degree;
     // Which start of the search won, what was refused and why (InitializeLinear).
     const auto report = search_reports_.find(e.name);
     if (report != search_reports_.end()) entry["search"] = report->second;
@@ -1981,7 +2027,7 @@ std::vector<PhysicalSearchStart> PhysicalGroupTerm::SearchPlane(
 void RegisterPhysicalTerms(TermRegistry* registry) {
   for (PhysicalEffect effect : {PhysicalEffect::kSensorOffset, PhysicalEffect::kReceiverGain,
                                 PhysicalEffect::kDipole, PhysicalEffect::kPlane,
-                                PhysicalEffect::kNearField}) {
+                                PhysicalEffect::kNearField, PhysicalEffect::kBackground}) {
     registry->Register(PhysicalEffectType(effect), [effect](const YamlMapReader& reader) {
       return PhysicalGroupTerm::FromYaml(effect, reader);
     });

@@ -6,6 +6,7 @@
 //   - type: dipole          # an induced dipole: location [m], polarisability [m^3]; may repeat
 //   - type: plane           # a conducting plane: distance [m], normal (unit), attenuation in [-1, 1]
 //   - type: near_field      # the transmitter octupole coefficient of each coil [m^2]
+//   - type: background_field  # distant sources: a harmonic field of degree 0 .. 2 (core/field.h)
 //
 // Every term type creates a PhysicalGroupTerm with one effect; the model-file parser merges
 // consecutive physical terms into one group (MergePhysicalGroups), so a station runs ONE inverse of
@@ -43,9 +44,16 @@
 
 namespace trackcal::fit {
 
-enum class PhysicalEffect { kSensorOffset, kReceiverGain, kDipole, kPlane, kNearField };
+enum class PhysicalEffect {
+  kSensorOffset,
+  kReceiverGain,
+  kDipole,
+  kPlane,
+  kNearField,
+  kBackground
+};
 
-// "sensor_offset", "receiver_gain", "dipole", "plane", "near_field".
+// "sensor_offset", "receiver_gain", "dipole", "plane", "near_field", "background_field".
 const char* PhysicalEffectType(PhysicalEffect effect);
 // The physical term types in model-file order of the table above.
 const std::vector<std::string>& PhysicalTermTypes();
@@ -96,6 +104,7 @@ class PhysicalGroupTerm : public ModelTerm {
     bool search_plane = false;     // plane: point (distance) not given -> searched
     bool normal_given = false;     // plane: normal given (a search keeps it)
     bool strength_given = true;    // polarisability / attenuation given in the file
+    int degree = 0;                // background_field: the field's polynomial degree
   };
 
   // receiver_gain's `gain_scale`: what fixes the uniform scale of G. A uniform gain g scales every
@@ -122,7 +131,7 @@ class PhysicalGroupTerm : public ModelTerm {
   void MarkStartGiven(const std::string& effect_name, const std::string& block);
   // Moves the effects and blocks of `other` (a later group) into this one. Throws
   // std::invalid_argument if an effect that may occur once (sensor_offset, receiver_gain,
-  // near_field) would occur twice.
+  // near_field, background_field) would occur twice.
   void Absorb(PhysicalGroupTerm&& other);
 
   void Prepare(const std::vector<FitStation>& inputs) override;
@@ -224,7 +233,7 @@ class PhysicalGroupTerm : public ModelTerm {
   std::vector<bool> search_bounded_;
 };
 
-// Registers the five physical term types (called by the registry's built-in registration).
+// Registers the six physical term types (called by the registry's built-in registration).
 void RegisterPhysicalTerms(TermRegistry* registry);
 
 }  // namespace trackcal::fit

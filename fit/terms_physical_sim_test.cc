@@ -219,6 +219,82 @@ TEST(PhysicalTermsOnSimulator, ReceiverGainScaleIsHeldWhenAPolynomialFollows) {
   }
 }
 
+// The same with the room known only near the volume (the workbench frame and the floor, as the
+// workflow's loop finds them), the three CRT monitors and the door 1.9-2.1 m away left out: the
+// gains multiply their field too, and what the polynomial cannot absorb of that product biases G
+// by a few sigma (docs/diagnose.md). A background_field (degree 1) in the group takes their field.
+// |value - truth| / stddev of the 9 coordinates of G (normalised to mean gain 1, as the fit's).
+std::vector<double> GainDeviations(const FitResult& fit, const sim::Scene& hidden) {
+  const ParameterReport& p = FindParameter(fit, "receiver_gain", "gain_matrix");
+  const Eigen::Matrix3d g =
+      3.0 * hidden.hidden.receiver_gain_matrix / hidden.hidden.receiver_gain_matrix.trace();
+  std::vector<double> z;
+  for (int k = 0; k < 9; ++k) {
+    const double sd = p.stddev[static_cast<size_t>(k)];
+    EXPECT_TRUE(std::isfinite(sd) && sd > 0) << k;
+    z.push_back(std::abs(p.values[static_cast<size_t>(k)] - g(k / 3, k % 3)) / sd);
+  }
+  return z;
+}
+
+// The room's sources as free terms started at the truth (FixedRoomTermsYaml without its
+// `parameters:` lines).
+std::string FreeRoomTermsYaml(const FieldModel& room) {
+  std::istringstream in(FixedRoomTermsYaml(room));
+  std::string out, line;
+  while (std::getline(in, line)) {
+    if (line.find("parameters:") == std::string::npos) out += line + "\n";
+  }
+  return out;
+}
+
+TEST(PhysicalTermsOnSimulator, BackgroundFieldTakesTheDistantSourcesOffTheGains) {
+  double sum_sq[2] = {0, 0};
+  for (uint64_t seed : {1u, 2u, 3u}) {
+    SCOPED_TRACE("seed " + std::to_string(seed));
+    sim::Scene twin = sim::LoadScene("paper");
+    twin.seed = seed;
+    sim::Scene hidden = twin;
+    hidden.hidden.Enable("receiver_gains");
+    const Dataset clean = Simulate(twin, 240, 120);
+    const Dataset data = Simulate(hidden, 240, 120);
+    const PhysicalCorrection exact(twin.environment, twin.tracker.receiver_gain_matrix);
+    FieldModel near = twin.environment;
+    std::erase_if(near.objects,
+                  [](const InducedDipole& o) { return o.name.find("monitor") != std::string::npos; });
+    std::erase_if(near.planes, [](const ConductingPlane& p) { return p.name == "metal_door"; });
+    ASSERT_EQ(near.objects.size(), 1u);
+    ASSERT_EQ(near.planes.size(), 1u);
+    double worst[2] = {0, 0};
+    for (const bool background : {false, true}) {
+      const std::string yaml =
+          NoiseYaml(exact, clean.calibration) + "terms:\n" + FreeRoomTermsYaml(near) +
+          "  - type: receiver_gain\n" +
+          (background ? "  - type: background_field\n    degree: 1\n" : "") +
+          "  - type: polynomial\n    degree: 4\n";
+      ModelSpec spec = ParseModelYaml(yaml, "distant.yaml");
+      const FitResult fit = FitModel(data.calibration, &spec);
+      EXPECT_TRUE(fit.converged) << fit.solver_message;
+      for (double z : GainDeviations(fit, hidden)) {
+        worst[background] = std::max(worst[background], z);
+        sum_sq[background] += z * z;
+      }
+    }
+    std::cout << "seed " << seed << ": largest G deviation without the background " << worst[0]
+              << " sigma, with it " << worst[1] << " sigma\n";
+    // 3.62 sigma: the Bonferroni level of a 3 sigma test of the 9-coordinate block (as above).
+    EXPECT_LT(worst[1], 3.62);
+  }
+  const double rms[2] = {std::sqrt(sum_sq[0] / 27), std::sqrt(sum_sq[1] / 27)};
+  std::cout << "RMS G deviation over the 3 seeds: without the background " << rms[0]
+            << " sigma, with it " << rms[1] << " sigma\n";
+  // The distant sources' bias shows in the spread of the deviations; the background takes it off
+  // (the test fails if it does not). Measured: RMS 1.60 sigma without, 1.17 with (1 for an
+  // unbiased estimate with honest stddevs); largest per seed 2.73, 2.38, 2.71 without, 1.59, 2.04,
+  // 2.38 with.
+  EXPECT_LT(rms[1], rms[0]);
+}
+
 TEST(PhysicalTermsOnSimulator, FerromagneticObjectFoundWithoutStart) {
   sim::Scene hidden;
   // No start value: the search places the object.

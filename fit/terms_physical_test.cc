@@ -134,6 +134,10 @@ TEST(PhysicalTerms, RejectsBadValuesWithFileAndLine) {
   expect_error("terms:\n  - type: receiver_gain\n    gain_scale: fixed\n",
                "m.yaml:3:17: $.terms[0].gain_scale");
   expect_error("terms:\n  - type: dipole\n    location_in_transmitter: [1, 2]\n", "m.yaml:3:");
+  expect_error("terms:\n  - type: background_field\n    degree: 3\n", "m.yaml:3:13: $.terms[0].degree");
+  expect_error("terms:\n  - type: background_field\n    coefficients: [0, 0, 0]\n",
+               "m.yaml:3:19: $.terms[0].coefficients: expected 24 numbers");
+  expect_error("terms:\n  - type: background_field\n  - type: background_field\n", "m.yaml:3:");
   expect_error("terms:\n  - type: dipole\n    parameters:\n      strength: {fixed: true}\n",
                "has no parameter block 'strength'");
 }
@@ -154,6 +158,11 @@ TEST(PhysicalGroupTerm, JacobiansMatchNumericDifferentiation) {
     attenuation: 0.27
   - type: near_field
     octupole_m2: [-0.001, -0.0006, -0.0008]
+  - type: background_field
+    degree: 2
+    coefficients: [1e-3, -2e-3, 5e-4, 1e-3, 0, 2e-3, -1e-3, 5e-4, 0, 1e-3, -5e-4, 2e-4, 0, 3e-4, -1e-3,
+                   2e-3, 1e-3, 0, -5e-4, 1e-3, 0, 2e-4, -3e-4, 1e-3, 5e-4, 0, -2e-3, 1e-3, 0, 4e-4,
+                   -1e-3, 0, 2e-3, 5e-4, -5e-4, 1e-3, 0, 3e-4, -2e-4, 1e-3, 0, -1e-3, 5e-4, 2e-4, 0]
 )",
                                   "m.yaml");
   const ModelTerm& term = *spec.terms[0];
@@ -311,6 +320,50 @@ terms:
     }
   }
   EXPECT_TRUE(found);
+}
+
+// Distant sources with receiver gains, noise-free, in free space otherwise: the group recovers both
+// (no polynomial after it, so the background's position-only part is identified as well).
+TEST(PhysicalTerms, NoiseFreeBackgroundFieldAndGainRecovered) {
+  PhysicalTruth truth = PaperLikeTruth();
+  truth.field = FieldModel();
+  truth.receiver_from_body = Rigid3d();
+  truth.field.background.degree = 1;
+  std::uniform_real_distribution<double> c(-2e-3, 2e-3);
+  for (int k = 0; k < 24; ++k) truth.field.background.coefficients.push_back(c(trackcal::testing::TestRng()));
+  const auto stations = NoiseFreeStations(truth, 200);
+  ModelSpec spec = ParseModelYaml(R"(noise: {position_mm: 0.1, orientation_deg: 0.01}
+terms:
+  - type: receiver_gain
+    gain_scale: free
+  - type: background_field
+)",
+                                  "m.yaml");
+  const FitResult result = FitModel(stations, &spec);
+  ASSERT_TRUE(result.converged) << result.solver_message;
+  EXPECT_FALSE(result.rank_deficient) << result.covariance_message;
+  const auto& gain = Find(result, "receiver_gain", "gain_matrix");
+  const auto& background = Find(result, "background_field", "coefficients");
+  ASSERT_EQ(background.values.size(), 24u);
+  EXPECT_EQ(background.coordinate_names[8], "coil_y.0");
+  for (int k = 0; k < 9; ++k) {
+    // Noise-free: exact to the solver's tolerances (see above); 1e-6.
+    EXPECT_NEAR(gain.values[static_cast<size_t>(k)], truth.gain(k / 3, k % 3), 1e-6) << k;
+  }
+  for (size_t k = 0; k < 24; ++k) {
+    // 1e-6 relative to the largest coefficient (2e-3): 2e-9 field units.
+    EXPECT_NEAR(background.values[k], truth.field.background.coefficients[k], 2e-9) << k;
+  }
+  // The calibration file carries it, and the fitted chain takes a report back to the truth.
+  ASSERT_EQ(result.chain.size(), 1u);
+  EXPECT_TRUE(result.chain.term(0).ToJson().contains("background"));
+  CorrectionChain chain = result.chain;
+  chain.ClearVolume();
+  for (size_t i = 0; i < 5; ++i) {
+    // The solvers' tolerances (1e-12) with the noise-free fit's: 1e-8 m, 1e-8 rad.
+    EXPECT_TRUE(trackcal::testing::PosesNear(chain.Apply(stations[i].reported).pose,
+                                             stations[i].reference, 1e-8, 1e-8));
+  }
 }
 
 // The calibration file written from a fit holds the whole chain (physical, then polynomial) and
