@@ -349,7 +349,10 @@ TEST(DiagnoseCandidatesPaperSmall, TheFloorIsAPlaneWhenTheLikelihoodsTie) {
 // (0.46, 0.84, 0.28), attenuation -0.34 +- 0.075 (4.5 sigma), for the +y monitors, which are
 // objects: its position at the volume passed condition 5 (+- 0.24 m, 1.20 m away), its normal was
 // open by 19.9 deg. A plane whose orientation the data do not fix is no particular wall, so it is
-// not claimed: the verdict says that structure comes from +y and that its source is not identified.
+// not claimed (before background_field was in the catalog, the verdict said that structure comes
+// from +y and that its source is not identified). The distant sources are what background_field
+// stands for, and it is claimed: held-out position error -21.5 %, p = 2.9e-16, coefficients 12.9
+// sigma from zero (measured).
 TEST(DiagnoseCandidatesPaperSmall, FarMonitorsAreNotClaimedAsAPlane) {
   sim::Scene scene;
   const Diagnosis d = DiagnosePaperSmall("sensor_offset", 20010313u, R"(terms:
@@ -365,10 +368,10 @@ TEST(DiagnoseCandidatesPaperSmall, FarMonitorsAreNotClaimedAsAPlane) {
     degree: 4
 )",
                                          &scene);
-  EXPECT_FALSE(d.verdict_effect.has_value()) << d.verdict_text;
+  EXPECT_EQ(d.verdict_effect.value_or("none"), "background_field") << d.verdict_text;
   const Candidate* plane = nullptr;
   for (const Candidate& c : d.candidates) {
-    EXPECT_FALSE(c.significant) << c.effect << ": " << c.reason;
+    if (c.effect != "background_field") EXPECT_FALSE(c.significant) << c.effect << ": " << c.reason;
     if (c.effect == "plane") plane = &c;
   }
   ASSERT_NE(plane, nullptr);
@@ -379,8 +382,7 @@ TEST(DiagnoseCandidatesPaperSmall, FarMonitorsAreNotClaimedAsAPlane) {
   EXPECT_FALSE(plane->evidence.normal_ok) << plane->evidence.Describe();
   EXPECT_GT(plane->evidence.direction.y(), 0.5) << plane->evidence.Describe();
   EXPECT_THAT(plane->reason, ::testing::HasSubstr("its normal is not determined"));
-  EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("along +y"));
-  EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("source not identified"));
+  EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("distant sources"));
 }
 
 }  // namespace
