@@ -82,6 +82,13 @@ ROOM_MATCH_M = 0.15
 # two planes. (First set to 10 deg; a loop then fitted the floor plane 12.9 deg tilted, at 0.755 m
 # +- 0.32 against the true 0.8 m, with no standard deviation reported for the normal.)
 ROOM_MATCH_DEG = 22.5
+# A background_field term (the smooth field of sources too far to place one by one) represents the
+# true room sources no other term matched that lie at least this far from the box of the true
+# station positions: in the workflow scene the paper room's CRT monitors are 1.24 to 1.43 m from it
+# and its door 1.73 m, its nearest sources 0.52-0.55 m (the workbench frame) and 0.97-1.00 m (the
+# floor; the box varies with the seed's stations), midway: 1.1 m. A background with no such source
+# left is spurious.
+FAR_SOURCE_M = 1.1
 SIGMAS = 3.0           # the issue's "within three standard deviations"
 FLOOR_FACTOR = 1.5     # the issue's "within 1.5 times the noise floor"
 
@@ -99,8 +106,8 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 #   hemisphere_flips          seed 1: 219 s, seed 2: ~300 s, seed 3: ~190 s (pass); on branch
 #                             flips (session 5, load ~10): 180 s, 387 s, 266 s (pass: loss, frame
 #                             dipole, floor plane; 1.10x, 1.22x, 1.22x the floor)
-#   receiver_gains            seed 1: 166 s, seed 2: 85 s, seed 3: 110 s (xfail, see _XFAIL); on
-#                             branch flips: 148 s, 394 s, 93 s (xfail: G 3.3-5.4 sigma off)
+#   receiver_gains            seed 1: 166 s, seed 2: 85 s, seed 3: 110 s (then xfail: G 3.3-5.4
+#                             sigma off); session 10 (with background_field, pass): 212, 175, 196 s
 #   ferromagnetic_object      seed 1: 69 s (457 s when it went on to 4 fits), seed 2: 208 s (xfail)
 #   finite_transmitter_coils  seed 1 and hemisphere_flips seed 1 together (the CI default): 391 s
 #                             at load ~15, both pass
@@ -125,16 +132,15 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 #                            FAILS: the offset 35.71 +- 0.26 ms against 37 (5.0 sigma). The joint
 #                            fit's estimate (trackcal-fit fit), which this branch did not change;
 #                            main was not run on seed 2 (not verified there).
-# The split: CI (TRACKCAL_WORKFLOW_TESTS unset) runs the two loops that pass and are cheapest,
-# finite_transmitter_coils and hemisphere_flips on seed 1 (391 s for both at load ~15 here; session
-# 3's whole pytest run with three loops, these two and sensor_offset, took 114 s on a quiet machine),
-# which keeps pytest well under ~4 minutes there. The xfail loops (sensor_offset, receiver_gains, ferromagnetic_object:
-# they wait on the plane/dipole searches of `search` and the near-object fit of `ferro`) and the
-# other seeds run with TRACKCAL_WORKFLOW_TESTS=full (all 18, about 1.5 h there; clock_offset alone
+# The split: CI (TRACKCAL_WORKFLOW_TESTS unset) runs three loops that pass, finite_transmitter_coils
+# and hemisphere_flips on seed 1 (391 s for both at load ~15 here; session 3's whole pytest run with
+# three loops, these two and sensor_offset, took 114 s on a quiet machine) and, since session 10,
+# receiver_gains seed 1 (the distant sources' bias on G that background_field removes). The xfail
+# loops (_XFAIL) and the other seeds run with TRACKCAL_WORKFLOW_TESTS=full (all 18, about 1.5 h there; clock_offset alone
 # ~20 min). One pytest process: the diagnoses already use both cores (candidates in parallel
 # threads), so pytest-xdist would not help. The xfail ones still must run to their assertions
 # (xfail(raises=AssertionError): a crash fails the test).
-CI_LOOPS = {("finite_transmitter_coils", 1), ("hemisphere_flips", 1)}
+CI_LOOPS = {("finite_transmitter_coils", 1), ("hemisphere_flips", 1), ("receiver_gains", 1)}
 pytestmark = [
     pytest.mark.skipif(shutil.which("trackcal-simulate") is None or shutil.which("trackcal-fit") is None,
                        reason="command-line tools not installed (run scripts/build.sh)"),
@@ -191,7 +197,8 @@ def _blocks(fit_doc: dict) -> dict:
 
 _BLOCK_KIND = {"location_in_transmitter": "dipole", "polarisability_m3": "dipole", "distance_m": "plane",
                "normal_in_transmitter": "plane", "attenuation": "plane", "gain_matrix": "receiver_gain",
-               "octupole_m2": "near_field", "translation": "sensor_offset", "rotation": "sensor_offset"}
+               "octupole_m2": "near_field", "translation": "sensor_offset", "rotation": "sensor_offset",
+               "coefficients": "background_field"}
 
 
 def _physical_terms(fit_doc: dict) -> list:
@@ -311,13 +318,48 @@ def _spurious_terms(fit_doc: dict, truth: dict) -> list:
     all_sources = _true_sources(truth)
     free = list(all_sources)
     spurious = []
-    for kind, name, blocks in _physical_terms(fit_doc):
+    terms = _physical_terms(fit_doc)
+    for kind, name, blocks in terms:
+        if kind == "background_field":
+            continue
         hit = _match(kind, blocks, free, all_sources)
         if hit is None:
             spurious.append(f"{name} ({kind}): {_describe(blocks)}; {_why_unmatched(kind, blocks, all_sources, free)}")
         else:
             free.remove(hit)
+    # After the located terms: a background stands for the distant sources they leave.
+    for kind, name, _ in terms:
+        if kind != "background_field":
+            continue
+        far = [s[1] for s in free if _distance_to_stations(s, truth) >= FAR_SOURCE_M]
+        if not far:
+            left = ", ".join(f"{s[1]} {_distance_to_stations(s, truth):.2f} m" for s in free
+                             if s[0] in ("dipole", "plane")) or "none"
+            spurious.append(f"{name} ({kind}): no unmatched true source {FAR_SOURCE_M} m or more from "
+                            f"the stations (unmatched room sources: {left})")
+        for s in list(free):
+            if s[1] in far:
+                free.remove(s)
     return spurious
+
+
+def _distance_to_stations(source, truth: dict) -> float:
+    """How far a true dipole or plane is from the box of the true station positions (inf for the
+    other kinds: they are not sources in the room)."""
+    p = np.array([s["transmitter_from_receiver"]["translation"] for s in truth["stations"]], float)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    kind, _, params = source
+    if kind == "dipole":
+        x = np.asarray(params["location_in_transmitter"], float)
+        return float(np.linalg.norm(x - np.clip(x, lo, hi)))
+    if kind == "plane":
+        n = np.asarray(params["normal_in_transmitter"], float)
+        n /= np.linalg.norm(n)
+        d = float(np.asarray(params["point_in_transmitter"], float) @ n)
+        corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+        s = corners @ n - d
+        return float(0.0 if s.min() <= 0 <= s.max() else np.abs(s).min())
+    return math.inf
 
 
 def _why_unmatched(kind: str, blocks: dict, all_sources: list, free: list) -> str:
@@ -520,40 +562,28 @@ def _floor_and_final(hidden: str, capture: Path, data: Path, final: "demo.Step",
 # cannot place (a second plane 0.51 +- 0.42 m away with its normal +- 186 deg; a dipole at
 # (0.4, -1.5, -3.6) +- (2.6, 3.1, 3.8) m), which the rule counts as spurious.
 _XFAIL = {
-    "ferromagnetic_object": "seed 1 (session 5, merged main with the continuous station residual): 0.640 mm "
-                            "-> +dipole (frame) 0.121 -> +dipole_2 (the toolbox) 0.093 -> +plane (floor, "
-                            "0.737 m, attenuation 0.27 +- 0.04) 0.069 mm (floor 0.063, 1.10x), then nothing "
-                            "is claimed; the right terms and nothing spurious, but the toolbox's location x "
-                            "ends at 0.668 +- 0.017 m against 0.6 (4.0 sigma): likely the same bias from the "
-                            "unfound CRT monitors that receiver_gains shows (not verified). Re-run on "
-                            "branch farsrc (a plane's normal must be determined; ties between source "
-                            "types within 10 BIC go to the better-determined strength): the same terms "
-                            "and values, 10.11x -> 1.918x -> 1.470x -> 1.090x / 1.027x the floor",
-    "receiver_gains": "branch farsrc (re-run, unchanged from branch flips): seeds 1-3 add the right "
-                      "terms and nothing spurious (receiver_gain, frame dipole, floor plane at 0.68 m; "
-                      "1.225x / 1.059x, 1.344x / 1.167x, 1.327x / 1.095x the floor) but G's diagonal "
-                      "ends 3.3-5.4 sigma off (seed 1: G_yy 3.4, G_zz 3.7; seed 2: G_xx 4.6, G_yy 5.4; "
-                      "seed 3: G_xx 3.7, G_yy 3.3): the three CRT monitors (1.9 m, absorbed by the polynomial) bias G_xx "
-                      "down and G_yy up on every seed (measured on seeds 2-4 with the frame and floor "
-                      "free: -2.5..-4.6 / +2.3..+5.4 sigma; with the monitors held at the truth, within "
-                      "2 sigma; the true room alone leaves G within 3 sigma on seeds 1-7)",
-    # Seeds 1 and 2 pass (branch farsrc: the plane standing in for the monitors is refused because its
-    # normal is not determined): 406.7x -> +sensor_offset 13.46x -> +dipole (frame) 3.09x -> +plane
-    # (floor, 0.755 m) 1.338x / 1.127x; 444.5x -> 15.76x -> 3.39x -> +plane (floor, 0.771 m)
-    # 1.470x / 1.190x, then nothing.
+    # Session 10 (background_field in the catalog; main, a ctest run alongside): every loop below goes
+    # hidden term -> dipole (the workbench frame) -> plane (the floor) -> background_field (the
+    # monitors and the door), then nothing. Held-out error over the floor (position / orientation):
+    #   sensor_offset:3      423x -> 13.9x -> 3.27x -> 1.555x -> 1.159x / 1.102x (failed at 1.555x before)
+    #   receiver_gains:1-3   1.031x, 1.082x, 1.082x; G within 3 sigma (before: 3.3-5.4 sigma off)
+    #   ferromagnetic_object:1  0.999x / 1.021x; the toolbox within 3 sigma (before: x 4.0 sigma off)
+    #   finite_transmitter_coils:1, hemisphere_flips:1: pass as before
+    # 140-212 s per loop.
+    "ferromagnetic_object:2": "main (session 10): dipole (frame), dipole_2 (the toolbox), plane (floor), "
+                              "background_field, then nothing; 1.086x / 1.121x the floor, nothing spurious, "
+                              "but the toolbox's location z ends at -0.550 +- 0.015 m against -0.5 (3.4 "
+                              "sigma); before the background, x was 0.635 +- 0.011 against 0.6 (3.1 sigma). "
+                              "Refitting the final model with a degree-0 background: z 3.3 sigma and the "
+                              "polarisability 4.0 sigma off; degree 2: the toolbox within 3 sigma but the "
+                              "floor plane slides to 1.04 m (spurious). A weak object (0.002 m^3) 0.58 m "
+                              "outside the volume: its location and strength trade",
     "clock_offset:2": "main (session 9, time-run sandwich): time_offset, then the frame dipole (2.06 -> 0.79 "
                       "-> 0.49 mm held out), nothing spurious, then a flexible polynomial_3 only; but the offset "
                       "ends 35.71 +- 0.076 ms against 37 (16.9 sigma with CR2 over 32 time runs; the model "
                       "covariance said +- 0.26, 5.0 sigma, as on branch diagspeed). The polynomial alone gives 39.69 +- 0.45 (6.0 "
                       "sigma): this capture's 20 s stream does not pin the offset to its sigma with either "
                       "model (docs/diagnose.md, Known limits)",
-    "sensor_offset:3": "branch farsrc: 423.2x -> +sensor_offset 13.90x -> +dipole (frame) 3.27x -> +plane "
-                       "(floor, 0.733 m) 1.555x / 1.172x the floor, then nothing: the right terms, the "
-                       "offset within 3 sigma and nothing spurious, but 1.555x > 1.5x: the three CRT "
-                       "monitors (1.9 m) and the door, left to the polynomial, are not identified by "
-                       "this capture (on the main job's capture the dipole pair's dipoles land 3.4-8.4 "
-                       "sigma from the nearest monitors; the planes that stood in for them had their "
-                       "normals open by 11 deg, seed 2, and 20 deg, the main job)",
 }
 
 
@@ -663,6 +693,20 @@ def test_a_plane_standing_in_for_two_monitors_is_spurious(toolbox_truth):
     mirrored = ("plane", {"distance_m": ([2.05], [0.1]), "normal_in_transmitter": ([0.0, 1.0, 0.02], [0.02, 0.02]),
                           "attenuation": ([0.2], [0.05])})
     assert len(_spurious_terms(_fit_doc(mirrored), toolbox_truth)) == 1, "the door's mirror across the transmitter"
+
+
+def test_a_background_field_stands_for_the_distant_sources_only(toolbox_truth):
+    background = ("background_field", {"coefficients": ([1e-3] * 24, [1e-4] * 24)})
+    # The room's monitors and door (1.2 m or more from the stations) are left to it: a finding.
+    assert _spurious_terms(_fit_doc(background), toolbox_truth) == []
+    # With every distant source placed by a term of its own, it represents nothing.
+    truth = json.loads(json.dumps(toolbox_truth))
+    fm = truth["effective"]["field_model"]
+    fm["objects"] = [o for o in fm["objects"] if not o["name"].startswith("crt_monitor")]
+    fm["planes"] = [p for p in fm["planes"] if p["name"] != "metal_door"]
+    spurious = _spurious_terms(_fit_doc(background), truth)
+    assert len(spurious) == 1 and spurious[0].startswith("background_field"), spurious
+    assert "workbench_frame" in spurious[0] and "floor_reinforcement" in spurious[0], spurious
 
 
 def test_the_hidden_term_must_be_within_three_sigma(toolbox_truth):
