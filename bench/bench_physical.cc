@@ -254,6 +254,21 @@ void BM_PhysicalPaperRoomNoFoldSearch(benchmark::State& state) {
 }
 BENCHMARK(BM_PhysicalPaperRoomNoFoldSearch);
 
+// The workflow's final models: the near sources (frame, floor) with the distant ones as a
+// background_field (core/field.h, degree 1, 24 coefficients) instead of three dipoles and a plane.
+// Its ratio to BM_PhysicalPaperRoom is what the background costs per pose (the poses are the
+// room's reports; the correction is a different model of them, so only the cost is compared).
+void BM_PhysicalNearRoomWithBackground(benchmark::State& state) {
+  FieldModel field = RoomField();
+  field.planes.resize(1);                                          // the floor
+  field.objects.erase(field.objects.begin(), field.objects.begin() + 3);  // frame, toolbox
+  field.background.degree = 1;
+  for (int k = 0; k < 24; ++k) field.background.coefficients.push_back(1e-3 * ((k % 5) - 2));
+  const PhysicalCorrection physical(field, Gain(), SensorOffset());
+  RunPerPose(state, physical);
+}
+BENCHMARK(BM_PhysicalNearRoomWithBackground);
+
 // The noise-gain step alone at a root, as it was (dy/dx = A^-1 h with A^-1 per pose, eigen-solve of
 // its normal matrix, determinant) and as it is (LU of h, dx/dy = h^-1 A, Frobenius bound; the
 // eigen-solve only above max_noise_gain): matrices like the paper room's (h = A (I + E), |E| ~
