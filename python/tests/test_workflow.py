@@ -331,7 +331,8 @@ def _spurious_terms(fit_doc: dict, truth: dict) -> list:
     for kind, name, _ in terms:
         if kind != "background_field":
             continue
-        far = [s[1] for s in free if _distance_to_stations(s, truth) >= FAR_SOURCE_M]
+        far = [s[1] for s in free
+               if s[0] in ("dipole", "plane") and _distance_to_stations(s, truth) >= FAR_SOURCE_M]
         if not far:
             left = ", ".join(f"{s[1]} {_distance_to_stations(s, truth):.2f} m" for s in free
                              if s[0] in ("dipole", "plane")) or "none"
@@ -345,7 +346,7 @@ def _spurious_terms(fit_doc: dict, truth: dict) -> list:
 
 def _distance_to_stations(source, truth: dict) -> float:
     """How far a true dipole or plane is from the box of the true station positions (inf for the
-    other kinds: they are not sources in the room)."""
+    other kinds, which are not sources in the room: the caller keeps to dipoles and planes)."""
     p = np.array([s["transmitter_from_receiver"]["translation"] for s in truth["stations"]], float)
     lo, hi = p.min(axis=0), p.max(axis=0)
     kind, _, params = source
@@ -713,6 +714,9 @@ def test_a_background_field_stands_for_the_distant_sources_only(toolbox_truth):
     spurious = _spurious_terms(_fit_doc(background), truth)
     assert len(spurious) == 1 and spurious[0].startswith("background_field"), spurious
     assert "workbench_frame" in spurious[0] and "floor_reinforcement" in spurious[0], spurious
+    # A hidden effect no term found is no distant source either.
+    truth["effective"]["receiver_gain_matrix"] = [[1.02, 0.01, 0], [-0.005, 0.98, 0.015], [0, 0.008, 1.01]]
+    assert len(_spurious_terms(_fit_doc(background), truth)) == 1
 
 
 def test_the_hidden_term_must_be_within_three_sigma(toolbox_truth):
