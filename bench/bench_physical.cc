@@ -254,7 +254,7 @@ void BM_PhysicalPaperRoomNoFoldSearch(benchmark::State& state) {
 }
 BENCHMARK(BM_PhysicalPaperRoomNoFoldSearch);
 
-// The workflow's final models: the near sources (frame, floor) with the distant ones as a
+// The workflow's final models: the near sources (frame, toolbox, floor) with the distant ones as a
 // background_field (core/field.h, degree 1, 24 coefficients) instead of three dipoles and a plane.
 // Its ratio to BM_PhysicalPaperRoom is what the background costs per pose (the poses are the
 // room's reports; the correction is a different model of them, so only the cost is compared).

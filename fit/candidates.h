@@ -4,7 +4,7 @@
 //   {}); std::cout << d.ToJson().dump(2);   // the document of docs/diagnose.md
 //
 // For every effect of the catalog (DefaultCatalog(): sensor_offset, receiver_gain, dipole,
-// dipole_pair, plane, near_field, robust_loss, time_offset) that the model lacks, the model plus
+// dipole_pair, plane, near_field, background_field, robust_loss, time_offset) that the model lacks, the model plus
 // that one effect is
 // fitted and scored against the model itself:
 //   - k-fold cross-validation with the same folds for the base and every candidate (station i in
@@ -75,7 +75,7 @@ struct CatalogEffect {
 };
 
 // sensor_offset, receiver_gain, dipole (repeatable), dipole_pair (two dipoles), plane
-// (repeatable), near_field, robust_loss, time_offset.
+// (repeatable), near_field, background_field, robust_loss, time_offset.
 // Term types that are not registered in TermRegistry::Global() are skipped (Diagnosis::skipped).
 std::vector<CatalogEffect> DefaultCatalog();
 

@@ -15,7 +15,8 @@
 //         node_values: {fixed: false}
 //
 // Term types are looked up in TermRegistry::Global(): fit/ registers polynomial, lut and the physical
-// effects (sensor_offset, receiver_gain, dipole, plane, near_field; fit/terms_physical.h); other
+// effects (sensor_offset, receiver_gain, dipole, plane, near_field, background_field;
+// fit/terms_physical.h); other
 // modules register theirs without touching the parser. Consecutive physical terms are merged into one
 // PhysicalGroupTerm (one forward field model) and must precede the explicit terms. Every error names
 // the file, line, column and field; unknown keys are rejected.
