@@ -160,15 +160,32 @@ Eigen::Matrix3d GainOf(const ParameterReport& p) {
   return g;
 }
 
+// The paper preset on `seed` with hidden receiver gains and its effect-free twin, simulated alike.
+struct GainCase {
+  sim::Scene twin;
+  sim::Scene hidden;
+  Dataset clean;
+  Dataset data;
+};
+
+GainCase SimulateGainCase(uint64_t seed) {
+  GainCase c;
+  c.twin = sim::LoadScene("paper");
+  c.twin.seed = seed;
+  c.hidden = c.twin;
+  c.hidden.hidden.Enable("receiver_gains");
+  c.clean = Simulate(c.twin, 240, 120);
+  c.data = Simulate(c.hidden, 240, 120);
+  return c;
+}
+
 FitResult FitGainWithPolynomial(uint64_t seed, const std::string& gain_yaml,
                                 sim::Scene* hidden_out) {
-  sim::Scene twin = sim::LoadScene("paper");
-  twin.seed = seed;
-  sim::Scene hidden = twin;
-  hidden.hidden.Enable("receiver_gains");
-  *hidden_out = hidden;
-  const Dataset clean = Simulate(twin, 240, 120);
-  const Dataset data = Simulate(hidden, 240, 120);
+  const GainCase c = SimulateGainCase(seed);
+  const sim::Scene& twin = c.twin;
+  const Dataset& clean = c.clean;
+  const Dataset& data = c.data;
+  *hidden_out = c.hidden;
   const PhysicalCorrection exact(twin.environment, twin.tracker.receiver_gain_matrix);
   const std::string yaml = NoiseYaml(exact, clean.calibration) + "terms:\n" +
                            FixedRoomTermsYaml(twin.environment) + gain_yaml +
@@ -252,14 +269,9 @@ TEST(PhysicalTermsOnSimulator, BackgroundFieldTakesTheDistantSourcesOffTheGains)
   double sum_sq[2] = {0, 0};
   for (uint64_t seed : {1u, 2u, 3u}) {
     SCOPED_TRACE("seed " + std::to_string(seed));
-    sim::Scene twin = sim::LoadScene("paper");
-    twin.seed = seed;
-    sim::Scene hidden = twin;
-    hidden.hidden.Enable("receiver_gains");
-    const Dataset clean = Simulate(twin, 240, 120);
-    const Dataset data = Simulate(hidden, 240, 120);
-    const PhysicalCorrection exact(twin.environment, twin.tracker.receiver_gain_matrix);
-    FieldModel near = twin.environment;
+    const GainCase c = SimulateGainCase(seed);
+    const PhysicalCorrection exact(c.twin.environment, c.twin.tracker.receiver_gain_matrix);
+    FieldModel near = c.twin.environment;
     std::erase_if(near.objects,
                   [](const InducedDipole& o) { return o.name.find("monitor") != std::string::npos; });
     std::erase_if(near.planes, [](const ConductingPlane& p) { return p.name == "metal_door"; });
@@ -268,14 +280,14 @@ TEST(PhysicalTermsOnSimulator, BackgroundFieldTakesTheDistantSourcesOffTheGains)
     double worst[2] = {0, 0};
     for (const bool background : {false, true}) {
       const std::string yaml =
-          NoiseYaml(exact, clean.calibration) + "terms:\n" + FreeRoomTermsYaml(near) +
+          NoiseYaml(exact, c.clean.calibration) + "terms:\n" + FreeRoomTermsYaml(near) +
           "  - type: receiver_gain\n" +
           (background ? "  - type: background_field\n    degree: 1\n" : "") +
           "  - type: polynomial\n    degree: 4\n";
       ModelSpec spec = ParseModelYaml(yaml, "distant.yaml");
-      const FitResult fit = FitModel(data.calibration, &spec);
+      const FitResult fit = FitModel(c.data.calibration, &spec);
       EXPECT_TRUE(fit.converged) << fit.solver_message;
-      for (double z : GainDeviations(fit, hidden)) {
+      for (double z : GainDeviations(fit, c.hidden)) {
         worst[background] = std::max(worst[background], z);
         sum_sq[background] += z * z;
       }
