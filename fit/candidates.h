@@ -72,6 +72,9 @@ struct CatalogEffect {
   // is identified); the group searches the second with the first placed and projected out and
   // refines both jointly (fit/terms_physical.h). Each term must pass the physical conditions.
   int count = 1;
+  // A catch-all for what is not placed one by one (background_field): where a located source
+  // explains the same structure, the located source is ranked first (RankFirst).
+  bool yields_to_located = false;
 };
 
 // sensor_offset, receiver_gain, dipole (repeatable), dipole_pair (two dipoles), plane
@@ -284,6 +287,34 @@ struct Diagnosis {
 Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std::string& model_text,
                              const std::string& model_source, const std::string& data_source,
                              const CandidateOptions& options = {});
+
+// A significant candidate as the ranking's tie rule sees it (RankFirst).
+struct RankEntry {
+  std::string effect;
+  double cv_whitened_mean = 0.0;  // held-out whitened error, mean over stations
+  // Held-out whitened error per station of the base fit (NaN: none), for the paired test.
+  std::vector<double> cv_whitened_by_station;
+  double delta_bic = 0.0;        // on all stations, against the base model
+  bool has_location = false;     // the term places a source (dipole, plane)
+  double strength_sigma = 0.0;   // its strength's distance from null (PhysicalEvidence)
+  bool yields_to_located = false;  // CatalogEffect::yields_to_located
+};
+
+struct RankPick {
+  size_t index = 0;  // the entry ranked first
+  std::string note;  // why it goes before the held-out best (empty: it is the held-out best)
+};
+
+// Which of the significant candidates goes first, `entries` sorted by held-out error (front: the
+// best). The held-out best, unless another explains the same structure: its held-out errors are
+// not significantly larger (one-sided paired Wilcoxon over the stations, p >= family_alpha) and
+//   - both place a source: the other fits all stations decisively better (delta BIC lower by
+//     more than |max_delta_bic|) or, within that, its strength is better determined;
+//   - the held-out best is a catch-all (yields_to_located) and the other places a source whose fit
+//     to all stations is not decisively worse: the located source, fewer parameters with a
+//     meaning, goes first; the catch-all can follow it.
+// Entries without a finite strength_sigma take no part in the tie rule.
+RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha, double max_delta_bic);
 
 // One-sided Wilcoxon signed-rank test that the differences d are positive (normal approximation
 // with tie and continuity corrections; zeros dropped). Returns the p-value (1 when no difference is

@@ -8,6 +8,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include <iostream>
+#include <limits>
 #include <numeric>
 #include <random>
 #include <set>
@@ -687,6 +688,90 @@ TEST(WilcoxonSignedRankGreater, Nominal) {
   EXPECT_EQ(WilcoxonSignedRankGreater({0.0, 0.0}), 1.0);
   // Symmetric differences: p near 0.5.
   EXPECT_NEAR(WilcoxonSignedRankGreater({-3, -2, -1, 1, 2, 3}), 0.5, 0.1);
+}
+
+
+// A significant candidate for RankFirst: held-out errors per station drawn around `level` (seeded,
+// so `level` apart by 0.3 with 40 stations at spread 0.05 is a paired difference the test sees,
+// p ~ 1e-8, and equal levels one it does not, p ~ 0.5).
+RankEntry Entry(const std::string& effect, double level, double delta_bic, bool located,
+                double strength_sigma, bool catch_all, uint32_t seed) {
+  RankEntry e;
+  e.effect = effect;
+  std::mt19937 rng(seed);
+  std::normal_distribution<double> noise(0.0, 0.05);
+  for (int k = 0; k < 40; ++k) e.cv_whitened_by_station.push_back(level + noise(rng));
+  e.cv_whitened_mean = std::accumulate(e.cv_whitened_by_station.begin(),
+                                       e.cv_whitened_by_station.end(), 0.0) / 40.0;
+  e.delta_bic = delta_bic;
+  e.has_location = located;
+  e.strength_sigma = strength_sigma;
+  e.yields_to_located = catch_all;
+  return e;
+}
+
+constexpr double kAlpha = 0.01, kMaxDeltaBic = -10.0;  // CandidateOptions' defaults
+
+TEST(RankFirst, Nominal_TheHeldOutBestStaysFirstWhenTheOtherIsWorse) {
+  const std::vector<RankEntry> e = {Entry("plane", 1.0, -500, true, 8, false, 1),
+                                    Entry("dipole", 1.3, -400, true, 20, false, 2)};
+  const RankPick pick = RankFirst(e, kAlpha, kMaxDeltaBic);
+  EXPECT_EQ(pick.index, 0u);
+  EXPECT_TRUE(pick.note.empty());
+}
+
+TEST(RankFirst, TwoLocatedSourcesGoByDecisiveBicElseByStrength) {
+  // Held out the same: the dipole fits all stations decisively better (gap 30 > 10).
+  std::vector<RankEntry> e = {Entry("plane", 1.0, -1150, true, 40, false, 1),
+                              Entry("dipole", 1.0, -1180, true, 30, false, 2)};
+  RankPick pick = RankFirst(e, kAlpha, kMaxDeltaBic);
+  EXPECT_EQ(pick.index, 1u);
+  EXPECT_NE(pick.note.find("fits all stations better"), std::string::npos) << pick.note;
+  // Within 10: the better-determined strength (the plane's 40 sigma) keeps the plane first.
+  e[1].delta_bic = -1155;
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 0u);
+  e[1].strength_sigma = 50;
+  pick = RankFirst(e, kAlpha, kMaxDeltaBic);
+  EXPECT_EQ(pick.index, 1u);
+  EXPECT_NE(pick.note.find("better determined"), std::string::npos) << pick.note;
+}
+
+TEST(RankFirst, ALocatedSourceGoesBeforeTheCatchAllItTiesWith) {
+  // The background is best held out by a margin the paired test cannot confirm; the dipole's
+  // likelihood is within 10 of it (its BIC pays for 4 parameters, the background's for 24).
+  std::vector<RankEntry> e = {Entry("background_field", 1.0, -600, false, 12, true, 1),
+                              Entry("dipole", 1.0, -595, true, 9, false, 2)};
+  RankPick pick = RankFirst(e, kAlpha, kMaxDeltaBic);
+  EXPECT_EQ(pick.index, 1u);
+  EXPECT_NE(pick.note.find("ranked first over background_field"), std::string::npos) << pick.note;
+  // Its fit to all stations better: it goes first too.
+  e[1].delta_bic = -700;
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 1u);
+  // The background fits all stations decisively better: it stays first.
+  e[1].delta_bic = -560;
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 0u);
+  // The dipole is worse held out (paired test): the background stays first.
+  e[1] = Entry("dipole", 1.3, -700, true, 9, false, 2);
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 0u);
+}
+
+TEST(RankFirst, OnlyACatchAllGivesWayToALocatedSource) {
+  // A sensor offset (no location, not a catch-all) best held out keeps its place, and a catch-all
+  // is never promoted over a located source, nor a term without location over anything.
+  std::vector<RankEntry> e = {Entry("sensor_offset", 1.0, -600, false, 12, false, 1),
+                              Entry("dipole", 1.0, -700, true, 30, false, 2)};
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 0u);
+  e = {Entry("dipole", 1.0, -600, true, 12, false, 1),
+       Entry("background_field", 1.0, -700, false, 30, true, 2)};
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 0u);
+  // Among two located sources after a catch-all, the located rule decides between them.
+  e = {Entry("background_field", 1.0, -600, false, 12, true, 1),
+       Entry("plane", 1.0, -598, true, 8, false, 2), Entry("dipole", 1.0, -640, true, 9, false, 3)};
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 2u);
+  // One entry, or a best without a finite strength: nothing to decide.
+  EXPECT_EQ(RankFirst({e[0]}, kAlpha, kMaxDeltaBic).index, 0u);
+  e[0].strength_sigma = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_EQ(RankFirst(e, kAlpha, kMaxDeltaBic).index, 0u);
 }
 
 }  // namespace
