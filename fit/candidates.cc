@@ -889,10 +889,14 @@ RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha,
     return "delta BIC " + FormatNumber(o.delta_bic, 1) + " against " + FormatNumber(b.delta_bic, 1);
   };
   const double decisive_gap = std::abs(max_delta_bic);
+  // A catch-all front: no located source that fits all stations decisively worse than it goes
+  // first, also not by the located rule against a source promoted over it.
+  const RankEntry* catch_all = front.has_location ? nullptr : &front;
   for (size_t i = 1; i < entries.size(); ++i) {
     const RankEntry& o = entries[i];
     const RankEntry& best = entries[pick.index];
     if (!o.has_location || !std::isfinite(o.strength_sigma)) continue;
+    if (catch_all && o.delta_bic - catch_all->delta_bic > decisive_gap) continue;
     const double bic_gap = best.delta_bic - o.delta_bic;  // > 0: o fits all stations better
     const bool decisive = std::abs(bic_gap) > decisive_gap;
     std::string why;
@@ -907,9 +911,8 @@ RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha,
                            FormatNumber(o.strength_sigma, 1) + " sigma against " +
                            FormatNumber(best.strength_sigma, 1) + ")";
     } else {
-      // The held-out best is a catch-all: a located source goes first unless the catch-all fits
-      // all stations decisively better.
-      if (decisive && bic_gap < 0) continue;
+      // The held-out best is a catch-all, and o does not fit all stations decisively worse
+      // (checked above): the located source goes first.
       why = "it places a source where " + best.effect + " stands for sources it does not place (" +
             bic_note(o, best) + ")";
     }
@@ -1897,21 +1900,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     judge(p);
   }
 
-  // Ranking: significant first, then by held-out error. When the held-out best and another
-  // significant source term explain the same structure (the other's held-out errors are not
-  // significantly larger, paired test at family_alpha), the one with the lower BIC on all stations
-  // goes first: a dipole at a plane's mirror image of the transmitter and the plane fit nearly the
-  // same field (both 4 parameters, so this is the better likelihood), and where held-out data
-  // cannot tell them apart the fit on all stations still sees the difference between a plane's
-  // image moments a (I - 2 n n^T) and an induced dipole's. Measured on the workflow captures (held
-  // out, p = 0.51-0.94 that either is worse): the floor (hemisphere_flips seed 1, receiver_gains
-  // seed 1) has delta BIC -1179 / -2050 as a plane against -1150 / -1997 as a dipole at its image;
-  // the workbench frame (receiver_gains seed 2) -4248 as a dipole against -4185 as a plane at 0.32
-  // m whose image it is. The rule before (the better-determined strength) picked that plane
-  // (attenuation 43.7 sigma against the polarisability's 39.3), a spurious term. BIC decides only
-  // when the difference is decisive (beyond |max_delta_bic|); within it the better-determined
-  // strength does (sensor_offset seed 3: the floor's image dipole -2362.5 against the plane's
-  // -2355.7, attenuation 11.4 sigma against 5.3: the plane).
+  // Ranking: significant first, then by held-out error, except where RankFirst's tie rule puts
+  // another significant candidate first (the reasons and measurements are at RankFirst).
   std::string promoted;  // the effect moved to the top by the tie rule (empty: none)
   {
     std::vector<PreparedCandidate*> sig;

@@ -312,8 +312,11 @@ struct RankPick {
 //     more than |max_delta_bic|) or, within that, its strength is better determined;
 //   - the held-out best is a catch-all (yields_to_located) and the other places a source whose fit
 //     to all stations is not decisively worse: the located source, fewer parameters with a
-//     meaning, goes first; the catch-all can follow it.
-// Entries without a finite strength_sigma take no part in the tie rule.
+//     meaning, goes first; the catch-all can follow it. Among several such sources the located
+//     rule above decides, and none that fits decisively worse than the catch-all goes first.
+// Entries without a finite strength_sigma take no part in the tie rule. Stations without held-out
+// errors in both entries are left out of the paired test; with none left it finds no difference
+// (p = 1), so the entry counts as not worse.
 RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha, double max_delta_bic);
 
 // One-sided Wilcoxon signed-rank test that the differences d are positive (normal approximation
