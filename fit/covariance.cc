@@ -812,6 +812,27 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     }
   }
 
+  // Variance inflation of each requested coordinate, H_jj (H^+)_jj: H_jj = 1 / scale_j^2 and
+  // (H^+)_jj = |row j of the group's factor|^2 (GroupFactor).
+  if (dense.done) {
+    result.variance_inflation =
+        Eigen::VectorXd::Constant(n, std::numeric_limits<double>::quiet_NaN());
+    std::map<int, Eigen::MatrixXd> factor_of_group;
+    for (int i = 0; i < n; ++i) {
+      const size_t column = static_cast<size_t>(full_index[static_cast<size_t>(i)]);
+      const int g = dense.component_of_column[column];
+      if (g < 0) continue;
+      const Component& c = dense.components[static_cast<size_t>(g)];
+      auto it = factor_of_group.find(g);
+      if (it == factor_of_group.end()) it = factor_of_group.emplace(g, GroupFactor(c)).first;
+      const int local = dense.local_of_column[column];
+      const double scale = c.scale(local);
+      if (scale > 0.0) {
+        result.variance_inflation(i) = it->second.row(local).squaredNorm() / (scale * scale);
+      }
+    }
+  }
+
   auto Wanted = [&](std::size_t i, std::size_t j) {
     return i == j || (blocks[i].cross_covariance && blocks[j].cross_covariance);
   };

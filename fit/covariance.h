@@ -136,6 +136,11 @@ struct CovarianceResult {
   // (cross terms of blocks with cross_covariance = false are zero).
   Eigen::MatrixXd covariance;
   Eigen::VectorXd stddev;                     // sqrt(diag(covariance))
+  // Per requested coordinate, its variance inflation factor H_jj (H^+)_jj >= 1: how much the
+  // freedom of the other coordinates widens its variance (1: it shares no information with them;
+  // 20: 95 % of its information is shared, what is left rests on 5 %). From the dense analysis
+  // (empty when that was skipped; NaN for a coordinate no residual touches).
+  Eigen::VectorXd variance_inflation;
   std::vector<int> block_offsets;             // first row of each requested block in covariance
   std::vector<std::string> coordinate_names;  // one per row of covariance
   std::vector<IdentifiabilityFlag> flags;     // poorly identified coordinates

@@ -51,6 +51,11 @@ TEST(ComputeCovariance, Nominal) {
   EXPECT_TRUE(c.covariance.isApprox(expected, 1e-10)) << c.covariance;  // same algebra, rounding
   EXPECT_NEAR(c.stddev(1), std::sqrt(expected(1, 1)), 1e-12);
   EXPECT_EQ(c.coordinate_names[0], "a.[0]");
+  // Variance inflation H_jj (H^-1)_jj: with x = 0..4, X^T X = [5 10; 10 30] and its inverse
+  // [0.6 -0.2; -0.2 0.1], so 5 * 0.6 = 30 * 0.1 = 3 (= 1 / (1 - rho^2), rho^2 = 100 / 150).
+  ASSERT_EQ(c.variance_inflation.size(), 2);
+  EXPECT_NEAR(c.variance_inflation(0), 3.0, 1e-9);
+  EXPECT_NEAR(c.variance_inflation(1), 3.0, 1e-9);
 }
 
 // The model covariance from the dense analysis' eigen-decomposition equals Ceres' sparse QR of the

@@ -957,7 +957,29 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     if (cov.success) {
       // With the model estimator the stds assume the model's sigmas (chi2_per_dof tells whether
       // they fit); the sandwich estimator does not (fit/covariance.h).
-      if (fit_time_offset) time_offset_stddev = cov.stddev[cov.block_offsets[cov_index.size()]];
+      if (fit_time_offset) {
+        const int t = cov.block_offsets[cov_index.size()];
+        time_offset_stddev = cov.stddev[t];
+        if (cov.variance_inflation.size() > t) {
+          result.time_offset_variance_inflation = cov.variance_inflation(t);
+          const double vif = result.time_offset_variance_inflation;
+          auto fixed1 = [](double v) {
+            char buf[32];
+            std::snprintf(buf, sizeof(buf), "%.1f", v);
+            return std::string(buf);
+          };
+          if (vif > kMaxTimeOffsetVarianceInflation) {
+            result.identifiability_flags.push_back(
+                {"time_offset.dt",
+                 "shares " + fixed1(100.0 * (1.0 - 1.0 / vif)) +
+                     " % of its information with the other parameters (variance inflation " +
+                     fixed1(vif) +
+                     "): along this stream's path they can mimic a time shift, so the offset and "
+                     "its stddev are not reliable; record a longer or more varied stream, or fit "
+                     "the offset with a lower polynomial degree (docs/diagnose.md, Known limits)"});
+          }
+        }
+      }
       for (size_t i = 0; i < cov_index.size(); ++i) {
         auto& block = spec->terms[cov_index[i].first]->blocks()[cov_index[i].second];
         const int offset = cov.block_offsets[i];
@@ -1527,6 +1549,7 @@ nlohmann::json FitResult::ToJson() const {
           {"covariance_estimator",
            covariance_estimator.empty() ? nlohmann::json() : nlohmann::json(covariance_estimator)},
           {"covariance_clusters", covariance_clusters},
+          {"time_offset_variance_inflation", NumberOrNull(time_offset_variance_inflation)},
           {"covariance_method",
            covariance_method.empty() ? nlohmann::json() : nlohmann::json(covariance_method)},
           {"identifiability_flags", flags},

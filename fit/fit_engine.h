@@ -57,6 +57,11 @@ struct AmplifiedStation {
   double gain = 0.0;  // largest amplification of the report noise into the residual (1: none)
 };
 
+// A fitted clock offset whose variance inflation (the share of its information the other
+// parameters also carry) exceeds this is flagged as poorly identified (FitResult::
+// time_offset_variance_inflation; measured values in docs/diagnose.md, Known limits).
+inline constexpr double kMaxTimeOffsetVarianceInflation = 10.0;
+
 struct ParameterReport {
   std::string term;       // term name
   std::string block;      // block name
@@ -104,6 +109,10 @@ struct FitResult {
   // The sandwich's number of clusters (stations, or runs of stream samples); 0 for the model
   // covariance. A Wald test of k coordinates refers to Hotelling's T^2 with it (fit/candidates.h).
   int covariance_clusters = 0;
+  // A fitted clock offset's variance inflation (CovarianceResult::variance_inflation): above
+  // kMaxTimeOffsetVarianceInflation the other terms can mimic a time shift along the stream's path
+  // and the offset is flagged in identifiability_flags. NaN when not fitted or not computed.
+  double time_offset_variance_inflation = std::numeric_limits<double>::quiet_NaN();
   // How it was computed (CovarianceResult::method: "dense_sandwich", "schur_banded_groups", ...;
   // "linear" for the lone linear term's own); empty when there are none.
   std::string covariance_method;
