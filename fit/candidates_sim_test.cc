@@ -212,7 +212,7 @@ capture:
   registration:
     count: 6
   stream:
-    duration_s: 20
+    duration_s: 30
 )";
 
 Diagnosis DiagnosePaperSmall(const std::string& hidden, uint64_t seed, const std::string& model,

@@ -153,8 +153,9 @@ TEST(TimeOffsetInTheFit, Nominal_SandwichOverTimeRunsCoversTheOffsetOverSeeds) {
 }
 
 // A polynomial that can mimic a time shift along the path leaves the offset to what it cannot
-// mimic; the fit says so. Measured (trackcal-fit, hidden clock offset, seeds 1, 2, 10, 13): on the
-// workflow tests' 20 s stream (tests/data/workflow/paper_small.yaml) a degree-4 polynomial gives the
+// mimic; the fit says so. Measured (trackcal-fit, hidden clock offset, seeds 1, 2, 10, 13): on a
+// 20 s stream of the workflow tests' path (tests/data/workflow/paper_small.yaml, whose stream
+// was 20 s until session 12 and is now the preset's 30 s) a degree-4 polynomial gives the
 // offset a variance inflation of 25-74 and errors up to 25 stddevs (seed 2: 39.69 +- 0.59 ms with
 // the polynomial alone, 35.51 +- 0.06 with the true environment before it, truth 37), degree 3
 // 3.8-4.4 and errors within 2.7 stddevs; the paper preset's 30 s stream 2.7-3.1 at degree 4 (errors
@@ -163,6 +164,7 @@ TEST(TimeOffsetInTheFit, APolynomialThatMimicsATimeShiftIsFlagged) {
   sim::Scene scene = sim::LoadScene(
       (trackcal::testing::SourceDir() / "tests/data/workflow/paper_small.yaml").string());
   scene.seed = 2;
+  scene.capture.stream.duration_s = 20.0;  // the length that lets degree 4 mimic the shift
   scene.hidden.Enable("clock_offset");
   const sim::SimulatedCapture c = sim::Simulator(scene).Generate();
   const std::filesystem::path folder = testing::MakeTempDir("stream_mimic");

@@ -58,8 +58,10 @@ DEFAULT_CROSS_VALIDATE_TOP = 2
 # over the middle 1.05 x 0.75 x 0.6 m and 60 validation stations in the same box. Five heights,
 # because on the preset's four a degree-4 polynomial after a physical correction is nearly
 # singular along z (measured: the validation error of the paper preset rose from 4.9 to 8.1 mm
-# when the first physical term was added); the smaller grid keeps the loop to minutes.
-# tests/data/workflow/paper_small.yaml is the same scene (test_demo checks it).
+# when the first physical term was added); the smaller grid keeps the loop to minutes. The stream
+# keeps the preset's 30 s: on 20 s of this path the degree-4 polynomial mimics a time shift
+# (docs/diagnose.md, Known limits). tests/data/workflow/paper_small.yaml is the same scene
+# (test_demo checks it).
 DEFAULT_SCENE = """\
 base: paper
 name: paper_small
@@ -75,7 +77,7 @@ capture:
   registration:
     count: 6
   stream:
-    duration_s: 20
+    duration_s: 30
 """
 
 PAPER_MODEL = """\
