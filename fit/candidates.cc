@@ -20,6 +20,7 @@
 
 #include "fit/model_file.h"
 #include "fit/registration.h"
+#include "fit/terms_time_offset.h"
 
 namespace trackcal::fit {
 namespace {
@@ -43,13 +44,21 @@ struct StationErrors {
   std::vector<Rigid3d> corrected;
 };
 
+// `reference_shift_s`: a clock offset fitted jointly with the chain moved the stations' reference
+// poses along their velocities by this much from where they were paired (dt - dt0, as the fit's
+// residuals, fit/terms_time_offset.h); the errors are taken against the moved poses.
 void AppendErrors(const CorrectionChain& chain, const FitStation& s, double sigma_p, double sigma_o,
-                  StationErrors* out, size_t index) {
+                  StationErrors* out, size_t index, double reference_shift_s = 0.0) {
   const Rigid3d c = chain.Apply(s.reported).pose;
-  const Eigen::Vector3d dp = c.translation - s.reference.translation;
-  const Eigen::Vector3d dq = OrientationErrorVector<double>(c.rotation, s.reference.rotation);
+  Rigid3d reference = s.reference;
+  if (reference_shift_s != 0.0) {
+    ShiftReference<double>(s.reference, s.reference_velocity, s.reference_angular_velocity,
+                           reference_shift_s, &reference.translation, &reference.rotation);
+  }
+  const Eigen::Vector3d dp = c.translation - reference.translation;
+  const Eigen::Vector3d dq = OrientationErrorVector<double>(c.rotation, reference.rotation);
   out->position_mm[index] = dp.norm() * 1e3;
-  out->orientation_deg[index] = OrientationErrorAngle(c, s.reference) * kDegPerRad;
+  out->orientation_deg[index] = OrientationErrorAngle(c, reference) * kDegPerRad;
   out->whitened_sq[index] =
       dp.squaredNorm() / (sigma_p * sigma_p) + dq.squaredNorm() / (sigma_o * sigma_o);
   out->corrected[index] = c;
@@ -82,11 +91,14 @@ StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
       if (fold_of[i] != f) train.push_back(stations[i]);
     }
     ModelSpec spec = ParseModelYaml(text, source);
+    const double paired_at = spec.time_offset ? spec.time_offset->value : 0.0;
     FitOptions fo;
     fo.compute_covariance = false;
     const FitResult fit = FitModel(train, &spec, fo);
+    // A clock offset fitted with the model (streams with velocities) moves the references.
+    const double shift = spec.time_offset ? spec.time_offset->value - paired_at : 0.0;
     for (size_t i = 0; i < stations.size(); ++i) {
-      if (fold_of[i] == f) AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &e, i);
+      if (fold_of[i] == f) AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &e, i, shift);
     }
   }
   return e;
@@ -622,6 +634,31 @@ std::string Statement(const CatalogEffect& effect, const Candidate& c, double lo
     if (!physical.empty()) return physical;
   }
   return GenericStatement(c.parameters);
+}
+
+// The clock-offset candidate: the joint fit's estimate with its standard deviation (the pairing's
+// search gave the start), and, when the model's other terms can mimic a time shift along this
+// stream's path (FitResult::time_offset_variance_inflation), that the estimate is not reliable.
+std::string TimeOffsetStatement(const FitResult& fit, double paired_offset_s) {
+  const ParameterReport* joint = nullptr;
+  for (const auto& r : fit.parameters) {
+    if (r.term == "time_offset" && r.values.size() == 1) joint = &r;
+  }
+  std::string out = "a clock offset of ";
+  if (joint && !joint->stddev.empty() && std::isfinite(joint->stddev[0])) {
+    out += FormatNumber(joint->values[0] * 1e3, 2) + " +- " +
+           FormatNumber(joint->stddev[0] * 1e3, 2) +
+           " ms (reference minus tracker; fitted with the model from the pairing's " +
+           FormatNumber(paired_offset_s * 1e3, 2) + " ms)";
+  } else {
+    out += FormatNumber((joint ? joint->values[0] : paired_offset_s) * 1e3, 2) +
+           " ms (reference minus tracker; no standard deviation)";
+  }
+  const double vif = fit.time_offset_variance_inflation;
+  if (std::isfinite(vif) && vif > kMaxTimeOffsetVarianceInflation) {
+    out += "; poorly identified: it " + TimeOffsetMimicryNote(vif);
+  }
+  return out;
 }
 
 // Wald statistic of `v` (the block minus its null value) against the block's covariance `cov`
@@ -1448,10 +1485,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         offset["search_range"] = FormatSignificant(t.search_range, 6);
         item["time_offset"] = offset;
         c.model_change = Emit(item);
-        c.statement =
-            "a clock offset of " + FormatNumber(paired.time_offset_s * 1e3, 2) +
-            " ms (reference minus tracker; estimated by the pairing's search, no standard "
-            "deviation)";
+        // The fit (and each fold's) starts from the offset the stations were paired at: with the
+        // reference's velocities it is the reference of the joint estimate's linearisation.
+        YAML::Node root = YAML::Load(c.model_text);
+        root["time_offset"]["value"] = FormatSignificant(paired.time_offset_s, 17);
+        c.model_text = Emit(root);
       }
       const std::vector<FitStation>& own = p.stations.empty() ? stations : p.stations;
       // Which base station each of the candidate's stations is (by tracker time when re-paired).
@@ -1476,8 +1514,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       c.fitted = true;
       c.converged = fit.converged;
       StationErrors full = MakeErrors(own.size());
+      // A clock offset fitted with the model moved the references from where they were paired.
+      const double shift = c.kind == CandidateKind::kTimeOffset && spec.time_offset
+                               ? spec.time_offset->value - p.time_offset_s
+                               : 0.0;
       for (size_t i = 0; i < own.size(); ++i)
-        AppendErrors(fit.chain, own[i], sigma_p, sigma_o, &full, i);
+        AppendErrors(fit.chain, own[i], sigma_p, sigma_o, &full, i, shift);
       // BIC on the stations both models have (all of them unless the streams were re-paired).
       std::vector<bool> use_own(own.size()), use_base(stations.size(), false);
       for (size_t j = 0; j < own.size(); ++j) {
@@ -1519,6 +1561,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         }
       } else if (c.kind != CandidateKind::kTimeOffset) {
         c.statement = Statement(*p.effect, c, options.robust_loss.scale);
+      } else {
+        c.statement = TimeOffsetStatement(fit, p.time_offset_s);
+        for (const auto& r : fit.parameters) {
+          if (r.term == "time_offset") c.parameters.push_back(r);
+        }
       }
       if (c.kind == CandidateKind::kTerm && !p.flexible && options.min_strength_sigma > 0) {
         // The noise scale profiled out (as in the BIC): sqrt(chi2/dof) of this fit, for sigmas

@@ -257,7 +257,8 @@ struct Candidate {
   std::string reason;                       // why (not) significant, in words
   // kTerm: strength and location tests of the added term (of several: the weakest one's).
   PhysicalEvidence evidence;
-  std::vector<ParameterReport> parameters;  // the added term's blocks (empty for robust_loss)
+  std::vector<ParameterReport> parameters;  // the added term's blocks; time_offset.value for
+                                            // time_offset; empty for robust_loss
   std::vector<int> outlier_stations;        // robust_loss: stations beyond the loss scale
   std::string statement;                    // physical summary with units and +- 1 sigma
   double seconds = 0.0;

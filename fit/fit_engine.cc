@@ -672,6 +672,20 @@ std::string StreamModelCovarianceMessage(int num_samples, int max_clusters) {
 
 }  // namespace
 
+std::string TimeOffsetMimicryNote(double variance_inflation) {
+  auto fixed1 = [](double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof(buf), "%.1f", v);
+    return std::string(buf);
+  };
+  return "shares " + fixed1(100.0 * (1.0 - 1.0 / variance_inflation)) +
+         " % of its information with the other parameters (variance inflation " +
+         fixed1(variance_inflation) +
+         "): along this stream's path they can mimic a time shift, so the offset and its stddev "
+         "are not reliable; record a longer or more varied stream, or fit the offset with a lower "
+         "polynomial degree";
+}
+
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
                    const FitOptions& options) {
   if (!options.Check()) throw std::invalid_argument("FitOptions: num_threads must be >= 1");
@@ -963,20 +977,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
         if (cov.variance_inflation.size() > t) {
           result.time_offset_variance_inflation = cov.variance_inflation(t);
           const double vif = result.time_offset_variance_inflation;
-          auto fixed1 = [](double v) {
-            char buf[32];
-            std::snprintf(buf, sizeof(buf), "%.1f", v);
-            return std::string(buf);
-          };
           if (vif > kMaxTimeOffsetVarianceInflation) {
             result.identifiability_flags.push_back(
-                {"time_offset.dt",
-                 "shares " + fixed1(100.0 * (1.0 - 1.0 / vif)) +
-                     " % of its information with the other parameters (variance inflation " +
-                     fixed1(vif) +
-                     "): along this stream's path they can mimic a time shift, so the offset and "
-                     "its stddev are not reliable; record a longer or more varied stream, or fit "
-                     "the offset with a lower polynomial degree (docs/diagnose.md, Known limits)"});
+                {"time_offset.dt", TimeOffsetMimicryNote(vif) +
+                                       " (docs/diagnose.md, Known limits)"});
           }
         }
       }

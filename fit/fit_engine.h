@@ -61,6 +61,9 @@ struct AmplifiedStation {
 // parameters also carry) exceeds this is flagged as poorly identified (FitResult::
 // time_offset_variance_inflation; measured values in docs/diagnose.md, Known limits).
 inline constexpr double kMaxTimeOffsetVarianceInflation = 10.0;
+// What such an offset's flag says: the share of its information the other parameters carry, and the
+// remedy (also in trackcal-fit diagnose's time_offset candidate).
+std::string TimeOffsetMimicryNote(double variance_inflation);
 
 struct ParameterReport {
   std::string term;       // term name

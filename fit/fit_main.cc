@@ -372,18 +372,8 @@ int RunDiagnose(int argc, char** argv) {
   // Data resolved as `fit` resolves it (fit/fit_run.h); streams are paired with the model's
   // time_offset.
   const LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, spec);
-  if (loaded.tracker_stream) {
-    // The time_offset candidate pairs them again, estimating the offset.
-    options.pair_streams = [tracker = loaded.tracker_stream, reference = loaded.reference_stream,
-                            pairing = PairingOf(spec)](const TimeOffsetSpec& t) {
-      StreamPairingOptions o = pairing;
-      o.time_offset = t.value;
-      o.estimate_time_offset = !t.fixed;
-      o.search_range = t.search_range;
-      const StreamPairingResult r = PairStreams(*tracker, *reference, o);
-      return PairedStations{StationsOfSet(r.poses, "calib"), r.time_offset};
-    };
-  }
+  // The time_offset candidate pairs them again, estimating the offset.
+  options.pair_streams = StreamRepairing(loaded, spec);
   const auto calib = StationsOfSet(loaded.poses, "calib");
   if (calib.empty()) {
     throw std::invalid_argument(loaded.source + ": no stations with set 'calib'");

@@ -76,6 +76,20 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
   return out;
 }
 
+std::function<PairedStations(const TimeOffsetSpec&)> StreamRepairing(const LoadedFitData& data,
+                                                                     const ModelSpec& spec) {
+  if (!data.tracker_stream || !data.reference_stream) return {};
+  return [tracker = data.tracker_stream, reference = data.reference_stream,
+          pairing = PairingOf(spec)](const TimeOffsetSpec& t) {
+    StreamPairingOptions o = pairing;
+    o.time_offset = t.value;
+    o.estimate_time_offset = !t.fixed;
+    o.search_range = t.search_range;
+    const StreamPairingResult r = PairStreams(*tracker, *reference, o);
+    return PairedStations{FitStationsOfPairing(r, "calib"), r.time_offset};
+  };
+}
+
 nlohmann::json FitRunResult::TablesJson() const {
   nlohmann::json t = nlohmann::json::array();
   for (const auto& table : tables) t.push_back(Table1ToJson(table));

@@ -27,6 +27,7 @@
 #include "core/calibration_file.h"
 #include "core/capture.h"
 #include "core/error_statistics.h"
+#include "fit/candidates.h"
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
 #include "fit/registration.h"
@@ -68,6 +69,14 @@ struct LoadedFitData {
 
 // Throws std::invalid_argument / std::runtime_error (file, line, column) for unreadable data.
 LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec);
+
+// The time_offset candidate's pairing (CandidateOptions::pair_streams) of `data`'s streams: pairs
+// them at the setting's offset (searched around it unless fixed) and returns the calib stations as
+// `trackcal-fit fit` fits them, with the reference's velocities, so the candidate's fit estimates
+// a free offset jointly with the model (its standard deviation, and whether the model can mimic a
+// time shift: FitResult::time_offset_variance_inflation). An empty function without streams.
+std::function<PairedStations(const TimeOffsetSpec&)> StreamRepairing(const LoadedFitData& data,
+                                                                     const ModelSpec& spec);
 
 // The model file as text, its name for messages, and its file (provenance, protected) if any.
 struct FitModelSource {

@@ -1,6 +1,7 @@
 // Clock-offset recovery on the physics simulator's streams (paper preset, hidden clock_offset):
 // pairing alone, and jointly with a polynomial correction in the fit engine.
 
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -8,6 +9,7 @@
 #include <iostream>
 
 #include "core/capture.h"
+#include "fit/candidates.h"
 #include "fit/fit_engine.h"
 #include "fit/fit_run.h"
 #include "fit/model_file.h"
@@ -190,6 +192,30 @@ TEST(TimeOffsetInTheFit, APolynomialThatMimicsATimeShiftIsFlagged) {
   EXPECT_LT(cubic.time_offset_variance_inflation, kMaxTimeOffsetVarianceInflation);
   EXPECT_GE(cubic.time_offset_variance_inflation, 1.0);  // H_jj (H^-1)_jj >= 1 always
   EXPECT_FALSE(flagged(cubic));
+
+  // trackcal-fit diagnose's time_offset candidate (pairing at 0, as the workflow's first diagnosis)
+  // fits the offset jointly, as `fit` would after its model change, and its statement repeats the
+  // warning for degree 4, not for degree 3.
+  auto statement = [&](int degree) {
+    const std::string text = "terms:\n  - type: polynomial\n    degree: " +
+                             std::to_string(degree) + "\n";
+    const ModelSpec spec = ParseModelYaml(text, "model.yaml");
+    const LoadedFitData data = LoadFitData({folder, std::nullopt, std::nullopt}, spec);
+    CandidateOptions options;
+    options.effects = {"time_offset"};
+    options.num_threads = 1;
+    options.pair_streams = StreamRepairing(data, spec);
+    const Diagnosis d = DiagnoseCandidates(StationsOfSet(data.poses, "calib"), text, "model.yaml",
+                                           "streams", options);
+    EXPECT_EQ(d.candidates.size(), 1u);
+    return d.candidates.empty() ? std::string() : d.candidates[0].statement;
+  };
+  const std::string quartic_says = statement(4), cubic_says = statement(3);
+  std::cout << "degree 4: " << quartic_says << "\ndegree 3: " << cubic_says << "\n";
+  EXPECT_THAT(quartic_says, ::testing::HasSubstr("poorly identified"));
+  EXPECT_THAT(quartic_says, ::testing::HasSubstr(" +- "));  // the joint fit's standard deviation
+  EXPECT_THAT(cubic_says, ::testing::Not(::testing::HasSubstr("poorly identified")));
+  EXPECT_THAT(cubic_says, ::testing::HasSubstr(" +- "));
 }
 
 TEST(TimeOffsetInTheFit, FixedOrStaticLeavesTheModelAlone) {

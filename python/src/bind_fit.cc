@@ -378,19 +378,8 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
       if (calib.empty())
         throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
       const std::string data_name = data.path ? data.path->string() : loaded.name;
-      if (loaded.tracker_stream) {
-        // The time_offset candidate pairs the streams again with its own offset setting.
-        options.pair_streams = [tracker = loaded.tracker_stream,
-                                reference = loaded.reference_stream,
-                                pairing = fit::PairingOf(spec)](const fit::TimeOffsetSpec& t) {
-          fit::StreamPairingOptions o = pairing;
-          o.time_offset = t.value;
-          o.estimate_time_offset = !t.fixed;
-          o.search_range = t.search_range;
-          const fit::StreamPairingResult r = fit::PairStreams(*tracker, *reference, o);
-          return fit::PairedStations{fit::StationsOfSet(r.poses, "calib"), r.time_offset};
-        };
-      }
+      // The time_offset candidate pairs the streams again with its own offset setting.
+      options.pair_streams = fit::StreamRepairing(loaded, spec);
       doc = fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options)
                 .ToJson();
     });
