@@ -1530,6 +1530,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       const Chi2 chi = ComputeChi2(own, full, spec.loss, use_own);
       const Chi2 base_chi = ComputeChi2(stations, base_full, base_spec.loss, use_base);
       const int n = 6 * static_cast<int>(std::count(use_own.begin(), use_own.end(), true));
+      // A clock offset the fit estimated jointly is already in its count; one found by the
+      // pairing's search alone (stations without velocities) is not.
+      if (std::any_of(fit.parameters.begin(), fit.parameters.end(),
+                      [](const ParameterReport& r) { return r.term == "time_offset"; })) {
+        extra_parameters = 0;
+      }
       c.num_free_parameters = fit.num_free_parameters + extra_parameters;
       const int k = c.num_free_parameters + 6 * static_cast<int>(chi.outliers.size());
       // Outliers are a minority by definition: when half the stations exceed the loss scale, the

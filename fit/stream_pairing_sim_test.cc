@@ -208,7 +208,10 @@ TEST(TimeOffsetInTheFit, APolynomialThatMimicsATimeShiftIsFlagged) {
     const Diagnosis d = DiagnoseCandidates(StationsOfSet(data.poses, "calib"), text, "model.yaml",
                                            "streams", options);
     EXPECT_EQ(d.candidates.size(), 1u);
-    return d.candidates.empty() ? std::string() : d.candidates[0].statement;
+    if (d.candidates.empty()) return std::string();
+    // The offset counts once in the candidate's BIC: the base's coefficients plus one.
+    EXPECT_EQ(d.candidates[0].num_free_parameters, d.base.num_free_parameters + 1);
+    return d.candidates[0].statement;
   };
   const std::string quartic_says = statement(4), cubic_says = statement(3);
   std::cout << "degree 4: " << quartic_says << "\ndegree 3: " << cubic_says << "\n";
