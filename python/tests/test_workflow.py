@@ -137,7 +137,8 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 # three loops, these two and sensor_offset, took 114 s on a quiet machine) and, since session 10,
 # receiver_gains seed 1 (the distant sources' bias on G that background_field removes). The xfail
 # loops (_XFAIL) and the other seeds run with TRACKCAL_WORKFLOW_TESTS=full (all 18, about 1.5 h there; clock_offset alone
-# ~20 min). One pytest process: the diagnoses already use both cores (candidates in parallel
+# ~20 min on the 20 s stream; its 30 s stream since session 12 took 47-50 min per seed with three
+# seeds and a CI run sharing the 2 cores). One pytest process: the diagnoses already use both cores (candidates in parallel
 # threads), so pytest-xdist would not help. The xfail ones still must run to their assertions
 # (xfail(raises=AssertionError): a crash fails the test).
 CI_LOOPS = {("finite_transmitter_coils", 1), ("hemisphere_flips", 1), ("receiver_gains", 1)}
@@ -574,8 +575,14 @@ _XFAIL = {
     # 140-212 s per loop. clock_offset seed 1: time offset, frame dipole, then nothing (the background
     # buys 1.6 % after the dipole), passes, ~30 min under a CI run. Session 11 (seeds 2-3 together,
     # 28 min, a build alongside): both go time offset, frame dipole, nothing; seed 3 passes, seed 2
-    # fails as before (below). Its last diagnosis finds the background significant held out (-3.0 %,
-    # p = 9.5e-9, 4.1 sigma) but does not claim it.
+    # failed at 35.71 ms against 37 (its last diagnosis found the background significant held out,
+    # -3.0 %, p = 9.5e-9, 4.1 sigma, but did not claim it). On that 20 s stream the degree-4
+    # polynomial mimics a time shift (docs/diagnose.md, Known limits). Session 12, the capture's
+    # stream at the paper preset's 30 s (and the time_offset candidate fitting the offset jointly):
+    # seeds 1-3 each go time offset (36.84 +- 0.19 ms on seed 2 at step 0), frame dipole, nothing,
+    # and pass: the final offset 36.943 +- 0.029, 36.996 +- 0.030, 37.007 +- 0.015 ms (-2.0, -0.1,
+    # +0.4 sigma; variance inflation 3.7, 2.8, 4.6), held out 1.028x / 1.002x, 1.057x / 1.010x,
+    # 1.020x / 1.003x the floor; 47-50 min each, the three at once with a CI run alongside.
     # The toolbox (seeds 2-3 below), Monte Carlo in session 11: the same room, 29 seeds, fitted with
     # the true monitors and door held fixed plus a background (a model that contains the truth):
     # (est - truth) / stddev has rms 1.18 / 1.25 / 1.16 (location x, y, z) and 1.33 (polarisability)
@@ -597,16 +604,6 @@ _XFAIL = {
                               "at (0.599, 0.911, -0.537) +- 0.010 in z against (0.6, 0.95, -0.5), z 3.7 "
                               "sigma off, polarisability 0.00131 against 0.002: pulled towards the volume "
                               "and weaker, as on seed 2 (not measured before background_field)",
-    "clock_offset:2": "main (session 9, time-run sandwich; session 11 with background_field: the same steps "
-                      "and offset, 35.71 ms): time_offset, then the frame dipole (2.06 -> 0.79 "
-                      "-> 0.49 mm held out), nothing spurious, then a flexible polynomial_3 only; but the offset "
-                      "ends 35.71 +- 0.076 ms against 37 (16.9 sigma with CR2 over 32 time runs; the model "
-                      "covariance said +- 0.26, 5.0 sigma, as on branch diagspeed). The polynomial alone gives 39.69 +- 0.45 (6.0 "
-                      "sigma): this capture's 20 s stream does not pin the offset to its sigma with either "
-                      "model. Session 11: the degree-4 polynomial does it, not the misfit: with every "
-                      "environment term fixed at its truth the offset is 37.004 +- 0.010 ms without a "
-                      "polynomial, 37.00-37.02 with degree 1-3, 35.514 +- 0.058 with degree 4, which takes "
-                      "76-96 % of the reference velocity along this path (docs/diagnose.md, Known limits)",
 }
 
 
