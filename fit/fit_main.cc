@@ -370,8 +370,20 @@ int RunDiagnose(int argc, char** argv) {
   const ModelSpec spec = ParseModelYaml(model_text, model_path.string());
 
   // Data resolved as `fit` resolves it (fit/fit_run.h); streams are paired with the model's
-  // time_offset.
-  const LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, spec);
+  // time_offset, at the offset `fit` estimates when the model frees it.
+  LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, spec);
+  if (!loaded.stream_stations.empty()) {
+    if (options.progress) options.progress("fitting the model's clock offset, as fit does");
+    double offset = 0.0;
+    loaded = PairAtFittedOffset(std::move(loaded), {model_text, model_path.string(), model_path},
+                                &offset);
+    if (options.progress) {
+      std::ostringstream m;
+      m << std::fixed << std::setprecision(3) << "streams paired at the fitted clock offset "
+        << offset * 1e3 << " ms";
+      options.progress(m.str());
+    }
+  }
   // The time_offset candidate pairs them again, estimating the offset.
   options.pair_streams = StreamRepairing(loaded, spec);
   const auto calib = StationsOfSet(loaded.poses, "calib");

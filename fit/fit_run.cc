@@ -197,6 +197,26 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
   return run;
 }
 
+LoadedFitData PairAtFittedOffset(LoadedFitData data, const FitModelSource& model,
+                                 double* fitted_offset_s) {
+  if (data.stream_stations.empty() || !data.pairing || !data.tracker_stream ||
+      !data.reference_stream) {
+    return data;
+  }
+  const FitRunResult run = RunFit(data, model, {});  // no cross-validation
+  if (!run.time_offset) return data;
+  StreamPairingOptions again = *data.pairing;
+  again.time_offset = *run.time_offset;
+  again.estimate_time_offset = false;
+  const StreamPairingResult paired =
+      PairStreams(*data.tracker_stream, *data.reference_stream, again);
+  data.poses = paired.poses;
+  data.time_offset = paired.time_offset;
+  data.stream_stations = FitStationsOfPairing(paired, "calib");
+  if (fitted_offset_s) *fitted_offset_s = *run.time_offset;
+  return data;
+}
+
 nlohmann::json RegisterDocument(const RegistrationResult& registration,
                                 const std::optional<std::filesystem::path>& output,
                                 size_t num_poses, const std::vector<int>& stations_left_out) {

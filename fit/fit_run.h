@@ -121,6 +121,13 @@ struct FitRunResult {
 FitRunResult RunFit(LoadedFitData data, const FitModelSource& model,
                     const FitRunOptions& options = {});
 
+// For trackcal-fit diagnose: when `data` holds streams and the model estimates the clock offset,
+// the offset as RunFit estimates it (jointly with the model, re-paired while it moves) and the
+// streams paired again there, so the diagnosis holds the offset `fit` would report rather than the
+// pairing search's. Other data are returned unchanged. `fitted_offset_s` (optional) gets the offset.
+LoadedFitData PairAtFittedOffset(LoadedFitData data, const FitModelSource& model,
+                                 double* fitted_offset_s = nullptr);
+
 // The `register` document of `trackcal-fit register --json` and of Python's
 // `trackcal.register(...).to_dict()`: the output file (null when none was written), the number of
 // poses extracted, the stations left without a pose, and the registration. The CLI adds

@@ -4,6 +4,7 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <iostream>
@@ -219,6 +220,38 @@ TEST(TimeOffsetInTheFit, APolynomialThatMimicsATimeShiftIsFlagged) {
   EXPECT_THAT(quartic_says, ::testing::HasSubstr(" +- "));  // the joint fit's standard deviation
   EXPECT_THAT(cubic_says, ::testing::Not(::testing::HasSubstr("poorly identified")));
   EXPECT_THAT(cubic_says, ::testing::HasSubstr(" +- "));
+}
+
+// trackcal-fit diagnose holds a free clock offset where `fit` puts it: the streams paired again at
+// RunFit's joint estimate (not the pairing search's), with their velocities.
+TEST(TimeOffsetInTheFit, DiagnosisPairsAtTheFittedOffset) {
+  const sim::SimulatedCapture c = Streams(2, {"clock_offset"});
+  const std::filesystem::path folder = testing::MakeTempDir("stream_fitted_offset");
+  WriteTrackerStream(folder / "tracker_stream.csv", c.tracker_stream);
+  WriteReferenceStream(folder / "reference_stream.csv", c.reference_stream);
+  const std::string text =
+      "time_offset: {value: 0, fixed: false}\nterms:\n  - type: polynomial\n    degree: 3\n";
+  const FitModelSource model{text, "model.yaml", std::nullopt};
+  const ModelSpec spec = ParseModelYaml(text, "model.yaml");
+  const LoadedFitData searched = LoadFitData({folder, std::nullopt, std::nullopt}, spec);
+  const double fitted = *RunFit(searched, model).time_offset;
+  double reported = 0.0;
+  const LoadedFitData held = PairAtFittedOffset(searched, model, &reported);
+  std::cout << "search " << *searched.time_offset * 1e3 << " ms, fitted " << fitted * 1e3
+            << " ms\n";
+  EXPECT_DOUBLE_EQ(reported, fitted);
+  EXPECT_DOUBLE_EQ(*held.time_offset, fitted);
+  ASSERT_EQ(held.poses.records.size(), held.stream_stations.size());
+  EXPECT_TRUE(std::any_of(held.stream_stations.begin(), held.stream_stations.end(),
+                          [](const FitStation& s) { return !s.reference_velocity.isZero(); }));
+  // A fixed offset (or static data) is left as paired.
+  const std::string fixed_text = "terms:\n  - type: polynomial\n    degree: 3\n";
+  const LoadedFitData plain =
+      LoadFitData({folder, std::nullopt, std::nullopt}, ParseModelYaml(fixed_text, "fixed.yaml"));
+  const LoadedFitData same =
+      PairAtFittedOffset(plain, {fixed_text, "fixed.yaml", std::nullopt}, &reported);
+  EXPECT_EQ(*same.time_offset, *plain.time_offset);
+  EXPECT_EQ(same.poses.records.size(), plain.poses.records.size());
 }
 
 TEST(TimeOffsetInTheFit, FixedOrStaticLeavesTheModelAlone) {

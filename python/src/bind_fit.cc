@@ -373,7 +373,9 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
     py::gil_scoped_release release;
     ValueErrors([&] {
       const ModelSpec spec = fit::ParseModelYaml(model.text, model.source_name);
-      const fit::LoadedFitData loaded = fit::LoadFitData(data, spec);
+      // Streams are paired at the offset `fit` estimates when the model frees it.
+      const fit::LoadedFitData loaded = fit::PairAtFittedOffset(
+          fit::LoadFitData(data, spec), {model.text, model.source_name, model.path});
       const auto calib = fit::StationsOfSet(loaded.poses, "calib");
       if (calib.empty())
         throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
