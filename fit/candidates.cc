@@ -2172,6 +2172,7 @@ nlohmann::json Diagnosis::ToJson() const {
           {"data", data},
           {"folds", folds},
           {"num_stations", num_stations},
+          {"time_offset_s", time_offset_s ? nlohmann::json(*time_offset_s) : nlohmann::json()},
           {"base",
            {{"cv_position_mm_mean", NumberOrNull(base.cv_position_mm_mean)},
             {"cv_orientation_deg_mean", NumberOrNull(base.cv_orientation_deg_mean)},
@@ -2198,7 +2199,12 @@ std::string FormatDiagnosis(const Diagnosis& d) {
       << FormatNumber(d.base.cv_position_mm_mean, 3) << " mm, "
       << FormatNumber(d.base.cv_orientation_deg_mean, 3) << " deg; " << d.base.num_free_parameters
       << " free parameters, chi2/dof " << FormatNumber(d.base.chi2_per_dof, 2) << ", BIC "
-      << FormatNumber(d.base.bic, 1) << "\n\n";
+      << FormatNumber(d.base.bic, 1) << "\n";
+  if (d.time_offset_s) {
+    out << "Streams paired at a clock offset of " << FormatNumber(*d.time_offset_s * 1e3, 3)
+        << " ms (reference minus tracker)\n";
+  }
+  out << "\n";
   out << "Candidate effects (ranked; significant: p < " << FormatSignificant(d.p_threshold, 2)
       << ", held-out drop >= 5 %, delta BIC < -10, strength >= 3 sigma, location determined):\n";
   out << std::left << std::setw(4) << "#" << std::setw(16) << "effect" << std::right

@@ -277,6 +277,10 @@ struct Diagnosis {
   std::optional<std::string> verdict_effect;  // top significant candidate
   std::string verdict_text;
   double seconds = 0.0;
+  // Streams: the clock offset they were paired at (reference minus tracker [s]; set by the caller,
+  // who paired them: the model's joint estimate when it frees the offset, fit/fit_run.h
+  // PairAtFittedOffset). In --json as "time_offset_s" (null for static stations).
+  std::optional<double> time_offset_s;
   // The JSON document of `trackcal-fit diagnose --json` (docs/diagnose.md).
   nlohmann::json ToJson() const;
 };

@@ -379,6 +379,7 @@ TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
     EXPECT_TRUE(p.contains(key)) << key;
   }
   EXPECT_TRUE(j["flexible_fallback"].is_array());
+  EXPECT_TRUE(j["time_offset_s"].is_null());  // static stations: no pairing
   EXPECT_TRUE(j["verdict"].contains("effect"));
   EXPECT_TRUE(j["verdict"].contains("text"));
 }

@@ -375,8 +375,12 @@ int RunDiagnose(int argc, char** argv) {
   if (!loaded.stream_stations.empty()) {
     if (options.progress) options.progress("fitting the model's clock offset, as fit does");
     double offset = 0.0;
-    loaded = PairAtFittedOffset(std::move(loaded), {model_text, model_path.string(), model_path},
-                                &offset);
+    try {
+      loaded = PairAtFittedOffset(std::move(loaded),
+                                  {model_text, model_path.string(), model_path}, &offset);
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(std::string("fitting the model's clock offset: ") + e.what());
+    }
     if (options.progress) {
       std::ostringstream m;
       m << std::fixed << std::setprecision(3) << "streams paired at the fitted clock offset "
@@ -390,8 +394,9 @@ int RunDiagnose(int argc, char** argv) {
   if (calib.empty()) {
     throw std::invalid_argument(loaded.source + ": no stations with set 'calib'");
   }
-  const Diagnosis diagnosis =
+  Diagnosis diagnosis =
       DiagnoseCandidates(calib, model_text, model_path.string(), data.string(), options);
+  diagnosis.time_offset_s = loaded.time_offset;
   if (args.Flag("--json")) {
     std::cout << diagnosis.ToJson().dump(2) << "\n";
   } else {

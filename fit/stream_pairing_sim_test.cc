@@ -242,6 +242,23 @@ TEST(TimeOffsetInTheFit, DiagnosisPairsAtTheFittedOffset) {
   EXPECT_DOUBLE_EQ(reported, fitted);
   EXPECT_DOUBLE_EQ(*held.time_offset, fitted);
   ASSERT_EQ(held.poses.records.size(), held.stream_stations.size());
+  // The poses diagnose fits are the pairing at the fitted offset, not the search's.
+  StreamPairingOptions at_fit = *searched.pairing;
+  at_fit.time_offset = fitted;
+  at_fit.estimate_time_offset = false;
+  const StreamPairingResult expected = PairStreams(c.tracker_stream, c.reference_stream, at_fit);
+  ASSERT_EQ(held.poses.records.size(), expected.poses.records.size());
+  ASSERT_EQ(held.poses.records.size(), searched.poses.records.size());
+  double moved_m = 0.0;
+  for (size_t i = 0; i < held.poses.records.size(); ++i) {
+    EXPECT_EQ(held.poses.records[i].reference.translation,
+              expected.poses.records[i].reference.translation);
+    moved_m = std::max(moved_m, (held.poses.records[i].reference.translation -
+                                 searched.poses.records[i].reference.translation)
+                                    .norm());
+  }
+  // 9.8 us apart at up to ~0.6 m/s: a few um.
+  EXPECT_GT(moved_m, 1e-7);
   EXPECT_TRUE(std::any_of(held.stream_stations.begin(), held.stream_stations.end(),
                           [](const FitStation& s) { return !s.reference_velocity.isZero(); }));
   // A fixed offset (or static data) is left as paired.

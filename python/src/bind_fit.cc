@@ -382,8 +382,10 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
       const std::string data_name = data.path ? data.path->string() : loaded.name;
       // The time_offset candidate pairs the streams again with its own offset setting.
       options.pair_streams = fit::StreamRepairing(loaded, spec);
-      doc = fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options)
-                .ToJson();
+      fit::Diagnosis d =
+          fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options);
+      d.time_offset_s = loaded.time_offset;
+      doc = d.ToJson();
     });
   }
   if (error) throw std::move(*error);
