@@ -375,12 +375,8 @@ int RunDiagnose(int argc, char** argv) {
   if (!loaded.stream_stations.empty()) {
     if (options.progress) options.progress("fitting the model's clock offset, as fit does");
     double offset = 0.0;
-    try {
-      loaded = PairAtFittedOffset(std::move(loaded),
-                                  {model_text, model_path.string(), model_path}, &offset);
-    } catch (const std::invalid_argument& e) {
-      throw std::invalid_argument(std::string("fitting the model's clock offset: ") + e.what());
-    }
+    loaded = PairAtFittedOffset(std::move(loaded), {model_text, model_path.string(), model_path},
+                                &offset);
     if (options.progress) {
       std::ostringstream m;
       m << std::fixed << std::setprecision(3) << "streams paired at the fitted clock offset "

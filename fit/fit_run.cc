@@ -203,17 +203,22 @@ LoadedFitData PairAtFittedOffset(LoadedFitData data, const FitModelSource& model
       !data.reference_stream) {
     return data;
   }
-  const FitRunResult run = RunFit(data, model, {});  // no cross-validation
-  if (!run.time_offset) return data;
+  std::optional<double> offset;
+  try {
+    offset = RunFit(data, model, {}).time_offset;  // no cross-validation
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(std::string("fitting the model's clock offset: ") + e.what());
+  }
+  if (!offset) return data;
   StreamPairingOptions again = *data.pairing;
-  again.time_offset = *run.time_offset;
+  again.time_offset = *offset;
   again.estimate_time_offset = false;
   const StreamPairingResult paired =
       PairStreams(*data.tracker_stream, *data.reference_stream, again);
   data.poses = paired.poses;
   data.time_offset = paired.time_offset;
   data.stream_stations = FitStationsOfPairing(paired, "calib");
-  if (fitted_offset_s) *fitted_offset_s = *run.time_offset;
+  if (fitted_offset_s) *fitted_offset_s = *offset;
   return data;
 }
 

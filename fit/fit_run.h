@@ -125,6 +125,7 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model,
 // the offset as RunFit estimates it (jointly with the model, re-paired while it moves) and the
 // streams paired again there, so the diagnosis holds the offset `fit` would report rather than the
 // pairing search's. Other data are returned unchanged. `fitted_offset_s` (optional) gets the offset.
+// Throws what RunFit throws, std::invalid_argument prefixed "fitting the model's clock offset: ".
 LoadedFitData PairAtFittedOffset(LoadedFitData data, const FitModelSource& model,
                                  double* fitted_offset_s = nullptr);
 
