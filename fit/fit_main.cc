@@ -374,13 +374,11 @@ int RunDiagnose(int argc, char** argv) {
   LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, spec);
   if (!loaded.stream_stations.empty()) {
     if (options.progress) options.progress("fitting the model's clock offset, as fit does");
-    double offset = 0.0;
-    loaded = PairAtFittedOffset(std::move(loaded), {model_text, model_path.string(), model_path},
-                                &offset);
-    if (options.progress) {
+    loaded = PairAtFittedOffset(std::move(loaded), {model_text, model_path.string(), model_path});
+    if (options.progress && loaded.time_offset) {
       std::ostringstream m;
       m << std::fixed << std::setprecision(3) << "streams paired at the fitted clock offset "
-        << offset * 1e3 << " ms";
+        << *loaded.time_offset * 1e3 << " ms";
       options.progress(m.str());
     }
   }
