@@ -175,6 +175,10 @@ struct CandidateOptions {
   // outliers are rare by definition (flips, bad reference poses); when many stations exceed it, a
   // robust loss only hides an effect the model lacks.
   double max_outlier_fraction = 0.05;
+  // A gross outlier must also be gross against this many nearest stations (by reference position;
+  // 6: a grid station's face neighbours): a whole neighbourhood beyond the capture's errors is an
+  // effect the model lacks there, not outliers (docs/diagnose.md). 0: the capture-wide test only.
+  int outlier_neighbours = 6;
   // The added term's physical strength must lie at least this many standard deviations from its
   // null value, and a source it places must be placed (PhysicalEvidence): a held-out gain from a
   // term whose strength is 0.5 sigma from zero, or whose location is uncertain by more than its
@@ -260,6 +264,9 @@ struct Candidate {
   std::vector<ParameterReport> parameters;  // the added term's blocks; time_offset.value for
                                             // time_offset; empty for robust_loss
   std::vector<int> outlier_stations;        // robust_loss: stations beyond the loss scale
+  // robust_loss: stations as far beyond the capture's errors whose neighbours' errors are as large
+  // (a local effect the model lacks, not outliers).
+  std::vector<int> local_structure_stations;
   std::string statement;                    // physical summary with units and +- 1 sigma
   double seconds = 0.0;
 };
