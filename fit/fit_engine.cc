@@ -426,6 +426,15 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
   FitResult& result = *out;
   for (const auto& term : spec->terms) {
     for (const auto& block : term->blocks()) {
+      if (!block.identifiability_note.empty() && !block.fixed) {
+        result.identifiability_flags.push_back(
+            {(block.term.empty() ? term->name() : block.term) + "." + block.name,
+             block.identifiability_note});
+      }
+    }
+  }
+  for (const auto& term : spec->terms) {
+    for (const auto& block : term->blocks()) {
       ParameterReport r;
       r.term = block.term.empty() ? term->name() : block.term;
       r.block = block.name;
@@ -770,7 +779,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       result.num_residuals = 6 * static_cast<int>(stations.size());
       for (auto& block : term.blocks()) {
         block.stddev.assign(block.values.size(), std::numeric_limits<double>::quiet_NaN());
-        if (!block.fixed) result.num_free_parameters += block.size();
+        if (!block.fixed) result.num_free_parameters += block.free_size();
       }
       const int dof = result.num_residuals - result.num_free_parameters;
       result.chi2_per_dof =
@@ -987,8 +996,26 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       for (size_t i = 0; i < cov_index.size(); ++i) {
         auto& block = spec->terms[cov_index[i].first]->blocks()[cov_index[i].second];
         const int offset = cov.block_offsets[i];
-        // Manifold blocks: one std per tangent coordinate (tangent_names, tangent_unit).
         const int tangent = problem.ParameterBlockTangentSize(block.values.data());
+        if (block.ambient_from_tangent.size() > 0) {
+          // A linear subspace: the values' own covariance, B C B^T.
+          const Eigen::MatrixXd& b = block.ambient_from_tangent;
+          const Eigen::MatrixXd c = b * cov.covariance.block(offset, offset, tangent, tangent) *
+                                    b.transpose();
+          const auto n = static_cast<size_t>(c.rows());
+          block.stddev.resize(n);
+          block.covariance.resize(n * n);
+          for (size_t r = 0; r < n; ++r) {
+            block.stddev[r] = std::sqrt(std::max(0.0, c(static_cast<Eigen::Index>(r),
+                                                          static_cast<Eigen::Index>(r))));
+            for (size_t k = 0; k < n; ++k) {
+              block.covariance[r * n + k] =
+                  c(static_cast<Eigen::Index>(r), static_cast<Eigen::Index>(k));
+            }
+          }
+          continue;
+        }
+        // Manifold blocks: one std per tangent coordinate (tangent_names, tangent_unit).
         block.stddev.resize(static_cast<size_t>(tangent));
         for (int k = 0; k < tangent; ++k) block.stddev[static_cast<size_t>(k)] = cov.stddev[offset + k];
         block.covariance.resize(static_cast<size_t>(tangent * tangent));

@@ -183,10 +183,23 @@ TEST(FitModel, FlagsUnidentifiableCoefficients) {
     s.reported.translation.z() = 0.3;
     s.reference = truth->Apply(s.reported).pose;
   }
+  // Fitting every direction: the covariance finds the rank deficiency.
+  ModelSpec all = ParseModelYaml("terms: [{type: polynomial, degree: 1, max_amplification: 0}]", "m");
+  const FitResult every = FitModel(stations, &all);
+  EXPECT_TRUE(every.rank_deficient);
+  EXPECT_FALSE(every.identifiability_flags.empty());
+  // By default the direction the stations do not determine (z) is held at zero and flagged; the
+  // others are fitted and reproduce the noise-free stations.
   ModelSpec spec = ParseModelYaml("terms: [{type: polynomial, degree: 1}]", "m");
   const FitResult result = FitModel(stations, &spec);
-  EXPECT_TRUE(result.rank_deficient);
-  EXPECT_FALSE(result.identifiability_flags.empty());
+  EXPECT_FALSE(result.rank_deficient);
+  ASSERT_EQ(result.identifiability_flags.size(), 2u);  // position and orientation parts
+  EXPECT_EQ(result.identifiability_flags[0].coordinate, "polynomial.position_coefficients");
+  EXPECT_EQ(result.identifiability_flags[0].reason.find("1 of its 4 directions not determined"), 0u)
+      << result.identifiability_flags[0].reason;
+  for (const auto& s : stations) {
+    EXPECT_LT(PositionErrorNorm(result.chain.Apply(s.reported).pose, s.reference), 1e-9);
+  }
 }
 
 std::vector<FitStation> StationsOfSet(const PoseCapture& poses, const std::string& set) {

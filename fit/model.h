@@ -81,8 +81,18 @@ struct ParameterBlock {
   // physical effects of fit/terms_physical.h); empty: the ModelTerm's own name. Reports and
   // `parameters:` settings use it.
   std::string term;
+  // A linear-subspace manifold (make_manifold moves the values only along these columns, values x
+  // tangent): the engine then reports the values' own standard deviations and covariance, mapped
+  // from the tangent's (B C B^T), instead of the tangent's. Empty: none.
+  Eigen::MatrixXd ambient_from_tangent;
+  // Added to the fit's identifiability flags when not empty (what the term holds and why).
+  std::string identifiability_note;
 
   int size() const { return static_cast<int>(values.size()); }
+  // Free coordinates: the subspace's when there is one, else one per value.
+  int free_size() const {
+    return ambient_from_tangent.size() > 0 ? static_cast<int>(ambient_from_tangent.cols()) : size();
+  }
   // Throws std::invalid_argument naming the block on inconsistent sizes, non-finite values, lower >
   // upper or a value outside its bounds, a non-positive prior sigma.
   void Check(const std::string& term_name) const;

@@ -5,12 +5,14 @@
 #include <ceres/problem.h>
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <Eigen/QR>
 #include <Eigen/SVD>
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <limits>
+#include <sstream>
 #include <stdexcept>
 
 namespace trackcal::fit {
@@ -23,6 +25,124 @@ void PolynomialTermOptions::Check() const {
   if (!(ridge >= 0.0) || !std::isfinite(ridge)) {
     throw std::invalid_argument("polynomial: ridge must be a number >= 0 or auto");
   }
+  if (!(max_amplification == 0.0 || max_amplification >= 1.0) ||
+      !std::isfinite(max_amplification)) {
+    throw std::invalid_argument("polynomial: max_amplification must be 0 (no limit) or >= 1");
+  }
+}
+
+namespace {
+
+// Moves a term-major (basis x 3) coefficient block only within span(U) for each of its 3 columns:
+// x + B delta with B = U (x) I_3 in the block's layout (values[j * 3 + k], basis j, output k).
+class CoefficientSubspaceManifold : public ceres::Manifold {
+ public:
+  explicit CoefficientSubspaceManifold(Eigen::MatrixXd b)
+      : b_(std::move(b)),
+        b_pinv_((b_.transpose() * b_).ldlt().solve(b_.transpose())) {}
+  int AmbientSize() const override { return static_cast<int>(b_.rows()); }
+  int TangentSize() const override { return static_cast<int>(b_.cols()); }
+  bool Plus(const double* x, const double* delta, double* x_plus_delta) const override {
+    Eigen::Map<Eigen::VectorXd>(x_plus_delta, b_.rows()) =
+        Eigen::Map<const Eigen::VectorXd>(x, b_.rows()) +
+        b_ * Eigen::Map<const Eigen::VectorXd>(delta, b_.cols());
+    return true;
+  }
+  bool PlusJacobian(const double* /*x*/, double* jacobian) const override {
+    Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
+        jacobian, b_.rows(), b_.cols()) = b_;
+    return true;
+  }
+  bool Minus(const double* y, const double* x, double* y_minus_x) const override {
+    Eigen::Map<Eigen::VectorXd>(y_minus_x, b_.cols()) =
+        b_pinv_ * (Eigen::Map<const Eigen::VectorXd>(y, b_.rows()) -
+                   Eigen::Map<const Eigen::VectorXd>(x, b_.rows()));
+    return true;
+  }
+  bool MinusJacobian(const double* /*x*/, double* jacobian) const override {
+    Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
+        jacobian, b_.cols(), b_.rows()) = b_pinv_;
+    return true;
+  }
+
+ private:
+  Eigen::MatrixXd b_;
+  Eigen::MatrixXd b_pinv_;
+};
+
+}  // namespace
+
+Eigen::MatrixXd PolynomialTerm::BoxGram(int degree) {
+  // E[u^a] over the uniform box [-1, 1]: 1 / (a + 1) for even a, 0 for odd a; per axis.
+  const auto exponents = PolynomialTermExponents(degree);
+  const auto n = static_cast<Eigen::Index>(exponents.size());
+  Eigen::MatrixXd g(n, n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    for (Eigen::Index j = 0; j < n; ++j) {
+      double m = 1.0;
+      for (int k = 0; k < 3; ++k) {
+        const int a = exponents[static_cast<size_t>(i)][k] + exponents[static_cast<size_t>(j)][k];
+        m *= a % 2 == 0 ? 1.0 / (a + 1) : 0.0;
+      }
+      g(i, j) = m;
+    }
+  }
+  return g;
+}
+
+PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(const Eigen::MatrixXd& a,
+                                                                         int degree,
+                                                                         double max_amplification) {
+  // Gs c = mu Gv c (Gv positive definite): the eigenvectors are Gv-orthonormal, and a direction's
+  // RMS over the box is 1 / sqrt(mu) times its RMS at the stations.
+  const Eigen::MatrixXd gs = a.transpose() * a / static_cast<double>(std::max<Eigen::Index>(1, a.rows()));
+  const Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> solver(gs, BoxGram(degree));
+  DeterminedSubspace out;
+  const Eigen::VectorXd& mu = solver.eigenvalues();  // ascending
+  const double mu_min = 1.0 / (max_amplification * max_amplification);
+  std::vector<Eigen::Index> dropped;
+  for (Eigen::Index i = 0; i < mu.size(); ++i) {
+    const double amplification =
+        mu[i] > 0 ? 1.0 / std::sqrt(mu[i]) : std::numeric_limits<double>::infinity();
+    if (mu[i] >= mu_min) {
+      out.max_kept_amplification = std::max(out.max_kept_amplification, amplification);
+    } else {
+      dropped.push_back(i);
+      out.dropped_amplifications.push_back(amplification);  // largest first (mu ascending)
+    }
+  }
+  const Eigen::Index n = a.cols();
+  const auto m = static_cast<Eigen::Index>(dropped.size());
+  if (m == 0) {
+    out.basis = Eigen::MatrixXd::Identity(n, n);
+    return out;
+  }
+  // Which solution of the stations' equations to keep: each dropped direction v is nearly zero
+  // at the stations, so c and c + t v fit them alike. Holding t at zero in the eigenbasis would
+  // keep the solution smallest over the box, which is not the smooth one (a quadratic error field
+  // has a component along (z - z1)...(z - z4) in that sense and would lose it). Instead the
+  // directions are taken out of the highest-degree coefficients: the kept coefficients c satisfy
+  // V_T^T c_T = 0, T the monomials of degree >= d0 with d0 the highest degree for which V_T has
+  // full column rank. A polynomial of degree < d0 satisfies it, so it is fitted without bias.
+  const auto exponents = PolynomialTermExponents(degree);
+  Eigen::MatrixXd v(n, m);
+  for (Eigen::Index j = 0; j < m; ++j) v.col(j) = solver.eigenvectors().col(dropped[static_cast<size_t>(j)]);
+  Eigen::MatrixXd constraint;  // m x n
+  for (int d0 = degree; d0 >= 0; --d0) {
+    constraint = Eigen::MatrixXd::Zero(m, n);
+    for (Eigen::Index j = 0; j < n; ++j) {
+      const auto& e = exponents[static_cast<size_t>(j)];
+      if (e[0] + e[1] + e[2] >= d0) constraint.col(j) = v.row(j).transpose();
+    }
+    const Eigen::FullPivHouseholderQR<Eigen::MatrixXd> qr(constraint.transpose());
+    if (qr.rank() == m) break;
+  }
+  // An orthonormal basis of the constraint's null space: the last n - m columns of the complete Q
+  // of K^T.
+  const Eigen::HouseholderQR<Eigen::MatrixXd> qr(constraint.transpose());
+  const Eigen::MatrixXd q = qr.householderQ() * Eigen::MatrixXd::Identity(n, n);
+  out.basis = q.rightCols(n - m);
+  return out;
 }
 
 std::vector<double> PolynomialTerm::RidgeGrid() {
@@ -59,6 +179,7 @@ std::unique_ptr<ModelTerm> PolynomialTerm::FromYaml(const YamlMapReader& reader)
   options.degree = reader.GetIntOr("degree", options.degree);
   options.position = reader.GetBoolOr("position", options.position);
   options.orientation = reader.GetBoolOr("orientation", options.orientation);
+  options.max_amplification = reader.GetDoubleOr("max_amplification", options.max_amplification);
   if (reader.Has("ridge")) {
     const YAML::Node node = reader.node()["ridge"];
     if (node.IsScalar() && node.Scalar() == "auto") {
@@ -81,8 +202,11 @@ std::unique_ptr<ModelTerm> PolynomialTerm::FromYaml(const YamlMapReader& reader)
   try {
     options.Check();
   } catch (const std::invalid_argument& e) {
-    reader.Fail(std::string(e.what()).find("ridge") != std::string::npos ? "ridge" : "degree",
-                e.what());
+    const std::string what = e.what();
+    reader.Fail(what.find("ridge") != std::string::npos               ? "ridge"
+                : what.find("max_amplification") != std::string::npos ? "max_amplification"
+                                                                       : "degree",
+                what);
   }
   return std::make_unique<PolynomialTerm>(options);
 }
@@ -361,6 +485,26 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     inverse_normal_diagonal_.resize(0);  // no linear covariance: the engine's covariance serves
     return true;
   }
+  // The directions the stations determine (FindDeterminedSubspace): when some are not, the fit
+  // moves the coefficients only within the others, and those stay at the least-squares solution
+  // in that subspace (zero along the rest).
+  undetermined_ = {};
+  for (int index : {position_block_, orientation_block_}) {
+    if (index < 0) continue;
+    auto& block = blocks_[static_cast<size_t>(index)];
+    block.make_manifold = nullptr;
+    block.ambient_from_tangent.resize(0, 0);
+    block.tangent_names.clear();
+    block.identifiability_note.clear();
+  }
+  if (options_.max_amplification > 0) {
+    DeterminedSubspace subspace = FindDeterminedSubspace(a, options_.degree,
+                                                         options_.max_amplification);
+    if (!subspace.dropped_amplifications.empty()) {
+      undetermined_ = subspace;
+      return InitializeInSubspace(a, b_position, b_orientation);
+    }
+  }
   // Column-pivoting QR on the normalised basis: the paper's eq. 9 without forming A^T A (squaring
   // the condition number).
   const Eigen::ColPivHouseholderQR<Eigen::MatrixXd> qr(a);
@@ -381,6 +525,59 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
       r.triangularView<Eigen::Upper>().solve(Eigen::MatrixXd::Identity(num_terms_, num_terms_));
   const Eigen::VectorXd d = r_inverse.rowwise().squaredNorm();
   inverse_normal_diagonal_ = qr.colsPermutation() * d;
+  return true;
+}
+
+bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a, const Eigen::MatrixXd& b_position,
+                                          const Eigen::MatrixXd& b_orientation) {
+  const Eigen::MatrixXd& u = undetermined_.basis;  // num_terms x k
+  const auto k = u.cols();
+  const Eigen::MatrixXd a_sub = a * u;
+  const Eigen::ColPivHouseholderQR<Eigen::MatrixXd> qr(a_sub);
+  if (k == 0 || qr.rank() < k) return false;
+  // B = U (x) I_3 in the block's term-major layout.
+  Eigen::MatrixXd b = Eigen::MatrixXd::Zero(3 * num_terms_, 3 * k);
+  for (int j = 0; j < num_terms_; ++j) {
+    for (Eigen::Index i = 0; i < k; ++i) {
+      for (int c = 0; c < 3; ++c) b(3 * j + c, 3 * i + c) = u(j, i);
+    }
+  }
+  const auto make = [b]() -> ceres::Manifold* { return new CoefficientSubspaceManifold(b); };
+  std::ostringstream note;
+  note << undetermined_.dropped_amplifications.size() << " of its " << num_terms_
+       << " directions not determined by the stations (over their box it would be "
+       << static_cast<long>(std::lround(undetermined_.dropped_amplifications.front()))
+       << " times as large as at them; e.g. degree " << options_.degree
+       << " on a grid of fewer than " << options_.degree + 1
+       << " layers): held at zero, the others fitted (docs/model-file.md, \"Undetermined "
+          "directions\")";
+  auto store = [&](int block_index, const Eigen::MatrixXd& rhs) {
+    if (block_index < 0) return;
+    auto& block = blocks_[static_cast<size_t>(block_index)];
+    if (block.fixed) return;
+    const Eigen::MatrixXd c = u * qr.solve(rhs);  // num_terms x 3
+    for (int j = 0; j < num_terms_; ++j) {
+      for (int m = 0; m < 3; ++m) block.values[static_cast<size_t>(j * 3 + m)] = c(j, m);
+    }
+    block.make_manifold = make;
+    block.ambient_from_tangent = b;
+    block.tangent_names.clear();
+    for (Eigen::Index i = 0; i < k; ++i) {
+      for (int m = 0; m < 3; ++m) {
+        block.tangent_names.push_back("determined_direction[" + std::to_string(i) + "]." + "xyz"[m]);
+      }
+    }
+    block.tangent_unit = block.unit;
+    block.identifiability_note = note.str();
+  };
+  store(position_block_, b_position);
+  store(orientation_block_, b_orientation);
+  // diag((A^T A)^-1) restricted to the subspace: diag(U (A_s^T A_s)^-1 U^T) = row norms of U R^-1 P^T.
+  const Eigen::MatrixXd r = qr.matrixR().topLeftCorner(k, k).triangularView<Eigen::Upper>();
+  const Eigen::MatrixXd r_inverse =
+      r.triangularView<Eigen::Upper>().solve(Eigen::MatrixXd::Identity(k, k));
+  const Eigen::MatrixXd w = u * (qr.colsPermutation() * r_inverse);
+  inverse_normal_diagonal_ = w.rowwise().squaredNorm();
   return true;
 }
 
@@ -547,6 +744,9 @@ nlohmann::json PolynomialTerm::Describe() const {
                                PolynomialTermOptions::RidgeSelection::kBlocked
                            ? nlohmann::json("blocked")
                            : nlohmann::json("leave_one_out")},
+          {"max_amplification", options_.max_amplification},
+          {"undetermined_directions", undetermined_.dropped_amplifications.size()},
+          {"undetermined_amplification", undetermined_.dropped_amplifications},
           {"input_offset", {options_.input_offset[0], options_.input_offset[1], options_.input_offset[2]}},
           {"input_scale", {options_.input_scale[0], options_.input_scale[1], options_.input_scale[2]}}};
 }

@@ -36,6 +36,17 @@ struct PolynomialTermOptions {
   // rule (blind to extrapolation: a station's neighbours are always in the training set).
   enum class RidgeSelection { kBlocked, kLeaveOneOut };
   RidgeSelection ridge_selection = RidgeSelection::kBlocked;
+  // Largest amplification of a fitted direction (0: no limit). Without a ridge, a direction of the
+  // coefficients whose RMS over the stations' box is more than this many times its RMS at the
+  // stations is not fitted (held at zero; FindDeterminedSubspace). With a grid of L layers a
+  // polynomial of degree >= L has such directions, (z - z1)...(z - zL) times lower powers: at
+  // stations that sit on their layers to within delta they are ~h / (6 delta) times smaller than
+  // between the layers (h the spacing), so a polynomial chained after an accurate physical
+  // correction fits them to noise and blows that up between the layers. Measured: the paper
+  // preset's 4 layers at the true positions (degree 4): 681, every other direction at most 1.4; on
+  // the raw reports at most 2.9; 5 layers at most 1.5; random stations, degree 8, 480-545
+  // stations: at most 14 (kept). docs/model-file.md, "Undetermined directions".
+  double max_amplification = 20.0;
   // Normalisation of the input (NaN: from the bounding box of the data in Prepare()).
   Eigen::Vector3d input_offset = Eigen::Vector3d::Constant(NAN);
   Eigen::Vector3d input_scale = Eigen::Vector3d::Constant(NAN);
@@ -106,6 +117,25 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
              T* output7) const;
 
   const PolynomialTermOptions& options() const { return options_; }
+
+  // What stations with monomial matrix `a` (stations x terms, inputs normalised to the box
+  // [-1, 1]^3) determine. The undetermined directions are the generalized eigenvectors of
+  // (A^T A / n, the box's Gram matrix) whose RMS over the box is more than `max_amplification`
+  // times their RMS at the stations (`dropped_amplifications`, largest first). `basis` (terms x k,
+  // orthonormal) spans the coefficients fitted instead: those with no component of the
+  // undetermined directions in their highest-degree monomials (so a polynomial of lower degree
+  // than those is fitted without bias); the identity when nothing is dropped.
+  struct DeterminedSubspace {
+    Eigen::MatrixXd basis;
+    std::vector<double> dropped_amplifications;
+    double max_kept_amplification = 0.0;
+  };
+  static DeterminedSubspace FindDeterminedSubspace(const Eigen::MatrixXd& a, int degree,
+                                                   double max_amplification);
+  // E[m_i m_j] over the uniform box [-1, 1]^3 for the monomials of `degree` (canonical order).
+  static Eigen::MatrixXd BoxGram(int degree);
+  // The last InitializeLinear()'s subspace when it held directions (else empty).
+  const DeterminedSubspace& undetermined() const { return undetermined_; }
   // Coefficients (R x 3, term-major) of each part; zeros for a disabled part.
   std::vector<double> PositionCoefficients() const;
   std::vector<double> OrientationCoefficients() const;
@@ -119,6 +149,9 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   Eigen::Vector2d ridge_used_ = Eigen::Vector2d::Zero();
   Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);  // the model's noise (ridge whitening)
   Eigen::Vector2d loo_rms_ = Eigen::Vector2d::Constant(NAN);  // leave-one-out RMS at the chosen ridge
+  DeterminedSubspace undetermined_;
+  bool InitializeInSubspace(const Eigen::MatrixXd& a, const Eigen::MatrixXd& b_position,
+                            const Eigen::MatrixXd& b_orientation);
 };
 
 template <typename T>

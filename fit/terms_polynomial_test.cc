@@ -129,7 +129,7 @@ TEST(PolynomialTerm, JacobiansMatchCentralDifferences) {
 // On a grid with 4 heights, z^4 equals a cubic at every station: the degree-4 fit has a near-null
 // direction that the noise sets. ridge: auto (leave-one-out, one-standard-error rule) shrinks it, so
 // the polynomial stays near the truth between and beyond the heights, where the plain fit does not.
-TEST(PolynomialTerm, RidgeAutoTamesTheNearNullDirectionOfAFourHeightGrid) {
+TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
   std::mt19937 rng(11);
   std::normal_distribution<double> normal;
   const PolynomialTerm truth = RandomTruth(2, &rng);  // smooth: what the grid does determine
@@ -161,21 +161,36 @@ TEST(PolynomialTerm, RidgeAutoTamesTheNearNullDirectionOfAFourHeightGrid) {
   };
   PolynomialTermOptions options;
   options.degree = 4;
+  options.max_amplification = 0;  // fit every direction
   PolynomialTerm plain(options);
   plain.Prepare(stations);
   ASSERT_TRUE(plain.InitializeLinear(stations, Eigen::Vector2d(1e-4, 1e-4)));
+  // The default holds the direction the 4 heights do not determine (z^4 against the heights'
+  // quartic) and fits the rest: no ridge needed.
+  options.max_amplification = PolynomialTermOptions().max_amplification;
+  PolynomialTerm held(options);
+  held.Prepare(stations);
+  ASSERT_TRUE(held.InitializeLinear(stations, Eigen::Vector2d(1e-4, 1e-4)));
+  ASSERT_EQ(held.undetermined().dropped_amplifications.size(), 1u);
+  // h / (6 delta) = 0.1 m / 0.6 mm ~ 170 (docs/model-file.md); the test needs only "> 20".
+  EXPECT_GT(held.undetermined().dropped_amplifications[0], 100.0);
+  EXPECT_LT(held.undetermined().max_kept_amplification, 3.0);
   options.ridge_auto = true;
   PolynomialTerm ridge(options);
   ridge.Prepare(stations);
   ASSERT_TRUE(ridge.InitializeLinear(stations, Eigen::Vector2d(1e-4, 1e-4)));
   EXPECT_GT(ridge.ridge_used()[0], 0.0);
   const double plain_error = worst_between_heights(plain), ridge_error = worst_between_heights(ridge);
-  std::cout << "worst position error off the heights: plain " << plain_error * 1e3 << " mm, ridge "
-            << ridge_error * 1e3 << " mm (ridge " << ridge.ridge_used()[0] << ")\n";
+  const double held_error = worst_between_heights(held);
+  std::cout << "worst position error off the heights: every direction " << plain_error * 1e3
+            << " mm, undetermined held " << held_error * 1e3 << " mm, ridge " << ridge_error * 1e3
+            << " mm (ridge " << ridge.ridge_used()[0] << ")\n";
   // The stations' noise is 0.1 mm; 5 cm beyond the outer heights (a third of the spacing) the
-  // extrapolation amplifies it: the ridge fit stays within 1 mm (measured 0.46 mm), the plain one
-  // fits the near-null direction to the noise and swings by more than 10 times as much (12.5 mm).
+  // extrapolation amplifies it: the ridge fit stays within 1 mm (measured 0.46 mm), the fit of
+  // every direction fits the near-null one to the noise and swings by more than 10 times as much
+  // (12.5 mm), holding it stays within 1 mm too.
   EXPECT_LT(ridge_error, 1e-3);
+  EXPECT_LT(held_error, 1e-3);
   EXPECT_GT(plain_error, 10.0 * ridge_error);
 }
 
