@@ -122,26 +122,42 @@ PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(const 
   // keep the solution smallest over the box, which is not the smooth one (a quadratic error field
   // has a component along (z - z1)...(z - z4) in that sense and would lose it). Instead the
   // directions are taken out of the highest-degree coefficients: the kept coefficients c satisfy
-  // V_T^T c_T = 0, T the monomials of degree >= d0 with d0 the highest degree for which V_T has
-  // full column rank. A polynomial of degree < d0 satisfies it, so it is fitted without bias.
+  // V_T^T c_T = 0, T the monomials of degree >= d0 with d0 the highest degree for which the
+  // subspace this leaves meets the limit. A polynomial of degree < d0 satisfies it, so it is
+  // fitted without bias.
   const auto exponents = PolynomialTermExponents(degree);
   Eigen::MatrixXd v(n, m);
   for (Eigen::Index j = 0; j < m; ++j) v.col(j) = solver.eigenvectors().col(dropped[static_cast<size_t>(j)]);
-  Eigen::MatrixXd constraint;  // m x n
+  // The null space of the constraint (the last n - m columns of the complete Q of K^T), accepted
+  // only when K^T has full rank and every direction left in it meets the limit: a rank test
+  // alone passes near-dependent top-degree rows (degree 5 on 4 layers) and leaves an
+  // undetermined direction inside (review, numpy: 1095 left of 1167).
+  const Eigen::MatrixXd gv = BoxGram(degree);
   for (int d0 = degree; d0 >= 0; --d0) {
-    constraint = Eigen::MatrixXd::Zero(m, n);
+    Eigen::MatrixXd constraint = Eigen::MatrixXd::Zero(m, n);
     for (Eigen::Index j = 0; j < n; ++j) {
       const auto& e = exponents[static_cast<size_t>(j)];
       if (e[0] + e[1] + e[2] >= d0) constraint.col(j) = v.row(j).transpose();
     }
-    const Eigen::FullPivHouseholderQR<Eigen::MatrixXd> qr(constraint.transpose());
-    if (qr.rank() == m) break;
+    const Eigen::HouseholderQR<Eigen::MatrixXd> qr(constraint.transpose());
+    const Eigen::MatrixXd q = qr.householderQ() * Eigen::MatrixXd::Identity(n, n);
+    const Eigen::MatrixXd u = q.rightCols(n - m);
+    const Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> kept(
+        u.transpose() * gs * u, u.transpose() * gv * u, Eigen::EigenvaluesOnly);
+    if (kept.eigenvalues().minCoeff() >= mu_min) {
+      out.basis = u;
+      return out;
+    }
   }
-  // An orthonormal basis of the constraint's null space: the last n - m columns of the complete Q
-  // of K^T.
-  const Eigen::HouseholderQR<Eigen::MatrixXd> qr(constraint.transpose());
-  const Eigen::MatrixXd q = qr.householderQ() * Eigen::MatrixXd::Identity(n, n);
-  out.basis = q.rightCols(n - m);
+  // No degree split works: the eigenvectors that meet the limit (smallest over the box among the
+  // solutions; a low-degree field may then lose its component along the held directions).
+  Eigen::MatrixXd x(n, n - m);
+  Eigen::Index col = 0;
+  for (Eigen::Index i = 0; i < mu.size(); ++i) {
+    if (mu[i] >= mu_min) x.col(col++) = solver.eigenvectors().col(i);
+  }
+  const Eigen::HouseholderQR<Eigen::MatrixXd> orth(x);
+  out.basis = orth.householderQ() * Eigen::MatrixXd::Identity(n, n - m);
   return out;
 }
 
@@ -414,6 +430,16 @@ std::vector<double> PolynomialTerm::BlockedRidgeCv(int degree, const Eigen::Matr
 bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
                                       const Eigen::Vector2d& noise_sigmas) {
   sigmas_ = noise_sigmas;
+  // No subspace from an earlier call survives (FindDeterminedSubspace below sets a new one).
+  undetermined_ = {};
+  for (int index : {position_block_, orientation_block_}) {
+    if (index < 0) continue;
+    auto& block = blocks_[static_cast<size_t>(index)];
+    block.make_manifold = nullptr;
+    block.ambient_from_tangent.resize(0, 0);
+    block.tangent_names.clear();
+    block.identifiability_note.clear();
+  }
   const int n = static_cast<int>(inputs.size());
   if (n < num_terms_) return false;
   Eigen::MatrixXd a(n, num_terms_), u(n, 3);
@@ -488,21 +514,21 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   // The directions the stations determine (FindDeterminedSubspace): when some are not, the fit
   // moves the coefficients only within the others, and those stay at the least-squares solution
   // in that subspace (zero along the rest).
-  undetermined_ = {};
+  // Bounds would be applied after the manifold's step and leave the subspace: a block with bounds
+  // fits every direction.
+  bool bounded = false;
   for (int index : {position_block_, orientation_block_}) {
-    if (index < 0) continue;
-    auto& block = blocks_[static_cast<size_t>(index)];
-    block.make_manifold = nullptr;
-    block.ambient_from_tangent.resize(0, 0);
-    block.tangent_names.clear();
-    block.identifiability_note.clear();
+    if (index >= 0) bounded = bounded || !blocks_[static_cast<size_t>(index)].lower.empty() ||
+                              !blocks_[static_cast<size_t>(index)].upper.empty();
   }
-  if (options_.max_amplification > 0) {
+  if (options_.max_amplification > 0 && !bounded) {
     DeterminedSubspace subspace = FindDeterminedSubspace(a, options_.degree,
                                                          options_.max_amplification);
     if (!subspace.dropped_amplifications.empty()) {
       undetermined_ = subspace;
-      return InitializeInSubspace(a, b_position, b_orientation);
+      if (InitializeInSubspace(a, b_position, b_orientation)) return true;
+      undetermined_ = {};
+      return false;
     }
   }
   // Column-pivoting QR on the normalised basis: the paper's eq. 9 without forming A^T A (squaring
@@ -544,13 +570,16 @@ bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a, const Eigen:
   }
   const auto make = [b]() -> ceres::Manifold* { return new CoefficientSubspaceManifold(b); };
   std::ostringstream note;
+  const double largest = undetermined_.dropped_amplifications.front();
   note << undetermined_.dropped_amplifications.size() << " of its " << num_terms_
        << " directions not determined by the stations (over their box it would be "
-       << static_cast<long>(std::lround(undetermined_.dropped_amplifications.front()))
-       << " times as large as at them; e.g. degree " << options_.degree
-       << " on a grid of fewer than " << options_.degree + 1
-       << " layers): held at zero, the others fitted (docs/model-file.md, \"Undetermined "
-          "directions\")";
+       << (std::isfinite(largest) && largest < 1e12
+               ? std::to_string(static_cast<long>(std::lround(largest))) + " times"
+               : std::string("unboundedly"))
+       << " as large as at them; e.g. degree " << options_.degree << " on a grid of fewer than "
+       << options_.degree + 1
+       << " layers): taken out of its highest-degree coefficients, the rest fitted "
+          "(docs/model-file.md, \"Undetermined directions\")";
   auto store = [&](int block_index, const Eigen::MatrixXd& rhs) {
     if (block_index < 0) return;
     auto& block = blocks_[static_cast<size_t>(block_index)];
@@ -746,7 +775,13 @@ nlohmann::json PolynomialTerm::Describe() const {
                            : nlohmann::json("leave_one_out")},
           {"max_amplification", options_.max_amplification},
           {"undetermined_directions", undetermined_.dropped_amplifications.size()},
-          {"undetermined_amplification", undetermined_.dropped_amplifications},
+          {"undetermined_amplification", [this] {
+             nlohmann::json a = nlohmann::json::array();  // null: unbounded (no station sees it)
+             for (double v : undetermined_.dropped_amplifications) {
+               a.push_back(std::isfinite(v) ? nlohmann::json(v) : nlohmann::json());
+             }
+             return a;
+           }()},
           {"input_offset", {options_.input_offset[0], options_.input_offset[1], options_.input_offset[2]}},
           {"input_scale", {options_.input_scale[0], options_.input_scale[1], options_.input_scale[2]}}};
 }
