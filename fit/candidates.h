@@ -267,6 +267,10 @@ struct Candidate {
   // robust_loss: stations as far beyond the capture's errors whose neighbours' errors are as large
   // (a local effect the model lacks, not outliers).
   std::vector<int> local_structure_stations;
+  std::string local_structure_note;  // where they are, in words (empty: none)
+  // Stations left out of delta BIC because the candidate's or the base's runtime inverse found no
+  // root there (at most max_outlier_fraction of them; else they count).
+  int bic_unresolved_left_out = 0;
   std::string statement;                    // physical summary with units and +- 1 sigma
   double seconds = 0.0;
 };
