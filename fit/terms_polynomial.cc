@@ -72,8 +72,15 @@ class CoefficientSubspaceManifold : public ceres::Manifold {
 
 }  // namespace
 
-Eigen::MatrixXd PolynomialTerm::BoxGram(int degree) {
-  // E[u^a] over the uniform box [-1, 1]: 1 / (a + 1) for even a, 0 for odd a; per axis.
+Eigen::MatrixXd PolynomialTerm::BoxGram(int degree, const Eigen::Vector3d& lo,
+                                        const Eigen::Vector3d& hi) {
+  // E[u^a] over the uniform interval [lo, hi] per axis: (hi^(a+1) - lo^(a+1)) / ((a+1)(hi - lo));
+  // [-1, 1]: 1 / (a + 1) for even a, 0 for odd a.
+  auto moment = [&](int k, int a) {
+    const double l = lo[k], h = hi[k];
+    if (!(h - l > 1e-12)) return std::pow(l, a);
+    return (std::pow(h, a + 1) - std::pow(l, a + 1)) / ((a + 1) * (h - l));
+  };
   const auto exponents = PolynomialTermExponents(degree);
   const auto n = static_cast<Eigen::Index>(exponents.size());
   Eigen::MatrixXd g(n, n);
@@ -81,8 +88,7 @@ Eigen::MatrixXd PolynomialTerm::BoxGram(int degree) {
     for (Eigen::Index j = 0; j < n; ++j) {
       double m = 1.0;
       for (int k = 0; k < 3; ++k) {
-        const int a = exponents[static_cast<size_t>(i)][k] + exponents[static_cast<size_t>(j)][k];
-        m *= a % 2 == 0 ? 1.0 / (a + 1) : 0.0;
+        m *= moment(k, exponents[static_cast<size_t>(i)][k] + exponents[static_cast<size_t>(j)][k]);
       }
       g(i, j) = m;
     }
@@ -90,14 +96,64 @@ Eigen::MatrixXd PolynomialTerm::BoxGram(int degree) {
   return g;
 }
 
-PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(const Eigen::MatrixXd& a,
-                                                                         int degree,
-                                                                         double max_amplification) {
+std::vector<bool> PolynomialTerm::IsolatedStations(const Eigen::MatrixXd& u) {
+  const auto n = static_cast<size_t>(u.rows());
+  std::vector<bool> isolated(n, false);
+  if (n < 10) return isolated;
+  std::vector<double> nearest(n, std::numeric_limits<double>::infinity());
+  for (size_t i = 0; i < n; ++i) {
+    for (size_t j = i + 1; j < n; ++j) {
+      const double d = (u.row(static_cast<Eigen::Index>(i)) - u.row(static_cast<Eigen::Index>(j)))
+                           .squaredNorm();
+      nearest[i] = std::min(nearest[i], d);
+      nearest[j] = std::min(nearest[j], d);
+    }
+  }
+  std::vector<double> sorted = nearest;
+  std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2),
+                   sorted.end());
+  const double median = sorted[n / 2];  // squared
+  for (size_t i = 0; i < n; ++i) isolated[i] = nearest[i] > 16.0 * median;  // 4x the distance
+  return isolated;
+}
+
+PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(
+    const Eigen::MatrixXd& a, int degree, double max_amplification, const Eigen::MatrixXd* u) {
+  // The volume: the box of the stations that are not isolated (u given), else [-1, 1]^3. A station
+  // whose nearest neighbour is more than 4 times the median nearest-neighbour distance away (a
+  // hemisphere flip reports -p, on the far side of the transmitter) would otherwise stretch the
+  // box over empty space, where every polynomial is undetermined (measured, workflow capture,
+  // hemisphere_flips seed 1: 9 directions held, and the loop stopped before the workbench frame).
+  DeterminedSubspace out;
+  Eigen::Vector3d lo = -Eigen::Vector3d::Ones(), hi = Eigen::Vector3d::Ones();
+  std::vector<Eigen::Index> rows;
+  if (u != nullptr && u->rows() == a.rows()) {
+    const std::vector<bool> isolated = IsolatedStations(*u);
+    lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+    hi = -lo;
+    for (Eigen::Index i = 0; i < a.rows(); ++i) {
+      if (isolated[static_cast<size_t>(i)]) {
+        ++out.isolated_stations;
+        continue;
+      }
+      rows.push_back(i);
+      lo = lo.cwiseMin(u->row(i).transpose());
+      hi = hi.cwiseMax(u->row(i).transpose());
+    }
+    for (int k = 0; k < 3; ++k) {
+      if (!(hi[k] - lo[k] > 1e-9)) lo[k] = -1.0, hi[k] = 1.0;  // a flat axis: as the normalisation
+    }
+  } else {
+    for (Eigen::Index i = 0; i < a.rows(); ++i) rows.push_back(i);
+  }
+  Eigen::MatrixXd kept_rows(static_cast<Eigen::Index>(rows.size()), a.cols());
+  for (size_t i = 0; i < rows.size(); ++i) kept_rows.row(static_cast<Eigen::Index>(i)) = a.row(rows[i]);
   // Gs c = mu Gv c (Gv positive definite): the eigenvectors are Gv-orthonormal, and a direction's
   // RMS over the box is 1 / sqrt(mu) times its RMS at the stations.
-  const Eigen::MatrixXd gs = a.transpose() * a / static_cast<double>(std::max<Eigen::Index>(1, a.rows()));
-  const Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> solver(gs, BoxGram(degree));
-  DeterminedSubspace out;
+  const Eigen::MatrixXd gs = kept_rows.transpose() * kept_rows /
+                             static_cast<double>(std::max<Eigen::Index>(1, kept_rows.rows()));
+  const Eigen::MatrixXd gv = BoxGram(degree, lo, hi);
+  const Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> solver(gs, gv);
   const Eigen::VectorXd& mu = solver.eigenvalues();  // ascending
   const double mu_min = 1.0 / (max_amplification * max_amplification);
   std::vector<Eigen::Index> dropped;
@@ -132,7 +188,6 @@ PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(const 
   // only when K^T has full rank and every direction left in it meets the limit: a rank test
   // alone passes near-dependent top-degree rows (degree 5 on 4 layers) and leaves an
   // undetermined direction inside (review, numpy: 1095 left of 1167).
-  const Eigen::MatrixXd gv = BoxGram(degree);
   for (int d0 = degree; d0 >= 0; --d0) {
     Eigen::MatrixXd constraint = Eigen::MatrixXd::Zero(m, n);
     for (Eigen::Index j = 0; j < n; ++j) {
@@ -523,7 +578,7 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   }
   if (options_.max_amplification > 0 && !bounded) {
     DeterminedSubspace subspace = FindDeterminedSubspace(a, options_.degree,
-                                                         options_.max_amplification);
+                                                         options_.max_amplification, &u);
     if (!subspace.dropped_amplifications.empty()) {
       undetermined_ = subspace;
       if (InitializeInSubspace(a, b_position, b_orientation)) return true;
@@ -775,6 +830,7 @@ nlohmann::json PolynomialTerm::Describe() const {
                            : nlohmann::json("leave_one_out")},
           {"max_amplification", options_.max_amplification},
           {"undetermined_directions", undetermined_.dropped_amplifications.size()},
+          {"undetermined_isolated_stations", undetermined_.isolated_stations},
           {"undetermined_amplification", [this] {
              nlohmann::json a = nlohmann::json::array();  // null: unbounded (no station sees it)
              for (double v : undetermined_.dropped_amplifications) {

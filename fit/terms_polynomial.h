@@ -125,15 +125,24 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   // orthonormal) spans the coefficients fitted instead: those with no component of the
   // undetermined directions in their highest-degree monomials (so a polynomial of lower degree
   // than those is fitted without bias); the identity when nothing is dropped.
+  // With `u` (stations x 3, the normalised inputs), the box is that of the stations that are not
+  // isolated (IsolatedStations), and only they enter A^T A; without, [-1, 1]^3 and every station.
   struct DeterminedSubspace {
     Eigen::MatrixXd basis;
     std::vector<double> dropped_amplifications;
     double max_kept_amplification = 0.0;
+    int isolated_stations = 0;  // left out of the volume and of A^T A
   };
   static DeterminedSubspace FindDeterminedSubspace(const Eigen::MatrixXd& a, int degree,
-                                                   double max_amplification);
-  // E[m_i m_j] over the uniform box [-1, 1]^3 for the monomials of `degree` (canonical order).
-  static Eigen::MatrixXd BoxGram(int degree);
+                                                   double max_amplification,
+                                                   const Eigen::MatrixXd* u = nullptr);
+  // E[m_i m_j] over the uniform box [lo, hi] (default [-1, 1]^3) for the monomials of `degree`
+  // (canonical order); a flat axis (lo = hi) contributes its value's powers.
+  static Eigen::MatrixXd BoxGram(int degree, const Eigen::Vector3d& lo = -Eigen::Vector3d::Ones(),
+                                 const Eigen::Vector3d& hi = Eigen::Vector3d::Ones());
+  // Stations whose nearest neighbour (in `u`) is more than 4 times the median nearest-neighbour
+  // distance away (fewer than 10 stations: none).
+  static std::vector<bool> IsolatedStations(const Eigen::MatrixXd& u);
   // The last InitializeLinear()'s subspace when it held directions (else empty).
   const DeterminedSubspace& undetermined() const { return undetermined_; }
   // Coefficients (R x 3, term-major) of each part; zeros for a disabled part.

@@ -174,6 +174,21 @@ TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
   held.Prepare(stations);
   ASSERT_TRUE(held.InitializeLinear(stations, Eigen::Vector2d(1e-4, 1e-4)));
   ASSERT_EQ(held.undetermined().dropped_amplifications.size(), 1u);
+  EXPECT_EQ(held.undetermined().isolated_stations, 0);
+  {
+    // Three hemisphere flips (reported at -p) stretch the input box over empty space; they are
+    // isolated, left out of the volume, and the same single direction is undetermined (before:
+    // 3, amplifications 206, 31 and 24 on the workflow's hemisphere_flips seed 1).
+    std::vector<FitStation> flipped = stations;
+    for (size_t i : {17u, 200u, 401u}) flipped[i].reported.translation *= -1.0;
+    PolynomialTermOptions o;
+    o.degree = 4;
+    PolynomialTerm with_flips(o);
+    with_flips.Prepare(flipped);
+    ASSERT_TRUE(with_flips.InitializeLinear(flipped, Eigen::Vector2d(1e-4, 1e-4)));
+    EXPECT_EQ(with_flips.undetermined().dropped_amplifications.size(), 1u);
+    EXPECT_EQ(with_flips.undetermined().isolated_stations, 3);
+  }
   // h / (6 delta) = 0.1 m / 0.6 mm ~ 170 (docs/model-file.md); the test needs only "> 20".
   EXPECT_GT(held.undetermined().dropped_amplifications[0], 100.0);
   EXPECT_LT(held.undetermined().max_kept_amplification, 3.0);
