@@ -1624,7 +1624,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
           unresolved.push_back(j);
         }
       }
-      if (!unresolved.empty() && static_cast<double>(unresolved.size()) <=
+      // (A robust loss's delta BIC is the mean-shift model's over every station, below.)
+      if (c.kind != CandidateKind::kRobustLoss && !unresolved.empty() &&
+          static_cast<double>(unresolved.size()) <=
                                      options.max_outlier_fraction * static_cast<double>(own.size())) {
         for (size_t j : unresolved) {
           use_own[j] = false;

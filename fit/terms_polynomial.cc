@@ -99,7 +99,8 @@ Eigen::MatrixXd PolynomialTerm::BoxGram(int degree, const Eigen::Vector3d& lo,
 std::vector<bool> PolynomialTerm::IsolatedStations(const Eigen::MatrixXd& u) {
   const auto n = static_cast<size_t>(u.rows());
   std::vector<bool> isolated(n, false);
-  if (n < 10) return isolated;
+  // O(n^2): beyond kMaxIsolationStations (long streams) nothing is flagged.
+  if (n < 10 || n > kMaxIsolationStations) return isolated;
   std::vector<double> nearest(n, std::numeric_limits<double>::infinity());
   for (size_t i = 0; i < n; ++i) {
     for (size_t j = i + 1; j < n; ++j) {
@@ -113,7 +114,19 @@ std::vector<bool> PolynomialTerm::IsolatedStations(const Eigen::MatrixXd& u) {
   std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2),
                    sorted.end());
   const double median = sorted[n / 2];  // squared
-  for (size_t i = 0; i < n; ++i) isolated[i] = nearest[i] > 16.0 * median;  // 4x the distance
+  // 4 times the median distance, and at least an eighth of the normalised range (2): with half the
+  // stations in tight clusters (pauses of a stream, repeated stations) the median alone is the
+  // clusters' spacing and would flag every other station (review: 1401 of 3600 samples).
+  const double limit = std::max(16.0 * median, 0.25 * 0.25);
+  size_t count = 0;
+  for (size_t i = 0; i < n; ++i) {
+    isolated[i] = nearest[i] > limit;
+    count += isolated[i] ? 1 : 0;
+  }
+  // Gross outliers are few: when more would be flagged, the stations are merely uneven.
+  if (static_cast<double>(count) > std::max(3.0, 0.05 * static_cast<double>(n))) {
+    std::fill(isolated.begin(), isolated.end(), false);
+  }
   return isolated;
 }
 
@@ -123,7 +136,8 @@ PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(
   // whose nearest neighbour is more than 4 times the median nearest-neighbour distance away (a
   // hemisphere flip reports -p, on the far side of the transmitter) would otherwise stretch the
   // box over empty space, where every polynomial is undetermined (measured, workflow capture,
-  // hemisphere_flips seed 1: 9 directions held, and the loop stopped before the workbench frame).
+  // hemisphere_flips seed 1: 3 directions held in every fit, and the loop stopped before the
+  // workbench frame).
   DeterminedSubspace out;
   Eigen::Vector3d lo = -Eigen::Vector3d::Ones(), hi = Eigen::Vector3d::Ones();
   std::vector<Eigen::Index> rows;
@@ -140,10 +154,19 @@ PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(
       lo = lo.cwiseMin(u->row(i).transpose());
       hi = hi.cwiseMax(u->row(i).transpose());
     }
-    for (int k = 0; k < 3; ++k) {
-      if (!(hi[k] - lo[k] > 1e-9)) lo[k] = -1.0, hi[k] = 1.0;  // a flat axis: as the normalisation
+    // A box much thinner than the normalisation's makes its Gram matrix numerically singular (a
+    // condition number ~1e14 for a slab 0.02 wide, review): then, as for a flat axis, the
+    // normalised box and every station.
+    bool thin = false;
+    for (int k = 0; k < 3; ++k) thin = thin || !(hi[k] - lo[k] > 0.5);
+    if (thin) {
+      lo = -Eigen::Vector3d::Ones();
+      hi = Eigen::Vector3d::Ones();
+      rows.clear();
+      out.isolated_stations = 0;
     }
-  } else {
+  }
+  if (rows.empty()) {
     for (Eigen::Index i = 0; i < a.rows(); ++i) rows.push_back(i);
   }
   Eigen::MatrixXd kept_rows(static_cast<Eigen::Index>(rows.size()), a.cols());
@@ -185,8 +208,8 @@ PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(
   Eigen::MatrixXd v(n, m);
   for (Eigen::Index j = 0; j < m; ++j) v.col(j) = solver.eigenvectors().col(dropped[static_cast<size_t>(j)]);
   // The null space of the constraint (the last n - m columns of the complete Q of K^T), accepted
-  // only when K^T has full rank and every direction left in it meets the limit: a rank test
-  // alone passes near-dependent top-degree rows (degree 5 on 4 layers) and leaves an
+  // only when every direction left in it meets the limit (the restricted eigenproblem): a rank
+  // test on the top-degree rows passes near-dependent ones (degree 5 on 4 layers) and leaves an
   // undetermined direction inside (review, numpy: 1095 left of 1167).
   for (int d0 = degree; d0 >= 0; --d0) {
     Eigen::MatrixXd constraint = Eigen::MatrixXd::Zero(m, n);

@@ -38,7 +38,7 @@ struct PolynomialTermOptions {
   RidgeSelection ridge_selection = RidgeSelection::kBlocked;
   // Largest amplification of a fitted direction (0: no limit). Without a ridge, a direction of the
   // coefficients whose RMS over the stations' box is more than this many times its RMS at the
-  // stations is not fitted (held at zero; FindDeterminedSubspace). With a grid of L layers a
+  // stations is not fitted (taken out of the highest-degree coefficients; FindDeterminedSubspace). With a grid of L layers a
   // polynomial of degree >= L has such directions, (z - z1)...(z - zL) times lower powers: at
   // stations that sit on their layers to within delta they are ~h / (6 delta) times smaller than
   // between the layers (h the spacing), so a polynomial chained after an accurate physical
@@ -141,7 +141,9 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   static Eigen::MatrixXd BoxGram(int degree, const Eigen::Vector3d& lo = -Eigen::Vector3d::Ones(),
                                  const Eigen::Vector3d& hi = Eigen::Vector3d::Ones());
   // Stations whose nearest neighbour (in `u`) is more than 4 times the median nearest-neighbour
-  // distance away (fewer than 10 stations: none).
+  // distance and more than 0.25 (an eighth of the normalised range) away; none when fewer than 10
+  // or more than kMaxIsolationStations stations, or when more than max(3, 5 %) would be flagged.
+  static constexpr size_t kMaxIsolationStations = 5000;
   static std::vector<bool> IsolatedStations(const Eigen::MatrixXd& u);
   // The last InitializeLinear()'s subspace when it held directions (else empty).
   const DeterminedSubspace& undetermined() const { return undetermined_; }

@@ -4,6 +4,7 @@
 
 #include <Eigen/Eigenvalues>
 
+#include <algorithm>
 #include <cstdlib>
 #include <iostream>
 #include <map>
@@ -188,6 +189,29 @@ TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
     ASSERT_TRUE(with_flips.InitializeLinear(flipped, Eigen::Vector2d(1e-4, 1e-4)));
     EXPECT_EQ(with_flips.undetermined().dropped_amplifications.size(), 1u);
     EXPECT_EQ(with_flips.undetermined().isolated_stations, 3);
+  }
+  {
+    // Half the stations measured twice (2 mm apart): the median nearest-neighbour distance is then
+    // the repeats', and without the floor every other station would be "isolated" (review).
+    std::vector<FitStation> repeated = stations;
+    for (const auto& s : stations) {
+      if (s.reported.translation.z() < 0.3) {
+        FitStation again = s;
+        again.reported.translation.x() += 0.002;
+        repeated.push_back(again);
+      }
+    }
+    Eigen::MatrixXd u(static_cast<Eigen::Index>(repeated.size()), 3);
+    PolynomialTerm probe(options);
+    probe.Prepare(repeated);
+    for (size_t i = 0; i < repeated.size(); ++i) {
+      double ui[3];
+      NormalizePolynomialInput(repeated[i].reported.translation.data(), probe.options().input_offset,
+                               probe.options().input_scale, ui);
+      u.row(static_cast<Eigen::Index>(i)) << ui[0], ui[1], ui[2];
+    }
+    const std::vector<bool> isolated = PolynomialTerm::IsolatedStations(u);
+    EXPECT_EQ(std::count(isolated.begin(), isolated.end(), true), 0);
   }
   // h / (6 delta) = 0.1 m / 0.6 mm ~ 170 (docs/model-file.md); the test needs only "> 20".
   EXPECT_GT(held.undetermined().dropped_amplifications[0], 100.0);
