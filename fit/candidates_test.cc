@@ -72,6 +72,21 @@ CandidateOptions TestOptions() {
   return o;
 }
 
+// The robust_loss candidate alone on a polynomial model of `degree` (the stations' noise).
+Diagnosis DiagnoseRobustLossOnly(const std::vector<FitStation>& stations, int degree,
+                                 int outlier_neighbours = CandidateOptions().outlier_neighbours) {
+  const std::string model =
+      "noise: {position_mm: 0.1, orientation_deg: 0.0171887}\nterms:\n  - type: polynomial\n"
+      "    degree: " + std::to_string(degree) + "\n";
+  CandidateOptions o = TestOptions();
+  o.effects = {"robust_loss"};
+  o.flexible.clear();
+  o.outlier_neighbours = outlier_neighbours;
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  std::cout << FormatDiagnosis(d);
+  return d;
+}
+
 TEST(DiagnoseCandidates, Nominal_MissingOffsetRanksFirstAndIsSignificant) {
   const auto stations = Stations(300, Eigen::Vector3d(0.003, -0.002, 0.001), 0, 1);
   const Diagnosis d =
@@ -189,16 +204,7 @@ terms:
 // on the held-out residuals: it is claimed, and names exactly the flipped stations.
 TEST(DiagnoseCandidates, FlipsAFlexibleModelAbsorbsAreFoundHeldOut) {
   const auto stations = Stations(300, Eigen::Vector3d::Zero(), 3, 7);
-  const char* model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
-terms:
-  - type: polynomial
-    degree: 4
-)";
-  CandidateOptions o = TestOptions();
-  o.effects = {"robust_loss"};
-  o.flexible.clear();
-  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
-  std::cout << FormatDiagnosis(d);
+  const Diagnosis d = DiagnoseRobustLossOnly(stations, 4);
   ASSERT_EQ(d.candidates.size(), 1u);
   const Candidate& top = d.candidates[0];
   EXPECT_TRUE(top.significant) << top.reason;
@@ -209,8 +215,7 @@ terms:
   EXPECT_LT(top.delta_bic, -1000.0);
   // The same stations without the flips (3 seeds): no held-out outlier, nothing claimed.
   for (unsigned seed : {7u, 9u, 10u}) {
-    const Diagnosis clean = DiagnoseCandidates(Stations(300, Eigen::Vector3d::Zero(), 0, seed),
-                                               model, "model.yaml", "synthetic", o);
+    const Diagnosis clean = DiagnoseRobustLossOnly(Stations(300, Eigen::Vector3d::Zero(), 0, seed), 4);
     ASSERT_EQ(clean.candidates.size(), 1u);
     EXPECT_FALSE(clean.candidates[0].significant) << seed << ": " << clean.candidates[0].reason;
     EXPECT_TRUE(clean.candidates[0].outlier_stations.empty()) << seed;
@@ -236,16 +241,7 @@ TEST(DiagnoseCandidates, ALocalBumpIsNoOutlierButFlipsBesideItAre) {
       in_bump += bump > 0.004 ? 1 : 0;  // 10 % of the peak, 40 times the noise
     }
     ASSERT_GE(in_bump, 4) << "the bump must cover a neighbourhood";
-    const char* model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
-terms:
-  - type: polynomial
-    degree: 1
-)";
-    CandidateOptions o = TestOptions();
-    o.effects = {"robust_loss"};
-    o.flexible.clear();
-    const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
-    std::cout << FormatDiagnosis(d);
+    const Diagnosis d = DiagnoseRobustLossOnly(stations, 1);
     ASSERT_EQ(d.candidates.size(), 1u);
     const Candidate& robust = d.candidates[0];
     EXPECT_FALSE(robust.local_structure_stations.empty()) << flips << ": " << robust.reason;
@@ -258,8 +254,7 @@ terms:
       EXPECT_THAT(robust.outlier_stations, ::testing::ElementsAre(17, 114, 211));
     }
     // Without the neighbourhood test the bump's stations are the "outliers" (the test can fail).
-    o.outlier_neighbours = 0;
-    const Diagnosis global = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+    const Diagnosis global = DiagnoseRobustLossOnly(stations, 1, 0);
     EXPECT_GT(global.candidates[0].outlier_stations.size(), static_cast<size_t>(flips))
         << global.candidates[0].reason;
   }

@@ -47,6 +47,30 @@ PolynomialTerm RandomTruth(int degree, std::mt19937* rng) {
   return truth;
 }
 
+// A 12 x 10 x 4 grid in a 1 m box, heights 0.1 m apart, as a physical term leaves it: the true
+// positions to 0.1 mm; the references corrected by `truth` plus 0.1 mm of noise.
+std::vector<FitStation> FourHeightGrid(const Correction& truth, std::mt19937* rng) {
+  std::normal_distribution<double> normal;
+  auto noise = [&]() -> Eigen::Vector3d {
+    return 1e-4 * Eigen::Vector3d(normal(*rng), normal(*rng), normal(*rng));
+  };
+  std::vector<FitStation> stations;
+  for (int i = 0; i < 12; ++i) {
+    for (int j = 0; j < 10; ++j) {
+      for (int k = 0; k < 4; ++k) {
+        FitStation s;
+        s.reported.translation =
+            Eigen::Vector3d(-0.5 + i / 11.0, -0.5 + j / 9.0, 0.15 + k * 0.1) + noise();
+        s.reported.rotation = Eigen::Quaterniond::UnitRandom();
+        s.reference = truth.Apply(s.reported).pose;
+        s.reference.translation += noise();
+        stations.push_back(s);
+      }
+    }
+  }
+  return stations;
+}
+
 TEST(PolynomialTerm, Nominal_LinearFitRecoversNoiseFreeCoefficients) {
   std::mt19937 rng(7);
   for (int degree : {0, 1, 4, 8}) {
@@ -134,24 +158,9 @@ TEST(PolynomialTerm, JacobiansMatchCentralDifferences) {
 // the polynomial stays near the truth between and beyond the heights, where the plain fit does not.
 TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
   std::mt19937 rng(11);
-  std::normal_distribution<double> normal;
   const PolynomialTerm truth = RandomTruth(2, &rng);  // smooth: what the grid does determine
   const auto correction = truth.ToCorrection();
-  std::vector<FitStation> stations;
-  for (int i = 0; i < 12; ++i) {
-    for (int j = 0; j < 10; ++j) {
-      for (int k = 0; k < 4; ++k) {
-        FitStation s;
-        // The grid as a physical term leaves it: true positions to 0.1 mm.
-        s.reported.translation = Eigen::Vector3d(-0.5 + i / 11.0, -0.5 + j / 9.0, 0.15 + k * 0.1) +
-                                 1e-4 * Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
-        s.reported.rotation = Eigen::Quaterniond::UnitRandom();
-        s.reference = correction->Apply(s.reported).pose;
-        s.reference.translation += 1e-4 * Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
-        stations.push_back(s);
-      }
-    }
-  }
+  const std::vector<FitStation> stations = FourHeightGrid(*correction, &rng);
   auto worst_between_heights = [&](const PolynomialTerm& fitted) {
     const auto c = fitted.ToCorrection();
     double worst = 0;
@@ -240,23 +249,9 @@ TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
 // largest amplification), and a smooth field is still followed between the heights.
 TEST(PolynomialTerm, DegreesAboveTheLayerCountKeepOnlyDeterminedDirections) {
   std::mt19937 rng(11);
-  std::normal_distribution<double> normal;
   const PolynomialTerm truth = RandomTruth(2, &rng);
   const auto correction = truth.ToCorrection();
-  std::vector<FitStation> stations;
-  for (int i = 0; i < 12; ++i) {
-    for (int j = 0; j < 10; ++j) {
-      for (int k = 0; k < 4; ++k) {
-        FitStation s;
-        s.reported.translation = Eigen::Vector3d(-0.5 + i / 11.0, -0.5 + j / 9.0, 0.15 + k * 0.1) +
-                                 1e-4 * Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
-        s.reported.rotation = Eigen::Quaterniond::UnitRandom();
-        s.reference = correction->Apply(s.reported).pose;
-        s.reference.translation += 1e-4 * Eigen::Vector3d(normal(rng), normal(rng), normal(rng));
-        stations.push_back(s);
-      }
-    }
-  }
+  const std::vector<FitStation> stations = FourHeightGrid(*correction, &rng);
   for (const auto& [degree, held] : {std::pair{5, 4u}, {6, 10u}}) {
     SCOPED_TRACE("degree " + std::to_string(degree));
     PolynomialTermOptions options;
