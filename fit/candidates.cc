@@ -259,7 +259,8 @@ struct GrossOutliers {
 // A gross outlier is also isolated: a flip or a bad reference pose has nothing to do with the
 // stations around it, while a source the model lacks raises the errors of a whole neighbourhood.
 // So a station must also pass the same test against its `neighbours` nearest stations (by
-// `positions`, the reference's): the centre is their second largest ln e, the scale the capture's. Measured on the paper capture with the toolbox 0.27 m from the volume (seed 3, a
+// `positions`, the reference's): the centre is their second largest ln e, the scale the capture's.
+// Measured on the paper capture with the toolbox 0.27 m from the volume (seed 3, a
 // degree-4 polynomial under the robust loss): the 3 stations nearest it were 4.4-4.9 scales
 // beyond the capture's median (the threshold 4.5 at 480 stations) and 1.4-2.5 beyond their
 // neighbours' (2-64 mm errors around 50-95 mm), and a robust loss claimed them as "hemisphere
@@ -1625,9 +1626,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         }
       }
       // (A robust loss's delta BIC is the mean-shift model's over every station, below.)
+      const double max_unresolved =
+          options.max_outlier_fraction * static_cast<double>(own.size());
       if (c.kind != CandidateKind::kRobustLoss && !unresolved.empty() &&
-          static_cast<double>(unresolved.size()) <=
-                                     options.max_outlier_fraction * static_cast<double>(own.size())) {
+          static_cast<double>(unresolved.size()) <= max_unresolved) {
         for (size_t j : unresolved) {
           use_own[j] = false;
           use_base[static_cast<size_t>(p.base_index[j])] = false;
@@ -1780,7 +1782,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   auto gross_outliers = [&](const std::vector<double>& whitened_sq) {
     return FindGrossOutliers(whitened_sq, positions, options.outlier_neighbours, d.p_threshold);
   };
-  // "N stations (ids) ... near (x, y, z) m": where the robust fit's large errors are a local effect.
+  // "N stations (ids) ... near (x, y, z) m": where the robust fit's large errors are a local
+  // effect.
   auto local_structure_words = [&](const GrossOutliers& g) {
     Eigen::Vector3d mean = Eigen::Vector3d::Zero();
     std::vector<int> ids;

@@ -215,7 +215,8 @@ TEST(DiagnoseCandidates, FlipsAFlexibleModelAbsorbsAreFoundHeldOut) {
   EXPECT_LT(top.delta_bic, -1000.0);
   // The same stations without the flips (3 seeds): no held-out outlier, nothing claimed.
   for (unsigned seed : {7u, 9u, 10u}) {
-    const Diagnosis clean = DiagnoseRobustLossOnly(Stations(300, Eigen::Vector3d::Zero(), 0, seed), 4);
+    const Diagnosis clean =
+        DiagnoseRobustLossOnly(Stations(300, Eigen::Vector3d::Zero(), 0, seed), 4);
     ASSERT_EQ(clean.candidates.size(), 1u);
     EXPECT_FALSE(clean.candidates[0].significant) << seed << ": " << clean.candidates[0].reason;
     EXPECT_TRUE(clean.candidates[0].outlier_stations.empty()) << seed;

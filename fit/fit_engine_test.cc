@@ -184,7 +184,8 @@ TEST(FitModel, FlagsUnidentifiableCoefficients) {
     s.reference = truth->Apply(s.reported).pose;
   }
   // Fitting every direction: the covariance finds the rank deficiency.
-  ModelSpec all = ParseModelYaml("terms: [{type: polynomial, degree: 1, max_amplification: 0}]", "m");
+  ModelSpec all =
+      ParseModelYaml("terms: [{type: polynomial, degree: 1, max_amplification: 0}]", "m");
   const FitResult every = FitModel(stations, &all);
   EXPECT_TRUE(every.rank_deficient);
   EXPECT_FALSE(every.identifiability_flags.empty());
@@ -333,7 +334,8 @@ TEST(FitModel, DenseSolverChoiceGivesTheSparseSolversParameters) {
   EXPECT_NEAR(dense.final_cost, sparse.final_cost, 1e-9 * sparse.final_cost);
 }
 
-// The statistical stop (opt-in) ends the solve once a step gains less than 5e-3 chi2/dof: no later than
+// The statistical stop (opt-in) ends the solve once a step gains less than 5e-3 chi2/dof: no later
+// than
 // Ceres' function tolerance alone, at parameters within a tenth of their standard deviation of
 // that solution (the rule's meaning: ~0.1 sigma left to gain; 0.1 allows for it).
 TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {

@@ -308,7 +308,8 @@ TEST(PhysicalTermsOnSimulator, BackgroundFieldTakesTheDistantSourcesOffTheGains)
 }
 
 // The paper preset's grid has 4 heights. A degree-4 polynomial after a room model that is right
-// sees the stations at their true positions, where (z - z1)(z - z2)(z - z3)(z - z4) vanishes: fitted,
+// sees the stations at their true positions, where (z - z1)(z - z2)(z - z3)(z - z4) vanishes:
+// fitted,
 // that direction takes the noise and swings between the heights. The fit holds it (an
 // identifiability flag says so) and the validation stations, at random heights, stay at the room
 // model's own error. (Measured, seed 20010313: the room alone 0.115 mm RMS on validation, with

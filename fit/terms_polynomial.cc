@@ -170,7 +170,9 @@ PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(
     for (Eigen::Index i = 0; i < a.rows(); ++i) rows.push_back(i);
   }
   Eigen::MatrixXd kept_rows(static_cast<Eigen::Index>(rows.size()), a.cols());
-  for (size_t i = 0; i < rows.size(); ++i) kept_rows.row(static_cast<Eigen::Index>(i)) = a.row(rows[i]);
+  for (size_t i = 0; i < rows.size(); ++i) {
+    kept_rows.row(static_cast<Eigen::Index>(i)) = a.row(rows[i]);
+  }
   // Gs c = mu Gv c (Gv positive definite): the eigenvectors are Gv-orthonormal, and a direction's
   // RMS over the box is 1 / sqrt(mu) times its RMS at the stations.
   const Eigen::MatrixXd gs = kept_rows.transpose() * kept_rows /
@@ -206,7 +208,9 @@ PolynomialTerm::DeterminedSubspace PolynomialTerm::FindDeterminedSubspace(
   // fitted without bias.
   const auto exponents = PolynomialTermExponents(degree);
   Eigen::MatrixXd v(n, m);
-  for (Eigen::Index j = 0; j < m; ++j) v.col(j) = solver.eigenvectors().col(dropped[static_cast<size_t>(j)]);
+  for (Eigen::Index j = 0; j < m; ++j) {
+    v.col(j) = solver.eigenvectors().col(dropped[static_cast<size_t>(j)]);
+  }
   // The null space of the constraint (the last n - m columns of the complete Q of K^T), accepted
   // only when every direction left in it meets the limit (the restricted eigenproblem): a rank
   // test on the top-degree rows passes near-dependent ones (degree 5 on 4 layers) and leaves an
@@ -553,7 +557,8 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
         // runtime's default now continues to first order: predicting as the runtime does picks
         // weaker weights on the paper preset (seed 2: 0.1 instead of 0.32 for position), and the
         // joint fit then trades the physical terms for polynomial coefficients (12.9x the floor
-        // instead of 3.2x; seed 3: 5.2x instead of 2.9x; docs/model-file.md). The weight is chosen on what the physical group
+        // instead of 3.2x; seed 3: 5.2x instead of 2.9x; docs/model-file.md). The weight is chosen
+        // on what the physical group
         // alone leaves, which is the deeper problem.
         const std::vector<double> cv = BlockedRidgeCv(options_.degree, u, a, b, shrunk, grid);
         lambda = grid[static_cast<size_t>(std::min_element(cv.begin(), cv.end()) - cv.begin())];
@@ -632,7 +637,8 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   return true;
 }
 
-bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a, const Eigen::MatrixXd& b_position,
+bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a,
+                                          const Eigen::MatrixXd& b_position,
                                           const Eigen::MatrixXd& b_orientation) {
   const Eigen::MatrixXd& u = undetermined_.basis;  // num_terms x k
   const auto k = u.cols();
@@ -671,7 +677,8 @@ bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a, const Eigen:
     block.tangent_names.clear();
     for (Eigen::Index i = 0; i < k; ++i) {
       for (int m = 0; m < 3; ++m) {
-        block.tangent_names.push_back("determined_direction[" + std::to_string(i) + "]." + "xyz"[m]);
+        block.tangent_names.push_back("determined_direction[" + std::to_string(i) + "]." +
+                                      "xyz"[m]);
       }
     }
     block.tangent_unit = block.unit;
@@ -679,7 +686,8 @@ bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a, const Eigen:
   };
   store(position_block_, b_position);
   store(orientation_block_, b_orientation);
-  // diag((A^T A)^-1) restricted to the subspace: diag(U (A_s^T A_s)^-1 U^T) = row norms of U R^-1 P^T.
+  // diag((A^T A)^-1) restricted to the subspace: diag(U (A_s^T A_s)^-1 U^T) = row norms of U R^-1
+  // P^T.
   const Eigen::MatrixXd r = qr.matrixR().topLeftCorner(k, k).triangularView<Eigen::Upper>();
   const Eigen::MatrixXd r_inverse =
       r.triangularView<Eigen::Upper>().solve(Eigen::MatrixXd::Identity(k, k));

@@ -154,7 +154,8 @@ TEST(PolynomialTerm, JacobiansMatchCentralDifferences) {
 
 
 // On a grid with 4 heights, z^4 equals a cubic at every station: the degree-4 fit has a near-null
-// direction that the noise sets. ridge: auto (leave-one-out, one-standard-error rule) shrinks it, so
+// direction that the noise sets. ridge: auto (leave-one-out, one-standard-error rule) shrinks it,
+// so
 // the polynomial stays near the truth between and beyond the heights, where the plain fit does not.
 TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
   std::mt19937 rng(11);
@@ -215,8 +216,8 @@ TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
     probe.Prepare(repeated);
     for (size_t i = 0; i < repeated.size(); ++i) {
       double ui[3];
-      NormalizePolynomialInput(repeated[i].reported.translation.data(), probe.options().input_offset,
-                               probe.options().input_scale, ui);
+      NormalizePolynomialInput(repeated[i].reported.translation.data(),
+                               probe.options().input_offset, probe.options().input_scale, ui);
       u.row(static_cast<Eigen::Index>(i)) << ui[0], ui[1], ui[2];
     }
     const std::vector<bool> isolated = PolynomialTerm::IsolatedStations(u);
@@ -269,10 +270,13 @@ TEST(PolynomialTerm, DegreesAboveTheLayerCountKeepOnlyDeterminedDirections) {
       NormalizePolynomialInput(stations[i].reported.translation.data(),
                                fitted.options().input_offset, fitted.options().input_scale, u);
       EvaluateMonomials(degree, u, m.data());
-      for (size_t j = 0; j < m.size(); ++j) a(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) = m[j];
+      for (size_t j = 0; j < m.size(); ++j) {
+        a(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) = m[j];
+      }
     }
     const Eigen::MatrixXd& b = fitted.undetermined().basis;
-    const Eigen::MatrixXd gs = b.transpose() * a.transpose() * a * b / static_cast<double>(a.rows());
+    const Eigen::MatrixXd gs =
+        b.transpose() * a.transpose() * a * b / static_cast<double>(a.rows());
     const Eigen::MatrixXd gv = b.transpose() * PolynomialTerm::BoxGram(degree) * b;
     const Eigen::GeneralizedSelfAdjointEigenSolver<Eigen::MatrixXd> kept(gs, gv);
     EXPECT_LE(1.0 / std::sqrt(kept.eigenvalues().minCoeff()), options.max_amplification);
@@ -466,7 +470,8 @@ RidgeComparison CompareRidgeSelection(double layer_scatter_m) {
 
 TEST(PolynomialTerm, BlockedRidgeCvSeesWhatLeaveOneOutCannot) {
   // Stations exactly on the layers (a perfect physical term before the polynomial, noise only in
-  // the reference): z^4 .. z^8 are exact combinations of lower powers at the stations. Leave-one-out
+  // the reference): z^4 .. z^8 are exact combinations of lower powers at the stations.
+  // Leave-one-out
   // sees no cost in them and keeps no ridge (measured: 0, ~2e11 mm off between the heights); the
   // blocked folds pick a weight that holds the polynomial to the field (measured 0.01, 0.42 mm
   // with the linear policy outside the box, 0.62 mm when it was clamped, against the true field
@@ -477,14 +482,15 @@ TEST(PolynomialTerm, BlockedRidgeCvSeesWhatLeaveOneOutCannot) {
   EXPECT_GT(exact.loo_mm, 1000.0);
   // With 0.1 mm of scatter about the layers (what a real physical term leaves) the near-null
   // directions are visible to leave-one-out too on this smooth field: both pick the same weight
-  // (measured 0.1 each, 0.52 mm; 0.65 mm clamped). The blocked choice must not be worse: within 2 % (one grid step
+  // (measured 0.1 each, 0.52 mm; 0.65 mm clamped). The blocked choice must not be worse: within 2 %
+  // (one grid step
   // of difference moves the mean by ~1 % here).
   const RidgeComparison scattered = CompareRidgeSelection(1e-4);
   EXPECT_LT(scattered.blocked_mm, 1.02 * scattered.loo_mm);
   EXPECT_LT(scattered.blocked_mm, 1.0);
 }
 
-TEST(PolynomialTerm, RidgeOptionErrorsNameFileLineAndField) {
+TEST(PolynomialTerm, RidgeAndAmplificationErrorsNameFileLineAndField) {
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: auto\n", "m.yaml"));
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: 0.1\n", "m.yaml"));
   EXPECT_NO_THROW(ParseModelYaml(
@@ -503,6 +509,18 @@ TEST(PolynomialTerm, RidgeOptionErrorsNameFileLineAndField) {
     } catch (const std::invalid_argument& e) {
       EXPECT_NE(std::string(e.what()).find("m.yaml:3:"), std::string::npos) << e.what();
       EXPECT_NE(std::string(e.what()).find("ridge"), std::string::npos) << e.what();
+    }
+  }
+  EXPECT_NO_THROW(
+      ParseModelYaml("terms:\n  - type: polynomial\n    max_amplification: 0\n", "m.yaml"));
+  for (const std::string bad : {"0.5", "-3", ".inf", "many"}) {
+    try {
+      ParseModelYaml("terms:\n  - type: polynomial\n    max_amplification: " + bad + "\n",
+                     "m.yaml");
+      ADD_FAILURE() << "no error for max_amplification: " << bad;
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("m.yaml:3:"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("max_amplification"), std::string::npos) << e.what();
     }
   }
 }
