@@ -4,8 +4,7 @@
 //   {}); std::cout << d.ToJson().dump(2);   // the document of docs/diagnose.md
 //
 // For every effect of the catalog (DefaultCatalog(): sensor_offset, receiver_gain, dipole,
-// dipole_pair, plane, near_field, background_field, robust_loss, time_offset) that the model lacks,
-// the model plus
+// dipole_pair, plane, near_field, background_field, robust_loss, time_offset) that the model lacks, the model plus
 // that one effect is
 // fitted and scored against the model itself:
 //   - k-fold cross-validation with the same folds for the base and every candidate (station i in
@@ -92,7 +91,7 @@ std::vector<CatalogEffect> DefaultFlexibleFallback();
 // physical conditions, docs/diagnose.md "Significance"):
 //   - strength: the term's physical strength must lie at least `min_strength_sigma` from its null
 //     value (dipole polarisability 0, plane attenuation 0, near_field octupole 0, receiver_gain
-// G = I, sensor_offset translation 0 / rotation identity), by a joint Wald test on each strength
+//     G = I, sensor_offset translation 0 / rotation identity), by a joint Wald test on each strength
 //     block (the block's covariance; its standard deviations alone when that is unavailable),
 //     expressed as the equivalent two-sided normal deviate; terms with several strength blocks
 //     (sensor_offset) take the strongest, Bonferroni-corrected;

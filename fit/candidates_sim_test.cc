@@ -257,8 +257,7 @@ TEST(DiagnoseCandidatesPaper, NothingIsClaimedWithoutAHiddenEffect) {
   }
 }
 
-// The workflow loop's capture (tests/data/workflow/paper_small.yaml,
-// python/tests/test_workflow.py):
+// The workflow loop's capture (tests/data/workflow/paper_small.yaml, python/tests/test_workflow.py):
 // the paper room with an 8 x 6 x 5 grid at 0.15 m and 60 validation stations.
 constexpr char kPaperSmall[] = R"(base: paper
 name: paper_small
@@ -310,12 +309,10 @@ void ExpectTheFloor(const sim::Scene& scene, const Candidate& plane) {
   EXPECT_TRUE(plane.evidence.supported()) << plane.evidence.Describe();
 }
 
-// The loop's third diagnosis (hidden sensor offset, seed 1): the model has the sensor offset and
-// the
+// The loop's third diagnosis (hidden sensor offset, seed 1): the model has the sensor offset and the
 // workbench frame (at the start values its second diagnosis printed) before the paper's degree-4
 // polynomial, with the default noise model. What remains is the floor (0.8 m along +z, attenuation
-// 0.27). Before the physical conditions of the claim rule, a dipole near (-0.12, -0.29, 1.40) m,
-// the
+// 0.27). Before the physical conditions of the claim rule, a dipole near (-0.12, -0.29, 1.40) m, the
 // floor's mirror image, was ranked first (held-out error -53 % against the plane's -54 %, its
 // polarisability -0.33 +- 0.66 m^3 with the model's 1 mm noise) and the plane never came.
 TEST(DiagnoseCandidatesPaperSmall, TheFloorIsClaimedAsAPlane) {
@@ -342,8 +339,7 @@ TEST(DiagnoseCandidatesPaperSmall, TheFloorIsClaimedAsAPlane) {
 // and the workbench frame (the start values its second diagnosis printed). The calibration set has
 // two flipped stations, whose reports (-p) lie beyond the transmitter on the floor's side with
 // whitened residuals ~1e3 where the others are ~1-10. They chose the plane search's start (a plane
-// at -2.07 m, attenuation 1.26) and kept the floor out of its range, so the floor's mirror image
-// was
+// at -2.07 m, attenuation 1.26) and kept the floor out of its range, so the floor's mirror image was
 // claimed as a dipole, (-0.004, 0.085, 1.456) m, -0.47 +- 0.14 m^3. The search leaves gross
 // outliers out (fit/terms_physical.cc, GrossOutlierMask): the floor is found (0.72 m, attenuation
 // 0.26 +- 0.04) and claimed as a plane.
@@ -384,8 +380,7 @@ TEST(DiagnoseCandidatesPaperSmall, ReceiverGainsTheFloorIsAPlaneAndTheFrameStays
   if (top.effect == "plane") ExpectTheFloor(scene, top);
 }
 
-// The workflow loop's third diagnosis with the hidden sensor offset, seed 3: the model has the
-// sensor
+// The workflow loop's third diagnosis with the hidden sensor offset, seed 3: the model has the sensor
 // offset and the workbench frame (the start values its second diagnosis printed). The floor plane
 // (0.733 m, attenuation 0.212 +- 0.019, 11.4 sigma) and a dipole at the floor's mirror image
 // ((-0.06, -0.26, 1.35) m, -0.28 +- 0.05 m^3, 5.3 sigma) have equal held-out errors and fit all

@@ -469,8 +469,7 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
 
 // The joint problem of FitModel's step (2) over `stations`, with the terms' current values (no
 // preparation or initialisation: FitModel has done it, or a fold refit reuses the full fit's).
-// `time_offset` (with time_offset0 its reference value) is the clock offset block when it is
-// fitted.
+// `time_offset` (with time_offset0 its reference value) is the clock offset block when it is fitted.
 struct BuiltProblem {
   std::unique_ptr<ceres::Problem> problem;
   std::vector<ceres::ResidualBlockId> station_blocks;  // one per station, in station order
@@ -594,8 +593,7 @@ bool WhiteningChanged(const BuiltProblem& before, const BuiltProblem& after) {
 // and O(n^3) time.
 // Above this many free coordinates the normal equations are sparse (72 MB of dense normal matrix).
 constexpr int kMaxDenseNormal = 3000;
-// The statistical stop's default above kMaxDenseNormal (the fold refits' rule,
-// StatisticalConvergence).
+// The statistical stop's default above kMaxDenseNormal (the fold refits' rule, StatisticalConvergence).
 constexpr double kLargeProblemStatisticalTolerance = 5e-3;
 
 ceres::LinearSolverType ChooseLinearSolver(const ceres::Problem& problem, int num_free) {

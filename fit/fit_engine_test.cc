@@ -334,8 +334,7 @@ TEST(FitModel, DenseSolverChoiceGivesTheSparseSolversParameters) {
   EXPECT_NEAR(dense.final_cost, sparse.final_cost, 1e-9 * sparse.final_cost);
 }
 
-// The statistical stop (opt-in) ends the solve once a step gains less than 5e-3 chi2/dof: no later
-// than
+// The statistical stop (opt-in) ends the solve once a step gains less than 5e-3 chi2/dof: no later than
 // Ceres' function tolerance alone, at parameters within a tenth of their standard deviation of
 // that solution (the rule's meaning: ~0.1 sigma left to gain; 0.1 allows for it).
 TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {

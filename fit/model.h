@@ -10,23 +10,19 @@
 // noise: ((p_c - p_ref) / sigma_p, VectorPart(q_c * conj(q_ref)) / sigma_o).
 //
 // Poses move through the chain in the 7-vector "ambient" form (x, y, z [m], qx, qy, qz, qw). A term
-// maps one such pose to the next and reports the Jacobians of its output with respect to its input
-// pose
-// and to each of its parameter blocks the station uses (TermEvaluation). The engine composes them
-// by the
-// chain rule inside one ceres::CostFunction per station. Hence a term need not be an explicit
-// function
+// maps one such pose to the next and reports the Jacobians of its output with respect to its input pose
+// and to each of its parameter blocks the station uses (TermEvaluation). The engine composes them by the
+// chain rule inside one ceres::CostFunction per station. Hence a term need not be an explicit function
 // with autodiff:
 //   - explicit terms (polynomial, LUT) write one templated Apply<T>() and derive from
 //     AutoDiffModelTerm<Derived> (below), which differentiates it with ceres::Jet;
-// - a physical term whose correction is the inverse of a forward model solves the inverse in double
+//   - a physical term whose correction is the inverse of a forward model solves the inverse in double
 //     and returns Jacobians from the implicit function theorem (autodiff of the forward model);
 //   - a term may in addition add its own residual blocks (smoothness regularisers, report-space
 //     residuals of a forward model) through AddExtraResiduals().
 //
 // Parameter blocks are plain double vectors owned by their term (ParameterBlock::values); their
-// addresses stay fixed while a ceres::Problem refers to them (blocks are never resized after
-// Prepare()).
+// addresses stay fixed while a ceres::Problem refers to them (blocks are never resized after Prepare()).
 #pragma once
 
 #include <ceres/manifold.h>
@@ -60,8 +56,7 @@ struct ParameterBlock {
   // Optional bounds (empty: none; else one per value, +-infinity for an open side).
   std::vector<double> lower;
   std::vector<double> upper;
-  // Optional Gaussian prior (empty: none; else one mean and one sigma > 0 per value; an infinite
-  // sigma
+  // Optional Gaussian prior (empty: none; else one mean and one sigma > 0 per value; an infinite sigma
   // disables the prior on that value). Added by the engine as whitened residuals.
   std::vector<double> prior_mean;
   std::vector<double> prior_sigma;
@@ -116,8 +111,7 @@ struct FitStation {
   Eigen::Vector3d reference_angular_velocity = Eigen::Vector3d::Zero();
 };
 
-// Which parameter blocks of a term a station's residual depends on, fixed when the problem is
-// built.
+// Which parameter blocks of a term a station's residual depends on, fixed when the problem is built.
 // `tag` is term-defined context (the LUT stores its cell), passed back to Evaluate().
 struct StationBinding {
   std::vector<int> blocks;  // indices into ModelTerm::blocks(), increasing
@@ -143,10 +137,8 @@ class ModelTerm {
   const std::string& name() const { return name_; }
   void set_name(std::string name) { name_ = std::move(name); }
 
-  // Sizes the blocks from the calibration data (normalisation box, LUT grid, ...). Called once
-  // before
-  // any other method below; `inputs` are the stations' poses at this term's input, evaluated with
-  // the
+  // Sizes the blocks from the calibration data (normalisation box, LUT grid, ...). Called once before
+  // any other method below; `inputs` are the stations' poses at this term's input, evaluated with the
   // initial values of the preceding terms. The default does nothing.
   virtual void Prepare(const std::vector<FitStation>& inputs);
 
@@ -154,22 +146,18 @@ class ModelTerm {
   const std::vector<ParameterBlock>& blocks() const { return blocks_; }
 
   // Linear initialiser: given each station's pose at this term's input (input[i].reported) and the
-  // pose the chain must reach (input[i].reference), set the free values by least squares with the
-  // other
+  // pose the chain must reach (input[i].reference), set the free values by least squares with the other
   // terms held. Returns false if the term has no linear initialiser (the default) or the system is
   // singular. When the term is the only one and is linear in its parameters, this is the exact fit.
   virtual bool InitializeLinear(const std::vector<FitStation>& inputs,
                                 const Eigen::Vector2d& noise_sigmas);
 
-  // True if, when this term is the model's only term and the fit has no robust loss, priors or
-  // bounds,
+  // True if, when this term is the model's only term and the fit has no robust loss, priors or bounds,
   // a successful InitializeLinear() is the fit (the paper's linear least squares): the engine then
-  // skips the nonlinear solve and asks LinearCovariance() for the standard deviations. Default
-  // false.
+  // skips the nonlinear solve and asks LinearCovariance() for the standard deviations. Default false.
   virtual bool SolvesAloneLinearly() const { return false; }
   // Fills every free block's `stddev` from the linear least-squares covariance of the last
-  // InitializeLinear() (noise_sigmas: position [m], orientation [rad]). Default: false
-  // (unavailable).
+  // InitializeLinear() (noise_sigmas: position [m], orientation [rad]). Default: false (unavailable).
   virtual bool LinearCovariance(const Eigen::Vector2d& noise_sigmas);
 
   // The blocks the residual of a station whose pose at this term's input is `input` depends on. The
@@ -208,8 +196,7 @@ class ModelTerm {
   virtual nlohmann::json Describe() const;
 
   // True if this term reproduces an isotropic scaling of the positions about the transmitter,
-  // p -> s p, exactly with free parameters (a polynomial of degree >= 1 with a free position part,
-  // a
+  // p -> s p, exactly with free parameters (a polynomial of degree >= 1 with a free position part, a
   // LUT): a uniform receiver gain before it is then not identifiable. Default: false.
   virtual bool AbsorbsIsotropicScaling() const { return false; }
   // Called by FitModel before Prepare() with the terms that follow this one in the chain (the
@@ -229,8 +216,7 @@ class ModelTerm {
 //   bool Apply(const StationBinding& binding, const T* const* block_values, const T* input7,
 //              T* output7) const;
 //
-// and gets Evaluate() with Jacobians from ceres::Jet (forward mode over the input pose and the
-// bound
+// and gets Evaluate() with Jacobians from ceres::Jet (forward mode over the input pose and the bound
 // blocks, evaluated in chunks of kJetStride derivatives).
 template <typename Derived>
 class AutoDiffModelTerm : public ModelTerm {

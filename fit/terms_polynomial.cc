@@ -557,8 +557,7 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
         // runtime's default now continues to first order: predicting as the runtime does picks
         // weaker weights on the paper preset (seed 2: 0.1 instead of 0.32 for position), and the
         // joint fit then trades the physical terms for polynomial coefficients (12.9x the floor
-        // instead of 3.2x; seed 3: 5.2x instead of 2.9x; docs/model-file.md). The weight is chosen
-        // on what the physical group
+        // instead of 3.2x; seed 3: 5.2x instead of 2.9x; docs/model-file.md). The weight is chosen on what the physical group
         // alone leaves, which is the deeper problem.
         const std::vector<double> cv = BlockedRidgeCv(options_.degree, u, a, b, shrunk, grid);
         lambda = grid[static_cast<size_t>(std::min_element(cv.begin(), cv.end()) - cv.begin())];
@@ -594,11 +593,10 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     inverse_normal_diagonal_.resize(0);  // no linear covariance: the engine's covariance serves
     return true;
   }
-  // The directions the stations determine (FindDeterminedSubspace): when some are not, the fit
-  // moves the coefficients only within the others, and those stay at the least-squares solution
-  // in that subspace (zero along the rest).
-  // Bounds would be applied after the manifold's step and leave the subspace: a block with bounds
-  // fits every direction.
+  // The directions the stations determine (FindDeterminedSubspace): when some are not, the
+  // coefficients are the least-squares solution within the fitted subspace, and the fit moves
+  // them only within it. Bounds would act after the manifold's step and leave the subspace: a
+  // bound on either block makes the term fit every direction of both.
   bool bounded = false;
   for (int index : {position_block_, orientation_block_}) {
     if (index >= 0) bounded = bounded || !blocks_[static_cast<size_t>(index)].lower.empty() ||
@@ -686,8 +684,8 @@ bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a,
   };
   store(position_block_, b_position);
   store(orientation_block_, b_orientation);
-  // diag((A^T A)^-1) restricted to the subspace: diag(U (A_s^T A_s)^-1 U^T) = row norms of U R^-1
-  // P^T.
+  // diag((A^T A)^-1) restricted to the subspace: diag(U (A_s^T A_s)^-1 U^T), the squared row
+  // norms of U P R^-1.
   const Eigen::MatrixXd r = qr.matrixR().topLeftCorner(k, k).triangularView<Eigen::Upper>();
   const Eigen::MatrixXd r_inverse =
       r.triangularView<Eigen::Upper>().solve(Eigen::MatrixXd::Identity(k, k));

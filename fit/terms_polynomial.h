@@ -22,8 +22,7 @@ struct PolynomialTermOptions {
   bool position = true;        // fit the position part
   bool orientation = true;     // fit the orientation part
   // Tikhonov (ridge) prior on the coefficients of degree >= 2 (the constant and linear ones are
-  // never shrunk): whitened residuals ridge * c / sigma per coefficient, sigma the model's position
-  // or
+  // never shrunk): whitened residuals ridge * c / sigma per coefficient, sigma the model's position or
   // orientation noise, i.e. a Gaussian prior N(0, (sigma / ridge)^2) on each. It removes the
   // near-null directions a grid leaves (on the paper preset's 4 heights, z^4 equals a cubic at the
   // stations), which a polynomial chained after a physical term otherwise fits to noise. 0: none.
@@ -40,11 +39,11 @@ struct PolynomialTermOptions {
   // Largest amplification of a fitted direction (0: no limit). Without a ridge, a direction of the
   // coefficients whose RMS over the stations' box is more than this many times its RMS at the
   // stations is not fitted (taken out of the highest-degree coefficients; FindDeterminedSubspace).
-  // With a grid of L layers a
-  // polynomial of degree >= L has such directions, (z - z1)...(z - zL) times lower powers: at
-  // stations that sit on their layers to within delta they are ~h / (6 delta) times smaller than
-  // between the layers (h the spacing), so a polynomial chained after an accurate physical
-  // correction fits them to noise and blows that up between the layers. Measured: the paper
+  // With a grid of L layers a polynomial of degree >= L has such directions, (z - z1)...(z - zL)
+  // times lower powers: at stations that sit on their layers to within delta they are
+  // ~h / (6 delta) times smaller than between the layers (h the spacing), so a polynomial chained
+  // after an accurate physical correction fits them to noise and blows that up between the
+  // layers. Measured: the paper
   // preset's 4 layers at the true positions (degree 4): 681, every other direction at most 1.4; on
   // the raw reports at most 2.9; 5 layers at most 1.5; random stations, degree 8, 480-545
   // stations: at most 14 (kept). docs/model-file.md, "Undetermined directions".
@@ -83,12 +82,10 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   // (core/correction.h): from the nearest point of the training stations' box, continued to first
   // order out to `linear_reach` [m] (the `linear` policy; `input_scale` [m per unit of u] converts
   // the distance) and held beyond; linear_reach = 0 is the `clamp` policy. Closed form per fold and
-  // weight on the normal equations: (A^T A - A_F^T A_F + lambda^2 D) c = A^T b - A_F^T b_F, D = 1
-  // on
+  // weight on the normal equations: (A^T A - A_F^T A_F + lambda^2 D) c = A^T b - A_F^T b_F, D = 1 on
   // the `shrunk` columns. Returns the summed squared held-out error per weight of `grid`
   // (infinity where a fold's system is singular). `row_weight` (optional, n): rows of `a` and `b`
-  // already carry these per-station weights (whitening), so the held-out prediction rows get them
-  // too.
+  // already carry these per-station weights (whitening), so the held-out prediction rows get them too.
   static constexpr int kBlockedSlabsPerAxis = 6;
   static std::vector<double> BlockedRidgeCv(int degree, const Eigen::MatrixXd& u,
                                             const Eigen::MatrixXd& a, const Eigen::MatrixXd& b,

@@ -154,8 +154,7 @@ TEST(PolynomialTerm, JacobiansMatchCentralDifferences) {
 
 
 // On a grid with 4 heights, z^4 equals a cubic at every station: the degree-4 fit has a near-null
-// direction that the noise sets. ridge: auto (leave-one-out, one-standard-error rule) shrinks it,
-// so
+// direction that the noise sets. ridge: auto (leave-one-out, one-standard-error rule) shrinks it, so
 // the polynomial stays near the truth between and beyond the heights, where the plain fit does not.
 TEST(PolynomialTerm, AFourHeightGridsUndeterminedDirectionIsHeldOrShrunk) {
   std::mt19937 rng(11);
@@ -470,8 +469,7 @@ RidgeComparison CompareRidgeSelection(double layer_scatter_m) {
 
 TEST(PolynomialTerm, BlockedRidgeCvSeesWhatLeaveOneOutCannot) {
   // Stations exactly on the layers (a perfect physical term before the polynomial, noise only in
-  // the reference): z^4 .. z^8 are exact combinations of lower powers at the stations.
-  // Leave-one-out
+  // the reference): z^4 .. z^8 are exact combinations of lower powers at the stations. Leave-one-out
   // sees no cost in them and keeps no ridge (measured: 0, ~2e11 mm off between the heights); the
   // blocked folds pick a weight that holds the polynomial to the field (measured 0.01, 0.42 mm
   // with the linear policy outside the box, 0.62 mm when it was clamped, against the true field
@@ -482,8 +480,7 @@ TEST(PolynomialTerm, BlockedRidgeCvSeesWhatLeaveOneOutCannot) {
   EXPECT_GT(exact.loo_mm, 1000.0);
   // With 0.1 mm of scatter about the layers (what a real physical term leaves) the near-null
   // directions are visible to leave-one-out too on this smooth field: both pick the same weight
-  // (measured 0.1 each, 0.52 mm; 0.65 mm clamped). The blocked choice must not be worse: within 2 %
-  // (one grid step
+  // (measured 0.1 each, 0.52 mm; 0.65 mm clamped). The blocked choice must not be worse: within 2 % (one grid step
   // of difference moves the mean by ~1 % here).
   const RidgeComparison scattered = CompareRidgeSelection(1e-4);
   EXPECT_LT(scattered.blocked_mm, 1.02 * scattered.loo_mm);
