@@ -25,6 +25,13 @@
 // significant candidate, or
 // says plainly that none explains what remains.
 //
+// Each source term of the model (dipole, plane; none whose blocks the file holds fixed) is also
+// tried swapped for the other kind, searched afresh in its place: a replacement. A dipole at the
+// transmitter's mirror image and a plane explain much the same structure, and which one a diagnosis
+// adds first can be decided by what the model still lacks then. A replacement is claimed only when
+// no addition is, when BIC prefers it decisively and its held-out error is lower (docs/diagnose.md,
+// "Replacements").
+//
 // The candidate model is the model file's YAML with the effect's term inserted into `terms:`
 // (physical terms before explicit ones: polynomial, lut) or its `loss:` / `time_offset:` set;
 // `model_change` is that YAML, with the fitted values as start values where the term searches them
@@ -241,6 +248,9 @@ struct Candidate {
   CandidateKind kind = CandidateKind::kTerm;
   std::string model_change;         // YAML to add (a list item for terms, a `loss:` mapping)
   std::optional<int> insert_index;  // kTerm: index in `terms:` before which it goes
+  // A replacement: the name of the model's source term (dipole or plane) that the added term takes
+  // the place of (item `insert_index` of `terms:` is removed first); empty: an addition.
+  std::string replaces;
   std::string term_name;            // kTerm: the added term's name in reports (the first)
   std::vector<std::string> term_names;  // kTerm: every added term's name (two for a pair)
   std::string model_text;           // the whole candidate model file
