@@ -61,6 +61,44 @@ def test_apply_model_change_rejects_what_it_cannot_place(change, index, message)
         demo.apply_model_change(demo.PAPER_MODEL, change, index)
 
 
+_TWO_DIPOLES = """terms:
+  - type: sensor_offset
+  - type: dipole
+    location_in_transmitter: [0.455, 0.001, 0.415]
+    polarisability_m3: -0.0134
+  # the floor's mirror image?
+  - type: dipole
+    location_in_transmitter: [-0.038, -0.260, 1.326]
+    polarisability_m3: -0.257
+
+  - type: polynomial
+    degree: 4
+"""
+
+
+def test_apply_model_change_replaces_the_named_term_in_place():
+    plane = "- type: plane\n  normal_in_transmitter: [0, 0, 1]\n  attenuation: 0.26\n"
+    text = demo.apply_model_change(_TWO_DIPOLES, plane, 2, "dipole_2")
+    assert [l.strip() for l in text.splitlines() if "- type:" in l] == \
+        ["- type: sensor_offset", "- type: dipole", "- type: plane", "- type: polynomial"]
+    assert "1.326" not in text and "-0.257" not in text, "the replaced dipole is gone"
+    assert "0.415" in text, "the other dipole stays"
+    assert "  # the floor's mirror image?" in text, "comments between items stay"
+    assert "    attenuation: 0.26" in text
+    named = _TWO_DIPOLES.replace("  - type: dipole\n    location_in_transmitter: [-0.038",
+                                 "  - type: dipole\n    name: image\n    location_in_transmitter: [-0.038")
+    assert "1.326" not in demo.apply_model_change(named, plane, 2, "image")
+
+
+@pytest.mark.parametrize("index,replaces", [(1, "dipole_2"), (2, "dipole_3"), (0, "sensor_offset"),
+                                            (4, "dipole_2")])
+def test_apply_model_change_refuses_to_replace_another_term(index, replaces):
+    # The item at the index must be the dipole or plane the diagnosis named: a model file edited
+    # since the diagnosis must not lose a different term.
+    with pytest.raises(ValueError, match="replaces"):
+        demo.apply_model_change(_TWO_DIPOLES, "- type: plane\n", index, replaces)
+
+
 def test_apply_model_change_needs_a_terms_list():
     with pytest.raises(ValueError, match="terms"):
         demo.apply_model_change("noise:\n  position_mm: 1\n", "- type: plane\n", 0)

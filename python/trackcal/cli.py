@@ -294,13 +294,15 @@ def _diagnosis(args, term):
         name = pathlib.Path(model).name if info["source"] != "<string>" else "model.yaml"
         try:
             new_text = diagnosis.apply_model_change(info["text"], verdict["model_change"],
-                                                    verdict.get("insert_index"))
+                                                    verdict.get("insert_index"),
+                                                    verdict.get("replaces"))
         except ValueError as e:  # e.g. a flow-style terms: list: the change is made by hand
             new_text = None
             notes.append(f"the model-file change is not applied to {name}: {e}")
         change = {"effect": verdict["effect"], "yaml": verdict["model_change"],
-                  "insert_index": verdict.get("insert_index"),
-                  "place": diagnosis.change_place(verdict["model_change"], verdict.get("insert_index")),
+                  "insert_index": verdict.get("insert_index"), "replaces": verdict.get("replaces"),
+                  "place": diagnosis.change_place(verdict["model_change"], verdict.get("insert_index"),
+                                                  verdict.get("replaces")),
                   "model_text": new_text,
                   "diff": diagnosis.model_diff(info["text"], new_text, name) if new_text else None}
     return capture, cal, v, fit_report, doc, verdict, change, notes

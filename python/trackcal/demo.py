@@ -352,19 +352,27 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
                 "no candidate effect is significant"
             say("  diagnosis: " + verdict)
             break
-        key = (best.get("effect"), best.get("model_change"))
+        key = (best.get("effect"), best.get("replaces"), best.get("model_change"))
         if key in seen_changes:  # the same change again means the ranking is not converging
             say(f"  diagnosis proposes {best.get('effect')} again with the same change; stopping")
             break
         seen_changes.add(key)
         step.added = best
-        say(f"  missing effect: {best.get('effect')}: {best.get('statement') or ''}".rstrip(": "))
+        if best.get("replaces"):
+            say(f"  {best['replaces']} is better explained as {best.get('effect')}: "
+                f"{best.get('statement') or ''}".rstrip(": "))
+        else:
+            say(f"  missing effect: {best.get('effect')}: {best.get('statement') or ''}".rstrip(": "))
         if best.get("reason"):
             say(f"  because {best['reason']}")
-        say("  model-file change:\n" + "\n".join("    + " + l for l in
+        where = (f" (replaces terms: item {best.get('insert_index')}, {best['replaces']})"
+                 if best.get("replaces") else "")
+        say(f"  model-file change{where}:\n" + "\n".join("    + " + l for l in
                                                  str(best.get("model_change", "")).rstrip().splitlines()))
-        text = apply_model_change(text, best["model_change"], best.get("insert_index"))
-        label = f"+{best.get('effect')}"
+        text = apply_model_change(text, best["model_change"], best.get("insert_index"),
+                                  best.get("replaces"))
+        label = (f"{best['replaces']} -> {best.get('effect')}" if best.get("replaces")
+                 else f"+{best.get('effect')}")
     return steps
 
 

@@ -94,18 +94,20 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     (a polynomial appended to the model: structure in position that no catalog effect has) is named.
 
     Returns {"source": "candidate" | "covariate" | "flexible" | None, "effect", "covariate", "text",
-    "model_change", "insert_index"}."""
+    "model_change", "insert_index", "replaces"} ("replaces": the term a replacement takes the
+    place of, else None)."""
     rows = covariate_findings(covariate_effects)
     top = top_candidate(candidates_doc)
     out = {"source": None, "effect": None, "covariate": rows[0]["covariate"] if rows else None,
-           "text": "", "model_change": None, "insert_index": None}
+           "text": "", "model_change": None, "insert_index": None, "replaces": None}
     if top is not None:
         engine_text = ((candidates_doc or {}).get("verdict") or {}).get("text")
         text = engine_text or f"{top['effect']} explains the remaining structure: {top.get('reason', '')}"
         if top.get("statement"):
             text += f" ({top['statement']})" if top["statement"] not in text else ""
         out.update(source="candidate", effect=top["effect"], text=text,
-                   model_change=top.get("model_change"), insert_index=top.get("insert_index"))
+                   model_change=top.get("model_change"), insert_index=top.get("insert_index"),
+                   replaces=top.get("replaces"))
         return out
     if rows:
         lead = ("no catalog effect explains the remaining structure; " if candidates_doc is not None
@@ -163,11 +165,16 @@ def change_is_term(change: str) -> bool:
     return _is_item(first.strip())
 
 
-def apply_model_change(model_text: str, change: str, insert_index: Optional[int]) -> str:
+def apply_model_change(model_text: str, change: str, insert_index: Optional[int],
+                       replaces: Optional[str] = None) -> str:
     """The model text with a candidate's ``model_change`` applied (contract B), nothing else changed.
 
     A change that is a list item (``- type: dipole ...``) goes into the block-style ``terms:`` list
-    before item ``insert_index`` (counting from 0; None: at the end). A change that is a top-level
+    before item ``insert_index`` (counting from 0; None: at the end). A replacement (``replaces``:
+    the candidate's ``replaces``, the name of the term it takes the place of) first removes item
+    ``insert_index`` (comment lines around it stay); the item must be a ``dipole`` or ``plane``
+    whose term name is ``replaces`` (its ``name:``, else its type, numbered as the model file numbers
+    repeats: the second unnamed dipole is ``dipole_2``). A change that is a top-level
     key (``loss:``, ``time_offset:``; its ``insert_index`` is None) replaces that key's block when
     the model has one, else goes directly before ``terms:`` (at the end when there is no
     ``terms:``). Comments and blank lines are kept. Raises ValueError for an empty change, a change
@@ -214,6 +221,26 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
         idx = n if insert_index is None else int(insert_index)
         if not 0 <= idx <= n:
             raise ValueError(f"insert_index {idx} is outside the {n} terms")
+        if replaces is not None:
+            if idx >= n:
+                raise ValueError(f"replaces {replaces!r}: insert_index {idx} names no term")
+            bounds = []  # each item's lines, trailing comments and blanks left out
+            for k in range(n):
+                stop = items[k + 1] if k + 1 < n else end
+                while stop > items[k] + 1 and _is_filler(lines[stop - 1]):
+                    stop -= 1
+                bounds.append((items[k], stop))
+            names = _term_names([_item_fields(lines[a:b], indent) for a, b in bounds])
+            typ = _item_fields(lines[bounds[idx][0]:bounds[idx][1]], indent)[0]
+            if typ not in ("dipole", "plane") or names[idx] != replaces:
+                raise ValueError(f"replaces {replaces!r}, but terms: item {idx} is {names[idx]!r} "
+                                 f"(type {typ!r}): the model file changed since the diagnosis")
+            stop = bounds[idx][1]
+            lines = lines[:items[idx]] + lines[stop:]
+            removed = stop - items[idx]
+            items = items[:idx] + [i - removed for i in items[idx + 1:]]
+            end -= removed
+            n -= 1
         pad = " " * (2 if indent is None else indent)
         block = [pad + l if l.strip() else l for l in change_lines]
         at = items[idx] if idx < n else end
@@ -232,8 +259,43 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
     return "\n".join(lines[:at] + block + lines[at:]) + "\n"
 
 
-def change_place(change: str, insert_index: Optional[int]) -> str:
+def _item_fields(item_lines: List[str], indent: int) -> tuple:
+    """(type, name) of a block-style ``terms:`` item (None where absent)."""
+    fields = {}
+    for line in item_lines:
+        if _is_filler(line):
+            continue
+        text = line.strip()
+        if text.startswith("- "):
+            text = text[2:].strip()
+        depth = len(line) - len(line.lstrip()) - indent
+        m = re.match(r"^(type|name)\s*:\s*([^#]*?)\s*(#.*)?$", text)
+        if m and depth <= 2:  # the item's own keys, not a nested block's
+            fields.setdefault(m.group(1), m.group(2).strip("'\""))
+    return fields.get("type"), fields.get("name")
+
+
+def _term_names(fields: List[tuple]) -> List[str]:
+    """The term names the model file gives the items (fit/model_file.cc): ``name:``, else the type,
+    numbered ``type_2``, ``type_3``, ... when taken."""
+    taken, out = set(), []
+    for typ, name in fields:
+        if name is None:
+            name = str(typ)
+            if name in taken:
+                k = 2
+                while f"{typ}_{k}" in taken:
+                    k += 1
+                name = f"{typ}_{k}"
+        taken.add(name)
+        out.append(name)
+    return out
+
+
+def change_place(change: str, insert_index: Optional[int], replaces: Optional[str] = None) -> str:
     """Where ``apply_model_change`` puts a change, in words."""
+    if replaces is not None and insert_index is not None:
+        return f"in terms:, in place of item {insert_index} ({replaces}) counting from 0"
     if not change_is_term(change):
         m = _TOP_KEY_RE.match(next((l for l in change.splitlines() if not _is_filler(l)), ""))
         return f"top-level key '{m.group(1)}:', not in terms:" if m else "top level"
