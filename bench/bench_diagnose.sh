@@ -107,8 +107,10 @@ def rel(a, b):
     return abs(a - b) / max(abs(b), 1e-300) if a != b else 0.0
 worst = 0.0
 pairs = [(new["base"], old["base"])]
-by_effect = {c["effect"]: c for c in new["candidates"]}
-pairs += [(by_effect[c["effect"]], c) for c in old["candidates"] if c["cross_validated"]]
+# One row per (effect, term it replaces): a replacement shares its effect with the addition.
+by_effect = {(c["effect"], c.get("replaces")): c for c in new["candidates"]}
+pairs += [(by_effect[(c["effect"], c.get("replaces"))], c) for c in old["candidates"]
+          if c["cross_validated"]]
 for f, e in pairs:
     for key in ("cv_position_mm_mean", "cv_orientation_deg_mean"):
         worst = max(worst, rel(f[key], e[key]))
@@ -125,7 +127,7 @@ if old_name == "before":
     # value and its standard deviation (a parameter near zero is compared on its own scale).
     worst_value = worst_std = 0.0
     for c in old["candidates"]:
-        n = by_effect.get(c["effect"])
+        n = by_effect.get((c["effect"], c.get("replaces")))
         if n is None or len(n["parameters"]) != len(c["parameters"]):
             worst_value = math.inf
             continue

@@ -1480,7 +1480,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       if (!settings || !settings.IsMap()) return false;
       for (const auto& kv : settings) {
         const YAML::Node fixed = kv.second.IsMap() ? kv.second["fixed"] : YAML::Node();
-        if (fixed && fixed.IsScalar() && fixed.as<std::string>() == "true") return true;
+        bool held = false;  // as the model file reads it (true, True, yes, on, ...)
+        if (fixed && fixed.IsScalar() && YAML::convert<bool>::decode(fixed, held) && held) {
+          return true;
+        }
       }
       return false;
     };
@@ -1757,7 +1760,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         }
       } else if (c.kind != CandidateKind::kTimeOffset) {
         c.statement = Statement(*p.effect, c, options.robust_loss.scale);
-        if (!c.replaces.empty()) c.statement = "in place of " + c.replaces + ", " + c.statement;
+        if (!c.replaces.empty() && !c.statement.empty()) {
+          c.statement = "in place of " + c.replaces + ", " + c.statement;
+        }
       } else {
         c.statement = TimeOffsetStatement(fit, p.time_offset_s);
         for (const auto& r : fit.parameters) {
@@ -2190,7 +2195,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     Candidate& c = p.candidate;
     if (p.flexible || p.effect->count <= 1 || !c.significant) continue;
     for (const auto& o : prepared) {
-      if (&o == &p || o.flexible || o.effect->count > 1 || !o.candidate.significant) continue;
+      if (&o == &p || o.flexible || o.effect->count > 1 || !o.candidate.significant ||
+          !o.candidate.replaces.empty()) {
+        continue;  // a replacement waits for additions, pairs included (below)
+      }
       c.significant = false;
       c.reason += ". Not claimed: a single candidate is (" + o.candidate.effect +
                   "): terms go in one at a time, the pair only where no single one is claimed";
@@ -2510,6 +2518,7 @@ std::string FormatDiagnosis(const Diagnosis& d) {
       << "  significant\n";
   int rank = 1;
   for (const auto& c : d.candidates) {
+    // A replacement is named "plane for dipole_2" (it may overflow the column).
     out << std::left << std::setw(4) << rank++ << std::setw(16)
         << (c.replaces.empty() ? c.effect : c.effect + " for " + c.replaces) << std::right;
     if (c.cross_validated) {

@@ -88,6 +88,13 @@ def test_apply_model_change_replaces_the_named_term_in_place():
     named = _TWO_DIPOLES.replace("  - type: dipole\n    location_in_transmitter: [-0.038",
                                  "  - type: dipole\n    name: image\n    location_in_transmitter: [-0.038")
     assert "1.326" not in demo.apply_model_change(named, plane, 2, "image")
+    # Names as the model file gives them, whatever the item's layout: a one-line flow item and keys
+    # indented further than usual (a nested `name:` is not the term's).
+    odd = "terms:\n  - {type: dipole, name: a}\n  -   type: dipole\n      parameters:\n" \
+          "        polarisability_m3: {name: x}\n  - type: dipole\n"
+    assert [l.strip() for l in demo.apply_model_change(odd, "- type: plane\n", 2, "dipole_2")
+            .splitlines()][1:] == ["- {type: dipole, name: a}", "-   type: dipole", "parameters:",
+                                   "polarisability_m3: {name: x}", "- type: plane"]
 
 
 @pytest.mark.parametrize("index,replaces", [(1, "dipole_2"), (2, "dipole_3"), (0, "sensor_offset"),

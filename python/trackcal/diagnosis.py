@@ -134,7 +134,10 @@ def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
     rows = []
     for i, c in enumerate((doc or {}).get("candidates", []), 1):
         drop = c.get("cv_drop_percent") or {}
-        rows.append({"rank": i, "effect": c.get("effect"), "cv_pos_mm": c.get("cv_position_mm_mean"),
+        effect = c.get("effect")
+        if c.get("replaces"):  # a replacement shares its effect with the addition
+            effect = f"{effect} for {c['replaces']}"
+        rows.append({"rank": i, "effect": effect, "cv_pos_mm": c.get("cv_position_mm_mean"),
                      "cv_ori_deg": c.get("cv_orientation_deg_mean"), "drop_pos_%": drop.get("position"),
                      "drop_ori_%": drop.get("orientation"), "delta_BIC": c.get("delta_bic"),
                      "p": f"{c['p_value']:.2g}" if isinstance(c.get("p_value"), (int, float)) else "",
@@ -236,6 +239,7 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
                 raise ValueError(f"replaces {replaces!r}, but terms: item {idx} is {names[idx]!r} "
                                  f"(type {typ!r}): the model file changed since the diagnosis")
             stop = bounds[idx][1]
+            replaced_at = bounds[idx][0]
             lines = lines[:items[idx]] + lines[stop:]
             removed = stop - items[idx]
             items = items[:idx] + [i - removed for i in items[idx + 1:]]
@@ -244,6 +248,8 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
         pad = " " * (2 if indent is None else indent)
         block = [pad + l if l.strip() else l for l in change_lines]
         at = items[idx] if idx < n else end
+        if replaces is not None:
+            at = replaced_at  # where the removed item began: what followed it stays after
     else:
         m = _TOP_KEY_RE.match(next((l for l in change_lines if not _is_filler(l)), ""))
         if not m:
@@ -260,17 +266,30 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
 
 
 def _item_fields(item_lines: List[str], indent: int) -> tuple:
-    """(type, name) of a block-style ``terms:`` item (None where absent)."""
+    """(type, name) of a block-style ``terms:`` item (None where absent): the keys at the column of
+    the item's first key (``-   type: dipole`` puts it 4 columns in), not a nested block's, and the
+    keys of a one-line flow item (``- {type: dipole, name: a}``)."""
     fields = {}
+    key_col = None
     for line in item_lines:
         if _is_filler(line):
             continue
-        text = line.strip()
-        if text.startswith("- "):
-            text = text[2:].strip()
-        depth = len(line) - len(line.lstrip()) - indent
-        m = re.match(r"^(type|name)\s*:\s*([^#]*?)\s*(#.*)?$", text)
-        if m and depth <= 2:  # the item's own keys, not a nested block's
+        body = line.lstrip()
+        col = len(line) - len(body)
+        if key_col is None and body.startswith("-"):
+            rest = body[1:]
+            col += 1 + len(rest) - len(rest.lstrip())
+            body = rest.strip()
+            if body.startswith("{") and body.rstrip().endswith("}"):
+                for part in body.strip().strip("{}").split(","):
+                    k, _, v = part.partition(":")
+                    fields.setdefault(k.strip(), v.strip().strip("'\""))
+                break
+            key_col = col
+        if col != key_col:
+            continue
+        m = re.match(r"^(type|name)\s*:\s*([^#]*?)\s*(#.*)?$", body.strip())
+        if m:
             fields.setdefault(m.group(1), m.group(2).strip("'\""))
     return fields.get("type"), fields.get("name")
 
