@@ -61,6 +61,23 @@ def test_verdict_names_the_top_significant_candidate():
     assert v["model_change"].startswith("- type: dipole")
 
 
+def test_verdict_and_rows_carry_a_replacement():
+    doc = contract_b_doc(True)
+    top = doc["candidates"][0]
+    top.update(effect="plane", replaces="dipole_2", insert_index=1,
+               model_change="- type: plane\n  attenuation: 0.26\n")
+    doc["verdict"].update(effect="plane", replaces="dipole_2")
+    v = diagnosis.verdict(doc, TEMPERATURE)
+    assert v["effect"] == "plane" and v["replaces"] == "dipole_2" and v["insert_index"] == 1
+    assert diagnosis.verdict(contract_b_doc(True), TEMPERATURE)["replaces"] is None
+    rows = diagnosis.candidate_rows(doc)
+    assert rows[0]["effect"] == "plane for dipole_2" and rows[1]["effect"] == "sensor_offset"
+    assert "in place of item 1 (dipole_2)" in diagnosis.change_place(v["model_change"], 1, "dipole_2")
+    text = "terms:\n  - type: dipole\n  - type: dipole\n    polarisability_m3: -0.26\n  - type: polynomial\n"
+    new = diagnosis.apply_model_change(text, v["model_change"], v["insert_index"], v["replaces"])
+    assert new == "terms:\n  - type: dipole\n  - type: plane\n    attenuation: 0.26\n  - type: polynomial\n"
+
+
 def test_verdict_falls_back_to_the_covariate():
     v = diagnosis.verdict(contract_b_doc(False), TEMPERATURE)
     assert v["source"] == "covariate" and v["effect"] is None and v["covariate"] == "temperature"

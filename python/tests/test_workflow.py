@@ -1,7 +1,8 @@
 """The workflow a user follows (issue #6), on simulated data with a hidden effect.
 
-Start from the paper's degree-4 polynomial, diagnose, add the top significant candidate, refit,
-and repeat until the diagnosis finds nothing significant (``trackcal.demo.follow_diagnosis``, the
+Start from the paper's degree-4 polynomial, diagnose, add the top significant candidate (or make
+the replacement it proposes: docs/diagnose.md, "Replacements"), refit, and repeat until the
+diagnosis finds nothing significant (``trackcal.demo.follow_diagnosis``, the
 main job's loop). For every hidden effect of the simulator and three seeds, following it must
 
 1. end by itself: the last diagnosis finds nothing significant (not the step cap);
