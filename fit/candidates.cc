@@ -2209,7 +2209,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // diagnosis weighs the swap with it in the model (what the model lacked may be what made the
   // first choice; measured, sensor_offset seed 4: a dipole at the floor's mirror image of the
   // transmitter went in before the background field, 12 BIC points ahead of the plane; with the
-  // background in the model the plane is 24 points ahead).
+  // background in the model the plane is 28.9 points ahead).
   std::string first_addition;
   for (const auto& p : prepared) {
     if (!p.flexible && p.candidate.significant && p.candidate.replaces.empty()) {

@@ -97,6 +97,41 @@ def test_apply_model_change_replaces_the_named_term_in_place():
                                    "polarisability_m3: {name: x}", "- type: plane"]
 
 
+def test_a_replacement_keeps_the_comments_of_its_neighbours_where_they_were():
+    text = demo.apply_model_change(_TWO_DIPOLES.replace("polarisability_m3: -0.0134\n",
+                                                        "polarisability_m3: -0.0134\n    # fixed: true\n"),
+                                   "- type: plane\n", 1, "dipole")
+    assert text.splitlines() == [
+        "terms:", "  - type: sensor_offset", "  - type: plane", "  # the floor's mirror image?",
+        "  - type: dipole", "    location_in_transmitter: [-0.038, -0.260, 1.326]",
+        "    polarisability_m3: -0.257", "", "  - type: polynomial", "    degree: 4"], \
+        "the item's own commented-out key goes with it; the comment before the next item stays there"
+
+
+@pytest.mark.parametrize("layout,names", [
+    ("terms:\n  -\n    type: dipole\n  - type: dipole\n", ["dipole", "dipole_2"]),
+    ("terms:\n  - {type: dipole}  # the frame\n  - type: dipole\n", ["dipole", "dipole_2"]),
+    ("terms:\n  - {type: dipole,\n     name: a}\n  - type: dipole\n", ["a", "dipole"]),
+    ("terms:\n  -  # the frame\n    type: plane\n    name: b  # floor\n  - type: plane\n", ["b", "plane"]),
+])
+def test_a_replacement_reads_the_names_of_every_layout(layout, names):
+    # Each item is found under the name the model file gives it, whatever its layout, and only that
+    # item is replaced (the other keeps its lines).
+    other = "lut"
+    for i, name in enumerate(names):
+        new = demo.apply_model_change(layout, f"- type: {other}\n", i, name)
+        items = [l for l in new.splitlines() if l.startswith("  -")]
+        assert len(items) == 2 and items[i] == f"  - type: {other}", new
+        with pytest.raises(ValueError, match="replaces"):
+            demo.apply_model_change(layout, f"- type: {other}\n", i, name + "_9")
+
+
+@pytest.mark.parametrize("change", ["loss:\n  type: cauchy\n", "- type: plane\n- type: plane\n"])
+def test_a_replacement_must_be_one_term(change):
+    with pytest.raises(ValueError, match="one terms: item"):
+        demo.apply_model_change(_TWO_DIPOLES, change, 2, "dipole_2")
+
+
 @pytest.mark.parametrize("index,replaces", [(1, "dipole_2"), (2, "dipole_3"), (0, "sensor_offset"),
                                             (4, "dipole_2")])
 def test_apply_model_change_refuses_to_replace_another_term(index, replaces):

@@ -192,6 +192,8 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
         m = _TOP_KEY_RE.match(l)
         if m:
             keys.setdefault(m.group(1), i)
+    if replaces is not None and not change_is_term(change):
+        raise ValueError(f"replaces {replaces!r}: the change must be one terms: item, got {change!r}")
     if change_is_term(change):
         start = keys.get("terms")
         if start is None:
@@ -227,10 +229,18 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
         if replaces is not None:
             if idx >= n:
                 raise ValueError(f"replaces {replaces!r}: insert_index {idx} names no term")
-            bounds = []  # each item's lines, trailing comments and blanks left out
+            if sum(_is_item(l.strip()) for l in change_lines
+                   if len(l) - len(l.lstrip()) == 0) != 1:
+                raise ValueError(f"replaces {replaces!r}: the change must be one terms: item")
+            # Each item's lines; blank lines and comments at the list's column after it belong to
+            # what follows (a comment indented under the item, a commented-out key, is the item's).
+            bounds = []
             for k in range(n):
                 stop = items[k + 1] if k + 1 < n else end
-                while stop > items[k] + 1 and _is_filler(lines[stop - 1]):
+                while stop > items[k] + 1 and (
+                        not lines[stop - 1].strip() or
+                        (_is_filler(lines[stop - 1]) and
+                         len(lines[stop - 1]) - len(lines[stop - 1].lstrip()) <= indent)):
                     stop -= 1
                 bounds.append((items[k], stop))
             names = _term_names([_item_fields(lines[a:b], indent) for a, b in bounds])
@@ -267,28 +277,44 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
 
 def _item_fields(item_lines: List[str], indent: int) -> tuple:
     """(type, name) of a block-style ``terms:`` item (None where absent): the keys at the column of
-    the item's first key (``-   type: dipole`` puts it 4 columns in), not a nested block's, and the
-    keys of a one-line flow item (``- {type: dipole, name: a}``)."""
+    the item's first key (``-   type: dipole`` puts it 4 columns in; after a bare ``-``, the next
+    line's), not a nested block's, and the keys of a flow item (``- {type: dipole, name: a}``, on
+    one or several lines)."""
     fields = {}
     key_col = None
+    dash_seen = False
+    flow = None  # the text of a flow item while it is read
     for line in item_lines:
         if _is_filler(line):
             continue
-        body = line.lstrip()
-        col = len(line) - len(body)
-        if key_col is None and body.startswith("-"):
+        body = re.sub(r"\s+#.*$", "", line.rstrip())  # a trailing comment
+        col = len(body) - len(body.lstrip())
+        body = body.strip()
+        if flow is not None:
+            flow += " " + body
+        elif not dash_seen and body.startswith("-"):
+            dash_seen = True
             rest = body[1:]
             col += 1 + len(rest) - len(rest.lstrip())
             body = rest.strip()
-            if body.startswith("{") and body.rstrip().endswith("}"):
-                for part in body.strip().strip("{}").split(","):
+            if not body:
+                continue  # a bare '-': the keys start on the next line
+            if body.startswith("{"):
+                flow = body
+            else:
+                key_col = col
+        elif key_col is None:
+            key_col = col
+        if flow is not None:
+            if flow.endswith("}"):
+                for part in flow.strip("{}").split(","):
                     k, _, v = part.partition(":")
                     fields.setdefault(k.strip(), v.strip().strip("'\""))
                 break
-            key_col = col
+            continue
         if col != key_col:
             continue
-        m = re.match(r"^(type|name)\s*:\s*([^#]*?)\s*(#.*)?$", body.strip())
+        m = re.match(r"^(type|name)\s*:\s*(.*?)\s*$", body)
         if m:
             fields.setdefault(m.group(1), m.group(2).strip("'\""))
     return fields.get("type"), fields.get("name")
