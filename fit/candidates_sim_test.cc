@@ -447,6 +447,18 @@ TEST(DiagnoseCandidatesPaperSmall, FarMonitorsAreNotClaimedAsAPlane) {
   EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("distant sources"));
 }
 
+// The sensor offset, the workbench frame and dipole_2 at the floor's mirror image of the
+// transmitter, as the seed-4 loop (hidden sensor offset) had them after its third diagnosis.
+constexpr const char* kSeed4Sources = R"(terms:
+  - type: sensor_offset
+  - type: dipole
+    location_in_transmitter: [0.4550, 0.0012, 0.4149]
+    polarisability_m3: -0.01339
+  - type: dipole
+    name: dipole_2
+    location_in_transmitter: [-0.0380, -0.2601, 1.3261]
+    polarisability_m3: -0.2569)";
+
 // The workflow loop with the hidden sensor offset, seed 4: its third diagnosis added a dipole at the
 // floor's mirror image of the transmitter before the plane (delta BIC -2050.2 against -2037.9,
 // held-out errors 4.6 % apart), and the fourth added the background field. This is the model the
@@ -456,15 +468,7 @@ TEST(DiagnoseCandidatesPaperSmall, FarMonitorsAreNotClaimedAsAPlane) {
 // plane costs 1547 BIC points and is not.
 TEST(DiagnoseCandidatesPaperSmall, AFloorTakenForADipoleIsReplacedByAPlane) {
   sim::Scene scene;
-  const Diagnosis d = DiagnosePaperSmall("sensor_offset", 4, R"(terms:
-  - type: sensor_offset
-  - type: dipole
-    location_in_transmitter: [0.4550, 0.0012, 0.4149]
-    polarisability_m3: -0.01339
-  - type: dipole
-    name: dipole_2
-    location_in_transmitter: [-0.0380, -0.2601, 1.3261]
-    polarisability_m3: -0.2569
+  const Diagnosis d = DiagnosePaperSmall("sensor_offset", 4, std::string(kSeed4Sources) + R"(
   - type: background_field
   - type: polynomial
     degree: 4
@@ -502,15 +506,7 @@ TEST(DiagnoseCandidatesPaperSmall, AFloorTakenForADipoleIsReplacedByAPlane) {
 // replacement is weighed and not claimed, and the held door is not swapped at all.
 TEST(DiagnoseCandidatesPaperSmall, AHeldPlaneStaysAndASwapThatFitsWorseIsNotClaimed) {
   sim::Scene scene;
-  const Diagnosis d = DiagnosePaperSmall("sensor_offset", 4, R"(terms:
-  - type: sensor_offset
-  - type: dipole
-    location_in_transmitter: [0.4550, 0.0012, 0.4149]
-    polarisability_m3: -0.01339
-  - type: dipole
-    name: dipole_2
-    location_in_transmitter: [-0.0380, -0.2601, 1.3261]
-    polarisability_m3: -0.2569
+  const Diagnosis d = DiagnosePaperSmall("sensor_offset", 4, std::string(kSeed4Sources) + R"(
   - type: plane
     name: door
     point_in_transmitter: [0, -2.1, 0]
