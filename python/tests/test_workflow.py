@@ -99,7 +99,8 @@ SEEDS = [1, 2, 3]
 
 # Which loops run: TRACKCAL_WORKFLOW_TESTS unset or "ci": CI_LOOPS (one seed per effect, what fits
 # CI's budget, see LOOP_TIMES); "full": every effect on 3 seeds; "none": no loop; else a
-# comma-separated list of effects (3 seeds each) or effect:seed items ("clock_offset:2").
+# comma-separated list of effects (3 seeds each) or effect:seed items ("clock_offset:2"; any seed,
+# "sensor_offset:4" adds a loop on a seed outside SEEDS).
 _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 # Measured (branch `loops`, main with the chain clamping only explicit terms), wall time of one loop
 # at a time under nice -n 5 on the 2 shared cores of the development machine, under a load of 10-17
@@ -611,14 +612,28 @@ _XFAIL = {
 }
 
 
-def _loop_params() -> list:
-    """(hidden, seed) for every loop, marked xfail by _XFAIL's effect or "effect:seed" key."""
+def _extra_seeds() -> list:
+    """(hidden, seed) items of TRACKCAL_WORKFLOW_TESTS with a seed outside SEEDS ("sensor_offset:4"):
+    the same loop and checks on a seed the tests do not fix."""
     out = []
-    for h in HIDDEN_EFFECTS:
-        for seed in SEEDS:
-            reason = _XFAIL.get(f"{h}:{seed}", _XFAIL.get(h))
-            marks = [pytest.mark.xfail(reason=reason, strict=False, raises=AssertionError)] if reason else []
-            out.append(pytest.param(h, seed, marks=marks, id=f"{h}-{seed}"))
+    if _SELECTED in ("ci", "full", "none"):
+        return out
+    for item in (x.strip() for x in _SELECTED.split(",")):
+        hidden, _, seed = item.partition(":")
+        if hidden in HIDDEN_EFFECTS and seed.isdigit() and int(seed) not in SEEDS:
+            out.append((hidden, int(seed)))
+    return out
+
+
+def _loop_params() -> list:
+    """(hidden, seed) for every loop, marked xfail by _XFAIL's effect or "effect:seed" key, and the
+    extra seeds a run asks for (_extra_seeds)."""
+    out = []
+    pairs = [(h, seed) for h in HIDDEN_EFFECTS for seed in SEEDS] + _extra_seeds()
+    for h, seed in pairs:
+        reason = _XFAIL.get(f"{h}:{seed}", _XFAIL.get(h))
+        marks = [pytest.mark.xfail(reason=reason, strict=False, raises=AssertionError)] if reason else []
+        out.append(pytest.param(h, seed, marks=marks, id=f"{h}-{seed}"))
     return out
 
 
@@ -677,6 +692,16 @@ def _fit_doc(*terms) -> dict:
 @pytest.fixture(scope="module")
 def toolbox_truth(tmp_path_factory):
     return _truth(_simulate(tmp_path_factory.mktemp("truth") / "capture", "ferromagnetic_object", 1))
+
+
+def test_a_selection_can_add_seeds_outside_the_fixed_ones(monkeypatch):
+    import sys
+    monkeypatch.setattr(sys.modules[__name__], "_SELECTED",
+                        "sensor_offset:4, receiver_gains, clock_offset:2, bogus:7, ferromagnetic_object:x")
+    assert _extra_seeds() == [("sensor_offset", 4)]
+    assert ("sensor_offset", 4) in [tuple(p.values) for p in _loop_params()]
+    monkeypatch.setattr(sys.modules[__name__], "_SELECTED", "ci")
+    assert _extra_seeds() == [] and len(_loop_params()) == len(HIDDEN_EFFECTS) * len(SEEDS)
 
 
 def test_room_sources_are_findings_and_each_is_matched_once(toolbox_truth):
