@@ -337,6 +337,15 @@ const std::set<std::string>& ExplicitTermTypes() {
   return types;
 }
 
+// The name the model file gives an unnamed term of `type` (fit/model_file.cc): the type, or
+// type_2, type_3, ... when `taken` has it.
+std::string NumberedName(const std::string& type, const std::set<std::string>& taken) {
+  if (!taken.count(type)) return type;
+  int k = 2;
+  while (taken.count(type + "_" + std::to_string(k))) ++k;
+  return type + "_" + std::to_string(k);
+}
+
 // Where a physical term goes: after the leading physical terms, before the first explicit one.
 int PhysicalInsertIndex(const YAML::Node& terms) {
   int index = 0;
@@ -1465,11 +1474,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         const bool typed = t.IsMap() && t["type"];
         std::string type = typed ? t["type"].as<std::string>() : "";
         std::string name = t.IsMap() && t["name"] ? t["name"].as<std::string>() : type;
-        if (!(t.IsMap() && t["name"]) && taken.count(name)) {
-          int k = 2;
-          while (taken.count(type + "_" + std::to_string(k))) ++k;
-          name = type + "_" + std::to_string(k);
-        }
+        if (!(t.IsMap() && t["name"])) name = NumberedName(type, taken);
         taken.insert(name);
         names.push_back(name);
         types.push_back(type);
@@ -1511,12 +1516,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       for (size_t j = 0; j < names.size(); ++j) {
         if (j != i) taken.insert(names[j]);
       }
-      if (taken.count(other)) {
-        int k = 2;
-        while (taken.count(other + "_" + std::to_string(k))) ++k;
-        term["name"] = other + "_" + std::to_string(k);
-      }
-      const std::string name = term["name"] ? term["name"].as<std::string>() : other;
+      const std::string name = NumberedName(other, taken);
+      if (name != other) term["name"] = name;
       p.candidate.term_names = {name};
       p.candidate.term_name = name;
       p.terms.push_back(term);
