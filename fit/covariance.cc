@@ -245,7 +245,8 @@ Eigen::MatrixXd PseudoInverse(const DenseAnalysis& dense, int dimension) {
 // rank-aware pseudo-inverse of the dense analysis. False (and why) if it cannot be computed.
 bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnalysis& dense,
                         const CovarianceOptions& options, Eigen::MatrixXd* full,
-                        std::string* estimator, int* clusters, std::string* why) {
+                        std::string* estimator, int* clusters, double* noise_variance_scale,
+                        std::string* why) {
   // The clusters' rows and the other residual blocks' rows of the analysis' Jacobian (evaluated
   // once for both, with the loss applied as the solver saw it).
   std::vector<int> cluster_rows, cluster_sizes;
@@ -261,32 +262,45 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
   const int num_groups = static_cast<int>(dense.components.size());
 
   // Residual blocks that are not clusters (priors, regularisers): their model information, group
-  // by group (a row touches one group).
-  std::vector<Eigen::MatrixXd> other_information(static_cast<size_t>(num_groups));
+  // by group (a row touches one group); [0] those in physical units, [1] those relative to the
+  // noise (options.noise_relative), scaled below.
+  std::vector<Eigen::MatrixXd> other_information[2];
   bool have_other = false;
   {
     const std::set<ceres::ResidualBlockId> clustered(options.clusters.begin(),
                                                      options.clusters.end());
-    std::vector<std::vector<int>> other_local_rows(static_cast<size_t>(num_groups));
+    const std::set<ceres::ResidualBlockId> relative(options.noise_relative.begin(),
+                                                    options.noise_relative.end());
+    std::vector<std::vector<int>> other_local_rows[2];
+    for (int kind = 0; kind < 2; ++kind) {
+      other_information[kind].resize(static_cast<size_t>(num_groups));
+      other_local_rows[kind].resize(static_cast<size_t>(num_groups));
+    }
     std::vector<ceres::ResidualBlockId> all;
     problem->GetResidualBlocks(&all);
     for (ceres::ResidualBlockId id : all) {
       if (clustered.count(id)) continue;
+      const int kind = relative.count(id) ? 1 : 0;
       const int first = dense.first_row.at(id);
       const int k = problem->GetCostFunctionForResidualBlock(id)->num_residuals();
       for (int r = first; r < first + k; ++r) {
         const int g = dense.component_of_row[static_cast<size_t>(r)];
-        if (g >= 0) other_local_rows[static_cast<size_t>(g)].push_back(dense.local_of_row[static_cast<size_t>(r)]);
+        if (g >= 0) {
+          other_local_rows[kind][static_cast<size_t>(g)].push_back(
+              dense.local_of_row[static_cast<size_t>(r)]);
+        }
       }
     }
-    for (int g = 0; g < num_groups; ++g) {
-      const auto& rows = other_local_rows[static_cast<size_t>(g)];
-      if (rows.empty()) continue;
-      const Component& c = dense.components[static_cast<size_t>(g)];
-      Eigen::MatrixXd jo(static_cast<Eigen::Index>(rows.size()), c.jacobian.cols());
-      for (size_t i = 0; i < rows.size(); ++i) jo.row(static_cast<Eigen::Index>(i)) = c.jacobian.row(rows[i]);
-      other_information[static_cast<size_t>(g)] = jo.transpose() * jo;
-      have_other = true;
+    for (int kind = 0; kind < 2; ++kind) {
+      for (int g = 0; g < num_groups; ++g) {
+        const auto& rows = other_local_rows[kind][static_cast<size_t>(g)];
+        if (rows.empty()) continue;
+        const Component& c = dense.components[static_cast<size_t>(g)];
+        Eigen::MatrixXd jo(static_cast<Eigen::Index>(rows.size()), c.jacobian.cols());
+        for (size_t i = 0; i < rows.size(); ++i) jo.row(static_cast<Eigen::Index>(i)) = c.jacobian.row(rows[i]);
+        other_information[kind][static_cast<size_t>(g)] = jo.transpose() * jo;
+        have_other = true;
+      }
     }
   }
 
@@ -328,6 +342,7 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
   // Scores s_g = J_g^T u_g, premultiplied by H^+ group by group: T = H^+ S.
   Eigen::MatrixXd scores = Eigen::MatrixXd::Zero(dimension, num_clusters);
   std::vector<int> rows;
+  double sum_sq_residual = 0.0;  // of the clusters' residuals u_g (corrected with CR2)
   for (int g = 0; g < num_clusters; ++g) {
     rows.clear();
     for (const auto& [first, count] : groups[static_cast<size_t>(g)]) {
@@ -382,6 +397,7 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
       }
       u = corrected;
     }
+    sum_sq_residual += u.squaredNorm();
     for (int i = 0; i < k; ++i) {
       const int ri = rows[static_cast<size_t>(i)];
       const int gi = dense.component_of_row[static_cast<size_t>(ri)];
@@ -398,6 +414,11 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
     const double g = num_clusters, n = num_rows, p = dense.rank;
     factor = g > 1 && n > p ? g / (g - 1.0) * (n - 1.0) / (n - p) : 1.0;
   }
+  // s^2: the corrected residuals have the noise's variance (CR2); the raw ones lose the rank's
+  // share of the degrees of freedom (CR1).
+  *noise_variance_scale =
+      leverage ? sum_sq_residual / std::max(num_rows, 1)
+               : sum_sq_residual / std::max(1.0, static_cast<double>(num_rows) - dense.rank);
   // T = H^+ S, group by group; H^+ M H^+ = factor T T^T + H^+ M_other H^+.
   Eigen::MatrixXd t = Eigen::MatrixXd::Zero(dimension, num_clusters);
   for (int g = 0; g < num_groups; ++g) {
@@ -414,13 +435,17 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
   *full = full->selfadjointView<Eigen::Lower>();
   if (have_other) {
     Eigen::MatrixXd meat = Eigen::MatrixXd::Zero(dimension, dimension);
-    for (int g = 0; g < num_groups; ++g) {
-      const Component& c = dense.components[static_cast<size_t>(g)];
-      const Eigen::MatrixXd& m = other_information[static_cast<size_t>(g)];
-      if (m.size() == 0) continue;
-      for (size_t i = 0; i < c.columns.size(); ++i) {
-        for (size_t j = 0; j < c.columns.size(); ++j) {
-          meat(c.columns[i], c.columns[j]) = m(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
+    for (int kind = 0; kind < 2; ++kind) {
+      const double scale = kind == 1 ? *noise_variance_scale : 1.0;
+      for (int g = 0; g < num_groups; ++g) {
+        const Component& c = dense.components[static_cast<size_t>(g)];
+        const Eigen::MatrixXd& m = other_information[kind][static_cast<size_t>(g)];
+        if (m.size() == 0) continue;
+        for (size_t i = 0; i < c.columns.size(); ++i) {
+          for (size_t j = 0; j < c.columns.size(); ++j) {
+            meat(c.columns[i], c.columns[j]) +=
+                scale * m(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
+          }
         }
       }
     }
@@ -852,8 +877,10 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
       Eigen::MatrixXd full;
       std::string estimator;
       int clusters = 0;
+      double noise_variance_scale = std::numeric_limits<double>::quiet_NaN();
       if (SandwichCovariance(problem, result.tangent_dimension, dense, options, &full,
-                             &estimator, &clusters, &why)) {
+                             &estimator, &clusters, &noise_variance_scale, &why)) {
+        result.noise_variance_scale = noise_variance_scale;
         result.covariance = Eigen::MatrixXd::Zero(n, n);
         for (std::size_t i = 0; i < blocks.size(); ++i) {
           for (std::size_t j = 0; j < blocks.size(); ++j) {

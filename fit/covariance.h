@@ -33,8 +33,11 @@
 //     u_g = (I - A_g)^-1/2 r_g (Bell and McCaffrey's CR2: unbiased when the noise model happens to
 //     be right), or, when that costs too much, r_g scaled by G/(G-1) (N-1)/(N-K) (CR1). Residual
 //     blocks that are not clusters (priors, regularisers) enter with their model information J_o^T
-//     J_o. It needs no noise model, only independent clusters and a correct model (a misfit adds to
-//     it, as it should). It needs the dense analysis and at most max_sandwich_dimension tangent
+//     J_o; those whose weights are relative to the noise model (CovarianceOptions::noise_relative:
+//     a ridge or smoothness prior of w c / sigma) with that information scaled by the clusters'
+//     estimated noise variance s^2 (the mean square of the corrected residuals u_g), as the prior
+//     is stated in units of the same sigma. It needs no noise model, only independent clusters and
+//     a correct model (a misfit adds to it, as it should). It needs the dense analysis and at most max_sandwich_dimension tangent
 //     coordinates; otherwise the model covariance is used and CovarianceResult::estimator says so.
 
 #pragma once
@@ -78,6 +81,13 @@ struct CovarianceOptions {
   // group are one cluster, their rows corrected for leverage together and their scores summed
   // (stations that share the model's smooth misfit). The small-sample factor of CR1 counts groups.
   std::vector<int> cluster_groups;
+  // kSandwich: residual blocks that are not clusters and whose weights are relative to the noise
+  // sigma of the stations (a polynomial's or a LUT's ridge, a LUT's smoothness). Their information
+  // enters the meat scaled by s^2, the clusters' noise variance relative to the whitening: with a
+  // model file whose noise is 25 times the stations' real scatter (s^2 ~ 0.0016) the unscaled prior
+  // information dominated the data's and widened the physical terms' stds about 4-fold. Blocks not
+  // listed (a block prior in physical units, gauge constraints) enter unscaled.
+  std::vector<ceres::ResidualBlockId> noise_relative;
   // kSandwich only up to this many tangent coordinates (its dense products cost dimension^3;
   // larger problems, such as fine LUTs, get the model covariance and a message saying so).
   int max_sandwich_dimension = 800;
@@ -126,6 +136,9 @@ struct CovarianceResult {
   // computed gives "model" and says why in `message`.
   std::string estimator = "model";
   int num_clusters = 0;  // the sandwich's clusters (0: the model covariance)
+  // The sandwich's s^2 (CovarianceOptions::noise_relative): the clusters' noise variance over the
+  // whitening's, 1 when the model file's noise is the stations' (NaN: not computed).
+  double noise_variance_scale = std::numeric_limits<double>::quiet_NaN();
   int tangent_dimension = 0;    // tangent coordinates of all non-constant blocks in the problem
   int rank = -1;                // numerical rank of H (-1: dense analysis skipped)
   // Groups of columns sharing no residual row, analysed one by one (0: dense analysis skipped).

@@ -144,6 +144,71 @@ TEST(ComputeCovariance, SandwichMatchesItsClosedForm) {
   }
 }
 
+// A ridge prior on the slope stated relative to the noise sigma (residual w b / sigma), as a
+// polynomial's ridge is: listed in noise_relative, its information enters the meat scaled by s^2 =
+// sum of the CR2-corrected residuals squared / n. The closed form, and the point of the scaling:
+// the covariance then does not depend on the sigma the residuals are whitened with (the fit's
+// solution does not either). Unlisted, the prior's information keeps the whitening's scale, and a
+// sigma 60 times larger gives a wider covariance.
+TEST(ComputeCovariance, NoiseRelativePriorScalesWithTheResiduals) {
+  const int n = 12;
+  const double w = 2.0;  // the prior's weight: b ~ N(0, (sigma / w)^2)
+  Eigen::MatrixXd x(n, 2);
+  Eigen::VectorXd y(n);
+  for (int i = 0; i < n; ++i) {
+    x.row(i) << 1.0, 0.5 * i;
+    y(i) = 1.0 + 2.0 * x(i, 1) + 0.01 * (1 + i) * ((i * 7) % 5 - 2.0);
+  }
+  // In units of sigma the solution minimises |X beta - y|^2 + w^2 b^2 whatever sigma is.
+  Eigen::Matrix2d prior = Eigen::Matrix2d::Zero();
+  prior(1, 1) = w * w;
+  const Eigen::Vector2d beta = (x.transpose() * x + prior).ldlt().solve(x.transpose() * y);
+  std::vector<Eigen::Matrix2d> relative, plain;
+  for (const double sigma : {0.05, 3.0}) {
+    const Eigen::Matrix2d h_inv = ((x.transpose() * x + prior) / (sigma * sigma)).inverse();
+    const Eigen::VectorXd r = (x * beta - y) / sigma;
+    Eigen::Matrix2d meat = Eigen::Matrix2d::Zero();
+    double sum_sq = 0.0;
+    for (int i = 0; i < n; ++i) {
+      const Eigen::RowVector2d xi = x.row(i) / sigma;
+      const double u_sq = r(i) * r(i) / (1.0 - xi * h_inv * xi.transpose());
+      meat += xi.transpose() * xi * u_sq;
+      sum_sq += u_sq;
+    }
+    const Eigen::Matrix2d expected = h_inv * (meat + sum_sq / n * prior / (sigma * sigma)) * h_inv;
+    for (const bool listed : {true, false}) {
+      double a = beta(0), b = beta(1);
+      ceres::Problem problem;
+      CovarianceOptions options;
+      options.estimator = CovarianceEstimator::kSandwich;
+      for (int i = 0; i < n; ++i) {
+        options.clusters.push_back(problem.AddResidualBlock(
+            Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(sigma), x(i, 1), y(i)),
+            nullptr, &a, &b));
+      }
+      const ceres::ResidualBlockId ridge = problem.AddResidualBlock(
+          new ceres::NormalPrior(Eigen::Matrix<double, 1, 1>(w / sigma), Eigen::VectorXd::Zero(1)),
+          nullptr, &b);
+      if (listed) options.noise_relative.push_back(ridge);
+      const CovarianceResult c =
+          ComputeCovariance(&problem, {{&a, "a", {}, 1.0, 10.0}, {&b, "b", {}, 1.0, 10.0}},
+                            options);
+      ASSERT_TRUE(c.success) << c.ToString();
+      EXPECT_EQ(c.estimator, "sandwich (CR2)");
+      EXPECT_NEAR(c.noise_variance_scale, sum_sq / n, 1e-12 * sum_sq / n);
+      (listed ? relative : plain).push_back(c.covariance);
+      if (listed) {
+        EXPECT_TRUE(c.covariance.isApprox(expected, 1e-9)) << c.covariance << "\nexpected\n"
+                                                           << expected;  // rounding only
+      }
+    }
+  }
+  EXPECT_TRUE(relative[0].isApprox(relative[1], 1e-8)) << relative[0] << "\n" << relative[1];
+  // Unscaled, the prior's share grows with sigma^2 against the data's: here b's variance more
+  // than doubles.
+  EXPECT_GT(plain[1](1, 1), 2.0 * plain[0](1, 1));
+}
+
 // Grouped residual blocks (cluster_groups) are one cluster each: CR2 by its closed form,
 // (X^T X)^-1 sum_g X_g^T (I - H_gg)^-1/2 r_g r_g^T (I - H_gg)^-1/2 X_g (X^T X)^-1 with H_gg the
 // group's block of the hat matrix, and CR1 with G/(G-1) (N-1)/(N-K) counting groups.

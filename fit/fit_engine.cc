@@ -478,6 +478,9 @@ struct BuiltProblem {
   // whether its residual got the extra whitening (WhiteningOfAmplification).
   std::vector<double> noise_gain;
   std::vector<bool> noise_whitened;
+  // The terms' extra residual blocks weighted relative to the noise sigma
+  // (ModelTerm::ExtraResidualsRelativeToNoise): the sandwich scales their information.
+  std::vector<ceres::ResidualBlockId> noise_relative_blocks;
 };
 
 BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -533,7 +536,16 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
     }
   }
   for (size_t k = 0; k < spec->terms.size(); ++k) {
+    std::vector<ceres::ResidualBlockId> before;
+    problem.GetResidualBlocks(&before);
     spec->terms[k]->AddExtraResiduals(&problem, InputsOfTerm(stations, *spec, k));
+    if (!spec->terms[k]->ExtraResidualsRelativeToNoise()) continue;
+    std::vector<ceres::ResidualBlockId> after;
+    problem.GetResidualBlocks(&after);
+    const std::set<ceres::ResidualBlockId> old(before.begin(), before.end());
+    for (ceres::ResidualBlockId id : after) {
+      if (!old.count(id)) out.noise_relative_blocks.push_back(id);
+    }
   }
   for (auto& term : spec->terms) {
     for (auto& block : term->blocks()) {
@@ -959,6 +971,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     // (a per-sample sandwich would be optimistic).
     co.estimator = spec->covariance_estimator;
     co.clusters = station_blocks;
+    co.noise_relative = built.noise_relative_blocks;
     const bool stream_samples = moving || SerialSamples(stations);
     if (stream_samples) {
       co.cluster_groups = TimeClusters(stations, spec->stream_clusters);

@@ -188,6 +188,10 @@ class ModelTerm {
   // over this term's blocks as held in blocks() (their addresses are the problem's blocks). Returns
   // the number of residual blocks added. Default: none.
   virtual int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs);
+  // True if those residuals are weighted relative to the noise model's sigma (a ridge w c / sigma,
+  // a smoothness prior): the sandwich covariance scales their information by the stations' noise
+  // variance (fit/covariance.h, CovarianceOptions::noise_relative). Default: false (constraints).
+  virtual bool ExtraResidualsRelativeToNoise() const { return false; }
 
   // The runtime correction of this term with its current values, for the calibration file.
   virtual std::unique_ptr<Correction> ToCorrection() const = 0;

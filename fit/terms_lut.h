@@ -72,6 +72,8 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
     has_following_terms_ = !later.empty();
   }
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
+  // Ridge and smoothness are weighted by 1 / sigma of the noise model.
+  bool ExtraResidualsRelativeToNoise() const override { return true; }
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
 

@@ -70,6 +70,7 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   bool SolvesAloneLinearly() const override { return options_.ridge == 0.0 && !options_.ridge_auto; }
   // The ridge residuals (options().ridge or the chosen one) on the free parts.
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
+  bool ExtraResidualsRelativeToNoise() const override { return true; }  // w c / sigma
   // The ridge weights in use per part (position, orientation): the option, or the chosen ones.
   const Eigen::Vector2d& ridge_used() const { return ridge_used_; }
   // Candidate weights of ridge: auto (0, then 1e-4 .. 1e2 in steps of 10^0.5).
