@@ -6,6 +6,7 @@ import shutil
 import socket
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from trackcal import demo
@@ -23,6 +24,44 @@ def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+# ---- the base model on few heights ----
+
+def _grid_poses(path: Path, heights: int, jitter: float = 0.002) -> Path:
+    """A poses.csv of an 8 x 6 grid at `heights` heights 0.15 m apart (positions jittered by up to
+    `jitter` m, as stations placed by hand are), plus scattered validation stations."""
+    rng = np.random.default_rng(4)
+    rows = ["station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,"
+            "ref_x,ref_y,ref_z,ref_qw,ref_qx,ref_qy,ref_qz"]
+    points = [("calib", np.array([0.15 * i, 0.15 * j, -0.35 - 0.15 * k]) + rng.uniform(-jitter, jitter, 3))
+              for i in range(8) for j in range(6) for k in range(heights)]
+    points += [("valid", rng.uniform([0, 0, -1.0], [1.05, 0.75, -0.3])) for _ in range(20)]
+    for n, (set_name, p) in enumerate(points, start=1):
+        xyz = ",".join(f"{v:.6f}" for v in p)
+        rows.append(f"{n},{set_name},1,{n},{xyz},1,0,0,0,{xyz},1,0,0,0")
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_grid_layers_counts_a_grid_s_heights_and_no_layers_in_scattered_stations():
+    rng = np.random.default_rng(1)
+    assert demo.grid_layers(rng.uniform(size=300)) == 0, "uniform stations have no layers"
+    heights = np.repeat([-0.8, -0.65, -0.5, -0.35], 48) + rng.uniform(-0.002, 0.002, 192)
+    assert demo.grid_layers(heights) == 4, "hand-placed stations 2 mm off their heights"
+    assert demo.grid_layers(np.full(10, 0.3)) == 1
+    assert demo.grid_layers([0.1, 0.2]) == 0, "too few to tell"
+
+
+def test_the_base_shrinks_the_polynomial_only_on_fewer_heights_than_its_degree_needs(tmp_path):
+    text, why = demo.base_model_for(_grid_poses(tmp_path / "four.csv", 4))
+    assert text == demo.PAPER_MODEL_FEW_HEIGHTS and "ridge: auto" in text
+    assert why == ("the calibration stations lie on 4 layers along z, fewer than the degree-4 "
+                   "polynomial's 5: its base gets ridge: auto")
+    assert demo.base_model_for(_grid_poses(tmp_path / "five.csv", 5)) == (demo.PAPER_MODEL, None)
+    # The same polynomial otherwise: the edits of the loop see the same items.
+    assert demo.PAPER_MODEL_FEW_HEIGHTS.replace("    ridge: auto\n", "").endswith(
+        demo.PAPER_MODEL[demo.PAPER_MODEL.index("terms:"):])
 
 
 # ---- model-file edits (contract B's model_change / insert_index) ----

@@ -41,7 +41,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Tuple
 
 # The model-file edit of every step; trackcal diagnose makes the same one.
 from trackcal.diagnosis import apply_model_change
@@ -88,6 +88,51 @@ terms:
   - type: polynomial
     degree: 4
 """
+
+# The base on a calibration grid with fewer heights than the polynomial's degree + 1: the same
+# polynomial with ridge: auto (docs/understand.md, "Four heights").
+PAPER_MODEL_FEW_HEIGHTS = PAPER_MODEL.replace(
+    "terms:\n",
+    "# ridge: auto: the calibration stations lie on fewer heights than the degree + 1, so once\n"
+    "# physical terms before it put the reports onto the grid, an unshrunk polynomial swings\n"
+    "# between and beyond the heights; its coefficients of degree >= 2 are shrunk by the weight that\n"
+    "# best predicts held-out heights (docs/model-file.md, \"Polynomial ridge\").\n"
+    "terms:\n").replace("    degree: 4\n", "    degree: 4\n    ridge: auto\n")
+
+
+def grid_layers(values) -> int:
+    """How many layers the coordinates `values` of a calibration grid fall into: a gap wider than 10
+    times the median gap between neighbouring sorted values and a quarter of the widest starts a new
+    one (the rule of the polynomial's blocked cross-validation, fit/terms_polynomial.h). 0 when the
+    values form no layers (scattered stations) or fewer than 3 are given."""
+    import numpy as np
+    v = np.sort(np.asarray(values, dtype=float))
+    if v.size < 3:
+        return 0
+    gaps = np.diff(v)
+    if not np.any(gaps > 0):
+        return 1
+    threshold = max(10.0 * float(np.median(gaps)), 0.25 * float(gaps.max()))
+    starts = int(np.count_nonzero((gaps > threshold) & (gaps > 0)))
+    return starts + 1 if starts else 0
+
+
+def base_model_for(capture: Path, degree: int = 4) -> Tuple[str, Optional[str]]:
+    """The loop's default base model for `capture` and why it differs from PAPER_MODEL (None when
+    it does not): on calibration stations in fewer layers than degree + 1 along some axis, the
+    polynomial gets ridge: auto."""
+    from trackcal import captures
+    poses = captures.load_poses(capture)
+    calib = poses.reference_positions[poses.set == "calib"]
+    if len(calib) == 0:
+        calib = poses.reference_positions
+    for axis, name in enumerate("xyz"):
+        n = grid_layers(calib[:, axis])
+        if 2 <= n < degree + 1:
+            return PAPER_MODEL_FEW_HEIGHTS, (
+                f"the calibration stations lie on {n} layers along {name}, fewer than the degree-{degree} "
+                f"polynomial's {degree + 1}: its base gets ridge: auto")
+    return PAPER_MODEL, None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -599,12 +644,16 @@ def _main(argv: Optional[List[str]] = None) -> int:
     if args.max_steps < 0:
         parser.error("--max-steps must be >= 0")
 
-    base_text = PAPER_MODEL if args.base is None else args.base.read_text()
+    base_text = None if args.base is None else args.base.read_text()
     work = _fresh_work_dir(args.work)
     print(f"trackcal demo: work folder {work}")
     if args.scene is None:
         args.scene = str(_write_new(work / "scene.yaml", DEFAULT_SCENE))
     capture = simulate(work, args.hidden, args.seed, args.scene)
+    if base_text is None:
+        base_text, why = base_model_for(capture)
+        if why:
+            print(f"base model: {why}")
     floor = noise_floor(capture)
     final = None
     if diagnosis_available():
