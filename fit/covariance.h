@@ -86,7 +86,10 @@ struct CovarianceOptions {
   // enters the meat scaled by s^2, the clusters' noise variance relative to the whitening: with a
   // model file whose noise is 25 times the stations' real scatter (s^2 ~ 0.0016) the unscaled prior
   // information dominated the data's and widened the physical terms' stds about 4-fold. Blocks not
-  // listed (a block prior in physical units, gauge constraints) enter unscaled.
+  // listed (a block prior in physical units, gauge constraints) enter unscaled. One s^2 for all
+  // rows: a file whose position and orientation sigmas are off by different factors gets a
+  // compromise for both parts' priors (a scale per part would need each prior row tagged with its
+  // part; not done).
   std::vector<ceres::ResidualBlockId> noise_relative;
   // kSandwich only up to this many tangent coordinates (its dense products cost dimension^3;
   // larger problems, such as fine LUTs, get the model covariance and a message saying so).

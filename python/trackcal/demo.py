@@ -6,7 +6,9 @@ hardware and the optical reference:
 1. simulate a paper-protocol capture (the room of sim/ preset ``paper``, a five-height grid:
    ``DEFAULT_SCENE``) with an effect the paper's polynomial model lacks (``--hidden``, default a
    2.5 cm / 3.1 deg sensor offset);
-2. fit the base model (the paper's degree-4 polynomial, ``--base``) with ``trackcal-fit``;
+2. fit the base model (``--base``; default the paper's degree-4 polynomial, with ``ridge: auto``
+   when the calibration stations lie on 2-4 layers along an axis: ``base_model_for``) with
+   ``trackcal-fit``;
 3. diagnose: rank the catalog effects the model lacks (``trackcal-fit diagnose --json
    --cross-validate-top N``; ``trackcal.diagnose_candidates`` in process only with
    ``--cross-validate-top 0``, as it cannot screen), name the top significant one and show the
@@ -93,18 +95,19 @@ terms:
 # polynomial with ridge: auto (docs/understand.md, "Four heights").
 PAPER_MODEL_FEW_HEIGHTS = PAPER_MODEL.replace(
     "terms:\n",
-    "# ridge: auto: the calibration stations lie on fewer heights than the degree + 1, so once\n"
-    "# physical terms before it put the reports onto the grid, an unshrunk polynomial swings\n"
-    "# between and beyond the heights; its coefficients of degree >= 2 are shrunk by the weight that\n"
-    "# best predicts held-out heights (docs/model-file.md, \"Polynomial ridge\").\n"
+    "# ridge: auto: the calibration stations lie on fewer layers along an axis than the degree + 1,\n"
+    "# so once physical terms before it put the reports onto the grid, an unshrunk polynomial swings\n"
+    "# between and beyond the layers; its coefficients of degree >= 2 are shrunk by the weight that\n"
+    "# best predicts held-out layers (docs/model-file.md, \"Polynomial ridge\").\n"
     "terms:\n").replace("    degree: 4\n", "    degree: 4\n    ridge: auto\n")
 
 
 def grid_layers(values) -> int:
     """How many layers the coordinates `values` of a calibration grid fall into: a gap wider than 10
     times the median gap between neighbouring sorted values and a quarter of the widest starts a new
-    one (the rule of the polynomial's blocked cross-validation, fit/terms_polynomial.h). 0 when the
-    values form no layers (scattered stations) or fewer than 3 are given."""
+    one (the rule of the polynomial's blocked cross-validation, fit/terms_polynomial.h), and every
+    layer must be thinner than half the narrowest gap between layers (scattered stations split at
+    an unusually wide gap give two thick "layers": 0). 0 also when fewer than 3 values are given."""
     import numpy as np
     v = np.sort(np.asarray(values, dtype=float))
     if v.size < 3:
@@ -113,8 +116,12 @@ def grid_layers(values) -> int:
     if not np.any(gaps > 0):
         return 1
     threshold = max(10.0 * float(np.median(gaps)), 0.25 * float(gaps.max()))
-    starts = int(np.count_nonzero((gaps > threshold) & (gaps > 0)))
-    return starts + 1 if starts else 0
+    cuts = np.flatnonzero((gaps > threshold) & (gaps > 0))
+    if cuts.size == 0:
+        return 0
+    layers = np.split(v, cuts + 1)
+    thickest = max(float(layer[-1] - layer[0]) for layer in layers)
+    return len(layers) if thickest < 0.5 * float(gaps[cuts].min()) else 0
 
 
 def base_model_for(capture: Path, degree: int = 4) -> Tuple[str, Optional[str]]:
@@ -130,8 +137,8 @@ def base_model_for(capture: Path, degree: int = 4) -> Tuple[str, Optional[str]]:
         n = grid_layers(calib[:, axis])
         if 2 <= n < degree + 1:
             return PAPER_MODEL_FEW_HEIGHTS, (
-                f"the calibration stations lie on {n} layers along {name}, fewer than the degree-{degree} "
-                f"polynomial's {degree + 1}: its base gets ridge: auto")
+                f"the calibration stations lie on {n} layers along {name}, fewer than the {degree + 1} "
+                f"a degree-{degree} polynomial needs: its base gets ridge: auto")
     return PAPER_MODEL, None
 
 
@@ -630,7 +637,8 @@ def _main(argv: Optional[List[str]] = None) -> int:
                         help="effect the base model lacks, as trackcal-simulate --hidden ('' for none)")
     parser.add_argument("--seed", type=int, default=None, help="simulation seed (default: the scene's)")
     parser.add_argument("--base", type=Path, default=None,
-                        help="base model file (default: the paper's degree-4 polynomial)")
+                        help="base model file (default: the paper's degree-4 polynomial, with "
+                             "ridge: auto on a grid of 2-4 layers along an axis)")
     parser.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS,
                         help="at most this many model changes")
     parser.add_argument("--folds", type=int, default=5, help="cross-validation folds of the diagnosis")
