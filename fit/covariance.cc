@@ -297,7 +297,9 @@ bool SandwichCovariance(ceres::Problem* problem, int dimension, const DenseAnaly
         if (rows.empty()) continue;
         const Component& c = dense.components[static_cast<size_t>(g)];
         Eigen::MatrixXd jo(static_cast<Eigen::Index>(rows.size()), c.jacobian.cols());
-        for (size_t i = 0; i < rows.size(); ++i) jo.row(static_cast<Eigen::Index>(i)) = c.jacobian.row(rows[i]);
+        for (size_t i = 0; i < rows.size(); ++i) {
+          jo.row(static_cast<Eigen::Index>(i)) = c.jacobian.row(rows[i]);
+        }
         other_information[kind][static_cast<size_t>(g)] = jo.transpose() * jo;
         have_other = true;
       }

@@ -37,8 +37,9 @@
 //     a ridge or smoothness prior of w c / sigma) with that information scaled by the clusters'
 //     estimated noise variance s^2 (the mean square of the corrected residuals u_g), as the prior
 //     is stated in units of the same sigma. It needs no noise model, only independent clusters and
-//     a correct model (a misfit adds to it, as it should). It needs the dense analysis and at most max_sandwich_dimension tangent
-//     coordinates; otherwise the model covariance is used and CovarianceResult::estimator says so.
+//     a correct model (a misfit adds to it, as it should). It needs the dense analysis and at most
+//     max_sandwich_dimension tangent coordinates; otherwise the model covariance is used and
+//     CovarianceResult::estimator says so.
 
 #pragma once
 

@@ -536,10 +536,11 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
     }
   }
   for (size_t k = 0; k < spec->terms.size(); ++k) {
+    const bool relative = spec->terms[k]->ExtraResidualsRelativeToNoise();
     std::vector<ceres::ResidualBlockId> before;
-    problem.GetResidualBlocks(&before);
+    if (relative) problem.GetResidualBlocks(&before);
     spec->terms[k]->AddExtraResiduals(&problem, InputsOfTerm(stations, *spec, k));
-    if (!spec->terms[k]->ExtraResidualsRelativeToNoise()) continue;
+    if (!relative) continue;
     std::vector<ceres::ResidualBlockId> after;
     problem.GetResidualBlocks(&after);
     const std::set<ceres::ResidualBlockId> old(before.begin(), before.end());
