@@ -124,10 +124,11 @@ def grid_layers(values) -> int:
     return len(layers) if thickest < 0.5 * float(gaps[cuts].min()) else 0
 
 
-def base_model_for(capture: Path, degree: int = 4) -> Tuple[str, Optional[str]]:
+def base_model_for(capture: Path) -> Tuple[str, Optional[str]]:
     """The loop's default base model for `capture` and why it differs from PAPER_MODEL (None when
-    it does not): on calibration stations in fewer layers than degree + 1 along some axis, the
+    it does not): on calibration stations in fewer layers than the degree + 1 along some axis, the
     polynomial gets ridge: auto."""
+    degree = 4  # PAPER_MODEL's
     from trackcal import captures
     poses = captures.load_poses(capture)
     calib = poses.reference_positions[poses.set == "calib"]
