@@ -182,6 +182,11 @@ struct CandidateOptions {
   // outliers are rare by definition (flips, bad reference poses); when many stations exceed it, a
   // robust loss only hides an effect the model lacks.
   double max_outlier_fraction = 0.05;
+  // Stations where the base's or a candidate's runtime inverse does not resolve the report (no
+  // root, or an ambiguous one: next to a strong object, core/physical_correction.h) are left out
+  // of that candidate's comparisons when at most this fraction of the stations are; more, and they
+  // count. The full paper capture's toolbox, 0.27 m from the grid, leaves 24-26 of 480 (5 %).
+  double max_unresolved_fraction = 0.1;
   // A gross outlier must also be gross against this many nearest stations (by reference position;
   // 6: a grid station's face neighbours): a whole neighbourhood beyond the capture's errors is an
   // effect the model lacks there, not outliers (docs/diagnose.md). 0: the capture-wide test only.
@@ -260,6 +265,10 @@ struct Candidate {
   bool cross_validated = false;  // false: screened out by BIC (cross_validate_top) or failed
   double cv_position_mm_mean = NAN;
   double cv_orientation_deg_mean = NAN;
+  // The base's held-out means over the same stations (without the stations left out of the
+  // comparison: the base loss's outliers, unresolved stations); the drops are against these.
+  double cv_base_position_mm_mean = NAN;
+  double cv_base_orientation_deg_mean = NAN;
   double drop_position_percent = NAN;  // 100 (base - candidate) / base of the held-out mean
   double drop_orientation_percent = NAN;
   double cv_whitened_mean = NAN;  // mean held-out whitened squared error (ranking key)
@@ -279,8 +288,10 @@ struct Candidate {
   std::vector<int> local_structure_stations;
   std::string local_structure_note;  // where they are, in words (empty: none)
   // Stations left out of delta BIC because the candidate's or the base's runtime inverse found no
-  // root there (at most max_outlier_fraction of them; else they count).
+  // root or an ambiguous one there (at most max_unresolved_fraction of them; else they count).
   int bic_unresolved_left_out = 0;
+  // The same for the held-out comparison (drops, paired test, ranking), by the fold chains.
+  int cv_unresolved_left_out = 0;
   std::string statement;                    // physical summary with units and +- 1 sigma
   double seconds = 0.0;
 };

@@ -410,8 +410,10 @@ TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
   ASSERT_EQ(j["candidates"].size(), 2u);
   for (const auto& c : j["candidates"]) {
     for (const char* key : {"effect", "model_change", "insert_index", "cv_position_mm_mean",
-                            "cv_orientation_deg_mean", "cv_drop_percent", "delta_bic", "p_value",
-                            "significant", "reason", "evidence", "parameters", "statement"}) {
+                            "cv_orientation_deg_mean", "cv_base_position_mm_mean",
+                            "cv_base_orientation_deg_mean", "cv_drop_percent", "delta_bic",
+                            "p_value", "significant", "reason", "evidence", "parameters",
+                            "statement", "cv_unresolved_left_out", "bic_unresolved_left_out"}) {
       EXPECT_TRUE(c.contains(key)) << key;
     }
     EXPECT_TRUE(c["cv_drop_percent"].contains("position"));
