@@ -254,7 +254,9 @@ TEST(DiagnoseCandidatesPaper, StationsNearAnObjectAreNotOutliersTheObjectIsClaim
 // their errors 5-22 mm and up to 175 mm under a candidate. Counted, they made the background's
 // delta BIC +485 and its held-out position error fall only 3.9 % (orientation +4.4 %), and the
 // loop stopped at 12.5x the noise floor with the floor, the door and the monitors unmodelled. Left
-// out of both comparisons, the background lowers the held-out error by 38.5 % and is claimed.
+// out of both comparisons, the background lowers the held-out error by 11.6 % and is claimed.
+// The floor plane's fit from its searched strength ended above the base's cost (delta BIC +1031: a
+// nested model fitting worse); grown from near zero where it was placed, it ends below it.
 TEST(DiagnoseCandidatesPaper, StationsTheInverseCannotResolveDoNotDecideAComparison) {
   sim::Scene scene = sim::LoadScene("paper");
   scene.seed = 2;
@@ -262,7 +264,7 @@ TEST(DiagnoseCandidatesPaper, StationsTheInverseCannotResolveDoNotDecideACompari
   const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
   const std::vector<FitStation> stations = StationsOfSet(capture.poses, "calib");
   CandidateOptions options;
-  options.effects = {"background_field"};
+  options.effects = {"background_field", "plane"};
   options.flexible.clear();
   const Diagnosis d = DiagnoseCandidates(
       stations,
@@ -272,15 +274,22 @@ TEST(DiagnoseCandidatesPaper, StationsTheInverseCannotResolveDoNotDecideACompari
       "  - type: polynomial\n    degree: 4\n    ridge: auto\n",
       "paper_frame_toolbox.yaml", "paper+toolbox", options);
   std::cout << FormatDiagnosis(d) << "\n";
-  ASSERT_EQ(d.candidates.size(), 1u);
-  const Candidate& background = d.candidates[0];
-  EXPECT_GT(background.cv_unresolved_left_out, 0) << background.reason;
-  EXPECT_GT(background.bic_unresolved_left_out, 0) << background.reason;
-  // At most max_unresolved_fraction of the 480 stations (26 measured).
-  EXPECT_LE(background.cv_unresolved_left_out, 48) << background.reason;
-  EXPECT_TRUE(background.significant) << background.reason;
-  EXPECT_LT(background.delta_bic, options.max_delta_bic) << background.reason;
-  EXPECT_THAT(background.reason, ::testing::HasSubstr("an ambiguous one"));
+  const Candidate* background = nullptr;
+  const Candidate* plane = nullptr;
+  for (const Candidate& c : d.candidates) {
+    if (c.effect == "background_field") background = &c;
+    if (c.effect == "plane" && c.replaces.empty()) plane = &c;
+  }
+  ASSERT_NE(background, nullptr);
+  ASSERT_NE(plane, nullptr);
+  EXPECT_GT(background->cv_unresolved_left_out, 0) << background->reason;
+  EXPECT_GT(background->bic_unresolved_left_out, 0) << background->reason;
+  EXPECT_TRUE(background->significant) << background->reason;
+  EXPECT_LT(background->delta_bic, options.max_delta_bic) << background->reason;
+  EXPECT_THAT(background->reason, ::testing::HasSubstr("an ambiguous one"));
+  // Not a claim (its normal is too vague), but a fit at least as good as the base's: the plane's
+  // 4 parameters cost 4 ln(2880) = 32 BIC points, measured -1578.
+  EXPECT_LT(plane->delta_bic, 32.0) << plane->reason;
 }
 
 TEST(DiagnoseCandidatesPaper, NothingIsClaimedWithoutAHiddenEffect) {

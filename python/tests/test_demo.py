@@ -340,6 +340,65 @@ def test_the_loop_adds_the_proposed_change_refits_and_records_every_fit(tmp_path
         demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append)
 
 
+def test_grown_change_scales_every_source_strength_and_nothing_else():
+    change = ("- type: dipole\n  name: dipole_3\n  location_in_transmitter: [-0.1229, -0.4802, 1.3828]\n"
+              "  polarisability_m3: -0.3189\n- type: plane\n  point_in_transmitter: [0, 0, 0.7]\n"
+              "  normal_in_transmitter: [0, 0, 1]\n  attenuation: 0.2526\n")
+    assert demo.grown_change(change) == change.replace("-0.3189", "-0.0003189").replace(
+        "0.2526", "0.0002526")
+    assert demo.grown_change("- type: background_field\n") is None
+    assert demo.grown_change("- type: sensor_offset\n  translation: [0.01, 0, 0]\n") is None
+
+
+def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_zero(tmp_path,
+                                                                                    monkeypatch):
+    """When the refit with an added source ends above the cost before the change (a worse optimum:
+    the model without it is inside the new one), the loop refits with the source grown from near
+    zero and keeps the lower fit; the first attempt's files stay."""
+    import subprocess
+    capture = tmp_path / "capture"
+    subprocess.run(["trackcal-simulate", "--scene", str(SMALL_SCENE), "--seed", "3", "-o", str(capture)],
+                   check=True, capture_output=True)
+    calls = []
+
+    def ranking(data, model, log, folds=5, cross_validate_top=0):
+        calls.append(Path(model).read_text())
+        significant = len(calls) == 1
+        doc = {"candidates": [{"effect": "dipole", "insert_index": 0, "significant": significant,
+                               "model_change": "- type: dipole\n  location_in_transmitter: "
+                                               "[0.5, 0.0, 0.35]\n  polarisability_m3: -0.009\n",
+                               "statement": "the workbench frame", "reason": "stand-in"}],
+               "verdict": {"effect": "dipole" if significant else None,
+                           "text": None if significant else "nothing significant (stand-in)"}}
+        demo._write_new(log, json.dumps(doc))
+        return doc
+
+    real_fit = demo.run_fit
+
+    def fit(data, model, calibration, log, folds=5):
+        doc = real_fit(data, model, calibration, log, folds=folds)
+        if Path(model).name == "step1.yaml":  # stand-in for a fit that ended in a worse optimum
+            doc["fit"]["final_cost"] = 1e12
+        return doc
+
+    monkeypatch.setattr(demo, "diagnosis_available", lambda: True)
+    monkeypatch.setattr(demo, "run_diagnose", ranking)
+    monkeypatch.setattr(demo, "run_fit", fit)
+    said = []
+    steps = demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append,
+                                  record=False)
+    assert [s.label for s in steps] == ["base", "+dipole"]
+    assert steps[1].model_path.name == "step1.grown.yaml"
+    assert steps[1].calibration_path.name == "step1.grown.json"
+    assert "polarisability_m3: -9e-06" in steps[1].model_path.read_text()
+    assert calls[1] == steps[1].model_path.read_text(), "the next diagnosis reads the grown model"
+    models = tmp_path / "work" / "models"
+    assert "polarisability_m3: -0.009" in (models / "step1.yaml").read_text()
+    assert (models / "step1.json").is_file(), "the first attempt's files stay"
+    assert any("grown from 0.001 of its strength" in line for line in said)
+    assert steps[1].fit["fit"]["final_cost"] < 1e12
+
+
 def test_the_default_scene_is_the_workflow_tests_scene():
     """demo.DEFAULT_SCENE and tests/data/workflow/paper_small.yaml are one scene (comments aside)."""
     def keys(text):
