@@ -650,6 +650,12 @@ bool AddFittedStart(const std::string& type, const std::vector<ParameterReport>&
   return false;
 }
 
+// " (without 25 stations where ...)": the stations a comparison left out as unresolved.
+std::string UnresolvedNote(int n) {
+  return " (without " + std::to_string(n) + " station" + (n == 1 ? "" : "s") +
+         " where a runtime inverse finds no root or an ambiguous one)";
+}
+
 // A source term's start at this fraction of its strength (polarisability, attenuation): near the
 // model without it, where it was placed.
 constexpr double kGrowFromFraction = 1e-3;
@@ -2201,16 +2207,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       << FormatNumber(std::abs(c.drop_position_percent), 1) << " % (position), "
       << (c.drop_orientation_percent >= 0 ? "falls " : "rises ")
       << FormatNumber(std::abs(c.drop_orientation_percent), 1) << " % (orientation)";
-    auto unresolved_note = [&](int n) {
-      r << " (without " << n << " station" << (n == 1 ? "" : "s")
-        << " where a runtime inverse finds no root or an ambiguous one)";
-    };
-    if (c.cv_unresolved_left_out > 0) unresolved_note(c.cv_unresolved_left_out);
+    if (c.cv_unresolved_left_out > 0) r << UnresolvedNote(c.cv_unresolved_left_out);
     r << "; " << (robust ? "outlier test p = " : "p = ") << FormatSignificant(c.p_value, 2);
     if (!replacing) r << (p_ok ? " < " : " >= ") << FormatSignificant(d.p_threshold, 2);
     r << "; delta BIC "
       << (robust ? "(mean-shift outliers) " : "") << FormatNumber(c.delta_bic, 1);
-    if (c.bic_unresolved_left_out > 0) unresolved_note(c.bic_unresolved_left_out);
+    if (c.bic_unresolved_left_out > 0) r << UnresolvedNote(c.bic_unresolved_left_out);
     if (ev.assessed) r << "; " << ev.Describe();
     if (!c.significant) {
       std::vector<std::string> why;
@@ -2407,11 +2409,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                           : d.base.cv_orientation_deg_mean,
                       3)
       << " -> " << FormatNumber(top.cv_orientation_deg_mean, 3) << " deg";
-    if (top.cv_unresolved_left_out > 0) {
-      v << " (without " << top.cv_unresolved_left_out << " station"
-        << (top.cv_unresolved_left_out == 1 ? "" : "s")
-        << " where a runtime inverse finds no root or an ambiguous one)";
-    }
+    if (top.cv_unresolved_left_out > 0) v << UnresolvedNote(top.cv_unresolved_left_out);
     v << ", p = " << FormatSignificant(top.p_value, 2) << ", delta BIC "
       << FormatNumber(top.delta_bic, 1) << ".";
     if (!top.statement.empty()) v << " Fitted: " << top.statement << ".";
@@ -2637,6 +2635,15 @@ std::string FormatDiagnosis(const Diagnosis& d) {
         << "  " << (c.significant ? "yes" : "no") << "\n";
     if (!c.statement.empty()) out << "      " << c.statement << "\n";
     if (!c.fitted) out << "      " << c.reason << "\n";
+  }
+  for (const auto& c : d.candidates) {
+    // The same stations for every candidate but a robust loss: say so once, with the base's mean.
+    if (c.cv_unresolved_left_out > 0 && c.kind != CandidateKind::kRobustLoss) {
+      out << "  Held-out means and drops" << UnresolvedNote(c.cv_unresolved_left_out)
+          << "; the base over the others: " << FormatNumber(c.cv_base_position_mm_mean, 3)
+          << " mm, " << FormatNumber(c.cv_base_orientation_deg_mean, 3) << " deg.\n";
+      break;
+    }
   }
   for (const auto& s : d.skipped) out << "  (not tested: " << s << ")\n";
   for (const auto& f : d.flexible) {

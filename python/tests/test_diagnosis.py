@@ -78,6 +78,18 @@ def test_verdict_and_rows_carry_a_replacement():
     assert new == "terms:\n  - type: dipole\n  - type: plane\n    attenuation: 0.26\n  - type: polynomial\n"
 
 
+def test_the_note_on_stations_left_out_of_the_comparison():
+    doc = contract_b_doc(True)
+    assert diagnosis.unresolved_note(doc) == ""
+    doc["candidates"][0].update(kind="loss", cv_unresolved_left_out=3)  # a robust loss keeps them
+    assert diagnosis.unresolved_note(doc) == ""
+    doc["candidates"][1].update(kind="term", cv_unresolved_left_out=25, cv_base_position_mm_mean=0.992,
+                                cv_base_orientation_deg_mean=0.0966)
+    assert diagnosis.unresolved_note(doc) == (
+        "Held-out means and drops without 25 stations where a runtime inverse finds no root or an "
+        "ambiguous one; the model alone there: 0.992 mm, 0.097 deg.")
+
+
 def test_verdict_falls_back_to_the_covariate():
     v = diagnosis.verdict(contract_b_doc(False), TEMPERATURE)
     assert v["source"] == "covariate" and v["effect"] is None and v["covariate"] == "temperature"

@@ -346,6 +346,8 @@ def cmd_diagnose(args, term) -> int:
         print("\n" + term.c("Candidate effects", "1") +
               f" (the model alone: held-out {base.get('cv_position_mm_mean', float('nan')):.3f} mm, "
               f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg)")
+        if diagnosis.unresolved_note(doc):
+            print("  " + diagnosis.unresolved_note(doc))
         rows = diagnosis.candidate_rows(doc)
         print(_fmt_rows(rows, ["rank", "effect", "cv_pos_mm", "cv_ori_deg", "drop_pos_%",
                                "drop_ori_%", "delta_BIC", "p", "significant"]))

@@ -146,6 +146,21 @@ def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
     return rows
 
 
+def unresolved_note(doc: Optional[CandidatesDoc]) -> str:
+    """When the candidates were compared without the stations the base's runtime inverse does not
+    resolve (no root, or an ambiguous one next to a strong object; docs/diagnose.md), one sentence
+    that says how many and gives the model alone over the others; else ""."""
+    for c in (doc or {}).get("candidates", []):
+        n = c.get("cv_unresolved_left_out") or 0
+        if n > 0 and c.get("kind") != "loss":
+            p, o = c.get("cv_base_position_mm_mean"), c.get("cv_base_orientation_deg_mean")
+            there = (f"; the model alone there: {p:.3f} mm, {o:.3f} deg"
+                     if isinstance(p, (int, float)) and isinstance(o, (int, float)) else "")
+            return (f"Held-out means and drops without {n} station{'s' if n != 1 else ''} where a "
+                    f"runtime inverse finds no root or an ambiguous one{there}.")
+    return ""
+
+
 # ---------------------------------------------------------------------------------------------
 # The model-file change
 

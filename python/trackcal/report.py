@@ -197,7 +197,8 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                      "<p>The model refitted with each catalog effect it lacks, ranked by held-out error "
                      f"({html.escape(str(candidates.get('folds', '')))}-fold cross-validation). The model alone: "
                      f"{base.get('cv_position_mm_mean', float('nan')):.3f} mm, "
-                     f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg.</p>"
+                     f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg. "
+                     f"{html.escape(diagnosis.unresolved_note(candidates))}</p>"
                      + _table(diagnosis.candidate_rows(candidates)))
     if verdict is None and (candidates is not None or v.covariate_effects):
         verdict = diagnosis.verdict(candidates, v.covariate_effects)
