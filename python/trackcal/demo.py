@@ -422,10 +422,12 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
             grown_calib = models / f"step{i}.grown.json"
             grown = run_fit(data, grown_model, grown_calib, models / f"step{i}.grown.fit.log",
                             folds=folds)
+            keep = _final_cost(grown) < _final_cost(doc)
             say(f"  the fit from the change's values ended at cost {_final_cost(doc):.6g}, above "
                 f"the {_final_cost(steps[-1].fit):.6g} before the change; grown from "
-                f"{GROW_FROM_FRACTION:g} of its strength: {_final_cost(grown):.6g}")
-            if _final_cost(grown) < _final_cost(doc):
+                f"{GROW_FROM_FRACTION:g} of its strength: {_final_cost(grown):.6g} "
+                f"({'kept: ' + grown_model.name if keep else 'not kept'})")
+            if keep:
                 model, calib, doc, text = grown_model, grown_calib, grown, grown_text
         step = Step(i, label, model, calib, doc)
         steps.append(step)
