@@ -287,8 +287,15 @@ TEST(DiagnoseCandidatesPaper, StationsTheInverseCannotResolveDoNotDecideACompari
   EXPECT_TRUE(background->significant) << background->reason;
   EXPECT_LT(background->delta_bic, options.max_delta_bic) << background->reason;
   EXPECT_THAT(background->reason, ::testing::HasSubstr("an ambiguous one"));
+  // At most max_unresolved_fraction of the 480 stations (25 measured), and the same stations for
+  // every candidate (the base's).
+  EXPECT_LE(background->cv_unresolved_left_out, 48) << background->reason;
+  if (plane->cross_validated) {
+    EXPECT_EQ(plane->cv_unresolved_left_out, background->cv_unresolved_left_out) << plane->reason;
+  }
   // Not a claim (its normal is too vague), but a fit at least as good as the base's: the plane's
-  // 4 parameters cost 4 ln(2880) = 32 BIC points, measured -1578.
+  // 4 parameters cost about 4 ln(2880) = 32 BIC points, measured -1578 (+1031 from its searched
+  // strength).
   EXPECT_LT(plane->delta_bic, 32.0) << plane->reason;
 }
 

@@ -348,10 +348,17 @@ def test_grown_change_scales_every_source_strength_and_nothing_else():
         "0.2526", "0.0002526")
     assert demo.grown_change("- type: background_field\n") is None
     assert demo.grown_change("- type: sensor_offset\n  translation: [0.01, 0, 0]\n") is None
+    # A comment after the value stays; an exponent is read.
+    assert demo.grown_change("- type: dipole\n  polarisability_m3: 2.5e-3  # toolbox\n") == \
+        "- type: dipole\n  polarisability_m3: 2.5e-06  # toolbox\n"
+    # Not every source's strength is a plain value (a flow item): nothing is grown.
+    assert demo.grown_change("- type: dipole\n  polarisability_m3: 0.01\n"
+                             "- {type: plane, attenuation: 0.2}\n") is None
 
 
-def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_zero(tmp_path,
-                                                                                    monkeypatch):
+@pytest.mark.parametrize("grown_is_lower", [True, False])
+def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_zero(
+        tmp_path, monkeypatch, grown_is_lower):
     """When the refit with an added source ends above the cost before the change (a worse optimum:
     the model without it is inside the new one), the loop refits with the source grown from near
     zero and keeps the lower fit; the first attempt's files stay."""
@@ -379,24 +386,35 @@ def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_z
         doc = real_fit(data, model, calibration, log, folds=folds)
         if Path(model).name == "step1.yaml":  # stand-in for a fit that ended in a worse optimum
             doc["fit"]["final_cost"] = 1e12
+        if Path(model).name == "step1.grown.yaml" and not grown_is_lower:
+            doc["fit"]["final_cost"] = 2e12
         return doc
 
     monkeypatch.setattr(demo, "diagnosis_available", lambda: True)
     monkeypatch.setattr(demo, "run_diagnose", ranking)
     monkeypatch.setattr(demo, "run_fit", fit)
     said = []
-    steps = demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append,
-                                  record=False)
+    steps = demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append)
     assert [s.label for s in steps] == ["base", "+dipole"]
-    assert steps[1].model_path.name == "step1.grown.yaml"
-    assert steps[1].calibration_path.name == "step1.grown.json"
-    assert "polarisability_m3: -9e-06" in steps[1].model_path.read_text()
-    assert calls[1] == steps[1].model_path.read_text(), "the next diagnosis reads the grown model"
+    from trackcal import history
+    other = "+dipole (first attempt, not kept)" if grown_is_lower else "+dipole (grown, not kept)"
+    assert [e["label"] for e in history.load_history(tmp_path / "work")] == \
+        ["base", other, "+dipole"], "every fit is recorded, the one kept last"
     models = tmp_path / "work" / "models"
+    assert (models / "step1.grown.yaml").is_file() and (models / "step1.grown.json").is_file()
+    assert "polarisability_m3: -9e-06" in (models / "step1.grown.yaml").read_text()
     assert "polarisability_m3: -0.009" in (models / "step1.yaml").read_text()
     assert (models / "step1.json").is_file(), "the first attempt's files stay"
-    assert any("grown from 0.001 of its strength" in line for line in said)
-    assert steps[1].fit["fit"]["final_cost"] < 1e12
+    assert calls[1] == steps[1].model_path.read_text(), "the next diagnosis reads the kept model"
+    if grown_is_lower:
+        assert steps[1].model_path.name == "step1.grown.yaml"
+        assert steps[1].calibration_path.name == "step1.grown.json"
+        assert steps[1].fit["fit"]["final_cost"] < 1e12
+        assert any("(kept: step1.grown.yaml)" in line for line in said)
+    else:
+        assert steps[1].model_path.name == "step1.yaml"
+        assert steps[1].fit["fit"]["final_cost"] == 1e12
+        assert any("(not kept)" in line for line in said)
 
 
 def test_the_default_scene_is_the_workflow_tests_scene():

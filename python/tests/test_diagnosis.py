@@ -87,7 +87,7 @@ def test_the_note_on_stations_left_out_of_the_comparison():
                                 cv_base_orientation_deg_mean=0.0966)
     assert diagnosis.unresolved_note(doc) == (
         "Held-out means and drops without 25 stations where a runtime inverse finds no root or an "
-        "ambiguous one; the model alone there: 0.992 mm, 0.097 deg.")
+        "ambiguous one; the model alone over the others: 0.992 mm, 0.097 deg.")
 
 
 def test_verdict_falls_back_to_the_covariate():

@@ -154,7 +154,7 @@ def unresolved_note(doc: Optional[CandidatesDoc]) -> str:
         n = c.get("cv_unresolved_left_out") or 0
         if n > 0 and c.get("kind") != "loss":
             p, o = c.get("cv_base_position_mm_mean"), c.get("cv_base_orientation_deg_mean")
-            there = (f"; the model alone there: {p:.3f} mm, {o:.3f} deg"
+            there = (f"; the model alone over the others: {p:.3f} mm, {o:.3f} deg"
                      if isinstance(p, (int, float)) and isinstance(o, (int, float)) else "")
             return (f"Held-out means and drops without {n} station{'s' if n != 1 else ''} where a "
                     f"runtime inverse finds no root or an ambiguous one{there}.")
