@@ -187,6 +187,20 @@ TEST(DiagnoseCandidatesPaper, HemisphereFlipsCallForTheRobustLoss) {
   EXPECT_FALSE(top.outlier_stations.empty());
 }
 
+// The full paper capture with the hidden toolbox (ferromagnetic_object): its scene and calibration
+// stations.
+struct PaperToolbox {
+  sim::Scene scene;
+  std::vector<FitStation> stations;
+};
+PaperToolbox SimulatePaperToolbox(uint64_t seed) {
+  PaperToolbox out{sim::LoadScene("paper"), {}};
+  out.scene.seed = seed;
+  out.scene.hidden.Enable("ferromagnetic_object");
+  out.stations = StationsOfSet(sim::Simulator(out.scene).Generate().poses, "calib");
+  return out;
+}
+
 // The paper's degree-4 polynomial on the paper capture with the toolbox 0.27 m from the grid's
 // +y face (ferromagnetic_object, seed 3): under the robust loss the stations nearest the toolbox
 // are 4.4-4.9 scales beyond the capture's errors (the Bonferroni threshold is ~4.5), but their
@@ -195,11 +209,9 @@ TEST(DiagnoseCandidatesPaper, HemisphereFlipsCallForTheRobustLoss) {
 // The toolbox itself is claimed: its fit stops at the 100-iteration limit 15 mm from its optimum
 // and is continued from there (it was not claimed before, "its fit did not converge").
 TEST(DiagnoseCandidatesPaper, StationsNearAnObjectAreNotOutliersTheObjectIsClaimed) {
-  sim::Scene scene = sim::LoadScene("paper");
-  scene.seed = 3;
-  scene.hidden.Enable("ferromagnetic_object");
-  const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
-  const std::vector<FitStation> stations = StationsOfSet(capture.poses, "calib");
+  const PaperToolbox paper = SimulatePaperToolbox(3);
+  const sim::Scene& scene = paper.scene;
+  const std::vector<FitStation>& stations = paper.stations;
   CandidateOptions options;
   options.effects = {"robust_loss", "dipole"};
   options.flexible.clear();
@@ -258,11 +270,7 @@ TEST(DiagnoseCandidatesPaper, StationsNearAnObjectAreNotOutliersTheObjectIsClaim
 // The floor plane's fit from its searched strength ended above the base's cost (delta BIC +1031: a
 // nested model fitting worse); grown from near zero where it was placed, it ends below it.
 TEST(DiagnoseCandidatesPaper, StationsTheInverseCannotResolveDoNotDecideAComparison) {
-  sim::Scene scene = sim::LoadScene("paper");
-  scene.seed = 2;
-  scene.hidden.Enable("ferromagnetic_object");
-  const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
-  const std::vector<FitStation> stations = StationsOfSet(capture.poses, "calib");
+  const std::vector<FitStation> stations = SimulatePaperToolbox(2).stations;
   CandidateOptions options;
   options.effects = {"background_field", "plane"};
   options.flexible.clear();

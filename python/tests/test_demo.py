@@ -295,26 +295,38 @@ def test_demo_serves_with_the_emulator_until_told_to_stop(tmp_path):
 
 
 @tools
-def test_the_loop_adds_the_proposed_change_refits_and_records_every_fit(tmp_path, monkeypatch):
-    """The loop's mechanics with a stand-in ranking that proposes one change (a LUT after the
-    polynomial, a term every build accepts) and then nothing: a new model file per step, one
-    history entry per fit, the error after each change."""
+def _small_capture(tmp_path: Path) -> Path:
+    """The workflow tests' scene, seed 3, simulated into tmp_path / "capture"."""
     import subprocess
     capture = tmp_path / "capture"
     subprocess.run(["trackcal-simulate", "--scene", str(SMALL_SCENE), "--seed", "3", "-o", str(capture)],
                    check=True, capture_output=True)
-    calls = []
+    return capture
 
+
+def _one_change_ranking(calls: list, candidate: dict):
+    """A stand-in for run_diagnose that proposes ``candidate`` once and then nothing; each call's
+    model text goes to ``calls``."""
     def ranking(data, model, log, folds=5, cross_validate_top=0):
         calls.append(Path(model).read_text())
         significant = len(calls) == 1
-        doc = {"candidates": [{"effect": "lut", "model_change": "- type: lut\n  cell_size_mm: 300\n",
-                               "insert_index": None, "significant": significant,
-                               "statement": "a coarse lookup table", "reason": "stand-in"}],
-               "verdict": {"effect": "lut" if significant else None,
+        doc = {"candidates": [dict(candidate, significant=significant, reason="stand-in")],
+               "verdict": {"effect": candidate["effect"] if significant else None,
                            "text": None if significant else "nothing significant (stand-in)"}}
         demo._write_new(log, json.dumps(doc))
         return doc
+    return ranking
+
+
+def test_the_loop_adds_the_proposed_change_refits_and_records_every_fit(tmp_path, monkeypatch):
+    """The loop's mechanics with a stand-in ranking that proposes one change (a LUT after the
+    polynomial, a term every build accepts) and then nothing: a new model file per step, one
+    history entry per fit, the error after each change."""
+    capture = _small_capture(tmp_path)
+    calls = []
+    ranking = _one_change_ranking(calls, {"effect": "lut", "insert_index": None,
+                                          "model_change": "- type: lut\n  cell_size_mm: 300\n",
+                                          "statement": "a coarse lookup table"})
 
     monkeypatch.setattr(demo, "diagnosis_available", lambda: True)
     monkeypatch.setattr(demo, "run_diagnose", ranking)
@@ -362,23 +374,12 @@ def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_z
     """When the refit with an added source ends above the cost before the change (a worse optimum:
     the model without it is inside the new one), the loop refits with the source grown from near
     zero and keeps the lower fit; the first attempt's files stay."""
-    import subprocess
-    capture = tmp_path / "capture"
-    subprocess.run(["trackcal-simulate", "--scene", str(SMALL_SCENE), "--seed", "3", "-o", str(capture)],
-                   check=True, capture_output=True)
+    capture = _small_capture(tmp_path)
     calls = []
-
-    def ranking(data, model, log, folds=5, cross_validate_top=0):
-        calls.append(Path(model).read_text())
-        significant = len(calls) == 1
-        doc = {"candidates": [{"effect": "dipole", "insert_index": 0, "significant": significant,
-                               "model_change": "- type: dipole\n  location_in_transmitter: "
-                                               "[0.5, 0.0, 0.35]\n  polarisability_m3: -0.009\n",
-                               "statement": "the workbench frame", "reason": "stand-in"}],
-               "verdict": {"effect": "dipole" if significant else None,
-                           "text": None if significant else "nothing significant (stand-in)"}}
-        demo._write_new(log, json.dumps(doc))
-        return doc
+    ranking = _one_change_ranking(calls, {"effect": "dipole", "insert_index": 0,
+                                          "model_change": "- type: dipole\n  location_in_transmitter: "
+                                                          "[0.5, 0.0, 0.35]\n  polarisability_m3: -0.009\n",
+                                          "statement": "the workbench frame"})
 
     real_fit = demo.run_fit
 
