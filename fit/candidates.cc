@@ -1707,8 +1707,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       };
       go_on(&fit, &spec, "");
       bool grown_kept = false;
-      if (c.kind == CandidateKind::kTerm && c.insert_index && c.replaces.empty() &&
-          p.stations.empty()) {
+      const bool adds_sources =
+          c.kind == CandidateKind::kTerm && !p.terms.empty() &&
+          std::all_of(p.terms.begin(), p.terms.end(), [](const YAML::Node& t) {
+            const std::string type = t["type"].as<std::string>();
+            return type == "dipole" || type == "plane";
+          });
+      if (adds_sources && c.insert_index && c.replaces.empty() && p.stations.empty()) {
         // The base plus a source that fits the stations worse than the base: the joint fit left
         // the base's optimum for a worse one (the source at its searched strength pulls the others
         // and the polynomial's start away). Grow the source from near zero where it was placed:
