@@ -708,6 +708,71 @@ std::string TimeOffsetMimicryNote(double variance_inflation) {
          "polynomial degree";
 }
 
+namespace {
+
+// The model-file term (type, name) a block belongs to.
+std::pair<std::string, std::string> BlockOwner(const ModelSpec& spec, const ModelTerm& term,
+                                               const ParameterBlock& block) {
+  if (block.term.empty()) return {term.type(), term.name()};
+  for (const auto& f : spec.file_terms) {
+    if (f.name == block.term) return {f.type, f.name};
+  }
+  return {term.type(), block.term};
+}
+
+// FitOptions::start for one prepared and initialised term: its free blocks that `start` holds
+// take its values. When any does, the term's other free blocks (an effect added to a physical
+// group) go back to `before`, their values before the term's initialisation: the model file's
+// starts, which the group's own refinement (without the terms after it) moved away.
+void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
+                     const std::vector<std::vector<double>>& before, ModelTerm* term) {
+  std::vector<bool> taken(term->blocks().size(), false);
+  for (size_t k = 0; k < term->blocks().size(); ++k) {
+    ParameterBlock& block = term->blocks()[k];
+    if (block.fixed) continue;
+    const auto t = start.terms.find(BlockOwner(spec, *term, block));
+    if (t == start.terms.end()) continue;
+    const auto b = t->second.blocks.find(block.name);
+    if (b == t->second.blocks.end() || b->second.size() != block.values.size()) continue;
+    bool inside = true;
+    for (size_t i = 0; i < block.values.size(); ++i) {
+      const double v = b->second[i];
+      inside = inside && std::isfinite(v) && (block.lower.empty() || v >= block.lower[i]) &&
+               (block.upper.empty() || v <= block.upper[i]);
+    }
+    if (!inside) continue;
+    std::copy(b->second.begin(), b->second.end(), block.values.begin());
+    taken[k] = true;
+  }
+  if (std::find(taken.begin(), taken.end(), true) == taken.end()) return;
+  for (size_t k = 0; k < term->blocks().size(); ++k) {
+    ParameterBlock& block = term->blocks()[k];
+    if (taken[k] || block.fixed || k >= before.size() || before[k].size() != block.values.size()) {
+      continue;
+    }
+    bool inside = true;
+    for (size_t i = 0; i < block.values.size(); ++i) {
+      const double v = before[k][i];
+      inside = inside && (block.lower.empty() || v >= block.lower[i]) &&
+               (block.upper.empty() || v <= block.upper[i]);
+    }
+    if (inside) block.values = before[k];
+  }
+}
+
+}  // namespace
+
+FitStart TakeFitStart(const ModelSpec& fitted) {
+  FitStart start;
+  for (const auto& term : fitted.terms) {
+    start.terms[{term->type(), term->name()}].prepared = term->PreparedState();
+    for (const auto& block : term->blocks()) {
+      start.terms[BlockOwner(fitted, *term, block)].blocks[block.name] = block.values;
+    }
+  }
+  return start;
+}
+
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
                    const FitOptions& options) {
   if (!options.Check()) throw std::invalid_argument("FitOptions: num_threads must be >= 1");
@@ -726,9 +791,19 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   std::vector<bool> linear_ok;
   for (size_t k = 0; k < spec->terms.size(); ++k) {
     ModelTerm& term = *spec->terms[k];
+    bool from_start = false;
+    if (options.start) {
+      const auto t = options.start->terms.find({term.type(), term.name()});
+      from_start =
+          term.AdoptPreparedState(t != options.start->terms.end() ? t->second.prepared : nullptr);
+    }
     const std::vector<FitStation> inputs = InputsOfTerm(stations, *spec, k);
     term.Prepare(inputs);
     if (k < spec->block_settings.size()) ApplyBlockSettings(spec->block_settings[k], &term);
+    std::vector<std::vector<double>> before;  // the file's starts, for FitOptions::start
+    if (from_start) {
+      for (const auto& block : term.blocks()) before.push_back(block.values);
+    }
     linear_ok.push_back(term.InitializeLinear(inputs, sigmas));
     if (spec->loss.type != LossType::kNone && term.SolvesAloneLinearly()) {
       // With a robust loss a linear term starts from zero, not from its least-squares solution:
@@ -740,6 +815,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       for (auto& block : term.blocks()) {
         if (!block.fixed) std::fill(block.values.begin(), block.values.end(), 0.0);
       }
+    }
+    // (A lone linear term's fit is its initialisation: nothing to start from.)
+    if (from_start && !(spec->terms.size() == 1 && term.SolvesAloneLinearly())) {
+      StartBlocksFrom(*options.start, *spec, before, &term);
     }
     for (const auto& block : term.blocks()) block.Check(term.name());
   }

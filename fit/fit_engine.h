@@ -13,6 +13,7 @@
 #pragma once
 
 #include <functional>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
@@ -26,8 +27,30 @@
 
 namespace trackcal::fit {
 
+// Where a model stands after a fit (TakeFitStart), for a fit of a model that holds the same terms
+// and more (FitOptions::start): a model with an added effect then starts at the fitted model's
+// optimum with the added terms at their own starts (diagnose, fit/candidates.h). Keyed by the
+// model-file term's type and name; the fitted model's value of a block, and its term's
+// PreparedState() (the polynomial's normalisation and ridge weight, the LUT's grid).
+struct FitStart {
+  struct Term {
+    nlohmann::json prepared;  // ModelTerm::PreparedState()
+    std::map<std::string, std::vector<double>> blocks;  // by block name
+  };
+  std::map<std::pair<std::string, std::string>, Term> terms;  // by (type, name)
+};
+// The start `fitted` (a spec FitModel left) gives; copies, so `fitted` may change afterwards.
+FitStart TakeFitStart(const ModelSpec& fitted);
+
 struct FitOptions {
   bool compute_covariance = true;  // standard deviations and identifiability flags
+  // Start from another fit's state (not owned; null: the model file's starts). Each term of the
+  // spec that `start` holds (same type and name) keeps that fit's preparation, and its free blocks
+  // that `start` holds with the same size start at that fit's values after the term's own
+  // initialisation (a physical group's added effect keeps its own start; fixed blocks keep the
+  // file's). Terms `start` lacks are prepared and initialised as usual, from the poses the
+  // preceding terms give at their start values.
+  const FitStart* start = nullptr;
   // Called with (iteration, cost) after each solver iteration (progress on stderr in the CLI).
   std::function<void(int, double)> progress;
   int num_threads = 1;  // Ceres threads

@@ -383,5 +383,48 @@ TEST(CrossValidate, DeterministicFolds) {
   EXPECT_THROW(CrossValidate(stations, make, 1), std::invalid_argument);
 }
 
+// The ridge weights a fit's polynomial used (its Describe() in FitResult::terms).
+std::vector<double> RidgeUsed(const FitResult& result) {
+  for (const auto& t : result.terms) {
+    const auto& d = t.contains("describe") ? t["describe"] : t;
+    if (d.contains("ridge_used")) return d["ridge_used"].get<std::vector<double>>();
+  }
+  return {};
+}
+
+// FitOptions::start: a model with an added effect starts at the fitted smaller model's optimum
+// (its physical values, polynomial coefficients, normalisation and ridge weight) with the added
+// effect where the file puts it. Paper preset, calibration set; the noise whitening switched off
+// (amplification_threshold 1e9), so the start's cost is the smaller model's final cost exactly.
+TEST(FitModel, StartFromASmallerModelsOptimum) {
+  const sim::Simulator simulator(sim::LoadScene("paper"));
+  const auto calib = StationsOfSet(simulator.Generate().poses, "calib");
+  const std::string head =
+      "noise: {amplification_threshold: 1e9}\nterms:\n  - type: sensor_offset\n";
+  const std::string poly = "  - {type: polynomial, degree: 3, ridge: auto}\n";
+  ModelSpec base = ParseModelYaml(head + poly, "base");
+  const FitResult base_fit = FitModel(calib, &base);
+  ASSERT_TRUE(base_fit.converged) << base_fit.solver_message;
+  const FitStart start = TakeFitStart(base);
+  FitOptions from;
+  from.start = &start;
+  // A dipole too weak to move a report by a nanometre: the added effect as the file writes
+  // it, not where the physical group's own refinement (without the polynomial) would put it.
+  const std::string added =
+      "  - {type: dipole, location_in_transmitter: [0.5, 0.6, -0.4], polarisability_m3: 1e-12}\n";
+  ModelSpec bigger = ParseModelYaml(head + added + poly, "bigger");
+  const FitResult fit = FitModel(calib, &bigger, from);
+  // 1e-6 relative: the start is the base's optimum up to the dipole's field (1e-12 m^3 at 0.3 m
+  // moves a report by ~1e-10 m) and rounding.
+  EXPECT_NEAR(fit.initial_cost, base_fit.final_cost, 1e-6 * base_fit.final_cost);
+  EXPECT_LE(fit.final_cost, base_fit.final_cost * (1 + 1e-9));
+  EXPECT_EQ(RidgeUsed(fit), RidgeUsed(base_fit));
+  // Without the start, the same model starts elsewhere (the polynomial on what the group alone
+  // leaves, its weight chosen afresh): the start is what made the costs equal.
+  ModelSpec fresh = ParseModelYaml(head + added + poly, "fresh");
+  const FitResult fresh_fit = FitModel(calib, &fresh);
+  EXPECT_GT(std::abs(fresh_fit.initial_cost - base_fit.final_cost), 1e-3 * base_fit.final_cost);
+}
+
 }  // namespace
 }  // namespace trackcal::fit

@@ -199,6 +199,15 @@ class ModelTerm {
   // Term-specific summary for reports and --json (degree, grid, ...). Default: empty object.
   virtual nlohmann::json Describe() const;
 
+  // What Prepare() derived from the data and InitializeLinear() chose beyond the block values (the
+  // polynomial's normalisation and ridge weight, the LUT's grid): with the block values, the state
+  // a fit of a larger model starts from (fit/fit_engine.h, FitStart). Default: null (none).
+  virtual nlohmann::json PreparedState() const { return nullptr; }
+  // Called before Prepare() with PreparedState() of this term as fitted in that model: Prepare()
+  // and InitializeLinear() then keep it instead of deriving their own. False if the term cannot
+  // (the engine then keeps the term's own start). Default: true for a null state.
+  virtual bool AdoptPreparedState(const nlohmann::json& state) { return state.is_null(); }
+
   // True if this term reproduces an isotropic scaling of the positions about the transmitter,
   // p -> s p, exactly with free parameters (a polynomial of degree >= 1 with a free position part, a
   // LUT): a uniform receiver gain before it is then not identifiable. Default: false.

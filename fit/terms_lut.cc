@@ -52,6 +52,25 @@ std::unique_ptr<ModelTerm> LutTerm::FromYaml(const YamlMapReader& reader) {
   return std::make_unique<LutTerm>(options);
 }
 
+nlohmann::json LutTerm::PreparedState() const {
+  if (!grid_) return nullptr;
+  return {{"axes", {grid_->axis(0), grid_->axis(1), grid_->axis(2)}}};
+}
+
+bool LutTerm::AdoptPreparedState(const nlohmann::json& state) {
+  if (state.is_null()) return true;
+  if (!state.is_object() || !state.contains("axes")) return false;
+  std::array<std::vector<double>, 3> axes;
+  for (size_t k = 0; k < 3; ++k) axes[k] = state.at("axes").at(k).get<std::vector<double>>();
+  if (options_.nodes) {
+    for (size_t k = 0; k < 3; ++k) {
+      if (static_cast<int>(axes[k].size()) != (*options_.nodes)[k]) return false;
+    }
+  }
+  adopted_axes_ = std::move(axes);
+  return true;
+}
+
 void LutTerm::Prepare(const std::vector<FitStation>& inputs) {
   if (inputs.empty()) throw std::invalid_argument("lut: no calibration stations");
   Eigen::Vector3d lo = inputs[0].reported.translation, hi = lo;
@@ -69,7 +88,7 @@ void LutTerm::Prepare(const std::vector<FitStation>& inputs) {
                                  : std::max(2, static_cast<int>(std::ceil((hi[k] - lo[k]) / options_.cell_size - 1e-9)) + 1);
     for (int i = 0; i < n; ++i) axes[static_cast<size_t>(k)].push_back(lo[k] + (hi[k] - lo[k]) * i / (n - 1));
   }
-  grid_.emplace(axes);
+  grid_.emplace(adopted_axes_ ? *adopted_axes_ : axes);
   blocks_.clear();
   blocks_.reserve(grid_->num_nodes());
   for (int ix = 0; ix < grid_->size(0); ++ix) {

@@ -83,10 +83,14 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
              T* output7) const;
 
   const LutGrid& grid() const { return *grid_; }
+  // The grid's axes; adopting them makes Prepare() build that grid instead of the data's.
+  nlohmann::json PreparedState() const override;
+  bool AdoptPreparedState(const nlohmann::json& state) override;
 
  private:
   LutTermOptions options_;
   std::optional<LutGrid> grid_;
+  std::optional<std::array<std::vector<double>, 3>> adopted_axes_;  // AdoptPreparedState()
   Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);
   bool has_following_terms_ = false;
 };

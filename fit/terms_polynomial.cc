@@ -309,6 +309,31 @@ std::unique_ptr<ModelTerm> PolynomialTerm::FromYaml(const YamlMapReader& reader)
   return std::make_unique<PolynomialTerm>(options);
 }
 
+nlohmann::json PolynomialTerm::PreparedState() const {
+  if (std::isnan(options_.input_offset[0]) || std::isnan(options_.input_scale[0])) return nullptr;
+  const Eigen::Vector3d& o = options_.input_offset;
+  const Eigen::Vector3d& c = options_.input_scale;
+  return {{"degree", options_.degree},
+          {"input_offset", {o[0], o[1], o[2]}},
+          {"input_scale", {c[0], c[1], c[2]}},
+          {"ridge_used", {ridge_used_[0], ridge_used_[1]}}};
+}
+
+bool PolynomialTerm::AdoptPreparedState(const nlohmann::json& state) {
+  if (state.is_null()) return true;
+  if (!state.is_object() || state.value("degree", -1) != options_.degree) return false;
+  for (int k = 0; k < 3; ++k) {
+    options_.input_offset[k] = state.at("input_offset").at(static_cast<size_t>(k)).get<double>();
+    options_.input_scale[k] = state.at("input_scale").at(static_cast<size_t>(k)).get<double>();
+  }
+  // A fixed weight stays the file's; `ridge: auto` takes the weight the other fit chose.
+  if (options_.ridge_auto) {
+    const nlohmann::json& r = state.at("ridge_used");
+    adopted_ridge_ = Eigen::Vector2d(r.at(0).get<double>(), r.at(1).get<double>());
+  }
+  return true;
+}
+
 void PolynomialTerm::Prepare(const std::vector<FitStation>& inputs) {
   if (!std::isnan(options_.input_offset[0]) && !std::isnan(options_.input_scale[0])) return;
   if (inputs.empty()) throw std::invalid_argument("polynomial: no calibration stations");
@@ -549,7 +574,9 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
       if (block_index < 0 || blocks_[static_cast<size_t>(block_index)].fixed) return;
       double lambda = options_.ridge;
       Eigen::VectorXd loo;
-      if (options_.ridge_auto &&
+      if (adopted_ridge_) {
+        lambda = (*adopted_ridge_)[part];
+      } else if (options_.ridge_auto &&
           options_.ridge_selection == PolynomialTermOptions::RidgeSelection::kBlocked) {
         // The weight with the smallest blocked cross-validation error.
         const std::vector<double> grid = RidgeGrid();

@@ -8,6 +8,7 @@
 #pragma once
 
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -73,6 +74,10 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   bool ExtraResidualsRelativeToNoise() const override { return true; }  // w c / sigma
   // The ridge weights in use per part (position, orientation): the option, or the chosen ones.
   const Eigen::Vector2d& ridge_used() const { return ridge_used_; }
+  // The normalisation box and the ridge weights in use; adopting them makes Prepare() keep the box
+  // and InitializeLinear() use the weights instead of choosing (a fit from another's optimum).
+  nlohmann::json PreparedState() const override;
+  bool AdoptPreparedState(const nlohmann::json& state) override;
   // Candidate weights of ridge: auto (0, then 1e-4 .. 1e2 in steps of 10^0.5).
   static std::vector<double> RidgeGrid();
   // The blocked cross-validation of ridge: auto (docs/model-file.md, "Polynomial ridge"). Folds:
@@ -160,6 +165,7 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   int orientation_block_ = -1;  // index in blocks_, -1 if disabled
   Eigen::VectorXd inverse_normal_diagonal_;  // diag((A^T A)^-1) of the last InitializeLinear()
   Eigen::Vector2d ridge_used_ = Eigen::Vector2d::Zero();
+  std::optional<Eigen::Vector2d> adopted_ridge_;  // AdoptPreparedState(): not chosen again
   Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);  // the model's noise (ridge whitening)
   Eigen::Vector2d loo_rms_ = Eigen::Vector2d::Constant(NAN);  // leave-one-out RMS at the chosen ridge
   DeterminedSubspace undetermined_;
