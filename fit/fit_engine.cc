@@ -453,6 +453,7 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
     nlohmann::json d = term->Describe();
     d["name"] = term->name();
     d["type"] = term->type();
+    d["prepared"] = term->PreparedState();  // for a later fit's start (FitStartFromJson)
     result.terms.push_back(d);
   }
 
@@ -721,11 +722,13 @@ std::pair<std::string, std::string> BlockOwner(const ModelSpec& spec, const Mode
 }
 
 // FitOptions::start for one prepared and initialised term: its free blocks that `start` holds
-// take its values. When any does, the term's other free blocks (an effect added to a physical
-// group) go back to `before`, their values before the term's initialisation: the model file's
-// starts, which the group's own refinement (without the terms after it) moved away.
+// take its values. When any does, or when a later term is held (`precedes_held`), the term's
+// other free blocks (an effect added to a physical group, or a group added before the
+// polynomial) go back to `before`, their values before the term's initialisation: the model
+// file's starts, which the group's own refinement (without the terms after it) moved away.
 void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
-                     const std::vector<std::vector<double>>& before, ModelTerm* term) {
+                     const std::vector<std::vector<double>>& before, bool precedes_held,
+                     ModelTerm* term) {
   std::vector<bool> taken(term->blocks().size(), false);
   for (size_t k = 0; k < term->blocks().size(); ++k) {
     ParameterBlock& block = term->blocks()[k];
@@ -744,7 +747,7 @@ void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
     std::copy(b->second.begin(), b->second.end(), block.values.begin());
     taken[k] = true;
   }
-  if (std::find(taken.begin(), taken.end(), true) == taken.end()) return;
+  if (!precedes_held && std::find(taken.begin(), taken.end(), true) == taken.end()) return;
   for (size_t k = 0; k < term->blocks().size(); ++k) {
     ParameterBlock& block = term->blocks()[k];
     if (taken[k] || block.fixed || k >= before.size() || before[k].size() != block.values.size()) {
@@ -764,11 +767,74 @@ void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
 
 FitStart TakeFitStart(const ModelSpec& fitted) {
   FitStart start;
+  if (fitted.time_offset && !fitted.time_offset->fixed) start.time_offset = fitted.time_offset->value;
   for (const auto& term : fitted.terms) {
     start.terms[{term->type(), term->name()}].prepared = term->PreparedState();
     for (const auto& block : term->blocks()) {
       start.terms[BlockOwner(fitted, *term, block)].blocks[block.name] = block.values;
     }
+  }
+  return start;
+}
+
+FitStart FitStartFromJson(const nlohmann::json& fit, const std::string& source) {
+  auto fail = [&](const std::string& field, const std::string& what) {
+    throw std::invalid_argument(source + ": " + field + ": " + what +
+                                " (expected the \"fit\" of trackcal-fit fit --json)");
+  };
+  if (!fit.is_object()) fail("fit", "not an object");
+  if (!fit.contains("terms") || !fit["terms"].is_array()) fail("fit.terms", "missing");
+  if (!fit.contains("parameters") || !fit["parameters"].is_array()) {
+    fail("fit.parameters", "missing");
+  }
+  FitStart start;
+  std::map<std::string, std::string> type_of;  // model-file term name -> type
+  for (size_t i = 0; i < fit["terms"].size(); ++i) {
+    const nlohmann::json& t = fit["terms"][i];
+    const std::string at = "fit.terms[" + std::to_string(i) + "]";
+    if (!t.is_object() || !t.contains("name") || !t["name"].is_string() || !t.contains("type") ||
+        !t["type"].is_string()) {
+      fail(at, "needs a name and a type");
+    }
+    const std::string name = t["name"].get<std::string>(), type = t["type"].get<std::string>();
+    start.terms[{type, name}].prepared = t.value("prepared", nlohmann::json());
+    type_of[name] = type;
+    if (t.contains("effects") && t["effects"].is_array()) {
+      for (const auto& e : t["effects"]) {
+        if (e.is_object() && e.contains("name") && e["name"].is_string() && e.contains("type") &&
+            e["type"].is_string()) {
+          type_of[e["name"].get<std::string>()] = e["type"].get<std::string>();
+        }
+      }
+    }
+  }
+  for (size_t i = 0; i < fit["parameters"].size(); ++i) {
+    const nlohmann::json& p = fit["parameters"][i];
+    const std::string at = "fit.parameters[" + std::to_string(i) + "]";
+    if (!p.is_object() || !p.contains("term") || !p["term"].is_string() || !p.contains("block") ||
+        !p["block"].is_string() || !p.contains("values") || !p["values"].is_array()) {
+      fail(at, "needs a term, a block and values");
+    }
+    const std::string term = p["term"].get<std::string>();
+    if (term == "time_offset") {  // the clock offset the fit estimated (not a model term)
+      const auto& v = p["values"];
+      if (v.size() != 1 || !v[0].is_object() || !v[0].contains("value") ||
+          !v[0]["value"].is_number()) {
+        fail(at + ".values", "a clock offset needs one numeric value");
+      }
+      start.time_offset = v[0]["value"].get<double>();
+      continue;
+    }
+    const auto type = type_of.find(term);
+    if (type == type_of.end()) fail(at + ".term", "'" + term + "' is not among fit.terms");
+    std::vector<double> values;
+    for (const auto& v : p["values"]) {
+      if (!v.is_object() || !v.contains("value") || !v["value"].is_number()) {
+        fail(at + ".values", "each needs a numeric value");
+      }
+      values.push_back(v["value"].get<double>());
+    }
+    start.terms[{type->second, term}].blocks[p["block"].get<std::string>()] = std::move(values);
   }
   return start;
 }
@@ -818,7 +884,13 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     }
     // (A lone linear term's fit is its initialisation: nothing to start from.)
     if (from_start && !(spec->terms.size() == 1 && term.SolvesAloneLinearly())) {
-      StartBlocksFrom(*options.start, *spec, before, &term);
+      bool precedes_held = false;
+      for (size_t j = k + 1; j < spec->terms.size(); ++j) {
+        const auto t = options.start->terms.find({spec->terms[j]->type(), spec->terms[j]->name()});
+        precedes_held =
+            precedes_held || (t != options.start->terms.end() && !t->second.blocks.empty());
+      }
+      StartBlocksFrom(*options.start, *spec, before, precedes_held, &term);
     }
     for (const auto& block : term.blocks()) block.Check(term.name());
   }
@@ -834,6 +906,10 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   }
   const bool fit_time_offset = moving && spec->time_offset && !spec->time_offset->fixed;
   double time_offset = fit_time_offset ? spec->time_offset->value : 0.0;
+  if (fit_time_offset && options.start && options.start->time_offset &&
+      std::isfinite(*options.start->time_offset)) {
+    time_offset = *options.start->time_offset;  // the stations stay paired at the file's value
+  }
   const std::optional<double> time_offset0 =
       fit_time_offset ? std::optional<double>(spec->time_offset->value) : std::nullopt;
 

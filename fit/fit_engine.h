@@ -17,6 +17,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "core/correction.h"
@@ -38,17 +39,28 @@ struct FitStart {
     std::map<std::string, std::vector<double>> blocks;  // by block name
   };
   std::map<std::pair<std::string, std::string>, Term> terms;  // by (type, name)
+  // A clock offset the fit estimated (its time_offset not fixed); the fit from this start begins
+  // there when it estimates one too, its stations still moved relative to their pairing's offset.
+  std::optional<double> time_offset;
 };
 // The start `fitted` (a spec FitModel left) gives; copies, so `fitted` may change afterwards.
 FitStart TakeFitStart(const ModelSpec& fitted);
+// The start a fit's JSON gives (FitResult::ToJson(), the "fit" of `trackcal-fit fit --json`: its
+// parameters, and its terms with their "prepared" states and a physical group's "effects").
+// Throws std::invalid_argument naming `source` and the field when the document is not one.
+FitStart FitStartFromJson(const nlohmann::json& fit, const std::string& source);
 
 struct FitOptions {
   bool compute_covariance = true;  // standard deviations and identifiability flags
   // Start from another fit's state (not owned; null: the model file's starts). Each term of the
   // spec that `start` holds (same type and name) keeps that fit's preparation, and its free blocks
   // that `start` holds with the same size start at that fit's values after the term's own
-  // initialisation (a physical group's added effect keeps its own start; fixed blocks keep the
-  // file's). Terms `start` lacks are prepared and initialised as usual, from the poses the
+  // initialisation; a physical group's effects that `start` lacks (an added effect) take the
+  // values the file gives them (write them: where the file leaves an effect to be searched, the
+  // search's start is discarded), and so does a whole term `start` lacks that precedes a term it holds (an effect added
+  // before the polynomial), so that the start is the fitted model's optimum with the added effect
+  // at its file start. Fixed blocks keep the file's values. A term `start` lacks that follows
+  // the ones it holds (an added polynomial or LUT) is initialised as usual on the poses the
   // preceding terms give at their start values.
   const FitStart* start = nullptr;
   // Called with (iteration, cost) after each solver iteration (progress on stderr in the CLI).

@@ -58,6 +58,7 @@ nlohmann::json LutTerm::PreparedState() const {
 }
 
 bool LutTerm::AdoptPreparedState(const nlohmann::json& state) {
+  adopted_axes_.reset();  // an earlier start's grid does not outlive it
   if (state.is_null()) return true;
   if (!state.is_object() || !state.contains("axes")) return false;
   std::array<std::vector<double>, 3> axes;

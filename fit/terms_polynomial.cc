@@ -320,14 +320,16 @@ nlohmann::json PolynomialTerm::PreparedState() const {
 }
 
 bool PolynomialTerm::AdoptPreparedState(const nlohmann::json& state) {
+  adopted_ridge_.reset();  // an earlier start's weight does not outlive it
   if (state.is_null()) return true;
   if (!state.is_object() || state.value("degree", -1) != options_.degree) return false;
   for (int k = 0; k < 3; ++k) {
     options_.input_offset[k] = state.at("input_offset").at(static_cast<size_t>(k)).get<double>();
     options_.input_scale[k] = state.at("input_scale").at(static_cast<size_t>(k)).get<double>();
   }
-  // A fixed weight stays the file's; `ridge: auto` takes the weight the other fit chose.
-  if (options_.ridge_auto) {
+  // A fixed weight stays the file's; `ridge: auto` takes the weight the other fit chose, if the
+  // state gives it (without it the weight is chosen again, at the start).
+  if (options_.ridge_auto && state.contains("ridge_used")) {
     const nlohmann::json& r = state.at("ridge_used");
     adopted_ridge_ = Eigen::Vector2d(r.at(0).get<double>(), r.at(1).get<double>());
   }

@@ -75,7 +75,8 @@ class PolynomialTerm : public AutoDiffModelTerm<PolynomialTerm> {
   // The ridge weights in use per part (position, orientation): the option, or the chosen ones.
   const Eigen::Vector2d& ridge_used() const { return ridge_used_; }
   // The normalisation box and the ridge weights in use; adopting them makes Prepare() keep the box
-  // and InitializeLinear() use the weights instead of choosing (a fit from another's optimum).
+  // and InitializeLinear() use the weights instead of choosing (a fit from another's optimum; a
+  // state without "ridge_used" leaves `ridge: auto` to choose, at the start).
   nlohmann::json PreparedState() const override;
   bool AdoptPreparedState(const nlohmann::json& state) override;
   // Candidate weights of ridge: auto (0, then 1e-4 .. 1e2 in steps of 10^0.5).
