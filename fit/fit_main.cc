@@ -1,7 +1,7 @@
 // trackcal-fit: fits a correction model to a capture, registers the optical frame, pairs streams.
 //
-//   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] [--json]
-//                    [--quiet]
+//   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K]
+//                    [--start fit.json] [--json] [--quiet]
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json] [--quiet]
 //                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
@@ -56,7 +56,8 @@ struct UsageError : std::runtime_error {
 void PrintUsage(std::ostream& out) {
   out << "usage:\n"
          "  trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] "
-         "[--json] [--quiet]\n"
+         "[--start fit.json]\n"
+         "                   [--json] [--quiet]\n"
          "  trackcal-fit build --data DIR|poses.csv --model settings.yaml -o calib.json "
          "[--model-out model.yaml]\n"
          "                     [--sources N] [--folds K] [--json] [--quiet]\n"
@@ -170,7 +171,8 @@ void PrintParameters(const FitResult& result, std::ostream& out) {
 }
 
 int RunFit(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv, {"--data", "--model", "-o", "--folds"}, {"--json", "--quiet"});
+  const Args args =
+      ParseArgs(argc, argv, {"--data", "--model", "-o", "--folds", "--start"}, {"--json", "--quiet"});
   const fs::path data = args.Get("--data");
   const fs::path model_path = args.Get("--model");
   const fs::path output = args.Get("-o");
@@ -186,11 +188,31 @@ int RunFit(int argc, char** argv) {
                                      ParseModelYaml(model.text, model.source_name));
   std::vector<fs::path> inputs = {model_path};
   inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
+  if (args.values.count("--start")) inputs.push_back(args.Get("--start"));
   CheckOutputIsNotInput(output, inputs);
 
   FitRunOptions options;
   options.folds = folds;
   options.cross_validate_with_validation_set = false;  // the valid set is the held-out table
+  if (args.values.count("--start")) {
+    // A previous `fit --json` document (or its "fit"): the fit starts at that fit's optimum.
+    const fs::path start_path = args.Get("--start");
+    nlohmann::json doc;
+    try {
+      doc = nlohmann::json::parse(ReadFileToString(start_path));
+    } catch (const nlohmann::json::exception& e) {
+      throw std::invalid_argument(start_path.string() + ": not JSON: " + e.what());
+    }
+    FitStart start = FitStartFromJson(doc.is_object() && doc.contains("fit") ? doc["fit"] : doc,
+                                      start_path.string());
+    // A polynomial's `ridge: auto` weight is chosen again, at the start: it is this model's
+    // setting, chosen on what the terms before the polynomial leave, which an added term changes
+    // (the weight of a polynomial alone is far from the one it needs after the physical terms).
+    for (auto& [key, term] : start.terms) {
+      if (term.prepared.is_object()) term.prepared.erase("ridge_used");
+    }
+    options.start = std::make_shared<const FitStart>(std::move(start));
+  }
   options.tool = "trackcal-fit";
   options.tool_version = kVersion;
   options.description_tool = "trackcal-fit";

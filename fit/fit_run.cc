@@ -131,6 +131,7 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
   if (calib.empty()) throw std::invalid_argument(data.source + ": no stations with set 'calib'");
 
   FitOptions fit_options;
+  fit_options.start = options.start.get();
   if (options.on_iteration) {
     const int max_iterations = spec.max_iterations;
     fit_options.progress = [&options, max_iterations](int iteration, double cost) {

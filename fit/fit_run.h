@@ -98,6 +98,9 @@ struct FitRunOptions {
   std::string tool = "trackcal-fit";
   std::string tool_version = "0.1.0";
   std::string description_tool = "trackcal-fit";  // "fitted by <this> from <data> with model <m>"
+  // The fit on the calibration set starts here (FitOptions::start; null: the model file's
+  // starts). The cross-validation folds start from the model file.
+  std::shared_ptr<const FitStart> start;
   bool Check() const { return folds == 0 || folds >= 2; }
 };
 

@@ -383,8 +383,8 @@ def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_z
 
     real_fit = demo.run_fit
 
-    def fit(data, model, calibration, log, folds=5):
-        doc = real_fit(data, model, calibration, log, folds=folds)
+    def fit(data, model, calibration, log, folds=5, start=None):
+        doc = real_fit(data, model, calibration, log, folds=folds, start=start)
         if Path(model).name == "step1.yaml":  # stand-in for a fit that ended in a worse optimum
             doc["fit"]["final_cost"] = 1e12
         if Path(model).name == "step1.grown.yaml" and not grown_is_lower:

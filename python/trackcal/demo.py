@@ -234,11 +234,15 @@ def _cli_diagnose_available() -> bool:
     return _cli_diagnose_cache[exe]
 
 
-def run_fit(data: Path, model: Path, calibration: Path, log: Path, folds: int = 5) -> dict:
-    """trackcal-fit fit --json: returns its JSON document (tables, fit)."""
-    out = _run([_tool("trackcal-fit"), "fit", "--data", str(data), "--model", str(model), "-o",
-                str(calibration), "--folds", str(folds), "--json", "--quiet"], log=log, echo=False)
-    return json.loads(out)
+def run_fit(data: Path, model: Path, calibration: Path, log: Path, folds: int = 5,
+            start: Optional[Path] = None) -> dict:
+    """trackcal-fit fit --json: returns its JSON document (tables, fit). ``start``: a previous
+    fit's document (``trackcal-fit fit --start``), whose optimum the fit starts from."""
+    cmd = [_tool("trackcal-fit"), "fit", "--data", str(data), "--model", str(model), "-o",
+           str(calibration), "--folds", str(folds), "--json", "--quiet"]
+    if start is not None:
+        cmd += ["--start", str(start)]
+    return json.loads(_run(cmd, log=log, echo=False))
 
 
 def run_diagnose(data: Path, model: Path, log: Path, folds: int = 5,
@@ -411,26 +415,30 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
     text, label = base_model, "base"
     grown_text = None  # the last change with its sources grown from near zero (grown_change)
     seen_changes = set()
+    # Each fit after the first starts at the previous step's optimum (its fit document, written as
+    # stepN.start.json): the model with the added term holds the one before it, so the refit
+    # continues from there instead of from the model file's starts, where the polynomial and its
+    # `ridge: auto` weight are chosen afresh (the path diagnose's candidates take as well).
+    start = None
     for i in range(max_steps + 1):
         model = _write_new(models / f"step{i}.yaml", text)
         calib = models / f"step{i}.json"
         t0 = time.monotonic()
-        doc = run_fit(data, model, calib, models / f"step{i}.fit.log", folds=folds)
+        doc = run_fit(data, model, calib, models / f"step{i}.fit.log", folds=folds, start=start)
         if grown_text is not None and _final_cost(doc) > _final_cost(steps[-1].fit):
             # The model with the added source fits worse than the model without it: its fit from
             # the change's values left the last optimum for a worse one. Grow the source from near
             # zero instead and keep the fit that ends lower (measured, full paper capture,
             # ferromagnetic_object seed 2: a dipole at the floor's image added after the frame and
             # the toolbox, cost 909 before, 1603 from the change's values, 439 grown). The costs
-            # are the fits' objectives, a polynomial's ridge prior included: with `ridge: auto`
-            # each fit picks its weight from its start, and the grown fit starts as the step
-            # before did, so it shares that step's weight; the first attempt may not
-            # (diagnose compares the stations' chi2 instead, fit/candidates.cc).
+            # are the fits' objectives, a polynomial's ridge prior included: both fits start at
+            # the previous step's optimum, where a `ridge: auto` polynomial chooses its weight
+            # again (diagnose compares the stations' chi2 instead, fit/candidates.cc).
             grown_model = _write_new(models / f"step{i}.grown.yaml", grown_text)
             grown_calib = models / f"step{i}.grown.json"
             try:
                 grown = run_fit(data, grown_model, grown_calib, models / f"step{i}.grown.fit.log",
-                                folds=folds)
+                                folds=folds, start=start)
             except SystemExit as e:  # keep the first fit
                 say(f"  growing the added source from near zero failed: {e}")
                 grown = {}
@@ -447,6 +455,8 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
                 model, calib, doc, text = grown_model, grown_calib, grown, grown_text
         step = Step(i, label, model, calib, doc)
         steps.append(step)
+        if doc.get("fit"):
+            start = _write_new(models / f"step{i}.start.json", json.dumps({"fit": doc["fit"]}) + "\n")
         if record:
             _record(work, step, data)
         say(f"step {i} ({label}): fitted in {time.monotonic() - t0:.1f} s; held-out error "
