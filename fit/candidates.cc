@@ -1749,15 +1749,15 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         bool grows = false;
         for (size_t t = 0; restart && t < p.terms.size(); ++t) {
           const size_t at = static_cast<size_t>(*c.insert_index) + t;
-          YAML::Node term = root["terms"][at], held = placed["terms"][at];
+          YAML::Node term = root["terms"][at], term_placed = placed["terms"][at];
           const std::string type = p.terms[t]["type"].as<std::string>();
           if (type == "dipole" || type == "plane") {
             const auto blocks = BlocksOfTerm(fit.parameters, c.term_names[t]);
             restart = AddFittedStart(type, blocks, &term) &&
                       ScaleSourceStrength(kGrowFromFraction, &term) &&
-                      AddFittedStart(type, blocks, &held) &&
-                      ScaleSourceStrength(kGrowFromFraction, &held);
-            held["parameters"] = YAML::Load(type == "dipole"
+                      AddFittedStart(type, blocks, &term_placed) &&
+                      ScaleSourceStrength(kGrowFromFraction, &term_placed);
+            term_placed["parameters"] = YAML::Load(type == "dipole"
                                                 ? "{location_in_transmitter: {fixed: true}}"
                                                 : "{distance_m: {fixed: true}, "
                                                   "normal_in_transmitter: {fixed: true}}");
@@ -1779,7 +1779,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
             FitStart grown_placed;
             if (grows) {
               ModelSpec held = ParseModelYaml(Emit(placed), model_source + " + " + c.effect);
-              const FitResult stage = FitModel(own, &held, from);
+              FitOptions stage_options = from;
+              stage_options.compute_covariance = false;  // a start, not reported
+              const FitResult stage = FitModel(own, &held, stage_options);
               Progress(options, c.effect + " (grown where it was placed): " + FitTimeNote(stage));
               grown_placed = TakeFitStart(held);
               from.start = &grown_placed;
@@ -2347,6 +2349,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // error 21.6 % but its attenuation stayed 0.5 sigma from zero (the background holds most of the
   // floor's field); near_field, which the scene does not have, lowered it 7.2 % with its octupole
   // 3.5 sigma from zero and was claimed.
+  std::set<const PreparedCandidate*> stood_in;  // still hold back pairs and replacements (below)
   for (auto& p : prepared) {
     Candidate& c = p.candidate;
     if (p.flexible || !c.significant || c.kind != CandidateKind::kTerm || !c.replaces.empty()) {
@@ -2354,7 +2357,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     }
     for (const auto& o : prepared) {
       const Candidate& oc = o.candidate;
-      if (&o == &p || o.flexible || o.effect->count > 1 || oc.kind != CandidateKind::kTerm ||
+      // (Not a catch-all either: the background stands for sources it does not place.)
+      if (&o == &p || o.flexible || o.effect->count > 1 || o.effect->yields_to_located ||
+          oc.kind != CandidateKind::kTerm ||
           !oc.replaces.empty() || !oc.cross_validated || !oc.converged ||
           oc.evidence.supported() || !(oc.p_value < d.p_threshold) ||
           std::max(oc.drop_position_percent, oc.drop_orientation_percent) <
@@ -2371,8 +2376,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       const double p_worse = WilcoxonSignedRankGreater(worse);
       if (!(p_worse < options.family_alpha)) continue;
       c.significant = false;
+      stood_in.insert(&p);
+      const bool by_position = oc.drop_position_percent >= oc.drop_orientation_percent;
       c.reason += ". Not claimed: a " + oc.effect +
-                  " term explains more of the structure (held-out position error falls " + FormatNumber(oc.drop_position_percent, 1) +
+                  " term explains more of the structure (held-out " +
+                  (by_position ? "position" : "orientation") + " error falls " +
+                  FormatNumber(by_position ? oc.drop_position_percent
+                                           : oc.drop_orientation_percent,
+                               1) +
                   " %, p = " + FormatSignificant(p_worse, 2) +
                   " that this term's errors are larger) but does not identify its source, so " +
                   "this term may stand in for that source";
@@ -2390,8 +2401,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     Candidate& c = p.candidate;
     if (p.flexible || p.effect->count <= 1 || !c.significant) continue;
     for (const auto& o : prepared) {
-      if (&o == &p || o.flexible || o.effect->count > 1 || !o.candidate.significant ||
-          !o.candidate.replaces.empty()) {
+      if (&o == &p || o.flexible || o.effect->count > 1 ||
+          (!o.candidate.significant && !stood_in.count(&o)) || !o.candidate.replaces.empty()) {
         continue;  // a replacement waits for additions, pairs included (below)
       }
       c.significant = false;
@@ -2407,7 +2418,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // background in the model the plane is 28.9 points ahead).
   std::string first_addition;
   for (const auto& p : prepared) {
-    if (!p.flexible && p.candidate.significant && p.candidate.replaces.empty()) {
+    if (!p.flexible && (p.candidate.significant || stood_in.count(&p)) &&
+        p.candidate.replaces.empty()) {
       first_addition = p.candidate.effect;
       break;
     }
