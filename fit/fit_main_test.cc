@@ -96,6 +96,42 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
   EXPECT_EQ(RunCommand(fit_ + " frobnicate 2> /dev/null"), 2);
 }
 
+// --start: a fit of a model with an added term starts at a previous fit's optimum (its --json
+// document), so its first cost is that fit's final cost; a file that is not one is refused by name.
+TEST_F(FitCliTest, StartFromAPreviousFit) {
+  const std::string head =
+      "noise: {amplification_threshold: 1e9}\nterms:\n  - type: sensor_offset\n";
+  std::ofstream(dir_ / "base.yaml") << head << "  - {type: polynomial, degree: 3}\n";
+  std::ofstream(dir_ / "more.yaml") << head << "  - type: receiver_gain\n"
+                                     << "  - {type: polynomial, degree: 3}\n";
+  const std::string data = " --data " + (dir_ / "cap").string();
+  ASSERT_EQ(RunCommand(fit_ + " fit" + data + " --model " + (dir_ / "base.yaml").string() +
+                       " -o " + (dir_ / "base.json").string() + " --json --quiet > " +
+                       (dir_ / "base.out").string()),
+            0);
+  ASSERT_EQ(RunCommand(fit_ + " fit" + data + " --model " + (dir_ / "more.yaml").string() +
+                       " -o " + (dir_ / "more.json").string() + " --start " +
+                       (dir_ / "base.out").string() + " --json --quiet > " +
+                       (dir_ / "more.out").string()),
+            0);
+  const auto base = nlohmann::json::parse(ReadFileToString(dir_ / "base.out"));
+  const auto more = nlohmann::json::parse(ReadFileToString(dir_ / "more.out"));
+  const double cost = base["fit"]["final_cost"].get<double>();
+  // Receiver gains at the identity leave the base's chain; 1e-6 relative is the physical group's
+  // iterative inverse (fit/fit_engine_test.cc, StartAddsAnEffectBeforeTheHeldPolynomial).
+  EXPECT_NEAR(more["fit"]["initial_cost"].get<double>(), cost, 1e-6 * cost);
+  EXPECT_LE(more["fit"]["final_cost"].get<double>(), cost * (1 + 1e-6));
+
+  std::ofstream(dir_ / "not_a_fit.json") << "{\"fit\": {\"terms\": 3}}\n";
+  const fs::path err = dir_ / "err.txt";
+  EXPECT_EQ(RunCommand(fit_ + " fit" + data + " --model " + (dir_ / "more.yaml").string() +
+                       " -o " + (dir_ / "x.json").string() + " --start " +
+                       (dir_ / "not_a_fit.json").string() + " --quiet 2> " + err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("not_a_fit.json: fit.terms: missing"));
+  EXPECT_FALSE(fs::exists(dir_ / "x.json"));
+}
+
 TEST_F(FitCliTest, HelpAfterACommandPrintsTheUsageAndSucceeds) {
   const fs::path out = dir_ / "help.txt";
   EXPECT_EQ(RunCommand(fit_ + " diagnose --help > " + out.string()), 0);
