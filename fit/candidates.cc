@@ -1055,6 +1055,22 @@ RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha,
   return pick;
 }
 
+std::optional<StandIn> FindStandIn(const std::vector<double>& claimed,
+                                   const std::vector<std::vector<double>>& others,
+                                   double family_alpha) {
+  for (size_t o = 0; o < others.size(); ++o) {
+    std::vector<double> worse;  // the claimed term's held-out error minus the other's
+    const size_t n = std::min(claimed.size(), others[o].size());
+    for (size_t k = 0; k < n; ++k) {
+      const double a = claimed[k], b = others[o][k];
+      if (std::isfinite(a) && std::isfinite(b)) worse.push_back(a - b);
+    }
+    const double p = WilcoxonSignedRankGreater(worse);
+    if (p < family_alpha) return StandIn{o, p};
+  }
+  return std::nullopt;
+}
+
 double ChiSquareUpperTail(double x, int dof) {
   if (dof < 1) throw std::invalid_argument("ChiSquareUpperTail: dof must be >= 1");
   if (!(x > 0)) return 1.0;
@@ -2355,40 +2371,36 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     if (p.flexible || !c.significant || c.kind != CandidateKind::kTerm || !c.replaces.empty()) {
       continue;
     }
+    std::vector<const PreparedCandidate*> unidentified;
+    std::vector<std::vector<double>> their_errors;
     for (const auto& o : prepared) {
       const Candidate& oc = o.candidate;
       // (Not a catch-all either: the background stands for sources it does not place.)
       if (&o == &p || o.flexible || o.effect->count > 1 || o.effect->yields_to_located ||
-          oc.kind != CandidateKind::kTerm ||
-          !oc.replaces.empty() || !oc.cross_validated || !oc.converged ||
-          oc.evidence.supported() || !(oc.p_value < d.p_threshold) ||
+          oc.kind != CandidateKind::kTerm || !oc.replaces.empty() || !oc.cross_validated ||
+          !oc.converged || oc.evidence.supported() || !(oc.p_value < d.p_threshold) ||
           std::max(oc.drop_position_percent, oc.drop_orientation_percent) <
               options.min_drop_percent ||
           !(oc.delta_bic < options.max_delta_bic)) {
         continue;
       }
-      std::vector<double> worse;  // c's held-out whitened error minus o's, per station
-      const size_t n = std::min(p.cv_whitened_by_base.size(), o.cv_whitened_by_base.size());
-      for (size_t k = 0; k < n; ++k) {
-        const double a = p.cv_whitened_by_base[k], b = o.cv_whitened_by_base[k];
-        if (std::isfinite(a) && std::isfinite(b)) worse.push_back(a - b);
-      }
-      const double p_worse = WilcoxonSignedRankGreater(worse);
-      if (!(p_worse < options.family_alpha)) continue;
-      c.significant = false;
-      stood_in.insert(&p);
-      const bool by_position = oc.drop_position_percent >= oc.drop_orientation_percent;
-      c.reason += ". Not claimed: a " + oc.effect +
-                  " term explains more of the structure (held-out " +
-                  (by_position ? "position" : "orientation") + " error falls " +
-                  FormatNumber(by_position ? oc.drop_position_percent
-                                           : oc.drop_orientation_percent,
-                               1) +
-                  " %, p = " + FormatSignificant(p_worse, 2) +
-                  " that this term's errors are larger) but does not identify its source, so " +
-                  "this term may stand in for that source";
-      break;
+      unidentified.push_back(&o);
+      their_errors.push_back(o.cv_whitened_by_base);
     }
+    const std::optional<StandIn> stand_in =
+        FindStandIn(p.cv_whitened_by_base, their_errors, options.family_alpha);
+    if (!stand_in) continue;
+    const Candidate& oc = unidentified[stand_in->other]->candidate;
+    c.significant = false;
+    stood_in.insert(&p);
+    const bool by_position = oc.drop_position_percent >= oc.drop_orientation_percent;
+    c.reason += ". Not claimed: a " + oc.effect +
+                " term explains more of the structure (held-out " + (by_position ? "position" : "orientation") + " error falls " +
+                FormatNumber(
+                    by_position ? oc.drop_position_percent : oc.drop_orientation_percent, 1) +
+                " %, p = " + FormatSignificant(stand_in->p_value, 2) +
+                " that this term's errors are larger) but does not identify its source, so this " +
+                "term may stand in for that source";
   }
   // Terms go in one at a time where one at a time works: a pair of terms is claimed only when no
   // single candidate is. Otherwise the single goes in first and the next diagnosis searches the

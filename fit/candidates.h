@@ -356,6 +356,20 @@ struct RankPick {
 // (p = 1), so the entry counts as not worse.
 RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha, double max_delta_bic);
 
+// The stand-in rule (DiagnoseCandidates, docs/diagnose.md "Stand-ins"): a term that could be
+// claimed is held back when another candidate, which passes the statistical tests but not the
+// physical conditions, has smaller held-out errors station by station. `claimed` and each of
+// `others`: held-out whitened error per base station (NaN: none; stations without both are left
+// out). Returns the first other whose paired test (WilcoxonSignedRankGreater on claimed - other)
+// gives p < family_alpha, with that p; nullopt if none does.
+struct StandIn {
+  size_t other = 0;
+  double p_value = 1.0;
+};
+std::optional<StandIn> FindStandIn(const std::vector<double>& claimed,
+                                   const std::vector<std::vector<double>>& others,
+                                   double family_alpha);
+
 // One-sided Wilcoxon signed-rank test that the differences d are positive (normal approximation
 // with tie and continuity corrections; zeros dropped). Returns the p-value (1 when no difference is
 // non-zero).

@@ -759,6 +759,25 @@ RankEntry Entry(const std::string& effect, double level, double delta_bic, bool 
 
 constexpr double kAlpha = 0.01, kMaxDeltaBic = -10.0;  // CandidateOptions' defaults
 
+// The stand-in rule's paired test, on the seeded levels of Entry() above (0.3 apart: p ~ 2e-8).
+TEST(FindStandIn, AnOtherWithSmallerHeldOutErrorsHoldsTheTermBack) {
+  const auto errors = [](double level, uint32_t seed) {
+    return Entry("", level, 0, false, 0, false, seed).cv_whitened_by_station;
+  };
+  const std::vector<double> claimed = errors(1.3, 1);
+  // The first other is no better; the second is 0.3 lower station by station.
+  const auto found = FindStandIn(claimed, {errors(1.3, 2), errors(1.0, 3)}, kAlpha);
+  ASSERT_TRUE(found.has_value());
+  EXPECT_EQ(found->other, 1u);
+  EXPECT_LT(found->p_value, 1e-6);
+  // An other that is worse, or equal, holds nothing back.
+  EXPECT_FALSE(FindStandIn(claimed, {errors(1.6, 2), errors(1.3, 3)}, kAlpha).has_value());
+  // Stations without a held-out error in both are left out: none in common, no difference.
+  std::vector<double> none(claimed.size(), std::numeric_limits<double>::quiet_NaN());
+  EXPECT_FALSE(FindStandIn(none, {errors(1.0, 3)}, kAlpha).has_value());
+  EXPECT_FALSE(FindStandIn(claimed, {}, kAlpha).has_value());
+}
+
 TEST(RankFirst, Nominal_TheHeldOutBestStaysFirstWhenTheOtherIsWorse) {
   const std::vector<RankEntry> e = {Entry("plane", 1.0, -500, true, 8, false, 1),
                                     Entry("dipole", 1.3, -400, true, 20, false, 2)};
