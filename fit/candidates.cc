@@ -2395,7 +2395,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     stood_in.insert(&p);
     const bool by_position = oc.drop_position_percent >= oc.drop_orientation_percent;
     c.reason += ". Not claimed: a " + oc.effect +
-                " term explains more of the structure (held-out " + (by_position ? "position" : "orientation") + " error falls " +
+                " term explains more of the structure (held-out " +
+                (by_position ? "position" : "orientation") + " error falls " +
                 FormatNumber(
                     by_position ? oc.drop_position_percent : oc.drop_orientation_percent, 1) +
                 " %, p = " + FormatSignificant(stand_in->p_value, 2) +

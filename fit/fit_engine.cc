@@ -767,7 +767,9 @@ void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
 
 FitStart TakeFitStart(const ModelSpec& fitted) {
   FitStart start;
-  if (fitted.time_offset && !fitted.time_offset->fixed) start.time_offset = fitted.time_offset->value;
+  if (fitted.time_offset && !fitted.time_offset->fixed) {
+    start.time_offset = fitted.time_offset->value;
+  }
   for (const auto& term : fitted.terms) {
     start.terms[{term->type(), term->name()}].prepared = term->PreparedState();
     for (const auto& block : term->blocks()) {

@@ -55,13 +55,13 @@ struct FitOptions {
   // Start from another fit's state (not owned; null: the model file's starts). Each term of the
   // spec that `start` holds (same type and name) keeps that fit's preparation, and its free blocks
   // that `start` holds with the same size start at that fit's values after the term's own
-  // initialisation; a physical group's effects that `start` lacks (an added effect) take the
+  // initialisation. A physical group's effects that `start` lacks (an added effect) take the
   // values the file gives them (write them: where the file leaves an effect to be searched, the
-  // search's start is discarded), and so does a whole term `start` lacks that precedes a term it holds (an effect added
-  // before the polynomial), so that the start is the fitted model's optimum with the added effect
-  // at its file start. Fixed blocks keep the file's values. A term `start` lacks that follows
-  // the ones it holds (an added polynomial or LUT) is initialised as usual on the poses the
-  // preceding terms give at their start values.
+  // search's start is discarded), and so does a whole term `start` lacks that precedes a term it
+  // holds (an effect added before the polynomial): the start is the fitted model's optimum with
+  // the added effect at its file start. Fixed blocks keep the file's values. A term `start` lacks
+  // that follows the ones it holds (an added polynomial or LUT) is initialised as usual on the
+  // poses the preceding terms give at their start values.
   const FitStart* start = nullptr;
   // Called with (iteration, cost) after each solver iteration (progress on stderr in the CLI).
   std::function<void(int, double)> progress;

@@ -171,8 +171,8 @@ void PrintParameters(const FitResult& result, std::ostream& out) {
 }
 
 int RunFit(int argc, char** argv) {
-  const Args args =
-      ParseArgs(argc, argv, {"--data", "--model", "-o", "--folds", "--start"}, {"--json", "--quiet"});
+  const Args args = ParseArgs(argc, argv, {"--data", "--model", "-o", "--folds", "--start"},
+                              {"--json", "--quiet"});
   const fs::path data = args.Get("--data");
   const fs::path model_path = args.Get("--model");
   const fs::path output = args.Get("-o");

@@ -456,7 +456,8 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
         step = Step(i, label, model, calib, doc)
         steps.append(step)
         if doc.get("fit"):
-            start = _write_new(models / f"step{i}.start.json", json.dumps({"fit": doc["fit"]}) + "\n")
+            start = _write_new(models / f"step{i}.start.json",
+                               json.dumps({"fit": doc["fit"]}) + "\n")
         if record:
             _record(work, step, data)
         say(f"step {i} ({label}): fitted in {time.monotonic() - t0:.1f} s; held-out error "
