@@ -382,8 +382,10 @@ def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_z
                                           "statement": "the workbench frame"})
 
     real_fit = demo.run_fit
+    starts = {}
 
     def fit(data, model, calibration, log, folds=5, start=None):
+        starts[Path(model).name] = start
         doc = real_fit(data, model, calibration, log, folds=folds, start=start)
         if Path(model).name == "step1.yaml":  # stand-in for a fit that ended in a worse optimum
             doc["fit"]["final_cost"] = 1e12
@@ -397,11 +399,15 @@ def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_z
     said = []
     steps = demo.follow_diagnosis(capture, demo.PAPER_MODEL, tmp_path / "work", say=said.append)
     assert [s.label for s in steps] == ["base", "+dipole"]
+    # Both refits of step 1 start at step 0's optimum (trackcal-fit fit --start); the base does not.
+    models = tmp_path / "work" / "models"
+    assert starts == {"step0.yaml": None, "step1.yaml": models / "step0.start.json",
+                      "step1.grown.yaml": models / "step0.start.json"}
+    assert json.loads((models / "step0.start.json").read_text())["fit"] == steps[0].fit["fit"]
     from trackcal import history
     other = "+dipole (first attempt, not kept)" if grown_is_lower else "+dipole (grown, not kept)"
     assert [e["label"] for e in history.load_history(tmp_path / "work")] == \
         ["base", other, "+dipole"], "every fit is recorded, the one kept last"
-    models = tmp_path / "work" / "models"
     assert (models / "step1.grown.yaml").is_file() and (models / "step1.grown.json").is_file()
     assert "polarisability_m3: -9e-06" in (models / "step1.grown.yaml").read_text()
     assert "polarisability_m3: -0.009" in (models / "step1.yaml").read_text()
