@@ -418,7 +418,8 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
     # Each fit after the first starts at the previous step's optimum (its fit document, written as
     # stepN.start.json): the model with the added term holds the one before it, so the refit
     # continues from there instead of from the model file's starts, where the polynomial and its
-    # `ridge: auto` weight are chosen afresh (the path diagnose's candidates take as well).
+    # `ridge: auto` weight are chosen afresh (the path diagnose's candidates take as well; the
+    # weight is kept: trackcal-fit fit --start, docs/fit.md).
     start = None
     for i in range(max_steps + 1):
         model = _write_new(models / f"step{i}.yaml", text)
@@ -432,8 +433,8 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
             # ferromagnetic_object seed 2: a dipole at the floor's image added after the frame and
             # the toolbox, cost 909 before, 1603 from the change's values, 439 grown). The costs
             # are the fits' objectives, a polynomial's ridge prior included: both fits start at
-            # the previous step's optimum, where a `ridge: auto` polynomial chooses its weight
-            # again (diagnose compares the stations' chi2 instead, fit/candidates.cc).
+            # the previous step's optimum and keep its `ridge: auto` weight, so the costs are of
+            # one objective.
             grown_model = _write_new(models / f"step{i}.grown.yaml", grown_text)
             grown_calib = models / f"step{i}.grown.json"
             try:
