@@ -368,6 +368,36 @@ def test_grown_change_scales_every_source_strength_and_nothing_else():
                              "- {type: plane, attenuation: 0.2}\n") is None
 
 
+def test_a_replacement_is_fitted_from_the_model_file(tmp_path, monkeypatch):
+    """A change that replaces a term does not start at the previous optimum (fitted with the term
+    it removes); an addition does (the grown test below)."""
+    capture = _small_capture(tmp_path)
+    calls = []
+    ranking = _one_change_ranking(calls, {"effect": "plane", "insert_index": 0,
+                                          "replaces": "dipole",
+                                          "model_change": "- type: plane\n  point_in_transmitter: "
+                                                          "[0, 0, 0.8]\n  normal_in_transmitter: "
+                                                          "[0, 0, 1]\n  attenuation: 0.2\n",
+                                          "statement": "the floor"})
+    base = ("terms:\n  - type: dipole\n    location_in_transmitter: [0.5, 0.0, 0.35]\n"
+            "    polarisability_m3: -0.009\n  - type: polynomial\n    degree: 4\n")
+    real_fit = demo.run_fit
+    starts = {}
+
+    def fit(data, model, calibration, log, folds=5, start=None):
+        starts[Path(model).name] = start
+        return real_fit(data, model, calibration, log, folds=folds, start=start)
+
+    monkeypatch.setattr(demo, "diagnosis_available", lambda: True)
+    monkeypatch.setattr(demo, "run_diagnose", ranking)
+    monkeypatch.setattr(demo, "run_fit", fit)
+    steps = demo.follow_diagnosis(capture, base, tmp_path / "work", say=lambda _: None)
+    assert [s.label for s in steps] == ["base", "dipole -> plane"]
+    assert "type: plane" in steps[1].model_path.read_text()
+    assert "type: dipole" not in steps[1].model_path.read_text()
+    assert starts == {"step0.yaml": None, "step1.yaml": None}
+
+
 @pytest.mark.parametrize("grown_is_lower", [True, False])
 def test_a_source_that_fits_worse_than_the_model_without_it_is_grown_from_near_zero(
         tmp_path, monkeypatch, grown_is_lower):
