@@ -997,6 +997,21 @@ double WilcoxonSignedRankGreater(const std::vector<double>& differences) {
 // parameters with a meaning, and the background can still follow it at the next step, while a
 // background added first takes a share of the source's field (the workflow's toolbox, 0.58 m
 // outside the volume, traded location and strength with the background's gradient).
+namespace {
+
+// p that the held-out errors `a` are larger than `b`, paired by station (stations without both
+// left out): the one-sided Wilcoxon signed-rank test on a - b.
+double PairedGreaterP(const std::vector<double>& a, const std::vector<double>& b) {
+  std::vector<double> d;
+  const size_t n = std::min(a.size(), b.size());
+  for (size_t k = 0; k < n; ++k) {
+    if (std::isfinite(a[k]) && std::isfinite(b[k])) d.push_back(a[k] - b[k]);
+  }
+  return WilcoxonSignedRankGreater(d);
+}
+
+}  // namespace
+
 RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha,
                    double max_delta_bic) {
   RankPick pick;
@@ -1006,13 +1021,7 @@ RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha,
   if (!front.has_location && !front.yields_to_located) return pick;
   // p that entry o's held-out errors are larger than the held-out best's, paired by station.
   auto p_worse = [&](const RankEntry& o) {
-    std::vector<double> worse;  // other minus held-out best, per station
-    const size_t n = std::min(o.cv_whitened_by_station.size(), front.cv_whitened_by_station.size());
-    for (size_t k = 0; k < n; ++k) {
-      const double a = o.cv_whitened_by_station[k], b = front.cv_whitened_by_station[k];
-      if (std::isfinite(a) && std::isfinite(b)) worse.push_back(a - b);
-    }
-    return WilcoxonSignedRankGreater(worse);
+    return PairedGreaterP(o.cv_whitened_by_station, front.cv_whitened_by_station);
   };
   auto bic_note = [](const RankEntry& o, const RankEntry& b) {
     return "delta BIC " + FormatNumber(o.delta_bic, 1) + " against " + FormatNumber(b.delta_bic, 1);
@@ -1059,13 +1068,7 @@ std::optional<StandIn> FindStandIn(const std::vector<double>& claimed,
                                    const std::vector<std::vector<double>>& others,
                                    double family_alpha) {
   for (size_t o = 0; o < others.size(); ++o) {
-    std::vector<double> worse;  // the claimed term's held-out error minus the other's
-    const size_t n = std::min(claimed.size(), others[o].size());
-    for (size_t k = 0; k < n; ++k) {
-      const double a = claimed[k], b = others[o][k];
-      if (std::isfinite(a) && std::isfinite(b)) worse.push_back(a - b);
-    }
-    const double p = WilcoxonSignedRankGreater(worse);
+    const double p = PairedGreaterP(claimed, others[o]);
     if (p < family_alpha) return StandIn{o, p};
   }
   return std::nullopt;
