@@ -729,6 +729,16 @@ std::pair<std::string, std::string> BlockOwner(const ModelSpec& spec, const Mode
 void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
                      const std::vector<std::vector<double>>& before, bool precedes_held,
                      ModelTerm* term) {
+  // Finite values within the block's bounds (those of a search included).
+  auto admissible = [](const ParameterBlock& block, const std::vector<double>& v) {
+    for (size_t i = 0; i < v.size(); ++i) {
+      if (!std::isfinite(v[i]) || (!block.lower.empty() && v[i] < block.lower[i]) ||
+          (!block.upper.empty() && v[i] > block.upper[i])) {
+        return false;
+      }
+    }
+    return true;
+  };
   std::vector<bool> taken(term->blocks().size(), false);
   for (size_t k = 0; k < term->blocks().size(); ++k) {
     ParameterBlock& block = term->blocks()[k];
@@ -736,14 +746,10 @@ void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
     const auto t = start.terms.find(BlockOwner(spec, *term, block));
     if (t == start.terms.end()) continue;
     const auto b = t->second.blocks.find(block.name);
-    if (b == t->second.blocks.end() || b->second.size() != block.values.size()) continue;
-    bool inside = true;
-    for (size_t i = 0; i < block.values.size(); ++i) {
-      const double v = b->second[i];
-      inside = inside && std::isfinite(v) && (block.lower.empty() || v >= block.lower[i]) &&
-               (block.upper.empty() || v <= block.upper[i]);
+    if (b == t->second.blocks.end() || b->second.size() != block.values.size() ||
+        !admissible(block, b->second)) {
+      continue;
     }
-    if (!inside) continue;
     std::copy(b->second.begin(), b->second.end(), block.values.begin());
     taken[k] = true;
   }
@@ -753,13 +759,7 @@ void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
     if (taken[k] || block.fixed || k >= before.size() || before[k].size() != block.values.size()) {
       continue;
     }
-    bool inside = true;
-    for (size_t i = 0; i < block.values.size(); ++i) {
-      const double v = before[k][i];
-      inside = inside && (block.lower.empty() || v >= block.lower[i]) &&
-               (block.upper.empty() || v <= block.upper[i]);
-    }
-    if (inside) block.values = before[k];
+    if (admissible(block, before[k])) block.values = before[k];
   }
 }
 
