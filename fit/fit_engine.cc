@@ -3,6 +3,7 @@
 #include <ceres/ceres.h>
 #include <ceres/normal_prior.h>
 
+#include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <Eigen/SVD>
 
@@ -760,6 +761,17 @@ void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
       continue;
     }
     if (admissible(block, before[k])) block.values = before[k];
+  }
+  // A block that moves only within a subspace (a polynomial's determined directions) keeps the
+  // component of its start outside it for the whole fit: a start from a fit that determined more
+  // directions (another station set, `max_amplification: 0`) would freeze its share of the
+  // undetermined ones. Projected onto the subspace, as the term's own initialisation lies.
+  for (ParameterBlock& block : term->blocks()) {
+    if (block.fixed || block.ambient_from_tangent.size() == 0) continue;
+    const Eigen::MatrixXd& b = block.ambient_from_tangent;
+    Eigen::Map<Eigen::VectorXd> v(block.values.data(), block.size());
+    const Eigen::VectorXd projected = b * (b.transpose() * b).ldlt().solve(b.transpose() * v);
+    v = projected;
   }
 }
 

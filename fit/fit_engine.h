@@ -61,7 +61,8 @@ struct FitOptions {
   // holds (an effect added before the polynomial): the start is the fitted model's optimum with
   // the added effect at its file start. Fixed blocks keep the file's values. A term `start` lacks
   // that follows the ones it holds (an added polynomial or LUT) is initialised as usual on the
-  // poses the preceding terms give at their start values.
+  // poses the preceding terms give at their start values. A block that moves within a subspace (a
+  // polynomial's determined directions) starts at the start's values projected onto it.
   const FitStart* start = nullptr;
   // Called with (iteration, cost) after each solver iteration (progress on stderr in the CLI).
   std::function<void(int, double)> progress;

@@ -8,12 +8,15 @@
 #include <string>
 #include <nlohmann/json.hpp>
 
+#include "fit/sim_test_support.h"
 #include "fit/terms_polynomial.h"
 #include "sim/scene.h"
 #include "sim/simulator.h"
 
 namespace trackcal::fit {
 namespace {
+
+using testing::FourHeightGrid;
 
 std::vector<FitStation> NoiseFreeStations(const Correction& truth, int n, std::mt19937* rng) {
   std::uniform_real_distribution<double> pos(-0.5, 0.5);
@@ -458,6 +461,45 @@ TEST(FitModel, StartAddsAnEffectBeforeTheHeldPolynomial) {
   // distortion, which the polynomial then corrects a second time.)
   EXPECT_NEAR(fit.initial_cost, base_fit.final_cost, 1e-6 * base_fit.final_cost);
   EXPECT_LE(fit.final_cost, base_fit.final_cost * (1 + 1e-6));
+}
+
+// A start whose polynomial determined every direction (max_amplification: 0) into a fit that holds
+// the direction 4 heights do not determine: the started coefficients are projected onto the held
+// fit's subspace, so the fit ends where it ends without a start (the polynomial alone is linear,
+// its optimum in the subspace unique). Before, their undetermined component stayed for the whole
+// fit.
+TEST(FitModel, StartIsProjectedOntoAPolynomialsDeterminedSubspace) {
+  std::mt19937 rng(11);
+  const auto truth = RandomPolynomial(2, &rng);
+  const std::vector<FitStation> stations = FourHeightGrid(*truth, &rng);
+  // A sensor offset before the polynomial (the stations have none: it stays near zero), since a
+  // lone polynomial's fit is its linear initialisation and takes no start.
+  const std::string head =
+      "noise: {amplification_threshold: 1e9}\nterms:\n  - type: sensor_offset\n";
+  ModelSpec all = ParseModelYaml(
+      head + "  - {type: polynomial, degree: 4, max_amplification: 0}\n", "all");
+  ASSERT_TRUE(FitModel(stations, &all).converged);
+  const FitStart start = TakeFitStart(all);
+  const std::string held_model = head + "  - {type: polynomial, degree: 4}\n";
+  ModelSpec fresh = ParseModelYaml(held_model, "fresh");
+  const FitResult fresh_fit = FitModel(stations, &fresh);
+  ModelSpec held = ParseModelYaml(held_model, "held");
+  FitOptions from;
+  from.start = &start;
+  const FitResult fit = FitModel(stations, &held, from);
+  int subspace_blocks = 0;
+  for (const auto& block : held.terms.back()->blocks()) {
+    if (block.ambient_from_tangent.size() == 0) continue;
+    ++subspace_blocks;
+    const Eigen::MatrixXd& b = block.ambient_from_tangent;
+    const Eigen::Map<const Eigen::VectorXd> v(block.values.data(), block.size());
+    const Eigen::VectorXd inside = b * (b.transpose() * b).ldlt().solve(b.transpose() * v);
+    // Rounding of the solver's steps only (coefficients of a few mm and degrees).
+    EXPECT_LT((v - inside).norm(), 1e-9 * (1.0 + v.norm())) << block.name;
+  }
+  ASSERT_EQ(subspace_blocks, 2) << "4 heights leave degree 4 a direction in both parts";
+  // 1e-6 relative: both solves stop at the solver's function tolerance on the same optimum.
+  EXPECT_NEAR(fit.final_cost, fresh_fit.final_cost, 1e-6 * fresh_fit.final_cost);
 }
 
 }  // namespace

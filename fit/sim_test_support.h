@@ -1,12 +1,15 @@
-// Test support for the fit/ tests on simulated scenes: model-file snippets of a scene's true room
-// and lookups in a fit's parameter report. Header-only; tests only.
+// Test support for the fit/ tests on simulated scenes: model-file snippets of a scene's true room,
+// lookups in a fit's parameter report and a grid of stations on four heights. Header-only; tests
+// only.
 #pragma once
 
 #include <Eigen/Core>
 #include <iomanip>
+#include <random>
 #include <sstream>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "core/field.h"
 #include "fit/fit_engine.h"
@@ -50,6 +53,31 @@ inline const ParameterReport& FindParameter(const FitResult& result, const std::
     if (p.term == term && p.block == block) return p;
   }
   throw std::runtime_error("no parameter " + term + "." + block);
+}
+
+// A 12 x 10 x 4 grid in a 1 m box, heights 0.1 m apart, as a physical term leaves it: the true
+// positions to 0.1 mm; the references corrected by `truth` plus 0.1 mm of noise. On 4 heights z^4
+// equals a cubic at every station: a degree-4 polynomial has a direction they do not determine.
+inline std::vector<FitStation> FourHeightGrid(const Correction& truth, std::mt19937* rng) {
+  std::normal_distribution<double> normal;
+  auto noise = [&]() -> Eigen::Vector3d {
+    return 1e-4 * Eigen::Vector3d(normal(*rng), normal(*rng), normal(*rng));
+  };
+  std::vector<FitStation> stations;
+  for (int i = 0; i < 12; ++i) {
+    for (int j = 0; j < 10; ++j) {
+      for (int k = 0; k < 4; ++k) {
+        FitStation s;
+        s.reported.translation =
+            Eigen::Vector3d(-0.5 + i / 11.0, -0.5 + j / 9.0, 0.15 + k * 0.1) + noise();
+        s.reported.rotation = Eigen::Quaterniond::UnitRandom();
+        s.reference = truth.Apply(s.reported).pose;
+        s.reference.translation += noise();
+        stations.push_back(s);
+      }
+    }
+  }
+  return stations;
 }
 
 }  // namespace trackcal::fit::testing

@@ -14,9 +14,12 @@
 
 #include "core/correction.h"
 #include "fit/model_file.h"
+#include "fit/sim_test_support.h"
 
 namespace trackcal::fit {
 namespace {
+
+using testing::FourHeightGrid;
 
 // Random stations in a 1 m box whose reference is the reported pose corrected by `truth`.
 std::vector<FitStation> MakeStations(const PolynomialTerm& truth, int n, std::mt19937* rng) {
@@ -45,30 +48,6 @@ PolynomialTerm RandomTruth(int degree, std::mt19937* rng) {
   for (auto& v : truth.blocks()[0].values) v = 0.005 * normal(*rng);  // a few mm
   for (auto& v : truth.blocks()[1].values) v = 0.01 * normal(*rng);   // ~1 degree
   return truth;
-}
-
-// A 12 x 10 x 4 grid in a 1 m box, heights 0.1 m apart, as a physical term leaves it: the true
-// positions to 0.1 mm; the references corrected by `truth` plus 0.1 mm of noise.
-std::vector<FitStation> FourHeightGrid(const Correction& truth, std::mt19937* rng) {
-  std::normal_distribution<double> normal;
-  auto noise = [&]() -> Eigen::Vector3d {
-    return 1e-4 * Eigen::Vector3d(normal(*rng), normal(*rng), normal(*rng));
-  };
-  std::vector<FitStation> stations;
-  for (int i = 0; i < 12; ++i) {
-    for (int j = 0; j < 10; ++j) {
-      for (int k = 0; k < 4; ++k) {
-        FitStation s;
-        s.reported.translation =
-            Eigen::Vector3d(-0.5 + i / 11.0, -0.5 + j / 9.0, 0.15 + k * 0.1) + noise();
-        s.reported.rotation = Eigen::Quaterniond::UnitRandom();
-        s.reference = truth.Apply(s.reported).pose;
-        s.reference.translation += noise();
-        stations.push_back(s);
-      }
-    }
-  }
-  return stations;
 }
 
 TEST(PolynomialTerm, Nominal_LinearFitRecoversNoiseFreeCoefficients) {
