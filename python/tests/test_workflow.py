@@ -34,7 +34,8 @@ finding. Matching (each true source matches at most one term):
   represents none of them);
 - ``plane``: a true plane whose normal is within ``ROOM_MATCH_DEG`` (sign-free) and whose offset
   from the transmitter along that normal is within ``ROOM_MATCH_M`` (signed: a plane on the other
-  side of the transmitter is another plane).
+  side of the transmitter is another plane), or within 3 sigma of the fitted distance when it is
+  the only true plane so (a plane outside the volume trades its distance with its attenuation).
 
 Types must agree: a plane never represents objects, a dipole never a plane. A plane through the two
 CRT monitors (the sensor_offset loop, seed 1, before the search projected out the polynomial) or a
@@ -295,12 +296,25 @@ def _signed_offset(blocks: dict, direction) -> float:
 
 
 def _within_sigmas(kind: str, blocks: dict, source) -> bool:
-    """Dipoles: the true location within 3 sigma of the fitted one on every axis."""
+    """Dipoles: the true location within 3 sigma of the fitted one on every axis. Planes: the
+    normal within ROOM_MATCH_DEG of the true one and the true plane's offset along it within 3
+    sigma of the fitted distance (a plane outside the volume trades its distance with its
+    attenuation: ferromagnetic_object seed 5's floor at 0.96 +- 0.08 m against 0.8)."""
     skind, _, p = source
-    if skind != kind or kind != "dipole":
+    if skind != kind:
         return False
-    loc, sd = blocks["location_in_transmitter"]
-    return bool(np.all(np.abs(loc - np.asarray(p["location_in_transmitter"], float)) <= SIGMAS * sd))
+    if kind == "dipole":
+        loc, sd = blocks["location_in_transmitter"]
+        return bool(np.all(np.abs(loc - np.asarray(p["location_in_transmitter"], float)) <= SIGMAS * sd))
+    if kind == "plane":
+        tn = np.asarray(p["normal_in_transmitter"], float)
+        tn = tn / np.linalg.norm(tn)
+        if math.degrees(math.acos(float(np.clip(abs(_normal_of(blocks) @ tn), 0, 1)))) > ROOM_MATCH_DEG:
+            return False
+        sd = float(blocks["distance_m"][1][0])
+        off = _signed_offset(blocks, tn) - float(np.asarray(p["point_in_transmitter"], float) @ tn)
+        return math.isfinite(sd) and abs(off) <= SIGMAS * sd
+    return False
 
 
 def _match(kind: str, blocks: dict, sources: list, all_sources: list):
@@ -389,7 +403,7 @@ def _why_unmatched(kind: str, blocks: dict, all_sources: list, free: list) -> st
             angle = math.degrees(math.acos(float(np.clip(abs(_normal_of(blocks) @ tn), 0, 1))))
             off = _signed_offset(blocks, tn) - float(np.asarray(s[2]["point_in_transmitter"], float) @ tn)
             notes.append(f"true plane {s[1]}: normal {angle:.0f} deg off (match: {ROOM_MATCH_DEG} deg), "
-                         f"offset {off:+.2f} m (match: {ROOM_MATCH_M} m)")
+                         f"offset {off:+.2f} m (match: {ROOM_MATCH_M} m or {SIGMAS:g} sigma)")
     else:
         notes.append(f"already matched by another {kind} term")
     # Sources of another type that the term sits on.
@@ -742,6 +756,19 @@ def test_a_plane_standing_in_for_two_monitors_is_spurious(toolbox_truth):
     mirrored = ("plane", {"distance_m": ([2.05], [0.1]), "normal_in_transmitter": ([0.0, 1.0, 0.02], [0.02, 0.02]),
                           "attenuation": ([0.2], [0.05])})
     assert len(_spurious_terms(_fit_doc(mirrored), toolbox_truth)) == 1, "the door's mirror across the transmitter"
+
+
+def test_a_plane_matches_by_its_distance_within_three_sigma(toolbox_truth):
+    # ferromagnetic_object seed 5's last fit: the floor (0.8 m along +z) at 0.96 +- 0.077 m, its
+    # distance and attenuation trading: 0.16 m off, 2.1 sigma, is the floor.
+    floor = {"distance_m": ([0.9624], [0.0774]), "normal_in_transmitter": ([0.048, 0.061, 0.997], [0.06, 0.08]),
+             "attenuation": ([0.64], [0.16])}
+    assert _spurious_terms(_fit_doc(("plane", floor)), toolbox_truth) == []
+    # The same offset with a tight distance is not; nor is a tilted plane (the angle rule still holds).
+    tight = dict(floor, distance_m=([0.9624], [0.02]))
+    assert len(_spurious_terms(_fit_doc(("plane", tight)), toolbox_truth)) == 1
+    tilted = dict(floor, normal_in_transmitter=([0.5, 0.0, 0.866], [0.06, 0.08]))
+    assert len(_spurious_terms(_fit_doc(("plane", tilted)), toolbox_truth)) == 1
 
 
 def test_a_background_field_stands_for_the_distant_sources_only(toolbox_truth):
