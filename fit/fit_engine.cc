@@ -1056,11 +1056,50 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       result.iterations += static_cast<int>(summary.iterations.size()) - 1;
     }
   }
+  // ModelSpec::leave_out_unresolved: solved again without the static stations the solution does
+  // not resolve, while that set changes (a station resolved again comes back).
+  std::vector<FitStation> kept_stations;
+  const std::vector<FitStation>* fitted = &stations;
+  if (spec->leave_out_unresolved && !linear_solution && num_free > 0 && !fit_time_offset) {
+    std::vector<bool> left(stations.size(), false);
+    for (int pass = 0; pass < kMaxWhiteningPasses; ++pass) {
+      CorrectionChain chain = ModelToChain(spec->terms);
+      chain.SetVolume(VolumeOf(stations, chain));
+      std::vector<bool> now(stations.size(), false);
+      size_t count = 0;
+      for (size_t i = 0; i < stations.size(); ++i) {
+        now[i] = chain.Apply(stations[i].reported).status != CorrectionStatus::kConverged;
+        count += now[i] ? 1 : 0;
+      }
+      if (static_cast<double>(count) > kMaxLeftOutFraction * static_cast<double>(stations.size())) {
+        result.left_out_note = std::to_string(count) + " of " + std::to_string(stations.size()) +
+                               " stations unresolved, more than " +
+                               std::to_string(std::lround(100 * kMaxLeftOutFraction)) +
+                               " %: none left out";
+        break;
+      }
+      if (now == left) break;
+      left = now;
+      kept_stations.clear();
+      for (size_t i = 0; i < stations.size(); ++i) {
+        if (!left[i]) kept_stations.push_back(stations[i]);
+      }
+      fitted = &kept_stations;
+      built = BuildProblem(*fitted, spec, nullptr, time_offset0);
+      num_free = built.num_free;
+      ceres::Solve(solver_options, built.problem.get(), &summary);
+      result.iterations += static_cast<int>(summary.iterations.size()) - 1;
+    }
+    for (size_t i = 0; i < stations.size(); ++i) {
+      if (left[i]) result.left_out.push_back(stations[i].station);
+    }
+    if (result.left_out.empty()) fitted = &stations;
+  }
   ceres::Problem& problem = *built.problem;
   const std::vector<ceres::ResidualBlockId>& station_blocks = built.station_blocks;
-  for (size_t i = 0; i < stations.size(); ++i) {
+  for (size_t i = 0; i < fitted->size(); ++i) {
     if (built.noise_whitened[i]) {
-      result.noise_whitened.push_back({stations[i].station, built.noise_gain[i]});
+      result.noise_whitened.push_back({(*fitted)[i].station, built.noise_gain[i]});
     }
   }
   if (!linear_solution) {
@@ -1086,11 +1125,11 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       std::vector<double> residuals;
       problem.Evaluate(eo, nullptr, &residuals, nullptr, nullptr);
       const double limit = spec->loss.type == LossType::kNone ? 5.0 : spec->loss.scale;
-      for (size_t i = 0; i < stations.size(); ++i) {
+      for (size_t i = 0; i < fitted->size(); ++i) {
         double s2 = 0.0;
         for (int k = 0; k < 6; ++k) s2 += residuals[i * 6 + static_cast<size_t>(k)] * residuals[i * 6 + static_cast<size_t>(k)];
         const double rms = std::sqrt(s2 / 6.0);
-        if (rms > limit) result.outliers.push_back({stations[i].station, rms});
+        if (rms > limit) result.outliers.push_back({(*fitted)[i].station, rms});
       }
     }
   }
@@ -1142,16 +1181,16 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     co.estimator = spec->covariance_estimator;
     co.clusters = station_blocks;
     co.noise_relative = built.noise_relative_blocks;
-    const bool stream_samples = moving || SerialSamples(stations);
+    const bool stream_samples = moving || SerialSamples(*fitted);
     if (stream_samples) {
-      co.cluster_groups = TimeClusters(stations, spec->stream_clusters);
+      co.cluster_groups = TimeClusters(*fitted, spec->stream_clusters);
       if (co.cluster_groups.empty()) co.estimator = CovarianceEstimator::kModel;
     }
     const CovarianceResult cov = ComputeCovariance(&problem, cov_blocks, co);
     result.covariance_message = cov.message;
     if (co.estimator != spec->covariance_estimator) {
       result.covariance_message +=
-          StreamModelCovarianceMessage(static_cast<int>(stations.size()), spec->stream_clusters);
+          StreamModelCovarianceMessage(static_cast<int>(fitted->size()), spec->stream_clusters);
     }
     if (cov.success) {
       result.covariance_estimator = cov.estimator;
@@ -1769,6 +1808,8 @@ nlohmann::json FitResult::ToJson() const {
           {"identifiability_flags", flags},
           {"outliers", out_flags},
           {"unresolved", unresolved_json},
+          {"left_out", left_out},
+          {"left_out_note", left_out_note},
           {"noise_amplified", amplified_json},
           {"whitening_passes", whitening_passes},
           {"terms", terms},

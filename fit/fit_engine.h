@@ -97,6 +97,9 @@ struct AmplifiedStation {
 // parameters also carry) exceeds this is flagged as poorly identified (FitResult::
 // time_offset_variance_inflation; measured values in docs/diagnose.md, Known limits).
 inline constexpr double kMaxTimeOffsetVarianceInflation = 10.0;
+// ModelSpec::leave_out_unresolved leaves out at most this share of the stations (more: the model
+// is not near the data, and none is left out).
+inline constexpr double kMaxLeftOutFraction = 0.1;
 // What such an offset's flag says: the share of its information the other parameters carry, and the
 // remedy (also in trackcal-fit diagnose's time_offset candidate).
 std::string TimeOffsetMimicryNote(double variance_inflation);
@@ -159,6 +162,10 @@ struct FitResult {
   // Calibration stations whose physical inverse is not converged or ambiguous under the fitted
   // model (in --json: "unresolved": [{"station", "status"}]).
   std::vector<UnresolvedStation> unresolved;
+  // With solver.leave_out_unresolved: the stations left out of the solve (and of the residual
+  // count, chi2 and covariance) because the model does not resolve them (in --json: "left_out").
+  std::vector<int> left_out;
+  std::string left_out_note;  // why none was left out although some are unresolved, if so
   // Stations whose residual was whitened by the report noise the fitted chain amplifies into it
   // (in --json: "noise_amplified": [{"station", "gain"}]), and the solves it took (1: the
   // whitening did not change at the solution; 0: no solver run).

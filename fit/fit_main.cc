@@ -244,6 +244,14 @@ int RunFit(int argc, char** argv) {
     for (const auto& o : result.outliers) std::cout << " " << o.station;
     std::cout << "\n";
   }
+  if (!result.left_out.empty()) {
+    std::cout << "Left out of the fit, unresolved by the model's inverse ("
+              << result.left_out.size() << "):";
+    for (int station : result.left_out) std::cout << " " << station;
+    std::cout << "\n";
+  } else if (!result.left_out_note.empty()) {
+    std::cout << "Left out of the fit: " << result.left_out_note << "\n";
+  }
   PrintParameters(result, std::cout);
   std::cout << "Wrote " << output.string() << "\n";
   return 0;

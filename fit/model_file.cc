@@ -338,6 +338,8 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
                     "unknown estimator '" + estimator + "' (known: sandwich, model)");
       }
     }
+    spec.leave_out_unresolved =
+        solver.GetBoolOr("leave_out_unresolved", spec.leave_out_unresolved);
     spec.stream_clusters = solver.GetIntOr("stream_clusters", spec.stream_clusters);
     if (spec.stream_clusters != 0 && spec.stream_clusters < 8) {
       solver.Fail("stream_clusters",

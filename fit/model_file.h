@@ -167,6 +167,14 @@ struct ModelSpec {
   // TimeClusters). 0, or fewer than 5 samples per run: the model covariance. Static stations are
   // one cluster each.
   int stream_clusters = 32;
+  // solver.leave_out_unresolved: after the solve, the static stations whose physical inverse the
+  // fitted model does not resolve (ambiguous or no root) are left out and the model solved again
+  // on the others, until that set no longer changes (FitResult::left_out). Their residual is two
+  // Newton steps from the reference that reach no root and disagrees with its Jacobian (the
+  // implicit function theorem's, exact at a root), which can hold the solver at the start (docs/
+  // fit.md, "Stations the inverse cannot resolve"). Off by default; at most
+  // kMaxLeftOutFraction of the stations, else none is left out.
+  bool leave_out_unresolved = false;
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;
   std::vector<std::vector<BlockSettings>> block_settings;  // one list per term
