@@ -586,6 +586,9 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
 // solve and up to two re-whitened ones (the whitening of the ferromagnetic toolbox's stations
 // settles in one).
 constexpr int kMaxWhiteningPasses = 3;
+// Solves of ModelSpec::leave_out_unresolved after the first, each without the stations the
+// previous solution left unresolved.
+constexpr int kMaxLeaveOutPasses = 3;
 
 // True if the noise whitening of `after` differs from that of `before` by more than 10 % in any
 // station's largest amplification (or a station crossed the threshold): worth another solve.
@@ -1062,7 +1065,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   const std::vector<FitStation>* fitted = &stations;
   if (spec->leave_out_unresolved && !linear_solution && num_free > 0 && !fit_time_offset) {
     std::vector<bool> left(stations.size(), false);
-    for (int pass = 0; pass < kMaxWhiteningPasses; ++pass) {
+    for (int pass = 0; pass < kMaxLeaveOutPasses; ++pass) {
       CorrectionChain chain = ModelToChain(spec->terms);
       chain.SetVolume(VolumeOf(stations, chain));
       std::vector<bool> now(stations.size(), false);

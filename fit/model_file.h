@@ -167,8 +167,9 @@ struct ModelSpec {
   // TimeClusters). 0, or fewer than 5 samples per run: the model covariance. Static stations are
   // one cluster each.
   int stream_clusters = 32;
-  // solver.leave_out_unresolved: after the solve, the static stations whose physical inverse the
-  // fitted model does not resolve (ambiguous or no root) are left out and the model solved again
+  // solver.leave_out_unresolved: after the solve, the stations whose physical inverse the fitted
+  // model does not resolve (ambiguous or no root; not with a fitted clock offset, whose stream
+  // samples are re-paired as it moves) are left out and the model solved again
   // on the others, until that set no longer changes (FitResult::left_out). Their residual is two
   // Newton steps from the reference that reach no root and disagrees with its Jacobian (the
   // implicit function theorem's, exact at a root), which can hold the solver at the start (docs/
