@@ -130,13 +130,18 @@ std::string FitTimeNote(const FitResult& fit) {
 
 // The same, from the fit on all stations (`fitted`: the spec FitModel left): each fold re-estimated
 // by Levenberg-Marquardt steps from the full fit (RefitFoldsFromFull; CandidateOptions::exact_cv
-// false). `report` gets the steps each fold took.
+// false). `left_out`: the stations the full fit left out (FitResult::left_out), in no fold's
+// training. `report` gets the steps each fold took.
 StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
                                         const std::vector<int>& fold_of, ModelSpec* fitted,
-                                        int folds, double sigma_p, double sigma_o,
+                                        const std::vector<int>& left_out, int folds,
+                                        double sigma_p, double sigma_o,
                                         const std::function<void(const std::string&)>& report) {
   StationErrors e = MakeErrors(stations.size());
-  const std::vector<FoldRefit> refits = RefitFoldsFromFull(stations, fitted, fold_of, folds);
+  FoldRefitOptions refit_options;
+  refit_options.left_out = left_out;
+  const std::vector<FoldRefit> refits =
+      RefitFoldsFromFull(stations, fitted, fold_of, folds, refit_options);
   std::string steps;
   int solver = 0, unconverged = 0, jacobians = 0, bound_folds = 0;
   double seconds = 0.0;
@@ -833,6 +838,7 @@ struct PreparedCandidate {
   YAML::Node root;                          // the candidate model file
   std::shared_ptr<ModelSpec>
       fitted;  // the fit on all stations (the fast cross-validation starts there)
+  std::vector<int> left_out;  // that fit's left-out stations (FitResult::left_out)
   // kRobustLoss: its fit's whitened squared error per station and the gross outliers among them.
   std::vector<double> full_whitened_sq;
   GrossOutliers gross;
@@ -1590,6 +1596,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // The base's fitted state (a copy: the base's fast cross-validation moves base_spec's values
   // while candidates are fitted), where a candidate whose own start fits worse starts again.
   FitStart base_start;
+  std::vector<int> base_left_out;  // the base fit's (FitResult::left_out): no fold trains on them
   {
     const auto t0 = Clock::now();
     Progress(options, "base model: fit on " + std::to_string(stations.size()) + " stations");
@@ -1597,6 +1604,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     fo.compute_covariance = false;
     const FitResult fit = FitModel(stations, &base_spec, fo);
     base_start = TakeFitStart(base_spec);
+    base_left_out = fit.left_out;
     for (size_t i = 0; i < stations.size(); ++i) {
       AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &base_full, i);
     }
@@ -1627,7 +1635,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       Progress(options,
                "base model: " + std::to_string(options.folds) + " fold refits from the full fit");
       base_cv = FastCrossValidateStations(
-          stations, base_folds, &base_spec, options.folds, sigma_p, sigma_o,
+          stations, base_folds, &base_spec, base_left_out, options.folds, sigma_p, sigma_o,
           [&](const std::string& m) { Progress(options, "base model: " + m); });
     } else {
       base_cv =
@@ -1887,6 +1895,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       }
       if (!options.exact_cv && !fit.linear_least_squares && FastCrossValidationApplies(own, spec)) {
         p.fitted = std::make_shared<ModelSpec>(std::move(spec));  // the folds start here
+        p.left_out = fit.left_out;
       }
       if (c.kind == CandidateKind::kTerm && c.term_names.size() > 1) {
         // One statement per added term ("a ferromagnetic object near ...; a ferromagnetic object
@@ -2133,7 +2142,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         Progress(options, c.effect + ": " + std::to_string(options.folds) +
                               " fold refits from the full fit");
         cv = FastCrossValidateStations(
-            own, fold_of, p->fitted.get(), options.folds, sigma_p, sigma_o,
+            own, fold_of, p->fitted.get(), p->left_out, options.folds, sigma_p, sigma_o,
             [&](const std::string& m) { Progress(options, c.effect + ": " + m); });
       } else {
         cv =

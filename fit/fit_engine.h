@@ -215,6 +215,9 @@ struct FoldRefitOptions {
   // Above this many free parameters (dense normal equations cost O(n^3)), every fold is refitted by
   // the solver from the full fit's values.
   int max_dense_parameters = 800;
+  // Stations (FitStation::station) the full fit left out (FitResult::left_out,
+  // solver.leave_out_unresolved): in no fold's training, still predicted by their fold's refit.
+  std::vector<int> left_out;
   bool Check() const { return max_steps >= 1 && cost_tolerance > 0 && max_dense_parameters >= 0; }
 };
 

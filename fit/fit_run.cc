@@ -185,6 +185,9 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
   stats["num_valid_stations"] = valid.size();
   stats["converged"] = run.result.converged;
   stats["num_outliers"] = run.result.outliers.size();
+  // Stations not fitted (solver.leave_out_unresolved): a reader sees the calibration did not use
+  // every station it lists.
+  stats["num_left_out"] = run.result.left_out.size();
   stats["num_poorly_identified"] = run.result.identifiability_flags.size();
   if (!run.result.covariance_estimator.empty()) {
     stats["covariance_estimator"] = run.result.covariance_estimator;

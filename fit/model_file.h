@@ -169,12 +169,12 @@ struct ModelSpec {
   int stream_clusters = 32;
   // solver.leave_out_unresolved: after the solve, the stations whose physical inverse the fitted
   // model does not resolve (ambiguous or no root; not with a fitted clock offset, whose stream
-  // samples are re-paired as it moves) are left out and the model solved again
-  // on the others, until that set no longer changes (FitResult::left_out). Their residual is two
-  // Newton steps from the reference that reach no root and disagrees with its Jacobian (the
-  // implicit function theorem's, exact at a root), which can hold the solver at the start (docs/
-  // fit.md, "Stations the inverse cannot resolve"). Off by default; at most
-  // kMaxLeftOutFraction of the stations, else none is left out.
+  // samples are re-paired as it moves) are left out and the model solved again on the others,
+  // until that set no longer changes (FitResult::left_out); the fast cross-validation's folds leave
+  // them out of training too. At such a station the fit's residual is Newton steps from the
+  // reference that reach no root, not the pose the runtime correction gives (docs/fit.md,
+  // "Stations the inverse cannot resolve"). Off by default; at most kMaxLeftOutFraction of the
+  // stations, else none is left out.
   bool leave_out_unresolved = false;
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;
