@@ -205,6 +205,18 @@ class StationCost : public ceres::CostFunction {
     using Vec6 = Eigen::Matrix<double, 6, 1>;
     auto eval = [&](Vec6* r) { return EvaluateAnalytic(ptrs.data(), r->data(), nullptr); };
     const Eigen::Map<const Vec6> r0(residuals);
+    // The difference quotient from the sides that could be evaluated; false if neither.
+    auto quotient = [&](bool ok_plus, const Vec6& r_plus, bool ok_minus, const Vec6& r_minus,
+                        double h, Vec6* column) {
+      if (ok_plus && ok_minus) {
+        *column = (r_plus - r_minus) / (2 * h);
+      } else if (ok_plus || ok_minus) {
+        *column = ok_plus ? Vec6((r_plus - r0) / h) : Vec6((r0 - r_minus) / h);
+      } else {
+        return false;
+      }
+      return true;
+    };
     for (size_t b = 0; b < sizes.size(); ++b) {
       if (jacobians[b] == nullptr || !central[b]) continue;
       const int size = sizes[b];
@@ -221,15 +233,9 @@ class StationCost : public ceres::CostFunction {
           copy[b][static_cast<size_t>(k)] = x0[static_cast<size_t>(k)] - h;
           const bool okm = eval(&rm);
           copy[b][static_cast<size_t>(k)] = x0[static_cast<size_t>(k)];
-          if (okp && okm) {
-            j.col(k) = (rp - rm) / (2 * h);
-          } else if (okp) {
-            j.col(k) = (rp - r0) / h;
-          } else if (okm) {
-            j.col(k) = (r0 - rm) / h;
-          } else {
-            return false;
-          }
+          Vec6 column;
+          if (!quotient(okp, rp, okm, rm, h, &column)) return false;
+          j.col(k) = column;
         }
         continue;
       }
@@ -240,19 +246,13 @@ class StationCost : public ceres::CostFunction {
         Vec6 rp, rm;
         std::vector<double> delta(static_cast<size_t>(t), 0.0);
         delta[static_cast<size_t>(k)] = h;
-        bool okp = m->Plus(x0.data(), delta.data(), copy[b].data()) && eval(&rp);
+        const bool okp = m->Plus(x0.data(), delta.data(), copy[b].data()) && eval(&rp);
         delta[static_cast<size_t>(k)] = -h;
-        bool okm = m->Plus(x0.data(), delta.data(), copy[b].data()) && eval(&rm);
+        const bool okm = m->Plus(x0.data(), delta.data(), copy[b].data()) && eval(&rm);
         std::copy(x0.begin(), x0.end(), copy[b].begin());
-        if (okp && okm) {
-          jt.col(k) = (rp - rm) / (2 * h);
-        } else if (okp) {
-          jt.col(k) = (rp - r0) / h;
-        } else if (okm) {
-          jt.col(k) = (r0 - rm) / h;
-        } else {
-          return false;
-        }
+        Vec6 column;
+        if (!quotient(okp, rp, okm, rm, h, &column)) return false;
+        jt.col(k) = column;
       }
       Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> plus(size, t);
       if (!m->PlusJacobian(x0.data(), plus.data())) return false;
