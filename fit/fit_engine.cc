@@ -145,125 +145,8 @@ class StationCost : public ceres::CostFunction {
     if (time_offset0_) mutable_parameter_block_sizes()->push_back(1);
   }
 
-  // For a station whose physical inverse the chain does not resolve (ambiguous or no root): the
-  // physical group's blocks get Jacobians by central differences of the residual itself. There the
-  // residual, Newton steps from the reference that reach no root, is not the root the
-  // implicit-function Jacobian is exact at, and with that Jacobian Levenberg-Marquardt found no
-  // step that lowered the cost (docs/fit.md, "Stations the inverse cannot resolve"). The later
-  // terms' blocks (a polynomial's 210 coefficients) keep their analytic Jacobians, which leave out
-  // only their dependence through the target the group's steps start from: measured on the paper
-  // capture's step-3 fit, that fit descends as far (7661 -> 850, against 895 with every block by
-  // central differences) at a fraction of the evaluations. `manifolds`: per parameter block, its
-  // manifold or null.
-  void UseCentralDifferences(std::vector<const ceres::Manifold*> manifolds) {
-    central_differences_ = true;
-    manifolds_ = std::move(manifolds);
-    central_blocks_.assign(parameter_block_sizes().size(), false);
-    size_t b = 0;
-    for (const auto& t : terms_) {
-      for (size_t k = 0; k < t.binding.blocks.size(); ++k) {
-        central_blocks_[b++] = t.term->UsesTarget();
-      }
-    }
-  }
-
   bool Evaluate(double const* const* parameters, double* residuals,
                 double** jacobians) const override {
-    if (central_differences_ && jacobians != nullptr) {
-      return EvaluateByCentralDifferences(parameters, residuals, jacobians);
-    }
-    return EvaluateAnalytic(parameters, residuals, jacobians);
-  }
-
- private:
-  // Per central block and coordinate, (r(x + h) - r(x - h)) / 2h with h = 1e-6 max(|x|, 1e-3)
-  // (one-sided where one side leaves the model's domain); a manifold block along its tangent
-  // (h = 1e-6), the tangent Jacobian J_t mapped to ambient by the Plus Jacobian P as
-  // J_t (P^T P)^-1 P^T, so that the solver's J_ambient P is J_t. Truncation error O(h^2), rounding
-  // O(eps / h) times the residual's sensitivity to rounding in the Newton steps.
-  bool EvaluateByCentralDifferences(double const* const* parameters, double* residuals,
-                                    double** jacobians) const {
-    const std::vector<int32_t>& sizes = parameter_block_sizes();
-    const std::vector<bool>& central = central_blocks_;
-    std::vector<double*> analytic(sizes.size(), nullptr);
-    bool any_analytic = false;
-    for (size_t b = 0; b < sizes.size(); ++b) {
-      if (jacobians[b] != nullptr && !central[b]) {
-        analytic[b] = jacobians[b];
-        any_analytic = true;
-      }
-    }
-    if (!EvaluateAnalytic(parameters, residuals, any_analytic ? analytic.data() : nullptr)) {
-      return false;
-    }
-    std::vector<std::vector<double>> copy(sizes.size());
-    std::vector<const double*> ptrs(sizes.size());
-    for (size_t b = 0; b < sizes.size(); ++b) {
-      copy[b].assign(parameters[b], parameters[b] + sizes[b]);
-      ptrs[b] = copy[b].data();
-    }
-    using Vec6 = Eigen::Matrix<double, 6, 1>;
-    auto eval = [&](Vec6* r) { return EvaluateAnalytic(ptrs.data(), r->data(), nullptr); };
-    const Eigen::Map<const Vec6> r0(residuals);
-    // The difference quotient from the sides that could be evaluated; false if neither.
-    auto quotient = [&](bool ok_plus, const Vec6& r_plus, bool ok_minus, const Vec6& r_minus,
-                        double h, Vec6* column) {
-      if (ok_plus && ok_minus) {
-        *column = (r_plus - r_minus) / (2 * h);
-      } else if (ok_plus || ok_minus) {
-        *column = ok_plus ? Vec6((r_plus - r0) / h) : Vec6((r0 - r_minus) / h);
-      } else {
-        return false;
-      }
-      return true;
-    };
-    for (size_t b = 0; b < sizes.size(); ++b) {
-      if (jacobians[b] == nullptr || !central[b]) continue;
-      const int size = sizes[b];
-      Eigen::Map<Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor>> j(jacobians[b], 6,
-                                                                              size);
-      const ceres::Manifold* m = b < manifolds_.size() ? manifolds_[b] : nullptr;
-      const std::vector<double> x0(parameters[b], parameters[b] + size);
-      if (m == nullptr) {
-        for (int k = 0; k < size; ++k) {
-          const double h = 1e-6 * std::max(std::abs(x0[static_cast<size_t>(k)]), 1e-3);
-          Vec6 rp, rm;
-          copy[b][static_cast<size_t>(k)] = x0[static_cast<size_t>(k)] + h;
-          const bool okp = eval(&rp);
-          copy[b][static_cast<size_t>(k)] = x0[static_cast<size_t>(k)] - h;
-          const bool okm = eval(&rm);
-          copy[b][static_cast<size_t>(k)] = x0[static_cast<size_t>(k)];
-          Vec6 column;
-          if (!quotient(okp, rp, okm, rm, h, &column)) return false;
-          j.col(k) = column;
-        }
-        continue;
-      }
-      const int t = m->TangentSize();
-      Eigen::MatrixXd jt(6, t);
-      for (int k = 0; k < t; ++k) {
-        const double h = 1e-6;
-        Vec6 rp, rm;
-        std::vector<double> delta(static_cast<size_t>(t), 0.0);
-        delta[static_cast<size_t>(k)] = h;
-        const bool okp = m->Plus(x0.data(), delta.data(), copy[b].data()) && eval(&rp);
-        delta[static_cast<size_t>(k)] = -h;
-        const bool okm = m->Plus(x0.data(), delta.data(), copy[b].data()) && eval(&rm);
-        std::copy(x0.begin(), x0.end(), copy[b].begin());
-        Vec6 column;
-        if (!quotient(okp, rp, okm, rm, h, &column)) return false;
-        jt.col(k) = column;
-      }
-      Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> plus(size, t);
-      if (!m->PlusJacobian(x0.data(), plus.data())) return false;
-      const Eigen::MatrixXd p = plus;
-      j = jt * (p.transpose() * p).ldlt().solve(p.transpose());
-    }
-    return true;
-  }
-
-  bool EvaluateAnalytic(double const* const* parameters, double* residuals,
-                        double** jacobians) const {
     if (!EvaluateUnwhitened(parameters, residuals, jacobians)) return false;
     if (!noise_whitening_) return true;
     const Matrix6& w = *noise_whitening_;
@@ -281,6 +164,7 @@ class StationCost : public ceres::CostFunction {
     return true;
   }
 
+ private:
   bool EvaluateUnwhitened(double const* const* parameters, double* residuals,
                           double** jacobians) const {
     const bool want = jacobians != nullptr;
@@ -340,9 +224,6 @@ class StationCost : public ceres::CostFunction {
   double sigma_p_, sigma_o_;
   std::optional<double> time_offset0_;
   std::optional<Matrix6> noise_whitening_;
-  bool central_differences_ = false;
-  std::vector<const ceres::Manifold*> manifolds_;
-  std::vector<bool> central_blocks_;  // per parameter block: by central differences
 };
 
 // How the chain at its current values passes a station's report noise into the whitened residual:
@@ -603,9 +484,6 @@ std::vector<bool> UnresolvedStations(const std::vector<FitStation>& stations, co
   return out;
 }
 
-// Above this share of unresolved stations none gets central-difference Jacobians (BuildProblem).
-constexpr double kMaxCentralDifferenceFraction = 0.25;
-
 bool WithinLeftOutLimit(size_t count, size_t total) {
   return static_cast<double>(count) <= kMaxLeftOutFraction * static_cast<double>(total);
 }
@@ -624,7 +502,6 @@ struct BuiltProblem {
   // The terms' extra residual blocks weighted relative to the noise sigma
   // (ModelTerm::ExtraResidualsRelativeToNoise): the sandwich scales their information.
   std::vector<ceres::ResidualBlockId> noise_relative_blocks;
-  std::vector<bool> central_differences;  // per station: Jacobians by central differences
 };
 
 BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -641,21 +518,6 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       if (block.make_manifold) problem.SetManifold(block.values.data(), block.make_manifold());
     }
   }
-  // Stations the chain at the current values does not resolve get their Jacobians by central
-  // differences (StationCost::UseCentralDifferences); FitModel's passes rebuild the problem at the
-  // solution and solve again while the set changes (WhiteningChanged). Not above
-  // kMaxCentralDifferenceFraction of the stations: each costs 2 chain evaluations per free
-  // coordinate per Jacobian, and a model that resolves so few is far from the data anyway.
-  bool physical = false;
-  for (const auto& term : spec->terms) physical = physical || term->UsesTarget();
-  size_t num_unresolved = 0;
-  std::vector<bool> unresolved = physical ? UnresolvedStations(stations, *spec, &num_unresolved)
-                                          : std::vector<bool>(stations.size(), false);
-  if (static_cast<double>(num_unresolved) >
-      kMaxCentralDifferenceFraction * static_cast<double>(stations.size())) {
-    unresolved.assign(stations.size(), false);
-  }
-  out.central_differences = unresolved;
   {
     // The bindings are fixed at the initial values (a LUT cell per station).
     std::vector<std::vector<BoundTerm>> bound(stations.size());
@@ -688,17 +550,10 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       }
       out.noise_gain.push_back(whitening.gain);
       out.noise_whitened.push_back(whitening.w.has_value());
-      auto* cost = new StationCost(bound[i], stations[i], station_sigmas[0], station_sigmas[1],
-                                   time_offset0, whitening.w);
-      if (unresolved[i]) {
-        std::vector<const ceres::Manifold*> manifolds;
-        for (double* d : blocks) {
-          // (the clock offset's block is added with the residual: it has no manifold)
-          manifolds.push_back(problem.HasParameterBlock(d) ? problem.GetManifold(d) : nullptr);
-        }
-        cost->UseCentralDifferences(std::move(manifolds));
-      }
-      station_blocks.push_back(problem.AddResidualBlock(cost, MakeLoss(spec->loss), blocks));
+      station_blocks.push_back(
+          problem.AddResidualBlock(new StationCost(bound[i], stations[i], station_sigmas[0],
+                                                   station_sigmas[1], time_offset0, whitening.w),
+                                   MakeLoss(spec->loss), blocks));
     }
   }
   for (size_t k = 0; k < spec->terms.size(); ++k) {
@@ -755,11 +610,8 @@ constexpr int kMaxWhiteningPasses = 3;
 constexpr int kMaxLeaveOutPasses = 3;
 
 // True if the noise whitening of `after` differs from that of `before` by more than 10 % in any
-// station's largest amplification (or a station crossed the threshold), or if the stations whose
-// Jacobians are central differences changed: worth another solve.
+// station's largest amplification (or a station crossed the threshold): worth another solve.
 bool WhiteningChanged(const BuiltProblem& before, const BuiltProblem& after) {
-  // So do the stations whose Jacobians are central differences (those unresolved at the values).
-  if (before.central_differences != after.central_differences) return true;
   for (size_t i = 0; i < before.noise_whitened.size(); ++i) {
     if (before.noise_whitened[i] != after.noise_whitened[i]) return true;
     if (!before.noise_whitened[i]) continue;
