@@ -171,10 +171,11 @@ struct ModelSpec {
   // model does not resolve (ambiguous or no root; not with a fitted clock offset, whose stream
   // samples are re-paired as it moves) are left out and the model solved again on the others,
   // until that set no longer changes (FitResult::left_out); the fast cross-validation's folds leave
-  // them out of training too. At such a station the fit's residual is Newton steps from the
-  // reference that reach no root, not the pose the runtime correction gives (docs/fit.md,
-  // "Stations the inverse cannot resolve"). Off by default; at most kMaxLeftOutFraction of the
-  // stations, else none is left out.
+  // them out of training too. At such a station the fit's residual is two Newton steps from the
+  // reference that reach no root and disagrees with its Jacobian (the implicit function theorem's,
+  // exact at a root), which can hold the solver at its start (docs/fit.md, "Stations the inverse
+  // cannot resolve"). Off by default; at most kMaxLeftOutFraction of the stations, else none is
+  // left out.
   bool leave_out_unresolved = false;
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;
