@@ -1451,11 +1451,9 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
   }
 
   // The full fit's left-out stations (FoldRefitOptions::left_out) train no fold.
+  const std::set<int> left_out(options.left_out.begin(), options.left_out.end());
   std::vector<bool> excluded(stations.size(), false);
-  for (size_t i = 0; i < stations.size(); ++i) {
-    excluded[i] = std::find(options.left_out.begin(), options.left_out.end(),
-                            stations[i].station) != options.left_out.end();
-  }
+  for (size_t i = 0; i < stations.size(); ++i) excluded[i] = left_out.count(stations[i].station);
 
   BuiltProblem built = BuildProblem(stations, spec, nullptr, std::nullopt);
   ceres::Problem& problem = *built.problem;
@@ -1559,10 +1557,7 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
     out->solver_refit = true;
     std::vector<FitStation> solved;
     for (const auto& t : train) {
-      if (std::find(options.left_out.begin(), options.left_out.end(), t.station) ==
-          options.left_out.end()) {
-        solved.push_back(t);
-      }
+      if (!left_out.count(t.station)) solved.push_back(t);
     }
     BuiltProblem fold = BuildProblem(solved, spec, nullptr, std::nullopt);
     if (fold.num_free > 0) {
