@@ -131,7 +131,8 @@ const Candidate& ExpectTop(const Diagnosis& d, const std::string& effect) {
 // inverse did not converge near the object. With the station residual continuous (two Newton steps
 // from the reference, PhysicalGroupTerm::EvaluateToward; the polynomial after the group is pulled
 // back by fixed-point steps, fit/fit_engine.cc): (0.60021, 0.95027, -0.50014) +- (0.00015, 0.00022,
-// 0.00011) m, 0.0020070 +- 0.0000038 m^3, held-out 4.27 -> 0.139 mm; 97 s wall under load.
+// 0.00011) m, 0.0020070 +- 0.0000038 m^3, held-out 4.27 -> 0.139 mm; 97 s wall under load. Since
+// session 20 the residual is the report's misfit under the pose metric (fit/pose_metric.h).
 TEST(DiagnoseCandidatesPaper, FerromagneticObject) {
   const PaperRun r = Diagnose("ferromagnetic_object", 20010313);
   const Candidate& top = ExpectTop(r.diagnosis, "dipole");

@@ -18,6 +18,7 @@
 #include <set>
 #include <stdexcept>
 
+#include "fit/pose_metric.h"
 #include "fit/terms_time_offset.h"
 
 namespace trackcal::fit {
@@ -29,24 +30,6 @@ struct BoundTerm {
   StationBinding binding;
 };
 
-// The station residual ((p_c - p_ref) / sigma_p, VectorPart(q_c conj(q_ref)) / sigma_o) and its
-// derivative with respect to the corrected pose (6 x 7), by forward-mode Jets.
-template <typename T>
-void StationResidual(const T* pose7, const Vector3<T>& p_ref, const Eigen::Quaternion<T>& q_ref,
-                     double sigma_p, double sigma_o, T* residual6) {
-  for (int k = 0; k < 3; ++k) residual6[k] = (pose7[k] - p_ref[k]) / T(sigma_p);
-  const Eigen::Quaternion<T> q = QuaternionFromXyzwArray(pose7 + 3);
-  const Vector3<T> v = OrientationErrorVector<T>(q, q_ref);
-  for (int k = 0; k < 3; ++k) residual6[3 + k] = v[k] / T(sigma_o);
-}
-template <typename T>
-void StationResidual(const T* pose7, const Rigid3d& reference, double sigma_p, double sigma_o,
-                     T* residual6) {
-  StationResidual<T>(pose7, reference.translation.cast<T>(), reference.rotation.cast<T>(), sigma_p,
-                     sigma_o, residual6);
-}
-
-using Matrix6 = Eigen::Matrix<double, 6, 6>;
 
 // The pose at the input of terms[from..] that they map to `target` (`parameters` from term
 // `from` on): a fixed number of fixed-point steps z <- z - (F(z) - target) (world-frame rotation
@@ -80,48 +63,116 @@ bool PullBack(const std::vector<BoundTerm>& terms, size_t from, double const* co
   return z.allFinite();
 }
 
-// Maps `input` through the chain, a term that UsesTarget() toward the pose the rest of the chain
-// maps to `target` (PullBack; `target` itself for the last term): a physical group then gives a
-// residual continuous in its values (ModelTerm::EvaluateToward, fit/terms_physical.h).
-// `parameters` holds the bound blocks' values, term after term. With `want`, fills d output / d
-// block for every bound block (7 x size each) by the chain rule, and `d_output_d_input` if given.
-bool EvaluateChain(const std::vector<BoundTerm>& terms, double const* const* parameters,
-                   const AmbientPose& input, const AmbientPose& target, bool want,
-                   AmbientPose* output,
-                   std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>>* d_pose,
-                   Eigen::Matrix<double, 7, 7>* d_output_d_input = nullptr) {
+using JacobianBlocks = std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>>;
+
+
+// Maps `input` through terms[from..], a term that UsesTarget() toward the pose the rest of the
+// chain maps to `target` (PullBack; `target` itself for the last term): a physical group then gives
+// a residual continuous in its values (ModelTerm::EvaluateToward, fit/terms_physical.h).
+// `parameters` holds the bound blocks' values from term `from` on. With `want`, fills d output / d
+// block for every bound block (7 x size each) by the chain rule, `d_output_d_input` and
+// `d_output_d_target` if given.
+//
+// A group's output depends on its target, and so on the blocks of the terms after it, which pull
+// the target back: with G the terms after the group (output = G(z)) and target_k their pull-back
+// of `target` (G(target_k) = target), d target_k = (T G_z B)^-1 T (d target - G_phi d phi) on
+// target_k's tangent (B: its chart, T: the target's tangent map), G_z and G_phi evaluated at
+// target_k by the rest of the chain. A later block's column gains G_z(output of the group)
+// d_output_d_target d target_k / d phi.
+bool EvaluateChainFrom(const std::vector<BoundTerm>& terms, size_t from,
+                       double const* const* parameters, const AmbientPose& input,
+                       const AmbientPose& target, bool want, AmbientPose* output,
+                       JacobianBlocks* d_pose,
+                       Eigen::Matrix<double, 7, 7>* d_output_d_input = nullptr,
+                       Eigen::Matrix<double, 7, 7>* d_output_d_target = nullptr) {
+  using Matrix7 = Eigen::Matrix<double, 7, 7>;
+  // A group evaluated toward a pulled-back target: its later blocks' extra columns, completed when
+  // the chain's end is reached. A model has one physical group, its first term (ModelSpec): the
+  // terms after it do not use a target, so the pull-back's derivative needs no term of theirs.
+  struct Pending {
+    size_t first_block;                   // in d_pose: the first block after the group
+    Eigen::Matrix<double, 7, 6> t_chart;  // d group output / d target_k's tangent
+    Eigen::Matrix<double, 6, 7> pull;     // (T G_z B)^-1 T
+    JacobianBlocks g_phi;                 // d G / d later block at target_k
+    Matrix7 after = Matrix7::Identity();  // d chain output / d group output
+  };
+  std::vector<Pending> pending;
+  Matrix7 last_group_d_target = Matrix7::Zero();
   AmbientPose pose = input;
   if (d_output_d_input != nullptr) d_output_d_input->setIdentity();
   TermEvaluation eval;
   size_t p = 0;
-  for (size_t k = 0; k < terms.size(); ++k) {
+  for (size_t k = from; k < terms.size(); ++k) {
     const BoundTerm& t = terms[k];
     const size_t count = t.binding.blocks.size();
     bool ok = false;
+    std::optional<Pending> group;
     if (!t.term->UsesTarget()) {
       ok = t.term->Evaluate(t.binding, parameters + p, pose, want, &eval);
     } else if (k + 1 == terms.size()) {
       ok = t.term->EvaluateToward(t.binding, parameters + p, pose, target, want, &eval);
+      if (ok && want) last_group_d_target = eval.d_output_d_target;
     } else {
       AmbientPose target_k;
       ok = PullBack(terms, k + 1, parameters + p + count, target, &target_k) &&
            t.term->EvaluateToward(t.binding, parameters + p, pose, target_k, want, &eval);
+      if (ok && want) {
+        group.emplace();
+        AmbientPose unused;
+        Matrix7 g_z;
+        if (!EvaluateChainFrom(terms, k + 1, parameters + p + count, target_k, target, true,
+                               &unused, &group->g_phi, &g_z)) {
+          return false;
+        }
+        // On the tangents: d target = G_z B d target_k, so d target_k = (T G_z B)^-1 T d target
+        // (T = TangentOfAmbient(target), B = AmbientOfTangent(target_k)).
+        const Eigen::Matrix<double, 7, 6> chart = AmbientOfTangent(target_k);
+        const Eigen::Matrix<double, 6, 7> tangent = TangentOfAmbient(target);
+        group->pull = (tangent * g_z * chart).partialPivLu().solve(tangent);
+        group->t_chart = eval.d_output_d_target * chart;
+      }
     }
     if (!ok) return false;
     if (want) {
       for (auto& d : *d_pose) d = eval.d_output_d_input * d;
+      for (auto& g : pending) g.after = eval.d_output_d_input * g.after;
       for (size_t b = 0; b < count; ++b) d_pose->push_back(eval.d_output_d_blocks[b]);
       if (d_output_d_input != nullptr) *d_output_d_input = eval.d_output_d_input * *d_output_d_input;
+      if (group) {
+        group->first_block = d_pose->size();
+        pending.push_back(std::move(*group));
+      }
     }
     pose = eval.output;
     p += count;
+  }
+  if (want) {
+    Matrix7 e = last_group_d_target;
+    for (const Pending& g : pending) {
+      const Eigen::Matrix<double, 7, 7> via_target = g.after * g.t_chart * g.pull;
+      for (size_t i = 0; i < g.g_phi.size(); ++i) {
+        auto& d = (*d_pose)[g.first_block + i];
+        d = (d - via_target * g.g_phi[i]).eval();
+      }
+      e += via_target;
+    }
+    if (d_output_d_target != nullptr) *d_output_d_target = e;
   }
   *output = pose;
   return true;
 }
 
+bool EvaluateChain(const std::vector<BoundTerm>& terms, double const* const* parameters,
+                   const AmbientPose& input, const AmbientPose& target, bool want,
+                   AmbientPose* output, JacobianBlocks* d_pose,
+                   Eigen::Matrix<double, 7, 7>* d_output_d_input = nullptr,
+                   Eigen::Matrix<double, 7, 7>* d_output_d_target = nullptr) {
+  return EvaluateChainFrom(terms, 0, parameters, input, target, want, output, d_pose,
+                           d_output_d_input, d_output_d_target);
+}
+
 // Chains the terms: forward through them, Jacobians composed by the chain rule. With a
-// `noise_whitening` W (see NoiseAmplification below) the residual and its Jacobians are W times
+// pose `metric` K (PoseMetricOf, fit/pose_metric.h) the residual and its Jacobians are K times
 // those of StationResidual.
 class StationCost : public ceres::CostFunction {
  public:
@@ -129,13 +180,13 @@ class StationCost : public ceres::CostFunction {
   // reference moves by the station's velocity times dt - *time_offset0 (fit/terms_time_offset.h).
   StationCost(std::vector<BoundTerm> terms, const FitStation& station, double sigma_p,
               double sigma_o, std::optional<double> time_offset0 = std::nullopt,
-              std::optional<Matrix6> noise_whitening = std::nullopt)
+              std::optional<Matrix6> metric = std::nullopt)
       : terms_(std::move(terms)),
         station_(station),
         sigma_p_(sigma_p),
         sigma_o_(sigma_o),
         time_offset0_(time_offset0),
-        noise_whitening_(noise_whitening) {
+        metric_(metric) {
     set_num_residuals(6);
     for (const auto& t : terms_) {
       for (int b : t.binding.blocks) {
@@ -147,9 +198,9 @@ class StationCost : public ceres::CostFunction {
 
   bool Evaluate(double const* const* parameters, double* residuals,
                 double** jacobians) const override {
-    if (!EvaluateUnwhitened(parameters, residuals, jacobians)) return false;
-    if (!noise_whitening_) return true;
-    const Matrix6& w = *noise_whitening_;
+    if (!EvaluateUnweighted(parameters, residuals, jacobians)) return false;
+    if (!metric_) return true;
+    const Matrix6& w = *metric_;
     Eigen::Map<Eigen::Matrix<double, 6, 1>> r(residuals);
     r = (w * r).eval();
     if (jacobians != nullptr) {
@@ -165,7 +216,7 @@ class StationCost : public ceres::CostFunction {
   }
 
  private:
-  bool EvaluateUnwhitened(double const* const* parameters, double* residuals,
+  bool EvaluateUnweighted(double const* const* parameters, double* residuals,
                           double** jacobians) const {
     const bool want = jacobians != nullptr;
     size_t p = 0;
@@ -180,21 +231,10 @@ class StationCost : public ceres::CostFunction {
     AmbientPose pose = ToAmbient(station_.reported);
     // d pose / d block for every block so far (7 x size, row-major).
     std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> d_pose;
-    if (!EvaluateChain(terms_, parameters, pose, ToAmbient(reference), want, &pose, &d_pose)) {
+    Eigen::Matrix<double, 7, 7> d_pose_d_target;
+    if (!EvaluateChain(terms_, parameters, pose, ToAmbient(reference), want, &pose, &d_pose,
+                       nullptr, &d_pose_d_target)) {
       return false;
-    }
-    if (time_offset0_) {
-      if (want && jacobians[p] != nullptr) {
-        using Jet1 = ceres::Jet<double, 1>;
-        Vector3<Jet1> p_ref;
-        Eigen::Quaternion<Jet1> q_ref;
-        ShiftReference<Jet1>(station_.reference, station_.reference_velocity,
-                             station_.reference_angular_velocity, Jet1(dt, 0), &p_ref, &q_ref);
-        Jet1 pose_const[7], r1[6];
-        for (int k = 0; k < 7; ++k) pose_const[k] = Jet1(pose[k]);
-        StationResidual<Jet1>(pose_const, p_ref, q_ref, sigma_p_, sigma_o_, r1);
-        for (int i = 0; i < 6; ++i) jacobians[p][i] = r1[i].v[0];
-      }
     }
     if (!want) {
       StationResidual<double>(pose.data(), reference, sigma_p_, sigma_o_, residuals);
@@ -210,6 +250,24 @@ class StationCost : public ceres::CostFunction {
       residuals[i] = r[i].a;
       d_r.row(i) = r[i].v.transpose();
     }
+    if (time_offset0_ && jacobians[p] != nullptr) {
+      // The clock offset moves the reference, and with it the pose a physical group is evaluated
+      // toward (EvaluateChain's d_output_d_target).
+      using Jet1 = ceres::Jet<double, 1>;
+      Vector3<Jet1> p_ref;
+      Eigen::Quaternion<Jet1> q_ref;
+      ShiftReference<Jet1>(station_.reference, station_.reference_velocity,
+                           station_.reference_angular_velocity, Jet1(dt, 0), &p_ref, &q_ref);
+      Jet1 pose_const[7], r1[6];
+      for (int k = 0; k < 7; ++k) pose_const[k] = Jet1(pose[k]);
+      StationResidual<Jet1>(pose_const, p_ref, q_ref, sigma_p_, sigma_o_, r1);
+      const Jet1 ref[7] = {p_ref(0),  p_ref(1),  p_ref(2), q_ref.x(),
+                           q_ref.y(), q_ref.z(), q_ref.w()};
+      Eigen::Matrix<double, 7, 1> d_ref_d_dt;
+      for (int k = 0; k < 7; ++k) d_ref_d_dt(k) = ref[k].v[0];
+      const Eigen::Matrix<double, 6, 1> via_pose = d_r * (d_pose_d_target * d_ref_d_dt);
+      for (int i = 0; i < 6; ++i) jacobians[p][i] = r1[i].v[0] + via_pose(i);
+    }
     for (size_t b = 0; b < d_pose.size(); ++b) {
       if (jacobians[b] == nullptr) continue;
       Eigen::Map<Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor>> j(
@@ -223,81 +281,40 @@ class StationCost : public ceres::CostFunction {
   FitStation station_;
   double sigma_p_, sigma_o_;
   std::optional<double> time_offset0_;
-  std::optional<Matrix6> noise_whitening_;
+  std::optional<Matrix6> metric_;
 };
 
-// How the chain at its current values passes a station's report noise into the whitened residual:
-// A = d r / d e, with r the station residual whitened by (sigma_p, sigma_o) and e the report's
-// error (position, world-frame rotation vector) in units of (sigma_p, 2 sigma_o) (the residual's
-// orientation part is the error quaternion's vector part, half the angle). A chain that passes the
-// report through has A = I; a physical term's inverse has A = dx/dy = (dy/dx)^-1 (its implicit
-// Jacobian d_output_d_input), whose largest singular value is the factor by which the station's
-// report noise reaches its residual. Null if a term cannot be evaluated.
-std::optional<Matrix6> NoiseAmplification(const std::vector<BoundTerm>& terms,
-                                          const FitStation& station, double sigma_p,
-                                          double sigma_o) {
-  // As the station's residual (EvaluateChain), with the input's derivative composed too.
+// The bound blocks' current values, term after term (a StationCost's parameters).
+std::vector<const double*> BoundValues(const std::vector<BoundTerm>& terms) {
   std::vector<const double*> values;
   for (const auto& t : terms) {
     for (int b : t.binding.blocks) {
       values.push_back(t.term->blocks()[static_cast<size_t>(b)].values.data());
     }
   }
-  AmbientPose pose;
-  Eigen::Matrix<double, 7, 7> d_pose;
-  std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> unused;
-  if (!EvaluateChain(terms, values.data(), ToAmbient(station.reported),
-                     ToAmbient(station.reference), true, &pose, &unused, &d_pose)) {
-    return std::nullopt;
-  }
-  if (!pose.allFinite() || !d_pose.allFinite()) return std::nullopt;
-  // d ambient report / d e: position as is; rotation q' = Exp(e_w) q, dq/de_k = 0.5 (e_k, 0) q.
-  Eigen::Matrix<double, 7, 6> d_report = Eigen::Matrix<double, 7, 6>::Zero();
-  d_report.topLeftCorner<3, 3>() = sigma_p * Eigen::Matrix3d::Identity();
-  const Eigen::Quaterniond q = station.reported.rotation;
-  for (int k = 0; k < 3; ++k) {
-    Eigen::Vector3d e = Eigen::Vector3d::Zero();
-    e(k) = 0.5 * (2.0 * sigma_o);
-    const Eigen::Quaterniond dq = QuaternionFromXyzw(e.x(), e.y(), e.z(), 0.0) * q;
-    d_report.block<4, 1>(3, 3 + k) << dq.x(), dq.y(), dq.z(), dq.w();
-  }
-  using Jet = ceres::Jet<double, 7>;
-  Jet pose_jet[7], r[6];
-  for (int k = 0; k < 7; ++k) pose_jet[k] = Jet(pose[k], k);
-  StationResidual<Jet>(pose_jet, station.reference, sigma_p, sigma_o, r);
-  Eigen::Matrix<double, 6, 7> d_r;
-  for (int i = 0; i < 6; ++i) d_r.row(i) = r[i].v.transpose();
-  const Matrix6 a = d_r * d_pose * d_report;
-  if (!a.allFinite()) return std::nullopt;
-  return a;
+  return values;
 }
 
-// The extra whitening of a station whose chain amplifies its report noise (docs/model-file.md,
-// noise.amplification_threshold). The model file's noise is what a station shows after the
-// correction in the room as it is: amplification of the order of the room's (up to ~1.3 in the
-// paper room) is part of it. Along each direction u_i of the residual in which the chain amplifies
-// the report noise by s_i > threshold (A = U S V^T), the residual's sigma is raised by s_i /
-// threshold, so the station weighs what it can tell there (near a strong object's fold zone, a
-// station whose inverse amplifies the noise 30-45x would otherwise steer the fit). W = U
-// diag(min(1, threshold / s_i)) U^T; identity (null) when no s_i exceeds the threshold, so chains
-// without such stations are fitted exactly as without this step.
-struct NoiseWhitening {
-  std::optional<Matrix6> w;
-  double gain = 1.0;  // largest s_i (NaN if the chain could not be evaluated)
-};
-NoiseWhitening WhiteningOfAmplification(const std::optional<Matrix6>& a, double threshold) {
-  NoiseWhitening out;
-  if (!a) {
-    out.gain = std::numeric_limits<double>::quiet_NaN();
-    return out;
+// A station's ReportPerPose (fit/pose_metric.h) at the terms' current values, its reference moved
+// by the clock offset dt (fit/terms_time_offset.h) as StationCost moves it. Null if a term cannot
+// be evaluated.
+std::optional<Matrix6> StationReportPerPose(const std::vector<BoundTerm>& terms,
+                                            const FitStation& station, double sigma_p,
+                                            double sigma_o, double dt) {
+  Rigid3d reference = station.reference;
+  if (dt != 0.0) {
+    ShiftReference<double>(station.reference, station.reference_velocity,
+                           station.reference_angular_velocity, dt, &reference.translation,
+                           &reference.rotation);
   }
-  const Eigen::JacobiSVD<Matrix6> svd(*a, Eigen::ComputeFullU);
-  const Eigen::Matrix<double, 6, 1> s = svd.singularValues();  // decreasing
-  out.gain = s(0);
-  if (!(s(0) > threshold)) return out;
-  const Eigen::Matrix<double, 6, 1> f = (threshold / s.array()).min(1.0).matrix();
-  out.w = svd.matrixU() * f.asDiagonal() * svd.matrixU().transpose();
-  return out;
+  AmbientPose pose;
+  Eigen::Matrix<double, 7, 7> d_pose_d_target;
+  JacobianBlocks unused;
+  if (!EvaluateChain(terms, BoundValues(terms).data(), ToAmbient(station.reported),
+                     ToAmbient(reference), true, &pose, &unused, nullptr, &d_pose_d_target)) {
+    return std::nullopt;
+  }
+  return ReportPerPose(pose, d_pose_d_target, reference, sigma_p, sigma_o);
 }
 
 // Each station's pose at the input of term `k` (terms 0..k-1 applied with their current values).
@@ -496,13 +513,32 @@ struct BuiltProblem {
   std::vector<ceres::ResidualBlockId> station_blocks;  // one per station, in station order
   int num_free = 0;  // tangent size of the free term blocks (the time offset not counted)
   // Per station: its report-noise amplification at the values the problem was built with, and
-  // whether its residual got the extra whitening (WhiteningOfAmplification).
+  // whether the threshold capped it (PoseMetricOf).
   std::vector<double> noise_gain;
   std::vector<bool> noise_whitened;
+  std::vector<std::optional<Matrix6>> noise_metric;  // each station's K (PoseMetricOf)
   // The terms' extra residual blocks weighted relative to the noise sigma
   // (ModelTerm::ExtraResidualsRelativeToNoise): the sandwich scales their information.
   std::vector<ceres::ResidualBlockId> noise_relative_blocks;
 };
+
+// noise.amplification_threshold at or above which no station gets a pose metric: each residual
+// through a physical group is then its report's misfit as it is (docs/model-file.md).
+constexpr double kNoPoseMetric = 1e9;
+
+// The terms' bindings for one station at their current values (a LUT cell per station).
+std::vector<BoundTerm> BindStation(const ModelSpec& spec, const FitStation& station) {
+  std::vector<BoundTerm> bound;
+  AmbientPose pose = ToAmbient(station.reported);
+  TermEvaluation eval;
+  for (const auto& term : spec.terms) {
+    BoundTerm b{term.get(), term->Bind(pose)};
+    term->Evaluate(b.binding, BoundValues({b}).data(), pose, false, &eval);
+    pose = eval.output;
+    bound.push_back(std::move(b));
+  }
+  return bound;
+}
 
 BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* spec,
                           double* time_offset, std::optional<double> time_offset0) {
@@ -521,18 +557,7 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
   {
     // The bindings are fixed at the initial values (a LUT cell per station).
     std::vector<std::vector<BoundTerm>> bound(stations.size());
-    for (size_t i = 0; i < stations.size(); ++i) {
-      AmbientPose pose = ToAmbient(stations[i].reported);
-      TermEvaluation eval;
-      for (const auto& term : spec->terms) {
-        BoundTerm b{term.get(), term->Bind(pose)};
-        std::vector<const double*> values;
-        for (int j : b.binding.blocks) values.push_back(term->blocks()[static_cast<size_t>(j)].values.data());
-        term->Evaluate(b.binding, values.data(), pose, false, &eval);
-        pose = eval.output;
-        bound[i].push_back(std::move(b));
-      }
-    }
+    for (size_t i = 0; i < stations.size(); ++i) bound[i] = BindStation(*spec, stations[i]);
     for (size_t i = 0; i < stations.size(); ++i) {
       std::vector<double*> blocks;
       for (const auto& b : bound[i]) {
@@ -542,17 +567,23 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       }
       if (time_offset) blocks.push_back(time_offset);
       const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
-      NoiseWhitening whitening;
-      if (std::isfinite(spec->amplification_threshold)) {
-        whitening = WhiteningOfAmplification(
-            NoiseAmplification(bound[i], stations[i], station_sigmas[0], station_sigmas[1]),
-            spec->amplification_threshold);
+      // The pose metric of a station whose residual runs through a physical group; a chain
+      // without one is fitted exactly as its residual is.
+      PoseMetric metric;
+      const bool group = std::any_of(bound[i].begin(), bound[i].end(),
+                                     [](const BoundTerm& b) { return b.term->UsesTarget(); });
+      if (group && spec->amplification_threshold < kNoPoseMetric) {
+        const double dt = time_offset && time_offset0 ? *time_offset - *time_offset0 : 0.0;
+        metric = PoseMetricOf(StationReportPerPose(bound[i], stations[i], station_sigmas[0],
+                                                   station_sigmas[1], dt),
+                              spec->amplification_threshold);
       }
-      out.noise_gain.push_back(whitening.gain);
-      out.noise_whitened.push_back(whitening.w.has_value());
+      out.noise_gain.push_back(metric.gain);
+      out.noise_metric.push_back(metric.k);
+      out.noise_whitened.push_back(metric.gain > spec->amplification_threshold);
       station_blocks.push_back(
           problem.AddResidualBlock(new StationCost(bound[i], stations[i], station_sigmas[0],
-                                                   station_sigmas[1], time_offset0, whitening.w),
+                                                   station_sigmas[1], time_offset0, metric.k),
                                    MakeLoss(spec->loss), blocks));
     }
   }
@@ -601,22 +632,25 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
   return out;
 }
 
-// Passes of FitModel's solve with the noise whitening rebuilt at the solution (IRLS): the first
-// solve and up to two re-whitened ones (the whitening of the ferromagnetic toolbox's stations
-// settles in one).
-constexpr int kMaxWhiteningPasses = 3;
+// Passes of FitModel's solve with the stations' pose metrics (PoseMetricOf) rebuilt at the
+// solution (IRLS), while one changes by more than kMetricChange (relative, Frobenius norm; the
+// metric's directions move, not only its largest amplification). Measured on the paper capture
+// (seed 2): the demo's step-3 model, with and without a background field, settles in 2-3.
+constexpr int kMaxMetricPasses = 8;
+constexpr double kMetricChange = 0.05;
 // Solves of ModelSpec::leave_out_unresolved after the first, each without the stations the
 // previous solution left unresolved.
 constexpr int kMaxLeaveOutPasses = 3;
 
-// True if the noise whitening of `after` differs from that of `before` by more than 10 % in any
-// station's largest amplification (or a station crossed the threshold): worth another solve.
-bool WhiteningChanged(const BuiltProblem& before, const BuiltProblem& after) {
-  for (size_t i = 0; i < before.noise_whitened.size(); ++i) {
-    if (before.noise_whitened[i] != after.noise_whitened[i]) return true;
-    if (!before.noise_whitened[i]) continue;
-    const double a = before.noise_gain[i], b = after.noise_gain[i];
-    if (!(std::abs(b - a) <= 0.1 * a)) return true;
+// True if any station's pose metric in `after` differs from `before`'s by more than kMetricChange
+// (or one of them could not be evaluated): worth another solve.
+bool MetricChanged(const BuiltProblem& before, const BuiltProblem& after) {
+  for (size_t i = 0; i < before.noise_metric.size(); ++i) {
+    const auto& a = before.noise_metric[i];
+    const auto& b = after.noise_metric[i];
+    if (a.has_value() != b.has_value()) return true;
+    if (!a) continue;
+    if (!((*b - *a).norm() <= kMetricChange * a->norm())) return true;
   }
   return false;
 }
@@ -798,6 +832,36 @@ void StartBlocksFrom(const FitStart& start, const ModelSpec& spec,
 }
 
 }  // namespace
+
+bool EvaluateStationResidual(const ModelSpec& spec, const FitStation& station,
+                             std::optional<double> time_offset,
+                             Eigen::Matrix<double, 6, 1>* residual,
+                             std::vector<Eigen::MatrixXd>* jacobians,
+                             std::optional<Eigen::Matrix<double, 6, 6>>* report_per_pose) {
+  const Eigen::Vector2d sigmas = spec.StationSigmas(station.reported);
+  const std::vector<BoundTerm> bound = BindStation(spec, station);
+  const StationCost cost(bound, station, sigmas[0], sigmas[1],
+                         time_offset ? std::optional<double>(0.0) : std::nullopt);
+  std::vector<const double*> values = BoundValues(bound);
+  std::vector<double*> jacobian_ptrs;
+  const std::vector<int32_t>& sizes = cost.parameter_block_sizes();
+  jacobians->clear();
+  for (int32_t size : sizes) jacobians->push_back(Eigen::MatrixXd(6, size));
+  std::vector<Eigen::Matrix<double, 6, Eigen::Dynamic, Eigen::RowMajor>> row_major(sizes.size());
+  for (size_t b = 0; b < sizes.size(); ++b) {
+    row_major[b].resize(6, sizes[b]);
+    jacobian_ptrs.push_back(row_major[b].data());
+  }
+  if (time_offset) values.push_back(&*time_offset);
+  if (values.size() != sizes.size()) return false;
+  if (!cost.Evaluate(values.data(), residual->data(), jacobian_ptrs.data())) return false;
+  for (size_t b = 0; b < sizes.size(); ++b) (*jacobians)[b] = row_major[b];
+  if (report_per_pose != nullptr) {
+    *report_per_pose =
+        StationReportPerPose(bound, station, sigmas[0], sigmas[1], time_offset.value_or(0.0));
+  }
+  return true;
+}
 
 FitStart TakeFitStart(const ModelSpec& fitted) {
   FitStart start;
@@ -1065,14 +1129,13 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     first_initial_cost = summary.initial_cost;
     result.iterations = static_cast<int>(summary.iterations.size()) - 1;
     result.whitening_passes = 1;
-    // The noise whitening depends on the values (a station's amplification follows the fitted
-    // object): rebuilt at the solution and solved again while it changes, as iteratively
-    // reweighted least squares. A chain that amplifies no station's noise beyond the threshold
-    // (at the start nor at the solution) is solved once, as without the whitening.
-    for (; result.whitening_passes < kMaxWhiteningPasses; ++result.whitening_passes) {
+    // The pose metrics depend on the values (a station's amplification follows the fitted
+    // object): rebuilt at the solution and solved again while they change, as iteratively
+    // reweighted least squares. A chain without a physical group has none and is solved once.
+    for (; result.whitening_passes < kMaxMetricPasses; ++result.whitening_passes) {
       BuiltProblem next =
           BuildProblem(stations, spec, fit_time_offset ? &time_offset : nullptr, time_offset0);
-      if (!WhiteningChanged(built, next)) break;
+      if (!MetricChanged(built, next)) break;
       built = std::move(next);
       ceres::Solve(solver_options, built.problem.get(), &summary);
       result.iterations += static_cast<int>(summary.iterations.size()) - 1;

@@ -86,11 +86,12 @@ struct UnresolvedStation {
   CorrectionStatus status = CorrectionStatus::kNotConverged;
 };
 
-// A station whose chain amplifies its report noise beyond the model's amplification_threshold:
-// its residual was whitened by the amplified noise (docs/model-file.md, `noise`).
+// A station whose pose the fitted model's inverse amplifies its report noise into beyond the
+// model's amplification_threshold: its pose metric was capped there (fit/pose_metric.h,
+// docs/model-file.md, `noise`).
 struct AmplifiedStation {
   int station = 0;
-  double gain = 0.0;  // largest amplification of the report noise into the residual (1: none)
+  double gain = 0.0;  // largest amplification of the report noise into the pose (1: none)
 };
 
 // A fitted clock offset whose variance inflation (the share of its information the other
@@ -166,9 +167,9 @@ struct FitResult {
   // count, chi2 and covariance) because the model does not resolve them (in --json: "left_out").
   std::vector<int> left_out;
   std::string left_out_note;  // why none was left out although some are unresolved, if so
-  // Stations whose residual was whitened by the report noise the fitted chain amplifies into it
-  // (in --json: "noise_amplified": [{"station", "gain"}]), and the solves it took (1: the
-  // whitening did not change at the solution; 0: no solver run).
+  // Stations whose pose metric was capped (in --json: "noise_amplified": [{"station", "gain"}]),
+  // and the solves the metrics took (1: they did not change at the solution, or the chain has no
+  // physical group; 0: no solver run).
   std::vector<AmplifiedStation> noise_whitened;
   int whitening_passes = 0;
   CorrectionChain chain;              // the fitted correction, with the calibrated volume
@@ -181,6 +182,18 @@ struct FitResult {
 // std::invalid_argument for too few stations or inconsistent settings.
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
                    const FitOptions& options = {});
+
+// One station's residual as FitModel's solver sees it, through `spec`'s prepared terms at their
+// current values, before its pose metric: 6 values and, per bound block of every term in order
+// (the clock offset last when `time_offset` is given, with reference value 0), its 6 x size
+// Jacobian in ambient coordinates; with `report_per_pose`, the A its pose metric inverts
+// (fit/pose_metric.h; null if it cannot be evaluated). False if a term cannot be evaluated. For
+// tests of the chain rule and the metric.
+bool EvaluateStationResidual(const ModelSpec& spec, const FitStation& station,
+                             std::optional<double> time_offset,
+                             Eigen::Matrix<double, 6, 1>* residual,
+                             std::vector<Eigen::MatrixXd>* jacobians,
+                             std::optional<Eigen::Matrix<double, 6, 6>>* report_per_pose = nullptr);
 
 // Table 1 of the paper for one set: errors of the reported and of the corrected poses.
 Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,

@@ -400,7 +400,7 @@ std::vector<double> RidgeUsed(const FitResult& result) {
 
 // FitOptions::start: a model with an added effect starts at the fitted smaller model's optimum
 // (its physical values, polynomial coefficients, normalisation and ridge weight) with the added
-// effect where the file puts it. Paper preset, calibration set; the noise whitening switched off
+// effect where the file puts it. Paper preset, calibration set; the pose metric switched off
 // (amplification_threshold 1e9), so the start's cost is the smaller model's final cost exactly.
 TEST(FitModel, StartFromASmallerModelsOptimum) {
   const sim::Simulator simulator(sim::LoadScene("paper"));
@@ -625,6 +625,85 @@ TEST(RefitFoldsFromFull, LeaveOutTheStationsTheFullFitLeftOut) {
   // the left-out ones), and 4.9 mm against the folds trained on the left-out stations too.
   EXPECT_LT(same_mm, 0.01);
   EXPECT_GT(with_them_mm, 0.1);
+}
+
+// The station residual's Jacobian through a physical group followed by a polynomial, and by a
+// fitted clock offset, against central differences, at stations 0.1-0.2 m from a strong object.
+// The group is evaluated toward the reference pulled back through the polynomial, so the
+// polynomial's coefficients and the clock offset also move the group's output (EvaluateChain's
+// d_output_d_target); without that term their columns are off by O(1) of themselves here.
+TEST(EvaluateStationResidual, ChainRuleThroughAGroupTowardAPulledBackTarget) {
+  ModelSpec spec = ParseModelYaml(R"(noise: {position_mm: 0.5, orientation_deg: 0.1}
+terms:
+  - type: sensor_offset
+    receiver_from_body:
+      rotation_xyzw: [0.1, -0.05, 0.02, 0.99369]
+      translation: [0.02, 0.01, -0.03]
+  - type: dipole
+    location_in_transmitter: [0.42, -0.08, -0.36]
+    polarisability_m3: 0.002
+  - type: polynomial
+    degree: 2
+)",
+                                  "chain.yaml");
+  std::mt19937 rng(7);
+  std::normal_distribution<double> normal(0.0, 1.0);
+  std::vector<FitStation> stations;
+  for (const Eigen::Vector3d& p :
+       {Eigen::Vector3d(0.3, -0.2, -0.5), Eigen::Vector3d(0.5, 0.05, -0.3),
+        Eigen::Vector3d(0.55, -0.2, -0.45)}) {
+    FitStation s;
+    s.reference = Rigid3d(Eigen::Quaterniond(Eigen::AngleAxisd(0.4, p.normalized())), p);
+    s.reported = Rigid3d(s.reference.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(
+                                                    0.03, Eigen::Vector3d(1, -1, 2).normalized())),
+                         p + Eigen::Vector3d(0.01, -0.02, 0.015));
+    s.reference_velocity = Eigen::Vector3d(0.2, -0.1, 0.3);
+    s.reference_angular_velocity = Eigen::Vector3d(0.5, 0.2, -0.4);
+    stations.push_back(s);
+  }
+  for (auto& term : spec.terms) term->Prepare(stations);
+  // Polynomial coefficients of 1e-3 (a correction of a few mm over the box, as a fit leaves).
+  for (auto& block : spec.terms[1]->blocks()) {
+    for (double& v : block.values) v = 1e-3 * normal(rng);
+  }
+  for (const FitStation& station : stations) {
+    Eigen::Matrix<double, 6, 1> r;
+    std::vector<Eigen::MatrixXd> jacobians;
+    const double dt = 0.004;
+    ASSERT_TRUE(EvaluateStationResidual(spec, station, dt, &r, &jacobians));
+    // Every bound block in order, then the clock offset.
+    std::vector<double*> values;
+    for (auto& term : spec.terms) {
+      for (auto& block : term->blocks()) values.push_back(block.values.data());
+    }
+    double dt_value = dt;
+    values.push_back(&dt_value);
+    ASSERT_EQ(values.size(), jacobians.size());
+    // Central differences, h = 1e-7 of residuals whitened by 0.5 mm: entries up to ~1e4, rounding
+    // ~1e-16 * 1e3 / 1e-7 = 1e-6 of them. The polynomial's and the offset's columns also carry
+    // the pull-back's three fixed-point steps (PullBack), which the derivative takes as
+    // converged: their relative error |dP/dz - I|^3 is up to 2.5e-4 on this 0.25 m box; 1e-3 of
+    // the column's norm.
+    const double h = 1e-7;
+    for (size_t b = 0; b < values.size(); ++b) {
+      const bool group = b < spec.terms[0]->blocks().size();
+      for (Eigen::Index c = 0; c < jacobians[b].cols(); ++c) {
+        const double saved = values[b][c];
+        Eigen::Matrix<double, 6, 1> plus, minus;
+        std::vector<Eigen::MatrixXd> unused;
+        values[b][c] = saved + h;
+        ASSERT_TRUE(EvaluateStationResidual(spec, station, dt_value, &plus, &unused));
+        values[b][c] = saved - h;
+        ASSERT_TRUE(EvaluateStationResidual(spec, station, dt_value, &minus, &unused));
+        values[b][c] = saved;
+        const Eigen::Matrix<double, 6, 1> numeric = (plus - minus) / (2 * h);
+        const double scale = std::max(1.0, numeric.norm());
+        EXPECT_LT((jacobians[b].col(c) - numeric).norm(), (group ? 1e-5 : 1e-3) * scale)
+            << "block " << b << " coordinate " << c << ": analytic "
+            << jacobians[b].col(c).transpose() << ", numeric " << numeric.transpose();
+      }
+    }
+  }
 }
 
 }  // namespace

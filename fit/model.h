@@ -125,6 +125,10 @@ struct TermEvaluation {
   Eigen::Matrix<double, 7, 7, Eigen::RowMajor> d_output_d_input;
   // d output / d block, one 7 x size matrix per bound block (in StationBinding::blocks order).
   std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> d_output_d_blocks;
+  // d output / d target (7 x 7, row-major) of ModelTerm::EvaluateToward(), filled with the other
+  // derivatives; zero where the output does not depend on the target.
+  Eigen::Matrix<double, 7, 7, Eigen::RowMajor> d_output_d_target =
+      Eigen::Matrix<double, 7, 7, Eigen::RowMajor>::Zero();
 };
 
 class ModelTerm {
@@ -172,8 +176,8 @@ class ModelTerm {
   // As Evaluate(), given `target`: the pose the chain must reach after this term (the station's
   // reference when the term is the chain's last). A term whose output is defined implicitly (the
   // physical group's inverse) linearises there instead of solving from `input`, so that its output
-  // is a continuous function of the values even where the solve from the input does not converge.
-  // The default ignores `target`.
+  // is a smooth function of the values even where the solve from the input has no solution; it
+  // then also fills result->d_output_d_target. The default ignores `target`.
   // True if EvaluateToward() uses its target (the engine then also pulls the reference back through
   // the terms after this one to give it one). Default false.
   virtual bool UsesTarget() const { return false; }

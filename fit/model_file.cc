@@ -294,8 +294,8 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     spec.noise_reference_range_m = noise.GetDoubleOr("reference_range_m", 1.0);
     if (!(spec.noise_reference_range_m > 0.0)) noise.Fail("reference_range_m", "must be > 0");
     spec.amplification_threshold = noise.GetDoubleOr("amplification_threshold", 2.0);
-    if (!(spec.amplification_threshold >= 1.0)) {
-      noise.Fail("amplification_threshold", "must be >= 1 (1e9: no amplification whitening)");
+    if (!(spec.amplification_threshold >= 1.0) || !std::isfinite(spec.amplification_threshold)) {
+      noise.Fail("amplification_threshold", "must be finite and >= 1 (1e9: no pose metric)");
     }
     noise.Finish();
   }

@@ -141,10 +141,11 @@ struct ModelSpec {
   double position_range_exponent = 0.0;
   double orientation_range_exponent = 0.0;
   double noise_reference_range_m = 1.0;
-  // A station whose chain amplifies its report noise by s > this along some direction of its
-  // residual (near a strong object's fold, fit/fit_engine.cc) has that direction's sigma raised by
-  // s / threshold. The noise above already holds the room's usual amplification (<= 1.3 in the
-  // paper room), hence 2; a huge value (1e9) switches the whitening off
+  // A station whose residual runs through a physical group is weighed by its pose error (the pose
+  // metric, fit/pose_metric.h), except along the directions in which the model's inverse amplifies
+  // its report noise by s > this (near a strong object's fold), which amplify by this only. The
+  // noise above already holds the room's usual amplification (<= 1.3 in the paper room), hence 2;
+  // 1e9 or more switches the metric off (every such residual is its report's misfit)
   // (noise.amplification_threshold).
   double amplification_threshold = 2.0;
   // (position, orientation) sigmas of a station reported at `reported`.
@@ -171,11 +172,10 @@ struct ModelSpec {
   // model does not resolve (ambiguous or no root; not with a fitted clock offset, whose stream
   // samples are re-paired as it moves) are left out and the model solved again on the others,
   // until that set no longer changes (FitResult::left_out); the fast cross-validation's folds leave
-  // them out of training too. At such a station the fit's residual is two Newton steps from the
-  // reference that reach no root and disagrees with its Jacobian (the implicit function theorem's,
-  // exact at a root), which can hold the solver at its start (docs/fit.md, "Stations the inverse
-  // cannot resolve"). Off by default; at most kMaxLeftOutFraction of the stations, else none is
-  // left out.
+  // them out of training too. Off by default: the fit's residual is defined and differentiated
+  // exactly at those stations too (docs/fit.md, "The station residual through a physical group"),
+  // and leaving them out costs accuracy there (docs/fit.md, "Stations the inverse cannot
+  // resolve"). At most kMaxLeftOutFraction of the stations, else none is left out.
   bool leave_out_unresolved = false;
   std::optional<TimeOffsetSpec> time_offset;
   std::vector<std::unique_ptr<ModelTerm>> terms;

@@ -143,16 +143,19 @@ class PhysicalGroupTerm : public ModelTerm {
   StationBinding Bind(const AmbientPose& input) const override;
   bool Evaluate(const StationBinding& binding, const double* const* block_values,
                 const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
-  // The fit's form (the station's residual, RefineAlone): a fixed number of Newton steps (2, see
-  // kTowardSteps in the .cc) on the normal equations from x_t, the receiver pose behind `target`
-  // (the target composed with the inverse sensor offset), x_{k+1} = x_k - (dg/dx)^-1 g(x_k, theta, y),
-  // with no convergence test and no branch, so the output is a smooth, deterministic function of
-  // theta, y and the target. The first step is the report's misfit y - y(x_t) mapped through the
-  // local inverse Jacobian dx/dy at x_t; the root Evaluate() converges to is reached up to the square
-  // of the first step's relative error. Where Newton from the report does not converge (a fold
-  // zone) the target still picks the root the reference lies at. A report in the other hemisphere
-  // than the target (a flip) starts from the mirrored position, as the runtime inverse would see
-  // it. Jacobians as Evaluate()'s, at the last step's start.
+  // The fit's form (the joint problem's station residual, fit/fit_engine.cc): the report's misfit
+  // carried to the pose, with no inverse of the model. From x_t, the receiver pose behind `target`
+  // (the target composed with the inverse sensor offset), the output is x_t [+] -J_y^+ (s(x_t) -
+  // S_free(y)) composed with the offset again: s the model's signal, S_free and J_y the free-space
+  // signal at the report y and its Jacobian, so J_y^+ is the tracker's own free-space inverse,
+  // linearised at the report. At a fit the output is the target (no misfit); otherwise the
+  // residual is the report's misfit y - y(x_t) to first order, in the report's units: defined,
+  // smooth and with exact derivatives (by blocks, input and target; d_output_d_target is filled)
+  // wherever the model can be evaluated, also where the model's inverse has no root (a fold zone
+  // next to a strong object). The engine weighs it by the pose metric (fit/pose_metric.h), so the
+  // fit still weighs pose errors where they are defined. A report in the other hemisphere than the
+  // target (a flip) is compared with the mirrored pose's signal, as the runtime inverse would see
+  // it.
   bool UsesTarget() const override { return true; }
   bool EvaluateToward(const StationBinding& binding, const double* const* block_values,
                       const AmbientPose& input, const AmbientPose& target, bool jacobians,
@@ -179,10 +182,16 @@ class PhysicalGroupTerm : public ModelTerm {
  private:
   // Adds the blocks of one effect.
   void AddEffectBlocks(Effect* effect);
-  // Evaluate() (target null: the converged inverse from the report) and EvaluateToward().
+  // Evaluate() (target null: the converged inverse from the report); with a target, kTowardSteps
+  // Newton steps on the normal equations from the receiver pose behind it, with the converged
+  // root's implicit derivatives (RefineAlone's residual; d_output_d_target zero).
   bool EvaluateFrom(const StationBinding& binding, const double* const* block_values,
                     const AmbientPose& input, const AmbientPose* target, bool jacobians,
                     TermEvaluation* result) const;
+  // EvaluateToward()'s implementation.
+  bool EvaluateTowardReport(const StationBinding& binding, const double* const* block_values,
+                            const AmbientPose& input, const AmbientPose& target, bool jacobians,
+                            TermEvaluation* result) const;
   int Block(const Effect& e, int k) const { return e.first_block + k; }
   // The starts of a search, best first (empty: the effect keeps its values); `note` says what was
   // projected out.
