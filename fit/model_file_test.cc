@@ -74,7 +74,7 @@ TEST(ParseModelYaml, ErrorsNameFileLineAndField) {
   EXPECT_THAT(ErrorOf("loss: {type: l1}\nterms: [{type: polynomial}]\n"),
               HasSubstr("$.loss.type: unknown loss 'l1'"));
   EXPECT_THAT(ErrorOf("noise: {amplification_threshold: 0.5}\nterms: [{type: polynomial}]\n"),
-              HasSubstr("model.yaml:1:34: $.noise.amplification_threshold: must be >= 1"));
+              HasSubstr("model.yaml:1:34: $.noise.amplification_threshold: must be finite and >= 1"));
   EXPECT_THAT(ErrorOf("solver: {stream_clusters: 4}\nterms: [{type: polynomial}]\n"),
               HasSubstr("model.yaml:1:27: $.solver.stream_clusters: must be 0"));
   EXPECT_EQ(ParseModelYaml("terms: [{type: polynomial}]\n", "m").stream_clusters, 32);
