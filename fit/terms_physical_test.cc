@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <fstream>
+#include <string>
 #include <vector>
 
 #include "core/calibration_file.h"
@@ -143,23 +144,31 @@ TEST(PhysicalTerms, RejectsBadValuesWithFileAndLine) {
                "has no parameter block 'strength'");
 }
 
-// d output / d blocks and d output / d input against central differences.
-TEST(PhysicalGroupTerm, JacobiansMatchNumericDifferentiation) {
-  ModelSpec spec = ParseModelYaml(R"(terms:
+// A group with every effect but the background: a sensor offset, receiver gains, a dipole at
+// `location` (YAML list) of `polarisability` m^3, the floor plane and the transmitter's octupole.
+std::string GroupYaml(const std::string& location, double polarisability) {
+  return R"(terms:
   - type: sensor_offset
-    receiver_from_body: {rotation_xyzw: [0.1, -0.05, 0.02, 0.99369], translation: [0.02, 0.01, -0.03]}
+    receiver_from_body:
+      rotation_xyzw: [0.1, -0.05, 0.02, 0.99369]
+      translation: [0.02, 0.01, -0.03]
   - type: receiver_gain
     receiver_gain_matrix: [[1.02, 0.01, 0], [-0.005, 0.98, 0.015], [0, 0.008, 1.01]]
   - type: dipole
-    location_in_transmitter: [0.6, 0.95, -0.5]
-    polarisability_m3: 0.02
+    location_in_transmitter: )" +
+         location + "\n    polarisability_m3: " + std::to_string(polarisability) + R"(
   - type: plane
     point_in_transmitter: [0, 0, 0.8]
     normal_in_transmitter: [0.1, 0, 1]
     attenuation: 0.27
   - type: near_field
     octupole_m2: [-0.001, -0.0006, -0.0008]
-  - type: background_field
+)";
+}
+
+// d output / d blocks and d output / d input against central differences.
+TEST(PhysicalGroupTerm, JacobiansMatchNumericDifferentiation) {
+  ModelSpec spec = ParseModelYaml(GroupYaml("[0.6, 0.95, -0.5]", 0.02) + R"(  - type: background_field
     degree: 2
     coefficients: [1e-3, -2e-3, 5e-4, 1e-3, 0, 2e-3, -1e-3, 5e-4, 0, 1e-3, -5e-4, 2e-4, 0, 3e-4, -1e-3,
                    2e-3, 1e-3, 0, -5e-4, 1e-3, 0, 2e-4, -3e-4, 1e-3, 5e-4, 0, -2e-3, 1e-3, 0, 4e-4,
@@ -222,24 +231,7 @@ TEST(PhysicalGroupTerm, JacobiansMatchNumericDifferentiation) {
 // disagreed with its own value there by O(1): the fit stalled on the paper capture next to the
 // toolbox.)
 TEST(PhysicalGroupTerm, TowardJacobiansMatchNumericDifferentiationWhereTheInverseHasNoRoot) {
-  ModelSpec spec = ParseModelYaml(R"(terms:
-  - type: sensor_offset
-    receiver_from_body:
-      rotation_xyzw: [0.1, -0.05, 0.02, 0.99369]
-      translation: [0.02, 0.01, -0.03]
-  - type: receiver_gain
-    receiver_gain_matrix: [[1.02, 0.01, 0], [-0.005, 0.98, 0.015], [0, 0.008, 1.01]]
-  - type: dipole
-    location_in_transmitter: [0.38, -0.11, -0.40]
-    polarisability_m3: 0.002
-  - type: plane
-    point_in_transmitter: [0, 0, 0.8]
-    normal_in_transmitter: [0.1, 0, 1]
-    attenuation: 0.27
-  - type: near_field
-    octupole_m2: [-0.001, -0.0006, -0.0008]
-)",
-                                  "m.yaml");
+  ModelSpec spec = ParseModelYaml(GroupYaml("[0.38, -0.11, -0.40]", 0.002), "m.yaml");
   const auto& term = dynamic_cast<const PhysicalGroupTerm&>(*spec.terms[0]);
   const StationBinding binding = term.Bind(AmbientPose::Zero());
   ASSERT_EQ(binding.blocks.size(), term.blocks().size());  // nothing fixed: all bound
