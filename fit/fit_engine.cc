@@ -165,10 +165,9 @@ bool EvaluateChainFrom(const std::vector<BoundTerm>& terms, size_t from,
 bool EvaluateChain(const std::vector<BoundTerm>& terms, double const* const* parameters,
                    const AmbientPose& input, const AmbientPose& target, bool want,
                    AmbientPose* output, JacobianBlocks* d_pose,
-                   Eigen::Matrix<double, 7, 7>* d_output_d_input = nullptr,
-                   Eigen::Matrix<double, 7, 7>* d_output_d_target = nullptr) {
-  return EvaluateChainFrom(terms, 0, parameters, input, target, want, output, d_pose,
-                           d_output_d_input, d_output_d_target);
+                   Eigen::Matrix<double, 7, 7>* d_output_d_target) {
+  return EvaluateChainFrom(terms, 0, parameters, input, target, want, output, d_pose, nullptr,
+                           d_output_d_target);
 }
 
 // Chains the terms: forward through them, Jacobians composed by the chain rule. With a
@@ -233,7 +232,7 @@ class StationCost : public ceres::CostFunction {
     std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> d_pose;
     Eigen::Matrix<double, 7, 7> d_pose_d_target;
     if (!EvaluateChain(terms_, parameters, pose, ToAmbient(reference), want, &pose, &d_pose,
-                       nullptr, &d_pose_d_target)) {
+                       &d_pose_d_target)) {
       return false;
     }
     if (!want) {
@@ -311,7 +310,7 @@ std::optional<Matrix6> StationReportPerPose(const std::vector<BoundTerm>& terms,
   Eigen::Matrix<double, 7, 7> d_pose_d_target;
   JacobianBlocks unused;
   if (!EvaluateChain(terms, BoundValues(terms).data(), ToAmbient(station.reported),
-                     ToAmbient(reference), true, &pose, &unused, nullptr, &d_pose_d_target)) {
+                     ToAmbient(reference), true, &pose, &unused, &d_pose_d_target)) {
     return std::nullopt;
   }
   return ReportPerPose(pose, d_pose_d_target, reference, sigma_p, sigma_o);
