@@ -279,13 +279,20 @@ struct GrossOutliers {
 // neighbours' (2-64 mm errors around 50-95 mm), and a robust loss claimed them as "hemisphere
 // flips"; a flip is 1-2 m off among mm errors, as far beyond its neighbours as beyond the
 // capture. Empty positions: the global test only.
+//
+// Stations marked `untested` (empty: none) are neither tested nor in the centre and scale, but
+// remain neighbours: a station next to several the runtime inverse does not resolve keeps them in
+// its neighbourhood's level (see gross_outliers in DiagnoseCandidates).
 GrossOutliers FindGrossOutliers(const std::vector<double>& whitened_sq,
                                 const std::vector<Eigen::Vector3d>& positions, int neighbours,
-                                double alpha) {
+                                double alpha, const std::vector<bool>& untested = {}) {
   GrossOutliers out;
-  std::vector<size_t> order;
+  std::vector<size_t> order;      // tested stations
+  std::vector<size_t> neighbour;  // every station with a finite error
   for (size_t i = 0; i < whitened_sq.size(); ++i) {
-    if (std::isfinite(whitened_sq[i]) && whitened_sq[i] > 0) order.push_back(i);
+    if (!(std::isfinite(whitened_sq[i]) && whitened_sq[i] > 0)) continue;
+    neighbour.push_back(i);
+    if (i >= untested.size() || !untested[i]) order.push_back(i);
   }
   const size_t count = order.size();
   if (count < 12) return out;  // too few stations for a robust scale
@@ -314,7 +321,7 @@ GrossOutliers FindGrossOutliers(const std::vector<double>& whitened_sq,
   // source still count.
   auto local_centre = [&](size_t i) {
     std::vector<std::pair<double, size_t>> by_distance;
-    for (size_t k : order) {
+    for (size_t k : neighbour) {
       if (k != i) by_distance.emplace_back((positions[k] - positions[i]).squaredNorm(), k);
     }
     const size_t m = std::min(by_distance.size(), static_cast<size_t>(neighbours));
@@ -843,8 +850,10 @@ struct PreparedCandidate {
   std::shared_ptr<ModelSpec>
       fitted;  // the fit on all stations (the fast cross-validation starts there)
   std::vector<int> left_out;  // that fit's left-out stations (FitResult::left_out)
-  // kRobustLoss: its fit's whitened squared error per station and the gross outliers among them.
+  // kRobustLoss: its fit's whitened squared error per station and the gross outliers among them,
+  // and the stations its or the base's runtime inverse does not resolve.
   std::vector<double> full_whitened_sq;
+  std::vector<bool> full_unresolved;
   GrossOutliers gross;
 };
 
@@ -1861,7 +1870,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
           unresolved.push_back(j);
         }
       }
-      // (A robust loss's delta BIC is the mean-shift model's over every station, below.)
+      // (A robust loss's delta BIC is the mean-shift model's, below, without the same stations.)
       if (c.kind != CandidateKind::kRobustLoss && !unresolved.empty() &&
           static_cast<double>(unresolved.size()) <=
               options.max_unresolved_fraction * static_cast<double>(own.size())) {
@@ -1871,7 +1880,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         }
         c.bic_unresolved_left_out = static_cast<int>(unresolved.size());
       }
-      if (c.kind == CandidateKind::kRobustLoss) p.full_whitened_sq = full.whitened_sq;
+      if (c.kind == CandidateKind::kRobustLoss) {
+        p.full_whitened_sq = full.whitened_sq;
+        p.full_unresolved.assign(own.size(), false);
+        for (size_t j : unresolved) p.full_unresolved[j] = true;
+      }
       const Chi2 chi = ComputeChi2(own, full, spec.loss, use_own);
       const Chi2 base_chi = ComputeChi2(stations, base_full, base_spec.loss, use_base);
       const int n = 6 * static_cast<int>(std::count(use_own.begin(), use_own.end(), true));
@@ -2007,13 +2020,19 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // comparison: a flip held out is off by 1-2 m under every model, and that error changes by chance
   // from model to model (measured: a plane "lowered" the held-out mean 48 % at p = 0.11 by moving
   // the extrapolation at two flips).
-  const int n_residuals_all = 6 * static_cast<int>(stations.size());
-  auto mean_shift_bic = [&](const std::vector<double>& whitened_sq, const GrossOutliers& o, int k) {
+  // Over the stations not `left` out (empty: all; unresolved_left_out below).
+  auto mean_shift_bic = [&](const std::vector<double>& whitened_sq, const GrossOutliers& o, int k,
+                            const std::vector<bool>& left) {
     std::vector<bool> out(whitened_sq.size(), false);
     for (size_t i : o.index) out[i] = true;
     double chi2 = 0.0;
-    for (size_t i = 0; i < whitened_sq.size(); ++i) chi2 += out[i] ? 0.0 : whitened_sq[i];
-    return Bic(chi2, n_residuals_all, k + 6 * static_cast<int>(o.index.size()));
+    int n = 0;
+    for (size_t i = 0; i < whitened_sq.size(); ++i) {
+      if (i < left.size() && left[i]) continue;
+      n += 6;
+      chi2 += out[i] ? 0.0 : whitened_sq[i];
+    }
+    return Bic(chi2, n, k + 6 * static_cast<int>(o.index.size()));
   };
   auto claimable_outliers = [&](const GrossOutliers& o, double delta_bic) {
     return !o.index.empty() &&
@@ -2023,8 +2042,26 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   };
   std::vector<Eigen::Vector3d> positions;  // the reference's, for the outliers' neighbourhoods
   for (const auto& s : stations) positions.push_back(s.reference.translation);
-  auto gross_outliers = [&](const std::vector<double>& whitened_sq) {
-    return FindGrossOutliers(whitened_sq, positions, options.outlier_neighbours, d.p_threshold);
+  // Stations a runtime inverse does not resolve (no root or an ambiguous one, next to a strong
+  // object) are not outliers: their error is report noise the inverse amplified, or its best
+  // guess, not a bad pose. When they are few (max_unresolved_fraction, as for the other
+  // candidates' BIC) they are not tested, stay neighbours of the tested ones (FindGrossOutliers),
+  // and are left out of the mean-shift BIC's sums. Measured, full paper capture with the toolbox,
+  // under the TRUE model (fit/candidates_sim_test, StationsTheInverseCannotResolveAreNotOutliers):
+  // stations 131 and 350, 0.28-0.33 m from the toolbox and ambiguous, 16 mm off at 350 where the
+  // others are 0.1-0.2 mm, were "2 outlier stations (hemisphere flips or bad reference poses)" and
+  // the robust loss was claimed on seeds 2 and 3 (held-out error of the kept stations -28 %); the
+  // demo's loop (seed 2) claimed it at its last step for station 350.
+  auto unresolved_left_out = [&](const std::vector<bool>& unresolved) {
+    const auto count = std::count(unresolved.begin(), unresolved.end(), true);
+    const bool few = static_cast<double>(count) <=
+                     options.max_unresolved_fraction * static_cast<double>(stations.size());
+    return count > 0 && few ? unresolved : std::vector<bool>();
+  };
+  auto gross_outliers = [&](const std::vector<double>& whitened_sq,
+                            const std::vector<bool>& left) {
+    return FindGrossOutliers(whitened_sq, positions, options.outlier_neighbours, d.p_threshold,
+                             left);
   };
   // "N stations (ids) ... near (x, y, z) m": where the robust fit's large errors are a local
   // effect.
@@ -2050,9 +2087,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   };
   std::vector<bool> base_outlier(stations.size(), false);
   if (base_spec.loss.type != LossType::kNone) {
-    const GrossOutliers o = gross_outliers(base_full.whitened_sq);
-    const double delta = mean_shift_bic(base_full.whitened_sq, o, base_k) -
-                         mean_shift_bic(base_full.whitened_sq, GrossOutliers(), base_k);
+    const std::vector<bool> left = unresolved_left_out(base_full.unresolved);
+    const GrossOutliers o = gross_outliers(base_full.whitened_sq, left);
+    const double delta = mean_shift_bic(base_full.whitened_sq, o, base_k, left) -
+                         mean_shift_bic(base_full.whitened_sq, GrossOutliers(), base_k, left);
     if (claimable_outliers(o, delta)) {
       for (size_t i : o.index) base_outlier[i] = true;
     }
@@ -2060,7 +2098,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   for (auto& p : prepared) {
     Candidate& c = p.candidate;
     if (p.flexible || !c.fitted || c.kind != CandidateKind::kRobustLoss) continue;
-    p.gross = gross_outliers(p.full_whitened_sq);
+    const std::vector<bool> left = unresolved_left_out(p.full_unresolved);
+    c.bic_unresolved_left_out =
+        static_cast<int>(std::count(left.begin(), left.end(), true));
+    p.gross = gross_outliers(p.full_whitened_sq, left);
     c.outlier_stations.clear();
     for (size_t i : p.gross.index) c.outlier_stations.push_back(stations[i].station);
     std::sort(c.outlier_stations.begin(), c.outlier_stations.end());
@@ -2069,8 +2110,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       c.local_structure_stations.push_back(stations[i].station);
     }
     std::sort(c.local_structure_stations.begin(), c.local_structure_stations.end());
-    c.delta_bic = mean_shift_bic(p.full_whitened_sq, p.gross, c.num_free_parameters) -
-                  mean_shift_bic(base_full.whitened_sq, GrossOutliers(), base_k);
+    c.delta_bic = mean_shift_bic(p.full_whitened_sq, p.gross, c.num_free_parameters, left) -
+                  mean_shift_bic(base_full.whitened_sq, GrossOutliers(), base_k, left);
     c.statement = Statement(*p.effect, c, options.robust_loss.scale);
     if (!p.gross.local_structure.empty()) {
       c.local_structure_note = local_structure_words(p.gross);
@@ -2177,10 +2218,10 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       // model) and 175 mm under one candidate. With them the background, floor and sensor-offset
       // candidates scored delta BIC +485, +1031 and +2179 and no held-out gain, and the loop
       // stopped at 12.5x the noise floor; without them the background lowers the held-out error
-      // (fit/candidates_sim_test) and is claimed. A robust loss keeps them: its own test is about
-      // stations far beyond the others.
+      // (fit/candidates_sim_test) and is claimed. A robust loss leaves them out too: they are not
+      // its outliers (gross_outliers above), and its held-out drop is over the same stations.
       std::vector<bool> cv_left_out(stations.size(), false);
-      if (c.kind != CandidateKind::kRobustLoss) {
+      {
         int count = 0;
         for (size_t j = 0; j < own.size(); ++j) {
           const int b = p->base_index[j];
@@ -2789,8 +2830,8 @@ std::string FormatDiagnosis(const Diagnosis& d) {
     if (!c.fitted) out << "      " << c.reason << "\n";
   }
   for (const auto& c : d.candidates) {
-    // The same stations for every candidate but a robust loss: say so once, with the base's mean.
-    if (c.cv_unresolved_left_out > 0 && c.kind != CandidateKind::kRobustLoss) {
+    // The same stations for every candidate: say so once, with the base's mean.
+    if (c.cv_unresolved_left_out > 0) {
       out << "  Held-out means and drops" << UnresolvedNote(c.cv_unresolved_left_out)
           << "; the base over the others: " << FormatNumber(c.cv_base_position_mm_mean, 3)
           << " mm, " << FormatNumber(c.cv_base_orientation_deg_mean, 3) << " deg.\n";

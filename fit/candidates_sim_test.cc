@@ -309,6 +309,39 @@ TEST(DiagnoseCandidatesPaper, StationsTheInverseCannotResolveDoNotDecideACompari
   EXPECT_LT(plane->delta_bic, 32.0) << plane->reason;
 }
 
+// Under the TRUE model of the paper room with the toolbox (each source fixed at its value), a few
+// calibration stations 0.28-0.33 m from the toolbox are ambiguous under the runtime inverse (its
+// fold amplifies the report noise: 16 mm at station 350 where the others are 0.1-0.2 mm). They are
+// not outliers, and nothing is left to claim. Measured before such stations were kept out of the
+// outlier test: on both seeds the robust loss was claimed for stations 131 and 350 as "hemisphere
+// flips or bad reference poses" (held-out error of the kept stations -28.5 / -28.4 %, p = 1.4e-6 /
+// 1e-5, delta BIC -9020 / -9233); the demo's loop (seed 2) claimed it at its last step for 350.
+TEST(DiagnoseCandidatesPaper, StationsTheInverseCannotResolveAreNotOutliers) {
+  for (uint64_t seed : {2u, 3u}) {
+    sim::Scene scene = sim::LoadScene("paper");
+    scene.seed = seed;
+    scene.hidden.Enable("ferromagnetic_object");
+    const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
+    sim::Scene room = scene;
+    room.environment.objects.push_back(scene.hidden.object);
+    CandidateOptions options;
+    options.effects = {"robust_loss"};
+    options.flexible.clear();
+    const Diagnosis d = DiagnoseCandidates(StationsOfSet(capture.poses, "calib"),
+                                           RoomModel(room, capture.noise_floor.at("calib")),
+                                           "room_toolbox.yaml", "paper+toolbox", options);
+    std::cout << "seed " << seed << ":\n" << FormatDiagnosis(d) << "\n";
+    ASSERT_EQ(d.candidates.size(), 1u) << seed;
+    const Candidate& robust = d.candidates[0];
+    EXPECT_FALSE(robust.significant) << "seed " << seed << ": " << robust.reason;
+    EXPECT_TRUE(robust.outlier_stations.empty()) << "seed " << seed << ": " << robust.reason;
+    // The stations were there to be mistaken (when the inverse resolves every station, the test
+    // shows nothing): left out of the held-out comparison, as for every candidate.
+    EXPECT_GT(robust.cv_unresolved_left_out, 0) << "seed " << seed << ": " << robust.reason;
+    EXPECT_FALSE(d.verdict_effect.has_value()) << "seed " << seed << ": " << d.verdict_text;
+  }
+}
+
 TEST(DiagnoseCandidatesPaper, NothingIsClaimedWithoutAHiddenEffect) {
   for (uint64_t seed : {20010313u, 1u, 2u}) {
     const PaperRun r = Diagnose("", seed);
