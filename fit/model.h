@@ -116,6 +116,11 @@ struct FitStation {
 struct StationBinding {
   std::vector<int> blocks;  // indices into ModelTerm::blocks(), increasing
   long tag = 0;
+  // A physical group's residual form for this station (ModelTerm::EvaluateToward): false, the
+  // report's misfit carried to the pose by the free-space chord; true, the pose its inverse
+  // reaches by Newton steps from the target, exact where the inverse resolves the report
+  // (fit/fit_engine.cc, BuildProblem).
+  bool pose_form = false;
 };
 
 // Output of one term for one station.

@@ -1002,6 +1002,9 @@ bool PhysicalGroupTerm::EvaluateToward(const StationBinding& binding,
                                        const double* const* block_values, const AmbientPose& input,
                                        const AmbientPose& target, bool jacobians,
                                        TermEvaluation* result) const {
+  if (binding.pose_form) {
+    return EvaluateFrom(binding, block_values, input, &target, jacobians, result);
+  }
   return EvaluateTowardReport(binding, block_values, input, target, jacobians, result);
 }
 

@@ -143,19 +143,21 @@ class PhysicalGroupTerm : public ModelTerm {
   StationBinding Bind(const AmbientPose& input) const override;
   bool Evaluate(const StationBinding& binding, const double* const* block_values,
                 const AmbientPose& input, bool jacobians, TermEvaluation* result) const override;
-  // The fit's form (the joint problem's station residual, fit/fit_engine.cc): the report's misfit
-  // carried to the pose, with no inverse of the model. From x_t, the receiver pose behind `target`
-  // (the target composed with the inverse sensor offset), the output is x_t [+] -J_y^+ (s(x_t) -
-  // S_free(y)) composed with the offset again: s the model's signal, S_free and J_y the free-space
-  // signal at the report y and its Jacobian, so J_y^+ is the tracker's own free-space inverse,
-  // linearised at the report. At a fit the output is the target (no misfit); otherwise the
-  // residual is the report's misfit y - y(x_t) to first order, in the report's units: defined,
-  // smooth and with exact derivatives (by blocks, input and target; d_output_d_target is filled)
-  // wherever the model can be evaluated, also where the model's inverse has no root (a fold zone
-  // next to a strong object). The engine weighs it by the pose metric (fit/pose_metric.h), so the
-  // fit still weighs pose errors where they are defined. A report in the other hemisphere than the
-  // target (a flip) is compared with the mirrored pose's signal, as the runtime inverse would see
-  // it.
+  // The fit's forms (the joint problem's station residual, fit/fit_engine.cc BuildProblem chooses
+  // per station). binding.pose_form: EvaluateFrom() toward the target, the root Newton reaches
+  // from it (where the runtime inverse resolves the report). Otherwise the report form: the
+  // report's misfit carried to the pose, with no inverse of the model. From x_t, the receiver pose
+  // behind `target` (the target composed with the inverse sensor offset), the output is x_t [+]
+  // -J_y^+ (s(x_t) - S_free(y)) composed with the offset again: s the model's signal, S_free and
+  // J_y the free-space signal at the report y and its Jacobian, so J_y^+ is the tracker's own
+  // free-space inverse, linearised at the report. At a fit the output is the target (no misfit);
+  // otherwise the residual is the report's misfit y - y(x_t) to first order, in the report's units:
+  // defined, smooth and with exact derivatives (by blocks, input and target; d_output_d_target is
+  // filled) wherever the model can be evaluated, also where the model's inverse has no root (a fold
+  // zone next to a strong object). The engine weighs it by the pose metric (fit/pose_metric.h), so
+  // the fit still weighs pose errors where they are defined. A report in the other hemisphere than
+  // the target (a flip) is compared with the mirrored pose's signal, as the runtime inverse would
+  // see it.
   bool UsesTarget() const override { return true; }
   bool EvaluateToward(const StationBinding& binding, const double* const* block_values,
                       const AmbientPose& input, const AmbientPose& target, bool jacobians,
@@ -188,7 +190,7 @@ class PhysicalGroupTerm : public ModelTerm {
   bool EvaluateFrom(const StationBinding& binding, const double* const* block_values,
                     const AmbientPose& input, const AmbientPose* target, bool jacobians,
                     TermEvaluation* result) const;
-  // EvaluateToward()'s implementation.
+  // EvaluateToward()'s report form.
   bool EvaluateTowardReport(const StationBinding& binding, const double* const* block_values,
                             const AmbientPose& input, const AmbientPose& target, bool jacobians,
                             TermEvaluation* result) const;
