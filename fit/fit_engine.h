@@ -183,7 +183,8 @@ struct FitResult {
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
                    const FitOptions& options = {});
 
-// One station's residual as FitModel's solver sees it, through `spec`'s prepared terms at their
+// One station's residual as FitModel's solver sees it in report form (the form of a station whose
+// report the physical group's inverse does not resolve), through `spec`'s prepared terms at their
 // current values, before its pose metric: 6 values and, per bound block of every term in order
 // (the clock offset last when `time_offset` is given, with reference value 0), its 6 x size
 // Jacobian in ambient coordinates; with `report_per_pose`, the A its pose metric inverts

@@ -38,8 +38,9 @@ Eigen::Matrix<double, 7, 6> AmbientOfTangent(const AmbientPose& pose);
 // (TangentOfAmbient(x) AmbientOfTangent(x) = I).
 Eigen::Matrix<double, 6, 7> TangentOfAmbient(const AmbientPose& pose);
 
-// A station's residual through a physical group is the report's misfit, carried to the pose by the
-// free-space chord: r ~ A r_pose to first order, where r_pose is the residual of the pose the
+// A station's residual through a physical group in report form (where the model's inverse does not
+// resolve its report, fit/fit_engine.cc BuildProblem) is the report's misfit, carried to the pose
+// by the free-space chord: r ~ A r_pose to first order, where r_pose is the residual of the pose the
 // model's inverse finds from the report (what a calibration is judged by) and A = dy/dx, the
 // model's report per true pose (whitened, on the reference's tangent). Given the corrected pose
 // the residual is computed from and its derivative by the reference the group was evaluated
