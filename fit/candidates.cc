@@ -135,15 +135,18 @@ std::string FitTimeNote(const FitResult& fit) {
 // The same, from the fit on all stations (`fitted`: the spec FitModel left): each fold re-estimated
 // by Levenberg-Marquardt steps from the full fit (RefitFoldsFromFull; CandidateOptions::exact_cv
 // false). `left_out`: the stations the full fit left out (FitResult::left_out), in no fold's
-// training. `report` gets the steps each fold took.
+// training; `report_form`: its residual forms (FitResult::report_form), which the folds keep.
+// `report` gets the steps each fold took.
 StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
                                         const std::vector<int>& fold_of, ModelSpec* fitted,
-                                        const std::vector<int>& left_out, int folds,
+                                        const std::vector<int>& left_out,
+                                        const std::vector<bool>& report_form, int folds,
                                         double sigma_p, double sigma_o,
                                         const std::function<void(const std::string&)>& report) {
   StationErrors e = MakeErrors(stations.size());
   FoldRefitOptions refit_options;
   refit_options.left_out = left_out;
+  refit_options.report_form = report_form;
   const std::vector<FoldRefit> refits =
       RefitFoldsFromFull(stations, fitted, fold_of, folds, refit_options);
   std::string steps;
@@ -850,6 +853,7 @@ struct PreparedCandidate {
   std::shared_ptr<ModelSpec>
       fitted;  // the fit on all stations (the fast cross-validation starts there)
   std::vector<int> left_out;  // that fit's left-out stations (FitResult::left_out)
+  std::vector<bool> report_form;  // and its residual forms (FitResult::report_form)
   // kRobustLoss: its fit's whitened squared error per station and the gross outliers among them,
   // and the stations its or the base's runtime inverse does not resolve.
   std::vector<double> full_whitened_sq;
@@ -1610,6 +1614,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // while candidates are fitted), where a candidate whose own start fits worse starts again.
   FitStart base_start;
   std::vector<int> base_left_out;  // the base fit's (FitResult::left_out): no fold trains on them
+  std::vector<bool> base_report_form;  // the base fit's residual forms, which its folds keep
   {
     const auto t0 = Clock::now();
     Progress(options, "base model: fit on " + std::to_string(stations.size()) + " stations");
@@ -1618,6 +1623,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     const FitResult fit = FitModel(stations, &base_spec, fo);
     base_start = TakeFitStart(base_spec);
     base_left_out = fit.left_out;
+    base_report_form = fit.report_form;
     for (size_t i = 0; i < stations.size(); ++i) {
       AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &base_full, i);
     }
@@ -1648,7 +1654,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       Progress(options,
                "base model: " + std::to_string(options.folds) + " fold refits from the full fit");
       base_cv = FastCrossValidateStations(
-          stations, base_folds, &base_spec, base_left_out, options.folds, sigma_p, sigma_o,
+          stations, base_folds, &base_spec, base_left_out, base_report_form, options.folds,
+          sigma_p, sigma_o,
           [&](const std::string& m) { Progress(options, "base model: " + m); });
     } else {
       base_cv =
@@ -1913,6 +1920,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       if (!options.exact_cv && !fit.linear_least_squares && FastCrossValidationApplies(own, spec)) {
         p.fitted = std::make_shared<ModelSpec>(std::move(spec));  // the folds start here
         p.left_out = fit.left_out;
+        p.report_form = fit.report_form;
       }
       if (c.kind == CandidateKind::kTerm && c.term_names.size() > 1) {
         // One statement per added term ("a ferromagnetic object near ...; a ferromagnetic object
@@ -2187,7 +2195,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         Progress(options, c.effect + ": " + std::to_string(options.folds) +
                               " fold refits from the full fit");
         cv = FastCrossValidateStations(
-            own, fold_of, p->fitted.get(), p->left_out, options.folds, sigma_p, sigma_o,
+            own, fold_of, p->fitted.get(), p->left_out, p->report_form, options.folds, sigma_p,
+            sigma_o,
             [&](const std::string& m) { Progress(options, c.effect + ": " + m); });
       } else {
         cv =

@@ -306,6 +306,11 @@ TEST(RefitFoldsFromFull, BadFoldsThrow) {
   EXPECT_THROW(RefitFoldsFromFull(stations, &spec, fold_of, 2), std::invalid_argument);  // empty
   fold_of.pop_back();
   EXPECT_THROW(RefitFoldsFromFull(stations, &spec, fold_of, 2), std::invalid_argument);
+  fold_of.assign(stations.size(), 0);
+  fold_of[0] = 1;
+  FoldRefitOptions forms;  // the full fit's residual forms: one per station
+  forms.report_form.assign(stations.size() - 1, false);
+  EXPECT_THROW(RefitFoldsFromFull(stations, &spec, fold_of, 2, forms), std::invalid_argument);
 }
 
 }  // namespace

@@ -553,10 +553,13 @@ std::vector<BoundTerm> BindStation(const ModelSpec& spec, const FitStation& stat
 // fold's amplification) the report form under the capped metric K, defined and differentiated
 // exactly where the pose form's Newton steps reach no root and Levenberg-Marquardt stalled
 // (docs/fit.md). A station once in report form stays in it for the fit's later passes
-// (`report_before`), so the passes end.
+// (`report_before`), so the passes end. `held_forms` (one per station): the forms as given, none
+// chosen (a fold refit keeps the full fit's).
 BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* spec,
                           double* time_offset, std::optional<double> time_offset0,
-                          const std::vector<bool>* report_before = nullptr) {
+                          const std::vector<bool>* report_before = nullptr,
+                          const std::vector<bool>* held_forms = nullptr) {
+  CHECK(!held_forms || held_forms->size() == stations.size());
   BuiltProblem out;
   out.problem = std::make_unique<ceres::Problem>();
   ceres::Problem& problem = *out.problem;
@@ -611,10 +614,13 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       // against 117, the plane 0.34 m away and 42 deg off, validation 0.153 mm against 0.062).
       const bool flipped =
           stations[i].reported.translation.dot(stations[i].reference.translation) < 0.0;
-      if (report && spec->amplification_threshold < kNoPoseMetric && flipped) report = false;
-      if (report && spec->amplification_threshold < kNoPoseMetric &&
-          !(report_before && i < report_before->size() && (*report_before)[i]) &&
-          metric.gain <= spec->amplification_threshold && group_correction) {
+      if (report && spec->amplification_threshold < kNoPoseMetric && held_forms) {
+        report = (*held_forms)[i];
+      } else if (report && spec->amplification_threshold < kNoPoseMetric && flipped) {
+        report = false;
+      } else if (report && spec->amplification_threshold < kNoPoseMetric &&
+                 !(report_before && i < report_before->size() && (*report_before)[i]) &&
+                 metric.gain <= spec->amplification_threshold && group_correction) {
         const CorrectedPose runtime = group_correction->Apply(stations[i].reported);
         if (runtime.status == CorrectionStatus::kConverged) report = false;
       }
@@ -1196,6 +1202,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   // not resolve, while that set changes (a station resolved again comes back).
   std::vector<FitStation> kept_stations;
   const std::vector<FitStation>* fitted = &stations;
+  std::vector<bool> left_out_mask(stations.size(), false);  // `built` is of the others
   if (spec->leave_out_unresolved && !linear_solution && num_free > 0 && !fit_time_offset) {
     std::vector<bool> left(stations.size(), false);
     for (int pass = 0; pass < kMaxLeaveOutPasses; ++pass) {
@@ -1233,9 +1240,20 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       if (left[i]) result.left_out.push_back(stations[i].station);
     }
     if (result.left_out.empty()) fitted = &stations;
+    left_out_mask = left;
   }
   ceres::Problem& problem = *built.problem;
   const std::vector<ceres::ResidualBlockId>& station_blocks = built.station_blocks;
+  if (!spec->terms.empty() && spec->terms[0]->UsesTarget()) {
+    CHECK_EQ(built.report_form.size(), fitted->size());
+    result.report_form.assign(stations.size(), true);
+    for (size_t i = 0, k = 0; i < stations.size(); ++i) {
+      if (!left_out_mask[i]) result.report_form[i] = built.report_form[k++];
+      if (!left_out_mask[i] && result.report_form[i]) {
+        result.report_form_stations.push_back(stations[i].station);
+      }
+    }
+  }
   for (size_t i = 0; i < fitted->size(); ++i) {
     if (built.noise_whitened[i]) {
       result.noise_whitened.push_back({(*fitted)[i].station, built.noise_gain[i]});
@@ -1569,7 +1587,12 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
   std::vector<bool> excluded(stations.size(), false);
   for (size_t i = 0; i < stations.size(); ++i) excluded[i] = left_out.count(stations[i].station);
 
-  BuiltProblem built = BuildProblem(stations, spec, nullptr, std::nullopt);
+  if (!options.report_form.empty() && options.report_form.size() != stations.size()) {
+    throw std::invalid_argument("fold refits: one residual form per station needed");
+  }
+  const std::vector<bool>* held_forms =
+      options.report_form.empty() ? nullptr : &options.report_form;
+  BuiltProblem built = BuildProblem(stations, spec, nullptr, std::nullopt, nullptr, held_forms);
   ceres::Problem& problem = *built.problem;
   std::vector<FreeBlock> free;
   std::vector<double*> parameters;
@@ -1653,10 +1676,13 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
     blocks.insert(blocks.end(), others.begin(), others.end());
     return blocks;
   };
-  auto training_stations = [&](int f) {
+  auto training_stations = [&](int f, std::vector<bool>* forms) {
     std::vector<FitStation> train;
     for (size_t i = 0; i < stations.size(); ++i) {
-      if (fold_of[i] != f) train.push_back(stations[i]);
+      if (fold_of[i] != f) {
+        train.push_back(stations[i]);
+        if (held_forms) forms->push_back((*held_forms)[i]);
+      }
     }
     return train;
   };
@@ -1667,13 +1693,19 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
   // The fallback: the solver on the fold's stations, from the current values (as FitModel's (2));
   // `train` holds every training station (the calibrated volume's, as FitModel's), the left-out
   // ones are not solved for.
-  auto solver_refit = [&](const std::vector<FitStation>& train, FoldRefit* out) {
+  // `train_forms`: their held forms (empty: chosen afresh).
+  auto solver_refit = [&](const std::vector<FitStation>& train,
+                          const std::vector<bool>& train_forms, FoldRefit* out) {
     out->solver_refit = true;
     std::vector<FitStation> solved;
-    for (const auto& t : train) {
-      if (!left_out.count(t.station)) solved.push_back(t);
+    std::vector<bool> solved_forms;
+    for (size_t j = 0; j < train.size(); ++j) {
+      if (left_out.count(train[j].station)) continue;
+      solved.push_back(train[j]);
+      if (!train_forms.empty()) solved_forms.push_back(train_forms[j]);
     }
-    BuiltProblem fold = BuildProblem(solved, spec, nullptr, std::nullopt);
+    BuiltProblem fold = BuildProblem(solved, spec, nullptr, std::nullopt, nullptr,
+                                     train_forms.empty() ? nullptr : &solved_forms);
     if (fold.num_free > 0) {
       ceres::Solver::Options so;
       so.max_num_iterations = spec->max_iterations;
@@ -1723,13 +1755,14 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
     FoldRefit& result = out[static_cast<size_t>(f)];
     const auto fold_start = std::chrono::steady_clock::now();
     set_values(full_values);
-    const std::vector<FitStation> train = training_stations(f);
+    std::vector<bool> train_forms;
+    const std::vector<FitStation> train = training_stations(f, &train_forms);
     if (n == 0) {
       finish(train, &result);
       continue;
     }
     if (!dense) {
-      solver_refit(train, &result);
+      solver_refit(train, train_forms, &result);
       continue;
     }
     const std::vector<ceres::ResidualBlockId> blocks = training_blocks(f);
@@ -1827,7 +1860,7 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
     if (ok) {
       finish(train, &result);  // converged, or the best values after max_steps
     } else {
-      solver_refit(train, &result);  // a step that could not lower the cost: the solver decides
+      solver_refit(train, train_forms, &result);  // a step that could not lower the cost: the solver decides
     }
     result.seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - fold_start).count();
@@ -1970,6 +2003,7 @@ nlohmann::json FitResult::ToJson() const {
           {"left_out", left_out},
           {"left_out_note", left_out_note},
           {"noise_amplified", amplified_json},
+          {"report_form", report_form_stations},
           {"whitening_passes", whitening_passes},
           {"terms", terms},
           {"parameters", params}};

@@ -172,6 +172,12 @@ struct FitResult {
   // physical group; 0: no solver run).
   std::vector<AmplifiedStation> noise_whitened;
   int whitening_passes = 0;
+  // Per station given to FitModel, in its order: its residual through the physical group was in
+  // report form at the final solve (BuildProblem, docs/fit.md); a left-out station counts as in
+  // report form. Empty without a physical group. report_form_stations: the fitted ones' station
+  // ids, capped or not (in --json: "report_form"; left-out stations are not in it).
+  std::vector<bool> report_form;
+  std::vector<int> report_form_stations;
   CorrectionChain chain;              // the fitted correction, with the calibrated volume
   nlohmann::json terms = nlohmann::json::array();  // Describe() of every term
 
@@ -232,6 +238,11 @@ struct FoldRefitOptions {
   // Stations (FitStation::station) the full fit left out (FitResult::left_out,
   // solver.leave_out_unresolved): in no fold's training, still predicted by their fold's refit.
   std::vector<int> left_out;
+  // The full fit's residual forms (FitResult::report_form, one per station): each fold keeps its
+  // stations' forms, so it minimises the full fit's objective over its training stations (a form
+  // chosen afresh at the full fit's values can differ: a station once in report form stays there
+  // during a fit). Empty: chosen afresh.
+  std::vector<bool> report_form;
   bool Check() const { return max_steps >= 1 && cost_tolerance > 0 && max_dense_parameters >= 0; }
 };
 

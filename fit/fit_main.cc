@@ -252,6 +252,13 @@ int RunFit(int argc, char** argv) {
   } else if (!result.left_out_note.empty()) {
     std::cout << "Left out of the fit: " << result.left_out_note << "\n";
   }
+  if (!result.report_form_stations.empty()) {
+    // docs/fit.md, "The station residual through a physical group".
+    std::cout << "Residuals in report form (the model's inverse does not resolve the report or "
+                 "amplifies its noise beyond the threshold): "
+              << result.report_form_stations.size() << " of " << result.report_form.size()
+              << " stations, " << result.noise_whitened.size() << " with a capped metric\n";
+  }
   PrintParameters(result, std::cout);
   std::cout << "Wrote " << output.string() << "\n";
   return 0;
