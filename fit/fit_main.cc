@@ -254,8 +254,7 @@ int RunFit(int argc, char** argv) {
   }
   if (!result.report_form_stations.empty()) {
     // docs/fit.md, "The station residual through a physical group".
-    std::cout << "Residuals in report form (the model's inverse does not resolve the report or "
-                 "amplifies its noise beyond the threshold): "
+    std::cout << "Residuals in report form (the model's inverse did not resolve the report): "
               << result.report_form_stations.size() << " of " << result.report_form.size()
               << " stations, " << result.noise_whitened.size() << " with a capped metric\n";
   }

@@ -142,9 +142,9 @@ struct ModelSpec {
   double orientation_range_exponent = 0.0;
   double noise_reference_range_m = 1.0;
   // A station whose residual runs through a physical group is fitted by its pose error: exactly
-  // where the group's inverse resolves its report and amplifies its noise at most this much (the
-  // pose form); elsewhere (near a strong object's fold) by its report's misfit under the pose
-  // metric (fit/pose_metric.h), whose amplification is capped at this. The noise above already
+  // where the group's inverse resolves its report (the pose form); elsewhere (near a strong
+  // object's fold) by its report's misfit under the pose metric (fit/pose_metric.h), whose
+  // amplification is capped at this. The noise above already
   // holds the room's usual amplification (<= 1.3 in the paper room), hence 2; 1e9 or more puts
   // every such station in report form without the metric (noise.amplification_threshold).
   double amplification_threshold = 2.0;

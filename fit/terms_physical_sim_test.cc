@@ -476,6 +476,49 @@ TEST(PhysicalTermsOnSimulator, FerromagneticObjectOnThePaperProtocol) {
   }
 }
 
+// The residual's form follows the runtime inverse alone: the amplification of the report noise,
+// which the fitted values move, caps K in report form but does not choose it. Chosen by it too, a
+// fit could lower its cost by raising the amplification at stations it misfits and so moving them
+// into the capped report form. Measured on this capture (the paper room with the hidden toolbox,
+// seed 2; the demo's frame and toolbox dipoles, a background field and the ridge polynomial): 192
+// of 480 stations ended in report form (191 capped), validation 1.097 mm mean; with the form
+// chosen by the inverse, 26-27 (the fold zone: the 25 stations no model resolves there, and one or
+// two found unresolved at a start) and 0.890 mm. The bound: the unresolved ones plus 5. Here, on
+// the 120 validation stations: rms 1.97 mm with 192 in report form, 1.43 with 27; 1.7 between.
+TEST(PhysicalTermsOnSimulator, AmplificationDoesNotChooseTheResidualForm) {
+  sim::Scene scene = sim::LoadScene("paper");
+  scene.seed = 2;
+  scene.hidden.Enable("ferromagnetic_object");
+  const sim::SimulatedCapture capture = sim::Simulator(scene).Generate();
+  const std::vector<FitStation> calibration = StationsOfSet(capture.poses, "calib");
+  const std::vector<FitStation> validation = StationsOfSet(capture.poses, "valid");
+  ModelSpec spec = ParseModelYaml(R"(terms:
+  - type: dipole
+    location_in_transmitter: [0.5078, -0.0242, 0.3584]
+    polarisability_m3: -0.008322
+  - type: dipole
+    name: dipole_2
+    location_in_transmitter: [0.5883, 0.9719, -0.5163]
+    polarisability_m3: 0.00267
+  - type: background_field
+  - type: polynomial
+    degree: 4
+    ridge: auto
+)",
+                                  "background.yaml");
+  FitOptions options;
+  options.compute_covariance = false;
+  const FitResult fit = FitModel(calibration, &spec, options);
+  CorrectionChain chain = fit.chain;
+  chain.ClearVolume();
+  std::cout << fit.report_form_stations.size() << " of " << calibration.size()
+            << " stations in report form (" << fit.noise_whitened.size() << " capped), "
+            << fit.unresolved.size() << " unresolved; validation rms "
+            << RmsPositionError(chain, validation) * 1e3 << " mm\n";
+  EXPECT_LE(fit.report_form_stations.size(), fit.unresolved.size() + 5);
+  EXPECT_LT(RmsPositionError(chain, validation), 1.7e-3);
+}
+
 TEST(PhysicalTermsOnSimulator, FiniteTransmitterCoils) {
   sim::Scene hidden;
   const FitResult fit =
