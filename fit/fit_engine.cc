@@ -596,17 +596,9 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       }
       if (time_offset) blocks.push_back(time_offset);
       const Eigen::Vector2d station_sigmas = spec->StationSigmas(stations[i].reported);
-      // The pose metric of a station whose residual runs through a physical group; a chain
-      // without one is fitted exactly as its residual is.
-      PoseMetric metric;
       const bool group = std::any_of(bound[i].begin(), bound[i].end(),
                                      [](const BoundTerm& b) { return b.term->UsesTarget(); });
-      if (group && spec->amplification_threshold < kNoPoseMetric) {
-        const double dt = time_offset && time_offset0 ? *time_offset - *time_offset0 : 0.0;
-        metric = PoseMetricOf(StationReportPerPose(bound[i], stations[i], station_sigmas[0],
-                                                   station_sigmas[1], dt),
-                              spec->amplification_threshold);
-      }
+      const bool metric_used = group && spec->amplification_threshold < kNoPoseMetric;
       bool report = group;
       // A report in the other hemisphere than its reference (a Fastrak flip, -p) is a bad report,
       // not a fold of the model: in pose form it stays 2 |p| off, for a robust loss to reject. The
@@ -616,21 +608,27 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       // against 117, the plane 0.34 m away and 42 deg off, validation 0.153 mm against 0.062).
       const bool flipped =
           stations[i].reported.translation.dot(stations[i].reference.translation) < 0.0;
-      if (report && spec->amplification_threshold < kNoPoseMetric && held_forms) {
+      if (metric_used && held_forms) {
         report = (*held_forms)[i];
-      } else if (report && spec->amplification_threshold < kNoPoseMetric && flipped) {
+      } else if (metric_used && flipped) {
         report = false;
-      } else if (report && spec->amplification_threshold < kNoPoseMetric &&
-                 !(report_before && i < report_before->size() && (*report_before)[i]) &&
-                 group_correction) {
+      } else if (metric_used && !(report_before && i < report_before->size() &&
+                                  (*report_before)[i]) && group_correction) {
         const CorrectedPose runtime = group_correction->Apply(stations[i].reported);
         if (runtime.status == CorrectionStatus::kConverged) report = false;
       }
-      if (group && !report && spec->amplification_threshold < kNoPoseMetric) {
+      // The pose metric of a station in report form (PoseMetricOf); a chain without a physical
+      // group, and a station in pose form, is fitted exactly as its residual is.
+      PoseMetric metric;
+      if (metric_used && report) {
+        const double dt = time_offset && time_offset0 ? *time_offset - *time_offset0 : 0.0;
+        metric = PoseMetricOf(StationReportPerPose(bound[i], stations[i], station_sigmas[0],
+                                                   station_sigmas[1], dt),
+                              spec->amplification_threshold);
+      } else if (metric_used) {
         for (auto& b : bound[i]) {
           if (b.term->UsesTarget()) b.binding.pose_form = true;
         }
-        metric.k.reset();
       }
       out.report_form.push_back(report);
       out.noise_gain.push_back(metric.gain);
@@ -1862,7 +1860,8 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
     if (ok) {
       finish(train, &result);  // converged, or the best values after max_steps
     } else {
-      solver_refit(train, train_forms, &result);  // a step that could not lower the cost: the solver decides
+      // A step that could not lower the cost: the solver decides.
+      solver_refit(train, train_forms, &result);
     }
     result.seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - fold_start).count();

@@ -86,9 +86,9 @@ struct UnresolvedStation {
   CorrectionStatus status = CorrectionStatus::kNotConverged;
 };
 
-// A station whose pose the fitted model's inverse amplifies its report noise into beyond the
-// model's amplification_threshold: its pose metric was capped there (fit/pose_metric.h,
-// docs/model-file.md, `noise`).
+// A station in report form (the model's inverse did not resolve it during the fit) whose pose
+// metric was capped: the fitted model amplifies its report noise into the pose beyond the model's
+// amplification_threshold (fit/pose_metric.h, docs/model-file.md, `noise`).
 struct AmplifiedStation {
   int station = 0;
   double gain = 0.0;  // largest amplification of the report noise into the pose (1: none)
@@ -239,9 +239,9 @@ struct FoldRefitOptions {
   // solver.leave_out_unresolved): in no fold's training, still predicted by their fold's refit.
   std::vector<int> left_out;
   // The full fit's residual forms (FitResult::report_form, one per station): each fold keeps its
-  // stations' forms, so it minimises the full fit's objective over its training stations (a form
-  // chosen afresh at the full fit's values can differ: a station once in report form stays there
-  // during a fit). Empty: chosen afresh.
+  // stations' forms, those of the full fit's objective (a form chosen afresh at the full fit's
+  // values can differ: a station once in report form stays there during a fit; K is rebuilt at
+  // the full fit's values, within the 5 % its passes allow). Empty: chosen afresh.
   std::vector<bool> report_form;
   bool Check() const { return max_steps >= 1 && cost_tolerance > 0 && max_dense_parameters >= 0; }
 };

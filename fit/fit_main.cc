@@ -253,10 +253,11 @@ int RunFit(int argc, char** argv) {
     std::cout << "Left out of the fit: " << result.left_out_note << "\n";
   }
   if (!result.report_form_stations.empty()) {
-    // docs/fit.md, "The station residual through a physical group".
-    std::cout << "Residuals in report form (the model's inverse did not resolve the report): "
-              << result.report_form_stations.size() << " of " << result.report_form.size()
-              << " stations, " << result.noise_whitened.size() << " with a capped metric\n";
+    // docs/fit.md, "The station residual through a physical group": the stations the model's
+    // inverse did not resolve during the fit (every one at amplification_threshold >= 1e9).
+    std::cout << "Residuals in report form: " << result.report_form_stations.size() << " of "
+              << result.report_form.size() - result.left_out.size() << " fitted stations, "
+              << result.noise_whitened.size() << " with a capped pose metric\n";
   }
   PrintParameters(result, std::cout);
   std::cout << "Wrote " << output.string() << "\n";

@@ -144,9 +144,9 @@ struct ModelSpec {
   // A station whose residual runs through a physical group is fitted by its pose error: exactly
   // where the group's inverse resolves its report (the pose form); elsewhere (near a strong
   // object's fold) by its report's misfit under the pose metric (fit/pose_metric.h), whose
-  // amplification is capped at this. The noise above already
-  // holds the room's usual amplification (<= 1.3 in the paper room), hence 2; 1e9 or more puts
-  // every such station in report form without the metric (noise.amplification_threshold).
+  // amplification is capped at this. The noise above already holds the room's usual
+  // amplification (<= 1.3 in the paper room), hence 2; 1e9 or more puts every such station in
+  // report form without the metric (noise.amplification_threshold).
   double amplification_threshold = 2.0;
   // (position, orientation) sigmas of a station reported at `reported`.
   Eigen::Vector2d StationSigmas(const Rigid3d& reported) const;

@@ -434,12 +434,13 @@ void FitFerromagneticOnProtocol(uint64_t seed) {
         << l.stddev[static_cast<size_t>(k)] << ", truth " << t(k);
   }
   ExpectWithin3Sigma(a, {truth.polarisability_m3});
-  // The stations next to the fold zone are the ones whose pose metric is capped (six on seed
-  // 20010313, 0.29-0.32 m from the object): at least one, so the test exercises the cap.
+  // The fold zone's stations are in report form, and some of them get a capped pose metric (6-7
+  // per seed since session 22, the form chosen by the inverse alone): at least one, so the test
+  // exercises the cap.
   EXPECT_FALSE(fit.noise_whitened.empty());
   // The report form is for the fold zone only: every capped and every unresolved station is in it,
-  // and a station the fitted model resolves with little amplification is not, unless an earlier
-  // solve put it there (a station once in report form stays in it).
+  // and a station the fitted model resolves is not, unless an earlier solve put it there (a
+  // station once in report form stays in it).
   ASSERT_EQ(fit.report_form.size(), calibration.size());
   const std::set<int> report_form(fit.report_form_stations.begin(),
                                   fit.report_form_stations.end());
