@@ -208,19 +208,40 @@ def headline_scores(entry: dict) -> Tuple[float, float]:
     return float(s["position_mm"]["mean"]), float(s["orientation_deg"]["mean"])
 
 
+def headline_median_mm(entry: dict) -> float:
+    """The position median [mm] of the headline set (NaN when the record has none)."""
+    name = headline_set(entry)
+    if name is None:
+        return math.nan
+    value = entry["scores"][name]["position_mm"].get("median")
+    return float(value) if value is not None else math.nan
+
+
+def _change(now: float, before: Optional[float]) -> str:
+    if before is None or not before or math.isnan(before) or math.isnan(now):
+        return ""
+    return f"{100 * (now - before) / before:+.1f}%"
+
+
 def history_table(entries: Sequence[dict]) -> str:
     """Plain-text table: one row per fit with the headline error (``set``: which set's, held-out
-    first) and its change from the previous."""
+    first) and its change from the previous. The position median beside the mean: a few gross
+    errors no calibration can remove (hemisphere flips in the validation set) hold the mean up
+    while the median falls."""
     lines = [f"{'#':>3}  {'time (UTC)':<20}  {'label':<28} {'pos mean mm':>12} {'change':>8} "
-             f"{'ori mean deg':>13} {'change':>8}  {'set':<12}  model"]
+             f"{'median mm':>10} {'change':>8} {'ori mean deg':>13} {'change':>8}  {'set':<12}  model"]
     prev = None
     for i, e in enumerate(entries, 1):
         p, o = headline_scores(e)
-        dp = f"{100 * (p - prev[0]) / prev[0]:+.1f}%" if prev and prev[0] else ""
-        do = f"{100 * (o - prev[1]) / prev[1]:+.1f}%" if prev and prev[1] else ""
+        med = headline_median_mm(e)
+        dp = _change(p, prev[0] if prev else None)
+        dm = _change(med, prev[1] if prev else None)
+        do = _change(o, prev[2] if prev else None)
+        med_text = "" if math.isnan(med) else f"{med:.3f}"
         m = e.get("model") or {}
         model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
         lines.append(f"{i:>3}  {e.get('time_utc', ''):<20}  {str(e.get('label', ''))[:28]:<28} {p:>12.3f} "
-                     f"{dp:>8} {o:>13.3f} {do:>8}  {(headline_set(e) or '')[:12]:<12}  {model}")
-        prev = (p, o)
+                     f"{dp:>8} {med_text:>10} {dm:>8} {o:>13.3f} {do:>8}  "
+                     f"{(headline_set(e) or '')[:12]:<12}  {model}")
+        prev = (p, med, o)
     return "\n".join(lines)
