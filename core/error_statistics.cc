@@ -66,6 +66,62 @@ PoseErrorSummary SummarizePoseErrors(std::span<const Rigid3d> estimated,
   return {SummarizeErrors(position_mm), SummarizeErrors(orientation_deg)};
 }
 
+bool IsHemisphereFlip(const Eigen::Vector3d& reported_position,
+                      const Eigen::Vector3d& reference_position) {
+  return reported_position.dot(reference_position) < 0.0;
+}
+
+std::vector<int> HemisphereFlipsToLeaveOut(std::span<const Eigen::Vector3d> reported_positions,
+                                           std::span<const Eigen::Vector3d> reference_positions) {
+  if (reported_positions.size() != reference_positions.size()) {
+    throw std::invalid_argument("HemisphereFlipsToLeaveOut: " +
+                                std::to_string(reported_positions.size()) +
+                                " reported positions but " +
+                                std::to_string(reference_positions.size()) +
+                                " reference positions");
+  }
+  std::vector<int> flips;
+  for (size_t i = 0; i < reported_positions.size(); ++i) {
+    if (IsHemisphereFlip(reported_positions[i], reference_positions[i])) {
+      flips.push_back(static_cast<int>(i));
+    }
+  }
+  if (2 * flips.size() >= reported_positions.size()) flips.clear();
+  return flips;
+}
+
+Table1 MakeTable1(std::string set_name, std::span<const Rigid3d> reported,
+                  std::span<const Rigid3d> corrected, std::span<const Rigid3d> reference) {
+  if (reported.size() != reference.size() || corrected.size() != reference.size()) {
+    throw std::invalid_argument("MakeTable1: " + std::to_string(reported.size()) + " reported, " +
+                                std::to_string(corrected.size()) + " corrected and " +
+                                std::to_string(reference.size()) + " reference poses");
+  }
+  std::vector<Eigen::Vector3d> reported_positions, reference_positions;
+  for (size_t i = 0; i < reported.size(); ++i) {
+    reported_positions.push_back(reported[i].translation);
+    reference_positions.push_back(reference[i].translation);
+  }
+  const std::vector<int> flips = HemisphereFlipsToLeaveOut(reported_positions, reference_positions);
+  std::vector<Rigid3d> kept_reported, kept_corrected, kept_reference;
+  size_t next_flip = 0;
+  for (size_t i = 0; i < reported.size(); ++i) {
+    if (next_flip < flips.size() && flips[next_flip] == static_cast<int>(i)) {
+      ++next_flip;
+      continue;
+    }
+    kept_reported.push_back(reported[i]);
+    kept_corrected.push_back(corrected[i]);
+    kept_reference.push_back(reference[i]);
+  }
+  Table1 table;
+  table.set_name = std::move(set_name);
+  table.before = SummarizePoseErrors(kept_reported, kept_reference);
+  table.after = SummarizePoseErrors(kept_corrected, kept_reference);
+  table.flips_left_out = static_cast<int>(flips.size());
+  return table;
+}
+
 double ImprovementPercent(double before, double after) {
   return before > 0.0 ? 100.0 * (before - after) / before : 0.0;
 }
@@ -90,6 +146,13 @@ std::string FormatTable1(const Table1& t) {
   std::snprintf(line, sizeof(line), "%s set (%d poses)\n", t.set_name.c_str(),
                 t.before.position_mm.count);
   out += line;
+  if (t.flips_left_out > 0) {
+    std::snprintf(line, sizeof(line),
+                  "  %d more left out: reported in the other hemisphere than their reference "
+                  "(hemisphere flips)\n",
+                  t.flips_left_out);
+    out += line;
+  }
   block("Position error (mm)", t.before.position_mm, t.after.position_mm);
   block("Orientation error (deg)", t.before.orientation_deg, t.after.orientation_deg);
   return out;

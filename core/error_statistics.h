@@ -37,12 +37,35 @@ void ComputeErrorMagnitudes(std::span<const Rigid3d> estimated, std::span<const 
 PoseErrorSummary SummarizePoseErrors(std::span<const Rigid3d> estimated,
                                      std::span<const Rigid3d> reference);
 
+// A report in the other hemisphere than its reference (reported . reference < 0, positions in the
+// transmitter frame): the Fastrak's hemisphere ambiguity, which reports -p once the receiver
+// crosses the hemisphere's plane. No calibration corrects it: it stays 2 |p| off. The fit treats
+// such a station as a bad report (fit/fit_engine.cc BuildProblem), and the statistics leave it
+// out (HemisphereFlipsToLeaveOut).
+bool IsHemisphereFlip(const Eigen::Vector3d& reported_position,
+                      const Eigen::Vector3d& reference_position);
+
+// Indices of the hemisphere flips among the poses when they are fewer than half of them; none
+// otherwise: most reports in the other hemisphere is a wrong hemisphere setting (the Fastrak's H
+// command) or a wrong registration, which the statistics must show, not hide. Throws on sizes
+// that differ.
+std::vector<int> HemisphereFlipsToLeaveOut(std::span<const Eigen::Vector3d> reported_positions,
+                                           std::span<const Eigen::Vector3d> reference_positions);
+
 // The paper's Table 1 for one set: before (reported vs reference) and after (corrected vs reference).
 struct Table1 {
   std::string set_name;  // "calib", "valid", "cross-validation", ...
   PoseErrorSummary before;
   PoseErrorSummary after;
+  // Hemisphere flips left out of both columns (HemisphereFlipsToLeaveOut): a few gross reports
+  // that no calibration changes would otherwise dominate the mean, std and maximum.
+  int flips_left_out = 0;
 };
+
+// Table 1 of one set, the hemisphere flips of `reported` against `reference` left out of both
+// columns and counted in `flips_left_out`. The three spans are aligned; throws when they are not.
+Table1 MakeTable1(std::string set_name, std::span<const Rigid3d> reported,
+                  std::span<const Rigid3d> corrected, std::span<const Rigid3d> reference);
 
 // 100 * (before - after) / before; 0 when before is 0.
 double ImprovementPercent(double before, double after);

@@ -52,5 +52,48 @@ TEST(FormatTable1, PaperNumbers) {
   EXPECT_NE(s.find("76.6 %"), std::string::npos) << s;  // and its maximum
 }
 
+std::vector<Rigid3d> Positions(const std::vector<Eigen::Vector3d>& p) {
+  std::vector<Rigid3d> out;
+  for (const auto& x : p) out.emplace_back(Eigen::Quaterniond::Identity(), x);
+  return out;
+}
+
+// Three stations 0.5 m above the transmitter (z down) with 1 mm errors, and a hemisphere flip: the
+// report of the fourth is -p (1 m off), as a Fastrak gives when the receiver crosses the
+// hemisphere's plane.
+TEST(MakeTable1, LeavesOutHemisphereFlipsFromBothColumns) {
+  const auto reference = Positions({{0.1, 0, -0.5}, {0, 0.1, -0.5}, {-0.1, 0, -0.5}, {0, 0, -0.5}});
+  const auto reported =
+      Positions({{0.1, 0, -0.501}, {0, 0.1, -0.501}, {-0.1, 0, -0.501}, {0, 0, 0.5}});
+  const auto corrected = Positions({{0.1, 0, -0.5005}, {0, 0.1, -0.5005}, {-0.1, 0, -0.5005},
+                                    {0, 0, 0.5}});
+  const Table1 t = MakeTable1("valid", reported, corrected, reference);
+  EXPECT_EQ(t.flips_left_out, 1);
+  EXPECT_EQ(t.before.position_mm.count, 3);
+  EXPECT_EQ(t.after.position_mm.count, 3);
+  EXPECT_NEAR(t.before.position_mm.max, 1.0, 1e-9);  // the flip's 1000 mm is not the maximum
+  EXPECT_NEAR(t.after.position_mm.mean, 0.5, 1e-9);
+  const std::string s = FormatTable1(t);
+  EXPECT_NE(s.find("valid set (3 poses)"), std::string::npos) << s;
+  EXPECT_NE(s.find("1 more left out"), std::string::npos) << s;
+}
+
+TEST(MakeTable1, MostReportsFlippedAreShownNotLeftOut) {
+  // Every report in the other hemisphere: a wrong hemisphere setting, which the table must show.
+  const auto reference = Positions({{0.1, 0, -0.5}, {0, 0.1, -0.5}});
+  const auto reported = Positions({{-0.1, 0, 0.5}, {0, -0.1, 0.5}});
+  const Table1 t = MakeTable1("valid", reported, reported, reference);
+  EXPECT_EQ(t.flips_left_out, 0);
+  EXPECT_EQ(t.before.position_mm.count, 2);
+  EXPECT_NEAR(t.before.position_mm.mean, 2e3 * std::sqrt(0.26), 1e-9);  // 2 |p| each
+  EXPECT_EQ(FormatTable1(t).find("left out"), std::string::npos);
+  // Exactly half is not a minority either.
+  const std::vector<Eigen::Vector3d> half_reported = {{0.1, 0, -0.5}, {0, -0.1, 0.5}};
+  const std::vector<Eigen::Vector3d> half_reference = {{0.1, 0, -0.5}, {0, 0.1, -0.5}};
+  EXPECT_TRUE(HemisphereFlipsToLeaveOut(half_reported, half_reference).empty());
+  EXPECT_THROW(MakeTable1("valid", reported, reported, Positions({{0, 0, -0.5}})),
+               std::invalid_argument);
+}
+
 }  // namespace
 }  // namespace trackcal

@@ -1673,9 +1673,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       reported.push_back(s.reported);
       reference.push_back(s.reference);
     }
-    d.base.table1.set_name = "cross-validation (" + std::to_string(options.folds) + "-fold)";
-    d.base.table1.before = SummarizePoseErrors(reported, reference);
-    d.base.table1.after = SummarizePoseErrors(base_cv.corrected, reference);
+    d.base.table1 = MakeTable1("cross-validation (" + std::to_string(options.folds) + "-fold)",
+                               reported, base_cv.corrected, reference);
     d.base.cv_position_mm_mean = Mean(base_cv.position_mm);
     d.base.cv_orientation_deg_mean = Mean(base_cv.orientation_deg);
     d.base.seconds += base_cv_seconds;  // full fit and cross-validation

@@ -579,8 +579,9 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
     std::vector<std::vector<BoundTerm>> bound(stations.size());
     for (size_t i = 0; i < stations.size(); ++i) bound[i] = BindStation(*spec, stations[i]);
     // The group's runtime inverse at the current values (the model file allows one group, first).
+    // Held forms (a fold refit) decide every station's form without it.
     std::unique_ptr<Correction> group_correction;
-    if (!spec->terms.empty() && spec->terms[0]->UsesTarget()) {
+    if (!held_forms && !spec->terms.empty() && spec->terms[0]->UsesTarget()) {
       try {
         group_correction = spec->terms[0]->ToCorrection();
       } catch (const std::exception&) {
@@ -607,7 +608,7 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
       // floor plane and background fitted with the 3 flips in report form ended at cost 44
       // against 117, the plane 0.34 m away and 42 deg off, validation 0.153 mm against 0.062).
       const bool flipped =
-          stations[i].reported.translation.dot(stations[i].reference.translation) < 0.0;
+          IsHemisphereFlip(stations[i].reported.translation, stations[i].reference.translation);
       if (metric_used && held_forms) {
         report = (*held_forms)[i];
       } else if (metric_used && flipped) {
@@ -1878,11 +1879,7 @@ Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation
     corrected.push_back(chain.Apply(s.reported).pose);
     reference.push_back(s.reference);
   }
-  Table1 table;
-  table.set_name = set_name;
-  table.before = SummarizePoseErrors(reported, reference);
-  table.after = SummarizePoseErrors(corrected, reference);
-  return table;
+  return MakeTable1(set_name, reported, corrected, reference);
 }
 
 Table1 CrossValidate(const std::vector<FitStation>& stations,
@@ -1911,11 +1908,8 @@ Table1 CrossValidate(const std::vector<FitStation>& stations,
       reference.push_back(s.reference);
     }
   }
-  Table1 table;
-  table.set_name = "cross-validation (" + std::to_string(folds) + "-fold)";
-  table.before = SummarizePoseErrors(reported, reference);
-  table.after = SummarizePoseErrors(corrected, reference);
-  return table;
+  return MakeTable1("cross-validation (" + std::to_string(folds) + "-fold)", reported, corrected,
+                    reference);
 }
 
 namespace {
@@ -1932,6 +1926,7 @@ nlohmann::json NumberOrNull(double v) { return std::isfinite(v) ? nlohmann::json
 
 nlohmann::json Table1ToJson(const Table1& table) {
   return {{"set", table.set_name},
+          {"hemisphere_flips_left_out", table.flips_left_out},
           {"before", PoseSummaryToJson(table.before)},
           {"after", PoseSummaryToJson(table.after)},
           {"improvement_percent",

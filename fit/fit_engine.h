@@ -202,13 +202,15 @@ bool EvaluateStationResidual(const ModelSpec& spec, const FitStation& station,
                              std::vector<Eigen::MatrixXd>* jacobians,
                              std::optional<Eigen::Matrix<double, 6, 6>>* report_per_pose = nullptr);
 
-// Table 1 of the paper for one set: errors of the reported and of the corrected poses.
+// Table 1 of the paper for one set: errors of the reported and of the corrected poses, hemisphere
+// flips left out (core/error_statistics.h MakeTable1).
 Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,
                       const std::string& set_name);
 
 // k-fold cross-validation: station i goes to fold i % k (deterministic, stations in file order); each
 // fold is corrected by a model fitted on the others (made fresh by make_spec), and the errors of all
-// folds form one table "cross-validation (k-fold)". Throws if a training set is too small.
+// folds form one table "cross-validation (k-fold)" (MakeTable1: hemisphere flips left out). Throws
+// if a training set is too small.
 Table1 CrossValidate(const std::vector<FitStation>& stations,
                      const std::function<ModelSpec()>& make_spec, int folds,
                      const std::function<void(int)>& on_fold = {});

@@ -69,6 +69,18 @@ std::vector<Rigid3d> ToPoses(const py::handle& positions_obj, const py::handle& 
   return poses;
 }
 
+// Reads an (N, 3) array of positions; ValueError naming it otherwise.
+std::vector<Eigen::Vector3d> ToPositions(const py::handle& positions_obj, const std::string& name) {
+  const DoubleArray p = DoubleArray::ensure(positions_obj);
+  if (!p || p.ndim() != 2 || p.shape(1) != 3) {
+    PyErr_Clear();
+    throw py::value_error(name + ": positions must be (N, 3)");
+  }
+  std::vector<Eigen::Vector3d> out(p.shape(0));
+  for (py::ssize_t i = 0; i < p.shape(0); ++i) out[i] = {p.at(i, 0), p.at(i, 1), p.at(i, 2)};
+  return out;
+}
+
 py::dict SummaryToDict(const ErrorSummary& s) {
   py::dict d;
   d["count"] = s.count;
@@ -207,11 +219,29 @@ void BindCapture(py::module_& m) {
   m.def("improvement_percent", &ImprovementPercent, py::arg("before"), py::arg("after"));
 
   m.def(
+      "hemisphere_flips_to_leave_out",
+      [](const py::handle& reported, const py::handle& reference) {
+        const auto rep = ToPositions(reported, "reported");
+        const auto ref = ToPositions(reference, "reference");
+        if (rep.size() != ref.size()) {
+          throw py::value_error("hemisphere_flips_to_leave_out: " + std::to_string(rep.size()) +
+                                " reported but " + std::to_string(ref.size()) +
+                                " reference positions");
+        }
+        const std::vector<int> flips = HemisphereFlipsToLeaveOut(rep, ref);
+        return py::array_t<int>(flips.size(), flips.data());
+      },
+      py::arg("reported_positions"), py::arg("reference_positions"),
+      "Indices of the reports in the other hemisphere than their reference, when fewer than half "
+      "(core/error_statistics.h HemisphereFlipsToLeaveOut); empty otherwise.");
+
+  m.def(
       "format_table1",
       [](const std::string& set_name, const py::dict& before_pos, const py::dict& before_ori,
-         const py::dict& after_pos, const py::dict& after_ori) {
+         const py::dict& after_pos, const py::dict& after_ori, int flips_left_out) {
         Table1 t;
         t.set_name = set_name;
+        t.flips_left_out = flips_left_out;
         t.before.position_mm = SummaryFromDict(before_pos);
         t.before.orientation_deg = SummaryFromDict(before_ori);
         t.after.position_mm = SummaryFromDict(after_pos);
@@ -220,7 +250,9 @@ void BindCapture(py::module_& m) {
       },
       py::arg("set_name"), py::arg("before_position_mm"), py::arg("before_orientation_deg"),
       py::arg("after_position_mm"), py::arg("after_orientation_deg"),
-      "The paper's Table 1 layout from summarize_errors dicts.");
+      py::arg("flips_left_out") = 0,
+      "The paper's Table 1 layout from summarize_errors dicts; `flips_left_out` hemisphere flips "
+      "left out of them.");
 }
 
 }  // namespace trackcal::python
