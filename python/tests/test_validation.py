@@ -87,6 +87,86 @@ def test_breakdowns_partition_the_stations(tmp_path):
     assert tables["valid"].after_position_mm["mean"] < 0.5 * tables["valid"].before_position_mm["mean"]
 
 
+def test_hemisphere_flips_are_left_out_of_the_statistics_and_named(tmp_path):
+    """The simulator's hemisphere_flips: a few stations reported at -p, 2 |p| off whatever the
+    calibration. Both Table 1s (the fit's, C++, and validate's) leave them out of both columns and
+    say so; the breakdowns and the worst stations leave them out; the station rows name them."""
+    import json
+    out = simulate(tmp_path / "sim", seed=3, hidden="hemisphere_flips")
+    flipped = sorted(json.loads((out / "truth.json").read_text())["effective"]["hemisphere_flipped_stations"])
+    assert flipped, "the simulator's hemisphere_flips flipped no station"
+    cap = captures.load_poses(out)
+    report = trackcal.fit(cap, validation.polynomial_model(3))
+    v = validation.validate(cap, report.calibration, covariate_options={"n_permutations": 19})
+    assert sorted(v.flipped_stations) == flipped
+    # The covariate analysis ran on the stations left (each test counts them).
+    assert v.covariate_effects and all(e.count == len(v.capture) - len(flipped) for e in v.covariate_effects)
+    sets = {t.set_name: t for t in v.tables}
+    left_out = 0
+    for name in ("calib", "valid"):
+        n_set = int((v.capture.set == name).sum())
+        t = sets[name]
+        assert t.before_position_mm["count"] + t.hemisphere_flips_left_out == n_set
+        left_out += t.hemisphere_flips_left_out
+        # A flip is at least 2 x 0.35 m off (the paper's volume starts 0.35 m above the
+        # transmitter); the stations left are within centimetres before and millimetres after.
+        assert t.before_position_mm["max"] < 150.0 and t.after_position_mm["max"] < 150.0
+        assert ("more left out" in t.format()) == bool(t.hemisphere_flips_left_out)
+        # The fit's own table (core/error_statistics.cc MakeTable1, the same rule) agrees.
+        cpp = report.table(name)
+        assert cpp.hemisphere_flips_left_out == t.hemisphere_flips_left_out
+        assert cpp.after_position_mm["mean"] == pytest.approx(t.after_position_mm["mean"], rel=1e-9)
+    assert left_out == len(flipped)
+    assert sets["all"].hemisphere_flips_left_out == len(flipped)
+    assert sets["all"].to_dict()["hemisphere_flips_left_out"] == len(flipped)  # trackcal-fit's JSON name
+    assert sum(r["count"] for r in v.by_distance) == len(v.capture) - len(flipped)
+    assert sum(r["count"] for r in v.by_region) == len(v.capture) - len(flipped)
+    # The least-squares polynomial bends to the calibration set's flips, but the worst stations
+    # are those of the others.
+    assert len(v.worst) == 10 and not {w["station"] for w in v.worst} & set(flipped)
+    rows = {r["station"]: r for r in v.station_rows()}
+    assert sorted(s for s, r in rows.items() if r["flipped"]) == flipped
+
+
+def test_most_reports_flipped_are_shown_not_left_out(tmp_path):
+    """Every report in the other hemisphere (a wrong hemisphere setting): nothing is left out."""
+    cap = captures.load_poses(hand_capture(tmp_path))
+    cap.reported_positions = -cap.reported_positions
+    v = validation.validate(cap, None, analyse_covariates=False)
+    assert v.flipped_stations == [] and all(t.hemisphere_flips_left_out == 0 for t in v.tables)
+    assert {t.set_name: t for t in v.tables}["all"].before_position_mm["count"] == 4
+
+
+def test_each_set_decides_its_flips_and_every_statistic_leaves_out_the_same(tmp_path):
+    """8 calibration stations with 1 flip (left out) and 4 validation stations with 3 (most of
+    the set: a wrong setting, shown): the tables, the breakdowns and the worst stations agree."""
+    rng = np.random.default_rng(3)
+    n = 12
+    ref_p = np.column_stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-0.8, -0.4, n)])
+    rep_p = ref_p + rng.normal(0, 1e-3, (n, 3))
+    flip = np.zeros(n, bool)
+    flip[[2, 9, 10, 11]] = True
+    rep_p[flip] = -rep_p[flip]
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    cap = types.SimpleNamespace(station=np.arange(1, n + 1), set=["calib"] * 8 + ["valid"] * 4,
+                                sensor=np.ones(n, int), time=np.arange(n, dtype=float), reported_positions=rep_p,
+                                reported_quaternions_xyzw=q, reference_positions=ref_p, reference_quaternions_xyzw=q)
+    cap = captures.load_poses(write_poses(tmp_path / "poses.csv", cap))
+    assert validation.hemisphere_flips(rep_p[:8], ref_p[:8]).tolist() == flip[:8].tolist()
+    assert not validation.hemisphere_flips(rep_p[8:], ref_p[8:]).any()
+    v = validation.validate(cap, None, analyse_covariates=False)
+    assert v.flipped_stations == [3]
+    tables = {t.set_name: t for t in v.tables}
+    assert (tables["calib"].before_position_mm["count"], tables["calib"].hemisphere_flips_left_out) == (7, 1)
+    assert (tables["valid"].before_position_mm["count"], tables["valid"].hemisphere_flips_left_out) == (4, 0)
+    assert (tables["all"].before_position_mm["count"], tables["all"].hemisphere_flips_left_out) == (11, 1)
+    assert "1 more left out" in tables["calib"].format()  # the table without a correction says so too
+    assert "left out" not in tables["valid"].format()
+    assert sum(r["count"] for r in v.by_distance) == 11 and sum(r["count"] for r in v.by_region) == 11
+    # The valid set's three flips are shown: they top the worst stations; the calib flip is not there.
+    assert {w["station"] for w in v.worst[:3]} == {10, 11, 12} and 3 not in {w["station"] for w in v.worst}
+
+
 def test_cross_validation_held_out_is_worse_than_in_sample(tmp_path):
     cap = captures.load_poses(simulate(tmp_path / "sim", seed=12))
     cv = validation.cross_validate(cap, folds=5)

@@ -120,6 +120,12 @@ def _print_outside(term, v, limit: int = 20) -> None:
         ids = v.outside_stations
         msg += ": " + " ".join(str(i) for i in ids[:limit]) + (f" ... ({n_out - limit} more)" if n_out > limit else "")
     print(term.c(msg, "33") if n_out else msg)
+    flipped = v.flipped_stations
+    if flipped:
+        n = len(flipped)
+        print(term.c(f"hemisphere flips left out of the statistics (reported in the other hemisphere than "
+                     f"their reference): {n}: " + " ".join(str(i) for i in flipped[:limit])
+                     + (f" ... ({n - limit} more)" if n > limit else ""), "33"))
 
 
 def _write_residuals(args, v) -> None:
@@ -247,6 +253,7 @@ def cmd_validate(args, term) -> int:
             "capture_origin": v.capture.origin, "tables": [t.to_dict() for t in v.tables],
             "outside_volume": {"count": int(v.extrapolated.sum()), "of": int(len(v.extrapolated)),
                                "stations": v.outside_stations},
+            "hemisphere_flips": v.flipped_stations,
             "model_inverse": v.status_counts}), indent=2, allow_nan=False))
         return 0
     _print_origin(term, v.capture)

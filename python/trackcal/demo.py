@@ -356,7 +356,8 @@ def _record(work: Path, step: Step, data: Path) -> None:
     scores = {}
     for t in step.fit.get("tables", []):
         scores[str(t["set"])] = {"position_mm": t["after"]["position_mm"],
-                                 "orientation_deg": t["after"]["orientation_deg"]}
+                                 "orientation_deg": t["after"]["orientation_deg"],
+                                 "hemisphere_flips_left_out": int(t.get("hemisphere_flips_left_out", 0))}
     history.record_fit(work, model=step.model_path, data=_data_files(data), scores=scores,
                        label=step.label,
                        extra={"calibration": str(step.calibration_path),

@@ -405,6 +405,7 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
         "capture_origin": getattr(v.capture, "origin", None),
         "outside_volume": {"count": int(v.extrapolated.sum()), "of": int(len(v.extrapolated)),
                            "stations": v.outside_stations},
+        "hemisphere_flips": v.flipped_stations,
         "by_distance": v.by_distance,
         "by_region": v.by_region,
         "worst": v.worst,

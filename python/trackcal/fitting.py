@@ -33,7 +33,8 @@ Progress = Callable[[str, int, int], None]
 def _table1(d: dict):
     from trackcal.validation import Table1
     return Table1(d["set"], d["before"]["position_mm"], d["before"]["orientation_deg"],
-                  d["after"]["position_mm"], d["after"]["orientation_deg"])
+                  d["after"]["position_mm"], d["after"]["orientation_deg"],
+                  hemisphere_flips_left_out=int(d.get("hemisphere_flips_left_out", 0)))
 
 
 def _capture_from_dict(d: dict, path=None) -> PoseCapture:
@@ -131,7 +132,8 @@ class FitReport:
     def scores(self) -> Dict[str, dict]:
         """{set name: {"position_mm": summary, "orientation_deg": summary}} of the corrected poses
         (the history's scores)."""
-        return {t.set_name: {"position_mm": t.after_position_mm, "orientation_deg": t.after_orientation_deg}
+        return {t.set_name: {"position_mm": t.after_position_mm, "orientation_deg": t.after_orientation_deg,
+                             "hemisphere_flips_left_out": t.hemisphere_flips_left_out}
                 for t in self.tables}
 
     def save(self, path: PathLike, command_line: str = "") -> pathlib.Path:

@@ -184,7 +184,8 @@ def scores_from_validation(validation) -> Dict[str, dict]:
     out = {}
     for t in validation.tables:
         out[t.set_name] = {"position_mm": t.after_position_mm or t.before_position_mm,
-                           "orientation_deg": t.after_orientation_deg or t.before_orientation_deg}
+                           "orientation_deg": t.after_orientation_deg or t.before_orientation_deg,
+                           "hemisphere_flips_left_out": t.hemisphere_flips_left_out}
     return out
 
 
@@ -226,8 +227,8 @@ def _change(now: float, before: Optional[float]) -> str:
 def history_table(entries: Sequence[dict]) -> str:
     """Plain-text table: one row per fit with the headline error (``set``: which set's, held-out
     first) and its change from the previous. The position median beside the mean: a few gross
-    errors no calibration can remove (hemisphere flips in the validation set) hold the mean up
-    while the median falls."""
+    errors no calibration can remove hold the mean up while the median falls (hemisphere flips are
+    left out of the scores since session 23; records written before kept them)."""
     lines = [f"{'#':>3}  {'time (UTC)':<20}  {'label':<28} {'pos mean mm':>12} {'change':>8} "
              f"{'median mm':>10} {'change':>8} {'ori mean deg':>13} {'change':>8}  {'set':<12}  model"]
     prev = None

@@ -67,7 +67,10 @@ def _table1_html(t) -> str:
                 row["corrected"] = a[stat]
                 row["improvement %"] = 100.0 * (b[stat] - a[stat]) / b[stat] if b[stat] > 0 else 0.0
             rows.append(row)
-    return f"<h3>{html.escape(t.set_name)} ({t.before_position_mm['count']} stations)</h3>" + _table(rows)
+    n_flips = getattr(t, "hemisphere_flips_left_out", 0)
+    flips = f", {n_flips} more left out: reported in the other hemisphere than their reference" if n_flips else ""
+    return (f"<h3>{html.escape(t.set_name)} ({t.before_position_mm['count']} stations{flips})</h3>"
+            + _table(rows))
 
 
 STYLE = """
@@ -91,23 +94,27 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
                   candidates: Optional[dict] = None) -> List[tuple]:
     """[(file name, caption, Figure)] for a Validation."""
     import matplotlib.pyplot as plt  # noqa: F401  (figures configures Agg)
-    data = v.capture
+    from trackcal.validation import _sub
+    # Hemisphere flips (reported at -p, 2 |p| off) are left out of the figures as of the tables.
+    kept = ~v.flipped if v.flipped is not None else np.ones(len(v.capture), bool)
+    data = v.capture.subset(kept)
     dist = np.linalg.norm(data.reported_positions, axis=1)
-    after = v.after
+    before = _sub(v.before, kept)
+    after = _sub(v.after, kept) if v.after is not None else None
     figs = [
         ("fig4_position_error_vs_distance.png",
          "Figure 4: position error magnitude against distance from the transmitter, before (red) and "
          "after (blue) the correction, with binned means.",
-         F.error_vs_distance(dist, v.before.position_mm, after.position_mm if after else None,
+         F.error_vs_distance(dist, before.position_mm, after.position_mm if after else None,
                              quantity="position", unit="mm")),
         ("fig5_orientation_error_vs_distance.png",
          "Figure 5: orientation error angle against distance from the transmitter, before and after.",
-         F.error_vs_distance(dist, v.before.orientation_deg, after.orientation_deg if after else None,
+         F.error_vs_distance(dist, before.orientation_deg, after.orientation_deg if after else None,
                              quantity="orientation", unit="deg")),
         ("fig7_orientation_vectors_slice.png",
          "Figure 7: orientation error vectors (x, y components of the small-angle rotation, degrees) of "
          "the stations in a horizontal slab through the median height.",
-         F.orientation_vectors_slice(data.reported_positions, v.before.orientation,
+         F.orientation_vectors_slice(data.reported_positions, before.orientation,
                                      after_vectors=after.orientation if after else None)),
     ]
     if v.calibration is not None:
@@ -115,7 +122,7 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
                      "Figure 6: the calibration's position correction on the horizontal mid-plane of its "
                      "volume: magnitude as colour, x-y direction as streamlines.",
                      F.distortion_field(v.calibration)))
-    final = v.final
+    final = after if after is not None else before
     figs.append(("residual_map_position.png",
                  "Residual map: remaining position error per station (top and side views).",
                  F.residual_map(data.reported_positions, final.position_mm, title="Position residuals")))
@@ -177,6 +184,12 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     listed = (": " + html.escape(" ".join(str(i) for i in ids[:50])) + (f" ... ({n_out - 50} more)" if n_out > 50 else "")
               if n_out else "")
     parts.append(f"<p>Stations outside the calibrated volume: <b>{n_out}</b> of {len(v.extrapolated)}{listed}.</p>")
+    flipped = v.flipped_stations
+    if flipped:
+        parts.append(f"<p>Hemisphere flips (reported in the other hemisphere than their reference, 2 |p| off "
+                     f"whatever the calibration; left out of the statistics): <b>{len(flipped)}</b>: "
+                     f"{html.escape(' '.join(str(i) for i in flipped[:50]))}"
+                     f"{f' ... ({len(flipped) - 50} more)' if len(flipped) > 50 else ''}.</p>")
     parts.append("<h2>By distance from the transmitter</h2>" + _table(v.by_distance))
     parts.append("<h2>By region of the volume (octants)</h2>" + _table(v.by_region))
     parts.append("<h2>Worst stations</h2>" + _table(v.worst))

@@ -76,14 +76,21 @@ class Table1:
     before_orientation_deg: dict
     after_position_mm: Optional[dict] = None
     after_orientation_deg: Optional[dict] = None
+    # Hemisphere flips left out of every column (core/error_statistics.h HemisphereFlipsToLeaveOut;
+    # the same name as in trackcal-fit's JSON).
+    hemisphere_flips_left_out: int = 0
 
     def format(self) -> str:
         """The paper's layout (core/error_statistics.h FormatTable1); without a correction only the
         original errors."""
         if self.after_position_mm is not None and self.after_orientation_deg is not None:
             return _core.format_table1(self.set_name, self.before_position_mm, self.before_orientation_deg,
-                                       self.after_position_mm, self.after_orientation_deg)
+                                       self.after_position_mm, self.after_orientation_deg,
+                                       flips_left_out=self.hemisphere_flips_left_out)
         lines = [f"{self.set_name} set ({self.before_position_mm['count']} poses), no correction"]
+        if self.hemisphere_flips_left_out:
+            lines.append(f"  {self.hemisphere_flips_left_out} more left out: reported in the other "
+                         "hemisphere than their reference (hemisphere flips)")
         for title, s in (("Position error (mm)", self.before_position_mm),
                          ("Orientation error (deg)", self.before_orientation_deg)):
             lines.append(f"{title:<22} {'Original':>10}")
@@ -95,9 +102,28 @@ class Table1:
         return dataclasses.asdict(self)
 
 
-def table1(set_name: str, before: Residuals, after: Optional[Residuals] = None) -> Table1:
+def hemisphere_flips(reported_positions, reference_positions) -> np.ndarray:
+    """(N,) bool: the reports in the other hemisphere than their reference (a Fastrak's -p), when
+    they are fewer than half; all False otherwise, since most reports flipped is a wrong hemisphere
+    setting or registration that the statistics must show (core/error_statistics.h
+    HemisphereFlipsToLeaveOut)."""
+    reported_positions = np.asarray(reported_positions, dtype=float)
+    out = np.zeros(len(reported_positions), bool)
+    out[_core.hemisphere_flips_to_leave_out(reported_positions, reference_positions)] = True
+    return out
+
+
+def table1(set_name: str, before: Residuals, after: Optional[Residuals] = None,
+           flipped: Optional[np.ndarray] = None) -> Table1:
+    """Table 1 of one set; the stations ``flipped`` marks (hemisphere_flips) are left out of both
+    columns and counted."""
+    if flipped is not None and np.any(flipped):
+        keep = ~np.asarray(flipped, bool)
+        before = _sub(before, keep)
+        after = _sub(after, keep) if after is not None else None
     t = Table1(set_name, _core.summarize_errors(before.position_mm),
-               _core.summarize_errors(before.orientation_deg))
+               _core.summarize_errors(before.orientation_deg),
+               hemisphere_flips_left_out=int(np.count_nonzero(flipped)) if flipped is not None else 0)
     if after is not None:
         t.after_position_mm = _core.summarize_errors(after.position_mm)
         t.after_orientation_deg = _core.summarize_errors(after.orientation_deg)
@@ -345,6 +371,17 @@ class Validation:
     # converged, 1 ambiguous, 2 not_converged; trackcal.correction_status_names); all 0 without a
     # calibration or without a physical term.
     status: Optional[np.ndarray] = None
+    # Per station: reported in the other hemisphere than its reference (hemisphere_flips within its
+    # set). Left out of every table, the breakdowns, the worst stations, the covariate analysis
+    # and the report's figures.
+    flipped: Optional[np.ndarray] = None
+
+    @property
+    def flipped_stations(self) -> List[int]:
+        """Station ids reported in the other hemisphere than their reference (left out)."""
+        if self.flipped is None:
+            return []
+        return [int(s) for s in self.capture.station[self.flipped]]
 
     @property
     def status_counts(self) -> dict:
@@ -367,7 +404,8 @@ class Validation:
         position x, y, z [m] and distance, the error before (and after the calibration) as
         magnitudes (position mm, orientation deg) and vectors (position p_ref - p in mm,
         orientation the small-angle rotation vector of q_ref conj(q) in deg, transmitter frame),
-        outside (the calibrated volume) and status (of a physical term's model inverse)."""
+        outside (the calibrated volume), flipped (reported in the other hemisphere than its
+        reference) and status (of a physical term's model inverse)."""
         c = self.capture
         deg = 2.0 * 180.0 / np.pi
         distance = np.linalg.norm(c.reported_positions, axis=1)
@@ -387,6 +425,7 @@ class Validation:
                 for k, axis in enumerate("xyz"):
                     row[f"{name}_dr{axis}_deg"] = float(r.orientation[i, k] * deg)
             row["outside"] = bool(self.extrapolated[i])
+            row["flipped"] = bool(self.flipped[i]) if self.flipped is not None else False
             row["status"] = correction_status_names[int(self.status[i])] if self.status is not None else "converged"
             rows.append(row)
         return rows
@@ -439,7 +478,9 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
              corrected_poses: Optional[tuple] = None) -> Validation:
     """Applies ``calibration`` (a trackcal.Calibration or None) to the capture's reported poses and
     computes everything ``trackcal diagnose`` shows. Registration stations (set 'reg') are left out
-    of the breakdowns and the covariate analysis (they are not calibration data).
+    of the breakdowns and the covariate analysis (they are not calibration data). Hemisphere flips
+    (``hemisphere_flips``, decided within each set) are left out of the tables, the breakdowns, the
+    worst stations and the covariate analysis, and named in ``flipped_stations``.
 
     ``corrected_poses`` = (positions (N, 3), quaternions_xyzw (N, 4)), one per station of the
     capture, are corrected poses obtained elsewhere (a server's corrected stream): they are
@@ -463,15 +504,24 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
             raise ValueError(f"corrected_poses: expected ({len(data)}, 3) positions and ({len(data)}, 4) quaternions")
     if cp is not None:
         after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
+    # A hemisphere flip (-p) stays 2 |p| off whatever the calibration. Each set decides its own
+    # (fewer than half of it, as trackcal-fit's tables do); every table, the breakdowns, the worst
+    # stations and the covariate analysis leave out the same stations (named: flipped_stations).
+    flipped = np.zeros(len(data), bool)
+    for name in np.unique(data.set.astype(str)):
+        idx = data.set == name
+        flipped[idx] = hemisphere_flips(data.reported_positions[idx], data.reference_positions[idx])
     tables = []
     for s in sets:
         idx = data.set == s
         if idx.any():
-            tables.append(table1(s, _sub(before, idx), _sub(after, idx) if after is not None else None))
-    tables.append(table1("all", before, after))
+            tables.append(table1(s, _sub(before, idx), _sub(after, idx) if after is not None else None,
+                                 flipped[idx]))
+    tables.append(table1("all", before, after, flipped))
     final = after if after is not None else before
     distance = np.linalg.norm(data.reported_positions, axis=1)
-    order = np.argsort(-final.position_mm)[:worst_count]
+    kept = ~flipped
+    order = [i for i in np.argsort(-final.position_mm) if kept[i]][:worst_count]
     worst = [{"station": int(data.station[i]), "set": str(data.set[i]), "sensor": int(data.sensor[i]),
               "x": float(data.reported_positions[i, 0]), "y": float(data.reported_positions[i, 1]),
               "z": float(data.reported_positions[i, 2]), "distance": float(distance[i]),
@@ -483,13 +533,16 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
         centre = 0.5 * (np.asarray(calibration.volume_min) + np.asarray(calibration.volume_max))
     v = Validation(capture=data, calibration=calibration, corrected_positions=cp, corrected_quaternions_xyzw=cq,
                    extrapolated=np.asarray(extrapolated, bool), before=before, after=after, tables=tables,
-                   by_distance=distance_breakdown(distance, before, after),
-                   by_region=region_breakdown(data.reported_positions, before, after, centre), worst=worst,
-                   status=np.asarray(status, np.uint8))
+                   by_distance=distance_breakdown(distance[kept], _sub(before, kept),
+                                                  _sub(after, kept) if after is not None else None),
+                   by_region=region_breakdown(data.reported_positions[kept], _sub(before, kept),
+                                              _sub(after, kept) if after is not None else None, centre),
+                   worst=worst, status=np.asarray(status, np.uint8), flipped=flipped)
     if analyse_covariates:
         # Stations paired from streams carry their speed: their samples are serially correlated.
-        serial = data.time if serial_samples(data) else None
-        v.covariate_effects = covariate_analysis(final, covariates(data), progress=progress,
+        analysed = data.subset(kept) if flipped.any() else data
+        serial = analysed.time if serial_samples(analysed) else None
+        v.covariate_effects = covariate_analysis(_sub(final, kept), covariates(analysed), progress=progress,
                                                  serial_time=serial, **(covariate_options or {}))
     return v
 
