@@ -206,8 +206,6 @@ const std::vector<std::string> kTrackerStreamColumns = {"time", "sensor", "x",  
 const std::vector<std::string> kReferenceStreamColumns = {"time", "x",  "y",  "z",
                                                           "qw",   "qx", "qy", "qz"};
 
-bool IsKnownSet(const std::string& set) { return set == "calib" || set == "valid" || set == "reg"; }
-
 // ---- Writing. ----
 class CsvWriter {
  public:
@@ -274,6 +272,10 @@ class CsvWriter {
 };
 
 }  // namespace
+
+bool IsKnownSet(const std::string& set) {
+  return set == "calib" || set == "valid" || set == "reg";
+}
 
 std::string FormatNumber(double value) {
   std::array<char, 64> buf;
@@ -415,6 +417,13 @@ ReferenceStream ReadReferenceStream(const std::filesystem::path& path) {
     r.time = t.Number(row, "time");
     r.transmitter_from_body = t.Pose(row, "");
     r.extra = t.Extras(row);
+    // Pairing interpolates between neighbouring samples: a repeated or earlier time (a frame
+    // written twice, streams concatenated) is the file's error, named here by line.
+    if (!c.records.empty() && !(r.time > c.records.back().time)) {
+      t.Fail(row.line, "column time",
+             FormatNumber(r.time) + " is not after the previous sample's " +
+                 FormatNumber(c.records.back().time) + " (times must increase)");
+    }
     c.records.push_back(std::move(r));
   }
   return c;

@@ -26,6 +26,9 @@
 
 namespace trackcal {
 
+// True for the sets a capture's set column may name: calib, valid, reg.
+bool IsKnownSet(const std::string& set);
+
 // One paired static station: the tracker's report and the optical reference, both averaged.
 struct PoseRecord {
   int station = 0;            // station id, unique per capture

@@ -243,6 +243,18 @@ TEST(OtherCaptureFiles, RepeatedKeyIsAnErrorNamingBothLines) {
                 "station and sensor)");
 }
 
+TEST(OtherCaptureFiles, ReferenceStreamTimesMustIncrease) {
+  // A frame written twice: named by its line and column when read, not later by sample index.
+  const auto dir = MakeTempDir("capture_test");
+  WriteText(dir / kReferenceStreamCsv,
+            "time,x,y,z,qw,qx,qy,qz\n0.01,0,0,0,1,0,0,0\n\n0.02,0,0,0,1,0,0,0\n"
+            "0.02,0,0,0,1,0,0,0\n");
+  EXPECT_EQ(ErrorOf([&] { ReadReferenceStream(dir / kReferenceStreamCsv); }),
+            std::string(kReferenceStreamCsv) +
+                ":5: column time: 0.02 is not after the previous sample's 0.02 (times must "
+                "increase)");
+}
+
 TEST(FormatNumber, ShortestRoundTrip) {
   EXPECT_EQ(FormatNumber(0.1), "0.1");
   EXPECT_EQ(FormatNumber(-2.5e-7), "-2.5e-07");
