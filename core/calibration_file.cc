@@ -319,20 +319,35 @@ void WriteCalibrationFile(const std::filesystem::path& path, const Calibration& 
                                     input.path + "\" (same SHA-256)");
       }
     }
-    bool is_calibration = false;
-    try {
-      const nlohmann::json existing = nlohmann::json::parse(ReadFileToString(path));
-      is_calibration = existing.is_object() && existing.value("format", "") == kCalibrationFormat;
-    } catch (const std::exception&) {
-      is_calibration = false;
-    }
-    if (!is_calibration) {
-      throw std::invalid_argument(path.string() +
-                                  ": refusing to overwrite an existing file that is not a "
-                                  "trackcal calibration file");
-    }
   }
+  CheckCalibrationOutput(path);
   WriteFileAtomically(path, text);
+}
+
+void CheckCalibrationOutput(const std::filesystem::path& path) {
+  std::error_code ec;
+  const std::filesystem::path folder =
+      path.parent_path().empty() ? std::filesystem::path(".") : path.parent_path();
+  if (!std::filesystem::is_directory(folder, ec)) {
+    throw std::invalid_argument(path.string() + ": cannot write here: the folder " +
+                                folder.string() + " does not exist");
+  }
+  if (!std::filesystem::exists(path, ec)) return;
+  if (std::filesystem::is_directory(path, ec)) {
+    throw std::invalid_argument(path.string() + ": is a folder; give a file name");
+  }
+  bool is_calibration = false;
+  try {
+    const nlohmann::json existing = nlohmann::json::parse(ReadFileToString(path));
+    is_calibration = existing.is_object() && existing.value("format", "") == kCalibrationFormat;
+  } catch (const std::exception&) {
+    is_calibration = false;
+  }
+  if (!is_calibration) {
+    throw std::invalid_argument(path.string() +
+                                ": refusing to overwrite an existing file that is not a "
+                                "trackcal calibration file");
+  }
 }
 
 Provenance ParseProvenanceJson(const nlohmann::json& value, const std::string& source,

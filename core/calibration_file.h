@@ -70,6 +70,11 @@ std::string CalibrationToJsonText(const Calibration& calibration);
 // trackcal calibration file.
 void WriteCalibrationFile(const std::filesystem::path& path, const Calibration& calibration);
 
+// The checks WriteCalibrationFile can make before the calibration exists, for tools to call before
+// a long fit (so a bad -o fails in a second, not after the fit): the folder exists, and an existing
+// file at `path` is a trackcal calibration file. Throws std::invalid_argument naming the path.
+void CheckCalibrationOutput(const std::filesystem::path& path);
+
 // Reads a "provenance" object (as in the file) with errors naming `source` and `path`.
 Provenance ParseProvenanceJson(const nlohmann::json& value, const std::string& source,
                                const std::string& path);

@@ -190,6 +190,7 @@ int RunFit(int argc, char** argv) {
   inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
   if (args.values.count("--start")) inputs.push_back(args.Get("--start"));
   CheckOutputIsNotInput(output, inputs);
+  CheckCalibrationOutput(output);  // before the fit, not after it
 
   FitRunOptions options;
   options.folds = folds;
@@ -284,9 +285,16 @@ int RunBuild(int argc, char** argv) {
 
   builder.settings_yaml = ReadFileToString(settings_path);
   {
-    const YAML::Node root = YAML::Load(builder.settings_yaml);
+    YAML::Node root;
+    try {
+      root = YAML::Load(builder.settings_yaml);
+    } catch (const YAML::Exception& e) {
+      throw std::invalid_argument(settings_path.string() + ":" + std::to_string(e.mark.line + 1) +
+                                  ":" + std::to_string(e.mark.column + 1) +
+                                  ": YAML syntax error: " + e.msg);
+    }
     for (auto it = root.begin(); root.IsMap() && it != root.end(); ++it) {
-      if (it->first.as<std::string>() != "terms") continue;
+      if (!it->first.IsScalar() || it->first.Scalar() != "terms") continue;
       throw std::invalid_argument(settings_path.string() + ":" +
                                   std::to_string(it->first.Mark().line + 1) +
                                   ": terms: build chooses the terms itself; give only noise, "
@@ -301,10 +309,26 @@ int RunBuild(int argc, char** argv) {
   std::vector<fs::path> inputs = {settings_path};
   inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
   CheckOutputIsNotInput(output, inputs);
+  CheckCalibrationOutput(output);
   const std::optional<fs::path> model_out =
       args.values.count("--model-out") ? std::optional<fs::path>(args.Get("--model-out"))
                                        : std::nullopt;
-  if (model_out) CheckOutputIsNotInput(*model_out, inputs);
+  if (model_out) {
+    // A model file is the user's own text: never replaced (a hand-written model.yaml given here by
+    // mistake would be lost), and checked before the chain is built, not after.
+    CheckOutputIsNotInput(*model_out, inputs);
+    std::error_code ec;
+    if (fs::exists(*model_out, ec)) {
+      throw std::invalid_argument(model_out->string() +
+                                  ": --model-out: refusing to overwrite an existing file");
+    }
+    const fs::path folder =
+        model_out->parent_path().empty() ? fs::path(".") : model_out->parent_path();
+    if (!fs::is_directory(folder, ec)) {
+      throw std::invalid_argument(model_out->string() + ": --model-out: the folder " +
+                                  folder.string() + " does not exist");
+    }
+  }
 
   const std::vector<FitStation> calib = StationsOfSet(loaded.poses, "calib");
   if (calib.empty()) throw std::invalid_argument(loaded.source + ": no calib stations");
@@ -312,7 +336,7 @@ int RunBuild(int argc, char** argv) {
   FitOptions quick;
   quick.compute_covariance = false;
   const BuiltChain built = BuildChain(calib, builder, quick);
-  if (model_out) WriteFileAtomically(*model_out, built.model_text);
+  if (model_out) WriteFileAtomically(*model_out, built.model_text, /*overwrite=*/false);
 
   FitRunOptions options;
   options.folds = folds;
@@ -445,6 +469,9 @@ int RunPair(int argc, char** argv) {
   options.time_offset = ParseNumber("--time-offset", args.GetOr("--time-offset", "0"));
   options.estimate_time_offset = args.Flag("--estimate-time-offset");
   options.set = args.GetOr("--set", "calib");
+  if (!IsKnownSet(options.set)) {
+    throw UsageError("--set '" + options.set + "' is not one of calib, valid, reg");
+  }
   const auto result =
       PairStreams(ReadTrackerStream(tracker_path), ReadReferenceStream(reference_path), options);
   WritePoses(output, result.poses);
@@ -512,6 +539,9 @@ int RunRegister(int argc, char** argv) {
   std::map<int, std::string> set_of;
   std::map<int, double> time_of;
   const std::string default_set = args.GetOr("--set", "calib");
+  if (!IsKnownSet(default_set)) {
+    throw UsageError("--set '" + default_set + "' is not one of calib, valid, reg");
+  }
   if (labelled) {
     const fs::path poses_path = args.Get("--poses");
     for (const PoseRecord& r : ReadPoses(poses_path).records) {
@@ -532,6 +562,10 @@ int RunRegister(int argc, char** argv) {
     if (labelled && set_of[s.station] == "calib") calibration_stations.push_back(s);
   }
   if (registration_stations.empty()) {
+    if (!labelled) {  // every station registers: none was read
+      throw std::invalid_argument(markers_path.string() + ", " + tracker_path.string() +
+                                  ": no station has both marker and tracker rows");
+    }
     throw std::invalid_argument(args.Get("--poses") + ": no station of " +
                                 markers_path.filename().string() + " has set 'reg'");
   }

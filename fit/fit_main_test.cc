@@ -94,6 +94,23 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
                 " --quiet 2> /dev/null"),
             1);
   EXPECT_EQ(RunCommand(fit_ + " frobnicate 2> /dev/null"), 2);
+  // The output is checked before the fit: a missing folder, an existing file that is not a
+  // calibration (left as it was).
+  const std::string fit_to = fit_ + " fit --data " + (dir_ / "cap").string() + " --model " +
+                             (dir_ / "model.yaml").string() + " --quiet -o ";
+  EXPECT_EQ(RunCommand(fit_to + (dir_ / "no" / "c.json").string() + " 2> " + err.string()), 1);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("c.json: cannot write here: the folder"));
+  std::ofstream(dir_ / "notes.txt") << "my notes\n";
+  EXPECT_EQ(RunCommand(fit_to + (dir_ / "notes.txt").string() + " 2> " + err.string()), 1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("notes.txt: refusing to overwrite an existing file that is not "
+                                   "a trackcal calibration file"));
+  EXPECT_EQ(ReadFileToString(dir_ / "notes.txt"), "my notes\n");
+  // A set name no capture can hold is a usage error before any work.
+  EXPECT_EQ(RunCommand(fit_ + " pair --tracker a.csv --reference b.csv -o p.csv --set foo 2> " +
+                       err.string()),
+            2);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("--set 'foo' is not one of"));
 }
 
 // --start: a fit of a model with an added term starts at a previous fit's optimum (its --json
@@ -222,6 +239,23 @@ TEST_F(FitCliTest, BuildWritesTheChainAndTheModel) {
                        err.string()),
             1);
   EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("with_terms.yaml:1: terms:"));
+  // --model-out never replaces a file (a hand-written model given by mistake would be lost).
+  const std::string built_text = ReadFileToString(model);
+  EXPECT_EQ(RunCommand(fit_ + " build --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "settings.yaml").string() + " -o " + out.string() +
+                       " --model-out " + model.string() + " --quiet 2> " + err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("--model-out: refusing to overwrite an existing file"));
+  EXPECT_EQ(ReadFileToString(model), built_text);
+  // A syntax error in the settings names the file and line.
+  std::ofstream(dir_ / "broken.yaml") << "noise: {position_mm: 0.25\nsolver: {}\n";
+  EXPECT_EQ(RunCommand(fit_ + " build --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "broken.yaml").string() + " -o " + out.string() + " 2> " +
+                       err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("broken.yaml:"));
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("YAML syntax error"));
 }
 
 TEST_F(FitCliTest, PairJson) {

@@ -216,6 +216,9 @@ void BindCore(py::module_& m) {
       "descending power of x, then of y).");
   m.def("sha256_file", &Sha256HexOfFile, py::arg("path"),
         "Lower-case hex SHA-256 of a file (for provenance inputs).");
+  m.def("check_calibration_output", &CheckCalibrationOutput, py::arg("path"),
+        "Raises ValueError unless a calibration file can be written at path: its folder exists "
+        "and an existing file there is a trackcal calibration (checked before a long fit).");
 
   // pybind11 copies docstrings; these outlive the definitions anyway.
   const std::string term_correct_doc =
