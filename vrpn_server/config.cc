@@ -85,6 +85,9 @@ char ContinuationOf(std::string_view text) {
 class Parser {
  public:
   Parser(std::string_view text, const std::string& file_name) : file_name_(file_name) {
+    // A UTF-8 byte order mark (editors on Windows save one) would glue itself, invisible, to the
+    // first keyword and drop that device as unknown.
+    if (text.substr(0, 3) == "\xEF\xBB\xBF") text.remove_prefix(3);
     size_t start = 0;
     int number = 1;
     while (start < text.size()) {  // a final line end does not start another line

@@ -55,6 +55,17 @@ TEST(ParseVrpnConfig, ReferenceTranscriptFiles) {
   EXPECT_EQ(t.buttons[0].location.line, 5);
 }
 
+TEST(ParseVrpnConfig, ByteOrderMarkBeforeTheFirstDeviceIsIgnored) {
+  // Saved by a Windows editor: without stripping the mark, the first keyword is unknown and the
+  // device is dropped with a warning.
+  const VrpnConfig config = ParseVrpnConfig(
+      "\xEF\xBB\xBFvrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200\r\n", "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 1u);
+  EXPECT_EQ(config.fastrak_trackers[0].name, "Tracker0");
+  EXPECT_EQ(config.fastrak_trackers[0].location.line, 1);
+  EXPECT_TRUE(config.warnings.empty());
+}
+
 TEST(ParseVrpnConfig, ContinuationToleratesTrailingSpacesAndCrlf) {
   // The reference ends the continuation at a trailing space or CR; we must not.
   const std::string lf =
