@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <map>
 #include <sstream>
 #include <stdexcept>
 
@@ -23,6 +24,18 @@ YamlMapReader::YamlMapReader(YAML::Node node, std::string source, std::string pa
   if (!node_.IsMap()) {
     throw std::invalid_argument(MarkString(source_, node_.Mark()) + ": " + path_ +
                                 ": expected a mapping");
+  }
+  // yaml-cpp keeps every duplicate and answers node[key] with the first, so a second `noise:` or
+  // `terms:` would be dropped without a word.
+  std::map<std::string, YAML::Mark> seen;
+  for (const auto& item : node_) {
+    if (!item.first.IsScalar()) continue;
+    const auto [it, inserted] = seen.emplace(item.first.Scalar(), item.first.Mark());
+    if (!inserted) {
+      throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ + "." +
+                                  item.first.Scalar() + ": given twice (also at line " +
+                                  std::to_string(it->second.line + 1) + ")");
+    }
   }
 }
 

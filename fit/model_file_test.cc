@@ -71,6 +71,11 @@ TEST(ParseModelYaml, ErrorsNameFileLineAndField) {
   EXPECT_THAT(ErrorOf("terms: [{type: polynomial}]\nextra: 1\n"),
               HasSubstr("model.yaml:2:1: $.extra: unknown key"));
   EXPECT_THAT(ErrorOf("terms: [{type: polynomial\n"), HasSubstr("YAML syntax error"));
+  // A key given twice: yaml-cpp would read the first and drop the second silently.
+  EXPECT_THAT(ErrorOf("noise: {position_mm: 0.5}\nterms: [{type: polynomial}]\nnoise: {}\n"),
+              HasSubstr("model.yaml:3:1: $.noise: given twice (also at line 1)"));
+  EXPECT_THAT(ErrorOf("terms:\n  - {type: polynomial, degree: 2, degree: 4}\n"),
+              HasSubstr("$.terms[0].degree: given twice"));
   EXPECT_THAT(ErrorOf("loss: {type: l1}\nterms: [{type: polynomial}]\n"),
               HasSubstr("$.loss.type: unknown loss 'l1'"));
   EXPECT_THAT(ErrorOf("noise: {amplification_threshold: 0.5}\nterms: [{type: polynomial}]\n"),
