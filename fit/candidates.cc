@@ -596,11 +596,11 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     double sigma_deg = NAN;  // the normal's tangent-space stddev: two angles [rad]
     if (n->stddev.size() >= 2) sigma_deg = std::hypot(n->stddev[0], n->stddev[1]) * kDegPerRad;
     const ParameterReport normal = Derived(*n, n->block, "", n->values, {});
-    std::string out = "a conducting plane " + BlockStatement(*d, 1.0, "m") +
+    std::string out = std::string(a->values[0] >= 0 ? "a conducting" : "a permeable") +
+                      " plane " + BlockStatement(*d, 1.0, "m") +
                       " from the transmitter along the normal " + BlockStatement(normal, 1.0, "");
     if (std::isfinite(sigma_deg)) out += " +- " + FormatNumber(sigma_deg, 2) + " deg";
-    return out + ", attenuation " + BlockStatement(*a, 1.0, "") +
-           (a->values[0] >= 0 ? " (conducting)" : " (permeable)");
+    return out + ", attenuation " + BlockStatement(*a, 1.0, "");
   }
   if (type == "background_field") {
     const ParameterReport* c = FindBlock(p, "coefficients");
@@ -608,13 +608,21 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     // The uniform part (core/field.h BackgroundBasis: the first 3 coefficients of each coil) as
     // a fraction of the transmitter's field at 1 m on a coil's equator (k = 1 in these units).
     const size_t n = c->values.size() / 3;
-    std::vector<double> uniform;
+    // Its stddev to first order from the coefficients' own (their correlations are not in the
+    // report, so it is left out when one is missing).
+    const bool has_stddev = c->stddev.size() == c->values.size();
+    std::vector<double> uniform, uniform_stddev;
     for (size_t j = 0; j < 3; ++j) {
-      double sq = 0;
-      for (size_t k = 0; k < 3 && k < n; ++k) sq += c->values[j * n + k] * c->values[j * n + k];
+      double sq = 0, var = 0;
+      for (size_t k = 0; k < 3 && k < n; ++k) {
+        const double v = c->values[j * n + k];
+        sq += v * v;
+        if (has_stddev) var += v * v * c->stddev[j * n + k] * c->stddev[j * n + k];
+      }
       uniform.push_back(std::sqrt(sq));
+      if (has_stddev) uniform_stddev.push_back(sq > 0 ? std::sqrt(var / sq) : NAN);
     }
-    const ParameterReport u = Derived(*c, "uniform_part", "", uniform, {});
+    const ParameterReport u = Derived(*c, "uniform_part", "", uniform, uniform_stddev);
     return "distant sources: a smooth background field (" + std::to_string(c->values.size()) +
            " harmonic coefficients), uniform part " + BlockStatement(u, 1e3, "") +
            " x 1e-3 of the transmitter's field at 1 m (x, y, z coils)";
@@ -2651,6 +2659,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         << " %, delta BIC " << FormatNumber(c.delta_bic, 1)
         << "), but its fit does not identify the source (" << c.evidence.Describe()
         << "), so it is not claimed: source not identified. ";
+      d.unexplained_structure = true;
     }
     // A robust fit's errors far beyond the rest, but among neighbours as bad: where to look.
     for (const auto& c : d.candidates) {
@@ -2666,6 +2675,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         flexible = &f;
     }
     if (flexible) {
+      d.unexplained_structure = true;
       v << "The structure that remains is real: a flexible " << flexible->effect
         << " term lowers the held-out error by " << FormatNumber(flexible->drop_position_percent, 1)
         << " % (position) and " << FormatNumber(flexible->drop_orientation_percent, 1)
@@ -2676,6 +2686,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     } else if (const Candidate* held_out = FlexibleWithHeldOutGain(d, options)) {
       // Held-out data still prefer the flexible term, but BIC does not support its parameters:
       // structure may remain that no catalog effect explains; say so rather than "nothing".
+      d.unexplained_structure = true;
       v << "A flexible " << held_out->effect << " term still lowers the held-out error by "
         << FormatNumber(held_out->drop_position_percent, 1) << " % (position) and "
         << FormatNumber(held_out->drop_orientation_percent, 1)
@@ -2773,7 +2784,8 @@ nlohmann::json Diagnosis::ToJson() const {
       {"replaces", verdict_effect && !candidates.empty() && !candidates.front().replaces.empty()
                        ? nlohmann::json(candidates.front().replaces)
                        : nlohmann::json()},
-      {"text", verdict_text}};
+      {"text", verdict_text},
+      {"unexplained_structure", unexplained_structure}};
   return {{"command", "diagnose"},
           {"model", model},
           {"data", data},

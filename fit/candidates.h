@@ -308,6 +308,10 @@ struct Diagnosis {
   double p_threshold = 0.0;          // family_alpha / number of candidates tested
   std::optional<std::string> verdict_effect;  // top significant candidate
   std::string verdict_text;
+  // No candidate is claimed, but held-out data show structure the model lacks (a candidate that
+  // fits it without identifying its source, or a flexible term that lowers the held-out error):
+  // the verdict says so rather than "nothing". In --json as verdict.unexplained_structure.
+  bool unexplained_structure = false;
   double seconds = 0.0;
   // Streams: the clock offset they were paired at (reference minus tracker [s]; set by the caller,
   // who paired them: the model's joint estimate when it frees the offset, fit/fit_run.h

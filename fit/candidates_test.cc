@@ -133,6 +133,7 @@ TEST(DiagnoseCandidates, NothingIsClaimedWhenTheModelFits) {
     }
     EXPECT_FALSE(d.verdict_effect.has_value());
     EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("No catalog effect explains"));
+    EXPECT_FALSE(d.unexplained_structure) << seed << ": " << d.verdict_text;
     // Nor is a flexible term: there is no structure left.
     ASSERT_EQ(d.flexible.size(), 1u);
     EXPECT_FALSE(d.flexible[0].significant) << seed << ": " << d.flexible[0].reason;
@@ -157,6 +158,8 @@ terms:
   EXPECT_LT(quiet.base.chi2_per_dof, 0.05);
   EXPECT_THAT(quiet.verdict_text, ::testing::HasSubstr("far below 1"));
   EXPECT_THAT(quiet.verdict_text, ::testing::Not(::testing::HasSubstr("within its noise model")));
+  EXPECT_FALSE(quiet.unexplained_structure);
+  EXPECT_EQ(quiet.ToJson()["verdict"]["unexplained_structure"], false);
 
   // A small quadratic distortion (per-axis rms ~0.08 mm against 0.1 mm noise) that no catalog
   // entry of TestOptions() (a constant offset, a robust loss) can fit: the flexible degree-3
@@ -178,6 +181,9 @@ terms:
   EXPECT_GT(d.flexible[0].drop_position_percent, 5.0);
   EXPECT_THAT(d.verdict_text, ::testing::HasSubstr("still lowers the held-out error"));
   EXPECT_THAT(d.verdict_text, ::testing::Not(::testing::HasSubstr("nothing is missing")));
+  // The flag scripts (and trackcal diagnose's verdict) read instead of the wording.
+  EXPECT_TRUE(d.unexplained_structure);
+  EXPECT_EQ(d.ToJson()["verdict"]["unexplained_structure"], true);
 }
 
 TEST(DiagnoseCandidates, HemisphereFlipsCallForTheRobustLoss) {
