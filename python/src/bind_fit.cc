@@ -351,10 +351,12 @@ void WritePosesChecked(const fs::path& path, const PoseCapture& poses,
 // exception is kept and re-raised after the run (the ranking cannot be interrupted in between).
 nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource& model, int folds,
                                       const std::vector<std::string>& effects,
-                                      const py::object& progress) {
+                                      int cross_validate_top, const py::object& progress) {
   fit::CandidateOptions options;
   options.folds = folds;
   options.effects = effects;
+  if (cross_validate_top < 0) throw py::value_error("cross_validate_top must be >= 0");
+  options.cross_validate_top = cross_validate_top;
   std::unique_ptr<py::error_already_set> error;
   if (!progress.is_none()) {
     options.progress = [&progress, &error](const std::string& message) {
@@ -452,16 +454,22 @@ void BindFit(py::module_& m) {
   m.def(
       "diagnose_candidates",
       [](const py::object& data, const py::object& model, int folds,
-         const std::optional<std::vector<std::string>>& effects, const py::object& progress) {
+         const std::optional<std::vector<std::string>>& effects, int cross_validate_top,
+         const py::object& progress) {
         const DataSource source = ResolveData(data);
         const ModelSource model_source = ValueErrors([&] { return ResolveModel(model); });
-        return JsonToPython(DiagnoseCandidatesJson(
-            source, model_source, folds, effects.value_or(std::vector<std::string>{}), progress));
+        return JsonToPython(DiagnoseCandidatesJson(source, model_source, folds,
+                                                   effects.value_or(std::vector<std::string>{}),
+                                                   cross_validate_top, progress));
       },
       py::arg("data"), py::arg("model"), py::kw_only(), py::arg("folds") = 5,
-      py::arg("effects") = py::none(), py::arg("progress") = py::none(),
+      py::arg("effects") = py::none(),
+      py::arg("cross_validate_top") = fit::CandidateOptions().cross_validate_top,
+      py::arg("progress") = py::none(),
       "Ranks the catalog effects the model lacks (fit/candidates.h): the document of "
-      "`trackcal-fit diagnose --json` as a dict. progress(message) gets the ranking's messages.");
+      "`trackcal-fit diagnose --json` as a dict. cross_validate_top N > 0 cross-validates only "
+      "the N candidates with the best BIC (0: every one). progress(message) gets the ranking's "
+      "messages.");
 #endif
 
   m.def(

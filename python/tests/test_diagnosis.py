@@ -106,6 +106,23 @@ def test_verdict_nothing_significant():
         diagnosis.verdict(None, TEMPERATURE)["text"]
 
 
+def test_verdict_keeps_the_rankings_word_on_structure_it_cannot_place():
+    # The engine found held-out structure no candidate identifies: "nothing significant remains"
+    # would hide it, so its verdict is kept (and a covariate finding still comes first).
+    quiet = [CovariateEffect("x", "position_mm", 0.01, 0.3, False, 600)]
+    doc = contract_b_doc(False)
+    text = ("No catalog effect explains the remaining structure. A dipole_pair term fits structure "
+            "that is there (held-out position error falls 12.9 %, delta BIC -40.2), but its fit "
+            "does not identify the source (...), so it is not claimed: source not identified. ")
+    doc["verdict"] = {"effect": None, "replaces": None, "text": text, "unexplained_structure": True}
+    v = diagnosis.verdict(doc, quiet)
+    assert v["source"] == "unidentified" and v["effect"] is None and v["model_change"] is None
+    assert v["text"] == text
+    assert diagnosis.verdict(doc, TEMPERATURE)["source"] == "covariate"
+    doc["verdict"]["unexplained_structure"] = False
+    assert diagnosis.verdict(doc, quiet)["text"] == "nothing significant remains"
+
+
 def test_verdict_names_a_flexible_fallback_when_no_covariate_explains():
     doc = contract_b_doc(False)
     doc["flexible_fallback"] = [{"effect": "polynomial", "significant": True, "model_change": "- type: polynomial\n",
@@ -221,6 +238,27 @@ def test_diagnose_json_carries_the_notes_the_text_prints(tmp_path):
     assert "catalog effects not tested: give --model to rank them" in run_cli(*args).stdout
 
 
+def test_diagnose_without_a_validation_set_shows_the_fits_held_out_table(tmp_path):
+    # Every station calib: the calibration's "after" is in-sample, so the model's fit is
+    # cross-validated (as `trackcal fit` does) and its held-out table shown.
+    cap = simulate(tmp_path / "capture", seed=71)
+    poses = cap / "poses.csv" if cap.is_dir() else cap
+    lines = poses.read_text().splitlines()
+    col = lines[0].split(",").index("set")
+    rows = [line.split(",") for line in lines[1:]]
+    for r in rows:
+        r[col] = "calib" if r[col] == "valid" else r[col]
+    only = tmp_path / "calib_only.csv"
+    only.write_text("\n".join([lines[0]] + [",".join(r) for r in rows]) + "\n")
+    model = tmp_path / "model.yaml"
+    model.write_text(MODEL)
+    doc = json.loads(run_cli("diagnose", only, "--model", model, "--json", "--permutations", "9",
+                             "--effects", "sensor_offset", "--folds", "2").stdout)
+    names = [t["set_name"] for t in doc["tables"]]
+    assert names[0] == "calib" and "valid" not in names
+    assert any(n.startswith("cross-validation") for n in names), names
+
+
 def test_diagnose_json_is_one_document_with_everything(tmp_path):
     cap = simulate(tmp_path / "capture", seed=71)
     model = tmp_path / "model.yaml"
@@ -234,6 +272,8 @@ def test_diagnose_json_is_one_document_with_everything(tmp_path):
     assert doc["command"] == "diagnose" and doc["model"] == str(model)
     assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all"]
     assert doc["fit"]["converged"] is True  # the model was fitted (no -c given)
+    assert doc["fit"]["parameters"][0]["term"] and doc["fit"]["parameters"][0]["values"]
+    assert set(doc["model_inverse"]) >= {"ambiguous", "not_converged"}
     assert len(doc["worst"]) == 10 and doc["verdict"]["text"]
     if diagnosis.candidates_available():
         assert doc["candidates"]["command"] == "diagnose"

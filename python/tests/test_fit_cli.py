@@ -105,3 +105,13 @@ def test_fit_errors_exit_2_and_keep_inputs(capture_dir, tmp_path):
     r = run_cli("fit", "--data", data, "--model", model, "-o", tmp_path / "c.json", check=False)
     assert r.returncode == 2 and "model.yaml:3:" in r.stderr and "degree" in r.stderr
     assert not (tmp_path / "c.json").exists()
+    # The output is checked before the fit: a missing folder, an existing file that is not a
+    # calibration (kept as it was).
+    model.write_text(POLY)
+    r = run_cli("fit", "--data", data, "--model", model, "-o", tmp_path / "no" / "c.json", check=False)
+    assert r.returncode == 2 and "cannot write here: the folder" in r.stderr
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    r = run_cli("fit", "--data", data, "--model", model, "-o", notes, check=False)
+    assert r.returncode == 2 and "not a trackcal calibration file" in r.stderr
+    assert notes.read_text() == "my notes\n"

@@ -201,6 +201,7 @@ def cmd_fit(args, term) -> int:
     import trackcal
     from trackcal import history
     folds = args.folds if args.folds is not None else (0 if _has_valid_set(args.data) else 5)
+    trackcal._core.check_calibration_output(args.output)  # a bad -o fails now, not after the fit
     report = trackcal.fit(args.data, args.model, folds=folds, progress=term.stage_progress())
     report.save(args.output, command_line="trackcal " + " ".join(sys.argv[1:]))
     entry = None
@@ -272,13 +273,25 @@ def _diagnosis(args, term):
     from trackcal.validation import validate
     model = getattr(args, "model", None)
     fit_report = None
+    # Registered markers: the model is fitted and ranked on the references they give, the ones the
+    # statistics use, not on a labelling poses.csv's (streams are paired at the fit's offset below).
+    registered = _load(args) if getattr(args, "register_markers", False) else None
+    data = registered[0] if registered else args.capture
     if model and not args.calibration:
-        fit_report = trackcal.fit(args.capture, model, progress=term.stage_progress())
-    capture, cal = _load(args, fit_report)
+        # Without a validation set the "after" errors are in-sample: the fit's cross-validation
+        # gives the held-out table, as `trackcal fit` does (unless --cross-validate asks for one).
+        held_out = 0 if getattr(args, "cross_validate", 0) or _has_valid_set(args.capture) else 5
+        fit_report = trackcal.fit(data, model, folds=held_out, progress=term.stage_progress())
+    if registered:
+        capture, cal = registered[0], registered[1] or (fit_report.calibration if fit_report else None)
+    else:
+        capture, cal = _load(args, fit_report)
     covariates = not getattr(args, "no_covariates", False)
     v = validate(capture, cal, analyse_covariates=covariates,
                  covariate_options={"n_permutations": args.permutations, "seed": args.seed} if covariates else None,
                  progress=term.progress("covariates") if covariates else None)
+    if fit_report is not None:
+        v.tables.extend(t for t in fit_report.tables if t.set_name.startswith("cross-validation"))
     if getattr(args, "cross_validate", 0):
         from trackcal.validation import cross_validate
         v.tables.append(cross_validate(capture, model=model, folds=args.cross_validate))
@@ -287,7 +300,8 @@ def _diagnosis(args, term):
     if model:
         if diagnosis.candidates_available():
             effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
-            doc = diagnosis.diagnose_candidates(args.capture, model, folds=args.folds, effects=effects,
+            doc = diagnosis.diagnose_candidates(data, model, folds=args.folds, effects=effects,
+                                                cross_validate_top=args.cross_validate_top,
                                                 progress=term.message_progress())
             term.end_progress()
         else:
@@ -364,7 +378,7 @@ def cmd_diagnose(args, term) -> int:
                 print(term.c(f"     {r['reason']}", "2"))
     for n in notes:
         print("\n" + term.c("note: ", "33") + n)
-    print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], "32" if verdict["source"] is None else "31"))
+    print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], {None: "32", "unidentified": "33"}.get(verdict["source"], "31")))
     if change is not None:
         print("\n" + term.c("Model-file change", "1") +
               f" ({change['place']}):")
@@ -449,6 +463,9 @@ def build_parser() -> argparse.ArgumentParser:
                                         "and the catalog effects it lacks are ranked")
         sp.add_argument("--folds", type=int, default=5, help="cross-validation folds of the candidate ranking")
         sp.add_argument("--effects", help="comma-separated catalog effects to try (default: all)")
+        sp.add_argument("--cross-validate-top", type=int, default=3, metavar="N",
+                        help="cross-validate only the N candidates with the best BIC; the others are "
+                             "reported screened out, never significant (0: every one; default 3)")
 
     sp = sub.add_parser("diagnose", help="compare and see where it fails: breakdowns, worst stations, covariates, "
                                          "candidate effects and the verdict")

@@ -246,29 +246,28 @@ def run_fit(data: Path, model: Path, calibration: Path, log: Path, folds: int = 
 
 
 def run_diagnose(data: Path, model: Path, log: Path, folds: int = 5,
-                 cross_validate_top: int = 0) -> dict:
+                 cross_validate_top: int = 3) -> dict:
     """The ranked candidates (contract B's JSON document as a dict). ``cross_validate_top`` N > 0
-    cross-validates only the N candidates with the best BIC (the others cannot be significant)."""
+    cross-validates only the N candidates with the best BIC (the others cannot be significant), 0
+    every one; 3 is the ranking's own default."""
     f = _python_diagnose()
     if f is not None:
         kwargs = {"folds": folds}
-        if cross_validate_top:
-            try:
-                params = inspect.signature(f).parameters
-            except (TypeError, ValueError):
-                params = {}
-            if "cross_validate_top" in params:
-                kwargs["cross_validate_top"] = cross_validate_top
-            else:
-                f = None  # the in-process ranking cannot screen: the command line can
+        try:
+            params = inspect.signature(f).parameters
+        except (TypeError, ValueError):
+            params = {}
+        if "cross_validate_top" in params:
+            kwargs["cross_validate_top"] = cross_validate_top
+        elif cross_validate_top != 3:
+            f = None  # this in-process ranking cannot take the option: the command line can
         if f is not None:
             doc = f(str(data), str(model), **kwargs)
             _write_new(log, json.dumps(doc, indent=1, default=str) + "\n")
             return doc
     cmd = [_tool("trackcal-fit"), "diagnose", "--data", str(data), "--model", str(model),
            "--folds", str(folds), "--json", "--quiet"]
-    if cross_validate_top:
-        cmd += ["--cross-validate-top", str(cross_validate_top)]
+    cmd += ["--cross-validate-top", str(cross_validate_top)]
     out = _run(cmd, echo=False)
     _write_new(log, out)
     return json.loads(out)
@@ -400,7 +399,7 @@ def _final_cost(doc: dict) -> float:
 
 
 def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int = DEFAULT_MAX_STEPS,
-                     folds: int = 5, cross_validate_top: int = 0, record: bool = True,
+                     folds: int = 5, cross_validate_top: int = 3, record: bool = True,
                      say: Callable[[str], None] = print) -> List[Step]:
     """The workflow of docs/understand.md, "The main job": fit the base model, diagnose, add the
     top significant candidate to the model file, refit, and repeat until the diagnosis finds nothing

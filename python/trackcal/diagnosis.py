@@ -6,7 +6,8 @@
   ranks them by held-out error (the C++ ranking of fit/candidates.h, in process).
 - :func:`verdict` combines the two analyses: the top significant candidate when there is one;
   otherwise, when a covariate explains residual structure, "no catalog effect explains the remaining
-  structure; it follows covariate X (R^2 ..)"; otherwise "nothing significant remains".
+  structure; it follows covariate X (R^2 ..)"; otherwise the ranking's word on structure it
+  finds but cannot place; otherwise "nothing significant remains".
 - :func:`apply_model_change` applies a candidate's ``model_change`` to the model text (the exact
   model-file edit to make; used by ``trackcal diagnose`` and the main job's loop),
   :func:`diagnosis_document` assembles everything ``trackcal diagnose --json`` prints.
@@ -31,7 +32,8 @@ def candidates_available() -> bool:
 
 
 def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[str]] = None,
-                        progress: Optional[Callable[[str], None]] = None) -> CandidatesDoc:
+                        progress: Optional[Callable[[str], None]] = None,
+                        cross_validate_top: int = 3) -> CandidatesDoc:
     """The ranking of candidate effects as a dict (the JSON document of ``trackcal-fit diagnose
     --json``): ``base`` (the model's own scores), ``candidates`` (best first: effect, model_change,
     insert_index, cross-validated errors, cv_drop_percent, delta_bic, p_value, significant, reason,
@@ -39,11 +41,16 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
 
     ``data``: capture folder, poses.csv or PoseCapture; ``model``: path or YAML text; ``effects``:
     restrict the catalog to these term types (None: all); ``progress(message)`` receives the
-    ranking's progress messages ("fitting dipole (fold 3/5)")."""
+    ranking's progress messages ("fitting dipole (fold 3/5)"); ``cross_validate_top`` N > 0
+    cross-validates only the N candidates with the best BIC (the others are reported screened
+    out, never significant), 0 every one (docs/diagnose.md, Speed)."""
     if not candidates_available():
         raise NotImplementedError("this trackcal build has no candidate ranking (fit/candidates.h); "
                                   "the covariate analysis (trackcal diagnose) still works")
-    kwargs = {"folds": folds, "effects": list(effects) if effects else None}
+    if cross_validate_top < 0:
+        raise ValueError("cross_validate_top must be >= 0")
+    kwargs = {"folds": folds, "effects": list(effects) if effects else None,
+              "cross_validate_top": cross_validate_top}
     if progress is not None:
         kwargs["progress"] = progress
     return _core.diagnose_candidates(data, model, **kwargs)
@@ -93,9 +100,13 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     Without a significant candidate or covariate, a significant flexible fallback of the ranking
     (a polynomial appended to the model: structure in position that no catalog effect has) is named.
 
-    Returns {"source": "candidate" | "covariate" | "flexible" | None, "effect", "covariate", "text",
-    "model_change", "insert_index", "replaces"} ("replaces": the term a replacement takes the
-    place of, else None)."""
+    Without those either, the engine's verdict when it finds held-out structure that no candidate
+    identifies (``verdict.unexplained_structure``: a term that fits it without placing its
+    source, a flexible term's held-out gain) is kept as it is, source "unidentified".
+
+    Returns {"source": "candidate" | "covariate" | "flexible" | "unidentified" | None, "effect",
+    "covariate", "text", "model_change", "insert_index", "replaces"} ("replaces": the term a
+    replacement takes the place of, else None)."""
     rows = covariate_findings(covariate_effects)
     top = top_candidate(candidates_doc)
     out = {"source": None, "effect": None, "covariate": rows[0]["covariate"] if rows else None,
@@ -122,6 +133,13 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
                         f"{flexible.get('effect', 'term')} lowers the held-out error"
                         + (f" by {drop:.1f} %" if isinstance(drop, (int, float)) else "") + ")",
                    model_change=flexible.get("model_change"), insert_index=flexible.get("insert_index"))
+        return out
+    engine = (candidates_doc or {}).get("verdict") or {}
+    if engine.get("unexplained_structure") and engine.get("text"):
+        # Held-out data show structure no candidate identifies (a term that fits it without
+        # placing its source, a flexible term's held-out gain BIC does not pay for): the engine's
+        # verdict says what and where; "nothing" would hide it.
+        out.update(source="unidentified", text=engine["text"])
         return out
     out["text"] = ("nothing significant remains" if candidates_doc is not None
                    else "nothing significant remains in the covariates (catalog effects not tested)")
@@ -406,6 +424,7 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
         "outside_volume": {"count": int(v.extrapolated.sum()), "of": int(len(v.extrapolated)),
                            "stations": v.outside_stations},
         "hemisphere_flips": v.flipped_stations,
+        "model_inverse": v.status_counts,
         "by_distance": v.by_distance,
         "by_region": v.by_region,
         "worst": v.worst,
@@ -414,7 +433,9 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
         "covariate_findings": covariate_findings(v.covariate_effects),
         "fit": None if fit_report is None else {"tables": [t.to_dict() for t in fit_report.tables],
                                                 "converged": fit_report.converged,
-                                                "chi2_per_dof": fit_report.chi2_per_dof},
+                                                "chi2_per_dof": fit_report.chi2_per_dof,
+                                                "parameters": (fit_report.to_dict().get("fit") or {})
+                                                .get("parameters")},
         "candidates": candidates_doc,
         "verdict": verdict_ if verdict_ is not None else verdict(candidates_doc, v.covariate_effects),
         "model_change": model_change,
