@@ -54,6 +54,26 @@ def test_load_pairs_streams_and_keeps_their_speed(sim):
     assert est.origin["time_offset_source"] == "estimated" and abs(est.origin["time_offset_s"]) < 5e-3
 
 
+def test_stream_extra_columns_become_covariates_of_the_paired_stations(sim, tmp_path):
+    # A temperature logged beside every tracker sample: each paired station carries it at its time,
+    # as a poses.csv's extra column would be.
+    _, streams, _ = sim
+    folder = tmp_path / "logged"
+    folder.mkdir()
+    shutil.copy(streams / "reference_stream.csv", folder / "reference_stream.csv")
+    lines = (streams / "tracker_stream.csv").read_text().splitlines()
+    time_col = lines[0].split(",").index("time")
+    out = [lines[0] + ",temperature"]
+    for line in lines[1:]:
+        out.append(f"{line},{20.0 + 0.1 * float(line.split(',')[time_col]):.6f}")
+    (folder / "tracker_stream.csv").write_text("\n".join(out) + "\n")
+    cap = captures.load(folder, time_offset=0.0)
+    assert cap.extra_columns == ["temperature"]
+    # Paired samples are tracker samples: the value is the one logged at that time (linear in it).
+    np.testing.assert_allclose(cap.extra[:, 0], 20.0 + 0.1 * cap.time, atol=1e-6)
+    assert "temperature" in validation.covariates(cap)
+
+
 def test_capture_folder_without_any_capture_names_what_it_looked_for(tmp_path):
     with pytest.raises(ValueError, match="not a capture folder .*tracker_stream.csv"):
         captures.load(tmp_path)

@@ -130,7 +130,8 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
     - ``tracker_stream.csv`` + ``reference_stream.csv``: paired by time (``trackcal.pair``, first
       sensor of the stream) at ``time_offset`` [s] (t_reference - t_tracker), or, when it is None,
       at an offset estimated within +-``search_range`` s; every paired sample is a station of set
-      ``calib`` and carries its speed (``speed``, a covariate of the diagnosis);
+      ``calib`` and carries its speed (``speed``, a covariate of the diagnosis) and the tracker
+      stream's extra columns at its time;
     - ``markers.csv`` + ``tracker.csv`` (raw optical markers): registered (``trackcal.register``,
       paper section 3; ``register_options`` are its keyword options) and every station's reference
       pose extracted. With ``register_markers`` this is done even when the folder has a poses.csv,
@@ -161,6 +162,16 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
         first = int(cap.sensor[0]) if len(cap) else int(stream.sensor[0])
         own = stream.sensor == first
         cap.speed = np.interp(cap.time, stream.time[own], stream.speed()[own])
+        # The tracker stream's extra columns (a logged temperature, a device's state) at the paired
+        # samples' times, so the diagnosis tests them as covariates as it does a poses.csv's.
+        names, columns = list(cap.extra_columns), [cap.extra[:, k] for k in range(len(cap.extra_columns))]
+        for k, name in enumerate(stream.extra_columns):
+            if name not in names and len(cap) and own.sum() >= 1:
+                names.append(name)
+                columns.append(np.interp(cap.time, stream.time[own], stream.extra[own, k]))
+        if len(names) > len(cap.extra_columns):
+            cap.extra_columns = names
+            cap.extra = np.column_stack(columns).astype(float)
         cap.path = p / STREAM_FILES[0]
         cap.origin = {"kind": "streams", "files": [str(p / n) for n in STREAM_FILES],
                       "time_offset_s": float(result.time_offset_s),
