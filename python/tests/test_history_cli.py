@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+import trackcal
 from trackcal import captures, history, validation
 from understand_support import simulate
 
@@ -133,3 +134,27 @@ def test_validate_records_history(tmp_path):
 def trackcal_sha(path):
     import hashlib
     return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def test_validate_history_leaves_out_the_cross_validation_of_another_model(tmp_path):
+    """`validate -c cal.json --cross-validate K --workdir W` cross-validates the default polynomial,
+    not cal.json: on a capture without a valid set that table must not become cal.json's headline."""
+    from trackcal import cli
+    sim = simulate(tmp_path / "sim", seed=44)
+    cap_dir = tmp_path / "capture"
+    cap_dir.mkdir()
+    lines = (sim / "poses.csv").read_text().splitlines(keepends=True)
+    (cap_dir / "poses.csv").write_text("".join(l for l in lines if ",valid," not in l))
+    cap = captures.load_poses(cap_dir)
+    assert "valid" not in cap.sets
+    cal = tmp_path / "r1.json"
+    validation.fit_polynomial(cap.select_set("calib"), degree=1).save(cal)
+    work = tmp_path / "work"
+    assert cli.main(["validate", str(cap_dir), "-c", str(cal), "--workdir", str(work),
+                     "--cross-validate", "2"]) == 0
+    (e,) = history.load_history(work)
+    assert sorted(e["scores"]) == ["all", "calib"]
+    assert history.headline_set(e) == "all"
+    v = validation.validate(cap, trackcal.Calibration.load(cal), analyse_covariates=False)
+    expected = {t.set_name: t for t in v.tables}["all"].after_position_mm["mean"]
+    assert history.headline_scores(e)[0] == pytest.approx(expected)

@@ -442,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     common(sp, covariates=False)
     sp.add_argument("--json", action="store_true",
                     help="print one JSON document (tables, outside-volume stations, capture origin) instead of text")
-    sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl")
+    sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl (not the "
+                                      "--cross-validate table: that is another fit's)")
     sp.add_argument("--label", help="what changed in this fit (history label; default: file name)")
     def model_args(sp):
         sp.add_argument("--model", help="model file (docs/model-file.md): fitted when no -c is given, "

@@ -180,9 +180,14 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
 
 def scores_from_validation(validation) -> Dict[str, dict]:
     """Table 1 summaries of a trackcal.validation.Validation, keyed by set (the 'after' numbers
-    when it has a calibration, else the 'before' ones)."""
+    when it has a calibration, else the 'before' ones). A cross-validation table appended to it
+    (``trackcal validate --cross-validate``) is left out: trackcal.validation.cross_validate refits
+    a model (by default the polynomial), so its errors are not this calibration's, and the history
+    would show them first (``headline_set`` prefers held-out sets)."""
     out = {}
     for t in validation.tables:
+        if t.set_name.startswith("cross-validation"):
+            continue
         out[t.set_name] = {"position_mm": t.after_position_mm or t.before_position_mm,
                            "orientation_deg": t.after_orientation_deg or t.before_orientation_deg,
                            "hemisphere_flips_left_out": t.hemisphere_flips_left_out}
