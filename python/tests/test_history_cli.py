@@ -158,3 +158,34 @@ def test_validate_history_leaves_out_the_cross_validation_of_another_model(tmp_p
     v = validation.validate(cap, trackcal.Calibration.load(cal), analyse_covariates=False)
     expected = {t.set_name: t for t in v.tables}["all"].after_position_mm["mean"]
     assert history.headline_scores(e)[0] == pytest.approx(expected)
+
+
+def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys):
+    from trackcal import cli
+    cap = tmp_path / "capture"
+    cap.mkdir()
+    data = cap / "poses.csv"
+    data.write_text("x\n")
+    model = tmp_path / "model.json"
+    model.write_text("{}\n")
+    work = tmp_path / "work"
+    s = {"valid": {"position_mm": {"mean": 10.0}, "orientation_deg": {"mean": 2.0}}}
+    history.record_fit(work, model=model, data=[(data, "calibration_capture")], scores=s, label="a")
+    hist = (work / "history.jsonl").read_bytes()
+    other = tmp_path / "notes.txt"
+    other.write_text("mine\n")
+    capsys.readouterr()
+    for target, why in ((work / "history.jsonl", "refusing to overwrite an input"),
+                        (data, "refusing to overwrite an input"),
+                        (model, "refusing to overwrite an input"),
+                        (other, "exists and is not a .png file"),
+                        (tmp_path, "is a folder")):
+        assert cli.main(["history", str(work), "--plot", str(target)]) == 2, target
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {target}: {why}"), err
+    assert (work / "history.jsonl").read_bytes() == hist
+    assert data.read_text() == "x\n" and model.read_text() == "{}\n" and other.read_text() == "mine\n"
+    # A new file, and an earlier figure (a .png) replaced.
+    for target in (tmp_path / "plot", tmp_path / "h.png", tmp_path / "h.png"):
+        assert cli.main(["history", str(work), "--plot", str(target)]) == 0
+        assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

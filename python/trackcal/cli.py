@@ -387,6 +387,7 @@ def cmd_report(args, term) -> int:
 
 
 def cmd_history(args, term) -> int:
+    from trackcal import history
     from trackcal.history import history_table, load_history
     entries = load_history(args.workdir)
     if not entries:
@@ -395,7 +396,16 @@ def cmd_history(args, term) -> int:
     print(history_table(entries))
     if args.plot:
         from trackcal import figures
-        figures.save_png(figures.history_plot(entries), args.plot)
+        work = pathlib.Path(args.workdir)
+        inputs = [work / history.HISTORY_FILE]  # and every file the fits name: never drawn over
+        for e in entries:
+            m = e.get("model") or {}
+            names = [m.get("path"), (e.get("calibration") or {}).get("path")]
+            names += [d.get("path") for d in e.get("data") or [] if isinstance(d, dict)]
+            inputs += [p for p in names if isinstance(p, str)]
+            if isinstance(m.get("copy"), str):
+                inputs.append(work / m["copy"])
+        figures.save_png(figures.history_plot(entries), args.plot, inputs=inputs)
         print(f"wrote {args.plot}")
     return 0
 
@@ -474,7 +484,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true", help="print trackcal-fit's --json document instead of text")
     sp = sub.add_parser("history", help="error after each recorded fit of a work folder")
     sp.add_argument("workdir")
-    sp.add_argument("--plot", help="write the history plot to this PNG")
+    sp.add_argument("--plot", help="write the history plot to this PNG (replaces only a .png file, never "
+                                   "the history or a file it names)")
     sp = sub.add_parser("record", help="record live raw and corrected streams from a VRPN server")
     sp.add_argument("--device", action="append", required=True,
                     help="LABEL=Tracker0@tcp://host:port (repeat: e.g. raw=... corrected=...)")

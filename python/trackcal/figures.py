@@ -27,9 +27,20 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def save_png(fig, path, dpi: int = 110) -> pathlib.Path:
-    """Writes fig as PNG atomically (temporary file in the same folder, then rename)."""
+def save_png(fig, path, dpi: int = 110, inputs: Sequence = ()) -> pathlib.Path:
+    """Writes fig as PNG atomically (temporary file in the same folder, then rename). Replaces only
+    a file named .png (an earlier figure): refuses any other existing file (a capture, a history)
+    and any of ``inputs``, as the report does."""
     path = pathlib.Path(path)
+    for p in inputs:
+        if p is not None and pathlib.Path(p).resolve() == path.resolve():
+            raise ValueError(f"{path}: refusing to overwrite an input")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give the PNG file to write")
+    if path.suffix.lower() != ".png":  # never replaced, even if it appears while the figure is drawn
+        from trackcal._files import write_new
+        return write_new(path, png_bytes(fig, dpi),
+                         "exists and is not a .png file; a figure replaces only an earlier PNG")
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
