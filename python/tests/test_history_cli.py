@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 import trackcal
@@ -189,3 +190,34 @@ def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys
     for target in (tmp_path / "plot", tmp_path / "h.png", tmp_path / "h.png"):
         assert cli.main(["history", str(work), "--plot", str(target)]) == 0
         assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_refuses_unusable_outputs_up_front_in_one_line(tmp_path, capsys):
+    """An output that cannot be written is refused before the work (the capture here does not even
+    exist: the output is checked first), and a file the system refuses is one 'error:' line."""
+    from trackcal import cli
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    missing = tmp_path / "no-capture"
+    cases = [(["report", missing, "-o", afile], f"error: -o {afile}: exists and is not a folder"),
+             (["report", missing, "-o", afile / "sub"],
+              f"error: -o {afile / 'sub'}: {afile} is not a folder"),
+             (["record", "--device", "raw=Nope@tcp://127.0.0.1:9", "--duration", "1", "-o", afile],
+              f"error: -o {afile}: exists and is not a folder"),
+             (["validate", missing, "-c", missing, "--workdir", afile],
+              f"error: --workdir {afile}: exists and is not a folder"),
+             (["diagnose", missing, "--permutations", "-1"], "error: --permutations -1: must be 0 or more"),
+             (["report", missing, "-o", tmp_path / "r", "--permutations", "-5"],
+              "error: --permutations -5: must be 0 or more")]
+    (tmp_path / "work" / "history.jsonl").mkdir(parents=True)  # an OSError: a folder where a file goes
+    cases.append((["history", tmp_path / "work"],
+                  f"error: {tmp_path / 'work' / 'history.jsonl'}: Is a directory"))
+    for argv, line in cases:
+        assert cli.main([str(a) for a in argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert err == line + "\n", (argv, err)
+    assert afile.read_text() == "mine\n" and not (tmp_path / "r").exists()
+    p, q = np.zeros((30, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (30, 1))
+    with pytest.raises(ValueError, match="n_permutations -1: must be 0 or more"):
+        validation.covariate_analysis(validation.residuals(p, q, p, q), {"x": np.arange(30.0)},
+                                      n_permutations=-1)

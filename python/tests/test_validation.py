@@ -209,7 +209,8 @@ def test_residuals_never_replace_a_file_that_appears_while_they_are_written(tmp_
     out.write_text("someone else's file\n")
     real_exists = pathlib.Path.exists
     # The file appears after every existence check the writer may make.
-    monkeypatch.setattr(pathlib.Path, "exists", lambda self, *a, **k: False if self == out else real_exists(self))
+    monkeypatch.setattr(pathlib.Path, "exists",
+                        lambda self, *a, **k: False if self == out else real_exists(self))
     with pytest.raises(ValueError, match="residuals.csv: exists; residuals are never written over"):
         v.write_residuals(out)
     monkeypatch.undo()

@@ -445,7 +445,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="write every station's residuals (before/after, vectors, outside flag) to this "
                              "new CSV file")
         if covariates:
-            sp.add_argument("--permutations", type=int, default=199, help="permutations per covariate test")
+            sp.add_argument("--permutations", type=int, default=199,
+                            help="permutations per covariate test (0 or more)")
             sp.add_argument("--seed", type=int, default=0)
 
     sp = sub.add_parser("validate", help="Table 1 before/after for the calibration and validation sets")
@@ -494,6 +495,41 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _check_folder(path, option: str, write: bool) -> None:
+    """``path`` must be a folder, or (written) one that can be made: checked before the work."""
+    p = pathlib.Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{option} {p}: exists and is not a folder")
+    if not write:
+        return
+    base = p
+    while not base.exists():  # the nearest existing folder the missing ones are made in
+        base = base.parent
+    if not base.is_dir():
+        raise ValueError(f"{option} {p}: {base} is not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ValueError(f"{option} {p}: {base} is not writable")
+
+
+def _check_args(args) -> None:
+    """What can be refused before any work (a long fit, a covariate analysis, a recording)."""
+    if getattr(args, "permutations", 0) < 0:  # would make p-values negative: everything significant
+        raise ValueError(f"--permutations {args.permutations}: must be 0 or more")
+    if args.command in ("report", "record"):
+        _check_folder(args.output, "-o", write=True)
+    if getattr(args, "workdir", None):
+        _check_folder(args.workdir, "--workdir" if args.command != "history" else "work folder",
+                      write=args.command in ("fit", "validate"))
+
+
+def _os_error_text(e: OSError) -> str:
+    """'<file>: <reason>' of an OSError (PermissionError, IsADirectoryError, ...)."""
+    if e.filename is None or not e.strerror:
+        return str(e)
+    names = f"{e.filename}" + (f" -> {e.filename2}" if e.filename2 is not None else "")
+    return f"{names}: {e.strerror}"
+
+
 COMMANDS = {"fit": cmd_fit, "validate": cmd_validate, "diagnose": cmd_diagnose, "report": cmd_report,
             "history": cmd_history, "record": cmd_record}
 
@@ -502,14 +538,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     term = Terminal()
     try:
+        _check_args(args)
         return COMMANDS[args.command](args, term)
-    except (ValueError, KeyError, RuntimeError, FileNotFoundError, NotImplementedError) as e:
+    except (ValueError, KeyError, RuntimeError, NotImplementedError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(term.c("error: ", "31") + str(msg), file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
+    except OSError as e:  # a file the system refuses (missing, a folder, no permission): one line
+        print(term.c("error: ", "31") + _os_error_text(e), file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -244,6 +244,8 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     covariate circularly along time against the residuals (by 10-90 % of the samples), which keeps
     both series' serial structure and breaks only their alignment.
     """
+    if n_permutations < 0:  # p = (1 + count) / (n_permutations + 1) would be negative: all significant
+        raise ValueError(f"n_permutations {n_permutations}: must be 0 or more")
     targets = {
         "position_mm": residuals_.position_mm[:, None],
         "position_vector": residuals_.position * 1e3,
