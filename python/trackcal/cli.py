@@ -1,7 +1,8 @@
 """The ``trackcal`` command: fit, validate, diagnose, report, history, record (docs/understand.md).
 
 Colour and progress bars only when the stream is a terminal. User errors exit with status 2 and a
-one-line message naming the file, line and column (from the C++ readers).
+one-line message naming the file, line and column (from the C++ readers). Ctrl-C exits with status
+130 (``record`` first saves what it recorded).
 """
 
 from __future__ import annotations
@@ -419,9 +420,18 @@ def cmd_record(args, term) -> int:
         label, name = spec.split("=", 1)
         devices[label] = name
     out = record_streams(devices, args.output, args.duration, progress=term.progress("recording"))
+    if out.interrupted:
+        term.end_progress()
     for label, p in out.items():
         print(f"{label}: wrote {p}")
-    return 0
+    if not out.interrupted:
+        return 0
+    for label in out.empty:
+        print(f"{label}: no report before the interruption, nothing written")
+    started = bool(out or out.empty)
+    print("recording interrupted (Ctrl-C)"
+          + ("" if started else " before every device had connected: nothing recorded"), file=sys.stderr)
+    return 130
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -487,7 +497,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("workdir")
     sp.add_argument("--plot", help="write the history plot to this PNG (replaces only a .png file, never "
                                    "the history or a file it names)")
-    sp = sub.add_parser("record", help="record live raw and corrected streams from a VRPN server")
+    sp = sub.add_parser("record", help="record live raw and corrected streams from a VRPN server",
+                        description="Record live raw and corrected streams from a VRPN server. Ctrl-C ends "
+                                    "the recording early: what was recorded is saved and the exit status is "
+                                    "130.")
     sp.add_argument("--device", action="append", required=True,
                     help="LABEL=Tracker0@tcp://host:port (repeat: e.g. raw=... corrected=...)")
     sp.add_argument("--duration", type=float, required=True, help="seconds")
@@ -550,6 +563,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     except OSError as e:  # a file the system refuses (missing, a folder, no permission): one line
         print(term.c("error: ", "31") + _os_error_text(e), file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: no traceback (record saves what it recorded first)
+        term.end_progress()
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
