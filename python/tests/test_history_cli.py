@@ -221,3 +221,58 @@ def test_cli_refuses_unusable_outputs_up_front_in_one_line(tmp_path, capsys):
     with pytest.raises(ValueError, match="n_permutations -1: must be 0 or more"):
         validation.covariate_analysis(validation.residuals(p, q, p, q), {"x": np.arange(30.0)},
                                       n_permutations=-1)
+
+
+GOOD = {"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}}
+
+
+@pytest.mark.parametrize("line, field, what", [
+    ('{"scores": []}', "scores", "expected an object of sets, got a list"),
+    ('{"scores": {"valid": 3}}', "scores.valid", "expected an object with position_mm"),
+    ('{"scores": {"valid": {"orientation_deg": {"mean": 1}}}}', "scores.valid.position_mm", "missing"),
+    ('{"scores": {"valid": {"position_mm": [1], "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm", "expected an object with mean"),
+    ('{"scores": {"valid": {"position_mm": {"std": 1}, "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm.mean", "missing"),
+    ('{"scores": {"valid": {"position_mm": {"mean": "1.2"}, "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm.mean", "expected a number, got a string"),
+    ('{"scores": {"valid": {"position_mm": {"mean": 1, "median": "x"}, "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm.median", "expected a number, got a string"),
+    ('{"scores": {"all": {"position_mm": {"mean": 1}, "orientation_deg": {"mean": true}}}}',
+     "scores.all.orientation_deg.mean", "expected a number, got true"),
+    ('{"scores": {}, "model": "m.yaml"}', "model", "expected an object (path, sha256) or null, got a string"),
+    ('{"scores": {}, "model": {"path": "m.yaml", "sha256": 5}}', "model.sha256",
+     "expected a string, got a number"),
+    ('{"scores": {}, "terms": "polynomial"}', "terms", "expected a list of term names"),
+    ('{"scores": {}, "time_utc": null}', "time_utc", "expected a string, got null"),
+    ('{"scores": {}, "data": 3}', "data", "expected a list of files, got a number"),
+])
+def test_history_malformed_entry_names_file_line_and_field(tmp_path, capsys, line, field, what):
+    from trackcal import cli
+    path = tmp_path / "history.jsonl"
+    path.write_text(json.dumps({"label": "ok", "scores": GOOD, "model": None}) + "\n" + line + "\n")
+    with pytest.raises(ValueError) as err:
+        history.load_history(tmp_path)
+    assert str(err.value).startswith(f"{path}:2: field {field}: {what}")
+    assert cli.main(["history", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == f"error: {err.value}\n"
+
+
+def test_history_not_utf8_names_file_line_and_column(tmp_path):
+    (tmp_path / "history.jsonl").write_bytes(b'{"scores": {}}\n{"scores": {}, "label": "caf\xe9"}\n')
+    with pytest.raises(ValueError, match=r"history\.jsonl:2: column 29: not UTF-8 text \(byte 0xe9\)"):
+        history.load_history(tmp_path)
+
+
+def test_history_older_records_still_load(tmp_path):
+    """Records of earlier versions: scores without median or flips, model null, no terms."""
+    lines = [{"time_utc": "2024-01-01T00:00:00Z", "label": "first", "model": None, "data": [],
+              "scores": GOOD},
+             {"label": "flips", "model": {"path": "/m.json", "sha256": "ab" * 32}, "scores": {
+                 "calib": {"position_mm": {"mean": 2, "std": 1, "max": 3, "median": 1.5},
+                           "orientation_deg": {"mean": 0.2}, "hemisphere_flips_left_out": 0}}},
+             {"scores": {}}]
+    (tmp_path / "history.jsonl").write_text("".join(json.dumps(e) + "\n" for e in lines))
+    entries = history.load_history(tmp_path)
+    assert entries == lines
+    assert "first" in history.history_table(entries)
