@@ -223,15 +223,21 @@ def history_plot(entries: Sequence[dict]):
 
 def candidate_bars(doc: dict, *, top: int = 12):
     """Held-out mean position error of the model alone and with each candidate effect (contract B
-    document of trackcal.diagnose_candidates); significant candidates in orange."""
+    document of trackcal.diagnose_candidates); significant candidates in orange. Bars carry the
+    labels of the candidate table ("dipole for polynomial" for a replacement), so a replacement
+    and the addition of the same effect get one bar each."""
+    from trackcal.diagnosis import candidate_rows
     cands = list(doc.get("candidates", []))[:top]
     base = doc.get("base", {}).get("cv_position_mm_mean")
-    names = ["model alone"] + [str(c.get("effect")) for c in cands]
+    names = ["model alone"] + [str(r["effect"]) for r in candidate_rows(doc)[:top]]
     vals = [base] + [c.get("cv_position_mm_mean") for c in cands]
     vals = [float("nan") if x is None else float(x) for x in vals]
     colors = ["tab:gray"] + ["tab:orange" if c.get("significant") else "lightsteelblue" for c in cands]
     fig, ax = plt.subplots(figsize=(6.4, 0.32 * len(names) + 1.4))
-    ax.barh(names[::-1], vals[::-1], color=colors[::-1])
+    ys = np.arange(len(names))[::-1]  # one position per bar even if two labels were equal
+    ax.barh(ys, vals, color=colors)
+    ax.set_yticks(ys)
+    ax.set_yticklabels(names)
     if base is not None:
         ax.axvline(float(base), color="k", lw=1, ls="--")
     ax.set_xlabel("held-out mean position error [mm]")
