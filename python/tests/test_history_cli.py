@@ -180,7 +180,8 @@ def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys
                         (data, "refusing to overwrite an input"),
                         (model, "refusing to overwrite an input"),
                         (other, "exists and is not a .png file"),
-                        (tmp_path, "is a folder")):
+                        (tmp_path, "is a folder"),
+                        (tmp_path / "none" / "h.png", f"{tmp_path / 'none'} is not an existing folder")):
         assert cli.main(["history", str(work), "--plot", str(target)]) == 2, target
         err = capsys.readouterr().err
         assert err.startswith(f"error: {target}: {why}"), err

@@ -225,5 +225,7 @@ def test_residuals_never_replace_a_file_that_appears_while_they_are_written(tmp_
         v.write_residuals(tmp_path / "new.csv")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv", "residuals.csv"]
     monkeypatch.undo()
+    with pytest.raises(ValueError, match=f"r.csv: {tmp_path / 'none'} is not an existing folder"):
+        v.write_residuals(tmp_path / "none" / "r.csv")
     v.write_residuals(tmp_path / "new.csv")
     assert (tmp_path / "new.csv").read_text().startswith("station,set,sensor,")

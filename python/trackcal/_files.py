@@ -22,6 +22,8 @@ def write_new(path, data: bytes, exists_message: str = "exists; refusing to over
     when path exists, and a ValueError saying so when the file system cannot hard-link (the file
     is then not written: no fallback could guarantee that nothing is replaced)."""
     path = pathlib.Path(path)
+    if not path.parent.is_dir():  # else the error would name the temporary file
+        raise ValueError(f"{path}: {path.parent} is not an existing folder")
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:

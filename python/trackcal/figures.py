@@ -37,6 +37,8 @@ def save_png(fig, path, dpi: int = 110, inputs: Sequence = ()) -> pathlib.Path:
             raise ValueError(f"{path}: refusing to overwrite an input")
     if path.is_dir():
         raise ValueError(f"{path}: is a folder; give the PNG file to write")
+    if not path.parent.is_dir():  # else the error would name the temporary file
+        raise ValueError(f"{path}: {path.parent} is not an existing folder")
     if path.suffix.lower() != ".png":  # never replaced, even if it appears while the figure is drawn
         from trackcal._files import write_new
         return write_new(path, png_bytes(fig, dpi),
