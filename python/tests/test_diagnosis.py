@@ -78,6 +78,26 @@ def test_verdict_and_rows_carry_a_replacement():
     assert new == "terms:\n  - type: dipole\n  - type: plane\n    attenuation: 0.26\n  - type: polynomial\n"
 
 
+def test_candidate_figure_gives_a_replacement_its_own_bar():
+    """A replacement shares its effect name with the matching addition: labelled by effect alone,
+    matplotlib's categorical axis drew both at one position, one bar hiding the other."""
+    from trackcal import figures
+    doc = contract_b_doc(True)
+    replacement = dict(doc["candidates"][0], replaces="dipole_2", cv_position_mm_mean=1.5, significant=False)
+    doc["candidates"].insert(1, replacement)
+    fig = figures.candidate_bars(doc)
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.get_yticklabels()]
+    assert sorted(labels) == sorted(["model alone", "dipole", "dipole for dipole_2", "sensor_offset"])
+    bars = {round(b.get_y() + b.get_height() / 2, 6): b.get_width() for b in ax.patches}
+    assert len(bars) == 4
+    # Each label sits at its own bar, with its own value.
+    at = {t.get_text(): bars[round(y, 6)] for t, y in zip(ax.get_yticklabels(), ax.get_yticks())}
+    assert at == {"model alone": 3.0, "dipole": 1.0, "dipole for dipole_2": 1.5, "sensor_offset": 2.99}
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+
 def test_the_note_on_stations_left_out_of_the_comparison():
     doc = contract_b_doc(True)
     assert diagnosis.unresolved_note(doc) == ""

@@ -7,8 +7,10 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
+import trackcal
 from trackcal import captures, history, validation
 from understand_support import simulate
 
@@ -133,3 +135,145 @@ def test_validate_records_history(tmp_path):
 def trackcal_sha(path):
     import hashlib
     return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+
+
+def test_validate_history_leaves_out_the_cross_validation_of_another_model(tmp_path):
+    """`validate -c cal.json --cross-validate K --workdir W` cross-validates the default polynomial,
+    not cal.json: on a capture without a valid set that table must not become cal.json's headline."""
+    from trackcal import cli
+    sim = simulate(tmp_path / "sim", seed=44)
+    cap_dir = tmp_path / "capture"
+    cap_dir.mkdir()
+    lines = (sim / "poses.csv").read_text().splitlines(keepends=True)
+    (cap_dir / "poses.csv").write_text("".join(l for l in lines if ",valid," not in l))
+    cap = captures.load_poses(cap_dir)
+    assert "valid" not in cap.sets
+    cal = tmp_path / "r1.json"
+    validation.fit_polynomial(cap.select_set("calib"), degree=1).save(cal)
+    work = tmp_path / "work"
+    assert cli.main(["validate", str(cap_dir), "-c", str(cal), "--workdir", str(work),
+                     "--cross-validate", "2"]) == 0
+    (e,) = history.load_history(work)
+    assert sorted(e["scores"]) == ["all", "calib"]
+    assert history.headline_set(e) == "all"
+    v = validation.validate(cap, trackcal.Calibration.load(cal), analyse_covariates=False)
+    expected = {t.set_name: t for t in v.tables}["all"].after_position_mm["mean"]
+    assert history.headline_scores(e)[0] == pytest.approx(expected)
+
+
+def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys):
+    from trackcal import cli
+    cap = tmp_path / "capture"
+    cap.mkdir()
+    data = cap / "poses.csv"
+    data.write_text("x\n")
+    model = tmp_path / "model.json"
+    model.write_text("{}\n")
+    work = tmp_path / "work"
+    s = {"valid": {"position_mm": {"mean": 10.0}, "orientation_deg": {"mean": 2.0}}}
+    history.record_fit(work, model=model, data=[(data, "calibration_capture")], scores=s, label="a")
+    hist = (work / "history.jsonl").read_bytes()
+    other = tmp_path / "notes.txt"
+    other.write_text("mine\n")
+    capsys.readouterr()
+    for target, why in ((work / "history.jsonl", "refusing to overwrite an input"),
+                        (data, "refusing to overwrite an input"),
+                        (model, "refusing to overwrite an input"),
+                        (other, "exists and is not a .png file"),
+                        (tmp_path, "is a folder"),
+                        (tmp_path / "none" / "h.png", f"{tmp_path / 'none'} is not an existing folder")):
+        assert cli.main(["history", str(work), "--plot", str(target)]) == 2, target
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {target}: {why}"), err
+    assert (work / "history.jsonl").read_bytes() == hist
+    assert data.read_text() == "x\n" and model.read_text() == "{}\n" and other.read_text() == "mine\n"
+    # A new file, and an earlier figure (a .png) replaced.
+    for target in (tmp_path / "plot", tmp_path / "h.png", tmp_path / "h.png"):
+        assert cli.main(["history", str(work), "--plot", str(target)]) == 0
+        assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_refuses_unusable_outputs_up_front_in_one_line(tmp_path, capsys):
+    """An output that cannot be written is refused before the work (the capture here does not even
+    exist: the output is checked first), and a file the system refuses is one 'error:' line."""
+    from trackcal import cli
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    missing = tmp_path / "no-capture"
+    cases = [(["report", missing, "-o", afile], f"error: -o {afile}: exists and is not a folder"),
+             (["report", missing, "-o", afile / "sub"],
+              f"error: -o {afile / 'sub'}: {afile} is not a folder"),
+             (["record", "--device", "raw=Nope@tcp://127.0.0.1:9", "--duration", "1", "-o", afile],
+              f"error: -o {afile}: exists and is not a folder"),
+             (["validate", missing, "-c", missing, "--workdir", afile],
+              f"error: --workdir {afile}: exists and is not a folder"),
+             (["diagnose", missing, "--permutations", "-1"], "error: --permutations -1: must be 0 or more"),
+             (["report", missing, "-o", tmp_path / "r", "--permutations", "-5"],
+              "error: --permutations -5: must be 0 or more")]
+    (tmp_path / "work" / "history.jsonl").mkdir(parents=True)  # an OSError: a folder where a file goes
+    cases.append((["history", tmp_path / "work"],
+                  f"error: {tmp_path / 'work' / 'history.jsonl'}: Is a directory"))
+    for argv, line in cases:
+        assert cli.main([str(a) for a in argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert err == line + "\n", (argv, err)
+    assert afile.read_text() == "mine\n" and not (tmp_path / "r").exists()
+    p, q = np.zeros((30, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (30, 1))
+    with pytest.raises(ValueError, match="n_permutations -1: must be 0 or more"):
+        validation.covariate_analysis(validation.residuals(p, q, p, q), {"x": np.arange(30.0)},
+                                      n_permutations=-1)
+
+
+GOOD = {"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}}
+
+
+@pytest.mark.parametrize("line, field, what", [
+    ('{"scores": []}', "scores", "expected an object of sets, got a list"),
+    ('{"scores": {"valid": 3}}', "scores.valid", "expected an object with position_mm"),
+    ('{"scores": {"valid": {"orientation_deg": {"mean": 1}}}}', "scores.valid.position_mm", "missing"),
+    ('{"scores": {"valid": {"position_mm": [1], "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm", "expected an object with mean"),
+    ('{"scores": {"valid": {"position_mm": {"std": 1}, "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm.mean", "missing"),
+    ('{"scores": {"valid": {"position_mm": {"mean": "1.2"}, "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm.mean", "expected a number, got a string"),
+    ('{"scores": {"valid": {"position_mm": {"mean": 1, "median": "x"}, "orientation_deg": {"mean": 1}}}}',
+     "scores.valid.position_mm.median", "expected a number, got a string"),
+    ('{"scores": {"all": {"position_mm": {"mean": 1}, "orientation_deg": {"mean": true}}}}',
+     "scores.all.orientation_deg.mean", "expected a number, got true"),
+    ('{"scores": {}, "model": "m.yaml"}', "model", "expected an object (path, sha256) or null, got a string"),
+    ('{"scores": {}, "model": {"path": "m.yaml", "sha256": 5}}', "model.sha256",
+     "expected a string, got a number"),
+    ('{"scores": {}, "terms": "polynomial"}', "terms", "expected a list of term names"),
+    ('{"scores": {}, "time_utc": null}', "time_utc", "expected a string, got null"),
+    ('{"scores": {}, "data": 3}', "data", "expected a list of files, got a number"),
+])
+def test_history_malformed_entry_names_file_line_and_field(tmp_path, capsys, line, field, what):
+    from trackcal import cli
+    path = tmp_path / "history.jsonl"
+    path.write_text(json.dumps({"label": "ok", "scores": GOOD, "model": None}) + "\n" + line + "\n")
+    with pytest.raises(ValueError) as err:
+        history.load_history(tmp_path)
+    assert str(err.value).startswith(f"{path}:2: field {field}: {what}")
+    assert cli.main(["history", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == f"error: {err.value}\n"
+
+
+def test_history_not_utf8_names_file_line_and_column(tmp_path):
+    (tmp_path / "history.jsonl").write_bytes(b'{"scores": {}}\n{"scores": {}, "label": "caf\xe9"}\n')
+    with pytest.raises(ValueError, match=r"history\.jsonl:2: column 29: not UTF-8 text \(byte 0xe9\)"):
+        history.load_history(tmp_path)
+
+
+def test_history_older_records_still_load(tmp_path):
+    """Records of earlier versions: scores without median or flips, model null, no terms."""
+    lines = [{"time_utc": "2024-01-01T00:00:00Z", "label": "first", "model": None, "data": [],
+              "scores": GOOD},
+             {"label": "flips", "model": {"path": "/m.json", "sha256": "ab" * 32}, "scores": {
+                 "calib": {"position_mm": {"mean": 2, "std": 1, "max": 3, "median": 1.5},
+                           "orientation_deg": {"mean": 0.2}, "hemisphere_flips_left_out": 0}}},
+             {"scores": {}}]
+    (tmp_path / "history.jsonl").write_text("".join(json.dumps(e) + "\n" for e in lines))
+    entries = history.load_history(tmp_path)
+    assert entries == lines
+    assert "first" in history.history_table(entries)

@@ -147,3 +147,87 @@ def test_a_live_recording_is_validated_later_against_the_reference(emulated_serv
     np.testing.assert_allclose(served.after.position_mm, applied.after.position_mm, atol=1e-9)
     print(f"recorded {len(served.capture)} samples: {table.before_position_mm['mean']:.2f} mm -> "
           f"{table.after_position_mm['mean']:.2f} mm")
+
+
+class FakeRecorder:
+    """A TrackerRecorder without a server: 3 reports before the synchronised start (discarded),
+    5 after it; none after it when its name starts with 'empty', none at all with 'silent'."""
+    instances = []
+
+    def __init__(self, name):
+        self.name, self.takes, self.stopped = name, 0, False
+        FakeRecorder.instances.append(self)
+
+    def start(self):
+        pass
+
+    def stop(self):
+        self.stopped = True
+
+    def __len__(self):
+        return 0 if self.name.startswith("silent") else 3
+
+    def take(self):
+        self.takes += 1
+        n = 3 if self.takes == 1 else (0 if self.name.startswith(("empty", "silent")) else 5)
+        return {"time": 100.0 + 0.01 * np.arange(n), "sensor": np.zeros(n, dtype=np.int32),
+                "positions": np.full((n, 3), 0.25), "quaternions_xyzw": np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))}
+
+
+@pytest.fixture
+def fake_recorders(monkeypatch):
+    import types
+    from trackcal import record
+    FakeRecorder.instances = []
+    monkeypatch.setattr(record, "_core", types.SimpleNamespace(TrackerRecorder=FakeRecorder))
+    return FakeRecorder.instances
+
+
+def test_an_empty_device_is_reported_after_the_others_are_saved(fake_recorders, tmp_path):
+    rec = tmp_path / "rec"
+    with pytest.raises(RuntimeError, match=r"no report during the recording from: corrected "
+                                           r"\(empty@tcp://h:1\) \(saved: .*raw_tracker_stream\.csv\)"):
+        record_streams({"corrected": "empty@tcp://h:1", "raw": "Tracker0_raw@tcp://h:1"}, rec, 0.05)
+    raw = captures.load_tracker_stream(rec / "raw_tracker_stream.csv")
+    assert len(raw) == 5 and set(raw.sensor) == {1}
+    assert not (rec / "corrected_tracker_stream.csv").exists()
+    assert all(r.stopped for r in fake_recorders)
+
+
+def test_ctrl_c_ends_the_recording_and_keeps_what_was_recorded(fake_recorders, tmp_path):
+    def ctrl_c(done, total):
+        raise KeyboardInterrupt
+    try:
+        out = record_streams({"raw": "Tracker0_raw@tcp://h:1", "corrected": "empty@tcp://h:1"},
+                             tmp_path / "rec", 3600.0, progress=ctrl_c)
+    except KeyboardInterrupt:
+        pytest.fail("Ctrl-C escaped record_streams: the recording is lost")
+    assert out.interrupted and list(out) == ["raw"] and list(out.empty) == ["corrected"]
+    assert len(captures.load_tracker_stream(out["raw"])) == 5
+    assert all(r.stopped for r in fake_recorders)
+
+
+def test_ctrl_c_in_trackcal_record_saves_and_exits_130(fake_recorders, tmp_path, monkeypatch, capsys):
+    import time as time_module
+    import types
+    from trackcal import cli, record
+
+    def ctrl_c(seconds):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(record, "time", types.SimpleNamespace(monotonic=time_module.monotonic, sleep=ctrl_c))
+    argv = ["record", "--device", "raw=Tracker0_raw@tcp://h:1", "--duration", "3600",
+            "-o", str(tmp_path / "a")]
+    try:
+        status = cli.main(argv)
+    except KeyboardInterrupt:
+        pytest.fail("Ctrl-C escaped trackcal record")
+    out, err = capsys.readouterr()
+    assert status == 130
+    assert out == f"raw: wrote {tmp_path / 'a' / 'raw_tracker_stream.csv'}\n"
+    assert err == "recording interrupted (Ctrl-C)\n"
+    assert len(captures.load_tracker_stream(tmp_path / "a" / "raw_tracker_stream.csv")) == 5
+    # Before every device has connected nothing was recorded yet: nothing written, still no traceback.
+    argv = ["record", "--device", "x=silent@tcp://h:1", "--duration", "1", "-o", str(tmp_path / "b")]
+    assert cli.main(argv) == 130
+    assert "before every device had connected: nothing recorded" in capsys.readouterr().err
+    assert list((tmp_path / "b").iterdir()) == []

@@ -196,3 +196,36 @@ def test_repeated_station_and_sensor_error_names_both_lines(tmp_path):
     with pytest.raises(ValueError, match=rf"poses\.csv:{len(lines)}: columns station, sensor: "
                                          r"station \d+, sensor \d+ repeats line 2"):
         captures.load_poses(p)
+
+
+def test_residuals_never_replace_a_file_that_appears_while_they_are_written(tmp_path, monkeypatch):
+    """The last check before publishing cannot close the window before a rename: the file is
+    published by a link, which fails on any file there, however late it came."""
+    import errno
+    import os
+    cap = captures.load_poses(hand_capture(tmp_path))
+    v = validation.validate(cap, None, analyse_covariates=False)
+    out = tmp_path / "residuals.csv"
+    out.write_text("someone else's file\n")
+    real_exists = pathlib.Path.exists
+    # The file appears after every existence check the writer may make.
+    monkeypatch.setattr(pathlib.Path, "exists",
+                        lambda self, *a, **k: False if self == out else real_exists(self))
+    with pytest.raises(ValueError, match="residuals.csv: exists; residuals are never written over"):
+        v.write_residuals(out)
+    monkeypatch.undo()
+    assert out.read_text() == "someone else's file\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv", "residuals.csv"]  # no temporary left
+    # A file system without hard links: a clear error, nothing written, no temporary left.
+
+    def no_links(src, dst, *a, **k):
+        raise OSError(errno.EPERM, "Operation not permitted")
+    monkeypatch.setattr(os, "link", no_links)
+    with pytest.raises(ValueError, match="new.csv: not written: the file system .* has no hard links"):
+        v.write_residuals(tmp_path / "new.csv")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv", "residuals.csv"]
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match=f"r.csv: {tmp_path / 'none'} is not an existing folder"):
+        v.write_residuals(tmp_path / "none" / "r.csv")
+    v.write_residuals(tmp_path / "new.csv")
+    assert (tmp_path / "new.csv").read_text().startswith("station,set,sensor,")

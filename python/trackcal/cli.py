@@ -1,7 +1,8 @@
 """The ``trackcal`` command: fit, validate, diagnose, report, history, record (docs/understand.md).
 
 Colour and progress bars only when the stream is a terminal. User errors exit with status 2 and a
-one-line message naming the file, line and column (from the C++ readers).
+one-line message naming the file, line and column (from the C++ readers). Ctrl-C exits with status
+130 (``record`` first saves what it recorded).
 """
 
 from __future__ import annotations
@@ -401,6 +402,7 @@ def cmd_report(args, term) -> int:
 
 
 def cmd_history(args, term) -> int:
+    from trackcal import history
     from trackcal.history import history_table, load_history
     entries = load_history(args.workdir)
     if not entries:
@@ -409,7 +411,16 @@ def cmd_history(args, term) -> int:
     print(history_table(entries))
     if args.plot:
         from trackcal import figures
-        figures.save_png(figures.history_plot(entries), args.plot)
+        work = pathlib.Path(args.workdir)
+        inputs = [work / history.HISTORY_FILE]  # and every file the fits name: never drawn over
+        for e in entries:
+            m = e.get("model") or {}
+            names = [m.get("path"), (e.get("calibration") or {}).get("path")]
+            names += [d.get("path") for d in e.get("data") or [] if isinstance(d, dict)]
+            inputs += [p for p in names if isinstance(p, str)]
+            if isinstance(m.get("copy"), str):
+                inputs.append(work / m["copy"])
+        figures.save_png(figures.history_plot(entries), args.plot, inputs=inputs)
         print(f"wrote {args.plot}")
     return 0
 
@@ -423,9 +434,18 @@ def cmd_record(args, term) -> int:
         label, name = spec.split("=", 1)
         devices[label] = name
     out = record_streams(devices, args.output, args.duration, progress=term.progress("recording"))
+    if out.interrupted:
+        term.end_progress()
     for label, p in out.items():
         print(f"{label}: wrote {p}")
-    return 0
+    if not out.interrupted:
+        return 0
+    for label in out.empty:
+        print(f"{label}: no report before the interruption, nothing written")
+    started = bool(out or out.empty)
+    print("recording interrupted (Ctrl-C)"
+          + ("" if started else " before every device had connected: nothing recorded"), file=sys.stderr)
+    return 130
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -449,14 +469,16 @@ def build_parser() -> argparse.ArgumentParser:
                         help="write every station's residuals (before/after, vectors, outside flag) to this "
                              "new CSV file")
         if covariates:
-            sp.add_argument("--permutations", type=int, default=199, help="permutations per covariate test")
+            sp.add_argument("--permutations", type=int, default=199,
+                            help="permutations per covariate test (0 or more)")
             sp.add_argument("--seed", type=int, default=0)
 
     sp = sub.add_parser("validate", help="Table 1 before/after for the calibration and validation sets")
     common(sp, covariates=False)
     sp.add_argument("--json", action="store_true",
                     help="print one JSON document (tables, outside-volume stations, capture origin) instead of text")
-    sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl")
+    sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl (not the "
+                                      "--cross-validate table: that is another fit's)")
     sp.add_argument("--label", help="what changed in this fit (history label; default: file name)")
     def model_args(sp):
         sp.add_argument("--model", help="model file (docs/model-file.md): fitted when no -c is given, "
@@ -490,13 +512,52 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true", help="print trackcal-fit's --json document instead of text")
     sp = sub.add_parser("history", help="error after each recorded fit of a work folder")
     sp.add_argument("workdir")
-    sp.add_argument("--plot", help="write the history plot to this PNG")
-    sp = sub.add_parser("record", help="record live raw and corrected streams from a VRPN server")
+    sp.add_argument("--plot", help="write the history plot to this PNG (replaces only a .png file, never "
+                                   "the history or a file it names)")
+    sp = sub.add_parser("record", help="record live raw and corrected streams from a VRPN server",
+                        description="Record live raw and corrected streams from a VRPN server. Ctrl-C ends "
+                                    "the recording early: what was recorded is saved and the exit status is "
+                                    "130.")
     sp.add_argument("--device", action="append", required=True,
                     help="LABEL=Tracker0@tcp://host:port (repeat: e.g. raw=... corrected=...)")
     sp.add_argument("--duration", type=float, required=True, help="seconds")
     sp.add_argument("-o", "--output", required=True, help="output folder")
     return p
+
+
+def _check_folder(path, option: str, write: bool) -> None:
+    """``path`` must be a folder, or (written) one that can be made: checked before the work."""
+    p = pathlib.Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{option} {p}: exists and is not a folder")
+    if not write:
+        return
+    base = p
+    while not base.exists():  # the nearest existing folder the missing ones are made in
+        base = base.parent
+    if not base.is_dir():
+        raise ValueError(f"{option} {p}: {base} is not a folder")
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise ValueError(f"{option} {p}: {base} is not writable")
+
+
+def _check_args(args) -> None:
+    """What can be refused before any work (a long fit, a covariate analysis, a recording)."""
+    if getattr(args, "permutations", 0) < 0:  # would make p-values negative: everything significant
+        raise ValueError(f"--permutations {args.permutations}: must be 0 or more")
+    if args.command in ("report", "record"):
+        _check_folder(args.output, "-o", write=True)
+    if getattr(args, "workdir", None):
+        _check_folder(args.workdir, "--workdir" if args.command != "history" else "work folder",
+                      write=args.command in ("fit", "validate"))
+
+
+def _os_error_text(e: OSError) -> str:
+    """'<file>: <reason>' of an OSError (PermissionError, IsADirectoryError, ...)."""
+    if e.filename is None or not e.strerror:
+        return str(e)
+    names = f"{e.filename}" + (f" -> {e.filename2}" if e.filename2 is not None else "")
+    return f"{names}: {e.strerror}"
 
 
 COMMANDS = {"fit": cmd_fit, "validate": cmd_validate, "diagnose": cmd_diagnose, "report": cmd_report,
@@ -507,14 +568,22 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     term = Terminal()
     try:
+        _check_args(args)
         return COMMANDS[args.command](args, term)
-    except (ValueError, KeyError, RuntimeError, FileNotFoundError, NotImplementedError) as e:
+    except (ValueError, KeyError, RuntimeError, NotImplementedError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(term.c("error: ", "31") + str(msg), file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
+    except OSError as e:  # a file the system refuses (missing, a folder, no permission): one line
+        print(term.c("error: ", "31") + _os_error_text(e), file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:  # Ctrl-C: no traceback (record saves what it recorded first)
+        term.end_progress()
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

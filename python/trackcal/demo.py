@@ -34,13 +34,11 @@ import datetime as _dt
 import inspect
 import json
 import math
-import os
 import re
 import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
@@ -169,20 +167,11 @@ def _run(cmd: List[str], log: Optional[Path] = None, echo: bool = True) -> str:
 
 def _write_new(path: Path, text: str) -> Path:
     """Writes a new file atomically (temporary file + link): refuses to replace an existing file."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    from trackcal._files import write_new
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        try:
-            os.link(tmp, path)  # fails if path exists: never overwrites
-        except FileExistsError:
-            raise SystemExit(f"trackcal demo: {path} exists; not overwriting it") from None
-    finally:
-        os.unlink(tmp)
-    return path
+        return write_new(Path(path), text.encode("utf-8"), "exists; not overwriting it")
+    except ValueError as e:
+        raise SystemExit(f"trackcal demo: {e}") from None
 
 
 def _fresh_work_dir(base: Path) -> Path:

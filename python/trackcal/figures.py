@@ -27,9 +27,22 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def save_png(fig, path, dpi: int = 110) -> pathlib.Path:
-    """Writes fig as PNG atomically (temporary file in the same folder, then rename)."""
+def save_png(fig, path, dpi: int = 110, inputs: Sequence = ()) -> pathlib.Path:
+    """Writes fig as PNG atomically (temporary file in the same folder, then rename). Replaces only
+    a file named .png (an earlier figure): refuses any other existing file (a capture, a history)
+    and any of ``inputs``, as the report does."""
     path = pathlib.Path(path)
+    for p in inputs:
+        if p is not None and pathlib.Path(p).resolve() == path.resolve():
+            raise ValueError(f"{path}: refusing to overwrite an input")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give the PNG file to write")
+    if not path.parent.is_dir():  # else the error would name the temporary file
+        raise ValueError(f"{path}: {path.parent} is not an existing folder")
+    if path.suffix.lower() != ".png":  # never replaced, even if it appears while the figure is drawn
+        from trackcal._files import write_new
+        return write_new(path, png_bytes(fig, dpi),
+                         "exists and is not a .png file; a figure replaces only an earlier PNG")
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -212,15 +225,21 @@ def history_plot(entries: Sequence[dict]):
 
 def candidate_bars(doc: dict, *, top: int = 12):
     """Held-out mean position error of the model alone and with each candidate effect (contract B
-    document of trackcal.diagnose_candidates); significant candidates in orange."""
+    document of trackcal.diagnose_candidates); significant candidates in orange. Bars carry the
+    labels of the candidate table ("dipole for polynomial" for a replacement), so a replacement
+    and the addition of the same effect get one bar each."""
+    from trackcal.diagnosis import candidate_rows
     cands = list(doc.get("candidates", []))[:top]
     base = doc.get("base", {}).get("cv_position_mm_mean")
-    names = ["model alone"] + [str(c.get("effect")) for c in cands]
+    names = ["model alone"] + [str(r["effect"]) for r in candidate_rows(doc)[:top]]
     vals = [base] + [c.get("cv_position_mm_mean") for c in cands]
     vals = [float("nan") if x is None else float(x) for x in vals]
     colors = ["tab:gray"] + ["tab:orange" if c.get("significant") else "lightsteelblue" for c in cands]
     fig, ax = plt.subplots(figsize=(6.4, 0.32 * len(names) + 1.4))
-    ax.barh(names[::-1], vals[::-1], color=colors[::-1])
+    ys = np.arange(len(names))[::-1]  # one position per bar even if two labels were equal
+    ax.barh(ys, vals, color=colors)
+    ax.set_yticks(ys)
+    ax.set_yticklabels(names)
     if base is not None:
         ax.axvline(float(base), color="k", lw=1, ls="--")
     ax.set_xlabel("held-out mean position error [mm]")

@@ -30,23 +30,88 @@ def _sha(path) -> str:
 
 
 def load_history(workdir) -> List[dict]:
-    """Entries of a work folder's history.jsonl ([] if there is none). Errors name file and line."""
+    """Entries of a work folder's history.jsonl ([] if there is none). Errors name file, line and
+    field: every entry is checked for the shape the history table, plot and labels read."""
     path = pathlib.Path(workdir) / HISTORY_FILE
     if not path.exists():
         return []
     entries = []
-    with open(path, encoding="utf-8") as f:
-        for lineno, line in enumerate(f, 1):
+    with open(path, "rb") as f:
+        for lineno, raw in enumerate(f, 1):
+            try:
+                line = raw.decode("utf-8")
+            except UnicodeDecodeError as err:
+                raise ValueError(f"{path}:{lineno}: column {err.start + 1}: not UTF-8 text "
+                                 f"(byte 0x{raw[err.start]:02x})") from None
             if not line.strip():
                 continue
             try:
                 e = json.loads(line)
             except json.JSONDecodeError as err:
                 raise ValueError(f"{path}:{lineno}: column {err.colno}: not JSON: {err.msg}") from None
-            if not isinstance(e, dict) or "scores" not in e:
-                raise ValueError(f"{path}:{lineno}: field scores: missing (not a fit record)")
+            problem = _entry_problem(e)
+            if problem:
+                raise ValueError(f"{path}:{lineno}: field {problem[0]}: {problem[1]}")
             entries.append(e)
     return entries
+
+
+def _kind(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, (int, float)):
+        return "a number"
+    return {str: "a string", list: "a list", dict: "an object"}.get(type(value), type(value).__name__)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _entry_problem(e) -> Optional[Tuple[str, str]]:
+    """(field, what is wrong) when a history entry lacks what its readers use, else None: scores
+    {set: {position_mm: {mean, median?}, orientation_deg: {mean}}}, model {path, sha256, copy}
+    when present, terms (names), time_utc, calibration and data."""
+    if not isinstance(e, dict) or "scores" not in e:
+        return "scores", "missing (not a fit record)"
+    scores = e["scores"]
+    if not isinstance(scores, dict):
+        return "scores", f"expected an object of sets, got {_kind(scores)}"
+    for name, s in scores.items():
+        if not isinstance(s, dict):
+            return f"scores.{name}", ("expected an object with position_mm and orientation_deg, "
+                                      f"got {_kind(s)}")
+        for quantity in ("position_mm", "orientation_deg"):
+            field = f"scores.{name}.{quantity}"
+            summary = s.get(quantity)
+            if not isinstance(summary, dict):
+                return field, ("missing" if quantity not in s
+                               else f"expected an object with mean, std, max, ..., got {_kind(summary)}")
+            if not _is_number(summary.get("mean")):
+                return f"{field}.mean", ("missing" if "mean" not in summary
+                                         else f"expected a number, got {_kind(summary['mean'])}")
+            median = summary.get("median")
+            if median is not None and not _is_number(median):
+                return f"{field}.median", f"expected a number, got {_kind(median)}"
+    model = e.get("model")
+    if model is not None:
+        if not isinstance(model, dict):
+            return "model", f"expected an object (path, sha256) or null, got {_kind(model)}"
+        for key in ("path", "sha256", "copy"):
+            if key in model and not isinstance(model[key], str):
+                return f"model.{key}", f"expected a string, got {_kind(model[key])}"
+    terms = e.get("terms")
+    if "terms" in e and not (isinstance(terms, list) and all(isinstance(t, str) for t in terms)):
+        return "terms", "expected a list of term names"
+    if "time_utc" in e and not isinstance(e["time_utc"], str):
+        return "time_utc", f"expected a string, got {_kind(e['time_utc'])}"
+    if "calibration" in e and not isinstance(e["calibration"], dict):
+        return "calibration", f"expected an object (path, sha256), got {_kind(e['calibration'])}"
+    if "data" in e and not isinstance(e["data"], list):
+        return "data", f"expected a list of files, got {_kind(e['data'])}"
+    return None
 
 
 def _atomic_write(path: pathlib.Path, data: bytes) -> None:
@@ -158,7 +223,7 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
         previous = next((e for e in reversed(load_history(workdir)) if "terms" in e), None)
         if previous is None:
             label = term_change(None, terms)
-        elif previous.get("model", {}).get("sha256") == sha:
+        elif (previous.get("model") or {}).get("sha256") == sha:
             label = "same model"
         else:
             label = term_change(previous["terms"], terms) or "settings"
@@ -180,9 +245,14 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
 
 def scores_from_validation(validation) -> Dict[str, dict]:
     """Table 1 summaries of a trackcal.validation.Validation, keyed by set (the 'after' numbers
-    when it has a calibration, else the 'before' ones)."""
+    when it has a calibration, else the 'before' ones). A cross-validation table appended to it
+    (``trackcal validate --cross-validate``) is left out: trackcal.validation.cross_validate refits
+    a model (by default the polynomial), so its errors are not this calibration's, and the history
+    would show them first (``headline_set`` prefers held-out sets)."""
     out = {}
     for t in validation.tables:
+        if t.set_name.startswith("cross-validation"):
+            continue
         out[t.set_name] = {"position_mm": t.after_position_mm or t.before_position_mm,
                            "orientation_deg": t.after_orientation_deg or t.before_orientation_deg,
                            "hemisphere_flips_left_out": t.hemisphere_flips_left_out}

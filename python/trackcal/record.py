@@ -6,18 +6,31 @@ from __future__ import annotations
 
 import pathlib
 import time
-from typing import Callable, Dict, Optional
+from typing import Callable, Dict, List, Optional, Sequence
 
 from trackcal import _core
 from trackcal.captures import TrackerStream, save_tracker_stream
 
 
+class Recording(dict):
+    """label -> path of each saved recording. ``interrupted``: Ctrl-C ended it before the duration;
+    ``empty``: the labels of devices that sent nothing before the interruption (no file)."""
+
+    interrupted: bool = False
+    empty: Sequence[str] = ()
+
+
 def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, connect_timeout_s: float = 10.0,
-                   progress: Optional[Callable[[float, float], None]] = None) -> Dict[str, pathlib.Path]:
+                   progress: Optional[Callable[[float, float], None]] = None) -> Recording:
     """Records every named device (label -> 'Tracker0@tcp://host:port') for ``duration_s`` seconds
     after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir (which must
     not hold such files already: recordings are never overwritten). Returns label -> path.
-    Raises RuntimeError if a device does not connect or sends no report."""
+    Raises RuntimeError if a device does not connect (nothing is recorded then) or sends no report
+    during the recording (after saving the others' recordings, which the message names).
+
+    Ctrl-C (KeyboardInterrupt) ends the recording early and returns normally with ``interrupted``
+    set: every device's reports until then are saved (none if it came before all had connected,
+    when the recording had not started)."""
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     targets = {label: out_dir / f"{label}_tracker_stream.csv" for label in devices}
@@ -25,6 +38,8 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
         if p.exists():
             raise ValueError(f"{p}: exists; recordings are never overwritten")
     recorders = {label: _core.TrackerRecorder(name) for label, name in devices.items()}
+    out = Recording()
+    started = False
     for r in recorders.values():
         r.start()
     try:
@@ -36,6 +51,7 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
             time.sleep(0.02)
         for r in recorders.values():
             r.take()  # start all streams at the same moment
+        started = True
         t0 = time.monotonic()
         while (elapsed := time.monotonic() - t0) < duration_s:
             if progress:
@@ -43,16 +59,33 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
             time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
         if progress:
             progress(duration_s, duration_s)  # the bar ends at 100 % (and its line) before the summary
+    except KeyboardInterrupt:  # Ctrl-C: stop recording and keep what was recorded
+        out.interrupted = True
     finally:
         for r in recorders.values():
             r.stop()
-    out = {}
-    for label, r in recorders.items():
+    if not started:
+        return out
+    empty: List[str] = []
+    failed: List[str] = []
+    for label, r in recorders.items():  # every recording is saved before an empty one is reported
         d = r.take()
         if len(d["time"]) == 0:
-            raise RuntimeError(f"{devices[label]}: no report during the recording")
-        # VRPN numbers sensors from 0; capture files (and trackcal-server --record) from 1.
-        save_tracker_stream(targets[label], TrackerStream(d["time"], d["sensor"] + 1, d["positions"],
-                                                          d["quaternions_xyzw"]))
+            empty.append(label)
+            continue
+        try:
+            # VRPN numbers sensors from 0; capture files (and trackcal-server --record) from 1.
+            save_tracker_stream(targets[label], TrackerStream(d["time"], d["sensor"] + 1, d["positions"],
+                                                              d["quaternions_xyzw"]))
+        except (ValueError, RuntimeError, OSError) as e:  # still save the others
+            failed.append(str(e))
+            continue
         out[label] = targets[label]
+    out.empty = empty
+    problems = failed + ([f"no report during the recording from: "
+                          + ", ".join(f"{label} ({devices[label]})" for label in empty)]
+                         if empty and not out.interrupted else [])
+    if problems:
+        saved = f" (saved: {', '.join(str(p) for p in out.values())})" if out else ""
+        raise RuntimeError("; ".join(problems) + saved)
     return out

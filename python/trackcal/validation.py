@@ -252,6 +252,8 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     shuffles the covariate within groups, so only dependence inside the groups counts. Not used
     with ``serial_time``.
     """
+    if n_permutations < 0:  # p = (1 + count) / (n_permutations + 1) would be negative: all significant
+        raise ValueError(f"n_permutations {n_permutations}: must be 0 or more")
     targets = {
         "position_mm": residuals_.position_mm[:, None],
         "position_vector": residuals_.position * 1e3,
@@ -458,12 +460,11 @@ class Validation:
 
     def write_residuals(self, path, inputs: Sequence = ()) -> "pathlib.Path":
         """Writes ``station_rows()`` as CSV atomically. Refuses an existing file (a capture is never
-        overwritten) and any of ``inputs``."""
+        overwritten), also one created while the rows are computed, and any of ``inputs``."""
         import csv
         import io
-        import os
         import pathlib
-        import tempfile
+        from trackcal._files import write_new
         path = pathlib.Path(path)
         if path.exists():
             raise ValueError(f"{path}: exists; residuals are never written over an existing file")
@@ -476,18 +477,8 @@ class Validation:
         w.writeheader()
         for r in rows:
             w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in r.items()})
-        fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent if str(path.parent) else ".")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                f.write(buf.getvalue())
-            if path.exists():  # created meanwhile: still never replaced
-                raise ValueError(f"{path}: exists; residuals are never written over an existing file")
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        return path
+        return write_new(path, buf.getvalue().encode("utf-8"),
+                         "exists; residuals are never written over an existing file")
 
     def summary_text(self) -> str:
         out = [t.format() for t in self.tables]
