@@ -38,6 +38,8 @@ def test_diagnose_text_states_every_candidate_physically(capture_dir, tmp_path):
     # the reason it is or is not claimed.
     assert "1 sensor_offset: a sensor offset of (" in table
     assert "held-out error falls" in table
+    # The flexible fallback's row says why it was not fitted (a catalog effect is significant).
+    assert "flexible polynomial_3 (not an effect): not fitted: a catalog effect is significant" in table
     # The change, headed by where it goes (a term: into terms:, before the polynomial).
     assert "Model-file change (in terms:, as item 0 counting from 0):" in text
     assert "+  - type: sensor_offset" in text[text.index("Model-file change"):]

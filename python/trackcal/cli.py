@@ -377,6 +377,19 @@ def cmd_diagnose(args, term) -> int:
             print(f"  {r['rank']:>2} {r['effect']}: " + (r["statement"] or "(no physical statement)"))
             if r["reason"]:
                 print(term.c(f"     {r['reason']}", "2"))
+        for f in doc.get("flexible_fallback") or []:  # structure in position no effect has
+            drop = (f.get("cv_drop_percent") or {}).get("position")
+            cv = f.get("cv_position_mm_mean")
+            if not isinstance(cv, (int, float)):
+                print(term.c(f"  flexible {f.get('effect')} (not an effect): {f.get('reason') or 'not fitted'}",
+                             "2"))
+                continue
+            print(f"  flexible {f.get('effect')} (not an effect): held-out {cv:.3f} mm"
+                  + (f", falls {drop:.1f} %" if isinstance(drop, (int, float)) else "")
+                  + (", significant" if f.get("significant") else ", not significant")
+                  + (f"; {f['reason']}" if f.get("reason") else ""))
+        if doc.get("skipped"):
+            print(term.c("  not tested: " + "; ".join(doc["skipped"]), "2"))
     for n in notes:
         print("\n" + term.c("note: ", "33") + n)
     print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], {None: "32", "unidentified": "33"}.get(verdict["source"], "31")))
