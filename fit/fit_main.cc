@@ -318,6 +318,11 @@ int RunBuild(int argc, char** argv) {
     // mistake would be lost), and checked before the chain is built, not after.
     CheckOutputIsNotInput(*model_out, inputs);
     std::error_code ec;
+    // (weakly_canonical leaves a relative path without an existing prefix as it is.)
+    if (fs::absolute(*model_out, ec).lexically_normal() ==
+        fs::absolute(output, ec).lexically_normal()) {
+      throw UsageError("--model-out and -o name the same file");
+    }
     if (fs::exists(*model_out, ec)) {
       throw std::invalid_argument(model_out->string() +
                                   ": --model-out: refusing to overwrite an existing file");

@@ -248,6 +248,14 @@ TEST_F(FitCliTest, BuildWritesTheChainAndTheModel) {
   EXPECT_THAT(ReadFileToString(err),
               ::testing::HasSubstr("--model-out: refusing to overwrite an existing file"));
   EXPECT_EQ(ReadFileToString(model), built_text);
+  // One file for both outputs is refused before the chain is built (it was found only after the
+  // fit, with the model written where the calibration was to go).
+  EXPECT_EQ(RunCommand("cd " + dir_.string() + " && " + fit_ + " build --data cap --model " +
+                       "settings.yaml -o ./same.json --model-out same.json --quiet 2> " +
+                       err.string()),
+            2);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("--model-out and -o name the same file"));
+  EXPECT_FALSE(fs::exists(dir_ / "same.json"));
   // A syntax error in the settings names the file and line.
   std::ofstream(dir_ / "broken.yaml") << "noise: {position_mm: 0.25\nsolver: {}\n";
   EXPECT_EQ(RunCommand(fit_ + " build --data " + (dir_ / "cap").string() + " --model " +

@@ -123,6 +123,25 @@ def test_diagnose_json_and_residuals_give_every_station(sim, tmp_path):
     assert r.returncode == 2 and "exists" in r.stderr and out.read_bytes() == before
 
 
+def test_diagnose_fits_the_model_to_the_registered_references(sim, tmp_path):
+    # With --register-markers the statistics use the references extracted from the markers; the
+    # model must be fitted to those too, not to the labelling poses.csv's (6 mm apart here).
+    cap_dir, _, _ = sim
+    folder = tmp_path / "markers"
+    folder.mkdir()
+    for name in ("markers.csv", "tracker.csv", "poses.csv"):
+        shutil.copy(cap_dir / name, folder / name)
+    model = tmp_path / "model.yaml"
+    model.write_text("terms:\n  - type: polynomial\n    degree: 2\n")
+    doc = json.loads(run_cli("diagnose", folder, "--register-markers", "--model", model, "--json",
+                             "--permutations", "9", "--effects", "sensor_offset", "--folds", "2").stdout)
+    fitted = next(t for t in doc["fit"]["tables"] if t["set_name"] == "calib")
+    shown = next(t for t in doc["tables"] if t["set_name"] == "calib")
+    # The same stations and references: the uncorrected errors agree to rounding.
+    assert fitted["before_position_mm"]["mean"] == pytest.approx(shown["before_position_mm"]["mean"], rel=1e-9)
+    assert fitted["before_position_mm"]["count"] == shown["before_position_mm"]["count"]
+
+
 def test_outside_stations_are_listed(sim):
     cap_dir, _, cal = sim
     v = validation.validate(captures.load_poses(cap_dir), trackcal.Calibration.load(cal), analyse_covariates=False)

@@ -279,6 +279,21 @@ def test_diagnose_without_a_validation_set_shows_the_fits_held_out_table(tmp_pat
     assert any(n.startswith("cross-validation") for n in names), names
 
 
+@pytest.mark.skipif(not diagnosis.candidates_available(), reason="no candidate ranking in this build")
+def test_cross_validate_top_zero_cross_validates_every_candidate(tmp_path):
+    # The in-process ranking takes the option (the demo's "--cross-validate-top 0: all" relied on
+    # it and got the default 3): four effects, every one cross-validated at 0, not at 1.
+    cap = simulate(tmp_path / "capture", seed=71)
+    effects = ["sensor_offset", "receiver_gain", "robust_loss", "near_field"]
+    every = diagnosis.diagnose_candidates(cap, MODEL, folds=2, effects=effects, cross_validate_top=0)
+    assert len(every["candidates"]) == 4
+    assert all(c["cross_validated"] for c in every["candidates"])
+    one = diagnosis.diagnose_candidates(cap, MODEL, folds=2, effects=effects, cross_validate_top=1)
+    assert not all(c["cross_validated"] for c in one["candidates"])
+    with pytest.raises(ValueError, match="cross_validate_top"):
+        diagnosis.diagnose_candidates(cap, MODEL, effects=effects, cross_validate_top=-1)
+
+
 def test_diagnose_json_is_one_document_with_everything(tmp_path):
     cap = simulate(tmp_path / "capture", seed=71)
     model = tmp_path / "model.yaml"

@@ -26,6 +26,9 @@ def write_new(path, data: bytes, exists_message: str = "exists; refusing to over
         raise ValueError(f"{path}: {path.parent} is not an existing folder")
     fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)  # as any new file (mkstemp makes it owner-only)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()

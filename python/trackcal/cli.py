@@ -202,7 +202,11 @@ def cmd_fit(args, term) -> int:
     import trackcal
     from trackcal import history
     folds = args.folds if args.folds is not None else (0 if _has_valid_set(args.data) else 5)
-    trackcal._core.check_calibration_output(args.output)  # a bad -o fails now, not after the fit
+    out = pathlib.Path(args.output).resolve()
+    for given in (args.data, args.model):  # a bad -o fails now, not after the fit
+        if pathlib.Path(given).is_file() and pathlib.Path(given).resolve() == out:
+            raise ValueError(f"{args.output}: output would overwrite the input {given}")
+    trackcal._core.check_calibration_output(args.output)
     report = trackcal.fit(args.data, args.model, folds=folds, progress=term.stage_progress())
     report.save(args.output, command_line="trackcal " + " ".join(sys.argv[1:]))
     entry = None
@@ -270,7 +274,7 @@ def _diagnosis(args, term):
     """Runs everything diagnose and report show: the validation with covariates, the model's fit when
     no calibration is given, the candidate ranking (with --model) and the verdict."""
     import trackcal
-    from trackcal import diagnosis
+    from trackcal import captures, diagnosis
     from trackcal.validation import validate
     model = getattr(args, "model", None)
     fit_report = None
@@ -281,7 +285,11 @@ def _diagnosis(args, term):
     if model and not args.calibration:
         # Without a validation set the "after" errors are in-sample: the fit's cross-validation
         # gives the held-out table, as `trackcal fit` does (unless --cross-validate asks for one).
-        held_out = 0 if getattr(args, "cross_validate", 0) or _has_valid_set(args.capture) else 5
+        # Not on streams: their samples are milliseconds apart, so folds of every k-th sample
+        # would train on each test sample's neighbours (the ranking's held-out errors stand).
+        has_valid = "valid" in registered[0].sets if registered else _has_valid_set(args.capture)
+        streams = not registered and captures.capture_kind(args.capture) == "streams"
+        held_out = 0 if getattr(args, "cross_validate", 0) or has_valid or streams else 5
         fit_report = trackcal.fit(data, model, folds=held_out, progress=term.stage_progress())
     if registered:
         capture, cal = registered[0], registered[1] or (fit_report.calibration if fit_report else None)
@@ -381,8 +389,8 @@ def cmd_diagnose(args, term) -> int:
             drop = (f.get("cv_drop_percent") or {}).get("position")
             cv = f.get("cv_position_mm_mean")
             if not isinstance(cv, (int, float)):
-                print(term.c(f"  flexible {f.get('effect')} (not an effect): {f.get('reason') or 'not fitted'}",
-                             "2"))
+                why = f.get("reason") or "not fitted"
+                print(term.c(f"  flexible {f.get('effect')} (not an effect): {why}", "2"))
                 continue
             print(f"  flexible {f.get('effect')} (not an effect): held-out {cv:.3f} mm"
                   + (f", falls {drop:.1f} %" if isinstance(drop, (int, float)) else "")
@@ -392,7 +400,8 @@ def cmd_diagnose(args, term) -> int:
             print(term.c("  not tested: " + "; ".join(doc["skipped"]), "2"))
     for n in notes:
         print("\n" + term.c("note: ", "33") + n)
-    print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], {None: "32", "unidentified": "33"}.get(verdict["source"], "31")))
+    colour = {None: "32", "unidentified": "33"}.get(verdict["source"], "31")  # red: something to add
+    print("\n" + term.c("Verdict: ", "1") + term.c(verdict["text"], colour))
     if change is not None:
         print("\n" + term.c("Model-file change", "1") +
               f" ({change['place']}):")
@@ -558,6 +567,10 @@ def _check_args(args) -> None:
     """What can be refused before any work (a long fit, a covariate analysis, a recording)."""
     if getattr(args, "permutations", 0) < 0:  # would make p-values negative: everything significant
         raise ValueError(f"--permutations {args.permutations}: must be 0 or more")
+    if getattr(args, "cross_validate_top", 0) < 0:
+        raise ValueError(f"--cross-validate-top {args.cross_validate_top}: must be 0 or more")
+    if args.command in ("diagnose", "report") and getattr(args, "model", None) and args.folds < 2:
+        raise ValueError(f"--folds {args.folds}: must be 2 or more")
     if args.command in ("report", "record"):
         _check_folder(args.output, "-o", write=True)
     if getattr(args, "workdir", None):

@@ -9,9 +9,9 @@ hardware and the optical reference:
 2. fit the base model (``--base``; default the paper's degree-4 polynomial, with ``ridge: auto``
    when the calibration stations lie on 2-4 layers along an axis: ``base_model_for``) with
    ``trackcal-fit``;
-3. diagnose: rank the catalog effects the model lacks (``trackcal-fit diagnose --json
-   --cross-validate-top N``; ``trackcal.diagnose_candidates`` in process only with
-   ``--cross-validate-top 0``, as it cannot screen), name the top significant one and show the
+3. diagnose: rank the catalog effects the model lacks (``trackcal.diagnose_candidates`` in
+   process, cross-validating the ``--cross-validate-top N`` best by BIC; ``trackcal-fit diagnose
+   --json`` when the package has no ranking), name the top significant one and show the
    model-file change; write the changed model as a new file, refit, and repeat until nothing
    significant is left (at most ``--max-steps`` changes);
 4. show the error after every change (validation set, against the simulator's noise floor), record
@@ -52,6 +52,9 @@ DEFAULT_MAX_STEPS = 8
 # diagnose --cross-validate-top): about half the time of cross-validating all of them; the others
 # are reported as screened out, never significant.
 DEFAULT_CROSS_VALIDATE_TOP = 2
+# The ranking's own default (fit/candidates.h CandidateOptions::cross_validate_top, and
+# trackcal-fit diagnose's): what the workflow loops use.
+RANKING_CROSS_VALIDATE_TOP = 3
 
 # The embedded default scene: the paper's room, tracker and protocol (base: paper) with a capture
 # of five heights (the paper's text: a 12 x 10 x 5 grid), here 8 x 6 x 5 at the paper's 0.15 m
@@ -188,8 +191,7 @@ def _fresh_work_dir(base: Path) -> Path:
 
 # ----------------------------------------------------------------------------------------------
 # The engine: fits through trackcal-fit (it writes the calibration file), diagnosis in process
-# (contract C) when the Python package has it and no --cross-validate-top is asked for, else
-# through `trackcal-fit diagnose --json` (B).
+# (contract C) when the Python package has it, else through `trackcal-fit diagnose --json` (B).
 
 
 def diagnosis_available() -> bool:
@@ -235,7 +237,7 @@ def run_fit(data: Path, model: Path, calibration: Path, log: Path, folds: int = 
 
 
 def run_diagnose(data: Path, model: Path, log: Path, folds: int = 5,
-                 cross_validate_top: int = 3) -> dict:
+                 cross_validate_top: int = RANKING_CROSS_VALIDATE_TOP) -> dict:
     """The ranked candidates (contract B's JSON document as a dict). ``cross_validate_top`` N > 0
     cross-validates only the N candidates with the best BIC (the others cannot be significant), 0
     every one; 3 is the ranking's own default."""
@@ -248,7 +250,7 @@ def run_diagnose(data: Path, model: Path, log: Path, folds: int = 5,
             params = {}
         if "cross_validate_top" in params:
             kwargs["cross_validate_top"] = cross_validate_top
-        elif cross_validate_top != 3:
+        elif cross_validate_top != RANKING_CROSS_VALIDATE_TOP:
             f = None  # this in-process ranking cannot take the option: the command line can
         if f is not None:
             doc = f(str(data), str(model), **kwargs)
@@ -388,7 +390,8 @@ def _final_cost(doc: dict) -> float:
 
 
 def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int = DEFAULT_MAX_STEPS,
-                     folds: int = 5, cross_validate_top: int = 3, record: bool = True,
+                     folds: int = 5, cross_validate_top: int = RANKING_CROSS_VALIDATE_TOP,
+                     record: bool = True,
                      say: Callable[[str], None] = print) -> List[Step]:
     """The workflow of docs/understand.md, "The main job": fit the base model, diagnose, add the
     top significant candidate to the model file, refit, and repeat until the diagnosis finds nothing
