@@ -544,12 +544,14 @@ int RunRegister(int argc, char** argv) {
   std::map<int, std::string> set_of;
   std::map<int, double> time_of;
   const std::string default_set = args.GetOr("--set", "calib");
+  PoseCapture labels;  // --poses: sets, times and extra columns per station
   if (!IsKnownSet(default_set)) {
     throw UsageError("--set '" + default_set + "' is not one of calib, valid, reg");
   }
   if (labelled) {
     const fs::path poses_path = args.Get("--poses");
-    for (const PoseRecord& r : ReadPoses(poses_path).records) {
+    labels = ReadPoses(poses_path);
+    for (const PoseRecord& r : labels.records) {
       set_of[r.station] = r.set;
       time_of[r.station] = r.time;
     }
@@ -608,6 +610,7 @@ int RunRegister(int argc, char** argv) {
     poses.records.insert(poses.records.end(), one.capture.records.begin(), one.capture.records.end());
     left_out.insert(left_out.end(), one.left_out.begin(), one.left_out.end());
   }
+  if (labelled) CopyExtraColumns(labels, &poses);
   WritePoses(output, poses);
   if (args.Flag("--json")) {
     nlohmann::json doc = RegisterDocument(registration, output, poses.records.size(), left_out);

@@ -1,6 +1,8 @@
 #include "fit/registration_io.h"
 
 #include <algorithm>
+#include <limits>
+#include <map>
 #include <set>
 #include <stdexcept>
 
@@ -89,6 +91,19 @@ PoseRecords MakePoseRecords(const std::vector<RegistrationStation>& stations,
     out.capture.records.push_back(r);
   }
   return out;
+}
+
+void CopyExtraColumns(const PoseCapture& labels, PoseCapture* registered) {
+  std::map<std::pair<int, int>, const std::vector<double>*> extra_of;
+  for (const PoseRecord& r : labels.records) extra_of[{r.station, r.sensor}] = &r.extra;
+  registered->extra_columns = labels.extra_columns;
+  for (PoseRecord& r : registered->records) {
+    const auto it = extra_of.find({r.station, r.sensor});
+    r.extra = it != extra_of.end()
+                  ? *it->second
+                  : std::vector<double>(labels.extra_columns.size(),
+                                        std::numeric_limits<double>::quiet_NaN());
+  }
 }
 
 }  // namespace trackcal::fit

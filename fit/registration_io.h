@@ -54,4 +54,9 @@ PoseRecords MakePoseRecords(const std::vector<RegistrationStation>& stations,
                             const std::map<int, double>& station_times = {},
                             const PoseRecordOptions& options = {});
 
+// Copies the extra columns of a labelling poses.csv (`trackcal-fit register --poses`) to the
+// registered records of the same station and sensor, so a value logged per station (a
+// temperature) stays a covariate of the diagnosis; NaN where the labels have no such row.
+void CopyExtraColumns(const PoseCapture& labels, PoseCapture* registered);
+
 }  // namespace trackcal::fit

@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+
 #include "fit/synthetic_registration.h"
 #include "tests/test_utils.h"
 
@@ -122,6 +124,24 @@ TEST(RegistrationIo, PairingErrorsNameFileStationAndField) {
   ASSERT_EQ(stations.size(), data.stations.size());
   EXPECT_TRUE(stations[1].markers.empty());
   EXPECT_EQ(RegisterOpticalToTransmitter(stations).skipped_stations, std::vector<int>{2});
+}
+
+TEST(CopyExtraColumns, ByStationAndSensorWithNanForMissingRows) {
+  PoseCapture labels;
+  labels.extra_columns = {"temperature"};
+  labels.records.push_back({3, "calib", 1, 0.0, {}, {}, {21.5}});
+  labels.records.push_back({3, "calib", 2, 0.0, {}, {}, {22.5}});
+  labels.records.push_back({4, "reg", 1, 0.0, {}, {}, {23.0}});
+  PoseCapture registered;
+  registered.records.push_back({4, "reg", 1, 0.0, {}, {}, {}});
+  registered.records.push_back({3, "calib", 2, 0.0, {}, {}, {}});
+  registered.records.push_back({5, "calib", 1, 0.0, {}, {}, {}});  // not in the labels
+  CopyExtraColumns(labels, &registered);
+  EXPECT_EQ(registered.extra_columns, labels.extra_columns);
+  EXPECT_EQ(registered.records[0].extra, std::vector<double>{23.0});
+  EXPECT_EQ(registered.records[1].extra, std::vector<double>{22.5});
+  ASSERT_EQ(registered.records[2].extra.size(), 1u);
+  EXPECT_TRUE(std::isnan(registered.records[2].extra[0]));
 }
 
 TEST(MakePoseRecords, LeavesOutStationsWithoutAPose) {

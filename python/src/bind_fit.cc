@@ -576,8 +576,10 @@ void BindFit(py::module_& m) {
           // every station keeps its set and time; without, every station registers.
           std::map<int, std::string> set_of;
           std::map<int, double> time_of;
+          PoseCapture labels;
           if (labelled) {
-            for (const PoseRecord& r : ReadPoses(poses_path).records) {
+            labels = ReadPoses(poses_path);
+            for (const PoseRecord& r : labels.records) {
               set_of[r.station] = r.set;
               time_of[r.station] = r.time;
             }
@@ -610,6 +612,7 @@ void BindFit(py::module_& m) {
                                       one.capture.records.end());
             run->left_out.insert(run->left_out.end(), one.left_out.begin(), one.left_out.end());
           }
+          if (labelled) fit::CopyExtraColumns(labels, &run->poses);
         });
         return run;
       },

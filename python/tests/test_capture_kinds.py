@@ -161,14 +161,27 @@ def test_raw_markers_register_with_the_reg_stations_like_trackcal_fit(sim, tmp_p
     folder.mkdir()
     for name in ("markers.csv", "tracker.csv", "poses.csv"):
         shutil.copy(cap_dir / name, folder / name)
+    # A temperature logged per station in the labelling poses.csv stays with its station.
+    lines = (folder / "poses.csv").read_text().splitlines()
+    station_col = lines[0].split(",").index("station")
+    temperature = {}
+    rows = [lines[0] + ",temperature"]
+    for line in lines[1:]:
+        station = int(line.split(",")[station_col])
+        temperature[station] = 20.0 + 0.01 * station
+        rows.append(f"{line},{temperature[station]}")
+    (folder / "poses.csv").write_text("\n".join(rows) + "\n")
     cap = captures.load(folder, register_markers=True)
     assert cap.origin["kind"] == "markers" and cap.origin["registered_with"].startswith("the reg stations")
+    assert cap.extra_columns == ["temperature"]
+    assert cap.column("temperature").tolist() == [temperature[int(s)] for s in cap.station]
     out = tmp_path / "registered.csv"
     subprocess.run([shutil.which("trackcal-fit"), "register", "--markers", folder / "markers.csv", "--tracker",
                     folder / "tracker.csv", "--poses", folder / "poses.csv", "-o", out], check=True,
                    capture_output=True)
     cli = captures.load_poses(out)
     assert cap.station.tolist() == cli.station.tolist() and cap.set.tolist() == cli.set.tolist()
+    assert cli.column("temperature").tolist() == cap.column("temperature").tolist()
     # Same code on the same input; the CSV round trip is exact (shortest round-trip printing).
     np.testing.assert_array_equal(cap.reference_positions, cli.reference_positions)
     # Registering with every station (no labels) lets the far, distorted stations bias it: the
