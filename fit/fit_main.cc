@@ -124,6 +124,13 @@ double ParseNumber(const std::string& option, const std::string& text) {
 }
 
 // Refuses to write over an input file.
+// --set (default calib), checked before any work: a name no capture can hold.
+std::string SetOption(const Args& args) {
+  const std::string set = args.GetOr("--set", "calib");
+  if (!IsKnownSet(set)) throw UsageError("--set '" + set + "' is not one of calib, valid, reg");
+  return set;
+}
+
 void CheckOutputIsNotInput(const fs::path& output, const std::vector<fs::path>& inputs) {
   std::error_code ec;
   for (const auto& in : inputs) {
@@ -473,10 +480,7 @@ int RunPair(int argc, char** argv) {
   StreamPairingOptions options;
   options.time_offset = ParseNumber("--time-offset", args.GetOr("--time-offset", "0"));
   options.estimate_time_offset = args.Flag("--estimate-time-offset");
-  options.set = args.GetOr("--set", "calib");
-  if (!IsKnownSet(options.set)) {
-    throw UsageError("--set '" + options.set + "' is not one of calib, valid, reg");
-  }
+  options.set = SetOption(args);
   const auto result =
       PairStreams(ReadTrackerStream(tracker_path), ReadReferenceStream(reference_path), options);
   WritePoses(output, result.poses);
@@ -543,11 +547,8 @@ int RunRegister(int argc, char** argv) {
   // Set and time of each station: from --poses, else every station registers and gets --set.
   std::map<int, std::string> set_of;
   std::map<int, double> time_of;
-  const std::string default_set = args.GetOr("--set", "calib");
+  const std::string default_set = SetOption(args);
   PoseCapture labels;  // --poses: sets, times and extra columns per station
-  if (!IsKnownSet(default_set)) {
-    throw UsageError("--set '" + default_set + "' is not one of calib, valid, reg");
-  }
   if (labelled) {
     const fs::path poses_path = args.Get("--poses");
     labels = ReadPoses(poses_path);
