@@ -229,10 +229,10 @@ struct FoldRefitOptions {
   // false). Poorly determined models (a plane on a capture it does not explain) creep along flat
   // valleys where more steps change the held-out errors little.
   int max_steps = 10;
-  // Converged when a step lowers the fold's cost (0.5 chi2) by less than this times
-  // max(1, chi2/dof of the full fit), or when the Gauss-Newton step would: a remaining step below
-  // ~0.1 sigma of the fold's parameters (0.5 delta^T H delta < 0.005), sigma scaled by the scatter
-  // the full fit actually leaves.
+  // Converged when a step lowers the fold's cost (0.5 chi2) by less than this times chi2/dof of
+  // the full fit, or when the Gauss-Newton step would: a remaining step below ~0.1 sigma of the
+  // fold's parameters (0.5 delta^T H delta < 0.005), sigma scaled (either way) by the scatter the
+  // full fit actually leaves, not the model file's noise.
   double cost_tolerance = 5e-3;
   // Above this many free parameters (dense normal equations cost O(n^3)), every fold is refitted by
   // the solver from the full fit's values.
