@@ -6,6 +6,7 @@ import os
 import pathlib
 import re
 import shutil
+import stat
 import subprocess
 
 import pytest
@@ -101,3 +102,28 @@ def test_report_refuses_to_overwrite_an_input(tmp_path):
     with pytest.raises(ValueError, match="refusing to overwrite an input"):
         report.write_report(v, tmp_path / "out", inputs=[fake])
     assert fake.read_text() == "precious"
+
+
+def test_report_replaces_only_an_earlier_report_and_files_get_the_umask_mode(tmp_path):
+    cap_dir = simulate(tmp_path / "capture", seed=33)
+    cap = captures.load_poses(cap_dir)
+    v = validation.validate(cap, None, analyse_covariates=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = out / "report.html"
+    mine.write_text("<html>my notes</html>")
+    with pytest.raises(ValueError, match="not a trackcal report"):
+        report.write_report(v, out)
+    assert mine.read_text() == "<html>my notes</html>"
+    assert list(out.iterdir()) == [mine]  # refused before any figure was written
+    mine.unlink()
+    old_umask = os.umask(0o022)
+    try:
+        first = report.write_report(v, out)
+        again = report.write_report(v, out)  # an earlier report is replaced
+    finally:
+        os.umask(old_umask)
+    assert first == again and "trackcal report" in again.read_text()[:4096]
+    # mkstemp makes files 0600; outputs are shared like any other new file (umask 022: 0644).
+    for f in out.iterdir():
+        assert stat.S_IMODE(f.stat().st_mode) == 0o644, f

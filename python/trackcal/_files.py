@@ -1,9 +1,16 @@
-"""Writing output files that must never replace an existing one (a capture, a recording, residuals).
+"""Writing output files atomically.
 
-The data goes to a temporary file in the target's folder, is synced, and is then hard-linked to
-the target: link() fails when the target exists, however late another file appeared there, where
-a check followed by a rename would replace it. The C++ writers (core/capture.cc,
-WriteFileAtomically) publish the same way.
+write_new: files that must never replace an existing one (a capture, a recording, residuals). The
+data goes to a temporary file in the target's folder, is synced, and is then hard-linked to the
+target: link() fails when the target exists, however late another file appeared there, where a
+check followed by a rename would replace it. The C++ writers (core/capture.cc, WriteFileAtomically)
+publish the same way.
+
+replace_atomically: files trackcal owns and rewrites (history.jsonl, a report, its figures), after
+the caller has decided the target may be replaced: a reader sees the old or the new file, never
+half of one.
+
+Both give the file the mode any new file gets under the umask (mkstemp makes it owner-only).
 """
 
 from __future__ import annotations
@@ -24,15 +31,8 @@ def write_new(path, data: bytes, exists_message: str = "exists; refusing to over
     path = pathlib.Path(path)
     if not path.parent.is_dir():  # else the error would name the temporary file
         raise ValueError(f"{path}: {path.parent} is not an existing folder")
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    tmp = _synced_temporary(path, data)
     try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # as any new file (mkstemp makes it owner-only)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
         try:
             os.link(tmp, path)
         except FileExistsError:
@@ -45,4 +45,38 @@ def write_new(path, data: bytes, exists_message: str = "exists; refusing to over
             raise
     finally:
         os.unlink(tmp)
+    return path
+
+
+def _synced_temporary(path: pathlib.Path, data: bytes) -> str:
+    """Name of a new temporary file next to ``path`` holding ``data``, synced, with the mode the
+    umask gives any new file (mkstemp makes it owner-only)."""
+    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(f.fileno(), 0o666 & ~umask)
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return tmp
+
+
+def replace_atomically(path, data: bytes) -> pathlib.Path:
+    """Writes ``data`` to ``path`` by a rename over it (see the module comment): the caller decides
+    that an existing ``path`` may be replaced."""
+    path = pathlib.Path(path)
+    if not path.parent.is_dir():  # else the error would name the temporary file
+        raise ValueError(f"{path}: {path.parent} is not an existing folder")
+    tmp = _synced_temporary(path, data)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
     return path

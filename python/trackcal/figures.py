@@ -15,9 +15,7 @@ matplotlib Figure; ``save_png`` writes it atomically.
 from __future__ import annotations
 
 import io
-import os
 import pathlib
-import tempfile
 from typing import List, Optional, Sequence
 
 import matplotlib
@@ -43,16 +41,8 @@ def save_png(fig, path, dpi: int = 110, inputs: Sequence = ()) -> pathlib.Path:
         from trackcal._files import write_new
         return write_new(path, png_bytes(fig, dpi),
                          "exists and is not a .png file; a figure replaces only an earlier PNG")
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            fig.savefig(f, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    from trackcal._files import replace_atomically
+    return replace_atomically(path, png_bytes(fig, dpi))
 
 
 def png_bytes(fig, dpi: int = 110) -> bytes:

@@ -17,10 +17,10 @@ import json
 import math
 import os
 import pathlib
-import tempfile
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from trackcal import _core
+from trackcal._files import replace_atomically, write_new
 
 HISTORY_FILE = "history.jsonl"
 
@@ -114,20 +114,6 @@ def _entry_problem(e) -> Optional[Tuple[str, str]]:
     return None
 
 
-def _atomic_write(path: pathlib.Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[str, dict],
                label: str = "", extra: Optional[dict] = None, fields: Optional[dict] = None) -> dict:
     """Appends a fit to the work folder's history. ``data`` is [(path, role)]; ``scores`` maps a set
@@ -154,18 +140,7 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
     old = path.read_bytes() if path.exists() else b""
     if old and not old.endswith(b"\n"):
         old += b"\n"
-    fd, tmp = tempfile.mkstemp(prefix=".history.", dir=workdir)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(old)
-            f.write((json.dumps(entry, sort_keys=True) + "\n").encode())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    replace_atomically(path, old + (json.dumps(entry, sort_keys=True) + "\n").encode())
     return entry
 
 
@@ -216,8 +191,12 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     models = workdir / "models"
     models.mkdir(exist_ok=True)
     copy = models / f"{sha[:16]}.yaml"
-    if not copy.exists():
-        _atomic_write(copy, text.encode("utf-8"))
+    if not copy.exists():  # named by its content: one written at the same moment is the same
+        try:
+            write_new(copy, text.encode("utf-8"))
+        except ValueError:
+            if not copy.exists():
+                raise
     terms = effect_names(report)
     if label is None:
         previous = next((e for e in reversed(load_history(workdir)) if "terms" in e), None)

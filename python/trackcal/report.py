@@ -11,31 +11,42 @@ from __future__ import annotations
 import base64
 import datetime
 import html
-import os
 import pathlib
-import tempfile
 from typing import Callable, List, Optional, Sequence
 
 import numpy as np
 
 from trackcal import figures as F
+from trackcal._files import replace_atomically
 from trackcal import validation
 
 
-def _atomic_write(path: pathlib.Path, data: bytes, inputs: Sequence[pathlib.Path]) -> None:
+# In every report's <head>: an existing report.html is replaced only when it carries this (an earlier
+# trackcal report), never a page of the user's that happens to sit in the output folder.
+GENERATOR_META = "<meta name='generator' content='trackcal report'>"
+
+
+def _check_replaceable(path: pathlib.Path, inputs: Sequence[pathlib.Path]) -> None:
+    """ValueError unless ``path`` is new or an earlier report's page or figure, and not an input."""
     target = path.resolve()
     for p in inputs:
         if p is not None and pathlib.Path(p).resolve() == target:
             raise ValueError(f"{path}: refusing to overwrite an input of the report")
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; the report writes a file of that name")
+    if path.suffix.lower() == ".html" and path.exists():
+        with open(path, "rb") as f:
+            head = f.read(4096)
+        if GENERATOR_META.encode() not in head:
+            raise ValueError(f"{path}: exists and is not a trackcal report; refusing to replace it "
+                             "(give another output folder, or remove the file)")
+    elif path.suffix.lower() != ".html" and path.exists() and path.suffix.lower() != ".png":
+        raise ValueError(f"{path}: exists and is not a figure; refusing to replace it")
+
+
+def _atomic_write(path: pathlib.Path, data: bytes, inputs: Sequence[pathlib.Path]) -> None:
+    _check_replaceable(path, inputs)
+    replace_atomically(path, data)
 
 
 def _table(rows: List[dict], columns: Optional[List[str]] = None, fmt: str = "{:.3f}") -> str:
@@ -166,8 +177,9 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     input_paths = [pathlib.Path(p) for p in inputs if p is not None]
     if v.capture.path is not None:
         input_paths.append(pathlib.Path(v.capture.path))
+    _check_replaceable(out_dir / "report.html", input_paths)  # before any figure is written
     figs = build_figures(v, history_entries, candidates)
-    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'>{GENERATOR_META}<title>{html.escape(title)}</title>"
              f"<style>{STYLE}</style></head><body>",
              f"<h1>{html.escape(title)}</h1>",
              f"<p>Generated {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}. "
