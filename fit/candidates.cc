@@ -752,7 +752,17 @@ std::string Statement(const CatalogEffect& effect, const Candidate& c, double lo
 // The clock-offset candidate: the joint fit's estimate with its standard deviation (the pairing's
 // search gave the start), and, when the model's other terms can mimic a time shift along this
 // stream's path (FitResult::time_offset_variance_inflation), that the estimate is not reliable.
-std::string TimeOffsetStatement(const FitResult& fit, double paired_offset_s) {
+// Multiplies the blocks' standard deviations by `scale` and their covariances by its square.
+void ScaleStddevs(double scale, std::vector<ParameterReport>* blocks) {
+  if (scale == 1.0) return;
+  for (auto& b : *blocks) {
+    for (double& x : b.stddev) x *= scale;
+    for (double& x : b.covariance) x *= scale * scale;
+  }
+}
+
+// `stddev_scale` multiplies the fit's standard deviation (the noise scale of a model covariance).
+std::string TimeOffsetStatement(const FitResult& fit, double paired_offset_s, double stddev_scale) {
   const ParameterReport* joint = nullptr;
   for (const auto& r : fit.parameters) {
     if (r.term == "time_offset" && r.values.size() == 1) joint = &r;
@@ -760,7 +770,7 @@ std::string TimeOffsetStatement(const FitResult& fit, double paired_offset_s) {
   std::string out = "a clock offset of ";
   if (joint && !joint->stddev.empty() && std::isfinite(joint->stddev[0])) {
     out += FormatNumber(joint->values[0] * 1e3, 2) + " +- " +
-           FormatNumber(joint->stddev[0] * 1e3, 2) +
+           FormatNumber(joint->stddev[0] * stddev_scale * 1e3, 2) +
            " ms (reference minus tracker; fitted with the model from the pairing's " +
            FormatNumber(paired_offset_s * 1e3, 2) + " ms)";
   } else {
@@ -1924,6 +1934,20 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
           }
         }
       }
+      // The noise scale profiled out (as in the BIC): sqrt(chi2/dof) of this fit, for sigmas from
+      // the model covariance (the model file's noise). A sandwich covariance (the default,
+      // fit/covariance.h) already takes its scale from the residuals: scaling it again would
+      // shrink the sigmas by sqrt(chi2/dof) a second time. The statement and the JSON state the
+      // scaled sigmas, as the claim rule judges them: with the default noise (1 mm, 15 times a
+      // Fastrak's scatter) the model covariance said "+- (0.39, 1.28, 0.41) m" of a dipole whose
+      // evidence gave +- 0.043 m.
+      const int noise_dof = n - c.num_free_parameters;
+      const bool empirical = fit.covariance_estimator.rfind("sandwich", 0) == 0;
+      const double noise_scale =
+          !empirical && noise_dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / noise_dof) : 1.0;
+      c.stddev_scale = noise_scale;
+      const std::vector<ParameterReport> model_sigmas = c.parameters;  // for the evidence
+      ScaleStddevs(noise_scale, &c.parameters);
       if (!options.exact_cv && !fit.linear_least_squares && FastCrossValidationApplies(own, spec)) {
         p.fitted = std::make_shared<ModelSpec>(std::move(spec));  // the folds start here
         p.left_out = fit.left_out;
@@ -1945,26 +1969,19 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
           c.statement = "in place of " + c.replaces + ", " + c.statement;
         }
       } else {
-        c.statement = TimeOffsetStatement(fit, p.time_offset_s);
         for (const auto& r : fit.parameters) {
           if (r.term == "time_offset") c.parameters.push_back(r);
         }
+        ScaleStddevs(noise_scale, &c.parameters);
+        c.statement = TimeOffsetStatement(fit, p.time_offset_s, noise_scale);
       }
       if (c.kind == CandidateKind::kTerm && !p.flexible && options.min_strength_sigma > 0) {
-        // The noise scale profiled out (as in the BIC): sqrt(chi2/dof) of this fit, for sigmas
-        // from the model covariance (the model file's noise). A sandwich covariance (the default,
-        // fit/covariance.h) already takes its scale from the residuals: scaling it again would
-        // shrink the sigmas by sqrt(chi2/dof) a second time.
-        const int dof = n - c.num_free_parameters;
-        const bool empirical = fit.covariance_estimator.rfind("sandwich", 0) == 0;
-        const double scale =
-            !empirical && dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / dof) : 1.0;
         // Several added terms: each must identify its source, so the candidate carries the
         // weakest term's evidence (one that fails, else the least strong).
         for (size_t t = 0; t < c.term_names.size(); ++t) {
           const PhysicalEvidence ev = AssessPhysicalEvidence(
-              p.terms[t]["type"].as<std::string>(), BlocksOfTerm(c.parameters, c.term_names[t]),
-              MeasuredPositions(own), options.min_strength_sigma, scale,
+              p.terms[t]["type"].as<std::string>(), BlocksOfTerm(model_sigmas, c.term_names[t]),
+              MeasuredPositions(own), options.min_strength_sigma, noise_scale,
               options.max_normal_sigma_rad, empirical ? fit.covariance_clusters : 0);
           if (t == 0 || WeakerEvidence(ev, c.evidence)) c.evidence = ev;
         }
@@ -2763,6 +2780,7 @@ nlohmann::json CandidateToJson(const Candidate& c) {
         {"reason", c.reason},
         {"evidence", c.evidence.ToJson()},
         {"parameters", params},
+        {"stddev_scale", c.stddev_scale},
         {"outlier_stations", c.outlier_stations},
         {"local_structure_stations", c.local_structure_stations},
         {"bic_unresolved_left_out", c.bic_unresolved_left_out},

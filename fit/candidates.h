@@ -282,6 +282,10 @@ struct Candidate {
   PhysicalEvidence evidence;
   std::vector<ParameterReport> parameters;  // the added term's blocks; time_offset.value for
                                             // time_offset; empty for robust_loss
+  // What the parameters' standard deviations were multiplied by: sqrt(chi2/dof) of the candidate's
+  // fit when its covariance is the model's (the model file's noise taken as the truth), 1 for the
+  // sandwich (already scaled by the residuals).
+  double stddev_scale = 1.0;
   std::vector<int> outlier_stations;        // robust_loss: stations beyond the loss scale
   // robust_loss: stations as far beyond the capture's errors whose neighbours' errors are as large
   // (a local effect the model lacks, not outliers).

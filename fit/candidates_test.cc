@@ -122,6 +122,40 @@ TEST(DiagnoseCandidates, Nominal_MissingOffsetRanksFirstAndIsSignificant) {
   EXPECT_THAT(FormatDiagnosis(d), ::testing::HasSubstr("Add to model.yaml"));
 }
 
+// The stated uncertainty does not depend on how well the model file guesses the noise: with a
+// file 20 times too pessimistic (2 mm / 0.34 deg against the stations' 0.1 mm / 0.017 deg) the model
+// covariance's sigmas are 20 times too large, and the candidate states them scaled by sqrt(chi2/dof)
+// (about 1/20), as its claim rule judges them; the sandwich needs no scale. Before, the statement
+// and the JSON gave the unscaled sigmas while the evidence used the scaled ones. The noise here is
+// homoscedastic, so the two estimators agree to their sampling scatter: within a factor 1.5 (300
+// stations; the sandwich's relative scatter is about 1/sqrt(2 * 300 / 3) ~ 7 %).
+TEST(DiagnoseCandidates, StatedSigmasAreScaledByTheNoiseTheFitLeaves) {
+  const auto stations = Stations(300, Eigen::Vector3d(0.003, -0.002, 0.001), 0, 1);
+  auto offset_sigmas = [&](const std::string& estimator, double* scale) {
+    const std::string model =
+        "noise: {position_mm: 2.0, orientation_deg: 0.34}\nsolver: {covariance_estimator: " +
+        estimator + "}\nterms:\n  - type: polynomial\n    degree: 1\n    position: false\n";
+    CandidateOptions o = TestOptions();
+    o.effects = {"position_offset"};
+    o.flexible.clear();
+    const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+    const Candidate& c = d.candidates.at(0);
+    EXPECT_TRUE(c.significant) << c.reason;
+    *scale = c.stddev_scale;
+    EXPECT_EQ(d.ToJson()["candidates"][0]["stddev_scale"].get<double>(), c.stddev_scale);
+    return Eigen::Vector3d(c.parameters.at(0).stddev.data());
+  };
+  double model_scale = 0.0, sandwich_scale = 0.0;
+  const Eigen::Vector3d model = offset_sigmas("model", &model_scale);
+  const Eigen::Vector3d sandwich = offset_sigmas("sandwich", &sandwich_scale);
+  EXPECT_NEAR(model_scale, 0.05, 0.01);  // sqrt(chi2/dof): the file's noise is 20x the stations'
+  EXPECT_EQ(sandwich_scale, 1.0);
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_LT(model[k], 1.5 * sandwich[k]) << k;
+    EXPECT_GT(model[k], sandwich[k] / 1.5) << k;
+  }
+}
+
 // Three seeds of data the model fits exactly (up to noise): nothing is claimed.
 TEST(DiagnoseCandidates, NothingIsClaimedWhenTheModelFits) {
   for (unsigned seed : {2u, 3u, 4u}) {
