@@ -2650,9 +2650,22 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     d.verdict_text = v.str();
   } else {
     std::ostringstream v;
-    v << "No catalog effect explains the remaining structure";
+    // The claim covers only the effects tested on held-out data: candidates screened out by
+    // cross_validate_top, refused on the fit to all stations or not fitted were not.
+    std::vector<std::string> untested;
+    for (const auto& c : d.candidates) {
+      if (!c.cross_validated) untested.push_back(c.effect);
+    }
     if (d.candidates.empty()) {
-      v << " (no candidate could be tested)";
+      v << "No catalog effect explains the remaining structure (no candidate could be tested)";
+    } else if (untested.empty()) {
+      v << "No catalog effect explains the remaining structure";
+    } else {
+      const size_t tested = d.candidates.size() - untested.size();
+      v << "None of the " << tested << " catalog effect" << (tested == 1 ? "" : "s")
+        << " tested on held-out data explains the remaining structure (not tested there: ";
+      for (size_t i = 0; i < untested.size(); ++i) v << (i ? ", " : "") << untested[i];
+      v << ")";
     }
     v << ". ";
     // Candidates that explain structure by the statistics but fail the physical conditions: the

@@ -156,6 +156,26 @@ TEST(DiagnoseCandidates, StatedSigmasAreScaledByTheNoiseTheFitLeaves) {
   }
 }
 
+// The verdict's "no catalog effect" covers only the effects tested on held-out data: one screened
+// out of cross-validation is named as not tested there.
+TEST(DiagnoseCandidates, TheVerdictNamesTheEffectsNotTestedHeldOut) {
+  const auto stations = Stations(300, Eigen::Vector3d::Zero(), 0, 2);
+  CandidateOptions o = TestOptions();
+  o.cross_validate_top = 1;
+  const Diagnosis d =
+      DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic", o);
+  ASSERT_EQ(d.candidates.size(), 2u);
+  std::string untested;
+  for (const Candidate& c : d.candidates) {
+    if (!c.cross_validated) untested = c.effect;
+  }
+  ASSERT_FALSE(untested.empty());
+  EXPECT_THAT(d.verdict_text,
+              ::testing::StartsWith("None of the 1 catalog effect tested on held-out data explains "
+                                    "the remaining structure (not tested there: " +
+                                    untested + ")."));
+}
+
 // Three seeds of data the model fits exactly (up to noise): nothing is claimed.
 TEST(DiagnoseCandidates, NothingIsClaimedWhenTheModelFits) {
   for (unsigned seed : {2u, 3u, 4u}) {

@@ -143,6 +143,18 @@ def test_verdict_keeps_the_rankings_word_on_structure_it_cannot_place():
     assert diagnosis.verdict(doc, quiet)["text"] == "nothing significant remains"
 
 
+def test_verdict_claims_only_over_the_effects_tested_held_out():
+    # A candidate screened out of cross-validation (--cross-validate-top) or refused on the fit to
+    # all stations was never tested on held-out data: "no catalog effect" would claim too much.
+    doc = contract_b_doc(False)
+    doc["candidates"][1]["cross_validated"] = False
+    v = diagnosis.verdict(doc, TEMPERATURE)
+    assert v["text"].startswith("none of the 1 catalog effect tested on held-out data explains the remaining "
+                                "structure (not tested there: sensor_offset); it follows covariate temperature")
+    doc["candidates"][1]["cross_validated"] = True
+    assert diagnosis.verdict(doc, TEMPERATURE)["text"].startswith("no catalog effect explains")
+
+
 def test_verdict_names_a_flexible_fallback_when_no_covariate_explains():
     doc = contract_b_doc(False)
     doc["flexible_fallback"] = [{"effect": "polynomial", "significant": True, "model_change": "- type: polynomial\n",

@@ -393,7 +393,8 @@ def cmd_diagnose(args, term) -> int:
                 print(term.c(f"  flexible {f.get('effect')} (not an effect): {why}", "2"))
                 continue
             print(f"  flexible {f.get('effect')} (not an effect): held-out {cv:.3f} mm"
-                  + (f", falls {drop:.1f} %" if isinstance(drop, (int, float)) else "")
+                  + ((f", {'falls' if drop >= 0 else 'rises'} {abs(drop):.1f} %")
+                     if isinstance(drop, (int, float)) else "")
                   + (", significant" if f.get("significant") else ", not significant")
                   + (f"; {f['reason']}" if f.get("reason") else ""))
         if doc.get("skipped"):

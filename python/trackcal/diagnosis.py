@@ -94,6 +94,21 @@ def _covariate_phrase(rows: List[dict]) -> str:
     return text
 
 
+def _no_catalog_effect(candidates_doc: Optional[dict]) -> str:
+    """"no catalog effect explains the remaining structure", narrowed to the effects the ranking
+    tested on held-out data when some were not (screened out by --cross-validate-top, refused by
+    the physical conditions on the fit to all stations, or not fitted): the claim covers only what
+    was tested."""
+    cands = (candidates_doc or {}).get("candidates") or []
+    untested = [c.get("effect", "?") for c in cands if not c.get("cross_validated", True)]
+    if not untested:
+        return "no catalog effect explains the remaining structure"
+    tested = len(cands) - len(untested)
+    shown = ", ".join(untested[:6]) + (f" and {len(untested) - 6} more" if len(untested) > 6 else "")
+    return (f"none of the {tested} catalog effect{'s' if tested != 1 else ''} tested on held-out data explains "
+            f"the remaining structure (not tested there: {shown})")
+
+
 def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     """Combines the candidate ranking (None: not run) and the covariate analysis.
 
@@ -121,7 +136,7 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
                    replaces=top.get("replaces"))
         return out
     if rows:
-        lead = ("no catalog effect explains the remaining structure; " if candidates_doc is not None
+        lead = (_no_catalog_effect(candidates_doc) + "; " if candidates_doc is not None
                 else "the remaining structure is not noise (catalog effects not tested); ")
         out.update(source="covariate", text=lead + _covariate_phrase(rows))
         return out
@@ -129,7 +144,7 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     if flexible is not None:
         drop = (flexible.get("cv_drop_percent") or {}).get("position")
         out.update(source="flexible",
-                   text="no catalog effect explains the remaining structure; it follows position (a flexible "
+                   text=_no_catalog_effect(candidates_doc) + "; it follows position (a flexible "
                         f"{flexible.get('effect', 'term')} lowers the held-out error"
                         + (f" by {drop:.1f} %" if isinstance(drop, (int, float)) else "") + ")",
                    model_change=flexible.get("model_change"), insert_index=flexible.get("insert_index"))
