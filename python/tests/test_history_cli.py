@@ -209,7 +209,11 @@ def test_cli_refuses_unusable_outputs_up_front_in_one_line(tmp_path, capsys):
               f"error: --workdir {afile}: exists and is not a folder"),
              (["diagnose", missing, "--permutations", "-1"], "error: --permutations -1: must be 0 or more"),
              (["report", missing, "-o", tmp_path / "r", "--permutations", "-5"],
-              "error: --permutations -5: must be 0 or more")]
+              "error: --permutations -5: must be 0 or more"),
+             (["diagnose", missing, "--top", "-1"], "error: --top -1: must be 0 or more"),
+             (["record", "--device", "raw=Nope@tcp://127.0.0.1:9", "--duration", "-1", "-o", tmp_path / "rec"],
+              "error: --duration -1.0: must be a positive number of seconds"),
+             (["history", tmp_path / "no-work"], f"error: {tmp_path / 'no-work'}: no such work folder")]
     (tmp_path / "work" / "history.jsonl").mkdir(parents=True)  # an OSError: a folder where a file goes
     cases.append((["history", tmp_path / "work"],
                   f"error: {tmp_path / 'work' / 'history.jsonl'}: Is a directory"))
@@ -217,7 +221,7 @@ def test_cli_refuses_unusable_outputs_up_front_in_one_line(tmp_path, capsys):
         assert cli.main([str(a) for a in argv]) == 2, argv
         err = capsys.readouterr().err
         assert err == line + "\n", (argv, err)
-    assert afile.read_text() == "mine\n" and not (tmp_path / "r").exists()
+    assert afile.read_text() == "mine\n" and not (tmp_path / "r").exists() and not (tmp_path / "rec").exists()
     p, q = np.zeros((30, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (30, 1))
     with pytest.raises(ValueError, match="n_permutations -1: must be 0 or more"):
         validation.covariate_analysis(validation.residuals(p, q, p, q), {"x": np.arange(30.0)},

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import pathlib
 import sys
@@ -570,6 +571,13 @@ def _check_args(args) -> None:
         raise ValueError(f"--permutations {args.permutations}: must be 0 or more")
     if getattr(args, "cross_validate_top", 0) < 0:
         raise ValueError(f"--cross-validate-top {args.cross_validate_top}: must be 0 or more")
+    if getattr(args, "top", 0) < 0:
+        raise ValueError(f"--top {args.top}: must be 0 or more")
+    if args.command == "record" and not (args.duration > 0 and math.isfinite(args.duration)):
+        raise ValueError(f"--duration {args.duration}: must be a positive number of seconds")
+    if args.command == "history" and not pathlib.Path(args.workdir).is_dir():
+        # A mistyped folder is not an empty history.
+        raise ValueError(f"{args.workdir}: no such work folder")
     if args.command in ("diagnose", "report") and getattr(args, "model", None) and args.folds < 2:
         raise ValueError(f"--folds {args.folds}: must be 2 or more")
     if args.command in ("report", "record"):
