@@ -62,10 +62,12 @@ def test_cli_validate_diagnose_report(tmp_path):
     cal_path = tmp_path / "cal.json"
     validation.fit_polynomial(cap.select_set("calib"), degree=3).save(cal_path)
     r = run_cli("validate", cap_dir, "-c", cal_path, "--cross-validate", "5")
-    assert "valid set (120 poses)" in r.stdout and "cross-validation (5-fold)" in r.stdout
+    # The cross-validation table refits the default polynomial, not cal.json: its name says so.
+    assert "valid set (120 poses)" in r.stdout and "cross-validation (5-fold, degree-3 polynomial)" in r.stdout
     # --json: one document a script can parse, nothing else on stdout.
     doc = json.loads(run_cli("validate", cap_dir, "-c", cal_path, "--cross-validate", "5", "--json").stdout)
-    assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all", "cross-validation (5-fold)"]
+    assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all",
+                                                      "cross-validation (5-fold, degree-3 polynomial)"]
     assert doc["outside_volume"]["count"] == len(doc["outside_volume"]["stations"])
     assert "\033[" not in r.stdout  # not a terminal: no colour codes
     r = run_cli("diagnose", cap_dir, "-c", cal_path, "--permutations", "19")
@@ -74,6 +76,27 @@ def test_cli_validate_diagnose_report(tmp_path):
     r = run_cli("report", cap_dir, "-c", cal_path, "-o", tmp_path / "rep", "--permutations", "19")
     assert (tmp_path / "rep" / "report.html").exists()
     assert (tmp_path / "rep" / "fig4_position_error_vs_distance.png").exists()
+
+
+def test_diagnose_says_when_the_calibration_is_not_the_model_it_ranks(tmp_path):
+    """-c cal.json --model other.yaml: the tables are cal.json's, the ranking refits other.yaml; a
+    calibration fitted from another model file is named, in the text, the JSON and the report."""
+    cap_dir = simulate(tmp_path / "capture", seed=45)
+    m1, m2 = tmp_path / "m1.yaml", tmp_path / "m2.yaml"
+    m1.write_text("terms:\n  - type: polynomial\n    degree: 2\n")
+    m2.write_text("terms:\n  - type: polynomial\n    degree: 1\n")
+    cal = tmp_path / "cal.json"
+    assert run_cli("fit", "--data", cap_dir, "--model", m1, "-o", cal).returncode == 0
+    args = ("diagnose", cap_dir, "-c", cal, "--effects", "sensor_offset", "--permutations", "0")
+    same = run_cli(*args, "--model", m1)
+    assert "was fitted from another model file" not in same.stdout
+    other = run_cli(*args, "--model", m2)
+    assert f"{cal} was fitted from another model file ({m1}) than --model {m2}" in other.stdout
+    doc = json.loads(run_cli(*args, "--model", m2, "--json").stdout)
+    assert any("was fitted from another model file" in n for n in doc["notes"])
+    rep = run_cli("report", cap_dir, "-c", cal, "--model", m2, "--effects", "sensor_offset", "--no-covariates",
+                  "-o", tmp_path / "rep")
+    assert "was fitted from another model file" in (tmp_path / "rep" / "report.html").read_text()
 
 
 def test_cli_errors_name_file_line_column(tmp_path):

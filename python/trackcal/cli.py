@@ -318,6 +318,10 @@ def _diagnosis(args, term):
             notes.append("candidate effects not ranked: this build has no fit/candidates.h")
     else:
         notes.append("catalog effects not tested: give --model to rank them")
+    if model and getattr(args, "calibration", None):
+        mismatch = _model_mismatch_note(args.calibration, model)
+        if mismatch:
+            notes.append(mismatch)
     verdict = diagnosis.verdict(doc, v.covariate_effects)
     change = None
     if verdict["source"] == "candidate" and verdict.get("model_change"):
@@ -337,6 +341,29 @@ def _diagnosis(args, term):
                   "model_text": new_text,
                   "diff": diagnosis.model_diff(info["text"], new_text, name) if new_text else None}
     return capture, cal, v, fit_report, doc, verdict, change, notes
+
+
+def _model_mismatch_note(calibration, model) -> Optional[str]:
+    """With -c and --model: the tables are the calibration's, while the ranking refits --model; say
+    so when the calibration records another model file (its provenance's model_file input) than
+    --model, else a user reads the candidates as the calibration's (a sensor offset 'missing' from a
+    calibration that has one)."""
+    import hashlib
+    if not os.path.isfile(model):
+        return None  # model text: nothing to compare
+    try:
+        with open(calibration, "rb") as f:
+            inputs = (json.loads(f.read()).get("provenance") or {}).get("inputs") or []
+        with open(model, "rb") as f:
+            sha = hashlib.sha256(f.read()).hexdigest()
+    except (OSError, ValueError, AttributeError):
+        return None  # the calibration loaded already: its own reader reports what is wrong
+    models = [i for i in inputs if isinstance(i, dict) and i.get("role") == "model_file"]
+    if not models or any(i.get("sha256") == sha for i in models):
+        return None
+    return (f"{calibration} was fitted from another model file ({models[0].get('path')}) than --model "
+            f"{model}: the tables and covariates above are the calibration's, the candidate ranking and the "
+            f"verdict are about {model} refitted to this capture")
 
 
 def cmd_diagnose(args, term) -> int:
@@ -419,8 +446,11 @@ def cmd_report(args, term) -> int:
     hist = load_history(args.workdir) if args.workdir else None
     inputs = [args.capture, args.calibration, args.model if args.model and os.path.exists(args.model) else None]
     inputs += _capture_files(capture)
+    for n in notes:
+        print(term.c("note: ", "33") + n)
     path = write_report(v, args.output, inputs=inputs, history_entries=hist, candidates=doc,
-                        verdict=verdict, model_change=change, progress=term.progress("figures"))
+                        verdict=verdict, model_change=change, progress=term.progress("figures"),
+                        notes=notes)
     print(f"wrote {path}")
     return 0
 

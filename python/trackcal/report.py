@@ -162,7 +162,8 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                  history_entries: Optional[Sequence[dict]] = None,
                  candidates: Optional[dict] = None, verdict: Optional[dict] = None,
                  model_change: Optional[dict] = None,
-                 progress: Optional[Callable[[int, int], None]] = None) -> pathlib.Path:
+                 progress: Optional[Callable[[int, int], None]] = None,
+                 notes: Sequence[str] = ()) -> pathlib.Path:
     """Writes out_dir/report.html and one PNG per figure; returns the HTML path.
 
     ``candidates`` (optional) is the fit engine's ranking of missing effects
@@ -227,6 +228,8 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                      + _table(diagnosis.candidate_rows(candidates)))
     if verdict is None and (candidates is not None or v.covariate_effects):
         verdict = diagnosis.verdict(candidates, v.covariate_effects)
+    for n in notes:  # what the reader must know to read the tables and the verdict
+        parts.append(f"<p><b>Note:</b> {html.escape(n)}</p>")
     if verdict is not None:
         parts.append(f"<h2>Verdict</h2><p class='sig'>{html.escape(verdict['text'])}</p>")
     if model_change is not None:

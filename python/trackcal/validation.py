@@ -10,6 +10,8 @@ Conventions (docs/developing.md): position error ``p_ref - p``, orientation erro
 from __future__ import annotations
 
 import dataclasses
+import os
+import pathlib
 from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
@@ -651,9 +653,19 @@ def fit_polynomial(capture: PoseCapture, degree: int = 3):
 def cross_validate(capture: PoseCapture, model=None, folds: int = 5) -> Table1:
     """k-fold cross-validation of a model (path or YAML text; default: degree-3 polynomial) on the
     non-registration stations, by the engine: station i is corrected by the model fitted on the
-    stations of the other folds (fold i mod k). Returns the Table 1 of the held-out corrections."""
+    stations of the other folds (fold i mod k). Returns the Table 1 of the held-out corrections,
+    its set named by the model ("cross-validation (5-fold, degree-3 polynomial)")."""
     from trackcal.fitting import fit
     if folds < 2:
         raise ValueError(f"cross-validation needs at least 2 folds, got {folds}")
     report = fit(_as_calibration_set(capture), model if model is not None else polynomial_model(3), folds=folds)
-    return report.table("cross-validation")
+    table = report.table("cross-validation")
+    # Named by the model it refits, which is not the calibration whose tables it stands beside.
+    if model is None:
+        what = "degree-3 polynomial"
+    elif isinstance(model, (str, os.PathLike)) and os.path.isfile(model):
+        what = pathlib.Path(model).name
+    else:
+        what = "the model text"
+    name = table.set_name[:-1] + f", {what})" if table.set_name.endswith(")") else f"{table.set_name} ({what})"
+    return dataclasses.replace(table, set_name=name)
