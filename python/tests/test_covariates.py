@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from trackcal import captures, validation
+from trackcal import captures, diagnosis, validation
 from understand_support import simulate, write_poses
 
 
@@ -154,3 +154,48 @@ def test_in_sample_and_held_out_sets_are_not_a_time_trend():
     by_set = validation.covariate_analysis(r, covs, n_permutations=99, seed=6, groups=sets)
     claimed = {e.covariate for e in by_set if e.significant}
     assert claimed == {"load"}, claimed
+
+
+def _snake_grid(rng, effect):
+    """A 7 x 5 x 4 grid visited layer by layer (the paper protocol's order): time and visiting order
+    correlate ~0.97 with z. Position residual: ``effect(z, t)`` mm along x plus 0.05 mm noise."""
+    pts = [(x, y, z) for z in range(4) for y in range(5) for x in range(7)]
+    p = np.array(pts, float) * 0.15 + [-0.45, -0.3, -0.8]
+    n = len(p)
+    t = np.arange(n) * 6.0  # 6 s per station
+    pos = rng.normal(scale=0.05e-3, size=(n, 3))
+    pos[:, 0] += 1e-3 * effect(p[:, 2], t)
+    ori = rng.normal(scale=1e-4, size=(n, 3))
+    r = validation.Residuals(position=pos, orientation=ori, position_mm=np.linalg.norm(pos, axis=1) * 1e3,
+                             orientation_deg=np.degrees(2 * np.linalg.norm(ori, axis=1)))
+    covs = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "distance": np.linalg.norm(p, axis=1),
+            "time": t, "visiting_order": np.arange(n, dtype=float)}
+    return r, covs
+
+
+def test_time_that_position_explains_is_not_the_finding():
+    # A purely spatial residual (a step in z) on a grid visited in z order: time and visiting order
+    # are significant too, but they follow z; the finding must be z. Before, the verdict named
+    # whichever covariate had the largest R^2, time or visiting order in about half the seeds.
+    for seed in (1, 2, 3):
+        r, covs = _snake_grid(np.random.default_rng(seed), lambda z, t: 0.3 * (z > -0.6))
+        effects = validation.covariate_analysis(r, covs, n_permutations=99, seed=seed)
+        for e in effects:
+            if e.significant and e.covariate in ("time", "visiting_order"):
+                assert e.confounded_with == "position", (seed, e)
+        head = diagnosis.covariate_findings(effects)[0]
+        assert head["covariate"] in ("z", "distance") and head["confounded_with"] is None, (seed, head)
+
+
+def test_a_drift_is_still_found_in_time():
+    # A drift (0.4 mm over the 14 min run) on the same grid: z is significant too (the layers are
+    # visited in turn), but time survives z and z does not survive time: the finding is time.
+    for seed in (1, 2, 3):
+        r, covs = _snake_grid(np.random.default_rng(seed), lambda z, t: 0.4 * t / t.max())
+        effects = validation.covariate_analysis(r, covs, n_permutations=99, seed=seed)
+        head = diagnosis.covariate_findings(effects)[0]
+        assert head["covariate"] in ("time", "visiting_order") and head["confounded_with"] is None, (seed, head)
+        # Time's own finding (its best target) stands. (On a weaker target, the position vector whose
+        # y and z carry only noise, the follow-up test can lack the power to keep it: seed 2.)
+        rows = {r["covariate"]: r for r in diagnosis.covariate_findings(effects)}
+        assert rows["time"]["confounded_with"] is None and rows["z"]["confounded_with"] == "time", (seed, rows)

@@ -398,7 +398,8 @@ def cmd_diagnose(args, term) -> int:
     if not sig:
         print("  no covariate explains the residuals beyond noise")
     for e in sig[:args.top]:
-        print("  " + term.c(f"{e.covariate:<24}", "31") + f" {e.target:<20} R²={e.r2:.3f}  p={e.p_value:.3g}")
+        print("  " + term.c(f"{e.covariate:<24}", "31") + f" {e.target:<20} R²={e.r2:.3f}  p={e.p_value:.3g}"
+              + (f"  (explained by {e.confounded_with})" if e.confounded_with else ""))
     if doc is not None:
         base = doc.get("base", {})
         print("\n" + term.c("Candidate effects", "1") +

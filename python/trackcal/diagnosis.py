@@ -70,8 +70,11 @@ def covariate_findings(effects) -> List[dict]:
         if e.significant and (e.covariate not in best or e.r2 > best[e.covariate].r2):
             best[e.covariate] = e
     rows = [{"covariate": e.covariate, "target": e.target, "r2": float(e.r2), "p_value": float(e.p_value),
-             "count": int(e.count)} for e in best.values()]
-    rows.sort(key=lambda r: -r["r2"])
+             "count": int(e.count), "confounded_with": getattr(e, "confounded_with", None)}
+            for e in best.values()]
+    # A covariate another family explains away (time that position explains) goes after those
+    # that stand on their own, whatever its R^2.
+    rows.sort(key=lambda r: (r["confounded_with"] is not None, -r["r2"]))
     return rows
 
 
@@ -89,8 +92,17 @@ def _covariate_phrase(rows: List[dict]) -> str:
     head = rows[0]
     text = (f"it follows covariate {head['covariate']} (R^2 {head['r2']:.2f} of the "
             f"{TARGET_WORDS.get(head['target'], head['target'])})")
+    if head.get("confounded_with") is not None:
+        # Every finding is explained away by the other family (no finding stands on its own).
+        text += (f", which {head['confounded_with']} explains as well: on this capture time and position go "
+                 "together, so it cannot tell a drift from a place (visit the stations again in another "
+                 "order to separate them)")
+        return text
     if len(rows) > 1:
-        text += "; also " + ", ".join(f"{r['covariate']} (R^2 {r['r2']:.2f})" for r in rows[1:4])
+        text += "; also " + ", ".join(
+            f"{r['covariate']} (R^2 {r['r2']:.2f}"
+            + (f", explained by {r['confounded_with']}" if r.get("confounded_with") else "") + ")"
+            for r in rows[1:4])
     return text
 
 
@@ -444,7 +456,8 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
         "by_region": v.by_region,
         "worst": v.worst,
         "covariates": [{"covariate": e.covariate, "target": e.target, "r2": e.r2, "p_value": e.p_value,
-                        "significant": e.significant, "count": e.count} for e in v.covariate_effects],
+                        "significant": e.significant, "count": e.count,
+                        "confounded_with": getattr(e, "confounded_with", None)} for e in v.covariate_effects],
         "covariate_findings": covariate_findings(v.covariate_effects),
         "fit": None if fit_report is None else {"tables": [t.to_dict() for t in fit_report.tables],
                                                 "converged": fit_report.converged,
