@@ -318,6 +318,9 @@ def _diagnosis(args, term):
             notes.append("candidate effects not ranked: this build has no fit/candidates.h")
     else:
         notes.append("catalog effects not tested: give --model to rank them")
+    outside = diagnosis.extrapolation_note(v)
+    if outside:
+        notes.append(outside)
     if model and getattr(args, "calibration", None):
         mismatch = _model_mismatch_note(args.calibration, model)
         if mismatch:

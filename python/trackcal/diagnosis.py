@@ -121,6 +121,28 @@ def _no_catalog_effect(candidates_doc: Optional[dict]) -> str:
             f"the remaining structure (not tested there: {shown})")
 
 
+def extrapolation_note(v) -> Optional[str]:
+    """A note when stations outside the calibrated volume carry errors well beyond those inside:
+    the correction extrapolates there, which no covariate or candidate explains (the covariate
+    analysis and the ranking look at the structure inside). None when there is no calibration,
+    no such station, or their errors are not larger than twice the inside ones."""
+    if getattr(v, "after", None) is None or v.calibration is None:
+        return None
+    kept = ~np.asarray(v.flipped, bool) if getattr(v, "flipped", None) is not None else np.ones(len(v.extrapolated), bool)
+    out = np.asarray(v.extrapolated, bool) & kept
+    inside = ~np.asarray(v.extrapolated, bool) & kept
+    if not out.any() or not inside.any():
+        return None
+    e_out = float(np.mean(v.after.position_mm[out]))
+    e_in = float(np.mean(v.after.position_mm[inside]))
+    if not e_out > 2.0 * e_in:
+        return None
+    return (f"{int(out.sum())} of {int((out | inside).sum())} stations lie outside the calibrated volume, where "
+            f"the correction extrapolates: their mean position error is {e_out:.3f} mm against {e_in:.3f} mm "
+            "inside (by distance and worst stations above); calibrate over the volume they use rather than "
+            "look for an effect there")
+
+
 def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     """Combines the candidate ranking (None: not run) and the covariate analysis.
 
