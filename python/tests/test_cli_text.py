@@ -111,3 +111,17 @@ def test_history_labels_name_the_effect_added(capture_dir, tmp_path):
     entries = history.load_history(work)
     assert [e["label"] for e in entries] == ["polynomial", "+sensor_offset"]
     assert entries[1]["terms"] == ["sensor_offset", "polynomial"]
+
+
+def test_history_table_compares_only_rows_on_the_same_data_and_set():
+    # A reviewer's work folder: a fit on another capture showed "+362.7%" against the previous row,
+    # and a cross-validation figure was compared with a validation-set one.
+    a, b, c, d = (entry("base", 2.0, 0.2), entry("+x", 1.0, 0.1), entry("+x", 9.0, 0.3),
+                  entry("+y", 0.5, 0.05, "cross-validation (5-fold)"))
+    for e, sha in ((a, "aa"), (b, "aa"), (c, "bb"), (d, "bb")):
+        e["data"] = [{"path": "poses.csv", "role": "calibration_capture", "sha256": sha}]
+    lines = history.history_table([a, b, c, d]).splitlines()
+    assert "-50.0%" in lines[2]
+    assert "other data" in lines[3] and "%" not in lines[3]
+    assert "other set" in lines[4] and "%" not in lines[4]
+    assert "cross-validation (5-fold)" in lines[4]  # the set's whole name

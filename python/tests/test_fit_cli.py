@@ -58,6 +58,10 @@ def test_fit_prints_table1_and_records_each_change(capture_dir, tmp_path):
     assert entries[0]["data"] == [{"path": str(capture_dir / "poses.csv"), "role": "calibration_capture",
                                    "sha256": sha(capture_dir / "poses.csv")}]
     assert entries[1]["calibration"]["sha256"] == sha(tmp_path / "c2.json")
+    # Each entry keeps the calibration it scored too: a later fit to the same -o replaces the file.
+    first_cal = (tmp_path / "c1.json").read_bytes()
+    assert (work / entries[0]["calibration"]["copy"]).read_bytes() == first_cal
+    assert entries[0]["calibration"]["sha256"] == hashlib.sha256(first_cal).hexdigest()
     # Scores are the Table 1 of the calibration file the fit wrote.
     saved = trackcal.Calibration.load(tmp_path / "c2.json").fit_statistics["tables"]
     valid = next(t for t in saved if t["set"] == "valid")

@@ -5,7 +5,8 @@ calibration file; for a model-file fit also ``copy``, the model text kept in ``m
 of the work folder, so every earlier model can be recovered), ``data`` (a list of {path, role,
 sha256} of the captures used) and ``scores`` ({set name: {"position_mm": {mean, std, max, ...},
 "orientation_deg": {...}}}). Fits of a model file (``trackcal fit --workdir``) add ``terms`` (term
-names of the model), ``calibration`` ({path, sha256} of the file written) and ``fit`` (converged,
+names of the model), ``calibration`` ({path, sha256} of the file written, and ``copy``, the same bytes
+kept in ``models/<sha>.json``: a later fit may replace the file) and ``fit`` (converged,
 chi2_per_dof, free parameters, outliers). The file is rewritten atomically on every record, so an
 interrupted write never loses earlier fits.
 """
@@ -13,6 +14,7 @@ interrupted write never loses earlier fits.
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import math
 import os
@@ -180,10 +182,21 @@ def effect_names(report) -> List[str]:
     return names or list(report.model["terms"])
 
 
+def _keep_copy(path: pathlib.Path, data: bytes) -> None:
+    """Writes a file named by its content once (one written at the same moment is the same)."""
+    if path.exists():
+        return
+    try:
+        write_new(path, data)
+    except ValueError:
+        if not path.exists():
+            raise
+
+
 def record_model_fit(workdir, report, *, model, data, calibration=None, label: Optional[str] = None) -> dict:
     """Records a trackcal.fit FitReport: a copy of the model text (``models/<sha256[:16]>.yaml``,
     written once), the SHA-256 of the model and of every capture file, the Table 1 scores, the term
-    names, the calibration written and fit figures. The label defaults to the term change from the
+    names, the calibration written (and a copy of it, ``models/<sha256[:16]>.json``) and fit figures. The label defaults to the term change from the
     previous model-file fit ("+dipole"; "settings" when only settings changed)."""
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -191,12 +204,7 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     models = workdir / "models"
     models.mkdir(exist_ok=True)
     copy = models / f"{sha[:16]}.yaml"
-    if not copy.exists():  # named by its content: one written at the same moment is the same
-        try:
-            write_new(copy, text.encode("utf-8"))
-        except ValueError:
-            if not copy.exists():
-                raise
+    _keep_copy(copy, text.encode("utf-8"))
     terms = effect_names(report)
     if label is None:
         previous = next((e for e in reversed(load_history(workdir)) if "terms" in e), None)
@@ -216,7 +224,14 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     if model_path is None:  # model given as text: the copy is the model file
         fields["model"]["path"] = str(copy.relative_to(workdir))
     if calibration is not None:
-        fields["calibration"] = {"path": str(pathlib.Path(calibration).resolve()), "sha256": _sha(calibration)}
+        # A copy by content beside the model's: `trackcal fit -o cal.json` may replace cal.json by a
+        # later fit, and the history must still lead to the calibration each row scored.
+        cal_bytes = pathlib.Path(calibration).read_bytes()
+        cal_sha = hashlib.sha256(cal_bytes).hexdigest()
+        cal_copy = models / f"{cal_sha[:16]}.json"
+        _keep_copy(cal_copy, cal_bytes)
+        fields["calibration"] = {"path": str(pathlib.Path(calibration).resolve()), "sha256": cal_sha,
+                                 "copy": str(cal_copy.relative_to(workdir))}
     return record_fit(workdir, model=model_path,
                       data=_data_files(data) if isinstance(data, (str, os.PathLike)) else [],
                       scores=report.scores(), label=label, fields=fields)
@@ -273,25 +288,42 @@ def _change(now: float, before: Optional[float]) -> str:
     return f"{100 * (now - before) / before:+.1f}%"
 
 
+def _comparable_key(e: dict):
+    """What two rows must share for their errors to be compared: the capture files' contents and
+    the set the headline is taken from."""
+    data = tuple(sorted(str(d.get("sha256")) for d in e.get("data") or [] if isinstance(d, dict)))
+    return data, headline_set(e)
+
+
 def history_table(entries: Sequence[dict]) -> str:
     """Plain-text table: one row per fit with the headline error (``set``: which set's, held-out
     first) and its change from the previous. The position median beside the mean: a few gross
     errors no calibration can remove hold the mean up while the median falls (hemisphere flips are
-    left out of the scores since session 23; records written before kept them)."""
-    lines = [f"{'#':>3}  {'time (UTC)':<20}  {'label':<28} {'pos mean mm':>12} {'change':>8} "
-             f"{'median mm':>10} {'change':>8} {'ori mean deg':>13} {'change':>8}  {'set':<12}  model"]
+    left out of the scores since session 23; records written before kept them). A row whose capture
+    files (their SHA-256) or headline set differ from the previous row's shows "other data" or
+    "other set" instead of a change: errors on different stations are not a step of the loop."""
+    sets = [headline_set(e) or "" for e in entries]
+    width = max([3] + [len(x) for x in sets])
+    lines = [f"{'#':>3}  {'time (UTC)':<20}  {'label':<28} {'pos mean mm':>12} {'change':>10} "
+             f"{'median mm':>10} {'change':>10} {'ori mean deg':>13} {'change':>10}  {'set':<{width}}  model"]
     prev = None
+    prev_key = None
     for i, e in enumerate(entries, 1):
         p, o = headline_scores(e)
         med = headline_median_mm(e)
-        dp = _change(p, prev[0] if prev else None)
-        dm = _change(med, prev[1] if prev else None)
-        do = _change(o, prev[2] if prev else None)
+        key = _comparable_key(e)
+        if prev is None or key == prev_key:
+            dp = _change(p, prev[0] if prev else None)
+            dm = _change(med, prev[1] if prev else None)
+            do = _change(o, prev[2] if prev else None)
+        else:
+            dp = dm = do = "other data" if key[0] != prev_key[0] else "other set"
         med_text = "" if math.isnan(med) else f"{med:.3f}"
         m = e.get("model") or {}
         model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
         lines.append(f"{i:>3}  {e.get('time_utc', ''):<20}  {str(e.get('label', ''))[:28]:<28} {p:>12.3f} "
-                     f"{dp:>8} {med_text:>10} {dm:>8} {o:>13.3f} {do:>8}  "
-                     f"{(headline_set(e) or '')[:12]:<12}  {model}")
+                     f"{dp:>10} {med_text:>10} {dm:>10} {o:>13.3f} {do:>10}  "
+                     f"{sets[i - 1]:<{width}}  {model}")
         prev = (p, med, o)
+        prev_key = key
     return "\n".join(lines)
