@@ -346,3 +346,13 @@ def test_extrapolated_stations_are_named_in_a_note():
     after.position_mm[n_in:] = 50.0
     v.calibration = None
     assert diagnosis.extrapolation_note(v) is None
+
+
+def test_a_crlf_model_keeps_its_line_endings():
+    # A model file written on Windows: the change adds its lines with CRLF, the diff shows only them.
+    text = "terms:\r\n  - type: polynomial\r\n    degree: 3\r\n"
+    new = diagnosis.apply_model_change(text, "- type: sensor_offset\n", 0)
+    assert new == "terms:\r\n  - type: sensor_offset\r\n  - type: polynomial\r\n    degree: 3\r\n"
+    diff = diagnosis.model_diff(text, new)
+    assert [l for l in diff.splitlines() if l.startswith(("+", "-")) and not l.startswith(("+++", "---"))] == [
+        "+  - type: sensor_offset"]

@@ -269,6 +269,9 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
     if not any(l.strip() for l in change_lines):
         raise ValueError("empty model change")
     lines = model_text.splitlines()
+    # The file's own line ending (a model written on Windows keeps CRLF, so the diff shows only the
+    # change, not every line rewritten).
+    eol = "\r\n" if "\r\n" in model_text else "\n"
     keys = {}  # top-level key -> line index (the first occurrence)
     for i, l in enumerate(lines):
         m = _TOP_KEY_RE.match(l)
@@ -352,9 +355,9 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
             stop = next((i for i in range(old + 1, len(lines)) if _TOP_KEY_RE.match(lines[i])), len(lines))
             while stop > old + 1 and _is_filler(lines[stop - 1]):
                 stop -= 1
-            return "\n".join(lines[:old] + block + lines[stop:]) + "\n"
+            return eol.join(lines[:old] + block + lines[stop:]) + eol
         at = keys.get("terms", len(lines))
-    return "\n".join(lines[:at] + block + lines[at:]) + "\n"
+    return eol.join(lines[:at] + block + lines[at:]) + eol
 
 
 def _item_fields(item_lines: List[str], indent: int) -> tuple:
