@@ -42,8 +42,10 @@ std::vector<std::string> Split(const std::string& line) {
 // A parsed CSV file with named columns: the standard ones and the extras.
 class CsvTable {
  public:
+  // Errors name the file as the user gave it (folder included: "capA/poses.csv:3: ..." tells two
+  // captures' poses.csv apart).
   CsvTable(const std::filesystem::path& path, const std::vector<std::string>& required)
-      : name_(path.filename().string()) {
+      : name_(path.string()) {
     std::ifstream in(path);
     if (!in) throw std::runtime_error(path.string() + ": cannot open file");
     std::string line;
@@ -211,7 +213,7 @@ class CsvWriter {
  public:
   CsvWriter(const std::filesystem::path& path, const std::vector<std::string>& columns,
             const std::vector<std::string>& extra_columns)
-      : name_(path.filename().string()), extra_count_(extra_columns.size()) {
+      : name_(path.string()), extra_count_(extra_columns.size()) {
     for (const std::string& e : extra_columns) {
       for (const std::string& c : columns) {
         if (e == c)

@@ -25,11 +25,16 @@ void WriteText(const std::filesystem::path& p, const std::string& text) {
   std::ofstream(p) << text;
 }
 
+// The error message with the test's temporary folder cut from the file it names ("poses.csv:3:
+// ..." for "/tmp/.../poses.csv:3: ...").
 std::string ErrorOf(const std::function<void()>& f) {
   try {
     f();
   } catch (const std::exception& e) {
-    return e.what();
+    std::string message = e.what();
+    const size_t colon = message.find(':');
+    const size_t slash = colon == std::string::npos ? std::string::npos : message.rfind('/', colon);
+    return slash == std::string::npos ? message : message.substr(slash + 1);
   }
   return "";
 }
@@ -124,6 +129,13 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
   };
   EXPECT_EQ(error_for(header + good + "2,calib,1,0,0.1,0.2,0.3,abc,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
             "poses.csv:3: column rep_qw: 'abc' is not a number");
+  // The message names the file with its folder, as given.
+  try {
+    ReadPoses(path);
+    ADD_FAILURE() << "no error";
+  } catch (const std::exception& e) {
+    EXPECT_EQ(std::string(e.what()), path.string() + ":3: column rep_qw: 'abc' is not a number");
+  }
   EXPECT_EQ(error_for(header + good + "2,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0\n"),
             "poses.csv:3: row: expected 18 fields, found 17");
   EXPECT_EQ(error_for(header + "1,train,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
