@@ -484,6 +484,10 @@ int RunPair(int argc, char** argv) {
   const auto result =
       PairStreams(ReadTrackerStream(tracker_path), ReadReferenceStream(reference_path), options);
   WritePoses(output, result.poses);
+  if (!result.warning.empty()) {
+    std::cerr << "warning: " << tracker_path.string() << ", " << reference_path.string() << ": "
+              << result.warning << "\n";
+  }
   if (args.Flag("--json")) {
     std::cout << nlohmann::json{{"command", "pair"},
                                 {"output", output.string()},
@@ -492,7 +496,8 @@ int RunPair(int argc, char** argv) {
                                 {"time_offset_s", result.time_offset},
                                 {"estimated", options.estimate_time_offset},
                                 {"time_offset_stddev_s", result.time_offset_stddev},
-                                {"position_difference_variance_m2", result.cost}}
+                                {"position_difference_variance_m2", result.cost},
+                                {"warning", result.warning}}
                      .dump(2)
               << "\n";
   } else {

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <sstream>
 #include <stdexcept>
 #include <vector>
 
@@ -25,6 +26,7 @@ bool StreamPairingOptions::Check(std::string* error) const {
   if (detrend_degree < -1 || detrend_degree > 6) return fail("detrend_degree must be in [-1, 6]");
   if (max_gauss_newton_steps < 1) return fail("max_gauss_newton_steps must be >= 1");
   if (!(correlation_time_s >= 0.0)) return fail("correlation_time_s must be >= 0");
+  if (!(max_variance_inflation >= 1.0)) return fail("max_variance_inflation must be >= 1");
   return true;
 }
 
@@ -193,6 +195,8 @@ struct OffsetEstimate {
   double stddev = 0.0;
   double cost = 0.0;
   int steps = 0;
+  double variance_inflation = 1.0;  // of the offset against the error model, at the last step
+  bool converged = false;           // the last step was below the tolerance
 };
 
 // Gauss-Newton on the offset jointly with the error model, from `start`.
@@ -239,11 +243,57 @@ OffsetEstimate RefineOffset(const std::vector<const TrackerStreamSample*>& sampl
       s += 2.0 * w * score.head(n - l).dot(score.tail(n - l));
     }
     est.stddev = std::sqrt(std::max(s, 0.0)) / gg;
+    // H_tt (H^-1)_tt of the joint regression on [model, dd] (uncentred, as the fit engine's).
+    est.variance_inflation = dd.squaredNorm() / gg;
     est.offset += delta;
     est.steps = step + 1;
-    if (std::abs(delta) < options.tolerance) break;
+    if (std::abs(delta) < options.tolerance) {
+      est.converged = true;
+      break;
+    }
   }
   return est;
+}
+
+// The offset: a coarse scan (step 1/40 of the range) of the detrended residual variance, over the
+// samples paired at every scanned offset so that all offsets are scored on the same data, then
+// RefineOffset from its minimum.
+OffsetEstimate EstimateOffset(const std::vector<const TrackerStreamSample*>& samples,
+                              const ReferenceStream& reference,
+                              const StreamPairingOptions& options) {
+  const int steps = 80;
+  const double lo = options.time_offset - options.search_range;
+  const double step = 2.0 * options.search_range / steps;
+  std::vector<size_t> rows =
+      RowsCovering(samples, reference, lo, lo + 2.0 * options.search_range, options.max_gap_s);
+  double best = options.time_offset;
+  if (rows.size() >= 10) {
+    const ErrorModel model(samples, rows, options);
+    double best_cost = std::numeric_limits<double>::infinity();
+    Eigen::VectorXd d;
+    for (int i = 0; i <= steps; ++i) {
+      const double o = lo + i * step;
+      if (!Differences(samples, rows, reference, o, options.max_gap_s, &d)) continue;
+      const double c = model.Residual(d).squaredNorm();
+      if (c < best_cost) best_cost = c, best = o;
+    }
+  } else {
+    // Streams overlapping less than the search range: score each offset on what pairs there.
+    double best_cost = std::numeric_limits<double>::infinity();
+    for (int i = 0; i <= steps; ++i) {
+      const double o = lo + i * step;
+      const double c = Pair(samples, reference, options, o).cost;
+      if (c < best_cost) best_cost = c, best = o;
+    }
+  }
+  return RefineOffset(samples, reference, options, best);
+}
+
+std::string Rounded(double v, int precision) {
+  std::ostringstream s;
+  s.precision(precision);
+  s << v;
+  return s.str();
 }
 
 }  // namespace
@@ -267,36 +317,45 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   const std::vector<const TrackerStreamSample*> samples = SelectSamples(tracker, options, sensor);
   double offset = options.time_offset;
   OffsetEstimate estimate;
+  StreamPairingOptions used = options;
+  std::string warning;
   if (options.estimate_time_offset) {
-    // Coarse scan (step 1/40 of the range) of the detrended residual variance, over the samples
-    // paired at every scanned offset so that all offsets are scored on the same data.
-    const int steps = 80;
-    const double lo = options.time_offset - options.search_range;
-    const double step = 2.0 * options.search_range / steps;
-    std::vector<size_t> rows =
-        RowsCovering(samples, reference, lo, lo + 2.0 * options.search_range, options.max_gap_s);
-    double best = options.time_offset;
-    if (rows.size() >= 10) {
-      const ErrorModel model(samples, rows, options);
-      double best_cost = std::numeric_limits<double>::infinity();
-      Eigen::VectorXd d;
-      for (int i = 0; i <= steps; ++i) {
-        const double o = lo + i * step;
-        if (!Differences(samples, rows, reference, o, options.max_gap_s, &d)) continue;
-        const double c = model.Residual(d).squaredNorm();
-        if (c < best_cost) best_cost = c, best = o;
-      }
-    } else {
-      // Streams overlapping less than the search range: score each offset on what pairs there.
-      double best_cost = std::numeric_limits<double>::infinity();
-      for (int i = 0; i <= steps; ++i) {
-        const double o = lo + i * step;
-        const double c = Pair(samples, reference, options, o).cost;
-        if (c < best_cost) best_cost = c, best = o;
-      }
+    estimate = EstimateOffset(samples, reference, used);
+    // A model that can mimic a time shift along this path leaves the offset to its misfit, which
+    // the Newey-West stddev takes for noise. Measured on the paper preset's streams, seeds 1-6:
+    // 10 s, degree 3: variance inflation 122-135, errors 1.2-111 ms at a stated 0.09-0.13 ms
+    // (|z| 11-1168); lowered to degree 1 (inflation 1.8-7.9): errors 1.6-16 ms at 1.3-6.3 ms
+    // (|z| <= 3.4). 15 s: degree 3 at 14-105 (|z| up to 23) goes to degree 2 (|z| <= 3.7). 20 s
+    // (4.7-9.3), 30 s (1.8-2.4) and 60 s keep degree 3 and their estimates.
+    const double first_inflation = estimate.variance_inflation;
+    while (estimate.variance_inflation > used.max_variance_inflation && used.detrend_degree > 0) {
+      --used.detrend_degree;
+      estimate = EstimateOffset(samples, reference, used);
     }
-    estimate = RefineOffset(samples, reference, options, best);
     offset = estimate.offset;
+    const std::string limit = Rounded(used.max_variance_inflation, 3);
+    if (estimate.variance_inflation > used.max_variance_inflation) {
+      warning = "the clock offset is not determined by these streams: along their path even a "
+                "degree-" + std::to_string(used.detrend_degree) +
+                " error model can mimic a time shift (variance inflation " +
+                Rounded(estimate.variance_inflation, 3) + " > " + limit +
+                "); give the offset, or record a longer stream that passes the same places at "
+                "other velocities";
+    } else if (used.detrend_degree != options.detrend_degree) {
+      warning = "the clock offset is poorly identified with a degree-" +
+                std::to_string(options.detrend_degree) +
+                " error model, which can mimic a time shift along this path (variance inflation " +
+                Rounded(first_inflation, 3) + " > " + limit + "); estimated with degree " +
+                std::to_string(used.detrend_degree) + " instead (variance inflation " +
+                Rounded(estimate.variance_inflation, 3) +
+                "), which leaves more of the tracker's error in it; a longer stream that passes the "
+                "same places at other velocities identifies it";
+    }
+    if (!estimate.converged) {
+      warning += std::string(warning.empty() ? "" : "; ") +
+                 "the clock offset's refinement did not converge in " +
+                 std::to_string(estimate.steps) + " Gauss-Newton steps";
+    }
   }
   StreamPairingResult result = Pair(samples, reference, options, offset);
   if (result.poses.records.empty()) {
@@ -319,6 +378,9 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     result.cost = estimate.cost;
     result.time_offset_stddev = estimate.stddev;
     result.gauss_newton_steps = estimate.steps;
+    result.detrend_degree = used.detrend_degree;
+    result.time_offset_variance_inflation = estimate.variance_inflation;
+    result.warning = warning;
   }
   return result;
 }

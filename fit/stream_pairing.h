@@ -21,6 +21,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
@@ -45,6 +46,12 @@ struct StreamPairingOptions {
   bool detrend_body_offset = true;  // also regress out R_reported * u (a body offset u)
   int max_gauss_newton_steps = 20;  // refinement steps after the coarse scan
   double correlation_time_s = 0.5;  // [s] Bartlett window of the offset's standard deviation
+  // Largest variance inflation of the offset against the error model (H_tt (H^-1)_tt of the
+  // joint regression, >= 1: 1 / the share of the offset's information the model does not also
+  // carry) at which the estimate is kept; above it detrend_degree is lowered by one (not below 0)
+  // and the offset estimated again. The fit engine's limit for a fitted offset
+  // (kMaxTimeOffsetVarianceInflation, fit/fit_engine.h).
+  double max_variance_inflation = 10.0;
   bool Check(std::string* error) const;
 };
 
@@ -55,6 +62,14 @@ struct StreamPairingResult {
                              // (after the error model when estimating; plain variance otherwise)
   double time_offset_stddev = 0.0;  // [s] of an estimated offset (0 when given)
   int gauss_newton_steps = 0;       // refinement steps taken
+  // Of an estimated offset: the error model's degree it was estimated with (options'
+  // detrend_degree, or lower when that could mimic a time shift) and its variance inflation
+  // against that model (NaN when given).
+  int detrend_degree = -1;
+  double time_offset_variance_inflation = std::numeric_limits<double>::quiet_NaN();
+  // Non-empty when an estimated offset is poorly identified: the degree was lowered, the offset is
+  // undetermined even at degree 0, or the refinement did not converge. Callers name the streams.
+  std::string warning;
   // Per pose record: the reference's velocity [m/s] and angular velocity (transmitter frame,
   // [rad/s]) at the paired time, by central differences over one reference period (zero where the
   // neighbourhood leaves the stream), for a clock offset fitted with the model (FitStation).

@@ -320,7 +320,8 @@ struct PairRun {
             {"time_offset_s", result.time_offset},
             {"estimated", estimated},
             {"time_offset_stddev_s", result.time_offset_stddev},
-            {"position_difference_variance_m2", result.cost}};
+            {"position_difference_variance_m2", result.cost},
+            {"warning", result.warning}};
   }
 };
 

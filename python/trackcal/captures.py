@@ -176,7 +176,8 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
         cap.origin = {"kind": "streams", "files": [str(p / n) for n in STREAM_FILES],
                       "time_offset_s": float(result.time_offset_s),
                       "time_offset_source": "estimated" if estimate else "given",
-                      "paired": len(cap), "dropped": int(result.dropped), "sensor": int(first)}
+                      "paired": len(cap), "dropped": int(result.dropped), "sensor": int(first),
+                      "warning": result.to_dict().get("warning", "")}
         return cap
     result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], poses=labels, **(register_options or {}))
     cap = result.poses
@@ -194,7 +195,8 @@ def describe_origin(capture: PoseCapture) -> Optional[str]:
     o = capture.origin or {}
     if o.get("kind") in ("streams", "recording"):
         return (f"streams paired at a time offset of {1e3 * o['time_offset_s']:.2f} ms ({o['time_offset_source']}): "
-                f"{o['paired']} samples of sensor {o['sensor']}, {o['dropped']} dropped")
+                f"{o['paired']} samples of sensor {o['sensor']}, {o['dropped']} dropped"
+                + (f"\nwarning: {', '.join(o['files'])}: {o['warning']}" if o.get("warning") else ""))
     if o.get("kind") == "markers":
         return (f"raw markers registered (paper section 3) with {o['registered_with']}: {o['registered']} stations, "
                 f"{len(o['left_out'])} left out, chi-square {o['chi_square']:.1f} for {o['nu']:.0f} degrees of freedom")
