@@ -389,6 +389,7 @@ def _mark_confounded(effects, targets, usable, groups, n_bins, n_folds, n_permut
             gs = np.unique(np.asarray(groups)[ok], return_inverse=True)[1].ravel()
             y = y - (np.stack([np.bincount(gs, weights=y[:, d]) for d in range(y.shape[1])], axis=1)
                      / np.bincount(gs)[:, None])[gs]
+
         def bins(name):  # as the marginal test bins it
             x = usable[name][ok]
             return _bin_ids(x, n_bins, name in CATEGORICAL or np.unique(x).size <= n_bins)
