@@ -2650,22 +2650,33 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     d.verdict_text = v.str();
   } else {
     std::ostringstream v;
-    // The claim covers only the effects tested on held-out data: candidates screened out by
-    // cross_validate_top, refused on the fit to all stations or not fitted were not.
+    // The claim covers only the candidates tested on held-out data: those screened out by
+    // cross_validate_top, refused on the fit to all stations or not fitted were not. A replacement
+    // is named with the term it would replace: its effect's addition may have been tested.
     std::vector<std::string> untested;
+    size_t tested = 0;
     for (const auto& c : d.candidates) {
-      if (!c.cross_validated) untested.push_back(c.effect);
+      if (c.cross_validated) {
+        ++tested;
+        continue;
+      }
+      const std::string name = c.effect + (c.replaces.empty() ? "" : " in place of " + c.replaces);
+      if (std::find(untested.begin(), untested.end(), name) == untested.end()) {
+        untested.push_back(name);
+      }
     }
+    std::string names;
+    for (size_t i = 0; i < untested.size(); ++i) names += (i ? ", " : "") + untested[i];
     if (d.candidates.empty()) {
       v << "No catalog effect explains the remaining structure (no candidate could be tested)";
     } else if (untested.empty()) {
       v << "No catalog effect explains the remaining structure";
+    } else if (tested == 0) {
+      v << "No candidate was tested on held-out data (not tested: " << names << ")";
     } else {
-      const size_t tested = d.candidates.size() - untested.size();
-      v << "None of the " << tested << " catalog effect" << (tested == 1 ? "" : "s")
-        << " tested on held-out data explains the remaining structure (not tested there: ";
-      for (size_t i = 0; i < untested.size(); ++i) v << (i ? ", " : "") << untested[i];
-      v << ")";
+      v << "None of the " << tested << " candidate" << (tested == 1 ? "" : "s")
+        << " tested on held-out data explains the remaining structure (not tested there: "
+        << names << ")";
     }
     v << ". ";
     // Candidates that explain structure by the statistics but fail the physical conditions: the

@@ -171,7 +171,7 @@ TEST(DiagnoseCandidates, TheVerdictNamesTheEffectsNotTestedHeldOut) {
   }
   ASSERT_FALSE(untested.empty());
   EXPECT_THAT(d.verdict_text,
-              ::testing::StartsWith("None of the 1 catalog effect tested on held-out data explains "
+              ::testing::StartsWith("None of the 1 candidate tested on held-out data explains "
                                     "the remaining structure (not tested there: " +
                                     untested + ")."));
 }

@@ -150,9 +150,21 @@ def test_verdict_claims_only_over_the_effects_tested_held_out():
     doc = contract_b_doc(False)
     doc["candidates"][1]["cross_validated"] = False
     v = diagnosis.verdict(doc, TEMPERATURE)
-    assert v["text"].startswith("none of the 1 catalog effect tested on held-out data explains the remaining "
+    assert v["text"].startswith("none of the 1 candidate tested on held-out data explains the remaining "
                                 "structure (not tested there: sensor_offset); it follows covariate temperature")
-    doc["candidates"][1]["cross_validated"] = True
+    # A replacement is named with the term it would replace (its effect's addition was tested).
+    doc["candidates"][1].update(effect="dipole", replaces="dipole_1")
+    assert "(not tested there: dipole in place of dipole_1)" in diagnosis.verdict(doc, TEMPERATURE)["text"]
+    # Nothing tested held out: said so, and the quiet verdict does not say "nothing remains" alone.
+    doc["candidates"][0]["cross_validated"] = False
+    assert diagnosis.verdict(doc, TEMPERATURE)["text"].startswith(
+        "no candidate was tested on held-out data (not tested: dipole, dipole in place of dipole_1)")
+    doc["candidates"][0]["significant"] = False
+    quiet = diagnosis.verdict(doc, [])
+    assert quiet["text"] == ("nothing significant remains in the covariates; no candidate was tested on "
+                             "held-out data (not tested: dipole, dipole in place of dipole_1)")
+    for c in doc["candidates"]:
+        c["cross_validated"] = True
     assert diagnosis.verdict(doc, TEMPERATURE)["text"].startswith("no catalog effect explains")
 
 
@@ -356,3 +368,13 @@ def test_a_crlf_model_keeps_its_line_endings():
     diff = diagnosis.model_diff(text, new)
     assert [l for l in diff.splitlines() if l.startswith(("+", "-")) and not l.startswith(("+++", "---"))] == [
         "+  - type: sensor_offset"]
+
+
+def test_a_covariate_keeps_the_finding_that_stands_on_its_own():
+    # Time explained by position on the position error, but a drift of its own on the orientation
+    # error: the finding is the drift, not the confounded one with the larger R^2.
+    effects = [CovariateEffect("time", "position_mm", 0.3, 0.005, True, 600, confounded_with="position"),
+               CovariateEffect("time", "orientation_deg", 0.1, 0.005, True, 600),
+               CovariateEffect("z", "position_mm", 0.35, 0.005, True, 600)]
+    rows = {r["covariate"]: r for r in diagnosis.covariate_findings(effects)}
+    assert rows["time"]["target"] == "orientation_deg" and rows["time"]["confounded_with"] is None

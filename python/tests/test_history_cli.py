@@ -304,3 +304,19 @@ def test_history_older_records_still_load(tmp_path):
     entries = history.load_history(tmp_path)
     assert entries == lines
     assert "first" in history.history_table(entries)
+
+
+def test_work_folder_copies_are_written_without_hard_links(tmp_path, monkeypatch):
+    """On a file system without hard links (FAT, some network mounts) the content-named copies of a
+    work folder are still written (by rename: replacing one is harmless), so the fit's row is kept."""
+    import errno
+    import os as os_module
+
+    def no_link(src, dst):
+        raise OSError(errno.EPERM, "Operation not permitted", src, None, dst)
+
+    monkeypatch.setattr(os_module, "link", no_link)
+    path = tmp_path / "models" / "0123456789abcdef.json"
+    path.parent.mkdir()
+    history._keep_copy(path, b"{}\n")
+    assert path.read_bytes() == b"{}\n"

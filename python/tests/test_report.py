@@ -127,3 +127,13 @@ def test_report_replaces_only_an_earlier_report_and_files_get_the_umask_mode(tmp
     # mkstemp makes files 0600; outputs are shared like any other new file (umask 022: 0644).
     for f in out.iterdir():
         assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
+
+
+def test_report_replaces_a_report_written_before_the_generator_tag(tmp_path):
+    cap = captures.load_poses(simulate(tmp_path / "capture", seed=34))
+    v = validation.validate(cap, None, analyse_covariates=False)
+    out = tmp_path / "out"
+    page = report.write_report(v, out)
+    old = page.read_text().replace(report.GENERATOR_META, "")  # as an earlier version wrote it
+    page.write_text(old)
+    assert report.write_report(v, out) == page and report.GENERATOR_META in page.read_text()

@@ -49,9 +49,10 @@ def test_temperature_driven_gains_are_reported_as_unexplained(tmp_path):
         # "no catalog effect explains ...", or, when the ranking screened some out of its held-out
         # test (--cross-validate-top), "none of the N catalog effects tested on held-out data
         # explains ... (not tested there: ...)": the claim covers only what was tested.
-        untested = [c["effect"] for c in ranked if not c["cross_validated"]]
+        untested = list(dict.fromkeys(c["effect"] + (f" in place of {c['replaces']}" if c.get("replaces") else "")
+                                      for c in ranked if not c["cross_validated"]))
         lead = ("no catalog effect explains the remaining structure" if not untested else
-                f"none of the {len(ranked) - len(untested)} catalog effects tested on held-out data explains "
+                f"none of the {len(ranked) - len(untested)} candidates tested on held-out data explains "
                 f"the remaining structure (not tested there: {', '.join(untested[:6])}")
         assert verdict["text"].startswith(lead), verdict["text"]
         assert "the remaining structure" in verdict["text"] and "; it follows covariate temperature" in verdict["text"]

@@ -397,7 +397,9 @@ def cmd_diagnose(args, term) -> int:
                               "orientation_deg", "extrapolated"]))
     method = validation.COVARIATE_METHOD_SERIAL if validation.serial_samples(v.capture) else validation.COVARIATE_METHOD
     print("\n" + term.c(f"Residual structure ({method})", "1"))
-    sig = [e for e in v.covariate_effects if e.significant]
+    # Findings that stand on their own first (not explained away by another covariate).
+    sig = sorted((e for e in v.covariate_effects if e.significant),
+                 key=lambda e: (e.confounded_with is not None, -e.r2))
     if not sig:
         print("  no covariate explains the residuals beyond noise")
     for e in sig[:args.top]:

@@ -66,8 +66,12 @@ TARGET_WORDS = {"position_mm": "position error magnitude", "position_vector": "p
 def covariate_findings(effects) -> List[dict]:
     """Significant covariates, one row each (its best residual target), strongest first."""
     best: Dict[str, object] = {}
+
+    def rank(e):  # a finding that stands on its own before one another covariate explains away
+        return (getattr(e, "confounded_with", None) is None, e.r2)
+
     for e in effects:
-        if e.significant and (e.covariate not in best or e.r2 > best[e.covariate].r2):
+        if e.significant and (e.covariate not in best or rank(e) > rank(best[e.covariate])):
             best[e.covariate] = e
     rows = [{"covariate": e.covariate, "target": e.target, "r2": float(e.r2), "p_value": float(e.p_value),
              "count": int(e.count), "confounded_with": getattr(e, "confounded_with", None)}
@@ -106,18 +110,32 @@ def _covariate_phrase(rows: List[dict]) -> str:
     return text
 
 
-def _no_catalog_effect(candidates_doc: Optional[dict]) -> str:
-    """"no catalog effect explains the remaining structure", narrowed to the effects the ranking
-    tested on held-out data when some were not (screened out by --cross-validate-top, refused by
-    the physical conditions on the fit to all stations, or not fitted): the claim covers only what
-    was tested."""
+def _untested(candidates_doc: Optional[dict]):
+    """(names of the candidates the ranking did not test on held-out data, how many it did): screened
+    out by --cross-validate-top, refused by the physical conditions on the fit to all stations, or
+    not fitted. A replacement is named with the term it would replace ("plane in place of
+    dipole_1"): its effect's addition may have been tested."""
     cands = (candidates_doc or {}).get("candidates") or []
-    untested = [c.get("effect", "?") for c in cands if not c.get("cross_validated", True)]
+    names = []
+    for c in cands:
+        if c.get("cross_validated", True):
+            continue
+        name = c.get("effect", "?") + (f" in place of {c['replaces']}" if c.get("replaces") else "")
+        if name not in names:
+            names.append(name)
+    return names, sum(1 for c in cands if c.get("cross_validated", True))
+
+
+def _no_catalog_effect(candidates_doc: Optional[dict]) -> str:
+    """"no catalog effect explains the remaining structure", narrowed to the candidates tested on
+    held-out data when some were not (_untested): the claim covers only what was tested."""
+    untested, tested = _untested(candidates_doc)
     if not untested:
         return "no catalog effect explains the remaining structure"
-    tested = len(cands) - len(untested)
     shown = ", ".join(untested[:6]) + (f" and {len(untested) - 6} more" if len(untested) > 6 else "")
-    return (f"none of the {tested} catalog effect{'s' if tested != 1 else ''} tested on held-out data explains "
+    if tested == 0:
+        return f"no candidate was tested on held-out data (not tested: {shown})"
+    return (f"none of the {tested} candidate{'s' if tested != 1 else ''} tested on held-out data explains "
             f"the remaining structure (not tested there: {shown})")
 
 
@@ -190,8 +208,12 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
         # verdict says what and where; "nothing" would hide it.
         out.update(source="unidentified", text=engine["text"])
         return out
-    out["text"] = ("nothing significant remains" if candidates_doc is not None
-                   else "nothing significant remains in the covariates (catalog effects not tested)")
+    if candidates_doc is None:
+        out["text"] = "nothing significant remains in the covariates (catalog effects not tested)"
+    elif _untested(candidates_doc)[0]:
+        out["text"] = "nothing significant remains in the covariates; " + _no_catalog_effect(candidates_doc)
+    else:
+        out["text"] = "nothing significant remains"
     return out
 
 

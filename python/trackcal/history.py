@@ -183,14 +183,15 @@ def effect_names(report) -> List[str]:
 
 
 def _keep_copy(path: pathlib.Path, data: bytes) -> None:
-    """Writes a file named by its content once (one written at the same moment is the same)."""
+    """Writes a file named by its content once. One written at the same moment is the same, so on a
+    file system without hard links (write_new refuses there) a rename over it is harmless."""
     if path.exists():
         return
     try:
         write_new(path, data)
     except ValueError:
         if not path.exists():
-            raise
+            replace_atomically(path, data)
 
 
 def record_model_fit(workdir, report, *, model, data, calibration=None, label: Optional[str] = None) -> dict:

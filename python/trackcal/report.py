@@ -37,7 +37,8 @@ def _check_replaceable(path: pathlib.Path, inputs: Sequence[pathlib.Path]) -> No
     if path.suffix.lower() == ".html" and path.exists():
         with open(path, "rb") as f:
             head = f.read(4096)
-        if GENERATOR_META.encode() not in head:
+        # Reports written before the tag carry the report's own style sheet at the top.
+        if GENERATOR_META.encode() not in head and f"<style>{STYLE}</style>".encode() not in head:
             raise ValueError(f"{path}: exists and is not a trackcal report; refusing to replace it "
                              "(give another output folder, or remove the file)")
     elif path.suffix.lower() != ".html" and path.exists() and path.suffix.lower() != ".png":
