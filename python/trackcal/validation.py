@@ -326,9 +326,7 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
         for tname, y in targets.items():
             ys = y[ok]
             if gs is not None:
-                means = np.stack([np.bincount(gs, weights=ys[:, d]) / np.bincount(gs)
-                                  for d in range(ys.shape[1])], axis=1)
-                ys = ys - means[gs]
+                ys = _centred_within(ys, gs)
             # The normal approximation needs enough permutations to estimate the null's spread.
             obs, p, z_ok = _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed)
             sig = bool(obs >= min_r2 and (p <= level or z_ok))
@@ -345,6 +343,12 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
 
 TIME_COVARIATES = ("time", "visiting_order")
 POSITION_COVARIATES = ("x", "y", "z", "distance")
+
+
+def _centred_within(y: np.ndarray, gs: np.ndarray) -> np.ndarray:
+    """y (N, d) less its mean within each group gs (labels 0..G-1)."""
+    means = np.stack([np.bincount(gs, weights=y[:, d]) / np.bincount(gs) for d in range(y.shape[1])], axis=1)
+    return y - means[gs]
 
 
 def _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed):
@@ -387,8 +391,7 @@ def _mark_confounded(effects, targets, usable, groups, n_bins, n_folds, n_permut
         y = targets[tname][ok].astype(float)
         if groups is not None:  # as the marginal test: only dependence within the groups
             gs = np.unique(np.asarray(groups)[ok], return_inverse=True)[1].ravel()
-            y = y - (np.stack([np.bincount(gs, weights=y[:, d]) for d in range(y.shape[1])], axis=1)
-                     / np.bincount(gs)[:, None])[gs]
+            y = _centred_within(y, gs)
 
         def bins(name):  # as the marginal test bins it
             x = usable[name][ok]
