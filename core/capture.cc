@@ -4,13 +4,16 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cerrno>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <limits>
 #include <map>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 #include <utility>
@@ -37,6 +40,19 @@ std::vector<std::string> Split(const std::string& line) {
     start = comma + 1;
   }
   return out;
+}
+
+// Whether a field reads as a number (nan and inf included: the caller decides what it accepts).
+bool ParsesAsNumber(const std::string& s, double* value) {
+  const char* begin = s.data() + (s.size() > 1 && s[0] == '+' ? 1 : 0);
+  const auto [end, ec] = std::from_chars(begin, s.data() + s.size(), *value);
+  return !s.empty() && ec == std::errc() && end == s.data() + s.size();
+}
+
+// A missing extra value: an empty field or nan.
+bool IsMissing(const std::string& s) {
+  double value = 0;
+  return s.empty() || (ParsesAsNumber(s, &value) && std::isnan(value));
 }
 
 // A parsed CSV file with named columns: the standard ones and the extras.
@@ -90,6 +106,7 @@ class CsvTable {
                  std::to_string(row.fields.size()));
       }
     }
+    ClassifyExtras();
   }
 
   struct Row {
@@ -98,6 +115,7 @@ class CsvTable {
   };
   const std::vector<Row>& rows() const { return rows_; }
   const std::vector<std::string>& extra_columns() const { return extra_names_; }
+  const std::vector<std::vector<std::string>>& extra_labels() const { return extra_labels_; }
 
   const std::string& Text(const Row& row, const std::string& column) const {
     return row.fields[index_.at(column)];
@@ -149,7 +167,17 @@ class CsvTable {
     std::vector<double> out;
     out.reserve(extra_index_.size());
     for (size_t i = 0; i < extra_index_.size(); ++i) {
-      out.push_back(ParseNumber(row, extra_names_[i], row.fields[extra_index_[i]], true));
+      const std::string& s = row.fields[extra_index_[i]];
+      const std::vector<std::string>& labels = extra_labels_[i];
+      if (IsMissing(s)) {
+        out.push_back(std::numeric_limits<double>::quiet_NaN());
+      } else if (!labels.empty()) {
+        const auto it = std::lower_bound(labels.begin(), labels.end(), s);
+        if (it == labels.end() || *it != s) throw std::logic_error("label missing from its column");
+        out.push_back(static_cast<double>(it - labels.begin()));
+      } else {
+        out.push_back(ParseNumber(row, extra_names_[i], s, true));
+      }
     }
     return out;
   }
@@ -176,16 +204,44 @@ class CsvTable {
   double ParseNumber(const Row& row, const std::string& column, const std::string& s,
                      bool allow_nan = false) const {
     double value = 0;
-    const char* begin = s.data() + (s.size() > 1 && s[0] == '+' ? 1 : 0);
-    const auto [end, ec] = std::from_chars(begin, s.data() + s.size(), value);
-    if (s.empty() || ec != std::errc() || end != s.data() + s.size()) {
-      Fail(row.line, "column " + column, "'" + s + "' is not a number");
-    }
+    if (!ParsesAsNumber(s, &value)) Fail(row.line, "column " + column, "'" + s + "' is not a number");
     // Extra columns may mark a missing reading with nan; standard columns must be finite.
     if (!std::isfinite(value) && !(allow_nan && std::isnan(value))) {
       Fail(row.line, "column " + column, "'" + s + "' is not a finite number");
     }
     return value;
+  }
+
+  // Decides whether each extra column holds numbers or labels and collects its labels (sorted, so
+  // a label's index does not depend on the row order). A column holding both is the file's error,
+  // named at the first value whose kind differs from the column's first value.
+  void ClassifyExtras() {
+    extra_labels_.assign(extra_index_.size(), {});
+    for (size_t k = 0; k < extra_index_.size(); ++k) {
+      const size_t column = extra_index_[k];
+      const Row* first = nullptr;
+      bool first_is_number = false;
+      std::set<std::string> labels;
+      for (const Row& row : rows_) {
+        const std::string& s = row.fields[column];
+        if (IsMissing(s)) continue;
+        double value = 0;
+        const bool number = ParsesAsNumber(s, &value);
+        if (first == nullptr) {
+          first = &row;
+          first_is_number = number;
+        } else if (number != first_is_number) {
+          const std::string& f = first->fields[column];
+          const std::string where = ", but line " + std::to_string(first->line) + " holds ";
+          const std::string why = " (a column holds numbers or labels, not both)";
+          Fail(row.line, "column " + extra_names_[k],
+               number ? "'" + s + "' is a number" + where + "the label '" + f + "'" + why
+                      : "'" + s + "' is not a number" + where + "the number " + f + why);
+        }
+        if (!number) labels.insert(s);
+      }
+      extra_labels_[k].assign(labels.begin(), labels.end());
+    }
   }
 
   std::string name_;
@@ -194,6 +250,7 @@ class CsvTable {
   std::map<std::string, size_t> index_;
   std::vector<std::string> extra_names_;
   std::vector<size_t> extra_index_;
+  std::vector<std::vector<std::string>> extra_labels_;
   std::vector<Row> rows_;
 };
 
@@ -212,8 +269,28 @@ const std::vector<std::string> kReferenceStreamColumns = {"time", "x",  "y",  "z
 class CsvWriter {
  public:
   CsvWriter(const std::filesystem::path& path, const std::vector<std::string>& columns,
-            const std::vector<std::string>& extra_columns)
-      : name_(path.string()), extra_count_(extra_columns.size()) {
+            const std::vector<std::string>& extra_columns,
+            const std::vector<std::vector<std::string>>& extra_labels)
+      : name_(path.string()), extra_count_(extra_columns.size()), extra_labels_(extra_labels) {
+    if (!extra_labels_.empty() && extra_labels_.size() != extra_count_) {
+      throw std::invalid_argument(name_ + ": " + std::to_string(extra_labels_.size()) +
+                                  " label lists for " + std::to_string(extra_count_) +
+                                  " extra columns");
+    }
+    extra_labels_.resize(extra_count_);
+    for (size_t k = 0; k < extra_count_; ++k) {
+      // Labels must read back as the same labels: text, one field, each once.
+      std::set<std::string> seen;
+      for (const std::string& label : extra_labels_[k]) {
+        double value = 0;
+        if (label.empty() || label != Trim(label) ||
+            label.find_first_of(",\n\r") != std::string::npos || ParsesAsNumber(label, &value) ||
+            !seen.insert(label).second) {
+          throw std::invalid_argument(name_ + ": extra column " + extra_columns[k] + ": label '" +
+                                      label + "' is not a valid label (text, no comma, once)");
+        }
+      }
+    }
     for (const std::string& e : extra_columns) {
       for (const std::string& c : columns) {
         if (e == c)
@@ -254,7 +331,22 @@ class CsvWriter {
                                   std::to_string(extra.size()) + " extra values, expected " +
                                   std::to_string(extra_count_));
     }
-    for (double v : extra) Num(v);
+    for (size_t k = 0; k < extra_count_; ++k) {
+      const double v = extra[k];
+      const std::vector<std::string>& labels = extra_labels_[k];
+      if (labels.empty()) {
+        Num(v);
+      } else if (std::isnan(v)) {
+        Text("");
+      } else if (v >= 0 && v < static_cast<double>(labels.size()) && v == std::floor(v)) {
+        Text(labels[static_cast<size_t>(v)]);
+      } else {
+        throw std::invalid_argument(name_ + ": record " + std::to_string(record) +
+                                    ": extra column " + std::to_string(k + 1) + ": " +
+                                    FormatNumber(v) + " is not the index of one of its " +
+                                    std::to_string(labels.size()) + " labels");
+      }
+    }
     out_ << '\n';
     first_ = true;
   }
@@ -269,6 +361,7 @@ class CsvWriter {
   }
   std::string name_;
   size_t extra_count_;
+  std::vector<std::vector<std::string>> extra_labels_;
   std::ostringstream out_;
   bool first_ = true;
 };
@@ -342,6 +435,7 @@ PoseCapture ReadPoses(const std::filesystem::path& path) {
   CsvTable t(path, kPoseColumns);
   PoseCapture c;
   c.extra_columns = t.extra_columns();
+  c.extra_labels = t.extra_labels();
   std::map<std::pair<int, int>, int> seen;
   for (const auto& row : t.rows()) {
     PoseRecord r;
@@ -365,6 +459,7 @@ MarkerCapture ReadMarkers(const std::filesystem::path& path) {
   CsvTable t(path, kMarkerColumns);
   MarkerCapture c;
   c.extra_columns = t.extra_columns();
+  c.extra_labels = t.extra_labels();
   std::map<std::pair<int, int>, int> seen;
   for (const auto& row : t.rows()) {
     MarkerRecord r;
@@ -382,6 +477,7 @@ TrackerCapture ReadTracker(const std::filesystem::path& path) {
   CsvTable t(path, kTrackerColumns);
   TrackerCapture c;
   c.extra_columns = t.extra_columns();
+  c.extra_labels = t.extra_labels();
   std::map<std::pair<int, int>, int> seen;
   for (const auto& row : t.rows()) {
     TrackerRecord r;
@@ -399,6 +495,7 @@ TrackerStream ReadTrackerStream(const std::filesystem::path& path) {
   CsvTable t(path, kTrackerStreamColumns);
   TrackerStream c;
   c.extra_columns = t.extra_columns();
+  c.extra_labels = t.extra_labels();
   for (const auto& row : t.rows()) {
     TrackerStreamSample r;
     r.time = t.Number(row, "time");
@@ -414,6 +511,7 @@ ReferenceStream ReadReferenceStream(const std::filesystem::path& path) {
   CsvTable t(path, kReferenceStreamColumns);
   ReferenceStream c;
   c.extra_columns = t.extra_columns();
+  c.extra_labels = t.extra_labels();
   for (const auto& row : t.rows()) {
     ReferenceStreamSample r;
     r.time = t.Number(row, "time");
@@ -433,7 +531,7 @@ ReferenceStream ReadReferenceStream(const std::filesystem::path& path) {
 
 void WritePoses(const std::filesystem::path& path, const PoseCapture& capture,
                 const CaptureWriteOptions& options) {
-  CsvWriter w(path, kPoseColumns, capture.extra_columns);
+  CsvWriter w(path, kPoseColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const PoseRecord& r = capture.records[i];
     if (!IsKnownSet(r.set)) {
@@ -448,7 +546,7 @@ void WritePoses(const std::filesystem::path& path, const PoseCapture& capture,
 
 void WriteMarkers(const std::filesystem::path& path, const MarkerCapture& capture,
                   const CaptureWriteOptions& options) {
-  CsvWriter w(path, kMarkerColumns, capture.extra_columns);
+  CsvWriter w(path, kMarkerColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const MarkerRecord& r = capture.records[i];
     w.Int(r.station).Int(r.marker).Vec(r.position_in_optical);
@@ -459,7 +557,7 @@ void WriteMarkers(const std::filesystem::path& path, const MarkerCapture& captur
 
 void WriteTracker(const std::filesystem::path& path, const TrackerCapture& capture,
                   const CaptureWriteOptions& options) {
-  CsvWriter w(path, kTrackerColumns, capture.extra_columns);
+  CsvWriter w(path, kTrackerColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const TrackerRecord& r = capture.records[i];
     w.Int(r.station).Int(r.sensor).Pose(r.transmitter_from_receiver);
@@ -470,7 +568,7 @@ void WriteTracker(const std::filesystem::path& path, const TrackerCapture& captu
 
 void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& capture,
                         const CaptureWriteOptions& options) {
-  CsvWriter w(path, kTrackerStreamColumns, capture.extra_columns);
+  CsvWriter w(path, kTrackerStreamColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const TrackerStreamSample& r = capture.records[i];
     w.Num(r.time).Int(r.sensor).Pose(r.transmitter_from_receiver);
@@ -481,7 +579,7 @@ void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& 
 
 void WriteReferenceStream(const std::filesystem::path& path, const ReferenceStream& capture,
                           const CaptureWriteOptions& options) {
-  CsvWriter w(path, kReferenceStreamColumns, capture.extra_columns);
+  CsvWriter w(path, kReferenceStreamColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const ReferenceStreamSample& r = capture.records[i];
     w.Num(r.time).Pose(r.transmitter_from_body);

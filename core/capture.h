@@ -10,8 +10,10 @@
 //
 // Metres and seconds; poses are transmitter_from_receiver (reference: transmitter_from_body) in the
 // transmitter frame, markers in the optical frame. Columns are found by name in any order; any
-// other column must be numeric on every row and is kept (`extra_columns`, `extra` per record) and
-// written back after the standard ones. Errors name file, line and column:
+// other column is kept (`extra_columns`, `extra` per record) and written back after the standard
+// ones. An extra column holds numbers (nan or an empty field: missing) or labels (text such as an
+// operator's name or a room; an empty field: missing), never both: a labels column's records
+// hold the index of their label in `extra_labels`. Errors name file, line and column:
 //   poses.csv:17: column rep_qw: 'abc' is not a number
 // Writers are atomic (temporary file + rename) and refuse to replace an existing file unless
 // `overwrite` is set.
@@ -71,11 +73,19 @@ struct ReferenceStreamSample {
   std::vector<double> extra;
 };
 
-// A whole file: the records and the names of the extra numeric columns they carry.
+// A whole file: the records and the names of the extra columns they carry.
 template <typename Record>
 struct CaptureTable {
   std::vector<std::string> extra_columns;
+  // Per extra column, the sorted labels of a labels column (its records' values are indices into
+  // them, NaN where missing); empty for a numeric column. Empty altogether: every column numeric.
+  std::vector<std::vector<std::string>> extra_labels;
   std::vector<Record> records;
+
+  // The labels of extra column k, or nullptr when it holds numbers.
+  const std::vector<std::string>* LabelsOf(size_t k) const {
+    return k < extra_labels.size() && !extra_labels[k].empty() ? &extra_labels[k] : nullptr;
+  }
 };
 
 using PoseCapture = CaptureTable<PoseRecord>;

@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <fstream>
 #include <sstream>
 
@@ -118,6 +119,50 @@ TEST(PosesCsv, ColumnsByNameInAnyOrderWithExtras) {
   EXPECT_EQ(r.extra, std::vector<double>{45.5});
 }
 
+TEST(PosesCsv, TextColumnsAreLabels) {
+  const auto dir = MakeTempDir("capture_test");
+  const std::string header = kPosesHeader;
+  const std::string pose = "0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0";
+  WriteText(dir / "poses.csv", header.substr(0, header.size() - 1) + ",operator,temp\n" +
+                                   "1,calib,1," + pose + ",bob,21.5\n" +    //
+                                   "2,calib,1," + pose + ",alice,\n" +      // temp missing
+                                   "3,valid,1," + pose + ",,nan\n" +        // both missing
+                                   "4,valid,1," + pose + ",bob,22\n");
+  const PoseCapture c = ReadPoses(dir / "poses.csv");
+  ASSERT_EQ(c.extra_columns, (std::vector<std::string>{"operator", "temp"}));
+  // Labels are sorted, so an index does not depend on which row came first.
+  ASSERT_NE(c.LabelsOf(0), nullptr);
+  EXPECT_EQ(*c.LabelsOf(0), (std::vector<std::string>{"alice", "bob"}));
+  EXPECT_EQ(c.LabelsOf(1), nullptr);
+  ASSERT_EQ(c.records.size(), 4u);
+  EXPECT_EQ(c.records[0].extra, (std::vector<double>{1, 21.5}));
+  EXPECT_EQ(c.records[1].extra[0], 0);
+  EXPECT_TRUE(std::isnan(c.records[1].extra[1]));
+  EXPECT_TRUE(std::isnan(c.records[2].extra[0]) && std::isnan(c.records[2].extra[1]));
+
+  // Written back as labels (a missing one as an empty field) and read back the same.
+  WritePoses(dir / "copy.csv", c);
+  const std::string text = ReadText(dir / "copy.csv");
+  EXPECT_NE(text.find(",bob,21.5\n"), std::string::npos) << text;
+  EXPECT_NE(text.find(",,nan\n"), std::string::npos) << text;
+  const PoseCapture back = ReadPoses(dir / "copy.csv");
+  EXPECT_EQ(back.extra_labels, c.extra_labels);
+  EXPECT_EQ(back.records[3].extra, c.records[3].extra);
+
+  // A label index out of range, or a label that would read back as a number, is refused.
+  PoseCapture bad = c;
+  bad.records[0].extra[0] = 2;
+  EXPECT_NE(ErrorOf([&] { WritePoses(dir / "bad.csv", bad); })
+                .find("record 0: extra column 1: 2 is not the index of one of its 2 labels"),
+            std::string::npos);
+  bad = c;
+  bad.extra_labels[0] = {"alice", "7"};
+  EXPECT_NE(ErrorOf([&] { WritePoses(dir / "bad.csv", bad); })
+                .find("extra column operator: label '7' is not a valid label"),
+            std::string::npos);
+  EXPECT_FALSE(std::filesystem::exists(dir / "bad.csv"));
+}
+
 TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
   const auto dir = MakeTempDir("capture_test");
   const std::string header = kPosesHeader;
@@ -149,9 +194,18 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
   EXPECT_EQ(error_for("station,set\n1,calib\n"),
             "poses.csv:1: column sensor: missing from the header");
   EXPECT_EQ(error_for(""), "poses.csv:1: empty file, expected a header");
+  // A column holds numbers or labels: a label among numbers (a typo in a temperature log) is
+  // an error, not a silent change of the column's kind.
   EXPECT_EQ(error_for(header.substr(0, header.size() - 1) + ",temp\n" +
-                      "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,warm\n"),
-            "poses.csv:2: column temp: 'warm' is not a number");
+                      "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,21.5\n" +
+                      "2,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,warm\n"),
+            "poses.csv:3: column temp: 'warm' is not a number, but line 2 holds the number 21.5 (a "
+            "column holds numbers or labels, not both)");
+  EXPECT_EQ(error_for(header.substr(0, header.size() - 1) + ",operator\n" +
+                      "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,alice\n" +
+                      "2,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,3\n"),
+            "poses.csv:3: column operator: '3' is a number, but line 2 holds the label 'alice' (a "
+            "column holds numbers or labels, not both)");
   EXPECT_EQ(error_for("station,station\n"),
             "poses.csv:1: column station: appears twice in the header");
 }

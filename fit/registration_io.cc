@@ -97,6 +97,7 @@ void CopyExtraColumns(const PoseCapture& labels, PoseCapture* registered) {
   std::map<std::pair<int, int>, const std::vector<double>*> extra_of;
   for (const PoseRecord& r : labels.records) extra_of[{r.station, r.sensor}] = &r.extra;
   registered->extra_columns = labels.extra_columns;
+  registered->extra_labels = labels.extra_labels;
   for (PoseRecord& r : registered->records) {
     const auto it = extra_of.find({r.station, r.sensor});
     r.extra = it != extra_of.end()

@@ -423,6 +423,7 @@ Table RowsOfSet(const Table& table, const std::vector<StationTruth>& stations,
   for (const StationTruth& t : stations) set_of[t.station] = t.set;
   Table out;
   out.extra_columns = table.extra_columns;
+  out.extra_labels = table.extra_labels;
   for (const auto& r : table.records) {
     const auto it = set_of.find(r.station);
     if (it != set_of.end() && it->second == set) out.records.push_back(r);

@@ -51,6 +51,18 @@ py::array_t<double> Extra(const CaptureTable<Record>& table) {
   return a;
 }
 
+// {column: labels} for the extra columns that hold labels (their `extra` values index the list).
+template <typename Record>
+py::dict ExtraLabels(const CaptureTable<Record>& table) {
+  py::dict d;
+  for (size_t k = 0; k < table.extra_columns.size(); ++k) {
+    if (const std::vector<std::string>* labels = table.LabelsOf(k)) {
+      d[py::str(table.extra_columns[k])] = *labels;
+    }
+  }
+  return d;
+}
+
 // Reads an (N, 3) and an (N, 4) array into poses; ValueError naming the arrays otherwise.
 std::vector<Rigid3d> ToPoses(const py::handle& positions_obj, const py::handle& quaternions_obj,
                              const std::string& name) {
@@ -126,6 +138,7 @@ py::dict PoseCaptureToDict(const PoseCapture& c) {
   d["reference_quaternions_xyzw"] = Quaternions(n, [&](size_t i) -> const Rigid3d& { return c.records[i].reference; });
   d["extra_columns"] = c.extra_columns;
   d["extra"] = Extra(c);
+  d["extra_labels"] = ExtraLabels(c);
   return d;
 }
 
@@ -136,7 +149,8 @@ void BindCapture(py::module_& m) {
       py::arg("path"),
       "Reads poses.csv (core/capture.h) into a dict of arrays: station, set (list), sensor, time, "
       "reported_/reference_positions (N, 3) [m], reported_/reference_quaternions_xyzw (N, 4), "
-      "extra_columns (list) and extra (N, K). Errors: ValueError 'file:line: column c: problem'.");
+      "extra_columns (list), extra (N, K) and extra_labels ({column: labels} for the columns that "
+      "hold labels; their values index the labels, NaN where missing). Errors: ValueError 'file:line: column c: problem'.");
 
   m.def(
       "read_tracker_stream",
@@ -157,6 +171,7 @@ void BindCapture(py::module_& m) {
         d["quaternions_xyzw"] = Quaternions(n, get);
         d["extra_columns"] = c.extra_columns;
         d["extra"] = Extra(c);
+        d["extra_labels"] = ExtraLabels(c);
         return d;
       },
       py::arg("path"), "Reads tracker_stream.csv into time, sensor, positions, quaternions_xyzw, extra.");

@@ -14,6 +14,7 @@
 #include <pybind11/stl.h>
 #include <pybind11/stl/filesystem.h>
 
+#include <algorithm>
 #include <exception>
 #include <filesystem>
 #include <map>
@@ -151,6 +152,20 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
       if (!*extra || extra->ndim() != 2 || extra->shape(0) != n || extra->shape(1) != num_extra) {
         PyErr_Clear();
         throw py::value_error("PoseCapture: extra must be (N, len(extra_columns))");
+      }
+    }
+    // Labels columns ({column: labels}): their values are indices into the labels.
+    if (py::hasattr(obj, "extra_labels") && !obj.attr("extra_labels").is_none()) {
+      const auto labels =
+          obj.attr("extra_labels").cast<std::map<std::string, std::vector<std::string>>>();
+      capture.extra_labels.resize(capture.extra_columns.size());
+      for (const auto& [name, list] : labels) {
+        const auto it = std::find(capture.extra_columns.begin(), capture.extra_columns.end(), name);
+        if (it == capture.extra_columns.end()) {
+          throw py::value_error("PoseCapture: extra_labels names " + name +
+                                ", which is not in extra_columns");
+        }
+        capture.extra_labels[it - capture.extra_columns.begin()] = list;
       }
     }
   }

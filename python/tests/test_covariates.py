@@ -45,6 +45,59 @@ def test_finds_planted_temperature_dependence(tmp_path):
     assert not any(e.significant for e in effects_by(v3.covariate_effects, "temperature"))
 
 
+def test_a_column_of_labels_is_analysed_as_categories(tmp_path):
+    cap = captures.load_poses(simulate(tmp_path / "sim", seed=21))
+    rng = np.random.default_rng(8)
+    n = len(cap)
+    # Three operators took turns at random; bob seats the reference body 4 mm off along x of the
+    # transmitter frame (the paper scene's degree-3 residual is ~4 mm, so this is about a tenth of
+    # the residual variance). A few stations have no operator logged (an empty field).
+    operator = rng.choice(["alice", "bob", "carol"], n).astype(object)
+    operator[rng.choice(n, 5, replace=False)] = ""
+    weekday = rng.choice(["mon", "tue"], n)  # unrelated: must not be flagged
+    ref = cap.reference_positions.copy()
+    ref[operator == "bob", 0] += 4e-3
+    planted = captures.PoseCapture(**{**cap.__dict__, "reference_positions": ref})
+    path = write_poses(tmp_path / "poses.csv", planted, extra={"operator": list(operator), "weekday": list(weekday)})
+    cap2 = captures.load_poses(path)
+    assert cap2.extra_labels == {"operator": ["alice", "bob", "carol"], "weekday": ["mon", "tue"]}
+    assert [x if x is not None else "" for x in cap2.column("operator")] == list(operator)
+    cal = validation.fit_polynomial(cap2.subset(cap2.set == "calib"), degree=3)
+    v = validation.validate(cap2, cal, covariate_options={"n_permutations": 99, "seed": 1})
+    found = [e for e in effects_by(v.covariate_effects, "operator") if e.significant]
+    assert any(e.target == "position_vector" for e in found)
+    best = max(found, key=lambda e: e.r2)
+    # Per label, how far its stations' mean error vector sits from the mean over all labels: bob's
+    # +4 mm on a third of the stations puts him +2.7 mm from the mean and the others -1.3 mm (the
+    # fit absorbs part of it and the scene's residual adds +-0.3 mm of scatter per label mean, so
+    # the bounds are wide); largest first, without the stations that have no operator.
+    assert [lv["label"] for lv in best.levels][0] == "bob"
+    assert sorted(lv["label"] for lv in best.levels) == ["alice", "bob", "carol"]
+    assert sum(lv["count"] for lv in best.levels) == int(np.sum((operator != "") & (cap2.set != "reg")))
+    bob = best.levels[0]["offset"]
+    assert 1.5 < bob[0] < 3.5 and abs(bob[1]) < 1.0 and abs(bob[2]) < 1.0, best.levels
+    assert all(lv["offset"][0] < 0 for lv in best.levels[1:]), best.levels
+    assert not any(e.significant for e in effects_by(v.covariate_effects, "weekday"))
+    # The residuals table carries the labels beside each station's errors (for a spreadsheet).
+    rows = v.station_rows()
+    by_station = dict(zip(cap2.station.tolist(), operator))
+    assert [r["operator"] or "" for r in rows] == [by_station[r["station"]] for r in rows]
+    assert rows[0]["weekday"] in ("mon", "tue")
+    # The verdict names the covariate and its most deviant label (the paper scene's spatial structure
+    # that a degree-3 polynomial leaves, x and z, is larger); the findings carry every label.
+    ver = diagnosis.verdict(None, v.covariate_effects)
+    assert "operator (R^2 " in ver["text"] and "most off: bob +" not in ver["text"], ver
+    assert "; most off: bob 2." in ver["text"] or "; most off: bob 3." in ver["text"], ver
+    finding = {f["covariate"]: f for f in diagnosis.covariate_findings(v.covariate_effects)}["operator"]
+    assert finding["levels"][0]["label"] == "bob" and finding["target"] == "position_vector"
+    # Where a labels covariate leads, the verdict lists every label's deviation.
+    lead = [e for e in v.covariate_effects if e.covariate == "operator"]
+    ver = diagnosis.verdict(None, lead)
+    assert "it follows covariate operator" in ver["text"], ver
+    assert "each operator's mean error from the mean of all: bob " in ver["text"], ver
+    assert "alice" in ver["text"] and "carol" in ver["text"], ver
+
+
 def test_pure_noise_reports_nothing():
     rng = np.random.default_rng(9)
     n = 500

@@ -25,7 +25,7 @@ def simulate(out: pathlib.Path, seed: int = 7, hidden: str = "") -> pathlib.Path
 
 def write_poses(path: pathlib.Path, capture, extra: dict = None) -> pathlib.Path:
     """Writes a PoseCapture-like object (arrays, quaternions x, y, z, w) as poses.csv with extra
-    columns {name: (N,) values}."""
+    columns {name: (N,) values}, numbers or text."""
     extra = extra or {}
     names = HEADER + list(extra)
     lines = [",".join(names)]
@@ -35,7 +35,8 @@ def write_poses(path: pathlib.Path, capture, extra: dict = None) -> pathlib.Path
         row = [str(int(capture.station[i])), str(capture.set[i]), str(int(capture.sensor[i])),
                repr(float(capture.time[i]))]
         row += [repr(float(v)) for v in (*rp, rq[3], rq[0], rq[1], rq[2], *fp, fq[3], fq[0], fq[1], fq[2])]
-        row += [repr(float(v[i])) for v in extra.values()]
+        # Text values (an operator's name) are written as they are: a column of labels.
+        row += [v[i] if isinstance(v[i], str) else repr(float(v[i])) for v in extra.values()]
         lines.append(",".join(row))
     path.write_text("\n".join(lines) + "\n")
     return path

@@ -24,7 +24,9 @@ class PoseCapture:
     """Paired static stations of a poses.csv: the tracker's report and the reference, per row.
 
     Quaternions are (N, 4) ordered x, y, z, w; positions (N, 3) in metres, transmitter frame.
-    ``extra`` holds every extra numeric column (``extra_columns`` names them), NaN where missing.
+    ``extra`` holds every extra column (``extra_columns`` names them), NaN where missing. A column of
+    labels (text: an operator, a room, a tracker's serial number) holds each station's label index
+    into ``extra_labels[name]``; ``column(name)`` gives the labels themselves.
     """
 
     path: Optional[pathlib.Path]
@@ -43,6 +45,8 @@ class PoseCapture:
     speed: Optional[np.ndarray] = None
     # How the stations were obtained (``load``): {"kind": "poses" | "streams" | "markers", ...}.
     origin: Optional[dict] = None
+    # {column: sorted labels} for the extra columns that hold labels rather than numbers.
+    extra_labels: dict = dataclasses.field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.station)
@@ -69,10 +73,20 @@ class PoseCapture:
         return seen
 
     def column(self, name: str) -> np.ndarray:
-        """An extra column by name; KeyError listing the available ones otherwise."""
-        if name not in self.extra_columns:
-            raise KeyError(f"{self.path}: no extra column {name!r} (have: {', '.join(self.extra_columns) or 'none'})")
-        return self.extra[:, self.extra_columns.index(name)]
+        """An extra column by name: numbers (NaN where missing), or for a column of labels an object
+        array of labels (None where missing); KeyError listing the available ones otherwise."""
+        return _column(self, name)
+
+
+def _column(table, name: str) -> np.ndarray:
+    if name not in table.extra_columns:
+        raise KeyError(f"{getattr(table, 'path', None)}: no extra column {name!r} "
+                       f"(have: {', '.join(table.extra_columns) or 'none'})")
+    values = table.extra[:, table.extra_columns.index(name)]
+    labels = (table.extra_labels or {}).get(name)
+    if labels is None:
+        return values
+    return np.array([None if np.isnan(v) else labels[int(v)] for v in values], dtype=object)
 
 
 def _resolve(path: PathLike, file_name: str) -> pathlib.Path:
@@ -96,6 +110,7 @@ def load_poses(path: PathLike) -> PoseCapture:
         reference_quaternions_xyzw=d["reference_quaternions_xyzw"],
         extra_columns=list(d["extra_columns"]),
         extra=d["extra"],
+        extra_labels=dict(d["extra_labels"]),
     )
 
 
@@ -163,12 +178,21 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
         own = stream.sensor == first
         cap.speed = np.interp(cap.time, stream.time[own], stream.speed()[own])
         # The tracker stream's extra columns (a logged temperature, a device's state) at the paired
-        # samples' times, so the diagnosis tests them as covariates as it does a poses.csv's.
+        # samples' times, so the diagnosis tests them as covariates as it does a poses.csv's:
+        # numbers interpolated, labels those of the nearest sample.
         names, columns = list(cap.extra_columns), [cap.extra[:, k] for k in range(len(cap.extra_columns))]
         for k, name in enumerate(stream.extra_columns):
             if name not in names and len(cap) and own.sum() >= 1:
                 names.append(name)
-                columns.append(np.interp(cap.time, stream.time[own], stream.extra[own, k]))
+                t, v = stream.time[own], stream.extra[own, k]
+                if name in stream.extra_labels:
+                    after = np.clip(np.searchsorted(t, cap.time), 0, len(t) - 1)
+                    before = np.maximum(after - 1, 0)
+                    closer = np.abs(t[before] - cap.time) <= np.abs(t[after] - cap.time)
+                    columns.append(v[np.where(closer, before, after)])
+                    cap.extra_labels[name] = list(stream.extra_labels[name])
+                else:
+                    columns.append(np.interp(cap.time, t, v))
         if len(names) > len(cap.extra_columns):
             cap.extra_columns = names
             cap.extra = np.column_stack(columns).astype(float)
@@ -213,9 +237,14 @@ class TrackerStream:
     quaternions_xyzw: np.ndarray
     extra_columns: list = dataclasses.field(default_factory=list)
     extra: Optional[np.ndarray] = None
+    extra_labels: dict = dataclasses.field(default_factory=dict)  # as PoseCapture's
 
     def __len__(self) -> int:
         return len(self.time)
+
+    def column(self, name: str) -> np.ndarray:
+        """An extra column by name, as ``PoseCapture.column``."""
+        return _column(self, name)
 
     def speed(self) -> np.ndarray:
         """Speed [m/s] per sample from central differences along each sensor's samples."""
@@ -238,7 +267,7 @@ def load_tracker_stream(path: PathLike) -> TrackerStream:
     d = _core.read_tracker_stream(p)
     return TrackerStream(time=d["time"], sensor=d["sensor"], positions=d["positions"],
                          quaternions_xyzw=d["quaternions_xyzw"], extra_columns=list(d["extra_columns"]),
-                         extra=d["extra"])
+                         extra=d["extra"], extra_labels=dict(d["extra_labels"]))
 
 
 def save_tracker_stream(path: PathLike, stream: TrackerStream, overwrite: bool = False) -> None:

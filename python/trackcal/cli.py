@@ -404,7 +404,8 @@ def cmd_diagnose(args, term) -> int:
         print("  no covariate explains the residuals beyond noise")
     for e in sig[:args.top]:
         print("  " + term.c(f"{e.covariate:<24}", "31") + f" {e.target:<20} R²={e.r2:.3f}  p={e.p_value:.3g}"
-              + (f"  (explained by {e.confounded_with})" if e.confounded_with else ""))
+              + (f"  (explained by {e.confounded_with})" if e.confounded_with else "")
+              + (f"\n  {'':<24} each label's mean error from the mean of all: {diagnosis.levels_phrase(e.levels)}" if e.levels else ""))
     if doc is not None:
         base = doc.get("base", {})
         print("\n" + term.c("Candidate effects", "1") +

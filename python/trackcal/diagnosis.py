@@ -74,7 +74,8 @@ def covariate_findings(effects) -> List[dict]:
         if e.significant and (e.covariate not in best or rank(e) > rank(best[e.covariate])):
             best[e.covariate] = e
     rows = [{"covariate": e.covariate, "target": e.target, "r2": float(e.r2), "p_value": float(e.p_value),
-             "count": int(e.count), "confounded_with": getattr(e, "confounded_with", None)}
+             "count": int(e.count), "confounded_with": getattr(e, "confounded_with", None),
+             "levels": getattr(e, "levels", None)}
             for e in best.values()]
     # A covariate another family explains away (time that position explains) goes after those
     # that stand on their own, whatever its R^2.
@@ -92,10 +93,31 @@ def top_candidate(doc: Optional[CandidatesDoc]) -> Optional[dict]:
     return None
 
 
+def levels_phrase(levels: Optional[List[dict]], most: int = 4, say_rest: bool = True) -> str:
+    """"bob 2.35 mm along (+2.33, -0.01, -0.27), 198 stations; carol ...": how far each label's mean
+    error sits from the mean over all labels (``validation._levels``), largest first; empty for a
+    numeric covariate."""
+    if not levels:
+        return ""
+
+    def one(r):
+        off = r["offset"]
+        if isinstance(off, list):
+            return (f"{r['label']} {r['size']:.3g} {r['unit']} along ("
+                    + ", ".join(f"{v:+.2f}" for v in off) + f"), {r['count']} stations")
+        return f"{r['label']} {off:+.3g} {r['unit']}, {r['count']} stations"
+
+    text = "; ".join(one(r) for r in levels[:most])
+    return text + (f"; {len(levels) - most} more" if say_rest and len(levels) > most else "")
+
+
 def _covariate_phrase(rows: List[dict]) -> str:
     head = rows[0]
+    by_label = levels_phrase(head.get("levels"))
     text = (f"it follows covariate {head['covariate']} (R^2 {head['r2']:.2f} of the "
-            f"{TARGET_WORDS.get(head['target'], head['target'])})")
+            f"{TARGET_WORDS.get(head['target'], head['target'])}"
+            + (f"; each {head['covariate']}'s mean error from the mean of all: {by_label}" if by_label else "")
+            + ")")
     if head.get("confounded_with") is not None:
         # Every finding is explained away by the other family (no finding stands on its own).
         text += (f", which {head['confounded_with']} explains as well: on this capture time and position go "
@@ -105,7 +127,8 @@ def _covariate_phrase(rows: List[dict]) -> str:
     if len(rows) > 1:
         text += "; also " + ", ".join(
             f"{r['covariate']} (R^2 {r['r2']:.2f}"
-            + (f", explained by {r['confounded_with']}" if r.get("confounded_with") else "") + ")"
+            + (f", explained by {r['confounded_with']}" if r.get("confounded_with") else "")
+            + (f"; most off: {levels_phrase(r['levels'], most=1, say_rest=False)}" if r.get("levels") else "") + ")"
             for r in rows[1:4])
     return text
 
@@ -504,7 +527,8 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
         "worst": v.worst,
         "covariates": [{"covariate": e.covariate, "target": e.target, "r2": e.r2, "p_value": e.p_value,
                         "significant": e.significant, "count": e.count,
-                        "confounded_with": getattr(e, "confounded_with", None)} for e in v.covariate_effects],
+                        "confounded_with": getattr(e, "confounded_with", None),
+                        "levels": getattr(e, "levels", None)} for e in v.covariate_effects],
         "covariate_findings": covariate_findings(v.covariate_effects),
         "fit": None if fit_report is None else {"tables": [t.to_dict() for t in fit_report.tables],
                                                 "converged": fit_report.converged,

@@ -45,7 +45,8 @@ def _capture_from_dict(d: dict, path=None) -> PoseCapture:
                        reported_quaternions_xyzw=d["reported_quaternions_xyzw"],
                        reference_positions=d["reference_positions"],
                        reference_quaternions_xyzw=d["reference_quaternions_xyzw"],
-                       extra_columns=list(d["extra_columns"]), extra=d["extra"])
+                       extra_columns=list(d["extra_columns"]), extra=d["extra"],
+                       extra_labels=dict(d.get("extra_labels", {})))
 
 
 @dataclasses.dataclass

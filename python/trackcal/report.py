@@ -209,7 +209,9 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     parts.append("<h2>Worst stations</h2>" + _table(v.worst))
     if v.covariate_effects:
         rows = [{"covariate": e.covariate, "residual": e.target, "R² (cv)": e.r2, "p": e.p_value,
-                 "significant": "yes" if e.significant else ""} for e in v.covariate_effects
+                 "significant": "yes" if e.significant else "",
+                 **({"each label's mean error from the mean of all": diagnosis.levels_phrase(e.levels)}
+                    if any(x.levels for x in v.covariate_effects) else {})} for e in v.covariate_effects
                 if e.significant or e.r2 > 0.01][:40]
         parts.append("<h2>Residual structure (covariates)</h2>"
                      "<p>Share of the remaining residual variance each covariate explains (binned means, "

@@ -143,7 +143,8 @@ def covariates(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None) 
     transmitter in the receiver frame (the field direction the coils see: separates receiver-side
     effects such as coil gains from transmitter-side ones, paper section 2.1), time, visiting order,
     sensor, the receiver's speed for stations paired from streams (``stream_speed``, default the
-    capture's own ``speed``), and every extra numeric column.
+    capture's own ``speed``), and every extra column (a column of labels as its label indices:
+    ``covariate_analysis`` treats the names in ``capture.extra_labels`` as categories).
     """
     p = capture.reported_positions
     r = rotation_matrices(capture.reported_quaternions_xyzw)
@@ -169,6 +170,12 @@ def covariates(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None) 
 
 
 CATEGORICAL = {"sensor"}
+
+
+def _is_categorical(name: str, x: np.ndarray, n_bins: int, labels: Dict[str, list]) -> bool:
+    """Whether a covariate's values are categories (a sensor, an operator, few distinct values)
+    rather than a quantity to bin by quantiles."""
+    return name in CATEGORICAL or name in labels or np.unique(x).size <= n_bins
 
 
 def _bin_ids(x: np.ndarray, n_bins: int, categorical: bool) -> np.ndarray:
@@ -216,6 +223,9 @@ class CovariateEffect:
     # volume in order makes a spatial effect look like a drift), "time" for a position covariate
     # that time explains (a drift looks like a spatial effect). None: not confounded, or not tested.
     confounded_with: Optional[str] = None
+    # For a covariate of labels (``labels`` of covariate_analysis): per label, its stations and how far
+    # their mean error sits from the mean over all labels (``_levels``), largest first.
+    levels: Optional[List[dict]] = None
 
 
 def serial_samples(capture: PoseCapture) -> bool:
@@ -234,7 +244,8 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
                        min_r2: float = 0.02, seed: int = 0,
                        progress: Optional[Callable[[int, int], None]] = None,
                        serial_time: Optional[np.ndarray] = None,
-                       groups: Optional[np.ndarray] = None) -> List[CovariateEffect]:
+                       groups: Optional[np.ndarray] = None,
+                       labels: Optional[Dict[str, list]] = None) -> List[CovariateEffect]:
     """How much of the residuals each covariate explains, with a permutation test.
 
     For every covariate and every target (position error magnitude and vector, orientation error
@@ -258,7 +269,12 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     order would "explain" that difference). Each target is centred within its group, and the null
     shuffles the covariate within groups, so only dependence inside the groups counts. Not used
     with ``serial_time``.
+
+    ``labels``: {covariate: labels} for covariates whose values index labels (the capture's text
+    columns, ``PoseCapture.extra_labels``): tested as categories, each effect listing its labels'
+    mean errors (``levels``).
     """
+    labels = dict(labels or {})
     if n_permutations < 0:  # p = (1 + count) / (n_permutations + 1) would be negative: all significant
         raise ValueError(f"n_permutations {n_permutations}: must be 0 or more")
     targets = {
@@ -293,7 +309,7 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     for name, x in usable.items():
         ok = np.isfinite(x)
         xs = x[ok]
-        categorical = name in CATEGORICAL or np.unique(xs).size <= n_bins
+        categorical = _is_categorical(name, xs, n_bins, labels)
         m = int(ok.sum())
         ids = _bin_ids(xs, n_bins, categorical)
         gs = None
@@ -330,15 +346,38 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
             # The normal approximation needs enough permutations to estimate the null's spread.
             obs, p, z_ok = _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed)
             sig = bool(obs >= min_r2 and (p <= level or z_ok))
-            effects.append(CovariateEffect(name, tname, float(obs), float(p), sig, int(ok.sum())))
+            effects.append(CovariateEffect(name, tname, float(obs), float(p), sig, int(ok.sum()),
+                                           levels=_levels(residuals_, tname, xs, ok, labels[name])
+                                           if name in labels else None))
             done += 1
             if progress:
                 progress(done, total)
     if serial_time is None:
         _mark_confounded(effects, targets, usable, groups, n_bins, n_folds, n_permutations, alpha,
-                         station_folds, rng)
+                         station_folds, rng, labels)
     effects.sort(key=lambda e: -e.r2)
     return effects
+
+
+def _levels(residuals_: Residuals, target: str, codes: np.ndarray, ok: np.ndarray, names: list) -> List[dict]:
+    """Per label of a covariate: its stations and how far their mean error sits from the mean over
+    every label (``offset``: the vector in the transmitter frame for a vector target, mm or the
+    rotation vector in degrees; the signed difference for a magnitude), largest ``size`` first."""
+    position = target.startswith("position")
+    if target.endswith("_vector"):
+        y = (residuals_.position * 1e3 if position else residuals_.orientation * (2.0 * 180.0 / np.pi))[ok]
+    else:
+        y = (residuals_.position_mm if position else residuals_.orientation_deg)[ok][:, None]
+    overall = y.mean(axis=0)
+    rows = []
+    for code in np.unique(codes):
+        idx = codes == code
+        offset = y[idx].mean(axis=0) - overall
+        rows.append({"label": str(names[int(code)]), "count": int(idx.sum()),
+                     "offset": [float(v) for v in offset] if len(offset) > 1 else float(offset[0]),
+                     "size": float(np.linalg.norm(offset)), "unit": "mm" if position else "deg"})
+    rows.sort(key=lambda r: -r["size"])
+    return rows
 
 
 TIME_COVARIATES = ("time", "visiting_order")
@@ -363,7 +402,7 @@ def _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_n
 
 
 def _mark_confounded(effects, targets, usable, groups, n_bins, n_folds, n_permutations, alpha,
-                     station_folds, rng) -> None:
+                     station_folds, rng, labels) -> None:
     """Time against position, each given the other (stations, not streams).
 
     The paper's protocol visits the volume in order, so time and visiting order correlate with a
@@ -395,7 +434,7 @@ def _mark_confounded(effects, targets, usable, groups, n_bins, n_folds, n_permut
 
         def bins(name):  # as the marginal test bins it
             x = usable[name][ok]
-            return _bin_ids(x, n_bins, name in CATEGORICAL or np.unique(x).size <= n_bins)
+            return _bin_ids(x, n_bins, _is_categorical(name, x, n_bins, labels))
 
         ids, o = bins(e.covariate), bins(other.covariate)
         o = np.unique(o, return_inverse=True)[1].ravel()
@@ -522,10 +561,12 @@ class Validation:
         magnitudes (position mm, orientation deg) and vectors (position p_ref - p in mm,
         orientation the small-angle rotation vector of q_ref conj(q) in deg, transmitter frame),
         outside (the calibrated volume), flipped (reported in the other hemisphere than its
-        reference) and status (of a physical term's model inverse)."""
+        reference), status (of a physical term's model inverse), then the capture's extra columns
+        (labels as text, None or NaN where missing; named extra_<name> where a name is taken)."""
         c = self.capture
         deg = 2.0 * 180.0 / np.pi
         distance = np.linalg.norm(c.reported_positions, axis=1)
+        extras = [(name, c.column(name)) for name in c.extra_columns]
         rows = []
         for i in range(len(c)):
             row = {"station": int(c.station[i]), "set": str(c.set[i]), "sensor": int(c.sensor[i]),
@@ -544,6 +585,10 @@ class Validation:
             row["outside"] = bool(self.extrapolated[i])
             row["flipped"] = bool(self.flipped[i]) if self.flipped is not None else False
             row["status"] = correction_status_names[int(self.status[i])] if self.status is not None else "converged"
+            for name, values in extras:
+                value = values[i]
+                row[name if name not in row else f"extra_{name}"] = (
+                    value if value is None or isinstance(value, str) else float(value))
             rows.append(row)
         return rows
 
@@ -653,7 +698,7 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
         by_set = analysed.set if after is not None and len(np.unique(analysed.set)) > 1 else None
         v.covariate_effects = covariate_analysis(_sub(final, kept), covariates(analysed), progress=progress,
                                                  serial_time=serial, groups=by_set,
-                                                 **(covariate_options or {}))
+                                                 labels=analysed.extra_labels, **(covariate_options or {}))
     return v
 
 
