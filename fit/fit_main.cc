@@ -141,6 +141,14 @@ void CheckOutputIsNotInput(const fs::path& output, const std::vector<fs::path>& 
   }
 }
 
+// The stream pairing's warning (an estimated clock offset the streams identify poorly), naming the
+// streams as `pair` does. Not progress: printed with --quiet too.
+void PrintPairingWarning(const fs::path& data, const LoadedFitData& loaded) {
+  if (loaded.pairing_warning.empty()) return;
+  std::cerr << "warning: " << (data / kTrackerStreamCsv).string() << ", "
+            << (data / kReferenceStreamCsv).string() << ": " << loaded.pairing_warning << "\n";
+}
+
 void PrintParameters(const FitResult& result, std::ostream& out) {
   out << "Parameters (value +- standard deviation):\n";
   if (!result.covariance_estimator.empty()) {
@@ -193,6 +201,7 @@ int RunFit(int argc, char** argv) {
   const FitModelSource model{ReadFileToString(model_path), model_path.string(), model_path};
   LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt},
                                      ParseModelYaml(model.text, model.source_name));
+  PrintPairingWarning(data, loaded);
   std::vector<fs::path> inputs = {model_path};
   inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
   if (args.values.count("--start")) inputs.push_back(args.Get("--start"));
@@ -313,6 +322,7 @@ int RunBuild(int argc, char** argv) {
       builder.settings_yaml + "\nterms:\n  - type: polynomial\n    degree: 0\n",
       settings_path.string());
   LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, settings);
+  PrintPairingWarning(data, loaded);
   std::vector<fs::path> inputs = {settings_path};
   inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
   CheckOutputIsNotInput(output, inputs);
@@ -442,6 +452,7 @@ int RunDiagnose(int argc, char** argv) {
   // Data resolved as `fit` resolves it (fit/fit_run.h); streams are paired with the model's
   // time_offset, at the offset `fit` estimates when the model frees it.
   LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, spec);
+  PrintPairingWarning(data, loaded);
   if (!loaded.stream_stations.empty()) {
     if (options.progress) options.progress("fitting the model's clock offset, as fit does");
     loaded = PairAtFittedOffset(std::move(loaded), {model_text, model_path.string(), model_path});

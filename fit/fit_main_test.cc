@@ -307,6 +307,39 @@ TEST_F(FitCliTest, FitStreamsEstimatesTheClockOffsetWithTheModel) {
   const double stddev = last["values"][0]["stddev"].get<double>();
   EXPECT_NEAR(dt, 0.037, 3.0 * stddev);
   EXPECT_DOUBLE_EQ(doc["time_offset_s"].get<double>(), dt);
+  // 30 s identify the offset at degree 3 (docs/fit.md, "Short streams"): nothing to warn of.
+  EXPECT_EQ(doc.value("pairing_warning", std::string("(missing)")), "");
+}
+
+// A 10 s stream lets the pairing's degree-3 error model mimic a time shift (variance inflation
+// 122-135 on the paper preset, limit 10; docs/fit.md, "Short streams"), so the pairing lowers the
+// degree and warns. `fit` on the folder tells the user as `pair` does: on stderr naming both
+// streams (with --quiet too: it is not progress), in --json and in the calibration's statistics.
+TEST_F(FitCliTest, FitStreamsRepeatsThePairingWarning) {
+  std::ofstream(dir_ / "short.yaml") << "base: paper\ncapture:\n  stream:\n    duration_s: 10\n";
+  const fs::path streams = dir_ / "short_streams";
+  ASSERT_EQ(RunCommand((BinaryDir() / "sim" / "trackcal-simulate").string() + " --scene " +
+                       (dir_ / "short.yaml").string() + " --hidden clock_offset -o " +
+                       streams.string() + " > /dev/null"),
+            0);
+  fs::remove(streams / "poses.csv");  // streams only: the fit pairs them
+  std::ofstream(dir_ / "joint.yaml") << "time_offset: {value: 0, fixed: false}\n"
+                                        "terms:\n  - type: polynomial\n    degree: 3\n";
+  const fs::path json = dir_ / "joint.json", err = dir_ / "err.txt", out = dir_ / "calib.json";
+  ASSERT_EQ(RunCommand(fit_ + " fit --data " + streams.string() + " --model " +
+                       (dir_ / "joint.yaml").string() + " -o " + out.string() +
+                       " --folds 2 --quiet --json > " + json.string() + " 2> " + err.string()),
+            0);
+  const std::string expected = "warning: " + (streams / "tracker_stream.csv").string() + ", " +
+                               (streams / "reference_stream.csv").string() +
+                               ": the clock offset is poorly identified with a degree-3";
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr(expected));
+  const auto doc = nlohmann::json::parse(ReadFileToString(json));  // stdout: the document only
+  ASSERT_TRUE(doc.contains("pairing_warning"));
+  const std::string warning = doc["pairing_warning"].get<std::string>();
+  EXPECT_THAT(warning, ::testing::StartsWith("the clock offset is poorly identified"));
+  EXPECT_EQ(ReadCalibrationFile(out).fit_statistics.value("pairing_warning", std::string()),
+            warning);
 }
 
 TEST_F(FitCliTest, RegisterWithPosesLabelsAndFlagsTheDistortion) {

@@ -55,6 +55,7 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
         PairStreams(*out.tracker_stream, *out.reference_stream, pairing);
     out.poses = paired.poses;
     out.time_offset = paired.time_offset;
+    out.pairing_warning = paired.warning;
     if (spec.time_offset && !spec.time_offset->fixed) {
       out.pairing = pairing;
       out.stream_stations = FitStationsOfPairing(paired, "calib");
@@ -101,7 +102,10 @@ nlohmann::json FitRunResult::ToJson(const std::optional<fs::path>& output) const
                         {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
                         {"tables", TablesJson()},
                         {"fit", result.ToJson()}};
-  if (time_offset) doc["time_offset_s"] = *time_offset;
+  if (time_offset) {
+    doc["time_offset_s"] = *time_offset;
+    doc["pairing_warning"] = pairing_warning;
+  }
   return doc;
 }
 
@@ -124,6 +128,7 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
   run.protected_paths.insert(run.protected_paths.end(), data.protected_paths.begin(),
                              data.protected_paths.end());
   run.time_offset = data.time_offset;
+  run.pairing_warning = data.pairing_warning;
   PoseCapture& poses = data.poses;
   if (!data.stream_stations.empty()) spec.time_offset->value = *data.time_offset;
   auto calib = StationsOfSet(poses, "calib");
@@ -193,6 +198,9 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
     stats["covariance_estimator"] = run.result.covariance_estimator;
   }
   if (run.time_offset) stats["time_offset_s"] = *run.time_offset;
+  // The calibration keeps why its offset may be poorly identified (the re-pairings at the fitted
+  // offset do not estimate it, so they cannot warn).
+  if (!run.pairing_warning.empty()) stats["pairing_warning"] = run.pairing_warning;
   cal.fit_statistics = stats;
   cal.provenance.tool = options.tool;
   cal.provenance.tool_version = options.tool_version;

@@ -60,6 +60,9 @@ struct LoadedFitData {
   std::vector<CalibrationInput> inputs;                // files read, with SHA-256 (provenance)
   std::vector<std::filesystem::path> protected_paths;  // never to be written over
   std::optional<double> time_offset;                   // when streams were paired
+  // The pairing's warning (StreamPairingResult::warning: an estimated offset poorly identified by
+  // these streams), without the stream files' names; empty when none or no streams.
+  std::string pairing_warning;
   // Streams paired with a free time offset: kept for the joint fit (fit/terms_time_offset.h).
   std::shared_ptr<TrackerStream> tracker_stream;
   std::shared_ptr<ReferenceStream> reference_stream;
@@ -110,12 +113,14 @@ struct FitRunResult {
   std::vector<Table1> tables;         // calib, then valid and/or cross-validation
   Calibration calibration;            // chain, statistics, provenance (no command line)
   std::optional<double> time_offset;  // the clock offset used (paired or fitted), with streams
+  std::string pairing_warning;        // LoadedFitData::pairing_warning of the data fitted
   int num_calib = 0;
   int num_valid = 0;
   std::vector<std::filesystem::path> protected_paths;  // model file and data files
 
   nlohmann::json TablesJson() const;
-  // The document `trackcal-fit fit --json` prints ("output": null without a path).
+  // The document `trackcal-fit fit --json` prints ("output": null without a path; with streams
+  // "time_offset_s" and "pairing_warning", "" when the pairing warned of nothing).
   nlohmann::json ToJson(const std::optional<std::filesystem::path>& output) const;
 };
 
