@@ -1,6 +1,7 @@
 """Recording live raw and corrected streams from a trackcal-server serving a NULL tracker through a
 calibration (raw= name), then validating the recording against the calibration."""
 
+import functools
 import pathlib
 import shutil
 import socket
@@ -67,6 +68,39 @@ def test_record_raw_and_corrected(server, tmp_path):
 def test_record_unserved_name_times_out(server, tmp_path):
     with pytest.raises(RuntimeError, match="no report within"):
         record_streams({"x": f"Nope@tcp://127.0.0.1:{server}"}, tmp_path / "rec", 0.1, connect_timeout_s=1.5)
+
+
+def test_a_failed_recording_removes_only_the_empty_folders_it_made(tmp_path):
+    """Nothing listens on the port: no device connects, nothing is written. The folders the call
+    made are removed again; a folder that existed before, empty or not, stays."""
+    unserved = {"raw": f"Tracker0@tcp://127.0.0.1:{free_port()}"}
+    # Nothing answers however long it waits: 0.5 s only bounds the test's time.
+    record = functools.partial(record_streams, unserved, duration_s=0.1, connect_timeout_s=0.5)
+    with pytest.raises(RuntimeError, match="no report within"):
+        record(tmp_path / "new" / "rec")
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(RuntimeError, match="no report within"):
+        record(tmp_path / "mine")
+    assert (tmp_path / "mine").is_dir()
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "todo.txt").write_text("keep\n")
+    with pytest.raises(RuntimeError, match="no report within"):
+        record(tmp_path / "notes" / "rec")
+    assert sorted(p.name for p in (tmp_path / "notes").iterdir()) == ["todo.txt"]
+
+
+def test_trackcal_record_without_a_server_leaves_no_folder(tmp_path, monkeypatch, capsys):
+    from trackcal import cli, record
+    # The command waits 10 s for a device; 0.5 s is as conclusive when nothing listens.
+    monkeypatch.setattr(record, "record_streams",
+                        functools.partial(record.record_streams, connect_timeout_s=0.5))
+    out = tmp_path / "run1"
+    argv = ["record", "--device", f"raw=Tracker0@tcp://127.0.0.1:{free_port()}", "--duration", "1",
+            "-o", str(out)]
+    assert cli.main(argv) == 2
+    assert "no report within 0.5 s from: raw" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_record_progress_ends_at_the_duration(server, tmp_path):
@@ -230,4 +264,4 @@ def test_ctrl_c_in_trackcal_record_saves_and_exits_130(fake_recorders, tmp_path,
     argv = ["record", "--device", "x=silent@tcp://h:1", "--duration", "1", "-o", str(tmp_path / "b")]
     assert cli.main(argv) == 130
     assert "before every device had connected: nothing recorded" in capsys.readouterr().err
-    assert list((tmp_path / "b").iterdir()) == []
+    assert not (tmp_path / "b").exists()  # made by the command, nothing written: removed again

@@ -30,9 +30,33 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
 
     Ctrl-C (KeyboardInterrupt) ends the recording early and returns normally with ``interrupted``
     set: every device's reports until then are saved (none if it came before all had connected,
-    when the recording had not started)."""
+    when the recording had not started).
+
+    The folders this call makes (out_dir and its missing parents) are removed again when it writes
+    nothing into them (an error, or Ctrl-C before all had connected); a folder that existed before,
+    or that holds any file, is never removed."""
     out_dir = pathlib.Path(out_dir)
+    created = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # deepest first
     out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        return _record(devices, out_dir, duration_s, connect_timeout_s, progress)
+    finally:
+        _remove_empty_folders(created)
+
+
+def _remove_empty_folders(folders: Sequence[pathlib.Path]) -> None:
+    """Removes each folder (deepest first) while it is empty: rmdir refuses one that holds anything,
+    and then its parents hold it."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
+def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, connect_timeout_s: float,
+            progress: Optional[Callable[[float, float], None]]) -> Recording:
+    """record_streams into the existing folder out_dir."""
     targets = {label: out_dir / f"{label}_tracker_stream.csv" for label in devices}
     for p in targets.values():
         if p.exists():
