@@ -2038,10 +2038,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     base_table();
   }
   // Bonferroni over every candidate tested (fitted), screened-out ones included: screening looked
-  // at them too.
+  // at them too. Replacements count as additions do: they are tested on the same held-out data,
+  // and the family is every candidate the diagnosis looked at, not only those whose claim rule
+  // reads the p-value.
   int tested = 0;
   for (const auto& p : prepared) {
-    tested += p.candidate.fitted && !p.flexible && p.candidate.replaces.empty() ? 1 : 0;
+    tested += p.candidate.fitted && !p.flexible ? 1 : 0;
   }
   d.p_threshold = options.family_alpha / std::max(1, tested);
 

@@ -309,7 +309,9 @@ struct Diagnosis {
   std::vector<Candidate> candidates;  // ranked: significant first, then by held-out error
   std::vector<Candidate> flexible;    // flexible fallback (not effects), same scores
   std::vector<std::string> skipped;  // "near_field: model has it", "plane: term type not available"
-  double p_threshold = 0.0;          // family_alpha / number of candidates tested
+  // family_alpha / number of candidates tested: every one fitted (additions, pairs and
+  // replacements; screened out of the cross-validation or not), not the flexible fallback.
+  double p_threshold = 0.0;
   std::optional<std::string> verdict_effect;  // top significant candidate
   std::string verdict_text;
   // No candidate is claimed, but held-out data show structure the model lacks (a candidate that
