@@ -177,6 +177,26 @@ void BindCapture(py::module_& m) {
       py::arg("path"), "Reads tracker_stream.csv into time, sensor, positions, quaternions_xyzw, extra.");
 
   m.def(
+      "read_reference_stream",
+      [](const std::filesystem::path& path) {
+        const ReferenceStream c = ReadReferenceStream(path);
+        const size_t n = c.records.size();
+        py::dict d;
+        py::array_t<double> time(n);
+        for (size_t i = 0; i < n; ++i) time.mutable_at(i) = c.records[i].time;
+        d["time"] = time;
+        auto get = [&](size_t i) -> const Rigid3d& { return c.records[i].transmitter_from_body; };
+        d["positions"] = Positions(n, get);
+        d["quaternions_xyzw"] = Quaternions(n, get);
+        d["extra_columns"] = c.extra_columns;
+        d["extra"] = Extra(c);
+        d["extra_labels"] = ExtraLabels(c);
+        return d;
+      },
+      py::arg("path"),
+      "Reads reference_stream.csv (reference clock) into time, positions, quaternions_xyzw, extra.");
+
+  m.def(
       "write_tracker_stream",
       [](const std::filesystem::path& path, const py::handle& time_obj, const py::handle& sensor_obj,
          const py::handle& positions, const py::handle& quaternions, bool overwrite) {

@@ -74,6 +74,48 @@ def test_stream_extra_columns_become_covariates_of_the_paired_stations(sim, tmp_
     assert "temperature" in validation.covariates(cap)
 
 
+def test_reference_stream_columns_and_labels_reach_the_paired_stations(sim, tmp_path):
+    # The optical system logs a per-frame marker residual (numbers) and the tracking state (labels);
+    # the tracker logs which operator held the probe (labels) and its own state under the same name.
+    # Each paired station carries them at its instant: tracker columns at its time, reference ones at
+    # time + offset on the reference clock (the offset here is 20 ms, set when pairing).
+    _, streams, _ = sim
+    folder = tmp_path / "logged"
+    folder.mkdir()
+    ref_lines = (streams / "reference_stream.csv").read_text().splitlines()
+    rt = ref_lines[0].split(",").index("time")
+    out = [ref_lines[0] + ",marker_rms_mm,state"]
+    for line in ref_lines[1:]:
+        t = float(line.split(",")[rt])
+        out.append(f"{line},{0.1 + 0.01 * t:.9f},{'good' if int(t) % 2 == 0 else 'partial'}")
+    (folder / "reference_stream.csv").write_text("\n".join(out) + "\n")
+    lines = (streams / "tracker_stream.csv").read_text().splitlines()
+    tt = lines[0].split(",").index("time")
+    out = [lines[0] + ",operator,state"]
+    for line in lines[1:]:
+        t = float(line.split(",")[tt])
+        out.append(f"{line},{'alice' if t < 10 else 'bob'},ok")
+    (folder / "tracker_stream.csv").write_text("\n".join(out) + "\n")
+    offset = 0.02
+    cap = captures.load(folder, time_offset=offset)
+    assert cap.extra_columns == ["operator", "state", "marker_rms_mm", "reference_state"]
+    assert cap.extra_labels == {"operator": ["alice", "bob"], "state": ["ok"],
+                                "reference_state": ["good", "partial"]}
+    # Linear in reference time: interpolated at time + offset (not at the tracker time: 2e-4 apart).
+    np.testing.assert_allclose(cap.column("marker_rms_mm"), 0.1 + 0.01 * (cap.time + offset), atol=1e-7)
+    # Labels are those of the nearest sample (away from the switch instants, where nearest is ambiguous).
+    away = np.abs((cap.time + offset) - np.round(cap.time + offset)) > 0.05
+    expected = np.where(np.floor(cap.time + offset).astype(int) % 2 == 0, "good", "partial")
+    assert list(cap.column("reference_state")[away]) == list(expected[away])
+    assert set(cap.column("operator")[cap.time < 9.9]) == {"alice"}
+    covs = validation.covariates(cap)
+    assert {"operator", "marker_rms_mm", "reference_state"} <= set(covs)
+    # The live-recording validation carries them the same way.
+    v = validation.validate_recording(folder / "tracker_stream.csv", folder / "reference_stream.csv",
+                                      time_offset=offset)
+    assert v.capture.extra_columns == cap.extra_columns
+
+
 def test_capture_folder_without_any_capture_names_what_it_looked_for(tmp_path):
     with pytest.raises(ValueError, match="not a capture folder .*tracker_stream.csv"):
         captures.load(tmp_path)

@@ -173,34 +173,12 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
         result = pair(p / STREAM_FILES[0], p / STREAM_FILES[1], time_offset=0.0 if estimate else float(time_offset),
                       estimate_time_offset=estimate, search_range=search_range)
         cap = result.poses
-        stream = load_tracker_stream(p / STREAM_FILES[0])
-        first = int(cap.sensor[0]) if len(cap) else int(stream.sensor[0])
-        own = stream.sensor == first
-        cap.speed = np.interp(cap.time, stream.time[own], stream.speed()[own])
-        # The tracker stream's extra columns (a logged temperature, a device's state) at the paired
-        # samples' times, so the diagnosis tests them as covariates as it does a poses.csv's:
-        # numbers interpolated, labels those of the nearest sample.
-        names, columns = list(cap.extra_columns), [cap.extra[:, k] for k in range(len(cap.extra_columns))]
-        for k, name in enumerate(stream.extra_columns):
-            if name not in names and len(cap) and own.sum() >= 1:
-                names.append(name)
-                t, v = stream.time[own], stream.extra[own, k]
-                if name in stream.extra_labels:
-                    after = np.clip(np.searchsorted(t, cap.time), 0, len(t) - 1)
-                    before = np.maximum(after - 1, 0)
-                    closer = np.abs(t[before] - cap.time) <= np.abs(t[after] - cap.time)
-                    columns.append(v[np.where(closer, before, after)])
-                    cap.extra_labels[name] = list(stream.extra_labels[name])
-                else:
-                    columns.append(np.interp(cap.time, t, v))
-        if len(names) > len(cap.extra_columns):
-            cap.extra_columns = names
-            cap.extra = np.column_stack(columns).astype(float)
+        first = carry_stream_columns(cap, p / STREAM_FILES[0], p / STREAM_FILES[1], result.time_offset_s)
         cap.path = p / STREAM_FILES[0]
         cap.origin = {"kind": "streams", "files": [str(p / n) for n in STREAM_FILES],
                       "time_offset_s": float(result.time_offset_s),
                       "time_offset_source": "estimated" if estimate else "given",
-                      "paired": len(cap), "dropped": int(result.dropped), "sensor": int(first),
+                      "paired": len(cap), "dropped": int(result.dropped), "sensor": first,
                       "warning": result.to_dict().get("warning", "")}
         return cap
     result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], poses=labels, **(register_options or {}))
@@ -212,6 +190,55 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
                   "converged": bool(result.converged), "chi_square": float(result.chi_square),
                   "nu": float(result.nu)}
     return cap
+
+
+def carry_stream_columns(cap: PoseCapture, tracker_stream: PathLike, reference_stream: PathLike,
+                         time_offset_s: float) -> int:
+    """Gives stations paired from streams (``trackcal.pair``; first sensor) what the streams logged
+    beside the poses, for the diagnosis to test as covariates as it does a poses.csv's columns: the
+    receiver's ``speed`` at each station's time, the tracker stream's extra columns at that time,
+    and the reference stream's at the same instant on its own clock (time + ``time_offset_s``; an
+    optical system's per-frame residual or marker count). Numbers are interpolated, labels are
+    those of the nearest sample; a reference column whose name the tracker's already has is named
+    reference_<name>. Returns the sensor whose samples were paired."""
+    stream = load_tracker_stream(tracker_stream)
+    sensor = int(cap.sensor[0]) if len(cap) else int(stream.sensor[0]) if len(stream) else 1
+    own = stream.sensor == sensor
+    cap.speed = (np.interp(cap.time, stream.time[own], stream.speed()[own]) if own.any()
+                 else np.zeros(len(cap)))
+    if not len(cap):
+        return sensor
+    reference = load_reference_stream(reference_stream)
+    names = list(cap.extra_columns)
+    columns = [cap.extra[:, k] for k in range(len(cap.extra_columns))]
+    for table, mask, at, prefix in ((stream, own, cap.time, ""),
+                                    (reference, np.ones(len(reference), bool), cap.time + time_offset_s,
+                                     "reference_")):
+        if not mask.any():
+            continue
+        t = table.time[mask]
+        for k, name in enumerate(table.extra_columns):
+            out = name
+            if out in names:
+                if not prefix:
+                    continue  # the paired poses already carry it
+                out = prefix + name
+                if out in names:
+                    continue
+            v = table.extra[mask, k]
+            if name in table.extra_labels:
+                after = np.clip(np.searchsorted(t, at), 0, len(t) - 1)
+                before = np.maximum(after - 1, 0)
+                closer = np.abs(t[before] - at) <= np.abs(t[after] - at)
+                columns.append(v[np.where(closer, before, after)])
+                cap.extra_labels[out] = list(table.extra_labels[name])
+            else:
+                columns.append(np.interp(at, t, v))
+            names.append(out)
+    if len(names) > len(cap.extra_columns):
+        cap.extra_columns = names
+        cap.extra = np.column_stack(columns).astype(float)
+    return sensor
 
 
 def describe_origin(capture: PoseCapture) -> Optional[str]:
@@ -268,6 +295,34 @@ def load_tracker_stream(path: PathLike) -> TrackerStream:
     return TrackerStream(time=d["time"], sensor=d["sensor"], positions=d["positions"],
                          quaternions_xyzw=d["quaternions_xyzw"], extra_columns=list(d["extra_columns"]),
                          extra=d["extra"], extra_labels=dict(d["extra_labels"]))
+
+
+@dataclasses.dataclass
+class ReferenceStream:
+    """Unaveraged reference samples (reference_stream.csv) on the reference clock: time [s], poses
+    (transmitter_from_body, registered into the transmitter frame)."""
+
+    time: np.ndarray
+    positions: np.ndarray
+    quaternions_xyzw: np.ndarray
+    extra_columns: list = dataclasses.field(default_factory=list)
+    extra: Optional[np.ndarray] = None
+    extra_labels: dict = dataclasses.field(default_factory=dict)  # as PoseCapture's
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    def column(self, name: str) -> np.ndarray:
+        """An extra column by name, as ``PoseCapture.column``."""
+        return _column(self, name)
+
+
+def load_reference_stream(path: PathLike) -> ReferenceStream:
+    p = _resolve(path, "reference_stream.csv")
+    d = _core.read_reference_stream(p)
+    return ReferenceStream(time=d["time"], positions=d["positions"], quaternions_xyzw=d["quaternions_xyzw"],
+                           extra_columns=list(d["extra_columns"]), extra=d["extra"],
+                           extra_labels=dict(d["extra_labels"]))
 
 
 def save_tracker_stream(path: PathLike, stream: TrackerStream, overwrite: bool = False) -> None:

@@ -718,16 +718,13 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
     Returns a Validation (Table 1 before and after, breakdowns, worst samples, ``capture.origin``
     with the offset); ValueError if no corrected report matches a raw one."""
     import pathlib
-    from trackcal.captures import load_tracker_stream
+    from trackcal.captures import carry_stream_columns, load_tracker_stream
     from trackcal.fitting import pair
     estimate = time_offset is None
     pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
                    estimate_time_offset=estimate, search_range=search_range)
     cap = pairing.poses
-    raw_stream = load_tracker_stream(raw)
-    sensor = int(cap.sensor[0]) if len(cap) else int(raw_stream.sensor[0])
-    own = raw_stream.sensor == sensor
-    cap.speed = np.interp(cap.time, raw_stream.time[own], raw_stream.speed()[own])
+    sensor = carry_stream_columns(cap, raw, reference, pairing.time_offset_s)
     cap.path = pathlib.Path(raw)
     cap.origin = {"kind": "recording", "files": [str(raw), str(reference)] + ([str(corrected)] if corrected else []),
                   "time_offset_s": float(pairing.time_offset_s),
