@@ -63,6 +63,23 @@ py::dict ExtraLabels(const CaptureTable<Record>& table) {
   return d;
 }
 
+// A stream as a dict: time, positions, quaternions_xyzw (of pose_of(record)) and the extras.
+template <typename Record, typename PoseOf>
+py::dict StreamToDict(const CaptureTable<Record>& c, const PoseOf& pose_of) {
+  const size_t n = c.records.size();
+  py::dict d;
+  py::array_t<double> time(n);
+  for (size_t i = 0; i < n; ++i) time.mutable_at(i) = c.records[i].time;
+  d["time"] = time;
+  auto get = [&](size_t i) -> const Rigid3d& { return pose_of(c.records[i]); };
+  d["positions"] = Positions(n, get);
+  d["quaternions_xyzw"] = Quaternions(n, get);
+  d["extra_columns"] = c.extra_columns;
+  d["extra"] = Extra(c);
+  d["extra_labels"] = ExtraLabels(c);
+  return d;
+}
+
 // Reads an (N, 3) and an (N, 4) array into poses; ValueError naming the arrays otherwise.
 std::vector<Rigid3d> ToPoses(const py::handle& positions_obj, const py::handle& quaternions_obj,
                              const std::string& name) {
@@ -156,22 +173,12 @@ void BindCapture(py::module_& m) {
       "read_tracker_stream",
       [](const std::filesystem::path& path) {
         const TrackerStream c = ReadTrackerStream(path);
-        const size_t n = c.records.size();
-        py::dict d;
-        py::array_t<int> sensor(n);
-        py::array_t<double> time(n);
-        for (size_t i = 0; i < n; ++i) {
-          sensor.mutable_at(i) = c.records[i].sensor;
-          time.mutable_at(i) = c.records[i].time;
-        }
-        d["time"] = time;
+        py::dict d = StreamToDict(c, [](const TrackerStreamSample& r) -> const Rigid3d& {
+          return r.transmitter_from_receiver;
+        });
+        py::array_t<int> sensor(c.records.size());
+        for (size_t i = 0; i < c.records.size(); ++i) sensor.mutable_at(i) = c.records[i].sensor;
         d["sensor"] = sensor;
-        auto get = [&](size_t i) -> const Rigid3d& { return c.records[i].transmitter_from_receiver; };
-        d["positions"] = Positions(n, get);
-        d["quaternions_xyzw"] = Quaternions(n, get);
-        d["extra_columns"] = c.extra_columns;
-        d["extra"] = Extra(c);
-        d["extra_labels"] = ExtraLabels(c);
         return d;
       },
       py::arg("path"), "Reads tracker_stream.csv into time, sensor, positions, quaternions_xyzw, extra.");
@@ -179,19 +186,10 @@ void BindCapture(py::module_& m) {
   m.def(
       "read_reference_stream",
       [](const std::filesystem::path& path) {
-        const ReferenceStream c = ReadReferenceStream(path);
-        const size_t n = c.records.size();
-        py::dict d;
-        py::array_t<double> time(n);
-        for (size_t i = 0; i < n; ++i) time.mutable_at(i) = c.records[i].time;
-        d["time"] = time;
-        auto get = [&](size_t i) -> const Rigid3d& { return c.records[i].transmitter_from_body; };
-        d["positions"] = Positions(n, get);
-        d["quaternions_xyzw"] = Quaternions(n, get);
-        d["extra_columns"] = c.extra_columns;
-        d["extra"] = Extra(c);
-        d["extra_labels"] = ExtraLabels(c);
-        return d;
+        return StreamToDict(ReadReferenceStream(path),
+                            [](const ReferenceStreamSample& r) -> const Rigid3d& {
+                              return r.transmitter_from_body;
+                            });
       },
       py::arg("path"),
       "Reads reference_stream.csv (reference clock) into time, positions, quaternions_xyzw, extra.");

@@ -74,6 +74,14 @@ def test_stream_extra_columns_become_covariates_of_the_paired_stations(sim, tmp_
     assert "temperature" in validation.covariates(cap)
 
 
+def _with_columns(source, target, names: str, values) -> None:
+    """Copies a stream CSV with columns `names` appended, `values(time)` giving each row's text."""
+    lines = source.read_text().splitlines()
+    time_col = lines[0].split(",").index("time")
+    out = [lines[0] + "," + names] + [f"{line},{values(float(line.split(',')[time_col]))}" for line in lines[1:]]
+    target.write_text("\n".join(out) + "\n")
+
+
 def test_reference_stream_columns_and_labels_reach_the_paired_stations(sim, tmp_path):
     # The optical system logs a per-frame marker residual (numbers) and the tracking state (labels);
     # the tracker logs which operator held the probe (labels) and its own state under the same name.
@@ -82,20 +90,10 @@ def test_reference_stream_columns_and_labels_reach_the_paired_stations(sim, tmp_
     _, streams, _ = sim
     folder = tmp_path / "logged"
     folder.mkdir()
-    ref_lines = (streams / "reference_stream.csv").read_text().splitlines()
-    rt = ref_lines[0].split(",").index("time")
-    out = [ref_lines[0] + ",marker_rms_mm,state"]
-    for line in ref_lines[1:]:
-        t = float(line.split(",")[rt])
-        out.append(f"{line},{0.1 + 0.01 * t:.9f},{'good' if int(t) % 2 == 0 else 'partial'}")
-    (folder / "reference_stream.csv").write_text("\n".join(out) + "\n")
-    lines = (streams / "tracker_stream.csv").read_text().splitlines()
-    tt = lines[0].split(",").index("time")
-    out = [lines[0] + ",operator,state"]
-    for line in lines[1:]:
-        t = float(line.split(",")[tt])
-        out.append(f"{line},{'alice' if t < 10 else 'bob'},ok")
-    (folder / "tracker_stream.csv").write_text("\n".join(out) + "\n")
+    _with_columns(streams / "reference_stream.csv", folder / "reference_stream.csv", "marker_rms_mm,state",
+                  lambda t: f"{0.1 + 0.01 * t:.9f},{'good' if int(t) % 2 == 0 else 'partial'}")
+    _with_columns(streams / "tracker_stream.csv", folder / "tracker_stream.csv", "operator,state",
+                  lambda t: f"{'alice' if t < 10 else 'bob'},ok")
     offset = 0.02
     cap = captures.load(folder, time_offset=offset)
     assert cap.extra_columns == ["operator", "state", "marker_rms_mm", "reference_state"]

@@ -254,8 +254,19 @@ def describe_origin(capture: PoseCapture) -> Optional[str]:
     return None
 
 
+class _StreamColumns:
+    """What the two streams share: a sample count and their extra columns by name."""
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    def column(self, name: str) -> np.ndarray:
+        """An extra column by name, as ``PoseCapture.column``."""
+        return _column(self, name)
+
+
 @dataclasses.dataclass
-class TrackerStream:
+class TrackerStream(_StreamColumns):
     """Unaveraged tracker samples (tracker_stream.csv): time [s], sensor, poses."""
 
     time: np.ndarray
@@ -265,13 +276,6 @@ class TrackerStream:
     extra_columns: list = dataclasses.field(default_factory=list)
     extra: Optional[np.ndarray] = None
     extra_labels: dict = dataclasses.field(default_factory=dict)  # as PoseCapture's
-
-    def __len__(self) -> int:
-        return len(self.time)
-
-    def column(self, name: str) -> np.ndarray:
-        """An extra column by name, as ``PoseCapture.column``."""
-        return _column(self, name)
 
     def speed(self) -> np.ndarray:
         """Speed [m/s] per sample from central differences along each sensor's samples."""
@@ -298,7 +302,7 @@ def load_tracker_stream(path: PathLike) -> TrackerStream:
 
 
 @dataclasses.dataclass
-class ReferenceStream:
+class ReferenceStream(_StreamColumns):
     """Unaveraged reference samples (reference_stream.csv) on the reference clock: time [s], poses
     (transmitter_from_body, registered into the transmitter frame)."""
 
@@ -308,13 +312,6 @@ class ReferenceStream:
     extra_columns: list = dataclasses.field(default_factory=list)
     extra: Optional[np.ndarray] = None
     extra_labels: dict = dataclasses.field(default_factory=dict)  # as PoseCapture's
-
-    def __len__(self) -> int:
-        return len(self.time)
-
-    def column(self, name: str) -> np.ndarray:
-        """An extra column by name, as ``PoseCapture.column``."""
-        return _column(self, name)
 
 
 def load_reference_stream(path: PathLike) -> ReferenceStream:
