@@ -2599,8 +2599,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   auto key = [&promoted](const Candidate& c) {
     return std::make_tuple(
         c.significant ? 0 : 1,
-        std::make_pair(c.effect, c.replaces) == promoted ? 0 : 1, c.evidence.supported() ? 0 : 1,
-        c.cross_validated ? 0 : 1, c.fitted ? 0 : 1,
+        std::make_pair(c.effect, c.replaces) == promoted ? 0 : 1,
+        // Tested on held-out data before untested: a candidate screened out or refused (a robust
+        // loss that rejects no station) says nothing about held-out error, and listed first it
+        // read as the best of those not claimed.
+        c.cross_validated ? 0 : 1, c.evidence.supported() ? 0 : 1, c.fitted ? 0 : 1,
         std::isfinite(c.cv_whitened_mean) ? c.cv_whitened_mean
                                           : std::numeric_limits<double>::infinity(),
         std::isfinite(c.delta_bic) ? c.delta_bic : std::numeric_limits<double>::infinity());

@@ -170,6 +170,8 @@ TEST(DiagnoseCandidates, TheVerdictNamesTheEffectsNotTestedHeldOut) {
     if (!c.cross_validated) untested = c.effect;
   }
   ASSERT_FALSE(untested.empty());
+  // The tested candidate is listed before the untested one, which says nothing held out.
+  EXPECT_TRUE(d.candidates.front().cross_validated);
   EXPECT_THAT(d.verdict_text,
               ::testing::StartsWith("None of the 1 candidate tested on held-out data explains "
                                     "the remaining structure (not tested there: " +
