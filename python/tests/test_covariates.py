@@ -98,6 +98,31 @@ def test_a_column_of_labels_is_analysed_as_categories(tmp_path):
     assert "alice" in ver["text"] and "carol" in ver["text"], ver
 
 
+def test_an_extra_column_named_like_a_derived_covariate_keeps_both(tmp_path):
+    # A lab's own "z" (a stage height log) and "distance" (a label) must not replace the reported
+    # position's z and the distance from the transmitter: both are tested, the user's as extra_<name>.
+    cap = captures.load_poses(simulate(tmp_path / "sim", seed=21))
+    rng = np.random.default_rng(3)
+    n = len(cap)
+    path = write_poses(tmp_path / "poses.csv", cap,
+                       extra={"z": rng.normal(size=n), "distance": list(rng.choice(["near", "far"], n)),
+                              "extra_z": rng.normal(size=n)})
+    cap2 = captures.load_poses(path)
+    covs, labels = validation.covariates_and_labels(cap2)
+    np.testing.assert_array_equal(covs["z"], cap2.reported_positions[:, 2])
+    np.testing.assert_array_equal(covs["distance"], np.linalg.norm(cap2.reported_positions, axis=1))
+    np.testing.assert_array_equal(covs["extra_extra_z"], cap2.column("z"))  # "extra_z" is the user's
+    np.testing.assert_array_equal(covs["extra_z"], cap2.column("extra_z"))
+    assert labels == {"extra_distance": ["far", "near"]}
+    # The paper scene's residual follows z after a degree-3 fit (docs/understand.md); the user's
+    # random z does not.
+    v = validation.validate(cap2, validation.fit_polynomial(cap2.subset(cap2.set == "calib"), degree=3),
+                            covariate_options={"n_permutations": 99, "seed": 1})
+    assert any(e.significant for e in effects_by(v.covariate_effects, "z"))
+    assert not any(e.significant for e in effects_by(v.covariate_effects, "extra_extra_z"))
+    assert effects_by(v.covariate_effects, "extra_distance")[0].levels is not None
+
+
 def test_pure_noise_reports_nothing():
     rng = np.random.default_rng(9)
     n = 500

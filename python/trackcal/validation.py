@@ -144,8 +144,15 @@ def covariates(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None) 
     effects such as coil gains from transmitter-side ones, paper section 2.1), time, visiting order,
     sensor, the receiver's speed for stations paired from streams (``stream_speed``, default the
     capture's own ``speed``), and every extra column (a column of labels as its label indices:
-    ``covariate_analysis`` treats the names in ``capture.extra_labels`` as categories).
+    ``covariates_and_labels`` names those that are categories). An extra column named like a derived
+    covariate (``x``, ``distance``, ``speed``...) is ``extra_<name>``: both are tested.
     """
+    return covariates_and_labels(capture, stream_speed)[0]
+
+
+def covariates_and_labels(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None):
+    """(``covariates``, {covariate name: labels} for the capture's labels columns): what
+    ``covariate_analysis`` takes as ``covs`` and ``labels``."""
     p = capture.reported_positions
     r = rotation_matrices(capture.reported_quaternions_xyzw)
     dist = np.linalg.norm(p, axis=1)
@@ -164,9 +171,19 @@ def covariates(capture: PoseCapture, stream_speed: Optional[np.ndarray] = None) 
         stream_speed = getattr(capture, "speed", None)
     if stream_speed is not None:
         cov["speed"] = np.asarray(stream_speed, dtype=float)
+    taken = set(cov) | set(capture.extra_columns)
+    labels = {}
     for k, name in enumerate(capture.extra_columns):
-        cov[name] = capture.extra[:, k].astype(float)
-    return cov
+        key = name
+        if name in cov:  # a derived covariate's name: the user's column is extra_<name>
+            key = "extra_" + name
+            while key in taken:
+                key = "extra_" + key
+            taken.add(key)
+        cov[key] = capture.extra[:, k].astype(float)
+        if name in (capture.extra_labels or {}):
+            labels[key] = capture.extra_labels[name]
+    return cov, labels
 
 
 CATEGORICAL = {"sensor"}
@@ -696,9 +713,10 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
         # After a fit, calib residuals are in-sample and valid ones held out: a level difference
         # between the sets, not structure a covariate explains (the sets are visited in turn).
         by_set = analysed.set if after is not None and len(np.unique(analysed.set)) > 1 else None
-        v.covariate_effects = covariate_analysis(_sub(final, kept), covariates(analysed), progress=progress,
-                                                 serial_time=serial, groups=by_set,
-                                                 labels=analysed.extra_labels, **(covariate_options or {}))
+        covs, labels = covariates_and_labels(analysed)
+        v.covariate_effects = covariate_analysis(_sub(final, kept), covs, progress=progress,
+                                                 serial_time=serial, groups=by_set, labels=labels,
+                                                 **(covariate_options or {}))
     return v
 
 
