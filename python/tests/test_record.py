@@ -103,6 +103,21 @@ def test_trackcal_record_without_a_server_leaves_no_folder(tmp_path, monkeypatch
     assert not out.exists()
 
 
+def test_device_labels_name_one_file_each_inside_the_folder(tmp_path, capsys):
+    from trackcal import cli, record
+    out = tmp_path / "run1"
+    # The same label twice would write both devices to one file (the second replaced the first).
+    argv = ["record", "--device", "raw=Tracker0_raw@tcp://127.0.0.1:1", "--device",
+            "raw=Tracker0@tcp://127.0.0.1:1", "--duration", "1", "-o", str(out)]
+    assert cli.main(argv) == 2
+    assert "label 'raw' is given twice" in capsys.readouterr().err
+    # A label is a file name: no folders, nothing empty; checked before any folder is made.
+    for label in ("../escaped", "", "a/b", ".hidden"):
+        with pytest.raises(ValueError, match="device label"):
+            record.record_streams({label: "Tracker0@tcp://127.0.0.1:1"}, out, 1.0, connect_timeout_s=0.1)
+    assert not out.exists() and not (tmp_path / "escaped_tracker_stream.csv").exists()
+
+
 def test_record_progress_ends_at_the_duration(server, tmp_path):
     calls = []
     record_streams({"raw": f"Tracker0_raw@tcp://127.0.0.1:{server}"}, tmp_path / "rec", 0.3,

@@ -493,6 +493,9 @@ def cmd_record(args, term) -> int:
         if "=" not in spec:
             raise ValueError(f"--device {spec!r}: expected LABEL=Tracker0@tcp://host:port")
         label, name = spec.split("=", 1)
+        if label in devices:
+            raise ValueError(f"--device {spec!r}: label {label!r} is given twice (each recording is "
+                             f"<label>_tracker_stream.csv: one label per device)")
         devices[label] = name
     out = record_streams(devices, args.output, args.duration, progress=term.progress("recording"))
     if out.interrupted:

@@ -5,6 +5,7 @@ tracker_stream.csv (docs/captures.md) with the server's header time."""
 from __future__ import annotations
 
 import pathlib
+import re
 import time
 from typing import Callable, Dict, List, Optional, Sequence
 
@@ -35,6 +36,11 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     The folders this call makes (out_dir and its missing parents) are removed again when it writes
     nothing into them (an error, or Ctrl-C before all had connected); a folder that existed before,
     or that holds any file, is never removed."""
+    for label in devices:
+        # The label names the file: it must stay one plain file name inside out_dir.
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]*", label) or ".." in label:
+            raise ValueError(f"device label {label!r}: use letters, digits and _ . + - (it names "
+                             f"{label or '<label>'}_tracker_stream.csv)")
     out_dir = pathlib.Path(out_dir)
     created = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # deepest first
     out_dir.mkdir(parents=True, exist_ok=True)
