@@ -426,6 +426,7 @@ void BindFit(py::module_& m) {
           "calibration", [](const FitRun& r) { return r.calibration; },
           "A copy of the fitted calibration (trackcal.Calibration).")
       .def_property_readonly("time_offset_s", [](const FitRun& r) { return r.time_offset; })
+      .def_property_readonly("pairing_warning", [](const FitRun& r) { return r.pairing_warning; })
       .def_property_readonly("num_calib_stations", [](const FitRun& r) { return r.num_calib; })
       .def_property_readonly("num_valid_stations", [](const FitRun& r) { return r.num_valid; })
       .def_property_readonly("protected_paths", [](const FitRun& r) { return r.protected_paths; })

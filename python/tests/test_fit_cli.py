@@ -119,3 +119,24 @@ def test_fit_errors_exit_2_and_keep_inputs(capture_dir, tmp_path):
     r = run_cli("fit", "--data", data, "--model", model, "-o", notes, check=False)
     assert r.returncode == 2 and "not a trackcal calibration file" in r.stderr
     assert notes.read_text() == "my notes\n"
+
+
+def test_fit_on_a_short_stream_says_how_it_paired_and_warns(tmp_path):
+    # A 10 s stream along the paper path: a degree-3 error model can mimic a time shift there, so
+    # the pairing lowers it and warns (fit/stream_pairing.cc); `trackcal fit` must pass that on,
+    # as `trackcal-fit fit` does, on stderr so that --json stays one document.
+    (tmp_path / "short.yaml").write_text("base: paper\ncapture:\n  stream:\n    duration_s: 10\n")
+    streams = tmp_path / "streams"
+    subprocess.run(["trackcal-simulate", "--scene", str(tmp_path / "short.yaml"), "--hidden", "clock_offset",
+                    "-o", str(streams)], check=True, capture_output=True)
+    (streams / "poses.csv").unlink()  # streams only: the fit pairs them
+    model = tmp_path / "joint.yaml"
+    model.write_text("time_offset: {value: 0, fixed: false}\nterms:\n  - type: polynomial\n    degree: 3\n")
+    r = run_cli("fit", "--data", streams, "--model", model, "-o", tmp_path / "cal.json", "--folds", "2")
+    assert f"warning: {streams / 'tracker_stream.csv'}, {streams / 'reference_stream.csv'}: the clock offset " \
+           "is poorly identified" in r.stderr
+    assert "streams paired at a clock offset of " in r.stdout
+    r = run_cli("fit", "--data", streams, "--model", model, "-o", tmp_path / "cal2.json", "--folds", "2", "--json")
+    doc = json.loads(r.stdout)
+    assert doc["pairing_warning"].startswith("the clock offset is poorly identified")
+    assert "poorly identified" in r.stderr

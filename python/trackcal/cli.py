@@ -209,6 +209,10 @@ def cmd_fit(args, term) -> int:
             raise ValueError(f"{args.output}: output would overwrite the input {given}")
     trackcal._core.check_calibration_output(args.output)
     report = trackcal.fit(args.data, args.model, folds=folds, progress=term.stage_progress())
+    if report.pairing_warning:  # on stderr, so --json stays one document
+        data = pathlib.Path(args.data)
+        print(f"warning: {data / 'tracker_stream.csv'}, {data / 'reference_stream.csv'}: "
+              f"{report.pairing_warning}", file=sys.stderr)
     report.save(args.output, command_line="trackcal " + " ".join(sys.argv[1:]))
     entry = None
     if args.workdir:
@@ -218,6 +222,9 @@ def cmd_fit(args, term) -> int:
         print(json.dumps(report.to_dict(), indent=2))
         return 0
     held = report.held_out()
+    if report.time_offset_s is not None:
+        print(f"streams paired at a clock offset of {report.time_offset_s * 1e3:.3f} ms (reference minus "
+              "tracker; the model's fitted offset where it frees one)")
     for t in report.tables:
         print(_colour_table(term, t, t is held))
     chi = f"{report.chi2_per_dof:.3g}" if report.chi2_per_dof is not None else "n/a"

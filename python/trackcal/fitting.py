@@ -103,6 +103,8 @@ class FitReport:
                                dtype=float))
             for p in fit["parameters"]]
         self.time_offset_s: Optional[float] = native.time_offset_s
+        # Streams paired at a poorly determined clock offset: what the pairing warns ("" otherwise).
+        self.pairing_warning: str = native.pairing_warning
         self.num_calib_stations: int = native.num_calib_stations
         self.num_valid_stations: int = native.num_valid_stations
 
