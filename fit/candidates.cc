@@ -369,6 +369,38 @@ std::string NumberedName(const std::string& type, const std::set<std::string>& t
   return type + "_" + std::to_string(k);
 }
 
+// A `terms:` item of a model file: its name as ParseModelYaml gives it (fit/model_file.cc: repeated
+// types are numbered unless named), its type, and whether the file holds one of its blocks fixed
+// (a room's known plane).
+struct ModelTermName {
+  std::string name;
+  std::string type;
+  bool held_fixed = false;
+};
+
+std::vector<ModelTermName> ModelTermNames(const std::string& model_text) {
+  std::vector<ModelTermName> out;
+  std::set<std::string> taken;
+  for (const auto& t : YAML::Load(model_text)["terms"]) {
+    ModelTermName item;
+    item.type = t.IsMap() && t["type"] ? t["type"].as<std::string>() : "";
+    item.name = t.IsMap() && t["name"] ? t["name"].as<std::string>() : NumberedName(item.type, taken);
+    taken.insert(item.name);
+    const YAML::Node settings = t.IsMap() ? t["parameters"] : YAML::Node();
+    if (settings && settings.IsMap()) {
+      for (const auto& kv : settings) {
+        const YAML::Node fixed = kv.second.IsMap() ? kv.second["fixed"] : YAML::Node();
+        bool held = false;  // as the model file reads it (true, True, yes, on, ...)
+        if (fixed && fixed.IsScalar() && YAML::convert<bool>::decode(fixed, held) && held) {
+          item.held_fixed = true;
+        }
+      }
+    }
+    out.push_back(std::move(item));
+  }
+  return out;
+}
+
 // Where a physical term goes: after the leading physical terms, before the first explicit one.
 int PhysicalInsertIndex(const YAML::Node& terms) {
   int index = 0;
@@ -1356,6 +1388,9 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
 }
 }  // namespace
 
+// A source location with a standard deviation beyond this is not stated as a number [m].
+constexpr double kUndeterminedLocationM = 100.0;
+
 std::string PhysicalEvidence::Describe() const {
   if (!assessed) return "";
   std::ostringstream r;
@@ -1366,7 +1401,9 @@ std::string PhysicalEvidence::Describe() const {
   }
   if (noise_scale != 1.0)
     r << " (sigmas x " << FormatSignificant(noise_scale, 2) << ", sqrt(chi2/dof))";
-  if (has_location) {
+  if (has_location && !(location_sigma_m < kUndeterminedLocationM)) {
+    r << "; location undetermined";  // a source that drifted away with no strength left
+  } else if (has_location) {
     r << "; location +- " << FormatNumber(location_sigma_m, 3) << " m, "
       << FormatNumber(location_distance_m, 3) << " m from the measured volume";
   }
@@ -1554,36 +1591,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // plane) stay. The new term takes the name the model file's numbering gives it (fit/model_file.cc:
   // repeated types are numbered unless named).
   {
-    const YAML::Node terms = YAML::Load(model_text)["terms"];
+    const std::vector<ModelTermName> items = ModelTermNames(model_text);
     std::vector<std::string> names;  // each item's term name, as ParseModelYaml names it
-    std::vector<std::string> types;
-    {
-      std::set<std::string> taken;
-      for (const auto& t : terms) {
-        const bool typed = t.IsMap() && t["type"];
-        std::string type = typed ? t["type"].as<std::string>() : "";
-        std::string name = t.IsMap() && t["name"] ? t["name"].as<std::string>() : type;
-        if (!(t.IsMap() && t["name"])) name = NumberedName(type, taken);
-        taken.insert(name);
-        names.push_back(name);
-        types.push_back(type);
-      }
-    }
-    auto held_fixed = [](const YAML::Node& t) {
-      const YAML::Node settings = t["parameters"];
-      if (!settings || !settings.IsMap()) return false;
-      for (const auto& kv : settings) {
-        const YAML::Node fixed = kv.second.IsMap() ? kv.second["fixed"] : YAML::Node();
-        bool held = false;  // as the model file reads it (true, True, yes, on, ...)
-        if (fixed && fixed.IsScalar() && YAML::convert<bool>::decode(fixed, held) && held) {
-          return true;
-        }
-      }
-      return false;
-    };
+    for (const auto& item : items) names.push_back(item.name);
     for (size_t i = 0; i < names.size(); ++i) {
-      if ((types[i] != "dipole" && types[i] != "plane") || held_fixed(terms[i])) continue;
-      const std::string other = types[i] == "dipole" ? "plane" : "dipole";
+      const std::string& type = items[i].type;
+      if ((type != "dipole" && type != "plane") || items[i].held_fixed) continue;
+      const std::string other = type == "dipole" ? "plane" : "dipole";
       const CatalogEffect* e = nullptr;
       for (const CatalogEffect& c : options.catalog) {
         if (c.effect == other && c.kind == CandidateKind::kTerm && c.count == 1) e = &c;
@@ -1624,6 +1638,17 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     }
   }
 
+  // The model's own source terms whose support the base fit is asked for: (item, name, type).
+  std::vector<std::tuple<int, std::string, std::string>> base_sources;
+  {
+    const std::vector<ModelTermName> items = ModelTermNames(model_text);
+    for (size_t i = 0; i < items.size(); ++i) {
+      if ((items[i].type == "dipole" || items[i].type == "plane") && !items[i].held_fixed) {
+        base_sources.emplace_back(static_cast<int>(i), items[i].name, items[i].type);
+      }
+    }
+  }
+
   // Base: full fit (cost, BIC) and cross-validation.
   StationErrors base_full = MakeErrors(stations.size());
   int base_k = 0;            // free parameters of the base fit
@@ -1637,7 +1662,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     const auto t0 = Clock::now();
     Progress(options, "base model: fit on " + std::to_string(stations.size()) + " stations");
     FitOptions fo;
-    fo.compute_covariance = false;
+    // Standard deviations only to assess the model's own source terms (below).
+    fo.compute_covariance = !base_sources.empty() && options.min_strength_sigma > 0;
     const FitResult fit = FitModel(stations, &base_spec, fo);
     base_start = TakeFitStart(base_spec);
     base_left_out = fit.left_out;
@@ -1658,6 +1684,20 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     b.chi2_per_dof = n_residuals > k ? c.chi2 / (n_residuals - k) : NAN;
     b.bic = Bic(c.chi2, n_residuals, k);
     b.seconds = SecondsSince(t0);
+    if (fo.compute_covariance) {
+      // As for a candidate: model-covariance sigmas take the noise the fit leaves.
+      const int noise_dof = n_residuals - fit.num_free_parameters;
+      const bool empirical = fit.covariance_estimator.rfind("sandwich", 0) == 0;
+      const double noise_scale =
+          !empirical && noise_dof > 0 && c.chi2 > 0 ? std::sqrt(c.chi2 / noise_dof) : 1.0;
+      for (const auto& [index, name, type] : base_sources) {
+        const PhysicalEvidence ev = AssessPhysicalEvidence(
+            type, BlocksOfTerm(fit.parameters, name), MeasuredPositions(stations),
+            options.min_strength_sigma, noise_scale, options.max_normal_sigma_rad,
+            empirical ? fit.covariance_clusters : 0);
+        if (ev.assessed && !ev.supported()) d.unsupported_terms.push_back({name, type, index, ev});
+      }
+    }
   }
   std::vector<int> base_folds(stations.size());
   for (size_t i = 0; i < stations.size(); ++i) base_folds[i] = static_cast<int>(i) % options.folds;
@@ -2759,6 +2799,20 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     }
     d.verdict_text = v.str();
   }
+  if (!d.unsupported_terms.empty()) {
+    std::ostringstream v;
+    v << " Already in the model but not identified by these data: ";
+    for (size_t i = 0; i < d.unsupported_terms.size(); ++i) {
+      const auto& u = d.unsupported_terms[i];
+      v << (i ? "; " : "") << u.term << " (`terms:` item " << u.index << ", "
+        << u.evidence.Describe() << ")";
+    }
+    const char* them = d.unsupported_terms.size() == 1 ? "it" : "them";
+    v << ". A term added after " << them << " may explain the same structure: fit the model without "
+      << them << " and keep the change if the held-out error does not rise (trackcal history).";
+    d.unsupported_note = v.str().substr(1);
+    d.verdict_text += v.str();
+  }
   d.seconds = SecondsSince(start);
   return d;
 }
@@ -2832,7 +2886,16 @@ nlohmann::json Diagnosis::ToJson() const {
                        ? nlohmann::json(candidates.front().replaces)
                        : nlohmann::json()},
       {"text", verdict_text},
-      {"unexplained_structure", unexplained_structure}};
+      {"unexplained_structure", unexplained_structure},
+      {"unsupported_note", unsupported_note}};
+  nlohmann::json unsupported = nlohmann::json::array();
+  for (const auto& u : unsupported_terms) {
+    unsupported.push_back({{"term", u.term},
+                           {"type", u.type},
+                           {"index", u.index},
+                           {"evidence", u.evidence.ToJson()},
+                           {"reason", u.evidence.Describe()}});
+  }
   return {{"command", "diagnose"},
           {"model", model},
           {"data", data},
@@ -2855,6 +2918,7 @@ nlohmann::json Diagnosis::ToJson() const {
           {"skipped", skipped},
           {"p_threshold", p_threshold},
           {"verdict", verdict},
+          {"unsupported_terms", unsupported},
           {"seconds", seconds}};
 }
 

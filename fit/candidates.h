@@ -318,6 +318,18 @@ struct Diagnosis {
   // fits it without identifying its source, or a flexible term that lowers the held-out error):
   // the verdict says so rather than "nothing". In --json as verdict.unexplained_structure.
   bool unexplained_structure = false;
+  // Source terms of the model (dipole, plane; none with a block the file holds fixed) that the base
+  // fit no longer identifies (PhysicalEvidence of the base fit: strength or location fails the
+  // claim conditions): often a source added to stand in for one that a later term explains better.
+  // The verdict names them; in --json "unsupported_terms".
+  struct UnsupportedTerm {
+    std::string term;  // its name ("dipole_2")
+    std::string type;
+    int index = 0;  // its `terms:` item (0-based)
+    PhysicalEvidence evidence;
+  };
+  std::vector<UnsupportedTerm> unsupported_terms;
+  std::string unsupported_note;  // the verdict's sentence on them ("" without any)
   double seconds = 0.0;
   // Streams: the clock offset they were paired at (reference minus tracker [s]; set by the caller,
   // who paired them: the model's joint estimate when it frees the offset, fit/fit_run.h

@@ -495,6 +495,45 @@ terms:
   EXPECT_EQ(d.ToJson()["p_threshold"].get<double>(), o.family_alpha / 2);
 }
 
+// A source term of the model that the data do not need (the stations carry no field) is named as
+// no longer identified, with its item, so the user can try the model without it; one the model
+// file holds fixed (a room's known source) is not assessed.
+TEST(DiagnoseCandidates, ASourceTheDataDoNotSupportIsNamed) {
+  const auto stations = Stations(120, Eigen::Vector3d::Zero(), 0, 12);
+  const std::string head = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+terms:
+  - type: dipole
+    location_in_transmitter: [0.0, 0.0, 2.0]
+    polarisability_m3: -0.001
+)";
+  const std::string tail = R"(  - type: polynomial
+    degree: 1
+    position: false
+)";
+  const std::string model = head + tail;
+  CandidateOptions o;
+  o.effects = {"sensor_offset"};
+  o.flexible.clear();
+  o.folds = 3;
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  ASSERT_EQ(d.unsupported_terms.size(), 1u) << d.verdict_text;
+  EXPECT_EQ(d.unsupported_terms[0].term, "dipole");
+  EXPECT_EQ(d.unsupported_terms[0].index, 0);
+  EXPECT_FALSE(d.unsupported_terms[0].evidence.strength_ok);
+  EXPECT_THAT(d.verdict_text, ::testing::HasSubstr(
+                                  "Already in the model but not identified by these data: dipole "
+                                  "(`terms:` item 0, polarisability_m3 "));
+  const nlohmann::json j = d.ToJson();
+  EXPECT_EQ(j["unsupported_terms"][0]["term"], "dipole");
+  EXPECT_EQ(j["verdict"]["unsupported_note"].get<std::string>().rfind("Already in the model", 0), 0u);
+
+  const std::string fixed =
+      head + "    parameters: {location_in_transmitter: {fixed: true}}\n" + tail;
+  const Diagnosis held = DiagnoseCandidates(stations, fixed, "model.yaml", "synthetic", o);
+  EXPECT_TRUE(held.unsupported_terms.empty()) << held.verdict_text;
+  EXPECT_THAT(held.verdict_text, ::testing::Not(::testing::HasSubstr("Already in the model")));
+}
+
 TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
   const auto stations = Stations(60, Eigen::Vector3d(0.002, 0, 0), 0, 7);
   CandidateOptions o = TestOptions();

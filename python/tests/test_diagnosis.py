@@ -127,6 +127,23 @@ def test_verdict_nothing_significant():
         diagnosis.verdict(None, TEMPERATURE)["text"]
 
 
+def test_verdict_names_a_source_the_data_no_longer_identify_whatever_it_says():
+    note = ("Already in the model but not identified by these data: dipole_2 (`terms:` item 3, "
+            "polarisability_m3 0.0 sigma from its null value; location undetermined). A term added after it "
+            "may explain the same structure: fit the model without it and keep the change if the held-out "
+            "error does not rise (trackcal history).")
+    doc = contract_b_doc(False)
+    doc["verdict"]["unsupported_note"] = note
+    quiet = [CovariateEffect("x", "position_mm", 0.01, 0.3, False, 600)]
+    assert diagnosis.verdict(doc, quiet)["text"] == "nothing significant remains. " + note
+    covariate = diagnosis.verdict(doc, TEMPERATURE)
+    assert covariate["source"] == "covariate" and covariate["text"].endswith(". " + note)
+    # The engine's own verdict already carries it: not said twice.
+    doc["verdict"]["text"] = "No catalog effect explains the remaining structure. " + note
+    doc["verdict"]["unexplained_structure"] = True
+    assert diagnosis.verdict(doc, quiet)["text"].count("Already in the model") == 1
+
+
 def test_verdict_keeps_the_rankings_word_on_structure_it_cannot_place():
     # The engine found held-out structure no candidate identifies: "nothing significant remains"
     # would hide it, so its verdict is kept (and a covariate finding still comes first).

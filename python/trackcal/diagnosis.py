@@ -197,6 +197,16 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     Returns {"source": "candidate" | "covariate" | "flexible" | "unidentified" | None, "effect",
     "covariate", "text", "model_change", "insert_index", "replaces"} ("replaces": the term a
     replacement takes the place of, else None)."""
+    out = _verdict(candidates_doc, covariate_effects)
+    # The model's own source terms the data no longer identify (the engine's note): said whatever
+    # the verdict, since removing one is a change the user can test.
+    note = ((candidates_doc or {}).get("verdict") or {}).get("unsupported_note")
+    if note and note not in out["text"]:
+        out["text"] = out["text"].rstrip(".") + ". " + note
+    return out
+
+
+def _verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     rows = covariate_findings(covariate_effects)
     top = top_candidate(candidates_doc)
     out = {"source": None, "effect": None, "covariate": rows[0]["covariate"] if rows else None,
