@@ -198,11 +198,15 @@ def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys
     hist = (work / "history.jsonl").read_bytes()
     other = tmp_path / "notes.txt"
     other.write_text("mine\n")
+    # A picture of the user's named .png (a PNG trackcal did not write) is not an earlier figure.
+    picture = tmp_path / "setup.png"
+    picture.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 32)
     capsys.readouterr()
     for target, why in ((work / "history.jsonl", "refusing to overwrite an input"),
                         (data, "refusing to overwrite an input"),
                         (model, "refusing to overwrite an input"),
-                        (other, "exists and is not a .png file"),
+                        (other, "exists and is not a figure trackcal wrote"),
+                        (picture, "exists and is not a figure trackcal wrote"),
                         (tmp_path, "is a folder"),
                         (tmp_path / "none" / "h.png", f"{tmp_path / 'none'} is not an existing folder")):
         assert cli.main(["history", str(work), "--plot", str(target)]) == 2, target
@@ -210,6 +214,7 @@ def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys
         assert err.startswith(f"error: {target}: {why}"), err
     assert (work / "history.jsonl").read_bytes() == hist
     assert data.read_text() == "x\n" and model.read_text() == "{}\n" and other.read_text() == "mine\n"
+    assert picture.read_bytes() == b"\x89PNG\r\n\x1a\n" + b"\x00" * 32
     # A new file, and an earlier figure (a .png) replaced.
     for target in (tmp_path / "plot", tmp_path / "h.png", tmp_path / "h.png"):
         assert cli.main(["history", str(work), "--plot", str(target)]) == 0

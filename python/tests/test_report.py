@@ -12,7 +12,7 @@ import subprocess
 import pytest
 
 import trackcal
-from trackcal import captures, report, validation
+from trackcal import figures, captures, report, validation
 from trackcal.history import record_fit, load_history, scores_from_validation
 from understand_support import simulate
 
@@ -127,6 +127,26 @@ def test_report_replaces_only_an_earlier_report_and_files_get_the_umask_mode(tmp
     # mkstemp makes files 0600; outputs are shared like any other new file (umask 022: 0644).
     for f in out.iterdir():
         assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
+
+
+def test_report_never_replaces_a_users_file_named_like_a_figure(tmp_path):
+    cap = captures.load_poses(simulate(tmp_path / "capture", seed=35))
+    v = validation.validate(cap, None, analyse_covariates=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    mine = out / "fig4_position_error_vs_distance.png"  # a user's picture, in a folder with no report
+    mine.write_bytes(b"\x89PNG\r\n\x1a\n" + b"mine" * 8)
+    with pytest.raises(ValueError, match="not a figure of a trackcal report"):
+        report.write_report(v, out)
+    assert mine.read_bytes() == b"\x89PNG\r\n\x1a\n" + b"mine" * 8
+    assert list(out.iterdir()) == [mine]  # refused before any figure was written
+    mine.unlink()
+    page = report.write_report(v, out)
+    # Its own figures carry the tag and are replaced by the next report into the folder; so are
+    # those of a report written before the tag (the folder holds that report).
+    assert figures.is_trackcal_png(mine) and report.write_report(v, out) == page
+    mine.write_bytes(b"\x89PNG\r\n\x1a\n" + b"old figure" * 4)
+    assert report.write_report(v, out) == page and figures.is_trackcal_png(mine)
 
 
 def test_report_replaces_a_report_written_before_the_generator_tag(tmp_path):

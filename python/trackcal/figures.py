@@ -25,10 +25,25 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
+# The PNG text chunk every figure carries ("Software" keyword), by which an existing file is known
+# to be an earlier trackcal figure that may be replaced.
+PNG_SOFTWARE = "trackcal"
+
+
+def is_trackcal_png(path) -> bool:
+    """Whether ``path`` is a PNG that trackcal wrote (its Software text chunk names trackcal)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+    except OSError:
+        return False
+    return head.startswith(b"\x89PNG\r\n\x1a\n") and b"tEXtSoftware\x00" + PNG_SOFTWARE.encode() in head
+
+
 def save_png(fig, path, dpi: int = 110, inputs: Sequence = ()) -> pathlib.Path:
     """Writes fig as PNG atomically (temporary file in the same folder, then rename). Replaces only
-    a file named .png (an earlier figure): refuses any other existing file (a capture, a history)
-    and any of ``inputs``, as the report does."""
+    an earlier trackcal figure (``is_trackcal_png``): refuses any other existing file (a capture, a
+    history, a user's picture) and any of ``inputs``, as the report does."""
     path = pathlib.Path(path)
     for p in inputs:
         if p is not None and pathlib.Path(p).resolve() == path.resolve():
@@ -37,17 +52,19 @@ def save_png(fig, path, dpi: int = 110, inputs: Sequence = ()) -> pathlib.Path:
         raise ValueError(f"{path}: is a folder; give the PNG file to write")
     if not path.parent.is_dir():  # else the error would name the temporary file
         raise ValueError(f"{path}: {path.parent} is not an existing folder")
-    if path.suffix.lower() != ".png":  # never replaced, even if it appears while the figure is drawn
+    if path.suffix.lower() != ".png" or (path.exists() and not is_trackcal_png(path)):
+        # Never replaced, even if it appears while the figure is drawn.
         from trackcal._files import write_new
         return write_new(path, png_bytes(fig, dpi),
-                         "exists and is not a .png file; a figure replaces only an earlier PNG")
+                         "exists and is not a figure trackcal wrote; a figure replaces only an earlier "
+                         "trackcal figure (give another file name, or remove the file)")
     from trackcal._files import replace_atomically
     return replace_atomically(path, png_bytes(fig, dpi))
 
 
 def png_bytes(fig, dpi: int = 110) -> bytes:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": PNG_SOFTWARE})
     return buf.getvalue()
 
 

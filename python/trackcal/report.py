@@ -26,8 +26,10 @@ from trackcal import validation
 GENERATOR_META = "<meta name='generator' content='trackcal report'>"
 
 
-def _check_replaceable(path: pathlib.Path, inputs: Sequence[pathlib.Path]) -> None:
-    """ValueError unless ``path`` is new or an earlier report's page or figure, and not an input."""
+def _check_replaceable(path: pathlib.Path, inputs: Sequence[pathlib.Path], own_folder: bool = False) -> None:
+    """ValueError unless ``path`` is new or an earlier report's page or figure, and not an input.
+    A figure is an earlier report's when trackcal wrote it, or (``own_folder``) when the folder
+    holds an earlier trackcal report (figures of reports older than the PNG tag)."""
     target = path.resolve()
     for p in inputs:
         if p is not None and pathlib.Path(p).resolve() == target:
@@ -41,12 +43,15 @@ def _check_replaceable(path: pathlib.Path, inputs: Sequence[pathlib.Path]) -> No
         if GENERATOR_META.encode() not in head and f"<style>{STYLE}</style>".encode() not in head:
             raise ValueError(f"{path}: exists and is not a trackcal report; refusing to replace it "
                              "(give another output folder, or remove the file)")
-    elif path.suffix.lower() != ".html" and path.exists() and path.suffix.lower() != ".png":
-        raise ValueError(f"{path}: exists and is not a figure; refusing to replace it")
+    elif path.suffix.lower() != ".html" and path.exists() and (
+            path.suffix.lower() != ".png" or not (own_folder or F.is_trackcal_png(path))):
+        raise ValueError(f"{path}: exists and is not a figure of a trackcal report; refusing to replace it "
+                         "(give another output folder, or remove the file)")
 
 
-def _atomic_write(path: pathlib.Path, data: bytes, inputs: Sequence[pathlib.Path]) -> None:
-    _check_replaceable(path, inputs)
+def _atomic_write(path: pathlib.Path, data: bytes, inputs: Sequence[pathlib.Path],
+                  own_folder: bool = False) -> None:
+    _check_replaceable(path, inputs, own_folder)
     replace_atomically(path, data)
 
 
@@ -241,10 +246,14 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     if history_entries:
         parts.append("<h2>History of fits</h2><pre>" + html.escape(history_table(history_entries)) + "</pre>")
     parts.append("<h2>Figures</h2>")
+    # Every figure's file is checked before any is written: a refusal leaves the folder as it was.
+    own_folder = (out_dir / "report.html").exists()  # checked above: an earlier trackcal report
+    for name, _, _ in figs:
+        _check_replaceable(out_dir / name, input_paths, own_folder)
     for i, (name, caption, fig) in enumerate(figs):
         data = F.png_bytes(fig)
         plt.close(fig)
-        _atomic_write(out_dir / name, data, input_paths)
+        _atomic_write(out_dir / name, data, input_paths, own_folder)
         b64 = base64.b64encode(data).decode("ascii")
         parts.append(f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,{b64}'>"
                      f"<figcaption>{html.escape(caption)}</figcaption></figure>")
