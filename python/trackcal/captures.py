@@ -227,10 +227,7 @@ def carry_stream_columns(cap: PoseCapture, tracker_stream: PathLike, reference_s
                     continue
             v = table.extra[mask, k]
             if name in table.extra_labels:
-                after = np.clip(np.searchsorted(t, at), 0, len(t) - 1)
-                before = np.maximum(after - 1, 0)
-                closer = np.abs(t[before] - at) <= np.abs(t[after] - at)
-                columns.append(v[np.where(closer, before, after)])
+                columns.append(v[nearest_samples(t, at)])
                 cap.extra_labels[out] = list(table.extra_labels[name])
             else:
                 columns.append(np.interp(at, t, v))
@@ -252,6 +249,13 @@ def describe_origin(capture: PoseCapture) -> Optional[str]:
         return (f"raw markers registered (paper section 3) with {o['registered_with']}: {o['registered']} stations, "
                 f"{len(o['left_out'])} left out, chi-square {o['chi_square']:.1f} for {o['nu']:.0f} degrees of freedom")
     return None
+
+
+def nearest_samples(t: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Index into the increasing times t of the sample nearest each of ``at`` (the later on a tie)."""
+    idx = np.clip(np.searchsorted(t, at), 0, len(t) - 1)
+    prev = np.clip(idx - 1, 0, len(t) - 1)
+    return np.where(np.abs(t[prev] - at) < np.abs(t[idx] - at), prev, idx)
 
 
 class _StreamColumns:

@@ -364,7 +364,7 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
             obs, p, z_ok = _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed)
             sig = bool(obs >= min_r2 and (p <= level or z_ok))
             effects.append(CovariateEffect(name, tname, float(obs), float(p), sig, int(ok.sum()),
-                                           levels=_levels(residuals_, tname, xs, ok, labels[name])
+                                           levels=_levels(y[ok], tname, xs, labels[name])
                                            if name in labels else None))
             done += 1
             if progress:
@@ -376,15 +376,12 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     return effects
 
 
-def _levels(residuals_: Residuals, target: str, codes: np.ndarray, ok: np.ndarray, names: list) -> List[dict]:
-    """Per label of a covariate: its stations and how far their mean error sits from the mean over
-    every label (``offset``: the vector in the transmitter frame for a vector target, mm or the
-    rotation vector in degrees; the signed difference for a magnitude), largest ``size`` first."""
+def _levels(y: np.ndarray, target: str, codes: np.ndarray, names: list) -> List[dict]:
+    """Per label of a covariate: its stations and how far their mean of the target y (N, d) sits
+    from the mean over every label (``offset``: the vector in the transmitter frame for a vector
+    target, mm or the rotation vector in degrees; the signed difference for a magnitude), largest
+    ``size`` first."""
     position = target.startswith("position")
-    if target.endswith("_vector"):
-        y = (residuals_.position * 1e3 if position else residuals_.orientation * (2.0 * 180.0 / np.pi))[ok]
-    else:
-        y = (residuals_.position_mm if position else residuals_.orientation_deg)[ok][:, None]
     overall = y.mean(axis=0)
     rows = []
     for code in np.unique(codes):
@@ -736,7 +733,7 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
     Returns a Validation (Table 1 before and after, breakdowns, worst samples, ``capture.origin``
     with the offset); ValueError if no corrected report matches a raw one."""
     import pathlib
-    from trackcal.captures import carry_stream_columns, load_tracker_stream
+    from trackcal.captures import carry_stream_columns, load_tracker_stream, nearest_samples
     from trackcal.fitting import pair
     estimate = time_offset is None
     pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
@@ -757,9 +754,7 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
             raise ValueError(f"{corrected}: no report of sensor {sensor}")
         order = np.argsort(t, kind="stable")
         t, p, q = t[order], p[order], q[order]
-        idx = np.clip(np.searchsorted(t, cap.time), 0, len(t) - 1)
-        prev = np.clip(idx - 1, 0, len(t) - 1)
-        idx = np.where(np.abs(t[prev] - cap.time) < np.abs(t[idx] - cap.time), prev, idx)
+        idx = nearest_samples(t, cap.time)
         # Both reports of a record are stamped with the same time; 1 us allows for a text round trip.
         ok = np.abs(t[idx] - cap.time) <= 1e-6
         if not ok.any():
