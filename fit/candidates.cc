@@ -911,6 +911,13 @@ struct PreparedCandidate {
   GrossOutliers gross;
 };
 
+// The removals' effect: not in the catalog (nothing is added), but every candidate refers to one.
+const CatalogEffect& RemovalEffect() {
+  static const CatalogEffect effect{kRemoveEffect, CandidateKind::kRemoval, "", false, false,
+                                    "a source term these data no longer identify"};
+  return effect;
+}
+
 }  // namespace
 
 std::vector<CatalogEffect> DefaultCatalog() {
@@ -1010,11 +1017,11 @@ void CandidateOptions::Check() const {
     }
   }
   for (const auto& name : effects) {
-    if (!names.count(name)) {
+    if (!names.count(name) && name != kRemoveEffect) {
       std::string known;
       for (const auto& e : catalog) known += (known.empty() ? "" : ", ") + e.effect;
       throw std::invalid_argument("CandidateOptions.effects: unknown effect '" + name +
-                                  "' (catalog: " + known + ")");
+                                  "' (catalog: " + known + "; and " + kRemoveEffect + ")");
     }
   }
 }
@@ -1699,6 +1706,33 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       }
     }
   }
+  // Removals: each source term the base fit no longer identifies, tried without it. Often a
+  // source added to stand in for one that a later term explains better (measured, paper room with
+  // a sensor offset and receiver gains, seed 4: a second dipole stood in for the floor until the
+  // floor plane went in, then stayed at 1.5 sigma with its location open by 0.13 m).
+  if (options.effects.empty() || std::find(options.effects.begin(), options.effects.end(),
+                                           kRemoveEffect) != options.effects.end()) {
+    for (const auto& u : d.unsupported_terms) {
+      PreparedCandidate p;
+      p.effect = &RemovalEffect();
+      Candidate& c = p.candidate;
+      c.effect = kRemoveEffect;
+      c.kind = CandidateKind::kRemoval;
+      c.replaces = u.term;
+      c.insert_index = u.index;
+      c.statement = "without " + u.term + " (" + u.evidence.Describe() + ")";
+      YAML::Node changed = YAML::Load(model_text);
+      YAML::Node seq(YAML::NodeType::Sequence);
+      int j = 0;
+      for (const auto& t : changed["terms"]) {
+        if (j++ != u.index) seq.push_back(t);
+      }
+      changed["terms"] = seq;
+      c.model_text = Emit(changed);
+      p.root = changed;
+      prepared.push_back(std::move(p));
+    }
+  }
   std::vector<int> base_folds(stations.size());
   for (size_t i = 0; i < stations.size(); ++i) base_folds[i] = static_cast<int>(i) % options.folds;
   const int threads = options.num_threads > 0
@@ -1783,7 +1817,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       Progress(options, c.effect + ": fit on " + std::to_string(own.size()) + " stations");
       ModelSpec spec = ParseModelYaml(c.model_text, model_source + " + " + c.effect);
       FitOptions fo;
-      fo.compute_covariance = !p.flexible;  // a flexible term's parameters are not reported
+      // A flexible term's parameters are not reported, nor a removal's (it adds none).
+      fo.compute_covariance = !p.flexible && c.kind != CandidateKind::kRemoval;
       FitResult fit = FitModel(own, &spec, fo);
       Progress(options, c.effect + ": " + FitTimeNote(fit));
       // Go on once from where a fit stopped at the iteration limit (every term at the values it
@@ -2003,6 +2038,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
           c.statement += (c.statement.empty() ? "" : "; ") +
                          Statement(*p.effect, one, options.robust_loss.scale);
         }
+      } else if (c.kind == CandidateKind::kRemoval) {
+        // The statement of the term removed, set when it was prepared.
       } else if (c.kind != CandidateKind::kTimeOffset) {
         c.statement = Statement(*p.effect, c, options.robust_loss.scale);
         if (!c.replaces.empty() && !c.statement.empty()) {
@@ -2402,6 +2439,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     // kReplacementTiePercent, the held-out means' own precision (the fast and exact fold refits
     // agree to 0.2 %, docs/diagnose.md): the same case since the report-space station residual
     // (session 20) is delta BIC -27.1, position 0.2 % lower, orientation 0.1 % higher.
+    // A removal is judged the same way: the smaller model is claimed when BIC prefers it
+    // decisively (the parameters it saves are worth more than the chi2 it gives up) and neither
+    // held-out mean rises; the term's own tests have already failed (unsupported_terms).
     const bool replacing = !c.replaces.empty();
     const bool p_ok = replacing || c.p_value < d.p_threshold;
     const bool drop_ok = replacing ? c.drop_position_percent >= -kReplacementTiePercent &&
@@ -2416,7 +2456,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     const bool converged_ok = c.converged || !ev.assessed;
     c.significant = p_ok && drop_ok && bic_ok && outliers_ok && ev.supported() && converged_ok;
     std::ostringstream r;
-    if (replacing) r << "in place of " << c.replaces << ": ";
+    const bool removal = c.kind == CandidateKind::kRemoval;
+    if (replacing) r << (removal ? "without " : "in place of ") << c.replaces << ": ";
     r << (robust ? "held-out error of the stations it keeps " : "held-out error ")
       << (c.drop_position_percent >= 0 ? "falls " : "rises ")
       << FormatNumber(std::abs(c.drop_position_percent), 1) << " % (position), "
@@ -2582,7 +2623,26 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     if (p.flexible || c.replaces.empty() || !c.significant || first_addition.empty()) continue;
     c.significant = false;
     c.reason += ". Not claimed now: an effect the model lacks goes in first (" + first_addition +
-                "); the swap is weighed again with it";
+                "); the " + (c.kind == CandidateKind::kRemoval ? "removal" : "swap") +
+                " is weighed again with it";
+  }
+  // A term the data no longer identify is removed before another takes its place: the smaller
+  // model first, and the next diagnosis asks whether anything is missing without it.
+  for (auto& p : prepared) {
+    Candidate& c = p.candidate;
+    if (p.flexible || c.kind != CandidateKind::kTerm || c.replaces.empty() || !c.significant) {
+      continue;
+    }
+    for (const auto& o : prepared) {
+      if (o.candidate.kind == CandidateKind::kRemoval && o.candidate.significant &&
+          o.candidate.replaces == c.replaces) {
+        c.significant = false;
+        c.reason += ". Not claimed now: " + c.replaces +
+                    " is removed first (the model without it fits as well); the swap is weighed "
+                    "again without it";
+        break;
+      }
+    }
   }
   bool any_significant = false;
   for (const auto& p : prepared) {
@@ -2666,8 +2726,15 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     std::string desc = description(top.effect);
     if (!desc.empty())
       desc[0] = static_cast<char>(std::toupper(static_cast<unsigned char>(desc[0])));
-    v << desc << " (" << top.effect << ")";
-    if (!top.replaces.empty()) v << " in place of " << top.replaces << " explains its structure better";
+    if (top.kind == CandidateKind::kRemoval) {
+      v << "Remove " << top.replaces << " (`terms:` item " << top.insert_index.value_or(-1)
+        << "): these data no longer identify it, and the model without it fits as well";
+    } else {
+      v << desc << " (" << top.effect << ")";
+      if (!top.replaces.empty()) {
+        v << " in place of " << top.replaces << " explains its structure better";
+      }
+    }
     v << (top.replaces.empty() ? " explains the remaining structure" : "")
       << ": held-out position error "
       << FormatNumber(std::isfinite(top.cv_base_position_mm_mean) ? top.cv_base_position_mm_mean
@@ -2683,7 +2750,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     if (top.cv_unresolved_left_out > 0) v << UnresolvedNote(top.cv_unresolved_left_out);
     v << ", p = " << FormatSignificant(top.p_value, 2) << ", delta BIC "
       << FormatNumber(top.delta_bic, 1) << ".";
-    if (!top.statement.empty()) v << " Fitted: " << top.statement << ".";
+    if (top.kind == CandidateKind::kRemoval) {
+      // What the base fit says of the term (its strength or location test failed).
+      for (const auto& u : d.unsupported_terms) {
+        if (u.term == top.replaces) v << " In the model now: " << u.evidence.Describe() << ".";
+      }
+    } else if (!top.statement.empty()) {
+      v << " Fitted: " << top.statement << ".";
+    }
     int others = 0;
     for (size_t i = 1; i < d.candidates.size(); ++i) others += d.candidates[i].significant ? 1 : 0;
     if (others > 0) {
@@ -2799,15 +2873,22 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     }
     d.verdict_text = v.str();
   }
-  if (!d.unsupported_terms.empty()) {
+  // The note names the unidentified terms, but not the one the verdict removes.
+  std::vector<const Diagnosis::UnsupportedTerm*> unsupported;
+  for (const auto& u : d.unsupported_terms) {
+    const bool removed = d.verdict_effect && *d.verdict_effect == kRemoveEffect &&
+                         d.candidates.front().replaces == u.term;
+    if (!removed) unsupported.push_back(&u);
+  }
+  if (!unsupported.empty()) {
     std::ostringstream v;
     v << " Already in the model but not identified by these data: ";
-    for (size_t i = 0; i < d.unsupported_terms.size(); ++i) {
-      const auto& u = d.unsupported_terms[i];
+    for (size_t i = 0; i < unsupported.size(); ++i) {
+      const auto& u = *unsupported[i];
       v << (i ? "; " : "") << u.term << " (`terms:` item " << u.index << ", "
         << u.evidence.Describe() << ")";
     }
-    const char* them = d.unsupported_terms.size() == 1 ? "it" : "them";
+    const char* them = unsupported.size() == 1 ? "it" : "them";
     v << ". A term added after " << them << " may explain the same structure: fit the model without "
       << them << " and keep the change if the held-out error does not rise (trackcal history).";
     d.unsupported_note = v.str().substr(1);
@@ -2838,6 +2919,7 @@ nlohmann::json CandidateToJson(const Candidate& c) {
         {"effect", c.effect},
         {"kind", c.kind == CandidateKind::kTerm         ? "term"
                  : c.kind == CandidateKind::kRobustLoss ? "loss"
+                 : c.kind == CandidateKind::kRemoval    ? "removal"
                                                         : "time_offset"},
         {"model_change", c.model_change},
         {"insert_index", c.insert_index ? nlohmann::json(*c.insert_index) : nlohmann::json()},
@@ -2943,9 +3025,13 @@ std::string FormatDiagnosis(const Diagnosis& d) {
       << "  significant\n";
   int rank = 1;
   for (const auto& c : d.candidates) {
-    // A replacement is named "plane for dipole_2" (it may overflow the column).
+    // A replacement is named "plane for dipole_2", a removal "remove dipole_2" (they may
+    // overflow the column).
     out << std::left << std::setw(4) << rank++ << std::setw(16)
-        << (c.replaces.empty() ? c.effect : c.effect + " for " + c.replaces) << std::right;
+        << (c.replaces.empty()                    ? c.effect
+            : c.kind == CandidateKind::kRemoval ? c.effect + " " + c.replaces
+                                                  : c.effect + " for " + c.replaces)
+        << std::right;
     if (c.cross_validated) {
       out << std::setw(11) << FormatNumber(c.cv_position_mm_mean, 3) << std::setw(9)
           << FormatNumber(c.drop_position_percent, 1) << std::setw(11)
@@ -2986,7 +3072,11 @@ std::string FormatDiagnosis(const Diagnosis& d) {
     out << "\n";
   }
   out << "\nVerdict: " << d.verdict_text << "\n";
-  if (d.verdict_effect) {
+  if (d.verdict_effect && d.candidates.front().kind == CandidateKind::kRemoval) {
+    const Candidate& top = d.candidates.front();
+    out << "\nIn " << d.model << ", remove `terms:` item " << top.insert_index.value_or(-1) << " ("
+        << top.replaces << ", counting from 0).\n";
+  } else if (d.verdict_effect) {
     const Candidate& top = d.candidates.front();
     out << (top.replaces.empty() ? "\nAdd to " : "\nIn ") << d.model;
     if (!top.replaces.empty() && top.insert_index) {

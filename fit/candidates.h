@@ -25,6 +25,11 @@
 // significant candidate, or
 // says plainly that none explains what remains.
 //
+// Each source term of the model that the base fit no longer identifies (Diagnosis::
+// unsupported_terms) is also tried removed: a removal (effect "remove"), claimed under the
+// replacement's rule (BIC decisively for the smaller model, neither held-out mean higher) and only
+// when no addition is (docs/diagnose.md, "Removals").
+//
 // Each source term of the model (dipole, plane; none whose blocks the file holds fixed) is also
 // tried swapped for the other kind, searched afresh in its place: a replacement. A dipole at the
 // transmitter's mirror image and a plane explain much the same structure, and which one a diagnosis
@@ -58,7 +63,12 @@ enum class CandidateKind {
   kRobustLoss,  // `loss:` set (the model has none): outliers such as hemisphere flips
   kTimeOffset,  // `time_offset:` estimated (data paired from streams,
                 // CandidateOptions::pair_streams)
+  kRemoval,     // a source term of the model removed (Diagnosis::unsupported_terms; effect
+                // kRemoveEffect, `replaces` names the term, `insert_index` its item)
 };
+
+// The effect name of a removal candidate ("remove"); `effects` may list it.
+inline constexpr char kRemoveEffect[] = "remove";
 
 // Stations paired from streams with one time-offset setting (see CandidateOptions::pair_streams).
 struct PairedStations {
@@ -164,7 +174,8 @@ double TwoSidedNormalDeviate(double p);
 
 struct CandidateOptions {
   int folds = 5;  // k of the k-fold cross-validation (>= 2)
-  // Effects to test (names of the catalog); empty: every applicable one.
+  // Effects to test (names of the catalog, and "remove" for the removals of the model's
+  // unidentified source terms); empty: every applicable one.
   std::vector<std::string> effects;
   // The catalog (default: DefaultCatalog()).
   std::vector<CatalogEffect> catalog = DefaultCatalog();
@@ -254,7 +265,8 @@ struct Candidate {
   std::string model_change;         // YAML to add (a list item for terms, a `loss:` mapping)
   std::optional<int> insert_index;  // kTerm: index in `terms:` before which it goes
   // A replacement: the name of the model's source term (dipole or plane) that the added term takes
-  // the place of (item `insert_index` of `terms:` is removed first); empty: an addition.
+  // the place of (item `insert_index` of `terms:` is removed first); empty: an addition. A removal
+  // (kRemoval): the term removed, item `insert_index`; its model_change is empty.
   std::string replaces;
   std::string term_name;            // kTerm: the added term's name in reports (the first)
   std::vector<std::string> term_names;  // kTerm: every added term's name (two for a pair)

@@ -534,6 +534,54 @@ terms:
   EXPECT_THAT(held.verdict_text, ::testing::Not(::testing::HasSubstr("Already in the model")));
 }
 
+// The same unidentified source is tried removed when the effects include "remove": the model
+// without it fits the field-free stations as well with 4 parameters fewer, so the removal is
+// claimed, its change names the item, and the note no longer lists the term the verdict removes.
+// Without "remove" in the effects no removal is tried (above).
+TEST(DiagnoseCandidates, ASourceTheDataDoNotSupportIsRemoved) {
+  const auto stations = Stations(120, Eigen::Vector3d::Zero(), 0, 12);
+  const std::string model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+terms:
+  - type: dipole
+    location_in_transmitter: [0.0, 0.0, 2.0]
+    polarisability_m3: -0.001
+  - type: polynomial
+    degree: 1
+    position: false
+)";
+  CandidateOptions o;
+  o.effects = {"sensor_offset", kRemoveEffect};
+  o.flexible.clear();
+  o.folds = 3;
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  std::cout << FormatDiagnosis(d);
+  const Candidate* removal = nullptr;
+  for (const Candidate& c : d.candidates) {
+    if (c.kind == CandidateKind::kRemoval) removal = &c;
+  }
+  ASSERT_NE(removal, nullptr) << d.verdict_text;
+  EXPECT_EQ(removal->effect, kRemoveEffect);
+  EXPECT_EQ(removal->replaces, "dipole");
+  EXPECT_EQ(removal->insert_index, 0);
+  EXPECT_TRUE(removal->model_change.empty());
+  EXPECT_EQ(removal->model_text.find("dipole"), std::string::npos) << removal->model_text;
+  EXPECT_TRUE(removal->cross_validated) << removal->reason;
+  // 4 parameters fewer at about the same chi2: delta BIC near -4 ln(720) = -26.
+  EXPECT_LT(removal->delta_bic, o.max_delta_bic) << removal->reason;
+  EXPECT_TRUE(removal->significant) << removal->reason;
+  ASSERT_TRUE(d.verdict_effect.has_value());
+  EXPECT_EQ(*d.verdict_effect, kRemoveEffect);
+  EXPECT_EQ(d.candidates.front().replaces, "dipole");
+  EXPECT_THAT(d.verdict_text, ::testing::StartsWith("Remove dipole (`terms:` item 0)"));
+  EXPECT_THAT(d.verdict_text, ::testing::Not(::testing::HasSubstr("Already in the model")));
+  EXPECT_THAT(FormatDiagnosis(d),
+              ::testing::HasSubstr("In model.yaml, remove `terms:` item 0 (dipole, counting from 0)"));
+  const nlohmann::json j = d.ToJson();
+  EXPECT_EQ(j["candidates"][0]["kind"], "removal");
+  EXPECT_EQ(j["candidates"][0]["replaces"], "dipole");
+  EXPECT_EQ(j["unsupported_terms"][0]["term"], "dipole");  // still listed there
+}
+
 TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {
   const auto stations = Stations(60, Eigen::Vector3d(0.002, 0, 0), 0, 7);
   CandidateOptions o = TestOptions();

@@ -79,6 +79,31 @@ def test_verdict_and_rows_carry_a_replacement():
     assert new == "terms:\n  - type: dipole\n  - type: plane\n    attenuation: 0.26\n  - type: polynomial\n"
 
 
+def test_verdict_rows_and_change_carry_a_removal():
+    """A removal (kind "removal": the model's own source the data no longer identify) has an empty
+    change; the verdict keeps the item and the term, the row reads "remove dipole_2", and applying it
+    removes that item with its indented lines and comments, nothing else."""
+    doc = contract_b_doc(True)
+    top = doc["candidates"][0]
+    top.update(effect="remove", kind="removal", replaces="dipole_2", insert_index=1, model_change="")
+    doc["verdict"].update(effect="remove")
+    v = diagnosis.verdict(doc, TEMPERATURE)
+    assert v["effect"] == "remove" and v["replaces"] == "dipole_2" and v["insert_index"] == 1
+    rows = diagnosis.candidate_rows(doc)
+    assert rows[0]["effect"] == "remove dipole_2"
+    assert diagnosis.change_place("", 1, "dipole_2") == "in terms:, remove item 1 (dipole_2) counting from 0"
+    text = ("terms:\n  - type: dipole\n  - type: dipole  # stood in for the floor\n"
+            "    polarisability_m3: -0.26\n    # location searched\n  - type: polynomial\n")
+    new = diagnosis.apply_model_change(text, "", 1, "dipole_2")
+    assert new == "terms:\n  - type: dipole\n  - type: polynomial\n"
+    with pytest.raises(ValueError, match="dipole_2.*is 'polynomial'"):
+        diagnosis.apply_model_change(text, "", 2, "dipole_2")  # the file changed since
+    with pytest.raises(ValueError, match="empty model change"):
+        diagnosis.apply_model_change(text, "", 1)
+    with pytest.raises(ValueError, match="insert_index"):
+        diagnosis.apply_model_change(text, "", None, "dipole_2")
+
+
 def test_candidate_figure_gives_a_replacement_its_own_bar():
     """A replacement shares its effect name with the matching addition: labelled by effect alone,
     matplotlib's categorical axis drew both at one position, one bar hiding the other."""

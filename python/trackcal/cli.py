@@ -334,7 +334,8 @@ def _diagnosis(args, term):
             notes.append(mismatch)
     verdict = diagnosis.verdict(doc, v.covariate_effects)
     change = None
-    if verdict["source"] == "candidate" and verdict.get("model_change"):
+    # (A removal's change is empty: the item named by insert_index and replaces goes.)
+    if verdict["source"] == "candidate" and (verdict.get("model_change") or verdict.get("replaces")):
         info = trackcal._core.parse_model(model)
         name = pathlib.Path(model).name if info["source"] != "<string>" else "model.yaml"
         try:

@@ -482,7 +482,11 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
             break
         seen_changes.add(key)
         step.added = best
-        if best.get("replaces"):
+        removal = best.get("kind") == "removal"  # a term the data no longer identify, removed
+        if removal:
+            say(f"  {best['replaces']} is no longer identified by these data: "
+                f"{best.get('statement') or ''}".rstrip(": "))
+        elif best.get("replaces"):
             say(f"  {best['replaces']} is better explained as {best.get('effect')}: "
                 f"{best.get('statement') or ''}".rstrip(": "))
         else:
@@ -491,8 +495,12 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
             say(f"  because {best['reason']}")
         where = (f" (replaces terms: item {best.get('insert_index')}, {best['replaces']})"
                  if best.get("replaces") else "")
-        say(f"  model-file change{where}:\n" + "\n".join("    + " + l for l in
-                                                 str(best.get("model_change", "")).rstrip().splitlines()))
+        if removal:
+            say(f"  model-file change: remove terms: item {best.get('insert_index')} "
+                f"({best['replaces']})")
+        else:
+            say(f"  model-file change{where}:\n" + "\n".join(
+                "    + " + l for l in str(best.get("model_change", "")).rstrip().splitlines()))
         previous = text
         replacing = bool(best.get("replaces"))
         text = apply_model_change(previous, best["model_change"], best.get("insert_index"),
@@ -500,7 +508,8 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
         grown = None if best.get("replaces") else grown_change(str(best.get("model_change", "")))
         grown_text = (apply_model_change(previous, grown, best.get("insert_index"), None)
                       if grown else None)
-        label = (f"{best['replaces']} -> {best.get('effect')}" if best.get("replaces")
+        label = (f"-{best['replaces']}" if removal
+                 else f"{best['replaces']} -> {best.get('effect')}" if best.get("replaces")
                  else f"+{best.get('effect')}")
     return steps
 

@@ -143,10 +143,19 @@ def _untested(candidates_doc: Optional[dict]):
     for c in cands:
         if c.get("cross_validated", True):
             continue
-        name = c.get("effect", "?") + (f" in place of {c['replaces']}" if c.get("replaces") else "")
+        name = _candidate_name(c, " in place of ")
         if name not in names:
             names.append(name)
     return names, sum(1 for c in cands if c.get("cross_validated", True))
+
+
+def _candidate_name(c: dict, between: str) -> str:
+    """A candidate's name: its effect; a replacement's with the term it replaces ("plane for
+    dipole_2", ``between`` " for "); a removal's "remove dipole_2"."""
+    effect = c.get("effect", "?")
+    if not c.get("replaces"):
+        return effect
+    return f"{effect} {c['replaces']}" if c.get("kind") == "removal" else f"{effect}{between}{c['replaces']}"
 
 
 def _no_catalog_effect(candidates_doc: Optional[dict]) -> str:
@@ -256,9 +265,7 @@ def candidate_rows(doc: Optional[CandidatesDoc]) -> List[dict]:
     rows = []
     for i, c in enumerate((doc or {}).get("candidates", []), 1):
         drop = c.get("cv_drop_percent") or {}
-        effect = c.get("effect")
-        if c.get("replaces"):  # a replacement shares its effect with the addition
-            effect = f"{effect} for {c['replaces']}"
+        effect = _candidate_name(c, " for ")  # a replacement shares its effect with the addition
         rows.append({"rank": i, "effect": effect, "cv_pos_mm": c.get("cv_position_mm_mean"),
                      "cv_ori_deg": c.get("cv_orientation_deg_mean"), "drop_pos_%": drop.get("position"),
                      "drop_ori_%": drop.get("orientation"), "delta_BIC": c.get("delta_bic"),
@@ -314,15 +321,20 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
     the candidate's ``replaces``, the name of the term it takes the place of) first removes item
     ``insert_index`` (comment lines around it stay); the item must be a ``dipole`` or ``plane``
     whose term name is ``replaces`` (its ``name:``, else its type, numbered as the model file numbers
-    repeats: the second unnamed dipole is ``dipole_2``). A change that is a top-level
+    repeats: the second unnamed dipole is ``dipole_2``). An empty change with ``replaces`` is a
+    removal (a candidate of kind ``removal``): item ``insert_index`` is removed, nothing goes in
+    its place. A change that is a top-level
     key (``loss:``, ``time_offset:``; its ``insert_index`` is None) replaces that key's block when
     the model has one, else goes directly before ``terms:`` (at the end when there is no
     ``terms:``). Comments and blank lines are kept. Raises ValueError for an empty change, a change
     that is neither, a term change to a model without a block-style ``terms:`` list (flow style
     must be edited by hand) and an index outside the list."""
-    change_lines = change.rstrip("\n").splitlines()
-    if not any(l.strip() for l in change_lines):
+    change_lines = (change or "").rstrip("\n").splitlines()
+    removing = not any(l.strip() for l in change_lines)
+    if removing and replaces is None:
         raise ValueError("empty model change")
+    if removing and insert_index is None:
+        raise ValueError(f"removing {replaces!r}: the change needs the item's insert_index")
     lines = model_text.splitlines()
     # The file's own line ending (a model written on Windows keeps CRLF, so the diff shows only the
     # change, not every line rewritten).
@@ -332,9 +344,9 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
         m = _TOP_KEY_RE.match(l)
         if m:
             keys.setdefault(m.group(1), i)
-    if replaces is not None and not change_is_term(change):
+    if replaces is not None and not removing and not change_is_term(change):
         raise ValueError(f"replaces {replaces!r}: the change must be one terms: item, got {change!r}")
-    if change_is_term(change):
+    if removing or change_is_term(change):
         start = keys.get("terms")
         if start is None:
             raise ValueError("model has no top-level 'terms:' list")
@@ -369,8 +381,8 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
         if replaces is not None:
             if idx >= n:
                 raise ValueError(f"replaces {replaces!r}: insert_index {idx} names no term")
-            if sum(_is_item(l.strip()) for l in change_lines
-                   if len(l) - len(l.lstrip()) == 0) != 1:
+            if not removing and sum(_is_item(l.strip()) for l in change_lines
+                                    if len(l) - len(l.lstrip()) == 0) != 1:
                 raise ValueError(f"replaces {replaces!r}: the change must be one terms: item")
             # Each item's lines; blank lines and comments at the list's column after it belong to
             # what follows (a comment indented under the item, a commented-out key, is the item's).
@@ -396,7 +408,7 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
             end -= removed
             n -= 1
         pad = " " * (2 if indent is None else indent)
-        block = [pad + l if l.strip() else l for l in change_lines]
+        block = [] if removing else [pad + l if l.strip() else l for l in change_lines]
         at = items[idx] if idx < n else end
         if replaces is not None:
             at = replaced_at  # where the removed item began: what followed it stays after
@@ -479,6 +491,8 @@ def _term_names(fields: List[tuple]) -> List[str]:
 
 def change_place(change: str, insert_index: Optional[int], replaces: Optional[str] = None) -> str:
     """Where ``apply_model_change`` puts a change, in words."""
+    if replaces is not None and insert_index is not None and not (change or "").strip():
+        return f"in terms:, remove item {insert_index} ({replaces}) counting from 0"
     if replaces is not None and insert_index is not None:
         return f"in terms:, in place of item {insert_index} ({replaces}) counting from 0"
     if not change_is_term(change):
