@@ -751,6 +751,17 @@ ceres::LinearSolverType ChooseLinearSolver(const ceres::Problem& problem, int nu
                                         : ceres::SPARSE_NORMAL_CHOLESKY;
 }
 
+// Why stream samples got the model covariance instead of the sandwich (covariance_message).
+std::string StreamModelCovarianceMessage(int num_samples, int max_clusters) {
+  return "stream samples (serially correlated): model covariance instead of the sandwich, " +
+         (max_clusters == 0 ? std::string("as solver.stream_clusters is 0")
+                            : std::to_string(num_samples) + " samples are too few for " +
+                                  std::to_string(max_clusters) + " time runs of 5") +
+         "; ";
+}
+
+}  // namespace
+
 // True for stations that are samples of a stream rather than static stations: most of them
 // less than 0.5 s after the previous one of the same sensor (a static station averages a second or
 // more of samples; several sensors sample at the same times). Stations without distinct times (all
@@ -797,17 +808,6 @@ std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_c
   }
   return cluster;
 }
-
-// Why stream samples got the model covariance instead of the sandwich (covariance_message).
-std::string StreamModelCovarianceMessage(int num_samples, int max_clusters) {
-  return "stream samples (serially correlated): model covariance instead of the sandwich, " +
-         (max_clusters == 0 ? std::string("as solver.stream_clusters is 0")
-                            : std::to_string(num_samples) + " samples are too few for " +
-                                  std::to_string(max_clusters) + " time runs of 5") +
-         "; ";
-}
-
-}  // namespace
 
 std::string TimeOffsetMimicryNote(double variance_inflation) {
   auto fixed1 = [](double v) {

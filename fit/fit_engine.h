@@ -184,6 +184,17 @@ struct FitResult {
   nlohmann::json ToJson() const;  // everything above except the chain
 };
 
+// True for stations that are samples of a stream rather than static stations: most of them
+// less than 0.5 s after the previous one of the same sensor. Stations without distinct times
+// (all 0) count as static. The fit's covariance, and trackcal-fit diagnose's folds and paired
+// test (fit/candidates.h, SerialTestBlocks), treat such samples as serially correlated.
+bool SerialSamples(const std::vector<FitStation>& stations);
+
+// Contiguous runs of about equal count in time (the run of each station, 0 ... max_clusters - 1),
+// samples that share a time in one run; empty when `max_clusters` is 0 or there are fewer than 5
+// samples per run. The stream samples' sandwich clusters (ModelSpec::stream_clusters).
+std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters);
+
 // Fits `spec`'s terms to `stations` (the calibration set). The terms keep the fitted values. Throws
 // std::invalid_argument for too few stations or inconsistent settings.
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
