@@ -228,6 +228,18 @@ struct CandidateOptions {
   // with the given time-offset setting. Enables the time_offset candidate (when the model's offset
   // is absent or fixed), which is scored on the stations both pairings have (matched by time).
   std::function<PairedStations(const TimeOffsetSpec&)> pair_streams;
+  // Serial stations (stream samples, SerialSamples in fit/fit_engine.h: neighbours ~10 ms apart
+  // share the model's misfit): the stations are cut into this many contiguous blocks of time of
+  // about equal count (TimeClusters, at least 5 samples each; fewer blocks on a short stream, but
+  // never fewer than `folds`); block b is held out in fold b mod k, and the paired test is the
+  // Wilcoxon test on the blocks' mean differences instead of the stations'. 32: the fit's own
+  // sandwich clusters of stream samples (ModelSpec::stream_clusters), which treat the same runs as
+  // independent; 0.6 s of a 20 s stream, 1.9 s of a 60 s one. Enough blocks that a real effect
+  // reaches the Bonferroni level (32 blocks all positive: p = 4e-7), few enough that their means
+  // are nearly independent: on the paper room's 20 and 60 s streams every candidate the room does
+  // not have got p >= 0.012 (docs/diagnose.md). 0: the static treatment (folds i mod k,
+  // per-station test) for every capture.
+  int serial_blocks = 32;
   // Cross-validation method. false (default): each fold's model is re-estimated from the fit on all
   // stations by Gauss-Newton steps with the fold's rows removed (fit/fit_engine.h,
   // RefitFoldsFromFull: one step is exact for terms linear in their parameters, physical terms take
@@ -347,6 +359,10 @@ struct Diagnosis {
   // who paired them: the model's joint estimate when it frees the offset, fit/fit_run.h
   // PairAtFittedOffset). In --json as "time_offset_s" (null for static stations).
   std::optional<double> time_offset_s;
+  // Serial stations (CandidateOptions::serial_blocks): the number of contiguous blocks of time the
+  // folds and the paired test use; 0 for static stations (folds i mod k, per-station test). In
+  // --json as "paired_test_blocks".
+  int paired_test_blocks = 0;
   // The JSON document of `trackcal-fit diagnose --json` (docs/diagnose.md).
   nlohmann::json ToJson() const;
 };
@@ -388,13 +404,16 @@ struct RankPick {
 // Entries without a finite strength_sigma take no part in the tie rule. Stations without held-out
 // errors in both entries are left out of the paired test; with none left it finds no difference
 // (p = 1), so the entry counts as not worse.
-RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha, double max_delta_bic);
+// `block_of`: the block of time of each base station for serial stations (PairedGreaterP; empty:
+// static stations, the test is over stations).
+RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha, double max_delta_bic,
+                   const std::vector<int>& block_of = {});
 
 // The stand-in rule (DiagnoseCandidates, docs/diagnose.md "Stand-ins"): a term that could be
 // claimed is held back when another candidate, which passes the statistical tests but not the
 // physical conditions, has smaller held-out errors station by station. `claimed` and each of
 // `others`: held-out whitened error per base station (NaN: none; stations without both are left
-// out). Returns the first other whose paired test (WilcoxonSignedRankGreater on claimed - other)
+// out). Returns the first other whose paired test (PairedGreaterP on claimed and other)
 // gives p < family_alpha, with that p; nullopt if none does.
 struct StandIn {
   size_t other = 0;
@@ -402,12 +421,31 @@ struct StandIn {
 };
 std::optional<StandIn> FindStandIn(const std::vector<double>& claimed,
                                    const std::vector<std::vector<double>>& others,
-                                   double family_alpha);
+                                   double family_alpha, const std::vector<int>& block_of = {});
 
 // One-sided Wilcoxon signed-rank test that the differences d are positive (normal approximation
 // with tie and continuity corrections; zeros dropped). Returns the p-value (1 when no difference is
 // non-zero).
 double WilcoxonSignedRankGreater(const std::vector<double>& differences);
+
+// The blocks of the held-out comparison of serial stations (CandidateOptions::serial_blocks): the
+// block of time of each station (contiguous, about equal count, 0 ... blocks - 1), or empty for
+// static stations (SerialSamples false) and for streams too short for `folds` blocks of 5 samples.
+std::vector<int> SerialTestBlocks(const std::vector<FitStation>& stations, int serial_blocks,
+                                  int folds);
+
+// p that the held-out errors `a` are larger than `b`, paired by station (stations without both
+// finite left out). `block_of` empty: WilcoxonSignedRankGreater on the stations' differences a - b.
+// Else the block of each station (negative: none): the same test on the blocks' mean differences,
+// since serial stations' differences are correlated within a block and a per-station test treats
+// thousands of them as independent.
+double PairedGreaterP(const std::vector<double>& a, const std::vector<double>& b,
+                      const std::vector<int>& block_of = {});
+
+// The same on differences already taken (non-finite ones left out): block means when `block_of`
+// (one per difference) is not empty.
+double PairedDifferencesGreaterP(const std::vector<double>& differences,
+                                 const std::vector<int>& block_of = {});
 
 // The terminal rendering: table, verdict, the YAML to add.
 std::string FormatDiagnosis(const Diagnosis& diagnosis);
