@@ -1115,11 +1115,32 @@ double PairedGreaterP(const std::vector<double>& a, const std::vector<double>& b
 std::vector<int> SerialTestBlocks(const std::vector<FitStation>& stations, int serial_blocks,
                                   int folds) {
   constexpr int kMinSamplesPerBlock = 5;  // TimeClusters' minimum
+  // A block spans at least the pairing's correlation window (its Newey-West window, 0.5 s): on a
+  // 3 s stream, 32 blocks of 0.09 s would be as correlated as the samples themselves.
+  constexpr double kMinBlockSeconds = 0.5;
   if (serial_blocks <= 0 || !SerialSamples(stations)) return {};
   const int n = static_cast<int>(stations.size());
-  const int blocks = std::min(serial_blocks, n / kMinSamplesPerBlock);
-  if (blocks < folds) return {};
-  return TimeClusters(stations, blocks);
+  double first = std::numeric_limits<double>::infinity(), last = -first;
+  for (const auto& s : stations) {
+    if (!std::isfinite(s.time)) continue;
+    first = std::min(first, s.time);
+    last = std::max(last, s.time);
+  }
+  const double duration = last > first ? last - first : 0.0;
+  int blocks = std::min({serial_blocks, n / kMinSamplesPerBlock,
+                         static_cast<int>(std::floor(duration / kMinBlockSeconds))});
+  // Never fewer blocks than folds, nor back to per-sample folds and tests: a short stream gets
+  // `folds` blocks, whose test cannot reach a small p (5 blocks: 1/32), which is what it can show.
+  blocks = std::max(blocks, folds);
+  if (n < blocks) return {};
+  std::vector<int> block = TimeClusters(stations, blocks, /*min_per_cluster=*/1);
+  // Numbered densely (samples sharing a time stay together and can skip a number).
+  std::map<int, int> dense;
+  for (int b : block) dense.emplace(b, 0);
+  int next = 0;
+  for (auto& [b, d] : dense) d = next++;
+  for (int& b : block) b = dense[b];
+  return block;
 }
 
 RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha,

@@ -491,12 +491,17 @@ TEST(SerialTestBlocks, StaticStationsHaveNoneStreamsContiguousRuns) {
   }
   EXPECT_EQ(blocks.front(), 0);
   EXPECT_EQ(blocks.back(), 31);
-  // A short stream: fewer blocks (5 samples each), none below the number of folds.
+  // A shorter stream: fewer blocks, at least 5 samples and 0.5 s each (700 samples 10 ms apart:
+  // 6.99 s, 13 blocks, not 32 as the 140 of 5 samples would allow).
+  const std::vector<FitStation> shorter(stream.begin(), stream.begin() + 700);
+  EXPECT_EQ(SerialTestBlocks(shorter, 32, 5).back(), 12);
+  // A short one: 60 samples over 0.59 s make one block of 0.5 s, but never fewer blocks than
+  // folds, and never back to per-sample folds (20 samples: 5 blocks of 4).
   const std::vector<FitStation> short_stream(stream.begin(), stream.begin() + 60);
   const std::vector<int> few = SerialTestBlocks(short_stream, 32, 5);
   ASSERT_EQ(few.size(), 60u);
-  EXPECT_EQ(few.back(), 11);
-  EXPECT_TRUE(SerialTestBlocks({stream.begin(), stream.begin() + 20}, 32, 5).empty());
+  EXPECT_EQ(few.back(), 4);
+  EXPECT_EQ(SerialTestBlocks({stream.begin(), stream.begin() + 20}, 32, 5).back(), 4);
   EXPECT_TRUE(SerialTestBlocks(stream, 0, 5).empty());
 }
 

@@ -789,10 +789,10 @@ bool SerialSamples(const std::vector<FitStation>& stations) {
 // along the path, so neighbouring samples' scores are correlated, and a sandwich over single
 // samples understates how far that shared misfit moves the estimates (docs/fit.md, "Standard
 // deviations"). Samples that share a time stay in one run (several sensors).
-std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters) {
-  constexpr int kMinSamplesPerCluster = 5;
+std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters,
+                              int min_per_cluster) {
   const int n = static_cast<int>(stations.size());
-  if (max_clusters == 0 || n < kMinSamplesPerCluster * max_clusters) return {};
+  if (max_clusters <= 0 || n < std::max(1, min_per_cluster) * max_clusters) return {};
   std::vector<int> order(static_cast<size_t>(n));
   std::iota(order.begin(), order.end(), 0);
   auto time = [&](int k) { return stations[static_cast<size_t>(order[static_cast<size_t>(k)])].time; };

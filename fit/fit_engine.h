@@ -191,9 +191,11 @@ struct FitResult {
 bool SerialSamples(const std::vector<FitStation>& stations);
 
 // Contiguous runs of about equal count in time (the run of each station, 0 ... max_clusters - 1),
-// samples that share a time in one run; empty when `max_clusters` is 0 or there are fewer than 5
-// samples per run. The stream samples' sandwich clusters (ModelSpec::stream_clusters).
-std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters);
+// samples that share a time in one run; empty when `max_clusters` is 0 or there are fewer than
+// `min_per_cluster` samples per run. The stream samples' sandwich clusters
+// (ModelSpec::stream_clusters).
+std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters,
+                              int min_per_cluster = 5);
 
 // Fits `spec`'s terms to `stations` (the calibration set). The terms keep the fitted values. Throws
 // std::invalid_argument for too few stations or inconsistent settings.
