@@ -1763,7 +1763,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
   // floor plane went in, then stayed at 1.5 sigma with its location open by 0.13 m).
   if (options.effects.empty() || std::find(options.effects.begin(), options.effects.end(),
                                            kRemoveEffect) != options.effects.end()) {
+    int correction_terms = 0;  // the model's terms other than a time offset
+    for (const auto& item : ModelTermNames(model_text)) correction_terms += item.type != "time_offset";
     for (const auto& u : d.unsupported_terms) {
+      if (correction_terms <= 1) {  // a model needs one correction term (fit/model_file.h)
+        d.skipped.push_back(std::string(kRemoveEffect) + " " + u.term +
+                            ": it is the model's only correction term");
+        continue;
+      }
       PreparedCandidate p;
       p.effect = &RemovalEffect();
       Candidate& c = p.candidate;
@@ -2859,19 +2866,21 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     for (size_t i = 1; i < d.candidates.size(); ++i) others += d.candidates[i].significant ? 1 : 0;
     if (others > 0) {
       v << " " << others << " other candidate" << (others == 1 ? " is" : "s are")
-        << " also significant (often the same structure seen by a related effect): add the top "
-           "one, "
-           "then diagnose again.";
+        << " also significant (often the same structure seen by a related effect): "
+        << (top.kind == CandidateKind::kRemoval ? "make the removal" : "add the top one")
+        << ", then diagnose again.";
     }
     d.verdict_text = v.str();
   } else {
     std::ostringstream v;
     // The claim covers only the candidates tested on held-out data: those screened out by
     // cross_validate_top, refused on the fit to all stations or not fitted were not. A replacement
-    // is named with the term it would replace: its effect's addition may have been tested.
+    // is named with the term it would replace: its effect's addition may have been tested. A
+    // removal explains no structure, tested or not: it does not narrow the claim.
     std::vector<std::string> untested;
     size_t tested = 0;
     for (const auto& c : d.candidates) {
+      if (c.kind == CandidateKind::kRemoval) continue;
       if (c.cross_validated) {
         ++tested;
         continue;
@@ -2986,8 +2995,23 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         << u.evidence.Describe() << ")";
     }
     const char* them = unsupported.size() == 1 ? "it" : "them";
-    v << ". A term added after " << them << " may explain the same structure: fit the model without "
-      << them << " and keep the change if the held-out error does not rise (trackcal history).";
+    // Whether each was tried removed (a removal candidate, claimed or not, says why).
+    bool all_tried = true;
+    for (const auto* u : unsupported) {
+      bool tried = false;
+      for (const auto& c : d.candidates) {
+        tried = tried || (c.kind == CandidateKind::kRemoval && c.replaces == u->term && c.fitted);
+      }
+      all_tried = all_tried && tried;
+    }
+    if (all_tried) {
+      v << ". A term added after " << them << " may explain the same structure; the model without "
+        << them << " was tried (`remove` in the ranking, with why it is not claimed now).";
+    } else {
+      v << ". A term added after " << them << " may explain the same structure: fit the model "
+        << "without " << them << " and keep the change if the held-out error does not rise "
+        << "(trackcal history).";
+    }
     d.unsupported_note = v.str().substr(1);
     d.verdict_text += v.str();
   }

@@ -708,6 +708,20 @@ terms:
   EXPECT_EQ(j["candidates"][0]["kind"], "removal");
   EXPECT_EQ(j["candidates"][0]["replaces"], "dipole");
   EXPECT_EQ(j["unsupported_terms"][0]["term"], "dipole");  // still listed there
+
+  // The model's only correction term is not tried removed (a model needs one): skipped, and the
+  // note still asks the user to try the model without it.
+  const std::string alone = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+terms:
+  - type: dipole
+    location_in_transmitter: [0.0, 0.0, 2.0]
+    polarisability_m3: -0.001
+)";
+  const Diagnosis only = DiagnoseCandidates(stations, alone, "model.yaml", "synthetic", o);
+  for (const Candidate& c : only.candidates) EXPECT_NE(c.kind, CandidateKind::kRemoval);
+  EXPECT_THAT(only.skipped,
+              ::testing::Contains("remove dipole: it is the model's only correction term"));
+  EXPECT_THAT(only.verdict_text, ::testing::HasSubstr("fit the model without it"));
 }
 
 TEST(DiagnoseCandidates, JsonDocumentHasTheContractKeys) {

@@ -102,6 +102,11 @@ def test_verdict_rows_and_change_carry_a_removal():
         diagnosis.apply_model_change(text, "", 1)
     with pytest.raises(ValueError, match="insert_index"):
         diagnosis.apply_model_change(text, "", None, "dipole_2")
+    with pytest.raises(ValueError, match="leave terms: empty"):
+        diagnosis.apply_model_change("terms:\n  - type: dipole\n", "", 0, "dipole")
+    # Not shown as untested: a removal explains no structure, tested or not.
+    doc["candidates"][0].update(cross_validated=False, significant=False)
+    assert "remove" not in diagnosis._untested(doc)[0]
 
 
 def test_candidate_figure_gives_a_replacement_its_own_bar():

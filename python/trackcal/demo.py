@@ -476,7 +476,10 @@ def follow_diagnosis(data: Path, base_model: str, work: Path, *, max_steps: int 
                 "no candidate effect is significant"
             say("  diagnosis: " + verdict)
             break
-        key = (best.get("effect"), best.get("replaces"), best.get("model_change"))
+        # (A removal's change is empty: the model it is made on tells one removal from another of a
+        # later term that took the same name.)
+        key = (best.get("effect"), best.get("replaces"), best.get("model_change"),
+               text if best.get("kind") == "removal" else None)
         if key in seen_changes:  # the same change again means the ranking is not converging
             say(f"  diagnosis proposes {best.get('effect')} again with the same change; stopping")
             break

@@ -141,12 +141,12 @@ def _untested(candidates_doc: Optional[dict]):
     cands = (candidates_doc or {}).get("candidates") or []
     names = []
     for c in cands:
-        if c.get("cross_validated", True):
+        if c.get("cross_validated", True) or c.get("kind") == "removal":  # explains no structure
             continue
         name = _candidate_name(c, " in place of ")
         if name not in names:
             names.append(name)
-    return names, sum(1 for c in cands if c.get("cross_validated", True))
+    return names, sum(1 for c in cands if c.get("cross_validated", True) and c.get("kind") != "removal")
 
 
 def _candidate_name(c: dict, between: str) -> str:
@@ -223,7 +223,7 @@ def _verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict
     if top is not None:
         engine_text = ((candidates_doc or {}).get("verdict") or {}).get("text")
         text = engine_text or f"{top['effect']} explains the remaining structure: {top.get('reason', '')}"
-        if top.get("statement"):
+        if top.get("statement") and top.get("kind") != "removal":  # (its verdict names the test)
             text += f" ({top['statement']})" if top["statement"] not in text else ""
         out.update(source="candidate", effect=top["effect"], text=text,
                    model_change=top.get("model_change"), insert_index=top.get("insert_index"),
@@ -407,6 +407,9 @@ def apply_model_change(model_text: str, change: str, insert_index: Optional[int]
             items = items[:idx] + [i - removed for i in items[idx + 1:]]
             end -= removed
             n -= 1
+            if removing and n == 0:
+                raise ValueError(f"removing {replaces!r} would leave terms: empty; a model needs one "
+                                 "correction term")
         pad = " " * (2 if indent is None else indent)
         block = [] if removing else [pad + l if l.strip() else l for l in change_lines]
         at = items[idx] if idx < n else end
