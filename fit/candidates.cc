@@ -1112,12 +1112,22 @@ double PairedGreaterP(const std::vector<double>& a, const std::vector<double>& b
   return PairedDifferencesGreaterP(d, blocks);
 }
 
+double WilcoxonSmallestP(int n) {
+  if (n <= 0) return 1.0;
+  std::vector<double> d(static_cast<size_t>(n));
+  std::iota(d.begin(), d.end(), 1.0);
+  return WilcoxonSignedRankGreater(d);
+}
+
+namespace {
+constexpr int kMinSamplesPerBlock = 5;  // TimeClusters' minimum
+// A block spans at least the pairing's correlation window (its Newey-West window, 0.5 s): on a
+// 3 s stream, 32 blocks of 0.09 s would be as correlated as the samples themselves.
+constexpr double kMinBlockSeconds = 0.5;
+}  // namespace
+
 std::vector<int> SerialTestBlocks(const std::vector<FitStation>& stations, int serial_blocks,
                                   int folds) {
-  constexpr int kMinSamplesPerBlock = 5;  // TimeClusters' minimum
-  // A block spans at least the pairing's correlation window (its Newey-West window, 0.5 s): on a
-  // 3 s stream, 32 blocks of 0.09 s would be as correlated as the samples themselves.
-  constexpr double kMinBlockSeconds = 0.5;
   if (serial_blocks <= 0 || !SerialSamples(stations)) return {};
   const int n = static_cast<int>(stations.size());
   double first = std::numeric_limits<double>::infinity(), last = -first;
@@ -2217,6 +2227,39 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     tested += p.candidate.fitted && !p.flexible ? 1 : 0;
   }
   d.p_threshold = options.family_alpha / std::max(1, tested);
+  // What the paired test can show at best: a short stream (few blocks of time) or few stations
+  // cannot reach the threshold, and then "nothing significant" says nothing about the data.
+  {
+    const bool blocks = d.paired_test_blocks > 0;
+    const int n = blocks ? d.paired_test_blocks : d.num_stations;
+    d.paired_test_smallest_p = WilcoxonSmallestP(n);
+    if (tested > 0 && !(d.paired_test_smallest_p < d.p_threshold)) {
+      int needed = n;
+      while (needed < 100000 && !(WilcoxonSmallestP(needed) < d.p_threshold)) ++needed;
+      std::ostringstream v;
+      v << "The paired test has " << n
+        << (blocks ? " blocks of time (at least " + FormatNumber(kMinBlockSeconds, 1) + " s and " +
+                         std::to_string(kMinSamplesPerBlock) + " samples each) on this stream"
+                   : std::string(" stations"))
+        << ": its smallest p (every one favouring a candidate) is "
+        << FormatSignificant(d.paired_test_smallest_p, 2) << ", not below the threshold "
+        << FormatSignificant(d.p_threshold, 2) << " for " << tested
+        << (tested == 1 ? " candidate" : " candidates") << ", so no "
+        << "candidate can be claimed on these data (robust_loss aside: its outliers have their own "
+           "test), whatever they show. ";
+      if (blocks && needed <= options.serial_blocks) {
+        v << "Record a longer stream (" << needed << " blocks: at least "
+          << FormatNumber(needed * kMinBlockSeconds, 1) << " s and " << needed * kMinSamplesPerBlock
+          << " samples)";
+      } else if (!blocks) {
+        v << "Capture more stations (at least " << needed << ")";
+      } else {
+        v << "More blocks would not be enough";
+      }
+      v << " or test fewer effects (--effects).";
+      d.test_power_note = v.str();
+    }
+  }
 
   // Gross outliers are the stations a robust fit rejects (FindGrossOutliers on its residuals): the
   // robust_loss candidate's (its outliers and p; its BIC is the mean-shift model, in which each
@@ -3015,6 +3058,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     d.unsupported_note = v.str().substr(1);
     d.verdict_text += v.str();
   }
+  if (!d.test_power_note.empty()) d.verdict_text += " " + d.test_power_note;
   d.seconds = SecondsSince(start);
   return d;
 }
@@ -3090,7 +3134,8 @@ nlohmann::json Diagnosis::ToJson() const {
                        : nlohmann::json()},
       {"text", verdict_text},
       {"unexplained_structure", unexplained_structure},
-      {"unsupported_note", unsupported_note}};
+      {"unsupported_note", unsupported_note},
+      {"test_power_note", test_power_note}};
   nlohmann::json unsupported = nlohmann::json::array();
   for (const auto& u : unsupported_terms) {
     unsupported.push_back({{"term", u.term},
@@ -3105,6 +3150,7 @@ nlohmann::json Diagnosis::ToJson() const {
           {"folds", folds},
           {"num_stations", num_stations},
           {"paired_test_blocks", paired_test_blocks},
+          {"paired_test_smallest_p", paired_test_smallest_p},
           {"time_offset_s", time_offset_s ? nlohmann::json(*time_offset_s) : nlohmann::json()},
           {"base",
            {{"cv_position_mm_mean", NumberOrNull(base.cv_position_mm_mean)},

@@ -363,6 +363,13 @@ struct Diagnosis {
   // folds and the paired test use; 0 for static stations (folds i mod k, per-station test). In
   // --json as "paired_test_blocks".
   int paired_test_blocks = 0;
+  // The smallest p the paired test can give on these data (WilcoxonSmallestP over the blocks of
+  // time, or over the stations when static): with every block or station favouring a candidate.
+  // Not below p_threshold: no candidate but robust_loss (its p is its outliers' test) can be
+  // claimed, whatever the data show, and test_power_note says so and what would lift the limit.
+  // In --json as "paired_test_smallest_p" and verdict.test_power_note.
+  double paired_test_smallest_p = 0.0;
+  std::string test_power_note;  // "" when the test can reach p_threshold
   // The JSON document of `trackcal-fit diagnose --json` (docs/diagnose.md).
   nlohmann::json ToJson() const;
 };
@@ -427,6 +434,11 @@ std::optional<StandIn> FindStandIn(const std::vector<double>& claimed,
 // with tie and continuity corrections; zeros dropped). Returns the p-value (1 when no difference is
 // non-zero).
 double WilcoxonSignedRankGreater(const std::vector<double>& differences);
+
+// The smallest p WilcoxonSignedRankGreater gives on n differences (all positive, no ties): the
+// most a paired test over n stations or blocks can show (5: 0.030, 9: 0.0046, 32: 4e-7). 1 for
+// n <= 0.
+double WilcoxonSmallestP(int n);
 
 // The blocks of the held-out comparison of serial stations (CandidateOptions::serial_blocks): the
 // block of time of each station (contiguous, about equal count, 0 ... blocks - 1), or empty for

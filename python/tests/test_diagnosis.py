@@ -174,6 +174,22 @@ def test_verdict_names_a_source_the_data_no_longer_identify_whatever_it_says():
     assert diagnosis.verdict(doc, quiet)["text"].count("Already in the model") == 1
 
 
+def test_verdict_says_when_the_paired_test_cannot_reach_its_threshold():
+    # A short stream: "nothing significant remains" alone would read as a clean bill of health.
+    note = ("The paired test has 6 blocks of time (at least 0.5 s and 5 samples each) on this stream: its "
+            "smallest p (every one favouring a candidate) is 0.018, not below the threshold 0.0033 for 3 "
+            "candidates, so no candidate can be claimed on these data (robust_loss aside: its outliers have "
+            "their own test), whatever they show. Record a longer stream (10 blocks: at least 5.0 s and 50 "
+            "samples) or test fewer effects (--effects).")
+    doc = contract_b_doc(False)
+    doc["verdict"]["test_power_note"] = note
+    quiet = [CovariateEffect("x", "position_mm", 0.01, 0.3, False, 600)]
+    assert diagnosis.verdict(doc, quiet)["text"] == "nothing significant remains. " + note
+    assert diagnosis.verdict(doc, TEMPERATURE)["text"].endswith(". " + note)
+    doc["verdict"]["test_power_note"] = ""
+    assert diagnosis.verdict(doc, quiet)["text"] == "nothing significant remains"
+
+
 def test_verdict_keeps_the_rankings_word_on_structure_it_cannot_place():
     # The engine found held-out structure no candidate identifies: "nothing significant remains"
     # would hide it, so its verdict is kept (and a covariate finding still comes first).

@@ -209,9 +209,12 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     out = _verdict(candidates_doc, covariate_effects)
     # The model's own source terms the data no longer identify (the engine's note): said whatever
     # the verdict, since removing one is a change the user can test.
-    note = ((candidates_doc or {}).get("verdict") or {}).get("unsupported_note")
-    if note and note not in out["text"]:
-        out["text"] = out["text"].rstrip(".") + ". " + note
+    engine = (candidates_doc or {}).get("verdict") or {}
+    # And when the paired test cannot reach the threshold on these data (a short stream, few
+    # stations): "nothing significant" then says nothing about the data, whatever the verdict.
+    for note in (engine.get("unsupported_note"), engine.get("test_power_note")):
+        if note and note not in out["text"]:
+            out["text"] = out["text"].rstrip(".") + ". " + note
     return out
 
 
