@@ -8,7 +8,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <Eigen/QR>
 #include <map>
+#include <numeric>
 #include <set>
 #include <sstream>
 #include <tuple>
@@ -47,7 +49,8 @@ struct Component {
   std::vector<int> columns;       // columns of the full tangent vector, ascending
   std::vector<int> rows;          // rows of the problem's residual vector that touch them
   Eigen::MatrixXd jacobian;       // those rows x those columns
-  Eigen::VectorXd scale;          // D^-1/2: column scaling that makes diag(H) one
+  Eigen::VectorXd scale;          // D^-1/2: column scaling that makes diag(H) one (H without
+                                  // hard constraints, DecomposeWithConstraints)
   Eigen::VectorXd eigenvalues;    // of the scaled information matrix, ascending
   Eigen::MatrixXd eigenvectors;   // columns, scaled coordinates
   int rank = 0;                   // eigenvalues above rank_tolerance * the largest of all groups
@@ -121,6 +124,75 @@ std::vector<std::vector<int>> ConnectedColumns(const ceres::CRSMatrix& crs, bool
   return groups;
 }
 
+// The eigen-decomposition of a group whose rows include hard constraints
+// (CovarianceOptions::hard_constraints: `stiff`, the group's local rows of them), in the limit of
+// their weight: the Jacobi scaling is the other rows' (with the constraints in, a column's scale
+// is the constraint's, the data's information in the directions the constraint leaves free is
+// scaled down by its weight squared, 1e16, and those directions, the relative coil gains, fell below
+// the rank tolerance and out of the pseudo-inverse: stds of 4e-9 on a 3.5 s stream where the gauge
+// left free gives 0.02). The data's information is decomposed in the null space of the constraint
+// rows, the constraints' own directions (their range) apart; these come last, with eigenvalues of
+// the constraints' size, so the pseudo-inverse gives them no variance, and `largest` (which the
+// rank and the weak directions are relative to) is the data's.
+bool DecomposeWithConstraints(const Eigen::MatrixXd& information,
+                              const std::vector<Eigen::Index>& stiff, Component* c,
+                              double* largest) {
+  const Eigen::Index m = information.rows();
+  std::vector<bool> is_stiff(static_cast<size_t>(c->jacobian.rows()), false);
+  for (Eigen::Index r : stiff) is_stiff[static_cast<size_t>(r)] = true;
+  Eigen::MatrixXd data_jacobian(c->jacobian.rows() - static_cast<Eigen::Index>(stiff.size()), m);
+  Eigen::MatrixXd constraints(static_cast<Eigen::Index>(stiff.size()), m);
+  for (Eigen::Index r = 0, d = 0, k = 0; r < c->jacobian.rows(); ++r) {
+    if (is_stiff[static_cast<size_t>(r)]) {
+      constraints.row(k++) = c->jacobian.row(r);
+    } else {
+      data_jacobian.row(d++) = c->jacobian.row(r);
+    }
+  }
+  Eigen::MatrixXd data_information = Eigen::MatrixXd::Zero(m, m);
+  data_information.selfadjointView<Eigen::Lower>().rankUpdate(data_jacobian.transpose());
+  data_information.triangularView<Eigen::StrictlyUpper>() =
+      data_information.transpose().triangularView<Eigen::StrictlyUpper>();
+  c->scale = Eigen::VectorXd::Ones(m);
+  for (Eigen::Index i = 0; i < m; ++i) {
+    const double h = data_information(i, i) > 0.0 ? data_information(i, i) : information(i, i);
+    if (h > 0.0) c->scale(i) = 1.0 / std::sqrt(h);
+  }
+  // The constraints' range and null space in scaled coordinates.
+  const Eigen::MatrixXd scaled_constraints = constraints * c->scale.asDiagonal();
+  Eigen::ColPivHouseholderQR<Eigen::MatrixXd> qr(scaled_constraints.transpose());
+  const Eigen::Index k = qr.rank();
+  const Eigen::MatrixXd q = qr.householderQ() * Eigen::MatrixXd::Identity(m, m);
+  const Eigen::MatrixXd range = q.leftCols(k), null = q.rightCols(m - k);
+  const Eigen::MatrixXd scaled_data =
+      c->scale.asDiagonal() * data_information * c->scale.asDiagonal();
+  if (m - k == 0) return false;  // nothing left free: not a constraint (a prior alone)
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> free_part(null.transpose() * scaled_data * null);
+  Eigen::MatrixXd scaled = information.selfadjointView<Eigen::Lower>();
+  scaled = c->scale.asDiagonal() * scaled * c->scale.asDiagonal();
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> held_part(range.transpose() * scaled * range);
+  if (free_part.info() != Eigen::Success || held_part.info() != Eigen::Success) return false;
+  c->eigenvalues.resize(m);
+  c->eigenvectors.resize(m, m);
+  c->eigenvalues << free_part.eigenvalues(), held_part.eigenvalues();
+  c->eigenvectors << null * free_part.eigenvectors(), range * held_part.eigenvectors();
+  if (m - k > 0) *largest = std::max(*largest, free_part.eigenvalues()(m - k - 1));
+  // Ascending, as the rank count and GroupFactor expect (the held directions, at the constraints'
+  // weight, normally lie above all of the data's already).
+  std::vector<Eigen::Index> order(static_cast<size_t>(m));
+  std::iota(order.begin(), order.end(), Eigen::Index{0});
+  std::stable_sort(order.begin(), order.end(), [&](Eigen::Index x, Eigen::Index y) {
+    return c->eigenvalues(x) < c->eigenvalues(y);
+  });
+  const Eigen::VectorXd values = c->eigenvalues;
+  const Eigen::MatrixXd vectors = c->eigenvectors;
+  for (Eigen::Index i = 0; i < m; ++i) {
+    c->eigenvalues(i) = values(order[static_cast<size_t>(i)]);
+    c->eigenvectors.col(i) = vectors.col(order[static_cast<size_t>(i)]);
+  }
+  return true;
+}
+
 // Information matrix of the whitened problem over `columns` blocks (tangent coordinates), group by
 // group (Component), each eigen-decomposed after Jacobi scaling (so rank and weak directions do not
 // depend on units).
@@ -137,9 +209,16 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
   if (!problem->Evaluate(eval, &cost, &a.residuals, nullptr, &crs)) return a;
   if (crs.num_cols != dimension) return a;
   int row = 0;
+  const std::set<ceres::ResidualBlockId> constraints(options.hard_constraints.begin(),
+                                                     options.hard_constraints.end());
+  std::set<int> constraint_rows;
   for (ceres::ResidualBlockId id : eval.residual_blocks) {
     a.first_row[id] = row;
-    row += problem->GetCostFunctionForResidualBlock(id)->num_residuals();
+    const int rows = problem->GetCostFunctionForResidualBlock(id)->num_residuals();
+    if (constraints.count(id)) {
+      for (int r = row; r < row + rows; ++r) constraint_rows.insert(r);
+    }
+    row += rows;
   }
   const std::vector<std::vector<int>> groups =
       ConnectedColumns(crs, options.split_independent_columns);
@@ -184,16 +263,24 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
     // reads the lower triangle only, the diagonal is used for the scaling.
     Eigen::MatrixXd information = Eigen::MatrixXd::Zero(m, m);
     information.selfadjointView<Eigen::Lower>().rankUpdate(c.jacobian.transpose());
-    c.scale = Eigen::VectorXd::Ones(m);
-    for (int i = 0; i < m; ++i) {
-      if (information(i, i) > 0.0) c.scale(i) = 1.0 / std::sqrt(information(i, i));
+    std::vector<Eigen::Index> stiff;
+    for (size_t i = 0; i < c.rows.size(); ++i) {
+      if (constraint_rows.count(c.rows[i])) stiff.push_back(static_cast<Eigen::Index>(i));
     }
-    const Eigen::MatrixXd scaled = c.scale.asDiagonal() * information * c.scale.asDiagonal();
-    Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(scaled);
-    if (eig.info() != Eigen::Success) return a;
-    c.eigenvalues = eig.eigenvalues();
-    c.eigenvectors = eig.eigenvectors();
-    if (m > 0) a.largest = std::max(a.largest, c.eigenvalues(m - 1));
+    if (stiff.empty()) {
+      c.scale = Eigen::VectorXd::Ones(m);
+      for (int i = 0; i < m; ++i) {
+        if (information(i, i) > 0.0) c.scale(i) = 1.0 / std::sqrt(information(i, i));
+      }
+      const Eigen::MatrixXd scaled = c.scale.asDiagonal() * information * c.scale.asDiagonal();
+      Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(scaled);
+      if (eig.info() != Eigen::Success) return a;
+      c.eigenvalues = eig.eigenvalues();
+      c.eigenvectors = eig.eigenvectors();
+      if (m > 0) a.largest = std::max(a.largest, c.eigenvalues(m - 1));
+    } else if (!DecomposeWithConstraints(information, stiff, &c, &a.largest)) {
+      return a;
+    }
   }
   double smallest = std::numeric_limits<double>::infinity();
   std::vector<std::tuple<double, int, int>> weak;

@@ -92,6 +92,13 @@ struct CovarianceOptions {
   // compromise for both parts' priors (a scale per part would need each prior row tagged with its
   // part; not done).
   std::vector<ceres::ResidualBlockId> noise_relative;
+  // Residual blocks that are hard constraints of a gauge (the unit-mean gain, trace G = 3, held by
+  // a residual of weight 1e8): the dense analysis takes them in the limit of their weight, leaving
+  // them out of the Jacobi scaling and of the largest eigenvalue that rank and weak directions are
+  // relative to. Given as ordinary rows, such a weight scales the data's information in the
+  // directions the constraint leaves free by 1e-16, below the rank tolerance (fit/covariance.cc,
+  // DecomposeWithConstraints). Not for priors, whose sigma is a variance the covariance keeps.
+  std::vector<ceres::ResidualBlockId> hard_constraints;
   // kSandwich only up to this many tangent coordinates (its dense products cost dimension^3;
   // larger problems, such as fine LUTs, get the model covariance and a message saying so).
   int max_sandwich_dimension = 800;

@@ -58,6 +58,81 @@ TEST(ComputeCovariance, Nominal) {
   EXPECT_NEAR(c.variance_inflation(1), 3.0, 1e-9);
 }
 
+// A hard linear constraint (a residual of weight 1e8, as the unit-mean gain gauge of
+// fit/terms_physical.cc holds trace G = 3) on weakly determined parameters: the covariance is the
+// constrained one, Z (Z^T H Z)^-1 Z^T with Z the constraint's null space and H the data's
+// information. Unless the constraint is named (CovarianceOptions::hard_constraints), the data's
+// information in the directions it leaves free (here ~0.1 against 1e16 on every column) is scaled
+// below the rank tolerance and dropped from the pseudo-inverse: stds of ~1e-9 for ~1.
+struct ThreeWayCost {
+  Eigen::Vector3d a;
+  double y, sigma;
+  template <typename T>
+  bool operator()(const T* x, T* r) const {
+    r[0] = (T(a[0]) * x[0] + T(a[1]) * x[1] + T(a[2]) * x[2] - T(y)) / T(sigma);
+    return true;
+  }
+};
+struct TraceGauge {
+  template <typename T>
+  bool operator()(const T* x, T* r) const {
+    r[0] = (x[0] + x[1] + x[2] - T(3)) * T(1e8);
+    return true;
+  }
+};
+TEST(ComputeCovariance, AHardConstraintLeavesTheDirectionsItDoesNotHold) {
+  double x[3] = {1.2, 0.9, 0.9};
+  ceres::Problem problem;
+  Eigen::Matrix3d data_information = Eigen::Matrix3d::Zero();
+  std::vector<ceres::ResidualBlockId> clusters;
+  for (int i = 0; i < 20; ++i) {
+    const Eigen::Vector3d a(1.0 + 0.1 * i, std::sin(0.7 * i), std::cos(1.3 * i));
+    const double sigma = 10.0;
+    data_information += a * a.transpose() / (sigma * sigma);
+    // Residuals at x of the noise's size (rms ~1 whitened), so the sandwich is of the model's.
+    const double y = a.dot(Eigen::Vector3d(x[0], x[1], x[2])) + sigma * 1.4 * std::sin(2.3 * i + 0.4);
+    clusters.push_back(problem.AddResidualBlock(
+        new ceres::AutoDiffCostFunction<ThreeWayCost, 1, 3>(new ThreeWayCost{a, y, sigma}),
+        nullptr, x));
+  }
+  const ceres::ResidualBlockId gauge = problem.AddResidualBlock(
+      new ceres::AutoDiffCostFunction<TraceGauge, 1, 3>(new TraceGauge), nullptr, x);
+  Eigen::Matrix<double, 3, 2> z;  // an orthonormal basis of trace = 0
+  z << 1.0 / std::sqrt(2.0), 1.0 / std::sqrt(6.0), -1.0 / std::sqrt(2.0), 1.0 / std::sqrt(6.0),
+      0.0, -2.0 / std::sqrt(6.0);
+  const Eigen::Matrix3d expected =
+      z * (z.transpose() * data_information * z).inverse() * z.transpose();
+  for (const auto estimator : {CovarianceEstimator::kModel, CovarianceEstimator::kSandwich}) {
+    CovarianceOptions options;
+    options.estimator = estimator;
+    options.clusters = clusters;
+    // Given as an ordinary row, the gauge scales the rest below the rank tolerance (the failure
+    // this guards against): 2 of 3 directions dropped, stds of 3e-9.
+    const CovarianceResult plain = ComputeCovariance(&problem, {{x, "x"}}, options);
+    ASSERT_TRUE(plain.success) << plain.ToString();
+    EXPECT_EQ(plain.rank, 1);
+    EXPECT_LT(plain.stddev.maxCoeff(), 1e-6);
+    options.hard_constraints = {gauge};
+    const CovarianceResult c = ComputeCovariance(&problem, {{x, "x"}}, options);
+    ASSERT_TRUE(c.success) << c.ToString();
+    EXPECT_EQ(c.estimator, estimator == CovarianceEstimator::kModel ? "model" : "sandwich (CR2)");
+    EXPECT_EQ(c.rank, 3) << c.ToString();
+    EXPECT_TRUE(c.flags.empty()) << c.ToString();
+    if (estimator == CovarianceEstimator::kModel) {
+      // The constraint's weight leaves (1e-8)^2 / 3 along the trace: far below this tolerance.
+      EXPECT_TRUE(c.covariance.isApprox(expected, 1e-6)) << c.covariance << "\n" << expected;
+    } else {
+      // The sandwich over the 20 data rows (the constraint is model information): not the model
+      // covariance, but of its size (the residuals are not the model's noise).
+      for (int k = 0; k < 3; ++k) {
+        EXPECT_GT(c.stddev(k), 0.2 * std::sqrt(expected(k, k))) << c.ToString();
+        EXPECT_LT(c.stddev(k), 5.0 * std::sqrt(expected(k, k))) << c.ToString();
+      }
+    }
+    EXPECT_NEAR(c.covariance.sum(), 0.0, 1e-9);  // no variance along the held trace
+  }
+}
+
 // The model covariance from the dense analysis' eigen-decomposition equals Ceres' sparse QR of the
 // same Jacobian (forced by a reciprocal-condition threshold above 1) on a cubic fit whose normal
 // matrix has a reciprocal condition of ~1e-4 after Jacobi scaling.

@@ -522,6 +522,8 @@ struct BuiltProblem {
   // The terms' extra residual blocks weighted relative to the noise sigma
   // (ModelTerm::ExtraResidualsRelativeToNoise): the sandwich scales their information.
   std::vector<ceres::ResidualBlockId> noise_relative_blocks;
+  // The others: gauge constraints (CovarianceOptions::hard_constraints).
+  std::vector<ceres::ResidualBlockId> constraint_blocks;
 };
 
 // noise.amplification_threshold at or above which no station gets a pose metric: each residual
@@ -644,14 +646,15 @@ BuiltProblem BuildProblem(const std::vector<FitStation>& stations, ModelSpec* sp
   for (size_t k = 0; k < spec->terms.size(); ++k) {
     const bool relative = spec->terms[k]->ExtraResidualsRelativeToNoise();
     std::vector<ceres::ResidualBlockId> before;
-    if (relative) problem.GetResidualBlocks(&before);
+    problem.GetResidualBlocks(&before);
     spec->terms[k]->AddExtraResiduals(&problem, InputsOfTerm(stations, *spec, k));
-    if (!relative) continue;
     std::vector<ceres::ResidualBlockId> after;
     problem.GetResidualBlocks(&after);
+    if (after.size() == before.size()) continue;  // none added (most terms)
     const std::set<ceres::ResidualBlockId> old(before.begin(), before.end());
     for (ceres::ResidualBlockId id : after) {
-      if (!old.count(id)) out.noise_relative_blocks.push_back(id);
+      if (old.count(id)) continue;
+      (relative ? out.noise_relative_blocks : out.constraint_blocks).push_back(id);
     }
   }
   for (auto& term : spec->terms) {
@@ -1339,6 +1342,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     co.estimator = spec->covariance_estimator;
     co.clusters = station_blocks;
     co.noise_relative = built.noise_relative_blocks;
+    co.hard_constraints = built.constraint_blocks;
     const bool stream_samples = moving || SerialSamples(*fitted);
     if (stream_samples) {
       co.cluster_groups = TimeClusters(*fitted, spec->stream_clusters);

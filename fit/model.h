@@ -199,7 +199,9 @@ class ModelTerm {
   virtual int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs);
   // True if those residuals are weighted relative to the noise model's sigma (a ridge w c / sigma,
   // a smoothness prior): the sandwich covariance scales their information by the stations' noise
-  // variance (fit/covariance.h, CovarianceOptions::noise_relative). Default: false (constraints).
+  // variance (fit/covariance.h, CovarianceOptions::noise_relative). Default: false: they are
+  // constraints (a gauge), which the covariance takes in the limit of their weight
+  // (CovarianceOptions::hard_constraints).
   virtual bool ExtraResidualsRelativeToNoise() const { return false; }
 
   // The runtime correction of this term with its current values, for the calibration file.

@@ -1279,10 +1279,11 @@ struct SymmetricGainResidual {
 // not fix the scale of G; this residual holds the mean coil gain trace(G) / 3 at 1, so G reports the
 // relative gains and the non-orthogonality (3 G / trace(G) of the truth), which the data do fix.
 // The constraint is linear, so one Gauss-Newton step satisfies it exactly (a det G = 1 penalty is
-// cubic and upset the fast fold refits of fit/candidates.cc). Weight 1e8: the gauge direction's
-// std becomes 1e-8, two orders below the smallest stds of G seen from a capture (1e-6 on the paper
-// preset with its true noise; 1e-4 with the default noise), so it does not inflate the reported
-// stds.
+// cubic and upset the fast fold refits of fit/candidates.cc). Weight 1e8: the solve meets it to
+// 1e-8. The covariance takes it (as every extra residual block of this term, the gauges) as a hard
+// constraint (CovarianceOptions::hard_constraints, filled by the fit engine): as an ordinary row
+// its weight would set the Jacobi scaling of the diagonal's columns and push the relative gains
+// below the rank tolerance where the data hold them weakly.
 struct UnitMeanGainResidual {
   template <typename T>
   bool operator()(const T* g, T* r) const {
