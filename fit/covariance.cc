@@ -134,6 +134,8 @@ std::vector<std::vector<int>> ConnectedColumns(const ceres::CRSMatrix& crs, bool
 // rows, the constraints' own directions (their range) apart; these come last, with eigenvalues of
 // the constraints' size, so the pseudo-inverse gives them no variance, and `largest` (which the
 // rank and the weak directions are relative to) is the data's.
+// False (and `c` to be analysed plainly) when the constraints leave nothing free or an eigen-solver
+// fails.
 bool DecomposeWithConstraints(const Eigen::MatrixXd& information,
                               const std::vector<Eigen::Index>& stiff, Component* c,
                               double* largest) {
@@ -164,9 +166,10 @@ bool DecomposeWithConstraints(const Eigen::MatrixXd& information,
   const Eigen::Index k = qr.rank();
   const Eigen::MatrixXd q = qr.householderQ() * Eigen::MatrixXd::Identity(m, m);
   const Eigen::MatrixXd range = q.leftCols(k), null = q.rightCols(m - k);
+  // Nothing left free (constraints that hold every column of the group): the plain analysis.
+  if (m - k == 0) return false;
   const Eigen::MatrixXd scaled_data =
       c->scale.asDiagonal() * data_information * c->scale.asDiagonal();
-  if (m - k == 0) return false;  // nothing left free: not a constraint (a prior alone)
   Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> free_part(null.transpose() * scaled_data * null);
   Eigen::MatrixXd scaled = information.selfadjointView<Eigen::Lower>();
   scaled = c->scale.asDiagonal() * scaled * c->scale.asDiagonal();
@@ -176,7 +179,7 @@ bool DecomposeWithConstraints(const Eigen::MatrixXd& information,
   c->eigenvectors.resize(m, m);
   c->eigenvalues << free_part.eigenvalues(), held_part.eigenvalues();
   c->eigenvectors << null * free_part.eigenvectors(), range * held_part.eigenvectors();
-  if (m - k > 0) *largest = std::max(*largest, free_part.eigenvalues()(m - k - 1));
+  *largest = std::max(*largest, free_part.eigenvalues()(m - k - 1));
   // Ascending, as the rank count and GroupFactor expect (the held directions, at the constraints'
   // weight, normally lie above all of the data's already).
   std::vector<Eigen::Index> order(static_cast<size_t>(m));
@@ -267,7 +270,7 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
     for (size_t i = 0; i < c.rows.size(); ++i) {
       if (constraint_rows.count(c.rows[i])) stiff.push_back(static_cast<Eigen::Index>(i));
     }
-    if (stiff.empty()) {
+    if (stiff.empty() || !DecomposeWithConstraints(information, stiff, &c, &a.largest)) {
       c.scale = Eigen::VectorXd::Ones(m);
       for (int i = 0; i < m; ++i) {
         if (information(i, i) > 0.0) c.scale(i) = 1.0 / std::sqrt(information(i, i));
@@ -278,8 +281,6 @@ DenseAnalysis AnalyseDense(ceres::Problem* problem, const std::vector<double*>& 
       c.eigenvalues = eig.eigenvalues();
       c.eigenvectors = eig.eigenvectors();
       if (m > 0) a.largest = std::max(a.largest, c.eigenvalues(m - 1));
-    } else if (!DecomposeWithConstraints(information, stiff, &c, &a.largest)) {
-      return a;
     }
   }
   double smallest = std::numeric_limits<double>::infinity();
