@@ -14,6 +14,8 @@ apt_packages=(
 )
 # The tests render the HTML report in a headless browser.
 apt_packages+=(chromium)
+# The Unity plugin's C# wrapper is compiled and run against the plugin with Mono (plugin/csharp_test).
+apt_packages+=(mono-mcs mono-runtime)
 
 missing=()
 for p in "${apt_packages[@]}"; do

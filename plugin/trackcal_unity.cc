@@ -1,0 +1,214 @@
+// The C ABI of trackcal_unity.h over VrpnTrackerClient: a background thread per handle keeps the
+// latest pose per sensor; every entry point catches everything, since an exception must not cross
+// into Unity's runtime.
+#include "plugin/trackcal_unity.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cstring>
+#include <exception>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <stdexcept>
+#include <string>
+
+#include "plugin/unity_axes.h"
+#include "vrpn_server/client/tracker_client.h"
+#include "vrpn_server/protocol/payloads.h"
+
+namespace {
+
+using trackcal::Rigid3d;
+using SteadyClock = std::chrono::steady_clock;
+
+thread_local std::string last_error;
+
+int32_t Fail(int32_t code, std::string why) {
+  last_error = std::move(why);
+  return code;
+}
+
+struct SensorState {
+  Rigid3d transmitter_from_receiver;
+  trackcal::unity::UnityPose unity;
+  double time_s = 0;
+  SteadyClock::time_point arrived;
+  std::uint64_t reports = 0;
+};
+
+trackcal::unity::AxisMap AxesOrDefault(const char* axes) {
+  return trackcal::unity::ParseAxisMap(
+      axes == nullptr || axes[0] == '\0' ? trackcal::unity::kDefaultAxes : std::string_view(axes));
+}
+
+}  // namespace
+
+struct TrackcalUnityTracker {
+  trackcal::unity::AxisMap axes;
+  std::unique_ptr<trackcal::vrpn::VrpnTrackerClient> client;
+  std::mutex mutex;
+  std::map<int, SensorState> sensors;  // guarded by mutex
+  std::string text;                    // guarded by mutex
+  int32_t text_severity = 0;           // guarded by mutex
+  std::uint64_t texts = 0;             // guarded by mutex
+};
+
+extern "C" {
+
+int32_t trackcal_unity_abi_version(void) { return TRACKCAL_UNITY_ABI_VERSION; }
+
+TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axes) {
+  last_error.clear();
+  if (vrpn_name == nullptr) {
+    Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_open: the VRPN name is null");
+    return nullptr;
+  }
+  try {
+    auto tracker = std::make_unique<TrackcalUnityTracker>();
+    tracker->axes = AxesOrDefault(axes);
+    // Parse first: the client's constructor names a bad "Device@host" string.
+    tracker->client = std::make_unique<trackcal::vrpn::VrpnTrackerClient>(vrpn_name);
+    TrackcalUnityTracker* t = tracker.get();
+    t->client->SetPoseCallback([t](const trackcal::vrpn::TrackerReport& r) {
+      if (r.sensor < 0 || r.sensor > TRACKCAL_UNITY_MAX_SENSOR) return;
+      const auto unity = trackcal::unity::ToUnity(t->axes, r.transmitter_from_receiver);
+      std::lock_guard lock(t->mutex);
+      SensorState& s = t->sensors[r.sensor];
+      s.transmitter_from_receiver = r.transmitter_from_receiver;
+      s.unity = unity;
+      s.time_s = r.time.Seconds();
+      s.arrived = SteadyClock::now();
+      ++s.reports;
+    });
+    t->client->SetMessageCallback([t](const trackcal::vrpn::ReceivedMessage& m) {
+      if (m.type != trackcal::vrpn::kTextType) return;
+      const auto text = trackcal::vrpn::DecodeText(m.payload);
+      if (!text) return;
+      std::lock_guard lock(t->mutex);
+      t->text = text->text;
+      t->text_severity = static_cast<int32_t>(text->severity);
+      ++t->texts;
+    });
+    t->client->Start();
+    return tracker.release();
+  } catch (const std::invalid_argument& e) {
+    Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, std::string("trackcal_unity_open: ") + e.what());
+  } catch (const std::exception& e) {
+    Fail(TRACKCAL_UNITY_ERROR_INTERNAL, std::string("trackcal_unity_open: ") + e.what());
+  } catch (...) {
+    Fail(TRACKCAL_UNITY_ERROR_INTERNAL, "trackcal_unity_open: unknown failure");
+  }
+  return nullptr;
+}
+
+void trackcal_unity_close(TrackcalUnityTracker* tracker) {
+  last_error.clear();
+  if (tracker == nullptr) return;
+  try {
+    tracker->client->Stop();
+  } catch (...) {
+    // The thread is joined or was never started; nothing else to undo.
+  }
+  delete tracker;
+}
+
+int32_t trackcal_unity_get_pose(TrackcalUnityTracker* tracker, int32_t sensor,
+                                TrackcalUnityPose* out) {
+  last_error.clear();
+  if (tracker == nullptr || out == nullptr) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_pose: null handle or output");
+  }
+  std::memset(out, 0, sizeof(*out));
+  out->sensor = sensor;
+  if (sensor < 0 || sensor > TRACKCAL_UNITY_MAX_SENSOR) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_pose: sensor " +
+                                                   std::to_string(sensor) + " is outside 0.." +
+                                                   std::to_string(TRACKCAL_UNITY_MAX_SENSOR));
+  }
+  std::lock_guard lock(tracker->mutex);
+  const auto it = tracker->sensors.find(sensor);
+  if (it == tracker->sensors.end()) return TRACKCAL_UNITY_NO_POSE;
+  const SensorState& s = it->second;
+  out->valid = 1;
+  out->reports = s.reports;
+  out->unity_px = s.unity.position.x();
+  out->unity_py = s.unity.position.y();
+  out->unity_pz = s.unity.position.z();
+  out->unity_qx = s.unity.rotation.x();
+  out->unity_qy = s.unity.rotation.y();
+  out->unity_qz = s.unity.rotation.z();
+  out->unity_qw = s.unity.rotation.w();
+  out->tracker_px = s.transmitter_from_receiver.translation.x();
+  out->tracker_py = s.transmitter_from_receiver.translation.y();
+  out->tracker_pz = s.transmitter_from_receiver.translation.z();
+  out->tracker_qx = s.transmitter_from_receiver.rotation.x();
+  out->tracker_qy = s.transmitter_from_receiver.rotation.y();
+  out->tracker_qz = s.transmitter_from_receiver.rotation.z();
+  out->tracker_qw = s.transmitter_from_receiver.rotation.w();
+  out->time_s = s.time_s;
+  out->age_s = std::chrono::duration<double>(SteadyClock::now() - s.arrived).count();
+  return TRACKCAL_UNITY_OK;
+}
+
+int32_t trackcal_unity_get_status(TrackcalUnityTracker* tracker, TrackcalUnityStatus* out) {
+  last_error.clear();
+  if (tracker == nullptr || out == nullptr) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_status: null handle or output");
+  }
+  std::memset(out, 0, sizeof(*out));
+  out->connected = tracker->client->connected() ? 1 : 0;
+  out->device_served = tracker->client->pong_received() ? 1 : 0;
+  out->udp = tracker->client->udp_active() ? 1 : 0;
+  out->reports = tracker->client->reports();
+  out->connections = tracker->client->connections();
+  std::lock_guard lock(tracker->mutex);
+  out->texts = tracker->texts;
+  return TRACKCAL_UNITY_OK;
+}
+
+int32_t trackcal_unity_last_text(TrackcalUnityTracker* tracker, char* buffer, int32_t buffer_size,
+                                 int32_t* severity) {
+  last_error.clear();
+  if (tracker == nullptr || (buffer == nullptr && buffer_size > 0) || buffer_size < 0) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT,
+                "trackcal_unity_last_text: null handle or bad buffer");
+  }
+  std::lock_guard lock(tracker->mutex);
+  if (buffer_size > 0) {
+    const std::size_t n = std::min(tracker->text.size(), static_cast<std::size_t>(buffer_size - 1));
+    std::memcpy(buffer, tracker->text.data(), n);
+    buffer[n] = '\0';
+  }
+  if (severity != nullptr) *severity = tracker->text_severity;
+  return static_cast<int32_t>(std::min<std::size_t>(tracker->text.size(), INT32_MAX));
+}
+
+int32_t trackcal_unity_convert(const char* axes, const double tracker_p[3],
+                               const double tracker_q_xyzw[4], double unity_p[3],
+                               double unity_q_xyzw[4]) {
+  last_error.clear();
+  if (tracker_p == nullptr || tracker_q_xyzw == nullptr || unity_p == nullptr ||
+      unity_q_xyzw == nullptr) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_convert: null array");
+  }
+  try {
+    const Rigid3d pose(trackcal::QuaternionFromXyzwArray(tracker_q_xyzw),
+                       Eigen::Vector3d(tracker_p[0], tracker_p[1], tracker_p[2]));
+    const auto unity = trackcal::unity::ToUnity(AxesOrDefault(axes), pose);
+    for (int i = 0; i < 3; ++i) unity_p[i] = unity.position[i];
+    unity_q_xyzw[0] = unity.rotation.x();
+    unity_q_xyzw[1] = unity.rotation.y();
+    unity_q_xyzw[2] = unity.rotation.z();
+    unity_q_xyzw[3] = unity.rotation.w();
+    return TRACKCAL_UNITY_OK;
+  } catch (const std::invalid_argument& e) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, std::string("trackcal_unity_convert: ") + e.what());
+  } catch (const std::exception& e) {
+    return Fail(TRACKCAL_UNITY_ERROR_INTERNAL, std::string("trackcal_unity_convert: ") + e.what());
+  }
+}
+
+const char* trackcal_unity_last_error(void) { return last_error.c_str(); }
+
+}  // extern "C"

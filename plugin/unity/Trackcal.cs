@@ -1,0 +1,174 @@
+// trackcal's C# wrapper for Unity: reads VRPN trackers (a trackcal server's corrected ones, or any
+// VRPN tracker) through the native plugin libtrackcal_unity (plugin/trackcal_unity.h), with poses
+// in Unity's left-handed, y-up axes. No UnityEngine dependency here: TrackcalTrackedObject.cs is
+// the MonoBehaviour. docs/unity.md says how to install and which axes to choose.
+using System;
+using System.Runtime.InteropServices;
+using System.Text;
+
+namespace Trackcal
+{
+    // One sensor's latest pose. The field layout is TrackcalUnityPose's in trackcal_unity.h.
+    [StructLayout(LayoutKind.Sequential)]
+    public struct TrackcalPose
+    {
+        public int Sensor;
+        public int Valid;         // 1 once the sensor has reported
+        public ulong Reports;     // reports received for this sensor
+        // Unity's axes: metres; rotation x, y, z, w.
+        public double UnityPx, UnityPy, UnityPz;
+        public double UnityQx, UnityQy, UnityQz, UnityQw;
+        // The tracker's frame, as served (right-handed): metres; rotation x, y, z, w.
+        public double TrackerPx, TrackerPy, TrackerPz;
+        public double TrackerQx, TrackerQy, TrackerQz, TrackerQw;
+        public double TimeSeconds; // the server's timestamp (seconds since the Unix epoch)
+        public double AgeSeconds;  // seconds since the report arrived, when it was read
+    }
+
+    // The layout of TrackcalUnityStatus.
+    [StructLayout(LayoutKind.Sequential)]
+    public struct TrackcalStatus
+    {
+        public int Connected;     // the VRPN connection is up
+        public int DeviceServed;  // the server answered for this device name
+        public int Udp;           // reports arrive over UDP
+        public int Reserved;
+        public ulong Reports;
+        public ulong Connections;
+        public ulong Texts;
+    }
+
+    internal static class TrackcalNative
+    {
+        internal const string Library = "trackcal_unity";
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_abi_version")]
+        internal static extern int AbiVersion();
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_open")]
+        internal static extern IntPtr Open([MarshalAs(UnmanagedType.LPStr)] string vrpnName,
+                                           [MarshalAs(UnmanagedType.LPStr)] string axes);
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_close")]
+        internal static extern void Close(IntPtr tracker);
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_get_pose")]
+        internal static extern int GetPose(IntPtr tracker, int sensor, out TrackcalPose pose);
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_get_status")]
+        internal static extern int GetStatus(IntPtr tracker, out TrackcalStatus status);
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_last_text")]
+        internal static extern int LastText(IntPtr tracker, byte[] buffer, int bufferSize, out int severity);
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_convert")]
+        internal static extern int Convert([MarshalAs(UnmanagedType.LPStr)] string axes,
+                                           double[] trackerP, double[] trackerQXyzw,
+                                           [Out] double[] unityP, [Out] double[] unityQXyzw);
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_last_error")]
+        internal static extern IntPtr LastErrorPtr();
+
+        internal static string LastError()
+        {
+            return Marshal.PtrToStringAnsi(LastErrorPtr()) ?? "";
+        }
+    }
+
+    // One VRPN tracker ("Tracker0@host", "Tracker0@host:3883", "Tracker0@tcp://host:port"). The
+    // plugin connects, reconnects and decodes on its own thread; TryGetPose never blocks.
+    public sealed class TrackcalTracker : IDisposable
+    {
+        public const int AbiVersion = 1;               // TRACKCAL_UNITY_ABI_VERSION
+        public const string DefaultAxes = "y,-z,x";    // the Polhemus source frame in Unity
+
+        private IntPtr handle;
+
+        public string VrpnName { get; private set; }
+        public string Axes { get; private set; }
+
+        // axes: Unity's x, y, z as tracker axes ("y,-z,x"); null for the default. Throws
+        // ArgumentException with the plugin's reason (a bad name or axes), or
+        // InvalidOperationException when the native library is of another ABI version.
+        public TrackcalTracker(string vrpnName, string axes = DefaultAxes)
+        {
+            CheckAbi();
+            handle = TrackcalNative.Open(vrpnName, axes);
+            if (handle == IntPtr.Zero)
+                throw new ArgumentException(TrackcalNative.LastError());
+            VrpnName = vrpnName;
+            Axes = axes ?? DefaultAxes;
+        }
+
+        public static void CheckAbi()
+        {
+            int native = TrackcalNative.AbiVersion();
+            if (native != AbiVersion)
+                throw new InvalidOperationException("libtrackcal_unity has ABI version " + native +
+                                                    ", this wrapper expects " + AbiVersion +
+                                                    ": copy Trackcal.cs from the same trackcal build");
+        }
+
+        // False until the sensor has reported. Throws ArgumentException for a bad sensor index.
+        public bool TryGetPose(int sensor, out TrackcalPose pose)
+        {
+            int rc = TrackcalNative.GetPose(Handle(), sensor, out pose);
+            if (rc < 0) throw new ArgumentException(TrackcalNative.LastError());
+            return rc == 0;
+        }
+
+        public TrackcalStatus Status
+        {
+            get
+            {
+                TrackcalStatus status;
+                if (TrackcalNative.GetStatus(Handle(), out status) < 0)
+                    throw new InvalidOperationException(TrackcalNative.LastError());
+                return status;
+            }
+        }
+
+        // The server's last text for this device ("" if none); severity 0 normal, 1 warning, 2 error.
+        public string LastText(out int severity)
+        {
+            byte[] buffer = new byte[512];
+            int length = TrackcalNative.LastText(Handle(), buffer, buffer.Length, out severity);
+            if (length < 0) throw new InvalidOperationException(TrackcalNative.LastError());
+            if (length >= buffer.Length)
+            {
+                buffer = new byte[length + 1];
+                length = TrackcalNative.LastText(Handle(), buffer, buffer.Length, out severity);
+            }
+            return Encoding.UTF8.GetString(buffer, 0, Math.Min(length, buffer.Length - 1));
+        }
+
+        // A tracker-frame pose in Unity's axes, as TryGetPose converts it.
+        public static void Convert(string axes, double[] trackerP, double[] trackerQXyzw,
+                                   double[] unityP, double[] unityQXyzw)
+        {
+            if (TrackcalNative.Convert(axes, trackerP, trackerQXyzw, unityP, unityQXyzw) < 0)
+                throw new ArgumentException(TrackcalNative.LastError());
+        }
+
+        private IntPtr Handle()
+        {
+            if (handle == IntPtr.Zero) throw new ObjectDisposedException("TrackcalTracker " + VrpnName);
+            return handle;
+        }
+
+        public void Dispose()
+        {
+            if (handle != IntPtr.Zero)
+            {
+                TrackcalNative.Close(handle);
+                handle = IntPtr.Zero;
+            }
+            GC.SuppressFinalize(this);
+        }
+
+        ~TrackcalTracker()
+        {
+            if (handle != IntPtr.Zero) TrackcalNative.Close(handle);
+        }
+    }
+}

@@ -1,0 +1,183 @@
+// Run by plugin/csharp_test (csharp_test.cc), which serves known poses on loopback:
+//   mono TrackcalCsharpTest.exe <vrpn name> <sensor,px,py,pz,qx,qy,qz,qw>...
+// Checks, in C#, what a Unity scene relies on: the P/Invoke signatures and struct layouts against
+// the native library, the poses as served, the handedness conversion (computed here independently
+// of the plugin) and TrackcalTrackedObject driving a transform. Exit code 0: every check passed.
+using System;
+using System.Collections.Generic;
+using System.Globalization;
+using System.Reflection;
+using System.Threading;
+using Trackcal;
+using UnityEngine;
+
+public static class TrackcalCsharpTest
+{
+    static int failures = 0;
+
+    static void Check(bool ok, string what)
+    {
+        if (!ok)
+        {
+            failures++;
+            Console.WriteLine("FAIL: " + what);
+        }
+    }
+
+    // The default axes "y,-z,x" written out: Unity (x, y, z) = (tracker y, -tracker z, tracker x).
+    static double[] MapVector(double x, double y, double z) { return new[] { y, -z, x }; }
+
+    static void Invoke(object target, string method)
+    {
+        typeof(TrackcalTrackedObject).GetMethod(method, BindingFlags.Instance | BindingFlags.NonPublic)
+            .Invoke(target, null);
+    }
+
+    public static int Main(string[] args)
+    {
+        if (args.Length < 2)
+        {
+            Console.WriteLine("usage: TrackcalCsharpTest.exe <vrpn name> <sensor,px,py,pz,qx,qy,qz,qw>...");
+            return 2;
+        }
+        string name = args[0];
+        var expected = new Dictionary<int, double[]>();
+        for (int i = 1; i < args.Length; i++)
+        {
+            string[] f = args[i].Split(',');
+            var v = new double[7];
+            for (int k = 0; k < 7; k++) v[k] = double.Parse(f[k + 1], CultureInfo.InvariantCulture);
+            expected[int.Parse(f[0], CultureInfo.InvariantCulture)] = v;
+        }
+
+        TrackcalTracker.CheckAbi();
+        Check(Marshal_SizeOf<TrackcalPose>() == 16 + 16 * 8, "TrackcalPose is 144 bytes as in C");
+        Check(Marshal_SizeOf<TrackcalStatus>() == 16 + 3 * 8, "TrackcalStatus is 40 bytes as in C");
+
+        // A bad mapping is refused with the plugin's reason.
+        try
+        {
+            new TrackcalTracker(name, "x,y,z").Dispose();
+            Check(false, "axes x,y,z (a mirrored scene) accepted");
+        }
+        catch (ArgumentException e)
+        {
+            Check(e.Message.Contains("mirrored"), "the axes error says why: " + e.Message);
+        }
+
+        // Convert: the common z-flip rule, (x, y, -z) and (-qx, -qy, qz, qw).
+        var up = new double[3];
+        var uq = new double[4];
+        TrackcalTracker.Convert("x,y,-z", new[] { 1.0, 2.0, 3.0 },
+                                new[] { 0.1, 0.2, 0.3, Math.Sqrt(1 - 0.14) }, up, uq);
+        Check(up[0] == 1 && up[1] == 2 && up[2] == -3, "convert position");
+        Check(uq[0] == -0.1 && uq[1] == -0.2 && uq[2] == 0.3, "convert rotation");
+
+        using (var tracker = new TrackcalTracker(name))
+        {
+            var got = new Dictionary<int, TrackcalPose>();
+            DateTime end = DateTime.UtcNow.AddSeconds(20);
+            while (got.Count < expected.Count && DateTime.UtcNow < end)
+            {
+                foreach (int s in expected.Keys)
+                {
+                    TrackcalPose p;
+                    if (tracker.TryGetPose(s, out p)) got[s] = p;
+                }
+                Thread.Sleep(10);
+            }
+            Check(got.Count == expected.Count, "poses of every sensor within 20 s (" + got.Count + " of " +
+                                                   expected.Count + ")");
+            foreach (var kv in got)
+            {
+                double[] e = expected[kv.Key];
+                TrackcalPose p = kv.Value;
+                string who = "sensor " + kv.Key + ": ";
+                Check(p.Sensor == kv.Key && p.Valid == 1 && p.Reports >= 1, who + "header fields");
+                // Doubles on the wire and through the struct: exact.
+                Check(p.TrackerPx == e[0] && p.TrackerPy == e[1] && p.TrackerPz == e[2],
+                      who + "tracker position");
+                Check(p.TrackerQx == e[3] && p.TrackerQy == e[4] && p.TrackerQz == e[5] &&
+                      p.TrackerQw == e[6], who + "tracker rotation");
+                double[] mp = MapVector(e[0], e[1], e[2]);
+                Check(p.UnityPx == mp[0] && p.UnityPy == mp[1] && p.UnityPz == mp[2], who + "Unity position");
+                // The rotation axis is a pseudovector: det(M) = -1 negates its image.
+                double[] mv = MapVector(e[3], e[4], e[5]);
+                Check(p.UnityQx == -mv[0] && p.UnityQy == -mv[1] && p.UnityQz == -mv[2] && p.UnityQw == e[6],
+                      who + "Unity rotation");
+                Check(p.AgeSeconds >= 0 && p.AgeSeconds < 20, who + "age " + p.AgeSeconds);
+            }
+            TrackcalStatus status = tracker.Status;
+            Check(status.Connected == 1 && status.DeviceServed == 1 &&
+                  status.Reports >= (ulong)expected.Count, "status");
+            TrackcalPose none;
+            Check(!tracker.TryGetPose(200, out none) && none.Valid == 0, "a silent sensor has no pose");
+            try
+            {
+                tracker.TryGetPose(-1, out none);
+                Check(false, "sensor -1 accepted");
+            }
+            catch (ArgumentException e)
+            {
+                Check(e.Message.Contains("sensor -1"), "the sensor error says why: " + e.Message);
+            }
+        }
+
+        // The MonoBehaviour, two objects on one tracker: one shared connection; the transform gets
+        // the pose, and Unity's own rotation rule maps the receiver's points where the tracker does.
+        int sensor = 0;
+        foreach (int s in expected.Keys) { sensor = s; break; }
+        var a = new TrackcalTrackedObject { trackerName = name, sensor = sensor, maxAgeSeconds = 5 };
+        var b = new TrackcalTrackedObject { trackerName = name, sensor = sensor, maxAgeSeconds = 5 };
+        Invoke(a, "OnEnable");
+        Invoke(b, "OnEnable");
+        Check(TrackcalTrackedObject.SharedConnections == 1, "one connection for two objects on one tracker");
+        DateTime until = DateTime.UtcNow.AddSeconds(20);
+        while (!a.IsTracking && DateTime.UtcNow < until)
+        {
+            Invoke(a, "Update");
+            Thread.Sleep(10);
+        }
+        Check(a.IsTracking, "the behaviour tracks within 20 s");
+        if (a.IsTracking)
+        {
+            double[] e = expected[sensor];
+            double[] t = MapVector(e[0], e[1], e[2]);
+            Vector3 pos = a.transform.localPosition;
+            Check(pos.x == (float)t[0] && pos.y == (float)t[1] && pos.z == (float)t[2],
+                  "transform position " + pos);
+            // A point of the receiver's body, 0.1 m along its tracker x: where the tracker puts it,
+            // in Unity's axes, and where Unity puts it from the transform. Float math: 1e-5 m.
+            double qx = e[3], qy = e[4], qz = e[5], qw = e[6];
+            double[] body = { 0.1, -0.05, 0.02 };
+            double cx = qy * body[2] - qz * body[1], cy = qz * body[0] - qx * body[2];
+            double cz = qx * body[1] - qy * body[0];
+            double dx = qy * cz - qz * cy, dy = qz * cx - qx * cz, dz = qx * cy - qy * cx;
+            double[] world = { body[0] + 2 * (qw * cx + dx) + e[0], body[1] + 2 * (qw * cy + dy) + e[1],
+                               body[2] + 2 * (qw * cz + dz) + e[2] };
+            double[] expect = MapVector(world[0], world[1], world[2]);
+            double[] mb = MapVector(body[0], body[1], body[2]);
+            Vector3 r = a.transform.localRotation * new Vector3((float)mb[0], (float)mb[1], (float)mb[2]);
+            double err = Math.Abs(r.x + pos.x - expect[0]) + Math.Abs(r.y + pos.y - expect[1]) +
+                         Math.Abs(r.z + pos.z - expect[2]);
+            Check(err < 1e-5, "Unity's rotation of a receiver point is the tracker's (error " + err + " m)");
+        }
+        Invoke(a, "OnDisable");
+        Check(TrackcalTrackedObject.SharedConnections == 1, "the connection stays while an object uses it");
+        Invoke(b, "OnDisable");
+        Check(TrackcalTrackedObject.SharedConnections == 0, "the last object closes the connection");
+
+        var bad = new TrackcalTrackedObject { trackerName = "no host name", sensor = 0 };
+        Invoke(bad, "OnEnable");
+        Check(!bad.enabled && UnityEngine.Debug.Errors.Count == 1,
+              "a bad tracker name disables the object and logs");
+
+        Console.WriteLine(failures == 0 ? "PASS" : failures + " check(s) failed");
+        return failures == 0 ? 0 : 1;
+    }
+
+    static int Marshal_SizeOf<T>()
+    {
+        return System.Runtime.InteropServices.Marshal.SizeOf(typeof(T));
+    }
+}
