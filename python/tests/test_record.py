@@ -4,7 +4,6 @@ calibration (raw= name), then validating the recording against the calibration."
 import functools
 import pathlib
 import shutil
-import socket
 import subprocess
 import time
 
@@ -14,15 +13,10 @@ import pytest
 import trackcal
 from trackcal import captures
 from trackcal.record import record_streams
+from understand_support import free_port
 
 REPO = pathlib.Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "tests" / "data" / "calibration" / "example.json"
-
-
-def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
@@ -124,43 +118,6 @@ def test_record_progress_ends_at_the_duration(server, tmp_path):
                    progress=lambda done, total: calls.append((done, total)))
     # A terminal bar is finished (100 %, newline) only by a last call with done == total.
     assert calls and calls[-1] == (0.3, 0.3)
-
-
-@pytest.fixture
-def emulated_server(tmp_path):
-    """The Fastrak emulator (paper room physics, one receiver held still at a known true pose)
-    attached to trackcal-server with a calibration fitted in the same room; yields (port, the true
-    pose (position, quaternion xyzw), the calibration path)."""
-    from trackcal import validation
-    from understand_support import simulate
-    cap = captures.load_poses(simulate(tmp_path / "capture", seed=81))
-    cal = tmp_path / "cal.json"
-    validation.fit_polynomial(cap.select_set("calib"), degree=3).save(cal)
-    position, q_wxyz = (0.30, 0.20, -0.50), (1.0, 0.0, 0.0, 0.0)
-    device = tmp_path / "fastrak"
-    emulator = subprocess.Popen([shutil.which("trackcal-emulate"), "--scene", "paper", "--stations", "1",
-                                 "--pose", "1=" + ",".join(str(v) for v in position + q_wxyz),
-                                 "--link", str(device), "--binary", "--continuous"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    procs = [emulator]
-    try:
-        deadline = time.monotonic() + 10
-        while not device.exists():
-            assert emulator.poll() is None and time.monotonic() < deadline, "the emulator did not start"
-            time.sleep(0.05)
-        (tmp_path / "vrpn.cfg").write_text(f"vrpn_Tracker_Fastrak Tracker0 {device} 115200\n"
-                                           f"trackcal_Calibration Tracker0 {cal} raw=Tracker0_raw\n")
-        port = free_port()
-        procs.append(subprocess.Popen([shutil.which("trackcal-server"), "-f", str(tmp_path / "vrpn.cfg"), str(port),
-                                       "--bind", "127.0.0.1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        yield port, (np.array(position), np.array([*q_wxyz[1:], q_wxyz[0]])), cal
-    finally:
-        for p in reversed(procs):
-            p.terminate()
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
 
 
 def test_a_live_recording_is_validated_later_against_the_reference(emulated_server, tmp_path):

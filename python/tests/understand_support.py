@@ -5,12 +5,20 @@ from __future__ import annotations
 
 import pathlib
 import shutil
+import socket
 import subprocess
 
 import numpy as np
 
 HEADER = ["station", "set", "sensor", "time", "rep_x", "rep_y", "rep_z", "rep_qw", "rep_qx", "rep_qy",
           "rep_qz", "ref_x", "ref_y", "ref_z", "ref_qw", "ref_qx", "ref_qy", "ref_qz"]
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback interface now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def simulate(out: pathlib.Path, seed: int = 7, hidden: str = "") -> pathlib.Path:
