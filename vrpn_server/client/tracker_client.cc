@@ -1,20 +1,13 @@
 #include "vrpn_server/client/tracker_client.h"
 
-#include <arpa/inet.h>
-#include <netdb.h>
-#include <netinet/tcp.h>
-#include <poll.h>
-#include <sys/socket.h>
-#include <unistd.h>
-
 #include <algorithm>
-#include <cerrno>
 #include <charconv>
 #include <chrono>
 #include <optional>
 #include <stdexcept>
 #include <vector>
 
+#include "vrpn_server/net/socket_compat.h"
 #include "vrpn_server/net/socket_util.h"
 
 namespace trackcal::vrpn {
@@ -66,13 +59,19 @@ VrpnName ParseVrpnName(const std::string& name) {
 }
 
 void TrackerClientOptions::Check() const {
-  if (!(ping_interval_s > 0)) throw std::invalid_argument("TrackerClientOptions.ping_interval_s: must be > 0");
-  if (!(lob_retry_s > 0)) throw std::invalid_argument("TrackerClientOptions.lob_retry_s: must be > 0");
+  if (!(ping_interval_s > 0))
+    throw std::invalid_argument("TrackerClientOptions.ping_interval_s: must be > 0");
+  if (!(lob_retry_s > 0))
+    throw std::invalid_argument("TrackerClientOptions.lob_retry_s: must be > 0");
+  if (!(connect_timeout_s > 0)) {
+    throw std::invalid_argument("TrackerClientOptions.connect_timeout_s: must be > 0");
+  }
   if (!(reconnect_delay_s >= 0)) {
     throw std::invalid_argument("TrackerClientOptions.reconnect_delay_s: must be >= 0");
   }
   if (max_message_length < kHeaderSize + kTextSize) {
-    throw std::invalid_argument("TrackerClientOptions.max_message_length: must hold a text message");
+    throw std::invalid_argument(
+        "TrackerClientOptions.max_message_length: must hold a text message");
   }
 }
 
@@ -82,11 +81,12 @@ struct VrpnTrackerClient::Impl {
   std::int32_t device_id = 0, ping_type = 0;
   std::int32_t request_types[3] = {};
   std::unique_ptr<Connection> connection;
-  UniqueFd tcp, listen, udp;
+  UniqueSocket tcp, listen, udp;
   std::size_t out_offset = 0;
   std::optional<sockaddr_in> server;
   in_addr local_ip{};
   Clock::time_point next_retry = Clock::time_point::min();
+  Clock::time_point connect_deadline = Clock::time_point::max();
   Clock::time_point next_lob = Clock::time_point::max();
   Clock::time_point next_ping = Clock::time_point::max();
   bool request_pending = false;
@@ -95,13 +95,14 @@ struct VrpnTrackerClient::Impl {
 VrpnTrackerClient::VrpnTrackerClient(const std::string& name, TrackerClientOptions options)
     : name_(ParseVrpnName(name)), options_(options), impl_(std::make_unique<Impl>()) {
   options_.Check();
+  InitSockets();
   auto& n = *impl_->names;
   n.AddSender(kControlSender);
   impl_->device_id = n.AddSender(name_.device);
   for (auto t : {kPosQuatType, kVelocityType, kAccelerationType, kToRoomType, kUnitToSensorType,
-                 kRequestToRoomType, kRequestUnitToSensorType, kWorkspaceType, kRequestWorkspaceType,
-                 kSetUpdateRateType, kResetOriginType, kTextType, kPingType, kPongType,
-                 kButtonChangeType, kButtonStatesType}) {
+                 kRequestToRoomType, kRequestUnitToSensorType, kWorkspaceType,
+                 kRequestWorkspaceType, kSetUpdateRateType, kResetOriginType, kTextType, kPingType,
+                 kPongType, kButtonChangeType, kButtonStatesType}) {
     n.AddType(t);
   }
   impl_->ping_type = *n.FindType(kPingType);
@@ -126,7 +127,8 @@ void VrpnTrackerClient::Stop() {
 void VrpnTrackerClient::RequestStaticInfo() {
   impl_->request_pending = true;
   if (connected_) {
-    for (auto t : impl_->request_types) impl_->connection->Pack(impl_->device_id, t, Timestamp::Now(), {});
+    for (auto t : impl_->request_types)
+      impl_->connection->Pack(impl_->device_id, t, Timestamp::Now(), {});
     impl_->request_pending = false;
     FlushTcp();
   }
@@ -141,6 +143,7 @@ void VrpnTrackerClient::Reset(const std::string& /*why*/) {
   impl_->state = Impl::State::kIdle;
   impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
   impl_->next_lob = impl_->next_ping = Clock::time_point::max();
+  impl_->connect_deadline = Clock::time_point::max();
   connected_ = false;
   pong_received_ = false;
   udp_active_ = false;
@@ -156,26 +159,31 @@ void VrpnTrackerClient::BeginConnect() {
       impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
       return;
     }
-    impl_->server = MakeSockaddr(reinterpret_cast<sockaddr_in*>(res->ai_addr)->sin_addr, name_.port);
+    impl_->server =
+        MakeSockaddr(reinterpret_cast<sockaddr_in*>(res->ai_addr)->sin_addr, name_.port);
     ::freeaddrinfo(res);
   }
   const sockaddr_in server = *impl_->server;
   if (name_.tcp) {
-    UniqueFd fd(::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
-    int one = 1;
-    ::setsockopt(fd.get(), IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
+    UniqueSocket fd(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
+    if (!fd.valid()) {
+      Reset("no socket");
+      return;
+    }
+    SetNoDelay(fd.get());
     const int rc = ::connect(fd.get(), reinterpret_cast<const sockaddr*>(&server), sizeof(server));
-    if (rc != 0 && errno != EINPROGRESS) {
+    if (rc != 0 && !IsConnectInProgress(LastSocketError())) {
       Reset("connect failed");
       return;
     }
     impl_->tcp = std::move(fd);
     impl_->state = Impl::State::kConnecting;
+    impl_->connect_deadline = Clock::now() + Seconds(options_.connect_timeout_s);
     if (rc == 0) OnTcpConnected();
     return;
   }
   // Lob: find our address towards the server, listen there, then send the request datagram.
-  UniqueFd probe(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0));
+  UniqueSocket probe(OpenSocket(SOCK_DGRAM, /*nonblocking=*/false));
   sockaddr_in local{};
   socklen_t len = sizeof(local);
   if (::connect(probe.get(), reinterpret_cast<const sockaddr*>(&server), sizeof(server)) != 0 ||
@@ -184,7 +192,7 @@ void VrpnTrackerClient::BeginConnect() {
     return;
   }
   impl_->local_ip = local.sin_addr;
-  UniqueFd listener(::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+  UniqueSocket listener(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
   sockaddr_in la = MakeSockaddr(local.sin_addr, 0);
   if (::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)) != 0 ||
       ::listen(listener.get(), 4) != 0) {
@@ -198,11 +206,12 @@ void VrpnTrackerClient::BeginConnect() {
 
 void VrpnTrackerClient::OnTcpConnected() {
   impl_->state = Impl::State::kConnected;
+  impl_->connect_deadline = Clock::time_point::max();
   impl_->connection = std::make_unique<Connection>(
       impl_->names, Connection::Options{.max_message_length = options_.max_message_length});
   std::optional<std::pair<std::string, int>> our_udp;
   if (!name_.tcp && options_.udp_channel) {
-    UniqueFd udp(::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
+    UniqueSocket udp(OpenSocket(SOCK_DGRAM, /*nonblocking=*/true));
     sockaddr_in ua = MakeSockaddr(impl_->local_ip, 0);
     socklen_t len = sizeof(ua);
     if (udp.valid() && ::bind(udp.get(), reinterpret_cast<sockaddr*>(&ua), sizeof(ua)) == 0 &&
@@ -220,10 +229,10 @@ void VrpnTrackerClient::FlushTcp() {
   if (impl_->state != Impl::State::kConnected) return;
   auto& out = impl_->connection->tcp_output();
   while (impl_->out_offset < out.size()) {
-    const ssize_t n = ::send(impl_->tcp.get(), out.data() + impl_->out_offset,
-                             out.size() - impl_->out_offset, MSG_NOSIGNAL | MSG_DONTWAIT);
+    const long n = SendSocket(impl_->tcp.get(), out.data() + impl_->out_offset,
+                              out.size() - impl_->out_offset);
     if (n < 0) {
-      if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) return;
+      if (IsWouldBlock(LastSocketError())) return;
       Reset("write failed");
       return;
     }
@@ -240,7 +249,8 @@ void VrpnTrackerClient::HandleMessage(const ReceivedMessage& m) {
     if (!p) return;
     ++reports_;
     if (m.via_udp) udp_active_ = true;
-    if (on_pose_) on_pose_(TrackerReport{p->sensor, p->transmitter_from_receiver, m.time, m.via_udp});
+    if (on_pose_)
+      on_pose_(TrackerReport{p->sensor, p->transmitter_from_receiver, m.time, m.via_udp});
     return;
   }
   if (m.type == kPongType) pong_received_ = true;
@@ -255,13 +265,14 @@ void VrpnTrackerClient::Poll(double timeout_s) {
   // Timers.
   if (impl_->state == Impl::State::kLobWaiting && now >= impl_->next_lob) {
     // A fresh UDP socket per attempt, as the reference does.
-    UniqueFd s(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0));
+    UniqueSocket s(OpenSocket(SOCK_DGRAM, /*nonblocking=*/false));
     sockaddr_in la{};
     socklen_t len = sizeof(la);
     ::getsockname(impl_->listen.get(), reinterpret_cast<sockaddr*>(&la), &len);
-    const auto dgram = EncodeLobRequest(LobRequest{FormatIpv4(impl_->local_ip), ntohs(la.sin_port)});
-    ::sendto(s.get(), dgram.data(), dgram.size(), 0, reinterpret_cast<const sockaddr*>(&*impl_->server),
-             sizeof(sockaddr_in));
+    const auto dgram =
+        EncodeLobRequest(LobRequest{FormatIpv4(impl_->local_ip), ntohs(la.sin_port)});
+    ::sendto(s.get(), reinterpret_cast<const char*>(dgram.data()), static_cast<int>(dgram.size()),
+             0, reinterpret_cast<const sockaddr*>(&*impl_->server), sizeof(sockaddr_in));
     impl_->next_lob = now + Seconds(options_.lob_retry_s);
   }
   if (connected_ && !pong_received_ && now >= impl_->next_ping) {
@@ -273,8 +284,17 @@ void VrpnTrackerClient::Poll(double timeout_s) {
   if (impl_->state == Impl::State::kIdle) wake = std::min(wake, impl_->next_retry);
   if (impl_->state == Impl::State::kLobWaiting) wake = std::min(wake, impl_->next_lob);
   if (connected_ && !pong_received_) wake = std::min(wake, impl_->next_ping);
+  if (impl_->state == Impl::State::kConnecting) {
+    // A connect that neither succeeds nor fails (a host that drops the SYN; WSAPoll, which does not
+    // report a refused connect on some Windows versions) is retried.
+    if (now >= impl_->connect_deadline) {
+      Reset("connect timed out");
+      return;
+    }
+    wake = std::min(wake, impl_->connect_deadline);
+  }
 
-  pollfd fds[3];
+  PollFd fds[3];
   int nfds = 0;
   int tcp_index = -1, listen_index = -1, udp_index = -1;
   if (impl_->tcp.valid()) {
@@ -284,28 +304,29 @@ void VrpnTrackerClient::Poll(double timeout_s) {
       ev |= POLLOUT;
     }
     tcp_index = nfds;
-    fds[nfds++] = pollfd{impl_->tcp.get(), ev, 0};
+    fds[nfds++] = PollFd{impl_->tcp.get(), ev, 0};
   }
   if (impl_->listen.valid()) {
     listen_index = nfds;
-    fds[nfds++] = pollfd{impl_->listen.get(), POLLIN, 0};
+    fds[nfds++] = PollFd{impl_->listen.get(), POLLIN, 0};
   }
   if (impl_->udp.valid()) {
     udp_index = nfds;
-    fds[nfds++] = pollfd{impl_->udp.get(), POLLIN, 0};
+    fds[nfds++] = PollFd{impl_->udp.get(), POLLIN, 0};
   }
-  const auto wait = std::chrono::duration_cast<std::chrono::milliseconds>(wake - Clock::now()).count();
-  const int rc = ::poll(fds, static_cast<nfds_t>(nfds), static_cast<int>(std::max<long long>(0, wait)));
+  const auto wait =
+      std::chrono::duration_cast<std::chrono::milliseconds>(wake - Clock::now()).count();
+  const int rc = PollSockets(fds, static_cast<std::size_t>(nfds),
+                             static_cast<int>(std::max<long long>(0, wait)));
   if (rc <= 0) return;
   auto handler = [this](const ReceivedMessage& m) { HandleMessage(m); };
 
   if (listen_index >= 0 && (fds[listen_index].revents & POLLIN)) {
-    const int fd = ::accept4(impl_->listen.get(), nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC);
-    if (fd >= 0) {
+    const NativeSocket fd = AcceptSocket(impl_->listen.get(), /*nonblocking=*/true);
+    if (fd != kNoSocket) {
       impl_->tcp.Reset(fd);
       impl_->listen.Reset();
-      int one = 1;
-      ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
+      SetNoDelay(fd);
       impl_->next_lob = Clock::time_point::max();
       OnTcpConnected();
       return;
@@ -313,9 +334,7 @@ void VrpnTrackerClient::Poll(double timeout_s) {
   }
   if (tcp_index >= 0 && fds[tcp_index].revents) {
     if (impl_->state == Impl::State::kConnecting) {
-      int err = 0;
-      socklen_t len = sizeof(err);
-      ::getsockopt(impl_->tcp.get(), SOL_SOCKET, SO_ERROR, &err, &len);
+      const int err = PendingSocketError(impl_->tcp.get());
       if (err != 0 || (fds[tcp_index].revents & (POLLERR | POLLHUP))) {
         Reset("connect failed");
         return;
@@ -326,15 +345,15 @@ void VrpnTrackerClient::Poll(double timeout_s) {
     if (fds[tcp_index].revents & (POLLIN | POLLHUP | POLLERR)) {
       std::uint8_t buf[65536];
       for (int burst = 0; burst < 16; ++burst) {
-        const ssize_t n = ::read(impl_->tcp.get(), buf, sizeof(buf));
-        if (n == 0 || (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR)) {
+        const long n = ReceiveSocket(impl_->tcp.get(), buf, sizeof(buf));
+        if (n == 0 || (n < 0 && !IsWouldBlock(LastSocketError()))) {
           Reset("connection closed");
           return;
         }
         if (n < 0) break;
         const bool was = impl_->connection->handshake_done();
-        if (!impl_->connection->OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
-                                           handler)) {
+        if (!impl_->connection->OnTcpBytes(
+                std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)), handler)) {
           Reset(impl_->connection->error());
           return;
         }
@@ -348,12 +367,14 @@ void VrpnTrackerClient::Poll(double timeout_s) {
     }
     FlushTcp();
   }
-  if (udp_index >= 0 && impl_->udp.valid() && (fds[udp_index].revents & POLLIN) && impl_->connection) {
+  if (udp_index >= 0 && impl_->udp.valid() && (fds[udp_index].revents & POLLIN) &&
+      impl_->connection) {
     std::uint8_t buf[kMaxDatagramSize + 64];
     for (int burst = 0; burst < 64; ++burst) {
-      const ssize_t n = ::recv(impl_->udp.get(), buf, sizeof(buf), MSG_DONTWAIT);
+      const long n = ReceiveSocket(impl_->udp.get(), buf, sizeof(buf));
       if (n <= 0) break;
-      impl_->connection->OnDatagram(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)), handler);
+      impl_->connection->OnDatagram(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                    handler);
     }
   }
   // Send a ping right after the handshake rather than waiting for the next Poll.

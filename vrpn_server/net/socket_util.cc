@@ -1,7 +1,8 @@
 #include "vrpn_server/net/socket_util.h"
 
-#include <arpa/inet.h>
+#ifndef _WIN32
 #include <unistd.h>
+#endif
 
 #include <charconv>
 #include <cstring>
@@ -9,6 +10,7 @@
 
 namespace trackcal::vrpn {
 
+#ifndef _WIN32
 UniqueFd& UniqueFd::operator=(UniqueFd&& o) noexcept {
   if (this != &o) Reset(o.Release());
   return *this;
@@ -18,6 +20,7 @@ void UniqueFd::Reset(int fd) {
   if (fd_ >= 0) ::close(fd_);
   fd_ = fd;
 }
+#endif
 
 std::optional<in_addr> ParseIpv4(std::string_view text) {
   if (text.size() > 15) return std::nullopt;

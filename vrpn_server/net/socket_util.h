@@ -1,9 +1,10 @@
-// Small POSIX socket helpers shared by the VRPN server and client: an owning fd, IPv4 address
-// parsing/formatting, and a CIDR allow-list for client networks.
+// Small socket helpers shared by the VRPN server and client: an owning fd (POSIX), IPv4 address
+// parsing/formatting, and a CIDR allow-list for client networks. The address helpers also build on
+// Windows (the Unity plugin, socket_compat.h).
 
 #pragma once
 
-#include <netinet/in.h>
+#include "vrpn_server/net/socket_compat.h"
 
 #include <cstdint>
 #include <optional>
@@ -13,6 +14,7 @@
 
 namespace trackcal::vrpn {
 
+#ifndef _WIN32
 // Owns a file descriptor; closes it on destruction.
 class UniqueFd {
  public:
@@ -35,6 +37,7 @@ class UniqueFd {
  private:
   int fd_ = -1;
 };
+#endif
 
 // Parses a dotted IPv4 literal (no name resolution). Address in network byte order.
 std::optional<in_addr> ParseIpv4(std::string_view text);

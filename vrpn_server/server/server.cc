@@ -32,11 +32,6 @@ using Clock = std::chrono::steady_clock;
 enum Kind : std::uint64_t { kTcpListen = 0, kUdpLob = 1, kWake = 2, kEndpointTcp = 3, kEndpointUdp = 4 };
 std::uint64_t Tag(std::uint64_t id, Kind kind) { return (id << 3) | kind; }
 
-void SetNoDelay(int fd) {
-  int one = 1;
-  ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof(one));
-}
-
 }  // namespace
 
 void ServerOptions::Check() const {
