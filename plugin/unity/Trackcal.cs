@@ -38,6 +38,23 @@ namespace Trackcal
         public ulong Texts;
     }
 
+    // The native handle. The marshaller AddRefs a SafeHandle for the duration of each call, so
+    // neither Dispose on another thread nor the finalizer (which can run while a call on the
+    // object is still in native code: `this` is dead once Handle() returned) can free the
+    // tracker under a running trackcal_unity_get_pose; ReleaseHandle runs exactly once.
+    internal sealed class TrackcalHandle : SafeHandle
+    {
+        private TrackcalHandle() : base(IntPtr.Zero, true) { }
+
+        public override bool IsInvalid { get { return handle == IntPtr.Zero; } }
+
+        protected override bool ReleaseHandle()
+        {
+            TrackcalNative.Close(handle);
+            return true;
+        }
+    }
+
     internal static class TrackcalNative
     {
         internal const string Library = "trackcal_unity";
@@ -46,20 +63,20 @@ namespace Trackcal
         internal static extern int AbiVersion();
 
         [DllImport(Library, EntryPoint = "trackcal_unity_open")]
-        internal static extern IntPtr Open([MarshalAs(UnmanagedType.LPStr)] string vrpnName,
-                                           [MarshalAs(UnmanagedType.LPStr)] string axes);
+        internal static extern TrackcalHandle Open([MarshalAs(UnmanagedType.LPStr)] string vrpnName,
+                                                   [MarshalAs(UnmanagedType.LPStr)] string axes);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_close")]
         internal static extern void Close(IntPtr tracker);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_get_pose")]
-        internal static extern int GetPose(IntPtr tracker, int sensor, out TrackcalPose pose);
+        internal static extern int GetPose(TrackcalHandle tracker, int sensor, out TrackcalPose pose);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_get_status")]
-        internal static extern int GetStatus(IntPtr tracker, out TrackcalStatus status);
+        internal static extern int GetStatus(TrackcalHandle tracker, out TrackcalStatus status);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_last_text")]
-        internal static extern int LastText(IntPtr tracker, byte[] buffer, int bufferSize, out int severity);
+        internal static extern int LastText(TrackcalHandle tracker, [Out] byte[] buffer, int bufferSize, out int severity);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_convert")]
         internal static extern int Convert([MarshalAs(UnmanagedType.LPStr)] string axes,
@@ -82,7 +99,7 @@ namespace Trackcal
         public const int AbiVersion = 1;               // TRACKCAL_UNITY_ABI_VERSION
         public const string DefaultAxes = "y,-z,x";    // the Polhemus source frame in Unity
 
-        private IntPtr handle;
+        private readonly TrackcalHandle handle;
 
         public string VrpnName { get; private set; }
         public string Axes { get; private set; }
@@ -94,7 +111,7 @@ namespace Trackcal
         {
             CheckAbi();
             handle = TrackcalNative.Open(vrpnName, axes);
-            if (handle == IntPtr.Zero)
+            if (handle.IsInvalid)
                 throw new ArgumentException(TrackcalNative.LastError());
             VrpnName = vrpnName;
             Axes = axes ?? DefaultAxes;
@@ -146,29 +163,33 @@ namespace Trackcal
         public static void Convert(string axes, double[] trackerP, double[] trackerQXyzw,
                                    double[] unityP, double[] unityQXyzw)
         {
+            // The native side reads 3 and 4 doubles and writes as many: a shorter array is memory
+            // corruption, not an error code.
+            CheckLength(trackerP, 3, "trackerP");
+            CheckLength(trackerQXyzw, 4, "trackerQXyzw");
+            CheckLength(unityP, 3, "unityP");
+            CheckLength(unityQXyzw, 4, "unityQXyzw");
             if (TrackcalNative.Convert(axes, trackerP, trackerQXyzw, unityP, unityQXyzw) < 0)
                 throw new ArgumentException(TrackcalNative.LastError());
         }
 
-        private IntPtr Handle()
+        private static void CheckLength(double[] a, int n, string name)
         {
-            if (handle == IntPtr.Zero) throw new ObjectDisposedException("TrackcalTracker " + VrpnName);
+            if (a == null || a.Length < n)
+                throw new ArgumentException(name + ": " + n + " values expected", name);
+        }
+
+        private TrackcalHandle Handle()
+        {
+            if (handle.IsClosed) throw new ObjectDisposedException("TrackcalTracker " + VrpnName);
             return handle;
         }
 
+        // Closes the connection (joins the plugin's network thread). The SafeHandle's own finalizer
+        // closes a tracker that was never disposed.
         public void Dispose()
         {
-            if (handle != IntPtr.Zero)
-            {
-                TrackcalNative.Close(handle);
-                handle = IntPtr.Zero;
-            }
-            GC.SuppressFinalize(this);
-        }
-
-        ~TrackcalTracker()
-        {
-            if (handle != IntPtr.Zero) TrackcalNative.Close(handle);
+            handle.Dispose();
         }
     }
 }

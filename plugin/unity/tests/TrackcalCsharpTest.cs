@@ -72,6 +72,12 @@ public static class TrackcalCsharpTest
                                 new[] { 0.1, 0.2, 0.3, Math.Sqrt(1 - 0.14) }, up, uq);
         Check(up[0] == 1 && up[1] == 2 && up[2] == -3, "convert position");
         Check(uq[0] == -0.1 && uq[1] == -0.2 && uq[2] == 0.3, "convert rotation");
+        try
+        {
+            TrackcalTracker.Convert("x,y,-z", new[] { 1.0, 2.0 }, new double[4], up, uq);
+            Check(false, "a 2-value position accepted (the plugin would read past it)");
+        }
+        catch (ArgumentException) { }
 
         using (var tracker = new TrackcalTracker(name))
         {
@@ -121,6 +127,13 @@ public static class TrackcalCsharpTest
             {
                 Check(e.Message.Contains("sensor -1"), "the sensor error says why: " + e.Message);
             }
+            tracker.Dispose();  // and again by using: closing twice is harmless
+            try
+            {
+                tracker.TryGetPose(0, out none);
+                Check(false, "a disposed tracker answered");
+            }
+            catch (ObjectDisposedException) { }
         }
 
         // The MonoBehaviour, two objects on one tracker: one shared connection; the transform gets
@@ -162,6 +175,11 @@ public static class TrackcalCsharpTest
                          Math.Abs(r.z + pos.z - expect[2]);
             Check(err < 1e-5, "Unity's rotation of a receiver point is the tracker's (error " + err + " m)");
         }
+        // A pose older than maxAgeSeconds is not applied.
+        a.maxAgeSeconds = -1;
+        a.transform.localPosition = new Vector3(7, 7, 7);
+        Invoke(a, "Update");
+        Check(!a.IsTracking && a.transform.localPosition.x == 7, "a stale pose is not applied");
         Invoke(a, "OnDisable");
         Check(TrackcalTrackedObject.SharedConnections == 1, "the connection stays while an object uses it");
         Invoke(b, "OnDisable");
