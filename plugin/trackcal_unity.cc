@@ -37,6 +37,21 @@ struct SensorState {
   std::uint64_t reports = 0;
 };
 
+// Runs body (returning a status code); an exception becomes an error code and last_error, so none
+// crosses the C ABI into Unity's runtime (undefined behaviour, in practice a crash of the player).
+template <typename Body>
+int32_t Guarded(const char* function, Body&& body) {
+  try {
+    return body();
+  } catch (const std::invalid_argument& e) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, std::string(function) + ": " + e.what());
+  } catch (const std::exception& e) {
+    return Fail(TRACKCAL_UNITY_ERROR_INTERNAL, std::string(function) + ": " + e.what());
+  } catch (...) {
+    return Fail(TRACKCAL_UNITY_ERROR_INTERNAL, std::string(function) + ": unknown failure");
+  }
+}
+
 trackcal::unity::AxisMap AxesOrDefault(const char* axes) {
   return trackcal::unity::ParseAxisMap(
       axes == nullptr || axes[0] == '\0' ? trackcal::unity::kDefaultAxes : std::string_view(axes));
@@ -46,12 +61,13 @@ trackcal::unity::AxisMap AxesOrDefault(const char* axes) {
 
 struct TrackcalUnityTracker {
   trackcal::unity::AxisMap axes;
-  std::unique_ptr<trackcal::vrpn::VrpnTrackerClient> client;
   std::mutex mutex;
   std::map<int, SensorState> sensors;  // guarded by mutex
   std::string text;                    // guarded by mutex
   int32_t text_severity = 0;           // guarded by mutex
   std::uint64_t texts = 0;             // guarded by mutex
+  // Last: destroyed first, so its thread is joined before the state its callbacks touch goes.
+  std::unique_ptr<trackcal::vrpn::VrpnTrackerClient> client;
 };
 
 extern "C" {
@@ -70,25 +86,34 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
     // Parse first: the client's constructor names a bad "Device@host" string.
     tracker->client = std::make_unique<trackcal::vrpn::VrpnTrackerClient>(vrpn_name);
     TrackcalUnityTracker* t = tracker.get();
-    t->client->SetPoseCallback([t](const trackcal::vrpn::TrackerReport& r) {
+    // The callbacks run on the client's std::thread: an exception leaving them would reach
+    // std::terminate and take the whole Unity process down. A report that cannot be stored
+    // (bad_alloc, a failed lock) is dropped instead.
+    t->client->SetPoseCallback([t](const trackcal::vrpn::TrackerReport& r) noexcept {
       if (r.sensor < 0 || r.sensor > TRACKCAL_UNITY_MAX_SENSOR) return;
-      const auto unity = trackcal::unity::ToUnity(t->axes, r.transmitter_from_receiver);
-      std::lock_guard lock(t->mutex);
-      SensorState& s = t->sensors[r.sensor];
-      s.transmitter_from_receiver = r.transmitter_from_receiver;
-      s.unity = unity;
-      s.time_s = r.time.Seconds();
-      s.arrived = SteadyClock::now();
-      ++s.reports;
+      try {
+        const auto unity = trackcal::unity::ToUnity(t->axes, r.transmitter_from_receiver);
+        std::lock_guard lock(t->mutex);
+        SensorState& s = t->sensors[r.sensor];
+        s.transmitter_from_receiver = r.transmitter_from_receiver;
+        s.unity = unity;
+        s.time_s = r.time.Seconds();
+        s.arrived = SteadyClock::now();
+        ++s.reports;
+      } catch (...) {
+      }
     });
-    t->client->SetMessageCallback([t](const trackcal::vrpn::ReceivedMessage& m) {
+    t->client->SetMessageCallback([t](const trackcal::vrpn::ReceivedMessage& m) noexcept {
       if (m.type != trackcal::vrpn::kTextType) return;
-      const auto text = trackcal::vrpn::DecodeText(m.payload);
-      if (!text) return;
-      std::lock_guard lock(t->mutex);
-      t->text = text->text;
-      t->text_severity = static_cast<int32_t>(text->severity);
-      ++t->texts;
+      try {
+        const auto text = trackcal::vrpn::DecodeText(m.payload);
+        if (!text) return;
+        std::lock_guard lock(t->mutex);
+        t->text = text->text;
+        t->text_severity = static_cast<int32_t>(text->severity);
+        ++t->texts;
+      } catch (...) {
+      }
     });
     t->client->Start();
     return tracker.release();
@@ -121,34 +146,36 @@ int32_t trackcal_unity_get_pose(TrackcalUnityTracker* tracker, int32_t sensor,
   }
   std::memset(out, 0, sizeof(*out));
   out->sensor = sensor;
-  if (sensor < 0 || sensor > TRACKCAL_UNITY_MAX_SENSOR) {
-    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_pose: sensor " +
-                                                   std::to_string(sensor) + " is outside 0.." +
-                                                   std::to_string(TRACKCAL_UNITY_MAX_SENSOR));
-  }
-  std::lock_guard lock(tracker->mutex);
-  const auto it = tracker->sensors.find(sensor);
-  if (it == tracker->sensors.end()) return TRACKCAL_UNITY_NO_POSE;
-  const SensorState& s = it->second;
-  out->valid = 1;
-  out->reports = s.reports;
-  out->unity_px = s.unity.position.x();
-  out->unity_py = s.unity.position.y();
-  out->unity_pz = s.unity.position.z();
-  out->unity_qx = s.unity.rotation.x();
-  out->unity_qy = s.unity.rotation.y();
-  out->unity_qz = s.unity.rotation.z();
-  out->unity_qw = s.unity.rotation.w();
-  out->tracker_px = s.transmitter_from_receiver.translation.x();
-  out->tracker_py = s.transmitter_from_receiver.translation.y();
-  out->tracker_pz = s.transmitter_from_receiver.translation.z();
-  out->tracker_qx = s.transmitter_from_receiver.rotation.x();
-  out->tracker_qy = s.transmitter_from_receiver.rotation.y();
-  out->tracker_qz = s.transmitter_from_receiver.rotation.z();
-  out->tracker_qw = s.transmitter_from_receiver.rotation.w();
-  out->time_s = s.time_s;
-  out->age_s = std::chrono::duration<double>(SteadyClock::now() - s.arrived).count();
-  return TRACKCAL_UNITY_OK;
+  return Guarded("trackcal_unity_get_pose", [&]() -> int32_t {
+    if (sensor < 0 || sensor > TRACKCAL_UNITY_MAX_SENSOR) {
+      return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_pose: sensor " +
+                                                     std::to_string(sensor) + " is outside 0.." +
+                                                     std::to_string(TRACKCAL_UNITY_MAX_SENSOR));
+    }
+    std::lock_guard lock(tracker->mutex);
+    const auto it = tracker->sensors.find(sensor);
+    if (it == tracker->sensors.end()) return TRACKCAL_UNITY_NO_POSE;
+    const SensorState& s = it->second;
+    out->valid = 1;
+    out->reports = s.reports;
+    out->unity_px = s.unity.position.x();
+    out->unity_py = s.unity.position.y();
+    out->unity_pz = s.unity.position.z();
+    out->unity_qx = s.unity.rotation.x();
+    out->unity_qy = s.unity.rotation.y();
+    out->unity_qz = s.unity.rotation.z();
+    out->unity_qw = s.unity.rotation.w();
+    out->tracker_px = s.transmitter_from_receiver.translation.x();
+    out->tracker_py = s.transmitter_from_receiver.translation.y();
+    out->tracker_pz = s.transmitter_from_receiver.translation.z();
+    out->tracker_qx = s.transmitter_from_receiver.rotation.x();
+    out->tracker_qy = s.transmitter_from_receiver.rotation.y();
+    out->tracker_qz = s.transmitter_from_receiver.rotation.z();
+    out->tracker_qw = s.transmitter_from_receiver.rotation.w();
+    out->time_s = s.time_s;
+    out->age_s = std::chrono::duration<double>(SteadyClock::now() - s.arrived).count();
+    return TRACKCAL_UNITY_OK;
+  });
 }
 
 int32_t trackcal_unity_get_status(TrackcalUnityTracker* tracker, TrackcalUnityStatus* out) {
@@ -157,14 +184,16 @@ int32_t trackcal_unity_get_status(TrackcalUnityTracker* tracker, TrackcalUnitySt
     return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_status: null handle or output");
   }
   std::memset(out, 0, sizeof(*out));
-  out->connected = tracker->client->connected() ? 1 : 0;
-  out->device_served = tracker->client->pong_received() ? 1 : 0;
-  out->udp = tracker->client->udp_active() ? 1 : 0;
-  out->reports = tracker->client->reports();
-  out->connections = tracker->client->connections();
-  std::lock_guard lock(tracker->mutex);
-  out->texts = tracker->texts;
-  return TRACKCAL_UNITY_OK;
+  return Guarded("trackcal_unity_get_status", [&]() -> int32_t {
+    out->connected = tracker->client->connected() ? 1 : 0;
+    out->device_served = tracker->client->pong_received() ? 1 : 0;
+    out->udp = tracker->client->udp_active() ? 1 : 0;
+    out->reports = tracker->client->reports();
+    out->connections = tracker->client->connections();
+    std::lock_guard lock(tracker->mutex);
+    out->texts = tracker->texts;
+    return TRACKCAL_UNITY_OK;
+  });
 }
 
 int32_t trackcal_unity_last_text(TrackcalUnityTracker* tracker, char* buffer, int32_t buffer_size,
@@ -174,14 +203,17 @@ int32_t trackcal_unity_last_text(TrackcalUnityTracker* tracker, char* buffer, in
     return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT,
                 "trackcal_unity_last_text: null handle or bad buffer");
   }
-  std::lock_guard lock(tracker->mutex);
-  if (buffer_size > 0) {
-    const std::size_t n = std::min(tracker->text.size(), static_cast<std::size_t>(buffer_size - 1));
-    std::memcpy(buffer, tracker->text.data(), n);
-    buffer[n] = '\0';
-  }
-  if (severity != nullptr) *severity = tracker->text_severity;
-  return static_cast<int32_t>(std::min<std::size_t>(tracker->text.size(), INT32_MAX));
+  return Guarded("trackcal_unity_last_text", [&]() -> int32_t {
+    std::lock_guard lock(tracker->mutex);
+    if (buffer_size > 0) {
+      const std::size_t n =
+          std::min(tracker->text.size(), static_cast<std::size_t>(buffer_size - 1));
+      std::memcpy(buffer, tracker->text.data(), n);
+      buffer[n] = '\0';
+    }
+    if (severity != nullptr) *severity = tracker->text_severity;
+    return static_cast<int32_t>(std::min<std::size_t>(tracker->text.size(), INT32_MAX));
+  });
 }
 
 int32_t trackcal_unity_convert(const char* axes, const double tracker_p[3],
@@ -192,7 +224,7 @@ int32_t trackcal_unity_convert(const char* axes, const double tracker_p[3],
       unity_q_xyzw == nullptr) {
     return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_convert: null array");
   }
-  try {
+  return Guarded("trackcal_unity_convert", [&]() -> int32_t {
     const Rigid3d pose(trackcal::QuaternionFromXyzwArray(tracker_q_xyzw),
                        Eigen::Vector3d(tracker_p[0], tracker_p[1], tracker_p[2]));
     const auto unity = trackcal::unity::ToUnity(AxesOrDefault(axes), pose);
@@ -202,11 +234,7 @@ int32_t trackcal_unity_convert(const char* axes, const double tracker_p[3],
     unity_q_xyzw[2] = unity.rotation.z();
     unity_q_xyzw[3] = unity.rotation.w();
     return TRACKCAL_UNITY_OK;
-  } catch (const std::invalid_argument& e) {
-    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, std::string("trackcal_unity_convert: ") + e.what());
-  } catch (const std::exception& e) {
-    return Fail(TRACKCAL_UNITY_ERROR_INTERNAL, std::string("trackcal_unity_convert: ") + e.what());
-  }
+  });
 }
 
 const char* trackcal_unity_last_error(void) { return last_error.c_str(); }

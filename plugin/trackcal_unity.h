@@ -10,8 +10,10 @@
  * A trackcal server serves the corrected tracker under its configured name and, when the config
  * asks for it, the raw one under a second name: open both to compare them live.
  *
- * Every function is safe to call from any thread; one handle may be shared. No function throws or
- * aborts on bad input: it returns an error code and trackcal_unity_last_error() says why. */
+ * Every function is safe to call from any thread; one handle may be shared, except that
+ * trackcal_unity_close() must not overlap another call on the same handle (it frees it). No
+ * function throws or aborts on bad input: it returns an error code and trackcal_unity_last_error()
+ * says why. */
 #ifndef TRACKCAL_PLUGIN_TRACKCAL_UNITY_H_
 #define TRACKCAL_PLUGIN_TRACKCAL_UNITY_H_
 
