@@ -48,16 +48,39 @@ namespace Trackcal
             get { lock (shared) return shared.Count; }
         }
 
+        // TRACKCAL_UNITY_MAX_SENSOR: the plugin refuses a larger index.
+        public const int MaxSensor = 255;
+
+        // "Y, -Z, +x" and "y,-z,x" (and "" and null, the default) are one mapping: one connection.
+        private static string NormalizedAxes(string axes)
+        {
+            if (string.IsNullOrEmpty(axes) || axes.Trim().Length == 0) return TrackcalTracker.DefaultAxes;
+            var sb = new System.Text.StringBuilder();
+            foreach (char c in axes)
+                if (!char.IsWhiteSpace(c) && c != '+') sb.Append(char.ToLowerInvariant(c));
+            return sb.ToString();
+        }
+
+        private bool SensorValid()
+        {
+            if (sensor >= 0 && sensor <= MaxSensor) return true;
+            Debug.LogError("trackcal: " + name + ": sensor " + sensor + " is outside 0.." + MaxSensor);
+            enabled = false;
+            return false;
+        }
+
         private void OnEnable()
         {
-            key = trackerName + "\n" + axes;
+            if (!SensorValid()) return;
+            string normalized = NormalizedAxes(axes);
+            key = trackerName + "\n" + normalized;
             lock (shared)
             {
                 if (!shared.TryGetValue(key, out connection))
                 {
                     try
                     {
-                        connection = new Shared { Tracker = new TrackcalTracker(trackerName, axes) };
+                        connection = new Shared { Tracker = new TrackcalTracker(trackerName, normalized) };
                     }
                     catch (Exception e)
                     {
@@ -91,6 +114,8 @@ namespace Trackcal
         {
             IsTracking = false;
             if (connection == null) return;
+            // Changed in the Inspector while playing: an exception every frame otherwise.
+            if (!SensorValid()) return;
             TrackcalPose pose;
             if (!connection.Tracker.TryGetPose(sensor, out pose)) return;
             LastPose = pose;

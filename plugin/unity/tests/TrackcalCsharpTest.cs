@@ -141,7 +141,9 @@ public static class TrackcalCsharpTest
         int sensor = 0;
         foreach (int s in expected.Keys) { sensor = s; break; }
         var a = new TrackcalTrackedObject { trackerName = name, sensor = sensor, maxAgeSeconds = 5 };
-        var b = new TrackcalTrackedObject { trackerName = name, sensor = sensor, maxAgeSeconds = 5 };
+        // The same mapping spelt differently is the same connection.
+        var b = new TrackcalTrackedObject { trackerName = name, sensor = sensor, maxAgeSeconds = 5,
+                                            axes = " Y, -Z, +x" };
         Invoke(a, "OnEnable");
         Invoke(b, "OnEnable");
         Check(TrackcalTrackedObject.SharedConnections == 1, "one connection for two objects on one tracker");
@@ -189,6 +191,11 @@ public static class TrackcalCsharpTest
         Invoke(bad, "OnEnable");
         Check(!bad.enabled && UnityEngine.Debug.Errors.Count == 1,
               "a bad tracker name disables the object and logs");
+        var badSensor = new TrackcalTrackedObject { trackerName = name, sensor = -1 };
+        Invoke(badSensor, "OnEnable");
+        Check(!badSensor.enabled && UnityEngine.Debug.Errors.Count == 2 &&
+              TrackcalTrackedObject.SharedConnections == 0,
+              "a sensor outside 0..255 disables the object and logs, opening nothing");
 
         Console.WriteLine(failures == 0 ? "PASS" : failures + " check(s) failed");
         return failures == 0 ? 0 : 1;
