@@ -14,8 +14,9 @@ apt_packages=(
 )
 # The tests render the HTML report in a headless browser.
 apt_packages+=(chromium)
-# The Unity plugin's C# wrapper is compiled and run against the plugin with Mono (plugin/csharp_test).
-apt_packages+=(mono-mcs mono-runtime)
+# The Unity plugin's tests (plugin/foreign_clients_test): its C# wrapper compiled and run with Mono,
+# its Windows DLL cross-compiled with MinGW-w64 and run under Wine.
+apt_packages+=(mono-mcs mono-runtime g++-mingw-w64-x86-64-posix wine64)
 
 missing=()
 for p in "${apt_packages[@]}"; do

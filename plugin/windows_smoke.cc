@@ -1,0 +1,88 @@
+// The Windows DLL's smoke program, run under Wine by plugin/windows_test (csharp_test.cc's
+// arguments): trackcal_unity_smoke.exe <vrpn name> <sensor,px,py,pz,qx,qy,qz,qw>...
+// Uses only the C ABI, as Unity's P/Invoke does. Exit code 0: every check passed.
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <map>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "plugin/trackcal_unity.h"
+
+namespace {
+
+int failures = 0;
+
+void Check(bool ok, const std::string& what) {
+  if (!ok) {
+    ++failures;
+    std::printf("FAIL: %s\n", what.c_str());
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc < 3) {
+    std::printf("usage: %s <vrpn name> <sensor,px,py,pz,qx,qy,qz,qw>...\n", argv[0]);
+    return 2;
+  }
+  std::map<int, std::vector<double>> expected;
+  for (int i = 2; i < argc; ++i) {
+    std::vector<double> v;
+    char* p = argv[i];
+    const int sensor = static_cast<int>(std::strtol(p, &p, 10));
+    while (*p == ',') v.push_back(std::strtod(p + 1, &p));
+    if (v.size() != 7) {
+      std::printf("bad pose argument %s\n", argv[i]);
+      return 2;
+    }
+    expected[sensor] = v;
+  }
+  Check(trackcal_unity_abi_version() == TRACKCAL_UNITY_ABI_VERSION, "ABI version");
+  Check(trackcal_unity_open(argv[1], "x,y,z") == nullptr &&
+            std::strstr(trackcal_unity_last_error(), "mirrored") != nullptr,
+        "a mirrored mapping is refused");
+
+  TrackcalUnityTracker* tracker = trackcal_unity_open(argv[1], nullptr);
+  Check(tracker != nullptr, std::string("open: ") + trackcal_unity_last_error());
+  if (tracker == nullptr) return 1;
+  std::map<int, TrackcalUnityPose> got;
+  const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  while (got.size() < expected.size() && std::chrono::steady_clock::now() < end) {
+    for (const auto& [sensor, v] : expected) {
+      TrackcalUnityPose pose;
+      if (trackcal_unity_get_pose(tracker, sensor, &pose) == TRACKCAL_UNITY_OK) got[sensor] = pose;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  Check(got.size() == expected.size(), "a pose from every sensor within 30 s");
+  for (const auto& [sensor, p] : got) {
+    const std::vector<double>& e = expected[sensor];
+    const std::string who = "sensor " + std::to_string(sensor) + ": ";
+    // Doubles on the wire: exact. The default axes y,-z,x written out; the rotation's vector part
+    // maps as a pseudovector (-M v).
+    Check(p.tracker_px == e[0] && p.tracker_py == e[1] && p.tracker_pz == e[2], who + "position");
+    Check(p.tracker_qx == e[3] && p.tracker_qy == e[4] && p.tracker_qz == e[5] &&
+              p.tracker_qw == e[6],
+          who + "rotation");
+    Check(p.unity_px == e[1] && p.unity_py == -e[2] && p.unity_pz == e[0], who + "Unity position");
+    Check(p.unity_qx == -e[4] && p.unity_qy == e[5] && p.unity_qz == -e[3] && p.unity_qw == e[6],
+          who + "Unity rotation");
+    Check(p.age_s >= 0 && p.age_s < 30, who + "age");
+  }
+  TrackcalUnityStatus status;
+  Check(trackcal_unity_get_status(tracker, &status) == TRACKCAL_UNITY_OK && status.connected == 1 &&
+            status.device_served == 1,
+        "status");
+  TrackcalUnityPose none;
+  Check(trackcal_unity_get_pose(tracker, -1, &none) == TRACKCAL_UNITY_ERROR_ARGUMENT &&
+            std::strstr(trackcal_unity_last_error(), "sensor -1") != nullptr,
+        "a bad sensor is named");
+  trackcal_unity_close(tracker);
+  std::printf(failures == 0 ? "PASS\n" : "%d check(s) failed\n", failures);
+  return failures == 0 ? 0 : 1;
+}
