@@ -28,6 +28,26 @@ int ParsePort(const std::string& text, const std::string& name) {
   return port;
 }
 
+// getaddrinfo's first IPv4 address of `host`.
+std::optional<std::string> ResolveWithGetaddrinfo(const std::string& host) {
+  addrinfo hints{};
+  hints.ai_family = AF_INET;
+  hints.ai_socktype = SOCK_STREAM;
+  addrinfo* res = nullptr;
+  if (::getaddrinfo(host.c_str(), nullptr, &hints, &res) != 0 || res == nullptr)
+    return std::nullopt;
+  const std::string address = FormatIpv4(reinterpret_cast<sockaddr_in*>(res->ai_addr)->sin_addr);
+  ::freeaddrinfo(res);
+  return address;
+}
+
+// A name lookup in flight, shared with the thread that runs it (which may outlive the client).
+struct Lookup {
+  std::mutex mutex;
+  bool done = false;                   // guarded by mutex
+  std::optional<std::string> address;  // guarded by mutex
+};
+
 }  // namespace
 
 VrpnName ParseVrpnName(const std::string& name) {
@@ -84,6 +104,7 @@ struct VrpnTrackerClient::Impl {
   UniqueSocket tcp, listen, udp;
   std::size_t out_offset = 0;
   std::optional<sockaddr_in> server;
+  std::shared_ptr<Lookup> lookup;  // a host name being resolved
   in_addr local_ip{};
   Clock::time_point next_retry = Clock::time_point::min();
   Clock::time_point connect_deadline = Clock::time_point::max();
@@ -149,20 +170,51 @@ void VrpnTrackerClient::Reset(const std::string& /*why*/) {
   udp_active_ = false;
 }
 
-void VrpnTrackerClient::BeginConnect() {
-  if (!impl_->server) {
-    addrinfo hints{};
-    hints.ai_family = AF_INET;
-    hints.ai_socktype = SOCK_STREAM;
-    addrinfo* res = nullptr;
-    if (::getaddrinfo(name_.host.c_str(), nullptr, &hints, &res) != 0 || res == nullptr) {
-      impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
-      return;
-    }
-    impl_->server =
-        MakeSockaddr(reinterpret_cast<sockaddr_in*>(res->ai_addr)->sin_addr, name_.port);
-    ::freeaddrinfo(res);
+bool VrpnTrackerClient::ResolveServer() {
+  if (impl_->server) return true;
+  if (const auto literal = ParseIpv4(name_.host)) {
+    impl_->server = MakeSockaddr(*literal, name_.port);
+    return true;
   }
+  if (!impl_->lookup) {
+    // On a detached thread: Stop() must not wait for a DNS server that does not answer.
+    auto lookup = std::make_shared<Lookup>();
+    auto resolve = options_.resolve_host ? options_.resolve_host : ResolveWithGetaddrinfo;
+    std::thread([lookup, resolve, host = name_.host] {
+      std::optional<std::string> address;
+      try {
+        address = resolve(host);
+      } catch (...) {
+        // An unknown host, as far as the client is concerned.
+      }
+      std::lock_guard lock(lookup->mutex);
+      lookup->address = std::move(address);
+      lookup->done = true;
+    }).detach();
+    impl_->lookup = std::move(lookup);
+  }
+  std::optional<std::string> address;
+  {
+    std::lock_guard lock(impl_->lookup->mutex);
+    if (!impl_->lookup->done) {
+      impl_->next_retry = Clock::now() + std::chrono::milliseconds(20);  // look again soon
+      return false;
+    }
+    address = impl_->lookup->address;
+  }
+  impl_->lookup.reset();
+  const auto parsed = address ? ParseIpv4(*address) : std::nullopt;
+  if (!parsed) {
+    impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
+    return false;
+  }
+  impl_->server = MakeSockaddr(*parsed, name_.port);
+  return true;
+}
+
+void VrpnTrackerClient::BeginConnect() {
+  if (!ResolveServer()) return;
+  ++connect_attempts_;
   const sockaddr_in server = *impl_->server;
   if (name_.tcp) {
     UniqueSocket fd(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));

@@ -1,6 +1,7 @@
 // A VRPN tracker client, as the reference vrpn_Tracker_Remote connects:
 //   "Tracker0@tcp://host:port", "Tracker0@tcp://host", "Tracker0@tcp:host:port"  direct TCP;
-//   "Tracker0@host", "Tracker0@host:port", "Tracker0@x-vrpn://host:port"        UDP lob + TCP call-back,
+//   "Tracker0@host", "Tracker0@host:port", "Tracker0@x-vrpn://host:port"        UDP lob + TCP
+//   call-back,
 // with a UDP data channel in lob mode. It pings until the server answers (a missing pong means the
 // device name is not served), decodes Pos_Quat into poses and reconnects on its own.
 //
@@ -13,6 +14,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 
@@ -46,6 +48,10 @@ struct TrackerClientOptions {
   bool udp_channel = true;
   // Largest accepted message from the server.
   std::uint32_t max_message_length = kDefaultMaxMessageLength;
+  // Host name -> dotted IPv4 address, nullopt if unknown. Empty: getaddrinfo. It runs on a thread
+  // of its own that Stop() does not wait for, so a DNS server that does not answer never holds up
+  // Stop() (Unity's OnDisable). A dotted address is used as is.
+  std::function<std::optional<std::string>(const std::string& host)> resolve_host;
   void Check() const;
 };
 
@@ -80,16 +86,18 @@ class VrpnTrackerClient {
   // Queues the three static-information requests (To_Room, Unit_To_Sensor, Workspace).
   void RequestStaticInfo();
 
-  bool connected() const { return connected_; }      // cookie exchange done
+  bool connected() const { return connected_; }  // cookie exchange done
   bool pong_received() const { return pong_received_; }
-  bool udp_active() const { return udp_active_; }     // a report came over UDP
+  bool udp_active() const { return udp_active_; }  // a report came over UDP
   std::uint64_t reports() const { return reports_; }
   std::uint64_t connections() const { return connections_; }
+  std::uint64_t connect_attempts() const { return connect_attempts_; }  // TCP connects or lobs begun
   const VrpnName& name() const { return name_; }
 
  private:
   struct Impl;
   void Reset(const std::string& why);
+  bool ResolveServer();  // false: not known yet (next_retry set)
   void BeginConnect();
   void OnTcpConnected();
   void HandleMessage(const ReceivedMessage& m);
@@ -105,6 +113,7 @@ class VrpnTrackerClient {
   std::atomic<bool> udp_active_{false};
   std::atomic<std::uint64_t> reports_{0};
   std::atomic<std::uint64_t> connections_{0};
+  std::atomic<std::uint64_t> connect_attempts_{0};
   std::thread thread_;
   std::atomic<bool> running_{false};
 };

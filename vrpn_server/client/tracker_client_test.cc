@@ -397,5 +397,72 @@ TEST(VrpnServer, BurstOf128ClientsAllStreaming) {
   EXPECT_LT(elapsed, 10.0);
 }
 
+TEST(VrpnTrackerClient, AHostNameIsResolvedOffTheClientThread) {
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  TrackerClientOptions options;
+  std::atomic<int> lookups{0};
+  options.resolve_host = [&lookups](const std::string& host) -> std::optional<std::string> {
+    ++lookups;
+    return host == "tracker.lab" ? std::optional<std::string>("127.0.0.1") : std::nullopt;
+  };
+  VrpnTrackerClient client("Tracker0@tcp://tracker.lab:" + std::to_string(server.port()), options);
+  Collected got;
+  Attach(client, got);
+  ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
+  EXPECT_EQ(lookups, 1);
+}
+
+TEST(VrpnTrackerClient, StopDoesNotWaitForADnsServerThatDoesNotAnswer) {
+  TrackerClientOptions options;
+  auto release = std::make_shared<std::atomic<bool>>(false);
+  options.resolve_host = [release](const std::string&) -> std::optional<std::string> {
+    // A resolver stuck for up to 10 s (the test lets it go at the end).
+    for (int i = 0; i < 1000 && !*release; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    return std::nullopt;
+  };
+  VrpnTrackerClient client("Tracker0@tcp://unanswered.lab:3883", options);
+  client.Start();
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));  // the lookup is under way
+  const auto start = Clock::now();
+  client.Stop();
+  const double stop_s = std::chrono::duration<double>(Clock::now() - start).count();
+  *release = true;
+  // The client thread polls in 50 ms steps; 2 s is slack for a loaded machine, far below the 10 s
+  // the lookup would have held it.
+  EXPECT_LT(stop_s, 2.0);
+  EXPECT_FALSE(client.connected());
+}
+
+TEST(VrpnTrackerClient, AConnectThatHangsIsRetried) {
+  // A listener whose backlog is full: the kernel leaves further SYNs unanswered, so a connect
+  // neither succeeds nor fails, as to a host that drops them.
+  UniqueSocket listener(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
+  sockaddr_in address = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
+  ASSERT_EQ(::listen(listener.get(), 0), 0);
+  socklen_t len = sizeof(address);
+  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&address), &len);
+  std::vector<UniqueSocket> fillers;
+  for (int i = 0; i < 4; ++i) {
+    fillers.emplace_back(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
+    ::connect(fillers.back().get(), reinterpret_cast<sockaddr*>(&address), sizeof(address));
+  }
+  TrackerClientOptions options;
+  options.connect_timeout_s = 0.3;
+  options.reconnect_delay_s = 0.1;
+  VrpnTrackerClient client("Tracker0@tcp://127.0.0.1:" + std::to_string(ntohs(address.sin_port)),
+                           options);
+  // Each attempt that times out is abandoned and a new one started: the client keeps trying
+  // instead of waiting out the kernel's SYN retries (about two minutes).
+  const auto end = Clock::now() + std::chrono::seconds(3);
+  while (Clock::now() < end) client.Poll(0.01);
+  EXPECT_FALSE(client.connected());
+  EXPECT_EQ(client.connections(), 0u);
+  // 3 s of 0.3 s timeouts and 0.1 s waits: about 7 attempts; a loaded machine polls late, and one
+  // attempt is what a client without the timeout makes.
+  EXPECT_GE(client.connect_attempts(), 3u);
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
