@@ -88,7 +88,7 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
     TrackcalUnityTracker* t = tracker.get();
     // The callbacks run on the client's std::thread: an exception leaving them would reach
     // std::terminate and take the whole Unity process down. A report that cannot be stored
-    // (bad_alloc, a failed lock) is dropped instead.
+    // (bad_alloc, a failed lock) or shown (a zero quaternion, ToUnity) is dropped instead.
     t->client->SetPoseCallback([t](const trackcal::vrpn::TrackerReport& r) noexcept {
       if (r.sensor < 0 || r.sensor > TRACKCAL_UNITY_MAX_SENSOR) return;
       try {

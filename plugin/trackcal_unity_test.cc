@@ -108,7 +108,7 @@ TEST(TrackcalUnity, ConvertIsToUnity) {
   }
 }
 
-void ExpectServedPoses(const std::string& name) {
+void ExpectServedPoses(const std::string& name, bool udp) {
   auto server = StartServer();
   const std::string full = name + std::to_string(server->port());
   Handle h(full);
@@ -171,6 +171,7 @@ void ExpectServedPoses(const std::string& name) {
   EXPECT_EQ(status.connected, 1);
   EXPECT_EQ(status.device_served, 1);
   EXPECT_EQ(status.connections, 1u);
+  EXPECT_EQ(status.udp, udp ? 1 : 0);  // lob mode: the reports came over the UDP data channel
   EXPECT_GE(status.reports, 2u);
   EXPECT_GE(status.texts, 1u);
 
@@ -197,9 +198,13 @@ void ExpectServedPoses(const std::string& name) {
   EXPECT_GE(status.connections, 2u);
 }
 
-TEST(TrackcalUnity, ServedPosesOverDirectTcp) { ExpectServedPoses("Tracker0@tcp://127.0.0.1:"); }
+TEST(TrackcalUnity, ServedPosesOverDirectTcp) {
+  ExpectServedPoses("Tracker0@tcp://127.0.0.1:", false);
+}
 
-TEST(TrackcalUnity, ServedPosesOverUdpWithCallBack) { ExpectServedPoses("Tracker0@127.0.0.1:"); }
+TEST(TrackcalUnity, ServedPosesOverUdpWithCallBack) {
+  ExpectServedPoses("Tracker0@127.0.0.1:", true);
+}
 
 TEST(TrackcalUnity, ClosingWhileConnectingReturnsPromptly) {
   const auto start = Clock::now();

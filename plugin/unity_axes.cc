@@ -2,6 +2,7 @@
 
 #include <array>
 #include <cctype>
+#include <cmath>
 #include <stdexcept>
 
 namespace trackcal::unity {
@@ -75,6 +76,14 @@ UnityPose ToUnity(const AxisMap& axes, const Rigid3d& transmitter_from_receiver)
   // det(M) = -1 (ParseAxisMap): the rotation axis is a pseudovector, so it maps to -M * axis.
   const Eigen::Vector3d v = -(m * q.vec());
   out.rotation = QuaternionFromXyzw(v.x(), v.y(), v.z(), q.w());
+  // A server that sends an unnormalised quaternion (not the Fastrak's: float32, unit to ~1e-7)
+  // would hand Unity a rotation it rejects; the position is not scaled with it.
+  const double norm = out.rotation.norm();
+  if (!std::isfinite(norm) || !std::isfinite(out.position.squaredNorm()) || norm == 0.0) {
+    throw std::invalid_argument("pose " + transmitter_from_receiver.ToString() +
+                                ": not a rotation and a position");
+  }
+  if (std::abs(norm - 1.0) > kUnitQuaternionTolerance) out.rotation.coeffs() /= norm;
   return out;
 }
 

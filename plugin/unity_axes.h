@@ -41,8 +41,13 @@ struct UnityPose {
   Eigen::Quaterniond rotation = Eigen::Quaterniond::Identity();  // Unity axes
 };
 
+// A quaternion further than this from unit length is normalised by ToUnity.
+inline constexpr double kUnitQuaternionTolerance = 1e-6;
+
 // transmitter_from_receiver (tracker frame) in Unity's axes. The quaternion keeps the sign of the
-// input's w, so a stream of poses stays continuous.
+// input's w, so a stream of poses stays continuous; one further than kUnitQuaternionTolerance from
+// unit length is normalised. Throws std::invalid_argument for a zero or non-finite quaternion or a
+// non-finite position (nothing Unity can show).
 UnityPose ToUnity(const AxisMap& axes, const Rigid3d& transmitter_from_receiver);
 
 }  // namespace trackcal::unity

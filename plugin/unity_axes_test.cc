@@ -85,5 +85,23 @@ TEST(ToUnity, MapsEveryPointOfTheReceiverAsTheTrackerDoes) {
   }
 }
 
+TEST(ToUnity, NormalisesAQuaternionThatIsNotUnitAndRefusesOneThatIsNoRotation) {
+  const AxisMap axes = ParseAxisMap(kDefaultAxes);
+  auto& rng = testing::TestRng();
+  const Rigid3d unit(testing::RandomRotation(rng), Eigen::Vector3d(0.1, 0.2, 0.3));
+  Rigid3d scaled = unit;
+  scaled.rotation.coeffs() *= 0.97;  // a third-party server's sloppy quaternion
+  const UnityPose a = ToUnity(axes, unit), b = ToUnity(axes, scaled);
+  EXPECT_NEAR(b.rotation.norm(), 1.0, kTol);
+  EXPECT_NEAR((a.rotation.coeffs() - b.rotation.coeffs()).norm(), 0.0, kTol);
+  EXPECT_EQ(a.position, b.position);
+  Rigid3d bad = unit;
+  bad.rotation.coeffs().setZero();
+  EXPECT_THROW(ToUnity(axes, bad), std::invalid_argument);
+  bad = unit;
+  bad.translation.x() = std::nan("");
+  EXPECT_THROW(ToUnity(axes, bad), std::invalid_argument);
+}
+
 }  // namespace
 }  // namespace trackcal::unity

@@ -62,9 +62,10 @@ namespace Trackcal
         [DllImport(Library, EntryPoint = "trackcal_unity_abi_version")]
         internal static extern int AbiVersion();
 
+        // Strings cross as NUL-terminated UTF-8 byte arrays (Utf8): LPStr would use the ANSI code
+        // page on Windows, and UTF-8 string marshalling is not on every Unity runtime.
         [DllImport(Library, EntryPoint = "trackcal_unity_open")]
-        internal static extern TrackcalHandle Open([MarshalAs(UnmanagedType.LPStr)] string vrpnName,
-                                                   [MarshalAs(UnmanagedType.LPStr)] string axes);
+        internal static extern TrackcalHandle Open(byte[] vrpnNameUtf8, byte[] axesUtf8);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_close")]
         internal static extern void Close(IntPtr tracker);
@@ -76,19 +77,31 @@ namespace Trackcal
         internal static extern int GetStatus(TrackcalHandle tracker, out TrackcalStatus status);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_last_text")]
-        internal static extern int LastText(TrackcalHandle tracker, [Out] byte[] buffer, int bufferSize, out int severity);
+        internal static extern int LastText(TrackcalHandle tracker, [Out] byte[] buffer, int bufferSize,
+                                            out int severity);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_convert")]
-        internal static extern int Convert([MarshalAs(UnmanagedType.LPStr)] string axes,
-                                           double[] trackerP, double[] trackerQXyzw,
+        internal static extern int Convert(byte[] axesUtf8, double[] trackerP, double[] trackerQXyzw,
                                            [Out] double[] unityP, [Out] double[] unityQXyzw);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_last_error")]
         internal static extern IntPtr LastErrorPtr();
 
+        // null stays null (the plugin's default axes).
+        internal static byte[] Utf8(string text)
+        {
+            return text == null ? null : Encoding.UTF8.GetBytes(text + "\0");
+        }
+
         internal static string LastError()
         {
-            return Marshal.PtrToStringAnsi(LastErrorPtr()) ?? "";
+            IntPtr p = LastErrorPtr();
+            if (p == IntPtr.Zero) return "";
+            int length = 0;
+            while (Marshal.ReadByte(p, length) != 0) length++;
+            byte[] bytes = new byte[length];
+            Marshal.Copy(p, bytes, 0, length);
+            return Encoding.UTF8.GetString(bytes);
         }
     }
 
@@ -110,7 +123,7 @@ namespace Trackcal
         public TrackcalTracker(string vrpnName, string axes = DefaultAxes)
         {
             CheckAbi();
-            handle = TrackcalNative.Open(vrpnName, axes);
+            handle = TrackcalNative.Open(TrackcalNative.Utf8(vrpnName), TrackcalNative.Utf8(axes));
             if (handle.IsInvalid)
                 throw new ArgumentException(TrackcalNative.LastError());
             VrpnName = vrpnName;
@@ -169,7 +182,8 @@ namespace Trackcal
             CheckLength(trackerQXyzw, 4, "trackerQXyzw");
             CheckLength(unityP, 3, "unityP");
             CheckLength(unityQXyzw, 4, "unityQXyzw");
-            if (TrackcalNative.Convert(axes, trackerP, trackerQXyzw, unityP, unityQXyzw) < 0)
+            if (TrackcalNative.Convert(TrackcalNative.Utf8(axes), trackerP, trackerQXyzw, unityP,
+                                       unityQXyzw) < 0)
                 throw new ArgumentException(TrackcalNative.LastError());
         }
 

@@ -61,7 +61,11 @@ def test_a_scene_reads_the_corrected_and_the_raw_tracker(plugin, emulated_server
     port, (p_true, _q_true), _cal = emulated_server
     # Both ways a client connects: direct TCP for the corrected tracker, UDP call-back for the raw.
     corrected = _tracker(plugin, f"Tracker0@tcp://127.0.0.1:{port}")
-    raw = _tracker(plugin, f"Tracker0_raw@127.0.0.1:{port}")
+    try:
+        raw = _tracker(plugin, f"Tracker0_raw@127.0.0.1:{port}")
+    except BaseException:
+        plugin.trackcal_unity_close(corrected)
+        raise
     try:
         samples = {"corrected": [], "raw": []}
         # The server resets the Fastrak before its first report (a few seconds), hence 40 s.

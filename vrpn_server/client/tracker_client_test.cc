@@ -418,7 +418,9 @@ TEST(VrpnTrackerClient, StopDoesNotWaitForADnsServerThatDoesNotAnswer) {
   auto release = std::make_shared<std::atomic<bool>>(false);
   options.resolve_host = [release](const std::string&) -> std::optional<std::string> {
     // A resolver stuck for up to 10 s (the test lets it go at the end).
-    for (int i = 0; i < 1000 && !*release; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    for (int i = 0; i < 1000 && !*release; ++i) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
     return std::nullopt;
   };
   VrpnTrackerClient client("Tracker0@tcp://unanswered.lab:3883", options);

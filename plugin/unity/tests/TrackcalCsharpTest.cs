@@ -65,6 +65,17 @@ public static class TrackcalCsharpTest
             Check(e.Message.Contains("mirrored"), "the axes error says why: " + e.Message);
         }
 
+        // Text crosses as UTF-8 both ways: the name in the plugin's error is the one given.
+        try
+        {
+            new TrackcalTracker("Tracker\u00e9\u4e00", null).Dispose();
+            Check(false, "a name without @host accepted");
+        }
+        catch (ArgumentException e)
+        {
+            Check(e.Message.Contains("'Tracker\u00e9\u4e00'"), "the name error quotes the name: " + e.Message);
+        }
+
         // Convert: the common z-flip rule, (x, y, -z) and (-qx, -qy, qz, qw).
         var up = new double[3];
         var uq = new double[4];
