@@ -23,7 +23,8 @@ std::string Number(double v) {
   return buf;
 }
 
-// Serves two sensors' known poses on loopback while `command` (followed by the VRPN name and the
+// Serves two sensors' known poses and a stylus ("Stylus0", button 1 pressed and released every
+// 0.2 s) on loopback while `command` (followed by the VRPN name and the
 // poses as "sensor,px,py,pz,qx,qy,qz,qw") runs; returns its exit status and output.
 struct Run {
   int status = -1;
@@ -37,6 +38,7 @@ Run RunAgainstServedPoses(const std::string& command_prefix) {
   spec.name = "Tracker0";
   spec.num_sensors = 4;
   catalog->AddTracker(spec);
+  catalog->AddButton(vrpn::ButtonSpec{"Stylus0", 2});  // read as "Stylus0@..." by the programs
   vrpn::ServerOptions options;
   options.bind_address = "127.0.0.1";
   options.port = 0;
@@ -49,10 +51,12 @@ Run RunAgainstServedPoses(const std::string& command_prefix) {
       {3, Rigid3d(testing::RandomRotation(rng), Eigen::Vector3d(-0.12, 0.26, 0.61))}};
   std::atomic<bool> stop{false};
   std::thread publisher([&] {
-    while (!stop) {
+    for (int i = 0; !stop; ++i) {
       for (const auto& [sensor, pose] : poses) {
         server.PublishPose(0, sensor, pose, vrpn::Timestamp::Now());
       }
+      // The stylus's button 1 goes down and up every 0.1 s; button 0 stays up.
+      if (i % 5 == 0) server.PublishButton(0, 1, (i / 5) % 2 == 0, vrpn::Timestamp::Now());
       std::this_thread::sleep_for(std::chrono::milliseconds(10));
     }
   });

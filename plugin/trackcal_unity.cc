@@ -66,6 +66,11 @@ struct TrackcalUnityTracker {
   std::string text;                    // guarded by mutex
   int32_t text_severity = 0;           // guarded by mutex
   std::uint64_t texts = 0;             // guarded by mutex
+  struct Button {
+    bool pressed = false;
+    std::uint64_t presses = 0;
+  };
+  std::map<int, Button> buttons;  // guarded by mutex
   // Last: destroyed first, so its thread is joined before the state its callbacks touch goes.
   std::unique_ptr<trackcal::vrpn::VrpnTrackerClient> client;
 };
@@ -104,14 +109,30 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
       }
     });
     t->client->SetMessageCallback([t](const trackcal::vrpn::ReceivedMessage& m) noexcept {
-      if (m.type != trackcal::vrpn::kTextType) return;
       try {
-        const auto text = trackcal::vrpn::DecodeText(m.payload);
-        if (!text) return;
-        std::lock_guard lock(t->mutex);
-        t->text = text->text;
-        t->text_severity = static_cast<int32_t>(text->severity);
-        ++t->texts;
+        if (m.type == trackcal::vrpn::kTextType) {
+          const auto text = trackcal::vrpn::DecodeText(m.payload);
+          if (!text) return;
+          std::lock_guard lock(t->mutex);
+          t->text = text->text;
+          t->text_severity = static_cast<int32_t>(text->severity);
+          ++t->texts;
+        } else if (m.type == trackcal::vrpn::kButtonChangeType) {
+          const auto change = trackcal::vrpn::DecodeButtonChange(m.payload);
+          if (!change || change->button < 0 || change->button > TRACKCAL_UNITY_MAX_SENSOR) return;
+          std::lock_guard lock(t->mutex);
+          auto& b = t->buttons[change->button];
+          if (change->state != 0 && !b.pressed) ++b.presses;
+          b.pressed = change->state != 0;
+        } else if (m.type == trackcal::vrpn::kButtonStatesType) {
+          // Sent on connect: the states as they are, not presses seen.
+          const auto states = trackcal::vrpn::DecodeButtonStates(m.payload);
+          if (!states) return;
+          std::lock_guard lock(t->mutex);
+          for (std::size_t i = 0; i < states->size() && i <= TRACKCAL_UNITY_MAX_SENSOR; ++i) {
+            t->buttons[static_cast<int>(i)].pressed = (*states)[i] != 0;
+          }
+        }
       } catch (...) {
       }
     });
@@ -192,6 +213,29 @@ int32_t trackcal_unity_get_status(TrackcalUnityTracker* tracker, TrackcalUnitySt
     out->connections = tracker->client->connections();
     std::lock_guard lock(tracker->mutex);
     out->texts = tracker->texts;
+    return TRACKCAL_UNITY_OK;
+  });
+}
+
+int32_t trackcal_unity_get_button(TrackcalUnityTracker* tracker, int32_t index, int32_t* pressed,
+                                  uint64_t* presses) {
+  last_error.clear();
+  if (tracker == nullptr || pressed == nullptr || presses == nullptr) {
+    return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_button: null handle or output");
+  }
+  *pressed = 0;
+  *presses = 0;
+  return Guarded("trackcal_unity_get_button", [&]() -> int32_t {
+    if (index < 0 || index > TRACKCAL_UNITY_MAX_SENSOR) {
+      return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_button: button " +
+                                                     std::to_string(index) + " is outside 0.." +
+                                                     std::to_string(TRACKCAL_UNITY_MAX_SENSOR));
+    }
+    std::lock_guard lock(tracker->mutex);
+    const auto it = tracker->buttons.find(index);
+    if (it == tracker->buttons.end()) return TRACKCAL_UNITY_NO_BUTTON;
+    *pressed = it->second.pressed ? 1 : 0;
+    *presses = it->second.presses;
     return TRACKCAL_UNITY_OK;
   });
 }

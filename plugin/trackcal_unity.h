@@ -65,6 +65,7 @@ typedef struct TrackcalUnityStatus {
 enum {
   TRACKCAL_UNITY_OK = 0,
   TRACKCAL_UNITY_NO_POSE = 1,         /* trackcal_unity_get_pose: nothing from this sensor yet */
+  TRACKCAL_UNITY_NO_BUTTON = 1,       /* trackcal_unity_get_button: nothing about this button yet */
   TRACKCAL_UNITY_ERROR_ARGUMENT = -1, /* a null pointer, a bad name, axes or sensor index */
   TRACKCAL_UNITY_ERROR_INTERNAL =
       -2 /* an unexpected failure; trackcal_unity_last_error() says it */
@@ -93,6 +94,14 @@ TRACKCAL_UNITY_API int32_t trackcal_unity_get_status(TrackcalUnityTracker* track
  * an error. *severity: 0 normal, 1 warning, 2 error. */
 TRACKCAL_UNITY_API int32_t trackcal_unity_last_text(TrackcalUnityTracker* tracker, char* buffer,
                                                     int32_t buffer_size, int32_t* severity);
+
+/* A button of a VRPN button device, opened like a tracker: a Fastrak stylus is served as a device
+ * of its own (vrpn.cfg's stylus line, e.g. "Stylus0@host"). *pressed: 1 pressed, 0 released;
+ * *presses: presses seen since the handle was opened, so a press and release between two frames is
+ * not lost. TRACKCAL_UNITY_OK, TRACKCAL_UNITY_NO_BUTTON (nothing about it yet: *pressed = 0,
+ * *presses = 0), or an error (an index outside 0..TRACKCAL_UNITY_MAX_SENSOR). */
+TRACKCAL_UNITY_API int32_t trackcal_unity_get_button(TrackcalUnityTracker* tracker, int32_t index,
+                                                     int32_t* pressed, uint64_t* presses);
 
 /* Converts one pose as trackcal_unity_get_pose() does (tests, tools, poses from elsewhere). */
 TRACKCAL_UNITY_API int32_t trackcal_unity_convert(const char* axes, const double tracker_p[3],

@@ -25,6 +25,7 @@ std::unique_ptr<vrpn::VrpnServer> StartServer() {
   spec.name = "Tracker0";
   spec.num_sensors = 4;
   catalog->AddTracker(spec);
+  catalog->AddButton(vrpn::ButtonSpec{"Stylus0", 2});
   vrpn::ServerOptions options;
   options.bind_address = "127.0.0.1";
   options.port = 0;
@@ -215,6 +216,42 @@ TEST(TrackcalUnity, ClosingWhileConnectingReturnsPromptly) {
   }
   // The network thread polls in 50 ms steps; 5 s leaves room for a loaded machine.
   EXPECT_LT(std::chrono::duration<double>(Clock::now() - start).count(), 5.0);
+}
+
+TEST(TrackcalUnity, AStylusButtonIsReadAndNoPressIsLost) {
+  auto server = StartServer();
+  Handle h("Stylus0@tcp://127.0.0.1:" + std::to_string(server->port()));
+  ASSERT_NE(h.t, nullptr) << trackcal_unity_last_error();
+  int32_t pressed = -1;
+  uint64_t presses = 99;
+  // The server sends the states on connect: both buttons known, released, no press yet.
+  ASSERT_TRUE(PublishUntil(
+      [] {},
+      [&] { return trackcal_unity_get_button(h.t, 1, &pressed, &presses) == TRACKCAL_UNITY_OK; }));
+  EXPECT_EQ(pressed, 0);
+  EXPECT_EQ(presses, 0u);
+  // A press and a release between two reads (two frames) still counts once.
+  server->PublishButton(0, 1, true, Timestamp::Now());
+  server->PublishButton(0, 1, false, Timestamp::Now());
+  ASSERT_TRUE(PublishUntil([] {},
+                           [&] {
+                             trackcal_unity_get_button(h.t, 1, &pressed, &presses);
+                             return presses == 1;
+                           }));
+  EXPECT_EQ(pressed, 0);
+  server->PublishButton(0, 1, true, Timestamp::Now());
+  ASSERT_TRUE(PublishUntil([] {},
+                           [&] {
+                             trackcal_unity_get_button(h.t, 1, &pressed, &presses);
+                             return pressed == 1;
+                           }));
+  EXPECT_EQ(presses, 2u);
+  EXPECT_EQ(trackcal_unity_get_button(h.t, 0, &pressed, &presses), TRACKCAL_UNITY_OK);
+  EXPECT_EQ(pressed, 0);
+  EXPECT_EQ(trackcal_unity_get_button(h.t, 7, &pressed, &presses), TRACKCAL_UNITY_NO_BUTTON);
+  EXPECT_EQ(trackcal_unity_get_button(h.t, -1, &pressed, &presses), TRACKCAL_UNITY_ERROR_ARGUMENT);
+  EXPECT_NE(std::string(trackcal_unity_last_error()).find("button -1"), std::string::npos);
+  EXPECT_EQ(trackcal_unity_get_button(h.t, 0, nullptr, &presses), TRACKCAL_UNITY_ERROR_ARGUMENT);
 }
 
 }  // namespace

@@ -83,6 +83,26 @@ int main(int argc, char** argv) {
             std::strstr(trackcal_unity_last_error(), "sensor -1") != nullptr,
         "a bad sensor is named");
   trackcal_unity_close(tracker);
+
+  // The stylus served beside the tracker ("Stylus0" for "Tracker0"): button 1 is being pressed.
+  std::string stylus_name = argv[1];
+  stylus_name.replace(stylus_name.find("Tracker0"), 8, "Stylus0");
+  TrackcalUnityTracker* stylus = trackcal_unity_open(stylus_name.c_str(), nullptr);
+  Check(stylus != nullptr, std::string("open the stylus: ") + trackcal_unity_last_error());
+  if (stylus != nullptr) {
+    int32_t pressed = 0;
+    uint64_t presses = 0;
+    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+    while (presses < 2 && std::chrono::steady_clock::now() < until) {
+      trackcal_unity_get_button(stylus, 1, &pressed, &presses);
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    Check(presses >= 2, "stylus button 1 presses seen: " + std::to_string(presses));
+    Check(trackcal_unity_get_button(stylus, 0, &pressed, &presses) == TRACKCAL_UNITY_OK &&
+              pressed == 0,
+          "stylus button 0 known and up");
+    trackcal_unity_close(stylus);
+  }
   std::printf(failures == 0 ? "PASS\n" : "%d check(s) failed\n", failures);
   return failures == 0 ? 0 : 1;
 }

@@ -3,6 +3,7 @@
 // in Unity's left-handed, y-up axes. No UnityEngine dependency here: TrackcalTrackedObject.cs is
 // the MonoBehaviour. docs/unity.md says how to install and which axes to choose.
 using System;
+using System.Collections.Generic;
 using System.Runtime.InteropServices;
 using System.Text;
 
@@ -75,6 +76,10 @@ namespace Trackcal
 
         [DllImport(Library, EntryPoint = "trackcal_unity_get_status")]
         internal static extern int GetStatus(TrackcalHandle tracker, out TrackcalStatus status);
+
+        [DllImport(Library, EntryPoint = "trackcal_unity_get_button")]
+        internal static extern int GetButton(TrackcalHandle tracker, int index, out int pressed,
+                                             out ulong presses);
 
         [DllImport(Library, EntryPoint = "trackcal_unity_last_text")]
         internal static extern int LastText(TrackcalHandle tracker, [Out] byte[] buffer, int bufferSize,
@@ -158,6 +163,19 @@ namespace Trackcal
             }
         }
 
+        // A button of a button device opened like a tracker ("Stylus0@host": a Fastrak stylus is
+        // served as a device of its own). False until the server has said anything about it.
+        // presses counts presses since the connection opened, so a press shorter than a frame is
+        // not lost. Throws ArgumentException for an index outside 0..255.
+        public bool TryGetButton(int index, out bool pressed, out ulong presses)
+        {
+            int state;
+            int rc = TrackcalNative.GetButton(Handle(), index, out state, out presses);
+            if (rc < 0) throw new ArgumentException(TrackcalNative.LastError());
+            pressed = state != 0;
+            return rc == 0;
+        }
+
         // The server's last text for this device ("" if none); severity 0 normal, 1 warning, 2 error.
         public string LastText(out int severity)
         {
@@ -204,6 +222,70 @@ namespace Trackcal
         public void Dispose()
         {
             handle.Dispose();
+        }
+    }
+
+    // One TrackcalTracker per (VRPN name, axes) for every component that reads it: two objects on
+    // the sensors of one tracker, or a stylus button beside them, share a connection. Acquire and
+    // Release pair up; the last Release disposes the tracker.
+    public static class TrackcalConnections
+    {
+        private sealed class Shared
+        {
+            public TrackcalTracker Tracker;
+            public int Users;
+        }
+
+        private static readonly Dictionary<string, Shared> shared = new Dictionary<string, Shared>();
+
+        // Open connections, for status displays and tests.
+        public static int Count
+        {
+            get { lock (shared) return shared.Count; }
+        }
+
+        // "Y, -Z, +x" and "y,-z,x" (and "" and null, the default) are one mapping: one connection.
+        public static string NormalizedAxes(string axes)
+        {
+            if (axes == null || axes.Trim().Length == 0) return TrackcalTracker.DefaultAxes;
+            var sb = new StringBuilder();
+            foreach (char c in axes)
+                if (!char.IsWhiteSpace(c) && c != '+') sb.Append(char.ToLowerInvariant(c));
+            return sb.ToString();
+        }
+
+        // Throws what TrackcalTracker's constructor throws (a bad name or axes).
+        public static TrackcalTracker Acquire(string vrpnName, string axes)
+        {
+            string normalized = NormalizedAxes(axes);
+            string key = vrpnName + "\n" + normalized;
+            lock (shared)
+            {
+                Shared s;
+                if (!shared.TryGetValue(key, out s))
+                {
+                    s = new Shared { Tracker = new TrackcalTracker(vrpnName, normalized) };
+                    shared[key] = s;
+                }
+                s.Users++;
+                return s.Tracker;
+            }
+        }
+
+        public static void Release(TrackcalTracker tracker)
+        {
+            if (tracker == null) return;
+            lock (shared)
+            {
+                string key = tracker.VrpnName + "\n" + tracker.Axes;
+                Shared s;
+                if (!shared.TryGetValue(key, out s) || s.Tracker != tracker) return;
+                if (--s.Users == 0)
+                {
+                    s.Tracker.Dispose();
+                    shared.Remove(key);
+                }
+            }
         }
     }
 }

@@ -4,7 +4,6 @@
 // one connection.
 #if UNITY_5_3_OR_NEWER
 using System;
-using System.Collections.Generic;
 using UnityEngine;
 
 namespace Trackcal
@@ -32,34 +31,16 @@ namespace Trackcal
         public bool IsTracking { get; private set; }
         public TrackcalPose LastPose { get; private set; }
 
-        private sealed class Shared
-        {
-            public TrackcalTracker Tracker;
-            public int Users;
-        }
+        private TrackcalTracker tracker;
 
-        private static readonly Dictionary<string, Shared> shared = new Dictionary<string, Shared>();
-        private Shared connection;
-        private string key;
-
-        // Open connections (tracker name and axes), for status displays and tests.
+        // Open connections (TrackcalConnections.Count), for status displays and tests.
         public static int SharedConnections
         {
-            get { lock (shared) return shared.Count; }
+            get { return TrackcalConnections.Count; }
         }
 
         // TRACKCAL_UNITY_MAX_SENSOR: the plugin refuses a larger index.
         public const int MaxSensor = 255;
-
-        // "Y, -Z, +x" and "y,-z,x" (and "" and null, the default) are one mapping: one connection.
-        private static string NormalizedAxes(string axes)
-        {
-            if (string.IsNullOrEmpty(axes) || axes.Trim().Length == 0) return TrackcalTracker.DefaultAxes;
-            var sb = new System.Text.StringBuilder();
-            foreach (char c in axes)
-                if (!char.IsWhiteSpace(c) && c != '+') sb.Append(char.ToLowerInvariant(c));
-            return sb.ToString();
-        }
 
         private bool SensorValid()
         {
@@ -72,52 +53,33 @@ namespace Trackcal
         private void OnEnable()
         {
             if (!SensorValid()) return;
-            string normalized = NormalizedAxes(axes);
-            key = trackerName + "\n" + normalized;
-            lock (shared)
+            try
             {
-                if (!shared.TryGetValue(key, out connection))
-                {
-                    try
-                    {
-                        connection = new Shared { Tracker = new TrackcalTracker(trackerName, normalized) };
-                    }
-                    catch (Exception e)
-                    {
-                        Debug.LogError("trackcal: " + name + ": " + e.Message);
-                        connection = null;
-                        enabled = false;
-                        return;
-                    }
-                    shared[key] = connection;
-                }
-                connection.Users++;
+                tracker = TrackcalConnections.Acquire(trackerName, axes);
+            }
+            catch (Exception e)
+            {
+                Debug.LogError("trackcal: " + name + ": " + e.Message);
+                tracker = null;
+                enabled = false;
             }
         }
 
         private void OnDisable()
         {
             IsTracking = false;
-            if (connection == null) return;
-            lock (shared)
-            {
-                if (--connection.Users == 0)
-                {
-                    connection.Tracker.Dispose();
-                    shared.Remove(key);
-                }
-            }
-            connection = null;
+            TrackcalConnections.Release(tracker);
+            tracker = null;
         }
 
         private void Update()
         {
             IsTracking = false;
-            if (connection == null) return;
+            if (tracker == null) return;
             // Changed in the Inspector while playing: an exception every frame otherwise.
             if (!SensorValid()) return;
             TrackcalPose pose;
-            if (!connection.Tracker.TryGetPose(sensor, out pose)) return;
+            if (!tracker.TryGetPose(sensor, out pose)) return;
             LastPose = pose;
             if (pose.AgeSeconds > maxAgeSeconds) return;
             IsTracking = true;

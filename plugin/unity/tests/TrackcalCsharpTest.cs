@@ -29,7 +29,7 @@ public static class TrackcalCsharpTest
 
     static void Invoke(object target, string method)
     {
-        typeof(TrackcalTrackedObject).GetMethod(method, BindingFlags.Instance | BindingFlags.NonPublic)
+        target.GetType().GetMethod(method, BindingFlags.Instance | BindingFlags.NonPublic)
             .Invoke(target, null);
     }
 
@@ -73,7 +73,8 @@ public static class TrackcalCsharpTest
         }
         catch (ArgumentException e)
         {
-            Check(e.Message.Contains("'Tracker\u00e9\u4e00'"), "the name error quotes the name: " + e.Message);
+            Check(e.Message.Contains("'Tracker\u00e9\u4e00'"),
+                  "the name error quotes the name: " + e.Message);
         }
 
         // Convert: the common z-flip rule, (x, y, -z) and (-qx, -qy, qz, qw).
@@ -197,6 +198,44 @@ public static class TrackcalCsharpTest
         Check(TrackcalTrackedObject.SharedConnections == 1, "the connection stays while an object uses it");
         Invoke(b, "OnDisable");
         Check(TrackcalTrackedObject.SharedConnections == 0, "the last object closes the connection");
+
+        // The stylus beside the tracker: button 1 goes down and up every 0.2 s, button 0 stays up.
+        string stylusName = name.Replace("Tracker0", "Stylus0");
+        var stylus = new TrackcalButton { deviceName = stylusName, button = 1 };
+        var other = new TrackcalButton { deviceName = stylusName, button = 0 };
+        Invoke(stylus, "OnEnable");
+        Invoke(other, "OnEnable");
+        Check(TrackcalTrackedObject.SharedConnections == 1, "two buttons of one device share a connection");
+        int framesPressed = 0;
+        DateTime stop = DateTime.UtcNow.AddSeconds(20);
+        while (stylus.Presses < 2 && DateTime.UtcNow < stop)
+        {
+            Invoke(stylus, "Update");
+            Invoke(other, "Update");
+            if (stylus.PressedThisFrame) framesPressed++;
+            Thread.Sleep(5);
+        }
+        Check(stylus.IsKnown && stylus.Presses >= 2, "stylus presses seen: " + stylus.Presses);
+        Check(framesPressed >= 1 && (ulong)framesPressed <= stylus.Presses,
+              "PressedThisFrame in " + framesPressed + " frames for " + stylus.Presses + " presses");
+        Check(other.IsKnown && !other.IsPressed && other.Presses == 0, "button 0 known and up");
+        Invoke(stylus, "OnDisable");
+        Invoke(other, "OnDisable");
+        Check(TrackcalTrackedObject.SharedConnections == 0, "the buttons' connection closed");
+        using (var direct = new TrackcalTracker(stylusName))
+        {
+            bool pressed;
+            ulong presses;
+            try
+            {
+                direct.TryGetButton(256, out pressed, out presses);
+                Check(false, "button 256 accepted");
+            }
+            catch (ArgumentException e)
+            {
+                Check(e.Message.Contains("button 256"), "the button error says why: " + e.Message);
+            }
+        }
 
         var bad = new TrackcalTrackedObject { trackerName = "no host name", sensor = 0 };
         Invoke(bad, "OnEnable");

@@ -1,0 +1,82 @@
+// A button of a VRPN button device (a Fastrak stylus: "Stylus0@host", its own device on the
+// server) for scripts to poll: IsPressed, and PressedThisFrame, which also sees a press and release
+// that both fell between two frames. Shares the connection with other components reading the same
+// device (TrackcalConnections).
+#if UNITY_5_3_OR_NEWER
+using System;
+using UnityEngine;
+
+namespace Trackcal
+{
+    public class TrackcalButton : MonoBehaviour
+    {
+        [Tooltip("VRPN button device: Stylus0@host, Stylus0@host:port or Stylus0@tcp://host:port.")]
+        public string deviceName = "Stylus0@localhost";
+
+        [Tooltip("Button index on the device (0 for the Fastrak stylus's switch).")]
+        public int button = 0;
+
+        public bool IsPressed { get; private set; }
+        // At least one press since the previous frame.
+        public bool PressedThisFrame { get; private set; }
+        // Presses since the component was enabled.
+        public ulong Presses { get; private set; }
+        // False until the server has sent this button's state.
+        public bool IsKnown { get; private set; }
+
+        private TrackcalTracker device;
+        private ulong pressesAtEnable;
+        private bool firstRead;
+
+        private void OnEnable()
+        {
+            if (button < 0 || button > TrackcalTrackedObject.MaxSensor)
+            {
+                Debug.LogError("trackcal: " + name + ": button " + button + " is outside 0.." +
+                               TrackcalTrackedObject.MaxSensor);
+                enabled = false;
+                return;
+            }
+            try
+            {
+                // Axes do not matter to buttons; the default keeps one connection per device.
+                device = TrackcalConnections.Acquire(deviceName, null);
+            }
+            catch (Exception e)
+            {
+                Debug.LogError("trackcal: " + name + ": " + e.Message);
+                device = null;
+                enabled = false;
+                return;
+            }
+            firstRead = true;
+        }
+
+        private void OnDisable()
+        {
+            IsPressed = PressedThisFrame = IsKnown = false;
+            TrackcalConnections.Release(device);
+            device = null;
+        }
+
+        private void Update()
+        {
+            PressedThisFrame = false;
+            if (device == null) return;
+            bool pressed;
+            ulong presses;
+            IsKnown = device.TryGetButton(button, out pressed, out presses);
+            if (firstRead)
+            {
+                // The connection may be older than this component: count from here.
+                pressesAtEnable = presses;
+                firstRead = false;
+            }
+            ulong since = presses - pressesAtEnable;
+            PressedThisFrame = since > Presses;
+            Presses = since;
+            IsPressed = pressed;
+        }
+    }
+}
+#endif
