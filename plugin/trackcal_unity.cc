@@ -69,7 +69,20 @@ struct TrackcalUnityTracker {
   struct Button {
     bool pressed = false;
     std::uint64_t presses = 0;
+    // client->connections() when the server last said something about it: a state from an
+    // earlier connection is stale (the button may have been released while the link was down).
+    std::uint64_t connection = 0;
   };
+  // The button's entry, its state dropped if it is from an earlier connection. Under mutex.
+  Button& CurrentButton(int index) {
+    Button& b = buttons[index];
+    const std::uint64_t now = client->connections();
+    if (b.connection != now) {
+      b.pressed = false;
+      b.connection = now;
+    }
+    return b;
+  }
   std::map<int, Button> buttons;  // guarded by mutex
   // Last: destroyed first, so its thread is joined before the state its callbacks touch goes.
   std::unique_ptr<trackcal::vrpn::VrpnTrackerClient> client;
@@ -121,7 +134,7 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
           const auto change = trackcal::vrpn::DecodeButtonChange(m.payload);
           if (!change || change->button < 0 || change->button > TRACKCAL_UNITY_MAX_SENSOR) return;
           std::lock_guard lock(t->mutex);
-          auto& b = t->buttons[change->button];
+          auto& b = t->CurrentButton(change->button);
           if (change->state != 0 && !b.pressed) ++b.presses;
           b.pressed = change->state != 0;
         } else if (m.type == trackcal::vrpn::kButtonStatesType) {
@@ -130,7 +143,7 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
           if (!states) return;
           std::lock_guard lock(t->mutex);
           for (std::size_t i = 0; i < states->size() && i <= TRACKCAL_UNITY_MAX_SENSOR; ++i) {
-            t->buttons[static_cast<int>(i)].pressed = (*states)[i] != 0;
+            t->CurrentButton(static_cast<int>(i)).pressed = (*states)[i] != 0;
           }
         }
       } catch (...) {
@@ -234,7 +247,11 @@ int32_t trackcal_unity_get_button(TrackcalUnityTracker* tracker, int32_t index, 
     std::lock_guard lock(tracker->mutex);
     const auto it = tracker->buttons.find(index);
     if (it == tracker->buttons.end()) return TRACKCAL_UNITY_NO_BUTTON;
-    *pressed = it->second.pressed ? 1 : 0;
+    // Not pressed while the connection is down or before this connection's states arrived: a
+    // stylus held when the link dropped would otherwise stay pressed until a reconnect.
+    const bool current = tracker->client->connected() &&
+                         it->second.connection == tracker->client->connections();
+    *pressed = current && it->second.pressed ? 1 : 0;
     *presses = it->second.presses;
     return TRACKCAL_UNITY_OK;
   });

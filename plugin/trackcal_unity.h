@@ -96,7 +96,8 @@ TRACKCAL_UNITY_API int32_t trackcal_unity_last_text(TrackcalUnityTracker* tracke
                                                     int32_t buffer_size, int32_t* severity);
 
 /* A button of a VRPN button device, opened like a tracker: a Fastrak stylus is served as a device
- * of its own (vrpn.cfg's stylus line, e.g. "Stylus0@host"). *pressed: 1 pressed, 0 released;
+ * of its own (vrpn.cfg's stylus line, e.g. "Stylus0@host"). *pressed: 1 pressed, 0 released or
+ * the connection down (a state from an earlier connection is not reported);
  * *presses: presses seen since the handle was opened, so a press and release between two frames is
  * not lost. TRACKCAL_UNITY_OK, TRACKCAL_UNITY_NO_BUTTON (nothing about it yet: *pressed = 0,
  * *presses = 0), or an error (an index outside 0..TRACKCAL_UNITY_MAX_SENSOR). */

@@ -19,7 +19,7 @@ namespace {
 using Clock = std::chrono::steady_clock;
 using vrpn::Timestamp;
 
-std::unique_ptr<vrpn::VrpnServer> StartServer() {
+std::unique_ptr<vrpn::VrpnServer> StartServer(int port = 0) {
   auto catalog = std::make_shared<vrpn::ServerCatalog>();
   vrpn::TrackerSpec spec;
   spec.name = "Tracker0";
@@ -28,7 +28,7 @@ std::unique_ptr<vrpn::VrpnServer> StartServer() {
   catalog->AddButton(vrpn::ButtonSpec{"Stylus0", 2});
   vrpn::ServerOptions options;
   options.bind_address = "127.0.0.1";
-  options.port = 0;
+  options.port = port;
   auto server = std::make_unique<vrpn::VrpnServer>(catalog, options, [](const std::string&) {});
   server->Start();
   return server;
@@ -246,6 +246,29 @@ TEST(TrackcalUnity, AStylusButtonIsReadAndNoPressIsLost) {
                              return pressed == 1;
                            }));
   EXPECT_EQ(presses, 2u);
+
+  // The server goes away with the button held: it is not reported pressed while disconnected (a
+  // digitising scene would keep drawing), and presses are kept.
+  const int port = server->port();
+  server.reset();
+  ASSERT_TRUE(PublishUntil([] {},
+                           [&] {
+                             trackcal_unity_get_button(h.t, 1, &pressed, &presses);
+                             return pressed == 0;
+                           }));
+  EXPECT_EQ(presses, 2u);
+  // Back on the same port: a press on the new connection is counted.
+  server = StartServer(port);
+  TrackcalUnityStatus status;
+  ASSERT_TRUE(PublishUntil([] {}, [&] {
+    return trackcal_unity_get_status(h.t, &status) == TRACKCAL_UNITY_OK && status.connected == 1;
+  }));
+  ASSERT_TRUE(PublishUntil([&] { server->PublishButton(0, 1, true, Timestamp::Now()); },
+                           [&] {
+                             trackcal_unity_get_button(h.t, 1, &pressed, &presses);
+                             return pressed == 1;
+                           }));
+  EXPECT_EQ(presses, 3u);
   EXPECT_EQ(trackcal_unity_get_button(h.t, 0, &pressed, &presses), TRACKCAL_UNITY_OK);
   EXPECT_EQ(pressed, 0);
   EXPECT_EQ(trackcal_unity_get_button(h.t, 7, &pressed, &presses), TRACKCAL_UNITY_NO_BUTTON);
