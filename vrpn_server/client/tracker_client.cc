@@ -258,7 +258,9 @@ void VrpnTrackerClient::BeginConnect() {
 
 void VrpnTrackerClient::OnTcpConnected() {
   impl_->state = Impl::State::kConnected;
-  impl_->connect_deadline = Clock::time_point::max();
+  // The cookie exchange is part of connecting: a peer that accepts and never answers (a wedged or
+  // stopped server, another service on the port) is abandoned like a connect that hangs.
+  impl_->connect_deadline = Clock::now() + Seconds(options_.connect_timeout_s);
   impl_->connection = std::make_unique<Connection>(
       impl_->names, Connection::Options{.max_message_length = options_.max_message_length});
   std::optional<std::pair<std::string, int>> our_udp;
@@ -336,9 +338,11 @@ void VrpnTrackerClient::Poll(double timeout_s) {
   if (impl_->state == Impl::State::kIdle) wake = std::min(wake, impl_->next_retry);
   if (impl_->state == Impl::State::kLobWaiting) wake = std::min(wake, impl_->next_lob);
   if (connected_ && !pong_received_) wake = std::min(wake, impl_->next_ping);
-  if (impl_->state == Impl::State::kConnecting) {
+  if (impl_->state == Impl::State::kConnecting ||
+      (impl_->state == Impl::State::kConnected && !connected_)) {
     // A connect that neither succeeds nor fails (a host that drops the SYN; WSAPoll, which does not
-    // report a refused connect on some Windows versions) is retried.
+    // report a refused connect on some Windows versions), or a peer that never sends its cookie,
+    // is retried.
     if (now >= impl_->connect_deadline) {
       Reset("connect timed out");
       return;
@@ -411,6 +415,7 @@ void VrpnTrackerClient::Poll(double timeout_s) {
         }
         if (!was && impl_->connection->handshake_done()) {
           connected_ = true;
+          impl_->connect_deadline = Clock::time_point::max();
           impl_->next_ping = Clock::now();
           if (impl_->request_pending) RequestStaticInfo();
         }

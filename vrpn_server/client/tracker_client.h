@@ -40,7 +40,8 @@ struct TrackerClientOptions {
   double ping_interval_s = 1.0;
   // Lob datagram re-send period while waiting for the call-back [s] (reference: 2 s).
   double lob_retry_s = 2.0;
-  // A TCP connect still under way after this long is abandoned and retried [s].
+  // A TCP connect, or the VRPN cookie exchange after it, still under way after this long is
+  // abandoned and retried [s].
   double connect_timeout_s = 5.0;
   // Wait before reconnecting after a failure or a dropped connection [s].
   double reconnect_delay_s = 1.0;

@@ -466,5 +466,27 @@ TEST(VrpnTrackerClient, AConnectThatHangsIsRetried) {
   EXPECT_GE(client.connect_attempts(), 3u);
 }
 
+TEST(VrpnTrackerClient, APeerThatNeverSendsItsCookieIsLeft) {
+  // A listener that is never accepted from: the kernel completes the TCP handshake, but no VRPN
+  // cookie ever comes (a stopped server, another service on the port).
+  UniqueSocket listener(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
+  sockaddr_in address = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
+  ASSERT_EQ(::listen(listener.get(), 16), 0);
+  socklen_t len = sizeof(address);
+  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&address), &len);
+  TrackerClientOptions options;
+  options.connect_timeout_s = 0.3;
+  options.reconnect_delay_s = 0.1;
+  VrpnTrackerClient client("Tracker0@tcp://127.0.0.1:" + std::to_string(ntohs(address.sin_port)),
+                           options);
+  const auto end = Clock::now() + std::chrono::seconds(3);
+  while (Clock::now() < end) client.Poll(0.01);
+  EXPECT_FALSE(client.connected());
+  // Every attempt's TCP connect succeeds; without the timeout the first one is kept for good.
+  EXPECT_GE(client.connections(), 3u);
+  EXPECT_GE(client.connect_attempts(), 3u);
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
