@@ -211,6 +211,12 @@ namespace Trackcal
                 throw new ArgumentException(name + ": " + n + " values expected", name);
         }
 
+        // Disposed (closed): TrackcalConnections hands out a new tracker for its name instead.
+        public bool IsDisposed
+        {
+            get { return handle.IsClosed; }
+        }
+
         private TrackcalHandle Handle()
         {
             if (handle.IsClosed) throw new ObjectDisposedException("TrackcalTracker " + VrpnName);
@@ -227,7 +233,9 @@ namespace Trackcal
 
     // One TrackcalTracker per (VRPN name, axes) for every component that reads it: two objects on
     // the sensors of one tracker, or a stylus button beside them, share a connection. Acquire and
-    // Release pair up; the last Release disposes the tracker.
+    // Release pair up; the last Release disposes the tracker. Do not Dispose an acquired tracker
+    // (Release it): if a script does, the next Acquire opens a new one, and the components holding
+    // the old one acquire again (Renew).
     public static class TrackcalConnections
     {
         private sealed class Shared
@@ -262,7 +270,9 @@ namespace Trackcal
             lock (shared)
             {
                 Shared s;
-                if (!shared.TryGetValue(key, out s))
+                // A tracker disposed by a script while held is replaced; its holders' Releases no
+                // longer match it and are ignored.
+                if (!shared.TryGetValue(key, out s) || s.Tracker.IsDisposed)
                 {
                     s = new Shared { Tracker = new TrackcalTracker(vrpnName, normalized) };
                     shared[key] = s;
@@ -270,6 +280,15 @@ namespace Trackcal
                 s.Users++;
                 return s.Tracker;
             }
+        }
+
+        // The tracker itself while it is open; else releases it and acquires a new one for the
+        // same name and axes (a script disposed the shared tracker).
+        public static TrackcalTracker Renew(TrackcalTracker tracker)
+        {
+            if (tracker == null || !tracker.IsDisposed) return tracker;
+            Release(tracker);
+            return Acquire(tracker.VrpnName, tracker.Axes);
         }
 
         public static void Release(TrackcalTracker tracker)

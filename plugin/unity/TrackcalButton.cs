@@ -27,6 +27,7 @@ namespace Trackcal
         private TrackcalTracker device;
         private ulong pressesAtEnable;
         private bool firstRead;
+        private ulong pressesCarried;
 
         private void OnEnable()
         {
@@ -50,6 +51,8 @@ namespace Trackcal
                 return;
             }
             firstRead = true;
+            pressesCarried = 0;
+            Presses = 0;
         }
 
         private void OnDisable()
@@ -63,6 +66,14 @@ namespace Trackcal
         {
             PressedThisFrame = false;
             if (device == null) return;
+            TrackcalTracker current = TrackcalConnections.Renew(device);
+            if (current != device)
+            {
+                // A new handle counts presses from 0: carry ours over.
+                device = current;
+                pressesCarried = Presses;
+                firstRead = true;
+            }
             bool pressed;
             ulong presses;
             IsKnown = device.TryGetButton(button, out pressed, out presses);
@@ -72,7 +83,7 @@ namespace Trackcal
                 pressesAtEnable = presses;
                 firstRead = false;
             }
-            ulong since = presses - pressesAtEnable;
+            ulong since = pressesCarried + (presses - pressesAtEnable);
             PressedThisFrame = since > Presses;
             Presses = since;
             IsPressed = pressed;

@@ -78,6 +78,8 @@ namespace Trackcal
             if (tracker == null) return;
             // Changed in the Inspector while playing: an exception every frame otherwise.
             if (!SensorValid()) return;
+            // A script disposed the shared tracker: ObjectDisposedException every frame otherwise.
+            tracker = TrackcalConnections.Renew(tracker);
             TrackcalPose pose;
             if (!tracker.TryGetPose(sensor, out pose)) return;
             LastPose = pose;

@@ -219,6 +219,17 @@ public static class TrackcalCsharpTest
         Check(framesPressed >= 1 && (ulong)framesPressed <= stylus.Presses,
               "PressedThisFrame in " + framesPressed + " frames for " + stylus.Presses + " presses");
         Check(other.IsKnown && !other.IsPressed && other.Presses == 0, "button 0 known and up");
+        // A script disposes the shared tracker under both components: each acquires a new one on
+        // its next Update (one connection again), and the presses seen so far are kept.
+        ulong before = stylus.Presses;
+        TrackcalTracker held = TrackcalConnections.Acquire(stylusName, null);
+        held.Dispose();
+        TrackcalConnections.Release(held);
+        Invoke(stylus, "Update");
+        Invoke(other, "Update");
+        Check(TrackcalTrackedObject.SharedConnections == 1 && stylus.Presses >= before,
+              "a disposed shared tracker is replaced: " + TrackcalTrackedObject.SharedConnections +
+              " connection(s), presses " + before + " -> " + stylus.Presses);
         Invoke(stylus, "OnDisable");
         Invoke(other, "OnDisable");
         Check(TrackcalTrackedObject.SharedConnections == 0, "the buttons' connection closed");
