@@ -401,23 +401,31 @@ TEST(VrpnTrackerClient, AHostNameIsResolvedOffTheClientThread) {
   VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
   server.Start();
   TrackerClientOptions options;
-  std::atomic<int> lookups{0};
-  options.resolve_host = [&lookups](const std::string& host) -> std::optional<std::string> {
-    ++lookups;
+  // Shared, not referenced: the resolver's thread may outlive this scope.
+  auto lookups = std::make_shared<std::atomic<int>>(0);
+  auto on_polling_thread = std::make_shared<std::atomic<bool>>(false);
+  const auto polling_thread = std::this_thread::get_id();  // PollUntil polls on this thread
+  options.resolve_host = [lookups, on_polling_thread,
+                          polling_thread](const std::string& host) -> std::optional<std::string> {
+    ++*lookups;
+    if (std::this_thread::get_id() == polling_thread) *on_polling_thread = true;
     return host == "tracker.lab" ? std::optional<std::string>("127.0.0.1") : std::nullopt;
   };
   VrpnTrackerClient client("Tracker0@tcp://tracker.lab:" + std::to_string(server.port()), options);
   Collected got;
   Attach(client, got);
   ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
-  EXPECT_EQ(lookups, 1);
+  EXPECT_EQ(*lookups, 1);
+  EXPECT_FALSE(*on_polling_thread);
 }
 
 TEST(VrpnTrackerClient, StopDoesNotWaitForADnsServerThatDoesNotAnswer) {
   TrackerClientOptions options;
   auto release = std::make_shared<std::atomic<bool>>(false);
-  options.resolve_host = [release](const std::string&) -> std::optional<std::string> {
+  auto started = std::make_shared<std::atomic<bool>>(false);
+  options.resolve_host = [release, started](const std::string&) -> std::optional<std::string> {
     // A resolver stuck for up to 10 s (the test lets it go at the end).
+    *started = true;
     for (int i = 0; i < 1000 && !*release; ++i) {
       std::this_thread::sleep_for(std::chrono::milliseconds(10));
     }
@@ -425,7 +433,13 @@ TEST(VrpnTrackerClient, StopDoesNotWaitForADnsServerThatDoesNotAnswer) {
   };
   VrpnTrackerClient client("Tracker0@tcp://unanswered.lab:3883", options);
   client.Start();
-  std::this_thread::sleep_for(std::chrono::milliseconds(200));  // the lookup is under way
+  // The lookup is under way (a fixed sleep could measure a Stop() before it began on a loaded
+  // machine, and pass whatever Stop() waits for).
+  for (int i = 0; i < 2000 && !*started; ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  ASSERT_TRUE(*started);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));  // the client thread polls on
   const auto start = Clock::now();
   client.Stop();
   const double stop_s = std::chrono::duration<double>(Clock::now() - start).count();
