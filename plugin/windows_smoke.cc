@@ -1,4 +1,4 @@
-// The Windows DLL's smoke program, run under Wine by plugin/windows_test (csharp_test.cc's
+// The Windows DLL's smoke program, run under Wine by plugin/foreign_clients_test (its
 // arguments): trackcal_unity_smoke.exe <vrpn name> <sensor,px,py,pz,qx,qy,qz,qw>...
 // Uses only the C ABI, as Unity's P/Invoke does. Exit code 0: every check passed.
 #include <chrono>
@@ -102,6 +102,33 @@ int main(int argc, char** argv) {
               pressed == 0,
           "stylus button 0 known and up");
     trackcal_unity_close(stylus);
+  }
+
+  // The default connect mode, "Tracker0@host:port": the UDP lob, a listening socket the server
+  // calls back, and the UDP data channel (WSAPoll on a listener, accept, a bound datagram socket)
+  // — the Winsock paths the direct TCP name above never takes.
+  std::string lob_name = argv[1];
+  const auto tcp = lob_name.find("tcp://");
+  if (tcp != std::string::npos) lob_name.erase(tcp, 6);
+  TrackcalUnityTracker* lob = trackcal_unity_open(lob_name.c_str(), nullptr);
+  Check(lob != nullptr, std::string("open ") + lob_name + ": " + trackcal_unity_last_error());
+  if (lob != nullptr) {
+    const int sensor = expected.begin()->first;
+    const std::vector<double>& e = expected.begin()->second;
+    TrackcalUnityPose pose{};
+    TrackcalUnityStatus lob_status{};
+    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+    while (std::chrono::steady_clock::now() < until &&
+           !(trackcal_unity_get_pose(lob, sensor, &pose) == TRACKCAL_UNITY_OK &&
+             trackcal_unity_get_status(lob, &lob_status) == TRACKCAL_UNITY_OK &&
+             lob_status.udp == 1)) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    Check(pose.valid == 1 && pose.tracker_px == e[0] && pose.tracker_qw == e[6],
+          lob_name + ": a pose over the call-back connection");
+    Check(lob_status.connected == 1 && lob_status.udp == 1,
+          lob_name + ": reports over the UDP data channel");
+    trackcal_unity_close(lob);
   }
   std::printf(failures == 0 ? "PASS\n" : "%d check(s) failed\n", failures);
   return failures == 0 ? 0 : 1;
