@@ -23,8 +23,8 @@ std::string Number(double v) {
   return buf;
 }
 
-// Serves two sensors' known poses and a stylus ("Stylus0", button 1 pressed and released every
-// 0.2 s) on loopback while `command` (followed by the VRPN name and the
+// Serves two sensors' known poses and a stylus ("Stylus0", button 1 pressed about every 0.1 s) on
+// loopback while `command` (followed by the VRPN name and the
 // poses as "sensor,px,py,pz,qx,qy,qz,qw") runs; returns its exit status and output.
 struct Run {
   int status = -1;

@@ -165,8 +165,9 @@ namespace Trackcal
 
         // A button of a button device opened like a tracker ("Stylus0@host": a Fastrak stylus is
         // served as a device of its own). False until the server has said anything about it.
-        // presses counts presses since the connection opened, so a press shorter than a frame is
-        // not lost. Throws ArgumentException for an index outside 0..255.
+        // presses counts presses since this tracker was opened (across reconnects; a shared tracker
+        // may be older than its reader), so a press shorter than a frame is not lost. pressed is
+        // false while the connection is down. Throws ArgumentException for an index outside 0..255.
         public bool TryGetButton(int index, out bool pressed, out ulong presses)
         {
             int state;

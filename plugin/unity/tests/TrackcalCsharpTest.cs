@@ -199,7 +199,7 @@ public static class TrackcalCsharpTest
         Invoke(b, "OnDisable");
         Check(TrackcalTrackedObject.SharedConnections == 0, "the last object closes the connection");
 
-        // The stylus beside the tracker: button 1 goes down and up every 0.2 s, button 0 stays up.
+        // The stylus beside the tracker: button 1 goes down and up about every 0.1 s, button 0 stays up.
         string stylusName = name.Replace("Tracker0", "Stylus0");
         var stylus = new TrackcalButton { deviceName = stylusName, button = 1 };
         var other = new TrackcalButton { deviceName = stylusName, button = 0 };
