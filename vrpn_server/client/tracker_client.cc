@@ -83,6 +83,9 @@ void TrackerClientOptions::Check() const {
     throw std::invalid_argument("TrackerClientOptions.ping_interval_s: must be > 0");
   if (!(lob_retry_s > 0))
     throw std::invalid_argument("TrackerClientOptions.lob_retry_s: must be > 0");
+  if (!(liveness_timeout_s > 0)) {
+    throw std::invalid_argument("TrackerClientOptions.liveness_timeout_s: must be > 0");
+  }
   if (!(connect_timeout_s > 0)) {
     throw std::invalid_argument("TrackerClientOptions.connect_timeout_s: must be > 0");
   }
@@ -110,6 +113,7 @@ struct VrpnTrackerClient::Impl {
   Clock::time_point connect_deadline = Clock::time_point::max();
   Clock::time_point next_lob = Clock::time_point::max();
   Clock::time_point next_ping = Clock::time_point::max();
+  Clock::time_point last_heard = Clock::time_point::min();  // the last message from the server
   bool request_pending = false;
 };
 
@@ -329,12 +333,30 @@ void VrpnTrackerClient::Poll(double timeout_s) {
              0, reinterpret_cast<const sockaddr*>(&*impl_->server), sizeof(sockaddr_in));
     impl_->next_lob = now + Seconds(options_.lob_retry_s);
   }
-  if (connected_ && !pong_received_ && now >= impl_->next_ping) {
+  // Liveness: after the first pong, silence for half the timeout starts pings again, and the whole
+  // timeout drops the connection.
+  bool liveness_ping = false;
+  if (connected_ && pong_received_) {
+    const auto silent = now - impl_->last_heard;
+    if (silent >= Seconds(options_.liveness_timeout_s)) {
+      Reset("the server went silent");
+      return;
+    }
+    liveness_ping = silent >= Seconds(0.5 * options_.liveness_timeout_s);
+  }
+  if (connected_ && (!pong_received_ || liveness_ping) && now >= impl_->next_ping) {
     impl_->connection->Pack(impl_->device_id, impl_->ping_type, Timestamp::Now(), {});
     impl_->next_ping = now + Seconds(options_.ping_interval_s);
     FlushTcp();
   }
   auto wake = deadline;
+  if (connected_ && pong_received_) {
+    const auto half = impl_->last_heard + Seconds(0.5 * options_.liveness_timeout_s);
+    wake = std::min(wake, liveness_ping
+                              ? std::min(impl_->next_ping,
+                                         impl_->last_heard + Seconds(options_.liveness_timeout_s))
+                              : half);
+  }
   if (impl_->state == Impl::State::kIdle) wake = std::min(wake, impl_->next_retry);
   if (impl_->state == Impl::State::kLobWaiting) wake = std::min(wake, impl_->next_lob);
   if (connected_ && !pong_received_) wake = std::min(wake, impl_->next_ping);
@@ -375,7 +397,10 @@ void VrpnTrackerClient::Poll(double timeout_s) {
   const int rc = PollSockets(fds, static_cast<std::size_t>(nfds),
                              static_cast<int>(std::max<long long>(0, wait)));
   if (rc <= 0) return;
-  auto handler = [this](const ReceivedMessage& m) { HandleMessage(m); };
+  auto handler = [this](const ReceivedMessage& m) {
+    impl_->last_heard = Clock::now();  // any message, any device: the server is alive
+    HandleMessage(m);
+  };
 
   if (listen_index >= 0 && (fds[listen_index].revents & POLLIN)) {
     const NativeSocket fd = AcceptSocket(impl_->listen.get(), /*nonblocking=*/true);
@@ -417,6 +442,7 @@ void VrpnTrackerClient::Poll(double timeout_s) {
           connected_ = true;
           impl_->connect_deadline = Clock::time_point::max();
           impl_->next_ping = Clock::now();
+          impl_->last_heard = Clock::now();
           if (impl_->request_pending) RequestStaticInfo();
         }
         if (static_cast<std::size_t>(n) < sizeof(buf)) break;

@@ -43,6 +43,11 @@ struct TrackerClientOptions {
   // A TCP connect, or the VRPN cookie exchange after it, still under way after this long is
   // abandoned and retried [s].
   double connect_timeout_s = 5.0;
+  // A connection on which nothing arrives for this long is dropped and made again [s]: a server
+  // that died without closing it (a crash, a pulled cable, a sleeping laptop) would otherwise hold
+  // the client forever. After half of it in silence the client pings (every ping_interval_s); a
+  // live server answers, so a quiet tracker is not taken for a dead server.
+  double liveness_timeout_s = 10.0;
   // Wait before reconnecting after a failure or a dropped connection [s].
   double reconnect_delay_s = 1.0;
   // Offer a UDP data port in lob mode.
@@ -93,7 +98,9 @@ class VrpnTrackerClient {
   bool udp_active() const { return udp_active_; }  // a report came over UDP
   std::uint64_t reports() const { return reports_; }
   std::uint64_t connections() const { return connections_; }
-  std::uint64_t connect_attempts() const { return connect_attempts_; }  // TCP connects or lobs begun
+  std::uint64_t connect_attempts() const {
+    return connect_attempts_;
+  }  // TCP connects or lobs begun
   const VrpnName& name() const { return name_; }
 
  private:

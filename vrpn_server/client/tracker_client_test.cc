@@ -502,5 +502,98 @@ TEST(VrpnTrackerClient, APeerThatNeverSendsItsCookieIsLeft) {
   EXPECT_GE(client.connect_attempts(), 3u);
 }
 
+// A TCP relay in front of a server that can freeze the connections it carries without closing
+// them: what a client sees of a server that died without a FIN (a crash, a pulled cable, a laptop
+// gone to sleep). Connections accepted after Freeze() are relayed again (the server is back).
+class FreezableRelay {
+ public:
+  explicit FreezableRelay(int server_port) : server_port_(server_port) {
+    listener_ = UniqueSocket(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
+    sockaddr_in a = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+    EXPECT_EQ(::bind(listener_.get(), reinterpret_cast<sockaddr*>(&a), sizeof(a)), 0);
+    EXPECT_EQ(::listen(listener_.get(), 16), 0);
+    socklen_t len = sizeof(a);
+    ::getsockname(listener_.get(), reinterpret_cast<sockaddr*>(&a), &len);
+    port_ = ntohs(a.sin_port);
+    thread_ = std::thread([this] { Run(); });
+  }
+  ~FreezableRelay() {
+    stop_ = true;
+    thread_.join();
+  }
+  int port() const { return port_; }
+  void Freeze() { freeze_below_ = generation_.load(); }
+
+ private:
+  struct Pair {
+    UniqueSocket client, server;
+    int generation = 0;
+  };
+  void Run() {
+    std::vector<Pair> pairs;
+    while (!stop_) {
+      const NativeSocket c = AcceptSocket(listener_.get(), /*nonblocking=*/true);
+      if (c != kNoSocket) {
+        Pair p;
+        p.client = UniqueSocket(c);
+        p.server = UniqueSocket(OpenSocket(SOCK_STREAM, /*nonblocking=*/false));
+        sockaddr_in a = MakeSockaddr(*ParseIpv4("127.0.0.1"), server_port_);
+        ::connect(p.server.get(), reinterpret_cast<sockaddr*>(&a), sizeof(a));
+        p.generation = ++generation_;
+        pairs.push_back(std::move(p));
+      }
+      std::vector<PollFd> fds;
+      std::vector<std::pair<Pair*, bool>> owners;  // (pair, from the client side)
+      for (auto& p : pairs) {
+        if (p.generation <= freeze_below_) continue;  // frozen: nothing read, nothing closed
+        fds.push_back(PollFd{p.client.get(), POLLIN, 0});
+        owners.emplace_back(&p, true);
+        fds.push_back(PollFd{p.server.get(), POLLIN, 0});
+        owners.emplace_back(&p, false);
+      }
+      if (PollSockets(fds.data(), fds.size(), 10) <= 0) continue;
+      for (std::size_t i = 0; i < fds.size(); ++i) {
+        if (!(fds[i].revents & (POLLIN | POLLHUP))) continue;
+        Pair& p = *owners[i].first;
+        const bool from_client = owners[i].second;
+        char buf[65536];
+        const long n = ReceiveSocket(from_client ? p.client.get() : p.server.get(), buf, sizeof(buf));
+        if (n > 0) ::send(from_client ? p.server.get() : p.client.get(), buf, n, MSG_NOSIGNAL);
+      }
+    }
+  }
+  int server_port_;
+  int port_ = 0;
+  UniqueSocket listener_;
+  std::atomic<int> generation_{0};
+  std::atomic<int> freeze_below_{0};
+  std::atomic<bool> stop_{false};
+  std::thread thread_;
+};
+
+TEST(VrpnTrackerClient, AServerThatGoesSilentIsLeftAndFoundAgain) {
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  FreezableRelay relay(server.port());
+  TrackerClientOptions options;
+  options.liveness_timeout_s = 1.0;
+  options.ping_interval_s = 0.1;
+  options.reconnect_delay_s = 0.1;
+  VrpnTrackerClient client("Tracker0@tcp://127.0.0.1:" + std::to_string(relay.port()), options);
+  Collected got;
+  Attach(client, got);
+  ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
+  // Quiet but alive: the pings after half the timeout keep the connection (3 timeouts of silence
+  // from the tracker, the server answering).
+  PollUntil({&client}, [] { return false; }, 3.0);
+  EXPECT_EQ(client.connections(), 1u);
+  EXPECT_TRUE(client.connected());
+  // Dead without a FIN: the client leaves after the timeout and connects again through the relay.
+  relay.Freeze();
+  ASSERT_TRUE(PollUntil({&client}, [&] {
+    return client.connections() >= 2 && client.pong_received();
+  })) << "connections " << client.connections();
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
