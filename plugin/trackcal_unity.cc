@@ -14,6 +14,9 @@
 #include <string>
 
 #include "plugin/unity_axes.h"
+#ifdef _WIN32
+#include "vrpn_server/net/socket_compat.h"  // windows.h, after winsock2.h
+#endif
 #include "vrpn_server/client/tracker_client.h"
 #include "vrpn_server/protocol/payloads.h"
 
@@ -59,6 +62,25 @@ trackcal::unity::AxisMap AxesOrDefault(const char* axes) {
 
 }  // namespace
 
+namespace {
+
+// A client's host-name lookup runs on a detached thread that can outlive trackcal_unity_close; the
+// library must then stay mapped. Linux: linked with -z nodelete (plugin/CMakeLists.txt,
+// standalone/CMakeLists.txt). Windows: pinned here, once, from the first open.
+void PinThisLibrary() {
+#ifdef _WIN32
+  static const bool pinned = [] {
+    HMODULE module = nullptr;
+    return ::GetModuleHandleExW(
+               GET_MODULE_HANDLE_EX_FLAG_FROM_ADDRESS | GET_MODULE_HANDLE_EX_FLAG_PIN,
+               reinterpret_cast<LPCWSTR>(&trackcal_unity_open), &module) != 0;
+  }();
+  (void)pinned;
+#endif
+}
+
+}  // namespace
+
 struct TrackcalUnityTracker {
   trackcal::unity::AxisMap axes;
   std::mutex mutex;
@@ -99,6 +121,7 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
     return nullptr;
   }
   try {
+    PinThisLibrary();
     auto tracker = std::make_unique<TrackcalUnityTracker>();
     tracker->axes = AxesOrDefault(axes);
     // Parse first: the client's constructor names a bad "Device@host" string.
@@ -249,8 +272,8 @@ int32_t trackcal_unity_get_button(TrackcalUnityTracker* tracker, int32_t index, 
     if (it == tracker->buttons.end()) return TRACKCAL_UNITY_NO_BUTTON;
     // Not pressed while the connection is down or before this connection's states arrived: a
     // stylus held when the link dropped would otherwise stay pressed until a reconnect.
-    const bool current = tracker->client->connected() &&
-                         it->second.connection == tracker->client->connections();
+    const bool current =
+        tracker->client->connected() && it->second.connection == tracker->client->connections();
     *pressed = current && it->second.pressed ? 1 : 0;
     *presses = it->second.presses;
     return TRACKCAL_UNITY_OK;

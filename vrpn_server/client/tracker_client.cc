@@ -396,7 +396,13 @@ void VrpnTrackerClient::Poll(double timeout_s) {
       std::chrono::duration_cast<std::chrono::milliseconds>(wake - Clock::now()).count();
   const int rc = PollSockets(fds, static_cast<std::size_t>(nfds),
                              static_cast<int>(std::max<long long>(0, wait)));
-  if (rc <= 0) return;
+  if (rc < 0) {
+    // An error that is not an interruption would repeat at once: Start()'s loop must not spin.
+    if (!IsWouldBlock(LastSocketError()))
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    return;
+  }
+  if (rc == 0) return;
   auto handler = [this](const ReceivedMessage& m) {
     impl_->last_heard = Clock::now();  // any message, any device: the server is alive
     HandleMessage(m);
