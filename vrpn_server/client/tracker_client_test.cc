@@ -450,29 +450,48 @@ TEST(VrpnTrackerClient, StopDoesNotWaitForADnsServerThatDoesNotAnswer) {
   EXPECT_FALSE(client.connected());
 }
 
-TEST(VrpnTrackerClient, AConnectThatHangsIsRetried) {
-  // A listener whose backlog is full: the kernel leaves further SYNs unanswered, so a connect
-  // neither succeeds nor fails, as to a host that drops them.
-  UniqueSocket listener(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
-  sockaddr_in address = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
-  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
-  ASSERT_EQ(::listen(listener.get(), 0), 0);
-  socklen_t len = sizeof(address);
-  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&address), &len);
-  std::vector<UniqueSocket> fillers;
-  for (int i = 0; i < 4; ++i) {
-    fillers.emplace_back(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
-    ::connect(fillers.back().get(), reinterpret_cast<sockaddr*>(&address), sizeof(address));
+// A socket listening on 127.0.0.1 (a free port) that the test never accepts from.
+struct IdleListener {
+  UniqueSocket socket;
+  sockaddr_in address{};
+  std::string TcpName() const {
+    return "Tracker0@tcp://127.0.0.1:" + std::to_string(ntohs(address.sin_port));
   }
+};
+
+IdleListener ListenOnLoopback(int backlog) {
+  IdleListener l;
+  l.socket = UniqueSocket(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
+  l.address = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  EXPECT_EQ(::bind(l.socket.get(), reinterpret_cast<sockaddr*>(&l.address), sizeof(l.address)), 0);
+  EXPECT_EQ(::listen(l.socket.get(), backlog), 0);
+  socklen_t len = sizeof(l.address);
+  ::getsockname(l.socket.get(), reinterpret_cast<sockaddr*>(&l.address), &len);
+  return l;
+}
+
+// Short connect timeouts and retries, for the tests of what makes a client give up and retry.
+TrackerClientOptions QuickRetries() {
   TrackerClientOptions options;
   options.connect_timeout_s = 0.3;
   options.reconnect_delay_s = 0.1;
-  VrpnTrackerClient client("Tracker0@tcp://127.0.0.1:" + std::to_string(ntohs(address.sin_port)),
-                           options);
+  return options;
+}
+
+TEST(VrpnTrackerClient, AConnectThatHangsIsRetried) {
+  // A listener whose backlog is full: the kernel leaves further SYNs unanswered, so a connect
+  // neither succeeds nor fails, as to a host that drops them.
+  const IdleListener listener = ListenOnLoopback(0);
+  std::vector<UniqueSocket> fillers;
+  for (int i = 0; i < 4; ++i) {
+    fillers.emplace_back(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
+    ::connect(fillers.back().get(), reinterpret_cast<const sockaddr*>(&listener.address),
+              sizeof(listener.address));
+  }
+  VrpnTrackerClient client(listener.TcpName(), QuickRetries());
   // Each attempt that times out is abandoned and a new one started: the client keeps trying
   // instead of waiting out the kernel's SYN retries (about two minutes).
-  const auto end = Clock::now() + std::chrono::seconds(3);
-  while (Clock::now() < end) client.Poll(0.01);
+  PollUntil({&client}, [] { return false; }, 3.0);
   EXPECT_FALSE(client.connected());
   EXPECT_EQ(client.connections(), 0u);
   // 3 s of 0.3 s timeouts and 0.1 s waits: about 7 attempts; a loaded machine polls late, and one
@@ -483,19 +502,9 @@ TEST(VrpnTrackerClient, AConnectThatHangsIsRetried) {
 TEST(VrpnTrackerClient, APeerThatNeverSendsItsCookieIsLeft) {
   // A listener that is never accepted from: the kernel completes the TCP handshake, but no VRPN
   // cookie ever comes (a stopped server, another service on the port).
-  UniqueSocket listener(OpenSocket(SOCK_STREAM, /*nonblocking=*/true));
-  sockaddr_in address = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
-  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
-  ASSERT_EQ(::listen(listener.get(), 16), 0);
-  socklen_t len = sizeof(address);
-  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&address), &len);
-  TrackerClientOptions options;
-  options.connect_timeout_s = 0.3;
-  options.reconnect_delay_s = 0.1;
-  VrpnTrackerClient client("Tracker0@tcp://127.0.0.1:" + std::to_string(ntohs(address.sin_port)),
-                           options);
-  const auto end = Clock::now() + std::chrono::seconds(3);
-  while (Clock::now() < end) client.Poll(0.01);
+  const IdleListener listener = ListenOnLoopback(16);
+  VrpnTrackerClient client(listener.TcpName(), QuickRetries());
+  PollUntil({&client}, [] { return false; }, 3.0);
   EXPECT_FALSE(client.connected());
   // Every attempt's TCP connect succeeds; without the timeout the first one is kept for good.
   EXPECT_GE(client.connections(), 3u);
