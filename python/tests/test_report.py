@@ -136,10 +136,13 @@ def test_report_never_replaces_a_users_file_named_like_a_figure(tmp_path):
     out.mkdir()
     mine = out / "fig4_position_error_vs_distance.png"  # a user's picture, in a folder with no report
     mine.write_bytes(b"\x89PNG\r\n\x1a\n" + b"mine" * 8)
+    import matplotlib.pyplot as plt
+    open_before = set(plt.get_fignums())
     with pytest.raises(ValueError, match="not a figure of a trackcal report"):
         report.write_report(v, out)
     assert mine.read_bytes() == b"\x89PNG\r\n\x1a\n" + b"mine" * 8
     assert list(out.iterdir()) == [mine]  # refused before any figure was written
+    assert set(plt.get_fignums()) == open_before  # and the figures it drew are closed
     mine.unlink()
     page = report.write_report(v, out)
     # Its own figures carry the tag and are replaced by the next report into the folder; so are

@@ -248,17 +248,23 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     parts.append("<h2>Figures</h2>")
     # Every figure's file is checked before any is written: a refusal leaves the folder as it was.
     own_folder = (out_dir / "report.html").exists()  # checked above: an earlier trackcal report
-    for name, _, _ in figs:
-        _check_replaceable(out_dir / name, input_paths, own_folder)
-    for i, (name, caption, fig) in enumerate(figs):
-        data = F.png_bytes(fig)
-        plt.close(fig)
-        _atomic_write(out_dir / name, data, input_paths, own_folder)
-        b64 = base64.b64encode(data).decode("ascii")
-        parts.append(f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,{b64}'>"
-                     f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-        if progress:
-            progress(i + 1, len(figs))
+    try:
+        for name, _, _ in figs:
+            _check_replaceable(out_dir / name, input_paths, own_folder)
+        for i, (name, caption, fig) in enumerate(figs):
+            data = F.png_bytes(fig)
+            plt.close(fig)
+            _atomic_write(out_dir / name, data, input_paths, own_folder)
+            b64 = base64.b64encode(data).decode("ascii")
+            parts.append(f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,{b64}'>"
+                         f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+            if progress:
+                progress(i + 1, len(figs))
+    finally:
+        # A refused file leaves the figures drawn: close them, or a script's loop of reports keeps
+        # every one in pyplot's registry (matplotlib's "more than 20 figures" warning in the tests).
+        for _, _, fig in figs:
+            plt.close(fig)
     parts.append(f"<script>{CHECK_SCRIPT}</script></body></html>")
     path = out_dir / "report.html"
     _atomic_write(path, "\n".join(parts).encode("utf-8"), input_paths)
