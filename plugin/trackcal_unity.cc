@@ -55,14 +55,18 @@ int32_t Guarded(const char* function, Body&& body) {
   }
 }
 
+// TRACKCAL_UNITY_OK, or the error for a sensor or button index outside 0..MAX_SENSOR.
+int32_t CheckIndex(const char* function, const char* what, int32_t index) {
+  if (index >= 0 && index <= TRACKCAL_UNITY_MAX_SENSOR) return TRACKCAL_UNITY_OK;
+  return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, std::string(function) + ": " + what + " " +
+                                                 std::to_string(index) + " is outside 0.." +
+                                                 std::to_string(TRACKCAL_UNITY_MAX_SENSOR));
+}
+
 trackcal::unity::AxisMap AxesOrDefault(const char* axes) {
   return trackcal::unity::ParseAxisMap(
       axes == nullptr || axes[0] == '\0' ? trackcal::unity::kDefaultAxes : std::string_view(axes));
 }
-
-}  // namespace
-
-namespace {
 
 // A client's host-name lookup runs on a detached thread that can outlive trackcal_unity_close; the
 // library must then stay mapped. Linux: linked with -z nodelete (plugin/CMakeLists.txt,
@@ -120,7 +124,8 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
     Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_open: the VRPN name is null");
     return nullptr;
   }
-  try {
+  TrackcalUnityTracker* opened = nullptr;
+  Guarded("trackcal_unity_open", [&]() -> int32_t {
     PinThisLibrary();
     auto tracker = std::make_unique<TrackcalUnityTracker>();
     tracker->axes = AxesOrDefault(axes);
@@ -173,15 +178,10 @@ TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name, const char* axe
       }
     });
     t->client->Start();
-    return tracker.release();
-  } catch (const std::invalid_argument& e) {
-    Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, std::string("trackcal_unity_open: ") + e.what());
-  } catch (const std::exception& e) {
-    Fail(TRACKCAL_UNITY_ERROR_INTERNAL, std::string("trackcal_unity_open: ") + e.what());
-  } catch (...) {
-    Fail(TRACKCAL_UNITY_ERROR_INTERNAL, "trackcal_unity_open: unknown failure");
-  }
-  return nullptr;
+    opened = tracker.release();
+    return TRACKCAL_UNITY_OK;
+  });
+  return opened;
 }
 
 void trackcal_unity_close(TrackcalUnityTracker* tracker) {
@@ -204,10 +204,8 @@ int32_t trackcal_unity_get_pose(TrackcalUnityTracker* tracker, int32_t sensor,
   std::memset(out, 0, sizeof(*out));
   out->sensor = sensor;
   return Guarded("trackcal_unity_get_pose", [&]() -> int32_t {
-    if (sensor < 0 || sensor > TRACKCAL_UNITY_MAX_SENSOR) {
-      return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_pose: sensor " +
-                                                     std::to_string(sensor) + " is outside 0.." +
-                                                     std::to_string(TRACKCAL_UNITY_MAX_SENSOR));
+    if (const int32_t rc = CheckIndex("trackcal_unity_get_pose", "sensor", sensor); rc != 0) {
+      return rc;
     }
     std::lock_guard lock(tracker->mutex);
     const auto it = tracker->sensors.find(sensor);
@@ -262,10 +260,8 @@ int32_t trackcal_unity_get_button(TrackcalUnityTracker* tracker, int32_t index, 
   *pressed = 0;
   *presses = 0;
   return Guarded("trackcal_unity_get_button", [&]() -> int32_t {
-    if (index < 0 || index > TRACKCAL_UNITY_MAX_SENSOR) {
-      return Fail(TRACKCAL_UNITY_ERROR_ARGUMENT, "trackcal_unity_get_button: button " +
-                                                     std::to_string(index) + " is outside 0.." +
-                                                     std::to_string(TRACKCAL_UNITY_MAX_SENSOR));
+    if (const int32_t rc = CheckIndex("trackcal_unity_get_button", "button", index); rc != 0) {
+      return rc;
     }
     std::lock_guard lock(tracker->mutex);
     const auto it = tracker->buttons.find(index);
