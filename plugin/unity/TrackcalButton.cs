@@ -3,7 +3,6 @@
 // that both fell between two frames. Shares the connection with other components reading the same
 // device (TrackcalConnections).
 #if UNITY_5_3_OR_NEWER
-using System;
 using UnityEngine;
 
 namespace Trackcal
@@ -31,25 +30,10 @@ namespace Trackcal
 
         private void OnEnable()
         {
-            if (button < 0 || button > TrackcalTrackedObject.MaxSensor)
-            {
-                Debug.LogError("trackcal: " + name + ": button " + button + " is outside 0.." +
-                               TrackcalTrackedObject.MaxSensor);
-                enabled = false;
-                return;
-            }
-            try
-            {
-                // Axes do not matter to buttons; the default keeps one connection per device.
-                device = TrackcalConnections.Acquire(deviceName, null);
-            }
-            catch (Exception e)
-            {
-                Debug.LogError("trackcal: " + name + ": " + e.Message);
-                device = null;
-                enabled = false;
-                return;
-            }
+            if (!TrackcalComponents.IndexValid(this, "button", button)) return;
+            // Axes do not matter to buttons; the default keeps one connection per device.
+            device = TrackcalComponents.Acquire(this, deviceName, null);
+            if (device == null) return;
             firstRead = true;
             pressesCarried = 0;
             Presses = 0;

@@ -44,25 +44,13 @@ namespace Trackcal
 
         private bool SensorValid()
         {
-            if (sensor >= 0 && sensor <= MaxSensor) return true;
-            Debug.LogError("trackcal: " + name + ": sensor " + sensor + " is outside 0.." + MaxSensor);
-            enabled = false;
-            return false;
+            return TrackcalComponents.IndexValid(this, "sensor", sensor);
         }
 
         private void OnEnable()
         {
             if (!SensorValid()) return;
-            try
-            {
-                tracker = TrackcalConnections.Acquire(trackerName, axes);
-            }
-            catch (Exception e)
-            {
-                Debug.LogError("trackcal: " + name + ": " + e.Message);
-                tracker = null;
-                enabled = false;
-            }
+            tracker = TrackcalComponents.Acquire(this, trackerName, axes);
         }
 
         private void OnDisable()
@@ -91,6 +79,35 @@ namespace Trackcal
             if (applyRotation)
                 transform.localRotation = new Quaternion((float)pose.UnityQx, (float)pose.UnityQy,
                                                          (float)pose.UnityQz, (float)pose.UnityQw);
+        }
+    }
+
+    // What TrackcalTrackedObject and TrackcalButton share: each failure is logged once and disables
+    // the component, rather than an exception every frame.
+    internal static class TrackcalComponents
+    {
+        internal static bool IndexValid(Behaviour owner, string what, int index)
+        {
+            if (index >= 0 && index <= TrackcalTrackedObject.MaxSensor) return true;
+            Debug.LogError("trackcal: " + owner.name + ": " + what + " " + index + " is outside 0.." +
+                           TrackcalTrackedObject.MaxSensor);
+            owner.enabled = false;
+            return false;
+        }
+
+        // The shared connection (TrackcalConnections), or null after a bad name or axes.
+        internal static TrackcalTracker Acquire(Behaviour owner, string vrpnName, string axes)
+        {
+            try
+            {
+                return TrackcalConnections.Acquire(vrpnName, axes);
+            }
+            catch (Exception e)
+            {
+                Debug.LogError("trackcal: " + owner.name + ": " + e.Message);
+                owner.enabled = false;
+                return null;
+            }
         }
     }
 }
