@@ -152,6 +152,15 @@ class Parser {
     return skipped;
   }
 
+  // Warns that tokens[first..] are ignored (text the reference's sscanf never reads).
+  void WarnIgnoredTokens(const std::vector<std::string>& tokens, size_t first,
+                         const ConfigLocation& where, const std::string& after) {
+    if (tokens.size() <= first) return;
+    std::string text;
+    for (size_t i = first; i < tokens.size(); ++i) text += (i == first ? "" : " ") + tokens[i];
+    config_.warnings.push_back({where, "text after " + after + " ignored: '" + text + "'"});
+  }
+
   void RegisterName(const std::string& name, const ConfigLocation& where, std::string_view field) {
     if (name.empty()) Fail(where, field, "empty device name");
     const auto [it, inserted] = names_.emplace(name, where);
@@ -183,11 +192,23 @@ class Parser {
            std::to_string(spec.baud) +
                " is not a supported rate (300, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)");
     }
-    for (size_t i = 4; i < tokens.size(); ++i) {
-      if (tokens[i] == "IS900time" && !spec.is900_time) {
+    // The reference reads one optional token (sscanf "%s%s%d%s"): IS900time (compared as a prefix)
+    // or a lone "/" or backslash, and never looks at what follows (warned here). A lone
+    // continuation character with text after it does not continue the line, so the command or
+    // device lines meant to follow would be misread: that is an error.
+    if (tokens.size() > 4) {
+      const std::string& option = tokens[4];
+      if (option == "/" || option == "\\") {
+        if (tokens.size() > 5) {
+          Fail(where, "option",
+               "text after '" + option + "': a continuation character must end the line");
+        }
+      } else if (option.rfind("IS900time", 0) == 0) {
         spec.is900_time = true;
+        WarnIgnoredTokens(tokens, 5, where, "the baud rate and option");
       } else {
-        Fail(where, "option", "unexpected token '" + tokens[i] + "' (only IS900time may follow the baud rate)");
+        Fail(where, "option",
+             "unexpected token '" + option + "' (only IS900time may follow the baud rate)");
       }
     }
     RegisterName(spec.name, where, "name");
@@ -248,17 +269,19 @@ class Parser {
       Fail(where, "device line",
            "unknown device '" + tokens[0] + "' after '/' (expected FTStylus, Stylus or Wand)");
     }
-    if (tokens.size() != expected) {
+    if (tokens.size() < expected) {
       Fail(where, tokens[0],
            "expected " + std::to_string(expected - 1) + " values after '" + tokens[0] + "', got " +
                std::to_string(tokens.size() - 1));
     }
+    // The reference reads these lines with sscanf and ignores what follows the last field.
+    WarnIgnoredTokens(tokens, expected, where, "the " + tokens[0] + " fields");
     button.name = tokens[1];
     button.sensor = ParseInt(tokens[2], where, "sensor");
     if (button.sensor < 0 || button.sensor > 3) {
       Fail(where, "sensor", "must be 0..3 (Fastrak stations 1..4), got " + tokens[2]);
     }
-    for (size_t i = 3; i < tokens.size(); ++i) {
+    for (size_t i = 3; i < expected; ++i) {
       button.wand_ranges[i - 3] = ParseDouble(tokens[i], where, "wand range");
     }
     RegisterName(button.name, where, "button name");

@@ -230,6 +230,42 @@ TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
   }
 }
 
+// The reference reads the Fastrak line and the FTStylus/Stylus/Wand lines with sscanf, so whatever
+// follows the fields it needs (a trailing comment, a note) is ignored; such a lab file must still
+// start the server. Here it is ignored with a warning naming the line.
+TEST(ParseVrpnConfig, TextAfterTheFieldsIsIgnoredWithAWarningAsTheReferenceDoes) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200 IS900time # lab tracker /\n"
+      "FTStylus Stylus0 0   # pen on receiver 1 /\n"
+      "Wand Wand0 1 -1 0 0 1 -1 0 0 1 spare\n",
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 1u);
+  const FastrakTrackerSpec& t = config.fastrak_trackers[0];
+  EXPECT_TRUE(t.is900_time);
+  ASSERT_EQ(t.buttons.size(), 2u);
+  EXPECT_EQ(t.buttons[0].name, "Stylus0");
+  EXPECT_EQ(t.buttons[0].sensor, 0);
+  EXPECT_EQ(t.buttons[1].kind, ButtonDeviceKind::kIs900Wand);
+  EXPECT_EQ(t.buttons[1].wand_ranges[7], 1.0);
+  ASSERT_EQ(config.warnings.size(), 3u);
+  for (int i = 0; i < 3; ++i) {
+    EXPECT_EQ(config.warnings[i].location.line, i + 1);
+    EXPECT_NE(config.warnings[i].message.find("ignored"), std::string::npos)
+        << config.warnings[i].message;
+  }
+  EXPECT_NE(config.warnings[0].message.find("'# lab tracker'"), std::string::npos)
+      << config.warnings[0].message;
+
+  // The 4th token itself is still checked, as by the reference; a lone continuation character
+  // followed by text continues nothing, so the lines meant to follow would be misread.
+  EXPECT_NE(ParseError("vrpn_Tracker_Fastrak T /dev/ttyS0 115200 \\ # hemisphere\nH1,0,0,1\n")
+                .find("lab.cfg:1: field 'option': text after '\\'"),
+            std::string::npos);
+  EXPECT_NE(ParseError("vrpn_Tracker_Fastrak T /dev/ttyS0 115200 # tracker\n")
+                .find("lab.cfg:1: field 'option'"),
+            std::string::npos);
+}
+
 TEST(ParseVrpnConfig, EmptyCommandLineIsWarnedAndSkipped) {
   const VrpnConfig config =
       ParseVrpnConfig("vrpn_Tracker_Fastrak T /dev/a 115200 \\\n\\\n  \\\nH1,1,0,0\n", "lab.cfg");
