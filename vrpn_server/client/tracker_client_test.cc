@@ -322,6 +322,29 @@ TEST(VrpnServer, ClientDescribingNoNamesGetsEveryDevice) {
   EXPECT_GE(counts["Tracker1"], 20);
 }
 
+TEST(VrpnServer, ReferenceClientDescribingOnlyVrpnControlGetsEveryDevice) {
+  // Every peer built on the reference library describes its "VRPN Control" sender, with or
+  // without a remote object for a device: one that registers handlers for any sender (a logger,
+  // a monitor) describes no device name and must get every device, as from the reference server.
+  auto catalog = MakeCatalog();
+  TrackerSpec other;
+  other.name = "Tracker1";
+  const int tracker1 = catalog->AddTracker(other);
+  VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  auto fd = RawConnect(server.port());
+  auto names = std::make_shared<NameRegistry>();
+  names->AddSender(kControlSender);
+  Connection conn(names, Connection::Options{});
+  conn.Start();
+  ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
+  auto counts = CountPosQuatPerSender(server, tracker1, fd.get(), conn, [](auto& c) {
+    return c["Tracker0"] >= 20 && c["Tracker1"] >= 20;
+  });
+  EXPECT_GE(counts["Tracker0"], 20);
+  EXPECT_GE(counts["Tracker1"], 20);
+}
+
 TEST(VrpnServer, AllowListRefusesOtherNetworks) {
   ServerOptions options = LoopbackOptions();
   options.allow = {"10.0.0.0/8"};

@@ -705,7 +705,9 @@ void VrpnServer::DrainEvents() {
         e->wants.assign(names.size(), false);
         e->wants_everything = true;
         for (std::size_t i = 0; i < names.size(); ++i) {
-          e->wants[i] = peer.Contains(names[i]);
+          // Only device names count: every reference-library peer also describes "VRPN Control",
+          // whether or not it opened a device.
+          e->wants[i] = catalog_->Serves(names[i]) && peer.Contains(names[i]);
           if (e->wants[i]) e->wants_everything = false;
         }
         e->wants_version = peer.version();
