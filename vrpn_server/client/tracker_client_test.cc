@@ -3,12 +3,17 @@
 #include "vrpn_server/client/tracker_client.h"
 
 #include <arpa/inet.h>
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <poll.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
+#include <cstring>
+#include <filesystem>
 #include <functional>
 #include <map>
 #include <memory>
@@ -418,6 +423,60 @@ TEST(VrpnServer, BurstOf128ClientsAllStreaming) {
   // itself is printed for the record, not asserted tightly.
   std::cout << "128 clients streaming after " << elapsed << " s\n";
   EXPECT_LT(elapsed, 10.0);
+}
+
+// Restores RLIMIT_NOFILE and frees the filler descriptors when a test ends, even on failure.
+struct FdLimitGuard {
+  rlimit saved{};
+  std::vector<UniqueFd> fillers;
+  FdLimitGuard() { ::getrlimit(RLIMIT_NOFILE, &saved); }
+  ~FdLimitGuard() {
+    fillers.clear();
+    ::setrlimit(RLIMIT_NOFILE, &saved);
+  }
+};
+
+TEST(VrpnServer, OutOfFileDescriptorsDoesNotSpinOrFloodTheLog) {
+  // accept() failing with EMFILE leaves the connection queued and the listener readable: the
+  // loop must back off instead of retrying (and logging) as fast as epoll returns.
+  std::atomic<int> fd_errors{0};
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [&](const std::string& line) {
+    if (line.find(std::strerror(EMFILE)) != std::string::npos) ++fd_errors;
+  });
+  server.Start();
+  // Client sockets exist before the limit is lowered: connecting them needs no new descriptor.
+  constexpr int kClients = 3;
+  std::vector<UniqueFd> clients;
+  for (int i = 0; i < kClients; ++i) clients.emplace_back(::socket(AF_INET, SOCK_STREAM, 0));
+  FdLimitGuard guard;
+  int highest = 0;
+  for (const auto& entry : std::filesystem::directory_iterator("/proc/self/fd")) {
+    highest = std::max(highest, std::stoi(entry.path().filename().string()));
+  }
+  rlimit low = guard.saved;
+  low.rlim_cur = static_cast<rlim_t>(highest) + 1;
+  ASSERT_EQ(::setrlimit(RLIMIT_NOFILE, &low), 0);
+  // Fill the free numbers below the limit: from here on the server cannot accept.
+  for (int fd; (fd = ::open("/dev/null", O_RDONLY | O_CLOEXEC)) >= 0;) {
+    guard.fillers.emplace_back(fd);
+  }
+  const sockaddr_in sa = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  for (auto& c : clients) {
+    ASSERT_EQ(::connect(c.get(), reinterpret_cast<const sockaddr*>(&sa), sizeof(sa)), 0);
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  // One line when accepting stops; a spinning loop logs thousands in 300 ms.
+  EXPECT_GE(fd_errors.load(), 1);
+  EXPECT_LE(fd_errors.load(), 2);
+  EXPECT_EQ(server.stats().clients, 0);
+  // Once descriptors are available again the queued connections are accepted.
+  guard.fillers.clear();
+  ASSERT_EQ(::setrlimit(RLIMIT_NOFILE, &guard.saved), 0);
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (server.stats().clients < kClients && Clock::now() < end) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  EXPECT_EQ(server.stats().clients, kClients);
 }
 
 TEST(VrpnTrackerClient, AHostNameIsResolvedOffTheClientThread) {

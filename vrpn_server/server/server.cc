@@ -32,6 +32,10 @@ using Clock = std::chrono::steady_clock;
 enum Kind : std::uint64_t { kTcpListen = 0, kUdpLob = 1, kWake = 2, kEndpointTcp = 3, kEndpointUdp = 4 };
 std::uint64_t Tag(std::uint64_t id, Kind kind) { return (id << 3) | kind; }
 
+// After accept() failed for lack of resources (no free file descriptor), how long the listener
+// stays out of the epoll set unless a connection closes first.
+constexpr auto kAcceptRetry = std::chrono::milliseconds(250);
+
 }  // namespace
 
 void ServerOptions::Check() const {
@@ -106,6 +110,11 @@ struct VrpnServer::Impl {
   std::vector<std::vector<std::int32_t>> button_states;
   std::vector<std::uint8_t> encoded;
   int refused_logged = 0;
+  // accept() failed (out of file descriptors): the queued connection keeps the listener readable,
+  // so it leaves the epoll set until a connection closes or accept_retry passes.
+  bool accept_paused = false;
+  Clock::time_point accept_retry;
+  bool accept_failure_logged = false;  // once per episode, until an accept succeeds again
   std::vector<float> fanout_us;  // guarded by the server's stats_mutex_
   std::vector<mmsghdr> mmsg;     // DrainEvents scratch
   std::vector<iovec> iovs;
@@ -329,6 +338,7 @@ void VrpnServer::Run() {
     int timeout_ms = -1;
     {
       std::lock_guard<std::mutex> net(impl_->net_mutex);
+      if (impl_->accept_paused) timeout_ms = static_cast<int>(kAcceptRetry.count());
       for (const auto& [id, e] : impl_->endpoints) {
         if (e->connecting || !e->session || !e->session->connection().handshake_done()) {
           timeout_ms = 250;
@@ -368,7 +378,17 @@ void VrpnServer::Run() {
       }
     }
     if (timeout_ms >= 0) CheckDeadlines();
+    if (impl_->accept_paused && Clock::now() >= impl_->accept_retry) SetAccepting(true);
   }
+}
+
+void VrpnServer::SetAccepting(bool on) {
+  epoll_event ev{};
+  ev.events = on ? EPOLLIN : 0u;
+  ev.data.u64 = Tag(0, kTcpListen);
+  ::epoll_ctl(epoll_fd_, EPOLL_CTL_MOD, tcp_fd_, &ev);
+  impl_->accept_paused = !on;
+  if (!on) impl_->accept_retry = Clock::now() + kAcceptRetry;
 }
 
 void VrpnServer::HandleAccept() {
@@ -378,11 +398,20 @@ void VrpnServer::HandleAccept() {
     const int fd = ::accept4(tcp_fd_, reinterpret_cast<sockaddr*>(&peer), &len,
                              SOCK_NONBLOCK | SOCK_CLOEXEC);
     if (fd < 0) {
-      if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR && errno != ECONNABORTED) {
-        Log("accept: " + ErrnoText(errno));
+      const int err = errno;
+      if (err == EAGAIN || err == EWOULDBLOCK || err == EINTR || err == ECONNABORTED) return;
+      // EMFILE, ENFILE, ENOBUFS...: the connection stays queued and the listener readable; retrying
+      // at once would spin the loop and flood the log.
+      SetAccepting(false);
+      if (!impl_->accept_failure_logged) {
+        impl_->accept_failure_logged = true;
+        Log("accept: " + ErrnoText(err) + "; new connections wait until one closes" +
+            (err == EMFILE ? " (raise the open-file limit, ulimit -n, or lower --max-clients)"
+                           : ""));
       }
       return;
     }
+    impl_->accept_failure_logged = false;
     UniqueFd conn(fd);
     if (!impl_->allow.Allows(peer.sin_addr) ||
         static_cast<int>(impl_->endpoints.size()) >= options_.max_clients) {
@@ -648,6 +677,7 @@ void VrpnServer::Close(std::uint64_t id, const std::string& why) {
   if (!it->second->callback_key.empty()) impl_->callback_keys.erase(it->second->callback_key);
   // Closing the fds removes them from the epoll set.
   impl_->endpoints.erase(it);
+  if (impl_->accept_paused) SetAccepting(true);  // a descriptor was freed
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.clients = static_cast<int>(impl_->endpoints.size());
 }

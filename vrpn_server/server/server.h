@@ -129,6 +129,8 @@ class VrpnServer {
   void Kick(bool queue_was_empty);
   void Run();
   void HandleAccept();
+  // Puts the TCP listener in or out of the epoll set (out while accept() lacks resources).
+  void SetAccepting(bool on);
   void HandleLob();
   void HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp);
   void OnConnected(Endpoint& e);
