@@ -161,12 +161,34 @@ class Parser {
     config_.warnings.push_back({where, "text after " + after + " ignored: '" + text + "'"});
   }
 
-  void RegisterName(const std::string& name, const ConfigLocation& where, std::string_view field) {
+  void RegisterName(const std::string& name, const ConfigLocation& where, std::string_view field,
+                    std::string_view hint = {}) {
     if (name.empty()) Fail(where, field, "empty device name");
-    const auto [it, inserted] = names_.emplace(name, where);
+    const auto [it, inserted] = names_.emplace(name, NameUse{where, std::nullopt});
     if (!inserted) {
-      Fail(where, field, "device name '" + name + "' is already used at " + it->second.ToString());
+      Fail(where, field,
+           "device name '" + name + "' is already used at " + it->second.location.ToString() +
+               std::string(hint));
     }
+  }
+
+  // A button device may take the name of the tracker it is attached to: the reference then serves
+  // a tracker and a button server under one sender, their messages told apart by type. Any other
+  // reuse (a second button of that name, another device's name) is an error, as two devices of one
+  // type under one name would mix their messages in the reference.
+  void RegisterButtonName(const std::string& name, const std::string& tracker,
+                          const ConfigLocation& where) {
+    if (!name.empty() && name == tracker) {
+      NameUse& use = names_.at(tracker);  // registered before its device lines are read
+      if (use.button) {
+        Fail(where, "button name",
+             "button device name '" + name + "' is already used at " + use.button->ToString());
+      }
+      use.button = where;
+      return;
+    }
+    RegisterName(name, where, "button name",
+                 " (a button may share only the name of the tracker it is attached to)");
   }
 
   void ParseFastrak(const Line& line) {
@@ -248,12 +270,13 @@ class Parser {
         Fail(dev_where, "device line", "a device line cannot be followed by '\\' command lines");
       }
       if (continuation != 0) text.remove_suffix(1);
-      spec.buttons.push_back(ParseButton(Tokenize(text), dev_where));
+      spec.buttons.push_back(ParseButton(Tokenize(text), dev_where, spec.name));
     }
     config_.fastrak_trackers.push_back(std::move(spec));
   }
 
-  ButtonDeviceSpec ParseButton(const std::vector<std::string>& tokens, const ConfigLocation& where) {
+  ButtonDeviceSpec ParseButton(const std::vector<std::string>& tokens, const ConfigLocation& where,
+                               const std::string& tracker) {
     if (tokens.empty()) Fail(where, "device line", "empty device line after '/'");
     ButtonDeviceSpec button;
     button.location = where;
@@ -284,7 +307,7 @@ class Parser {
     for (size_t i = 3; i < expected; ++i) {
       button.wand_ranges[i - 3] = ParseDouble(tokens[i], where, "wand range");
     }
-    RegisterName(button.name, where, "button name");
+    RegisterButtonName(button.name, tracker, where);
     return button;
   }
 
@@ -418,7 +441,13 @@ class Parser {
   std::string file_name_;
   std::vector<Line> lines_;
   size_t next_ = 0;
-  std::map<std::string, ConfigLocation> names_;
+  // Every device name of the file: where it was first used and, for a tracker name that a button
+  // of that tracker shares, where the button was declared.
+  struct NameUse {
+    ConfigLocation location;
+    std::optional<ConfigLocation> button;
+  };
+  std::map<std::string, NameUse> names_;
   VrpnConfig config_;
 };
 

@@ -43,7 +43,8 @@ enum class ButtonDeviceKind {
 // A button device attached to a tracker sensor by a '/' continuation line.
 struct ButtonDeviceSpec {
   ButtonDeviceKind kind = ButtonDeviceKind::kFastrakStylus;
-  std::string name;                   // VRPN device name of the button (and analog) device
+  std::string name;                   // VRPN device name of the button (and analog) device; may be
+                                      // the tracker's own name (one sender for both, as in VRPN)
   int sensor = 0;                     // 0-based sensor (Fastrak station - 1)
   std::array<double, 8> wand_ranges{};  // Wand only: c0min c0lo c0hi c0max c1min c1lo c1hi c1max
   ConfigLocation location;

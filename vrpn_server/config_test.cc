@@ -230,6 +230,72 @@ TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
   }
 }
 
+// The reference creates the button server of an FTStylus line under the name given there; a button
+// and a tracker of one name share one VRPN sender (messages told apart by type), so a lab file may
+// name the stylus like its tracker and open Tracker0@host as both tracker and button remote.
+TEST(ParseVrpnConfig, ButtonMayShareTheNameOfItsTracker) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200 /\n"
+      "FTStylus Tracker0 0\n"
+      "vrpn_Tracker_Fastrak Tracker1 /dev/ttyS1 115200 /\n"
+      "Stylus Tracker1 1\n"
+      "trackcal_Calibration Tracker0 c.json raw=Tracker0_raw\n"
+      "trackcal_Tracker_Passthrough View0 *Tracker0\n"
+      "trackcal_Tracker_Passthrough View0_raw *Tracker0_raw\n",
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 2u);
+  ASSERT_EQ(config.fastrak_trackers[0].buttons.size(), 1u);
+  EXPECT_EQ(config.fastrak_trackers[0].buttons[0].name, "Tracker0");
+  EXPECT_EQ(config.fastrak_trackers[0].buttons[0].kind, ButtonDeviceKind::kFastrakStylus);
+  ASSERT_EQ(config.fastrak_trackers[1].buttons.size(), 1u);
+  EXPECT_EQ(config.fastrak_trackers[1].buttons[0].name, "Tracker1");
+  ASSERT_NE(config.FindCalibration("Tracker0"), nullptr);
+  EXPECT_EQ(config.FindCalibration("Tracker0")->raw_name, "Tracker0_raw");
+  ASSERT_EQ(config.passthroughs.size(), 2u);
+  EXPECT_EQ(config.passthroughs[0].source_device, "Tracker0");
+  EXPECT_EQ(config.passthroughs[1].source_device, "Tracker0_raw");
+  EXPECT_TRUE(config.warnings.empty());
+}
+
+// Any other reused name is an error: two devices of one type under one name would mix their
+// messages in the reference, and a button named like another device would be served as part of it.
+TEST(ParseVrpnConfig, OtherReusedDeviceNamesAreErrors) {
+  struct Case {
+    std::string text;
+    std::string expected;  // the whole message
+  };
+  const std::string shared = "vrpn_Tracker_Fastrak T0 /dev/a 115200 /\nFTStylus T0 0\n";
+  const std::string hint = " (a button may share only the name of the tracker it is attached to)";
+  const std::vector<Case> cases = {
+      {shared + "vrpn_Tracker_NULL T0 1 1\n",
+       "lab.cfg:3: field 'name': device name 'T0' is already used at lab.cfg:1"},
+      {shared + "trackcal_Tracker_Passthrough T0 *X\n",
+       "lab.cfg:3: field 'name': device name 'T0' is already used at lab.cfg:1"},
+      {shared + "trackcal_Calibration T0 c.json raw=T0\n",
+       "lab.cfg:3: field 'raw': device name 'T0' is already used at lab.cfg:1"},
+      {"vrpn_Tracker_Fastrak T0 /dev/a 115200 /\nFTStylus T0 0 /\nFTStylus T0 1\n",
+       "lab.cfg:3: field 'button name': button device name 'T0' is already used at lab.cfg:2"},
+      {"vrpn_Tracker_Fastrak T0 /dev/a 115200 /\nFTStylus S 0 /\nFTStylus S 1\n",
+       "lab.cfg:3: field 'button name': device name 'S' is already used at lab.cfg:2" + hint},
+      {"vrpn_Tracker_NULL T1 1 1\nvrpn_Tracker_Fastrak T0 /dev/a 115200 /\nFTStylus T1 0\n",
+       "lab.cfg:3: field 'button name': device name 'T1' is already used at lab.cfg:1" + hint},
+      {"vrpn_Tracker_Fastrak T0 /dev/a 115200 /\nFTStylus T1 0\nvrpn_Tracker_Fastrak T1 /dev/b "
+       "115200\n",
+       "lab.cfg:3: field 'name': device name 'T1' is already used at lab.cfg:2"},
+      {"vrpn_Tracker_NULL T1 1 1\ntrackcal_Calibration T1 c.json raw=T1_raw\n"
+       "vrpn_Tracker_Fastrak T0 /dev/a 115200 /\nFTStylus T1_raw 0\n",
+       "lab.cfg:4: field 'button name': device name 'T1_raw' is already used at lab.cfg:2" + hint},
+      {"vrpn_Tracker_Fastrak T0 /dev/a 115200 /\nFTStylus T0_raw 0\n"
+       "trackcal_Calibration T0 c.json raw=T0_raw\n",
+       "lab.cfg:3: field 'raw': device name 'T0_raw' is already used at lab.cfg:2"},
+      {"trackcal_Tracker_Passthrough P *X\nvrpn_Tracker_Fastrak T0 /dev/a 115200 /\nStylus P 0\n",
+       "lab.cfg:3: field 'button name': device name 'P' is already used at lab.cfg:1" + hint},
+  };
+  for (const Case& c : cases) {
+    EXPECT_EQ(ParseError(c.text), c.expected) << "input:\n" << c.text;
+  }
+}
+
 // The reference reads the Fastrak line and the FTStylus/Stylus/Wand lines with sscanf, so whatever
 // follows the fields it needs (a trailing comment, a note) is ignored; such a lab file must still
 // start the server. Here it is ignored with a warning naming the line.
