@@ -110,6 +110,13 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
       throw std::invalid_argument(origin + ": device name '" + name + "' is served twice");
     }
   };
+  // A button may share the name of the tracker it belongs to (VRPN serves both under one sender,
+  // their messages told apart by type), once; any other reused name is served twice.
+  std::set<std::string> shared_button_names;
+  auto claim_button = [&](const std::string& name, const TrackerSetup& setup) {
+    if (name == setup.name && shared_button_names.insert(name).second) return;
+    claim(name, setup.origin);
+  };
   std::vector<std::pair<int, std::optional<int>>> indices;
   for (TrackerSetup& setup : trackers) {
     if (!setup.make_source) throw std::invalid_argument(setup.origin + ": tracker has no source");
@@ -127,7 +134,7 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
     indices.emplace_back(index, raw);
     auto t = std::make_unique<Tracker>();
     for (const auto& [button_name, sensor] : setup.buttons) {
-      claim(button_name, setup.origin);
+      claim_button(button_name, setup);
       t->buttons.emplace_back(sensor, catalog_->AddButton(ButtonSpec{button_name, 1}));
     }
     t->setup = std::move(setup);

@@ -71,7 +71,9 @@ struct TrackerSetup {
   std::optional<std::string> outside;
   // Builds the report source (called once, at Start).
   std::function<std::unique_ptr<ReportSource>()> make_source;
-  // Button devices fed by the source's stylus events: (device name, sensor).
+  // Button devices fed by the source's stylus events: (device name, sensor). A button may take the
+  // tracker's own name (one VRPN sender for both, told apart by message type); every other name
+  // must be unused.
   std::vector<std::pair<std::string, int>> buttons;
   // Where it was configured ("vrpn.cfg:12"), for messages.
   std::string origin;
