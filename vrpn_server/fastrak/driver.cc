@@ -528,7 +528,12 @@ class FastrakDriver::Session {
       return false;
     }
     reset_attempts_ = 0;
-    {
+    if (!status->layout_note.empty()) {
+      // The reference checks only the first and last byte; so do we (ParseStatusRecord).
+      Emit(Severity::kInfo, "status OK (a " + std::to_string(reply.size()) +
+                                "-byte reply not in the Fastrak's layout: " + status->layout_note +
+                                "; its fields are not read)");
+    } else {
       std::ostringstream text;
       text << "status OK: firmware '" << status->firmware_version << "', system id '"
            << status->system_id << "', configuration 0x" << std::hex << status->configuration;
@@ -623,8 +628,11 @@ class FastrakDriver::Session {
       if (const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why)) {
         reset_attempts_ = 0;
         Count(&DriverStats::quick_restarts);
-        Emit(Severity::kInfo, "tracker answered (firmware '" + status->firmware_version +
-                                  "'); configuring without the full reset");
+        Emit(Severity::kInfo, "tracker answered (" +
+                                  (status->layout_note.empty()
+                                       ? "firmware '" + status->firmware_version + "'"
+                                       : std::string("status reply not in the Fastrak's layout")) +
+                                  "); configuring without the full reset");
         Configure();
         return true;
       }

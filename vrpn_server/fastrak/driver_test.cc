@@ -359,7 +359,7 @@ TEST(FastrakDriver, BadStatusIsRejectedAndRetried) {
   fake.SetCorruptStatus(false);
   ASSERT_TRUE(collector.WaitForReports(5, 10.0));
   driver.Stop();
-  EXPECT_TRUE(collector.HasLog("bad status report (status reply has 54 bytes"));
+  EXPECT_TRUE(collector.HasLog("bad status report (status reply (54 bytes) does not end with LF"));
   EXPECT_EQ(fake.received().substr(0, 4), "cS\rc");  // attempt 1 failed, attempt 2 escalated
 }
 

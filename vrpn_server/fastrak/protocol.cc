@@ -68,43 +68,68 @@ std::string StylusModeCommand(int station) {
 std::string ResetPreamble(int attempt) {
   if (attempt <= 1) return "c";
   if (attempt == 2) return "\rc";
-  if (attempt <= 4) return "\r\x19" "c";
-  if (attempt == 5) return "\rt\x19" "c";
-  return "\rYt\x19" "c";
+  if (attempt <= 4)
+    return "\r\x19"
+           "c";
+  if (attempt == 5)
+    return "\rt\x19"
+           "c";
+  return "\rYt\x19"
+         "c";
 }
 
 bool ResetPreambleReinitialises(int attempt) { return attempt >= 3; }
+
+namespace {
+
+// The 55-byte Fastrak layout's fields into *status; false with the first difference in *note.
+bool ParseStatusLayout(std::string_view bytes, StatusRecord* status, std::string* note) {
+  auto differs = [&](const std::string& what) {
+    *note = what;
+    return false;
+  };
+  if (bytes.size() != kStatusRecordSize) {
+    return differs(std::to_string(bytes.size()) + " bytes, not the Fastrak's 55");
+  }
+  if (bytes[1] < '1' || bytes[1] > '4') return differs("station byte is not 1..4");
+  if (bytes[2] != 'S') return differs("byte 2 is not 'S'");
+  if (!ParseHex3(bytes.substr(3, 3), &status->configuration)) {
+    return differs("configuration field is not 3 hex digits");
+  }
+  if (!ParseHex3(bytes.substr(6, 3), &status->bit_errors)) {
+    return differs("BIT error field is not 3 hex digits");
+  }
+  for (size_t i = 9; i < 15; ++i) {
+    if (bytes[i] != ' ') return differs("bytes 9..14 are not spaces");
+  }
+  for (size_t i = 15; i < 53; ++i) {
+    if (!std::isprint(static_cast<unsigned char>(bytes[i]))) {
+      return differs("firmware/system id has a non-printable byte at " + std::to_string(i));
+    }
+  }
+  if (bytes[53] != '\r') return differs("byte 53 is not CR");
+  status->station = bytes[1] - '0';
+  status->firmware_version = std::string(Trim(bytes.substr(15, 6)));
+  status->system_id = std::string(Trim(bytes.substr(21, 32)));
+  return true;
+}
+
+}  // namespace
 
 std::optional<StatusRecord> ParseStatusRecord(std::string_view bytes, std::string* why) {
   auto fail = [&](const std::string& reason) -> std::optional<StatusRecord> {
     if (why != nullptr) *why = reason;
     return std::nullopt;
   };
-  if (bytes.size() != kStatusRecordSize) {
-    return fail("status reply has " + std::to_string(bytes.size()) + " bytes, expected 55");
-  }
+  if (bytes.empty()) return fail("no status reply");
   if (bytes[0] != '2') return fail("status reply does not start with '2'");
-  if (bytes[1] < '1' || bytes[1] > '4') return fail("status reply station byte is not 1..4");
-  if (bytes[2] != 'S') return fail("status reply byte 2 is not 'S'");
+  if (bytes.back() != '\n') {
+    return fail("status reply (" + std::to_string(bytes.size()) + " bytes) does not end with LF");
+  }
   StatusRecord status;
-  status.station = bytes[1] - '0';
-  if (!ParseHex3(bytes.substr(3, 3), &status.configuration)) {
-    return fail("status configuration field is not 3 hex digits");
-  }
-  if (!ParseHex3(bytes.substr(6, 3), &status.bit_errors)) {
-    return fail("status BIT error field is not 3 hex digits");
-  }
-  for (size_t i = 9; i < 15; ++i) {
-    if (bytes[i] != ' ') return fail("status reply bytes 9..14 are not spaces");
-  }
-  for (size_t i = 15; i < 53; ++i) {
-    if (!std::isprint(static_cast<unsigned char>(bytes[i]))) {
-      return fail("status firmware/system id contains a non-printable byte at " + std::to_string(i));
-    }
-  }
-  if (bytes[53] != '\r' || bytes[54] != '\n') return fail("status reply does not end with CR LF");
-  status.firmware_version = std::string(Trim(bytes.substr(15, 6)));
-  status.system_id = std::string(Trim(bytes.substr(21, 32)));
+  StatusRecord parsed;
+  if (ParseStatusLayout(bytes, &parsed, &status.layout_note)) return parsed;
+  if (bytes.size() > 1 && bytes[1] >= '1' && bytes[1] <= '4') status.station = bytes[1] - '0';
   return status;
 }
 

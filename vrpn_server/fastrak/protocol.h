@@ -56,21 +56,29 @@ inline size_t RecordSize(bool stylus) { return stylus ? kStylusRecordSize : kRec
 // 6 chars firmware version, 32 chars system id, CR, LF.
 inline constexpr size_t kStatusRecordSize = 55;
 struct StatusRecord {
-  int station = 0;                 // station digit of the reply (1..4)
-  uint32_t configuration = 0;      // 3 hex digits
-  uint32_t bit_errors = 0;         // 3 hex digits; non-zero = built-in test failures
-  std::string firmware_version;    // trimmed
-  std::string system_id;           // trimmed
+  int station = 0;               // station digit of the reply (1..4; 0 when not a digit 1..4)
+  uint32_t configuration = 0;    // 3 hex digits
+  uint32_t bit_errors = 0;       // 3 hex digits; non-zero = built-in test failures
+  std::string firmware_version;  // trimmed
+  std::string system_id;         // trimmed
+  // Empty when the reply has the 55-byte Fastrak layout above and every field parsed. Otherwise
+  // what differs (a 54-byte IS-900 reply, another firmware's fields), and the fields above are
+  // unknown (left at their defaults): the reply is still a status, as the reference takes it.
+  std::string layout_note;
 };
-// Verifies every field of a status reply; on failure returns nullopt and says why in *why.
+// A status reply as the reference driver accepts it: the first byte is '2' (records start with
+// '0', so output still streaming is refused) and the last is LF. Anything else returns nullopt
+// and says why in *why. The fields are parsed when the reply has the Fastrak's 55-byte layout;
+// a reply that does not (StatusRecord::layout_note) is still accepted, since the reference checks
+// nothing more and a stricter check would keep a working unit in the reset loop forever.
 std::optional<StatusRecord> ParseStatusRecord(std::string_view bytes, std::string* why);
 
 // One binary record decoded but not converted: values as the device sent them.
 struct RawRecord {
-  int station = 0;           // 1..4
-  char status = ' ';         // ' ' or a letter (error/warning code)
-  float position[3] = {};    // x, y, z in the device's units
-  float wxyz[4] = {};        // quaternion, scalar first as on the wire
+  int station = 0;             // 1..4
+  char status = ' ';           // ' ' or a letter (error/warning code)
+  float position[3] = {};      // x, y, z in the device's units
+  float wxyz[4] = {};          // quaternion, scalar first as on the wire
   std::optional<bool> stylus;  // switch state if the record carries item 16
 };
 

@@ -148,11 +148,11 @@ TEST(RecordParser, ResynchronisesAfterGarbageWithoutLosingGoodRecords) {
       for (int i = 0; i < n; ++i) {
         stream.push_back(i % 2 ? static_cast<char>(byte(rng)) : tricky[tricky_pick(rng)]);
       }
-      stream += MakeRecord(1 + k % 2, k % 2 ? std::array<float, 3>{1.5f, 2.5f, -3.5f}
-                                            : std::array<float, 3>{10, -5, 20},
-                           k % 2 ? std::array<float, 4>{1, 0, 0, 0}
-                                 : std::array<float, 4>{0.73029674f, 0.18257418f, 0.36514837f,
-                                                        0.54772256f});
+      stream += MakeRecord(
+          1 + k % 2,
+          k % 2 ? std::array<float, 3>{1.5f, 2.5f, -3.5f} : std::array<float, 3>{10, -5, 20},
+          k % 2 ? std::array<float, 4>{1, 0, 0, 0}
+                : std::array<float, 4>{0.73029674f, 0.18257418f, 0.36514837f, 0.54772256f});
       ++good;
     }
     RecordParser parser({}, Units::kInches);
@@ -307,8 +307,8 @@ TEST(RecordParser, RejectsImplausibleRecords) {
   EXPECT_EQ(count(MakeRecord(2, {400, 0, 0}, identity)), 1u);
   EXPECT_EQ(count(MakeRecord(2, {300, 300, 0}, identity)), 1u);  // |p| = 10.8 m
   // The second half of the record read 1.5 s after the first: not one record.
-  EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity), kMaxStations, std::chrono::milliseconds(1500)),
-            1u);
+  EXPECT_EQ(
+      count(MakeRecord(2, {1, 2, 3}, identity), kMaxStations, std::chrono::milliseconds(1500)), 1u);
   EXPECT_EQ(count(MakeRecord(2, {1, 2, 3}, identity), kMaxStations, std::chrono::milliseconds(200)),
             2u);
 }
@@ -334,7 +334,8 @@ TEST(RecordParser, StylusRecords) {
   const std::array<float, 4> identity{1, 0, 0, 0};
   RecordParser parser({true, false, false, false}, Units::kInches);
   std::vector<FastrakReport> reports;
-  const std::string stream = MakeRecord(1, {1, 2, 3}, identity, ' ', 1) + MakeRecord(2, {1, 2, 3}, identity) +
+  const std::string stream = MakeRecord(1, {1, 2, 3}, identity, ' ', 1) +
+                             MakeRecord(2, {1, 2, 3}, identity) +
                              MakeRecord(1, {1, 2, 3}, identity, 'E', 0);
   EXPECT_EQ(MakeRecord(1, {1, 2, 3}, identity, ' ', 1).size(), kStylusRecordSize);
   parser.Feed(Bytes(stream), TimePoint(), &reports);
@@ -384,24 +385,60 @@ TEST(ParseStatusRecord, Nominal) {
   EXPECT_EQ(testing::MakeStatusRecord(), bytes.substr(0, kStatusRecordSize));
 }
 
-TEST(ParseStatusRecord, RejectsEveryBrokenField) {
+TEST(ParseStatusRecord, RejectsWhatTheReferenceRejects) {
+  // The reference driver checks two bytes of the reply: the first is '2' and the last is LF.
   const std::string good = testing::MakeStatusRecord();
+  std::string why;
+  std::string bad = good;
+  bad[0] = '0';
+  EXPECT_FALSE(ParseStatusRecord(bad, &why).has_value());
+  EXPECT_NE(why.find("start with '2'"), std::string::npos) << why;
+  bad = good;
+  bad[54] = '\r';
+  EXPECT_FALSE(ParseStatusRecord(bad, &why).has_value());
+  EXPECT_NE(why.find("55 bytes) does not end with LF"), std::string::npos) << why;
+  EXPECT_FALSE(ParseStatusRecord(good.substr(0, 54), nullptr).has_value());  // cut before LF
+  EXPECT_FALSE(ParseStatusRecord(good + "0", nullptr).has_value());
+  EXPECT_FALSE(ParseStatusRecord("", &why).has_value());
+  EXPECT_EQ(why, "no status reply");
+  // A record glued to the status (device still streaming) is not a status.
+  EXPECT_FALSE(ParseStatusRecord("01 " + good.substr(3), nullptr).has_value());
+}
+
+TEST(ParseStatusRecord, AcceptsAnotherLayoutAsTheReferenceDoesWithANote) {
+  // FASTRAK.md: some IS-900 firmware answers 54 bytes, and the reference reads nothing but the
+  // first and last byte. A stricter check would keep such a unit in the reset loop forever.
+  const std::string good = testing::MakeStatusRecord();
+  std::string is900 = good;
+  is900.erase(9, 1);  // one space fewer: 54 bytes, still '2' ... CR LF
+  ASSERT_EQ(is900.size(), 54u);
+  auto status = ParseStatusRecord(is900, nullptr);
+  ASSERT_TRUE(status.has_value());
+  EXPECT_EQ(status->layout_note, "54 bytes, not the Fastrak's 55");
+  EXPECT_EQ(status->station, 1);
+  EXPECT_TRUE(status->firmware_version.empty());
   struct Case {
     size_t index;
     char value;
+    std::string note;
   };
-  for (const Case& c : std::vector<Case>{{0, '0'}, {1, '7'}, {2, 's'}, {3, 'G'}, {8, ' '}, {10, 'x'},
-                                         {30, '\x01'}, {53, ' '}, {54, '\r'}}) {
-    std::string bad = good;
-    bad[c.index] = c.value;
-    std::string why;
-    EXPECT_FALSE(ParseStatusRecord(bad, &why).has_value()) << "byte " << c.index;
-    EXPECT_FALSE(why.empty());
+  for (const Case& c : std::vector<Case>{{1, '7', "station byte"},
+                                         {2, 's', "byte 2"},
+                                         {3, 'G', "configuration"},
+                                         {8, ' ', "BIT error"},
+                                         {10, 'x', "bytes 9..14"},
+                                         {30, '\x01', "non-printable byte at 30"},
+                                         {53, ' ', "byte 53"}}) {
+    std::string other = good;
+    other[c.index] = c.value;
+    status = ParseStatusRecord(other, nullptr);
+    ASSERT_TRUE(status.has_value()) << "byte " << c.index;
+    EXPECT_NE(status->layout_note.find(c.note), std::string::npos) << status->layout_note;
+    EXPECT_EQ(status->bit_errors, 0u);  // unknown: no field of another layout is read
   }
-  EXPECT_FALSE(ParseStatusRecord(good.substr(0, 54), nullptr).has_value());
-  EXPECT_FALSE(ParseStatusRecord(good + "0", nullptr).has_value());
-  // A record glued to the status (device still streaming) is not a status.
-  EXPECT_FALSE(ParseStatusRecord("01 " + good.substr(3), nullptr).has_value());
+  status = ParseStatusRecord(good, nullptr);
+  ASSERT_TRUE(status.has_value());
+  EXPECT_TRUE(status->layout_note.empty());
 }
 
 TEST(Commands, MatchTheReferenceBytes) {
@@ -412,10 +449,18 @@ TEST(Commands, MatchTheReferenceBytes) {
   EXPECT_THROW(OutputListCommand(5, false), std::invalid_argument);
   EXPECT_EQ(ResetPreamble(1), "c");
   EXPECT_EQ(ResetPreamble(2), "\rc");
-  EXPECT_EQ(ResetPreamble(3), "\r\x19" "c");
-  EXPECT_EQ(ResetPreamble(4), "\r\x19" "c");
-  EXPECT_EQ(ResetPreamble(5), "\rt\x19" "c");
-  EXPECT_EQ(ResetPreamble(9), "\rYt\x19" "c");
+  EXPECT_EQ(ResetPreamble(3),
+            "\r\x19"
+            "c");
+  EXPECT_EQ(ResetPreamble(4),
+            "\r\x19"
+            "c");
+  EXPECT_EQ(ResetPreamble(5),
+            "\rt\x19"
+            "c");
+  EXPECT_EQ(ResetPreamble(9),
+            "\rYt\x19"
+            "c");
   EXPECT_FALSE(ResetPreambleReinitialises(2));
   EXPECT_TRUE(ResetPreambleReinitialises(3));
   EXPECT_EQ(UnitsCommand(Units::kInches), 'U');
