@@ -286,23 +286,33 @@ std::map<std::string, int> CountPosQuatPerSender(
   return counts;
 }
 
-TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
+// A server with Tracker0 and Tracker1, and a raw client that describes `senders` (none: it
+// sends its cookie only) and counts Pos_Quat per sender until `done`.
+std::map<std::string, int> PosQuatPerSenderWhenDescribing(
+    const std::vector<std::string>& senders,
+    const std::function<bool(std::map<std::string, int>&)>& done) {
   auto catalog = MakeCatalog();
   TrackerSpec other;
   other.name = "Tracker1";
   const int tracker1 = catalog->AddTracker(other);
   VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
   server.Start();
-  // A raw client that describes only Tracker0 and counts Pos_Quat per sender.
   auto fd = RawConnect(server.port());
   auto names = std::make_shared<NameRegistry>();
-  names->AddSender("Tracker0");
+  for (const std::string& sender : senders) names->AddSender(sender);
   Connection conn(names, Connection::Options{});
   conn.Start();
-  ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
-  // Once the server has our description, it streams Tracker0 to us, never Tracker1.
-  auto counts = CountPosQuatPerSender(server, tracker1, fd.get(), conn,
-                                      [](auto& c) { return c["Tracker0"] >= 20; });
+  if (::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0) <= 0) {
+    ADD_FAILURE() << "cannot send the client's cookie";
+    return {};
+  }
+  return CountPosQuatPerSender(server, tracker1, fd.get(), conn, done);
+}
+
+TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
+  // Once the server has our description of Tracker0, it streams Tracker0 to us, never Tracker1.
+  auto counts = PosQuatPerSenderWhenDescribing({"Tracker0"},
+                                               [](auto& c) { return c["Tracker0"] >= 20; });
   EXPECT_GE(counts["Tracker0"], 20);
   EXPECT_EQ(counts.count("Tracker1"), 0u);
 }
@@ -310,19 +320,8 @@ TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
 TEST(VrpnServer, ClientDescribingNoNamesGetsEveryDevice) {
   // A minimal third-party client that sends its cookie and never describes a sender filters by
   // itself, as with the reference server: it must still get every device's reports.
-  auto catalog = MakeCatalog();
-  TrackerSpec other;
-  other.name = "Tracker1";
-  const int tracker1 = catalog->AddTracker(other);
-  VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
-  server.Start();
-  auto fd = RawConnect(server.port());
-  Connection conn(std::make_shared<NameRegistry>(), Connection::Options{});
-  conn.Start();
-  ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
-  auto counts = CountPosQuatPerSender(server, tracker1, fd.get(), conn, [](auto& c) {
-    return c["Tracker0"] >= 20 && c["Tracker1"] >= 20;
-  });
+  auto counts = PosQuatPerSenderWhenDescribing(
+      {}, [](auto& c) { return c["Tracker0"] >= 20 && c["Tracker1"] >= 20; });
   EXPECT_GE(counts["Tracker0"], 20);
   EXPECT_GE(counts["Tracker1"], 20);
 }
@@ -331,21 +330,8 @@ TEST(VrpnServer, ReferenceClientDescribingOnlyVrpnControlGetsEveryDevice) {
   // Every peer built on the reference library describes its "VRPN Control" sender, with or
   // without a remote object for a device: one that registers handlers for any sender (a logger,
   // a monitor) describes no device name and must get every device, as from the reference server.
-  auto catalog = MakeCatalog();
-  TrackerSpec other;
-  other.name = "Tracker1";
-  const int tracker1 = catalog->AddTracker(other);
-  VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
-  server.Start();
-  auto fd = RawConnect(server.port());
-  auto names = std::make_shared<NameRegistry>();
-  names->AddSender(kControlSender);
-  Connection conn(names, Connection::Options{});
-  conn.Start();
-  ASSERT_GT(::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0), 0);
-  auto counts = CountPosQuatPerSender(server, tracker1, fd.get(), conn, [](auto& c) {
-    return c["Tracker0"] >= 20 && c["Tracker1"] >= 20;
-  });
+  auto counts = PosQuatPerSenderWhenDescribing(
+      {std::string(kControlSender)}, [](auto& c) { return c["Tracker0"] >= 20 && c["Tracker1"] >= 20; });
   EXPECT_GE(counts["Tracker0"], 20);
   EXPECT_GE(counts["Tracker1"], 20);
 }
