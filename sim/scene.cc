@@ -10,6 +10,8 @@
 #include <set>
 #include <sstream>
 #include <stdexcept>
+#include <string>
+#include <vector>
 
 #include "core/capture.h"
 #include "sim/presets.h"
@@ -340,6 +342,54 @@ class JsonWriter {
   nlohmann::json* current_ = &root_;
 };
 
+int LineOf(const YAML::Node& node) { return node.Mark().line >= 0 ? node.Mark().line + 1 : 0; }
+
+// 1-based line of the deepest node below `node` on steps[i..] (map keys, or list indices where
+// `is_index`); the line of `node` itself if steps[i] is not in the document.
+int LineOfSteps(const YAML::Node& node, const std::vector<std::string>& steps,
+                const std::vector<bool>& is_index, size_t i) {
+  if (i == steps.size()) return LineOf(node);
+  const std::string& step = steps[i];
+  if (is_index[i]) {
+    size_t index = 0;
+    const auto [end, ec] = std::from_chars(step.data(), step.data() + step.size(), index);
+    if (ec != std::errc() || end != step.data() + step.size() || !node.IsSequence() ||
+        index >= node.size()) {
+      return LineOf(node);
+    }
+    return LineOfSteps(node[index], steps, is_index, i + 1);
+  }
+  if (!node.IsMap() || !node[step]) return LineOf(node);
+  return LineOfSteps(node[step], steps, is_index, i + 1);
+}
+
+// 1-based line of the deepest key of `root` on a field path such as
+// "environment.planes[1].attenuation"; 0 if the path's first key is not in the document.
+int LineOfField(const YAML::Node& root, const std::string& path) {
+  std::vector<std::string> steps;
+  std::vector<bool> is_index;
+  std::string token;
+  auto flush = [&](bool index) {
+    if (!token.empty()) {
+      steps.push_back(token);
+      is_index.push_back(index);
+    }
+    token.clear();
+  };
+  for (const char c : path) {
+    if (c == '.' || c == '[') {
+      flush(false);
+    } else if (c == ']') {
+      flush(true);
+    } else {
+      token += c;
+    }
+  }
+  flush(false);
+  if (steps.empty() || !root.IsMap() || !root[steps[0]]) return 0;
+  return LineOfSteps(root[steps[0]], steps, is_index, 1);
+}
+
 }  // namespace
 
 void TrackerConfig::Check() const {
@@ -483,7 +533,18 @@ void HiddenEffects::Check() const {
 }
 
 void Scene::Check() const {
-  environment.Check();
+  try {
+    environment.Check();
+  } catch (const std::invalid_argument& e) {
+    // FieldModel names its fields from its own root ("field model: planes[0].attenuation"); a scene
+    // holds it under `environment`, with the octupole under its YAML key.
+    std::string what = e.what();
+    const std::string prefix = "field model: ";
+    if (what.rfind(prefix, 0) == 0) what.erase(0, prefix.size());
+    const std::string octupole = "transmitter.octupole_m2";
+    if (what.rfind(octupole, 0) == 0) what.replace(0, octupole.size(), "transmitter_octupole_m2");
+    throw std::invalid_argument("scene: environment." + what);
+  }
   tracker.Check();
   reference.Check();
   capture.Check();
@@ -535,7 +596,14 @@ Scene ParseScene(const std::string& yaml_text, const std::string& source, const 
   try {
     scene.Check();
   } catch (const std::invalid_argument& e) {
-    throw std::invalid_argument(source + ": " + e.what());
+    // "scene: capture.validation.max_in_transmitter: must be ..." -> the line of that key in this
+    // file, or of its closest enclosing key here (the value itself may come from `base`).
+    std::string what = e.what();
+    const std::string prefix = "scene: ";
+    if (what.rfind(prefix, 0) == 0) what.erase(0, prefix.size());
+    const int line = LineOfField(root, what.substr(0, what.find(": ")));
+    throw std::invalid_argument(source + (line > 0 ? ":" + std::to_string(line) : "") + ": " +
+                                what);
   }
   return scene;
 }

@@ -87,9 +87,23 @@ TEST(ParseScene, ErrorsNameFileLineAndField) {
             "bad.yaml:4: capture.calibration.counts: expected a list of 3 integers");
   EXPECT_EQ(ErrorOf("base: nowhere\n").rfind("bad.yaml:1: base: unknown scene preset 'nowhere'", 0),
             0u);
-  // Semantic checks name the file and the field.
+  // Semantic checks name the file, the line of the key (or of its closest enclosing key in this
+  // file when the value comes from the base preset) and the field as it is spelled in the file.
   EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  samples_per_station: 0\n"),
-            "bad.yaml: scene: tracker.samples_per_station: must be >= 1");
+            "bad.yaml:3: tracker.samples_per_station: must be >= 1");
+  EXPECT_EQ(
+      ErrorOf("base: paper\nreference:\n  markers_in_body:\n    - [0.1, 0, 0]\n"
+              "    - [0.1, 0, 0]\n    - [0, 0, 0]\n"),
+      "bad.yaml:6: reference.markers_in_body[2]: must be finite and away from the body origin");
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  validation:\n    min_in_transmitter: [1, 1, 1]\n"),
+            "bad.yaml:4: capture.validation.max_in_transmitter: must be finite and >= "
+            "min_in_transmitter");
+  // The environment's checks (core's FieldModel) are named by their scene keys too.
+  EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: x\n"
+                    "      point_in_transmitter: [0, 0, 1]\n      attenuation: 2\n"),
+            "bad.yaml:6: environment.planes[0].attenuation: must be in [-1, 1]");
+  EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  field_constant: 0\n"),
+            "bad.yaml:3: environment.field_constant: must be a positive number");
   EXPECT_NE(ErrorOf("tracker: [\n").find("bad.yaml:"), std::string::npos);
 }
 
