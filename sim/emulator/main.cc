@@ -189,7 +189,15 @@ int Main(int argc, char** argv) {
     std::stringstream effects(hidden);
     std::string effect;
     while (std::getline(effects, effect, ',')) {
-      if (!effect.empty()) scene.hidden.Enable(effect);
+      if (effect.empty()) continue;
+      scene.hidden.Enable(effect);
+      // These act on trackcal-simulate's captures only: the offset and the clock sit between the
+      // receiver and the optical reference, which the emulator does not have, and the flips are
+      // drawn per capture station. Accepted (the demo serves the scene it simulated), but said.
+      if (effect == "sensor_offset" || effect == "clock_offset" || effect == "hemisphere_flips") {
+        std::cerr << "trackcal-emulate: note: --hidden " << effect
+                  << " changes simulated captures only, not the emulated tracker's reports\n";
+      }
     }
     if (!seed_given) options.seed = scene.seed;
     if (!rate_given) options.update_rate_hz = scene.tracker.update_rate_hz;
