@@ -7,7 +7,9 @@ main job's loop). For every hidden effect of the simulator and three seeds, foll
 
 1. end by itself: the last diagnosis finds nothing significant (not the step cap);
 2. add the term of the hidden effect, with every physical parameter within 3 standard deviations
-   (the final fit's own standard deviations) of truth.json;
+   (the final fit's own standard deviations) of truth.json; for a combination of hidden effects
+   (HIDDEN_COMBINATIONS), the term of each, compared in the fit's gauge where the effects share
+   one (_truth_in_fit_gauge);
 3. add no spurious physical term (rule below);
 4. end within 1.5 times the noise floor on held-out data (position and orientation means);
 5. record every fit in the work folder's history.
@@ -96,12 +98,24 @@ FLOOR_FACTOR = 1.5     # the issue's "within 1.5 times the noise floor"
 
 HIDDEN_EFFECTS = ["sensor_offset", "receiver_gains", "ferromagnetic_object",
                   "finite_transmitter_coils", "clock_offset", "hemisphere_flips"]
+# Hidden effects together, "+"-joined (the simulator's --hidden list): a real receiver has an
+# offset sensor and imperfect coils at once, and the two meet in a gauge (_truth_in_fit_gauge);
+# every transmitter has coils of finite size. Measured (session 30, five loops at once on the 2
+# cores, 18-34 min each): sensor_offset+receiver_gains goes offset, G, frame dipole, floor plane,
+# background, then nothing, on seeds 1, 2, 3 and 5 (seed 4: a dipole at the floor's image before
+# the background and the plane, then its removal), 1.09x-1.22x / 1.06x-1.13x the floor, nothing
+# spurious, every parameter within 3 sigma in the fit's gauge on seeds 1 and 3-5, not on seed 2
+# (_XFAIL); finite_transmitter_coils+receiver_gains goes G, near field, frame, floor, background,
+# then nothing, on seeds 1-3, 1.03x-1.08x / 1.02x-1.12x the floor, and passes (seed 1 alone
+# through pytest on a quiet machine: 350 s).
+HIDDEN_COMBINATIONS = ["sensor_offset+receiver_gains", "finite_transmitter_coils+receiver_gains"]
 SEEDS = [1, 2, 3]
 
 # Which loops run: TRACKCAL_WORKFLOW_TESTS unset or "ci": CI_LOOPS (one seed per effect, what fits
 # CI's budget, see LOOP_TIMES); "full": every effect on 3 seeds; "none": no loop; else a
-# comma-separated list of effects (3 seeds each) or effect:seed items ("clock_offset:2"; any seed,
-# "sensor_offset:4" adds a loop on a seed outside SEEDS).
+# comma-separated list of effects or combinations (3 seeds each) or effect:seed items
+# ("clock_offset:2", "sensor_offset+receiver_gains:1"; any seed, "sensor_offset:4" adds a loop on
+# a seed outside SEEDS).
 _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 # Measured (branch `loops`, main with the chain clamping only explicit terms), wall time of one loop
 # at a time under nice -n 5 on the 2 shared cores of the development machine, under a load of 10-17
@@ -139,7 +153,7 @@ _SELECTED = os.environ.get("TRACKCAL_WORKFLOW_TESTS", "").strip() or "ci"
 # and hemisphere_flips on seed 1 (391 s for both at load ~15 here; session 3's whole pytest run with
 # three loops, these two and sensor_offset, took 114 s on a quiet machine) and, since session 10,
 # receiver_gains seed 1 (the distant sources' bias on G that background_field removes). The xfail
-# loops (_XFAIL) and the other seeds run with TRACKCAL_WORKFLOW_TESTS=full (all 18, about 1.5 h there; clock_offset alone
+# loops (_XFAIL) and the other seeds run with TRACKCAL_WORKFLOW_TESTS=full (all 18 single effects, about 1.5 h there, and the combinations; clock_offset alone
 # ~20 min on the 20 s stream; its 30 s stream since session 12 took 47-50 min per seed with three
 # seeds and a CI run sharing the 2 cores). One pytest process: the diagnoses already use both cores (candidates in parallel
 # threads), so pytest-xdist would not help. The xfail ones still must run to their assertions
@@ -165,7 +179,8 @@ def _selected(hidden: str, seed: int) -> bool:
 
 
 def _simulate(out: Path, hidden: str, seed: int) -> Path:
-    subprocess.run(["trackcal-simulate", "--scene", str(SCENE), "--hidden", hidden, "--seed", str(seed),
+    subprocess.run(["trackcal-simulate", "--scene", str(SCENE), "--hidden", hidden.replace("+", ","),
+                    "--seed", str(seed),
                     "-o", str(out)], check=True, capture_output=True, text=True)
     return out
 
@@ -225,6 +240,59 @@ def _rotation_vector_xyzw(q) -> np.ndarray:
     if s < 1e-15:
         return 2 * q[:3]
     return 2 * math.atan2(s, q[3]) * q[:3] / s
+
+
+def _matrix_xyzw(q) -> np.ndarray:
+    """The rotation matrix of a quaternion (x, y, z, w)."""
+    x, y, z, w = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _rotation_vector_of(r) -> np.ndarray:
+    """The rotation vector (axis times angle, rad) of a rotation matrix (angle below pi)."""
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    angle = math.acos(float(np.clip((np.trace(r) - 1) / 2, -1, 1)))
+    return w / 2 if angle < 1e-12 else angle * w / (2 * math.sin(angle))
+
+
+def _unit_mean_gain(fit_doc: dict) -> bool:
+    """Whether the fit held trace G = 3 (gain_scale: the uniform gain is a gauge when a polynomial
+    or LUT follows the physical group; trackcal-fit --json's effect description)."""
+    return any(e.get("unit_mean_gain") for t in fit_doc.get("fit", {}).get("terms", [])
+               for e in t.get("effects", []))
+
+
+def _truth_in_fit_gauge(eff: dict, terms: list, unit_mean_gain: bool = False):
+    """(G, receiver_from_body translation, rotation vector, length scale) of the truth as the fit
+    can report it.
+
+    The receiver measures G R_s R_b^T B(p) at p = t_b - R_b R_s^T t_s (core/field.h SignalMatrix;
+    body pose (R_b, t_b), receiver_from_body (R_s, t_s)): only the product G R_s is seen. Beside a
+    free sensor_offset the fit therefore holds G symmetric (docs/model-file.md), which picks one
+    factorisation: G = P U with P = sqrt(G G^T) symmetric and U a rotation. The same signal and
+    position then come from (P, U R_s, U t_s), and that is the truth the fit's values estimate.
+    When the fit also holds the mean gain at 1 (unit_mean_gain), its lengths inside the physical
+    group are the true ones times c^(-1/3), c = trace(P) / 3 (a uniform gain c scales a dipole
+    field's positions so; the polynomial after the group undoes it for positions, and the group's
+    other lengths are fitted in those units): the translation compared is c^(-1/3) U t_s, and the
+    length scale c^(-1/3) is returned for the other terms (an octupole in m^2 scales by its
+    square). G itself is compared as 3 G / trace(G) by the caller. Without both terms, or with a G
+    the fit did not hold symmetric, the truth as it is (scaled as above when the mean gain was
+    held)."""
+    g = np.asarray(eff["receiver_gain_matrix"], float)
+    rfb = eff["receiver_from_body"]
+    r_s, t_s = _matrix_xyzw(rfb["rotation_xyzw"]), np.asarray(rfb["translation"], float)
+    fitted = [b["gain_matrix"][0].reshape(3, 3) for k, _, b in terms if k == "receiver_gain"]
+    if fitted and np.allclose(fitted[0], fitted[0].T, rtol=0, atol=1e-12) and \
+            any(k == "sensor_offset" for k, _, _ in terms):
+        w, v = np.linalg.eigh(g @ g.T)
+        p = v @ np.diag(np.sqrt(w)) @ v.T
+        u = np.linalg.solve(p, g)
+        g, r_s, t_s = p, u @ r_s, u @ t_s
+    scale = (np.trace(g) / 3.0) ** (-1.0 / 3.0) if fitted and unit_mean_gain else 1.0
+    return g, scale * t_s, _rotation_vector_of(r_s), scale
 
 
 def _within(values, sds, truth, what: str) -> list:
@@ -439,8 +507,11 @@ def _describe(blocks: dict) -> str:
 
 def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
     """Why the hidden effect's term is missing or off (empty: present, within 3 sigma)."""
+    if "+" in hidden:  # a combination: every effect's term
+        return [f for part in hidden.split("+") for f in _hidden_term_failures(part, final, truth)]
     eff = truth["effective"]
     terms = _physical_terms(final.fit)
+    true_g, true_t_s, true_r_s, length_scale = _truth_in_fit_gauge(eff, terms, _unit_mean_gain(final.fit))
     if hidden == "hemisphere_flips":
         text = final.model_path.read_text()
         return [] if any(line.startswith("loss:") for line in text.splitlines()) else \
@@ -463,11 +534,11 @@ def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
         cands = [b for k, _, b in terms if k == "sensor_offset"]
         if not cands:
             return ["no sensor_offset term"]
-        b, rfb = cands[0], eff["receiver_from_body"]
+        b = cands[0]
         rot_v, rot_s = b["rotation"]
         rot = _rotation_vector_xyzw(rot_v) if rot_v.size == 4 else rot_v
-        return (_within(b["translation"][0], b["translation"][1], rfb["translation"], "translation")
-                + _within(rot, rot_s, _rotation_vector_xyzw(rfb["rotation_xyzw"]), "rotation vector"))
+        return (_within(b["translation"][0], b["translation"][1], true_t_s, "translation")
+                + _within(rot, rot_s, true_r_s, "rotation vector"))
     if hidden == "receiver_gains":
         cands = [b for k, _, b in terms if k == "receiver_gain"]
         if not cands:
@@ -478,7 +549,7 @@ def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
         # mean coil gain at 1 (docs/model-file.md, gain_scale), so G is compared as 3 G / trace(G)
         # on both sides.
         fitted = np.asarray(v, float).reshape(3, 3)
-        true = np.asarray(eff["receiver_gain_matrix"], float)
+        true = true_g
         fitted = 3.0 * fitted / np.trace(fitted)
         true = 3.0 * true / np.trace(true)
         return _within(fitted.ravel(), s, true.ravel(), "gain_matrix (mean gain 1)")
@@ -487,7 +558,8 @@ def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
         if not cands:
             return ["no near_field term"]
         v, s = cands[0]["octupole_m2"]
-        return _within(v, s, eff["field_model"]["transmitter_octupole_m2"], "octupole_m2")
+        return _within(v, s, length_scale ** 2 * np.asarray(eff["field_model"]["transmitter_octupole_m2"]),
+                       "octupole_m2")
     if hidden == "ferromagnetic_object":
         obj = next(o for o in eff["field_model"]["objects"]
                    if o["name"] == truth["scene"]["hidden"]["ferromagnetic_object"]["name"])
@@ -495,8 +567,10 @@ def _hidden_term_failures(hidden: str, final: "demo.Step", truth: dict) -> list:
         for k, _, b in terms:
             if k != "dipole":
                 continue
-            f = (_within(*b["location_in_transmitter"], obj["location_in_transmitter"], "location")
-                 + _within(*b["polarisability_m3"], [obj["polarisability_m3"]], "polarisability"))
+            f = (_within(*b["location_in_transmitter"],
+                         length_scale * np.asarray(obj["location_in_transmitter"]), "location")
+                 + _within(*b["polarisability_m3"], [length_scale ** 3 * obj["polarisability_m3"]],
+                           "polarisability"))
             if best is None or len(f) < len(best):
                 best = f
         return ["no dipole term"] if best is None else best
@@ -624,6 +698,11 @@ _XFAIL = {
                               "interval of +- 0.004, and the sandwich's 0.015 is already 4x that (the "
                               "residual is structure the model lacks, not noise). The room's other sources "
                               "that the polynomial and the degree-1 background stand in for bias it",
+    "sensor_offset+receiver_gains:2": "session 30: offset, G, frame dipole, floor plane, background, then "
+                                      "nothing; 1.19x / 1.13x the floor, nothing spurious, the offset's "
+                                      "rotation and translation within 3 sigma in the fit's gauge, but "
+                                      "G_yy (mean gain 1) 0.976806 +- 9.17e-06 against 0.976778: 3.05 "
+                                      "sigma (the other 8 entries of G within 3)",
     "ferromagnetic_object:3": "main (session 10): the same terms as seed 2 (10.23x -> 1.94x -> 1.34x -> "
                               "1.154x -> 1.066x / 1.051x the floor), nothing spurious, but the toolbox ends "
                               "at (0.599, 0.911, -0.537) +- 0.010 in z against (0.6, 0.95, -0.5), z 3.7 "
@@ -640,7 +719,7 @@ def _extra_seeds() -> list:
         return out
     for item in (x.strip() for x in _SELECTED.split(",")):
         hidden, _, seed = item.partition(":")
-        if hidden in HIDDEN_EFFECTS and seed.isdigit() and int(seed) not in SEEDS:
+        if hidden in HIDDEN_EFFECTS + HIDDEN_COMBINATIONS and seed.isdigit() and int(seed) not in SEEDS:
             out.append((hidden, int(seed)))
     return out
 
@@ -649,7 +728,7 @@ def _loop_params() -> list:
     """(hidden, seed) for every loop, marked xfail by _XFAIL's effect or "effect:seed" key, and the
     extra seeds a run asks for (_extra_seeds)."""
     out = []
-    pairs = [(h, seed) for h in HIDDEN_EFFECTS for seed in SEEDS] + _extra_seeds()
+    pairs = [(h, seed) for h in HIDDEN_EFFECTS + HIDDEN_COMBINATIONS for seed in SEEDS] + _extra_seeds()
     for h, seed in pairs:
         reason = _XFAIL.get(f"{h}:{seed}", _XFAIL.get(h))
         marks = [pytest.mark.xfail(reason=reason, strict=False, raises=AssertionError)] if reason else []
@@ -663,7 +742,7 @@ def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path)
         pytest.skip("no candidate ranking in this build (trackcal-fit diagnose)")
     if not _selected(hidden, seed):
         pytest.skip("not in this run's loops (TRACKCAL_WORKFLOW_TESTS: unset/ci runs CI_LOOPS, "
-                    "full runs all 18, or a list of effects or effect:seed items)")
+                    "full runs them all, or a list of effects or effect:seed items)")
     capture = _simulate(tmp_path / "capture", hidden, seed)
     data = _stream_only(capture, tmp_path / "streams") if hidden == "clock_offset" else capture
     work = tmp_path / "work"
@@ -721,7 +800,8 @@ def test_a_selection_can_add_seeds_outside_the_fixed_ones(monkeypatch):
     assert _extra_seeds() == [("sensor_offset", 4)]
     assert ("sensor_offset", 4) in [tuple(p.values) for p in _loop_params()]
     monkeypatch.setattr(sys.modules[__name__], "_SELECTED", "ci")
-    assert _extra_seeds() == [] and len(_loop_params()) == len(HIDDEN_EFFECTS) * len(SEEDS)
+    assert _extra_seeds() == [] and \
+        len(_loop_params()) == (len(HIDDEN_EFFECTS) + len(HIDDEN_COMBINATIONS)) * len(SEEDS)
 
 
 def test_room_sources_are_findings_and_each_is_matched_once(toolbox_truth):
@@ -801,3 +881,79 @@ def test_the_hidden_term_must_be_within_three_sigma(toolbox_truth):
         return _hidden_term_failures("ferromagnetic_object", step, toolbox_truth)
     assert final([0.6 + 0.02, 0.95, -0.5], 0.01) == []            # 2 sigma off
     assert "location[0]" in final([0.6 + 0.04, 0.95, -0.5], 0.01)[0]  # 4 sigma off
+
+
+def _gain_offset_truth():
+    """A receiver with non-orthogonal coils (G not symmetric) and a sensor offset."""
+    g = np.array([[1.02, 0.01, -0.004], [-0.005, 0.99, 0.015], [0.006, 0.008, 1.01]])
+    q = np.array([0.02, -0.015, 0.01, 1.0])
+    return {"effective": {"receiver_gain_matrix": g.tolist(), "receiver_from_body": {
+        "rotation_xyzw": (q / np.linalg.norm(q)).tolist(), "translation": [0.012, -0.007, 0.02]}}}
+
+
+def test_the_gauge_of_gain_and_offset_keeps_signal_and_position():
+    # The claim of _truth_in_fit_gauge, checked on poses: (P, U R_s, U t_s) gives every body pose
+    # the same signal G R_s R_b^T B(p) and the same receiver position p as (G, R_s, t_s).
+    eff = _gain_offset_truth()["effective"]
+    sym = ("receiver_gain", "g", {"gain_matrix": (np.eye(3).ravel(), np.ones(9))})
+    p_g, t_g, r_g, _ = _truth_in_fit_gauge(eff, [sym, ("sensor_offset", "o", {})])
+    assert np.allclose(p_g, p_g.T) and np.all(np.linalg.eigvalsh(p_g) > 0)
+    g = np.asarray(eff["receiver_gain_matrix"])
+    r_s = _matrix_xyzw(eff["receiver_from_body"]["rotation_xyzw"])
+    t_s = np.asarray(eff["receiver_from_body"]["translation"])
+    angle = np.linalg.norm(r_g)
+    k = np.array([[0, -r_g[2], r_g[1]], [r_g[2], 0, -r_g[0]], [-r_g[1], r_g[0], 0]]) / angle
+    r_s_g = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k  # Rodrigues
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        r_b = _matrix_xyzw(rng.normal(size=4))
+        t_b = rng.uniform(-0.5, 0.5, 3)
+        field = rng.normal(size=(3, 3))  # B(p): any 3x3 (p is the same in both gauges, below)
+        assert np.allclose(g @ r_s @ r_b.T @ field, p_g @ r_s_g @ r_b.T @ field, atol=1e-12)
+        assert np.allclose(t_b - r_b @ r_s.T @ t_s, t_b - r_b @ r_s_g.T @ t_g, atol=1e-12)
+    # With the mean gain held at 1 (unit_mean_gain) the group's lengths are c^(-1/3) the true ones,
+    # c = trace(P) / 3: the transmitter's dipole field is homogeneous of degree -3, so P / c at the
+    # scaled position measures what P measures at the true one.
+    _, t_u, _, scale = _truth_in_fit_gauge(eff, [sym, ("sensor_offset", "o", {})], unit_mean_gain=True)
+    c = np.trace(p_g) / 3
+
+    def dipole(x):
+        r = np.linalg.norm(x)
+        return (3 * np.outer(x, x) / r ** 2 - np.eye(3)) / r ** 3
+
+    x = np.array([0.3, -0.2, -0.5])
+    assert abs(c - 1) > 1e-3 and np.allclose(p_g / c @ dipole(scale * x), p_g @ dipole(x), rtol=1e-12)
+    assert np.allclose(t_u, scale * t_g, rtol=1e-12)
+    # No gauge to change without a sensor_offset, or when the fit's G is not symmetric.
+    free_g = ("receiver_gain", "g", {"gain_matrix": (g.ravel(), np.ones(9))})
+    for terms in ([sym], [free_g, ("sensor_offset", "o", {})]):
+        assert np.allclose(_truth_in_fit_gauge(eff, terms)[0], g)
+
+
+def test_a_gain_and_an_offset_together_are_compared_in_the_fit_gauge():
+    truth = _gain_offset_truth()
+    eff = truth["effective"]
+    sym = ("receiver_gain", "g", {"gain_matrix": (np.eye(3).ravel(), np.ones(9))})
+    p_g, t_g, r_g, _ = _truth_in_fit_gauge(eff, [sym, ("sensor_offset", "o", {})])
+    p_g = 3 * p_g / np.trace(p_g)  # the fit's mean-gain-1 scale (the polynomial absorbs the rest)
+
+    def failures(gain, translation, rotation):
+        sd = 1e-5  # the size of the two-effect loop's stddevs (seed 4: 5e-6 to 5e-5)
+        step = demo.Step(0, "x", Path("m.yaml"), Path("c.json"), _fit_doc(
+            ("receiver_gain", {"gain_matrix": (list(np.ravel(gain)), [sd] * 9)}),
+            ("sensor_offset", {"translation": (list(translation), [sd] * 3),
+                               "rotation": (list(rotation), [sd] * 3)})))
+        return _hidden_term_failures("sensor_offset+receiver_gains", step, truth)
+
+    assert failures(p_g, t_g, r_g) == []
+    # The same truth not carried into the gauge: the rotation and the translation are off by G's
+    # rotation part (about 0.5 deg here, hundreds of sigma), as session 26's loop measured.
+    naive = failures(p_g, eff["receiver_from_body"]["translation"],
+                     _rotation_vector_xyzw(eff["receiver_from_body"]["rotation_xyzw"]))
+    assert any("rotation vector" in f for f in naive) and any("translation" in f for f in naive)
+    # Each effect's term is required (and without the offset there is no gauge: the symmetric G
+    # is compared with the truth's own G, and fails).
+    step = demo.Step(0, "x", Path("m.yaml"), Path("c.json"), _fit_doc(
+        ("receiver_gain", {"gain_matrix": (list(p_g.ravel()), [1e-5] * 9)})))
+    alone = _hidden_term_failures("sensor_offset+receiver_gains", step, truth)
+    assert alone[0] == "no sensor_offset term" and any("gain_matrix" in f for f in alone[1:])
