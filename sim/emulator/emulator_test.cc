@@ -570,6 +570,30 @@ TEST(TrackcalEmulate, SigtermRemovesLink) {
   EXPECT_FALSE(std::filesystem::exists(std::filesystem::symlink_status(link)));
 }
 
+// Whole-number options are read as such: a fraction, an exponent or a sign is refused by name, not
+// truncated (--stations 2.5 was 2) or wrapped (--seed -1 was 2^64 - 1).
+TEST(TrackcalEmulate, WholeNumberOptionsRefuseFractionsAndSigns) {
+  const std::string exe =
+      (std::filesystem::read_symlink("/proc/self/exe").parent_path() / "trackcal-emulate").string();
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"--stations 2.5", "--stations: expected a whole number from 1 to 4, got '2.5'"},
+      {"--seed -1", "--seed: expected a whole number from 0 to 18446744073709551615, got '-1'"},
+      {"--seed 1e3", "--seed: expected a whole number"},
+      {"--seed 99999999999999999999", "--seed: expected a whole number"},
+      {"--baud 9600.5", "--baud: expected a whole number"},
+      {"--pose 5=0.3,0,0,1,0,0,0", "--pose station: expected a whole number from 1 to 4, got '5'"}};
+  for (const auto& [args, message] : cases) {
+    FILE* f = popen((exe + " " + args + " --duration 0.05 2>&1").c_str(), "r");
+    ASSERT_NE(f, nullptr);
+    std::string out;
+    char buf[256];
+    while (fgets(buf, sizeof(buf), f) != nullptr) out += buf;
+    const int status = pclose(f);
+    EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) != 0) << args;
+    EXPECT_NE(out.find(message), std::string::npos) << args << ": " << out;
+  }
+}
+
 // --trajectory with the example file, --duration: the command exits by itself and cleans up.
 TEST(TrackcalEmulate, TrajectoryAndDuration) {
   const std::string exe =

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <csignal>
+#include <cstdint>
 #include <cstdio>
 #include <iostream>
 #include <memory>
@@ -67,11 +68,30 @@ double ParseDouble(const std::string& s, const std::string& option) {
   }
 }
 
+// A whole number in [min, max] (stations, baud with 0 unpaced, seed): "2.5", "1e3" or "-1" are usage errors, not
+// truncated or wrapped.
+uint64_t ParseWhole(const std::string& s, const std::string& option, uint64_t min, uint64_t max) {
+  const bool digits = !s.empty() && s.size() <= 20 &&
+                      std::all_of(s.begin(), s.end(), [](char c) { return c >= '0' && c <= '9'; });
+  uint64_t v = 0;
+  bool in_range = digits;
+  try {
+    if (digits) v = std::stoull(s);
+  } catch (const std::exception&) {
+    in_range = false;  // beyond 2^64 - 1
+  }
+  if (!in_range || v < min || v > max) {
+    UsageError(option + ": expected a whole number from " + std::to_string(min) + " to " +
+               std::to_string(max) + ", got '" + s + "'");
+  }
+  return v;
+}
+
 std::pair<int, Rigid3d> ParsePose(const std::string& text) {
   const size_t eq = text.find('=');
   if (eq == std::string::npos)
     UsageError("--pose: expected S=x,y,z,qw,qx,qy,qz, got '" + text + "'");
-  const int station = static_cast<int>(ParseDouble(text.substr(0, eq), "--pose station"));
+  const int station = static_cast<int>(ParseWhole(text.substr(0, eq), "--pose station", 1, 4));
   if (station < 1 || station > kMaxStations) UsageError("--pose: station must be 1 to 4");
   std::vector<double> v;
   std::stringstream ss(text.substr(eq + 1));
@@ -138,7 +158,7 @@ int Main(int argc, char** argv) {
     } else if (arg == "--hidden") {
       hidden = value();
     } else if (arg == "--stations") {
-      stations = static_cast<int>(ParseDouble(value(), arg));
+      stations = static_cast<int>(ParseWhole(value(), arg, 1, 4));
     } else if (arg == "--pose") {
       poses.push_back(ParsePose(value()));
     } else if (arg == "--trajectory") {
@@ -155,7 +175,7 @@ int Main(int argc, char** argv) {
       options.update_rate_hz = ParseDouble(value(), arg);
       rate_given = true;
     } else if (arg == "--baud") {
-      options.baud = static_cast<int>(ParseDouble(value(), arg));
+      options.baud = static_cast<int>(ParseWhole(value(), arg, 0, 4000000));
     } else if (arg == "--rate-per-station") {
       options.divide_rate_among_stations = false;
     } else if (arg == "--binary") {
@@ -169,7 +189,7 @@ int Main(int argc, char** argv) {
     } else if (arg == "--noise-deg") {
       noise_deg = ParseDouble(value(), arg);
     } else if (arg == "--seed") {
-      options.seed = static_cast<uint64_t>(ParseDouble(value(), arg));
+      options.seed = ParseWhole(value(), arg, 0, UINT64_MAX);
       seed_given = true;
     } else if (arg == "--duration") {
       duration = ParseDouble(value(), arg);
@@ -209,7 +229,8 @@ int Main(int argc, char** argv) {
     UsageError("--hidden needs a --scene");
   }
   if (within && (!simulator || !trajectory.empty() || !poses.empty())) {
-    UsageError("--within applies to the scene's trajectories (not --pose, --trajectory or --scene none)");
+    UsageError(
+        "--within applies to the scene's trajectories (not --pose, --trajectory or --scene none)");
   }
 
   std::unique_ptr<PoseSource> base;
