@@ -66,13 +66,16 @@ def test_history_plot_keeps_the_last_changes_visible():
     # The main job's loop: 25.9 mm -> 0.09 mm. On a linear axis the last two changes are flat.
     entries = [entry("base", 25.866, 3.227), entry("+sensor_offset", 0.877, 0.160),
                entry("+dipole", 0.194, 0.036), entry("+plane", 0.090, 0.022)]
+    import matplotlib.pyplot as plt
     fig = figures.history_plot(entries)
     left, right = fig.axes
     assert left.get_yscale() == "log" and right.get_yscale() == "log"
     assert "(valid)" in left.get_title()
+    plt.close(fig)
     # Errors within a factor of 20 stay linear.
     fig = figures.history_plot([entry("a", 2.0, 0.2), entry("b", 1.5, 0.15)])
     assert fig.axes[0].get_yscale() == "linear"
+    plt.close(fig)
 
 
 def test_history_table_shows_the_median_fall_that_gross_errors_hide_from_the_mean():

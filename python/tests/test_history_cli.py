@@ -202,6 +202,8 @@ def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys
     picture = tmp_path / "setup.png"
     picture.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 32)
     capsys.readouterr()
+    import matplotlib.pyplot as plt
+    open_before = set(plt.get_fignums())
     for target, why in ((work / "history.jsonl", "refusing to overwrite an input"),
                         (data, "refusing to overwrite an input"),
                         (model, "refusing to overwrite an input"),
@@ -219,6 +221,8 @@ def test_history_plot_never_draws_over_the_history_or_a_capture(tmp_path, capsys
     for target in (tmp_path / "plot", tmp_path / "h.png", tmp_path / "h.png"):
         assert cli.main(["history", str(work), "--plot", str(target)]) == 0
         assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # In-process (a script's loop), refused or written, no plot stays open in pyplot's registry.
+    assert set(plt.get_fignums()) == open_before
 
 
 def test_cli_refuses_unusable_outputs_up_front_in_one_line(tmp_path, capsys):

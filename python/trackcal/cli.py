@@ -489,7 +489,12 @@ def cmd_history(args, term) -> int:
             inputs += [p for p in names if isinstance(p, str)]
             if isinstance(m.get("copy"), str):
                 inputs.append(work / m["copy"])
-        figures.save_png(figures.history_plot(entries), args.plot, inputs=inputs)
+        import matplotlib.pyplot as plt
+        fig = figures.history_plot(entries)
+        try:
+            figures.save_png(fig, args.plot, inputs=inputs)
+        finally:  # main() also runs in-process (scripts, tests): leave no figure in pyplot's registry
+            plt.close(fig)
         print(f"wrote {args.plot}")
     return 0
 
