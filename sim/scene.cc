@@ -26,6 +26,8 @@ void Require(bool ok, const std::string& field, const std::string& what) {
 }
 bool Positive(double x) { return std::isfinite(x) && x > 0; }
 bool NonNegative(double x) { return std::isfinite(x) && x >= 0; }
+// 1-based line of a node in its document (0 if it has none).
+int LineOf(const YAML::Node& node) { return node.Mark().line >= 0 ? node.Mark().line + 1 : 0; }
 
 // ---- YAML reader: applies the keys present in a document to a Scene. ----
 class YamlReader {
@@ -84,8 +86,8 @@ class YamlReader {
 
   [[noreturn]] void Fail(const YAML::Node& node, const std::string& path,
                          const std::string& what) const {
-    const int line = node.Mark().line >= 0 ? node.Mark().line + 1 : 0;
-    throw std::invalid_argument(source_ + ":" + std::to_string(line) + ": " + path + ": " + what);
+    throw std::invalid_argument(source_ + ":" + std::to_string(LineOf(node)) + ": " + path + ": " +
+                                what);
   }
 
  private:
@@ -341,8 +343,6 @@ class JsonWriter {
   nlohmann::json root_ = nlohmann::json::object();
   nlohmann::json* current_ = &root_;
 };
-
-int LineOf(const YAML::Node& node) { return node.Mark().line >= 0 ? node.Mark().line + 1 : 0; }
 
 // 1-based line of the deepest node below `node` on steps[i..] (map keys, or list indices where
 // `is_index`); the line of `node` itself if steps[i] is not in the document.
