@@ -390,9 +390,16 @@ void Emulator::WriteHost(double now) {
   while (pty_ && !output_queue_.empty()) {
     if (line_busy_until_s_ > now) break;  // the wire is still busy with earlier bytes
     const std::string& head = output_queue_.front();
-    const ssize_t n =
-        write(pty_->master_fd(), head.data() + output_head_sent_, head.size() - output_head_sent_);
-    if (n <= 0) break;  // the host is not reading: keep it (bounded) for later
+    const size_t unsent = head.size() - output_head_sent_;
+    ssize_t n = write(pty_->master_fd(), head.data() + output_head_sent_, unsent);
+    if (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK) break;
+    if (n <= 0) {
+      // The host's input buffer is full (nobody has the port open, or the host stopped reading).
+      // The device does not wait: the item goes over the wire and is lost, as on a real serial
+      // line. Keeping it would hand a host that reopens the port seconds-old records.
+      n = static_cast<ssize_t>(unsent);
+      ++stats_.items_lost;
+    }
     // A wake-up a little late (poll has millisecond resolution) continues the line's timeline, so
     // the long-run throughput is the line's; a longer idle line starts afresh.
     line_busy_until_s_ = std::max(line_busy_until_s_, now - kLineSlackS) + n * seconds_per_byte;
@@ -430,7 +437,19 @@ void Emulator::StreamRecords(double now) {
   if (active.empty()) return;
   if (now - next_cycle_s_ > kMaxScheduleLagS) next_cycle_s_ = now;
   const double period = 1.0 / options_.update_rate_hz;
+  const double seconds_per_byte = options_.baud > 0 ? 10.0 / options_.baud : 0.0;
   while (next_cycle_s_ <= now) {
+    // A line slower than the records: the device measures only when the line can start its
+    // output within one cycle, so every record the host gets is fresh (the output rate drops to
+    // what the line carries). Queuing them instead would delay every record by the whole queue:
+    // 4 s at 9600 baud.
+    const double line_free_at =
+        std::max(line_busy_until_s_, next_cycle_s_) + output_bytes_ * seconds_per_byte;
+    if (line_free_at > next_cycle_s_ + period) {
+      stats_.records_dropped += options_.divide_rate_among_stations ? 1 : active.size();
+      next_cycle_s_ += period;
+      continue;
+    }
     if (options_.divide_rate_among_stations) {
       QueueRecord(active[round_robin_ % active.size()], next_cycle_s_);
       round_robin_ = (round_robin_ + 1) % active.size();
@@ -519,7 +538,8 @@ std::string Emulator::StatusLine() {
   const std::vector<int> active = device_.ActiveStations();
   for (size_t i = 0; i < active.size(); ++i) ss << (i ? "," : "") << active[i];
   ss << " records=" << stats_.records_sent << " dropped=" << stats_.records_dropped
-     << " received=" << stats_.bytes_received << " reconnects=" << stats_.reconnects;
+     << " lost=" << stats_.items_lost << " received=" << stats_.bytes_received
+     << " reconnects=" << stats_.reconnects;
   char t[32];
   std::snprintf(t, sizeof(t), " t=%.3f", Now());
   ss << t;

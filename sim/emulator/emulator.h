@@ -96,7 +96,8 @@ struct EmulatorOptions {
 
 struct EmulatorStats {
   int64_t records_sent = 0;     // complete records queued for the host
-  int64_t records_dropped = 0;  // records lost because the host did not read
+  int64_t records_dropped = 0;  // records not measured: the line was still busy (or queue full)
+  int64_t items_lost = 0;       // records or replies sent while the host's buffer was full
   int64_t bytes_received = 0;   // bytes the host wrote
   int64_t reconnects = 0;       // completed disconnect faults
 };
