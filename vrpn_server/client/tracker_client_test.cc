@@ -374,6 +374,55 @@ TEST(VrpnServer, BadOptionsThrowNamingTheField) {
   EXPECT_THROW(VrpnServer(MakeCatalog(), o), std::invalid_argument);
 }
 
+// The server's socket (in this process) whose peer is `local`, or -1 after `timeout_s`.
+int ServerSocketConnectedTo(const sockaddr_in& local, double timeout_s = 5.0) {
+  const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
+  while (Clock::now() < end) {
+    for (const auto& entry : std::filesystem::directory_iterator("/proc/self/fd")) {
+      const int fd = std::stoi(entry.path().filename().string());
+      sockaddr_in peer{};
+      socklen_t len = sizeof(peer);
+      if (::getpeername(fd, reinterpret_cast<sockaddr*>(&peer), &len) == 0 &&
+          peer.sin_family == AF_INET && peer.sin_port == local.sin_port &&
+          peer.sin_addr.s_addr == local.sin_addr.s_addr) {
+        return fd;
+      }
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  return -1;
+}
+
+bool KeepaliveOnServerSideOfANewConnection(double dead_client_timeout_s) {
+  ServerOptions options = LoopbackOptions();
+  options.dead_client_timeout_s = dead_client_timeout_s;
+  VrpnServer server(MakeCatalog(), options, [](const std::string&) {});
+  server.Start();
+  UniqueFd client(::socket(AF_INET, SOCK_STREAM, 0));
+  sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  EXPECT_EQ(::connect(client.get(), reinterpret_cast<sockaddr*>(&dst), sizeof(dst)), 0);
+  sockaddr_in local{};
+  socklen_t len = sizeof(local);
+  ::getsockname(client.get(), reinterpret_cast<sockaddr*>(&local), &len);
+  const int fd = ServerSocketConnectedTo(local);
+  EXPECT_GE(fd, 0) << "the server did not accept";
+  int on = 0;
+  len = sizeof(on);
+  if (fd >= 0) ::getsockopt(fd, SOL_SOCKET, SO_KEEPALIVE, &on, &len);
+  return on != 0;
+}
+
+TEST(VrpnServer, AClientWhoseHostVanishesIsDetectedByKeepalive) {
+  // A lob client talks UDP and leaves TCP idle: without keepalive a crashed or unplugged client
+  // host keeps its slot and its UDP stream for ever. (A real dead host cannot be made on loopback,
+  // where the kernel answers every probe; the probe timing is tested with the helper.)
+  EXPECT_TRUE(KeepaliveOnServerSideOfANewConnection(30.0));
+  EXPECT_FALSE(KeepaliveOnServerSideOfANewConnection(0.0));
+  ServerOptions bad = LoopbackOptions();
+  bad.dead_client_timeout_s = -1;
+  EXPECT_THROW(VrpnServer(MakeCatalog(), bad), std::invalid_argument);
+}
+
 TEST(VrpnServer, BurstOf128ClientsAllStreaming) {
   VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
   server.Start();

@@ -1,10 +1,13 @@
 #include "vrpn_server/net/socket_util.h"
 
 #ifndef _WIN32
+#include <netinet/tcp.h>
 #include <unistd.h>
 #endif
 
+#include <algorithm>
 #include <charconv>
+#include <cmath>
 #include <cstring>
 #include <stdexcept>
 
@@ -19,6 +22,20 @@ UniqueFd& UniqueFd::operator=(UniqueFd&& o) noexcept {
 void UniqueFd::Reset(int fd) {
   if (fd_ >= 0) ::close(fd_);
   fd_ = fd;
+}
+
+bool EnableDeadPeerDetection(int fd, double timeout_s) {
+  const int on = 1;
+  const int idle_s = std::max(1, static_cast<int>(std::lround(timeout_s / 2.0)));
+  const int interval_s = std::max(1, static_cast<int>(std::lround(timeout_s / 6.0)));
+  const int probes = 3;
+  const unsigned int user_timeout_ms = static_cast<unsigned int>(std::lround(timeout_s * 1000.0));
+  return ::setsockopt(fd, SOL_SOCKET, SO_KEEPALIVE, &on, sizeof(on)) == 0 &&
+         ::setsockopt(fd, IPPROTO_TCP, TCP_KEEPIDLE, &idle_s, sizeof(idle_s)) == 0 &&
+         ::setsockopt(fd, IPPROTO_TCP, TCP_KEEPINTVL, &interval_s, sizeof(interval_s)) == 0 &&
+         ::setsockopt(fd, IPPROTO_TCP, TCP_KEEPCNT, &probes, sizeof(probes)) == 0 &&
+         ::setsockopt(fd, IPPROTO_TCP, TCP_USER_TIMEOUT, &user_timeout_ms,
+                      sizeof(user_timeout_ms)) == 0;
 }
 #endif
 

@@ -37,6 +37,13 @@ class UniqueFd {
  private:
   int fd_ = -1;
 };
+
+// Makes the kernel find a peer that vanished without closing (its host crashed, lost power or
+// network) within about `timeout_s`: keepalive probes after timeout_s / 2 of silence, three of
+// them timeout_s / 6 apart, and data left unacknowledged for timeout_s. A live peer's kernel
+// answers the probes, so an idle client is never dropped. The socket then reports an error
+// (ETIMEDOUT) to poll/epoll. Returns false if the system refused an option.
+bool EnableDeadPeerDetection(int fd, double timeout_s);
 #endif
 
 // Parses a dotted IPv4 literal (no name resolution). Address in network byte order.

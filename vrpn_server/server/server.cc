@@ -59,6 +59,10 @@ void ServerOptions::Check() const {
   if (!(handshake_timeout_s > 0)) {
     throw std::invalid_argument("ServerOptions.handshake_timeout_s: must be > 0");
   }
+  if (!(dead_client_timeout_s >= 0 && dead_client_timeout_s <= 86400)) {
+    throw std::invalid_argument(
+        "ServerOptions.dead_client_timeout_s: must be in [0, 86400] (0 disables)");
+  }
 }
 
 struct VrpnServer::Event {
@@ -115,6 +119,7 @@ struct VrpnServer::Impl {
   bool accept_paused = false;
   Clock::time_point accept_retry;
   bool accept_failure_logged = false;  // once per episode, until an accept succeeds again
+  bool keepalive_failure_logged = false;  // logged once
   std::vector<float> fanout_us;  // guarded by the server's stats_mutex_
   std::vector<mmsghdr> mmsg;     // DrainEvents scratch
   std::vector<iovec> iovs;
@@ -391,6 +396,16 @@ void VrpnServer::SetAccepting(bool on) {
   if (!on) impl_->accept_retry = Clock::now() + kAcceptRetry;
 }
 
+void VrpnServer::DetectDeadClient(int fd) {
+  if (options_.dead_client_timeout_s <= 0) return;
+  if (!EnableDeadPeerDetection(fd, options_.dead_client_timeout_s) &&
+      !impl_->keepalive_failure_logged) {
+    impl_->keepalive_failure_logged = true;
+    Log("setsockopt (keepalive): " + ErrnoText(errno) +
+        "; clients whose host vanishes are not dropped");
+  }
+}
+
 void VrpnServer::HandleAccept() {
   for (int burst = 0; burst < 256; ++burst) {
     sockaddr_in peer{};
@@ -424,6 +439,7 @@ void VrpnServer::HandleAccept() {
       continue;
     }
     SetNoDelay(fd);
+    DetectDeadClient(fd);
     auto e = std::make_unique<Endpoint>();
     e->id = impl_->next_id++;
     e->fd = std::move(conn);
@@ -486,6 +502,7 @@ void VrpnServer::HandleLob() {
       ::bind(fd.get(), reinterpret_cast<sockaddr*>(&local), sizeof(local));
     }
     SetNoDelay(fd.get());
+    DetectDeadClient(fd.get());
     sockaddr_in dst = MakeSockaddr(*target, request->port);
     const int rc = ::connect(fd.get(), reinterpret_cast<sockaddr*>(&dst), sizeof(dst));
     if (rc != 0 && errno != EINPROGRESS) {

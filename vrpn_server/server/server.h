@@ -54,6 +54,10 @@ struct ServerOptions {
   // A connection that has not completed its cookie exchange (or call-back connect) in this time
   // is dropped [s].
   double handshake_timeout_s = 10.0;
+  // A client whose host vanished without closing (crash, power, network) is dropped after about
+  // this long [s]: TCP keepalive probes and a limit on unacknowledged data. Without it a lob
+  // client, idle on TCP, would keep its slot and its UDP stream for ever. 0 disables.
+  double dead_client_timeout_s = 30.0;
   // Real-time (SCHED_FIFO) priority for the network thread, 1..99; 0 keeps the normal scheduler.
   // Keeps client processes on the same host from preempting a fan-out halfway; needs
   // CAP_SYS_NICE (a warning is logged and the server runs normally without it).
@@ -131,6 +135,7 @@ class VrpnServer {
   void HandleAccept();
   // Puts the TCP listener in or out of the epoll set (out while accept() lacks resources).
   void SetAccepting(bool on);
+  void DetectDeadClient(int fd);  // options_.dead_client_timeout_s on a client socket
   void HandleLob();
   void HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp);
   void OnConnected(Endpoint& e);
