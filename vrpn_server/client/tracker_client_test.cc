@@ -351,6 +351,25 @@ TEST(VrpnServer, AllowListRefusesOtherNetworks) {
   EXPECT_EQ(server.stats().connections_total, 0u);
 }
 
+TEST(VrpnServer, ALobRequestForItsOwnPortIsRefused) {
+  // Any local process could otherwise make the server connect to itself and hold two slots (the
+  // call-back and its accepted end) for a client that does not exist.
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
+  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  const auto datagram = EncodeLobRequest(LobRequest{"127.0.0.1", server.port()});
+  ASSERT_EQ(::sendto(udp.get(), datagram.data(), datagram.size(), 0,
+                     reinterpret_cast<const sockaddr*>(&dst), sizeof(dst)),
+            static_cast<ssize_t>(datagram.size()));
+  ASSERT_TRUE(PollUntil(
+      {}, [&] { return server.stats().refused >= 1; }, 5.0));
+  // A connection made anyway would show within this time (loopback connects take microseconds).
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  EXPECT_EQ(server.stats().connections_total, 0u);
+  EXPECT_EQ(server.stats().clients, 0);
+}
+
 TEST(VrpnServer, SecondServerOnSamePortThrowsNamingIt) {
   VrpnServer first(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
   first.Start();

@@ -36,6 +36,15 @@ std::uint64_t Tag(std::uint64_t id, Kind kind) { return (id << 3) | kind; }
 // stays out of the epoll set unless a connection closes first.
 constexpr auto kAcceptRetry = std::chrono::milliseconds(250);
 
+// Only an address of one of this host's interfaces (or loopback) can be bound.
+bool IsAddressOfThisHost(in_addr address) {
+  if ((ntohl(address.s_addr) >> 24) == 127) return true;
+  UniqueFd probe(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0));
+  sockaddr_in local = MakeSockaddr(address, 0);
+  return probe.valid() &&
+         ::bind(probe.get(), reinterpret_cast<sockaddr*>(&local), sizeof(local)) == 0;
+}
+
 }  // namespace
 
 void ServerOptions::Check() const {
@@ -483,6 +492,12 @@ void VrpnServer::HandleLob() {
     const auto target = ParseIpv4(request->host);
     if (!target || target->s_addr != src.sin_addr.s_addr) {
       refuse("call-back address " + request->host + " differs from the sender");
+      continue;
+    }
+    // A datagram naming our own port from an address of this host would make the server
+    // connect to itself and hold a slot for a client that does not exist.
+    if (request->port == port_ && IsAddressOfThisHost(*target)) {
+      refuse("call-back to this server itself");
       continue;
     }
     const std::string key = request->host + ":" + std::to_string(request->port);
