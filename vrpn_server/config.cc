@@ -4,6 +4,7 @@
 #include <cmath>
 #include <fstream>
 #include <map>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 
@@ -124,6 +125,7 @@ class Parser {
       }
     }
     CheckCalibrations();
+    CheckLocalPassthroughs();
     return std::move(config_);
   }
 
@@ -434,6 +436,47 @@ class Parser {
       if (!inserted) {
         Fail(c.location, "tracker",
              "tracker '" + c.tracker + "' already has a calibration at " + it->second.ToString());
+      }
+    }
+  }
+
+  // A pass-through of this server's own device ("*Device") must name a tracker served here;
+  // otherwise it connects to this server and waits for reports that never come.
+  void CheckLocalPassthroughs() {
+    std::map<std::string, const PassthroughSpec*> local;  // pass-through name -> spec
+    std::set<std::string> trackers;
+    for (const auto& t : config_.fastrak_trackers) trackers.insert(t.name);
+    for (const auto& t : config_.null_trackers) trackers.insert(t.name);
+    for (const auto& c : config_.calibrations) {
+      if (c.raw_name) trackers.insert(*c.raw_name);
+    }
+    for (const auto& p : config_.passthroughs) {
+      trackers.insert(p.name);
+      if (p.source_host.empty()) local.emplace(p.name, &p);
+    }
+    for (const auto& [name, p] : local) {
+      if (trackers.count(p->source_device) == 0) {
+        bool is_button = false;
+        for (const auto& t : config_.fastrak_trackers) {
+          for (const auto& b : t.buttons) is_button |= b.name == p->source_device;
+        }
+        Fail(p->location, "source",
+             is_button ? "'" + p->source_device + "' is a button of this server, not a tracker"
+                       : "no tracker named '" + p->source_device +
+                             "' is served by this file; write " + p->source_device +
+                             "@host[:port] for a device of another server");
+      }
+      // Pass-throughs reading each other in a circle have no report to pass on.
+      std::string chain = name;
+      const PassthroughSpec* at = p;
+      for (size_t steps = 0; steps <= local.size(); ++steps) {
+        chain += " -> " + at->source_device;
+        const auto next = local.find(at->source_device);
+        if (next == local.end()) break;
+        if (next->first == name) {
+          Fail(p->location, "source", "pass-throughs read each other in a circle (" + chain + ")");
+        }
+        at = next->second;
       }
     }
   }

@@ -221,6 +221,13 @@ TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
       {"trackcal_Tracker_Passthrough P Tracker0@host:99999\n", "lab.cfg:1: field 'source port'"},
       {"trackcal_Tracker_Passthrough P Tracker0@\n", "lab.cfg:1: field 'source'"},
       {"trackcal_Tracker_Passthrough P *P\n", "lab.cfg:1: field 'source'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Tracker_Passthrough P *Tracker0\n",
+       "lab.cfg:2: field 'source': no tracker named 'Tracker0' is served by this file"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 /\nFTStylus Pen 0\n"
+       "trackcal_Tracker_Passthrough P *Pen\n",
+       "lab.cfg:3: field 'source': 'Pen' is a button of this server, not a tracker"},
+      {"trackcal_Tracker_Passthrough A *B\ntrackcal_Tracker_Passthrough B *A\n",
+       "lab.cfg:1: field 'source': pass-throughs read each other in a circle (A -> B -> A)"},
       {"vrpn_Tracker_NULL N zero 1\n", "lab.cfg:1: field 'sensors'"},
   };
   for (const Case& c : cases) {
