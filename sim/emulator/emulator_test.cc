@@ -233,6 +233,12 @@ class EmulatorTest : public ::testing::Test {
   std::string Control(const std::string& line) {
     return emulator::Control(options_.control_socket_path, line);
   }
+  // Moves station 1 to a new pose; returns the record the device reports for it from then on.
+  std::string MoveStation1() {
+    EXPECT_EQ(Control("move 1 0.1 0.2 0.3 1 0 0 0"), "ok");
+    const Rigid3d moved(QuaternionFromWxyz(1.0, 0.0, 0.0, 0.0), Eigen::Vector3d(0.1, 0.2, 0.3));
+    return FastrakDevice(options_.device).FormatRecord(1, StationMeasurement{moved, false});
+  }
 
   // The reset sequence of transcript 07 with the driver's flushes but none of its sleeps. Leaves
   // the client with a record-aligned binary stream started.
@@ -365,11 +371,8 @@ TEST_F(EmulatorTest, RecordsStayFreshOnASlowLine) {
   SerialClient client(options_.link_path);
   ASSERT_TRUE(client.ok());
   client.ReadFor(0.5);  // the line is saturated from here on
-  const Rigid3d moved(QuaternionFromWxyz(1.0, 0.0, 0.0, 0.0), Eigen::Vector3d(0.1, 0.2, 0.3));
-  ASSERT_EQ(Control("move 1 0.1 0.2 0.3 1 0 0 0"), "ok");
+  const std::string moved_record = MoveStation1();
   const std::string after = client.ReadFor(1.0);
-  FastrakDevice reference(options_.device);
-  const std::string moved_record = reference.FormatRecord(1, StationMeasurement{moved, false});
   int fresh = 0, total = 0;
   CountRecords(after, moved_record, &fresh, &total);
   // Old records after the move: the one on the wire, one measured for the next free slot, and
@@ -393,14 +396,11 @@ TEST_F(EmulatorTest, AHostThatReopensThePortGetsNoBacklog) {
     ASSERT_FALSE(first.ReadFor(0.1).empty());
   }
   std::this_thread::sleep_for(std::chrono::milliseconds(1500));
-  const Rigid3d moved(QuaternionFromWxyz(1.0, 0.0, 0.0, 0.0), Eigen::Vector3d(0.1, 0.2, 0.3));
-  ASSERT_EQ(Control("move 1 0.1 0.2 0.3 1 0 0 0"), "ok");
+  const std::string moved_record = MoveStation1();
   SerialClient client(options_.link_path);
   ASSERT_TRUE(client.ok());
   client.FlushInput();
   const std::string after = client.ReadFor(0.3);
-  FastrakDevice reference(options_.device);
-  const std::string moved_record = reference.FormatRecord(1, StationMeasurement{moved, false});
   int fresh = 0, total = 0;
   CountRecords(after, moved_record, &fresh, &total);
   // At most the record being written when the host flushed is old (2 for margin).
