@@ -237,3 +237,50 @@ def test_ctrl_c_in_trackcal_record_saves_and_exits_130(fake_recorders, tmp_path,
     assert cli.main(argv) == 130
     assert "before every device had connected: nothing recorded" in capsys.readouterr().err
     assert not (tmp_path / "b").exists()  # made by the command, nothing written: removed again
+
+
+def _write_reference(path, t, p, q_xyzw):
+    rows = ["time,x,y,z,qw,qx,qy,qz"] + [
+        f"{float(ti)!r},{float(a)!r},{float(b)!r},{float(c)!r},{float(qi[3])!r},{float(qi[0])!r},"
+        f"{float(qi[1])!r},{float(qi[2])!r}" for ti, (a, b, c), qi in zip(t, p, q_xyzw)]
+    path.write_text("\n".join(rows) + "\n")
+
+
+def test_a_recording_is_paired_on_the_lowest_sensor_whatever_reported_first(tmp_path):
+    """A live recording of two receivers starts with whichever report the server sent first. The
+    reference must be paired with one chosen receiver (``sensor``, default the lowest number), not
+    with the sensor of the first row: that paired receiver 2 with receiver 1's reference (395 mm
+    'error' on an emulator recording whose raw error was 22.9 mm)."""
+    from trackcal import validation
+    from trackcal.captures import TrackerStream, save_tracker_stream
+    n = 50
+    t = 100.0 + 0.01 * np.arange(n)
+    p1 = np.column_stack([0.3 + 0.1 * np.sin(t), 0.2 + 0.05 * np.cos(t), np.full(n, -0.5)])
+    p2 = p1 + [0.2, -0.3, 0.1]
+    q = np.tile([0.0, 0.0, np.sin(np.pi / 8), np.cos(np.pi / 8)], (n, 1))
+    # Receiver 2 reports first in every cycle, receiver 1 0.1 ms later; receiver 1 is 1 mm off.
+    times = np.column_stack([t, t + 1e-4]).ravel()
+    sensors = np.tile([2, 1], n)
+    positions = np.stack([p2, p1 + [0.001, 0.0, 0.0]], axis=1).reshape(-1, 3)
+    quats = np.repeat(q, 2, axis=0)
+    raw = tmp_path / "raw_tracker_stream.csv"
+    save_tracker_stream(raw, TrackerStream(times, sensors, positions, quats))
+    corrected = tmp_path / "corrected_tracker_stream.csv"
+    save_tracker_stream(corrected, TrackerStream(times, sensors, positions - np.tile([[0.001, 0.0, 0.0]], (2 * n, 1))
+                                                 * (sensors == 1)[:, None], quats))
+    reference = tmp_path / "reference_stream.csv"
+    # Receiver 1's true pose on the reference clock (offset 0); interpolated at t + 1e-4 it is
+    # within 1e-4 * 0.1 m/s of p1, far below the 1 mm offset checked.
+    _write_reference(reference, t + 1e-4, np.column_stack([0.3 + 0.1 * np.sin(t + 1e-4),
+                                                           0.2 + 0.05 * np.cos(t + 1e-4), np.full(n, -0.5)]), q)
+    v = validation.validate_recording(raw, reference, corrected=corrected, time_offset=0.0)
+    assert v.capture.origin["sensor"] == 1 and set(v.capture.sensor) == {1}
+    # 1 mm raw (to 0.01 mm: interpolation along a 0.1 m/s path over the 0.01 s samples), ~0 corrected.
+    np.testing.assert_allclose(v.before.position_mm, 1.0, atol=0.01)
+    assert v.after.position_mm.max() < 0.01
+    np.testing.assert_allclose(v.before.orientation_deg, 0.0, atol=1e-3)
+    # An explicit sensor is paired as asked; one the recording lacks is a ValueError naming the file.
+    v2 = validation.validate_recording(raw, reference, time_offset=0.0, sensor=2)
+    assert set(v2.capture.sensor) == {2} and v2.before.position_mm.min() > 300
+    with pytest.raises(ValueError, match=r"raw_tracker_stream\.csv: no report of sensor 3 \(have: 1, 2\)"):
+        validation.validate_recording(raw, reference, time_offset=0.0, sensor=3)

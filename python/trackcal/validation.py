@@ -719,25 +719,35 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
 
 def validate_recording(raw, reference, *, corrected=None, calibration=None, time_offset: Optional[float] = None,
                        search_range: float = 0.5, analyse_covariates: bool = False,
-                       covariate_options: Optional[dict] = None) -> Validation:
+                       covariate_options: Optional[dict] = None, sensor: Optional[int] = None) -> Validation:
     """Validates a live recording (``trackcal record``, ``trackcal.record.record_streams`` or
     ``trackcal-server --record``) against the reference (optical) stream recorded beside it.
 
     ``raw``: the raw tracker_stream.csv; ``reference``: reference_stream.csv, on its own clock;
     ``corrected``: the server's corrected tracker_stream.csv of the same run (its reports carry the
     raw ones' times); ``calibration``: a trackcal.Calibration, applied to the raw poses when no
-    corrected stream is given (else it only flags stations outside its volume). The raw stream is
-    paired with the reference (``trackcal.pair``, first sensor) at ``time_offset`` [s]
-    (t_reference - t_tracker), or at an offset estimated within +-``search_range`` s around 0 when
-    it is None; the corrected reports are matched to the paired raw samples by sensor and time.
+    corrected stream is given (else it only flags stations outside its volume); ``sensor``: the
+    receiver the reference tracks (numbered from 1 as in the recording), default the lowest sensor
+    number of the raw recording (not the sensor of its first row: a live recording's first report
+    comes from whichever receiver the server sent first). The raw stream of that sensor is paired
+    with the reference (``trackcal.pair``) at ``time_offset`` [s] (t_reference - t_tracker), or at
+    an offset estimated within +-``search_range`` s around 0 when it is None; the corrected reports
+    are matched to the paired raw samples by sensor and time.
     Returns a Validation (Table 1 before and after, breakdowns, worst samples, ``capture.origin``
     with the offset); ValueError if no corrected report matches a raw one."""
     import pathlib
     from trackcal.captures import carry_stream_columns, load_tracker_stream, nearest_samples
     from trackcal.fitting import pair
     estimate = time_offset is None
+    sensors = np.unique(load_tracker_stream(raw).sensor)
+    if sensor is None:
+        if len(sensors) == 0:
+            raise ValueError(f"{raw}: no tracker reports")
+        sensor = int(sensors[0])
+    elif int(sensor) not in sensors:
+        raise ValueError(f"{raw}: no report of sensor {sensor} (have: {', '.join(str(int(s)) for s in sensors)})")
     pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
-                   estimate_time_offset=estimate, search_range=search_range)
+                   estimate_time_offset=estimate, search_range=search_range, sensor=int(sensor))
     cap = pairing.poses
     sensor = carry_stream_columns(cap, raw, reference, pairing.time_offset_s)
     cap.path = pathlib.Path(raw)
