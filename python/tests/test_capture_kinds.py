@@ -121,6 +121,25 @@ def test_capture_folder_without_any_capture_names_what_it_looked_for(tmp_path):
     assert r.returncode == 2 and "not a capture folder" in r.stderr
 
 
+def test_unreadable_capture_files_and_existing_outputs_are_value_errors(tmp_path):
+    """docs/python.md: files that cannot be read and outputs that exist are ValueError, like the
+    format errors, so a script's `except ValueError` handles every mistake in its input; the C++
+    readers' RuntimeError came through for a missing file and an existing recording."""
+    missing = tmp_path / "nothing.csv"
+    for read in (captures.load_poses, captures.load_tracker_stream, captures.load_reference_stream):
+        with pytest.raises(ValueError, match=r"nothing\.csv: cannot open file"):
+            read(missing)
+    with pytest.raises(ValueError, match=r"poses\.csv: cannot open file"):
+        captures.load_poses(tmp_path)  # a folder without poses.csv
+    stream = captures.TrackerStream(np.array([0.0]), np.array([1]), np.zeros((1, 3)), np.array([[0.0, 0, 0, 1]]))
+    out = tmp_path / "tracker_stream.csv"
+    captures.save_tracker_stream(out, stream)
+    before = out.read_bytes()
+    with pytest.raises(ValueError, match="exists"):
+        captures.save_tracker_stream(out, stream)
+    assert out.read_bytes() == before
+
+
 def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     _, streams, cal = sim
     r = run_cli("validate", streams, "-c", cal)

@@ -89,15 +89,26 @@ def _column(table, name: str) -> np.ndarray:
     return np.array([None if np.isnan(v) else labels[int(v)] for v in values], dtype=object)
 
 
+def _user_errors(function, *args):
+    """Calls a C++ reader or writer of core/capture.h. Its std::runtime_error (a file that cannot be
+    opened, an output that exists) arrives as RuntimeError; like its format errors it is the
+    user's input, so it is raised as ValueError (the message names the file)."""
+    try:
+        return function(*args)
+    except RuntimeError as e:
+        raise ValueError(str(e)) from None
+
+
 def _resolve(path: PathLike, file_name: str) -> pathlib.Path:
     p = pathlib.Path(path)
     return p / file_name if p.is_dir() else p
 
 
 def load_poses(path: PathLike) -> PoseCapture:
-    """Reads a poses.csv (or the poses.csv of a capture folder)."""
+    """Reads a poses.csv (or the poses.csv of a capture folder); ValueError naming the file (and
+    line and column) when it cannot be read."""
     p = _resolve(path, "poses.csv")
-    d = _core.read_poses(p)
+    d = _user_errors(_core.read_poses, p)
     return PoseCapture(
         path=p,
         station=np.asarray(d["station"]),
@@ -299,7 +310,7 @@ class TrackerStream(_StreamColumns):
 
 def load_tracker_stream(path: PathLike) -> TrackerStream:
     p = _resolve(path, "tracker_stream.csv")
-    d = _core.read_tracker_stream(p)
+    d = _user_errors(_core.read_tracker_stream, p)
     return TrackerStream(time=d["time"], sensor=d["sensor"], positions=d["positions"],
                          quaternions_xyzw=d["quaternions_xyzw"], extra_columns=list(d["extra_columns"]),
                          extra=d["extra"], extra_labels=dict(d["extra_labels"]))
@@ -320,13 +331,14 @@ class ReferenceStream(_StreamColumns):
 
 def load_reference_stream(path: PathLike) -> ReferenceStream:
     p = _resolve(path, "reference_stream.csv")
-    d = _core.read_reference_stream(p)
+    d = _user_errors(_core.read_reference_stream, p)
     return ReferenceStream(time=d["time"], positions=d["positions"], quaternions_xyzw=d["quaternions_xyzw"],
                            extra_columns=list(d["extra_columns"]), extra=d["extra"],
                            extra_labels=dict(d["extra_labels"]))
 
 
 def save_tracker_stream(path: PathLike, stream: TrackerStream, overwrite: bool = False) -> None:
-    """Writes tracker_stream.csv atomically; never replaces an existing file unless asked."""
-    _core.write_tracker_stream(pathlib.Path(path), stream.time, stream.sensor, stream.positions,
-                               stream.quaternions_xyzw, overwrite)
+    """Writes tracker_stream.csv atomically; never replaces an existing file unless asked
+    (ValueError naming it)."""
+    _user_errors(_core.write_tracker_stream, pathlib.Path(path), stream.time, stream.sensor, stream.positions,
+                 stream.quaternions_xyzw, overwrite)
