@@ -87,6 +87,21 @@ def test_breakdowns_partition_the_stations(tmp_path):
     assert tables["valid"].after_position_mm["mean"] < 0.5 * tables["valid"].before_position_mm["mean"]
 
 
+def test_distance_bands_hold_a_station_on_a_band_edge():
+    """A station exactly at a multiple of the band width (here the farthest, at 0.5 m) was left out
+    of every band: the bands ran up to ceil(max / step) * step, exclusive."""
+    distance = np.array([0.1, 0.25, 0.3, 0.5])
+    r = validation.Residuals(np.zeros((4, 3)), np.zeros((4, 3)), np.array([1.0, 2.0, 3.0, 4.0]), np.zeros(4))
+    rows = validation.distance_breakdown(distance, r, None)
+    assert [(row["label"], row["count"]) for row in rows] == [
+        ("0.00-0.25 m", 1), ("0.25-0.50 m", 2), ("0.50-0.75 m", 1)]
+    assert [row["before_position_mm"] for row in rows] == [1.0, 2.5, 4.0]
+    # Bands of 0.1 m, whose edges are not exact in binary: still one band per station.
+    d = np.linspace(0.0, 1.0, 11)
+    r = validation.Residuals(np.zeros((11, 3)), np.zeros((11, 3)), np.ones(11), np.zeros(11))
+    assert sum(row["count"] for row in validation.distance_breakdown(d, r, None, step_m=0.1)) == 11
+
+
 def test_hemisphere_flips_are_left_out_of_the_statistics_and_named(tmp_path):
     """The simulator's hemisphere_flips: a few stations reported at -p, 2 |p| off whatever the
     calibration. Both Table 1s (the fit's, C++, and validate's) leave them out of both columns and

@@ -492,15 +492,18 @@ def _summary_row(label: str, idx: np.ndarray, before: Residuals, after: Optional
 
 def distance_breakdown(distance: np.ndarray, before: Residuals, after: Optional[Residuals],
                        step_m: float = 0.25) -> List[dict]:
-    """Mean errors per distance band of width ``step_m`` from the transmitter."""
+    """Mean errors per distance band of width ``step_m`` from the transmitter (band k holds
+    k * step_m <= distance < (k + 1) * step_m; every station is in exactly one band)."""
     rows = []
     if len(distance) == 0:
         return rows
-    top = np.ceil(distance.max() / step_m) * step_m
-    for lo in np.arange(0.0, top, step_m):
-        idx = (distance >= lo) & (distance < lo + step_m)
-        if idx.any():
-            rows.append(_summary_row(f"{lo:.2f}-{lo + step_m:.2f} m", idx, before, after))
+    # Band index per station: bands [lo, lo + step) built by adding step missed a station at
+    # exactly the farthest band's upper edge (0.5 m with 0.25 m bands), and float sums can leave
+    # gaps between bands.
+    band = np.floor(np.asarray(distance, dtype=float) / step_m).astype(np.int64)
+    for k in np.unique(band):
+        lo = k * step_m
+        rows.append(_summary_row(f"{lo:.2f}-{lo + step_m:.2f} m", band == k, before, after))
     return rows
 
 
