@@ -112,6 +112,19 @@ def test_device_labels_name_one_file_each_inside_the_folder(tmp_path, capsys):
     assert not out.exists() and not (tmp_path / "escaped_tracker_stream.csv").exists()
 
 
+def test_a_duration_that_records_nothing_is_refused_before_anything_is_made(fake_recorders, tmp_path):
+    """record_streams(duration_s=-1 or nan) connected, recorded nothing and then reported the
+    devices as silent ("no report during the recording"); `trackcal record --duration` refuses
+    such values, and so does the function now, before any folder is made or device is contacted."""
+    out = tmp_path / "rec"
+    for bad in (0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=r"duration_s .*: must be a positive number of seconds"):
+            record_streams({"raw": "Tracker0_raw@tcp://h:1"}, out, bad)
+    with pytest.raises(ValueError, match=r"connect_timeout_s nan: must be a positive number"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1"}, out, 1.0, connect_timeout_s=float("nan"))
+    assert not out.exists() and not fake_recorders
+
+
 def test_record_progress_ends_at_the_duration(server, tmp_path):
     calls = []
     record_streams({"raw": f"Tracker0_raw@tcp://127.0.0.1:{server}"}, tmp_path / "rec", 0.3,

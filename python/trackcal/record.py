@@ -4,6 +4,7 @@ tracker_stream.csv (docs/captures.md) with the server's header time."""
 
 from __future__ import annotations
 
+import math
 import pathlib
 import re
 import time
@@ -36,6 +37,15 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     The folders this call makes (out_dir and its missing parents) are removed again when it writes
     nothing into them (an error, or Ctrl-C before all had connected); a folder that existed before,
     or that holds any file, is never removed."""
+    # As `trackcal record --duration` checks: a negative or NaN duration recorded nothing and then
+    # blamed the devices ("no report during the recording"), an infinite timeout never gave up.
+    for name, value in (("duration_s", duration_s), ("connect_timeout_s", connect_timeout_s)):
+        try:
+            seconds = float(value)
+        except (TypeError, ValueError):
+            seconds = math.nan
+        if not (math.isfinite(seconds) and seconds > 0):
+            raise ValueError(f"{name} {value!r}: must be a positive number of seconds")
     for label in devices:
         # The label names the file: it must stay one plain file name inside out_dir.
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]*", label) or ".." in label:
