@@ -17,6 +17,7 @@
 #include <algorithm>
 #include <exception>
 #include <filesystem>
+#include <limits>
 #include <map>
 #include <optional>
 #include <string>
@@ -98,8 +99,11 @@ ModelSource ResolveModel(const py::handle& model) {
 // A quaternion from x, y, z, w, normalised only when it is not unit already (as the poses.csv
 // reader does), so a capture read by the reader and passed back in memory gives the same fit bit
 // for bit.
+// A zero quaternion comes back NaN: Eigen's normalize() leaves it zero, which is finite and
+// passed the check of PoseCaptureFromPython ("or a quaternion is zero") into the fit.
 Eigen::Quaterniond UnitQuaternion(double x, double y, double z, double w) {
   Eigen::Quaterniond q = QuaternionFromXyzw(x, y, z, w);
+  if (q.norm() == 0.0) q.coeffs().setConstant(std::numeric_limits<double>::quiet_NaN());
   if (std::abs(q.norm() - 1.0) > 1e-12) q.normalize();
   return q;
 }

@@ -149,6 +149,20 @@ def test_user_errors_name_file_line_and_field(capture_dir, tmp_path):
         trackcal.fit(cap, MODEL)
 
 
+def test_an_in_memory_zero_quaternion_is_refused(capture_dir):
+    """A zero quaternion has no rotation; the binding's check says it refuses one ("pose is not
+    finite (or a quaternion is zero)"), but Eigen's normalize() left it zero, finite, and the fit
+    ran with it. NaN was refused already; a quaternion of another norm is normalised (as documented)."""
+    for bad in (np.zeros(4), np.full(4, np.nan)):
+        cap = captures.load_poses(capture_dir)
+        cap.reported_quaternions_xyzw[3] = bad
+        with pytest.raises(ValueError, match=rf"station {cap.station[3]}: pose is not finite \(or a quaternion is zero\)"):
+            trackcal.fit(cap, MODEL)
+    cap = captures.load_poses(capture_dir)
+    cap.reference_quaternions_xyzw[3] *= 2.0
+    trackcal.fit(cap, MODEL)
+
+
 def test_save_never_overwrites_an_input(capture_dir, model_file, tmp_path):
     data = tmp_path / "poses.csv"
     shutil.copy(capture_dir / "poses.csv", data)
