@@ -8,11 +8,12 @@
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
 //                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json] [--quiet]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
-//                     [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv [--json]
+//                     [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N]
+//                     -o poses.csv [--json]
 //
 // Human-readable output (Table 1 of the paper, parameters with standard deviations) goes to stdout,
-// progress to stderr; with --json stdout carries exactly one JSON document. Bad input exits with 1 and
-// a message naming file, line and field; bad usage exits with 2.
+// progress to stderr; with --json stdout carries exactly one JSON document. Bad input exits with 1
+// and a message naming file, line and field; bad usage exits with 2.
 
 #include <cmath>
 #include <cstdio>
@@ -71,8 +72,8 @@ void PrintUsage(std::ostream& out) {
          "                        [--optical-noise-mm S] [--tracker-noise-mm S] "
          "[--tracker-noise-deg S]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
-         "                    [--time-offset S | --estimate-time-offset] [--set NAME] -o poses.csv "
-         "[--json]\n"
+         "                    [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N] "
+         "-o poses.csv [--json]\n"
          "build chooses the terms itself (settings.yaml: noise, solver, loss; no terms:).\n"
          "Model file format: docs/model-file.md; tool reference: docs/fit.md; diagnose: "
          "docs/diagnose.md.\n";
@@ -482,8 +483,9 @@ int RunDiagnose(int argc, char** argv) {
 }
 
 int RunPair(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv, {"--tracker", "--reference", "-o", "--time-offset", "--set"},
-                              {"--json", "--estimate-time-offset"});
+  const Args args = ParseArgs(
+      argc, argv, {"--tracker", "--reference", "-o", "--time-offset", "--set", "--sensor"},
+      {"--json", "--estimate-time-offset"});
   const fs::path tracker_path = args.Get("--tracker");
   const fs::path reference_path = args.Get("--reference");
   const fs::path output = args.Get("-o");
@@ -492,6 +494,13 @@ int RunPair(int argc, char** argv) {
   options.time_offset = ParseNumber("--time-offset", args.GetOr("--time-offset", "0"));
   options.estimate_time_offset = args.Flag("--estimate-time-offset");
   options.set = SetOption(args);
+  if (args.values.count("--sensor")) {
+    const double sensor = ParseNumber("--sensor", args.Get("--sensor"));
+    if (!(sensor >= 1 && sensor <= 64 && sensor == std::floor(sensor))) {
+      throw UsageError("--sensor must be a receiver number (1, 2, ...)");
+    }
+    options.sensor = static_cast<int>(sensor);
+  }
   const auto result =
       PairStreams(ReadTrackerStream(tracker_path), ReadReferenceStream(reference_path), options);
   WritePoses(output, result.poses);

@@ -111,6 +111,13 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
                        err.string()),
             2);
   EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("--set 'foo' is not one of"));
+  for (const char* sensor : {"0", "1.5", "x"}) {
+    EXPECT_EQ(RunCommand(fit_ + " pair --tracker a.csv --reference b.csv -o p.csv --sensor " +
+                         sensor + " 2> " + err.string()),
+              2)
+        << sensor;
+    EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("--sensor")) << sensor;
+  }
 }
 
 // --start: a fit of a model with an added term starts at a previous fit's optimum (its --json

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 #include <vector>
@@ -313,7 +314,24 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
                                   std::to_string(i + 1));
     }
   }
-  const int sensor = options.sensor != 0 ? options.sensor : tracker.records.front().sensor;
+  // Not the first row's sensor: which receiver a live recording logs first changes from one
+  // recording to the next, and the reference would be paired with another receiver.
+  std::set<int> sensors;
+  for (const TrackerStreamSample& r : tracker.records) sensors.insert(r.sensor);
+  const int sensor = options.sensor != 0 ? options.sensor : *sensors.begin();
+  std::string list;
+  for (const int s : sensors) list += (list.empty() ? "" : ", ") + std::to_string(s);
+  if (sensors.count(sensor) == 0) {
+    throw std::invalid_argument("tracker stream has no sensor " + std::to_string(sensor) +
+                                " (it has " + list + ")");
+  }
+  std::string sensor_note;
+  if (options.sensor == 0 && sensors.size() > 1) {
+    sensor_note = "the tracker stream has sensors " + list + "; paired sensor " +
+                  std::to_string(sensor) +
+                  " (the lowest) with the reference; choose another with trackcal-fit pair "
+                  "--sensor N (Python: trackcal.pair(..., sensor=N))";
+  }
   const std::vector<const TrackerStreamSample*> samples = SelectSamples(tracker, options, sensor);
   double offset = options.time_offset;
   OffsetEstimate estimate;
@@ -381,6 +399,9 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     result.detrend_degree = used.detrend_degree;
     result.time_offset_variance_inflation = estimate.variance_inflation;
     result.warning = warning;
+  }
+  if (!sensor_note.empty()) {
+    result.warning = sensor_note + (result.warning.empty() ? "" : "; " + result.warning);
   }
   return result;
 }

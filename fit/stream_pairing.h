@@ -37,7 +37,7 @@ struct StreamPairingOptions {
   double search_range = 0.5;  // [s] half-width of the offset search
   double tolerance = 1e-5;    // [s] golden-section stopping width
   double max_gap_s = 0.1;     // [s] longest reference gap interpolated across
-  int sensor = 0;             // tracker sensor to pair (0: the first sensor in the stream)
+  int sensor = 0;             // tracker sensor to pair (0: the lowest sensor in the stream)
   std::string set = "calib";  // "set" column of the paired poses
   int decimate = 1;           // keep every n-th tracker sample (>= 1)
   // Tracker error model regressed out of the position difference when estimating the offset:

@@ -87,6 +87,39 @@ TEST(PairStreams, GivenOffsetAndInterpolation) {
   EXPECT_THROW(PairStreams(tracker, reference, options), std::invalid_argument);
 }
 
+// A live recording of two receivers logs whichever reported first; pairing the first row's sensor
+// paired the reference with receiver 2 in one recording and receiver 1 in the next.
+TEST(PairStreams, TwoReceiversPairTheLowestSensorWhateverCameFirst) {
+  TrackerStream one;
+  ReferenceStream reference;
+  MakeStreams(0.0, &one, &reference, 5.0);
+  TrackerStream both;
+  for (const TrackerStreamSample& s : one.records) {
+    TrackerStreamSample other = s;  // receiver 2, 0.3 m away, logged first
+    other.sensor = 2;
+    other.transmitter_from_receiver.translation.x() += 0.3;
+    both.records.push_back(other);
+    both.records.push_back(s);
+    both.records.back().sensor = 1;
+  }
+  StreamPairingOptions options;
+  const StreamPairingResult lowest = PairStreams(both, reference, options);
+  ASSERT_GT(lowest.poses.records.size(), 400u);
+  for (const auto& r : lowest.poses.records) EXPECT_EQ(r.sensor, 1);
+  EXPECT_THAT(lowest.warning, ::testing::HasSubstr("sensors 1, 2; paired sensor 1"));
+  options.sensor = 2;
+  const StreamPairingResult chosen = PairStreams(both, reference, options);
+  for (const auto& r : chosen.poses.records) EXPECT_EQ(r.sensor, 2);
+  EXPECT_EQ(chosen.warning, "");  // chosen, so nothing to say
+  options.sensor = 3;
+  try {
+    PairStreams(both, reference, options);
+    ADD_FAILURE() << "sensor 3 is not in the stream";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_STREQ(e.what(), "tracker stream has no sensor 3 (it has 1, 2)");
+  }
+}
+
 // On a 10 s stream the path does not pass the same places at other velocities, so a degree-3
 // error model in the reported position can mimic a time shift (variance inflation 5.0e4 here), and
 // the offset followed the model's misfit: 12.1 +- 5.1 ms before the variance-inflation check

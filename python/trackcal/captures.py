@@ -153,7 +153,7 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
     """Any capture as paired stations (docs/captures.md), whatever the folder holds:
 
     - ``poses.csv`` (or a folder with one): read as it is;
-    - ``tracker_stream.csv`` + ``reference_stream.csv``: paired by time (``trackcal.pair``, first
+    - ``tracker_stream.csv`` + ``reference_stream.csv``: paired by time (``trackcal.pair``, lowest
       sensor of the stream) at ``time_offset`` [s] (t_reference - t_tracker), or, when it is None,
       at an offset estimated within +-``search_range`` s; every paired sample is a station of set
       ``calib`` and carries its speed (``speed``, a covariate of the diagnosis) and the tracker
@@ -205,7 +205,7 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
 
 def carry_stream_columns(cap: PoseCapture, tracker_stream: PathLike, reference_stream: PathLike,
                          time_offset_s: float) -> int:
-    """Gives stations paired from streams (``trackcal.pair``; first sensor) what the streams logged
+    """Gives stations paired from streams (``trackcal.pair``; lowest sensor) what the streams logged
     beside the poses, for the diagnosis to test as covariates as it does a poses.csv's columns: the
     receiver's ``speed`` at each station's time, the tracker stream's extra columns at that time,
     and the reference stream's at the same instant on its own clock (time + ``time_offset_s``; an
