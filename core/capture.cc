@@ -44,7 +44,8 @@ std::vector<std::string> Split(const std::string& line) {
 
 // Whether a field reads as a number (nan and inf included: the caller decides what it accepts).
 bool ParsesAsNumber(const std::string& s, double* value) {
-  const char* begin = s.data() + (s.size() > 1 && s[0] == '+' ? 1 : 0);
+  // from_chars takes no leading '+'; skip one, but not before a sign ("+-1" is no number).
+  const char* begin = s.data() + (s.size() > 1 && s[0] == '+' && s[1] != '-' ? 1 : 0);
   const auto [end, ec] = std::from_chars(begin, s.data() + s.size(), *value);
   return !s.empty() && ec == std::errc() && end == s.data() + s.size();
 }

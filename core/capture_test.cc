@@ -191,6 +191,11 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
             "poses.csv:2: columns rep_qw, rep_qx, rep_qy, rep_qz: quaternion norm 0.5 is not 1");
   EXPECT_EQ(error_for(header + "1,calib,1,inf,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
             "poses.csv:2: column time: 'inf' is not a finite number");
+  // One sign: "+-0.5" (a typo) is not -0.5, though "+0.5" is 0.5.
+  EXPECT_EQ(error_for(header + "1,calib,1,+-0.5,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:2: column time: '+-0.5' is not a number");
+  WriteText(path, header + "1,calib,1,+0.5,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n");
+  EXPECT_EQ(ReadPoses(path).records[0].time, 0.5);
   EXPECT_EQ(error_for("station,set\n1,calib\n"),
             "poses.csv:1: column sensor: missing from the header");
   EXPECT_EQ(error_for(""), "poses.csv:1: empty file, expected a header");
