@@ -272,7 +272,10 @@ class CsvWriter {
   CsvWriter(const std::filesystem::path& path, const std::vector<std::string>& columns,
             const std::vector<std::string>& extra_columns,
             const std::vector<std::vector<std::string>>& extra_labels)
-      : name_(path.string()), extra_count_(extra_columns.size()), extra_labels_(extra_labels) {
+      : name_(path.string()),
+        standard_count_(columns.size()),
+        extra_count_(extra_columns.size()),
+        extra_labels_(extra_labels) {
     if (!extra_labels_.empty() && extra_labels_.size() != extra_count_) {
       throw std::invalid_argument(name_ + ": " + std::to_string(extra_labels_.size()) +
                                   " label lists for " + std::to_string(extra_count_) +
@@ -301,9 +304,9 @@ class CsvWriter {
         throw std::invalid_argument(name_ + ": extra column name '" + e + "' is not a valid name");
       }
     }
-    std::vector<std::string> all = columns;
-    all.insert(all.end(), extra_columns.begin(), extra_columns.end());
-    for (size_t i = 0; i < all.size(); ++i) out_ << (i ? "," : "") << all[i];
+    names_ = columns;
+    names_.insert(names_.end(), extra_columns.begin(), extra_columns.end());
+    for (size_t i = 0; i < names_.size(); ++i) out_ << (i ? "," : "") << names_[i];
     out_ << '\n';
   }
   CsvWriter& Int(int v) {
@@ -316,7 +319,13 @@ class CsvWriter {
     out_ << s;
     return *this;
   }
+  // What the readers refuse is refused here, before anything is written: a capture the tools
+  // cannot read back is no capture. Standard columns need finite numbers; an extra column's nan
+  // marks a missing value.
   CsvWriter& Num(double v) {
+    if (!std::isfinite(v) && !(field_ >= standard_count_ && std::isnan(v))) {
+      Fail("column " + names_[field_], FormatNumber(v) + " is not a finite number");
+    }
     Sep();
     out_ << FormatNumber(v);
     return *this;
@@ -324,7 +333,15 @@ class CsvWriter {
   CsvWriter& Vec(const Eigen::Vector3d& v) { return Num(v.x()).Num(v.y()).Num(v.z()); }
   CsvWriter& Pose(const Rigid3d& p) {
     const Eigen::Quaterniond& q = p.rotation;
-    return Vec(p.translation).Num(q.w()).Num(q.x()).Num(q.y()).Num(q.z());
+    Vec(p.translation);
+    if (std::abs(q.norm() - 1.0) > 1e-3) {  // the readers' tolerance
+      char norm[64];
+      std::snprintf(norm, sizeof(norm), "%.6g", q.norm());
+      Fail("columns " + names_[field_] + ", " + names_[field_ + 1] + ", " + names_[field_ + 2] +
+               ", " + names_[field_ + 3],
+           std::string("quaternion norm ") + norm + " is not 1");
+    }
+    return Num(q.w()).Num(q.x()).Num(q.y()).Num(q.z());
   }
   void End(const std::vector<double>& extra, size_t record) {
     if (extra.size() != extra_count_) {
@@ -349,7 +366,8 @@ class CsvWriter {
       }
     }
     out_ << '\n';
-    first_ = true;
+    field_ = 0;
+    ++record_;
   }
   void Commit(const std::filesystem::path& path, const CaptureWriteOptions& options) {
     WriteFileAtomically(path, out_.str(), options.overwrite);
@@ -357,14 +375,21 @@ class CsvWriter {
 
  private:
   void Sep() {
-    if (!first_) out_ << ',';
-    first_ = false;
+    if (field_ > 0) out_ << ',';
+    ++field_;
+  }
+  [[noreturn]] void Fail(const std::string& what, const std::string& problem) const {
+    throw std::invalid_argument(name_ + ": record " + std::to_string(record_) + ": " + what + ": " +
+                                problem);
   }
   std::string name_;
+  size_t standard_count_;
+  std::vector<std::string> names_;  // standard columns, then extras
   size_t extra_count_;
   std::vector<std::vector<std::string>> extra_labels_;
   std::ostringstream out_;
-  bool first_ = true;
+  size_t field_ = 0;   // fields written of the current record
+  size_t record_ = 0;  // index of the current record
 };
 
 }  // namespace

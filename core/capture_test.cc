@@ -4,6 +4,8 @@
 
 #include <cmath>
 #include <fstream>
+#include <functional>
+#include <limits>
 #include <sstream>
 
 #include "tests/test_utils.h"
@@ -253,6 +255,50 @@ TEST(CaptureWriters, RefuseToOverwrite) {
   other.records[0].extra.clear();
   EXPECT_THROW(WritePoses(dir / "bad.csv", other), std::invalid_argument);
   EXPECT_FALSE(std::filesystem::exists(dir / "bad.csv"));
+}
+
+TEST(CaptureWriters, RefuseWhatTheReadersRefuse) {
+  // A file the readers refuse is no capture: a non-finite number in a standard column, an infinite
+  // extra value or a quaternion that is not unit is an error naming the record and the column, and
+  // nothing is written. An extra column's nan (a missing value) is written and read back.
+  const auto dir = MakeTempDir("capture_test");
+  const auto path = dir / "poses.csv";
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const double inf = std::numeric_limits<double>::infinity();
+  auto error_for = [&](const std::function<void(PoseCapture&)>& edit) {
+    PoseCapture c = RandomPoses();
+    edit(c);
+    const std::string error = ErrorOf([&] { WritePoses(path, c); });
+    EXPECT_FALSE(std::filesystem::exists(path)) << error;
+    return error;
+  };
+  EXPECT_EQ(error_for([&](PoseCapture& c) { c.records[3].time = nan; }),
+            "poses.csv: record 3: column time: nan is not a finite number");
+  EXPECT_EQ(error_for([&](PoseCapture& c) { c.records[0].reference.translation.y() = -inf; }),
+            "poses.csv: record 0: column ref_y: -inf is not a finite number");
+  EXPECT_EQ(error_for([&](PoseCapture& c) { c.records[2].extra[0] = inf; }),
+            "poses.csv: record 2: column temperature_c: inf is not a finite number");
+  EXPECT_EQ(
+      error_for(
+          [&](PoseCapture& c) { c.records[1].reported.rotation = Eigen::Quaterniond(0, 0, 0, 0); }),
+      "poses.csv: record 1: columns rep_qw, rep_qx, rep_qy, rep_qz: quaternion norm 0 is not 1");
+  EXPECT_EQ(error_for([&](PoseCapture& c) { c.records[1].reference.rotation.coeffs() *= 1.01; }),
+            "poses.csv: record 1: columns ref_qw, ref_qx, ref_qy, ref_qz: quaternion norm 1.01 is "
+            "not 1");
+  EXPECT_EQ(error_for([&](PoseCapture& c) { c.records[1].reference.rotation.x() = nan; }),
+            "poses.csv: record 1: column ref_qx: nan is not a finite number");
+  // The streams' writers share the check.
+  TrackerStream stream;
+  stream.records.resize(2);
+  stream.records[1].transmitter_from_receiver.translation.z() = nan;
+  EXPECT_EQ(ErrorOf([&] { WriteTrackerStream(dir / kTrackerStreamCsv, stream); }),
+            std::string(kTrackerStreamCsv) + ": record 1: column z: nan is not a finite number");
+  EXPECT_FALSE(std::filesystem::exists(dir / kTrackerStreamCsv));
+
+  PoseCapture missing = RandomPoses();
+  missing.records[4].extra[0] = nan;
+  WritePoses(path, missing);
+  EXPECT_TRUE(std::isnan(ReadPoses(path).records[4].extra[0]));
 }
 
 TEST(OtherCaptureFiles, RoundTrip) {
