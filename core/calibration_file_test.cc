@@ -225,6 +225,29 @@ TEST(ParseCalibrationJson, RejectsNonFiniteNumbers) {
             "'{', or a literal");
 }
 
+TEST(ParseCalibrationJson, RejectsAKeyGivenTwice) {
+  // A hand edit that adds a field instead of changing it: the JSON parser alone would keep the last
+  // value without a word. Named by its JSON path, inside objects and array elements alike.
+  const std::string text = ReadFileToString(ExamplePath());
+  auto twice = [&](const std::string& field, const std::string& again) {
+    std::string edited = text;
+    const size_t at = edited.find(field);
+    EXPECT_NE(at, std::string::npos) << field;
+    edited.insert(at + field.size(), " " + again);
+    return ErrorForText(edited);
+  };
+  EXPECT_EQ(twice("\"extrapolation\": \"fade\",", "\"fade_distance\": 0.5,"),
+            "calib.json: $.calibrated_volume.fade_distance: given twice (a key may appear once per "
+            "object)");
+  EXPECT_EQ(twice("\"node_order\": \"x_slowest_z_fastest\",", "\"node_order\": 1,"),
+            "calib.json: $.corrections[1].node_order: given twice (a key may appear once per "
+            "object)");
+  EXPECT_EQ(twice("\"version\": 1,", "\"version\": 1,"),
+            "calib.json: $.version: given twice (a key may appear once per object)");
+  // The same key in two objects is no repeat.
+  EXPECT_EQ(ErrorForText(text), "");
+}
+
 TEST(ParseCalibrationJson, RejectsNonIncreasingAxesAndEmptyVolume) {
   EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
               j["corrections"][1]["axes"]["z"] = {-0.1, 0.2, 0.2};

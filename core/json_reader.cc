@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <set>
+#include <vector>
 
 namespace trackcal {
 
@@ -10,11 +12,62 @@ namespace {
 
 const char* TypeName(const nlohmann::json& v) { return v.type_name(); }
 
+// Where the parser is, for the JSON path of a repeated key: per open object its current key, per
+// open array the index of its current element, and per object the keys seen so far.
+struct OpenContainer {
+  bool is_object = false;
+  std::string key;
+  size_t index = 0;
+  std::set<std::string> keys;
+};
+
+std::string PathOfOpen(const std::vector<OpenContainer>& open) {
+  std::string path = "$";
+  for (size_t i = 0; i + 1 < open.size(); ++i) {
+    path = open[i].is_object ? JsonKeyPath(path, open[i].key) : JsonIndexPath(path, open[i].index);
+  }
+  return path;
+}
+
 }  // namespace
 
 nlohmann::json ParseJsonText(const std::string& text, const std::string& source_name) {
+  // nlohmann keeps the last of two values of a key: a key given twice (a hand edit that added a
+  // field instead of changing it) is an error, as in the model file, not a silent choice.
+  std::vector<OpenContainer> open;
+  const auto element_done = [&open] {
+    if (!open.empty() && !open.back().is_object) ++open.back().index;
+  };
+  const nlohmann::json::parser_callback_t check_keys =
+      [&](int /*depth*/, nlohmann::json::parse_event_t event, nlohmann::json& parsed) {
+        using Event = nlohmann::json::parse_event_t;
+        switch (event) {
+          case Event::object_start:
+          case Event::array_start:
+            open.push_back({event == Event::object_start, "", 0, {}});
+            break;
+          case Event::key: {
+            OpenContainer& object = open.back();
+            object.key = parsed.get<std::string>();
+            if (!object.keys.insert(object.key).second) {
+              ThrowJsonError(source_name, JsonKeyPath(PathOfOpen(open), object.key),
+                             "given twice (a key may appear once per object)");
+            }
+            break;
+          }
+          case Event::object_end:
+          case Event::array_end:
+            open.pop_back();
+            element_done();
+            break;
+          case Event::value:
+            element_done();
+            break;
+        }
+        return true;
+      };
   try {
-    return nlohmann::json::parse(text);
+    return nlohmann::json::parse(text, check_keys);
   } catch (const nlohmann::json::parse_error& e) {
     // e.byte is the 1-based position of the offending byte; turn it into line and column.
     const size_t byte = e.byte == 0 ? 0 : std::min<size_t>(e.byte - 1, text.size());
