@@ -118,6 +118,17 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
         << sensor;
     EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("--sensor")) << sensor;
   }
+  // The pairing's own errors name the streams: a tracker stream with a header only.
+  std::ofstream(dir_ / "empty_stream.csv") << "time,sensor,x,y,z,qw,qx,qy,qz\n";
+  const fs::path reference = dir_ / "cap" / "reference_stream.csv";
+  EXPECT_EQ(RunCommand(fit_ + " pair --tracker " + (dir_ / "empty_stream.csv").string() +
+                       " --reference " + reference.string() + " -o " + (dir_ / "p.csv").string() +
+                       " 2> " + err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("empty_stream.csv, " + reference.string() +
+                                   ": tracker stream has fewer than 2 samples"));
+  EXPECT_FALSE(fs::exists(dir_ / "p.csv"));
 }
 
 // --start: a fit of a model with an added term starts at a previous fit's optimum (its --json
