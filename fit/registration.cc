@@ -38,6 +38,12 @@ constexpr int kInitialAlternations = 5;
 // Fastrak prints 4-5 decimals, so rounding alone stays below 1e-4).
 constexpr double kMaxQuaternionNormError = 1e-3;
 
+std::string Fmt(const char* fmt, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof(buf), fmt, v);
+  return buf;
+}
+
 std::string StationField(const RegistrationStation& s, const std::string& field) {
   return "registration station " + std::to_string(s.station) + ", " + field;
 }
@@ -174,6 +180,102 @@ void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
   *t0 = r0 * Eigen::Vector3d(z.segment<3>(3 * nm));
 }
 
+// RMS distance of the tracker positions from their mean [m].
+double PositionSpread(const Problem& p) {
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (const RegistrationStation& s : p.stations)
+    mean += s.tracker_transmitter_from_receiver.translation;
+  mean /= static_cast<double>(p.stations.size());
+  double sum_sq = 0.0;
+  for (const RegistrationStation& s : p.stations) {
+    sum_sq += (s.tracker_transmitter_from_receiver.translation - mean).squaredNorm();
+  }
+  return std::sqrt(sum_sq / static_cast<double>(p.stations.size()));
+}
+
+// How far the optical positions move per metre the tracker moves, given the marker-difference
+// rotation R0: R0^T y_ij = R_i (s r_j) + s p_i + u is linear in (s r_j, s, u). Right-handed frames
+// in metres give s = 1. The marker differences fix R0 only up to sign (it is made proper), so an
+// optical frame that is a mirror image of a right-handed one gives s = -1; millimetres give 1000,
+// a tracker in inches 0.0254. The caller makes sure the positions vary (else s trades off with u).
+double ScaleFromMarkerDifferenceRotation(const Problem& p, const Eigen::Quaterniond& r0) {
+  const int nm = static_cast<int>(p.marker_ids.size());
+  Eigen::MatrixXd a = Eigen::MatrixXd::Zero(3 * p.num_observations, 3 * nm + 4);
+  Eigen::VectorXd b(3 * p.num_observations);
+  const Eigen::Matrix3d r0t = r0.toRotationMatrix().transpose();
+  int row = 0;
+  for (const RegistrationStation& s : p.stations) {
+    const Rigid3d& x = s.tracker_transmitter_from_receiver;
+    for (const MarkerObservation& m : s.markers) {
+      a.block<3, 3>(row, 3 * p.marker_index.at(m.marker)) = x.rotation.toRotationMatrix();
+      a.block<3, 1>(row, 3 * nm) = x.translation;
+      a.block<3, 3>(row, 3 * nm + 1) = Eigen::Matrix3d::Identity();
+      b.segment<3>(row) = r0t * m.marker_in_optical;
+      row += 3;
+    }
+  }
+  return a.completeOrthogonalDecomposition().solve(b)(3 * nm);
+}
+
+// The same without orientation diversity: the visible markers' centroids against the tracker
+// positions (Umeyama with reflections allowed; the centroids' offsets from the receiver, a few
+// centimetres, only add noise). The sign tells a mirror image only when the positions spread in
+// three dimensions; otherwise it is +.
+double ScaleFromCentroids(const Problem& p) {
+  Eigen::Vector3d mean_p = Eigen::Vector3d::Zero(), mean_c = Eigen::Vector3d::Zero();
+  std::vector<Eigen::Vector3d> centroids;
+  for (const RegistrationStation& s : p.stations) {
+    Eigen::Vector3d c = Eigen::Vector3d::Zero();
+    for (const MarkerObservation& m : s.markers) c += m.marker_in_optical;
+    centroids.push_back(c / static_cast<double>(s.markers.size()));
+    mean_c += centroids.back();
+    mean_p += s.tracker_transmitter_from_receiver.translation;
+  }
+  const double n = static_cast<double>(p.stations.size());
+  mean_p /= n;
+  mean_c /= n;
+  Eigen::Matrix3d cross = Eigen::Matrix3d::Zero();
+  double variance = 0.0;
+  for (std::size_t i = 0; i < p.stations.size(); ++i) {
+    const Eigen::Vector3d dp = p.stations[i].tracker_transmitter_from_receiver.translation - mean_p;
+    cross += (centroids[i] - mean_c) * dp.transpose();
+    variance += dp.squaredNorm();
+  }
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(cross, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  const Eigen::Vector3d sv = svd.singularValues();
+  const double scale = sv.sum() / variance;
+  const bool mirrored = (svd.matrixU() * svd.matrixV().transpose()).determinant() < 0.0;
+  return mirrored && sv(2) > 0.1 * sv(0) ? -scale : scale;
+}
+
+// Throws if the optical positions do not move like the tracker's between stations (units or a
+// left-handed optical frame): no rigid transform can then explain them, and the fit would only
+// return a huge chi-square without saying why.
+void CheckOpticalScale(const Problem& p, const Eigen::Quaterniond* marker_difference_rotation,
+                       double tracker_position_noise_m) {
+  // Positions spread over many times their noise determine the scale to a few per cent.
+  constexpr double kMinSpreadInNoise = 10.0;
+  // Units differ by 10 (cm), 25.4 (in), 1000 (mm); a real tracker's scale error is a few per cent.
+  constexpr double kMaxScaleFactor = 2.0;
+  if (PositionSpread(p) < kMinSpreadInNoise * tracker_position_noise_m) return;
+  const double scale = marker_difference_rotation != nullptr
+                           ? ScaleFromMarkerDifferenceRotation(p, *marker_difference_rotation)
+                           : ScaleFromCentroids(p);
+  if (scale > 1.0 / kMaxScaleFactor && scale < kMaxScaleFactor) return;
+  if (scale < -1.0 / kMaxScaleFactor && scale > -kMaxScaleFactor) {
+    throw std::invalid_argument(
+        "registration: markers x/y/z: the optical positions move as a mirror image of the "
+        "tracker positions (scale " +
+        Fmt("%.3g", scale) +
+        ", expected 1): the optical frame is left-handed; negate one of its axes");
+  }
+  throw std::invalid_argument(
+      "registration: markers x/y/z: the optical positions move " + Fmt("%.4g", scale) +
+      " times as far as the tracker positions between stations (expected 1): both must be in "
+      "metres (optical millimetres give 1000, tracker inches 0.0254)" +
+      (scale < 0.0 ? "; the sign also says the optical frame is left-handed" : ""));
+}
+
 // optical_from_transmitter aligning the markers placed by the tracker poses with their
 // measurements: the optical least-squares transform for given markers and exact tracker poses.
 Rigid3d AlignMarkers(const Problem& p, const std::vector<Eigen::Vector3d>& markers) {
@@ -273,12 +375,6 @@ ResidualStructure AnalyseResidualStructure(const std::vector<RegisteredStation>&
   return out;
 }
 
-std::string Fmt(const char* fmt, double v) {
-  char buf[64];
-  std::snprintf(buf, sizeof(buf), fmt, v);
-  return buf;
-}
-
 }  // namespace
 
 RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
@@ -336,7 +432,10 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   };
   std::vector<Start> starts;
   Eigen::Quaterniond candidate;
-  if (RotationFromMarkerDifferences(p, &candidate)) {
+  const bool have_difference_rotation = RotationFromMarkerDifferences(p, &candidate);
+  CheckOpticalScale(p, have_difference_rotation ? &candidate : nullptr,
+                    options.tracker_position_noise_m);
+  if (have_difference_rotation) {
     starts.push_back({"rotation from marker differences", candidate, {}, {}, 0.0});
   }
   starts.push_back({"rotation from marker centroids", RotationFromCentroids(p), {}, {}, 0.0});

@@ -227,6 +227,44 @@ TEST(RegisterOpticalToTransmitter, SingleOrientationFallsBackAndFlagsTranslation
   EXPECT_TRUE(translation_flagged) << r.ToString();
 }
 
+TEST(RegisterOpticalToTransmitter, OpticalUnitsOrHandednessUnlikeTheTrackerThrow) {
+  // An optical system that reports millimetres, a tracker in inches or a left-handed optical
+  // frame: no rigid transform explains the markers, and without the check the fit returned a
+  // chi-square z of ~1e10 (mm, not converged) or ~3e5 (mirror, "identifiable") with no reason.
+  for (const bool random_orientations : {true, false}) {  // both closed-form starts
+    SyntheticRegistrationOptions s = NoisyOptions();
+    s.random_orientations = random_orientations;
+    const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+    const RegistrationOptions o = MatchingOptions(s);
+    auto expect_message = [&](const std::vector<RegistrationStation>& stations,
+                              const std::string& needle) {
+      try {
+        RegisterOpticalToTransmitter(stations, o);
+        ADD_FAILURE() << "expected std::invalid_argument containing " << needle;
+      } catch (const std::invalid_argument& e) {
+        EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+      }
+    };
+    auto millimetres = data.stations;
+    for (auto& station : millimetres) {
+      for (auto& m : station.markers) m.marker_in_optical *= 1e3;
+    }
+    expect_message(millimetres, "optical millimetres give 1000");
+    auto inches = data.stations;
+    for (auto& station : inches) station.tracker_transmitter_from_receiver.translation /= 0.0254;
+    expect_message(inches, "tracker inches 0.0254");
+    auto mirrored = data.stations;
+    for (auto& station : mirrored) {
+      for (auto& m : station.markers) m.marker_in_optical.y() *= -1.0;
+    }
+    expect_message(mirrored, "left-handed");
+    // A real tracker's scale error of a few per cent is not a unit error.
+    auto scaled = data.stations;
+    for (auto& station : scaled) station.tracker_transmitter_from_receiver.translation *= 1.05;
+    EXPECT_NO_THROW(RegisterOpticalToTransmitter(scaled, o));
+  }
+}
+
 TEST(RegisterOpticalToTransmitter, InvalidInputThrowsNamingStationAndField) {
   SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
   auto expect_message = [](const std::vector<RegistrationStation>& stations,
