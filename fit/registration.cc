@@ -92,8 +92,10 @@ struct Problem {
 // at station i, d = y_ij - y_ik = R0 R_i (r_j - r_k), so R_i^T R0^T d equals the same unknown
 // e_jk = r_j - r_k at every station. Stacking R_i^T M d_ijk - e_jk = 0 gives a homogeneous linear
 // system in (vec(M), e); its null vector is (vec(R0^T), e) up to scale. Needs stations with several
-// orientations; returns false when the null space is not one-dimensional.
-bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical_from_transmitter) {
+// orientations; returns false when the null space is not one-dimensional, with *why_not saying
+// which way it failed.
+bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical_from_transmitter,
+                                   std::string* why_not) {
   std::map<std::pair<int, int>, int> pair_index;
   struct Row {
     Eigen::Matrix3d r_transpose;
@@ -117,7 +119,10 @@ bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical
   }
   const int num_unknowns = 9 + 3 * static_cast<int>(pair_index.size());
   const int num_rows = 3 * static_cast<int>(rows.size());
-  if (num_rows < num_unknowns + 1) return false;
+  if (num_rows < num_unknowns + 1) {
+    *why_not = "too few marker pairs for the marker-difference rotation";
+    return false;
+  }
   Eigen::MatrixXd a = Eigen::MatrixXd::Zero(num_rows, num_unknowns);
   for (std::size_t r = 0; r < rows.size(); ++r) {
     // M d = sum_c d_c M.col(c) -> coefficient of vec(M) (column-major) is d_c * I.
@@ -130,11 +135,24 @@ bool RotationFromMarkerDifferences(const Problem& p, Eigen::Quaterniond* optical
   const Eigen::VectorXd& sv = svd.singularValues();
   const int n = num_unknowns;
   // The true solution makes the smallest singular value ~noise; a second small one means the
-  // stations do not constrain the rotation (e.g. all with the same orientation).
-  if (!(sv(n - 2) > 1e-3 * sv(0)) || !(sv(n - 1) < 0.1 * sv(n - 2))) return false;
+  // stations do not constrain the rotation (e.g. all with the same orientation); a smallest one
+  // not well below the others means no rotation fits the differences.
+  if (!(sv(n - 2) > 1e-3 * sv(0))) {
+    *why_not = "stations lack orientation diversity";
+    return false;
+  }
+  if (!(sv(n - 1) < 0.1 * sv(n - 2))) {
+    *why_not =
+        "marker differences inconsistent between stations: a mislabelled or moved marker, or "
+        "optical noise large against the marker spacing";
+    return false;
+  }
   const Eigen::VectorXd z = svd.matrixV().col(n - 1);
   Eigen::Matrix3d m = Eigen::Map<const Eigen::Matrix3d>(z.data());
-  if (m.norm() < 1e-6) return false;
+  if (m.norm() < 1e-6) {
+    *why_not = "marker-difference rotation degenerate";
+    return false;
+  }
   if (m.determinant() < 0.0) m = -m;
   const Eigen::Matrix3d rotation = NearestRotation(m).transpose();
   *optical_from_transmitter = Eigen::Quaterniond(rotation).normalized();
@@ -432,7 +450,9 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   };
   std::vector<Start> starts;
   Eigen::Quaterniond candidate;
-  const bool have_difference_rotation = RotationFromMarkerDifferences(p, &candidate);
+  std::string no_difference_rotation;
+  const bool have_difference_rotation =
+      RotationFromMarkerDifferences(p, &candidate, &no_difference_rotation);
   CheckOpticalScale(p, have_difference_rotation ? &candidate : nullptr,
                     options.tracker_position_noise_m);
   if (have_difference_rotation) {
@@ -452,7 +472,7 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   const Start& best = *std::min_element(
       starts.begin(), starts.end(), [](const Start& a, const Start& b) { return a.sse < b.sse; });
   result.initialisation = best.name +
-                          (starts.size() == 1 ? " (stations lack orientation diversity)" : "") +
+                          (starts.size() == 1 ? " (" + no_difference_rotation + ")" : "") +
                           ", markers and translation by linear least squares";
   const Eigen::Quaterniond r0 = best.r0;
   const std::vector<Eigen::Vector3d> markers = best.markers;

@@ -162,6 +162,24 @@ TEST(RegisterOpticalToTransmitter, DisplacedMarkerStandsOutInItsStation) {
   EXPECT_EQ(worst->station, data.stations[6].station);
 }
 
+TEST(RegisterOpticalToTransmitter, MislabelledMarkerIsNotBlamedOnOrientations) {
+  // Two labels swapped at one station of 20 with random orientations: the marker differences no
+  // longer share one rotation, so the centroid start is used. The initialisation must say why
+  // (it used to claim that the stations lack orientation diversity), and the swapped station must
+  // carry the largest chi-square.
+  SyntheticRegistrationOptions s = NoisyOptions();
+  SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  std::swap(data.stations[3].markers[0].marker, data.stations[3].markers[1].marker);
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations, MatchingOptions(s));
+  EXPECT_EQ(r.initialisation.find("orientation diversity"), std::string::npos) << r.initialisation;
+  EXPECT_NE(r.initialisation.find("mislabelled"), std::string::npos) << r.initialisation;
+  const auto worst = std::max_element(r.stations.begin(), r.stations.end(),
+                                      [](const RegisteredStation& a, const RegisteredStation& b) {
+                                        return a.chi_square < b.chi_square;
+                                      });
+  EXPECT_EQ(worst->station, data.stations[3].station);
+}
+
 TEST(RegisterOpticalToTransmitter, UnderestimatedNoiseShowsInChiSquare) {
   SyntheticRegistrationOptions s = NoisyOptions();
   s.optical_noise_m = 3 * 1.5e-4;
@@ -215,7 +233,9 @@ TEST(RegisterOpticalToTransmitter, SingleOrientationFallsBackAndFlagsTranslation
   s.random_orientations = false;
   const SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
   const RegistrationResult r = RegisterOpticalToTransmitter(data.stations);
-  EXPECT_NE(r.initialisation.find("centroids"), std::string::npos);
+  EXPECT_NE(r.initialisation.find("centroids (stations lack orientation diversity)"),
+            std::string::npos)
+      << r.initialisation;
   EXPECT_FALSE(r.identifiable);
   EXPECT_EQ(r.covariance.rank, r.covariance.tangent_dimension - 3) << r.ToString();
   EXPECT_TRUE(testing::RotationsNear(data.optical_from_transmitter.rotation,
