@@ -503,15 +503,8 @@ int RunPair(int argc, char** argv) {
   }
   const TrackerStream tracker = ReadTrackerStream(tracker_path);
   const ReferenceStream reference = ReadReferenceStream(reference_path);
-  StreamPairingResult result;
-  try {
-    result = PairStreams(tracker, reference, options);
-  } catch (const std::invalid_argument& e) {
-    // The pairing's errors name no file ("tracker stream has fewer than 2 samples"): name both, as
-    // its warning does.
-    throw std::invalid_argument(tracker_path.string() + ", " + reference_path.string() + ": " +
-                                e.what());
-  }
+  const StreamPairingResult result =
+      PairStreamsOfFiles(tracker, reference, options, tracker_path, reference_path);
   WritePoses(output, result.poses);
   if (!result.warning.empty()) {
     std::cerr << "warning: " << tracker_path.string() << ", " << reference_path.string() << ": "

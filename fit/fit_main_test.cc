@@ -129,6 +129,18 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
               ::testing::HasSubstr("empty_stream.csv, " + reference.string() +
                                    ": tracker stream has fewer than 2 samples"));
   EXPECT_FALSE(fs::exists(dir_ / "p.csv"));
+  // So do they when fit pairs a stream folder itself.
+  fs::create_directories(dir_ / "empty_streams");
+  fs::copy_file(dir_ / "empty_stream.csv", dir_ / "empty_streams" / "tracker_stream.csv");
+  fs::copy_file(reference, dir_ / "empty_streams" / "reference_stream.csv");
+  EXPECT_EQ(RunCommand(fit_ + " fit --data " + (dir_ / "empty_streams").string() + " --model " +
+                       (dir_ / "model.yaml").string() + " --quiet -o " +
+                       (dir_ / "c.json").string() + " 2> " + err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("empty_streams/tracker_stream.csv, " +
+                                   (dir_ / "empty_streams" / "reference_stream.csv").string() +
+                                   ": tracker stream has fewer than 2 samples"));
 }
 
 // --start: a fit of a model with an added term starts at a previous fit's optimum (its --json

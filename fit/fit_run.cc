@@ -52,7 +52,7 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
     out.tracker_stream = std::make_shared<TrackerStream>(ReadTrackerStream(tracker));
     out.reference_stream = std::make_shared<ReferenceStream>(ReadReferenceStream(reference));
     const StreamPairingResult paired =
-        PairStreams(*out.tracker_stream, *out.reference_stream, pairing);
+        PairStreamsOfFiles(*out.tracker_stream, *out.reference_stream, pairing, tracker, reference);
     out.poses = paired.poses;
     out.time_offset = paired.time_offset;
     out.pairing_warning = paired.warning;

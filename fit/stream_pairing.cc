@@ -406,6 +406,19 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   return result;
 }
 
+StreamPairingResult PairStreamsOfFiles(const TrackerStream& tracker,
+                                       const ReferenceStream& reference,
+                                       const StreamPairingOptions& options,
+                                       const std::filesystem::path& tracker_path,
+                                       const std::filesystem::path& reference_path) {
+  try {
+    return PairStreams(tracker, reference, options);
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument(tracker_path.string() + ", " + reference_path.string() + ": " +
+                                e.what());
+  }
+}
+
 std::vector<FitStation> FitStationsOfPairing(const StreamPairingResult& result,
                                              const std::string& set) {
   std::vector<FitStation> out;

@@ -21,6 +21,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <filesystem>
 #include <limits>
 #include <optional>
 #include <string>
@@ -81,6 +82,14 @@ struct StreamPairingResult {
 // Throws std::invalid_argument for bad options or streams with fewer than 2 samples.
 StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStream& reference,
                                 const StreamPairingOptions& options);
+
+// PairStreams on streams read from these files: its errors ("tracker stream has fewer than 2
+// samples") are prefixed with both paths, as its warning is by the tools.
+StreamPairingResult PairStreamsOfFiles(const TrackerStream& tracker,
+                                       const ReferenceStream& reference,
+                                       const StreamPairingOptions& options,
+                                       const std::filesystem::path& tracker_path,
+                                       const std::filesystem::path& reference_path);
 
 // The paired records as fit stations carrying the reference velocities a fitted clock offset needs
 // (fit/terms_time_offset.h); only records of `set` when it is not empty.

@@ -681,8 +681,9 @@ void BindFit(py::module_& m) {
         run->estimated = estimate_time_offset;
         py::gil_scoped_release release;
         ValueErrors([&] {
-          run->result = fit::PairStreams(ReadTrackerStream(tracker_path),
-                                         ReadReferenceStream(reference_path), options);
+          run->result = fit::PairStreamsOfFiles(ReadTrackerStream(tracker_path),
+                                                ReadReferenceStream(reference_path), options,
+                                                tracker_path, reference_path);
         });
         return run;
       },
