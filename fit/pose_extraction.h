@@ -26,7 +26,8 @@ struct PoseExtractionOptions {
   // Smallest spread of the visible markers (second singular value of their centred positions in
   // the receiver frame, RMS metres) below which the pose is degenerate (collinear markers).
   double min_marker_spread_m = 5e-3;
-  // A station whose marker residual RMS exceeds this is flagged as a bad fit [m].
+  // A station whose marker residual RMS exceeds this is flagged as a bad fit [m], unless
+  // optical_noise_m explains it (chi-square tail above 1e-3: only with noise above ~0.4 mm).
   double max_marker_rms_m = 1e-3;
   // Refine the closed form with Ceres (gives the covariance; the closed form is already the
   // least-squares optimum for isotropic equal noise).
