@@ -172,12 +172,13 @@ Eigen::Quaterniond RotationFromCentroids(const Problem& p) {
   return AlignPoints(from, to).rotation;
 }
 
-// Given R0 and the tracker poses, y_ij = R0 (R_i r_j + p_i) + t0 is linear in (r_j, u = R0^T t0):
-// R0^T y_ij - p_i = R_i r_j + u. Minimum-norm least squares if the geometry is degenerate.
-void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
-                                std::vector<Eigen::Vector3d>* markers, Eigen::Vector3d* t0) {
+// Given R0 and the tracker poses, R0^T y_ij = R_i r_j + c p_i + u is linear in the markers r_j,
+// u = R0^T t0 and, if `with_scale`, the tracker scale c (else c = 1 and p_i moves to the right-hand
+// side). Columns: 3 per marker, then c (if any), then u. Minimum-norm least squares solution.
+Eigen::VectorXd SolveMarkerSystem(const Problem& p, const Eigen::Quaterniond& r0, bool with_scale) {
   const int nm = static_cast<int>(p.marker_ids.size());
-  Eigen::MatrixXd a = Eigen::MatrixXd::Zero(3 * p.num_observations, 3 * nm + 3);
+  const int scale_columns = with_scale ? 1 : 0;
+  Eigen::MatrixXd a = Eigen::MatrixXd::Zero(3 * p.num_observations, 3 * nm + scale_columns + 3);
   Eigen::VectorXd b(3 * p.num_observations);
   const Eigen::Matrix3d r0t = r0.toRotationMatrix().transpose();
   int row = 0;
@@ -185,14 +186,21 @@ void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
     const Rigid3d& x = s.tracker_transmitter_from_receiver;
     const Eigen::Matrix3d ri = x.rotation.toRotationMatrix();
     for (const MarkerObservation& m : s.markers) {
-      const int j = p.marker_index.at(m.marker);
-      a.block<3, 3>(row, 3 * j) = ri;
-      a.block<3, 3>(row, 3 * nm) = Eigen::Matrix3d::Identity();
-      b.segment<3>(row) = r0t * m.marker_in_optical - x.translation;
+      a.block<3, 3>(row, 3 * p.marker_index.at(m.marker)) = ri;
+      if (with_scale) a.block<3, 1>(row, 3 * nm) = x.translation;
+      a.block<3, 3>(row, 3 * nm + scale_columns) = Eigen::Matrix3d::Identity();
+      b.segment<3>(row) =
+          r0t * m.marker_in_optical - (with_scale ? Eigen::Vector3d::Zero() : x.translation);
       row += 3;
     }
   }
-  const Eigen::VectorXd z = a.completeOrthogonalDecomposition().solve(b);
+  return a.completeOrthogonalDecomposition().solve(b);
+}
+
+void SolveMarkersAndTranslation(const Problem& p, const Eigen::Quaterniond& r0,
+                                std::vector<Eigen::Vector3d>* markers, Eigen::Vector3d* t0) {
+  const int nm = static_cast<int>(p.marker_ids.size());
+  const Eigen::VectorXd z = SolveMarkerSystem(p, r0, /*with_scale=*/false);
   markers->resize(nm);
   for (int j = 0; j < nm; ++j) (*markers)[j] = z.segment<3>(3 * j);
   *t0 = r0 * Eigen::Vector3d(z.segment<3>(3 * nm));
@@ -212,27 +220,12 @@ double PositionSpread(const Problem& p) {
 }
 
 // How far the optical positions move per metre the tracker moves, given the marker-difference
-// rotation R0: R0^T y_ij = R_i (s r_j) + s p_i + u is linear in (s r_j, s, u). Right-handed frames
-// in metres give s = 1. The marker differences fix R0 only up to sign (it is made proper), so an
-// optical frame that is a mirror image of a right-handed one gives s = -1; millimetres give 1000,
-// a tracker in inches 0.0254. The caller makes sure the positions vary (else s trades off with u).
+// rotation R0: the scale c of SolveMarkerSystem. Right-handed frames in metres give c = 1. The
+// marker differences fix R0 only up to sign (it is made proper), so an optical frame that is a
+// mirror image of a right-handed one gives c = -1; millimetres give 1000, a tracker in inches
+// 0.0254. The caller makes sure the positions vary (else c trades off with u).
 double ScaleFromMarkerDifferenceRotation(const Problem& p, const Eigen::Quaterniond& r0) {
-  const int nm = static_cast<int>(p.marker_ids.size());
-  Eigen::MatrixXd a = Eigen::MatrixXd::Zero(3 * p.num_observations, 3 * nm + 4);
-  Eigen::VectorXd b(3 * p.num_observations);
-  const Eigen::Matrix3d r0t = r0.toRotationMatrix().transpose();
-  int row = 0;
-  for (const RegistrationStation& s : p.stations) {
-    const Rigid3d& x = s.tracker_transmitter_from_receiver;
-    for (const MarkerObservation& m : s.markers) {
-      a.block<3, 3>(row, 3 * p.marker_index.at(m.marker)) = x.rotation.toRotationMatrix();
-      a.block<3, 1>(row, 3 * nm) = x.translation;
-      a.block<3, 3>(row, 3 * nm + 1) = Eigen::Matrix3d::Identity();
-      b.segment<3>(row) = r0t * m.marker_in_optical;
-      row += 3;
-    }
-  }
-  return a.completeOrthogonalDecomposition().solve(b)(3 * nm);
+  return SolveMarkerSystem(p, r0, /*with_scale=*/true)(3 * static_cast<int>(p.marker_ids.size()));
 }
 
 // The same without orientation diversity: the visible markers' centroids against the tracker
