@@ -24,6 +24,31 @@ def run_cli(*args, check=True):
     return r
 
 
+def _record_many(args):
+    work, model, data, label, count = args
+    scores = {"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}}
+    for i in range(count):
+        history.record_fit(work, model=model, data=[(data, "calibration_capture")], scores=scores,
+                           label=f"{label} {i}")
+
+
+def test_fits_recorded_at_once_all_keep_their_entry(tmp_path):
+    """Two processes recording into one work folder: each record reads the file and rewrites it, so
+    without a lock one could drop the other's entry (a lab running two fits from two terminals)."""
+    import multiprocessing
+    data = tmp_path / "poses.csv"
+    data.write_text("x\n")
+    model = tmp_path / "model.json"
+    model.write_text("{}\n")
+    work = tmp_path / "work"
+    work.mkdir()
+    count = 60
+    with multiprocessing.get_context("fork").Pool(2) as pool:
+        pool.map(_record_many, [(work, model, data, name, count) for name in ("a", "b")])
+    labels = [e["label"] for e in history.load_history(work)]
+    assert sorted(labels) == sorted([f"{n} {i}" for n in ("a", "b") for i in range(count)])
+
+
 def test_history_round_trip(tmp_path):
     data = tmp_path / "poses.csv"
     data.write_text("x\n")

@@ -8,11 +8,13 @@ sha256} of the captures used) and ``scores`` ({set name: {"position_mm": {mean, 
 names of the model), ``calibration`` ({path, sha256} of the file written, and ``copy``, the same bytes
 kept in ``models/<sha>.json``: a later fit may replace the file) and ``fit`` (converged,
 chi2_per_dof, free parameters, outliers). The file is rewritten atomically on every record, so an
-interrupted write never loses earlier fits.
+interrupted write never loses earlier fits, under a lock (``.history.lock`` beside it), so two fits
+recording at once (two terminals, parallel scripts) both keep their entry.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import hashlib
 import json
@@ -25,6 +27,26 @@ from trackcal import _core
 from trackcal._files import replace_atomically, write_new
 
 HISTORY_FILE = "history.jsonl"
+_LOCK_FILE = ".history.lock"
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: records are not serialised between processes
+    fcntl = None
+
+
+@contextlib.contextmanager
+def _history_lock(workdir: pathlib.Path):
+    """Holds an exclusive lock of the work folder's history while it is read and rewritten."""
+    if fcntl is None:
+        yield
+        return
+    with open(workdir / _LOCK_FILE, "a") as lock:
+        fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_UN)
 
 
 def _sha(path) -> str:
@@ -139,10 +161,11 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
             entry[k] = v
     json.dumps(entry, allow_nan=False)  # refuse NaN before touching the file
     path = workdir / HISTORY_FILE
-    old = path.read_bytes() if path.exists() else b""
-    if old and not old.endswith(b"\n"):
-        old += b"\n"
-    replace_atomically(path, old + (json.dumps(entry, sort_keys=True) + "\n").encode())
+    with _history_lock(workdir):
+        old = path.read_bytes() if path.exists() else b""
+        if old and not old.endswith(b"\n"):
+            old += b"\n"
+        replace_atomically(path, old + (json.dumps(entry, sort_keys=True) + "\n").encode())
     return entry
 
 
