@@ -380,6 +380,13 @@ def test_cross_validate_top_zero_cross_validates_every_candidate(tmp_path):
     assert not all(c["cross_validated"] for c in one["candidates"])
     with pytest.raises(ValueError, match="cross_validate_top"):
         diagnosis.diagnose_candidates(cap, MODEL, effects=effects, cross_validate_top=-1)
+    # An empty restriction is refused (it used to rank every effect), and one name given as a
+    # string is one effect, not its letters.
+    with pytest.raises(ValueError, match="effects: an empty list"):
+        diagnosis.diagnose_candidates(cap, MODEL, effects=[])
+    single = diagnosis.diagnose_candidates(cap, MODEL, folds=2, effects="sensor_offset",
+                                           cross_validate_top=0)
+    assert [c["effect"] for c in single["candidates"]] == ["sensor_offset"]
 
 
 def test_diagnose_json_is_one_document_with_everything(tmp_path):

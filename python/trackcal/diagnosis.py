@@ -49,7 +49,14 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
                                   "the covariate analysis (trackcal diagnose) still works")
     if cross_validate_top < 0:
         raise ValueError("cross_validate_top must be >= 0")
-    kwargs = {"folds": folds, "effects": list(effects) if effects else None,
+    if effects is not None:
+        effects = [effects] if isinstance(effects, str) else list(effects)
+        if not effects:
+            # An empty restriction would mean "no effect", but the native call reads an empty list
+            # as "every effect": say so instead of ranking what was not asked for.
+            raise ValueError("effects: an empty list restricts the catalog to nothing; pass None "
+                             "for every effect")
+    kwargs = {"folds": folds, "effects": effects,
               "cross_validate_top": cross_validate_top}
     if progress is not None:
         kwargs["progress"] = progress
