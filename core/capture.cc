@@ -11,6 +11,7 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <iterator>
 #include <limits>
 #include <map>
 #include <set>
@@ -63,13 +64,24 @@ class CsvTable {
   // captures' poses.csv apart).
   CsvTable(const std::filesystem::path& path, const std::vector<std::string>& required)
       : name_(path.string()) {
-    std::ifstream in(path);
-    if (!in) throw std::runtime_error(path.string() + ": cannot open file");
+    std::ifstream file(path, std::ios::binary);
+    if (!file) throw std::runtime_error(path.string() + ": cannot open file");
+    std::string text((std::istreambuf_iterator<char>(file)), std::istreambuf_iterator<char>());
+    // Old Mac spreadsheets end lines with CR alone: read as lines, not as one header line whose
+    // "columns" repeat.
+    if (text.find('\n') == std::string::npos) std::replace(text.begin(), text.end(), '\r', '\n');
+    std::istringstream in(std::move(text));
     std::string line;
     int line_number = 0;
     bool have_header = false;
     while (std::getline(in, line)) {
       ++line_number;
+      const size_t cr = line.find('\r');
+      if (cr != std::string::npos && line.find_first_not_of("\r \t", cr) != std::string::npos) {
+        Fail(line_number, "line end",
+             "a carriage return inside the line (mixed line ends); save the file with LF or CRLF "
+             "line ends");
+      }
       if (Trim(line).empty()) continue;
       if (!have_header) {
         // A UTF-8 byte order mark (spreadsheet exports) is not part of the first column's name.

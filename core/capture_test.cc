@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <functional>
@@ -109,6 +110,23 @@ TEST(PosesCsv, ColumnsByNameInAnyOrderWithExtras) {
   // A spreadsheet's byte order mark before the header is ignored.
   WriteText(dir / "bom.csv", "\xEF\xBB\xBF" + ReadText(dir / "poses.csv"));
   EXPECT_EQ(ReadPoses(dir / "bom.csv").records.size(), 1u);
+  // Old Mac spreadsheets end lines with CR alone; a bare CR inside a line is refused, naming it.
+  std::string cr_only = ReadText(dir / "poses.csv");
+  cr_only.erase(std::remove(cr_only.begin(), cr_only.end(), '\n'), cr_only.end());
+  WriteText(dir / "mac.csv", cr_only);
+  const PoseCapture mac = ReadPoses(dir / "mac.csv");
+  ASSERT_EQ(mac.records.size(), 1u);
+  EXPECT_EQ(mac.records[0].reported.translation, c.records[0].reported.translation);
+  EXPECT_EQ(mac.records[0].set, "valid");
+  WriteText(dir / "mixed.csv", ReadText(dir / "poses.csv") + "1,2\r3\n");
+  try {
+    ReadPoses(dir / "mixed.csv");
+    ADD_FAILURE() << "a bare CR inside a line was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("mixed.csv:4: line end: a carriage return inside"),
+              std::string::npos)
+        << e.what();
+  }
   const PoseRecord& r = c.records[0];
   EXPECT_EQ(r.station, 7);
   EXPECT_EQ(r.set, "valid");
