@@ -1215,40 +1215,6 @@ std::optional<StandIn> FindStandIn(const std::vector<double>& claimed,
   return std::nullopt;
 }
 
-double ChiSquareUpperTail(double x, int dof) {
-  if (dof < 1) throw std::invalid_argument("ChiSquareUpperTail: dof must be >= 1");
-  if (!(x > 0)) return 1.0;
-  if (!std::isfinite(x)) return 0.0;
-  // Q(a, y) = Gamma(a, y) / Gamma(a), a = dof / 2, y = x / 2: the series of P below a + 1, the
-  // continued fraction of Q above (both converge fast there).
-  const double a = 0.5 * dof, y = 0.5 * x;
-  const double log_prefactor = -y + a * std::log(y) - std::lgamma(a);
-  if (y < a + 1.0) {
-    double term = 1.0 / a, sum = term;
-    for (int n = 1; n < 1000 && std::abs(term) > 1e-17 * std::abs(sum); ++n) {
-      term *= y / (a + n);
-      sum += term;
-    }
-    return std::clamp(1.0 - sum * std::exp(log_prefactor), 0.0, 1.0);
-  }
-  // Modified Lentz evaluation of the continued fraction for Q.
-  const double tiny = 1e-300;
-  double b = y + 1.0 - a, c = 1.0 / tiny, d = 1.0 / b, h = d;
-  for (int i = 1; i < 1000; ++i) {
-    const double an = -i * (i - a);
-    b += 2.0;
-    d = an * d + b;
-    if (std::abs(d) < tiny) d = tiny;
-    c = b + an / c;
-    if (std::abs(c) < tiny) c = tiny;
-    d = 1.0 / d;
-    const double delta = d * c;
-    h *= delta;
-    if (std::abs(delta - 1.0) < 1e-16) break;
-  }
-  return std::clamp(std::exp(log_prefactor) * h, 0.0, 1.0);
-}
-
 double HotellingUpperTail(double w, int dof, int clusters) {
   if (dof < 1) throw std::invalid_argument("HotellingUpperTail: dof must be >= 1");
   if (clusters <= dof) return 1.0;

@@ -53,6 +53,7 @@
 #include <vector>
 
 #include "core/error_statistics.h"
+#include "fit/distributions.h"
 #include "fit/fit_engine.h"
 #include "fit/model.h"
 
@@ -165,9 +166,6 @@ PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
 // independent clusters: FDistributionUpperTail(w (G - k) / ((G - 1) k), k, G - k)
 // (fit/registration.h); 1 when G <= k.
 double HotellingUpperTail(double w, int dof, int clusters);
-
-// P(chi2_dof > x): the upper tail of the chi-square distribution (regularised incomplete gamma).
-double ChiSquareUpperTail(double x, int dof);
 
 // The two-sided normal deviate z with P(|N(0,1)| > z) = p (p in (0, 1]); infinity for p = 0.
 double TwoSidedNormalDeviate(double p);

@@ -9,7 +9,7 @@
 #include <stdexcept>
 
 #include "fit/alignment.h"
-#include "fit/candidates.h"  // ChiSquareUpperTail
+#include "fit/distributions.h"
 #include "fit/marker_model.h"
 #include "fit/rotation.h"
 

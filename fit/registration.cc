@@ -317,44 +317,6 @@ double OpticalSumOfSquares(const Problem& p, const Eigen::Quaterniond& r0,
   return sse;
 }
 
-// Regularised incomplete beta function I_x(a, b) by its continued fraction (modified Lentz).
-double IncompleteBeta(double a, double b, double x) {
-  if (x <= 0.0) return 0.0;
-  if (x >= 1.0) return 1.0;
-  // The continued fraction converges fast for x < (a + 1) / (a + b + 2); else use symmetry.
-  if (x > (a + 1.0) / (a + b + 2.0)) return 1.0 - IncompleteBeta(b, a, 1.0 - x);
-  const double log_front =
-      std::lgamma(a + b) - std::lgamma(a) - std::lgamma(b) + a * std::log(x) + b * std::log1p(-x);
-  constexpr double kTiny = 1e-300;
-  double c = 1.0, d = 1.0 - (a + b) * x / (a + 1.0);
-  if (std::abs(d) < kTiny) d = kTiny;
-  d = 1.0 / d;
-  double f = d;
-  for (int m = 1; m <= 300; ++m) {
-    for (int k = 0; k < 2; ++k) {
-      const double num = k == 0 ? m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
-                                : -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1));
-      d = 1.0 + num * d;
-      if (std::abs(d) < kTiny) d = kTiny;
-      c = 1.0 + num / c;
-      if (std::abs(c) < kTiny) c = kTiny;
-      d = 1.0 / d;
-      f *= c * d;
-    }
-    if (std::abs(c * d - 1.0) < 1e-15) break;
-  }
-  return std::exp(log_front) * f / a;
-}
-
-}  // namespace
-
-double FDistributionUpperTail(double f, double d1, double d2) {
-  if (!(f > 0.0)) return 1.0;
-  return IncompleteBeta(0.5 * d2, 0.5 * d1, d2 / (d2 + d1 * f));
-}
-
-namespace {
-
 ResidualStructure AnalyseResidualStructure(const std::vector<RegisteredStation>& stations) {
   ResidualStructure out;
   const int n = static_cast<int>(stations.size());

@@ -34,6 +34,7 @@
 
 #include "core/pose.h"
 #include "fit/covariance.h"
+#include "fit/distributions.h"
 
 namespace trackcal::fit {
 
@@ -162,8 +163,6 @@ struct RegistrationResult {
 // station or marker ids, a non-unit tracker quaternion, too few usable stations), naming the
 // station, marker and field. A rank-deficient geometry is not an error: it is reported through
 // `identifiable` and the covariance flags.
-// P(F >= f) for F distributed as F(d1, d2) (Snedecor), for the residual-structure test.
-double FDistributionUpperTail(double f, double d1, double d2);
 
 RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
                                                 const RegistrationOptions& options = {});
