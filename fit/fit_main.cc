@@ -5,6 +5,7 @@
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json] [--quiet]
 //                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
+//                         [--allow-unidentifiable]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
 //                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json] [--quiet]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
@@ -13,7 +14,8 @@
 //
 // Human-readable output (Table 1 of the paper, parameters with standard deviations) goes to stdout,
 // progress to stderr; with --json stdout carries exactly one JSON document. Bad input exits with 1
-// and a message naming file, line and field; bad usage exits with 2.
+// and a message naming file, line and field; bad usage exits with 2. A registration that is not
+// identifiable exits with 3 and writes no poses (unless --allow-unidentifiable).
 
 #include <cmath>
 #include <cstdio>
@@ -71,6 +73,7 @@ void PrintUsage(std::ostream& out) {
          "[--quiet]\n"
          "                        [--optical-noise-mm S] [--tracker-noise-mm S] "
          "[--tracker-noise-deg S]\n"
+         "                        [--allow-unidentifiable]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N] "
          "-o poses.csv [--json]\n"
@@ -540,7 +543,7 @@ int RunRegister(int argc, char** argv) {
   const Args args = ParseArgs(argc, argv,
                               {"--markers", "--tracker", "-o", "--set", "--poses", "--model",
                                "--optical-noise-mm", "--tracker-noise-mm", "--tracker-noise-deg"},
-                              {"--json", "--quiet"});
+                              {"--json", "--quiet", "--allow-unidentifiable"});
   // Noise of the averaged readings (fit/registration.h); they set the weights and the covariance.
   RegistrationOptions registration_options;
   auto noise = [&](const std::string& key, double scale, double* out) {
@@ -628,6 +631,25 @@ int RunRegister(int argc, char** argv) {
     registration = RegisterOpticalToTransmitter(registration_stations, registration_options);
   }
 
+  // The reference poses inherit every undetermined direction of the transform: not written unless
+  // asked for, so a script chaining register and fit stops here (exit 3), with the report printed.
+  const bool write_unidentifiable = args.Flag("--allow-unidentifiable");
+  if (!registration.identifiable && !write_unidentifiable) {
+    if (args.Flag("--json")) {
+      nlohmann::json doc = RegisterDocument(registration, std::nullopt, 0, {});
+      if (refinement) doc["refinement"] = refinement->ToJson();
+      std::cout << doc.dump(2) << "\n";
+    } else {
+      std::cout << (refinement ? refinement->ToString() : registration.ToString()) << "\n";
+    }
+    std::cerr << "trackcal-fit register: the registration is not identifiable (the report names "
+                 "the poorly identified coordinates); "
+              << output.string()
+              << " not written. Add stations with other orientations and positions "
+                 "(docs/registration.md, Identifiability), or pass --allow-unidentifiable to "
+                 "write the poses anyway.\n";
+    return 3;
+  }
   const auto extracted = ExtractPoses(stations, registration.registration, extraction_options);
   PoseCapture poses;
   std::vector<int> left_out;
@@ -647,6 +669,11 @@ int RunRegister(int argc, char** argv) {
   } else {
     std::cout << (refinement ? refinement->ToString() : registration.ToString()) << "\nWrote "
               << poses.records.size() << " poses to " << output.string() << "\n";
+  }
+  if (!registration.identifiable) {
+    std::cerr << "trackcal-fit register: warning: the registration is not identifiable; the poses "
+                 "in "
+              << output.string() << " carry its undetermined directions\n";
   }
   return 0;
 }

@@ -3,11 +3,12 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
-#include <nlohmann/json.hpp>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <set>
 
 #include "core/calibration_file.h"
@@ -370,6 +371,48 @@ TEST_F(FitCliTest, FitStreamsRepeatsThePairingWarning) {
   EXPECT_THAT(warning, ::testing::StartsWith("the clock offset is poorly identified"));
   EXPECT_EQ(ReadCalibrationFile(out).fit_statistics.value("pairing_warning", std::string()),
             warning);
+}
+
+TEST_F(FitCliTest, RegisterRefusesToWritePosesOfAnUnidentifiableRegistration) {
+  // Ten copies of one station: the transform trades off against the marker positions (rank
+  // deficient, docs/registration.md "Identifiability"), so the reference poses would be arbitrary.
+  const MarkerCapture markers = ReadMarkers(dir_ / "cap" / "markers.csv");
+  const TrackerCapture tracker = ReadTracker(dir_ / "cap" / "tracker.csv");
+  std::map<int, int> markers_at;
+  for (const MarkerRecord& m : markers.records) ++markers_at[m.station];
+  const int station = std::max_element(markers_at.begin(), markers_at.end(), [](auto& a, auto& b) {
+                        return a.second < b.second;
+                      })->first;
+  MarkerCapture same_markers;
+  TrackerCapture same_tracker;
+  for (int copy = 1; copy <= 10; ++copy) {
+    for (MarkerRecord m : markers.records) {
+      if (m.station != station) continue;
+      m.station = copy;
+      same_markers.records.push_back(m);
+    }
+    for (TrackerRecord t : tracker.records) {
+      if (t.station != station) continue;
+      t.station = copy;
+      same_tracker.records.push_back(t);
+    }
+  }
+  WriteMarkers(dir_ / "same_markers.csv", same_markers);
+  WriteTracker(dir_ / "same_tracker.csv", same_tracker);
+  const std::string command = fit_ + " register --markers " + (dir_ / "same_markers.csv").string() +
+                              " --tracker " + (dir_ / "same_tracker.csv").string() + " -o " +
+                              (dir_ / "same_poses.csv").string() + " --json > " +
+                              (dir_ / "same.json").string() + " 2> " + (dir_ / "err.txt").string();
+  EXPECT_EQ(RunCommand(command), 3);
+  EXPECT_FALSE(fs::exists(dir_ / "same_poses.csv"));
+  const auto doc = nlohmann::json::parse(ReadFileToString(dir_ / "same.json"));
+  EXPECT_FALSE(doc["identifiable"].get<bool>());
+  EXPECT_TRUE(doc["output"].is_null());
+  EXPECT_THAT(ReadFileToString(dir_ / "err.txt"), ::testing::HasSubstr("--allow-unidentifiable"));
+  // Asked for, the poses are written, with a warning.
+  EXPECT_EQ(RunCommand(command + " --allow-unidentifiable"), 0);
+  EXPECT_EQ(ReadPoses(dir_ / "same_poses.csv").records.size(), 10u);
+  EXPECT_THAT(ReadFileToString(dir_ / "err.txt"), ::testing::HasSubstr("not identifiable"));
 }
 
 TEST_F(FitCliTest, RegisterWithPosesLabelsAndFlagsTheDistortion) {

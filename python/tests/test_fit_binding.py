@@ -1,6 +1,7 @@
 """trackcal.fit / register / pair run the C++ engine in process and agree with the trackcal-fit
 command line on the same data: same tables, same parameters, same calibration, same poses."""
 
+import csv
 import json
 import pathlib
 import shutil
@@ -247,6 +248,36 @@ def test_register_and_pair_match_the_command_line(capture_dir, tmp_path):
     assert (tmp_path / "py_pair.csv").read_bytes() == (tmp_path / "cli_pair.csv").read_bytes()
     with pytest.raises(ValueError, match=r"missing\.csv"):
         trackcal.pair(tmp_path / "missing.csv", capture_dir / "reference_stream.csv")
+
+
+def test_register_warns_when_not_identifiable(capture_dir, tmp_path):
+    """Ten copies of one station leave the transform undetermined: the Python call warns and the
+    command line refuses to write the poses (exit 3), as docs/fit.md says."""
+    with open(capture_dir / "markers.csv", newline="") as f:
+        seen = [row["station"] for row in csv.DictReader(f)]
+    station = max(set(seen), key=seen.count)  # the station with the most visible markers
+
+    def copies(name):
+        with open(capture_dir / name, newline="") as f:
+            rows = list(csv.DictReader(f))
+        with open(tmp_path / name, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+            w.writeheader()
+            for copy in range(1, 11):
+                for row in rows:
+                    if row["station"] == station:
+                        w.writerow({**row, "station": str(copy)})
+
+    copies("markers.csv")
+    copies("tracker.csv")
+    with pytest.warns(UserWarning, match="not identifiable"):
+        reg = trackcal.register(tmp_path / "markers.csv", tmp_path / "tracker.csv")
+    assert not reg.identifiable and reg.identifiability_flags
+    done = subprocess.run([shutil.which("trackcal-fit"), "register", "--markers", tmp_path / "markers.csv",
+                           "--tracker", tmp_path / "tracker.csv", "-o", tmp_path / "poses.csv"],
+                          capture_output=True, text=True)
+    assert done.returncode == 3, done.stderr
+    assert not (tmp_path / "poses.csv").exists()
 
 
 def test_stream_folder_with_free_time_offset_matches_the_command_line(capture_dir, tmp_path):

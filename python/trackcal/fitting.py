@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
+import warnings
 from typing import Callable, Dict, List, Optional, Union
 
 import numpy as np
@@ -258,12 +259,22 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     whose ``set`` column labels every station of markers.csv), only its ``reg`` stations register
     (the paper's ~20 stations near the transmitter, where the distortion is small) and every station
     keeps its set and time, as ``trackcal-fit register --poses``: registering with distorted
-    stations biases the registration by their distortion."""
-    return Registration(_core.register(markers, tracker, sensor=sensor, set=set,
-                                       optical_noise_m=optical_noise_m,
-                                       tracker_position_noise_m=tracker_position_noise_m,
-                                       tracker_orientation_noise_deg=tracker_orientation_noise_deg,
-                                       min_markers_per_station=min_markers_per_station, poses=poses))
+    stations biases the registration by their distortion.
+
+    A registration that is not identifiable (``identifiable`` False: the stations leave directions
+    of the transform undetermined, ``identifiability_flags`` names them) warns: its poses inherit
+    those directions, and ``trackcal-fit register`` refuses to write them."""
+    result = Registration(_core.register(markers, tracker, sensor=sensor, set=set,
+                                         optical_noise_m=optical_noise_m,
+                                         tracker_position_noise_m=tracker_position_noise_m,
+                                         tracker_orientation_noise_deg=tracker_orientation_noise_deg,
+                                         min_markers_per_station=min_markers_per_station,
+                                         poses=poses))
+    if not result.identifiable:
+        flagged = ", ".join(f["coordinate"] for f in result.identifiability_flags) or "none named"
+        warnings.warn(f"{markers}: the registration is not identifiable (poorly identified: {flagged}); "
+                      "the extracted poses carry its undetermined directions", UserWarning, stacklevel=2)
+    return result
 
 
 class Pairing:
