@@ -102,6 +102,10 @@ def test_report_refuses_to_overwrite_an_input(tmp_path):
     with pytest.raises(ValueError, match="refusing to overwrite an input"):
         report.write_report(v, tmp_path / "out", inputs=[fake])
     assert fake.read_text() == "precious"
+    # An output "folder" that is a file: a ValueError naming it, the file untouched.
+    with pytest.raises(ValueError, match="is not a folder"):
+        report.write_report(v, fake)
+    assert fake.read_text() == "precious"
 
 
 def test_report_replaces_only_an_earlier_report_and_files_get_the_umask_mode(tmp_path):

@@ -180,11 +180,13 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     from trackcal.history import history_table
     import matplotlib.pyplot as plt
     out_dir = pathlib.Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"{out_dir}: exists and is not a folder; the report writes a folder")
     input_paths = [pathlib.Path(p) for p in inputs if p is not None]
     if v.capture.path is not None:
         input_paths.append(pathlib.Path(v.capture.path))
-    _check_replaceable(out_dir / "report.html", input_paths)  # before any figure is written
+    _check_replaceable(out_dir / "report.html", input_paths)  # before any folder or figure is made
+    out_dir.mkdir(parents=True, exist_ok=True)
     figs = build_figures(v, history_entries, candidates)
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'>{GENERATOR_META}<title>{html.escape(title)}</title>"
              f"<style>{STYLE}</style></head><body>",
