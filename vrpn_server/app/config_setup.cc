@@ -4,6 +4,8 @@
 
 #include "vrpn_server/app/fastrak_source.h"
 #include "vrpn_server/fastrak/from_config.h"
+#include "vrpn_server/server/catalog.h"
+#include "vrpn_server/server/devices.h"
 
 namespace trackcal::vrpn {
 
@@ -25,6 +27,15 @@ ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_se
     out.trackers.push_back(std::move(t));
   }
   for (const NullTrackerSpec& spec : config.null_trackers) {
+    try {  // the server's limits, checked now so the error names the line
+      TrackerSpec tracker;
+      tracker.name = spec.name;
+      tracker.num_sensors = spec.sensors;
+      tracker.Check();
+      NullTracker::CheckOptions(spec.sensors, spec.rate_hz);
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(spec.location.ToString() + ": " + e.what());
+    }
     TrackerSetup t;
     t.name = spec.name;
     t.num_sensors = spec.sensors;
@@ -41,6 +52,7 @@ ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_se
     std::string source;
     if (spec.source_host.empty()) {
       source = spec.source_device + "@tcp://" + this_server;
+      out.reads_this_server = true;
     } else {
       source = spec.source_device + "@" + (spec.source_tcp_only ? "tcp://" : "") + spec.source_host +
                ":" + std::to_string(spec.source_port);

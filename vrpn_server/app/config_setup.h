@@ -14,6 +14,9 @@ struct ConfigSetup {
   std::vector<TrackerSetup> trackers;
   // Parser and driver warnings ("vrpn.cfg:12: warning: ...") for the log.
   std::vector<std::string> warnings;
+  // A pass-through reads a tracker of this server ("*Tracker0"): it connects from this host, so an
+  // allow-list must admit the address it connects to.
+  bool reads_this_server = false;
 };
 
 // `this_server` is the address:port pass-through sources without a host ("*Tracker0") connect to.

@@ -100,12 +100,19 @@ Args ParseArgs(int argc, char** argv) {
 }
 
 int Run(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv);
+  Args args = ParseArgs(argc, argv);
   const VrpnConfig config = ReadVrpnConfig(args.config);
   const std::string self_host =
       args.app.server.bind_address == "0.0.0.0" ? "127.0.0.1" : args.app.server.bind_address;
   ConfigSetup setup = SetupFromConfig(config, self_host + ":" + std::to_string(args.app.server.port));
   for (const auto& w : setup.warnings) LogToStderr(w);
+  // A same-server pass-through connects from self_host to self_host: without this entry an
+  // allow-list of the lab's network refuses it and it waits for ever.
+  if (setup.reads_this_server && !args.app.server.allow.empty()) {
+    args.app.server.allow.push_back(self_host + "/32");
+    LogToStderr("allow-list: admitting " + self_host +
+                " for the pass-through of this server's own tracker");
+  }
   if (setup.trackers.empty()) {
     throw std::invalid_argument(args.config + ": no device trackcal-server can serve");
   }

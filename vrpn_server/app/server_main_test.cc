@@ -17,7 +17,9 @@
 #include "core/file_util.h"
 #include "core/polynomial.h"
 #include "tests/test_utils.h"
+#include "vrpn_server/app/config_setup.h"
 #include "vrpn_server/client/tracker_client.h"
+#include "vrpn_server/config.h"
 #include "vrpn_server/net/socket_util.h"
 
 namespace trackcal::vrpn {
@@ -161,6 +163,55 @@ TEST(TrackcalServerMain, CalibrationRawNameAndReloadOnChangeAndSighup) {
   EXPECT_EQ(server.Wait(), 0);
   const std::string err = server.Stderr();
   EXPECT_NE(err.find("rejected"), std::string::npos) << err;
+}
+
+// The server's limits on a vrpn_Tracker_NULL line are checked when the file is read, so the error
+// names the line (they used to fail at start-up, naming only the tracker).
+TEST(SetupFromConfig, NullTrackerLimitsNameTheLine) {
+  auto error_of = [](const std::string& line) {
+    try {
+      SetupFromConfig(ParseVrpnConfig("# lab\n" + line + "\n", "vrpn.cfg"), "127.0.0.1:3883");
+    } catch (const std::invalid_argument& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(
+      error_of("vrpn_Tracker_NULL Tracker0 2000 60").find("vrpn.cfg:2: TrackerSpec.num_sensors"),
+      std::string::npos)
+      << error_of("vrpn_Tracker_NULL Tracker0 2000 60");
+  EXPECT_NE(error_of("vrpn_Tracker_NULL Tracker0 2 20000").find("vrpn.cfg:2: NullTracker: rate"),
+            std::string::npos)
+      << error_of("vrpn_Tracker_NULL Tracker0 2 20000");
+  EXPECT_EQ(error_of("vrpn_Tracker_NULL Tracker0 1024 10000"), "no error");
+  // A pass-through of this server's own tracker is marked, for the allow-list.
+  EXPECT_TRUE(SetupFromConfig(ParseVrpnConfig("vrpn_Tracker_NULL T 1 60\n"
+                                              "trackcal_Tracker_Passthrough Head *T\n",
+                                              "vrpn.cfg"),
+                              "127.0.0.1:3883")
+                  .reads_this_server);
+  EXPECT_FALSE(
+      SetupFromConfig(ParseVrpnConfig("vrpn_Tracker_NULL T 1 60\n", "vrpn.cfg"), "127.0.0.1:3883")
+          .reads_this_server);
+}
+
+TEST(TrackcalServerMain, AllowListAdmitsThePassthroughOfItsOwnTracker) {
+  // "*Tracker0" connects from this host to this server: an allow-list of another network must not
+  // refuse it, or Head waits for ever with no error.
+  const auto dir = testing::MakeTempDir("server_main_allow");
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
+                                     "trackcal_Tracker_Passthrough Head *Tracker0\n";
+  Process server({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), std::to_string(FreePort()),
+                  "--bind", "127.0.0.1", "--allow", "10.0.0.0/8"},
+                 dir / "stderr.txt");
+  // The pass-through connects within its first retry (well under 1 s on an idle host); 3 s leaves
+  // room for a loaded CI machine.
+  std::this_thread::sleep_for(std::chrono::seconds(3));
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+  const std::string err = server.Stderr();
+  EXPECT_EQ(err.find("not in allow-list"), std::string::npos) << err;
+  EXPECT_NE(err.find("status: 1 client(s)"), std::string::npos) << err;
 }
 
 TEST(TrackcalServerMain, BadArgumentsAndBusyPortFail) {

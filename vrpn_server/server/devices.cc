@@ -165,8 +165,12 @@ void TrackerDevice::OnText(TextSeverity severity, const std::string& text) {
 NullTracker::NullTracker(ReportFunction report, int num_sensors, double rate_hz, Rigid3d pose)
     : report_(std::move(report)), num_sensors_(num_sensors), rate_hz_(rate_hz), pose_(pose) {
   if (!report_) throw std::invalid_argument("NullTracker: report function is empty");
-  if (num_sensors_ < 1) throw std::invalid_argument("NullTracker: num_sensors must be >= 1");
-  if (!(rate_hz_ >= 0) || rate_hz_ > 10000) {
+  CheckOptions(num_sensors_, rate_hz_);
+}
+
+void NullTracker::CheckOptions(int num_sensors, double rate_hz) {
+  if (num_sensors < 1) throw std::invalid_argument("NullTracker: num_sensors must be >= 1");
+  if (!(rate_hz >= 0) || rate_hz > 10000) {
     throw std::invalid_argument("NullTracker: rate must be in [0, 10000] Hz");
   }
 }

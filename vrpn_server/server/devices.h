@@ -145,6 +145,8 @@ class NullTracker {
   using ReportFunction = std::function<void(int sensor, const Rigid3d& pose, Timestamp time)>;
   NullTracker(ReportFunction report, int num_sensors, double rate_hz, Rigid3d pose = Rigid3d());
   ~NullTracker();
+  // Throws std::invalid_argument for a sensor count below 1 or a rate outside [0, 10000] Hz.
+  static void CheckOptions(int num_sensors, double rate_hz);
   void Start();
   void Stop();
 
