@@ -148,7 +148,7 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
       if (!loader_) throw std::invalid_argument(t.setup.origin + ": no calibration loader");
       try {
         t.signature = Signature(*t.setup.calibration);
-        auto corrector = loader_(*t.setup.calibration, t.setup.outside);
+        auto corrector = loader_(*t.setup.calibration, t.setup.outside, t.setup.fade_distance);
         t.device->SetCorrector(corrector);
         Log(t.setup.name + ": correction " + corrector->Describe());
       } catch (const std::exception& e) {
@@ -213,7 +213,7 @@ bool TrackcalServerApp::Reload(Tracker& t, bool only_if_changed) {
   if (only_if_changed && now == t.signature) return false;
   t.signature = now;
   try {
-    auto corrector = loader_(*t.setup.calibration, t.setup.outside);
+    auto corrector = loader_(*t.setup.calibration, t.setup.outside, t.setup.fade_distance);
     t.device->SetCorrector(corrector);
     Log(t.setup.name + ": reloaded " + t.setup.calibration->string() + " (" + corrector->Describe() + ")");
     return true;

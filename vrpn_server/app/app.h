@@ -54,9 +54,11 @@ std::unique_ptr<ReportSource> MakeNullSource(int num_sensors, double rate_hz, Ri
 std::unique_ptr<ReportSource> MakePassthroughSource(const std::string& vrpn_name);
 
 // Loads a calibration file into a corrector; throws with the reason on a bad file. `outside`
-// overrides the file's behaviour outside the calibrated volume ("clamp", "fade" or "linear") when set.
+// overrides the file's behaviour outside the calibrated volume ("clamp", "fade" or "linear") and
+// `fade_distance` [m] the file's fade_distance, each when set.
 using CorrectorLoader = std::function<std::shared_ptr<const PoseCorrector>(
-    const std::filesystem::path& path, const std::optional<std::string>& outside)>;
+    const std::filesystem::path& path, const std::optional<std::string>& outside,
+    const std::optional<double>& fade_distance)>;
 
 struct TrackerSetup {
   // Device name of the corrected stream (the name clients already use).
@@ -69,6 +71,8 @@ struct TrackerSetup {
   std::optional<std::filesystem::path> calibration;
   // Override of the calibration's extrapolation policy ("clamp", "fade" or "linear").
   std::optional<std::string> outside;
+  // Override of the calibration's fade_distance [m] (vrpn.cfg's fade_distance=<metres>).
+  std::optional<double> fade_distance;
   // Builds the report source (called once, at Start).
   std::function<std::unique_ptr<ReportSource>()> make_source;
   // Button devices fed by the source's stylus events: (device name, sensor). A button may take the

@@ -34,7 +34,8 @@ class OffsetCorrector : public PoseCorrector {
 };
 
 std::shared_ptr<const PoseCorrector> LoadOffset(const std::filesystem::path& path,
-                                                const std::optional<std::string>&) {
+                                                const std::optional<std::string>&,
+                                                const std::optional<double>&) {
   std::ifstream in(path);
   Eigen::Vector3d d;
   if (!(in >> d.x() >> d.y() >> d.z())) throw std::invalid_argument(path.string() + ": expected dx dy dz");

@@ -1,5 +1,7 @@
 #include "vrpn_server/app/calibration_corrector.h"
 
+#include <stdexcept>
+
 #include "core/calibration_file.h"
 
 namespace trackcal::vrpn {
@@ -23,13 +25,20 @@ class CalibrationCorrector : public PoseCorrector {
 
 }  // namespace
 
-std::shared_ptr<const PoseCorrector> LoadCalibrationCorrector(const std::filesystem::path& path,
-                                                              const std::optional<std::string>& outside) {
+std::shared_ptr<const PoseCorrector> LoadCalibrationCorrector(
+    const std::filesystem::path& path, const std::optional<std::string>& outside,
+    const std::optional<double>& fade_distance) {
   Calibration calibration = ReadCalibrationFile(path);
-  if (outside) {
+  if (outside || fade_distance) {
     CalibratedVolume volume = calibration.volume();
-    volume.extrapolation = ExtrapolationPolicyFromName(*outside);
-    volume.Check();  // fade needs the file's fade_distance
+    if (outside) volume.extrapolation = ExtrapolationPolicyFromName(*outside);
+    if (fade_distance) volume.fade_distance = *fade_distance;
+    try {
+      volume.Check();  // fade needs a positive fade_distance (the file's, or the override)
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument(path.string() + ": " + e.what() +
+                                  (fade_distance ? "" : " (give fade_distance=<metres>)"));
+    }
     calibration.chain.SetVolume(volume);
   }
   std::string terms;

@@ -75,6 +75,7 @@ ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_se
     if (spec.outside == OutsidePolicy::kClamp) target->outside = "clamp";
     if (spec.outside == OutsidePolicy::kFade) target->outside = "fade";
     if (spec.outside == OutsidePolicy::kLinear) target->outside = "linear";
+    target->fade_distance = spec.fade_distance_m;
   }
   return out;
 }

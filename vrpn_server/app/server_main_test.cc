@@ -105,15 +105,18 @@ TEST(TrackcalServerMain, ServesNullTrackerWarnsOnUnknownLineAndStopsOnSigterm) {
   EXPECT_NE(err.find("SIGHUP"), std::string::npos) << err;
 }
 
-// A calibration that adds `offset` to every position (degree-0 polynomial).
-void WriteOffsetCalibration(const std::filesystem::path& path, const Eigen::Vector3d& offset) {
+// A calibration that adds `offset` to every position (degree-0 polynomial) in the volume
+// [volume_min, 1]^3 (clamped outside, fade_distance 0 as trackcal-fit writes).
+void WriteOffsetCalibration(const std::filesystem::path& path, const Eigen::Vector3d& offset,
+                            const Eigen::Vector3d& volume_min = Eigen::Vector3d(-1, -1, -1)) {
   Calibration cal;
   cal.chain.Append(PolynomialCorrection::FromPositionAndOrientation(
       0, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones(), {offset.x(), offset.y(), offset.z()},
       {0.0, 0.0, 0.0}));
   CalibratedVolume volume;
-  volume.min = Eigen::Vector3d(-1, -1, -1);
+  volume.min = volume_min;
   volume.max = Eigen::Vector3d(1, 1, 1);
+  volume.extrapolation = ExtrapolationPolicy::kClamp;
   cal.chain.SetVolume(volume);
   cal.provenance.tool = "server_main_test";
   cal.provenance.tool_version = "0";
@@ -212,6 +215,32 @@ TEST(TrackcalServerMain, AllowListAdmitsThePassthroughOfItsOwnTracker) {
   const std::string err = server.Stderr();
   EXPECT_EQ(err.find("not in allow-list"), std::string::npos) << err;
   EXPECT_NE(err.find("status: 1 client(s)"), std::string::npos) << err;
+}
+
+// vrpn.cfg's fade_distance=<metres> is what `outside=fade` fades over (the file's own fade_distance
+// is 0 for every file trackcal-fit writes with another policy).
+TEST(TrackcalServerMain, OutsideFadeUsesTheConfiguredFadeDistance) {
+  const auto dir = testing::MakeTempDir("server_main_fade");
+  // The null tracker reports the origin, 0.1 m outside the volume's x >= 0.1 face.
+  WriteOffsetCalibration(dir / "calib.json", Eigen::Vector3d(0.1, 0, 0),
+                         Eigen::Vector3d(0.1, -1, -1));
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
+                                     "trackcal_Calibration Tracker0 calib.json outside=fade "
+                                     "fade_distance=0.2\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), std::to_string(port), "--bind",
+                  "127.0.0.1"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
+  double x = NAN;
+  corrected.SetPoseCallback(
+      [&](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
+  const auto end = Clock::now() + std::chrono::seconds(15);
+  while (Clock::now() < end && std::isnan(x)) corrected.Poll(0.005);
+  // Half way through the fade: smoothstep weight 1 - 0.5^2 (3 - 2 * 0.5) = 0.5 of the 0.1 m offset.
+  EXPECT_NEAR(x, 0.05, 1e-12) << server.Stderr();
+  ::kill(server.pid, SIGTERM);
+  server.Wait();
 }
 
 TEST(TrackcalServerMain, BadArgumentsAndBusyPortFail) {
