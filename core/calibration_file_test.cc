@@ -137,6 +137,12 @@ TEST(ParseCalibrationJson, RejectsUnknownFormatAndVersion) {
   EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["version"] = "1"; }),
             "calib.json: $.version: expected an integer, got string \"1\"");
   EXPECT_EQ(ErrorForText("[1, 2]"), "calib.json: $: expected an object, got array [1,2]");
+  // 2^64 - 1 is an unsigned JSON integer, not version -1.
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["version"] = UINT64_MAX; }),
+            "calib.json: $.version: integer out of range: 18446744073709551615");
+  EXPECT_EQ(ErrorAfterEdit(
+                [](nlohmann::json& j) { j["corrections"][0]["degree"] = UINT64_MAX - 4; }),
+            "calib.json: $.corrections[0].degree: integer out of range: 18446744073709551611");
 }
 
 TEST(ParseCalibrationJson, RejectsMissingAndUnknownFields) {

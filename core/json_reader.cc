@@ -226,7 +226,11 @@ int JsonObjectReader::Integer(const std::string& key) const {
   if (!v.is_number_integer()) {
     Fail(key, std::string("expected an integer, got ") + TypeName(v) + " " + JsonSnippet(v));
   }
-  const int64_t i = v.get<int64_t>();
+  // An unsigned literal above INT64_MAX would wrap to a negative int64_t (2^64 - 1 reads as -1).
+  const bool above_int64 =
+      v.is_number_unsigned() &&
+      v.get<uint64_t>() > static_cast<uint64_t>(std::numeric_limits<int64_t>::max());
+  const int64_t i = above_int64 ? std::numeric_limits<int64_t>::max() : v.get<int64_t>();
   if (i < std::numeric_limits<int>::min() || i > std::numeric_limits<int>::max()) {
     Fail(key, "integer out of range: " + v.dump());
   }
