@@ -68,7 +68,8 @@ class LutGrid {
 };
 
 // out = trilinear interpolation at p of node_values (grid.num_nodes() x kDim, node-major). Returns
-// whether p was inside the grid (outside, the boundary value is held).
+// whether p was inside the grid (outside, the boundary value is held; a NaN coordinate is outside and
+// gives NaN).
 template <typename T, int kDim = 6>
 bool InterpolateTrilinear(const LutGrid& grid, const T* node_values, const T* p, T* out) {
   int cell[3];
@@ -87,6 +88,7 @@ bool InterpolateTrilinear(const LutGrid& grid, const T* node_values, const T* p,
       inside = false;
     } else if (!(v == v)) {  // NaN: propagate it rather than hold a boundary value
       t[k] = p[k];
+      inside = false;  // in no cell: flagged like any query outside the grid
     } else {
       t[k] = (p[k] - T(x0)) / T(x1 - x0);
     }

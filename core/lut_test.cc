@@ -175,6 +175,16 @@ TEST(TrilinearLutCorrection, HoldsBoundaryValueOutsideAndFlags) {
   const Eigen::Vector3d v(e_boundary[3], e_boundary[4], e_boundary[5]);
   EXPECT_TRUE(testing::RotationsNear(QuaternionFromVectorPart<double>(v) * q, out.pose.rotation,
                                      1e-15));
+  // A NaN position is in no cell: NaN out, flagged like any other query outside the grid.
+  const CorrectedPose nan = lut.Apply(Rigid3d(q, Eigen::Vector3d(0.2, NAN, 0.3)));
+  EXPECT_TRUE(nan.extrapolated);
+  EXPECT_TRUE(std::isnan(nan.pose.translation.x()));
+  uint8_t flag = 0;
+  const double p_nan[3] = {0.2, NAN, 0.3};
+  const double q_identity[4] = {0, 0, 0, 1};
+  double p_out[3], q_out[4];
+  lut.ApplyBatch(1, p_nan, q_identity, p_out, q_out, &flag);
+  EXPECT_EQ(flag, 1);
 }
 
 TEST(InterpolateTrilinear, AutodiffThroughNodeValuesAndPosition) {
