@@ -56,40 +56,52 @@ namespace Trackcal
         }
     }
 
+    // Every import is Cdecl, the C functions' convention: DllImport's default (Winapi) is stdcall on
+    // 32-bit Windows, where the caller then expects the callee to pop the arguments and a cdecl
+    // callee does not (an unbalanced stack). On x86_64 and Linux the two are the same.
     internal static class TrackcalNative
     {
         internal const string Library = "trackcal_unity";
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_abi_version")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_abi_version",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern int AbiVersion();
 
         // Strings cross as NUL-terminated UTF-8 byte arrays (Utf8): LPStr would use the ANSI code
         // page on Windows, and UTF-8 string marshalling is not on every Unity runtime.
-        [DllImport(Library, EntryPoint = "trackcal_unity_open")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_open",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern TrackcalHandle Open(byte[] vrpnNameUtf8, byte[] axesUtf8);
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_close")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_close",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern void Close(IntPtr tracker);
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_get_pose")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_get_pose",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern int GetPose(TrackcalHandle tracker, int sensor, out TrackcalPose pose);
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_get_status")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_get_status",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern int GetStatus(TrackcalHandle tracker, out TrackcalStatus status);
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_get_button")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_get_button",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern int GetButton(TrackcalHandle tracker, int index, out int pressed,
                                              out ulong presses);
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_last_text")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_last_text",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern int LastText(TrackcalHandle tracker, [Out] byte[] buffer, int bufferSize,
                                             out int severity);
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_convert")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_convert",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern int Convert(byte[] axesUtf8, double[] trackerP, double[] trackerQXyzw,
                                            [Out] double[] unityP, [Out] double[] unityQXyzw);
 
-        [DllImport(Library, EntryPoint = "trackcal_unity_last_error")]
+        [DllImport(Library, EntryPoint = "trackcal_unity_last_error",
+                   CallingConvention = CallingConvention.Cdecl)]
         internal static extern IntPtr LastErrorPtr();
 
         // null stays null (the plugin's default axes).

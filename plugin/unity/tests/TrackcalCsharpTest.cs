@@ -1,4 +1,4 @@
-// Run by plugin/csharp_test (csharp_test.cc), which serves known poses on loopback:
+// Run by plugin/foreign_clients_test, which serves known poses on loopback:
 //   mono TrackcalCsharpTest.exe <vrpn name> <sensor,px,py,pz,qx,qy,qz,qw>...
 // Checks, in C#, what a Unity scene relies on: the P/Invoke signatures and struct layouts against
 // the native library, the poses as served, the handedness conversion (computed here independently
@@ -51,6 +51,16 @@ public static class TrackcalCsharpTest
         }
 
         TrackcalTracker.CheckAbi();
+        // The C functions are cdecl; DllImport's default is stdcall on 32-bit Windows.
+        foreach (MethodInfo m in typeof(TrackcalNative).GetMethods(BindingFlags.Static |
+                                                                    BindingFlags.NonPublic))
+        {
+            var import = (System.Runtime.InteropServices.DllImportAttribute)Attribute.GetCustomAttribute(
+                m, typeof(System.Runtime.InteropServices.DllImportAttribute));
+            if (import == null) continue;
+            Check(import.CallingConvention == System.Runtime.InteropServices.CallingConvention.Cdecl,
+                  m.Name + ": calling convention " + import.CallingConvention + ", not Cdecl");
+        }
         Check(Marshal_SizeOf<TrackcalPose>() == 16 + 16 * 8, "TrackcalPose is 144 bytes as in C");
         Check(Marshal_SizeOf<TrackcalStatus>() == 16 + 3 * 8, "TrackcalStatus is 40 bytes as in C");
 
