@@ -50,6 +50,8 @@ namespace Trackcal
         {
             PressedThisFrame = false;
             if (device == null) return;
+            // Changed in the Inspector while playing: an exception every frame otherwise.
+            if (!TrackcalComponents.IndexValid(this, "button", button)) return;
             TrackcalTracker current = TrackcalConnections.Renew(device);
             if (current != device)
             {

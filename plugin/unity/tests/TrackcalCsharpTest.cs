@@ -268,6 +268,25 @@ public static class TrackcalCsharpTest
               TrackcalTrackedObject.SharedConnections == 0,
               "a sensor outside 0..255 disables the object and logs, opening nothing");
 
+        // A button index changed to one outside 0..255 while playing (the Inspector): logged once
+        // and the component disabled, as for a sensor, not an exception every frame.
+        var changed = new TrackcalButton { deviceName = stylusName, button = 1 };
+        Invoke(changed, "OnEnable");
+        Invoke(changed, "Update");
+        changed.button = 256;
+        try
+        {
+            Invoke(changed, "Update");
+            Check(!changed.enabled && UnityEngine.Debug.Errors.Count == 3,
+                  "a button index changed to 256 disables the component and logs");
+        }
+        catch (TargetInvocationException e)
+        {
+            Check(false, "a button index changed to 256 throws from Update: " + e.InnerException.Message);
+        }
+        Invoke(changed, "OnDisable");
+        Check(TrackcalTrackedObject.SharedConnections == 0, "the changed button's connection closed");
+
         Console.WriteLine(failures == 0 ? "PASS" : failures + " check(s) failed");
         return failures == 0 ? 0 : 1;
     }
