@@ -1,6 +1,7 @@
 #include "vrpn_server/client/tracker_client.h"
 
 #include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <chrono>
 #include <optional>
@@ -71,6 +72,14 @@ VrpnName ParseVrpnName(const std::string& name) {
     rest = rest.substr(0, colon);
   }
   if (rest.empty()) throw std::invalid_argument("VRPN name '" + name + "': empty host");
+  // A host name or an IPv4 address: anything else (a blank, a second port, an IPv6 literal) would
+  // be looked up and retried for ever without an error.
+  for (const char c : rest) {
+    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '.' && c != '-' && c != '_') {
+      throw std::invalid_argument("VRPN name '" + name + "': host '" + rest +
+                                  "' is not a host name or IPv4 address (IPv6 is not supported)");
+    }
+  }
   n.host = rest;
   if (n.device.size() > kMaxNameLength) {
     throw std::invalid_argument("VRPN name '" + name + "': device name over 95 characters");

@@ -98,6 +98,12 @@ TEST(ParseVrpnName, Nominal) {
   EXPECT_EQ(n.port, kDefaultPort);
   EXPECT_THROW(ParseVrpnName("Tracker0"), std::invalid_argument);
   EXPECT_THROW(ParseVrpnName("Tracker0@h:99999"), std::invalid_argument);
+  // Hosts the lookup would retry for ever: a blank, a second port, IPv6.
+  for (const char* bad : {"Tracker0@ host", "Tracker0@[::1]:3883",
+                          "Tracker0@tcp://127.0.0.1:3883:1", "Tracker0@host name"}) {
+    EXPECT_THROW(ParseVrpnName(bad), std::invalid_argument) << bad;
+  }
+  EXPECT_EQ(ParseVrpnName("Head@lab-pc_2.example.org").host, "lab-pc_2.example.org");
 }
 
 TEST(VrpnServer, NominalDirectTcp) {
