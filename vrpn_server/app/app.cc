@@ -80,6 +80,10 @@ FileSignature Signature(const std::filesystem::path& path) {
   return s;
 }
 
+const std::string& CalibrationOrigin(const TrackerSetup& setup) {
+  return setup.calibration_origin.empty() ? setup.origin : setup.calibration_origin;
+}
+
 }  // namespace
 
 std::unique_ptr<ReportSource> MakeNullSource(int num_sensors, double rate_hz, Rigid3d pose) {
@@ -127,7 +131,7 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
     const int index = catalog_->AddTracker(spec);
     std::optional<int> raw;
     if (setup.raw_name) {
-      claim(*setup.raw_name, setup.origin);
+      claim(*setup.raw_name, CalibrationOrigin(setup));
       spec.name = *setup.raw_name;
       raw = catalog_->AddTracker(spec);
     }
@@ -152,8 +156,8 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
         t.device->SetCorrector(corrector);
         Log(t.setup.name + ": correction " + corrector->Describe());
       } catch (const std::exception& e) {
-        throw std::invalid_argument(t.setup.origin + ": calibration of '" + t.setup.name + "': " +
-                                    e.what());
+        throw std::invalid_argument(CalibrationOrigin(t.setup) + ": calibration of '" +
+                                    t.setup.name + "': " + e.what());
       }
     }
     if (options_.record_dir) {

@@ -81,6 +81,8 @@ struct TrackerSetup {
   std::vector<std::pair<std::string, int>> buttons;
   // Where it was configured ("vrpn.cfg:12"), for messages.
   std::string origin;
+  // Where its calibration and raw name were configured, when that is another line; for messages.
+  std::string calibration_origin;
 };
 
 struct AppOptions {
@@ -92,7 +94,7 @@ struct AppOptions {
 class TrackcalServerApp {
  public:
   // Validates the setup (names, duplicates) and loads every calibration: a bad calibration at start
-  // is an error (std::invalid_argument naming the tracker's origin and the file).
+  // is an error (std::invalid_argument naming the calibration's origin and the file).
   TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOptions options, CorrectorLoader loader,
                     LogFunction log = nullptr);
   ~TrackcalServerApp();

@@ -71,6 +71,7 @@ ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_se
                                   spec.tracker + "' in this file");
     }
     target->calibration = spec.file;
+    target->calibration_origin = spec.location.ToString();
     target->raw_name = spec.raw_name;
     if (spec.outside == OutsidePolicy::kClamp) target->outside = "clamp";
     if (spec.outside == OutsidePolicy::kFade) target->outside = "fade";

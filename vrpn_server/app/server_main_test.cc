@@ -17,6 +17,7 @@
 #include "core/file_util.h"
 #include "core/polynomial.h"
 #include "tests/test_utils.h"
+#include "vrpn_server/app/calibration_corrector.h"
 #include "vrpn_server/app/config_setup.h"
 #include "vrpn_server/client/tracker_client.h"
 #include "vrpn_server/config.h"
@@ -168,9 +169,10 @@ TEST(TrackcalServerMain, CalibrationRawNameAndReloadOnChangeAndSighup) {
   EXPECT_NE(err.find("rejected"), std::string::npos) << err;
 }
 
-// The server's limits on a vrpn_Tracker_NULL line are checked when the file is read, so the error
-// names the line (they used to fail at start-up, naming only the tracker).
-TEST(SetupFromConfig, NullTrackerLimitsNameTheLine) {
+// Errors name the vrpn.cfg line they come from: the server's limits on a vrpn_Tracker_NULL line are
+// checked when the file is read (they used to fail at start-up, naming only the tracker), and a
+// calibration file names its trackcal_Calibration line (it used to name the tracker's).
+TEST(SetupFromConfig, ErrorsNameTheLineTheyComeFrom) {
   auto error_of = [](const std::string& line) {
     try {
       SetupFromConfig(ParseVrpnConfig("# lab\n" + line + "\n", "vrpn.cfg"), "127.0.0.1:3883");
@@ -187,6 +189,19 @@ TEST(SetupFromConfig, NullTrackerLimitsNameTheLine) {
             std::string::npos)
       << error_of("vrpn_Tracker_NULL Tracker0 2 20000");
   EXPECT_EQ(error_of("vrpn_Tracker_NULL Tracker0 1024 10000"), "no error");
+  // A calibration that cannot be loaded is named by its own line, not the tracker's.
+  ConfigSetup setup = SetupFromConfig(
+      ParseVrpnConfig(
+          "vrpn_Tracker_NULL T 1 60\n# calibrations\ntrackcal_Calibration T missing.json\n",
+          "vrpn.cfg"),
+      "127.0.0.1:3883");
+  try {
+    TrackcalServerApp app(std::move(setup.trackers), AppOptions{}, LoadCalibrationCorrector);
+    ADD_FAILURE() << "expected an error for missing.json";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("vrpn.cfg:3: calibration of 'T'"), std::string::npos)
+        << e.what();
+  }
   // A pass-through of this server's own tracker is marked, for the allow-list.
   EXPECT_TRUE(SetupFromConfig(ParseVrpnConfig("vrpn_Tracker_NULL T 1 60\n"
                                               "trackcal_Tracker_Passthrough Head *T\n",
