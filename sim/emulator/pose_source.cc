@@ -39,7 +39,7 @@ NoisyMeasurement::NoisyMeasurement(std::unique_ptr<MeasurementModel> base, doubl
     : base_(base ? std::move(base) : std::make_unique<PerfectMeasurement>()),
       position_std_m_(position_std_m),
       orientation_std_rad_(orientation_std_rad),
-      rng_(seed) {
+      rng_(seed, "emulator_measurement_noise") {
   if (!(position_std_m >= 0 && std::isfinite(position_std_m))) {
     throw std::invalid_argument("NoisyMeasurement.position_std_m: must be finite and >= 0");
   }
@@ -50,9 +50,8 @@ NoisyMeasurement::NoisyMeasurement(std::unique_ptr<MeasurementModel> base, doubl
 
 Rigid3d NoisyMeasurement::Reported(int station, const Rigid3d& true_pose, double t_s) {
   Rigid3d reported = base_->Reported(station, true_pose, t_s);
-  Eigen::Vector3d dp, w;
-  for (int i = 0; i < 3; ++i) dp[i] = position_std_m_ * normal_(rng_);
-  for (int i = 0; i < 3; ++i) w[i] = orientation_std_rad_ * normal_(rng_);
+  const Eigen::Vector3d dp = position_std_m_ * rng_.Normal3();
+  const Eigen::Vector3d w = orientation_std_rad_ * rng_.Normal3();
   reported.translation += dp;
   const double angle = w.norm();
   if (angle > 0) {

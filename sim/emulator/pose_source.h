@@ -13,12 +13,12 @@
 #include <memory>
 #include <mutex>
 #include <optional>
-#include <random>
 #include <string>
 #include <vector>
 
 #include "core/pose.h"
 #include "sim/emulator/fastrak_device.h"
+#include "sim/random.h"
 
 namespace trackcal::emulator {
 
@@ -47,7 +47,8 @@ class PerfectMeasurement final : public MeasurementModel {
 };
 
 // Another model's report plus white noise: isotropic Gaussian position noise and a rotation by a
-// Gaussian rotation vector (per axis std), from a seeded generator (reproducible per seed).
+// Gaussian rotation vector (per axis std), from the named stream "emulator_measurement_noise" of
+// sim/random.h, so a seed gives the same numbers with every compiler and standard library.
 class NoisyMeasurement final : public MeasurementModel {
  public:
   // `base` null = PerfectMeasurement. Throws std::invalid_argument for negative or non-finite std.
@@ -59,8 +60,7 @@ class NoisyMeasurement final : public MeasurementModel {
   std::unique_ptr<MeasurementModel> base_;
   double position_std_m_;
   double orientation_std_rad_;
-  std::mt19937_64 rng_;
-  std::normal_distribution<double> normal_;
+  sim::Rng rng_;
 };
 
 // Every station at a fixed pose.
