@@ -661,6 +661,29 @@ TEST(TrackcalEmulate, WholeNumberOptionsRefuseFractionsAndSigns) {
   }
 }
 
+// Number options must be finite numbers and --duration positive: `--pose 1=nan,...` streamed NaN
+// records and `--duration 0` (or -1) served forever instead of exiting.
+TEST(TrackcalEmulate, NumberOptionsRefuseNonFiniteAndDurationNotPositive) {
+  const std::string exe =
+      (std::filesystem::read_symlink("/proc/self/exe").parent_path() / "trackcal-emulate").string();
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"--scene none --pose 1=nan,0,0,1,0,0,0 --duration 0.05",
+       "--pose: not a finite number: 'nan'"},
+      {"--scene none --duration 0", "--duration: must be more than 0 seconds"},
+      {"--scene none --duration -1", "--duration: must be more than 0 seconds"}};
+  for (const auto& [args, message] : cases) {
+    // `timeout` so that an emulator that does not exit fails the case instead of the test run.
+    FILE* f = popen(("timeout 5 " + exe + " " + args + " 2>&1").c_str(), "r");
+    ASSERT_NE(f, nullptr);
+    std::string out;
+    char buf[256];
+    while (fgets(buf, sizeof(buf), f) != nullptr) out += buf;
+    const int status = pclose(f);
+    EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 2) << args << ": " << status;
+    EXPECT_NE(out.find(message), std::string::npos) << args << ": " << out;
+  }
+}
+
 // --trajectory with the example file, --duration: the command exits by itself and cleans up.
 TEST(TrackcalEmulate, TrajectoryAndDuration) {
   const std::string exe =

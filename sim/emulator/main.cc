@@ -57,15 +57,19 @@ const char kUsage[] =
   throw std::invalid_argument(message + "\n" + kUsage);
 }
 
+// A finite number: "nan" or "inf" (which std::stod accepts) would become a NaN pose or an endless
+// run, so they are usage errors too.
 double ParseDouble(const std::string& s, const std::string& option) {
+  double v = 0;
   try {
     size_t used = 0;
-    const double v = std::stod(s, &used);
+    v = std::stod(s, &used);
     if (used != s.size()) throw std::invalid_argument("");
-    return v;
   } catch (const std::exception&) {
     UsageError(option + ": not a number: '" + s + "'");
   }
+  if (!std::isfinite(v)) UsageError(option + ": not a finite number: '" + s + "'");
+  return v;
 }
 
 // A whole number in [min, max] (stations, baud with 0 unpaced, seed): "2.5", "1e3" or "-1" are usage errors, not
@@ -192,7 +196,9 @@ int Main(int argc, char** argv) {
       options.seed = ParseWhole(value(), arg, 0, UINT64_MAX);
       seed_given = true;
     } else if (arg == "--duration") {
+      // Run time <= 0 means "until stopped" to the Emulator, not "exit after 0 s".
       duration = ParseDouble(value(), arg);
+      if (!(duration > 0)) UsageError("--duration: must be more than 0 seconds");
     } else if (arg == "--verbose") {
       verbose = true;
     } else {
