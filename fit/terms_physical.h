@@ -20,7 +20,9 @@
 // runs there, in double). Its derivatives come from the implicit function theorem,
 //   dx/dtheta = -(dg/dx)^-1 dg/dtheta,   dx/dy = -(dg/dx)^-1 dg/dy,
 // with dg/dx, dg/dtheta by ceres::Jet autodiff of the templated field code (core/field.h) and dg/dy
-// (which needs the derivative of J_y, i.e. second derivatives of S_free) by nested Jets.
+// (which needs the derivative of J_y, i.e. second derivatives of S_free) by central differences of
+// the autodiff J_y (Jets do not nest with the field code; terms_physical.cc
+// NormalEquationsInputDerivative).
 //
 // Start values by search (InitializeLinear): a dipole without a location, or a plane without a
 // point and normal, is placed by scoring a grid of candidates by the linearised least-squares fit
