@@ -331,6 +331,19 @@ TEST(FastrakDevice, LineEndingsAndUnknownCommands) {
   EXPECT_EQ(device.commands_ignored(), 6);
 }
 
+// VRPN's IS900time configuration: `O<s>,2,11,21,0` carries the IS-900 timestamp item 21, so the
+// whole list is ignored and the station keeps its list (2,4,1 after power-up: 29 binary bytes, not
+// the 36 the driver then expects, nor the 32 of 2,11,0); MT and MZ are ignored too.
+TEST(FastrakDevice, Is900TimestampConfigurationKeepsThePreviousList) {
+  FastrakDevice device(FastrakDeviceOptions{});
+  device.Receive("cSO1,2,11,21,0\rO2,2,11,21,0\rfCMT\rMZ\r", TranscriptMeasure());
+  EXPECT_EQ(device.station(1).output_list, (std::vector<int>{2, 4, 1}));
+  EXPECT_EQ(device.BinaryRecordSize(1), 29u);
+  EXPECT_EQ(device.FormatRecord(1, TranscriptStation(1)).size(), 29u);
+  EXPECT_EQ(device.commands_ignored(), 4);
+  EXPECT_TRUE(device.binary() && device.continuous());
+}
+
 TEST(FastrakDevice, CtrlYReinitialises) {
   FastrakDevice device(FastrakDeviceOptions{});
   device.Receive("fuCO1,11\r", TranscriptMeasure());
