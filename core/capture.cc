@@ -501,6 +501,7 @@ MarkerCapture ReadMarkers(const std::filesystem::path& path) {
   std::map<std::pair<int, int>, int> seen;
   for (const auto& row : t.rows()) {
     MarkerRecord r;
+    r.line = row.line;
     r.station = t.Integer(row, "station");
     r.marker = t.Integer(row, "marker");
     t.RequireUniqueKey(row, "station", r.station, "marker", r.marker, &seen);

@@ -48,6 +48,7 @@ struct MarkerRecord {
   int marker = 0;                                                 // marker id on the body
   Eigen::Vector3d position_in_optical = Eigen::Vector3d::Zero();  // [m]
   std::vector<double> extra;
+  int line = 0;  // line of markers.csv it was read from (0: made in memory), for messages
 };
 
 // The tracker's report at a registration station.

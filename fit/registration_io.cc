@@ -28,10 +28,10 @@ std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& ma
   for (const MarkerRecord& m : markers.records) {
     const auto it = stations.find(m.station);
     if (it == stations.end()) {
-      throw std::invalid_argument(markers_name + ": station " + std::to_string(m.station) +
-                                  ", marker " + std::to_string(m.marker) + ": no row in " +
-                                  tracker_name + " for this station and sensor " +
-                                  std::to_string(sensor));
+      throw std::invalid_argument(markers_name + (m.line > 0 ? ":" + std::to_string(m.line) : "") +
+                                  ": column station: station " + std::to_string(m.station) +
+                                  " (marker " + std::to_string(m.marker) + ") has no row in " +
+                                  tracker_name + " for sensor " + std::to_string(sensor));
     }
     if (!seen.emplace(m.station, m.marker).second) {
       throw std::invalid_argument(markers_name + ": station " + std::to_string(m.station) +
@@ -50,7 +50,7 @@ std::vector<RegistrationStation> ReadRegistrationStations(const std::filesystem:
                                                           const std::filesystem::path& tracker_csv,
                                                           int sensor) {
   return PairRegistrationRecords(ReadMarkers(markers_csv), ReadTracker(tracker_csv), sensor,
-                                 markers_csv.filename().string(), tracker_csv.filename().string());
+                                 markers_csv.string(), tracker_csv.string());
 }
 
 bool PoseRecordOptions::Check() const { return set == "calib" || set == "valid" || set == "reg"; }

@@ -107,7 +107,25 @@ TEST(RegistrationIo, PairingErrorsNameFileStationAndField) {
   };
   TrackerCapture missing = tracker;
   missing.records.erase(missing.records.begin() + 3);
-  expect_message(markers, missing, "markers.csv: station 4, marker");
+  expect_message(markers, missing, "markers.csv: column station: station 4 (marker");
+  // Read from files, the message names the line of the first marker row without a tracker row.
+  const auto dir = testing::MakeTempDir("registration_io_errors");
+  WriteMarkers(dir / kMarkersCsv, markers);
+  WriteTracker(dir / kTrackerCsv, missing);
+  int line = 0;
+  for (const MarkerRecord& m : ReadMarkers(dir / kMarkersCsv).records) {
+    if (m.station == 4 && line == 0) line = m.line;
+  }
+  EXPECT_GT(line, 1);  // below the header
+  try {
+    ReadRegistrationStations(dir / kMarkersCsv, dir / kTrackerCsv);
+    ADD_FAILURE() << "expected an error for station 4";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find((dir / kMarkersCsv).string() + ":" + std::to_string(line) +
+                                         ": column station: station 4"),
+              std::string::npos)
+        << e.what();
+  }
   TrackerCapture twice = tracker;
   twice.records.push_back(twice.records[5]);
   expect_message(markers, twice, "tracker.csv: station 6, sensor 1: more than one row");
