@@ -354,3 +354,28 @@ def test_work_folder_copies_are_written_without_hard_links(tmp_path, monkeypatch
     path.parent.mkdir()
     history._keep_copy(path, b"{}\n")
     assert path.read_bytes() == b"{}\n"
+
+
+def test_history_truncated_last_line_keeps_earlier_entries(tmp_path, capsys):
+    """A last line cut short (a crash or a full disk during a write, a script appending) loses only
+    itself: `trackcal history` shows the fits before it with a warning, and the next fit's record
+    takes its place instead of burying it between two entries (every later read would fail)."""
+    from trackcal import cli
+    path = tmp_path / "history.jsonl"
+    whole = json.dumps({"label": "first", "scores": GOOD, "model": None}) + "\n"
+    cut = json.dumps({"label": "second", "scores": GOOD, "model": None})[:25]
+    path.write_text(whole + cut)
+    with pytest.warns(history.HistoryWarning, match=r"history\.jsonl:2: last line is incomplete"):
+        entries = history.load_history(tmp_path)
+    assert [e["label"] for e in entries] == ["first"]
+    assert cli.main(["history", str(tmp_path)]) == 0
+    out, err = capsys.readouterr()
+    assert "first" in out and err.startswith(f"warning: {path}:2: last line is incomplete")
+    model = tmp_path / "m.json"
+    model.write_text("{}")
+    with pytest.warns(history.HistoryWarning, match=r"history\.jsonl:2: .*replaced by this fit's entry"):
+        history.record_fit(tmp_path, model=model, data=[], scores=GOOD, label="third")
+    assert [e["label"] for e in history.load_history(tmp_path)] == ["first", "third"]
+    # A whole last line without its newline is an entry, not a cut.
+    path.write_text(whole + whole.rstrip("\n"))
+    assert len(history.load_history(tmp_path)) == 2

@@ -14,6 +14,7 @@ import os
 import pathlib
 import sys
 import time
+import warnings
 from typing import Callable, List, Optional
 
 import numpy as np
@@ -656,8 +657,19 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     term = Terminal()
     try:
-        _check_args(args)
-        return COMMANDS[args.command](args, term)
+        with warnings.catch_warnings():
+            from trackcal.history import HistoryWarning
+            _show = warnings.showwarning
+
+            def show(message, category, *rest, **kw):
+                if issubclass(category, HistoryWarning):  # one line, like the errors
+                    print(term.c("warning: ", "33") + str(message), file=sys.stderr)
+                else:
+                    _show(message, category, *rest, **kw)
+            warnings.showwarning = show
+            warnings.simplefilter("always", HistoryWarning)
+            _check_args(args)
+            return COMMANDS[args.command](args, term)
     except (ValueError, KeyError, RuntimeError, NotImplementedError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(term.c("error: ", "31") + str(msg), file=sys.stderr)

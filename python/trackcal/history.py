@@ -21,6 +21,7 @@ import json
 import math
 import os
 import pathlib
+import warnings
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from trackcal import _core
@@ -53,30 +54,58 @@ def _sha(path) -> str:
     return _core.sha256_file(pathlib.Path(path))
 
 
+class HistoryWarning(UserWarning):
+    """A history.jsonl whose last line is cut short (a write interrupted by a crash or a full disk,
+    by a tool that appends): the line is left out, every entry before it is kept."""
+
+
+def _truncated_tail(data: bytes) -> int:
+    """Length of an unterminated last line of ``data`` that is not a whole JSON value (a write cut
+    short), else 0. An entry is a JSON object, so a prefix of one never parses."""
+    if not data or data.endswith(b"\n"):
+        return 0
+    tail = data[data.rfind(b"\n") + 1:]
+    if not tail.strip():
+        return 0
+    try:
+        json.loads(tail.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return len(tail)
+    return 0
+
+
 def load_history(workdir) -> List[dict]:
     """Entries of a work folder's history.jsonl ([] if there is none). Errors name file, line and
-    field: every entry is checked for the shape the history table, plot and labels read."""
+    field: every entry is checked for the shape the history table, plot and labels read. A last
+    line without its newline that is not JSON (a write cut short) is left out with a
+    ``HistoryWarning``: the entries before it are kept."""
     path = pathlib.Path(workdir) / HISTORY_FILE
     if not path.exists():
         return []
+    data = path.read_bytes()
+    cut = _truncated_tail(data)
+    if cut:
+        lineno = data.count(b"\n") + 1
+        warnings.warn(f"{path}:{lineno}: last line is incomplete ({cut} bytes, no newline: a write "
+                      "cut short); left out, the entries before it are kept", HistoryWarning, stacklevel=2)
+        data = data[:-cut]
     entries = []
-    with open(path, "rb") as f:
-        for lineno, raw in enumerate(f, 1):
-            try:
-                line = raw.decode("utf-8")
-            except UnicodeDecodeError as err:
-                raise ValueError(f"{path}:{lineno}: column {err.start + 1}: not UTF-8 text "
-                                 f"(byte 0x{raw[err.start]:02x})") from None
-            if not line.strip():
-                continue
-            try:
-                e = json.loads(line)
-            except json.JSONDecodeError as err:
-                raise ValueError(f"{path}:{lineno}: column {err.colno}: not JSON: {err.msg}") from None
-            problem = _entry_problem(e)
-            if problem:
-                raise ValueError(f"{path}:{lineno}: field {problem[0]}: {problem[1]}")
-            entries.append(e)
+    for lineno, raw in enumerate(data.split(b"\n"), 1):
+        try:
+            line = raw.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{path}:{lineno}: column {err.start + 1}: not UTF-8 text "
+                             f"(byte 0x{raw[err.start]:02x})") from None
+        if not line.strip():
+            continue
+        try:
+            e = json.loads(line)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}:{lineno}: column {err.colno}: not JSON: {err.msg}") from None
+        problem = _entry_problem(e)
+        if problem:
+            raise ValueError(f"{path}:{lineno}: field {problem[0]}: {problem[1]}")
+        entries.append(e)
     return entries
 
 
@@ -163,6 +192,15 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
     path = workdir / HISTORY_FILE
     with _history_lock(workdir):
         old = path.read_bytes() if path.exists() else b""
+        cut = _truncated_tail(old)
+        if cut:
+            # A line cut short by an earlier crash: kept, it would sit between two entries and
+            # make every later read of the history fail.
+            lineno = old.count(b"\n") + 1
+            warnings.warn(f"{path}:{lineno}: last line is incomplete ({cut} bytes, no "
+                          "newline: a write cut short); replaced by this fit's entry, the entries "
+                          "before it are kept", HistoryWarning, stacklevel=2)
+            old = old[:-cut]
         if old and not old.endswith(b"\n"):
             old += b"\n"
         replace_atomically(path, old + (json.dumps(entry, sort_keys=True) + "\n").encode())
