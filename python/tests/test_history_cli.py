@@ -379,3 +379,26 @@ def test_history_truncated_last_line_keeps_earlier_entries(tmp_path, capsys):
     # A whole last line without its newline is an entry, not a cut.
     path.write_text(whole + whole.rstrip("\n"))
     assert len(history.load_history(tmp_path)) == 2
+
+
+def test_malformed_history_fails_before_the_work(tmp_path, monkeypatch, capsys):
+    """report --workdir and fit --workdir read the history before the diagnosis or the fit: a
+    malformed one fails at once, and fit writes no calibration it then cannot record."""
+    from trackcal import cli
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "history.jsonl").write_text('{"scores": []}\n')
+
+    def no_work(*a, **k):
+        raise AssertionError("the work ran before the history was read")
+    monkeypatch.setattr(cli, "_diagnosis", no_work)
+    monkeypatch.setattr(trackcal, "fit", no_work)
+    (tmp_path / "poses.csv").write_text("station\n")
+    (tmp_path / "m.yaml").write_text("terms: []\n")
+    assert cli.main(["report", str(tmp_path / "poses.csv"), "-o", str(tmp_path / "out"),
+                     "--workdir", str(work)]) == 2
+    assert "history.jsonl:1: field scores" in capsys.readouterr().err
+    assert cli.main(["fit", "--data", str(tmp_path / "poses.csv"), "--model", str(tmp_path / "m.yaml"),
+                     "-o", str(tmp_path / "cal.json"), "--folds", "5", "--workdir", str(work)]) == 2
+    assert "history.jsonl:1: field scores" in capsys.readouterr().err
+    assert not (tmp_path / "cal.json").exists()

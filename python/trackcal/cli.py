@@ -209,6 +209,8 @@ def cmd_fit(args, term) -> int:
         if pathlib.Path(given).is_file() and pathlib.Path(given).resolve() == out:
             raise ValueError(f"{args.output}: output would overwrite the input {given}")
     trackcal._core.check_calibration_output(args.output)
+    if args.workdir:  # a malformed history fails now, not after the fit and its calibration file
+        history.load_history(args.workdir)
     report = trackcal.fit(args.data, args.model, folds=folds, progress=term.stage_progress())
     if report.pairing_warning:  # on stderr, so --json stays one document
         data = pathlib.Path(args.data)
@@ -457,9 +459,10 @@ def cmd_diagnose(args, term) -> int:
 def cmd_report(args, term) -> int:
     from trackcal.history import load_history
     from trackcal.report import write_report
+    # Read first: a malformed history fails now, not after the fit and the covariate tests.
+    hist = load_history(args.workdir) if args.workdir else None
     capture, cal, v, fit_report, doc, verdict, change, notes = _diagnosis(args, term)
     _write_residuals(args, v)
-    hist = load_history(args.workdir) if args.workdir else None
     inputs = [args.capture, args.calibration, args.model if args.model and os.path.exists(args.model) else None]
     inputs += _capture_files(capture)
     for n in notes:
