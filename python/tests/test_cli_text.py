@@ -128,3 +128,10 @@ def test_history_table_compares_only_rows_on_the_same_data_and_set():
     assert "other data" in lines[3] and "%" not in lines[3]
     assert "other set" in lines[4] and "%" not in lines[4]
     assert "cross-validation (5-fold)" in lines[4]  # the set's whole name
+
+
+def test_history_table_of_the_last_rows_keeps_their_numbers():
+    # trackcal fit --workdir prints the last two rows of the history: fit #7 is not "#2".
+    lines = history.history_table([entry("a", 2.0, 0.2), entry("b", 1.0, 0.1)], first=6).splitlines()
+    assert lines[1].split()[0] == "6" and lines[2].split()[0] == "7"
+    assert "-50.0%" in lines[2] and lines[1].split()[1] == "a"

@@ -247,7 +247,7 @@ def cmd_fit(args, term) -> int:
         entries = history.load_history(args.workdir)
         print(f"Recorded fit #{len(entries)} in {pathlib.Path(args.workdir) / history.HISTORY_FILE}")
         if len(entries) > 1:
-            print(history.history_table(entries[-2:]))
+            print(history.history_table(entries[-2:], first=len(entries) - 1))
     return 0
 
 

@@ -357,20 +357,21 @@ def _comparable_key(e: dict):
     return data, headline_set(e)
 
 
-def history_table(entries: Sequence[dict]) -> str:
+def history_table(entries: Sequence[dict], first: int = 1) -> str:
     """Plain-text table: one row per fit with the headline error (``set``: which set's, held-out
     first) and its change from the previous. The position median beside the mean: a few gross
     errors no calibration can remove hold the mean up while the median falls (hemisphere flips are
     left out of the scores since session 23; records written before kept them). A row whose capture
     files (their SHA-256) or headline set differ from the previous row's shows "other data" or
-    "other set" instead of a change: errors on different stations are not a step of the loop."""
+    "other set" instead of a change: errors on different stations are not a step of the loop.
+    ``first`` numbers the first row (the last rows of a history keep their numbers)."""
     sets = [headline_set(e) or "" for e in entries]
     width = max([3] + [len(x) for x in sets])
     lines = [f"{'#':>3}  {'time (UTC)':<20}  {'label':<28} {'pos mean mm':>12} {'change':>10} "
              f"{'median mm':>10} {'change':>10} {'ori mean deg':>13} {'change':>10}  {'set':<{width}}  model"]
     prev = None
     prev_key = None
-    for i, e in enumerate(entries, 1):
+    for i, e in enumerate(entries, first):
         p, o = headline_scores(e)
         med = headline_median_mm(e)
         key = _comparable_key(e)
@@ -385,7 +386,7 @@ def history_table(entries: Sequence[dict]) -> str:
         model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
         lines.append(f"{i:>3}  {e.get('time_utc', ''):<20}  {str(e.get('label', ''))[:28]:<28} {p:>12.3f} "
                      f"{dp:>10} {med_text:>10} {dm:>10} {o:>13.3f} {do:>10}  "
-                     f"{sets[i - 1]:<{width}}  {model}")
+                     f"{sets[i - first]:<{width}}  {model}")
         prev = (p, med, o)
         prev_key = key
     return "\n".join(lines)
