@@ -164,3 +164,20 @@ def test_report_replaces_a_report_written_before_the_generator_tag(tmp_path):
     old = page.read_text().replace(report.GENERATOR_META, "")  # as an earlier version wrote it
     page.write_text(old)
     assert report.write_report(v, out) == page and report.GENERATOR_META in page.read_text()
+
+
+@pytest.fixture(scope="module")
+def uncorrected(tmp_path_factory):
+    cap = captures.load_poses(simulate(tmp_path_factory.mktemp("edge") / "capture", seed=36))
+    return validation.validate(cap, None, analyse_covariates=False)
+
+
+def test_report_of_a_ranking_whose_base_has_no_held_out_mean(uncorrected, tmp_path):
+    # The engine writes a mean it could not compute (NaN) as null: the page says n/a instead of
+    # failing with a TypeError traceback after the whole diagnosis.
+    doc = {"folds": 5, "base": {"cv_position_mm_mean": None, "cv_orientation_deg_mean": None},
+           "candidates": [{"effect": "dipole", "cv_position_mm_mean": None, "cv_orientation_deg_mean": None,
+                           "cv_drop_percent": None, "delta_bic": 3.0, "p_value": None, "significant": False,
+                           "reason": "not cross-validated"}]}
+    text = report.write_report(uncorrected, tmp_path / "out", candidates=doc).read_text()
+    assert "The model alone: n/a mm, n/a deg." in text

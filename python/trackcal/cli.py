@@ -418,10 +418,11 @@ def cmd_diagnose(args, term) -> int:
               + (f"  (explained by {e.confounded_with})" if e.confounded_with else "")
               + (f"\n  {'':<24} each label's mean error from the mean of all: {diagnosis.levels_phrase(e.levels)}" if e.levels else ""))
     if doc is not None:
+        from trackcal.report import _number
         base = doc.get("base", {})
         print("\n" + term.c("Candidate effects", "1") +
-              f" (the model alone: held-out {base.get('cv_position_mm_mean', float('nan')):.3f} mm, "
-              f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg)")
+              f" (the model alone: held-out {_number(base.get('cv_position_mm_mean'))} mm, "
+              f"{_number(base.get('cv_orientation_deg_mean'))} deg)")
         if diagnosis.unresolved_note(doc):
             print("  " + diagnosis.unresolved_note(doc))
         rows = diagnosis.candidate_rows(doc)

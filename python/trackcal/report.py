@@ -74,6 +74,14 @@ def _table(rows: List[dict], columns: Optional[List[str]] = None, fmt: str = "{:
     return "\n".join(out)
 
 
+def _number(value, fmt: str = "{:.3f}") -> str:
+    """A number as text; 'n/a' for None (null in the ranking document: a mean the engine could
+    not compute) or NaN."""
+    if isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and np.isfinite(value):
+        return fmt.format(value)
+    return "n/a"
+
+
 def _table1_html(t) -> str:
     rows = []
     for title, b, a in (("Position error (mm)", t.before_position_mm, t.after_position_mm),
@@ -232,8 +240,8 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
         parts.append("<h2>Candidate effects</h2>"
                      "<p>The model refitted with each catalog effect it lacks, ranked by held-out error "
                      f"({html.escape(str(candidates.get('folds', '')))}-fold cross-validation). The model alone: "
-                     f"{base.get('cv_position_mm_mean', float('nan')):.3f} mm, "
-                     f"{base.get('cv_orientation_deg_mean', float('nan')):.3f} deg. "
+                     f"{_number(base.get('cv_position_mm_mean'))} mm, "
+                     f"{_number(base.get('cv_orientation_deg_mean'))} deg. "
                      f"{html.escape(diagnosis.unresolved_note(candidates))}</p>"
                      + _table(diagnosis.candidate_rows(candidates)))
     if verdict is None and (candidates is not None or v.covariate_effects):
