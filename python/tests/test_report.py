@@ -9,6 +9,7 @@ import shutil
 import stat
 import subprocess
 
+import numpy as np
 import pytest
 
 import trackcal
@@ -181,3 +182,32 @@ def test_report_of_a_ranking_whose_base_has_no_held_out_mean(uncorrected, tmp_pa
                            "reason": "not cross-validated"}]}
     text = report.write_report(uncorrected, tmp_path / "out", candidates=doc).read_text()
     assert "The model alone: n/a mm, n/a deg." in text
+
+
+def test_residual_map_colour_scale_ignores_a_station_without_value():
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(0)
+    pos, val = rng.normal(size=(50, 3)), rng.uniform(1.0, 5.0, 50)
+    val[3] = np.nan
+    fig = figures.residual_map(pos, val)
+    try:
+        norm = fig.axes[0].collections[0].norm
+        assert norm.vmax == pytest.approx(np.nanpercentile(val, 98))  # not NaN: one colour for all
+        assert len(fig.axes[0].collections[1].get_offsets()) == 1  # the NaN station, drawn apart
+    finally:
+        plt.close(fig)
+
+
+def test_orientation_slice_scale_ignores_a_station_without_value():
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(1)
+    pos = rng.uniform(-0.5, 0.5, size=(40, 3))
+    pos[:, 2] = 0.0
+    vec = rng.normal(scale=0.01, size=(40, 3))
+    vec[0] = np.nan
+    fig = figures.orientation_vectors_slice(pos, vec)
+    try:
+        q = next(c for c in fig.axes[0].collections if hasattr(c, "scale"))
+        assert np.isfinite(q.scale) and q.scale > 0
+    finally:
+        plt.close(fig)

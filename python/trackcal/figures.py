@@ -121,7 +121,9 @@ def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[flo
     if len(p):
         # One scale for before and after (so arrow lengths compare): the largest before-vector is
         # drawn 0.1 m long, with a key arrow giving the scale in degrees.
-        vmax = float(np.max(np.linalg.norm(v[:, :2], axis=1))) or 1.0
+        lengths = np.linalg.norm(v[:, :2], axis=1)
+        lengths = lengths[np.isfinite(lengths)]  # a NaN vector made the scale (and every arrow) NaN
+        vmax = float(lengths.max()) if len(lengths) and lengths.max() > 0 else 1.0
         scale = vmax / 0.1
         kw = dict(angles="xy", scale_units="xy", scale=scale, width=0.004)
         q = ax.quiver(p[:, 0], p[:, 1], v[:, 0], v[:, 1], color="tab:red", label="before", **kw)
@@ -172,10 +174,18 @@ def distortion_field(calibration, *, z: Optional[float] = None, n: int = 25, str
 def residual_map(positions, values, *, label: str = "position error [mm]", title: str = "Residual map"):
     """Stations coloured by a residual: top view (x, y) and side view (x, z)."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
-    vmax = float(np.percentile(values, 98)) if len(values) else 1.0
+    values = np.asarray(values, dtype=float)
+    # The colour scale from the finite values: one NaN made the 98th percentile NaN and every
+    # station one colour. Stations without a value are drawn as grey crosses.
+    finite = np.isfinite(values)
+    vmax = float(np.percentile(values[finite], 98)) if finite.any() else 1.0
     for ax, (i, j, names) in zip(axes, [(0, 1, ("x", "y")), (0, 2, ("x", "z"))]):
-        sc = ax.scatter(positions[:, i], positions[:, j], c=values, s=14, cmap="magma_r", vmin=0,
-                        vmax=max(vmax, 1e-12))
+        sc = ax.scatter(positions[finite, i], positions[finite, j], c=values[finite], s=14, cmap="magma_r",
+                        vmin=0, vmax=max(vmax, 1e-12))
+        if not finite.all():
+            ax.scatter(positions[~finite, i], positions[~finite, j], marker="x", s=14, color="gray",
+                       label=f"no value ({int((~finite).sum())})")
+            ax.legend(fontsize=8)
         ax.set_xlabel(f"{names[0]} [m]")
         ax.set_ylabel(f"{names[1]} [m]")
         ax.set_aspect("equal", adjustable="datalim")
