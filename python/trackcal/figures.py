@@ -108,16 +108,35 @@ def _slab(positions, z: Optional[float], thickness: Optional[float]):
     return z, thickness, np.abs(zs - z) <= 0.5 * thickness
 
 
+def _spread(p: np.ndarray, count: int) -> np.ndarray:
+    """Indices of at most about ``count`` of the points ``p`` (N, 2), one per cell of a square grid
+    over their extent: a stream's thousands of samples drawn as arrows are one smear."""
+    if len(p) <= count:
+        return np.arange(len(p))
+    lo, span = p.min(axis=0), np.ptp(p, axis=0)
+    cell = max(float(np.sqrt(span[0] * span[1] / count)), float(span.max()) / count, 1e-9)
+    while True:
+        keys = np.floor((p - lo) / cell).astype(np.int64)
+        _, first = np.unique(keys[:, 0] * (1 << 31) + keys[:, 1], return_index=True)
+        if len(first) <= count:
+            return np.sort(first)
+        cell *= 1.25
+
+
 def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[float] = None,
-                              thickness: Optional[float] = None, after_vectors=None):
+                              thickness: Optional[float] = None, after_vectors=None, max_arrows: int = 200):
     """Figure 7: the x, y components of the orientation error vectors (vector part of q_e, shown as
-    twice it, i.e. the small-angle rotation vector in degrees) of stations in a z-slab."""
+    twice it, i.e. the small-angle rotation vector in degrees) of stations in a z-slab. Of more
+    than ``max_arrows`` stations (a stream capture), one per cell of a grid gets its arrows."""
     z, thickness, sel = _slab(positions, z, thickness)
     fig, ax = plt.subplots(figsize=(6.4, 5.4))
     deg = 2.0 * 180.0 / np.pi
     p = positions[sel]
-    v = orientation_vectors[sel] * deg
     ax.scatter(p[:, 0], p[:, 1], s=6, color="gray")
+    in_slab = len(p)
+    sel = np.flatnonzero(sel)[_spread(p[:, :2], max_arrows)]
+    p = positions[sel]
+    v = orientation_vectors[sel] * deg
     if len(p):
         # One scale for before and after (so arrow lengths compare): the largest before-vector is
         # drawn 0.1 m long, with a key arrow giving the scale in degrees.
@@ -136,7 +155,9 @@ def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[flo
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title(f"Orientation error vectors, z = {z:.2f} ± {thickness / 2:.2f} m ({int(sel.sum())} stations)")
+    shown = f", {len(sel)} with arrows" if len(sel) < in_slab else ""
+    ax.set_title(f"Orientation error vectors, z = {z:.2f} ± {thickness / 2:.2f} m ({in_slab} stations{shown})",
+                 fontsize=10 if shown else None)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return fig
