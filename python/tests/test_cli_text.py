@@ -78,6 +78,21 @@ def test_history_plot_keeps_the_last_changes_visible():
     plt.close(fig)
 
 
+def test_history_plot_joins_only_comparable_rows():
+    # Rows 1-2 on one capture, row 3 on another: the table says "other data", the plot must not
+    # draw the step from 2 to 3 as a change.
+    rows = [entry("a", 2.0, 0.2), entry("b", 1.5, 0.15), entry("c", 9.0, 0.9)]
+    for r, sha in zip(rows, ["1", "1", "2"]):
+        r["data"] = [{"sha256": sha}]
+    import matplotlib.pyplot as plt
+    fig = figures.history_plot(rows)
+    left, right = fig.axes
+    for axis in (left, right):
+        assert [len(line.get_xdata()) for line in axis.get_lines()] == [2, 1]
+    assert [h.get_label() for h in left.get_legend_handles_labels()[0]] == ["position mean [mm]"]
+    plt.close(fig)
+
+
 def test_history_table_shows_the_median_fall_that_gross_errors_hide_from_the_mean():
     # Measured, workflow loop with hidden hemisphere flips (seed 2): the validation set holds
     # flipped reports, 2 |p| off whatever the calibration, so the mean rose 16.0 -> 19.4 mm when the

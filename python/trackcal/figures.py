@@ -235,17 +235,25 @@ def history_plot(entries: Sequence[dict]):
     """Error after each recorded fit (mean position mm and orientation deg of the held-out or
     validation set when recorded, else the calibration set). When the errors span more than a
     factor of 20 (a loop that starts at the uncorrected error and ends near the noise floor) the
-    axes are logarithmic, so the last changes stay visible."""
+    axes are logarithmic, so the last changes stay visible. Rows on other capture files or another
+    set are not joined to the previous one."""
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     x = np.arange(1, len(entries) + 1)
-    from trackcal.history import headline_scores, headline_set
+    from trackcal.history import comparable_key, headline_scores, headline_set
     pos = [headline_scores(e)[0] for e in entries]
     ori = [headline_scores(e)[1] for e in entries]
-    ax.plot(x, pos, "o-", color="tab:blue", label="position mean [mm]")
+    # A line joins only rows the table compares (same capture files, same headline set): a step to
+    # other data is not a step of the loop.
+    keys = [comparable_key(e) for e in entries]
+    starts = [0] + [i for i in range(1, len(entries)) if keys[i] != keys[i - 1]]
+    runs = list(zip(starts, starts[1:] + [len(entries)]))
+    for k, (a, b) in enumerate(runs):
+        ax.plot(x[a:b], pos[a:b], "o-", color="tab:blue", label="position mean [mm]" if k == 0 else None)
     ax.set_xlabel("fit #")
     ax.set_ylabel("position error mean [mm]", color="tab:blue")
     ax2 = ax.twinx()
-    ax2.plot(x, ori, "s--", color="tab:red", label="orientation mean [deg]")
+    for k, (a, b) in enumerate(runs):
+        ax2.plot(x[a:b], ori[a:b], "s--", color="tab:red", label="orientation mean [deg]" if k == 0 else None)
     ax2.set_ylabel("orientation error mean [deg]", color="tab:red")
     for axis, values in ((ax, pos), (ax2, ori)):
         v = np.asarray([y for y in values if np.isfinite(y) and y > 0])

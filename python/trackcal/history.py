@@ -350,7 +350,7 @@ def _change(now: float, before: Optional[float]) -> str:
     return f"{100 * (now - before) / before:+.1f}%"
 
 
-def _comparable_key(e: dict):
+def comparable_key(e: dict):
     """What two rows must share for their errors to be compared: the capture files' contents and
     the set the headline is taken from."""
     data = tuple(sorted(str(d.get("sha256")) for d in e.get("data") or [] if isinstance(d, dict)))
@@ -374,7 +374,7 @@ def history_table(entries: Sequence[dict], first: int = 1) -> str:
     for i, e in enumerate(entries, first):
         p, o = headline_scores(e)
         med = headline_median_mm(e)
-        key = _comparable_key(e)
+        key = comparable_key(e)
         if prev is None or key == prev_key:
             dp = _change(p, prev[0] if prev else None)
             dm = _change(med, prev[1] if prev else None)
