@@ -74,6 +74,19 @@ def _truncated_tail(data: bytes) -> int:
     return 0
 
 
+def _without_truncated_tail(path: pathlib.Path, data: bytes, outcome: str) -> bytes:
+    """``data`` without a last line cut short, with a ``HistoryWarning`` saying what became of it
+    (pointing at the caller of the public function)."""
+    cut = _truncated_tail(data)
+    if not cut:
+        return data
+    lineno = data.count(b"\n") + 1
+    warnings.warn(f"{path}:{lineno}: last line is incomplete ({cut} bytes, no newline: "
+                  f"a write cut short); {outcome}, the entries before it are kept", HistoryWarning,
+                  stacklevel=3)
+    return data[:-cut]
+
+
 def load_history(workdir) -> List[dict]:
     """Entries of a work folder's history.jsonl ([] if there is none). Errors name file, line and
     field: every entry is checked for the shape the history table, plot and labels read. A last
@@ -82,13 +95,7 @@ def load_history(workdir) -> List[dict]:
     path = pathlib.Path(workdir) / HISTORY_FILE
     if not path.exists():
         return []
-    data = path.read_bytes()
-    cut = _truncated_tail(data)
-    if cut:
-        lineno = data.count(b"\n") + 1
-        warnings.warn(f"{path}:{lineno}: last line is incomplete ({cut} bytes, no newline: a write "
-                      "cut short); left out, the entries before it are kept", HistoryWarning, stacklevel=2)
-        data = data[:-cut]
+    data = _without_truncated_tail(path, path.read_bytes(), "left out")
     entries = []
     for lineno, raw in enumerate(data.split(b"\n"), 1):
         try:
@@ -192,15 +199,9 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
     path = workdir / HISTORY_FILE
     with _history_lock(workdir):
         old = path.read_bytes() if path.exists() else b""
-        cut = _truncated_tail(old)
-        if cut:
-            # A line cut short by an earlier crash: kept, it would sit between two entries and
-            # make every later read of the history fail.
-            lineno = old.count(b"\n") + 1
-            warnings.warn(f"{path}:{lineno}: last line is incomplete ({cut} bytes, no "
-                          "newline: a write cut short); replaced by this fit's entry, the entries "
-                          "before it are kept", HistoryWarning, stacklevel=2)
-            old = old[:-cut]
+        # A line cut short by an earlier crash: kept, it would sit between two entries and make
+        # every later read of the history fail.
+        old = _without_truncated_tail(path, old, "replaced by this fit's entry")
         if old and not old.endswith(b"\n"):
             old += b"\n"
         replace_atomically(path, old + (json.dumps(entry, sort_keys=True) + "\n").encode())
