@@ -648,7 +648,10 @@ TEST(TrackcalEmulate, WholeNumberOptionsRefuseFractionsAndSigns) {
       {"--seed 1e3", "--seed: expected a whole number"},
       {"--seed 99999999999999999999", "--seed: expected a whole number"},
       {"--baud 9600.5", "--baud: expected a whole number"},
-      {"--pose 5=0.3,0,0,1,0,0,0", "--pose station: expected a whole number from 1 to 4, got '5'"}};
+      {"--pose 5=0.3,0,0,1,0,0,0", "--pose station: expected a whole number from 1 to 4, got '5'"},
+      // A trailing comma is a missing number, not nothing (std::getline dropped it).
+      {"--pose 1=0.3,0,0,1,0,0,0,", "--pose: expected 7 numbers after '=', got 8 fields"},
+      {"--pose 1=0.3,0,0,1,0,0,", "--pose: not a number: ''"}};
   for (const auto& [args, message] : cases) {
     FILE* f = popen((exe + " " + args + " --duration 0.05 2>&1").c_str(), "r");
     ASSERT_NE(f, nullptr);

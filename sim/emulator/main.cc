@@ -91,18 +91,30 @@ uint64_t ParseWhole(const std::string& s, const std::string& option, uint64_t mi
   return v;
 }
 
+// Comma-separated fields, empty ones kept: "1,2," is three fields, the last empty (a number
+// missing), where std::getline would drop it.
+std::vector<std::string> SplitCommas(const std::string& text) {
+  std::vector<std::string> fields;
+  for (size_t start = 0;;) {
+    const size_t comma = text.find(',', start);
+    fields.push_back(text.substr(start, comma - start));
+    if (comma == std::string::npos) return fields;
+    start = comma + 1;
+  }
+}
+
 std::pair<int, Rigid3d> ParsePose(const std::string& text) {
   const size_t eq = text.find('=');
   if (eq == std::string::npos)
     UsageError("--pose: expected S=x,y,z,qw,qx,qy,qz, got '" + text + "'");
   const int station = static_cast<int>(ParseWhole(text.substr(0, eq), "--pose station", 1, 4));
   if (station < 1 || station > kMaxStations) UsageError("--pose: station must be 1 to 4");
+  const std::vector<std::string> fields = SplitCommas(text.substr(eq + 1));
+  if (fields.size() != 7)
+    UsageError("--pose: expected 7 numbers after '=', got " + std::to_string(fields.size()) +
+               " fields in '" + text + "'");
   std::vector<double> v;
-  std::stringstream ss(text.substr(eq + 1));
-  std::string item;
-  while (std::getline(ss, item, ',')) v.push_back(ParseDouble(item, "--pose"));
-  if (v.size() != 7)
-    UsageError("--pose: expected 7 numbers after '=', got " + std::to_string(v.size()));
+  for (const std::string& field : fields) v.push_back(ParseDouble(field, "--pose"));
   const Eigen::Quaterniond q = trackcal::QuaternionFromWxyz(v[3], v[4], v[5], v[6]);
   if (q.norm() < 1e-9) UsageError("--pose: zero quaternion");
   return {station, Rigid3d(q.normalized(), Eigen::Vector3d(v[0], v[1], v[2]))};
@@ -112,16 +124,14 @@ std::pair<int, Rigid3d> ParsePose(const std::string& text) {
 std::pair<Eigen::Vector3d, Eigen::Vector3d> ParseBox(const std::string& text,
                                                      const std::string& option) {
   static const char* const kFields[] = {"xmin", "ymin", "zmin", "xmax", "ymax", "zmax"};
-  std::vector<double> v;
-  std::stringstream ss(text);
-  std::string item;
-  while (std::getline(ss, item, ',')) {
-    if (v.size() == 6) break;
-    v.push_back(ParseDouble(item, option + " " + kFields[v.size()]));
-  }
-  if (v.size() != 6 || std::getline(ss, item, ',')) {
+  const std::vector<std::string> fields = SplitCommas(text);
+  if (fields.size() != 6) {
     UsageError(option + ": expected xmin,ymin,zmin,xmax,ymax,zmax (6 numbers, metres), got '" +
                text + "'");
+  }
+  std::vector<double> v;
+  for (size_t i = 0; i < fields.size(); ++i) {
+    v.push_back(ParseDouble(fields[i], option + " " + kFields[i]));
   }
   const Eigen::Vector3d lo(v[0], v[1], v[2]), hi(v[3], v[4], v[5]);
   for (int i = 0; i < 3; ++i) {
