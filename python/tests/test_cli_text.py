@@ -150,3 +150,24 @@ def test_history_table_of_the_last_rows_keeps_their_numbers():
     lines = history.history_table([entry("a", 2.0, 0.2), entry("b", 1.0, 0.1)], first=6).splitlines()
     assert lines[1].split()[0] == "6" and lines[2].split()[0] == "7"
     assert "-50.0%" in lines[2] and lines[1].split()[1] == "a"
+
+
+def test_error_vs_distance_tells_the_in_sample_stations_from_the_held_out():
+    # Calib stations fitted to 0.1 mm, valid stations at 1 mm: the binned mean after must be the
+    # valid set's (as Table 1's), not a mix pulled down by the in-sample errors.
+    import numpy as np
+    import matplotlib.pyplot as plt
+    distance = np.tile(np.linspace(0.3, 1.5, 40), 2)
+    held_out = np.repeat([False, True], 40)
+    after = np.where(held_out, 1.0, 0.1)
+    fig = figures.error_vs_distance(distance, np.full(80, 20.0), after, held_out=held_out)
+    ax = fig.axes[0]
+    labels = [h.get_label() for h in ax.get_legend_handles_labels()[0]]
+    assert "after, calib set" in labels and "after, valid set" in labels
+    line = next(l for l in ax.get_lines() if l.get_label() == "after, valid set (binned mean)")
+    assert np.allclose(line.get_ydata(), 1.0)
+    plt.close(fig)
+    # One set only: drawn as before.
+    fig = figures.error_vs_distance(distance, np.full(80, 20.0), after, held_out=np.zeros(80, bool))
+    assert "after (binned mean)" in [l.get_label() for l in fig.axes[0].get_lines()]
+    plt.close(fig)

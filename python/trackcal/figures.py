@@ -80,16 +80,33 @@ def _binned(x, y, n=12):
 
 
 def error_vs_distance(distance, before, after=None, *, quantity: str = "position", unit: str = "mm",
-                      title: Optional[str] = None):
-    """Figures 4 (position) and 5 (orientation): magnitude against distance, with binned means."""
+                      title: Optional[str] = None, held_out=None):
+    """Figures 4 (position) and 5 (orientation): magnitude against distance, with binned means.
+
+    ``held_out`` (a boolean mask, optional) marks the validation set, which a fit on this capture
+    does not see: its errors after are the ones that tell, as in the paper's Table 1 (the
+    calibration set's are in-sample). When both sets are present, the calibration set is drawn
+    hollow after the correction and the binned mean after is of the validation set only."""
+    distance = np.asarray(distance, dtype=float)
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     ax.scatter(distance, before, s=8, alpha=0.45, color="tab:red", label="before")
     xb, yb = _binned(distance, before)
     ax.plot(xb, yb, color="darkred", lw=2, label="before (binned mean)")
     if after is not None:
-        ax.scatter(distance, after, s=8, alpha=0.45, color="tab:blue", label="after")
-        xa, ya = _binned(distance, after)
-        ax.plot(xa, ya, color="navy", lw=2, label="after (binned mean)")
+        after = np.asarray(after, dtype=float)
+        split = held_out is not None and 0 < int(np.sum(held_out)) < len(after)
+        if split:
+            held_out = np.asarray(held_out, dtype=bool)
+            ax.scatter(distance[~held_out], after[~held_out], s=8, alpha=0.45, facecolors="none",
+                       edgecolors="tab:blue", linewidths=0.6, label="after, calib set")
+            ax.scatter(distance[held_out], after[held_out], s=8, alpha=0.6, color="tab:blue",
+                       label="after, valid set")
+            xa, ya = _binned(distance[held_out], after[held_out])
+            ax.plot(xa, ya, color="navy", lw=2, label="after, valid set (binned mean)")
+        else:
+            ax.scatter(distance, after, s=8, alpha=0.45, color="tab:blue", label="after")
+            xa, ya = _binned(distance, after)
+            ax.plot(xa, ya, color="navy", lw=2, label="after (binned mean)")
     ax.set_xlabel("distance from transmitter [m]")
     ax.set_ylabel(f"{quantity} error [{unit}]")
     ax.set_title(title or f"{quantity.capitalize()} error vs distance")

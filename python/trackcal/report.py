@@ -126,16 +126,22 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
     dist = np.linalg.norm(data.reported_positions, axis=1)
     before = _sub(v.before, kept)
     after = _sub(v.after, kept) if v.after is not None else None
+    held_out = np.asarray(data.set) == "valid"
+    split = after is not None and 0 < int(held_out.sum()) < len(held_out)
+    after_text = (" and after (blue; hollow: the calib set, filled: the valid set, which a fit on this "
+                  "capture does not see, and whose binned mean is drawn)" if split else
+                  " and after (blue)" if after is not None else "")
     figs = [
         ("fig4_position_error_vs_distance.png",
-         "Figure 4: position error magnitude against distance from the transmitter, before (red) and "
-         "after (blue) the correction, with binned means.",
+         f"Figure 4: position error magnitude against distance from the transmitter, before (red){after_text} "
+         "the correction, with binned means.",
          F.error_vs_distance(dist, before.position_mm, after.position_mm if after else None,
-                             quantity="position", unit="mm")),
+                             quantity="position", unit="mm", held_out=held_out)),
         ("fig5_orientation_error_vs_distance.png",
-         "Figure 5: orientation error angle against distance from the transmitter, before and after.",
+         f"Figure 5: orientation error angle against distance from the transmitter, before (red){after_text} "
+         "the correction.",
          F.error_vs_distance(dist, before.orientation_deg, after.orientation_deg if after else None,
-                             quantity="orientation", unit="deg")),
+                             quantity="orientation", unit="deg", held_out=held_out)),
         ("fig7_orientation_vectors_slice.png",
          "Figure 7: orientation error vectors (x, y components of the small-angle rotation, degrees) of "
          "the stations in a horizontal slab through the median height (of a stream's thousands of samples, "
