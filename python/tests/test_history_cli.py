@@ -49,6 +49,30 @@ def test_fits_recorded_at_once_all_keep_their_entry(tmp_path):
     assert sorted(labels) == sorted([f"{n} {i}" for n in ("a", "b") for i in range(count)])
 
 
+def test_a_label_of_the_previous_entries_is_worked_out_under_the_lock(tmp_path):
+    """record_model_fit's default label ("+dipole") is the change from the previous entry: worked
+    out before taking the lock, a fit recorded meanwhile by another process was not its previous."""
+    import threading
+    data = tmp_path / "poses.csv"
+    data.write_text("x\n")
+    work = tmp_path / "work"
+    scores = {"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}}
+    record = dict(model=None, data=[(data, "calibration_capture")], scores=scores)
+    history.record_fit(work, label="first", **record)
+    with history._history_lock(work):  # another process, in the middle of its record
+        t = threading.Thread(target=history.record_fit, args=(work,),
+                             kwargs=dict(label=lambda entries: f"after {entries[-1]['label']}", **record))
+        t.start()
+        t.join(0.5)  # blocked on the lock: it must not have read the history yet
+        assert t.is_alive()
+        path = work / history.HISTORY_FILE
+        other = json.loads(path.read_text().splitlines()[0])
+        other["label"] = "second"
+        path.write_text(path.read_text() + json.dumps(other) + "\n")
+    t.join(10)
+    assert [e["label"] for e in history.load_history(work)] == ["first", "second", "after second"]
+
+
 def test_history_round_trip(tmp_path):
     data = tmp_path / "poses.csv"
     data.write_text("x\n")

@@ -22,7 +22,7 @@ import math
 import os
 import pathlib
 import warnings
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 from trackcal import _core
 from trackcal._files import replace_atomically, write_new
@@ -95,7 +95,11 @@ def load_history(workdir) -> List[dict]:
     path = pathlib.Path(workdir) / HISTORY_FILE
     if not path.exists():
         return []
-    data = _without_truncated_tail(path, path.read_bytes(), "left out")
+    return _parse_entries(path, _without_truncated_tail(path, path.read_bytes(), "left out"))
+
+
+def _parse_entries(path: pathlib.Path, data: bytes) -> List[dict]:
+    """The entries of history.jsonl's contents ``data``; errors name ``path``, line and field."""
     entries = []
     for lineno, raw in enumerate(data.split(b"\n"), 1):
         try:
@@ -175,15 +179,18 @@ def _entry_problem(e) -> Optional[Tuple[str, str]]:
 
 
 def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[str, dict],
-               label: str = "", extra: Optional[dict] = None, fields: Optional[dict] = None) -> dict:
+               label: Union[str, Callable[[List[dict]], str]] = "", extra: Optional[dict] = None,
+               fields: Optional[dict] = None) -> dict:
     """Appends a fit to the work folder's history. ``data`` is [(path, role)]; ``scores`` maps a set
     name to Table 1 summaries ({"position_mm": {...}, "orientation_deg": {...}}); ``fields`` are
-    merged into the entry (``model`` keys included)."""
+    merged into the entry (``model`` keys included). A callable ``label`` is given the entries
+    already recorded, read under the history's lock, so two fits recorded at once are each labelled
+    against the entry truly before them."""
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     entry = {
         "time_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "label": label,
+        "label": "" if callable(label) else label,
         "model": {"path": str(model), "sha256": _sha(model)} if model is not None else None,
         "data": [{"path": str(p), "role": role, "sha256": _sha(p)} for p, role in data],
         "scores": scores,
@@ -202,6 +209,8 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
         # A line cut short by an earlier crash: kept, it would sit between two entries and make
         # every later read of the history fail.
         old = _without_truncated_tail(path, old, "replaced by this fit's entry")
+        if callable(label):
+            entry["label"] = str(label(_parse_entries(path, old)))
         if old and not old.endswith(b"\n"):
             old += b"\n"
         replace_atomically(path, old + (json.dumps(entry, sort_keys=True) + "\n").encode())
@@ -269,14 +278,14 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     copy = models / f"{sha[:16]}.yaml"
     _keep_copy(copy, text.encode("utf-8"))
     terms = effect_names(report)
-    if label is None:
-        previous = next((e for e in reversed(load_history(workdir)) if "terms" in e), None)
+
+    def default_label(entries: List[dict]) -> str:  # against the previous model-file fit
+        previous = next((e for e in reversed(entries) if "terms" in e), None)
         if previous is None:
-            label = term_change(None, terms)
-        elif (previous.get("model") or {}).get("sha256") == sha:
-            label = "same model"
-        else:
-            label = term_change(previous["terms"], terms) or "settings"
+            return term_change(None, terms)
+        if (previous.get("model") or {}).get("sha256") == sha:
+            return "same model"
+        return term_change(previous["terms"], terms) or "settings"
     model_path = (pathlib.Path(model).resolve()
                   if isinstance(model, (str, os.PathLike)) and report.model["source"] != "<string>" else None)
     fields = {"model": {"sha256": sha, "copy": str(copy.relative_to(workdir)), "terms": terms},
@@ -297,7 +306,8 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
                                  "copy": str(cal_copy.relative_to(workdir))}
     return record_fit(workdir, model=model_path,
                       data=_data_files(data) if isinstance(data, (str, os.PathLike)) else [],
-                      scores=report.scores(), label=label, fields=fields)
+                      scores=report.scores(), label=default_label if label is None else label,
+                      fields=fields)
 
 
 def scores_from_validation(validation) -> Dict[str, dict]:
