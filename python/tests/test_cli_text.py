@@ -152,7 +152,7 @@ def test_history_table_of_the_last_rows_keeps_their_numbers():
     assert "-50.0%" in lines[2] and lines[1].split()[1] == "a"
 
 
-def test_error_vs_distance_tells_the_in_sample_stations_from_the_held_out():
+def test_error_vs_distance_tells_the_in_sample_and_the_extrapolated_stations_apart():
     # Calib stations fitted to 0.1 mm, valid stations at 1 mm: the binned mean after must be the
     # valid set's (as Table 1's), not a mix pulled down by the in-sample errors.
     import numpy as np
@@ -170,4 +170,10 @@ def test_error_vs_distance_tells_the_in_sample_stations_from_the_held_out():
     # One set only: drawn as before.
     fig = figures.error_vs_distance(distance, np.full(80, 20.0), after, held_out=np.zeros(80, bool))
     assert "after (binned mean)" in [l.get_label() for l in fig.axes[0].get_lines()]
+    plt.close(fig)
+    # Stations outside the calibrated volume are crossed, and counted in the legend.
+    outside = distance > 1.45
+    fig = figures.error_vs_distance(distance, np.full(80, 20.0), after, outside=outside)
+    labels = [h.get_label() for h in fig.axes[0].get_legend_handles_labels()[0]]
+    assert f"after, outside the calibrated volume ({int(outside.sum())})" in labels
     plt.close(fig)

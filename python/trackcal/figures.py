@@ -80,13 +80,15 @@ def _binned(x, y, n=12):
 
 
 def error_vs_distance(distance, before, after=None, *, quantity: str = "position", unit: str = "mm",
-                      title: Optional[str] = None, held_out=None):
+                      title: Optional[str] = None, held_out=None, outside=None):
     """Figures 4 (position) and 5 (orientation): magnitude against distance, with binned means.
 
     ``held_out`` (a boolean mask, optional) marks the validation set, which a fit on this capture
     does not see: its errors after are the ones that tell, as in the paper's Table 1 (the
     calibration set's are in-sample). When both sets are present, the calibration set is drawn
-    hollow after the correction and the binned mean after is of the validation set only."""
+    hollow after the correction and the binned mean after is of the validation set only.
+    ``outside`` (a boolean mask, optional) marks stations outside the calibrated volume, crossed
+    after the correction: there the correction is extrapolated."""
     distance = np.asarray(distance, dtype=float)
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     ax.scatter(distance, before, s=8, alpha=0.45, color="tab:red", label="before")
@@ -107,6 +109,10 @@ def error_vs_distance(distance, before, after=None, *, quantity: str = "position
             ax.scatter(distance, after, s=8, alpha=0.45, color="tab:blue", label="after")
             xa, ya = _binned(distance, after)
             ax.plot(xa, ya, color="navy", lw=2, label="after (binned mean)")
+        if outside is not None and np.any(outside):
+            outside = np.asarray(outside, dtype=bool)
+            ax.scatter(distance[outside], after[outside], marker="x", s=16, color="black", linewidths=0.7,
+                       label=f"after, outside the calibrated volume ({int(outside.sum())})")
     ax.set_xlabel("distance from transmitter [m]")
     ax.set_ylabel(f"{quantity} error [{unit}]")
     ax.set_title(title or f"{quantity.capitalize()} error vs distance")

@@ -127,21 +127,24 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
     before = _sub(v.before, kept)
     after = _sub(v.after, kept) if v.after is not None else None
     held_out = np.asarray(data.set) == "valid"
+    outside = np.asarray(v.extrapolated, dtype=bool)[kept] if after is not None else None
     split = after is not None and 0 < int(held_out.sum()) < len(held_out)
     after_text = (" and after (blue; hollow: the calib set, filled: the valid set, which a fit on this "
                   "capture does not see, and whose binned mean is drawn)" if split else
                   " and after (blue)" if after is not None else "")
+    crossed = (" Crossed: stations outside the calibrated volume, where the correction is extrapolated."
+               if outside is not None and outside.any() else "")
     figs = [
         ("fig4_position_error_vs_distance.png",
          f"Figure 4: position error magnitude against distance from the transmitter, before (red){after_text} "
-         "the correction, with binned means.",
+         f"the correction, with binned means.{crossed}",
          F.error_vs_distance(dist, before.position_mm, after.position_mm if after else None,
-                             quantity="position", unit="mm", held_out=held_out)),
+                             quantity="position", unit="mm", held_out=held_out, outside=outside)),
         ("fig5_orientation_error_vs_distance.png",
          f"Figure 5: orientation error angle against distance from the transmitter, before (red){after_text} "
-         "the correction.",
+         f"the correction.{crossed}",
          F.error_vs_distance(dist, before.orientation_deg, after.orientation_deg if after else None,
-                             quantity="orientation", unit="deg", held_out=held_out)),
+                             quantity="orientation", unit="deg", held_out=held_out, outside=outside)),
         ("fig7_orientation_vectors_slice.png",
          "Figure 7: orientation error vectors (x, y components of the small-angle rotation, degrees) of "
          "the stations in a horizontal slab through the median height (of a stream's thousands of samples, "
