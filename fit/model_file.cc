@@ -283,10 +283,18 @@ void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* t
 
 ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name) {
   YAML::Node root;
+  std::vector<YAML::Node> documents;
   try {
-    root = YAML::Load(text);
+    documents = YAML::LoadAll(text);
   } catch (const YAML::Exception& e) {
     throw std::invalid_argument(MarkString(source_name, e.mark) + ": YAML syntax error: " + e.msg);
+  }
+  if (!documents.empty()) root = documents.front();
+  // YAML::Load reads the first document only: a model continued after a `---` lost its second part.
+  for (size_t i = 1; i < documents.size(); ++i) {
+    if (documents[i].IsNull()) continue;  // a trailing `---` with nothing after it
+    throw std::invalid_argument(MarkString(source_name, documents[i].Mark()) +
+                                ": a second YAML document (after ---); the model file holds one");
   }
   if (!root.IsMap()) {
     throw std::invalid_argument(source_name + ": the model file must be a mapping with 'terms'");

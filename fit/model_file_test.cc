@@ -88,6 +88,13 @@ TEST(ParseModelYaml, ErrorsNameFileLineAndField) {
       0);
 }
 
+TEST(ParseModelYaml, RejectsASecondDocument) {
+  // YAML::Load read the first document only: the noise after `---` was dropped.
+  EXPECT_THAT(ErrorOf("terms: [{type: polynomial}]\n---\nnoise: {position_mm: 5}\n"),
+              HasSubstr("model.yaml:3:1: a second YAML document"));
+  EXPECT_NO_THROW(ParseModelYaml("terms: [{type: polynomial}]\n---\n", "m"));
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial
