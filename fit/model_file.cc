@@ -46,19 +46,28 @@ void YamlMapReader::Fail(const std::string& key, const std::string& message) con
     field += "." + key;
     const YAML::Node value = node_[key];
     if (value.IsDefined()) mark = value.Mark();
+    // An empty value's mark is wherever the next token starts (often the next line): name the key.
+    if (value.IsDefined() && value.IsNull()) {
+      for (const auto& item : node_) {
+        if (item.first.IsScalar() && item.first.Scalar() == key) mark = item.first.Mark();
+      }
+    }
   }
   throw std::invalid_argument(MarkString(source_, mark) + ": " + field + ": " + message);
 }
 
+// A key written without a value (`degree:`, `noise: ~`) counts as given: its typed read fails,
+// rather than the default standing in silently for a value the author forgot.
 bool YamlMapReader::Has(const std::string& key) const {
   read_.insert(key);
-  return node_[key].IsDefined() && !node_[key].IsNull();
+  return node_[key].IsDefined();
 }
 
 YAML::Node YamlMapReader::Get(const std::string& key) const {
   read_.insert(key);
   const YAML::Node value = node_[key];
-  if (!value.IsDefined() || value.IsNull()) Fail(key, "missing required field");
+  if (!value.IsDefined()) Fail(key, "missing required field");
+  if (value.IsNull()) Fail(key, "no value given (write one, or leave the key out for the default)");
   return value;
 }
 

@@ -95,6 +95,19 @@ TEST(ParseModelYaml, RejectsASecondDocument) {
   EXPECT_NO_THROW(ParseModelYaml("terms: [{type: polynomial}]\n---\n", "m"));
 }
 
+TEST(ParseModelYaml, AKeyWithoutAValueIsAnError) {
+  // A forgotten value took the default silently.
+  EXPECT_THAT(ErrorOf("terms:\n  - type: polynomial\n    degree:\n"),
+              HasSubstr("model.yaml:3:5: $.terms[0].degree: no value given"));
+  EXPECT_THAT(ErrorOf("noise:\n  position_mm:\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:2:3: $.noise.position_mm: no value given"));
+  EXPECT_THAT(ErrorOf("noise: ~\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:1:1: $.noise: no value given"));
+  EXPECT_THAT(ErrorOf("terms:\n  - type: polynomial\n    parameters:\n"
+                      "      position_coefficients: {fixed: }\n"),
+              HasSubstr("$.terms[0].parameters.position_coefficients.fixed: no value given"));
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial
