@@ -387,7 +387,11 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     if (spec.time_offset) r.Fail("", "time_offset given twice");
     spec.time_offset = t;
   };
-  if (top.Has("time_offset")) parse_time_offset(top.GetMap("time_offset"));
+  if (top.Has("time_offset")) {
+    const YamlMapReader r = top.GetMap("time_offset");
+    parse_time_offset(r);
+    r.Finish();
+  }
 
   const YAML::Node terms = root["terms"];
   top.MarkRead("terms");

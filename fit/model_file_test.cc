@@ -108,6 +108,11 @@ TEST(ParseModelYaml, AKeyWithoutAValueIsAnError) {
               HasSubstr("$.terms[0].parameters.position_coefficients.fixed: no value given"));
 }
 
+TEST(ParseModelYaml, TopLevelTimeOffsetRejectsUnknownKeys) {
+  EXPECT_THAT(ErrorOf("time_offset: {valu: 0.01}\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:1:15: $.time_offset.valu: unknown key"));
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial
