@@ -30,6 +30,12 @@ YamlMapReader::YamlMapReader(YAML::Node node, std::string source, std::string pa
   std::map<std::string, YAML::Mark> seen;
   for (const auto& item : node_) {
     if (!item.first.IsScalar()) continue;
+    // yaml-cpp does not implement YAML 1.1 merge keys: `<<: *base` would be a key named "<<" and
+    // the anchored keys would go missing (the error then blamed a missing `type`).
+    if (item.first.Scalar() == "<<") {
+      throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ +
+                                  ".<<: merge keys are not supported; write the keys out");
+    }
     const auto [it, inserted] = seen.emplace(item.first.Scalar(), item.first.Mark());
     if (!inserted) {
       throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ + "." +
@@ -141,6 +147,11 @@ YamlMapReader YamlMapReader::GetMap(const std::string& key) const {
 
 void YamlMapReader::Finish() const {
   for (const auto& item : node_) {
+    if (!item.first
+             .IsScalar()) {  // `? [a, b]`: its Scalar() is "", which read as "$.: unknown key"
+      throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ +
+                                  ": a key must be a plain name, not a list or mapping");
+    }
     const std::string key = item.first.Scalar();
     if (!read_.count(key)) {
       throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ + "." +

@@ -113,6 +113,17 @@ TEST(ParseModelYaml, TopLevelTimeOffsetRejectsUnknownKeys) {
               HasSubstr("model.yaml:1:15: $.time_offset.valu: unknown key"));
 }
 
+TEST(ParseModelYaml, MergeKeysAreRejectedByName) {
+  EXPECT_THAT(
+      ErrorOf("base: &b {type: polynomial, degree: 2}\nterms:\n  - <<: *b\n    degree: 3\n"),
+      HasSubstr("model.yaml:3:5: $.terms[0].<<: merge keys are not supported"));
+}
+
+TEST(ParseModelYaml, AListAsAKeyIsNamed) {
+  EXPECT_THAT(ErrorOf("? [a, b]\n: 1\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:1:3: $: a key must be a plain name"));
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial
