@@ -421,6 +421,8 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     }
     std::unique_ptr<ModelTerm> term = TermRegistry::Global().Create(type, r);
     std::string name = r.GetStringOr("name", type);
+    // Reports address blocks as NAME.BLOCK: an empty name would leave ".attenuation".
+    if (name.empty()) r.Fail("name", "must not be empty");
     if (names.count(name)) {
       // Repeated types (several dipoles) are numbered unless named.
       if (r.Has("name")) r.Fail("name", "duplicate term name '" + name + "'");

@@ -124,6 +124,11 @@ TEST(ParseModelYaml, AListAsAKeyIsNamed) {
               HasSubstr("model.yaml:1:3: $: a key must be a plain name"));
 }
 
+TEST(ParseModelYaml, RejectsAnEmptyTermName) {
+  EXPECT_THAT(ErrorOf("terms:\n  - {type: polynomial, name: \"\"}\n"),
+              HasSubstr("$.terms[0].name: must not be empty"));
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial
