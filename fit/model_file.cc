@@ -460,6 +460,29 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
         }
         if (setting.value) group->MarkStartGiven(name, setting.block);
       }
+      // A searched block that is held fixed skips its search and keeps the placeholder start (a
+      // dipole at [0, 0, 1], a plane's normal along z): fixed needs a start from the file.
+      const PhysicalGroupTerm::Effect& effect = group->effects().front();
+      for (const BlockSettings& setting : settings) {
+        if (!setting.fixed.value_or(false) || setting.value) continue;
+        const std::string& b = setting.block;
+        const char* key = nullptr;
+        if (effect.kind == PhysicalEffect::kDipole) {
+          if (b == "location_in_transmitter" && effect.search_location)
+            key = "location_in_transmitter";
+          if (b == "polarisability_m3" && !effect.strength_given) key = "polarisability_m3";
+        } else if (effect.kind == PhysicalEffect::kPlane) {
+          if (b == "distance_m" && effect.search_plane) key = "point_in_transmitter";
+          if (b == "normal_in_transmitter" && !effect.normal_given) key = "normal_in_transmitter";
+          if (b == "attenuation" && !effect.strength_given) key = "attenuation";
+        }
+        if (key != nullptr) {
+          throw std::invalid_argument(setting.where + ".fixed: term '" + name + "' block '" + b +
+                                      "' is held fixed but has no start value (it would be "
+                                      "searched): give " +
+                                      key + " or a value");
+        }
+      }
       auto* previous =
           spec.terms.empty() ? nullptr : dynamic_cast<PhysicalGroupTerm*>(spec.terms.back().get());
       if (previous != nullptr) {

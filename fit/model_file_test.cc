@@ -129,6 +129,26 @@ TEST(ParseModelYaml, RejectsAnEmptyTermName) {
               HasSubstr("$.terms[0].name: must not be empty"));
 }
 
+TEST(ParseModelYaml, ASearchedBlockHeldFixedNeedsAStart) {
+  // Held fixed, the search was skipped and the dipole stayed at its placeholder [0, 0, 1].
+  EXPECT_THAT(ErrorOf("terms:\n  - type: dipole\n    parameters:\n"
+                      "      location_in_transmitter: {fixed: true}\n"),
+              HasSubstr("model.yaml:4:32: $.terms[0].parameters.location_in_transmitter.fixed: "
+                        "term 'dipole' block 'location_in_transmitter' is held fixed but has no "
+                        "start value"));
+  EXPECT_THAT(ErrorOf("terms:\n  - type: plane\n    parameters:\n"
+                      "      normal_in_transmitter: {fixed: true}\n"),
+              HasSubstr("give normal_in_transmitter"));
+  EXPECT_NO_THROW(
+      ParseModelYaml("terms:\n  - type: dipole\n    location_in_transmitter: [1, 0, 0]\n"
+                     "    parameters:\n      location_in_transmitter: {fixed: true}\n",
+                     "m"));
+  EXPECT_NO_THROW(
+      ParseModelYaml("terms:\n  - type: plane\n    parameters:\n"
+                     "      normal_in_transmitter: {fixed: true, value: [0, 0, 1]}\n",
+                     "m"));
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial
