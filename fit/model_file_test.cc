@@ -149,6 +149,15 @@ TEST(ParseModelYaml, ASearchedBlockHeldFixedNeedsAStart) {
                      "m"));
 }
 
+TEST(ParseModelYaml, TermOptionErrorsNameTheirKey) {
+  EXPECT_THAT(ErrorOf("terms:\n  - {type: polynomial, position: false, orientation: false}\n"),
+              HasSubstr("$.terms[0].orientation: polynomial: at least one of position"));
+  EXPECT_THAT(ErrorOf("terms:\n  - type: lut\n    ridge: -1\n"),
+              HasSubstr("model.yaml:3:12: $.terms[0].ridge: lut: ridge must be >= 0"));
+  EXPECT_THAT(ErrorOf("terms:\n  - type: polynomial\n    ridge_cv: blocked\n"),
+              HasSubstr("model.yaml:3:15: $.terms[0].ridge_cv: only with ridge: auto"));
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial

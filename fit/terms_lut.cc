@@ -47,7 +47,12 @@ std::unique_ptr<ModelTerm> LutTerm::FromYaml(const YamlMapReader& reader) {
   try {
     options.Check();
   } catch (const std::invalid_argument& e) {
-    reader.Fail(reader.Has("smoothness") ? "smoothness" : "cell_size_mm", e.what());
+    // Blame the key the check is about (a negative ridge was blamed on cell_size_mm).
+    const std::string what = e.what();
+    reader.Fail(what.find("ridge") != std::string::npos        ? "ridge"
+                : what.find("smoothness") != std::string::npos ? "smoothness"
+                                                               : "cell_size_mm",
+                what);
   }
   return std::make_unique<LutTerm>(options);
 }

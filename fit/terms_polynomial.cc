@@ -297,13 +297,18 @@ std::unique_ptr<ModelTerm> PolynomialTerm::FromYaml(const YamlMapReader& reader)
       options.ridge = reader.GetDouble("ridge");
     }
   }
+  if (!options.ridge_auto && reader.node()["ridge_cv"].IsDefined()) {
+    reader.Fail("ridge_cv", "only with ridge: auto (it says how the weight is chosen)");
+  }
   try {
     options.Check();
   } catch (const std::invalid_argument& e) {
     const std::string what = e.what();
+    // Blame the key the check is about ("position, orientation" was blamed on `degree`).
     reader.Fail(what.find("ridge") != std::string::npos               ? "ridge"
                 : what.find("max_amplification") != std::string::npos ? "max_amplification"
-                                                                       : "degree",
+                : what.find("orientation") != std::string::npos       ? "orientation"
+                                                                      : "degree",
                 what);
   }
   return std::make_unique<PolynomialTerm>(options);
