@@ -147,8 +147,8 @@ YamlMapReader YamlMapReader::GetMap(const std::string& key) const {
 
 void YamlMapReader::Finish() const {
   for (const auto& item : node_) {
-    if (!item.first
-             .IsScalar()) {  // `? [a, b]`: its Scalar() is "", which read as "$.: unknown key"
+    // `? [a, b]`: its Scalar() is "", which read as "$.: unknown key".
+    if (!item.first.IsScalar()) {
       throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ +
                                   ": a key must be a plain name, not a list or mapping");
     }
