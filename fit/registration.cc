@@ -24,7 +24,9 @@ bool RegistrationOptions::Check() const {
          tracker_orientation_noise_rad > 0.0 && min_markers_per_station >= 1 && min_stations >= 1 &&
          max_num_iterations > 0 && function_tolerance > 0.0 && parameter_tolerance > 0.0 &&
          max_translation_stddev_m > 0.0 && max_rotation_stddev_rad > 0.0 &&
-         max_marker_stddev_m > 0.0 && covariance.Check() && num_threads >= 1;
+         max_marker_stddev_m > 0.0 && covariance.Check() && num_threads >= 1 &&
+         max_station_marker_rms_m >= 0.0 && station_false_alarm > 0.0 &&
+         station_false_alarm < 1.0 && max_rejected_fraction >= 0.0 && max_rejected_fraction < 1.0;
 }
 
 double RegistrationResult::ChiSquareZ() const {
@@ -348,13 +350,29 @@ ResidualStructure AnalyseResidualStructure(const std::vector<RegisteredStation>&
   return out;
 }
 
-}  // namespace
+// The registered marker body placed at a station by its own best optical fit (Horn alignment, no
+// tracker reading): sets the station's marker_body_rms_m and marker_body_tail.
+void FitMarkerBody(const RegistrationStation& station, const OpticalRegistration& registration,
+                   double optical_noise_m, RegisteredStation* out) {
+  std::vector<Eigen::Vector3d> in_receiver, in_optical;
+  for (const MarkerObservation& m : station.markers) {
+    in_receiver.push_back(registration.marker_in_receiver.at(m.marker));
+    in_optical.push_back(m.marker_in_optical);
+  }
+  const int dof = 3 * static_cast<int>(in_receiver.size()) - 6;
+  if (dof <= 0) return;  // two markers or fewer: any body fits
+  const Rigid3d optical_from_receiver = AlignPoints(in_receiver, in_optical);
+  double sum_sq = 0.0;
+  for (std::size_t k = 0; k < in_receiver.size(); ++k) {
+    sum_sq += (optical_from_receiver * in_receiver[k] - in_optical[k]).squaredNorm();
+  }
+  out->marker_body_rms_m = std::sqrt(sum_sq / static_cast<double>(in_receiver.size()));
+  out->marker_body_tail = ChiSquareUpperTail(sum_sq / (optical_noise_m * optical_noise_m), dof);
+}
 
-RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
-                                                const RegistrationOptions& options) {
-  if (!options.Check()) throw std::invalid_argument("RegistrationOptions: invalid options");
-  ValidateStations(stations);
-
+// One solve of eq. 14 over the given stations (validated by the caller).
+RegistrationResult SolveRegistration(const std::vector<RegistrationStation>& stations,
+                                     const RegistrationOptions& options) {
   RegistrationResult result;
   Problem p;
   std::set<int> ids;
@@ -582,10 +600,53 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
       problem.EvaluateResidualBlock(id, /*apply_loss_function=*/true, &cost, nullptr, nullptr);
       s.chi_square += 2.0 * cost;
     }
+    FitMarkerBody(p.stations[i], result.registration, options.optical_noise_m, &s);
     result.stations.push_back(s);
   }
   result.residual_structure = AnalyseResidualStructure(result.stations);
   return result;
+}
+
+// Does this station's marker set misfit the marker body beyond both of the options' tests?
+bool MisfitsMarkerBody(const RegisteredStation& s, const RegistrationOptions& options) {
+  return s.marker_body_rms_m > options.max_station_marker_rms_m &&
+         s.marker_body_tail < options.station_false_alarm;
+}
+
+}  // namespace
+
+RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
+                                                const RegistrationOptions& options) {
+  if (!options.Check()) throw std::invalid_argument("RegistrationOptions: invalid options");
+  ValidateStations(stations);
+  std::vector<RegistrationStation> kept = stations;
+  std::vector<RejectedStation> rejected;
+  while (true) {
+    RegistrationResult result = SolveRegistration(kept, options);
+    result.rejected_stations = rejected;
+    const int num_used = static_cast<int>(result.stations.size());
+    const int max_rejected = static_cast<int>(std::floor(
+        options.max_rejected_fraction * static_cast<double>(num_used + rejected.size())));
+    if (!options.reject_bad_stations || static_cast<int>(rejected.size()) >= max_rejected ||
+        num_used - 1 < options.min_stations) {
+      return result;
+    }
+    // The worst first: one misfitting station pulls the marker body towards itself, which can
+    // push a sound neighbour over the line until it is gone.
+    const RegisteredStation* worst = nullptr;
+    for (const RegisteredStation& s : result.stations) {
+      if (MisfitsMarkerBody(s, options) &&
+          (worst == nullptr || s.marker_body_rms_m > worst->marker_body_rms_m)) {
+        worst = &s;
+      }
+    }
+    if (worst == nullptr) return result;
+    rejected.push_back(
+        {worst->station, worst->num_markers, worst->marker_body_rms_m, worst->marker_body_tail});
+    const int id = worst->station;
+    kept.erase(std::find_if(kept.begin(), kept.end(),
+                            [id](const RegistrationStation& s) { return s.station == id; }));
+  }
 }
 
 std::string RegistrationResult::ToString() const {
@@ -616,7 +677,14 @@ std::string RegistrationResult::ToString() const {
                        : "")
       << "\n";
   out << "stations used " << stations.size() << ", skipped " << skipped_stations.size()
-      << ", marker observations " << num_marker_observations << "\n";
+      << ", left out " << rejected_stations.size() << ", marker observations "
+      << num_marker_observations << "\n";
+  for (const RejectedStation& r : rejected_stations) {
+    out << "  left out station " << r.station << ": its " << r.num_markers
+        << " markers misfit the marker body by " << Fmt("%.2f", r.marker_body_rms_m * 1e3)
+        << " mm RMS (chi-square tail " << Fmt("%.2g", r.marker_body_tail)
+        << "): a swapped or misidentified marker?\n";
+  }
   out << "solver: " << solver_report << (converged ? "" : " (NOT CONVERGED)") << "\n";
   out << "initialisation: " << initialisation << "\n";
   out << (identifiable ? "identifiable" : "NOT IDENTIFIABLE") << "; " << covariance.ToString();
@@ -647,14 +715,23 @@ nlohmann::json RegistrationResult::ToJson() const {
   }
   nlohmann::json station_list = nlohmann::json::array();
   for (const RegisteredStation& s : stations) {
-    station_list.push_back({{"station", s.station},
-                            {"num_markers", s.num_markers},
-                            {"chi_square", s.chi_square},
-                            {"marker_rms_mm", s.marker_rms_m * 1e3},
-                            {"tracker_position_residual_mm", s.tracker_position_residual_m * 1e3},
-                            {"tracker_orientation_residual_deg",
-                             s.tracker_orientation_residual_rad * kDegPerRad},
-                            {"tracker_residual_whitened", Vec(s.tracker_residual_whitened)}});
+    station_list.push_back(
+        {{"station", s.station},
+         {"num_markers", s.num_markers},
+         {"chi_square", s.chi_square},
+         {"marker_rms_mm", s.marker_rms_m * 1e3},
+         {"marker_body_rms_mm", s.marker_body_rms_m * 1e3},
+         {"marker_body_tail", s.marker_body_tail},
+         {"tracker_position_residual_mm", s.tracker_position_residual_m * 1e3},
+         {"tracker_orientation_residual_deg", s.tracker_orientation_residual_rad * kDegPerRad},
+         {"tracker_residual_whitened", Vec(s.tracker_residual_whitened)}});
+  }
+  nlohmann::json rejected_list = nlohmann::json::array();
+  for (const RejectedStation& r : rejected_stations) {
+    rejected_list.push_back({{"station", r.station},
+                             {"num_markers", r.num_markers},
+                             {"marker_body_rms_mm", r.marker_body_rms_m * 1e3},
+                             {"marker_body_tail", r.marker_body_tail}});
   }
   const ResidualStructure& rs = residual_structure;
   nlohmann::json flags = nlohmann::json::array();
@@ -670,6 +747,7 @@ nlohmann::json RegistrationResult::ToJson() const {
           {"markers", marker_list},
           {"stations", station_list},
           {"skipped_stations", skipped_stations},
+          {"rejected_stations", rejected_list},
           {"num_marker_observations", num_marker_observations},
           {"num_parameters", num_parameters},
           {"chi_square", chi_square},

@@ -75,6 +75,19 @@ struct RegistrationOptions {
   CovarianceOptions covariance;
   // Threads for Ceres.
   int num_threads = 1;
+  // Leave out stations whose markers do not fit the marker body (a swapped or misidentified
+  // marker label, a reflection taken for a marker): after each solve the worst station beyond
+  // both tests below is left out and the registration solved again, until none is or
+  // max_rejected_fraction of the stations are out. The test places the registered marker body by
+  // its own best optical fit at each station, so a distorted tracker reading, which only moves
+  // the whole body, never fails it.
+  bool reject_bad_stations = true;
+  // The body fit's RMS residual must exceed this [m] ...
+  double max_station_marker_rms_m = 1e-3;
+  // ... and optical_noise_m must not explain it: chi-square (3 x markers - 6 dof) tail below this.
+  double station_false_alarm = 1e-3;
+  // At most this fraction of the usable stations is left out (rounded down).
+  double max_rejected_fraction = 0.2;
   bool Check() const;
 };
 
@@ -101,6 +114,11 @@ struct RegisteredStation {
   double tracker_position_residual_m = 0.0;       // |estimate - tracker reading| [m]
   double tracker_orientation_residual_rad = 0.0;  // angle between estimate and reading [rad]
   double chi_square = 0.0;  // this station's whitened squared residuals (optical + prior)
+  // The registered marker body placed by its best optical fit at this station (no tracker
+  // reading): RMS of the residual vectors' norms [m] and the chi-square tail of the residuals
+  // under the stated optical noise (3 x markers - 6 dof; 1 with 2 markers or fewer).
+  double marker_body_rms_m = 0.0;
+  double marker_body_tail = 1.0;
   // Whitened tracker residual, estimate - reading: [position / tracker_position_noise_m;
   // rotation vector of q_estimate * conj(q_reading) / tracker_orientation_noise_rad].
   Eigen::Matrix<double, 6, 1> tracker_residual_whitened = Eigen::Matrix<double, 6, 1>::Zero();
@@ -125,6 +143,15 @@ struct ResidualStructure {
   bool Flagged(double alpha = 1e-3) const { return residual_dof > 0 && p_value < alpha; }
 };
 
+// A station left out because its markers do not fit the marker body (RegistrationOptions::
+// reject_bad_stations); its values are from the solve that still included it.
+struct RejectedStation {
+  int station = 0;
+  int num_markers = 0;
+  double marker_body_rms_m = 0.0;
+  double marker_body_tail = 1.0;
+};
+
 struct RegistrationResult {
   OpticalRegistration registration;
   // Covariance of optical_from_transmitter as a 6-vector [rotation vector (rad) of a left
@@ -135,6 +162,7 @@ struct RegistrationResult {
   std::vector<RegisteredMarker> markers;    // sorted by id
   std::vector<RegisteredStation> stations;  // used stations, input order
   std::vector<int> skipped_stations;        // ids with too few markers
+  std::vector<RejectedStation> rejected_stations;  // left out, in the order they were left out
 
   int num_marker_observations = 0;  // optical measurements used (each 3 coordinates)
   int num_parameters = 0;           // M = 6 + 3 * number of markers
