@@ -5,7 +5,7 @@
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json] [--quiet]
 //                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
-//                         [--allow-unidentifiable]
+//                         [--allow-unidentifiable] [--keep-all-stations]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
 //                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json] [--quiet]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
@@ -73,7 +73,7 @@ void PrintUsage(std::ostream& out) {
          "[--quiet]\n"
          "                        [--optical-noise-mm S] [--tracker-noise-mm S] "
          "[--tracker-noise-deg S]\n"
-         "                        [--allow-unidentifiable]\n"
+         "                        [--allow-unidentifiable] [--keep-all-stations]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N] "
          "-o poses.csv [--json]\n"
@@ -540,10 +540,11 @@ int RunPair(int argc, char** argv) {
 }
 
 int RunRegister(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv,
-                              {"--markers", "--tracker", "-o", "--set", "--poses", "--model",
-                               "--optical-noise-mm", "--tracker-noise-mm", "--tracker-noise-deg"},
-                              {"--json", "--quiet", "--allow-unidentifiable"});
+  const Args args =
+      ParseArgs(argc, argv,
+                {"--markers", "--tracker", "-o", "--set", "--poses", "--model",
+                 "--optical-noise-mm", "--tracker-noise-mm", "--tracker-noise-deg"},
+                {"--json", "--quiet", "--allow-unidentifiable", "--keep-all-stations"});
   // Noise of the averaged readings (fit/registration.h); they set the weights and the covariance.
   RegistrationOptions registration_options;
   auto noise = [&](const std::string& key, double scale, double* out) {
@@ -555,6 +556,7 @@ int RunRegister(int argc, char** argv) {
   noise("--optical-noise-mm", 1e-3, &registration_options.optical_noise_m);
   noise("--tracker-noise-mm", 1e-3, &registration_options.tracker_position_noise_m);
   noise("--tracker-noise-deg", kRadPerDeg, &registration_options.tracker_orientation_noise_rad);
+  registration_options.reject_bad_stations = !args.Flag("--keep-all-stations");
   PoseExtractionOptions extraction_options;
   extraction_options.optical_noise_m = registration_options.optical_noise_m;
   const fs::path markers_path = args.Get("--markers");
@@ -631,6 +633,12 @@ int RunRegister(int argc, char** argv) {
     registration = RegisterOpticalToTransmitter(registration_stations, registration_options);
   }
 
+  for (const RejectedStation& r : registration.rejected_stations) {
+    std::cerr << "trackcal-fit register: warning: station " << r.station
+              << " left out of the registration: its markers misfit the marker body by "
+              << r.marker_body_rms_m * 1e3
+              << " mm RMS (a swapped or misidentified marker?); --keep-all-stations keeps it\n";
+  }
   // The reference poses inherit every undetermined direction of the transform: not written unless
   // asked for, so a script chaining register and fit stops here (exit 3), with the report printed.
   const bool write_unidentifiable = args.Flag("--allow-unidentifiable");

@@ -570,8 +570,8 @@ void BindFit(py::module_& m) {
       "register",
       [](const py::object& markers, const py::object& tracker, int sensor, const std::string& set,
          double optical_noise_m, double tracker_position_noise_m,
-         double tracker_orientation_noise_deg, int min_markers_per_station,
-         const py::object& poses) {
+         double tracker_orientation_noise_deg, int min_markers_per_station, const py::object& poses,
+         bool reject_bad_stations) {
         auto run = std::make_shared<RegistrationRun>();
         const fs::path markers_path = ToPath(markers), tracker_path = ToPath(tracker);
         run->inputs = {markers_path, tracker_path};
@@ -583,6 +583,7 @@ void BindFit(py::module_& m) {
         options.tracker_position_noise_m = tracker_position_noise_m;
         options.tracker_orientation_noise_rad = tracker_orientation_noise_deg * kRadPerDeg;
         options.min_markers_per_station = min_markers_per_station;
+        options.reject_bad_stations = reject_bad_stations;
         if (!options.Check())
           throw py::value_error("register: invalid options (noise must be > 0)");
         fit::PoseRecordOptions record_options;
@@ -641,6 +642,7 @@ void BindFit(py::module_& m) {
       py::arg("set") = "calib", py::arg("optical_noise_m") = 1.5e-4,
       py::arg("tracker_position_noise_m") = 8e-4, py::arg("tracker_orientation_noise_deg") = 0.15,
       py::arg("min_markers_per_station") = 3, py::arg("poses") = py::none(),
+      py::arg("reject_bad_stations") = true,
       "Registers the optical frame to the transmitter from markers.csv and tracker.csv and "
       "extracts each station's reference pose, as `trackcal-fit register` does; with `poses` (a "
       "poses.csv) only its `reg` stations register and every station keeps its set and time, as "

@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import threading
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -278,6 +279,39 @@ def test_register_warns_when_not_identifiable(capture_dir, tmp_path):
                           capture_output=True, text=True)
     assert done.returncode == 3, done.stderr
     assert not (tmp_path / "poses.csv").exists()
+
+
+def test_station_with_swapped_marker_labels_is_left_out_with_a_warning(capture_dir, tmp_path):
+    """Two marker labels swapped at one station: Python and the command line leave it out of the
+    registration, say so, and give it no reference pose; kept on request."""
+    with open(capture_dir / "markers.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    seen = [row["station"] for row in rows]
+    station = max(set(seen), key=seen.count)  # four or more markers, so a swap cannot fit
+    first, second = [i for i, row in enumerate(rows) if row["station"] == station][:2]
+    rows[first]["marker"], rows[second]["marker"] = rows[second]["marker"], rows[first]["marker"]
+    with open(tmp_path / "markers.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(rows)
+    shutil.copy(capture_dir / "tracker.csv", tmp_path / "tracker.csv")
+
+    with pytest.warns(UserWarning, match=f"station {station} left out of the registration"):
+        reg = trackcal.register(tmp_path / "markers.csv", tmp_path / "tracker.csv")
+    assert [r["station"] for r in reg.rejected_stations] == [int(station)]
+    assert reg.rejected_stations[0]["marker_body_rms_mm"] > 1.0  # beyond the 1 mm test
+    assert int(station) in reg.left_out and int(station) not in reg.poses.station.tolist()
+    done = subprocess.run([shutil.which("trackcal-fit"), "register", "--markers", tmp_path / "markers.csv",
+                           "--tracker", tmp_path / "tracker.csv", "-o", tmp_path / "poses.csv", "--json"],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert f"station {station} left out of the registration" in done.stderr
+    assert json.loads(done.stdout)["registration"]["rejected_stations"][0]["station"] == int(station)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning when every station is kept on request
+        kept = trackcal.register(tmp_path / "markers.csv", tmp_path / "tracker.csv", reject_bad_stations=False)
+    assert kept.rejected_stations == [] and kept.chi_square > reg.chi_square
 
 
 def test_stream_folder_with_free_time_offset_matches_the_command_line(capture_dir, tmp_path):

@@ -233,6 +233,8 @@ class Registration:
         self.optical_from_transmitter_stddev: np.ndarray = native.optical_from_transmitter_stddev
         self.markers: List[dict] = native.markers
         self.identifiability_flags: List[dict] = native.identifiability_flags
+        # Stations left out because their markers misfit the marker body (docs/registration.md).
+        self.rejected_stations: List[dict] = native.to_dict()["registration"]["rejected_stations"]
 
     def summary(self) -> str:
         return self._native.summary()
@@ -251,7 +253,7 @@ class Registration:
 def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str = "calib",
              optical_noise_m: float = 1.5e-4, tracker_position_noise_m: float = 8e-4,
              tracker_orientation_noise_deg: float = 0.15, min_markers_per_station: int = 3,
-             poses: Optional[PathLike] = None) -> Registration:
+             poses: Optional[PathLike] = None, reject_bad_stations: bool = True) -> Registration:
     """Optical-to-transmitter registration (paper section 3) from markers.csv and tracker.csv, and
     the reference pose of every station from its markers, as ``trackcal-fit register``.
 
@@ -263,13 +265,22 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
 
     A registration that is not identifiable (``identifiable`` False: the stations leave directions
     of the transform undetermined, ``identifiability_flags`` names them) warns: its poses inherit
-    those directions, and ``trackcal-fit register`` refuses to write them."""
+    those directions, and ``trackcal-fit register`` refuses to write them.
+
+    A station whose markers no rigid placement of the marker body explains (a swapped or
+    misidentified label) is left out of the registration, at most 20 % of them, with a warning
+    naming it (``rejected_stations``); ``reject_bad_stations=False``
+    keeps every station, as ``--keep-all-stations``."""
     result = Registration(_core.register(markers, tracker, sensor=sensor, set=set,
                                          optical_noise_m=optical_noise_m,
                                          tracker_position_noise_m=tracker_position_noise_m,
                                          tracker_orientation_noise_deg=tracker_orientation_noise_deg,
                                          min_markers_per_station=min_markers_per_station,
-                                         poses=poses))
+                                         poses=poses, reject_bad_stations=reject_bad_stations))
+    for left_out in result.rejected_stations:
+        warnings.warn(f"{markers}: station {left_out['station']} left out of the registration: its markers "
+                      f"misfit the marker body by {left_out['marker_body_rms_mm']:.2f} mm RMS (a swapped or "
+                      "misidentified marker?)", UserWarning, stacklevel=2)
     if not result.identifiable:
         flagged = ", ".join(f["coordinate"] for f in result.identifiability_flags) or "none named"
         warnings.warn(f"{markers}: the registration is not identifiable (poorly identified: {flagged}); "
