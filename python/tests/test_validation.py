@@ -244,3 +244,13 @@ def test_residuals_never_replace_a_file_that_appears_while_they_are_written(tmp_
         v.write_residuals(tmp_path / "none" / "r.csv")
     v.write_residuals(tmp_path / "new.csv")
     assert (tmp_path / "new.csv").read_text().startswith("station,set,sensor,")
+
+
+def test_corrected_poses_of_the_wrong_count_are_a_value_error(tmp_path):
+    """One corrected pose per station of the capture: another count is the caller's error, named
+    (it was an IndexError from the boolean mask of the registration stations)."""
+    cap = captures.load_poses(hand_capture(tmp_path))
+    with pytest.raises(ValueError, match=r"corrected_poses: expected \(4, 3\) positions and \(4, 4\) quaternions"):
+        validation.validate(cap, None, analyse_covariates=False,
+                            corrected_poses=(cap.reference_positions[:3], cap.reference_quaternions_xyzw[:3]))
+

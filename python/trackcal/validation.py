@@ -667,9 +667,14 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
                                                            return_status=True)
     if corrected_poses is not None:
         keep = capture.set != "reg" if "reg" in capture.sets else np.ones(len(capture), bool)
-        cp, cq = (np.asarray(a, dtype=float)[keep] for a in corrected_poses)
-        if cp.shape != (len(data), 3) or cq.shape != (len(data), 4):
-            raise ValueError(f"corrected_poses: expected ({len(data)}, 3) positions and ({len(data)}, 4) quaternions")
+        cp, cq = (np.asarray(a, dtype=float) for a in corrected_poses)
+        # One row per station of the capture, checked before the registration stations are
+        # dropped: a wrong count made the boolean mask an IndexError instead of this message.
+        if cp.shape != (len(capture), 3) or cq.shape != (len(capture), 4):
+            raise ValueError(f"corrected_poses: expected ({len(capture)}, 3) positions and ({len(capture)}, 4) "
+                             f"quaternions x, y, z, w (one per station of the capture), got {cp.shape} and "
+                             f"{cq.shape}")
+        cp, cq = cp[keep], cq[keep]
     if cp is not None:
         after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
     # A hemisphere flip (-p) stays 2 |p| off whatever the calibration. Each set decides its own
