@@ -254,3 +254,20 @@ def test_corrected_poses_of_the_wrong_count_are_a_value_error(tmp_path):
         validation.validate(cap, None, analyse_covariates=False,
                             corrected_poses=(cap.reference_positions[:3], cap.reference_quaternions_xyzw[:3]))
 
+
+@pytest.mark.parametrize("field", ["position", "quaternion"])
+def test_corrected_poses_that_are_not_poses_are_refused_naming_the_station(tmp_path, field):
+    """A NaN corrected position made the means NaN while the maximum and the worst stations left it
+    out without a word; a zero quaternion was scored as a perfect 0 degree orientation."""
+    cap = captures.load_poses(hand_capture(tmp_path))
+    p, q = cap.reference_positions.copy(), cap.reference_quaternions_xyzw.copy()
+    if field == "position":
+        p[2, 1] = np.nan
+    else:
+        q[2] = 0.0
+    with pytest.raises(ValueError, match=rf"corrected_poses: station 3: {field}"):
+        validation.validate(cap, None, analyse_covariates=False, corrected_poses=(p, q))
+    # Unit quaternions, q or -q, are accepted and equal.
+    v = validation.validate(cap, None, analyse_covariates=False,
+                            corrected_poses=(cap.reference_positions, -cap.reference_quaternions_xyzw))
+    np.testing.assert_allclose(v.after.orientation_deg, 0.0, atol=1e-9)

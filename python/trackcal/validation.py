@@ -640,6 +640,22 @@ def _sub(r: Residuals, idx) -> Residuals:
     return Residuals(r.position[idx], r.orientation[idx], r.position_mm[idx], r.orientation_deg[idx])
 
 
+def _check_corrected_poses(data: PoseCapture, positions: np.ndarray, quaternions_xyzw: np.ndarray) -> None:
+    """ValueError naming the first station whose corrected pose is not finite or whose quaternion is
+    not a unit quaternion (norm 1 within 1e-3, as a capture file's; docs/captures.md). A NaN
+    made every mean NaN while the maximum and the worst stations silently left it out, and a zero
+    quaternion was normalised to nothing and counted as a perfect 0 degree orientation."""
+    bad_p = ~np.all(np.isfinite(positions), axis=1)
+    norm = np.linalg.norm(quaternions_xyzw, axis=1)
+    with np.errstate(invalid="ignore"):
+        bad_q = ~(np.abs(norm - 1.0) <= 1e-3)
+    for i in np.flatnonzero(bad_p | bad_q):
+        where = f"corrected_poses: station {int(data.station[i])}"
+        if bad_p[i]:
+            raise ValueError(f"{where}: position {positions[i].tolist()} is not finite")
+        raise ValueError(f"{where}: quaternion x, y, z, w {quaternions_xyzw[i].tolist()}: norm {norm[i]:g} is not 1")
+
+
 def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("calib", "valid"),
              worst_count: int = 10, analyse_covariates: bool = True, covariate_options: Optional[dict] = None,
              progress: Optional[Callable[[int, int], None]] = None,
@@ -675,6 +691,7 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
                              f"quaternions x, y, z, w (one per station of the capture), got {cp.shape} and "
                              f"{cq.shape}")
         cp, cq = cp[keep], cq[keep]
+        _check_corrected_poses(data, cp, cq)
     if cp is not None:
         after = residuals(cp, cq, data.reference_positions, data.reference_quaternions_xyzw)
     # A hemisphere flip (-p) stays 2 |p| off whatever the calibration. Each set decides its own
