@@ -271,3 +271,29 @@ def test_corrected_poses_that_are_not_poses_are_refused_naming_the_station(tmp_p
     v = validation.validate(cap, None, analyse_covariates=False,
                             corrected_poses=(cap.reference_positions, -cap.reference_quaternions_xyzw))
     np.testing.assert_allclose(v.after.orientation_deg, 0.0, atol=1e-9)
+
+
+def test_residual_rows_keep_every_extra_column_whatever_its_name(tmp_path):
+    """An extra column named like a derived column (x) is written as extra_x; a column the user
+    named extra_x was then overwritten by x's values (one column lost without a word). Both are
+    kept, named as the covariate analysis names them."""
+    base = captures.load_poses(hand_capture(tmp_path))
+    cap = types.SimpleNamespace(station=base.station, set=list(base.set), sensor=base.sensor, time=base.time,
+                                reported_positions=base.reported_positions,
+                                reported_quaternions_xyzw=base.reported_quaternions_xyzw,
+                                reference_positions=base.reference_positions,
+                                reference_quaternions_xyzw=base.reference_quaternions_xyzw)
+    (tmp_path / "named").mkdir()
+    path = write_poses(tmp_path / "named" / "poses.csv", cap,
+                       extra={"extra_x": [101.0, 102.0, 103.0, 104.0], "x": [1.0, 2.0, 3.0, 4.0]})
+    v = validation.validate(captures.load_poses(path), None, analyse_covariates=False)
+    rows = v.station_rows()
+    assert [r["extra_x"] for r in rows] == [101.0, 102.0, 103.0, 104.0]
+    assert [r["extra_extra_x"] for r in rows] == [1.0, 2.0, 3.0, 4.0]
+    assert rows[0]["x"] == pytest.approx(base.reported_positions[0, 0])
+    covs = validation.covariates(v.capture)
+    np.testing.assert_array_equal(covs["extra_x"], [101.0, 102.0, 103.0, 104.0])
+    np.testing.assert_array_equal(covs["extra_extra_x"], [1.0, 2.0, 3.0, 4.0])
+    out = v.write_residuals(tmp_path / "residuals.csv")
+    header = out.read_text().splitlines()[0].split(",")
+    assert header.count("extra_x") == 1 and "extra_extra_x" in header

@@ -602,10 +602,11 @@ class Validation:
             row["outside"] = bool(self.extrapolated[i])
             row["flipped"] = bool(self.flipped[i]) if self.flipped is not None else False
             row["status"] = correction_status_names[int(self.status[i])] if self.status is not None else "converged"
-            for name, values in extras:
+            if i == 0:
+                keys = _extra_keys(row, c.extra_columns)
+            for (name, values), key in zip(extras, keys):
                 value = values[i]
-                row[name if name not in row else f"extra_{name}"] = (
-                    value if value is None or isinstance(value, str) else float(value))
+                row[key] = value if value is None or isinstance(value, str) else float(value)
             rows.append(row)
         return rows
 
@@ -634,6 +635,23 @@ class Validation:
     def summary_text(self) -> str:
         out = [t.format() for t in self.tables]
         return "\n".join(out)
+
+
+def _extra_keys(row: dict, extra_columns: Sequence[str]) -> List[str]:
+    """The key of each extra column in a station row: its name, or extra_<name> (extra_extra_<name>
+    ...) when the row or another extra column has that name already, as ``covariates_and_labels``
+    names them. extra_<name> alone overwrote a user's own column extra_<name> with <name>'s values."""
+    taken = set(row) | set(extra_columns)
+    keys = []
+    for name in extra_columns:
+        key = name
+        if name in row:
+            key = "extra_" + name
+            while key in taken:
+                key = "extra_" + key
+            taken.add(key)
+        keys.append(key)
+    return keys
 
 
 def _sub(r: Residuals, idx) -> Residuals:
