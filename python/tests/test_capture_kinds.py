@@ -271,3 +271,35 @@ def test_validate_records_stream_files_by_absolute_path(sim, tmp_path, monkeypat
     assert cli.main(["validate", streams.name, "-c", str(cal), "--workdir", str(tmp_path / "work")]) == 0
     data = history.load_history(tmp_path / "work")[0]["data"]
     assert [d["path"] for d in data] == [str(streams / "tracker_stream.csv"), str(streams / "reference_stream.csv")]
+
+
+def test_stream_rows_out_of_time_order_give_each_station_its_own_speed_and_columns(tmp_path):
+    """The tracker stream reader and the pairing accept rows in any order (receivers interleave;
+    streams get merged), but the speed and the extra columns were interpolated along the file's
+    order: a stream written out of time order gave stations another sample's speed (0.2 m/s off on
+    a 0.1 m/s motion) and column values. They must not depend on the order of the rows."""
+    n = 200
+    t = 100.0 + 0.01 * np.arange(n)
+    p = np.column_stack([0.3 + 0.1 * np.sin(t), np.full(n, 0.2), np.full(n, -0.5)])  # speed 0.1 |cos t|
+    frame = np.arange(n, dtype=float)
+    t, p, frame = t.tolist(), p.tolist(), frame.tolist()  # floats that print as numbers
+
+    def write(folder, order):
+        folder.mkdir()
+        rows = ["time,sensor,x,y,z,qw,qx,qy,qz,frame"] + [
+            f"{t[i]!r},1,{p[i][0]!r},{p[i][1]!r},{p[i][2]!r},1,0,0,0,{frame[i]!r}" for i in order]
+        (folder / "tracker_stream.csv").write_text("\n".join(rows) + "\n")
+        rows = ["time,x,y,z,qw,qx,qy,qz"] + [f"{t[i]!r},{p[i][0]!r},{p[i][1]!r},{p[i][2]!r},1,0,0,0"
+                                             for i in range(n)]
+        (folder / "reference_stream.csv").write_text("\n".join(rows) + "\n")
+        cap = captures.load(folder, time_offset=0.0)
+        by_time = np.argsort(cap.time)
+        return cap.time[by_time], cap.speed[by_time], cap.column("frame")[by_time]
+
+    t_sorted, speed_sorted, frame_sorted = write(tmp_path / "sorted", np.arange(n))
+    t_mixed, speed_mixed, frame_mixed = write(tmp_path / "mixed", np.random.default_rng(3).permutation(n))
+    np.testing.assert_array_equal(t_mixed, t_sorted)
+    np.testing.assert_allclose(speed_sorted, 0.1 * np.abs(np.cos(t_sorted)), atol=1e-3)
+    np.testing.assert_allclose(speed_mixed, speed_sorted, atol=1e-12)
+    np.testing.assert_array_equal(frame_mixed, frame_sorted)
+    np.testing.assert_array_equal(frame_sorted, np.round((t_sorted - 100.0) / 0.01))

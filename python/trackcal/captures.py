@@ -214,20 +214,25 @@ def carry_stream_columns(cap: PoseCapture, tracker_stream: PathLike, reference_s
     reference_<name>. Returns the sensor whose samples were paired."""
     stream = load_tracker_stream(tracker_stream)
     sensor = int(cap.sensor[0]) if len(cap) else int(stream.sensor[0]) if len(stream) else 1
-    own = stream.sensor == sensor
-    cap.speed = (np.interp(cap.time, stream.time[own], stream.speed()[own]) if own.any()
+    # The sensor's samples in time order: the tracker stream reader does not require it (several
+    # receivers interleave), the pairing takes each sample alone, and np.interp and
+    # nearest_samples need increasing times (out of order they silently gave another sample's
+    # speed and columns).
+    own = np.flatnonzero(stream.sensor == sensor)
+    own = own[np.argsort(stream.time[own], kind="stable")]
+    cap.speed = (np.interp(cap.time, stream.time[own], stream.speed()[own]) if len(own)
                  else np.zeros(len(cap)))
     if not len(cap):
         return sensor
     reference = load_reference_stream(reference_stream)
     names = list(cap.extra_columns)
     columns = [cap.extra[:, k] for k in range(len(cap.extra_columns))]
-    for table, mask, at, prefix in ((stream, own, cap.time, ""),
-                                    (reference, np.ones(len(reference), bool), cap.time + time_offset_s,
+    for table, rows, at, prefix in ((stream, own, cap.time, ""),
+                                    (reference, np.arange(len(reference)), cap.time + time_offset_s,
                                      "reference_")):
-        if not mask.any():
+        if not len(rows):
             continue
-        t = table.time[mask]
+        t = table.time[rows]
         for k, name in enumerate(table.extra_columns):
             out = name
             if out in names:
@@ -236,7 +241,7 @@ def carry_stream_columns(cap: PoseCapture, tracker_stream: PathLike, reference_s
                 out = prefix + name
                 if out in names:
                     continue
-            v = table.extra[mask, k]
+            v = table.extra[rows, k]
             if name in table.extra_labels:
                 columns.append(v[nearest_samples(t, at)])
                 cap.extra_labels[out] = list(table.extra_labels[name])
@@ -293,10 +298,12 @@ class TrackerStream(_StreamColumns):
     extra_labels: dict = dataclasses.field(default_factory=dict)  # as PoseCapture's
 
     def speed(self) -> np.ndarray:
-        """Speed [m/s] per sample from central differences along each sensor's samples."""
+        """Speed [m/s] per sample from central differences along each sensor's samples in time
+        order."""
         out = np.zeros(len(self.time))
         for s in np.unique(self.sensor):
             idx = np.flatnonzero(self.sensor == s)
+            idx = idx[np.argsort(self.time[idx], kind="stable")]  # neighbours in time, not in the file
             if len(idx) < 2:
                 continue
             t, p = self.time[idx], self.positions[idx]
