@@ -303,3 +303,22 @@ def test_stream_rows_out_of_time_order_give_each_station_its_own_speed_and_colum
     np.testing.assert_allclose(speed_mixed, speed_sorted, atol=1e-12)
     np.testing.assert_array_equal(frame_mixed, frame_sorted)
     np.testing.assert_array_equal(frame_sorted, np.round((t_sorted - 100.0) / 0.01))
+
+
+def test_a_capture_folder_given_to_pair_register_or_a_recording_names_its_files(sim, tmp_path):
+    """A folder given where a file is expected is read as its capture file, as captures.load_* do;
+    the C++ readers failed on it with 'basic_filebuf::underflow error reading the file: Is a
+    directory', naming no file (and validate_recording read its raw folder one way and paired it
+    the other)."""
+    cap_dir, streams, _ = sim
+    from_files = trackcal.pair(streams / "tracker_stream.csv", streams / "reference_stream.csv", time_offset=0.0)
+    from_folder = trackcal.pair(streams, streams, time_offset=0.0)
+    np.testing.assert_array_equal(from_folder.poses.reported_positions, from_files.poses.reported_positions)
+    v = validation.validate_recording(streams, streams, time_offset=0.0)
+    assert len(v.capture) == len(from_files.poses)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match=r"empty/tracker_stream\.csv: cannot open file"):
+        trackcal.pair(empty, streams)
+    with pytest.raises(ValueError, match=r"empty/markers\.csv: cannot open file"):
+        trackcal.register(empty, cap_dir / "tracker.csv")

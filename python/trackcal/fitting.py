@@ -250,6 +250,15 @@ class Registration:
         return self._native.to_dict()
 
 
+def _input_file(path, file_name: str):
+    """``path``, or ``path/file_name`` when it is a folder, as ``trackcal.captures.load_*`` read a
+    capture folder: given a folder, the C++ readers failed with "basic_filebuf::underflow error
+    reading the file: Is a directory", a ValueError that names no file."""
+    if path is None or not isinstance(path, (str, os.PathLike)) or not os.path.isdir(path):
+        return path
+    return pathlib.Path(path) / file_name
+
+
 def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str = "calib",
              optical_noise_m: float = 1.5e-4, tracker_position_noise_m: float = 8e-4,
              tracker_orientation_noise_deg: float = 0.15, min_markers_per_station: int = 3,
@@ -257,7 +266,8 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     """Optical-to-transmitter registration (paper section 3) from markers.csv and tracker.csv, and
     the reference pose of every station from its markers, as ``trackcal-fit register``.
 
-    Without ``poses`` every station registers and gets set ``set``. With ``poses`` (a poses.csv
+    A folder stands for its markers.csv, tracker.csv or poses.csv. Without ``poses`` every station
+    registers and gets set ``set``. With ``poses`` (a poses.csv
     whose ``set`` column labels every station of markers.csv), only its ``reg`` stations register
     (the paper's ~20 stations near the transmitter, where the distortion is small) and every station
     keeps its set and time, as ``trackcal-fit register --poses``: registering with distorted
@@ -269,8 +279,10 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
 
     A station whose markers no rigid placement of the marker body explains (a swapped or
     misidentified label) is left out of the registration, at most 20 % of them, with a warning
-    naming it (``rejected_stations``); ``reject_bad_stations=False``
-    keeps every station, as ``--keep-all-stations``."""
+    naming it (``rejected_stations``); ``reject_bad_stations=False`` keeps every station, as
+    ``--keep-all-stations``."""
+    markers, tracker = _input_file(markers, "markers.csv"), _input_file(tracker, "tracker.csv")
+    poses = _input_file(poses, "poses.csv")
     result = Registration(_core.register(markers, tracker, sensor=sensor, set=set,
                                          optical_noise_m=optical_noise_m,
                                          tracker_position_noise_m=tracker_position_noise_m,
@@ -312,7 +324,10 @@ def pair(tracker: PathLike, reference: PathLike, *, time_offset: float = 0.0,
          estimate_time_offset: bool = False, search_range: float = 0.5, max_gap_s: float = 0.1,
          sensor: int = 0, set: str = "calib", decimate: int = 1) -> Pairing:
     """Pairs tracker_stream.csv with reference_stream.csv by time (reference pose interpolated at
-    t + time_offset), estimating the offset if asked, as ``trackcal-fit pair``."""
+    t + time_offset), estimating the offset if asked, as ``trackcal-fit pair``. A folder stands for
+    its tracker_stream.csv (``tracker``) or reference_stream.csv (``reference``)."""
+    tracker = _input_file(tracker, "tracker_stream.csv")
+    reference = _input_file(reference, "reference_stream.csv")
     return Pairing(_core.pair(tracker, reference, time_offset=time_offset,
                               estimate_time_offset=estimate_time_offset, search_range=search_range,
                               max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate))
