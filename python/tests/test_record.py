@@ -297,3 +297,13 @@ def test_a_recording_is_paired_on_the_lowest_sensor_whatever_reported_first(tmp_
     assert set(v2.capture.sensor) == {2} and v2.before.position_mm.min() > 300
     with pytest.raises(ValueError, match=r"raw_tracker_stream\.csv: no report of sensor 3 \(have: 1, 2\)"):
         validation.validate_recording(raw, reference, time_offset=0.0, sensor=3)
+
+
+def test_recording_no_device_is_refused_before_anything_is_made(fake_recorders, tmp_path):
+    """With no device every device 'had connected' at once: record_streams made the folder, slept
+    through the duration and returned an empty recording without a word."""
+    out = tmp_path / "rec"
+    started = time.monotonic()
+    with pytest.raises(ValueError, match="devices: none given"):
+        record_streams({}, out, 2.0)
+    assert time.monotonic() - started < 1.0 and not out.exists() and not fake_recorders

@@ -46,6 +46,8 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
             seconds = math.nan
         if not (math.isfinite(seconds) and seconds > 0):
             raise ValueError(f"{name} {value!r}: must be a positive number of seconds")
+    if not devices:  # else it waited out the duration and returned no recording, no error
+        raise ValueError("devices: none given (label -> 'Tracker0@tcp://host:port')")
     for label in devices:
         # The label names the file: it must stay one plain file name inside out_dir.
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]*", label) or ".." in label:
