@@ -297,3 +297,12 @@ def test_status_of_terms_without_an_inverse_is_converged():
     assert trackcal.status_counts(status) == {"converged": 50, "ambiguous": 0, "not_converged": 0}
     with pytest.raises(ValueError, match="status codes"):
         trackcal.status_counts([0, 3])
+
+
+@pytest.mark.parametrize("bad", [[0.5, 1.7], [np.nan], ["ambiguous"]])
+def test_status_counts_refuses_codes_that_are_not_status_codes(bad):
+    """1.7 was truncated and counted as ambiguous, NaN failed inside bincount ('no negative
+    elements') and text with a numpy type error: each is an unknown code, named."""
+    with pytest.raises(ValueError, match=r"status code .*: status codes must be 0\.\.2"):
+        trackcal.status_counts(bad)
+    assert trackcal.status_counts(np.array([0.0, 2.0])) == {"converged": 1, "ambiguous": 0, "not_converged": 1}
