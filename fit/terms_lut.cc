@@ -7,14 +7,25 @@
 #include <Eigen/SparseCore>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <stdexcept>
+#include <string>
 
 namespace trackcal::fit {
 
 void LutTermOptions::Check() const {
   if (nodes) {
+    long total = 1;
     for (int n : *nodes) {
-      if (n < 2) throw std::invalid_argument("lut: nodes must be at least 2 per axis");
+      if (n < 2 || n > kMaxLutNodesPerAxis) {
+        throw std::invalid_argument("lut: nodes must be 2 .. " +
+                                    std::to_string(kMaxLutNodesPerAxis) + " per axis");
+      }
+      total *= n;
+    }
+    if (total > kMaxLutNodes) {
+      throw std::invalid_argument("lut: nodes: " + std::to_string(total) + " nodes, at most " +
+                                  std::to_string(kMaxLutNodes));
     }
   } else if (!(cell_size > 0.0) || !std::isfinite(cell_size)) {
     throw std::invalid_argument("lut: cell_size_mm must be > 0");
@@ -34,11 +45,13 @@ std::unique_ptr<ModelTerm> LutTerm::FromYaml(const YamlMapReader& reader) {
     const auto n = reader.GetDoubleList("nodes");
     if (n.size() != 3) reader.Fail("nodes", "expected 3 node counts [nx, ny, nz]");
     std::array<int, 3> counts;
-    for (int k = 0; k < 3; ++k) {
-      counts[static_cast<size_t>(k)] = static_cast<int>(n[static_cast<size_t>(k)]);
-      if (counts[static_cast<size_t>(k)] != n[static_cast<size_t>(k)] || counts[static_cast<size_t>(k)] < 2) {
-        reader.Fail("nodes", "node counts must be integers >= 2");
+    for (size_t k = 0; k < 3; ++k) {
+      // The range before the conversion: a double beyond int's range does not convert.
+      if (!(n[k] >= 2 && n[k] <= kMaxLutNodesPerAxis) || n[k] != std::floor(n[k])) {
+        reader.Fail("nodes",
+                    "node counts must be integers 2 .. " + std::to_string(kMaxLutNodesPerAxis));
       }
+      counts[k] = static_cast<int>(n[k]);
     }
     options.nodes = counts;
   }
@@ -51,6 +64,7 @@ std::unique_ptr<ModelTerm> LutTerm::FromYaml(const YamlMapReader& reader) {
     const std::string what = e.what();
     reader.Fail(what.find("ridge") != std::string::npos        ? "ridge"
                 : what.find("smoothness") != std::string::npos ? "smoothness"
+                : what.find("nodes") != std::string::npos      ? "nodes"
                                                                : "cell_size_mm",
                 what);
   }
@@ -84,14 +98,33 @@ void LutTerm::Prepare(const std::vector<FitStation>& inputs) {
     lo = lo.cwiseMin(s.reported.translation);
     hi = hi.cwiseMax(s.reported.translation);
   }
-  std::array<std::vector<double>, 3> axes;
+  std::array<int, 3> counts;
+  double total = 1.0;
   for (int k = 0; k < 3; ++k) {
     if (!(hi[k] > lo[k])) {  // flat data: a thin slab around it
       lo[k] -= 1e-3;
       hi[k] += 1e-3;
     }
-    const int n = options_.nodes ? (*options_.nodes)[static_cast<size_t>(k)]
-                                 : std::max(2, static_cast<int>(std::ceil((hi[k] - lo[k]) / options_.cell_size - 1e-9)) + 1);
+    // In double first: a small cell over a large box is beyond int's range.
+    const double n =
+        options_.nodes
+            ? (*options_.nodes)[static_cast<size_t>(k)]
+            : std::max(2.0, std::ceil((hi[k] - lo[k]) / options_.cell_size - 1e-9) + 1.0);
+    total *= n;
+    if (n > kMaxLutNodesPerAxis || total > static_cast<double>(kMaxLutNodes)) {
+      char what[200];
+      std::snprintf(what, sizeof(what),
+                    "lut: cell_size_mm %g over the stations' box (%.3g x %.3g x %.3g m) gives more "
+                    "than %ld nodes or %d per axis; use a larger cell",
+                    options_.cell_size * 1e3, hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2],
+                    kMaxLutNodes, kMaxLutNodesPerAxis);
+      throw std::invalid_argument(what);
+    }
+    counts[static_cast<size_t>(k)] = static_cast<int>(n);
+  }
+  std::array<std::vector<double>, 3> axes;
+  for (int k = 0; k < 3; ++k) {
+    const int n = counts[static_cast<size_t>(k)];
     for (int i = 0; i < n; ++i) axes[static_cast<size_t>(k)].push_back(lo[k] + (hi[k] - lo[k]) * i / (n - 1));
   }
   grid_.emplace(adopted_axes_ ? *adopted_axes_ : axes);

@@ -25,9 +25,14 @@
 
 namespace trackcal::fit {
 
+// Largest grid a LUT term builds: per axis and in all (six parameters per node; 40^3 nodes of 25
+// mm span a metre cube, so this leaves room for any grid the stations of a capture can support).
+inline constexpr int kMaxLutNodesPerAxis = 1000;
+inline constexpr long kMaxLutNodes = 200000;
+
 struct LutTermOptions {
   double cell_size = 0.1;              // [m] largest node spacing (used unless nodes is set)
-  std::optional<std::array<int, 3>> nodes;  // explicit node count per axis (>= 2 each)
+  std::optional<std::array<int, 3>> nodes;  // explicit node count per axis (2 .. 1000 each)
   double smoothness = 1.0;             // weight of the second-difference residuals (>= 0)
   // Weight of residuals ridge * v / sigma pulling every node value to zero (>= 0). Multilinear fields
   // (1, x, y, z, xy, xz, yz, xyz) are reproduced exactly by both a LUT and a polynomial and have no

@@ -1,5 +1,6 @@
 #include "fit/terms_lut.h"
 
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
 #include <random>
@@ -163,6 +164,38 @@ TEST(LutTerm, ModelFileErrors) {
   EXPECT_THROW(ParseModelYaml("terms: [{type: lut, cell_size_mm: 0}]", "m"), std::invalid_argument);
   EXPECT_THROW(ParseModelYaml("terms: [{type: lut, nodes: [2, 2]}]", "m"), std::invalid_argument);
   EXPECT_THROW(ParseModelYaml("terms: [{type: lut, smoothness: -1}]", "m"), std::invalid_argument);
+}
+
+// Node counts beyond int's range used to be converted before their check (undefined behaviour),
+// and a tiny cell over the stations' box built grids beyond memory: both are errors naming the key
+// or the cell size.
+TEST(LutTerm, GridSizeIsBounded) {
+  auto error_of = [](const std::string& yaml) -> std::string {
+    try {
+      ParseModelYaml(yaml, "m.yaml");
+    } catch (const std::invalid_argument& e) {
+      return e.what();
+    }
+    return "";
+  };
+  EXPECT_THAT(error_of("terms: [{type: lut, nodes: [1e12, 4, 4]}]"),
+              ::testing::HasSubstr("nodes: node counts must be integers 2 .. 1000"));
+  EXPECT_THAT(error_of("terms: [{type: lut, nodes: [2.5, 4, 4]}]"),
+              ::testing::HasSubstr("nodes: node counts must be integers"));
+  EXPECT_THAT(error_of("terms: [{type: lut, nodes: [100, 100, 100]}]"),
+              ::testing::HasSubstr("$.terms[0].nodes: lut: nodes: 1000000 nodes, at most 200000"));
+  EXPECT_EQ(error_of("terms: [{type: lut, nodes: [100, 100, 20]}]"), "");
+
+  std::mt19937 rng(4);
+  auto stations = RandomStations(50, &rng);  // about a metre wide
+  for (auto& s : stations) s.reference = s.reported;
+  ModelSpec spec = ParseModelYaml("terms: [{type: lut, cell_size_mm: 0.001}]", "m");
+  try {
+    FitModel(stations, &spec);
+    ADD_FAILURE() << "a 1 um cell over a metre was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_THAT(e.what(), ::testing::HasSubstr("lut: cell_size_mm 0.001 over the stations' box"));
+  }
 }
 
 }  // namespace
