@@ -332,6 +332,14 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     spec.orientation_sigma = o * M_PI / 180.0;
     spec.position_range_exponent = noise.GetDoubleOr("position_range_exponent", 0.0);
     spec.orientation_range_exponent = noise.GetDoubleOr("orientation_range_exponent", 0.0);
+    // An EM tracker's noise grows as r^4 (position) and r^3 (orientation); beyond 8 the weights
+    // of a capture's near and far stations differ by more than double precision keeps apart.
+    for (const char* key : {"position_range_exponent", "orientation_range_exponent"}) {
+      const double e = std::string(key) == "position_range_exponent"
+                           ? spec.position_range_exponent
+                           : spec.orientation_range_exponent;
+      if (!(e >= 0.0 && e <= 8.0)) noise.Fail(key, "must be 0 .. 8 (an EM tracker: 4 and 3)");
+    }
     spec.noise_reference_range_m = noise.GetDoubleOr("reference_range_m", 1.0);
     if (!(spec.noise_reference_range_m > 0.0)) noise.Fail("reference_range_m", "must be > 0");
     spec.amplification_threshold = noise.GetDoubleOr("amplification_threshold", 2.0);

@@ -158,6 +158,17 @@ TEST(ParseModelYaml, TermOptionErrorsNameTheirKey) {
               HasSubstr("model.yaml:3:15: $.terms[0].ridge_cv: only with ridge: auto"));
 }
 
+// 1e300 was accepted; the fit then failed to evaluate its weights and still exited 0.
+TEST(ParseModelYaml, RangeExponentsAreBounded) {
+  EXPECT_THAT(ErrorOf("noise: {position_range_exponent: 1e300}\nterms: [{type: polynomial}]\n"),
+              HasSubstr("$.noise.position_range_exponent: must be 0 .. 8"));
+  EXPECT_THAT(ErrorOf("noise: {orientation_range_exponent: -1}\nterms: [{type: polynomial}]\n"),
+              HasSubstr("$.noise.orientation_range_exponent: must be 0 .. 8"));
+  EXPECT_EQ(ErrorOf("noise: {position_range_exponent: 4, orientation_range_exponent: 3}\n"
+                    "terms: [{type: polynomial}]\n"),
+            "");
+}
+
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {
   ModelSpec spec = ParseModelYaml(R"(terms:
   - type: polynomial
