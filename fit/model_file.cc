@@ -341,7 +341,10 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
       if (!(e >= 0.0 && e <= 8.0)) noise.Fail(key, "must be 0 .. 8 (an EM tracker: 4 and 3)");
     }
     spec.noise_reference_range_m = noise.GetDoubleOr("reference_range_m", 1.0);
-    if (!(spec.noise_reference_range_m > 0.0)) noise.Fail("reference_range_m", "must be > 0");
+    // Ranges are clamped to 1 cm below (StationSigmas); a tracker reaches a few metres.
+    if (!(spec.noise_reference_range_m >= 0.01 && spec.noise_reference_range_m <= 100.0)) {
+      noise.Fail("reference_range_m", "must be 0.01 .. 100 [m]");
+    }
     spec.amplification_threshold = noise.GetDoubleOr("amplification_threshold", 2.0);
     if (!(spec.amplification_threshold >= 1.0) || !std::isfinite(spec.amplification_threshold)) {
       noise.Fail("amplification_threshold", "must be finite and >= 1 (1e9: no pose metric)");

@@ -164,6 +164,10 @@ TEST(ParseModelYaml, RangeExponentsAreBounded) {
               HasSubstr("$.noise.position_range_exponent: must be 0 .. 8"));
   EXPECT_THAT(ErrorOf("noise: {orientation_range_exponent: -1}\nterms: [{type: polynomial}]\n"),
               HasSubstr("$.noise.orientation_range_exponent: must be 0 .. 8"));
+  // With 1e-100 m the weights became infinite and the fit wrote a calibration that fitted nothing.
+  EXPECT_THAT(ErrorOf("noise: {position_range_exponent: 8, reference_range_m: 1e-100}\n"
+                      "terms: [{type: polynomial}]\n"),
+              HasSubstr("$.noise.reference_range_m: must be 0.01 .. 100"));
   EXPECT_EQ(ErrorOf("noise: {position_range_exponent: 4, orientation_range_exponent: 3}\n"
                     "terms: [{type: polynomial}]\n"),
             "");
