@@ -34,9 +34,9 @@ std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& ma
                                   tracker_name + " for sensor " + std::to_string(sensor));
     }
     if (!seen.emplace(m.station, m.marker).second) {
-      throw std::invalid_argument(markers_name + ": station " + std::to_string(m.station) +
-                                  ", column marker: marker " + std::to_string(m.marker) +
-                                  " appears twice");
+      throw std::invalid_argument(markers_name + (m.line > 0 ? ":" + std::to_string(m.line) : "") +
+                                  ": column marker: marker " + std::to_string(m.marker) +
+                                  " appears twice at station " + std::to_string(m.station));
     }
     it->second.markers.push_back({m.marker, m.position_in_optical});
   }

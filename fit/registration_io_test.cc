@@ -131,7 +131,10 @@ TEST(RegistrationIo, PairingErrorsNameFileStationAndField) {
   expect_message(markers, twice, "tracker.csv: station 6, sensor 1: more than one row");
   MarkerCapture duplicate = markers;
   duplicate.records.push_back(duplicate.records[0]);
-  expect_message(duplicate, tracker, "markers.csv: station 1, column marker");
+  // In the form of every other capture error (it named the station before the column).
+  expect_message(duplicate, tracker,
+                 "markers.csv: column marker: marker " + std::to_string(markers.records[0].marker) +
+                     " appears twice at station 1");
 
   // A tracker row without markers is a station with none: the registration skips it.
   MarkerCapture fewer;
