@@ -289,8 +289,16 @@ class FastrakDriver::Session {
         }
       } catch (const PortLost& lost) {
         Count(&DriverStats::port_losses);
-        Emit(Severity::kError, "serial port " + options_.port + " lost (" + lost.reason +
-                                   "); reopening");
+        // Lost again before a single record: the open back-off never applies to a port that opens
+        // but hangs up at once, so back off here too (else a reopen loop as fast as the hang-ups).
+        if (!records_since_open_) {
+          loss_backoff_s_ = loss_backoff_s_ > 0.0
+                                ? std::min(2.0 * loss_backoff_s_, timings_.reopen_backoff_max_s)
+                                : timings_.reopen_backoff_min_s;
+        }
+        Emit(Severity::kError,
+             "serial port " + options_.port + " lost (" + lost.reason + "); reopening" +
+                 (loss_backoff_s_ > 0.0 ? " in " + FormatSeconds(loss_backoff_s_) : ""));
         ClosePort();
       } catch (const StopRequested&) {
         break;
@@ -425,6 +433,7 @@ class FastrakDriver::Session {
 
   void OpenWithBackoff() {
     SetState(DriverState::kOpening);
+    Sleep(loss_backoff_s_);
     double delay = timings_.reopen_backoff_min_s;
     while (true) {
       if (driver_->stop_.load()) throw StopRequested{};
@@ -434,6 +443,7 @@ class FastrakDriver::Session {
       if (fd_ >= 0) {
         Count(&DriverStats::opens);
         empty_reads_ = 0;
+        records_since_open_ = false;
         Emit(Severity::kInfo, "opened at " + std::to_string(options_.baud) + " baud");
         return;
       }
@@ -658,6 +668,8 @@ class FastrakDriver::Session {
 
   void DeliverReports(const std::vector<FastrakReport>& reports) {
     if (reports.empty()) return;
+    records_since_open_ = true;
+    loss_backoff_s_ = 0.0;
     Count(&DriverStats::records, reports.size());
     if (driver_->callbacks_.on_reports) driver_->callbacks_.on_reports(reports);
     for (const FastrakReport& report : reports) {
@@ -713,6 +725,8 @@ class FastrakDriver::Session {
   int fd_ = -1;
   int reset_attempts_ = 0;
   int empty_reads_ = 0;
+  bool records_since_open_ = false;
+  double loss_backoff_s_ = 0.0;  // wait before reopening after losses without a record, or 0
   bool configured_once_ = false;
   bool stylus_lists_written_ = false;
   bool stream_already_started_ = false;

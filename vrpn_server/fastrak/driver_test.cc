@@ -4,9 +4,13 @@
 
 #include "vrpn_server/fastrak/driver.h"
 
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <pthread.h>
 #include <sched.h>
+#include <sys/ioctl.h>
+#include <termios.h>
+#include <unistd.h>
 
 #include <atomic>
 #include <condition_variable>
@@ -579,6 +583,52 @@ TEST(FastrakDriver, MissingPortIsRetriedWithBackoffAndRateLimitedTexts) {
   EXPECT_NE(messages[0].text.find("cannot open (No such file or directory)"), std::string::npos)
       << messages[0].text;
   EXPECT_EQ(messages[0].severity, Severity::kError);
+}
+
+TEST(FastrakDriver, PortThatHangsUpRightAfterEveryOpenIsReopenedWithBackoff) {
+  // A port that opens but is hung up at once, again and again (a USB adapter going away, a getty
+  // or another program hanging up the line): every open succeeds, so the open back-off alone never
+  // applies. Without a back-off after such a loss the driver reopened the port as fast as the
+  // hang-ups came (hundreds of opens per second, the reference's failure mode).
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  const std::string tty = (dir / "tty").string();
+  {
+    const int fd = ::open(tty.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
+    ASSERT_GE(fd, 0);
+    const int rc = ::ioctl(fd, TIOCVHANGUP);
+    const int error = errno;
+    ::close(fd);
+    if (rc != 0) GTEST_SKIP() << "TIOCVHANGUP needs CAP_SYS_ADMIN: " << std::strerror(error);
+  }
+  std::atomic<bool> hang_up{true};
+  std::thread hanger([&] {
+    while (hang_up.load()) {
+      const int fd = ::open(tty.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
+      if (fd >= 0) {
+        ::ioctl(fd, TIOCVHANGUP);
+        ::close(fd);
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    }
+  });
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  options.timings.reopen_backoff_min_s = 0.1;
+  options.timings.reopen_backoff_max_s = 1.0;
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  std::this_thread::sleep_for(std::chrono::milliseconds(2500));
+  const DriverStats during = driver.stats();
+  hang_up.store(false);
+  hanger.join();
+  // Losses at 0, 0.1, 0.3, 0.7, 1.5, 2.5 s: at most 6 opens in 2.5 s (+1 slack).
+  EXPECT_GE(during.port_losses, 3u);
+  EXPECT_LE(during.opens, 7u) << during.port_losses << " losses";
+  // The line works again: the driver reaches the device without waiting out a long back-off.
+  ASSERT_TRUE(collector.WaitForReports(5, 10.0));
+  for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
+  driver.Stop();
 }
 
 TEST(FastrakOptions, CheckNamesTheField) {
