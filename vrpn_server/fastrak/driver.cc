@@ -331,14 +331,19 @@ class FastrakDriver::Session {
     if (auto m = limiter_.Submit({severity, std::move(text)}, SteadyClock::now())) {
       Deliver(*m);
     }
-    {
-      std::lock_guard<std::mutex> lock(driver_->stats_mutex_);
-      driver_->stats_.messages_suppressed = limiter_.suppressed();
-    }
+    UpdateSuppressedCount();
   }
 
   void PollLimiter() {
-    if (auto m = limiter_.Poll(SteadyClock::now())) Deliver(*m);
+    if (auto m = limiter_.Poll(SteadyClock::now())) {
+      Deliver(*m);
+      UpdateSuppressedCount();  // the held text was counted as suppressed until now
+    }
+  }
+
+  void UpdateSuppressedCount() {
+    std::lock_guard<std::mutex> lock(driver_->stats_mutex_);
+    driver_->stats_.messages_suppressed = limiter_.suppressed();
   }
 
   // Also drops partial input: a record is never assembled from bytes of two port openings.

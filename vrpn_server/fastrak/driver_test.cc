@@ -631,6 +631,28 @@ TEST(FastrakDriver, PortThatHangsUpRightAfterEveryOpenIsReopenedWithBackoff) {
   driver.Stop();
 }
 
+TEST(FastrakDriver, SuppressedTextCountExcludesAHeldTextDeliveredLater) {
+  // Failed opens at 0, 0.3, 0.9 and 2.1 s; texts at most once per second: the first goes out, the
+  // next two are held (the second replacing the first), the held one goes out at 1 s. At 1.5 s
+  // every text but the replaced one has been delivered: one suppressed, not two.
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "no_such_tty");
+  options.timings.reopen_backoff_min_s = 0.3;
+  options.timings.reopen_backoff_max_s = 10.0;
+  options.timings.message_interval_s = 1.0;
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  const DriverStats stats = driver.stats();
+  const size_t logged = collector.log_lines();
+  const size_t delivered = collector.messages().size();
+  driver.Stop();
+  ASSERT_EQ(logged, 3u) << "timing: the opens did not run at 0, 0.3 and 0.9 s";
+  ASSERT_EQ(delivered, 2u);
+  EXPECT_EQ(stats.messages_suppressed, logged - delivered);
+}
+
 TEST(FastrakOptions, CheckNamesTheField) {
   auto error = [](const FastrakOptions& o) {
     try {
