@@ -14,6 +14,7 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <optional>
 #include <sstream>
 #include <stdexcept>
@@ -26,8 +27,12 @@ namespace {
 using SteadyClock = std::chrono::steady_clock;
 using SystemClock = std::chrono::system_clock;
 
+// Waits are clamped to 1e9 s (32 years): longer ones ("*N" sleeps and timings are any finite
+// N >= 0) would overflow the clock's 64-bit nanoseconds, or a deadline computed from now.
 SteadyClock::duration Seconds(double s) {
-  return std::chrono::duration_cast<SteadyClock::duration>(std::chrono::duration<double>(s));
+  constexpr double kMaxWaitS = 1e9;
+  return std::chrono::duration_cast<SteadyClock::duration>(
+      std::chrono::duration<double>(std::min(s, kMaxWaitS)));
 }
 
 std::string FormatSeconds(double s) {
@@ -368,7 +373,10 @@ class FastrakDriver::Session {
       // Round up so we never wake just before the deadline and spin.
       const auto ms = std::chrono::ceil<std::chrono::milliseconds>(until - now).count();
       pollfd fds[2] = {{driver_->wake_pipe_[0], POLLIN, 0}, {fd_, static_cast<short>(want_data ? POLLIN : 0), 0}};
-      const int n = ::poll(fds, fd_ >= 0 ? 2 : 1, static_cast<int>(std::max<int64_t>(ms, 0)));
+      // At most INT_MAX ms per poll (24.8 days; longer waits loop), never negative (no timeout).
+      const int timeout_ms =
+          static_cast<int>(std::clamp<int64_t>(ms, 0, std::numeric_limits<int>::max()));
+      const int n = ::poll(fds, fd_ >= 0 ? 2 : 1, timeout_ms);
       if (n < 0) {
         if (errno == EINTR) continue;
         throw PortLost{std::string("poll: ") + std::strerror(errno)};

@@ -653,6 +653,30 @@ TEST(FastrakDriver, SuppressedTextCountExcludesAHeldTextDeliveredLater) {
   EXPECT_EQ(stats.messages_suppressed, logged - delivered);
 }
 
+TEST(FastrakDriver, VeryLongSleepCommandsWaitInsteadOfOverflowing) {
+  // "*N" sleeps from vrpn.cfg are any finite N >= 0. N = 1e12 s overflowed the conversion to the
+  // steady clock's nanoseconds (undefined; here a deadline in the past, so no wait at all). N = 3e6
+  // s (35 days) overflowed poll()'s int milliseconds into a negative timeout (wait without end; a
+  // test cannot tell that from 35 days, it checks the capped poll still waits). Stop ends both.
+  for (const std::string sleep : {"*1e12", "*3e6"}) {
+    SCOPED_TRACE(sleep);
+    const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+    FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+    Collector collector;
+    FastrakOptions options = FastOptions(dir / "tty");
+    options.extra_commands = {sleep};
+    FastrakDriver driver(options, collector.Callbacks());
+    driver.Start();
+    ASSERT_TRUE(WaitUntil([&] { return fake.received().find("v0.2") != std::string::npos; }, 10.0));
+    std::this_thread::sleep_for(std::chrono::milliseconds(500));
+    EXPECT_EQ(fake.received().find('C'), std::string::npos) << "the sleep was skipped";
+    EXPECT_EQ(driver.state(), DriverState::kResetting);
+    const auto t0 = SteadyClock::now();
+    driver.Stop();
+    EXPECT_LT(std::chrono::duration<double>(SteadyClock::now() - t0).count(), 5.0);
+  }
+}
+
 TEST(FastrakOptions, CheckNamesTheField) {
   auto error = [](const FastrakOptions& o) {
     try {
