@@ -3,7 +3,8 @@
 // (FASTRAK.md section 4) with these differences (docs/fastrak-driver.md):
 // - units are explicit: the driver sends `U`/`u` itself (or tracks a `u`/`U` extra command) and
 //   converts inches or centimetres correctly to metres;
-// - the status record is verified field by field;
+// - the status record's fields are parsed and reported when it has the Fastrak's 55-byte layout
+//   (it is accepted, as by the reference, on its first byte '2' and its final LF alone);
 // - records are parsed by a resynchronising state machine that keeps good records after garbage;
 // - a lost port is reopened with capped exponential back-off, and a device that is still streaming
 //   in the configured format when the port comes back is resumed without a reset;

@@ -47,8 +47,8 @@ class FakeFastrak {
   std::string received() const;
   void ClearReceived();
 
-  void SetMute(bool mute);
-  void SetCorruptStatus(bool corrupt);  // answer `S` with a 54-byte record (LF missing)         // ignore input, send nothing (a dead or disconnected unit)
+  void SetMute(bool mute);              // ignore input, send nothing (a dead or disconnected unit)
+  void SetCorruptStatus(bool corrupt);  // answer `S` with a 54-byte record (LF missing)
   void SetStylus(bool pressed);    // stylus switch of every station with item 16
   void SendGarbage(const std::string& bytes);  // written before the next record
   void TruncateNextRecord(size_t keep_bytes);  // next record is cut after keep_bytes
