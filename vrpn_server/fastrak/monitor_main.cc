@@ -102,7 +102,8 @@ int main(int argc, char** argv) {
       const std::string v = value();
       char* end = nullptr;
       seconds = std::strtod(v.c_str(), &end);
-      if (end == v.c_str() || *end != '\0' || *seconds < 0) UsageError("--seconds: bad value '" + v + "'");
+      if (end == v.c_str() || *end != '\0' || !(*seconds >= 0))
+        UsageError("--seconds: bad value '" + v + "'");
     } else if (a == "--config") {
       config_path = value();
     } else if (a == "--tracker") {

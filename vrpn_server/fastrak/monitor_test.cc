@@ -54,5 +54,18 @@ TEST(FastrakMonitor, Nominal) {
   EXPECT_TRUE(fake.metric());  // --units cm was sent as `u`
 }
 
+TEST(FastrakMonitor, SecondsThatIsNotANumberIsAUsageError) {
+  // strtod reads "nan", and NaN < 0 is false: the monitor accepted it and, as no time compares
+  // >= NaN, ran until killed instead of saying what is wrong.
+  const char* binary_dir = std::getenv("TRACKCAL_BINARY_DIR");
+  ASSERT_NE(binary_dir, nullptr);
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_monitor");
+  const std::string out = RunCommand(
+      "timeout 10 " + std::string(binary_dir) + "/vrpn_server/fastrak/trackcal-fastrak-monitor " +
+      (dir / "tty").string() + " --fast --seconds nan 2>&1; echo rc=$?");
+  EXPECT_NE(out.find("--seconds: bad value 'nan'"), std::string::npos) << out;
+  EXPECT_NE(out.find("rc=2"), std::string::npos) << out;
+}
+
 }  // namespace
 }  // namespace trackcal::fastrak
