@@ -40,6 +40,10 @@ bool RecordParser::IsHeader(const uint8_t* p) const {
   return p[0] == '0' && p[1] >= '1' && p[1] <= '0' + num_stations_;
 }
 
+bool RecordParser::IsAnyStationHeader(const uint8_t* p) {
+  return p[0] == '0' && p[1] >= '1' && p[1] <= '0' + kMaxStations;
+}
+
 std::optional<RawRecord> RecordParser::Plausible(size_t at, size_t size) const {
   const uint8_t* p = bytes_.data() + at;
   if (!IsHeader(p)) return std::nullopt;
@@ -58,13 +62,22 @@ std::optional<RawRecord> RecordParser::Plausible(size_t at, size_t size) const {
 RecordParser::Verdict RecordParser::Judge(size_t at, size_t size) const {
   const uint8_t* p = bytes_.data() + at;
   const size_t available = bytes_.size() - at;
-  const bool followed_by_header = available >= size + 2 && IsHeader(p + size);
+  // Stations that are not configured still stream (in a layout we did not set): their records
+  // follow and are followed by ours.
+  const bool followed_by_header = available >= size + 2 && IsAnyStationHeader(p + size);
   // Every record header inside the candidate must be ruled out: a truncated record followed by a
   // fresh one looks like this, and can pass every field check (no checksum).
   for (size_t j = 1; j < size; ++j) {
     if (p[j] != '0') continue;
     if (j + 1 >= available) return Verdict::kWait;  // a '0' at the very end: header or not?
-    if (!IsHeader(p + j)) continue;
+    if (!IsAnyStationHeader(p + j)) continue;
+    if (!IsHeader(p + j)) {
+      // A record of a station we did not configure may start here; its layout is unknown, so only
+      // a record header right after the candidate shows that the candidate is whole.
+      if (available < size + 2) return Verdict::kWait;
+      if (!followed_by_header) return Verdict::kReject;
+      continue;
+    }
     const size_t inner_size = RecordSize(stylus_[p[j + 1] - '1']);
     if (j + inner_size > available) return Verdict::kWait;
     if (!Plausible(at + j, inner_size)) continue;
@@ -72,7 +85,7 @@ RecordParser::Verdict RecordParser::Judge(size_t at, size_t size) const {
     // header and the inner record is known not to be.
     if (!followed_by_header) return Verdict::kReject;
     if (j + inner_size + 2 > available) return Verdict::kWait;
-    if (IsHeader(p + j + inner_size)) return Verdict::kReject;
+    if (IsAnyStationHeader(p + j + inner_size)) return Verdict::kReject;
   }
   return Verdict::kAccept;
 }

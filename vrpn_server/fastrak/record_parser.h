@@ -90,6 +90,7 @@ class RecordParser {
   enum class Verdict { kAccept, kReject, kWait };
   void Compact();
   bool IsHeader(const uint8_t* p) const;  // '0' then a configured station digit
+  static bool IsAnyStationHeader(const uint8_t* p);  // '0' then a station digit 1..4
   // DecodeRecord plus the parser's plausibility checks on the record at buffer offset `at`.
   std::optional<RawRecord> Plausible(size_t at, size_t size) const;
   Verdict Judge(size_t at, size_t size) const;

@@ -237,6 +237,44 @@ TEST(RecordParser, MergedWindowThatPassesEveryFieldCheckIsRejectedByStructure) {
   EXPECT_GE(parser.rejected_candidates(), 1u);
 }
 
+TEST(RecordParser, MergeWithARecordOfAStationNotConfiguredIsRejectedToo) {
+  // The same merged window, but the fresh record is station 3's and only stations 1-2 are
+  // configured (trackcal-fastrak-monitor --stations 2 on a unit with a third receiver, which still
+  // streams). Its header was not looked for inside the window, so the window was emitted: a pose
+  // 2.3 deg off. A record of any station can follow a truncated one.
+  const float w = std::sqrt(1.0f - 0.02f * 0.02f);
+  const std::string cut = MakeRecord(1, {10, -5, 20}, {w, 0, 0, 0.02f}).substr(0, 29);
+  const std::string fresh = MakeRecord(3, {1.5f, 2.5f, -3.5f}, {1, 0, 0, 0});
+  const std::string next =
+      MakeRecord(1, {10, -5, 20}, {0.73029674f, 0.18257418f, 0.36514837f, 0.54772256f});
+  for (const bool byte_by_byte : {true, false}) {
+    SCOPED_TRACE(byte_by_byte ? "byte by byte" : "one piece");
+    RecordParser parser({}, Units::kInches, /*num_stations=*/2);
+    std::vector<FastrakReport> reports;
+    const std::string stream = cut + fresh + next + next;
+    if (byte_by_byte) {
+      for (char ch : stream) parser.Feed(Bytes(std::string(1, ch)), TimePoint(), &reports);
+    } else {
+      parser.Feed(Bytes(stream), TimePoint(), &reports);
+    }
+    ASSERT_EQ(reports.size(), 2u);  // the two good station 1 records, nothing else
+    ExpectTranscriptPoses(reports);
+  }
+}
+
+TEST(RecordParser, RecordFollowedByARecordOfAStationNotConfiguredIsKept) {
+  // A record whose float bytes happen to contain "03" (x = 11.2 in: 00 30 33 41) is kept when a
+  // record header, of any station, follows it.
+  std::string with_inner = MakeRecord(1, {10, -5, 20}, {1, 0, 0, 0});
+  with_inner[4] = '0';
+  with_inner[5] = '3';
+  const std::string other = MakeRecord(3, {1.5f, 2.5f, -3.5f}, {1, 0, 0, 0});
+  RecordParser parser({}, Units::kInches, /*num_stations=*/2);
+  std::vector<FastrakReport> reports;
+  parser.Feed(Bytes(with_inner + other + with_inner + other), TimePoint(), &reports);
+  EXPECT_EQ(reports.size(), 2u);
+}
+
 TEST(RecordParser, EveryTruncationAndChunkingYieldsOnlyTrueRecords) {
   // Worst case for a parser without a checksum: a record cut to every length (cable pulled, or
   // the tail of a record at a reopen) followed by good records, fed one byte at a time and in one
