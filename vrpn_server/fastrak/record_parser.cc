@@ -71,21 +71,24 @@ RecordParser::Verdict RecordParser::Judge(size_t at, size_t size) const {
     if (p[j] != '0') continue;
     if (j + 1 >= available) return Verdict::kWait;  // a '0' at the very end: header or not?
     if (!IsAnyStationHeader(p + j)) continue;
-    if (!IsHeader(p + j)) {
-      // A record of a station we did not configure may start here; its layout is unknown, so only
-      // a record header right after the candidate shows that the candidate is whole.
-      if (available < size + 2) return Verdict::kWait;
-      if (!followed_by_header) return Verdict::kReject;
-      continue;
+    if (IsHeader(p + j)) {
+      const size_t inner_size = RecordSize(stylus_[p[j + 1] - '1']);
+      if (j + inner_size > available) return Verdict::kWait;
+      if (Plausible(at + j, inner_size)) {
+        // Both are plausible; at most one is real. The candidate wins only if it is followed by a
+        // header and the inner record is known not to be.
+        if (available < size + 2) return Verdict::kWait;
+        if (!followed_by_header) return Verdict::kReject;
+        if (j + inner_size + 2 > available) return Verdict::kWait;
+        if (IsAnyStationHeader(p + j + inner_size)) return Verdict::kReject;
+        continue;
+      }
     }
-    const size_t inner_size = RecordSize(stylus_[p[j + 1] - '1']);
-    if (j + inner_size > available) return Verdict::kWait;
-    if (!Plausible(at + j, inner_size)) continue;
-    // Both are plausible; at most one is real. The candidate wins only if it is followed by a
-    // header and the inner record is known not to be.
+    // A record may start here that cannot be checked: one of a station we did not configure
+    // (layout unknown), or one damaged itself (a second truncation, a byte lost on the line). Only
+    // a record header right after the candidate shows that the candidate is whole.
+    if (available < size + 2) return Verdict::kWait;
     if (!followed_by_header) return Verdict::kReject;
-    if (j + inner_size + 2 > available) return Verdict::kWait;
-    if (IsAnyStationHeader(p + j + inner_size)) return Verdict::kReject;
   }
   return Verdict::kAccept;
 }

@@ -12,8 +12,11 @@
 // Hence the rule that makes a silently wrong pose impossible from truncation or a reconnect: a
 // candidate is only emitted once every record header inside it has been ruled out, which may mean
 // waiting for up to one more record's bytes (latency only when the float bytes of a record happen
-// to contain "0<station>"). A candidate that a valid record inside it contradicts is dropped, unless
-// the candidate is followed by a record header and the inner one is not.
+// to contain "0<station>"). A candidate that a valid record inside it contradicts is dropped,
+// unless the candidate is followed by a record header and the inner one is not. A header inside it
+// that starts no checkable record (a station not configured, or a record damaged itself) is ruled
+// out only by a record header right after the candidate. (Left: a truncated record completed by a
+// fresh one that is cut exactly where a whole record would end, so that a header follows.)
 // Plausibility (docs/fastrak-driver.md "What the driver rejects"): configured station, status
 // space or letter, finite values, |q| within kMaxQuaternionNormError of 1, position within
 // kMaxRangeM of the transmitter, and the record's bytes read within kMaxRecordSpread of each other.

@@ -262,6 +262,37 @@ TEST(RecordParser, MergeWithARecordOfAStationNotConfiguredIsRejectedToo) {
   }
 }
 
+TEST(RecordParser, MergeWithADamagedRecordIsRejectedToo) {
+  // A truncated record followed by a record that is itself damaged (cut too, or a byte lost on
+  // the line): the fresh record's header and status space still complete the first one, but
+  // the record that starts there is not plausible, so it did not count against the window, and
+  // the window was emitted (a pose 2.3 deg off). Consecutive damaged records are what a loose
+  // connector or a noisy line produces.
+  const float w = std::sqrt(1.0f - 0.02f * 0.02f);
+  const std::string cut = MakeRecord(1, {10, -5, 20}, {w, 0, 0, 0.02f}).substr(0, 29);
+  const std::string good2 = MakeRecord(2, {1.5f, 2.5f, -3.5f}, {1, 0, 0, 0});
+  std::string lost_byte = good2;
+  lost_byte.erase(20, 1);
+  const std::string next =
+      MakeRecord(1, {10, -5, 20}, {0.73029674f, 0.18257418f, 0.36514837f, 0.54772256f});
+  for (const std::string& damaged : {good2.substr(0, 20), lost_byte}) {
+    for (const bool byte_by_byte : {true, false}) {
+      SCOPED_TRACE(std::to_string(damaged.size()) +
+                   (byte_by_byte ? " byte by byte" : " one piece"));
+      RecordParser parser({}, Units::kInches);
+      std::vector<FastrakReport> reports;
+      const std::string stream = cut + damaged + next + good2 + next;
+      if (byte_by_byte) {
+        for (char ch : stream) parser.Feed(Bytes(std::string(1, ch)), TimePoint(), &reports);
+      } else {
+        parser.Feed(Bytes(stream), TimePoint(), &reports);
+      }
+      ASSERT_EQ(reports.size(), 3u);  // next, good2, next (the last one without waiting)
+      ExpectTranscriptPoses(reports);
+    }
+  }
+}
+
 TEST(RecordParser, RecordFollowedByARecordOfAStationNotConfiguredIsKept) {
   // A record whose float bytes happen to contain "03" (x = 11.2 in: 00 30 33 41) is kept when a
   // record header, of any station, follows it.
