@@ -151,6 +151,11 @@ FastrakTimings FastrakTimings::Fast() {
   return t;
 }
 
+double FastrakTimings::StatusTimeout(int baud) const {
+  constexpr double kReplyBits = 55.0 * 10.0;  // 55 bytes, 10 bits each on the line
+  return std::max(status_timeout_s, 2.0 * kReplyBits / std::max(baud, 1));
+}
+
 void FastrakTimings::Check() const {
   const std::pair<const char*, double> fields[] = {
       {"settle_after_preamble_s", settle_after_preamble_s},
@@ -255,7 +260,7 @@ class FastrakDriver::Session {
         options_(driver->options_),
         timings_(options_.timings),
         units_(options_.EffectiveUnits()),
-        parser_(StylusStations(options_), units_, options_.num_stations),
+        parser_(StylusStations(options_), units_, options_.num_stations, options_.baud),
         limiter_(Seconds(timings_.message_interval_s)) {}
 
   ~Session() { ClosePort(); }
@@ -668,7 +673,7 @@ class FastrakDriver::Session {
   // Reads until the reply's LF or the status timeout (or `until`, if earlier); returns what arrived.
   std::string ReadStatusReply(SteadyClock::time_point until = SteadyClock::time_point::max()) {
     const SteadyClock::time_point deadline =
-        std::min(until, SteadyClock::now() + Seconds(timings_.status_timeout_s));
+        std::min(until, SteadyClock::now() + Seconds(timings_.StatusTimeout(options_.baud)));
     std::vector<uint8_t> bytes;
     while (std::find(bytes.begin(), bytes.end(), '\n') == bytes.end() && bytes.size() < 4096) {
       if (Wait(deadline, true) == WaitResult::kTimeout) break;

@@ -61,6 +61,9 @@ struct FastrakTimings {
   static FastrakTimings Fast();
   // Throws std::invalid_argument naming the field.
   void Check() const;
+  // status_timeout_s, or twice the 55-byte reply's time on the line if that is longer (1.83 s at
+  // 300 baud, where the reference's 1 s never sees the whole reply).
+  double StatusTimeout(int baud) const;
 };
 
 struct FastrakOptions {

@@ -716,6 +716,15 @@ TEST(FastrakOptions, CheckNamesTheField) {
   EXPECT_THROW(FastrakDriver(bad, {}), std::invalid_argument);
 }
 
+TEST(FastrakTimings, StatusTimeoutCoversTheReplyAtTheLineRate) {
+  // The 55-byte status reply takes 1.83 s at 300 baud: the reference's 1 s timeout cut it off, so
+  // a unit at 300 baud never passed its status check.
+  const FastrakTimings t = FastrakTimings::Reference();
+  EXPECT_EQ(t.StatusTimeout(115200), t.status_timeout_s);
+  EXPECT_EQ(t.StatusTimeout(1200), t.status_timeout_s);  // 0.46 s on the line, within 1 s
+  EXPECT_NEAR(t.StatusTimeout(300), 2 * 55 * 10 / 300.0, 1e-12);
+}
+
 TEST(FastrakOptionsFromSpec, Is900PartsAreWarnedAndSkipped) {
   const vrpn::VrpnConfig config = vrpn::ParseVrpnConfig(
       "vrpn_Tracker_Fastrak T /dev/ttyS0 38400 IS900time \\\nU\\\n*0.5/\nWand W 2 -1 0 0 1 -1 0 0 1 /\n"

@@ -20,8 +20,18 @@ FastrakReport ConvertRecord(const RawRecord& raw, Units units,
   return report;
 }
 
-RecordParser::RecordParser(std::array<bool, kMaxStations> stylus, Units units, int num_stations)
-    : stylus_(stylus), units_(units), num_stations_(std::clamp(num_stations, 1, kMaxStations)) {}
+RecordParser::RecordParser(std::array<bool, kMaxStations> stylus, Units units, int num_stations,
+                           int baud)
+    : stylus_(stylus),
+      units_(units),
+      num_stations_(std::clamp(num_stations, 1, kMaxStations)),
+      max_record_spread_(MaxRecordSpread(baud)) {}
+
+std::chrono::milliseconds RecordParser::MaxRecordSpread(int baud) {
+  // 10 bits per byte on the line (start, 8 data, stop), the longest record 34 bytes.
+  const double line_ms = 34.0 * 10.0 * 1000.0 / std::max(baud, 1);
+  return std::max(kMaxRecordSpread, std::chrono::milliseconds(static_cast<int64_t>(3.0 * line_ms)));
+}
 
 void RecordParser::Clear() {
   bytes_.clear();
@@ -55,7 +65,7 @@ std::optional<RawRecord> RecordParser::Plausible(size_t at, size_t size) const {
                 static_cast<double>(raw->position[1]) * raw->position[1] +
                 static_cast<double>(raw->position[2]) * raw->position[2]) * scale;
   if (!(range_m <= kMaxRangeM)) return std::nullopt;
-  if (times_[at + size - 1] - times_[at] > kMaxRecordSpread) return std::nullopt;
+  if (times_[at + size - 1] - times_[at] > max_record_spread_) return std::nullopt;
   return raw;
 }
 

@@ -57,13 +57,19 @@ class RecordParser {
 
   // `stylus[s]`: station s+1 has output item 16 (34-byte records). Records of stations above
   // `num_stations` (not configured) are rejected.
-  RecordParser(std::array<bool, kMaxStations> stylus, Units units, int num_stations = kMaxStations);
+  // `baud`: the line's rate, which sets how far apart a record's bytes may be read
+  // (MaxRecordSpread).
+  RecordParser(std::array<bool, kMaxStations> stylus, Units units, int num_stations = kMaxStations,
+               int baud = 115200);
 
   // A record whose first and last bytes were read further apart than this is rejected: at any
   // baud rate >= 9600 a record takes < 40 ms on the line, so a gap this long means the device (or
   // the cable) stopped in the middle of a record, and the rest is not the same record. Generous,
   // so that a reader thread descheduled on a loaded host does not drop records.
   static constexpr std::chrono::milliseconds kMaxRecordSpread{1000};
+  // The limit at `baud`: kMaxRecordSpread, or three times the longest (34-byte) record's time on
+  // the line if that is longer (300 baud: 1.13 s on the line, 3.4 s limit).
+  static std::chrono::milliseconds MaxRecordSpread(int baud);
   // No Fastrak measures beyond 30 ft (9.14 m, long-range transmitter); |position| above this
   // (in metres, after unit conversion) is a mis-framed record.
   static constexpr double kMaxRangeM = 10.0;
@@ -101,6 +107,7 @@ class RecordParser {
   std::array<bool, kMaxStations> stylus_;
   Units units_;
   int num_stations_;
+  std::chrono::milliseconds max_record_spread_;
   std::vector<uint8_t> bytes_;
   std::vector<TimePoint> times_;  // read time of each buffered byte
   size_t head_ = 0;

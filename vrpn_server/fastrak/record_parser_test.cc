@@ -382,6 +382,26 @@ TEST(RecordParser, RejectsImplausibleRecords) {
             2u);
 }
 
+TEST(RecordParser, TheSpreadLimitFollowsTheBaudRate) {
+  // At 300 baud a 32-byte record takes 1.07 s on the line: the 1 s limit dropped every record that
+  // arrived in more than one read. The limit is three times the longest record's line time there.
+  const std::array<float, 4> identity{1, 0, 0, 0};
+  const std::string record = MakeRecord(1, {1, 2, 3}, identity);
+  const std::string next = MakeRecord(2, {1, 2, 3}, identity);
+  auto count = [&](int baud, std::chrono::milliseconds gap) {
+    RecordParser parser({}, Units::kInches, kMaxStations, baud);
+    std::vector<FastrakReport> reports;
+    parser.Feed(Bytes(record.substr(0, 1)), TimePoint(), &reports);
+    parser.Feed(Bytes(record.substr(1) + next), TimePoint() + gap, &reports);
+    return reports.size();
+  };
+  EXPECT_EQ(count(300, std::chrono::milliseconds(1070)), 2u);
+  EXPECT_EQ(count(300, std::chrono::milliseconds(3500)), 1u);  // beyond 3 x 1.13 s
+  EXPECT_EQ(count(115200, std::chrono::milliseconds(1070)), 1u);
+  EXPECT_EQ(RecordParser::MaxRecordSpread(9600), RecordParser::kMaxRecordSpread);
+  EXPECT_EQ(RecordParser::MaxRecordSpread(300), std::chrono::milliseconds(3400));
+}
+
 TEST(RecordParser, ClearDropsAPartialRecord) {
   // After a reopen the driver clears the parser: the start of a record from the previous opening
   // must not be completed by bytes of the new one.
