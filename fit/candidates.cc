@@ -40,7 +40,9 @@ nlohmann::json NumberOrNull(double v) {
 }
 
 // Per-station errors of a chain: magnitudes for the tables, whitened squared residuals (the fit's
-// own station residual, fit/model.h) for the paired test and BIC.
+// own station residual, fit/model.h, with the station's sigmas as the fit whitens it:
+// ModelSpec::StationSigmas, range-dependent when the model's noise says so) for the paired test
+// and BIC.
 struct StationErrors {
   std::vector<double> position_mm;
   std::vector<double> orientation_deg;
@@ -56,7 +58,7 @@ struct StationErrors {
 // `reference_shift_s`: a clock offset fitted jointly with the chain moved the stations' reference
 // poses along their velocities by this much from where they were paired (dt - dt0, as the fit's
 // residuals, fit/terms_time_offset.h); the errors are taken against the moved poses.
-void AppendErrors(const CorrectionChain& chain, const FitStation& s, double sigma_p, double sigma_o,
+void AppendErrors(const CorrectionChain& chain, const FitStation& s, const ModelSpec& noise,
                   StationErrors* out, size_t index, double reference_shift_s = 0.0) {
   const CorrectedPose applied = chain.Apply(s.reported);
   const Rigid3d& c = applied.pose;
@@ -70,8 +72,9 @@ void AppendErrors(const CorrectionChain& chain, const FitStation& s, double sigm
   const Eigen::Vector3d dq = OrientationErrorVector<double>(c.rotation, reference.rotation);
   out->position_mm[index] = dp.norm() * 1e3;
   out->orientation_deg[index] = OrientationErrorAngle(c, reference) * kDegPerRad;
+  const Eigen::Vector2d sigmas = noise.StationSigmas(s.reported);
   out->whitened_sq[index] =
-      dp.squaredNorm() / (sigma_p * sigma_p) + dq.squaredNorm() / (sigma_o * sigma_o);
+      dp.squaredNorm() / (sigmas[0] * sigmas[0]) + dq.squaredNorm() / (sigmas[1] * sigmas[1]);
   out->corrected[index] = c;
 }
 
@@ -93,8 +96,8 @@ double Mean(const std::vector<double>& v) {
 // the base; the same folds for every model, so per-station errors pair up).
 StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
                                     const std::vector<int>& fold_of, const std::string& text,
-                                    const std::string& source, int folds, double sigma_p,
-                                    double sigma_o, const std::function<void(int)>& on_fold) {
+                                    const std::string& source, int folds, const ModelSpec& noise,
+                                    const std::function<void(int)>& on_fold) {
   StationErrors e = MakeErrors(stations.size());
   for (int f = 0; f < folds; ++f) {
     if (on_fold) on_fold(f);
@@ -110,7 +113,7 @@ StationErrors CrossValidateStations(const std::vector<FitStation>& stations,
     // A clock offset fitted with the model (streams with velocities) moves the references.
     const double shift = spec.time_offset ? spec.time_offset->value - paired_at : 0.0;
     for (size_t i = 0; i < stations.size(); ++i) {
-      if (fold_of[i] == f) AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &e, i, shift);
+      if (fold_of[i] == f) AppendErrors(fit.chain, stations[i], noise, &e, i, shift);
     }
   }
   return e;
@@ -141,7 +144,7 @@ StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
                                         const std::vector<int>& fold_of, ModelSpec* fitted,
                                         const std::vector<int>& left_out,
                                         const std::vector<bool>& report_form, int folds,
-                                        double sigma_p, double sigma_o,
+                                        const ModelSpec& noise,
                                         const std::function<void(const std::string&)>& report) {
   StationErrors e = MakeErrors(stations.size());
   FoldRefitOptions refit_options;
@@ -167,8 +170,7 @@ StationErrors FastCrossValidateStations(const std::vector<FitStation>& stations,
          (solver ? "; " + std::to_string(solver) + " refitted by the solver" : "") +
          (bound_folds ? "; " + std::to_string(bound_folds) + " held coordinates on a bound" : ""));
   for (size_t i = 0; i < stations.size(); ++i) {
-    AppendErrors(refits[static_cast<size_t>(fold_of[i])].chain, stations[i], sigma_p, sigma_o, &e,
-                 i);
+    AppendErrors(refits[static_cast<size_t>(fold_of[i])].chain, stations[i], noise, &e, i);
   }
   return e;
 }
@@ -1510,8 +1512,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
 
   // The base model (also validates the file: errors name its lines).
   ModelSpec base_spec = ParseModelYaml(model_text, model_source);
-  const double sigma_p = base_spec.position_sigma;
-  const double sigma_o = base_spec.orientation_sigma;
+  // Every candidate model has the base's `noise:` (a candidate changes terms, loss or time offset);
+  // only these settings of base_spec are read while its fast folds move its values.
+  const ModelSpec& noise = base_spec;
 
   // The candidates. Term types as written in the file (the engine may merge several file terms
   // into one, e.g. consecutive physical terms into one field model).
@@ -1703,7 +1706,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     base_left_out = fit.left_out;
     base_report_form = fit.report_form;
     for (size_t i = 0; i < stations.size(); ++i) {
-      AppendErrors(fit.chain, stations[i], sigma_p, sigma_o, &base_full, i);
+      AppendErrors(fit.chain, stations[i], noise, &base_full, i);
     }
     base_k = fit.num_free_parameters;
     base_linear = fit.linear_least_squares;
@@ -1816,13 +1819,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       Progress(options,
                "base model: " + std::to_string(options.folds) + " fold refits from the full fit");
       base_cv = FastCrossValidateStations(
-          stations, base_folds, &base_spec, base_left_out, base_report_form, options.folds,
-          sigma_p, sigma_o,
+          stations, base_folds, &base_spec, base_left_out, base_report_form, options.folds, noise,
           [&](const std::string& m) { Progress(options, "base model: " + m); });
     } else {
       base_cv =
           CrossValidateStations(stations, base_folds, model_text, model_source, options.folds,
-                                sigma_p, sigma_o, [&](int f) {
+                                noise, [&](int f) {
                                   Progress(options, "base model: fold " + std::to_string(f + 1) +
                                                         "/" + std::to_string(options.folds));
                                 });
@@ -1945,7 +1947,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         auto station_chi2 = [&](const FitResult& f, const ModelSpec& s) {
           StationErrors e = MakeErrors(own.size());
           for (size_t j = 0; j < own.size(); ++j) {
-            AppendErrors(f.chain, own[j], sigma_p, sigma_o, &e, j);
+            AppendErrors(f.chain, own[j], noise, &e, j);
           }
           return ComputeChi2(own, e, s.loss, compared).chi2;
         };
@@ -2017,7 +2019,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                                ? spec.time_offset->value - p.time_offset_s
                                : 0.0;
       for (size_t i = 0; i < own.size(); ++i)
-        AppendErrors(fit.chain, own[i], sigma_p, sigma_o, &full, i, shift);
+        AppendErrors(fit.chain, own[i], noise, &full, i, shift);
       // BIC on the stations both models have (all of them unless the streams were re-paired).
       std::vector<bool> use_own(own.size()), use_base(stations.size(), false);
       for (size_t j = 0; j < own.size(); ++j) {
@@ -2408,13 +2410,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         Progress(options, c.effect + ": " + std::to_string(options.folds) +
                               " fold refits from the full fit");
         cv = FastCrossValidateStations(
-            own, fold_of, p->fitted.get(), p->left_out, p->report_form, options.folds, sigma_p,
-            sigma_o,
+            own, fold_of, p->fitted.get(), p->left_out, p->report_form, options.folds, noise,
             [&](const std::string& m) { Progress(options, c.effect + ": " + m); });
       } else {
         cv =
             CrossValidateStations(own, fold_of, c.model_text, model_source + " + " + c.effect,
-                                  options.folds, sigma_p, sigma_o, [&](int f) {
+                                  options.folds, noise, [&](int f) {
                                     Progress(options, c.effect + ": fold " + std::to_string(f + 1) +
                                                           "/" + std::to_string(options.folds));
                                   });
