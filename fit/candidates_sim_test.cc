@@ -229,12 +229,14 @@ TEST(DiagnoseCandidatesPaper, StationsNearAnObjectAreNotOutliersTheObjectIsClaim
   EXPECT_TRUE(robust.outlier_stations.empty()) << robust.reason;
   ASSERT_FALSE(robust.local_structure_stations.empty()) << robust.reason;
   EXPECT_THAT(robust.reason, ::testing::HasSubstr("not outliers"));
-  // Every one of them within 0.45 m of the toolbox (the grid's nearest stations are 0.28 m away).
+  // Every one of them within 0.5 m of the toolbox (the grid's nearest stations are 0.28 m away, its
+  // step 0.15 m; since the loss scale is the stations' RMS, also for Ceres, station 109 at 0.465 m
+  // is among them).
   const Eigen::Vector3d toolbox = scene.hidden.object.location_in_transmitter;
   for (int id : robust.local_structure_stations) {
     for (const FitStation& s : stations) {
       if (s.station == id) {
-        EXPECT_LT((s.reference.translation - toolbox).norm(), 0.45) << id;
+        EXPECT_LT((s.reference.translation - toolbox).norm(), 0.5) << id;
       }
     }
   }

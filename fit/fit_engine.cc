@@ -368,11 +368,19 @@ class RejectingLoss : public ceres::LossFunction {
   double reject_sq_norm_;  // squared norm of a station's 6 whitened residuals
 };
 
+// The loss of a station's residual block. The scale is in sigmas of the station's whitened RMS
+// (LossOptions; the outlier list, the rejection above and diagnose's mean-shift model read it so);
+// Ceres' losses take theirs on the norm of the block's 6 residuals, sqrt(6) times the RMS. Given
+// the scale as it is, a 3-sigma loss down-weighted stations from RMS 1.22 on, most of a right
+// model's stations.
 ceres::LossFunction* MakeLoss(const LossOptions& loss) {
+  const double norm_scale = std::sqrt(6.0) * loss.scale;
   switch (loss.type) {
     case LossType::kNone: return nullptr;
-    case LossType::kHuber: return new RejectingLoss(new ceres::HuberLoss(loss.scale), loss.scale);
-    case LossType::kCauchy: return new RejectingLoss(new ceres::CauchyLoss(loss.scale), loss.scale);
+    case LossType::kHuber:
+      return new RejectingLoss(new ceres::HuberLoss(norm_scale), loss.scale);
+    case LossType::kCauchy:
+      return new RejectingLoss(new ceres::CauchyLoss(norm_scale), loss.scale);
   }
   return nullptr;
 }

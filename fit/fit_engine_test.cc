@@ -297,6 +297,39 @@ TEST(FitModel, RobustLossIgnoresHemisphereFlips) {
   EXPECT_THAT(flagged, ::testing::UnorderedElementsAreArray(flipped));
 }
 
+// The loss scale is in sigmas of the station's whitened RMS, as the outlier list, the rejection
+// at 30 scales and diagnose's mean-shift model read it: a station whose 6 whitened residuals have
+// RMS below the scale is not down-weighted. Ceres' loss takes its scale on the norm of the residual
+// block (sqrt(6) times the RMS): given as it is, a Huber loss at 3 sigma down-weighted stations
+// from RMS 1.22 on, and its fit left the least-squares optimum on data without any outlier.
+TEST(FitModel, TheLossScaleIsInSigmasOfTheStationsRms) {
+  std::vector<FitStation> stations;
+  for (int i = 0; i < 60; ++i) {
+    FitStation s;
+    s.station = i;
+    s.reported.translation = Eigen::Vector3d(0.01 * i, 0.2 - 0.005 * i, 0.5);
+    s.reported.rotation = Eigen::Quaterniond::Identity();
+    s.reference = s.reported;
+    // A 2 mm offset along x; every fifth station 0.5 mm further: a whitened norm of 5 (0.1 mm
+    // noise), RMS 2.04, within a 3-sigma loss.
+    s.reference.translation.x() += 2e-3 + (i % 5 == 0 ? 5e-4 : 0.0);
+    stations.push_back(s);
+  }
+  const std::string terms = "terms: [{type: polynomial, degree: 0, orientation: false}]";
+  ModelSpec plain = ParseModelYaml("noise: {position_mm: 0.1}\n" + terms, "m");
+  ModelSpec huber =
+      ParseModelYaml("noise: {position_mm: 0.1}\nloss: {type: huber, scale: 3}\n" + terms, "m");
+  const FitResult least_squares = FitModel(stations, &plain);
+  const FitResult robust = FitModel(stations, &huber);
+  EXPECT_TRUE(robust.outliers.empty());
+  const Eigen::Vector3d at(0.1, 0.1, 0.5);
+  const Rigid3d report(Eigen::Quaterniond::Identity(), at);
+  const Eigen::Vector3d p_plain = least_squares.chain.Apply(report).pose.translation;
+  const Eigen::Vector3d p_huber = robust.chain.Apply(report).pose.translation;
+  EXPECT_NEAR(p_plain.x() - at.x(), 2.1e-3, 1e-9);  // the mean offset
+  EXPECT_NEAR(p_huber.x(), p_plain.x(), 1e-8);
+}
+
 // The automatic linear solver (dense normal equations for a polynomial of 504 coefficients after
 // a sensor offset: every station touches every coefficient) gives the parameters of the sparse
 // solver the engine used before for problems above 400 coordinates. Both converge to the same
