@@ -1722,8 +1722,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     b.bic = Bic(c.chi2, n_residuals, k);
     b.seconds = SecondsSince(t0);
     if (fo.compute_covariance) {
-      // As for a candidate: model-covariance sigmas take the noise the fit leaves.
-      const int noise_dof = n_residuals - fit.num_free_parameters;
+      // As for a candidate: model-covariance sigmas take the noise the fit leaves (the mean-shift
+      // model's: its outliers' parameters leave the degrees of freedom as their residuals chi2).
+      const int noise_dof = n_residuals - k;
       const bool empirical = fit.covariance_estimator.rfind("sandwich", 0) == 0;
       const double noise_scale =
           !empirical && noise_dof > 0 && c.chi2 > 0 ? std::sqrt(c.chi2 / noise_dof) : 1.0;
@@ -2088,7 +2089,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       // scaled sigmas, as the claim rule judges them: with the default noise (1 mm, 15 times a
       // Fastrak's scatter) the model covariance said "+- (0.39, 1.28, 0.41) m" of a dipole whose
       // evidence gave +- 0.043 m.
-      const int noise_dof = n - c.num_free_parameters;
+      // (Under a loss, of the mean-shift model: `k` counts its outliers' parameters, whose
+      // residuals left chi2.)
+      const int noise_dof = n - k;
       const bool empirical = fit.covariance_estimator.rfind("sandwich", 0) == 0;
       const double noise_scale =
           !empirical && noise_dof > 0 && chi.chi2 > 0 ? std::sqrt(chi.chi2 / noise_dof) : 1.0;

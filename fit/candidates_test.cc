@@ -183,6 +183,31 @@ TEST(DiagnoseCandidates, StationsAreWhitenedAsTheFitWhitensThem) {
   EXPECT_NEAR(c.stddev_scale, std::sqrt(candidate_fit.chi2_per_dof), 1e-4 * c.stddev_scale);
 }
 
+// Under a model's robust loss the noise scale a model covariance's sigmas are multiplied by is that
+// of the mean-shift model the BIC scores: the stations beyond the loss scale leave chi2, and with
+// their 6 parameters each they leave the degrees of freedom too (dividing their share of chi2
+// away but not their residuals understated the scale).
+TEST(DiagnoseCandidates, TheNoiseScaleOfALossCountsItsOutliersParameters) {
+  // 36 stations of 180 are flips: a fifth of the residuals leave chi2.
+  const auto stations = Stations(180, Eigen::Vector3d(0.003, -0.002, 0.001), 36, 5);
+  const std::string model =
+      "noise: {position_mm: 0.1, orientation_deg: 0.0171887}\nloss: {type: cauchy, scale: 3}\n"
+      "solver: {covariance_estimator: model}\nterms:\n"
+      "  - type: polynomial\n    degree: 1\n    position: false\n";
+  CandidateOptions o = TestOptions();
+  o.effects = {"position_offset"};
+  o.flexible.clear();
+  const Diagnosis d = DiagnoseCandidates(stations, model, "model.yaml", "synthetic", o);
+  const Candidate& c = d.candidates.at(0);
+  ASSERT_TRUE(c.fitted) << c.reason;
+  ASSERT_GE(c.outlier_stations.size(), 30u) << c.reason;
+  // chi2 from the BIC: n ln(chi2 / n) + k ln(n), n = 6 x stations, k with 6 per outlier.
+  const double n = 6.0 * static_cast<double>(stations.size());
+  const double k = c.num_free_parameters + 6.0 * static_cast<double>(c.outlier_stations.size());
+  const double chi2 = n * std::exp((c.bic - k * std::log(n)) / n);
+  EXPECT_NEAR(c.stddev_scale, std::sqrt(chi2 / (n - k)), 1e-6 * c.stddev_scale);
+}
+
 // The verdict's "no catalog effect" covers only the effects tested on held-out data: one screened
 // out of cross-validation is named as not tested there.
 TEST(DiagnoseCandidates, TheVerdictNamesTheEffectsNotTestedHeldOut) {
