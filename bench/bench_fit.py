@@ -3,7 +3,9 @@
 the paper's method (Ikits et al. 2001, eq. 7-9), in the same run, on the same simulated capture;
 and of a chain of two physical terms and a LUT on the same capture.
 
-    python bench/bench_fit.py --build build [--repeat 5] [--before-fit OTHER/trackcal-fit]
+    .venv/bin/python bench/bench_fit.py --build build [--repeat 5] [--before-fit OTHER/trackcal-fit]
+
+(the project's venv: numpy is not in the system python).
 
 Runs trackcal-simulate --scene paper, then `trackcal-fit fit --json` (its reported solve time:
 linear initialisation + Ceres refinement, and the covariance time separately) and the numpy fit
