@@ -621,9 +621,8 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
   ValidateStations(stations);
   std::vector<RegistrationStation> kept = stations;
   std::vector<RejectedStation> rejected;
+  RegistrationResult result = SolveRegistration(kept, options);
   while (true) {
-    RegistrationResult result = SolveRegistration(kept, options);
-    result.rejected_stations = rejected;
     const int num_used = static_cast<int>(result.stations.size());
     const int max_rejected = static_cast<int>(std::floor(
         options.max_rejected_fraction * static_cast<double>(num_used + rejected.size())));
@@ -641,11 +640,24 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
       }
     }
     if (worst == nullptr) return result;
+    const int id = worst->station;
+    std::vector<RegistrationStation> fewer;
+    for (const RegistrationStation& s : kept) {
+      if (s.station != id) fewer.push_back(s);
+    }
+    RegistrationResult next;
+    try {
+      next = SolveRegistration(fewer, options);
+    } catch (const std::invalid_argument&) {
+      // The rest no longer determine the parameters (or fail the unit check): keep the station
+      // and the solve that had it rather than fail a registration that was solved.
+      return result;
+    }
     rejected.push_back(
         {worst->station, worst->num_markers, worst->marker_body_rms_m, worst->marker_body_tail});
-    const int id = worst->station;
-    kept.erase(std::find_if(kept.begin(), kept.end(),
-                            [id](const RegistrationStation& s) { return s.station == id; }));
+    next.rejected_stations = rejected;
+    result = std::move(next);
+    kept = std::move(fewer);
   }
 }
 

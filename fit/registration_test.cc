@@ -4,6 +4,8 @@
 
 #include <algorithm>
 #include <iostream>
+#include <map>
+#include <random>
 
 #include "fit/rotation.h"
 #include "fit/synthetic_registration.h"
@@ -269,6 +271,50 @@ TEST(RegisterOpticalToTransmitter, LeavesOutAtMostTheConfiguredFraction) {
   o.reject_bad_stations = true;
   o.max_rejected_fraction = 1.0;  // not a fraction of the stations that can be left out
   EXPECT_THROW(RegisterOpticalToTransmitter(data.stations, o), std::invalid_argument);
+}
+
+TEST(RegisterOpticalToTransmitter, KeepsTheStationWhenTheRestCannotBeSolved) {
+  // Five stations see three markers each, twelve markers in all: 45 coordinates for 42
+  // parameters. Station 5 sees markers 1, 4 and 7 (with 1 and 4 swapped), which the others also
+  // see: without it, 36 coordinates cannot determine 42 parameters. Leaving it out used to throw
+  // and fail a registration that had been solved; it now stays in.
+  std::mt19937_64& rng = TestRng();
+  std::uniform_real_distribution<double> unit(-1.0, 1.0);
+  std::map<int, Eigen::Vector3d> body;
+  for (int id = 1; id <= 12; ++id)
+    body[id] = 0.08 * Eigen::Vector3d(unit(rng), unit(rng), unit(rng));
+  const Rigid3d optical_from_transmitter(QuaternionFromWxyz(0.9, 0.1, -0.3, 0.2).normalized(),
+                                         Eigen::Vector3d(1.5, -0.4, 1.2));
+  const std::vector<std::vector<int>> seen = {
+      {1, 2, 3}, {4, 5, 6}, {7, 8, 9}, {10, 11, 12}, {1, 4, 7}};
+  std::vector<RegistrationStation> stations;
+  for (int i = 0; i < 5; ++i) {
+    RegistrationStation s;
+    s.station = i + 1;
+    s.tracker_transmitter_from_receiver = Rigid3d(
+        QuaternionFromWxyz(1.0, unit(rng), unit(rng), unit(rng)).normalized(),
+        Eigen::Vector3d(0.3, 0.0, 0.2) + 0.25 * Eigen::Vector3d(unit(rng), unit(rng), unit(rng)));
+    for (int id : seen[i]) {
+      const int label = i == 4 && id == 1 ? 4 : i == 4 && id == 4 ? 1 : id;  // the swap
+      s.markers.push_back(
+          {label, optical_from_transmitter * (s.tracker_transmitter_from_receiver * body.at(id))});
+    }
+    stations.push_back(s);
+  }
+  RegistrationOptions o;
+  // Exact readings: a tight tracker prior keeps the poses from absorbing the swap.
+  o.tracker_position_noise_m = 5e-5;
+  o.tracker_orientation_noise_rad = 5e-5;
+  const RegistrationResult kept = RegisterOpticalToTransmitter(stations, o);
+  EXPECT_TRUE(kept.rejected_stations.empty()) << kept.ToString();
+  EXPECT_EQ(kept.stations.size(), 5u);
+  // The station does misfit: with the test's limit at the same station count it would go.
+  const auto worst = std::max_element(kept.stations.begin(), kept.stations.end(),
+                                      [](const RegisteredStation& a, const RegisteredStation& b) {
+                                        return a.marker_body_rms_m < b.marker_body_rms_m;
+                                      });
+  EXPECT_EQ(worst->station, 5);
+  EXPECT_GT(worst->marker_body_rms_m, o.max_station_marker_rms_m) << kept.ToString();
 }
 
 TEST(RegisterOpticalToTransmitter, UnderestimatedNoiseShowsInChiSquare) {
