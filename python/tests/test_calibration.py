@@ -306,3 +306,9 @@ def test_status_counts_refuses_codes_that_are_not_status_codes(bad):
     with pytest.raises(ValueError, match=r"status code .*: status codes must be 0\.\.2"):
         trackcal.status_counts(bad)
     assert trackcal.status_counts(np.array([0.0, 2.0])) == {"converged": 1, "ambiguous": 0, "not_converged": 1}
+
+
+def test_status_counts_takes_an_object_array_of_codes():
+    """An object array of valid codes (as pandas gives) raised StopIteration from the check."""
+    counts = trackcal.status_counts(np.array([0, 1, 1], dtype=object))
+    assert counts == {"converged": 1, "ambiguous": 2, "not_converged": 0}

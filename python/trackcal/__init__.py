@@ -49,12 +49,14 @@ def status_counts(status) -> dict:
     ``{"converged": n0, "ambiguous": n1, "not_converged": n2}`` (ValueError for unknown codes)."""
     import numpy as np
     codes = np.asarray(status).ravel()
-    known = np.arange(len(correction_status_names))
+    known = list(range(len(correction_status_names)))
     # Compared as numbers, not truncated: 1.7 counted as ambiguous and NaN failed inside bincount.
-    if codes.size and (codes.dtype.kind not in "biuf" or not np.all(np.isin(codes, known))):
-        bad = next(c for c in codes.tolist() if not (isinstance(c, (int, float)) and c in known.tolist()))
-        raise ValueError(f"status code {bad!r}: status codes must be 0..{len(correction_status_names) - 1}")
-    counts = np.bincount(codes.astype(np.int64), minlength=len(correction_status_names))
+    # Element by element, so an object array of valid codes (pandas) counts too.
+    values = codes.tolist()
+    for c in values:
+        if not (isinstance(c, (int, float)) and c in known):
+            raise ValueError(f"status code {c!r}: status codes must be 0..{len(correction_status_names) - 1}")
+    counts = np.bincount(np.asarray(values, dtype=np.int64), minlength=len(correction_status_names))
     return {name: int(counts[i]) for i, name in enumerate(correction_status_names)}
 
 
