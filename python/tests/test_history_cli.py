@@ -426,3 +426,18 @@ def test_malformed_history_fails_before_the_work(tmp_path, monkeypatch, capsys):
                      "-o", str(tmp_path / "cal.json"), "--folds", "5", "--workdir", str(work)]) == 2
     assert "history.jsonl:1: field scores" in capsys.readouterr().err
     assert not (tmp_path / "cal.json").exists()
+
+
+def test_report_without_covariates_does_not_call_them_clean(tmp_path):
+    """report --no-covariates skips the covariate tests: its verdict must not say "nothing
+    significant remains in the covariates" (it tested none)."""
+    cap_dir = simulate(tmp_path / "capture", seed=46)
+    model = tmp_path / "m.yaml"
+    model.write_text("terms:\n  - type: polynomial\n    degree: 2\n")
+    cal = tmp_path / "cal.json"
+    run_cli("fit", "--data", cap_dir, "--model", model, "-o", cal)
+    run_cli("report", cap_dir, "-c", cal, "--no-covariates", "-o", tmp_path / "rep")
+    page = (tmp_path / "rep" / "report.html").read_text()
+    verdict = page.split("<h2>Verdict</h2>", 1)[1].split("</p>", 1)[0]
+    assert "in the covariates" not in verdict, verdict
+    assert "--no-covariates" in verdict, verdict
