@@ -459,3 +459,14 @@ def test_the_default_scene_is_the_workflow_tests_scene():
     def keys(text):
         return [l.rstrip() for l in text.splitlines() if l.strip() and not l.lstrip().startswith("#")]
     assert keys(demo.DEFAULT_SCENE) == keys(SMALL_SCENE.read_text())
+
+
+def test_ctrl_c_before_serving_exits_130_without_a_traceback(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the loop simulates, fits or diagnoses (minutes): a one-line message and the
+    shell's 130, not a KeyboardInterrupt traceback."""
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(demo, "simulate", interrupted)
+    assert demo.main(["--work", str(tmp_path), "--no-serve"]) == 130
+    err = capsys.readouterr().err
+    assert "trackcal demo: interrupted" in err and "Traceback" not in err

@@ -700,7 +700,8 @@ def _raise_stopped(signum, _frame):
 
 def main(argv: Optional[List[str]] = None) -> int:
     """The main job; SIGTERM and SIGHUP stop it like Ctrl-C does, children included, and it exits
-    with 128 + the signal's number (143, 129), as a shell reports a process the signal ended."""
+    with 128 + the signal's number (143, 129), as a shell reports a process the signal ended; Ctrl-C
+    before serving exits with 130 (while serving it stops the emulator and the server, status 0)."""
     handled = (signal.SIGTERM, signal.SIGHUP)
     previous = {s: signal.getsignal(s) for s in handled}
     for s in handled:
@@ -710,6 +711,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except Stopped as e:
         print(f"\ntrackcal demo: stopped by {e}", file=sys.stderr, flush=True)
         return 128 + e.signum
+    except KeyboardInterrupt:  # Ctrl-C before serving (simulating, fitting, diagnosing): no traceback
+        print("\ntrackcal demo: interrupted", file=sys.stderr, flush=True)
+        return 130
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
