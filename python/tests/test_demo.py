@@ -470,3 +470,18 @@ def test_ctrl_c_before_serving_exits_130_without_a_traceback(tmp_path, monkeypat
     assert demo.main(["--work", str(tmp_path), "--no-serve"]) == 130
     err = capsys.readouterr().err
     assert "trackcal demo: interrupted" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("bad", ["missing_base", "folder_base", "work_is_a_file"])
+def test_bad_base_or_work_folder_is_a_one_line_error(tmp_path, capsys, bad):
+    """A mistyped --base or a --work that is a file: a message naming it, exit status 2 or a
+    SystemExit message, not a FileNotFoundError / NotADirectoryError traceback."""
+    (tmp_path / "afile").write_text("x")
+    argv = {"missing_base": ["--base", str(tmp_path / "nope.yaml"), "--work", str(tmp_path / "w")],
+            "folder_base": ["--base", str(tmp_path), "--work", str(tmp_path / "w")],
+            "work_is_a_file": ["--work", str(tmp_path / "afile")]}[bad]
+    with pytest.raises(SystemExit) as e:
+        demo.main(argv + ["--no-serve"])
+    text = str(e.value.code) + capsys.readouterr().err
+    name = "afile" if bad == "work_is_a_file" else "--base"
+    assert name in text, text

@@ -186,6 +186,9 @@ def _fresh_work_dir(base: Path) -> Path:
             return candidate
         except FileExistsError:
             continue
+        except OSError as e:  # --work a file, or a folder that cannot be written
+            raise SystemExit(f"trackcal demo: --work {base}: cannot make a work folder there: "
+                             f"{e.strerror or e}") from None
     raise SystemExit(f"trackcal demo: cannot make a fresh work folder under {base}")
 
 
@@ -745,7 +748,10 @@ def _main(argv: Optional[List[str]] = None) -> int:
     if args.max_steps < 0:
         parser.error("--max-steps must be >= 0")
 
-    base_text = None if args.base is None else args.base.read_text()
+    try:
+        base_text = None if args.base is None else args.base.read_text()
+    except (OSError, UnicodeDecodeError) as e:  # missing, a folder, not text: before any work
+        parser.error(f"--base {args.base}: {getattr(e, 'strerror', None) or e}")
     work = _fresh_work_dir(args.work)
     print(f"trackcal demo: work folder {work}")
     if args.scene is None:
