@@ -485,3 +485,18 @@ def test_bad_base_or_work_folder_is_a_one_line_error(tmp_path, capsys, bad):
     text = str(e.value.code) + capsys.readouterr().err
     name = "afile" if bad == "work_is_a_file" else "--base"
     assert name in text, text
+
+
+@tools
+def test_serving_from_a_relative_work_folder_finds_the_calibration(tmp_path, monkeypatch):
+    """The default --work demo-runs is relative; trackcal-server reads vrpn.cfg's paths from the
+    file's folder, so relative ones there named a calibration (and device) that does not exist
+    and the server exited at the end of the main job."""
+    import shutil as _shutil
+    monkeypatch.chdir(tmp_path)
+    work = Path("demo-runs") / "run"
+    work.mkdir(parents=True)
+    _shutil.copy(ROOT / "tests" / "data" / "calibration" / "example.json", work / "cal.json")
+    demo.serve(work, work / "cal.json", "", 1, _free_port(), 3.0, "paper")  # SystemExit if the server exits
+    log = (work / "server.log").read_text()
+    assert "error" not in log, log

@@ -625,6 +625,10 @@ def served_counts(server_log: Path, tracker: str = "Tracker0"):
 
 def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], port: int,
           seconds: Optional[float], scene: str = "paper") -> None:
+    # Absolute paths: trackcal-server reads a relative path in vrpn.cfg from the file's folder, so
+    # the default --work demo-runs (relative) named demo-runs/<run>/demo-runs/<run>/models/... there.
+    work = Path(work).resolve()
+    calib = Path(calib).resolve() if calib is not None else None
     device = work / "fastrak"
     emulate_cmd = [_tool("trackcal-emulate"), "--scene", scene, "--link", str(device), "--binary",
                    "--continuous"]
