@@ -342,6 +342,62 @@ TEST(VrpnServer, ReferenceClientDescribingOnlyVrpnControlGetsEveryDevice) {
   EXPECT_GE(counts["Tracker1"], 20);
 }
 
+TEST(VrpnServer, AForeignUdpDescriptionIsLoggedOnceNotOnEveryRead) {
+  // A lob client announcing a UDP port on another address gets its reports over TCP; the server
+  // says so once, not on every later read from that client (which would let one client fill the
+  // log without limit).
+  std::atomic<int> ignored_lines{0};
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [&](const std::string& line) {
+    if (line.find("ignoring UDP description") != std::string::npos) ++ignored_lines;
+  });
+  server.Start();
+  UniqueFd listener(::socket(AF_INET, SOCK_STREAM, 0));
+  sockaddr_in la = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)), 0);
+  ASSERT_EQ(::listen(listener.get(), 1), 0);
+  socklen_t len = sizeof(la);
+  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
+  UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
+  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
+  ASSERT_GT(::sendto(udp.get(), lob.data(), lob.size(), 0, reinterpret_cast<const sockaddr*>(&dst),
+                     sizeof(dst)),
+            0);
+  pollfd p{listener.get(), POLLIN, 0};
+  ASSERT_EQ(::poll(&p, 1, 10000), 1);
+  UniqueFd fd(::accept(listener.get(), nullptr, nullptr));
+  ASSERT_TRUE(fd.valid());
+
+  auto names = std::make_shared<NameRegistry>();
+  const std::int32_t tracker = names->AddSender("Tracker0");
+  const std::int32_t ping = names->AddType(kPingType);
+  Connection conn(names, Connection::Options{});
+  conn.Start(std::make_pair(std::string("127.0.0.2"), 40000));
+  constexpr int kPings = 30;
+  int pongs = 0;
+  std::uint8_t buf[65536];
+  for (int i = 0; i < kPings; ++i) {
+    conn.Pack(tracker, ping, Timestamp::Now(), {});
+    auto& out = conn.tcp_output();
+    ASSERT_EQ(::send(fd.get(), out.data(), out.size(), 0), static_cast<ssize_t>(out.size()));
+    out.clear();
+    // Wait for this ping's pong, so that every ping is a read of its own on the server.
+    const auto end = Clock::now() + std::chrono::seconds(10);
+    while (pongs <= i && Clock::now() < end) {
+      pollfd r{fd.get(), POLLIN, 0};
+      if (::poll(&r, 1, 100) <= 0) continue;
+      const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+      ASSERT_GT(n, 0);
+      ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                  [&](const ReceivedMessage& m) {
+                                    if (m.type == kPongType) ++pongs;
+                                  }));
+    }
+  }
+  EXPECT_EQ(pongs, kPings);
+  EXPECT_EQ(ignored_lines.load(), 1);
+}
+
 TEST(VrpnServer, AllowListRefusesOtherNetworks) {
   ServerOptions options = LoopbackOptions();
   options.allow = {"10.0.0.0/8"};

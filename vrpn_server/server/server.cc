@@ -100,6 +100,8 @@ struct VrpnServer::Endpoint {
   bool want_write = false;
   Clock::time_point deadline;
   std::optional<sockaddr_in> udp_peer;
+  // An unusable UDP description was logged (once: the check runs after every read).
+  bool udp_description_logged = false;
   std::vector<std::uint8_t> datagram;
   // wants[sender id]: the client described that device name (it uses a remote object for it).
   std::vector<bool> wants;
@@ -650,7 +652,8 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
         const auto ip = ParseIpv4(host);
         if (ip && ip->s_addr == e.peer.sin_addr.s_addr) {
           e.udp_peer = MakeSockaddr(*ip, port);
-        } else {
+        } else if (!e.udp_description_logged) {
+          e.udp_description_logged = true;
           Log(e.label + ": ignoring UDP description for " + host + " (not the client's address)");
         }
       }
