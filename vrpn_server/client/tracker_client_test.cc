@@ -5,7 +5,9 @@
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <gtest/gtest.h>
+#include <linux/sockios.h>
 #include <poll.h>
+#include <sys/ioctl.h>
 #include <sys/resource.h>
 #include <sys/socket.h>
 #include <unistd.h>
@@ -266,6 +268,48 @@ TEST(VrpnServer, StalledClientIsDroppedWithoutBlockingOthers) {
   ASSERT_TRUE(PollUntil({&good}, [&] { return static_cast<int>(got.reports.size()) == n; }, 30.0));
   EXPECT_EQ(server.stats().dropped_slow, 1u);
   EXPECT_EQ(server.stats().clients, 1);
+}
+
+TEST(VrpnServer, RequestsFromAClientThatDoesNotReadCannotGrowTheServerPastItsOutputLimit) {
+  // Each 24-byte Request_Unit_To_Sensor is answered with one 88-byte message per sensor: a client
+  // that sends requests and never reads must not make the server build hundreds of MB of replies
+  // (every request of a read used to be answered before the output limit was looked at).
+  auto catalog = std::make_shared<ServerCatalog>();
+  TrackerSpec spec;
+  spec.name = "Tracker0";
+  spec.num_sensors = 256;
+  catalog->AddTracker(spec);
+  VrpnServer server(catalog, LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  auto fd = RawConnect(server.port(), /*rcvbuf=*/4096);
+  auto names = std::make_shared<NameRegistry>();
+  const std::int32_t tracker = names->AddSender("Tracker0");
+  const std::int32_t request = names->AddType(kRequestUnitToSensorType);
+  Connection conn(names, Connection::Options{});
+  conn.Start();
+  // 10000 requests (240 kB) would be 225 MB of answers.
+  for (int i = 0; i < 10000; ++i) conn.Pack(tracker, request, Timestamp::Now(), {});
+  rusage before{};
+  ::getrusage(RUSAGE_SELF, &before);
+  const auto& out = conn.tcp_output();
+  std::size_t sent = 0;
+  while (sent < out.size()) {
+    const ssize_t n = ::send(fd.get(), out.data() + sent, out.size() - sent, MSG_NOSIGNAL);
+    if (n <= 0) break;
+    sent += static_cast<std::size_t>(n);
+  }
+  // Every byte reached the server's socket; a client that connects afterwards and gets its pong
+  // was served after the server read (and handled) them.
+  ASSERT_TRUE(PollUntil({}, [&] {
+    int unsent = 0;
+    return ::ioctl(fd.get(), SIOCOUTQ, &unsent) == 0 && unsent == 0;
+  }));
+  VrpnTrackerClient good("Tracker0@tcp://127.0.0.1:" + std::to_string(server.port()));
+  ASSERT_TRUE(PollUntil({&good}, [&] { return good.pong_received(); }));
+  rusage after{};
+  ::getrusage(RUSAGE_SELF, &after);
+  // ru_maxrss is in kB: the peak may grow by a few times the 1 MiB limit, not by 100 MB.
+  EXPECT_LT(after.ru_maxrss - before.ru_maxrss, 32 * 1024);
 }
 
 // Publishes poses of Tracker0 (device 0) and `tracker1` until done(counts) or 10 s, counting the

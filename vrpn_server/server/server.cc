@@ -575,7 +575,7 @@ void VrpnServer::StartSession(Endpoint& e) {
   }
   e.session = std::make_unique<ServerSession>(
       catalog_, Connection::Options{.max_message_length = options_.max_message_length}, e.label,
-      [this](const std::string& line) { Log(line); });
+      [this](const std::string& line) { Log(line); }, options_.max_output_bytes);
   std::optional<std::pair<std::string, int>> our_udp;
   if (e.udp_fd.valid()) {
     sockaddr_in ua{};

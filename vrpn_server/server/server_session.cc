@@ -5,11 +5,13 @@
 namespace trackcal::vrpn {
 
 ServerSession::ServerSession(std::shared_ptr<const ServerCatalog> catalog,
-                             Connection::Options options, std::string peer_label, LogFunction log)
+                             Connection::Options options, std::string peer_label, LogFunction log,
+                             std::size_t max_output_bytes)
     : catalog_(std::move(catalog)),
       connection_(catalog_->names(), options),
       peer_label_(std::move(peer_label)),
-      log_(std::move(log)) {}
+      log_(std::move(log)),
+      max_output_bytes_(max_output_bytes) {}
 
 void ServerSession::Start(std::optional<std::pair<std::string, int>> our_udp,
                           std::span<const std::vector<std::int32_t>> button_states) {
@@ -47,6 +49,7 @@ void ServerSession::Handle(const ReceivedMessage& m) {
   const TypeIds& t = catalog_->types();
   const std::string type(m.type);
   if (m.type == kPingType) {
+    if (!RoomForReply(m)) return;
     // Pong only for served names: the missing pong is the only hint a client gets for a misspelt
     // device name (the reference behaves the same).
     if (const auto sender = catalog_->names()->FindSender(m.sender);
@@ -76,6 +79,7 @@ void ServerSession::Handle(const ReceivedMessage& m) {
       Log("dropped " + type + " for '" + std::string(m.sender) + "'");
       return;
     }
+    if (!RoomForReply(m)) return;
     const TrackerSpec& spec = catalog_->trackers()[*tracker];
     const std::int32_t sender = catalog_->tracker_sender(*tracker);
     const Timestamp now = Timestamp::Now();
@@ -101,6 +105,15 @@ void ServerSession::Handle(const ReceivedMessage& m) {
   ++dropped_messages_;
   Log("dropped unhandled message type '" + type + "' (" + std::to_string(m.payload.size()) +
       " bytes)");
+}
+
+bool ServerSession::RoomForReply(const ReceivedMessage& m) {
+  const std::size_t waiting = connection_.tcp_output().size();
+  if (waiting <= max_output_bytes_) return true;
+  ++dropped_messages_;
+  Log("not reading its replies (" + std::to_string(waiting) + " bytes waiting): dropped " +
+      std::string(m.type));
+  return false;
 }
 
 void ServerSession::Log(const std::string& line) {

@@ -10,6 +10,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <optional>
 #include <span>
@@ -28,8 +29,12 @@ class ServerSession {
   // Per-session cap on log lines about client misbehaviour; later ones are counted, not printed.
   static constexpr int kMaxLogLines = 20;
 
+  // Replies (pongs, answers to requests) are not made while more than max_output_bytes wait in
+  // connection().tcp_output(): a client that sends requests and does not read cannot make the
+  // session build output without bound before its owner drops it.
   ServerSession(std::shared_ptr<const ServerCatalog> catalog, Connection::Options options,
-                std::string peer_label, LogFunction log);
+                std::string peer_label, LogFunction log,
+                std::size_t max_output_bytes = std::numeric_limits<std::size_t>::max());
 
   // Queues cookie, our UDP description (lob connections), all descriptions, and the current state
   // of every button device (as the reference does on a new connection).
@@ -48,12 +53,15 @@ class ServerSession {
 
  private:
   void Handle(const ReceivedMessage& m);
+  // False (and the message counted as dropped) when the client has left too many bytes unread.
+  bool RoomForReply(const ReceivedMessage& m);
   void Log(const std::string& line);
 
   std::shared_ptr<const ServerCatalog> catalog_;
   Connection connection_;
   std::string peer_label_;
   LogFunction log_;
+  std::size_t max_output_bytes_;
   int log_lines_ = 0;
   std::uint64_t pings_answered_ = 0;
   std::uint64_t dropped_messages_ = 0;
