@@ -476,6 +476,29 @@ TEST(VrpnServer, ALobRequestForItsOwnPortIsRefused) {
   EXPECT_EQ(server.stats().clients, 0);
 }
 
+TEST(VrpnServer, LobRequestsForClosedPortsCannotFloodTheLog) {
+  // Each lob datagram naming a closed port costs a refused call-back; its log line counts
+  // toward the cap on lob refusals (a host could otherwise log at the rate it sends datagrams).
+  std::atomic<int> lines{0};
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [&](const std::string& line) {
+    if (line.find("call-back connect failed") != std::string::npos) ++lines;
+  });
+  server.Start();
+  UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
+  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  for (int i = 0; i < 400; ++i) {
+    // Ports nobody listens on (a connect there is refused at once on loopback).
+    const auto datagram = EncodeLobRequest(LobRequest{"127.0.0.1", 40000 + i});
+    ::sendto(udp.get(), datagram.data(), datagram.size(), 0,
+             reinterpret_cast<const sockaddr*>(&dst), sizeof(dst));
+    if (i % 50 == 49) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  std::this_thread::sleep_for(std::chrono::milliseconds(500));
+  EXPECT_GE(lines.load(), 1);
+  EXPECT_LE(lines.load(), 100);
+  EXPECT_EQ(server.stats().clients, 0);
+}
+
 TEST(VrpnServer, SecondServerOnSamePortThrowsNamingIt) {
   VrpnServer first(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
   first.Start();

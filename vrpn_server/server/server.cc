@@ -615,7 +615,10 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
     socklen_t len = sizeof(err);
     ::getsockopt(e.fd.get(), SOL_SOCKET, SO_ERROR, &err, &len);
     if (err != 0 || (events & (EPOLLERR | EPOLLHUP))) {
-      Close(id, "call-back connect failed: " + ErrnoText(err ? err : ECONNREFUSED));
+      // Every lob datagram naming a closed port ends here: these lines count toward the cap on
+      // lob refusals, or any host could flood the log at the rate it sends datagrams.
+      Close(id, "call-back connect failed: " + ErrnoText(err ? err : ECONNREFUSED),
+            impl_->refused_logged++ < 100);
       return;
     }
     if (events & EPOLLOUT) OnConnected(e);
@@ -705,10 +708,10 @@ void VrpnServer::Flush(Endpoint& e) {
   }
 }
 
-void VrpnServer::Close(std::uint64_t id, const std::string& why) {
+void VrpnServer::Close(std::uint64_t id, const std::string& why, bool log) {
   auto it = impl_->endpoints.find(id);
   if (it == impl_->endpoints.end()) return;
-  Log("closed " + it->second->label + ": " + why);
+  if (log) Log("closed " + it->second->label + ": " + why);
   if (!it->second->callback_key.empty()) impl_->callback_keys.erase(it->second->callback_key);
   // Closing the fds removes them from the epoll set.
   impl_->endpoints.erase(it);

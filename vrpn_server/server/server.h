@@ -141,7 +141,8 @@ class VrpnServer {
   void OnConnected(Endpoint& e);
   void StartSession(Endpoint& e);
   void Flush(Endpoint& e);
-  void Close(std::uint64_t id, const std::string& why);
+  // Logs "closed <client>: why" unless `log` is false.
+  void Close(std::uint64_t id, const std::string& why, bool log = true);
   void DrainEvents();
   void CheckDeadlines();
   void UpdateInterest(Endpoint& e);
