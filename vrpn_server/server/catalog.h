@@ -38,7 +38,9 @@ struct ButtonSpec {
   void Check() const;
 };
 
-// Local type ids, registered in the reference's order so our ids match its numbering.
+// Local type ids, registered in the reference's order. The ids are 4 lower than the reference's
+// (Pos_Quat is 0 here, 4 in capture 01, which first registers the four VRPN_Connection_* types
+// we do not describe); peers translate ids by name, so they need not match.
 struct TypeIds {
   std::int32_t pos_quat, velocity, acceleration, to_room, unit_to_sensor, request_to_room,
       request_unit_to_sensor, workspace, request_workspace, set_update_rate, reset_origin, text,
