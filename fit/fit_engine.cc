@@ -107,6 +107,10 @@ bool EvaluateChainFrom(const std::vector<BoundTerm>& terms, size_t from,
     const size_t count = t.binding.blocks.size();
     bool ok = false;
     std::optional<Pending> group;
+    // The input derivative multiplies the derivatives gathered so far; the first term's (a
+    // constant report) is not read unless the caller asks for the chain's.
+    eval.want_d_output_d_input =
+        want && (d_output_d_input != nullptr || !d_pose->empty() || !pending.empty());
     if (!t.term->UsesTarget()) {
       ok = t.term->Evaluate(t.binding, parameters + p, pose, want, &eval);
     } else if (k + 1 == terms.size()) {

@@ -128,6 +128,10 @@ struct TermEvaluation {
   AmbientPose output;                 // the pose after this term
   // d output / d input pose (7 x 7, row-major); only filled when requested.
   Eigen::Matrix<double, 7, 7, Eigen::RowMajor> d_output_d_input;
+  // Set by the caller: false when it will not read d_output_d_input (the chain's first term, whose
+  // input is the constant report). A term whose input derivative is costly (a physical group's,
+  // by finite differences of the free-space signal's Jacobian) may then skip it and leave it NaN.
+  bool want_d_output_d_input = true;
   // d output / d block, one 7 x size matrix per bound block (in StationBinding::blocks order).
   std::vector<Eigen::Matrix<double, 7, Eigen::Dynamic, Eigen::RowMajor>> d_output_d_blocks;
   // d output / d target (7 x 7, row-major) of ModelTerm::EvaluateToward(), filled with the other

@@ -1125,10 +1125,14 @@ bool PhysicalGroupTerm::EvaluateFrom(const StationBinding& binding,
   // Implicit function theorem: dx/dtheta = -(dg/dx)^-1 dg/dtheta, dx/dy likewise (at x_t for
   // toward a target: x1's derivative up to terms of the order of g, which vanish at a fit).
   values.SplitByBlock(o_theta - o_x * lu.solve(g_theta), result);
+  result->d_output_d_target.setZero();
+  if (!result->want_d_output_d_input) {
+    result->d_output_d_input.setConstant(std::numeric_limits<double>::quiet_NaN());
+    return true;
+  }
   // d output / d input: tangent eps of y (p + eps_p, R Exp(eps_w)) from the ambient input.
   const Matrix6 g_y = NormalEquationsInputDerivative(y, s_at_x);
   result->d_output_d_input = -o_x * lu.solve(g_y * TangentOfAmbient(input));
-  result->d_output_d_target.setZero();
   return true;
 }
 
@@ -1210,6 +1214,10 @@ bool PhysicalGroupTerm::EvaluateTowardReport(const StationBinding& binding,
   if (!o_theta.allFinite() || !o_target.allFinite()) return false;
   values.SplitByBlock(o_theta, result);
   result->d_output_d_target = o_target * TangentOfAmbient(target);
+  if (!result->want_d_output_d_input) {
+    result->d_output_d_input.setConstant(std::numeric_limits<double>::quiet_NaN());
+    return true;
+  }
   // d output / d input: d step / d y by central differences of the chord step along y's tangent
   // (its second derivatives of S_free are not available as Jets, see
   // NormalEquationsInputDerivative; same h, error below 1e-10 relative); d output / d step by Jets
@@ -1434,6 +1442,7 @@ SearchSet MakeSearchSet(const PhysicalGroupTerm& term, const std::vector<FitStat
     st.g.setZero(6, project ? num_free : 0);
     if (project && num_free > 0) {
       TermEvaluation eval;
+      eval.want_d_output_d_input = false;  // the report is constant
       if (!term.Evaluate(binding, free_values.data(), ToAmbient(s.reported), true, &eval)) continue;
       Eigen::Index col = 0;
       for (const auto& d : eval.d_output_d_blocks) {
@@ -1815,6 +1824,7 @@ class GroupStationCost : public ceres::CostFunction {
   bool Evaluate(double const* const* parameters, double* residuals,
                 double** jacobians) const override {
     TermEvaluation eval;
+    eval.want_d_output_d_input = false;  // the report is constant
     if (!evaluate_(parameters, station_, jacobians != nullptr, &eval)) return false;
     Vector6 r;
     Eigen::Matrix<double, 6, 7> d_r;

@@ -223,6 +223,45 @@ TEST(PhysicalGroupTerm, JacobiansMatchNumericDifferentiation) {
   }
 }
 
+// A caller that does not read d_output_d_input (the chain's first term, on the constant report)
+// may skip it: the output and every other derivative stay the same bits in all three forms (the
+// report's inverse, toward a target from the report, toward a target by Newton from the pose
+// behind it), and the skipped matrix is NaN, so a caller that read it would see it at once.
+TEST(PhysicalGroupTerm, SkippingTheInputDerivativeChangesNothingElse) {
+  ModelSpec spec = ParseModelYaml(GroupYaml("[0.6, 0.95, -0.5]", 0.02), "m.yaml");
+  const auto& term = dynamic_cast<const PhysicalGroupTerm&>(*spec.terms[0]);
+  std::vector<const double*> values;
+  for (const auto& b : term.blocks()) values.push_back(b.values.data());
+  const Rigid3d body(
+      Eigen::Quaterniond(Eigen::AngleAxisd(0.7, Eigen::Vector3d(1, 2, 3).normalized())),
+      Eigen::Vector3d(0.3, -0.2, -0.5));
+  const Rigid3d reported(
+      body.rotation * Eigen::Quaterniond(Eigen::AngleAxisd(0.03, Eigen::Vector3d::UnitX())),
+      body.translation + Eigen::Vector3d(0.01, -0.02, 0.005));
+  const AmbientPose input = ToAmbient(reported), target = ToAmbient(body);
+  for (int form = 0; form < 3; ++form) {
+    SCOPED_TRACE("form " + std::to_string(form));
+    StationBinding binding = term.Bind(input);
+    binding.pose_form = form == 2;
+    TermEvaluation full, skipped;
+    skipped.want_d_output_d_input = false;
+    const auto evaluate = [&](TermEvaluation* out) {
+      return form == 0 ? term.Evaluate(binding, values.data(), input, true, out)
+                       : term.EvaluateToward(binding, values.data(), input, target, true, out);
+    };
+    ASSERT_TRUE(evaluate(&full));
+    ASSERT_TRUE(evaluate(&skipped));
+    EXPECT_TRUE(full.d_output_d_input.allFinite());
+    EXPECT_TRUE(skipped.d_output_d_input.array().isNaN().all());
+    EXPECT_EQ(skipped.output, full.output);
+    EXPECT_EQ(skipped.d_output_d_target, full.d_output_d_target);
+    ASSERT_EQ(skipped.d_output_d_blocks.size(), full.d_output_d_blocks.size());
+    for (size_t b = 0; b < full.d_output_d_blocks.size(); ++b) {
+      EXPECT_EQ(skipped.d_output_d_blocks[b], full.d_output_d_blocks[b]) << "block " << b;
+    }
+  }
+}
+
 // EvaluateToward() (the fit's form): the report's misfit carried to the pose behind the target
 // by the free-space inverse's chord, with no inverse of the model, so its derivatives by the
 // blocks, the target and the input match central differences at any report: here 0.15 m from a
