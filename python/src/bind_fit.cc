@@ -15,10 +15,14 @@
 #include <pybind11/stl/filesystem.h>
 
 #include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <exception>
 #include <filesystem>
+#include <future>
 #include <limits>
 #include <map>
+#include <mutex>
 #include <optional>
 #include <string>
 #include <vector>
@@ -367,8 +371,16 @@ void WritePosesChecked(const fs::path& path, const PoseCapture& poses,
 }
 
 #ifdef TRACKCAL_HAVE_CANDIDATES
-// Progress messages of the ranking ("fitting dipole (fold 3/5)") for a Python callback; a Python
-// exception is kept and re-raised after the run (the ranking cannot be interrupted in between).
+// Thrown from the ranking's progress hook to stop it: not a std::exception, so the ranking's own
+// handlers (a candidate's failed fit) let it through to the caller.
+struct RankingStopped {};
+
+// Progress messages of the ranking ("fitting dipole (fold 3/5)") for a Python callback. A Python
+// exception from the callback, or a signal (Ctrl-C: KeyboardInterrupt, or a handler's exception),
+// stops the ranking at its next progress message (each worker's candidate at its next stage,
+// seconds) and is raised. The ranking runs on its own thread while this (the main) thread waits
+// without the GIL and runs Python's signal handlers every 0.1 s: the ranking's workers are not the
+// main thread, where alone Python runs signal handlers.
 nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource& model, int folds,
                                       const std::vector<std::string>& effects,
                                       int cross_validate_top, const py::object& progress) {
@@ -377,38 +389,57 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
   options.effects = effects;
   if (cross_validate_top < 0) throw py::value_error("cross_validate_top must be >= 0");
   options.cross_validate_top = cross_validate_top;
-  std::unique_ptr<py::error_already_set> error;
-  if (!progress.is_none()) {
-    options.progress = [&progress, &error](const std::string& message) {
-      if (error) return;
-      py::gil_scoped_acquire acquire;
-      try {
-        progress(message);
-      } catch (py::error_already_set& e) {
-        error = std::make_unique<py::error_already_set>(std::move(e));
-      }
-    };
-  }
+  std::mutex error_mutex;
+  std::unique_ptr<py::error_already_set> error;  // the first Python exception (callback or signal)
+  std::atomic<bool> stop{false};
+  const auto keep = [&](py::error_already_set&& e) {  // with the GIL held
+    std::lock_guard<std::mutex> lock(error_mutex);
+    if (!error) error = std::make_unique<py::error_already_set>(std::move(e));
+    stop = true;
+  };
+  options.progress = [&](const std::string& message) {
+    if (stop) throw RankingStopped{};
+    if (progress.is_none()) return;
+    py::gil_scoped_acquire acquire;
+    try {
+      progress(message);
+    } catch (py::error_already_set& e) {
+      keep(std::move(e));
+      throw RankingStopped{};
+    }
+  };
   options.Check();
   nlohmann::json doc;
   {
     py::gil_scoped_release release;
-    ValueErrors([&] {
-      const ModelSpec spec = fit::ParseModelYaml(model.text, model.source_name);
-      // Streams are paired at the offset `fit` estimates when the model frees it.
-      const fit::LoadedFitData loaded = fit::PairAtFittedOffset(
-          fit::LoadFitData(data, spec), {model.text, model.source_name, model.path});
-      const auto calib = fit::StationsOfSet(loaded.poses, "calib");
-      if (calib.empty())
-        throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
-      const std::string data_name = data.path ? data.path->string() : loaded.name;
-      // The time_offset candidate pairs the streams again with its own offset setting.
-      options.pair_streams = fit::StreamRepairing(loaded, spec);
-      fit::Diagnosis d =
-          fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options);
-      d.time_offset_s = loaded.time_offset;
-      doc = d.ToJson();
+    std::future<void> ranking = std::async(std::launch::async, [&] {
+      ValueErrors([&] {
+        const ModelSpec spec = fit::ParseModelYaml(model.text, model.source_name);
+        // Streams are paired at the offset `fit` estimates when the model frees it.
+        const fit::LoadedFitData loaded = fit::PairAtFittedOffset(
+            fit::LoadFitData(data, spec), {model.text, model.source_name, model.path});
+        const auto calib = fit::StationsOfSet(loaded.poses, "calib");
+        if (calib.empty())
+          throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
+        const std::string data_name = data.path ? data.path->string() : loaded.name;
+        // The time_offset candidate pairs the streams again with its own offset setting.
+        options.pair_streams = fit::StreamRepairing(loaded, spec);
+        fit::Diagnosis d =
+            fit::DiagnoseCandidates(calib, model.text, model.source_name, data_name, options);
+        d.time_offset_s = loaded.time_offset;
+        doc = d.ToJson();
+      });
     });
+    while (ranking.wait_for(std::chrono::milliseconds(100)) != std::future_status::ready) {
+      if (stop) continue;
+      py::gil_scoped_acquire acquire;
+      if (PyErr_CheckSignals() != 0) keep(py::error_already_set());
+    }
+    try {
+      ranking.get();
+    } catch (const RankingStopped&) {
+      // the kept Python exception is raised below
+    }
   }
   if (error) throw std::move(*error);
   return doc;

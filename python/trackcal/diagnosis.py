@@ -43,7 +43,8 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
     restrict the catalog to these term types (None: all); ``progress(message)`` receives the
     ranking's progress messages ("fitting dipole (fold 3/5)"); ``cross_validate_top`` N > 0
     cross-validates only the N candidates with the best BIC (the others are reported screened
-    out, never significant), 0 every one (docs/diagnose.md, Speed)."""
+    out, never significant), 0 every one (docs/diagnose.md, Speed). Ctrl-C (or an exception from
+    ``progress``) stops the ranking at its candidates' next stage and is raised."""
     if not candidates_available():
         raise NotImplementedError("this trackcal build has no candidate ranking (fit/candidates.h); "
                                   "the covariate analysis (trackcal diagnose) still works")
