@@ -307,13 +307,20 @@ class CsvWriter {
         }
       }
     }
-    for (const std::string& e : extra_columns) {
+    for (size_t k = 0; k < extra_columns.size(); ++k) {
+      const std::string& e = extra_columns[k];
       for (const std::string& c : columns) {
         if (e == c)
           throw std::invalid_argument(name_ + ": extra column " + e + " is a standard column");
       }
-      if (e.empty() || e.find_first_of(",\n\r") != std::string::npos) {
+      // The reader trims header names and refuses a name given twice: a name it would read
+      // differently, or a repeated one, makes a file it refuses.
+      if (e.empty() || e != Trim(e) || e.find_first_of(",\n\r") != std::string::npos) {
         throw std::invalid_argument(name_ + ": extra column name '" + e + "' is not a valid name");
+      }
+      if (std::find(extra_columns.begin(), extra_columns.begin() + k, e) !=
+          extra_columns.begin() + k) {
+        throw std::invalid_argument(name_ + ": extra column " + e + " is given twice");
       }
     }
     names_ = columns;
@@ -381,6 +388,25 @@ class CsvWriter {
     field_ = 0;
     ++record_;
   }
+  // As the readers: one record per pair of key columns (station and sensor, station and marker).
+  void RequireUniqueKey(const std::string& first, int first_value, const std::string& second,
+                        int second_value) {
+    const auto [it, inserted] = keys_.emplace(std::make_pair(first_value, second_value), record_);
+    if (!inserted) {
+      Fail("columns " + first + ", " + second,
+           first + " " + std::to_string(first_value) + ", " + second + " " +
+               std::to_string(second_value) + " repeats record " + std::to_string(it->second) +
+               " (one record per " + first + " and " + second + ")");
+    }
+  }
+  // As ReadReferenceStream: times must increase from record to record.
+  void RequireIncreasingTime(double time) {
+    if (record_ > 0 && !(time > previous_time_)) {
+      Fail("column time", FormatNumber(time) + " is not after the previous record's " +
+                              FormatNumber(previous_time_) + " (times must increase)");
+    }
+    previous_time_ = time;
+  }
   void Commit(const std::filesystem::path& path, const CaptureWriteOptions& options) {
     WriteFileAtomically(path, out_.str(), options.overwrite);
   }
@@ -402,6 +428,8 @@ class CsvWriter {
   std::ostringstream out_;
   size_t field_ = 0;   // fields written of the current record
   size_t record_ = 0;  // index of the current record
+  std::map<std::pair<int, int>, size_t> keys_;  // key columns' values -> first record
+  double previous_time_ = 0.0;
 };
 
 }  // namespace
@@ -577,6 +605,7 @@ void WritePoses(const std::filesystem::path& path, const PoseCapture& capture,
       throw std::invalid_argument(path.filename().string() + ": record " + std::to_string(i) +
                                   ": set '" + r.set + "' is not one of calib, valid, reg");
     }
+    w.RequireUniqueKey("station", r.station, "sensor", r.sensor);
     w.Int(r.station).Text(r.set).Int(r.sensor).Num(r.time).Pose(r.reported).Pose(r.reference);
     w.End(r.extra, i);
   }
@@ -588,6 +617,7 @@ void WriteMarkers(const std::filesystem::path& path, const MarkerCapture& captur
   CsvWriter w(path, kMarkerColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const MarkerRecord& r = capture.records[i];
+    w.RequireUniqueKey("station", r.station, "marker", r.marker);
     w.Int(r.station).Int(r.marker).Vec(r.position_in_optical);
     w.End(r.extra, i);
   }
@@ -599,6 +629,7 @@ void WriteTracker(const std::filesystem::path& path, const TrackerCapture& captu
   CsvWriter w(path, kTrackerColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const TrackerRecord& r = capture.records[i];
+    w.RequireUniqueKey("station", r.station, "sensor", r.sensor);
     w.Int(r.station).Int(r.sensor).Pose(r.transmitter_from_receiver);
     w.End(r.extra, i);
   }
@@ -621,7 +652,9 @@ void WriteReferenceStream(const std::filesystem::path& path, const ReferenceStre
   CsvWriter w(path, kReferenceStreamColumns, capture.extra_columns, capture.extra_labels);
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const ReferenceStreamSample& r = capture.records[i];
-    w.Num(r.time).Pose(r.transmitter_from_body);
+    w.Num(r.time);  // a non-finite time is named as such first
+    w.RequireIncreasingTime(r.time);
+    w.Pose(r.transmitter_from_body);
     w.End(r.extra, i);
   }
   w.Commit(path, options);

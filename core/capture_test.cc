@@ -319,6 +319,56 @@ TEST(CaptureWriters, RefuseWhatTheReadersRefuse) {
   EXPECT_TRUE(std::isnan(ReadPoses(path).records[4].extra[0]));
 }
 
+TEST(CaptureWriters, RefuseFilesTheReadersRefuse) {
+  // What a reader refuses beyond single values: a repeated key, a reference time that does not
+  // increase, an extra column given twice or named with spaces the reader trims. Refused when
+  // writing, naming the record, and nothing is written.
+  const auto dir = MakeTempDir("capture_test");
+  const auto path = dir / "poses.csv";
+  PoseCapture poses = RandomPoses();
+  poses.records[7].station = poses.records[5].station;
+  poses.records[7].sensor = poses.records[5].sensor;
+  EXPECT_EQ(ErrorOf([&] { WritePoses(path, poses); }),
+            "poses.csv: record 7: columns station, sensor: station 6, sensor 2 repeats record 5 "
+            "(one record per station and sensor)");
+  EXPECT_FALSE(std::filesystem::exists(path));
+
+  MarkerCapture markers;
+  markers.records.push_back({1, 2, Eigen::Vector3d::Zero(), {}});
+  markers.records.push_back({1, 2, Eigen::Vector3d::Ones(), {}});
+  EXPECT_EQ(ErrorOf([&] { WriteMarkers(dir / kMarkersCsv, markers); }),
+            std::string(kMarkersCsv) +
+                ": record 1: columns station, marker: station 1, marker 2 repeats record 0 (one "
+                "record per station and marker)");
+  EXPECT_FALSE(std::filesystem::exists(dir / kMarkersCsv));
+
+  TrackerCapture tracker;
+  tracker.records.resize(2);  // both station 0, sensor 1
+  EXPECT_NE(ErrorOf([&] { WriteTracker(dir / kTrackerCsv, tracker); }).find("repeats record 0"),
+            std::string::npos);
+  EXPECT_FALSE(std::filesystem::exists(dir / kTrackerCsv));
+
+  ReferenceStream stream;
+  stream.records.resize(3);
+  stream.records[0].time = 0.01;
+  stream.records[1].time = 0.02;
+  stream.records[2].time = 0.02;
+  EXPECT_EQ(ErrorOf([&] { WriteReferenceStream(dir / kReferenceStreamCsv, stream); }),
+            std::string(kReferenceStreamCsv) +
+                ": record 2: column time: 0.02 is not after the previous record's 0.02 (times "
+                "must increase)");
+  EXPECT_FALSE(std::filesystem::exists(dir / kReferenceStreamCsv));
+
+  for (const std::vector<std::string>& columns :
+       std::vector<std::vector<std::string>>{{"temperature_c", "temperature_c"}, {" room"}}) {
+    PoseCapture c = RandomPoses();
+    c.extra_columns = columns;
+    for (PoseRecord& r : c.records) r.extra.assign(columns.size(), 1.0);
+    EXPECT_THROW(WritePoses(path, c), std::invalid_argument) << columns[0];
+    EXPECT_FALSE(std::filesystem::exists(path)) << columns[0];
+  }
+}
+
 TEST(OtherCaptureFiles, RoundTrip) {
   const auto dir = MakeTempDir("capture_test");
   MarkerCapture markers;
