@@ -160,6 +160,30 @@ Provenance ParseProvenance(const JsonObjectReader& r) {
   return p;
 }
 
+// Numbers that are finite in the file can still overflow when a term is evaluated (an input_scale
+// of 1e-200 makes the polynomial's u^2 infinite, and infinity times a zero coefficient is NaN):
+// such a file would serve NaN for every pose. Each term is applied, in chain order, at the corners
+// and the centre of the calibrated volume; the first that gives a non-finite pose is the error.
+void CheckFiniteInVolume(const CorrectionChain& chain, const CalibratedVolume& volume,
+                         const std::string& source, const std::string& path) {
+  for (int point = 0; point < 9; ++point) {
+    Eigen::Vector3d p = 0.5 * (volume.min + volume.max);
+    if (point < 8) {
+      for (int k = 0; k < 3; ++k) p[k] = (point >> k) & 1 ? volume.max[k] : volume.min[k];
+    }
+    Rigid3d pose(Eigen::Quaterniond::Identity(), p);
+    for (size_t i = 0; i < chain.size(); ++i) {
+      pose = chain.term(i).Apply(pose).pose;
+      if (!pose.translation.allFinite() || !pose.rotation.coeffs().allFinite()) {
+        ThrowJsonError(source, JsonIndexPath(path, i),
+                       "gives a non-finite pose at " +
+                           nlohmann::json({p.x(), p.y(), p.z()}).dump() +
+                           " of the calibrated volume (its numbers overflow a double there)");
+      }
+    }
+  }
+}
+
 void CheckProvenance(const Provenance& p) {
   if (!p.created_utc.empty() && !IsUtcTimestamp(p.created_utc)) {
     throw std::invalid_argument("provenance.created_utc: expected \"YYYY-MM-DDTHH:MM:SSZ\", got \"" +
@@ -238,6 +262,7 @@ Calibration ParseCalibrationJson(const std::string& text, const std::string& sou
     }
   }
   cal.chain.SetVolume(volume);
+  CheckFiniteInVolume(cal.chain, volume, source_name, root.PathOf("corrections"));
 
   cal.fit_statistics = root.Get("fit_statistics");
   if (!cal.fit_statistics.is_object()) root.Fail("fit_statistics", "expected an object");

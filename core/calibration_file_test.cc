@@ -231,6 +231,30 @@ TEST(ParseCalibrationJson, RejectsNonFiniteNumbers) {
             "'{', or a literal");
 }
 
+TEST(ParseCalibrationJson, RejectsTermsThatOverflowInTheVolume) {
+  // Every number is finite, but u = (x - offset) / 1e-200 makes the degree-2 terms infinite and
+  // infinity times a coefficient NaN: the file would serve NaN for every pose in its own volume.
+  std::vector<double> c(6 * NumPolynomialTerms(2), 0.001);
+  const PolynomialCorrection tiny_scale(2, Eigen::Vector3d::Zero(),
+                                        Eigen::Vector3d(1e-200, 0.5, 0.4), c);
+  EXPECT_FALSE(
+      tiny_scale.Apply(Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.1, 0.1, 0.1)))
+          .pose.translation.allFinite());
+  nlohmann::json j = ExampleJson();
+  j["corrections"][0]["input_scale"] = {1e-200, 0.5, 0.4};
+  EXPECT_EQ(ErrorForText(j.dump()),
+            "calib.json: $.corrections[0]: gives a non-finite pose at [-0.6,-0.5,-0.1] of the "
+            "calibrated volume (its numbers overflow a double there)");
+  // The same for huge coefficients whose sum overflows.
+  j = ExampleJson();
+  j["corrections"][0]["position_coefficients"][1] = {1e308, 0.0, 0.0};
+  j["corrections"][0]["position_coefficients"][4] = {1e308, 0.0, 0.0};
+  EXPECT_NE(ErrorForText(j.dump()).find("calib.json: $.corrections[0]: gives a non-finite pose"),
+            std::string::npos);
+  // The example itself is finite everywhere.
+  EXPECT_EQ(ErrorForText(ReadFileToString(ExamplePath())), "");
+}
+
 TEST(ParseCalibrationJson, RejectsAKeyGivenTwice) {
   // A hand edit that adds a field instead of changing it: the JSON parser alone would keep the last
   // value without a word. Named by its JSON path, inside objects and array elements alike.
