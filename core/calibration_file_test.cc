@@ -255,6 +255,25 @@ TEST(ParseCalibrationJson, RejectsTermsThatOverflowInTheVolume) {
   EXPECT_EQ(ErrorForText(ReadFileToString(ExamplePath())), "");
 }
 
+TEST(ParseCalibrationJson, RejectsDeepNesting) {
+  // A calibration document is a few levels deep; the free-form fit_statistics are checked
+  // recursively (each level copying its JSON path), so a pathologically nested one must be refused
+  // while parsing, naming where, rather than exhausting the stack or memory.
+  std::string text = ReadFileToString(ExamplePath());
+  const std::string needle = "\"fit_statistics\": {";
+  ASSERT_NE(text.find(needle), std::string::npos);
+  constexpr int kDepth = 100000;
+  text.insert(text.find(needle) + needle.size(),
+              "\"deep\": " + std::string(kDepth, '[') + "0" + std::string(kDepth, ']') + ",");
+  const std::string error = ErrorForText(text);
+  EXPECT_EQ(
+      error, "calib.json: $.fit_statistics.deep" + [] {
+        std::string levels;
+        for (int i = 0; i < 62; ++i) levels += "[0]";
+        return levels;
+      }() + ": nested more than 64 levels deep");
+}
+
 TEST(ParseCalibrationJson, RejectsAKeyGivenTwice) {
   // A hand edit that adds a field instead of changing it: the JSON parser alone would keep the last
   // value without a word. Named by its JSON path, inside objects and array elements alike.

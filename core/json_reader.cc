@@ -21,6 +21,8 @@ struct OpenContainer {
   std::set<std::string> keys;
 };
 
+constexpr size_t kMaxJsonDepth = 64;
+
 std::string PathOfOpen(const std::vector<OpenContainer>& open) {
   std::string path = "$";
   for (size_t i = 0; i + 1 < open.size(); ++i) {
@@ -45,6 +47,12 @@ nlohmann::json ParseJsonText(const std::string& text, const std::string& source_
           case Event::object_start:
           case Event::array_start:
             open.push_back({event == Event::object_start, "", 0, {}});
+            // The readers walk documents recursively (each level copying its path): a document
+            // nested thousands deep would exhaust the stack. Ours are a few levels deep.
+            if (open.size() > kMaxJsonDepth) {
+              ThrowJsonError(source_name, PathOfOpen(open),
+                             "nested more than " + std::to_string(kMaxJsonDepth) + " levels deep");
+            }
             break;
           case Event::key: {
             OpenContainer& object = open.back();

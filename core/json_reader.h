@@ -21,7 +21,8 @@ class JsonInputError : public std::invalid_argument {
 
 // Parses JSON text; a syntax error names the source, line and column. NaN/Infinity literals are
 // reported as such (they are not JSON, but Python's json module writes them). A key given twice in
-// one object is an error naming its JSON path (the parser alone would keep the last value).
+// one object is an error naming its JSON path (the parser alone would keep the last value), and so
+// is nesting deeper than 64 objects and arrays (the recursive checks would exhaust the stack).
 nlohmann::json ParseJsonText(const std::string& text, const std::string& source_name);
 
 // "$.a.b" + "[3]" style path helpers.
