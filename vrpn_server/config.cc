@@ -341,6 +341,7 @@ class Parser {
     if (spec.file.is_relative()) {
       spec.file = std::filesystem::path(file_name_).parent_path() / spec.file;
     }
+    std::set<std::string> given;
     for (size_t i = 3; i < tokens.size(); ++i) {
       const std::string& option = tokens[i];
       const size_t eq = option.find('=');
@@ -349,8 +350,9 @@ class Parser {
       if (eq == std::string::npos || value.empty()) {
         Fail(where, key, "expected key=value, got '" + option + "'");
       }
+      // outside=clamp ... outside=fade would otherwise serve the last one silently.
+      if (!given.insert(key).second) Fail(where, key, "given twice");
       if (key == "raw") {
-        if (spec.raw_name) Fail(where, "raw", "given twice");
         RegisterName(value, where, "raw");
         spec.raw_name = value;
       } else if (key == "outside") {

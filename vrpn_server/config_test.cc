@@ -215,6 +215,11 @@ TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
       {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T a.json\ntrackcal_Calibration T b.json\n",
        "lab.cfg:3: field 'tracker': tracker 'T' already has a calibration at lab.cfg:2"},
       {"trackcal_Calibration T\n", "lab.cfg:1: field 'calibration_file'"},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json outside=clamp outside=fade\n",
+       "lab.cfg:2: field 'outside': given twice"},
+      {"vrpn_Tracker_NULL T 1 1\n"
+       "trackcal_Calibration T c.json fade_distance=0.1 fade_distance=0.2\n",
+       "lab.cfg:2: field 'fade_distance': given twice"},
       {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json fade_distance=-1\n", "lab.cfg:2: field 'fade_distance'"},
       {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json fade_distance=\n", "lab.cfg:2: field 'fade_distance'"},
       {"trackcal_Tracker_Passthrough P Tracker0\n", "lab.cfg:1: field 'source'"},
