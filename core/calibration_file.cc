@@ -206,6 +206,7 @@ void Calibration::Check() const {
     throw std::invalid_argument("calibration: the calibrated volume is not set");
   }
   chain.volume()->Check();
+  CheckFiniteInVolume(chain, *chain.volume(), "calibration", "$.corrections");
   CheckProvenance(provenance);
   if (!fit_statistics.is_object()) {
     throw std::invalid_argument("calibration: fit_statistics must be a JSON object");

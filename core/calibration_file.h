@@ -42,7 +42,8 @@ struct Calibration {
   nlohmann::json fit_statistics = nlohmann::json::object();
   Provenance provenance;
 
-  // Throws std::invalid_argument if the chain has no volume or the provenance is malformed.
+  // Throws std::invalid_argument if the chain has no volume, a term gives a non-finite pose in it
+  // (as the reader) or the provenance is malformed.
   void Check() const;
   const CalibratedVolume& volume() const;
 

@@ -407,6 +407,16 @@ TEST(WriteCalibrationFile, RejectsIncompleteCalibration) {
   cal = RandomCalibration();
   cal.fit_statistics["bad"] = std::nan("");
   EXPECT_THROW(WriteCalibrationFile(dir / "x.json", cal), std::invalid_argument);
+  // A term that overflows in the volume: the reader would refuse the file.
+  cal = RandomCalibration();
+  CorrectionChain chain;
+  chain.Append(std::make_unique<PolynomialCorrection>(
+      2, Eigen::Vector3d::Zero(), Eigen::Vector3d(1e-200, 1, 1),
+      std::vector<double>(6 * NumPolynomialTerms(2), 0.001)));
+  chain.SetVolume(cal.volume());
+  cal.chain = chain;
+  EXPECT_THROW(WriteCalibrationFile(dir / "x.json", cal), std::invalid_argument);
+  EXPECT_FALSE(std::filesystem::exists(dir / "x.json"));
 }
 
 }  // namespace
