@@ -19,6 +19,8 @@
 #include <stdexcept>
 #include <utility>
 
+#include "core/file_util.h"
+
 namespace trackcal {
 
 namespace {
@@ -452,12 +454,10 @@ void WriteFileAtomically(const std::filesystem::path& path, const std::string& c
     throw std::runtime_error(path.string() + ": exists; refusing to overwrite it");
   }
   const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
-  // Hidden temporary name next to the target, so the final rename stays on one file system.
-  std::string hidden_name = path.filename().string();
-  hidden_name.insert(hidden_name.begin(), '.');
-  hidden_name.append(".tmp-XXXXXX");
-  std::string tmpl = (dir / hidden_name).string();
-  const int fd = mkstemp(tmpl.data());
+  // Hidden temporary name next to the target, so the final rename stays on one file system; it
+  // gets the permissions of any new file.
+  std::string tmpl;
+  const int fd = CreateTemporaryFileBeside(path, &tmpl);
   if (fd < 0)
     throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string());
   size_t written = 0;
@@ -470,10 +470,6 @@ void WriteFileAtomically(const std::filesystem::path& path, const std::string& c
     }
     written += static_cast<size_t>(n);
   }
-  // mkstemp creates the file 0600; a capture gets the permissions of any new file.
-  const mode_t mask = ::umask(0);
-  ::umask(mask);
-  ::fchmod(fd, 0666 & ~mask);
   const bool synced = ::fsync(fd) == 0;
   ::close(fd);
   if (!synced) {

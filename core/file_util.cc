@@ -7,6 +7,7 @@
 #include <cerrno>
 #include <cstring>
 #include <fstream>
+#include <random>
 #include <stdexcept>
 #include <vector>
 
@@ -64,25 +65,38 @@ std::string ReadFileToString(const std::filesystem::path& path) {
   return contents;
 }
 
+int CreateTemporaryFileBeside(const std::filesystem::path& path, std::string* temp_path) {
+  static constexpr char kChars[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789";
+  const std::filesystem::path dir =
+      path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
+  std::string hidden_name = ".";
+  hidden_name += path.filename().string();
+  hidden_name += ".tmp-";
+  const std::string prefix = (dir / hidden_name).string();
+  std::random_device random;
+  for (int attempt = 0; attempt < 100; ++attempt) {
+    std::string name = prefix;
+    for (int i = 0; i < 6; ++i) name += kChars[random() % (sizeof(kChars) - 1)];
+    const int fd = ::open(name.c_str(), O_CREAT | O_EXCL | O_WRONLY | O_CLOEXEC, 0666);
+    if (fd >= 0) {
+      *temp_path = std::move(name);
+      return fd;
+    }
+    if (errno != EEXIST) return -1;
+  }
+  return -1;  // errno is EEXIST
+}
+
 void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents) {
   const std::filesystem::path dir =
       path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
-  std::string temp_name = ".";
-  temp_name += path.filename().string();
-  temp_name += ".tmp-XXXXXX";
-  std::string temp = (dir / temp_name).string();
-  const int fd = ::mkstemp(temp.data());
+  std::string temp;
+  const int fd = CreateTemporaryFileBeside(path, &temp);
   if (fd < 0) {
     throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string() +
                              ": " + ErrnoText());
   }
   TempFileGuard guard(fd, temp);
-  // mkstemp creates mode 0600; give the output the mode a plain open() would have.
-  const mode_t mask = ::umask(0);
-  ::umask(mask);
-  if (::fchmod(fd, 0666 & ~mask) != 0) {
-    throw std::runtime_error(temp + ": cannot set permissions: " + ErrnoText());
-  }
   size_t written = 0;
   while (written < contents.size()) {
     const ssize_t n = ::write(fd, contents.data() + written, contents.size() - written);

@@ -20,6 +20,12 @@ std::string ReadFileToString(const std::filesystem::path& path);
 // (the temporary file is removed).
 void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents);
 
+// Creates a new, empty file "<folder of path>/.<file name of path>.tmp-XXXXXX" (X random) for
+// writing, with mode 0666 minus the umask as open() gives any new file. Returns its descriptor and
+// sets *temp_path, or returns -1 with errno set. (mkstemp's mode 0600 would have to be widened with
+// the umask, which can only be read by changing it for every thread of the process.)
+int CreateTemporaryFileBeside(const std::filesystem::path& path, std::string* temp_path);
+
 // Incremental SHA-256 (FIPS 180-4).
 class Sha256 {
  public:
