@@ -1,7 +1,14 @@
 #include "vrpn_server/server/devices.h"
 
+#include <fcntl.h>
+#include <stdio.h>
+#include <unistd.h>
+
+#include <cerrno>
 #include <chrono>
+#include <cstring>
 #include <iomanip>
+#include <iostream>
 #include <stdexcept>
 
 namespace trackcal::vrpn {
@@ -17,8 +24,19 @@ StreamRecorder::StreamRecorder(const std::filesystem::path& dir, const std::stri
     throw std::invalid_argument("--record: " + final_path_.string() +
                                 " already exists; recordings are never overwritten");
   }
+  // Created exclusively, so that a second server recording the same device into the same folder
+  // (started between the check above and here) cannot truncate this one's recording.
+  const int fd = ::open(partial_path_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
+  if (fd < 0) {
+    if (errno == EEXIST) {
+      throw std::invalid_argument("--record: " + partial_path_.string() +
+                                  " already exists; recordings are never overwritten");
+    }
+    throw std::runtime_error(partial_path_.string() + ": cannot create: " + std::strerror(errno));
+  }
+  ::close(fd);
   out_.open(partial_path_);
-  if (!out_) throw std::runtime_error(partial_path_.string() + ": cannot create");
+  if (!out_) throw std::runtime_error(partial_path_.string() + ": cannot open for writing");
   out_ << "time,sensor,x,y,z,qw,qx,qy,qz\n" << std::setprecision(17);
 }
 
@@ -38,8 +56,29 @@ void StreamRecorder::Close() {
   std::lock_guard<std::mutex> lock(mutex_);
   if (!out_.is_open()) return;
   out_.close();
-  std::error_code ec;
-  std::filesystem::rename(partial_path_, final_path_, ec);
+  const bool written = !out_.fail();
+  // Never replaces a file that appeared under the final name while recording: renameat2's
+  // RENAME_NOREPLACE, or a hard link where the file system lacks it. Otherwise (or on a write
+  // error) the recording stays in the .partial file, and stderr says so.
+  std::string failure;
+  if (!written) {
+    failure = "a write failed (disk full?)";
+  } else if (::renameat2(AT_FDCWD, partial_path_.c_str(), AT_FDCWD, final_path_.c_str(),
+                         RENAME_NOREPLACE) != 0) {
+    if (errno == EINVAL || errno == ENOSYS) {
+      if (::link(partial_path_.c_str(), final_path_.c_str()) == 0) {
+        ::unlink(partial_path_.c_str());
+      } else {
+        failure = std::strerror(errno);
+      }
+    } else {
+      failure = std::strerror(errno);
+    }
+  }
+  if (!failure.empty()) {
+    std::cerr << "trackcal-server: recording kept as " << partial_path_.string()
+              << ", not moved to " << final_path_.string() << ": " << failure << "\n";
+  }
 }
 
 TrackerDevice::TrackerDevice(VrpnServer* server, int tracker, std::optional<int> raw_tracker)

@@ -307,5 +307,26 @@ TEST(StreamRecorder, WritesStreamFormatAndNeverOverwrites) {
   EXPECT_THROW(StreamRecorder(dir / "missing", "Tracker0"), std::invalid_argument);
 }
 
+// A file that appears under the final name while recording (another server, a user's copy) is
+// not replaced: the recording stays in the .partial file. (Before: std::filesystem::rename
+// replaced it.)
+TEST(StreamRecorder, KeepsTheRecordingBesideAFileThatAppearedWhileRecording) {
+  const auto dir = testing::MakeTempDir("recorder_race");
+  const auto final_path = dir / "Tracker0_tracker_stream.csv";
+  {
+    StreamRecorder rec(dir, "Tracker0");
+    rec.Write(0, Rigid3d(), Timestamp{1, 0});
+    std::ofstream(final_path) << "someone else's file\n";
+  }
+  std::ifstream kept(final_path);
+  std::string line;
+  std::getline(kept, line);
+  EXPECT_EQ(line, "someone else's file");
+  auto partial = final_path;
+  partial += ".partial";
+  ASSERT_TRUE(std::filesystem::exists(partial));
+  EXPECT_EQ(ReadTrackerStream(partial).records.size(), 1u);
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
