@@ -65,7 +65,12 @@ std::string ReadFileToString(const std::filesystem::path& path) {
   return contents;
 }
 
-int CreateTemporaryFileBeside(const std::filesystem::path& path, std::string* temp_path) {
+namespace {
+
+// Creates "<folder of path>/.<file name of path>.tmp-XXXXXX" (X random) with `create(name)`, which
+// returns >= 0 on success or -1 with errno set; retries a name that exists.
+template <typename Create>
+int CreateBeside(const std::filesystem::path& path, std::string* temp_path, Create create) {
   static constexpr char kChars[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789";
   const std::filesystem::path dir =
       path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
@@ -77,14 +82,27 @@ int CreateTemporaryFileBeside(const std::filesystem::path& path, std::string* te
   for (int attempt = 0; attempt < 100; ++attempt) {
     std::string name = prefix;
     for (int i = 0; i < 6; ++i) name += kChars[random() % (sizeof(kChars) - 1)];
-    const int fd = ::open(name.c_str(), O_CREAT | O_EXCL | O_WRONLY | O_CLOEXEC, 0666);
-    if (fd >= 0) {
+    const int result = create(name);
+    if (result >= 0) {
       *temp_path = std::move(name);
-      return fd;
+      return result;
     }
     if (errno != EEXIST) return -1;
   }
   return -1;  // errno is EEXIST
+}
+
+}  // namespace
+
+int CreateTemporaryFileBeside(const std::filesystem::path& path, std::string* temp_path) {
+  return CreateBeside(path, temp_path, [](const std::string& name) {
+    return ::open(name.c_str(), O_CREAT | O_EXCL | O_WRONLY | O_CLOEXEC, 0666);
+  });
+}
+
+bool CreateTemporaryFolderBeside(const std::filesystem::path& path, std::string* temp_path) {
+  return CreateBeside(path, temp_path,
+                      [](const std::string& name) { return ::mkdir(name.c_str(), 0777); }) >= 0;
 }
 
 void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents) {

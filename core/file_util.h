@@ -26,6 +26,10 @@ void WriteFileAtomically(const std::filesystem::path& path, std::string_view con
 // the umask, which can only be read by changing it for every thread of the process.)
 int CreateTemporaryFileBeside(const std::filesystem::path& path, std::string* temp_path);
 
+// The same for a folder (mode 0777 minus the umask, as mkdir() gives any new folder; mkdtemp's
+// 0700 has the same problem): false with errno set if it cannot be created.
+bool CreateTemporaryFolderBeside(const std::filesystem::path& path, std::string* temp_path);
+
 // Incremental SHA-256 (FIPS 180-4).
 class Sha256 {
  public:

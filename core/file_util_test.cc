@@ -86,6 +86,28 @@ TEST(WriteFileAtomically, Nominal) {
   EXPECT_EQ(st.st_mode & 0777, 0666 & ~mask);
 }
 
+TEST(CreateTemporaryFolderBeside, HiddenBesideThePathWithTheUmasksMode) {
+  const auto dir = testing::MakeTempDir("temp_folder");
+  const mode_t old_mask = ::umask(027);
+  std::string a, b;
+  ASSERT_TRUE(CreateTemporaryFolderBeside(dir / "capture", &a));
+  ASSERT_TRUE(CreateTemporaryFolderBeside(dir / "capture", &b));
+  ::umask(old_mask);
+  EXPECT_NE(a, b);
+  for (const std::string& folder : {a, b}) {
+    EXPECT_EQ(std::filesystem::path(folder).parent_path(), dir);
+    EXPECT_EQ(std::filesystem::path(folder).filename().string().rfind(".capture.tmp-", 0), 0u)
+        << folder;
+    // mkdir's 0777 minus the umask, as any new folder (mkdtemp would give 0700).
+    EXPECT_EQ(std::filesystem::status(folder).permissions(),
+              static_cast<std::filesystem::perms>(0750));
+  }
+  std::string missing;
+  errno = 0;
+  EXPECT_FALSE(CreateTemporaryFolderBeside(dir / "no" / "capture", &missing));
+  EXPECT_EQ(errno, ENOENT);
+}
+
 TEST(WriteFileAtomically, LeavesTheUmaskAloneForOtherThreads) {
   // The umask is per process: clearing it even briefly to read it gives a file another thread
   // creates meanwhile mode 0666 (world-writable) instead of 0644. Measured before the fix: 5 of

@@ -1,14 +1,13 @@
 #include "sim/simulator.h"
 
-#include <sys/stat.h>
-#include <unistd.h>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <map>
 #include <numbers>
 #include <stdexcept>
+
+#include "core/file_util.h"
 
 namespace trackcal::sim {
 
@@ -455,8 +454,8 @@ void WriteCaptureFolder(const Simulator& simulator, const SimulatedCapture& capt
   if (absolute.filename().empty()) absolute = absolute.parent_path();
   const fs::path parent = absolute.parent_path();
   fs::create_directories(parent);
-  std::string tmpl = (parent / ("." + absolute.filename().string() + ".tmp-XXXXXX")).string();
-  if (mkdtemp(tmpl.data()) == nullptr) {
+  std::string tmpl;
+  if (!CreateTemporaryFolderBeside(absolute, &tmpl)) {
     throw std::runtime_error(dir.string() + ": cannot create a temporary folder in " +
                              parent.string());
   }
@@ -471,9 +470,6 @@ void WriteCaptureFolder(const Simulator& simulator, const SimulatedCapture& capt
     }
     WriteFileAtomically(tmp / "truth.json", capture.truth.dump(2) + "\n", false);
     WriteFileAtomically(tmp / "scene.yaml", SceneToYaml(simulator.scene()), false);
-    const mode_t mask = ::umask(0);
-    ::umask(mask);
-    ::chmod(tmp.c_str(), 0777 & ~mask);
     // rename() replaces only an empty folder, so a capture that appeared meanwhile survives.
     if (std::rename(tmp.c_str(), absolute.c_str()) != 0) {
       throw std::runtime_error(dir.string() +

@@ -1,6 +1,7 @@
 #include "sim/simulator.h"
 
 #include <gtest/gtest.h>
+#include <sys/stat.h>
 
 #include <cstdlib>
 #include <fstream>
@@ -255,6 +256,11 @@ TEST(WriteCaptureFolder, RefusesToOverwrite) {
   const auto dir = MakeTempDir("simulator_test");
   const SimulatedCapture c = sim.Generate();
   WriteCaptureFolder(sim, c, dir / "capture");
+  // The folder gets mkdir's mode under the umask (0755 under the usual 022), not mkdtemp's 0700.
+  const mode_t mask = ::umask(022);
+  ::umask(mask);
+  EXPECT_EQ(std::filesystem::status(dir / "capture").permissions(),
+            static_cast<std::filesystem::perms>(0777 & ~mask));
   const std::string before = ReadText(dir / "capture" / kPosesCsv);
   EXPECT_THROW(WriteCaptureFolder(sim, c, dir / "capture"), std::runtime_error);
   EXPECT_EQ(ReadText(dir / "capture" / kPosesCsv), before);
