@@ -122,8 +122,11 @@ def test_cli_validate_diagnose_report(tmp_path):
     r = run_cli("diagnose", cap_dir, "-c", cal_path, "--permutations", "19")
     for heading in ("By distance from the transmitter", "By region", "Worst 10 stations", "Residual structure"):
         assert heading in r.stdout
+    # The worst stations' coordinates carry their unit (the table's other columns name theirs).
+    assert "reported position in the transmitter frame [m]" in r.stdout
     r = run_cli("report", cap_dir, "-c", cal_path, "-o", tmp_path / "rep", "--permutations", "19")
     assert (tmp_path / "rep" / "report.html").exists()
+    assert "reported position in the transmitter frame [m]" in (tmp_path / "rep" / "report.html").read_text()
     assert (tmp_path / "rep" / "fig4_position_error_vs_distance.png").exists()
 
 

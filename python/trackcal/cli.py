@@ -419,7 +419,8 @@ def cmd_diagnose(args, term) -> int:
     print(_fmt_rows(v.by_distance, cols))
     print("\n" + term.c("By region (octants around the volume centre)", "1"))
     print(_fmt_rows(v.by_region, cols))
-    print("\n" + term.c(f"Worst {len(v.worst)} stations", "1"))
+    print("\n" + term.c(f"Worst {len(v.worst)} stations", "1")
+          + " (x, y, z, distance: reported position in the transmitter frame [m])")
     print(_fmt_rows(v.worst, ["station", "set", "sensor", "x", "y", "z", "distance", "position_mm",
                               "orientation_deg", "extrapolated"]))
     method = validation.COVARIATE_METHOD_SERIAL if validation.serial_samples(v.capture) else validation.COVARIATE_METHOD

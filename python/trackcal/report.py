@@ -231,7 +231,8 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                      f"{f' ... ({len(flipped) - 50} more)' if len(flipped) > 50 else ''}.</p>")
     parts.append("<h2>By distance from the transmitter</h2>" + _table(v.by_distance))
     parts.append("<h2>By region of the volume (octants)</h2>" + _table(v.by_region))
-    parts.append("<h2>Worst stations</h2>" + _table(v.worst))
+    parts.append("<h2>Worst stations</h2><p>x, y, z and distance: the reported position in the "
+                 "transmitter frame [m].</p>" + _table(v.worst))
     if v.covariate_effects:
         rows = [{"covariate": e.covariate, "residual": e.target, "R² (cv)": e.r2, "p": e.p_value,
                  "significant": "yes" if e.significant else "",
