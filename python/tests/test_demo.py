@@ -499,4 +499,7 @@ def test_serving_from_a_relative_work_folder_finds_the_calibration(tmp_path, mon
     _shutil.copy(ROOT / "tests" / "data" / "calibration" / "example.json", work / "cal.json")
     demo.serve(work, work / "cal.json", "", 1, _free_port(), 3.0, "paper")  # SystemExit if the server exits
     log = (work / "server.log").read_text()
-    assert "error" not in log, log
+    # The calibration was found and loaded. (Not "no 'error' in the log": the emulator stops before
+    # the server, which then logs the port's "error condition" while it stops.)
+    assert "cannot open" not in log, log
+    assert "Tracker0: correction " + str((tmp_path / work / "cal.json")) in log, log

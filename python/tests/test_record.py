@@ -162,8 +162,13 @@ def test_a_live_recording_is_validated_later_against_the_reference(emulated_serv
     assert table.after_position_mm["mean"] < 0.5 * table.before_position_mm["mean"]
     # What the server sent is the calibration applied to what it read (same C++ code, doubles on
     # the wire): the two validations agree to rounding.
-    assert served.capture.station.tolist() == applied.capture.station.tolist()
-    np.testing.assert_allclose(served.after.position_mm, applied.after.position_mm, atol=1e-9)
+    # The two recordings start and stop together, but a record's raw and corrected reports arrive
+    # apart, so the record at either end can be in one of them only (CI: the corrected recording
+    # began one record later); every record in both is compared.
+    common = np.isin(applied.capture.station, served.capture.station)
+    assert common.sum() >= len(applied.capture) - 2
+    assert served.capture.station.tolist() == applied.capture.station[common].tolist()
+    np.testing.assert_allclose(served.after.position_mm, applied.after.position_mm[common], atol=1e-9)
     print(f"recorded {len(served.capture)} samples: {table.before_position_mm['mean']:.2f} mm -> "
           f"{table.after_position_mm['mean']:.2f} mm")
 
