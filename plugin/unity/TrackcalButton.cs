@@ -27,6 +27,7 @@ namespace Trackcal
         private ulong pressesAtEnable;
         private bool firstRead;
         private ulong pressesCarried;
+        private int buttonRead;  // the index pressesAtEnable counts
 
         private void OnEnable()
         {
@@ -53,9 +54,11 @@ namespace Trackcal
             // Changed in the Inspector while playing: an exception every frame otherwise.
             if (!TrackcalComponents.IndexValid(this, "button", button)) return;
             TrackcalTracker current = TrackcalConnections.Renew(device);
-            if (current != device)
+            if (current != device || button != buttonRead)
             {
-                // A new handle counts presses from 0: carry ours over.
+                // A new handle counts presses from 0, and another button (the index changed in the
+                // Inspector) has a count of its own: carry ours over rather than subtract a
+                // baseline of another count (an underflow: billions of presses).
                 device = current;
                 pressesCarried = Presses;
                 firstRead = true;
@@ -67,6 +70,7 @@ namespace Trackcal
             {
                 // The connection may be older than this component: count from here.
                 pressesAtEnable = presses;
+                buttonRead = button;
                 firstRead = false;
             }
             ulong since = pressesCarried + (presses - pressesAtEnable);

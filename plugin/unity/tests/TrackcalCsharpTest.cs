@@ -287,6 +287,31 @@ public static class TrackcalCsharpTest
         Invoke(changed, "OnDisable");
         Check(TrackcalTrackedObject.SharedConnections == 0, "the changed button's connection closed");
 
+        // The index changed in the Inspector to a valid one while playing: the presses so far are
+        // kept and the other button's count is not read against this one's baseline. The component
+        // is enabled on a connection that has already seen presses (a baseline above 0), then
+        // switched to button 0, which has none.
+        var keeper = new TrackcalButton { deviceName = stylusName, button = 1 };
+        Invoke(keeper, "OnEnable");
+        DateTime keepUntil = DateTime.UtcNow.AddSeconds(20);
+        while (keeper.Presses < 1 && DateTime.UtcNow < keepUntil)
+        {
+            Invoke(keeper, "Update");
+            Thread.Sleep(5);
+        }
+        var switched = new TrackcalButton { deviceName = stylusName, button = 1 };
+        Invoke(switched, "OnEnable");
+        Invoke(switched, "Update");
+        ulong presses1 = switched.Presses;
+        switched.button = 0;
+        Invoke(switched, "Update");
+        Check(keeper.Presses >= 1 && switched.Presses == presses1 && !switched.PressedThisFrame,
+              "a button index changed to 0 keeps the presses: " + presses1 + " -> " +
+              switched.Presses + ", PressedThisFrame " + switched.PressedThisFrame);
+        Invoke(switched, "OnDisable");
+        Invoke(keeper, "OnDisable");
+        Check(TrackcalTrackedObject.SharedConnections == 0, "the switched button's connection closed");
+
         Console.WriteLine(failures == 0 ? "PASS" : failures + " check(s) failed");
         return failures == 0 ? 0 : 1;
     }
