@@ -178,6 +178,9 @@ void VrpnTrackerClient::Reset(const std::string& /*why*/) {
   impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
   impl_->next_lob = impl_->next_ping = Clock::time_point::max();
   impl_->connect_deadline = Clock::time_point::max();
+  // A host name is looked up again for the next attempt: the server may come back at another
+  // address (a new DHCP lease, the name moved to a spare machine).
+  if (!ParseIpv4(name_.host)) impl_->server.reset();
   connected_ = false;
   pong_received_ = false;
   udp_active_ = false;

@@ -869,5 +869,31 @@ TEST(VrpnTrackerClient, AServerThatGoesSilentIsLeftAndFoundAgain) {
   })) << "connections " << client.connections();
 }
 
+TEST(VrpnTrackerClient, AHostNameIsLookedUpAgainForAReconnect) {
+  // The server's machine restarts with another address (a new DHCP lease, the name moved to a
+  // spare machine): the address looked up first would be tried for ever.
+  auto lookups = std::make_shared<std::atomic<int>>(0);
+  TrackerClientOptions options;
+  options.reconnect_delay_s = 0.1;
+  options.resolve_host = [lookups](const std::string&) -> std::optional<std::string> {
+    return ++*lookups == 1 ? "127.0.0.1" : "127.0.0.2";
+  };
+  auto server =
+      std::make_unique<VrpnServer>(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
+  server->Start();
+  const int port = server->port();
+  VrpnTrackerClient client("Tracker0@tcp://tracker.lab:" + std::to_string(port), options);
+  ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
+  server.reset();
+  ServerOptions moved = LoopbackOptions();
+  moved.bind_address = "127.0.0.2";
+  moved.port = port;
+  VrpnServer again(MakeCatalog(), moved, [](const std::string&) {});
+  again.Start();
+  EXPECT_TRUE(
+      PollUntil({&client}, [&] { return client.connections() >= 2 && client.pong_received(); }))
+      << "connections " << client.connections() << ", lookups " << *lookups;
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
