@@ -116,7 +116,8 @@ struct VrpnTrackerClient::Impl {
   UniqueSocket tcp, listen, udp;
   std::size_t out_offset = 0;
   std::optional<sockaddr_in> server;
-  std::shared_ptr<Lookup> lookup;  // a host name being resolved
+  std::optional<sockaddr_in> last_server;  // the one before a fresh lookup, if that lookup fails
+  std::shared_ptr<Lookup> lookup;          // a host name being resolved
   in_addr local_ip{};
   Clock::time_point next_retry = Clock::time_point::min();
   Clock::time_point connect_deadline = Clock::time_point::max();
@@ -180,7 +181,10 @@ void VrpnTrackerClient::Reset(const std::string& /*why*/) {
   impl_->connect_deadline = Clock::time_point::max();
   // A host name is looked up again for the next attempt: the server may come back at another
   // address (a new DHCP lease, the name moved to a spare machine).
-  if (!ParseIpv4(name_.host)) impl_->server.reset();
+  if (impl_->server && !ParseIpv4(name_.host)) {
+    impl_->last_server = impl_->server;
+    impl_->server.reset();
+  }
   connected_ = false;
   pong_received_ = false;
   udp_active_ = false;
@@ -220,6 +224,11 @@ bool VrpnTrackerClient::ResolveServer() {
   }
   impl_->lookup.reset();
   const auto parsed = address ? ParseIpv4(*address) : std::nullopt;
+  if (!parsed && impl_->last_server) {
+    // A DNS server that is down does not lose a server that is still where it was.
+    impl_->server = impl_->last_server;
+    return true;
+  }
   if (!parsed) {
     impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
     return false;

@@ -57,7 +57,8 @@ struct TrackerClientOptions {
   // Host name -> dotted IPv4 address, nullopt if unknown. Empty: getaddrinfo. It runs on a thread
   // of its own that Stop() does not wait for, so a DNS server that does not answer never holds up
   // Stop() (Unity's OnDisable), and may outlive the client: capture by value or shared_ptr, never
-  // references to the caller's locals or to the client. A dotted address is used as is.
+  // references to the caller's locals or to the client. A dotted address is used as is. Called
+  // again before each reconnect; when that fails, the address found before is tried.
   std::function<std::optional<std::string>(const std::string& host)> resolve_host;
   void Check() const;
 };

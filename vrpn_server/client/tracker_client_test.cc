@@ -895,5 +895,32 @@ TEST(VrpnTrackerClient, AHostNameIsLookedUpAgainForAReconnect) {
       << "connections " << client.connections() << ", lookups " << *lookups;
 }
 
+TEST(VrpnTrackerClient, AFailedLookUpForAReconnectKeepsTheAddressFoundBefore) {
+  // The DNS server is down when the server restarts where it was: the address found before is
+  // tried rather than none.
+  auto lookups = std::make_shared<std::atomic<int>>(0);
+  TrackerClientOptions options;
+  options.reconnect_delay_s = 0.1;
+  options.resolve_host = [lookups](const std::string&) -> std::optional<std::string> {
+    if (++*lookups == 1) return "127.0.0.1";
+    return std::nullopt;
+  };
+  auto server =
+      std::make_unique<VrpnServer>(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
+  server->Start();
+  const int port = server->port();
+  VrpnTrackerClient client("Tracker0@tcp://tracker.lab:" + std::to_string(port), options);
+  ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
+  server.reset();
+  ServerOptions same = LoopbackOptions();
+  same.port = port;
+  VrpnServer again(MakeCatalog(), same, [](const std::string&) {});
+  again.Start();
+  EXPECT_TRUE(
+      PollUntil({&client}, [&] { return client.connections() >= 2 && client.pong_received(); }))
+      << "connections " << client.connections() << ", lookups " << *lookups;
+  EXPECT_GE(*lookups, 2);
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
