@@ -277,7 +277,10 @@ void Emulator::Run() {
 
     // Wait for host bytes, control traffic, the next record or the end of a fault.
     double wake_at = now + 1.0;
-    if (pty_ && !stalled && device_.continuous()) wake_at = std::min(wake_at, next_cycle_s_);
+    // (No active station: nothing is scheduled, and waking at a past cycle would spin.)
+    if (pty_ && !stalled && device_.continuous() && !device_.ActiveStations().empty()) {
+      wake_at = std::min(wake_at, next_cycle_s_);
+    }
     const bool line_free = line_busy_until_s_ <= now;
     if (pty_ && !stalled && !output_queue_.empty() && !line_free) {
       wake_at = std::min(wake_at, line_busy_until_s_);
@@ -434,7 +437,10 @@ void Emulator::StreamRecords(double now) {
   was_continuous_ = continuous;
   if (!continuous) return;
   const std::vector<int> active = device_.ActiveStations();
-  if (active.empty()) return;
+  if (active.empty()) {
+    next_cycle_s_ = now;  // a station switched on again starts a fresh schedule, not a burst
+    return;
+  }
   if (now - next_cycle_s_ > kMaxScheduleLagS) next_cycle_s_ = now;
   const double period = 1.0 / options_.update_rate_hz;
   const double seconds_per_byte = options_.baud > 0 ? 10.0 / options_.baud : 0.0;

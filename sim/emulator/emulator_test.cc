@@ -10,6 +10,7 @@
 #include <poll.h>
 #include <signal.h>
 #include <spawn.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
 #include <sys/un.h>
 #include <sys/wait.h>
@@ -458,6 +459,31 @@ TEST_F(EmulatorTest, MoveAndStylusButton) {
   EXPECT_NE(got.find(expected), std::string::npos);
   EXPECT_EQ(Control("move 9 0 0 0 1 0 0 0").rfind("error: field 'station'", 0), 0u);
   EXPECT_EQ(Control("fault nonsense").rfind("error:", 0), 0u);
+}
+
+// CPU seconds this process has used (all threads).
+double ProcessCpuSeconds() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return usage.ru_utime.tv_sec + usage.ru_stime.tv_sec +
+         1e-6 * (usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
+}
+
+TEST_F(EmulatorTest, ContinuousWithNoActiveStationIdles) {
+  // `l` can switch every station off while output stays continuous: nothing to send, and the
+  // emulator must wait for the host instead of polling with a zero timeout (a busy loop).
+  Start();
+  SerialClient client(options_.link_path);
+  ASSERT_TRUE(client.ok());
+  client.Write("l1,0\rl2,0\r");
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  ASSERT_NE(Control("status").find(" continuous=1 "), std::string::npos);
+  ASSERT_NE(Control("status").find(" active= "), std::string::npos);
+  client.FlushInput();
+  const double cpu_before = ProcessCpuSeconds();
+  std::this_thread::sleep_for(std::chrono::seconds(1));
+  EXPECT_LT(ProcessCpuSeconds() - cpu_before, 0.2);
+  EXPECT_EQ(client.ReadFor(0.1), "");
 }
 
 TEST_F(EmulatorTest, GarbageAndTruncatedRecord) {
