@@ -208,6 +208,7 @@ void Emulator::ClosePty() {
   if (!options_.link_path.empty()) RemoveSymlinkIfTarget(current_slave_path_, options_.link_path);
   pty_.reset();
   output_queue_.clear();
+  output_is_stream_record_.clear();
   output_head_sent_ = 0;
   output_bytes_ = 0;
 }
@@ -382,7 +383,7 @@ void Emulator::ReadHost(double now) {
     std::string reply = device_.Receive(std::string_view(buffer, n), [&](int station) {
       return Measure(*source_, *model_, station, now);
     });
-    if (was_continuous && !device_.continuous()) DropUnstartedOutput();
+    if (was_continuous && !device_.continuous()) DropUnstartedRecords();
     if (!reply.empty()) Enqueue(std::move(reply));
     for (const std::string& line : device_.TakeLog()) Log(line);
   }
@@ -410,20 +411,27 @@ void Emulator::WriteHost(double now) {
     output_bytes_ -= n;
     if (output_head_sent_ == head.size()) {
       output_queue_.pop_front();
+      output_is_stream_record_.pop_front();
       output_head_sent_ = 0;
     }
   }
 }
 
-void Emulator::Enqueue(std::string bytes) {
+void Emulator::Enqueue(std::string bytes, bool stream_record) {
   output_bytes_ += bytes.size();
   output_queue_.push_back(std::move(bytes));
+  output_is_stream_record_.push_back(stream_record);
 }
 
-void Emulator::DropUnstartedOutput() {
-  while (output_queue_.size() > (output_head_sent_ > 0 ? 1u : 0u)) {
-    output_bytes_ -= output_queue_.back().size();
-    output_queue_.pop_back();
+void Emulator::DropUnstartedRecords() {
+  for (size_t i = output_head_sent_ > 0 ? 1 : 0; i < output_queue_.size();) {
+    if (!output_is_stream_record_[i]) {
+      ++i;
+      continue;
+    }
+    output_bytes_ -= output_queue_[i].size();
+    output_queue_.erase(output_queue_.begin() + i);
+    output_is_stream_record_.erase(output_is_stream_record_.begin() + i);
   }
 }
 
@@ -482,7 +490,7 @@ void Emulator::QueueRecord(int station, double t_s) {
   } else {
     ++stats_.records_sent;
   }
-  Enqueue(std::move(record));
+  Enqueue(std::move(record), /*stream_record=*/true);
 }
 
 void Emulator::ServiceControl(short revents_listen, const std::vector<short>& revents_clients) {
@@ -599,6 +607,7 @@ std::string Emulator::HandleControlLine(const std::string& line) {
       e->power_off_ = true;
       // Whatever had not left the device is lost, a record on the wire included.
       e->output_queue_.clear();
+      e->output_is_stream_record_.clear();
       e->output_head_sent_ = 0;
       e->output_bytes_ = 0;
       e->Log("fault: power off for " + std::to_string(f.seconds) + " s");

@@ -148,10 +148,12 @@ class Emulator {
   void ReadHost(double now);
   void WriteHost(double now);
   void StreamRecords(double now);
-  void Enqueue(std::string bytes);
-  // Drops queued output that has not started to go out (a device that stops streaming finishes
-  // the record on the wire and sends no more).
-  void DropUnstartedOutput();
+  // `stream_record`: a record of continuous output (not a reply to `S` or `P`, nor garbage).
+  void Enqueue(std::string bytes, bool stream_record = false);
+  // Drops queued continuous-output records that have not started to go out (a device that stops
+  // streaming finishes the record on the wire and sends no more); replies the host asked for
+  // still go out.
+  void DropUnstartedRecords();
   void QueueRecord(int station, double now);
   void ServiceControl(short revents_listen, const std::vector<short>& revents_clients);
   void ServicePosted();
@@ -166,6 +168,7 @@ class Emulator {
   // Device output not yet written: whole items (records, replies, garbage); the head may be
   // partly written (output_head_sent_ bytes of it).
   std::deque<std::string> output_queue_;
+  std::deque<bool> output_is_stream_record_;  // parallel to output_queue_
   size_t output_head_sent_ = 0;
   size_t output_bytes_ = 0;
   double line_busy_until_s_ = 0;  // when the bytes already written have left the emulated wire

@@ -486,6 +486,23 @@ TEST_F(EmulatorTest, ContinuousWithNoActiveStationIdles) {
   EXPECT_EQ(client.ReadFor(0.1), "");
 }
 
+TEST_F(EmulatorTest, StopStreamingKeepsARequestedStatusRecord) {
+  // At 9600 baud the line is always busy with ASCII records, so the reply to `S` waits for it.
+  // A `c` arriving meanwhile stops the records, not the answer the host already asked for.
+  options_.baud = 9600;
+  options_.device.num_stations = 1;
+  Start();
+  SerialClient client(options_.link_path);
+  ASSERT_TRUE(client.ok());
+  client.ReadFor(0.2);  // the line is saturated from here on
+  client.Write("S");
+  std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  client.Write("c");
+  const std::string after = client.ReadFor(0.5);
+  const std::string status = FastrakDevice(options_.device).StatusRecord();
+  EXPECT_NE(after.find(status.substr(0, 3)), std::string::npos) << after;
+}
+
 TEST_F(EmulatorTest, GarbageAndTruncatedRecord) {
   Start();
   SerialClient client(options_.link_path);
