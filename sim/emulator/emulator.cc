@@ -279,8 +279,12 @@ void Emulator::Run() {
     // Wait for host bytes, control traffic, the next record or the end of a fault.
     double wake_at = now + 1.0;
     // (No active station: nothing is scheduled, and waking at a past cycle would spin.)
-    if (pty_ && !stalled && device_.continuous() && !device_.ActiveStations().empty()) {
+    if (pty_ && !stalled && device_.streaming() && !device_.ActiveStations().empty()) {
       wake_at = std::min(wake_at, next_cycle_s_);
+    }
+    // The device reads the stylus switch every cycle while it acts on it (point/track mode).
+    if (pty_ && !stalled && device_.station(1).stylus_function == 1) {
+      wake_at = std::min(wake_at, now + 1.0 / options_.update_rate_hz);
     }
     const bool line_free = line_busy_until_s_ <= now;
     if (pty_ && !stalled && !output_queue_.empty() && !line_free) {
@@ -316,6 +320,7 @@ void Emulator::Run() {
     now = Now();
     if (pty_index >= 0 && pty_ && (fds[pty_index].revents & POLLIN)) ReadHost(now);
     if (pty_ && stall_until_s_ < 0) {
+      SampleStylus(now);
       StreamRecords(now);
       WriteHost(now);
     }
@@ -379,11 +384,11 @@ void Emulator::ReadHost(double now) {
     const ssize_t n = read(pty_->master_fd(), buffer, sizeof(buffer));
     if (n <= 0) break;  // EAGAIN: nothing more; EIO cannot happen while our slave fd is open
     stats_.bytes_received += n;
-    const bool was_continuous = device_.continuous();
+    const bool was_streaming = device_.streaming();
     std::string reply = device_.Receive(std::string_view(buffer, n), [&](int station) {
       return Measure(*source_, *model_, station, now);
     });
-    if (was_continuous && !device_.continuous()) DropUnstartedRecords();
+    if (was_streaming && !device_.streaming()) DropUnstartedRecords();
     if (!reply.empty()) Enqueue(std::move(reply));
     for (const std::string& line : device_.TakeLog()) Log(line);
   }
@@ -435,8 +440,18 @@ void Emulator::DropUnstartedRecords() {
   }
 }
 
+void Emulator::SampleStylus(double now) {
+  const bool was_streaming = device_.streaming();
+  std::string reply = device_.StylusSwitch(source_->StylusButton(1, now), [&](int station) {
+    return Measure(*source_, *model_, station, now);
+  });
+  if (was_streaming && !device_.streaming()) DropUnstartedRecords();
+  if (!reply.empty()) Enqueue(std::move(reply));
+  for (const std::string& line : device_.TakeLog()) Log(line);
+}
+
 void Emulator::StreamRecords(double now) {
-  const bool continuous = device_.continuous();
+  const bool continuous = device_.streaming();
   if (continuous && !was_continuous_) {
     // Streaming starts now, with the first active station.
     next_cycle_s_ = now;

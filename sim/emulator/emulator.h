@@ -147,6 +147,8 @@ class Emulator {
   void Log(const std::string& message);
   void ReadHost(double now);
   void WriteHost(double now);
+  // Hands the stylus switch of station 1 to the device (point/track mode).
+  void SampleStylus(double now);
   void StreamRecords(double now);
   // `stream_record`: a record of continuous output (not a reply to `S` or `P`, nor garbage).
   void Enqueue(std::string bytes, bool stream_record = false);

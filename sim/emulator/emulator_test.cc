@@ -503,6 +503,37 @@ TEST_F(EmulatorTest, StopStreamingKeepsARequestedStatusRecord) {
   EXPECT_NE(after.find(status.substr(0, 3)), std::string::npos) << after;
 }
 
+TEST_F(EmulatorTest, StylusSwitchTogglesOutputUnlessStylusModeIsSet) {
+  // A Fastrak powers up in point/track stylus mode (e1,1): in continuous mode each press of the
+  // station-1 switch toggles the record stream, in polled mode it outputs a record. Drivers send
+  // `e1,0` for exactly this reason; one that forgets must see the stream stop, as on hardware.
+  Start();
+  SerialClient client(options_.link_path);
+  ASSERT_TRUE(client.ok());
+  Handshake(&client, "O1,2,11,16,0\rO2,2,11,0\r");
+  ASSERT_FALSE(client.ReadFor(0.1).empty());
+  EXPECT_EQ(Control("button 1 1"), "ok");
+  client.ReadFor(0.1);  // the record on the wire
+  EXPECT_EQ(client.ReadFor(0.3), "") << "a press in continuous mode stops the output";
+  EXPECT_EQ(Control("button 1 0"), "ok");
+  EXPECT_EQ(client.ReadFor(0.1), "");
+  EXPECT_EQ(Control("button 1 1"), "ok");
+  EXPECT_FALSE(client.ReadFor(0.3).empty()) << "the next press starts it again";
+  // Polled: a press outputs one record per active station (34 + 32 bytes).
+  client.Write("c");
+  EXPECT_EQ(Control("button 1 0"), "ok");
+  client.ReadFor(0.1);
+  EXPECT_EQ(client.ReadFor(0.2), "");
+  EXPECT_EQ(Control("button 1 1"), "ok");
+  EXPECT_EQ(client.ReadFor(0.3).size(), 66u);
+  // `e1,0`: the switch is only reported.
+  client.Write("e1,0\rC");
+  EXPECT_EQ(Control("button 1 0"), "ok");
+  EXPECT_EQ(Control("button 1 1"), "ok");
+  client.ReadFor(0.1);
+  EXPECT_GT(client.ReadFor(0.3).size(), 66u);
+}
+
 TEST_F(EmulatorTest, GarbageAndTruncatedRecord) {
   Start();
   SerialClient client(options_.link_path);

@@ -146,6 +146,8 @@ void FastrakDevice::Reinitialise() {
   continuous_ = options_.continuous;
   binary_ = options_.binary;
   metric_ = options_.metric;
+  stylus_pressed_ = false;
+  stylus_paused_ = false;
   position_filter_.clear();
   attitude_filter_.clear();
   for (int i = 0; i < kMaxStations; ++i) {
@@ -252,9 +254,11 @@ void FastrakDevice::HandleSingle(char c, const Measure& measure, std::string* re
       break;
     case 'c':
       continuous_ = false;
+      stylus_paused_ = false;
       break;
     case 'C':
       continuous_ = true;
+      stylus_paused_ = false;
       break;
     case 'P':
       for (const int s : ActiveStations()) *reply += FormatRecord(s, measure(s));
@@ -279,6 +283,21 @@ void FastrakDevice::HandleSingle(char c, const Measure& measure, std::string* re
       // what this emulator outputs.
       break;
   }
+}
+
+std::string FastrakDevice::StylusSwitch(bool pressed, const Measure& measure) {
+  const bool press = pressed && !stylus_pressed_;
+  stylus_pressed_ = pressed;
+  std::string reply;
+  if (!press || !stations_[0].connected || stations_[0].stylus_function != 1) return reply;
+  if (continuous_) {
+    stylus_paused_ = !stylus_paused_;
+    Log(stylus_paused_ ? "stylus switch: output off" : "stylus switch: output on");
+  } else {
+    for (const int s : ActiveStations()) reply += FormatRecord(s, measure(s));
+    Log("stylus switch: point record");
+  }
+  return reply;
 }
 
 bool FastrakDevice::ParseStationCommand(const std::string& args, int* station,

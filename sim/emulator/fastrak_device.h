@@ -80,7 +80,10 @@ struct StationState {
   std::vector<int> output_list;              // `O` command, items in order
   Eigen::Vector3d hemisphere{1, 0, 0};       // `H` command; zero vector = hemisphere tracking
   Eigen::Vector3d last_position_m{1, 0, 0};  // for hemisphere tracking
-  int stylus_function = 0;                   // `e` command, stored only
+  // `e` command: 1 (the Fastrak's default) = point/track mode, the stylus switch of station 1
+  // outputs a record in polled mode and toggles continuous output; 0 = it is only reported (item
+  // 16). Drivers that use a stylus send `e1,0`.
+  int stylus_function = 1;
 };
 
 class FastrakDevice {
@@ -104,6 +107,11 @@ class FastrakDevice {
   // Size in bytes of a binary record for the station's current output list.
   size_t BinaryRecordSize(int station) const;
 
+  // The stylus switch of station 1 (the only station whose switch works) at a measurement cycle.
+  // In point/track mode (`e1,1`, the default) a press outputs one record per active station when
+  // polled (returned, like `P`) and toggles the record stream when continuous.
+  std::string StylusSwitch(bool pressed, const Measure& measure);
+
   // Active stations in increasing order.
   std::vector<int> ActiveStations() const;
 
@@ -111,6 +119,8 @@ class FastrakDevice {
   void Reinitialise();
 
   bool continuous() const { return continuous_; }
+  // Continuous and not paused by the stylus switch: records are being output.
+  bool streaming() const { return continuous_ && !stylus_paused_; }
   bool binary() const { return binary_; }
   bool metric() const { return metric_; }
   const StationState& station(int station) const;
@@ -137,6 +147,8 @@ class FastrakDevice {
   bool continuous_ = false;
   bool binary_ = false;
   bool metric_ = false;
+  bool stylus_pressed_ = false;  // switch state at the last StylusSwitch()
+  bool stylus_paused_ = false;   // continuous output toggled off by the switch
   std::string position_filter_;
   std::string attitude_filter_;
   std::string line_;  // line command being received

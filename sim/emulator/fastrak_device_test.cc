@@ -383,6 +383,34 @@ TEST(FastrakDevice, PolledAndActiveStations) {
   EXPECT_FALSE(device.continuous());
 }
 
+TEST(FastrakDevice, StylusSwitchPointAndTrackMode) {
+  FastrakDevice device(FastrakDeviceOptions{});
+  EXPECT_EQ(device.station(1).stylus_function, 1);  // the Fastrak's power-up default
+  device.Receive("fO1,2,11,16,0\rO2,2,11,0\rC", TranscriptMeasure());
+  ASSERT_TRUE(device.streaming());
+  // Continuous: each press (not the holding) toggles the output.
+  EXPECT_EQ(device.StylusSwitch(true, TranscriptMeasure()), "");
+  EXPECT_FALSE(device.streaming());
+  EXPECT_TRUE(device.continuous());
+  device.StylusSwitch(true, TranscriptMeasure());
+  EXPECT_FALSE(device.streaming());
+  device.StylusSwitch(false, TranscriptMeasure());
+  device.StylusSwitch(true, TranscriptMeasure());
+  EXPECT_TRUE(device.streaming());
+  // Polled: a press outputs a record per active station, like `P`.
+  device.Receive("c", TranscriptMeasure());
+  device.StylusSwitch(false, TranscriptMeasure());
+  const std::string reply = device.StylusSwitch(true, TranscriptMeasure());
+  ASSERT_EQ(reply.size(), 34u + 32u);
+  EXPECT_EQ(reply.substr(0, 2), "01");
+  EXPECT_EQ(reply.substr(34, 2), "02");
+  // e1,0: the switch is only reported in item 16.
+  device.Receive("e1,0\rC", TranscriptMeasure());
+  device.StylusSwitch(false, TranscriptMeasure());
+  EXPECT_EQ(device.StylusSwitch(true, TranscriptMeasure()), "");
+  EXPECT_TRUE(device.streaming());
+}
+
 TEST(FastrakDevice, QuaternionScalarNonNegative) {
   FastrakDevice device(FastrakDeviceOptions{});
   device.Receive("fO1,11\r", TranscriptMeasure());
