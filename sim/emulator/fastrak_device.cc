@@ -445,8 +445,10 @@ std::string FastrakDevice::FormatRecord(int station_number, const StationMeasure
         }
         break;
       case kItemStylusSwitch:
+        // The stylus switch works only on station 1 (Fastrak manual, `e` command); a stylus on
+        // another receiver port tracks but its switch always reads open.
         out += ' ';
-        out += measurement.stylus_button ? '1' : '0';
+        out += station_number == 1 && measurement.stylus_button ? '1' : '0';
         break;
       default:
         break;  // unreachable: `O` only stores supported items

@@ -411,6 +411,15 @@ TEST(FastrakDevice, StylusSwitchPointAndTrackMode) {
   EXPECT_TRUE(device.streaming());
 }
 
+TEST(FastrakDevice, StylusSwitchWorksOnlyOnStation1) {
+  FastrakDevice device(FastrakDeviceOptions{});
+  device.Receive("fO1,2,16,0\rO2,2,16,0\r", TranscriptMeasure());
+  StationMeasurement pressed = TranscriptStation(2);
+  pressed.stylus_button = true;
+  EXPECT_EQ(device.FormatRecord(1, pressed).substr(15), " 1 ");
+  EXPECT_EQ(device.FormatRecord(2, pressed).substr(15), " 0 ");
+}
+
 TEST(FastrakDevice, QuaternionScalarNonNegative) {
   FastrakDevice device(FastrakDeviceOptions{});
   device.Receive("fO1,11\r", TranscriptMeasure());
