@@ -306,6 +306,12 @@ class Parser {
     if (button.sensor < 0 || button.sensor > 3) {
       Fail(where, "sensor", "must be 0..3 (Fastrak stations 1..4), got " + tokens[2]);
     }
+    if (button.kind == ButtonDeviceKind::kFastrakStylus && button.sensor != 0) {
+      config_.warnings.push_back(
+          {where, "FTStylus on sensor " + tokens[2] +
+                      ": the Fastrak reads the stylus switch on station 1 (sensor 0) only, so "
+                      "this button never reports a press (the stylus still tracks)"});
+    }
     for (size_t i = 3; i < expected; ++i) {
       button.wand_ranges[i - 3] = ParseDouble(tokens[i], where, "wand range");
     }

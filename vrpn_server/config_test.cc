@@ -110,6 +110,11 @@ TEST(ParseVrpnConfig, DeviceLinesAndIs900Options) {
   EXPECT_EQ(t1.location.line, 5);
   ASSERT_EQ(t1.buttons.size(), 1u);
   EXPECT_EQ(t1.buttons[0].sensor, 3);
+  // The Fastrak reads the stylus switch on station 1 only: FTStylus on sensor 3 is warned.
+  ASSERT_EQ(config.warnings.size(), 1u);
+  EXPECT_EQ(config.warnings[0].location.line, 6);
+  EXPECT_NE(config.warnings[0].message.find("station 1 (sensor 0) only"), std::string::npos)
+      << config.warnings[0].message;
 }
 
 TEST(ParseVrpnConfig, SeparateContinuationTokenAndAttachedOne) {

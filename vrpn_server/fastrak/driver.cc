@@ -586,10 +586,11 @@ class FastrakDriver::Session {
       Write(OutputListCommand(s + 1, stylus[s]));
       Sleep(timings_.command_gap_s);
     }
-    for (int s = 0; s < options_.num_stations; ++s) {
-      if (!stylus[s]) continue;
-      // The reference always writes e1,0 (station 1); we address the stylus's own station.
-      Write(StylusModeCommand(s + 1));
+    if (std::find(stylus.begin(), stylus.end(), true) != stylus.end()) {
+      // e1,0 as the reference: the Fastrak reads the stylus switch on station 1 only (manual, 'e'
+      // command and "Default Operation with a Stylus"), and its power-up mode there (1, point and
+      // track) would make a press toggle the record stream instead of reporting it.
+      Write(StylusModeCommand(1));
       Sleep(timings_.command_gap_s);
     }
     if (options_.confirm_filters) {

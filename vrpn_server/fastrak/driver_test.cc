@@ -277,6 +277,27 @@ TEST(FastrakDriver, Transcript08ExtrasStylusAndCentimetres) {
   EXPECT_FALSE(buttons[2].pressed);
 }
 
+TEST(FastrakDriver, StylusModeIsSetOnStation1WhateverTheStylusStation) {
+  // The Fastrak reads the stylus switch on station 1 only (manual, Rev. G, 'e' command), and its
+  // power-up mode there makes a press toggle the record stream: e1,0 is written, as the reference
+  // does, also for a stylus on station 2 (before: e2,0, which left station 1 in that mode).
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  options.stylus_sensors = {1};
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(4, 10.0));
+  driver.Stop();
+  const std::string sent = fake.received();
+  EXPECT_NE(sent.find("O2,2,11,16,0\r"), std::string::npos) << sent;
+  EXPECT_EQ(sent.find("e2,0"), std::string::npos) << sent;
+  const size_t e1 = sent.find("e1,0\r");
+  ASSERT_NE(e1, std::string::npos) << sent;
+  EXPECT_EQ(sent.find("e1,0\r", e1 + 1), std::string::npos) << "once per reset: " << sent;
+}
+
 TEST(FastrakDriver, WatchdogResetsAfterSilenceAndEscalates) {
   const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
   FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
