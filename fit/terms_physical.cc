@@ -937,6 +937,17 @@ PhysicalCorrection PhysicalGroupTerm::MakeCorrection(const double* const* v,
 
 namespace {
 
+// Runs `passes` (a lambda templated on the chunk width kC) with the narrow Jet when the group's n
+// free coordinates fit in it.
+template <typename Passes>
+void WithChunkWidth(int n, const Passes& passes) {
+  if (n <= kSmallChunk) {
+    passes.template operator()<kSmallChunk>();
+  } else {
+    passes.template operator()<kChunk>();
+  }
+}
+
 // The Jets of a group's block values for one pass (GroupValues::Chunk).
 template <int kC>
 struct JetBlocks {
@@ -1124,11 +1135,7 @@ bool PhysicalGroupTerm::EvaluateFrom(const StationBinding& binding,
       if (n == 0) break;
     }
   };
-  if (n <= kSmallChunk) {
-    passes.operator()<kSmallChunk>();
-  } else {
-    passes.operator()<kChunk>();
-  }
+  WithChunkWidth(n, passes);
   const Eigen::PartialPivLU<Matrix6> lu(g_x);
   if (target != nullptr) {
     // The Newton step from x_t: x1 = x_t [+] -(dg/dx)^-1 g in the chart of the Jets above.
@@ -1231,11 +1238,7 @@ bool PhysicalGroupTerm::EvaluateTowardReport(const StationBinding& binding,
       if (n == 0) break;
     }
   };
-  if (n <= kSmallChunk) {
-    passes.operator()<kSmallChunk>();
-  } else {
-    passes.operator()<kChunk>();
-  }
+  WithChunkWidth(n, passes);
   if (!out_value.allFinite() || !step_value.allFinite()) return false;
   result->output = out_value;
   if (!jacobians) return true;
