@@ -208,7 +208,6 @@ void Emulator::ClosePty() {
   if (!options_.link_path.empty()) RemoveSymlinkIfTarget(current_slave_path_, options_.link_path);
   pty_.reset();
   output_queue_.clear();
-  output_is_stream_record_.clear();
   output_head_sent_ = 0;
   output_bytes_ = 0;
 }
@@ -398,7 +397,7 @@ void Emulator::WriteHost(double now) {
   const double seconds_per_byte = options_.baud > 0 ? 10.0 / options_.baud : 0.0;
   while (pty_ && !output_queue_.empty()) {
     if (line_busy_until_s_ > now) break;  // the wire is still busy with earlier bytes
-    const std::string& head = output_queue_.front();
+    const std::string& head = output_queue_.front().bytes;
     const size_t unsent = head.size() - output_head_sent_;
     ssize_t n = write(pty_->master_fd(), head.data() + output_head_sent_, unsent);
     if (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK) break;
@@ -416,7 +415,6 @@ void Emulator::WriteHost(double now) {
     output_bytes_ -= n;
     if (output_head_sent_ == head.size()) {
       output_queue_.pop_front();
-      output_is_stream_record_.pop_front();
       output_head_sent_ = 0;
     }
   }
@@ -424,19 +422,17 @@ void Emulator::WriteHost(double now) {
 
 void Emulator::Enqueue(std::string bytes, bool stream_record) {
   output_bytes_ += bytes.size();
-  output_queue_.push_back(std::move(bytes));
-  output_is_stream_record_.push_back(stream_record);
+  output_queue_.push_back({std::move(bytes), stream_record});
 }
 
 void Emulator::DropUnstartedRecords() {
   for (size_t i = output_head_sent_ > 0 ? 1 : 0; i < output_queue_.size();) {
-    if (!output_is_stream_record_[i]) {
+    if (!output_queue_[i].stream_record) {
       ++i;
       continue;
     }
-    output_bytes_ -= output_queue_[i].size();
-    output_queue_.erase(output_queue_.begin() + i);
-    output_is_stream_record_.erase(output_is_stream_record_.begin() + i);
+    output_bytes_ -= output_queue_[i].bytes.size();
+    output_queue_.erase(output_queue_.begin() + static_cast<std::ptrdiff_t>(i));
   }
 }
 
@@ -622,7 +618,6 @@ std::string Emulator::HandleControlLine(const std::string& line) {
       e->power_off_ = true;
       // Whatever had not left the device is lost, a record on the wire included.
       e->output_queue_.clear();
-      e->output_is_stream_record_.clear();
       e->output_head_sent_ = 0;
       e->output_bytes_ = 0;
       e->Log("fault: power off for " + std::to_string(f.seconds) + " s");

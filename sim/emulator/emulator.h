@@ -169,8 +169,11 @@ class Emulator {
   std::string current_slave_path_;
   // Device output not yet written: whole items (records, replies, garbage); the head may be
   // partly written (output_head_sent_ bytes of it).
-  std::deque<std::string> output_queue_;
-  std::deque<bool> output_is_stream_record_;  // parallel to output_queue_
+  struct OutputItem {
+    std::string bytes;
+    bool stream_record = false;  // a continuous-mode record ('c' drops it), not a reply
+  };
+  std::deque<OutputItem> output_queue_;
   size_t output_head_sent_ = 0;
   size_t output_bytes_ = 0;
   double line_busy_until_s_ = 0;  // when the bytes already written have left the emulated wire
