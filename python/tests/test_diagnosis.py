@@ -157,6 +157,14 @@ def test_verdict_nothing_significant():
         diagnosis.verdict(None, TEMPERATURE)["text"]
 
 
+def test_verdict_without_covariate_tests_does_not_call_them_clean():
+    # (validate(analyse_covariates=False): an empty list of effects is then no finding.)
+    assert diagnosis.verdict(contract_b_doc(False), [], covariates_tested=False)["text"] == \
+        "no catalog effect is significant (covariates not tested)"
+    untested = diagnosis.verdict(None, [], covariates_tested=False)["text"]
+    assert untested.startswith("nothing tested") and "in the covariates" not in untested
+
+
 def test_verdict_names_a_source_the_data_no_longer_identify_whatever_it_says():
     note = ("Already in the model but not identified by these data: dipole_2 (`terms:` item 3, "
             "polarisability_m3 0.0 sigma from its null value; location undetermined). A term added after it "

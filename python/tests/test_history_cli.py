@@ -443,4 +443,4 @@ def test_report_without_covariates_does_not_call_them_clean(tmp_path):
     page = (tmp_path / "rep" / "report.html").read_text()
     verdict = page.split("<h2>Verdict</h2>", 1)[1].split("</p>", 1)[0]
     assert "in the covariates" not in verdict, verdict
-    assert "--no-covariates" in verdict, verdict
+    assert "covariates not tested" in verdict, verdict

@@ -184,6 +184,19 @@ def test_report_of_a_ranking_whose_base_has_no_held_out_mean(uncorrected, tmp_pa
     assert "The model alone: n/a mm, n/a deg." in text
 
 
+def test_report_of_a_validation_without_covariate_tests_does_not_call_them_clean(uncorrected, tmp_path):
+    # validate(analyse_covariates=False) tested no covariate: the verdict of a ranking that finds
+    # nothing must say so instead of "nothing significant remains in the covariates".
+    doc = {"folds": 5, "base": {"cv_position_mm_mean": 1.0, "cv_orientation_deg_mean": 0.1},
+           "candidates": [{"effect": "dipole", "cv_position_mm_mean": 1.0, "cv_orientation_deg_mean": 0.1,
+                           "cv_drop_percent": {"position": 0.1, "orientation": 0.0}, "delta_bic": 3.0,
+                           "p_value": 0.4, "significant": False, "reason": "no held-out gain"}]}
+    assert not uncorrected.covariates_tested
+    page = report.write_report(uncorrected, tmp_path / "out", candidates=doc).read_text()
+    verdict = page.split("<h2>Verdict</h2>", 1)[1].split("</p>", 1)[0]
+    assert "in the covariates" not in verdict and "covariates not tested" in verdict, verdict
+
+
 def test_residual_map_colour_scale_ignores_a_station_without_value():
     import matplotlib.pyplot as plt
     rng = np.random.default_rng(0)

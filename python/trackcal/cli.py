@@ -335,9 +335,7 @@ def _diagnosis(args, term):
         mismatch = _model_mismatch_note(args.calibration, model)
         if mismatch:
             notes.append(mismatch)
-    verdict = diagnosis.verdict(doc, v.covariate_effects)
-    if not covariates and verdict["source"] is None:
-        verdict["text"] = _untested_covariates(verdict["text"], doc is not None)
+    verdict = diagnosis.verdict(doc, v.covariate_effects, v.covariates_tested)
     change = None
     # (A removal's change is empty: the item named by insert_index and replaces goes.)
     if verdict["source"] == "candidate" and (verdict.get("model_change") or verdict.get("replaces")):
@@ -357,20 +355,6 @@ def _diagnosis(args, term):
                   "model_text": new_text,
                   "diff": diagnosis.model_diff(info["text"], new_text, name) if new_text else None}
     return capture, cal, v, fit_report, doc, verdict, change, notes
-
-
-def _untested_covariates(text: str, ranked: bool) -> str:
-    """A "nothing significant" verdict under --no-covariates: the covariates were not tested, so
-    the verdict must not call them clean."""
-    clean = "nothing significant remains in the covariates"
-    if not ranked:
-        return "nothing tested: --no-covariates skips the covariate tests and no --model ranks catalog effects"
-    if text.startswith(clean):
-        return "covariates not tested (--no-covariates)" + text[len(clean):]
-    nothing = "nothing significant remains"
-    if text.startswith(nothing):
-        return "no catalog effect is significant (covariates not tested: --no-covariates)" + text[len(nothing):]
-    return text
 
 
 def _model_mismatch_note(calibration, model) -> Optional[str]:

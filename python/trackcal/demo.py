@@ -557,7 +557,7 @@ def write_report(capture: Path, calibration: Path, diagnosis_doc: dict, work: Pa
     import trackcal
     from trackcal import captures, diagnosis, history, report, validation
     v = validation.validate(captures.load_poses(str(capture)), trackcal.Calibration.load(str(calibration)))
-    verdict = diagnosis.verdict(diagnosis_doc, v.covariate_effects)
+    verdict = diagnosis.verdict(diagnosis_doc, v.covariate_effects, v.covariates_tested)
     path = report.write_report(v, out, inputs=[capture, calibration],
                                history_entries=history.load_history(work), candidates=diagnosis_doc,
                                verdict=verdict)

@@ -201,8 +201,10 @@ def extrapolation_note(v) -> Optional[str]:
             "look for an effect there")
 
 
-def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
-    """Combines the candidate ranking (None: not run) and the covariate analysis.
+def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects, covariates_tested: bool = True) -> dict:
+    """Combines the candidate ranking (None: not run) and the covariate analysis
+    (``covariates_tested`` False: not run, as ``validate(analyse_covariates=False)``; a verdict of
+    nothing significant then says the covariates were not tested instead of calling them clean).
 
     Without a significant candidate or covariate, a significant flexible fallback of the ranking
     (a polynomial appended to the model: structure in position that no catalog effect has) is named.
@@ -214,7 +216,7 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     Returns {"source": "candidate" | "covariate" | "flexible" | "unidentified" | None, "effect",
     "covariate", "text", "model_change", "insert_index", "replaces"} ("replaces": the term a
     replacement takes the place of, else None)."""
-    out = _verdict(candidates_doc, covariate_effects)
+    out = _verdict(candidates_doc, covariate_effects, covariates_tested)
     # The model's own source terms the data no longer identify (the engine's note): said whatever
     # the verdict, since removing one is a change the user can test.
     engine = (candidates_doc or {}).get("verdict") or {}
@@ -226,7 +228,7 @@ def verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
     return out
 
 
-def _verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict:
+def _verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects, covariates_tested: bool) -> dict:
     rows = covariate_findings(covariate_effects)
     top = top_candidate(candidates_doc)
     out = {"source": None, "effect": None, "covariate": rows[0]["covariate"] if rows else None,
@@ -261,7 +263,14 @@ def _verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects) -> dict
         # verdict says what and where; "nothing" would hide it.
         out.update(source="unidentified", text=engine["text"])
         return out
-    if candidates_doc is None:
+    if not covariates_tested:
+        if candidates_doc is None:
+            out["text"] = "nothing tested: covariates not tested and catalog effects not ranked"
+        elif _untested(candidates_doc)[0]:
+            out["text"] = "covariates not tested; " + _no_catalog_effect(candidates_doc)
+        else:
+            out["text"] = "no catalog effect is significant (covariates not tested)"
+    elif candidates_doc is None:
         out["text"] = "nothing significant remains in the covariates (catalog effects not tested)"
     elif _untested(candidates_doc)[0]:
         out["text"] = "nothing significant remains in the covariates; " + _no_catalog_effect(candidates_doc)
@@ -574,7 +583,8 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
                                                 "parameters": (fit_report.to_dict().get("fit") or {})
                                                 .get("parameters")},
         "candidates": candidates_doc,
-        "verdict": verdict_ if verdict_ is not None else verdict(candidates_doc, v.covariate_effects),
+        "verdict": verdict_ if verdict_ is not None else verdict(candidates_doc, v.covariate_effects,
+                                                                     v.covariates_tested),
         "model_change": model_change,
         "notes": list(notes),
         "stations": v.station_rows(),

@@ -256,7 +256,7 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                      f"{html.escape(diagnosis.unresolved_note(candidates))}</p>"
                      + _table(diagnosis.candidate_rows(candidates)))
     if verdict is None and (candidates is not None or v.covariate_effects):
-        verdict = diagnosis.verdict(candidates, v.covariate_effects)
+        verdict = diagnosis.verdict(candidates, v.covariate_effects, v.covariates_tested)
     for n in notes:  # what the reader must know to read the tables and the verdict
         parts.append(f"<p><b>Note:</b> {html.escape(n)}</p>")
     if verdict is not None:
