@@ -93,8 +93,17 @@ void Format(const nlohmann::json& v, const std::vector<std::string>& key_order, 
 }
 
 bool IsUtcTimestamp(const std::string& s) {
-  static const std::regex pattern(R"(\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d+)?Z)");
-  return std::regex_match(s, pattern);
+  static const std::regex pattern(R"((\d{4})-(\d{2})-(\d{2})T(\d{2}):(\d{2}):(\d{2})(\.\d+)?Z)");
+  std::smatch m;
+  if (!std::regex_match(s, m, pattern)) return false;
+  // The fields in range too: a month 13 or an hour 25 is no time (a leap second's 60 is).
+  const auto field = [&m](int i) { return std::stoi(m[i].str()); };
+  const int year = field(1), month = field(2), day = field(3);
+  if (month < 1 || month > 12 || day < 1) return false;
+  static constexpr int kDays[12] = {31, 29, 31, 30, 31, 30, 31, 31, 30, 31, 30, 31};
+  const bool leap = (year % 4 == 0 && year % 100 != 0) || year % 400 == 0;
+  if (day > kDays[month - 1] || (month == 2 && day == 29 && !leap)) return false;
+  return field(4) <= 23 && field(5) <= 59 && field(6) <= 60;
 }
 
 CalibratedVolume ParseVolume(const JsonObjectReader& r) {

@@ -355,6 +355,20 @@ TEST(ParseCalibrationJson, RejectsBadProvenance) {
   EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["provenance"]["created_utc"] = "yesterday"; }),
             "calib.json: $.provenance.created_utc: expected an ISO 8601 UTC time "
             "\"YYYY-MM-DDTHH:MM:SSZ\", got \"yesterday\"");
+  // The shape alone is not a time: each field is checked against its range.
+  for (const char* bad : {"2026-13-01T00:00:00Z", "2026-00-10T00:00:00Z", "2026-02-29T00:00:00Z",
+                          "2026-04-31T00:00:00Z", "2026-11-21T24:00:00Z", "2026-11-21T12:60:00Z",
+                          "2026-11-21T12:00:61Z"}) {
+    EXPECT_NE(ErrorAfterEdit([&](nlohmann::json& j) {
+                j["provenance"]["created_utc"] = bad;
+              }).find("$.provenance.created_utc: expected an ISO 8601 UTC time"),
+              std::string::npos)
+        << bad;
+  }
+  for (const char* good : {"2024-02-29T23:59:60Z", "2000-02-29T00:00:00.5Z"}) {
+    EXPECT_EQ(ErrorAfterEdit([&](nlohmann::json& j) { j["provenance"]["created_utc"] = good; }), "")
+        << good;
+  }
 }
 
 TEST(ReadCalibrationFile, MissingFileNamesPath) {
