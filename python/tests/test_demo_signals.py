@@ -90,3 +90,15 @@ def test_a_signal_stops_the_demo_and_its_children(tmp_path, signum, code):
     # The server logged its status at stop, and the demo reports the extrapolated share.
     assert "corrected poses;" in text and "extrapolated outside the calibrated volume" in text, text
     assert not leftover, f"children still running after the demo exited: {leftover}\n{text}"
+
+
+def test_signals_during_the_childrens_stop_are_ignored():
+    # serve() stops the emulator and the server inside this block: a second Ctrl-C (or a SIGTERM)
+    # there must not unwind past the wait and leave them unreaped, a traceback printed.
+    from trackcal import demo
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    with demo._signals_deferred():
+        for s in before:
+            os.kill(os.getpid(), s)
+        time.sleep(0.05)  # the handlers run between bytecodes: give them the chance to
+    assert {s: signal.getsignal(s) for s in before} == before

@@ -29,6 +29,7 @@ The loop itself is :func:`follow_diagnosis`, used by the workflow tests (python/
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime as _dt
 import inspect
@@ -39,6 +40,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
@@ -649,10 +651,11 @@ def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], p
         lines.append(f"trackcal_Calibration Tracker0 {calib} raw=Tracker0_raw")
     _write_new(cfg, "\n".join(lines) + "\n")
     procs: List[subprocess.Popen] = []
+    logs = contextlib.ExitStack()  # the children's log files, closed once they are stopped
     try:
         print("$ " + " ".join(emulate_cmd), flush=True)
         procs.append(subprocess.Popen(emulate_cmd, stdout=subprocess.DEVNULL,
-                                      stderr=open(work / "emulator.log", "w")))
+                                      stderr=logs.enter_context(open(work / "emulator.log", "w"))))
         deadline = time.monotonic() + 10.0
         while not device.exists():
             if procs[0].poll() is not None or time.monotonic() > deadline:
@@ -660,7 +663,7 @@ def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], p
             time.sleep(0.05)
         server_cmd = [_tool("trackcal-server"), "-f", str(cfg), str(port)]
         print("$ " + " ".join(server_cmd), flush=True)
-        procs.append(subprocess.Popen(server_cmd, stdout=open(work / "server.log", "w"),
+        procs.append(subprocess.Popen(server_cmd, stdout=logs.enter_context(open(work / "server.log", "w")),
                                       stderr=subprocess.STDOUT))
         print(f"\nServing on port {port}: Tracker0@localhost:{port} (corrected)"
               + (f", Tracker0_raw@localhost:{port} (raw)" if calib is not None else "")
@@ -677,20 +680,42 @@ def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], p
     except KeyboardInterrupt:
         print("\nstopping")
     finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in reversed(procs):
-            try:
-                p.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        # A second Ctrl-C (or a SIGTERM) while the children stop must not leave them running:
+        # the signals wait until they are stopped, then the first one's exit stands.
+        with _signals_deferred():
+            for p in reversed(procs):
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            for p in reversed(procs):
+                try:
+                    p.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+            logs.close()
         counts = served_counts(work / "server.log") if calib is not None else None
         if counts is not None and counts[0] > 0:
             print(f"Served {counts[0]} corrected poses; {counts[1]} "
                   f"({100.0 * counts[1] / counts[0]:.1f} %) extrapolated outside the calibrated volume.",
                   flush=True)
+
+
+@contextlib.contextmanager
+def _signals_deferred():
+    """SIGINT, SIGTERM and SIGHUP are ignored inside the block (the first one is already stopping
+    the job); outside the main thread, where handlers cannot be set, the block runs unprotected."""
+    handled = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.getsignal(s) for s in handled}
+    for s in handled:
+        signal.signal(s, lambda *_: None)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 class Stopped(Exception):
