@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <stdexcept>
 
 namespace trackcal {
@@ -23,6 +24,13 @@ ErrorSummary SummarizeErrors(std::span<const double> values) {
   ErrorSummary s;
   s.count = static_cast<int>(values.size());
   if (values.empty()) return s;
+  // An unknown error (NaN) makes every statistic unknown: std::max would skip it while the mean
+  // took it, and std::sort's order is undefined with it.
+  if (std::any_of(values.begin(), values.end(), [](double v) { return std::isnan(v); })) {
+    const double nan = std::numeric_limits<double>::quiet_NaN();
+    s.mean = s.std = s.max = s.rms = s.median = s.p95 = nan;
+    return s;
+  }
   double sum = 0.0, sum_sq = 0.0;
   for (double v : values) {
     sum += v;

@@ -22,6 +22,7 @@ struct ErrorSummary {
   double p95 = 0.0;  // 95th percentile, linear interpolation between order statistics
 };
 
+// Every statistic is NaN when a value is NaN (count is still the number of values).
 ErrorSummary SummarizeErrors(std::span<const double> values);
 
 // Position errors in millimetres and orientation errors in degrees of one set of poses.

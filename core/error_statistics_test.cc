@@ -2,6 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <vector>
+
 #include "tests/test_utils.h"
 
 namespace trackcal {
@@ -25,6 +28,16 @@ TEST(SummarizeErrors, EmptyAndSingle) {
   const ErrorSummary s = SummarizeErrors(one);
   EXPECT_EQ(s.std, 0.0);
   EXPECT_EQ(s.max, 7.0);
+}
+
+TEST(SummarizeErrors, AnUnknownValueMakesEveryStatisticUnknown) {
+  // NaN last and first: std::max skipped it in one order, and the sort's order was undefined.
+  for (const std::vector<double>& values :
+       {std::vector<double>{1.0, 2.0, std::nan("")}, std::vector<double>{std::nan(""), 5.0, 1.0}}) {
+    const ErrorSummary s = SummarizeErrors(values);
+    EXPECT_EQ(s.count, 3);
+    for (double v : {s.mean, s.std, s.max, s.rms, s.median, s.p95}) EXPECT_TRUE(std::isnan(v));
+  }
 }
 
 TEST(SummarizePoseErrors, UnitsAreMillimetresAndDegrees) {
