@@ -276,7 +276,10 @@ def history_plot(entries: Sequence[dict]):
     ax.set_ylabel("position error mean [mm]", color="tab:blue")
     ax2 = ax.twinx()
     for k, (a, b) in enumerate(runs):
-        ax2.plot(x[a:b], ori[a:b], "s--", color="tab:red", label="orientation mean [deg]" if k == 0 else None)
+        # Hollow and larger: where the two axes put a point at the same height (a single fit is
+        # in the middle of both) the position marker stays visible inside the square.
+        ax2.plot(x[a:b], ori[a:b], "s--", color="tab:red", markerfacecolor="none", markersize=9,
+                 label="orientation mean [deg]" if k == 0 else None)
     ax2.set_ylabel("orientation error mean [deg]", color="tab:red")
     for axis, values in ((ax, pos), (ax2, ori)):
         v = np.asarray([y for y in values if np.isfinite(y) and y > 0])
