@@ -312,3 +312,32 @@ def test_recording_no_device_is_refused_before_anything_is_made(fake_recorders, 
     with pytest.raises(ValueError, match="devices: none given"):
         record_streams({}, out, 2.0)
     assert time.monotonic() - started < 1.0 and not out.exists() and not fake_recorders
+
+
+def test_a_device_whose_server_goes_away_is_reported_after_saving(fake_recorders, tmp_path, monkeypatch):
+    """A trackcal-server killed 1.5 s into a 4 s recording: record_streams returned normally and
+    `trackcal record` exited 0, the files holding 1.47 s of the 4 s asked for and nothing saying so.
+    The client then reports itself disconnected (and reconnects on its own), which is now an error
+    naming the device, raised after every recording is saved, as for a device that sent nothing."""
+    from trackcal import record
+
+    class Dropping(FakeRecorder):
+        polls = 0
+
+        @property
+        def connected(self):  # the 'gone' device drops its connection after a few polls
+            Dropping.polls += 1
+            return not (self.name.startswith("gone") and Dropping.polls > 3)
+
+    monkeypatch.setattr(record._core, "TrackerRecorder", Dropping)
+    rec = tmp_path / "rec"
+    with pytest.raises(RuntimeError, match=r"lost the connection during the recording to: corrected "
+                                           r"\(gone@tcp://h:1\) after [0-9.]+ s of 0\.3 s .*\(saved: .*raw_"
+                                           r"tracker_stream\.csv, .*corrected_tracker_stream\.csv\)"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1", "corrected": "gone@tcp://h:1"}, rec, 0.3)
+    assert len(captures.load_tracker_stream(rec / "corrected_tracker_stream.csv")) == 5
+    assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv")) == 5
+    # A device that stays connected is not reported.
+    Dropping.polls = 0
+    out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec2", 0.3)
+    assert list(out) == ["raw"] and out.lost == {}

@@ -16,10 +16,13 @@ from trackcal.captures import TrackerStream, save_tracker_stream
 
 class Recording(dict):
     """label -> path of each saved recording. ``interrupted``: Ctrl-C ended it before the duration;
-    ``empty``: the labels of devices that sent nothing before the interruption (no file)."""
+    ``empty``: the labels of devices that sent nothing before the interruption (no file);
+    ``lost``: label -> seconds into the recording when the device's connection dropped (its
+    recording has a gap or ends early)."""
 
     interrupted: bool = False
     empty: Sequence[str] = ()
+    lost: Dict[str, float] = {}
 
 
 def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, connect_timeout_s: float = 10.0,
@@ -27,8 +30,10 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     """Records every named device (label -> 'Tracker0@tcp://host:port') for ``duration_s`` seconds
     after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir (which must
     not hold such files already: recordings are never overwritten). Returns label -> path.
-    Raises RuntimeError if a device does not connect (nothing is recorded then) or sends no report
-    during the recording (after saving the others' recordings, which the message names).
+    Raises RuntimeError if a device does not connect (nothing is recorded then), sends no report
+    during the recording, or loses its connection during it (a server that stopped or went away:
+    its recording is saved but has a gap or ends early), after saving every recording (the message
+    names them).
 
     Ctrl-C (KeyboardInterrupt) ends the recording early and returns normally with ``interrupted``
     set: every device's reports until then are saved (none if it came before all had connected,
@@ -82,6 +87,7 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
     recorders = {label: _core.TrackerRecorder(name) for label, name in devices.items()}
     out = Recording()
     started = False
+    lost: Dict[str, float] = {}
     for r in recorders.values():
         r.start()
     try:
@@ -96,6 +102,11 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         started = True
         t0 = time.monotonic()
         while (elapsed := time.monotonic() - t0) < duration_s:
+            # A server that goes away mid-recording: the client reconnects on its own, so the
+            # recording just stopped growing and was saved as if complete.
+            for label, r in recorders.items():
+                if label not in lost and not getattr(r, "connected", True):
+                    lost[label] = elapsed
             if progress:
                 progress(elapsed, duration_s)
             time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
@@ -124,9 +135,16 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             continue
         out[label] = targets[label]
     out.empty = empty
+    out.lost = lost
+    gone = [label for label in lost if label not in empty]
     problems = failed + ([f"no report during the recording from: "
                           + ", ".join(f"{label} ({devices[label]})" for label in empty)]
                          if empty and not out.interrupted else [])
+    if gone and not out.interrupted:
+        problems.append("lost the connection during the recording to: "
+                        + ", ".join(f"{label} ({devices[label]}) after {lost[label]:.1f} s of {duration_s:g} s"
+                                    for label in gone)
+                        + " (a recording with a gap or that ends early)")
     if problems:
         saved = f" (saved: {', '.join(str(p) for p in out.values())})" if out else ""
         raise RuntimeError("; ".join(problems) + saved)
