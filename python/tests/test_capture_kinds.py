@@ -322,3 +322,39 @@ def test_a_capture_folder_given_to_pair_register_or_a_recording_names_its_files(
         trackcal.pair(empty, streams)
     with pytest.raises(ValueError, match=r"empty/markers\.csv: cannot open file"):
         trackcal.register(empty, cap_dir / "tracker.csv")
+
+
+def test_a_label_that_is_not_utf8_names_its_file_line_and_column(sim, tmp_path):
+    """A spreadsheet's Latin-1 (Windows-1252) export of an operator "José": the C++ reader takes the
+    bytes, and the label failed only as it became a Python str, as "'utf-8' codec can't decode byte
+    0xe9 in position 3: unexpected end of data", naming no file, line or column (from load_poses,
+    load_tracker_stream, load of a stream folder, register with a poses.csv)."""
+    cap_dir, _, _ = sim
+    lines = (cap_dir / "poses.csv").read_text().splitlines()
+    utf8 = tmp_path / "utf8"
+    utf8.mkdir()
+    (utf8 / "poses.csv").write_bytes(("\r\n".join([lines[0] + ",operator"] + [line + ",José" for line in lines[1:]])
+                                      + "\r\n").encode("utf-8"))
+    assert set(captures.load_poses(utf8).column("operator")) == {"José"}  # UTF-8 text is fine
+    latin1 = tmp_path / "latin1"
+    latin1.mkdir()
+    rows = [lines[0] + ",operator", lines[1] + ",Anna", lines[2] + ",José"] + [line + ",Anna" for line in lines[3:]]
+    (latin1 / "poses.csv").write_bytes(("\r\n".join(rows) + "\r\n").encode("latin-1"))
+    message = r"latin1/poses\.csv:3: column operator: 'Jos\\xe9' is not UTF-8 text \(save the file as UTF-8\)"
+    with pytest.raises(ValueError, match=message):
+        captures.load_poses(latin1)
+    for name in ("markers.csv", "tracker.csv"):
+        shutil.copy(cap_dir / name, latin1 / name)
+    with pytest.raises(ValueError, match=message):
+        captures.load(latin1, register_markers=True)
+    streams = tmp_path / "streams"
+    streams.mkdir()
+    shutil.copy(cap_dir / "reference_stream.csv", streams)
+    t = (cap_dir / "tracker_stream.csv").read_text().splitlines()
+    (streams / "tracker_stream.csv").write_bytes(
+        ("\n".join([t[0] + ",room\xb0"] + [line + ",1" for line in t[1:]]) + "\n").encode("latin-1"))
+    header = r"streams/tracker_stream\.csv:1: header: column 10: 'room\\xb0' is not UTF-8 text"
+    with pytest.raises(ValueError, match=header):
+        captures.load_tracker_stream(streams)
+    with pytest.raises(ValueError, match=header):
+        captures.load(streams, time_offset=0.0)

@@ -97,6 +97,53 @@ def _user_errors(function, *args):
         return function(*args)
     except RuntimeError as e:
         raise ValueError(str(e)) from None
+    except UnicodeDecodeError:
+        # The C++ reader takes any bytes; a label or column name that is not UTF-8 (a spreadsheet's
+        # Latin-1 or Windows-1252 export: an operator "José") failed only when it became a Python
+        # str, as "'utf-8' codec can't decode byte 0xe9 in position 3" naming no file.
+        raise ValueError(not_utf8_message(args[0])) from None
+
+
+def not_utf8_inputs(function, *args, inputs=()):
+    """Calls function(*args); a UnicodeDecodeError (a label of one of the CSV files ``inputs`` that
+    is not UTF-8 text) becomes a ValueError naming the first such file, line and column."""
+    try:
+        return function(*args)
+    except UnicodeDecodeError:
+        for path in inputs:
+            if path is not None and pathlib.Path(path).is_file():
+                try:
+                    pathlib.Path(path).read_bytes().decode("utf-8")
+                except UnicodeDecodeError:
+                    raise ValueError(not_utf8_message(path)) from None
+        raise
+
+
+def not_utf8_message(path: PathLike) -> str:
+    """'<file>:<line>: column <name>: <field> is not UTF-8 text ...' for the first field of a CSV
+    file that is not UTF-8 (its line numbered as the C++ reader numbers them)."""
+    p = pathlib.Path(path)
+    data = p.read_bytes()
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    lines = data.split(b"\n") if b"\n" in data else data.split(b"\r")
+    header = None
+    for number, raw in enumerate(lines, start=1):
+        fields = [f.strip(b" \t\r") for f in raw.split(b",")]
+        if header is None and any(fields):
+            header = fields
+        for k, field in enumerate(fields):
+            try:
+                field.decode("utf-8")
+            except UnicodeDecodeError:
+                if fields is header:
+                    where = f"header: column {k + 1}"
+                else:
+                    name = header[k].decode("utf-8", "replace") if k < len(header) else f"{k + 1}"
+                    where = f"column {name}"
+                text = field.decode("utf-8", "backslashreplace")
+                return f"{p}:{number}: {where}: '{text}' is not UTF-8 text (save the file as UTF-8)"
+    return f"{p}: not UTF-8 text (save the file as UTF-8)"
 
 
 def _resolve(path: PathLike, file_name: str) -> pathlib.Path:

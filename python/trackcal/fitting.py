@@ -25,7 +25,7 @@ from typing import Callable, Dict, List, Optional, Union
 import numpy as np
 
 from trackcal import _core
-from trackcal.captures import PoseCapture
+from trackcal.captures import PoseCapture, not_utf8_inputs
 
 PathLike = Union[str, os.PathLike]
 Progress = Callable[[str, int, int], None]
@@ -283,12 +283,13 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     ``--keep-all-stations``."""
     markers, tracker = _input_file(markers, "markers.csv"), _input_file(tracker, "tracker.csv")
     poses = _input_file(poses, "poses.csv")
-    result = Registration(_core.register(markers, tracker, sensor=sensor, set=set,
-                                         optical_noise_m=optical_noise_m,
-                                         tracker_position_noise_m=tracker_position_noise_m,
-                                         tracker_orientation_noise_deg=tracker_orientation_noise_deg,
-                                         min_markers_per_station=min_markers_per_station,
-                                         poses=poses, reject_bad_stations=reject_bad_stations))
+    native = _core.register(markers, tracker, sensor=sensor, set=set, optical_noise_m=optical_noise_m,
+                            tracker_position_noise_m=tracker_position_noise_m,
+                            tracker_orientation_noise_deg=tracker_orientation_noise_deg,
+                            min_markers_per_station=min_markers_per_station,
+                            poses=poses, reject_bad_stations=reject_bad_stations)
+    # A poses.csv label that is not UTF-8 fails as it becomes a Python str: name its file and line.
+    result = not_utf8_inputs(Registration, native, inputs=(poses, markers, tracker))
     for left_out in result.rejected_stations:
         warnings.warn(f"{markers}: station {left_out['station']} left out of the registration: its markers "
                       f"misfit the marker body by {left_out['marker_body_rms_mm']:.2f} mm RMS (a swapped or "
@@ -328,6 +329,7 @@ def pair(tracker: PathLike, reference: PathLike, *, time_offset: float = 0.0,
     its tracker_stream.csv (``tracker``) or reference_stream.csv (``reference``)."""
     tracker = _input_file(tracker, "tracker_stream.csv")
     reference = _input_file(reference, "reference_stream.csv")
-    return Pairing(_core.pair(tracker, reference, time_offset=time_offset,
-                              estimate_time_offset=estimate_time_offset, search_range=search_range,
-                              max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate))
+    native = _core.pair(tracker, reference, time_offset=time_offset,
+                        estimate_time_offset=estimate_time_offset, search_range=search_range,
+                        max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate)
+    return not_utf8_inputs(Pairing, native, inputs=(tracker, reference))
