@@ -341,3 +341,14 @@ def test_a_device_whose_server_goes_away_is_reported_after_saving(fake_recorders
     Dropping.polls = 0
     out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec2", 0.3)
     assert list(out) == ["raw"] and out.lost == {}
+
+
+def test_a_recording_folder_that_cannot_be_made_is_a_value_error(fake_recorders, tmp_path):
+    """out_dir naming an existing file (or a folder below one) raised FileExistsError and
+    NotADirectoryError out of record_streams; a user's input mistake is a ValueError naming it, as
+    `trackcal record -o FILE` says, and the file is left as it was."""
+    (tmp_path / "afile").write_text("keep\n")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
+        with pytest.raises(ValueError, match=r"afile.*: cannot make the recording folder"):
+            record_streams({"raw": "Tracker0_raw@tcp://h:1"}, out, 0.1)
+    assert (tmp_path / "afile").read_text() == "keep\n" and not fake_recorders

@@ -60,7 +60,11 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
                              f"{label or '<label>'}_tracker_stream.csv)")
     out_dir = pathlib.Path(out_dir)
     created = [p for p in (out_dir, *out_dir.parents) if not p.exists()]  # deepest first
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # a file in the way or no permission: the caller's input, as everywhere
+        _remove_empty_folders(created)
+        raise ValueError(f"{out_dir}: cannot make the recording folder ({e.strerror}: {e.filename})") from None
     try:
         return _record(devices, out_dir, duration_s, connect_timeout_s, progress)
     finally:
