@@ -297,3 +297,18 @@ def test_residual_rows_keep_every_extra_column_whatever_its_name(tmp_path):
     out = v.write_residuals(tmp_path / "residuals.csv")
     header = out.read_text().splitlines()[0].split(",")
     assert header.count("extra_x") == 1 and "extra_extra_x" in header
+
+
+def test_a_degree_that_is_not_whole_and_a_negative_worst_count_are_refused(tmp_path):
+    """fit_polynomial(capture, 2.7) fitted a degree-2 polynomial without a word (int() truncated
+    it), and validate(worst_count=-1) listed every station but one as the worst (a [:-1] slice)."""
+    cap = captures.load_poses(hand_capture(tmp_path))
+    for degree in (2.7, "3", True, float("nan")):
+        with pytest.raises(ValueError, match=r"polynomial degree .*: must be a whole number"):
+            validation.polynomial_model(degree)
+    with pytest.raises(ValueError, match=r"polynomial degree 2\.7: must be a whole number"):
+        validation.fit_polynomial(cap, 2.7)
+    assert "degree: 2\n" in validation.polynomial_model(2.0) and "degree: 3\n" in validation.polynomial_model(np.int64(3))
+    with pytest.raises(ValueError, match=r"worst_count -1: must be 0 or more"):
+        validation.validate(cap, None, worst_count=-1, analyse_covariates=False)
+    assert validation.validate(cap, None, worst_count=0, analyse_covariates=False).worst == []

@@ -690,6 +690,8 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
     ``corrected_poses`` = (positions (N, 3), quaternions_xyzw (N, 4)), one per station of the
     capture, are corrected poses obtained elsewhere (a server's corrected stream): they are
     validated as they are, and the calibration, if any, only flags the stations outside its volume."""
+    if worst_count < 0:  # the slice [:-1] listed every station but one as the "worst"
+        raise ValueError(f"worst_count {worst_count}: must be 0 or more")
     data = capture.subset(capture.set != "reg") if "reg" in capture.sets else capture
     if len(data) == 0:
         raise ValueError(f"{capture.path}: no calibration or validation stations")
@@ -828,7 +830,14 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
 # Fits and cross-validation through the fit engine (trackcal.fit, fit/fit_engine.h)
 
 def polynomial_model(degree: int = 3) -> str:
-    """The model file text of the paper's eq. 7 polynomial of the given degree."""
+    """The model file text of the paper's eq. 7 polynomial of the given degree (a whole number: 2.7
+    was truncated to a degree-2 fit without a word)."""
+    try:
+        whole = int(degree) == degree and not isinstance(degree, bool)
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole:
+        raise ValueError(f"polynomial degree {degree!r}: must be a whole number")
     return f"terms:\n  - type: polynomial\n    degree: {int(degree)}\n"
 
 
