@@ -25,7 +25,8 @@ RecordParser::RecordParser(std::array<bool, kMaxStations> stylus, Units units, i
     : stylus_(stylus),
       units_(units),
       num_stations_(std::clamp(num_stations, 1, kMaxStations)),
-      max_record_spread_(MaxRecordSpread(baud)) {}
+      max_record_spread_(MaxRecordSpread(baud)),
+      byte_time_(static_cast<int64_t>(std::llround(10.0 * 1e9 / std::max(baud, 1)))) {}
 
 std::chrono::milliseconds RecordParser::MaxRecordSpread(int baud) {
   // 10 bits per byte on the line (start, 8 data, stop), the longest record 34 bytes.
@@ -106,7 +107,11 @@ RecordParser::Verdict RecordParser::Judge(size_t at, size_t size) const {
 void RecordParser::Feed(std::span<const uint8_t> bytes, TimePoint read_time,
                         std::vector<FastrakReport>* reports) {
   bytes_.insert(bytes_.end(), bytes.begin(), bytes.end());
-  times_.insert(times_.end(), bytes.size(), read_time);
+  for (size_t j = 0; j < bytes.size(); ++j) {
+    const auto after = static_cast<int64_t>(bytes.size() - 1 - j);  // bytes on the line after it
+    times_.push_back(read_time -
+                     std::chrono::duration_cast<TimePoint::duration>(byte_time_ * after));
+  }
   while (head_ < bytes_.size()) {
     const size_t available = bytes_.size() - head_;
     const uint8_t* p = bytes_.data() + head_;
@@ -140,7 +145,12 @@ void RecordParser::Feed(std::span<const uint8_t> bytes, TimePoint read_time,
       ++discarded_bytes_;
       continue;
     }
-    reports->push_back(ConvertRecord(*raw, units_, times_[head_]));
+    TimePoint time = times_[head_];
+    if (last_report_time_ && time <= *last_report_time_ && *last_report_time_ - time < kClockStep) {
+      time = *last_report_time_ + std::chrono::microseconds(1);
+    }
+    last_report_time_ = time;
+    reports->push_back(ConvertRecord(*raw, units_, time));
     ++records_;
     head_ += size;
   }

@@ -73,9 +73,15 @@ class RecordParser {
   // No Fastrak measures beyond 30 ft (9.14 m, long-range transmitter); |position| above this
   // (in metres, after unit conversion) is a mis-framed record.
   static constexpr double kMaxRangeM = 10.0;
+  // A report stamped this much before the previous one is a step of the host clock (NTP), taken as
+  // it is; a smaller step back (a chunk back-dated past the previous read) is moved after it.
+  static constexpr std::chrono::milliseconds kClockStep{1000};
 
-  // Appends bytes read at `read_time` (every byte of the chunk is stamped with it; a record takes
-  // the stamp of its first byte) and appends every complete valid record to *reports.
+  // Appends bytes read at `read_time` and appends every complete valid record to *reports. A record
+  // takes the stamp of its first byte: `read_time` less the line time of the bytes after it in the
+  // chunk (10 bits per byte at the baud rate), so records that piled up and were read together get
+  // their times on the line rather than one shared time. Reports' times strictly increase (by 1 us
+  // at least) unless the clock stepped back more than kClockStep.
   void Feed(std::span<const uint8_t> bytes, TimePoint read_time, std::vector<FastrakReport>* reports);
 
   // Drops buffered bytes (after a flush of the port, a reset, or a port close/reopen: a record is
@@ -108,6 +114,8 @@ class RecordParser {
   Units units_;
   int num_stations_;
   std::chrono::milliseconds max_record_spread_;
+  std::chrono::nanoseconds byte_time_;  // one byte's time on the line
+  std::optional<TimePoint> last_report_time_;
   std::vector<uint8_t> bytes_;
   std::vector<TimePoint> times_;  // read time of each buffered byte
   size_t head_ = 0;

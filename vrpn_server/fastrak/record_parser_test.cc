@@ -116,6 +116,40 @@ TEST(RecordParser, ChunkingDoesNotMatterAndRecordsTakeTheTimeOfTheirFirstByte) {
   }
 }
 
+TEST(RecordParser, RecordsReadTogetherGetTheirTimesOnTheLine) {
+  // Transcript 08's records are 32 bytes (stylus). Three whole records read at once, as after the
+  // server was descheduled: one shared stamp gave a client three reports 0 s apart (a velocity
+  // from them divides by zero) and made a recording's raw and corrected reports ambiguous.
+  const std::string bytes =
+      ReadTranscript("08_fastrak_emulated_udp_lob_stylus_cm", "serial_device_to_host.bin");
+  const int baud = 9600;  // 10 bits per byte: 1041.667 us a byte, 33.333 ms a record
+  RecordParser parser({}, Units::kInches, kMaxStations, baud);
+  std::vector<FastrakReport> reports;
+  const TimePoint t0(std::chrono::seconds(1000));
+  parser.Feed(Bytes(bytes.substr(32, 3 * 32)), t0, &reports);
+  ASSERT_EQ(reports.size(), 3u);
+  const auto us = [&](size_t k) {
+    return std::chrono::duration<double, std::micro>(reports[k].time - t0).count();
+  };
+  // The last record's first byte left the device 31 bytes before the read; each earlier one 32
+  // bytes before the next (1 us of rounding slack per byte time).
+  EXPECT_NEAR(us(2), -31 * 1e7 / baud, 1.0);
+  EXPECT_NEAR(us(1), -63 * 1e7 / baud, 1.0);
+  EXPECT_NEAR(us(0), -95 * 1e7 / baud, 1.0);
+  // A chunk whose back-dated stamps fall before the previous report: still after it, in order.
+  parser.Feed(Bytes(bytes.substr(4 * 32, 2 * 32)), t0, &reports);
+  ASSERT_EQ(reports.size(), 5u);
+  EXPECT_GT(reports[3].time, reports[2].time);
+  EXPECT_GT(reports[4].time, reports[3].time);
+  // A step of the host clock back by more than kClockStep is taken as it is.
+  const TimePoint stepped = t0 - std::chrono::seconds(5);
+  parser.Feed(Bytes(bytes.substr(6 * 32, 32)), stepped, &reports);
+  ASSERT_EQ(reports.size(), 6u);
+  const double stepped_us =
+      std::chrono::duration<double, std::micro>(reports[5].time - stepped).count();
+  EXPECT_NEAR(stepped_us, -31 * 1e7 / baud, 1.0);
+}
+
 TEST(RecordParser, CentimetresAreConvertedCorrectly) {
   // After `u` the device sends centimetres: 10 in = 25.4 cm. The reference multiplies by 0.0254
   // and serves 0.64516 m (transcript 08); we must serve 0.254 m.
@@ -396,7 +430,11 @@ TEST(RecordParser, TheSpreadLimitFollowsTheBaudRate) {
     return reports.size();
   };
   EXPECT_EQ(count(300, std::chrono::milliseconds(1070)), 2u);
-  EXPECT_EQ(count(300, std::chrono::milliseconds(3500)), 1u);  // beyond 3 x 1.13 s
+  // In the second read the record's last byte has the next record's 32 bytes (1.07 s on the line)
+  // after it, so it is stamped 1.07 s before the read: beyond 3 x 1.13 s after the record's first
+  // byte only with a gap above 4.47 s.
+  EXPECT_EQ(count(300, std::chrono::milliseconds(4300)), 2u);
+  EXPECT_EQ(count(300, std::chrono::milliseconds(4600)), 1u);
   EXPECT_EQ(count(115200, std::chrono::milliseconds(1070)), 1u);
   EXPECT_EQ(RecordParser::MaxRecordSpread(9600), RecordParser::kMaxRecordSpread);
   EXPECT_EQ(RecordParser::MaxRecordSpread(300), std::chrono::milliseconds(3400));
