@@ -103,11 +103,27 @@ class YamlReader {
 
   void CheckUnknownKeys(const Frame& f) const {
     if (!f.node.IsMap()) return;
+    std::set<std::string> keys;
     for (const auto& kv : f.node) {
-      const std::string key = kv.first.as<std::string>();
+      const std::string key = KeyOf(kv.first, f.path, &keys);
       if (f.path.empty() && key == "base") continue;
       if (!f.seen.count(key)) Fail(kv.first, Join(f.path, key.c_str()), "unknown key");
     }
+  }
+
+  // The text of a mapping key. A key that is not a plain value, or one already in `keys` (the
+  // mapping's keys so far), is an error: yaml-cpp looks up the first of two equal keys, so a
+  // repeated key (an override appended below the original) would be silently ignored.
+  std::string KeyOf(const YAML::Node& key_node, const std::string& path,
+                    std::set<std::string>* keys) const {
+    if (!key_node.IsScalar()) {
+      Fail(key_node, path.empty() ? "(top level)" : path, "keys must be names");
+    }
+    const std::string key = key_node.Scalar();
+    if (!keys->insert(key).second) {
+      Fail(key_node, Join(path, key.c_str()), "duplicate key (each key may appear once)");
+    }
+    return key;
   }
 
   std::string Scalar(const YAML::Node& node, const std::string& path) const {
@@ -177,8 +193,9 @@ class YamlReader {
   }
   void Parse(const YAML::Node& node, const std::string& path, Rigid3d& out) const {
     if (!node.IsMap()) Fail(node, path, "expected a mapping with rotation_xyzw and translation");
+    std::set<std::string> keys;
     for (const auto& kv : node) {
-      const std::string key = kv.first.as<std::string>();
+      const std::string key = KeyOf(kv.first, path, &keys);
       if (key != "rotation_xyzw" && key != "translation") {
         Fail(kv.first, path + "." + key, "unknown key");
       }

@@ -107,6 +107,22 @@ TEST(ParseScene, ErrorsNameFileLineAndField) {
   EXPECT_NE(ErrorOf("tracker: [\n").find("bad.yaml:"), std::string::npos);
 }
 
+TEST(ParseScene, RepeatedKeysAreErrors) {
+  // yaml-cpp looks up the first of two equal keys: an override appended below the original was
+  // silently ignored (signal_noise stayed 0.1).
+  EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  signal_noise: 0.1\n  signal_noise: 0.2\n"),
+            "bad.yaml:4: tracker.signal_noise: duplicate key (each key may appear once)");
+  EXPECT_EQ(ErrorOf("base: paper\nseed: 1\nname: a\nseed: 2\n"),
+            "bad.yaml:4: seed: duplicate key (each key may appear once)");
+  EXPECT_EQ(ErrorOf("base: paper\nhidden:\n  sensor_offset:\n    receiver_from_body:\n"
+                    "      translation: [0, 0, 0]\n      translation: [0, 0, 1]\n"),
+            "bad.yaml:6: hidden.sensor_offset.receiver_from_body.translation: duplicate key (each "
+            "key may appear once)");
+  // A key that is not a name is a user error naming the file and line (it escaped as yaml-cpp's
+  // "bad conversion", without either).
+  EXPECT_EQ(ErrorOf("base: paper\n? [a, b]\n: 1\n"), "bad.yaml:2: (top level): keys must be names");
+}
+
 TEST(LoadScene, IdealPresetHasNoDistortion) {
   const Scene ideal = LoadScene("ideal");
   const Scene paper = LoadScene("paper");
