@@ -549,6 +549,37 @@ void HiddenEffects::Check() const {
   Require(flip_count >= 0, "hidden.hemisphere_flips.count", "must be >= 0");
 }
 
+namespace {
+void CheckCalibrationGridAvoidsSources(const Scene& scene) {
+  // The field is singular at the transmitter and at every induced dipole: a receiver there has no
+  // report (the tracker's solver returns nothing), so the capture would hold a made-up pose. The
+  // grid node nearest each source, per axis the rounded and clamped index, is checked.
+  std::vector<std::pair<std::string, Eigen::Vector3d>> sources = {
+      {"the transmitter", Eigen::Vector3d::Zero()}};
+  for (const InducedDipole& o : scene.environment.objects) {
+    sources.push_back({"object '" + o.name + "'", o.location_in_transmitter});
+  }
+  if (scene.hidden.ferromagnetic_object) {
+    sources.push_back({"the hidden object '" + scene.hidden.object.name + "'",
+                       scene.hidden.object.location_in_transmitter});
+  }
+  const CalibrationGrid& g = scene.capture.calibration;
+  for (const auto& [what, at] : sources) {
+    Eigen::Vector3d node;
+    for (int i = 0; i < 3; ++i) {
+      const double index =
+          std::clamp(std::round((at(i) - g.origin_in_transmitter(i)) / g.spacing_m), 0.0,
+                     static_cast<double>(g.counts(i) - 1));
+      node(i) = g.origin_in_transmitter(i) + g.spacing_m * index;
+    }
+    Require((node - at).norm() > 1e-3, "capture.calibration.origin_in_transmitter",
+            "the grid node at [" + FormatNumber(node.x()) + ", " + FormatNumber(node.y()) + ", " +
+                FormatNumber(node.z()) + "] is within 1 mm of " + what +
+                ", where the field is singular");
+  }
+}
+}  // namespace
+
 void Scene::Check() const {
   try {
     environment.Check();
@@ -566,6 +597,7 @@ void Scene::Check() const {
   reference.Check();
   capture.Check();
   hidden.Check();
+  CheckCalibrationGridAvoidsSources(*this);
 }
 
 std::vector<std::string> PresetNames() {

@@ -123,6 +123,37 @@ TEST(ParseScene, RepeatedKeysAreErrors) {
   EXPECT_EQ(ErrorOf("base: paper\n? [a, b]\n: 1\n"), "bad.yaml:2: (top level): keys must be names");
 }
 
+TEST(ParseScene, CalibrationGridMustAvoidTheSingularPoints) {
+  // A grid through the transmitter: the station there has no signal, and the capture got an
+  // unconverged identity pose at the origin as its report.
+  EXPECT_EQ(
+      ErrorOf("base: paper\ncapture:\n  calibration:\n    origin_in_transmitter: [0, 0, 0]\n"),
+      "bad.yaml:4: capture.calibration.origin_in_transmitter: the grid node at [0, 0, 0] is "
+      "within 1 mm of the transmitter, where the field is singular");
+  // A node (index (2, 2, 2)) on the paper room's workbench frame at [0.5, 0, 0.35].
+  const std::string on_object = ErrorOf(
+      "base: paper\ncapture:\n  calibration:\n    origin_in_transmitter: [0.2, -0.3, 0.05]\n");
+  EXPECT_EQ(
+      on_object.rfind("bad.yaml:4: capture.calibration.origin_in_transmitter: the grid node at "
+                      "[0.5, 0, 0.35",
+                      0),
+      0u)
+      << on_object;
+  EXPECT_NE(on_object.find("within 1 mm of object 'workbench_frame'"), std::string::npos)
+      << on_object;
+  // Near is fine: the field is finite 2 mm away.
+  EXPECT_EQ(
+      ErrorOf("base: paper\ncapture:\n  calibration:\n    origin_in_transmitter: [0.002, 0, 0]\n"),
+      "");
+  // The hidden object counts once it is enabled.
+  Scene scene = LoadScene("paper");
+  scene.capture.calibration.origin_in_transmitter =
+      scene.hidden.object.location_in_transmitter - Eigen::Vector3d(0.15, 0.3, 0.45);
+  EXPECT_NO_THROW(scene.Check());
+  scene.hidden.Enable("ferromagnetic_object");
+  EXPECT_THROW(scene.Check(), std::invalid_argument);
+}
+
 TEST(LoadScene, IdealPresetHasNoDistortion) {
   const Scene ideal = LoadScene("ideal");
   const Scene paper = LoadScene("paper");

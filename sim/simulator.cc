@@ -125,6 +125,18 @@ TrackerSolverOptions SolverOptions(const Scene& scene) {
   return o;
 }
 
+// A receiver at the transmitter or at an induced dipole has no signal (the field is singular
+// there) and so no report: the tracker's solver would return an unconverged identity pose, which
+// would go into the capture as if measured. `what` names the station or sample.
+void RequireSignal(const TrackerModel& tracker, const Rigid3d& pose, const std::string& what) {
+  if (tracker.Signal(pose).allFinite()) return;
+  const Eigen::Vector3d& p = pose.translation;
+  throw std::invalid_argument("scene: " + what + " at [" + FormatNumber(p.x()) + ", " +
+                              FormatNumber(p.y()) + ", " + FormatNumber(p.z()) +
+                              "] m is at the transmitter or an object, where the field is "
+                              "singular");
+}
+
 Scene Checked(Scene scene) {
   scene.Check();
   return scene;
@@ -282,6 +294,8 @@ SimulatedCapture Simulator::Generate() const {
     truth.transmitter_from_receiver = plan[i].pose;
     truth.transmitter_from_body = plan[i].pose * receiver_from_body_;
     truth.hemisphere_flipped = flipped[i];
+    RequireSignal(tracker_, plan[i].pose,
+                  "capture: station " + std::to_string(id) + " (" + truth.set + ")");
     truth.reported_noise_free = tracker_.Report(plan[i].pose).transmitter_from_receiver;
     Rigid3d reported = tracker_.Report(plan[i].pose, sc.tracker.samples_per_station, &tracker_noise)
                            .transmitter_from_receiver;
@@ -342,8 +356,11 @@ SimulatedCapture Simulator::Generate() const {
       TrackerStreamSample s;
       s.time = t;
       s.sensor = sc.tracker.sensor;
+      const Rigid3d truth = TruePoseAt(t);
+      RequireSignal(tracker_, truth,
+                    "capture.stream: the receiver at t = " + FormatNumber(t) + " s");
       s.transmitter_from_receiver =
-          tracker_.Report(TruePoseAt(t), 1, &stream_tracker).transmitter_from_receiver;
+          tracker_.Report(truth, 1, &stream_tracker).transmitter_from_receiver;
       out.tracker_stream.records.push_back(s);
     }
     Rng stream_reference(sc.seed, "stream_reference_noise");

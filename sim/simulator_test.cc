@@ -280,6 +280,40 @@ TEST(WriteCaptureFolder, RefusesToOverwrite) {
   EXPECT_EQ(entries, 1);
 }
 
+std::string GenerateError(const Scene& scene) {
+  try {
+    Simulator(scene).Generate();
+  } catch (const std::invalid_argument& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST(Simulator, RefusesReceiversWhereTheFieldIsSingular) {
+  // A receiver at the transmitter has no signal; the solver's unconverged identity pose at the
+  // origin went into poses.csv as the station's report.
+  Scene at_transmitter = IdealScene();
+  at_transmitter.capture.registration.count = 2;
+  at_transmitter.capture.registration.min_in_transmitter.setZero();
+  at_transmitter.capture.registration.max_in_transmitter.setZero();
+  EXPECT_EQ(GenerateError(at_transmitter),
+            "scene: capture: station 29 (reg) at [0, 0, 0] m is at the transmitter or an object, "
+            "where the field is singular");
+  // Likewise a validation station at an induced dipole and a stream that sits on the transmitter.
+  Scene at_object = IdealScene();
+  const Eigen::Vector3d object(0.3, 0.2, -0.4);
+  at_object.environment.objects.push_back({"bolt", object, 1e-6});
+  at_object.capture.validation.min_in_transmitter = object;
+  at_object.capture.validation.max_in_transmitter = object;
+  EXPECT_NE(GenerateError(at_object).find("station 19 (valid)"), std::string::npos);
+  Scene still = IdealScene();
+  still.capture.stream.center_in_transmitter.setZero();
+  still.capture.stream.amplitude_m.setZero();
+  EXPECT_EQ(
+      GenerateError(still).rfind("scene: capture.stream: the receiver at t = 0 s at [0, 0, 0]", 0),
+      0u);
+}
+
 // ---- Hidden effects: each changes the data the way its physics says, and the truth records it.
 
 SimulatedCapture WithHidden(const std::string& effect, Scene scene = IdealScene()) {
