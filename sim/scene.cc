@@ -578,6 +578,52 @@ void CheckCalibrationGridAvoidsSources(const Scene& scene) {
                 ", where the field is singular");
   }
 }
+// The image of the transmitter in a plane is its field on the transmitter's side only: behind a
+// conducting plane the field is screened, not the sum of the transmitter and its image. (A plane
+// with the sign of its point flipped, e.g. a floor placed above a z-down transmitter, puts the
+// capture behind it.) Every region a capture visits is a box, so its 8 corners are checked.
+void CheckCaptureOnTheTransmitterSideOfPlanes(const Scene& scene) {
+  const CaptureProtocol& c = scene.capture;
+  struct Region {
+    std::string field;
+    Eigen::Vector3d lo, hi;
+  };
+  std::vector<Region> regions;
+  const CalibrationGrid& g = c.calibration;
+  regions.push_back(
+      {"capture.calibration", g.origin_in_transmitter,
+       g.origin_in_transmitter + g.spacing_m * (g.counts.cast<double>().array() - 1).matrix()});
+  if (c.validation.count > 0) {
+    regions.push_back(
+        {"capture.validation", c.validation.min_in_transmitter, c.validation.max_in_transmitter});
+  }
+  if (c.registration.count > 0) {
+    regions.push_back({"capture.registration", c.registration.min_in_transmitter,
+                       c.registration.max_in_transmitter});
+  }
+  if (c.stream.duration_s > 0) {
+    const Eigen::Vector3d a = c.stream.amplitude_m.cwiseAbs();
+    regions.push_back(
+        {"capture.stream", c.stream.center_in_transmitter - a, c.stream.center_in_transmitter + a});
+  }
+  const auto& planes = scene.environment.planes;
+  for (size_t i = 0; i < planes.size(); ++i) {
+    const Eigen::Vector3d n = planes[i].normal_in_transmitter.normalized();
+    const Eigen::Vector3d& q = planes[i].point_in_transmitter;
+    for (const Region& r : regions) {
+      for (int corner = 0; corner < 8; ++corner) {
+        Eigen::Vector3d x;
+        for (int a = 0; a < 3; ++a) x(a) = (corner >> a) & 1 ? r.hi(a) : r.lo(a);
+        // On the transmitter's side, (x - q).n has the sign of (0 - q).n.
+        Require((x - q).dot(n) * q.dot(n) < 0.0, r.field,
+                "the capture reaches [" + FormatNumber(x.x()) + ", " + FormatNumber(x.y()) + ", " +
+                    FormatNumber(x.z()) + "], on or beyond plane '" + planes[i].name +
+                    "' (environment.planes[" + std::to_string(i) +
+                    "]) from the transmitter, where its image model does not hold");
+      }
+    }
+  }
+}
 }  // namespace
 
 void Scene::Check() const {
@@ -598,6 +644,7 @@ void Scene::Check() const {
   capture.Check();
   hidden.Check();
   CheckCalibrationGridAvoidsSources(*this);
+  CheckCaptureOnTheTransmitterSideOfPlanes(*this);
 }
 
 std::vector<std::string> PresetNames() {

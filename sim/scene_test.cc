@@ -154,6 +154,46 @@ TEST(ParseScene, CalibrationGridMustAvoidTheSingularPoints) {
   EXPECT_THROW(scene.Check(), std::invalid_argument);
 }
 
+TEST(ParseScene, CaptureMustStayOnTheTransmitterSideOfEveryPlane) {
+  // The floor 0.8 m "below" with z taken as up: the plane is at the grid's top layer and the
+  // validation box reaches past it, where a conducting plane screens the field instead of adding
+  // its image. The capture was simulated with the image model there all the same.
+  EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: floor\n"
+                    "      point_in_transmitter: [0, 0, -0.8]\n      attenuation: 0.27\n"),
+            "bad.yaml: capture.calibration: the capture reaches [-0.825, -0.675, -0.8], on or "
+            "beyond plane 'floor' (environment.planes[0]) from the transmitter, where its image "
+            "model does not hold");
+  const std::string validation = ErrorOf(
+      "base: paper\nenvironment:\n  planes:\n    - name: floor\n"
+      "      point_in_transmitter: [0, 0, -0.85]\n      normal_in_transmitter: [0, 0, -2]\n"
+      "      attenuation: 0.27\n");
+  EXPECT_EQ(validation.rfind(
+                "bad.yaml: capture.validation: the capture reaches [-0.9, -0.75, -0.875]", 0),
+            0u)
+      << validation;
+  // The stream's box counts, and the registration box; a box on the plane's far side is named.
+  const std::string stream =
+      ErrorOf("base: paper\ncapture:\n  stream:\n    amplitude_m: [0.6, 2.5, 0.2]\n");
+  EXPECT_EQ(
+      stream.rfind(
+          "bad.yaml:4: capture.stream: the capture reaches [-0.6, -2.5, -0.6000000000000001], "
+          "on or beyond plane 'metal_door'",
+          0),
+      0u)
+      << stream;
+  EXPECT_NE(
+      ErrorOf("base: paper\ncapture:\n  registration:\n    min_in_transmitter: [-0.2, -0.2, 0.7]\n"
+              "    max_in_transmitter: [0.2, 0.2, 0.9]\n")
+          .find("capture.registration: the capture reaches"),
+      std::string::npos);
+  // With no stations in a box, the box is not visited.
+  EXPECT_EQ(
+      ErrorOf(
+          "base: paper\ncapture:\n  registration:\n    count: 0\n"
+          "    min_in_transmitter: [-0.2, -0.2, 0.7]\n    max_in_transmitter: [0.2, 0.2, 0.9]\n"),
+      "");
+}
+
 TEST(LoadScene, IdealPresetHasNoDistortion) {
   const Scene ideal = LoadScene("ideal");
   const Scene paper = LoadScene("paper");
