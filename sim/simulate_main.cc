@@ -24,7 +24,7 @@ void PrintUsage(std::ostream& out) {
   const auto presets = trackcal::sim::PresetNames();
   for (size_t i = 0; i < presets.size(); ++i) out << (i ? ", " : "") << presets[i];
   out << ") or a scene file (docs/scene.md)\n"
-         "  --hidden  physical effects switched on top of the scene (";
+         "  --hidden  physical effects switched on top of the scene, repeatable (";
   const auto& names = trackcal::sim::HiddenEffects::Names();
   for (size_t i = 0; i < names.size(); ++i) out << (i ? ", " : "") << names[i];
   out << ")\n"
@@ -43,12 +43,20 @@ int main(int argc, char** argv) {
         std::cerr << "trackcal-simulate: " << a << " needs a value\n";
         std::exit(2);
       }
+      // A second value would silently replace the first (a second -o, a second --scene).
+      if (!dst->empty()) {
+        std::cerr << "trackcal-simulate: " << a << " given twice\n";
+        std::exit(2);
+      }
       *dst = argv[++i];
     };
     if (a == "--scene") {
       value(&scene_arg);
     } else if (a == "--hidden") {
-      value(&hidden);
+      // Repeatable: --hidden A --hidden B is --hidden A,B.
+      std::string more;
+      value(&more);
+      hidden += (hidden.empty() ? "" : ",") + more;
     } else if (a == "--seed") {
       value(&seed_text);
     } else if (a == "-o" || a == "--output") {

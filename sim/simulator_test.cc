@@ -441,6 +441,24 @@ TEST(TrackcalSimulate, CommandLine) {
           (exe + " --scene paper --seed -1 -o " + (dir / "y").string() + " 2>/dev/null").c_str()),
       0);
   EXPECT_FALSE(std::filesystem::exists(dir / "x"));
+  // --hidden repeats (the second used to replace the first); other options may not.
+  ASSERT_EQ(std::system((exe + " --scene ideal --hidden sensor_offset --hidden clock_offset -o " +
+                         (dir / "twice").string() + " > /dev/null")
+                            .c_str()),
+            0);
+  EXPECT_EQ(nlohmann::json::parse(ReadText(dir / "twice" / "truth.json"))["hidden_effects_enabled"],
+            nlohmann::json({"sensor_offset", "clock_offset"}));
+  EXPECT_NE(std::system((exe + " --scene ideal --seed 1 --seed 2 -o " + (dir / "z").string() +
+                         " 2>/dev/null")
+                            .c_str()),
+            0);
+  EXPECT_NE(std::system((exe + " --scene ideal -o " + (dir / "z1").string() + " -o " +
+                         (dir / "z2").string() + " 2>/dev/null")
+                            .c_str()),
+            0);
+  EXPECT_FALSE(std::filesystem::exists(dir / "z"));
+  EXPECT_FALSE(std::filesystem::exists(dir / "z1"));
+  EXPECT_FALSE(std::filesystem::exists(dir / "z2"));
 }
 
 }  // namespace
