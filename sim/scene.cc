@@ -24,6 +24,9 @@ namespace {
 void Require(bool ok, const std::string& field, const std::string& what) {
   if (!ok) throw std::invalid_argument("scene: " + field + ": " + what);
 }
+// Largest capture a scene may ask for (docs/scene.md).
+constexpr double kMaxStations = 1e6;
+constexpr double kMaxStreamSamples = 1e7;
 bool Positive(double x) { return std::isfinite(x) && x > 0; }
 bool NonNegative(double x) { return std::isfinite(x) && x >= 0; }
 // 1-based line of a node in its document (0 if it has none).
@@ -643,6 +646,24 @@ void Scene::Check() const {
   reference.Check();
   capture.Check();
   hidden.Check();
+  // Sizes the simulator holds in memory and counts with int ids: beyond them a typo (an extra
+  // zero in counts, a duration in ms) ran out of memory after minutes, or looped without end on
+  // an overflowing sample index.
+  const CaptureProtocol& c = capture;
+  const double grid = c.calibration.counts.cast<double>().prod();
+  const double stations = grid + c.validation.count + c.registration.count;
+  // Named by the largest part.
+  const std::string stations_field =
+      grid >= std::max(c.validation.count, c.registration.count) ? "capture.calibration.counts"
+      : c.validation.count >= c.registration.count               ? "capture.validation.count"
+                                                                 : "capture.registration.count";
+  Require(stations <= kMaxStations, stations_field,
+          "the capture would have " + FormatNumber(stations) + " static stations, more than " +
+              std::to_string(static_cast<long>(kMaxStations)));
+  const double rate = std::max(tracker.update_rate_hz, reference.update_rate_hz);
+  Require(c.stream.duration_s * rate <= kMaxStreamSamples, "capture.stream.duration_s",
+          "the streams would have " + FormatNumber(c.stream.duration_s * rate) +
+              " samples, more than " + std::to_string(static_cast<long>(kMaxStreamSamples)));
   CheckCalibrationGridAvoidsSources(*this);
   CheckCaptureOnTheTransmitterSideOfPlanes(*this);
 }

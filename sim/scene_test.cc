@@ -194,6 +194,22 @@ TEST(ParseScene, CaptureMustStayOnTheTransmitterSideOfEveryPlane) {
       "");
 }
 
+TEST(ParseScene, CaptureSizeIsBounded) {
+  // An extra zero in each count (8e9 stations) ran out of memory after minutes; a stream of 1e300 s
+  // looped without end (its int sample index overflowed).
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  calibration:\n    counts: [2000, 2000, 2000]\n"),
+            "bad.yaml:4: capture.calibration.counts: the capture would have 8000000140 static "
+            "stations, more than 1000000");
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  validation:\n    count: 2000000\n"),
+            "bad.yaml:4: capture.validation.count: the capture would have 2000500 static "
+            "stations, more than 1000000");
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  stream:\n    duration_s: 1e300\n"),
+            "bad.yaml:4: capture.stream.duration_s: the streams would have 1.2e+302 samples, more "
+            "than 10000000");
+  // A day of streams at the paper's 120 Hz is not refused.
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  stream:\n    duration_s: 80000\n"), "");
+}
+
 TEST(LoadScene, IdealPresetHasNoDistortion) {
   const Scene ideal = LoadScene("ideal");
   const Scene paper = LoadScene("paper");
