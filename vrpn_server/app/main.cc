@@ -1,6 +1,8 @@
 // trackcal-server: a drop-in for vrpn_server that serves corrected (and, on request, raw) tracker
 // poses. Usage: see kUsage below and docs/vrpn.md.
 
+#include <arpa/inet.h>
+#include <netdb.h>
 #include <poll.h>
 #include <signal.h>
 #include <sys/inotify.h>
@@ -18,7 +20,7 @@
 #include "vrpn_server/app/calibration_corrector.h"
 #include "vrpn_server/app/config_setup.h"
 #include "vrpn_server/config.h"
-
+#include "vrpn_server/net/socket_util.h"
 
 namespace trackcal::vrpn {
 namespace {
@@ -30,7 +32,8 @@ the calibration files attached with trackcal_Calibration lines (docs/vrpn.md, do
 
   -f FILE          device configuration (default: vrpn.cfg)
   port             TCP/UDP port (default 3883)
-  --bind ADDR      listen on this IPv4 address only (default 0.0.0.0; vrpn_server's -NIC ADDR too)
+  --bind ADDR      listen on this IPv4 address, or the host name's, only (default 0.0.0.0;
+                   vrpn_server's -NIC ADDR too)
   --allow CIDR     accept clients from this network only; repeatable (default: everyone)
   --record DIR     record raw and corrected streams of every tracker to DIR as CSV
   --max-clients N  refuse connections beyond N (default 256)
@@ -47,6 +50,28 @@ struct Args {
   std::string config = "vrpn.cfg";
   AppOptions app;
 };
+
+// A --bind / -NIC value as a dotted IPv4 address: vrpn_server also takes the name of one of the
+// host's interfaces (-NIC myhost.lab), which is looked up here, once, at start.
+std::string BindAddress(const std::string& flag, const std::string& text) {
+  if (ParseIpv4(text)) return text;
+  addrinfo hints{};
+  hints.ai_family = AF_INET;
+  hints.ai_socktype = SOCK_STREAM;
+  addrinfo* found = nullptr;
+  const int rc = ::getaddrinfo(text.c_str(), nullptr, &hints, &found);
+  if (rc != 0 || found == nullptr) {
+    throw std::invalid_argument(flag + " '" + text +
+                                "': not an IPv4 address, and the name does not resolve to one (" +
+                                ::gai_strerror(rc) + ")");
+  }
+  char dotted[INET_ADDRSTRLEN] = {};
+  const auto* in = reinterpret_cast<const sockaddr_in*>(found->ai_addr);
+  ::inet_ntop(AF_INET, &in->sin_addr, dotted, sizeof(dotted));
+  ::freeaddrinfo(found);
+  std::cerr << "trackcal-server: " << flag << " " << text << ": listening on " << dotted << "\n";
+  return dotted;
+}
 
 int ParseInt(const std::string& text, const std::string& what, int lo, int hi) {
   int v = 0;
@@ -74,7 +99,7 @@ Args ParseArgs(int argc, char** argv) {
     } else if (arg == "-f") {
       a.config = value(arg);
     } else if (arg == "--bind" || arg == "-NIC") {
-      a.app.server.bind_address = value(arg);
+      a.app.server.bind_address = BindAddress(arg, value(arg));
     } else if (arg == "--allow") {
       a.app.server.allow.push_back(value(arg));
     } else if (arg == "--record") {

@@ -258,6 +258,27 @@ TEST(TrackcalServerMain, OutsideFadeUsesTheConfiguredFadeDistance) {
   server.Wait();
 }
 
+TEST(TrackcalServerMain, BindTakesAHostNameAsVrpnServersNicDoes) {
+  // vrpn_server -NIC takes an interface's name as well as its address; a lab's start script with
+  // `-NIC localhost` (or the host's own name) refused to start.
+  const auto dir = testing::MakeTempDir("server_main_nic");
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 60.0\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), std::to_string(port), "-NIC",
+                  "localhost"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient client("Tracker0@127.0.0.1:" + std::to_string(port));
+  int reports = 0;
+  client.SetPoseCallback([&](const TrackerReport&) { ++reports; });
+  const auto end = Clock::now() + std::chrono::seconds(15);
+  while (Clock::now() < end && reports < 5) client.Poll(0.01);
+  EXPECT_GE(reports, 5);
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+  EXPECT_NE(server.Stderr().find("-NIC localhost: listening on 127.0.0.1"), std::string::npos)
+      << server.Stderr();
+}
+
 TEST(TrackcalServerMain, BadArgumentsAndBusyPortFail) {
   const auto dir = testing::MakeTempDir("server_main_bad");
   std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 10.0\n";
