@@ -960,6 +960,7 @@ FitStart FitStartFromJson(const nlohmann::json& fit, const std::string& source) 
     fail("fit.parameters", "missing");
   }
   FitStart start;
+  start.source = source;
   std::map<std::string, std::string> type_of;  // model-file term name -> type
   for (size_t i = 0; i < fit["terms"].size(); ++i) {
     const nlohmann::json& t = fit["terms"][i];
@@ -1032,11 +1033,29 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     bool from_start = false;
     if (options.start) {
       const auto t = options.start->terms.find({term.type(), term.name()});
-      from_start =
-          term.AdoptPreparedState(t != options.start->terms.end() ? t->second.prepared : nullptr);
+      try {
+        from_start =
+            term.AdoptPreparedState(t != options.start->terms.end() ? t->second.prepared : nullptr);
+      } catch (const std::exception& e) {  // also nlohmann's, whose messages name nothing
+        throw std::invalid_argument(
+            (options.start->source.empty() ? std::string("start") : options.start->source) +
+            ": fit.terms: '" + term.name() + "' prepared: " + e.what());
+      }
     }
     const std::vector<FitStation> inputs = InputsOfTerm(stations, *spec, k);
-    term.Prepare(inputs);
+    try {
+      term.Prepare(inputs);
+    } catch (const std::invalid_argument& e) {
+      // What only the data reveal (a LUT cell too fine for the stations' box) names the entry
+      // of the model file, as the parser's errors do.
+      std::string where;
+      for (const ModelFileTerm& f : spec->file_terms) {
+        if (f.model_term != static_cast<int>(k) || f.where.empty()) continue;
+        where += (where.empty() ? "" : ", ") + f.where;
+      }
+      if (where.empty()) throw;
+      throw std::invalid_argument(where + ": " + e.what());
+    }
     if (k < spec->block_settings.size()) ApplyBlockSettings(spec->block_settings[k], &term);
     std::vector<std::vector<double>> before;  // the file's starts, for FitOptions::start
     if (from_start) {

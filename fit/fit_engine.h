@@ -42,6 +42,7 @@ struct FitStart {
   // A clock offset the fit estimated (its time_offset not fixed); the fit from this start begins
   // there when it estimates one too, its stations still moved relative to their pairing's offset.
   std::optional<double> time_offset;
+  std::string source;  // the document it was read from (FitStartFromJson), for errors
 };
 // The start `fitted` (a spec FitModel left) gives; copies, so `fitted` may change afterwards.
 FitStart TakeFitStart(const ModelSpec& fitted);

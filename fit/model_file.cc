@@ -228,6 +228,12 @@ namespace {
 std::vector<BlockSettings> ParseBlockSettings(const YamlMapReader& parameters) {
   std::vector<BlockSettings> out;
   for (const auto& item : parameters.node()) {
+    // `[a]: {...}`: its Scalar() is "", which read as "parameters: missing required field".
+    if (!item.first.IsScalar()) {
+      throw std::invalid_argument(MarkString(parameters.source(), item.first.Mark()) + ": " +
+                                  parameters.path() +
+                                  ": a block name must be a plain name, not a list or mapping");
+    }
     const std::string block = item.first.Scalar();
     const YamlMapReader r = parameters.GetMap(block);
     BlockSettings s;
@@ -301,7 +307,10 @@ void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* t
   }
 }
 
-ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name) {
+namespace {
+
+// settings_only: `trackcal-fit build`'s settings file (noise, solver, loss; no terms).
+ModelSpec ParseModel(const std::string& text, const std::string& source_name, bool settings_only) {
   YAML::Node root;
   std::vector<YAML::Node> documents;
   try {
@@ -316,8 +325,16 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     throw std::invalid_argument(MarkString(source_name, documents[i].Mark()) +
                                 ": a second YAML document (after ---); the model file holds one");
   }
+  if (settings_only && root.IsNull()) {  // an empty settings file: every default
+    ModelSpec defaults;
+    defaults.source = source_name;
+    return defaults;
+  }
   if (!root.IsMap()) {
-    throw std::invalid_argument(source_name + ": the model file must be a mapping with 'terms'");
+    throw std::invalid_argument(
+        source_name + (settings_only ? ": the settings file must be a mapping "
+                                       "(noise, solver, loss)"
+                                     : ": the model file must be a mapping with 'terms'"));
   }
   const YamlMapReader top(root, source_name, "$");
   ModelSpec spec;
@@ -417,6 +434,13 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
 
   const YAML::Node terms = root["terms"];
   top.MarkRead("terms");
+  if (settings_only) {
+    if (terms.IsDefined()) {
+      top.Fail("terms", "build chooses the terms itself; give only noise, solver and loss");
+    }
+    top.Finish();
+    return spec;
+  }
   if (!terms.IsDefined() || !terms.IsSequence()) {
     top.Fail("terms", terms.IsDefined() ? "expected a list of terms" : "missing required field");
   }
@@ -447,7 +471,8 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
     if (r.Has("parameters")) settings = ParseBlockSettings(r.GetMap("parameters"));
     r.Finish();
     const int line = terms[i].Mark().is_null() ? 0 : terms[i].Mark().line + 1;
-    spec.file_terms.push_back({type, name, line, static_cast<int>(spec.terms.size())});
+    spec.file_terms.push_back({type, name, line, static_cast<int>(spec.terms.size()),
+                               MarkString(source_name, terms[i].Mark()) + ": " + r.path()});
     // Consecutive physical terms form one forward field model: one PhysicalGroupTerm.
     if (auto* group = dynamic_cast<PhysicalGroupTerm*>(term.get())) {
       if (saw_explicit) {
@@ -519,6 +544,35 @@ ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name
   if (spec.terms.empty()) top.Fail("terms", "the model needs at least one correction term");
   top.Finish();
   return spec;
+}
+
+}  // namespace
+
+ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name) {
+  return ParseModel(text, source_name, /*settings_only=*/false);
+}
+
+ModelSpec ParseModelSettingsYaml(const std::string& text, const std::string& source_name) {
+  return ParseModel(text, source_name, /*settings_only=*/true);
+}
+
+std::string ModelSettingsBlockYaml(const std::string& text, const std::string& source_name) {
+  ParseModelSettingsYaml(text, source_name);
+  const std::string probe = "\nterms:\n  - type: polynomial\n    degree: 0\n";
+  try {
+    ParseModelYaml(text + probe, source_name);
+    return text;  // as written, comments and all
+  } catch (const std::invalid_argument&) {
+  }
+  // Flow style (`{noise: ...}`, a JSON file) or document markers (`...`, a trailing `---`): the
+  // terms appended after them were a second document or a syntax error. Written out in block style.
+  YAML::Node root = YAML::LoadAll(text).front();
+  root.SetStyle(YAML::EmitterStyle::Block);
+  YAML::Emitter out;
+  out << root;
+  std::string block = std::string(out.c_str()) + "\n";
+  ParseModelYaml(block + probe, source_name);
+  return block;
 }
 
 Eigen::Vector2d ModelSpec::StationSigmas(const Rigid3d& reported) const {

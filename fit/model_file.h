@@ -129,6 +129,9 @@ struct ModelFileTerm {
   std::string name;  // instance name (unique)
   int line = 0;      // 1-based line of the entry in the file
   int model_term = 0;  // index into ModelSpec::terms of the term that holds it
+  // "FILE:LINE:COLUMN: $.terms[i]": names the entry in errors found when the data are seen
+  // (a LUT cell too fine for the stations' box).
+  std::string where;
 };
 
 struct ModelSpec {
@@ -188,6 +191,14 @@ struct ModelSpec {
 // Parses the model file; throws std::invalid_argument "FILE:LINE:COLUMN: PATH: message".
 ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name);
 ModelSpec ReadModelFile(const std::filesystem::path& path);
+
+// `trackcal-fit build`'s settings file: a model file without `terms` (noise, solver, loss; an
+// empty file gives the defaults). Throws as ParseModelYaml does, and for a `terms` key.
+ModelSpec ParseModelSettingsYaml(const std::string& text, const std::string& source_name);
+// The settings as text that a `terms:` list can be appended to (ChainBuilderOptions::
+// settings_yaml): `text` itself when it is block style, else the same mapping written out in
+// block style (a flow mapping or a JSON file, document markers). Throws as ParseModelSettingsYaml.
+std::string ModelSettingsBlockYaml(const std::string& text, const std::string& source_name);
 
 // Applies a term's block settings (after Prepare()); throws naming the file position of the setting.
 void ApplyBlockSettings(const std::vector<BlockSettings>& settings, ModelTerm* term);

@@ -3,6 +3,7 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include "fit/fit_engine.h"
 #include "fit/terms_polynomial.h"
 
 namespace trackcal::fit {
@@ -171,6 +172,70 @@ TEST(ParseModelYaml, RangeExponentsAreBounded) {
   EXPECT_EQ(ErrorOf("noise: {position_range_exponent: 4, orientation_range_exponent: 3}\n"
                     "terms: [{type: polynomial}]\n"),
             "");
+}
+
+// Both were accepted and the node counts used: `cell_size_mm: 50` was dropped without a word.
+TEST(ParseModelYaml, LutTakesNodesOrCellSizeNotBoth) {
+  EXPECT_THAT(ErrorOf("terms:\n  - type: lut\n    cell_size_mm: 50\n    nodes: [3, 3, 3]\n"),
+              HasSubstr("model.yaml:4:12: $.terms[0].nodes: give nodes or cell_size_mm, not both"));
+  EXPECT_EQ(ErrorOf("terms:\n  - type: lut\n    nodes: [3, 3, 3]\n"), "");
+  EXPECT_EQ(ErrorOf("terms:\n  - type: lut\n    cell_size_mm: 50\n"), "");
+}
+
+// A list as a block name read as "$.terms[0].parameters: missing required field".
+TEST(ParseModelYaml, AListAsABlockNameIsNamed) {
+  EXPECT_THAT(
+      ErrorOf("terms:\n  - type: polynomial\n    parameters:\n      [a]: {fixed: true}\n"),
+      HasSubstr("model.yaml:4:7: $.terms[0].parameters: a block name must be a plain name"));
+}
+
+// Errors that only the stations reveal name the model file's entry too: a LUT cell too fine for
+// the stations' box said "lut: cell_size_mm 0.001 over the stations' box ..." with no file or line.
+TEST(ParseModelYaml, ErrorsFoundWithTheDataNameTheTerm) {
+  ModelSpec spec = ParseModelYaml(
+      "terms:\n  - type: polynomial\n    degree: 1\n  - type: lut\n    cell_size_mm: 0.001\n",
+      "m.yaml");
+  std::vector<FitStation> stations;
+  for (int i = 0; i < 8; ++i) {
+    FitStation s;
+    s.reported.translation = Eigen::Vector3d(0.1 * (i % 2), 0.1 * (i / 2 % 2), 0.1 * (i / 4));
+    s.reference = s.reported;
+    s.station = i + 1;
+    stations.push_back(s);
+  }
+  try {
+    FitModel(stations, &spec);
+    FAIL() << "expected an error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_THAT(e.what(), HasSubstr("m.yaml:4:5: $.terms[1]: lut: cell_size_mm 0.001"));
+  }
+}
+
+// trackcal-fit build's settings: the builder appends `terms:` to their text, which a flow mapping
+// (or JSON) or a document end marker turned into "a second YAML document".
+TEST(ParseModelSettingsYaml, AcceptsAnyStyleAndRefusesTerms) {
+  for (const std::string text :
+       {"noise: {position_mm: 0.5}\n", "{noise: {position_mm: 0.5}}\n",
+        "{\"noise\": {\"position_mm\": 0.5}}", "noise: {position_mm: 0.5}\n...\n",
+        "---\nnoise: {position_mm: 0.5}\n---\n"}) {
+    EXPECT_DOUBLE_EQ(ParseModelSettingsYaml(text, "s.yaml").position_sigma, 0.5e-3) << text;
+    const std::string block = ModelSettingsBlockYaml(text, "s.yaml");
+    const ModelSpec spec = ParseModelYaml(block + "terms: [{type: polynomial}]\n", "s.yaml");
+    EXPECT_DOUBLE_EQ(spec.position_sigma, 0.5e-3) << text;
+  }
+  // Block style is kept as written (comments too).
+  EXPECT_EQ(ModelSettingsBlockYaml("# mine\nsolver: {covariance: false}\n", "s.yaml"),
+            "# mine\nsolver: {covariance: false}\n");
+  EXPECT_EQ(ParseModelSettingsYaml("", "s.yaml").position_sigma, ModelSpec().position_sigma);
+  try {
+    ParseModelSettingsYaml("noise: {position_mm: 1}\nterms: [{type: polynomial}]\n", "s.yaml");
+    FAIL() << "expected an error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_THAT(e.what(), HasSubstr("s.yaml:2:8: $.terms: build chooses the terms itself"));
+  }
+  EXPECT_THROW(ParseModelSettingsYaml("{noise: {position_mm: 1}, foo: 1}", "s.yaml"),
+               std::invalid_argument);
+  EXPECT_THROW(ParseModelSettingsYaml("- 1\n", "s.yaml"), std::invalid_argument);
 }
 
 TEST(ApplyBlockSettings, RejectsUnknownBlockAndWrongSizes) {

@@ -42,6 +42,10 @@ std::unique_ptr<ModelTerm> LutTerm::FromYaml(const YamlMapReader& reader) {
   LutTermOptions options;
   if (reader.Has("cell_size_mm")) options.cell_size = reader.GetDouble("cell_size_mm") * 1e-3;
   if (reader.Has("nodes")) {
+    // Both given: the node counts were used and the cell size dropped without a word.
+    if (reader.node()["cell_size_mm"].IsDefined()) {
+      reader.Fail("nodes", "give nodes or cell_size_mm, not both");
+    }
     const auto n = reader.GetDoubleList("nodes");
     if (n.size() != 3) reader.Fail("nodes", "expected 3 node counts [nx, ny, nz]");
     std::array<int, 3> counts;
@@ -81,7 +85,22 @@ bool LutTerm::AdoptPreparedState(const nlohmann::json& state) {
   if (state.is_null()) return true;
   if (!state.is_object() || !state.contains("axes")) return false;
   std::array<std::vector<double>, 3> axes;
-  for (size_t k = 0; k < 3; ++k) axes[k] = state.at("axes").at(k).get<std::vector<double>>();
+  // A start document edited by hand: named here, not by the grid as "LUT axis x: ...".
+  const nlohmann::json& a = state.at("axes");
+  for (size_t k = 0; k < 3; ++k) {
+    bool ok = a.is_array() && a.size() == 3 && a[k].is_array() && a[k].size() >= 2 &&
+              a[k].size() <= static_cast<size_t>(kMaxLutNodesPerAxis);
+    for (size_t i = 0; ok && i < a[k].size(); ++i) {
+      ok = a[k][i].is_number() && std::isfinite(a[k][i].get<double>());
+      if (ok) axes[k].push_back(a[k][i].get<double>());
+      ok = ok && (i == 0 || axes[k][i] > axes[k][i - 1]);
+    }
+    if (!ok) {
+      throw std::invalid_argument("lut: prepared state: axes: expected 3 lists of 2 .. " +
+                                  std::to_string(kMaxLutNodesPerAxis) +
+                                  " strictly increasing finite numbers");
+    }
+  }
   if (options_.nodes) {
     for (size_t k = 0; k < 3; ++k) {
       if (static_cast<int>(axes[k].size()) != (*options_.nodes)[k]) return false;

@@ -328,15 +328,35 @@ bool PolynomialTerm::AdoptPreparedState(const nlohmann::json& state) {
   adopted_ridge_.reset();  // an earlier start's weight does not outlive it
   if (state.is_null()) return true;
   if (!state.is_object() || state.value("degree", -1) != options_.degree) return false;
-  for (int k = 0; k < 3; ++k) {
-    options_.input_offset[k] = state.at("input_offset").at(static_cast<size_t>(k)).get<double>();
-    options_.input_scale[k] = state.at("input_scale").at(static_cast<size_t>(k)).get<double>();
-  }
+  // A start document edited by hand (or not a fit's): a zero scale crashed the fit (SIGSEGV).
+  // lower: the values must be at least it (strictly above it when `strict`).
+  auto numbers = [&](const char* key, size_t n, double lower, bool strict) {
+    const nlohmann::json v = state.contains(key) ? state.at(key) : nlohmann::json();
+    Eigen::VectorXd out(static_cast<Eigen::Index>(n));
+    bool ok = v.is_array() && v.size() == n;
+    for (size_t k = 0; ok && k < n; ++k) {
+      const double x = v[k].is_number() ? v[k].get<double>() : std::nan("");
+      ok = std::isfinite(x) && (strict ? x > lower : x >= lower);
+      out[static_cast<Eigen::Index>(k)] = x;
+    }
+    if (!ok) {
+      throw std::invalid_argument(std::string("polynomial: prepared state: ") + key +
+                                  ": expected " + std::to_string(n) + " finite numbers" +
+                                  (strict              ? " > 0"
+                                   : lower > -HUGE_VAL ? " >= 0"
+                                                       : ""));
+    }
+    return out;
+  };
+  const Eigen::VectorXd offset = numbers("input_offset", 3, -HUGE_VAL, false);
+  const Eigen::VectorXd scale = numbers("input_scale", 3, 0.0, true);
+  options_.input_offset = offset;
+  options_.input_scale = scale;
   // A fixed weight stays the file's; `ridge: auto` takes the weight the other fit chose, if the
   // state gives it (without it the weight is chosen again, at the start).
   if (options_.ridge_auto && state.contains("ridge_used")) {
-    const nlohmann::json& r = state.at("ridge_used");
-    adopted_ridge_ = Eigen::Vector2d(r.at(0).get<double>(), r.at(1).get<double>());
+    const Eigen::VectorXd r = numbers("ridge_used", 2, 0.0, false);
+    adopted_ridge_ = Eigen::Vector2d(r[0], r[1]);
   }
   return true;
 }
