@@ -107,7 +107,16 @@ Args ParseArgs(int argc, char** argv, const std::vector<std::string>& value_keys
       args.flags[a] = true;
     } else if (std::find(value_keys.begin(), value_keys.end(), a) != value_keys.end()) {
       if (i + 1 >= argc) throw UsageError(a + " needs a value");
-      args.values[a] = argv[++i];
+      const std::string value = argv[++i];
+      // `-o --json` (the file name forgotten) would write the calibration to a file named
+      // "--json"; an empty value fails only when the output is written, after the whole fit.
+      if (value.empty() ||
+          std::find(flag_keys.begin(), flag_keys.end(), value) != flag_keys.end() ||
+          std::find(value_keys.begin(), value_keys.end(), value) != value_keys.end()) {
+        throw UsageError(a + " needs a value, got '" + value + "'");
+      }
+      // The last of two was taken silently: `-o a.json ... -o b.json` wrote b.json only.
+      if (!args.values.emplace(a, value).second) throw UsageError(a + " given twice");
     } else {
       throw UsageError("unknown argument '" + a + "'");
     }
@@ -125,6 +134,15 @@ double ParseNumber(const std::string& option, const std::string& text) {
   }
   if (used != text.size() || !std::isfinite(v)) throw UsageError(option + ": not a number: " + text);
   return v;
+}
+
+// A whole number option (--folds, --threads, ...): "2.5" was truncated to 2 without a word.
+int ParseInteger(const std::string& option, const std::string& text) {
+  const double v = ParseNumber(option, text);
+  if (v != std::floor(v) || std::abs(v) > 1e9) {
+    throw UsageError(option + ": expected a whole number, got " + text);
+  }
+  return static_cast<int>(v);
 }
 
 // Refuses to write over an input file.
@@ -195,7 +213,7 @@ int RunFit(int argc, char** argv) {
   const fs::path data = args.Get("--data");
   const fs::path model_path = args.Get("--model");
   const fs::path output = args.Get("-o");
-  const int folds = static_cast<int>(ParseNumber("--folds", args.GetOr("--folds", "5")));
+  const int folds = ParseInteger("--folds", args.GetOr("--folds", "5"));
   if (folds < 2) throw UsageError("--folds must be at least 2");
   const bool json = args.Flag("--json");
   const bool quiet = args.Flag("--quiet");
@@ -294,37 +312,22 @@ int RunBuild(int argc, char** argv) {
   const fs::path data = args.Get("--data");
   const fs::path settings_path = args.Get("--model");
   const fs::path output = args.Get("-o");
-  const int folds = static_cast<int>(ParseNumber("--folds", args.GetOr("--folds", "5")));
+  const int folds = ParseInteger("--folds", args.GetOr("--folds", "5"));
   if (folds < 2) throw UsageError("--folds must be at least 2");
   ChainBuilderOptions builder;
-  builder.max_sources = static_cast<int>(
-      ParseNumber("--sources", args.GetOr("--sources", std::to_string(builder.max_sources))));
+  builder.max_sources =
+      ParseInteger("--sources", args.GetOr("--sources", std::to_string(builder.max_sources)));
   if (builder.max_sources < 0) throw UsageError("--sources must be >= 0");
   const bool json = args.Flag("--json");
   const bool quiet = args.Flag("--quiet");
 
-  builder.settings_yaml = ReadFileToString(settings_path);
-  {
-    YAML::Node root;
-    try {
-      root = YAML::Load(builder.settings_yaml);
-    } catch (const YAML::Exception& e) {
-      throw std::invalid_argument(settings_path.string() + ":" + std::to_string(e.mark.line + 1) +
-                                  ":" + std::to_string(e.mark.column + 1) +
-                                  ": YAML syntax error: " + e.msg);
-    }
-    for (auto it = root.begin(); root.IsMap() && it != root.end(); ++it) {
-      if (!it->first.IsScalar() || it->first.Scalar() != "terms") continue;
-      throw std::invalid_argument(settings_path.string() + ":" +
-                                  std::to_string(it->first.Mark().line + 1) +
-                                  ": terms: build chooses the terms itself; give only noise, "
-                                  "solver and loss");
-    }
-  }
-  // The settings checked as a model file (errors name the file's own lines).
-  const ModelSpec settings = ParseModelYaml(
-      builder.settings_yaml + "\nterms:\n  - type: polynomial\n    degree: 0\n",
-      settings_path.string());
+  // The settings checked as a model file without terms (errors name the file's own lines), and
+  // kept as text the builder appends its terms to: a flow-style or JSON file
+  // (`{noise: {position_mm: 1}}`) was refused as "a second YAML document" at a line it does not
+  // have.
+  const std::string settings_text = ReadFileToString(settings_path);
+  const ModelSpec settings = ParseModelSettingsYaml(settings_text, settings_path.string());
+  builder.settings_yaml = ModelSettingsBlockYaml(settings_text, settings_path.string());
   LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, settings);
   PrintPairingWarning(data, loaded);
   std::vector<fs::path> inputs = {settings_path};
@@ -424,14 +427,14 @@ int RunDiagnose(int argc, char** argv) {
   const fs::path data = args.Get("--data");
   const fs::path model_path = args.Get("--model");
   CandidateOptions options;
-  options.folds = static_cast<int>(ParseNumber("--folds", args.GetOr("--folds", "5")));
+  options.folds = ParseInteger("--folds", args.GetOr("--folds", "5"));
   if (options.folds < 2) throw UsageError("--folds must be at least 2");
   options.cross_validate_top =
-      static_cast<int>(ParseNumber("--cross-validate-top", args.GetOr("--cross-validate-top", "3")));
+      ParseInteger("--cross-validate-top", args.GetOr("--cross-validate-top", "3"));
   if (options.cross_validate_top < 0) throw UsageError("--cross-validate-top must be >= 0");
   // Every fold fitted from scratch instead of refitted from the full fit (docs/diagnose.md, Speed).
   options.exact_cv = args.Flag("--exact-cv");
-  options.num_threads = static_cast<int>(ParseNumber("--threads", args.GetOr("--threads", "0")));
+  options.num_threads = ParseInteger("--threads", args.GetOr("--threads", "0"));
   if (options.num_threads < 0) throw UsageError("--threads must be >= 0 (0: all cores)");
   if (args.values.count("--effects")) {
     std::stringstream list(args.Get("--effects"));

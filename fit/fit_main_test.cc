@@ -144,6 +144,32 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
                                    ": tracker stream has fewer than 2 samples"));
 }
 
+// An option given twice took the last value without a word (`-o a.json -o b.json` wrote b.json),
+// `-o --json` wrote the calibration to a file named "--json", and `--folds 2.5` ran 2 folds.
+TEST_F(FitCliTest, AmbiguousOptionsAreUsageErrors) {
+  const fs::path err = dir_ / "err.txt";
+  const std::string fit = fit_ + " fit --data " + (dir_ / "cap").string() + " --model " +
+                          (dir_ / "model.yaml").string() + " --quiet ";
+  const fs::path a = dir_ / "a.json", b = dir_ / "b.json";
+  EXPECT_EQ(RunCommand(fit + "-o " + a.string() + " -o " + b.string() + " 2> " + err.string()), 2);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("-o given twice"));
+  EXPECT_FALSE(fs::exists(a));
+  EXPECT_FALSE(fs::exists(b));
+  EXPECT_EQ(RunCommand(fit + "--data " + (dir_ / "cap").string() + " -o " + a.string() + " 2> " +
+                       err.string()),
+            2);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("--data given twice"));
+  EXPECT_EQ(RunCommand("cd " + dir_.string() + " && " + fit + "-o --json 2> " + err.string()), 2);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("-o needs a value, got '--json'"));
+  EXPECT_FALSE(fs::exists(dir_ / "--json"));
+  EXPECT_EQ(RunCommand(fit + "-o '' 2> " + err.string()), 2);
+  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("-o needs a value, got ''"));
+  EXPECT_EQ(RunCommand(fit + "-o " + a.string() + " --folds 2.5 2> " + err.string()), 2);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("--folds: expected a whole number, got 2.5"));
+  EXPECT_FALSE(fs::exists(a));
+}
+
 // --start: a fit of a model with an added term starts at a previous fit's optimum (its --json
 // document), so its first cost is that fit's final cost; a file that is not one is refused by name.
 TEST_F(FitCliTest, StartFromAPreviousFit) {
@@ -178,6 +204,44 @@ TEST_F(FitCliTest, StartFromAPreviousFit) {
             1);
   EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("not_a_fit.json: fit.terms: missing"));
   EXPECT_FALSE(fs::exists(dir_ / "x.json"));
+}
+
+// A start document whose prepared state is not a fit's: a polynomial's zero input_scale crashed
+// the fit (SIGSEGV, exit 139), a LUT's unordered axes were blamed on "LUT axis x" without a file.
+TEST_F(FitCliTest, ABrokenStartIsNamedNotACrash) {
+  const fs::path err = dir_ / "err.txt";
+  const std::string data = " --data " + (dir_ / "cap").string();
+  std::ofstream(dir_ / "lut.yaml") << "terms:\n  - {type: lut, cell_size_mm: 500}\n";
+  for (const std::string model : {"model", "lut"}) {
+    const fs::path yaml = dir_ / (model + ".yaml");
+    ASSERT_EQ(RunCommand(fit_ + " fit" + data + " --model " + yaml.string() + " -o " +
+                         (dir_ / (model + ".json")).string() + " --json --quiet > " +
+                         (dir_ / "start.out").string()),
+              0);
+    auto doc = nlohmann::json::parse(ReadFileToString(dir_ / "start.out"));
+    nlohmann::json& prepared = doc["fit"]["terms"][0]["prepared"];
+    if (model == "model") {
+      prepared["input_scale"] = {0.0, 0.0, 0.0};
+    } else {
+      prepared["axes"][0] = {1.0, 0.0};
+    }
+    std::ofstream(dir_ / "broken.json") << doc.dump();
+    EXPECT_EQ(RunCommand(fit_ + " fit" + data + " --model " + yaml.string() + " -o " +
+                         (dir_ / "x.json").string() + " --start " +
+                         (dir_ / "broken.json").string() + " --quiet 2> " + err.string()),
+              1)
+        << model;
+    EXPECT_THAT(
+        ReadFileToString(err),
+        ::testing::HasSubstr("broken.json: fit.terms: '" +
+                             std::string(model == "model" ? "polynomial" : "lut") + "' prepared: " +
+                             (model == "model"
+                                  ? "polynomial: prepared state: input_scale: expected 3 finite "
+                                    "numbers > 0"
+                                  : "lut: prepared state: axes: expected 3 lists")))
+        << model;
+    EXPECT_FALSE(fs::exists(dir_ / "x.json"));
+  }
 }
 
 TEST_F(FitCliTest, HelpAfterACommandPrintsTheUsageAndSucceeds) {
@@ -269,7 +333,8 @@ TEST_F(FitCliTest, BuildWritesTheChainAndTheModel) {
                        (dir_ / "with_terms.yaml").string() + " -o " + out.string() + " 2> " +
                        err.string()),
             1);
-  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("with_terms.yaml:1: terms:"));
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("with_terms.yaml:2:3: $.terms: build chooses the terms itself"));
   // --model-out never replaces a file (a hand-written model given by mistake would be lost).
   const std::string built_text = ReadFileToString(model);
   EXPECT_EQ(RunCommand(fit_ + " build --data " + (dir_ / "cap").string() + " --model " +
@@ -295,6 +360,26 @@ TEST_F(FitCliTest, BuildWritesTheChainAndTheModel) {
             1);
   EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("broken.yaml:"));
   EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("YAML syntax error"));
+}
+
+// A settings file in flow style or JSON was refused as "a second YAML document (after ---)" at a
+// line the file does not have: the builder appended its `terms:` to the text.
+TEST_F(FitCliTest, BuildTakesJsonSettings) {
+  std::ofstream(dir_ / "settings.json")
+      << "{\"noise\": {\"position_mm\": 0.25, \"orientation_deg\": 0.04}, "
+         "\"solver\": {\"covariance\": false}}\n";
+  const fs::path model = dir_ / "built.yaml", err = dir_ / "err.txt";
+  ASSERT_EQ(RunCommand(fit_ + " build --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "settings.json").string() + " --sources 0 -o " +
+                       (dir_ / "calib.json").string() + " --model-out " + model.string() +
+                       " --quiet > /dev/null 2> " + err.string()),
+            0)
+      << ReadFileToString(err);
+  EXPECT_THAT(ReadFileToString(model), ::testing::HasSubstr("position_mm: 0.25"));
+  EXPECT_EQ(
+      RunCommand(fit_ + " fit --data " + (dir_ / "cap").string() + " --model " + model.string() +
+                 " -o " + (dir_ / "again.json").string() + " --quiet > /dev/null"),
+      0);
 }
 
 TEST_F(FitCliTest, PairJson) {
