@@ -5,7 +5,7 @@
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json] [--quiet]
 //                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
-//                         [--allow-unidentifiable] [--keep-all-stations]
+//                         [--allow-unidentifiable] [--keep-all-stations] [--sensor N]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
 //                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json] [--quiet]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
@@ -73,7 +73,7 @@ void PrintUsage(std::ostream& out) {
          "[--quiet]\n"
          "                        [--optical-noise-mm S] [--tracker-noise-mm S] "
          "[--tracker-noise-deg S]\n"
-         "                        [--allow-unidentifiable] [--keep-all-stations]\n"
+         "                        [--allow-unidentifiable] [--keep-all-stations] [--sensor N]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
          "                    [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N] "
          "-o poses.csv [--json]\n"
@@ -151,6 +151,16 @@ std::string SetOption(const Args& args) {
   const std::string set = args.GetOr("--set", "calib");
   if (!IsKnownSet(set)) throw UsageError("--set '" + set + "' is not one of calib, valid, reg");
   return set;
+}
+
+// --sensor N (a receiver number), or `absent` when not given.
+int SensorOption(const Args& args, int absent) {
+  if (!args.values.count("--sensor")) return absent;
+  const double sensor = ParseNumber("--sensor", args.Get("--sensor"));
+  if (!(sensor >= 1 && sensor <= 64 && sensor == std::floor(sensor))) {
+    throw UsageError("--sensor must be a receiver number (1, 2, ...)");
+  }
+  return static_cast<int>(sensor);
 }
 
 void CheckOutputIsNotInput(const fs::path& output, const std::vector<fs::path>& inputs) {
@@ -500,13 +510,7 @@ int RunPair(int argc, char** argv) {
   options.time_offset = ParseNumber("--time-offset", args.GetOr("--time-offset", "0"));
   options.estimate_time_offset = args.Flag("--estimate-time-offset");
   options.set = SetOption(args);
-  if (args.values.count("--sensor")) {
-    const double sensor = ParseNumber("--sensor", args.Get("--sensor"));
-    if (!(sensor >= 1 && sensor <= 64 && sensor == std::floor(sensor))) {
-      throw UsageError("--sensor must be a receiver number (1, 2, ...)");
-    }
-    options.sensor = static_cast<int>(sensor);
-  }
+  options.sensor = SensorOption(args, 0);
   const TrackerStream tracker = ReadTrackerStream(tracker_path);
   const ReferenceStream reference = ReadReferenceStream(reference_path);
   const StreamPairingResult result =
@@ -546,7 +550,7 @@ int RunRegister(int argc, char** argv) {
   const Args args =
       ParseArgs(argc, argv,
                 {"--markers", "--tracker", "-o", "--set", "--poses", "--model",
-                 "--optical-noise-mm", "--tracker-noise-mm", "--tracker-noise-deg"},
+                 "--optical-noise-mm", "--tracker-noise-mm", "--tracker-noise-deg", "--sensor"},
                 {"--json", "--quiet", "--allow-unidentifiable", "--keep-all-stations"});
   // Noise of the averaged readings (fit/registration.h); they set the weights and the covariance.
   RegistrationOptions registration_options;
@@ -576,8 +580,11 @@ int RunRegister(int argc, char** argv) {
   if (labelled) inputs.push_back(args.Get("--poses"));
   if (refine) inputs.push_back(args.Get("--model"));
   CheckOutputIsNotInput(output, inputs);
+  // The receiver that carries the markers (tracker.csv's sensor column); a capture whose marker
+  // body is on receiver 2 could not be registered before this option (always sensor 1).
+  const int sensor = SensorOption(args, 1);
   const std::vector<RegistrationStation> stations =
-      ReadRegistrationStations(markers_path, tracker_path);
+      ReadRegistrationStations(markers_path, tracker_path, sensor);
 
   // Set and time of each station: from --poses, else every station registers and gets --set.
   std::map<int, std::string> set_of;
@@ -667,6 +674,7 @@ int RunRegister(int argc, char** argv) {
   for (size_t i = 0; i < stations.size(); ++i) {
     PoseRecordOptions record_options;
     record_options.set = labelled ? set_of[stations[i].station] : default_set;
+    record_options.sensor = sensor;
     const PoseRecords one = MakePoseRecords({stations[i]}, {extracted[i]}, time_of, record_options);
     poses.records.insert(poses.records.end(), one.capture.records.begin(), one.capture.records.end());
     left_out.insert(left_out.end(), one.left_out.begin(), one.left_out.end());

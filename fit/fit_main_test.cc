@@ -500,6 +500,32 @@ TEST_F(FitCliTest, RegisterRefusesToWritePosesOfAnUnidentifiableRegistration) {
   EXPECT_THAT(ReadFileToString(dir_ / "err.txt"), ::testing::HasSubstr("not identifiable"));
 }
 
+// The marker body on receiver 2 (a scene with tracker.sensor: 2 writes such a capture): register
+// read sensor 1 only, had no option to choose, and failed with "station 1 (marker 2) has no row in
+// tracker.csv for sensor 1"; its poses.csv rows were always written as sensor 1.
+TEST_F(FitCliTest, RegisterPairsTheReceiverThatCarriesTheMarkers) {
+  TrackerCapture tracker = ReadTracker(dir_ / "cap" / "tracker.csv");
+  for (TrackerRecord& t : tracker.records) t.sensor = 2;
+  WriteTracker(dir_ / "tracker2.csv", tracker);
+  PoseCapture labels = ReadPoses(dir_ / "cap" / "poses.csv");
+  for (PoseRecord& r : labels.records) r.sensor = 2;
+  WritePoses(dir_ / "poses2.csv", labels);
+  const std::string base = fit_ + " register --markers " + (dir_ / "cap" / "markers.csv").string() +
+                           " --tracker " + (dir_ / "tracker2.csv").string() + " --poses " +
+                           (dir_ / "poses2.csv").string();
+  const fs::path err = dir_ / "err.txt";
+  EXPECT_EQ(RunCommand(base + " -o " + (dir_ / "x.csv").string() + " 2> " + err.string()), 1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("for sensor 1 (it has rows for sensor 2 there"));
+  EXPECT_FALSE(fs::exists(dir_ / "x.csv"));
+  ASSERT_EQ(RunCommand(base + " --sensor 2 -o " + (dir_ / "reg2.csv").string() + " > /dev/null"),
+            0);
+  const PoseCapture registered = ReadPoses(dir_ / "reg2.csv");
+  EXPECT_EQ(registered.records.size(), labels.records.size());
+  for (const PoseRecord& r : registered.records) EXPECT_EQ(r.sensor, 2);
+  EXPECT_EQ(RunCommand(base + " --sensor 0 -o " + (dir_ / "y.csv").string() + " 2> /dev/null"), 2);
+}
+
 TEST_F(FitCliTest, RegisterWithPosesLabelsAndFlagsTheDistortion) {
   const fs::path json = dir_ / "reg.json";
   const std::string base = fit_ + " register --markers " + (dir_ / "cap" / "markers.csv").string() +

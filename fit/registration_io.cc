@@ -8,12 +8,30 @@
 
 namespace trackcal::fit {
 
+namespace {
+
+// " (it has rows for sensor 2, ...)" when the tracker has the station for other receivers: the
+// markers are on another receiver than the one asked for.
+std::string OtherSensors(const std::map<int, std::set<int>>& sensors_at, int station) {
+  const auto it = sensors_at.find(station);
+  if (it == sensors_at.end()) return "";
+  std::string list;
+  for (const int s : it->second) list += (list.empty() ? "" : ", ") + std::to_string(s);
+  return " (it has rows for sensor " + list +
+         " there: choose the receiver that carries the markers, trackcal-fit register --sensor N, "
+         "Python trackcal.register(..., sensor=N))";
+}
+
+}  // namespace
+
 std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& markers,
                                                          const TrackerCapture& tracker, int sensor,
                                                          const std::string& markers_name,
                                                          const std::string& tracker_name) {
   std::map<int, RegistrationStation> stations;
+  std::map<int, std::set<int>> sensors_at;  // station -> every sensor with a row, for messages
   for (const TrackerRecord& t : tracker.records) {
+    sensors_at[t.station].insert(t.sensor);
     if (t.sensor != sensor) continue;
     RegistrationStation s;
     s.station = t.station;
@@ -31,7 +49,8 @@ std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& ma
       throw std::invalid_argument(markers_name + (m.line > 0 ? ":" + std::to_string(m.line) : "") +
                                   ": column station: station " + std::to_string(m.station) +
                                   " (marker " + std::to_string(m.marker) + ") has no row in " +
-                                  tracker_name + " for sensor " + std::to_string(sensor));
+                                  tracker_name + " for sensor " + std::to_string(sensor) +
+                                  OtherSensors(sensors_at, m.station));
     }
     if (!seen.emplace(m.station, m.marker).second) {
       throw std::invalid_argument(markers_name + (m.line > 0 ? ":" + std::to_string(m.line) : "") +

@@ -136,6 +136,16 @@ TEST(RegistrationIo, PairingErrorsNameFileStationAndField) {
                  "markers.csv: column marker: marker " + std::to_string(markers.records[0].marker) +
                      " appears twice at station 1");
 
+  // The markers on receiver 2: asking for sensor 1 (trackcal-fit register could ask for nothing
+  // else) said only "no row for sensor 1"; the message now names the sensors there are and how to
+  // choose one.
+  TrackerCapture on_two = tracker;
+  for (TrackerRecord& t : on_two.records) t.sensor = 2;
+  expect_message(markers, on_two,
+                 "for sensor 1 (it has rows for sensor 2 there: choose the receiver that carries "
+                 "the markers, trackcal-fit register --sensor N");
+  EXPECT_EQ(PairRegistrationRecords(markers, on_two, /*sensor=*/2).size(), data.stations.size());
+
   // A tracker row without markers is a station with none: the registration skips it.
   MarkerCapture fewer;
   for (const MarkerRecord& m : markers.records) {
