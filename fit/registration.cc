@@ -261,6 +261,34 @@ double ScaleFromCentroids(const Problem& p) {
   return mirrored && sv(2) > 0.1 * sv(0) ? -scale : scale;
 }
 
+// RMS distance of the stations' marker centroids from their mean over the RMS distance of the
+// visible markers from their station's centroid, both in optical units (so millimetres or a mirror
+// leave it unchanged). ScaleFromCentroids takes the centroids for the receiver positions; the
+// centroids' offsets from the receiver change from station to station with the visible markers
+// and the orientation by up to the body's size, so below a spread of a few body sizes they, not
+// the units, set the scale it finds.
+double CentroidSpreadInBodySizes(const Problem& p) {
+  std::vector<Eigen::Vector3d> centroids;
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  double body_sq = 0.0;
+  int num_markers = 0;
+  for (const RegistrationStation& s : p.stations) {
+    Eigen::Vector3d c = Eigen::Vector3d::Zero();
+    for (const MarkerObservation& m : s.markers) c += m.marker_in_optical;
+    c /= static_cast<double>(s.markers.size());
+    for (const MarkerObservation& m : s.markers) body_sq += (m.marker_in_optical - c).squaredNorm();
+    num_markers += static_cast<int>(s.markers.size());
+    centroids.push_back(c);
+    mean += c;
+  }
+  mean /= static_cast<double>(centroids.size());
+  double spread_sq = 0.0;
+  for (const Eigen::Vector3d& c : centroids) spread_sq += (c - mean).squaredNorm();
+  const double spread = std::sqrt(spread_sq / static_cast<double>(centroids.size()));
+  const double body = std::sqrt(body_sq / static_cast<double>(num_markers));
+  return body > 0.0 ? spread / body : std::numeric_limits<double>::infinity();
+}
+
 // Throws if the optical positions do not move like the tracker's between stations (units or a
 // left-handed optical frame): no rigid transform can then explain them, and the fit would only
 // return a huge chi-square without saying why.
@@ -268,9 +296,16 @@ void CheckOpticalScale(const Problem& p, const Eigen::Quaterniond* marker_differ
                        double tracker_position_noise_m) {
   // Positions spread over many times their noise determine the scale to a few per cent.
   constexpr double kMinSpreadInNoise = 10.0;
+  // Without the marker-difference rotation the scale comes from the marker centroids, which need
+  // the stations to spread over several marker-body sizes (see CentroidSpreadInBodySizes).
+  constexpr double kMinCentroidSpreadInBodySizes = 1.0;
   // Units differ by 10 (cm), 25.4 (in), 1000 (mm); a real tracker's scale error is a few per cent.
   constexpr double kMaxScaleFactor = 2.0;
   if (PositionSpread(p) < kMinSpreadInNoise * tracker_position_noise_m) return;
+  if (marker_difference_rotation == nullptr &&
+      CentroidSpreadInBodySizes(p) < kMinCentroidSpreadInBodySizes) {
+    return;
+  }
   const double scale = marker_difference_rotation != nullptr
                            ? ScaleFromMarkerDifferenceRotation(p, *marker_difference_rotation)
                            : ScaleFromCentroids(p);
