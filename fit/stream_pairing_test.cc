@@ -87,6 +87,31 @@ TEST(PairStreams, GivenOffsetAndInterpolation) {
   EXPECT_THROW(PairStreams(tracker, reference, options), std::invalid_argument);
 }
 
+TEST(PairStreams, AReferenceSpacedAtTheGapLimitIsInterpolated) {
+  // A 10 Hz reference (times i * 0.1 on a clock far from zero) against max_gap_s 0.1: its steps
+  // differ from 0.1 by rounding only, and about half the tracker samples were dropped as in a gap.
+  TrackerStream tracker;
+  ReferenceStream reference;
+  for (int i = 0; i < 3000; ++i) {
+    ReferenceStreamSample s;
+    s.time = 1000.3 + i * 0.1;
+    s.transmitter_from_body = TrueAt(i * 0.1);
+    reference.records.push_back(s);
+  }
+  for (int i = 0; i < 3500; ++i) {  // 12 Hz, inside the reference's span
+    TrackerStreamSample s;
+    s.time = 1000.35 + i / 12.0;
+    s.transmitter_from_receiver = TrueAt(s.time - 1000.3);
+    tracker.records.push_back(s);
+  }
+  StreamPairingOptions options;  // max_gap_s 0.1, offset 0 given
+  const StreamPairingResult result = PairStreams(tracker, reference, options);
+  EXPECT_EQ(result.dropped, 0);
+  // A real gap (a step of twice the spacing) is still not interpolated across.
+  reference.records.erase(reference.records.begin() + 100);
+  EXPECT_GT(PairStreams(tracker, reference, options).dropped, 0);
+}
+
 // A live recording of two receivers logs whichever reported first; pairing the first row's sensor
 // paired the reference with receiver 2 in one recording and receiver 1 in the next.
 TEST(PairStreams, TwoReceiversPairTheLowestSensorWhateverCameFirst) {
