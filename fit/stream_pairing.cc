@@ -327,25 +327,6 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     throw std::invalid_argument("tracker stream has no sensor " + std::to_string(sensor) +
                                 " (it has " + list + ")");
   }
-  // A sensor's times going back (two recordings concatenated, a clock reset) pair its later
-  // samples with the wrong stretch of the reference: the estimated offset came out 0.27 s instead
-  // of 0.037 s without a warning. Equal times (a sample logged twice) pair correctly.
-  const TrackerStreamSample* previous = nullptr;
-  for (size_t i = 0; i < tracker.records.size(); ++i) {
-    const TrackerStreamSample& r = tracker.records[i];
-    if (r.sensor != sensor) continue;
-    if (!std::isfinite(r.time) || (previous != nullptr && r.time < previous->time)) {
-      throw std::invalid_argument("tracker stream: record " + std::to_string(i + 1) + ", sensor " +
-                                  std::to_string(sensor) + ", column time: " + Rounded(r.time, 10) +
-                                  (std::isfinite(r.time)
-                                       ? " is before the previous sample's " +
-                                             Rounded(previous->time, 10) +
-                                             " (a sensor's times must not decrease: two recordings "
-                                             "concatenated, or a clock reset?)"
-                                       : " is not finite"));
-    }
-    previous = &r;
-  }
   std::string sensor_note;
   if (options.sensor == 0 && sensors.size() > 1) {
     sensor_note = "the tracker stream has sensors " + list + "; paired sensor " +
