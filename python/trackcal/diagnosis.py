@@ -263,19 +263,17 @@ def _verdict(candidates_doc: Optional[CandidatesDoc], covariate_effects, covaria
         # verdict says what and where; "nothing" would hide it.
         out.update(source="unidentified", text=engine["text"])
         return out
-    if not covariates_tested:
-        if candidates_doc is None:
-            out["text"] = "nothing tested: covariates not tested and catalog effects not ranked"
-        elif _untested(candidates_doc)[0]:
-            out["text"] = "covariates not tested; " + _no_catalog_effect(candidates_doc)
-        else:
-            out["text"] = "no catalog effect is significant (covariates not tested)"
-    elif candidates_doc is None:
-        out["text"] = "nothing significant remains in the covariates (catalog effects not tested)"
-    elif _untested(candidates_doc)[0]:
-        out["text"] = "nothing significant remains in the covariates; " + _no_catalog_effect(candidates_doc)
-    else:
-        out["text"] = "nothing significant remains"
+    # Nothing found: what was tested decides the words (untested covariates are not called clean).
+    ranked = "not ranked" if candidates_doc is None else "partly" if _untested(candidates_doc)[0] else "all"
+    text = {
+        (True, "not ranked"): "nothing significant remains in the covariates (catalog effects not tested)",
+        (True, "partly"): "nothing significant remains in the covariates; ",
+        (True, "all"): "nothing significant remains",
+        (False, "not ranked"): "nothing tested: covariates not tested and catalog effects not ranked",
+        (False, "partly"): "covariates not tested; ",
+        (False, "all"): "no catalog effect is significant (covariates not tested)",
+    }[(bool(covariates_tested), ranked)]
+    out["text"] = text + (_no_catalog_effect(candidates_doc) if ranked == "partly" else "")
     return out
 
 
