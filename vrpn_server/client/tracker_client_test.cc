@@ -19,6 +19,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <optional>
 #include <thread>
 
 #include "tests/test_utils.h"
@@ -869,57 +870,54 @@ TEST(VrpnTrackerClient, AServerThatGoesSilentIsLeftAndFoundAgain) {
   })) << "connections " << client.connections();
 }
 
-TEST(VrpnTrackerClient, AHostNameIsLookedUpAgainForAReconnect) {
-  // The server's machine restarts with another address (a new DHCP lease, the name moved to a
-  // spare machine): the address looked up first would be tried for ever.
-  auto lookups = std::make_shared<std::atomic<int>>(0);
+// A client of Tracker0@tcp://tracker.lab whose host names `resolve` (called with the lookup's
+// count, from 1) gets a pong, the server stops and starts again on `restart_address` at the same
+// port: true when the client connected again and got a pong there. *lookups: the lookups made.
+bool ReconnectsAfterARestart(const std::function<std::optional<std::string>(int)>& resolve,
+                             const std::string& restart_address, int* lookups) {
+  auto count = std::make_shared<std::atomic<int>>(0);
   TrackerClientOptions options;
   options.reconnect_delay_s = 0.1;
-  options.resolve_host = [lookups](const std::string&) -> std::optional<std::string> {
-    return ++*lookups == 1 ? "127.0.0.1" : "127.0.0.2";
-  };
+  options.resolve_host = [count, resolve](const std::string&) { return resolve(++*count); };
   auto server =
       std::make_unique<VrpnServer>(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
   server->Start();
   const int port = server->port();
   VrpnTrackerClient client("Tracker0@tcp://tracker.lab:" + std::to_string(port), options);
-  ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
+  EXPECT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
   server.reset();
-  ServerOptions moved = LoopbackOptions();
-  moved.bind_address = "127.0.0.2";
-  moved.port = port;
-  VrpnServer again(MakeCatalog(), moved, [](const std::string&) {});
+  ServerOptions restarted = LoopbackOptions();
+  restarted.bind_address = restart_address;
+  restarted.port = port;
+  VrpnServer again(MakeCatalog(), restarted, [](const std::string&) {});
   again.Start();
-  EXPECT_TRUE(
-      PollUntil({&client}, [&] { return client.connections() >= 2 && client.pong_received(); }))
-      << "connections " << client.connections() << ", lookups " << *lookups;
+  const bool back =
+      PollUntil({&client}, [&] { return client.connections() >= 2 && client.pong_received(); });
+  *lookups = *count;
+  if (!back) ADD_FAILURE() << "connections " << client.connections() << ", lookups " << *count;
+  return back;
+}
+
+TEST(VrpnTrackerClient, AHostNameIsLookedUpAgainForAReconnect) {
+  // The server's machine restarts with another address (a new DHCP lease, the name moved to a
+  // spare machine): the address looked up first would be tried for ever.
+  int lookups = 0;
+  EXPECT_TRUE(ReconnectsAfterARestart(
+      [](int n) -> std::optional<std::string> { return n == 1 ? "127.0.0.1" : "127.0.0.2"; },
+      "127.0.0.2", &lookups));
 }
 
 TEST(VrpnTrackerClient, AFailedLookUpForAReconnectKeepsTheAddressFoundBefore) {
   // The DNS server is down when the server restarts where it was: the address found before is
   // tried rather than none.
-  auto lookups = std::make_shared<std::atomic<int>>(0);
-  TrackerClientOptions options;
-  options.reconnect_delay_s = 0.1;
-  options.resolve_host = [lookups](const std::string&) -> std::optional<std::string> {
-    if (++*lookups == 1) return "127.0.0.1";
-    return std::nullopt;
-  };
-  auto server =
-      std::make_unique<VrpnServer>(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
-  server->Start();
-  const int port = server->port();
-  VrpnTrackerClient client("Tracker0@tcp://tracker.lab:" + std::to_string(port), options);
-  ASSERT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }));
-  server.reset();
-  ServerOptions same = LoopbackOptions();
-  same.port = port;
-  VrpnServer again(MakeCatalog(), same, [](const std::string&) {});
-  again.Start();
-  EXPECT_TRUE(
-      PollUntil({&client}, [&] { return client.connections() >= 2 && client.pong_received(); }))
-      << "connections " << client.connections() << ", lookups " << *lookups;
-  EXPECT_GE(*lookups, 2);
+  int lookups = 0;
+  EXPECT_TRUE(ReconnectsAfterARestart(
+      [](int n) -> std::optional<std::string> {
+        if (n == 1) return "127.0.0.1";
+        return std::nullopt;
+      },
+      "127.0.0.1", &lookups));
+  EXPECT_GE(lookups, 2);
 }
 
 }  // namespace
