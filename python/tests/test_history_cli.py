@@ -431,6 +431,40 @@ def test_malformed_history_fails_before_the_work(tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "cal.json").exists()
 
 
+def test_report_workdir_without_a_history_is_not_silently_ignored(tmp_path, monkeypatch, capsys):
+    """report --workdir names a folder whose history the report shows: a mistyped folder was read as
+    an empty history, and the report came out without one and without a word (exit status 0). It is
+    refused before the work, as `trackcal history` refuses it; a folder with no fits recorded yet
+    gives a report with a note saying so."""
+    import types
+    from trackcal import cli, report
+    (tmp_path / "poses.csv").write_text("station\n")
+    calls = []
+
+    def diagnosis(args, term):
+        calls.append(args.workdir)
+        capture = types.SimpleNamespace(origin=None, path=None)
+        return capture, None, object(), None, None, None, None, []
+    monkeypatch.setattr(cli, "_diagnosis", diagnosis)
+    written = {}
+
+    def write_report(v, out_dir, **kw):
+        written.update(kw)
+        return pathlib.Path(out_dir) / "report.html"
+    monkeypatch.setattr(report, "write_report", write_report)
+    out = tmp_path / "out"
+    assert cli.main(["report", str(tmp_path / "poses.csv"), "-o", str(out),
+                     "--workdir", str(tmp_path / "wrok")]) == 2
+    assert f"--workdir {tmp_path / 'wrok'}: no such work folder" in capsys.readouterr().err
+    assert calls == [] and not out.exists()
+    work = tmp_path / "work"
+    work.mkdir()
+    assert cli.main(["report", str(tmp_path / "poses.csv"), "-o", str(out), "--workdir", str(work)]) == 0
+    assert calls == [str(work)]
+    assert any("history.jsonl: no fits recorded" in n for n in written["notes"]), written["notes"]
+    assert "no fits recorded" in capsys.readouterr().out
+
+
 def test_report_without_covariates_does_not_call_them_clean(tmp_path):
     """report --no-covariates skips the covariate tests: its verdict must not say "nothing
     significant remains in the covariates" (it tested none)."""

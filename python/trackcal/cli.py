@@ -467,6 +467,9 @@ def cmd_report(args, term) -> int:
     _write_residuals(args, v)
     inputs = [args.capture, args.calibration, args.model if args.model and os.path.exists(args.model) else None]
     inputs += _capture_files(capture)
+    if args.workdir and not hist:  # asked for, but there is none to show
+        notes.append(f"{pathlib.Path(args.workdir) / 'history.jsonl'}: no fits recorded: the report "
+                     "has no history")
     for n in notes:
         print(term.c("note: ", "33") + n)
     path = write_report(v, args.output, inputs=inputs, history_entries=hist, candidates=doc,
@@ -637,6 +640,9 @@ def _check_args(args) -> None:
     if args.command == "history" and not pathlib.Path(args.workdir).is_dir():
         # A mistyped folder is not an empty history.
         raise ValueError(f"{args.workdir}: no such work folder")
+    if args.command == "report" and args.workdir and not pathlib.Path(args.workdir).is_dir():
+        # Read only: a mistyped folder gave a report without its history, and no word of it.
+        raise ValueError(f"--workdir {args.workdir}: no such work folder")
     if args.command in ("diagnose", "report") and getattr(args, "model", None) and args.folds < 2:
         raise ValueError(f"--folds {args.folds}: must be 2 or more")
     if args.command in ("report", "record"):
