@@ -465,6 +465,28 @@ def test_report_workdir_without_a_history_is_not_silently_ignored(tmp_path, monk
     assert "no fits recorded" in capsys.readouterr().out
 
 
+def test_validate_records_the_calibration_by_its_full_path(tmp_path, monkeypatch):
+    """validate --workdir recorded -c as given: a relative path ("cal.json") named a file only from
+    the folder validate ran in, while the capture files beside it and trackcal fit's rows carry
+    full paths."""
+    import types
+    from trackcal import cli
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "cal.json").write_text("{}\n")
+    (run / "poses.csv").write_text("station\n")
+    monkeypatch.chdir(run)
+    v = types.SimpleNamespace(tables=[], capture=types.SimpleNamespace(
+        origin={"files": ["poses.csv"]}, path=pathlib.Path("poses.csv")))
+    args = types.SimpleNamespace(command="validate", workdir=str(tmp_path / "work"), calibration="cal.json",
+                                 label=None)
+    cli._record_history(args, v)
+    entry, = history.load_history(tmp_path / "work")
+    assert entry["model"]["path"] == str(run / "cal.json")
+    assert entry["data"][0]["path"] == str(run / "poses.csv")
+    assert entry["label"] == "cal.json"
+
+
 def test_report_without_covariates_does_not_call_them_clean(tmp_path):
     """report --no-covariates skips the covariate tests: its verdict must not say "nothing
     significant remains in the covariates" (it tested none)."""

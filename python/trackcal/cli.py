@@ -171,7 +171,9 @@ def _record_history(args, v) -> None:
     from trackcal.history import record_fit, scores_from_validation
     if not args.calibration:
         raise ValueError("--workdir records a fit: give its calibration with -c")
-    record_fit(args.workdir, model=args.calibration,
+    # Resolved, as the capture files and `trackcal fit`'s model and calibration are: a path relative
+    # to wherever validate ran names no file once the history is read from elsewhere.
+    record_fit(args.workdir, model=pathlib.Path(args.calibration).resolve(),
                data=[(pathlib.Path(f).resolve(), "validation_capture") for f in _capture_files(v.capture)],
                scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name)
 
