@@ -73,6 +73,34 @@ def test_a_label_of_the_previous_entries_is_worked_out_under_the_lock(tmp_path):
     assert [e["label"] for e in history.load_history(work)] == ["first", "second", "after second"]
 
 
+def test_a_fit_of_a_loaded_capture_records_its_files(tmp_path):
+    """record_model_fit of a fit given a loaded capture (trackcal.fit(captures.load(...), ...), the
+    Python example of docs/understand.md) recorded no capture file at all: its rows carried no data
+    hashes, so the history compared fits on other captures as steps of one loop instead of saying
+    "other data"."""
+    import types
+    cap_a = captures.load(simulate(tmp_path / "a", seed=3))
+    cap_b = captures.load(simulate(tmp_path / "b", seed=4))
+    work = tmp_path / "work"
+
+    def report(pos):
+        text = "terms:\n  - type: polynomial\n    degree: 2\n"
+        s = {"valid": {"position_mm": {"mean": pos}, "orientation_deg": {"mean": 0.1}}}
+        return types.SimpleNamespace(
+            model={"text": text, "sha256": "ab" * 32, "source": "<string>", "terms": ["polynomial"]},
+            terms=[{"type": "polynomial"}], converged=True, chi2_per_dof=1.0, num_free_parameters=60,
+            outliers=[], iterations=3, scores=lambda: s)
+    history.record_model_fit(work, report(3.0), model=None, data=cap_a)
+    history.record_model_fit(work, report(2.0), model=None, data=cap_b)
+    e1, e2 = history.load_history(work)
+    poses = (tmp_path / "a" / "poses.csv").resolve()
+    assert e1["data"] == [{"path": str(poses), "role": "calibration_capture",
+                           "sha256": trackcal._core.sha256_file(poses)}]
+    assert e2["data"][0]["path"] == str((tmp_path / "b" / "poses.csv").resolve())
+    row2 = history.history_table([e1, e2]).splitlines()[2]
+    assert "other data" in row2 and "%" not in row2, row2
+
+
 def test_history_round_trip(tmp_path):
     data = tmp_path / "poses.csv"
     data.write_text("x\n")

@@ -228,6 +228,15 @@ def _data_files(data) -> List[Tuple[pathlib.Path, str]]:
     return [(p, "calibration_capture")]
 
 
+def _capture_data_files(capture) -> List[Tuple[pathlib.Path, str]]:
+    """The files a loaded capture (trackcal.captures.PoseCapture) was read from: its origin's files
+    (poses.csv, both streams, or the markers and tracker files), else its path; [] for stations
+    made in memory."""
+    origin = getattr(capture, "origin", None) or {}
+    names = origin.get("files") or ([capture.path] if getattr(capture, "path", None) is not None else [])
+    return [(pathlib.Path(f).resolve(), "calibration_capture") for f in names]
+
+
 def term_change(previous: Optional[Sequence[str]], terms: Sequence[str]) -> str:
     """'+dipole -lut' between two term lists, counted as multisets ('' when equal; the list itself
     for the first fit)."""
@@ -269,7 +278,9 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     """Records a trackcal.fit FitReport: a copy of the model text (``models/<sha256[:16]>.yaml``,
     written once), the SHA-256 of the model and of every capture file, the Table 1 scores, the term
     names, the calibration written (and a copy of it, ``models/<sha256[:16]>.json``) and fit figures. The label defaults to the term change from the
-    previous model-file fit ("+dipole"; "settings" when only settings changed)."""
+    previous model-file fit ("+dipole"; "settings" when only settings changed). ``data`` is what
+    the fit was given: a capture folder or poses.csv, or a loaded capture (trackcal.captures),
+    whose files are hashed."""
     workdir = pathlib.Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     text, sha = report.model["text"], report.model["sha256"]
@@ -305,7 +316,8 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
         fields["calibration"] = {"path": str(pathlib.Path(calibration).resolve()), "sha256": cal_sha,
                                  "copy": str(cal_copy.relative_to(workdir))}
     return record_fit(workdir, model=model_path,
-                      data=_data_files(data) if isinstance(data, (str, os.PathLike)) else [],
+                      data=(_data_files(data) if isinstance(data, (str, os.PathLike))
+                            else _capture_data_files(data)),
                       scores=report.scores(), label=default_label if label is None else label,
                       fields=fields)
 
