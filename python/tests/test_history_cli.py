@@ -515,6 +515,31 @@ def test_validate_records_the_calibration_by_its_full_path(tmp_path, monkeypatch
     assert entry["label"] == "cal.json"
 
 
+def test_outputs_that_would_be_refused_are_refused_before_the_work(tmp_path, monkeypatch, capsys):
+    """An existing --residuals file, or a report.html in -o that is not a trackcal report, is
+    refused: it was refused only after the covariate tests, the model's fit and the candidate
+    ranking had run (minutes), with nothing to show for them."""
+    from trackcal import cli
+
+    def no_work(*a, **k):
+        raise AssertionError("the work ran before the outputs were checked")
+    monkeypatch.setattr(cli, "_diagnosis", no_work)
+    monkeypatch.setattr(cli, "_validation", no_work)
+    poses = tmp_path / "poses.csv"
+    poses.write_text("station\n")
+    mine = tmp_path / "mine.csv"
+    mine.write_text("precious\n")
+    for command in (["validate"], ["diagnose"], ["report", "-o", str(tmp_path / "out")]):
+        assert cli.main(command + [str(poses), "--residuals", str(mine)]) == 2, command
+        assert f"{mine}: exists; residuals are never written" in capsys.readouterr().err
+    out = tmp_path / "rep"
+    out.mkdir()
+    (out / "report.html").write_text("<html>my notes</html>")
+    assert cli.main(["report", str(poses), "-o", str(out)]) == 2
+    assert "report.html: exists and is not a trackcal report" in capsys.readouterr().err
+    assert mine.read_text() == "precious\n" and list(out.iterdir()) == [out / "report.html"]
+
+
 def test_report_without_covariates_does_not_call_them_clean(tmp_path):
     """report --no-covariates skips the covariate tests: its verdict must not say "nothing
     significant remains in the covariates" (it tested none)."""

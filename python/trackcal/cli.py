@@ -649,6 +649,15 @@ def _check_args(args) -> None:
         raise ValueError(f"--folds {args.folds}: must be 2 or more")
     if args.command in ("report", "record"):
         _check_folder(args.output, "-o", write=True)
+    # Outputs refused anyway once the work is done (the covariate tests, a model fit, the candidate
+    # ranking: minutes): refused now instead.
+    residuals = getattr(args, "residuals", None)
+    if residuals and os.path.lexists(residuals):
+        raise ValueError(f"{residuals}: exists; residuals are never written over an existing file")
+    if args.command == "report":
+        from trackcal.report import _check_replaceable
+        _check_replaceable(pathlib.Path(args.output) / "report.html",
+                           [pathlib.Path(p) for p in (args.capture, args.calibration, args.model) if p])
     if getattr(args, "workdir", None):
         _check_folder(args.workdir, "--workdir" if args.command != "history" else "work folder",
                       write=args.command in ("fit", "validate"))
