@@ -1,5 +1,6 @@
 #include "vrpn_server/config.h"
 
+#include <cctype>
 #include <charconv>
 #include <cmath>
 #include <fstream>
@@ -396,9 +397,13 @@ class Parser {
     std::string_view s = spec.source;
     const bool star = !s.empty() && s.front() == '*';
     if (star) s.remove_prefix(1);
-    const size_t at = s.find('@');
+    // As VRPN clients read a name: the device is the text before the last '@'.
+    const size_t at = s.rfind('@');
     spec.source_device = std::string(s.substr(0, at));
     if (spec.source_device.empty()) Fail(where, "source", "missing device name in '" + spec.source + "'");
+    if (spec.source_device.size() > 95) {  // the longest name a VRPN description carries
+      Fail(where, "source", "device name '" + spec.source_device + "' is over 95 characters");
+    }
     if (at == std::string_view::npos) {
       if (!star) {
         Fail(where, "source",
@@ -410,9 +415,14 @@ class Parser {
       }
     } else {
       std::string_view host = s.substr(at + 1);
-      if (host.substr(0, 6) == "tcp://") {
-        spec.source_tcp_only = true;
-        host.remove_prefix(6);
+      // The connection part as VRPN clients (and VrpnTrackerClient) read it: "tcp:" anywhere asks
+      // for TCP only, and a "tcp://", "x-vrpn://" or "tcp:" prefix is not part of the host.
+      spec.source_tcp_only = host.find("tcp:") != std::string_view::npos;
+      for (const std::string_view prefix : {"tcp://", "x-vrpn://", "tcp:"}) {
+        if (host.substr(0, prefix.size()) == prefix) {
+          host.remove_prefix(prefix.size());
+          break;
+        }
       }
       const size_t colon = host.rfind(':');
       if (colon != std::string_view::npos) {
@@ -424,6 +434,16 @@ class Parser {
         host = host.substr(0, colon);
       }
       if (host.empty()) Fail(where, "source", "missing host after '@' in '" + spec.source + "'");
+      // A host name or an IPv4 address, checked here so the error names this line (the client
+      // would refuse anything else at start, naming no line).
+      for (const char c : host) {
+        if (!std::isalnum(static_cast<unsigned char>(c)) && c != '.' && c != '-' && c != '_') {
+          Fail(where, "source",
+               "host '" + std::string(host) + "' in '" + spec.source +
+                   "' is not a host name or IPv4 address (write Device@host[:port], "
+                   "Device@tcp://host[:port]; IPv6 is not supported)");
+        }
+      }
       spec.source_host = std::string(host);
     }
     RegisterName(spec.name, where, "name");

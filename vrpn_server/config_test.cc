@@ -129,6 +129,44 @@ TEST(ParseVrpnConfig, SeparateContinuationTokenAndAttachedOne) {
   EXPECT_EQ(config.fastrak_trackers[1].buttons.size(), 1u);
 }
 
+// A pass-through source is a VRPN client name: every connection form a VRPN client (and
+// VrpnTrackerClient, which serves it) accepts is read the same way here, and a host the client
+// would refuse at start is an error naming this line. "x-vrpn://host" and "tcp:host" without a port
+// used to fail as a bad port ("//lab-pc"), and "tcp:host:port" kept "tcp:" in the host.
+TEST(ParseVrpnConfig, PassthroughSourcesReadAsVrpnClientNames) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "trackcal_Tracker_Passthrough A Tracker0@x-vrpn://lab-pc\n"
+      "trackcal_Tracker_Passthrough B Tracker0@x-vrpn://lab-pc:3999\n"
+      "trackcal_Tracker_Passthrough C Tracker0@tcp:lab-pc\n"
+      "trackcal_Tracker_Passthrough D Tracker0@tcp:10.0.0.2:3884\n",
+      "lab.cfg");
+  ASSERT_EQ(config.passthroughs.size(), 4u);
+  const struct {
+    const char* host;
+    int port;
+    bool tcp_only;
+  } expected[] = {{"lab-pc", 3883, false},
+                  {"lab-pc", 3999, false},
+                  {"lab-pc", 3883, true},
+                  {"10.0.0.2", 3884, true}};
+  for (int i = 0; i < 4; ++i) {
+    const PassthroughSpec& p = config.passthroughs[i];
+    EXPECT_EQ(p.source_device, "Tracker0") << p.source;
+    EXPECT_EQ(p.source_host, expected[i].host) << p.source;
+    EXPECT_EQ(p.source_port, expected[i].port) << p.source;
+    EXPECT_EQ(p.source_tcp_only, expected[i].tcp_only) << p.source;
+  }
+  for (const std::string source :
+       {"Tracker0@http://lab-pc:3883", "Tracker0@[::1]:3883", "Tracker0@lab,pc"}) {
+    const std::string error = ParseError("trackcal_Tracker_Passthrough P " + source + "\n");
+    EXPECT_NE(error.find("lab.cfg:1: field 'source': host"), std::string::npos)
+        << source << ": " << error;
+  }
+  EXPECT_NE(ParseError("trackcal_Tracker_Passthrough P " + std::string(96, 'd') + "@lab-pc\n")
+                .find("lab.cfg:1: field 'source': device name"),
+            std::string::npos);
+}
+
 TEST(ParseVrpnConfig, TrackcalLines) {
   const VrpnConfig config = ParseVrpnConfig(
       "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200\n"
