@@ -191,12 +191,22 @@ Calibration MakeCalibration(const std::vector<std::shared_ptr<Correction>>& corr
 void BindCore(py::module_& m) {
   m.def(
       "angular_distance",
-      [](const Eigen::Vector4d& a_xyzw, const Eigen::Vector4d& b_xyzw) {
-        return AngularDistance(QuaternionFromXyzwArray(a_xyzw.data()).normalized(),
-                               QuaternionFromXyzwArray(b_xyzw.data()).normalized());
+      [](const py::handle& a_obj, const py::handle& b_obj) {
+        // A zero quaternion is no rotation: Eigen's normalized() leaves it zero and the angle came
+        // out 0 (a zero quaternion "equal" to every rotation); a wrong length was a TypeError.
+        const auto rotation = [](const py::handle& obj, const std::string& name) {
+          const DoubleArray a = AsArray(obj, name, {4}, " (x, y, z, w)");
+          const Eigen::Quaterniond q = QuaternionFromXyzwArray(a.data());
+          if (!q.coeffs().allFinite() || q.norm() == 0.0) {
+            throw py::value_error(name + " must be a finite, non-zero quaternion (x, y, z, w)");
+          }
+          return q.normalized();
+        };
+        return AngularDistance(rotation(a_obj, "a_xyzw"), rotation(b_obj, "b_xyzw"));
       },
       py::arg("a_xyzw"), py::arg("b_xyzw"),
-      "Angle in radians between two rotations given as x, y, z, w quaternions; q and -q are equal.");
+      "Angle in radians between two rotations given as x, y, z, w quaternions; q and -q are equal. "
+      "ValueError for a zero or non-finite quaternion.");
 
   m.def("num_polynomial_terms", &NumPolynomialTerms, py::arg("degree"),
         "Number of terms (r+1)(r+2)(r+3)/6 of a complete degree-r polynomial in x, y, z.");

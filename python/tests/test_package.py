@@ -16,6 +16,21 @@ def test_angular_distance_sign_invariant():
                         rel_tol=1e-12)
 
 
+def test_angular_distance_refuses_a_quaternion_that_is_no_rotation():
+    """A zero quaternion was "0 rad from" every rotation (Eigen's normalized() leaves it zero), and
+    a quaternion of 3 values was a TypeError listing pybind11 signatures."""
+    import pytest
+    for bad in ([0, 0, 0, 0], [math.nan, 0, 0, 1], [math.inf, 0, 0, 1]):
+        with pytest.raises(ValueError, match=r"a_xyzw must be a finite, non-zero quaternion"):
+            trackcal.angular_distance(bad, [0, 0, 0, 1])
+        with pytest.raises(ValueError, match=r"b_xyzw must be a finite, non-zero quaternion"):
+            trackcal.angular_distance([0, 0, 0, 1], bad)
+    with pytest.raises(ValueError, match=r"a_xyzw must have shape \(4,\) \(x, y, z, w\), got \(3,\)"):
+        trackcal.angular_distance([0, 0, 1], [0, 0, 0, 1])
+    # A quaternion of another norm is the same rotation (normalised).
+    assert trackcal.angular_distance([0, 0, 0, 2], [0, 0, 0, 1]) == 0.0
+
+
 def test_doc_examples_that_import_define_every_name_they_use():
     """A ```python block of docs/ that has import lines is a complete example to paste into a
     script, so every name it reads must be imported or assigned in it (docs/understand.md's
