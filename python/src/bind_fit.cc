@@ -17,6 +17,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <exception>
 #include <filesystem>
 #include <future>
@@ -24,6 +25,7 @@
 #include <map>
 #include <mutex>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -112,10 +114,34 @@ Eigen::Quaterniond UnitQuaternion(double x, double y, double z, double w) {
   return q;
 }
 
+// obj.<attr> as T; ValueError naming the attribute and what it must be otherwise (pybind11's
+// cast_error would reach Python as RuntimeError "Unable to cast Python instance ...").
+template <typename T>
+T CastAttribute(const py::handle& obj, const char* attr, const char* expected) {
+  try {
+    return obj.attr(attr).cast<T>();
+  } catch (const py::cast_error&) {
+    throw py::value_error(std::string("PoseCapture: ") + attr + " must be " + expected + ", got " +
+                          py::repr(obj.attr(attr)).cast<std::string>());
+  }
+}
+
+// An integral id (station, sensor) of row i; ValueError naming it unless it is a whole number in
+// the range of int (numpy's cast to an integer type truncated 1.5 to 1 and NaN to a huge number).
+int IntegralId(double v, const char* name, py::ssize_t i) {
+  if (!(std::isfinite(v) && v == std::trunc(v) && v >= std::numeric_limits<int>::min() &&
+        v <= std::numeric_limits<int>::max())) {
+    std::ostringstream s;
+    s << "PoseCapture: row " << i << ": " << name << " " << v << " is not an integer";
+    throw py::value_error(s.str());
+  }
+  return static_cast<int>(v);
+}
+
 // PoseCapture-like Python object (trackcal.captures.PoseCapture) -> C++ PoseCapture.
 PoseCapture PoseCaptureFromPython(const py::handle& obj) {
   using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
-  using IntArray = py::array_t<long, py::array::c_style | py::array::forcecast>;
+  using IntArray = DoubleArray;  // ids are checked to be integers, not truncated
   for (const char* attr :
        {"station", "set", "sensor", "time", "reported_positions", "reported_quaternions_xyzw",
         "reference_positions", "reference_quaternions_xyzw"}) {
@@ -153,7 +179,8 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
   py::ssize_t num_extra = 0;
   std::optional<DoubleArray> extra;
   if (py::hasattr(obj, "extra_columns") && !obj.attr("extra_columns").is_none()) {
-    capture.extra_columns = obj.attr("extra_columns").cast<std::vector<std::string>>();
+    capture.extra_columns =
+        CastAttribute<std::vector<std::string>>(obj, "extra_columns", "a list of column names");
     num_extra = static_cast<py::ssize_t>(capture.extra_columns.size());
     if (num_extra > 0) {
       extra = DoubleArray::ensure(obj.attr("extra"));
@@ -164,8 +191,8 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
     }
     // Labels columns ({column: labels}): their values are indices into the labels.
     if (py::hasattr(obj, "extra_labels") && !obj.attr("extra_labels").is_none()) {
-      const auto labels =
-          obj.attr("extra_labels").cast<std::map<std::string, std::vector<std::string>>>();
+      const auto labels = CastAttribute<std::map<std::string, std::vector<std::string>>>(
+          obj, "extra_labels", "a dict {column name: list of label strings}");
       capture.extra_labels.resize(capture.extra_columns.size());
       for (const auto& [name, list] : labels) {
         const auto it = std::find(capture.extra_columns.begin(), capture.extra_columns.end(), name);
@@ -180,10 +207,16 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
   capture.records.resize(static_cast<size_t>(n));
   for (py::ssize_t i = 0; i < n; ++i) {
     PoseRecord& r = capture.records[static_cast<size_t>(i)];
-    r.station = static_cast<int>(station.at(i));
-    r.sensor = static_cast<int>(sensor.at(i));
+    r.station = IntegralId(station.at(i), "station", i);
+    r.sensor = IntegralId(sensor.at(i), "sensor", i);
     r.time = time.at(i);
     r.set = py::str(sets[static_cast<size_t>(i)]).cast<std::string>();
+    // As the poses.csv reader: a set of another name ("validation") was silently left out of the
+    // fit and of every table.
+    if (!IsKnownSet(r.set)) {
+      throw py::value_error("PoseCapture: station " + std::to_string(r.station) + ": set '" +
+                            r.set + "' is not one of calib, valid, reg");
+    }
     r.reported.translation = Eigen::Vector3d(rp.at(i, 0), rp.at(i, 1), rp.at(i, 2));
     r.reported.rotation = UnitQuaternion(rq.at(i, 0), rq.at(i, 1), rq.at(i, 2), rq.at(i, 3));
     r.reference.translation = Eigen::Vector3d(fp.at(i, 0), fp.at(i, 1), fp.at(i, 2));

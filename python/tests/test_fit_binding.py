@@ -4,6 +4,7 @@ command line on the same data: same tables, same parameters, same calibration, s
 import csv
 import json
 import pathlib
+import re
 import shutil
 import subprocess
 import threading
@@ -163,6 +164,36 @@ def test_an_in_memory_zero_quaternion_is_refused(capture_dir):
     cap = captures.load_poses(capture_dir)
     cap.reference_quaternions_xyzw[3] *= 2.0
     trackcal.fit(cap, MODEL)
+
+
+def test_an_in_memory_capture_with_bad_fields_is_a_value_error_naming_them(capture_dir):
+    """A PoseCapture built in memory (pandas, numpy) is checked as the poses.csv reader checks a
+    file. Before: extra_columns or extra_labels of the wrong type reached Python as RuntimeError
+    "Unable to cast Python instance of type <class 'list'> to C++ type '?'"; a station or sensor
+    of 1.5 (a float column) was truncated to 1 and NaN to a garbage id; a set other than calib,
+    valid or reg ("validation") was silently left out of the fit and of every table."""
+    import dataclasses
+    cap = captures.load_poses(capture_dir)
+    n = len(cap)
+    cases = [
+        (dict(extra_columns=[1], extra=np.zeros((n, 1))), r"extra_columns must be a list of column names, got \[1\]"),
+        (dict(extra_columns=["a"], extra=np.zeros((n, 1)), extra_labels={"a": [1, 2]}),
+         r"extra_labels must be a dict \{column name: list of label strings\}"),
+    ]
+    for field, value in (("station", 1.5), ("station", np.nan), ("sensor", 1.5), ("sensor", 1e10)):
+        column = getattr(cap, field).astype(float)
+        column[3] = value
+        cases.append((dict(**{field: column}), rf"row 3: {field} {re.escape(f'{value:g}')} is not an integer"))
+    sets = cap.set.copy()
+    sets[3] = "validation"
+    cases.append((dict(set=sets), rf"station {cap.station[3]}: set 'validation' is not one of calib, valid, reg"))
+    for change, message in cases:
+        with pytest.raises(ValueError, match="PoseCapture: .*" + message):
+            trackcal.fit(dataclasses.replace(cap, **change), MODEL)
+    # Whole numbers of a float column are the same ids.
+    floats = dataclasses.replace(cap, station=cap.station.astype(float), sensor=cap.sensor.astype(float))
+    assert_same(without_timings(trackcal.fit(floats, MODEL).to_dict()),
+                without_timings(trackcal.fit(cap, MODEL).to_dict()))
 
 
 def test_save_never_overwrites_an_input(capture_dir, model_file, tmp_path):
