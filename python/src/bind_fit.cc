@@ -648,8 +648,24 @@ void BindFit(py::module_& m) {
         options.tracker_orientation_noise_rad = tracker_orientation_noise_deg * kRadPerDeg;
         options.min_markers_per_station = min_markers_per_station;
         options.reject_bad_stations = reject_bad_stations;
-        if (!options.Check())
-          throw py::value_error("register: invalid options (noise must be > 0)");
+        // Each option named: a bad min_markers_per_station was reported as "noise must be > 0".
+        const auto require = [](bool ok, const std::string& what, double value) {
+          if (!ok) {
+            std::ostringstream s;
+            s << "register: " << what << ", got " << value;
+            throw py::value_error(s.str());
+          }
+        };
+        require(std::isfinite(optical_noise_m) && optical_noise_m > 0.0,
+                "optical_noise_m must be positive and finite", optical_noise_m);
+        require(std::isfinite(tracker_position_noise_m) && tracker_position_noise_m > 0.0,
+                "tracker_position_noise_m must be positive and finite", tracker_position_noise_m);
+        require(std::isfinite(tracker_orientation_noise_deg) && tracker_orientation_noise_deg > 0.0,
+                "tracker_orientation_noise_deg must be positive and finite",
+                tracker_orientation_noise_deg);
+        require(min_markers_per_station >= 1, "min_markers_per_station must be at least 1",
+                min_markers_per_station);
+        if (!options.Check()) throw py::value_error("register: invalid options");
         fit::PoseRecordOptions record_options;
         record_options.set = set;
         record_options.sensor = sensor;
@@ -745,6 +761,11 @@ void BindFit(py::module_& m) {
         options.set = set;
         options.decimate = decimate;
         run->estimated = estimate_time_offset;
+        // Checked before the work, as register() does: an unknown set paired every sample and
+        // then save() refused the poses ("p.csv: record 0: set 'x' ...", naming the output).
+        if (!IsKnownSet(set)) {
+          throw py::value_error("pair: set must be calib, valid or reg, got '" + set + "'");
+        }
         py::gil_scoped_release release;
         ValueErrors([&] {
           run->result = fit::PairStreamsOfFiles(ReadTrackerStream(tracker_path),

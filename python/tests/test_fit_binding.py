@@ -196,6 +196,20 @@ def test_an_in_memory_capture_with_bad_fields_is_a_value_error_naming_them(captu
                 without_timings(trackcal.fit(cap, MODEL).to_dict()))
 
 
+def test_register_and_pair_name_the_bad_option_before_the_work(capture_dir, tmp_path):
+    """register() said "noise must be > 0" for min_markers_per_station=0; pair() with an unknown
+    set paired every sample and only save() refused, naming the output file's record 0."""
+    markers, tracker = capture_dir / "markers.csv", capture_dir / "tracker.csv"
+    with pytest.raises(ValueError, match=r"min_markers_per_station must be at least 1, got 0"):
+        trackcal.register(markers, tracker, min_markers_per_station=0)
+    with pytest.raises(ValueError, match=r"optical_noise_m must be positive and finite, got nan"):
+        trackcal.register(markers, tracker, optical_noise_m=float("nan"))
+    with pytest.raises(ValueError, match=r"tracker_orientation_noise_deg must be positive and finite, got -1"):
+        trackcal.register(markers, tracker, tracker_orientation_noise_deg=-1.0)
+    with pytest.raises(ValueError, match=r"pair: set must be calib, valid or reg, got 'validation'"):
+        trackcal.pair(capture_dir / "tracker_stream.csv", capture_dir / "reference_stream.csv", set="validation")
+
+
 def test_save_never_overwrites_an_input(capture_dir, model_file, tmp_path):
     data = tmp_path / "poses.csv"
     shutil.copy(capture_dir / "poses.csv", data)
