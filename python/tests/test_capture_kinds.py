@@ -140,6 +140,32 @@ def test_unreadable_capture_files_and_existing_outputs_are_value_errors(tmp_path
     assert out.read_bytes() == before
 
 
+def test_saved_tracker_stream_keeps_its_extra_columns_and_refuses_a_fractional_sensor(tmp_path):
+    """save_tracker_stream wrote time, sensor and pose only: a stream's extra columns (a
+    temperature, an operator's label: the covariates of the diagnosis) were dropped without a word,
+    and a sensor of 1.5 was written as 1."""
+    original = tmp_path / "in.csv"
+    original.write_text("time,sensor,x,y,z,qw,qx,qy,qz,temperature_c,operator\n"
+                        "0,1,0.1,0.2,0.3,1,0,0,0,21.5,ann\n"
+                        "0.01,1,0.1,0.2,0.3,1,0,0,0,,bob\n"
+                        "0.02,2,0.4,0.5,0.6,0,1,0,0,22.25,\n")
+    stream = captures.load_tracker_stream(original)
+    out = tmp_path / "out.csv"
+    captures.save_tracker_stream(out, stream)
+    again = captures.load_tracker_stream(out)
+    assert again.extra_columns == ["temperature_c", "operator"]
+    np.testing.assert_array_equal(again.column("temperature_c"), [21.5, np.nan, 22.25])
+    assert list(again.column("operator")) == ["ann", "bob", None]
+    np.testing.assert_array_equal(again.positions, stream.positions)
+    np.testing.assert_array_equal(again.quaternions_xyzw, stream.quaternions_xyzw)
+    np.testing.assert_array_equal(again.sensor, [1, 1, 2])
+
+    stream.sensor = np.array([1.0, 1.5, 2.0])
+    with pytest.raises(ValueError, match=r"bad\.csv: record 1: column sensor: 1\.5 is not an integer"):
+        captures.save_tracker_stream(tmp_path / "bad.csv", stream)
+    assert not (tmp_path / "bad.csv").exists()
+
+
 def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     _, streams, cal = sim
     r = run_cli("validate", streams, "-c", cal)

@@ -392,7 +392,9 @@ def load_reference_stream(path: PathLike) -> ReferenceStream:
 
 
 def save_tracker_stream(path: PathLike, stream: TrackerStream, overwrite: bool = False) -> None:
-    """Writes tracker_stream.csv atomically; never replaces an existing file unless asked
-    (ValueError naming it)."""
+    """Writes tracker_stream.csv atomically, with its extra columns; never replaces an existing
+    file unless asked (ValueError naming it)."""
+    extra_columns = list(stream.extra_columns or [])
     _user_errors(_core.write_tracker_stream, pathlib.Path(path), stream.time, stream.sensor, stream.positions,
-                 stream.quaternions_xyzw, overwrite)
+                 stream.quaternions_xyzw, overwrite, extra_columns,
+                 stream.extra if extra_columns else None, dict(stream.extra_labels or {}))
