@@ -282,6 +282,17 @@ void BindCapture(py::module_& m) {
          const py::handle& ref_q) {
         const auto est = ToPoses(est_p, est_q, "estimated");
         const auto ref = ToPoses(ref_p, ref_q, "reference");
+        // A zero quaternion stays zero through normalized() and its error angle came out 0: a
+        // station without a rotation counted as a perfect one in Table 1. (NaN stays NaN.)
+        for (const auto* poses : {&est, &ref}) {
+          for (size_t i = 0; i < poses->size(); ++i) {
+            if ((*poses)[i].rotation.coeffs().isZero(0.0)) {
+              throw py::value_error(std::string(poses == &est ? "estimated" : "reference") +
+                                    "_quaternions_xyzw: row " + std::to_string(i) +
+                                    " is zero, not a rotation");
+            }
+          }
+        }
         std::vector<double> pos_mm, ori_deg;
         ComputeErrorMagnitudes(est, ref, &pos_mm, &ori_deg);
         return py::make_tuple(py::array_t<double>(pos_mm.size(), pos_mm.data()),

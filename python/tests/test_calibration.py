@@ -130,6 +130,22 @@ def test_accepts_other_dtypes_and_layouts():
     assert empty[0].shape == (0, 3) and empty[1].shape == (0, 4) and empty[2].shape == (0,)
 
 
+def test_error_magnitudes_refuse_a_zero_quaternion():
+    """The Table 1 errors (validation.residuals, _core.error_magnitudes): a zero quaternion stayed
+    zero through normalisation and its orientation error came out 0 deg, a perfect station."""
+    from trackcal import validation
+    rng = np.random.default_rng(5)
+    positions, quats = random_poses(rng, 4)
+    ok = validation.residuals(positions, quats, positions, quats)
+    np.testing.assert_array_equal(ok.orientation_deg, np.zeros(4))
+    bad = quats.copy()
+    bad[2] = 0.0
+    with pytest.raises(ValueError, match=r"estimated_quaternions_xyzw: row 2 is zero, not a rotation"):
+        validation.residuals(positions, bad, positions, quats)
+    with pytest.raises(ValueError, match=r"reference_quaternions_xyzw: row 2 is zero, not a rotation"):
+        validation.residuals(positions, quats, positions, bad)
+
+
 def test_file_errors_are_value_errors_naming_path(tmp_path):
     doc = json.loads(EXAMPLE.read_text())
     doc["corrections"][0]["position_coefficients"].pop()
