@@ -286,6 +286,11 @@ PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported) 
   out.iterations = run.iterations;
   Eigen::Quaterniond q(run.rotation);
   q.normalize();
+  // The matrix fixes the rotation, not the sign of its quaternion, which Eigen's conversion picks
+  // by branch and so flips discontinuously along a smooth path. Keep the report's sign (the
+  // correction is far below 90 degrees): an identity correction returns the report unchanged and a
+  // stream of corrected quaternions stays continuous.
+  if (q.dot(reported.rotation) < 0.0) q.coeffs() *= -1.0;
   out.transmitter_from_receiver = Rigid3d(q, run.p);
   if (!run.converged) return out;
 

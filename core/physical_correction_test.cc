@@ -88,6 +88,34 @@ TEST(PhysicalCorrection, Nominal) {
   EXPECT_GT(max_uncorrected, 0.01);  // the test is not trivially passing
 }
 
+TEST(PhysicalCorrection, KeepsTheReportsQuaternionSign) {
+  // q and -q are one rotation, but a stream of quaternions is read component by component
+  // (filters, interpolation, numpy): the correction must not flip the sign it was given. The
+  // rotation matrix of the inverse, turned back into a quaternion, has a sign of its own that
+  // changes discontinuously with the rotation (measured: 5 of 8 reports with w < 0 came back
+  // negated in free space, where the correction is the identity).
+  const PhysicalCorrection free_space(FieldModel{}, Eigen::Matrix3d::Identity());
+  const FieldModel field = RoomField();
+  const PhysicalCorrection room(field, SkewedGain());
+  for (int i = 0; i < 50; ++i) {
+    Eigen::Quaterniond q = testing::RandomRotation(TestRng());
+    if (i % 2 == 0) q.coeffs() *= -1.0;  // both signs of every kind of rotation
+    const Rigid3d reported(q, Eigen::Vector3d(0.3, -0.2, 0.5));
+    const CorrectedPose identity = free_space.Apply(reported);
+    ASSERT_EQ(identity.status, CorrectionStatus::kConverged);
+    // Free space: the report is the true pose; the rotation round-trips through a matrix
+    // (rounding ~1e-16 per component).
+    EXPECT_LT((identity.pose.rotation.coeffs() - q.coeffs()).norm(), 1e-12) << i;
+    // A room's correction is a few degrees: the corrected quaternion stays on the report's side.
+    const Rigid3d room_report = NoiseFreeReport(RandomTruePose(), field, SkewedGain());
+    Rigid3d flipped = room_report;
+    flipped.rotation.coeffs() *= -1.0;
+    for (const Rigid3d& r : {room_report, flipped}) {
+      EXPECT_GT(room.Apply(r).pose.rotation.dot(r.rotation), 0.9) << i;
+    }
+  }
+}
+
 TEST(PhysicalCorrection, AgreesWithFixedPointInverse) {
   const FieldModel field = RoomField();
   const PhysicalCorrection correction(field, SkewedGain());
