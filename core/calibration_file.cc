@@ -34,6 +34,13 @@ const std::vector<std::string>& CalibrationKeyOrder() {
 
 bool IsScalar(const nlohmann::json& v) { return !v.is_object() && !v.is_array(); }
 
+// A scalar or key as JSON text. Strings that are not valid UTF-8 (a file name or command line in a
+// legacy 8-bit encoding: Linux paths are bytes) get U+FFFD for each bad byte instead of throwing
+// nlohmann's type_error, which would lose the calibration at the very end of a fit.
+std::string Dump(const nlohmann::json& v) {
+  return v.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
+}
+
 bool IsFlatArray(const nlohmann::json& v) {
   if (!v.is_array()) return false;
   for (const auto& e : v) {
@@ -47,7 +54,7 @@ void Format(const nlohmann::json& v, const std::vector<std::string>& key_order, 
   const std::string pad(static_cast<size_t>(indent + 2), ' ');
   const std::string close_pad(static_cast<size_t>(indent), ' ');
   if (IsScalar(v)) {
-    *out += v.dump();
+    *out += Dump(v);
   } else if (v.is_array()) {
     if (v.empty()) {
       *out += "[]";
@@ -55,7 +62,7 @@ void Format(const nlohmann::json& v, const std::vector<std::string>& key_order, 
       *out += "[";
       for (size_t i = 0; i < v.size(); ++i) {
         if (i) *out += ", ";
-        *out += v[i].dump();
+        *out += Dump(v[i]);
       }
       *out += "]";
     } else {
@@ -84,7 +91,7 @@ void Format(const nlohmann::json& v, const std::vector<std::string>& key_order, 
     });
     *out += "{\n";
     for (size_t i = 0; i < keys.size(); ++i) {
-      *out += pad + nlohmann::json(keys[i]).dump() + ": ";
+      *out += pad + Dump(nlohmann::json(keys[i])) + ": ";
       Format(v.at(keys[i]), key_order, indent + 2, out);
       *out += i + 1 < keys.size() ? ",\n" : "\n";
     }

@@ -128,6 +128,26 @@ TEST(WriteCalibrationFile, RoundTripIsBitExact) {
             ExampleJson());
 }
 
+TEST(WriteCalibrationFile, WritesStringsThatAreNotUtf8) {
+  // Linux paths are bytes: a capture named in Latin-1 ("caf\xe9.csv") reaches the provenance
+  // through the command line and the inputs. The writer used to throw nlohmann's type_error 316
+  // ("invalid UTF-8 byte at index 17"), not naming the field, after the whole fit; now each bad
+  // byte is written as U+FFFD and the file reads back.
+  Calibration cal = RandomCalibration();
+  cal.description = "lab \xe9";
+  cal.provenance.command_line = "trackcal-fit caf\xe9.csv -o out.json";
+  cal.provenance.inputs[0].path = "caf\xe9.csv";
+  const auto dir = testing::MakeTempDir("calib");
+  const auto path = dir / "out.json";
+  ASSERT_NO_THROW(WriteCalibrationFile(path, cal));
+  const Calibration back = ReadCalibrationFile(path);
+  const std::string replacement = "\xEF\xBF\xBD";  // U+FFFD in UTF-8
+  EXPECT_EQ(back.description, "lab " + replacement);
+  EXPECT_EQ(back.provenance.command_line, "trackcal-fit caf" + replacement + ".csv -o out.json");
+  EXPECT_EQ(back.provenance.inputs[0].path, "caf" + replacement + ".csv");
+  EXPECT_EQ(back.provenance.inputs[0].sha256, cal.provenance.inputs[0].sha256);
+}
+
 TEST(ParseCalibrationJson, RejectsUnknownFormatAndVersion) {
   EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) { j["format"] = "trackcal-capture"; }),
             "calib.json: $.format: unknown format \"trackcal-capture\"; expected "
