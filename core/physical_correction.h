@@ -25,7 +25,7 @@
 // outside every object's sphere (radius |polarisability|^(1/3), x2^(1/3) for a conductor: a
 // receiver cannot sit inside the object) and on the transmitter's side of every plane. The result is
 // therefore finite and bounded for every finite report, with a status:
-// - kNotConverged: no root within the domain in `max_iterations` (the best iterate is returned);
+// - kNotConverged: no root within the domain in `max_iterations` (the last iterate is returned);
 // - kAmbiguous: a root, but the forward map folds there (det dy/dx <= 0), report noise is amplified
 //   more than `max_noise_gain` times, or a second root exists near an object: within about
 //   rho = (2 |alpha| r^4 / |l|^3)^(1/4) of an induced dipole at l the dipole's field gradient
