@@ -1,6 +1,7 @@
 // Runtime corrections: a correction maps a reported pose (transmitter_from_receiver, as the tracker
 // reported it) to a corrected pose. Concrete types: PolynomialCorrection (core/polynomial.h),
-// TrilinearLutCorrection (core/lut.h); fit/ adds physical-model terms through the registry below.
+// TrilinearLutCorrection (core/lut.h), PhysicalCorrection (core/physical_correction.h); other
+// types can be added through the registry below.
 //
 // A CorrectionChain applies its terms in order, each to the output of the previous one, and guards its
 // explicit terms (polynomial, LUT: fits that only interpolate their data) with the calibrated volume:
@@ -179,8 +180,9 @@ class CorrectionChain : public Correction {
 // caller's CheckNoUnknownKeys() rejects the rest, and throw through reader.Fail() on bad values.
 using CorrectionParser = std::function<std::unique_ptr<Correction>(const JsonObjectReader& reader)>;
 
-// Correction types by name. Built-in types (polynomial, trilinear_lut) are registered on first use of
-// Global(); fit/ registers its physical-model terms at start-up, without touching the file reader.
+// Correction types by name. The built-in types (polynomial, trilinear_lut, physical) are registered on
+// first use of Global(), so every reader of calibration files (server, Python) knows them; further
+// types can be registered at start-up without touching the file reader.
 class CorrectionRegistry {
  public:
   static CorrectionRegistry& Global();
