@@ -302,6 +302,9 @@ def test_a_recording_is_paired_on_the_lowest_sensor_whatever_reported_first(tmp_
     assert set(v2.capture.sensor) == {2} and v2.before.position_mm.min() > 300
     with pytest.raises(ValueError, match=r"raw_tracker_stream\.csv: no report of sensor 3 \(have: 1, 2\)"):
         validation.validate_recording(raw, reference, time_offset=0.0, sensor=3)
+    # 1.5 was paired as sensor 1 (int() truncated it) and reported as the sensor asked for.
+    with pytest.raises(ValueError, match=r"sensor 1\.5: must be a whole number"):
+        validation.validate_recording(raw, reference, time_offset=0.0, sensor=1.5)
 
 
 def test_recording_no_device_is_refused_before_anything_is_made(fake_recorders, tmp_path):

@@ -312,3 +312,9 @@ def test_a_degree_that_is_not_whole_and_a_negative_worst_count_are_refused(tmp_p
     with pytest.raises(ValueError, match=r"worst_count -1: must be 0 or more"):
         validation.validate(cap, None, worst_count=-1, analyse_covariates=False)
     assert validation.validate(cap, None, worst_count=0, analyse_covariates=False).worst == []
+    # A fractional count: worst_count=2.5 raised TypeError from a slice, folds=2.5 a TypeError from
+    # inside the fit binding; both name the argument now.
+    with pytest.raises(ValueError, match=r"worst_count 2\.5: must be a whole number"):
+        validation.validate(cap, None, worst_count=2.5, analyse_covariates=False)
+    with pytest.raises(ValueError, match=r"cross-validation folds 2\.5: must be a whole number"):
+        validation.cross_validate(cap, folds=2.5)

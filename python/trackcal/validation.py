@@ -690,6 +690,7 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
     ``corrected_poses`` = (positions (N, 3), quaternions_xyzw (N, 4)), one per station of the
     capture, are corrected poses obtained elsewhere (a server's corrected stream): they are
     validated as they are, and the calibration, if any, only flags the stations outside its volume."""
+    worst_count = _whole_number(worst_count, "worst_count")
     if worst_count < 0:  # the slice [:-1] listed every station but one as the "worst"
         raise ValueError(f"worst_count {worst_count}: must be 0 or more")
     data = capture.subset(capture.set != "reg") if "reg" in capture.sets else capture
@@ -793,7 +794,7 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
         if len(sensors) == 0:
             raise ValueError(f"{raw}: no tracker reports")
         sensor = int(sensors[0])
-    elif int(sensor) not in sensors:
+    elif _whole_number(sensor, "sensor") not in sensors:
         raise ValueError(f"{raw}: no report of sensor {sensor} (have: {', '.join(str(int(s)) for s in sensors)})")
     pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
                    estimate_time_offset=estimate, search_range=search_range, sensor=int(sensor))
@@ -829,16 +830,23 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
 # ---------------------------------------------------------------------------------------------
 # Fits and cross-validation through the fit engine (trackcal.fit, fit/fit_engine.h)
 
-def polynomial_model(degree: int = 3) -> str:
-    """The model file text of the paper's eq. 7 polynomial of the given degree (a whole number: 2.7
-    was truncated to a degree-2 fit without a word)."""
+def _whole_number(value, what: str) -> int:
+    """``value`` as an int when it is a whole number (2.0 is, 2.5, True and "2" are not), else a
+    ValueError naming ``what``: a fraction was silently truncated (a degree 2.7 fitted degree 2) or
+    failed far from the argument (folds=2.5 as a TypeError inside the fit)."""
     try:
-        whole = int(degree) == degree and not isinstance(degree, bool)
+        whole = not isinstance(value, (bool, np.bool_, str, bytes)) and int(value) == value
     except (TypeError, ValueError, OverflowError):
         whole = False
     if not whole:
-        raise ValueError(f"polynomial degree {degree!r}: must be a whole number")
-    return f"terms:\n  - type: polynomial\n    degree: {int(degree)}\n"
+        raise ValueError(f"{what} {value!r}: must be a whole number")
+    return int(value)
+
+
+def polynomial_model(degree: int = 3) -> str:
+    """The model file text of the paper's eq. 7 polynomial of the given degree (a whole number)."""
+    degree = _whole_number(degree, "polynomial degree")
+    return f"terms:\n  - type: polynomial\n    degree: {degree}\n"
 
 
 def _as_calibration_set(capture: PoseCapture) -> PoseCapture:
@@ -864,6 +872,7 @@ def cross_validate(capture: PoseCapture, model=None, folds: int = 5) -> Table1:
     stations of the other folds (fold i mod k). Returns the Table 1 of the held-out corrections,
     its set named by the model ("cross-validation (5-fold, degree-3 polynomial)")."""
     from trackcal.fitting import fit
+    folds = _whole_number(folds, "cross-validation folds")
     if folds < 2:
         raise ValueError(f"cross-validation needs at least 2 folds, got {folds}")
     report = fit(_as_calibration_set(capture), model if model is not None else polynomial_model(3), folds=folds)
