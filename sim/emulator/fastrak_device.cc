@@ -2,9 +2,11 @@
 
 #include <algorithm>
 #include <bit>
+#include <cerrno>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <limits>
 #include <stdexcept>
 
 namespace trackcal::emulator {
@@ -64,8 +66,13 @@ std::vector<std::string> SplitCommas(std::string_view s) {
 bool ParseInt(const std::string& s, int* value) {
   if (s.empty()) return false;
   char* end = nullptr;
+  errno = 0;
   const long v = std::strtol(s.c_str(), &end, 10);
-  if (*end != '\0') return false;
+  // Out of int's range is malformed: a cast would wrap 2^32 + 2 to 2.
+  if (*end != '\0' || errno == ERANGE || v < std::numeric_limits<int>::min() ||
+      v > std::numeric_limits<int>::max()) {
+    return false;
+  }
   *value = static_cast<int>(v);
   return true;
 }

@@ -331,6 +331,22 @@ TEST(FastrakDevice, LineEndingsAndUnknownCommands) {
   EXPECT_EQ(device.commands_ignored(), 6);
 }
 
+// A number beyond int in a line command is malformed, not wrapped: strtol's long was cast to int,
+// so item 4294967298 (2^32 + 2) became item 2 (position), station 4294967297 became station 1 and
+// `l1,4294967296` switched station 1 off, each counted as an accepted command.
+TEST(FastrakDevice, NumbersBeyondIntAreIgnoredNotWrapped) {
+  FastrakDevice device(FastrakDeviceOptions{});
+  device.Receive("O1,2,11,0\r", TranscriptMeasure());
+  ASSERT_EQ(device.commands_ignored(), 0);
+  device.Receive("O1,4294967298\rO4294967297,4\rl1,4294967296\re4294967297,0\r",
+                 TranscriptMeasure());
+  EXPECT_EQ(device.station(1).output_list, (std::vector<int>{2, 11, 0}));
+  EXPECT_TRUE(device.station(1).active);
+  EXPECT_EQ(device.station(1).stylus_function, 1);
+  EXPECT_EQ(device.commands_ignored(), 4);
+  EXPECT_EQ(device.commands_accepted(), 1);
+}
+
 // VRPN's IS900time configuration: `O<s>,2,11,21,0` carries the IS-900 timestamp item 21, so the
 // whole list is ignored and the station keeps its list (2,4,1 after power-up: 29 binary bytes, not
 // the 36 the driver then expects, nor the 32 of 2,11,0); MT and MZ are ignored too.
