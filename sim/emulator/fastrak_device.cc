@@ -219,6 +219,10 @@ std::string FastrakDevice::Receive(std::string_view bytes, const Measure& measur
         } else {
           line_overflow_ = true;
         }
+      } else {
+        // Line noise inside a line, as outside one: dropped, counted and logged.
+        ++commands_ignored_;
+        Log("ignored byte " + Printable(std::string_view(&c, 1)) + " in a line");
       }
       continue;
     }

@@ -347,6 +347,24 @@ TEST(FastrakDevice, NumbersBeyondIntAreIgnoredNotWrapped) {
   EXPECT_EQ(device.commands_accepted(), 1);
 }
 
+// docs/emulator.md: stray control bytes are ignored and counted. Inside a line command they were
+// dropped without a count or a log line; the line itself still works, as outside a line.
+TEST(FastrakDevice, ControlBytesInsideALineAreCounted) {
+  FastrakDevice device(FastrakDeviceOptions{});
+  device.Receive(
+      "O1,2,\x01"
+      "11,\x13"
+      "0\r",
+      TranscriptMeasure());
+  EXPECT_EQ(device.station(1).output_list, (std::vector<int>{2, 11, 0}));
+  EXPECT_EQ(device.commands_ignored(), 2);
+  EXPECT_EQ(device.commands_accepted(), 1);
+  const std::vector<std::string> log = device.TakeLog();
+  ASSERT_EQ(log.size(), 3u);
+  EXPECT_NE(log[0].find("\\x01"), std::string::npos) << log[0];
+  EXPECT_NE(log[1].find("\\x13"), std::string::npos) << log[1];
+}
+
 // VRPN's IS900time configuration: `O<s>,2,11,21,0` carries the IS-900 timestamp item 21, so the
 // whole list is ignored and the station keeps its list (2,4,1 after power-up: 29 binary bytes, not
 // the 36 the driver then expects, nor the 32 of 2,11,0); MT and MZ are ignored too.
