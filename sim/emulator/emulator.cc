@@ -14,6 +14,7 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <limits>
 #include <sstream>
 #include <stdexcept>
 
@@ -27,6 +28,9 @@ constexpr size_t kMaxControlLine = 4096;
 constexpr double kMaxScheduleLagS = 0.1;
 // How late a write may be and still count as back-to-back on the emulated serial line.
 constexpr double kLineSlackS = 0.002;
+// Paced output is written as its bytes complete on the emulated line; the loop wakes when this many
+// more have (0.7 ms at 115200 baud, 8 ms at 9600), like a serial adapter's small transfers.
+constexpr size_t kOutputChunkBytes = 8;
 
 int64_t SteadyNowNs() {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(
@@ -260,6 +264,7 @@ void Emulator::Run() {
     if (!stalled && stall_until_s_ >= 0) {
       stall_until_s_ = -1;
       next_cycle_s_ = now;
+      line_start_pending_ = true;  // what waited goes out at the line rate from now, no burst
       if (power_off_) {
         // Power on: what the host sent meanwhile was never received; power-up state.
         power_off_ = false;
@@ -285,10 +290,9 @@ void Emulator::Run() {
     if (pty_ && !stalled && device_.station(1).stylus_function == 1) {
       wake_at = std::min(wake_at, now + 1.0 / options_.update_rate_hz);
     }
-    const bool line_free = line_busy_until_s_ <= now;
-    if (pty_ && !stalled && !output_queue_.empty() && !line_free) {
-      wake_at = std::min(wake_at, line_busy_until_s_);
-    }
+    const double output_due = NextOutputDue(now);
+    const bool line_free = output_due <= now;
+    if (pty_ && !stalled && !output_queue_.empty()) wake_at = std::min(wake_at, output_due);
     if (stalled) wake_at = std::min(wake_at, stall_until_s_);
     if (reconnect_at_s_ >= 0) wake_at = std::min(wake_at, reconnect_at_s_);
     if (options_.run_seconds > 0) wake_at = std::min(wake_at, options_.run_seconds);
@@ -393,24 +397,45 @@ void Emulator::ReadHost(double now) {
   }
 }
 
+double Emulator::NextOutputDue(double now) const {
+  if (output_queue_.empty()) return std::numeric_limits<double>::infinity();
+  if (options_.baud <= 0 || line_start_pending_) return now;
+  // The next few bytes (or the rest of a short item): one wake-up per chunk, not per byte.
+  const size_t unsent = output_queue_.front().bytes.size() - output_head_sent_;
+  return line_busy_until_s_ + std::min(unsent, kOutputChunkBytes) * 10.0 / options_.baud;
+}
+
 void Emulator::WriteHost(double now) {
   const double seconds_per_byte = options_.baud > 0 ? 10.0 / options_.baud : 0.0;
   while (pty_ && !output_queue_.empty()) {
-    if (line_busy_until_s_ > now) break;  // the wire is still busy with earlier bytes
     const std::string& head = output_queue_.front().bytes;
     const size_t unsent = head.size() - output_head_sent_;
-    ssize_t n = write(pty_->master_fd(), head.data() + output_head_sent_, unsent);
+    // A byte reaches the host when its last bit has: the bytes of an item go out one after the
+    // other from the moment the line is free, never the whole item at the start of its line time.
+    // Output queued a little after the line freed (poll has millisecond resolution) continues the
+    // line's timeline, so the long-run throughput is the line's; a longer idle line starts now.
+    if (line_start_pending_) {
+      if (line_busy_until_s_ < now - kLineSlackS) line_busy_until_s_ = now;
+      line_start_pending_ = false;
+    }
+    size_t due = unsent;
+    if (seconds_per_byte > 0) {
+      const double elapsed = now - line_busy_until_s_;
+      due = elapsed <= 0 ? 0
+                         : std::min(unsent, static_cast<size_t>(elapsed / seconds_per_byte + 1e-9));
+      if (due == 0) break;  // the wire is still busy with the bytes before
+    }
+    ssize_t n = write(pty_->master_fd(), head.data() + output_head_sent_, due);
     if (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK) break;
     if (n <= 0) {
       // The host's input buffer is full (nobody has the port open, or the host stopped reading).
-      // The device does not wait: the item goes over the wire and is lost, as on a real serial
-      // line. Keeping it would hand a host that reopens the port seconds-old records.
-      n = static_cast<ssize_t>(unsent);
-      ++stats_.items_lost;
+      // The device does not wait: the bytes go over the wire and are lost, as on a real serial
+      // line. Keeping them would hand a host that reopens the port seconds-old records.
+      n = static_cast<ssize_t>(due);
+      if (!output_queue_.front().lost) ++stats_.items_lost;
+      output_queue_.front().lost = true;
     }
-    // A wake-up a little late (poll has millisecond resolution) continues the line's timeline, so
-    // the long-run throughput is the line's; a longer idle line starts afresh.
-    line_busy_until_s_ = std::max(line_busy_until_s_, now - kLineSlackS) + n * seconds_per_byte;
+    line_busy_until_s_ += n * seconds_per_byte;
     output_head_sent_ += n;
     output_bytes_ -= n;
     if (output_head_sent_ == head.size()) {
@@ -421,6 +446,7 @@ void Emulator::WriteHost(double now) {
 }
 
 void Emulator::Enqueue(std::string bytes, bool stream_record) {
+  if (output_queue_.empty()) line_start_pending_ = true;  // the line was idle
   output_bytes_ += bytes.size();
   output_queue_.push_back({std::move(bytes), stream_record});
 }

@@ -75,8 +75,9 @@ struct EmulatorOptions {
   // cycle.
   bool divide_rate_among_stations = true;
   // Serial line speed of the device (its I/O select switches), bits per second with 10 bits per
-  // byte (8N1): output leaves at most this fast, one whole item at a time. 0 = unlimited. A pty
-  // ignores the host's speed setting, so this is the only pacing of the line.
+  // byte (8N1): output leaves at most this fast, each byte reaching the host when its last bit
+  // would have. 0 = unlimited. A pty ignores the host's speed setting, so this is the only pacing
+  // of the line.
   int baud = 115200;
   // If set, a symbolic link to the slave device, replaced atomically on reconnect, removed at exit.
   std::string link_path;
@@ -147,6 +148,8 @@ class Emulator {
   void Log(const std::string& message);
   void ReadHost(double now);
   void WriteHost(double now);
+  // When WriteHost has the next bytes to write (now if the line is idle; infinity: nothing queued).
+  double NextOutputDue(double now) const;
   // Hands the stylus switch of station 1 to the device (point/track mode).
   void SampleStylus(double now);
   void StreamRecords(double now);
@@ -172,11 +175,13 @@ class Emulator {
   struct OutputItem {
     std::string bytes;
     bool stream_record = false;  // a continuous-mode record ('c' drops it), not a reply
+    bool lost = false;           // some of its bytes were lost (counted once in items_lost)
   };
   std::deque<OutputItem> output_queue_;
   size_t output_head_sent_ = 0;
   size_t output_bytes_ = 0;
-  double line_busy_until_s_ = 0;  // when the bytes already written have left the emulated wire
+  double line_busy_until_s_ = 0;    // when the last byte written has left the emulated wire
+  bool line_start_pending_ = true;  // output queued on an idle line: its timeline starts afresh
   bool was_continuous_ = false;
   double next_cycle_s_ = 0;
   size_t round_robin_ = 0;

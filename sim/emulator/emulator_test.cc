@@ -188,21 +188,25 @@ std::vector<std::string> StripRecords(std::string* stream, const std::vector<std
   return blocks;
 }
 
-// Reads a record-aligned stream until `count` blocks of unexpected bytes have been seen and
-// followed by 3 whole records (so the last block is complete), or 3 s passed (a loaded machine may
-// delay the fault by far more than its record period). Returns the blocks.
+// Reads a record stream, starting with the record prefix left in *pending by an earlier read (a
+// read may end anywhere in a record, as on a serial line), until `count` blocks of unexpected bytes
+// have been seen and followed by 3 whole records (so the last block is complete), or 3 s passed (a
+// loaded machine may delay the fault by far more than its record period). Returns the blocks and
+// leaves the trailing record prefix in *pending.
 std::vector<std::string> ReadBlocks(SerialClient* client, const std::vector<std::string>& records,
-                                    size_t count) {
-  std::string all;
+                                    size_t count, std::string* pending) {
+  std::string all = *pending;
+  std::string copy;
   std::vector<std::string> blocks;
   const auto t0 = Clock::now();
   while (SecondsSince(t0) < 3.0) {
     all += client->ReadFor(0.05);
-    std::string copy = all;
+    copy = all;
     int n = 0, after = 0;
     blocks = StripRecords(&copy, records, &n, &after);
     if (blocks.size() >= count && after >= 3) break;
   }
+  *pending = copy;
   return blocks;
 }
 
@@ -486,6 +490,37 @@ TEST_F(EmulatorTest, ContinuousWithNoActiveStationIdles) {
   EXPECT_EQ(client.ReadFor(0.1), "");
 }
 
+// A byte reaches the host when its last bit has: at 1200 baud the 55-byte status record takes
+// 55 x 10 / 1200 = 0.458 s on the line. The emulator wrote each reply or record whole at the start
+// of its line time, so the status arrived complete within a few ms of `S` at any baud rate, and a
+// driver whose status timeout or poll interval is shorter than the reply (the reference's 1 s at
+// 300 baud) passed against the emulator and failed on a real unit.
+TEST_F(EmulatorTest, BytesArriveAtTheLineRate) {
+  options_.baud = 1200;
+  options_.device.num_stations = 1;
+  Start();
+  SerialClient client(options_.link_path);
+  ASSERT_TRUE(client.ok());
+  client.Write("c");  // the fixture's power-up state streams
+  client.ReadFor(0.3);
+  client.FlushInput();
+  const auto t0 = Clock::now();
+  client.Write("S");
+  std::vector<std::pair<double, size_t>> arrivals;
+  const std::string reply = client.ReadFor(1.5, &arrivals);
+  ASSERT_EQ(reply.size(), 55u) << reply;
+  EXPECT_EQ(reply.substr(0, 3), "21S");
+  EXPECT_EQ(reply.substr(53), "\r\n");
+  const double line_s = 55 * 10.0 / 1200;
+  // The last byte cannot come earlier than the reply's line time after `S` (10 ms allow for the
+  // clock reads around the write); a loaded host may only make it later.
+  EXPECT_GE(SecondsSince(t0), line_s - 0.01);
+  ASSERT_FALSE(arrivals.empty());
+  EXPECT_GE(arrivals.back().first, line_s - 0.01);
+  // And not all at once: bytes are released as they complete, in chunks of a few ms.
+  EXPECT_GT(arrivals.size(), 2u);
+}
+
 TEST_F(EmulatorTest, StopStreamingKeepsARequestedStatusRecord) {
   // At 9600 baud the line is always busy with ASCII records, so the reply to `S` waits for it.
   // A `c` arriving meanwhile stops the records, not the answer the host already asked for.
@@ -547,18 +582,18 @@ TEST_F(EmulatorTest, GarbageAndTruncatedRecord) {
   ASSERT_TRUE(StripRecords(&stream_, records, &n).empty());
 
   ASSERT_EQ(Control("fault garbage 7"), "ok");
-  std::vector<std::string> blocks = ReadBlocks(&client, records, 1);
+  std::vector<std::string> blocks = ReadBlocks(&client, records, 1, &stream_);
   ASSERT_EQ(blocks.size(), 1u);
   EXPECT_EQ(blocks[0].size(), 7u);
 
   ASSERT_EQ(Control("fault truncate 10"), "ok");
-  blocks = ReadBlocks(&client, records, 1);
+  blocks = ReadBlocks(&client, records, 1, &stream_);
   ASSERT_EQ(blocks.size(), 1u);
   ASSERT_EQ(blocks[0].size(), 10u);
   EXPECT_TRUE(blocks[0] == records[0].substr(0, 10) || blocks[0] == records[1].substr(0, 10));
 
   ASSERT_EQ(Control("fault truncate"), "ok");  // half a record
-  blocks = ReadBlocks(&client, records, 1);
+  blocks = ReadBlocks(&client, records, 1, &stream_);
   ASSERT_EQ(blocks.size(), 1u);
   EXPECT_EQ(blocks[0].size(), 16u);
 }
