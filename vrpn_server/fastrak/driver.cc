@@ -156,6 +156,16 @@ double FastrakTimings::StatusTimeout(int baud) const {
   return std::max(status_timeout_s, 2.0 * kReplyBits / std::max(baud, 1));
 }
 
+double FastrakTimings::RestartSettle(int baud) const {
+  constexpr double kRecordBits = 34.0 * 10.0;  // the longest record of ours, 10 bits a byte
+  return std::max(restart_settle_s, 2.0 * kRecordBits / std::max(baud, 1));
+}
+
+double FastrakTimings::RestartPoll(int baud) const {
+  constexpr double kReplyBits = 55.0 * 10.0;
+  return std::max(restart_poll_s, RestartSettle(baud) + 2.0 * kReplyBits / std::max(baud, 1));
+}
+
 void FastrakTimings::Check() const {
   const std::pair<const char*, double> fields[] = {
       {"settle_after_preamble_s", settle_after_preamble_s},
@@ -637,7 +647,9 @@ class FastrakDriver::Session {
   // After a loss (watchdog, port lost) of a unit this driver had configured, when the probe found
   // no stream: the unit may be back at any moment (a stall, a power cycle, a cable) and answer at
   // once. Ask for its status every restart_poll_s (`c` to stop a stream we cannot parse, a short
-  // settle, flush, `S`) for restart_window_s; at the first valid reply configure it (Configure),
+  // settle, flush, `S`; both longer at low baud rates, RestartPoll/RestartSettle, so that a record
+  // in flight ends before the flush and the whole reply fits in the poll) for restart_window_s; at
+  // the first valid reply configure it (Configure),
   // so reports resume well within 2 s of the unit answering. Without a valid reply in the window:
   // false, and the reference's full reset (with its escalation) follows.
   bool QuickRestart() {
@@ -647,9 +659,10 @@ class FastrakDriver::Session {
     Emit(Severity::kWarning, "asking the tracker for its status (up to " +
                                  FormatSeconds(timings_.restart_window_s) + ") before a full reset");
     while (SteadyClock::now() < end) {
-      const SteadyClock::time_point poll_end = SteadyClock::now() + Seconds(timings_.restart_poll_s);
+      const SteadyClock::time_point poll_end =
+          SteadyClock::now() + Seconds(timings_.RestartPoll(options_.baud));
       Write(kStopContinuous);
-      Sleep(timings_.restart_settle_s);
+      Sleep(timings_.RestartSettle(options_.baud));
       FlushInput();
       Write(kRequestStatus);
       const std::string reply = ReadStatusReply(poll_end);

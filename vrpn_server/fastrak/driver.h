@@ -64,6 +64,12 @@ struct FastrakTimings {
   // status_timeout_s, or twice the 55-byte reply's time on the line if that is longer (1.83 s at
   // 300 baud, where the reference's 1 s never sees the whole reply).
   double StatusTimeout(int baud) const;
+  // The short restart's settle after `c` and its poll interval at `baud`: restart_settle_s, or
+  // twice a 34-byte record's line time if longer (a record in flight when `c` arrives is finished
+  // first); restart_poll_s, or the settle plus twice the status reply's line time if longer (the
+  // reply must fit in a poll: 0.46 s at 1200 baud, 1.83 s at 300, where 0.5 s polls never saw one).
+  double RestartSettle(int baud) const;
+  double RestartPoll(int baud) const;
 };
 
 struct FastrakOptions {

@@ -114,19 +114,23 @@ void ExpectPoses(const std::vector<FastrakReport>& reports) {
 }
 
 struct Fixture {
-  explicit Fixture(const std::string& name) : dir(trackcal::testing::MakeTempDir(name)) {
+  explicit Fixture(const std::string& name, int baud = 115200)
+      : dir(trackcal::testing::MakeTempDir(name)), baud(baud) {
     emulator::EmulatorOptions options;
     options.link_path = (dir / "fastrak").string();
+    options.baud = baud;
     emulator = std::make_unique<emulator::BackgroundEmulator>(
         options, std::make_unique<emulator::StaticPoseSource>(TranscriptPoses()));
   }
   FastrakOptions DriverOptions() const {
     FastrakOptions o;
     o.port = (dir / "fastrak").string();
+    o.baud = baud;
     o.timings = FastrakTimings::Fast();
     return o;
   }
   std::filesystem::path dir;
+  int baud;
   std::unique_ptr<emulator::BackgroundEmulator> emulator;
 };
 
@@ -283,6 +287,41 @@ TEST(FastrakDriverWithEmulator, ReportsResumeWithin2sOfTheDeviceAnswering) {
   EXPECT_GE(stats.quick_restarts, 2u);
   driver.Stop();
   ExpectPoses(collector.reports());
+}
+
+// At 300 baud the status reply takes 1.83 s on the line and a record 1.07 s. The short restart
+// after a loss polled every restart_poll_s (0.5 s) and read the reply only until the next poll, so
+// it never saw a whole one at <= 1200 baud, and its 0.02-0.1 s settle after `c` let the rest of a
+// record in flight precede the reply: every stall became a full reset (quick_restarts 0). Now the
+// settle covers a record and the poll the reply (FastrakTimings::RestartSettle, RestartPoll).
+TEST(FastrakDriverWithEmulator, ShortRestartAtALowBaudRate) {
+  Fixture f("fastrak_emulator", 300);
+  Collector collector;
+  FastrakDriver driver(f.DriverOptions(), collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(3, 30.0));
+  const size_t n = collector.size();
+  f.emulator->Control("fault stall 3");
+  // Watchdog (2 s), probe (1 s), one poll: settle 2.3 s, the reply 1.8 s, then a record 1.1 s.
+  ASSERT_TRUE(WaitUntil([&] { return collector.FirstAfterGap(n, 2.0).has_value(); }, 40.0));
+  const DriverStats stats = driver.stats();
+  driver.Stop();
+  EXPECT_EQ(stats.watchdog_timeouts, 1u);
+  EXPECT_EQ(stats.quick_restarts, 1u);
+  EXPECT_EQ(stats.resets_started, 1u) << "the stall needed a full reset";
+  ExpectPoses(collector.reports());
+}
+
+TEST(FastrakTimings, ShortRestartWaitsCoverARecordAndTheReplyAtTheLineRate) {
+  const FastrakTimings reference = FastrakTimings::Reference();
+  // At 115200 and 9600 baud the configured values hold (a record and a reply take < 0.1 s).
+  EXPECT_EQ(reference.RestartSettle(115200), reference.restart_settle_s);
+  EXPECT_EQ(reference.RestartPoll(115200), reference.restart_poll_s);
+  EXPECT_EQ(reference.RestartSettle(9600), reference.restart_settle_s);
+  EXPECT_EQ(reference.RestartPoll(9600), reference.restart_poll_s);
+  // 1200 baud: two 34-byte records 0.567 s, plus two 55-byte replies 0.917 s.
+  EXPECT_NEAR(reference.RestartSettle(1200), 2 * 340 / 1200.0, 1e-12);
+  EXPECT_NEAR(reference.RestartPoll(1200), (2 * 340 + 2 * 550) / 1200.0, 1e-12);
 }
 
 }  // namespace
