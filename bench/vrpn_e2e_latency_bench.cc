@@ -2,9 +2,10 @@
 // record to its pseudo-terminal, the Fastrak driver reads and parses it, the correction runs, the
 // server sends it, and a VRPN client decodes the Pos_Quat. The emulator's pose source numbers its
 // records in the position (x = 0.1 m + 0.5 mm * (n mod 1200), z = 0.2 m + 0.5 mm * (n / 1200), far
-// coarser than the record's float precision) and notes when each was generated (it is written to
-// the pty at once; a 32-byte record at 115200 baud then keeps the emulated line busy for 2.8 ms,
-// which paces the next one, not this one).
+// coarser than the record's float precision) and notes when each was generated. The emulator runs
+// unpaced (baud 0), so each record is written to the pty at once: the figures are the software
+// path's, without the 2.8 ms a 32-byte record spends on a 115200 baud line (the paced emulator
+// releases a record's bytes as they complete on the line, as a real unit does).
 //
 // The clients run in a separate process (bench/vrpn_bench_clients.h), each with its own thread, as
 // separate client programs would. 4 stations (a Fastrak's 120 records/s shared, 30 Hz each); 1, 8
@@ -158,6 +159,7 @@ int main(int argc, char** argv) {
   NumberedSource* numbered = source.get();
   emulator::EmulatorOptions eo;
   eo.device.num_stations = 4;
+  eo.baud = 0;  // records written whole at once: software latency only (see the top comment)
   emulator::BackgroundEmulator emu(eo, std::move(source));
 
   std::printf("emulator record -> client decode (clients in a separate process), 4 stations x 30 Hz, %.0f s per "
