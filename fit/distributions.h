@@ -5,7 +5,8 @@
 
 namespace trackcal::fit {
 
-// P(F >= f) for F distributed as F(d1, d2) (Snedecor).
+// P(F >= f) for F distributed as F(d1, d2) (Snedecor); 1 for f <= 0 or NaN. Throws
+// std::invalid_argument unless d1 and d2 are finite and > 0.
 double FDistributionUpperTail(double f, double d1, double d2);
 
 // P(chi2_dof > x): the upper tail of the chi-square distribution (regularised incomplete gamma).
