@@ -1339,9 +1339,20 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
     return e;
   }
   double best_p = 2.0;
+  // A block whose sandwich rests on no more clusters than it has coordinates has no test (G <= k):
+  // it was reported as p = 1, "0.0 sigma from its null value", a strength stated to be nil that
+  // was never measured (a degree-2 background's 45 coefficients over 32 runs of stream samples).
+  std::string untestable;
   for (const auto& s : strengths) {
     const std::optional<Wald> w = WaldOfBlock(s.v, s.stddev, s.covariance);
     if (!w) continue;
+    if (e.strength_clusters > 0 && e.strength_clusters <= w->dof) {
+      if (untestable.empty()) {
+        untestable = s.what + " (" + std::to_string(w->dof) + " coordinates over " +
+                     std::to_string(e.strength_clusters) + " clusters: too few for a test)";
+      }
+      continue;
+    }
     const double p = e.strength_clusters > 0
                          ? HotellingUpperTail(w->chi2, w->dof, e.strength_clusters)
                          : ChiSquareUpperTail(w->chi2, w->dof);
@@ -1354,7 +1365,8 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
   }
   if (best_p > 1.0) {
     e.strength_ok = false;
-    e.strength_what = strengths.front().what + " (no standard deviation)";
+    e.strength_what =
+        untestable.empty() ? strengths.front().what + " (no standard deviation)" : untestable;
   } else {
     e.strength_p = std::min(1.0, best_p * static_cast<double>(strengths.size()));  // Bonferroni
     // Far in the tail p underflows: the deviate of a 1-dof statistic, sqrt(chi2), is then a floor.

@@ -154,8 +154,9 @@ struct PhysicalEvidence {
 // `num_clusters`: the sandwich covariance's clusters G (FitResult::covariance_clusters), whose
 // k x k block covariances rest on G - 1 degrees of freedom: a block's Wald statistic W is then
 // referred to Hotelling's T^2, W (G - k) / ((G - 1) k) ~ F(k, G - k), not to chi-square(k), which
-// would be optimistic with few clusters (32 runs of stream samples); G <= k: no test. 0: the
-// model covariance, chi-square.
+// would be optimistic with few clusters (32 runs of stream samples); G <= k: no test (the block
+// is skipped; when no block can be tested, strength_sigma stays NaN, strength_ok is false and
+// strength_what says why). 0: the model covariance, chi-square.
 PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
                                         const std::vector<ParameterReport>& blocks,
                                         const std::vector<Eigen::Vector3d>& volume_points,

@@ -1094,6 +1094,13 @@ TEST(AssessPhysicalEvidence, TheJointTestUsesTheBlockCovariance) {
   const auto six = AssessPhysicalEvidence("receiver_gain", {Report("gain_matrix", g, sd, cov)}, {},
                                           3.0, 1.0, 0.1, /*num_clusters=*/6);
   EXPECT_FALSE(six.supported()) << six.Describe();
+  // G <= k is no test, not a strength at its null value: it was p = 1, "0.0 sigma".
+  EXPECT_FALSE(std::isfinite(six.strength_sigma)) << six.Describe();
+  EXPECT_FALSE(six.strength_ok);
+  EXPECT_THAT(six.Describe(), ::testing::HasSubstr("too few for a test"));
+  EXPECT_THAT(six.Describe(), ::testing::HasSubstr("strength not tested"));
+  EXPECT_THAT(six.Describe(), ::testing::Not(::testing::HasSubstr("0.0 sigma")));
+  EXPECT_TRUE(six.ToJson()["strength"]["sigma"].is_null());
 }
 
 TEST(AssessPhysicalEvidence, AReceiverTurnedAsAWholeIsNotAGainEffect) {
