@@ -134,6 +134,16 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
   auto calib = StationsOfSet(poses, "calib");
   const auto valid = StationsOfSet(poses, "valid");
   if (calib.empty()) throw std::invalid_argument(data.source + ": no stations with set 'calib'");
+  // Refused before the fit, not after it (CrossValidate would refuse the same).
+  const size_t fit_stations =
+      data.stream_stations.empty() ? calib.size() : data.stream_stations.size();
+  if (options.folds >= 2 && (options.cross_validate_with_validation_set || valid.empty()) &&
+      fit_stations < static_cast<size_t>(options.folds)) {
+    throw std::invalid_argument(data.source + ": " + std::to_string(fit_stations) +
+                                " calibration stations cannot be split into " +
+                                std::to_string(options.folds) +
+                                " cross-validation folds (give fewer folds)");
+  }
 
   FitOptions fit_options;
   fit_options.start = options.start.get();
