@@ -668,7 +668,8 @@ int RunRegister(int argc, char** argv) {
                  "write the poses anyway.\n";
     return 3;
   }
-  const auto extracted = ExtractPoses(stations, registration.registration, extraction_options);
+  const auto extracted =
+      ExtractPoses(stations, registration.registration, extraction_options, markers_path.string());
   PoseCapture poses;
   std::vector<int> left_out;
   for (size_t i = 0; i < stations.size(); ++i) {

@@ -51,7 +51,8 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
     const auto it = registration.marker_in_receiver.find(m.marker);
     if (it == registration.marker_in_receiver.end()) {
       throw std::invalid_argument(where + std::to_string(m.marker) +
-                                  ": marker id not in the registration");
+                                  ": marker id not in the registration (no registration station "
+                                  "saw it: a marker of another body, or a mislabelled one)");
     }
     if (!seen.insert(m.marker).second) {
       throw std::invalid_argument(where + std::to_string(m.marker) + ": measured twice");
@@ -168,11 +169,25 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
 
 std::vector<ExtractedPose> ExtractPoses(const std::vector<RegistrationStation>& stations,
                                         const OpticalRegistration& registration,
-                                        const PoseExtractionOptions& options) {
+                                        const PoseExtractionOptions& options,
+                                        const std::string& source) {
   std::vector<ExtractedPose> poses;
   poses.reserve(stations.size());
   for (const RegistrationStation& s : stations) {
-    poses.push_back(ExtractPose(s.station, s.markers, registration, options));
+    for (const MarkerObservation& m : s.markers) {
+      if (source.empty() || registration.marker_in_receiver.count(m.marker)) continue;
+      throw std::invalid_argument(
+          source + (m.line > 0 ? ":" + std::to_string(m.line) : "") + ": column marker: station " +
+          std::to_string(s.station) + ", marker " + std::to_string(m.marker) +
+          ": marker id not in the registration (no registration station saw it: a marker of "
+          "another body, or a mislabelled one)");
+    }
+    try {
+      poses.push_back(ExtractPose(s.station, s.markers, registration, options));
+    } catch (const std::invalid_argument& e) {
+      if (source.empty()) throw;
+      throw std::invalid_argument(source + ": " + e.what());
+    }
   }
   return poses;
 }

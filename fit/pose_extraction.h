@@ -64,9 +64,11 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
                           const OpticalRegistration& registration,
                           const PoseExtractionOptions& options = {});
 
-// ExtractPose for every registration-style station (the tracker reading is not used).
+// ExtractPose for every registration-style station (the tracker reading is not used). `source`
+// (the markers file, when known) prefixes ExtractPose's errors.
 std::vector<ExtractedPose> ExtractPoses(const std::vector<RegistrationStation>& stations,
                                         const OpticalRegistration& registration,
-                                        const PoseExtractionOptions& options = {});
+                                        const PoseExtractionOptions& options = {},
+                                        const std::string& source = "");
 
 }  // namespace trackcal::fit

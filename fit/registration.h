@@ -42,6 +42,7 @@ namespace trackcal::fit {
 struct MarkerObservation {
   int marker = 0;                                               // marker id (markers.csv "marker")
   Eigen::Vector3d marker_in_optical = Eigen::Vector3d::Zero();  // [m], optical frame
+  int line = 0;  // line of markers.csv it was read from (0: made in memory), for messages
 };
 
 // One registration station: the tracker reading and the markers seen at the same receiver pose.

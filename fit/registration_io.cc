@@ -57,7 +57,7 @@ std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& ma
                                   ": column marker: marker " + std::to_string(m.marker) +
                                   " appears twice at station " + std::to_string(m.station));
     }
-    it->second.markers.push_back({m.marker, m.position_in_optical});
+    it->second.markers.push_back({m.marker, m.position_in_optical, m.line});
   }
   std::vector<RegistrationStation> out;
   out.reserve(stations.size());

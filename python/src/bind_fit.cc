@@ -704,7 +704,8 @@ void BindFit(py::module_& m) {
           run->registration = fit::RegisterOpticalToTransmitter(registering, options);
           fit::PoseExtractionOptions extraction;
           extraction.optical_noise_m = optical_noise_m;
-          run->extracted = fit::ExtractPoses(stations, run->registration.registration, extraction);
+          run->extracted = fit::ExtractPoses(stations, run->registration.registration, extraction,
+                                             markers_path.string());
           for (size_t i = 0; i < stations.size(); ++i) {
             fit::PoseRecordOptions one_options = record_options;
             if (labelled) one_options.set = set_of[stations[i].station];

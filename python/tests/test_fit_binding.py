@@ -376,3 +376,20 @@ def test_stream_folder_with_free_time_offset_matches_the_command_line(capture_di
     assert report.time_offset_s == pytest.approx(cli["time_offset_s"], rel=1e-9)
     # Stream samples: the sandwich over 32 runs in time (docs/fit.md, "Standard deviations").
     assert report.covariance_clusters == 32 and "32 clusters" in report.covariance_estimator
+
+
+def test_register_names_the_line_of_a_marker_the_registration_never_saw(capture_dir, tmp_path):
+    """A calibration station's marker that no registration station saw (another body's, or a
+    mislabelled one) stopped the extraction with a message naming neither file nor line."""
+    lines = (capture_dir / "markers.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    reg = {int(r.split(",")[0]) for r in (capture_dir / "poses.csv").read_text().splitlines()[1:]
+           if r.split(",")[1] == "reg"}
+    at = next(i for i, r in enumerate(lines[1:], start=1) if int(r.split(",")[0]) not in reg)
+    stray = lines[at].split(",")
+    stray[header.index("marker")] = "99"
+    lines.insert(at + 1, ",".join(stray))
+    (tmp_path / "stray.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=rf"stray\.csv:{at + 2}: column marker: station {stray[0]}, marker 99: "
+                                         r"marker id not in the registration"):
+        trackcal.register(tmp_path / "stray.csv", capture_dir / "tracker.csv", poses=capture_dir / "poses.csv")
