@@ -170,6 +170,34 @@ TEST_F(FitCliTest, AmbiguousOptionsAreUsageErrors) {
   EXPECT_FALSE(fs::exists(a));
 }
 
+// More folds than calibration stations: the fit ran to its end and the cross-validation refused
+// the folds only then (minutes on a large model), naming neither the data nor the remedy.
+TEST_F(FitCliTest, MoreFoldsThanStationsAreRefusedBeforeTheFit) {
+  std::ifstream in(dir_ / "cap" / "poses.csv");
+  std::ofstream few(dir_ / "few.csv");
+  std::string line;
+  std::getline(in, line);
+  few << line << "\n";
+  int kept = 0;
+  while (kept < 12 && std::getline(in, line)) {
+    if (line.find(",calib,") == std::string::npos) continue;
+    few << line << "\n";
+    ++kept;
+  }
+  few.close();
+  ASSERT_EQ(kept, 12);
+  std::ofstream(dir_ / "linear.yaml") << "terms:\n  - type: polynomial\n    degree: 1\n";
+  const fs::path err = dir_ / "err.txt", out = dir_ / "out.json";
+  EXPECT_EQ(RunCommand(fit_ + " fit --data " + (dir_ / "few.csv").string() + " --model " +
+                       (dir_ / "linear.yaml").string() + " --folds 20 -o " + out.string() +
+                       " --quiet 2> " + err.string()),
+            1);
+  const std::string text = ReadFileToString(err);
+  EXPECT_THAT(text, ::testing::HasSubstr("few.csv: 12 calibration stations cannot be split into "
+                                         "20 cross-validation folds"));
+  EXPECT_FALSE(fs::exists(out));
+}
+
 // --start: a fit of a model with an added term starts at a previous fit's optimum (its --json
 // document), so its first cost is that fit's final cost; a file that is not one is refused by name.
 TEST_F(FitCliTest, StartFromAPreviousFit) {
@@ -524,6 +552,43 @@ TEST_F(FitCliTest, RegisterPairsTheReceiverThatCarriesTheMarkers) {
   EXPECT_EQ(registered.records.size(), labels.records.size());
   for (const PoseRecord& r : registered.records) EXPECT_EQ(r.sensor, 2);
   EXPECT_EQ(RunCommand(base + " --sensor 0 -o " + (dir_ / "y.csv").string() + " 2> /dev/null"), 2);
+}
+
+// A marker no registration station saw (another body's, or mislabelled) at a calibration station
+// stopped the extraction with "station N, marker M: marker id not in the registration", naming
+// neither the file nor its line.
+TEST_F(FitCliTest, RegisterNamesTheLineOfAMarkerTheRegistrationNeverSaw) {
+  std::set<int> reg_stations;
+  int calib_station = 0;
+  for (const PoseRecord& r : ReadPoses(dir_ / "cap" / "poses.csv").records) {
+    if (r.set == "reg") reg_stations.insert(r.station);
+    if (r.set == "calib" && calib_station == 0) calib_station = r.station;
+  }
+  ASSERT_NE(calib_station, 0);
+  MarkerCapture markers = ReadMarkers(dir_ / "cap" / "markers.csv");
+  MarkerRecord stray = markers.records.back();
+  for (const MarkerRecord& m : markers.records) {
+    if (m.station == calib_station) stray = m;
+  }
+  stray.marker = 99;
+  // Inserted after the station's last row, so its line is that row's + 1 (+1 for the header).
+  size_t at = 0;
+  for (size_t i = 0; i < markers.records.size(); ++i) {
+    if (markers.records[i].station == calib_station) at = i + 1;
+  }
+  markers.records.insert(markers.records.begin() + static_cast<std::ptrdiff_t>(at), stray);
+  WriteMarkers(dir_ / "stray.csv", markers);
+  const fs::path err = dir_ / "err.txt", out = dir_ / "stray_poses.csv";
+  EXPECT_EQ(RunCommand(fit_ + " register --markers " + (dir_ / "stray.csv").string() +
+                       " --tracker " + (dir_ / "cap" / "tracker.csv").string() + " --poses " +
+                       (dir_ / "cap" / "poses.csv").string() + " -o " + out.string() +
+                       " --quiet 2> " + err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("stray.csv:" + std::to_string(at + 2) +
+                                   ": column marker: station " + std::to_string(calib_station) +
+                                   ", marker 99: marker id not in the registration"));
+  EXPECT_FALSE(fs::exists(out));
 }
 
 TEST_F(FitCliTest, RegisterWithPosesLabelsAndFlagsTheDistortion) {
