@@ -1,0 +1,37 @@
+"""The examples of docs/model-file.md that users copy, checked against the code that reads them (as
+core/calibration_file_test.cc checks the calibration file's example)."""
+
+import re
+from pathlib import Path
+
+import pytest
+
+import trackcal
+
+MODEL_FILE_MD = Path(__file__).resolve().parents[2] / "docs" / "model-file.md"
+
+
+def fenced_blocks(text, language):
+    return re.findall(r"^```" + language + r"\n(.*?)^```$", text, flags=re.M | re.S)
+
+
+def test_model_file_reference_example_parses():
+    """The reference example at the top lists every key; each must be one the parser accepts."""
+    blocks = fenced_blocks(MODEL_FILE_MD.read_text(), "yaml")
+    assert blocks, "docs/model-file.md has no yaml example"
+    info = trackcal._core.parse_model(blocks[0])
+    assert info["terms"] == ["physical", "polynomial", "local"]  # one physical chain; the lut is named
+
+
+def test_adding_a_term_type_registers_a_name_that_is_free():
+    """The snippet of "Adding a term type" registered "dipole", a built-in type: copied, it throws
+    (TermRegistry::Register refuses a taken name). Its type name must be one the parser does not
+    know yet."""
+    text = MODEL_FILE_MD.read_text()
+    section = text[text.index("## Adding a term type"):]
+    snippet = fenced_blocks(section, "cpp")[0]
+    match = re.search(r'Register\("([^"]+)"', snippet)
+    assert match, snippet
+    name = match.group(1)
+    with pytest.raises(ValueError, match=f"unknown term type '{name}'"):
+        trackcal._core.parse_model(f"terms:\n  - type: {name}\n")
