@@ -540,13 +540,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="trackcal", description="Validate, diagnose and report tracker calibrations.")
     sub = p.add_subparsers(dest="command", required=True)
 
-    def common(sp, covariates=True):
+    def common(sp, covariates=True, model=True):
         sp.add_argument("capture", help="capture folder (poses.csv; or tracker_stream.csv + reference_stream.csv, "
                                         "paired; or markers.csv + tracker.csv, registered) or a poses.csv")
         sp.add_argument("-c", "--calibration", help="calibration file (docs/calibration-file.md)")
+        # validate has no --model: its cross-validation always refits the paper's polynomial.
         sp.add_argument("--cross-validate", type=int, default=0, metavar="K",
-                        help="also K-fold cross-validate a model with the fit engine (--model, else "
-                             "the paper's degree-3 polynomial)")
+                        help="also K-fold cross-validate a model with the fit engine ("
+                             + ("--model, else " if model else "") + "the paper's degree-3 polynomial)")
         sp.add_argument("--time-offset", type=float, default=None, metavar="S",
                         help="streams: pair at this clock offset t_reference - t_tracker [s] (default: the "
                              "model fit's or the calibration's, else estimated)")
@@ -562,7 +563,7 @@ def build_parser() -> argparse.ArgumentParser:
             sp.add_argument("--seed", type=int, default=0)
 
     sp = sub.add_parser("validate", help="Table 1 before/after for the calibration and validation sets")
-    common(sp, covariates=False)
+    common(sp, covariates=False, model=False)
     sp.add_argument("--json", action="store_true",
                     help="print one JSON document (tables, outside-volume stations, capture origin) instead of text")
     sp.add_argument("--workdir", help="record this calibration's scores in WORKDIR/history.jsonl (not the "
