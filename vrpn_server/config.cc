@@ -233,7 +233,7 @@ class Parser {
         WarnIgnoredTokens(tokens, 5, where, "the baud rate and option");
       } else {
         Fail(where, "option",
-             "unexpected token '" + option + "' (only IS900time may follow the baud rate)");
+             "unexpected token '" + option + "' (only IS900time, \\ or / may follow the baud rate)");
       }
     }
     RegisterName(spec.name, where, "name");

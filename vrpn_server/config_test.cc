@@ -242,7 +242,9 @@ TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
       {"\nvrpn_Tracker_Fastrak T /dev/ttyS0 12345\n", "lab.cfg:2: field 'baud': 12345 is not a supported"},
       {"vrpn_Tracker_Fastrak T /dev/ttyS0 fast\n", "lab.cfg:1: field 'baud': expected an integer"},
       {"vrpn_Tracker_Fastrak T /dev/ttyS0\n", "lab.cfg:1: field 'baud': missing"},
-      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 IS600\n", "lab.cfg:1: field 'option'"},
+      {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 IS600\n",
+       "lab.cfg:1: field 'option': unexpected token 'IS600' (only IS900time, \\ or / may follow "
+       "the baud rate)"},
       {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 \\\n*x\n", "lab.cfg:2: field 'sleep'"},
       {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 \\\n", "lab.cfg:1: field 'extra commands'"},
       {"vrpn_Tracker_Fastrak T /dev/ttyS0 115200 /\n# c\nFTStylus S 4\n", "lab.cfg:3: field 'sensor'"},
