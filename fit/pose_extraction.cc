@@ -39,6 +39,11 @@ const char* PoseStatusName(PoseStatus status) {
   return "unknown";
 }
 
+// Why a marker id is unknown to the registration, as both errors below say it.
+constexpr char kUnknownMarker[] =
+    ": marker id not in the registration (no registration station saw it: a marker of another "
+    "body, or a mislabelled one)";
+
 ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& markers,
                           const OpticalRegistration& registration,
                           const PoseExtractionOptions& options) {
@@ -50,9 +55,7 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
   for (const MarkerObservation& m : markers) {
     const auto it = registration.marker_in_receiver.find(m.marker);
     if (it == registration.marker_in_receiver.end()) {
-      throw std::invalid_argument(where + std::to_string(m.marker) +
-                                  ": marker id not in the registration (no registration station "
-                                  "saw it: a marker of another body, or a mislabelled one)");
+      throw std::invalid_argument(where + std::to_string(m.marker) + kUnknownMarker);
     }
     if (!seen.insert(m.marker).second) {
       throw std::invalid_argument(where + std::to_string(m.marker) + ": measured twice");
@@ -176,11 +179,9 @@ std::vector<ExtractedPose> ExtractPoses(const std::vector<RegistrationStation>& 
   for (const RegistrationStation& s : stations) {
     for (const MarkerObservation& m : s.markers) {
       if (source.empty() || registration.marker_in_receiver.count(m.marker)) continue;
-      throw std::invalid_argument(
-          source + (m.line > 0 ? ":" + std::to_string(m.line) : "") + ": column marker: station " +
-          std::to_string(s.station) + ", marker " + std::to_string(m.marker) +
-          ": marker id not in the registration (no registration station saw it: a marker of "
-          "another body, or a mislabelled one)");
+      throw std::invalid_argument(source + (m.line > 0 ? ":" + std::to_string(m.line) : "") +
+                                  ": column marker: station " + std::to_string(s.station) +
+                                  ", marker " + std::to_string(m.marker) + kUnknownMarker);
     }
     try {
       poses.push_back(ExtractPose(s.station, s.markers, registration, options));
