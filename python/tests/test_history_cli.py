@@ -553,3 +553,37 @@ def test_report_without_covariates_does_not_call_them_clean(tmp_path):
     verdict = page.split("<h2>Verdict</h2>", 1)[1].split("</p>", 1)[0]
     assert "in the covariates" not in verdict, verdict
     assert "covariates not tested" in verdict, verdict
+
+
+def test_history_plot_of_an_empty_history_is_an_error(tmp_path, capsys):
+    """`trackcal history W --plot P` with no fits recorded exited 0 without writing P: a script that
+    asked for the figure found it missing only later."""
+    from trackcal import cli
+    work = tmp_path / "work"
+    work.mkdir()
+    plot = tmp_path / "h.png"
+    assert cli.main(["history", str(work), "--plot", str(plot)]) == 2
+    err = capsys.readouterr().err
+    assert f"--plot {plot}: not written" in err and "no fits recorded" in err, err
+    assert not plot.exists()
+    assert cli.main(["history", str(work)]) == 0  # the table alone: an empty history is no error
+    assert "no fits recorded" in capsys.readouterr().out
+
+
+def test_validate_workdir_without_calibration_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
+    """`validate CAPTURE --workdir W` without -c was refused only after the validation and its
+    covariate tests (minutes on a real capture)."""
+    from trackcal import cli
+    cap_dir = simulate(tmp_path / "capture", seed=45)
+    called = []
+
+    def validate(*args, **kwargs):
+        called.append(args)
+        raise AssertionError("the validation ran")
+    import trackcal.validation as tv
+    monkeypatch.setattr(tv, "validate", validate)
+    assert cli.main(["validate", str(cap_dir), "--workdir", str(tmp_path / "work")]) == 2
+    err = capsys.readouterr().err
+    assert "--workdir records a fit: give its calibration with -c" in err, err
+    assert not called
+    assert not (tmp_path / "work" / "history.jsonl").exists()

@@ -486,6 +486,9 @@ def cmd_history(args, term) -> int:
     from trackcal.history import history_table, load_history
     entries = load_history(args.workdir)
     if not entries:
+        if args.plot:  # a script that asked for the figure must not find it missing after exit 0
+            raise ValueError(f"--plot {args.plot}: not written: {args.workdir}: no fits recorded "
+                             "(history.jsonl)")
         print(f"{args.workdir}: no fits recorded (history.jsonl)")
         return 0
     print(history_table(entries))
@@ -640,6 +643,9 @@ def _check_args(args) -> None:
         raise ValueError(f"--top {args.top}: must be 0 or more")
     if args.command == "record" and not (args.duration > 0 and math.isfinite(args.duration)):
         raise ValueError(f"--duration {args.duration}: must be a positive number of seconds")
+    if args.command == "validate" and args.workdir and not args.calibration:
+        # Refused after the covariate tests (minutes) otherwise: a history records a calibration.
+        raise ValueError("--workdir records a fit: give its calibration with -c")
     if args.command == "history" and not pathlib.Path(args.workdir).is_dir():
         # A mistyped folder is not an empty history.
         raise ValueError(f"{args.workdir}: no such work folder")
