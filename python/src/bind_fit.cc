@@ -72,7 +72,9 @@ fs::path ToPath(const py::handle& obj) {
 }
 
 // A model given as a path or as YAML text: a path object is a path; a string is a path when it
-// names an existing file or looks like a file name, YAML text when it has a newline or a colon.
+// names an existing file or looks like a file name, YAML text when it has a newline, a mapping's
+// "key: " or starts a flow mapping '{'. A colon alone ("C:/models/m.yaml", "run:2/m.yaml") is no
+// mapping in YAML: such a missing file is reported as missing, not as a malformed model.
 struct ModelSource {
   std::string text;
   std::string source_name;       // file name or "<string>" for errors
@@ -84,8 +86,10 @@ ModelSource ResolveModel(const py::handle& model) {
   if (py::isinstance<py::str>(model)) {
     const std::string s = model.cast<std::string>();
     std::error_code ec;
+    const size_t first = s.find_first_not_of(" \t");
     const bool looks_like_text =
-        s.find('\n') != std::string::npos || s.find(':') != std::string::npos;
+        s.find('\n') != std::string::npos || s.find(": ") != std::string::npos ||
+        (!s.empty() && s.back() == ':') || (first != std::string::npos && s[first] == '{');
     if (!(looks_like_text && !fs::is_regular_file(s, ec))) out.path = fs::path(s);
     if (!out.path) {
       out.text = s;

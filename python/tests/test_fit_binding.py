@@ -137,6 +137,13 @@ def test_user_errors_name_file_line_and_field(capture_dir, tmp_path):
         trackcal.fit(capture_dir, "terms:\n  - type: nonsense\n")
     with pytest.raises(ValueError, match="missing.yaml"):
         trackcal.fit(capture_dir, tmp_path / "missing.yaml")
+    # A colon in a path is no YAML mapping: the missing file is named, not "must be a mapping".
+    with pytest.raises(ValueError, match=r"run:2/missing\.yaml"):
+        trackcal.fit(capture_dir, str(tmp_path / "run:2" / "missing.yaml"))
+    # One-line YAML and JSON texts stay texts.
+    one_line = trackcal.fit(capture_dir, '{"terms": [{"type": "polynomial", "degree": 1}]}')
+    assert one_line.model["source"] == "<string>"
+    assert trackcal.fit(capture_dir, '{"terms":[{"type":"polynomial","degree":1}]}').model["source"] == "<string>"
     with pytest.raises(ValueError, match="folds"):
         trackcal.fit(capture_dir, MODEL, folds=1)
     broken = tmp_path / "poses.csv"
