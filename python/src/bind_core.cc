@@ -208,8 +208,15 @@ void BindCore(py::module_& m) {
       "Angle in radians between two rotations given as x, y, z, w quaternions; q and -q are equal. "
       "ValueError for a zero or non-finite quaternion.");
 
-  m.def("num_polynomial_terms", &NumPolynomialTerms, py::arg("degree"),
-        "Number of terms (r+1)(r+2)(r+3)/6 of a complete degree-r polynomial in x, y, z.");
+  m.def(
+      "num_polynomial_terms",
+      [](int degree) {
+        CheckPolynomialDegree(degree);  // -5 gave -4 terms; the other polynomial calls refuse it
+        return NumPolynomialTerms(degree);
+      },
+      py::arg("degree"),
+      "Number of terms (r+1)(r+2)(r+3)/6 of a complete degree-r polynomial in x, y, z; ValueError "
+      "for a degree outside [0, 12].");
   m.def(
       "polynomial_term_exponents",
       [](int degree) {

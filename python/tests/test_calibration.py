@@ -241,6 +241,9 @@ def test_term_exponents_match_reference_order():
         np.testing.assert_array_equal(trackcal.polynomial_term_exponents(r),
                                       numpy_reference.term_exponents(r))
         assert trackcal.num_polynomial_terms(r) == (r + 1) * (r + 2) * (r + 3) // 6
+    for bad in (-1, -5, 13):  # -5 gave -4 terms: the degrees polynomial_term_exponents refuses
+        with pytest.raises(ValueError, match="degree must be in"):
+            trackcal.num_polynomial_terms(bad)
 
 
 def test_lut_exact_at_nodes_and_flags_outside_grid():
