@@ -3,6 +3,7 @@
 #include <stdexcept>
 
 #include "core/calibration_file.h"
+#include "core/capture.h"
 
 namespace trackcal::vrpn {
 namespace {
@@ -38,6 +39,13 @@ std::shared_ptr<const PoseCorrector> LoadCalibrationCorrector(
     } catch (const std::invalid_argument& e) {
       throw std::invalid_argument(path.string() + ": " + e.what() +
                                   (fade_distance ? "" : " (give fade_distance=<metres>)"));
+    }
+    if (fade_distance && volume.extrapolation != ExtrapolationPolicy::kFade) {
+      // Otherwise ignored without a word: the lab believes the correction fades out.
+      throw std::invalid_argument(
+          path.string() + ": fade_distance=" + FormatNumber(*fade_distance) +
+          " has no effect: outside the calibrated volume is '" +
+          ExtrapolationPolicyName(volume.extrapolation) + "' (add outside=fade)");
     }
     calibration.chain.SetVolume(volume);
   }

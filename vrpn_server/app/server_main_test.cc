@@ -258,6 +258,36 @@ TEST(TrackcalServerMain, OutsideFadeUsesTheConfiguredFadeDistance) {
   server.Wait();
 }
 
+// fade_distance=<metres> only acts with outside=fade (given, or the file's own policy); with any
+// other policy it was ignored without a word, and the lab believed the correction faded out.
+TEST(TrackcalServerMain, FadeDistanceWithoutFadeIsRefusedNamingTheLine) {
+  const auto dir = testing::MakeTempDir("server_main_fade_distance");
+  WriteOffsetCalibration(dir / "calib.json", Eigen::Vector3d(0.1, 0, 0),
+                         Eigen::Vector3d(0.1, -1, -1));  // written with outside = clamp
+  const auto start = [&](const std::string& options) {
+    ConfigSetup setup =
+        SetupFromConfig(ParseVrpnConfig("vrpn_Tracker_NULL T 1 60\ntrackcal_Calibration T " +
+                                            (dir / "calib.json").string() + options + "\n",
+                                        "vrpn.cfg"),
+                        "127.0.0.1:3883");
+    try {
+      TrackcalServerApp app(std::move(setup.trackers), AppOptions{}, LoadCalibrationCorrector);
+    } catch (const std::invalid_argument& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  const std::string refused = start(" fade_distance=0.2");
+  EXPECT_NE(refused.find("vrpn.cfg:2: calibration of 'T'"), std::string::npos) << refused;
+  EXPECT_NE(refused.find("fade_distance=0.2 has no effect: outside the calibrated volume is "
+                         "'clamp' (add outside=fade)"),
+            std::string::npos)
+      << refused;
+  EXPECT_NE(start(" outside=linear fade_distance=0.2").find("is 'linear'"), std::string::npos);
+  EXPECT_EQ(start(" outside=fade fade_distance=0.2"), "no error");
+  EXPECT_EQ(start(""), "no error");
+}
+
 TEST(TrackcalServerMain, BindTakesAHostNameAsVrpnServersNicDoes) {
   // vrpn_server -NIC takes an interface's name as well as its address; a lab's start script with
   // `-NIC localhost` (or the host's own name) refused to start.
