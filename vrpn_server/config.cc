@@ -167,6 +167,9 @@ class Parser {
   void RegisterName(const std::string& name, const ConfigLocation& where, std::string_view field,
                     std::string_view hint = {}) {
     if (name.empty()) Fail(where, field, "empty device name");
+    if (name.size() > 95) {  // the longest name a VRPN description carries; refused at start-up
+      Fail(where, field, "device name '" + name + "' is over 95 characters");  // without a line
+    }
     const auto [it, inserted] = names_.emplace(name, NameUse{where, std::nullopt});
     if (!inserted) {
       Fail(where, field,
