@@ -109,6 +109,15 @@ py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quater
   const DoubleArray quaternions =
       AsArray(quaternions_obj, "quaternions_xyzw", {n, 4},
               " (N = " + std::to_string(n) + " rows like positions, columns x, y, z, w)");
+  // A zero quaternion is no orientation: it came back zero, with status converged. NaN rows
+  // (dropped samples) still give NaN out, as numpy does.
+  for (py::ssize_t i = 0; i < n; ++i) {
+    const double* q = quaternions.data() + 4 * i;
+    if (q[0] == 0.0 && q[1] == 0.0 && q[2] == 0.0 && q[3] == 0.0) {
+      throw py::value_error("quaternions_xyzw: row " + std::to_string(i) +
+                            " is zero, not a rotation");
+    }
+  }
   py::array_t<double> out_positions({n, py::ssize_t{3}});
   py::array_t<double> out_quaternions({n, py::ssize_t{4}});
   py::array_t<bool> extrapolated(n);

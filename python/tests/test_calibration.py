@@ -146,6 +146,23 @@ def test_error_magnitudes_refuse_a_zero_quaternion():
         validation.residuals(positions, quats, positions, bad)
 
 
+def test_correct_refuses_a_zero_quaternion():
+    """Calibration.correct and Correction.correct of a zero quaternion returned a zero quaternion
+    with status converged; NaN rows (dropped samples) still pass through as NaN."""
+    cal = trackcal.Calibration.load(EXAMPLE)
+    rng = np.random.default_rng(6)
+    positions, quats = random_poses(rng, 3)
+    bad = quats.copy()
+    bad[1] = 0.0
+    for target in (cal, cal.corrections[0]):
+        with pytest.raises(ValueError, match=r"quaternions_xyzw: row 1 is zero, not a rotation"):
+            target.correct(positions, bad, return_status=True)
+    nan = quats.copy()
+    nan[1] = np.nan
+    _, q, _ = cal.correct(positions, nan)
+    assert np.isnan(q[1]).all() and np.isfinite(q[[0, 2]]).all()
+
+
 def test_file_errors_are_value_errors_naming_path(tmp_path):
     doc = json.loads(EXAMPLE.read_text())
     doc["corrections"][0]["position_coefficients"].pop()
