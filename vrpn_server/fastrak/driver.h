@@ -61,8 +61,8 @@ struct FastrakTimings {
   static FastrakTimings Fast();
   // Throws std::invalid_argument naming the field.
   void Check() const;
-  // status_timeout_s, or twice the 55-byte reply's time on the line if that is longer (1.83 s at
-  // 300 baud, where the reference's 1 s never sees the whole reply).
+  // status_timeout_s, or twice the 55-byte reply's time on the line if that is longer (the reply
+  // takes 1.83 s at 300 baud, so 3.67 s there, where the reference's 1 s never sees it whole).
   double StatusTimeout(int baud) const;
   // The short restart's settle after `c` and its poll interval at `baud`: restart_settle_s, or
   // twice a 34-byte record's line time if longer (a record in flight when `c` arrives is finished
