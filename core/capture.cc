@@ -66,9 +66,22 @@ class CsvTable {
   // captures' poses.csv apart).
   CsvTable(const std::filesystem::path& path, const std::vector<std::string>& required)
       : name_(path.string()) {
+    // A folder opens as a stream on Linux and then fails to read with a library message that names
+    // no file ("basic_filebuf::underflow error reading the file: Is a directory"): say which path
+    // (a capture folder given where its file was meant, `--markers DIR`).
+    std::error_code ec;
+    if (std::filesystem::is_directory(path, ec)) {
+      throw std::runtime_error(path.string() + ": is a folder, not a CSV file");
+    }
     std::ifstream file(path, std::ios::binary);
     if (!file) throw std::runtime_error(path.string() + ": cannot open file");
-    std::string text((std::istreambuf_iterator<char>(file)), std::istreambuf_iterator<char>());
+    std::string text;
+    try {
+      text.assign(std::istreambuf_iterator<char>(file), std::istreambuf_iterator<char>());
+    } catch (const std::exception& e) {
+      throw std::runtime_error(path.string() + ": cannot read file: " + e.what());
+    }
+    if (file.bad()) throw std::runtime_error(path.string() + ": cannot read file");
     // Old Mac spreadsheets end lines with CR alone: read as lines, not as one header line whose
     // "columns" repeat.
     if (text.find('\n') == std::string::npos) std::replace(text.begin(), text.end(), '\r', '\n');

@@ -235,6 +235,26 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
             "poses.csv:1: column station: appears twice in the header");
 }
 
+TEST(CaptureReaders, FolderInsteadOfFileIsAnErrorNamingIt) {
+  // A capture folder given where one of its files was meant (trackcal-fit register --markers DIR):
+  // the folder opens as a stream and failed to read with the library's "basic_filebuf::underflow
+  // error reading the file: Is a directory", naming no file.
+  const auto dir = MakeTempDir("capture_test");
+  std::filesystem::create_directory(dir / "capA");
+  const std::vector<std::function<void()>> readers = {
+      [&] { ReadPoses(dir / "capA"); }, [&] { ReadMarkers(dir / "capA"); },
+      [&] { ReadTracker(dir / "capA"); }, [&] { ReadTrackerStream(dir / "capA"); },
+      [&] { ReadReferenceStream(dir / "capA"); }};
+  for (const auto& read : readers) {
+    try {
+      read();
+      ADD_FAILURE() << "a folder was read as a file";
+    } catch (const std::runtime_error& e) {
+      EXPECT_EQ(std::string(e.what()), (dir / "capA").string() + ": is a folder, not a CSV file");
+    }
+  }
+}
+
 TEST(PosesCsv, RepeatedStationAndSensorIsAnErrorNamingBothLines) {
   const auto dir = MakeTempDir("capture_test");
   const std::string header = kPosesHeader;
