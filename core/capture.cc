@@ -49,8 +49,45 @@ std::vector<std::string> Split(const std::string& line) {
 bool ParsesAsNumber(const std::string& s, double* value) {
   // from_chars takes no leading '+'; skip one, but not before a sign ("+-1" is no number).
   const char* begin = s.data() + (s.size() > 1 && s[0] == '+' && s[1] != '-' ? 1 : 0);
-  const auto [end, ec] = std::from_chars(begin, s.data() + s.size(), *value);
-  return !s.empty() && ec == std::errc() && end == s.data() + s.size();
+  const char* const last = s.data() + s.size();
+  const auto [end, ec] = std::from_chars(begin, last, *value);
+  if (s.empty() || end != last) return false;
+  if (ec == std::errc()) return true;
+  if (ec != std::errc::result_out_of_range) return false;
+  // A number beyond a double's range ("1e999", "1e-400"): from_chars leaves the value unset, and
+  // the field was called no number at all ("'1e999' is not a number"; in an extra column, a
+  // label). Read it as strtod and Python do: infinite beyond the largest double (a standard column
+  // then says "not a finite number"), zero below the smallest. Out of range, its magnitude is
+  // beyond 1 exactly when its decimal exponent (of the first significant digit) is not negative.
+  const bool negative = *begin == '-';
+  const char* p = begin + (negative ? 1 : 0);
+  long integer_digits = 0;  // of the mantissa before the point, leading zeros left out
+  long fraction_zeros = 0;  // zeros after the point before the first significant digit
+  bool significant = false, after_point = false;
+  for (; p != last && *p != 'e' && *p != 'E'; ++p) {
+    if (*p == '.') {
+      after_point = true;
+    } else if (!after_point) {
+      if (*p != '0' || significant) ++integer_digits;
+      significant |= *p != '0';
+    } else if (!significant) {
+      if (*p == '0') ++fraction_zeros;
+      significant = *p != '0';
+    }
+  }
+  const long exponent = integer_digits > 0 ? integer_digits - 1 : -(fraction_zeros + 1);
+  long written = 0;  // the explicit exponent, saturated (it can have any number of digits)
+  if (p != last) {
+    ++p;
+    const bool minus = *p == '-';
+    if (*p == '-' || *p == '+') ++p;
+    for (; p != last; ++p) written = std::min(written * 10 + (*p - '0'), 100000L);
+    if (minus) written = -written;
+  }
+  const double magnitude =
+      significant && exponent + written >= 0 ? std::numeric_limits<double>::infinity() : 0.0;
+  *value = negative ? -magnitude : magnitude;
+  return true;
 }
 
 // A missing extra value: an empty field or nan.

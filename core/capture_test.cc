@@ -216,6 +216,21 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
             "poses.csv:2: column time: '+-0.5' is not a number");
   WriteText(path, header + "1,calib,1,+0.5,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n");
   EXPECT_EQ(ReadPoses(path).records[0].time, 0.5);
+  // A number beyond a double's range is a number (it was "'1e999' is not a number", and in an
+  // extra column a label): too large is infinite, too small is zero, as strtod and Python read it.
+  EXPECT_EQ(error_for(header + "1,calib,1,1e999,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:2: column time: '1e999' is not a finite number");
+  EXPECT_EQ(
+      error_for(header + "1,calib,1,0,0.1,0.2,-12345e99999999999,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+      "poses.csv:2: column rep_z: '-12345e99999999999' is not a finite number");
+  EXPECT_EQ(error_for(header.substr(0, header.size() - 1) + ",temp\n" +
+                      "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,21.5\n" +
+                      "2,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,1e999\n"),
+            "poses.csv:3: column temp: '1e999' is not a finite number");
+  WriteText(path, header + "1,calib,1,1e-400,-0.000001e-999,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n");
+  EXPECT_EQ(ReadPoses(path).records[0].time, 0.0);
+  EXPECT_EQ(ReadPoses(path).records[0].reported.translation.x(), 0.0);
+  EXPECT_TRUE(std::signbit(ReadPoses(path).records[0].reported.translation.x()));
   EXPECT_EQ(error_for("station,set\n1,calib\n"),
             "poses.csv:1: column sensor: missing from the header");
   EXPECT_EQ(error_for(""), "poses.csv:1: empty file, expected a header");
