@@ -119,6 +119,10 @@ class CsvTable {
       throw std::runtime_error(path.string() + ": cannot read file: " + e.what());
     }
     if (file.bad()) throw std::runtime_error(path.string() + ": cannot read file");
+    // A UTF-8 byte order mark (spreadsheet exports) opens the file, not the header line: removed
+    // from the line it sat on, a blank line after it was read as a header whose one column had no
+    // name.
+    if (text.rfind("\xEF\xBB\xBF", 0) == 0) text.erase(0, 3);
     // Old Mac spreadsheets end lines with CR alone: read as lines, not as one header line whose
     // "columns" repeat.
     if (text.find('\n') == std::string::npos) std::replace(text.begin(), text.end(), '\r', '\n');
@@ -136,8 +140,6 @@ class CsvTable {
       }
       if (Trim(line).empty()) continue;
       if (!have_header) {
-        // A UTF-8 byte order mark (spreadsheet exports) is not part of the first column's name.
-        if (line.rfind("\xEF\xBB\xBF", 0) == 0) line.erase(0, 3);
         header_line_ = line_number;
         header_ = Split(line);
         have_header = true;

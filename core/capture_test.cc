@@ -110,6 +110,13 @@ TEST(PosesCsv, ColumnsByNameInAnyOrderWithExtras) {
   // A spreadsheet's byte order mark before the header is ignored.
   WriteText(dir / "bom.csv", "\xEF\xBB\xBF" + ReadText(dir / "poses.csv"));
   EXPECT_EQ(ReadPoses(dir / "bom.csv").records.size(), 1u);
+  // Also before blank lines (a sheet whose first row is empty): the header is the first non-empty
+  // line, the mark is not a line of its own. It was read as a header of one unnamed column.
+  WriteText(dir / "bom_blank.csv", "\xEF\xBB\xBF\r\n\r\n" + ReadText(dir / "poses.csv"));
+  EXPECT_EQ(ReadPoses(dir / "bom_blank.csv").records.size(), 1u);
+  WriteText(dir / "bom_only.csv", "\xEF\xBB\xBF\n");
+  EXPECT_EQ(ErrorOf([&] { ReadPoses(dir / "bom_only.csv"); }),
+            "bom_only.csv:1: empty file, expected a header");
   // Old Mac spreadsheets end lines with CR alone; a bare CR inside a line is refused, naming it.
   std::string cr_only = ReadText(dir / "poses.csv");
   cr_only.erase(std::remove(cr_only.begin(), cr_only.end(), '\n'), cr_only.end());
