@@ -10,7 +10,8 @@ replace_atomically: files trackcal owns and rewrites (history.jsonl, a report, i
 the caller has decided the target may be replaced: a reader sees the old or the new file, never
 half of one.
 
-Both give the file the mode any new file gets under the umask (mkstemp makes it owner-only).
+Both give the file the mode any new file gets under the umask (mkstemp makes it owner-only),
+without changing the process's umask.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from __future__ import annotations
 import errno
 import os
 import pathlib
-import tempfile
+import secrets
 
 # link() errors that mean the file system has no hard links (FAT, some network and FUSE mounts).
 _NO_HARD_LINKS = {errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EMLINK}
@@ -49,14 +50,23 @@ def write_new(path, data: bytes, exists_message: str = "exists; refusing to over
 
 
 def _synced_temporary(path: pathlib.Path, data: bytes) -> str:
-    """Name of a new temporary file next to ``path`` holding ``data``, synced, with the mode the
-    umask gives any new file (mkstemp makes it owner-only)."""
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", dir=path.parent)
+    """Name of a new temporary file ".<name>.tmp-XXXXXX" next to ``path`` holding ``data``, synced,
+    with the mode the umask gives any new file. Created as core/file_util.cc creates its own, by
+    open(O_CREAT | O_EXCL, 0o666): mkstemp's 0600 had to be widened with the umask, read by setting
+    it to 0 and back, which is process-wide: a file another thread created meanwhile (a C++ writer
+    running without the GIL) was world-writable."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    for _ in range(100):
+        tmp = str(path.parent / f".{path.name}.tmp-{secrets.token_hex(4)}")
+        try:
+            fd = os.open(tmp, flags, 0o666)
+            break
+        except FileExistsError:
+            continue
+    else:
+        raise FileExistsError(errno.EEXIST, "no free temporary name", str(path.parent / f".{path.name}.tmp-*"))
     try:
         with os.fdopen(fd, "wb") as f:
-            umask = os.umask(0)
-            os.umask(umask)
-            os.fchmod(f.fileno(), 0o666 & ~umask)
             f.write(data)
             f.flush()
             os.fsync(f.fileno())

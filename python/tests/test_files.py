@@ -1,0 +1,58 @@
+"""trackcal._files: the atomic writers of every Python output."""
+
+import os
+import stat
+import threading
+
+import pytest
+
+from trackcal import _files
+
+
+def test_writers_give_the_umask_mode_without_changing_the_process_umask(tmp_path, monkeypatch):
+    """The umask can only be read by setting it: the writers set it to 0 and back for every file,
+    and a file any other thread of the process created meanwhile (a C++ writer running without the
+    GIL) was world-writable. They now create their temporary file as open(O_CREAT | O_EXCL, 0o666)
+    does any file, and never touch the umask."""
+    calls = []
+    real_umask = os.umask
+    monkeypatch.setattr(os, "umask", lambda mask: calls.append(mask) or real_umask(mask))
+    old = real_umask(0o027)
+    try:
+        new = _files.write_new(tmp_path / "new.csv", b"a\n")
+        replaced = _files.replace_atomically(tmp_path / "report.html", b"b\n")
+        _files.replace_atomically(replaced, b"c\n")
+        current = real_umask(0o027)
+    finally:
+        real_umask(old)
+    assert calls == [], f"the process umask was set to {calls} while writing"
+    assert current == 0o027
+    assert stat.S_IMODE(new.stat().st_mode) == 0o640
+    assert stat.S_IMODE(replaced.stat().st_mode) == 0o640
+    assert new.read_bytes() == b"a\n" and replaced.read_bytes() == b"c\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new.csv", "report.html"]  # no temporaries
+
+
+def test_write_new_never_replaces_and_leaves_no_temporary(tmp_path):
+    target = tmp_path / "poses.csv"
+    target.write_bytes(b"precious")
+    with pytest.raises(ValueError, match=r"poses\.csv: exists; refusing to overwrite it"):
+        _files.write_new(target, b"other")
+    assert target.read_bytes() == b"precious"
+    assert [p.name for p in tmp_path.iterdir()] == ["poses.csv"]
+    # Many writers at once: one wins, the others are refused, no temporary is left.
+    errors = []
+
+    def write(i):
+        try:
+            _files.write_new(tmp_path / "race.csv", str(i).encode())
+        except ValueError as e:
+            errors.append(str(e))
+
+    threads = [threading.Thread(target=write, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(errors) == 7
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv", "race.csv"]
