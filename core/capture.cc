@@ -499,52 +499,6 @@ std::string FormatNumber(double value) {
   return std::string(buf.data(), end);
 }
 
-void WriteFileAtomically(const std::filesystem::path& path, const std::string& contents,
-                         bool overwrite) {
-  namespace fs = std::filesystem;
-  if (!overwrite && fs::exists(path)) {
-    throw std::runtime_error(path.string() + ": exists; refusing to overwrite it");
-  }
-  const fs::path dir = path.has_parent_path() ? path.parent_path() : fs::path(".");
-  // Hidden temporary name next to the target, so the final rename stays on one file system; it
-  // gets the permissions of any new file.
-  std::string tmpl;
-  const int fd = CreateTemporaryFileBeside(path, &tmpl);
-  if (fd < 0)
-    throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string());
-  size_t written = 0;
-  while (written < contents.size()) {
-    const ssize_t n = ::write(fd, contents.data() + written, contents.size() - written);
-    if (n <= 0) {
-      ::close(fd);
-      ::unlink(tmpl.c_str());
-      throw std::runtime_error(path.string() + ": write failed");
-    }
-    written += static_cast<size_t>(n);
-  }
-  const bool synced = ::fsync(fd) == 0;
-  ::close(fd);
-  if (!synced) {
-    ::unlink(tmpl.c_str());
-    throw std::runtime_error(path.string() + ": fsync failed");
-  }
-  if (overwrite) {
-    if (std::rename(tmpl.c_str(), path.c_str()) != 0) {
-      ::unlink(tmpl.c_str());
-      throw std::runtime_error(path.string() + ": cannot rename the temporary file into place");
-    }
-    return;
-  }
-  // link() fails if the target exists, so a file that appeared meanwhile is never replaced.
-  const int rc = ::link(tmpl.c_str(), path.c_str());
-  ::unlink(tmpl.c_str());
-  if (rc != 0) {
-    throw std::runtime_error(path.string() + (errno == EEXIST
-                                                  ? ": exists; refusing to overwrite it"
-                                                  : ": cannot move the temporary file into place"));
-  }
-}
-
 PoseCapture ReadPoses(const std::filesystem::path& path) {
   CsvTable t(path, kPoseColumns);
   PoseCapture c;

@@ -24,6 +24,7 @@
 #include <string>
 #include <vector>
 
+#include "core/file_util.h"  // WriteFileAtomically, used with the writers below
 #include "core/pose.h"
 
 namespace trackcal {
@@ -129,11 +130,6 @@ void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& 
                         const CaptureWriteOptions& options = {});
 void WriteReferenceStream(const std::filesystem::path& path, const ReferenceStream& capture,
                           const CaptureWriteOptions& options = {});
-
-// Writes `contents` to `path` atomically (temporary file in the same folder, then rename or link);
-// without overwrite, fails with std::runtime_error if `path` exists, even if it appears meanwhile.
-void WriteFileAtomically(const std::filesystem::path& path, const std::string& contents,
-                         bool overwrite);
 
 // Shortest decimal text that reads back to exactly `value`.
 std::string FormatNumber(double value);

@@ -105,7 +105,13 @@ bool CreateTemporaryFolderBeside(const std::filesystem::path& path, std::string*
                       [](const std::string& name) { return ::mkdir(name.c_str(), 0777); }) >= 0;
 }
 
-void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents) {
+void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents,
+                         bool overwrite) {
+  static constexpr char kExists[] = ": exists; refusing to overwrite it";
+  std::error_code ec;
+  if (!overwrite && std::filesystem::exists(std::filesystem::symlink_status(path, ec))) {
+    throw std::runtime_error(path.string() + kExists);  // before the work of writing it
+  }
   const std::filesystem::path dir =
       path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
   std::string temp;
@@ -128,12 +134,26 @@ void WriteFileAtomically(const std::filesystem::path& path, std::string_view con
   if (::close(guard.ReleaseFd()) != 0) {
     throw std::runtime_error(path.string() + ": close failed: " + ErrnoText());
   }
-  if (::rename(temp.c_str(), path.c_str()) != 0) {
-    throw std::runtime_error(path.string() + ": cannot rename the temporary file into place: " +
-                             ErrnoText());
+  if (overwrite) {
+    if (::rename(temp.c_str(), path.c_str()) != 0) {
+      throw std::runtime_error(path.string() +
+                               ": cannot rename the temporary file into place: " + ErrnoText());
+    }
+    guard.Release();
+  } else if (::link(temp.c_str(), path.c_str()) != 0) {  // the guard removes the temporary
+    const int error = errno;
+    if (error == EEXIST) throw std::runtime_error(path.string() + kExists);
+    if (error == EPERM || error == EOPNOTSUPP || error == ENOSYS || error == EMLINK) {
+      throw std::runtime_error(path.string() + ": not written: the file system of " + dir.string() +
+                               " has no hard links (" + std::strerror(error) +
+                               "), which trackcal needs to write a file without risking replacing "
+                               "another; write it to another folder");
+    }
+    throw std::runtime_error(
+        path.string() + ": cannot link the temporary file into place: " + std::strerror(error));
   }
-  guard.Release();
-  // Persist the rename itself; failure here does not lose data, so it is not an error.
+  // The link made: the guard unlinks the temporary name, the file stays under `path`.
+  // Persist the rename or link itself; failure here does not lose data, so it is not an error.
   const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY);
   if (dir_fd >= 0) {
     ::fsync(dir_fd);

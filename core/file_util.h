@@ -14,11 +14,16 @@ namespace trackcal {
 // Reads a whole file; throws std::invalid_argument naming the path if it cannot be read.
 std::string ReadFileToString(const std::filesystem::path& path);
 
-// Writes `contents` to `path` atomically: a temporary file in the same directory is written, fsync'ed
-// and renamed over `path`, then the directory is fsync'ed. Readers see either the old or the new file.
-// The new file gets mode 0666 minus the umask. Throws std::runtime_error naming the path on failure
-// (the temporary file is removed).
-void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents);
+// Writes `contents` to `path` atomically: a temporary file in the same directory is written and
+// fsync'ed, then renamed over `path` (overwrite) or hard-linked to it (no overwrite: link() fails
+// if `path` exists, even if it appeared meanwhile, so nothing is ever replaced), then the directory
+// is fsync'ed. Readers see either the old or the new file. The new file gets mode 0666 minus the
+// umask. Throws std::runtime_error naming the path and the cause on failure (the temporary file is
+// removed); without overwrite, "<path>: exists; refusing to overwrite it" for an existing file, and
+// a message saying so on a file system without hard links (FAT): no fallback could guarantee that
+// nothing is replaced.
+void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents,
+                         bool overwrite = true);
 
 // Creates a new, empty file "<folder of path>/.<file name of path>.tmp-XXXXXX" (X random) for
 // writing, with mode 0666 minus the umask as open() gives any new file. Returns its descriptor and

@@ -117,14 +117,15 @@ TEST(WriteFileAtomically, LeavesTheUmaskAloneForOtherThreads) {
   if (::mkdtemp(shm.data()) == nullptr) GTEST_SKIP() << "no /dev/shm";
   const std::filesystem::path dir = shm;
   const mode_t old_mask = ::umask(022);
-  for (const bool capture_writer : {false, true}) {
+  for (const bool replace : {true, false}) {
     std::atomic<bool> done{false};
     std::thread writer([&] {
       for (int i = 0; i < 20000; ++i) {
-        if (capture_writer) {
-          WriteFileAtomically(dir / "out.txt", std::string("x"), /*overwrite=*/true);
-        } else {
+        if (replace) {
           WriteFileAtomically(dir / "out.txt", "x");
+        } else {  // as the capture writers write: a new file, linked into place
+          WriteFileAtomically(dir / "new.txt", "x", /*overwrite=*/false);
+          std::filesystem::remove(dir / "new.txt");
         }
       }
       done = true;
@@ -143,12 +144,42 @@ TEST(WriteFileAtomically, LeavesTheUmaskAloneForOtherThreads) {
     }
     writer.join();
     EXPECT_EQ(wrong, 0) << "of " << probes << " files created while writing"
-                        << (capture_writer ? " captures" : "");
+                        << (replace ? "" : " new files");
     EXPECT_EQ(std::filesystem::status(dir / "out.txt").permissions(),
               static_cast<std::filesystem::perms>(0644));
   }
   ::umask(old_mask);
   std::filesystem::remove_all(dir);
+}
+
+TEST(WriteFileAtomically, WithoutOverwriteNeverReplacesAndLeavesNoTemporary) {
+  const auto dir = testing::MakeTempDir("atomic_new");
+  const auto path = dir / "poses.csv";
+  WriteFileAtomically(path, "mine", /*overwrite=*/false);
+  EXPECT_EQ(ReadFileToString(path), "mine");
+  try {
+    WriteFileAtomically(path, "other", /*overwrite=*/false);
+    FAIL() << "expected an exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_EQ(std::string(e.what()), path.string() + ": exists; refusing to overwrite it");
+  }
+  EXPECT_EQ(ReadFileToString(path), "mine");
+  // A dangling symbolic link is a name in use too: writing through it could create its target.
+  std::filesystem::create_symlink(dir / "elsewhere.csv", dir / "link.csv");
+  EXPECT_THROW(WriteFileAtomically(dir / "link.csv", "x", /*overwrite=*/false), std::runtime_error);
+  EXPECT_FALSE(std::filesystem::exists(dir / "elsewhere.csv"));
+  int count = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
+    EXPECT_EQ(entry.path().filename().string().find(".tmp-"), std::string::npos) << entry.path();
+    ++count;
+  }
+  EXPECT_EQ(count, 2);
+  // Linked, not renamed: the file got the umask's mode as the replacing writer's does.
+  struct stat st;
+  ASSERT_EQ(::stat(path.c_str(), &st), 0);
+  const mode_t mask = ::umask(0);
+  ::umask(mask);
+  EXPECT_EQ(st.st_mode & 0777, 0666 & ~mask);
 }
 
 TEST(WriteFileAtomically, MissingDirectoryThrowsNamingPath) {
