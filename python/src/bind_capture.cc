@@ -87,9 +87,13 @@ py::dict StreamToDict(const CaptureTable<Record>& c, const PoseOf& pose_of) {
   return d;
 }
 
-// Reads an (N, 3) and an (N, 4) array into poses; ValueError naming the arrays otherwise.
+// Reads an (N, 3) and an (N, 4) array into poses; ValueError naming the arrays otherwise. A
+// quaternion within 1e-12 of unit is kept bit for bit (a loaded stream saves as it was read: it
+// was normalised, changing last digits); one further than the readers' 1e-3 is normalised only
+// with `normalize_any`, else kept for the writer to refuse naming its record (any norm, (0, 0, 0,
+// 2), was written as a rotation).
 std::vector<Rigid3d> ToPoses(const py::handle& positions_obj, const py::handle& quaternions_obj,
-                             const std::string& name) {
+                             const std::string& name, bool normalize_any = true) {
   const DoubleArray p = DoubleArray::ensure(positions_obj);
   const DoubleArray q = DoubleArray::ensure(quaternions_obj);
   if (!p || !q || p.ndim() != 2 || p.shape(1) != 3 || q.ndim() != 2 || q.shape(1) != 4 ||
@@ -100,7 +104,11 @@ std::vector<Rigid3d> ToPoses(const py::handle& positions_obj, const py::handle& 
   std::vector<Rigid3d> poses(p.shape(0));
   for (py::ssize_t i = 0; i < p.shape(0); ++i) {
     poses[i].translation = Eigen::Vector3d(p.at(i, 0), p.at(i, 1), p.at(i, 2));
-    poses[i].rotation = QuaternionFromXyzw(q.at(i, 0), q.at(i, 1), q.at(i, 2), q.at(i, 3)).normalized();
+    Eigen::Quaterniond rotation =
+        QuaternionFromXyzw(q.at(i, 0), q.at(i, 1), q.at(i, 2), q.at(i, 3));
+    const double off = std::abs(rotation.norm() - 1.0);
+    if (off > 1e-12 && (normalize_any || off <= 1e-3)) rotation.normalize();
+    poses[i].rotation = rotation;
   }
   return poses;
 }
@@ -207,7 +215,8 @@ void BindCapture(py::module_& m) {
          const py::handle& sensor_obj, const py::handle& positions, const py::handle& quaternions,
          bool overwrite, const std::vector<std::string>& extra_columns, const py::handle& extra_obj,
          const std::map<std::string, std::vector<std::string>>& extra_labels) {
-        const std::vector<Rigid3d> poses = ToPoses(positions, quaternions, "write_tracker_stream");
+        const std::vector<Rigid3d> poses = ToPoses(positions, quaternions, "write_tracker_stream",
+                                                   /*normalize_any=*/false);
         const py::ssize_t n = static_cast<py::ssize_t>(poses.size());
         const DoubleArray time = DoubleArray::ensure(time_obj);
         // Read as numbers and checked: the int cast truncated a sensor of 1.7 to 1.

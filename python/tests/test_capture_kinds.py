@@ -166,6 +166,30 @@ def test_saved_tracker_stream_keeps_its_extra_columns_and_refuses_a_fractional_s
     assert not (tmp_path / "bad.csv").exists()
 
 
+def test_saved_tracker_stream_keeps_quaternions_bit_for_bit_and_refuses_a_non_unit_one(tmp_path):
+    """save_tracker_stream normalised every quaternion, so a loaded stream saved back changed in the
+    last digits, and it wrote any norm ((0, 0, 0, 2)) as a rotation where the C++ writer and the
+    readers refuse one further than 1e-3 from unit."""
+    original = tmp_path / "in.csv"
+    # The first row's norm is 0.9999999999999999 (a normalised random rotation): kept as read; the
+    # second is 5e-6 from unit, within the readers' tolerance, and normalised by the reader.
+    text = ("time,sensor,x,y,z,qw,qx,qy,qz\n"
+            "0,1,0.1,0.2,0.3,-0.8078898754434873,0.21424427007839494,0.5093606231982167,"
+            "0.20485384406841473\n"
+            "0.01,1,0.1,0.2,0.3,0.5,0.5,0.5,0.50001\n")
+    original.write_text(text)
+    stream = captures.load_tracker_stream(original)
+    out = tmp_path / "out.csv"
+    captures.save_tracker_stream(out, stream)
+    np.testing.assert_array_equal(captures.load_tracker_stream(out).quaternions_xyzw,
+                                  stream.quaternions_xyzw)
+    assert out.read_text().splitlines()[1] == text.splitlines()[1]
+    stream.quaternions_xyzw = np.array([[0.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match=r"bad\.csv: record 0: columns qw, qx, qy, qz: quaternion norm 2 is not 1"):
+        captures.save_tracker_stream(tmp_path / "bad.csv", stream)
+    assert not (tmp_path / "bad.csv").exists()
+
+
 def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     _, streams, cal = sim
     r = run_cli("validate", streams, "-c", cal)
