@@ -503,3 +503,49 @@ def test_serving_from_a_relative_work_folder_finds_the_calibration(tmp_path, mon
     # the server, which then logs the port's "error condition" while it stops.)
     assert "cannot open" not in log, log
     assert "Tracker0: correction " + str((tmp_path / work / "cal.json")) in log, log
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("the job started its work before refusing the option")
+
+
+@pytest.mark.parametrize("argv,name", [
+    (["--folds", "1"], "--folds 1"),
+    (["--folds", "0", "--no-serve"], "--folds 0"),
+    (["--cross-validate-top", "-1"], "--cross-validate-top -1"),
+    (["--port", "0"], "--port 0"),
+    (["--port", "70000"], "--port 70000"),
+    (["--serve-seconds", "-1"], "--serve-seconds -1"),
+    (["--serve-seconds", "nan"], "--serve-seconds nan"),
+])
+def test_bad_options_are_refused_before_any_work(tmp_path, monkeypatch, capsys, argv, name):
+    """Before: --folds 1 and --cross-validate-top -1 failed after the simulation and the first fit
+    (a trackcal-fit usage dump; a ValueError traceback), --port 70000 after the whole loop (minutes:
+    the server could not bind), each leaving a work folder of wasted work."""
+    monkeypatch.setattr(demo, "simulate", _no_work)
+    with pytest.raises(SystemExit) as e:
+        demo.main(["--work", str(tmp_path / "w")] + argv)
+    assert e.value.code == 2
+    assert name in capsys.readouterr().err
+    assert not (tmp_path / "w").exists(), "no work folder for a run that cannot run"
+
+
+def test_a_busy_port_is_refused_before_the_loop(tmp_path, monkeypatch, capsys):
+    """The default port 3883 is VRPN's: on a lab machine another server may hold it. Before, the
+    loop ran for minutes, then 'Serving on port' was printed and the server exited at once."""
+    monkeypatch.setattr(demo, "simulate", _no_work)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as holder:
+        holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        holder.bind(("0.0.0.0", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        assert demo.port_unavailable(port).startswith(f"cannot bind TCP port {port}")
+        with pytest.raises(SystemExit) as e:
+            demo.main(["--work", str(tmp_path / "w"), "--port", str(port)])
+        assert e.value.code == 2
+        assert f"--port {port}: cannot bind TCP port {port}" in capsys.readouterr().err
+        # --no-serve does not serve: the port does not matter.
+        with pytest.raises(AssertionError, match="started its work"):
+            demo.main(["--work", str(tmp_path / "w2"), "--port", str(port), "--no-serve"])
+    assert demo.port_unavailable(_free_port()) is None
+

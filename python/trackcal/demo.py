@@ -607,6 +607,22 @@ def serving_box(calibration: Path, margin_m: float = SERVE_MARGIN_M):
     return [a + d for a, d in zip(lo, m)], [b - d for b, d in zip(hi, m)]
 
 
+def port_unavailable(port: int) -> Optional[str]:
+    """Why trackcal-server could not serve on ``port`` (TCP listener and UDP socket on every
+    address, SO_REUSEADDR, as vrpn_server/server/server.cc binds them), or None when it could."""
+    import socket
+    for kind, name in ((socket.SOCK_STREAM, "TCP"), (socket.SOCK_DGRAM, "UDP")):
+        with socket.socket(socket.AF_INET, kind) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("0.0.0.0", port))
+                if kind == socket.SOCK_STREAM:
+                    s.listen()
+            except OSError as e:
+                return f"cannot bind {name} port {port}: {e.strerror or e}"
+    return None
+
+
 _STATUS_COUNTS = re.compile(r"(\S+): (\d+) corrected, (\d+) extrapolated")
 
 
@@ -774,8 +790,24 @@ def _main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--serve-seconds", type=float, default=None,
                         help="serve this long, then stop (default: until Ctrl-C)")
     args = parser.parse_args(argv)
+    # Every option is checked before any work: a bad one found by trackcal-fit, the ranking or the
+    # server failed only after the simulation, or after the whole loop (minutes) for the serving ones.
     if args.max_steps < 0:
         parser.error("--max-steps must be >= 0")
+    if args.folds < 2:
+        parser.error(f"--folds {args.folds}: must be at least 2 (the fits cross-validate)")
+    if args.cross_validate_top < 0:
+        parser.error(f"--cross-validate-top {args.cross_validate_top}: must be >= 0 (0: every candidate)")
+    if not args.no_serve:
+        if not 1 <= args.port <= 65535:
+            parser.error(f"--port {args.port}: must be 1-65535")
+        if args.serve_seconds is not None and not (math.isfinite(args.serve_seconds)
+                                                   and args.serve_seconds > 0):
+            parser.error(f"--serve-seconds {args.serve_seconds:g}: must be a positive number of seconds")
+        busy = port_unavailable(args.port)
+        if busy:
+            parser.error(f"--port {args.port}: {busy}; the server could not serve there after the "
+                         f"loop (another VRPN server? give another --port, or --no-serve)")
 
     try:
         base_text = None if args.base is None else args.base.read_text()
