@@ -549,3 +549,20 @@ def test_a_busy_port_is_refused_before_the_loop(tmp_path, monkeypatch, capsys):
             demo.main(["--work", str(tmp_path / "w2"), "--port", str(port), "--no-serve"])
     assert demo.port_unavailable(_free_port()) is None
 
+
+@tools
+def test_a_server_that_exits_is_reported_with_its_error(tmp_path):
+    """The server's own reason is in the demo's message, not only in server.log."""
+    import shutil as _shutil
+    _shutil.copy(ROOT / "tests" / "data" / "calibration" / "example.json", tmp_path / "cal.json")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as holder:
+        holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        holder.bind(("0.0.0.0", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        with pytest.raises(SystemExit) as e:
+            demo.serve(tmp_path, tmp_path / "cal.json", "", 1, port, 20.0, "paper")
+    message = str(e.value)
+    assert "trackcal-server exited with code" in message, message
+    assert f"cannot bind TCP 0.0.0.0:{port}" in message, message
+    assert str(tmp_path / "server.log") in message, message

@@ -688,10 +688,12 @@ def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], p
               flush=True)
         end = None if seconds is None else time.monotonic() + seconds
         while end is None or time.monotonic() < end:
-            for p in procs:
+            for p, log in zip(procs, ("emulator.log", "server.log")):
                 if p.poll() is not None:
+                    why = _last_error(work / log)
                     raise SystemExit(f"trackcal demo: {Path(p.args[0]).name} exited with code "
-                                     f"{p.returncode}; see the logs in {work}")
+                                     f"{p.returncode}" + (f" ({why})" if why else "")
+                                     + f"; see {work / log}")
             time.sleep(0.2)
     except KeyboardInterrupt:
         print("\nstopping")
@@ -714,6 +716,16 @@ def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], p
             print(f"Served {counts[0]} corrected poses; {counts[1]} "
                   f"({100.0 * counts[1] / counts[0]:.1f} %) extrapolated outside the calibrated volume.",
                   flush=True)
+
+
+def _last_error(log: Path) -> Optional[str]:
+    """The last line of a child's log that says "error" (stripped), or None."""
+    try:
+        lines = log.read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    errors = [l.strip() for l in lines if "error" in l.lower()]
+    return errors[-1] if errors else None
 
 
 @contextlib.contextmanager
