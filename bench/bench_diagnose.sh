@@ -41,10 +41,27 @@ fi
 printf 'terms:\n  - type: polynomial\n    degree: 4\n' > "$work/step1.yaml"
 printf 'terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 4\n' > "$work/step2.yaml"
 
+# timed FILE COMMAND...: runs COMMAND, writes "wall user system" (seconds) into FILE and returns its
+# status. Not GNU time: scripts/install-deps.sh does not install it (Debian's `time` package is
+# optional, absent from a fresh bookworm), and python3 is there (the comparisons below use it).
+timed() {
+  local out=$1
+  shift
+  python3 -c '
+import os, subprocess, sys, time
+start = time.monotonic()
+status = subprocess.run(sys.argv[2:]).returncode
+wall = time.monotonic() - start
+t = os.times()
+with open(sys.argv[1], "w") as f:
+    f.write(f"{wall:.3f} {t.children_user:.3f} {t.children_system:.3f}\n")
+sys.exit(status if status >= 0 else 128 - status)
+' "$out" "$@"
+}
 run() {  # run NAME BINARY ARGS...: diagnose --json into $work/NAME.json, "wall cpu" into NAME.time
   local name=$1 binary=$2
   shift 2
-  if ! /usr/bin/env time -f "%e %U %S" -o "$work/$name.time" "$binary" diagnose \
+  if ! timed "$work/$name.time" "$binary" diagnose \
       --data "$work/cap" --threads "$threads" --cross-validate-top "$cv_top" --json --quiet "$@" \
       > "$work/$name.json" 2> "$work/$name.err"; then
     cat "$work/$name.err" >&2
@@ -53,7 +70,7 @@ run() {  # run NAME BINARY ARGS...: diagnose --json into $work/NAME.json, "wall 
 }
 fit_once() {  # fit_once NAME MODEL: one plain fit (the baseline), "wall cpu" into NAME.time
   local name=$1
-  if ! /usr/bin/env time -f "%e %U %S" -o "$work/$name.time" "$build/fit/trackcal-fit" fit \
+  if ! timed "$work/$name.time" "$build/fit/trackcal-fit" fit \
       --data "$work/cap" --model "$2" -o "$work/$name.cal.json" --json --quiet \
       > "$work/$name.json" 2> "$work/$name.err"; then
     cat "$work/$name.err" >&2

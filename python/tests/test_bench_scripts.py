@@ -1,0 +1,72 @@
+"""The benchmark scripts of bench/ run on a machine set up by scripts/install-deps.sh alone: here
+with stand-ins for the build's tools, so the scripts' own plumbing is tested in seconds."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+_SIMULATE = """#!/bin/sh
+# stand-in for trackcal-simulate: makes the -o folder
+while [ $# -gt 0 ]; do [ "$1" = -o ] && mkdir -p "$2"; shift; done
+"""
+
+_DIAGNOSIS = {
+    "base": {"cv_position_mm_mean": 1.0, "cv_orientation_deg_mean": 0.1},
+    "candidates": [{"effect": "sensor_offset", "replaces": None, "cross_validated": True,
+                    "significant": True, "cv_position_mm_mean": 0.5,
+                    "cv_orientation_deg_mean": 0.05, "parameters": []}],
+    "verdict": {"effect": "sensor_offset"},
+}
+
+_FIT = f"""#!{sys.executable}
+# stand-in for trackcal-fit: fit and diagnose --json documents
+import sys, time
+# 0.1 s of CPU: well above the 10 ms tick of the CPU times, which the script divides by
+while time.process_time() < 0.1:
+    pass
+if sys.argv[1] == "fit":
+    print('{{"fit": {{"seconds": 0.01}}}}')
+else:
+    print({json.dumps(json.dumps(_DIAGNOSIS))})
+"""
+
+# What a fresh Debian bookworm has after scripts/install-deps.sh (coreutils, bash, python3), and not
+# GNU time (Debian's `time` package, priority optional).
+_TOOLS = ["bash", "sh", "env", "python3", "mktemp", "rm", "cut", "nproc", "ln", "cp", "mkdir",
+          "cat", "dirname", "sleep"]
+
+
+@pytest.mark.skipif(os.name != "posix" or shutil.which("bash") is None, reason="needs bash")
+def test_bench_diagnose_runs_without_gnu_time(tmp_path):
+    """Before: bench/bench_diagnose.sh timed its runs with `/usr/bin/env time -f ...` (GNU time),
+    which scripts/install-deps.sh does not install: on a fresh machine every step failed with
+    "env: 'time': No such file or directory"."""
+    build = tmp_path / "build"
+    for rel, text in (("sim/trackcal-simulate", _SIMULATE), ("fit/trackcal-fit", _FIT)):
+        path = build / rel
+        path.parent.mkdir(parents=True)
+        path.write_text(text)
+        path.chmod(0o755)
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for tool in _TOOLS:
+        found = shutil.which(tool)
+        if found is None:
+            pytest.skip(f"{tool} not installed")
+        (bin_dir / tool).symlink_to(found)
+    env = {"PATH": str(bin_dir), "HOME": str(tmp_path), "TMPDIR": str(tmp_path)}
+    proc = subprocess.run(["bash", str(ROOT / "bench" / "bench_diagnose.sh"), str(build)],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for step in ("step1", "step2"):
+        line = next(l for l in proc.stdout.splitlines() if l.startswith(step + ":"))
+        assert "fast" in line and "exact" in line and "speed-up" in line, proc.stdout
+    assert "verdict sensor_offset (exact: sensor_offset)" in proc.stdout, proc.stdout
+    assert "same;" in proc.stdout, proc.stdout
