@@ -31,6 +31,21 @@ bool StreamPairingOptions::Check(std::string* error) const {
   return true;
 }
 
+namespace {
+
+// Whether consecutive reference samples at times a < b are too far apart to interpolate between.
+// A spacing equal to the limit is no gap: a 10 Hz reference's steps of 0.1 s come out a few ulps
+// above 0.1 from its printed times, and half its samples were dropped at the default. Those ulps
+// are of the times, not of the step: on a Unix-epoch clock (1.7e9 s, ulp 2.4e-7 s) the steps came
+// out up to an ulp above 0.1, and a relative 1e-9 of the limit still dropped half the samples.
+bool IsGap(double a, double b, double max_gap_s) {
+  const double rounding =
+      8.0 * std::numeric_limits<double>::epsilon() * std::max(std::abs(a), std::abs(b));
+  return !(b - a > 0.0) || b - a > max_gap_s * (1.0 + 1e-9) + rounding;
+}
+
+}  // namespace
+
 std::optional<Rigid3d> InterpolateReference(const ReferenceStream& reference, double t,
                                             double max_gap_s) {
   const auto& r = reference.records;
@@ -42,9 +57,7 @@ std::optional<Rigid3d> InterpolateReference(const ReferenceStream& reference, do
   const auto& b = *it;
   const auto& a = *(it - 1);
   const double dt = b.time - a.time;
-  // (A spacing equal to the limit is no gap: a 10 Hz reference's steps of 0.1 s come out a few
-  // ulps above 0.1 from its printed times, and half its samples were dropped at the default.)
-  if (!(dt > 0.0) || dt > max_gap_s * (1.0 + 1e-9)) return std::nullopt;
+  if (IsGap(a.time, b.time, max_gap_s)) return std::nullopt;
   const double s = std::clamp((t - a.time) / dt, 0.0, 1.0);
   Rigid3d out;
   out.translation =
