@@ -7,6 +7,7 @@
 #include <set>
 #include <sstream>
 #include <stdexcept>
+#include <utility>
 #include <vector>
 
 #include "fit/rotation.h"
@@ -180,16 +181,29 @@ bool Differences(const std::vector<const TrackerStreamSample*>& samples,
 std::vector<size_t> RowsCovering(const std::vector<const TrackerStreamSample*>& samples,
                                  const ReferenceStream& reference, double lo, double hi,
                                  double max_gap_s) {
+  // The reference's gaps [start, end): InterpolateReference has no pose from a gap's first sample
+  // up to (not including) its last. A first version checked only the window's ends and middle and
+  // kept samples whose window held a gap elsewhere; the coarse scan's window is the whole search
+  // range, so with one occlusion over max_gap_s in the reference the scan skipped every offset at
+  // which one of those samples fell in it, and the estimate could end in another minimum.
+  const auto& r = reference.records;
+  std::vector<std::pair<double, double>> gaps;
+  for (size_t k = 1; k < r.size(); ++k) {
+    if (IsGap(r[k - 1].time, r[k].time, max_gap_s)) gaps.emplace_back(r[k - 1].time, r[k].time);
+  }
   std::vector<size_t> rows;
-  const double first = reference.records.front().time;
-  const double last = reference.records.back().time;
+  const double first = r.front().time;
+  const double last = r.back().time;
   for (size_t i = 0; i < samples.size(); ++i) {
     const double t = samples[i]->time;
     if (t + lo < first || t + hi > last) continue;
-    // Gaps: check the ends and the middle (gaps are rare; a sample in one is dropped).
+    // The first gap ending after t + lo must start after t + hi.
+    const auto g = std::upper_bound(
+        gaps.begin(), gaps.end(), t + lo,
+        [](double v, const std::pair<double, double>& gap) { return v < gap.second; });
+    if (g != gaps.end() && g->first <= t + hi) continue;
     if (!InterpolateReference(reference, t + lo, max_gap_s) ||
-        !InterpolateReference(reference, t + hi, max_gap_s) ||
-        !InterpolateReference(reference, t + 0.5 * (lo + hi), max_gap_s)) {
+        !InterpolateReference(reference, t + hi, max_gap_s)) {
       continue;
     }
     rows.push_back(i);
