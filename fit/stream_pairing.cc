@@ -69,16 +69,25 @@ std::optional<Rigid3d> InterpolateReference(const ReferenceStream& reference, do
 
 namespace {
 
-// The tracker samples of one sensor (decimated), in stream order.
+// The tracker samples of one sensor in time order (decimated). The tracker stream's reader does
+// not require increasing times (receivers interleave), and the offset's standard deviation takes
+// the samples as a time series: its Newey-West window is correlation_time_s times the rate from
+// the first to the last sample, and its lags are neighbours in this order. In stream order, a
+// stream whose last sample was its earliest gave a rate of (n - 1) / 1e-9, a window over every
+// sample, and a standard deviation 6 times too small.
 std::vector<const TrackerStreamSample*> SelectSamples(const TrackerStream& tracker,
                                                       const StreamPairingOptions& options,
                                                       int sensor) {
-  std::vector<const TrackerStreamSample*> out;
-  int index = 0;
+  std::vector<const TrackerStreamSample*> all;
   for (const auto& s : tracker.records) {
-    if (s.sensor != sensor) continue;
-    if (index++ % options.decimate != 0) continue;
-    out.push_back(&s);
+    if (s.sensor == sensor) all.push_back(&s);
+  }
+  std::stable_sort(
+      all.begin(), all.end(),
+      [](const TrackerStreamSample* a, const TrackerStreamSample* b) { return a->time < b->time; });
+  std::vector<const TrackerStreamSample*> out;
+  for (size_t i = 0; i < all.size(); i += static_cast<size_t>(options.decimate)) {
+    out.push_back(all[i]);
   }
   return out;
 }

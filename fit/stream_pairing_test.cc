@@ -190,6 +190,28 @@ TEST(PairStreams, AGapInTheReferenceDoesNotHideTheOffsetFromTheScan) {
   }
 }
 
+// The tracker stream's reader does not require increasing times, and the offset's standard
+// deviation read the samples as a time series in stream order: the same samples in reverse order
+// gave the same offset at a stddev of 0.0054 ms instead of 0.033 ms (a Newey-West window over
+// every sample, from a rate of (n - 1) / 1e-9 when the last sample is the earliest).
+TEST(PairStreams, TheResultDoesNotDependOnTheTrackerStreamsOrder) {
+  TrackerStream tracker;
+  ReferenceStream reference;
+  MakeStreams(0.037, &tracker, &reference, 30.0, FieldDistortion);
+  StreamPairingOptions options;
+  options.estimate_time_offset = true;
+  const StreamPairingResult ordered = PairStreams(tracker, reference, options);
+  std::reverse(tracker.records.begin(), tracker.records.end());
+  const StreamPairingResult reversed = PairStreams(tracker, reference, options);
+  // The same samples in the same (time) order give the same numbers to the bit.
+  EXPECT_EQ(reversed.time_offset, ordered.time_offset);
+  EXPECT_EQ(reversed.time_offset_stddev, ordered.time_offset_stddev);
+  ASSERT_EQ(reversed.poses.records.size(), ordered.poses.records.size());
+  for (size_t i = 0; i < ordered.poses.records.size(); ++i) {
+    EXPECT_EQ(reversed.poses.records[i].time, ordered.poses.records[i].time);
+  }
+}
+
 // A live recording of two receivers logs whichever reported first; pairing the first row's sensor
 // paired the reference with receiver 2 in one recording and receiver 1 in the next.
 TEST(PairStreams, TwoReceiversPairTheLowestSensorWhateverCameFirst) {
