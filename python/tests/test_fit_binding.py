@@ -400,3 +400,34 @@ def test_register_names_the_line_of_a_marker_the_registration_never_saw(capture_
     with pytest.raises(ValueError, match=rf"stray\.csv:{at + 2}: column marker: station {stray[0]}, marker 99: "
                                          r"marker id not in the registration"):
         trackcal.register(tmp_path / "stray.csv", capture_dir / "tracker.csv", poses=capture_dir / "poses.csv")
+
+
+def test_pair_says_what_it_warns(tmp_path):
+    """trackcal-fit pair prints the pairing's warning on stderr; trackcal.pair kept it in
+    to_dict()["warning"] only, so a Python caller was told nothing (here: a stream of two receivers,
+    paired on the lowest). It is now an attribute and a UserWarning naming both files; loading the
+    folder as a capture carries it in origin (printed with the pairing line) without warning twice."""
+    t = np.arange(600) / 120.0
+    p = np.stack([0.3 * np.sin(t), 0.2 * np.cos(1.3 * t), -0.4 + 0.1 * np.sin(0.7 * t)], axis=1)
+    with open(tmp_path / "tracker_stream.csv", "w") as f:
+        f.write("time,sensor,x,y,z,qw,qx,qy,qz\n")
+        for ti, pi in zip(t, p):
+            for sensor, dx in ((2, 0.3), (1, 0.0)):
+                f.write(f"{ti:.17g},{sensor},{pi[0] + dx:.17g},{pi[1]:.17g},{pi[2]:.17g},1,0,0,0\n")
+    with open(tmp_path / "reference_stream.csv", "w") as f:
+        f.write("time,x,y,z,qw,qx,qy,qz\n")
+        for ti in np.arange(500) / 100.0:
+            q = (0.3 * np.sin(ti), 0.2 * np.cos(1.3 * ti), -0.4 + 0.1 * np.sin(0.7 * ti))
+            f.write(f"{ti:.17g},{q[0]:.17g},{q[1]:.17g},{q[2]:.17g},1,0,0,0\n")
+    tracker, reference = tmp_path / "tracker_stream.csv", tmp_path / "reference_stream.csv"
+    with pytest.warns(UserWarning, match=r"tracker_stream\.csv, .*reference_stream\.csv: the tracker stream has "
+                                         r"sensors 1, 2; paired sensor 1"):
+        paired = trackcal.pair(tracker, reference)
+    assert paired.warning == paired.to_dict()["warning"] != ""
+    assert paired.time_offset_stddev_s == 0.0  # given, not estimated
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        chosen = trackcal.pair(tracker, reference, sensor=1)
+        cap = captures.load(tmp_path, time_offset=0.0)
+    assert chosen.warning == ""
+    assert "paired sensor 1" in cap.origin["warning"]

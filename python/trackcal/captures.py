@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
+import warnings
 from typing import Optional, Union
 
 import numpy as np
@@ -228,8 +229,11 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
         return cap
     if kind == "streams":
         estimate = time_offset is None
-        result = pair(p / STREAM_FILES[0], p / STREAM_FILES[1], time_offset=0.0 if estimate else float(time_offset),
-                      estimate_time_offset=estimate, search_range=search_range)
+        with warnings.catch_warnings():  # its warning goes in origin, printed with the pairing line
+            warnings.simplefilter("ignore", UserWarning)
+            result = pair(p / STREAM_FILES[0], p / STREAM_FILES[1],
+                          time_offset=0.0 if estimate else float(time_offset),
+                          estimate_time_offset=estimate, search_range=search_range)
         cap = result.poses
         first = carry_stream_columns(cap, p / STREAM_FILES[0], p / STREAM_FILES[1], result.time_offset_s)
         cap.path = p / STREAM_FILES[0]
@@ -237,7 +241,7 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
                       "time_offset_s": float(result.time_offset_s),
                       "time_offset_source": "estimated" if estimate else "given",
                       "paired": len(cap), "dropped": int(result.dropped), "sensor": first,
-                      "warning": result.to_dict().get("warning", "")}
+                      "warning": result.warning}
         return cap
     result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], poses=labels, **(register_options or {}))
     cap = result.poses

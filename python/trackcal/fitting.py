@@ -302,7 +302,8 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
 
 
 class Pairing:
-    """The result of :func:`pair`: paired poses, the clock offset used, dropped samples."""
+    """The result of :func:`pair`: paired poses, the clock offset used, dropped samples, and what
+    the pairing warns (``warning``, "" when nothing)."""
 
     def __init__(self, native):
         self._native = native
@@ -310,6 +311,12 @@ class Pairing:
         self.time_offset_s: float = native.time_offset_s
         self.dropped: int = native.dropped
         self.cost: float = native.cost
+        doc = native.to_dict()
+        # Of an estimated offset (0 when given).
+        self.time_offset_stddev_s: float = float(doc["time_offset_stddev_s"])
+        # An estimated offset the streams identify poorly, or the sensor chosen among several:
+        # what ``trackcal-fit pair`` prints on stderr.
+        self.warning: str = str(doc["warning"])
 
     def save(self, path: PathLike) -> pathlib.Path:
         p = pathlib.Path(path)
@@ -332,4 +339,9 @@ def pair(tracker: PathLike, reference: PathLike, *, time_offset: float = 0.0,
     native = _core.pair(tracker, reference, time_offset=time_offset,
                         estimate_time_offset=estimate_time_offset, search_range=search_range,
                         max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate)
-    return not_utf8_inputs(Pairing, native, inputs=(tracker, reference))
+    result = not_utf8_inputs(Pairing, native, inputs=(tracker, reference))
+    # As trackcal-fit pair on stderr (it reached only to_dict()["warning"]: a poorly identified
+    # offset was returned with nothing said).
+    if result.warning:
+        warnings.warn(f"{tracker}, {reference}: {result.warning}", UserWarning, stacklevel=2)
+    return result

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
+import warnings
 from typing import Callable, Dict, List, Optional, Sequence
 
 import numpy as np
@@ -796,15 +797,18 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
         sensor = int(sensors[0])
     elif _whole_number(sensor, "sensor") not in sensors:
         raise ValueError(f"{raw}: no report of sensor {sensor} (have: {', '.join(str(int(s)) for s in sensors)})")
-    pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
-                   estimate_time_offset=estimate, search_range=search_range, sensor=int(sensor))
+    with warnings.catch_warnings():  # its warning goes in origin, printed with the pairing line
+        warnings.simplefilter("ignore", UserWarning)
+        pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
+                       estimate_time_offset=estimate, search_range=search_range, sensor=int(sensor))
     cap = pairing.poses
     sensor = carry_stream_columns(cap, raw, reference, pairing.time_offset_s)
     cap.path = pathlib.Path(raw)
     cap.origin = {"kind": "recording", "files": [str(raw), str(reference)] + ([str(corrected)] if corrected else []),
                   "time_offset_s": float(pairing.time_offset_s),
                   "time_offset_source": "estimated" if estimate else "given",
-                  "paired": len(cap), "dropped": int(pairing.dropped), "sensor": sensor}
+                  "paired": len(cap), "dropped": int(pairing.dropped), "sensor": sensor,
+                  "warning": pairing.warning}
     corrected_poses = None
     if corrected is not None:
         stream = load_tracker_stream(corrected)
