@@ -20,8 +20,12 @@ bool StreamPairingOptions::Check(std::string* error) const {
     return false;
   };
   if (!std::isfinite(time_offset)) return fail("time_offset must be finite");
-  if (!(search_range > 0.0)) return fail("search_range must be > 0");
-  if (!(tolerance > 0.0)) return fail("tolerance must be > 0");
+  // Infinite ones passed and the scan gave NaN offsets.
+  if (!(search_range > 0.0 && std::isfinite(search_range))) {
+    return fail("search_range must be a finite number > 0");
+  }
+  if (!(tolerance > 0.0 && std::isfinite(tolerance)))
+    return fail("tolerance must be a finite number > 0");
   if (!(max_gap_s > 0.0)) return fail("max_gap_s must be > 0");
   if (decimate < 1) return fail("decimate must be >= 1");
   if (set.empty()) return fail("set must not be empty");

@@ -54,6 +54,22 @@ void MakeStreams(double offset, TrackerStream* tracker, ReferenceStream* referen
   }
 }
 
+TEST(StreamPairingOptions, CheckRefusesWhatTheScanCannotUse) {
+  std::string error;
+  EXPECT_TRUE(StreamPairingOptions{}.Check(&error)) << error;
+  StreamPairingOptions o;
+  o.search_range = std::numeric_limits<double>::infinity();  // gave NaN offsets
+  EXPECT_FALSE(o.Check(&error));
+  EXPECT_EQ(error, "search_range must be a finite number > 0");
+  o = {};
+  o.tolerance = std::numeric_limits<double>::infinity();
+  EXPECT_FALSE(o.Check(&error));
+  EXPECT_EQ(error, "tolerance must be a finite number > 0");
+  o = {};
+  o.search_range = 0.0;
+  EXPECT_FALSE(o.Check(&error));
+}
+
 TEST(PairStreams, Nominal_RecoversKnownClockOffset) {
   TrackerStream tracker;
   ReferenceStream reference;
