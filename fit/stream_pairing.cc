@@ -411,6 +411,17 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
                 "), which leaves more of the tracker's error in it; a longer stream that passes the "
                 "same places at other velocities identifies it";
     }
+    if (std::abs(offset - options.time_offset) > options.search_range) {
+      // The refinement went beyond the scanned offsets: the true one there, or another minimum
+      // of a periodic path (one occlusion once sent 300 ms to -553.7 ms).
+      warning += std::string(warning.empty() ? "" : "; ") + "the estimated clock offset " +
+                 Rounded(1e3 * offset, 6) + " ms lies outside the searched " +
+                 Rounded(1e3 * options.time_offset, 6) + " +- " +
+                 Rounded(1e3 * options.search_range, 6) +
+                 " ms: the refinement left the scan's range; check it, or search a range that "
+                 "holds it (the model file's time_offset search_range; Python: "
+                 "trackcal.pair(..., search_range=S))";
+    }
     if (!estimate.converged) {
       warning += std::string(warning.empty() ? "" : "; ") +
                  "the clock offset's refinement did not converge in " +

@@ -86,6 +86,22 @@ TEST(PairStreams, Nominal_RecoversKnownClockOffset) {
   }
 }
 
+TEST(PairStreams, AnOffsetOutsideTheSearchRangeIsWarnedAbout) {
+  TrackerStream tracker;
+  ReferenceStream reference;
+  MakeStreams(0.3, &tracker, &reference);
+  StreamPairingOptions options;
+  options.estimate_time_offset = true;
+  options.search_range = 0.1;
+  const StreamPairingResult result = PairStreams(tracker, reference, options);
+  // Here the refinement found the true offset beyond the scan; it is kept, and said.
+  EXPECT_NEAR(result.time_offset, 0.3, 5e-4);
+  EXPECT_THAT(result.warning, ::testing::HasSubstr("the estimated clock offset 300"));
+  EXPECT_THAT(result.warning, ::testing::HasSubstr("ms lies outside the searched 0 +- 100 ms"));
+  options.search_range = 0.5;  // holds it: no word
+  EXPECT_EQ(PairStreams(tracker, reference, options).warning, "");
+}
+
 TEST(PairStreams, GivenOffsetAndInterpolation) {
   TrackerStream tracker;
   ReferenceStream reference;
