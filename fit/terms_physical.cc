@@ -787,7 +787,13 @@ std::unique_ptr<ModelTerm> PhysicalGroupTerm::FromYaml(PhysicalEffect effect,
         e.normal_given = true;
         if (has_point) {
           const std::vector<double> p = ReadVector(reader, "point_in_transmitter", 3);
-          blocks[kPlaneDistance].values = {Eigen::Vector3d(p[0], p[1], p[2]).dot(unit)};
+          const double distance = Eigen::Vector3d(p[0], p[1], p[2]).dot(unit);
+          // As FieldModel::Check: the image would sit on the transmitter (a singular field).
+          if (!(std::abs(distance) > 1e-3)) {
+            reader.Fail("point_in_transmitter",
+                        "the plane passes through the transmitter (|point . normal| <= 1 mm)");
+          }
+          blocks[kPlaneDistance].values = {distance};
           e.search_plane = false;
         }
       }

@@ -142,6 +142,12 @@ TEST(PhysicalTerms, RejectsBadValuesWithFileAndLine) {
   expect_error("terms:\n  - type: background_field\n  - type: background_field\n", "m.yaml:3:");
   expect_error("terms:\n  - type: dipole\n    parameters:\n      strength: {fixed: true}\n",
                "has no parameter block 'strength'");
+  // A plane through the transmitter puts its image on the transmitter: caught at the file, not
+  // after a fit whose every evaluation failed ("field model: planes[0]...", no file or line).
+  expect_error(
+      "terms:\n  - type: plane\n    point_in_transmitter: [0.3, -0.2, 0.0005]\n"
+      "    normal_in_transmitter: [0, 0, 1]\n",
+      "m.yaml:3:27: $.terms[0].point_in_transmitter: the plane passes through the transmitter");
 }
 
 // A group with every effect but the background: a sensor offset, receiver gains, a dipole at
