@@ -43,6 +43,17 @@ void ParameterBlock::Check(const std::string& term_name) const {
     }
     if (!prior_sigma.empty() && !(prior_sigma[i] > 0.0)) fail("prior sigma must be > 0");
   }
+  if (unit_norm) {
+    // Its manifold moves it on the sphere of its start's radius: a zero start stays zero (every
+    // evaluation fails) and another radius is reported as the fitted value.
+    double norm2 = 0.0;
+    for (double v : values) norm2 += v * v;
+    if (!(std::abs(std::sqrt(norm2) - 1.0) <= 1e-3)) {
+      fail(
+          "must be a unit vector (|value| = 1, e.g. [0, 0, 0, 1] for no rotation), got |value| = " +
+          std::to_string(std::sqrt(norm2)));
+    }
+  }
 }
 
 void ModelTerm::Prepare(const std::vector<FitStation>& /*inputs*/) {}

@@ -65,6 +65,9 @@ struct ParameterBlock {
   double identifiability_scale = std::numeric_limits<double>::infinity();
   // Manifold of the block (null: Euclidean). Called once per problem; the problem takes ownership.
   std::function<ceres::Manifold*()> make_manifold;
+  // The values are a unit vector or unit quaternion (a sphere or quaternion manifold, which keeps
+  // the norm a start has): Check() requires |values| = 1 (to 1e-3).
+  bool unit_norm = false;
   // Standard deviations after a fit: one per value, or for a manifold block one per tangent
   // coordinate (named by tangent_names, in tangent_unit); NaN for fixed values or unavailable
   // covariance.
@@ -94,7 +97,8 @@ struct ParameterBlock {
     return ambient_from_tangent.size() > 0 ? static_cast<int>(ambient_from_tangent.cols()) : size();
   }
   // Throws std::invalid_argument naming the block on inconsistent sizes, non-finite values, lower >
-  // upper or a value outside its bounds, a non-positive prior sigma.
+  // upper or a value outside its bounds, a non-positive prior sigma, a unit_norm block off the unit
+  // sphere.
   void Check(const std::string& term_name) const;
 };
 

@@ -627,6 +627,7 @@ void PhysicalGroupTerm::AddEffectBlocks(Effect* e) {
       ParameterBlock rotation =
           MakeBlock("rotation", {0, 0, 0, 1}, {"qx", "qy", "qz", "qw"}, "1 (quaternion x, y, z, w)");
       rotation.make_manifold = [] { return new ceres::EigenQuaternionManifold(); };
+      rotation.unit_norm = true;
       rotation.tangent_names = {"rotation_vector.x", "rotation_vector.y", "rotation_vector.z"};
       rotation.tangent_unit = "rad";
       rotation.tangent_scale = 2.0;  // EigenQuaternionManifold: Exp(delta) rotates by 2 |delta|
@@ -666,6 +667,7 @@ void PhysicalGroupTerm::AddEffectBlocks(Effect* e) {
       add(std::move(distance));
       ParameterBlock normal = MakeBlock("normal_in_transmitter", {0, 0, 1}, {"x", "y", "z"}, "1");
       normal.make_manifold = [] { return new ceres::SphereManifold<3>(); };
+      normal.unit_norm = true;
       normal.tangent_names = {"angle_a", "angle_b"};
       normal.tangent_unit = "rad";
       normal.identifiability_scale = kNormalScaleRad;

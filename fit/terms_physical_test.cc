@@ -150,6 +150,33 @@ TEST(PhysicalTerms, RejectsBadValuesWithFileAndLine) {
       "m.yaml:3:27: $.terms[0].point_in_transmitter: the plane passes through the transmitter");
 }
 
+// A start off the unit sphere of a quaternion or normal block (`parameters: {BLOCK: {value: ...}}`,
+// applied when the fit starts): a zero one (`value: 0` for "no rotation") failed every evaluation
+// and the fit ended in "receiver_from_body must be finite with a unit quaternion" / "plane: zero
+// normal", naming no file or line; a quaternion of norm 2 was fitted and reported with norm 2.
+TEST(PhysicalTerms, QuaternionAndNormalStartsMustBeUnitVectors) {
+  const std::vector<FitStation> stations = NoiseFreeStations(PaperLikeTruth(), 20);
+  const auto expect_error = [&](const std::string& yaml, const std::string& where) {
+    ModelSpec spec = ParseModelYaml(yaml, "m.yaml");
+    try {
+      FitModel(stations, &spec, FitOptions());
+      ADD_FAILURE() << "no error for " << yaml;
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(where), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("must be a unit vector"), std::string::npos) << e.what();
+    }
+  };
+  expect_error("terms:\n  - type: sensor_offset\n    parameters:\n      rotation: {value: 0}\n",
+               "m.yaml:4:17: $.terms[0].parameters.rotation: ");
+  expect_error(
+      "terms:\n  - type: plane\n    parameters:\n      normal_in_transmitter: {value: 0}\n"
+      "      distance_m: {value: 0.8}\n",
+      "m.yaml:4:30: $.terms[0].parameters.normal_in_transmitter: ");
+  expect_error(
+      "terms:\n  - type: sensor_offset\n    parameters:\n      rotation: {value: [0, 0, 0, 2]}\n",
+      "|value| = 2");
+}
+
 // A group with every effect but the background: a sensor offset, receiver gains, a dipole at
 // `location` (YAML list) of `polarisability` m^3, the floor plane and the transmitter's octupole.
 std::string GroupYaml(const std::string& location, double polarisability) {
