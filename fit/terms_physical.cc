@@ -890,6 +890,12 @@ StationBinding PhysicalGroupTerm::Bind(const AmbientPose& /*input*/) const {
   return binding;
 }
 
+PhysicalCorrectionOptions PhysicalGroupTerm::InverseOptions() {
+  PhysicalCorrectionOptions options;
+  options.max_iterations = 50;
+  return options;
+}
+
 PhysicalCorrection PhysicalGroupTerm::MakeCorrection(const double* const* v,
                                                      PhysicalCorrectionOptions options) const {
   FieldModel field;
@@ -1047,10 +1053,8 @@ bool PhysicalGroupTerm::EvaluateFrom(const StationBinding& binding,
   Rigid3d x;
   std::optional<Rigid3d> offset;
   try {
-    // The fit may start far from the truth, where Newton needs more steps than at run time.
-    PhysicalCorrectionOptions options;
-    options.max_iterations = 50;
-    const PhysicalCorrection model = MakeCorrection(values.doubles(), options);
+    // InverseOptions(), as the calibration file's correction (ToCorrection()).
+    const PhysicalCorrection model = MakeCorrection(values.doubles());
     offset = model.receiver_from_body();
     if (target == nullptr) {
       // A non-converged inverse still yields the best iterate, and its residual is what the model
@@ -1424,9 +1428,7 @@ SearchSet MakeSearchSet(const PhysicalGroupTerm& term, const std::vector<FitStat
                         bool project) {
   std::vector<const double*> v;
   for (const auto& b : term.blocks()) v.push_back(b.values.data());
-  PhysicalCorrectionOptions options;
-  options.max_iterations = 50;
-  const PhysicalCorrection model = term.MakeCorrection(v.data(), options);
+  const PhysicalCorrection model = term.MakeCorrection(v.data());
   // The group's free coordinates, whose refit absorbs part of any new source's signature.
   const StationBinding binding = term.Bind(AmbientPose::Zero());
   std::vector<const double*> free_values;

@@ -176,10 +176,15 @@ class PhysicalGroupTerm : public ModelTerm {
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
 
+  // The options of the group's inverse: the fit's inverse from the report (Evaluate(), the search)
+  // and the calibration file's (ToCorrection()) alike, so the runtime applies the inverse the fit
+  // evaluated. 50 Newton steps: the fit meets poses (and values) where Newton needs more than the
+  // runtime default of 8, and the runtime must not stop short where the fit's inverse converged.
+  static PhysicalCorrectionOptions InverseOptions();
   // The runtime correction at the given block values (all blocks, blocks() order). Throws
   // std::invalid_argument if they leave the model's domain.
   PhysicalCorrection MakeCorrection(const double* const* all_values,
-                                    PhysicalCorrectionOptions options = {}) const;
+                                    PhysicalCorrectionOptions options = InverseOptions()) const;
 
   PhysicalSearchOptions& search_options() { return search_options_; }
 
