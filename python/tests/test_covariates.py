@@ -282,3 +282,31 @@ def test_a_drift_is_still_found_in_time():
         z_same = next(e for e in effects if e.covariate == "z" and e.target == rows["time"]["target"])
         assert z_same.confounded_with == "time", (seed, z_same)
         assert rows["z"]["r2"] < rows["time"]["r2"], (seed, rows)
+
+
+def test_too_few_stations_to_test_a_covariate_are_not_called_clean():
+    # 15 stations with a 5 mm error growing along x: no covariate has the 20 stations a test needs,
+    # so none is tested; the verdict said "nothing significant remains in the covariates" of
+    # residuals it never looked at.
+    rng = np.random.default_rng(2)
+    n = 15
+    p = rng.uniform(-0.5, 0.5, (n, 3)) + np.array([0.0, 0.0, -0.6])
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    ref = p + np.column_stack([5e-3 * (p[:, 0] + 0.5), np.zeros(n), np.zeros(n)])
+    cap = captures.PoseCapture(path=None, station=np.arange(n), set=np.array(["calib"] * n, dtype=object),
+                               sensor=np.ones(n, int), time=np.arange(n, dtype=float), reported_positions=p,
+                               reported_quaternions_xyzw=q, reference_positions=ref, reference_quaternions_xyzw=q,
+                               extra_columns=[], extra=np.zeros((n, 0)))
+    v = validation.validate(cap, None, covariate_options={"n_permutations": 9})
+    assert v.covariate_effects == [] and not v.covariates_tested
+    text = diagnosis.verdict(None, v.covariate_effects, v.covariates_tested)["text"]
+    assert "nothing significant remains" not in text and "covariates not tested" in text, text
+    # With 20 stations the covariates are tested.
+    cap20 = captures.PoseCapture(path=None, station=np.arange(20), set=np.array(["calib"] * 20, dtype=object),
+                                 sensor=np.ones(20, int), time=np.arange(20, dtype=float),
+                                 reported_positions=np.resize(p, (20, 3)),
+                                 reported_quaternions_xyzw=np.resize(q, (20, 4)),
+                                 reference_positions=np.resize(ref, (20, 3)),
+                                 reference_quaternions_xyzw=np.resize(q, (20, 4)), extra_columns=[],
+                                 extra=np.zeros((20, 0)))
+    assert validation.validate(cap20, None, covariate_options={"n_permutations": 9}).covariates_tested

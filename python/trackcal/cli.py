@@ -414,7 +414,9 @@ def cmd_diagnose(args, term) -> int:
     # Findings that stand on their own first (not explained away by another covariate).
     sig = sorted((e for e in v.covariate_effects if e.significant),
                  key=lambda e: (e.confounded_with is not None, -e.r2))
-    if not sig:
+    if not v.covariates_tested:  # too few stations: not a clean bill
+        print("  not tested: a covariate needs values at 20 stations or more")
+    elif not sig:
         print("  no covariate explains the residuals beyond noise")
     for e in sig[:args.top]:
         print("  " + term.c(f"{e.covariate:<24}", "31") + f" {e.target:<20} R²={e.r2:.3f}  p={e.p_value:.3g}"

@@ -541,8 +541,9 @@ class Validation:
     by_region: List[dict]
     worst: List[dict]
     covariate_effects: List[CovariateEffect] = dataclasses.field(default_factory=list)
-    # Whether the covariate analysis ran (validate(analyse_covariates=True)): an empty
-    # covariate_effects then means no covariate was tested, not that none follows the residuals.
+    # Whether the covariate analysis ran (validate(analyse_covariates=True)) and tested at least
+    # one covariate (none is on fewer than 20 stations): False means no covariate was tested, not
+    # that none follows the residuals.
     covariates_tested: bool = False
     # Per station: how the calibration's model inverse arrived at the corrected pose (uint8: 0
     # converged, 1 ambiguous, 2 not_converged; trackcal.correction_status_names); all 0 without a
@@ -761,10 +762,13 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
         # between the sets, not structure a covariate explains (the sets are visited in turn).
         by_set = analysed.set if after is not None and len(np.unique(analysed.set)) > 1 else None
         covs, labels = covariates_and_labels(analysed)
-        v.covariates_tested = True
         v.covariate_effects = covariate_analysis(_sub(final, kept), covs, progress=progress,
                                                  serial_time=serial, groups=by_set, labels=labels,
                                                  **(covariate_options or {}))
+        # A covariate is tested only with values at 20 stations or more (covariate_analysis): on
+        # fewer, none is, and the verdict said "nothing significant remains in the covariates" of
+        # residuals it never looked at.
+        v.covariates_tested = bool(v.covariate_effects)
     return v
 
 
