@@ -310,3 +310,27 @@ def test_too_few_stations_to_test_a_covariate_are_not_called_clean():
                                  reference_quaternions_xyzw=np.resize(q, (20, 4)), extra_columns=[],
                                  extra=np.zeros((20, 0)))
     assert validation.validate(cap20, None, covariate_options={"n_permutations": 9}).covariates_tested
+
+
+def test_bad_covariates_and_options_name_what_is_wrong():
+    # A covariate of another length than the residuals failed as a bare IndexError deep in the test
+    # ("boolean index did not match"), and one fold made every R^2 NaN: nothing significant, silently.
+    import pytest
+    rng = np.random.default_rng(1)
+    n = 40
+    pos = rng.normal(scale=1e-3, size=(n, 3))
+    r = validation.Residuals(pos, np.zeros((n, 3)), np.linalg.norm(pos, axis=1) * 1e3, np.zeros(n))
+    good = {"x": rng.normal(size=n)}
+    cases = [({"x": rng.normal(size=n), "temperature": rng.normal(size=n - 1)}, {},
+              "covariate 'temperature': \\(39,\\) values, expected one per station \\(40\\)"),
+             ({"operator": ["bob"] * n}, {}, "covariate 'operator': not numbers"),
+             (good, {"serial_time": np.arange(n - 3.0)}, "serial_time: \\(37,\\) values"),
+             (good, {"groups": np.zeros(n - 2)}, "groups: \\(38,\\) values"),
+             (good, {"n_folds": 1}, "n_folds 1: must be 2 or more"),
+             (good, {"n_bins": 1}, "n_bins 1: must be 2 or more"),
+             (good, {"n_permutations": 9.5}, "n_permutations 9.5: must be a whole number"),
+             (good, {"alpha": 0.0}, "alpha 0.0: must be between 0 and 1")]
+    for covs, kw, message in cases:
+        with pytest.raises(ValueError, match=message):
+            validation.covariate_analysis(r, covs, **{"n_permutations": 9, **kw})
+    assert len(validation.covariate_analysis(r, good, n_permutations=9, n_folds=2, n_bins=2)) == 4

@@ -293,8 +293,34 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     mean errors (``levels``).
     """
     labels = dict(labels or {})
+    n_permutations = _whole_number(n_permutations, "n_permutations")
     if n_permutations < 0:  # p = (1 + count) / (n_permutations + 1) would be negative: all significant
         raise ValueError(f"n_permutations {n_permutations}: must be 0 or more")
+    # One fold or one bin made every R^2 NaN or 0: nothing significant, whatever the data.
+    n_folds, n_bins = _whole_number(n_folds, "n_folds"), _whole_number(n_bins, "n_bins")
+    if n_folds < 2:
+        raise ValueError(f"n_folds {n_folds}: must be 2 or more")
+    if n_bins < 2:
+        raise ValueError(f"n_bins {n_bins}: must be 2 or more")
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha {alpha!r}: must be between 0 and 1")
+    n = len(residuals_.position_mm)
+    # One value per station, numbers: a covariate of another length failed as a bare IndexError
+    # deep in the test, without its name.
+    checked = {}
+    for name, x in covs.items():
+        try:
+            checked[name] = np.asarray(x, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"covariate {name!r}: not numbers (a column of labels goes in as label "
+                             "indices, its labels in `labels`)") from None
+        if checked[name].shape != (n,):
+            raise ValueError(f"covariate {name!r}: {checked[name].shape} values, expected one per "
+                             f"station ({n})")
+    covs = checked
+    for what, a in (("serial_time", serial_time), ("groups", groups)):
+        if a is not None and np.shape(a) != (n,):
+            raise ValueError(f"{what}: {np.shape(a)} values, expected one per station ({n})")
     targets = {
         "position_mm": residuals_.position_mm[:, None],
         "position_vector": residuals_.position * 1e3,
@@ -302,7 +328,6 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
         "orientation_vector": residuals_.orientation * (2.0 * 180.0 / np.pi),
     }
     rng = np.random.default_rng(seed)
-    n = len(residuals_.position_mm)
     # One random fold per station for every covariate: the covariates' R^2 are compared with each
     # other (the verdict names the largest), so they must not differ by their folds' luck.
     station_folds = rng.permutation(np.arange(n) % n_folds)
