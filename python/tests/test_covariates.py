@@ -366,3 +366,16 @@ def test_pure_noise_against_categories_reports_nothing():
     found = [e for e in validation.covariate_analysis(r, covs, n_permutations=99, seed=1) if e.significant]
     assert {e.covariate for e in found} == {"cat"}, found
     assert all(e.p_value <= 0.01 / 64 for e in found), found
+
+
+def test_vectorised_cross_validated_r2_matches_the_definition():
+    # The permutation tests compute every shuffle's R^2 at once (_cv_r2_rows); it must be _cv_r2's,
+    # for quantile bins and categories, magnitudes and vectors, to rounding.
+    rng = np.random.default_rng(5)
+    n = 120
+    folds = rng.permutation(np.arange(n) % 5)
+    for ids in (validation._bin_ids(rng.uniform(size=n), 8, False), rng.integers(0, 3, n)):
+        for y in (np.abs(rng.normal(size=(n, 1))), rng.normal(size=(n, 3))):
+            rows = np.stack([rng.permutation(ids) for _ in range(20)])
+            want = [validation._cv_r2(r, y, folds, 5) for r in rows]
+            np.testing.assert_allclose(validation._cv_r2_rows(rows, y, folds, 5), want, rtol=0, atol=1e-12)

@@ -482,8 +482,9 @@ def _confirm(ids, ys, folds, n_folds, obs, n_permutations, level, rng, gs=None, 
 
 def _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed):
     """(cv R^2, permutation p, whether the normal approximation of the null reaches the level)."""
-    obs = _cv_r2(ids, ys, folds, n_folds)
-    null = np.array([_cv_r2(pid, ys, folds, n_folds) for pid in perms])
+    # All at once (_cv_r2_rows), the observed R^2 too, so that it and the shuffles' are summed alike.
+    obs = float(_cv_r2_rows(ids[None, :], ys, folds, n_folds)[0])
+    null = _cv_r2_rows(np.asarray(perms), ys, folds, n_folds) if len(perms) else np.empty(0)
     p = (1.0 + np.sum(null >= obs)) / (n_permutations + 1.0)
     sd = null.std() if len(null) else 0.0
     z = (obs - null.mean()) / sd if sd > 0 else (np.inf if len(null) and obs > null.mean() else 0.0)
