@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "core/lut.h"
+#include "core/scalar.h"
 #include "fit/model.h"
 #include "fit/model_file.h"
 
@@ -82,7 +83,9 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   std::unique_ptr<Correction> ToCorrection() const override;
   nlohmann::json Describe() const override;
 
-  // The 8 bound blocks are the corners of the cell in `binding.tag`, (a, b, c) in {0,1}^3, c fastest.
+  // The 8 bound blocks are the corners of the cell in `binding.tag`, (a, b, c) in {0,1}^3, c
+  // fastest. Outside the grid (an input moved by an earlier term while the fit runs, or a start's
+  // adopted grid) the boundary value is held, as core/lut.h's runtime interpolation holds it.
   template <typename T>
   bool Apply(const StationBinding& binding, const T* const* block_values, const T* input7,
              T* output7) const;
@@ -110,7 +113,13 @@ bool LutTerm::Apply(const StationBinding& binding, const T* const* block_values,
   for (int k = 0; k < 3; ++k) {
     const double x0 = grid_->axis(k)[static_cast<size_t>(cell[k])];
     const double x1 = grid_->axis(k)[static_cast<size_t>(cell[k] + 1)];
-    t[k] = (input7[k] - T(x0)) / T(x1 - x0);
+    // Outside the grid the boundary value is held, as the runtime's InterpolateTrilinear holds it
+    // (the edge cell continued linearly is not what the calibration file serves).
+    const double v = ScalarValue(input7[k]);
+    const T x = v < grid_->axis(k).front()  ? T(grid_->axis(k).front())
+                : v > grid_->axis(k).back() ? T(grid_->axis(k).back())
+                                            : input7[k];
+    t[k] = (x - T(x0)) / T(x1 - x0);
   }
   T e[6];
   for (int i = 0; i < 6; ++i) e[i] = T(0);

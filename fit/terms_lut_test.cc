@@ -123,7 +123,7 @@ TEST(LutTerm, InitializeLinearStartsAtTheLeastSquaresNodeValues) {
 }
 
 // The analytic Jacobians against the autodiff of Apply they replace, inside a cell and outside the
-// grid (the cell at the edge, extrapolated).
+// grid (the cell at the edge, its boundary value held).
 TEST(LutTerm, AnalyticJacobiansEqualAutoDiff) {
   std::mt19937 rng(23);
   auto stations = RandomStations(200, &rng);
@@ -157,6 +157,62 @@ TEST(LutTerm, AnalyticJacobiansEqualAutoDiff) {
     TermEvaluation plain;
     ASSERT_TRUE(lut.Evaluate(binding, values.data(), input, false, &plain));
     EXPECT_LT((plain.output - analytic.output).cwiseAbs().maxCoeff(), 1e-15);
+  }
+}
+
+// The fit evaluates the term as the runtime's TrilinearLutCorrection does, also where a station's
+// input lies outside the grid (the grid is built on the inputs at the start; a term before the LUT
+// moves them while the fit runs, and a start's adopted grid need not cover them): the boundary
+// value held, not the edge cell continued. Before, the fit extrapolated linearly while the served
+// correction held: 1.5 to 4.6 mm apart (position) 0.1 m beyond a face here.
+TEST(LutTerm, OutsideTheGridTheFitEvaluatesWhatTheRuntimeServes) {
+  std::mt19937 rng(24);
+  auto stations = RandomStations(200, &rng);
+  LutTermOptions options;
+  options.nodes = std::array<int, 3>{5, 4, 3};
+  LutTerm lut(options);
+  lut.Prepare(stations);
+  std::normal_distribution<double> normal;
+  for (auto& block : lut.blocks()) {
+    for (int i = 0; i < 6; ++i)
+      block.values[static_cast<size_t>(i)] = (i < 3 ? 0.005 : 0.05) * normal(rng);
+  }
+  const auto correction = lut.ToCorrection();
+  const LutGrid& grid = lut.grid();
+  std::vector<AmbientPose> inputs;
+  for (int i = 0; i < 6; ++i) {
+    AmbientPose pose = ToAmbient(stations[static_cast<size_t>(i)].reported);
+    const int k = i % 3;
+    pose[k] = i < 3 ? grid.axis(k).back() + 0.1 : grid.axis(k).front() - 0.1;
+    inputs.push_back(pose);
+  }
+  AmbientPose corner = inputs[0];  // outside on all three axes
+  for (int k = 0; k < 3; ++k) corner[k] = grid.axis(k).back() + 0.05;
+  inputs.push_back(corner);
+  for (const AmbientPose& input : inputs) {
+    const StationBinding binding = lut.Bind(input);
+    std::vector<const double*> values;
+    for (int b : binding.blocks)
+      values.push_back(lut.blocks()[static_cast<size_t>(b)].values.data());
+    TermEvaluation plain, analytic, autodiff;
+    ASSERT_TRUE(lut.Evaluate(binding, values.data(), input, false, &plain));
+    ASSERT_TRUE(lut.Evaluate(binding, values.data(), input, true, &analytic));
+    ASSERT_TRUE(lut.EvaluateAutoDiff(binding, values.data(), input, true, &autodiff));
+    const CorrectedPose served = correction->Apply(FromAmbient(input));
+    EXPECT_TRUE(served.extrapolated);
+    const AmbientPose expected = ToAmbient(served.pose);
+    // The same interpolation in another order: rounding of values of order 1.
+    EXPECT_LT((plain.output - expected).cwiseAbs().maxCoeff(), 1e-14) << input.transpose();
+    EXPECT_LT((analytic.output - expected).cwiseAbs().maxCoeff(), 1e-14) << input.transpose();
+    EXPECT_LT((autodiff.output - expected).cwiseAbs().maxCoeff(), 1e-14) << input.transpose();
+    // The held value does not move with the input along an axis outside the grid.
+    EXPECT_LT((analytic.d_output_d_input - autodiff.d_output_d_input).cwiseAbs().maxCoeff(), 1e-12);
+    for (int k = 0; k < 3; ++k) {
+      if (input[k] > grid.axis(k).front() && input[k] < grid.axis(k).back()) continue;
+      Eigen::Matrix<double, 7, 1> column = analytic.d_output_d_input.col(k);
+      column[k] -= 1.0;  // the position passes through
+      EXPECT_LT(column.cwiseAbs().maxCoeff(), 1e-15) << "axis " << k;
+    }
   }
 }
 
