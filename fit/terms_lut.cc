@@ -145,6 +145,8 @@ void LutTerm::Prepare(const std::vector<FitStation>& inputs) {
   for (int k = 0; k < 3; ++k) {
     const int n = counts[static_cast<size_t>(k)];
     for (int i = 0; i < n; ++i) axes[static_cast<size_t>(k)].push_back(lo[k] + (hi[k] - lo[k]) * i / (n - 1));
+    // lo + (hi - lo) rounds below hi for some boxes: the station at the maximum would be outside.
+    axes[static_cast<size_t>(k)].back() = hi[k];
   }
   grid_.emplace(adopted_axes_ ? *adopted_axes_ : axes);
   blocks_.clear();

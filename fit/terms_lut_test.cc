@@ -216,6 +216,28 @@ TEST(LutTerm, OutsideTheGridTheFitEvaluatesWhatTheRuntimeServes) {
   }
 }
 
+// The grid spans the stations' box exactly: its last node was lo + (hi - lo) * (n - 1) / (n - 1),
+// which rounds below hi for about 3 % of boxes (here -0.99 .. 0.85 with 4 nodes:
+// 0.8499999999999999), so the station at the maximum was outside the grid and its served correction
+// flagged extrapolated.
+TEST(LutTerm, GridEndsAtTheStationsMaximum) {
+  std::mt19937 rng(25);
+  auto stations = RandomStations(50, &rng);
+  stations[0].reported.translation = Eigen::Vector3d(-0.99, -0.99, -0.99);
+  stations[1].reported.translation = Eigen::Vector3d(0.85, 0.85, 0.85);
+  LutTermOptions options;
+  options.nodes = std::array<int, 3>{4, 4, 4};
+  LutTerm lut(options);
+  lut.Prepare(stations);
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_EQ(lut.grid().axis(k).front(), -0.99);
+    EXPECT_EQ(lut.grid().axis(k).back(), 0.85);
+  }
+  const auto correction = lut.ToCorrection();
+  for (const auto& s : stations)
+    EXPECT_FALSE(correction->Apply(s.reported).extrapolated) << s.station;
+}
+
 TEST(LutTerm, ModelFileErrors) {
   EXPECT_THROW(ParseModelYaml("terms: [{type: lut, cell_size_mm: 0}]", "m"), std::invalid_argument);
   EXPECT_THROW(ParseModelYaml("terms: [{type: lut, nodes: [2, 2]}]", "m"), std::invalid_argument);
