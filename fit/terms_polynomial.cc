@@ -379,9 +379,13 @@ namespace {
 // Ridge regression of the columns `shrunk` of `a` (the others free) for every right-hand side of b,
 // at weight lambda: returns the coefficients (a.cols() x b.cols()) and, in *loo, each station's
 // squared leave-one-out residual summed over b's columns, (e_i / (1 - H_ii))^2 by the hat matrix H.
-// Free columns are projected out (Q0), the shrunk ones solved by the SVD of what remains.
+// Free columns are projected out (Q0), the shrunk ones solved by the SVD of what remains. The free
+// columns may be dependent (stations on a plane: a flat axis's column is zero, a tilted plane's
+// z = a x + b y + c); Q0 spans their range and the free coefficients are the minimum-norm solution
+// (the undetermined ones zero), not the inverse of a singular R (non-finite coefficients).
 struct RidgeSolver {
-  Eigen::MatrixXd q0, r0, a0, a1;  // thin QR of the free columns; the columns
+  Eigen::MatrixXd q0, a0, a1;  // orthonormal basis of the free columns' range; the columns
+  Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod0;  // of a0
   Eigen::MatrixXd u, v;            // SVD of (I - Q0 Q0^T) A1
   Eigen::VectorXd s;
   std::vector<int> free_cols, shrunk_cols;
@@ -392,9 +396,8 @@ struct RidgeSolver {
     a1.resize(a.rows(), static_cast<Eigen::Index>(shrunk_cols.size()));
     for (size_t j = 0; j < free_cols.size(); ++j) a0.col(static_cast<Eigen::Index>(j)) = a.col(free_cols[j]);
     for (size_t j = 0; j < shrunk_cols.size(); ++j) a1.col(static_cast<Eigen::Index>(j)) = a.col(shrunk_cols[j]);
-    const Eigen::HouseholderQR<Eigen::MatrixXd> qr(a0);
-    q0 = qr.householderQ() * Eigen::MatrixXd::Identity(a.rows(), a0.cols());
-    r0 = qr.matrixQR().topRows(a0.cols()).triangularView<Eigen::Upper>();
+    cod0.compute(a0);
+    q0 = cod0.householderQ() * Eigen::MatrixXd::Identity(a.rows(), cod0.rank());
     const Eigen::MatrixXd p1 = a1 - q0 * (q0.transpose() * a1);
     const Eigen::BDCSVD<Eigen::MatrixXd> svd(p1, Eigen::ComputeThinU | Eigen::ComputeThinV);
     u = svd.matrixU();
@@ -408,7 +411,7 @@ struct RidgeSolver {
         (s.array() > 0).select(s.array() / (s.array().square() + lambda * lambda), 0.0);
     const Eigen::MatrixXd b1 = b - q0 * (q0.transpose() * b);
     const Eigen::MatrixXd c1 = v * (g.asDiagonal() * (u.transpose() * b1));
-    const Eigen::MatrixXd c0 = r0.triangularView<Eigen::Upper>().solve(q0.transpose() * (b - a1 * c1));
+    const Eigen::MatrixXd c0 = cod0.solve(b - a1 * c1);
     Eigen::MatrixXd c(static_cast<Eigen::Index>(free_cols.size() + shrunk_cols.size()), b.cols());
     for (size_t j = 0; j < free_cols.size(); ++j) c.row(free_cols[j]) = c0.row(static_cast<Eigen::Index>(j));
     for (size_t j = 0; j < shrunk_cols.size(); ++j) c.row(shrunk_cols[j]) = c1.row(static_cast<Eigen::Index>(j));

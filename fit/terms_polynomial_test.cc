@@ -466,6 +466,59 @@ TEST(PolynomialTerm, BlockedRidgeCvSeesWhatLeaveOneOutCannot) {
   EXPECT_LT(scattered.blocked_mm, 1.0);
 }
 
+// Stations on a plane leave free (constant and linear) columns dependent. On a plane normal to an
+// axis that axis's column is zero: the ridge path inverted a singular triangular factor, and the
+// fit threw "parameter block polynomial.position_coefficients: value 0 is not finite" (ridge: 1
+// and both ridge: auto selections). A field linear in x and y (which the ridge does not shrink) is
+// now reproduced at the stations. (A tilted plane's z = 0.3 + 0.2 (x - y / 2) is dependent only to
+// rounding and was fitted before too; kept as a check.)
+TEST(PolynomialTerm, RidgeOnStationsOnAPlaneFitsWhatTheyDetermine) {
+  std::mt19937 rng(31);
+  PolynomialTermOptions truth_options;
+  truth_options.degree = 1;
+  truth_options.input_offset = Eigen::Vector3d(0, 0, 0.3);
+  truth_options.input_scale = Eigen::Vector3d(0.5, 0.5, 0.5);
+  PolynomialTerm truth(truth_options);
+  std::normal_distribution<double> normal;
+  for (int j = 0; j < 3; ++j) {  // 1, x, y: no z dependence
+    for (int k = 0; k < 3; ++k) {
+      truth.blocks()[0].values[static_cast<size_t>(j * 3 + k)] = 0.005 * normal(rng);
+      truth.blocks()[1].values[static_cast<size_t>(j * 3 + k)] = 0.01 * normal(rng);
+    }
+  }
+  const auto correction = truth.ToCorrection();
+  for (const double tilt : {0.0, 0.2}) {
+    std::uniform_real_distribution<double> pos(-0.5, 0.5);
+    std::vector<FitStation> stations;
+    for (int i = 0; i < 200; ++i) {
+      FitStation s;
+      s.station = i;
+      const double x = pos(rng), y = pos(rng);
+      s.reported.translation = Eigen::Vector3d(x, y, 0.3 + tilt * (x - 0.5 * y));
+      s.reported.rotation =
+          Eigen::Quaterniond(normal(rng), normal(rng), normal(rng), normal(rng)).normalized();
+      s.reference = correction->Apply(s.reported).pose;
+      stations.push_back(s);
+    }
+    for (const std::string ridge : {"1", "auto", "auto, ridge_cv: leave_one_out"}) {
+      SCOPED_TRACE("tilt " + std::to_string(tilt) + ", ridge: " + ridge);
+      ModelSpec spec =
+          ParseModelYaml("terms: [{type: polynomial, degree: 2, ridge: " + ridge + "}]", "m.yaml");
+      FitResult result;
+      ASSERT_NO_THROW(result = FitModel(stations, &spec));
+      for (const auto& block : spec.terms[0]->blocks()) {
+        for (double v : block.values) ASSERT_TRUE(std::isfinite(v)) << block.name;
+      }
+      // Noise-free and unshrunk: to the solver's tolerance (errors of ~5 mm and ~0.01).
+      for (const auto& s : stations) {
+        const Rigid3d corrected = result.chain.Apply(s.reported).pose;
+        EXPECT_LT(PositionErrorNorm(corrected, s.reference), 1e-9);
+        EXPECT_LT(OrientationErrorAngle(corrected, s.reference), 1e-9);
+      }
+    }
+  }
+}
+
 TEST(PolynomialTerm, RidgeAndAmplificationErrorsNameFileLineAndField) {
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: auto\n", "m.yaml"));
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: 0.1\n", "m.yaml"));
