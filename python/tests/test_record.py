@@ -355,3 +355,41 @@ def test_a_recording_folder_that_cannot_be_made_is_a_value_error(fake_recorders,
         with pytest.raises(ValueError, match=r"afile.*: cannot make the recording folder"):
             record_streams({"raw": "Tracker0_raw@tcp://h:1"}, out, 0.1)
     assert (tmp_path / "afile").read_text() == "keep\n" and not fake_recorders
+
+
+def test_a_device_that_goes_quiet_while_connected_is_reported_after_saving(fake_recorders, tmp_path, monkeypatch):
+    """A trackcal-server frozen (SIGSTOP; as a pulled network cable) 1.5 s into a 4 s recording
+    keeps its TCP connection open, and the client gives it up only after its 10 s liveness timeout:
+    record_streams returned normally and `trackcal record` exited 0, the files holding 1.2 s of the
+    4 s asked for and nothing saying so. A silence longer than max(1 s, 10 mean intervals) is now an
+    error naming the device, raised after every recording is saved."""
+    from trackcal import record
+
+    class Quieting(FakeRecorder):
+        def __init__(self, name):
+            super().__init__(name)
+            self.polls = 0
+
+        def __len__(self):  # one report per look; 'frozen' stops after its second look
+            self.polls += 1
+            return 3 + (min(self.polls, 2) if self.name.startswith("frozen") else self.polls)
+
+        def take(self):  # 50 reports after the start: 10 mean intervals are 0.4 s of the 2 s
+            self.takes += 1
+            n = 3 if self.takes == 1 else 50
+            return {"time": 100.0 + 0.01 * np.arange(n), "sensor": np.zeros(n, dtype=np.int32),
+                    "positions": np.full((n, 3), 0.25), "quaternions_xyzw": np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))}
+
+    monkeypatch.setattr(record._core, "TrackerRecorder", Quieting)
+    rec = tmp_path / "rec"
+    # 'frozen' is silent from ~0.1 s to the end at 2 s (> the 1 s floor by ~0.9 s, a margin for a
+    # loaded machine); 'raw' grows at every 0.1 s look, so its silences stay far below 1 s.
+    with pytest.raises(RuntimeError, match=r"no report for a while during the recording from: corrected "
+                                           r"\(frozen@tcp://h:1\) for [0-9.]+ s from [0-9.]+ s of 2 s .*"
+                                           r"\(saved: .*raw_tracker_stream\.csv, .*corrected_tracker_stream\.csv\)"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1", "corrected": "frozen@tcp://h:1"}, rec, 2.0)
+    assert len(captures.load_tracker_stream(rec / "corrected_tracker_stream.csv")) == 50
+    assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv")) == 50
+    # A device that keeps reporting is not reported.
+    out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec2", 1.5)
+    assert list(out) == ["raw"] and out.gaps == {}

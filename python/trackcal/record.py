@@ -8,7 +8,7 @@ import math
 import pathlib
 import re
 import time
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from trackcal import _core
 from trackcal.captures import TrackerStream, save_tracker_stream
@@ -18,11 +18,14 @@ class Recording(dict):
     """label -> path of each saved recording. ``interrupted``: Ctrl-C ended it before the duration;
     ``empty``: the labels of devices that sent nothing before the interruption (no file);
     ``lost``: label -> seconds into the recording when the device's connection dropped (its
-    recording has a gap or ends early)."""
+    recording has a gap or ends early); ``gaps``: label -> (start, length) [s] of a silence of a
+    device that stayed connected (a frozen server, a lost network) longer than max(1 s, 10 of its
+    mean intervals between reports)."""
 
     interrupted: bool = False
     empty: Sequence[str] = ()
     lost: Dict[str, float] = {}
+    gaps: Dict[str, Tuple[float, float]] = {}
 
 
 def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, connect_timeout_s: float = 10.0,
@@ -31,9 +34,11 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir (which must
     not hold such files already: recordings are never overwritten). Returns label -> path.
     Raises RuntimeError if a device does not connect (nothing is recorded then), sends no report
-    during the recording, or loses its connection during it (a server that stopped or went away:
-    its recording is saved but has a gap or ends early), after saving every recording (the message
-    names them).
+    during the recording, loses its connection during it (a server that stopped or went away: its
+    recording is saved but has a gap or ends early), or sends nothing for longer than max(1 s, 10
+    of its mean intervals between reports) while connected (a frozen server or a lost network,
+    which the client notices only after its 10 s liveness timeout), after saving every recording
+    (the message names them).
 
     Ctrl-C (KeyboardInterrupt) ends the recording early and returns normally with ``interrupted``
     set: every device's reports until then are saved (none if it came before all had connected,
@@ -71,6 +76,22 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
         _remove_empty_folders(created)
 
 
+_MIN_GAP_S = 1.0  # a silence shorter than this is never a gap (a VRPN tracker reports at 10 Hz or more)
+
+
+def _watch_silence(label: str, count: int, elapsed: float, counts: Dict[str, int], heard: Dict[str, float],
+                   silent: Dict[str, Tuple[float, float]]) -> None:
+    """Notes, at ``elapsed`` seconds into the recording, whether the device sent a report since the
+    last look, and keeps its longest silence as label -> (start [s into the recording], length [s])."""
+    if count != counts[label]:
+        counts[label] = count
+        heard[label] = elapsed
+        return
+    length = elapsed - heard[label]
+    if length > silent.get(label, (0.0, 0.0))[1]:
+        silent[label] = (heard[label], length)
+
+
 def _remove_empty_folders(folders: Sequence[pathlib.Path]) -> None:
     """Removes each folder (deepest first) while it is empty: rmdir refuses one that holds anything,
     and then its parents hold it."""
@@ -92,6 +113,7 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
     out = Recording()
     started = False
     lost: Dict[str, float] = {}
+    silent: Dict[str, Tuple[float, float]] = {}
     for r in recorders.values():
         r.start()
     try:
@@ -105,15 +127,23 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             r.take()  # start all streams at the same moment
         started = True
         t0 = time.monotonic()
+        # A server that freezes or whose network goes (a pulled cable) keeps its connection open
+        # until the client's liveness timeout (10 s): the recording just stopped growing and was
+        # saved as if complete. Each device's longest silence is watched too.
+        counts = {label: len(r) for label, r in recorders.items()}
+        heard = dict.fromkeys(recorders, 0.0)  # seconds into the recording of the last growth
         while (elapsed := time.monotonic() - t0) < duration_s:
             # A server that goes away mid-recording: the client reconnects on its own, so the
             # recording just stopped growing and was saved as if complete.
             for label, r in recorders.items():
                 if label not in lost and not getattr(r, "connected", True):
                     lost[label] = elapsed
+                _watch_silence(label, len(r), elapsed, counts, heard, silent)
             if progress:
                 progress(elapsed, duration_s)
             time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
+        for label, r in recorders.items():
+            _watch_silence(label, len(r), duration_s, counts, heard, silent)
         if progress:
             progress(duration_s, duration_s)  # the bar ends at 100 % (and its line) before the summary
     except KeyboardInterrupt:  # Ctrl-C: stop recording and keep what was recorded
@@ -125,8 +155,10 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         return out
     empty: List[str] = []
     failed: List[str] = []
+    out_counts: Dict[str, int] = {}
     for label, r in recorders.items():  # every recording is saved before an empty one is reported
         d = r.take()
+        out_counts[label] = len(d["time"])
         if len(d["time"]) == 0:
             empty.append(label)
             continue
@@ -141,6 +173,16 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
     out.empty = empty
     out.lost = lost
     gone = [label for label in lost if label not in empty]
+    # The longest silence of each device that sent something and kept its connection: one over
+    # max(1 s, 10 of its mean intervals between reports) is a gap (a frozen server, a lost network).
+    gaps = {}
+    for label, (start, length) in silent.items():
+        n = out_counts.get(label, 0)
+        if label in empty or label in lost or n == 0:
+            continue
+        if length > max(_MIN_GAP_S, 10.0 * duration_s / n):
+            gaps[label] = (start, length)
+    out.gaps = gaps
     problems = failed + ([f"no report during the recording from: "
                           + ", ".join(f"{label} ({devices[label]})" for label in empty)]
                          if empty and not out.interrupted else [])
@@ -149,6 +191,11 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
                         + ", ".join(f"{label} ({devices[label]}) after {lost[label]:.1f} s of {duration_s:g} s"
                                     for label in gone)
                         + " (a recording with a gap or that ends early)")
+    if gaps and not out.interrupted:
+        problems.append("no report for a while during the recording from: "
+                        + ", ".join(f"{label} ({devices[label]}) for {length:.1f} s from {start:.1f} s of "
+                                    f"{duration_s:g} s" for label, (start, length) in gaps.items())
+                        + " (a frozen server or a lost network: a recording with a gap or that ends early)")
     if problems:
         saved = f" (saved: {', '.join(str(p) for p in out.values())})" if out else ""
         raise RuntimeError("; ".join(problems) + saved)
