@@ -64,6 +64,19 @@ def test_record_unserved_name_times_out(server, tmp_path):
         record_streams({"x": f"Nope@tcp://127.0.0.1:{server}"}, tmp_path / "rec", 0.1, connect_timeout_s=1.5)
 
 
+def test_a_device_that_never_reports_is_told_apart_from_a_missing_server(server, tmp_path):
+    """A mistyped device name and a server that is not running both said only 'no report within
+    10.0 s from: x (Nope@tcp://127.0.0.1:PORT)'. The client knows which: a server that is there
+    connects, and answers the pings of a name it serves (vrpn_server/client/tracker_client.h)."""
+    with pytest.raises(RuntimeError, match=r"no report within 3 s from: x \(Nope@tcp://127\.0\.0\.1:[0-9]+: "
+                                           r"connected, but no answer for this name; a device the server "
+                                           r"does not serve\?\), y \(Tracker0@tcp://127\.0\.0\.1:[0-9]+: "
+                                           r"no connection; is a server running at that address\?\)$"):
+        # 3 s: the connection and the first ping's answer take milliseconds on this host.
+        record_streams({"x": f"Nope@tcp://127.0.0.1:{server}", "y": f"Tracker0@tcp://127.0.0.1:{free_port()}"},
+                       tmp_path / "rec", 0.1, connect_timeout_s=3)
+
+
 def test_a_failed_recording_removes_only_the_empty_folders_it_made(tmp_path):
     """Nothing listens on the port: no device connects, nothing is written. The folders the call
     made are removed again; a folder that existed before, empty or not, stays."""

@@ -76,6 +76,19 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
         _remove_empty_folders(created)
 
 
+def _why_silent(recorder) -> str:
+    """Why a device sent no report, as its client sees it: no connection (no server there), no
+    answer to the pings for its name (a name the server does not serve), or served and quiet."""
+    connected = getattr(recorder, "connected", None)
+    if connected is None:  # a recorder that does not say
+        return ""
+    if not connected:
+        return ": no connection; is a server running at that address?"
+    if not getattr(recorder, "pong_received", True):
+        return ": connected, but no answer for this name; a device the server does not serve?"
+    return ": connected and served, but no pose report"
+
+
 _MIN_GAP_S = 1.0  # a silence shorter than this is never a gap (a VRPN tracker reports at 10 Hz or more)
 
 
@@ -120,7 +133,8 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         deadline = time.monotonic() + connect_timeout_s
         while not all(len(r) > 0 for r in recorders.values()):
             if time.monotonic() > deadline:
-                missing = [f"{label} ({devices[label]})" for label, r in recorders.items() if len(r) == 0]
+                missing = [f"{label} ({devices[label]}{_why_silent(r)})" for label, r in recorders.items()
+                           if len(r) == 0]
                 raise RuntimeError(f"no report within {connect_timeout_s} s from: {', '.join(missing)}")
             time.sleep(0.02)
         for r in recorders.values():
