@@ -244,6 +244,36 @@ def test_ctrl_c_ends_the_recording_and_keeps_what_was_recorded(fake_recorders, t
     assert all(r.stopped for r in fake_recorders)
 
 
+def test_a_second_ctrl_c_while_saving_does_not_lose_the_recording(fake_recorders, tmp_path, monkeypatch):
+    """The first Ctrl-C ends the recording; a second one while the recorders stop and the files are
+    written escaped as KeyboardInterrupt and every recording was lost."""
+    import os
+    import signal
+    from trackcal import record
+
+    class SecondCtrlC(FakeRecorder):
+        def stop(self):
+            super().stop()
+            os.kill(os.getpid(), signal.SIGINT)  # the impatient user, while stopping
+
+    def ctrl_c(done, total):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(record._core, "TrackerRecorder", SecondCtrlC)
+    handler = signal.getsignal(signal.SIGINT)
+    try:
+        out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec", 3600.0, progress=ctrl_c)
+    except KeyboardInterrupt:
+        pytest.fail("a second Ctrl-C escaped record_streams: the recording is lost")
+    assert out.interrupted and list(out) == ["raw"]
+    assert len(captures.load_tracker_stream(out["raw"])) == 5
+    assert signal.getsignal(signal.SIGINT) is handler  # Ctrl-C works as before afterwards
+    # A device that never connects: the error, and Ctrl-C's handler untouched.
+    monkeypatch.setattr(record._core, "TrackerRecorder", FakeRecorder)
+    with pytest.raises(RuntimeError, match="no report within"):
+        record_streams({"x": "silent@tcp://h:1"}, tmp_path / "none", 1.0, connect_timeout_s=0.05)
+    assert signal.getsignal(signal.SIGINT) is handler
+
+
 def test_ctrl_c_in_trackcal_record_saves_and_exits_130(fake_recorders, tmp_path, monkeypatch, capsys):
     import time as time_module
     import types

@@ -162,9 +162,46 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             progress(duration_s, duration_s)  # the bar ends at 100 % (and its line) before the summary
     except KeyboardInterrupt:  # Ctrl-C: stop recording and keep what was recorded
         out.interrupted = True
-    finally:
+    except BaseException:  # a device that never connected: nothing recorded
         for r in recorders.values():
             r.stop()
+        raise
+    # A second Ctrl-C while stopping and saving escaped and lost every recording: from here it is
+    # remembered, and ends the recording as an interruption once every file is saved.
+    deferral = _SigintDeferral()
+    try:
+        for r in recorders.values():
+            r.stop()
+        return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, deferral)
+    finally:
+        deferral.restore()
+
+
+class _SigintDeferral:
+    """Until restore(), SIGINT (Ctrl-C) sets ``hit`` instead of raising KeyboardInterrupt; only in
+    the main thread, where Python's handler runs (elsewhere nothing changes)."""
+
+    def __init__(self):
+        import signal
+        import threading
+        self.hit = False
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum, frame):
+        self.hit = True
+
+    def restore(self):
+        if self._old is not None:
+            import signal
+            signal.signal(signal.SIGINT, self._old)
+            self._old = None
+
+
+def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, silent, duration_s: float,
+            deferral: _SigintDeferral) -> "Recording":
+    """Saves every recording after the recording stopped; the problems are raised after saving."""
     if not started:
         return out
     empty: List[str] = []
@@ -197,6 +234,7 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         if length > max(_MIN_GAP_S, 10.0 * duration_s / n):
             gaps[label] = (start, length)
     out.gaps = gaps
+    out.interrupted = out.interrupted or deferral.hit
     problems = failed + ([f"no report during the recording from: "
                           + ", ".join(f"{label} ({devices[label]})" for label in empty)]
                          if empty and not out.interrupted else [])
