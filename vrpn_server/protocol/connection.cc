@@ -114,6 +114,13 @@ void Connection::Dispatch(const Message& m, bool via_udp, const Handler& handler
     switch (type) {
       case kSenderDescription:
       case kTypeDescription: {
+        // Names travel reliably (on TCP) from every VRPN peer. A UDP port takes datagrams from
+        // anyone who finds it: a description arriving there would let a stranger rename the
+        // peer's ids and so redirect or cut off its stream.
+        if (via_udp) {
+          ++counters_.bad_description;
+          return;
+        }
         auto name = DecodeDescription(m.payload);
         if (!name) {
           ++counters_.bad_description;

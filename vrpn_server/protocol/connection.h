@@ -80,7 +80,7 @@ class Connection {
   struct Counters {
     std::uint64_t delivered = 0;
     std::uint64_t unknown_id = 0;         // sender or type never described
-    std::uint64_t bad_description = 0;    // malformed description payload
+    std::uint64_t bad_description = 0;    // malformed, or arrived over UDP (ignored)
     std::uint64_t unknown_system = 0;     // system type we do not handle
     std::uint64_t bad_datagram = 0;       // UDP datagram with a broken message
   };

@@ -162,5 +162,37 @@ TEST(ServerSession, StateChangingRequestsAreIgnoredAndLogSpamIsCapped) {
   EXPECT_EQ(log.size(), static_cast<std::size_t>(ServerSession::kMaxLogLines) + 1);
 }
 
+TEST(ServerSession, DescriptionsOverUdpCannotRedirectTheClientsStream) {
+  // A lob client's data socket on the server takes datagrams from anyone who finds its port. A
+  // stranger's datagram re-describing the client's sender id as another served device must not
+  // change which device the client is taken to use (observed: the client's Tracker0 stream
+  // switched to Tracker1 after one such datagram).
+  auto catalog = std::make_shared<ServerCatalog>();
+  catalog->AddTracker(Tracker0());
+  TrackerSpec tracker1;
+  tracker1.name = "Tracker1";
+  catalog->AddTracker(tracker1);
+  ServerSession session(catalog, Connection::Options{}, "peer", nullptr);
+  session.Start(std::make_pair(std::string("127.0.0.1"), 40000), {});
+  auto names = std::make_shared<NameRegistry>();
+  names->AddSender("Tracker0");
+  Connection client(names, Connection::Options{});
+  client.Start();
+  ASSERT_TRUE(session.OnTcpBytes(client.tcp_output()));
+  ASSERT_TRUE(session.connection().handshake_done());
+  const PeerNameTable& peer = session.connection().peer_senders();
+  ASSERT_TRUE(peer.Contains("Tracker0"));
+  const auto version = peer.version();
+
+  std::vector<std::uint8_t> datagram;
+  AppendMessage(&datagram, Timestamp{}, 0, kSenderDescription, 0, EncodeDescription("Tracker1"));
+  AppendMessage(&datagram, Timestamp{}, 0, kTypeDescription, 1, EncodeDescription("x"));
+  session.OnDatagram(datagram);
+  EXPECT_TRUE(peer.Contains("Tracker0"));
+  EXPECT_FALSE(peer.Contains("Tracker1"));
+  EXPECT_EQ(peer.version(), version);
+  EXPECT_EQ(session.connection().counters().bad_description, 2u);
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
