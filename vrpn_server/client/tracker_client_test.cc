@@ -443,6 +443,86 @@ TEST(VrpnServer, AForeignUdpDescriptionIsLoggedOnceNotOnEveryRead) {
   EXPECT_EQ(ignored_lines.load(), 1);
 }
 
+TEST(VrpnServer, AStrangersDatagramToAClientsDataPortIsIgnored) {
+  // The server's UDP data socket for a lob client takes datagrams from anyone who finds its port.
+  // Only the client's own host may speak for the client there: a stranger's ping (with the
+  // client's ids) got a pong sent to the client, and a stranger's descriptions could rename the
+  // client's ids.
+  std::atomic<int> ignored_lines{0};
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [&](const std::string& line) {
+    if (line.find("ignored datagram from 127.0.0.2") != std::string::npos) ++ignored_lines;
+  });
+  server.Start();
+  UniqueFd listener(::socket(AF_INET, SOCK_STREAM, 0));
+  sockaddr_in la = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)), 0);
+  ASSERT_EQ(::listen(listener.get(), 1), 0);
+  socklen_t len = sizeof(la);
+  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
+  UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
+  sockaddr_in ua = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  ASSERT_EQ(::bind(udp.get(), reinterpret_cast<sockaddr*>(&ua), sizeof(ua)), 0);
+  len = sizeof(ua);
+  ::getsockname(udp.get(), reinterpret_cast<sockaddr*>(&ua), &len);
+  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
+  ASSERT_GT(::sendto(udp.get(), lob.data(), lob.size(), 0, reinterpret_cast<const sockaddr*>(&dst),
+                     sizeof(dst)),
+            0);
+  pollfd p{listener.get(), POLLIN, 0};
+  ASSERT_EQ(::poll(&p, 1, 10000), 1);
+  UniqueFd fd(::accept(listener.get(), nullptr, nullptr));
+  ASSERT_TRUE(fd.valid());
+
+  auto names = std::make_shared<NameRegistry>();
+  const std::int32_t tracker = names->AddSender("Tracker0");
+  const std::int32_t ping = names->AddType(kPingType);
+  Connection conn(names, Connection::Options{});
+  conn.Start(std::make_pair(std::string("127.0.0.1"), static_cast<int>(ntohs(ua.sin_port))));
+  auto& out = conn.tcp_output();
+  ASSERT_EQ(::send(fd.get(), out.data(), out.size(), 0), static_cast<ssize_t>(out.size()));
+  out.clear();
+  int pongs = 0;
+  std::uint8_t buf[65536];
+  auto read_tcp = [&](const std::function<bool()>& done, double timeout_s) {
+    const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
+    while (!done() && Clock::now() < end) {
+      pollfd r{fd.get(), POLLIN, 0};
+      if (::poll(&r, 1, 50) <= 0) continue;
+      const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+      ASSERT_GT(n, 0);
+      ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                  [&](const ReceivedMessage& m) {
+                                    if (m.type == kPongType) ++pongs;
+                                  }));
+    }
+  };
+  read_tcp([&] { return conn.peer_udp().has_value(); }, 10.0);
+  ASSERT_TRUE(conn.peer_udp());
+  const sockaddr_in data_port =
+      MakeSockaddr(*ParseIpv4(conn.peer_udp()->first), conn.peer_udp()->second);
+  std::vector<std::uint8_t> datagram;
+  AppendMessage(&datagram, Timestamp::Now(), tracker, ping, 0, {});
+
+  // The stranger's datagram is sent first: the server reads it before the client's own.
+  UniqueFd stranger(::socket(AF_INET, SOCK_DGRAM, 0));
+  sockaddr_in sa = MakeSockaddr(*ParseIpv4("127.0.0.2"), 0);
+  ASSERT_EQ(::bind(stranger.get(), reinterpret_cast<sockaddr*>(&sa), sizeof(sa)), 0);
+  const std::uint64_t refused_before = server.stats().refused;
+  ASSERT_GT(::sendto(stranger.get(), datagram.data(), datagram.size(), 0,
+                     reinterpret_cast<const sockaddr*>(&data_port), sizeof(data_port)),
+            0);
+  ASSERT_GT(::sendto(udp.get(), datagram.data(), datagram.size(), 0,
+                     reinterpret_cast<const sockaddr*>(&data_port), sizeof(data_port)),
+            0);
+  read_tcp([&] { return pongs >= 1; }, 10.0);
+  EXPECT_EQ(pongs, 1);  // the client's own ping is answered
+  EXPECT_EQ(server.stats().refused, refused_before + 1);
+  EXPECT_EQ(ignored_lines.load(), 1);
+  read_tcp([] { return false; }, 0.3);  // a pong for the stranger would have come by now
+  EXPECT_EQ(pongs, 1);
+}
+
 TEST(VrpnServer, AllowListRefusesOtherNetworks) {
   ServerOptions options = LoopbackOptions();
   options.allow = {"10.0.0.0/8"};

@@ -603,8 +603,21 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
   if (udp) {
     std::uint8_t buf[kMaxDatagramSize + 64];
     for (int burst = 0; burst < 64; ++burst) {
-      const ssize_t n = ::recv(e.udp_fd.get(), buf, sizeof(buf), 0);
+      sockaddr_in src{};
+      socklen_t len = sizeof(src);
+      const ssize_t n =
+          ::recvfrom(e.udp_fd.get(), buf, sizeof(buf), 0, reinterpret_cast<sockaddr*>(&src), &len);
       if (n <= 0) break;
+      // Anyone can reach this port; only the client's own host may speak for the client (any
+      // source port: clients send from other sockets than the one they describe).
+      if (src.sin_addr.s_addr != e.peer.sin_addr.s_addr) {
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        ++stats_.refused;
+        if (impl_->refused_logged++ < 100) {
+          Log("ignored datagram from " + FormatEndpoint(src) + " to the data port of " + e.label);
+        }
+        continue;
+      }
       if (e.session) e.session->OnDatagram(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)));
     }
     Flush(e);  // replies to messages that came over UDP travel on TCP

@@ -72,7 +72,8 @@ struct ServerOptions {
 struct ServerStats {
   int clients = 0;                    // connections currently open
   std::uint64_t connections_total = 0;
-  std::uint64_t refused = 0;          // allow-list, client limit, bad lob requests
+  std::uint64_t refused = 0;          // allow-list, client limit, bad lob requests, strangers'
+                                      // datagrams to a client's data port
   std::uint64_t dropped_slow = 0;     // closed because the output buffer overflowed
   std::uint64_t closed_protocol = 0;  // closed for a bad cookie or length field
   std::uint64_t reports_published = 0;
