@@ -743,6 +743,56 @@ TEST(VrpnServer, OutOfFileDescriptorsDoesNotSpinOrFloodTheLog) {
   EXPECT_EQ(server.stats().clients, kClients);
 }
 
+TEST(VrpnServer, LobRequestsWhileOutOfFileDescriptorsCannotFloodTheLog) {
+  // With no descriptor free, every lob datagram failed at socket() and logged a line of its own
+  // (observed: 2000 datagrams, 2000 lines). They count toward the cap on lob refusals instead.
+  std::atomic<int> socket_errors{0};
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [&](const std::string& line) {
+    if (line.find(std::strerror(EMFILE)) != std::string::npos) ++socket_errors;
+  });
+  server.Start();
+  // The call-back target and the sender exist before the limit is lowered.
+  UniqueFd listener(::socket(AF_INET, SOCK_STREAM, 0));
+  sockaddr_in la = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)), 0);
+  ASSERT_EQ(::listen(listener.get(), 16), 0);
+  socklen_t len = sizeof(la);
+  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
+  UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
+  FdLimitGuard guard;
+  int highest = 0;
+  for (const auto& entry : std::filesystem::directory_iterator("/proc/self/fd")) {
+    highest = std::max(highest, std::stoi(entry.path().filename().string()));
+  }
+  rlimit low = guard.saved;
+  low.rlim_cur = static_cast<rlim_t>(highest) + 1;
+  ASSERT_EQ(::setrlimit(RLIMIT_NOFILE, &low), 0);
+  for (int fd; (fd = ::open("/dev/null", O_RDONLY | O_CLOEXEC)) >= 0;) {
+    guard.fillers.emplace_back(fd);
+  }
+  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
+  // More than the cap of 100 lines, few enough to fit the server's receive buffer.
+  constexpr int kDatagrams = 150;
+  for (int i = 0; i < kDatagrams; ++i) {
+    ASSERT_GT(::sendto(udp.get(), lob.data(), lob.size(), 0,
+                       reinterpret_cast<const sockaddr*>(&dst), sizeof(dst)),
+              0);
+    if (i % 10 == 9) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  // Every datagram is read (the server drains its socket), so once the log is quiet for a while
+  // all lines that will come have come.
+  int last = -1;
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (socket_errors.load() != last && Clock::now() < end) {
+    last = socket_errors.load();
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  }
+  EXPECT_GE(socket_errors.load(), 1);
+  EXPECT_LE(socket_errors.load(), 100);
+  EXPECT_EQ(server.stats().clients, 0);
+}
+
 TEST(VrpnTrackerClient, AHostNameIsResolvedOffTheClientThread) {
   VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
   server.Start();

@@ -510,8 +510,9 @@ void VrpnServer::HandleLob() {
     }
     UniqueFd fd(::socket(AF_INET, SOCK_STREAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
     if (!fd.valid()) {
-      Log("socket: " + ErrnoText(errno));
-      return;
+      // Out of descriptors: one line per datagram would let any host flood the log.
+      refuse("call-back socket: " + ErrnoText(errno));
+      continue;
     }
     const in_addr bind_ip = *ParseIpv4(options_.bind_address);
     if (bind_ip.s_addr != htonl(INADDR_ANY)) {
