@@ -387,6 +387,28 @@ TEST(VrpnServer, ReferenceClientDescribingOnlyVrpnControlGetsEveryDevice) {
   EXPECT_GE(counts["Tracker1"], 20);
 }
 
+// Sends `server` a lob request from the UDP socket `udp` naming a listener on 127.0.0.1 and returns
+// the server's call-back connection (invalid if none came within 10 s).
+UniqueFd AcceptLobCallback(const VrpnServer& server, int udp) {
+  UniqueFd listener(::socket(AF_INET, SOCK_STREAM, 0));
+  sockaddr_in la = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  if (::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)) != 0 ||
+      ::listen(listener.get(), 1) != 0) {
+    return UniqueFd();
+  }
+  socklen_t len = sizeof(la);
+  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
+  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
+  if (::sendto(udp, lob.data(), lob.size(), 0, reinterpret_cast<const sockaddr*>(&dst),
+               sizeof(dst)) <= 0) {
+    return UniqueFd();
+  }
+  pollfd p{listener.get(), POLLIN, 0};
+  if (::poll(&p, 1, 10000) != 1) return UniqueFd();
+  return UniqueFd(::accept(listener.get(), nullptr, nullptr));
+}
+
 TEST(VrpnServer, AForeignUdpDescriptionIsLoggedOnceNotOnEveryRead) {
   // A lob client announcing a UDP port on another address gets its reports over TCP; the server
   // says so once, not on every later read from that client (which would let one client fill the
@@ -396,21 +418,8 @@ TEST(VrpnServer, AForeignUdpDescriptionIsLoggedOnceNotOnEveryRead) {
     if (line.find("ignoring UDP description") != std::string::npos) ++ignored_lines;
   });
   server.Start();
-  UniqueFd listener(::socket(AF_INET, SOCK_STREAM, 0));
-  sockaddr_in la = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
-  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)), 0);
-  ASSERT_EQ(::listen(listener.get(), 1), 0);
-  socklen_t len = sizeof(la);
-  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
   UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
-  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
-  const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
-  ASSERT_GT(::sendto(udp.get(), lob.data(), lob.size(), 0, reinterpret_cast<const sockaddr*>(&dst),
-                     sizeof(dst)),
-            0);
-  pollfd p{listener.get(), POLLIN, 0};
-  ASSERT_EQ(::poll(&p, 1, 10000), 1);
-  UniqueFd fd(::accept(listener.get(), nullptr, nullptr));
+  UniqueFd fd = AcceptLobCallback(server, udp.get());
   ASSERT_TRUE(fd.valid());
 
   auto names = std::make_shared<NameRegistry>();
@@ -453,25 +462,12 @@ TEST(VrpnServer, AStrangersDatagramToAClientsDataPortIsIgnored) {
     if (line.find("ignored datagram from 127.0.0.2") != std::string::npos) ++ignored_lines;
   });
   server.Start();
-  UniqueFd listener(::socket(AF_INET, SOCK_STREAM, 0));
-  sockaddr_in la = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
-  ASSERT_EQ(::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)), 0);
-  ASSERT_EQ(::listen(listener.get(), 1), 0);
-  socklen_t len = sizeof(la);
-  ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
   UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
   sockaddr_in ua = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
   ASSERT_EQ(::bind(udp.get(), reinterpret_cast<sockaddr*>(&ua), sizeof(ua)), 0);
-  len = sizeof(ua);
+  socklen_t len = sizeof(ua);
   ::getsockname(udp.get(), reinterpret_cast<sockaddr*>(&ua), &len);
-  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
-  const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
-  ASSERT_GT(::sendto(udp.get(), lob.data(), lob.size(), 0, reinterpret_cast<const sockaddr*>(&dst),
-                     sizeof(dst)),
-            0);
-  pollfd p{listener.get(), POLLIN, 0};
-  ASSERT_EQ(::poll(&p, 1, 10000), 1);
-  UniqueFd fd(::accept(listener.get(), nullptr, nullptr));
+  UniqueFd fd = AcceptLobCallback(server, udp.get());
   ASSERT_TRUE(fd.valid());
 
   auto names = std::make_shared<NameRegistry>();
