@@ -122,6 +122,16 @@ TEST(LutTerm, InitializeLinearStartsAtTheLeastSquaresNodeValues) {
   EXPECT_EQ(first.blocks()[1].values[0], 0.0);
 }
 
+// Random node values: position errors of ~5 mm, error vector parts of ~0.05.
+void FillRandomNodes(LutTerm* lut, std::mt19937* rng) {
+  std::normal_distribution<double> normal;
+  for (auto& block : lut->blocks()) {
+    for (int i = 0; i < 6; ++i) {
+      block.values[static_cast<size_t>(i)] = (i < 3 ? 0.005 : 0.05) * normal(*rng);
+    }
+  }
+}
+
 // The analytic Jacobians against the autodiff of Apply they replace, inside a cell and outside the
 // grid (the cell at the edge, its boundary value held).
 TEST(LutTerm, AnalyticJacobiansEqualAutoDiff) {
@@ -131,10 +141,7 @@ TEST(LutTerm, AnalyticJacobiansEqualAutoDiff) {
   options.nodes = std::array<int, 3>{5, 4, 3};
   LutTerm lut(options);
   lut.Prepare(stations);
-  std::normal_distribution<double> normal;
-  for (auto& block : lut.blocks()) {
-    for (int i = 0; i < 6; ++i) block.values[static_cast<size_t>(i)] = (i < 3 ? 0.005 : 0.05) * normal(rng);
-  }
+  FillRandomNodes(&lut, &rng);
   std::vector<AmbientPose> inputs;
   for (int i = 0; i < 20; ++i) inputs.push_back(ToAmbient(stations[static_cast<size_t>(i)].reported));
   AmbientPose outside = inputs[0];
@@ -172,11 +179,7 @@ TEST(LutTerm, OutsideTheGridTheFitEvaluatesWhatTheRuntimeServes) {
   options.nodes = std::array<int, 3>{5, 4, 3};
   LutTerm lut(options);
   lut.Prepare(stations);
-  std::normal_distribution<double> normal;
-  for (auto& block : lut.blocks()) {
-    for (int i = 0; i < 6; ++i)
-      block.values[static_cast<size_t>(i)] = (i < 3 ? 0.005 : 0.05) * normal(rng);
-  }
+  FillRandomNodes(&lut, &rng);
   const auto correction = lut.ToCorrection();
   const LutGrid& grid = lut.grid();
   std::vector<AmbientPose> inputs;
