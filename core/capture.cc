@@ -155,6 +155,16 @@ class CsvTable {
         Fail(header_line_, "column " + header_[i], "appears twice in the header");
       }
     }
+    // A regional spreadsheet export (';' between fields, ',' as the decimal point) read as one
+    // column said only "column station: missing from the header".
+    for (const char separator : {';', '\t', '|'}) {
+      if (header_.size() == 1 && header_[0].find(separator) != std::string::npos) {
+        Fail(header_line_, "header",
+             std::string("fields are separated by ',' but this header is separated by '") +
+                 (separator == '\t' ? std::string("\\t") : std::string(1, separator)) +
+                 "' (export with ',' between fields and '.' as the decimal point)");
+      }
+    }
     for (const std::string& r : required) {
       if (!index_.count(r)) Fail(header_line_, "column " + r, "missing from the header");
     }

@@ -210,6 +210,16 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
   }
   EXPECT_EQ(error_for(header + good + "2,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0\n"),
             "poses.csv:3: row: expected 18 fields, found 17");
+  // A regional spreadsheet export: ';' between fields, ',' as the decimal point.
+  std::string semicolons = header + good;
+  std::replace(semicolons.begin(), semicolons.end(), ',', ';');
+  EXPECT_EQ(error_for(semicolons),
+            "poses.csv:1: header: fields are separated by ',' but this header is separated by "
+            "';' (export with ',' between fields and '.' as the decimal point)");
+  std::string tabs = header + good;
+  std::replace(tabs.begin(), tabs.end(), ',', '\t');
+  EXPECT_NE(error_for(tabs).find("this header is separated by '\\t'"), std::string::npos)
+      << error_for(tabs);
   EXPECT_EQ(error_for(header + "1,train,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
             "poses.csv:2: column set: 'train' is not one of calib, valid, reg");
   EXPECT_EQ(error_for(header + "x1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
