@@ -614,8 +614,8 @@ void WritePoses(const std::filesystem::path& path, const PoseCapture& capture,
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const PoseRecord& r = capture.records[i];
     if (!IsKnownSet(r.set)) {
-      throw std::invalid_argument(path.filename().string() + ": record " + std::to_string(i) +
-                                  ": set '" + r.set + "' is not one of calib, valid, reg");
+      throw std::invalid_argument(path.string() + ": record " + std::to_string(i) +
+                                  ": column set: '" + r.set + "' is not one of calib, valid, reg");
     }
     w.RequireUniqueKey("station", r.station, "sensor", r.sensor);
     w.Int(r.station).Text(r.set).Int(r.sensor).Num(r.time).Pose(r.reported).Pose(r.reference);

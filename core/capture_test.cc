@@ -357,6 +357,17 @@ TEST(CaptureWriters, RefuseWhatTheReadersRefuse) {
             "not 1");
   EXPECT_EQ(error_for([&](PoseCapture& c) { c.records[1].reference.rotation.x() = nan; }),
             "poses.csv: record 1: column ref_qx: nan is not a finite number");
+  // Named with its folder, as the other writer errors (it gave the file name alone).
+  try {
+    PoseCapture c = RandomPoses();
+    c.records[2].set = "train";
+    WritePoses(path, c);
+    ADD_FAILURE() << "no error";
+  } catch (const std::exception& e) {
+    EXPECT_EQ(std::string(e.what()),
+              path.string() + ": record 2: column set: 'train' is not one of calib, valid, reg");
+  }
+  EXPECT_FALSE(std::filesystem::exists(path));
   // The streams' writers share the check.
   TrackerStream stream;
   stream.records.resize(2);
