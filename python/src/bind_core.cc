@@ -381,6 +381,11 @@ void BindCore(py::module_& m) {
           py::arg("path"),
           "Writes atomically; refuses to overwrite an input listed in the provenance.")
       .def("to_json", &CalibrationToJsonText)
+      // Through its file text (which reads back to the same file, core/calibration_file_test.cc):
+      // a validation script's process pool, copy.deepcopy.
+      .def(py::pickle(
+          [](const Calibration& c) { return CalibrationToJsonText(c); },
+          [](const std::string& text) { return ParseCalibrationJson(text, "<pickle>"); }))
       .def(
           "correct",
           [](const Calibration& c, const py::handle& positions, const py::handle& quaternions,

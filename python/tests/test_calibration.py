@@ -146,6 +146,20 @@ def test_error_magnitudes_refuse_a_zero_quaternion():
         validation.residuals(positions, quats, positions, bad)
 
 
+def test_a_calibration_pickles_and_deep_copies_to_the_same_correction():
+    """A validation script's process pool pickles the calibration it hands out; a Calibration was
+    not picklable ("cannot pickle 'trackcal._core.Calibration' object")."""
+    import copy
+    import pickle
+    cal = trackcal.Calibration.load(EXAMPLE)
+    rng = np.random.default_rng(7)
+    positions, quats = random_poses(rng, 20)
+    for other in (pickle.loads(pickle.dumps(cal)), copy.deepcopy(cal)):
+        assert other.to_json() == cal.to_json()
+        for a, b in zip(other.correct(positions, quats), cal.correct(positions, quats)):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_correct_refuses_a_zero_quaternion():
     """Calibration.correct and Correction.correct of a zero quaternion returned a zero quaternion
     with status converged; NaN rows (dropped samples) still pass through as NaN."""
