@@ -694,6 +694,19 @@ struct FdLimitGuard {
     fillers.clear();
     ::setrlimit(RLIMIT_NOFILE, &saved);
   }
+  // Lowers the limit to just above the highest open descriptor and fills the free numbers below
+  // it: from here on no new descriptor can be made (the server can neither accept nor open).
+  bool Exhaust() {
+    int highest = 0;
+    for (const auto& entry : std::filesystem::directory_iterator("/proc/self/fd")) {
+      highest = std::max(highest, std::stoi(entry.path().filename().string()));
+    }
+    rlimit low = saved;
+    low.rlim_cur = static_cast<rlim_t>(highest) + 1;
+    if (::setrlimit(RLIMIT_NOFILE, &low) != 0) return false;
+    for (int fd; (fd = ::open("/dev/null", O_RDONLY | O_CLOEXEC)) >= 0;) fillers.emplace_back(fd);
+    return true;
+  }
 };
 
 TEST(VrpnServer, OutOfFileDescriptorsDoesNotSpinOrFloodTheLog) {
@@ -709,17 +722,7 @@ TEST(VrpnServer, OutOfFileDescriptorsDoesNotSpinOrFloodTheLog) {
   std::vector<UniqueFd> clients;
   for (int i = 0; i < kClients; ++i) clients.emplace_back(::socket(AF_INET, SOCK_STREAM, 0));
   FdLimitGuard guard;
-  int highest = 0;
-  for (const auto& entry : std::filesystem::directory_iterator("/proc/self/fd")) {
-    highest = std::max(highest, std::stoi(entry.path().filename().string()));
-  }
-  rlimit low = guard.saved;
-  low.rlim_cur = static_cast<rlim_t>(highest) + 1;
-  ASSERT_EQ(::setrlimit(RLIMIT_NOFILE, &low), 0);
-  // Fill the free numbers below the limit: from here on the server cannot accept.
-  for (int fd; (fd = ::open("/dev/null", O_RDONLY | O_CLOEXEC)) >= 0;) {
-    guard.fillers.emplace_back(fd);
-  }
+  ASSERT_TRUE(guard.Exhaust());  // from here on the server cannot accept
   const sockaddr_in sa = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
   for (auto& c : clients) {
     ASSERT_EQ(::connect(c.get(), reinterpret_cast<const sockaddr*>(&sa), sizeof(sa)), 0);
@@ -756,16 +759,7 @@ TEST(VrpnServer, LobRequestsWhileOutOfFileDescriptorsCannotFloodTheLog) {
   ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
   UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
   FdLimitGuard guard;
-  int highest = 0;
-  for (const auto& entry : std::filesystem::directory_iterator("/proc/self/fd")) {
-    highest = std::max(highest, std::stoi(entry.path().filename().string()));
-  }
-  rlimit low = guard.saved;
-  low.rlim_cur = static_cast<rlim_t>(highest) + 1;
-  ASSERT_EQ(::setrlimit(RLIMIT_NOFILE, &low), 0);
-  for (int fd; (fd = ::open("/dev/null", O_RDONLY | O_CLOEXEC)) >= 0;) {
-    guard.fillers.emplace_back(fd);
-  }
+  ASSERT_TRUE(guard.Exhaust());
   const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
   const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
   // More than the cap of 100 lines, few enough to fit the server's receive buffer.
