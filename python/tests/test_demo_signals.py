@@ -95,10 +95,11 @@ def test_a_signal_stops_the_demo_and_its_children(tmp_path, signum, code):
 def test_signals_during_the_childrens_stop_are_ignored():
     # serve() stops the emulator and the server inside this block: a second Ctrl-C (or a SIGTERM)
     # there must not unwind past the wait and leave them unreaped, a traceback printed.
-    from trackcal import demo
+    from trackcal._signals import signals_deferred
     before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
-    with demo._signals_deferred():
+    with signals_deferred(tuple(before)) as arrived:
         for s in before:
             os.kill(os.getpid(), s)
         time.sleep(0.05)  # the handlers run between bytecodes: give them the chance to
+    assert arrived == set(before)  # remembered, for a caller that acts on them afterwards
     assert {s: signal.getsignal(s) for s in before} == before

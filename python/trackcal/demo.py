@@ -40,11 +40,11 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Callable, Dict, List, Optional, Tuple
 
+from trackcal._signals import signals_deferred
 # The model-file edit of every step; trackcal diagnose makes the same one.
 from trackcal.diagnosis import apply_model_change
 
@@ -700,7 +700,7 @@ def serve(work: Path, calib: Optional[Path], hidden: str, seed: Optional[int], p
     finally:
         # A second Ctrl-C (or a SIGTERM) while the children stop must not leave them running:
         # the signals wait until they are stopped, then the first one's exit stands.
-        with _signals_deferred():
+        with signals_deferred((signal.SIGINT, signal.SIGTERM, signal.SIGHUP)):
             for p in reversed(procs):
                 if p.poll() is None:
                     p.send_signal(signal.SIGTERM)
@@ -726,24 +726,6 @@ def _last_error(log: Path) -> Optional[str]:
         return None
     errors = [l.strip() for l in lines if "error" in l.lower()]
     return errors[-1] if errors else None
-
-
-@contextlib.contextmanager
-def _signals_deferred():
-    """SIGINT, SIGTERM and SIGHUP are ignored inside the block (the first one is already stopping
-    the job); outside the main thread, where handlers cannot be set, the block runs unprotected."""
-    handled = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {s: signal.getsignal(s) for s in handled}
-    for s in handled:
-        signal.signal(s, lambda *_: None)
-    try:
-        yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
 
 
 class Stopped(Exception):

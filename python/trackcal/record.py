@@ -7,10 +7,12 @@ from __future__ import annotations
 import math
 import pathlib
 import re
+import signal
 import time
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 from trackcal import _core
+from trackcal._signals import signals_deferred
 from trackcal.captures import TrackerStream, save_tracker_stream
 
 
@@ -168,39 +170,14 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         raise
     # A second Ctrl-C while stopping and saving escaped and lost every recording: from here it is
     # remembered, and ends the recording as an interruption once every file is saved.
-    deferral = _SigintDeferral()
-    try:
+    with signals_deferred((signal.SIGINT,)) as ctrl_c:
         for r in recorders.values():
             r.stop()
-        return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, deferral)
-    finally:
-        deferral.restore()
-
-
-class _SigintDeferral:
-    """Until restore(), SIGINT (Ctrl-C) sets ``hit`` instead of raising KeyboardInterrupt; only in
-    the main thread, where Python's handler runs (elsewhere nothing changes)."""
-
-    def __init__(self):
-        import signal
-        import threading
-        self.hit = False
-        self._old = None
-        if threading.current_thread() is threading.main_thread():
-            self._old = signal.signal(signal.SIGINT, self._handle)
-
-    def _handle(self, signum, frame):
-        self.hit = True
-
-    def restore(self):
-        if self._old is not None:
-            import signal
-            signal.signal(signal.SIGINT, self._old)
-            self._old = None
+        return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, ctrl_c)
 
 
 def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, silent, duration_s: float,
-            deferral: _SigintDeferral) -> "Recording":
+            ctrl_c: Set[int]) -> "Recording":
     """Saves every recording after the recording stopped; the problems are raised after saving."""
     if not started:
         return out
@@ -234,7 +211,7 @@ def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, 
         if length > max(_MIN_GAP_S, 10.0 * duration_s / n):
             gaps[label] = (start, length)
     out.gaps = gaps
-    out.interrupted = out.interrupted or deferral.hit
+    out.interrupted = out.interrupted or bool(ctrl_c)
     problems = failed + ([f"no report during the recording from: "
                           + ", ".join(f"{label} ({devices[label]})" for label in empty)]
                          if empty and not out.interrupted else [])
