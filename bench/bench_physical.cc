@@ -245,6 +245,22 @@ void BM_PhysicalPaperRoom(benchmark::State& state) {
 }
 BENCHMARK(BM_PhysicalPaperRoom);
 
+// With the 50 Newton steps fitted calibration files carry since the fit and the runtime share
+// them (fit/terms_physical.h InverseOptions): only poses unconverged after 8 take more. Its ratio
+// to BM_PhysicalPaperRoom is what that costs per pose in the server.
+void BM_PhysicalPaperRoomFitSteps(benchmark::State& state) {
+  PhysicalCorrectionOptions options;
+  options.max_iterations = 50;
+  const PhysicalCorrection physical(RoomField(), Gain(), SensorOffset(), options);
+  RunPerPose(state, physical);
+  double unresolved = 0;
+  for (const Rigid3d& reported : Reports()) {
+    unresolved += physical.Invert(reported).status != CorrectionStatus::kConverged ? 1 : 0;
+  }
+  state.counters["unresolved"] = unresolved / static_cast<double>(Reports().size());
+}
+BENCHMARK(BM_PhysicalPaperRoomFitSteps);
+
 // Without the second-root search near objects (fold_reach 0): what that search costs.
 void BM_PhysicalPaperRoomNoFoldSearch(benchmark::State& state) {
   PhysicalCorrectionOptions options;
