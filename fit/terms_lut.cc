@@ -211,8 +211,7 @@ bool LutTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     for (int k = 0; k < 3; ++k) {
       const double x0 = grid_->axis(k)[static_cast<size_t>(cell[k])];
       const double x1 = grid_->axis(k)[static_cast<size_t>(cell[k] + 1)];
-      const double x = std::clamp(pose[k], grid_->axis(k).front(), grid_->axis(k).back());
-      t[k] = (x - x0) / (x1 - x0);
+      t[k] = (HeldToGrid(k, pose[k]) - x0) / (x1 - x0);
     }
     double w[8];
     for (int n = 0; n < 8; ++n) {
@@ -283,15 +282,14 @@ bool LutTerm::Evaluate(const StationBinding& binding, const double* const* block
   const int nz = grid_->size(2), ny = grid_->size(1);
   const int cell[3] = {static_cast<int>(binding.tag / (ny * nz)),
                        static_cast<int>((binding.tag / nz) % ny), static_cast<int>(binding.tag % nz)};
-  // Outside the grid the boundary value is held (as Apply and the runtime): no slope along k.
+  // Outside the grid the boundary value is held (HeldToGrid): no slope along k.
   double t[3], inv_width[3];
   for (int k = 0; k < 3; ++k) {
     const double x0 = grid_->axis(k)[static_cast<size_t>(cell[k])];
     const double x1 = grid_->axis(k)[static_cast<size_t>(cell[k] + 1)];
-    const double lo = grid_->axis(k).front(), hi = grid_->axis(k).back();
-    const bool held = input[k] < lo || input[k] > hi;
-    inv_width[k] = held ? 0.0 : 1.0 / (x1 - x0);
-    t[k] = ((held ? std::clamp(input[k], lo, hi) : input[k]) - x0) / (x1 - x0);
+    const double x = HeldToGrid(k, input[k]);
+    inv_width[k] = x != input[k] ? 0.0 : 1.0 / (x1 - x0);
+    t[k] = (x - x0) / (x1 - x0);
   }
   // e = sum_n w_n v_n and de / dx_k = sum_n (dw_n / dt_k) v_n / width_k.
   Eigen::Matrix<double, 6, 1> e = Eigen::Matrix<double, 6, 1>::Zero();

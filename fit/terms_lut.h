@@ -13,6 +13,7 @@
 // A weak ridge (LutTermOptions::ridge) removes the LUT/polynomial gauge freedom.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <memory>
 #include <optional>
@@ -96,6 +97,13 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   bool AdoptPreparedState(const nlohmann::json& state) override;
 
  private:
+  // `value` of input axis k held to the grid: outside it the boundary value is held (no slope),
+  // as the runtime's InterpolateTrilinear holds it; the edge cell continued linearly is not what
+  // the calibration file serves.
+  double HeldToGrid(int k, double value) const {
+    return std::clamp(value, grid_->axis(k).front(), grid_->axis(k).back());
+  }
+
   LutTermOptions options_;
   std::optional<LutGrid> grid_;
   std::optional<std::array<std::vector<double>, 3>> adopted_axes_;  // AdoptPreparedState()
@@ -113,12 +121,8 @@ bool LutTerm::Apply(const StationBinding& binding, const T* const* block_values,
   for (int k = 0; k < 3; ++k) {
     const double x0 = grid_->axis(k)[static_cast<size_t>(cell[k])];
     const double x1 = grid_->axis(k)[static_cast<size_t>(cell[k] + 1)];
-    // Outside the grid the boundary value is held, as the runtime's InterpolateTrilinear holds it
-    // (the edge cell continued linearly is not what the calibration file serves).
-    const double v = ScalarValue(input7[k]);
-    const T x = v < grid_->axis(k).front()  ? T(grid_->axis(k).front())
-                : v > grid_->axis(k).back() ? T(grid_->axis(k).back())
-                                            : input7[k];
+    const double v = ScalarValue(input7[k]), held = HeldToGrid(k, v);
+    const T x = held != v ? T(held) : input7[k];
     t[k] = (x - T(x0)) / T(x1 - x0);
   }
   T e[6];
