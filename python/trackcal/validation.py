@@ -205,29 +205,6 @@ def _bin_ids(x: np.ndarray, n_bins: int, categorical: bool) -> np.ndarray:
     return np.searchsorted(edges, x, side="right")
 
 
-def _cv_r2(ids: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> float:
-    """Cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, bin means
-    from the training folds (the training mean for a bin without training stations); SST around the
-    training mean, so a covariate that explains nothing scores about 0 or below."""
-    nb = int(ids.max()) + 1
-    sse = sst = 0.0
-    for f in range(n_folds):
-        test = folds == f
-        train = ~test
-        it = ids[train]
-        counts = np.bincount(it, minlength=nb).astype(float)
-        mean_all = y[train].mean(axis=0)
-        table = np.empty((nb, y.shape[1]))
-        for d in range(y.shape[1]):
-            sums = np.bincount(it, weights=y[train, d], minlength=nb)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                table[:, d] = np.where(counts > 0, sums / np.maximum(counts, 1), mean_all[d])
-        pred = table[ids[test]]
-        sse += float(np.sum((y[test] - pred) ** 2))
-        sst += float(np.sum((y[test] - mean_all) ** 2))
-    return 1.0 - sse / sst if sst > 0 else 0.0
-
-
 @dataclasses.dataclass
 class CovariateEffect:
     covariate: str
@@ -439,7 +416,10 @@ def _centred_within(y: np.ndarray, gs: np.ndarray) -> np.ndarray:
 
 
 def _cv_r2_rows(rows: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> np.ndarray:
-    """``_cv_r2`` of every row of bin ids (P, N) at once."""
+    """Cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, for every
+    row of bin ids (P, N) at once: bin means from the training folds (the training mean for a bin
+    without training stations); SST around the training mean, so a covariate that explains
+    nothing scores about 0 or below."""
     n_rows = rows.shape[0]
     nb = int(rows.max()) + 1
     offsets = (np.arange(n_rows) * nb)[:, None]
