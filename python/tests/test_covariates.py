@@ -369,9 +369,9 @@ def test_pure_noise_against_categories_reports_nothing():
 
 
 def cv_r2_one_row(ids: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> float:
-    """The definition _cv_r2_rows computes for many rows at once: cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, bin means
-    from the training folds (the training mean for a bin without training stations); SST around the
-    training mean, so a covariate that explains nothing scores about 0 or below."""
+    """The definition _cv_r2_rows computes for many rows at once: cross-validated R^2 of predicting
+    y (N, d) by the mean of y in the station's bin, bin means from the training folds (the training
+    mean for a bin without training stations); SST around the training mean."""
     nb = int(ids.max()) + 1
     sse = sst = 0.0
     for f in range(n_folds):
