@@ -330,7 +330,7 @@ ServerStats VrpnServer::stats() const {
   return stats_;
 }
 
-void VrpnServer::Log(const std::string& line) { log_(line); }
+void VrpnServer::Log(const std::string& line) { log_(PrintableForLog(line)); }
 
 double VrpnServer::NetworkThreadCpuSeconds() const {
   if (!running_) return 0.0;
