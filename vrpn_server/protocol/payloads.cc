@@ -280,22 +280,30 @@ std::optional<LobRequest> DecodeLobRequest(std::span<const std::uint8_t> datagra
   if (datagram.size() > 300) return std::nullopt;
   const auto nul = std::find(datagram.begin(), datagram.end(), std::uint8_t{0});
   const std::string s(datagram.begin(), nul);
-  const auto space = s.find(' ');
-  if (space == std::string::npos || space == 0) return std::nullopt;
+  // The reference reads the request with sscanf("%s %d"): whitespace before the host and any run
+  // of whitespace between host and port are accepted, as is a '+' before the port.
+  constexpr std::string_view kSpace = " \t\n\v\f\r";
+  const auto host_begin = s.find_first_not_of(kSpace);
+  if (host_begin == std::string::npos) return std::nullopt;
+  const auto host_end = s.find_first_of(kSpace, host_begin);
+  if (host_end == std::string::npos) return std::nullopt;
   LobRequest req;
-  req.host = s.substr(0, space);
+  req.host = s.substr(host_begin, host_end - host_begin);
   if (req.host.find_first_not_of(
           "0123456789.abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ") != std::string::npos) {
     return std::nullopt;
   }
-  const std::string port = s.substr(space + 1);
+  auto port_begin = s.find_first_not_of(kSpace, host_end);
+  if (port_begin == std::string::npos) return std::nullopt;
+  if (s[port_begin] == '+') ++port_begin;
+  const std::string port = s.substr(port_begin);
   const char* first = port.data();
   const char* last = port.data() + port.size();
   auto [ptr, ec] = std::from_chars(first, last, req.port);
   if (ec != std::errc() || ptr == first || req.port < 1024 || req.port > 65535) return std::nullopt;
   // Trailing whitespace is tolerated (sscanf semantics in the reference), anything else is not.
   for (const char* p = ptr; p != last; ++p) {
-    if (*p != ' ' && *p != '\n' && *p != '\r' && *p != '\t') return std::nullopt;
+    if (kSpace.find(*p) == std::string_view::npos) return std::nullopt;
   }
   return req;
 }

@@ -168,6 +168,23 @@ TEST(LobRequest, InvalidRejected) {
   EXPECT_FALSE(decode("127.0.0.1 4000x"));      // junk after the port
   EXPECT_FALSE(decode(""));
   EXPECT_TRUE(decode("127.0.0.1 4000"));       // NUL is optional
+  EXPECT_FALSE(decode("127.0.0.1 +-4000"));
+  EXPECT_FALSE(decode("127.0.0.1 -4000"));
+}
+
+// sscanf("%s %d") in the reference skips leading whitespace and any run of it between the tokens;
+// a hand-written client that pads the datagram must still get its call-back.
+TEST(LobRequest, WhitespaceAsTheReferenceReadsIt) {
+  auto decode = [](const std::string& s) {
+    return DecodeLobRequest(std::vector<std::uint8_t>(s.begin(), s.end()));
+  };
+  for (const std::string s :
+       {" 127.0.0.1 4000", "127.0.0.1  4000", "127.0.0.1\t4000\n", "\r\n10.0.0.2 \t +4000 "}) {
+    const auto req = decode(s);
+    ASSERT_TRUE(req) << s;
+    EXPECT_EQ(req->port, 4000) << s;
+    EXPECT_TRUE(req->host == "127.0.0.1" || req->host == "10.0.0.2") << s;
+  }
 }
 
 }  // namespace
