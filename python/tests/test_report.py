@@ -246,3 +246,21 @@ def test_orientation_slice_of_a_stream_draws_arrows_spread_over_the_slab():
         assert len(next(c for c in fig.axes[0].collections if hasattr(c, "scale")).get_offsets()) == 150
     finally:
         plt.close(fig)
+
+
+def test_orientation_slice_of_a_grid_with_an_even_number_of_layers_is_not_empty():
+    # A calibration grid of 4 layers 0.15 m apart (the paper preset's, a capture with no validation
+    # set): the median height falls between layers 2 and 3, 0.075 m from each, and the slab of
+    # +-0.056 m around it held no station: figure 7 was an empty frame ("0 stations").
+    import matplotlib.pyplot as plt
+    g = np.meshgrid(np.arange(12) * 0.15, np.arange(10) * 0.15, -0.8 + np.arange(4) * 0.15, indexing="ij")
+    pos = np.column_stack([a.ravel() for a in g])
+    vec = np.tile([0.01, 0.0, 0.0], (len(pos), 1))
+    fig = figures.orientation_vectors_slice(pos, vec, after_vectors=vec / 2)
+    try:
+        title = fig.axes[0].get_title()
+        assert "(120 stations" in title, title  # one whole layer of 12 x 10
+        arrows = [c for c in fig.axes[0].collections if hasattr(c, "scale")]
+        assert len(arrows) == 2 and all(len(a.get_offsets()) == 120 for a in arrows)
+    finally:
+        plt.close(fig)

@@ -125,7 +125,10 @@ def error_vs_distance(distance, before, after=None, *, quantity: str = "position
 def _slab(positions, z: Optional[float], thickness: Optional[float]):
     zs = positions[:, 2]
     if z is None:
-        z = float(np.median(zs))
+        # Through the station height nearest the median, not the median itself: of a grid with an
+        # even number of layers the median lies midway between two, and the slab held no station.
+        finite = zs[np.isfinite(zs)]
+        z = float(finite[np.argmin(np.abs(finite - np.median(finite)))]) if len(finite) else 0.0
     if thickness is None:
         thickness = max(0.1, 0.25 * float(np.ptp(zs))) if len(zs) else 0.1
     return z, thickness, np.abs(zs - z) <= 0.5 * thickness

@@ -147,7 +147,7 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
                              quantity="orientation", unit="deg", held_out=held_out, outside=outside)),
         ("fig7_orientation_vectors_slice.png",
          "Figure 7: orientation error vectors (x, y components of the small-angle rotation, degrees) of "
-         "the stations in a horizontal slab through the median height (of a stream's thousands of samples, "
+         "the stations in a horizontal slab through the station height nearest the median (of a stream's thousands of samples, "
          "arrows at a few spread over the slab).",
          F.orientation_vectors_slice(data.reported_positions, before.orientation,
                                      after_vectors=after.orientation if after else None)),
