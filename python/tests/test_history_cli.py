@@ -587,3 +587,38 @@ def test_validate_workdir_without_calibration_is_refused_before_the_work(tmp_pat
     assert "--workdir records a fit: give its calibration with -c" in err, err
     assert not called
     assert not (tmp_path / "work" / "history.jsonl").exists()
+
+
+def test_errors_on_a_redirected_stderr_are_plain_text(tmp_path, monkeypatch):
+    """`trackcal history work 2> errors.log` from a terminal: stdout is a terminal, stderr a file.
+    The error line was coloured by whether stdout is a terminal, so the log got escape codes
+    ("\\033[31merror: \\033[0m..."); the warning of a history cut short too."""
+    import io
+    from trackcal import cli
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+    monkeypatch.delenv("NO_COLOR", raising=False)
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stdout", Tty())
+    monkeypatch.setattr(sys, "stderr", err)
+    assert cli.main(["history", str(tmp_path / "missing")]) == 2
+    assert err.getvalue() == f"error: {tmp_path / 'missing'}: no such work folder\n"
+    work = tmp_path / "work"
+    data = tmp_path / "poses.csv"
+    data.write_text("x\n")
+    history.record_fit(work, model=None, data=[(data, "calibration_capture")], label="one",
+                       scores={"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}})
+    with open(work / history.HISTORY_FILE, "ab") as f:
+        f.write(b'{"scores": {"val')  # a write cut short
+    err.seek(0)
+    err.truncate()
+    assert cli.main(["history", str(work)]) == 0
+    assert err.getvalue().startswith("warning: ") and "\033" not in err.getvalue()
+    # And the other way round: stderr a terminal, stdout piped: the error is coloured there.
+    tty_err = Tty()
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+    monkeypatch.setattr(sys, "stderr", tty_err)
+    assert cli.main(["history", str(tmp_path / "missing")]) == 2
+    assert tty_err.getvalue().startswith("\033[31merror: \033[0m")

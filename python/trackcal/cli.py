@@ -27,11 +27,18 @@ class Terminal:
         self.out = out or sys.stdout
         self.err = err or sys.stderr
         self.colour = self.out.isatty() and os.environ.get("NO_COLOR") is None
+        # Each stream by itself: `2> errors.log` from a terminal must get plain text.
+        self.err_colour = self.err.isatty() and os.environ.get("NO_COLOR") is None
         self.progress_enabled = self.err.isatty()
         self._t0 = None
 
     def c(self, text: str, code: str) -> str:
+        """``text`` in colour for stdout (when it is a terminal)."""
         return f"\033[{code}m{text}\033[0m" if self.colour else text
+
+    def ce(self, text: str, code: str) -> str:
+        """``text`` in colour for stderr (when it is a terminal)."""
+        return f"\033[{code}m{text}\033[0m" if self.err_colour else text
 
     def progress(self, label: str) -> Callable[[float, float], None]:
         """A callback (done, total) drawing a bar on stderr, only after work has run for 1 s."""
@@ -694,7 +701,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
             def show(message, category, *rest, **kw):
                 if issubclass(category, HistoryWarning):  # one line, like the errors
-                    print(term.c("warning: ", "33") + str(message), file=sys.stderr)
+                    print(term.ce("warning: ", "33") + str(message), file=sys.stderr)
                 else:
                     _show(message, category, *rest, **kw)
             warnings.showwarning = show
@@ -703,13 +710,13 @@ def main(argv: Optional[List[str]] = None) -> int:
             return COMMANDS[args.command](args, term)
     except (ValueError, KeyError, RuntimeError, NotImplementedError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(term.c("error: ", "31") + str(msg), file=sys.stderr)
+        print(term.ce("error: ", "31") + str(msg), file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
     except OSError as e:  # a file the system refuses (missing, a folder, no permission): one line
-        print(term.c("error: ", "31") + _os_error_text(e), file=sys.stderr)
+        print(term.ce("error: ", "31") + _os_error_text(e), file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # Ctrl-C: no traceback (record saves what it recorded first)
         term.end_progress()
