@@ -622,3 +622,29 @@ def test_errors_on_a_redirected_stderr_are_plain_text(tmp_path, monkeypatch):
     monkeypatch.setattr(sys, "stderr", tty_err)
     assert cli.main(["history", str(tmp_path / "missing")]) == 2
     assert tty_err.getvalue().startswith("\033[31merror: \033[0m")
+
+
+def test_validate_records_the_calibration_it_scored_not_one_written_meanwhile(tmp_path, monkeypatch):
+    """`validate -c cal.json --workdir W` hashed cal.json when it recorded, after the validation:
+    a `trackcal fit -o cal.json` finishing meanwhile (another terminal; `--cross-validate K` refits
+    for a while) gave the new calibration's SHA-256 to the old calibration's scores."""
+    from trackcal import cli
+    cap_dir = simulate(tmp_path / "capture", seed=45)
+    cap = captures.load_poses(cap_dir)
+    cal, other = tmp_path / "cal.json", tmp_path / "other.json"
+    validation.fit_polynomial(cap.select_set("calib"), degree=1).save(cal)
+    validation.fit_polynomial(cap.select_set("calib"), degree=2).save(other)
+    scored = trackcal_sha(cal)
+    real_validate = validation.validate
+
+    def validate_then_refit(*args, **kwargs):
+        v = real_validate(*args, **kwargs)
+        shutil.copyfile(other, cal)  # the other fit replaces cal.json while this one runs
+        return v
+    monkeypatch.setattr(validation, "validate", validate_then_refit)
+    work = tmp_path / "work"
+    assert cli.main(["validate", str(cap_dir), "-c", str(cal), "--workdir", str(work)]) == 0
+    (e,) = history.load_history(work)
+    assert trackcal_sha(cal) != scored
+    assert e["model"]["sha256"] == scored
+    assert e["data"][0]["sha256"] == trackcal_sha(cap_dir / "poses.csv")

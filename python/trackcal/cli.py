@@ -163,7 +163,12 @@ def _cell(v) -> str:
 
 def _validation(args, term, covariates: bool):
     from trackcal.validation import cross_validate, validate
+    from trackcal import sha256_file
+    # The files as they were read, for the history: hashed when it records, after the validation,
+    # a calibration (or capture) another fit replaced meanwhile got these scores.
+    args.calibration_sha256 = sha256_file(pathlib.Path(args.calibration)) if args.calibration else None
     capture, cal = _load(args)
+    args.capture_sha256 = {f: sha256_file(pathlib.Path(f)) for f in _capture_files(capture)}
     v = validate(capture, cal, analyse_covariates=covariates,
                  covariate_options={"n_permutations": args.permutations, "seed": args.seed} if covariates else None,
                  progress=term.progress("covariates") if covariates else None)
@@ -180,9 +185,18 @@ def _record_history(args, v) -> None:
         raise ValueError("--workdir records a fit: give its calibration with -c")
     # Resolved, as the capture files and `trackcal fit`'s model and calibration are: a path relative
     # to wherever validate ran names no file once the history is read from elsewhere.
+    files = _capture_files(v.capture)
+    hashes = getattr(args, "capture_sha256", None) or {}
+    fields = {}
+    if getattr(args, "calibration_sha256", None):  # as validated (_validation), not as it is now
+        fields["model"] = {"sha256": args.calibration_sha256}
+    if all(f in hashes for f in files):
+        fields["data"] = [{"path": str(pathlib.Path(f).resolve()), "role": "validation_capture",
+                           "sha256": hashes[f]} for f in files]
     record_fit(args.workdir, model=pathlib.Path(args.calibration).resolve(),
-               data=[(pathlib.Path(f).resolve(), "validation_capture") for f in _capture_files(v.capture)],
-               scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name)
+               data=[(pathlib.Path(f).resolve(), "validation_capture") for f in files],
+               scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name,
+               fields=fields)
 
 
 def _has_valid_set(data) -> bool:
