@@ -648,3 +648,27 @@ def test_validate_records_the_calibration_it_scored_not_one_written_meanwhile(tm
     assert trackcal_sha(cal) != scored
     assert e["model"]["sha256"] == scored
     assert e["data"][0]["sha256"] == trackcal_sha(cap_dir / "poses.csv")
+
+
+def test_fit_output_into_the_kept_copies_is_refused(tmp_path, monkeypatch, capsys):
+    """`trackcal fit -o WORK/models/<sha>.json --workdir WORK` replaced an earlier fit's kept copy of
+    its calibration (the copy then held the new fit under the old file's hash name), so the history
+    no longer led to the calibration that row scored."""
+    from trackcal import cli
+
+    def no_fit(*a, **k):
+        raise AssertionError("the fit ran before the output was checked")
+    monkeypatch.setattr(trackcal, "fit", no_fit)
+    work = tmp_path / "work"
+    (work / "models").mkdir(parents=True)
+    # A kept copy is a calibration file, which check_calibration_output alone would let -o replace.
+    example = pathlib.Path(__file__).resolve().parents[2] / "tests" / "data" / "calibration" / "example.json"
+    kept = work / "models" / "0123456789abcdef.json"
+    shutil.copy(example, kept)
+    model = tmp_path / "m.yaml"
+    model.write_text("terms:\n  - type: polynomial\n    degree: 1\n")
+    for output in (kept, work / "models" / "new.json"):
+        assert cli.main(["fit", "--data", str(tmp_path), "--model", str(model), "-o", str(output),
+                         "--workdir", str(work)]) == 2
+        assert "inside the work folder's models/" in capsys.readouterr().err
+    assert kept.read_bytes() == example.read_bytes() and sorted(p.name for p in (work / "models").iterdir()) == [kept.name]

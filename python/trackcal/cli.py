@@ -231,6 +231,10 @@ def cmd_fit(args, term) -> int:
     for given in (args.data, args.model):  # a bad -o fails now, not after the fit
         if pathlib.Path(given).is_file() and pathlib.Path(given).resolve() == out:
             raise ValueError(f"{args.output}: output would overwrite the input {given}")
+    # A calibration in the work folder's models/ would replace an earlier fit's kept copy.
+    if args.workdir and out.parent == (pathlib.Path(args.workdir) / "models").resolve():
+        raise ValueError(f"{args.output}: inside the work folder's models/, where the history keeps "
+                         "its copies of fitted models and calibrations; write it elsewhere")
     trackcal._core.check_calibration_output(args.output)
     if args.workdir:  # a malformed history fails now, not after the fit and its calibration file
         history.load_history(args.workdir)
