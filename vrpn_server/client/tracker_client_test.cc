@@ -240,6 +240,52 @@ TEST(VrpnServer, GarbageAndOversizedClientsAreClosedOthersUnaffected) {
   ASSERT_TRUE(PollUntil({&good}, [&] { return got.reports.size() == 10; }));
 }
 
+// Whether the server closed a raw peer's connection within timeout_s (reading past its cookie).
+bool ClosedByServer(const UniqueFd& fd, double timeout_s) {
+  const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
+  std::uint8_t buf[4096];
+  while (Clock::now() < end) {
+    pollfd p{fd.get(), POLLIN, 0};
+    if (::poll(&p, 1, 20) <= 0) continue;
+    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+    if (n == 0 || (n < 0 && errno == ECONNRESET)) return true;
+  }
+  return false;
+}
+
+// Connections that never send their cookie (a port scan, a flood of idle connects) filled
+// max_clients and every new client was refused until the handshake timeout (10 s by default,
+// again and again while the flood goes on). The one that has waited longest now makes room; a
+// client that completed its handshake is never closed for another.
+TEST(VrpnServer, IdleConnectionsCannotLockNewClientsOut) {
+  ServerOptions options = LoopbackOptions();
+  options.max_clients = 3;
+  options.handshake_timeout_s = 120.0;  // far beyond the test: only eviction lets clients in
+  VrpnServer server(MakeCatalog(), options, [](const std::string&) {});
+  server.Start();
+  std::vector<UniqueFd> idle;
+  for (int i = 0; i < 3; ++i) {
+    idle.push_back(RawConnect(server.port()));
+    // One at a time, so the server's accept order (and so their ages) is the connect order.
+    ASSERT_TRUE(PollUntil({}, [&] { return server.stats().clients == i + 1; }));
+  }
+  VrpnTrackerClient good("Tracker0@tcp://127.0.0.1:" + std::to_string(server.port()));
+  Collected got;
+  Attach(good, got);
+  ASSERT_TRUE(PollUntil({&good}, [&] { return good.pong_received(); }));
+  EXPECT_TRUE(ClosedByServer(idle[0], 5.0));  // the oldest idle connection made room
+  EXPECT_FALSE(ClosedByServer(idle[1], 0.1));
+  // More idle connects push out each other, never the client that completed its handshake.
+  for (int i = 0; i < 6; ++i) {
+    idle.push_back(RawConnect(server.port()));
+    good.Poll(0.01);
+  }
+  for (int i = 0; i < 10; ++i) server.PublishPose(0, 0, RandomPose(), Timestamp::Now());
+  ASSERT_TRUE(PollUntil({&good}, [&] { return got.reports.size() == 10; }));
+  EXPECT_TRUE(good.connected());
+  EXPECT_EQ(server.stats().clients, 3);
+}
+
 TEST(VrpnServer, StalledClientIsDroppedWithoutBlockingOthers) {
   ServerOptions options = LoopbackOptions();
   options.max_output_bytes = 64 * 1024;

@@ -439,8 +439,7 @@ void VrpnServer::HandleAccept() {
     }
     impl_->accept_failure_logged = false;
     UniqueFd conn(fd);
-    if (!impl_->allow.Allows(peer.sin_addr) ||
-        static_cast<int>(impl_->endpoints.size()) >= options_.max_clients) {
+    if (!impl_->allow.Allows(peer.sin_addr) || !RoomForNewClient()) {
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.refused;
       if (impl_->refused_logged++ < 100) {
@@ -504,7 +503,7 @@ void VrpnServer::HandleLob() {
     }
     const std::string key = request->host + ":" + std::to_string(request->port);
     if (impl_->callback_keys.count(key)) continue;  // a re-sent request while we already serve it
-    if (static_cast<int>(impl_->endpoints.size()) >= options_.max_clients) {
+    if (!RoomForNewClient()) {
       refuse("client limit reached");
       continue;
     }
@@ -720,6 +719,21 @@ void VrpnServer::Flush(Endpoint& e) {
     e.want_write = want;
     UpdateInterest(e);
   }
+}
+
+bool VrpnServer::RoomForNewClient() {
+  if (static_cast<int>(impl_->endpoints.size()) < options_.max_clients) return true;
+  const Endpoint* oldest = nullptr;
+  for (const auto& [id, e] : impl_->endpoints) {
+    if (e->deadline != Clock::time_point::max() && (!oldest || e->deadline < oldest->deadline)) {
+      oldest = e.get();
+    }
+  }
+  if (!oldest) return false;
+  const bool log = impl_->refused_logged++ < 100;
+  Close(oldest->id,
+        "handshake not done while the client limit was reached: made room for a new client", log);
+  return true;
 }
 
 void VrpnServer::Close(std::uint64_t id, const std::string& why, bool log) {

@@ -134,6 +134,11 @@ class VrpnServer {
   void Kick(bool queue_was_empty);
   void Run();
   void HandleAccept();
+  // True when a new client fits under max_clients, after closing, if need be, the connection that
+  // has waited longest for its handshake: connections that never complete one (a port scanner,
+  // a flood of idle connects) cannot lock new clients out for the handshake timeout, and a client
+  // that finished its handshake is never closed to make room.
+  bool RoomForNewClient();
   // Puts the TCP listener in or out of the epoll set (out while accept() lacks resources).
   void SetAccepting(bool on);
   void DetectDeadClient(int fd);  // options_.dead_client_timeout_s on a client socket
