@@ -19,6 +19,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <thread>
 
@@ -620,6 +621,43 @@ TEST(VrpnServer, LobRequestsForClosedPortsCannotFloodTheLog) {
   EXPECT_GE(lines.load(), 1);
   EXPECT_LE(lines.load(), 100);
   EXPECT_EQ(server.stats().clients, 0);
+}
+
+// The refusal cap was 100 lines for the server's lifetime: a flood on day one silenced every
+// later refusal for good. It is now 100 per period, with the unlogged ones counted.
+TEST(VrpnServer, RefusalsAreLoggedAgainInTheNextPeriod) {
+  ServerOptions options = LoopbackOptions();
+  options.refusal_log_window_s =
+      2.0;  // the 150 datagrams below take ~20 ms; 2 s spares a loaded machine
+  std::mutex mutex;
+  std::vector<std::string> lines;
+  VrpnServer server(MakeCatalog(), options, [&](const std::string& line) {
+    std::lock_guard<std::mutex> lock(mutex);
+    lines.push_back(line);
+  });
+  server.Start();
+  UniqueFd udp(::socket(AF_INET, SOCK_DGRAM, 0));
+  const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
+  auto send_junk = [&](int count) {
+    for (int i = 0; i < count; ++i) {
+      ::sendto(udp.get(), "junk", 4, 0, reinterpret_cast<const sockaddr*>(&dst), sizeof(dst));
+      if (i % 50 == 49) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+  };
+  auto count = [&](const std::string& what) {
+    std::lock_guard<std::mutex> lock(mutex);
+    return std::count_if(lines.begin(), lines.end(),
+                         [&](const std::string& l) { return l.find(what) != std::string::npos; });
+  };
+  send_junk(150);
+  ASSERT_TRUE(PollUntil({}, [&] { return server.stats().refused >= 150; }));
+  EXPECT_EQ(count("ignored lob datagram"), 100);
+  EXPECT_EQ(count("further ones are counted, not logged"), 1);
+  std::this_thread::sleep_for(std::chrono::milliseconds(2100));
+  send_junk(1);
+  ASSERT_TRUE(PollUntil({}, [&] { return server.stats().refused >= 151; }));
+  EXPECT_EQ(count("ignored lob datagram"), 101);
+  EXPECT_EQ(count("50 refused or ignored connections, datagrams or call-backs were not logged"), 1);
 }
 
 TEST(VrpnServer, SecondServerOnSamePortThrowsNamingIt) {

@@ -2,14 +2,14 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
+#include <netinet/tcp.h>
 #include <pthread.h>
 #include <sched.h>
-#include <time.h>
-#include <netinet/tcp.h>
 #include <sys/epoll.h>
 #include <sys/eventfd.h>
 #include <sys/socket.h>
 #include <sys/uio.h>
+#include <time.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -19,6 +19,7 @@
 #include <iostream>
 #include <map>
 #include <set>
+#include <sstream>
 #include <stdexcept>
 
 #include "vrpn_server/net/socket_util.h"
@@ -67,6 +68,9 @@ void ServerOptions::Check() const {
   }
   if (!(handshake_timeout_s > 0)) {
     throw std::invalid_argument("ServerOptions.handshake_timeout_s: must be > 0");
+  }
+  if (!(refusal_log_window_s > 0 && refusal_log_window_s <= 86400)) {
+    throw std::invalid_argument("ServerOptions.refusal_log_window_s: must be in (0, 86400]");
   }
   if (!(dead_client_timeout_s >= 0 && dead_client_timeout_s <= 86400)) {
     throw std::invalid_argument(
@@ -124,7 +128,10 @@ struct VrpnServer::Impl {
   std::vector<Event> work;
   std::vector<std::vector<std::int32_t>> button_states;
   std::vector<std::uint8_t> encoded;
-  int refused_logged = 0;
+  // Refusal lines logged and not logged in the current window (RefusalLogAllowed).
+  Clock::time_point refusal_window_start;
+  int refusals_logged = 0;
+  int refusals_unlogged = 0;
   // accept() failed (out of file descriptors): the queued connection keeps the listener readable,
   // so it leaves the epoll set until a connection closes or accept_retry passes.
   bool accept_paused = false;
@@ -442,7 +449,7 @@ void VrpnServer::HandleAccept() {
     if (!impl_->allow.Allows(peer.sin_addr) || !RoomForNewClient()) {
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.refused;
-      if (impl_->refused_logged++ < 100) {
+      if (RefusalLogAllowed()) {
         Log("refused TCP connection from " + FormatEndpoint(peer) +
             (impl_->allow.Allows(peer.sin_addr) ? " (client limit reached)" : " (not in allow-list)"));
       }
@@ -477,7 +484,7 @@ void VrpnServer::HandleLob() {
     auto refuse = [&](const std::string& why) {
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.refused;
-      if (impl_->refused_logged++ < 100) Log("ignored lob datagram from " + FormatEndpoint(src) + ": " + why);
+      if (RefusalLogAllowed()) Log("ignored lob datagram from " + FormatEndpoint(src) + ": " + why);
     };
     if (!impl_->allow.Allows(src.sin_addr)) {
       refuse("not in allow-list");
@@ -613,7 +620,7 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
       if (src.sin_addr.s_addr != e.peer.sin_addr.s_addr) {
         std::lock_guard<std::mutex> lock(stats_mutex_);
         ++stats_.refused;
-        if (impl_->refused_logged++ < 100) {
+        if (RefusalLogAllowed()) {
           Log("ignored datagram from " + FormatEndpoint(src) + " to the data port of " + e.label);
         }
         continue;
@@ -631,7 +638,7 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
       // Every lob datagram naming a closed port ends here: these lines count toward the cap on
       // lob refusals, or any host could flood the log at the rate it sends datagrams.
       Close(id, "call-back connect failed: " + ErrnoText(err ? err : ECONNREFUSED),
-            impl_->refused_logged++ < 100);
+            RefusalLogAllowed());
       return;
     }
     if (events & EPOLLOUT) OnConnected(e);
@@ -721,6 +728,32 @@ void VrpnServer::Flush(Endpoint& e) {
   }
 }
 
+bool VrpnServer::RefusalLogAllowed() {
+  constexpr int kLinesPerWindow = 100;
+  const auto now = Clock::now();
+  if (now - impl_->refusal_window_start >=
+      std::chrono::duration<double>(options_.refusal_log_window_s)) {
+    if (impl_->refusals_unlogged > 0) {
+      Log(std::to_string(impl_->refusals_unlogged) +
+          " refused or ignored connections, datagrams or call-backs were not logged");
+    }
+    impl_->refusal_window_start = now;
+    impl_->refusals_logged = 0;
+    impl_->refusals_unlogged = 0;
+  }
+  if (impl_->refusals_logged < kLinesPerWindow) {
+    ++impl_->refusals_logged;
+    return true;
+  }
+  if (impl_->refusals_unlogged++ == 0) {
+    std::ostringstream window;
+    window << options_.refusal_log_window_s;
+    Log(std::to_string(kLinesPerWindow) + " refusals logged in " + window.str() +
+        " s: until the period ends, further ones are counted, not logged");
+  }
+  return false;
+}
+
 bool VrpnServer::RoomForNewClient() {
   if (static_cast<int>(impl_->endpoints.size()) < options_.max_clients) return true;
   const Endpoint* oldest = nullptr;
@@ -730,7 +763,7 @@ bool VrpnServer::RoomForNewClient() {
     }
   }
   if (!oldest) return false;
-  const bool log = impl_->refused_logged++ < 100;
+  const bool log = RefusalLogAllowed();
   Close(oldest->id,
         "handshake not done while the client limit was reached: made room for a new client", log);
   return true;

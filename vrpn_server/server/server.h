@@ -58,6 +58,10 @@ struct ServerOptions {
   // this long [s]: TCP keepalive probes and a limit on unacknowledged data. Without it a lob
   // client, idle on TCP, would keep its slot and its UDP stream for ever. 0 disables.
   double dead_client_timeout_s = 30.0;
+  // Refused or ignored connections, datagrams and call-backs are logged up to 100 lines per window
+  // of this length [s]; the rest are counted and the count is logged when the window ends, so
+  // a flood cannot fill the log, and refusals days later are still logged.
+  double refusal_log_window_s = 60.0;
   // Real-time (SCHED_FIFO) priority for the network thread, 1..99; 0 keeps the normal scheduler.
   // Keeps client processes on the same host from preempting a fan-out halfway; needs
   // CAP_SYS_NICE (a warning is logged and the server runs normally without it).
@@ -139,6 +143,9 @@ class VrpnServer {
   // a flood of idle connects) cannot lock new clients out for the handshake timeout, and a client
   // that finished its handshake is never closed to make room.
   bool RoomForNewClient();
+  // Whether a refusal may be logged now (ServerOptions::refusal_log_window_s); logs the count of
+  // the previous window's unlogged refusals first.
+  bool RefusalLogAllowed();
   // Puts the TCP listener in or out of the epoll set (out while accept() lacks resources).
   void SetAccepting(bool on);
   void DetectDeadClient(int fd);  // options_.dead_client_timeout_s on a client socket
