@@ -43,6 +43,13 @@ int main(int argc, char** argv) {
         std::cerr << "trackcal-simulate: " << a << " needs a value\n";
         std::exit(2);
       }
+      // An empty value ("--seed $SEED" with SEED unset) was taken as no option at all: the run
+      // used the scene's seed and succeeded. An empty value also escaped the check below, so a
+      // second value replaced it.
+      if (argv[i + 1][0] == '\0') {
+        std::cerr << "trackcal-simulate: " << a << " needs a value, got an empty one\n";
+        std::exit(2);
+      }
       // A second value would silently replace the first (a second -o, a second --scene).
       if (!dst->empty()) {
         std::cerr << "trackcal-simulate: " << a << " given twice\n";

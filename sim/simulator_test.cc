@@ -456,6 +456,13 @@ TEST(TrackcalSimulate, CommandLine) {
                          (dir / "z2").string() + " 2>/dev/null")
                             .c_str()),
             0);
+  // An empty value is an error, not the option left out: "--seed ''" simulated with the scene's
+  // seed 20010313 and exited 0.
+  EXPECT_NE(
+      std::system(
+          (exe + " --scene ideal --seed '' -o " + (dir / "z3").string() + " 2>/dev/null").c_str()),
+      0);
+  EXPECT_FALSE(std::filesystem::exists(dir / "z3"));
   EXPECT_FALSE(std::filesystem::exists(dir / "z"));
   EXPECT_FALSE(std::filesystem::exists(dir / "z1"));
   EXPECT_FALSE(std::filesystem::exists(dir / "z2"));
