@@ -141,10 +141,10 @@ TEST(ParseScene, CalibrationGridMustAvoidTheSingularPoints) {
       << on_object;
   EXPECT_NE(on_object.find("within 1 mm of object 'workbench_frame'"), std::string::npos)
       << on_object;
-  // Near is fine: the field is finite 2 mm away.
-  EXPECT_EQ(
-      ErrorOf("base: paper\ncapture:\n  calibration:\n    origin_in_transmitter: [0.002, 0, 0]\n"),
-      "");
+  // Near is fine: the field is finite 2 mm away (the node [0, 0, -0.002], in the hemisphere).
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  calibration:\n"
+                    "    origin_in_transmitter: [-0.75, -0.6, -0.452]\n"),
+            "");
   // The hidden object counts once it is enabled.
   Scene scene = LoadScene("paper");
   scene.capture.calibration.origin_in_transmitter =
@@ -192,6 +192,28 @@ TEST(ParseScene, CaptureMustStayOnTheTransmitterSideOfEveryPlane) {
           "base: paper\ncapture:\n  registration:\n    count: 0\n"
           "    min_in_transmitter: [-0.2, -0.2, 0.7]\n    max_in_transmitter: [0.2, 0.2, 0.9]\n"),
       "");
+}
+
+TEST(ParseScene, CaptureMustLieInTheTrackerHemisphere) {
+  // The Fastrak's power-up hemisphere (+x) on the paper's workspace above a z-down transmitter:
+  // half the stations were reported at their mirror image -p (validation position error mean 836
+  // mm instead of 43 mm), silently.
+  EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  hemisphere_in_transmitter: [1, 0, 0]\n"),
+            "bad.yaml: capture.calibration: the capture reaches [-0.825, -0.675, -0.8], outside "
+            "the tracker's hemisphere (tracker.hemisphere_in_transmitter [1, 0, 0]: positions p "
+            "with p . h > 0), where it reports the mirror image -p");
+  // A box drawn across the hemisphere plane is named with the line of its key.
+  EXPECT_EQ(
+      ErrorOf("base: paper\ncapture:\n  validation:\n    max_in_transmitter: [0.9, 0.75, 0.1]\n")
+          .rfind("bad.yaml:4: capture.validation: the capture reaches [-0.9, -0.75, 0.1], "
+                 "outside the tracker's hemisphere",
+                 0),
+      0u);
+  EXPECT_NE(ErrorOf("base: paper\ncapture:\n  stream:\n    center_in_transmitter: [0, 0, -0.1]\n")
+                .find("capture.stream: the capture reaches"),
+            std::string::npos);
+  // A tilted hemisphere that still holds the whole capture is fine.
+  EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  hemisphere_in_transmitter: [0.1, 0, -1]\n"), "");
 }
 
 TEST(ParseScene, CaptureSizeIsBounded) {
