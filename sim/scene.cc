@@ -716,7 +716,16 @@ const std::string& PresetYaml(const std::string& name) {
 Scene ParseScene(const std::string& yaml_text, const std::string& source, const Scene& base) {
   YAML::Node root;
   try {
-    root = YAML::Load(yaml_text);
+    // Every document, not the first only: YAML::Load stopped at a "---" line, so the keys of a
+    // second document (an override appended below one) were silently ignored.
+    const std::vector<YAML::Node> documents = YAML::LoadAll(yaml_text);
+    if (!documents.empty()) root = documents.front();
+    for (size_t i = 1; i < documents.size(); ++i) {
+      if (documents[i].IsNull()) continue;  // a trailing "---" or comment
+      throw std::invalid_argument(source + ":" + std::to_string(LineOf(documents[i])) +
+                                  ": a scene is one YAML document; a second one starts here (after "
+                                  "a '---' line), its keys would be ignored");
+    }
   } catch (const YAML::Exception& e) {
     throw std::invalid_argument(source + ":" + std::to_string(e.mark.line + 1) +
                                 ": YAML syntax error: " + e.msg);

@@ -123,6 +123,17 @@ TEST(ParseScene, RepeatedKeysAreErrors) {
   EXPECT_EQ(ErrorOf("base: paper\n? [a, b]\n: 1\n"), "bad.yaml:2: (top level): keys must be names");
 }
 
+TEST(ParseScene, OneDocumentOnly) {
+  // The keys after a "---" line (a second YAML document) were ignored: seed stayed 20010313 and
+  // signal_noise 0.001, and the capture was written without a word.
+  EXPECT_EQ(ErrorOf("base: paper\nname: a\n---\nseed: 5\ntracker:\n  signal_noise: 0\n"),
+            "bad.yaml:4: a scene is one YAML document; a second one starts here (after a '---' "
+            "line), its keys would be ignored");
+  // A leading or trailing document marker is no second document.
+  EXPECT_EQ(ErrorOf("---\nbase: paper\nseed: 5\n---\n# the end\n"), "");
+  EXPECT_EQ(ParseScene("---\nbase: paper\nseed: 5\n...\n", "ok.yaml").seed, 5u);
+}
+
 TEST(ParseScene, CalibrationGridMustAvoidTheSingularPoints) {
   // A grid through the transmitter: the station there has no signal, and the capture got an
   // unconverged identity pose at the origin as its report.
