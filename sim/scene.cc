@@ -82,6 +82,7 @@ class YamlReader {
       if (!node[i].IsMap()) Fail(node[i], item_path, "expected a mapping");
       frames_.push_back(Frame{node[i], item_path, {}});
       visit(items[i]);
+      CheckMissingKeys(frames_.back());
       CheckUnknownKeys(frames_.back());
       frames_.pop_back();
     }
@@ -102,6 +103,19 @@ class YamlReader {
 
   static std::string Join(const std::string& path, const char* key) {
     return path.empty() ? std::string(key) : path + "." + key;
+  }
+
+  // A list item starts from the type's defaults, not from the base scene's item: a key left out
+  // took a default that silently disabled the item (a plane without `attenuation` has 0, an object
+  // without `polarisability_m3` has 0: sources that distort nothing). Every key but `name` is
+  // required.
+  void CheckMissingKeys(const Frame& f) const {
+    for (const std::string& key : f.seen) {
+      if (key != "name" && !f.node[key]) {
+        Fail(f.node, Join(f.path, key.c_str()),
+             "missing (a list item does not inherit from the base; give every key but name)");
+      }
+    }
   }
 
   void CheckUnknownKeys(const Frame& f) const {

@@ -99,9 +99,24 @@ TEST(ParseScene, ErrorsNameFileLineAndField) {
             "bad.yaml:4: capture.validation.max_in_transmitter: must be finite and >= "
             "min_in_transmitter");
   // The environment's checks (core's FieldModel) are named by their scene keys too.
-  EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: x\n"
-                    "      point_in_transmitter: [0, 0, 1]\n      attenuation: 2\n"),
-            "bad.yaml:6: environment.planes[0].attenuation: must be in [-1, 1]");
+  EXPECT_EQ(
+      ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: x\n"
+              "      point_in_transmitter: [0, 0, 1]\n      normal_in_transmitter: [0, 0, 1]\n"
+              "      attenuation: 2\n"),
+      "bad.yaml:7: environment.planes[0].attenuation: must be in [-1, 1]");
+  // A list item does not inherit from the base: a key left out took the type's default, and an
+  // object without polarisability_m3 (0) or a plane without attenuation (0) distorted nothing.
+  EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  objects:\n    - name: desk\n"
+                    "      location_in_transmitter: [0.5, 0, 0.3]\n"),
+            "bad.yaml:4: environment.objects[0].polarisability_m3: missing (a list item does not "
+            "inherit from the base; give every key but name)");
+  EXPECT_EQ(
+      ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: wall\n"
+              "      point_in_transmitter: [0, 0, 1]\n      normal_in_transmitter: [0, 0, 1]\n"
+              "    - point_in_transmitter: [0, 2, 0]\n      normal_in_transmitter: [0, 1, 0]\n"
+              "      attenuation: 0.5\n"),
+      "bad.yaml:4: environment.planes[0].attenuation: missing (a list item does not inherit "
+      "from the base; give every key but name)");
   EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  field_constant: 0\n"),
             "bad.yaml:3: environment.field_constant: must be a positive number");
   EXPECT_NE(ErrorOf("tracker: [\n").find("bad.yaml:"), std::string::npos);
@@ -169,11 +184,13 @@ TEST(ParseScene, CaptureMustStayOnTheTransmitterSideOfEveryPlane) {
   // The floor 0.8 m "below" with z taken as up: the plane is at the grid's top layer and the
   // validation box reaches past it, where a conducting plane screens the field instead of adding
   // its image. The capture was simulated with the image model there all the same.
-  EXPECT_EQ(ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: floor\n"
-                    "      point_in_transmitter: [0, 0, -0.8]\n      attenuation: 0.27\n"),
-            "bad.yaml: capture.calibration: the capture reaches [-0.825, -0.675, -0.8], on or "
-            "beyond plane 'floor' (environment.planes[0]) from the transmitter, where its image "
-            "model does not hold");
+  EXPECT_EQ(
+      ErrorOf("base: paper\nenvironment:\n  planes:\n    - name: floor\n"
+              "      point_in_transmitter: [0, 0, -0.8]\n      normal_in_transmitter: [0, 0, 1]\n"
+              "      attenuation: 0.27\n"),
+      "bad.yaml: capture.calibration: the capture reaches [-0.825, -0.675, -0.8], on or "
+      "beyond plane 'floor' (environment.planes[0]) from the transmitter, where its image "
+      "model does not hold");
   const std::string validation = ErrorOf(
       "base: paper\nenvironment:\n  planes:\n    - name: floor\n"
       "      point_in_transmitter: [0, 0, -0.85]\n      normal_in_transmitter: [0, 0, -2]\n"
