@@ -109,10 +109,17 @@ void ChainBuilderOptions::Check() const {
   if (source_types.empty() && max_sources > 0) {
     throw std::invalid_argument("chain builder: source_types is empty");
   }
-  for (const auto& t : source_types) {
+  for (size_t i = 0; i < source_types.size(); ++i) {
+    const std::string& t = source_types[i];
     if (t != "dipole" && t != "plane" && t != "dipole_pair" && t != "dipole_plane") {
       throw std::invalid_argument("chain builder: source_types: expected dipole, plane, "
                                   "dipole_pair or dipole_plane, got '" + t + "'");
+    }
+    // A type listed twice is tried twice per round with the same result, and both steps would be
+    // marked kept.
+    if (std::find(source_types.begin(), source_types.begin() + static_cast<std::ptrdiff_t>(i), t) !=
+        source_types.begin() + static_cast<std::ptrdiff_t>(i)) {
+      throw std::invalid_argument("chain builder: source_types: '" + t + "' given twice");
     }
   }
   if (max_sources < 0) throw std::invalid_argument("chain builder: max_sources must be >= 0");
