@@ -205,6 +205,18 @@ ExplicitCv ExplicitTermCv(const Correction* group, const std::vector<FitStation>
 BuiltChain BuildChain(const std::vector<FitStation>& stations, const ChainBuilderOptions& options,
                       const FitOptions& fit_options) {
   options.Check();
+  // The explicit term's cross-validation skips the degrees with as many coefficients as stations
+  // (ExplicitTermCv): with min_degree among them every score would be infinite, no source could be
+  // kept, and the model would end with a degree-0 polynomial that was never scored.
+  const int coefficients = NumPolynomialTerms(options.min_degree);
+  if (static_cast<int>(stations.size()) <= coefficients) {
+    throw std::invalid_argument(
+        "chain builder: " + std::to_string(stations.size()) +
+        " stations are too few to cross-validate the explicit term: a degree-" +
+        std::to_string(options.min_degree) + " polynomial (min_degree) has " +
+        std::to_string(coefficients) + " coefficients per coordinate, so at least " +
+        std::to_string(coefficients + 1) + " stations are needed");
+  }
   const auto start = Clock::now();
   // The settings alone, for the sigmas.
   const ModelSpec settings = ParseModelYaml(

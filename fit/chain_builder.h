@@ -84,7 +84,8 @@ struct BuiltChain {
 };
 
 // Builds and fits the chain on `stations` (the calibration set). Throws std::invalid_argument for
-// bad options or settings.
+// bad options or settings, and for no more stations than a degree-`min_degree` polynomial has
+// coefficients (its cross-validation needs more).
 BuiltChain BuildChain(const std::vector<FitStation>& stations, const ChainBuilderOptions& options,
                       const FitOptions& fit_options = {});
 
