@@ -3236,14 +3236,21 @@ std::string FormatDiagnosis(const Diagnosis& d) {
         << top.replaces << ", counting from 0).\n";
   } else if (d.verdict_effect) {
     const Candidate& top = d.candidates.front();
-    out << (top.replaces.empty() ? "\nAdd to " : "\nIn ") << d.model;
-    if (!top.replaces.empty() && top.insert_index) {
-      out << ", replace `terms:` item " << *top.insert_index << " (" << top.replaces
-          << ", counting from 0) by:\n";
-    } else if (top.insert_index) {
-      out << " (in `terms:`, as item " << *top.insert_index << " counting from 0):\n";
+    if (!top.insert_index) {
+      // A top-level key (`loss:`, `time_offset:`): the model may have it already (a fixed
+      // `time_offset:` is tested), and a model file refuses a key given twice, so the change
+      // replaces it there rather than adding a second one.
+      const std::string key = top.model_change.substr(0, top.model_change.find(':'));
+      out << "\nIn " << d.model << ", set the top-level key `" << key
+          << ":` (in place of the one there, if any):\n";
     } else {
-      out << " (top level):\n";
+      out << (top.replaces.empty() ? "\nAdd to " : "\nIn ") << d.model;
+      if (!top.replaces.empty()) {
+        out << ", replace `terms:` item " << *top.insert_index << " (" << top.replaces
+            << ", counting from 0) by:\n";
+      } else {
+        out << " (in `terms:`, as item " << *top.insert_index << " counting from 0):\n";
+      }
     }
     std::istringstream lines(top.model_change);
     for (std::string line; std::getline(lines, line);) out << "  " << line << "\n";

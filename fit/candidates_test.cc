@@ -452,6 +452,65 @@ terms:
   EXPECT_THAT(none.skipped, ::testing::ElementsAre(::testing::HasSubstr("not streams")));
 }
 
+// The same streams with the model holding a (wrong) clock offset fixed: the candidate is tested
+// (docs/diagnose.md: "the model's offset is absent or fixed") and its change is the top-level
+// `time_offset:` key, which the model file already has. The terminal said "Add to model.yaml (top
+// level)", and the file with a second `time_offset:` added is refused ("given twice"); the change
+// replaces the key.
+TEST(DiagnoseCandidates, ATopLevelChangeReplacesTheKeyTheModelHas) {
+  auto truth_at = [](double t) {
+    return Rigid3d(
+        Eigen::Quaterniond(Eigen::AngleAxisd(0.8 * std::sin(0.9 * t), Eigen::Vector3d::UnitZ())),
+        Eigen::Vector3d(0.3 * std::sin(1.1 * t), 0.3 * std::cos(0.7 * t), 0.5));
+  };
+  auto paired = [&](double offset_s) {
+    std::mt19937 rng(9);
+    std::normal_distribution<double> g;
+    std::vector<FitStation> out;
+    for (int i = 0; i < 600; ++i) {
+      const double t = 0.05 * i;
+      FitStation s;
+      s.station = i + 1;
+      s.time = t;
+      s.reported = truth_at(t);
+      s.reported.translation += kPositionNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
+      s.reference = truth_at(t + offset_s - 0.037);
+      out.push_back(s);
+    }
+    return out;
+  };
+  CandidateOptions o = TestOptions();
+  o.catalog = DefaultCatalog();
+  o.effects = {"time_offset"};
+  o.pair_streams = [&](const TimeOffsetSpec&) { return PairedStations{paired(0.037), 0.037}; };
+  const std::string model = R"(noise: {position_mm: 0.1, orientation_deg: 0.0171887}
+time_offset: {value: 0, fixed: true}
+terms:
+  - type: polynomial
+    degree: 0
+)";
+  const Diagnosis d = DiagnoseCandidates(paired(0.0), model, "model.yaml", "streams", o);
+  ASSERT_EQ(d.candidates.size(), 1u);
+  ASSERT_EQ(d.verdict_effect.value_or(""), "time_offset") << d.verdict_text;
+  const std::string text = FormatDiagnosis(d);
+  EXPECT_THAT(text, ::testing::Not(::testing::HasSubstr("Add to model.yaml")));
+  EXPECT_THAT(text, ::testing::HasSubstr(
+                        "In model.yaml, set the top-level key `time_offset:` (in place of the one "
+                        "there, if any):\n  time_offset:"));
+  // Added as a second key, the file does not parse; in place of the first, it is the candidate.
+  const std::string change = d.candidates[0].model_change;
+  EXPECT_THAT([&] { ParseModelYaml(model + change, "model.yaml"); },
+              ::testing::ThrowsMessage<std::invalid_argument>(::testing::HasSubstr("twice")));
+  YAML::Node root = YAML::Load(model);
+  root["time_offset"] = YAML::Load(change)["time_offset"];
+  YAML::Emitter emitted;
+  emitted << root;
+  const ModelSpec spec = ParseModelYaml(emitted.c_str(), "model.yaml");
+  ASSERT_TRUE(spec.time_offset.has_value());
+  EXPECT_FALSE(spec.time_offset->fixed);
+  EXPECT_NEAR(spec.time_offset->value, 0.037, 1e-9);
+}
+
 // Stream samples (100 Hz, 20 s) whose reference is off by a misfit that wanders in time: per axis
 // an Ornstein-Uhlenbeck process, standard deviation 0.3 mm, correlation time 0.5 s (neighbouring
 // samples share it, as they share a model's misfit along a stream's path), zero mean, plus white
