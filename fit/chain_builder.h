@@ -35,7 +35,8 @@ namespace trackcal::fit {
 
 struct ChainBuilderOptions {
   // The model file's settings other than `terms:` (noise, solver, loss), as YAML mapping lines;
-  // the builder appends `terms:`. `solver.covariance` applies to the final fit only.
+  // the builder appends `terms:`. `solver.covariance` and `loss` apply to the final fit only: the
+  // search's cross-validations are least squares over every station (docs/model-file.md).
   std::string settings_yaml;
   // Source types tried each round: "dipole_plane" (a dipole, then a plane searched against what
   // it leaves), "dipole", "plane", "dipole_pair" (two dipoles searched together). One at a time,
