@@ -398,6 +398,14 @@ struct RidgeSolver {
     for (size_t j = 0; j < shrunk_cols.size(); ++j) a1.col(static_cast<Eigen::Index>(j)) = a.col(shrunk_cols[j]);
     cod0.compute(a0);
     q0 = cod0.householderQ() * Eigen::MatrixXd::Identity(a.rows(), cod0.rank());
+    if (shrunk_cols.empty()) {
+      // Degree <= 1: nothing to shrink, the ridge is plain least squares (Eigen's SVD of an
+      // n x 0 matrix reads past its storage: a degree-1 polynomial with a ridge crashed the fit).
+      u.setZero(a.rows(), 0);
+      v.setZero(0, 0);
+      s.resize(0);
+      return;
+    }
     const Eigen::MatrixXd p1 = a1 - q0 * (q0.transpose() * a1);
     const Eigen::BDCSVD<Eigen::MatrixXd> svd(p1, Eigen::ComputeThinU | Eigen::ComputeThinV);
     u = svd.matrixU();

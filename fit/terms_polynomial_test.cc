@@ -519,6 +519,32 @@ TEST(PolynomialTerm, RidgeOnStationsOnAPlaneFitsWhatTheyDetermine) {
   }
 }
 
+// A ridge shrinks the coefficients of degree >= 2; degrees 0 and 1 have none, so it is plain least
+// squares there. Both crashed the fit (segmentation fault in Eigen's SVD of the empty shrunk part),
+// with a fixed weight and with auto.
+TEST(PolynomialTerm, RidgeOnDegreeZeroAndOneIsLeastSquares) {
+  std::mt19937 rng(37);
+  for (const int degree : {0, 1}) {
+    const PolynomialTerm truth = RandomTruth(degree, &rng);
+    const auto stations = MakeStations(truth, 60, &rng);
+    for (const std::string ridge : {"0.1", "auto", "auto, ridge_cv: leave_one_out"}) {
+      SCOPED_TRACE("degree " + std::to_string(degree) + ", ridge: " + ridge);
+      ModelSpec spec =
+          ParseModelYaml("terms: [{type: polynomial, degree: " + std::to_string(degree) +
+                             ", ridge: " + ridge + "}]",
+                         "m.yaml");
+      FitResult result;
+      ASSERT_NO_THROW(result = FitModel(stations, &spec));
+      // Noise-free: reproduced to the solver's tolerance (errors of ~5 mm and ~0.01).
+      for (const auto& s : stations) {
+        const Rigid3d corrected = result.chain.Apply(s.reported).pose;
+        EXPECT_LT(PositionErrorNorm(corrected, s.reference), 1e-9);
+        EXPECT_LT(OrientationErrorAngle(corrected, s.reference), 1e-9);
+      }
+    }
+  }
+}
+
 TEST(PolynomialTerm, RidgeAndAmplificationErrorsNameFileLineAndField) {
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: auto\n", "m.yaml"));
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: 0.1\n", "m.yaml"));
