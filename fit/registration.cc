@@ -306,10 +306,47 @@ void CheckOpticalScale(const Problem& p, const Eigen::Quaterniond* marker_differ
       CentroidSpreadInBodySizes(p) < kMinCentroidSpreadInBodySizes) {
     return;
   }
-  const double scale = marker_difference_rotation != nullptr
-                           ? ScaleFromMarkerDifferenceRotation(p, *marker_difference_rotation)
-                           : ScaleFromCentroids(p);
-  if (scale > 1.0 / kMaxScaleFactor && scale < kMaxScaleFactor) return;
+  auto scale_of = [&](const Problem& q) {
+    return marker_difference_rotation != nullptr
+               ? ScaleFromMarkerDifferenceRotation(q, *marker_difference_rotation)
+               : ScaleFromCentroids(q);
+  };
+  auto plausible = [&](double s) { return s > 1.0 / kMaxScaleFactor && s < kMaxScaleFactor; };
+  const double scale = scale_of(p);
+  if (plausible(scale)) return;
+  // Units or handedness move every station alike; one tracker reading far off (a hemisphere
+  // flip, a reading of another station) pulls the least-squares scale alone, and the units advice
+  // below would then be wrong. If the scale is plausible without one station, name that station.
+  // Not for a negative scale: a mirror image is the likelier cause, and without the marker-
+  // difference rotation the centroids' sign is only trusted for a 3-D spread, which leaving a
+  // station out can lose (a mirrored capture at one orientation then looked plausible).
+  constexpr int kMinStationsForLeaveOneOut = 4;
+  if (scale > 0.0 && static_cast<int>(p.stations.size()) >= kMinStationsForLeaveOneOut) {
+    int culprit = -1;
+    double culprit_scale = 0.0;
+    for (std::size_t i = 0; i < p.stations.size(); ++i) {
+      Problem without = p;
+      without.num_observations -= static_cast<int>(p.stations[i].markers.size());
+      without.stations.erase(without.stations.begin() + static_cast<std::ptrdiff_t>(i));
+      const double s = scale_of(without);
+      if (plausible(s) &&
+          (culprit < 0 || std::abs(std::log(s)) < std::abs(std::log(culprit_scale)))) {
+        culprit = static_cast<int>(i);
+        culprit_scale = s;
+      }
+    }
+    if (culprit >= 0) {
+      throw std::invalid_argument(
+          StationField(p.stations[culprit], "tracker x/y/z") +
+          ": the reading disagrees with its markers: with this station the optical positions "
+          "move " +
+          Fmt("%.4g", scale) +
+          " times as far as the tracker positions between stations, without it " +
+          Fmt("%.4g", culprit_scale) +
+          " (expected 1): a hemisphere flip, or the reading of another station? Remove or fix "
+          "this station");
+    }
+  }
   if (scale < -1.0 / kMaxScaleFactor && scale > -kMaxScaleFactor) {
     throw std::invalid_argument(
         "registration: markers x/y/z: the optical positions move as a mirror image of the "
