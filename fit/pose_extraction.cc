@@ -41,8 +41,8 @@ const char* PoseStatusName(PoseStatus status) {
 
 // Why a marker id is unknown to the registration, as both errors below say it.
 constexpr char kUnknownMarker[] =
-    ": marker id not in the registration (no registration station saw it: a marker of another "
-    "body, or a mislabelled one)";
+    ": marker id not in the registration (no registration station it used saw it: a marker of "
+    "another body, or a mislabelled one)";
 
 ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& markers,
                           const OpticalRegistration& registration,
@@ -53,28 +53,32 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
   std::vector<Eigen::Vector3d> in_receiver, in_transmitter;
   const Rigid3d transmitter_from_optical = registration.optical_from_transmitter.Inverse();
   for (const MarkerObservation& m : markers) {
-    const auto it = registration.marker_in_receiver.find(m.marker);
-    if (it == registration.marker_in_receiver.end()) {
-      throw std::invalid_argument(where + std::to_string(m.marker) + kUnknownMarker);
-    }
     if (!seen.insert(m.marker).second) {
       throw std::invalid_argument(where + std::to_string(m.marker) + ": measured twice");
     }
     if (!m.marker_in_optical.allFinite()) {
       throw std::invalid_argument(where + std::to_string(m.marker) + ": x/y/z not finite");
     }
-    in_receiver.push_back(it->second);
-    in_transmitter.push_back(transmitter_from_optical * m.marker_in_optical);
   }
 
   ExtractedPose pose;
   pose.station = station;
   pose.num_markers = static_cast<int>(markers.size());
+  // Before the marker ids: a station with too few markers has no pose whatever they are, and a
+  // marker seen only at such a station is not in the registration either (it skipped the station).
   if (pose.num_markers < options.min_markers) {
     pose.status = PoseStatus::kTooFewMarkers;
     pose.message = std::to_string(pose.num_markers) + " marker(s) visible, need " +
                    std::to_string(options.min_markers);
     return pose;
+  }
+  for (const MarkerObservation& m : markers) {
+    const auto it = registration.marker_in_receiver.find(m.marker);
+    if (it == registration.marker_in_receiver.end()) {
+      throw std::invalid_argument(where + std::to_string(m.marker) + kUnknownMarker);
+    }
+    in_receiver.push_back(it->second);
+    in_transmitter.push_back(transmitter_from_optical * m.marker_in_optical);
   }
   // Spread: the second singular value of the centred registered positions; collinear markers
   // leave the rotation about their line undetermined.
@@ -178,7 +182,10 @@ std::vector<ExtractedPose> ExtractPoses(const std::vector<RegistrationStation>& 
   poses.reserve(stations.size());
   for (const RegistrationStation& s : stations) {
     for (const MarkerObservation& m : s.markers) {
-      if (source.empty() || registration.marker_in_receiver.count(m.marker)) continue;
+      if (source.empty() || static_cast<int>(s.markers.size()) < options.min_markers ||
+          registration.marker_in_receiver.count(m.marker)) {
+        continue;  // (too few markers: no pose, see ExtractPose)
+      }
       throw std::invalid_argument(source + (m.line > 0 ? ":" + std::to_string(m.line) : "") +
                                   ": column marker: station " + std::to_string(s.station) +
                                   ", marker " + std::to_string(m.marker) + kUnknownMarker);

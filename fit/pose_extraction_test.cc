@@ -135,6 +135,48 @@ TEST(ExtractPose, UnknownMarkerThrows) {
   }
 }
 
+// A marker that only a registration station with too few markers saw (a seventh marker seldom in
+// view) is not in the registration, which skipped that station. Extracting the poses of every
+// station (what `trackcal-fit register` does) threw for it, "marker id not in the registration (no
+// registration station saw it ...)", and wrote no pose at all; that station simply has none.
+TEST(RegistrationThenExtraction, MarkerSeenOnlyAtASkippedStationIsNotAnError) {
+  SyntheticRegistrationOptions s;
+  s.num_markers = 7;
+  s.min_visible = 4;  // three or more stay in view without marker 7
+  SyntheticRegistration data = MakeSyntheticRegistration(s, &TestRng());
+  for (RegistrationStation& station : data.stations) {
+    std::erase_if(station.markers, [](const MarkerObservation& m) { return m.marker == 7; });
+  }
+  RegistrationStation& sparse = data.stations[2];
+  MarkerObservation seventh;
+  seventh.marker = 7;
+  seventh.marker_in_optical = data.optical_from_transmitter *
+                              (data.true_transmitter_from_receiver[2] * data.marker_in_receiver[7]);
+  seventh.line = 12;
+  sparse.markers = {sparse.markers.front(), seventh};
+  const RegistrationResult r = RegisterOpticalToTransmitter(data.stations);
+  ASSERT_EQ(r.skipped_stations, std::vector<int>{sparse.station});
+  ASSERT_EQ(r.registration.marker_in_receiver.count(7), 0u);
+  std::vector<ExtractedPose> poses;
+  ASSERT_NO_THROW(poses = ExtractPoses(data.stations, r.registration, {}, "markers.csv"));
+  EXPECT_EQ(poses[2].status, PoseStatus::kTooFewMarkers) << poses[2].message;
+  for (std::size_t i = 0; i < poses.size(); ++i) {
+    if (i != 2) EXPECT_EQ(poses[i].status, PoseStatus::kOk) << "station " << i;
+  }
+  // With enough markers in view, an id the registration lacks is still an error naming the line.
+  sparse.markers = data.stations[3].markers;
+  seventh.line = 40;
+  sparse.markers.push_back(seventh);
+  try {
+    ExtractPoses(data.stations, r.registration, {}, "markers.csv");
+    ADD_FAILURE() << "expected std::invalid_argument";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("markers.csv:40: column marker: station 3, marker 7"),
+              std::string::npos)
+        << e.what();
+  }
+}
+
 TEST(RegistrationThenExtraction, RecoversReceiverPoses) {
   // End to end: register on noisy data, then extract every station's pose from its markers alone.
   SyntheticRegistrationOptions s;
