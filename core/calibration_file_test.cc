@@ -215,6 +215,25 @@ TEST(ParseCalibrationJson, RejectsWrongArraySizes) {
             "calib.json: $.corrections[0].degree: must be in [0, 12], got 13");
 }
 
+TEST(ParseCalibrationJson, OverflowingNumberIsLocatedAtTheNumberNotAtTextThatContainsIt) {
+  // The literal was located with a plain text search, which found it first in the description
+  // (line 4) and reported that line and column instead of the number's.
+  std::string text = ReadFileToString(ExamplePath());
+  const std::string description = "Example: degree-2 polynomial";
+  ASSERT_NE(text.find(description), std::string::npos);
+  text.replace(text.find(description), description.size(), "Example: coefficients up to 1e999");
+  const std::string needle = "[0.0102, 0.0007, -0.0011]";
+  ASSERT_NE(text.find(needle), std::string::npos);
+  text.replace(text.find(needle), needle.size(), "[0.0102, 1e999, -0.0011]");
+  EXPECT_EQ(ErrorForText(text),
+            "calib.json:27:18: invalid JSON: number 1e999 overflows a double; numbers must be "
+            "finite");
+  // Nor in a key (it was put at the key "1e999", line 2).
+  EXPECT_EQ(
+      ErrorForText("{\"a\": 0,\n \"1e999\": 0,\n \"c\": 1e999}"),
+      "calib.json:3:7: invalid JSON: number 1e999 overflows a double; numbers must be finite");
+}
+
 TEST(ParseCalibrationJson, RejectsNonFiniteNumbers) {
   std::string text = ReadFileToString(ExamplePath());
   const std::string needle = "[0.0102, 0.0007, -0.0011]";

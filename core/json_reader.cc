@@ -31,6 +31,34 @@ std::string PathOfOpen(const std::vector<OpenContainer>& open) {
   return path;
 }
 
+// Offset of `literal` as a whole number token outside strings, npos if none. A plain find took
+// the first occurrence anywhere: in a key or a string ("1e999" in a description), or inside a
+// longer number, which put the error on the wrong line.
+size_t FindNumberLiteral(const std::string& text, const std::string& literal) {
+  const auto is_number_char = [](char c) {
+    return std::isdigit(static_cast<unsigned char>(c)) || c == '.' || c == 'e' || c == 'E' ||
+           c == '+' || c == '-';
+  };
+  bool in_string = false;
+  for (size_t i = 0; i < text.size(); ++i) {
+    const char c = text[i];
+    if (in_string) {
+      if (c == '\\') {
+        ++i;  // the escaped character
+      } else if (c == '"') {
+        in_string = false;
+      }
+    } else if (c == '"') {
+      in_string = true;
+    } else if (text.compare(i, literal.size(), literal) == 0 &&
+               (i == 0 || !is_number_char(text[i - 1])) &&
+               (i + literal.size() == text.size() || !is_number_char(text[i + literal.size()]))) {
+      return i;
+    }
+  }
+  return std::string::npos;
+}
+
 }  // namespace
 
 nlohmann::json ParseJsonText(const std::string& text, const std::string& source_name) {
@@ -110,7 +138,7 @@ nlohmann::json ParseJsonText(const std::string& text, const std::string& source_
     std::string literal;
     if (q1 != std::string::npos) {
       literal = what.substr(q0 + 1, q1 - q0 - 1);
-      const size_t at = text.find(literal);
+      const size_t at = FindNumberLiteral(text, literal);
       if (at != std::string::npos) {
         const size_t line = 1 + static_cast<size_t>(std::count(text.begin(), text.begin() + at, '\n'));
         const size_t line_start = text.rfind('\n', at);
