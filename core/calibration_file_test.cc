@@ -234,6 +234,25 @@ TEST(ParseCalibrationJson, OverflowingNumberIsLocatedAtTheNumberNotAtTextThatCon
       "calib.json:3:7: invalid JSON: number 1e999 overflows a double; numbers must be finite");
 }
 
+TEST(ParseCalibrationJson, AnUnquotedWordIsNotCalledANonFiniteNumber) {
+  // Any word starting with "nan" or "inf" was reported as NaN/Infinity: a forgotten pair of quotes
+  // around `info` read "non-finite number (NaN or Infinity) is not allowed".
+  std::string text = ReadFileToString(ExamplePath());
+  const std::string role = "\"role\": \"calibration_capture\"";
+  ASSERT_NE(text.find(role), std::string::npos);
+  text.replace(text.find(role), role.size(), "\"role\": info");
+  const std::string error = ErrorForText(text);
+  EXPECT_EQ(error.rfind("calib.json:107:17: invalid JSON: ", 0), 0u) << error;
+  EXPECT_EQ(error.find("non-finite"), std::string::npos) << error;
+  EXPECT_NE(error.find("invalid literal"), std::string::npos) << error;
+  // The real literals still are.
+  for (const char* word : {"NaN", "Infinity", "-Infinity", "nan", "inf"}) {
+    const std::string e = ErrorForText(std::string("{\"a\": ") + word + "}");
+    EXPECT_NE(e.find("non-finite number (NaN or Infinity) is not allowed"), std::string::npos)
+        << word << ": " << e;
+  }
+}
+
 TEST(ParseCalibrationJson, RejectsNonFiniteNumbers) {
   std::string text = ReadFileToString(ExamplePath());
   const std::string needle = "[0.0102, 0.0007, -0.0011]";

@@ -116,15 +116,19 @@ nlohmann::json ParseJsonText(const std::string& text, const std::string& source_
         ++column;
       }
     }
-    // Find the start of the token that failed, to recognise NaN / Infinity.
+    // The word that failed, to recognise NaN / Infinity. The whole word: a prefix test called an
+    // unquoted string such as `info` or `nanometre` a non-finite number.
+    const auto is_alpha = [&text](size_t i) {
+      return i < text.size() && std::isalpha(static_cast<unsigned char>(text[i]));
+    };
     size_t token_start = byte;
-    while (token_start > 0 && std::isalpha(static_cast<unsigned char>(text[token_start - 1]))) {
-      --token_start;
-    }
-    const std::string token = text.substr(token_start, 9);
+    while (token_start > 0 && is_alpha(token_start - 1)) --token_start;
+    size_t token_end = token_start;
+    while (is_alpha(token_end)) ++token_end;
+    const std::string token = text.substr(token_start, token_end - token_start);
     std::string what = e.what();
-    if (token.rfind("NaN", 0) == 0 || token.rfind("Infinity", 0) == 0 ||
-        token.rfind("nan", 0) == 0 || token.rfind("inf", 0) == 0) {
+    if (token == "NaN" || token == "Infinity" || token == "nan" || token == "inf" ||
+        token == "infinity") {
       what = "non-finite number (NaN or Infinity) is not allowed";
     }
     throw JsonInputError(source_name + ":" + std::to_string(line) + ":" + std::to_string(column) +
