@@ -131,7 +131,11 @@ Table1 MakeTable1(std::string set_name, std::span<const Rigid3d> reported,
 }
 
 double ImprovementPercent(double before, double after) {
-  return before > 0.0 ? 100.0 * (before - after) / before : 0.0;
+  // An unknown statistic gives an unknown improvement (a NaN `before` read as 0 %), and an error
+  // that appears where there was none is no "0 %": it is unboundedly worse.
+  if (std::isnan(before) || std::isnan(after)) return std::numeric_limits<double>::quiet_NaN();
+  if (before > 0.0) return 100.0 * (before - after) / before;
+  return after > 0.0 ? -std::numeric_limits<double>::infinity() : 0.0;
 }
 
 std::string FormatTable1(const Table1& t) {

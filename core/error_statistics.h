@@ -68,7 +68,8 @@ struct Table1 {
 Table1 MakeTable1(std::string set_name, std::span<const Rigid3d> reported,
                   std::span<const Rigid3d> corrected, std::span<const Rigid3d> reference);
 
-// 100 * (before - after) / before; 0 when before is 0.
+// 100 * (before - after) / before; 0 when both are 0, -infinity when only before is 0 (an error
+// where there was none), NaN when either is NaN.
 double ImprovementPercent(double before, double after);
 
 // Plain-text rendering in the paper's layout (two blocks: position in mm, orientation in deg).

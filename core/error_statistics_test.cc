@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <vector>
 
 #include "tests/test_utils.h"
@@ -63,6 +64,27 @@ TEST(FormatTable1, PaperNumbers) {
   const std::string s = FormatTable1(t);
   EXPECT_NE(s.find("88.6 %"), std::string::npos) << s;  // the paper's mean improvement
   EXPECT_NE(s.find("76.6 %"), std::string::npos) << s;  // and its maximum
+}
+
+TEST(ImprovementPercent, UnknownOrNewErrorsAreNotReportedAsNoChange) {
+  EXPECT_DOUBLE_EQ(ImprovementPercent(42.3, 4.82), 100.0 * (42.3 - 4.82) / 42.3);
+  EXPECT_DOUBLE_EQ(ImprovementPercent(2.0, 3.0), -50.0);
+  EXPECT_EQ(ImprovementPercent(0.0, 0.0), 0.0);
+  // Both used to be 0: a correction that adds an error to a perfect set read as "no change", and
+  // a NaN (unknown) original error read as a known 0 % next to "nan" in the table.
+  EXPECT_EQ(ImprovementPercent(0.0, 1.0), -std::numeric_limits<double>::infinity());
+  EXPECT_TRUE(std::isnan(ImprovementPercent(std::nan(""), 1.0)));
+  EXPECT_TRUE(std::isnan(ImprovementPercent(1.0, std::nan(""))));
+  // The table of a set with a NaN original error shows no improvement figure for it.
+  Table1 t;
+  t.set_name = "valid";
+  t.before.position_mm = {3, std::nan(""), std::nan(""), std::nan("")};
+  t.after.position_mm = {3, 1.0, 0.5, 2.0};
+  t.before.orientation_deg = {3, 2.0, 1.0, 4.0};
+  t.after.orientation_deg = {3, 1.0, 0.5, 2.0};
+  const std::string s = FormatTable1(t);
+  EXPECT_EQ(s.find(" 0.0 %"), std::string::npos) << s;
+  EXPECT_NE(s.find("50.0 %"), std::string::npos) << s;
 }
 
 std::vector<Rigid3d> Positions(const std::vector<Eigen::Vector3d>& p) {
