@@ -1497,7 +1497,8 @@ static const Candidate* FlexibleWithHeldOutGain(const Diagnosis& d,
   const Candidate* best = nullptr;
   for (const auto& f : d.flexible) {
     if (!f.cross_validated || !(f.p_value < d.p_threshold) ||
-        std::max(f.drop_position_percent, f.drop_orientation_percent) < options.min_drop_percent)
+        !(std::fmax(f.drop_position_percent, f.drop_orientation_percent) >=
+          options.min_drop_percent))  // fmax and >=: a NaN drop (unknown base error) never passes
       continue;
     if (!best || f.cv_whitened_mean < best->cv_whitened_mean) best = &f;
   }
@@ -2554,7 +2555,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       return;
     }
     const bool robust = c.kind == CandidateKind::kRobustLoss;
-    const double drop = std::max(c.drop_position_percent, c.drop_orientation_percent);
+    const double drop = std::fmax(c.drop_position_percent, c.drop_orientation_percent);
     const double outlier_fraction =
         static_cast<double>(c.outlier_stations.size()) / static_cast<double>(stations.size());
     const bool outliers_ok = !robust || (!c.outlier_stations.empty() &&
@@ -2688,8 +2689,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       if (&o == &p || o.flexible || o.effect->count > 1 || o.effect->yields_to_located ||
           oc.kind != CandidateKind::kTerm || !oc.replaces.empty() || !oc.cross_validated ||
           !oc.converged || oc.evidence.supported() || !(oc.p_value < d.p_threshold) ||
-          std::max(oc.drop_position_percent, oc.drop_orientation_percent) <
-              options.min_drop_percent ||
+          !(std::fmax(oc.drop_position_percent, oc.drop_orientation_percent) >=
+            options.min_drop_percent) ||
           !(oc.delta_bic < options.max_delta_bic)) {
         continue;
       }
