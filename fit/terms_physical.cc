@@ -670,6 +670,10 @@ void PhysicalGroupTerm::AddEffectBlocks(Effect* e) {
       normal.unit_norm = true;
       normal.tangent_names = {"angle_a", "angle_b"};
       normal.tangent_unit = "rad";
+      // SphereManifold<3>::Plus turns the vector by |delta| / 2 (its y = (sin(|delta| / 2)
+      // delta / |delta|, cos(|delta| / 2))): with the default scale 1 the angles' stds in rad were
+      // twice the normal's real angular uncertainty.
+      normal.tangent_scale = 0.5;
       normal.identifiability_scale = kNormalScaleRad;
       add(std::move(normal));
       ParameterBlock attenuation = MakeBlock("attenuation", {0}, {"attenuation"}, "1");

@@ -1,7 +1,9 @@
 #include "fit/terms_physical.h"
 
+#include <ceres/manifold.h>
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
 #include <cmath>
 #include <fstream>
 #include <memory>
@@ -110,6 +112,46 @@ TEST(PhysicalTerms, Nominal_ParsesAllFiveIntoOneGroup) {
   EXPECT_TRUE(found_distance);
   ASSERT_EQ(spec.block_settings[0].size(), 1u);
   EXPECT_EQ(spec.block_settings[0][0].term, "plane");
+}
+
+// A manifold block's stds are its tangent coordinates times tangent_scale, stated in
+// tangent_unit (rad): one tangent unit must turn the block by tangent_scale radians. The plane's
+// normal (SphereManifold<3>, which turns by |delta| / 2) had scale 1, so its angle stds were twice
+// the normal's angular uncertainty (and diagnose's normal test, 0.1 rad, twice as strict).
+TEST(PhysicalTerms, ManifoldTangentScaleIsTheAngleTurnedPerTangentUnit) {
+  const ModelSpec spec = ParseModelYaml(R"(terms:
+  - type: sensor_offset
+  - type: plane
+    point_in_transmitter: [0, 0, 0.8]
+    normal_in_transmitter: [0, 0.6, 0.8]
+)",
+                                        "m.yaml");
+  int checked = 0;
+  for (const auto& term : spec.terms) {
+    for (const auto& b : term->blocks()) {
+      if (!b.make_manifold || b.tangent_unit != "rad") continue;
+      std::unique_ptr<ceres::Manifold> manifold(b.make_manifold());
+      ASSERT_EQ(manifold->TangentSize(), static_cast<int>(b.tangent_names.size())) << b.name;
+      for (int k = 0; k < manifold->TangentSize(); ++k) {
+        std::vector<double> delta(static_cast<size_t>(manifold->TangentSize()), 0.0);
+        delta[static_cast<size_t>(k)] = 1e-3;
+        std::vector<double> moved(b.values.size());
+        ASSERT_TRUE(manifold->Plus(b.values.data(), delta.data(), moved.data()));
+        double angle = 0.0;
+        if (b.values.size() == 4) {  // x, y, z, w: the rotation from the old to the new
+          const Eigen::Quaterniond q0(b.values[3], b.values[0], b.values[1], b.values[2]);
+          const Eigen::Quaterniond q1(moved[3], moved[0], moved[1], moved[2]);
+          angle = q1.angularDistance(q0);
+        } else {  // a unit vector: the angle between the old and the new
+          const Eigen::Map<const Eigen::Vector3d> v0(b.values.data()), v1(moved.data());
+          angle = std::atan2(v0.cross(v1).norm(), v0.dot(v1));
+        }
+        EXPECT_NEAR(angle, b.tangent_scale * 1e-3, 1e-9) << b.term << "." << b.name << " " << k;
+        ++checked;
+      }
+    }
+  }
+  EXPECT_EQ(checked, 3 + 2);  // the sensor offset's rotation, the plane's normal
 }
 
 TEST(PhysicalTerms, RejectsPhysicalTermAfterExplicitWithFileAndLine) {
