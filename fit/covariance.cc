@@ -1102,6 +1102,30 @@ CovarianceResult ComputeCovariance(ceres::Problem* problem,
     if (!dense.weak.empty()) {
       result.message += std::to_string(dense.weak.size()) + " weak direction(s) in the problem";
     }
+    // A coordinate the null space of H moves is not determined by the data at all: the
+    // pseudo-inverse leaves that direction out and gave it the variance of its determined part
+    // (0.125 for each of two offsets of which only the sum is seen; 0 for a coordinate no residual
+    // touches), which reads as a measurement. Its standard deviation is infinite. Shares of the
+    // null space below 1e-6 (components of 1e-3) are taken as rounding.
+    constexpr double kNullShare = 1e-6;
+    for (int k = 0; k < n; ++k) {
+      const size_t column = static_cast<size_t>(full_index[static_cast<size_t>(k)]);
+      const Component& c = dense.components[static_cast<size_t>(dense.component_of_column[column])];
+      const Eigen::Index null = c.eigenvalues.size() - c.rank;  // ascending: the first ones
+      if (null <= 0) continue;
+      const double share =
+          c.eigenvectors.row(dense.local_of_column[column]).head(null).squaredNorm();
+      if (!(share > kNullShare)) continue;
+      result.stddev(k) = std::numeric_limits<double>::infinity();
+      const bool flagged =
+          std::any_of(result.flags.begin(), result.flags.end(), [&](const IdentifiabilityFlag& f) {
+            return f.coordinate == result.coordinate_names[static_cast<size_t>(k)];
+          });
+      if (!flagged) {
+        result.flags.push_back({result.coordinate_names[static_cast<size_t>(k)],
+                                "not determined (null space share " + Format("%.2g", share) + ")"});
+      }
+    }
   }
   return result;
 }

@@ -14,7 +14,7 @@
 //     blocks;
 //   - falls back to the pseudo-inverse of H (dropping the null space) when Ceres reports a
 //     rank-deficient Jacobian, so a degenerate problem still yields standard deviations for the
-//     coordinates that are determined, and flags the ones that are not;
+//     coordinates that are determined, and flags the ones that are not (their std is infinite);
 //   - flags every coordinate whose standard deviation exceeds the scale the caller gives for it, or
 //     which a weak direction moves.
 // Standard deviations are in physical units: each block's tangent coordinates are multiplied by
@@ -159,7 +159,9 @@ struct CovarianceResult {
   // Joint covariance of the requested blocks in physical tangent units, blocks in request order
   // (cross terms of blocks with cross_covariance = false are zero).
   Eigen::MatrixXd covariance;
-  Eigen::VectorXd stddev;                     // sqrt(diag(covariance))
+  // sqrt(diag(covariance)); +infinity for a coordinate the null space of H moves (rank deficient:
+  // `covariance` is the pseudo-inverse's, which leaves that direction out), flagged.
+  Eigen::VectorXd stddev;
   // Per requested coordinate, its variance inflation factor H_jj (H^+)_jj >= 1: how much the
   // freedom of the other coordinates widens its variance (1: it shares no information with them;
   // 20: 95 % of its information is shared, what is left rests on 5 %). From the dense analysis

@@ -6,6 +6,7 @@
 
 #include <Eigen/Eigenvalues>
 #include <array>
+#include <cmath>
 #include <string>
 #include <vector>
 
@@ -107,11 +108,12 @@ TEST(ComputeCovariance, AHardConstraintLeavesTheDirectionsItDoesNotHold) {
     options.estimator = estimator;
     options.clusters = clusters;
     // Given as an ordinary row, the gauge scales the rest below the rank tolerance (the failure
-    // this guards against): 2 of 3 directions dropped, stds of 3e-9.
+    // this guards against): 2 of 3 directions dropped; the pseudo-inverse's stds were 3e-9, now
+    // those of coordinates in the null space: infinite.
     const CovarianceResult plain = ComputeCovariance(&problem, {{x, "x"}}, options);
     ASSERT_TRUE(plain.success) << plain.ToString();
     EXPECT_EQ(plain.rank, 1);
-    EXPECT_LT(plain.stddev.maxCoeff(), 1e-6);
+    EXPECT_TRUE(std::isinf(plain.stddev.maxCoeff())) << plain.stddev.transpose();
     options.hard_constraints = {gauge};
     const CovarianceResult c = ComputeCovariance(&problem, {{x, "x"}}, options);
     ASSERT_TRUE(c.success) << c.ToString();
@@ -453,6 +455,42 @@ TEST(ComputeCovariance, RankDeficientFallsBackToPseudoInverseAndFlags) {
   ASSERT_EQ(c.flags.size(), 2u) << c.ToString();
   // The determined combination d + e has variance sigma^2 / 4 = 0.0625: u^T C u with u = (1, 1).
   EXPECT_NEAR(c.covariance.sum(), 0.0625, 1e-12);
+}
+
+// The pseudo-inverse gave each of d and e (only d + e observed) the std 0.112 (the sandwich 0.76),
+// numbers for coordinates the data do not determine at all; the line a + b x keeps its stds.
+TEST(ComputeCovariance, CoordinatesInTheNullSpaceHaveInfiniteStddev) {
+  for (const auto estimator : {CovarianceEstimator::kModel, CovarianceEstimator::kSandwich}) {
+    double d = 0.0, e = 0.0, a = 0.0, b = 0.0;
+    ceres::Problem problem;
+    CovarianceOptions options;
+    options.estimator = estimator;
+    Eigen::Matrix<double, 5, 2> x;
+    for (int i = 0; i < 5; ++i) {
+      x.row(i) << 1.0, i;
+      options.clusters.push_back(problem.AddResidualBlock(
+          Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(0.5), 1.0, 3.0 + 0.1 * (i % 2)),
+          nullptr, &d, &e));
+      options.clusters.push_back(problem.AddResidualBlock(
+          Whitened<LineCost>::Create(IsotropicSqrtInformation<1>(0.2), i, 1.0 + 2.0 * i), nullptr,
+          &a, &b));
+    }
+    const CovarianceResult c =
+        ComputeCovariance(&problem, {{&d, "d"}, {&e, "e"}, {&a, "a"}, {&b, "b"}}, options);
+    ASSERT_TRUE(c.success) << c.ToString();
+    EXPECT_TRUE(c.rank_deficient);
+    EXPECT_EQ(c.rank, 3);
+    EXPECT_TRUE(std::isinf(c.stddev(0)) && c.stddev(0) > 0) << c.stddev.transpose();
+    EXPECT_TRUE(std::isinf(c.stddev(1)) && c.stddev(1) > 0) << c.stddev.transpose();
+    EXPECT_EQ(c.flags.size(), 2u) << c.ToString();
+    ASSERT_TRUE(std::isfinite(c.stddev(2)) && std::isfinite(c.stddev(3))) << c.stddev.transpose();
+    if (estimator == CovarianceEstimator::kModel) {
+      // Exactly on the line: sigma^2 (X^T X)^-1, as in Nominal.
+      const Eigen::Matrix2d expected = 0.04 * (x.transpose() * x).inverse();
+      EXPECT_NEAR(c.stddev(2), std::sqrt(expected(0, 0)), 1e-12);
+      EXPECT_NEAR(c.stddev(3), std::sqrt(expected(1, 1)), 1e-12);
+    }
+  }
 }
 
 TEST(ComputeCovariance, QuaternionStddevInRadians) {
