@@ -309,7 +309,38 @@ def test_too_few_stations_to_test_a_covariate_are_not_called_clean():
                                  reference_positions=np.resize(ref, (20, 3)),
                                  reference_quaternions_xyzw=np.resize(q, (20, 4)), extra_columns=[],
                                  extra=np.zeros((20, 0)))
-    assert validation.validate(cap20, None, covariate_options={"n_permutations": 9}).covariates_tested
+    assert validation.validate(cap20, None, covariate_options={"n_permutations": 99}).covariates_tested
+
+
+def test_too_few_permutations_to_reach_the_level_are_not_called_clean():
+    # A 5 mm error growing along x at 60 stations: found with 99 permutations. With 9 (what a user
+    # passes to save time) the smallest p is 0.1, above every Bonferroni level, so no test can be
+    # significant: the text said "no covariate explains the residuals beyond noise" and the verdict
+    # "nothing significant remains in the covariates" (seen on a simulated capture whose x explained
+    # 29 % of the orientation error).
+    rng = np.random.default_rng(4)
+    n = 60
+    p = rng.uniform(-0.5, 0.5, (n, 3)) + np.array([0.0, 0.0, -0.6])
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    ref = p + np.column_stack([5e-3 * (p[:, 0] + 0.5), np.zeros(n), np.zeros(n)])
+    cap = captures.PoseCapture(path=None, station=np.arange(n), set=np.array(["calib"] * n, dtype=object),
+                               sensor=np.ones(n, int), time=np.arange(n, dtype=float), reported_positions=p,
+                               reported_quaternions_xyzw=q, reference_positions=ref, reference_quaternions_xyzw=q,
+                               extra_columns=[], extra=np.zeros((n, 0)))
+    enough = validation.validate(cap, None, covariate_options={"n_permutations": 99, "seed": 1})
+    assert enough.covariates_tested
+    assert any(e.significant and e.covariate == "x" for e in enough.covariate_effects)
+    for few in (0, 9, 98):
+        v = validation.validate(cap, None, covariate_options={"n_permutations": few, "seed": 1})
+        assert v.covariate_effects and not any(e.significant for e in v.covariate_effects)
+        text = diagnosis.verdict(None, v.covariate_effects, v.covariates_tested)["text"]
+        assert "nothing significant remains" not in text and "covariates not tested" in text, text
+        assert not v.covariates_tested
+        assert f"{few} permutations cannot reach the significance level" in v.covariates_note
+    assert enough.covariates_note == ""
+    assert validation.permutations_can_reach(99, 60) and not validation.permutations_can_reach(98, 60)
+    # The smallest p 1 / (n + 1) below the level: reachable without the normal approximation.
+    assert validation.permutations_can_reach(9, 1, alpha=0.5)
 
 
 def test_bad_covariates_and_options_name_what_is_wrong():

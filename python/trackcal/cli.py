@@ -439,8 +439,8 @@ def cmd_diagnose(args, term) -> int:
     # Findings that stand on their own first (not explained away by another covariate).
     sig = sorted((e for e in v.covariate_effects if e.significant),
                  key=lambda e: (e.confounded_with is not None, -e.r2))
-    if not v.covariates_tested:  # too few stations: not a clean bill
-        print("  not tested: a covariate needs values at 20 stations or more")
+    if not v.covariates_tested:  # too few stations or permutations: not a clean bill
+        print(term.c(f"  not tested: {v.covariates_note}", "33"))
     elif not sig:
         print("  no covariate explains the residuals beyond noise")
     for e in sig[:args.top]:
@@ -589,7 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "new CSV file")
         if covariates:
             sp.add_argument("--permutations", type=int, default=199,
-                            help="permutations per covariate test (0 or more)")
+                            help="permutations per covariate test (0 or more; below 99 no test can be significant, "
+                                 "so the covariates count as not tested)")
             sp.add_argument("--seed", type=int, default=0)
 
     sp = sub.add_parser("validate", help="Table 1 before/after for the calibration and validation sets")

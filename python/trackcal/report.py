@@ -244,8 +244,9 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                      "5-fold cross-validated), with a permutation test; only significant or R² &gt; 0.01 shown."
                      + (" Stream samples: the folds are contiguous stretches of time and the null shifts "
                         "the covariate along time, since neighbouring samples share their misfit."
-                        if validation.serial_samples(v.capture) else "") + "</p>"
-                     + _table(rows))
+                        if validation.serial_samples(v.capture) else "")
+                     + (f" Not tested: {html.escape(v.covariates_note)}." if v.covariates_note else "")
+                     + "</p>" + _table(rows))
     if candidates is not None:
         base = candidates.get("base", {})
         parts.append("<h2>Candidate effects</h2>"

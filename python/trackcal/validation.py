@@ -387,6 +387,14 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
     return effects
 
 
+def permutations_can_reach(n_permutations: int, n_tests: int, alpha: float = 0.01) -> bool:
+    """Whether covariate_analysis with this many permutations can call any of ``n_tests`` tests
+    significant: the smallest permutation p is 1 / (n_permutations + 1), and the normal
+    approximation that reaches below it needs 99 permutations or more. Below that, every test
+    comes out not significant whatever the residuals, which is not evidence of their absence."""
+    return n_permutations >= 99 or 1.0 / (n_permutations + 1.0) <= alpha / max(1, n_tests)
+
+
 def _levels(y: np.ndarray, target: str, codes: np.ndarray, names: list) -> List[dict]:
     """Per label of a covariate: its stations and how far their mean of the target y (N, d) sits
     from the mean over every label (``offset``: the vector in the transmitter frame for a vector
@@ -601,6 +609,9 @@ class Validation:
     # one covariate (none is on fewer than 20 stations): False means no covariate was tested, not
     # that none follows the residuals.
     covariates_tested: bool = False
+    # Why covariates_tested is False although the analysis ran ("" when it is True): too few
+    # stations, or too few permutations for any test to reach its significance level.
+    covariates_note: str = ""
     # Per station: how the calibration's model inverse arrived at the corrected pose (uint8: 0
     # converged, 1 ambiguous, 2 not_converged; trackcal.correction_status_names); all 0 without a
     # calibration or without a physical term.
@@ -823,8 +834,19 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
                                                  **(covariate_options or {}))
         # A covariate is tested only with values at 20 stations or more (covariate_analysis): on
         # fewer, none is, and the verdict said "nothing significant remains in the covariates" of
-        # residuals it never looked at.
-        v.covariates_tested = bool(v.covariate_effects)
+        # residuals it never looked at. Likewise with too few permutations (--permutations 9 to
+        # save time): no test can reach its level, and "no covariate explains the residuals beyond
+        # noise" was printed over an x that explained 29 % of the orientation error.
+        options = covariate_options or {}
+        n_permutations = options.get("n_permutations", 199)
+        alpha = options.get("alpha", 0.01)
+        if not v.covariate_effects:
+            v.covariates_note = "a covariate needs values at 20 stations or more"
+        elif not permutations_can_reach(n_permutations, len(v.covariate_effects), alpha):
+            v.covariates_note = (f"{n_permutations} permutations cannot reach the significance level "
+                                 f"(p <= {alpha / len(v.covariate_effects):.2g}: alpha {alpha:g} over "
+                                 f"{len(v.covariate_effects)} tests); give 99 or more (--permutations)")
+        v.covariates_tested = not v.covariates_note
     return v
 
 
