@@ -3,6 +3,7 @@ folder of streams (paired by time, with the receiver's speed as a covariate), an
 residuals (``--residuals`` and the ``stations`` of ``diagnose --json``)."""
 
 import json
+import pathlib
 import shutil
 import subprocess
 import sys
@@ -249,6 +250,35 @@ def test_diagnose_fits_the_model_to_the_registered_references(sim, tmp_path):
     # The same stations and references: the uncorrected errors agree to rounding.
     assert fitted["before_position_mm"]["mean"] == pytest.approx(shown["before_position_mm"]["mean"], rel=1e-9)
     assert fitted["before_position_mm"]["count"] == shown["before_position_mm"]["count"]
+
+
+def test_fit_and_diagnose_register_a_folder_of_raw_markers(sim, tmp_path):
+    # docs/understand.md: every command that takes a capture (fit --data too) accepts a folder of
+    # markers.csv + tracker.csv and registers it. validate did; fit and diagnose --model handed the
+    # folder to the engine, which said "<folder>/poses.csv: cannot open file".
+    cap_dir, _, _ = sim
+    folder = tmp_path / "markers"
+    folder.mkdir()
+    for name in ("markers.csv", "tracker.csv"):
+        shutil.copy(cap_dir / name, folder / name)
+    model = tmp_path / "model.yaml"
+    model.write_text("terms:\n  - type: polynomial\n    degree: 2\n")
+    registered = captures.load(folder)
+    r = run_cli("fit", "--data", folder, "--model", model, "-o", tmp_path / "cal.json", "--workdir",
+                tmp_path / "work", check=False)
+    assert r.returncode == 0, r.stderr
+    assert "raw markers registered (paper section 3) with every station" in r.stdout
+    # Every station registers and is fitted (no validation set: cross-validated).
+    assert f"calib set ({len(registered)} poses)" in r.stdout and "cross-validation (5-fold)" in r.stdout
+    entry = json.loads((tmp_path / "work" / "history.jsonl").read_text().splitlines()[-1])
+    assert sorted(pathlib.Path(d["path"]).name for d in entry["data"]) == ["markers.csv", "tracker.csv"]
+    doc = json.loads(run_cli("diagnose", folder, "--model", model, "--json", "--permutations", "9",
+                             "--effects", "sensor_offset", "--folds", "2").stdout)
+    fitted = next(t for t in doc["fit"]["tables"] if t["set_name"] == "calib")
+    shown = next(t for t in doc["tables"] if t["set_name"] == "calib")
+    assert doc["capture_origin"]["kind"] == "markers"
+    assert fitted["before_position_mm"]["count"] == shown["before_position_mm"]["count"] == len(registered)
+    assert fitted["before_position_mm"]["mean"] == pytest.approx(shown["before_position_mm"]["mean"], rel=1e-9)
 
 
 def test_outside_stations_are_listed(sim):

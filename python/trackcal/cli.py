@@ -223,10 +223,23 @@ def _colour_table(term, t, held_out: bool) -> str:
     return "\n".join(lines) + ("\n" if text.endswith("\n") else "")
 
 
+def _markers_capture(path):
+    """A folder of raw optical markers (markers.csv + tracker.csv, no poses.csv or streams) as its
+    registered stations (trackcal.captures.load: every station registers), since the fit engine
+    reads only poses.csv and streams; None for any other capture."""
+    from trackcal import captures
+    return captures.load(path) if captures.capture_kind(path) == "markers" else None
+
+
 def cmd_fit(args, term) -> int:
     import trackcal
     from trackcal import history
-    folds = args.folds if args.folds is not None else (0 if _has_valid_set(args.data) else 5)
+    # Raw markers are registered first, as validate, diagnose and report do (docs/understand.md,
+    # "Captures"); the engine alone said "<folder>/poses.csv: cannot open file".
+    markers = _markers_capture(args.data)
+    data = markers if markers is not None else args.data
+    folds = args.folds if args.folds is not None else (
+        (0 if "valid" in markers.sets else 5) if markers is not None else (0 if _has_valid_set(args.data) else 5))
     out = pathlib.Path(args.output).resolve()
     for given in (args.data, args.model):  # a bad -o fails now, not after the fit
         if pathlib.Path(given).is_file() and pathlib.Path(given).resolve() == out:
@@ -238,7 +251,7 @@ def cmd_fit(args, term) -> int:
     trackcal._core.check_calibration_output(args.output)
     if args.workdir:  # a malformed history fails now, not after the fit and its calibration file
         history.load_history(args.workdir)
-    report = trackcal.fit(args.data, args.model, folds=folds, progress=term.stage_progress())
+    report = trackcal.fit(data, args.model, folds=folds, progress=term.stage_progress())
     if report.pairing_warning:  # on stderr, so --json stays one document
         data = pathlib.Path(args.data)
         print(f"warning: {data / 'tracker_stream.csv'}, {data / 'reference_stream.csv'}: "
@@ -246,12 +259,14 @@ def cmd_fit(args, term) -> int:
     report.save(args.output, command_line="trackcal " + " ".join(sys.argv[1:]))
     entry = None
     if args.workdir:
-        entry = history.record_model_fit(args.workdir, report, model=args.model, data=args.data,
+        entry = history.record_model_fit(args.workdir, report, model=args.model, data=data,
                                          calibration=args.output, label=args.label)
     if args.json:
         print(json.dumps(report.to_dict(), indent=2))
         return 0
     held = report.held_out()
+    if markers is not None:
+        _print_origin(term, markers)
     if report.time_offset_s is not None:
         print(f"streams paired at a clock offset of {report.time_offset_s * 1e3:.3f} ms (reference minus "
               "tracker; the model's fitted offset where it frees one)")
@@ -318,7 +333,8 @@ def _diagnosis(args, term):
     fit_report = None
     # Registered markers: the model is fitted and ranked on the references they give, the ones the
     # statistics use, not on a labelling poses.csv's (streams are paired at the fit's offset below).
-    registered = _load(args) if getattr(args, "register_markers", False) else None
+    registered = (_load(args) if getattr(args, "register_markers", False)
+                  or captures.capture_kind(args.capture) == "markers" else None)
     data = registered[0] if registered else args.capture
     if model and not args.calibration:
         # Without a validation set the "after" errors are in-sample: the fit's cross-validation
