@@ -120,6 +120,20 @@ def test_capture_folder_without_any_capture_names_what_it_looked_for(tmp_path):
         captures.load(tmp_path)
     r = run_cli("validate", tmp_path, check=False)
     assert r.returncode == 2 and "not a capture folder" in r.stderr
+    assert "trackcal record" not in r.stderr
+
+
+def test_a_recording_folder_given_as_a_capture_says_how_to_validate_it(tmp_path):
+    # `trackcal record -o run1` writes LABEL_tracker_stream.csv per device; `trackcal validate run1`
+    # (with the reference stream beside them) said only "not a capture folder", leaving the user
+    # to find validate_recording in the docs.
+    for label in ("raw", "corrected"):
+        (tmp_path / f"{label}_tracker_stream.csv").write_text("time,sensor,x,y,z,qw,qx,qy,qz\n")
+    (tmp_path / "reference_stream.csv").write_text("time,x,y,z,qw,qx,qy,qz\n")
+    r = run_cli("validate", tmp_path, check=False)
+    assert r.returncode == 2 and "not a capture folder" in r.stderr
+    assert ("corrected_tracker_stream.csv, raw_tracker_stream.csv: a recording (trackcal record): "
+            "validate it against the reference stream with trackcal.validation.validate_recording") in r.stderr
 
 
 def test_unreadable_capture_files_and_existing_outputs_are_value_errors(tmp_path):

@@ -192,8 +192,14 @@ def capture_kind(path: PathLike) -> str:
         return "streams"
     if all((p / n).is_file() for n in MARKER_FILES):
         return "markers"
+    # A `trackcal record` folder (LABEL_tracker_stream.csv per device) is a recording, validated
+    # against its reference stream by trackcal.validation.validate_recording, not a capture: say so.
+    recorded = sorted(f.name for f in p.glob("*_tracker_stream.csv") if f.is_file())
+    hint = (f"; {', '.join(recorded)}: a recording (trackcal record): validate it against the "
+            "reference stream with trackcal.validation.validate_recording (docs/understand.md)"
+            if recorded else "")
     raise ValueError(f"{p}: not a capture folder (no poses.csv, no {' + '.join(STREAM_FILES)}, "
-                     f"no {' + '.join(MARKER_FILES)})")
+                     f"no {' + '.join(MARKER_FILES)}){hint}")
 
 
 def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: float = 0.5,
