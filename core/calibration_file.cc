@@ -238,7 +238,23 @@ const CalibratedVolume& Calibration::volume() const {
 }
 
 Calibration ParseCalibrationJson(const std::string& text, const std::string& source_name) {
-  const nlohmann::json doc = ParseJsonText(text, source_name);
+  nlohmann::json doc;
+  try {
+    doc = ParseJsonText(text, source_name);
+  } catch (const JsonInputError& e) {
+    // A file that is not JSON at all (a model file's YAML, a capture's CSV given as the
+    // calibration) got only the JSON parser's "invalid literal; last read: 'te'": say what a
+    // calibration file is.
+    size_t first = text.rfind("\xEF\xBB\xBF", 0) == 0 ? 3 : 0;
+    first = text.find_first_not_of(" \t\r\n", first);
+    if (first == std::string::npos || text[first] == '{' || text[first] == '[') {
+      throw;
+    }
+    throw JsonInputError(std::string(e.what()) +
+                         " (not a calibration file: a calibration file is the JSON document "
+                         "that trackcal fit -o or trackcal-fit fit -o writes, starting with '{'; "
+                         "is this a model file or a capture?)");
+  }
   const JsonObjectReader root(doc, source_name, "$");
   const std::string format = root.String("format");
   if (format != kCalibrationFormat) {

@@ -289,6 +289,23 @@ TEST(ParseCalibrationJson, RejectsNonFiniteNumbers) {
             "'{', or a literal");
 }
 
+TEST(ParseCalibrationJson, AFileThatIsNotJsonSaysWhatACalibrationFileIs) {
+  // docs/understand.md's loop has model.yaml next to calib.json; given the model as -c (or in a
+  // trackcal_Calibration line), the error was only the JSON parser's "invalid literal; last read:
+  // 'te'".
+  const std::string yaml = ErrorForText("terms:\n  - type: polynomial\n    degree: 4\n");
+  EXPECT_EQ(yaml.rfind("calib.json:1:2: invalid JSON: ", 0), 0u) << yaml;
+  EXPECT_NE(yaml.find("(not a calibration file: a calibration file is the JSON document that "
+                      "trackcal fit -o or trackcal-fit fit -o writes, starting with '{'; is this a "
+                      "model file or a capture?)"),
+            std::string::npos)
+      << yaml;
+  const std::string csv = ErrorForText("\xEF\xBB\xBF station,set,sensor\n1,calib,1\n");
+  EXPECT_NE(csv.find("(not a calibration file"), std::string::npos) << csv;
+  // A JSON document that is broken keeps the parser's message alone.
+  EXPECT_EQ(ErrorForText("  {\"format\": ").find("not a calibration file"), std::string::npos);
+}
+
 TEST(ParseCalibrationJson, RejectsTermsThatOverflowInTheVolume) {
   // Every number is finite, but u = (x - offset) / 1e-200 makes the degree-2 terms infinite and
   // infinity times a coefficient NaN: the file would serve NaN for every pose in its own volume.
