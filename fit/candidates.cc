@@ -1420,7 +1420,8 @@ PhysicalEvidence AssessScaled(const std::string& term_type,
     // centre, which is short when the normal points near the centre, so a plane whose orientation
     // is open by 20 deg still passed it (measured, the main job's capture after the sensor offset,
     // the workbench frame and the floor: 1.70 m +- 0.14 along a normal +- 19.9 deg, position +-
-    // 0.24 m at the volume against 1.20 m away, claimed, standing in for the +y monitors). Which
+    // 0.24 m at the volume against 1.20 m away, claimed, standing in for the +y monitors; 10.0 deg
+    // in the units of session 38, which halved the normal's reported sigma to its true value). Which
     // wall a plane is, is its orientation: its field is that of the transmitter's mirror image,
     // which such a normal moves sideways by 2 d sigma = 1.2 m.
     e.normal_sigma_rad = sigma_angle;
