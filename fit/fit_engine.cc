@@ -2014,6 +2014,7 @@ nlohmann::json FitResult::ToJson() const {
     amplified_json.push_back({{"station", a.station}, {"gain", NumberOrNull(a.gain)}});
   }
   return {{"converged", converged},
+          {"linear_least_squares", linear_least_squares},
           {"solver_message", solver_message},
           {"linear_solver", linear_solver},
           {"iterations", iterations},

@@ -285,13 +285,29 @@ int RunFit(int argc, char** argv) {
     return 0;
   }
   for (const auto& t : run.tables) std::cout << FormatTable1(t) << "\n";
-  std::cout << "Fit: " << (result.converged ? "converged" : "NOT converged") << " after "
-            << result.iterations << " iterations in " << std::setprecision(3)
-            << result.seconds * 1e3 << " ms; chi2/dof " << result.chi2_per_dof << "\n";
+  // As python/trackcal/fitting.py words it (trackcal fit): a lone polynomial is solved in closed
+  // form, which "converged after 0 iterations" misstated.
+  std::cout << "Fit: "
+            << (result.linear_least_squares ? std::string("solved by linear least squares")
+                : result.converged
+                    ? "converged after " + std::to_string(result.iterations) + " iterations"
+                    : "NOT converged after " + std::to_string(result.iterations) + " iterations")
+            << " in " << std::setprecision(3) << result.seconds * 1e3 << " ms; chi2/dof "
+            << result.chi2_per_dof << "\n";
   if (!result.outliers.empty()) {
-    std::cout << "Outlier stations (" << result.outliers.size() << "):";
-    for (const auto& o : result.outliers) std::cout << " " << o.station;
+    // The first 20 ids (all are in --json): a model that does not fit flags most stations, and
+    // a line of 400 ids said less than the count.
+    constexpr std::size_t kListed = 20;
+    const std::size_t n = result.outliers.size();
+    std::cout << "Outlier stations (" << n << " of " << run.num_calib << "):";
+    for (std::size_t i = 0; i < n && i < kListed; ++i)
+      std::cout << " " << result.outliers[i].station;
+    if (n > kListed) std::cout << " ... (" << n - kListed << " more)";
     std::cout << "\n";
+    if (2 * n > static_cast<std::size_t>(run.num_calib)) {
+      std::cout << "  (most stations are outliers: the model leaves far more than the noise; see "
+                   "trackcal-fit diagnose)\n";
+    }
   }
   if (!result.left_out.empty()) {
     std::cout << "Left out of the fit, unresolved by the model's inverse ("

@@ -10,6 +10,7 @@
 #include <map>
 #include <nlohmann/json.hpp>
 #include <set>
+#include <sstream>
 
 #include "core/calibration_file.h"
 #include "core/capture.h"
@@ -78,6 +79,38 @@ TEST_F(FitCliTest, Nominal_SimulateFitLoadCorrect) {
   EXPECT_NEAR(after.position_mm.mean,
               doc["tables"][1]["after"]["position_mm"]["mean"].get<double>(), 1e-9);
   EXPECT_GE(doc["tables"][1]["improvement_percent"]["position_mean"].get<double>(), 88.6);
+}
+
+// A lone polynomial is solved in closed form: the text said "converged after 0 iterations". A
+// degree-1 polynomial leaves most of the paper room's stations beyond 5 sigma: the outlier line
+// listed all 406 ids and nothing said that the model, not the stations, fails.
+TEST_F(FitCliTest, TextSaysHowTheFitWasSolvedAndWhenMostStationsAreOutliers) {
+  std::ofstream(dir_ / "linear.yaml") << "terms:\n  - type: polynomial\n    degree: 1\n";
+  const fs::path text = dir_ / "out.txt";
+  ASSERT_EQ(RunCommand(fit_ + " fit --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "linear.yaml").string() + " -o " + (dir_ / "c.json").string() +
+                       " --quiet > " + text.string()),
+            0);
+  const std::string out = ReadFileToString(text);
+  EXPECT_THAT(out, ::testing::HasSubstr("Fit: solved by linear least squares in "));
+  const auto at = out.find("Outlier stations (");
+  ASSERT_NE(at, std::string::npos) << out;
+  const std::string line = out.substr(at, out.find('\n', at) - at);
+  EXPECT_THAT(line, ::testing::HasSubstr(" of 480): "));  // out of the calib stations
+  std::istringstream ids(line.substr(line.find("): ") + 3));
+  int listed = 0;
+  for (std::string id; ids >> id && id != "...";) ++listed;
+  EXPECT_EQ(listed, 20) << line;
+  EXPECT_THAT(line, ::testing::EndsWith(" more)"));
+  EXPECT_THAT(out, ::testing::HasSubstr("most stations are outliers"));
+  std::ofstream(dir_ / "lm.yaml")
+      << "terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 1\n";
+  ASSERT_EQ(RunCommand(fit_ + " fit --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "lm.yaml").string() + " -o " + (dir_ / "c2.json").string() +
+                       " --quiet > " + text.string()),
+            0);
+  EXPECT_THAT(ReadFileToString(text),
+              ::testing::ContainsRegex("Fit: converged after [1-9][0-9]* iterations in "));
 }
 
 TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {

@@ -55,6 +55,8 @@ def test_fit_lists_a_readable_number_of_outliers(capture_dir, tmp_path):
     assert " of 480): " in line  # out of the calib stations
     assert len(line.split(":", 1)[1].split()) <= 23  # 20 ids and "... (N more)"
     assert "most stations are outliers" in r.stdout
+    # Solved in closed form (paper eq. 9), not "converged after 0 iterations".
+    assert "Fit: solved by linear least squares in " in r.stdout
 
 
 def entry(label, pos, ori, set_name="valid"):

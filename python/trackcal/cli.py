@@ -273,8 +273,9 @@ def cmd_fit(args, term) -> int:
     for t in report.tables:
         print(_colour_table(term, t, t is held))
     chi = f"{report.chi2_per_dof:.3g}" if report.chi2_per_dof is not None else "n/a"
-    status = term.c("converged", "32") if report.converged else term.c("NOT converged", "31")
-    print(f"Fit: {status} after {report.iterations} iterations in {report.seconds * 1e3:.3g} ms; chi2/dof {chi}")
+    solver = report.solver_status()
+    status = term.c(solver, "32") if report.converged else term.c(solver, "31")
+    print(f"Fit: {status} in {report.seconds * 1e3:.3g} ms; chi2/dof {chi}")
     if report.outliers:
         from trackcal.fitting import format_outliers
         print(term.c(format_outliers(report.outliers, report.num_calib_stations), "33"))

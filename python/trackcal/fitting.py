@@ -155,8 +155,7 @@ class FitReport:
         """Table 1 rows, the solver summary, outliers and parameters as text."""
         out = [t.format() for t in self.tables]
         chi = f"{self.chi2_per_dof:.3g}" if self.chi2_per_dof is not None else "n/a"
-        out.append(f"Fit: {'converged' if self.converged else 'NOT converged'} after {self.iterations} "
-                   f"iterations in {self.seconds * 1e3:.3g} ms; chi2/dof {chi}")
+        out.append(f"Fit: {self.solver_status()} in {self.seconds * 1e3:.3g} ms; chi2/dof {chi}")
         if self.outliers:
             out.append(format_outliers(self.outliers, self.num_calib_stations))
         out.append(format_parameters(self.parameters))
@@ -166,6 +165,14 @@ class FitReport:
             out.append(f"Poorly identified ({len(self.identifiability_flags)}):")
             out += [f"  {f['coordinate']}: {f['reason']}" for f in self.identifiability_flags[:10]]
         return "\n".join(out)
+
+    def solver_status(self) -> str:
+        """'converged after 12 iterations', 'NOT converged after 100 iterations', or for a lone
+        polynomial without a ridge (solved in closed form, paper eq. 9) 'solved by linear least
+        squares'."""
+        if self.to_dict()["fit"].get("linear_least_squares"):
+            return "solved by linear least squares"
+        return f"{'converged' if self.converged else 'NOT converged'} after {self.iterations} iterations"
 
     def __repr__(self) -> str:
         t = self.held_out()
