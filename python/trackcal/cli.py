@@ -234,12 +234,6 @@ def _markers_capture(path):
 def cmd_fit(args, term) -> int:
     import trackcal
     from trackcal import history
-    # Raw markers are registered first, as validate, diagnose and report do (docs/understand.md,
-    # "Captures"); the engine alone said "<folder>/poses.csv: cannot open file".
-    markers = _markers_capture(args.data)
-    data = markers if markers is not None else args.data
-    folds = args.folds if args.folds is not None else (
-        (0 if "valid" in markers.sets else 5) if markers is not None else (0 if _has_valid_set(args.data) else 5))
     out = pathlib.Path(args.output).resolve()
     for given in (args.data, args.model):  # a bad -o fails now, not after the fit
         if pathlib.Path(given).is_file() and pathlib.Path(given).resolve() == out:
@@ -251,6 +245,13 @@ def cmd_fit(args, term) -> int:
     trackcal._core.check_calibration_output(args.output)
     if args.workdir:  # a malformed history fails now, not after the fit and its calibration file
         history.load_history(args.workdir)
+    # Raw markers are registered first, as validate, diagnose and report do (docs/understand.md,
+    # "Captures"); the engine alone said "<folder>/poses.csv: cannot open file". After the output
+    # checks, so a bad -o does not wait for the registration.
+    markers = _markers_capture(args.data)
+    data = markers if markers is not None else args.data
+    folds = args.folds if args.folds is not None else (
+        (0 if "valid" in markers.sets else 5) if markers is not None else (0 if _has_valid_set(args.data) else 5))
     report = trackcal.fit(data, args.model, folds=folds, progress=term.stage_progress())
     if report.pairing_warning:  # on stderr, so --json stays one document
         data = pathlib.Path(args.data)
