@@ -109,6 +109,30 @@ def test_fit_matches_the_command_line(capture_dir, model_file, tmp_path):
     assert report.converged and "Parameters" in report.format()
 
 
+def test_manifold_blocks_keep_their_tangent_standard_deviations(capture_dir):
+    # A quaternion (here the sensor offset's rotation) has its standard deviations on its tangent
+    # coordinates (to_dict()'s "tangent"); FitReport.parameters dropped them, so the block showed
+    # only NaN and neither format() nor `trackcal fit` printed any uncertainty for the rotation,
+    # while trackcal-fit prints "rotation_vector.x  std ... rad".
+    report = trackcal.fit(capture_dir, "terms:\n  - type: sensor_offset\n  - type: polynomial\n"
+                                       "    degree: 2\n")
+    rot = [p for p in report.parameters if p.term == "sensor_offset" and p.block == "rotation"][0]
+    doc = [p for p in report.to_dict()["fit"]["parameters"]
+           if p["term"] == "sensor_offset" and p["block"] == "rotation"][0]
+    assert rot.tangent_names == [t["name"] for t in doc["tangent"]] == [
+        "rotation_vector.x", "rotation_vector.y", "rotation_vector.z"]
+    assert rot.tangent_unit == doc["tangent_unit"] == "rad"
+    np.testing.assert_array_equal(rot.tangent_stddev, [t["stddev"] for t in doc["tangent"]])
+    assert np.all(np.isfinite(rot.tangent_stddev)) and np.all(rot.tangent_stddev > 0)
+    assert np.all(np.isnan(rot.stddev))  # the quaternion's own coordinates have none
+    text = report.format()
+    for name, s in zip(rot.tangent_names, rot.tangent_stddev):
+        assert f"{name:<22}{'std':>14} {s:.3g} rad" in text
+    # A block without a manifold has no tangent coordinates.
+    trans = [p for p in report.parameters if p.block == "translation"][0]
+    assert trans.tangent_names == [] and trans.tangent_stddev.shape == (0,)
+
+
 def test_cross_validation_matches_the_command_line(capture_dir, model_file, tmp_path):
     data = calib_only_capture(capture_dir, tmp_path)
     cli = run_fit_cli("fit", "--data", data, "--model", model_file, "-o", tmp_path / "cli.json",

@@ -52,8 +52,12 @@ def _capture_from_dict(d: dict, path=None) -> PoseCapture:
 
 @dataclasses.dataclass
 class Parameter:
-    """One parameter block of a fitted term: values with standard deviations (NaN: not available,
-    e.g. fixed blocks or manifold blocks whose uncertainty is reported in the tangent space)."""
+    """One parameter block of a fitted term: values with standard deviations (NaN: none, as ``null``
+    in ``to_dict()``: a fixed block, a coordinate the data leave undetermined (named in
+    ``identifiability_flags``), or a manifold block, whose uncertainty is that of its tangent
+    coordinates). A manifold block (a quaternion, a plane's unit normal) has ``tangent_names``
+    (``rotation_vector.x``, ...), their ``tangent_stddev`` (NaN: none) and ``tangent_unit``
+    (``rad``), as ``trackcal-fit fit`` prints them; empty for other blocks."""
 
     term: str
     block: str
@@ -62,6 +66,20 @@ class Parameter:
     names: List[str]
     values: np.ndarray
     stddev: np.ndarray
+    tangent_names: List[str] = dataclasses.field(default_factory=list)
+    tangent_stddev: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    tangent_unit: str = ""
+
+
+def _stddevs(entries) -> np.ndarray:
+    return np.array([np.nan if v["stddev"] is None else v["stddev"] for v in entries], dtype=float)
+
+
+def _parameter(p: dict) -> Parameter:
+    tangent = p.get("tangent") or []
+    return Parameter(p["term"], p["block"], p["unit"], p["fixed"], [v["name"] for v in p["values"]],
+                     np.array([v["value"] for v in p["values"]], dtype=float), _stddevs(p["values"]),
+                     [t["name"] for t in tangent], _stddevs(tangent), p.get("tangent_unit", ""))
 
 
 class FitReport:
@@ -97,12 +115,7 @@ class FitReport:
         self.identifiability_flags: List[dict] = fit["identifiability_flags"]
         self.outliers: List[dict] = fit["outliers"]
         self.terms: List[dict] = fit["terms"]
-        self.parameters = [
-            Parameter(p["term"], p["block"], p["unit"], p["fixed"], [v["name"] for v in p["values"]],
-                      np.array([v["value"] for v in p["values"]], dtype=float),
-                      np.array([np.nan if v["stddev"] is None else v["stddev"] for v in p["values"]],
-                               dtype=float))
-            for p in fit["parameters"]]
+        self.parameters = [_parameter(p) for p in fit["parameters"]]
         self.time_offset_s: Optional[float] = native.time_offset_s
         # Streams paired at a poorly determined clock offset: what the pairing warns ("" otherwise).
         self.pairing_warning: str = native.pairing_warning
@@ -197,6 +210,12 @@ def format_parameters(parameters: List[Parameter], max_values: int = 12) -> str:
         lines.append(f"  {p.term}.{p.block} [{p.unit}]{' (fixed)' if p.fixed else ''}: {len(p.values)} values")
         for name, v, s in list(zip(p.names, p.values, p.stddev))[:max_values]:
             lines.append(f"    {name:<22}{v:14.6g}" + (f" +- {s:.3g}" if np.isfinite(s) else ""))
+        # A manifold block's uncertainty is that of its tangent coordinates (trackcal-fit prints
+        # them too): without these lines a sensor offset's rotation or a plane's normal showed no
+        # standard deviation at all.
+        for name, s in zip(p.tangent_names, p.tangent_stddev):
+            if np.isfinite(s):
+                lines.append(f"    {name:<22}{'std':>14} {s:.3g} {p.tangent_unit}")
         if len(p.values) > max_values:
             lines.append("    ... (all values in to_dict() and the calibration file)")
     return "\n".join(lines)
