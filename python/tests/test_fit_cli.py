@@ -43,6 +43,8 @@ def test_fit_prints_table1_and_records_each_change(capture_dir, tmp_path):
     r = run_cli("fit", "--data", capture_dir, "--model", model, "-o", tmp_path / "c1.json", "--workdir", work)
     assert "calib set (480 poses)" in r.stdout and "valid set (120 poses)" in r.stdout
     assert "Parameters (value +- standard deviation)" in r.stdout
+    # Which covariance the standard deviations come from (docs/fit.md), as trackcal-fit prints it.
+    assert "(standard deviations from the sandwich (CR2) covariance" in r.stdout
     assert "\033[" not in r.stdout  # not a terminal: no colour
     # The user edits the model file in place and fits again.
     model.write_text(POLY_LUT)

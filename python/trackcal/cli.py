@@ -282,6 +282,9 @@ def cmd_fit(args, term) -> int:
         print(term.c(format_outliers(report.outliers, report.num_calib_stations), "33"))
     from trackcal.fitting import format_parameters
     print(format_parameters(report.parameters))
+    if report.covariance_estimator:  # which covariance the stds are from, as trackcal-fit says
+        print(f"  (standard deviations from the {report.covariance_estimator} covariance; docs/fit.md, "
+              "\"Standard deviations\")")
     if report.identifiability_flags:
         print(term.c(f"Poorly identified ({len(report.identifiability_flags)}):", "33"))
         for f in report.identifiability_flags[:10]:
