@@ -266,13 +266,26 @@ namespace Trackcal
         }
 
         // "Y, -Z, +x" and "y,-z,x" (and "" and null, the default) are one mapping: one connection.
+        // A '+' is dropped only as an item's sign before an axis, as the plugin reads it: "x+" or
+        // "+-x" stays as typed, so it cannot share (or open) a connection the plugin would refuse.
         public static string NormalizedAxes(string axes)
         {
-            if (axes == null || axes.Trim().Length == 0) return TrackcalTracker.DefaultAxes;
+            if (IsBlank(axes)) return TrackcalTracker.DefaultAxes;
             var sb = new StringBuilder();
             foreach (char c in axes)
-                if (!char.IsWhiteSpace(c) && c != '+') sb.Append(char.ToLowerInvariant(c));
+                if (!char.IsWhiteSpace(c)) sb.Append(char.ToLowerInvariant(c));
+            for (int i = sb.Length - 2; i >= 0; i--)
+            {
+                bool itemStart = i == 0 || sb[i - 1] == ',';
+                char next = sb[i + 1];
+                if (sb[i] == '+' && itemStart && next >= 'x' && next <= 'z') sb.Remove(i, 1);
+            }
             return sb.ToString();
+        }
+
+        private static bool IsBlank(string axes)
+        {
+            return axes == null || axes.Trim().Length == 0;
         }
 
         // Throws what TrackcalTracker's constructor throws (a bad name or axes).
@@ -287,7 +300,9 @@ namespace Trackcal
                 // longer match it and are ignored.
                 if (!shared.TryGetValue(key, out s) || s.Tracker.IsDisposed)
                 {
-                    s = new Shared { Tracker = new TrackcalTracker(vrpnName, normalized) };
+                    // The text as typed: the plugin's error then quotes what the user wrote.
+                    s = new Shared { Tracker = new TrackcalTracker(vrpnName,
+                                                                   IsBlank(axes) ? null : axes) };
                     shared[key] = s;
                 }
                 s.Users++;
@@ -309,7 +324,7 @@ namespace Trackcal
             if (tracker == null) return;
             lock (shared)
             {
-                string key = tracker.VrpnName + "\n" + tracker.Axes;
+                string key = tracker.VrpnName + "\n" + NormalizedAxes(tracker.Axes);
                 Shared s;
                 if (!shared.TryGetValue(key, out s) || s.Tracker != tracker) return;
                 if (--s.Users == 0)

@@ -75,6 +75,31 @@ public static class TrackcalCsharpTest
             Check(e.Message.Contains("mirrored"), "the axes error says why: " + e.Message);
         }
 
+        // The components' way in (TrackcalConnections) refuses what the plugin refuses, and the
+        // error quotes the axes as typed: a '+' that is not an axis's sign ("x+", "+-x") is not
+        // dropped into a valid mapping, and "X, Y, Z" is not reported as "x,y,z".
+        foreach (string typed in new[] { "x+,y,-z", "+-x,y,z", "y,-z,x+", "X, Y, Z" })
+        {
+            try
+            {
+                TrackcalConnections.Release(TrackcalConnections.Acquire(name, typed));
+                Check(false, "axes \"" + typed + "\" accepted by TrackcalConnections");
+            }
+            catch (ArgumentException e)
+            {
+                Check(e.Message.Contains("axes \"" + typed + "\""),
+                      "the axes error quotes \"" + typed + "\": " + e.Message);
+            }
+        }
+        Check(TrackcalConnections.Count == 0, "refused axes open no connection");
+        // Spellings the plugin accepts still share one connection ("+ x": a sign, then the axis).
+        TrackcalTracker spelt = TrackcalConnections.Acquire(name, " Y, - Z, + X ");
+        Check(TrackcalConnections.Acquire(name, "y,-z,x") == spelt &&
+              TrackcalConnections.Acquire(name, "  ") == spelt && TrackcalConnections.Count == 1,
+              "equivalent spellings share one connection");
+        for (int i = 0; i < 3; i++) TrackcalConnections.Release(spelt);
+        Check(TrackcalConnections.Count == 0 && spelt.IsDisposed, "the spelt tracker released");
+
         // Text crosses as UTF-8 both ways: the name in the plugin's error is the one given.
         try
         {
