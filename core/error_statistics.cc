@@ -150,8 +150,14 @@ std::string FormatTable1(const Table1& t) {
       double before, after;
     } rows[] = {{"Mean", b.mean, a.mean}, {"Standard dev.", b.std, a.std}, {"Maximum", b.max, a.max}};
     for (const auto& r : rows) {
-      std::snprintf(line, sizeof(line), "  %-20s %10.3f %10.3f %11.1f %%\n", r.name, r.before,
-                    r.after, ImprovementPercent(r.before, r.after));
+      const double improvement = ImprovementPercent(r.before, r.after);
+      if (std::isfinite(improvement)) {
+        std::snprintf(line, sizeof(line), "  %-20s %10.3f %10.3f %11.1f %%\n", r.name, r.before,
+                      r.after, improvement);
+      } else {  // undefined: an error where there was none, or an unknown statistic
+        std::snprintf(line, sizeof(line), "  %-20s %10.3f %10.3f %13s\n", r.name, r.before, r.after,
+                      "n/a");
+      }
       out += line;
     }
   };

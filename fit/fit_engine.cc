@@ -1965,14 +1965,18 @@ nlohmann::json NumberOrNull(double v) { return std::isfinite(v) ? nlohmann::json
 }  // namespace
 
 nlohmann::json Table1ToJson(const Table1& table) {
-  return {{"set", table.set_name},
-          {"hemisphere_flips_left_out", table.flips_left_out},
-          {"before", PoseSummaryToJson(table.before)},
-          {"after", PoseSummaryToJson(table.after)},
-          {"improvement_percent",
-           {{"position_mean", ImprovementPercent(table.before.position_mm.mean, table.after.position_mm.mean)},
-            {"orientation_mean",
-             ImprovementPercent(table.before.orientation_deg.mean, table.after.orientation_deg.mean)}}}};
+  return {
+      {"set", table.set_name},
+      {"hemisphere_flips_left_out", table.flips_left_out},
+      {"before", PoseSummaryToJson(table.before)},
+      {"after", PoseSummaryToJson(table.after)},
+      // null where undefined (an error where there was none, an unknown mean): the calibration
+      // file holds finite numbers only, and -inf made a fit on error-free data unsavable.
+      {"improvement_percent",
+       {{"position_mean", NumberOrNull(ImprovementPercent(table.before.position_mm.mean,
+                                                          table.after.position_mm.mean))},
+        {"orientation_mean", NumberOrNull(ImprovementPercent(table.before.orientation_deg.mean,
+                                                             table.after.orientation_deg.mean))}}}};
 }
 
 nlohmann::json FitResult::ToJson() const {

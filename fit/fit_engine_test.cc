@@ -406,6 +406,26 @@ TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {
                std::invalid_argument);
 }
 
+// A set with no error before (error-free data, or a set the model reproduces exactly) has no
+// defined improvement. ImprovementPercent gives -inf (an error where there was none) or NaN; in
+// the calibration file's fit_statistics they are null, since that file holds finite numbers only
+// (-inf made such a fit fail at save, after the fit).
+TEST(Table1ToJson, AnUndefinedImprovementIsNull) {
+  Table1 t;
+  t.set_name = "calib";
+  t.before.position_mm = {3, 0.0, 0.0, 0.0};
+  t.after.position_mm = {3, 1.0, 0.5, 2.0};
+  t.before.orientation_deg = {3, 2.0, 1.0, 4.0};
+  t.after.orientation_deg = {3, 1.0, 0.5, 2.0};
+  const nlohmann::json j = Table1ToJson(t);
+  EXPECT_TRUE(j["improvement_percent"]["position_mean"].is_null()) << j.dump();
+  EXPECT_DOUBLE_EQ(j["improvement_percent"]["orientation_mean"].get<double>(), 50.0);
+  // And the text table says n/a there, not "-inf %".
+  const std::string text = FormatTable1(t);
+  EXPECT_EQ(text.find("inf"), std::string::npos) << text;
+  EXPECT_NE(text.find("n/a"), std::string::npos) << text;
+}
+
 TEST(CrossValidate, DeterministicFolds) {
   std::mt19937 rng(17);
   const auto truth = RandomPolynomial(1, &rng);
