@@ -218,7 +218,7 @@ def test_cli_colour_only_on_a_terminal(tmp_path):
     assert "all set (600 poses), no correction" in text
 
 
-def test_validate_records_history(tmp_path):
+def test_validate_records_history(tmp_path, capsys):
     from trackcal import cli
     cap_dir = simulate(tmp_path / "capture", seed=43)
     cap = captures.load_poses(cap_dir)
@@ -228,6 +228,8 @@ def test_validate_records_history(tmp_path):
     work = tmp_path / "work"
     assert cli.main(["validate", str(cap_dir), "-c", str(cal1), "--workdir", str(work), "--label", "r=1"]) == 0
     assert cli.main(["validate", str(cap_dir), "-c", str(cal3), "--workdir", str(work), "--label", "r=3"]) == 0
+    # Says where it recorded, as trackcal fit does (it recorded silently).
+    assert f"Recorded validation #2 in {work / 'history.jsonl'}" in capsys.readouterr().out
     entries = history.load_history(work)
     assert [e["label"] for e in entries] == ["r=1", "r=3"]
     # The higher degree lowers the validation error: the history shows the fall.

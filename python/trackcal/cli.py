@@ -325,6 +325,10 @@ def cmd_validate(args, term) -> int:
         print(term.c(t.format(), "1") if t.set_name == "valid" else t.format())
     _print_outside(term, v)
     print(_unresolved_line(v))
+    if getattr(args, "workdir", None):  # as trackcal fit says where it recorded its fit
+        from trackcal import history
+        entries = history.load_history(args.workdir)
+        print(f"Recorded validation #{len(entries)} in {pathlib.Path(args.workdir) / history.HISTORY_FILE}")
     return 0
 
 
