@@ -73,6 +73,10 @@ def test_history_plot_keeps_the_last_changes_visible():
     left, right = fig.axes
     assert left.get_yscale() == "log" and right.get_yscale() == "log"
     assert "(valid)" in left.get_title()
+    # One legend names both lines (the two y axes' colours alone did).
+    legend = left.get_legend()
+    assert legend is not None
+    assert [t.get_text() for t in legend.get_texts()] == ["position mean [mm]", "orientation mean [deg]"]
     plt.close(fig)
     # Errors within a factor of 20 stay linear.
     fig = figures.history_plot([entry("a", 2.0, 0.2), entry("b", 1.5, 0.15)])

@@ -275,7 +275,6 @@ def history_plot(entries: Sequence[dict]):
     runs = list(zip(starts, starts[1:] + [len(entries)]))
     for k, (a, b) in enumerate(runs):
         ax.plot(x[a:b], pos[a:b], "o-", color="tab:blue", label="position mean [mm]" if k == 0 else None)
-    ax.set_xlabel("fit #")
     ax.set_ylabel("position error mean [mm]", color="tab:blue")
     ax2 = ax.twinx()
     for k, (a, b) in enumerate(runs):
@@ -293,6 +292,11 @@ def history_plot(entries: Sequence[dict]):
                        fontsize=8)
     sets = sorted({headline_set(e) for e in entries} - {None})
     ax.set_title("Error after each change" + (f" ({', '.join(sets)})" if sets else ""))
+    ax.set_xlabel("fit (label)")  # the ticks are the fits' labels, in recorded order
+    # One legend for the two axes' lines (only the axis labels' colours told them apart).
+    handles = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    if handles:
+        ax.legend(handles=handles, loc="upper right", fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return fig
