@@ -355,6 +355,9 @@ void WriteCalibrationFile(const std::filesystem::path& path, const Calibration& 
   const std::string text = CalibrationToJsonText(calibration);
   std::error_code ec;
   const bool exists = std::filesystem::exists(path, ec);
+  if (exists && std::filesystem::is_directory(path, ec)) {
+    CheckCalibrationOutput(path);  // names it a folder before the inputs' checks read it
+  }
   for (const CalibrationInput& input : calibration.provenance.inputs) {
     const std::filesystem::path input_path(input.path);
     bool same = std::filesystem::weakly_canonical(path, ec) ==

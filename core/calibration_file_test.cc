@@ -484,6 +484,24 @@ TEST(WriteCalibrationFile, NeverOverwritesAnInput) {
   EXPECT_EQ(ReadCalibrationFile(out).description, "second");
 }
 
+// A folder as the output said "read error: Is a directory" (the inputs' SHA-256 check read it)
+// before CheckCalibrationOutput's plain sentence.
+TEST(WriteCalibrationFile, AFolderIsNamedAsAFolder) {
+  const auto dir = testing::MakeTempDir("calib");
+  Calibration cal = RandomCalibration();
+  const auto capture = dir / "capture.csv";
+  WriteFileAtomically(capture, "t,x,y,z\n0,1,2,3\n");
+  cal.provenance.inputs = {{capture.string(), Sha256HexOfFile(capture), "calibration_capture"}};
+  std::filesystem::create_directory(dir / "out");
+  try {
+    WriteCalibrationFile(dir / "out", cal);
+    ADD_FAILURE() << "a folder was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("out: is a folder; give a file name"), std::string::npos)
+        << e.what();
+  }
+}
+
 TEST(WriteCalibrationFile, RejectsIncompleteCalibration) {
   Calibration cal = RandomCalibration();
   cal.chain.ClearVolume();
