@@ -325,6 +325,13 @@ def test_cli_refuses_unusable_outputs_up_front_in_one_line(tmp_path, capsys):
              (["report", missing, "-o", tmp_path / "r", "--permutations", "-5"],
               "error: --permutations -5: must be 0 or more"),
              (["diagnose", missing, "--top", "-1"], "error: --top -1: must be 0 or more"),
+             # The ranking's options without --model were silently ignored.
+             (["diagnose", missing, "-c", missing, "--effects", "dipole", "--folds", "3"],
+              "error: --folds, --effects: options of the candidate ranking, which needs --model "
+              "(the model file whose missing effects are ranked)"),
+             (["report", missing, "-o", tmp_path / "r", "--cross-validate-top", "0"],
+              "error: --cross-validate-top: options of the candidate ranking, which needs --model "
+              "(the model file whose missing effects are ranked)"),
              (["record", "--device", "raw=Nope@tcp://127.0.0.1:9", "--duration", "-1", "-o", tmp_path / "rec"],
               "error: --duration -1.0: must be a positive number of seconds"),
              (["history", tmp_path / "no-work"], f"error: {tmp_path / 'no-work'}: no such work folder")]

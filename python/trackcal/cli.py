@@ -628,11 +628,14 @@ def build_parser() -> argparse.ArgumentParser:
     def model_args(sp):
         sp.add_argument("--model", help="model file (docs/model-file.md): fitted when no -c is given, "
                                         "and the catalog effects it lacks are ranked")
-        sp.add_argument("--folds", type=int, default=5, help="cross-validation folds of the candidate ranking")
-        sp.add_argument("--effects", help="comma-separated catalog effects to try (default: all)")
-        sp.add_argument("--cross-validate-top", type=int, default=3, metavar="N",
+        # Defaults None: given without --model (no ranking) they are refused, not silently ignored.
+        sp.add_argument("--folds", type=int, default=None,
+                        help="cross-validation folds of the candidate ranking (default 5; with --model)")
+        sp.add_argument("--effects", help="comma-separated catalog effects to try (default: all; with --model)")
+        sp.add_argument("--cross-validate-top", type=int, default=None, metavar="N",
                         help="cross-validate only the N candidates with the best BIC; the others are "
-                             "reported screened out, never significant (0: every one; default 3)")
+                             "reported screened out, never significant (0: every one; default 3; "
+                             "with --model)")
 
     sp = sub.add_parser("diagnose", help="compare and see where it fails: breakdowns, worst stations, covariates, "
                                          "candidate effects and the verdict")
@@ -690,6 +693,15 @@ def _check_args(args) -> None:
     """What can be refused before any work (a long fit, a covariate analysis, a recording)."""
     if getattr(args, "permutations", 0) < 0:  # would make p-values negative: everything significant
         raise ValueError(f"--permutations {args.permutations}: must be 0 or more")
+    if args.command in ("diagnose", "report"):
+        # The ranking's options do nothing without a model to rank the catalog effects against.
+        given = [o for o, v in (("--folds", args.folds), ("--effects", args.effects),
+                                ("--cross-validate-top", args.cross_validate_top)) if v is not None]
+        if given and not args.model:
+            raise ValueError(f"{', '.join(given)}: options of the candidate ranking, which needs --model "
+                             "(the model file whose missing effects are ranked)")
+        args.folds = 5 if args.folds is None else args.folds
+        args.cross_validate_top = 3 if args.cross_validate_top is None else args.cross_validate_top
     if getattr(args, "cross_validate_top", 0) < 0:
         raise ValueError(f"--cross-validate-top {args.cross_validate_top}: must be 0 or more")
     if getattr(args, "top", 0) < 0:
