@@ -235,6 +235,12 @@ def test_validate_records_history(tmp_path, capsys):
     # The higher degree lowers the validation error: the history shows the fall.
     assert history.headline_scores(entries[1])[0] < history.headline_scores(entries[0])[0]
     assert entries[0]["data"][0]["sha256"] == trackcal_sha(cap_dir / "poses.csv")
+    # Each row keeps its calibration by content, as trackcal fit does: replacing r1.json (a later
+    # fit to the same -o) does not take away the calibration row 1 scored.
+    kept = work / entries[0]["model"]["copy"]
+    assert kept.read_bytes() == cal1.read_bytes()
+    assert trackcal_sha(kept) == entries[0]["model"]["sha256"]
+    assert (work / entries[1]["model"]["copy"]).read_bytes() == cal3.read_bytes()
 
 
 def trackcal_sha(path):

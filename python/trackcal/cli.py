@@ -8,6 +8,7 @@ one-line message naming the file, line and column (from the C++ readers). Ctrl-C
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -166,7 +167,12 @@ def _validation(args, term, covariates: bool):
     from trackcal import sha256_file
     # The files as they were read, for the history: hashed when it records, after the validation,
     # a calibration (or capture) another fit replaced meanwhile got these scores.
-    args.calibration_sha256 = sha256_file(pathlib.Path(args.calibration)) if args.calibration else None
+    args.calibration_sha256 = args.calibration_bytes = None
+    if args.calibration and getattr(args, "workdir", None):  # kept in WORK/models/ as scored
+        args.calibration_bytes = pathlib.Path(args.calibration).read_bytes()
+        args.calibration_sha256 = hashlib.sha256(args.calibration_bytes).hexdigest()
+    elif args.calibration:
+        args.calibration_sha256 = sha256_file(pathlib.Path(args.calibration))
     capture, cal = _load(args)
     args.capture_sha256 = {f: sha256_file(pathlib.Path(f)) for f in _capture_files(capture)}
     v = validate(capture, cal, analyse_covariates=covariates,
@@ -190,6 +196,15 @@ def _record_history(args, v) -> None:
     fields = {}
     if getattr(args, "calibration_sha256", None):  # as validated (_validation), not as it is now
         fields["model"] = {"sha256": args.calibration_sha256}
+    if getattr(args, "calibration_bytes", None) is not None:
+        # A copy by content, as trackcal fit keeps its calibration's: a later fit to the same file
+        # must not take away the calibration this row scored.
+        from trackcal.history import _keep_copy
+        models = pathlib.Path(args.workdir) / "models"
+        models.mkdir(parents=True, exist_ok=True)
+        copy = models / f"{args.calibration_sha256[:16]}.json"
+        _keep_copy(copy, args.calibration_bytes)
+        fields["model"]["copy"] = str(copy.relative_to(args.workdir))
     if all(f in hashes for f in files):
         fields["data"] = [{"path": str(pathlib.Path(f).resolve()), "role": "validation_capture",
                            "sha256": hashes[f]} for f in files]
