@@ -237,9 +237,10 @@ TEST(ParseScene, CaptureMustLieInTheTrackerHemisphere) {
                  "outside the tracker's hemisphere",
                  0),
       0u);
-  EXPECT_NE(ErrorOf("base: paper\ncapture:\n  stream:\n    center_in_transmitter: [0, 0, -0.1]\n")
-                .find("capture.stream: the capture reaches"),
-            std::string::npos);
+  // Not the stream's box: the emulator walks it, and a device outside its hemisphere reports the
+  // mirror image as a real one does.
+  EXPECT_EQ(ErrorOf("base: paper\ncapture:\n  stream:\n    center_in_transmitter: [0, 0, -0.1]\n"),
+            "");
   // A tilted hemisphere that still holds the whole capture is fine.
   EXPECT_EQ(ErrorOf("base: paper\ntracker:\n  hemisphere_in_transmitter: [0.1, 0, -1]\n"), "");
 }
