@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cctype>
 #include <cerrno>
 #include <charconv>
 #include <cmath>
@@ -149,8 +150,14 @@ class CsvTable {
     }
     if (!have_header) throw std::invalid_argument(name_ + ":1: empty file, expected a header");
     for (size_t i = 0; i < header_.size(); ++i) {
-      if (header_[i].empty())
-        Fail(header_line_, "header", "column " + std::to_string(i + 1) + " has no name");
+      if (header_[i].empty()) {
+        // A spreadsheet's export often ends every line with ',': an empty last column.
+        Fail(header_line_, "header",
+             "column " + std::to_string(i + 1) + " has no name" +
+                 (i + 1 == header_.size() && i > 0
+                      ? " (the line ends with ','; remove the ',' at the end of each line)"
+                      : ""));
+      }
       if (!index_.emplace(header_[i], i).second) {
         Fail(header_line_, "column " + header_[i], "appears twice in the header");
       }
@@ -166,7 +173,10 @@ class CsvTable {
       }
     }
     for (const std::string& r : required) {
-      if (!index_.count(r)) Fail(header_line_, "column " + r, "missing from the header");
+      if (!index_.count(r)) {
+        Fail(header_line_, "column " + r,
+             "missing from the header" + MissingColumnHint(r, required));
+      }
     }
     for (size_t i = 0; i < header_.size(); ++i) {
       bool standard = false;
@@ -180,7 +190,7 @@ class CsvTable {
       if (row.fields.size() != header_.size()) {
         Fail(row.line, "row",
              "expected " + std::to_string(header_.size()) + " fields, found " +
-                 std::to_string(row.fields.size()));
+                 std::to_string(row.fields.size()) + FieldCountHint(row));
       }
     }
     ClassifyExtras();
@@ -271,6 +281,72 @@ class CsvTable {
                std::to_string(second_value) + " repeats line " + std::to_string(it->second) +
                " (one row per " + first + " and " + second + ")");
     }
+  }
+
+  // Why a standard column is missing when the file does name it, the way lab software exports:
+  // in quotes ("station"), with its unit (rep_x (m)), in other letter case (Station), after a
+  // '#', or on a line below the first (a Motive or Vicon export's metadata lines, a comment
+  // line, became the header). The message said only "missing from the header" for a header that
+  // visibly held the name. Empty when nothing explains it.
+  std::string MissingColumnHint(const std::string& column,
+                                const std::vector<std::string>& required) const {
+    const auto lower = [](std::string s) {
+      for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+      return s;
+    };
+    for (const std::string& name : header_) {
+      const char q = name.empty() ? '\0' : name.front();
+      if (name.size() >= 2 && (q == '"' || q == '\'') && name.back() == q &&
+          Trim(std::string_view(name).substr(1, name.size() - 2)) == column) {
+        return " (the header names it " + name +
+               ", in quotes: fields are read without quoting; save the file without quotes)";
+      }
+      if (name.size() > 1 && name[0] == '#' && Trim(std::string_view(name).substr(1)) == column) {
+        return " (the header names it '" + name + "': remove the '#')";
+      }
+      if (name != column && lower(name) == lower(column)) {
+        return " (the header has '" + name + "': names are case-sensitive; rename it " + column +
+               ")";
+      }
+      if (name.size() > column.size() && name.compare(0, column.size(), column) == 0 &&
+          (name[column.size()] == ' ' || name[column.size()] == '(' ||
+           name[column.size()] == '[')) {
+        return " (the header has '" + name + "': name it " + column +
+               " alone; values are read in metres and seconds)";
+      }
+    }
+    // Metadata or comment lines above the header: a later line names every standard column.
+    for (size_t i = 0; i < rows_.size() && i < 50; ++i) {
+      const std::vector<std::string>& fields = rows_[i].fields;
+      bool all = true;
+      for (const std::string& r : required) {
+        all = all && std::find(fields.begin(), fields.end(), r) != fields.end();
+      }
+      if (all) {
+        return " (line " + std::to_string(rows_[i].line) +
+               " names the columns: remove the lines above it, which were read as the header)";
+      }
+    }
+    return "";
+  }
+
+  // What a row of the wrong length most likely is.
+  std::string FieldCountHint(const Row& row) const {
+    if (row.fields.size() == header_.size() + 1 && row.fields.back().empty()) {
+      return " (the line ends with ','; remove it)";
+    }
+    if (row.fields.size() > header_.size()) {
+      bool point = false, digit = false;
+      for (const std::string& f : row.fields) {
+        point = point || f.find('.') != std::string::npos;
+        digit = digit || f.find_first_of("0123456789") != std::string::npos;
+      }
+      if (digit && !point) {
+        return " (no '.' in the line: is ',' its decimal point? export with '.' as the decimal "
+               "point)";
+      }
+    }
+    return "";
   }
 
   [[noreturn]] void Fail(int line, const std::string& what, const std::string& problem) const {

@@ -267,6 +267,68 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
             "poses.csv:1: column station: appears twice in the header");
 }
 
+// A lab's export names the columns in ways the reader does not take: the error said only
+// "column station: missing from the header" of a header that visibly held "station".
+TEST(PosesCsv, HeaderAsLabSoftwareExportsItSaysWhatToChange) {
+  const auto dir = MakeTempDir("capture_test");
+  const std::string header = kPosesHeader;
+  const std::string good = "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n";
+  const auto path = dir / "poses.csv";
+  auto error_for = [&](const std::string& text) {
+    WriteText(path, text);
+    return ErrorOf([&] { ReadPoses(path); });
+  };
+  auto replaced = [](std::string s, const std::string& from, const std::string& to) {
+    return s.replace(s.find(from), from.size(), to);
+  };
+  // Quoted names (a spreadsheet's "save with quotes").
+  std::string quoted = "\"" + replaced(header, "\n", "") + "\"\n";
+  for (size_t at = quoted.find(','); at != std::string::npos; at = quoted.find(',', at + 3)) {
+    quoted.replace(at, 1, "\",\"");
+  }
+  EXPECT_EQ(error_for(quoted + good),
+            "poses.csv:1: column station: missing from the header (the header names it "
+            "\"station\", in quotes: fields are read without quoting; save the file without "
+            "quotes)");
+  // A unit in the name.
+  EXPECT_EQ(error_for(replaced(header, "rep_x", "rep_x (m)") + good),
+            "poses.csv:1: column rep_x: missing from the header (the header has 'rep_x (m)': "
+            "name it rep_x alone; values are read in metres and seconds)");
+  EXPECT_EQ(error_for(replaced(header, "time", "time [s]") + good),
+            "poses.csv:1: column time: missing from the header (the header has 'time [s]': name "
+            "it time alone; values are read in metres and seconds)");
+  // Another letter case.
+  EXPECT_EQ(error_for(replaced(header, "station", "Station") + good),
+            "poses.csv:1: column station: missing from the header (the header has 'Station': "
+            "names are case-sensitive; rename it station)");
+  // A commented-out header, and metadata lines above the header (a Motive export).
+  EXPECT_EQ(error_for("# " + header + good),
+            "poses.csv:1: column station: missing from the header (the header names it '# "
+            "station': remove the '#')");
+  EXPECT_EQ(error_for("Format Version,1.23,Take Name,Take 2024-05-01\n\n" + header + good),
+            "poses.csv:1: column station: missing from the header (line 3 names the columns: "
+            "remove the lines above it, which were read as the header)");
+  EXPECT_EQ(error_for("# exported by lab software\n" + header + good),
+            "poses.csv:1: column station: missing from the header (line 2 names the columns: "
+            "remove the lines above it, which were read as the header)");
+  // Every line ending with ',' (an empty last column).
+  EXPECT_EQ(error_for(replaced(header, "\n", ",\n") + replaced(good, "\n", ",\n")),
+            "poses.csv:1: header: column 19 has no name (the line ends with ','; remove the ',' "
+            "at the end of each line)");
+  EXPECT_EQ(error_for(header + replaced(good, "\n", ",\n")),
+            "poses.csv:2: row: expected 18 fields, found 19 (the line ends with ','; remove it)");
+  // ',' as the decimal point in a file separated by ','.
+  EXPECT_EQ(error_for(header + "1,calib,1,0,0,1,0,2,0,3,1,0,0,0,0,1,0,2,0,3,1,0,0,0\n"),
+            "poses.csv:2: row: expected 18 fields, found 24 (no '.' in the line: is ',' its "
+            "decimal point? export with '.' as the decimal point)");
+  // No hint where nothing explains the missing column.
+  EXPECT_EQ(error_for("station,set\n1,calib\n"),
+            "poses.csv:1: column sensor: missing from the header");
+  // What the hints recognise is still refused when the header is right: a field in quotes.
+  EXPECT_EQ(error_for(header + replaced(good, "calib", "\"calib\"")),
+            "poses.csv:2: column set: '\"calib\"' is not one of calib, valid, reg");
+}
+
 TEST(CaptureReaders, FolderInsteadOfFileIsAnErrorNamingIt) {
   // A capture folder given where one of its files was meant (trackcal-fit register --markers DIR):
   // the folder opens as a stream and failed to read with the library's "basic_filebuf::underflow
