@@ -177,6 +177,49 @@ TEST_F(FitCliTest, BadInputExitsNonZeroNamingTheFile) {
                                    ": tracker stream has fewer than 2 samples"));
 }
 
+// A --data folder without poses.csv said "DIR/poses.csv: cannot open file" (raw markers, or
+// nothing) or "DIR/reference_stream.csv: cannot open file" (a tracker stream alone), where Python's
+// trackcal.load names what a capture folder holds.
+TEST_F(FitCliTest, DataFolderWithoutACaptureSaysWhatACaptureFolderHolds) {
+  const fs::path err = dir_ / "err.txt";
+  const auto fit_error = [&](const fs::path& data) {
+    EXPECT_EQ(RunCommand(fit_ + " fit --data " + data.string() + " --model " +
+                         (dir_ / "model.yaml").string() + " --quiet -o " +
+                         (dir_ / "c.json").string() + " 2> " + err.string()),
+              1)
+        << data;
+    EXPECT_FALSE(fs::exists(dir_ / "c.json"));
+    return ReadFileToString(err);
+  };
+  const std::string what =
+      ": not a capture folder (no poses.csv, no tracker_stream.csv + reference_stream.csv, no "
+      "markers.csv + tracker.csv)";
+  fs::create_directories(dir_ / "empty");
+  EXPECT_EQ(fit_error(dir_ / "empty"),
+            "trackcal-fit: error: " + (dir_ / "empty").string() + what + "\n");
+  fs::create_directories(dir_ / "half");
+  fs::copy_file(dir_ / "cap" / "tracker_stream.csv", dir_ / "half" / "tracker_stream.csv");
+  EXPECT_EQ(fit_error(dir_ / "half"),
+            "trackcal-fit: error: " + (dir_ / "half").string() + what +
+                "; tracker_stream.csv has no reference_stream.csv beside it to be paired with\n");
+  fs::create_directories(dir_ / "raw");
+  fs::copy_file(dir_ / "cap" / "markers.csv", dir_ / "raw" / "markers.csv");
+  fs::copy_file(dir_ / "cap" / "tracker.csv", dir_ / "raw" / "tracker.csv");
+  EXPECT_THAT(fit_error(dir_ / "raw"),
+              ::testing::HasSubstr(": raw markers (markers.csv + tracker.csv, no poses.csv): "
+                                   "register them first, trackcal-fit register --markers " +
+                                   (dir_ / "raw" / "markers.csv").string()));
+  // The command it suggests makes a folder trackcal-fit fits.
+  EXPECT_EQ(RunCommand(fit_ + " register --markers " + (dir_ / "raw" / "markers.csv").string() +
+                       " --tracker " + (dir_ / "raw" / "tracker.csv").string() + " -o " +
+                       (dir_ / "raw" / "poses.csv").string() + " > /dev/null"),
+            0);
+  EXPECT_EQ(RunCommand(fit_ + " fit --data " + (dir_ / "raw").string() + " --model " +
+                       (dir_ / "model.yaml").string() + " --quiet -o " +
+                       (dir_ / "c.json").string() + " > /dev/null"),
+            0);
+}
+
 // An option given twice took the last value without a word (`-o a.json -o b.json` wrote b.json),
 // `-o --json` wrote the calibration to a file named "--json", and `--folds 2.5` ran 2 folds.
 TEST_F(FitCliTest, AmbiguousOptionsAreUsageErrors) {

@@ -29,7 +29,7 @@ StreamPairingOptions PairingOf(const ModelSpec& spec) {
 
 bool IsStreamFolder(const fs::path& data) {
   return fs::is_directory(data) && !fs::exists(data / kPosesCsv) &&
-         fs::exists(data / kTrackerStreamCsv);
+         fs::exists(data / kTrackerStreamCsv) && fs::exists(data / kReferenceStreamCsv);
 }
 
 LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
@@ -67,6 +67,29 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
     out.name = data.path->filename().string();
     out.source = data.path->string();
     return out;
+  }
+  if (fs::is_directory(*data.path) && !fs::exists(*data.path / kPosesCsv)) {
+    // A folder without poses.csv said only "DIR/poses.csv: cannot open file" (raw markers), or
+    // "DIR/reference_stream.csv: cannot open file" (a tracker stream alone), where Python's
+    // trackcal.load says what a capture folder holds: the same words here.
+    const fs::path& dir = *data.path;
+    std::string message = dir.string() + ": not a capture folder (no " + kPosesCsv + ", no " +
+                          kTrackerStreamCsv + " + " + kReferenceStreamCsv + ", no " + kMarkersCsv +
+                          " + " + kTrackerCsv + ")";
+    if (fs::exists(dir / kTrackerStreamCsv) != fs::exists(dir / kReferenceStreamCsv)) {
+      const bool tracker = fs::exists(dir / kTrackerStreamCsv);
+      message += std::string("; ") + (tracker ? kTrackerStreamCsv : kReferenceStreamCsv) +
+                 " has no " + (tracker ? kReferenceStreamCsv : kTrackerStreamCsv) +
+                 " beside it to be paired with";
+    } else if (fs::exists(dir / kMarkersCsv) && fs::exists(dir / kTrackerCsv)) {
+      message = dir.string() + ": raw markers (" + kMarkersCsv + " + " + kTrackerCsv + ", no " +
+                kPosesCsv + "): register them first, trackcal-fit register --markers " +
+                (dir / kMarkersCsv).string() + " --tracker " + (dir / kTrackerCsv).string() +
+                " -o " + (dir / kPosesCsv).string() +
+                " (the trackcal command registers such a folder itself: trackcal fit; Python: "
+                "trackcal.fit(trackcal.captures.load(folder), model))";
+    }
+    throw std::invalid_argument(message);
   }
   const fs::path poses_path = fs::is_directory(*data.path) ? *data.path / kPosesCsv : *data.path;
   out.poses = ReadPoses(poses_path);

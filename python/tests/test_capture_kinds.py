@@ -123,6 +123,21 @@ def test_capture_folder_without_any_capture_names_what_it_looked_for(tmp_path):
     assert "trackcal record" not in r.stderr
 
 
+def test_a_folder_with_one_stream_says_so_in_python_and_in_the_fit_engine(tmp_path):
+    # trackcal.load said "not a capture folder" and trackcal.fit (the C++ LoadFitData, as
+    # trackcal-fit --data) "reference_stream.csv: cannot open file" of the same folder.
+    (tmp_path / "tracker_stream.csv").write_text("time,sensor,x,y,z,qw,qx,qy,qz\n0,1,0,0,0,1,0,0,0\n")
+    expected = (f"{tmp_path}: not a capture folder (no poses.csv, no tracker_stream.csv + "
+                "reference_stream.csv, no markers.csv + tracker.csv); tracker_stream.csv has no "
+                "reference_stream.csv beside it to be paired with")
+    with pytest.raises(ValueError) as loaded:
+        captures.load(tmp_path)
+    assert str(loaded.value) == expected
+    with pytest.raises(ValueError) as fitted:
+        trackcal.fit(tmp_path, "terms:\n  - type: polynomial\n    degree: 1\n")
+    assert str(fitted.value) == expected
+
+
 def test_a_recording_folder_given_as_a_capture_says_how_to_validate_it(tmp_path):
     # `trackcal record -o run1` writes LABEL_tracker_stream.csv per device; `trackcal validate run1`
     # (with the reference stream beside them) said only "not a capture folder", leaving the user

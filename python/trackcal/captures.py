@@ -192,6 +192,13 @@ def capture_kind(path: PathLike) -> str:
         return "streams"
     if all((p / n).is_file() for n in MARKER_FILES):
         return "markers"
+    # One stream without the other (as trackcal-fit --data and trackcal.fit say it).
+    halves = [n for n in STREAM_FILES if (p / n).is_file()]
+    if len(halves) == 1:
+        other = STREAM_FILES[1 - STREAM_FILES.index(halves[0])]
+        half = f"; {halves[0]} has no {other} beside it to be paired with"
+    else:
+        half = ""
     # A `trackcal record` folder (LABEL_tracker_stream.csv per device) is a recording, validated
     # against its reference stream by trackcal.validation.validate_recording, not a capture: say so.
     recorded = sorted(f.name for f in p.glob("*_tracker_stream.csv") if f.is_file())
@@ -199,7 +206,7 @@ def capture_kind(path: PathLike) -> str:
             "reference stream with trackcal.validation.validate_recording (docs/understand.md)"
             if recorded else "")
     raise ValueError(f"{p}: not a capture folder (no poses.csv, no {' + '.join(STREAM_FILES)}, "
-                     f"no {' + '.join(MARKER_FILES)}){hint}")
+                     f"no {' + '.join(MARKER_FILES)}){half}{hint}")
 
 
 def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: float = 0.5,
