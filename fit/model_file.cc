@@ -62,6 +62,19 @@ void YamlMapReader::Fail(const std::string& key, const std::string& message) con
   throw std::invalid_argument(MarkString(source_, mark) + ": " + field + ": " + message);
 }
 
+namespace {
+
+// ", got '1,5'" for a scalar that is not the number asked for (a decimal comma, a unit after the
+// number, "1_000"): the message named the field but not what it held. Empty for a list or a map.
+std::string Got(const YAML::Node& value) {
+  if (!value.IsScalar()) return "";
+  const std::string& s = value.Scalar();
+  return ", got '" + (s.size() > 40 ? s.substr(0, 37) + "..." : s) + "'" +
+         (s.find(',') != std::string::npos ? " (write '.' as the decimal point)" : "");
+}
+
+}  // namespace
+
 // A key written without a value (`degree:`, `noise: ~`) counts as given: its typed read fails,
 // rather than the default standing in silently for a value the author forgot.
 bool YamlMapReader::Has(const std::string& key) const {
@@ -81,7 +94,7 @@ double YamlMapReader::GetDouble(const std::string& key) const {
   const YAML::Node value = Get(key);
   double out = 0.0;
   if (!value.IsScalar() || !YAML::convert<double>::decode(value, out) || !std::isfinite(out)) {
-    Fail(key, "expected a finite number");
+    Fail(key, "expected a finite number" + Got(value));
   }
   return out;
 }
@@ -93,7 +106,9 @@ double YamlMapReader::GetDoubleOr(const std::string& key, double fallback) const
 int YamlMapReader::GetInt(const std::string& key) const {
   const YAML::Node value = Get(key);
   int out = 0;
-  if (!value.IsScalar() || !YAML::convert<int>::decode(value, out)) Fail(key, "expected an integer");
+  if (!value.IsScalar() || !YAML::convert<int>::decode(value, out)) {
+    Fail(key, "expected an integer" + Got(value));
+  }
   return out;
 }
 
@@ -127,7 +142,7 @@ std::vector<double> YamlMapReader::GetDoubleList(const std::string& key) const {
   auto decode = [&](const YAML::Node& item) {
     double v = 0.0;
     if (!item.IsScalar() || !YAML::convert<double>::decode(item, v) || !std::isfinite(v)) {
-      Fail(key, "expected a finite number or a list of finite numbers");
+      Fail(key, "expected a finite number or a list of finite numbers" + Got(item));
     }
     out.push_back(v);
   };
@@ -440,6 +455,16 @@ ModelSpec ParseModel(const std::string& text, const std::string& source_name, bo
     }
     top.Finish();
     return spec;
+  }
+  // A calibration file (JSON is YAML) given as the model said "$.terms: missing required field".
+  const YAML::Node format = root["format"];
+  if (!terms.IsDefined() && format.IsDefined() && format.IsScalar() &&
+      format.Scalar() == "trackcal-calibration") {
+    throw std::invalid_argument(
+        source_name +
+        ": a calibration file (format trackcal-calibration), not a model file: the model is the "
+        "YAML file that lists the terms (docs/model-file.md); trackcal-fit fit --start takes a "
+        "calibration to start from");
   }
   if (!terms.IsDefined() || !terms.IsSequence()) {
     top.Fail("terms", terms.IsDefined() ? "expected a list of terms" : "missing required field");

@@ -89,6 +89,25 @@ TEST(ParseModelYaml, ErrorsNameFileLineAndField) {
       0);
 }
 
+// A number the parser does not take was named by its field only ("expected a finite number"):
+// the value is shown, and a decimal comma is called one. A calibration file given as the model
+// said "$.terms: missing required field".
+TEST(ParseModelYaml, ErrorsShowTheValueAndNameACalibrationFile) {
+  EXPECT_THAT(ErrorOf("noise:\n  position_mm: 1,5\nterms: [{type: polynomial}]\n"),
+              HasSubstr("model.yaml:2:16: $.noise.position_mm: expected a finite number, got "
+                        "'1,5' (write '.' as the decimal point)"));
+  EXPECT_THAT(ErrorOf("noise:\n  position_mm: 1 mm\nterms: [{type: polynomial}]\n"),
+              HasSubstr("$.noise.position_mm: expected a finite number, got '1 mm'"));
+  EXPECT_THAT(ErrorOf("terms:\n  - type: polynomial\n    degree: 2.5\n"),
+              HasSubstr("model.yaml:3:13: $.terms[0].degree: expected an integer, got '2.5'"));
+  EXPECT_THAT(ErrorOf("noise: {position_mm: [1, 2]}\nterms: [{type: polynomial}]\n"),
+              ::testing::EndsWith("$.noise.position_mm: expected a finite number"));
+  EXPECT_THAT(
+      ErrorOf("{\"format\": \"trackcal-calibration\", \"version\": 1, \"corrections\": []}\n"),
+      HasSubstr("model.yaml: a calibration file (format trackcal-calibration), not a model "
+                "file"));
+}
+
 TEST(ParseModelYaml, RejectsASecondDocument) {
   // YAML::Load read the first document only: the noise after `---` was dropped.
   EXPECT_THAT(ErrorOf("terms: [{type: polynomial}]\n---\nnoise: {position_mm: 5}\n"),
