@@ -1,5 +1,6 @@
 """trackcal._files: the atomic writers of every Python output."""
 
+import errno
 import os
 import stat
 import threading
@@ -56,3 +57,30 @@ def test_write_new_never_replaces_and_leaves_no_temporary(tmp_path):
         t.join()
     assert len(errors) == 7
     assert sorted(p.name for p in tmp_path.iterdir()) == ["poses.csv", "race.csv"]
+
+
+def test_a_failed_write_names_the_file_asked_for_and_leaves_nothing(tmp_path, monkeypatch):
+    """A folder that refuses the temporary file (read-only, or a name too long once '.tmp-XXXXXXXX'
+    is added) named only the temporary file, and a full disk no file at all: the error names the
+    file asked for, as the C++ writers do, and keeps its errno."""
+    long_name = tmp_path / ("r" * 240 + ".csv")  # a valid name; its temporary's is too long
+    for write in (_files.write_new, _files.replace_atomically):
+        with pytest.raises(OSError) as e:
+            write(long_name, b"data")
+        assert e.value.filename == str(long_name)
+        assert str(e.value.strerror).startswith(f"cannot create a temporary file in {tmp_path}: ")
+        assert e.value.errno == errno.ENAMETOOLONG
+    assert list(tmp_path.iterdir()) == []
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    target = tmp_path / "residuals.csv"
+    for write in (_files.write_new, _files.replace_atomically):
+        with pytest.raises(OSError) as e:
+            write(target, b"data")
+        assert e.value.filename == str(target)
+        assert e.value.strerror == "write failed: No space left on device"
+        assert e.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []

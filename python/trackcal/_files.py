@@ -56,6 +56,9 @@ def _synced_temporary(path: pathlib.Path, data: bytes) -> str:
     it to 0 and back, which is process-wide: a file another thread created meanwhile (a C++ writer
     running without the GIL) was world-writable."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    # A failure names the file asked for: a read-only folder named only the temporary
+    # ".poses.csv.tmp-1a2b3c4d", and a full disk no file at all ("[Errno 28] No space left on
+    # device"), as the C++ writers' "<path>: cannot create a temporary file in <folder>" do not.
     for _ in range(100):
         tmp = str(path.parent / f".{path.name}.tmp-{secrets.token_hex(4)}")
         try:
@@ -63,6 +66,9 @@ def _synced_temporary(path: pathlib.Path, data: bytes) -> str:
             break
         except FileExistsError:
             continue
+        except OSError as e:
+            raise OSError(e.errno, f"cannot create a temporary file in {path.parent}: {e.strerror}",
+                          str(path)) from None
     else:
         raise FileExistsError(errno.EEXIST, "no free temporary name", str(path.parent / f".{path.name}.tmp-*"))
     try:
@@ -70,6 +76,9 @@ def _synced_temporary(path: pathlib.Path, data: bytes) -> str:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+    except OSError as e:
+        os.unlink(tmp)
+        raise OSError(e.errno, f"write failed: {e.strerror}", str(path)) from None
     except BaseException:
         os.unlink(tmp)
         raise
