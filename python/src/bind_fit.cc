@@ -155,26 +155,46 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
                             attr + "')");
     }
   }
-  const IntArray station = IntArray::ensure(obj.attr("station"));
-  const IntArray sensor = IntArray::ensure(obj.attr("sensor"));
-  const DoubleArray time = DoubleArray::ensure(obj.attr("time"));
-  const DoubleArray rp = DoubleArray::ensure(obj.attr("reported_positions"));
-  const DoubleArray rq = DoubleArray::ensure(obj.attr("reported_quaternions_xyzw"));
-  const DoubleArray fp = DoubleArray::ensure(obj.attr("reference_positions"));
-  const DoubleArray fq = DoubleArray::ensure(obj.attr("reference_quaternions_xyzw"));
-  if (!station || !sensor || !time || !rp || !rq || !fp || !fq) {
-    PyErr_Clear();
-    throw py::value_error("PoseCapture: station, sensor, time and pose arrays must be numeric");
-  }
-  const py::ssize_t n = station.size();
-  auto shape_ok = [n](const DoubleArray& a, py::ssize_t cols) {
-    return a.ndim() == 2 && a.shape(0) == n && a.shape(1) == cols;
+  // Each array read as float64 of the shape it must have, or a ValueError naming it: a 2-D station
+  // column ((N, 1) from a DataFrame) was an IndexError "index dimension mismatch", and a
+  // transposed (3, N) positions array was "every array needs one row per station", naming none.
+  const auto array = [&obj](const char* attr, const char* what) {
+    const DoubleArray a = DoubleArray::ensure(obj.attr(attr));
+    if (!a) {
+      PyErr_Clear();
+      throw py::value_error(std::string("PoseCapture: ") + attr + " must be a numeric array " +
+                            what + ", got " + py::repr(obj.attr(attr)).cast<std::string>());
+    }
+    return a;
   };
-  if (sensor.size() != n || time.size() != n || !shape_ok(rp, 3) || !shape_ok(rq, 4) ||
-      !shape_ok(fp, 3) || !shape_ok(fq, 4)) {
-    throw py::value_error("PoseCapture: every array needs one row per station (" +
-                          std::to_string(n) + "): positions (N, 3), quaternions (N, 4) x, y, z, w");
+  const auto shape_string = [](const DoubleArray& a) {
+    std::string s = "(";
+    for (py::ssize_t k = 0; k < a.ndim(); ++k) s += (k ? ", " : "") + std::to_string(a.shape(k));
+    return s + (a.ndim() == 1 ? ",)" : ")");
+  };
+  const IntArray station = array("station", "(N,)");
+  if (station.ndim() != 1) {
+    throw py::value_error("PoseCapture: station must have shape (N,), one id per station, got " +
+                          shape_string(station));
   }
+  const py::ssize_t n = station.shape(0);
+  const auto shaped = [&](const char* attr, py::ssize_t cols, const char* what) {
+    const DoubleArray a = array(attr, what);
+    const bool ok = cols == 0 ? a.ndim() == 1 && a.shape(0) == n
+                              : a.ndim() == 2 && a.shape(0) == n && a.shape(1) == cols;
+    if (!ok) {
+      throw py::value_error(std::string("PoseCapture: ") + attr + " must have shape " + what +
+                            " with N = " + std::to_string(n) + " (one row per station), got " +
+                            shape_string(a));
+    }
+    return a;
+  };
+  const IntArray sensor = shaped("sensor", 0, "(N,)");
+  const DoubleArray time = shaped("time", 0, "(N,)");
+  const DoubleArray rp = shaped("reported_positions", 3, "(N, 3)");
+  const DoubleArray rq = shaped("reported_quaternions_xyzw", 4, "(N, 4) x, y, z, w");
+  const DoubleArray fp = shaped("reference_positions", 3, "(N, 3)");
+  const DoubleArray fq = shaped("reference_quaternions_xyzw", 4, "(N, 4) x, y, z, w");
   const py::sequence sets = py::reinterpret_borrow<py::sequence>(py::list(obj.attr("set")));
   if (static_cast<py::ssize_t>(sets.size()) != n) {
     throw py::value_error("PoseCapture: set needs one entry per station");
@@ -214,6 +234,13 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
     r.station = IntegralId(station.at(i), "station", i);
     r.sensor = IntegralId(sensor.at(i), "sensor", i);
     r.time = time.at(i);
+    // As the poses.csv reader ("column time: 'nan' is not a finite number"): a NaN time went into
+    // the fit, whose sort of the stations by time (serial samples, time clusters) needs an order.
+    if (!std::isfinite(r.time)) {
+      std::ostringstream s;
+      s << "PoseCapture: row " << i << ": time " << r.time << " is not finite";
+      throw py::value_error(s.str());
+    }
     r.set = py::str(sets[static_cast<size_t>(i)]).cast<std::string>();
     // As the poses.csv reader: a set of another name ("validation") was silently left out of the
     // fit and of every table.

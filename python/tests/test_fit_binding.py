@@ -227,6 +227,41 @@ def test_an_in_memory_capture_with_bad_fields_is_a_value_error_naming_them(captu
                 without_timings(trackcal.fit(cap, MODEL).to_dict()))
 
 
+def test_an_in_memory_capture_of_the_wrong_shape_names_the_array(capture_dir):
+    """Each array of an in-memory PoseCapture is checked for its own shape, and the ValueError
+    names it. Before: a 2-D station, sensor or time column ((N, 1), as from a DataFrame's
+    to_numpy()) was an IndexError "index dimension mismatch: 1 (ndim = 2)"; a transposed (3, N)
+    positions array was "every array needs one row per station", naming no array; a 0-d station
+    blamed the other arrays for not having one row; a NaN time (the reader refuses one: "column
+    time: 'nan' is not a finite number") went into the fit's sort of the stations by time."""
+    import dataclasses
+    cap = captures.load_poses(capture_dir)
+    n = len(cap)
+    cases = [
+        (dict(station=cap.station[:, None]), rf"station must have shape \(N,\), one id per station, got \({n}, 1\)"),
+        (dict(station=np.array(1)), r"station must have shape \(N,\), one id per station, got \(\)"),
+        (dict(sensor=cap.sensor[:, None]), rf"sensor must have shape \(N,\) with N = {n} \(one row per station\), got \({n}, 1\)"),
+        (dict(time=cap.time[None, :]), rf"time must have shape \(N,\) with N = {n} .*got \(1, {n}\)"),
+        (dict(reported_positions=cap.reported_positions.T),
+         rf"reported_positions must have shape \(N, 3\) with N = {n} .*got \(3, {n}\)"),
+        (dict(reference_quaternions_xyzw=cap.reference_quaternions_xyzw[:-1]),
+         rf"reference_quaternions_xyzw must have shape \(N, 4\) x, y, z, w with N = {n} .*got \({n - 1}, 4\)"),
+        (dict(reference_positions="abc"), r"reference_positions must be a numeric array \(N, 3\), got 'abc'"),
+    ]
+    time = cap.time.astype(float)
+    time[3] = np.nan
+    cases.append((dict(time=time), r"row 3: time nan is not finite"))
+    for change, message in cases:
+        with pytest.raises(ValueError, match="PoseCapture: " + message):
+            trackcal.fit(dataclasses.replace(cap, **change), MODEL)
+    # Strided, Fortran-ordered and list arrays are the same numbers as the contiguous ones.
+    same = dataclasses.replace(cap, reported_positions=np.asfortranarray(cap.reported_positions),
+                               reference_quaternions_xyzw=np.repeat(cap.reference_quaternions_xyzw, 2, axis=1)[:, ::2],
+                               time=cap.time.tolist())
+    assert_same(without_timings(trackcal.fit(same, MODEL).to_dict()),
+                without_timings(trackcal.fit(cap, MODEL).to_dict()))
+
+
 def test_register_and_pair_name_the_bad_option_before_the_work(capture_dir, tmp_path):
     """register() said "noise must be > 0" for min_markers_per_station=0; pair() with an unknown
     set paired every sample and only save() refused, naming the output file's record 0."""
