@@ -273,6 +273,36 @@ def test_corrected_poses_that_are_not_poses_are_refused_naming_the_station(tmp_p
     np.testing.assert_allclose(v.after.orientation_deg, 0.0, atol=1e-9)
 
 
+def test_a_capture_of_the_wrong_shape_or_not_finite_is_refused_naming_the_field(tmp_path):
+    """validate() checks an in-memory capture's per-station fields as trackcal.fit does. Before: a
+    transposed (3, N) positions array was an IndexError of a boolean mask and an (N, 1) station
+    column a TypeError; a list field was kept whole by subset() while the arrays beside it lost the
+    registration stations ("estimated: positions must be (N, 3) ...", naming no field); an
+    infinite reported position was silently left out of every table as a hemisphere flip."""
+    import dataclasses
+    cap = captures.load_poses(hand_capture(tmp_path))
+    cap = dataclasses.replace(cap, set=np.array(["reg", "calib", "valid", "valid"], dtype=object))
+    base = validation.validate(cap, None, analyse_covariates=False)
+    for change, message in [
+        (dict(reported_positions=cap.reported_positions.T), r"reported_positions must have shape \(N, 3\) with N = 4 "
+                                                             r"\(one row per station\), got \(3, 4\)"),
+        (dict(station=cap.station[:, None]), r"station must have shape \(N,\), one id per station, got \(4, 1\)"),
+        (dict(reference_quaternions_xyzw=cap.reference_quaternions_xyzw[:3]),
+         r"reference_quaternions_xyzw must have shape \(N, 4\) with N = 4 .*got \(3, 4\)"),
+    ]:
+        with pytest.raises(ValueError, match="PoseCapture: " + message):
+            validation.validate(dataclasses.replace(cap, **change), None, analyse_covariates=False)
+    p = cap.reported_positions.copy()
+    p[1, 0] = -np.inf  # x of every reference is positive: was a "hemisphere flip", left out
+    with pytest.raises(ValueError, match=r"PoseCapture: station 2: reported_positions \[-inf, .*\] is not finite"):
+        validation.validate(dataclasses.replace(cap, reported_positions=p), None, analyse_covariates=False)
+    # Lists and Fortran-ordered arrays are the same numbers as the contiguous arrays.
+    same = dataclasses.replace(cap, set=list(cap.set), reported_positions=cap.reported_positions.tolist(),
+                               reference_positions=np.asfortranarray(cap.reference_positions))
+    v = validation.validate(same, None, analyse_covariates=False)
+    assert v.tables == base.tables
+
+
 def test_residual_rows_keep_every_extra_column_whatever_its_name(tmp_path):
     """An extra column named like a derived column (x) is written as extra_x; a column the user
     named extra_x was then overwritten by x's values (one column lost without a word). Both are

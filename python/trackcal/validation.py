@@ -746,6 +746,43 @@ def _check_corrected_poses(data: PoseCapture, positions: np.ndarray, quaternions
         raise ValueError(f"{where}: quaternion x, y, z, w {quaternions_xyzw[i].tolist()}: norm {norm[i]:g} is not 1")
 
 
+def _checked_capture(capture: PoseCapture) -> PoseCapture:
+    """The capture with its per-station fields as numpy arrays of the shapes they must have and
+    finite poses, else a ValueError naming the field (as trackcal.fit checks an in-memory capture).
+    A transposed (3, N) positions array or an (N, 1) station column was an IndexError of a boolean
+    mask deep in validate(); a list was kept whole by subset() while the arrays beside it lost the
+    registration stations ("estimated: positions must be (N, 3) ...", naming none of the capture's
+    fields); an infinite reported position was silently left out as a hemisphere flip and a NaN one
+    made every mean NaN."""
+    n = np.shape(capture.station)
+    if len(n) != 1:
+        raise ValueError(f"PoseCapture: station must have shape (N,), one id per station, got {n}")
+    n = n[0]
+    fields = {}
+    for name, cols in (("station", 0), ("set", 0), ("sensor", 0), ("time", 0), ("reported_positions", 3),
+                       ("reported_quaternions_xyzw", 4), ("reference_positions", 3),
+                       ("reference_quaternions_xyzw", 4)):
+        value = getattr(capture, name)
+        try:
+            a = np.asarray(value, dtype=object if name == "set" else None)
+            if cols:
+                a = a.astype(float)
+        except (TypeError, ValueError):
+            raise ValueError(f"PoseCapture: {name} must be a numeric array, got {value!r:.80}") from None
+        shape = (n, cols) if cols else (n,)
+        if a.shape != shape:
+            what = f"({'N, ' + str(cols) if cols else 'N,'})"
+            raise ValueError(f"PoseCapture: {name} must have shape {what} with N = {n} (one row per station), "
+                             f"got {a.shape}")
+        if cols:
+            bad = np.flatnonzero(~np.all(np.isfinite(a), axis=1))
+            if len(bad):
+                i = bad[0]
+                raise ValueError(f"PoseCapture: station {capture.station[i]}: {name} {a[i].tolist()} is not finite")
+        fields[name] = a
+    return dataclasses.replace(capture, **fields)
+
+
 def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("calib", "valid"),
              worst_count: int = 10, analyse_covariates: bool = True, covariate_options: Optional[dict] = None,
              progress: Optional[Callable[[int, int], None]] = None,
@@ -762,6 +799,7 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
     worst_count = _whole_number(worst_count, "worst_count")
     if worst_count < 0:  # the slice [:-1] listed every station but one as the "worst"
         raise ValueError(f"worst_count {worst_count}: must be 0 or more")
+    capture = _checked_capture(capture)
     data = capture.subset(capture.set != "reg") if "reg" in capture.sets else capture
     if len(data) == 0:
         raise ValueError(f"{capture.path}: no calibration or validation stations")
