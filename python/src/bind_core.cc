@@ -205,10 +205,15 @@ void BindCore(py::module_& m) {
         // out 0 (a zero quaternion "equal" to every rotation); a wrong length was a TypeError.
         const auto rotation = [](const py::handle& obj, const std::string& name) {
           const DoubleArray a = AsArray(obj, name, {4}, " (x, y, z, w)");
-          const Eigen::Quaterniond q = QuaternionFromXyzwArray(a.data());
-          if (!q.coeffs().allFinite() || q.norm() == 0.0) {
+          Eigen::Quaterniond q = QuaternionFromXyzwArray(a.data());
+          const double largest = q.coeffs().cwiseAbs().maxCoeff();
+          if (!q.coeffs().allFinite() || largest == 0.0) {
             throw py::value_error(name + " must be a finite, non-zero quaternion (x, y, z, w)");
           }
+          // Scaled before normalising: the norm of (0, 0, 0, 1e300) overflowed to inf and
+          // normalized() made it zero, 0 rad from every rotation; (0, 0, 0, 1e-300) underflowed to
+          // a norm of 0 and was refused as zero.
+          q.coeffs() /= largest;
           return q.normalized();
         };
         return AngularDistance(rotation(a_obj, "a_xyzw"), rotation(b_obj, "b_xyzw"));

@@ -31,6 +31,18 @@ def test_angular_distance_refuses_a_quaternion_that_is_no_rotation():
     assert trackcal.angular_distance([0, 0, 0, 2], [0, 0, 0, 1]) == 0.0
 
 
+def test_angular_distance_of_a_quaternion_of_extreme_norm_is_its_rotation():
+    """Any finite non-zero quaternion is its normalised rotation. The norm of (0, 0, 0, 1e300)
+    overflowed to inf, so it normalised to zero and came out 0 rad from every rotation (pi from
+    (1, 0, 0, 0) was 0.0); the norm of (0, 0, 0, 1e-300) underflowed to 0 and it was refused as a
+    zero quaternion."""
+    for scale in (1e300, 1e-300, 1e200):
+        q = [0.0, 0.0, 0.0, scale]
+        assert math.isclose(trackcal.angular_distance(q, [1, 0, 0, 0]), math.pi, rel_tol=1e-12)
+        assert trackcal.angular_distance([1, 0, 0, 0], q) == trackcal.angular_distance([1, 0, 0, 0], [0, 0, 0, 1])
+        assert trackcal.angular_distance(q, [0, 0, 0, 1]) == 0.0
+
+
 def test_doc_examples_that_import_define_every_name_they_use():
     """A ```python block of docs/ that has import lines is a complete example to paste into a
     script, so every name it reads must be imported or assigned in it (docs/understand.md's
