@@ -92,14 +92,35 @@ py::dict StreamToDict(const CaptureTable<Record>& c, const PoseOf& pose_of) {
 // was normalised, changing last digits); one further than the readers' 1e-3 is normalised only
 // with `normalize_any`, else kept for the writer to refuse naming its record (any norm, (0, 0, 0,
 // 2), was written as a rotation).
+// `prefix` + "positions" / "quaternions_xyzw" are the arguments' names in the errors
+// ("estimated_"): "estimated: positions must be (N, 3) and quaternions (N, 4)" named neither array
+// nor its shape.
 std::vector<Rigid3d> ToPoses(const py::handle& positions_obj, const py::handle& quaternions_obj,
-                             const std::string& name, bool normalize_any = true) {
+                             const std::string& name, bool normalize_any = true,
+                             const std::string& prefix = "") {
+  const auto shape_of = [](const py::handle& obj) {
+    const DoubleArray a = DoubleArray::ensure(obj);
+    if (!a) {
+      PyErr_Clear();
+      return "no numeric array: " + py::repr(obj).cast<std::string>().substr(0, 80);
+    }
+    std::string s = "(";
+    for (py::ssize_t k = 0; k < a.ndim(); ++k) s += (k ? ", " : "") + std::to_string(a.shape(k));
+    return s + (a.ndim() == 1 ? ",)" : ")");
+  };
   const DoubleArray p = DoubleArray::ensure(positions_obj);
+  if (!p) PyErr_Clear();
+  if (!p || p.ndim() != 2 || p.shape(1) != 3) {
+    throw py::value_error(name + ": " + prefix + "positions must have shape (N, 3), got " +
+                          shape_of(positions_obj));
+  }
   const DoubleArray q = DoubleArray::ensure(quaternions_obj);
-  if (!p || !q || p.ndim() != 2 || p.shape(1) != 3 || q.ndim() != 2 || q.shape(1) != 4 ||
-      p.shape(0) != q.shape(0)) {
-    PyErr_Clear();
-    throw py::value_error(name + ": positions must be (N, 3) and quaternions (N, 4) x, y, z, w");
+  if (!q) PyErr_Clear();
+  if (!q || q.ndim() != 2 || q.shape(1) != 4 || q.shape(0) != p.shape(0)) {
+    throw py::value_error(name + ": " + prefix +
+                          "quaternions_xyzw must have shape (N, 4) x, y, z, w with N = " +
+                          std::to_string(p.shape(0)) + " like " + prefix + "positions, got " +
+                          shape_of(quaternions_obj));
   }
   std::vector<Rigid3d> poses(p.shape(0));
   for (py::ssize_t i = 0; i < p.shape(0); ++i) {
@@ -289,8 +310,8 @@ void BindCapture(py::module_& m) {
       "error_magnitudes",
       [](const py::handle& est_p, const py::handle& est_q, const py::handle& ref_p,
          const py::handle& ref_q) {
-        const auto est = ToPoses(est_p, est_q, "estimated");
-        const auto ref = ToPoses(ref_p, ref_q, "reference");
+        const auto est = ToPoses(est_p, est_q, "error_magnitudes", true, "estimated_");
+        const auto ref = ToPoses(ref_p, ref_q, "error_magnitudes", true, "reference_");
         // A zero quaternion stays zero through normalized() and its error angle came out 0: a
         // station without a rotation counted as a perfect one in Table 1. (NaN stays NaN.)
         for (const auto* poses : {&est, &ref}) {

@@ -303,6 +303,24 @@ def test_a_capture_of_the_wrong_shape_or_not_finite_is_refused_naming_the_field(
     assert v.tables == base.tables
 
 
+def test_residuals_of_arrays_of_the_wrong_shape_name_the_array_and_its_shape():
+    """validation.residuals (the C++ error_magnitudes) said "estimated: positions must be (N, 3)
+    and quaternions (N, 4) x, y, z, w" for any wrong array: not which one, nor the shape it had."""
+    p = np.array([[0.3, 0.0, 0.2], [0.4, 0.1, 0.2]])
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (2, 1))
+    for args, message in [
+        ((p.T, q, p, q), r"error_magnitudes: estimated_positions must have shape \(N, 3\), got \(3, 2\)"),
+        ((p, q, p, q.T), r"error_magnitudes: reference_quaternions_xyzw must have shape \(N, 4\) x, y, z, w with "
+                         r"N = 2 like reference_positions, got \(4, 2\)"),
+        ((p, q[:1], p, q), r"estimated_quaternions_xyzw must have shape .* got \(1, 4\)"),
+        ((p, q, "abc", q), r"reference_positions must have shape \(N, 3\), got no numeric array: .abc."),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            validation.residuals(*args)
+    r = validation.residuals(p.tolist(), np.asfortranarray(q), p[::-1][::-1], q)
+    np.testing.assert_array_equal(r.position_mm, [0.0, 0.0])
+
+
 def test_residual_rows_keep_every_extra_column_whatever_its_name(tmp_path):
     """An extra column named like a derived column (x) is written as extra_x; a column the user
     named extra_x was then overwritten by x's values (one column lost without a word). Both are
