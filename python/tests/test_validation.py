@@ -366,3 +366,20 @@ def test_a_degree_that_is_not_whole_and_a_negative_worst_count_are_refused(tmp_p
         validation.validate(cap, None, worst_count=2.5, analyse_covariates=False)
     with pytest.raises(ValueError, match=r"cross-validation folds 2\.5: must be a whole number"):
         validation.cross_validate(cap, folds=2.5)
+
+
+def test_a_calibration_given_as_a_path_is_loaded_and_anything_else_is_named(tmp_path):
+    """validate(capture, "calib.json") was an AttributeError ("'str' object has no attribute
+    'correct'") from deep inside; a path (str or pathlib) is loaded as trackcal.Calibration.load does,
+    and gives the same tables as the loaded calibration."""
+    example = pathlib.Path(__file__).resolve().parents[2] / "tests" / "data" / "calibration" / "example.json"
+    cap = captures.load_poses(hand_capture(tmp_path))
+    loaded = validation.validate(cap, trackcal.Calibration.load(str(example)), analyse_covariates=False)
+    for given in (str(example), example):
+        v = validation.validate(cap, given, analyse_covariates=False)
+        np.testing.assert_array_equal(v.corrected_positions, loaded.corrected_positions)
+        np.testing.assert_array_equal(v.corrected_quaternions_xyzw, loaded.corrected_quaternions_xyzw)
+    with pytest.raises(TypeError, match="calibration: expected a trackcal.Calibration.*got int"):
+        validation.validate(cap, 3, analyse_covariates=False)
+    with pytest.raises(ValueError, match="missing.json"):
+        validation.validate(cap, str(tmp_path / "missing.json"), analyse_covariates=False)

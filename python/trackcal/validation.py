@@ -746,6 +746,18 @@ def _check_corrected_poses(data: PoseCapture, positions: np.ndarray, quaternions
         raise ValueError(f"{where}: quaternion x, y, z, w {quaternions_xyzw[i].tolist()}: norm {norm[i]:g} is not 1")
 
 
+def _as_calibration(calibration):
+    """``calibration`` as a trackcal.Calibration: None stays None, a path (str or os.PathLike) is
+    loaded (trackcal.Calibration.load), a Calibration is used as it is. A path was an
+    AttributeError ("'str' object has no attribute 'correct'") from deep in validate()."""
+    if calibration is None or callable(getattr(calibration, "correct", None)):
+        return calibration
+    if isinstance(calibration, (str, os.PathLike)):
+        return _core.Calibration.load(os.fspath(calibration))
+    raise TypeError(f"calibration: expected a trackcal.Calibration, a calibration file's path or None, "
+                    f"got {type(calibration).__name__}")
+
+
 def _checked_capture(capture: PoseCapture) -> PoseCapture:
     """The capture with its per-station fields as numpy arrays of the shapes they must have and
     finite poses, else a ValueError naming the field (as trackcal.fit checks an in-memory capture).
@@ -787,7 +799,7 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
              worst_count: int = 10, analyse_covariates: bool = True, covariate_options: Optional[dict] = None,
              progress: Optional[Callable[[int, int], None]] = None,
              corrected_poses: Optional[tuple] = None) -> Validation:
-    """Applies ``calibration`` (a trackcal.Calibration or None) to the capture's reported poses and
+    """Applies ``calibration`` (a trackcal.Calibration, a calibration file's path, or None) to the capture's reported poses and
     computes everything ``trackcal diagnose`` shows. Registration stations (set 'reg') are left out
     of the breakdowns and the covariate analysis (they are not calibration data). Hemisphere flips
     (``hemisphere_flips``, decided within each set) are left out of the tables, the breakdowns, the
@@ -800,6 +812,7 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
     if worst_count < 0:  # the slice [:-1] listed every station but one as the "worst"
         raise ValueError(f"worst_count {worst_count}: must be 0 or more")
     capture = _checked_capture(capture)
+    calibration = _as_calibration(calibration)
     data = capture.subset(capture.set != "reg") if "reg" in capture.sets else capture
     if len(data) == 0:
         raise ValueError(f"{capture.path}: no calibration or validation stations")
@@ -896,7 +909,7 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
 
     ``raw``: the raw tracker_stream.csv; ``reference``: reference_stream.csv, on its own clock;
     ``corrected``: the server's corrected tracker_stream.csv of the same run (its reports carry the
-    raw ones' times); ``calibration``: a trackcal.Calibration, applied to the raw poses when no
+    raw ones' times); ``calibration``: a trackcal.Calibration (or a calibration file's path), applied to the raw poses when no
     corrected stream is given (else it only flags stations outside its volume); ``sensor``: the
     receiver the reference tracks (numbered from 1 as in the recording), default the lowest sensor
     number of the raw recording (not the sensor of its first row: a live recording's first report
