@@ -13,6 +13,8 @@ namespace trackcal::vrpn {
 namespace {
 
 constexpr std::string_view kWhitespace = " \t\r\f\v";
+// TrackerSpec::Check allows up to 1024 sensors (0..1023).
+constexpr int kMaxCalibrationSensor = 1024;
 
 std::string_view TrimRight(std::string_view s) {
   const size_t end = s.find_last_not_of(kWhitespace);
@@ -342,7 +344,7 @@ class Parser {
     if (tokens.size() < 3) {
       Fail(where, tokens.size() < 2 ? "tracker" : "calibration_file",
            "missing; expected 'trackcal_Calibration <tracker> <calibration_file> [raw=<name>] "
-           "[outside=clamp|fade|linear] [fade_distance=<metres>]'");
+           "[outside=clamp|fade|linear] [fade_distance=<metres>] [sensor=<n>]'");
     }
     CalibrationSpec spec;
     spec.location = where;
@@ -379,9 +381,19 @@ class Parser {
         const double d = ParseDouble(value, where, "fade_distance");
         if (!(d > 0.0)) Fail(where, "fade_distance", "must be a positive distance in metres");
         spec.fade_distance_m = d;
+      } else if (key == "sensor") {
+        const int sensor = ParseInt(value, where, "sensor");
+        if (sensor < 0 || sensor >= kMaxCalibrationSensor) {
+          Fail(where, "sensor",
+               "must be 0.." + std::to_string(kMaxCalibrationSensor - 1) +
+                   " (the VRPN sensor number: Fastrak station n is sensor n-1), got " + value);
+        }
+        spec.sensor = sensor;
       } else {
         Fail(where, key,
-             "unknown option (expected raw=<name>, outside=clamp|fade|linear or fade_distance=<metres>)");
+             "unknown option (expected raw=<name>, outside=clamp|fade|linear, "
+             "fade_distance=<metres> "
+             "or sensor=<n>)");
       }
     }
     config_.calibrations.push_back(std::move(spec));
@@ -454,7 +466,11 @@ class Parser {
   }
 
   void CheckCalibrations() {
-    std::map<std::string, ConfigLocation> seen;
+    // Per tracker: the calibration for every sensor, or the one of each listed sensor, and the
+    // line that gave raw=.
+    std::map<std::string, const CalibrationSpec*> all_sensors, raw_line;
+    std::map<std::pair<std::string, int>, const CalibrationSpec*> per_sensor;
+    std::map<std::string, const CalibrationSpec*> any_sensor;
     for (const CalibrationSpec& c : config_.calibrations) {
       bool is_tracker = false;
       for (const auto& t : config_.fastrak_trackers) is_tracker |= t.name == c.tracker;
@@ -463,10 +479,37 @@ class Parser {
       if (!is_tracker) {
         Fail(c.location, "tracker", "no tracker named '" + c.tracker + "' is defined in this file");
       }
-      const auto [it, inserted] = seen.emplace(c.tracker, c.location);
-      if (!inserted) {
-        Fail(c.location, "tracker",
-             "tracker '" + c.tracker + "' already has a calibration at " + it->second.ToString());
+      // One pose cannot be corrected twice: a line for every sensor excludes any other line of
+      // that tracker, and a sensor= line excludes another one for the same sensor.
+      if (auto it = all_sensors.find(c.tracker); it != all_sensors.end()) {
+        Fail(c.location, c.sensor ? "sensor" : "tracker",
+             "tracker '" + c.tracker + "' already has a calibration at " +
+                 it->second->location.ToString() + " (for every sensor)");
+      }
+      if (!c.sensor) {
+        if (auto it = any_sensor.find(c.tracker); it != any_sensor.end()) {
+          Fail(c.location, "tracker",
+               "tracker '" + c.tracker + "' already has a calibration for sensor " +
+                   std::to_string(*it->second->sensor) + " at " + it->second->location.ToString() +
+                   " (give sensor=<n> on every calibration line of a tracker, or on none)");
+        }
+        all_sensors.emplace(c.tracker, &c);
+      } else {
+        const auto [it, inserted] = per_sensor.emplace(std::make_pair(c.tracker, *c.sensor), &c);
+        if (!inserted) {
+          Fail(c.location, "sensor",
+               "sensor " + std::to_string(*c.sensor) + " of tracker '" + c.tracker +
+                   "' already has a calibration at " + it->second->location.ToString());
+        }
+        any_sensor.emplace(c.tracker, &c);
+      }
+      if (c.raw_name) {
+        const auto [it, inserted] = raw_line.emplace(c.tracker, &c);
+        if (!inserted) {
+          Fail(c.location, "raw",
+               "tracker '" + c.tracker + "' already serves its raw reports as '" +
+                   *it->second->raw_name + "' (" + it->second->location.ToString() + ")");
+        }
       }
     }
   }

@@ -85,6 +85,9 @@ struct CalibrationSpec {
   std::optional<std::string> raw_name;  // serve the raw reports too, under this device name
   OutsidePolicy outside = OutsidePolicy::kDefault;
   std::optional<double> fade_distance_m;  // fade_distance=<m>: where `fade` reaches no correction
+  // sensor=<n>: correct only this VRPN sensor (0-based, Fastrak station n+1); none = every sensor.
+  // A tracker has either one calibration for every sensor or one per listed sensor.
+  std::optional<int> sensor;
   ConfigLocation location;
 };
 

@@ -196,6 +196,16 @@ TEST(ParseVrpnConfig, TrackcalLines) {
       "vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json outside=linear\n", "lab.cfg");
   ASSERT_EQ(linear.calibrations.size(), 1u);
   EXPECT_EQ(linear.calibrations[0].outside, OutsidePolicy::kLinear);
+  EXPECT_FALSE(linear.calibrations[0].sensor.has_value());  // every sensor
+  // One calibration per receiver (sensor=<n>, 0-based as FTStylus), raw= on one of the lines.
+  const VrpnConfig per_sensor = ParseVrpnConfig(
+      "vrpn_Tracker_NULL T 3 1\ntrackcal_Calibration T a.json sensor=0 raw=R\n"
+      "trackcal_Calibration T b.json sensor=2\n",
+      "lab.cfg");
+  ASSERT_EQ(per_sensor.calibrations.size(), 2u);
+  EXPECT_EQ(per_sensor.calibrations[0].sensor, std::optional<int>(0));
+  EXPECT_EQ(per_sensor.calibrations[1].sensor, std::optional<int>(2));
+  EXPECT_EQ(per_sensor.calibrations[0].raw_name, "R");
 
   ASSERT_EQ(config.passthroughs.size(), 3u);
   EXPECT_EQ(config.passthroughs[0].source_device, "Tracker0");
@@ -271,6 +281,24 @@ TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
        "lab.cfg:2: field 'colour'"},
       {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T a.json\ntrackcal_Calibration T b.json\n",
        "lab.cfg:3: field 'tracker': tracker 'T' already has a calibration at lab.cfg:2"},
+      {"vrpn_Tracker_NULL T 2 1\ntrackcal_Calibration T a.json\ntrackcal_Calibration T b.json "
+       "sensor=1\n",
+       "lab.cfg:3: field 'sensor': tracker 'T' already has a calibration at lab.cfg:2 (for every "
+       "sensor)"},
+      {"vrpn_Tracker_NULL T 2 1\ntrackcal_Calibration T b.json sensor=1\ntrackcal_Calibration T "
+       "a.json\n",
+       "lab.cfg:3: field 'tracker': tracker 'T' already has a calibration for sensor 1 at "
+       "lab.cfg:2"},
+      {"vrpn_Tracker_NULL T 2 1\ntrackcal_Calibration T a.json sensor=1\ntrackcal_Calibration T "
+       "b.json sensor=1\n",
+       "lab.cfg:3: field 'sensor': sensor 1 of tracker 'T' already has a calibration at lab.cfg:2"},
+      {"vrpn_Tracker_NULL T 2 1\ntrackcal_Calibration T a.json sensor=0 raw=R0\n"
+       "trackcal_Calibration T b.json sensor=1 raw=R1\n",
+       "lab.cfg:3: field 'raw': tracker 'T' already serves its raw reports as 'R0' (lab.cfg:2)"},
+      {"vrpn_Tracker_NULL T 2 1\ntrackcal_Calibration T a.json sensor=-1\n",
+       "lab.cfg:2: field 'sensor': must be 0..1023"},
+      {"vrpn_Tracker_NULL T 2 1\ntrackcal_Calibration T a.json sensor=one\n",
+       "lab.cfg:2: field 'sensor': expected an integer"},
       {"trackcal_Calibration T\n", "lab.cfg:1: field 'calibration_file'"},
       {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json outside=clamp outside=fade\n",
        "lab.cfg:2: field 'outside': given twice"},

@@ -84,6 +84,18 @@ const std::string& CalibrationOrigin(const TrackerSetup& setup) {
   return setup.calibration_origin.empty() ? setup.origin : setup.calibration_origin;
 }
 
+// ", calibration a.json", ", calibration a.json for sensor 1 (other sensors uncorrected)", ...
+std::string CalibrationSummary(const TrackerSetup& setup) {
+  if (!setup.calibration && setup.sensor_calibrations.empty()) return ", uncorrected";
+  std::string text;
+  if (setup.calibration) text = ", calibration " + setup.calibration->string();
+  for (const SensorCalibration& c : setup.sensor_calibrations) {
+    text += ", calibration " + c.calibration.string() + " for sensor " + std::to_string(c.sensor);
+  }
+  if (!setup.calibration) text += " (other sensors uncorrected)";
+  return text;
+}
+
 }  // namespace
 
 std::unique_ptr<ReportSource> MakeNullSource(int num_sensors, double rate_hz, Rigid3d pose) {
@@ -94,12 +106,26 @@ std::unique_ptr<ReportSource> MakePassthroughSource(const std::string& vrpn_name
   return std::make_unique<PassthroughSource>(vrpn_name);
 }
 
+// One calibration file of a tracker: for every sensor (`sensor` unset) or for one.
+struct TrackcalServerApp::Slot {
+  std::optional<int> sensor;
+  std::filesystem::path file;
+  std::optional<std::string> outside;
+  std::optional<double> fade_distance;
+  std::string origin;
+  FileSignature signature;
+  // "Tracker0" or "Tracker0 sensor 1", for messages.
+  std::string Label(const std::string& tracker) const {
+    return sensor ? tracker + " sensor " + std::to_string(*sensor) : tracker;
+  }
+};
+
 struct TrackcalServerApp::Tracker {
   TrackerSetup setup;
   std::unique_ptr<TrackerDevice> device;
   std::unique_ptr<ReportSource> source;
   std::vector<std::pair<int, int>> buttons;  // (sensor, catalog button index)
-  FileSignature signature;
+  std::vector<Slot> slots;
 };
 
 TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOptions options,
@@ -149,15 +175,33 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
     Tracker& t = *trackers_[i];
     t.device = std::make_unique<TrackerDevice>(server_.get(), indices[i].first, indices[i].second);
     if (t.setup.calibration) {
+      t.slots.push_back(Slot{std::nullopt,
+                             *t.setup.calibration,
+                             t.setup.outside,
+                             t.setup.fade_distance,
+                             CalibrationOrigin(t.setup),
+                             {}});
+    }
+    std::set<int> calibrated_sensors;
+    for (const SensorCalibration& c : t.setup.sensor_calibrations) {
+      const std::string& origin = c.origin.empty() ? t.setup.origin : c.origin;
+      if (c.sensor < 0 || !calibrated_sensors.insert(c.sensor).second) {
+        throw std::invalid_argument(origin + ": calibration of '" + t.setup.name + "': sensor " +
+                                    std::to_string(c.sensor) +
+                                    (c.sensor < 0 ? " is negative" : " has two calibrations"));
+      }
+      t.slots.push_back(Slot{c.sensor, c.calibration, c.outside, c.fade_distance, origin, {}});
+    }
+    for (Slot& slot : t.slots) {
       if (!loader_) throw std::invalid_argument(t.setup.origin + ": no calibration loader");
       try {
-        t.signature = Signature(*t.setup.calibration);
-        auto corrector = loader_(*t.setup.calibration, t.setup.outside, t.setup.fade_distance);
-        t.device->SetCorrector(corrector);
-        Log(t.setup.name + ": correction " + corrector->Describe());
+        slot.signature = Signature(slot.file);
+        auto corrector = loader_(slot.file, slot.outside, slot.fade_distance);
+        Install(t, slot, corrector);
+        Log(slot.Label(t.setup.name) + ": correction " + corrector->Describe());
       } catch (const std::exception& e) {
-        throw std::invalid_argument(CalibrationOrigin(t.setup) + ": calibration of '" +
-                                    t.setup.name + "': " + e.what());
+        throw std::invalid_argument(slot.origin + ": calibration of '" + slot.Label(t.setup.name) +
+                                    "': " + e.what());
       }
     }
     if (options_.record_dir) {
@@ -178,8 +222,7 @@ void TrackcalServerApp::Start() {
     Tracker& t = *tp;
     t.source = t.setup.make_source();
     Log("serving " + t.setup.name + (t.setup.raw_name ? " (raw: " + *t.setup.raw_name + ")" : "") +
-        " from " + t.source->Describe() +
-        (t.setup.calibration ? ", calibration " + t.setup.calibration->string() : ", uncorrected"));
+        " from " + t.source->Describe() + CalibrationSummary(t.setup));
     SourceCallbacks callbacks;
     TrackerDevice* device = t.device.get();
     callbacks.on_pose = [device](int sensor, const Rigid3d& pose, Timestamp time) {
@@ -211,32 +254,46 @@ void TrackcalServerApp::Stop() {
   }
 }
 
-bool TrackcalServerApp::Reload(Tracker& t, bool only_if_changed) {
-  if (!t.setup.calibration) return false;
-  const FileSignature now = Signature(*t.setup.calibration);
-  if (only_if_changed && now == t.signature) return false;
-  t.signature = now;
+void TrackcalServerApp::Install(Tracker& t, const Slot& slot,
+                                std::shared_ptr<const PoseCorrector> corrector) {
+  if (slot.sensor) {
+    t.device->SetSensorCorrector(*slot.sensor, std::move(corrector));
+  } else {
+    t.device->SetCorrector(std::move(corrector));
+  }
+}
+
+bool TrackcalServerApp::Reload(Tracker& t, Slot& slot, bool only_if_changed) {
+  const FileSignature now = Signature(slot.file);
+  if (only_if_changed && now == slot.signature) return false;
+  slot.signature = now;
+  const std::string label = slot.Label(t.setup.name);
   try {
-    auto corrector = loader_(*t.setup.calibration, t.setup.outside, t.setup.fade_distance);
-    t.device->SetCorrector(corrector);
-    Log(t.setup.name + ": reloaded " + t.setup.calibration->string() + " (" + corrector->Describe() + ")");
+    auto corrector = loader_(slot.file, slot.outside, slot.fade_distance);
+    const std::string description = corrector->Describe();
+    Install(t, slot, std::move(corrector));
+    Log(label + ": reloaded " + slot.file.string() + " (" + description + ")");
     return true;
   } catch (const std::exception& e) {
-    Log(t.setup.name + ": rejected new " + t.setup.calibration->string() + ", keeping the previous correction: " +
-        e.what());
+    Log(label + ": rejected new " + slot.file.string() +
+        ", keeping the previous correction: " + e.what());
     return false;
   }
 }
 
 int TrackcalServerApp::ReloadCalibrations() {
   int n = 0;
-  for (auto& t : trackers_) n += Reload(*t, /*only_if_changed=*/false);
+  for (auto& t : trackers_) {
+    for (Slot& slot : t->slots) n += Reload(*t, slot, /*only_if_changed=*/false);
+  }
   return n;
 }
 
 int TrackcalServerApp::ReloadChangedCalibrations() {
   int n = 0;
-  for (auto& t : trackers_) n += Reload(*t, /*only_if_changed=*/true);
+  for (auto& t : trackers_) {
+    for (Slot& slot : t->slots) n += Reload(*t, slot, /*only_if_changed=*/true);
+  }
   return n;
 }
 
@@ -274,8 +331,8 @@ std::uint64_t TrackcalServerApp::ExtrapolatedPoses(const std::string& name) cons
 std::vector<std::filesystem::path> TrackcalServerApp::CalibrationDirectories() const {
   std::set<std::filesystem::path> dirs;
   for (const auto& t : trackers_) {
-    if (t->setup.calibration) {
-      auto dir = t->setup.calibration->parent_path();
+    for (const Slot& slot : t->slots) {
+      auto dir = slot.file.parent_path();
       dirs.insert(dir.empty() ? std::filesystem::path(".") : dir);
     }
   }

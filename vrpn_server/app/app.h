@@ -60,6 +60,15 @@ using CorrectorLoader = std::function<std::shared_ptr<const PoseCorrector>(
     const std::filesystem::path& path, const std::optional<std::string>& outside,
     const std::optional<double>& fade_distance)>;
 
+// A calibration of one sensor of a tracker (vrpn.cfg's sensor=<n>).
+struct SensorCalibration {
+  int sensor = 0;  // 0-based VRPN sensor (Fastrak station n is sensor n-1)
+  std::filesystem::path calibration;
+  std::optional<std::string> outside;   // as TrackerSetup::outside
+  std::optional<double> fade_distance;  // as TrackerSetup::fade_distance
+  std::string origin;                   // where it was configured ("vrpn.cfg:13"), for messages
+};
+
 struct TrackerSetup {
   // Device name of the corrected stream (the name clients already use).
   std::string name;
@@ -67,8 +76,13 @@ struct TrackerSetup {
   int num_sensors = 1;
   // Also serve the uncorrected reports under this name.
   std::optional<std::string> raw_name;
-  // Calibration file; none = reports are served unchanged.
+  // Calibration file for every sensor; none = reports are served unchanged (except the sensors of
+  // `sensor_calibrations`).
   std::optional<std::filesystem::path> calibration;
+  // Calibrations of single sensors, used for that sensor instead of `calibration` (a calibration is
+  // fitted for one receiver: its sensor offset and coil gains are not another receiver's). At most
+  // one per sensor.
+  std::vector<SensorCalibration> sensor_calibrations;
   // Override of the calibration's extrapolation policy ("clamp", "fade" or "linear").
   std::optional<std::string> outside;
   // Override of the calibration's fade_distance [m] (vrpn.cfg's fade_distance=<metres>).
@@ -119,7 +133,9 @@ class TrackcalServerApp {
 
  private:
   struct Tracker;
-  bool Reload(Tracker& t, bool only_if_changed);
+  struct Slot;
+  bool Reload(Tracker& t, Slot& slot, bool only_if_changed);
+  void Install(Tracker& t, const Slot& slot, std::shared_ptr<const PoseCorrector> corrector);
   void Log(const std::string& line) { log_(line); }
 
   AppOptions options_;

@@ -8,6 +8,16 @@
 #include "vrpn_server/server/devices.h"
 
 namespace trackcal::vrpn {
+namespace {
+
+bool IsPassthrough(const VrpnConfig& config, const std::string& name) {
+  for (const PassthroughSpec& p : config.passthroughs) {
+    if (p.name == name) return true;
+  }
+  return false;
+}
+
+}  // namespace
 
 ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_server) {
   ConfigSetup out;
@@ -70,12 +80,29 @@ ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_se
       throw std::invalid_argument(spec.location.ToString() + ": field 'tracker': no tracker named '" +
                                   spec.tracker + "' in this file");
     }
+    std::optional<std::string> outside;
+    if (spec.outside == OutsidePolicy::kClamp) outside = "clamp";
+    if (spec.outside == OutsidePolicy::kFade) outside = "fade";
+    if (spec.outside == OutsidePolicy::kLinear) outside = "linear";
+    if (spec.raw_name) {  // the parser allows raw= on one calibration line per tracker
+      target->raw_name = spec.raw_name;
+      target->calibration_origin = spec.location.ToString();
+    }
+    if (spec.sensor) {
+      // A sensor the tracker never reports would be silently left uncorrected.
+      if (*spec.sensor >= target->num_sensors && !IsPassthrough(config, spec.tracker)) {
+        throw std::invalid_argument(spec.location.ToString() + ": field 'sensor': tracker '" +
+                                    spec.tracker + "' has sensors 0.." +
+                                    std::to_string(target->num_sensors - 1) + ", got " +
+                                    std::to_string(*spec.sensor));
+      }
+      target->sensor_calibrations.push_back(SensorCalibration{
+          *spec.sensor, spec.file, outside, spec.fade_distance_m, spec.location.ToString()});
+      continue;
+    }
     target->calibration = spec.file;
-    target->calibration_origin = spec.location.ToString();
-    target->raw_name = spec.raw_name;
-    if (spec.outside == OutsidePolicy::kClamp) target->outside = "clamp";
-    if (spec.outside == OutsidePolicy::kFade) target->outside = "fade";
-    if (spec.outside == OutsidePolicy::kLinear) target->outside = "linear";
+    if (target->calibration_origin.empty()) target->calibration_origin = spec.location.ToString();
+    target->outside = outside;
     target->fade_distance = spec.fade_distance_m;
   }
   return out;

@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <map>
 #include <sstream>
 #include <thread>
 
@@ -169,6 +170,49 @@ TEST(TrackcalServerMain, CalibrationRawNameAndReloadOnChangeAndSighup) {
   EXPECT_NE(err.find("rejected"), std::string::npos) << err;
 }
 
+// A calibration is fitted for one receiver (its sensor offset and coil gains belong to that
+// receiver), so sensor=<n> applies it to that sensor only: each sensor gets its own file, a sensor
+// without one is served uncorrected, and a changed file is reloaded for its sensor alone. Before,
+// sensor= was an unknown option and the one calibration of a tracker corrected every sensor.
+TEST(TrackcalServerMain, CalibrationPerSensor) {
+  const auto dir = testing::MakeTempDir("server_main_sensor");
+  WriteOffsetCalibration(dir / "a.json", Eigen::Vector3d(0.1, 0, 0));
+  WriteOffsetCalibration(dir / "b.json", Eigen::Vector3d(0.3, 0, 0));
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 3 100.0\n"
+                                     "trackcal_Calibration Tracker0 a.json sensor=0\n"
+                                     "trackcal_Calibration Tracker0 b.json sensor=1 raw=Raw0\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "vrpn.cfg").string(), std::to_string(port), "--bind",
+                  "127.0.0.1"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
+  VrpnTrackerClient raw("Raw0@tcp://127.0.0.1:" + std::to_string(port));
+  std::map<int, double> x, raw_x;
+  corrected.SetPoseCallback(
+      [&](const TrackerReport& r) { x[r.sensor] = r.transmitter_from_receiver.translation.x(); });
+  raw.SetPoseCallback([&](const TrackerReport& r) {
+    raw_x[r.sensor] = r.transmitter_from_receiver.translation.x();
+  });
+  auto wait_for = [&](const std::map<int, double>& expected) {
+    const auto end = Clock::now() + std::chrono::seconds(15);
+    while (Clock::now() < end && (x != expected || raw_x.size() < 3)) {
+      corrected.Poll(0.005);
+      raw.Poll(0.0);
+    }
+    return x == expected;
+  };
+  // The null tracker reports the origin: the offsets are exact.
+  EXPECT_TRUE(wait_for({{0, 0.1}, {1, 0.3}, {2, 0.0}})) << server.Stderr();
+  EXPECT_EQ(raw_x, (std::map<int, double>{{0, 0.0}, {1, 0.0}, {2, 0.0}}));
+  WriteOffsetCalibration(dir / "b.json", Eigen::Vector3d(0.4, 0, 0));
+  EXPECT_TRUE(wait_for({{0, 0.1}, {1, 0.4}, {2, 0.0}})) << server.Stderr();
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+  const std::string err = server.Stderr();
+  EXPECT_NE(err.find("Tracker0 sensor 1: reloaded"), std::string::npos) << err;
+  EXPECT_NE(err.find("for sensor 1 (other sensors uncorrected)"), std::string::npos) << err;
+}
+
 // Errors name the vrpn.cfg line they come from: the server's limits on a vrpn_Tracker_NULL line are
 // checked when the file is read (they used to fail at start-up, naming only the tracker), and a
 // calibration file names its trackcal_Calibration line (it used to name the tracker's).
@@ -202,6 +246,9 @@ TEST(SetupFromConfig, ErrorsNameTheLineTheyComeFrom) {
     EXPECT_NE(std::string(e.what()).find("vrpn.cfg:3: calibration of 'T'"), std::string::npos)
         << e.what();
   }
+  // A sensor the tracker does not have would never be corrected.
+  EXPECT_EQ(error_of("vrpn_Tracker_NULL T 2 60\ntrackcal_Calibration T c.json sensor=2"),
+            "vrpn.cfg:3: field 'sensor': tracker 'T' has sensors 0..1, got 2");
   // A pass-through of this server's own tracker is marked, for the allow-list.
   EXPECT_TRUE(SetupFromConfig(ParseVrpnConfig("vrpn_Tracker_NULL T 1 60\n"
                                               "trackcal_Tracker_Passthrough Head *T\n",

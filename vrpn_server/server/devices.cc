@@ -91,6 +91,16 @@ void TrackerDevice::SetCorrector(std::shared_ptr<const PoseCorrector> corrector)
   corrector_ = std::move(corrector);
 }
 
+void TrackerDevice::SetSensorCorrector(int sensor, std::shared_ptr<const PoseCorrector> corrector) {
+  if (sensor < 0) throw std::invalid_argument("TrackerDevice: negative sensor");
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (static_cast<std::size_t>(sensor) >= sensor_correctors_.size()) {
+    if (!corrector) return;
+    sensor_correctors_.resize(static_cast<std::size_t>(sensor) + 1);
+  }
+  sensor_correctors_[static_cast<std::size_t>(sensor)] = std::move(corrector);
+}
+
 std::shared_ptr<const PoseCorrector> TrackerDevice::corrector() const {
   std::lock_guard<std::mutex> lock(mutex_);
   return corrector_;
@@ -110,25 +120,34 @@ void TrackerDevice::OnReport(int sensor, const Rigid3d& reported, Timestamp time
 
 void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
   if (reports.empty()) return;
+  // Reused per device thread: no allocation per report once warm.
+  thread_local std::vector<std::shared_ptr<const PoseCorrector>> by_sensor;
   std::shared_ptr<const PoseCorrector> corrector;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     corrector = corrector_;
+    by_sensor.assign(sensor_correctors_.begin(), sensor_correctors_.end());
   }
-  // Reused per device thread: no allocation per report once warm.
   thread_local std::vector<PoseUpdate> updates;
   thread_local std::vector<Rigid3d> corrected;
   updates.clear();
   corrected.clear();
   std::uint64_t extrapolated = 0;
   std::uint64_t unresolved = 0;
+  std::uint64_t num_corrected = 0;
   for (const SensorReport& r : reports) {
     if (raw_tracker_)
       updates.push_back(PoseUpdate{*raw_tracker_, r.sensor, r.transmitter_from_receiver, r.time});
-    if (corrector) {
-      const CorrectionResult c = corrector->CorrectWithFlag(r.transmitter_from_receiver);
+    const PoseCorrector* sensor_corrector = corrector.get();
+    if (r.sensor >= 0 && static_cast<std::size_t>(r.sensor) < by_sensor.size() &&
+        by_sensor[static_cast<std::size_t>(r.sensor)]) {
+      sensor_corrector = by_sensor[static_cast<std::size_t>(r.sensor)].get();
+    }
+    if (sensor_corrector) {
+      const CorrectionResult c = sensor_corrector->CorrectWithFlag(r.transmitter_from_receiver);
       extrapolated += c.extrapolated ? 1 : 0;
       unresolved += c.status != CorrectionStatus::kConverged ? 1 : 0;
+      ++num_corrected;
       corrected.push_back(c.pose);
     } else {
       corrected.push_back(r.transmitter_from_receiver);
@@ -142,7 +161,8 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
     if (raw_recorder_) raw_recorder_->Write(r.sensor, r.transmitter_from_receiver, r.time);
     if (corrected_recorder_) corrected_recorder_->Write(r.sensor, corrected[i], r.time);
   }
-  if (corrector) corrected_total_ += reports.size();
+  by_sensor.clear();  // does not keep a replaced correction alive until the next batch
+  corrected_total_ += num_corrected;
   CountExtrapolated(extrapolated, unresolved);
 }
 

@@ -90,6 +90,10 @@ class TrackerDevice {
   // next report.
   void SetCorrector(std::shared_ptr<const PoseCorrector> corrector);
   std::shared_ptr<const PoseCorrector> corrector() const;
+  // The correction of one sensor (0-based), used for its reports instead of SetCorrector's (a
+  // calibration fitted for one receiver: its sensor offset and gains are not another receiver's);
+  // nullptr: that sensor falls back to SetCorrector's again. Thread-safe.
+  void SetSensorCorrector(int sensor, std::shared_ptr<const PoseCorrector> corrector);
   // Record raw and corrected streams (either may be null).
   void SetRecorders(std::unique_ptr<StreamRecorder> raw, std::unique_ptr<StreamRecorder> corrected);
 
@@ -124,6 +128,8 @@ class TrackerDevice {
   std::optional<int> raw_tracker_;
   mutable std::mutex mutex_;
   std::shared_ptr<const PoseCorrector> corrector_;
+  std::vector<std::shared_ptr<const PoseCorrector>>
+      sensor_correctors_;  // by sensor; null: corrector_
   std::unique_ptr<StreamRecorder> raw_recorder_;
   std::unique_ptr<StreamRecorder> corrected_recorder_;
   std::function<void(const std::string&)> log_;
