@@ -334,6 +334,11 @@ std::vector<std::filesystem::path> TrackcalServerApp::CalibrationDirectories() c
     for (const Slot& slot : t->slots) {
       auto dir = slot.file.parent_path();
       dirs.insert(dir.empty() ? std::filesystem::path(".") : dir);
+      // A symbolic link (calib.json -> ../releases/lab.json): the file that changes is the target,
+      // in its own directory; the link's directory sees no event when it is rewritten.
+      std::error_code ec;
+      const auto target = std::filesystem::canonical(slot.file, ec);
+      if (!ec) dirs.insert(target.parent_path());
     }
   }
   return {dirs.begin(), dirs.end()};

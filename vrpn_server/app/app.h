@@ -128,7 +128,8 @@ class TrackcalServerApp {
   std::string StatusLine() const;
   // Corrected poses of tracker `name` that were extrapolated since the start; 0 for unknown names.
   std::uint64_t ExtrapolatedPoses(const std::string& name) const;
-  // Directories holding calibration files (to watch for changes).
+  // Directories holding calibration files (to watch for changes), and those of their targets when
+  // they are symbolic links.
   std::vector<std::filesystem::path> CalibrationDirectories() const;
 
  private:

@@ -170,6 +170,37 @@ TEST(TrackcalServerMain, CalibrationRawNameAndReloadOnChangeAndSighup) {
   EXPECT_NE(err.find("rejected"), std::string::npos) << err;
 }
 
+// A calibration given as a symbolic link into another directory (calib.json ->
+// ../releases/lab.json) is reloaded when the target changes: the server used to watch only the
+// link's directory, which sees no event, and kept serving the old correction until a SIGHUP.
+TEST(TrackcalServerMain, CalibrationSymlinkTargetChangeIsReloaded) {
+  const auto dir = testing::MakeTempDir("server_main_symlink");
+  std::filesystem::create_directories(dir / "cfg");
+  std::filesystem::create_directories(dir / "releases");
+  WriteOffsetCalibration(dir / "releases" / "lab.json", Eigen::Vector3d(0.1, 0, 0));
+  std::filesystem::create_symlink("../releases/lab.json", dir / "cfg" / "calib.json");
+  std::ofstream(dir / "cfg" / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
+                                             "trackcal_Calibration Tracker0 calib.json\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "cfg" / "vrpn.cfg").string(), std::to_string(port),
+                  "--bind", "127.0.0.1"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
+  double x = NAN;
+  corrected.SetPoseCallback(
+      [&](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
+  auto wait_for = [&](double expected) {
+    const auto end = Clock::now() + std::chrono::seconds(15);
+    while (Clock::now() < end && x != expected) corrected.Poll(0.005);
+    return x == expected;
+  };
+  EXPECT_TRUE(wait_for(0.1)) << server.Stderr();
+  WriteOffsetCalibration(dir / "releases" / "lab.json", Eigen::Vector3d(0.2, 0, 0));
+  EXPECT_TRUE(wait_for(0.2)) << server.Stderr();
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+}
+
 // A calibration is fitted for one receiver (its sensor offset and coil gains belong to that
 // receiver), so sensor=<n> applies it to that sensor only: each sensor gets its own file, a sensor
 // without one is served uncorrected, and a changed file is reloaded for its sensor alone. Before,
