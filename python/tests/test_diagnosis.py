@@ -149,6 +149,30 @@ def test_verdict_falls_back_to_the_covariate():
     assert "distance (R^2 0.08)" in v["text"] and "humidity" not in v["text"]
 
 
+def test_verdict_does_not_call_a_growing_scatter_structure():
+    # A model that holds the truth, at the noise floor (ideal room, no hidden effect, a degree-4
+    # polynomial; 240 + 60 stations 0.28-0.88 m from the transmitter): the tracker's noise grows as
+    # r^4, so the size of the residual follows distance (R^2 0.17, z 0.08) while no covariate
+    # predicts its direction. "it follows covariate distance" sent the user looking for an effect.
+    scatter = [CovariateEffect("distance", "position_mm", 0.17, 0.0002, True, 300),
+               CovariateEffect("z", "position_mm", 0.08, 0.0002, True, 300),
+               CovariateEffect("distance", "position_vector", 0.003, 0.4, False, 300)]
+    v = diagnosis.verdict(contract_b_doc(False), scatter)
+    assert v["source"] == "covariate" and v["covariate"] == "distance" and v["model_change"] is None
+    assert "remaining structure" not in v["text"], v["text"]
+    assert v["text"].startswith("no catalog effect explains what remains; only the size of the remaining "
+                                "error follows a covariate, not its direction: distance (R^2 0.17 of the "
+                                "position error magnitude); also z (R^2 0.08). A scatter that grows with "
+                                "range"), v["text"]
+    assert "no sign of a missing effect" in v["text"]
+    # A direction that follows a covariate is a systematic error, said as before.
+    v = diagnosis.verdict(contract_b_doc(False), scatter + [
+        CovariateEffect("x", "position_vector", 0.05, 0.0002, True, 300)])
+    assert v["text"].startswith("no catalog effect explains the remaining structure; it follows covariate "
+                                "distance"), v["text"]
+    assert "scatter" not in v["text"]
+
+
 def test_verdict_nothing_significant():
     quiet = [CovariateEffect("x", "position_mm", 0.01, 0.3, False, 600)]
     assert diagnosis.verdict(contract_b_doc(False), quiet)["text"] == "nothing significant remains"
