@@ -398,6 +398,10 @@ def _diagnosis(args, term):
     outside = diagnosis.extrapolation_note(v)
     if outside:
         notes.append(outside)
+    if fit_report is not None:  # the diagnosed calibration is the model's fit to the calib stations
+        gap = diagnosis.set_gap_note(v.tables, doc)
+        if gap:
+            notes.append(gap)
     if model and getattr(args, "calibration", None):
         mismatch = _model_mismatch_note(args.calibration, model)
         if mismatch:
