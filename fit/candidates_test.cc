@@ -366,6 +366,9 @@ TEST(DiagnoseCandidates, ALocalBumpIsNoOutlierButFlipsBesideItAre) {
       EXPECT_FALSE(robust.significant) << robust.reason;
       EXPECT_TRUE(robust.outlier_stations.empty()) << robust.reason;
       EXPECT_THAT(robust.reason, ::testing::HasSubstr("not outliers"));
+      // An effect the model lacks, which no candidate explains: unexplained structure, not
+      // "nothing significant" (trackcal diagnose's verdict reads this flag).
+      EXPECT_TRUE(d.unexplained_structure) << d.verdict_text;
     } else {
       EXPECT_TRUE(robust.significant) << robust.reason;
       EXPECT_THAT(robust.outlier_stations, ::testing::ElementsAre(17, 114, 211));
