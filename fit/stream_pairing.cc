@@ -414,6 +414,30 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
                   "--sensor N (Python: trackcal.pair(..., sensor=N))";
   }
   const std::vector<const TrackerStreamSample*> samples = SelectSamples(tracker, options, sensor);
+  // Clocks with different epochs (a tracker in Unix seconds, ~1.7e9, a reference from 0) said only
+  // "too few paired samples to estimate the offset" when estimating, or gave a bare offset when
+  // not: the spans and the difference of their starts say what happened and what to give.
+  const double tracker_first = samples.front()->time, tracker_last = samples.back()->time;
+  const double reference_first = reference.records.front().time;
+  const double reference_last = reference.records.back().time;
+  const std::string spans =
+      "the tracker stream's times run from " + Rounded(tracker_first, 15) + " to " +
+      Rounded(tracker_last, 15) + " s, the reference stream's from " +
+      Rounded(reference_first, 15) + " to " + Rounded(reference_last, 15) +
+      " s; if the clocks count from different epochs, give the offset near the difference of "
+      "their starts, " +
+      Rounded(reference_first - tracker_first, 15) +
+      " s (trackcal-fit pair --time-offset S; the model file's time_offset value; Python: "
+      "trackcal.pair(..., time_offset=S))";
+  if (options.estimate_time_offset &&
+      (tracker_last + options.time_offset + options.search_range < reference_first ||
+       tracker_first + options.time_offset - options.search_range > reference_last)) {
+    throw std::invalid_argument(
+        "stream pairing: the streams do not overlap at any searched "
+        "clock offset (" +
+        Rounded(options.time_offset, 15) + " +- " + Rounded(options.search_range, 6) +
+        " s): " + spans);
+  }
   double offset = options.time_offset;
   OffsetEstimate estimate;
   StreamPairingOptions used = options;
@@ -485,7 +509,8 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   StreamPairingResult result = Pair(samples, reference, options, offset);
   if (result.poses.records.empty()) {
     throw std::invalid_argument("stream pairing: no tracker sample has a reference at offset " +
-                                std::to_string(offset) + " s (do the streams overlap in time?)");
+                                Rounded(offset, 15) +
+                                " s (do the streams overlap in time?): " + spans);
   }
   const double h = 0.5 * MedianReferencePeriod(reference);
   for (const PoseRecord& r : result.poses.records) {

@@ -102,6 +102,34 @@ TEST(PairStreams, AnOffsetOutsideTheSearchRangeIsWarnedAbout) {
   EXPECT_EQ(PairStreams(tracker, reference, options).warning, "");
 }
 
+TEST(PairStreams, ClocksWithDifferentEpochsAreRefusedWithTheirStarts) {
+  // A tracker stamping Unix seconds and a reference counting from 0: the estimate said only "too
+  // few paired samples to estimate the offset", a given offset "(do the streams overlap in
+  // time?)"; neither said the starts differ by 1.7e9 s nor what to give.
+  TrackerStream tracker;
+  ReferenceStream reference;
+  MakeStreams(0.0, &tracker, &reference, 10.0);
+  for (TrackerStreamSample& s : tracker.records) s.time += 1.7e9;
+  StreamPairingOptions options;
+  options.estimate_time_offset = true;
+  for (const bool estimate : {true, false}) {
+    options.estimate_time_offset = estimate;
+    try {
+      PairStreams(tracker, reference, options);
+      ADD_FAILURE() << "paired streams 1.7e9 s apart";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_THAT(e.what(), ::testing::HasSubstr("from 1700000000 to 1700000009.99167 s"));
+      EXPECT_THAT(e.what(), ::testing::HasSubstr("different epochs"));
+      EXPECT_THAT(e.what(), ::testing::HasSubstr("-1700000000.2 s"));
+    }
+  }
+  // The hint's offset pairs them (tracker times of 1.7e9 s have an ulp of 2.4e-7 s).
+  options.estimate_time_offset = true;
+  options.time_offset = -1700000000.2;
+  const StreamPairingResult r = PairStreams(tracker, reference, options);
+  EXPECT_NEAR(r.time_offset, -1.7e9, 1e-5);
+}
+
 TEST(PairStreams, GivenOffsetAndInterpolation) {
   TrackerStream tracker;
   ReferenceStream reference;
