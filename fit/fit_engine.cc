@@ -453,6 +453,16 @@ CalibratedVolume VolumeOf(const std::vector<FitStation>& stations, const Correct
 void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
                   std::chrono::steady_clock::time_point start, FitResult* out) {
   FitResult& result = *out;
+  // Ceres reports CONVERGENCE for a cost that is infinite from the start (its relative change is
+  // NaN, which passes its function tolerance): a model whose noise is so small that the whitened
+  // residuals overflow was "converged" at its start values, and its calibration written.
+  if (!std::isfinite(result.final_cost)) {
+    result.converged = false;
+    result.termination_type = "FAILURE";
+    result.solver_message += std::string(result.solver_message.empty() ? "" : "; ") +
+                             "the final cost is not finite (" + std::to_string(result.final_cost) +
+                             "): the whitened residuals overflow or cannot be evaluated";
+  }
   for (const auto& term : spec->terms) {
     for (const auto& block : term->blocks()) {
       if (!block.identifiability_note.empty() && !block.fixed) {
@@ -1119,6 +1129,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       FitResult result;
       ModelTerm& term = *spec->terms[0];
       result.converged = true;
+      result.termination_type = "CONVERGENCE";
       result.solver_message = "linear least squares (paper eq. 9)";
       result.linear_least_squares = true;
       const auto correction = term.ToCorrection();
@@ -1143,7 +1154,12 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       const int dof = result.num_residuals - result.num_free_parameters;
       result.chi2_per_dof =
           dof > 0 ? 2.0 * result.final_cost / dof : std::numeric_limits<double>::quiet_NaN();
-      const bool covariance = options.compute_covariance && spec->covariance;
+      // (None of a fit that failed: FinishResult.)
+      const bool covariance =
+          options.compute_covariance && spec->covariance && std::isfinite(result.final_cost);
+      if (options.compute_covariance && spec->covariance && !covariance) {
+        result.covariance_message = "not computed: the fit failed";
+      }
       // Stream samples without time runs keep the model covariance (see the covariance section
       // below).
       const bool stream_samples =
@@ -1217,7 +1233,8 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   if (!linear_solution && num_free > 0) {
     ceres::Solve(solver_options, built.problem.get(), &summary);
     result.linear_solver = ceres::LinearSolverTypeToString(solver_options.linear_solver_type);
-    first_initial_cost = summary.initial_cost;
+    first_initial_cost = summary.initial_cost >= 0.0 ? summary.initial_cost
+                                                     : std::numeric_limits<double>::quiet_NaN();
     result.iterations = static_cast<int>(summary.iterations.size()) - 1;
     result.whitening_passes = 1;
     // The pose metrics and the residual forms depend on the values (a station's amplification
@@ -1297,12 +1314,19 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   if (!linear_solution) {
     result.converged = num_free == 0 || summary.termination_type == ceres::CONVERGENCE ||
                        summary.termination_type == ceres::USER_SUCCESS;
+    result.termination_type =
+        num_free == 0 ? "CONVERGENCE" : ceres::TerminationTypeToString(summary.termination_type);
     result.solver_message = num_free == 0 ? "no free parameters" : summary.message;
+    // A solve that failed before its first iteration has none (Ceres' count is then 0, not 1).
+    result.iterations = std::max(result.iterations, 0);
     result.num_residuals = problem.NumResiduals();
     result.num_free_parameters = num_free;
     {
+      // A problem that cannot be evaluated has no cost (it read 0, a perfect fit, with chi2/dof 0).
       double cost = 0.0;
-      problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, nullptr);
+      if (!problem.Evaluate(ceres::Problem::EvaluateOptions(), &cost, nullptr, nullptr, nullptr)) {
+        cost = std::numeric_limits<double>::quiet_NaN();
+      }
       result.final_cost = cost;
       result.initial_cost = num_free == 0 ? cost : first_initial_cost;
     }
@@ -1363,7 +1387,13 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     cov_blocks.push_back(cb);
   }
   double time_offset_stddev = std::numeric_limits<double>::quiet_NaN();
-  if (options.compute_covariance && spec->covariance && !cov_blocks.empty()) {
+  // None of a fit that failed (a final cost that is not finite, FinishResult): its Jacobian is
+  // not finite either, and diagnose's candidate fits crashed in the covariance's eigensolver.
+  const bool finite_cost = std::isfinite(result.final_cost);
+  if (!finite_cost && options.compute_covariance && spec->covariance) {
+    result.covariance_message = "not computed: the fit failed";
+  }
+  if (options.compute_covariance && spec->covariance && !cov_blocks.empty() && finite_cost) {
     CovarianceOptions co;
     co.num_threads = options.num_threads;
     // One cluster per static station: its 6 residuals share the station's noise. Stream samples
@@ -1942,6 +1972,12 @@ Table1 CrossValidate(const std::vector<FitStation>& stations,
     FitOptions options;
     options.compute_covariance = false;
     const FitResult fit = FitModel(train, &spec, options);
+    // A failed fold's chain holds its start values: its "held-out error" is not the model's.
+    if (fit.Failed()) {
+      throw std::runtime_error("cross-validation fold " + std::to_string(f + 1) + " of " +
+                               std::to_string(folds) + ": the fit failed (" + fit.termination_type +
+                               ": " + fit.solver_message + ")");
+    }
     for (const auto& s : test) {
       reported.push_back(s.reported);
       corrected.push_back(fit.chain.Apply(s.reported).pose);
@@ -2018,6 +2054,7 @@ nlohmann::json FitResult::ToJson() const {
     amplified_json.push_back({{"station", a.station}, {"gain", NumberOrNull(a.gain)}});
   }
   return {{"converged", converged},
+          {"termination_type", termination_type},
           {"linear_least_squares", linear_least_squares},
           {"solver_message", solver_message},
           {"linear_solver", linear_solver},

@@ -124,7 +124,18 @@ struct ParameterReport {
 };
 
 struct FitResult {
-  bool converged = false;     // the solver reported convergence
+  // The solver reported convergence and the final cost is finite.
+  bool converged = false;
+  // How the solve ended, Ceres' termination type of the last solve: "CONVERGENCE",
+  // "NO_CONVERGENCE" (stopped at solver.max_iterations: the values are the best found, usable but
+  // not the optimum), "FAILURE" (the solver could not evaluate or solve the problem, or the cost is
+  // not finite whatever the solver said), "USER_SUCCESS" (a statistical stop), "USER_FAILURE";
+  // "CONVERGENCE" without a solve (linear least squares, no free parameters). Failed() fits are
+  // not written as calibrations (trackcal-fit fit/build, trackcal.FitReport.save).
+  std::string termination_type;
+  bool Failed() const {
+    return termination_type == "FAILURE" || termination_type == "USER_FAILURE";
+  }
   // Solved by the lone term's linear least squares (the paper's eq. 9), without the solver: the
   // optimum of a linearised cost, not of the station residuals the solver minimises.
   bool linear_least_squares = false;
@@ -221,10 +232,11 @@ bool EvaluateStationResidual(const ModelSpec& spec, const FitStation& station,
 Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,
                       const std::string& set_name);
 
-// k-fold cross-validation: station i goes to fold i % k (deterministic, stations in file order); each
-// fold is corrected by a model fitted on the others (made fresh by make_spec), and the errors of all
-// folds form one table "cross-validation (k-fold)" (MakeTable1: hemisphere flips left out). Throws
-// if a training set is too small.
+// k-fold cross-validation: station i goes to fold i % k (deterministic, stations in file order);
+// each fold is corrected by a model fitted on the others (made fresh by make_spec), and the errors
+// of all folds form one table "cross-validation (k-fold)" (MakeTable1: hemisphere flips left out).
+// Throws std::invalid_argument if a training set is too small, std::runtime_error naming the fold
+// if a fold's fit failed (FitResult::Failed()).
 Table1 CrossValidate(const std::vector<FitStation>& stations,
                      const std::function<ModelSpec()>& make_spec, int folds,
                      const std::function<void(int)>& on_fold = {});

@@ -410,6 +410,50 @@ TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {
 // defined improvement. ImprovementPercent gives -inf (an error where there was none) or NaN; in
 // the calibration file's fit_statistics they are null, since that file holds finite numbers only
 // (-inf made such a fit fail at save, after the fit).
+// A model whose whitened residuals overflow (position noise 1e-160 mm: a millimetre's misfit is
+// 1e160 sigma, its square beyond the largest double) has an infinite cost from the start. Ceres
+// then reports CONVERGENCE ("|cost_change|/cost: nan <= 1e-12") after 0 iterations: the fit said
+// "converged", and trackcal-fit wrote the start values as the calibration with exit status 0.
+TEST(FitModel, AnInfiniteCostIsAFailureNotAConvergence) {
+  std::mt19937 rng(23);
+  const auto truth = RandomPolynomial(2, &rng);
+  const auto stations = NoiseFreeStations(*truth, 100, &rng);
+  for (const std::string terms : {"[{type: sensor_offset}, {type: polynomial, degree: 1}]",
+                                  "[{type: polynomial, degree: 1}]"}) {  // joint and linear paths
+    SCOPED_TRACE(terms);
+    ModelSpec spec =
+        ParseModelYaml("noise: {position_mm: 1e-160}\nterms: " + terms + "\n", "m.yaml");
+    const FitResult result = FitModel(stations, &spec);
+    EXPECT_FALSE(std::isfinite(result.final_cost));
+    EXPECT_FALSE(result.converged) << result.solver_message;
+    EXPECT_EQ(result.termination_type, "FAILURE") << result.solver_message;
+    EXPECT_TRUE(result.Failed());
+    EXPECT_THAT(result.solver_message, ::testing::HasSubstr("cost is not finite"));
+    EXPECT_GE(result.iterations, 0);
+    EXPECT_EQ(result.ToJson()["termination_type"], "FAILURE");
+    // No covariance of it (a candidate's in trackcal-fit diagnose crashed in its eigensolver).
+    EXPECT_TRUE(result.covariance_estimator.empty()) << result.covariance_estimator;
+    EXPECT_EQ(result.covariance_message, "not computed: the fit failed");
+  }
+}
+
+// Stopped at solver.max_iterations: reported as such (not a failure: the values are the best the
+// solver found, and the calibration records converged: false).
+TEST(FitModel, StoppedAtTheIterationLimitIsNoConvergence) {
+  std::mt19937 rng(29);
+  const auto truth = RandomPolynomial(2, &rng);
+  const auto stations = NoiseFreeStations(*truth, 100, &rng);
+  ModelSpec spec = ParseModelYaml(
+      "solver: {max_iterations: 1}\nterms: [{type: sensor_offset}, {type: polynomial, degree: "
+      "1}]\n",
+      "m.yaml");
+  const FitResult result = FitModel(stations, &spec);
+  EXPECT_FALSE(result.converged) << result.solver_message;
+  EXPECT_EQ(result.termination_type, "NO_CONVERGENCE") << result.solver_message;
+  EXPECT_FALSE(result.Failed());
+  EXPECT_TRUE(std::isfinite(result.final_cost));
+}
+
 TEST(Table1ToJson, AnUndefinedImprovementIsNull) {
   Table1 t;
   t.set_name = "calib";
@@ -440,6 +484,27 @@ TEST(CrossValidate, DeterministicFolds) {
   EXPECT_LT(a.after.position_mm.median, 1e-6);
   EXPECT_LT(a.after.position_mm.mean, 0.2 * a.before.position_mm.mean);
   EXPECT_THROW(CrossValidate(stations, make, 1), std::invalid_argument);
+}
+
+// A fold whose fit failed was corrected by its start values and counted as held-out error. The
+// overflowing noise of AnInfiniteCostIsAFailureNotAConvergence makes every fold fail.
+TEST(CrossValidate, AFailedFoldIsAnErrorNamingIt) {
+  std::mt19937 rng(17);
+  const auto truth = RandomPolynomial(2, &rng);  // not a degree-1 model's: a residual to overflow
+  const auto stations = NoiseFreeStations(*truth, 60, &rng);
+  auto make = [] {
+    return ParseModelYaml(
+        "noise: {position_mm: 1e-160}\nterms: [{type: sensor_offset}, {type: polynomial, degree: "
+        "1}]",
+        "m");
+  };
+  try {
+    CrossValidate(stations, make, 3);
+    ADD_FAILURE() << "no error";
+  } catch (const std::runtime_error& e) {
+    EXPECT_THAT(e.what(),
+                ::testing::HasSubstr("cross-validation fold 1 of 3: the fit failed (FAILURE"));
+  }
 }
 
 // The ridge weights a fit's polynomial used (its Describe() in FitResult::terms).
