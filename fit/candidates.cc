@@ -1716,6 +1716,13 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     // Standard deviations only to assess the model's own source terms (below).
     fo.compute_covariance = !base_sources.empty() && options.min_strength_sigma > 0;
     const FitResult fit = FitModel(stations, &base_spec, fo);
+    // Every candidate is judged against the base: a base at its start values (the solver failed)
+    // would rank them by how they repair that.
+    if (fit.Failed()) {
+      throw std::runtime_error(model_source + ": the model's own fit to " + data_source +
+                               " failed (" + fit.termination_type + ": " + fit.solver_message +
+                               "): no candidate can be compared with it");
+    }
     base_start = TakeFitStart(base_spec);
     base_left_out = fit.left_out;
     base_report_form = fit.report_form;
