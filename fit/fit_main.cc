@@ -278,6 +278,10 @@ int RunFit(int argc, char** argv) {
     for (int i = 0; i < argc; ++i) cmd += (i ? " " : "") + std::string(argv[i]);
     calibration.provenance.command_line = cmd;
   }
+  if (!run.failure.empty()) {  // exits 1 with the report, and no calibration file
+    if (json) std::cout << run.ToJson(std::nullopt).dump(2) << "\n";
+    throw std::runtime_error(run.failure);
+  }
   WriteCalibrationFile(output, calibration);
 
   if (json) {
@@ -408,6 +412,7 @@ int RunBuild(int argc, char** argv) {
     for (int i = 0; i < argc; ++i) cmd += (i ? " " : "") + std::string(argv[i]);
     run.calibration.provenance.command_line = cmd;
   }
+  if (!run.failure.empty()) throw std::runtime_error(run.failure);
   WriteCalibrationFile(output, run.calibration);
 
   nlohmann::json steps = nlohmann::json::array();

@@ -220,6 +220,50 @@ TEST_F(FitCliTest, DataFolderWithoutACaptureSaysWhatACaptureFolderHolds) {
             0);
 }
 
+// A fit that failed (the whitened residuals overflow: position noise 1e-160 mm, an infinite cost
+// that Ceres called converged) exited 0 and wrote its start values as the calibration, over the
+// user's earlier good one. Now: exit 1 naming the model, the data and what failed; the earlier
+// calibration is left as it was; with --json the report (termination_type FAILURE) is printed.
+TEST_F(FitCliTest, AFailedFitExitsNonZeroAndWritesNoCalibration) {
+  std::ofstream(dir_ / "overflow.yaml")
+      << "noise:\n  position_mm: 1e-160\nterms:\n  - type: sensor_offset\n  - type: polynomial\n"
+         "    degree: 1\n";
+  const fs::path out = dir_ / "calib.json";
+  ASSERT_EQ(
+      RunCommand(fit_ + " fit --data " + (dir_ / "cap").string() + " --model " +
+                 (dir_ / "model.yaml").string() + " -o " + out.string() + " --quiet > /dev/null"),
+      0);
+  const std::string good = ReadFileToString(out);
+  const fs::path err = dir_ / "err.txt";
+  const fs::path json = dir_ / "out.json";
+  for (const std::string command : {"fit", "fit --json"}) {
+    SCOPED_TRACE(command);
+    EXPECT_EQ(RunCommand(fit_ + " " + command + " --data " + (dir_ / "cap").string() + " --model " +
+                         (dir_ / "overflow.yaml").string() + " -o " + out.string() + " --quiet > " +
+                         json.string() + " 2> " + err.string()),
+              1);
+    const std::string message = ReadFileToString(err);
+    EXPECT_THAT(message, ::testing::HasSubstr("overflow.yaml: the fit to "));
+    EXPECT_THAT(message, ::testing::HasSubstr("poses.csv failed (FAILURE: "));
+    EXPECT_THAT(message, ::testing::HasSubstr("no calibration is written"));
+    EXPECT_EQ(ReadFileToString(out), good);  // the earlier calibration is kept
+  }
+  const auto doc = nlohmann::json::parse(ReadFileToString(json));
+  EXPECT_EQ(doc["fit"]["termination_type"], "FAILURE");
+  EXPECT_FALSE(doc["fit"]["converged"].get<bool>());
+  EXPECT_TRUE(doc["output"].is_null());
+  // diagnose ranked candidates against that failed base (its start values: "held-out error
+  // 21.2 mm ... chi2/dof inf", exit 0); with every effect it crashed (SIGSEGV) in a candidate's
+  // covariance.
+  EXPECT_EQ(RunCommand(fit_ + " diagnose --data " + (dir_ / "cap").string() + " --model " +
+                       (dir_ / "overflow.yaml").string() + " --effects dipole --quiet > " +
+                       json.string() + " 2> " + err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("overflow.yaml: the model's own fit to " +
+                                   (dir_ / "cap").string() + " failed (FAILURE: "));
+}
+
 // An option given twice took the last value without a word (`-o a.json -o b.json` wrote b.json),
 // `-o --json` wrote the calibration to a file named "--json", and `--folds 2.5` ran 2 folds.
 TEST_F(FitCliTest, AmbiguousOptionsAreUsageErrors) {

@@ -199,11 +199,18 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
     run.time_offset = spec.time_offset->value;
     calib = StationsOfSet(poses, "calib");
   }
+  if (run.result.Failed()) {
+    run.failure = model.source_name + ": the fit to " + data.source + " failed (" +
+                  run.result.termination_type + ": " + run.result.solver_message +
+                  "); no calibration is written";
+  }
   run.num_calib = static_cast<int>(calib.size());
   run.num_valid = static_cast<int>(valid.size());
   run.tables.push_back(EvaluateTable1(run.result.chain, calib, "calib"));
   if (!valid.empty()) run.tables.push_back(EvaluateTable1(run.result.chain, valid, "valid"));
-  if (options.folds >= 2 && (options.cross_validate_with_validation_set || valid.empty())) {
+  // (Not after a failed fit: its folds would fail too, and the error would name a fold.)
+  if (options.folds >= 2 && (options.cross_validate_with_validation_set || valid.empty()) &&
+      run.failure.empty()) {
     run.tables.push_back(CrossValidate(calib, make_spec, options.folds, [&](int f) {
       if (options.on_fold) options.on_fold(f, options.folds);
     }));

@@ -117,6 +117,11 @@ struct FitRunResult {
   int num_calib = 0;
   int num_valid = 0;
   std::vector<std::filesystem::path> protected_paths;  // model file and data files
+  // Why the calibration must not be written, naming the model, the data and what failed: the fit
+  // failed (FitResult::Failed(): the solver's FAILURE, or a cost that is not finite). Empty when
+  // the fit may be written (converged, or stopped at max_iterations: FitResult::termination_type
+  // NO_CONVERGENCE, which the calibration's fit_statistics.converged records as false).
+  std::string failure;
 
   nlohmann::json TablesJson() const;
   // The document `trackcal-fit fit --json` prints ("output": null without a path; with streams
@@ -125,7 +130,8 @@ struct FitRunResult {
 };
 
 // Fits the model to the `calib` set of the data and evaluates Table 1. Throws
-// std::invalid_argument for invalid options, no `calib` stations, or what FitModel rejects.
+// std::invalid_argument for invalid options, no `calib` stations, or what FitModel rejects. A fit
+// that fails is returned with FitRunResult::failure set: the callers write no calibration of it.
 FitRunResult RunFit(LoadedFitData data, const FitModelSource& model,
                     const FitRunOptions& options = {});
 

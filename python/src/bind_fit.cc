@@ -530,10 +530,14 @@ void BindFit(py::module_& m) {
       .def_property_readonly("num_valid_stations", [](const FitRun& r) { return r.num_valid; })
       .def_property_readonly("protected_paths", [](const FitRun& r) { return r.protected_paths; })
       .def_property_readonly("output", [](const FitRun& r) { return r.output; })
+      .def_property_readonly(
+          "failure", [](const FitRun& r) { return r.failure; },
+          "Why the fit may not be saved (the solver failed), naming model and data; '' otherwise.")
       .def(
           "save",
           [](FitRun& r, const fs::path& path, const std::string& command_line) {
             ValueErrors([&] {
+              if (!r.failure.empty()) throw std::runtime_error(r.failure);
               CheckNotAnInput(path, r.protected_paths);
               Calibration cal = r.calibration;
               cal.provenance.command_line = command_line;
@@ -543,7 +547,7 @@ void BindFit(py::module_& m) {
           },
           py::arg("path"), py::arg("command_line") = "",
           "Writes the calibration file atomically; refuses to overwrite any input (model, "
-          "capture).");
+          "capture), and refuses a fit that failed (failure).");
 
   m.def(
       "fit",

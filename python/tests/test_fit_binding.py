@@ -290,6 +290,26 @@ def test_save_never_overwrites_an_input(capture_dir, model_file, tmp_path):
     assert report.to_dict()["output"] == str(out)
 
 
+# Whitened residuals that overflow (position noise 1e-160 mm) give an infinite cost, which Ceres
+# called converged: the report said converged and save() wrote the start values as a calibration.
+OVERFLOW_MODEL = ("noise:\n  position_mm: 1e-160\nterms:\n  - type: sensor_offset\n"
+                  "  - type: polynomial\n    degree: 1\n")
+
+
+def test_a_failed_fit_says_so_and_is_not_saved(capture_dir, tmp_path):
+    report = trackcal.fit(capture_dir, OVERFLOW_MODEL)
+    assert not report.converged
+    assert report.termination_type == "FAILURE"
+    assert report.to_dict()["fit"]["termination_type"] == "FAILURE"
+    assert "<string>: the fit to" in report.failure and "no calibration is written" in report.failure
+    assert report.solver_status().startswith("FAILED (")
+    with pytest.raises(ValueError, match="failed \\(FAILURE: .*the final cost is not finite"):
+        report.save(tmp_path / "calib.json")
+    assert not (tmp_path / "calib.json").exists()
+    good = trackcal.fit(capture_dir, MODEL)
+    assert good.termination_type == "CONVERGENCE" and good.failure == ""
+
+
 def test_progress_exception_stops_the_run(capture_dir):
     calls = []
 

@@ -123,6 +123,22 @@ def test_fit_errors_exit_2_and_keep_inputs(capture_dir, tmp_path):
     assert notes.read_text() == "my notes\n"
 
 
+def test_a_failed_fit_exits_non_zero_and_keeps_the_earlier_calibration(capture_dir, tmp_path):
+    # Position noise 1e-160 mm: the whitened residuals overflow, the cost is infinite from the start
+    # and Ceres called that converged; `trackcal fit` wrote the start values over calib.json.
+    model = tmp_path / "model.yaml"
+    model.write_text(POLY)
+    out = tmp_path / "calib.json"
+    run_cli("fit", "--data", capture_dir, "--model", model, "-o", out, "--folds", "0")
+    before = out.read_bytes()
+    model.write_text("noise:\n  position_mm: 1e-160\nterms:\n  - type: sensor_offset\n"
+                     "  - type: polynomial\n    degree: 1\n")
+    r = run_cli("fit", "--data", capture_dir, "--model", model, "-o", out, "--folds", "0", check=False)
+    assert r.returncode == 2, r.stderr
+    assert "model.yaml: the fit to" in r.stderr and "failed (FAILURE: " in r.stderr, r.stderr
+    assert out.read_bytes() == before
+
+
 def test_fit_on_a_short_stream_says_how_it_paired_and_warns(tmp_path):
     # A 10 s stream along the paper path: a degree-3 error model can mimic a time shift there, so
     # the pairing lowers it and warns (fit/stream_pairing.cc); `trackcal fit` must pass that on,

@@ -88,7 +88,8 @@ class FitReport:
     Attributes: ``tables`` (Table 1 rows as ``trackcal.validation.Table1``: calib, valid when the
     capture has one, cross-validation when ``folds`` >= 2), ``parameters`` (:class:`Parameter`),
     ``identifiability_flags`` ([{coordinate, reason}]), ``outliers`` ([{station, whitened_rms}]),
-    ``converged``, ``chi2_per_dof``, ``terms`` (each term's description), ``calibration`` (a
+    ``converged``, ``termination_type``, ``failure`` (why a failed fit is not saved; "" when it
+    did not fail), ``chi2_per_dof``, ``terms`` (each term's description), ``calibration`` (a
     ``trackcal.Calibration``), ``model`` ({source, text, sha256, terms}).
     """
 
@@ -99,6 +100,11 @@ class FitReport:
         self.fit = fit
         self.tables = [_table1(t) for t in native.tables]
         self.converged: bool = fit["converged"]
+        # How the solve ended (Ceres' termination type: "CONVERGENCE", "NO_CONVERGENCE" at the
+        # model's max_iterations, "FAILURE", ...; docs/fit.md) and, for a fit that failed, why
+        # save() refuses it ("" otherwise).
+        self.termination_type: str = fit.get("termination_type", "")
+        self.failure: str = native.failure
         self.iterations: int = fit["iterations"]
         self.final_cost: float = fit["final_cost"]
         self.chi2_per_dof: Optional[float] = fit["chi2_per_dof"]
@@ -154,8 +160,9 @@ class FitReport:
                 for t in self.tables}
 
     def save(self, path: PathLike, command_line: str = "") -> pathlib.Path:
-        """Writes the calibration file atomically. Refuses (ValueError) to overwrite the model file,
-        the capture, or an existing file that is not a trackcal calibration."""
+        """Writes the calibration file atomically. Refuses (ValueError) a fit that failed
+        (``failure``), and to overwrite the model file, the capture, or an existing file that is not
+        a trackcal calibration."""
         p = pathlib.Path(path)
         self._native.save(p, command_line)
         return p
@@ -183,6 +190,8 @@ class FitReport:
         """'converged after 12 iterations', 'NOT converged after 100 iterations', or for a lone
         polynomial without a ridge (solved in closed form, paper eq. 9) 'solved by linear least
         squares'."""
+        if self.failure:
+            return f"FAILED ({self.fit.get('solver_message', '')}) after {self.iterations} iterations"
         if self.to_dict()["fit"].get("linear_least_squares"):
             return "solved by linear least squares"
         return f"{'converged' if self.converged else 'NOT converged'} after {self.iterations} iterations"
