@@ -78,8 +78,9 @@ TRACKCAL_UNITY_API int32_t trackcal_unity_abi_version(void);
 TRACKCAL_UNITY_API TrackcalUnityTracker* trackcal_unity_open(const char* vrpn_name,
                                                              const char* axes);
 
-/* Stops the network thread and frees the handle. NULL is allowed. Returns within ~50 ms: a
- * host-name lookup still in progress finishes on its own thread. */
+/* Stops the network thread and frees the handle. NULL is allowed. Returns at once (the thread is
+ * woken from its wait; well under a frame): a host-name lookup still in progress finishes on its
+ * own thread. */
 TRACKCAL_UNITY_API void trackcal_unity_close(TrackcalUnityTracker* tracker);
 
 /* TRACKCAL_UNITY_OK and *out filled, TRACKCAL_UNITY_NO_POSE (out->valid = 0), or an error. */

@@ -125,7 +125,30 @@ struct VrpnTrackerClient::Impl {
   Clock::time_point next_ping = Clock::time_point::max();
   Clock::time_point last_heard = Clock::time_point::min();  // the last message from the server
   bool request_pending = false;
+  // Start()'s thread waits in PollSockets for up to 50 ms; Stop() sends a datagram here (a UDP
+  // socket on loopback, connected to itself) so it returns at once. Invalid: Stop() waits.
+  UniqueSocket wake_socket;
 };
+
+namespace {
+
+// A UDP socket on 127.0.0.1 connected to itself, or an invalid one if that cannot be made.
+UniqueSocket OpenWakeSocket() {
+  UniqueSocket s(OpenSocket(SOCK_DGRAM, /*nonblocking=*/true));
+  if (!s.valid()) return s;
+  in_addr loopback{};
+  loopback.s_addr = htonl(INADDR_LOOPBACK);
+  sockaddr_in address = MakeSockaddr(loopback, 0);
+  socklen_t len = sizeof(address);
+  if (::bind(s.get(), reinterpret_cast<const sockaddr*>(&address), sizeof(address)) != 0 ||
+      ::getsockname(s.get(), reinterpret_cast<sockaddr*>(&address), &len) != 0 ||
+      ::connect(s.get(), reinterpret_cast<const sockaddr*>(&address), sizeof(address)) != 0) {
+    s.Reset();
+  }
+  return s;
+}
+
+}  // namespace
 
 VrpnTrackerClient::VrpnTrackerClient(const std::string& name, TrackerClientOptions options)
     : name_(ParseVrpnName(name)), options_(options), impl_(std::make_unique<Impl>()) {
@@ -150,13 +173,22 @@ VrpnTrackerClient::~VrpnTrackerClient() { Stop(); }
 
 void VrpnTrackerClient::Start() {
   if (running_.exchange(true)) return;
+  if (!impl_->wake_socket.valid()) impl_->wake_socket = OpenWakeSocket();
   thread_ = std::thread([this] {
     while (running_) Poll(0.05);
   });
 }
 
 void VrpnTrackerClient::Stop() {
-  if (running_.exchange(false) && thread_.joinable()) thread_.join();
+  if (running_.exchange(false) && thread_.joinable()) {
+    // Wake the thread from its wait rather than let the caller (Unity's main thread) sit out the
+    // rest of it: up to 50 ms, several frames.
+    if (impl_->wake_socket.valid()) {
+      const char byte = 0;
+      SendSocket(impl_->wake_socket.get(), &byte, 1);
+    }
+    thread_.join();
+  }
 }
 
 void VrpnTrackerClient::RequestStaticInfo() {
@@ -393,9 +425,9 @@ void VrpnTrackerClient::Poll(double timeout_s) {
     wake = std::min(wake, impl_->connect_deadline);
   }
 
-  PollFd fds[3];
+  PollFd fds[4];
   int nfds = 0;
-  int tcp_index = -1, listen_index = -1, udp_index = -1;
+  int tcp_index = -1, listen_index = -1, udp_index = -1, wake_index = -1;
   if (impl_->tcp.valid()) {
     short ev = POLLIN;
     if (impl_->state == Impl::State::kConnecting ||
@@ -413,6 +445,10 @@ void VrpnTrackerClient::Poll(double timeout_s) {
     udp_index = nfds;
     fds[nfds++] = PollFd{impl_->udp.get(), POLLIN, 0};
   }
+  if (impl_->wake_socket.valid()) {
+    wake_index = nfds;
+    fds[nfds++] = PollFd{impl_->wake_socket.get(), POLLIN, 0};
+  }
   const auto wait =
       std::chrono::duration_cast<std::chrono::milliseconds>(wake - Clock::now()).count();
   const int rc = PollSockets(fds, static_cast<std::size_t>(nfds),
@@ -424,6 +460,13 @@ void VrpnTrackerClient::Poll(double timeout_s) {
     return;
   }
   if (rc == 0) return;
+  if (wake_index >= 0 && fds[wake_index].revents) {
+    // Drained, and a pending error cleared, so that the next wait is not cut short again.
+    if (fds[wake_index].revents & POLLERR) PendingSocketError(impl_->wake_socket.get());
+    char byte[16];
+    while (ReceiveSocket(impl_->wake_socket.get(), byte, sizeof(byte)) > 0) {
+    }
+  }
   auto handler = [this](const ReceivedMessage& m) {
     impl_->last_heard = Clock::now();  // any message, any device: the server is alive
     HandleMessage(m);
