@@ -311,6 +311,12 @@ void VrpnTrackerClient::BeginConnect() {
   impl_->listen = std::move(listener);
   impl_->state = Impl::State::kLobWaiting;
   impl_->next_lob = Clock::now();  // send at once
+  // A host name may have pointed at an address where no server is (its machine not up yet, or
+  // back with a new DHCP lease): a call-back that does not come is then a connect that hangs, and
+  // the next attempt looks the name up again. An IPv4 address is lobbed at for as long as it takes.
+  if (!ParseIpv4(name_.host)) {
+    impl_->connect_deadline = Clock::now() + Seconds(options_.connect_timeout_s);
+  }
 }
 
 void VrpnTrackerClient::OnTcpConnected() {
@@ -413,11 +419,11 @@ void VrpnTrackerClient::Poll(double timeout_s) {
   if (impl_->state == Impl::State::kIdle) wake = std::min(wake, impl_->next_retry);
   if (impl_->state == Impl::State::kLobWaiting) wake = std::min(wake, impl_->next_lob);
   if (connected_ && !pong_received_) wake = std::min(wake, impl_->next_ping);
-  if (impl_->state == Impl::State::kConnecting ||
+  if (impl_->state == Impl::State::kConnecting || impl_->state == Impl::State::kLobWaiting ||
       (impl_->state == Impl::State::kConnected && !connected_)) {
     // A connect that neither succeeds nor fails (a host that drops the SYN; WSAPoll, which does not
-    // report a refused connect on some Windows versions), or a peer that never sends its cookie,
-    // is retried.
+    // report a refused connect on some Windows versions), a peer that never sends its cookie, or
+    // a lob to a host name's address that never calls back (BeginConnect), is retried.
     if (now >= impl_->connect_deadline) {
       Reset("connect timed out");
       return;

@@ -41,7 +41,8 @@ struct TrackerClientOptions {
   // Lob datagram re-send period while waiting for the call-back [s] (reference: 2 s).
   double lob_retry_s = 2.0;
   // A TCP connect, or the VRPN cookie exchange after it, still under way after this long is
-  // abandoned and retried [s].
+  // abandoned and retried [s]. So is, for a host name (not an IPv4 address), a lob whose call-back
+  // has not come: the retry looks the name up again.
   double connect_timeout_s = 5.0;
   // A connection on which nothing arrives for this long is dropped and made again [s]: a server
   // that died without closing it (a crash, a pulled cable, a sleeping laptop) would otherwise hold

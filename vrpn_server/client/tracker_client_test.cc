@@ -1124,5 +1124,24 @@ TEST(VrpnTrackerClient, AFailedLookUpForAReconnectKeepsTheAddressFoundBefore) {
   EXPECT_GE(lookups, 2);
 }
 
+TEST(VrpnTrackerClient, ALobToAnAddressWhereNoServerAnswersLooksTheNameUpAgain) {
+  // Lob mode (the default, "Tracker0@host"): the first lookup gives an address where no server
+  // is (the server's machine not up yet, or back with a new DHCP lease while the old record was
+  // still served). The lob is re-sent there for ever unless the wait for the call-back ends like
+  // a connect that hangs, with a new lookup that finds the server.
+  auto count = std::make_shared<std::atomic<int>>(0);
+  TrackerClientOptions options = QuickRetries();
+  options.lob_retry_s = 0.1;
+  options.resolve_host = [count](const std::string&) -> std::optional<std::string> {
+    return ++*count == 1 ? "127.0.0.2" : "127.0.0.1";
+  };
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  VrpnTrackerClient client("Tracker0@tracker.lab:" + std::to_string(server.port()), options);
+  EXPECT_TRUE(PollUntil({&client}, [&] { return client.pong_received(); }))
+      << "lookups " << *count << ", lob attempts " << client.connect_attempts();
+  EXPECT_GE(*count, 2);
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
