@@ -1,13 +1,14 @@
 // trackcal-fit: fits a correction model to a capture, registers the optical frame, pairs streams.
 //
 //   trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K]
-//                    [--start fit.json] [--json] [--quiet]
+//                    [--start fit.json] [--sensor N] [--json] [--quiet]
 //   trackcal-fit register --markers markers.csv --tracker tracker.csv -o poses.csv
 //                         [--set NAME | --poses poses.csv [--model model.yaml]] [--json] [--quiet]
 //                         [--optical-noise-mm S] [--tracker-noise-mm S] [--tracker-noise-deg S]
 //                         [--allow-unidentifiable] [--keep-all-stations] [--sensor N]
 //   trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] [--effects LIST]
-//                         [--cross-validate-top N] [--exact-cv] [--threads N] [--json] [--quiet]
+//                         [--cross-validate-top N] [--exact-cv] [--threads N] [--sensor N]
+//                         [--json] [--quiet]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
 //                     [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N]
 //                     -o poses.csv [--json]
@@ -60,10 +61,10 @@ void PrintUsage(std::ostream& out) {
   out << "usage:\n"
          "  trackcal-fit fit --data DIR|poses.csv --model model.yaml -o calib.json [--folds K] "
          "[--start fit.json]\n"
-         "                   [--json] [--quiet]\n"
+         "                   [--sensor N] [--json] [--quiet]\n"
          "  trackcal-fit build --data DIR|poses.csv --model settings.yaml -o calib.json "
          "[--model-out model.yaml]\n"
-         "                     [--sources N] [--folds K] [--json] [--quiet]\n"
+         "                     [--sources N] [--folds K] [--sensor N] [--json] [--quiet]\n"
          "  trackcal-fit diagnose --data DIR|poses.csv --model model.yaml [--folds K] "
          "[--effects LIST]\n"
          "                        [--cross-validate-top N] [--exact-cv] [--threads N] [--json] "
@@ -218,8 +219,9 @@ void PrintParameters(const FitResult& result, std::ostream& out) {
 }
 
 int RunFit(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv, {"--data", "--model", "-o", "--folds", "--start"},
-                              {"--json", "--quiet"});
+  const Args args =
+      ParseArgs(argc, argv, {"--data", "--model", "-o", "--folds", "--start", "--sensor"},
+                {"--json", "--quiet"});
   const fs::path data = args.Get("--data");
   const fs::path model_path = args.Get("--model");
   const fs::path output = args.Get("-o");
@@ -231,7 +233,7 @@ int RunFit(int argc, char** argv) {
   // The pipeline (data resolution, stream pairing, joint clock offset, Table 1, calibration
   // contents) is fit/fit_run.h, shared with the Python binding.
   const FitModelSource model{ReadFileToString(model_path), model_path.string(), model_path};
-  LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt},
+  LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt, SensorOption(args, 0)},
                                      ParseModelYaml(model.text, model.source_name));
   PrintPairingWarning(data, loaded);
   std::vector<fs::path> inputs = {model_path};
@@ -336,9 +338,9 @@ int RunFit(int argc, char** argv) {
 // build: the chain chosen by held-out error (fit/chain_builder.h, docs/model-file.md "Building a
 // chain"), then fitted and written as `fit` does.
 int RunBuild(int argc, char** argv) {
-  const Args args = ParseArgs(argc, argv, {"--data", "--model", "-o", "--model-out", "--sources",
-                                           "--folds"},
-                              {"--json", "--quiet"});
+  const Args args = ParseArgs(
+      argc, argv, {"--data", "--model", "-o", "--model-out", "--sources", "--folds", "--sensor"},
+      {"--json", "--quiet"});
   const fs::path data = args.Get("--data");
   const fs::path settings_path = args.Get("--model");
   const fs::path output = args.Get("-o");
@@ -358,7 +360,8 @@ int RunBuild(int argc, char** argv) {
   const std::string settings_text = ReadFileToString(settings_path);
   const ModelSpec settings = ParseModelSettingsYaml(settings_text, settings_path.string());
   builder.settings_yaml = ModelSettingsBlockYaml(settings_text, settings_path.string());
-  LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, settings);
+  LoadedFitData loaded =
+      LoadFitData({data, std::nullopt, std::nullopt, SensorOption(args, 0)}, settings);
   PrintPairingWarning(data, loaded);
   std::vector<fs::path> inputs = {settings_path};
   inputs.insert(inputs.end(), loaded.protected_paths.begin(), loaded.protected_paths.end());
@@ -453,7 +456,7 @@ int RunBuild(int argc, char** argv) {
 int RunDiagnose(int argc, char** argv) {
   const Args args = ParseArgs(argc, argv,
                               {"--data", "--model", "--folds", "--effects", "--cross-validate-top",
-                               "--threads"},
+                               "--threads", "--sensor"},
                               {"--json", "--quiet", "--exact-cv"});
   const fs::path data = args.Get("--data");
   const fs::path model_path = args.Get("--model");
@@ -489,7 +492,8 @@ int RunDiagnose(int argc, char** argv) {
 
   // Data resolved as `fit` resolves it (fit/fit_run.h); streams are paired with the model's
   // time_offset, at the offset `fit` estimates when the model frees it.
-  LoadedFitData loaded = LoadFitData({data, std::nullopt, std::nullopt}, spec);
+  LoadedFitData loaded =
+      LoadFitData({data, std::nullopt, std::nullopt, SensorOption(args, 0)}, spec);
   PrintPairingWarning(data, loaded);
   if (!loaded.stream_stations.empty()) {
     if (options.progress) options.progress("fitting the model's clock offset, as fit does");

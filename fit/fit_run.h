@@ -49,6 +49,11 @@ struct FitData {
   std::optional<std::filesystem::path> path;         // capture folder or poses.csv
   std::optional<PoseCapture> in_memory;              // used when path is not set
   std::optional<std::filesystem::path> loaded_from;  // in_memory's file (protected, not hashed)
+  // The receiver (capture `sensor` column, 1-based) whose stations are fitted; 0: the data must
+  // hold one sensor only. A calibration is one receiver's (its sensor offset and coil gains), so
+  // stations of several sensors are refused rather than fitted as one receiver. With streams, the
+  // tracker stream's sensor paired (0: the lowest, with a pairing warning when there are several).
+  int sensor = 0;
 };
 
 // The stations of a FitData, resolved as described in the file comment.
@@ -68,9 +73,12 @@ struct LoadedFitData {
   std::shared_ptr<ReferenceStream> reference_stream;
   std::optional<StreamPairingOptions> pairing;
   std::vector<FitStation> stream_stations;  // the pairing's calib stations with velocities
+  int stream_sensor = 0;  // with streams: the tracker sensor paired (FitData::sensor, 0: lowest)
 };
 
-// Throws std::invalid_argument / std::runtime_error (file, line, column) for unreadable data.
+// Throws std::invalid_argument / std::runtime_error (file, line, column) for unreadable data, and
+// std::invalid_argument naming the sensors for stations of several sensors without
+// FitData::sensor, or a FitData::sensor the data do not have.
 LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec);
 
 // The time_offset candidate's pairing (CandidateOptions::pair_streams) of `data`'s streams: pairs

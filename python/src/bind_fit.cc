@@ -266,8 +266,10 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
 // overwritten) or an in-memory capture (its .path attribute protected, not hashed as input).
 using DataSource = fit::FitData;
 
-DataSource ResolveData(const py::handle& data) {
+DataSource ResolveData(const py::handle& data, int sensor = 0) {
+  if (sensor < 0) throw py::value_error("sensor must be a receiver number (1, 2, ...) or 0");
   DataSource out;
+  out.sensor = sensor;
   if (IsPathLike(data)) {
     out.path = ToPath(data);
   } else {
@@ -551,8 +553,9 @@ void BindFit(py::module_& m) {
 
   m.def(
       "fit",
-      [](const py::object& data, const py::object& model, int folds, const py::object& progress) {
-        const DataSource source = ResolveData(data);
+      [](const py::object& data, const py::object& model, int folds, const py::object& progress,
+         int sensor) {
+        const DataSource source = ResolveData(data, sensor);
         const ModelSource model_source = ValueErrors([&] { return ResolveModel(model); });
         ProgressRelay relay(progress);
         std::shared_ptr<FitRun> run;
@@ -565,18 +568,19 @@ void BindFit(py::module_& m) {
         return run;
       },
       py::arg("data"), py::arg("model"), py::kw_only(), py::arg("folds") = 0,
-      py::arg("progress") = py::none(),
+      py::arg("progress") = py::none(), py::arg("sensor") = 0,
       "Fits a model file to the calib set of a capture, as `trackcal-fit fit` does. data: capture "
       "folder, poses.csv path or PoseCapture; model: path or YAML text; folds >= 2 adds k-fold "
-      "cross-validation; progress(stage, done, total) is called per solver iteration and fold.");
+      "cross-validation; progress(stage, done, total) is called per solver iteration and fold; "
+      "sensor: the receiver whose stations are fitted (0: the data must hold one sensor).");
 
 #ifdef TRACKCAL_HAVE_CANDIDATES
   m.def(
       "diagnose_candidates",
       [](const py::object& data, const py::object& model, int folds,
          const std::optional<std::vector<std::string>>& effects, int cross_validate_top,
-         const py::object& progress) {
-        const DataSource source = ResolveData(data);
+         const py::object& progress, int sensor) {
+        const DataSource source = ResolveData(data, sensor);
         const ModelSource model_source = ValueErrors([&] { return ResolveModel(model); });
         return JsonToPython(DiagnoseCandidatesJson(source, model_source, folds,
                                                    effects.value_or(std::vector<std::string>{}),
@@ -585,7 +589,7 @@ void BindFit(py::module_& m) {
       py::arg("data"), py::arg("model"), py::kw_only(), py::arg("folds") = 5,
       py::arg("effects") = py::none(),
       py::arg("cross_validate_top") = fit::CandidateOptions().cross_validate_top,
-      py::arg("progress") = py::none(),
+      py::arg("progress") = py::none(), py::arg("sensor") = 0,
       "Ranks the catalog effects the model lacks (fit/candidates.h): the document of "
       "`trackcal-fit diagnose --json` as a dict. cross_validate_top N > 0 cross-validates only "
       "the N candidates with the best BIC (0: every one). progress(message) gets the ranking's "

@@ -2,6 +2,7 @@
 command line on the same data: same tables, same parameters, same calibration, same poses."""
 
 import csv
+import dataclasses
 import json
 import pathlib
 import re
@@ -510,3 +511,39 @@ def test_pair_says_what_it_warns(tmp_path):
         cap = captures.load(tmp_path, time_offset=0.0)
     assert chosen.warning == ""
     assert "paired sensor 1" in cap.origin["warning"]
+
+
+def two_receivers(capture_dir):
+    """The capture's stations as receiver 1 and again as receiver 2, whose body (the reference)
+    sits 3.7 cm further: a lab that captured its head and hand receivers into one poses.csv."""
+    one = captures.load_poses(capture_dir)
+    fields = {}
+    for f in dataclasses.fields(one):
+        v = getattr(one, f.name)
+        if isinstance(v, np.ndarray):
+            w = v.copy()
+            if f.name == "sensor":
+                w[:] = 2
+            elif f.name == "reference_positions":
+                w = w + np.array([0.03, -0.02, 0.01])
+            v = np.concatenate([v, w])
+        fields[f.name] = v
+    mixed = captures.PoseCapture(**fields)
+    return mixed, mixed.subset(mixed.sensor == 2)
+
+
+def test_stations_of_several_receivers_are_refused_or_fitted_one_at_a_time(capture_dir, tmp_path):
+    # Fitted as one receiver without a word before: its calibration fitted neither receiver.
+    mixed, second = two_receivers(capture_dir)
+    path = write_poses(tmp_path / "mixed.csv", mixed)
+    for data in (mixed, path):
+        with pytest.raises(ValueError, match=r"stations of sensors 1, 2 .*sensor=N"):
+            trackcal.fit(data, MODEL)
+    picked = trackcal.fit(path, MODEL, sensor=2)
+    alone = trackcal.fit(second, MODEL)
+    assert_same(without_timings(picked.to_dict()["tables"]), without_timings(alone.to_dict()["tables"]))
+    with pytest.raises(ValueError, match=r"no station of sensor 3 \(the sensor column has 1, 2\)"):
+        trackcal.fit(mixed, MODEL, sensor=3)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="sensor must be a receiver number"):
+            trackcal.fit(mixed, MODEL, sensor=bad)

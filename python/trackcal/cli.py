@@ -267,7 +267,8 @@ def cmd_fit(args, term) -> int:
     data = markers if markers is not None else args.data
     folds = args.folds if args.folds is not None else (
         (0 if "valid" in markers.sets else 5) if markers is not None else (0 if _has_valid_set(args.data) else 5))
-    report = trackcal.fit(data, args.model, folds=folds, progress=term.stage_progress())
+    report = trackcal.fit(data, args.model, folds=folds, progress=term.stage_progress(),
+                          sensor=args.sensor)
     if report.pairing_warning:  # on stderr, so --json stays one document
         data = pathlib.Path(args.data)
         print(f"warning: {data / 'tracker_stream.csv'}, {data / 'reference_stream.csv'}: "
@@ -674,6 +675,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, help="calibration file to write (never over an input)")
     sp.add_argument("--folds", type=int, default=None,
                     help="K-fold cross-validation (default: 5 when the capture has no validation set)")
+    sp.add_argument("--sensor", type=int, default=None,
+                    help="receiver whose stations are fitted (the capture's sensor column, from 1); "
+                         "needed when the capture holds several")
     sp.add_argument("--workdir", help="record the fit in WORKDIR/history.jsonl (model copy, data hashes, scores)")
     sp.add_argument("--label", help="what changed (history label; default: the terms added or removed)")
     sp.add_argument("--json", action="store_true", help="print trackcal-fit's --json document instead of text")

@@ -33,7 +33,7 @@ def candidates_available() -> bool:
 
 def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[str]] = None,
                         progress: Optional[Callable[[str], None]] = None,
-                        cross_validate_top: int = 3) -> CandidatesDoc:
+                        cross_validate_top: int = 3, sensor: Optional[int] = None) -> CandidatesDoc:
     """The ranking of candidate effects as a dict (the JSON document of ``trackcal-fit diagnose
     --json``): ``base`` (the model's own scores), ``candidates`` (best first: effect, model_change,
     insert_index, cross-validated errors, cv_drop_percent, delta_bic, p_value, significant, reason,
@@ -43,7 +43,8 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
     restrict the catalog to these term types (None: all); ``progress(message)`` receives the
     ranking's progress messages ("fitting dipole (fold 3/5)"); ``cross_validate_top`` N > 0
     cross-validates only the N candidates with the best BIC (the others are reported screened
-    out, never significant), 0 every one (docs/diagnose.md, Speed). Ctrl-C (or an exception from
+    out, never significant), 0 every one (docs/diagnose.md, Speed); ``sensor``: the receiver whose
+    stations are ranked (None: the data must hold one sensor, as ``trackcal.fit``). Ctrl-C (or an exception from
     ``progress``) stops the ranking at its candidates' next stage and is raised."""
     if not candidates_available():
         raise NotImplementedError("this trackcal build has no candidate ranking (fit/candidates.h); "
@@ -57,8 +58,9 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
             # as "every effect": say so instead of ranking what was not asked for.
             raise ValueError("effects: an empty list restricts the catalog to nothing; pass None "
                              "for every effect")
+    from trackcal.fitting import _sensor_arg
     kwargs = {"folds": folds, "effects": effects,
-              "cross_validate_top": cross_validate_top}
+              "cross_validate_top": cross_validate_top, "sensor": _sensor_arg(sensor)}
     if progress is not None:
         kwargs["progress"] = progress
     return _core.diagnose_candidates(data, model, **kwargs)

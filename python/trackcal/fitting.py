@@ -238,7 +238,17 @@ def _data_arg(data):
     raise ValueError("data must be a capture folder, a poses.csv path or a trackcal.captures.PoseCapture")
 
 
-def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None) -> FitReport:
+def _sensor_arg(sensor) -> int:
+    """``sensor`` of fit/diagnose_candidates as the engine takes it (0: none given)."""
+    if sensor is None:
+        return 0
+    if isinstance(sensor, bool) or not float(sensor).is_integer() or sensor < 1:
+        raise ValueError(f"sensor must be a receiver number (1, 2, ...), got {sensor!r}")
+    return int(sensor)
+
+
+def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None,
+        sensor: Optional[int] = None) -> FitReport:
     """Fits a model file (docs/model-file.md) to the ``calib`` stations of a capture.
 
     ``data``: capture folder (poses.csv, or tracker/reference streams paired with the model's
@@ -247,9 +257,13 @@ def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None) -> 
     fold i mod k, as ``trackcal-fit``); the validation set, when present, is always evaluated.
     ``progress(stage, done, total)`` is called after each solver iteration (stage "fit") and
     cross-validation fold (stage "cross-validation"); an exception it raises stops the run.
+    ``sensor``: the receiver (the capture's ``sensor`` column, from 1) whose stations are fitted;
+    None: the data must hold one sensor (a calibration is one receiver's: stations of several are
+    refused, naming them, as ``trackcal-fit fit --sensor N``).
     """
     info = _core.parse_model(model)
-    native = _core.fit(_data_arg(data), model, folds=folds, progress=progress)
+    native = _core.fit(_data_arg(data), model, folds=folds, progress=progress,
+                       sensor=_sensor_arg(sensor))
     return FitReport(native, info)
 
 
