@@ -50,7 +50,8 @@ void SelectSensor(PoseCapture* poses, int sensor, const std::string& source) {
         " (the sensor column): a calibration is fitted from one receiver's stations (each "
         "receiver has its own sensor offset and coil gains); fit each receiver on its own with "
         "--sensor N, N one of " +
-        list + " (trackcal-fit fit/build/diagnose, trackcal fit; Python: " +
+        list +
+        " (trackcal-fit fit/build/diagnose, trackcal fit/validate/diagnose/report; Python: " +
         "trackcal.fit(..., sensor=N)), and serve each file on VRPN sensor N-1 " +
         "(trackcal_Calibration ... sensor=<N-1>, docs/vrpn-config.md)");
   }

@@ -158,3 +158,44 @@ def test_fit_on_a_short_stream_says_how_it_paired_and_warns(tmp_path):
     doc = json.loads(r.stdout)
     assert doc["pairing_warning"].startswith("the clock offset is poorly identified")
     assert "poorly identified" in r.stderr
+
+
+def test_a_capture_of_several_receivers_is_refused_or_used_one_receiver_at_a_time(capture_dir, tmp_path):
+    # A poses.csv with the head (sensor 1) and hand (sensor 2) receivers: validate and diagnose
+    # corrected both with one receiver's calibration and printed one table over both, without a
+    # word (the hand's 54 mm were "corrected" to 63 mm by the head's file, hidden in the mean).
+    import dataclasses
+    import numpy as np
+    from trackcal import captures
+    from understand_support import write_poses
+    one = captures.load_poses(capture_dir)
+    fields = {}
+    for f in dataclasses.fields(one):
+        v = getattr(one, f.name)
+        if isinstance(v, np.ndarray):
+            w = v.copy()
+            if f.name == "sensor":
+                w[:] = 2
+            elif f.name == "reference_positions":
+                w = w + np.array([0.03, -0.02, 0.01])  # the other body's offset
+            v = np.concatenate([v, w])
+        fields[f.name] = v
+    mixed = captures.PoseCapture(**fields)
+    mixed_csv = write_poses(tmp_path / "mixed.csv", mixed)
+    second_csv = write_poses(tmp_path / "second.csv", mixed.subset(mixed.sensor == 2))
+    model = tmp_path / "model.yaml"
+    model.write_text(POLY)
+    r = run_cli("fit", "--data", mixed_csv, "--model", model, "-o", tmp_path / "mixed.json", check=False)
+    assert r.returncode != 0 and "stations of sensors 1, 2" in r.stderr, r.stderr
+    assert not (tmp_path / "mixed.json").exists()
+    cal = tmp_path / "hand.json"
+    run_cli("fit", "--data", mixed_csv, "--model", model, "-o", cal, "--sensor", "2")
+    for command in (["validate"], ["diagnose", "--permutations", "0"]):
+        r = run_cli(*command, mixed_csv, "-c", cal, check=False)
+        assert r.returncode != 0, command
+        assert "stations of sensors 1, 2" in r.stderr and "--sensor N" in r.stderr, r.stderr
+    picked = json.loads(run_cli("validate", mixed_csv, "-c", cal, "--sensor", "2", "--json").stdout)
+    alone = json.loads(run_cli("validate", second_csv, "-c", cal, "--json").stdout)
+    assert picked["tables"] == alone["tables"]
+    r = run_cli("validate", mixed_csv, "-c", cal, "--sensor", "3", check=False)
+    assert r.returncode != 0 and "no station of sensor 3 (the sensor column has 1, 2)" in r.stderr, r.stderr

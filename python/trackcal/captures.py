@@ -210,7 +210,8 @@ def capture_kind(path: PathLike) -> str:
 
 
 def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: float = 0.5,
-         register_markers: bool = False, register_options: Optional[dict] = None) -> PoseCapture:
+         register_markers: bool = False, register_options: Optional[dict] = None,
+         sensor: Optional[int] = None) -> PoseCapture:
     """Any capture as paired stations (docs/captures.md), whatever the folder holds:
 
     - ``poses.csv`` (or a folder with one): read as it is;
@@ -225,6 +226,11 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
       whose ``set`` column then says which stations register (``reg``) and which set each station
       is in; without a poses.csv every station registers and is set ``calib``.
 
+    ``sensor`` (the ``sensor`` column, from 1) keeps that receiver's stations: a poses.csv's rows
+    of it, the tracker stream's samples of it paired, the markers registered with its tracker.csv
+    rows; ``ValueError`` when the capture has none. None keeps every station (the lowest sensor of
+    streams, sensor 1 of markers).
+
     ``origin`` says which, with the offset used (and its source) or the registration's chi-square.
     """
     from trackcal.fitting import pair, register
@@ -236,9 +242,19 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
             raise ValueError(f"{p}: register_markers needs a folder with {' and '.join(MARKER_FILES)}")
         labels = p / "poses.csv" if (p / "poses.csv").is_file() else None
         kind = "markers"
+    if sensor is not None and (isinstance(sensor, bool) or int(sensor) != sensor or sensor < 1):
+        raise ValueError(f"sensor must be a receiver number (1, 2, ...), got {sensor!r}")
     if kind == "poses":
         cap = load_poses(p)
         cap.origin = {"kind": "poses", "files": [str(cap.path)]}
+        if sensor is not None:
+            have = sorted(int(s) for s in np.unique(cap.sensor))
+            if sensor not in have:
+                raise ValueError(f"{cap.path}: no station of sensor {sensor} (the sensor column has "
+                                 f"{', '.join(map(str, have)) or 'none'})")
+            origin = cap.origin
+            cap = cap.subset(cap.sensor == sensor)
+            cap.origin = origin
         return cap
     if kind == "streams":
         estimate = time_offset is None
@@ -246,7 +262,8 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
             warnings.simplefilter("ignore", UserWarning)
             result = pair(p / STREAM_FILES[0], p / STREAM_FILES[1],
                           time_offset=0.0 if estimate else float(time_offset),
-                          estimate_time_offset=estimate, search_range=search_range)
+                          estimate_time_offset=estimate, search_range=search_range,
+                          sensor=int(sensor or 0))
         cap = result.poses
         first = carry_stream_columns(cap, p / STREAM_FILES[0], p / STREAM_FILES[1], result.time_offset_s)
         cap.path = p / STREAM_FILES[0]
@@ -256,7 +273,10 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
                       "paired": len(cap), "dropped": int(result.dropped), "sensor": first,
                       "warning": result.warning}
         return cap
-    result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], poses=labels, **(register_options or {}))
+    options = dict(register_options or {})
+    if sensor is not None:
+        options["sensor"] = int(sensor)
+    result = register(p / MARKER_FILES[0], p / MARKER_FILES[1], poses=labels, **options)
     cap = result.poses
     cap.path = p / MARKER_FILES[1]
     cap.origin = {"kind": "markers", "files": [str(p / n) for n in MARKER_FILES] + ([str(labels)] if labels else []),

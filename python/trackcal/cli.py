@@ -105,10 +105,23 @@ def _load(args, fit_report=None):
     if cal is None and fit_report is not None:
         cal = fit_report.calibration
     offset, source = _time_offset(args, cal, fit_report)
-    capture = load(args.capture, time_offset=offset, register_markers=getattr(args, "register_markers", False))
+    capture = load(args.capture, time_offset=offset, register_markers=getattr(args, "register_markers", False),
+                   sensor=getattr(args, "sensor", None))
+    _require_one_sensor(capture)
     if (capture.origin or {}).get("kind") == "streams":
         capture.origin["time_offset_source"] = source
     return capture, cal
+
+
+def _require_one_sensor(capture) -> None:
+    """A capture of several receivers is refused, naming them and --sensor: each receiver has its
+    own calibration (sensor offset, coil gains), and tables over all of them mixed the receivers."""
+    import numpy as np
+    sensors = sorted(int(s) for s in np.unique(capture.sensor))
+    if len(sensors) > 1:
+        names = ", ".join(map(str, sensors))
+        raise ValueError(f"{capture.path}: stations of sensors {names} (the sensor column): each receiver "
+                         f"has its own calibration; choose one with --sensor N, N one of {names}")
 
 
 def _capture_files(capture) -> List[str]:
@@ -238,12 +251,12 @@ def _colour_table(term, t, held_out: bool) -> str:
     return "\n".join(lines) + ("\n" if text.endswith("\n") else "")
 
 
-def _markers_capture(path):
+def _markers_capture(path, sensor=None):
     """A folder of raw optical markers (markers.csv + tracker.csv, no poses.csv or streams) as its
     registered stations (trackcal.captures.load: every station registers), since the fit engine
     reads only poses.csv and streams; None for any other capture."""
     from trackcal import captures
-    return captures.load(path) if captures.capture_kind(path) == "markers" else None
+    return captures.load(path, sensor=sensor) if captures.capture_kind(path) == "markers" else None
 
 
 def cmd_fit(args, term) -> int:
@@ -263,7 +276,7 @@ def cmd_fit(args, term) -> int:
     # Raw markers are registered first, as validate, diagnose and report do (docs/understand.md,
     # "Captures"); the engine alone said "<folder>/poses.csv: cannot open file". After the output
     # checks, so a bad -o does not wait for the registration.
-    markers = _markers_capture(args.data)
+    markers = _markers_capture(args.data, args.sensor)
     data = markers if markers is not None else args.data
     folds = args.folds if args.folds is not None else (
         (0 if "valid" in markers.sets else 5) if markers is not None else (0 if _has_valid_set(args.data) else 5))
@@ -369,7 +382,8 @@ def _diagnosis(args, term):
         has_valid = "valid" in registered[0].sets if registered else _has_valid_set(args.capture)
         streams = not registered and captures.capture_kind(args.capture) == "streams"
         held_out = 0 if getattr(args, "cross_validate", 0) or has_valid or streams else 5
-        fit_report = trackcal.fit(data, model, folds=held_out, progress=term.stage_progress())
+        fit_report = trackcal.fit(data, model, folds=held_out, progress=term.stage_progress(),
+                                  sensor=args.sensor)
     if registered:
         capture, cal = registered[0], registered[1] or (fit_report.calibration if fit_report else None)
     else:
@@ -389,6 +403,7 @@ def _diagnosis(args, term):
         if diagnosis.candidates_available():
             effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
             doc = diagnosis.diagnose_candidates(data, model, folds=args.folds, effects=effects,
+                                                sensor=args.sensor,
                                                 cross_validate_top=args.cross_validate_top,
                                                 progress=term.message_progress())
             term.end_progress()
@@ -629,6 +644,9 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--register-markers", action="store_true",
                         help="derive the reference poses from the folder's markers.csv + tracker.csv (registered "
                              "with the reg stations of its poses.csv, if any) instead of reading poses.csv")
+        sp.add_argument("--sensor", type=int, default=None, metavar="N",
+                        help="receiver whose stations are used (the capture's sensor column, from 1; VRPN "
+                             "sensor N-1): needed when the capture holds several receivers")
         sp.add_argument("--residuals", metavar="CSV",
                         help="write every station's residuals (before/after, vectors, outside flag) to this "
                              "new CSV file")
