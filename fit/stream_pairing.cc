@@ -371,6 +371,106 @@ Curvature CurvatureRatio(const std::vector<const TrackerStreamSample*>& samples,
   return out;
 }
 
+// The clock drift: the reference clock's rate relative to the tracker's minus 1, estimated as
+// RefineOffset estimates the offset but with a shift offset + rate (t - t_mid) per sample (t_mid
+// the middle of the tracker stream), both refined by Gauss-Newton jointly with the error model,
+// and a Newey-West covariance of the two from the same per-sample scores. NaN when too few
+// samples pair.
+struct DriftEstimate {
+  double rate = std::numeric_limits<double>::quiet_NaN();
+  double stddev = std::numeric_limits<double>::quiet_NaN();
+  double span = 0.0;  // [s] of the tracker samples
+  // Of the rate against the error model and the offset (H_rr (H^-1)_rr, as the offset's).
+  double variance_inflation = std::numeric_limits<double>::quiet_NaN();
+};
+DriftEstimate EstimateDrift(const std::vector<const TrackerStreamSample*>& samples,
+                            const ReferenceStream& reference, const StreamPairingOptions& options,
+                            double offset) {
+  DriftEstimate out;
+  if (samples.size() < 10) return out;
+  const double h = 0.5 * MedianReferencePeriod(reference);
+  const double first = samples.front()->time, last = samples.back()->time;
+  out.span = last - first;
+  if (!(out.span > 0.0)) return out;
+  const double mid = 0.5 * (first + last);
+  const double tracker_rate = (samples.size() - 1) / out.span;
+  const int lags = static_cast<int>(options.correlation_time_s * tracker_rate);
+  double rate = 0.0;
+  for (int step = 0; step < options.max_gauss_newton_steps; ++step) {
+    std::vector<size_t> rows;
+    std::vector<Rigid3d> at, before, after;
+    for (size_t i = 0; i < samples.size(); ++i) {
+      const double t = samples[i]->time + offset + rate * (samples[i]->time - mid);
+      auto a = InterpolateReference(reference, t, options.max_gap_s);
+      auto b = InterpolateReference(reference, t - h, options.max_gap_s);
+      auto c = InterpolateReference(reference, t + h, options.max_gap_s);
+      if (!a || !b || !c) continue;
+      rows.push_back(i);
+      at.push_back(*a), before.push_back(*b), after.push_back(*c);
+    }
+    const Eigen::Index n = static_cast<Eigen::Index>(rows.size());
+    if (n < 10) return DriftEstimate{};
+    Eigen::VectorXd d(3 * n), dd(3 * n), ddt(3 * n);
+    for (Eigen::Index r = 0; r < n; ++r) {
+      const TrackerStreamSample& s = *samples[rows[r]];
+      d.segment<3>(3 * r) = s.transmitter_from_receiver.translation - at[r].translation;
+      const Eigen::Vector3d g = (before[r].translation - after[r].translation) / (2.0 * h);
+      dd.segment<3>(3 * r) = g;
+      ddt.segment<3>(3 * r) = g * (s.time - mid);
+    }
+    const ErrorModel model(samples, rows, options);
+    const Eigen::VectorXd e0 = model.Residual(d);
+    Eigen::MatrixXd g(3 * n, 2);
+    g.col(0) = model.Residual(dd);
+    g.col(1) = model.Residual(ddt);
+    const Eigen::Matrix2d hessian = g.transpose() * g;
+    if (!(hessian.determinant() > 0.0)) return DriftEstimate{};
+    const Eigen::Matrix2d inverse = hessian.inverse();
+    const Eigen::Vector2d delta = -inverse * (g.transpose() * e0);
+    const Eigen::VectorXd e = e0 + g * delta;
+    Eigen::MatrixXd score(n, 2);
+    for (Eigen::Index i = 0; i < n; ++i) {
+      score(i, 0) = g.col(0).segment<3>(3 * i).dot(e.segment<3>(3 * i));
+      score(i, 1) = g.col(1).segment<3>(3 * i).dot(e.segment<3>(3 * i));
+    }
+    Eigen::Matrix2d meat = score.transpose() * score;
+    for (int l = 1; l <= lags && l < n; ++l) {
+      const double w = 1.0 - static_cast<double>(l) / (lags + 1);
+      const Eigen::Matrix2d c = score.topRows(n - l).transpose() * score.bottomRows(n - l);
+      meat += w * (c + c.transpose());
+    }
+    const Eigen::Matrix2d covariance = inverse * meat * inverse;
+    offset += delta[0];
+    rate += delta[1];
+    out.rate = rate;
+    out.stddev = std::sqrt(std::max(covariance(1, 1), 0.0));
+    out.variance_inflation = ddt.squaredNorm() * inverse(1, 1);
+    if (std::abs(delta[0]) < options.tolerance &&
+        std::abs(delta[1]) * 0.5 * out.span < options.tolerance) {
+      break;
+    }
+  }
+  return out;
+}
+
+// Above it, the residual of an estimated offset is taken for poses of unrelated times (see
+// PairStreams for the measurements).
+constexpr double kMaxResidualToPathRatio = 0.1;
+// Standard deviations of a drift estimate that are taken for drift.
+constexpr double kDriftZ = 4.0;
+
+// The RMS per component of the samples' reported positions about their mean [m].
+double PathRms(const std::vector<const TrackerStreamSample*>& samples) {
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (const TrackerStreamSample* s : samples) mean += s->transmitter_from_receiver.translation;
+  mean /= static_cast<double>(samples.size());
+  double sum2 = 0.0;
+  for (const TrackerStreamSample* s : samples) {
+    sum2 += (s->transmitter_from_receiver.translation - mean).squaredNorm();
+  }
+  return std::sqrt(sum2 / (3.0 * static_cast<double>(samples.size())));
+}
+
 std::string Rounded(double v, int precision) {
   std::ostringstream s;
   s.precision(precision);
@@ -440,6 +540,8 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   }
   double offset = options.time_offset;
   OffsetEstimate estimate;
+  DriftEstimate drift;
+  double residual_to_path_ratio = std::numeric_limits<double>::quiet_NaN();
   StreamPairingOptions used = options;
   std::string warning;
   if (options.estimate_time_offset) {
@@ -482,8 +584,8 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
                  Rounded(1e3 * options.time_offset, 6) + " +- " +
                  Rounded(1e3 * options.search_range, 6) +
                  " ms: the refinement left the scan's range; check it, or search a range that "
-                 "holds it (the model file's time_offset search_range; Python: "
-                 "trackcal.pair(..., search_range=S))";
+                 "holds it (trackcal-fit pair --search-range S; the model file's time_offset "
+                 "search_range; Python: trackcal.pair(..., search_range=S))";
     }
     // Measured on the paper preset's streams (10-30 s, seeds 1-4, with drift or gaps): 0.95-0.99.
     // Waving slowly (amplitudes 2 mm-0.2 m over periods of 20-30 s, 0.3 mm reference noise):
@@ -504,6 +606,52 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
       warning += std::string(warning.empty() ? "" : "; ") +
                  "the clock offset's refinement did not converge in " +
                  std::to_string(estimate.steps) + " Gauss-Newton steps";
+    }
+    // Whether the offset pairs the streams at all. With the true offset outside the searched range
+    // (-2.963 s against the default 0 +- 0.5 s) the best scanned offset pairs poses of unrelated
+    // times, and the pairing gave +309 +- 38 ms without a word. The position difference the error
+    // model leaves is then a fair part of the path's own spread. Measured against the per-component
+    // RMS spread of the reported positions, on the paper preset's streams, seeds 1-6: with the
+    // true offset in range 0.26-0.40% (20-60 s), 0.21-0.56% (15 s), 1.9-2.3% (10 s, degree 1),
+    // 0.7% waving 5 cm; with it 3 s outside the search 26-39%.
+    const double residual_rms = std::sqrt(estimate.cost);
+    const double path_rms = PathRms(samples);
+    residual_to_path_ratio = residual_rms / path_rms;
+    if (residual_to_path_ratio > kMaxResidualToPathRatio) {
+      warning = "no clock offset in the searched " + Rounded(1e3 * options.time_offset, 6) +
+                " +- " + Rounded(1e3 * options.search_range, 6) +
+                " ms pairs the streams: at the best one, " + Rounded(1e3 * offset, 6) +
+                " ms, the position difference left by the error model is " +
+                Rounded(1e3 * residual_rms, 3) + " mm RMS, " +
+                Rounded(100.0 * residual_to_path_ratio, 2) + "% of the path's own spread (" +
+                Rounded(1e3 * path_rms, 3) +
+                " mm RMS), as between poses of unrelated times (under 3% when the offset pairs "
+                "them); the offset is likely outside the searched range: search a wider one "
+                "(trackcal-fit pair --search-range S; the model file's time_offset search_range; "
+                "Python: trackcal.pair(..., search_range=S)) or give it" +
+                (warning.empty() ? "" : "; " + warning);
+    }
+    // Drifting clocks: one offset pairs the middle of the stream and is off by half the drift at
+    // its ends (a lab's 10 min at 100 ppm: +-30 ms). Only of an offset the streams determine (no
+    // warning above) and a rate the error model cannot mimic. Measured on the paper preset's
+    // streams, seeds 1-6: 20, 30 and 60 s without drift |z| <= 2.9, 1.9, 1.6 (15 s: 9.7 at a
+    // variance inflation of 92, the others lowered the degree); reference clock 1000 ppm fast
+    // over 30 s: 926-1061 ppm, z 17-49; 100 ppm: 26-161 ppm, z 0.5-5.0.
+    drift = EstimateDrift(samples, reference, used, offset);
+    if (warning.empty() && drift.variance_inflation <= used.max_variance_inflation &&
+        std::abs(drift.rate) > kDriftZ * drift.stddev) {
+      const double over_stream = drift.rate * drift.span;
+      warning = "the clocks drift: the clock offset changes by " +
+                Rounded(1e3 * 60.0 * drift.rate, 3) + " ms per minute (" +
+                Rounded(1e6 * drift.rate, 4) + " +- " + Rounded(1e6 * drift.stddev, 2) +
+                " ppm, the reference clock " + (drift.rate > 0.0 ? "fast" : "slow") +
+                " against the tracker's), " + Rounded(1e3 * over_stream, 3) +
+                " ms over the stream's " + Rounded(drift.span, 4) + " s; the offset " +
+                Rounded(1e3 * offset, 6) + " ms pairs its middle, and its ends " +
+                Rounded(1e3 * 0.5 * std::abs(over_stream), 3) +
+                " ms off; synchronise the clocks, or correct the reference stream's times for the "
+                "drift (t -> t0 + (t - t0) / (1 + " +
+                Rounded(drift.rate, 4) + ")) and pair again, or pair shorter streams";
     }
   }
   StreamPairingResult result = Pair(samples, reference, options, offset);
@@ -530,6 +678,10 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     result.gauss_newton_steps = estimate.steps;
     result.detrend_degree = used.detrend_degree;
     result.time_offset_variance_inflation = estimate.variance_inflation;
+    result.clock_drift = drift.rate;
+    result.clock_drift_stddev = drift.stddev;
+    result.clock_drift_variance_inflation = drift.variance_inflation;
+    result.residual_to_path_ratio = residual_to_path_ratio;
     result.warning = warning;
   }
   if (!sensor_note.empty()) {

@@ -68,6 +68,17 @@ struct StreamPairingResult {
   // against that model (NaN when given).
   int detrend_degree = -1;
   double time_offset_variance_inflation = std::numeric_limits<double>::quiet_NaN();
+  // Of an estimated offset: the clocks' drift, the reference clock's rate relative to the
+  // tracker's minus 1 (1e-4: the offset grows by 6 ms a minute), estimated with the offset as
+  // offset + drift (t - t_mid) over the stream, and its standard deviation (NaN when given).
+  double clock_drift = std::numeric_limits<double>::quiet_NaN();
+  double clock_drift_stddev = std::numeric_limits<double>::quiet_NaN();
+  double clock_drift_variance_inflation = std::numeric_limits<double>::quiet_NaN();
+  // Of an estimated offset: the RMS of the position difference left by the error model at the
+  // offset (sqrt(cost)) over the RMS spread of the tracker's path about its mean, per component
+  // (NaN when given). Small when the offset pairs the streams; a few tenths when it pairs poses
+  // of unrelated times (the true offset outside the searched range).
+  double residual_to_path_ratio = std::numeric_limits<double>::quiet_NaN();
   // Non-empty when an estimated offset is poorly identified: the degree was lowered, the offset is
   // undetermined even at degree 0, or the refinement did not converge. Callers name the streams.
   std::string warning;

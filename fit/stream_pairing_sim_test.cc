@@ -46,6 +46,12 @@ TEST(PairStreamsOnSimulatedCapture, RecoversTheHiddenClockOffset) {
     // 1.4 on these seeds).
     EXPECT_LT(std::abs(r.time_offset - truth), 3.0 * r.time_offset_stddev);
     EXPECT_THAT(r.warning, ::testing::Not(::testing::HasSubstr("not determined")));
+    // The clocks do not drift here, and the offset pairs the streams: no warning at all. Measured
+    // on seeds 1-6: drift |z| <= 1.9 (the warning's limit is 4), residual 0.31-0.35% of the path's
+    // spread (limit 10%).
+    EXPECT_EQ(r.warning, "");
+    EXPECT_LT(std::abs(r.clock_drift), 4.0 * r.clock_drift_stddev);
+    EXPECT_LT(r.residual_to_path_ratio, 0.01);
     // The plain variance of the position difference (the first version's score) is pulled by the
     // distortion along the path: 1.3 ms off on these seeds, beyond 3 sigma of the estimate above.
     EXPECT_GT(std::abs(p.time_offset - truth), 3.0 * r.time_offset_stddev);
@@ -75,6 +81,56 @@ TEST(PairStreamsOnSimulatedCapture, SlowMotionIsReportedUndetermined) {
   if (std::abs(r.time_offset - truth) > 3.0 * r.time_offset_stddev) {
     EXPECT_THAT(r.warning, ::testing::HasSubstr("the clock offset is not determined"));
   }
+}
+
+TEST(PairStreamsOnSimulatedCapture, DriftingClocksAreReported) {
+  // The reference clock 1000 ppm fast over 30 s (30 ms of drift): the pairing said 52.3 +- 1.3 ms
+  // (37 ms at the start, 52 in the middle) and nothing about the drift, which leaves the stream's
+  // ends 15 ms off. Measured on seeds 1-6: 926-1061 ppm at 20-55 ppm (z 17-49).
+  sim::Scene scene = sim::LoadScene("paper");
+  scene.seed = 1;
+  scene.hidden.Enable("clock_offset");
+  sim::SimulatedCapture c = sim::Simulator(scene).Generate();
+  const double drift = 1e-3;
+  const double t0 = c.reference_stream.records.front().time;
+  for (auto& r : c.reference_stream.records) r.time = t0 + (r.time - t0) * (1.0 + drift);
+  StreamPairingOptions options;
+  options.estimate_time_offset = true;
+  const StreamPairingResult r = PairStreams(c.tracker_stream, c.reference_stream, options);
+  std::cout << "1000 ppm: offset " << r.time_offset * 1e3 << " ms, drift " << r.clock_drift * 1e6
+            << " +- " << r.clock_drift_stddev * 1e6 << " ppm: " << r.warning << "\n";
+  EXPECT_THAT(r.warning, ::testing::HasSubstr("the clocks drift"));
+  EXPECT_THAT(r.warning, ::testing::HasSubstr("reference clock fast"));
+  EXPECT_THAT(r.warning, ::testing::HasSubstr("ppm"));
+  // 3 sigma of its Newey-West standard deviation (measured 993 +- 20 ppm on this seed).
+  EXPECT_NEAR(r.clock_drift, drift, 3.0 * r.clock_drift_stddev);
+  EXPECT_LT(r.clock_drift_stddev, 0.1 * drift);
+}
+
+TEST(PairStreamsOnSimulatedCapture, AnOffsetOutsideTheSearchIsReported) {
+  // The reference clock 3 s behind (offset 37 ms - 3 s) against the default 0 +- 0.5 s search:
+  // the pairing gave +309 +- 38 ms without a warning, pairing poses 3.3 s apart (94 mm RMS left
+  // by the error model against 1.2 mm at the true offset).
+  const double truth = sim::LoadScene("paper").hidden.reference_minus_tracker_s - 3.0;
+  sim::Scene scene = sim::LoadScene("paper");
+  scene.seed = 3;
+  scene.hidden.Enable("clock_offset");
+  sim::SimulatedCapture c = sim::Simulator(scene).Generate();
+  for (auto& r : c.reference_stream.records) r.time -= 3.0;
+  StreamPairingOptions options;
+  options.estimate_time_offset = true;
+  const StreamPairingResult r = PairStreams(c.tracker_stream, c.reference_stream, options);
+  std::cout << "3 s outside: offset " << r.time_offset * 1e3 << " ms, residual "
+            << 100.0 * r.residual_to_path_ratio << "% of the path: " << r.warning << "\n";
+  EXPECT_THAT(r.warning, ::testing::HasSubstr("no clock offset in the searched 0 +- 500 ms"));
+  EXPECT_THAT(r.warning, ::testing::HasSubstr("--search-range"));
+  EXPECT_THAT(r.warning, ::testing::HasSubstr("search_range=S"));
+  EXPECT_GT(r.residual_to_path_ratio, 0.1);
+  // A search that holds it finds it, silently.
+  options.search_range = 4.0;
+  const StreamPairingResult wide = PairStreams(c.tracker_stream, c.reference_stream, options);
+  EXPECT_NEAR(wide.time_offset, truth, 3.0 * wide.time_offset_stddev);
+  EXPECT_EQ(wide.warning, "");
 }
 
 TEST(PairStreamsOnSimulatedCapture, PlainVarianceIsUnbiasedWithoutDistortion) {
