@@ -10,8 +10,8 @@
 //                         [--cross-validate-top N] [--exact-cv] [--threads N] [--sensor N]
 //                         [--json] [--quiet]
 //   trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv
-//                     [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N]
-//                     -o poses.csv [--json]
+//                     [--time-offset S] [--estimate-time-offset [--search-range S]] [--set NAME]
+//                     [--sensor N] -o poses.csv [--json]
 //
 // Human-readable output (Table 1 of the paper, parameters with standard deviations) goes to stdout,
 // progress to stderr; with --json stdout carries exactly one JSON document. Bad input exits with 1
@@ -76,7 +76,8 @@ void PrintUsage(std::ostream& out) {
          "[--tracker-noise-deg S]\n"
          "                        [--allow-unidentifiable] [--keep-all-stations] [--sensor N]\n"
          "  trackcal-fit pair --tracker tracker_stream.csv --reference reference_stream.csv\n"
-         "                    [--time-offset S | --estimate-time-offset] [--set NAME] [--sensor N] "
+         "                    [--time-offset S] [--estimate-time-offset [--search-range S]] [--set "
+         "NAME] [--sensor N] "
          "-o poses.csv [--json]\n"
          "build chooses the terms itself (settings.yaml: noise, solver, loss; no terms:).\n"
          "Model file format: docs/model-file.md; tool reference: docs/fit.md; diagnose: "
@@ -525,7 +526,8 @@ int RunDiagnose(int argc, char** argv) {
 
 int RunPair(int argc, char** argv) {
   const Args args = ParseArgs(
-      argc, argv, {"--tracker", "--reference", "-o", "--time-offset", "--set", "--sensor"},
+      argc, argv,
+      {"--tracker", "--reference", "-o", "--time-offset", "--search-range", "--set", "--sensor"},
       {"--json", "--estimate-time-offset"});
   const fs::path tracker_path = args.Get("--tracker");
   const fs::path reference_path = args.Get("--reference");
@@ -534,6 +536,8 @@ int RunPair(int argc, char** argv) {
   StreamPairingOptions options;
   options.time_offset = ParseNumber("--time-offset", args.GetOr("--time-offset", "0"));
   options.estimate_time_offset = args.Flag("--estimate-time-offset");
+  // The warnings of an offset outside the search name this option; there was none to give.
+  options.search_range = ParseNumber("--search-range", args.GetOr("--search-range", "0.5"));
   options.set = SetOption(args);
   options.sensor = SensorOption(args, 0);
   const TrackerStream tracker = ReadTrackerStream(tracker_path);
@@ -554,6 +558,9 @@ int RunPair(int argc, char** argv) {
                                 {"estimated", options.estimate_time_offset},
                                 {"time_offset_stddev_s", result.time_offset_stddev},
                                 {"position_difference_variance_m2", result.cost},
+                                {"clock_drift", result.clock_drift},
+                                {"clock_drift_stddev", result.clock_drift_stddev},
+                                {"residual_to_path_ratio", result.residual_to_path_ratio},
                                 {"warning", result.warning}}
                      .dump(2)
               << "\n";

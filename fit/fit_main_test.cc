@@ -551,6 +551,39 @@ TEST_F(FitCliTest, PairJson) {
   EXPECT_GT(ReadPoses(dir_ / "paired.csv").records.size(), 100u);
 }
 
+TEST_F(FitCliTest, PairSaysWhenTheOffsetIsOutsideTheSearchAndTakesAWiderOne) {
+  // A reference clock 3 s behind: the default search (0 +- 0.5 s) paired poses of unrelated times
+  // without a warning, and pair had no option to search further.
+  ASSERT_EQ(RunCommand((BinaryDir() / "sim" / "trackcal-simulate").string() +
+                       " --scene paper --hidden clock_offset -o " + (dir_ / "cap3").string() +
+                       " > /dev/null"),
+            0);
+  const fs::path reference = dir_ / "cap3" / "reference_stream.csv";
+  ReferenceStream shifted = ReadReferenceStream(reference);
+  for (auto& r : shifted.records) r.time -= 3.0;
+  const fs::path moved = dir_ / "shifted_reference.csv";
+  WriteReferenceStream(moved, shifted);
+  const std::string pair = fit_ + " pair --tracker " +
+                           (dir_ / "cap3" / "tracker_stream.csv").string() + " --reference " +
+                           moved.string() + " --estimate-time-offset --json";
+  const fs::path err = dir_ / "pair3.err";
+  ASSERT_EQ(
+      RunCommand(pair + " -o " + (dir_ / "p1.csv").string() + " > /dev/null 2> " + err.string()),
+      0);
+  EXPECT_THAT(
+      ReadFileToString(err),
+      ::testing::HasSubstr("no clock offset in the searched 0 +- 500 ms pairs the streams"));
+  const fs::path json = dir_ / "pair3.json";
+  ASSERT_EQ(RunCommand(pair + " --search-range 4 -o " + (dir_ / "p2.csv").string() + " > " +
+                       json.string() + " 2> " + err.string()),
+            0);
+  const auto doc = nlohmann::json::parse(ReadFileToString(json));
+  EXPECT_NEAR(doc["time_offset_s"].get<double>(), 0.037 - 3.0,
+              3.0 * doc["time_offset_stddev_s"].get<double>());
+  EXPECT_EQ(doc["warning"].get<std::string>(), "");
+  EXPECT_EQ(ReadFileToString(err), "");
+}
+
 TEST_F(FitCliTest, FitStreamsEstimatesTheClockOffsetWithTheModel) {
   ASSERT_EQ(RunCommand((BinaryDir() / "sim" / "trackcal-simulate").string() +
                        " --scene paper --hidden clock_offset -o " + (dir_ / "streams").string() +
