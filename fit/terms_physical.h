@@ -64,7 +64,14 @@ const std::vector<std::string>& PhysicalTermTypes();
 struct PhysicalSearchOptions {
   double margin_m = 1.5;         // dipole candidates up to this far outside the data's bounding box
   double dipole_spacing_m = 0.15;  // grid spacing of dipole candidate locations
-  double min_station_distance_m = 0.1;  // sources closer than this to a station are refused
+  // Search candidates closer than this to a station (or the transmitter) are skipped (the
+  // linearised score is dominated by that station there); a refined dipole this close to the
+  // transmitter is refused.
+  double min_station_distance_m = 0.1;
+  // A refined dipole closer than this to a station is refused (the receiver would sit in the
+  // object: a steel sphere of radius 0.05 m has 1.25e-4 m^3). Smaller than the search's distance:
+  // an object just outside the grid is found by a refinement from a start farther out.
+  double min_refined_station_distance_m = 0.05;
   int refine_candidates = 5;     // well-separated best candidates refined and kept as starts
   // Two consecutive dipoles to be searched are searched as a pair: the pairs of this many
   // well-separated best grid points of the single search are scored jointly (two objects whose
