@@ -410,6 +410,9 @@ struct PairRun {
             {"estimated", estimated},
             {"time_offset_stddev_s", result.time_offset_stddev},
             {"position_difference_variance_m2", result.cost},
+            {"clock_drift", result.clock_drift},
+            {"clock_drift_stddev", result.clock_drift_stddev},
+            {"residual_to_path_ratio", result.residual_to_path_ratio},
             {"warning", result.warning}};
   }
 };

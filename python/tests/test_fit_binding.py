@@ -379,6 +379,10 @@ def test_register_and_pair_match_the_command_line(capture_dir, tmp_path):
     paired.save(tmp_path / "py_pair.csv")
     assert_same({**paired.to_dict(), "output": None}, {**cli, "output": None})
     assert (tmp_path / "py_pair.csv").read_bytes() == (tmp_path / "cli_pair.csv").read_bytes()
+    # The estimate's drift and pairing check, as the command line's --json has them.
+    assert paired.clock_drift == pytest.approx(cli["clock_drift"], rel=1e-9) and paired.clock_drift_stddev > 0
+    assert paired.residual_to_path_ratio == pytest.approx(cli["residual_to_path_ratio"], rel=1e-9)
+    assert paired.residual_to_path_ratio > 0
     with pytest.raises(ValueError, match=r"missing\.csv"):
         trackcal.pair(tmp_path / "missing.csv", capture_dir / "reference_stream.csv")
 

@@ -350,6 +350,11 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     return result
 
 
+def _number_or_nan(value) -> float:
+    """A JSON number of a native document, NaN for its null (a NaN in C++)."""
+    return float("nan") if value is None else float(value)
+
+
 class Pairing:
     """The result of :func:`pair`: paired poses, the clock offset used, dropped samples, and what
     the pairing warns (``warning``, "" when nothing)."""
@@ -363,6 +368,13 @@ class Pairing:
         doc = native.to_dict()
         # Of an estimated offset (0 when given).
         self.time_offset_stddev_s: float = float(doc["time_offset_stddev_s"])
+        # Of an estimated offset (NaN when given or not determined): the reference clock's rate
+        # relative to the tracker's minus 1 (1e-4: 100 ppm fast) with its standard deviation, and
+        # the paired residual's RMS over the tracker path's spread (above 0.1: no searched offset
+        # pairs the streams). docs/fit.md.
+        self.clock_drift: float = _number_or_nan(doc.get("clock_drift"))
+        self.clock_drift_stddev: float = _number_or_nan(doc.get("clock_drift_stddev"))
+        self.residual_to_path_ratio: float = _number_or_nan(doc.get("residual_to_path_ratio"))
         # An estimated offset the streams identify poorly, or the sensor chosen among several:
         # what ``trackcal-fit pair`` prints on stderr.
         self.warning: str = str(doc["warning"])
