@@ -2,7 +2,6 @@
 command line on the same data: same tables, same parameters, same calibration, same poses."""
 
 import csv
-import dataclasses
 import json
 import pathlib
 import re
@@ -17,7 +16,7 @@ import pytest
 
 import trackcal
 from trackcal import captures
-from understand_support import simulate, write_poses
+from understand_support import simulate, two_receivers, write_poses
 
 MODEL = "terms:\n  - type: polynomial\n    degree: 3\n"
 # Wall-clock figures differ between runs; everything else is the same computation on the same input.
@@ -515,25 +514,6 @@ def test_pair_says_what_it_warns(tmp_path):
         cap = captures.load(tmp_path, time_offset=0.0)
     assert chosen.warning == ""
     assert "paired sensor 1" in cap.origin["warning"]
-
-
-def two_receivers(capture_dir):
-    """The capture's stations as receiver 1 and again as receiver 2, whose body (the reference)
-    sits 3.7 cm further: a lab that captured its head and hand receivers into one poses.csv."""
-    one = captures.load_poses(capture_dir)
-    fields = {}
-    for f in dataclasses.fields(one):
-        v = getattr(one, f.name)
-        if isinstance(v, np.ndarray):
-            w = v.copy()
-            if f.name == "sensor":
-                w[:] = 2
-            elif f.name == "reference_positions":
-                w = w + np.array([0.03, -0.02, 0.01])
-            v = np.concatenate([v, w])
-        fields[f.name] = v
-    mixed = captures.PoseCapture(**fields)
-    return mixed, mixed.subset(mixed.sensor == 2)
 
 
 def test_stations_of_several_receivers_are_refused_or_fitted_one_at_a_time(capture_dir, tmp_path):

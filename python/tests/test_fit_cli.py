@@ -164,25 +164,10 @@ def test_a_capture_of_several_receivers_is_refused_or_used_one_receiver_at_a_tim
     # A poses.csv with the head (sensor 1) and hand (sensor 2) receivers: validate and diagnose
     # corrected both with one receiver's calibration and printed one table over both, without a
     # word (the hand's 54 mm were "corrected" to 63 mm by the head's file, hidden in the mean).
-    import dataclasses
-    import numpy as np
-    from trackcal import captures
-    from understand_support import write_poses
-    one = captures.load_poses(capture_dir)
-    fields = {}
-    for f in dataclasses.fields(one):
-        v = getattr(one, f.name)
-        if isinstance(v, np.ndarray):
-            w = v.copy()
-            if f.name == "sensor":
-                w[:] = 2
-            elif f.name == "reference_positions":
-                w = w + np.array([0.03, -0.02, 0.01])  # the other body's offset
-            v = np.concatenate([v, w])
-        fields[f.name] = v
-    mixed = captures.PoseCapture(**fields)
+    from understand_support import two_receivers, write_poses
+    mixed, second = two_receivers(capture_dir)
     mixed_csv = write_poses(tmp_path / "mixed.csv", mixed)
-    second_csv = write_poses(tmp_path / "second.csv", mixed.subset(mixed.sensor == 2))
+    second_csv = write_poses(tmp_path / "second.csv", second)
     model = tmp_path / "model.yaml"
     model.write_text(POLY)
     r = run_cli("fit", "--data", mixed_csv, "--model", model, "-o", tmp_path / "mixed.json", check=False)

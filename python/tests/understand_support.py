@@ -116,3 +116,25 @@ def simulate_temperature_gains(out: pathlib.Path, *, levels=np.arange(18.0, 31.0
                 extra={"temperature": levels[level] + rng.uniform(-0.5, 0.5, n),
                        "humidity": rng.uniform(30.0, 60.0, n)})
     return capture_dir
+
+
+def two_receivers(capture_dir):
+    """The capture's stations as receiver 1 and again as receiver 2, whose body (the reference)
+    sits 3.7 cm further: a lab that captured its head and hand receivers into one poses.csv.
+    Returns (both receivers' PoseCapture, receiver 2's alone)."""
+    import dataclasses
+    from trackcal import captures
+    one = captures.load_poses(capture_dir)
+    fields = {}
+    for f in dataclasses.fields(one):
+        v = getattr(one, f.name)
+        if isinstance(v, np.ndarray):
+            w = v.copy()
+            if f.name == "sensor":
+                w[:] = 2
+            elif f.name == "reference_positions":
+                w = w + np.array([0.03, -0.02, 0.01])  # the other body's offset
+            v = np.concatenate([v, w])
+        fields[f.name] = v
+    mixed = captures.PoseCapture(**fields)
+    return mixed, mixed.subset(mixed.sensor == 2)
