@@ -677,9 +677,7 @@ int RunRegister(int argc, char** argv) {
 
   for (const RejectedStation& r : registration.rejected_stations) {
     std::cerr << "trackcal-fit register: warning: station " << r.station
-              << " left out of the registration: its markers misfit the marker body by "
-              << r.marker_body_rms_m * 1e3
-              << " mm RMS (a swapped or misidentified marker?); --keep-all-stations keeps it\n";
+              << " left out of the registration: " << r.Why() << " --keep-all-stations keeps it\n";
   }
   // The reference poses inherit every undetermined direction of the transform: not written unless
   // asked for, so a script chaining register and fit stops here (exit 3), with the report printed.

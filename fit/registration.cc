@@ -26,7 +26,8 @@ bool RegistrationOptions::Check() const {
          max_translation_stddev_m > 0.0 && max_rotation_stddev_rad > 0.0 &&
          max_marker_stddev_m > 0.0 && covariance.Check() && num_threads >= 1 &&
          max_station_marker_rms_m >= 0.0 && station_false_alarm > 0.0 &&
-         station_false_alarm < 1.0 && max_rejected_fraction >= 0.0 && max_rejected_fraction < 1.0;
+         station_false_alarm < 1.0 && max_rejected_fraction >= 0.0 && max_rejected_fraction < 1.0 &&
+         max_tracker_residual_ratio > 1.0;
 }
 
 double RegistrationResult::ChiSquareZ() const {
@@ -685,6 +686,25 @@ bool MisfitsMarkerBody(const RegisteredStation& s, const RegistrationOptions& op
          s.marker_body_tail < options.station_false_alarm;
 }
 
+// Is this station's tracker reading far off the registration of the stations (see
+// RegistrationOptions::max_tracker_residual_ratio)? median_norm: the median over the stations of
+// the whitened tracker residual's norm.
+bool TrackerReadingFarOff(const RegisteredStation& s, double median_norm,
+                          const RegistrationOptions& options) {
+  const double norm = s.tracker_residual_whitened.norm();
+  return norm > options.max_tracker_residual_ratio * median_norm &&
+         ChiSquareUpperTail(norm * norm, 6) < options.station_false_alarm;
+}
+
+double MedianTrackerResidualNorm(const std::vector<RegisteredStation>& stations) {
+  std::vector<double> norms;
+  for (const RegisteredStation& s : stations) norms.push_back(s.tracker_residual_whitened.norm());
+  if (norms.empty()) return 0.0;
+  std::sort(norms.begin(), norms.end());
+  const std::size_t n = norms.size();
+  return n % 2 == 1 ? norms[n / 2] : 0.5 * (norms[n / 2 - 1] + norms[n / 2]);
+}
+
 }  // namespace
 
 RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationStation>& stations,
@@ -711,6 +731,18 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
         worst = &s;
       }
     }
+    std::string reason = "marker_body";
+    if (worst == nullptr) {  // then the tracker reading farthest off, if it is
+      const double median = MedianTrackerResidualNorm(result.stations);
+      for (const RegisteredStation& s : result.stations) {
+        if (TrackerReadingFarOff(s, median, options) &&
+            (worst == nullptr ||
+             s.tracker_residual_whitened.norm() > worst->tracker_residual_whitened.norm())) {
+          worst = &s;
+        }
+      }
+      reason = "tracker_reading";
+    }
     if (worst == nullptr) return result;
     const int id = worst->station;
     std::vector<RegistrationStation> fewer;
@@ -725,12 +757,25 @@ RegistrationResult RegisterOpticalToTransmitter(const std::vector<RegistrationSt
       // and the solve that had it rather than fail a registration that was solved.
       return result;
     }
-    rejected.push_back(
-        {worst->station, worst->num_markers, worst->marker_body_rms_m, worst->marker_body_tail});
+    rejected.push_back({worst->station, worst->num_markers, worst->marker_body_rms_m,
+                        worst->marker_body_tail, reason, worst->tracker_position_residual_m,
+                        worst->tracker_orientation_residual_rad});
     next.rejected_stations = rejected;
     result = std::move(next);
     kept = std::move(fewer);
   }
+}
+
+std::string RejectedStation::Why() const {
+  if (reason == "tracker_reading") {
+    return "its tracker reading is " + Fmt("%.1f", tracker_position_residual_m * 1e3) + " mm and " +
+           Fmt("%.2f", tracker_orientation_residual_rad * kDegPerRad) +
+           " deg off the pose its markers give, many times the other stations' residuals: a "
+           "hemisphere flip, metal near the receiver, or another station's reading?";
+  }
+  return "its " + std::to_string(num_markers) + " markers misfit the marker body by " +
+         Fmt("%.2f", marker_body_rms_m * 1e3) + " mm RMS (chi-square tail " +
+         Fmt("%.2g", marker_body_tail) + "): a swapped or misidentified marker?";
 }
 
 std::string RegistrationResult::ToString() const {
@@ -764,10 +809,7 @@ std::string RegistrationResult::ToString() const {
       << ", left out " << rejected_stations.size() << ", marker observations "
       << num_marker_observations << "\n";
   for (const RejectedStation& r : rejected_stations) {
-    out << "  left out station " << r.station << ": its " << r.num_markers
-        << " markers misfit the marker body by " << Fmt("%.2f", r.marker_body_rms_m * 1e3)
-        << " mm RMS (chi-square tail " << Fmt("%.2g", r.marker_body_tail)
-        << "): a swapped or misidentified marker?\n";
+    out << "  left out station " << r.station << ": " << r.Why() << "\n";
   }
   out << "solver: " << solver_report << (converged ? "" : " (NOT CONVERGED)") << "\n";
   out << "initialisation: " << initialisation << "\n";
@@ -812,10 +854,15 @@ nlohmann::json RegistrationResult::ToJson() const {
   }
   nlohmann::json rejected_list = nlohmann::json::array();
   for (const RejectedStation& r : rejected_stations) {
-    rejected_list.push_back({{"station", r.station},
-                             {"num_markers", r.num_markers},
-                             {"marker_body_rms_mm", r.marker_body_rms_m * 1e3},
-                             {"marker_body_tail", r.marker_body_tail}});
+    rejected_list.push_back(
+        {{"station", r.station},
+         {"num_markers", r.num_markers},
+         {"marker_body_rms_mm", r.marker_body_rms_m * 1e3},
+         {"marker_body_tail", r.marker_body_tail},
+         {"reason", r.reason},
+         {"tracker_position_residual_mm", r.tracker_position_residual_m * 1e3},
+         {"tracker_orientation_residual_deg", r.tracker_orientation_residual_rad * kDegPerRad},
+         {"message", r.Why()}});
   }
   const ResidualStructure& rs = residual_structure;
   nlohmann::json flags = nlohmann::json::array();

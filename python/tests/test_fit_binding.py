@@ -416,6 +416,36 @@ def test_register_warns_when_not_identifiable(capture_dir, tmp_path):
     assert not (tmp_path / "poses.csv").exists()
 
 
+def test_station_with_a_tracker_reading_far_off_is_left_out_with_a_warning(capture_dir, tmp_path):
+    """One registration station's tracker reading 0.5 m off (metal near the receiver): it used to
+    move the registration by degrees with no message; Python and the command line leave it out and
+    name it."""
+    with open(capture_dir / "tracker.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    with open(capture_dir / "poses.csv", newline="") as f:
+        reg_stations = [row["station"] for row in csv.DictReader(f) if row["set"] == "reg"]
+    station = reg_stations[3]
+    for row in rows:
+        if row["station"] == station:
+            row["x"] = str(float(row["x"]) + 0.5)
+    with open(tmp_path / "tracker.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(rows)
+    shutil.copy(capture_dir / "markers.csv", tmp_path / "markers.csv")
+    shutil.copy(capture_dir / "poses.csv", tmp_path / "labels.csv")
+
+    with pytest.warns(UserWarning, match=f"station {station} left out of the registration: its tracker reading"):
+        reg = trackcal.register(tmp_path / "markers.csv", tmp_path / "tracker.csv", poses=tmp_path / "labels.csv")
+    assert [(r["station"], r["reason"]) for r in reg.rejected_stations] == [(int(station), "tracker_reading")]
+    assert reg.rejected_stations[0]["tracker_position_residual_mm"] > 100.0
+    done = subprocess.run([shutil.which("trackcal-fit"), "register", "--markers", tmp_path / "markers.csv",
+                           "--tracker", tmp_path / "tracker.csv", "--poses", tmp_path / "labels.csv",
+                           "-o", tmp_path / "poses.csv"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert f"station {station} left out of the registration: its tracker reading" in done.stderr
+
+
 def test_station_with_swapped_marker_labels_is_left_out_with_a_warning(capture_dir, tmp_path):
     """Two marker labels swapped at one station: Python and the command line leave it out of the
     registration, say so, and give it no reference pose; kept on request."""

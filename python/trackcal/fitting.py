@@ -282,7 +282,7 @@ class Registration:
         self.optical_from_transmitter_stddev: np.ndarray = native.optical_from_transmitter_stddev
         self.markers: List[dict] = native.markers
         self.identifiability_flags: List[dict] = native.identifiability_flags
-        # Stations left out because their markers misfit the marker body (docs/registration.md).
+        # Stations left out: markers misfit the marker body, or tracker reading far off (docs/registration.md).
         self.rejected_stations: List[dict] = native.to_dict()["registration"]["rejected_stations"]
 
     def summary(self) -> str:
@@ -327,8 +327,9 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     those directions, and ``trackcal-fit register`` refuses to write them.
 
     A station whose markers no rigid placement of the marker body explains (a swapped or
-    misidentified label) is left out of the registration, at most 20 % of them, with a warning
-    naming it (``rejected_stations``); ``reject_bad_stations=False`` keeps every station, as
+    misidentified label), or whose tracker reading is far off the others' (a hemisphere flip, a
+    reading metres off near metal), is left out of the registration, at most 20 % of them, with a
+    warning naming it and why (``rejected_stations``, ``reason``); ``reject_bad_stations=False`` keeps every station, as
     ``--keep-all-stations``."""
     markers, tracker = _input_file(markers, "markers.csv"), _input_file(tracker, "tracker.csv")
     poses = _input_file(poses, "poses.csv")
@@ -340,9 +341,8 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     # A poses.csv label that is not UTF-8 fails as it becomes a Python str: name its file and line.
     result = not_utf8_inputs(Registration, native, inputs=(poses, markers, tracker))
     for left_out in result.rejected_stations:
-        warnings.warn(f"{markers}: station {left_out['station']} left out of the registration: its markers "
-                      f"misfit the marker body by {left_out['marker_body_rms_mm']:.2f} mm RMS (a swapped or "
-                      "misidentified marker?)", UserWarning, stacklevel=2)
+        warnings.warn(f"{markers}: station {left_out['station']} left out of the registration: "
+                      f"{left_out['message']}", UserWarning, stacklevel=2)
     if not result.identifiable:
         flagged = ", ".join(f["coordinate"] for f in result.identifiability_flags) or "none named"
         warnings.warn(f"{markers}: the registration is not identifiable (poorly identified: {flagged}); "
