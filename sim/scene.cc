@@ -563,6 +563,8 @@ void HiddenEffects::Check() const {
   Require(octupole_m2.allFinite(), "hidden.finite_transmitter_coils.octupole_m2", "must be finite");
   Require(std::isfinite(reference_minus_tracker_s), "hidden.clock_offset.reference_minus_tracker_s",
           "must be finite");
+  Require(std::isfinite(reference_clock_drift) && std::abs(reference_clock_drift) < 0.1,
+          "hidden.clock_offset.reference_clock_drift", "must be finite and within +-0.1");
   Require(flip_count >= 0, "hidden.hemisphere_flips.count", "must be >= 0");
 }
 

@@ -98,9 +98,11 @@ struct HiddenEffects {
   // environment's).
   bool finite_transmitter_coils = false;
   Eigen::Vector3d octupole_m2 = Eigen::Vector3d(-0.000675, -0.0006, -0.00075);
-  // "clock_offset": reference stream time = tracker stream time + offset.
+  // "clock_offset": reference stream time = tracker stream time + offset + drift * (tracker stream
+  // time), the reference clock running (1 + drift) times as fast as the tracker's (1e-4: 100 ppm).
   bool clock_offset = false;
   double reference_minus_tracker_s = 0.037;
+  double reference_clock_drift = 0.0;
   // "hemisphere_flips": this many calibration/validation stations are reported at -p.
   bool hemisphere_flips = false;
   int flip_count = 3;

@@ -101,6 +101,7 @@ void VisitScene(V& v, Scene& s) {
     v.Object("clock_offset", [&] {
       v.Field("enabled", h.clock_offset);
       v.Field("reference_minus_tracker_s", h.reference_minus_tracker_s);
+      v.Field("reference_clock_drift", h.reference_clock_drift);
     });
     v.Object("hemisphere_flips", [&] {
       v.Field("enabled", h.hemisphere_flips);

@@ -347,6 +347,7 @@ SimulatedCapture Simulator::Generate() const {
   // ---- Streams on independent clocks. ----
   const StreamConfig& st = cp.stream;
   const double offset = sc.hidden.clock_offset ? sc.hidden.reference_minus_tracker_s : 0.0;
+  const double drift = sc.hidden.clock_offset ? sc.hidden.reference_clock_drift : 0.0;
   if (st.duration_s > 0) {
     Rng stream_tracker(sc.seed, "stream_tracker_noise");
     const double dt = 1.0 / sc.tracker.update_rate_hz;
@@ -376,7 +377,7 @@ SimulatedCapture Simulator::Generate() const {
           (stream_reference.SmallRotation(sc.reference.orientation_noise_rad) * body.rotation)
               .normalized();
       ReferenceStreamSample s;
-      s.time = t + offset;
+      s.time = t + offset + drift * t;
       s.transmitter_from_body = body;
       out.reference_stream.records.push_back(s);
     }
@@ -419,6 +420,7 @@ SimulatedCapture Simulator::Generate() const {
         {"optical_from_transmitter", PoseJson(sc.reference.optical_from_transmitter)},
         {"markers_in_body", markers},
         {"reference_minus_tracker_s", offset},
+        {"reference_clock_drift", drift},
         {"hemisphere_flipped_stations", flipped_ids},
         {"station_noise",
          {{"reference_position_m", sigma_ref_p},
