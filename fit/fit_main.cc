@@ -560,6 +560,9 @@ int RunPair(int argc, char** argv) {
                                 {"position_difference_variance_m2", result.cost},
                                 {"clock_drift", result.clock_drift},
                                 {"clock_drift_stddev", result.clock_drift_stddev},
+                                {"clock_drift_corrected", result.clock_drift_corrected},
+                                {"clock_drift_applied", result.clock_drift_applied},
+                                {"clock_drift_origin_s", result.clock_drift_origin},
                                 {"residual_to_path_ratio", result.residual_to_path_ratio},
                                 {"warning", result.warning}}
                      .dump(2)
@@ -571,6 +574,11 @@ int RunPair(int argc, char** argv) {
     if (options.estimate_time_offset) {
       std::cout << " +- " << result.time_offset_stddev << " s (estimated, "
                 << result.gauss_newton_steps << " Gauss-Newton steps)";
+    }
+    if (result.clock_drift_corrected) {
+      std::cout << ", clock drift " << 1e6 * result.clock_drift_applied << " +- "
+                << 1e6 * result.clock_drift_stddev << " ppm corrected (offset at tracker time "
+                << std::setprecision(10) << result.clock_drift_origin << " s)";
     }
     std::cout << "\nWrote "
               << output.string() << "\n";

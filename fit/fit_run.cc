@@ -92,6 +92,8 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
     out.pairing_warning = paired.warning;
     if (spec.time_offset && !spec.time_offset->fixed) {
       out.pairing = pairing;
+      // Re-pairing at a fitted offset keeps a corrected drift.
+      out.pairing->clock_drift = paired.clock_drift_applied;
       out.stream_stations = FitStationsOfPairing(paired, "calib");
     }
     for (const auto& p : {tracker, reference}) {

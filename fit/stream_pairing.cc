@@ -33,6 +33,7 @@ bool StreamPairingOptions::Check(std::string* error) const {
   if (max_gauss_newton_steps < 1) return fail("max_gauss_newton_steps must be >= 1");
   if (!(correlation_time_s >= 0.0)) return fail("correlation_time_s must be >= 0");
   if (!(max_variance_inflation >= 1.0)) return fail("max_variance_inflation must be >= 1");
+  if (!(std::abs(clock_drift) < 0.1)) return fail("clock_drift must be finite and within +-0.1");
   return true;
 }
 
@@ -97,15 +98,19 @@ std::vector<const TrackerStreamSample*> SelectSamples(const TrackerStream& track
 }
 
 // Pairs every selected sample at `offset`.
+// With a drift, at the reference time t + offset + drift (t - origin).
 StreamPairingResult Pair(const std::vector<const TrackerStreamSample*>& samples,
                          const ReferenceStream& reference, const StreamPairingOptions& options,
-                         double offset) {
+                         double offset, double drift = 0.0, double origin = 0.0) {
   StreamPairingResult out;
   out.time_offset = offset;
+  out.clock_drift_applied = drift;
+  out.clock_drift_origin = origin;
   Eigen::Vector3d sum = Eigen::Vector3d::Zero();
   double sum2 = 0.0;
   for (const TrackerStreamSample* s : samples) {
-    const auto ref = InterpolateReference(reference, s->time + offset, options.max_gap_s);
+    const auto ref = InterpolateReference(reference, s->time + offset + drift * (s->time - origin),
+                                          options.max_gap_s);
     if (!ref) {
       ++out.dropped;
       continue;
@@ -380,6 +385,10 @@ struct DriftEstimate {
   double rate = std::numeric_limits<double>::quiet_NaN();
   double stddev = std::numeric_limits<double>::quiet_NaN();
   double span = 0.0;  // [s] of the tracker samples
+  double origin = 0.0;  // [s] t_mid, the tracker time at which `offset` holds
+  double offset = std::numeric_limits<double>::quiet_NaN();  // [s] refined with the rate
+  double cost =
+      std::numeric_limits<double>::quiet_NaN();  // residual variance [m^2], as the offset's
   // Of the rate against the error model and the offset (H_rr (H^-1)_rr, as the offset's).
   double variance_inflation = std::numeric_limits<double>::quiet_NaN();
 };
@@ -393,6 +402,7 @@ DriftEstimate EstimateDrift(const std::vector<const TrackerStreamSample*>& sampl
   out.span = last - first;
   if (!(out.span > 0.0)) return out;
   const double mid = 0.5 * (first + last);
+  out.origin = mid;
   const double tracker_rate = (samples.size() - 1) / out.span;
   const int lags = static_cast<int>(options.correlation_time_s * tracker_rate);
   double rate = 0.0;
@@ -443,6 +453,8 @@ DriftEstimate EstimateDrift(const std::vector<const TrackerStreamSample*>& sampl
     offset += delta[0];
     rate += delta[1];
     out.rate = rate;
+    out.offset = offset;
+    out.cost = e.squaredNorm() / (3.0 * static_cast<double>(n));
     out.stddev = std::sqrt(std::max(covariance(1, 1), 0.0));
     out.variance_inflation = ddt.squaredNorm() * inverse(1, 1);
     if (std::abs(delta[0]) < options.tolerance &&
@@ -539,6 +551,9 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
         " s): " + spans);
   }
   double offset = options.time_offset;
+  // Given: options' drift about the middle of the samples (EstimateDrift's t_mid).
+  double rate = options.estimate_time_offset ? 0.0 : options.clock_drift;
+  double origin = 0.5 * (samples.front()->time + samples.back()->time);
   OffsetEstimate estimate;
   DriftEstimate drift;
   double residual_to_path_ratio = std::numeric_limits<double>::quiet_NaN();
@@ -641,20 +656,37 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     if (warning.empty() && drift.variance_inflation <= used.max_variance_inflation &&
         std::abs(drift.rate) > kDriftZ * drift.stddev) {
       const double over_stream = drift.rate * drift.span;
-      warning = "the clocks drift: the clock offset changes by " +
-                Rounded(1e3 * 60.0 * drift.rate, 3) + " ms per minute (" +
-                Rounded(1e6 * drift.rate, 4) + " +- " + Rounded(1e6 * drift.stddev, 2) +
-                " ppm, the reference clock " + (drift.rate > 0.0 ? "fast" : "slow") +
-                " against the tracker's), " + Rounded(1e3 * over_stream, 3) +
-                " ms over the stream's " + Rounded(drift.span, 4) + " s; the offset " +
-                Rounded(1e3 * offset, 6) + " ms pairs its middle, and its ends " +
-                Rounded(1e3 * 0.5 * std::abs(over_stream), 3) +
-                " ms off; synchronise the clocks, or correct the reference stream's times for the "
-                "drift (t -> t0 + (t - t0) / (1 + " +
-                Rounded(drift.rate, 4) + ")) and pair again, or pair shorter streams";
+      if (options.correct_clock_drift && std::isfinite(drift.offset)) {
+        // Paired with the drift: one offset left the stream's ends half the drift off (100 ppm
+        // over 10 min: 30 ms; see stream_pairing_sim_test's measurements).
+        offset = drift.offset;
+        rate = drift.rate;
+        origin = drift.origin;
+        warning =
+            "the clocks drift: the clock offset changes by " + Rounded(1e3 * 60.0 * drift.rate, 3) +
+            " ms per minute (" + Rounded(1e6 * drift.rate, 4) + " +- " +
+            Rounded(1e6 * drift.stddev, 2) + " ppm, the reference clock " +
+            (drift.rate > 0.0 ? "fast" : "slow") + " against the tracker's), " +
+            Rounded(1e3 * over_stream, 3) + " ms over the stream's " + Rounded(drift.span, 4) +
+            " s; corrected: each tracker sample at t is paired with the reference at t + " +
+            Rounded(1e3 * offset, 6) + " ms + " + Rounded(1e6 * drift.rate, 4) + " ppm * (t - " +
+            Rounded(origin, 10) + " s); synchronise the clocks to avoid relying on it";
+      } else {
+        warning =
+            "the clocks drift: the clock offset changes by " + Rounded(1e3 * 60.0 * drift.rate, 3) +
+            " ms per minute (" + Rounded(1e6 * drift.rate, 4) + " +- " +
+            Rounded(1e6 * drift.stddev, 2) + " ppm, the reference clock " +
+            (drift.rate > 0.0 ? "fast" : "slow") + " against the tracker's), " +
+            Rounded(1e3 * over_stream, 3) + " ms over the stream's " + Rounded(drift.span, 4) +
+            " s; the offset " + Rounded(1e3 * offset, 6) + " ms pairs its middle, and its ends " +
+            Rounded(1e3 * 0.5 * std::abs(over_stream), 3) +
+            " ms off; synchronise the clocks, or correct the reference stream's times for the "
+            "drift (t -> t0 + (t - t0) / (1 + " +
+            Rounded(drift.rate, 4) + ")) and pair again, or pair shorter streams";
+      }
     }
   }
-  StreamPairingResult result = Pair(samples, reference, options, offset);
+  StreamPairingResult result = Pair(samples, reference, options, offset, rate, origin);
   if (result.poses.records.empty()) {
     throw std::invalid_argument("stream pairing: no tracker sample has a reference at offset " +
                                 Rounded(offset, 15) +
@@ -662,8 +694,9 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   }
   const double h = 0.5 * MedianReferencePeriod(reference);
   for (const PoseRecord& r : result.poses.records) {
-    const auto before = InterpolateReference(reference, r.time + offset - h, options.max_gap_s);
-    const auto after = InterpolateReference(reference, r.time + offset + h, options.max_gap_s);
+    const double t = r.time + offset + rate * (r.time - origin);
+    const auto before = InterpolateReference(reference, t - h, options.max_gap_s);
+    const auto after = InterpolateReference(reference, t + h, options.max_gap_s);
     Eigen::Vector3d v = Eigen::Vector3d::Zero(), w = Eigen::Vector3d::Zero();
     if (before && after) {
       v = (after->translation - before->translation) / (2.0 * h);
@@ -673,7 +706,8 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     result.reference_angular_velocity.push_back(w);
   }
   if (options.estimate_time_offset) {
-    result.cost = estimate.cost;
+    result.cost = rate != 0.0 ? drift.cost : estimate.cost;
+    result.clock_drift_corrected = rate != 0.0;
     result.time_offset_stddev = estimate.stddev;
     result.gauss_newton_steps = estimate.steps;
     result.detrend_degree = used.detrend_degree;

@@ -53,6 +53,13 @@ struct StreamPairingOptions {
   // and the offset estimated again. The fit engine's limit for a fitted offset
   // (kMaxTimeOffsetVarianceInflation, fit/fit_engine.h).
   double max_variance_inflation = 10.0;
+  // Clock drift (the reference clock's rate over the tracker's minus 1) of a given offset: the
+  // tracker sample at t is paired with the reference at t + time_offset + clock_drift (t - t_mid),
+  // t_mid the middle of the paired sensor's (decimated) samples. Ignored when estimating.
+  double clock_drift = 0.0;
+  // When estimating: a drift beyond kDriftZ (4) standard deviations (the warning's test) is
+  // corrected, the poses paired with the estimated offset and drift as above.
+  bool correct_clock_drift = true;
   bool Check(std::string* error) const;
 };
 
@@ -74,6 +81,13 @@ struct StreamPairingResult {
   double clock_drift = std::numeric_limits<double>::quiet_NaN();
   double clock_drift_stddev = std::numeric_limits<double>::quiet_NaN();
   double clock_drift_variance_inflation = std::numeric_limits<double>::quiet_NaN();
+  // The drift the poses were paired with (0: one offset for the whole stream), and the tracker time
+  // t_mid at which time_offset holds: reference time = t + time_offset + applied (t - t_mid).
+  // clock_drift_corrected: an estimated drift was significant and is applied (time_offset is then
+  // the offset at t_mid).
+  double clock_drift_applied = 0.0;
+  double clock_drift_origin = 0.0;
+  bool clock_drift_corrected = false;
   // Of an estimated offset: the RMS of the position difference left by the error model at the
   // offset (sqrt(cost)) over the RMS spread of the tracker's path about its mean, per component
   // (NaN when given). Small when the offset pairs the streams; a few tenths when it pairs poses

@@ -412,6 +412,9 @@ struct PairRun {
             {"position_difference_variance_m2", result.cost},
             {"clock_drift", result.clock_drift},
             {"clock_drift_stddev", result.clock_drift_stddev},
+            {"clock_drift_corrected", result.clock_drift_corrected},
+            {"clock_drift_applied", result.clock_drift_applied},
+            {"clock_drift_origin_s", result.clock_drift_origin},
             {"residual_to_path_ratio", result.residual_to_path_ratio},
             {"warning", result.warning}};
   }

@@ -375,6 +375,12 @@ class Pairing:
         self.clock_drift: float = _number_or_nan(doc.get("clock_drift"))
         self.clock_drift_stddev: float = _number_or_nan(doc.get("clock_drift_stddev"))
         self.residual_to_path_ratio: float = _number_or_nan(doc.get("residual_to_path_ratio"))
+        # Whether that drift was significant and corrected: the reference is then paired at
+        # t + time_offset_s + clock_drift_applied * (t - clock_drift_origin_s) (tracker time t;
+        # clock_drift_applied 0 when not corrected).
+        self.clock_drift_corrected: bool = bool(doc.get("clock_drift_corrected", False))
+        self.clock_drift_applied: float = float(doc.get("clock_drift_applied", 0.0))
+        self.clock_drift_origin_s: float = float(doc.get("clock_drift_origin_s", 0.0))
         # An estimated offset the streams identify poorly, or the sensor chosen among several:
         # what ``trackcal-fit pair`` prints on stderr.
         self.warning: str = str(doc["warning"])
