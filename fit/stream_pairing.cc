@@ -76,8 +76,8 @@ namespace {
 
 // The tracker samples of one sensor in time order (decimated). The tracker stream's reader does
 // not require increasing times (receivers interleave), and the offset's standard deviation takes
-// the samples as a time series: its Newey-West window is correlation_time_s times the rate from
-// the first to the last sample, and its lags are neighbours in this order. In stream order, a
+// the samples as a time series: its Newey-West window pairs samples up to correlation_time_s apart
+// in this order (NeweyWestMeat). In stream order, a
 // stream whose last sample was its earliest gave a rate of (n - 1) / 1e-9, a window over every
 // sample, and a standard deviation 6 times too small.
 std::vector<const TrackerStreamSample*> SelectSamples(const TrackerStream& tracker,
@@ -238,6 +238,47 @@ double MedianReferencePeriod(const ReferenceStream& reference) {
   return dt[dt.size() / 2];
 }
 
+// The median spacing of the samples' times [s] (1 when none is positive).
+double MedianSamplePeriod(const std::vector<const TrackerStreamSample*>& samples) {
+  std::vector<double> dt;
+  for (size_t i = 1; i < samples.size(); ++i) {
+    const double d = samples[i]->time - samples[i - 1]->time;
+    if (d > 0.0) dt.push_back(d);
+  }
+  if (dt.empty()) return 1.0;
+  std::nth_element(dt.begin(), dt.begin() + static_cast<long>(dt.size() / 2), dt.end());
+  return dt[dt.size() / 2];
+}
+
+// The Newey-West "meat" sum_ij w(|t_i - t_j|) s_i s_j^T of per-sample scores (rows of `score`, at
+// the times of samples[rows[i]], in time order), with Bartlett weights over the time between the
+// samples: w = 1 - |dt| / ((L + 1) period), L = floor(correlation_time_s / period), the median
+// sample period; on an evenly sampled stream the usual lag-L window. The window was L neighbours
+// in order, L from the mean rate over the whole span: a capture paused for 100 s halfway through
+// 30 s shrank it to 13 neighbours (0.11 s), and neighbours across the pause or across a gap in the
+// reference, seconds apart, were weighted as if 1/120 s apart.
+Eigen::MatrixXd NeweyWestMeat(const Eigen::MatrixXd& score,
+                              const std::vector<const TrackerStreamSample*>& samples,
+                              const std::vector<size_t>& rows, double correlation_time_s) {
+  const double period = MedianSamplePeriod(samples);
+  const double window = (std::floor(correlation_time_s / period) + 1.0) * period;
+  Eigen::MatrixXd meat = score.transpose() * score;
+  const Eigen::Index n = score.rows();
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const double ti = samples[rows[static_cast<size_t>(i)]]->time;
+    for (Eigen::Index j = i + 1; j < n; ++j) {
+      const double w = 1.0 - (samples[rows[static_cast<size_t>(j)]]->time - ti) / window;
+      if (w <= 1e-9) break;
+      for (Eigen::Index a = 0; a < score.cols(); ++a) {
+        for (Eigen::Index b = 0; b < score.cols(); ++b) {
+          meat(a, b) += w * (score(i, a) * score(j, b) + score(j, a) * score(i, b));
+        }
+      }
+    }
+  }
+  return meat;
+}
+
 struct OffsetEstimate {
   double offset = 0.0;
   double stddev = 0.0;
@@ -254,10 +295,6 @@ OffsetEstimate RefineOffset(const std::vector<const TrackerStreamSample*>& sampl
   const double h = 0.5 * MedianReferencePeriod(reference);
   OffsetEstimate est;
   est.offset = start;
-  const double tracker_rate =
-      samples.size() >= 2
-          ? (samples.size() - 1) / std::max(samples.back()->time - samples.front()->time, 1e-9)
-          : 1.0;
   for (int step = 0; step < options.max_gauss_newton_steps; ++step) {
     const std::vector<size_t> rows =
         RowsCovering(samples, reference, est.offset - h, est.offset + h, options.max_gap_s);
@@ -282,14 +319,11 @@ OffsetEstimate RefineOffset(const std::vector<const TrackerStreamSample*>& sampl
     const Eigen::VectorXd e = e0 + g * delta;
     est.cost = e.squaredNorm() / (3.0 * n);
     // Newey-West variance of delta from per-sample scores s_i = g_i . e_i.
-    Eigen::VectorXd score(n);
-    for (Eigen::Index i = 0; i < n; ++i) score[i] = g.segment<3>(3 * i).dot(e.segment<3>(3 * i));
-    const int lags = static_cast<int>(options.correlation_time_s * tracker_rate);
-    double s = score.squaredNorm();
-    for (int l = 1; l <= lags && l < n; ++l) {
-      const double w = 1.0 - static_cast<double>(l) / (lags + 1);
-      s += 2.0 * w * score.head(n - l).dot(score.tail(n - l));
+    Eigen::MatrixXd score(n, 1);
+    for (Eigen::Index i = 0; i < n; ++i) {
+      score(i, 0) = g.segment<3>(3 * i).dot(e.segment<3>(3 * i));
     }
+    const double s = NeweyWestMeat(score, samples, rows, options.correlation_time_s)(0, 0);
     est.stddev = std::sqrt(std::max(s, 0.0)) / gg;
     // H_tt (H^-1)_tt of the joint regression on [model, dd] (uncentred, as the fit engine's).
     est.variance_inflation = dd.squaredNorm() / gg;
@@ -403,8 +437,6 @@ DriftEstimate EstimateDrift(const std::vector<const TrackerStreamSample*>& sampl
   if (!(out.span > 0.0)) return out;
   const double mid = 0.5 * (first + last);
   out.origin = mid;
-  const double tracker_rate = (samples.size() - 1) / out.span;
-  const int lags = static_cast<int>(options.correlation_time_s * tracker_rate);
   double rate = 0.0;
   for (int step = 0; step < options.max_gauss_newton_steps; ++step) {
     std::vector<size_t> rows;
@@ -443,12 +475,7 @@ DriftEstimate EstimateDrift(const std::vector<const TrackerStreamSample*>& sampl
       score(i, 0) = g.col(0).segment<3>(3 * i).dot(e.segment<3>(3 * i));
       score(i, 1) = g.col(1).segment<3>(3 * i).dot(e.segment<3>(3 * i));
     }
-    Eigen::Matrix2d meat = score.transpose() * score;
-    for (int l = 1; l <= lags && l < n; ++l) {
-      const double w = 1.0 - static_cast<double>(l) / (lags + 1);
-      const Eigen::Matrix2d c = score.topRows(n - l).transpose() * score.bottomRows(n - l);
-      meat += w * (c + c.transpose());
-    }
+    const Eigen::Matrix2d meat = NeweyWestMeat(score, samples, rows, options.correlation_time_s);
     const Eigen::Matrix2d covariance = inverse * meat * inverse;
     offset += delta[0];
     rate += delta[1];

@@ -311,6 +311,37 @@ TEST(PairStreams, TwoReceiversPairTheLowestSensorWhateverCameFirst) {
 // (truth 37 ms, z = -4.9). With it the degree is lowered to 1 (inflation 5.1): 37.7 +- 1.3 ms.
 // The 5 ms tolerance is ~4 of those stddevs and a fifth of the old error. The 30 s stream keeps
 // degree 3 (inflation 3.0, 37.0 +- 0.03 ms) and warns of nothing.
+TEST(PairStreams, APauseInTheCaptureDoesNotShrinkTheOffsetsStandardDeviation) {
+  // The same samples with the capture paused for 100 s halfway (both streams' second halves 100 s
+  // later): the pairs and the error model's misfit are the same, so is the offset's standard
+  // deviation. Its Newey-West window was correlation_time_s times the mean rate over the whole
+  // span, pause included, so it covered 13 samples (0.11 s) instead of 60 and the standard
+  // deviation came out smaller.
+  TrackerStream tracker, paused_tracker;
+  ReferenceStream reference, paused_reference;
+  MakeStreams(0.037, &tracker, &reference, 30.0, FieldDistortion);
+  paused_tracker = tracker;
+  paused_reference = reference;
+  const double split = 15.0, pause = 100.0;  // true (tracker) time
+  for (TrackerStreamSample& s : paused_tracker.records) {
+    if (s.time >= split) s.time += pause;
+  }
+  for (ReferenceStreamSample& s : paused_reference.records) {
+    if (s.time - 0.037 >= split) s.time += pause;
+  }
+  StreamPairingOptions options;
+  options.estimate_time_offset = true;
+  const StreamPairingResult a = PairStreams(tracker, reference, options);
+  const StreamPairingResult b = PairStreams(paused_tracker, paused_reference, options);
+  std::cout << "continuous: " << 1e3 * a.time_offset << " +- " << 1e3 * a.time_offset_stddev
+            << " ms; paused: " << 1e3 * b.time_offset << " +- " << 1e3 * b.time_offset_stddev
+            << " ms\n";
+  EXPECT_NEAR(b.time_offset, a.time_offset, 0.1 * a.time_offset_stddev);
+  // The few samples next to the pause that pair in one and not the other, and the window's terms
+  // across the join of the continuous one: a few percent.
+  EXPECT_NEAR(b.time_offset_stddev / a.time_offset_stddev, 1.0, 0.05);
+}
+
 TEST(PairStreams, ShortPath_AnErrorModelThatMimicsATimeShiftIsLowered) {
   StreamPairingOptions options;
   options.estimate_time_offset = true;
