@@ -386,6 +386,33 @@ def test_register_and_pair_match_the_command_line(capture_dir, tmp_path):
         trackcal.pair(tmp_path / "missing.csv", capture_dir / "reference_stream.csv")
 
 
+def test_pair_corrects_a_drifting_reference_clock(capture_dir, tmp_path):
+    """The reference clock 1000 ppm fast: the pairing corrects it and says so, in Python as in
+    trackcal-fit pair --json and text; the capture as simulated is paired with one offset."""
+    plain = trackcal.pair(capture_dir / "tracker_stream.csv", capture_dir / "reference_stream.csv",
+                          estimate_time_offset=True)
+    assert not plain.clock_drift_corrected and plain.clock_drift_applied == 0.0
+    drifting = tmp_path / "reference_stream.csv"
+    with open(capture_dir / "reference_stream.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    t0 = float(rows[1][rows[0].index("time")])
+    for row in rows[1:]:
+        i = rows[0].index("time")
+        row[i] = repr(t0 + (float(row[i]) - t0) * 1.001)
+    with open(drifting, "w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    paired = trackcal.pair(capture_dir / "tracker_stream.csv", drifting, estimate_time_offset=True)
+    assert paired.clock_drift_corrected
+    assert paired.clock_drift_applied == paired.clock_drift
+    assert paired.clock_drift == pytest.approx(1e-3, abs=4 * paired.clock_drift_stddev)
+    assert "corrected" in paired.warning
+    cli = run_fit_cli("pair", "--tracker", capture_dir / "tracker_stream.csv", "--reference",
+                      drifting, "--estimate-time-offset", "-o", tmp_path / "cli.csv", "--json")
+    assert cli["clock_drift_corrected"] is True
+    assert cli["clock_drift_applied"] == pytest.approx(paired.clock_drift_applied, rel=1e-12)
+    assert cli["clock_drift_origin_s"] == pytest.approx(paired.clock_drift_origin_s, rel=1e-12)
+
+
 def test_register_warns_when_not_identifiable(capture_dir, tmp_path):
     """Ten copies of one station leave the transform undetermined: the Python call warns and the
     command line refuses to write the poses (exit 3), as docs/fit.md says."""
