@@ -140,10 +140,13 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
 std::function<PairedStations(const TimeOffsetSpec&)> StreamRepairing(const LoadedFitData& data,
                                                                      const ModelSpec& spec) {
   if (!data.tracker_stream || !data.reference_stream) return {};
+  // A drift the first pairing corrected is kept at a fixed offset (an estimated one estimates it).
   return [tracker = data.tracker_stream, reference = data.reference_stream,
-          pairing = PairingOf(spec), sensor = data.stream_sensor](const TimeOffsetSpec& t) {
+          pairing = PairingOf(spec), sensor = data.stream_sensor,
+          drift = data.pairing ? data.pairing->clock_drift : 0.0](const TimeOffsetSpec& t) {
     StreamPairingOptions o = pairing;
     o.sensor = sensor;
+    o.clock_drift = drift;
     o.time_offset = t.value;
     o.estimate_time_offset = !t.fixed;
     o.search_range = t.search_range;
