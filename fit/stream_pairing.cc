@@ -421,6 +421,7 @@ struct DriftEstimate {
   double span = 0.0;  // [s] of the tracker samples
   double origin = 0.0;  // [s] t_mid, the tracker time at which `offset` holds
   double offset = std::numeric_limits<double>::quiet_NaN();  // [s] refined with the rate
+  double offset_stddev = std::numeric_limits<double>::quiet_NaN();  // [s] of `offset`, jointly
   double cost =
       std::numeric_limits<double>::quiet_NaN();  // residual variance [m^2], as the offset's
   // Of the rate against the error model and the offset (H_rr (H^-1)_rr, as the offset's).
@@ -483,6 +484,7 @@ DriftEstimate EstimateDrift(const std::vector<const TrackerStreamSample*>& sampl
     out.offset = offset;
     out.cost = e.squaredNorm() / (3.0 * static_cast<double>(n));
     out.stddev = std::sqrt(std::max(covariance(1, 1), 0.0));
+    out.offset_stddev = std::sqrt(std::max(covariance(0, 0), 0.0));
     out.variance_inflation = ddt.squaredNorm() * inverse(1, 1);
     if (std::abs(delta[0]) < options.tolerance &&
         std::abs(delta[1]) * 0.5 * out.span < options.tolerance) {
@@ -735,7 +737,8 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   if (options.estimate_time_offset) {
     result.cost = rate != 0.0 ? drift.cost : estimate.cost;
     result.clock_drift_corrected = rate != 0.0;
-    result.time_offset_stddev = estimate.stddev;
+    // Of the offset paired with: at t_mid, jointly with the drift, when it is corrected.
+    result.time_offset_stddev = rate != 0.0 ? drift.offset_stddev : estimate.stddev;
     result.gauss_newton_steps = estimate.steps;
     result.detrend_degree = used.detrend_degree;
     result.time_offset_variance_inflation = estimate.variance_inflation;

@@ -170,6 +170,15 @@ TEST(PairStreamsOnSimulatedCapture, DriftingClocksAreCorrected) {
     // Left: the drift's and the offset's estimation errors (a few ppm over the stream, ~1 ms).
     EXPECT_LT(after.timing_max_ms, 0.1 * before.timing_max_ms);
     EXPECT_LT(after.reference_rms_mm, 0.2 * before.reference_rms_mm);
+    // The offset paired with holds at t_mid, with the joint estimate's standard deviation: the
+    // single offset's was inflated by the drift it could not follow (1.04 ms at 1000 ppm).
+    const double truth = sim::LoadScene("paper").hidden.reference_minus_tracker_s +
+                         drift * after.result.clock_drift_origin;
+    std::cout << "offset " << 1e3 * after.result.time_offset << " +- "
+              << 1e3 * after.result.time_offset_stddev << " ms (truth " << 1e3 * truth
+              << "), one offset's stddev " << 1e3 * before.result.time_offset_stddev << " ms\n";
+    EXPECT_NEAR(after.result.time_offset, truth, 3.0 * after.result.time_offset_stddev);
+    EXPECT_LT(after.result.time_offset_stddev, 0.5 * before.result.time_offset_stddev);
   }
   // Without drift nothing is corrected and the pairing is the one of a single offset.
   for (uint64_t seed : {1ull, 2ull}) {
