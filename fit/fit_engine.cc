@@ -1753,6 +1753,7 @@ std::vector<FoldRefit> RefitFoldsFromFull(const std::vector<FitStation>& station
     return train;
   };
   auto finish = [&](const std::vector<FitStation>& train, FoldRefit* out) {
+    out->stayed_at_full_fit = n > 0 && current_values() == full_values;
     out->chain = ModelToChain(spec->terms);
     out->chain.SetVolume(VolumeOf(train, out->chain));
   };

@@ -283,6 +283,12 @@ struct FoldRefit {
   bool solver_refit = false;  // refitted by the solver (fallback)
   int jacobian_evaluations = 0;  // of the fold's stations (each costs about one solver iteration)
   int bound_steps = 0;  // steps that held coordinates on a bound of the full fit (HeldAtBound)
+  // Every free parameter ended exactly at the full fit's value (no step lowered the fold's cost,
+  // and the solver's fallback made no successful step either): the fold's "held-out" predictions
+  // are the full fit's, which was fitted to the held-out stations too, so they are in-sample and
+  // must not be scored as held-out (the caller refits such folds from scratch). False for a model
+  // without free parameters.
+  bool stayed_at_full_fit = false;
   double seconds = 0.0;           // wall time of the fold's refit
 };
 
