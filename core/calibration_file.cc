@@ -20,8 +20,8 @@ constexpr const char* kFrameErrors = "transmitter";
 // Key order of the written file, so a human reads it top-down.
 const std::vector<std::string>& CalibrationKeyOrder() {
   static const std::vector<std::string> order = {
-      "format", "version", "description", "units", "frames", "calibrated_volume", "corrections",
-      "fit_statistics", "provenance",
+      "format", "version", "description", "sensor", "units", "frames", "calibrated_volume",
+      "corrections", "fit_statistics", "provenance",
       // volume
       "min", "max", "extrapolation", "fade_distance", "linear_reach",
       // corrections
@@ -218,6 +218,11 @@ void CheckProvenance(const Provenance& p) {
 }  // namespace
 
 void Calibration::Check() const {
+  if (sensor < 0 || sensor > kMaxCalibrationSensor) {
+    throw std::invalid_argument("calibration: sensor must be 0 (not recorded) or 1.." +
+                                std::to_string(kMaxCalibrationSensor) + ", got " +
+                                std::to_string(sensor));
+  }
   if (!chain.volume().has_value()) {
     throw std::invalid_argument("calibration: the calibrated volume is not set");
   }
@@ -269,6 +274,15 @@ Calibration ParseCalibrationJson(const std::string& text, const std::string& sou
   }
   Calibration cal;
   if (root.Has("description")) cal.description = root.String("description");
+  // Optional (files before it do not have it): the receiver the file was fitted for.
+  if (root.Has("sensor")) {
+    cal.sensor = root.Integer("sensor");
+    if (cal.sensor < 1 || cal.sensor > kMaxCalibrationSensor) {
+      root.Fail("sensor", "expected the capture's sensor number (1.." +
+                              std::to_string(kMaxCalibrationSensor) + "; Fastrak station n is " +
+                              "sensor n), got " + std::to_string(cal.sensor));
+    }
+  }
 
   const JsonObjectReader units = root.Object("units");
   units.Enum("length", {kUnitsLength});
@@ -317,6 +331,7 @@ nlohmann::json CalibrationToJson(const Calibration& calibration) {
   doc["format"] = kCalibrationFormat;
   doc["version"] = kCalibrationVersion;
   if (!calibration.description.empty()) doc["description"] = calibration.description;
+  if (calibration.sensor != 0) doc["sensor"] = calibration.sensor;
   doc["units"] = {{"length", kUnitsLength}};
   doc["frames"] = {{"pose", kFramePose}, {"errors", kFrameErrors}};
   doc["calibrated_volume"] = {{"min", {v.min.x(), v.min.y(), v.min.z()}},

@@ -17,6 +17,8 @@ namespace trackcal {
 
 inline constexpr const char* kCalibrationFormat = "trackcal-calibration";
 inline constexpr int kCalibrationVersion = 1;
+// Largest receiver number a calibration file may record (trackcal-fit's --sensor takes 1..64).
+inline constexpr int kMaxCalibrationSensor = 64;
 
 // One input file a calibration was computed from.
 struct CalibrationInput {
@@ -35,6 +37,11 @@ struct Provenance {
 
 struct Calibration {
   std::string description;  // optional free text
+  // The receiver the calibration was fitted for: the capture's `sensor` column (1-based, the
+  // Fastrak station; served on vrpn.cfg's sensor=<sensor - 1>). 0: not recorded (files written
+  // before the field, or data of no single sensor). A receiver's sensor offset and coil gains are
+  // its own, so a server refuses a file on another sensor's line (docs/vrpn-config.md).
+  int sensor = 0;
   // The corrections in order; its volume (required in a file) is the calibrated volume.
   CorrectionChain chain;
   // Free-form fit statistics (objects, arrays, strings, finite numbers); see the doc for the keys

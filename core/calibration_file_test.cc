@@ -421,6 +421,32 @@ TEST(ParseCalibrationJson, LinearPolicyAndItsReach) {
       << wrong_type;
 }
 
+// The receiver a calibration was fitted for (the capture's 1-based sensor column): written when
+// known, read back, optional (the example and every file before the field have none: 0), and a
+// bad value names the file and the field. Before, the file had no such field (unknown key).
+TEST(ParseCalibrationJson, RecordsTheSensorItWasFittedFor) {
+  EXPECT_EQ(ReadCalibrationFile(ExamplePath()).sensor, 0);
+  nlohmann::json j = ExampleJson();
+  j["sensor"] = 2;
+  const Calibration cal = ParseCalibrationJson(j.dump(), "calib.json");
+  EXPECT_EQ(cal.sensor, 2);
+  EXPECT_EQ(CalibrationToJson(cal)["sensor"], 2);
+  EXPECT_NE(CalibrationToJsonText(cal).find("\"description\": \"Example: degree-2 polynomial "
+                                            "followed by a 2 x 2 x 3 residual LUT, Fastrak in lab "
+                                            "B\",\n  \"sensor\": 2,\n"),
+            std::string::npos)
+      << CalibrationToJsonText(cal);
+  EXPECT_FALSE(CalibrationToJson(ReadCalibrationFile(ExamplePath())).contains("sensor"));
+  EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& e) { e["sensor"] = 0; }),
+            "calib.json: $.sensor: expected the capture's sensor number (1..64; Fastrak station n "
+            "is sensor n), got 0");
+  const std::string wrong_type = ErrorAfterEdit([](nlohmann::json& e) { e["sensor"] = "2"; });
+  EXPECT_EQ(wrong_type.rfind("calib.json: $.sensor: ", 0), 0u) << wrong_type;
+  Calibration bad = cal;
+  bad.sensor = -1;
+  EXPECT_THROW(CalibrationToJson(bad), std::invalid_argument);
+}
+
 TEST(ParseCalibrationJson, RejectsBadProvenance) {
   EXPECT_EQ(ErrorAfterEdit([](nlohmann::json& j) {
               j["provenance"]["inputs"][0]["sha256"] = "abc";

@@ -749,6 +749,11 @@ TEST_F(FitCliTest, SeveralReceiversAreRefusedOrFittedOneAtATime) {
   const auto p = nlohmann::json::parse(ReadFileToString(picked));
   const auto a = nlohmann::json::parse(ReadFileToString(alone));
   EXPECT_EQ(p["tables"], a["tables"]);  // the same stations, in the same order: the same numbers
+  // The file records the receiver it was fitted for (picked with --sensor, or the file's only one),
+  // so a server can refuse it on another receiver's sensor= line; it recorded nothing before.
+  EXPECT_EQ(ReadCalibrationFile(dir_ / "p.json").sensor, 2);
+  EXPECT_EQ(ReadCalibrationFile(dir_ / "a.json").sensor, 2);
+  EXPECT_THAT(ReadFileToString(dir_ / "a.json"), ::testing::HasSubstr("\"sensor\": 2,"));
   EXPECT_EQ(RunCommand(fit_ + " fit" + mixed_data + model + " --sensor 3 -o " +
                        (dir_ / "x.json").string() + " --quiet 2> " + err.string()),
             1);

@@ -262,6 +262,15 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
                     " with model " +
                     (model.path ? model.path->filename().string() : std::string("<model text>"));
   cal.chain = run.result.chain;
+  // The receiver fitted (the data hold one sensor's stations after LoadFitData): a server can then
+  // refuse the file on another receiver's line.
+  {
+    std::set<int> sensors;
+    for (const auto& r : poses.records) sensors.insert(r.sensor);
+    if (sensors.size() == 1 && *sensors.begin() >= 1 && *sensors.begin() <= kMaxCalibrationSensor) {
+      cal.sensor = *sensors.begin();
+    }
+  }
   nlohmann::json stats = nlohmann::json::object();
   stats["tables"] = run.TablesJson();
   stats["chi2_per_dof"] = std::isfinite(run.result.chi2_per_dof)
