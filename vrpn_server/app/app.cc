@@ -106,6 +106,28 @@ std::unique_ptr<ReportSource> MakePassthroughSource(const std::string& vrpn_name
   return std::make_unique<PassthroughSource>(vrpn_name);
 }
 
+namespace {
+
+// A calibration fitted for one receiver (its sensor offset and coil gains) served on another
+// receiver's sensor= line gives cm-level errors without a sign: refused (at start, and on reload,
+// keeping the previous correction). The file records the capture's 1-based sensor; the line's
+// sensor= is the 0-based VRPN sensor. A file without the field, or a line without sensor=, is not
+// checked.
+void CheckFittedSensor(std::optional<int> vrpn_sensor, const PoseCorrector& corrector) {
+  const int fitted = corrector.FittedSensor();
+  if (!vrpn_sensor || fitted == 0 || fitted == *vrpn_sensor + 1) return;
+  throw std::invalid_argument(
+      "the file was fitted for receiver " + std::to_string(fitted) +
+      " (the capture's sensor column; Fastrak station " + std::to_string(fitted) +
+      "), which is VRPN sensor=" + std::to_string(fitted - 1) + ", not sensor=" +
+      std::to_string(*vrpn_sensor) + " (Fastrak station " + std::to_string(*vrpn_sensor + 1) +
+      "): each receiver has its own sensor offset and coil gains; serve it on sensor=" +
+      std::to_string(fitted - 1) + " or fit receiver " + std::to_string(*vrpn_sensor + 1) +
+      " (trackcal-fit fit --sensor " + std::to_string(*vrpn_sensor + 1) + ")");
+}
+
+}  // namespace
+
 // One calibration file of a tracker: for every sensor (`sensor` unset) or for one.
 struct TrackcalServerApp::Slot {
   std::optional<int> sensor;
@@ -197,6 +219,7 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
       try {
         slot.signature = Signature(slot.file);
         auto corrector = loader_(slot.file, slot.outside, slot.fade_distance);
+        CheckFittedSensor(slot.sensor, *corrector);
         Install(t, slot, corrector);
         Log(slot.Label(t.setup.name) + ": correction " + corrector->Describe());
       } catch (const std::exception& e) {
@@ -270,6 +293,7 @@ bool TrackcalServerApp::Reload(Tracker& t, Slot& slot, bool only_if_changed) {
   const std::string label = slot.Label(t.setup.name);
   try {
     auto corrector = loader_(slot.file, slot.outside, slot.fade_distance);
+    CheckFittedSensor(slot.sensor, *corrector);
     const std::string description = corrector->Describe();
     Install(t, slot, std::move(corrector));
     Log(label + ": reloaded " + slot.file.string() + " (" + description + ")");

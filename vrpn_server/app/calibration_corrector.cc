@@ -18,6 +18,7 @@ class CalibrationCorrector : public PoseCorrector {
     return {c.pose, c.extrapolated, c.status};
   }
   std::string Describe() const override { return description_; }
+  int FittedSensor() const override { return calibration_.sensor; }
 
  private:
   Calibration calibration_;
@@ -55,7 +56,12 @@ std::shared_ptr<const PoseCorrector> LoadCalibrationCorrector(
     terms += calibration.chain.term(i).TypeName();
   }
   std::string description = path.string() + " (" + terms + ", outside the calibrated volume: " +
-                            ExtrapolationPolicyName(calibration.volume().extrapolation) + ")";
+                            ExtrapolationPolicyName(calibration.volume().extrapolation);
+  if (calibration.sensor != 0) {
+    description += ", fitted for receiver " + std::to_string(calibration.sensor) +
+                   " = VRPN sensor " + std::to_string(calibration.sensor - 1);
+  }
+  description += ")";
   return std::make_shared<CalibrationCorrector>(std::move(calibration), std::move(description));
 }
 

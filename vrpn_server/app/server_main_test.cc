@@ -110,8 +110,10 @@ TEST(TrackcalServerMain, ServesNullTrackerWarnsOnUnknownLineAndStopsOnSigterm) {
 // A calibration that adds `offset` to every position (degree-0 polynomial) in the volume
 // [volume_min, 1]^3 (clamped outside, fade_distance 0 as trackcal-fit writes).
 void WriteOffsetCalibration(const std::filesystem::path& path, const Eigen::Vector3d& offset,
-                            const Eigen::Vector3d& volume_min = Eigen::Vector3d(-1, -1, -1)) {
+                            const Eigen::Vector3d& volume_min = Eigen::Vector3d(-1, -1, -1),
+                            int sensor = 0) {
   Calibration cal;
+  cal.sensor = sensor;
   cal.chain.Append(PolynomialCorrection::FromPositionAndOrientation(
       0, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones(), {offset.x(), offset.y(), offset.z()},
       {0.0, 0.0, 0.0}));
@@ -242,6 +244,51 @@ TEST(TrackcalServerMain, CalibrationPerSensor) {
   const std::string err = server.Stderr();
   EXPECT_NE(err.find("Tracker0 sensor 1: reloaded"), std::string::npos) << err;
   EXPECT_NE(err.find("for sensor 1 (other sensors uncorrected)"), std::string::npos) << err;
+}
+
+// A calibration holds one receiver's sensor offset and coil gains: a file fitted for receiver 1
+// (capture sensor 1, VRPN sensor 0) on a `sensor=1` line served receiver 2 with receiver 1's
+// correction without a word (cm-level errors). The file records its receiver; the server refuses a
+// mismatch at start naming the line, rejects it on reload (keeping the previous correction), and
+// logs the receiver with the correction. Files without the field, and lines without sensor=, are
+// served as before.
+TEST(SetupFromConfig, CalibrationOfAnotherReceiverIsRefused) {
+  const auto dir = testing::MakeTempDir("server_main_fitted_sensor");
+  const Eigen::Vector3d low(-1, -1, -1);
+  WriteOffsetCalibration(dir / "r1.json", Eigen::Vector3d(0.1, 0, 0), low, 1);
+  WriteOffsetCalibration(dir / "old.json", Eigen::Vector3d(0.1, 0, 0), low, 0);
+  auto app_of = [&](const std::string& cfg, std::vector<std::string>* log) {
+    ConfigSetup setup = SetupFromConfig(
+        ParseVrpnConfig("vrpn_Tracker_NULL T 2 60\n" + cfg, (dir / "vrpn.cfg").string()),
+        "127.0.0.1:3883");
+    return std::make_unique<TrackcalServerApp>(std::move(setup.trackers), AppOptions{},
+                                               LoadCalibrationCorrector,
+                                               [log](const std::string& l) { log->push_back(l); });
+  };
+  std::vector<std::string> log;
+  try {
+    app_of("trackcal_Calibration T r1.json sensor=1\n", &log);
+    ADD_FAILURE() << "receiver 1's file was accepted on VRPN sensor 1";
+  } catch (const std::invalid_argument& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("vrpn.cfg:2: calibration of 'T sensor 1': "), std::string::npos) << what;
+    EXPECT_NE(what.find("fitted for receiver 1"), std::string::npos) << what;
+    EXPECT_NE(what.find("VRPN sensor=0, not sensor=1"), std::string::npos) << what;
+  }
+  // On its own receiver's line: served, and the log says which receiver it was fitted for.
+  log.clear();
+  auto app = app_of("trackcal_Calibration T r1.json sensor=0\n", &log);
+  ASSERT_FALSE(log.empty());
+  EXPECT_NE(log.back().find("fitted for receiver 1 = VRPN sensor 0"), std::string::npos)
+      << log.back();
+  // A new file of another receiver is rejected on reload; the previous correction stays.
+  WriteOffsetCalibration(dir / "r1.json", Eigen::Vector3d(0.2, 0, 0), low, 2);
+  EXPECT_EQ(app->ReloadCalibrations(), 0);
+  EXPECT_NE(log.back().find("rejected new"), std::string::npos) << log.back();
+  EXPECT_NE(log.back().find("fitted for receiver 2"), std::string::npos) << log.back();
+  // Unrecorded receiver (older files), or a line for every sensor: served as before.
+  EXPECT_NO_THROW(app_of("trackcal_Calibration T old.json sensor=1\n", &log));
+  EXPECT_NO_THROW(app_of("trackcal_Calibration T r1.json\n", &log));
 }
 
 // Errors name the vrpn.cfg line they come from: the server's limits on a vrpn_Tracker_NULL line are

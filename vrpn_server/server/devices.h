@@ -54,6 +54,9 @@ class PoseCorrector {
   }
   // One line for logs, e.g. "calib.json (polynomial degree 4)".
   virtual std::string Describe() const = 0;
+  // The receiver the correction was fitted for, as a capture's 1-based `sensor` column (Fastrak
+  // station n is n, VRPN sensor n - 1); 0: not recorded (any sensor).
+  virtual int FittedSensor() const { return 0; }
 };
 
 // Appends reports of one device to <dir>/<device>_tracker_stream.csv. The file is written as
