@@ -421,6 +421,9 @@ void BindCore(py::module_& m) {
       .def_property_readonly("fade_distance",
                              [](const Calibration& c) { return c.volume().fade_distance; })
       .def_readwrite("description", &Calibration::description)
+      .def_readwrite("sensor", &Calibration::sensor,
+                     "The receiver the calibration was fitted for: the capture's 1-based sensor "
+                     "column (Fastrak station n; VRPN sensor n - 1); 0 when not recorded.")
       .def_property_readonly("fit_statistics",
                              [](const Calibration& c) { return JsonToPython(c.fit_statistics); })
       .def_property_readonly(
@@ -433,7 +436,8 @@ void BindCore(py::module_& m) {
           terms += c.chain.term(i).TypeName();
         }
         return "Calibration(corrections=[" + terms + "], extrapolation='" +
-               ExtrapolationPolicyName(c.volume().extrapolation) + "')";
+               ExtrapolationPolicyName(c.volume().extrapolation) + "'" +
+               (c.sensor != 0 ? ", sensor=" + std::to_string(c.sensor) : std::string()) + ")";
       });
 }
 

@@ -583,6 +583,12 @@ def test_stations_of_several_receivers_are_refused_or_fitted_one_at_a_time(captu
     picked = trackcal.fit(path, MODEL, sensor=2)
     alone = trackcal.fit(second, MODEL)
     assert_same(without_timings(picked.to_dict()["tables"]), without_timings(alone.to_dict()["tables"]))
+    # The calibration records the receiver it was fitted for (served on VRPN sensor=1); it did not.
+    assert picked.calibration.sensor == 2 and alone.calibration.sensor == 2
+    assert "sensor=2" in repr(alone.calibration)
+    saved = trackcal.Calibration.load(alone.save(tmp_path / "second.json"))
+    assert saved.sensor == 2
+    assert json.loads((tmp_path / "second.json").read_text())["sensor"] == 2
     with pytest.raises(ValueError, match=r"no station of sensor 3 \(the sensor column has 1, 2\)"):
         trackcal.fit(mixed, MODEL, sensor=3)
     for bad in (0, -1, 1.5, True):
