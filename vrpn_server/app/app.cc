@@ -1,6 +1,8 @@
 #include "vrpn_server/app/app.h"
 
+#include <algorithm>
 #include <cstdio>
+#include <limits>
 #include <set>
 #include <stdexcept>
 
@@ -126,6 +128,38 @@ void CheckFittedSensor(std::optional<int> vrpn_sensor, const PoseCorrector& corr
       " (trackcal-fit fit --sensor " + std::to_string(*vrpn_sensor + 1) + ")");
 }
 
+// A Fastrak reports, of the two positions +-p its dipole field allows, the one in the configured
+// hemisphere (p.h >= 0). A calibration whose volume has no point with p.h > 0 was captured in
+// another hemisphere: every report of that sensor is mirrored out of the volume, and the
+// correction is extrapolated for every pose (a capture in +x, served with H1,-1,0,0). Refused
+// naming the sensor and the command. Only hemispheres the vrpn.cfg sets are known (a unit's
+// power-up hemisphere is not), and only a volume wholly on the other side is caught.
+void CheckHemispheres(std::optional<int> slot_sensor,
+                      const std::vector<std::pair<int, Eigen::Vector3d>>& hemispheres,
+                      const std::string& tracker_origin, const PoseCorrector& corrector) {
+  const auto box = corrector.FittedBox();
+  if (!box) return;
+  for (const auto& [sensor, h] : hemispheres) {
+    if (slot_sensor && *slot_sensor != sensor) continue;
+    double reach = -std::numeric_limits<double>::infinity();  // max of p.h over the box
+    for (int corner = 0; corner < 8; ++corner) {
+      Eigen::Vector3d p;
+      for (int k = 0; k < 3; ++k) p[k] = (corner >> k) & 1 ? box->second[k] : box->first[k];
+      reach = std::max(reach, p.dot(h));
+    }
+    if (reach > 0.0) continue;
+    char hemisphere[96];
+    std::snprintf(hemisphere, sizeof(hemisphere), "H%d,%g,%g,%g", sensor + 1, h.x(), h.y(), h.z());
+    throw std::invalid_argument(
+        "the calibrated volume lies wholly in the other hemisphere than " +
+        std::string(hemisphere) + " (" + tracker_origin + ") for station " +
+        std::to_string(sensor + 1) + " (VRPN sensor " + std::to_string(sensor) +
+        "): the Fastrak reports that receiver's positions mirrored through the transmitter, never "
+        "inside the volume, so the calibration was captured in another hemisphere; capture and "
+        "fit in the configured hemisphere, or configure the hemisphere of the capture");
+  }
+}
+
 }  // namespace
 
 // One calibration file of a tracker: for every sensor (`sensor` unset) or for one.
@@ -220,6 +254,7 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
         slot.signature = Signature(slot.file);
         auto corrector = loader_(slot.file, slot.outside, slot.fade_distance);
         CheckFittedSensor(slot.sensor, *corrector);
+        CheckHemispheres(slot.sensor, t.setup.hemispheres, t.setup.origin, *corrector);
         Install(t, slot, corrector);
         Log(slot.Label(t.setup.name) + ": correction " + corrector->Describe());
       } catch (const std::exception& e) {
@@ -294,6 +329,7 @@ bool TrackcalServerApp::Reload(Tracker& t, Slot& slot, bool only_if_changed) {
   try {
     auto corrector = loader_(slot.file, slot.outside, slot.fade_distance);
     CheckFittedSensor(slot.sensor, *corrector);
+    CheckHemispheres(slot.sensor, t.setup.hemispheres, t.setup.origin, *corrector);
     const std::string description = corrector->Describe();
     Install(t, slot, std::move(corrector));
     Log(label + ": reloaded " + slot.file.string() + " (" + description + ")");

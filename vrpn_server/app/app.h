@@ -95,6 +95,11 @@ struct TrackerSetup {
   std::vector<std::pair<std::string, int>> buttons;
   // Where it was configured ("vrpn.cfg:12"), for messages.
   std::string origin;
+  // Hemispheres the tracker is configured to (a Fastrak's `Hs,x,y,z` extra commands, the last of
+  // each station; none for hemisphere tracking `Hs,0,0,0` or no command): (0-based sensor,
+  // direction). A calibration whose volume lies wholly on the other side of a sensor's
+  // hemisphere is refused for that sensor: its reports can never fall in the volume.
+  std::vector<std::pair<int, Eigen::Vector3d>> hemispheres;
   // Where its calibration and raw name were configured, when that is another line; for messages.
   std::string calibration_origin;
 };

@@ -19,6 +19,9 @@ class CalibrationCorrector : public PoseCorrector {
   }
   std::string Describe() const override { return description_; }
   int FittedSensor() const override { return calibration_.sensor; }
+  std::optional<std::pair<Eigen::Vector3d, Eigen::Vector3d>> FittedBox() const override {
+    return std::make_pair(calibration_.volume().min, calibration_.volume().max);
+  }
 
  private:
   Calibration calibration_;

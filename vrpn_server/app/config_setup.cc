@@ -1,5 +1,9 @@
 #include "vrpn_server/app/config_setup.h"
 
+#include <cmath>
+#include <cstdlib>
+#include <map>
+#include <optional>
 #include <stdexcept>
 
 #include "vrpn_server/app/fastrak_source.h"
@@ -17,6 +21,37 @@ bool IsPassthrough(const VrpnConfig& config, const std::string& name) {
   return false;
 }
 
+// The hemisphere of each station set by `Hs,x,y,z` extra commands (the last one of a station
+// counts; `Hs,0,0,0`, hemisphere tracking, sets none): (0-based sensor, direction).
+std::vector<std::pair<int, Eigen::Vector3d>> HemispheresOf(const std::vector<std::string>& commands,
+                                                           int num_stations) {
+  std::map<int, std::optional<Eigen::Vector3d>> by_sensor;
+  for (const std::string& cmd : commands) {
+    if (cmd.size() < 2 || cmd[0] != 'H') continue;
+    std::vector<double> v;
+    const char* p = cmd.c_str() + 1;
+    bool ok = true;
+    while (ok) {
+      char* end = nullptr;
+      v.push_back(std::strtod(p, &end));
+      ok = end != p && std::isfinite(v.back());
+      if (!ok || *end == '\0') break;
+      ok = *end == ',';
+      p = end + 1;
+    }
+    if (!ok || v.size() != 4 || v[0] != std::floor(v[0]) || v[0] < 1 || v[0] > num_stations) {
+      continue;  // not a hemisphere command this check understands: sent as written, not checked
+    }
+    const Eigen::Vector3d h(v[1], v[2], v[3]);
+    by_sensor[static_cast<int>(v[0]) - 1] = h.isZero() ? std::nullopt : std::optional(h);
+  }
+  std::vector<std::pair<int, Eigen::Vector3d>> out;
+  for (const auto& [sensor, h] : by_sensor) {
+    if (h) out.emplace_back(sensor, *h);
+  }
+  return out;
+}
+
 }  // namespace
 
 ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_server) {
@@ -30,6 +65,7 @@ ConfigSetup SetupFromConfig(const VrpnConfig& config, const std::string& this_se
     t.name = spec.name;
     t.num_sensors = options.num_stations;
     t.origin = spec.location.ToString();
+    t.hemispheres = HemispheresOf(spec.extra_commands, options.num_stations);
     for (const ButtonDeviceSpec& b : spec.buttons) {
       if (b.kind == ButtonDeviceKind::kFastrakStylus) t.buttons.emplace_back(b.name, b.sensor);
     }

@@ -291,6 +291,42 @@ TEST(SetupFromConfig, CalibrationOfAnotherReceiverIsRefused) {
   EXPECT_NO_THROW(app_of("trackcal_Calibration T r1.json\n", &log));
 }
 
+// A Fastrak reports each receiver in the hemisphere its H command sets (FASTRAK.md: vrpn.cfg's
+// extra command lines, sent at every reset, as the reference does). A calibration captured in +x
+// (its volume at x > 0) served with `H1,-1,0,0` saw every report mirrored to x < 0, outside its
+// volume, and extrapolated every pose without a word. Refused for the station the command sets;
+// another station's hemisphere, hemisphere tracking (H1,0,0,0) or the same hemisphere are served.
+TEST(SetupFromConfig, CalibrationOfAnotherHemisphereIsRefused) {
+  const auto dir = testing::MakeTempDir("server_main_hemisphere");
+  WriteOffsetCalibration(dir / "plus_x.json", Eigen::Vector3d(0.1, 0, 0),
+                         Eigen::Vector3d(0.05, -1, -1));  // a capture in the +x hemisphere
+  auto error_of = [&](const std::string& commands, const std::string& calibration) {
+    ConfigSetup setup =
+        SetupFromConfig(ParseVrpnConfig("vrpn_Tracker_Fastrak T /dev/null 115200 \\\n" + commands +
+                                            "\ntrackcal_Calibration T " + calibration + "\n",
+                                        (dir / "vrpn.cfg").string()),
+                        "127.0.0.1:3883");
+    try {
+      TrackcalServerApp app(std::move(setup.trackers), AppOptions{}, LoadCalibrationCorrector,
+                            [](const std::string&) {});
+    } catch (const std::invalid_argument& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  for (const std::string calibration : {"plus_x.json", "plus_x.json sensor=0"}) {
+    const std::string error = error_of("H1,-1,0,0", calibration);
+    EXPECT_NE(error.find("vrpn.cfg:3: calibration of 'T"), std::string::npos) << error;
+    EXPECT_NE(error.find("other hemisphere than H1,-1,0,0"), std::string::npos) << error;
+    EXPECT_NE(error.find("for station 1 (VRPN sensor 0)"), std::string::npos) << error;
+  }
+  EXPECT_EQ(error_of("H1,1,0,0", "plus_x.json sensor=0"), "no error");
+  EXPECT_EQ(error_of("H1,-1,0,0\\\nH1,0,0,0", "plus_x.json"), "no error");  // tracking
+  EXPECT_EQ(error_of("H2,-1,0,0", "plus_x.json sensor=0"), "no error");     // another station
+  EXPECT_NE(error_of("H2,-1,0,0", "plus_x.json sensor=1").find("for station 2"), std::string::npos);
+  EXPECT_EQ(error_of("*0.5", "plus_x.json"), "no error");
+}
+
 // Errors name the vrpn.cfg line they come from: the server's limits on a vrpn_Tracker_NULL line are
 // checked when the file is read (they used to fail at start-up, naming only the tracker), and a
 // calibration file names its trackcal_Calibration line (it used to name the tracker's).

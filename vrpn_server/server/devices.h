@@ -57,6 +57,11 @@ class PoseCorrector {
   // The receiver the correction was fitted for, as a capture's 1-based `sensor` column (Fastrak
   // station n is n, VRPN sensor n - 1); 0: not recorded (any sensor).
   virtual int FittedSensor() const { return 0; }
+  // The box of reported positions the correction was fitted on (transmitter frame, metres), if it
+  // has one: {min, max}.
+  virtual std::optional<std::pair<Eigen::Vector3d, Eigen::Vector3d>> FittedBox() const {
+    return std::nullopt;
+  }
 };
 
 // Appends reports of one device to <dir>/<device>_tracker_stream.csv. The file is written as
