@@ -101,6 +101,38 @@ def test_a_fit_of_a_loaded_capture_records_its_files(tmp_path):
     assert "other data" in row2 and "%" not in row2, row2
 
 
+def test_fits_of_two_receivers_of_one_capture_are_not_compared(tmp_path):
+    """trackcal fit --sensor 1 and --sensor 2 of one two-receiver capture read the same files: the
+    history recorded no receiver, so the second row showed a change from the first (a "-40 %" that
+    was another receiver's stations). Rows record the calibration's sensor; another receiver's row
+    says so instead of a change, and rows written before the field still compare."""
+    import types
+    data = tmp_path / "poses.csv"
+    data.write_text("x\n")
+    work = tmp_path / "work"
+
+    def report(pos, sensor):
+        text = "terms:\n  - type: polynomial\n    degree: 2\n"
+        s = {"valid": {"position_mm": {"mean": pos}, "orientation_deg": {"mean": 0.1}}}
+        ns = types.SimpleNamespace(
+            model={"text": text, "sha256": "ab" * 32, "source": "<string>", "terms": ["polynomial"]},
+            terms=[{"type": "polynomial"}], converged=True, chi2_per_dof=1.0, num_free_parameters=60,
+            outliers=[], iterations=3, scores=lambda: s)
+        if sensor is not None:
+            ns.calibration = types.SimpleNamespace(sensor=sensor)
+        return ns
+    history.record_model_fit(work, report(5.0, 1), model=None, data=data)
+    history.record_model_fit(work, report(3.0, 2), model=None, data=data)
+    history.record_model_fit(work, report(2.0, 2), model=None, data=data)
+    history.record_model_fit(work, report(1.0, None), model=None, data=data)  # an older row's shape
+    entries = history.load_history(work)
+    assert [e.get("sensor") for e in entries] == [1, 2, 2, None]
+    rows = history.history_table(entries).splitlines()
+    assert "sensor 2" in rows[2] and "%" not in rows[2], rows[2]
+    assert "-33.3%" in rows[3], rows[3]
+    assert "-50.0%" in rows[4], rows[4]
+
+
 def test_history_round_trip(tmp_path):
     data = tmp_path / "poses.csv"
     data.write_text("x\n")

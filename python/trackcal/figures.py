@@ -265,13 +265,13 @@ def history_plot(entries: Sequence[dict]):
     set are not joined to the previous one."""
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     x = np.arange(1, len(entries) + 1)
-    from trackcal.history import comparable_key, headline_scores, headline_set
+    from trackcal.history import comparable, comparable_key, headline_scores, headline_set
     pos = [headline_scores(e)[0] for e in entries]
     ori = [headline_scores(e)[1] for e in entries]
     # A line joins only rows the table compares (same capture files, same headline set): a step to
     # other data is not a step of the loop.
     keys = [comparable_key(e) for e in entries]
-    starts = [0] + [i for i in range(1, len(entries)) if keys[i] != keys[i - 1]]
+    starts = [0] + [i for i in range(1, len(entries)) if not comparable(keys[i], keys[i - 1])]
     runs = list(zip(starts, starts[1:] + [len(entries)]))
     for k, (a, b) in enumerate(runs):
         ax.plot(x[a:b], pos[a:b], "o-", color="tab:blue", label="position mean [mm]" if k == 0 else None)

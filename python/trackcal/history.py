@@ -6,8 +6,8 @@ of the work folder, so every earlier model can be recovered), ``data`` (a list o
 sha256} of the captures used) and ``scores`` ({set name: {"position_mm": {mean, std, max, ...},
 "orientation_deg": {...}}}). Fits of a model file (``trackcal fit --workdir``) add ``terms`` (term
 names of the model), ``calibration`` ({path, sha256} of the file written, and ``copy``, the same bytes
-kept in ``models/<sha>.json``: a later fit may replace the file) and ``fit`` (converged,
-chi2_per_dof, free parameters, outliers). The file is rewritten atomically on every record, so an
+kept in ``models/<sha>.json``: a later fit may replace the file), ``fit`` (converged,
+chi2_per_dof, free parameters, outliers) and ``sensor`` (the receiver fitted, from 1). The file is rewritten atomically on every record, so an
 interrupted write never loses earlier fits, under a lock (``.history.lock`` beside it), so two fits
 recording at once (two terminals, parallel scripts) both keep their entry.
 """
@@ -306,6 +306,11 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
                       "iterations": report.iterations}}
     if model_path is None:  # model given as text: the copy is the model file
         fields["model"]["path"] = str(copy.relative_to(workdir))
+    # The receiver fitted (the capture's sensor column): fits of two receivers of one capture share
+    # its files but not its stations, so their errors are no step of one loop.
+    sensor = getattr(getattr(report, "calibration", None), "sensor", 0)
+    if sensor:
+        fields["sensor"] = int(sensor)
     if calibration is not None:
         # A copy by content beside the model's: `trackcal fit -o cal.json` may replace cal.json by a
         # later fit, and the history must still lead to the calibration each row scored.
@@ -374,10 +379,17 @@ def _change(now: float, before: Optional[float]) -> str:
 
 
 def comparable_key(e: dict):
-    """What two rows must share for their errors to be compared: the capture files' contents and
-    the set the headline is taken from."""
+    """What two rows must share for their errors to be compared: the capture files' contents, the
+    set the headline is taken from, and the receiver (``sensor``; None in rows without it)."""
     data = tuple(sorted(str(d.get("sha256")) for d in e.get("data") or [] if isinstance(d, dict)))
-    return data, headline_set(e)
+    return data, headline_set(e), e.get("sensor")
+
+
+def comparable(key, previous) -> bool:
+    """Two comparable_key values whose rows' errors may be compared: same data and set, and the same
+    receiver when both rows record one (rows written before the field are taken as the same)."""
+    return (key[:2] == previous[:2]
+            and (key[2] is None or previous[2] is None or key[2] == previous[2]))
 
 
 def history_table(entries: Sequence[dict], first: int = 1) -> str:
@@ -386,7 +398,8 @@ def history_table(entries: Sequence[dict], first: int = 1) -> str:
     errors no calibration can remove hold the mean up while the median falls (hemisphere flips are
     left out of the scores since session 23; records written before kept them). A row whose capture
     files (their SHA-256) or headline set differ from the previous row's shows "other data" or
-    "other set" instead of a change: errors on different stations are not a step of the loop.
+    "other set" instead of a change, and one of another receiver (both rows recording their
+    ``sensor``) "sensor N": errors on different stations are not a step of the loop.
     ``first`` numbers the first row (the last rows of a history keep their numbers)."""
     sets = [headline_set(e) or "" for e in entries]
     width = max([3] + [len(x) for x in sets])
@@ -398,12 +411,13 @@ def history_table(entries: Sequence[dict], first: int = 1) -> str:
         p, o = headline_scores(e)
         med = headline_median_mm(e)
         key = comparable_key(e)
-        if prev is None or key == prev_key:
+        if prev is None or comparable(key, prev_key):
             dp = _change(p, prev[0] if prev else None)
             dm = _change(med, prev[1] if prev else None)
             do = _change(o, prev[2] if prev else None)
         else:
-            dp = dm = do = "other data" if key[0] != prev_key[0] else "other set"
+            dp = dm = do = ("other data" if key[0] != prev_key[0] else
+                            "other set" if key[1] != prev_key[1] else f"sensor {key[2]}")
         med_text = "" if math.isnan(med) else f"{med:.3f}"
         m = e.get("model") or {}
         model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
