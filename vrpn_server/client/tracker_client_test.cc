@@ -16,6 +16,7 @@
 #include <chrono>
 #include <cstring>
 #include <filesystem>
+#include <fstream>
 #include <functional>
 #include <map>
 #include <memory>
@@ -385,10 +386,12 @@ std::map<std::string, int> CountPosQuatPerSender(
 }
 
 // A server with Tracker0 and Tracker1, and a raw client that describes `senders` (none: it
-// sends its cookie only) and counts Pos_Quat per sender until `done`.
+// sends its cookie only), pings from those of them in `pings`, and counts Pos_Quat per sender
+// until `done`.
 std::map<std::string, int> PosQuatPerSenderWhenDescribing(
     const std::vector<std::string>& senders,
-    const std::function<bool(std::map<std::string, int>&)>& done) {
+    const std::function<bool(std::map<std::string, int>&)>& done,
+    const std::vector<std::string>& pings = {}) {
   auto catalog = MakeCatalog();
   TrackerSpec other;
   other.name = "Tracker1";
@@ -398,8 +401,11 @@ std::map<std::string, int> PosQuatPerSenderWhenDescribing(
   auto fd = RawConnect(server.port());
   auto names = std::make_shared<NameRegistry>();
   for (const std::string& sender : senders) names->AddSender(sender);
+  const std::int32_t ping = names->AddType(kPingType);
   Connection conn(names, Connection::Options{});
   conn.Start();
+  for (const std::string& sender : pings)
+    conn.Pack(*names->FindSender(sender), ping, Timestamp::Now(), {});
   if (::send(fd.get(), conn.tcp_output().data(), conn.tcp_output().size(), 0) <= 0) {
     ADD_FAILURE() << "cannot send the client's cookie";
     return {};
@@ -408,9 +414,11 @@ std::map<std::string, int> PosQuatPerSenderWhenDescribing(
 }
 
 TEST(VrpnServer, ClientsOnlyGetTheDevicesTheyUse) {
-  // Once the server has our description of Tracker0, it streams Tracker0 to us, never Tracker1.
-  auto counts = PosQuatPerSenderWhenDescribing({"Tracker0"},
-                                               [](auto& c) { return c["Tracker0"] >= 20; });
+  // Once the server has our ping from Tracker0 (a remote object for it), it streams Tracker0 to
+  // us, never Tracker1, although we describe both (as the reference library does: it describes
+  // back every name the server describes).
+  auto counts = PosQuatPerSenderWhenDescribing(
+      {"Tracker0", "Tracker1"}, [](auto& c) { return c["Tracker0"] >= 20; }, {"Tracker0"});
   EXPECT_GE(counts["Tracker0"], 20);
   EXPECT_EQ(counts.count("Tracker1"), 0u);
 }
@@ -432,6 +440,47 @@ TEST(VrpnServer, ReferenceClientDescribingOnlyVrpnControlGetsEveryDevice) {
       {std::string(kControlSender)}, [](auto& c) { return c["Tracker0"] >= 20 && c["Tracker1"] >= 20; });
   EXPECT_GE(counts["Tracker0"], 20);
   EXPECT_GE(counts["Tracker1"], 20);
+}
+
+// The reference client describes back every name a server describes: in capture 08 a client that
+// opened Tracker0 alone describes Stylus0 (the server's button) right after pinging from Tracker0.
+// Its descriptions therefore cannot tell which devices it uses; its pings can (every remote object
+// pings from its device name when it starts). That client's captured bytes, replayed: it must get
+// Tracker0's reports and not the button changes of Stylus0, which it never opened.
+TEST(VrpnServer, ReferenceClientGetsTheDeviceItPingsFromNotTheNamesItDescribesBack) {
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});  // as capture 08
+  server.Start();
+  std::ifstream in(trackcal::testing::SourceDir() / "tests" / "data" / "vrpn" /
+                       "08_fastrak_emulated_udp_lob_stylus_cm" / "client_to_server.bin",
+                   std::ios::binary);
+  const std::vector<std::uint8_t> reference_client(std::istreambuf_iterator<char>(in), {});
+  ASSERT_EQ(reference_client.size(), 1704u);
+  auto fd = RawConnect(server.port());
+  ASSERT_EQ(::send(fd.get(), reference_client.data(), reference_client.size(), MSG_NOSIGNAL),
+            static_cast<ssize_t>(reference_client.size()));
+  Connection conn(std::make_shared<NameRegistry>(), Connection::Options{});
+  std::map<std::string, int> counts;  // "sender type" -> messages
+  std::uint8_t buf[65536];
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  bool pressed = false;
+  while (Clock::now() < end && counts["Tracker0 " + std::string(kPosQuatType)] < 20) {
+    // Publish once the client's bytes (its ping included) have been handled: the pong came.
+    if (counts["Tracker0 " + std::string(kPongType)] > 0) {
+      server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
+      server.PublishButton(0, 0, pressed = !pressed, Timestamp::Now());
+    }
+    pollfd p{fd.get(), POLLIN, 0};
+    if (::poll(&p, 1, 10) <= 0) continue;
+    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+    ASSERT_GT(n, 0);
+    ASSERT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                [&](const ReceivedMessage& m) {
+                                  ++counts[std::string(m.sender) + " " + std::string(m.type)];
+                                }));
+  }
+  EXPECT_EQ(counts["Tracker0 " + std::string(kPongType)], 1);
+  EXPECT_GE(counts["Tracker0 " + std::string(kPosQuatType)], 20);
+  EXPECT_EQ(counts["Stylus0 " + std::string(kButtonChangeType)], 0);
 }
 
 // Sends `server` a lob request from the UDP socket `udp` naming a listener on 127.0.0.1 and returns

@@ -107,12 +107,6 @@ struct VrpnServer::Endpoint {
   // An unusable UDP description was logged (once: the check runs after every read).
   bool udp_description_logged = false;
   std::vector<std::uint8_t> datagram;
-  // wants[sender id]: the client described that device name (it uses a remote object for it).
-  std::vector<bool> wants;
-  // The client described none of our device names: a minimal client that filters by itself; it
-  // gets every device's messages, as from the reference server.
-  bool wants_everything = true;
-  std::uint64_t wants_version = ~std::uint64_t{0};
 };
 
 struct VrpnServer::Impl {
@@ -825,27 +819,14 @@ void VrpnServer::DrainEvents() {
     const std::int32_t sender = static_cast<std::int32_t>(LoadU32(msg.data() + 12));
     for (auto& [id, e] : impl_->endpoints) {
       if (e->connecting || !e->session) continue;
-      // Only clients that use this device get its messages (a VRPN client describes the device
-      // names it opens; the reference sends everything to everyone and lets clients filter). A
-      // client that described none of our names still gets everything, as from the reference.
-      const PeerNameTable& peer = e->session->connection().peer_senders();
-      if (e->wants_version != peer.version()) {
-        const auto& names = catalog_->names()->senders();
-        e->wants.assign(names.size(), false);
-        e->wants_everything = true;
-        for (std::size_t i = 0; i < names.size(); ++i) {
-          // Only device names count: every reference-library peer also describes "VRPN Control",
-          // whether or not it opened a device.
-          e->wants[i] = catalog_->Serves(names[i]) && peer.Contains(names[i]);
-          if (e->wants[i]) e->wants_everything = false;
-        }
-        e->wants_version = peer.version();
-      }
-      // Before the client's cookie (and the descriptions that follow it) arrived, nothing is sent.
-      if (!e->session->connection().handshake_done()) continue;
-      const bool wanted = e->wants_everything ||
-                          (sender >= 0 && static_cast<std::size_t>(sender) < e->wants.size() &&
-                           e->wants[sender]);
+      // Only clients that use this device get its messages: those that pinged from its name
+      // (ServerSession::Uses; the reference sends everything to everyone and lets clients
+      // filter). A client that pinged from none of our names (a minimal client, a logger)
+      // filters by itself and gets every device's messages, as from the reference server.
+      // Before the client's cookie arrived, nothing is sent.
+      ServerSession& session = *e->session;
+      if (!session.connection().handshake_done()) continue;
+      const bool wanted = !session.uses_any_device() || session.Uses(sender);
       if (!wanted) continue;
       if (low_latency && e->udp_peer) {
         if (e->datagram.size() + msg.size() > kMaxDatagramSize) {

@@ -49,11 +49,20 @@ void ServerSession::Handle(const ReceivedMessage& m) {
   const TypeIds& t = catalog_->types();
   const std::string type(m.type);
   if (m.type == kPingType) {
+    const auto sender = catalog_->names()->FindSender(m.sender);
+    const bool served = sender && catalog_->Serves(m.sender);
+    if (served && !m.via_udp) {
+      // The client uses this device (Uses()), whether or not there is room for the pong. Only a
+      // ping on TCP counts (every VRPN peer pings there), as only TCP descriptions do: a datagram
+      // must not narrow what a client that pinged from no device gets.
+      if (used_.size() <= static_cast<std::size_t>(*sender)) used_.resize(*sender + 1, false);
+      used_[*sender] = true;
+      uses_any_device_ = true;
+    }
     if (!RoomForReply(m)) return;
     // Pong only for served names: the missing pong is the only hint a client gets for a misspelt
     // device name (the reference behaves the same).
-    if (const auto sender = catalog_->names()->FindSender(m.sender);
-        sender && catalog_->Serves(m.sender)) {
+    if (served) {
       connection_.Pack(*sender, t.pong, Timestamp::Now(), {});
       ++pings_answered_;
     } else {

@@ -56,6 +56,17 @@ class ServerSession {
   Connection& connection() { return connection_; }
   const std::string& peer_label() const { return peer_label_; }
   std::uint64_t pings_answered() const { return pings_answered_; }
+  // Whether the client uses the served device with our sender id `sender`: it pinged from that
+  // name (on TCP). Every VRPN remote object (tracker, button, text receiver) pings from its device
+  // name when it starts; descriptions cannot tell, as the reference library describes back every
+  // name a server describes (capture 08: a client of Tracker0 alone describes the server's
+  // Stylus0).
+  bool Uses(std::int32_t sender) const {
+    return sender >= 0 && static_cast<std::size_t>(sender) < used_.size() && used_[sender];
+  }
+  // The client pinged from at least one served device (before that, or for a client that never
+  // pings, it gets every device's messages, as from the reference server).
+  bool uses_any_device() const { return uses_any_device_; }
   std::uint64_t dropped_messages() const { return dropped_messages_; }
   std::string error() const { return connection_.error(); }
 
@@ -74,6 +85,8 @@ class ServerSession {
   std::uint64_t pings_answered_ = 0;
   std::uint64_t dropped_messages_ = 0;
   std::uint64_t last_unknown_id_count_ = 0;
+  std::vector<bool> used_;  // indexed by our sender id, see Uses()
+  bool uses_any_device_ = false;
 };
 
 }  // namespace trackcal::vrpn

@@ -236,5 +236,29 @@ TEST(ServerSession, DescriptionsOverUdpCannotRedirectTheClientsStream) {
   EXPECT_EQ(session.connection().counters().bad_description, 2u);
 }
 
+TEST(ServerSession, ReferenceClientUsesTheDeviceItPingsFromNotTheNamesItDescribesBack) {
+  // Capture 08: the reference client opened Tracker0 only, pinged from it, then described back
+  // the server's Stylus0 (the reference library describes back every name it is told).
+  const auto dir = testing::TranscriptDir() / "08_fastrak_emulated_udp_lob_stylus_cm";
+  auto catalog = CatalogFor(dir.filename().string());
+  ServerSession session(catalog, Connection::Options{}, "peer", nullptr);
+  session.Start(std::make_pair(std::string("127.0.0.1"), 40000), {});
+  EXPECT_FALSE(session.uses_any_device());
+  ASSERT_TRUE(session.OnTcpBytes(testing::ReadBytes(dir / "client_to_server.bin")));
+  ASSERT_TRUE(session.connection().peer_senders().Contains("Stylus0"));
+  EXPECT_TRUE(session.uses_any_device());
+  EXPECT_TRUE(session.Uses(catalog->tracker_sender(0)));
+  EXPECT_FALSE(session.Uses(catalog->button_sender(0)));
+  EXPECT_FALSE(session.Uses(0));  // VRPN Control
+
+  // A ping in a datagram does not count (only TCP ones do, like descriptions): the client's
+  // sender 2 is Stylus0, its type 16 the ping, in that capture.
+  std::vector<std::uint8_t> datagram;
+  AppendMessage(&datagram, Timestamp{}, 2, 16, 0, {});
+  session.OnDatagram(datagram);
+  EXPECT_EQ(session.pings_answered(), 2u);  // answered, as the reference does
+  EXPECT_FALSE(session.Uses(catalog->button_sender(0)));
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
