@@ -16,6 +16,7 @@ ServerSession::ServerSession(std::shared_ptr<const ServerCatalog> catalog,
 void ServerSession::Start(std::optional<std::pair<std::string, int>> our_udp,
                           std::span<const std::vector<std::int32_t>> button_states) {
   connection_.Start(std::move(our_udp));
+  button_states_ = button_states;
   const Timestamp now = Timestamp::Now();
   for (std::size_t b = 0; b < catalog_->buttons().size() && b < button_states.size(); ++b) {
     connection_.Pack(catalog_->button_sender(static_cast<int>(b)), catalog_->types().button_states,
@@ -63,7 +64,16 @@ void ServerSession::Handle(const ReceivedMessage& m) {
     // Pong only for served names: the missing pong is the only hint a client gets for a misspelt
     // device name (the reference behaves the same).
     if (served) {
-      connection_.Pack(*sender, t.pong, Timestamp::Now(), {});
+      const Timestamp now = Timestamp::Now();
+      // A button answers a ping from its name with its states (vrpn_Button_Filter does): a button
+      // remote opened on a connection that is already up learns them only so.
+      for (std::size_t b = 0; b < catalog_->buttons().size() && b < button_states_.size(); ++b) {
+        if (catalog_->buttons()[b].name == m.sender) {
+          connection_.Pack(catalog_->button_sender(static_cast<int>(b)), t.button_states, now,
+                           EncodeButtonStates(button_states_[b]));
+        }
+      }
+      connection_.Pack(*sender, t.pong, now, {});
       ++pings_answered_;
     } else {
       Log("ping for unserved device '" + std::string(m.sender) + "': no pong");

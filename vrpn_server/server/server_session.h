@@ -45,7 +45,10 @@ class ServerSession {
                 std::size_t max_output_bytes = std::numeric_limits<std::size_t>::max());
 
   // Queues cookie, our UDP description (lob connections), all descriptions, and the current state
-  // of every button device (as the reference does on a new connection).
+  // of every button device (as the reference does on a new connection). `button_states` (one
+  // vector per catalog button) must outlive the session: a ping from a button's name is answered
+  // with its states then current, as the reference does, so that a button remote opened on a
+  // connection already up learns them.
   void Start(std::optional<std::pair<std::string, int>> our_udp,
              std::span<const std::vector<std::int32_t>> button_states);
 
@@ -85,6 +88,7 @@ class ServerSession {
   std::uint64_t pings_answered_ = 0;
   std::uint64_t dropped_messages_ = 0;
   std::uint64_t last_unknown_id_count_ = 0;
+  std::span<const std::vector<std::int32_t>> button_states_;  // see Start()
   std::vector<bool> used_;  // indexed by our sender id, see Uses()
   bool uses_any_device_ = false;
 };

@@ -260,5 +260,41 @@ TEST(ServerSession, ReferenceClientUsesTheDeviceItPingsFromNotTheNamesItDescribe
   EXPECT_FALSE(session.Uses(catalog->button_sender(0)));
 }
 
+TEST(ServerSession, APingFromAButtonIsAnsweredWithItsStates) {
+  // The reference button server sends its states on a new connection and again on every ping
+  // from its name (vrpn_Button_Filter::handle_ping_message: "make sure that the other side hears
+  // the initial button states"). A button remote opened on a connection that is already up (a
+  // second device of the same client) learns them only that way. Capture 08's client (Tracker0)
+  // opens Stylus0 too: its sender 2 is Stylus0 (described back in the capture), type 16 the ping.
+  const auto dir = testing::TranscriptDir() / "08_fastrak_emulated_udp_lob_stylus_cm";
+  std::vector<std::vector<std::int32_t>> buttons{{0}};
+  ServerSession session(CatalogFor(dir.filename().string()), Connection::Options{}, "peer",
+                        nullptr);
+  session.Start(std::make_pair(std::string("127.0.0.1"), 40000), buttons);
+  ASSERT_TRUE(session.OnTcpBytes(testing::ReadBytes(dir / "client_to_server.bin")));
+  const auto before = RepliesIn(session.connection().tcp_output());
+  buttons[0][0] = 1;  // the stylus button was pressed since the client connected
+  std::vector<std::uint8_t> ping;
+  AppendMessage(&ping, Timestamp{}, 2, 16, 30, {});
+  ASSERT_TRUE(session.OnTcpBytes(ping));
+  auto expected = before;
+  expected.insert({"Stylus0", std::string(kButtonStatesType), 8});
+  expected.insert({"Stylus0", std::string(kPongType), 0});
+  EXPECT_EQ(RepliesIn(session.connection().tcp_output()), expected);
+  // The states are the current ones.
+  std::vector<std::vector<std::int32_t>> states;
+  MessageStreamParser parser;
+  std::map<int32_t, std::string> types;
+  parser.Feed(session.connection().tcp_output(), [&](const Message& m) {
+    if (m.header.type == kTypeDescription) types[m.header.sender] = *DecodeDescription(m.payload);
+    if (m.header.type >= 0 && types[m.header.type] == kButtonStatesType) {
+      states.push_back(*DecodeButtonStates(m.payload));
+    }
+  });
+  ASSERT_EQ(states.size(), 2u);
+  EXPECT_EQ(states[0], std::vector<std::int32_t>{0});
+  EXPECT_EQ(states[1], std::vector<std::int32_t>{1});
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn
