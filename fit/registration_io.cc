@@ -24,6 +24,11 @@ std::string OtherSensors(const std::map<int, std::set<int>>& sensors_at, int sta
 
 }  // namespace
 
+bool IsDropout(const Eigen::Vector3d& position_in_optical) {
+  return position_in_optical.x() == 0.0 && position_in_optical.y() == 0.0 &&
+         position_in_optical.z() == 0.0;
+}
+
 std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& markers,
                                                          const TrackerCapture& tracker, int sensor,
                                                          const std::string& markers_name,
@@ -57,6 +62,13 @@ std::vector<RegistrationStation> PairRegistrationRecords(const MarkerCapture& ma
                                   ": column marker: marker " + std::to_string(m.marker) +
                                   " appears twice at station " + std::to_string(m.station));
     }
+    // Optical systems (Vicon, OptiTrack exports) write an occluded marker as 0,0,0. Read as a
+    // position it misfits the marker body by the optical origin's distance: the station was left
+    // out as "a swapped marker" (a 4-marker station lost for 3 good markers), a calibration
+    // station's pose was dropped as a bad fit, and with a dropout at 5 of 20 registration
+    // stations the transform came out 11 deg and 72 mm off. A real marker exactly at the optical
+    // origin is implausible, so exactly (0,0,0) is a marker not seen.
+    if (IsDropout(m.position_in_optical)) continue;
     it->second.markers.push_back({m.marker, m.position_in_optical, m.line});
   }
   std::vector<RegistrationStation> out;

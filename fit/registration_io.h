@@ -19,9 +19,13 @@
 
 namespace trackcal::fit {
 
+// True for a marker position of exactly (0,0,0): how optical systems export an occluded marker.
+bool IsDropout(const Eigen::Vector3d& position_in_optical);
+
 // Pairs markers.csv and tracker.csv records by station id, keeping the tracker rows of `sensor`
-// (the receiver that carries the markers). A tracker row without markers gives a station with no
-// markers (the registration skips and lists it). Throws std::invalid_argument naming the file,
+// (the receiver that carries the markers). A marker at exactly (0,0,0) is a dropout (IsDropout):
+// not visible at that station. A tracker row without markers gives a station with no markers (the
+// registration skips and lists it). Throws std::invalid_argument naming the file,
 // station and field for a station with markers but no tracker row, two tracker rows for one
 // station, or a marker listed twice at one station. Stations come out sorted by id.
 std::vector<RegistrationStation> PairRegistrationRecords(
