@@ -720,6 +720,12 @@ int RunRegister(int argc, char** argv) {
   }
   if (labelled) CopyExtraColumns(labels, &poses);
   WritePoses(output, poses);
+  // Poses from markers symmetric enough that two labels swapped fit as well.
+  const std::string symmetric = SymmetricMarkersWarning(extracted, extraction_options);
+  if (!symmetric.empty()) {
+    std::cerr << "trackcal-fit register: warning: " << markers_path.string() << ": " << symmetric
+              << "\n";
+  }
   if (args.Flag("--json")) {
     nlohmann::json doc = RegisterDocument(registration, output, poses.records.size(), left_out);
     if (refinement) doc["refinement"] = refinement->ToJson();

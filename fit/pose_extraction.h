@@ -10,7 +10,9 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "core/pose.h"
@@ -55,6 +57,13 @@ struct ExtractedPose {
   // optical noise alone (the registration's own uncertainty is not propagated).
   Eigen::Matrix<double, 6, 6> covariance = Eigen::Matrix<double, 6, 6>::Zero();
   std::string message;  // why the status is not kOk
+  // How well the markers in view would fit with two of their labels exchanged: the smallest RMS
+  // [m] of the registered positions, two swapped, aligned onto themselves, over every pair
+  // (label_swap_markers). Below max_marker_rms_m a swap between frames gives an kOk pose turned
+  // (up to 180 deg) that nothing here detects: a symmetric set of markers in view, e.g. any three
+  // of the paper's six (+-60 mm on the receiver axes). Set with a pose; infinity without.
+  double label_swap_rms_m = std::numeric_limits<double>::infinity();
+  std::pair<int, int> label_swap_markers = {0, 0};
   bool HasPose() const { return status == PoseStatus::kOk || status == PoseStatus::kBadFit; }
 };
 
@@ -70,5 +79,11 @@ std::vector<ExtractedPose> ExtractPoses(const std::vector<RegistrationStation>& 
                                         const OpticalRegistration& registration,
                                         const PoseExtractionOptions& options = {},
                                         const std::string& source = "");
+
+// "" unless some kOk pose comes from markers in view whose label_swap_rms_m is under
+// options.max_marker_rms_m; else a sentence that says how many, names the first station and pair,
+// and what to do (four or more asymmetrically placed markers in view). For warnings.
+std::string SymmetricMarkersWarning(const std::vector<ExtractedPose>& poses,
+                                    const PoseExtractionOptions& options = {});
 
 }  // namespace trackcal::fit

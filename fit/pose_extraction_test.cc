@@ -123,6 +123,58 @@ TEST(ExtractPose, StatedNoiseExplainsAResidualAboveTheLimit) {
   EXPECT_EQ(ExtractPose(1, swapped, Truth(data), o).status, PoseStatus::kBadFit);
 }
 
+TEST(ExtractPose, SymmetricMarkersInViewAreNamed) {
+  // The paper's marker body: six markers at +-60 mm on the receiver axes. Any three of them form a
+  // symmetric triangle, so two labels swapped between frames fit exactly: the pose comes out turned
+  // by 180 deg, status kOk, residual 0 (on the simulated paper capture 514 of 620 stations had 3
+  // markers in view). label_swap_rms_m says so; four markers not in one plane do not.
+  OpticalRegistration body;
+  body.optical_from_transmitter = Rigid3d(Eigen::Quaterniond(0.9, 0.1, 0.3, -0.2).normalized(),
+                                          Eigen::Vector3d(-0.5, -1.5, -2.2));
+  const double d = 0.06;
+  body.marker_in_receiver = {{1, {d, 0, 0}},  {2, {-d, 0, 0}}, {3, {0, d, 0}},
+                             {4, {0, -d, 0}}, {5, {0, 0, d}},  {6, {0, 0, -d}}};
+  const Rigid3d truth(Eigen::Quaterniond(0.5, 0.5, -0.1, 0.7).normalized(),
+                      Eigen::Vector3d(0.3, 0.1, 0.2));
+  auto seen = [&](std::vector<int> ids, bool swap_first_two) {
+    std::vector<MarkerObservation> m;
+    for (const int id : ids) {
+      m.push_back({id, body.optical_from_transmitter * (truth * body.marker_in_receiver.at(id))});
+    }
+    if (swap_first_two) std::swap(m[0].marker, m[1].marker);
+    return ExtractPose(7, m, body);
+  };
+  const ExtractedPose right = seen({2, 4, 6}, false);
+  const ExtractedPose swapped = seen({2, 4, 6}, true);
+  ASSERT_EQ(swapped.status, PoseStatus::kOk);  // nothing in the fit sees the swap ...
+  EXPECT_LT(swapped.marker_rms_m, 1e-9);
+  EXPECT_GT(
+      RotationVectorBetween<double>(swapped.transmitter_from_receiver.rotation, truth.rotation)
+          .norm(),
+      3.0);  // ... of a pose turned by 180 deg (pi rad)
+  // ... but the symmetry is named, at the correct and the swapped station alike.
+  EXPECT_LT(right.label_swap_rms_m, 1e-9);
+  EXPECT_LT(swapped.label_swap_rms_m, 1e-9);
+  EXPECT_NE(right.label_swap_markers.first, 0);
+  // Markers 1, 2, 3: a right isosceles triangle, symmetric too.
+  EXPECT_LT(seen({1, 2, 3}, false).label_swap_rms_m, 1e-9);
+  // Four markers not in a plane: a swap misfits by tens of millimetres, caught as a bad fit.
+  const ExtractedPose four = seen({1, 3, 5, 2}, false);
+  EXPECT_GT(four.label_swap_rms_m, 0.02);
+  EXPECT_EQ(seen({1, 3, 5, 2}, true).status, PoseStatus::kBadFit);
+  // An asymmetric triangle (sides 60, 71, 86 mm): a swap misfits by more than the 1 mm limit.
+  OpticalRegistration scalene = body;
+  scalene.marker_in_receiver = {{1, {0, 0, 0}}, {2, {0.06, 0, 0}}, {3, {0.01, 0.07, 0}}};
+  std::vector<MarkerObservation> m;
+  for (const int id : {1, 2, 3}) {
+    m.push_back(
+        {id, scalene.optical_from_transmitter * (truth * scalene.marker_in_receiver.at(id))});
+  }
+  EXPECT_GT(ExtractPose(7, m, scalene).label_swap_rms_m, 1e-3);
+  // No pose, no symmetry measured.
+  EXPECT_EQ(seen({1, 2}, false).label_swap_rms_m, std::numeric_limits<double>::infinity());
+}
+
 TEST(ExtractPose, UnknownMarkerThrows) {
   const SyntheticRegistration data = MakeSyntheticRegistration({}, &TestRng());
   std::vector<MarkerObservation> markers = data.stations[0].markers;

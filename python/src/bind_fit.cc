@@ -626,6 +626,9 @@ void BindFit(py::module_& m) {
       .def_property_readonly("poses",
                              [](const RegistrationRun& r) { return PoseCaptureDict(r.poses); })
       .def_property_readonly("left_out", [](const RegistrationRun& r) { return r.left_out; })
+      .def_property_readonly(
+          "symmetry_warning",
+          [](const RegistrationRun& r) { return fit::SymmetricMarkersWarning(r.extracted); })
       .def_property_readonly("converged",
                              [](const RegistrationRun& r) { return r.registration.converged; })
       .def_property_readonly("identifiable",

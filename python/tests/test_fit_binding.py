@@ -504,6 +504,9 @@ def test_station_with_swapped_marker_labels_is_left_out_with_a_warning(capture_d
         warnings.simplefilter("error")  # no warning when every station is kept on request
         kept = trackcal.register(tmp_path / "markers.csv", tmp_path / "tracker.csv", reject_bad_stations=False)
     assert kept.rejected_stations == [] and kept.chi_square > reg.chi_square
+    # Any three of the paper's six markers are symmetric: a swap among them fits as well, unseen.
+    assert "so symmetric that two labels swapped would fit as well" in reg.symmetry_warning
+    assert "so symmetric that two labels swapped would fit as well" in done.stderr
 
 
 def test_stream_folder_with_free_time_offset_matches_the_command_line(capture_dir, tmp_path):

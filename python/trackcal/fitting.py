@@ -284,6 +284,10 @@ class Registration:
         self.identifiability_flags: List[dict] = native.identifiability_flags
         # Stations left out: markers misfit the marker body, or tracker reading far off (docs/registration.md).
         self.rejected_stations: List[dict] = native.to_dict()["registration"]["rejected_stations"]
+        # "" or what trackcal-fit register warns: how many poses come from markers in view so
+        # symmetric that two labels swapped fit as well (any three of the paper's six markers), a
+        # pose up to 180 deg off that no check catches (docs/registration.md, Pose extraction).
+        self.symmetry_warning: str = native.symmetry_warning
 
     def summary(self) -> str:
         return self._native.summary()
