@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import trackcal
-from trackcal import captures
+from trackcal import captures, validation
 from understand_support import simulate, two_receivers, write_poses
 
 MODEL = "terms:\n  - type: polynomial\n    degree: 3\n"
@@ -592,6 +592,16 @@ def test_stations_of_several_receivers_are_refused_or_fitted_one_at_a_time(captu
     saved = trackcal.Calibration.load(alone.save(tmp_path / "second.json"))
     assert saved.sensor == 2
     assert json.loads((tmp_path / "second.json").read_text())["sensor"] == 2
+    # Validated on receiver 1's stations, receiver 2's calibration measured another receiver's
+    # correction without a word; the mixed capture warns naming the other sensor, its own does not.
+    first = mixed.subset(mixed.sensor == 1)
+    with pytest.warns(UserWarning, match=r"stations of sensor 1, but the calibration was fitted for sensor 2"):
+        validation.validate(first, saved, analyse_covariates=False)
+    with pytest.warns(UserWarning, match=r"stations of sensor 1, but the calibration was fitted for sensor 2"):
+        validation.validate(mixed, tmp_path / "second.json", analyse_covariates=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        validation.validate(second, saved, analyse_covariates=False)
     with pytest.raises(ValueError, match=r"no station of sensor 3 \(the sensor column has 1, 2\)"):
         trackcal.fit(mixed, MODEL, sensor=3)
     for bad in (0, -1, 1.5, True):

@@ -758,6 +758,22 @@ def _as_calibration(calibration):
                     f"got {type(calibration).__name__}")
 
 
+def _warn_other_receiver(capture: PoseCapture, calibration) -> None:
+    """Warns when the calibration records the receiver it was fitted for (Calibration.sensor, the
+    capture's 1-based sensor column) and the capture's stations are another receiver's: every
+    receiver has its own sensor offset and coil gains, so the tables would measure a correction
+    meant for another receiver (deliberate in a comparison, a mix-up otherwise)."""
+    fitted_for = int(getattr(calibration, "sensor", 0) or 0)
+    if fitted_for == 0 or len(capture) == 0:
+        return
+    others = sorted(int(s) for s in np.unique(capture.sensor) if int(s) != fitted_for)
+    if others:
+        warnings.warn(f"{capture.path}: stations of sensor {', '.join(map(str, others))}, but the calibration "
+                      f"was fitted for sensor {fitted_for} (receiver {fitted_for}): its correction is "
+                      f"another receiver's there; validate each receiver with its own calibration "
+                      f"(trackcal validate --sensor N)", UserWarning, stacklevel=3)
+
+
 def _checked_capture(capture: PoseCapture) -> PoseCapture:
     """The capture with its per-station fields as numpy arrays of the shapes they must have and
     finite poses, else a ValueError naming the field (as trackcal.fit checks an in-memory capture).
@@ -813,6 +829,8 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
         raise ValueError(f"worst_count {worst_count}: must be 0 or more")
     capture = _checked_capture(capture)
     calibration = _as_calibration(calibration)
+    if calibration is not None:
+        _warn_other_receiver(capture, calibration)
     data = capture.subset(capture.set != "reg") if "reg" in capture.sets else capture
     if len(data) == 0:
         raise ValueError(f"{capture.path}: no calibration or validation stations")
