@@ -728,6 +728,11 @@ std::string UnresolvedNote(int n) {
 // A source term's start at this fraction of its strength (polarisability, attenuation): near the
 // model without it, where it was placed.
 constexpr double kGrowFromFraction = 1e-3;
+// A candidate that contains the base (the base plus an effect) whose fit ends at more than this
+// factor of the base's final cost did not find its optimum (below, where the candidates are
+// fitted). Its optimum is at most about the base's cost: 10 leaves room for the ridge weight and
+// noise metrics the fit chooses afresh, and is far below the failures it catches (a factor 5e13).
+constexpr double kMaxNestedCostRatio = 10.0;
 
 // Scales the strength of a dipole's or plane's start (as AddFittedStart wrote it); false for other
 // terms or a missing value.
@@ -2044,6 +2049,35 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
             Progress(options, c.effect + " (" + how + "): failed: " + ex.what());
           }
         }
+      }
+      // A fit that failed, or a nested one that ended far above the base's cost, is no result:
+      // its values are where the solver stopped, not the candidate's optimum, and scoring them
+      // said "fitted, no better than the base" of an effect that was never tested. The base is
+      // the candidate at the added effect's null value, so at its optimum the candidate's cost
+      // is at most about the base's (the polynomial's ridge weight and the noise metrics are
+      // chosen afresh: a few percent, not a factor kMaxNestedCostRatio). Measured, ideal preset,
+      // paper_small grid, a 0.0005 m^3 object 0.075 m beside the grid (seed 6,
+      // fit/candidates_fast_test.cc NestedFitsFarAboveTheBaseFailed): near_field, plane,
+      // sensor_offset, receiver_gain and background_field over the degree-4 polynomial all stayed
+      // at their start, cost 1.1e19 against the base's 2.1e5 (one station's pose-form residual 2e9
+      // sigma, every step failing to evaluate), Ceres said CONVERGENCE, and each was listed as
+      // fitted at 0.000 with delta BIC equal to its parameter penalty.
+      if (fit.Failed()) {
+        throw std::runtime_error("the fit failed (" + fit.termination_type + ": " +
+                                 fit.solver_message + ")");
+      }
+      const bool nested = c.kind == CandidateKind::kTerm && c.insert_index && c.replaces.empty() &&
+                          p.stations.empty();
+      if (nested && !(fit.final_cost <= std::max(kMaxNestedCostRatio * d.base.final_cost,
+                                                 d.base.final_cost + n_residuals))) {
+        throw std::runtime_error("the fit did not find the optimum: its final cost " +
+                                 FormatSignificant(fit.final_cost, 3) + " is " +
+                                 FormatSignificant(fit.final_cost / d.base.final_cost, 2) +
+                                 " times the base model's " +
+                                 FormatSignificant(d.base.final_cost, 3) +
+                                 " on the same stations, which the candidate contains (" +
+                                 fit.termination_type + " after " + std::to_string(fit.iterations) +
+                                 " iterations: " + fit.solver_message + ")");
       }
       c.fitted = true;
       c.converged = fit.converged;
