@@ -420,7 +420,7 @@ struct DriftEstimate {
   double stddev = std::numeric_limits<double>::quiet_NaN();
   double span = 0.0;  // [s] of the tracker samples
   double origin = 0.0;  // [s] t_mid, the tracker time at which `offset` holds
-  double offset = std::numeric_limits<double>::quiet_NaN();  // [s] refined with the rate
+  double offset = std::numeric_limits<double>::quiet_NaN();         // [s] refined with the rate
   double offset_stddev = std::numeric_limits<double>::quiet_NaN();  // [s] of `offset`, jointly
   double cost =
       std::numeric_limits<double>::quiet_NaN();  // residual variance [m^2], as the offset's
