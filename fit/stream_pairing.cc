@@ -685,6 +685,13 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
     if (warning.empty() && drift.variance_inflation <= used.max_variance_inflation &&
         std::abs(drift.rate) > kDriftZ * drift.stddev) {
       const double over_stream = drift.rate * drift.span;
+      const std::string drifting = "the clocks drift: the clock offset changes by " +
+                                   Rounded(1e3 * 60.0 * drift.rate, 3) + " ms per minute (" +
+                                   Rounded(1e6 * drift.rate, 4) + " +- " +
+                                   Rounded(1e6 * drift.stddev, 2) + " ppm, the reference clock " +
+                                   (drift.rate > 0.0 ? "fast" : "slow") +
+                                   " against the tracker's), " + Rounded(1e3 * over_stream, 3) +
+                                   " ms over the stream's " + Rounded(drift.span, 4) + " s; ";
       if (options.correct_clock_drift && std::isfinite(drift.offset)) {
         // Paired with the drift: one offset left the stream's ends half the drift off (100 ppm
         // over 10 min: 30 ms; see stream_pairing_sim_test's measurements).
@@ -692,26 +699,16 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
         rate = drift.rate;
         origin = drift.origin;
         warning =
-            "the clocks drift: the clock offset changes by " + Rounded(1e3 * 60.0 * drift.rate, 3) +
-            " ms per minute (" + Rounded(1e6 * drift.rate, 4) + " +- " +
-            Rounded(1e6 * drift.stddev, 2) + " ppm, the reference clock " +
-            (drift.rate > 0.0 ? "fast" : "slow") + " against the tracker's), " +
-            Rounded(1e3 * over_stream, 3) + " ms over the stream's " + Rounded(drift.span, 4) +
-            " s; corrected: each tracker sample at t is paired with the reference at t + " +
+            drifting + "corrected: each tracker sample at t is paired with the reference at t + " +
             Rounded(1e3 * offset, 6) + " ms + " + Rounded(1e6 * drift.rate, 4) + " ppm * (t - " +
             Rounded(origin, 10) + " s); synchronise the clocks to avoid relying on it";
       } else {
-        warning =
-            "the clocks drift: the clock offset changes by " + Rounded(1e3 * 60.0 * drift.rate, 3) +
-            " ms per minute (" + Rounded(1e6 * drift.rate, 4) + " +- " +
-            Rounded(1e6 * drift.stddev, 2) + " ppm, the reference clock " +
-            (drift.rate > 0.0 ? "fast" : "slow") + " against the tracker's), " +
-            Rounded(1e3 * over_stream, 3) + " ms over the stream's " + Rounded(drift.span, 4) +
-            " s; the offset " + Rounded(1e3 * offset, 6) + " ms pairs its middle, and its ends " +
-            Rounded(1e3 * 0.5 * std::abs(over_stream), 3) +
-            " ms off; synchronise the clocks, or correct the reference stream's times for the "
-            "drift (t -> t0 + (t - t0) / (1 + " +
-            Rounded(drift.rate, 4) + ")) and pair again, or pair shorter streams";
+        warning = drifting + "the offset " + Rounded(1e3 * offset, 6) +
+                  " ms pairs its middle, and its ends " +
+                  Rounded(1e3 * 0.5 * std::abs(over_stream), 3) +
+                  " ms off; synchronise the clocks, or correct the reference stream's times for "
+                  "the drift (t -> t0 + (t - t0) / (1 + " +
+                  Rounded(drift.rate, 4) + ")) and pair again, or pair shorter streams";
       }
     }
   }
