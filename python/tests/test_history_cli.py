@@ -275,6 +275,28 @@ def test_validate_records_history(tmp_path, capsys):
     assert (work / entries[1]["model"]["copy"]).read_bytes() == cal3.read_bytes()
 
 
+def test_validate_rows_of_two_receivers_of_one_capture_are_not_compared(tmp_path, capsys):
+    """trackcal validate --sensor 1 and --sensor 2 of one two-receiver capture read the same file:
+    validate rows recorded no receiver (fit rows do), so receiver 2's row showed a change from
+    receiver 1's, another receiver's stations. Its row records the sensor and says so instead."""
+    from trackcal import cli
+    from understand_support import two_receivers, write_poses
+    mixed, _ = two_receivers(simulate(tmp_path / "capture", seed=43))
+    (tmp_path / "mixed").mkdir()
+    data = write_poses(tmp_path / "mixed" / "poses.csv", mixed)
+    work = tmp_path / "work"
+    for n in (1, 2):
+        cal = tmp_path / f"r{n}.json"
+        validation.fit_polynomial(mixed.subset((mixed.sensor == n) & (mixed.set == "calib")),
+                                  degree=2).save(cal)
+        assert cli.main(["validate", str(data), "-c", str(cal), "--sensor", str(n), "--workdir",
+                         str(work), "--label", f"receiver {n}"]) == 0
+    entries = history.load_history(work)
+    assert [e.get("sensor") for e in entries] == [1, 2]
+    row = history.history_table(entries).splitlines()[2]
+    assert "sensor 2" in row and "%" not in row, row
+
+
 def trackcal_sha(path):
     import hashlib
     return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()

@@ -221,6 +221,12 @@ def _record_history(args, v) -> None:
     if all(f in hashes for f in files):
         fields["data"] = [{"path": str(pathlib.Path(f).resolve()), "role": "validation_capture",
                            "sha256": hashes[f]} for f in files]
+    # The receiver validated, as fit rows record it: validations of two receivers of one capture
+    # share its files but not its stations, so their errors are no step of one loop.
+    column = getattr(v.capture, "sensor", None)
+    sensors = np.unique(column) if column is not None else []
+    if len(sensors) == 1:
+        fields["sensor"] = int(sensors[0])
     record_fit(args.workdir, model=pathlib.Path(args.calibration).resolve(),
                data=[(pathlib.Path(f).resolve(), "validation_capture") for f in files],
                scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name,

@@ -7,7 +7,8 @@ sha256} of the captures used) and ``scores`` ({set name: {"position_mm": {mean, 
 "orientation_deg": {...}}}). Fits of a model file (``trackcal fit --workdir``) add ``terms`` (term
 names of the model), ``calibration`` ({path, sha256} of the file written, and ``copy``, the same bytes
 kept in ``models/<sha>.json``: a later fit may replace the file), ``fit`` (converged,
-chi2_per_dof, free parameters, outliers) and ``sensor`` (the receiver fitted, from 1). The file is rewritten atomically on every record, so an
+chi2_per_dof, free parameters, outliers) and ``sensor`` (the receiver fitted, from 1; ``trackcal
+validate --workdir`` rows record the receiver validated). The file is rewritten atomically on every record, so an
 interrupted write never loses earlier fits, under a lock (``.history.lock`` beside it), so two fits
 recording at once (two terminals, parallel scripts) both keep their entry.
 """
