@@ -115,6 +115,38 @@ def test_reference_stream_columns_and_labels_reach_the_paired_stations(sim, tmp_
     assert v.capture.extra_columns == cap.extra_columns
 
 
+def test_reference_stream_columns_follow_a_corrected_clock_drift(sim, tmp_path):
+    # The reference clock 1000 ppm fast (as test_fit_binding's drift test): the pairing corrects
+    # the drift, pairing the sample at t with the reference at t + offset + drift (t - origin). The
+    # reference's own columns were still taken at t + offset: a column holding the reference time
+    # itself was up to 15 ms (drift * span / 2) off the instant the pose was paired at.
+    _, streams, _ = sim
+    folder = tmp_path / "drifting"
+    folder.mkdir()
+    shutil.copy(streams / "tracker_stream.csv", folder / "tracker_stream.csv")
+    lines = (streams / "reference_stream.csv").read_text().splitlines()
+    time_col = lines[0].split(",").index("time")
+    t0 = float(lines[1].split(",")[time_col])
+    out = [lines[0] + ",frame_time"]
+    for line in lines[1:]:
+        cells = line.split(",")
+        t = t0 + (float(cells[time_col]) - t0) * 1.001
+        cells[time_col] = repr(t)
+        out.append(",".join(cells) + f",{t!r}")
+    (folder / "reference_stream.csv").write_text("\n".join(out) + "\n")
+    pairing = trackcal.pair(folder / "tracker_stream.csv", folder / "reference_stream.csv",
+                            estimate_time_offset=True)
+    assert pairing.clock_drift_corrected
+    paired_at = (pairing.poses.time + pairing.time_offset_s
+                 + pairing.clock_drift_applied * (pairing.poses.time - pairing.clock_drift_origin_s))
+    cap = captures.load(folder)
+    np.testing.assert_array_equal(cap.time, pairing.poses.time)
+    # frame_time is linear in the reference time: interpolated exactly where the pose was paired.
+    np.testing.assert_allclose(cap.column("frame_time"), paired_at, rtol=0, atol=1e-9)
+    v = validation.validate_recording(folder / "tracker_stream.csv", folder / "reference_stream.csv")
+    np.testing.assert_allclose(v.capture.column("frame_time"), paired_at, rtol=0, atol=1e-9)
+
+
 def test_capture_folder_without_any_capture_names_what_it_looked_for(tmp_path):
     with pytest.raises(ValueError, match="not a capture folder .*tracker_stream.csv"):
         captures.load(tmp_path)

@@ -265,7 +265,8 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
                           estimate_time_offset=estimate, search_range=search_range,
                           sensor=int(sensor or 0))
         cap = result.poses
-        first = carry_stream_columns(cap, p / STREAM_FILES[0], p / STREAM_FILES[1], result.time_offset_s)
+        first = carry_stream_columns(cap, p / STREAM_FILES[0], p / STREAM_FILES[1], result.time_offset_s,
+                                     result.clock_drift_applied, result.clock_drift_origin_s)
         cap.path = p / STREAM_FILES[0]
         cap.origin = {"kind": "streams", "files": [str(p / n) for n in STREAM_FILES],
                       "time_offset_s": float(result.time_offset_s),
@@ -288,12 +289,15 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
 
 
 def carry_stream_columns(cap: PoseCapture, tracker_stream: PathLike, reference_stream: PathLike,
-                         time_offset_s: float) -> int:
+                         time_offset_s: float, clock_drift: float = 0.0,
+                         clock_drift_origin_s: float = 0.0) -> int:
     """Gives stations paired from streams (``trackcal.pair``; lowest sensor) what the streams logged
     beside the poses, for the diagnosis to test as covariates as it does a poses.csv's columns: the
     receiver's ``speed`` at each station's time, the tracker stream's extra columns at that time,
-    and the reference stream's at the same instant on its own clock (time + ``time_offset_s``; an
-    optical system's per-frame residual or marker count). Numbers are interpolated, labels are
+    and the reference stream's at the same instant on its own clock (time + ``time_offset_s`` +
+    ``clock_drift`` (time - ``clock_drift_origin_s``), where the pairing took the pose: a corrected
+    drift is the Pairing's ``clock_drift_applied``; an optical system's per-frame residual or marker
+    count). Numbers are interpolated, labels are
     those of the nearest sample; a reference column whose name the tracker's already has is named
     reference_<name>. Returns the sensor whose samples were paired."""
     stream = load_tracker_stream(tracker_stream)
@@ -312,7 +316,8 @@ def carry_stream_columns(cap: PoseCapture, tracker_stream: PathLike, reference_s
     names = list(cap.extra_columns)
     columns = [cap.extra[:, k] for k in range(len(cap.extra_columns))]
     for table, rows, at, prefix in ((stream, own, cap.time, ""),
-                                    (reference, np.arange(len(reference)), cap.time + time_offset_s,
+                                    (reference, np.arange(len(reference)),
+                                     cap.time + time_offset_s + clock_drift * (cap.time - clock_drift_origin_s),
                                      "reference_")):
         if not len(rows):
             continue

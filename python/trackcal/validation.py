@@ -953,7 +953,8 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
         pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
                        estimate_time_offset=estimate, search_range=search_range, sensor=int(sensor))
     cap = pairing.poses
-    sensor = carry_stream_columns(cap, raw, reference, pairing.time_offset_s)
+    sensor = carry_stream_columns(cap, raw, reference, pairing.time_offset_s, pairing.clock_drift_applied,
+                                  pairing.clock_drift_origin_s)
     cap.path = pathlib.Path(raw)
     cap.origin = {"kind": "recording", "files": [str(raw), str(reference)] + ([str(corrected)] if corrected else []),
                   "time_offset_s": float(pairing.time_offset_s),
