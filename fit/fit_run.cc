@@ -89,6 +89,8 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
         PairStreamsOfFiles(*out.tracker_stream, *out.reference_stream, pairing, tracker, reference);
     out.poses = paired.poses;
     out.time_offset = paired.time_offset;
+    out.clock_drift = paired.clock_drift_applied;
+    out.clock_drift_origin = paired.clock_drift_origin;
     out.pairing_warning = paired.warning;
     if (spec.time_offset && !spec.time_offset->fixed) {
       out.pairing = pairing;
@@ -168,6 +170,8 @@ nlohmann::json FitRunResult::ToJson(const std::optional<fs::path>& output) const
                         {"fit", result.ToJson()}};
   if (time_offset) {
     doc["time_offset_s"] = *time_offset;
+    doc["clock_drift"] = clock_drift;
+    doc["clock_drift_origin_s"] = clock_drift_origin;
     doc["pairing_warning"] = pairing_warning;
   }
   return doc;
@@ -192,6 +196,8 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
   run.protected_paths.insert(run.protected_paths.end(), data.protected_paths.begin(),
                              data.protected_paths.end());
   run.time_offset = data.time_offset;
+  run.clock_drift = data.clock_drift;
+  run.clock_drift_origin = data.clock_drift_origin;
   run.pairing_warning = data.pairing_warning;
   PoseCapture& poses = data.poses;
   if (!data.stream_stations.empty()) spec.time_offset->value = *data.time_offset;
@@ -288,6 +294,13 @@ FitRunResult RunFit(LoadedFitData data, const FitModelSource& model, const FitRu
     stats["covariance_estimator"] = run.result.covariance_estimator;
   }
   if (run.time_offset) stats["time_offset_s"] = *run.time_offset;
+  // A corrected clock drift: time_offset_s holds at clock_drift_origin_s (tracker time) only, and
+  // pairing these streams (trackcal validate -c) at it without the drift puts the stream's ends
+  // half the drift over the stream off.
+  if (run.time_offset && run.clock_drift != 0.0) {
+    stats["clock_drift"] = run.clock_drift;
+    stats["clock_drift_origin_s"] = run.clock_drift_origin;
+  }
   // The calibration keeps why its offset may be poorly identified (the re-pairings at the fitted
   // offset do not estimate it, so they cannot warn).
   if (!run.pairing_warning.empty()) stats["pairing_warning"] = run.pairing_warning;

@@ -65,6 +65,10 @@ struct LoadedFitData {
   std::vector<CalibrationInput> inputs;                // files read, with SHA-256 (provenance)
   std::vector<std::filesystem::path> protected_paths;  // never to be written over
   std::optional<double> time_offset;                   // when streams were paired
+  // With streams: the clock drift they were paired with (StreamPairingResult::clock_drift_applied,
+  // 0 when none was corrected) and the tracker time at which time_offset holds with it.
+  double clock_drift = 0.0;
+  double clock_drift_origin = 0.0;
   // The pairing's warning (StreamPairingResult::warning: an estimated offset poorly identified by
   // these streams), without the stream files' names; empty when none or no streams.
   std::string pairing_warning;
@@ -121,6 +125,10 @@ struct FitRunResult {
   std::vector<Table1> tables;         // calib, then valid and/or cross-validation
   Calibration calibration;            // chain, statistics, provenance (no command line)
   std::optional<double> time_offset;  // the clock offset used (paired or fitted), with streams
+  // The clock drift the streams were paired with and its origin (LoadedFitData::clock_drift): the
+  // reference at t + time_offset + clock_drift (t - clock_drift_origin). 0 when none.
+  double clock_drift = 0.0;
+  double clock_drift_origin = 0.0;
   std::string pairing_warning;        // LoadedFitData::pairing_warning of the data fitted
   int num_calib = 0;
   int num_valid = 0;

@@ -34,6 +34,7 @@ bool StreamPairingOptions::Check(std::string* error) const {
   if (!(correlation_time_s >= 0.0)) return fail("correlation_time_s must be >= 0");
   if (!(max_variance_inflation >= 1.0)) return fail("max_variance_inflation must be >= 1");
   if (!(std::abs(clock_drift) < 0.1)) return fail("clock_drift must be finite and within +-0.1");
+  if (std::isinf(clock_drift_origin)) return fail("clock_drift_origin must be finite or NaN");
   return true;
 }
 
@@ -582,7 +583,9 @@ StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStr
   double offset = options.time_offset;
   // Given: options' drift about the middle of the samples (EstimateDrift's t_mid).
   double rate = options.estimate_time_offset ? 0.0 : options.clock_drift;
-  double origin = 0.5 * (samples.front()->time + samples.back()->time);
+  double origin = !options.estimate_time_offset && std::isfinite(options.clock_drift_origin)
+                      ? options.clock_drift_origin
+                      : 0.5 * (samples.front()->time + samples.back()->time);
   OffsetEstimate estimate;
   DriftEstimate drift;
   double residual_to_path_ratio = std::numeric_limits<double>::quiet_NaN();

@@ -57,6 +57,11 @@ struct StreamPairingOptions {
   // tracker sample at t is paired with the reference at t + time_offset + clock_drift (t - t_mid),
   // t_mid the middle of the paired sensor's (decimated) samples. Ignored when estimating.
   double clock_drift = 0.0;
+  // The tracker time at which a given time_offset holds with clock_drift (the t_mid of the pairing
+  // that estimated them: StreamPairingResult::clock_drift_origin); NaN: t_mid of these samples.
+  // Pairing another capture at a fit's offset and drift needs the fit's origin. Ignored when
+  // estimating.
+  double clock_drift_origin = std::numeric_limits<double>::quiet_NaN();
   // When estimating: a drift beyond kDriftZ (4) standard deviations (the warning's test) is
   // corrected, the poses paired with the estimated offset and drift as above.
   bool correct_clock_drift = true;

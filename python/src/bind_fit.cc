@@ -797,7 +797,8 @@ void BindFit(py::module_& m) {
       "pair",
       [](const py::object& tracker, const py::object& reference, double time_offset,
          bool estimate_time_offset, double search_range, double max_gap_s, int sensor,
-         const std::string& set, int decimate) {
+         const std::string& set, int decimate, double clock_drift,
+         std::optional<double> clock_drift_origin) {
         auto run = std::make_shared<PairRun>();
         const fs::path tracker_path = ToPath(tracker), reference_path = ToPath(reference);
         run->inputs = {tracker_path, reference_path};
@@ -809,6 +810,8 @@ void BindFit(py::module_& m) {
         options.sensor = sensor;
         options.set = set;
         options.decimate = decimate;
+        options.clock_drift = clock_drift;
+        if (clock_drift_origin) options.clock_drift_origin = *clock_drift_origin;
         run->estimated = estimate_time_offset;
         // Checked before the work, as register() does: an unknown set paired every sample and
         // then save() refused the poses ("p.csv: record 0: set 'x' ...", naming the output).
@@ -826,7 +829,8 @@ void BindFit(py::module_& m) {
       py::arg("tracker"), py::arg("reference"), py::kw_only(), py::arg("time_offset") = 0.0,
       py::arg("estimate_time_offset") = false, py::arg("search_range") = 0.5,
       py::arg("max_gap_s") = 0.1, py::arg("sensor") = 0, py::arg("set") = "calib",
-      py::arg("decimate") = 1,
+      py::arg("decimate") = 1, py::arg("clock_drift") = 0.0,
+      py::arg("clock_drift_origin") = py::none(),
       "Pairs tracker_stream.csv with reference_stream.csv by time, as `trackcal-fit pair` does.");
 }
 

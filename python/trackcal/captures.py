@@ -211,13 +211,16 @@ def capture_kind(path: PathLike) -> str:
 
 def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: float = 0.5,
          register_markers: bool = False, register_options: Optional[dict] = None,
-         sensor: Optional[int] = None) -> PoseCapture:
+         sensor: Optional[int] = None, clock_drift: float = 0.0,
+         clock_drift_origin_s: Optional[float] = None) -> PoseCapture:
     """Any capture as paired stations (docs/captures.md), whatever the folder holds:
 
     - ``poses.csv`` (or a folder with one): read as it is;
     - ``tracker_stream.csv`` + ``reference_stream.csv``: paired by time (``trackcal.pair``, lowest
       sensor of the stream) at ``time_offset`` [s] (t_reference - t_tracker), or, when it is None,
-      at an offset estimated within +-``search_range`` s; every paired sample is a station of set
+      at an offset estimated within +-``search_range`` s (a given offset with the clock drift
+      ``clock_drift`` about the tracker time ``clock_drift_origin_s``, as a fit that corrected a
+      drift records them: ``trackcal.pair``); every paired sample is a station of set
       ``calib`` and carries its speed (``speed``, a covariate of the diagnosis) and the tracker
       stream's extra columns at its time;
     - ``markers.csv`` + ``tracker.csv`` (raw optical markers): registered (``trackcal.register``,
@@ -263,13 +266,15 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
             result = pair(p / STREAM_FILES[0], p / STREAM_FILES[1],
                           time_offset=0.0 if estimate else float(time_offset),
                           estimate_time_offset=estimate, search_range=search_range,
-                          sensor=int(sensor or 0))
+                          sensor=int(sensor or 0), clock_drift=0.0 if estimate else float(clock_drift),
+                          clock_drift_origin_s=None if estimate else clock_drift_origin_s)
         cap = result.poses
         first = carry_stream_columns(cap, p / STREAM_FILES[0], p / STREAM_FILES[1], result.time_offset_s,
                                      result.clock_drift_applied, result.clock_drift_origin_s)
         cap.path = p / STREAM_FILES[0]
         cap.origin = {"kind": "streams", "files": [str(p / n) for n in STREAM_FILES],
                       "time_offset_s": float(result.time_offset_s),
+                      "clock_drift": float(result.clock_drift_applied),
                       "time_offset_source": "estimated" if estimate else "given",
                       "paired": len(cap), "dropped": int(result.dropped), "sensor": first,
                       "warning": result.warning}
@@ -347,7 +352,9 @@ def describe_origin(capture: PoseCapture) -> Optional[str]:
     """One line saying how stations that were not read from a poses.csv were obtained."""
     o = capture.origin or {}
     if o.get("kind") in ("streams", "recording"):
-        return (f"streams paired at a time offset of {1e3 * o['time_offset_s']:.2f} ms ({o['time_offset_source']}): "
+        drift = o.get("clock_drift") or 0.0
+        return (f"streams paired at a time offset of {1e3 * o['time_offset_s']:.2f} ms"
+                + (f" and a clock drift of {1e6 * drift:.1f} ppm" if drift else "") + f" ({o['time_offset_source']}): "
                 f"{o['paired']} samples of sensor {o['sensor']}, {o['dropped']} dropped"
                 + (f"\nwarning: {', '.join(o['files'])}: {o['warning']}" if o.get("warning") else ""))
     if o.get("kind") == "markers":

@@ -84,16 +84,25 @@ class Terminal:
 def _time_offset(args, cal, fit_report=None):
     """The clock offset to pair a stream capture at, and where it comes from: --time-offset, else
     the one the model's fit used, else the calibration's (fit_statistics.time_offset_s); (None,
-    "estimated"): estimate it."""
+    "estimated"): estimate it. With the fit's or the calibration's offset, the clock drift its
+    pairing corrected (fit_statistics.clock_drift, about clock_drift_origin_s): that offset holds at
+    that tracker time only, and without the drift the stream's ends were paired half the drift over
+    the stream off. Returns (offset, source, {clock_drift, clock_drift_origin_s} or {})."""
+    def drift_of(calibration):
+        s = getattr(calibration, "fit_statistics", None) or {}
+        if s.get("clock_drift") and s.get("clock_drift_origin_s") is not None:
+            return {"clock_drift": float(s["clock_drift"]),
+                    "clock_drift_origin_s": float(s["clock_drift_origin_s"])}
+        return {}
     if getattr(args, "time_offset", None) is not None:
-        return args.time_offset, "--time-offset"
+        return args.time_offset, "--time-offset", {}
     if fit_report is not None and fit_report.time_offset_s is not None:
-        return float(fit_report.time_offset_s), "the model's fit"
+        return float(fit_report.time_offset_s), "the model's fit", drift_of(fit_report.calibration)
     if cal is not None:
         t = (cal.fit_statistics or {}).get("time_offset_s")
         if t is not None:
-            return float(t), "the calibration"
-    return None, "estimated"
+            return float(t), "the calibration", drift_of(cal)
+    return None, "estimated", {}
 
 
 def _load(args, fit_report=None):
@@ -104,9 +113,9 @@ def _load(args, fit_report=None):
     cal = Calibration.load(args.calibration) if args.calibration else None
     if cal is None and fit_report is not None:
         cal = fit_report.calibration
-    offset, source = _time_offset(args, cal, fit_report)
+    offset, source, drift = _time_offset(args, cal, fit_report)
     capture = load(args.capture, time_offset=offset, register_markers=getattr(args, "register_markers", False),
-                   sensor=getattr(args, "sensor", None))
+                   sensor=getattr(args, "sensor", None), **drift)
     _require_one_sensor(capture)
     if (capture.origin or {}).get("kind") == "streams":
         capture.origin["time_offset_source"] = source

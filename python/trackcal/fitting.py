@@ -401,15 +401,21 @@ class Pairing:
 
 def pair(tracker: PathLike, reference: PathLike, *, time_offset: float = 0.0,
          estimate_time_offset: bool = False, search_range: float = 0.5, max_gap_s: float = 0.1,
-         sensor: int = 0, set: str = "calib", decimate: int = 1) -> Pairing:
+         sensor: int = 0, set: str = "calib", decimate: int = 1, clock_drift: float = 0.0,
+         clock_drift_origin_s: Optional[float] = None) -> Pairing:
     """Pairs tracker_stream.csv with reference_stream.csv by time (reference pose interpolated at
     t + time_offset), estimating the offset if asked, as ``trackcal-fit pair``. A folder stands for
-    its tracker_stream.csv (``tracker``) or reference_stream.csv (``reference``)."""
+    its tracker_stream.csv (``tracker``) or reference_stream.csv (``reference``).
+
+    A given offset may come with a clock drift (``clock_drift``, a fit's ``clock_drift`` statistic):
+    the reference is then taken at t + time_offset + clock_drift (t - ``clock_drift_origin_s``), the
+    origin being the tracker time at which the offset holds (None: the middle of the samples)."""
     tracker = _input_file(tracker, "tracker_stream.csv")
     reference = _input_file(reference, "reference_stream.csv")
     native = _core.pair(tracker, reference, time_offset=time_offset,
                         estimate_time_offset=estimate_time_offset, search_range=search_range,
-                        max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate)
+                        max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate,
+                        clock_drift=clock_drift, clock_drift_origin=clock_drift_origin_s)
     result = not_utf8_inputs(Pairing, native, inputs=(tracker, reference))
     # As trackcal-fit pair on stderr (it reached only to_dict()["warning"]: a poorly identified
     # offset was returned with nothing said).
