@@ -768,7 +768,7 @@ def _warn_other_receiver(capture: PoseCapture, calibration) -> None:
         return
     others = sorted(int(s) for s in np.unique(capture.sensor) if int(s) != fitted_for)
     if others:
-        warnings.warn(f"{capture.path}: stations of sensor {', '.join(map(str, others))}, but the calibration "
+        warnings.warn(f"{capture.path or 'the capture'}: stations of sensor {', '.join(map(str, others))}, but the calibration "
                       f"was fitted for sensor {fitted_for} (receiver {fitted_for}): its correction is "
                       f"another receiver's there; validate each receiver with its own calibration "
                       f"(trackcal validate --sensor N)", UserWarning, stacklevel=3)
