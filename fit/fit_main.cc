@@ -550,23 +550,7 @@ int RunPair(int argc, char** argv) {
               << result.warning << "\n";
   }
   if (args.Flag("--json")) {
-    std::cout << nlohmann::json{{"command", "pair"},
-                                {"output", output.string()},
-                                {"num_poses", result.poses.records.size()},
-                                {"dropped", result.dropped},
-                                {"time_offset_s", result.time_offset},
-                                {"estimated", options.estimate_time_offset},
-                                {"time_offset_stddev_s", result.time_offset_stddev},
-                                {"position_difference_variance_m2", result.cost},
-                                {"clock_drift", result.clock_drift},
-                                {"clock_drift_stddev", result.clock_drift_stddev},
-                                {"clock_drift_corrected", result.clock_drift_corrected},
-                                {"clock_drift_applied", result.clock_drift_applied},
-                                {"clock_drift_origin_s", result.clock_drift_origin},
-                                {"residual_to_path_ratio", result.residual_to_path_ratio},
-                                {"warning", result.warning}}
-                     .dump(2)
-              << "\n";
+    std::cout << PairingJson(result, options.estimate_time_offset, output).dump(2) << "\n";
   } else {
     std::cout << "Paired " << result.poses.records.size() << " samples (" << result.dropped
               << " without reference), time offset " << std::setprecision(6) << result.time_offset

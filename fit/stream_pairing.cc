@@ -522,6 +522,25 @@ std::string Rounded(double v, int precision) {
 
 }  // namespace
 
+nlohmann::json PairingJson(const StreamPairingResult& result, bool estimated,
+                           const std::optional<std::filesystem::path>& output) {
+  return {{"command", "pair"},
+          {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
+          {"num_poses", result.poses.records.size()},
+          {"dropped", result.dropped},
+          {"time_offset_s", result.time_offset},
+          {"estimated", estimated},
+          {"time_offset_stddev_s", result.time_offset_stddev},
+          {"position_difference_variance_m2", result.cost},
+          {"clock_drift", result.clock_drift},
+          {"clock_drift_stddev", result.clock_drift_stddev},
+          {"clock_drift_corrected", result.clock_drift_corrected},
+          {"clock_drift_applied", result.clock_drift_applied},
+          {"clock_drift_origin_s", result.clock_drift_origin},
+          {"residual_to_path_ratio", result.residual_to_path_ratio},
+          {"warning", result.warning}};
+}
+
 StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStream& reference,
                                 const StreamPairingOptions& options) {
   std::string error;

@@ -23,6 +23,7 @@
 #include <Eigen/Core>
 #include <filesystem>
 #include <limits>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
 #include <vector>
@@ -108,6 +109,12 @@ struct StreamPairingResult {
   std::vector<Eigen::Vector3d> reference_angular_velocity;
   int dropped = 0;  // tracker samples without a reference
 };
+
+// The pairing as `trackcal-fit pair --json` prints it and Python's trackcal.pair returns it (one
+// document for both, so they cannot drift apart): `output` null when no file was written,
+// `estimated`: whether the offset was estimated.
+nlohmann::json PairingJson(const StreamPairingResult& result, bool estimated,
+                           const std::optional<std::filesystem::path>& output);
 
 // Throws std::invalid_argument for bad options or streams with fewer than 2 samples.
 StreamPairingResult PairStreams(const TrackerStream& tracker, const ReferenceStream& reference,

@@ -401,23 +401,7 @@ struct PairRun {
   bool estimated = false;
   std::vector<fs::path> inputs;
   std::optional<fs::path> output;
-  nlohmann::json ToJson() const {
-    return {{"command", "pair"},
-            {"output", output ? nlohmann::json(output->string()) : nlohmann::json()},
-            {"num_poses", result.poses.records.size()},
-            {"dropped", result.dropped},
-            {"time_offset_s", result.time_offset},
-            {"estimated", estimated},
-            {"time_offset_stddev_s", result.time_offset_stddev},
-            {"position_difference_variance_m2", result.cost},
-            {"clock_drift", result.clock_drift},
-            {"clock_drift_stddev", result.clock_drift_stddev},
-            {"clock_drift_corrected", result.clock_drift_corrected},
-            {"clock_drift_applied", result.clock_drift_applied},
-            {"clock_drift_origin_s", result.clock_drift_origin},
-            {"residual_to_path_ratio", result.residual_to_path_ratio},
-            {"warning", result.warning}};
-  }
+  nlohmann::json ToJson() const { return fit::PairingJson(result, estimated, output); }
 };
 
 py::array_t<double> Vec(const Eigen::VectorXd& v) {
