@@ -22,6 +22,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <string_view>
 #include <thread>
 
 #include "tests/test_utils.h"
@@ -484,6 +485,79 @@ TEST(VrpnServer, ReferenceClientGetsTheDeviceItPingsFromNotTheNamesItDescribesBa
   EXPECT_EQ(counts["Tracker0 " + std::string(kPongType)], 1);
   EXPECT_GE(counts["Tracker0 " + std::string(kPosQuatType)], 20);
   EXPECT_EQ(counts["Stylus0 " + std::string(kButtonChangeType)], 0);
+}
+
+// The reference client's bytes of capture 06 (cookie, descriptions, the three static-information
+// requests, a ping), with the version in its cookie replaced by `version`, sent to a live server
+// split where TCP may split them: the cookie in two pieces, its second piece together with the
+// first description's header, then everything else in one segment. Returns what came back as
+// "sender type payload-size" -> count, with "closed" set when the server closed the connection.
+std::map<std::string, int> ReplayCapture06(VrpnServer& server, std::string_view version) {
+  std::ifstream in(trackcal::testing::SourceDir() / "tests" / "data" / "vrpn" /
+                       "06_static_transform_requests_tcp" / "client_to_server.bin",
+                   std::ios::binary);
+  std::vector<std::uint8_t> bytes(std::istreambuf_iterator<char>(in), {});
+  std::map<std::string, int> counts;
+  EXPECT_EQ(bytes.size(), 1504u);
+  EXPECT_EQ(version.size(), kCookieVersion.size());
+  if (bytes.size() != 1504u || version.size() != kCookieVersion.size()) return counts;
+  std::copy(version.begin(), version.end(), bytes.begin());
+  auto fd = RawConnect(server.port());
+  for (const auto& [from, to] : {std::pair<std::size_t, std::size_t>{0, 7}, {7, 40}, {40, 1504}}) {
+    EXPECT_EQ(::send(fd.get(), bytes.data() + from, to - from, MSG_NOSIGNAL),
+              static_cast<ssize_t>(to - from));
+    std::this_thread::sleep_for(std::chrono::milliseconds(30));  // separate segments
+  }
+  Connection conn(std::make_shared<NameRegistry>(), Connection::Options{});
+  std::uint8_t buf[65536];
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  const std::string pos_quat = "Tracker0 " + std::string(kPosQuatType) + " 64";
+  while (Clock::now() < end && counts[pos_quat] < 4 && counts["closed"] == 0) {
+    // Publish once the client's bytes (its ping is the last message) have been handled.
+    if (counts["Tracker0 " + std::string(kPongType) + " 0"] > 0) {
+      server.PublishPose(0, 1, RandomPose(), Timestamp::Now());
+    }
+    pollfd p{fd.get(), POLLIN, 0};
+    if (::poll(&p, 1, 10) <= 0) continue;
+    const ssize_t n = ::recv(fd.get(), buf, sizeof(buf), 0);
+    if (n <= 0) {
+      ++counts["closed"];
+      break;
+    }
+    EXPECT_TRUE(conn.OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                                [&](const ReceivedMessage& m) {
+                                  ++counts[std::string(m.sender) + " " + std::string(m.type) + " " +
+                                           std::to_string(m.payload.size())];
+                                }));
+  }
+  return counts;
+}
+
+TEST(VrpnServer, ReferenceClientBytesSplitAnywhereGetTheReferenceServersAnswers) {
+  // Capture 06's server (2 sensors) answered with one pong, one To_Room (56 bytes), one
+  // Unit_To_Sensor (64 bytes) per sensor and one Workspace (48 bytes); the client library checks
+  // those lengths exactly and drops the connection on any other.
+  VrpnServer server(MakeCatalog(/*sensors=*/2), LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  for (std::string_view version : {"vrpn: ver. 07.38", "vrpn: ver. 07.35", "vrpn: ver. 07.99"}) {
+    SCOPED_TRACE(std::string(version));
+    auto got = ReplayCapture06(server, version);
+    EXPECT_EQ(got["closed"], 0);
+    EXPECT_EQ(got["Tracker0 " + std::string(kPongType) + " 0"], 1);
+    EXPECT_EQ(got["Tracker0 " + std::string(kToRoomType) + " 56"], 1);
+    EXPECT_EQ(got["Tracker0 " + std::string(kUnitToSensorType) + " 64"], 2);
+    EXPECT_EQ(got["Tracker0 " + std::string(kWorkspaceType) + " 48"], 1);
+    EXPECT_GE(got["Tracker0 " + std::string(kPosQuatType) + " 64"], 4);
+  }
+  // Another major version is refused, as the reference refuses it: closed, nothing answered.
+  for (std::string_view version : {"vrpn: ver. 06.38", "vrpn: ver. 08.00"}) {
+    SCOPED_TRACE(std::string(version));
+    auto got = ReplayCapture06(server, version);
+    EXPECT_EQ(got["closed"], 1);
+    EXPECT_EQ(got["Tracker0 " + std::string(kPongType) + " 0"], 0);
+    EXPECT_EQ(got["Tracker0 " + std::string(kPosQuatType) + " 64"], 0);
+  }
+  EXPECT_EQ(server.stats().closed_protocol, 2u);
 }
 
 // Sends `server` a lob request from the UDP socket `udp` naming a listener on 127.0.0.1 and returns
