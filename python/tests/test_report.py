@@ -264,3 +264,24 @@ def test_orientation_slice_of_a_grid_with_an_even_number_of_layers_is_not_empty(
         assert len(arrows) == 2 and all(len(a.get_offsets()) == 120 for a in arrows)
     finally:
         plt.close(fig)
+
+
+def test_report_over_an_earlier_one_leaves_none_of_its_figures_it_does_not_draw(tmp_path):
+    # A report with a calibration and a history, then one without either into the same folder:
+    # the first one's fig6 and history.png stayed beside the new page, as if they were its figures.
+    cap = captures.load_poses(simulate(tmp_path / "capture", seed=37))
+    cal = validation.fit_polynomial(cap.select_set("calib"), degree=2)
+    with_cal = validation.validate(cap, cal, analyse_covariates=False)
+    cal_path = tmp_path / "calibration.json"
+    cal.save(cal_path)
+    record_fit(tmp_path / "work", model=cal_path, data=[(tmp_path / "capture" / "poses.csv", "calibration_capture")],
+               scores=scores_from_validation(with_cal), label="polynomial r=2")
+    out = tmp_path / "out"
+    report.write_report(with_cal, out, history_entries=load_history(tmp_path / "work"))
+    assert {"fig6_distortion_field.png", "history.png"} <= {p.name for p in out.iterdir()}
+    (out / "notes.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"mine" * 8)  # not a figure's name: kept
+    page = report.write_report(validation.validate(cap, None, analyse_covariates=False), out)
+    drawn = set(re.findall(r"<img alt='([^']+)'", page.read_text()))
+    assert {p.name for p in out.glob("*.png")} == drawn | {"notes.png"}
+    assert "fig6_distortion_field.png" not in drawn and "history.png" not in drawn
+    assert drawn <= set(report.FIGURE_NAMES)

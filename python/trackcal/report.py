@@ -21,6 +21,15 @@ from trackcal._files import replace_atomically
 from trackcal import validation
 
 
+# Every figure file a report may write (build_figures). A report written over an earlier one removes
+# the earlier one's figures it does not draw itself (a fig6 of a calibration the new report has not,
+# a history.png of a report without --workdir): else they sat next to the new page as if its own.
+FIGURE_NAMES = ("fig4_position_error_vs_distance.png", "fig5_orientation_error_vs_distance.png",
+                "fig7_orientation_vectors_slice.png", "fig6_distortion_field.png",
+                "residual_map_position.png", "residual_map_orientation.png",
+                "covariates_position_mm.png", "covariates_orientation_deg.png", "candidates.png",
+                "history.png")
+
 # In every report's <head>: an existing report.html is replaced only when it carries this (an earlier
 # trackcal report), never a page of the user's that happens to sit in the output folder.
 GENERATOR_META = "<meta name='generator' content='trackcal report'>"
@@ -290,4 +299,17 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     parts.append(f"<script>{CHECK_SCRIPT}</script></body></html>")
     path = out_dir / "report.html"
     _atomic_write(path, "\n".join(parts).encode("utf-8"), input_paths)
+    # The earlier report's figures this one did not draw, once the new page is in place: only in a
+    # folder that held an earlier report, and only files the figure guard would have let it
+    # replace (never an input, never a user's own picture).
+    drawn = {name for name, _, _ in figs}
+    for name in FIGURE_NAMES if own_folder else ():
+        stale = out_dir / name
+        if name in drawn or not stale.is_file():
+            continue
+        try:
+            _check_replaceable(stale, input_paths, own_folder)
+        except ValueError:
+            continue
+        stale.unlink()
     return path
