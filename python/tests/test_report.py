@@ -285,3 +285,24 @@ def test_report_over_an_earlier_one_leaves_none_of_its_figures_it_does_not_draw(
     assert {p.name for p in out.glob("*.png")} == drawn | {"notes.png"}
     assert "fig6_distortion_field.png" not in drawn and "history.png" not in drawn
     assert drawn <= set(report.FIGURE_NAMES)
+
+
+def test_orientation_slice_of_a_calibration_that_makes_things_worse_keeps_its_arrows_short():
+    # Before 0.04 deg, after 8 deg (a calibration applied to another setup): scaled by the
+    # before-vectors alone, every after-arrow was drawn about 20 m long across the 1 m slab.
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(2)
+    pos = rng.uniform(-0.5, 0.5, size=(60, 3))
+    pos[:, 2] = 0.0
+    before = rng.normal(scale=3e-4, size=(60, 3))
+    after = 200.0 * before
+    fig = figures.orientation_vectors_slice(pos, before, after_vectors=after)
+    try:
+        arrows = [c for c in fig.axes[0].collections if hasattr(c, "scale")]
+        deg = 2.0 * 180.0 / np.pi
+        for q, vec in zip(arrows, (before, after)):
+            drawn_m = np.linalg.norm(vec[:, :2] * deg, axis=1) / q.scale  # scale_units "xy": data units
+            assert drawn_m.max() <= 0.1 + 1e-9  # the longest arrow, after, 0.1 m (the frame ~1 m)
+        assert np.linalg.norm(after[:, :2] * deg, axis=1).max() / arrows[1].scale == pytest.approx(0.1)
+    finally:
+        plt.close(fig)
