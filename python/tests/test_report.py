@@ -306,3 +306,18 @@ def test_orientation_slice_of_a_calibration_that_makes_things_worse_keeps_its_ar
         assert np.linalg.norm(after[:, :2] * deg, axis=1).max() / arrows[1].scale == pytest.approx(0.1)
     finally:
         plt.close(fig)
+
+
+def test_report_covariate_table_says_what_diagnose_says_of_a_confounded_covariate(uncorrected, tmp_path):
+    # diagnose prints "time ... (explained by position)" after the findings that stand on their
+    # own; the report's table called time plainly significant, before z, with p "0.000".
+    import dataclasses
+    effects = [validation.CovariateEffect("time", "orientation_deg", 0.21, 1.0 / 6000, True, 480,
+                                          confounded_with="position"),
+               validation.CovariateEffect("z", "orientation_deg", 0.20, 1.0 / 6000, True, 480)]
+    v = dataclasses.replace(uncorrected, covariate_effects=effects, covariates_tested=True)
+    page = report.write_report(v, tmp_path / "out").read_text()
+    table = page.split("<h2>Residual structure (covariates)</h2>", 1)[1].split("</table>", 1)[0]
+    rows = re.findall(r"<tr><td>(\w+)</td><td>orientation_deg</td><td>[^<]*</td><td>([^<]*)</td><td>([^<]*)</td>",
+                      table)
+    assert rows == [("z", "0.000167", "yes"), ("time", "0.000167", "yes (explained by position)")], rows

@@ -243,11 +243,16 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     parts.append("<h2>Worst stations</h2><p>x, y, z and distance: the reported position in the "
                  "transmitter frame [m].</p>" + _table(v.worst))
     if v.covariate_effects:
-        rows = [{"covariate": e.covariate, "residual": e.target, "R² (cv)": e.r2, "p": e.p_value,
-                 "significant": "yes" if e.significant else "",
+        # As diagnose lists them: a finding another covariate family explains away (time that the
+        # positions explain) is marked so and goes after those that stand on their own; the table
+        # called it plainly significant. p with its digits: a permutation p of 0.000167 read "0.000".
+        shown = sorted((e for e in v.covariate_effects if e.significant or e.r2 > 0.01),
+                       key=lambda e: (not e.significant, e.confounded_with is not None, -e.r2))
+        rows = [{"covariate": e.covariate, "residual": e.target, "R² (cv)": e.r2, "p": f"{e.p_value:.3g}",
+                 "significant": ("yes" + (f" (explained by {e.confounded_with})" if e.confounded_with else ""))
+                 if e.significant else "",
                  **({"each label's mean error from the mean of all": diagnosis.levels_phrase(e.levels)}
-                    if any(x.levels for x in v.covariate_effects) else {})} for e in v.covariate_effects
-                if e.significant or e.r2 > 0.01][:40]
+                    if any(x.levels for x in v.covariate_effects) else {})} for e in shown][:40]
         parts.append("<h2>Residual structure (covariates)</h2>"
                      "<p>Share of the remaining residual variance each covariate explains (binned means, "
                      "5-fold cross-validated), with a permutation test; only significant or R² &gt; 0.01 shown."
