@@ -321,3 +321,41 @@ def test_report_covariate_table_says_what_diagnose_says_of_a_confounded_covariat
     rows = re.findall(r"<tr><td>(\w+)</td><td>orientation_deg</td><td>[^<]*</td><td>([^<]*)</td><td>([^<]*)</td>",
                       table)
     assert rows == [("z", "0.000167", "yes"), ("time", "0.000167", "yes (explained by position)")], rows
+
+
+def test_distortion_field_leaves_blank_where_the_model_inverse_does_not_resolve(tmp_path):
+    # A fitted floor plane that cuts the calibrated volume (measured: the paper capture fitted with
+    # sensor_offset, receiver_gain, plane and dipole; 50 of its 600 stations not converged): beyond
+    # the plane the inverse does not converge and the "correction" there is ~0.15 mm, drawn as a
+    # dark band with streamlines through it, as if that part of the volume were undistorted.
+    import json
+    import matplotlib.pyplot as plt
+    cap = captures.load_poses(simulate(tmp_path / "capture", seed=38))
+    validation.fit_polynomial(cap.select_set("calib"), degree=1).save(tmp_path / "poly.json")
+    doc = json.loads((tmp_path / "poly.json").read_text())  # a valid file; its correction replaced
+    doc["calibrated_volume"].update({"min": [-0.85, -0.75, -0.8], "max": [0.88, 0.71, -0.27]})
+    doc["corrections"] = [{
+        "type": "physical", "field_constant": 1.0, "transmitter_octupole_m2": [0, 0, 0], "objects": [],
+        "planes": [{"name": "floor", "point_in_transmitter": [0.262, 0.011, 0.195],
+                    "normal_in_transmitter": [0.8, 0.033, 0.6], "attenuation": 0.07}],
+        "receiver_from_body": {"rotation_xyzw": [0, 0, 0, 1], "translation": [0, 0, 0]},
+        "receiver_gain_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "tolerance_m": 1e-12,
+        "max_iterations": 50, "fold_reach": 3.0, "max_correction_fraction": 0.5, "max_noise_gain": 10.0}]
+    (tmp_path / "physical.json").write_text(json.dumps(doc))
+    cal = trackcal.Calibration.load(str(tmp_path / "physical.json"))
+    # The figure's grid: 25 x 25 over the volume's x, y on its mid-plane.
+    lo, hi = np.asarray(cal.volume_min), np.asarray(cal.volume_max)
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 25), np.linspace(lo[1], hi[1], 25))
+    pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 0.5 * (lo[2] + hi[2]))])
+    _, _, _, status = cal.correct(pts, np.tile([0.0, 0.0, 0.0, 1.0], (len(pts), 1)), return_status=True)
+    unresolved = status != 0
+    assert 0 < unresolved.sum() < len(pts)  # the case this test is about
+    fig = figures.distortion_field(cal)
+    try:
+        mesh = next(c for c in fig.axes[0].collections if hasattr(c, "get_array") and c.get_array() is not None
+                    and np.size(c.get_array()) == len(pts))
+        shown = np.ma.getmaskarray(mesh.get_array()).ravel()
+        assert np.array_equal(shown, unresolved)  # blank exactly there, not a ~0 mm value
+        assert f"hatched: {int(unresolved.sum())} of {len(pts)}" in fig.axes[0].get_title()
+    finally:
+        plt.close(fig)

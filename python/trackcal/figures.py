@@ -201,21 +201,31 @@ def distortion_field(calibration, *, z: Optional[float] = None, n: int = 25, str
     gx, gy = np.meshgrid(xs, ys)
     pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)])
     quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(pts), 1))
-    cp, _, _ = calibration.correct(pts, quats)
+    cp, _, _, status = calibration.correct(pts, quats, return_status=True)
     d = (cp - pts) * 1e3
+    # Where a physical term's model inverse does not resolve the pose (status not 0: ambiguous or
+    # not converged) the correction is not the field's: it was drawn as a dark band of ~0 mm with
+    # streamlines through it, as if the volume there were undistorted. Left blank (hatched) instead.
+    unresolved = np.asarray(status) != 0
+    d[unresolved] = np.nan
     mag = np.linalg.norm(d, axis=1).reshape(gx.shape)
     fig, ax = plt.subplots(figsize=(6.4, 5.4))
-    im = ax.pcolormesh(gx, gy, mag, shading="auto", cmap="viridis")
+    if unresolved.any():
+        ax.add_patch(plt.Rectangle((0, 0), 1, 1, transform=ax.transAxes, facecolor="none",
+                                   edgecolor="lightgray", hatch="//", zorder=0))
+    im = ax.pcolormesh(gx, gy, np.ma.masked_invalid(mag), shading="auto", cmap="viridis")
     fig.colorbar(im, ax=ax, label="|correction| [mm]")
     u, v = d[:, 0].reshape(gx.shape), d[:, 1].reshape(gx.shape)
-    if streamlines and np.any(np.hypot(u, v) > 0):
+    if streamlines and np.nanmax(np.hypot(u, v), initial=0.0) > 0:
         ax.streamplot(xs, ys, u, v, color="white", density=1.0, linewidth=0.8)
     else:
         ax.quiver(gx, gy, u, v, color="white")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="box")
-    ax.set_title(f"Fitted distortion (position correction), z = {z:.2f} m")
+    note = (f"\nhatched: {int(unresolved.sum())} of {unresolved.size} points the model inverse does not resolve"
+            if unresolved.any() else "")
+    ax.set_title(f"Fitted distortion (position correction), z = {z:.2f} m{note}", fontsize=10 if note else None)
     fig.tight_layout()
     return fig
 

@@ -164,7 +164,8 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
     if v.calibration is not None:
         figs.append(("fig6_distortion_field.png",
                      "Figure 6: the calibration's position correction on the horizontal mid-plane of its "
-                     "volume: magnitude as colour, x-y direction as streamlines.",
+                     "volume: magnitude as colour, x-y direction as streamlines; hatched (blank) where a physical "
+                     "term's model inverse does not resolve the pose.",
                      F.distortion_field(v.calibration)))
     final = after if after is not None else before
     figs.append(("residual_map_position.png",
