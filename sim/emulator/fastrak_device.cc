@@ -15,6 +15,7 @@ namespace {
 // A line command longer than this is garbage (the longest real one, `x` with four floats, is ~20).
 constexpr size_t kMaxLineLength = 256;
 constexpr char kCtrlY = 0x19;
+constexpr char kCtrlK = 0x0B;
 
 // Power-up output list of a Fastrak: position, Euler angles, CR LF [bg].
 const std::vector<int>& DefaultOutputList() {
@@ -149,12 +150,38 @@ FastrakDevice::FastrakDevice(FastrakDeviceOptions options) : options_(std::move(
   Reinitialise();
 }
 
+void FastrakDevice::SaveConfiguration() {
+  SavedConfiguration saved;
+  saved.continuous = continuous_;
+  saved.binary = binary_;
+  saved.metric = metric_;
+  saved.stations = stations_;
+  saved.position_filter = position_filter_;
+  saved.attitude_filter = attitude_filter_;
+  saved_ = std::move(saved);
+}
+
 void FastrakDevice::Reinitialise() {
+  stylus_pressed_ = false;
+  stylus_paused_ = false;
+  line_.clear();
+  in_line_ = false;
+  line_overflow_ = false;
+  if (saved_) {
+    continuous_ = saved_->continuous;
+    binary_ = saved_->binary;
+    metric_ = saved_->metric;
+    stations_ = saved_->stations;
+    position_filter_ = saved_->position_filter;
+    attitude_filter_ = saved_->attitude_filter;
+    for (StationState& s : stations_) {
+      if (!s.hemisphere.isZero()) s.last_position_m = s.hemisphere;
+    }
+    return;
+  }
   continuous_ = options_.continuous;
   binary_ = options_.binary;
   metric_ = options_.metric;
-  stylus_pressed_ = false;
-  stylus_paused_ = false;
   position_filter_.clear();
   attitude_filter_.clear();
   for (int i = 0; i < kMaxStations; ++i) {
@@ -166,9 +193,6 @@ void FastrakDevice::Reinitialise() {
     s.hemisphere = options_.hemisphere;
     if (!s.hemisphere.isZero()) s.last_position_m = s.hemisphere;
   }
-  line_.clear();
-  in_line_ = false;
-  line_overflow_ = false;
 }
 
 const StationState& FastrakDevice::station(int station) const {
@@ -197,8 +221,8 @@ void FastrakDevice::Log(std::string message) { log_.push_back(std::move(message)
 std::string FastrakDevice::Receive(std::string_view bytes, const Measure& measure) {
   std::string reply;
   for (const char c : bytes) {
-    if (c == kCtrlY) {
-      // Reinitialisation wins over anything half received.
+    if (c == kCtrlY || c == kCtrlK) {
+      // Reinitialisation and saving win over anything half received.
       HandleSingle(c, measure, &reply);
       continue;
     }
@@ -262,6 +286,9 @@ void FastrakDevice::HandleSingle(char c, const Measure& measure, std::string* re
   switch (c) {
     case kCtrlY:
       Reinitialise();
+      break;
+    case kCtrlK:
+      SaveConfiguration();
       break;
     case 'c':
       continuous_ = false;

@@ -9,7 +9,7 @@
 //
 // Command framing (what a Fastrak does, as far as the driver needs it):
 // - single-character commands act at once, with or without a following CR: `c` `C` `P` `S` `f` `F`
-//   `u` `U` `t` `Y` and Ctrl-Y (0x19, reinitialise);
+//   `u` `U` `t` `Y`, Ctrl-Y (0x19, reinitialise) and Ctrl-K (0x0B, save the configuration);
 // - every other printable character starts a line command that ends at CR or LF (`O1,2,11,0\r`);
 //   CR LF, LF CR, bare CR and blank lines are all accepted; an unknown command is ignored and
 //   counted.
@@ -19,6 +19,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -115,8 +116,14 @@ class FastrakDevice {
   // Active stations in increasing order.
   std::vector<int> ActiveStations() const;
 
-  // Power-up state (Ctrl-Y).
+  // Power-up state (Ctrl-Y, power on): the configuration saved by Ctrl-K if there is one, else
+  // the options' power-up state.
   void Reinitialise();
+  // Ctrl-K: the current operational configuration (format, units, continuous mode, every station's
+  // output list, hemisphere, active state and stylus function, the filters) becomes the power-up
+  // state, as a Fastrak saves it to non-volatile memory.
+  void SaveConfiguration();
+  bool has_saved_configuration() const { return saved_.has_value(); }
 
   bool continuous() const { return continuous_; }
   // Continuous and not paused by the stylus switch: records are being output.
@@ -142,7 +149,18 @@ class FastrakDevice {
   // Parses "station,..." integers/floats of a line command; false if malformed.
   bool ParseStationCommand(const std::string& args, int* station, std::vector<std::string>* rest);
 
+  // What Ctrl-K saves and Reinitialise restores.
+  struct SavedConfiguration {
+    bool continuous = false;
+    bool binary = false;
+    bool metric = false;
+    std::array<StationState, kMaxStations> stations;
+    std::string position_filter;
+    std::string attitude_filter;
+  };
+
   FastrakDeviceOptions options_;
+  std::optional<SavedConfiguration> saved_;
   std::array<StationState, kMaxStations> stations_;
   bool continuous_ = false;
   bool binary_ = false;

@@ -398,6 +398,29 @@ TEST(FastrakDevice, CtrlYReinitialises) {
   EXPECT_EQ(reply.size(), 55u);
 }
 
+TEST(FastrakDevice, CtrlKSavesThePowerUpConfiguration) {
+  FastrakDevice device(FastrakDeviceOptions{});
+  // A lab's saved setup: our output list, centimetres, -z hemisphere, binary, continuous.
+  device.Receive("O1,2,11,0\rO2,2,11,0\rH1,0,0,-1\rx0.5,0.2,0.8,0.8\rufC\x0b", TranscriptMeasure());
+  ASSERT_TRUE(device.has_saved_configuration());
+  // Changed after saving (what a driver sets), then lost at power-up (Ctrl-Y, or power on).
+  device.Receive("UFcO1,2,4,1\rH1,0,0,1\rx0.2,0.2,0.8,0.8\r\x19", TranscriptMeasure());
+  EXPECT_TRUE(device.binary());
+  EXPECT_TRUE(device.metric());
+  EXPECT_TRUE(device.continuous());
+  EXPECT_EQ(device.station(1).output_list, (std::vector<int>{2, 11, 0}));
+  EXPECT_EQ(device.station(2).output_list, (std::vector<int>{2, 11, 0}));
+  EXPECT_EQ(device.station(1).hemisphere, Eigen::Vector3d(0, 0, -1));
+  EXPECT_EQ(device.station(2).hemisphere, Eigen::Vector3d::UnitX());  // not changed before ^K
+  EXPECT_EQ(device.position_filter(), "0.5,0.2,0.8,0.8");
+  // The record is in the saved format: 32 bytes, centimetres, in the -z hemisphere (the transcript
+  // station 1 is at z = +20 in, so it is reported at -50.8 cm, x and y negated with it).
+  const std::string record = device.FormatRecord(1, TranscriptStation(1));
+  ASSERT_EQ(record.size(), 32u);
+  EXPECT_NEAR(ReadFloat32Le(record.data() + 3), -25.4, 1e-4);
+  EXPECT_NEAR(ReadFloat32Le(record.data() + 11), -50.8, 1e-4);
+}
+
 TEST(FastrakDevice, PolledAndActiveStations) {
   FastrakDeviceOptions options;
   options.num_stations = 3;
