@@ -590,7 +590,8 @@ std::string Emulator::StatusLine() {
   for (size_t i = 0; i < active.size(); ++i) ss << (i ? "," : "") << active[i];
   ss << " records=" << stats_.records_sent << " dropped=" << stats_.records_dropped
      << " lost=" << stats_.items_lost << " received=" << stats_.bytes_received
-     << " reconnects=" << stats_.reconnects;
+     << " reconnects=" << stats_.reconnects
+     << " saved=" << (device_.has_saved_configuration() ? 1 : 0);
   char t[32];
   std::snprintf(t, sizeof(t), " t=%.3f", Now());
   ss << t;

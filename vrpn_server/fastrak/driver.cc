@@ -481,8 +481,8 @@ class FastrakDriver::Session {
     }
   }
 
-  // After a reopen: a Fastrak that kept its configuration is still streaming our records; take them
-  // instead of spending seconds on a reset.
+  // After a reopen: a Fastrak that kept its configuration is still streaming records in our format;
+  // stop it and configure it again at once instead of spending seconds on a reset.
   bool TryResume() {
     SetState(DriverState::kResetting);
     size_t bytes_seen = 0;
@@ -490,10 +490,14 @@ class FastrakDriver::Session {
   }
 
   // Reads (and otherwise discards) what arrives for `seconds`. If the device has been configured by
-  // this driver and two valid records in our format arrive, it is still streaming as we set it up
-  // (its cable was out, or it missed our `c`): resume at once and return true. Only used in waits
-  // that start at least one preamble settle after `c`, so records in flight before `c` are not
-  // mistaken for a live stream; input is flushed first.
+  // this driver and two valid records in our format arrive, it is streaming (its cable was out, or
+  // it missed our `c`): re-assert the configuration (ReassertConfiguration) and return true if that
+  // worked. The records themselves are not reported: the record format does not show the units,
+  // the hemisphere, the filters or which unit sent them, and a unit that power-cycled into a
+  // configuration saved with ^K, or another unit behind a re-enumerated adapter, streams records
+  // that look the same (docs/fastrak-driver.md, Failures). Only used in waits that start at least
+  // one preamble settle after `c`, so records in flight before `c` are not mistaken for a live
+  // stream; input is flushed first.
   bool ListenForStream(double seconds, const char* when, size_t* bytes_seen) {
     FlushInput();
     parser_.Clear();
@@ -507,12 +511,31 @@ class FastrakDriver::Session {
       if (configured_once_) parser_.Feed(bytes, wake_time_, &reports);
     }
     Count(&DriverStats::resumes);
+    Emit(Severity::kInfo, std::string("tracker still streaming ") + when +
+                              "; stopping it to re-send its configuration (no full reset)");
+    const SteadyClock::time_point poll_end =
+        SteadyClock::now() + Seconds(timings_.RestartPoll(options_.baud));
+    return StatusAndConfigure(poll_end, "still streaming");
+  }
+
+  // `c`, a settle (a record in flight ends), flush, `S`; at a valid status reply before `poll_end`,
+  // Configure() and true. Shared by the short restart and the resume of a stream.
+  bool StatusAndConfigure(SteadyClock::time_point poll_end, const char* what) {
+    Write(kStopContinuous);
+    Sleep(timings_.RestartSettle(options_.baud));
+    FlushInput();
+    Write(kRequestStatus);
+    const std::string reply = ReadStatusReply(poll_end);
+    std::string why;
+    const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
+    if (!status) return false;
     reset_attempts_ = 0;
-    Emit(Severity::kInfo, std::string("tracker still streaming ") + when + "; resumed without reset");
-    SetState(DriverState::kStreaming);
-    last_button_.fill(std::nullopt);
-    DeliverReports(reports);
-    stream_already_started_ = true;
+    Emit(Severity::kInfo, std::string("tracker ") + what + " answered (" +
+                              (status->layout_note.empty()
+                                   ? "firmware '" + status->firmware_version + "'"
+                                   : std::string("status reply not in the Fastrak's layout")) +
+                              "); configuring without the full reset");
+    Configure();
     return true;
   }
 
@@ -639,7 +662,6 @@ class FastrakDriver::Session {
     Write(kStartContinuous);
     parser_.Clear();
     configured_once_ = true;
-    stream_already_started_ = false;
     Count(&DriverStats::resets_completed);
     Emit(Severity::kInfo, std::string("reset completed; binary records in ") + UnitsName(units_));
   }
@@ -661,21 +683,8 @@ class FastrakDriver::Session {
     while (SteadyClock::now() < end) {
       const SteadyClock::time_point poll_end =
           SteadyClock::now() + Seconds(timings_.RestartPoll(options_.baud));
-      Write(kStopContinuous);
-      Sleep(timings_.RestartSettle(options_.baud));
-      FlushInput();
-      Write(kRequestStatus);
-      const std::string reply = ReadStatusReply(poll_end);
-      std::string why;
-      if (const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why)) {
-        reset_attempts_ = 0;
+      if (StatusAndConfigure(poll_end, "after the loss")) {
         Count(&DriverStats::quick_restarts);
-        Emit(Severity::kInfo, "tracker answered (" +
-                                  (status->layout_note.empty()
-                                       ? "firmware '" + status->firmware_version + "'"
-                                       : std::string("status reply not in the Fastrak's layout")) +
-                                  "); configuring without the full reset");
-        Configure();
         return true;
       }
       // Let the poll interval run out (a reply that came too late is flushed by the next poll).
@@ -720,7 +729,7 @@ class FastrakDriver::Session {
 
   void Stream() {
     SetState(DriverState::kStreaming);
-    if (!stream_already_started_) last_button_.fill(std::nullopt);
+    last_button_.fill(std::nullopt);
     SteadyClock::time_point watchdog = SteadyClock::now() + Seconds(timings_.watchdog_s);
     std::vector<uint8_t> bytes;
     std::vector<FastrakReport> reports;
@@ -761,7 +770,6 @@ class FastrakDriver::Session {
   double loss_backoff_s_ = 0.0;  // wait before reopening after losses without a record, or 0
   bool configured_once_ = false;
   bool stylus_lists_written_ = false;
-  bool stream_already_started_ = false;
   SystemClock::time_point wake_time_;
   std::array<std::optional<bool>, kMaxStations> last_button_;
 };

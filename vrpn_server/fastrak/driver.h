@@ -1,5 +1,5 @@
-// FastrakDriver: drives a Polhemus Fastrak on a serial port in its own thread, so a reset (seconds of
-// waiting) never blocks the network server. The byte sequence is the VRPN reference driver's
+// FastrakDriver: drives a Polhemus Fastrak on a serial port in its own thread, so a reset (seconds
+// of waiting) never blocks the network server. The byte sequence is the VRPN reference driver's
 // (FASTRAK.md section 4) with these differences (docs/fastrak-driver.md):
 // - units are explicit: the driver sends `U`/`u` itself (or tracks a `u`/`U` extra command) and
 //   converts inches or centimetres correctly to metres;
@@ -7,7 +7,9 @@
 //   (it is accepted, as by the reference, on its first byte '2' and its final LF alone);
 // - records are parsed by a resynchronising state machine that keeps good records after garbage;
 // - a lost port is reopened with capped exponential back-off, and a device that is still streaming
-//   in the configured format when the port comes back is resumed without a reset;
+//   in the configured format when the port comes back is stopped and configured again at once
+//   (status, output lists, filters, extra commands, units) without the full reset: its records
+//   do not show its units, hemisphere, filters or identity;
 // - texts to clients are rate-limited (MessageLimiter).
 //
 // Threading: Start() launches the thread; every callback runs on it and must return quickly (the
@@ -113,7 +115,8 @@ struct DriverStats {
   uint64_t opens = 0;             // successful opens
   uint64_t resets_started = 0;    // reset attempts (each escalation step counts)
   uint64_t resets_completed = 0;  // resets that reached continuous mode
-  uint64_t resumes = 0;           // reopens that found the device streaming (no reset)
+  uint64_t resumes = 0;           // reopens/reset waits that found the device streaming (it is
+                                  // then configured again without the full reset)
   uint64_t quick_restarts = 0;    // restarts after a loss through the short path (status, configure)
   uint64_t watchdog_timeouts = 0;
   uint64_t port_losses = 0;       // hang-ups and read/write errors
