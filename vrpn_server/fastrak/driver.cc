@@ -655,7 +655,24 @@ class FastrakDriver::Session {
         Write(cmd + "\r");
       }
     }
-    if (!options_.extra_commands.empty()) Sleep(timings_.extras_settle_s);
+    if (!options_.extra_commands.empty()) {
+      if (options_.confirm_filters) {
+        // As for the filters: the unit answers `S` after it has read the extra commands. Replies
+        // to them (a query among the extras) come first and are skipped: only a reply in the
+        // Fastrak's 55-byte status layout confirms. Else the reference's blind wait. `*N` waits
+        // above are the user's and always made.
+        const SteadyClock::time_point start = SteadyClock::now();
+        Write(kRequestStatus);
+        if (!ReadFullStatusReply()) {
+          Emit(Severity::kWarning, "no status reply after the extra commands; waiting " +
+                                       FormatSeconds(timings_.extras_settle_s) + " instead");
+          const double waited = std::chrono::duration<double>(SteadyClock::now() - start).count();
+          Sleep(timings_.extras_settle_s - waited);
+        }
+      } else {
+        Sleep(timings_.extras_settle_s);
+      }
+    }
     FlushInput();
     if (options_.force_units) Write(UnitsCommand(units_));
     Write(kBinaryFormat);
@@ -691,6 +708,26 @@ class FastrakDriver::Session {
       Sleep(std::chrono::duration<double>(poll_end - SteadyClock::now()).count());
     }
     return false;
+  }
+
+  // Reads replies (each up to its LF) until one has the Fastrak's 55-byte status layout (true) or
+  // the status timeout passes (false); the other replies are dropped.
+  bool ReadFullStatusReply() {
+    const SteadyClock::time_point deadline =
+        SteadyClock::now() + Seconds(timings_.StatusTimeout(options_.baud));
+    std::vector<uint8_t> bytes;
+    while (true) {
+      for (auto lf = std::find(bytes.begin(), bytes.end(), '\n'); lf != bytes.end();
+           lf = std::find(bytes.begin(), bytes.end(), '\n')) {
+        const std::string reply(bytes.begin(), lf + 1);
+        bytes.erase(bytes.begin(), lf + 1);
+        std::string why;
+        const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
+        if (status && status->layout_note.empty()) return true;
+      }
+      if (bytes.size() > 4096 || Wait(deadline, true) == WaitResult::kTimeout) return false;
+      ReadAvailable(&bytes);
+    }
   }
 
   // Reads until the reply's LF or the status timeout (or `until`, if earlier); returns what arrived.

@@ -92,7 +92,9 @@ struct FastrakOptions {
   bool force_units = true;
   // true: after the filter lines send `S` and continue as soon as the status reply arrives (the
   // unit reads its commands in order, so the reply shows the filters were taken), instead of the
-  // reference's blind filter_settle_s after each of them; false: the reference's bytes and waits.
+  // reference's blind filter_settle_s after each of them; likewise after the extra commands
+  // (instead of extras_settle_s; a reply in the 55-byte Fastrak layout is required there, so that
+  // replies to the extras are skipped); false: the reference's bytes and waits.
   bool confirm_filters = true;
   // Real-time (SCHED_FIFO) priority of the driver thread, 1..99; 0 keeps the normal scheduler.
   // trackcal-server gives it the network thread's --realtime-priority, so a record is read and

@@ -139,9 +139,11 @@ void ExpectPoses(const std::vector<FastrakReport>& reports) {
 }
 
 struct Fixture {
-  explicit Fixture(const std::string& name, int baud = 115200)
+  explicit Fixture(const std::string& name, int baud = 115200,
+                   const Eigen::Vector3d& hemisphere = Eigen::Vector3d::UnitX())
       : dir(trackcal::testing::MakeTempDir(name)), baud(baud) {
     emulator::EmulatorOptions options;
+    options.device.hemisphere = hemisphere;  // power-up `H` of every station
     options.link_path = (dir / "fastrak").string();
     options.baud = baud;
     emulator = std::make_unique<emulator::BackgroundEmulator>(
@@ -379,6 +381,29 @@ TEST(FastrakDriverWithEmulator, PowerCycledUnitWithSavedSettingsIsReconfigured) 
   EXPECT_EQ(wrong, 0u);
   if (wrong == 0) ExpectPoses(reports);  // (else the count above says it: not one line each)
   EXPECT_NE(f.emulator->Control("status").find("units=inches"), std::string::npos);
+}
+
+// The reference waits extras_settle_s (2 s) after the extra commands, in every reset and now in
+// every re-configuration of a unit found streaming (above). The unit answers `S` after it has read
+// them, so the driver continues at the reply. Here extras_settle_s is 5 s: the first report must
+// come well before it (fast timings start in about 0.2 s; 4 s leaves the rest for a loaded host).
+// The unit powers up in the -x hemisphere, so right poses show the `H` extras took effect before
+// streaming.
+TEST(FastrakDriverWithEmulator, ExtraCommandsAreConfirmedByAStatusRoundTrip) {
+  Fixture f("fastrak_emulator", 115200, -Eigen::Vector3d::UnitX());
+  Collector collector;
+  FastrakOptions options = f.DriverOptions();
+  options.extra_commands = {"H1,1,0,0", "H2,1,0,0"};
+  options.timings.extras_settle_s = 5.0;
+  FastrakDriver driver(options, collector.Callbacks());
+  const auto started = SteadyClock::now();
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(10, 15.0));
+  driver.Stop();
+  const double startup_s = std::chrono::duration<double>(collector.time(0) - started).count();
+  std::cout << "extra commands confirmed: first report " << startup_s << " s after Start\n";
+  EXPECT_LT(startup_s, 4.0);
+  ExpectPoses(collector.reports());
 }
 
 // At 300 baud the status reply takes 1.83 s on the line and a record 1.07 s. The short restart
