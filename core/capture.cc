@@ -349,8 +349,12 @@ class CsvTable {
     return "";
   }
 
+  // The message quotes fields as read: a NUL (a binary file, a corrupt export) or a byte that is
+  // not UTF-8 is written as \xNN, since what() is a C string that ended at the NUL, dropping the
+  // problem ("column rep_y: '1.5" and nothing more).
   [[noreturn]] void Fail(int line, const std::string& what, const std::string& problem) const {
-    throw std::invalid_argument(name_ + ":" + std::to_string(line) + ": " + what + ": " + problem);
+    throw std::invalid_argument(
+        PrintableForMessage(name_ + ":" + std::to_string(line) + ": " + what + ": " + problem));
   }
 
  private:

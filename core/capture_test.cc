@@ -210,6 +210,16 @@ TEST(PosesCsv, ErrorsNameFileLineAndColumn) {
   }
   EXPECT_EQ(error_for(header + good + "2,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0\n"),
             "poses.csv:3: row: expected 18 fields, found 17");
+  // A NUL in a field (a corrupt export, a binary file) is shown as \x00: what() is a C string, and
+  // the message ended at the NUL, without its problem ("column rep_qw: '1").
+  EXPECT_EQ(error_for(header + good +
+                      std::string("2,calib,1,0,0.1,0.2,0.3,1\0,0,0,0,0.1,0.2,0.3,1,0,0,0\n", 53)),
+            "poses.csv:3: column rep_qw: '1\\x00' is not a number");
+  // A Latin-1 byte in a standard column: the message is UTF-8 text (a str in Python).
+  EXPECT_EQ(error_for(header + good +
+                      "2,calib,1,0,0.1,0.2,0.3,\xb1"
+                      "1,0,0,0,0.1,0.2,0.3,1,0,0,0\n"),
+            "poses.csv:3: column rep_qw: '\\xb11' is not a number");
   // A regional spreadsheet export: ';' between fields, ',' as the decimal point.
   std::string semicolons = header + good;
   std::replace(semicolons.begin(), semicolons.end(), ',', ';');

@@ -66,4 +66,10 @@ std::string Sha256HexOfFile(const std::filesystem::path& path);
 // True if `text` is 64 lower-case hexadecimal characters.
 bool IsSha256Hex(std::string_view text);
 
+// `text` (an error message quoting a user's file) with every byte that is not UTF-8 text, and every
+// control character but tab and line feed, written as \xNN, as Python's "backslashreplace" writes
+// it. A message carrying such a byte raw lost everything after a NUL (what() is a C string) and
+// failed in Python as it became a str ("'utf-8' codec can't decode byte 0xe9", naming no file).
+std::string PrintableForMessage(std::string_view text);
+
 }  // namespace trackcal

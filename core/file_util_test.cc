@@ -16,6 +16,23 @@ namespace trackcal {
 namespace {
 
 // FIPS 180-2 / NIST CAVP example vectors.
+TEST(PrintableForMessage, EscapesWhatIsNotUtf8TextAndControlCharacters) {
+  EXPECT_EQ(PrintableForMessage("poses.csv:3: column x: 'abc' is not a number"),
+            "poses.csv:3: column x: 'abc' is not a number");
+  EXPECT_EQ(PrintableForMessage("a\tb\nc"), "a\tb\nc");  // tab and line feed stay
+  EXPECT_EQ(PrintableForMessage(std::string("1.5\0x\r\x7f", 7)), "1.5\\x00x\\x0d\\x7f");
+  // Valid UTF-8 of 2, 3 and 4 bytes stays; Latin-1 bytes, a lone continuation byte, a truncated
+  // sequence, an overlong form, a surrogate and a code point above U+10FFFF are escaped.
+  EXPECT_EQ(PrintableForMessage("Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80"),
+            "Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80");
+  EXPECT_EQ(PrintableForMessage("Jos\xe9"), "Jos\\xe9");
+  EXPECT_EQ(PrintableForMessage("\x80"), "\\x80");
+  EXPECT_EQ(PrintableForMessage("\xe2\x82"), "\\xe2\\x82");
+  EXPECT_EQ(PrintableForMessage("\xc0\xaf"), "\\xc0\\xaf");
+  EXPECT_EQ(PrintableForMessage("\xed\xa0\x80"), "\\xed\\xa0\\x80");
+  EXPECT_EQ(PrintableForMessage("\xf4\x90\x80\x80"), "\\xf4\\x90\\x80\\x80");
+}
+
 TEST(Sha256, Nominal) {
   EXPECT_EQ(Sha256Hex("abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
 }
