@@ -306,6 +306,26 @@ TEST(ParseCalibrationJson, AFileThatIsNotJsonSaysWhatACalibrationFileIs) {
   EXPECT_EQ(ErrorForText("  {\"format\": ").find("not a calibration file"), std::string::npos);
 }
 
+TEST(ParseCalibrationJson, AFileThatIsNotUtf8GetsAPrintableMessage) {
+  // A description typed in a Latin-1 editor ("Kalibrierung f\xfcr Raum B"): the parser's message
+  // quoted the byte raw, and in Python (Calibration.load, trackcal validate -c) it failed as it
+  // became a str, "'utf-8' codec can't decode byte 0xfc", naming no file.
+  std::string text = ReadFileToString(ExamplePath());
+  const size_t at = text.find("Example");
+  ASSERT_NE(at, std::string::npos);
+  text.replace(at, 7, "f\xfcr lab");
+  const std::string latin1 = ErrorForText(text);
+  EXPECT_EQ(latin1.rfind("calib.json:4:20: invalid JSON: ", 0), 0u) << latin1;
+  EXPECT_NE(latin1.find("ill-formed UTF-8 byte; last read: '\"f\\xfc'"), std::string::npos)
+      << latin1;
+  EXPECT_EQ(PrintableForMessage(latin1), latin1);  // nothing left to escape: valid UTF-8
+  // Notepad's "Unicode" save: UTF-16 with a byte order mark, said as such, not "not a calibration
+  // file".
+  EXPECT_EQ(ErrorForText(std::string("\xFF\xFE{\0\"\0", 6)),
+            "calib.json: UTF-16 text (a byte order mark FF FE or FE FF); save the calibration file "
+            "as UTF-8");
+}
+
 TEST(ParseCalibrationJson, RejectsTermsThatOverflowInTheVolume) {
   // Every number is finite, but u = (x - offset) / 1e-200 makes the degree-2 terms infinite and
   // infinity times a coefficient NaN: the file would serve NaN for every pose in its own volume.

@@ -6,6 +6,8 @@
 #include <set>
 #include <vector>
 
+#include "core/file_util.h"
+
 namespace trackcal {
 
 namespace {
@@ -126,7 +128,9 @@ nlohmann::json ParseJsonText(const std::string& text, const std::string& source_
     size_t token_end = token_start;
     while (is_alpha(token_end)) ++token_end;
     const std::string token = text.substr(token_start, token_end - token_start);
-    std::string what = e.what();
+    // The parser quotes what it last read: a byte that is not UTF-8 (a Latin-1 description) came
+    // through raw, and the message failed in Python as it became a str, naming no file.
+    std::string what = PrintableForMessage(e.what());
     if (token == "NaN" || token == "Infinity" || token == "nan" || token == "inf" ||
         token == "infinity") {
       what = "non-finite number (NaN or Infinity) is not allowed";

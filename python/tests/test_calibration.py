@@ -199,6 +199,25 @@ def test_file_errors_are_value_errors_naming_path(tmp_path):
         trackcal.Calibration.from_json(json.dumps(doc), "nan.json")
 
 
+def test_a_file_that_is_not_utf8_is_a_value_error_naming_it(tmp_path):
+    """A description typed in a Latin-1 editor, or Notepad's "Unicode" (UTF-16) save: the parser's
+    message quoted the raw byte and became a UnicodeDecodeError on its way to Python, "'utf-8' codec
+    can't decode byte 0xfc in position 191", naming no file (trackcal validate -c printed just that)."""
+    text = EXAMPLE.read_text().replace("Example", "f\u00fcr lab")
+    latin1 = tmp_path / "latin1.json"
+    latin1.write_bytes(text.encode("latin-1"))
+    with pytest.raises(ValueError) as info:
+        trackcal.Calibration.load(latin1)
+    assert type(info.value) is ValueError  # not its subclass UnicodeDecodeError
+    assert str(info.value).startswith(f"{latin1}:4:20: invalid JSON: ")
+    assert "ill-formed UTF-8 byte; last read: '\"f\\xfc'" in str(info.value)
+    utf16 = tmp_path / "utf16.json"
+    utf16.write_bytes(("\ufeff" + EXAMPLE.read_text()).encode("utf-16-le"))
+    with pytest.raises(ValueError) as info:
+        trackcal.Calibration.load(utf16)
+    assert str(info.value) == f"{utf16}: UTF-16 text (a byte order mark FF FE or FE FF); save the calibration file as UTF-8"
+
+
 def test_build_save_load_round_trip(tmp_path):
     rng = np.random.default_rng(4)
     pc, oc = degree4(rng)
