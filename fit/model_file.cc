@@ -7,6 +7,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "core/file_util.h"
 #include "fit/terms_physical.h"
 
 namespace trackcal::fit {
@@ -571,14 +572,28 @@ ModelSpec ParseModel(const std::string& text, const std::string& source_name, bo
   return spec;
 }
 
+// ParseModel, its errors made printable: they quote the file (an unknown key, a value, a term
+// type), and a Latin-1 key (`degr\xe9e`) or a NUL came through raw, cutting the message at the NUL
+// and failing in Python as it became a str (UnicodeDecodeError naming no file).
+ModelSpec ParseModelPrintably(const std::string& text, const std::string& source_name,
+                              bool settings_only) {
+  try {
+    return ParseModel(text, source_name, settings_only);
+  } catch (const std::invalid_argument& e) {
+    std::string printable = PrintableForMessage(e.what());
+    if (printable == e.what()) throw;
+    throw std::invalid_argument(std::move(printable));
+  }
+}
+
 }  // namespace
 
 ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name) {
-  return ParseModel(text, source_name, /*settings_only=*/false);
+  return ParseModelPrintably(text, source_name, /*settings_only=*/false);
 }
 
 ModelSpec ParseModelSettingsYaml(const std::string& text, const std::string& source_name) {
-  return ParseModel(text, source_name, /*settings_only=*/true);
+  return ParseModelPrintably(text, source_name, /*settings_only=*/true);
 }
 
 std::string ModelSettingsBlockYaml(const std::string& text, const std::string& source_name) {

@@ -108,6 +108,20 @@ TEST(ParseModelYaml, ErrorsShowTheValueAndNameACalibrationFile) {
                 "file"));
 }
 
+TEST(ParseModelYaml, ErrorsQuotingBytesThatAreNotUtf8ArePrintable) {
+  // A key typed in a Latin-1 editor: the message quoted it raw, and in Python (trackcal.fit,
+  // trackcal fit) it failed as it became a str, "'utf-8' codec can't decode byte 0xe9", naming no
+  // file. A Latin-1 comment is no error.
+  EXPECT_EQ(ErrorOf("terms:\n  - type: polynomial\n    degr\xe9"
+                    "e: 4\n"),
+            "model.yaml:3:5: $.terms[0].degr\\xe9e: unknown key");
+  EXPECT_EQ(ErrorOf("terms:\n  - type: polyn\xf4mial\n"),
+            "model.yaml:2:11: $.terms[0].type: unknown term type 'polyn\\xf4mial' (known: "
+            "polynomial, lut, sensor_offset, receiver_gain, dipole, plane, near_field, "
+            "background_field, time_offset)");
+  EXPECT_EQ(ErrorOf("# Kalibrierung f\xfcr Raum B\nterms:\n  - type: polynomial\n"), "");
+}
+
 TEST(ParseModelYaml, RejectsASecondDocument) {
   // YAML::Load read the first document only: the noise after `---` was dropped.
   EXPECT_THAT(ErrorOf("terms: [{type: polynomial}]\n---\nnoise: {position_mm: 5}\n"),

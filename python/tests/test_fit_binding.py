@@ -157,6 +157,13 @@ def test_user_errors_name_file_line_and_field(capture_dir, tmp_path):
     bad.write_text("terms:\n  - type: polynomial\n    degre: 3\n")
     with pytest.raises(ValueError, match=r"bad\.yaml:3:\d+: .*degre"):
         trackcal.fit(capture_dir, bad)
+    # A key typed in a Latin-1 editor was quoted raw: a UnicodeDecodeError naming no file.
+    latin1 = tmp_path / "latin1.yaml"
+    latin1.write_bytes("terms:\n  - type: polynomial\n    degr\u00e9e: 3\n".encode("latin-1"))
+    with pytest.raises(ValueError) as info:
+        trackcal.fit(capture_dir, latin1)
+    assert type(info.value) is ValueError  # not its subclass UnicodeDecodeError
+    assert str(info.value) == f"{latin1}:3:5: $.terms[0].degr\\xe9e: unknown key"
     with pytest.raises(ValueError, match=r"<string>:2:\d+: .*nonsense"):
         trackcal.fit(capture_dir, "terms:\n  - type: nonsense\n")
     with pytest.raises(ValueError, match="missing.yaml"):
