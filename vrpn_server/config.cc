@@ -68,6 +68,16 @@ double ParseDouble(const std::string& token, const ConfigLocation& where, std::s
   return value;
 }
 
+// Whether a device type is in trackcal's namespace: it starts with "trackcal_" in any letter case.
+bool IsTrackcalKeyword(std::string_view keyword) {
+  constexpr std::string_view kPrefix = "trackcal_";
+  if (keyword.size() <= kPrefix.size()) return false;
+  for (size_t i = 0; i < kPrefix.size(); ++i) {
+    if (std::tolower(static_cast<unsigned char>(keyword[i])) != kPrefix[i]) return false;
+  }
+  return true;
+}
+
 // A physical line of the file: text without the line end and trailing blanks, 1-based number.
 struct Line {
   std::string_view text;
@@ -117,6 +127,13 @@ class Parser {
         ParseCalibration(tokens, where);
       } else if (keyword == "trackcal_Tracker_Passthrough") {
         ParsePassthrough(tokens, where);
+      } else if (IsTrackcalKeyword(keyword)) {
+        // trackcal's own lines: no other software defines them, so an unknown one is a typo, and
+        // as a warning a misspelt trackcal_Calibration served its tracker uncorrected.
+        Fail(where, "device type",
+             "unknown trackcal device type '" + keyword +
+                 "' (trackcal's own lines are trackcal_Calibration and "
+                 "trackcal_Tracker_Passthrough; names are case-sensitive)");
       } else {
         const int skipped = SkipContinuation(ContinuationOf(line.text));
         std::string message = "unknown device type '" + keyword + "'; line ignored";
@@ -595,6 +612,12 @@ VrpnConfig ParseVrpnConfig(std::string_view text, const std::string& file_name) 
 }
 
 VrpnConfig ReadVrpnConfig(const std::filesystem::path& path) {
+  // A folder opens as a stream and reads as an empty file: "no device trackcal-server can serve".
+  std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) {
+    throw std::runtime_error(path.string() +
+                             ": is a folder, not a VRPN configuration file (give -f the vrpn.cfg)");
+  }
   std::ifstream in(path, std::ios::binary);
   if (!in) throw std::runtime_error(path.string() + ": cannot open the VRPN configuration file");
   std::ostringstream text;

@@ -243,6 +243,28 @@ TEST(ParseVrpnConfig, UnknownDeviceIsAWarningAndTheRestIsParsed) {
   EXPECT_NE(config.warnings[1].message.find("2 continuation line(s)"), std::string::npos);
 }
 
+TEST(ParseVrpnConfig, AnUnknownTrackcalLineIsAnError) {
+  // A misspelt trackcal line was an unknown device, a warning: the server started and served the
+  // tracker uncorrected. trackcal_ names are trackcal's own: an unknown one is a typo.
+  for (const std::string type :
+       {"trackcal_Calibraton", "trackcal_calibration", "Trackcal_Tracker_Passthru"}) {
+    try {
+      ParseVrpnConfig("vrpn_Tracker_NULL Tracker0 1 60\n\n" + type + " Tracker0 calib.json\n",
+                      "lab.cfg");
+      ADD_FAILURE() << type << ": no error";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_EQ(std::string(e.what()),
+                "lab.cfg:3: field 'device type': unknown trackcal device type '" + type +
+                    "' (trackcal's own lines are trackcal_Calibration and "
+                    "trackcal_Tracker_Passthrough; names are case-sensitive)");
+    }
+  }
+  // Another program's device stays a warning.
+  EXPECT_EQ(ParseVrpnConfig("vrpn_Tracker_NULL T 1 60\ntrackcalibrator_Thing x\n", "lab.cfg")
+                .warnings.size(),
+            1u);
+}
+
 TEST(ParseVrpnConfig, ErrorsNameFileLineAndField) {
   struct Case {
     std::string text;
@@ -440,6 +462,19 @@ TEST(ParseVrpnConfig, EmptyCommandLineIsWarnedAndSkipped) {
 
 TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
+}
+
+TEST(ReadVrpnConfig, AFolderIsNamedAsAFolder) {
+  // `-f configs/` read as an empty file: "no device trackcal-server can serve".
+  const std::filesystem::path dir = testing::MakeTempDir("config_test");
+  try {
+    ReadVrpnConfig(dir);
+    ADD_FAILURE() << "no error";
+  } catch (const std::runtime_error& e) {
+    EXPECT_EQ(std::string(e.what()), dir.string() +
+                                         ": is a folder, not a VRPN configuration file "
+                                         "(give -f the vrpn.cfg)");
+  }
 }
 
 }  // namespace
