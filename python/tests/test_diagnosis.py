@@ -580,3 +580,18 @@ def test_diagnose_notes_a_calibration_that_does_not_carry_over_to_the_validation
     assert ratio > 3 and len(notes) == 1, (notes, ratio)  # measured 5.3 (0.463 / 0.088 mm)
     assert notes[0].startswith("the validation stations' corrected position error (mean "), notes
     assert "a drift over the capture" in notes[0]
+
+
+def test_a_size_that_follows_time_is_not_called_a_growing_scatter():
+    # A receiver gain drifting over the capture (ideal room, paper_small grid, seed 61; after a
+    # constant receiver_gain, 1.85 mm held out, 30x the noise floor): only the size of the residual
+    # followed a covariate, time among them, and the verdict called it a scatter that grows with
+    # range, "no sign of a missing effect". Range does not follow time.
+    drift = [CovariateEffect("z", "orientation_deg", 0.16, 0.0002, True, 300),
+             CovariateEffect("time", "position_mm", 0.11, 0.0002, True, 300),
+             CovariateEffect("time", "position_vector", 0.004, 0.3, False, 300)]
+    v = diagnosis.verdict(contract_b_doc(False), drift)
+    assert v["source"] == "covariate" and v["model_change"] is None
+    assert "no sign of a missing effect" not in v["text"], v["text"]
+    assert "grows with range" not in v["text"], v["text"]
+    assert "time (R^2 0.11" in v["text"], v["text"]
