@@ -1034,6 +1034,9 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
     std::vector<const ModelTerm*> later;
     for (size_t j = k + 1; j < spec->terms.size(); ++j) later.push_back(spec->terms[j].get());
     spec->terms[k]->SetFollowingTerms(later);
+    std::vector<const ModelTerm*> earlier;
+    for (size_t j = 0; j < k; ++j) earlier.push_back(spec->terms[j].get());
+    spec->terms[k]->SetPrecedingTerms(earlier);
   }
 
   // (1) prepare and initialise term by term.

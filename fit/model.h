@@ -234,6 +234,9 @@ class ModelTerm {
   // Called by FitModel before Prepare() with the terms that follow this one in the chain (the
   // physical group holds its gain gauge when one of them absorbs a scaling). Default: nothing.
   virtual void SetFollowingTerms(const std::vector<const ModelTerm*>& /*later*/) {}
+  // Called by FitModel before Prepare() with the terms that precede this one in the chain (a LUT's
+  // default weights depend on whether it is the first term). Default: nothing.
+  virtual void SetPrecedingTerms(const std::vector<const ModelTerm*>& /*earlier*/) {}
 
  protected:
   std::vector<ParameterBlock> blocks_;

@@ -61,6 +61,8 @@ std::unique_ptr<ModelTerm> LutTerm::FromYaml(const YamlMapReader& reader) {
   }
   options.smoothness = reader.GetDoubleOr("smoothness", options.smoothness);
   options.ridge = reader.GetDoubleOr("ridge", options.ridge);
+  options.smoothness_by_place = !reader.Has("smoothness");
+  options.ridge_by_place = !reader.Has("ridge");
   try {
     options.Check();
   } catch (const std::invalid_argument& e) {

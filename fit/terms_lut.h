@@ -32,15 +32,33 @@ namespace trackcal::fit {
 inline constexpr int kMaxLutNodesPerAxis = 1000;
 inline constexpr long kMaxLutNodes = 200000;
 
+// Default weights of a LUT that is the chain's first term (no polynomial shares its gauge): the
+// held-out optimum on the paper preset over 100-200 mm cells (docs/model-file.md, "LUT
+// regularisation"). ridge 1, smoothness 1 held every node to about one noise sigma and left 34 mm
+// of a 40 mm distortion with 100 mm cells. After a polynomial the chain keeps 1 and 1: with the
+// weak ridge the gauge directions are nearly flat and the solver did not converge in its
+// iterations.
+inline constexpr double kLoneLutSmoothness = 0.1;
+inline constexpr double kLoneLutRidge = 0.01;
+
 struct LutTermOptions {
   double cell_size = 0.1;              // [m] largest node spacing (used unless nodes is set)
   std::optional<std::array<int, 3>> nodes;  // explicit node count per axis (2 .. 1000 each)
-  double smoothness = 1.0;             // weight of the second-difference residuals (>= 0)
+  // Weight of the second-difference residuals (>= 0): a prior sigma of noise sigma / smoothness on
+  // each node's second difference. It fills nodes without stations and limits overfitting between
+  // stations.
+  double smoothness = 1.0;
   // Weight of residuals ridge * v / sigma pulling every node value to zero (>= 0). Multilinear fields
   // (1, x, y, z, xy, xz, yz, xyz) are reproduced exactly by both a LUT and a polynomial and have no
   // second differences, so with a polynomial in the chain they are otherwise unidentifiable; the
   // ridge hands them to the polynomial.
   double ridge = 1.0;
+  // True: the fit chooses the weight by the LUT's place in the chain (LutTerm::SetPrecedingTerms):
+  // kLoneLutSmoothness / kLoneLutRidge for a LUT that is the chain's first term, the values above
+  // after other terms. FromYaml sets it for a weight the model file does not set; false keeps the
+  // value above wherever the LUT is.
+  bool smoothness_by_place = false;
+  bool ridge_by_place = false;
   void Check() const;                  // throws std::invalid_argument
 };
 
@@ -77,6 +95,16 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   // error, which would hide it from the later terms' initialisation, a physical term's search).
   void SetFollowingTerms(const std::vector<const ModelTerm*>& later) override {
     has_following_terms_ = !later.empty();
+  }
+  // A LUT that is the chain's first term takes the lone defaults for the weights chosen by place
+  // (LutTermOptions::smoothness_by_place, ridge_by_place).
+  void SetPrecedingTerms(const std::vector<const ModelTerm*>& earlier) override {
+    if (options_.smoothness_by_place) {
+      options_.smoothness = earlier.empty() ? kLoneLutSmoothness : LutTermOptions().smoothness;
+    }
+    if (options_.ridge_by_place) {
+      options_.ridge = earlier.empty() ? kLoneLutRidge : LutTermOptions().ridge;
+    }
   }
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
   // Ridge and smoothness are weighted by 1 / sigma of the noise model.

@@ -279,5 +279,29 @@ TEST(LutTerm, GridSizeIsBounded) {
   }
 }
 
+// The weights a model file does not set follow the LUT's place in the chain: the lone defaults for
+// a first term, 1 and 1 after a polynomial (whose gauge the ridge must hold firmly enough for the
+// solver to converge); a weight the file sets is kept wherever the LUT is.
+TEST(LutTerm, UnsetWeightsFollowThePlaceInTheChain) {
+  auto weights = [](const std::string& yaml, bool first) {
+    ModelSpec spec = ParseModelYaml(yaml, "m");
+    ModelTerm& lut = *spec.terms.back();
+    const std::vector<const ModelTerm*> earlier =
+        first ? std::vector<const ModelTerm*>{}
+              : std::vector<const ModelTerm*>{spec.terms[0].get()};
+    lut.SetPrecedingTerms(earlier);
+    const nlohmann::json d = lut.Describe();
+    return std::make_pair(d.at("smoothness").get<double>(), d.at("ridge").get<double>());
+  };
+  EXPECT_EQ(weights("terms: [{type: lut}]", true),
+            std::make_pair(kLoneLutSmoothness, kLoneLutRidge));
+  const std::string chain = "terms: [{type: polynomial, degree: 2}, {type: lut}]";
+  EXPECT_EQ(weights(chain, false), std::make_pair(1.0, 1.0));
+  EXPECT_EQ(weights("terms: [{type: lut, ridge: 0.5}]", true),
+            std::make_pair(kLoneLutSmoothness, 0.5));
+  EXPECT_EQ(weights("terms: [{type: polynomial, degree: 2}, {type: lut, smoothness: 3}]", false),
+            std::make_pair(3.0, 1.0));
+}
+
 }  // namespace
 }  // namespace trackcal::fit
