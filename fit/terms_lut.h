@@ -32,12 +32,12 @@ namespace trackcal::fit {
 inline constexpr int kMaxLutNodesPerAxis = 1000;
 inline constexpr long kMaxLutNodes = 200000;
 
-// Default weights of a LUT that is the chain's first term (no polynomial shares its gauge): the
-// held-out optimum on the paper preset over 100-200 mm cells (docs/model-file.md, "LUT
-// regularisation"). ridge 1, smoothness 1 held every node to about one noise sigma and left 34 mm
-// of a 40 mm distortion with 100 mm cells. After a polynomial the chain keeps 1 and 1: with the
-// weak ridge the gauge directions are nearly flat and the solver did not converge in its
-// iterations.
+// Default weights of a LUT after no polynomial or LUT (the chain's first term, or after physical
+// terms only: none reproduces the multilinear fields it does): the held-out optimum on the paper
+// preset over 100-200 mm cells (docs/model-file.md, "LUT regularisation"). ridge 1, smoothness 1
+// held every node to about one noise sigma and left 34 mm of a 40 mm distortion with 100 mm cells.
+// After a polynomial the chain keeps 1 and 1: with the weak ridge the gauge directions are nearly
+// flat and the solver did not converge in its iterations.
 inline constexpr double kLoneLutSmoothness = 0.1;
 inline constexpr double kLoneLutRidge = 0.01;
 
@@ -54,8 +54,8 @@ struct LutTermOptions {
   // ridge hands them to the polynomial.
   double ridge = 1.0;
   // True: the fit chooses the weight by the LUT's place in the chain (LutTerm::SetPrecedingTerms):
-  // kLoneLutSmoothness / kLoneLutRidge for a LUT that is the chain's first term, the values above
-  // after other terms. FromYaml sets it for a weight the model file does not set; false keeps the
+  // kLoneLutSmoothness / kLoneLutRidge for a LUT after no polynomial or LUT, the values above
+  // after one. FromYaml sets it for a weight the model file does not set; false keeps the
   // value above wherever the LUT is.
   bool smoothness_by_place = false;
   bool ridge_by_place = false;
@@ -96,14 +96,21 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   void SetFollowingTerms(const std::vector<const ModelTerm*>& later) override {
     has_following_terms_ = !later.empty();
   }
-  // A LUT that is the chain's first term takes the lone defaults for the weights chosen by place
-  // (LutTermOptions::smoothness_by_place, ridge_by_place).
+  // A LUT after no term that reproduces multilinear fields (a polynomial, another LUT) takes the
+  // lone defaults for the weights chosen by place (LutTermOptions::smoothness_by_place,
+  // ridge_by_place); physical terms before it share no such gauge with it. With 1 and 1 after a
+  // physical term the paper preset's held-out mean was 23-25 mm (plane, receiver_gain,
+  // sensor_offset, near_field) against 0.4-2.4 mm with the lone weights, and diagnose compared a
+  // lone LUT base with candidates whose LUT had other weights (docs/model-file.md).
   void SetPrecedingTerms(const std::vector<const ModelTerm*>& earlier) override {
+    const bool lone = std::none_of(earlier.begin(), earlier.end(), [](const ModelTerm* t) {
+      return t->type() == kType || t->type() == "polynomial";
+    });
     if (options_.smoothness_by_place) {
-      options_.smoothness = earlier.empty() ? kLoneLutSmoothness : LutTermOptions().smoothness;
+      options_.smoothness = lone ? kLoneLutSmoothness : LutTermOptions().smoothness;
     }
     if (options_.ridge_by_place) {
-      options_.ridge = earlier.empty() ? kLoneLutRidge : LutTermOptions().ridge;
+      options_.ridge = lone ? kLoneLutRidge : LutTermOptions().ridge;
     }
   }
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;

@@ -280,8 +280,8 @@ TEST(LutTerm, GridSizeIsBounded) {
 }
 
 // The weights a model file does not set follow the LUT's place in the chain: the lone defaults for
-// a first term, 1 and 1 after a polynomial (whose gauge the ridge must hold firmly enough for the
-// solver to converge); a weight the file sets is kept wherever the LUT is.
+// a LUT after no polynomial or LUT, 1 and 1 after one (whose gauge the ridge must hold firmly
+// enough for the solver to converge); a weight the file sets is kept wherever the LUT is.
 TEST(LutTerm, UnsetWeightsFollowThePlaceInTheChain) {
   auto weights = [](const std::string& yaml, bool first) {
     ModelSpec spec = ParseModelYaml(yaml, "m");
@@ -297,6 +297,15 @@ TEST(LutTerm, UnsetWeightsFollowThePlaceInTheChain) {
             std::make_pair(kLoneLutSmoothness, kLoneLutRidge));
   const std::string chain = "terms: [{type: polynomial, degree: 2}, {type: lut}]";
   EXPECT_EQ(weights(chain, false), std::make_pair(1.0, 1.0));
+  EXPECT_EQ(weights("terms: [{type: lut}, {type: lut}]", false), std::make_pair(1.0, 1.0));
+  // A physical term shares no multilinear gauge with the LUT: the lone weights stay, so that a
+  // diagnose candidate adding one in front of a lone LUT changes nothing else (with 1 and 1 the
+  // paper preset's held-out mean after a plane was 2.9 mm, after a receiver_gain 25 mm).
+  for (const std::string physical : {"plane", "receiver_gain", "dipole"}) {
+    EXPECT_EQ(weights("terms: [{type: " + physical + "}, {type: lut}]", false),
+              std::make_pair(kLoneLutSmoothness, kLoneLutRidge))
+        << physical;
+  }
   EXPECT_EQ(weights("terms: [{type: lut, ridge: 0.5}]", true),
             std::make_pair(kLoneLutSmoothness, 0.5));
   EXPECT_EQ(weights("terms: [{type: polynomial, degree: 2}, {type: lut, smoothness: 3}]", false),
