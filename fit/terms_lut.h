@@ -32,12 +32,12 @@ namespace trackcal::fit {
 inline constexpr int kMaxLutNodesPerAxis = 1000;
 inline constexpr long kMaxLutNodes = 200000;
 
-// Default weights of a LUT after no polynomial or LUT (the chain's first term, or after physical
+// Default weights of a LUT in a chain without a polynomial or another LUT (alone, or with physical
 // terms only: none reproduces the multilinear fields it does): the held-out optimum on the paper
 // preset over 100-200 mm cells (docs/model-file.md, "LUT regularisation"). ridge 1, smoothness 1
 // held every node to about one noise sigma and left 34 mm of a 40 mm distortion with 100 mm cells.
-// After a polynomial the chain keeps 1 and 1: with the weak ridge the gauge directions are nearly
-// flat and the solver did not converge in its iterations.
+// With a polynomial in the chain it keeps 1 and 1: with the weak ridge the gauge directions are
+// nearly flat and the solver did not converge in its iterations.
 inline constexpr double kLoneLutSmoothness = 0.1;
 inline constexpr double kLoneLutRidge = 0.01;
 
@@ -54,9 +54,9 @@ struct LutTermOptions {
   // ridge hands them to the polynomial.
   double ridge = 1.0;
   // True: the fit chooses the weight by the LUT's place in the chain (LutTerm::SetPrecedingTerms):
-  // kLoneLutSmoothness / kLoneLutRidge for a LUT after no polynomial or LUT, the values above
-  // after one. FromYaml sets it for a weight the model file does not set; false keeps the
-  // value above wherever the LUT is.
+  // kLoneLutSmoothness / kLoneLutRidge for a LUT in a chain without a polynomial or another LUT,
+  // the values above with one. FromYaml sets it for a weight the model file does not set; false
+  // keeps the value above wherever the LUT is.
   bool smoothness_by_place = false;
   bool ridge_by_place = false;
   void Check() const;                  // throws std::invalid_argument
@@ -95,23 +95,20 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   // error, which would hide it from the later terms' initialisation, a physical term's search).
   void SetFollowingTerms(const std::vector<const ModelTerm*>& later) override {
     has_following_terms_ = !later.empty();
+    shares_gauge_after_ = SharesGauge(later);
+    ChooseWeightsByPlace();
   }
-  // A LUT after no term that reproduces multilinear fields (a polynomial, another LUT) takes the
-  // lone defaults for the weights chosen by place (LutTermOptions::smoothness_by_place,
-  // ridge_by_place); physical terms before it share no such gauge with it. With 1 and 1 after a
-  // physical term the paper preset's held-out mean was 23-25 mm (plane, receiver_gain,
-  // sensor_offset, near_field) against 0.4-2.4 mm with the lone weights, and diagnose compared a
-  // lone LUT base with candidates whose LUT had other weights (docs/model-file.md).
+  // A LUT in a chain without another term that reproduces multilinear fields (a polynomial, another
+  // LUT) before or after it takes the lone defaults for the weights chosen by place
+  // (LutTermOptions::smoothness_by_place, ridge_by_place); physical terms share no such gauge with
+  // it. With 1 and 1 after a physical term the paper preset's held-out mean was 23-25 mm (plane,
+  // receiver_gain, sensor_offset, near_field) against 0.4-2.4 mm with the lone weights, and
+  // diagnose compared a lone LUT base with candidates whose LUT had other weights; a polynomial
+  // after a lone LUT (diagnose's flexible fallback) took 38.6 s with the lone weights
+  // (docs/model-file.md).
   void SetPrecedingTerms(const std::vector<const ModelTerm*>& earlier) override {
-    const bool lone = std::none_of(earlier.begin(), earlier.end(), [](const ModelTerm* t) {
-      return t->type() == kType || t->type() == "polynomial";
-    });
-    if (options_.smoothness_by_place) {
-      options_.smoothness = lone ? kLoneLutSmoothness : LutTermOptions().smoothness;
-    }
-    if (options_.ridge_by_place) {
-      options_.ridge = lone ? kLoneLutRidge : LutTermOptions().ridge;
-    }
+    shares_gauge_before_ = SharesGauge(earlier);
+    ChooseWeightsByPlace();
   }
   int AddExtraResiduals(ceres::Problem* problem, const std::vector<FitStation>& inputs) override;
   // Ridge and smoothness are weighted by 1 / sigma of the noise model.
@@ -144,6 +141,22 @@ class LutTerm : public AutoDiffModelTerm<LutTerm> {
   std::optional<std::array<std::vector<double>, 3>> adopted_axes_;  // AdoptPreparedState()
   Eigen::Vector2d sigmas_ = Eigen::Vector2d(1e-3, 3.5e-3);
   bool has_following_terms_ = false;
+  // A polynomial or another LUT before / after this one in the chain (SetPrecedingTerms,
+  // SetFollowingTerms): the multilinear gauge the ridge must hold.
+  bool shares_gauge_before_ = false;
+  bool shares_gauge_after_ = false;
+  static bool SharesGauge(const std::vector<const ModelTerm*>& terms) {
+    return std::any_of(terms.begin(), terms.end(), [](const ModelTerm* t) {
+      return t->type() == kType || t->type() == "polynomial";
+    });
+  }
+  void ChooseWeightsByPlace() {
+    const bool lone = !shares_gauge_before_ && !shares_gauge_after_;
+    if (options_.smoothness_by_place) {
+      options_.smoothness = lone ? kLoneLutSmoothness : LutTermOptions().smoothness;
+    }
+    if (options_.ridge_by_place) options_.ridge = lone ? kLoneLutRidge : LutTermOptions().ridge;
+  }
 };
 
 template <typename T>

@@ -306,6 +306,16 @@ TEST(LutTerm, UnsetWeightsFollowThePlaceInTheChain) {
               std::make_pair(kLoneLutSmoothness, kLoneLutRidge))
         << physical;
   }
+  // A polynomial after the LUT (diagnose's flexible fallback after a lone-LUT base) shares the
+  // gauge as much as one before it.
+  {
+    ModelSpec spec = ParseModelYaml("terms: [{type: lut}, {type: polynomial, degree: 3}]", "m");
+    spec.terms[0]->SetFollowingTerms({spec.terms[1].get()});
+    spec.terms[0]->SetPrecedingTerms({});
+    const nlohmann::json d = spec.terms[0]->Describe();
+    EXPECT_EQ(d.at("smoothness").get<double>(), 1.0);
+    EXPECT_EQ(d.at("ridge").get<double>(), 1.0);
+  }
   EXPECT_EQ(weights("terms: [{type: lut, ridge: 0.5}]", true),
             std::make_pair(kLoneLutSmoothness, 0.5));
   EXPECT_EQ(weights("terms: [{type: polynomial, degree: 2}, {type: lut, smoothness: 3}]", false),
