@@ -280,9 +280,13 @@ def test_report_over_an_earlier_one_leaves_none_of_its_figures_it_does_not_draw(
     report.write_report(with_cal, out, history_entries=load_history(tmp_path / "work"))
     assert {"fig6_distortion_field.png", "history.png"} <= {p.name for p in out.iterdir()}
     (out / "notes.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"mine" * 8)  # not a figure's name: kept
+    # A user's own picture under a figure's name the new report does not draw, without trackcal's
+    # PNG tag: kept too (removing it would lose the user's file).
+    (out / "candidates.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"mine" * 8)
     page = report.write_report(validation.validate(cap, None, analyse_covariates=False), out)
     drawn = set(re.findall(r"<img alt='([^']+)'", page.read_text()))
-    assert {p.name for p in out.glob("*.png")} == drawn | {"notes.png"}
+    assert {p.name for p in out.glob("*.png")} == drawn | {"notes.png", "candidates.png"}
+    assert (out / "candidates.png").read_bytes().endswith(b"mine")
     assert "fig6_distortion_field.png" not in drawn and "history.png" not in drawn
     assert drawn <= set(report.FIGURE_NAMES)
 

@@ -306,12 +306,13 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     path = out_dir / "report.html"
     _atomic_write(path, "\n".join(parts).encode("utf-8"), input_paths)
     # The earlier report's figures this one did not draw, once the new page is in place: only in a
-    # folder that held an earlier report, and only files the figure guard would have let it
-    # replace (never an input, never a user's own picture).
+    # folder that held an earlier report, only files trackcal's PNG tag says it wrote (a user's own
+    # history.png there is left, where the figure guard would let a drawn figure replace it), and
+    # never an input.
     drawn = {name for name, _, _ in figs}
     for name in FIGURE_NAMES if own_folder else ():
         stale = out_dir / name
-        if name in drawn or not stale.is_file():
+        if name in drawn or not stale.is_file() or not F.is_trackcal_png(stale):
             continue
         try:
             _check_replaceable(stale, input_paths, own_folder)
