@@ -24,7 +24,7 @@ std::optional<DriverMessage> MessageLimiter::Submit(DriverMessage message, Clock
   ++suppressed_total_;
   if (held_) {
     ++dropped_while_held_;
-    message.severity = std::max(message.severity, held_->severity);
+    ++dropped_by_severity_[static_cast<size_t>(held_->severity)];
   }
   held_ = std::move(message);
   return Poll(now);
@@ -36,10 +36,21 @@ std::optional<DriverMessage> MessageLimiter::Poll(Clock::time_point now) {
   held_.reset();
   --suppressed_total_;  // it is emitted after all
   if (dropped_while_held_ > 0) {
+    // The note says which severities were dropped (most severe first), so an error that was
+    // replaced is still reported as one without relabelling this text.
+    std::string counts;
+    for (int s = static_cast<int>(Severity::kError); s >= static_cast<int>(Severity::kInfo); --s) {
+      const int n = dropped_by_severity_[static_cast<size_t>(s)];
+      if (n == 0) continue;
+      if (!counts.empty()) counts += ", ";
+      counts += std::string(SeverityName(static_cast<Severity>(s))) + " " + std::to_string(n);
+    }
     message.text += " (" + std::to_string(dropped_while_held_) + " earlier message" +
-                    (dropped_while_held_ == 1 ? "" : "s") + " suppressed by the rate limit)";
+                    (dropped_while_held_ == 1 ? "" : "s") +
+                    " suppressed by the rate limit: " + counts + ")";
   }
   dropped_while_held_ = 0;
+  dropped_by_severity_.fill(0);
   last_emitted_ = now;
   return message;
 }

@@ -42,13 +42,42 @@ TEST(MessageLimiter, AtMostOnePerIntervalAndTheLatestStateGetsThrough) {
   for (size_t i = 1; i < emitted.size(); ++i) {
     EXPECT_GE(emitted[i].first - emitted[i - 1].first, milliseconds(1000));
   }
-  // The last state is delivered within one interval, with the most severe level it replaced.
+  // The last state is delivered within one interval, at its own level, saying it replaced errors.
   EXPECT_EQ(emitted.back().second.text.rfind("reset completed", 0), 0u);
-  EXPECT_NE(emitted.back().second.text.find("suppressed"), std::string::npos);
-  EXPECT_EQ(emitted.back().second.severity, Severity::kError);
+  EXPECT_NE(emitted.back().second.text.find("suppressed by the rate limit: error "),
+            std::string::npos);
+  EXPECT_EQ(emitted.back().second.severity, Severity::kInfo);
   EXPECT_LE(emitted.back().first - end, milliseconds(1000));
   EXPECT_FALSE(limiter.NextDeadline().has_value());
   EXPECT_EQ(limiter.suppressed() + emitted.size(), 2151u);
+}
+
+// A held text keeps its own severity: clients saw "error: ... opened at 115200 baud (59 earlier
+// messages suppressed)", an info text labelled error because it had replaced errors. The note says
+// how many of each severity it replaced, so the errors are still reported as errors.
+TEST(MessageLimiter, HeldTextKeepsItsSeverityAndCountsWhatItReplacedBySeverity) {
+  MessageLimiter limiter(milliseconds(1000));
+  const Clock::time_point t0{};
+  ASSERT_TRUE(limiter.Submit({Severity::kError, "cannot open 1"}, t0).has_value());
+  EXPECT_FALSE(limiter.Submit({Severity::kError, "cannot open 2"}, t0 + milliseconds(100)));
+  EXPECT_FALSE(limiter.Submit({Severity::kError, "cannot open 3"}, t0 + milliseconds(200)));
+  EXPECT_FALSE(limiter.Submit({Severity::kWarning, "resetting"}, t0 + milliseconds(300)));
+  EXPECT_FALSE(limiter.Submit({Severity::kInfo, "opened at 115200 baud"}, t0 + milliseconds(400)));
+  EXPECT_FALSE(limiter.Poll(t0 + milliseconds(999)).has_value());
+  const auto held = limiter.Poll(t0 + milliseconds(1000));
+  ASSERT_TRUE(held.has_value());
+  EXPECT_EQ(held->severity, Severity::kInfo);
+  EXPECT_EQ(held->text,
+            "opened at 115200 baud (3 earlier messages suppressed by the rate limit: error 2, "
+            "warning 1)");
+  EXPECT_EQ(limiter.suppressed(), 3u);
+  // The counts start again for the next held text.
+  ASSERT_FALSE(limiter.Submit({Severity::kWarning, "w"}, t0 + milliseconds(1100)));
+  ASSERT_FALSE(limiter.Submit({Severity::kError, "e"}, t0 + milliseconds(1200)));
+  const auto next = limiter.Poll(t0 + milliseconds(2000));
+  ASSERT_TRUE(next.has_value());
+  EXPECT_EQ(next->severity, Severity::kError);
+  EXPECT_EQ(next->text, "e (1 earlier message suppressed by the rate limit: warning 1)");
 }
 
 }  // namespace
