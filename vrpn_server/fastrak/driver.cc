@@ -42,6 +42,27 @@ std::string FormatSeconds(double s) {
   return out.str();
 }
 
+// Bytes a unit sent, for a text: printable ASCII as is, everything else (CR, LF, binary) as \xNN,
+// at most kMaxQuoted bytes (then "..." and the total), in single quotes.
+std::string QuoteBytes(std::string_view bytes) {
+  constexpr size_t kMaxQuoted = 80;  // a status reply (55 bytes) and the start of another
+  static constexpr char kHex[] = "0123456789abcdef";
+  std::string out = "'";
+  for (size_t i = 0; i < std::min(bytes.size(), kMaxQuoted); ++i) {
+    const auto c = static_cast<unsigned char>(bytes[i]);
+    if (c >= 0x20 && c < 0x7f && c != '\\') {
+      out += static_cast<char>(c);
+    } else {
+      out += "\\x";
+      out += kHex[c >> 4];
+      out += kHex[c & 15];
+    }
+  }
+  out += "'";
+  if (bytes.size() > kMaxQuoted) out += "... (" + std::to_string(bytes.size()) + " bytes)";
+  return out;
+}
+
 // Thrown inside the driver thread to unwind to the main loop.
 struct StopRequested {};
 struct PortLost {
@@ -663,9 +684,15 @@ class FastrakDriver::Session {
         // above are the user's and always made.
         const SteadyClock::time_point start = SteadyClock::now();
         Write(kRequestStatus);
-        if (!ReadFullStatusReply()) {
-          Emit(Severity::kWarning, "no status reply after the extra commands; waiting " +
-                                       FormatSeconds(timings_.extras_settle_s) + " instead");
+        std::string other;
+        if (!ReadFullStatusReply(&other)) {
+          Emit(Severity::kWarning,
+               (other.empty()
+                    ? std::string("no reply")
+                    : "no reply in the Fastrak's 55-byte status layout (got " +
+                          std::to_string(other.size()) + " bytes: " + QuoteBytes(other) + ")") +
+                   " to the status request after the extra commands; waiting " +
+                   FormatSeconds(timings_.extras_settle_s) + " instead");
           const double waited = std::chrono::duration<double>(SteadyClock::now() - start).count();
           Sleep(timings_.extras_settle_s - waited);
         }
@@ -711,8 +738,9 @@ class FastrakDriver::Session {
   }
 
   // Reads replies (each up to its LF) until one has the Fastrak's 55-byte status layout (true) or
-  // the status timeout passes (false); the other replies are dropped.
-  bool ReadFullStatusReply() {
+  // the status timeout passes (false); the other replies are dropped, and kept in *other (with any
+  // bytes after the last LF) for the text when none confirms.
+  bool ReadFullStatusReply(std::string* other) {
     const SteadyClock::time_point deadline =
         SteadyClock::now() + Seconds(timings_.StatusTimeout(options_.baud));
     std::vector<uint8_t> bytes;
@@ -724,8 +752,12 @@ class FastrakDriver::Session {
         std::string why;
         const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
         if (status && status->layout_note.empty()) return true;
+        *other += reply;
       }
-      if (bytes.size() > 4096 || Wait(deadline, true) == WaitResult::kTimeout) return false;
+      if (bytes.size() > 4096 || Wait(deadline, true) == WaitResult::kTimeout) {
+        other->append(bytes.begin(), bytes.end());
+        return false;
+      }
       ReadAvailable(&bytes);
     }
   }

@@ -389,6 +389,33 @@ TEST(FastrakDriver, BadStatusIsRejectedAndRetried) {
   EXPECT_EQ(fake.received().substr(0, 4), "cS\rc");  // attempt 1 failed, attempt 2 escalated
 }
 
+// A unit whose status reply is not in the Fastrak's 55-byte layout (a 54-byte IS-900 reply) is
+// accepted, as by the reference, but its reply to `S` after the extra commands does not confirm
+// them, so the driver waits extras_settle_s. It was then warned "no status reply", which is untrue:
+// the text says what came back instead.
+TEST(FastrakDriver, ExtrasNotConfirmedSaysWhatTheUnitAnswered) {
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrakOptions fake_options;
+  fake_options.status_record = testing::MakeStatusRecord();
+  fake_options.status_record.erase(50, 1);  // one character less of the system id: 54 bytes
+  ASSERT_EQ(fake_options.status_record.size(), 54u);
+  FakeFastrak fake(dir / "tty", fake_options);
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  options.extra_commands = {"H1,1,0,0"};
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(5, 15.0));
+  driver.Stop();
+  EXPECT_TRUE(collector.HasLog("status OK (a 54-byte reply not in the Fastrak's layout"));
+  EXPECT_TRUE(collector.HasLog(
+      "no reply in the Fastrak's 55-byte status layout (got 54 bytes: "
+      "'21S0A0000        3.00EMULATED POLHEMUS FASTRAK      \\x0d\\x0a') to the status request "
+      "after the extra commands; waiting 0.05 s instead"));
+  EXPECT_EQ(collector.CountLogs("no status reply"), 0);
+  EXPECT_EQ(collector.CountLogs("no reply to the status request"), 0);
+}
+
 TEST(FastrakDriver, UnplugBacksOffLimitsTextsAndResumesWithoutAFullReset) {
   const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
   FakeFastrak fake(dir / "tty", FakeFastrakOptions{});

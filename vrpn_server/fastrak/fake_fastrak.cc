@@ -15,8 +15,6 @@
 namespace trackcal::fastrak::testing {
 namespace {
 
-constexpr size_t kStatusSize = 55;
-
 void AppendFloat32Le(float v, std::string* out) {
   uint32_t bits;
   std::memcpy(&bits, &v, sizeof(bits));
@@ -238,10 +236,13 @@ void FakeFastrak::HandleInput(const char* data, size_t n, std::string* reply) {
       case 'U':
         metric_ = false;
         break;
-      case 'S':
+      case 'S': {
         ++status_requests_;
-        *reply += corrupt_status_ ? MakeStatusRecord().substr(0, kStatusSize - 1) : MakeStatusRecord();
+        const std::string status =
+            options_.status_record.empty() ? MakeStatusRecord() : options_.status_record;
+        *reply += corrupt_status_ ? status.substr(0, status.size() - 1) : status;  // LF missing
         break;
+      }
       case 0x19:
         PowerUp();
         break;

@@ -29,6 +29,9 @@ struct FakeFastrakOptions {
   int num_stations = 2;  // receivers plugged in (stations 1..n stream)
   double rate_hz = 60.0;  // records per second per station
   bool start_streaming = false;  // power up continuous + binary (as transcript 08's emulator)
+  // Reply to `S`; empty: MakeStatusRecord(). Another unit's reply (a 54-byte IS-900 status) or
+  // firmware whose fields differ from the Fastrak's layout.
+  std::string status_record;
   // Pose of each station in inches and wire order w, x, y, z (transcript 07's values).
   std::array<std::array<float, 3>, 4> position_in = {{{10, -5, 20}, {1.5f, 2.5f, -3.5f}, {0, 0, 1}, {0, 0, 2}}};
   std::array<std::array<float, 4>, 4> wxyz = {{{0.73029674f, 0.18257418f, 0.36514837f, 0.54772256f},
