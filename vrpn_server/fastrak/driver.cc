@@ -737,25 +737,31 @@ class FastrakDriver::Session {
     return false;
   }
 
-  // Reads replies (each up to its LF) until one has the Fastrak's 55-byte status layout (true) or
-  // the status timeout passes (false); the other replies are dropped, and kept in *other (with any
-  // bytes after the last LF) for the text when none confirms.
+  // Reads until the Fastrak's 55-byte status reply has arrived (true) or the status timeout passes
+  // (false; *other is then everything that came). Replies to query extra commands come first and
+  // are skipped; they need not end with an LF (a `P` record in the output list 2,11,0 has none, so
+  // it runs into the status reply), hence the status is looked for as the 55 bytes up to each LF.
   bool ReadFullStatusReply(std::string* other) {
+    // Bounds memory if a unit floods the line (at 115200 baud the status timeout, 1 s, brings
+    // 11.5 kB); the status reply is then missed and the blind wait follows.
+    constexpr size_t kMaxBytes = 65536;
     const SteadyClock::time_point deadline =
         SteadyClock::now() + Seconds(timings_.StatusTimeout(options_.baud));
     std::vector<uint8_t> bytes;
+    size_t scanned = 0;
     while (true) {
-      for (auto lf = std::find(bytes.begin(), bytes.end(), '\n'); lf != bytes.end();
-           lf = std::find(bytes.begin(), bytes.end(), '\n')) {
-        const std::string reply(bytes.begin(), lf + 1);
-        bytes.erase(bytes.begin(), lf + 1);
+      for (auto lf =
+               std::find(bytes.begin() + static_cast<std::ptrdiff_t>(scanned), bytes.end(), '\n');
+           lf != bytes.end(); lf = std::find(lf + 1, bytes.end(), '\n')) {
+        if (lf - bytes.begin() + 1 < static_cast<std::ptrdiff_t>(kStatusRecordSize)) continue;
+        const std::string candidate(lf + 1 - kStatusRecordSize, lf + 1);
         std::string why;
-        const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
+        const std::optional<StatusRecord> status = ParseStatusRecord(candidate, &why);
         if (status && status->layout_note.empty()) return true;
-        *other += reply;
       }
-      if (bytes.size() > 4096 || Wait(deadline, true) == WaitResult::kTimeout) {
-        other->append(bytes.begin(), bytes.end());
+      scanned = bytes.size();
+      if (bytes.size() > kMaxBytes || Wait(deadline, true) == WaitResult::kTimeout) {
+        other->assign(bytes.begin(), bytes.end());
         return false;
       }
       ReadAvailable(&bytes);

@@ -53,8 +53,9 @@ class Collector {
       std::cerr << SeverityName(severity) << ": " << text << "\n";
     };
     c.on_log = [this](Severity, const std::string& text) {
-      if (text.find("opened at") == std::string::npos) return;
       std::lock_guard<std::mutex> lock(mutex_);
+      logs_.push_back(text);
+      if (text.find("opened at") == std::string::npos) return;
       opened_.push_back(SteadyClock::now());
     };
     return c;
@@ -90,6 +91,15 @@ class Collector {
     std::lock_guard<std::mutex> lock(mutex_);
     return reports_.size();
   }
+  // Every text the driver logged that contains `part`.
+  std::vector<std::string> Logs(const std::string& part) const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    std::vector<std::string> out;
+    for (const std::string& t : logs_) {
+      if (t.find(part) != std::string::npos) out.push_back(t);
+    }
+    return out;
+  }
   std::vector<FastrakReport> reports() const {
     std::lock_guard<std::mutex> lock(mutex_);
     return reports_;
@@ -114,6 +124,7 @@ class Collector {
   std::vector<FastrakReport> reports_;
   std::vector<SteadyClock::time_point> times_;
   std::vector<SteadyClock::time_point> opened_;
+  std::vector<std::string> logs_;
   std::vector<std::pair<int, bool>> buttons_;
 };
 
@@ -403,6 +414,43 @@ TEST(FastrakDriverWithEmulator, ExtraCommandsAreConfirmedByAStatusRoundTrip) {
   const double startup_s = std::chrono::duration<double>(collector.time(0) - started).count();
   std::cout << "extra commands confirmed: first report " << startup_s << " s after Start\n";
   EXPECT_LT(startup_s, 4.0);
+  ExpectPoses(collector.reports());
+}
+
+// An extra command the unit answers (`P`: one record per active station, in ASCII at power-up,
+// since `f` comes after the extras) puts its reply before the reply to the driver's `S`. Those
+// replies must be skipped and the status still confirm the extras: taking the first reply would
+// refuse it (it is a record, not a status) and wait extras_settle_s (5 s here) with a warning.
+// Twice, so the second reset also runs with the unit in binary (records that may hold LF bytes):
+// the port is reopened by an unplug. No byte of the replies may reach the record parser.
+TEST(FastrakDriverWithEmulator, RepliesToQueryExtraCommandsAreSkipped) {
+  Fixture f("fastrak_emulator", 115200, -Eigen::Vector3d::UnitX());
+  Collector collector;
+  FastrakOptions options = f.DriverOptions();
+  options.extra_commands = {"H1,1,0,0", "P", "H2,1,0,0", "P"};
+  options.timings.extras_settle_s = 5.0;
+  FastrakDriver driver(options, collector.Callbacks());
+  const auto started = SteadyClock::now();
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(10, 15.0));
+  const double startup_s = std::chrono::duration<double>(collector.time(0) - started).count();
+  std::cout << "query extra commands: first report " << startup_s << " s after Start\n";
+  // Fast timings start in about 0.2 s; 4 s leaves the rest of the 5 s wait for a loaded host.
+  EXPECT_LT(startup_s, 4.0);
+
+  // Unplugged for 0.5 s: the unit is still streaming binary when the port comes back, so it is
+  // configured again (resume) and the `P` replies are binary records.
+  const size_t n = collector.size();
+  ASSERT_EQ(f.emulator->Control("fault disconnect 0.5"), "ok");
+  ASSERT_TRUE(WaitUntil([&] { return collector.FirstIndexAfterGap(n, 0.3).has_value(); }, 15.0));
+  const double reopened_s = collector.SinceOpened(*collector.FirstIndexAfterGap(n, 0.3));
+  std::cout << "query extra commands: reopen to first report " << reopened_s << " s\n";
+  EXPECT_LT(reopened_s, 4.0);
+  EXPECT_EQ(driver.stats().resumes, 1u);
+  EXPECT_TRUE(collector.Logs("after the extra commands").empty())
+      << collector.Logs("after the extra commands").front();
+  EXPECT_EQ(driver.stats().discarded_bytes, 0u);
+  driver.Stop();
   ExpectPoses(collector.reports());
 }
 
