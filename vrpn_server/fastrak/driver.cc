@@ -320,16 +320,24 @@ class FastrakDriver::Session {
     while (true) {
       try {
         if (fd_ < 0) OpenWithBackoff();
+        // The probe (listening only) also runs between reset attempts: it finds a unit that came
+        // back still streaming (a cable out and in). The short restart runs once per loss, not
+        // again before each retried attempt, which itself asks for the status: its 6 s before
+        // every attempt put a silent unit's ^Y (attempt 3) 40 s after its last record (the
+        // reference: 16 s).
         bool streaming = configured_once_ && TryResume();
-        if (!streaming && configured_once_) streaming = QuickRestart();
+        if (!streaming && configured_once_ && after_loss_) streaming = QuickRestart();
+        after_loss_ = false;
         if (!streaming) streaming = Reset();
         if (streaming) {
           Stream();
           // Watchdog: reopen the port like the reference (a USB adapter may have re-enumerated).
           ClosePort();
+          after_loss_ = true;
         }
       } catch (const PortLost& lost) {
         Count(&DriverStats::port_losses);
+        after_loss_ = true;
         // Lost again before a single record: the open back-off never applies to a port that opens
         // but hangs up at once, so back off here too (else a reopen loop as fast as the hang-ups).
         if (!records_since_open_) {
@@ -844,6 +852,7 @@ class FastrakDriver::Session {
   bool records_since_open_ = false;
   double loss_backoff_s_ = 0.0;  // wait before reopening after losses without a record, or 0
   bool configured_once_ = false;
+  bool after_loss_ = false;  // the stream or the port was lost since the last short restart
   bool stylus_lists_written_ = false;
   SystemClock::time_point wake_time_;
   std::array<std::optional<bool>, kMaxStations> last_button_;

@@ -416,6 +416,30 @@ TEST(FastrakDriver, ExtrasNotConfirmedSaysWhatTheUnitAnswered) {
   EXPECT_EQ(collector.CountLogs("no reply to the status request"), 0);
 }
 
+// A unit that goes silent after streaming: one short restart (restart_window_s), then the
+// reference's escalation, with only the listening probe between attempts. The window ran again
+// before every retried attempt, so the ^Y of attempt 3 came 40 s after the last record with the
+// reference timings (FASTRAK.md: 16 s for the reference), 28 s now. Counted, not timed.
+TEST(FastrakDriver, SilentUnitGetsOneShortRestartThenTheEscalation) {
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector collector;
+  FastrakDriver driver(FastOptions(dir / "tty"), collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(5, 10.0));
+  fake.SetMute(true);
+  ASSERT_TRUE(WaitUntil([&] { return fake.received().find('\x19') != std::string::npos; }, 60.0));
+  const double since_last_record =
+      std::chrono::duration<double>(SteadyClock::now() - collector.report_times().back()).count();
+  driver.Stop();
+  std::cout << "silent unit: ^Y " << since_last_record << " s after the last record\n";
+  EXPECT_EQ(collector.CountLogs("asking the tracker for its status"), 1);
+  EXPECT_EQ(collector.CountLogs("resetting the tracker (attempt 1)"),
+            2);  // start-up, then the loss
+  EXPECT_EQ(collector.CountLogs("resetting the tracker (attempt 3)"), 1);
+  EXPECT_EQ(driver.stats().quick_restarts, 0u);
+}
+
 TEST(FastrakDriver, UnplugBacksOffLimitsTextsAndResumesWithoutAFullReset) {
   const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
   FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
