@@ -261,7 +261,8 @@ PhysicalCorrection::Run PhysicalCorrection::Newton(const ReportFrame& frame,
   return give_up();
 }
 
-PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported) const {
+PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported,
+                                                       Classify classify) const {
   Inverse out;
   out.transmitter_from_receiver = reported;
   if (!reported.translation.allFinite() || !reported.rotation.coeffs().allFinite() ||
@@ -293,6 +294,11 @@ PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported) 
   if (q.dot(reported.rotation) < 0.0) q.coeffs() *= -1.0;
   out.transmitter_from_receiver = Rigid3d(q, run.p);
   if (!run.converged) return out;
+  // Nothing below changes the pose: it only tells kAmbiguous from kConverged.
+  if (classify == Classify::kRootOnly) {
+    out.status = CorrectionStatus::kConverged;
+    return out;
+  }
 
   // dy/dx = A^-1 h is the report's response to the true pose; the inverse's response to report
   // noise is its inverse dx/dy = h^-1 A, position scaled by the range (D dx/dy D^-1, D = diag(I /
@@ -344,7 +350,7 @@ PhysicalCorrection::Inverse PhysicalCorrection::Invert(const Rigid3d& reported) 
 
 bool PhysicalCorrection::InvertReport(const Rigid3d& reported, Rigid3d* transmitter_from_receiver,
                                       int* iterations) const {
-  const Inverse inverse = Invert(reported);
+  const Inverse inverse = Invert(reported, Classify::kRootOnly);
   *transmitter_from_receiver = inverse.transmitter_from_receiver;
   if (iterations != nullptr) *iterations = inverse.iterations;
   return inverse.status != CorrectionStatus::kNotConverged;

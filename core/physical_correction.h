@@ -103,9 +103,17 @@ class PhysicalCorrection : public Correction {
     // converged.
     double noise_gain = NAN;
   };
-  Inverse Invert(const Rigid3d& reported) const;
+  // How far Invert() classifies a root. kFull: the status as documented above (Apply() and every
+  // caller that tells kAmbiguous from kConverged). kRootOnly: for callers that only tell a root
+  // from none (InvertReport(), the fit): a root is kConverged without the noise-gain check or the
+  // second-root search (noise_gain stays NaN). The pose and iterations are those of kFull bit for
+  // bit (both follow the main Newton run alone), and the status is kNotConverged exactly when
+  // kFull's is; only kAmbiguous is never returned.
+  enum class Classify { kFull, kRootOnly };
+  Inverse Invert(const Rigid3d& reported, Classify classify = Classify::kFull) const;
 
-  // As Invert(); returns true unless the status is kNotConverged. `iterations` may be null.
+  // As Invert(reported, Classify::kRootOnly); returns true unless the status is kNotConverged (the
+  // same answer as with kFull, without its cost). `iterations` may be null.
   bool InvertReport(const Rigid3d& reported, Rigid3d* transmitter_from_receiver,
                     int* iterations = nullptr) const;
 

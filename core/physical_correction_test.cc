@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <cstring>
+#include <limits>
 #include <random>
 
 #include "core/calibration_file.h"
@@ -345,6 +347,69 @@ TEST(PhysicalCorrection, AdversarialReportsGiveBoundedResults) {
   const Rigid3d behind_floor(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.2, 0.1, 0.9));
   EXPECT_EQ(correction.Invert(behind_floor).status, CorrectionStatus::kNotConverged);
   EXPECT_GT(not_converged, 0);
+}
+
+// Bitwise equality of two poses (memcmp: also NaN payloads and the sign of zero).
+bool SameBits(const Rigid3d& a, const Rigid3d& b) {
+  return std::memcmp(a.translation.data(), b.translation.data(), 3 * sizeof(double)) == 0 &&
+         std::memcmp(a.rotation.coeffs().data(), b.rotation.coeffs().data(), 4 * sizeof(double)) ==
+             0;
+}
+
+TEST(PhysicalCorrection, RootOnlyInverseIsTheFullInverseWithoutClassifying) {
+  // InvertReport() (the fit's inverse) skips the noise-gain check and the second-root search,
+  // which only tell kAmbiguous from kConverged. Reports of every status: room poses, true poses in
+  // and around the toolbox's fold zone (0.2-0.6 m from it: within fold_reach = 3 rho = 0.75 m,
+  // where the second-root search runs), reports no true pose explains, a non-finite one. The pose
+  // and iterations must be those of the full inverse bit for bit, the root-or-none answer the same,
+  // and a root the full inverse calls ambiguous must come back kConverged (else the classification
+  // still ran).
+  const FieldModel field = RoomField();
+  const PhysicalCorrection correction(field, SkewedGain());
+  const Eigen::Vector3d toolbox = field.objects[2].location_in_transmitter;
+  std::vector<Rigid3d> reports;
+  for (int i = 0; i < 300; ++i) {
+    reports.push_back(NoiseFreeReport(RandomTruePose(), field, SkewedGain()));
+  }
+  std::uniform_real_distribution<double> distance(0.2, 0.6);
+  for (int i = 0; i < 200; ++i) {
+    const Eigen::Vector3d direction = testing::RandomRotation(TestRng()) * Eigen::Vector3d::UnitY();
+    const Rigid3d truth(testing::RandomRotation(TestRng()),
+                        toolbox + distance(TestRng()) * direction);
+    if (truth.translation.z() > -0.1) continue;  // the tracker's hemisphere (z up)
+    reports.push_back(NoiseFreeReport(truth, field, SkewedGain()));
+  }
+  std::uniform_real_distribution<double> box(-3.0, 3.0);
+  for (int i = 0; i < 100; ++i) {
+    reports.emplace_back(testing::RandomRotation(TestRng()),
+                         Eigen::Vector3d(box(TestRng()), box(TestRng()), box(TestRng())));
+  }
+  reports.emplace_back(Eigen::Quaterniond::Identity(),
+                       Eigen::Vector3d(std::numeric_limits<double>::quiet_NaN(), 0, -0.5));
+  int counts[3] = {0, 0, 0};
+  for (size_t i = 0; i < reports.size(); ++i) {
+    const PhysicalCorrection::Inverse full = correction.Invert(reports[i]);
+    const PhysicalCorrection::Inverse root =
+        correction.Invert(reports[i], PhysicalCorrection::Classify::kRootOnly);
+    ++counts[static_cast<int>(full.status)];
+    EXPECT_TRUE(SameBits(root.transmitter_from_receiver, full.transmitter_from_receiver)) << i;
+    EXPECT_EQ(root.iterations, full.iterations) << i;
+    EXPECT_EQ(root.status, full.status == CorrectionStatus::kNotConverged
+                               ? CorrectionStatus::kNotConverged
+                               : CorrectionStatus::kConverged)
+        << i;
+    Rigid3d x;
+    int iterations = -1;
+    EXPECT_EQ(correction.InvertReport(reports[i], &x, &iterations),
+              full.status != CorrectionStatus::kNotConverged)
+        << i;
+    EXPECT_TRUE(SameBits(x, full.transmitter_from_receiver)) << i;
+    EXPECT_EQ(iterations, full.iterations) << i;
+  }
+  // Every status occurs, so each branch was compared.
+  EXPECT_GT(counts[static_cast<int>(CorrectionStatus::kConverged)], 0);
+  EXPECT_GT(counts[static_cast<int>(CorrectionStatus::kAmbiguous)], 0);
+  EXPECT_GT(counts[static_cast<int>(CorrectionStatus::kNotConverged)], 0);
 }
 
 TEST(PhysicalCorrection, AChainReportsTheWorstStatus) {
