@@ -270,6 +270,41 @@ void BM_PhysicalPaperRoomNoFoldSearch(benchmark::State& state) {
 }
 BENCHMARK(BM_PhysicalPaperRoomNoFoldSearch);
 
+// The inverse as the fit calls it, per station evaluation (InvertReport: Classify::kRootOnly, the
+// root or none, without the noise-gain check and the second-root search) against the full Invert()
+// on the same reports, both with the fit's 50 Newton steps (fit/terms_physical.h InverseOptions).
+// Their ratio is what the fit saves per evaluation; the poses are bitwise the same
+// (core/physical_correction_test, RootOnlyInverseIsTheFullInverseWithoutClassifying).
+PhysicalCorrection FitInverse() {
+  PhysicalCorrectionOptions options;
+  options.max_iterations = 50;
+  return PhysicalCorrection(RoomField(), Gain(), SensorOffset(), options);
+}
+
+void BM_InvertFull(benchmark::State& state) {
+  const PhysicalCorrection physical = FitInverse();
+  const std::vector<Rigid3d>& reports = Reports();
+  size_t i = 0;
+  for (auto _ : state) {
+    benchmark::DoNotOptimize(physical.Invert(reports[i]));
+    i = (i + 1) % reports.size();
+  }
+}
+BENCHMARK(BM_InvertFull);
+
+void BM_InvertReportRootOnly(benchmark::State& state) {
+  const PhysicalCorrection physical = FitInverse();
+  const std::vector<Rigid3d>& reports = Reports();
+  size_t i = 0;
+  Rigid3d x;
+  for (auto _ : state) {
+    benchmark::DoNotOptimize(physical.InvertReport(reports[i], &x));
+    benchmark::DoNotOptimize(x);
+    i = (i + 1) % reports.size();
+  }
+}
+BENCHMARK(BM_InvertReportRootOnly);
+
 // The workflow's final models: the near sources (frame, toolbox, floor) with the distant ones as a
 // background_field (core/field.h, degree 1, 24 coefficients) instead of three dipoles and a plane.
 // Its ratio to BM_PhysicalPaperRoom is what the background costs per pose (the poses are the
