@@ -249,11 +249,8 @@ Calibration ParseCalibrationJson(const std::string& text, const std::string& sou
   } catch (const JsonInputError& e) {
     // Notepad's "Unicode" (UTF-16) save of a hand-edited file read as "invalid literal" and "not a
     // calibration file"; JSON is UTF-8.
-    if (text.rfind("\xFF\xFE", 0) == 0 || text.rfind("\xFE\xFF", 0) == 0) {
-      throw JsonInputError(source_name +
-                           ": UTF-16 text (a byte order mark FF FE or FE FF); save the "
-                           "calibration file as UTF-8");
-    }
+    const std::string utf16 = Utf16TextProblem(text, "calibration file");
+    if (!utf16.empty()) throw JsonInputError(source_name + ": " + utf16);
     // A file that is not JSON at all (a model file's YAML, a capture's CSV given as the
     // calibration) got only the JSON parser's "invalid literal; last read: 'te'": say what a
     // calibration file is.

@@ -65,10 +65,41 @@ std::string ReadFileToString(const std::filesystem::path& path) {
   return contents;
 }
 
+namespace {
+
+// The length of the UTF-8 sequence at text[i] (i < text.size()), or 0 if none starts there: its
+// length from the lead byte, then continuation bytes 10xxxxxx, in the ranges that exclude overlong
+// forms, surrogates and code points above U+10FFFF (RFC 3629). 1 for any ASCII byte.
+size_t Utf8SequenceLength(std::string_view text, size_t i) {
+  const auto byte = [&text](size_t k) { return static_cast<unsigned char>(text[k]); };
+  const unsigned char c = byte(i);
+  if (c < 0x80) return 1;
+  size_t length = 0;
+  unsigned char low = 0x80, high = 0xbf;  // allowed range of the second byte
+  if (c >= 0xc2 && c <= 0xdf) {
+    length = 2;
+  } else if (c >= 0xe0 && c <= 0xef) {
+    length = 3;
+    if (c == 0xe0) low = 0xa0;
+    if (c == 0xed) high = 0x9f;
+  } else if (c >= 0xf0 && c <= 0xf4) {
+    length = 4;
+    if (c == 0xf0) low = 0x90;
+    if (c == 0xf4) high = 0x8f;
+  }
+  if (length == 0 || i + length > text.size()) return 0;
+  for (size_t k = 1; k < length; ++k) {
+    const unsigned char b = byte(i + k);
+    if (k == 1 ? (b < low || b > high) : (b < 0x80 || b > 0xbf)) return 0;
+  }
+  return length;
+}
+
+}  // namespace
+
 std::string PrintableForMessage(std::string_view text) {
   std::string out;
   out.reserve(text.size());
-  const auto byte = [&text](size_t i) { return static_cast<unsigned char>(text[i]); };
   const auto escape = [&out](unsigned char c) {
     static constexpr char kHex[] = "0123456789abcdef";
     out += "\\x";
@@ -76,7 +107,7 @@ std::string PrintableForMessage(std::string_view text) {
     out += kHex[c & 15];
   };
   for (size_t i = 0; i < text.size();) {
-    const unsigned char c = byte(i);
+    const unsigned char c = static_cast<unsigned char>(text[i]);
     if (c < 0x80) {
       if ((c < 0x20 && c != '\t' && c != '\n') || c == 0x7f) {
         escape(c);
@@ -86,27 +117,8 @@ std::string PrintableForMessage(std::string_view text) {
       ++i;
       continue;
     }
-    // A UTF-8 sequence: its length from the lead byte, then continuation bytes 10xxxxxx, in the
-    // ranges that exclude overlong forms, surrogates and code points above U+10FFFF (RFC 3629).
-    size_t length = 0;
-    unsigned char low = 0x80, high = 0xbf;  // allowed range of the second byte
-    if (c >= 0xc2 && c <= 0xdf) {
-      length = 2;
-    } else if (c >= 0xe0 && c <= 0xef) {
-      length = 3;
-      if (c == 0xe0) low = 0xa0;
-      if (c == 0xed) high = 0x9f;
-    } else if (c >= 0xf0 && c <= 0xf4) {
-      length = 4;
-      if (c == 0xf0) low = 0x90;
-      if (c == 0xf4) high = 0x8f;
-    }
-    bool valid = length > 0 && i + length <= text.size();
-    for (size_t k = 1; valid && k < length; ++k) {
-      const unsigned char b = byte(i + k);
-      valid = k == 1 ? (b >= low && b <= high) : (b >= 0x80 && b <= 0xbf);
-    }
-    if (valid) {
+    const size_t length = Utf8SequenceLength(text, i);
+    if (length > 0) {
       out.append(text.substr(i, length));
       i += length;
     } else {
@@ -115,6 +127,21 @@ std::string PrintableForMessage(std::string_view text) {
     }
   }
   return out;
+}
+
+size_t FirstNonUtf8Byte(std::string_view text) {
+  for (size_t i = 0; i < text.size();) {
+    const size_t length = Utf8SequenceLength(text, i);
+    if (length == 0) return i;
+    i += length;
+  }
+  return std::string_view::npos;
+}
+
+std::string Utf16TextProblem(std::string_view text, std::string_view kind) {
+  if (text.substr(0, 2) != "\xFF\xFE" && text.substr(0, 2) != "\xFE\xFF") return "";
+  return "UTF-16 text (a byte order mark FF FE or FE FF); save the " + std::string(kind) +
+         " as UTF-8";
 }
 
 namespace {

@@ -72,4 +72,14 @@ bool IsSha256Hex(std::string_view text);
 // failed in Python as it became a str ("'utf-8' codec can't decode byte 0xe9", naming no file).
 std::string PrintableForMessage(std::string_view text);
 
+// The offset of the first byte of `text` that is not part of UTF-8 (RFC 3629: no overlong forms,
+// surrogates or code points above U+10FFFF), or std::string_view::npos if it is all UTF-8.
+size_t FirstNonUtf8Byte(std::string_view text);
+
+// "UTF-16 text (a byte order mark FF FE or FE FF); save the <kind> as UTF-8" if `text` starts with
+// a UTF-16 byte order mark (Notepad's "Unicode" and Excel's "Unicode text" saves), else "". The
+// readers of UTF-8 files read such a file as gibberish: "not a calibration file", "column station:
+// missing from the header", or a model parsed without a word.
+std::string Utf16TextProblem(std::string_view text, std::string_view kind);
+
 }  // namespace trackcal

@@ -33,6 +33,28 @@ TEST(PrintableForMessage, EscapesWhatIsNotUtf8TextAndControlCharacters) {
   EXPECT_EQ(PrintableForMessage("\xf4\x90\x80\x80"), "\\xf4\\x90\\x80\\x80");
 }
 
+TEST(FirstNonUtf8Byte, IsWherePrintableForMessageEscapesTheFirstByteAboveAscii) {
+  EXPECT_EQ(FirstNonUtf8Byte(""), std::string_view::npos);
+  EXPECT_EQ(FirstNonUtf8Byte("Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80"), std::string_view::npos);
+  EXPECT_EQ(FirstNonUtf8Byte(std::string("a\0b\r", 4)), std::string_view::npos);  // text bytes
+  EXPECT_EQ(FirstNonUtf8Byte("Jos\xe9"), 3u);
+  EXPECT_EQ(FirstNonUtf8Byte("\x89PNG"), 0u);
+  EXPECT_EQ(FirstNonUtf8Byte("ab\xe2\x82"), 2u);        // truncated
+  EXPECT_EQ(FirstNonUtf8Byte("\xc3\xa9\xc0\xaf"), 2u);  // overlong
+  EXPECT_EQ(FirstNonUtf8Byte("x\xed\xa0\x80"), 1u);     // surrogate
+  EXPECT_EQ(FirstNonUtf8Byte("\xf4\x90\x80\x80"), 0u);  // above U+10FFFF
+}
+
+TEST(Utf16TextProblem, NamesAByteOrderMarkOfEitherOrder) {
+  EXPECT_EQ(Utf16TextProblem(std::string("\xFF\xFE{\0", 4), "model file"),
+            "UTF-16 text (a byte order mark FF FE or FE FF); save the model file as UTF-8");
+  EXPECT_EQ(Utf16TextProblem(std::string("\xFE\xFF\0{", 4), "CSV file"),
+            "UTF-16 text (a byte order mark FF FE or FE FF); save the CSV file as UTF-8");
+  EXPECT_EQ(Utf16TextProblem("\xEF\xBB\xBF{}", "model file"), "");  // UTF-8's mark
+  EXPECT_EQ(Utf16TextProblem("\xFF", "model file"), "");
+  EXPECT_EQ(Utf16TextProblem("", "model file"), "");
+}
+
 TEST(Sha256, Nominal) {
   EXPECT_EQ(Sha256Hex("abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
 }
