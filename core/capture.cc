@@ -120,6 +120,10 @@ class CsvTable {
       throw std::runtime_error(path.string() + ": cannot read file: " + e.what());
     }
     if (file.bad()) throw std::runtime_error(path.string() + ": cannot read file");
+    // Excel's "Unicode text" save: every other byte of the header was NUL and the message said
+    // "column station: missing from the header".
+    const std::string utf16 = Utf16TextProblem(text, "CSV file");
+    if (!utf16.empty()) Fail(1, "encoding", utf16);
     // A UTF-8 byte order mark (spreadsheet exports) opens the file, not the header line: removed
     // from the line it sat on, a blank line after it was read as a header whose one column had no
     // name.
@@ -127,12 +131,40 @@ class CsvTable {
     // Old Mac spreadsheets end lines with CR alone: read as lines, not as one header line whose
     // "columns" repeat.
     if (text.find('\n') == std::string::npos) std::replace(text.begin(), text.end(), '\r', '\n');
+    // Where a control byte first is (not a tab or a line end): no text CSV holds one.
+    const auto control = [](std::string_view s) {
+      return static_cast<size_t>(std::find_if(s.begin(), s.end(),
+                                              [](char c) {
+                                                return static_cast<unsigned char>(c) < 0x20 &&
+                                                       c != '\t' && c != '\r' && c != '\n';
+                                              }) -
+                                 s.begin());
+    };
+    const std::string head = text.substr(0, 1024);
     std::istringstream in(std::move(text));
     std::string line;
     int line_number = 0;
     bool have_header = false;
     while (std::getline(in, line)) {
       ++line_number;
+      // A binary file given as the capture (an .xlsx workbook, an image, an archive renamed
+      // .csv): a CR among its bytes was called "mixed line ends", or its header "missing" a column.
+      // Its header holds a control byte (a NUL, UTF-16 without a byte order mark), or bytes that
+      // are not UTF-8 with control bytes soon after (a PNG's signature). A legacy code page's
+      // header (Latin-1 "temp_\xb0C") is no binary file: it is read as before.
+      if (!have_header && !Trim(line).empty()) {
+        const size_t control_at = control(line);
+        const size_t non_utf8_at = FirstNonUtf8Byte(line);
+        const size_t at = std::min(control_at, std::min(non_utf8_at, line.size()));
+        if (control_at < line.size() ||
+            (non_utf8_at != std::string::npos && control(head) < head.size())) {
+          Fail(line_number, "encoding",
+               "the header is not text (byte " + PrintableForMessage(line.substr(at, 1)) +
+                   " at column " + std::to_string(at + 1) +
+                   "): not a text CSV file (an .xlsx workbook, an image or an archive, or UTF-16 "
+                   "text without a byte order mark?); export the capture as CSV in UTF-8");
+        }
+      }
       const size_t cr = line.find('\r');
       if (cr != std::string::npos && line.find_first_not_of("\r \t", cr) != std::string::npos) {
         Fail(line_number, "line end",

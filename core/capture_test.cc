@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <fstream>
 #include <functional>
 #include <limits>
@@ -337,6 +338,57 @@ TEST(PosesCsv, HeaderAsLabSoftwareExportsItSaysWhatToChange) {
   // What the hints recognise is still refused when the header is right: a field in quotes.
   EXPECT_EQ(error_for(header + replaced(good, "calib", "\"calib\"")),
             "poses.csv:2: column set: '\"calib\"' is not one of calib, valid, reg");
+}
+
+TEST(PosesCsv, AFileThatIsNotUtf8TextSaysSo) {
+  const auto dir = MakeTempDir("capture_test");
+  const auto path = dir / "poses.csv";
+  const std::string text =
+      std::string(kPosesHeader) + "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n";
+  auto error_for = [&](const std::string& bytes) {
+    WriteText(path, bytes);
+    return ErrorOf([&] { ReadPoses(path); });
+  };
+  // Excel's "Unicode text" save (UTF-16 with a byte order mark, either byte order) said "column
+  // station: missing from the header".
+  std::string le = "\xFF\xFE", be = "\xFE\xFF";
+  for (const char c : text) {
+    le += std::string{c, '\0'};
+    be += std::string{'\0', c};
+  }
+  const std::string utf16 =
+      "poses.csv:1: encoding: UTF-16 text (a byte order mark FF FE or FE FF); save the CSV file as "
+      "UTF-8";
+  EXPECT_EQ(error_for(le), utf16);
+  EXPECT_EQ(error_for(be), utf16);
+  // A PNG renamed .csv: the CR of its signature was called "mixed line ends" (line 3).
+  const std::string hint =
+      "): not a text CSV file (an .xlsx workbook, an image or an archive, or UTF-16 text without a "
+      "byte order mark?); export the capture as CSV in UTF-8";
+  EXPECT_EQ(error_for(std::string("\x89PNG\r\n\x1a\n\0\0\0\rIHDR\0\0\0\x10", 24)),
+            "poses.csv:1: encoding: the header is not text (byte \\x89 at column 1" + hint);
+  // A gzip archive (1f 8b) and an .xlsx workbook (a zip: "PK\3\4") said "column station: missing
+  // from the header"; so did UTF-16 without a byte order mark, after blank lines.
+  EXPECT_EQ(error_for(std::string("\x1f\x8b\x08\0\0\0\0\0", 8)),
+            "poses.csv:1: encoding: the header is not text (byte \\x1f at column 1" + hint);
+  EXPECT_EQ(error_for(std::string("PK\x03\x04\x14\0\x06\0", 8)),
+            "poses.csv:1: encoding: the header is not text (byte \\x03 at column 3" + hint);
+  EXPECT_EQ(error_for("\n\n" + le.substr(2)),
+            "poses.csv:3: encoding: the header is not text (byte \\x00 at column 2" + hint);
+  // A legacy code page's column name (Latin-1 "temp_\xb0C") is text: read as before (Python names
+  // its column as it fails to become a str), as in UTF-8 after a UTF-8 byte order mark.
+  const std::string columns(kPosesHeader, strlen(kPosesHeader) - 1);
+  const std::string row = "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,20\n";
+  EXPECT_EQ(error_for(columns +
+                      ",temp_\xb0"
+                      "C\n" +
+                      row),
+            "");
+  EXPECT_EQ(error_for("\xEF\xBB\xBF" + columns +
+                      ",temp_\xc2\xb0"
+                      "C\n" +
+                      row),
+            "");
 }
 
 TEST(CaptureReaders, FolderInsteadOfFileIsAnErrorNamingIt) {

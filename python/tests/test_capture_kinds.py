@@ -243,6 +243,26 @@ def test_unreadable_capture_files_and_existing_outputs_are_value_errors(tmp_path
     assert out.read_bytes() == before
 
 
+def test_a_poses_file_that_is_not_utf8_text_is_a_value_error_naming_it(tmp_path):
+    """Excel's "Unicode text" save said "column station: missing from the header"; a PNG renamed
+    poses.csv was "mixed line ends" on line 3."""
+    header = "station,set,sensor,time,rep_x,rep_y,rep_z,rep_qw,rep_qx,rep_qy,rep_qz,ref_x,ref_y,ref_z,ref_qw,ref_qx,ref_qy,ref_qz\n"
+    utf16 = tmp_path / "utf16" / "poses.csv"
+    utf16.parent.mkdir()
+    utf16.write_bytes(("\ufeff" + header + "1,calib,1,0,0,0,0.3,1,0,0,0,0,0,0.3,1,0,0,0\n").encode("utf-16-le"))
+    with pytest.raises(ValueError) as info:
+        captures.load_poses(utf16)
+    assert str(info.value) == (f"{utf16}:1: encoding: UTF-16 text (a byte order mark FF FE or FE FF); "
+                               "save the CSV file as UTF-8")
+    png = tmp_path / "png" / "poses.csv"
+    png.parent.mkdir()
+    png.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\x00\x00\x00\x10")
+    with pytest.raises(ValueError) as info:
+        captures.load_poses(png.parent)
+    assert str(info.value).startswith(f"{png}:1: encoding: the header is not text (byte \\x89 at column 1): "
+                                      "not a text CSV file")
+
+
 def test_saved_tracker_stream_keeps_its_extra_columns_and_refuses_a_fractional_sensor(tmp_path):
     """save_tracker_stream wrote time, sensor and pose only: a stream's extra columns (a
     temperature, an operator's label: the covariates of the diagnosis) were dropped without a word,
