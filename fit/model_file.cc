@@ -327,6 +327,23 @@ namespace {
 
 // settings_only: `trackcal-fit build`'s settings file (noise, solver, loss; no terms).
 ModelSpec ParseModel(const std::string& text, const std::string& source_name, bool settings_only) {
+  const char* const kind = settings_only ? "settings file" : "model file";
+  // yaml-cpp reads UTF-16 (Notepad's "Unicode" save) as it reads UTF-8: the model was accepted
+  // without a word, but its text (hashed into the calibration's provenance, returned by
+  // trackcal.parse_model) is not the UTF-8 every other trackcal file is.
+  const std::string utf16 = Utf16TextProblem(text, kind);
+  if (!utf16.empty()) throw std::invalid_argument(source_name + ": " + utf16);
+  // A binary file (an image, an archive, a workbook) given as the model: yaml-cpp stops at its
+  // first NUL with "unknown escape character: " and a message cut at that NUL. No YAML text
+  // holds a NUL.
+  const size_t nul = text.find('\0');
+  if (nul != std::string::npos) {
+    const size_t line_start = text.rfind('\n', nul) + 1;  // npos + 1 == 0: the first line
+    throw std::invalid_argument(
+        source_name + ":" + std::to_string(std::count(text.begin(), text.begin() + nul, '\n') + 1) +
+        ":" + std::to_string(nul - line_start + 1) + ": a NUL byte: not a text file; the " + kind +
+        " is YAML text");
+  }
   YAML::Node root;
   std::vector<YAML::Node> documents;
   try {
@@ -347,10 +364,13 @@ ModelSpec ParseModel(const std::string& text, const std::string& source_name, bo
     return defaults;
   }
   if (!root.IsMap()) {
+    // An empty or comment-only file has no line to name: say it has no entries. Anything else
+    // (a list, a lone word) is named where it starts.
     throw std::invalid_argument(
-        source_name + (settings_only ? ": the settings file must be a mapping "
-                                       "(noise, solver, loss)"
-                                     : ": the model file must be a mapping with 'terms'"));
+        (root.IsNull() ? source_name + ": no entries (the file is empty or only comments); "
+                       : MarkString(source_name, root.Mark()) + ": ") +
+        (settings_only ? "the settings file must be a mapping (noise, solver, loss)"
+                       : "the model file must be a mapping with 'terms'"));
   }
   const YamlMapReader top(root, source_name, "$");
   ModelSpec spec;

@@ -122,6 +122,44 @@ TEST(ParseModelYaml, ErrorsQuotingBytesThatAreNotUtf8ArePrintable) {
   EXPECT_EQ(ErrorOf("# Kalibrierung f\xfcr Raum B\nterms:\n  - type: polynomial\n"), "");
 }
 
+TEST(ParseModelYaml, AFileThatIsNotYamlTextSaysSoWithItsLine) {
+  const std::string text = "noise:\n  position_mm: 1\nterms:\n  - type: polynomial\n";
+  // Notepad's "Unicode" save: yaml-cpp decoded the UTF-16 and the model was accepted without a
+  // word, its text (hashed into the provenance) not UTF-8.
+  std::string le = "\xFF\xFE", be = "\xFE\xFF";
+  for (const char c : text) {
+    le += std::string{c, '\0'};
+    be += std::string{'\0', c};
+  }
+  const std::string utf16 =
+      "model.yaml: UTF-16 text (a byte order mark FF FE or FE FF); save the model file as UTF-8";
+  EXPECT_EQ(ErrorOf(le), utf16);
+  EXPECT_EQ(ErrorOf(be), utf16);
+  try {
+    ParseModelSettingsYaml(le, "s.yaml");
+    ADD_FAILURE() << "UTF-16 settings were read";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_EQ(std::string(e.what()),
+              "s.yaml: UTF-16 text (a byte order mark FF FE or FE FF); save the settings file as "
+              "UTF-8");
+  }
+  // A binary file (an image, an archive): yaml-cpp's "unknown escape character: ", cut at the NUL.
+  EXPECT_EQ(ErrorOf(std::string("\x89PNG\r\n\x1a\n\0\0\0\rIHDR", 16)),
+            "model.yaml:3:1: a NUL byte: not a text file; the model file is YAML text");
+  EXPECT_EQ(ErrorOf(std::string("PK\x03\x04\x14\0\x06\0", 8)),
+            "model.yaml:1:6: a NUL byte: not a text file; the model file is YAML text");
+  // An empty or comment-only file (or a lone byte order mark) has no line to name.
+  const std::string no_entries =
+      "model.yaml: no entries (the file is empty or only comments); the model file must be a "
+      "mapping with 'terms'";
+  EXPECT_EQ(ErrorOf(""), no_entries);
+  EXPECT_EQ(ErrorOf("# terms to come\n\n# nothing yet\n"), no_entries);
+  EXPECT_EQ(ErrorOf("\xEF\xBB\xBF"), no_entries);
+  // What is there and is no mapping is named where it starts.
+  EXPECT_EQ(ErrorOf("# a list\n- type: polynomial\n"),
+            "model.yaml:2:1: the model file must be a mapping with 'terms'");
+}
+
 TEST(ParseModelYaml, RejectsASecondDocument) {
   // YAML::Load read the first document only: the noise after `---` was dropped.
   EXPECT_THAT(ErrorOf("terms: [{type: polynomial}]\n---\nnoise: {position_mm: 5}\n"),
