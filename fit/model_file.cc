@@ -6,6 +6,7 @@
 #include <map>
 #include <sstream>
 #include <stdexcept>
+#include <string_view>
 
 #include "core/file_util.h"
 #include "fit/terms_physical.h"
@@ -349,6 +350,22 @@ ModelSpec ParseModel(const std::string& text, const std::string& source_name, bo
   try {
     documents = YAML::LoadAll(text);
   } catch (const YAML::Exception& e) {
+    // A tab-indented file (an editor's default) got yaml-cpp's "illegal block entry" or "illegal
+    // map value": name the first line indented with a tab, if the error is there or after it.
+    std::string_view rest(text);
+    for (int line = 1; !rest.empty() && (e.mark.is_null() || line <= e.mark.line + 1); ++line) {
+      const std::string_view row = rest.substr(0, rest.find('\n'));
+      const size_t content = row.find_first_not_of(" \t");
+      const size_t tab = row.find('\t');
+      if (content != std::string_view::npos && tab < content && row[content] != '\r' &&
+          row[content] != '#') {
+        throw std::invalid_argument(source_name + ":" + std::to_string(line) + ":" +
+                                    std::to_string(tab + 1) +
+                                    ": YAML syntax error: a tab in the indentation; YAML indents "
+                                    "with spaces only (replace the tab with spaces)");
+      }
+      rest.remove_prefix(std::min(row.size() + 1, rest.size()));
+    }
     throw std::invalid_argument(MarkString(source_name, e.mark) + ": YAML syntax error: " + e.msg);
   }
   if (!documents.empty()) root = documents.front();

@@ -160,6 +160,23 @@ TEST(ParseModelYaml, AFileThatIsNotYamlTextSaysSoWithItsLine) {
             "model.yaml:2:1: the model file must be a mapping with 'terms'");
 }
 
+TEST(ParseModelYaml, ATabInTheIndentationIsNamed) {
+  // An editor's tab indent: yaml-cpp said "illegal block entry" or "illegal map value".
+  const std::string tabs =
+      ": YAML syntax error: a tab in the indentation; YAML indents with spaces only (replace the "
+      "tab with spaces)";
+  EXPECT_EQ(ErrorOf("noise:\n  position_mm: 1\nterms:\n\t- type: polynomial\n\t  degree: 1\n"),
+            "model.yaml:4:1" + tabs);
+  EXPECT_EQ(ErrorOf("noise:\n\tposition_mm: 1\nterms:\n  - type: polynomial\n"),
+            "model.yaml:2:1" + tabs);
+  EXPECT_EQ(ErrorOf("terms:\n  - type: polynomial\n  \tdegree: 1\n"), "model.yaml:3:3" + tabs);
+  // A tab elsewhere is no error (before a comment, between a key and its value), nor the cause of
+  // a later syntax error.
+  EXPECT_EQ(ErrorOf("\t# comment\nterms:\n  - type:\tpolynomial  \t# tab\n"), "");
+  EXPECT_EQ(ErrorOf("\t# comment\nterms:\n  - type: polynomial\n  - [\n"),
+            "model.yaml:5:1: YAML syntax error: end of sequence flow not found");
+}
+
 TEST(ParseModelYaml, RejectsASecondDocument) {
   // YAML::Load read the first document only: the noise after `---` was dropped.
   EXPECT_THAT(ErrorOf("terms: [{type: polynomial}]\n---\nnoise: {position_mm: 5}\n"),

@@ -190,6 +190,31 @@ def test_user_errors_name_file_line_and_field(capture_dir, tmp_path):
         trackcal.fit(cap, MODEL)
 
 
+def test_a_model_file_that_is_not_yaml_text_is_a_value_error_naming_file_and_line(capture_dir, tmp_path):
+    """A UTF-16 model (Notepad's "Unicode" save) was parsed, then failed as its text became a str:
+    UnicodeDecodeError naming no file. A PNG: "unknown escape character: " cut at a NUL. A comment-only
+    file named no line; a tab-indented one got yaml-cpp's "illegal block entry"."""
+    utf16 = tmp_path / "utf16.yaml"
+    utf16.write_bytes(("\ufeff" + MODEL).encode("utf-16-le"))
+    png = tmp_path / "png.yaml"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    comments = tmp_path / "comments.yaml"
+    comments.write_text("# terms to come\n")
+    tabs = tmp_path / "tabs.yaml"
+    tabs.write_text(MODEL.replace("  - type", "\t- type"))
+    expected = {
+        utf16: f"{utf16}: UTF-16 text (a byte order mark FF FE or FE FF); save the model file as UTF-8",
+        png: f"{png}:3:1: a NUL byte: not a text file; the model file is YAML text",
+        comments: f"{comments}: no entries (the file is empty or only comments); the model file must be a mapping with 'terms'",
+        tabs: f"{tabs}:2:1: YAML syntax error: a tab in the indentation; YAML indents with spaces only (replace the tab with spaces)",
+    }
+    for path, message in expected.items():
+        with pytest.raises(ValueError) as info:
+            trackcal.fit(capture_dir, path)
+        assert type(info.value) is ValueError  # not its subclass UnicodeDecodeError
+        assert str(info.value) == message
+
+
 def test_an_in_memory_zero_quaternion_is_refused(capture_dir):
     """A zero quaternion has no rotation; the binding's check says it refuses one ("pose is not
     finite (or a quaternion is zero)"), but Eigen's normalize() left it zero, finite, and the fit
