@@ -595,14 +595,18 @@ void BindFit(py::module_& m) {
         for (const auto& t : spec.terms) types.append(t->name());
         py::dict d;
         d["source"] = source.source_name;
-        d["text"] = source.text;
+        // A model file's bytes need not be UTF-8 (a Latin-1 comment parses); the text decodes with
+        // surrogateescape so that .encode("utf-8", "surrogateescape") gives the file's bytes back.
+        d["text"] = py::reinterpret_steal<py::str>(PyUnicode_DecodeUTF8(
+            source.text.data(), static_cast<Py_ssize_t>(source.text.size()), "surrogateescape"));
         d["sha256"] = Sha256Hex(source.text);
         d["terms"] = types;
         return d;
       },
       py::arg("model"),
       "Checks a model (path or YAML text): {source, text, sha256, terms: term names}; ValueError "
-      "naming file, line, column and field otherwise.");
+      "naming file, line, column and field otherwise. text is the file's bytes decoded as UTF-8 "
+      "with surrogateescape (bytes that are not UTF-8 survive a round trip).");
 
   py::class_<RegistrationRun, std::shared_ptr<RegistrationRun>>(
       m, "NativeRegistration", "Result of trackcal._core.register (wrapped by trackcal.register).")

@@ -640,3 +640,24 @@ def test_stations_of_several_receivers_are_refused_or_fitted_one_at_a_time(captu
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="sensor must be a receiver number"):
             trackcal.fit(mixed, MODEL, sensor=bad)
+
+
+def test_a_model_file_with_a_latin1_comment_fits_and_is_recorded_byte_for_byte(capture_dir, tmp_path):
+    """The C++ reader takes a Latin-1 comment (a German lab's "für"), but trackcal.fit raised
+    UnicodeDecodeError naming no file as the model text became a str. The text now carries the bytes
+    (surrogateescape): the history's model copy is the file, byte for byte, under its SHA-256; a
+    diagnosis refuses to apply a change to it, naming line and column."""
+    from trackcal import diagnosis, history
+    raw = ("# Kalibrierung f\u00fcr Raum 3\n" + MODEL).encode("latin-1")
+    latin1 = tmp_path / "latin1.yaml"
+    latin1.write_bytes(raw)
+    report = trackcal.fit(capture_dir, latin1)
+    assert report.converged
+    assert report.model["text"].encode("utf-8", "surrogateescape") == raw
+    entry = history.record_model_fit(tmp_path / "work", report, model=latin1, data=capture_dir)
+    sha = entry["model"]["sha256"]
+    assert sha == trackcal._core.sha256_file(latin1)
+    assert (tmp_path / "work" / "models" / f"{sha[:16]}.yaml").read_bytes() == raw
+    with pytest.raises(ValueError, match=r"^line 1, column 17: byte \\xfc is not UTF-8 text"):
+        diagnosis.check_model_text_is_utf8(report.model["text"])
+    diagnosis.check_model_text_is_utf8(MODEL)  # UTF-8 text passes

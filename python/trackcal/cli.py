@@ -444,6 +444,7 @@ def _diagnosis(args, term):
         info = trackcal._core.parse_model(model)
         name = pathlib.Path(model).name if info["source"] != "<string>" else "model.yaml"
         try:
+            diagnosis.check_model_text_is_utf8(info["text"])
             new_text = diagnosis.apply_model_change(info["text"], verdict["model_change"],
                                                     verdict.get("insert_index"),
                                                     verdict.get("replaces"))

@@ -393,6 +393,18 @@ def change_is_term(change: str) -> bool:
     return _is_item(first.strip())
 
 
+def check_model_text_is_utf8(model_text: str) -> None:
+    """ValueError naming the line and column of the first byte that is not UTF-8 in a model text
+    from ``_core.parse_model`` (decoded with surrogateescape: a Latin-1 comment parses). A change
+    applied to such a text would carry those bytes into the JSON document and the printed diff,
+    where they are not text, and would not parse again from Python: it is shown, not applied."""
+    for number, line in enumerate(model_text.splitlines(), start=1):
+        for column, ch in enumerate(line, start=1):
+            if 0xDC80 <= ord(ch) <= 0xDCFF:
+                raise ValueError(f"line {number}, column {column}: byte \\x{ord(ch) - 0xDC00:02x} is "
+                                 "not UTF-8 text (save the model file as UTF-8)")
+
+
 def apply_model_change(model_text: str, change: str, insert_index: Optional[int],
                        replaces: Optional[str] = None) -> str:
     """The model text with a candidate's ``model_change`` applied (contract B), nothing else changed.

@@ -288,7 +288,7 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
     models = workdir / "models"
     models.mkdir(exist_ok=True)
     copy = models / f"{sha[:16]}.yaml"
-    _keep_copy(copy, text.encode("utf-8"))
+    _keep_copy(copy, text.encode("utf-8", "surrogateescape"))  # the file's bytes, as hashed
     terms = effect_names(report)
 
     def default_label(entries: List[dict]) -> str:  # against the previous model-file fit
