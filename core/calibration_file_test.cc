@@ -9,6 +9,7 @@
 #include "core/file_util.h"
 #include "core/lut.h"
 #include "core/polynomial.h"
+#include "core/printable_text.h"
 #include "tests/test_utils.h"
 
 namespace trackcal {

@@ -21,6 +21,7 @@
 #include <utility>
 
 #include "core/file_util.h"
+#include "core/printable_text.h"
 
 namespace trackcal {
 

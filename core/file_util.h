@@ -66,16 +66,6 @@ std::string Sha256HexOfFile(const std::filesystem::path& path);
 // True if `text` is 64 lower-case hexadecimal characters.
 bool IsSha256Hex(std::string_view text);
 
-// `text` (an error message quoting a user's file) with every byte that is not UTF-8 text, and every
-// control character but tab and line feed, written as \xNN, as Python's "backslashreplace" writes
-// it. A message carrying such a byte raw lost everything after a NUL (what() is a C string) and
-// failed in Python as it became a str ("'utf-8' codec can't decode byte 0xe9", naming no file).
-std::string PrintableForMessage(std::string_view text);
-
-// The offset of the first byte of `text` that is not part of UTF-8 (RFC 3629: no overlong forms,
-// surrogates or code points above U+10FFFF), or std::string_view::npos if it is all UTF-8.
-size_t FirstNonUtf8Byte(std::string_view text);
-
 // "UTF-16 text (a byte order mark FF FE or FE FF); save the <kind> as UTF-8" if `text` starts with
 // a UTF-16 byte order mark (Notepad's "Unicode" and Excel's "Unicode text" saves), else "". The
 // readers of UTF-8 files read such a file as gibberish: "not a calibration file", "column station:

@@ -16,35 +16,6 @@ namespace trackcal {
 namespace {
 
 // FIPS 180-2 / NIST CAVP example vectors.
-TEST(PrintableForMessage, EscapesWhatIsNotUtf8TextAndControlCharacters) {
-  EXPECT_EQ(PrintableForMessage("poses.csv:3: column x: 'abc' is not a number"),
-            "poses.csv:3: column x: 'abc' is not a number");
-  EXPECT_EQ(PrintableForMessage("a\tb\nc"), "a\tb\nc");  // tab and line feed stay
-  EXPECT_EQ(PrintableForMessage(std::string("1.5\0x\r\x7f", 7)), "1.5\\x00x\\x0d\\x7f");
-  // Valid UTF-8 of 2, 3 and 4 bytes stays; Latin-1 bytes, a lone continuation byte, a truncated
-  // sequence, an overlong form, a surrogate and a code point above U+10FFFF are escaped.
-  EXPECT_EQ(PrintableForMessage("Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80"),
-            "Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80");
-  EXPECT_EQ(PrintableForMessage("Jos\xe9"), "Jos\\xe9");
-  EXPECT_EQ(PrintableForMessage("\x80"), "\\x80");
-  EXPECT_EQ(PrintableForMessage("\xe2\x82"), "\\xe2\\x82");
-  EXPECT_EQ(PrintableForMessage("\xc0\xaf"), "\\xc0\\xaf");
-  EXPECT_EQ(PrintableForMessage("\xed\xa0\x80"), "\\xed\\xa0\\x80");
-  EXPECT_EQ(PrintableForMessage("\xf4\x90\x80\x80"), "\\xf4\\x90\\x80\\x80");
-}
-
-TEST(FirstNonUtf8Byte, IsWherePrintableForMessageEscapesTheFirstByteAboveAscii) {
-  EXPECT_EQ(FirstNonUtf8Byte(""), std::string_view::npos);
-  EXPECT_EQ(FirstNonUtf8Byte("Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80"), std::string_view::npos);
-  EXPECT_EQ(FirstNonUtf8Byte(std::string("a\0b\r", 4)), std::string_view::npos);  // text bytes
-  EXPECT_EQ(FirstNonUtf8Byte("Jos\xe9"), 3u);
-  EXPECT_EQ(FirstNonUtf8Byte("\x89PNG"), 0u);
-  EXPECT_EQ(FirstNonUtf8Byte("ab\xe2\x82"), 2u);        // truncated
-  EXPECT_EQ(FirstNonUtf8Byte("\xc3\xa9\xc0\xaf"), 2u);  // overlong
-  EXPECT_EQ(FirstNonUtf8Byte("x\xed\xa0\x80"), 1u);     // surrogate
-  EXPECT_EQ(FirstNonUtf8Byte("\xf4\x90\x80\x80"), 0u);  // above U+10FFFF
-}
-
 TEST(Utf16TextProblem, NamesAByteOrderMarkOfEitherOrder) {
   EXPECT_EQ(Utf16TextProblem(std::string("\xFF\xFE{\0", 4), "model file"),
             "UTF-16 text (a byte order mark FF FE or FE FF); save the model file as UTF-8");

@@ -6,7 +6,7 @@
 #include <set>
 #include <vector>
 
-#include "core/file_util.h"
+#include "core/printable_text.h"
 
 namespace trackcal {
 

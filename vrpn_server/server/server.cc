@@ -22,6 +22,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "core/printable_text.h"
 #include "vrpn_server/net/socket_util.h"
 
 namespace trackcal::vrpn {

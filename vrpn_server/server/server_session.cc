@@ -1,5 +1,6 @@
 #include "vrpn_server/server/server_session.h"
 
+#include "core/printable_text.h"
 #include "vrpn_server/protocol/payloads.h"
 
 namespace trackcal::vrpn {
@@ -133,51 +134,6 @@ bool ServerSession::RoomForReply(const ReceivedMessage& m) {
   Log("not reading its replies (" + std::to_string(waiting) + " bytes waiting): dropped " +
       std::string(m.type));
   return false;
-}
-
-std::string PrintableForLog(std::string_view text) {
-  std::string out;
-  out.reserve(text.size());
-  auto escape = [&out](unsigned char c) {
-    static constexpr char kHex[] = "0123456789abcdef";
-    out += "\\x";
-    out += kHex[c >> 4];
-    out += kHex[c & 15];
-  };
-  for (std::size_t i = 0; i < text.size();) {
-    const auto c = static_cast<unsigned char>(text[i]);
-    if (c >= 0x20 && c < 0x7f) {
-      out += static_cast<char>(c);
-      ++i;
-      continue;
-    }
-    // A well-formed UTF-8 sequence of 2-4 bytes (no overlong forms, no surrogates, <= U+10FFFF)
-    // is kept unless it encodes a C1 control (U+0080-U+009F).
-    std::size_t length = c >= 0xc2 && c <= 0xdf   ? 2
-                         : c >= 0xe0 && c <= 0xef ? 3
-                         : c >= 0xf0 && c <= 0xf4 ? 4
-                                                  : 0;
-    if (length != 0 && i + length <= text.size()) {
-      const auto b1 = static_cast<unsigned char>(text[i + 1]);
-      bool ok = (b1 & 0xc0) == 0x80;
-      for (std::size_t k = 2; ok && k < length; ++k) {
-        ok = (static_cast<unsigned char>(text[i + k]) & 0xc0) == 0x80;
-      }
-      if (ok && c == 0xe0) ok = b1 >= 0xa0;
-      if (ok && c == 0xed) ok = b1 < 0xa0;
-      if (ok && c == 0xf0) ok = b1 >= 0x90;
-      if (ok && c == 0xf4) ok = b1 < 0x90;
-      if (ok && c == 0xc2) ok = b1 >= 0xa0;
-      if (ok) {
-        out.append(text.substr(i, length));
-        i += length;
-        continue;
-      }
-    }
-    escape(c);
-    ++i;
-  }
-  return out;
 }
 
 void ServerSession::Log(const std::string& line) {

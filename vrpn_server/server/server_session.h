@@ -25,13 +25,6 @@ namespace trackcal::vrpn {
 
 using LogFunction = std::function<void(const std::string&)>;
 
-// `text` with every byte that could act on a terminal or split a log line (C0 and C1 controls,
-// DEL, bytes that are not well-formed UTF-8) written as \xNN; printable UTF-8 is kept. Client text
-// (names, text messages, lob host names) goes through it before it is logged: a client could
-// otherwise forge log lines with a newline or drive the operator's terminal with escape sequences.
-// Idempotent: its output has no byte it would change.
-std::string PrintableForLog(std::string_view text);
-
 class ServerSession {
  public:
   // Per-session cap on log lines about client misbehaviour; later ones are counted, not printed.

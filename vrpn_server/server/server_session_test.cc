@@ -147,24 +147,6 @@ TEST(ServerSession, ClientTextIsLoggedPrintable) {
             "ok\\x0aclosed peer: forged\\x0d\\x1b]0;title\\x07 caf\xc3\xa9");
 }
 
-TEST(PrintableForLog, KeepsPrintableUtf8AndEscapesTheRest) {
-  EXPECT_EQ(PrintableForLog("Tracker0@host:3883 ~"), "Tracker0@host:3883 ~");
-  // Two-, three- and four-byte characters stay.
-  EXPECT_EQ(PrintableForLog("J\xc3\xb6rg \xe2\x9c\x93 \xf0\x9f\x98\x80"),
-            "J\xc3\xb6rg \xe2\x9c\x93 \xf0\x9f\x98\x80");
-  // C0, DEL, the C1 control U+009B (CSI), a lone continuation byte, a truncated sequence, an
-  // overlong '/', a UTF-16 surrogate, a code point past U+10FFFF.
-  EXPECT_EQ(PrintableForLog(std::string("a\0b\x7f", 4)), "a\\x00b\\x7f");
-  EXPECT_EQ(PrintableForLog("\xc2\x9b"), "\\xc2\\x9b");
-  EXPECT_EQ(PrintableForLog("\x80"), "\\x80");
-  EXPECT_EQ(PrintableForLog("\xe2\x9c"), "\\xe2\\x9c");
-  EXPECT_EQ(PrintableForLog("\xc0\xaf"), "\\xc0\\xaf");
-  EXPECT_EQ(PrintableForLog("\xed\xa0\x80"), "\\xed\\xa0\\x80");
-  EXPECT_EQ(PrintableForLog("\xf4\x90\x80\x80"), "\\xf4\\x90\\x80\\x80");
-  const std::string once = PrintableForLog("x\x1b\xff\n");
-  EXPECT_EQ(PrintableForLog(once), once);
-}
-
 TEST(ServerSession, GarbageAndOversizedCloseOnlyWithLog) {
   auto catalog = std::make_shared<ServerCatalog>();
   catalog->AddTracker(Tracker0());
