@@ -9,6 +9,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "core/printable_text.h"
+
 namespace trackcal::vrpn {
 namespace {
 
@@ -46,7 +48,8 @@ std::vector<std::string> Tokenize(std::string_view s) {
   msg << where.ToString() << ": ";
   if (!field.empty()) msg << "field '" << field << "': ";
   msg << what;
-  throw std::invalid_argument(msg.str());
+  // The message quotes the file, and the server prints it on the operator's terminal.
+  throw std::invalid_argument(PrintableForLog(msg.str()));
 }
 
 int ParseInt(const std::string& token, const ConfigLocation& where, std::string_view field) {
@@ -590,7 +593,9 @@ class Parser {
 std::string ConfigLocation::ToString() const { return file + ":" + std::to_string(line); }
 
 std::string ConfigWarning::ToString() const {
-  return location.ToString() + ": warning: " + message;
+  // The message quotes the file (an unknown device type, ignored tokens), and this line is printed
+  // on the operator's terminal.
+  return PrintableForLog(location.ToString() + ": warning: " + message);
 }
 
 const CalibrationSpec* VrpnConfig::FindCalibration(std::string_view name) const {

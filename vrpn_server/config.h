@@ -14,7 +14,8 @@
 // Differences from the reference parser: trailing spaces/tabs and CRLF line ends do not end a
 // continuation, comment lines inside a continuation block are skipped, an unknown device line is a
 // warning (with its continuation lines skipped) instead of a fatal error.
-// Errors throw std::invalid_argument "file:line: field 'x': what".
+// Errors throw std::invalid_argument "file:line: field 'x': what". Errors and warnings quote the
+// file with control characters and bytes that are not UTF-8 written as \xNN (PrintableForLog).
 
 #pragma once
 
@@ -107,7 +108,7 @@ struct PassthroughSpec {
 struct ConfigWarning {
   ConfigLocation location;
   std::string message;
-  std::string ToString() const;  // "file:line: warning: message"
+  std::string ToString() const;  // "file:line: warning: message", through PrintableForLog
 };
 
 struct VrpnConfig {

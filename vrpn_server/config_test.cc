@@ -243,6 +243,34 @@ TEST(ParseVrpnConfig, UnknownDeviceIsAWarningAndTheRestIsParsed) {
   EXPECT_NE(config.warnings[1].message.find("2 continuation line(s)"), std::string::npos);
 }
 
+TEST(ParseVrpnConfig, WarningsAndErrorsQuoteTheFileEscaped) {
+  // A warning or error quotes text of the file, and the server prints it to the operator's
+  // terminal: a control byte in vrpn.cfg reached it raw (ESC ]0;...BEL retitled the terminal, ESC
+  // [2J cleared it), and so did bytes that are not UTF-8. They are written as \xNN, as the server's
+  // log writes a client's text; printable UTF-8 stays.
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Joy\x1b]0;owned\x07lin Joy0\n"
+      "vrpn_Tracker_Fastrak T0 /dev/ttyS0 115200 IS900time extra\xe9 \xc2\x9b\n"
+      "vrpn_Ger\xc3\xa4t x\n",
+      "lab.cfg");
+  ASSERT_EQ(config.warnings.size(), 3u);
+  EXPECT_EQ(config.warnings[0].ToString(),
+            "lab.cfg:1: warning: unknown device type 'vrpn_Joy\\x1b]0;owned\\x07lin'; line ignored "
+            "(other devices are still served)");
+  EXPECT_EQ(config.warnings[1].ToString(),
+            "lab.cfg:2: warning: text after the baud rate and option ignored: "
+            "'extra\\xe9 \\xc2\\x9b'");
+  EXPECT_EQ(config.warnings[2].ToString(),
+            "lab.cfg:3: warning: unknown device type 'vrpn_Ger\xc3\xa4t'; line ignored (other "
+            "devices are still served)");
+  EXPECT_EQ(ParseError("vrpn_Tracker_NULL T 1 \x1b[2J\xff\n"),
+            "lab.cfg:1: field 'rate': expected a number, got '\\x1b[2J\\xff'");
+  // A command line (after a line that ends in a backslash) is trimmed, not split: a tab in it is
+  // quoted too.
+  EXPECT_EQ(ParseError("vrpn_Tracker_Fastrak T0 /dev/ttyS0 115200 \\\n*1\t2\n"),
+            "lab.cfg:2: field 'sleep': expected a number, got '1\\x092'");
+}
+
 TEST(ParseVrpnConfig, AnUnknownTrackcalLineIsAnError) {
   // A misspelt trackcal line was an unknown device, a warning: the server started and served the
   // tracker uncorrected. trackcal_ names are trackcal's own: an unknown one is a typo.
