@@ -16,6 +16,7 @@
 #include <string>
 #include <vector>
 
+#include "core/printable_text.h"
 #include "vrpn_server/app/app.h"
 #include "vrpn_server/app/calibration_corrector.h"
 #include "vrpn_server/app/config_setup.h"
@@ -201,7 +202,8 @@ int main(int argc, char** argv) {
   try {
     return trackcal::vrpn::Run(argc, argv);
   } catch (const std::exception& e) {
-    std::cerr << "trackcal-server: error: " << e.what() << "\n";
+    // The message may quote vrpn.cfg or a calibration file (a device name, a token).
+    std::cerr << "trackcal-server: error: " << trackcal::PrintableForLog(e.what()) << "\n";
     return 1;
   }
 }

@@ -145,7 +145,9 @@ void LogToStderr(const std::string& line) {
   ::gmtime_r(&now, &tm);
   char stamp[32];
   std::strftime(stamp, sizeof(stamp), "%Y-%m-%dT%H:%M:%SZ", &tm);
-  std::cerr << stamp << " trackcal-server: " << line << std::endl;
+  // Lines quote vrpn.cfg's device names and device text: the terminal gets them escaped
+  // (VrpnServer::Log's lines are already, and PrintableForLog leaves its own output unchanged).
+  std::cerr << stamp << " trackcal-server: " << PrintableForLog(line) << std::endl;
 }
 
 VrpnServer::VrpnServer(std::shared_ptr<const ServerCatalog> catalog, ServerOptions options,

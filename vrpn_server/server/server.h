@@ -179,7 +179,7 @@ class VrpnServer {
   ServerStats stats_;
 };
 
-// Writes "<UTC time> trackcal-server: line" to stderr.
+// Writes "<UTC time> trackcal-server: line" to stderr, `line` through PrintableForLog.
 void LogToStderr(const std::string& line);
 
 }  // namespace trackcal::vrpn
