@@ -12,38 +12,44 @@ constexpr PrintableFor kBothUses[] = {PrintableFor::kMessage, PrintableFor::kLog
 // What both uses do alike: the UTF-8 walk and the escape of C0 controls other than tab and line
 // feed, DEL and every byte that is not well-formed UTF-8.
 TEST(Printable, BothUsesKeepPrintableUtf8AndEscapeTheRest) {
+  struct Case {
+    std::string text;
+    std::string printable;
+  };
+  const Case kCases[] = {
+      {"poses.csv:3: column x: 'abc' is not a number",
+       "poses.csv:3: column x: 'abc' is not a number"},
+      {"Tracker0@host:3883 ~", "Tracker0@host:3883 ~"},
+      // Two-, three- and four-byte characters stay, the smallest and largest of each length too.
+      {"Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80", "Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80"},
+      {"J\xc3\xb6rg \xe2\x9c\x93", "J\xc3\xb6rg \xe2\x9c\x93"},
+      {"\xc2\xa0\xdf\xbf", "\xc2\xa0\xdf\xbf"},  // U+00A0, U+07FF
+      {"\xe0\xa0\x80\xed\x9f\xbf\xee\x80\x80",
+       "\xe0\xa0\x80\xed\x9f\xbf\xee\x80\x80"},  // U+0800, U+D7FF, U+E000
+      {"\xf0\x90\x80\x80\xf4\x8f\xbf\xbf",
+       "\xf0\x90\x80\x80\xf4\x8f\xbf\xbf"},  // U+10000, U+10FFFF
+      // C0 controls, CR, DEL.
+      {std::string("1.5\0x\r\x7f", 7), "1.5\\x00x\\x0d\\x7f"},
+      {std::string("a\0b\x7f", 4), "a\\x00b\\x7f"},
+      {"x\x1b[2J", "x\\x1b[2J"},
+      // A Latin-1 byte, a lone continuation byte, truncated sequences, a lead byte followed by
+      // ASCII, overlong forms ('/' in two bytes, U+07FF in three, U+FFFF in four), a UTF-16
+      // surrogate, a code point above U+10FFFF, bytes that never occur in UTF-8.
+      {"Jos\xe9", "Jos\\xe9"},
+      {"\x80", "\\x80"},
+      {"\xe2\x82", "\\xe2\\x82"},
+      {"\xe2\x9c", "\\xe2\\x9c"},
+      {"\xc3(", "\\xc3("},
+      {"\xc0\xaf", "\\xc0\\xaf"},
+      {"\xe0\x9f\xbf", "\\xe0\\x9f\\xbf"},
+      {"\xf0\x8f\xbf\xbf", "\\xf0\\x8f\\xbf\\xbf"},
+      {"\xed\xa0\x80", "\\xed\\xa0\\x80"},
+      {"\xf4\x90\x80\x80", "\\xf4\\x90\\x80\\x80"},
+      {"\xf5\xff", "\\xf5\\xff"},
+  };
   for (const PrintableFor use : kBothUses) {
     SCOPED_TRACE(use == PrintableFor::kMessage ? "message" : "log line");
-    EXPECT_EQ(Printable("poses.csv:3: column x: 'abc' is not a number", use),
-              "poses.csv:3: column x: 'abc' is not a number");
-    EXPECT_EQ(Printable("Tracker0@host:3883 ~", use), "Tracker0@host:3883 ~");
-    // Two-, three- and four-byte characters stay, the smallest and largest of each length too.
-    EXPECT_EQ(Printable("Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80", use),
-              "Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80");
-    EXPECT_EQ(Printable("J\xc3\xb6rg \xe2\x9c\x93", use), "J\xc3\xb6rg \xe2\x9c\x93");
-    EXPECT_EQ(Printable("\xc2\xa0\xdf\xbf", use), "\xc2\xa0\xdf\xbf");  // U+00A0, U+07FF
-    EXPECT_EQ(Printable("\xe0\xa0\x80\xed\x9f\xbf\xee\x80\x80", use),
-              "\xe0\xa0\x80\xed\x9f\xbf\xee\x80\x80");  // U+0800, U+D7FF, U+E000
-    EXPECT_EQ(Printable("\xf0\x90\x80\x80\xf4\x8f\xbf\xbf", use),
-              "\xf0\x90\x80\x80\xf4\x8f\xbf\xbf");  // U+10000, U+10FFFF
-    // C0 controls, CR, DEL.
-    EXPECT_EQ(Printable(std::string("1.5\0x\r\x7f", 7), use), "1.5\\x00x\\x0d\\x7f");
-    EXPECT_EQ(Printable(std::string("a\0b\x7f", 4), use), "a\\x00b\\x7f");
-    EXPECT_EQ(Printable("x\x1b[2J", use), "x\\x1b[2J");
-    // A Latin-1 byte, a lone continuation byte, truncated sequences, a lead byte followed by
-    // ASCII, overlong forms ('/' in two bytes, U+07FF in three, U+FFFF in four), a UTF-16
-    // surrogate, a code point above U+10FFFF, bytes that never occur in UTF-8.
-    EXPECT_EQ(Printable("Jos\xe9", use), "Jos\\xe9");
-    EXPECT_EQ(Printable("\x80", use), "\\x80");
-    EXPECT_EQ(Printable("\xe2\x82", use), "\\xe2\\x82");
-    EXPECT_EQ(Printable("\xe2\x9c", use), "\\xe2\\x9c");
-    EXPECT_EQ(Printable("\xc3(", use), "\\xc3(");
-    EXPECT_EQ(Printable("\xc0\xaf", use), "\\xc0\\xaf");
-    EXPECT_EQ(Printable("\xe0\x9f\xbf", use), "\\xe0\\x9f\\xbf");
-    EXPECT_EQ(Printable("\xf0\x8f\xbf\xbf", use), "\\xf0\\x8f\\xbf\\xbf");
-    EXPECT_EQ(Printable("\xed\xa0\x80", use), "\\xed\\xa0\\x80");
-    EXPECT_EQ(Printable("\xf4\x90\x80\x80", use), "\\xf4\\x90\\x80\\x80");
-    EXPECT_EQ(Printable("\xf5\xff", use), "\\xf5\\xff");
+    for (const Case& c : kCases) EXPECT_EQ(Printable(c.text, use), c.printable);
     // Idempotent: the output has no byte it would change (a backslash is kept as it is).
     for (const std::string& text :
          {std::string("x\x1b\xff\n\t\xc2\x9b\\x41"), std::string("\xe2\x82\xac\x00\xc3", 6)}) {
