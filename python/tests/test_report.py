@@ -332,21 +332,8 @@ def test_distortion_field_leaves_blank_where_the_model_inverse_does_not_resolve(
     # sensor_offset, receiver_gain, plane and dipole; 50 of its 600 stations not converged): beyond
     # the plane the inverse does not converge and the "correction" there is ~0.15 mm, drawn as a
     # dark band with streamlines through it, as if that part of the volume were undistorted.
-    import json
     import matplotlib.pyplot as plt
-    cap = captures.load_poses(simulate(tmp_path / "capture", seed=38))
-    validation.fit_polynomial(cap.select_set("calib"), degree=1).save(tmp_path / "poly.json")
-    doc = json.loads((tmp_path / "poly.json").read_text())  # a valid file; its correction replaced
-    doc["calibrated_volume"].update({"min": [-0.85, -0.75, -0.8], "max": [0.88, 0.71, -0.27]})
-    doc["corrections"] = [{
-        "type": "physical", "field_constant": 1.0, "transmitter_octupole_m2": [0, 0, 0], "objects": [],
-        "planes": [{"name": "floor", "point_in_transmitter": [0.262, 0.011, 0.195],
-                    "normal_in_transmitter": [0.8, 0.033, 0.6], "attenuation": 0.07}],
-        "receiver_from_body": {"rotation_xyzw": [0, 0, 0, 1], "translation": [0, 0, 0]},
-        "receiver_gain_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "tolerance_m": 1e-12,
-        "max_iterations": 50, "fold_reach": 3.0, "max_correction_fraction": 0.5, "max_noise_gain": 10.0}]
-    (tmp_path / "physical.json").write_text(json.dumps(doc))
-    cal = trackcal.Calibration.load(str(tmp_path / "physical.json"))
+    _, cal = _capture_and_calibration_the_inverse_does_not_resolve_everywhere(tmp_path)
     # The figure's grid: 25 x 25 over the volume's x, y on its mid-plane.
     lo, hi = np.asarray(cal.volume_min), np.asarray(cal.volume_max)
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 25), np.linspace(lo[1], hi[1], 25))
@@ -363,3 +350,46 @@ def test_distortion_field_leaves_blank_where_the_model_inverse_does_not_resolve(
         assert f"hatched: {int(unresolved.sum())} of {len(pts)}" in fig.axes[0].get_title()
     finally:
         plt.close(fig)
+
+
+def _capture_and_calibration_the_inverse_does_not_resolve_everywhere(tmp_path):
+    """A paper capture and a physical calibration whose fitted floor plane cuts the calibrated
+    volume: beyond the plane its model inverse does not converge (figure 6's hatched points)."""
+    import json
+    cap = captures.load_poses(simulate(tmp_path / "capture", seed=38))
+    validation.fit_polynomial(cap.select_set("calib"), degree=1).save(tmp_path / "poly.json")
+    doc = json.loads((tmp_path / "poly.json").read_text())  # a valid file; its correction replaced
+    doc["calibrated_volume"].update({"min": [-0.85, -0.75, -0.8], "max": [0.88, 0.71, -0.27]})
+    doc["corrections"] = [{
+        "type": "physical", "field_constant": 1.0, "transmitter_octupole_m2": [0, 0, 0], "objects": [],
+        "planes": [{"name": "floor", "point_in_transmitter": [0.262, 0.011, 0.195],
+                    "normal_in_transmitter": [0.8, 0.033, 0.6], "attenuation": 0.07}],
+        "receiver_from_body": {"rotation_xyzw": [0, 0, 0, 1], "translation": [0, 0, 0]},
+        "receiver_gain_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "tolerance_m": 1e-12,
+        "max_iterations": 50, "fold_reach": 3.0, "max_correction_fraction": 0.5, "max_noise_gain": 10.0}]
+    (tmp_path / "physical.json").write_text(json.dumps(doc))
+    return cap, trackcal.Calibration.load(str(tmp_path / "physical.json"))
+
+
+def test_report_mentions_hatched_points_of_figure_6_only_when_there_are_some(tmp_path):
+    # Every figure 6 caption said "hatched (blank) where a physical term's model inverse does not
+    # resolve the pose", also under a polynomial's field, which resolves every point: a reader looked
+    # for a missing part of the field. Said only when some points are hatched, with their count.
+    import matplotlib.pyplot as plt
+    cap, physical = _capture_and_calibration_the_inverse_does_not_resolve_everywhere(tmp_path)
+    polynomial = validation.fit_polynomial(cap.select_set("calib"), degree=2)
+    captions = {}
+    for name, cal in (("polynomial", polynomial), ("physical", physical)):
+        figs = report.build_figures(validation.validate(cap, cal, analyse_covariates=False))
+        try:
+            (captions[name], fig), = [(c, f) for n, c, f in figs if n == "fig6_distortion_field.png"]
+            title = fig.axes[0].get_title()
+        finally:
+            for _, _, f in figs:
+                plt.close(f)
+        if name == "polynomial":
+            assert "hatched" not in captions[name] and "hatched" not in title, captions[name]
+        else:  # the count the figure's title gives (test_distortion_field_leaves_blank_...)
+            n, total = map(int, re.search(r"hatched: (\d+) of (\d+)", title).groups())
+            assert 0 < n < total == 625
+            assert f"hatched (blank): {n} of its {total} grid points" in captions[name], captions[name]

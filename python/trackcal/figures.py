@@ -193,7 +193,9 @@ def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[flo
 
 def distortion_field(calibration, *, z: Optional[float] = None, n: int = 25, streamlines: bool = True):
     """Figure 6: the calibration's position correction (corrected - reported) on a z-slice of its
-    volume, arrows (or streamlines) of the x, y components over a map of the full magnitude [mm]."""
+    volume, arrows (or streamlines) of the x, y components over a map of the full magnitude [mm].
+    The figure's ``unresolved_points`` is (points the model inverse does not resolve, grid points):
+    those are left blank over a hatched background."""
     lo, hi = np.asarray(calibration.volume_min), np.asarray(calibration.volume_max)
     if z is None:
         z = 0.5 * (lo[2] + hi[2])
@@ -227,6 +229,7 @@ def distortion_field(calibration, *, z: Optional[float] = None, n: int = 25, str
             if unresolved.any() else "")
     ax.set_title(f"Fitted distortion (position correction), z = {z:.2f} m{note}", fontsize=10 if note else None)
     fig.tight_layout()
+    fig.unresolved_points = (int(unresolved.sum()), int(unresolved.size))  # for the report's caption
     return fig
 
 

@@ -162,11 +162,15 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
                                      after_vectors=after.orientation if after else None)),
     ]
     if v.calibration is not None:
+        field = F.distortion_field(v.calibration)
+        # The hatching only when there is some (a polynomial or LUT resolves every point): the caption
+        # described hatched points under every figure 6, as if some part of the field were missing.
+        n_unresolved, n_points = field.unresolved_points
+        hatched = (f"; hatched (blank): {n_unresolved} of its {n_points} grid points, where a physical term's "
+                   "model inverse does not resolve the pose" if n_unresolved else "")
         figs.append(("fig6_distortion_field.png",
                      "Figure 6: the calibration's position correction on the horizontal mid-plane of its "
-                     "volume: magnitude as colour, x-y direction as streamlines; hatched (blank) where a physical "
-                     "term's model inverse does not resolve the pose.",
-                     F.distortion_field(v.calibration)))
+                     f"volume: magnitude as colour, x-y direction as streamlines{hatched}.", field))
     final = after if after is not None else before
     figs.append(("residual_map_position.png",
                  "Residual map: remaining position error per station (top and side views).",
