@@ -393,3 +393,30 @@ def test_report_mentions_hatched_points_of_figure_6_only_when_there_are_some(tmp
             n, total = map(int, re.search(r"hatched: (\d+) of (\d+)", title).groups())
             assert 0 < n < total == 625
             assert f"hatched (blank): {n} of its {total} grid points" in captions[name], captions[name]
+
+
+def test_orientation_slice_limits_hold_every_arrow_tip():
+    # Autoscaling sees a quiver's tails (the stations) only: arrows at the slab's edge pointing out
+    # left the axes (measured with these stations: before-tips 0.046 m past the y limits).
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(-0.5, 0.5, size=(60, 3))
+    pos[:, 2] = 0.0
+    vec = np.zeros((60, 3))
+    vec[:, :2] = 0.01 * pos[:, :2]  # pointing away from the middle, longest at the corners
+    vec[5] = np.nan  # a station without a value draws no arrow and moves no limit
+    fig = figures.orientation_vectors_slice(pos, vec, after_vectors=-vec / 2)
+    try:
+        fig.canvas.draw()  # the limits the PNG has (the equal aspect adjusts them when drawn)
+        ax = fig.axes[0]
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        arrows = [c for c in ax.collections if hasattr(c, "scale")]
+        assert len(arrows) == 2
+        for q in arrows:  # angles and scale_units "xy": the tip is the tail + (U, V) / scale
+            tips = q.get_offsets() + np.column_stack([q.U, q.V]) / q.scale
+            tips = tips[~np.broadcast_to(np.asarray(q.Umask, dtype=bool), len(tips))]  # NaN: masked, no arrow
+            assert len(tips) == 59
+            assert x0 < tips[:, 0].min() and tips[:, 0].max() < x1 and y0 < tips[:, 1].min() and tips[:, 1].max() < y1
+        assert np.all(np.isfinite([x0, x1, y0, y1]))
+    finally:
+        plt.close(fig)

@@ -177,6 +177,12 @@ def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[flo
         q = ax.quiver(p[:, 0], p[:, 1], v[:, 0], v[:, 1], color="tab:red", label="before", **kw)
         if after_vectors is not None:
             ax.quiver(p[:, 0], p[:, 1], a[:, 0], a[:, 1], color="tab:blue", label="after", **kw)
+        # The limits hold every arrow's tip, not only the stations (autoscaling sees a quiver's
+        # tails alone): an arrow at the slab's edge pointing out was cut at the axes (measured: tips
+        # 0.046 m past the y limits of a 1 m slab).
+        tips = np.concatenate([p[:, :2] + v[:, :2] / scale, p[:, :2] + a[:, :2] / scale if len(a) else p[:, :2]])
+        ax.update_datalim(tips[np.all(np.isfinite(tips), axis=1)])
+        ax.autoscale_view()
         key = float(f"{vmax / 2:.1g}")
         ax.quiverkey(q, 0.02, -0.1, key, f"{key:g} deg", labelpos="E", coordinates="axes")
         ax.legend(fontsize=8, loc="lower right")
