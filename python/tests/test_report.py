@@ -420,3 +420,27 @@ def test_orientation_slice_limits_hold_every_arrow_tip():
         assert np.all(np.isfinite([x0, x1, y0, y1]))
     finally:
         plt.close(fig)
+
+
+def test_covariate_bars_set_a_finding_explained_by_another_family_apart():
+    # diagnose and the table say "time ... (explained by position)"; the chart drew time as orange as
+    # z, a finding that stands on its own, and its legend (the title) said "orange = significant".
+    import matplotlib.colors as mcolors
+    import matplotlib.pyplot as plt
+    effects = [validation.CovariateEffect("z", "orientation_deg", 0.21, 1.0 / 6000, True, 480),
+               validation.CovariateEffect("time", "orientation_deg", 0.20, 1.0 / 6000, True, 480,
+                                          confounded_with="position"),
+               validation.CovariateEffect("speed", "orientation_deg", 0.02, 0.3, False, 480)]
+    fig = figures.covariate_bars(effects, target="orientation_deg")
+    try:
+        ax = fig.axes[0]
+        bars = dict(zip([t.get_text() for t in ax.get_yticklabels()], ax.patches))
+        colour = {name: mcolors.to_hex(bar.get_facecolor()) for name, bar in bars.items()}
+        assert len(set(colour.values())) == 3, colour  # finding, explained finding, not significant
+        legend = fig.legends + [ax.get_legend()] if ax.get_legend() else fig.legends
+        entries = {t.get_text(): mcolors.to_hex(h.get_facecolor())
+                   for lg in legend for t, h in zip(lg.get_texts(), lg.legend_handles)}
+        assert entries == {"significant": colour["z"], "significant, explained by position": colour["time"],
+                           "not significant": colour["speed"]}, entries
+    finally:
+        plt.close(fig)

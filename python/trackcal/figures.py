@@ -264,17 +264,45 @@ def residual_map(positions, values, *, label: str = "position error [mm]", title
 
 
 def covariate_bars(effects, *, target: str = "position_mm", top: int = 15):
-    """Cross-validated R^2 of each covariate for one residual target; significant ones filled."""
+    """Cross-validated R^2 of each covariate for one residual target: significant ones orange, those
+    diagnose marks explained by another covariate family (``confounded_with``: time that the
+    positions explain) in a paler hatched colour, the rest grey; a legend says which is which."""
+    from matplotlib.patches import Patch
     rows = [e for e in effects if e.target == target][:top]
-    fig, ax = plt.subplots(figsize=(6.4, 0.3 * max(len(rows), 3) + 1.2))
+    # The legend in a row of its own under the axes (constrained layout makes room): inside, it hid
+    # the ends of bars of equal length.
+    fig, ax = plt.subplots(figsize=(6.4, 0.3 * max(len(rows), 3) + 1.5), layout="constrained")
     names = [e.covariate for e in rows][::-1]
     vals = [max(e.r2, 0.0) for e in rows][::-1]
-    colors = ["tab:orange" if e.significant else "lightgray" for e in rows][::-1]
-    ax.barh(names, vals, color=colors)
+    # An explained-away finding was as orange as one that stands on its own, where diagnose and the
+    # table say "(explained by position)".
+    kinds = {"finding": dict(color="tab:orange", label="significant"),
+             "explained": dict(color="navajowhite", hatch="//", edgecolor="tab:orange",
+                               label="significant, explained by {}"),
+             "none": dict(color="lightgray", label="not significant")}
+
+    def kind(e):
+        return "none" if not e.significant else "explained" if e.confounded_with else "finding"
+
+    bars = ax.barh(names, vals, color=[kinds[kind(e)]["color"] for e in rows][::-1])
+    for bar, e in zip(bars, rows[::-1]):
+        if kind(e) == "explained":
+            bar.set_hatch(kinds["explained"]["hatch"])
+            bar.set_edgecolor(kinds["explained"]["edgecolor"])
+    handles = []
+    for k in ("finding", "explained", "none"):
+        of_kind = [e for e in rows if kind(e) == k]
+        if not of_kind:
+            continue
+        style = {a: b for a, b in kinds[k].items() if a != "label"}
+        others = sorted({str(e.confounded_with) for e in of_kind})
+        handles.append(Patch(facecolor=style.pop("color"), **style,
+                             label=kinds[k]["label"].format(" or ".join(others))))
+    if handles:
+        fig.legend(handles=handles, fontsize=8, loc="outside lower center", ncol=len(handles))
     ax.set_xlabel("share of residual variance explained (cross-validated R²)")
-    ax.set_title(f"Residual structure: {target} (orange = significant)")
+    ax.set_title(f"Residual structure: {target}")
     ax.grid(alpha=0.3, axis="x")
-    fig.tight_layout()
     return fig
 
 

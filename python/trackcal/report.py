@@ -183,7 +183,9 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
         for target in ("position_mm", "orientation_deg"):
             figs.append((f"covariates_{target}.png",
                          f"Residual structure: cross-validated share of the {target} variance each covariate "
-                         "explains; orange bars pass the permutation test.",
+                         "explains; orange bars pass the permutation test, pale hatched ones pass it but "
+                         "another covariate family explains them (time that the positions explain), as "
+                         "diagnose says.",
                          F.covariate_bars(v.covariate_effects, target=target)))
     if candidates and candidates.get("candidates"):
         figs.append(("candidates.png",
