@@ -444,3 +444,34 @@ def test_covariate_bars_set_a_finding_explained_by_another_family_apart():
                            "not significant": colour["speed"]}, entries
     finally:
         plt.close(fig)
+
+
+def test_figures_of_a_long_stream_place_legends_and_draw_dots_without_the_slow_paths():
+    # A 10-minute stream (72000 samples): at loc "best" the legend of figures 4 and 5 counted every
+    # point under each candidate place (4 s a figure), and the residual map's colour-mapped dots
+    # each had their edge stroked apart (2.2 s of its 2.5 s). bench/bench_report_figures.py times it.
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(4)
+    n = 3000
+    distance = rng.uniform(0.2, 1.2, n)
+    fig = figures.error_vs_distance(distance, 30 * distance, 3 * distance, held_out=rng.random(n) < 0.3)
+    try:
+        fig.canvas.draw()
+        assert fig.axes[0].get_legend() is None and len(fig.legends) == 1
+        legend = fig.legends[0]
+        assert legend._loc != 0  # not "best": a fixed place, found without counting points
+        # ... under the axes, so it hides no point (the room made by the layout, not over the data).
+        box, axes_box = legend.get_window_extent(), fig.axes[0].get_window_extent()
+        assert box.y1 < axes_box.y0 and box.y0 >= 0
+        assert {t.get_text() for t in legend.get_texts()} >= {"before", "after, valid set (binned mean)"}
+    finally:
+        plt.close(fig)
+    fig = figures.residual_map(rng.normal(size=(n, 3)), rng.uniform(0, 5, n))
+    try:
+        for ax in fig.axes[:2]:
+            dots = ax.collections[0]
+            assert np.all(dots.get_linewidths() == 0)
+            # As large as the dots were: the default area 14 pt^2 plus the 1.5 pt edge around it.
+            assert np.allclose(np.sqrt(dots.get_sizes()), np.sqrt(14.0) + 1.5)
+    finally:
+        plt.close(fig)

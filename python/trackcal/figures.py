@@ -90,7 +90,10 @@ def error_vs_distance(distance, before, after=None, *, quantity: str = "position
     ``outside`` (a boolean mask, optional) marks stations outside the calibrated volume, crossed
     after the correction: there the correction is extrapolated."""
     distance = np.asarray(distance, dtype=float)
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    # The legend in rows of its own under the axes (constrained layout makes room), so it hides no
+    # point. Inside at loc "best", matplotlib counted every point under each candidate place: 4 s a
+    # figure of a 10-minute stream (72000 samples), a third of the report's figure time.
+    fig, ax = plt.subplots(figsize=(6.4, 4.8), layout="constrained")
     ax.scatter(distance, before, s=8, alpha=0.45, color="tab:red", label="before")
     xb, yb = _binned(distance, before)
     ax.plot(xb, yb, color="darkred", lw=2, label="before (binned mean)")
@@ -117,8 +120,7 @@ def error_vs_distance(distance, before, after=None, *, quantity: str = "position
     ax.set_ylabel(f"{quantity} error [{unit}]")
     ax.set_title(title or f"{quantity.capitalize()} error vs distance")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    fig.legend(fontsize=8, loc="outside lower center", ncol=3)
     return fig
 
 
@@ -239,6 +241,11 @@ def distortion_field(calibration, *, z: Optional[float] = None, n: int = 25, str
     return fig
 
 
+# Area [pt^2] of an edgeless marker as large as a scatter marker of area 14 with matplotlib's
+# default edge (1.5 pt, the face's colour): diameter sqrt(14) + 1.5 pt.
+_EDGELESS_14 = (np.sqrt(14.0) + 1.5) ** 2
+
+
 def residual_map(positions, values, *, label: str = "position error [mm]", title: str = "Residual map"):
     """Stations coloured by a residual: top view (x, y) and side view (x, z)."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
@@ -248,8 +255,11 @@ def residual_map(positions, values, *, label: str = "position error [mm]", title
     finite = np.isfinite(values)
     vmax = float(np.percentile(values[finite], 98)) if finite.any() else 1.0
     for ax, (i, j, names) in zip(axes, [(0, 1, ("x", "y")), (0, 2, ("x", "z"))]):
-        sc = ax.scatter(positions[finite, i], positions[finite, j], c=values[finite], s=14, cmap="magma_r",
-                        vmin=0, vmax=max(vmax, 1e-12))
+        # Markers without an edge, as large as the default's face plus its 1.5 pt edge of the face's
+        # colour: the same dots, but Agg strokes each colour-mapped marker's edge separately, and of a
+        # 10-minute stream (72000 samples) that took 2.2 s of the figure's 2.5 s.
+        sc = ax.scatter(positions[finite, i], positions[finite, j], c=values[finite], s=_EDGELESS_14,
+                        linewidths=0, cmap="magma_r", vmin=0, vmax=max(vmax, 1e-12))
         if not finite.all():
             ax.scatter(positions[~finite, i], positions[~finite, j], marker="x", s=14, color="gray",
                        label=f"no value ({int((~finite).sum())})")
