@@ -475,3 +475,23 @@ def test_figures_of_a_long_stream_place_legends_and_draw_dots_without_the_slow_p
             assert np.allclose(np.sqrt(dots.get_sizes()), np.sqrt(14.0) + 1.5)
     finally:
         plt.close(fig)
+
+
+def test_orientation_slice_legend_hides_no_arrow():
+    # The legend sat inside the axes (lower right), over the arrows of the slab's corner: measured on
+    # a 10-minute stream's figure 7, where the largest arrows are in that corner.
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(5)
+    pos = rng.uniform(-0.5, 0.5, size=(80, 3))
+    pos[:, 2] = 0.0
+    vec = rng.normal(scale=0.01, size=(80, 3))
+    fig = figures.orientation_vectors_slice(pos, vec, after_vectors=vec / 3)
+    try:
+        fig.canvas.draw()
+        ax = fig.axes[0]
+        legend, box = ax.get_legend(), ax.get_window_extent()
+        assert legend is not None and {t.get_text() for t in legend.get_texts()} == {"before", "after"}
+        shown = legend.get_window_extent()
+        assert shown.y1 <= box.y0 and shown.y0 >= 0 and shown.x1 <= fig.bbox.x1  # under the axes, on the page
+    finally:
+        plt.close(fig)

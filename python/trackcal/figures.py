@@ -187,7 +187,8 @@ def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[flo
         ax.autoscale_view()
         key = float(f"{vmax / 2:.1g}")
         ax.quiverkey(q, 0.02, -0.1, key, f"{key:g} deg", labelpos="E", coordinates="axes")
-        ax.legend(fontsize=8, loc="lower right")
+        # Under the axes, in line with the key arrow: inside (lower right) it hid the arrows there.
+        ax.legend(fontsize=8, loc="upper right", bbox_to_anchor=(1.0, -0.06), ncol=2)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
