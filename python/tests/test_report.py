@@ -471,8 +471,10 @@ def test_figures_of_a_long_stream_place_legends_and_draw_dots_without_the_slow_p
         for ax in fig.axes[:2]:
             dots = ax.collections[0]
             assert np.all(dots.get_linewidths() == 0)
-            # As large as the dots were: the default area 14 pt^2 plus the 1.5 pt edge around it.
-            assert np.allclose(np.sqrt(dots.get_sizes()), np.sqrt(14.0) + 1.5)
+            # As large as the dots were: the area 14 pt^2 plus the default edge (1 pt) around it.
+            import matplotlib
+            assert matplotlib.rcParams["patch.linewidth"] == 1.0
+            assert np.allclose(np.sqrt(dots.get_sizes()), np.sqrt(14.0) + 1.0)
     finally:
         plt.close(fig)
 

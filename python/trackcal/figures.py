@@ -242,9 +242,10 @@ def distortion_field(calibration, *, z: Optional[float] = None, n: int = 25, str
     return fig
 
 
-# Area [pt^2] of an edgeless marker as large as a scatter marker of area 14 with matplotlib's
-# default edge (1.5 pt, the face's colour): diameter sqrt(14) + 1.5 pt.
-_EDGELESS_14 = (np.sqrt(14.0) + 1.5) ** 2
+def _edgeless_area(area: float) -> float:
+    """Area [pt^2] of an edgeless scatter marker as large as one of ``area`` with matplotlib's
+    default edge (rcParams patch.linewidth, 1 pt, in the face's colour): diameter sqrt(area) + edge."""
+    return (np.sqrt(area) + float(matplotlib.rcParams["patch.linewidth"])) ** 2
 
 
 def residual_map(positions, values, *, label: str = "position error [mm]", title: str = "Residual map"):
@@ -256,10 +257,10 @@ def residual_map(positions, values, *, label: str = "position error [mm]", title
     finite = np.isfinite(values)
     vmax = float(np.percentile(values[finite], 98)) if finite.any() else 1.0
     for ax, (i, j, names) in zip(axes, [(0, 1, ("x", "y")), (0, 2, ("x", "z"))]):
-        # Markers without an edge, as large as the default's face plus its 1.5 pt edge of the face's
-        # colour: the same dots, but Agg strokes each colour-mapped marker's edge separately, and of a
+        # Markers without an edge, as large as the default's face plus its edge of the face's colour:
+        # the same dots, but Agg strokes each colour-mapped marker's edge separately, and of a
         # 10-minute stream (72000 samples) that took 2.2 s of the figure's 2.5 s.
-        sc = ax.scatter(positions[finite, i], positions[finite, j], c=values[finite], s=_EDGELESS_14,
+        sc = ax.scatter(positions[finite, i], positions[finite, j], c=values[finite], s=_edgeless_area(14.0),
                         linewidths=0, cmap="magma_r", vmin=0, vmax=max(vmax, 1e-12))
         if not finite.all():
             ax.scatter(positions[~finite, i], positions[~finite, j], marker="x", s=14, color="gray",
