@@ -8,6 +8,7 @@
 #include <stdexcept>
 #include <string_view>
 
+#include "core/file_util.h"
 #include "core/printable_text.h"
 #include "fit/terms_physical.h"
 
