@@ -12,6 +12,7 @@
 #include <thread>
 #include <vector>
 
+#include "core/printable_text.h"
 #include "vrpn_server/config.h"
 #include "vrpn_server/fastrak/driver.h"
 #include "vrpn_server/fastrak/from_config.h"
@@ -38,7 +39,7 @@ volatile std::sig_atomic_t g_stop = 0;
 void OnSignal(int) { g_stop = 1; }
 
 [[noreturn]] void UsageError(const std::string& message) {
-  std::cerr << "trackcal-fastrak-monitor: " << message << "\n" << kUsage;
+  std::cerr << "trackcal-fastrak-monitor: " << trackcal::PrintableForLog(message) << "\n" << kUsage;
   std::exit(2);
 }
 
@@ -158,7 +159,7 @@ int main(int argc, char** argv) {
     };
     callbacks.on_message = [&](fastrak::Severity s, const std::string& text) {
       std::lock_guard<std::mutex> lock(out_mutex);
-      std::cerr << fastrak::SeverityName(s) << ": " << text << std::endl;
+      std::cerr << fastrak::SeverityName(s) << ": " << PrintableForLog(text) << std::endl;
     };
     fastrak::FastrakDriver driver(options, callbacks);
     std::signal(SIGINT, OnSignal);
@@ -180,7 +181,9 @@ int main(int argc, char** argv) {
               << st.quick_restarts << "\n";
     return 0;
   } catch (const std::exception& e) {
-    std::cerr << "trackcal-fastrak-monitor: " << e.what() << "\n";
+    // The message may quote the command line or vrpn.cfg (a port or tracker name): escaped, as
+    // trackcal-server prints its fatal error, so that no byte drives the terminal.
+    std::cerr << "trackcal-fastrak-monitor: " << PrintableForLog(e.what()) << "\n";
     return 1;
   }
 }

@@ -4,6 +4,7 @@
 
 #include <cstdio>
 #include <cstdlib>
+#include <fstream>
 #include <sstream>
 #include <string>
 
@@ -65,6 +66,25 @@ TEST(FastrakMonitor, SecondsThatIsNotANumberIsAUsageError) {
       (dir / "tty").string() + " --fast --seconds nan 2>&1; echo rc=$?");
   EXPECT_NE(out.find("--seconds: bad value 'nan'"), std::string::npos) << out;
   EXPECT_NE(out.find("rc=2"), std::string::npos) << out;
+}
+
+TEST(FastrakMonitor, PrintsTheBytesOfItsArgumentsAndVrpnCfgEscaped) {
+  // A tracker name with an escape sequence (ESC [ 2 J clears the screen) reached the terminal raw
+  // in the fatal error ("no vrpn_Tracker_Fastrak named ..."), as trackcal-server's once did.
+  const char* binary_dir = std::getenv("TRACKCAL_BINARY_DIR");
+  ASSERT_NE(binary_dir, nullptr);
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_monitor");
+  {
+    std::ofstream cfg(dir / "vrpn.cfg");
+    cfg << "vrpn_Tracker_Fastrak Tracker0 /dev/ttyS0 115200\n";
+  }
+  const std::string out = RunCommand("timeout 10 " + std::string(binary_dir) +
+                                     "/vrpn_server/fastrak/trackcal-fastrak-monitor --config " +
+                                     (dir / "vrpn.cfg").string() +
+                                     " --tracker \"$(printf 'T\\033[2J')\" 2>&1; echo rc=$?");
+  EXPECT_NE(out.find("no vrpn_Tracker_Fastrak named 'T\\x1b[2J'"), std::string::npos) << out;
+  EXPECT_EQ(out.find('\x1b'), std::string::npos) << out;
+  EXPECT_NE(out.find("rc=1"), std::string::npos) << out;
 }
 
 }  // namespace
