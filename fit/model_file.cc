@@ -352,14 +352,16 @@ ModelSpec ParseModel(const std::string& text, const std::string& source_name, bo
     documents = YAML::LoadAll(text);
   } catch (const YAML::Exception& e) {
     // A tab-indented file (an editor's default) got yaml-cpp's "illegal block entry" or "illegal
-    // map value": name the first line indented with a tab, if the error is there or after it.
+    // map value": name the line indented with a tab where the error is. yaml-cpp reports a tab
+    // indent on that line itself; a tab-indented line before it is legal YAML (a flow list's or a
+    // block scalar's continuation) and not the cause of a later error.
     std::string_view rest(text);
     for (int line = 1; !rest.empty() && (e.mark.is_null() || line <= e.mark.line + 1); ++line) {
       const std::string_view row = rest.substr(0, rest.find('\n'));
       const size_t content = row.find_first_not_of(" \t");
       const size_t tab = row.find('\t');
-      if (content != std::string_view::npos && tab < content && row[content] != '\r' &&
-          row[content] != '#') {
+      if ((e.mark.is_null() || line == e.mark.line + 1) && content != std::string_view::npos &&
+          tab < content && row[content] != '\r' && row[content] != '#') {
         throw std::invalid_argument(source_name + ":" + std::to_string(line) + ":" +
                                     std::to_string(tab + 1) +
                                     ": YAML syntax error: a tab in the indentation; YAML indents "

@@ -175,6 +175,14 @@ TEST(ParseModelYaml, ATabInTheIndentationIsNamed) {
   EXPECT_EQ(ErrorOf("\t# comment\nterms:\n  - type:\tpolynomial  \t# tab\n"), "");
   EXPECT_EQ(ErrorOf("\t# comment\nterms:\n  - type: polynomial\n  - [\n"),
             "model.yaml:5:1: YAML syntax error: end of sequence flow not found");
+  // Tab-indented continuation lines of a flow mapping and of a block scalar are legal YAML (the
+  // file parses without the last line): a typo further down is named, not the tab.
+  const std::string legal_tabs =
+      "noise: {position_mm: 1.0,\n\torientation_deg: 0.2}\nterms:\n  - type: polynomial\n"
+      "    name: |\n      a\n      \tb\n";
+  EXPECT_EQ(ErrorOf(legal_tabs), "");
+  EXPECT_EQ(ErrorOf(legal_tabs + "  - type: [\n"),
+            "model.yaml:9:1: YAML syntax error: end of sequence flow not found");
 }
 
 TEST(ParseModelYaml, RejectsASecondDocument) {
