@@ -283,6 +283,10 @@ struct Candidate {
   std::vector<std::string> term_names;  // kTerm: every added term's name (two for a pair)
   std::string model_text;           // the whole candidate model file
   bool fitted = false;              // false: the fit failed (error says why)
+  // A nested candidate whose fit ran but ended above the base's chi2 (fitted false): the diagnosis
+  // looked at it, so it stays in the Bonferroni family (a smaller family would make every other
+  // candidate's test less strict).
+  bool ended_above_base = false;
   std::string error;
   bool converged = false;
   bool cross_validated = false;  // false: screened out by BIC (cross_validate_top) or failed

@@ -232,12 +232,15 @@ TEST(FastCrossValidation, NestedFitsAboveTheBaseFailed) {
   const auto stations = PaperSmallStations("", 1);
   CandidateOptions options;
   options.num_threads = 1;
-  options.effects = {"background_field"};
+  // A second, harmless candidate (the same term started at its null) for the family's count.
+  options.effects = {"background_field", "uniform_field"};
   options.flexible.clear();
   options.catalog = {{"background_field", CandidateKind::kTerm,
                       "{type: background_field, degree: 0, "
                       "coefficients: [10, 0, 0, 0, 10, 0, 0, 0, 10]}",
-                      true, false, "distant sources"}};
+                      true, false, "distant sources"},
+                     {"uniform_field", CandidateKind::kTerm, "{type: background_field, degree: 0}",
+                      true, false, "a uniform field"}};
   const Diagnosis d = DiagnoseCandidates(
       stations, "solver: {max_iterations: 1}\nterms:\n  - type: polynomial\n    degree: 4\n",
       "model.yaml", "paper_small", options);
@@ -251,6 +254,10 @@ TEST(FastCrossValidation, NestedFitsAboveTheBaseFailed) {
             std::string::npos)
       << c.reason;
   EXPECT_NE(c.reason.find("above the base model's"), std::string::npos) << c.reason;
+  // Its fit ran and was looked at: it stays in the Bonferroni family (two candidates), which a
+  // failed fit's removal would shrink, making the other candidate's test less strict.
+  EXPECT_TRUE(c.ended_above_base);
+  EXPECT_DOUBLE_EQ(d.p_threshold, options.family_alpha / 2);
 }
 
 // Numbers equal to 1e-9 relative, everything else exactly.
