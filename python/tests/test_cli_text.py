@@ -183,3 +183,24 @@ def test_error_vs_distance_tells_the_in_sample_and_the_extrapolated_stations_apa
     labels = [h.get_label() for h in fig.axes[0].get_legend_handles_labels()[0]]
     assert f"after, outside the calibrated volume ({int(outside.sum())})" in labels
     plt.close(fig)
+
+
+def test_error_vs_distance_draws_the_outside_crosses_under_the_after_points():
+    # A stream with 22741 samples outside the volume: black crosses (s=16) drawn last buried every
+    # after point beneath them. They go under the after points, smaller and lighter.
+    import numpy as np
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import to_rgba
+    distance = np.linspace(0.3, 1.5, 400)
+    outside = distance > 0.5
+    fig = figures.error_vs_distance(distance, np.full(400, 20.0), np.full(400, 1.0), outside=outside)
+    try:
+        cols = {c.get_label(): c for c in fig.axes[0].collections}
+        crosses = cols[f"after, outside the calibrated volume ({int(outside.sum())})"]
+        after = cols["after"]
+        assert crosses.get_zorder() < after.get_zorder()
+        assert max(crosses.get_sizes()) <= max(after.get_sizes())
+        rgba = crosses.get_edgecolor()[0]
+        assert rgba[3] <= 0.5 and min(rgba[:3]) >= 0.3, rgba  # light grey, half transparent
+    finally:
+        plt.close(fig)
