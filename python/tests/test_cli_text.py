@@ -204,3 +204,19 @@ def test_error_vs_distance_draws_the_outside_crosses_under_the_after_points():
         assert rgba[3] <= 0.5 and min(rgba[:3]) >= 0.3, rgba  # light grey, half transparent
     finally:
         plt.close(fig)
+
+
+def test_numbers_that_round_to_zero_are_printed_without_a_minus():
+    # A stream paired at a clock offset of -4 us printed "a time offset of -0.00 ms": a measured
+    # negative offset to the reader. The report's tables (a coordinate of -0.0002 m) likewise.
+    from trackcal import captures, report
+    from trackcal._format import fixed
+    assert fixed(-0.004, "{:.2f}") == "0.00" and fixed(-0.006, "{:.2f}") == "-0.01"
+    assert fixed(-0.0, "{:.3f}") == "0.000" and fixed(float("-inf"), "{:.1f}") == "-inf"
+    cap = captures.PoseCapture.__new__(captures.PoseCapture)
+    cap.origin = {"kind": "streams", "time_offset_s": -4e-6, "time_offset_source": "estimated",
+                  "paired": 10, "sensor": 1, "dropped": 0}
+    assert "time offset of 0.00 ms" in captures.describe_origin(cap)
+    assert "<td>0.000</td>" in report._table([{"x": -0.0002}]) and "-0.000" not in report._table([{"x": -0.0002}])
+    from trackcal.cli import _cell
+    assert _cell(-0.0004) == "0.000"

@@ -353,7 +353,8 @@ def describe_origin(capture: PoseCapture) -> Optional[str]:
     o = capture.origin or {}
     if o.get("kind") in ("streams", "recording"):
         drift = o.get("clock_drift") or 0.0
-        return (f"streams paired at a time offset of {1e3 * o['time_offset_s']:.2f} ms"
+        from trackcal._format import fixed
+        return (f"streams paired at a time offset of {fixed(1e3 * o['time_offset_s'], '{:.2f}')} ms"
                 + (f" and a clock drift of {1e6 * drift:.1f} ppm" if drift else "") + f" ({o['time_offset_source']}): "
                 f"{o['paired']} samples of sensor {o['sensor']}, {o['dropped']} dropped"
                 + (f"\nwarning: {', '.join(o['files'])}: {o['warning']}" if o.get("warning") else ""))

@@ -20,6 +20,8 @@ from typing import Callable, List, Optional
 
 import numpy as np
 
+from trackcal._format import fixed
+
 
 class Terminal:
     """ANSI colour and a progress bar on a TTY, plain text otherwise."""
@@ -180,7 +182,7 @@ def _fmt_rows(rows: List[dict], cols: List[str]) -> str:
 
 def _cell(v) -> str:
     if isinstance(v, (float, np.floating)):
-        return f"{v:.3f}"
+        return fixed(v)
     return "" if v is None else str(v)
 
 
@@ -313,7 +315,7 @@ def cmd_fit(args, term) -> int:
     if markers is not None:
         _print_origin(term, markers)
     if report.time_offset_s is not None:
-        print(f"streams paired at a clock offset of {report.time_offset_s * 1e3:.3f} ms (reference minus "
+        print(f"streams paired at a clock offset of {fixed(report.time_offset_s * 1e3)} ms (reference minus "
               "tracker; the model's fitted offset where it frees one)")
     for t in report.tables:
         print(_colour_table(term, t, t is held))

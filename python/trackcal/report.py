@@ -18,6 +18,7 @@ import numpy as np
 
 from trackcal import figures as F
 from trackcal._files import replace_atomically
+from trackcal._format import fixed
 from trackcal import validation
 
 
@@ -76,7 +77,7 @@ def _table(rows: List[dict], columns: Optional[List[str]] = None, fmt: str = "{:
             if v is None:  # not computed (e.g. a candidate that was not cross-validated)
                 v = ""
             elif isinstance(v, (float, np.floating)):
-                v = fmt.format(v)
+                v = fixed(v, fmt)
             cells.append(f"<td>{html.escape(str(v))}</td>")
         out.append("<tr>" + "".join(cells) + "</tr>")
     out.append("</table>")
@@ -87,7 +88,7 @@ def _number(value, fmt: str = "{:.3f}") -> str:
     """A number as text; 'n/a' for None (null in the ranking document: a mean the engine could
     not compute) or NaN."""
     if isinstance(value, (int, float, np.floating)) and not isinstance(value, bool) and np.isfinite(value):
-        return fmt.format(value)
+        return fixed(value, fmt)
     return "n/a"
 
 
