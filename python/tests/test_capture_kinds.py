@@ -317,7 +317,8 @@ def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     _, streams, cal = sim
     r = run_cli("validate", streams, "-c", cal)
     assert "streams paired at a time offset of" in r.stdout and "(estimated)" in r.stdout
-    assert "calib set (" in r.stdout and "Corrected" in r.stdout
+    # One table: every paired sample carries the pairing's "calib", not a set of the user's.
+    assert "all set (" in r.stdout and "calib set (" not in r.stdout and "Corrected" in r.stdout
     r = run_cli("validate", streams, "-c", cal, "--time-offset", "0.02")
     assert "time offset of 20.00 ms (--time-offset)" in r.stdout
     r = run_cli("diagnose", streams, "-c", cal, "--permutations", "9", "--json")

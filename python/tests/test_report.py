@@ -497,3 +497,38 @@ def test_orientation_slice_legend_hides_no_arrow():
         assert shown.y1 <= box.y0 and shown.y0 >= 0 and shown.x1 <= fig.bbox.x1  # under the axes, on the page
     finally:
         plt.close(fig)
+
+
+@pytest.fixture(scope="module")
+def stream_validation(tmp_path_factory):
+    """The paper room's 30 s stream (trackcal-simulate, seed 5) validated with a degree-3 polynomial
+    fitted to the same simulation's calibration stations (poses.csv), as a lab validates a
+    calibration on a stream."""
+    root = tmp_path_factory.mktemp("stream")
+    sim = simulate(root / "capture", seed=5)
+    streams = root / "streams"
+    streams.mkdir()
+    for name in ("tracker_stream.csv", "reference_stream.csv"):
+        shutil.copy(sim / name, streams / name)
+    cal = validation.fit_polynomial(captures.load_poses(sim).select_set("calib"), degree=3)
+    return validation.validate(captures.load(streams), cal, analyse_covariates=False)
+
+
+def test_stream_report_has_one_table_and_lists_distinct_moments(stream_validation, tmp_path):
+    # Every paired sample carries the pairing's label "calib": the page printed a "calib" table
+    # equal to the "all" one, as if the samples were the fit's in-sample stations, and the worst
+    # list was ten neighbouring samples of one moment (milliseconds apart).
+    v = stream_validation
+    assert [t.set_name for t in v.tables] == ["all"]
+    assert len(v.worst) == 10 and all("set" not in w for w in v.worst)
+    times = np.array([w["time"] for w in v.worst])
+    gaps = np.abs(times[:, None] - times[None, :])[~np.eye(len(times), dtype=bool)]
+    assert gaps.min() >= validation.WORST_SEPARATION_S
+    errors = [w["position_mm"] for w in v.worst]
+    assert errors == sorted(errors, reverse=True)
+    final = v.after.position_mm[~v.flipped]
+    assert errors[0] == pytest.approx(final.max())  # the worst sample of all heads the list
+    page = report.write_report(v, tmp_path / "out").read_text()
+    assert "<h3>calib (" not in page and "<h3>all (" in page
+    assert f"Worst 10 moments of the stream (the worst sample of each, at least " \
+           f"{validation.WORST_SEPARATION_S:g} s apart" in page

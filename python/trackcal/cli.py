@@ -508,10 +508,11 @@ def cmd_diagnose(args, term) -> int:
     print(_fmt_rows(v.by_distance, cols))
     print("\n" + term.c("By region (octants around the volume centre)", "1"))
     print(_fmt_rows(v.by_region, cols))
-    print("\n" + term.c(f"Worst {len(v.worst)} stations", "1")
+    print("\n" + term.c(v.worst_heading, "1")
           + " (x, y, z, distance: reported position in the transmitter frame [m])")
-    print(_fmt_rows(v.worst, ["station", "set", "sensor", "x", "y", "z", "distance", "position_mm",
-                              "orientation_deg", "extrapolated"]))
+    moments = v.worst_separation_s is not None  # stream samples: the time says which moment
+    print(_fmt_rows(v.worst, ["station", "time" if moments else "set", "sensor", "x", "y", "z", "distance",
+                              "position_mm", "orientation_deg", "extrapolated"]))
     method = validation.COVARIATE_METHOD_SERIAL if validation.serial_samples(v.capture) else validation.COVARIATE_METHOD
     print("\n" + term.c(f"Residual structure ({method})", "1"))
     # Findings that stand on their own first (not explained away by another covariate).

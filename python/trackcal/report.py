@@ -248,8 +248,8 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                      f"{f' ... ({len(flipped) - 50} more)' if len(flipped) > 50 else ''}.</p>")
     parts.append("<h2>By distance from the transmitter</h2>" + _table(v.by_distance))
     parts.append("<h2>By region of the volume (octants)</h2>" + _table(v.by_region))
-    parts.append("<h2>Worst stations</h2><p>x, y, z and distance: the reported position in the "
-                 "transmitter frame [m].</p>" + _table(v.worst))
+    parts.append(f"<h2>{html.escape(v.worst_heading)}</h2><p>x, y, z and distance: the reported position "
+                 "in the transmitter frame [m].</p>" + _table(v.worst))
     if v.covariate_effects:
         # As diagnose lists them: a finding another covariate family explains away (time that the
         # positions explain) is marked so and goes after those that stand on their own; the table

@@ -620,6 +620,17 @@ class Validation:
     # set). Left out of every table, the breakdowns, the worst stations, the covariate analysis
     # and the report's figures.
     flipped: Optional[np.ndarray] = None
+    # Samples paired from streams: the worst list holds the worst sample of distinct moments, at
+    # least this many seconds apart per sensor (None: static stations, the worst ones as they are).
+    worst_separation_s: Optional[float] = None
+
+    @property
+    def worst_heading(self) -> str:
+        """What the worst list holds, for the report and the text output."""
+        if self.worst_separation_s is None:
+            return f"Worst {len(self.worst)} stations"
+        return (f"Worst {len(self.worst)} moments of the stream (the worst sample of each, at least "
+                f"{self.worst_separation_s:g} s apart; time: the tracker's [s])")
 
     @property
     def flipped_stations(self) -> List[int]:
@@ -811,6 +822,28 @@ def _checked_capture(capture: PoseCapture) -> PoseCapture:
     return dataclasses.replace(capture, **fields)
 
 
+# Stream samples are milliseconds apart (120 Hz on a Fastrak): the 10 worst were neighbouring
+# samples of two moments (a 300 s paper-room stream: samples 6137-6147 and 27149-27168). The worst
+# list keeps the worst sample of moments at least this far apart, about the pairing's correlation
+# window (0.5 s, docs/diagnose.md), so each row is another pass through a bad place.
+WORST_SEPARATION_S = 0.5
+
+
+def _distinct_moments(order: Sequence[int], time: np.ndarray, sensor: np.ndarray, count: int,
+                      separation: Optional[float]) -> List[int]:
+    """The first ``count`` of ``order`` (station indices, worst first), skipping a station within
+    ``separation`` seconds of one already taken of the same sensor (None: no skipping)."""
+    if separation is None:
+        return list(order[:count])
+    taken: List[int] = []
+    for i in order:
+        if len(taken) >= count:
+            break
+        if all(sensor[j] != sensor[i] or abs(time[i] - time[j]) >= separation for j in taken):
+            taken.append(i)
+    return taken
+
+
 def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("calib", "valid"),
              worst_count: int = 10, analyse_covariates: bool = True, covariate_options: Optional[dict] = None,
              progress: Optional[Callable[[int, int], None]] = None,
@@ -863,18 +896,28 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
     for name in np.unique(data.set.astype(str)):
         idx = data.set == name
         flipped[idx] = hemisphere_flips(data.reported_positions[idx], data.reference_positions[idx])
+    # Samples paired from streams (or a recording) carry the set label the pairing gave every one
+    # of them ("calib"), not a set of the user's: their table repeated the "all" one under a name
+    # that reads as the calibration's in-sample stations (of a fit often made on poses.csv). One
+    # table, "all", for them.
+    paired = (getattr(capture, "origin", None) or {}).get("kind") in ("streams", "recording")
     tables = []
     for s in sets:
         idx = data.set == s
-        if idx.any():
+        if idx.any() and not (paired and idx.all()):
             tables.append(table1(s, _sub(before, idx), _sub(after, idx) if after is not None else None,
                                  flipped[idx]))
     tables.append(table1("all", before, after, flipped))
     final = after if after is not None else before
     distance = np.linalg.norm(data.reported_positions, axis=1)
     kept = ~flipped
-    order = [i for i in np.argsort(-final.position_mm) if kept[i]][:worst_count]
-    worst = [{"station": int(data.station[i]), "set": str(data.set[i]), "sensor": int(data.sensor[i]),
+    order = [i for i in np.argsort(-final.position_mm) if kept[i]]
+    separation = WORST_SEPARATION_S if serial_samples(data) else None
+    order = _distinct_moments(order, data.time, data.sensor, worst_count, separation)
+    # (A stream sample's time in place of its set: the pairing's label, the same for every one.)
+    worst = [{"station": int(data.station[i]),
+              **({"set": str(data.set[i])} if separation is None else {"time": float(data.time[i])}),
+              "sensor": int(data.sensor[i]),
               "x": float(data.reported_positions[i, 0]), "y": float(data.reported_positions[i, 1]),
               "z": float(data.reported_positions[i, 2]), "distance": float(distance[i]),
               "position_mm": float(final.position_mm[i]), "orientation_deg": float(final.orientation_deg[i]),
@@ -889,7 +932,8 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
                                                   _sub(after, kept) if after is not None else None),
                    by_region=region_breakdown(data.reported_positions[kept], _sub(before, kept),
                                               _sub(after, kept) if after is not None else None, centre),
-                   worst=worst, status=np.asarray(status, np.uint8), flipped=flipped)
+                   worst=worst, status=np.asarray(status, np.uint8), flipped=flipped,
+                   worst_separation_s=separation)
     if analyse_covariates:
         # Stations paired from streams carry their speed: their samples are serially correlated.
         analysed = data.subset(kept) if flipped.any() else data
