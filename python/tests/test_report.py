@@ -532,3 +532,34 @@ def test_stream_report_has_one_table_and_lists_distinct_moments(stream_validatio
     assert "<h3>calib (" not in page and "<h3>all (" in page
     assert f"Worst 10 moments of the stream (the worst sample of each, at least " \
            f"{validation.WORST_SEPARATION_S:g} s apart" in page
+
+
+def test_a_region_the_correction_makes_worse_is_named_in_a_note_and_the_verdict(uncorrected):
+    # On a stream the correction took 0-0.25 m from the transmitter from 0.57 mm to 4.4 mm and only
+    # the by-distance table showed it. Here: the nearest distance band's corrected errors are 3
+    # times the uncorrected ones, every other station's a twentieth of them.
+    from trackcal import diagnosis
+    cap = uncorrected.capture
+    band = np.floor(np.linalg.norm(cap.reported_positions, axis=1) / 0.25).astype(int)
+    counts = {b: int((band == b).sum()) for b in np.unique(band)}
+    near = band == min(b for b, n in counts.items() if n >= diagnosis.WORSE_MIN_SAMPLES)
+    err = cap.reported_positions - cap.reference_positions
+    pos = cap.reference_positions + np.where(near[:, None], 3.0, 0.05) * err
+    # Orientation as reference (unchanged in every region): the position alone must trigger it.
+    v = validation.validate(cap, None, corrected_poses=(pos, cap.reference_quaternions_xyzw),
+                            analyse_covariates=False)
+    row = next(r for r in v.by_distance if r["count"] == int(near.sum()))
+    note = diagnosis.worse_regions_note(v)
+    assert note is not None and f"{row['label']} from the transmitter ({row['count']} stations: position " \
+        f"{row['before_position_mm']:.3f} -> {row['after_position_mm']:.3f} mm" in note, note
+    others = [r["label"] for r in v.by_distance if r is not row]
+    assert not any(f"{label} from the transmitter" in note for label in others), note
+    text = diagnosis.verdict_with_regions(diagnosis.verdict(None, [], False), v)["text"]
+    assert f"the correction makes {row['label']} from the transmitter" in text, text
+    # Every region better after: no note, the verdict as it was.
+    good = validation.validate(cap, None, corrected_poses=(cap.reference_positions + 0.05 * err,
+                                                           cap.reference_quaternions_xyzw),
+                               analyse_covariates=False)
+    assert diagnosis.worse_regions_note(good) is None
+    plain = diagnosis.verdict(None, [], False)
+    assert diagnosis.verdict_with_regions(plain, good) == plain

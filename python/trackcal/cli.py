@@ -428,9 +428,7 @@ def _diagnosis(args, term):
             notes.append("candidate effects not ranked: this build has no fit/candidates.h")
     else:
         notes.append("catalog effects not tested: give --model to rank them")
-    outside = diagnosis.extrapolation_note(v)
-    if outside:
-        notes.append(outside)
+    notes += diagnosis.validation_notes(v)  # outside the volume; regions the correction makes worse
     if fit_report is not None:  # the diagnosed calibration is the model's fit to the calib stations
         gap = diagnosis.set_gap_note(v.tables, doc)
         if gap:
@@ -440,6 +438,7 @@ def _diagnosis(args, term):
         if mismatch:
             notes.append(mismatch)
     verdict = diagnosis.verdict(doc, v.covariate_effects, v.covariates_tested)
+    verdict = diagnosis.verdict_with_regions(verdict, v)
     change = None
     # (A removal's change is empty: the item named by insert_index and replaces goes.)
     if verdict["source"] == "candidate" and (verdict.get("model_change") or verdict.get("replaces")):

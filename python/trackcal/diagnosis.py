@@ -206,6 +206,76 @@ def extrapolation_note(v) -> Optional[str]:
             "look for an effect there")
 
 
+
+# A region counts as made worse by the correction when its corrected mean error is more than
+# WORSE_FACTOR times its uncorrected one AND above it by a margin of several noise floors (the
+# paper room's simulated floor is 0.08 mm, 0.02 deg), on at least WORSE_MIN_SAMPLES stations: a
+# region already at the noise floor (0.05 mm -> 0.09 mm) is not news. Measured on a 300 s
+# paper-room stream corrected by a degree-4 polynomial fitted to poses.csv: 0-0.25 m from the
+# transmitter went from 0.566 mm, 0.218 deg to 4.372 mm, 1.609 deg on 121 samples, and only the
+# by-distance table showed it.
+WORSE_FACTOR = 1.5
+WORSE_MARGIN_MM = 0.5
+WORSE_MARGIN_DEG = 0.05
+WORSE_MIN_SAMPLES = 20
+
+
+def worse_regions(v) -> List[dict]:
+    """The regions where the corrected errors are clearly above the uncorrected ones (WORSE_*):
+    distance bands, octants and the stations outside the calibrated volume, each as a breakdown
+    row ({"label", "count", "before_position_mm", ...}) with "where" naming it. [] without a
+    correction."""
+    if getattr(v, "after", None) is None:
+        return []
+    rows = [dict(r, where=f"{r['label']} from the transmitter") for r in v.by_distance]
+    rows += [dict(r, where=f"octant {r['label']}") for r in v.by_region]
+    kept = ~np.asarray(v.flipped, bool) if getattr(v, "flipped", None) is not None else np.ones(len(v.extrapolated), bool)
+    out = np.asarray(v.extrapolated, bool) & kept
+    if out.any():
+        from trackcal.validation import _summary_row
+        rows.append(dict(_summary_row("outside", out, v.before, v.after),
+                         where="outside the calibrated volume"))
+    worse = []
+    for r in rows:
+        if r["count"] < WORSE_MIN_SAMPLES:
+            continue
+        bp, ap = r["before_position_mm"], r["after_position_mm"]
+        bo, ao = r["before_orientation_deg"], r["after_orientation_deg"]
+        if (ap > WORSE_FACTOR * bp and ap - bp > WORSE_MARGIN_MM) or \
+                (ao > WORSE_FACTOR * bo and ao - bo > WORSE_MARGIN_DEG):
+            worse.append(r)
+    return worse
+
+
+def worse_regions_note(v) -> Optional[str]:
+    """A note naming the regions the correction makes worse than uncorrected (worse_regions), with
+    their errors before and after; None when there is none."""
+    worse = worse_regions(v)
+    if not worse:
+        return None
+    parts = [f"{r['where']} ({r['count']} stations: position {r['before_position_mm']:.3f} -> "
+             f"{r['after_position_mm']:.3f} mm, orientation {r['before_orientation_deg']:.3f} -> "
+             f"{r['after_orientation_deg']:.3f} deg)" for r in worse]
+    return ("the correction makes the errors worse than uncorrected in " + "; ".join(parts)
+            + " (by distance and by region above): do not use it there, or calibrate over that region")
+
+
+def validation_notes(v) -> List[str]:
+    """The notes a validation alone calls for (extrapolation_note, worse_regions_note), as
+    diagnose, report and the demo's report print them."""
+    return [n for n in (extrapolation_note(v), worse_regions_note(v)) if n]
+
+def verdict_with_regions(verdict_: dict, v) -> dict:
+    """The verdict with a clause naming the regions the correction makes worse (worse_regions):
+    whatever the remaining structure, a region the correction harms is the reader's first concern."""
+    worse = worse_regions(v)
+    if not worse:
+        return verdict_
+    names = ", ".join(r["where"] for r in worse)
+    return dict(verdict_, text=f"{verdict_['text']}; and the correction makes {names} worse than "
+                                "uncorrected (note)")
+
+
 # The validation set's corrected mean may be this many times the calibration stations' held-out
 # mean before a note says the calibration does not carry over. Both are held-out errors over the
 # same box; on captures of the ideal room with hidden effects (240 + 60 stations; sensor offset +
