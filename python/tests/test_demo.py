@@ -227,6 +227,13 @@ def test_demo_without_serving_writes_a_fresh_work_folder(tmp_path, capsys):
         assert len(models) == 2, "the loop added the top candidate and refitted"
         assert "missing effect:" in out and "model-file change:" in out
         assert "noise floor (truth)" in out, "the table compares with the simulator's floor"
+        # --max-steps stopped both loops before they diagnosed the final model: the page said
+        # "catalog effects not tested: give --model to rank them" right after the loop ranked them.
+        pages = [(r / "report" / "report.html").read_text() for r in runs]
+        assert not any("give --model" in p for p in pages)
+        assert "--max-steps 0 stopped the loop before any diagnosis" in pages[0]
+        assert ("catalog effects last ranked for the model of step 0" in pages[1]
+                and "the final model (step 1) was not ranked again: --max-steps 1" in pages[1]), pages[1]
     else:
         for run in runs:
             assert (run / "paper_polynomial.json").is_file()

@@ -42,7 +42,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from trackcal._signals import signals_deferred
 # The model-file edit of every step; trackcal diagnose makes the same one.
@@ -553,19 +553,38 @@ def steps_table(steps: List[Step], floor: Optional[dict] = None) -> str:
 # The main job
 
 
-def write_report(capture: Path, calibration: Path, diagnosis_doc: dict, work: Path, out: Path) -> Path:
-    """The HTML report of the final calibration with the last diagnosis (candidate table, verdict)
-    and the work folder's history plot, without ranking the candidates again."""
+def write_report(capture: Path, calibration: Path, diagnosis_doc: Optional[dict], work: Path, out: Path,
+                 notes: Sequence[str] = ()) -> Path:
+    """The HTML report of the final calibration with the last diagnosis (candidate table, verdict;
+    None: the final model was not diagnosed, ``notes`` say why) and the work folder's history plot,
+    without ranking the candidates again; with the notes `trackcal report` gives a validation."""
     import trackcal
     from trackcal import captures, diagnosis, history, report, validation
     v = validation.validate(captures.load_poses(str(capture)), trackcal.Calibration.load(str(calibration)))
-    verdict = diagnosis.verdict(diagnosis_doc, v.covariate_effects, v.covariates_tested)
+    verdict = diagnosis.verdict_with_regions(
+        diagnosis.verdict(diagnosis_doc, v.covariate_effects, v.covariates_tested), v)
     path = report.write_report(v, out, inputs=[capture, calibration],
                                history_entries=history.load_history(work), candidates=diagnosis_doc,
-                               verdict=verdict)
+                               verdict=verdict, notes=list(notes) + diagnosis.validation_notes(v))
     print(f"wrote {path}")
     return path
 
+
+
+def unranked_final_note(steps: Sequence[Step], max_steps: int, capture: Path) -> str:
+    """What the demo's report says of the catalog effects when --max-steps stopped the loop before
+    it diagnosed the final model: which step's model was ranked last, and how to rank the final
+    one. (`trackcal report` without --model said "give --model to rank them" right after the loop
+    had ranked them.)"""
+    final = steps[-1]
+    ranked = [s for s in steps if s.diagnosis is not None]
+    how = f"trackcal diagnose {capture} --model {final.model_path} ranks them"
+    if not ranked:
+        return (f"catalog effects not tested: --max-steps {max_steps} stopped the loop before any "
+                f"diagnosis; {how}")
+    return (f"catalog effects last ranked for the model of step {ranked[-1].index} (the history below); "
+            f"the final model (step {final.index}) was not ranked again: --max-steps {max_steps} stopped "
+            f"the loop; {how}")
 
 
 def simulate(work: Path, hidden: str, seed: Optional[int], scene: str = "paper") -> Path:
@@ -834,6 +853,9 @@ def _main(argv: Optional[List[str]] = None) -> int:
     report = work / "report"
     if final is not None and final.diagnosis is not None:
         write_report(capture, calib, final.diagnosis, work, report)
+    elif final is not None:  # --max-steps stopped the loop before it diagnosed the final model
+        write_report(capture, calib, None, work, report,
+                     notes=[unranked_final_note(steps, args.max_steps, capture)])
     else:
         print(_run([_tool("trackcal"), "report", str(capture), "-c", str(calib), "-o", str(report),
                     "--workdir", str(work)], log=work / "report.log"), end="")
