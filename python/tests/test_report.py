@@ -563,3 +563,26 @@ def test_a_region_the_correction_makes_worse_is_named_in_a_note_and_the_verdict(
     assert diagnosis.worse_regions_note(good) is None
     plain = diagnosis.verdict(None, [], False)
     assert diagnosis.verdict_with_regions(plain, good) == plain
+
+
+def test_figure_6_caption_says_a_sensor_offset_is_part_of_the_arrows(tmp_path):
+    # Figure 6 corrects grid points at the identity orientation: a physical term's sensor offset
+    # (36.3 mm here) is part of every arrow and turns with the receiver, and the caption called it
+    # all distortion. Said only when the calibration has an offset (the zero one has none to say).
+    import json
+    import matplotlib.pyplot as plt
+    cap, _ = _capture_and_calibration_the_inverse_does_not_resolve_everywhere(tmp_path)
+    doc = json.loads((tmp_path / "physical.json").read_text())
+    doc["corrections"][0]["receiver_from_body"]["translation"] = [0.018, 0.006, 0.031]
+    (tmp_path / "offset.json").write_text(json.dumps(doc))
+    captions = {}
+    for name in ("physical", "offset"):
+        cal = trackcal.Calibration.load(str(tmp_path / f"{name}.json"))
+        figs = report.build_figures(validation.validate(cap, cal, analyse_covariates=False))
+        try:
+            (captions[name],) = [c for n, c, _ in figs if n == "fig6_distortion_field.png"]
+        finally:
+            for _, _, f in figs:
+                plt.close(f)
+    assert "sensor offset" not in captions["physical"], captions["physical"]
+    assert "includes the calibration's sensor offset (36.3 mm)" in captions["offset"], captions["offset"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import base64
 import datetime
 import html
+import json
 import pathlib
 from typing import Callable, List, Optional, Sequence
 
@@ -125,6 +126,14 @@ if(document.readyState==='complete'){check();}else{window.addEventListener('load
 """
 
 
+def _sensor_offset_mm(calibration) -> float:
+    """The length [mm] of the largest sensor offset (a physical term's receiver_from_body
+    translation) in the calibration, 0 without one."""
+    doc = json.loads(calibration.to_json())
+    return max((1e3 * float(np.linalg.norm(c["receiver_from_body"]["translation"]))
+                for c in doc.get("corrections", []) if c.get("receiver_from_body")), default=0.0)
+
+
 def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
                   candidates: Optional[dict] = None) -> List[tuple]:
     """[(file name, caption, Figure)] for a Validation."""
@@ -169,9 +178,16 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
         n_unresolved, n_points = field.unresolved_points
         hatched = (f"; hatched (blank): {n_unresolved} of its {n_points} grid points, where a physical term's "
                    "model inverse does not resolve the pose" if n_unresolved else "")
+        # Drawn for a receiver at the transmitter's orientation: a sensor offset (the body point a
+        # physical term reports, not the coil centre) is part of every arrow there, and turns with the
+        # receiver; a reader took its 36 mm for field distortion.
+        offset_mm = _sensor_offset_mm(v.calibration)
+        offset = (f"; drawn for a receiver at the transmitter's orientation, so it includes the "
+                  f"calibration's sensor offset ({offset_mm:.1f} mm), which turns with the receiver"
+                  if offset_mm >= 0.05 else "")
         figs.append(("fig6_distortion_field.png",
                      "Figure 6: the calibration's position correction on the horizontal mid-plane of its "
-                     f"volume: magnitude as colour, x-y direction as streamlines{hatched}.", field))
+                     f"volume: magnitude as colour, x-y direction as streamlines{hatched}{offset}.", field))
     final = after if after is not None else before
     figs.append(("residual_map_position.png",
                  "Residual map: remaining position error per station (top and side views).",
