@@ -265,6 +265,7 @@ def validation_notes(v) -> List[str]:
     diagnose, report and the demo's report print them."""
     return [n for n in (extrapolation_note(v), worse_regions_note(v)) if n]
 
+
 def verdict_with_regions(verdict_: dict, v) -> dict:
     """The verdict with a clause naming the regions the correction makes worse (worse_regions):
     whatever the remaining structure, a region the correction harms is the reader's first concern."""
