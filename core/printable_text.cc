@@ -39,6 +39,7 @@ size_t Utf8SequenceLength(std::string_view text, size_t i, bool c1_is_invalid) {
 
 std::string Printable(std::string_view text, PrintableFor use) {
   const bool log_line = use == PrintableFor::kLogLine;
+  const bool device_bytes = use == PrintableFor::kDeviceBytes;
   std::string out;
   out.reserve(text.size());
   const auto byte = [&text](size_t i) { return static_cast<unsigned char>(text[i]); };
@@ -51,8 +52,8 @@ std::string Printable(std::string_view text, PrintableFor use) {
   for (size_t i = 0; i < text.size();) {
     const unsigned char c = byte(i);
     if (c < 0x80) {
-      const bool kept_layout = !log_line && (c == '\t' || c == '\n');
-      if ((c < 0x20 && !kept_layout) || c == 0x7f) {
+      const bool kept_layout = use == PrintableFor::kMessage && (c == '\t' || c == '\n');
+      if ((c < 0x20 && !kept_layout) || c == 0x7f || (device_bytes && c == '\\')) {
         escape(c);
       } else {
         out += static_cast<char>(c);
@@ -60,7 +61,8 @@ std::string Printable(std::string_view text, PrintableFor use) {
       ++i;
       continue;
     }
-    const size_t length = Utf8SequenceLength(text, i, /*c1_is_invalid=*/log_line);
+    const size_t length =
+        device_bytes ? 0 : Utf8SequenceLength(text, i, /*c1_is_invalid=*/log_line);
     if (length > 0) {
       out.append(text.substr(i, length));
       i += length;

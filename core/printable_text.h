@@ -18,6 +18,10 @@ enum class PrintableFor {
   // One line of a log or of a terminal: tab, line feed and the C1 controls U+0080-U+009F are
   // escaped too (a newline would forge a log line; U+009B is CSI on terminals that take C1).
   kLogLine,
+  // Bytes a device sent (a serial line's replies and binary records), which are not text: every
+  // byte outside printable ASCII, and the backslash (so that the quote reads back unambiguously),
+  // is escaped; no UTF-8 sequence is kept.
+  kDeviceBytes,
 };
 
 // `text` with every byte that is not well-formed UTF-8 (RFC 3629: no overlong forms, no surrogates,

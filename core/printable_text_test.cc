@@ -72,6 +72,16 @@ TEST(Printable, ALogLineEscapesTabLineFeedAndC1) {
   EXPECT_EQ(PrintableForLog("\xc2\x80\xc2\x9f\xc2\xa0"), "\\xc2\\x80\\xc2\\x9f\xc2\xa0");
 }
 
+TEST(Printable, DeviceBytesEscapeEverythingButPrintableAscii) {
+  // A serial reply quoted in a warning: binary record bytes are not UTF-8 text, and an escaped
+  // backslash keeps the quote unambiguous.
+  EXPECT_EQ(Printable("21S0A \\ ok", PrintableFor::kDeviceBytes), "21S0A \\x5c ok");
+  EXPECT_EQ(Printable(std::string("\r\n\t\0\x7f", 5), PrintableFor::kDeviceBytes),
+            "\\x0d\\x0a\\x09\\x00\\x7f");
+  EXPECT_EQ(Printable("\xc3\xa9\xc2\x9b\xff", PrintableFor::kDeviceBytes),
+            "\\xc3\\xa9\\xc2\\x9b\\xff");
+}
+
 TEST(FirstNonUtf8Byte, IsWherePrintableEscapesTheFirstByteAboveAscii) {
   EXPECT_EQ(FirstNonUtf8Byte(""), std::string_view::npos);
   EXPECT_EQ(FirstNonUtf8Byte("Jos\xc3\xa9 \xe2\x82\xac \xf0\x9f\x98\x80"), std::string_view::npos);

@@ -1,9 +1,9 @@
 #include "vrpn_server/fastrak/driver.h"
 
 #include <fcntl.h>
+#include <poll.h>
 #include <pthread.h>
 #include <sched.h>
-#include <poll.h>
 #include <sys/file.h>
 #include <sys/stat.h>
 #include <termios.h>
@@ -19,6 +19,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "core/printable_text.h"
 #include "vrpn_server/config.h"
 
 namespace trackcal::fastrak {
@@ -46,19 +47,7 @@ std::string FormatSeconds(double s) {
 // at most kMaxQuoted bytes (then "..." and the total), in single quotes.
 std::string QuoteBytes(std::string_view bytes) {
   constexpr size_t kMaxQuoted = 80;  // a status reply (55 bytes) and the start of another
-  static constexpr char kHex[] = "0123456789abcdef";
-  std::string out = "'";
-  for (size_t i = 0; i < std::min(bytes.size(), kMaxQuoted); ++i) {
-    const auto c = static_cast<unsigned char>(bytes[i]);
-    if (c >= 0x20 && c < 0x7f && c != '\\') {
-      out += static_cast<char>(c);
-    } else {
-      out += "\\x";
-      out += kHex[c >> 4];
-      out += kHex[c & 15];
-    }
-  }
-  out += "'";
+  std::string out = "'" + Printable(bytes.substr(0, kMaxQuoted), PrintableFor::kDeviceBytes) + "'";
   if (bytes.size() > kMaxQuoted) out += "... (" + std::to_string(bytes.size()) + " bytes)";
   return out;
 }
