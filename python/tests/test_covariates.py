@@ -1,5 +1,7 @@
 """The residual-vs-covariate analysis finds a planted dependence and reports nothing on pure noise."""
 
+import dataclasses
+
 import numpy as np
 
 from trackcal import captures, diagnosis, validation
@@ -433,3 +435,68 @@ def test_vectorised_cross_validated_r2_matches_the_definition():
             rows = np.stack([rng.permutation(ids) for _ in range(20)])
             want = [cv_r2_one_row(r, y, folds, 5) for r in rows]
             np.testing.assert_allclose(validation._cv_r2_rows(rows, y, folds, 5), want, rtol=0, atol=1e-12)
+
+
+def _effects_both_ways(monkeypatch, *args, **kwargs):
+    """covariate_analysis by the code path in use and by the reference kept for this check
+    (validation._SLOW_REFERENCE: _cv_r2_rows_reference, target by target, as before _cv_r2_targets)."""
+    fast = validation.covariate_analysis(*args, **kwargs)
+    monkeypatch.setattr(validation, "_SLOW_REFERENCE", True)
+    slow = validation.covariate_analysis(*args, **kwargs)
+    monkeypatch.setattr(validation, "_SLOW_REFERENCE", False)
+    return fast, slow
+
+
+def _planted(n, seed):
+    """Residuals with a spatial error along x, on stations visited in order of x (so time tracks
+    x: the confounding check runs), an orientation error by category, and noise covariates."""
+    rng = np.random.default_rng(seed)
+    x = np.sort(rng.uniform(-0.5, 0.5, n))
+    time = np.arange(n) + rng.normal(0.0, 3.0, n)
+    cat = rng.integers(0, 3, n)
+    pos = rng.normal(0.0, 1e-3, (n, 3))
+    pos[:, 0] += 2e-3 * np.sin(6.0 * x)
+    ori = rng.normal(0.0, 1e-3, (n, 3))
+    ori[:, 2] += 2e-3 * (cat == 1)
+    r = validation.Residuals(pos, ori, np.linalg.norm(pos, axis=1) * 1e3, np.rad2deg(2.0 * np.linalg.norm(ori, axis=1)))
+    covs = {"x": x, "time": time, "cat": cat.astype(float), "u": rng.uniform(size=n),
+            "speed": np.where(rng.uniform(size=n) < 0.1, np.nan, rng.uniform(size=n))}
+    return r, covs, np.repeat(["calib", "valid"], [n - n // 3, n // 3])
+
+
+def test_batched_covariate_tests_give_the_reference_bits(monkeypatch):
+    # The permutation tests' R^2 are computed for every target and shuffle at once; results must be
+    # the very bits of the code before (same seeds, same shuffles, same summation order): R^2,
+    # p-values, significance, confounding, on stations (random folds, shuffles, the confirmation
+    # shuffles, within groups) and on stream samples (folds along time, circular shifts).
+    r, covs, sets = _planted(600, seed=3)
+    cases = [dict(n_permutations=99, seed=2, labels={"cat": ["a", "b", "c"]}),
+             dict(n_permutations=99, seed=5, groups=sets),
+             dict(n_permutations=49, seed=1, serial_time=np.arange(600.0)[::-1], n_bins=5, n_folds=4)]
+    seen_confirmed = seen_confounded = False
+    for kwargs in cases:
+        fast, slow = _effects_both_ways(monkeypatch, r, covs, **kwargs)
+        assert [dataclasses.astuple(e) for e in fast] == [dataclasses.astuple(e) for e in slow], kwargs
+        # Exactly equal floats, not approximately (astuple compares with ==; NaN would fail it).
+        assert all(np.isfinite(e.r2) for e in fast)
+        seen_confirmed |= any(e.significant and e.p_value < 1.0 / 100 for e in fast)
+        seen_confounded |= any(e.confounded_with for e in fast)
+    # The paths this must cover ran: a confirmation by more shuffles (p below 1/(99+1)) and the
+    # time-against-position check.
+    assert seen_confirmed and seen_confounded
+
+
+def test_cv_r2_targets_is_the_reference_bit_for_bit():
+    # _cv_r2_targets against the code it replaced, target by target: one row (summed pairwise by
+    # numpy), many rows (summed column by column), bins without training stations, 1 and 3 columns.
+    rng = np.random.default_rng(11)
+    n = 3001
+    folds = rng.permutation(np.arange(n) % 5)
+    ids = validation._bin_ids(rng.normal(size=n) ** 3, 8, False)
+    ids[folds == 2] = 8  # bin 8 only in fold 2: its test stations get the training mean
+    ys = [np.abs(rng.normal(size=(n, 1))), rng.normal(size=(n, 3)) * 1e3]
+    for rows in (ids[None, :], np.stack([rng.permutation(ids) for _ in range(37)])):
+        got = validation._cv_r2_targets(rows, ys, folds, 5)
+        for y, g in zip(ys, got):
+            want = validation._cv_r2_rows_reference(rows, y, folds, 5)
+            assert g.tobytes() == want.tobytes()

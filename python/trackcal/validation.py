@@ -360,12 +360,10 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
                 shifted = np.empty_like(ids)
                 shifted[by_time] = np.roll(ids[by_time], int(k))
                 perms.append(shifted)
-        for tname, y in targets.items():
-            ys = y[ok]
-            if gs is not None:
-                ys = _centred_within(ys, gs)
-            # The normal approximation needs enough permutations to estimate the null's spread.
-            obs, p, z_ok = _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed)
+        ys_all = [_centred_within(y[ok], gs) if gs is not None else y[ok] for y in targets.values()]
+        # Every target at once: they share the bins, folds and shuffles (_permutation_tests).
+        tests = _permutation_tests(ids, ys_all, folds, n_folds, perms, n_permutations, level, z_needed)
+        for (tname, y), ys, (obs, p, z_ok) in zip(targets.items(), ys_all, tests):
             if z_ok and p > level and serial_time is None and obs >= min_r2:
                 # The normal approximation is a screen, not the test: the null of a binned-means
                 # R^2 has heavier tails than a normal (pure noise beyond mean + 3.6 sd: 9e-4 of
@@ -423,8 +421,66 @@ def _centred_within(y: np.ndarray, gs: np.ndarray) -> np.ndarray:
     return y - means[gs]
 
 
+# The covariate tests' R^2 by the code they had before _cv_r2_targets (_cv_r2_rows_reference, target
+# by target): for the tests and bench/bench_covariates.py, which check that both give the same bits.
+_SLOW_REFERENCE = False
+
+
 def _cv_r2_rows(rows: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> np.ndarray:
     """Cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, for every
+    row of bin ids (P, N) at once (``_cv_r2_targets`` for one target)."""
+    return _cv_r2_targets(rows, [y], folds, n_folds)[0]
+
+
+def _cv_r2_targets(rows: np.ndarray, ys: Sequence[np.ndarray], folds: np.ndarray, n_folds: int) -> List[np.ndarray]:
+    """``[_cv_r2_rows_reference(rows, y, folds, n_folds) for y in ys]``, bit for bit, at a fraction of
+    its cost: what depends on the rows alone (the folds' bin ids, training counts, test lookups) is
+    done once for every target; the bin sums are per row (np.bincount, whose plain loop adds a bin's
+    values in station order, as it did over the rows' concatenation) without tiling y per row; and
+    each squared error is summed over the test stations in their order, as the reference's
+    column-ordered (P, N_test) sum did (np.sum along axis 1 of such an array adds the columns one by
+    one; a row-ordered array would be summed pairwise, to other last bits)."""
+    rows = np.asarray(rows)
+    n_rows = rows.shape[0]
+    nb = int(rows.max()) + 1
+    offsets = np.arange(n_rows) * nb
+    cols = [np.ascontiguousarray(y[:, d]) for y in ys for d in range(y.shape[1])]
+    sse = [np.zeros(n_rows) for _ in ys]
+    sst = [0.0 for _ in ys]
+    by_station = rows.T  # (N, P): a fold's test stations taken from it are a row-ordered (N_test, P)
+    for f in range(n_folds):
+        test = folds == f
+        train = ~test
+        rows_train = rows.compress(train, axis=1)  # row-ordered (P, N_train): each row contiguous
+        counts = np.empty((n_rows, nb))
+        sums = np.empty((len(cols), n_rows, nb))
+        train_cols = [c[train] for c in cols]
+        for p in range(n_rows):
+            r = rows_train[p]
+            counts[p] = np.bincount(r, minlength=nb)
+            for c, w in enumerate(train_cols):
+                sums[c, p] = np.bincount(r, weights=w, minlength=nb)
+        filled = counts > 0
+        safe = np.maximum(counts, 1)
+        # (N_test, P) row-ordered: the memory layout of the reference's column-ordered (P, N_test).
+        at_test = by_station[test] + offsets
+        squared = np.empty(at_test.shape)
+        c = 0
+        for t, y in enumerate(ys):
+            mean_all = y[train].mean(axis=0)
+            for d in range(y.shape[1]):
+                table = np.where(filled, sums[c] / safe, mean_all[d]).ravel()
+                np.take(table, at_test, out=squared)
+                np.subtract(y[test, d][:, None], squared, out=squared)
+                np.square(squared, out=squared)
+                sse[t] += np.sum(squared, axis=0)
+                c += 1
+            sst[t] += float(np.sum((y[test] - mean_all) ** 2))
+    return [1.0 - e / s if s > 0 else np.zeros(n_rows) for e, s in zip(sse, sst)]
+
+
+def _cv_r2_rows_reference(rows: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> np.ndarray:
+    """The code _cv_r2_targets replaced (kept to check it: _SLOW_REFERENCE). Cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, for every
     row of bin ids (P, N) at once: bin means from the training folds (the training mean for a bin
     without training stations); SST around the training mean, so a covariate that explains
     nothing scores about 0 or below."""
@@ -463,16 +519,37 @@ def _confirm(ids, ys, folds, n_folds, obs, n_permutations, level, rng, gs=None, 
         else:
             for idx in members:
                 rows[:, idx] = rng.permuted(rows[:, idx], axis=1)
-        count += int(np.sum(_cv_r2_rows(rows, ys, folds, n_folds) >= obs))
+        cv = _cv_r2_rows_reference if _SLOW_REFERENCE else _cv_r2_rows
+        count += int(np.sum(cv(rows, ys, folds, n_folds) >= obs))
         done += k
     return (1.0 + count) / (done + 1.0)
 
 
+def _permutation_tests(ids, ys_all, folds, n_folds, perms, n_permutations, level, z_needed) -> list:
+    """``[_permutation_test(ids, ys, ...) for ys in ys_all]``, bit for bit: the targets share the bin
+    ids, folds and shuffles, so their R^2 are computed together (_cv_r2_targets)."""
+    if _SLOW_REFERENCE:
+        return [_permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed) for ys in ys_all]
+    # The observed R^2 on its own row, as _permutation_test computes it: one row's squared errors
+    # are summed pairwise, a batch's column by column (_cv_r2_targets), which differs in the last bits.
+    obs = [float(r[0]) for r in _cv_r2_targets(ids[None, :], ys_all, folds, n_folds)]
+    nulls = (_cv_r2_targets(np.asarray(perms), ys_all, folds, n_folds) if len(perms)
+             else [np.empty(0) for _ in ys_all])
+    return [_null_verdict(o, null, n_permutations, z_needed) for o, null in zip(obs, nulls)]
+
+
 def _permutation_test(ids, ys, folds, n_folds, perms, n_permutations, level, z_needed):
     """(cv R^2, permutation p, whether the normal approximation of the null reaches the level)."""
-    # All at once (_cv_r2_rows), the observed R^2 too, so that it and the shuffles' are summed alike.
-    obs = float(_cv_r2_rows(ids[None, :], ys, folds, n_folds)[0])
-    null = _cv_r2_rows(np.asarray(perms), ys, folds, n_folds) if len(perms) else np.empty(0)
+    # All at once (_cv_r2_rows), the observed R^2 too. (Not summed alike, though: a single row's
+    # squared errors are summed pairwise, a batch's column by column; kept, for identical results.)
+    cv = _cv_r2_rows_reference if _SLOW_REFERENCE else _cv_r2_rows
+    obs = float(cv(ids[None, :], ys, folds, n_folds)[0])
+    null = cv(np.asarray(perms), ys, folds, n_folds) if len(perms) else np.empty(0)
+    return _null_verdict(obs, null, n_permutations, z_needed)
+
+
+def _null_verdict(obs: float, null: np.ndarray, n_permutations: int, z_needed: float):
+    """(obs, permutation p, whether the normal approximation of the null reaches the level)."""
     p = (1.0 + np.sum(null >= obs)) / (n_permutations + 1.0)
     sd = null.std() if len(null) else 0.0
     z = (obs - null.mean()) / sd if sd > 0 else (np.inf if len(null) and obs > null.mean() else 0.0)
