@@ -428,7 +428,9 @@ _SLOW_REFERENCE = False
 
 def _cv_r2_rows(rows: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> np.ndarray:
     """Cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, for every
-    row of bin ids (P, N) at once (``_cv_r2_targets`` for one target)."""
+    row of bin ids (P, N) at once: bin means from the training folds (the training mean for a bin
+    without training stations); SST around the training mean, so a covariate that explains
+    nothing scores about 0 or below (``_cv_r2_targets`` for one target)."""
     return _cv_r2_targets(rows, [y], folds, n_folds)[0]
 
 
@@ -480,10 +482,8 @@ def _cv_r2_targets(rows: np.ndarray, ys: Sequence[np.ndarray], folds: np.ndarray
 
 
 def _cv_r2_rows_reference(rows: np.ndarray, y: np.ndarray, folds: np.ndarray, n_folds: int) -> np.ndarray:
-    """The code _cv_r2_targets replaced (kept to check it: _SLOW_REFERENCE). Cross-validated R^2 of predicting y (N, d) by the mean of y in the station's bin, for every
-    row of bin ids (P, N) at once: bin means from the training folds (the training mean for a bin
-    without training stations); SST around the training mean, so a covariate that explains
-    nothing scores about 0 or below."""
+    """_cv_r2_rows as it was before _cv_r2_targets, kept to check that one against it
+    (_SLOW_REFERENCE)."""
     n_rows = rows.shape[0]
     nb = int(rows.max()) + 1
     offsets = (np.arange(n_rows) * nb)[:, None]
