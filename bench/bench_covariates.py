@@ -14,18 +14,16 @@ bit for bit (R^2, p-values, findings); exits 1 if they did not.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import dataclasses
 import pathlib
 import sys
-import tempfile
 import time
 
-from trackcal import captures, validation
+from trackcal import validation
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-from bench_report_figures import simulate  # noqa: E402  (the same capture as the figures' bench)
+from bench_report_figures import stream_arguments, validated_stream  # noqa: E402  (the same capture)
 
 
 def covariate_inputs(v):
@@ -49,17 +47,8 @@ def run(inputs, reference: bool):
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=600.0, help="stream length [s] (default 600)")
-    parser.add_argument("--repeats", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=5)
-    parser.add_argument("--profile", help="also write a cProfile of one more run of the new code to this file")
-    args = parser.parse_args()
-    with tempfile.TemporaryDirectory(prefix="bench_covariates_") as tmp:
-        folder = simulate(pathlib.Path(tmp), args.duration, args.seed)
-        cal = validation.fit_polynomial(captures.load_poses(folder / "capture").select_set("calib"), degree=3)
-        cap = captures.load(folder / "streams")
-        v = validation.validate(cap, cal, analyse_covariates=False)
+    args = stream_arguments(__doc__.splitlines()[0], repeats=1).parse_args()
+    v = validated_stream(args.duration, args.seed)
     inputs = covariate_inputs(v)
     print(f"{len(inputs[0].position_mm)} paired stream samples ({args.duration:g} s), "
           f"{len(inputs[1])} covariates, best of {args.repeats}:")

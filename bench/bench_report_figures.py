@@ -44,6 +44,26 @@ def simulate(folder: pathlib.Path, duration_s: float, seed: int) -> pathlib.Path
     return folder
 
 
+
+def stream_arguments(description: str, repeats: int) -> argparse.ArgumentParser:
+    """The options both long-stream benchmarks take (this one and bench_covariates.py)."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--duration", type=float, default=600.0, help="stream length [s] (default 600)")
+    parser.add_argument("--repeats", type=int, default=repeats)
+    parser.add_argument("--seed", type=int, default=5)
+    parser.add_argument("--profile", help="also write a cProfile of one more run to this file")
+    return parser
+
+
+def validated_stream(duration_s: float, seed: int):
+    """The paired streams of a simulated paper capture validated, covariates off, with a degree-3
+    polynomial fitted to its calibration stations."""
+    with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
+        folder = simulate(pathlib.Path(tmp), duration_s, seed)
+        cal = validation.fit_polynomial(captures.load_poses(folder / "capture").select_set("calib"), degree=3)
+        cap = captures.load(folder / "streams")
+        return validation.validate(cap, cal, analyse_covariates=False)
+
 def time_figures(v) -> dict:
     import matplotlib.pyplot as plt
     start = time.perf_counter()
@@ -60,18 +80,9 @@ def time_figures(v) -> dict:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=600.0, help="stream length [s] (default 600)")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=5)
-    parser.add_argument("--profile", help="also write a cProfile of one more run to this file")
-    args = parser.parse_args()
-    with tempfile.TemporaryDirectory(prefix="bench_report_") as tmp:
-        folder = simulate(pathlib.Path(tmp), args.duration, args.seed)
-        cal = validation.fit_polynomial(captures.load_poses(folder / "capture").select_set("calib"), degree=3)
-        cap = captures.load(folder / "streams")
-        v = validation.validate(cap, cal, analyse_covariates=False)
-    print(f"{len(cap.station)} paired stream samples ({args.duration:g} s), best of {args.repeats}:")
+    args = stream_arguments(__doc__.splitlines()[0], repeats=3).parse_args()
+    v = validated_stream(args.duration, args.seed)
+    print(f"{len(v.capture.station)} paired stream samples ({args.duration:g} s), best of {args.repeats}:")
     best: dict = {}
     for _ in range(args.repeats):
         for name, t in time_figures(v).items():
