@@ -151,14 +151,15 @@ class CsvTable {
       // A binary file given as the capture (an .xlsx workbook, an image, an archive renamed
       // .csv): a CR among its bytes was called "mixed line ends", or its header "missing" a column.
       // Its header holds a control byte (a NUL, UTF-16 without a byte order mark), or bytes that
-      // are not UTF-8 with control bytes soon after (a PNG's signature). A legacy code page's
-      // header (Latin-1 "temp_\xb0C") is no binary file: it is read as before.
+      // are not UTF-8 with a NUL soon after (a PNG's signature). A legacy code page's header
+      // (Latin-1 "temp_\xb0C") is no binary file, even with a form feed or a DOS end-of-file
+      // byte further on: it is read as before.
       if (!have_header && !Trim(line).empty()) {
         const size_t control_at = control(line);
         const size_t non_utf8_at = FirstNonUtf8Byte(line);
         const size_t at = std::min(control_at, std::min(non_utf8_at, line.size()));
         if (control_at < line.size() ||
-            (non_utf8_at != std::string::npos && control(head) < head.size())) {
+            (non_utf8_at != std::string::npos && head.find('\0') != std::string::npos)) {
           Fail(line_number, "encoding",
                "the header is not text (byte " + PrintableForMessage(line.substr(at, 1)) +
                    " at column " + std::to_string(at + 1) +

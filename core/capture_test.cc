@@ -389,6 +389,13 @@ TEST(PosesCsv, AFileThatIsNotUtf8TextSaysSo) {
                       "C\n" +
                       row),
             "");
+  // Such a header with a form feed further on (a page break in an extra column) was called "not a
+  // text CSV file" because of the control byte; a binary file's NUL is what tells it apart.
+  EXPECT_EQ(error_for(columns +
+                      ",temp_\xb0"
+                      "C\n" +
+                      row.substr(0, row.size() - 3) + "2\f0\n"),
+            "");
 }
 
 TEST(CaptureReaders, FolderInsteadOfFileIsAnErrorNamingIt) {
