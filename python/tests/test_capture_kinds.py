@@ -14,7 +14,7 @@ import pytest
 
 import trackcal
 from trackcal import captures, validation
-from understand_support import simulate
+from understand_support import simulate, stream_only
 
 
 def run_cli(*args, check=True):
@@ -31,10 +31,7 @@ def sim(tmp_path_factory):
     """A paper capture (poses, markers and streams) and a folder holding its two streams only."""
     tmp = tmp_path_factory.mktemp("kinds")
     cap_dir = simulate(tmp / "capture", seed=51)
-    streams = tmp / "streams"
-    streams.mkdir()
-    for name in ("tracker_stream.csv", "reference_stream.csv"):
-        shutil.copy(cap_dir / name, streams / name)
+    streams = stream_only(cap_dir, tmp / "streams")
     cal = tmp / "cal.json"
     validation.fit_polynomial(captures.load_poses(cap_dir).select_set("calib"), degree=3).save(cal)
     return cap_dir, streams, cal

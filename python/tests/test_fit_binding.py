@@ -16,7 +16,7 @@ import pytest
 
 import trackcal
 from trackcal import captures, validation
-from understand_support import simulate, two_receivers, write_poses
+from understand_support import simulate, stream_only, two_receivers, write_poses
 
 MODEL = "terms:\n  - type: polynomial\n    degree: 3\n"
 # Wall-clock figures differ between runs; everything else is the same computation on the same input.
@@ -545,10 +545,7 @@ def test_station_with_swapped_marker_labels_is_left_out_with_a_warning(capture_d
 def test_stream_folder_with_free_time_offset_matches_the_command_line(capture_dir, tmp_path):
     """A folder of streams is paired, and with a free time offset fitted jointly and re-paired, as
     trackcal-fit does: same tables, same offset."""
-    streams = tmp_path / "streams"
-    streams.mkdir()
-    for name in ("tracker_stream.csv", "reference_stream.csv"):
-        shutil.copy(capture_dir / name, streams / name)
+    streams = stream_only(capture_dir, tmp_path / "streams")
     model = tmp_path / "model.yaml"
     model.write_text("time_offset: {value: 0.0, fixed: false}\n" + MODEL)
     cli = run_fit_cli("fit", "--data", streams, "--model", model, "-o", tmp_path / "cli.json", "--folds", "3",

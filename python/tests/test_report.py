@@ -15,7 +15,7 @@ import pytest
 import trackcal
 from trackcal import figures, captures, report, validation
 from trackcal.history import record_fit, load_history, scores_from_validation
-from understand_support import simulate
+from understand_support import simulate, stream_only
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 
@@ -506,10 +506,7 @@ def stream_validation(tmp_path_factory):
     calibration on a stream."""
     root = tmp_path_factory.mktemp("stream")
     sim = simulate(root / "capture", seed=5)
-    streams = root / "streams"
-    streams.mkdir()
-    for name in ("tracker_stream.csv", "reference_stream.csv"):
-        shutil.copy(sim / name, streams / name)
+    streams = stream_only(sim, root / "streams")
     cal = validation.fit_polynomial(captures.load_poses(sim).select_set("calib"), degree=3)
     return validation.validate(captures.load(streams), cal, analyse_covariates=False)
 

@@ -73,6 +73,7 @@ import numpy as np
 import pytest
 
 from trackcal import demo
+from understand_support import stream_only
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENE = ROOT / "tests" / "data" / "workflow" / "paper_small.yaml"
@@ -182,14 +183,6 @@ def _simulate(out: Path, hidden: str, seed: int) -> Path:
     subprocess.run(["trackcal-simulate", "--scene", str(SCENE), "--hidden", hidden.replace("+", ","),
                     "--seed", str(seed),
                     "-o", str(out)], check=True, capture_output=True, text=True)
-    return out
-
-
-def _stream_only(capture: Path, out: Path) -> Path:
-    """A folder with only the two streams: trackcal-fit pairs them with the model's time offset."""
-    out.mkdir()
-    for name in ("tracker_stream.csv", "reference_stream.csv"):
-        shutil.copy(capture / name, out / name)
     return out
 
 
@@ -744,7 +737,7 @@ def test_following_the_diagnosis_finds_the_hidden_effect(hidden, seed, tmp_path)
         pytest.skip("not in this run's loops (TRACKCAL_WORKFLOW_TESTS: unset/ci runs CI_LOOPS, "
                     "full runs them all, or a list of effects or effect:seed items)")
     capture = _simulate(tmp_path / "capture", hidden, seed)
-    data = _stream_only(capture, tmp_path / "streams") if hidden == "clock_offset" else capture
+    data = stream_only(capture, tmp_path / "streams") if hidden == "clock_offset" else capture
     work = tmp_path / "work"
     log = []
     steps = demo.follow_diagnosis(data, demo.PAPER_MODEL, work, say=log.append,

@@ -61,6 +61,16 @@ def receiver_gain_at(delta_t, per_degree=0.004, anisotropy=(1.5, 0.5, 1.0)):
     return np.diag([1.0 + per_degree * delta_t * a for a in anisotropy])
 
 
+
+def stream_only(capture: pathlib.Path, out: pathlib.Path) -> pathlib.Path:
+    """A new folder ``out`` with only the capture's two streams (tracker and reference): a folder
+    trackcal pairs as a stream capture."""
+    from trackcal.captures import STREAM_FILES
+    out.mkdir()
+    for name in STREAM_FILES:
+        shutil.copy(capture / name, out / name)
+    return out
+
 def simulate_temperature_gains(out: pathlib.Path, *, levels=np.arange(18.0, 31.0, 2.0), seed: int = 5,
                                per_degree: float = 0.004, base: str = "ideal") -> pathlib.Path:
     """A capture whose receiver gains follow the room temperature, an effect outside the fit
