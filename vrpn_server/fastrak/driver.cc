@@ -52,6 +52,23 @@ std::string QuoteBytes(std::string_view bytes) {
   return out;
 }
 
+// True if `candidate` is a status reply in the layout of `unit_reply`, the reply the unit gave to
+// the reset's `S` (accepted on its first byte and final LF alone, as by the reference): the same
+// length, '2', a station byte, 'S' (the Fastrak's status record type, which an IS-900's 54-byte
+// reply shares; a reply to a query among the extra commands, such as "21H..." to `H1`, has its
+// command's letter there), the same final CR LF and no LF before it (a window over the end of one
+// reply and the start of the next). Only for a `unit_reply` that itself has 'S' at byte 2 and ends
+// with CR LF: without a known layout nothing confirms but the Fastrak's.
+bool InUnitStatusLayout(std::string_view candidate, std::string_view unit_reply) {
+  constexpr size_t kMinSize = 5;  // '2', station, 'S', CR, LF
+  if (unit_reply.size() < kMinSize || unit_reply[0] != '2' || unit_reply[2] != 'S' ||
+      !unit_reply.ends_with("\r\n")) {
+    return false;
+  }
+  return candidate.size() == unit_reply.size() && candidate[0] == '2' && candidate[2] == 'S' &&
+         candidate.ends_with("\r\n") && candidate.find('\n') == candidate.size() - 1;
+}
+
 // Thrown inside the driver thread to unwind to the main loop.
 struct StopRequested {};
 struct PortLost {
@@ -548,6 +565,7 @@ class FastrakDriver::Session {
     const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
     if (!status) return false;
     reset_attempts_ = 0;
+    unit_status_reply_ = reply;
     Emit(Severity::kInfo, std::string("tracker ") + what + " answered (" +
                               (status->layout_note.empty()
                                    ? "firmware '" + status->firmware_version + "'"
@@ -607,6 +625,7 @@ class FastrakDriver::Session {
       return false;
     }
     reset_attempts_ = 0;
+    unit_status_reply_ = reply;
     if (!status->layout_note.empty()) {
       // The reference checks only the first and last byte; so do we (ParseStatusRecord).
       Emit(Severity::kInfo, "status OK (a " + std::to_string(reply.size()) +
@@ -653,10 +672,15 @@ class FastrakDriver::Session {
       Write(kAttitudeFilterCommand);
       FlushInput();
       Write(kRequestStatus);
+      const std::string reply = ReadStatusReply();
       std::string why;
-      if (!ParseStatusRecord(ReadStatusReply(), &why)) {
-        Emit(Severity::kWarning, "no status reply after the filter commands; waiting " +
-                                     FormatSeconds(2 * timings_.filter_settle_s) + " instead");
+      if (!ParseStatusRecord(reply, &why)) {
+        Emit(Severity::kWarning,
+             (reply.empty()
+                  ? std::string("no status reply after the filter commands")
+                  : "status reply after the filter commands refused (" + why + "; got " +
+                        std::to_string(reply.size()) + " bytes: " + QuoteBytes(reply) + ")") +
+                 "; waiting " + FormatSeconds(2 * timings_.filter_settle_s) + " instead");
         const double waited = std::chrono::duration<double>(SteadyClock::now() - start).count();
         Sleep(2 * timings_.filter_settle_s - waited);
       }
@@ -677,19 +701,19 @@ class FastrakDriver::Session {
       if (options_.confirm_filters) {
         // As for the filters: the unit answers `S` after it has read the extra commands. Replies
         // to them (a query among the extras) come first and are skipped: only a reply in the
-        // Fastrak's 55-byte status layout confirms. Else the reference's blind wait. `*N` waits
-        // above are the user's and always made.
+        // Fastrak's 55-byte status layout, or in the layout of the unit's own reply to the reset's
+        // `S` (an IS-900's 54 bytes, InUnitStatusLayout), confirms. Else the reference's blind
+        // wait. `*N` waits above are the user's and always made.
         const SteadyClock::time_point start = SteadyClock::now();
         Write(kRequestStatus);
         std::string other;
         if (!ReadFullStatusReply(&other)) {
-          Emit(Severity::kWarning,
-               (other.empty()
-                    ? std::string("no reply")
-                    : "no reply in the Fastrak's 55-byte status layout (got " +
-                          std::to_string(other.size()) + " bytes: " + QuoteBytes(other) + ")") +
-                   " to the status request after the extra commands; waiting " +
-                   FormatSeconds(timings_.extras_settle_s) + " instead");
+          Emit(Severity::kWarning, (other.empty() ? std::string("no reply")
+                                                  : "no reply in the " + StatusLayoutName() +
+                                                        " (got " + std::to_string(other.size()) +
+                                                        " bytes: " + QuoteBytes(other) + ")") +
+                                       " to the status request after the extra commands; waiting " +
+                                       FormatSeconds(timings_.extras_settle_s) + " instead");
           const double waited = std::chrono::duration<double>(SteadyClock::now() - start).count();
           Sleep(timings_.extras_settle_s - waited);
         }
@@ -734,10 +758,21 @@ class FastrakDriver::Session {
     return false;
   }
 
-  // Reads until the Fastrak's 55-byte status reply has arrived (true) or the status timeout passes
-  // (false; *other is then everything that came). Replies to query extra commands come first and
-  // are skipped; they need not end with an LF (a `P` record in the output list 2,11,0 has none, so
-  // it runs into the status reply), hence the status is looked for as the 55 bytes up to each LF.
+  // The status layout that confirms after the extra commands, for texts.
+  std::string StatusLayoutName() const {
+    if (InUnitStatusLayout(unit_status_reply_, unit_status_reply_) &&
+        unit_status_reply_.size() != kStatusRecordSize) {
+      return "unit's " + std::to_string(unit_status_reply_.size()) + "-byte status layout";
+    }
+    return "Fastrak's 55-byte status layout";
+  }
+
+  // Reads until a status reply in the Fastrak's 55-byte layout or in the unit's own (the layout of
+  // its reply to the reset's `S`, InUnitStatusLayout) has arrived (true) or the status timeout
+  // passes (false; *other is then everything that came). Replies to query extra commands come
+  // first and are skipped; they need not end with an LF (a `P` record in the output list 2,11,0 has
+  // none, so it runs into the status reply), hence the status is looked for as the 55 (or the
+  // unit's) bytes up to each LF.
   bool ReadFullStatusReply(std::string* other) {
     // Bounds memory if a unit floods the line (at 115200 baud the status timeout, 1 s, brings
     // 11.5 kB); the status reply is then missed and the blind wait follows.
@@ -746,15 +781,23 @@ class FastrakDriver::Session {
         SteadyClock::now() + Seconds(timings_.StatusTimeout(options_.baud));
     std::vector<uint8_t> bytes;
     size_t scanned = 0;
+    // The `size` bytes up to and including the byte at `lf`, or nothing if fewer have come.
+    auto window = [&bytes](std::vector<uint8_t>::const_iterator lf, size_t size) {
+      if (lf - bytes.cbegin() + 1 < static_cast<std::ptrdiff_t>(size)) return std::string();
+      return std::string(lf + 1 - static_cast<std::ptrdiff_t>(size), lf + 1);
+    };
     while (true) {
       for (auto lf =
-               std::find(bytes.begin() + static_cast<std::ptrdiff_t>(scanned), bytes.end(), '\n');
-           lf != bytes.end(); lf = std::find(lf + 1, bytes.end(), '\n')) {
-        if (lf - bytes.begin() + 1 < static_cast<std::ptrdiff_t>(kStatusRecordSize)) continue;
-        const std::string candidate(lf + 1 - kStatusRecordSize, lf + 1);
+               std::find(bytes.cbegin() + static_cast<std::ptrdiff_t>(scanned), bytes.cend(), '\n');
+           lf != bytes.cend(); lf = std::find(lf + 1, bytes.cend(), '\n')) {
+        const std::string candidate = window(lf, kStatusRecordSize);
         std::string why;
-        const std::optional<StatusRecord> status = ParseStatusRecord(candidate, &why);
+        const std::optional<StatusRecord> status =
+            candidate.empty() ? std::nullopt : ParseStatusRecord(candidate, &why);
         if (status && status->layout_note.empty()) return true;
+        if (InUnitStatusLayout(window(lf, unit_status_reply_.size()), unit_status_reply_)) {
+          return true;
+        }
       }
       scanned = bytes.size();
       if (bytes.size() > kMaxBytes || Wait(deadline, true) == WaitResult::kTimeout) {
@@ -843,6 +886,7 @@ class FastrakDriver::Session {
   bool configured_once_ = false;
   bool after_loss_ = false;  // the stream or the port was lost since the last short restart
   bool stylus_lists_written_ = false;
+  std::string unit_status_reply_;  // the last status reply accepted before a Configure()
   SystemClock::time_point wake_time_;
   std::array<std::optional<bool>, kMaxStations> last_button_;
 };

@@ -389,31 +389,136 @@ TEST(FastrakDriver, BadStatusIsRejectedAndRetried) {
   EXPECT_EQ(fake.received().substr(0, 4), "cS\rc");  // attempt 1 failed, attempt 2 escalated
 }
 
+// An IS-900-style status reply: the Fastrak's with one character less of the system id (54 bytes,
+// FASTRAK.md section 4), so its fields are not in the Fastrak's layout.
+std::string Is900StatusRecord() {
+  std::string status = testing::MakeStatusRecord();
+  status.erase(50, 1);
+  return status;
+}
+
 // A unit whose status reply is not in the Fastrak's 55-byte layout (a 54-byte IS-900 reply) is
-// accepted, as by the reference, but its reply to `S` after the extra commands does not confirm
-// them, so the driver waits extras_settle_s. It was then warned "no status reply", which is untrue:
-// the text says what came back instead.
-TEST(FastrakDriver, ExtrasNotConfirmedSaysWhatTheUnitAnswered) {
+// accepted at the reset, as by the reference. Its reply to `S` after the extra commands has the
+// same layout, so it confirms them: the blind extras_settle_s (10 s here) was taken every time.
+TEST(FastrakDriver, Is900StatusLayoutConfirmsTheExtras) {
   const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
   FakeFastrakOptions fake_options;
-  fake_options.status_record = testing::MakeStatusRecord();
-  fake_options.status_record.erase(50, 1);  // one character less of the system id: 54 bytes
+  fake_options.status_record = Is900StatusRecord();
   ASSERT_EQ(fake_options.status_record.size(), 54u);
   FakeFastrak fake(dir / "tty", fake_options);
   Collector collector;
   FastrakOptions options = FastOptions(dir / "tty");
   options.extra_commands = {"H1,1,0,0"};
+  options.timings.extras_settle_s = 10.0;
+  const auto started = SteadyClock::now();
   FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(5, 20.0));
+  const double first_report_s =
+      std::chrono::duration<double>(collector.report_times()[0] - started).count();
+  driver.Stop();
+  std::cout << "IS-900 status layout with extras: first report " << first_report_s
+            << " s after Start\n";
+  EXPECT_TRUE(collector.HasLog("status OK (a 54-byte reply not in the Fastrak's layout"));
+  EXPECT_EQ(collector.CountLogs("after the extra commands; waiting"), 0);
+  // The fast profile's waits before the first record are about 0.2 s; the blind wait alone is
+  // 10 s, so 5 s separates them on a loaded machine.
+  EXPECT_LT(first_report_s, 5.0);
+  EXPECT_EQ(fake.status_requests(), 3);  // reset, filters, extras
+  for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
+}
+
+// When the reply to `S` after the extra commands does not confirm (here it loses its LF), the
+// driver waits extras_settle_s. It was warned "no status reply", which was untrue: the text says
+// what came back instead, in the unit's layout (54 bytes) or the Fastrak's (55).
+TEST(FastrakDriver, ExtrasNotConfirmedSaysWhatTheUnitAnswered) {
+  for (const bool is900 : {true, false}) {
+    SCOPED_TRACE(is900 ? "IS-900 layout" : "Fastrak layout");
+    const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+    FakeFastrakOptions fake_options;
+    if (is900) fake_options.status_record = Is900StatusRecord();
+    fake_options.corrupt_status_from = 3;  // the reset's and the filters' replies are intact
+    FakeFastrak fake(dir / "tty", fake_options);
+    Collector collector;
+    FastrakOptions options = FastOptions(dir / "tty");
+    options.extra_commands = {"H1,1,0,0"};
+    FastrakDriver driver(options, collector.Callbacks());
+    driver.Start();
+    ASSERT_TRUE(collector.WaitForReports(5, 15.0));
+    driver.Stop();
+    const std::string id =
+        is900 ? "EMULATED POLHEMUS FASTRAK      " : "EMULATED POLHEMUS FASTRAK       ";
+    EXPECT_TRUE(collector.HasLog(std::string("no reply in the ") +
+                                 (is900 ? "unit's 54-byte status layout (got 53"
+                                        : "Fastrak's 55-byte status layout (got 54") +
+                                 " bytes: '21S0A0000        3.00" + id +
+                                 "\\x0d') to the status request after the extra "
+                                 "commands; waiting 0.05 s instead"));
+    EXPECT_EQ(collector.CountLogs("no status reply"), 0);
+    EXPECT_EQ(collector.CountLogs("no reply to the status request"), 0);
+  }
+}
+
+// The filter round trip's reply refused (here it lost its LF): the warning said "no status reply
+// after the filter commands" although one came. It says what came, as for the extras.
+TEST(FastrakDriver, FilterReplyRefusedSaysWhatCame) {
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrakOptions fake_options;
+  fake_options.corrupt_status_from = 2;  // the reset's reply is intact
+  FakeFastrak fake(dir / "tty", fake_options);
+  Collector collector;
+  FastrakDriver driver(FastOptions(dir / "tty"), collector.Callbacks());
   driver.Start();
   ASSERT_TRUE(collector.WaitForReports(5, 15.0));
   driver.Stop();
-  EXPECT_TRUE(collector.HasLog("status OK (a 54-byte reply not in the Fastrak's layout"));
   EXPECT_TRUE(collector.HasLog(
-      "no reply in the Fastrak's 55-byte status layout (got 54 bytes: "
-      "'21S0A0000        3.00EMULATED POLHEMUS FASTRAK      \\x0d\\x0a') to the status request "
-      "after the extra commands; waiting 0.05 s instead"));
+      "status reply after the filter commands refused (status reply (54 bytes) does not end with "
+      "LF; got 54 bytes: '21S0A0000        3.00EMULATED POLHEMUS FASTRAK       \\x0d'); waiting "
+      "0.04 s instead"));
   EXPECT_EQ(collector.CountLogs("no status reply"), 0);
-  EXPECT_EQ(collector.CountLogs("no reply to the status request"), 0);
+  for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
+}
+
+// A query among the extra commands (`H1`, the hemisphere of station 1) is answered with a reply
+// record of type '2', like the status reply: '2', station, command letter, ..., CR LF. It must be
+// skipped and the status reply after it confirm the extras, in the Fastrak's layout and in an
+// IS-900's; a reply as long as the status reply and starting with '2' must not pass for it (that
+// would end the wait before the unit has read the extras).
+TEST(FastrakDriver, QueryReplyStartingWith2IsNotTakenForTheStatus) {
+  struct Case {
+    const char* name;
+    bool is900;
+    size_t reply_size;  // of the reply to H1
+  };
+  for (const Case& c :
+       {Case{"Fastrak, short reply", false, 24}, Case{"Fastrak, 55 bytes", false, 55},
+        Case{"IS-900, short reply", true, 24}, Case{"IS-900, 54 bytes", true, 54}}) {
+    SCOPED_TRACE(c.name);
+    const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+    FakeFastrakOptions fake_options;
+    if (c.is900) fake_options.status_record = Is900StatusRecord();
+    std::string reply = "21H  1.00  0.00  0.00";
+    reply.resize(c.reply_size - 2, ' ');
+    reply += "\r\n";
+    fake_options.line_replies = {{"H1", reply}};
+    // A driver that took the query's reply for the status would send `f` and `C` and flush its
+    // input before the status reply comes, which then reaches its record parser.
+    fake_options.status_delay_s = 0.2;
+    FakeFastrak fake(dir / "tty", fake_options);
+    Collector collector;
+    FastrakOptions options = FastOptions(dir / "tty");
+    options.extra_commands = {"H1,1,0,0", "H1"};
+    options.timings.extras_settle_s = 10.0;
+    FastrakDriver driver(options, collector.Callbacks());
+    driver.Start();
+    ASSERT_TRUE(collector.WaitForReports(5, 20.0));
+    driver.Stop();
+    EXPECT_EQ(collector.CountLogs("after the extra commands; waiting"), 0);
+    // The status reply was read up to its end: no byte of it reached the record parser.
+    EXPECT_EQ(driver.stats().discarded_bytes, 0u);
+    EXPECT_EQ(collector.CountLogs("skipped"), 0);
+    for (const FastrakReport& r : collector.reports()) ExpectTranscriptPose(r);
+  }
 }
 
 // A unit that goes silent after streaming: one short restart (restart_window_s), then the

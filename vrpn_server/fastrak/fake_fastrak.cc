@@ -186,7 +186,10 @@ void FakeFastrak::WriteOut(const std::string& bytes) {
   [[maybe_unused]] ssize_t n = ::write(master_, bytes.data(), bytes.size());
 }
 
-void FakeFastrak::HandleLine(const std::string& line) {
+void FakeFastrak::HandleLine(const std::string& line, std::string* reply) {
+  for (const auto& [query, answer] : options_.line_replies) {
+    if (line == query) *reply += answer;
+  }
   if (line.size() >= 2 && line[0] == 'O') {
     std::vector<int> items;
     std::stringstream in(line.substr(1));
@@ -208,7 +211,7 @@ void FakeFastrak::HandleInput(const char* data, size_t n, std::string* reply) {
     const char c = data[i];
     if (in_line_) {
       if (c == '\r' || c == '\n') {
-        HandleLine(line_);
+        HandleLine(line_, reply);
         in_line_ = false;
         line_.clear();
       } else {
@@ -238,9 +241,16 @@ void FakeFastrak::HandleInput(const char* data, size_t n, std::string* reply) {
         break;
       case 'S': {
         ++status_requests_;
+        if (options_.status_delay_s > 0.0) {
+          WriteOut(*reply);  // the answers before `S` leave first
+          reply->clear();
+          std::this_thread::sleep_for(std::chrono::duration<double>(options_.status_delay_s));
+        }
         const std::string status =
             options_.status_record.empty() ? MakeStatusRecord() : options_.status_record;
-        *reply += corrupt_status_ ? status.substr(0, status.size() - 1) : status;  // LF missing
+        const bool corrupt = corrupt_status_ || (options_.corrupt_status_from > 0 &&
+                                                 status_requests_ >= options_.corrupt_status_from);
+        *reply += corrupt ? status.substr(0, status.size() - 1) : status;  // LF missing
         break;
       }
       case 0x19:

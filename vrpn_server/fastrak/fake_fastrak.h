@@ -15,6 +15,8 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <utility>
+#include <vector>
 
 namespace trackcal::fastrak::testing {
 
@@ -32,6 +34,15 @@ struct FakeFastrakOptions {
   // Reply to `S`; empty: MakeStatusRecord(). Another unit's reply (a 54-byte IS-900 status) or
   // firmware whose fields differ from the Fastrak's layout.
   std::string status_record;
+  // From the n-th `S` on (1-based; 0 = never) the reply loses its final LF, as SetCorruptStatus:
+  // replies that go wrong at a given step of the reset (3: the round trip after the extras).
+  int corrupt_status_from = 0;
+  // The unit is busy this long before it answers `S` (and reads nothing meanwhile): a driver that
+  // goes on before the reply finds the reply's bytes in its record stream.
+  double status_delay_s = 0.0;
+  // Replies to line commands (without their CR), e.g. {"H1", "21H  1.00  0.00  0.00\r\n"}: a
+  // query among the extra commands.
+  std::vector<std::pair<std::string, std::string>> line_replies;
   // Pose of each station in inches and wire order w, x, y, z (transcript 07's values).
   std::array<std::array<float, 3>, 4> position_in = {{{10, -5, 20}, {1.5f, 2.5f, -3.5f}, {0, 0, 1}, {0, 0, 2}}};
   std::array<std::array<float, 4>, 4> wxyz = {{{0.73029674f, 0.18257418f, 0.36514837f, 0.54772256f},
@@ -67,7 +78,7 @@ class FakeFastrak {
   void ClosePty();
   void Loop();
   void HandleInput(const char* data, size_t n, std::string* reply);
-  void HandleLine(const std::string& line);
+  void HandleLine(const std::string& line, std::string* reply);
   void PowerUp();
   void WriteOut(const std::string& bytes);
 
