@@ -9,6 +9,7 @@
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <regex>
 #include <set>
 #include <sstream>
 
@@ -855,6 +856,54 @@ TEST_F(FitCliTest, RegisterWithPosesLabelsAndFlagsTheDistortion) {
                        (dir_ / "model.yaml").string() + " -o " + (dir_ / "x.csv").string() +
                        " 2> /dev/null"),
             2);
+}
+
+// The options of each command in `trackcal-fit --help` and in the synopsis that opens docs/fit.md
+// (the block a user copies) are the same: a user reads one or the other, and an option the usage
+// leaves out (diagnose's --sensor was) looks like one the command does not take.
+std::map<std::string, std::set<std::string>> OptionsPerCommand(const std::string& usage) {
+  std::map<std::string, std::set<std::string>> options;
+  const std::regex command_line(R"(^\s*trackcal-fit (\w+) )");
+  const std::regex option(R"((--[a-z][a-z0-9-]*|-o\b))");
+  std::string command;
+  std::istringstream lines(usage);
+  for (std::string line; std::getline(lines, line);) {
+    std::smatch match;
+    if (std::regex_search(line, match, command_line)) {
+      command = match[1];
+    } else if (line.rfind(' ', 0) != 0) {
+      command.clear();  // the text after the synopsis
+    }
+    if (command.empty()) continue;
+    for (auto it = std::sregex_iterator(line.begin(), line.end(), option);
+         it != std::sregex_iterator(); ++it) {
+      options[command].insert(it->str());
+    }
+  }
+  return options;
+}
+
+TEST(FitCliUsage, HelpListsTheOptionsTheDocsListForEachCommand) {
+  const char* source = std::getenv("TRACKCAL_SOURCE_DIR");
+  ASSERT_NE(source, nullptr) << "run through ctest (TRACKCAL_SOURCE_DIR)";
+  const std::string doc = ReadFileToString(fs::path(source) / "docs" / "fit.md");
+  const size_t begin = doc.find("```\n");
+  const size_t end = doc.find("```", begin + 4);
+  ASSERT_NE(end, std::string::npos);
+  const auto documented = OptionsPerCommand(doc.substr(begin + 4, end - begin - 4));
+
+  const fs::path out =
+      fs::temp_directory_path() / ("trackcal_fit_usage_" + std::to_string(::getpid()));
+  ASSERT_EQ(
+      RunCommand((BinaryDir() / "fit" / "trackcal-fit").string() + " --help > " + out.string()), 0);
+  const auto printed = OptionsPerCommand(ReadFileToString(out));
+  fs::remove(out);
+
+  ASSERT_EQ(documented.size(), 5u);
+  for (const auto& [command, options] : documented) {
+    ASSERT_TRUE(printed.count(command)) << command;
+    EXPECT_EQ(printed.at(command), options) << "trackcal-fit " << command;
+  }
 }
 
 }  // namespace
