@@ -35,3 +35,23 @@ def test_adding_a_term_type_registers_a_name_that_is_free():
     name = match.group(1)
     with pytest.raises(ValueError, match=f"unknown term type '{name}'"):
         trackcal._core.parse_model(f"terms:\n  - type: {name}\n")
+
+
+def test_demo_usage_names_a_command_that_runs(capsys):
+    """The main job's --help (README: `python -m trackcal.demo`, options with `--help`) printed
+    `usage: trackcal demo ...`, and `trackcal` has no `demo` command: the usage line a user copies
+    must name a command that runs."""
+    import shlex
+    import subprocess
+
+    from trackcal import demo
+
+    with pytest.raises(SystemExit) as exit_info:
+        demo._main(["--help"])
+    assert exit_info.value.code == 0
+    match = re.match(r"usage: (.*?) \[-h\]", capsys.readouterr().out)
+    assert match, "no usage line"
+    result = subprocess.run(shlex.split(match.group(1)) + ["--help"], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, (match.group(1), result.stderr)
+    assert "--max-steps" in result.stdout

@@ -781,7 +781,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 def _main(argv: Optional[List[str]] = None) -> int:
-    parser = argparse.ArgumentParser(prog="trackcal demo", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m trackcal.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=Path("demo-runs"),
                         help="folder under which a fresh, timestamped work folder is made")
     parser.add_argument("--scene", default=None,
