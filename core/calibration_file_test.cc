@@ -89,7 +89,7 @@ TEST(ReadCalibrationFile, Nominal) {
   EXPECT_EQ(cal.volume().max, Eigen::Vector3d(0.6, 0.5, 0.7));
   EXPECT_EQ(cal.fit_statistics.at("num_samples"), 480);
   ASSERT_EQ(cal.provenance.inputs.size(), 2u);
-  EXPECT_EQ(cal.provenance.inputs[1].role, "validation_capture");
+  EXPECT_EQ(cal.provenance.inputs[1].role, "calibration_capture");
   EXPECT_EQ(cal.provenance.tool, "trackcal-fit");
 }
 
@@ -241,9 +241,12 @@ TEST(ParseCalibrationJson, AnUnquotedWordIsNotCalledANonFiniteNumber) {
   std::string text = ReadFileToString(ExamplePath());
   const std::string role = "\"role\": \"calibration_capture\"";
   ASSERT_NE(text.find(role), std::string::npos);
-  text.replace(text.find(role), role.size(), "\"role\": info");
+  const size_t at = text.find(role);
+  text.replace(at, role.size(), "\"role\": info");
+  // The line of the replaced role, counted in the example (which may grow).
+  const std::string line = std::to_string(1 + std::count(text.begin(), text.begin() + at, '\n'));
   const std::string error = ErrorForText(text);
-  EXPECT_EQ(error.rfind("calib.json:107:17: invalid JSON: ", 0), 0u) << error;
+  EXPECT_EQ(error.rfind("calib.json:" + line + ":17: invalid JSON: ", 0), 0u) << error;
   EXPECT_EQ(error.find("non-finite"), std::string::npos) << error;
   EXPECT_NE(error.find("invalid literal"), std::string::npos) << error;
   // The real literals still are.

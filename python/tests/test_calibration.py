@@ -43,7 +43,7 @@ def test_load_example_nominal():
     assert cal.fade_distance == 0.15
     np.testing.assert_array_equal(cal.volume_max, [0.6, 0.5, 0.7])
     assert cal.fit_statistics["num_samples"] == 480
-    assert cal.provenance["inputs"][0]["role"] == "calibration_capture"
+    assert cal.provenance["inputs"][0]["role"] == "model_file"
     poly = cal.corrections[0]
     assert poly.degree == 2
     assert poly.position_coefficients.shape == (10, 3)
