@@ -583,3 +583,51 @@ def test_figure_6_caption_says_a_sensor_offset_is_part_of_the_arrows(tmp_path):
                 plt.close(f)
     assert "sensor offset" not in captions["physical"], captions["physical"]
     assert "includes the calibration's sensor offset (36.3 mm)" in captions["offset"], captions["offset"]
+
+
+def _stream_path(n=3600):
+    """Positions [m] along a stream's Lissajous path through the paper room's volume (as the
+    simulator's stream: x +-0.6, y +-0.5, z -0.6 to -0.2 m)."""
+    t = np.linspace(0.0, 30.0, n)
+    return np.column_stack([0.6 * np.sin(t), 0.5 * np.sin(1.3 * t), -0.4 + 0.2 * np.sin(0.7 * t)])
+
+
+def test_residual_map_side_view_label_clears_the_top_view():
+    # The side view's "z [m]" label sat over the top view's frame (fixed subplot spacing, with the
+    # colour bar taken from both views): 8 px into it at the report's 110 dpi on the paper stream.
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(6)
+    fig = figures.residual_map(_stream_path(), rng.uniform(0, 10, 3600))
+    try:
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        top, side = fig.axes[0], fig.axes[1]
+        label = side.yaxis.label.get_window_extent(renderer)
+        assert label.x0 >= top.get_window_extent(renderer).x1, (label, top.get_window_extent(renderer))
+        # Nor over the top view's tick labels (its tight box holds them) or the side view's own.
+        assert label.x0 >= top.get_tightbbox(renderer).x1
+        ticks = [t.get_window_extent(renderer) for t in side.get_yticklabels() if t.get_text()]
+        assert all(label.x1 <= t.x0 for t in ticks)
+    finally:
+        plt.close(fig)
+
+
+def test_residual_map_legend_of_values_missing_has_a_fixed_place_under_the_views():
+    # The legend of the stations without a value sat at loc "best" in each view: matplotlib counted
+    # every point under each candidate place (slow on a stream) and moved it wherever that count was
+    # lowest, over some of the dots. One legend now, in a row under both views.
+    import matplotlib.pyplot as plt
+    rng = np.random.default_rng(7)
+    values = rng.uniform(0, 10, 3600)
+    values[:40] = np.nan
+    fig = figures.residual_map(_stream_path(), values)
+    try:
+        fig.canvas.draw()
+        assert all(ax.get_legend() is None for ax in fig.axes)
+        (legend,) = fig.legends
+        assert legend._loc != 0  # not "best"
+        assert [t.get_text() for t in legend.get_texts()] == ["no value (40)"]
+        box = legend.get_window_extent()
+        assert box.y0 >= 0 and all(box.y1 <= ax.get_window_extent().y0 for ax in fig.axes[:2])
+    finally:
+        plt.close(fig)
