@@ -325,7 +325,7 @@ def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     assert len(doc["stations"]) == doc["capture_origin"]["paired"]
     run_cli("report", streams, "-c", cal, "--permutations", "9", "-o", tmp_path / "report")
     page = (tmp_path / "report" / "report.html").read_text()
-    assert "Stations: streams paired at a time offset of" in page
+    assert "Samples: streams paired at a time offset of" in page
 
 
 def test_diagnose_json_and_residuals_give_every_station(sim, tmp_path):
@@ -409,6 +409,21 @@ def test_outside_stations_are_listed(sim):
     assert n > 0  # validation stations extend beyond the calib grid's bounding box
     line = next(l for l in r.stdout.splitlines() if l.startswith("stations outside the calibrated volume"))
     assert line.startswith(f"stations outside the calibrated volume: {n} of 600: {v.outside_stations[0]} ")
+
+
+def test_diagnose_text_of_a_stream_says_samples(sim):
+    # trackcal diagnose of a stream printed "stations outside the calibrated volume: 1229 of 3599",
+    # "stations the model inverse does not resolve", a worst table with a "station" column under
+    # "Worst 10 moments" and "(41 stations: ...)" in its note. Now samples.
+    _, streams, cal = sim
+    r = run_cli("diagnose", streams, "-c", cal, "--permutations", "19")
+    assert "station" not in r.stdout.lower(), r.stdout
+    v = validation.validate(captures.load(streams), trackcal.Calibration.load(cal), analyse_covariates=False)
+    n_out, n = int(v.extrapolated.sum()), len(v.extrapolated)
+    assert n_out > 0  # the stream leaves the calibration grid's box
+    assert f"samples outside the calibrated volume: {n_out} of {n}: " in r.stdout
+    assert re.search(r"^ +sample +time +sensor", r.stdout, re.M), r.stdout
+    assert "samples the model inverse does not resolve" in r.stdout
 
 
 def test_raw_markers_register_with_the_reg_stations_like_trackcal_fit(sim, tmp_path):

@@ -595,3 +595,21 @@ def test_a_size_that_follows_time_is_not_called_a_growing_scatter():
     assert "no sign of a missing effect" not in v["text"], v["text"]
     assert "grows with range" not in v["text"], v["text"]
     assert "time (R^2 0.11" in v["text"], v["text"]
+
+
+def test_extrapolation_note_of_a_stream_counts_samples_and_points_at_the_worst_moments():
+    # On a stream the note said "stations lie outside ... (by distance and worst stations above)"
+    # where the list above is headed "Worst 10 moments of the stream".
+    from types import SimpleNamespace
+    n_in, n_out = 60, 29
+    after = SimpleNamespace(position_mm=np.r_[np.full(n_in, 0.4), np.linspace(60, 177, n_out)])
+    v = SimpleNamespace(after=after, calibration=object(), flipped=np.zeros(n_in + n_out, bool),
+                        extrapolated=np.r_[np.zeros(n_in, bool), np.ones(n_out, bool)],
+                        capture=SimpleNamespace(speed=np.zeros(n_in + n_out)), worst_separation_s=0.5)
+    note = diagnosis.extrapolation_note(v)
+    assert note.startswith("29 of 89 samples lie outside the calibrated volume"), note
+    assert "(by distance and worst moments above)" in note and "station" not in note, note
+    # Stations (no speed, no separation of the worst list) keep their words.
+    v.capture, v.worst_separation_s = SimpleNamespace(speed=None), None
+    note = diagnosis.extrapolation_note(v)
+    assert note.startswith("29 of 89 stations lie outside") and "worst stations above" in note, note

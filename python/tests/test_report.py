@@ -631,3 +631,33 @@ def test_residual_map_legend_of_values_missing_has_a_fixed_place_under_the_views
         assert box.y0 >= 0 and all(box.y1 <= ax.get_window_extent().y0 for ax in fig.axes[:2])
     finally:
         plt.close(fig)
+
+
+def test_stream_report_counts_samples_and_moments_not_stations(stream_validation, written_report, tmp_path):
+    # A stream's samples were "stations" all over the page: the table's heading, the outside line,
+    # the worst table's id column, the notes, figure 7's title and the captions, under a worst list
+    # headed "moments". One noun (Validation.points) for every one of them.
+    import matplotlib.pyplot as plt
+    from trackcal import diagnosis
+    v = stream_validation
+    notes = diagnosis.validation_notes(v)
+    assert notes  # the paper stream's nearest band is made worse (a note that counts its samples)
+    page = report.write_report(v, tmp_path / "out", notes=notes).read_text()
+    text = re.sub(r"<[^>]+>", " ", page.split("<script>")[0])
+    assert "station" not in text.lower(), [m.group(0) for m in re.finditer(r".{60}station.{20}", text, re.I)]
+    n = len(v.capture)
+    assert f"all ({n} samples)" in text and f"Samples outside the calibrated volume: {int(v.extrapolated.sum())} of {n}" in text
+    assert "<th>sample</th>" in page and "samples:" in " ".join(notes)
+    assert "Crossed: samples outside the calibrated volume" in text and "error per sample" in text
+    figs = report.build_figures(v)
+    try:
+        (fig7,) = [f for name, _, f in figs if name == "fig7_orientation_vectors_slice.png"]
+        assert " samples" in fig7.axes[0].get_title() and "station" not in fig7.axes[0].get_title()
+    finally:
+        for _, _, f in figs:
+            plt.close(f)
+    # A capture of stations keeps its noun.
+    station_page = written_report.read_text()
+    assert re.search(r"<h3>calib \(\d+ stations\)</h3>", station_page) and "<th>station</th>" in station_page
+    assert "Stations outside the calibrated volume" in station_page and "error per station" in station_page
+    assert v.points == "samples" and v.point == "sample" and v.worst_points == "moments"

@@ -150,10 +150,7 @@ def _print_origin(term, capture) -> None:
 
 def _print_outside(term, v, limit: int = 20) -> None:
     n_out = int(v.extrapolated.sum())
-    msg = f"stations outside the calibrated volume: {n_out} of {len(v.extrapolated)}"
-    if n_out:
-        ids = v.outside_stations
-        msg += ": " + " ".join(str(i) for i in ids[:limit]) + (f" ... ({n_out - limit} more)" if n_out > limit else "")
+    msg = v.outside_line(limit)
     print(term.c(msg, "33") if n_out else msg)
     flipped = v.flipped_stations
     if flipped:
@@ -167,7 +164,7 @@ def _write_residuals(args, v) -> None:
     if getattr(args, "residuals", None):
         inputs = _capture_files(v.capture) + [args.calibration, getattr(args, "model", None)]
         path = v.write_residuals(args.residuals, inputs=inputs)
-        print(f"wrote the residuals of {len(v.capture)} stations to {path}", file=sys.stderr)
+        print(f"wrote the residuals of {len(v.capture)} {v.points} to {path}", file=sys.stderr)
 
 
 def _fmt_rows(rows: List[dict], cols: List[str]) -> str:
@@ -348,7 +345,7 @@ def _unresolved_line(v) -> str:
     """How many stations a physical term's model inverse could not resolve (correction status)."""
     c = v.status_counts
     n = c["ambiguous"] + c["not_converged"]
-    return (f"stations the model inverse does not resolve: {n} of {len(v.extrapolated)} "
+    return (f"{v.points} the model inverse does not resolve: {n} of {len(v.extrapolated)} "
             f"(ambiguous {c['ambiguous']}, not converged {c['not_converged']})")
 
 
@@ -510,7 +507,7 @@ def cmd_diagnose(args, term) -> int:
     print("\n" + term.c(v.worst_heading, "1")
           + " (x, y, z, distance: reported position in the transmitter frame [m])")
     moments = v.worst_separation_s is not None  # stream samples: the time says which moment
-    print(_fmt_rows(v.worst, ["station", "time" if moments else "set", "sensor", "x", "y", "z", "distance",
+    print(_fmt_rows(v.worst_rows(), [v.point, "time" if moments else "set", "sensor", "x", "y", "z", "distance",
                               "position_mm", "orientation_deg", "extrapolated"]))
     method = validation.COVARIATE_METHOD_SERIAL if validation.serial_samples(v.capture) else validation.COVARIATE_METHOD
     print("\n" + term.c(f"Residual structure ({method})", "1"))

@@ -200,10 +200,19 @@ def extrapolation_note(v) -> Optional[str]:
     e_in = float(np.mean(v.after.position_mm[inside]))
     if not e_out > 2.0 * e_in:
         return None
-    return (f"{int(out.sum())} of {int((out | inside).sum())} stations lie outside the calibrated volume, where "
+    points, worst = _points_words(v)
+    return (f"{int(out.sum())} of {int((out | inside).sum())} {points} lie outside the calibrated volume, where "
             f"the correction extrapolates: their mean position error is {e_out:.3f} mm against {e_in:.3f} mm "
-            "inside (by distance and worst stations above); calibrate over the volume they use rather than "
+            f"inside (by distance and worst {worst} above); calibrate over the volume they use rather than "
             "look for an effect there")
+
+
+def _points_words(v) -> tuple:
+    """(the noun for the validation's rows, for its worst list's rows): ("samples", "moments") of
+    a stream, ("stations", "stations") of stations (``validation.points_word``; a validation-like
+    object without a capture or a worst list is one of stations)."""
+    from trackcal.validation import points_word, worst_word
+    return points_word(getattr(v, "capture", None)), worst_word(getattr(v, "worst_separation_s", None))
 
 
 
@@ -253,7 +262,8 @@ def worse_regions_note(v) -> Optional[str]:
     worse = worse_regions(v)
     if not worse:
         return None
-    parts = [f"{r['where']} ({r['count']} stations: position {r['before_position_mm']:.3f} -> "
+    points, _ = _points_words(v)
+    parts = [f"{r['where']} ({r['count']} {points}: position {r['before_position_mm']:.3f} -> "
              f"{r['after_position_mm']:.3f} mm, orientation {r['before_orientation_deg']:.3f} -> "
              f"{r['after_orientation_deg']:.3f} deg)" for r in worse]
     return ("the correction makes the errors worse than uncorrected in " + "; ".join(parts)

@@ -156,10 +156,12 @@ def _spread(p: np.ndarray, count: int) -> np.ndarray:
 
 
 def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[float] = None,
-                              thickness: Optional[float] = None, after_vectors=None, max_arrows: int = 200):
+                              thickness: Optional[float] = None, after_vectors=None, max_arrows: int = 200,
+                              points: str = "stations"):
     """Figure 7: the x, y components of the orientation error vectors (vector part of q_e, shown as
     twice it, i.e. the small-angle rotation vector in degrees) of stations in a z-slab. Of more
-    than ``max_arrows`` stations (a stream capture), one per cell of a grid gets its arrows."""
+    than ``max_arrows`` stations (a stream capture), one per cell of a grid gets its arrows.
+    ``points``: what the positions are, for the title ("stations", or a stream's "samples")."""
     z, thickness, sel = _slab(positions, z, thickness)
     fig, ax = plt.subplots(figsize=(6.4, 5.4))
     deg = 2.0 * 180.0 / np.pi
@@ -197,7 +199,7 @@ def orientation_vectors_slice(positions, orientation_vectors, *, z: Optional[flo
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
     shown = f", {len(sel)} with arrows" if len(sel) < in_slab else ""
-    ax.set_title(f"Orientation error vectors, z = {z:.2f} ± {thickness / 2:.2f} m ({in_slab} stations{shown})",
+    ax.set_title(f"Orientation error vectors, z = {z:.2f} ± {thickness / 2:.2f} m ({in_slab} {points}{shown})",
                  fontsize=10 if shown else None)
     ax.grid(alpha=0.3)
     fig.tight_layout()

@@ -93,7 +93,8 @@ def _number(value, fmt: str = "{:.3f}") -> str:
     return "n/a"
 
 
-def _table1_html(t) -> str:
+def _table1_html(t, points: str = "stations") -> str:
+    """One Table 1 with its heading: the set, how many ``points`` (stations or samples) it holds."""
     rows = []
     for title, b, a in (("Position error (mm)", t.before_position_mm, t.after_position_mm),
                         ("Orientation error (deg)", t.before_orientation_deg, t.after_orientation_deg)):
@@ -105,7 +106,7 @@ def _table1_html(t) -> str:
             rows.append(row)
     n_flips = getattr(t, "hemisphere_flips_left_out", 0)
     flips = f", {n_flips} more left out: reported in the other hemisphere than their reference" if n_flips else ""
-    return (f"<h3>{html.escape(t.set_name)} ({t.before_position_mm['count']} stations{flips})</h3>"
+    return (f"<h3>{html.escape(t.set_name)} ({t.before_position_mm['count']} {points}{flips})</h3>"
             + _table(rows))
 
 
@@ -151,7 +152,8 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
     after_text = (" and after (blue; hollow: the calib set, filled: the valid set, which a fit on this "
                   "capture does not see, and whose binned mean is drawn)" if split else
                   " and after (blue)" if after is not None else "")
-    crossed = (" Crossed: stations outside the calibrated volume, where the correction is extrapolated."
+    points = v.points  # "samples" of a stream, "stations" else
+    crossed = (f" Crossed: {points} outside the calibrated volume, where the correction is extrapolated."
                if outside is not None and outside.any() else "")
     figs = [
         ("fig4_position_error_vs_distance.png",
@@ -166,10 +168,10 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
                              quantity="orientation", unit="deg", held_out=held_out, outside=outside)),
         ("fig7_orientation_vectors_slice.png",
          "Figure 7: orientation error vectors (x, y components of the small-angle rotation, degrees) of "
-         "the stations in a horizontal slab through the station height nearest the median (of a stream's thousands of samples, "
-         "arrows at a few spread over the slab).",
+         f"the {points} in a horizontal slab through the {v.point} height nearest the median (of "
+         "more than 200, arrows at a few spread over the slab).",
          F.orientation_vectors_slice(data.reported_positions, before.orientation,
-                                     after_vectors=after.orientation if after else None)),
+                                     after_vectors=after.orientation if after else None, points=points)),
     ]
     if v.calibration is not None:
         field = F.distortion_field(v.calibration)
@@ -190,10 +192,10 @@ def build_figures(v, history_entries: Optional[Sequence[dict]] = None,
                      f"volume: magnitude as colour, x-y direction as streamlines{hatched}{offset}.", field))
     final = after if after is not None else before
     figs.append(("residual_map_position.png",
-                 "Residual map: remaining position error per station (top and side views).",
+                 f"Residual map: remaining position error per {v.point} (top and side views).",
                  F.residual_map(data.reported_positions, final.position_mm, title="Position residuals")))
     figs.append(("residual_map_orientation.png",
-                 "Residual map: remaining orientation error per station.",
+                 f"Residual map: remaining orientation error per {v.point}.",
                  F.residual_map(data.reported_positions, final.orientation_deg, label="orientation error [deg]",
                                 title="Orientation residuals")))
     if v.covariate_effects:
@@ -249,13 +251,10 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     from trackcal.captures import describe_origin
     origin = describe_origin(v.capture)
     if origin:  # streams paired, markers registered: say how, with the offset or the chi-square
-        parts.insert(-1, f"<p>Stations: {html.escape(origin)}.</p>")
-    parts += [_table1_html(t) for t in v.tables]
-    n_out = int(v.extrapolated.sum())
-    ids = v.outside_stations
-    listed = (": " + html.escape(" ".join(str(i) for i in ids[:50])) + (f" ... ({n_out - 50} more)" if n_out > 50 else "")
-              if n_out else "")
-    parts.append(f"<p>Stations outside the calibrated volume: <b>{n_out}</b> of {len(v.extrapolated)}{listed}.</p>")
+        parts.insert(-1, f"<p>{v.points.capitalize()}: {html.escape(origin)}.</p>")
+    parts += [_table1_html(t, v.points) for t in v.tables]
+    outside = v.outside_line(50)
+    parts.append(f"<p>{html.escape(outside[:1].upper() + outside[1:])}.</p>")
     flipped = v.flipped_stations
     if flipped:
         parts.append(f"<p>Hemisphere flips (reported in the other hemisphere than their reference, 2 |p| off "
@@ -265,7 +264,7 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
     parts.append("<h2>By distance from the transmitter</h2>" + _table(v.by_distance))
     parts.append("<h2>By region of the volume (octants)</h2>" + _table(v.by_region))
     parts.append(f"<h2>{html.escape(v.worst_heading)}</h2><p>x, y, z and distance: the reported position "
-                 "in the transmitter frame [m].</p>" + _table(v.worst))
+                 "in the transmitter frame [m].</p>" + _table(v.worst_rows()))
     if v.covariate_effects:
         # As diagnose lists them: a finding another covariate family explains away (time that the
         # positions explain) is marked so and goes after those that stand on their own; the table

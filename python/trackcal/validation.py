@@ -229,6 +229,19 @@ def serial_samples(capture: PoseCapture) -> bool:
     return getattr(capture, "speed", None) is not None
 
 
+def points_word(capture) -> str:
+    """The noun for a capture's rows in text: "samples" when they were paired from streams
+    (``serial_samples``: thousands of them along a path, milliseconds apart), else "stations".
+    ``capture`` None (a validation-like object without one) is a capture of stations."""
+    return "samples" if capture is not None and serial_samples(capture) else "stations"
+
+
+def worst_word(worst_separation_s: Optional[float]) -> str:
+    """What one row of a worst list is: a "moment" of a stream (its worst samples at least
+    ``worst_separation_s`` apart), else a station (None)."""
+    return "moments" if worst_separation_s is not None else "stations"
+
+
 COVARIATE_METHOD = "cross-validated R², permutation test"
 COVARIATE_METHOD_SERIAL = ("stream samples: folds are stretches of time, the null shifts the covariate "
                            "along time")
@@ -700,6 +713,37 @@ class Validation:
     # Samples paired from streams: the worst list holds the worst sample of distinct moments, at
     # least this many seconds apart per sensor (None: static stations, the worst ones as they are).
     worst_separation_s: Optional[float] = None
+
+    @property
+    def points(self) -> str:
+        """The noun for the capture's rows in text (``points_word``): "samples" or "stations"."""
+        return points_word(self.capture)
+
+    @property
+    def point(self) -> str:
+        """One of ``points``: "sample" or "station"."""
+        return self.points[:-1]
+
+    @property
+    def worst_points(self) -> str:
+        """What one row of the worst list is (``worst_word``): "moments" or "stations"."""
+        return worst_word(self.worst_separation_s)
+
+    def outside_line(self, limit: int) -> str:
+        """"stations outside the calibrated volume: n of N: ids" (at most ``limit`` of them) for
+        text and the report; of a stream, "samples outside ..."."""
+        n_out = int(self.extrapolated.sum())
+        head = f"{self.points} outside the calibrated volume: {n_out} of {len(self.extrapolated)}"
+        if not n_out:
+            return head
+        ids = self.outside_stations
+        return (f"{head}: " + " ".join(str(i) for i in ids[:limit])
+                + (f" ... ({n_out - limit} more)" if n_out > limit else ""))
+
+    def worst_rows(self) -> List[dict]:
+        """The worst list as the text and the report show it: a stream's rows name their id
+        "sample" (``points``), not "station" (the key in ``worst`` and the JSON documents)."""
+        return [{(self.point if k == "station" else k): x for k, x in r.items()} for r in self.worst]
 
     @property
     def worst_heading(self) -> str:
