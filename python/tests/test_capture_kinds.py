@@ -408,20 +408,41 @@ def test_outside_stations_are_listed(sim):
     n = int(v.extrapolated.sum())
     assert n > 0  # validation stations extend beyond the calib grid's bounding box
     line = next(l for l in r.stdout.splitlines() if l.startswith("stations outside the calibrated volume"))
-    assert line.startswith(f"stations outside the calibrated volume: {n} of 600: {v.outside_stations[0]} ")
+    listed = [int(w) for w in line.split(": ", 2)[2].split() if w.isdigit()]
+    assert not any(b == a + 1 for a, b in zip(listed, listed[1:])), line  # a row of ids is one range
+    assert line == f"stations outside the calibrated volume: {n} of 600: " + validation.id_ranges_text(
+        v.outside_stations, 20)
 
 
-def test_diagnose_text_of_a_stream_says_samples(sim):
-    # trackcal diagnose of a stream printed "stations outside the calibrated volume: 1229 of 3599",
-    # "stations the model inverse does not resolve", a worst table with a "station" column under
-    # "Worst 10 moments" and "(41 stations: ...)" in its note. Now samples.
+def test_ids_in_a_row_are_listed_as_ranges():
+    # A stream's 1229 samples outside the volume were listed one id after the other, 20 of them
+    # (50 in the report) and "... (1209 more)": consecutive ids are one range now.
+    assert validation.id_ranges_text([3, 4, 5, 6, 9, 12, 13], 20) == "3-6 9 12-13"
+    assert validation.id_ranges_text([3, 4, 5, 6, 9, 12, 13, 20], 2) == "3-6 9 ... (3 more in 2 ranges)"
+    assert validation.id_ranges_text([1, 3, 5, 7], 2) == "1 3 ... (2 more)"
+    assert validation.id_ranges_text([7, 6, 5], 5) == "7 6 5"  # in the order given: no range backwards
+    assert validation.id_ranges_text([], 5) == ""
+
+
+def test_diagnose_text_of_a_stream_says_samples_and_gives_stretches_of_time(sim):
+    # trackcal diagnose of a stream printed "stations outside the calibrated volume: 1229 of 3599:
+    # 610 611 612 ... (1209 more)", "stations the model inverse does not resolve", a worst table with
+    # a "station" column under "Worst 10 moments" and "(41 stations: ...)" in its note. Now samples,
+    # and the stretches of the stream's time outside the volume with their sample ids.
     _, streams, cal = sim
     r = run_cli("diagnose", streams, "-c", cal, "--permutations", "19")
     assert "station" not in r.stdout.lower(), r.stdout
     v = validation.validate(captures.load(streams), trackcal.Calibration.load(cal), analyse_covariates=False)
     n_out, n = int(v.extrapolated.sum()), len(v.extrapolated)
     assert n_out > 0  # the stream leaves the calibration grid's box
-    assert f"samples outside the calibrated volume: {n_out} of {n}: " in r.stdout
+    line = next(l for l in r.stdout.splitlines() if l.startswith("samples outside the calibrated volume"))
+    assert not re.search(r"\b(\d+) (\d+) (\d+)\b", line), line  # no wall of sample ids
+    runs = validation.id_runs(v.outside_stations)
+    assert 0 < len(runs) < 20 and len(runs) < n_out / 10  # a few passes out of the box, each many samples
+    t, ids = v.capture.time[v.extrapolated], v.outside_stations
+    assert line.startswith(f"samples outside the calibrated volume: {n_out} of {n}, {len(runs)} stretch")
+    for a, b in runs:
+        assert f"{t[a]:.2f}-{t[b]:.2f} s (samples {ids[a]}-{ids[b]})" in line, line
     assert re.search(r"^ +sample +time +sensor", r.stdout, re.M), r.stdout
     assert "samples the model inverse does not resolve" in r.stdout
 

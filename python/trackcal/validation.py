@@ -242,6 +242,30 @@ def worst_word(worst_separation_s: Optional[float]) -> str:
     return "moments" if worst_separation_s is not None else "stations"
 
 
+def id_runs(ids: Sequence[int]) -> List[tuple]:
+    """[(first, last)] index ranges into ``ids`` of its runs of consecutive ids (each one more
+    than the one before it), in the given order."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if len(ids) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(ids) != 1) + 1
+    starts = np.r_[0, breaks]
+    ends = np.r_[breaks - 1, len(ids) - 1]
+    return list(zip(starts.tolist(), ends.tolist()))
+
+
+def id_ranges_text(ids: Sequence[int], limit: int) -> str:
+    """The ids as "12 15-19 40", consecutive ids as one range, at most ``limit`` items and then
+    "... (k more in m ranges)" ("... (k more)" when none of them is a range)."""
+    runs = id_runs(ids)
+    items = [str(ids[a]) if a == b else f"{ids[a]}-{ids[b]}" for a, b in runs[:limit]]
+    rest = runs[limit:]
+    if rest:
+        n = sum(b - a + 1 for a, b in rest)
+        items.append(f"... ({n} more)" if n == len(rest) else f"... ({n} more in {len(rest)} ranges)")
+    return " ".join(items)
+
+
 COVARIATE_METHOD = "cross-validated R², permutation test"
 COVARIATE_METHOD_SERIAL = ("stream samples: folds are stretches of time, the null shifts the covariate "
                            "along time")
@@ -730,15 +754,27 @@ class Validation:
         return worst_word(self.worst_separation_s)
 
     def outside_line(self, limit: int) -> str:
-        """"stations outside the calibrated volume: n of N: ids" (at most ``limit`` of them) for
-        text and the report; of a stream, "samples outside ..."."""
+        """"stations outside the calibrated volume: n of N: ids" for text and the report, the ids
+        as ranges (``id_ranges_text``, at most ``limit`` items). Of samples paired from streams,
+        the stretches of the tracker's time they lie in, with their sample ids: a stream leaves
+        the volume for a while, and its thousands of ids in a row said nothing."""
         n_out = int(self.extrapolated.sum())
         head = f"{self.points} outside the calibrated volume: {n_out} of {len(self.extrapolated)}"
         if not n_out:
             return head
         ids = self.outside_stations
-        return (f"{head}: " + " ".join(str(i) for i in ids[:limit])
-                + (f" ... ({n_out - limit} more)" if n_out > limit else ""))
+        if self.points != "samples":
+            return f"{head}: {id_ranges_text(ids, limit)}"
+        t = np.asarray(self.capture.time, dtype=float)[self.extrapolated]
+        runs = id_runs(ids)
+        spans = [f"{t[a]:.2f}-{t[b]:.2f} s (samples {ids[a]}-{ids[b]})" if a != b else
+                 f"{t[a]:.2f} s (sample {ids[a]})" for a, b in runs[:limit]]
+        total = float(sum(t[b] - t[a] for a, b in runs))
+        text = (f"{head}, {len(runs)} stretch{'es' if len(runs) != 1 else ''} of the stream "
+                f"({total:.1f} s in all; time: the tracker's [s]): " + ", ".join(spans))
+        if len(runs) > limit:
+            text += f" ... ({len(runs) - limit} more)"
+        return text
 
     def worst_rows(self) -> List[dict]:
         """The worst list as the text and the report show it: a stream's rows name their id
