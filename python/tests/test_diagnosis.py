@@ -613,3 +613,23 @@ def test_extrapolation_note_of_a_stream_counts_samples_and_points_at_the_worst_m
     v.capture, v.worst_separation_s = SimpleNamespace(speed=None), None
     note = diagnosis.extrapolation_note(v)
     assert note.startswith("29 of 89 stations lie outside") and "worst stations above" in note, note
+
+
+def test_a_verdict_of_sentences_takes_the_worse_region_as_a_sentence_of_its_own():
+    # The engine's verdict ends with a full stop ("... add the top one, then diagnose again."): the
+    # worse-region clause was glued to it as "diagnose again.; and the correction makes ...".
+    from types import SimpleNamespace
+    n = 40
+    v = SimpleNamespace(after=SimpleNamespace(position_mm=np.full(n, 6.0), orientation_deg=np.full(n, 1.8)),
+                        extrapolated=np.zeros(n, bool), flipped=np.zeros(n, bool),
+                        by_distance=[{"label": "0.00-0.25 m", "count": n, "before_position_mm": 0.5,
+                                      "before_orientation_deg": 0.2, "after_position_mm": 6.0,
+                                      "after_orientation_deg": 1.8}], by_region=[])
+    sentences = {"source": "candidate", "text": "A dipole explains the remaining structure. 1 other candidate "
+                 "is also significant: add the top one, then diagnose again."}
+    text = diagnosis.verdict_with_regions(sentences, v)["text"]
+    assert ".;" not in text and text.endswith("diagnose again. Also, the correction makes 0.00-0.25 m from "
+                                              "the transmitter worse than uncorrected (note)."), text
+    clause = diagnosis.verdict_with_regions({"source": None, "text": "nothing significant remains"}, v)["text"]
+    assert clause == ("nothing significant remains; and the correction makes 0.00-0.25 m from the transmitter "
+                      "worse than uncorrected (note)"), clause

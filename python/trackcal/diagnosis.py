@@ -283,8 +283,13 @@ def verdict_with_regions(verdict_: dict, v) -> dict:
     if not worse:
         return verdict_
     names = ", ".join(r["where"] for r in worse)
-    return dict(verdict_, text=f"{verdict_['text']}; and the correction makes {names} worse than "
-                                "uncorrected (note)")
+    text = verdict_["text"]
+    # A verdict of whole sentences (the engine's: "... add the top one, then diagnose again.")
+    # takes a sentence of its own: "; and" after its full stop read "diagnose again.; and the ...".
+    if text.rstrip().endswith("."):
+        return dict(verdict_, text=f"{text.rstrip()} Also, the correction makes {names} worse than "
+                                   "uncorrected (note).")
+    return dict(verdict_, text=f"{text}; and the correction makes {names} worse than uncorrected (note)")
 
 
 # The validation set's corrected mean may be this many times the calibration stations' held-out
