@@ -633,3 +633,27 @@ def test_a_verdict_of_sentences_takes_the_worse_region_as_a_sentence_of_its_own(
     clause = diagnosis.verdict_with_regions({"source": None, "text": "nothing significant remains"}, v)["text"]
     assert clause == ("nothing significant remains; and the correction makes 0.00-0.25 m from the transmitter "
                       "worse than uncorrected (note)"), clause
+
+
+def test_a_label_covariate_of_a_stream_counts_its_samples():
+    # Labels logged beside a stream (the operator holding the probe): "bob 2.1 mm along (...), 1800
+    # stations" counted the stream's samples as stations, in the diagnose text, the report's table
+    # and the verdict. A stream's (serial_time given) count samples; stations' stay stations.
+    from trackcal import validation
+    rng = np.random.default_rng(3)
+    n = 600
+    time = np.arange(n) / 120.0
+    operator = (time >= 2.5).astype(float)  # codes into the labels: alice, then bob
+    err = rng.normal(scale=1e-4, size=(n, 3))
+    err[operator == 1, 0] += 2e-3
+    res = validation.Residuals(position=err, orientation=np.zeros((n, 3)),
+                               position_mm=np.linalg.norm(err, axis=1) * 1e3, orientation_deg=np.zeros(n))
+    phrases = {}
+    for name, serial in (("stream", time), ("stations", None)):
+        effects = validation.covariate_analysis(res, {"operator": operator}, n_permutations=19,
+                                                serial_time=serial, labels={"operator": ["alice", "bob"]})
+        e = next(e for e in effects if e.target == "position_vector")
+        phrases[name] = diagnosis.levels_phrase(e.levels)
+    assert "samples" in phrases["stream"] and "station" not in phrases["stream"], phrases
+    assert f"{int((operator == 1).sum())} samples" in phrases["stream"], phrases
+    assert "stations" in phrases["stations"] and "samples" not in phrases["stations"], phrases

@@ -108,8 +108,8 @@ def top_candidate(doc: Optional[CandidatesDoc]) -> Optional[dict]:
 
 def levels_phrase(levels: Optional[List[dict]], most: int = 4, say_rest: bool = True) -> str:
     """"bob 2.35 mm along (+2.33, -0.01, -0.27), 198 stations; carol ...": how far each label's mean
-    error sits from the mean over all labels (``validation._levels``), largest first; empty for a
-    numeric covariate."""
+    error sits from the mean over all labels (``validation._levels``), largest first, each label's
+    count in its own noun (a stream's: samples); empty for a numeric covariate."""
     if not levels:
         return ""
 
@@ -117,8 +117,8 @@ def levels_phrase(levels: Optional[List[dict]], most: int = 4, say_rest: bool = 
         off = r["offset"]
         if isinstance(off, list):
             return (f"{r['label']} {r['size']:.3g} {r['unit']} along ("
-                    + ", ".join(f"{v:+.2f}" for v in off) + f"), {r['count']} stations")
-        return f"{r['label']} {off:+.3g} {r['unit']}, {r['count']} stations"
+                    + ", ".join(f"{v:+.2f}" for v in off) + f"), {r['count']} {r.get('points', 'stations')}")
+        return f"{r['label']} {off:+.3g} {r['unit']}, {r['count']} {r.get('points', 'stations')}"
 
     text = "; ".join(one(r) for r in levels[:most])
     return text + (f"; {len(levels) - most} more" if say_rest and len(levels) > most else "")

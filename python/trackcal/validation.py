@@ -410,7 +410,8 @@ def covariate_analysis(residuals_: Residuals, covs: Dict[str, np.ndarray], *, n_
                 z_ok = False
             sig = bool(obs >= min_r2 and (p <= level or z_ok))
             effects.append(CovariateEffect(name, tname, float(obs), float(p), sig, int(ok.sum()),
-                                           levels=_levels(y[ok], tname, xs, labels[name])
+                                           levels=_levels(y[ok], tname, xs, labels[name],
+                                                          "samples" if serial_time is not None else "stations")
                                            if name in labels else None))
             done += 1
             if progress:
@@ -430,11 +431,12 @@ def permutations_can_reach(n_permutations: int, n_tests: int, alpha: float = 0.0
     return n_permutations >= 99 or 1.0 / (n_permutations + 1.0) <= alpha / max(1, n_tests)
 
 
-def _levels(y: np.ndarray, target: str, codes: np.ndarray, names: list) -> List[dict]:
+def _levels(y: np.ndarray, target: str, codes: np.ndarray, names: list, points: str = "stations") -> List[dict]:
     """Per label of a covariate: its stations and how far their mean of the target y (N, d) sits
     from the mean over every label (``offset``: the vector in the transmitter frame for a vector
     target, mm or the rotation vector in degrees; the signed difference for a magnitude), largest
-    ``size`` first."""
+    ``size`` first. ``points`` ("stations", or "samples" of a stream) names what ``count`` counts,
+    for the text."""
     position = target.startswith("position")
     overall = y.mean(axis=0)
     rows = []
@@ -443,7 +445,8 @@ def _levels(y: np.ndarray, target: str, codes: np.ndarray, names: list) -> List[
         offset = y[idx].mean(axis=0) - overall
         rows.append({"label": str(names[int(code)]), "count": int(idx.sum()),
                      "offset": [float(v) for v in offset] if len(offset) > 1 else float(offset[0]),
-                     "size": float(np.linalg.norm(offset)), "unit": "mm" if position else "deg"})
+                     "size": float(np.linalg.norm(offset)), "unit": "mm" if position else "deg",
+                     "points": points})
     rows.sort(key=lambda r: -r["size"])
     return rows
 
