@@ -21,6 +21,11 @@ TEST(Utf16TextProblem, NamesAByteOrderMarkOfEitherOrder) {
             "UTF-16 text (a byte order mark FF FE or FE FF); save the model file as UTF-8");
   EXPECT_EQ(Utf16TextProblem(std::string("\xFE\xFF\0{", 4), "CSV file"),
             "UTF-16 text (a byte order mark FF FE or FE FF); save the CSV file as UTF-8");
+  // UTF-32's marks (the little-endian one starts with UTF-16's) were called UTF-16's.
+  const std::string utf32 =
+      "UTF-32 text (a byte order mark FF FE 00 00 or 00 00 FE FF); save the CSV file as UTF-8";
+  EXPECT_EQ(Utf16TextProblem(std::string("\xFF\xFE\0\0s\0\0\0", 8), "CSV file"), utf32);
+  EXPECT_EQ(Utf16TextProblem(std::string("\0\0\xFE\xFF\0\0\0s", 8), "CSV file"), utf32);
   EXPECT_EQ(Utf16TextProblem("\xEF\xBB\xBF{}", "model file"), "");  // UTF-8's mark
   EXPECT_EQ(Utf16TextProblem("\xFF", "model file"), "");
   EXPECT_EQ(Utf16TextProblem("", "model file"), "");
