@@ -112,8 +112,12 @@ class CsvTable {
     if (std::filesystem::is_directory(path, ec)) {
       throw std::runtime_error(path.string() + ": is a folder, not a CSV file");
     }
+    // "cannot open file" alone left the user to guess why (no such file, permission denied).
+    errno = 0;
     std::ifstream file(path, std::ios::binary);
-    if (!file) throw std::runtime_error(path.string() + ": cannot open file");
+    if (!file) {
+      throw std::runtime_error(path.string() + ": cannot open file: " + SystemErrorText(errno));
+    }
     std::string text;
     try {
       text.assign(std::istreambuf_iterator<char>(file), std::istreambuf_iterator<char>());
@@ -142,6 +146,8 @@ class CsvTable {
                                  s.begin());
     };
     const std::string head = text.substr(0, 1024);
+    // Three bytes more than the head: a UTF-8 character the head's end cuts is no error.
+    const std::string text_start = text.substr(0, head.size() + 3);
     std::istringstream in(std::move(text));
     std::string line;
     int line_number = 0;
@@ -166,6 +172,7 @@ class CsvTable {
                    "): not a text CSV file (an .xlsx workbook, an image or an archive, or UTF-16 "
                    "text without a byte order mark?); export the capture as CSV in UTF-8");
         }
+        FailIfBinary(head, text_start);
       }
       const size_t cr = line.find('\r');
       if (cr != std::string::npos && line.find_first_not_of("\r \t", cr) != std::string::npos) {
@@ -234,6 +241,36 @@ class CsvTable {
     int line;
     std::vector<std::string> fields;
   };
+
+  // A binary file whose first line reads as text: a PDF document ("%PDF-1.7", then compressed
+  // streams, often without a NUL in its first kilobyte) said "column station: missing from the
+  // header". A text file holds no control byte but a tab, a line end, a form feed or vertical
+  // tab, or DOS's end-of-file byte; a legacy code page's text (Latin-1 "temp_\xb0C") is not UTF-8
+  // but holds none either, so both together (in `head`, the file's first kilobyte; `text_start` is
+  // a few bytes more of it) tell a binary file apart.
+  void FailIfBinary(const std::string& head, const std::string& text_start) const {
+    static constexpr char kExport[] = "export the capture as CSV in UTF-8";
+    if (head.rfind("%PDF-", 0) == 0) {
+      Fail(1, "encoding",
+           std::string("a PDF document (the file starts with %PDF-), not a text CSV file; ") +
+               kExport);
+    }
+    const auto binary = std::find_if(head.begin(), head.end(), [](char c) {
+      const auto byte = static_cast<unsigned char>(c);
+      return byte < 0x20 && c != '\t' && c != '\n' && c != '\v' && c != '\f' && c != '\r' &&
+             c != '\x1a';
+    });
+    if (binary == head.end() || FirstNonUtf8Byte(text_start) >= head.size()) return;
+    const size_t at = static_cast<size_t>(binary - head.begin());
+    const size_t line_start =
+        head.rfind('\n', at) == std::string::npos ? 0 : head.rfind('\n', at) + 1;
+    Fail(1 + static_cast<int>(std::count(head.begin(), binary, '\n')), "encoding",
+         "byte " + PrintableForMessage(std::string_view(head).substr(at, 1)) + " at column " +
+             std::to_string(at - line_start + 1) +
+             " is not text, and the file is not UTF-8: not a text CSV file (a PDF document, an "
+             ".xlsx workbook, an image or an archive?); " +
+             kExport);
+  }
   const std::vector<Row>& rows() const { return rows_; }
   const std::vector<std::string>& extra_columns() const { return extra_names_; }
   const std::vector<std::vector<std::string>>& extra_labels() const { return extra_labels_; }

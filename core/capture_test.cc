@@ -361,6 +361,17 @@ TEST(PosesCsv, AFileThatIsNotUtf8TextSaysSo) {
       "UTF-8";
   EXPECT_EQ(error_for(le), utf16);
   EXPECT_EQ(error_for(be), utf16);
+  // UTF-32 (its little-endian mark FF FE 00 00 starts with UTF-16's) was called UTF-16.
+  std::string le32("\xFF\xFE\0\0", 4), be32("\0\0\xFE\xFF", 4);
+  for (const char c : text) {
+    le32 += std::string{c, '\0', '\0', '\0'};
+    be32 += std::string{'\0', '\0', '\0', c};
+  }
+  const std::string utf32 =
+      "poses.csv:1: encoding: UTF-32 text (a byte order mark FF FE 00 00 or 00 00 FE FF); save the "
+      "CSV file as UTF-8";
+  EXPECT_EQ(error_for(le32), utf32);
+  EXPECT_EQ(error_for(be32), utf32);
   // A PNG renamed .csv: the CR of its signature was called "mixed line ends" (line 3).
   const std::string hint =
       "): not a text CSV file (an .xlsx workbook, an image or an archive, or UTF-16 text without a "
@@ -396,6 +407,56 @@ TEST(PosesCsv, AFileThatIsNotUtf8TextSaysSo) {
                       "C\n" +
                       row.substr(0, row.size() - 3) + "2\f0\n"),
             "");
+}
+
+TEST(PosesCsv, ABinaryFileWhoseFirstLineIsTextSaysSo) {
+  const auto dir = MakeTempDir("capture_test");
+  const auto path = dir / "poses.csv";
+  auto error_for = [&](const std::string& bytes) {
+    WriteText(path, bytes);
+    return ErrorOf([&] { ReadPoses(path); });
+  };
+  // A PDF document renamed poses.csv: its first line "%PDF-1.7" reads as a header, and it said
+  // "column station: missing from the header". Its compressed stream (no NUL in its first bytes)
+  // follows a few text lines.
+  const std::string stream("x\x9c\xed\x5d\xdb\x8e\xe3\x36\x12\x7d\xef\xaf\xd0\xe3\x02\x33", 16);
+  const std::string pdf_body =
+      "%\xe2\xe3\xcf\xd3\n1 0 obj\n<< /Length 16 /Filter /FlateDecode >>\nstream\n" + stream +
+      "\nendstream\nendobj\n";
+  EXPECT_EQ(error_for("%PDF-1.7\n" + pdf_body),
+            "poses.csv:1: encoding: a PDF document (the file starts with %PDF-), not a text CSV "
+            "file; export the capture as CSV in UTF-8");
+  // Any such binary file (here the same without its signature): its first control byte named.
+  EXPECT_EQ(
+      error_for("PDF export\n" + pdf_body),
+      "poses.csv:6: encoding: byte \\x12 at column 9 is not text, and the file is not UTF-8: "
+      "not a text CSV file (a PDF document, an .xlsx workbook, an image or an archive?); export "
+      "the capture as CSV in UTF-8");
+  // A legacy code page's text with a form feed, a vertical tab or a DOS end-of-file byte is text,
+  // and so is UTF-8 with a control byte in a label: read as before.
+  const std::string columns(kPosesHeader, strlen(kPosesHeader) - 1);
+  const std::string row = "1,calib,1,0,0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0,";
+  EXPECT_EQ(error_for(columns + ",note\n" + row + "caf\xe9\f\v\x1a\n"), "");
+  EXPECT_EQ(error_for(columns + ",note\n" + row + "caf\xc3\xa9\x01\n"), "");
+  // A multi-byte UTF-8 character that the first kilobyte's end cuts is no encoding error.
+  std::string long_row =
+      row + "\x01" + std::string(1023 - columns.size() - 6 - row.size() - 1, 'a');
+  long_row += "\xc3\xa9\n";
+  ASSERT_EQ((columns + ",note\n" + long_row).find("\xc3"), 1023u);
+  EXPECT_EQ(error_for(columns + ",note\n" + long_row), "");
+}
+
+TEST(CaptureReaders, AFileThatCannotBeOpenedSaysWhy) {
+  // "cannot open file" gave no reason: a missing file, a folder on the way, a symbolic-link loop.
+  const auto dir = MakeTempDir("capture_test");
+  EXPECT_EQ(ErrorOf([&] { ReadPoses(dir / "nothing.csv"); }),
+            "nothing.csv: cannot open file: No such file or directory");
+  WriteText(dir / "file", "station\n");
+  EXPECT_EQ(ErrorOf([&] { ReadMarkers(dir / "file" / "markers.csv"); }),
+            "markers.csv: cannot open file: Not a directory");
+  std::filesystem::create_symlink("loop.csv", dir / "loop.csv");
+  EXPECT_EQ(ErrorOf([&] { ReadTrackerStream(dir / "loop.csv"); }),
+            "loop.csv: cannot open file: Too many levels of symbolic links");
 }
 
 TEST(CaptureReaders, FolderInsteadOfFileIsAnErrorNamingIt) {
