@@ -256,7 +256,15 @@ Calibration ParseCalibrationJson(const std::string& text, const std::string& sou
     // calibration file is.
     size_t first = text.rfind("\xEF\xBB\xBF", 0) == 0 ? 3 : 0;
     first = text.find_first_not_of(" \t\r\n", first);
-    if (first == std::string::npos || text[first] == '{' || text[first] == '[') {
+    // An empty file (a save interrupted, a file created but never written) got the parser's
+    // "syntax error while parsing value - unexpected end of input" at its last line.
+    if (first == std::string::npos) {
+      throw JsonInputError(source_name + ": empty file" +
+                           (text.empty() ? "" : " (only white space)") +
+                           "; a calibration file is the JSON document that trackcal fit -o or "
+                           "trackcal-fit fit -o writes");
+    }
+    if (text[first] == '{' || text[first] == '[') {
       throw;
     }
     throw JsonInputError(std::string(e.what()) +

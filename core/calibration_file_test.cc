@@ -496,6 +496,16 @@ TEST(ParseCalibrationJson, RejectsBadProvenance) {
   }
 }
 
+TEST(ParseCalibrationJson, AnEmptyFileSaysSo) {
+  // An empty file (an interrupted save) got the JSON parser's "syntax error while parsing value -
+  // unexpected end of input" at its last line.
+  const std::string tail =
+      "; a calibration file is the JSON document that trackcal fit -o or trackcal-fit fit -o "
+      "writes";
+  EXPECT_EQ(ErrorForText(""), "calib.json: empty file" + tail);
+  EXPECT_EQ(ErrorForText(" \n\r\n\t\n"), "calib.json: empty file (only white space)" + tail);
+}
+
 TEST(ReadCalibrationFile, MissingFileNamesPath) {
   try {
     ReadCalibrationFile("/nonexistent/calib.json");
