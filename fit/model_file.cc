@@ -1,7 +1,9 @@
 #include "fit/model_file.h"
 
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <sstream>
@@ -666,10 +668,21 @@ Eigen::Vector2d ModelSpec::StationSigmas(const Rigid3d& reported) const {
 }
 
 ModelSpec ReadModelFile(const std::filesystem::path& path) {
+  // A folder opened as a stream and read as an empty model; "cannot open model file" gave no
+  // reason (no such file, permission denied).
+  std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) {
+    throw std::invalid_argument(path.string() + ": is a folder, not a model file");
+  }
+  errno = 0;
   std::ifstream in(path);
-  if (!in) throw std::invalid_argument(path.string() + ": cannot open model file");
+  if (!in) {
+    throw std::invalid_argument(path.string() +
+                                ": cannot open model file: " + SystemErrorText(errno));
+  }
   std::stringstream buffer;
   buffer << in.rdbuf();
+  if (in.bad()) throw std::invalid_argument(path.string() + ": read error");
   return ParseModelYaml(buffer.str(), path.string());
 }
 

@@ -5,6 +5,7 @@
 
 #include "fit/fit_engine.h"
 #include "fit/terms_polynomial.h"
+#include "tests/test_utils.h"
 
 namespace trackcal::fit {
 namespace {
@@ -120,6 +121,23 @@ TEST(ParseModelYaml, ErrorsQuotingBytesThatAreNotUtf8ArePrintable) {
             "polynomial, lut, sensor_offset, receiver_gain, dipole, plane, near_field, "
             "background_field, time_offset)");
   EXPECT_EQ(ErrorOf("# Kalibrierung f\xfcr Raum B\nterms:\n  - type: polynomial\n"), "");
+}
+
+TEST(ReadModelFile, AFileThatCannotBeReadSaysWhy) {
+  // "cannot open model file" gave no reason, and a folder opened as a stream and read as an empty
+  // model.
+  auto error_of = [](const std::filesystem::path& path) {
+    try {
+      ReadModelFile(path);
+    } catch (const std::invalid_argument& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  EXPECT_EQ(error_of("/nonexistent/model.yaml"),
+            "/nonexistent/model.yaml: cannot open model file: No such file or directory");
+  const auto folder = trackcal::testing::MakeTempDir("model_file_test");
+  EXPECT_EQ(error_of(folder), folder.string() + ": is a folder, not a model file");
 }
 
 TEST(ParseModelYaml, AFileThatIsNotYamlTextSaysSoWithItsLine) {

@@ -1,8 +1,10 @@
 #include "vrpn_server/config.h"
 
 #include <cctype>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
+#include <cstring>
 #include <fstream>
 #include <map>
 #include <set>
@@ -623,8 +625,12 @@ VrpnConfig ReadVrpnConfig(const std::filesystem::path& path) {
     throw std::runtime_error(path.string() +
                              ": is a folder, not a VRPN configuration file (give -f the vrpn.cfg)");
   }
+  errno = 0;
   std::ifstream in(path, std::ios::binary);
-  if (!in) throw std::runtime_error(path.string() + ": cannot open the VRPN configuration file");
+  if (!in) {
+    throw std::runtime_error(path.string() + ": cannot open the VRPN configuration file: " +
+                             (errno != 0 ? std::strerror(errno) : "unknown error"));
+  }
   std::ostringstream text;
   text << in.rdbuf();
   if (in.bad()) throw std::runtime_error(path.string() + ": read error");

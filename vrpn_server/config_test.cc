@@ -492,6 +492,18 @@ TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
 }
 
+TEST(ReadVrpnConfig, AFileThatCannotBeOpenedSaysWhy) {
+  // "cannot open the VRPN configuration file" gave no reason (no such file, permission denied).
+  try {
+    ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg");
+    ADD_FAILURE() << "no error";
+  } catch (const std::runtime_error& e) {
+    EXPECT_EQ(std::string(e.what()),
+              "/nonexistent/trackcal/vrpn.cfg: cannot open the VRPN configuration file: No such "
+              "file or directory");
+  }
+}
+
 TEST(ReadVrpnConfig, AFolderIsNamedAsAFolder) {
   // `-f configs/` read as an empty file: "no device trackcal-server can serve".
   const std::filesystem::path dir = testing::MakeTempDir("config_test");

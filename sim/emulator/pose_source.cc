@@ -1,11 +1,15 @@
 #include "sim/emulator/pose_source.h"
 
 #include <algorithm>
+#include <cerrno>
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <sstream>
 #include <stdexcept>
+
+#include "core/file_util.h"
 
 namespace trackcal::emulator {
 namespace {
@@ -94,8 +98,16 @@ TrajectoryPoseSource::TrajectoryPoseSource(std::vector<std::vector<TrajectoryKey
 
 std::unique_ptr<TrajectoryPoseSource> TrajectoryPoseSource::ReadCsv(
     const std::filesystem::path& path, bool loop) {
+  std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) {
+    throw std::invalid_argument(path.string() + ": is a folder, not a trajectory file");
+  }
+  errno = 0;
   std::ifstream in(path);
-  if (!in) throw std::invalid_argument(path.string() + ": cannot open trajectory file");
+  if (!in) {
+    throw std::invalid_argument(path.string() +
+                                ": cannot open trajectory file: " + SystemErrorText(errno));
+  }
   const std::vector<std::string> required = {"t", "station", "x", "y", "z", "qw", "qx", "qy", "qz"};
   std::map<std::string, size_t> column;
   std::map<int, std::vector<TrajectoryKeyframe>> by_station;
