@@ -218,6 +218,17 @@ def test_a_file_that_is_not_utf8_is_a_value_error_naming_it(tmp_path):
     assert str(info.value) == f"{utf16}: UTF-16 text (a byte order mark FF FE or FE FF); save the calibration file as UTF-8"
 
 
+def test_an_empty_calibration_file_is_a_value_error_saying_so(tmp_path):
+    """An empty file (an interrupted save) got the JSON parser's "unexpected end of input"."""
+    for name, data in (("empty.json", b""), ("blank.json", b"\n  \n")):
+        path = tmp_path / name
+        path.write_bytes(data)
+        with pytest.raises(ValueError) as info:
+            trackcal.Calibration.load(path)
+        assert str(info.value).startswith(f"{path}: empty file")
+        assert "unexpected end of input" not in str(info.value)
+
+
 def test_build_save_load_round_trip(tmp_path):
     rng = np.random.default_rng(4)
     pc, oc = degree4(rng)

@@ -240,6 +240,28 @@ def test_unreadable_capture_files_and_existing_outputs_are_value_errors(tmp_path
     assert out.read_bytes() == before
 
 
+def test_a_pdf_or_utf32_poses_file_or_one_that_cannot_be_opened_says_why(tmp_path):
+    """A PDF renamed poses.csv said "column station: missing from the header" (its first line is
+    text); UTF-32 was called UTF-16; a file that cannot be opened gave no reason."""
+    pdf = tmp_path / "pdf" / "poses.csv"
+    pdf.parent.mkdir()
+    pdf.write_bytes(b"%PDF-1.7\n%\xe2\xe3\xcf\xd3\n1 0 obj\n<< /Filter /FlateDecode >>\nstream\n"
+                    b"x\x9c\xed\x5d\xdb\x8e\xe3\x36\x12\nendstream\n")
+    with pytest.raises(ValueError) as info:
+        captures.load_poses(pdf.parent)
+    assert str(info.value) == (f"{pdf}:1: encoding: a PDF document (the file starts with %PDF-), not a text "
+                               "CSV file; export the capture as CSV in UTF-8")
+    utf32 = tmp_path / "utf32.csv"
+    utf32.write_bytes("\ufeffstation,set\n".encode("utf-32-le"))
+    with pytest.raises(ValueError) as info:
+        captures.load_poses(utf32)
+    assert str(info.value) == (f"{utf32}:1: encoding: UTF-32 text (a byte order mark FF FE 00 00 or "
+                               "00 00 FE FF); save the CSV file as UTF-8")
+    with pytest.raises(ValueError) as info:
+        captures.load_poses(tmp_path / "missing.csv")
+    assert str(info.value) == f"{tmp_path / 'missing.csv'}: cannot open file: No such file or directory"
+
+
 def test_a_poses_file_that_is_not_utf8_text_is_a_value_error_naming_it(tmp_path):
     """Excel's "Unicode text" save said "column station: missing from the header"; a PNG renamed
     poses.csv was "mixed line ends" on line 3."""
