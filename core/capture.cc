@@ -92,6 +92,19 @@ bool ParsesAsNumber(const std::string& s, double* value) {
   return true;
 }
 
+// A field quoted for a message: '<field>', or its first 60 bytes and its length when it is longer
+// than 80 (a file without its line ends, a corrupt export: a message quoted a field of megabytes in
+// full).
+std::string Quoted(const std::string& field) {
+  constexpr size_t kLongest = 80;
+  constexpr size_t kShown = 60;
+  if (field.size() <= kLongest) return "'" + field + "'";
+  size_t cut = kShown;  // not inside a UTF-8 character
+  while (cut > 0 && (static_cast<unsigned char>(field[cut]) & 0xC0) == 0x80) --cut;
+  return "'" + field.substr(0, cut) + "...' (a field of " + std::to_string(field.size()) +
+         " bytes)";
+}
+
 // A missing extra value: an empty field or nan.
 bool IsMissing(const std::string& s) {
   double value = 0;
@@ -288,7 +301,7 @@ class CsvTable {
     int value = 0;
     const auto [end, ec] = std::from_chars(s.data(), s.data() + s.size(), value);
     if (s.empty() || ec != std::errc() || end != s.data() + s.size()) {
-      Fail(row.line, "column " + column, "'" + s + "' is not an integer");
+      Fail(row.line, "column " + column, Quoted(s) + " is not an integer");
     }
     return value;
   }
@@ -432,10 +445,11 @@ class CsvTable {
   double ParseNumber(const Row& row, const std::string& column, const std::string& s,
                      bool allow_nan = false) const {
     double value = 0;
-    if (!ParsesAsNumber(s, &value)) Fail(row.line, "column " + column, "'" + s + "' is not a number");
+    if (!ParsesAsNumber(s, &value))
+      Fail(row.line, "column " + column, Quoted(s) + " is not a number");
     // Extra columns may mark a missing reading with nan; standard columns must be finite.
     if (!std::isfinite(value) && !(allow_nan && std::isnan(value))) {
-      Fail(row.line, "column " + column, "'" + s + "' is not a finite number");
+      Fail(row.line, "column " + column, Quoted(s) + " is not a finite number");
     }
     return value;
   }
@@ -463,8 +477,8 @@ class CsvTable {
           const std::string where = ", but line " + std::to_string(first->line) + " holds ";
           const std::string why = " (a column holds numbers or labels, not both)";
           Fail(row.line, "column " + extra_names_[k],
-               number ? "'" + s + "' is a number" + where + "the label '" + f + "'" + why
-                      : "'" + s + "' is not a number" + where + "the number " + f + why);
+               number ? Quoted(s) + " is a number" + where + "the label " + Quoted(f) + why
+                      : Quoted(s) + " is not a number" + where + "the number " + f + why);
         }
         if (!number) labels.insert(s);
       }
@@ -671,7 +685,7 @@ PoseCapture ReadPoses(const std::filesystem::path& path) {
     r.station = t.Integer(row, "station");
     r.set = t.Text(row, "set");
     if (!IsKnownSet(r.set)) {
-      t.Fail(row.line, "column set", "'" + r.set + "' is not one of calib, valid, reg");
+      t.Fail(row.line, "column set", Quoted(r.set) + " is not one of calib, valid, reg");
     }
     r.sensor = t.Integer(row, "sensor");
     t.RequireUniqueKey(row, "station", r.station, "sensor", r.sensor, &seen);

@@ -446,6 +446,28 @@ TEST(PosesCsv, ABinaryFileWhoseFirstLineIsTextSaysSo) {
   EXPECT_EQ(error_for(columns + ",note\n" + long_row), "");
 }
 
+TEST(PosesCsv, AHugeFieldIsQuotedShortened) {
+  // A field of megabytes (a corrupt export, a file that lost its line ends) was quoted in full.
+  const auto dir = MakeTempDir("capture_test");
+  const auto path = dir / "poses.csv";
+  const std::string rest = ",0.2,0.3,1,0,0,0,0.1,0.2,0.3,1,0,0,0\n";
+  WriteText(path,
+            std::string(kPosesHeader) + "1,calib,1,0," + std::string(1'000'000, '9') + "x" + rest);
+  EXPECT_EQ(ErrorOf([&] { ReadPoses(path); }),
+            "poses.csv:2: column rep_x: '" + std::string(60, '9') +
+                "...' (a field of 1000001 bytes) is not a number");
+  // Not cut inside a UTF-8 character (which would be quoted as \xNN bytes); a field of 80 bytes
+  // is quoted whole.
+  WriteText(path, std::string(kPosesHeader) + "1,calib,1,0," + std::string(59, 'a') + "\xc3\xa9" +
+                      std::string(100, 'b') + rest);
+  EXPECT_EQ(ErrorOf([&] { ReadPoses(path); }), "poses.csv:2: column rep_x: '" +
+                                                   std::string(59, 'a') +
+                                                   "...' (a field of 161 bytes) is not a number");
+  WriteText(path, std::string(kPosesHeader) + "1," + std::string(80, 'c') + ",1,0,0.1" + rest);
+  EXPECT_EQ(ErrorOf([&] { ReadPoses(path); }), "poses.csv:2: column set: '" + std::string(80, 'c') +
+                                                   "' is not one of calib, valid, reg");
+}
+
 TEST(CaptureReaders, AFileThatCannotBeOpenedSaysWhy) {
   // "cannot open file" gave no reason: a missing file, a folder on the way, a symbolic-link loop.
   const auto dir = MakeTempDir("capture_test");
