@@ -3,6 +3,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
 #include <fstream>
@@ -14,6 +15,7 @@
 #include <vector>
 
 #include "core/capture.h"
+#include "core/file_util.h"
 #include "sim/presets.h"
 #include "sim/scene_visit.h"
 
@@ -788,11 +790,22 @@ Scene ParseScene(const std::string& yaml_text, const std::string& source, const 
 Scene LoadScene(const std::string& preset_or_path) {
   const std::filesystem::path path(preset_or_path);
   std::error_code ec;
-  if (std::filesystem::is_regular_file(path, ec)) {
+  const std::filesystem::file_status status = std::filesystem::status(path, ec);
+  // A folder was "neither a scene file nor a preset", as was a pipe (`--scene <(...)`), which is
+  // read as a file is; a file that could not be opened gave no reason.
+  if (std::filesystem::is_directory(status)) {
+    throw std::invalid_argument(preset_or_path + ": is a folder, not a scene file");
+  }
+  if (std::filesystem::exists(status)) {
+    errno = 0;
     std::ifstream in(path);
-    if (!in) throw std::invalid_argument(preset_or_path + ": cannot open scene file");
+    if (!in) {
+      throw std::invalid_argument(preset_or_path +
+                                  ": cannot open scene file: " + SystemErrorText(errno));
+    }
     std::stringstream text;
     text << in.rdbuf();
+    if (in.bad()) throw std::invalid_argument(preset_or_path + ": read error");
     return ParseScene(text.str(), path.string());
   }
   for (const auto& name : PresetNames()) {
@@ -800,8 +813,9 @@ Scene LoadScene(const std::string& preset_or_path) {
   }
   std::string known;
   for (const auto& n : PresetNames()) known += (known.empty() ? "" : ", ") + n;
-  throw std::invalid_argument("scene '" + preset_or_path +
-                              "' is neither a scene file nor a preset (presets: " + known + ")");
+  throw std::invalid_argument("scene '" + preset_or_path + "' is neither a scene file" +
+                              (ec ? " (" + ec.message() + ")" : std::string()) +
+                              " nor a preset (presets: " + known + ")");
 }
 
 std::string SceneToYaml(const Scene& scene) {

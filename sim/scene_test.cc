@@ -1,8 +1,10 @@
 #include "sim/scene.h"
 
 #include <gtest/gtest.h>
+#include <sys/stat.h>
 
 #include <fstream>
+#include <thread>
 
 #include "tests/test_utils.h"
 
@@ -277,6 +279,32 @@ TEST(LoadScene, FileAndUnknownName) {
   std::ofstream(path) << "base: paper\nseed: 9\n";
   EXPECT_EQ(LoadScene(path.string()).seed, 9u);
   EXPECT_THROW(LoadScene("no_such_preset"), std::invalid_argument);
+}
+
+TEST(LoadScene, AFolderAPipeAndAMissingFileAreNamedAsSuch) {
+  auto error_of = [](const std::string& arg) {
+    try {
+      LoadScene(arg);
+    } catch (const std::invalid_argument& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  // A folder was "neither a scene file nor a preset"; a missing file gave no reason.
+  const auto dir = testing::MakeTempDir("scene_test");
+  EXPECT_EQ(error_of(dir.string()), dir.string() + ": is a folder, not a scene file");
+  EXPECT_EQ(error_of((dir / "mine.yaml").string()),
+            "scene '" + (dir / "mine.yaml").string() +
+                "' is neither a scene file (No such file or directory) nor a preset (presets: "
+                "ideal, paper)");
+  // A pipe (`--scene <(generate_scene)`) is read as a file is.
+  const auto fifo = dir / "scene.fifo";
+  ASSERT_EQ(::mkfifo(fifo.c_str(), 0600), 0);
+  std::thread writer([&] { std::ofstream(fifo) << "base: paper\nseed: 11\n"; });
+  Scene scene;
+  EXPECT_NO_THROW(scene = LoadScene(fifo.string()));
+  writer.join();
+  EXPECT_EQ(scene.seed, 11u);
 }
 
 TEST(HiddenEffects, EnableByName) {
