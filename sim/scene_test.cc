@@ -1,7 +1,9 @@
 #include "sim/scene.h"
 
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <fstream>
 #include <thread>
@@ -303,7 +305,10 @@ TEST(LoadScene, AFolderAPipeAndAMissingFileAreNamedAsSuch) {
   std::thread writer([&] { std::ofstream(fifo) << "base: paper\nseed: 11\n"; });
   Scene scene;
   EXPECT_NO_THROW(scene = LoadScene(fifo.string()));
+  // Should the pipe not have been read, the writer waits for a reader: release it.
+  const int reader = ::open(fifo.c_str(), O_RDONLY | O_NONBLOCK);
   writer.join();
+  if (reader >= 0) ::close(reader);
   EXPECT_EQ(scene.seed, 11u);
 }
 
