@@ -376,7 +376,7 @@ TEST(PosesCsv, AFileThatIsNotUtf8TextSaysSo) {
   const std::string hint =
       "): not a text CSV file (an .xlsx workbook, an image or an archive, or UTF-16 text without a "
       "byte order mark?); export the capture as CSV in UTF-8";
-  EXPECT_EQ(error_for(std::string("\x89PNG\r\n\x1a\n\0\0\0\rIHDR\0\0\0\x10", 24)),
+  EXPECT_EQ(error_for(std::string("\x89PNG\r\n\x1a\n\0\0\0\rIHDR\0\0\0\x10", 20)),
             "poses.csv:1: encoding: the header is not text (byte \\x89 at column 1" + hint);
   // A gzip archive (1f 8b) and an .xlsx workbook (a zip: "PK\3\4") said "column station: missing
   // from the header"; so did UTF-16 without a byte order mark, after blank lines.
