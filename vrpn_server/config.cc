@@ -1,5 +1,6 @@
 #include "vrpn_server/config.h"
 
+#include <algorithm>
 #include <cctype>
 #include <cerrno>
 #include <charconv>
@@ -104,6 +105,7 @@ char ContinuationOf(std::string_view text) {
 class Parser {
  public:
   Parser(std::string_view text, const std::string& file_name) : file_name_(file_name) {
+    FindEncodingProblem(text);
     // A UTF-8 byte order mark (editors on Windows save one) would glue itself, invisible, to the
     // first keyword and drop that device as unknown.
     if (text.substr(0, 3) == "\xEF\xBB\xBF") text.remove_prefix(3);
@@ -118,6 +120,9 @@ class Parser {
   }
 
   VrpnConfig Parse() {
+    if (!encoding_problem_.empty()) {
+      Fail({file_name_, encoding_problem_line_}, "", encoding_problem_);
+    }
     while (next_ < lines_.size()) {
       const Line line = lines_[next_++];
       if (IsCommentOrBlank(line.text)) continue;
@@ -156,6 +161,31 @@ class Parser {
 
  private:
   ConfigLocation Where(const Line& line) const { return {file_name_, line.number}; }
+
+  // Notepad's "Unicode" save (UTF-16) warned "unknown device type '\xff\xfev\x00r...'" on every
+  // line, then "no device trackcal-server can serve"; a PDF or another binary file warned on each
+  // of its lines. Not UTF-8 text: one error, saying what the file is. (The server is not linked
+  // with trackcal_core, whose file_util.h says the same for the other readers.)
+  void FindEncodingProblem(std::string_view text) {
+    static constexpr char kSave[] = "; save the VRPN configuration file as UTF-8";
+    using namespace std::string_view_literals;
+    if (text.substr(0, 4) == "\xFF\xFE\0\0"sv || text.substr(0, 4) == "\0\0\xFE\xFF"sv) {
+      encoding_problem_ =
+          std::string("UTF-32 text (a byte order mark FF FE 00 00 or 00 00 FE FF)") + kSave;
+    } else if (text.substr(0, 2) == "\xFF\xFE"sv || text.substr(0, 2) == "\xFE\xFF"sv) {
+      encoding_problem_ = std::string("UTF-16 text (a byte order mark FF FE or FE FF)") + kSave;
+    } else if (text.substr(0, 5) == "%PDF-"sv) {
+      encoding_problem_ =
+          "a PDF document (the file starts with %PDF-), not a VRPN configuration file";
+    } else if (const size_t nul = text.find('\0'); nul != std::string_view::npos) {
+      encoding_problem_line_ =
+          1 + static_cast<int>(std::count(text.begin(), text.begin() + nul, '\n'));
+      encoding_problem_ =
+          "a NUL byte: not a text file (UTF-16 without a byte order mark, or a "
+          "binary file?)" +
+          std::string(kSave);
+    }
+  }
 
   // Next line that is not a comment (comments are allowed inside continuation blocks), or null.
   const Line* NextContinuationLine() {
@@ -579,6 +609,8 @@ class Parser {
 
   std::string file_name_;
   std::vector<Line> lines_;
+  std::string encoding_problem_;  // "" for text
+  int encoding_problem_line_ = 1;
   size_t next_ = 0;
   // Every device name of the file: where it was first used and, for a tracker name that a button
   // of that tracker shares, where the button was declared.

@@ -492,6 +492,31 @@ TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
 }
 
+TEST(ParseVrpnConfig, AFileThatIsNotUtf8TextIsOneErrorSayingWhatItIs) {
+  // Notepad's "Unicode" save warned "unknown device type" on every line, then said "no device
+  // trackcal-server can serve"; so did a PDF or another binary file.
+  const std::string text = "vrpn_Tracker_NULL Tracker0 2 60.0\n";
+  std::string le16 = "\xFF\xFE", le32("\xFF\xFE\0\0", 4), no_mark;
+  for (const char c : text) {
+    le16 += std::string{c, '\0'};
+    le32 += std::string{c, '\0', '\0', '\0'};
+    no_mark += std::string{'\0', c};
+  }
+  EXPECT_EQ(ParseError(le16),
+            "lab.cfg:1: UTF-16 text (a byte order mark FF FE or FE FF); save the VRPN "
+            "configuration file as UTF-8");
+  EXPECT_EQ(ParseError(le32),
+            "lab.cfg:1: UTF-32 text (a byte order mark FF FE 00 00 or 00 00 FE FF); save the VRPN "
+            "configuration file as UTF-8");
+  EXPECT_EQ(ParseError("# lab\n" + no_mark),
+            "lab.cfg:2: a NUL byte: not a text file (UTF-16 without a byte order mark, or a binary "
+            "file?); save the VRPN configuration file as UTF-8");
+  EXPECT_EQ(
+      ParseError("%PDF-1.7\n%\xe2\xe3\xcf\xd3\n"),
+      "lab.cfg:1: a PDF document (the file starts with %PDF-), not a VRPN configuration file");
+  EXPECT_EQ(ParseError(text), "");  // UTF-8 text is read as before
+}
+
 TEST(ReadVrpnConfig, AFileThatCannotBeOpenedSaysWhy) {
   // "cannot open the VRPN configuration file" gave no reason (no such file, permission denied).
   try {
