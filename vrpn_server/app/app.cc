@@ -6,6 +6,8 @@
 #include <set>
 #include <stdexcept>
 
+#include "core/printable_text.h"
+
 namespace trackcal::vrpn {
 namespace {
 
@@ -273,6 +275,8 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
 }
 
 TrackcalServerApp::~TrackcalServerApp() { Stop(); }
+
+void TrackcalServerApp::Log(const std::string& line) { log_(PrintableForLog(line)); }
 
 void TrackcalServerApp::Start() {
   server_->Start();

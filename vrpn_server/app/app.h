@@ -113,7 +113,8 @@ struct AppOptions {
 class TrackcalServerApp {
  public:
   // Validates the setup (names, duplicates) and loads every calibration: a bad calibration at start
-  // is an error (std::invalid_argument naming the calibration's origin and the file).
+  // is an error (std::invalid_argument naming the calibration's origin and the file). `log`
+  // (default LogToStderr) gets every line already through PrintableForLog, from any thread.
   TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOptions options, CorrectorLoader loader,
                     LogFunction log = nullptr);
   ~TrackcalServerApp();
@@ -142,7 +143,9 @@ class TrackcalServerApp {
   struct Slot;
   bool Reload(Tracker& t, Slot& slot, bool only_if_changed);
   void Install(Tracker& t, const Slot& slot, std::shared_ptr<const PoseCorrector> corrector);
-  void Log(const std::string& line) { log_(line); }
+  // Every line goes through PrintableForLog before `log_`, whatever the sink: lines quote vrpn.cfg
+  // names, calibration paths and text a device or another VRPN server sent.
+  void Log(const std::string& line);
 
   AppOptions options_;
   CorrectorLoader loader_;

@@ -13,6 +13,7 @@
 #include <mutex>
 #include <thread>
 
+#include "core/printable_text.h"
 #include "tests/test_utils.h"
 #include "vrpn_server/net/socket_util.h"
 #include "vrpn_server/protocol/stream_parser.h"
@@ -355,6 +356,47 @@ TEST(TrackcalServerApp, OtherReusedNamesAreStillServedTwice) {
   b.buttons.clear();
   b.raw_name = "S";
   EXPECT_EQ(error({a, b}), "test.cfg:3: device name 'S' is served twice");
+}
+
+// A caller-supplied sink gets the lines escaped as the default stderr sink prints them: a device
+// name (TrackerSetup comes from code, not only from the checked vrpn.cfg) and text a source relays
+// (a pass-through relays another VRPN server's text) carry an escape sequence, a forged line and
+// bytes that are not UTF-8, and none of them may reach the sink raw.
+TEST(TrackcalServerApp, CustomLogSinkGetsEscapedLines) {
+  auto callbacks = std::make_shared<SourceCallbacks>();
+  TrackerSetup setup;
+  setup.name =
+      "Tracker\x1b]0;owned\x07"
+      "0";
+  setup.origin = "test.cfg:1";
+  setup.make_source = [callbacks] { return std::make_unique<ManualSource>(callbacks); };
+  std::vector<std::string> log;
+  std::mutex log_mutex;
+  TrackcalServerApp app({setup}, Loopback(), nullptr, [&](const std::string& l) {
+    std::lock_guard<std::mutex> lock(log_mutex);
+    log.push_back(l);
+  });
+  app.Start();
+  ASSERT_TRUE(callbacks->on_text);
+  callbacks->on_text(TextSeverity::kWarning,
+                     "\x1b[2J\xff\xfe\nforged: line\xc2\x9b"
+                     "1m");
+  app.Stop();
+  std::lock_guard<std::mutex> lock(log_mutex);
+  bool saw_text = false;
+  bool saw_serving = false;
+  for (const std::string& line : log) {
+    for (const char c : line) {
+      const auto u = static_cast<unsigned char>(c);
+      EXPECT_TRUE(u >= 0x20 && u < 0x7f)
+          << "raw byte 0x" << std::hex << int(u) << " in: " << PrintableForLog(line);
+    }
+    saw_text |=
+        line == "Tracker\\x1b]0;owned\\x070: \\x1b[2J\\xff\\xfe\\x0aforged: line\\xc2\\x9b1m";
+    saw_serving |= line.rfind("serving Tracker\\x1b]0;owned\\x070 from manual", 0) == 0;
+  }
+  EXPECT_TRUE(saw_text);
+  EXPECT_TRUE(saw_serving);
 }
 
 TEST(TrackcalServerApp, PassthroughCorrectsAnotherServersTracker) {

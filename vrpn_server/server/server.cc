@@ -146,7 +146,8 @@ void LogToStderr(const std::string& line) {
   char stamp[32];
   std::strftime(stamp, sizeof(stamp), "%Y-%m-%dT%H:%M:%SZ", &tm);
   // Lines quote vrpn.cfg's device names and device text: the terminal gets them escaped
-  // (VrpnServer::Log's lines are already, and PrintableForLog leaves its own output unchanged).
+  // (VrpnServer::Log and TrackcalServerApp::Log escape their lines before any sink, and
+  // PrintableForLog leaves its own output unchanged).
   std::cerr << stamp << " trackcal-server: " << PrintableForLog(line) << std::endl;
 }
 
