@@ -55,6 +55,29 @@ std::vector<std::string> Tokenize(std::string_view s) {
   throw std::invalid_argument(PrintableForLog(msg.str()));
 }
 
+// Why a VRPN client could not address device `name` (empty if it can). Clients name a device as
+// "Name@host" and the reference reads the name up to the first '@' (vrpn_copy_service_name); the
+// name goes on the wire as a sender description of at most 95 characters and reaches client logs
+// and GUIs: it must be printable UTF-8 (no control character, no byte that is not UTF-8). Spaces
+// cannot occur (they separate the tokens of a line).
+std::string UnaddressableName(const std::string& name) {
+  if (name.empty()) return "empty device name";
+  if (name.size() > 95) {  // the longest name a VRPN description carries; refused at start-up
+    return "device name '" + name + "' is over 95 characters";  // without a line
+  }
+  if (const size_t at = name.find('@'); at != std::string::npos) {
+    return "device name '" + name +
+           "' contains '@' (clients address a device as Name@host and "
+           "read the name up to the first '@')";
+  }
+  if (PrintableForLog(name) != name) {
+    return "device name '" + name +
+           "' contains a control character or a byte that is not UTF-8 "
+           "(a name must be printable UTF-8)";
+  }
+  return "";
+}
+
 int ParseInt(const std::string& token, const ConfigLocation& where, std::string_view field) {
   int value = 0;
   const auto [end, ec] = std::from_chars(token.data(), token.data() + token.size(), value);
@@ -220,10 +243,7 @@ class Parser {
 
   void RegisterName(const std::string& name, const ConfigLocation& where, std::string_view field,
                     std::string_view hint = {}) {
-    if (name.empty()) Fail(where, field, "empty device name");
-    if (name.size() > 95) {  // the longest name a VRPN description carries; refused at start-up
-      Fail(where, field, "device name '" + name + "' is over 95 characters");  // without a line
-    }
+    if (const std::string why = UnaddressableName(name); !why.empty()) Fail(where, field, why);
     const auto [it, inserted] = names_.emplace(name, NameUse{where, std::nullopt});
     if (!inserted) {
       Fail(where, field,
@@ -468,8 +488,8 @@ class Parser {
     const size_t at = s.rfind('@');
     spec.source_device = std::string(s.substr(0, at));
     if (spec.source_device.empty()) Fail(where, "source", "missing device name in '" + spec.source + "'");
-    if (spec.source_device.size() > 95) {  // the longest name a VRPN description carries
-      Fail(where, "source", "device name '" + spec.source_device + "' is over 95 characters");
+    if (const std::string why = UnaddressableName(spec.source_device); !why.empty()) {
+      Fail(where, "source", why);
     }
     if (at == std::string_view::npos) {
       if (!star) {

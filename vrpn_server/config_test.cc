@@ -5,6 +5,7 @@
 #include <fstream>
 #include <stdexcept>
 
+#include "core/printable_text.h"
 #include "tests/test_utils.h"
 
 namespace trackcal::vrpn {
@@ -269,6 +270,53 @@ TEST(ParseVrpnConfig, WarningsAndErrorsQuoteTheFileEscaped) {
   // quoted too.
   EXPECT_EQ(ParseError("vrpn_Tracker_Fastrak T0 /dev/ttyS0 115200 \\\n*1\t2\n"),
             "lab.cfg:2: field 'sleep': expected a number, got '1\\x092'");
+}
+
+TEST(ParseVrpnConfig, NamesAClientCannotAddressAreErrors) {
+  // A device name goes on the wire as a sender description and clients address it as Name@host
+  // (the reference reads the name up to the first '@'): a name with '@', a control character or a
+  // byte that is not UTF-8 was accepted and served under a name no client could type, and the
+  // control bytes reached client logs. Each is an error naming file, line and field.
+  const std::string control = "contains a control character or a byte that is not UTF-8";
+  const std::string at = "contains '@'";
+  const struct {
+    std::string text;
+    std::string expected;  // prefix of the message
+  } cases[] = {
+      {"vrpn_Tracker_NULL T\x1b[2J 1 60\n",
+       "lab.cfg:1: field 'name': device name 'T\\x1b[2J' " + control},
+      {"vrpn_Tracker_NULL T\xff 1 60\n",
+       "lab.cfg:1: field 'name': device name 'T\\xff' " + control},
+      {"vrpn_Tracker_NULL T\xc2\x9b 1 60\n",
+       "lab.cfg:1: field 'name': device name 'T\\xc2\\x9b' " + control},
+      {"vrpn_Tracker_NULL T\x01 1 60\n",
+       "lab.cfg:1: field 'name': device name 'T\\x01' " + control},
+      {"vrpn_Tracker_Fastrak Tracker0@lab /dev/ttyS0 115200\n",
+       "lab.cfg:1: field 'name': device name 'Tracker0@lab' " + at},
+      {"vrpn_Tracker_Fastrak T /dev/a 115200 /\nFTStylus S\x7f 0\n",
+       "lab.cfg:2: field 'button name': device name 'S\\x7f' " + control},
+      {"vrpn_Tracker_NULL T 1 1\ntrackcal_Calibration T c.json raw=R@aw\n",
+       "lab.cfg:2: field 'raw': device name 'R@aw' " + at},
+      {"trackcal_Tracker_Passthrough P\x1b Tracker0@lab-pc\n",
+       "lab.cfg:1: field 'name': device name 'P\\x1b' " + control},
+      {"trackcal_Tracker_Passthrough P Track\x1b"
+       "er0@lab-pc\n",
+       "lab.cfg:1: field 'source': device name 'Track\\x1ber0' " + control},
+      {"trackcal_Tracker_Passthrough P A@B@lab-pc\n",
+       "lab.cfg:1: field 'source': device name 'A@B' " + at},
+  };
+  for (const auto& c : cases) {
+    const std::string error = ParseError(c.text);
+    EXPECT_EQ(error.rfind(c.expected, 0), 0u) << PrintableForLog(c.text) << " gave: " << error;
+  }
+  // Printable UTF-8 and every printable ASCII character but '@' stay valid names.
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_NULL Ger\xc3\xa4t_0 1 60\n"
+      "vrpn_Tracker_NULL Tracker-1.left/[x]:*#! 1 60\n",
+      "lab.cfg");
+  ASSERT_EQ(config.null_trackers.size(), 2u);
+  EXPECT_EQ(config.null_trackers[0].name, "Ger\xc3\xa4t_0");
+  EXPECT_EQ(config.null_trackers[1].name, "Tracker-1.left/[x]:*#!");
 }
 
 TEST(ParseVrpnConfig, AnUnknownTrackcalLineIsAnError) {
