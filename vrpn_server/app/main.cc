@@ -10,6 +10,7 @@
 #include <unistd.h>
 
 #include <charconv>
+#include <chrono>
 #include <cstring>
 #include <iostream>
 #include <stdexcept>
@@ -25,6 +26,9 @@
 
 namespace trackcal::vrpn {
 namespace {
+
+// How long a stopping server waits for its queued log lines to reach stderr.
+constexpr std::chrono::milliseconds kLogFlushTimeout{2000};
 
 constexpr const char* kUsage = R"(usage: trackcal-server [-f vrpn.cfg] [port] [options]
 
@@ -192,6 +196,8 @@ int Run(int argc, char** argv) {
     }
   }
   app.Stop();
+  // Bounded: a stderr nobody reads must not keep a stopped server from exiting.
+  FlushStderrLog(kLogFlushTimeout);
   return 0;
 }
 
@@ -202,7 +208,9 @@ int main(int argc, char** argv) {
   try {
     return trackcal::vrpn::Run(argc, argv);
   } catch (const std::exception& e) {
-    // The message may quote vrpn.cfg or a calibration file (a device name, a token).
+    // After the lines queued before it (config warnings). The message may quote vrpn.cfg or a
+    // calibration file (a device name, a token).
+    trackcal::vrpn::FlushStderrLog(trackcal::vrpn::kLogFlushTimeout);
     std::cerr << "trackcal-server: error: " << trackcal::PrintableForLog(e.what()) << "\n";
     return 1;
   }

@@ -14,8 +14,11 @@
 
 #include <cerrno>
 #include <chrono>
+#include <condition_variable>
+#include <csignal>
 #include <cstring>
 #include <ctime>
+#include <deque>
 #include <iostream>
 #include <map>
 #include <set>
@@ -139,7 +142,10 @@ struct VrpnServer::Impl {
   std::vector<std::uint64_t> ids;
 };
 
-void LogToStderr(const std::string& line) {
+namespace {
+
+// "<UTC time> trackcal-server: line\n", `line` through PrintableForLog.
+std::string Stamped(const std::string& line) {
   const std::time_t now = std::time(nullptr);
   std::tm tm{};
   ::gmtime_r(&now, &tm);
@@ -148,7 +154,111 @@ void LogToStderr(const std::string& line) {
   // Lines quote vrpn.cfg's device names and device text: the terminal gets them escaped
   // (VrpnServer::Log and TrackcalServerApp::Log escape their lines before any sink, and
   // PrintableForLog leaves its own output unchanged).
-  std::cerr << stamp << " trackcal-server: " << PrintableForLog(line) << std::endl;
+  return std::string(stamp) + " trackcal-server: " + PrintableForLog(line) + "\n";
+}
+
+// The lines of LogToStderr, written to fd 2 by a thread of their own. The network thread logs every
+// connection: a blocking write() there stopped every client's reports, and SIGTERM, while stderr
+// was not read (a terminal paused with Ctrl-S, a pipe to a stalled reader). Lines wait here
+// instead, up to kMaxQueuedBytes; beyond that they are counted, dropped, and the count is logged
+// once stderr takes lines again. Never destroyed: its thread may be blocked in write() when the
+// process exits.
+class StderrWriter {
+ public:
+  static StderrWriter& Get() {
+    static StderrWriter* const writer = new StderrWriter();
+    return *writer;
+  }
+
+  void Push(std::string line) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (queued_bytes_ + line.size() > kMaxQueuedBytes) {
+        ++dropped_;
+        return;
+      }
+      QueueDropNotice();  // where the lines went missing, before the next one
+      Queue(std::move(line));
+    }
+    wake_.notify_one();
+  }
+
+  bool Flush(std::chrono::milliseconds timeout) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    return idle_.wait_for(lock, timeout,
+                          [this] { return lines_.empty() && dropped_ == 0 && !writing_; });
+  }
+
+ private:
+  // About 10000 lines of 100 bytes: minutes of a connection flood, bounded memory.
+  static constexpr std::size_t kMaxQueuedBytes = 1 << 20;
+
+  StderrWriter() {
+    std::thread([this] { Run(); }).detach();
+  }
+
+  static void WriteAll(const std::string& text) {
+    std::size_t done = 0;
+    while (done < text.size()) {
+      const ssize_t n = ::write(STDERR_FILENO, text.data() + done, text.size() - done);
+      if (n < 0 && errno == EINTR) continue;
+      if (n <= 0) return;  // stderr closed or broken: nothing else to tell
+      done += static_cast<std::size_t>(n);
+    }
+  }
+
+  void Queue(std::string line) {
+    queued_bytes_ += line.size();
+    lines_.push_back(std::move(line));
+  }
+
+  void QueueDropNotice() {
+    if (dropped_ == 0) return;
+    Queue(Stamped(std::to_string(dropped_) +
+                  " log line(s) dropped: stderr was not read fast enough"));
+    dropped_ = 0;
+  }
+
+  void Run() {
+    // Signals stay with the threads that handle them (trackcal-server's main thread reads them
+    // from a signalfd); this thread may start before they are blocked.
+    sigset_t all;
+    sigfillset(&all);
+    pthread_sigmask(SIG_BLOCK, &all, nullptr);
+    std::unique_lock<std::mutex> lock(mutex_);
+    for (;;) {
+      wake_.wait(lock, [this] { return !lines_.empty() || dropped_ > 0; });
+      if (lines_.empty()) QueueDropNotice();  // no line came after the dropped ones
+      std::string text;
+      while (!lines_.empty()) {
+        text += lines_.front();
+        queued_bytes_ -= lines_.front().size();
+        lines_.pop_front();
+      }
+      writing_ = true;
+      lock.unlock();
+      WriteAll(text);
+      lock.lock();
+      writing_ = false;
+      if (lines_.empty() && dropped_ == 0) idle_.notify_all();
+    }
+  }
+
+  std::mutex mutex_;
+  std::condition_variable wake_;
+  std::condition_variable idle_;
+  std::deque<std::string> lines_;
+  std::size_t queued_bytes_ = 0;
+  std::uint64_t dropped_ = 0;
+  bool writing_ = false;
+};
+
+}  // namespace
+
+void LogToStderr(const std::string& line) { StderrWriter::Get().Push(Stamped(line)); }
+
+bool FlushStderrLog(std::chrono::milliseconds timeout) {
+  return StderrWriter::Get().Flush(timeout);
 }
 
 VrpnServer::VrpnServer(std::shared_ptr<const ServerCatalog> catalog, ServerOptions options,

@@ -18,6 +18,7 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <cstdint>
 #include <memory>
 #include <mutex>
@@ -179,7 +180,13 @@ class VrpnServer {
   ServerStats stats_;
 };
 
-// Writes "<UTC time> trackcal-server: line" to stderr, `line` through PrintableForLog.
+// Writes "<UTC time> trackcal-server: line" to stderr, `line` through PrintableForLog. Never
+// blocks: the line is queued for a writer thread (the time is taken now), so a stderr nobody reads
+// (a terminal paused with Ctrl-S, a stalled pipe) cannot stall the network thread; past 1 MiB
+// queued, lines are dropped and their count is logged when stderr takes lines again.
 void LogToStderr(const std::string& line);
+// Waits until the lines queued by LogToStderr are written, at most `timeout`; false if they were
+// not (stderr is not read). Call it before exiting and before writing to stderr directly.
+bool FlushStderrLog(std::chrono::milliseconds timeout);
 
 }  // namespace trackcal::vrpn
