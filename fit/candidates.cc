@@ -746,6 +746,16 @@ constexpr double kMaxNestedCostRatio = 10.0;
 // and, reported on a workflow capture, 5.9 times above (a background field: delta BIC +8478, listed
 // as tested with its coefficients 20.2 sigma from their null).
 constexpr double kMaxNestedChi2Excess = 0.01;
+// ... plus this much per residual of the stations compared: a base that fits them exactly (chi2 0,
+// a noiseless capture or as many parameters as residuals) would otherwise fail every candidate
+// whose chi2 ends at rounding noise above it (measured: 60 noiseless stations, the degree-3
+// fallback at 2.3e-25 against 0; fit/candidates_test.cc ACandidateOfABaseThatFitsExactlyIsScored).
+// 1e-6 is a whitened RMS of 1e-3 sigma (0.06 um at a Fastrak's 0.06 mm): above the runtime
+// inverse's precision (it stops at an estimated 1e-12 m, tested to 1e-9 m: 2e-5 sigma, 3e-10 per
+// residual) and 1e4 times below the smallest failure caught (10 % above a base at chi2 / n = 0.14:
+// 0.014 per residual). It decides only below chi2 / n = 1e-4, a noise 100 times overstated; a
+// right noise model's chi2 / n is ~1, where the relative rule governs.
+constexpr double kMaxNestedChi2ExcessPerResidual = 1e-6;
 
 // Scales the strength of a dipole's or plane's start (as AddFittedStart wrote it); false for other
 // terms or a missing value.
@@ -2144,8 +2154,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       // already been taken; the stations are the BIC's (unresolved ones left out as there). Not
       // under a robust loss: the mean-shift chi2 drops each model's own outliers, so the two need
       // not be ordered, and the cost rule stands alone there.
+      const double compared_residuals =
+          6.0 * static_cast<double>(std::count(use_own.begin(), use_own.end(), true));
       if (nested && spec.loss.type == LossType::kNone &&
-          chi.chi2 > (1.0 + kMaxNestedChi2Excess) * base_chi.chi2) {
+          chi.chi2 > (1.0 + kMaxNestedChi2Excess) * base_chi.chi2 +
+                         kMaxNestedChi2ExcessPerResidual * compared_residuals) {
         c.ended_above_base = true;
         // Two causes, which its final cost does not tell apart (see kMaxNestedChi2Excess): the
         // solver stopped short of the optimum, or the runtime inverse that scores the chi2 resolves

@@ -252,6 +252,30 @@ TEST(DiagnoseCandidates, NothingIsClaimedWhenTheModelFits) {
   }
 }
 
+// A base that fits its stations exactly (noiseless stations, reference = report: chi2 0) leaves
+// nothing to explain, but each candidate that contains it is still a fitted, tested model. Before
+// the absolute floor of the nested rule (kMaxNestedChi2ExcessPerResidual), the flexible degree-3
+// polynomial ended at chi2 2.3e-25 (rounding) against the base's 0, "more than 1 % above", and was
+// reported as a failed fit that "fits the stations worse than the base it contains".
+TEST(DiagnoseCandidates, ACandidateOfABaseThatFitsExactlyIsScored) {
+  auto stations = Stations(60, Eigen::Vector3d::Zero(), 0, 5);
+  for (auto& s : stations) s.reference = s.reported;
+  CandidateOptions o = TestOptions();
+  o.effects = {"position_offset"};
+  const Diagnosis d =
+      DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic", o);
+  std::cout << FormatDiagnosis(d);
+  EXPECT_EQ(d.base.chi2, 0.0);
+  ASSERT_EQ(d.flexible.size(), 1u);
+  ASSERT_EQ(d.candidates.size(), 1u);
+  for (const Candidate* c : {&d.flexible[0], &d.candidates[0]}) {
+    EXPECT_TRUE(c->fitted) << c->effect << ": " << c->error;
+    EXPECT_FALSE(c->ended_above_base) << c->effect;
+    EXPECT_FALSE(c->significant) << c->effect << ": " << c->reason;
+  }
+  EXPECT_FALSE(d.verdict_effect.has_value());
+}
+
 // The verdict's wording when nothing is claimed: it must not call a model "within its noise model"
 // when the chi2 cannot tell (noise set 10x too large), and must say when a flexible term still
 // finds held-out structure that BIC does not pay for.
