@@ -757,6 +757,69 @@ constexpr double kMaxNestedChi2Excess = 0.01;
 // right noise model's chi2 / n is ~1, where the relative rule governs.
 constexpr double kMaxNestedChi2ExcessPerResidual = 1e-6;
 
+// Why the added term `name` of the fitted `spec` cannot take its null value, the value at which the
+// candidate is the base (empty: it can): a catalog term (CandidateOptions::catalog, a user's) whose
+// `parameters:` hold a strength block fixed off its null or bound it away from it does not contain
+// the base, so the rules that rest on that (the retry from the base's optimum with the term at
+// its null, the nested cost and chi2 rules) do not apply to it: a worse fit is then a result.
+// Measured before (fit/candidates_test.cc ACandidateThatExcludesItsNullIsNotNested): an offset
+// fixed at 0.2 mm was "fit failed: ... worse than the base it contains", bounded gains "did not
+// find the optimum", and a dipole fixed at 1e-3 m^3 was refitted and reported at 1e-6 m^3.
+// The null values are the strength blocks' of PhysicalEvidence (sensor_offset: rotation identity
+// and translation 0; receiver_gain G = I; dipole, plane, near_field, background_field: strength
+// 0; polynomial, lut: every coefficient 0). A term type of no known null with a fixed or bounded
+// block is not presumed to contain the base.
+std::string NullExcludedWhy(const ModelSpec& spec, const std::string& name) {
+  const ModelFileTerm* file = nullptr;
+  for (const ModelFileTerm& f : spec.file_terms) {
+    if (f.name == name) file = &f;
+  }
+  if (file == nullptr || file->model_term < 0 ||
+      static_cast<size_t>(file->model_term) >= spec.terms.size()) {
+    return "";
+  }
+  const ModelTerm& term = *spec.terms[static_cast<size_t>(file->model_term)];
+  const std::string& type = file->type;
+  for (const ParameterBlock& b : term.blocks()) {
+    if ((b.term.empty() ? term.name() : b.term) != name) continue;
+    const std::vector<double> zero(b.values.size(), 0.0);
+    std::vector<std::vector<double>> nulls;  // any of them reproduces the base; empty: no strength
+    if (type == "sensor_offset") {
+      if (b.name == "rotation") nulls = {{0, 0, 0, 1}, {0, 0, 0, -1}};
+      if (b.name == "translation") nulls = {zero};
+    } else if (type == "receiver_gain") {
+      if (b.name == "gain_matrix") nulls = {{1, 0, 0, 0, 1, 0, 0, 0, 1}};
+    } else if (type == "dipole" || type == "plane" || type == "near_field" ||
+               type == "background_field") {
+      if (b.name == "polarisability_m3" || b.name == "attenuation" || b.name == "octupole_m2" ||
+          b.name == "coefficients") {
+        nulls = {zero};
+      }
+    } else if (type == "polynomial" || type == "lut") {
+      nulls = {zero};
+    } else if (b.fixed || !b.lower.empty() || !b.upper.empty()) {
+      return "its block " + b.name + " is held fixed or bounded and the null value of a " + type +
+             " is not known";
+    }
+    if (nulls.empty()) continue;
+    bool feasible = false;
+    for (const auto& null : nulls) {
+      bool in = null.size() == b.values.size();
+      for (size_t i = 0; in && i < null.size(); ++i) {
+        in = b.fixed ? b.values[i] == null[i]
+                     : (b.lower.empty() || b.lower[i] <= null[i]) &&
+                           (b.upper.empty() || null[i] <= b.upper[i]);
+      }
+      feasible = feasible || in;
+    }
+    if (!feasible) {
+      return "its block " + b.name + (b.fixed ? " is held fixed off" : " is bounded away from") +
+             " its null value";
+    }
+  }
+  return "";
+}
+
 // Scales the strength of a dipole's or plane's start (as AddFittedStart wrote it); false for other
 // terms or a missing value.
 bool ScaleSourceStrength(double factor, YAML::Node* term) {
@@ -1987,8 +2050,18 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       };
       go_on(&fit, &spec, c.model_text, "");
       bool grown_kept = false;  // the kept fit grew the added sources from near zero
-      if (c.kind == CandidateKind::kTerm && c.insert_index && c.replaces.empty() &&
-          p.stations.empty()) {
+      // The candidate contains the base (the base plus an effect whose null value it can take, on
+      // the same stations): the retry and the nested rules below rest on that (NullExcludedWhy).
+      std::string not_nested;
+      for (const auto& name : c.term_names) {
+        if (not_nested.empty()) not_nested = NullExcludedWhy(spec, name);
+      }
+      if (!not_nested.empty()) {
+        Progress(options, c.effect + ": does not contain the base model: " + not_nested);
+      }
+      const bool nested = c.kind == CandidateKind::kTerm && c.insert_index && c.replaces.empty() &&
+                          p.stations.empty() && not_nested.empty();
+      if (nested) {
         // The base plus an effect that fits the stations worse than the base: the joint fit left
         // the base's optimum for a worse one (an added source at its searched strength pulls the
         // others and the polynomial's start away; the polynomial's `ridge: auto` weight and the
@@ -2089,8 +2162,6 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
         throw std::runtime_error("the fit failed (" + fit.termination_type + ": " +
                                  fit.solver_message + ")");
       }
-      const bool nested = c.kind == CandidateKind::kTerm && c.insert_index && c.replaces.empty() &&
-                          p.stations.empty();
       if (nested && !(fit.final_cost <= std::max(kMaxNestedCostRatio * d.base.final_cost,
                                                  d.base.final_cost + n_residuals))) {
         throw std::runtime_error("the fit did not find the optimum: its final cost " +
@@ -2251,6 +2322,14 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
               MeasuredPositions(own), options.min_strength_sigma, noise_scale,
               options.max_normal_sigma_rad, empirical ? fit.covariance_clusters : 0);
           if (t == 0 || WeakerEvidence(ev, c.evidence)) c.evidence = ev;
+        }
+        // A strength held or bounded away from its null is not measured against the null: the
+        // Wald test would find a bounded gain 12.5 sigma from G = I because the bound put it there.
+        if (!not_nested.empty() && c.evidence.assessed) {
+          c.evidence.strength_ok = false;
+          c.evidence.strength_what = not_nested;
+          c.evidence.strength_chi2 = c.evidence.strength_p = c.evidence.strength_sigma = NAN;
+          c.evidence.strength_dof = 0;
         }
       }
       bool started = c.kind == CandidateKind::kTerm;

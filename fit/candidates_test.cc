@@ -276,6 +276,64 @@ TEST(DiagnoseCandidates, ACandidateOfABaseThatFitsExactlyIsScored) {
   EXPECT_FALSE(d.verdict_effect.has_value());
 }
 
+// A user's catalog term whose `parameters:` exclude its null value (a strength block fixed off it
+// or bounded away from it) does not contain the base: a worse fit is its result, not a failed
+// search, and the retry from the base's optimum must not move its fixed strength. Before
+// (NullExcludedWhy), on stations without an offset: an offset fixed at 0.2 mm was "fit failed: it
+// fits the stations worse than the base it contains" (chi2 2894 against 1701); gains bounded to G00
+// >= 1.02 "did not find the optimum" (cost 330 times the base's); a dipole fixed at 1e-3 m^3 was
+// refitted "grown from near zero" and reported, model change included, at 1e-6 m^3.
+TEST(DiagnoseCandidates, ACandidateThatExcludesItsNullIsNotNested) {
+  const auto stations = Stations(300, Eigen::Vector3d::Zero(), 0, 2);
+  CandidateOptions o;
+  o.num_threads = 1;
+  o.flexible.clear();
+  o.catalog = {
+      {"fixed_offset", CandidateKind::kTerm,
+       "{type: polynomial, degree: 0, orientation: false, parameters: {position_coefficients: "
+       "{value: [0.0002, 0, 0], fixed: true}}}",
+       false, true, "a known offset"},
+      {"bounded_gain", CandidateKind::kTerm,
+       "{type: receiver_gain, parameters: {gain_matrix: {value: [1.02, 0, 0, 0, 1, 0, 0, 0, 1], "
+       "lower: [1.02, -1, -1, -1, 0, -1, -1, -1, 0], upper: [2, 1, 1, 1, 2, 1, 1, 1, 2]}}}",
+       true, true, "a gain of at least 1.02"},
+      {"fixed_dipole", CandidateKind::kTerm,
+       "{type: dipole, location_in_transmitter: [0.7, 0.0, 0.5], polarisability_m3: 1e-3, "
+       "parameters: {polarisability_m3: {fixed: true}, location_in_transmitter: {fixed: true}}}",
+       true, true, "a known object"},
+      // The same offset free: it contains the base, and fits as well as the base does.
+      {"offset", CandidateKind::kTerm, "{type: polynomial, degree: 0, orientation: false}", false,
+       true, "an offset"},
+  };
+  const Diagnosis d =
+      DiagnoseCandidates(stations, kOrientationOnlyModel, "model.yaml", "synthetic", o);
+  std::cout << FormatDiagnosis(d);
+  ASSERT_EQ(d.candidates.size(), 4u);
+  for (const Candidate& c : d.candidates) {
+    EXPECT_TRUE(c.fitted) << c.effect << ": " << c.error;
+    EXPECT_FALSE(c.ended_above_base) << c.effect;
+    EXPECT_FALSE(c.significant) << c.effect << ": " << c.reason;
+    if (c.effect == "offset") continue;
+    // Each fits worse than the base: a tested model that the data reject.
+    EXPECT_GT(c.delta_bic, 100.0) << c.effect;
+    // A physical term's strength is not measured against a null it cannot take (the polynomial
+    // has no strength block: not assessed).
+    if (c.effect == "fixed_offset") continue;
+    EXPECT_TRUE(c.evidence.assessed) << c.effect;
+    EXPECT_FALSE(c.evidence.strength_ok) << c.effect;
+    EXPECT_FALSE(std::isfinite(c.evidence.strength_sigma)) << c.effect;
+  }
+  EXPECT_DOUBLE_EQ(d.p_threshold, o.family_alpha / 4);
+  const auto it = std::find_if(d.candidates.begin(), d.candidates.end(),
+                               [](const Candidate& c) { return c.effect == "fixed_dipole"; });
+  ASSERT_NE(it, d.candidates.end());
+  const Candidate& dipole = *it;
+  ASSERT_EQ(dipole.parameters.size(), 2u);
+  EXPECT_EQ(dipole.parameters[1].block, "polarisability_m3");
+  EXPECT_EQ(dipole.parameters[1].values[0], 1e-3);
+  EXPECT_THAT(dipole.model_change, ::testing::HasSubstr("polarisability_m3: 0.001"));
+}
+
 // The verdict's wording when nothing is claimed: it must not call a model "within its noise model"
 // when the chi2 cannot tell (noise set 10x too large), and must say when a flexible term still
 // finds held-out structure that BIC does not pay for.
