@@ -40,7 +40,8 @@ the calibration files attached with trackcal_Calibration lines (docs/vrpn.md, do
   --bind ADDR      listen on this IPv4 address, or the host name's, only (default 0.0.0.0;
                    vrpn_server's -NIC ADDR too)
   --allow CIDR     accept clients from this network only; repeatable (default: everyone)
-  --record DIR     record raw and corrected streams of every tracker to DIR as CSV
+  --record DIR     record raw and corrected streams of every tracker to DIR as CSV (DIR is
+                   made if missing, like mkdir; earlier recordings are never overwritten)
   --max-clients N  refuse connections beyond N (default 256)
   --realtime-priority P
                    run the network thread SCHED_FIFO at priority P (1-99; needs CAP_SYS_NICE)

@@ -10,12 +10,30 @@
 #include <iomanip>
 #include <iostream>
 #include <stdexcept>
+#include <system_error>
 
 namespace trackcal::vrpn {
 
 StreamRecorder::StreamRecorder(const std::filesystem::path& dir, const std::string& device_name) {
-  if (!std::filesystem::is_directory(dir)) {
-    throw std::invalid_argument("--record " + dir.string() + ": not a directory");
+  // The folder is made like `mkdir DIR` (one level; the parent must exist), as `trackcal record -o`
+  // makes its own. Recorders of several trackers share it: an existing folder is used as it is.
+  std::error_code ec;
+  if (!std::filesystem::create_directory(dir, ec) && ec) {
+    std::error_code status_ec;
+    const auto status = std::filesystem::symlink_status(dir, status_ec);
+    if (std::filesystem::exists(status)) {
+      throw std::invalid_argument("--record " + dir.string() + ": not a directory");
+    }
+    if (ec == std::errc::no_such_file_or_directory || ec == std::errc::not_a_directory) {
+      // Only DIR itself is made: a mistyped parent should not grow a new tree of folders.
+      const std::filesystem::path parent = dir.parent_path();
+      throw std::invalid_argument("--record " + dir.string() + ": does not exist, and " +
+                                  (ec == std::errc::not_a_directory
+                                       ? "a folder above it is not a directory"
+                                       : "neither does " + parent.string()) +
+                                  " (the server makes only the last folder, like mkdir)");
+    }
+    throw std::invalid_argument("--record " + dir.string() + ": cannot create: " + ec.message());
   }
   final_path_ = dir / (device_name + "_tracker_stream.csv");
   partial_path_ = final_path_;

@@ -304,7 +304,45 @@ TEST(StreamRecorder, WritesStreamFormatAndNeverOverwrites) {
   EXPECT_DOUBLE_EQ(stream.records[0].time, 12.000034);
   EXPECT_EQ(stream.records[0].transmitter_from_receiver.translation.z(), 0.3);
   EXPECT_THROW(StreamRecorder(dir, "Tracker0"), std::invalid_argument);
-  EXPECT_THROW(StreamRecorder(dir / "missing", "Tracker0"), std::invalid_argument);
+}
+
+std::string RecorderError(const std::filesystem::path& dir) {
+  try {
+    StreamRecorder rec(dir, "Tracker0");
+  } catch (const std::invalid_argument& e) {
+    return e.what();
+  }
+  return "no error";
+}
+
+// --record DIR makes DIR like mkdir (one level), as `trackcal record -o` makes its own folder; the
+// raw and corrected recorders of one tracker share it, and a recording already in it is kept.
+// (Before: a missing DIR stopped the start with "not a directory".)
+TEST(StreamRecorder, MakesItsFolderOneLevelDeep) {
+  const auto base = testing::MakeTempDir("recorder_mkdir");
+  const auto dir = base / "session1";
+  {
+    StreamRecorder raw(dir, "Tracker0_raw");
+    StreamRecorder corrected(dir, "Tracker0_corrected");
+    raw.Write(0, Rigid3d(), Timestamp{1, 0});
+  }
+  EXPECT_TRUE(std::filesystem::is_directory(dir));
+  EXPECT_EQ(ReadTrackerStream(dir / "Tracker0_raw_tracker_stream.csv").records.size(), 1u);
+  EXPECT_TRUE(std::filesystem::exists(dir / "Tracker0_corrected_tracker_stream.csv"));
+  // A second start into the same folder: the earlier recording is not overwritten.
+  EXPECT_THROW(StreamRecorder(dir, "Tracker0_raw"), std::invalid_argument);
+  EXPECT_EQ(ReadTrackerStream(dir / "Tracker0_raw_tracker_stream.csv").records.size(), 1u);
+
+  // Missing parent: "does not exist", and nothing is made.
+  const std::string deep = RecorderError(base / "nowhere" / "session2");
+  EXPECT_NE(deep.find("does not exist"), std::string::npos) << deep;
+  EXPECT_EQ(deep.find("not a directory"), std::string::npos) << deep;
+  EXPECT_FALSE(std::filesystem::exists(base / "nowhere"));
+  // "not a directory" only for something that exists and is not a folder.
+  std::ofstream(base / "afile") << "x\n";
+  const std::string file = RecorderError(base / "afile");
+  EXPECT_NE(file.find("not a directory"), std::string::npos) << file;
+  EXPECT_EQ(file.find("does not exist"), std::string::npos) << file;
 }
 
 // A file that appears under the final name while recording (another server, a user's copy) is
