@@ -66,7 +66,8 @@ class PoseCorrector {
 
 // Appends reports of one device to <dir>/<device>_tracker_stream.csv. The file is written as
 // "<name>.partial" and renamed when the recorder closes, so a complete file never appears half
-// written; an existing file is never overwritten (the constructor throws).
+// written; an existing file is never overwritten (the constructor throws). A missing <dir> is made
+// (one level, like mkdir).
 class StreamRecorder {
  public:
   StreamRecorder(const std::filesystem::path& dir, const std::string& device_name);
