@@ -344,6 +344,10 @@ def test_validate_and_diagnose_a_stream_capture(sim, tmp_path):
     doc = json.loads(r.stdout)
     assert doc["capture_origin"]["kind"] == "streams"
     assert "speed" in {c["covariate"] for c in doc["covariates"]}
+    # visiting_order repeats time on a stream (the same R^2): tested once, and the document says why.
+    tested = [c["covariate"] for c in doc["covariates"]]
+    assert "visiting_order" not in tested and tested.count("time") == 4, tested
+    assert list(doc["covariates_left_out"]) == ["visiting_order"]
     assert len(doc["stations"]) == doc["capture_origin"]["paired"]
     run_cli("report", streams, "-c", cal, "--permutations", "9", "-o", tmp_path / "report")
     page = (tmp_path / "report" / "report.html").read_text()
@@ -454,6 +458,7 @@ def test_diagnose_text_of_a_stream_says_samples_and_gives_stretches_of_time(sim)
     _, streams, cal = sim
     r = run_cli("diagnose", streams, "-c", cal, "--permutations", "19")
     assert "station" not in r.stdout.lower(), r.stdout
+    assert "visiting_order left out: the same order as time" in r.stdout, r.stdout
     v = validation.validate(captures.load(streams), trackcal.Calibration.load(cal), analyse_covariates=False)
     n_out, n = int(v.extrapolated.sum()), len(v.extrapolated)
     assert n_out > 0  # the stream leaves the calibration grid's box

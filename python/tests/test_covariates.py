@@ -207,6 +207,52 @@ def test_stream_samples_are_tested_along_time_not_as_independent_stations():
     assert any(e.significant and e.covariate == "fast" and e.target == "position_vector" for e in serial)
 
 
+def _moving_receiver(n, time, speed):
+    """A receiver moving along a path, its reports 1 mm off along x: ``n`` samples at ``time``
+    (stream samples when ``speed`` is given, else stations)."""
+    t = np.linspace(0.0, 10.0, n)
+    p = np.column_stack([0.4 * np.sin(t), 0.3 * np.cos(0.7 * t), -0.6 + 0.1 * np.sin(1.3 * t)])
+    q = np.random.default_rng(6).normal(size=(n, 4))  # every orientation covariate varies
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return captures.PoseCapture(path=None, station=np.arange(n), set=np.array(["calib"] * n, dtype=object),
+                                sensor=1 + np.arange(n) % 2, time=np.asarray(time, dtype=float),
+                                reported_positions=p + [1e-3, 0.0, 0.0], reported_quaternions_xyzw=q,
+                                reference_positions=p, reference_quaternions_xyzw=q, extra_columns=[],
+                                extra=np.zeros((n, 0)), speed=speed)
+
+
+def test_visiting_order_of_stream_samples_is_time_and_tested_once():
+    # On a stream, visiting_order is the order of time: the same bins, the same R^2 (0.153 of the
+    # orientation error for both on test_capture_kinds' stream), so the table listed one covariate
+    # twice and the Bonferroni family (alpha over covariates x targets) counted it twice.
+    n = 240
+    time = np.arange(n) / 120.0
+    speed = 0.2 + 0.1 * np.sin(time)
+    stream = _moving_receiver(n, time, speed)
+    covs, _ = validation.covariates_and_labels(stream)
+    assert "time" in covs and "speed" in covs and "visiting_order" not in covs
+    assert set(validation.left_out_covariates(stream)) == {"visiting_order"}
+    # The family: 16 covariates x 4 targets (17 x 4 = 68 with visiting order), as the level says.
+    v = validation.validate(stream, None, covariate_options={"n_permutations": 9})
+    assert {e.covariate for e in v.covariate_effects} == set(covs)
+    assert len(v.covariate_effects) == 4 * 16 == 4 * len(covs)
+    assert "over 64 tests" in v.covariates_note, v.covariates_note
+    assert set(v.covariates_left_out) == {"visiting_order"}
+    # Stations keep it (and have no speed).
+    stations = _moving_receiver(n, time, None)
+    assert "visiting_order" in validation.covariates(stations)
+    assert validation.left_out_covariates(stations) == {}
+    sv = validation.validate(stations, None, covariate_options={"n_permutations": 9})
+    assert "visiting_order" in {e.covariate for e in sv.covariate_effects} and not sv.covariates_left_out
+    # Samples sharing a time (two sensors at one moment): the row order splits them, so it stays.
+    shared = _moving_receiver(n, np.repeat(time[: n // 2], 2), speed)
+    assert "visiting_order" in validation.covariates(shared)
+    # A user's column named visiting_order is the user's, under extra_visiting_order as before.
+    own = dataclasses.replace(stream, extra_columns=["visiting_order"], extra=np.arange(n, dtype=float)[:, None])
+    covs = validation.covariates(own)
+    assert "visiting_order" not in covs and "extra_visiting_order" in covs
+
+
 def test_in_sample_and_held_out_sets_are_not_a_time_trend():
     """After a fit to the calibration set its residuals are in-sample, the validation set's held
     out, and the paper protocol visits the validation stations last: pooled, time and visiting

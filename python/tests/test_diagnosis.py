@@ -432,6 +432,9 @@ def test_diagnose_json_is_one_document_with_everything(tmp_path):
                 "covariate_findings", "candidates", "verdict", "fit", "notes"):
         assert key in doc, key
     assert doc["command"] == "diagnose" and doc["model"] == str(model)
+    # Stations keep visiting_order (only a stream's repeats time): nothing left out.
+    assert doc["covariates_left_out"] == {}
+    assert "visiting_order" in {c["covariate"] for c in doc["covariates"]}
     assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all"]
     assert doc["fit"]["converged"] is True  # the model was fitted (no -c given)
     assert doc["fit"]["parameters"][0]["term"] and doc["fit"]["parameters"][0]["values"]

@@ -514,6 +514,8 @@ def cmd_diagnose(args, term) -> int:
     # Findings that stand on their own first (not explained away by another covariate).
     sig = sorted((e for e in v.covariate_effects if e.significant),
                  key=lambda e: (e.confounded_with is not None, -e.r2))
+    for name, why in v.covariates_left_out.items():  # not a finding: why it is not in the table
+        print(term.c(f"  {name} left out: {why}", "2"))
     if not v.covariates_tested:  # too few stations or permutations: not a clean bill
         print(term.c(f"  not tested: {v.covariates_note}", "33"))
     elif not sig:

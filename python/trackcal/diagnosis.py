@@ -736,6 +736,7 @@ def diagnosis_document(v, *, capture=None, calibration=None, model=None, fit_rep
                         "confounded_with": getattr(e, "confounded_with", None),
                         "levels": getattr(e, "levels", None)} for e in v.covariate_effects],
         "covariate_findings": covariate_findings(v.covariate_effects),
+        "covariates_left_out": dict(getattr(v, "covariates_left_out", {}) or {}),
         "fit": None if fit_report is None else {"tables": [t.to_dict() for t in fit_report.tables],
                                                 "converged": fit_report.converged,
                                                 "chi2_per_dof": fit_report.chi2_per_dof,
