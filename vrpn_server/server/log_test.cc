@@ -131,5 +131,23 @@ TEST(LogToStderr, DropsBeyondItsQueueAndSaysHowMany) {
   EXPECT_EQ(kept + static_cast<std::size_t>(dropped), static_cast<std::size_t>(kLines));
 }
 
+TEST(LogToStderr, ALineLargerThanTheQueueIsCountedAndSaidAtOnce) {
+  // A line over the queue's 1 MiB is dropped when it comes. The count used to wait for the next
+  // line: with none (the last line before exit), the writer slept, FlushStderrLog ran into its
+  // timeout and the count was never written.
+  CapturedStderr err;
+  err.StartDraining();
+  LogToStderr("before");
+  LogToStderr(std::string(std::size_t{2} << 20, 'z'));
+  // Generous against a loaded machine: writing two lines takes microseconds.
+  EXPECT_TRUE(FlushStderrLog(std::chrono::seconds(5)));
+  const std::string text = err.StopDraining();
+  EXPECT_NE(text.find(" trackcal-server: before\n"), std::string::npos) << text.size();
+  EXPECT_NE(text.find(" trackcal-server: 1 log line(s) dropped: stderr was not read fast enough\n"),
+            std::string::npos)
+      << text.size();
+  EXPECT_EQ(text.find('z'), std::string::npos);
+}
+
 }  // namespace
 }  // namespace trackcal::vrpn

@@ -174,11 +174,14 @@ class StderrWriter {
     {
       std::lock_guard<std::mutex> lock(mutex_);
       if (queued_bytes_ + line.size() > kMaxQueuedBytes) {
+        // The writer is woken for the count too: a line larger than the whole queue comes to an
+        // idle writer, and without a line after it its count was never written (and
+        // FlushStderrLog waited for it to its timeout).
         ++dropped_;
-        return;
+      } else {
+        QueueDropNotice();  // where the lines went missing, before the next one
+        Queue(std::move(line));
       }
-      QueueDropNotice();  // where the lines went missing, before the next one
-      Queue(std::move(line));
     }
     wake_.notify_one();
   }
