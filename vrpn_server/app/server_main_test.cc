@@ -1,5 +1,6 @@
 // trackcal-server as a process: vrpn.cfg in, VRPN out, signals.
 #include <arpa/inet.h>
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/socket.h>
@@ -493,6 +494,72 @@ TEST(TrackcalServerMain, PrintsTheFilesBytesEscaped) {
   EXPECT_NE(err.find("5\\x1b[2J\\xff"), std::string::npos) << err;
   EXPECT_EQ(err.find('\x1b'), std::string::npos) << err;
   EXPECT_EQ(err.find('\xff'), std::string::npos) << err;
+}
+
+// A stderr nobody reads (a full pipe) must not keep a stopping server from exiting. The warning
+// that a recording could not be published (its final name taken while recording) was written to
+// std::cerr directly, bypassing LogToStderr's queue: with the pipe full it blocked the main thread
+// in app.Stop() for ever, SIGKILL was needed and the recorders after it were never published.
+TEST(TrackcalServerMain, AnUnreadStderrDoesNotHoldTheStopOfARecordingServer) {
+  const auto dir = testing::MakeTempDir("server_main_unread");
+  const auto rec = dir / "rec";
+  std::filesystem::create_directory(rec);
+  std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 60.0\n";
+  int fds[2];
+  ASSERT_EQ(::pipe2(fds, O_CLOEXEC), 0);
+  // Filled before the server starts: every line it writes to stderr would block.
+  ASSERT_EQ(::fcntl(fds[1], F_SETFL, O_NONBLOCK), 0);
+  const std::string filler(4096, '.');
+  while (::write(fds[1], filler.data(), filler.size()) > 0) {
+  }
+  ASSERT_EQ(::fcntl(fds[1], F_SETFL, 0), 0);
+  const std::vector<std::string> args = {ServerBinary(),
+                                         "-f",
+                                         (dir / "vrpn.cfg").string(),
+                                         std::to_string(FreePort()),
+                                         "--bind",
+                                         "127.0.0.1",
+                                         "--record",
+                                         rec.string()};
+  const pid_t pid = ::fork();
+  if (pid == 0) {
+    ::dup2(fds[1], 2);
+    std::vector<char*> argv;
+    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+    argv.push_back(nullptr);
+    ::execv(argv[0], argv.data());
+    std::_Exit(127);
+  }
+  ::close(fds[1]);
+  const auto raw = rec / "Tracker0_raw_tracker_stream.csv";
+  const auto corrected = rec / "Tracker0_corrected_tracker_stream.csv";
+  auto partial = [](std::filesystem::path p) { return p += ".partial"; };
+  const auto started = Clock::now() + std::chrono::seconds(15);
+  while (Clock::now() < started &&
+         !(std::filesystem::exists(partial(raw)) && std::filesystem::exists(partial(corrected)))) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  ASSERT_TRUE(std::filesystem::exists(partial(corrected)));
+  std::ofstream(raw) << "someone else's file\n";  // the raw recording cannot take its name
+  ::kill(pid, SIGTERM);
+  // The server waits at most 2 s for its queued lines (kLogFlushTimeout); generous beyond that.
+  int status = 0;
+  pid_t done = 0;
+  const auto end = Clock::now() + std::chrono::seconds(20);
+  while (Clock::now() < end && (done = ::waitpid(pid, &status, WNOHANG)) == 0) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  if (done == 0) {
+    ::kill(pid, SIGKILL);
+    ::waitpid(pid, &status, 0);
+  }
+  ::close(fds[0]);
+  EXPECT_EQ(done, pid) << "trackcal-server did not stop while its stderr was not read";
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+  // The raw recording stays in its .partial file; the corrected one is published.
+  EXPECT_TRUE(std::filesystem::exists(partial(raw)));
+  EXPECT_TRUE(std::filesystem::exists(corrected));
+  EXPECT_FALSE(std::filesystem::exists(partial(corrected)));
 }
 
 TEST(TrackcalServerMain, BadArgumentsAndBusyPortFail) {

@@ -8,7 +8,6 @@
 #include <chrono>
 #include <cstring>
 #include <iomanip>
-#include <iostream>
 #include <stdexcept>
 #include <system_error>
 
@@ -94,8 +93,10 @@ void StreamRecorder::Close() {
     }
   }
   if (!failure.empty()) {
-    std::cerr << "trackcal-server: recording kept as " << partial_path_.string()
-              << ", not moved to " << final_path_.string() << ": " << failure << "\n";
+    // Through the log's queue, after the lines before it ("stopping"): a direct write to a stderr
+    // nobody reads blocked the stopping server for ever, before the other recorders were closed.
+    LogToStderr("recording kept as " + partial_path_.string() + ", not moved to " +
+                final_path_.string() + ": " + failure);
   }
 }
 
