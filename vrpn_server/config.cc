@@ -70,12 +70,32 @@ std::string UnaddressableName(const std::string& name) {
            "' contains '@' (clients address a device as Name@host and "
            "read the name up to the first '@')";
   }
-  if (PrintableForLog(name) != name) {
-    return "device name '" + name +
-           "' contains a control character or a byte that is not UTF-8 "
-           "(a name must be printable UTF-8)";
+  for (size_t i = 0; i < name.size(); ++i) {
+    const auto c = static_cast<unsigned char>(name[i]);
+    const bool c1 = c == 0xc2 && i + 1 < name.size() &&
+                    static_cast<unsigned char>(name[i + 1]) >= 0x80 &&
+                    static_cast<unsigned char>(name[i + 1]) <= 0x9f;  // U+0080-U+009F in UTF-8
+    if (c < 0x20 || c == 0x7f || c1) {
+      return "device name '" + name +
+             "' contains a control character (a name must be printable; control bytes reach "
+             "clients' logs and terminals)";
+    }
   }
   return "";
+}
+
+// A warning for a device name that is not UTF-8 (empty if it is). The reference serves any bytes,
+// and a lab's vrpn.cfg saved as Latin-1 ("Ger\xe4t") worked with it and with clients that send
+// those same bytes: served as it is, but a client typing the name in UTF-8 (C#, Python, a UTF-8
+// terminal) sends other bytes and is not served.
+std::string NonUtf8NameWarning(const std::string& name, std::string_view field) {
+  const size_t bad = FirstNonUtf8Byte(name);
+  if (bad == std::string::npos) return "";
+  return "field '" + std::string(field) + "': device name '" + name + "' is not UTF-8 (byte " +
+         PrintableForLog(name.substr(bad, 1)) + " at character " + std::to_string(bad + 1) +
+         "; the file was saved in another encoding, e.g. Latin-1?): served under these bytes, "
+         "which a client must send exactly; save vrpn.cfg as UTF-8 so that clients typing the "
+         "name reach it";
 }
 
 int ParseInt(const std::string& token, const ConfigLocation& where, std::string_view field) {
@@ -244,6 +264,9 @@ class Parser {
   void RegisterName(const std::string& name, const ConfigLocation& where, std::string_view field,
                     std::string_view hint = {}) {
     if (const std::string why = UnaddressableName(name); !why.empty()) Fail(where, field, why);
+    if (std::string warning = NonUtf8NameWarning(name, field); !warning.empty()) {
+      config_.warnings.push_back({where, std::move(warning)});
+    }
     const auto [it, inserted] = names_.emplace(name, NameUse{where, std::nullopt});
     if (!inserted) {
       Fail(where, field,
@@ -490,6 +513,9 @@ class Parser {
     if (spec.source_device.empty()) Fail(where, "source", "missing device name in '" + spec.source + "'");
     if (const std::string why = UnaddressableName(spec.source_device); !why.empty()) {
       Fail(where, "source", why);
+    }
+    if (std::string warning = NonUtf8NameWarning(spec.source_device, "source"); !warning.empty()) {
+      config_.warnings.push_back({where, std::move(warning)});
     }
     if (at == std::string_view::npos) {
       if (!star) {

@@ -14,10 +14,10 @@
 // Differences from the reference parser: trailing spaces/tabs and CRLF line ends do not end a
 // continuation, comment lines inside a continuation block are skipped, an unknown device line is a
 // warning (with its continuation lines skipped) instead of a fatal error.
-// Device names must be 1-95 bytes of printable UTF-8 without '@' (what a client can address as
-// Name@host). Errors throw std::invalid_argument "file:line: field 'x': what". Errors and warnings
-// quote the file with control characters and bytes that are not UTF-8 written as \xNN
-// (PrintableForLog).
+// Device names must be 1-95 printable bytes without '@' (what a client can address as Name@host);
+// one that is not UTF-8 is served with a warning (a client must send its bytes). Errors throw
+// std::invalid_argument "file:line: field 'x': what". Errors and warnings quote the file with
+// control characters and bytes that are not UTF-8 written as \xNN (PrintableForLog).
 
 #pragma once
 

@@ -277,7 +277,7 @@ TEST(ParseVrpnConfig, NamesAClientCannotAddressAreErrors) {
   // (the reference reads the name up to the first '@'): a name with '@', a control character or a
   // byte that is not UTF-8 was accepted and served under a name no client could type, and the
   // control bytes reached client logs. Each is an error naming file, line and field.
-  const std::string control = "contains a control character or a byte that is not UTF-8";
+  const std::string control = "contains a control character";
   const std::string at = "contains '@'";
   const struct {
     std::string text;
@@ -285,8 +285,6 @@ TEST(ParseVrpnConfig, NamesAClientCannotAddressAreErrors) {
   } cases[] = {
       {"vrpn_Tracker_NULL T\x1b[2J 1 60\n",
        "lab.cfg:1: field 'name': device name 'T\\x1b[2J' " + control},
-      {"vrpn_Tracker_NULL T\xff 1 60\n",
-       "lab.cfg:1: field 'name': device name 'T\\xff' " + control},
       {"vrpn_Tracker_NULL T\xc2\x9b 1 60\n",
        "lab.cfg:1: field 'name': device name 'T\\xc2\\x9b' " + control},
       {"vrpn_Tracker_NULL T\x01 1 60\n",
@@ -317,6 +315,31 @@ TEST(ParseVrpnConfig, NamesAClientCannotAddressAreErrors) {
   ASSERT_EQ(config.null_trackers.size(), 2u);
   EXPECT_EQ(config.null_trackers[0].name, "Ger\xc3\xa4t_0");
   EXPECT_EQ(config.null_trackers[1].name, "Tracker-1.left/[x]:*#!");
+  EXPECT_TRUE(config.warnings.empty());
+}
+
+TEST(ParseVrpnConfig, ANameThatIsNotUtf8IsServedWithAWarning) {
+  // A lab's vrpn.cfg saved as Latin-1 worked with the reference (any bytes are a name) and with
+  // clients sending those bytes: it is served as it is, with a warning saying what a client must
+  // send and how to make the name typeable, naming file, line and field.
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_NULL Ger\xe4t 1 60\n"
+      "trackcal_Tracker_Passthrough P Ger\xe4t2@lab-pc\n",
+      "lab.cfg");
+  ASSERT_EQ(config.null_trackers.size(), 1u);
+  EXPECT_EQ(config.null_trackers[0].name, "Ger\xe4t");
+  ASSERT_EQ(config.warnings.size(), 2u);
+  EXPECT_EQ(
+      config.warnings[0].ToString().rfind(
+          "lab.cfg:1: warning: field 'name': device name 'Ger\\xe4t' is not UTF-8 (byte \\xe4 at "
+          "character 4;",
+          0),
+      0u)
+      << config.warnings[0].ToString();
+  EXPECT_NE(config.warnings[0].ToString().find("save vrpn.cfg as UTF-8"), std::string::npos);
+  EXPECT_EQ(
+      config.warnings[1].ToString().rfind("lab.cfg:2: warning: field 'source': device name", 0), 0u)
+      << config.warnings[1].ToString();
 }
 
 TEST(ParseVrpnConfig, AnUnknownTrackcalLineIsAnError) {

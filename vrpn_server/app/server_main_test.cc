@@ -482,8 +482,8 @@ TEST(TrackcalServerMain, PrintsTheFilesBytesEscaped) {
   EXPECT_EQ(bad.Wait(), 1);
   EXPECT_EQ(bad.Stderr(), "trackcal-server: error: " + (dir / "vrpn.cfg").string() +
                               ":1: field 'name': device name 'T\\x1b[2J\\xff' contains a control "
-                              "character or a byte that is not UTF-8 (a name must be printable "
-                              "UTF-8)\n");
+                              "character (a name must be printable; control bytes reach clients' "
+                              "logs and terminals)\n");
 
   std::ofstream(dir / "vrpn.cfg") << "vrpn_Tracker_NULL T 2 60\n"
                                      "trackcal_Calibration T c.json sensor=5\x1b[2J\xff\n";
