@@ -432,9 +432,11 @@ def test_diagnose_json_is_one_document_with_everything(tmp_path):
                 "covariate_findings", "candidates", "verdict", "fit", "notes"):
         assert key in doc, key
     assert doc["command"] == "diagnose" and doc["model"] == str(model)
-    # Stations keep visiting_order (only a stream's repeats time): nothing left out.
-    assert doc["covariates_left_out"] == {}
-    assert "visiting_order" in {c["covariate"] for c in doc["covariates"]}
+    # The simulated stations have distinct times: visiting_order (their rank) repeats time, left out
+    # and said why; time stays.
+    assert list(doc["covariates_left_out"]) == ["visiting_order"]
+    assert "visiting_order" not in {c["covariate"] for c in doc["covariates"]}
+    assert "time" in {c["covariate"] for c in doc["covariates"]}
     assert [t["set_name"] for t in doc["tables"]] == ["calib", "valid", "all"]
     assert doc["fit"]["converged"] is True  # the model was fitted (no -c given)
     assert doc["fit"]["parameters"][0]["term"] and doc["fit"]["parameters"][0]["values"]
