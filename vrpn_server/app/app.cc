@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <filesystem>
 #include <limits>
 #include <set>
 #include <stdexcept>
@@ -264,12 +265,20 @@ TrackcalServerApp::TrackcalServerApp(std::vector<TrackerSetup> trackers, AppOpti
                                     "': " + e.what());
       }
     }
-    if (options_.record_dir) {
-      std::unique_ptr<StreamRecorder> raw =
-          std::make_unique<StreamRecorder>(*options_.record_dir, t.setup.name + "_raw");
-      std::unique_ptr<StreamRecorder> corrected =
-          std::make_unique<StreamRecorder>(*options_.record_dir, t.setup.name + "_corrected");
-      t.device->SetRecorders(std::move(raw), std::move(corrected));
+  }
+  if (options_.record_dir) {
+    // Every recording is checked before the first is created, and after every calibration loaded:
+    // a start refused for the second tracker's recording (or its calibration) left the first
+    // tracker's header-only recordings published, which then refused the next start as existing.
+    const std::filesystem::path& dir = *options_.record_dir;
+    for (const auto& tp : trackers_) {
+      StreamRecorder::CheckNotRecorded(dir, tp->setup.name + "_raw");
+      StreamRecorder::CheckNotRecorded(dir, tp->setup.name + "_corrected");
+    }
+    for (const auto& tp : trackers_) {
+      auto raw = std::make_unique<StreamRecorder>(dir, tp->setup.name + "_raw");
+      auto corrected = std::make_unique<StreamRecorder>(dir, tp->setup.name + "_corrected");
+      tp->device->SetRecorders(std::move(raw), std::move(corrected));
     }
   }
 }

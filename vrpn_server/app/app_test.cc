@@ -154,6 +154,36 @@ TEST(TrackcalServerApp, CorrectedRawAndReload) {
   }
 }
 
+TEST(TrackcalServerApp, ARefusedRecordingCreatesNoOtherRecording) {
+  // The second tracker's corrected recording exists: the start is refused, and the first tracker's
+  // recordings are not created (they were, header-only, and refused the next start as existing).
+  const auto dir = testing::MakeTempDir("app_record_refused");
+  const auto calib = dir / "calib.txt";
+  WriteFile(calib, "0.25 0 0\n");
+  const auto record = dir / "rec";
+  std::filesystem::create_directory(record);
+  WriteFile(record / "Tracker1_corrected_tracker_stream.csv", "time,sensor\n");
+  TrackerSetup second = NullSetup(calib);
+  second.name = "Tracker1";
+  second.raw_name = "Tracker1_raw";
+  AppOptions options = Loopback();
+  options.record_dir = record;
+  try {
+    TrackcalServerApp app({NullSetup(calib), second}, options, LoadOffset,
+                          [](const std::string&) {});
+    ADD_FAILURE() << "no error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("Tracker1_corrected_tracker_stream.csv already exists"),
+              std::string::npos)
+        << e.what();
+  }
+  std::vector<std::string> files;
+  for (const auto& entry : std::filesystem::directory_iterator(record)) {
+    files.push_back(entry.path().filename().string());
+  }
+  EXPECT_EQ(files, std::vector<std::string>{"Tracker1_corrected_tracker_stream.csv"});
+}
+
 TEST(TrackcalServerApp, BadSetupThrowsNamingOrigin) {
   const auto dir = testing::MakeTempDir("app_bad");
   WriteFile(dir / "bad.txt", "x\n");

@@ -34,13 +34,10 @@ StreamRecorder::StreamRecorder(const std::filesystem::path& dir, const std::stri
     }
     throw std::invalid_argument("--record " + dir.string() + ": cannot create: " + ec.message());
   }
+  CheckNotRecorded(dir, device_name);
   final_path_ = dir / (device_name + "_tracker_stream.csv");
   partial_path_ = final_path_;
   partial_path_ += ".partial";
-  if (std::filesystem::exists(final_path_) || std::filesystem::exists(partial_path_)) {
-    throw std::invalid_argument("--record: " + final_path_.string() +
-                                " already exists; recordings are never overwritten");
-  }
   // Created exclusively, so that a second server recording the same device into the same folder
   // (started between the check above and here) cannot truncate this one's recording.
   const int fd = ::open(partial_path_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
@@ -55,6 +52,20 @@ StreamRecorder::StreamRecorder(const std::filesystem::path& dir, const std::stri
   out_.open(partial_path_);
   if (!out_) throw std::runtime_error(partial_path_.string() + ": cannot open for writing");
   out_ << "time,sensor,x,y,z,qw,qx,qy,qz\n" << std::setprecision(17);
+}
+
+void StreamRecorder::CheckNotRecorded(const std::filesystem::path& dir,
+                                      const std::string& device_name) {
+  const std::filesystem::path final_path = dir / (device_name + "_tracker_stream.csv");
+  std::filesystem::path partial_path = final_path;
+  partial_path += ".partial";
+  for (const auto& path : {final_path, partial_path}) {
+    std::error_code ec;
+    if (std::filesystem::exists(std::filesystem::symlink_status(path, ec))) {
+      throw std::invalid_argument("--record: " + path.string() +
+                                  " already exists; recordings are never overwritten");
+    }
+  }
 }
 
 StreamRecorder::~StreamRecorder() { Close(); }

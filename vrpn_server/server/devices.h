@@ -71,6 +71,10 @@ class PoseCorrector {
 class StreamRecorder {
  public:
   StreamRecorder(const std::filesystem::path& dir, const std::string& device_name);
+  // Throws std::invalid_argument if `device_name`'s recording (or its .partial) exists in `dir`,
+  // as the constructor does, without creating anything: a server checks every recording before it
+  // creates the first, so that a refused start leaves no header-only recording behind.
+  static void CheckNotRecorded(const std::filesystem::path& dir, const std::string& device_name);
   ~StreamRecorder();
   void Write(int sensor, const Rigid3d& pose, Timestamp time);
   void Close();
