@@ -507,7 +507,8 @@ class Parser {
     std::string_view s = spec.source;
     const bool star = !s.empty() && s.front() == '*';
     if (star) s.remove_prefix(1);
-    // As VRPN clients read a name: the device is the text before the last '@'.
+    // The text before the last '@' is taken as the device so that a device holding '@' is refused
+    // as such below (VRPN clients read the device up to the first '@' and never reach it).
     const size_t at = s.rfind('@');
     spec.source_device = std::string(s.substr(0, at));
     if (spec.source_device.empty()) Fail(where, "source", "missing device name in '" + spec.source + "'");

@@ -52,9 +52,16 @@ struct Lookup {
 }  // namespace
 
 VrpnName ParseVrpnName(const std::string& name) {
-  const auto at = name.rfind('@');
+  // The device is the text before the first '@', as the reference's vrpn_copy_service_name reads
+  // it: a client of the reference never reaches a device whose name holds '@', nor does this one.
+  const auto at = name.find('@');
   if (at == std::string::npos || at == 0 || at + 1 == name.size()) {
     throw std::invalid_argument("VRPN name '" + name + "': expected Device@host[:port]");
+  }
+  if (name.find('@', at + 1) != std::string::npos) {
+    throw std::invalid_argument("VRPN name '" + name +
+                                "': a second '@' (the device is the text before the first '@', as "
+                                "VRPN clients read it; a device name cannot hold '@')");
   }
   VrpnName n;
   n.device = name.substr(0, at);

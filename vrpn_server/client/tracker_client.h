@@ -31,8 +31,8 @@ struct VrpnName {
   int port = kDefaultPort;
   bool tcp = false;  // direct TCP (name contains "tcp:"); otherwise lob + call-back
 };
-// Parses "Device@connection" (the text before the last '@' is the device). Throws
-// std::invalid_argument naming the string.
+// Parses "Device@connection" (the text before the first '@' is the device, as the reference reads
+// it). Throws std::invalid_argument naming the string.
 VrpnName ParseVrpnName(const std::string& name);
 
 struct TrackerClientOptions {

@@ -99,9 +99,14 @@ TEST(ParseVrpnName, Nominal) {
   n = ParseVrpnName("Tracker0@tcp:h:4001");
   EXPECT_TRUE(n.tcp);
   EXPECT_EQ(n.port, 4001);
-  n = ParseVrpnName("a@b@tcp://h");  // the device is everything before the last '@'
-  EXPECT_EQ(n.device, "a@b");
-  EXPECT_EQ(n.port, kDefaultPort);
+  // The reference reads the device up to the first '@' (vrpn_copy_service_name): "a@b@h" never
+  // reaches a device "a@b" there, and is an error saying why here.
+  try {
+    ParseVrpnName("a@b@tcp://h");
+    ADD_FAILURE() << "no error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("a second '@'"), std::string::npos) << e.what();
+  }
   EXPECT_THROW(ParseVrpnName("Tracker0"), std::invalid_argument);
   EXPECT_THROW(ParseVrpnName("Tracker0@h:99999"), std::invalid_argument);
   // Hosts the lookup would retry for ever: a blank, a second port, IPv6.
