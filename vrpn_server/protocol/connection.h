@@ -109,6 +109,10 @@ class Connection {
 
   std::vector<std::uint8_t>& tcp_output() { return tcp_output_; }
   bool handshake_done() const { return parser_.cookie_received(); }
+  // TCP bytes received of a message whose rest has not arrived yet, and whole TCP messages
+  // received so far: together they tell a peer that stopped halfway through a message.
+  std::size_t incomplete_tcp_bytes() const { return parser_.buffered(); }
+  std::uint64_t tcp_messages_received() const { return parser_.messages(); }
   // Host and port from the peer's UDP description, if it sent one.
   const std::optional<std::pair<std::string, int>>& peer_udp() const { return peer_udp_; }
   const NameRegistry& local_names() const { return *local_names_; }

@@ -47,6 +47,7 @@ MessageStreamParser::Status MessageStreamParser::Feed(std::span<const std::uint8
     m.header = DecodeHeader(p);
     m.payload = std::span<const std::uint8_t>(p + kHeaderSize, length - kHeaderSize);
     start_ += wire;
+    ++messages_;
     on_message(m);
   }
   if (status_ != Status::kOk) {

@@ -50,6 +50,9 @@ class MessageStreamParser {
   Status status() const { return status_; }
   // Bytes held waiting for the rest of a message.
   std::size_t buffered() const { return buffer_.size() - start_; }
+  // Whole messages parsed so far (the owner can tell a stream that moves on from one stuck in the
+  // middle of a message).
+  std::uint64_t messages() const { return messages_; }
   std::string ErrorText() const;
 
  private:
@@ -60,6 +63,7 @@ class MessageStreamParser {
   char peer_log_mode_ = '0';
   Status status_ = Status::kOk;
   std::uint32_t bad_length_ = 0;
+  std::uint64_t messages_ = 0;
 };
 
 // Parses one UDP datagram holding whole messages. Returns false (after delivering the messages
