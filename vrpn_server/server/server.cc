@@ -2,16 +2,19 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
+#include <linux/sockios.h>
 #include <netinet/tcp.h>
 #include <pthread.h>
 #include <sched.h>
 #include <sys/epoll.h>
 #include <sys/eventfd.h>
+#include <sys/ioctl.h>
 #include <sys/socket.h>
 #include <sys/uio.h>
 #include <time.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <condition_variable>
@@ -19,6 +22,7 @@
 #include <cstring>
 #include <ctime>
 #include <deque>
+#include <functional>
 #include <iostream>
 #include <map>
 #include <set>
@@ -40,6 +44,80 @@ std::uint64_t Tag(std::uint64_t id, Kind kind) { return (id << 3) | kind; }
 // After accept() failed for lack of resources (no free file descriptor), how long the listener
 // stays out of the epoll set unless a connection closes first.
 constexpr auto kAcceptRetry = std::chrono::milliseconds(250);
+
+Clock::duration Seconds(double s) {
+  return std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(s));
+}
+
+// `t + d`, or time_point::max() for a timer that is not running (t == max()).
+Clock::time_point After(Clock::time_point t, Clock::duration d) {
+  return t == Clock::time_point::max() ? t : t + d;
+}
+
+// How long the kernel has sent none of the bytes queued on `fd` for the client, or zero when none
+// wait there. Bytes the client does not read fill its receive window and then wait in our kernel:
+// with a small receive buffer, or little published, output never waits in the server's own
+// buffer, and only the kernel knows the client stopped reading. Zero-window probes carry no data,
+// so the time since the last data segment left is how long the client has taken nothing.
+Clock::duration KernelSendStall(int fd) {
+  int queued = 0;
+  if (::ioctl(fd, SIOCOUTQ, &queued) != 0 || queued <= 0) return Clock::duration::zero();
+  tcp_info info{};
+  socklen_t len = sizeof(info);
+  if (::getsockopt(fd, IPPROTO_TCP, TCP_INFO, &info, &len) != 0) return Clock::duration::zero();
+  return std::chrono::milliseconds(info.tcpi_last_data_sent);
+}
+
+// Caps one kind of log line at kLinesPerWindow per window: further lines are counted, and the
+// count is logged once the window has ended (the network thread wakes for it), so a flood cannot
+// fill the log and still shows in it.
+class LineLimiter {
+ public:
+  static constexpr int kLinesPerWindow = 100;
+  using Sink = std::function<void(const std::string&)>;
+
+  // `what`: the lines, for the notice when the cap is reached ("refusals"); `unlogged`: what the
+  // count of left-out lines counts.
+  LineLimiter(std::string what, std::string unlogged)
+      : what_(std::move(what)), unlogged_what_(std::move(unlogged)) {}
+
+  // Whether a line may be logged now; the first line left out in a window logs a notice.
+  bool Allow(Clock::time_point now, double window_s, const Sink& log) {
+    Report(now, window_s, log);
+    if (logged_ < kLinesPerWindow) {
+      ++logged_;
+      return true;
+    }
+    if (unlogged_++ == 0) {
+      std::ostringstream window;
+      window << window_s;
+      log(std::to_string(kLinesPerWindow) + " " + what_ + " logged in " + window.str() +
+          " s: until the period ends, further ones are counted, not logged");
+    }
+    return false;
+  }
+
+  // If the window has ended: logs how many lines it left out, and starts a new one.
+  void Report(Clock::time_point now, double window_s, const Sink& log) {
+    if (now - window_start_ < Seconds(window_s)) return;
+    if (unlogged_ > 0) log(std::to_string(unlogged_) + " " + unlogged_what_ + " were not logged");
+    window_start_ = now;
+    logged_ = 0;
+    unlogged_ = 0;
+  }
+
+  // When Report has a count to log; max() when it has none.
+  Clock::time_point report_due(double window_s) const {
+    return unlogged_ > 0 ? window_start_ + Seconds(window_s) : Clock::time_point::max();
+  }
+
+ private:
+  std::string what_;
+  std::string unlogged_what_;
+  Clock::time_point window_start_;
+  int logged_ = 0;
+  std::uint64_t unlogged_ = 0;
+};
 
 // Only an address of one of this host's interfaces (or loopback) can be bound.
 bool IsAddressOfThisHost(in_addr address) {
@@ -72,6 +150,16 @@ void ServerOptions::Check() const {
   }
   if (!(handshake_timeout_s > 0)) {
     throw std::invalid_argument("ServerOptions.handshake_timeout_s: must be > 0");
+  }
+  if (!(incomplete_message_timeout_s > 0 && incomplete_message_timeout_s <= 86400)) {
+    throw std::invalid_argument(
+        "ServerOptions.incomplete_message_timeout_s: must be in (0, 86400]");
+  }
+  if (!(unread_output_timeout_s > 0 && unread_output_timeout_s <= 86400)) {
+    throw std::invalid_argument("ServerOptions.unread_output_timeout_s: must be in (0, 86400]");
+  }
+  if (!(min_stall_to_evict_s >= 0 && min_stall_to_evict_s <= 86400)) {
+    throw std::invalid_argument("ServerOptions.min_stall_to_evict_s: must be in [0, 86400]");
   }
   if (!(refusal_log_window_s > 0 && refusal_log_window_s <= 86400)) {
     throw std::invalid_argument("ServerOptions.refusal_log_window_s: must be in (0, 86400]");
@@ -106,7 +194,14 @@ struct VrpnServer::Endpoint {
   std::unique_ptr<ServerSession> session;
   std::size_t out_offset = 0;
   bool want_write = false;
-  Clock::time_point deadline;
+  Clock::time_point opened;    // accepted, or call-back started
+  Clock::time_point deadline;  // for the handshake; max() once it is done
+  // Since when the client's current message has waited for its rest (max(): none waits), and the
+  // count of whole messages when it was last looked at (a new one means the stream moved on).
+  Clock::time_point incomplete_since = Clock::time_point::max();
+  std::uint64_t messages_seen = 0;
+  // Since when output has waited with the client taking none of it (max(): none waits).
+  Clock::time_point unread_since = Clock::time_point::max();
   std::optional<sockaddr_in> udp_peer;
   // An unusable UDP description was logged (once: the check runs after every read).
   bool udp_description_logged = false;
@@ -126,10 +221,12 @@ struct VrpnServer::Impl {
   std::vector<Event> work;
   std::vector<std::vector<std::int32_t>> button_states;
   std::vector<std::uint8_t> encoded;
-  // Refusal lines logged and not logged in the current window (RefusalLogAllowed).
-  Clock::time_point refusal_window_start;
-  int refusals_logged = 0;
-  int refusals_unlogged = 0;
+  LineLimiter refusal_lines{"refusals", "refused or ignored connections, datagrams or call-backs"};
+  LineLimiter connection_lines{"connection lines",
+                               "connection lines (connected, closed, a client's faults)"};
+  // A device thread started a timer the sleeping network thread does not know of (Kick wakes it).
+  bool timers_changed = false;
+  Clock::time_point loop_wake = Clock::time_point::max();  // when the network thread next wakes
   // accept() failed (out of file descriptors): the queued connection keeps the listener readable,
   // so it leaves the epoll set until a connection closes or accept_retry passes.
   bool accept_paused = false;
@@ -367,6 +464,12 @@ void VrpnServer::Kick(bool queue_was_empty) {
     std::unique_lock<std::mutex> net(impl_->net_mutex, std::try_to_lock);
     if (net.owns_lock() && running_) {
       DrainEvents();
+      // A client that stopped taking its output started a timer: the network thread may be
+      // asleep with no deadline, or a later one.
+      if (impl_->timers_changed) {
+        impl_->timers_changed = false;
+        if (NextWakeUp() < impl_->loop_wake) WakeLoop();
+      }
       return;
     }
   }
@@ -468,16 +571,17 @@ void VrpnServer::Run() {
   }
   epoll_event events[64];
   while (running_) {
-    // Block indefinitely unless a handshake deadline is pending: no periodic wake-ups when idle.
+    // Block indefinitely unless a deadline is pending: no periodic wake-ups when idle.
     int timeout_ms = -1;
+    Clock::time_point wake;
     {
       std::lock_guard<std::mutex> net(impl_->net_mutex);
-      if (impl_->accept_paused) timeout_ms = static_cast<int>(kAcceptRetry.count());
-      for (const auto& [id, e] : impl_->endpoints) {
-        if (e->connecting || !e->session || !e->session->connection().handshake_done()) {
-          timeout_ms = 250;
-          break;
-        }
+      impl_->timers_changed = false;
+      wake = NextWakeUp();
+      impl_->loop_wake = wake;
+      if (wake != Clock::time_point::max()) {
+        const auto ms = std::chrono::ceil<std::chrono::milliseconds>(wake - Clock::now()).count();
+        timeout_ms = static_cast<int>(std::clamp<std::int64_t>(ms, 0, 3600 * 1000));
       }
     }
     const int n = ::epoll_wait(epoll_fd_, events, 64, timeout_ms);
@@ -511,8 +615,39 @@ void VrpnServer::Run() {
           break;
       }
     }
-    if (timeout_ms >= 0) CheckDeadlines();
+    if (Clock::now() >= wake) {
+      CheckDeadlines();
+      ReportSuppressedLines();
+    }
     if (impl_->accept_paused && Clock::now() >= impl_->accept_retry) SetAccepting(true);
+  }
+}
+
+Clock::time_point VrpnServer::NextWakeUp() const {
+  Clock::time_point due = Clock::time_point::max();
+  if (impl_->accept_paused) due = impl_->accept_retry;
+  const auto incomplete = Seconds(options_.incomplete_message_timeout_s);
+  const auto unread = Seconds(options_.unread_output_timeout_s);
+  for (const auto& [id, e] : impl_->endpoints) {
+    due = std::min(
+        {due, e->deadline, After(e->incomplete_since, incomplete), After(e->unread_since, unread)});
+  }
+  return std::min({due, impl_->refusal_lines.report_due(options_.refusal_log_window_s),
+                   impl_->connection_lines.report_due(options_.refusal_log_window_s)});
+}
+
+void VrpnServer::WakeLoop() {
+  const std::uint64_t one = 1;
+  [[maybe_unused]] auto n = ::write(event_fd_, &one, sizeof(one));
+}
+
+void VrpnServer::ReportSuppressedLines() {
+  const auto now = Clock::now();
+  const auto log = [this](const std::string& line) { Log(line); };
+  for (LineLimiter* limiter : {&impl_->refusal_lines, &impl_->connection_lines}) {
+    if (limiter->report_due(options_.refusal_log_window_s) <= now) {
+      limiter->Report(now, options_.refusal_log_window_s, log);
+    }
   }
 }
 
@@ -573,8 +708,8 @@ void VrpnServer::HandleAccept() {
     e->fd = std::move(conn);
     e->peer = peer;
     e->label = "tcp client " + FormatEndpoint(peer);
-    e->deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
-                                     std::chrono::duration<double>(options_.handshake_timeout_s));
+    e->opened = Clock::now();
+    e->deadline = e->opened + Seconds(options_.handshake_timeout_s);
     epoll_event ev{};
     ev.events = EPOLLIN | EPOLLRDHUP;
     ev.data.u64 = Tag(e->id, kEndpointTcp);
@@ -652,8 +787,8 @@ void VrpnServer::HandleLob() {
     e->connecting = true;
     e->callback_key = key;
     e->label = "lob client " + FormatEndpoint(dst);
-    e->deadline = Clock::now() + std::chrono::duration_cast<Clock::duration>(
-                                     std::chrono::duration<double>(options_.handshake_timeout_s));
+    e->opened = Clock::now();
+    e->deadline = e->opened + Seconds(options_.handshake_timeout_s);
     epoll_event ev{};
     ev.events = EPOLLOUT | EPOLLRDHUP;
     ev.data.u64 = Tag(e->id, kEndpointTcp);
@@ -693,7 +828,10 @@ void VrpnServer::StartSession(Endpoint& e) {
   }
   e.session = std::make_unique<ServerSession>(
       catalog_, Connection::Options{.max_message_length = options_.max_message_length}, e.label,
-      [this](const std::string& line) { Log(line); }, options_.max_output_bytes);
+      [this](const std::string& line) {
+        if (ConnectionLogAllowed()) Log(line);
+      },
+      options_.max_output_bytes);
   std::optional<std::pair<std::string, int>> our_udp;
   if (e.udp_fd.valid()) {
     sockaddr_in ua{};
@@ -702,7 +840,7 @@ void VrpnServer::StartSession(Endpoint& e) {
     our_udp = std::make_pair(FormatIpv4(ua.sin_addr), static_cast<int>(ntohs(ua.sin_port)));
   }
   e.session->Start(our_udp, impl_->button_states);
-  Log("connected " + e.label);
+  if (ConnectionLogAllowed()) Log("connected " + e.label);
   UpdateInterest(e);
   Flush(e);
 }
@@ -749,7 +887,7 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
       // Every lob datagram naming a closed port ends here: these lines count toward the cap on
       // lob refusals, or any host could flood the log at the rate it sends datagrams.
       Close(id, "call-back connect failed: " + ErrnoText(err ? err : ECONNREFUSED),
-            RefusalLogAllowed());
+            LineKind::kRefusal);
       return;
     }
     if (events & EPOLLOUT) OnConnected(e);
@@ -788,11 +926,23 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
           e.udp_peer = MakeSockaddr(*ip, port);
         } else if (!e.udp_description_logged) {
           e.udp_description_logged = true;
-          Log(e.label + ": ignoring UDP description for " + host + " (not the client's address)");
+          if (ConnectionLogAllowed()) {
+            Log(e.label + ": ignoring UDP description for " + host + " (not the client's address)");
+          }
         }
       }
       if (static_cast<std::size_t>(n) < sizeof(buf)) break;
     }
+    // A message whose rest has not come starts (or, after whole messages, restarts) the clock of
+    // incomplete_message_timeout_s.
+    const Connection& c = e.session->connection();
+    if (!c.handshake_done() || c.incomplete_tcp_bytes() == 0) {
+      e.incomplete_since = Clock::time_point::max();
+    } else if (e.incomplete_since == Clock::time_point::max() ||
+               c.tcp_messages_received() != e.messages_seen) {
+      e.incomplete_since = Clock::now();
+    }
+    e.messages_seen = c.tcp_messages_received();
     Flush(e);
     if (impl_->endpoints.count(id) == 0) return;
   } else if (events & (EPOLLERR | EPOLLHUP | EPOLLRDHUP)) {
@@ -805,6 +955,7 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
 void VrpnServer::Flush(Endpoint& e) {
   if (e.connecting || !e.session) return;
   auto& out = e.session->connection().tcp_output();
+  bool progress = false;
   while (e.out_offset < out.size()) {
     const ssize_t n = ::send(e.fd.get(), out.data() + e.out_offset, out.size() - e.out_offset,
                              MSG_NOSIGNAL | MSG_DONTWAIT);
@@ -815,8 +966,16 @@ void VrpnServer::Flush(Endpoint& e) {
       return;
     }
     e.out_offset += static_cast<std::size_t>(n);
+    progress = progress || n > 0;
   }
   const std::size_t pending = out.size() - e.out_offset;
+  // Output the client takes none of starts the clock of unread_output_timeout_s.
+  if (pending == 0) {
+    e.unread_since = Clock::time_point::max();
+  } else if (progress || e.unread_since == Clock::time_point::max()) {
+    if (e.unread_since == Clock::time_point::max()) impl_->timers_changed = true;
+    e.unread_since = Clock::now();
+  }
   if (pending == 0) {
     out.clear();
     e.out_offset = 0;
@@ -840,49 +999,75 @@ void VrpnServer::Flush(Endpoint& e) {
 }
 
 bool VrpnServer::RefusalLogAllowed() {
-  constexpr int kLinesPerWindow = 100;
-  const auto now = Clock::now();
-  if (now - impl_->refusal_window_start >=
-      std::chrono::duration<double>(options_.refusal_log_window_s)) {
-    if (impl_->refusals_unlogged > 0) {
-      Log(std::to_string(impl_->refusals_unlogged) +
-          " refused or ignored connections, datagrams or call-backs were not logged");
-    }
-    impl_->refusal_window_start = now;
-    impl_->refusals_logged = 0;
-    impl_->refusals_unlogged = 0;
-  }
-  if (impl_->refusals_logged < kLinesPerWindow) {
-    ++impl_->refusals_logged;
-    return true;
-  }
-  if (impl_->refusals_unlogged++ == 0) {
-    std::ostringstream window;
-    window << options_.refusal_log_window_s;
-    Log(std::to_string(kLinesPerWindow) + " refusals logged in " + window.str() +
-        " s: until the period ends, further ones are counted, not logged");
-  }
-  return false;
+  const bool allowed = impl_->refusal_lines.Allow(Clock::now(), options_.refusal_log_window_s,
+                                                  [this](const std::string& line) { Log(line); });
+  if (!allowed) impl_->timers_changed = true;  // the count is to be logged when the window ends
+  return allowed;
+}
+
+bool VrpnServer::ConnectionLogAllowed() {
+  const bool allowed = impl_->connection_lines.Allow(
+      Clock::now(), options_.refusal_log_window_s, [this](const std::string& line) { Log(line); });
+  if (!allowed) impl_->timers_changed = true;
+  return allowed;
 }
 
 bool VrpnServer::RoomForNewClient() {
   if (static_cast<int>(impl_->endpoints.size()) < options_.max_clients) return true;
-  const Endpoint* oldest = nullptr;
+  // The connection stalled longest: waiting for its handshake since it opened, or, served, stuck
+  // halfway through a message or not taking its output (waiting in our buffer or in the kernel's)
+  // for at least min_stall_to_evict_s. Runs only with the table full: a system call per client.
+  const auto now = Clock::now();
+  const Endpoint* victim = nullptr;
+  Clock::time_point victim_since = Clock::time_point::max();
   for (const auto& [id, e] : impl_->endpoints) {
-    if (e->deadline != Clock::time_point::max() && (!oldest || e->deadline < oldest->deadline)) {
-      oldest = e.get();
+    Clock::time_point since;
+    if (e->deadline != Clock::time_point::max()) {
+      since = e->opened;
+    } else {
+      const Clock::duration kernel_stall = KernelSendStall(e->fd.get());
+      since = std::min(
+          {e->incomplete_since, e->unread_since,
+           kernel_stall > Clock::duration::zero() ? now - kernel_stall : Clock::time_point::max()});
+      if (since == Clock::time_point::max() ||
+          now - since < Seconds(options_.min_stall_to_evict_s)) {
+        continue;
+      }
+    }
+    if (since < victim_since) {
+      victim = e.get();
+      victim_since = since;
     }
   }
-  if (!oldest) return false;
-  const bool log = RefusalLogAllowed();
-  Close(oldest->id,
-        "handshake not done while the client limit was reached: made room for a new client", log);
+  if (!victim) return false;
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    ++stats_.evicted;
+  }
+  std::string why;
+  if (victim->deadline != Clock::time_point::max()) {
+    why = "handshake not done";
+  } else if (victim->incomplete_since == victim_since) {
+    why = "part of a message received and not the rest";
+  } else {
+    why = "not taking its output";
+  }
+  std::ostringstream stalled;
+  stalled.precision(3);
+  stalled << std::chrono::duration<double>(now - victim_since).count();
+  Close(victim->id,
+        why + " for " + stalled.str() +
+            " s while the client limit was reached: made room for a new client",
+        LineKind::kRefusal);
   return true;
 }
 
-void VrpnServer::Close(std::uint64_t id, const std::string& why, bool log) {
+void VrpnServer::Close(std::uint64_t id, const std::string& why, LineKind kind) {
   auto it = impl_->endpoints.find(id);
   if (it == impl_->endpoints.end()) return;
+  const bool log = kind == LineKind::kConnection ? ConnectionLogAllowed()
+                   : kind == LineKind::kRefusal  ? RefusalLogAllowed()
+                                                 : false;
   if (log) Log("closed " + it->second->label + ": " + why);
   if (!it->second->callback_key.empty()) impl_->callback_keys.erase(it->second->callback_key);
   // Closing the fds removes them from the epoll set.
@@ -894,11 +1079,35 @@ void VrpnServer::Close(std::uint64_t id, const std::string& why, bool log) {
 
 void VrpnServer::CheckDeadlines() {
   const auto now = Clock::now();
-  std::vector<std::uint64_t> expired;
+  const auto incomplete = Seconds(options_.incomplete_message_timeout_s);
+  const auto unread = Seconds(options_.unread_output_timeout_s);
+  std::vector<std::pair<std::uint64_t, std::string>> expired;
+  std::uint64_t protocol = 0;
+  std::uint64_t slow = 0;
   for (const auto& [id, e] : impl_->endpoints) {
-    if (e->deadline < now) expired.push_back(id);
+    std::ostringstream why;
+    if (e->deadline < now) {
+      why << "handshake timed out";
+    } else if (After(e->incomplete_since, incomplete) < now) {
+      ++protocol;
+      why << "sent " << e->session->connection().incomplete_tcp_bytes()
+          << " bytes of a message and not the rest for " << options_.incomplete_message_timeout_s
+          << " s";
+    } else if (After(e->unread_since, unread) < now) {
+      ++slow;
+      why << "took none of the " << e->session->connection().tcp_output().size() - e->out_offset
+          << " bytes waiting for it for " << options_.unread_output_timeout_s << " s: dropped";
+    } else {
+      continue;
+    }
+    expired.emplace_back(id, why.str());
   }
-  for (auto id : expired) Close(id, "handshake timed out");
+  if (protocol + slow > 0) {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    stats_.closed_protocol += protocol;
+    stats_.dropped_slow += slow;
+  }
+  for (const auto& [id, why] : expired) Close(id, why);
 }
 
 void VrpnServer::DrainEvents() {

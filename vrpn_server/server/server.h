@@ -59,9 +59,31 @@ struct ServerOptions {
   // this long [s]: TCP keepalive probes and a limit on unacknowledged data. Without it a lob
   // client, idle on TCP, would keep its slot and its UDP stream for ever. 0 disables.
   double dead_client_timeout_s = 30.0;
+  // A client that has sent part of a message and not the rest for this long is closed [s]: it holds
+  // a slot without being served (and, at 64000 bytes a message, server memory). VRPN peers write
+  // every message whole (the reference's vrpn_noint_block_write loops until all of it is written),
+  // so the rest is already in the client's kernel even while the client program is busy; only a
+  // network that loses the segment and its retransmissions (Linux: 0.2, 0.4, 0.8... s) holds it
+  // up. Counted from the message's first byte, so a client trickling a byte at a time cannot
+  // stretch it.
+  double incomplete_message_timeout_s = 10.0;
+  // A client that takes none of the bytes waiting for it for this long is dropped [s], however
+  // few they are: one that stops reading while little is published would otherwise keep its slot
+  // until max_output_bytes overflows, hours later at a tracker's rate, or never. A client program
+  // busy for a few seconds is not dropped: its kernel keeps taking the stream (128 kB or more of
+  // receive buffer, 10 s or more of a Fastrak's reports over TCP; a lob client's reports go over
+  // UDP and do not wait), and only then does this clock start.
+  double unread_output_timeout_s = 30.0;
+  // With max_clients reached, a new client takes the place of a served connection that has been
+  // stalled (one of the two above) for at least this long [s]. A message in flight completes
+  // within a round trip (under a millisecond on a LAN; a lost segment is sent again after Linux's
+  // 200 ms minimum RTO), and a client that reads leaves no output untaken for a second unless
+  // its kernel's receive buffer is full: a client being served is not taken for a stalled one.
+  double min_stall_to_evict_s = 1.0;
   // Refused or ignored connections, datagrams and call-backs are logged up to 100 lines per window
   // of this length [s]; the rest are counted and the count is logged when the window ends, so
-  // a flood cannot fill the log, and refusals days later are still logged.
+  // a flood cannot fill the log, and refusals days later are still logged. Connection lines
+  // (connected, closed, and what a client did wrong) have a cap of their own, the same way.
   double refusal_log_window_s = 60.0;
   // Real-time (SCHED_FIFO) priority for the network thread, 1..99; 0 keeps the normal scheduler.
   // Keeps client processes on the same host from preempting a fan-out halfway; needs
@@ -79,8 +101,11 @@ struct ServerStats {
   std::uint64_t connections_total = 0;
   std::uint64_t refused = 0;          // allow-list, client limit, bad lob requests, strangers'
                                       // datagrams to a client's data port
-  std::uint64_t dropped_slow = 0;     // closed because the output buffer overflowed
-  std::uint64_t closed_protocol = 0;  // closed for a bad cookie or length field
+  std::uint64_t dropped_slow = 0;     // closed because the output buffer overflowed or the client
+                                      // took none of it for unread_output_timeout_s
+  std::uint64_t closed_protocol = 0;  // closed for a bad cookie or length field, or a message left
+                                      // incomplete for incomplete_message_timeout_s
+  std::uint64_t evicted = 0;          // closed, stalled, to make room for a new client
   std::uint64_t reports_published = 0;
   std::uint64_t udp_send_failures = 0;
 };
@@ -140,13 +165,23 @@ class VrpnServer {
   void Run();
   void HandleAccept();
   // True when a new client fits under max_clients, after closing, if need be, the connection that
-  // has waited longest for its handshake: connections that never complete one (a port scanner,
-  // a flood of idle connects) cannot lock new clients out for the handshake timeout, and a client
-  // that finished its handshake is never closed to make room.
+  // has waited longest for its handshake, or else the one that has been stalled longest (part of
+  // a message sent, or output not taken, for at least min_stall_to_evict_s): connections that are
+  // not being served (a port scanner, a flood of idle connects, clients stuck halfway through a
+  // message or not reading) cannot lock new clients out until their timeouts. A client that
+  // finished its handshake and is not stalled is never closed to make room.
   bool RoomForNewClient();
-  // Whether a refusal may be logged now (ServerOptions::refusal_log_window_s); logs the count of
-  // the previous window's unlogged refusals first.
+  // Whether a refusal may be logged now (ServerOptions::refusal_log_window_s).
   bool RefusalLogAllowed();
+  // Whether a connection line (connected, closed, a client's misbehaviour) may be logged now.
+  bool ConnectionLogAllowed();
+  // Logs the counts of lines the limiters left out in windows that have ended.
+  void ReportSuppressedLines();
+  // When the network thread must next wake: the earliest handshake deadline, stall timeout,
+  // accept retry or report of suppressed lines (time_point::max() for none).
+  std::chrono::steady_clock::time_point NextWakeUp() const;
+  // Wakes the network thread (from a device thread that started a timer it must watch).
+  void WakeLoop();
   // Puts the TCP listener in or out of the epoll set (out while accept() lacks resources).
   void SetAccepting(bool on);
   void DetectDeadClient(int fd);  // options_.dead_client_timeout_s on a client socket
@@ -155,8 +190,9 @@ class VrpnServer {
   void OnConnected(Endpoint& e);
   void StartSession(Endpoint& e);
   void Flush(Endpoint& e);
-  // Logs "closed <client>: why" unless `log` is false.
-  void Close(std::uint64_t id, const std::string& why, bool log = true);
+  enum class LineKind { kConnection, kRefusal, kNone };
+  // Logs "closed <client>: why", within the cap of the lines of `kind` (kNone: not at all).
+  void Close(std::uint64_t id, const std::string& why, LineKind kind = LineKind::kConnection);
   void DrainEvents();
   void CheckDeadlines();
   void UpdateInterest(Endpoint& e);

@@ -34,8 +34,7 @@ bool ServerSession::OnTcpBytes(std::span<const std::uint8_t> bytes) {
         " message(s) with undescribed sender or type ids");
     last_unknown_id_count_ = c.unknown_id;
   }
-  if (!ok) Log("closing: " + connection_.error());
-  return ok;
+  return ok;  // false: the owner closes the connection and logs why (error()), once
 }
 
 void ServerSession::OnDatagram(std::span<const std::uint8_t> datagram) {

@@ -45,7 +45,8 @@ class ServerSession {
   void Start(std::optional<std::pair<std::string, int>> our_udp,
              std::span<const std::vector<std::int32_t>> button_states);
 
-  // Feeds received TCP bytes; replies are appended to connection().tcp_output(). False: close.
+  // Feeds received TCP bytes; replies are appended to connection().tcp_output(). False: close
+  // (error() says why; the owner logs it).
   bool OnTcpBytes(std::span<const std::uint8_t> bytes);
   void OnDatagram(std::span<const std::uint8_t> datagram);
 
