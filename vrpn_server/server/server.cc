@@ -2,13 +2,11 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
-#include <linux/sockios.h>
 #include <netinet/tcp.h>
 #include <pthread.h>
 #include <sched.h>
 #include <sys/epoll.h>
 #include <sys/eventfd.h>
-#include <sys/ioctl.h>
 #include <sys/socket.h>
 #include <sys/uio.h>
 #include <time.h>
@@ -52,20 +50,6 @@ Clock::duration Seconds(double s) {
 // `t + d`, or time_point::max() for a timer that is not running (t == max()).
 Clock::time_point After(Clock::time_point t, Clock::duration d) {
   return t == Clock::time_point::max() ? t : t + d;
-}
-
-// How long the kernel has sent none of the bytes queued on `fd` for the client, or zero when none
-// wait there. Bytes the client does not read fill its receive window and then wait in our kernel:
-// with a small receive buffer, or little published, output never waits in the server's own
-// buffer, and only the kernel knows the client stopped reading. Zero-window probes carry no data,
-// so the time since the last data segment left is how long the client has taken nothing.
-Clock::duration KernelSendStall(int fd) {
-  int queued = 0;
-  if (::ioctl(fd, SIOCOUTQ, &queued) != 0 || queued <= 0) return Clock::duration::zero();
-  tcp_info info{};
-  socklen_t len = sizeof(info);
-  if (::getsockopt(fd, IPPROTO_TCP, TCP_INFO, &info, &len) != 0) return Clock::duration::zero();
-  return std::chrono::milliseconds(info.tcpi_last_data_sent);
 }
 
 // Caps one kind of log line at kLinesPerWindow per window: further lines are counted, and the
@@ -1016,7 +1000,7 @@ bool VrpnServer::RoomForNewClient() {
   if (static_cast<int>(impl_->endpoints.size()) < options_.max_clients) return true;
   // The connection stalled longest: waiting for its handshake since it opened, or, served, stuck
   // halfway through a message or not taking its output (waiting in our buffer or in the kernel's)
-  // for at least min_stall_to_evict_s. Runs only with the table full: a system call per client.
+  // for at least min_stall_to_evict_s. Runs only with the table full.
   const auto now = Clock::now();
   const Endpoint* victim = nullptr;
   Clock::time_point victim_since = Clock::time_point::max();
@@ -1025,10 +1009,10 @@ bool VrpnServer::RoomForNewClient() {
     if (e->deadline != Clock::time_point::max()) {
       since = e->opened;
     } else {
-      const Clock::duration kernel_stall = KernelSendStall(e->fd.get());
-      since = std::min(
-          {e->incomplete_since, e->unread_since,
-           kernel_stall > Clock::duration::zero() ? now - kernel_stall : Clock::time_point::max()});
+      // Not output waiting in the kernel: a client that stopped reading is seen only when output
+      // waits in our buffer (see docs/vrpn.md: the kernel's own measures, the time since the last
+      // data segment left and the bytes queued, did not tell a stalled reader reliably).
+      since = std::min(e->incomplete_since, e->unread_since);
       if (since == Clock::time_point::max() ||
           now - since < Seconds(options_.min_stall_to_evict_s)) {
         continue;

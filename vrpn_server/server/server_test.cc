@@ -246,40 +246,6 @@ TEST(VrpnServerSlots, StalledConnectionsCannotLockNewClientsOut) {
   EXPECT_EQ(server.stats().evicted, 3u);
 }
 
-// A client that does not read, sent less than the kernel buffers hold: nothing waits in the
-// server's own buffer, only in the kernel (its receive window is closed). It kept its slot until
-// the kernel gave up (the TCP user timeout, 30 s) while new clients were refused; it now makes
-// room, and a client that reads (its output taken) is never closed for it.
-TEST(VrpnServerSlots, AClientWhoseOutputWaitsInTheKernelMakesRoom) {
-  ServerOptions options = LoopbackOptions();
-  options.max_clients = 2;
-  options.unread_output_timeout_s = 600.0;  // far beyond the test: only eviction helps
-  options.min_stall_to_evict_s = 0.05;
-  VrpnServer server(MakeCatalog(), options, [](const std::string&) {});
-  server.Start();
-  VrpnTrackerClient good("Tracker0@tcp://127.0.0.1:" + std::to_string(server.port()));
-  int reports = 0;
-  good.SetPoseCallback([&](const TrackerReport&) { ++reports; });
-  ASSERT_TRUE(PollUntil({&good}, [&] { return good.pong_received(); }));
-  const auto deaf = RawConnect(server.port(), /*rcvbuf=*/4096);
-  SendAll(deaf, Cookie());
-  ASSERT_TRUE(PollUntil({&good}, [&] { return server.stats().clients == 2; }));
-  // 100 reports (8.8 kB) overfill the deaf client's 4 kB window, not the kernel's send buffer.
-  for (int i = 0; i < 100; ++i) server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
-  ASSERT_TRUE(PollUntil({&good}, [&] { return reports == 100; }));
-  // Past min_stall_to_evict_s with nothing more published (so nothing more left for anyone).
-  PollUntil(
-      {&good}, [] { return false; }, 0.2);
-  const auto next = RawConnect(server.port());
-  SendAll(next, Cookie());
-  EXPECT_TRUE(ClosedByServer(deaf, 5.0));
-  EXPECT_FALSE(ClosedByServer(next, 0.2));
-  EXPECT_EQ(server.stats().evicted, 1u);
-  server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
-  EXPECT_TRUE(PollUntil({&good}, [&] { return reports == 101; }));
-  EXPECT_TRUE(good.connected());
-}
-
 // Each connection closed for a protocol fault said why twice ("<client>: closing: X", then
 // "closed <client>: X"), and connection lines had no cap: a connect flood wrote tens of thousands
 // of lines. The reason is said once, and connection lines are capped per window like refusals,
