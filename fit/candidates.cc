@@ -832,6 +832,34 @@ bool ScaleSourceStrength(double factor, YAML::Node* term) {
   return false;
 }
 
+}  // namespace
+
+std::string HoldSourceLocation(const std::string& type, const std::string& term_yaml) {
+  std::vector<std::string> held;
+  if (type == "dipole") held = {"location_in_transmitter"};
+  if (type == "plane") held = {"distance_m", "normal_in_transmitter"};
+  if (held.empty()) return term_yaml;
+  YAML::Node term = YAML::Load(term_yaml);
+  // Merged into the term's own settings, not in place of them: a user's catalog term keeps its
+  // fixed blocks, priors and bounds (fit/candidates_test.cc
+  // TheRetryHoldsASourceWhereItWasPlacedAndKeepsTheUsersSettings).
+  YAML::Node parameters(YAML::NodeType::Map);
+  if (term["parameters"] && term["parameters"].IsMap()) parameters = term["parameters"];
+  for (const std::string& block : held) {
+    YAML::Node settings(YAML::NodeType::Map);
+    if (parameters[block] && parameters[block].IsMap()) settings = parameters[block];
+    settings["fixed"] = true;
+    // A `value:` is a start (docs/model-file.md) and would replace the one written in the
+    // mapping: the location is held where the first fit placed it.
+    settings.remove("value");
+    parameters[block] = settings;
+  }
+  term["parameters"] = parameters;
+  return Emit(term);
+}
+
+namespace {
+
 // "+y (0.46, 0.84, 0.28)": a unit vector by its dominant transmitter axis, then its components.
 std::string AxisWords(const Eigen::Vector3d& u) {
   Eigen::Index axis = 0;
@@ -2103,10 +2131,7 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
                       ScaleSourceStrength(kGrowFromFraction, &term) &&
                       AddFittedStart(type, blocks, &term_placed) &&
                       ScaleSourceStrength(kGrowFromFraction, &term_placed);
-            term_placed["parameters"] = YAML::Load(type == "dipole"
-                                                ? "{location_in_transmitter: {fixed: true}}"
-                                                : "{distance_m: {fixed: true}, "
-                                                  "normal_in_transmitter: {fixed: true}}");
+            placed["terms"][at] = YAML::Load(HoldSourceLocation(type, Emit(term_placed)));
             grows = true;
           }
         }

@@ -462,6 +462,14 @@ double PairedGreaterP(const std::vector<double>& a, const std::vector<double>& b
 double PairedDifferencesGreaterP(const std::vector<double>& differences,
                                  const std::vector<int>& block_of = {});
 
+// The first stage of the retry of an added source (a candidate that contains the base and fits
+// its stations worse, fit/candidates.cc): `term_yaml` (a dipole's or plane's mapping with its
+// fitted start written in) with the source's location held where that start puts it (a dipole's
+// location_in_transmitter, a plane's distance_m and normal_in_transmitter: `fixed: true`, any
+// `value:` of theirs dropped). Every other `parameters:` setting of the term stays (a user's
+// catalog term: fixed blocks, priors, bounds). Other types: `term_yaml` unchanged.
+std::string HoldSourceLocation(const std::string& type, const std::string& term_yaml);
+
 // The terminal rendering: table, verdict, the YAML to add.
 std::string FormatDiagnosis(const Diagnosis& diagnosis);
 

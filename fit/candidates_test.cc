@@ -334,6 +334,90 @@ TEST(DiagnoseCandidates, ACandidateThatExcludesItsNullIsNotNested) {
   EXPECT_THAT(dipole.model_change, ::testing::HasSubstr("polarisability_m3: 0.001"));
 }
 
+// The retry of a nested candidate that fits worse than the base grows an added source from near
+// zero with its location held where the first fit placed it. The holds are added to the term's
+// own `parameters:`: before, they replaced the whole mapping, so a user's catalog dipole whose
+// strength was bounded to [0, 0.01] m^3 with a prior was grown unbounded and without the prior,
+// and a plane restricted to conductors (attenuation >= 0) could grow ferromagnetic.
+TEST(DiagnoseCandidates, TheRetryHoldsASourceWhereItWasPlacedAndKeepsTheUsersSettings) {
+  auto settings_of = [](const std::string& term_yaml, const std::string& block) {
+    const ModelSpec spec = ParseModelYaml("terms:\n  - " + term_yaml, "held.yaml");
+    EXPECT_EQ(spec.block_settings.size(), 1u);
+    BlockSettings found;
+    for (const BlockSettings& s : spec.block_settings.at(0)) {
+      if (s.block == block) found = s;
+    }
+    EXPECT_EQ(found.block, block) << term_yaml;
+    return found;
+  };
+  // The dipole as the retry writes it: its first fit's location, 1e-3 of its strength.
+  const std::string dipole = HoldSourceLocation(
+      "dipole",
+      "{type: dipole, location_in_transmitter: [0.7, 0, 0.5], polarisability_m3: 1e-06, "
+      "parameters: {polarisability_m3: {lower: 0, upper: 0.01, prior: {mean: 0, sigma: 0.002}}, "
+      "location_in_transmitter: {value: [0.6, 0, 0.5], lower: -3, upper: 3}}}");
+  const BlockSettings strength = settings_of(dipole, "polarisability_m3");
+  ASSERT_TRUE(strength.lower && strength.upper && strength.prior_sigma) << dipole;
+  EXPECT_EQ(*strength.lower, std::vector<double>{0.0});
+  EXPECT_EQ(*strength.upper, std::vector<double>{0.01});
+  EXPECT_EQ(*strength.prior_sigma, std::vector<double>{0.002});
+  EXPECT_FALSE(strength.fixed && *strength.fixed) << dipole;
+  const BlockSettings location = settings_of(dipole, "location_in_transmitter");
+  ASSERT_TRUE(location.fixed && location.lower) << dipole;
+  EXPECT_TRUE(*location.fixed);
+  EXPECT_EQ(*location.lower, std::vector<double>{-3.0});
+  // Held where the first fit placed it (the mapping's start), not at the user's start value.
+  EXPECT_FALSE(location.value) << dipole;
+
+  const std::string plane = HoldSourceLocation(
+      "plane",
+      "{type: plane, point_in_transmitter: [0, 0, -0.8], normal_in_transmitter: [0, 0, 1], "
+      "attenuation: 0.0002, parameters: {attenuation: {lower: 0}}}");
+  const BlockSettings attenuation = settings_of(plane, "attenuation");
+  ASSERT_TRUE(attenuation.lower) << plane;
+  EXPECT_EQ(*attenuation.lower, std::vector<double>{0.0});
+  for (const char* block : {"distance_m", "normal_in_transmitter"}) {
+    const BlockSettings held = settings_of(plane, block);
+    EXPECT_TRUE(held.fixed && *held.fixed) << block << ": " << plane;
+  }
+  // A term without a location is not changed.
+  const std::string gain = "{type: receiver_gain, parameters: {gain_matrix: {fixed: false}}}";
+  EXPECT_EQ(HoldSourceLocation("receiver_gain", gain), gain);
+}
+
+// The same through the diagnosis: a user's bounded dipole whose first fit stops above the base's
+// chi2 (one iteration) is retried, grown where it was placed, and the model change printed for the
+// user keeps the user's settings and none of the retry's holds.
+TEST(DiagnoseCandidates, TheRetryPrintsTheUsersSettingsWithoutItsHolds) {
+  const auto stations = Stations(300, Eigen::Vector3d::Zero(), 0, 2);
+  CandidateOptions o;
+  o.num_threads = 1;
+  o.flexible.clear();
+  o.catalog = {{"bounded_dipole", CandidateKind::kTerm,
+                "{type: dipole, location_in_transmitter: [0.7, 0.0, 0.5], polarisability_m3: 1e-3, "
+                "parameters: {polarisability_m3: {lower: 0, upper: 0.01, prior: {mean: 0, sigma: "
+                "0.01}}}}",
+                true, true, "a steel object"}};
+  bool grown_placed = false;
+  o.progress = [&](const std::string& m) {
+    grown_placed = grown_placed || m.find("(grown where it was placed)") != std::string::npos;
+  };
+  const Diagnosis d = DiagnoseCandidates(
+      stations, std::string("solver: {max_iterations: 1}\n") + kOrientationOnlyModel, "model.yaml",
+      "synthetic", o);
+  ASSERT_EQ(d.candidates.size(), 1u);
+  const Candidate& c = d.candidates[0];
+  EXPECT_TRUE(grown_placed);
+  ASSERT_TRUE(c.fitted) << c.error;
+  EXPECT_THAT(c.model_change, ::testing::HasSubstr("polarisability_m3: {lower: 0, upper: 0.01, "
+                                                   "prior: {mean: 0, sigma: 0.01}}"));
+  EXPECT_THAT(c.model_change, ::testing::Not(::testing::HasSubstr("fixed")));
+  ASSERT_EQ(c.parameters.size(), 2u);
+  EXPECT_EQ(c.parameters[1].block, "polarisability_m3");
+  EXPECT_GE(c.parameters[1].values[0], 0.0);
+  EXPECT_LE(c.parameters[1].values[0], 0.01);
+}
+
 // The verdict's wording when nothing is claimed: it must not call a model "within its noise model"
 // when the chi2 cannot tell (noise set 10x too large), and must say when a flexible term still
 // finds held-out structure that BIC does not pay for.
