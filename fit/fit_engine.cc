@@ -860,6 +860,27 @@ std::pair<std::string, std::string> BlockOwner(const ModelSpec& spec, const Mode
   return {term.type(), block.term};
 }
 
+// "FILE:LINE:COLUMN: PATH" of the model file's `parameters:` setting of `block` of the spec's term
+// k, else of the file entries the term holds; empty without either (a spec not from a file).
+std::string WhereInModelFile(const ModelSpec& spec, size_t k, const ParameterBlock& block) {
+  if (k < spec.block_settings.size()) {
+    const std::string family = block.name.substr(0, block.name.find('['));
+    for (const BlockSettings& s : spec.block_settings[k]) {
+      if ((s.term.empty() || s.term == block.term) &&
+          (s.block == block.name || s.block == family) && !s.where.empty()) {
+        return s.where;
+      }
+    }
+  }
+  std::string where;
+  for (const ModelFileTerm& f : spec.file_terms) {
+    if (f.model_term != static_cast<int>(k) || f.where.empty()) continue;
+    if (!block.term.empty() && f.name != block.term) continue;
+    where += (where.empty() ? "" : ", ") + f.where;
+  }
+  return where;
+}
+
 // FitOptions::start for one prepared and initialised term: its free blocks that `start` holds
 // take its values. When any does, or when a later term is held (`precedes_held`), the term's
 // other free blocks (an effect added to a physical group, or a group added before the
@@ -1082,8 +1103,15 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       // capture, hemisphere_flips seed 1: the two flips fitted to within 3 sigma, the other
       // stations' held-out error 1.96 mm instead of ~0.6). From zero, an outlier's residual is far
       // beyond the loss scale from the first iteration and the loss ignores it.
+      // (Within a block's bounds: zero on them when they exclude it.)
       for (auto& block : term.blocks()) {
-        if (!block.fixed) std::fill(block.values.begin(), block.values.end(), 0.0);
+        if (block.fixed) continue;
+        for (size_t i = 0; i < block.values.size(); ++i) {
+          double v = 0.0;
+          if (!block.lower.empty()) v = std::max(v, block.lower[i]);
+          if (!block.upper.empty()) v = std::min(v, block.upper[i]);
+          block.values[i] = v;
+        }
       }
     }
     // (A lone linear term's fit is its initialisation: nothing to start from.)
@@ -1096,7 +1124,17 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       }
       StartBlocksFrom(*options.start, *spec, before, precedes_held, &term);
     }
-    for (const auto& block : term.blocks()) block.Check(term.name());
+    // A start refused here (the values an initialisation left) names the block's settings in the
+    // model file, or the term's entry, as the parser's errors do.
+    for (const auto& block : term.blocks()) {
+      try {
+        block.Check(term.name());
+      } catch (const std::invalid_argument& e) {
+        const std::string where = WhereInModelFile(*spec, k, block);
+        if (where.empty()) throw;
+        throw std::invalid_argument(where + ": " + e.what());
+      }
+    }
   }
 
   const double seconds_initialize =

@@ -106,6 +106,61 @@ terms:
   }
 }
 
+// A polynomial coefficient bounded away from its least-squares value: the linear initialisation
+// put it beyond the bound and the fit refused its own start, "parameter block
+// polynomial.position_coefficients: value -0.002000 outside its bounds at 0" (any `value:`, on the
+// bound or not, is replaced by the linear solution), naming no file. A user's bound is in the
+// coefficients' own unit (m for position, no rescaling): the fit starts on the bound and ends
+// there, the free coefficients at the truth, by every initialisation (least squares, ridge, the
+// robust loss's zero start).
+TEST(FitModel, ABoundedPolynomialCoefficientStartsWithinItsBounds) {
+  std::mt19937 rng(7);
+  // A constant offset of -2 mm in x, 1 mm in y; none in orientation.
+  const auto truth = PolynomialCorrection::FromPositionAndOrientation(
+      0, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones(), {-0.002, 0.001, 0.0}, {0.0, 0.0, 0.0});
+  const auto stations = NoiseFreeStations(*truth, 100, &rng);
+  const std::string bounded = R"(
+    parameters:
+      position_coefficients:
+        value: [0.001, 0, 0]
+        lower: [0.001, -1, -1]
+)";
+  for (const std::string& settings : {std::string("terms:\n  - type: polynomial\n    degree: 0"),
+                                      std::string("terms:\n  - type: polynomial\n    degree: 0\n"
+                                                  "    ridge: 0.1"),
+                                      std::string("loss: {type: huber}\n"
+                                                  "terms:\n  - type: polynomial\n    degree: 0")}) {
+    ModelSpec spec = ParseModelYaml(settings + bounded, "model.yaml");
+    FitResult result;
+    ASSERT_NO_THROW(result = FitModel(stations, &spec)) << settings;
+    EXPECT_TRUE(result.converged) << settings << ": " << result.solver_message;
+    ASSERT_EQ(result.parameters.size(), 2u);
+    const std::vector<double>& p = result.parameters[0].values;
+    ASSERT_EQ(p.size(), 3u);
+    // On its bound; the free coordinates where the noise-free stations put them, to the solver's
+    // precision: 1e-6 m is 1e-3 of the model's default 1 mm noise (measured: 1e-7 m under the
+    // Huber loss, whose solve stops at its function tolerance; the others to rounding).
+    EXPECT_DOUBLE_EQ(p[0], 0.001) << settings;
+    EXPECT_NEAR(p[1], 0.001, 1e-6) << settings;
+    EXPECT_NEAR(p[2], 0.0, 1e-6) << settings;
+  }
+  // A value outside its bounds is an error naming the file, line and field, in the coefficients'
+  // unit with the digits that tell it from the bound.
+  try {
+    ModelSpec spec = ParseModelYaml(
+        "terms:\n  - type: polynomial\n    degree: 0\n    parameters:\n"
+        "      position_coefficients: {value: [0.0005, 0, 0], lower: [0.001, -1, -1]}\n",
+        "model.yaml");
+    FitModel(stations, &spec);
+    ADD_FAILURE() << "no error";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_THAT(e.what(), ::testing::HasSubstr(
+                              "model.yaml:5:30: $.terms[0].parameters.position_coefficients: "));
+    EXPECT_THAT(e.what(), ::testing::HasSubstr(
+                              "value 0.0005 at 0 (px[1]) outside its bounds [0.001, inf] m"));
+  }
+}
+
 TEST(FitModel, SandwichStdsOnTheLinearPathEqualTheJointPaths) {
   // Position noise that grows with the distance from the origin (as a tracker's does): the
   // default sandwich covariance is computed on the station residuals at the linear solution, and

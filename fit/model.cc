@@ -1,6 +1,8 @@
 #include "fit/model.h"
 
 #include <cmath>
+#include <iomanip>
+#include <sstream>
 #include <stdexcept>
 
 namespace trackcal::fit {
@@ -39,7 +41,14 @@ void ParameterBlock::Check(const std::string& term_name) const {
     const double hi = upper.empty() ? INFINITY : upper[i];
     if (lo > hi) fail("lower bound above upper bound at " + std::to_string(i));
     if (values[i] < lo || values[i] > hi) {
-      fail("value " + std::to_string(values[i]) + " outside its bounds at " + std::to_string(i));
+      // In the block's own unit, the model file's; digits enough to tell a value from a bound
+      // (std::to_string printed 0.000002 against a bound of 0.001).
+      std::ostringstream m;
+      m << std::setprecision(9) << "value " << values[i] << " at " << i;
+      if (!coordinate_names.empty()) m << " (" << coordinate_names[i] << ")";
+      m << " outside its bounds [" << lo << ", " << hi << "]";
+      if (!unit.empty()) m << " " << unit;
+      fail(m.str());
     }
     if (!prior_sigma.empty() && !(prior_sigma[i] > 0.0)) fail("prior sigma must be > 0");
   }

@@ -433,6 +433,24 @@ struct RidgeSolver {
   }
 };
 
+// Least-squares coefficients c (num_terms x 3) into `block` (values[j * 3 + k] = c(j, k)). The
+// linear solve does not see a block's bounds (`parameters: {lower, upper}`): a coefficient beyond
+// one is put on it, a start inside them from which the joint solve (which keeps the bounds) goes
+// on. Kept as solved, it was refused as the fit's start: a constant offset bounded to >= 1 mm
+// (`lower: [0.001, -1, -1]`) on stations with none failed with "value 0.000002 outside its bounds"
+// (fit/fit_engine_test.cc ABoundedPolynomialCoefficientStartsWithinItsBounds).
+void StoreCoefficients(const Eigen::MatrixXd& c, ParameterBlock* block) {
+  for (Eigen::Index j = 0; j < c.rows(); ++j) {
+    for (Eigen::Index k = 0; k < 3; ++k) {
+      const size_t i = static_cast<size_t>(j * 3 + k);
+      double v = c(j, k);
+      if (!block->lower.empty()) v = std::max(v, block->lower[i]);
+      if (!block->upper.empty()) v = std::min(v, block->upper[i]);
+      block->values[i] = v;
+    }
+  }
+}
+
 }  // namespace
 
 std::vector<std::vector<int>> PolynomialTerm::BlockedFolds(const Eigen::MatrixXd& u,
@@ -645,11 +663,7 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
           if (mean[k] <= mean[best] + se[best]) lambda = grid[k];
         }
       }
-      const Eigen::MatrixXd c = solver.Solve(b, lambda, &loo);
-      auto& values = blocks_[static_cast<size_t>(block_index)].values;
-      for (int j = 0; j < num_terms_; ++j) {
-        for (int k = 0; k < 3; ++k) values[static_cast<size_t>(j * 3 + k)] = c(j, k);
-      }
+      StoreCoefficients(solver.Solve(b, lambda, &loo), &blocks_[static_cast<size_t>(block_index)]);
       ridge_used_[part] = lambda;
       loo_rms_[part] = std::sqrt(loo.mean() / 3.0);
     };
@@ -683,11 +697,7 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   if (qr.rank() < num_terms_) return false;
   auto store = [&](int block_index, const Eigen::MatrixXd& b) {
     if (block_index < 0 || blocks_[static_cast<size_t>(block_index)].fixed) return;
-    const Eigen::MatrixXd c = qr.solve(b);  // num_terms x 3
-    auto& values = blocks_[static_cast<size_t>(block_index)].values;
-    for (int j = 0; j < num_terms_; ++j) {
-      for (int k = 0; k < 3; ++k) values[static_cast<size_t>(j * 3 + k)] = c(j, k);
-    }
+    StoreCoefficients(qr.solve(b), &blocks_[static_cast<size_t>(block_index)]);
   };
   store(position_block_, b_position);
   store(orientation_block_, b_orientation);
