@@ -27,10 +27,14 @@
 
 #include "tests/test_utils.h"
 #include "vrpn_server/net/socket_util.h"
+#include "vrpn_server/server/loopback_testing.h"
 #include "vrpn_server/server/server.h"
 
 namespace trackcal::vrpn {
 namespace {
+
+using trackcal::testing::LoopbackOptions;
+using trackcal::testing::PollUntil;
 
 using Clock = std::chrono::steady_clock;
 
@@ -42,25 +46,6 @@ std::shared_ptr<ServerCatalog> MakeCatalog(int sensors = 2) {
   catalog->AddTracker(spec);
   catalog->AddButton(ButtonSpec{"Stylus0", 2});
   return catalog;
-}
-
-ServerOptions LoopbackOptions() {
-  ServerOptions o;
-  o.bind_address = "127.0.0.1";
-  o.port = 0;
-  return o;
-}
-
-// Polls every client until pred() holds or the (generous, machine-load tolerant) timeout passes.
-bool PollUntil(const std::vector<VrpnTrackerClient*>& clients, const std::function<bool()>& pred,
-               double timeout_s = 10.0) {
-  const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
-  while (Clock::now() < end) {
-    if (pred()) return true;
-    for (auto* c : clients) c->Poll(clients.size() > 1 ? 0.0 : 0.01);
-    if (clients.size() > 1) std::this_thread::sleep_for(std::chrono::microseconds(200));
-  }
-  return pred();
 }
 
 struct Collected {

@@ -18,9 +18,13 @@
 
 #include "vrpn_server/client/tracker_client.h"
 #include "vrpn_server/net/socket_util.h"
+#include "vrpn_server/server/loopback_testing.h"
 
 namespace trackcal::vrpn {
 namespace {
+
+using trackcal::testing::LoopbackOptions;
+using trackcal::testing::PollUntil;
 
 using Clock = std::chrono::steady_clock;
 
@@ -31,25 +35,6 @@ std::shared_ptr<ServerCatalog> MakeCatalog() {
   spec.num_sensors = 1;
   catalog->AddTracker(spec);
   return catalog;
-}
-
-ServerOptions LoopbackOptions() {
-  ServerOptions o;
-  o.bind_address = "127.0.0.1";
-  o.port = 0;
-  return o;
-}
-
-// Polls the clients until pred() holds or timeout_s (generous: a loaded machine) passes.
-bool PollUntil(const std::vector<VrpnTrackerClient*>& clients, const std::function<bool()>& pred,
-               double timeout_s = 10.0) {
-  const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
-  while (Clock::now() < end) {
-    if (pred()) return true;
-    for (auto* c : clients) c->Poll(0.005);
-    if (clients.empty()) std::this_thread::sleep_for(std::chrono::milliseconds(2));
-  }
-  return pred();
 }
 
 // A raw TCP connection to the server (rcvbuf > 0: that receive buffer, set before connecting).
