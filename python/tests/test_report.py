@@ -327,6 +327,19 @@ def test_report_covariate_table_says_what_diagnose_says_of_a_confounded_covariat
     assert rows == [("z", "0.000167", "yes"), ("time", "0.000167", "yes (explained by position)")], rows
 
 
+def test_report_says_which_covariate_was_left_out_as_diagnose_does(uncorrected, tmp_path):
+    # diagnose's text and JSON said "visiting_order left out: the same order as time ..."; the
+    # report's covariate section did not, so its table looked as if visiting_order had been tested.
+    import dataclasses
+    why = "the same order as time (every time distinct: the same bins and R²)"
+    effects = [validation.CovariateEffect("time", "orientation_deg", 0.21, 1.0 / 6000, True, 480)]
+    v = dataclasses.replace(uncorrected, covariate_effects=effects, covariates_tested=True,
+                            covariates_left_out={"visiting_order": why})
+    page = report.write_report(v, tmp_path / "out").read_text()
+    section = page.split("<h2>Residual structure (covariates)</h2>", 1)[1].split("</p>", 1)[0]
+    assert f"visiting_order left out: {why}." in section, section
+
+
 def test_distortion_field_leaves_blank_where_the_model_inverse_does_not_resolve(tmp_path):
     # A fitted floor plane that cuts the calibrated volume (measured: the paper capture fitted with
     # sensor_offset, receiver_gain, plane and dipole; 50 of its 600 stations not converged): beyond

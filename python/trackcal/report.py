@@ -283,6 +283,8 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
                         "the covariate along time, since neighbouring samples share their misfit."
                         if validation.serial_samples(v.capture) else "")
                      + (f" Not tested: {html.escape(v.covariates_note)}." if v.covariates_note else "")
+                     + "".join(f" {html.escape(name)} left out: {html.escape(why)}."
+                               for name, why in (getattr(v, "covariates_left_out", None) or {}).items())
                      + "</p>" + _table(rows))
     if candidates is not None:
         base = candidates.get("base", {})
