@@ -9,6 +9,8 @@
 #include <string>
 #include <string_view>
 
+#include "core/printable_text.h"  // Utf16TextProblem, for the readers
+
 namespace trackcal {
 
 // Reads a whole file; throws std::invalid_argument naming the path if it cannot be read.
@@ -65,13 +67,6 @@ std::string Sha256HexOfFile(const std::filesystem::path& path);
 
 // True if `text` is 64 lower-case hexadecimal characters.
 bool IsSha256Hex(std::string_view text);
-
-// "UTF-16 text (a byte order mark FF FE or FE FF); save the <kind> as UTF-8" if `text` starts with
-// a UTF-16 byte order mark (Notepad's "Unicode" and Excel's "Unicode text" saves), "UTF-32 text (a
-// byte order mark FF FE 00 00 or 00 00 FE FF); ..." for UTF-32's, else "". The readers of UTF-8
-// files read such a file as gibberish: "not a calibration file", "column station: missing from the
-// header", or a model parsed without a word.
-std::string Utf16TextProblem(std::string_view text, std::string_view kind);
 
 // The system's reason for an errno value, for "<path>: cannot open ...: <reason>" ("No such file or
 // directory", "Permission denied"); "unknown error" for 0 (a stream that failed without a system

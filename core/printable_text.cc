@@ -85,4 +85,16 @@ size_t FirstNonUtf8Byte(std::string_view text) {
   return std::string_view::npos;
 }
 
+std::string Utf16TextProblem(std::string_view text, std::string_view kind) {
+  const std::string save = "; save the " + std::string(kind) + " as UTF-8";
+  // UTF-32's little-endian mark starts with UTF-16's: a UTF-32 file was called UTF-16. (UTF-16
+  // text does not start with U+0000 after its mark.)
+  using namespace std::string_view_literals;
+  if (text.substr(0, 4) == "\xFF\xFE\0\0"sv || text.substr(0, 4) == "\0\0\xFE\xFF"sv) {
+    return "UTF-32 text (a byte order mark FF FE 00 00 or 00 00 FE FF)" + save;
+  }
+  if (text.substr(0, 2) != "\xFF\xFE" && text.substr(0, 2) != "\xFE\xFF") return "";
+  return "UTF-16 text (a byte order mark FF FE or FE FF)" + save;
+}
+
 }  // namespace trackcal

@@ -37,6 +37,13 @@ std::string Printable(std::string_view text, PrintableFor use);
 // it; C1 controls count as UTF-8), or std::string_view::npos if it is all UTF-8.
 size_t FirstNonUtf8Byte(std::string_view text);
 
+// "UTF-16 text (a byte order mark FF FE or FE FF); save the <kind> as UTF-8" if `text` starts with
+// a UTF-16 byte order mark (Notepad's "Unicode" and Excel's "Unicode text" saves), "UTF-32 text (a
+// byte order mark FF FE 00 00 or 00 00 FE FF); ..." for UTF-32's, else "". The readers of UTF-8
+// files read such a file as gibberish: "not a calibration file", "column station: missing from the
+// header", or a model parsed without a word.
+std::string Utf16TextProblem(std::string_view text, std::string_view kind);
+
 // Printable(text, PrintableFor::kMessage).
 inline std::string PrintableForMessage(std::string_view text) {
   return Printable(text, PrintableFor::kMessage);

@@ -58,8 +58,8 @@ std::vector<std::string> Tokenize(std::string_view s) {
 // Why a VRPN client could not address device `name` (empty if it can). Clients name a device as
 // "Name@host" and the reference reads the name up to the first '@' (vrpn_copy_service_name); the
 // name goes on the wire as a sender description of at most 95 characters and reaches client logs
-// and GUIs: it must be printable UTF-8 (no control character, no byte that is not UTF-8). Spaces
-// cannot occur (they separate the tokens of a line).
+// and GUIs: it must be printable (no C0/C1 control, no DEL; a name that is not UTF-8 is only
+// warned of, NonUtf8NameWarning). Spaces cannot occur (they separate the tokens of a line).
 std::string UnaddressableName(const std::string& name) {
   if (name.empty()) return "empty device name";
   if (name.size() > 95) {  // the longest name a VRPN description carries; refused at start-up
@@ -207,16 +207,12 @@ class Parser {
 
   // Notepad's "Unicode" save (UTF-16) warned "unknown device type '\xff\xfev\x00r...'" on every
   // line, then "no device trackcal-server can serve"; a PDF or another binary file warned on each
-  // of its lines. Not UTF-8 text: one error, saying what the file is. (The server is not linked
-  // with trackcal_core, whose file_util.h says the same for the other readers.)
+  // of its lines. Not UTF-8 text: one error, saying what the file is.
   void FindEncodingProblem(std::string_view text) {
     static constexpr char kSave[] = "; save the VRPN configuration file as UTF-8";
     using namespace std::string_view_literals;
-    if (text.substr(0, 4) == "\xFF\xFE\0\0"sv || text.substr(0, 4) == "\0\0\xFE\xFF"sv) {
-      encoding_problem_ =
-          std::string("UTF-32 text (a byte order mark FF FE 00 00 or 00 00 FE FF)") + kSave;
-    } else if (text.substr(0, 2) == "\xFF\xFE"sv || text.substr(0, 2) == "\xFE\xFF"sv) {
-      encoding_problem_ = std::string("UTF-16 text (a byte order mark FF FE or FE FF)") + kSave;
+    if (std::string utf16 = Utf16TextProblem(text, "VRPN configuration file"); !utf16.empty()) {
+      encoding_problem_ = std::move(utf16);
     } else if (text.substr(0, 5) == "%PDF-"sv) {
       encoding_problem_ =
           "a PDF document (the file starts with %PDF-), not a VRPN configuration file";
