@@ -477,6 +477,9 @@ def test_ctrl_c_before_serving_exits_130_without_a_traceback(tmp_path, monkeypat
     assert demo.main(["--work", str(tmp_path), "--no-serve"]) == 130
     err = capsys.readouterr().err
     assert "trackcal demo: interrupted" in err and "Traceback" not in err
+    # The last line names the work folder (its first line has scrolled away after minutes of fits).
+    work = next(p for p in tmp_path.iterdir() if p.is_dir())
+    assert err.strip().splitlines()[-1].endswith(f"what it wrote is in {work}"), err
 
 
 @pytest.mark.parametrize("bad", ["missing_base", "folder_base", "work_is_a_file"])

@@ -767,20 +767,26 @@ def main(argv: Optional[List[str]] = None) -> int:
     previous = {s: signal.getsignal(s) for s in handled}
     for s in handled:
         signal.signal(s, _raise_stopped)
+    made = []  # the work folder once made: the last line names it (its first line scrolled away)
     try:
-        return _main(argv)
+        return _main(argv, made)
     except Stopped as e:
-        print(f"\ntrackcal demo: stopped by {e}", file=sys.stderr, flush=True)
+        print(f"\ntrackcal demo: stopped by {e}{_kept(made)}", file=sys.stderr, flush=True)
         return 128 + e.signum
     except KeyboardInterrupt:  # Ctrl-C before serving (simulating, fitting, diagnosing): no traceback
-        print("\ntrackcal demo: interrupted", file=sys.stderr, flush=True)
+        print(f"\ntrackcal demo: interrupted{_kept(made)}", file=sys.stderr, flush=True)
         return 130
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
 
 
-def _main(argv: Optional[List[str]] = None) -> int:
+def _kept(made: List[Path]) -> str:
+    """"; what it wrote is in <work folder>" once the work folder exists, else ""."""
+    return f"; what it wrote is in {made[0]}" if made else ""
+
+
+def _main(argv: Optional[List[str]] = None, made: Optional[List[Path]] = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m trackcal.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--work", type=Path, default=Path("demo-runs"),
                         help="folder under which a fresh, timestamped work folder is made")
@@ -827,6 +833,8 @@ def _main(argv: Optional[List[str]] = None) -> int:
     except (OSError, UnicodeDecodeError) as e:  # missing, a folder, not text: before any work
         parser.error(f"--base {args.base}: {getattr(e, 'strerror', None) or e}")
     work = _fresh_work_dir(args.work)
+    if made is not None:
+        made.append(work)
     print(f"trackcal demo: work folder {work}")
     if args.scene is None:
         args.scene = str(_write_new(work / "scene.yaml", DEFAULT_SCENE))
