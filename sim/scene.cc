@@ -737,6 +737,13 @@ const std::string& PresetYaml(const std::string& name) {
 }
 
 Scene ParseScene(const std::string& yaml_text, const std::string& source, const Scene& base) {
+  // A PDF (docs/scene.md printed to PDF, or saved under .yaml) gave "YAML syntax error: unknown
+  // escape character" followed by a raw byte. yaml-cpp itself reads UTF-16 and UTF-32 scenes.
+  if (yaml_text.rfind("%PDF-", 0) == 0) {
+    throw std::invalid_argument(source +
+                                ":1: a PDF document (the file starts with %PDF-), not a scene "
+                                "file (YAML text, docs/scene.md)");
+  }
   YAML::Node root;
   try {
     // Every document, not the first only: YAML::Load stopped at a "---" line, so the keys of a
@@ -753,8 +760,17 @@ Scene ParseScene(const std::string& yaml_text, const std::string& source, const 
     throw std::invalid_argument(source + ":" + std::to_string(e.mark.line + 1) +
                                 ": YAML syntax error: " + e.msg);
   }
+  // An empty file (or one of comments only) said "a scene must be a YAML mapping", which reads as
+  // a syntax problem to someone who saved nothing.
+  if (!root.IsDefined() || root.IsNull()) {
+    throw std::invalid_argument(source +
+                                ":1: the scene has no keys (an empty file, or comments only); "
+                                "start from a preset with 'base: paper' (docs/scene.md)");
+  }
   if (!root.IsMap()) {
-    throw std::invalid_argument(source + ":1: a scene must be a YAML mapping");
+    throw std::invalid_argument(source + ":" + std::to_string(root.Mark().line + 1) +
+                                ": a scene must be a YAML mapping (key: value lines), not " +
+                                (root.IsSequence() ? "a list" : "a single value"));
   }
   Scene scene = base;
   if (const YAML::Node b = root["base"]) {

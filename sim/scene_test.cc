@@ -126,6 +126,22 @@ TEST(ParseScene, ErrorsNameFileLineAndField) {
   EXPECT_NE(ErrorOf("tracker: [\n").find("bad.yaml:"), std::string::npos);
 }
 
+TEST(ParseScene, EmptyScenesPdfsAndNonMappingsSayWhatTheFileIs) {
+  // An empty file and a comment-only one said "a scene must be a YAML mapping"; a PDF gave
+  // "YAML syntax error: unknown escape character" and a raw byte.
+  EXPECT_EQ(ErrorOf(""),
+            "bad.yaml:1: the scene has no keys (an empty file, or comments only); start from a "
+            "preset with 'base: paper' (docs/scene.md)");
+  EXPECT_EQ(ErrorOf("# nothing yet\n\n"), ErrorOf(""));
+  EXPECT_EQ(ErrorOf("%PDF-1.7\n%\xe2\xe3\xcf\xd3\n1 0 obj\n<< /Type /Catalog >>\n\x01\x02"),
+            "bad.yaml:1: a PDF document (the file starts with %PDF-), not a scene file (YAML "
+            "text, docs/scene.md)");
+  EXPECT_EQ(ErrorOf("# a list\n- base: paper\n"),
+            "bad.yaml:2: a scene must be a YAML mapping (key: value lines), not a list");
+  EXPECT_EQ(ErrorOf("paper\n"),
+            "bad.yaml:1: a scene must be a YAML mapping (key: value lines), not a single value");
+}
+
 TEST(ParseScene, RepeatedKeysAreErrors) {
   // yaml-cpp looks up the first of two equal keys: an override appended below the original was
   // silently ignored (signal_noise stayed 0.1).
