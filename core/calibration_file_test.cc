@@ -287,10 +287,14 @@ TEST(ParseCalibrationJson, RejectsNonFiniteNumbers) {
   } catch (const JsonInputError& e) {
     EXPECT_STREQ(e.what(), "calib.json: $.fit_statistics.rms: number must be finite, got Infinity");
   }
+  // Without the parser's "[json.exception.parse_error.101] parse error at line 1, column 12:
+  // syntax error while parsing value - " (jargon, and a second position that can disagree).
   EXPECT_EQ(ErrorForText("{\"format\": "),
-            "calib.json:1:12: invalid JSON: [json.exception.parse_error.101] parse error at line 1, "
-            "column 12: syntax error while parsing value - unexpected end of input; expected '[', "
-            "'{', or a literal");
+            "calib.json:1:12: invalid JSON: unexpected end of input; expected '[', '{', or a "
+            "literal");
+  EXPECT_EQ(ErrorForText("{\"format\":\n tru\n}"),
+            "calib.json:2:5: invalid JSON: invalid literal; last read: '\"format\":<U+000A> "
+            "tru<U+000A>'");
 }
 
 TEST(ParseCalibrationJson, AFileThatIsNotJsonSaysWhatACalibrationFileIs) {

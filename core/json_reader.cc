@@ -4,6 +4,7 @@
 #include <cmath>
 #include <limits>
 #include <set>
+#include <string_view>
 #include <vector>
 
 #include "core/printable_text.h"
@@ -59,6 +60,27 @@ size_t FindNumberLiteral(const std::string& text, const std::string& literal) {
     }
   }
   return std::string::npos;
+}
+
+// nlohmann's parse_error text without its id and position: "[json.exception.parse_error.101]
+// parse error at line 3, column 0: syntax error while parsing value - invalid literal; last
+// read: 'tru'" -> "invalid literal; last read: 'tru'".
+std::string WithoutParserPrefix(std::string what) {
+  if (what.rfind("[json.exception.", 0) == 0) {
+    if (const size_t id_end = what.find("] "); id_end != std::string::npos) {
+      what.erase(0, id_end + 2);
+    }
+  }
+  if (what.rfind("parse error", 0) == 0) {
+    if (const size_t colon = what.find(": "); colon != std::string::npos) what.erase(0, colon + 2);
+  }
+  for (const std::string_view lead : {"syntax error while parsing ", "parse error: "}) {
+    if (what.rfind(lead, 0) == 0) {
+      const size_t dash = what.find(" - ");
+      what.erase(0, dash == std::string::npos ? lead.size() : dash + 3);
+    }
+  }
+  return what;
 }
 
 }  // namespace
@@ -130,7 +152,11 @@ nlohmann::json ParseJsonText(const std::string& text, const std::string& source_
     const std::string token = text.substr(token_start, token_end - token_start);
     // The parser quotes what it last read: a byte that is not UTF-8 (a Latin-1 description) came
     // through raw, and the message failed in Python as it became a str, naming no file.
-    std::string what = PrintableForMessage(e.what());
+    // Without nlohmann's prefix ("[json.exception.parse_error.101] parse error at line 1, column
+    // 12: syntax error while parsing value - "): library jargon, and a second line:column that
+    // disagrees with ours (the parser counts columns from 0 and puts an error at a line's end on
+    // the next line).
+    std::string what = PrintableForMessage(WithoutParserPrefix(e.what()));
     if (token == "NaN" || token == "Infinity" || token == "nan" || token == "inf" ||
         token == "infinity") {
       what = "non-finite number (NaN or Infinity) is not allowed";
