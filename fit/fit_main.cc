@@ -25,8 +25,8 @@
 #include <iostream>
 #include <map>
 #include <memory>
-#include <optional>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -34,6 +34,7 @@
 #include "core/calibration_file.h"
 #include "core/capture.h"
 #include "core/file_util.h"
+#include "core/json_reader.h"
 #include "fit/candidates.h"
 #include "fit/chain_builder.h"
 #include "fit/fit_engine.h"
@@ -249,11 +250,27 @@ int RunFit(int argc, char** argv) {
   if (args.values.count("--start")) {
     // A previous `fit --json` document (or its "fit"): the fit starts at that fit's optimum.
     const fs::path start_path = args.Get("--start");
+    // The parser's raw text ("[json.exception.parse_error.101] parse error at line 1, column 2:
+    // ...") named no usable place and did not say what --start takes; a model file or an empty
+    // file given here (easy slips) now say so, and a syntax error names line and column.
+    static constexpr char kTakes[] =
+        "--start takes the JSON that `trackcal-fit fit --json` printed for an earlier fit";
+    const std::string text = ReadFileToString(start_path);
+    const size_t first = text.find_first_not_of(" \t\r\n");
+    if (first == std::string::npos) {
+      throw std::invalid_argument(start_path.string() + ": empty file; " + kTakes);
+    }
+    if (text[first] != '{') {
+      throw std::invalid_argument(start_path.string() +
+                                  ": not a JSON document (it does not start with '{'; a model "
+                                  "file or a calibration's YAML?); " +
+                                  kTakes);
+    }
     nlohmann::json doc;
     try {
-      doc = nlohmann::json::parse(ReadFileToString(start_path));
-    } catch (const nlohmann::json::exception& e) {
-      throw std::invalid_argument(start_path.string() + ": not JSON: " + e.what());
+      doc = ParseJsonText(text, start_path.string());
+    } catch (const JsonInputError& e) {
+      throw std::invalid_argument(std::string(e.what()) + "; " + kTakes);
     }
     // A `ridge: auto` polynomial keeps that fit's weight, as diagnose's candidates do: chosen
     // again at the start, with the previous coefficients, it was 31.6 instead of 1 on the full

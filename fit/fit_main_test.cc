@@ -353,6 +353,31 @@ TEST_F(FitCliTest, StartFromAPreviousFit) {
             1);
   EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("not_a_fit.json: fit.terms: missing"));
   EXPECT_FALSE(fs::exists(dir_ / "x.json"));
+
+  // A model file, an empty file and a cut document: the parser's raw text ("[json.exception.
+  // parse_error.101] parse error at line 1, column 2") named no line:column and not what --start
+  // takes.
+  std::ofstream(dir_ / "empty.json") << "\n";
+  std::ofstream(dir_ / "cut.json") << "{\"fit\": {\n  \"final_cost\": tru\n";
+  const std::string takes =
+      "; --start takes the JSON that `trackcal-fit fit --json` printed for an earlier fit";
+  for (const auto& [start, message] : std::vector<std::pair<std::string, std::string>>{
+           {"more.yaml",
+            ": not a JSON document (it does not start with '{'; a model file or a calibration's "
+            "YAML?)"},
+           {"empty.json", ": empty file"},
+           {"cut.json", ":2:"}}) {
+    EXPECT_EQ(RunCommand(fit_ + " fit" + data + " --model " + (dir_ / "more.yaml").string() +
+                         " -o " + (dir_ / "x.json").string() + " --start " +
+                         (dir_ / start).string() + " --quiet 2> " + err.string()),
+              1)
+        << start;
+    const std::string text = ReadFileToString(err);
+    EXPECT_THAT(text, ::testing::HasSubstr((dir_ / start).string() + message)) << start;
+    EXPECT_THAT(text, ::testing::HasSubstr(takes)) << start;
+    EXPECT_THAT(text, ::testing::Not(::testing::HasSubstr("json.exception"))) << start;
+  }
+  EXPECT_FALSE(fs::exists(dir_ / "x.json"));
 }
 
 // A start document whose prepared state is not a fit's: a polynomial's zero input_scale crashed
