@@ -14,6 +14,9 @@ namespace {
 
 // A line command longer than this is garbage (the longest real one, `x` with four floats, is ~20).
 constexpr size_t kMaxLineLength = 256;
+// The most items an output list may hold ('O' command, Fastrak manual Rev. G: "up to 32 data
+// items"); a longer list is ignored whole, like one with an unsupported item.
+constexpr size_t kMaxOutputItems = 32;
 constexpr char kCtrlY = 0x19;
 constexpr char kCtrlK = 0x0B;
 
@@ -366,6 +369,7 @@ void FastrakDevice::HandleLine(const std::string& line) {
         items.push_back(item);
       }
       if (items.empty()) return ignore("empty output list");
+      if (items.size() > kMaxOutputItems) return ignore("more than 32 items");
       stations_[s - 1].output_list = items;
       break;
     }

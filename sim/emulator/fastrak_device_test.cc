@@ -331,6 +331,22 @@ TEST(FastrakDevice, LineEndingsAndUnknownCommands) {
   EXPECT_EQ(device.commands_ignored(), 6);
 }
 
+// A Fastrak output list holds at most 32 items (manual Rev. G, 'O'); a longer one was accepted (40
+// quaternions made a 643-byte binary record no unit can send). Spaces keep the lists short in
+// bytes, so only the item count is tested (the manual's 254-byte limit is not modelled).
+TEST(FastrakDevice, OutputListOfMoreThan32ItemsIsIgnored) {
+  FastrakDevice device(FastrakDeviceOptions{});
+  std::string list = "O1";
+  for (int i = 0; i < 32; ++i) list += ",0";
+  device.Receive(list + "\r", TranscriptMeasure());
+  EXPECT_EQ(device.station(1).output_list.size(), 32u);
+  EXPECT_EQ(device.commands_ignored(), 0);
+  device.Receive("O1,2,11,0\r" + list + ",0\r", TranscriptMeasure());
+  EXPECT_EQ(device.station(1).output_list, (std::vector<int>{2, 11, 0}));
+  EXPECT_EQ(device.commands_ignored(), 1);
+  EXPECT_EQ(device.BinaryRecordSize(1), 32u);
+}
+
 // A number beyond int in a line command is malformed, not wrapped: strtol's long was cast to int,
 // so item 4294967298 (2^32 + 2) became item 2 (position), station 4294967297 became station 1 and
 // `l1,4294967296` switched station 1 off, each counted as an accepted command.
