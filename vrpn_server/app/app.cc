@@ -375,6 +375,9 @@ std::string TrackcalServerApp::StatusLine() const {
   std::string line = "status: " + std::to_string(stats.clients) + " client(s), " +
                      std::to_string(stats.connections_total) + " connection(s) so far, " +
                      std::to_string(stats.dropped_slow) + " dropped for not reading, " +
+                     std::to_string(stats.evicted) + " closed to make room, " +
+                     std::to_string(stats.closed_protocol) + " closed for protocol errors, " +
+                     std::to_string(stats.refused) + " refused, " +
                      std::to_string(stats.reports_published) + " report(s) sent";
   for (const auto& t : trackers_) {
     // The share of corrected poses outside the calibrated volume: a correction mostly

@@ -129,7 +129,8 @@ class TrackcalServerApp {
   int ReloadCalibrations();
   // Reloads the calibrations whose file changed (size, time or inode) since the last load.
   int ReloadChangedCalibrations();
-  // One line for the log (SIGUSR1, stop): clients, reports, slow clients dropped, and per tracker
+  // One line for the log (SIGUSR1, stop): clients, reports, connections dropped for not reading,
+  // closed to make room or for protocol errors, refused, and per tracker
   // the corrected poses that were extrapolated (VRPN has no field for that flag).
   std::string StatusLine() const;
   // Corrected poses of tracker `name` that were extrapolated since the start; 0 for unknown names.

@@ -143,6 +143,12 @@ TEST(TrackcalServerApp, CorrectedRawAndReload) {
   EXPECT_EQ(status.find("Tracker0: 0 corrected"), std::string::npos) << status;
   EXPECT_NE(status.find(" corrected, 0 extrapolated (0.0 %), 0 unresolved"), std::string::npos)
       << status;
+  // Every way the server closes or refuses a connection is counted (an operator asking why a
+  // client lost its connection found only "dropped for not reading").
+  EXPECT_NE(status.find(" 0 dropped for not reading, 0 closed to make room, 0 closed for "
+                        "protocol errors, 0 refused, "),
+            std::string::npos)
+      << status;
   // Both streams recorded.
   for (const char* f : {"Tracker0_raw_tracker_stream.csv", "Tracker0_corrected_tracker_stream.csv"}) {
     std::ifstream in(dir / f);
