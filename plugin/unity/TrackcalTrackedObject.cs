@@ -12,6 +12,9 @@ namespace Trackcal
     {
         [Tooltip("VRPN name: Tracker0@host, Tracker0@host:port or Tracker0@tcp://host:port. A trackcal " +
                  "server serves the corrected tracker under its configured name and the raw one under raw=.")]
+#if UNITY_5_4_OR_NEWER
+        [Delayed]  // a change made while playing takes effect on Enter, not on every keystroke
+#endif
         public string trackerName = "Tracker0@localhost";
 
         [Tooltip("Sensor index (a Fastrak's stations 1-4 are sensors 0-3).")]
@@ -19,6 +22,9 @@ namespace Trackcal
 
         [Tooltip("Unity's x, y, z as tracker axes. y,-z,x: the Polhemus source frame " +
                  "(x forward, y right, z down).")]
+#if UNITY_5_4_OR_NEWER
+        [Delayed]
+#endif
         public string axes = TrackcalTracker.DefaultAxes;
 
         public bool applyPosition = true;
@@ -32,6 +38,8 @@ namespace Trackcal
         public TrackcalPose LastPose { get; private set; }
 
         private TrackcalTracker tracker;
+        // The name and axes the tracker was acquired for: changed while playing, they are reopened.
+        private string acquiredName, acquiredAxes;
 
         // Open connections (TrackcalConnections.Count), for status displays and tests.
         public static int SharedConnections
@@ -50,6 +58,8 @@ namespace Trackcal
         private void OnEnable()
         {
             if (!SensorValid()) return;
+            acquiredName = trackerName;
+            acquiredAxes = axes;
             tracker = TrackcalComponents.Acquire(this, trackerName, axes);
         }
 
@@ -66,6 +76,22 @@ namespace Trackcal
             if (tracker == null) return;
             // Changed in the Inspector while playing: an exception every frame otherwise.
             if (!SensorValid()) return;
+            // trackerName or axes changed in the Inspector (or by a script) while playing: the object
+            // kept following the old tracker and mapping while the Inspector showed the new ones.
+            // String equality, no allocation per frame; a bad new value disables the component.
+            if (trackerName != acquiredName || axes != acquiredAxes)
+            {
+                TrackcalTracker old = tracker;
+                tracker = null;  // OnDisable, after a bad new value, has nothing more to release
+                acquiredName = trackerName;
+                acquiredAxes = axes;
+                // Acquired before the old one is released: the same mapping spelt differently
+                // keeps its connection rather than reconnecting.
+                TrackcalTracker renewed = TrackcalComponents.Acquire(this, trackerName, axes);
+                TrackcalConnections.Release(old);
+                tracker = renewed;
+                if (tracker == null) return;
+            }
             // A script disposed the shared tracker: ObjectDisposedException every frame otherwise.
             tracker = TrackcalConnections.Renew(tracker);
             TrackcalPose pose;

@@ -229,6 +229,38 @@ public static class TrackcalCsharpTest
         a.transform.localPosition = new Vector3(7, 7, 7);
         Invoke(a, "Update");
         Check(!a.IsTracking && a.transform.localPosition.x == 7, "a stale pose is not applied");
+        // The mapping changed in the Inspector while playing: the object follows the new one (it
+        // kept the old mapping, and Unity showed the new text), on a connection of its own.
+        a.maxAgeSeconds = 5;
+        a.axes = "x,y,-z";
+        until = DateTime.UtcNow.AddSeconds(20);
+        do
+        {
+            Invoke(a, "Update");
+            Thread.Sleep(10);
+        } while (!a.IsTracking && DateTime.UtcNow < until);
+        {
+            double[] e = expected[sensor];
+            Vector3 pos = a.transform.localPosition;
+            Check(a.IsTracking && pos.x == (float)e[0] && pos.y == (float)e[1] && pos.z == (float)-e[2],
+                  "axes changed while playing are applied: " + pos);
+            Check(TrackcalTrackedObject.SharedConnections == 2,
+                  "the changed object has a connection of its own, b keeps the old one");
+        }
+        // Respelt, the same mapping keeps its connection: still tracking on the next frame.
+        a.axes = " X, Y, -Z";
+        Invoke(a, "Update");
+        Check(a.IsTracking && TrackcalTrackedObject.SharedConnections == 2,
+              "axes respelt while playing keep the connection");
+        // A mirrored mapping typed while playing: logged once and the object disabled, its
+        // connection released.
+        int errorsBefore = UnityEngine.Debug.Errors.Count;
+        a.axes = "x,y,z";
+        Invoke(a, "Update");
+        Check(!a.enabled && UnityEngine.Debug.Errors.Count == errorsBefore + 1 &&
+              TrackcalTrackedObject.SharedConnections == 1,
+              "bad axes typed while playing disable the object and log");
+        UnityEngine.Debug.Errors.Clear();  // the checks below count from none
         Invoke(a, "OnDisable");
         Check(TrackcalTrackedObject.SharedConnections == 1, "the connection stays while an object uses it");
         Invoke(b, "OnDisable");
