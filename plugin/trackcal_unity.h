@@ -58,7 +58,10 @@ typedef struct TrackcalUnityStatus {
   int32_t udp;           /* reports arrive over the UDP data channel */
   int32_t reserved;
   uint64_t reports;     /* Pos_Quat reports received, every sensor */
-  uint64_t connections; /* connections made (1 after the first, more after reconnects) */
+  /* TCP connections made (1 after the first, more after reconnects), counted before the VRPN
+   * handshake: a peer that accepts and never completes it (a stopped server) adds one per attempt
+   * while connected stays 0. */
+  uint64_t connections;
   uint64_t texts;       /* text messages the server sent for this device */
 } TrackcalUnityStatus;
 

@@ -35,7 +35,7 @@ namespace Trackcal
         public int Udp;           // reports arrive over UDP
         public int Reserved;
         public ulong Reports;
-        public ulong Connections;
+        public ulong Connections; // TCP connections made, counted before the VRPN handshake
         public ulong Texts;
     }
 
