@@ -12,7 +12,9 @@
 #include <charconv>
 #include <chrono>
 #include <cstring>
+#include <filesystem>
 #include <iostream>
+#include <set>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -163,12 +165,25 @@ int Run(int argc, char** argv) {
   app.Start();
 
   const int ifd = ::inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
-  for (const auto& dir : app.CalibrationDirectories()) {
-    if (::inotify_add_watch(ifd, dir.c_str(), IN_CLOSE_WRITE | IN_MOVED_TO | IN_CREATE) < 0) {
-      LogToStderr("cannot watch " + dir.string() + " for calibration changes: " + std::strerror(errno) +
-                  " (SIGHUP still reloads)");
+  // Again after every reload: a symbolic link re-pointed into another directory (calib.json ->
+  // ../releases/v2/lab.json) has its new target there, which must be watched from then on. Adding a
+  // watch that exists is a no-op; a directory that cannot be watched is logged once. Returns
+  // whether a directory was added, so that a change made there before its watch is looked for.
+  std::set<std::filesystem::path> watched, unwatchable;
+  auto watch_calibration_directories = [&] {
+    bool added = false;
+    for (const auto& dir : app.CalibrationDirectories()) {
+      if (::inotify_add_watch(ifd, dir.c_str(), IN_CLOSE_WRITE | IN_MOVED_TO | IN_CREATE) >= 0) {
+        unwatchable.erase(dir);
+        added = watched.insert(dir).second || added;
+      } else if (unwatchable.insert(dir).second) {
+        LogToStderr("cannot watch " + dir.string() + " for calibration changes: " +
+                    std::strerror(errno) + " (SIGHUP still reloads)");
+      }
     }
-  }
+    return added;
+  };
+  watch_calibration_directories();
   for (;;) {
     pollfd fds[2] = {{sfd, POLLIN, 0}, {ifd, POLLIN, 0}};
     if (::poll(fds, 2, -1) < 0) {
@@ -180,6 +195,7 @@ int Run(int argc, char** argv) {
       while (::read(ifd, buf, sizeof(buf)) > 0) {
       }
       app.ReloadChangedCalibrations();
+      if (watch_calibration_directories()) app.ReloadChangedCalibrations();
     }
     if (fds[0].revents & POLLIN) {
       signalfd_siginfo info{};
@@ -187,6 +203,7 @@ int Run(int argc, char** argv) {
       if (info.ssi_signo == SIGHUP) {
         LogToStderr("SIGHUP: reloading calibrations");
         app.ReloadCalibrations();
+        if (watch_calibration_directories()) app.ReloadChangedCalibrations();
       } else if (info.ssi_signo == SIGUSR1) {
         LogToStderr(app.StatusLine());
       } else if (info.ssi_signo == SIGINT || info.ssi_signo == SIGTERM) {

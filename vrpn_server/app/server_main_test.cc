@@ -204,6 +204,45 @@ TEST(TrackcalServerMain, CalibrationSymlinkTargetChangeIsReloaded) {
   EXPECT_EQ(server.Wait(), 0);
 }
 
+// A release process that re-points the link (calib.json -> ../releases/v2/lab.json, swapped by
+// renaming a new link over it) and later rewrites the new target: the new target's directory must
+// be watched too. The server used to watch only the directories it found at start, so the rewrite
+// of v2/lab.json went unseen and the old correction stayed until a SIGHUP.
+TEST(TrackcalServerMain, CalibrationSymlinkRepointedToAnotherDirectoryIsWatched) {
+  const auto dir = testing::MakeTempDir("server_main_symlink_repoint");
+  std::filesystem::create_directories(dir / "cfg");
+  std::filesystem::create_directories(dir / "releases" / "v1");
+  std::filesystem::create_directories(dir / "releases" / "v2");
+  WriteOffsetCalibration(dir / "releases" / "v1" / "lab.json", Eigen::Vector3d(0.1, 0, 0));
+  WriteOffsetCalibration(dir / "releases" / "v2" / "lab.json", Eigen::Vector3d(0.2, 0, 0));
+  std::filesystem::create_symlink("../releases/v1/lab.json", dir / "cfg" / "calib.json");
+  std::ofstream(dir / "cfg" / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
+                                             "trackcal_Calibration Tracker0 calib.json\n";
+  const int port = FreePort();
+  Process server({ServerBinary(), "-f", (dir / "cfg" / "vrpn.cfg").string(), std::to_string(port),
+                  "--bind", "127.0.0.1"},
+                 dir / "stderr.txt");
+  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
+  double x = NAN;
+  corrected.SetPoseCallback(
+      [&](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
+  auto wait_for = [&](double expected) {
+    const auto end = Clock::now() + std::chrono::seconds(15);
+    while (Clock::now() < end && x != expected) corrected.Poll(0.005);
+    return x == expected;
+  };
+  EXPECT_TRUE(wait_for(0.1)) << server.Stderr();
+  // Atomic re-point, as `ln -sfn` does it: a new link renamed over the old one.
+  std::filesystem::create_symlink("../releases/v2/lab.json", dir / "cfg" / "calib.json.new");
+  std::filesystem::rename(dir / "cfg" / "calib.json.new", dir / "cfg" / "calib.json");
+  EXPECT_TRUE(wait_for(0.2)) << server.Stderr();
+  // The new target is rewritten in place of itself (atomically, in its own directory).
+  WriteOffsetCalibration(dir / "releases" / "v2" / "lab.json", Eigen::Vector3d(0.3, 0, 0));
+  EXPECT_TRUE(wait_for(0.3)) << server.Stderr();
+  ::kill(server.pid, SIGTERM);
+  EXPECT_EQ(server.Wait(), 0);
+}
+
 // A calibration is fitted for one receiver (its sensor offset and coil gains belong to that
 // receiver), so sensor=<n> applies it to that sensor only: each sensor gets its own file, a sensor
 // without one is served uncorrected, and a changed file is reloaded for its sensor alone. Before,
