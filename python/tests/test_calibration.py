@@ -392,3 +392,69 @@ def test_status_counts_takes_an_object_array_of_codes():
     """An object array of valid codes (as pandas gives) raised StopIteration from the check."""
     counts = trackcal.status_counts(np.array([0, 1, 1], dtype=object))
     assert counts == {"converged": 1, "ambiguous": 2, "not_converged": 0}
+
+
+def _run_correction_xyzw(doc, positions, quats):
+    """(N, 6) correction (e_p, vector part of q_e) of the example's explicit chain (polynomial, then
+    trilinear LUT) at positions inside its box, from the formulas of docs/calibration-file.md."""
+    poly, lut = doc["corrections"]
+    p, q = numpy_reference.correct_polynomial(
+        poly["degree"], np.array(poly["position_coefficients"]),
+        np.array(poly["orientation_coefficients"]), poly["input_offset"], poly["input_scale"],
+        positions, quats)
+    axes = [np.array(lut["axes"][k]) for k in "xyz"]
+    shape = tuple(len(a) for a in axes) + (3,)
+    nodes = [np.array(lut["position_error"]).reshape(shape), np.array(lut["orientation_error"]).reshape(shape)]
+    e_p, v = np.zeros_like(p), np.zeros_like(p)
+    for n, x in enumerate(p):
+        x = np.clip(x, [a[0] for a in axes], [a[-1] for a in axes])  # outside the grid: held
+        cell = [min(np.searchsorted(a, c, side="right") - 1, len(a) - 2) for a, c in zip(axes, x)]
+        frac = [(c - a[i]) / (a[i + 1] - a[i]) for a, c, i in zip(axes, x, cell)]
+        for corner in np.ndindex(2, 2, 2):
+            w = np.prod([f if b else 1.0 - f for f, b in zip(frac, corner)])
+            index = tuple(i + b for i, b in zip(cell, corner))
+            e_p[n] += w * nodes[0][index]
+            v[n] += w * nodes[1][index]
+    p = p + e_p
+    q = numpy_reference.quaternion_multiply_xyzw(numpy_reference.quaternion_from_vector_part(v), q)
+    return np.concatenate([p - positions, numpy_reference.orientation_error_vectors(q, quats)], axis=1)
+
+
+def test_linear_extrapolation_follows_the_documented_formula_on_low_and_high_faces():
+    # docs/calibration-file.md, `linear`: c(p) = c(p_b) + sum_k dc/dx_k (p_k - p_b,k) min(1, reach/d)
+    # with the one-sided derivative from inside the box. Its first writing took the outward
+    # difference for dc/dx_k, which turns the continuation around on the low faces (35 mm and
+    # 3 degrees off the served pose for a degree-4 fit): checked here on both sides of every axis.
+    doc = json.loads(EXAMPLE.read_text())
+    doc["calibrated_volume"].update(extrapolation="linear", linear_reach=0.1)
+    cal = trackcal.Calibration.from_json(json.dumps(doc))
+    lo, hi = np.array(doc["calibrated_volume"]["min"]), np.array(doc["calibrated_volume"]["max"])
+    rng = np.random.default_rng(7)
+    inside, quats = lo + (hi - lo) * rng.uniform(size=(60, 3)), random_poses(rng, 60)[1]
+    positions = inside.copy()
+    for n in range(60):  # out through a low or a high face (or two), 0 .. 0.3 m
+        axis, side = n % 3, (n // 3) % 2
+        positions[n, axis] = (hi if side else lo)[axis] + (1 if side else -1) * rng.uniform(0.0, 0.3)
+        if n % 4 == 0:
+            positions[n, (axis + 1) % 3] = lo[(axis + 1) % 3] - rng.uniform(0.0, 0.05)
+    p_b = np.clip(positions, lo, hi)
+    d = np.linalg.norm(positions - p_b, axis=1)
+    c0 = _run_correction_xyzw(doc, p_b, quats)
+    c = c0.copy()
+    h = np.minimum(1e-3, (hi - lo) / 10.0)
+    for k in range(3):
+        s = np.sign(positions[:, k] - p_b[:, k])  # outward sign, 0 where inside on k
+        e = np.zeros(3)
+        e[k] = 1.0
+        c1 = _run_correction_xyzw(doc, p_b - (s * h[k])[:, None] * e, quats)
+        c2 = _run_correction_xyzw(doc, p_b - (2.0 * s * h[k])[:, None] * e, quats)
+        dc_dx = s[:, None] * (3.0 * c0 - 4.0 * c1 + c2) / (2.0 * h[k])  # s = 1 / s: d/dx_k itself
+        c = c + dc_dx * ((positions[:, k] - p_b[:, k]) * np.minimum(1.0, 0.1 / np.maximum(d, 1e-300)))[:, None]
+    p_doc = positions + c[:, :3]
+    q_doc = numpy_reference.quaternion_multiply_xyzw(numpy_reference.quaternion_from_vector_part(c[:, 3:]), quats)
+    p, q, extrapolated = cal.correct(positions, quats)
+    assert extrapolated.all()
+    # Same formulas, other summation orders: rounding of ~1e-3 corrections, amplified by 1 / 2h
+    # (h = 1 mm) in the derivatives: ~1e-16 / 1e-3 * 0.1 m.
+    np.testing.assert_allclose(p, p_doc, rtol=0, atol=1e-12)
+    assert rotation_angles(q, q_doc).max() < 1e-7  # arccos of |dot| near 1 resolves only ~1e-8
