@@ -345,7 +345,11 @@ bool TrackcalServerApp::Reload(Tracker& t, Slot& slot, bool only_if_changed) {
     CheckHemispheres(slot.sensor, t.setup.hemispheres, t.setup.origin, *corrector);
     const std::string description = corrector->Describe();
     Install(t, slot, std::move(corrector));
-    Log(label + ": reloaded " + slot.file.string() + " (" + description + ")");
+    // A calibration file's description starts with its path: "reloaded calib.json (calib.json
+    // (polynomial, ...))" said it twice.
+    const std::string file = slot.file.string();
+    Log(label + ": reloaded " +
+        (description.rfind(file, 0) == 0 ? description : file + " (" + description + ")"));
     return true;
   } catch (const std::exception& e) {
     Log(label + ": rejected new " + slot.file.string() +

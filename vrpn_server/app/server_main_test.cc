@@ -283,6 +283,13 @@ TEST(TrackcalServerMain, CalibrationPerSensor) {
   EXPECT_EQ(server.Wait(), 0);
   const std::string err = server.Stderr();
   EXPECT_NE(err.find("Tracker0 sensor 1: reloaded"), std::string::npos) << err;
+  // The reload line names the file once (it said "reloaded b.json (b.json (...))").
+  const std::string reloaded = err.substr(err.find("Tracker0 sensor 1: reloaded"),
+                                          err.find('\n', err.find("Tracker0 sensor 1: reloaded")) -
+                                              err.find("Tracker0 sensor 1: reloaded"));
+  const std::string b = (dir / "b.json").string();
+  ASSERT_NE(reloaded.find(b), std::string::npos) << reloaded;
+  EXPECT_EQ(reloaded.find(b), reloaded.rfind(b)) << reloaded;
   EXPECT_NE(err.find("for sensor 1 (other sensors uncorrected)"), std::string::npos) << err;
 }
 
