@@ -436,3 +436,58 @@ def test_a_device_that_goes_quiet_while_connected_is_reported_after_saving(fake_
     # A device that keeps reporting is not reported.
     out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec2", 1.5)
     assert list(out) == ["raw"] and out.gaps == {}
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_a_recording_ended_by_sigterm_or_sighup_is_saved_first(server, tmp_path, signame):
+    """`kill PID`, `timeout 600 trackcal record ...`, a job scheduler cancelling the job or the
+    terminal closing (SIGHUP) killed the process at once: a 60 s recording killed 10 s in left an
+    empty folder and nothing of the 10 s (Ctrl-C kept them). Now the reports so far are saved as
+    for Ctrl-C, and the signal then takes its usual effect (the process ends by it)."""
+    import os
+    import signal
+    import sys
+    out = tmp_path / "rec"
+    script = ("import sys\n"
+              "from trackcal.record import record_streams\n"
+              "def progress(done, total):\n"
+              "    if done > 0.5:\n"
+              "        print('recording', flush=True)\n"
+              f"record_streams({{'raw': 'Tracker0_raw@tcp://127.0.0.1:{server}'}}, {str(out)!r}, 60.0,\n"
+              "              progress=progress)\n"
+              "print('returned', flush=True)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline() == "recording\n", proc.stderr.read()
+        os.kill(proc.pid, getattr(signal, signame))
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    # The signal still ends the process, as it did (the exit status a shell shows: 128 + signal).
+    assert proc.returncode == -getattr(signal, signame), stderr
+    assert "returned" not in stdout
+    raw = captures.load_tracker_stream(out / "raw_tracker_stream.csv")
+    # 2 NULL sensors at 100 Hz for > 0.5 s before the signal: >= 100 reports; a third of that on a
+    # loaded machine.
+    assert len(raw) > 30 and set(raw.sensor) == {1, 2}
+    assert not list(out.glob("*.partial")) and not list(out.glob(".*"))
+
+
+def test_an_ignored_sighup_does_not_end_the_recording(fake_recorders, tmp_path):
+    """Under nohup SIGHUP is ignored: the recording goes on to its duration (only a signal that
+    would have ended the process ends the recording)."""
+    import os
+    import signal
+    sent = []
+
+    def hang_up(done, total):
+        if not sent:
+            sent.append(os.kill(os.getpid(), signal.SIGHUP))
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec", 0.3, progress=hang_up)
+        assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+    assert sent and not out.interrupted and list(out) == ["raw"]

@@ -4,10 +4,12 @@ tracker_stream.csv (docs/captures.md) with the server's header time."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import pathlib
 import re
 import signal
+import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
 
@@ -44,7 +46,9 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
 
     Ctrl-C (KeyboardInterrupt) ends the recording early and returns normally with ``interrupted``
     set: every device's reports until then are saved (none if it came before all had connected,
-    when the recording had not started).
+    when the recording had not started). SIGTERM and SIGHUP (``kill``, ``timeout``, a job scheduler,
+    a closed terminal) end it the same way, and once it is saved the signal takes its usual effect
+    (by default it ends the process); one that is ignored (``nohup``) stays ignored.
 
     The folders this call makes (out_dir and its missing parents) are removed again when it writes
     nothing into them (an error, or Ctrl-C before all had connected); a folder that existed before,
@@ -72,10 +76,44 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     except OSError as e:  # a file in the way or no permission: the caller's input, as everywhere
         _remove_empty_folders(created)
         raise ValueError(f"{out_dir}: cannot make the recording folder ({e.strerror}: {e.filename})") from None
+    terminated: Set[int] = set()
     try:
-        return _record(devices, out_dir, duration_s, connect_timeout_s, progress)
+        with _terminations_interrupt(terminated):
+            return _record(devices, out_dir, duration_s, connect_timeout_s, progress, terminated)
     finally:
         _remove_empty_folders(created)
+        if terminated:  # saved: now the signal does what it would have done (its handler is back)
+            signal.raise_signal(min(terminated))
+
+
+# Signals that stop a recording from outside (kill, timeout, a scheduler, a closed terminal). By
+# default they ended the process at once and every report, held in memory until the end, was lost.
+_TERMINATIONS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+@contextlib.contextmanager
+def _terminations_interrupt(arrived: Set[int]):
+    """Inside the block SIGTERM and SIGHUP are noted in ``arrived`` and raise KeyboardInterrupt, so
+    they end a recording as Ctrl-C does; the previous handlers are back after it. A signal that is
+    ignored (nohup) or whose handler Python does not know is left alone, and so is everything outside
+    the main thread, where handlers cannot be set."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, _frame):
+        arrived.add(signum)
+        raise KeyboardInterrupt
+
+    previous = {s: signal.getsignal(s) for s in _TERMINATIONS}
+    previous = {s: h for s, h in previous.items() if h is not None and h != signal.SIG_IGN}
+    for s in previous:
+        signal.signal(s, interrupt)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 def _why_silent(recorder) -> str:
@@ -118,8 +156,9 @@ def _remove_empty_folders(folders: Sequence[pathlib.Path]) -> None:
 
 
 def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, connect_timeout_s: float,
-            progress: Optional[Callable[[float, float], None]]) -> Recording:
-    """record_streams into the existing folder out_dir."""
+            progress: Optional[Callable[[float, float], None]], terminated: Set[int]) -> Recording:
+    """record_streams into the existing folder out_dir; a SIGTERM or SIGHUP that arrives while it
+    saves is added to ``terminated``."""
     targets = {label: out_dir / f"{label}_tracker_stream.csv" for label in devices}
     for p in targets.values():
         if p.exists():
@@ -170,10 +209,13 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         raise
     # A second Ctrl-C while stopping and saving escaped and lost every recording: from here it is
     # remembered, and ends the recording as an interruption once every file is saved.
-    with signals_deferred((signal.SIGINT,)) as ctrl_c:
-        for r in recorders.values():
-            r.stop()
-        return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, ctrl_c)
+    with signals_deferred((signal.SIGINT, *_TERMINATIONS)) as ctrl_c:
+        try:
+            for r in recorders.values():
+                r.stop()
+            return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, ctrl_c)
+        finally:
+            terminated.update(ctrl_c - {signal.SIGINT})
 
 
 def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, silent, duration_s: float,
