@@ -491,3 +491,24 @@ def test_an_ignored_sighup_does_not_end_the_recording(fake_recorders, tmp_path):
     finally:
         signal.signal(signal.SIGHUP, previous)
     assert sent and not out.interrupted and list(out) == ["raw"]
+
+
+def test_a_file_that_appears_under_a_recordings_name_keeps_both(fake_recorders, tmp_path):
+    """Two `trackcal record -o run1` with the same labels (two terminals) both pass the start's check
+    that no recording is there; the first to finish writes raw_tracker_stream.csv and the second
+    was refused at its save and lost its whole recording (the error said only that the file
+    exists). The file that appeared is never replaced; the recording is kept beside it in
+    raw_tracker_stream.csv.partial (as trackcal-server --record keeps its own), named by the error."""
+    rec = tmp_path / "rec"
+
+    def other_recording(done, total):
+        if not (rec / "raw_tracker_stream.csv").exists():
+            (rec / "raw_tracker_stream.csv").write_text("the other recording\n")
+    with pytest.raises(RuntimeError, match=r"raw_tracker_stream\.csv: exists.*kept in .*raw_tracker_stream\.csv"
+                                           r"\.partial.*\(saved: .*raw_tracker_stream\.csv\.partial, "
+                                           r".*corrected_tracker_stream\.csv\)"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1", "corrected": "Tracker0@tcp://h:1"}, rec, 0.2,
+                       progress=other_recording)
+    assert (rec / "raw_tracker_stream.csv").read_text() == "the other recording\n"
+    assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv.partial")) == 5
+    assert len(captures.load_tracker_stream(rec / "corrected_tracker_stream.csv")) == 5

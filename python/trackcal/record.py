@@ -36,7 +36,9 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
                    progress: Optional[Callable[[float, float], None]] = None) -> Recording:
     """Records every named device (label -> 'Tracker0@tcp://host:port') for ``duration_s`` seconds
     after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir (which must
-    not hold such files already: recordings are never overwritten). Returns label -> path.
+    not hold such files already: recordings are never overwritten; one that appears there during the
+    recording is kept, and the recording saved beside it as ``<label>_tracker_stream.csv.partial``,
+    named in the error). Returns label -> path.
     Raises RuntimeError if a device does not connect (nothing is recorded then), sends no report
     during the recording, loses its connection during it (a server that stopped or went away: its
     recording is saved but has a gap or ends early), or sends nothing for longer than max(1 s, 10
@@ -218,6 +220,21 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             terminated.update(ctrl_c - {signal.SIGINT})
 
 
+def _keep_beside(target: pathlib.Path, stream: TrackerStream) -> Optional[pathlib.Path]:
+    """The recording saved as ``<target>.partial`` when a file appeared under the target's name
+    during the recording (a second recording into the same folder), as trackcal-server --record
+    keeps its own; that file is never replaced. None when the target is not there (a full disk, no
+    permission: the same folder would refuse this too) or the .partial cannot be written either."""
+    if not target.exists():
+        return None
+    partial = target.with_name(target.name + ".partial")
+    try:
+        save_tracker_stream(partial, stream)
+    except (ValueError, RuntimeError, OSError):
+        return None
+    return partial
+
+
 def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, silent, duration_s: float,
             ctrl_c: Set[int]) -> "Recording":
     """Saves every recording after the recording stopped; the problems are raised after saving."""
@@ -232,12 +249,16 @@ def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, 
         if len(d["time"]) == 0:
             empty.append(label)
             continue
+        # VRPN numbers sensors from 0; capture files (and trackcal-server --record) from 1.
+        stream = TrackerStream(d["time"], d["sensor"] + 1, d["positions"], d["quaternions_xyzw"])
         try:
-            # VRPN numbers sensors from 0; capture files (and trackcal-server --record) from 1.
-            save_tracker_stream(targets[label], TrackerStream(d["time"], d["sensor"] + 1, d["positions"],
-                                                              d["quaternions_xyzw"]))
+            save_tracker_stream(targets[label], stream)
         except (ValueError, RuntimeError, OSError) as e:  # still save the others
-            failed.append(str(e))
+            kept = _keep_beside(targets[label], stream)
+            failed.append(str(e) + (f" (it appeared during the recording: this recording is kept in {kept})"
+                                    if kept else ""))
+            if kept:
+                out[label] = kept
             continue
         out[label] = targets[label]
     out.empty = empty
