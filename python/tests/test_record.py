@@ -512,3 +512,39 @@ def test_a_file_that_appears_under_a_recordings_name_keeps_both(fake_recorders, 
     assert (rec / "raw_tracker_stream.csv").read_text() == "the other recording\n"
     assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv.partial")) == 5
     assert len(captures.load_tracker_stream(rec / "corrected_tracker_stream.csv")) == 5
+
+
+def test_a_recording_against_a_reference_clock_from_zero_estimates_around_a_given_offset(tmp_path):
+    """An optical system's clock often counts from its own start, the server's from 1970: the
+    offset is then -1.8e9 s, outside the default search (0 +- 0.5 s), and validate_recording used a
+    given offset as it was. Known only roughly (the pairing error says to give the difference of
+    the starts; the optical system started a little before `trackcal record`), it paired the
+    receiver's path with itself 0.3 s later: a 177.6 mm 'raw error' on an emulator recording whose
+    true raw error was 0, with no warning. ``estimate_time_offset=True`` searches around the given
+    offset, as trackcal.pair does."""
+    from trackcal import validation
+    from trackcal.captures import TrackerStream, save_tracker_stream
+    n = 1500  # 25 s at 60 Hz of a path visiting the same places at different speeds
+    t = 1796098746.933219 + np.arange(n) / 60.0
+    s = t - t[0]
+    p = np.column_stack([0.3 + 0.1 * np.sin(0.9 * s), 0.2 + 0.08 * np.sin(0.37 * s + 1.0), -0.5 + 0.05 * np.cos(0.6 * s)])
+    q = np.column_stack([np.zeros(n), np.zeros(n), np.sin(0.1 * s), np.cos(0.1 * s)])
+    raw = tmp_path / "raw_tracker_stream.csv"
+    save_tracker_stream(raw, TrackerStream(t, np.ones(n, dtype=int), p, q))
+    true_offset = 1.3 - 1796098746.0  # the optical clock started 1.3 s before the recording's second
+    reference = tmp_path / "reference_stream.csv"
+    _write_reference(reference, t + true_offset, p, q)
+    rough = 1.0 - 1796098746.0  # 0.3 s off
+    v = validation.validate_recording(raw, reference, time_offset=rough, estimate_time_offset=True)
+    assert v.capture.origin["time_offset_source"] == "estimated"
+    # The paired path is the reference's own: the offset comes back to interpolation error (the
+    # path moves at <= 0.1 m/s; 1 ms is 0.1 mm) and the raw error to ~0.
+    assert abs(v.capture.origin["time_offset_s"] - true_offset) < 1e-3
+    assert v.tables[-1].before_position_mm["mean"] < 0.1
+    # Given and not estimated (the default with an offset), it is used as it is.
+    given = validation.validate_recording(raw, reference, time_offset=rough)
+    assert given.capture.origin["time_offset_source"] == "given"
+    assert given.capture.origin["time_offset_s"] == rough
+    # No offset: estimated around 0, as before; asking for no estimate without an offset is refused.
+    with pytest.raises(ValueError, match="estimate_time_offset=False needs a time_offset"):
+        validation.validate_recording(raw, reference, estimate_time_offset=False)

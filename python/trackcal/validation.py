@@ -1150,7 +1150,8 @@ def validate(capture: PoseCapture, calibration=None, *, sets: Sequence[str] = ("
 
 def validate_recording(raw, reference, *, corrected=None, calibration=None, time_offset: Optional[float] = None,
                        search_range: float = 0.5, analyse_covariates: bool = False,
-                       covariate_options: Optional[dict] = None, sensor: Optional[int] = None) -> Validation:
+                       covariate_options: Optional[dict] = None, sensor: Optional[int] = None,
+                       estimate_time_offset: Optional[bool] = None) -> Validation:
     """Validates a live recording (``trackcal record``, ``trackcal.record.record_streams`` or
     ``trackcal-server --record``) against the reference (optical) stream recorded beside it.
 
@@ -1162,14 +1163,24 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
     number of the raw recording (not the sensor of its first row: a live recording's first report
     comes from whichever receiver the server sent first). The raw stream of that sensor is paired
     with the reference (``trackcal.pair``) at ``time_offset`` [s] (t_reference - t_tracker), or at
-    an offset estimated within +-``search_range`` s around 0 when it is None; the corrected reports
-    are matched to the paired raw samples by sensor and time.
+    an offset estimated within +-``search_range`` s around 0 when it is None;
+    ``estimate_time_offset=True`` estimates it around a given ``time_offset`` (a rough one: clocks
+    of different epochs, an optical clock counting from its own start), as trackcal.pair does
+    (default: estimated only when no offset is given). The corrected reports are matched to the
+    paired raw samples by sensor and time.
     Returns a Validation (Table 1 before and after, breakdowns, worst samples, ``capture.origin``
     with the offset); ValueError if no corrected report matches a raw one."""
     import pathlib
     from trackcal.captures import carry_stream_columns, load_tracker_stream, nearest_samples
     from trackcal.fitting import pair
-    estimate = time_offset is None
+    if estimate_time_offset is None:
+        estimate = time_offset is None
+    elif not isinstance(estimate_time_offset, (bool, np.bool_)):
+        raise ValueError(f"estimate_time_offset {estimate_time_offset!r}: must be True, False or None")
+    else:
+        estimate = bool(estimate_time_offset)
+        if not estimate and time_offset is None:
+            raise ValueError("estimate_time_offset=False needs a time_offset [s] (t_reference - t_tracker)")
     sensors = np.unique(load_tracker_stream(raw).sensor)
     if sensor is None:
         if len(sensors) == 0:
@@ -1179,7 +1190,7 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
         raise ValueError(f"{raw}: no report of sensor {sensor} (have: {', '.join(str(int(s)) for s in sensors)})")
     with warnings.catch_warnings():  # its warning goes in origin, printed with the pairing line
         warnings.simplefilter("ignore", UserWarning)
-        pairing = pair(raw, reference, time_offset=0.0 if estimate else float(time_offset),
+        pairing = pair(raw, reference, time_offset=0.0 if time_offset is None else float(time_offset),
                        estimate_time_offset=estimate, search_range=search_range, sensor=int(sensor))
     cap = pairing.poses
     sensor = carry_stream_columns(cap, raw, reference, pairing.time_offset_s, pairing.clock_drift_applied,
