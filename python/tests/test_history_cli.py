@@ -741,3 +741,32 @@ def test_fit_output_into_the_kept_copies_is_refused(tmp_path, monkeypatch, capsy
                          "--workdir", str(work)]) == 2
         assert "inside the work folder's models/" in capsys.readouterr().err
     assert kept.read_bytes() == example.read_bytes() and sorted(p.name for p in (work / "models").iterdir()) == [kept.name]
+
+
+def test_fit_records_the_capture_it_fitted_not_one_changed_meanwhile(tmp_path, monkeypatch):
+    """`trackcal fit --workdir W` hashed the capture when it recorded, after the fit (minutes for a
+    physical model): a poses.csv re-exported meanwhile lent its SHA-256 to the scores of the old
+    stations, while the calibration file's provenance named the old one, and the next fit on the
+    new file was compared with this row as a step of one loop instead of "other data"."""
+    from trackcal import cli
+    cap_dir = simulate(tmp_path / "capture", seed=46)
+    poses = cap_dir / "poses.csv"
+    fitted = trackcal_sha(poses)
+    model = tmp_path / "m.yaml"
+    model.write_text("terms:\n  - type: polynomial\n    degree: 1\n")
+    real_fit = trackcal.fit
+
+    def fit_then_change_the_capture(*args, **kwargs):
+        report = real_fit(*args, **kwargs)
+        with open(poses, "a") as f:  # the capture re-exported while the fit ran
+            f.write(poses.read_text().splitlines()[-1] + "\n")
+        return report
+    monkeypatch.setattr(trackcal, "fit", fit_then_change_the_capture)
+    work, cal = tmp_path / "work", tmp_path / "cal.json"
+    assert cli.main(["fit", "--data", str(cap_dir), "--model", str(model), "-o", str(cal),
+                     "--workdir", str(work)]) == 0
+    (e,) = history.load_history(work)
+    assert trackcal_sha(poses) != fitted
+    assert e["data"] == [{"path": str(poses.resolve()), "role": "calibration_capture", "sha256": fitted}]
+    provenance = json.loads(cal.read_text())["provenance"]["inputs"]
+    assert fitted in [i["sha256"] for i in provenance if i["role"] == "calibration_capture"]

@@ -321,11 +321,24 @@ def record_model_fit(workdir, report, *, model, data, calibration=None, label: O
         _keep_copy(cal_copy, cal_bytes)
         fields["calibration"] = {"path": str(pathlib.Path(calibration).resolve()), "sha256": cal_sha,
                                  "copy": str(cal_copy.relative_to(workdir))}
-    return record_fit(workdir, model=model_path,
-                      data=(_data_files(data) if isinstance(data, (str, os.PathLike))
-                            else _capture_data_files(data)),
-                      scores=report.scores(), label=default_label if label is None else label,
-                      fields=fields)
+    files = _data_files(data) if isinstance(data, (str, os.PathLike)) else _capture_data_files(data)
+    # The capture as the fit read it: the engine hashes each file when it reads it (the calibration
+    # file's provenance). Hashed again now, after a fit of minutes, a capture re-exported meanwhile
+    # lent its SHA-256 to the old stations' scores.
+    read = _fitted_capture_hashes(report)
+    if files and all(str(p) in read for p, _ in files):
+        fields["data"] = [{"path": str(p), "role": role, "sha256": read[str(p)]} for p, role in files]
+    return record_fit(workdir, model=model_path, data=files, scores=report.scores(),
+                      label=default_label if label is None else label, fields=fields)
+
+
+def _fitted_capture_hashes(report) -> Dict[str, str]:
+    """{resolved path: SHA-256} of the capture files the fit engine read (its provenance inputs);
+    {} for a report without them (a capture loaded in Python, a report made by hand)."""
+    provenance = getattr(getattr(report, "calibration", None), "provenance", None) or {}
+    return {str(pathlib.Path(i["path"]).resolve()): i["sha256"] for i in provenance.get("inputs") or []
+            if isinstance(i, dict) and i.get("role") == "calibration_capture"
+            and isinstance(i.get("path"), str) and isinstance(i.get("sha256"), str)}
 
 
 def scores_from_validation(validation) -> Dict[str, dict]:
