@@ -770,3 +770,54 @@ def test_fit_records_the_capture_it_fitted_not_one_changed_meanwhile(tmp_path, m
     assert e["data"] == [{"path": str(poses.resolve()), "role": "calibration_capture", "sha256": fitted}]
     provenance = json.loads(cal.read_text())["provenance"]["inputs"]
     assert fitted in [i["sha256"] for i in provenance if i["role"] == "calibration_capture"]
+
+
+def test_fit_says_which_row_is_its_own_when_another_fit_records_meanwhile(tmp_path, monkeypatch, capsys):
+    """`trackcal fit --workdir W` numbered its fit by the history's length read after recording,
+    and printed the last two rows as its own and the one before: a fit from another terminal
+    recorded in between made it say "Recorded fit #3" of fit #2 and show the other fit's row."""
+    from trackcal import cli
+    cap_dir = simulate(tmp_path / "capture", seed=47)
+    model = tmp_path / "m.yaml"
+    work = tmp_path / "work"
+    args = ["--data", str(cap_dir), "--model", str(model), "--workdir", str(work)]
+    model.write_text("terms:\n  - type: polynomial\n    degree: 1\n")
+    assert cli.main(["fit", *args, "-o", str(tmp_path / "c1.json")]) == 0
+    real_record = history.record_model_fit
+
+    def record_then_another_fit_records(*a, **k):
+        entry = real_record(*a, **k)
+        s = {"valid": {"position_mm": {"mean": 99.0}, "orientation_deg": {"mean": 9.0}}}
+        history.record_fit(work, model=None, data=[(cap_dir / "poses.csv", "calibration_capture")],
+                           scores=s, label="other terminal")
+        return entry
+    monkeypatch.setattr(history, "record_model_fit", record_then_another_fit_records)
+    model.write_text("terms:\n  - type: polynomial\n    degree: 2\n")
+    capsys.readouterr()
+    assert cli.main(["fit", *args, "-o", str(tmp_path / "c2.json"), "--label", "mine"]) == 0
+    out = capsys.readouterr().out
+    assert [e["label"] for e in history.load_history(work)] == ["polynomial", "mine", "other terminal"]
+    assert "Recorded fit #2 in" in out, out
+    table = out[out.index("Recorded fit"):].splitlines()[2:]
+    assert [r.split()[0] for r in table] == ["1", "2"] and "mine" in table[1] and "other terminal" not in out
+
+
+def test_validate_says_which_row_is_its_own_when_another_fit_records_meanwhile(tmp_path, monkeypatch, capsys):
+    """`trackcal validate --workdir W` numbered its row by the history's length, as fit did."""
+    from trackcal import cli
+    cap_dir = simulate(tmp_path / "capture", seed=48)
+    cal = tmp_path / "cal.json"
+    validation.fit_polynomial(captures.load_poses(cap_dir).select_set("calib"), degree=1).save(cal)
+    work = tmp_path / "work"
+    real_record = history.record_fit
+
+    def record_then_another_fit_records(*a, **k):
+        entry = real_record(*a, **k)
+        real_record(work, model=None, data=[], label="other terminal",
+                    scores={"valid": {"position_mm": {"mean": 9.0}, "orientation_deg": {"mean": 1.0}}})
+        return entry
+    monkeypatch.setattr(history, "record_fit", record_then_another_fit_records)
+    capsys.readouterr()
+    assert cli.main(["validate", str(cap_dir), "-c", str(cal), "--workdir", str(work), "--label", "mine"]) == 0
+    assert [e["label"] for e in history.load_history(work)] == ["mine", "other terminal"]
+    assert "Recorded validation #1 in" in capsys.readouterr().out

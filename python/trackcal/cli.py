@@ -204,9 +204,10 @@ def _validation(args, term, covariates: bool):
     return capture, cal, v
 
 
-def _record_history(args, v) -> None:
+def _record_history(args, v) -> Optional[dict]:
+    """Records a validation in --workdir's history; the entry recorded (None without --workdir)."""
     if not getattr(args, "workdir", None) or getattr(args, "command", "") != "validate":
-        return
+        return None
     from trackcal.history import record_fit, scores_from_validation
     if not args.calibration:
         raise ValueError("--workdir records a fit: give its calibration with -c")
@@ -235,10 +236,10 @@ def _record_history(args, v) -> None:
     sensors = np.unique(column) if column is not None else []
     if len(sensors) == 1:
         fields["sensor"] = int(sensors[0])
-    record_fit(args.workdir, model=pathlib.Path(args.calibration).resolve(),
-               data=[(pathlib.Path(f).resolve(), "validation_capture") for f in files],
-               scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name,
-               fields=fields)
+    return record_fit(args.workdir, model=pathlib.Path(args.calibration).resolve(),
+                      data=[(pathlib.Path(f).resolve(), "validation_capture") for f in files],
+                      scores=scores_from_validation(v), label=args.label or pathlib.Path(args.calibration).name,
+                      fields=fields)
 
 
 def _has_valid_set(data) -> bool:
@@ -335,9 +336,11 @@ def cmd_fit(args, term) -> int:
     print(f"Wrote {args.output}")
     if entry is not None:
         entries = history.load_history(args.workdir)
-        print(f"Recorded fit #{len(entries)} in {pathlib.Path(args.workdir) / history.HISTORY_FILE}")
-        if len(entries) > 1:
-            print(history.history_table(entries[-2:], first=len(entries) - 1))
+        # Its own row, not the last: a fit from another terminal may have recorded since.
+        number = history.entry_number(entries, entry)
+        print(f"Recorded fit #{number} in {pathlib.Path(args.workdir) / history.HISTORY_FILE}")
+        if number > 1:
+            print(history.history_table(entries[number - 2:number], first=number - 1))
     return 0
 
 
@@ -351,7 +354,7 @@ def _unresolved_line(v) -> str:
 
 def cmd_validate(args, term) -> int:
     _, _, v = _validation(args, term, covariates=False)
-    _record_history(args, v)
+    entry = _record_history(args, v)
     _write_residuals(args, v)
     if args.json:  # one document on stdout, nothing else (as diagnose and fit), for scripts
         from trackcal.diagnosis import _finite
@@ -370,8 +373,8 @@ def cmd_validate(args, term) -> int:
     print(_unresolved_line(v))
     if getattr(args, "workdir", None):  # as trackcal fit says where it recorded its fit
         from trackcal import history
-        entries = history.load_history(args.workdir)
-        print(f"Recorded validation #{len(entries)} in {pathlib.Path(args.workdir) / history.HISTORY_FILE}")
+        number = history.entry_number(history.load_history(args.workdir), entry)
+        print(f"Recorded validation #{number} in {pathlib.Path(args.workdir) / history.HISTORY_FILE}")
     return 0
 
 

@@ -218,6 +218,15 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
     return entry
 
 
+def entry_number(entries: Sequence[dict], entry: dict) -> int:
+    """The 1-based row of ``entry`` (as record_fit returned it) in ``entries`` (the history read
+    after it was recorded): the last row equal to it. Not the history's length: another fit may
+    have been recorded since (two terminals, parallel scripts). len(entries) when it is not there
+    (the history rewritten meanwhile)."""
+    recorded = json.loads(json.dumps(entry))  # as read back: tuples become lists
+    return next((i for i in range(len(entries), 0, -1) if entries[i - 1] == recorded), len(entries))
+
+
 def _data_files(data) -> List[Tuple[pathlib.Path, str]]:
     """The capture files a fit read from ``data`` (folder or poses.csv)."""
     p = pathlib.Path(data).resolve()
