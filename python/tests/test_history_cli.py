@@ -802,6 +802,41 @@ def test_fit_says_which_row_is_its_own_when_another_fit_records_meanwhile(tmp_pa
     assert [r.split()[0] for r in table] == ["1", "2"] and "mine" in table[1] and "other terminal" not in out
 
 
+def test_history_plot_of_many_fits_stays_readable(tmp_path):
+    """A work folder of 200 fits drew 200 rotated labels under the plot: they overlapped into a
+    black band taller than the axes, and one grid line per fit. Beyond 20 fits the ticks are the
+    fits' numbers (the table's #), a readable few."""
+    import matplotlib.pyplot as plt
+    from trackcal import figures
+    data = tmp_path / "poses.csv"
+    data.write_text("x\n")
+
+    def entries(n):
+        return [{"label": f"+dipole step {i} of a long loop", "data": [{"path": str(data), "sha256": "ab"}],
+                 "scores": {"valid": {"position_mm": {"mean": 30 * 0.98 ** i},
+                                      "orientation_deg": {"mean": 3 * 0.98 ** i}}}} for i in range(n)]
+    fig = figures.history_plot(entries(200))
+    try:
+        ax = fig.axes[0]
+        fig.canvas.draw()
+        lo, hi = ax.get_xlim()
+        ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+        assert 2 <= len(ticks) <= 20, ticks
+        assert all(float(t).is_integer() and 1 <= t <= 200 for t in ticks), ticks
+        assert "#" in ax.get_xlabel()
+        # The tick labels fit below the axes: no taller than a fifth of the figure.
+        renderer = fig.canvas.get_renderer()
+        heights = [t.get_window_extent(renderer).height for t in ax.get_xticklabels() if t.get_text()]
+        assert max(heights) < fig.bbox.height / 5
+    finally:
+        plt.close(fig)
+    fig = figures.history_plot(entries(5))  # a short loop keeps its labels
+    try:
+        assert [t.get_text() for t in fig.axes[0].get_xticklabels()] == [e["label"] for e in entries(5)]
+    finally:
+        plt.close(fig)
+
+
 def test_validate_says_which_row_is_its_own_when_another_fit_records_meanwhile(tmp_path, monkeypatch, capsys):
     """`trackcal validate --workdir W` numbered its row by the history's length, as fit did."""
     from trackcal import cli

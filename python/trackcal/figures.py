@@ -330,6 +330,11 @@ def covariate_bars(effects, *, target: str = "position_mm", top: int = 15):
     return fig
 
 
+# Beyond this many fits the history plot's ticks are fit numbers: rotated labels overlap (measured:
+# 200 fits of 30-character labels made a band taller than the axes on the 6.4 inch figure).
+_MAX_LABELLED_FITS = 20
+
+
 def history_plot(entries: Sequence[dict]):
     """Error after each recorded fit (mean position mm and orientation deg of the held-out or
     validation set when recorded, else the calibration set). When the errors span more than a
@@ -346,26 +351,36 @@ def history_plot(entries: Sequence[dict]):
     keys = [comparable_key(e) for e in entries]
     starts = [0] + [i for i in range(1, len(entries)) if not comparable(keys[i], keys[i - 1])]
     runs = list(zip(starts, starts[1:] + [len(entries)]))
+    many = len(entries) > _MAX_LABELLED_FITS  # smaller markers: 200 hollow squares hid the lines
     for k, (a, b) in enumerate(runs):
-        ax.plot(x[a:b], pos[a:b], "o-", color="tab:blue", label="position mean [mm]" if k == 0 else None)
+        ax.plot(x[a:b], pos[a:b], "o-", color="tab:blue", markersize=3 if many else 6,
+                label="position mean [mm]" if k == 0 else None)
     ax.set_ylabel("position error mean [mm]", color="tab:blue")
     ax2 = ax.twinx()
     for k, (a, b) in enumerate(runs):
         # Hollow and larger: where the two axes put a point at the same height (a single fit is
         # in the middle of both) the position marker stays visible inside the square.
-        ax2.plot(x[a:b], ori[a:b], "s--", color="tab:red", markerfacecolor="none", markersize=9,
-                 label="orientation mean [deg]" if k == 0 else None)
+        ax2.plot(x[a:b], ori[a:b], "s--", color="tab:red", markerfacecolor="none",
+                 markersize=4 if many else 9, label="orientation mean [deg]" if k == 0 else None)
     ax2.set_ylabel("orientation error mean [deg]", color="tab:red")
     for axis, values in ((ax, pos), (ax2, ori)):
         v = np.asarray([y for y in values if np.isfinite(y) and y > 0])
         if len(v) >= 2 and v.max() > 20 * v.min():
             axis.set_yscale("log")
-    ax.set_xticks(x)
-    ax.set_xticklabels([str(e.get("label") or i) for i, e in zip(x, entries)], rotation=30, ha="right",
-                       fontsize=8)
+    if len(entries) <= _MAX_LABELLED_FITS:
+        ax.set_xticks(x)
+        ax.set_xticklabels([str(e.get("label") or i) for i, e in zip(x, entries)], rotation=30, ha="right",
+                           fontsize=8)
+        ax.set_xlabel("fit (label)")  # the ticks are the fits' labels, in recorded order
+    else:
+        # 200 rotated labels overlapped into a band taller than the axes: a few fit numbers instead,
+        # the rows of `trackcal history`, whose table names each fit's label.
+        from matplotlib.ticker import MaxNLocator
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=12, integer=True, min_n_ticks=2))
+        ax.set_xlim(0.5, len(entries) + 0.5)
+        ax.set_xlabel("fit # (the row of `trackcal history`, which gives its label)")
     sets = sorted({headline_set(e) for e in entries} - {None})
     ax.set_title("Error after each change" + (f" ({', '.join(sets)})" if sets else ""))
-    ax.set_xlabel("fit (label)")  # the ticks are the fits' labels, in recorded order
     # One legend for the two axes' lines (only the axis labels' colours told them apart).
     handles = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
     if handles:
