@@ -856,3 +856,22 @@ def test_validate_says_which_row_is_its_own_when_another_fit_records_meanwhile(t
     assert cli.main(["validate", str(cap_dir), "-c", str(cal), "--workdir", str(work), "--label", "mine"]) == 0
     assert [e["label"] for e in history.load_history(work)] == ["mine", "other terminal"]
     assert "Recorded validation #1 in" in capsys.readouterr().out
+
+
+def test_a_record_removes_the_temporaries_of_writers_killed_mid_write(tmp_path):
+    """history.jsonl is rewritten through a temporary copy renamed over it; a writer killed with
+    SIGKILL between the two left its copy, a whole history, in the work folder for good (3 of 6
+    records killed at random left 2-4.5 MB each). The next record, holding the lock every writer
+    holds while its copy exists, removes them; other files are left alone."""
+    work = tmp_path / "work"
+    s = {"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}}
+    history.record_fit(work, model=None, data=[], scores=s, label="a")
+    killed = work / ".history.jsonl.tmp-0badf00d"
+    killed.write_bytes((work / "history.jsonl").read_bytes())  # what a killed writer leaves
+    others = [work / ".poses.csv.tmp-0badf00d", work / "history.jsonl.tmp-notes"]
+    for o in others:
+        o.write_text("mine\n")
+    history.record_fit(work, model=None, data=[], scores=s, label="b")
+    assert not killed.exists()
+    assert all(o.read_text() == "mine\n" for o in others)
+    assert [e["label"] for e in history.load_history(work)] == ["a", "b"]

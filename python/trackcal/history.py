@@ -215,7 +215,20 @@ def record_fit(workdir, *, model, data: Sequence[Tuple[str, str]], scores: Dict[
         if old and not old.endswith(b"\n"):
             old += b"\n"
         replace_atomically(path, old + (json.dumps(entry, sort_keys=True) + "\n").encode())
+        _remove_stale_temporaries(path)
     return entry
+
+
+def _remove_stale_temporaries(path: pathlib.Path) -> None:
+    """Removes the temporary copies of history.jsonl (``.history.jsonl.tmp-*``) that writers killed
+    mid-write (SIGKILL, a power cut) left: each is a whole copy of the history, and they piled up
+    (3 of 6 records killed at random left 2-4.5 MB each). Called under the lock, which every writer
+    holds while its temporary exists, so none of them is in use; without fcntl none is touched."""
+    if fcntl is None:
+        return
+    for stale in path.parent.glob(f".{path.name}.tmp-*"):
+        with contextlib.suppress(OSError):
+            stale.unlink()
 
 
 def entry_number(entries: Sequence[dict], entry: dict) -> int:
