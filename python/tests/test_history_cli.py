@@ -432,6 +432,13 @@ GOOD = {"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}
     ('{"scores": {}, "terms": "polynomial"}', "terms", "expected a list of term names"),
     ('{"scores": {}, "time_utc": null}', "time_utc", "expected a string, got null"),
     ('{"scores": {}, "data": 3}', "data", "expected a list of files, got a number"),
+    # Shown in the table and the plot: a hand-edited null label was printed "None".
+    ('{"scores": {}, "label": null}', "label", "expected a string, got null"),
+    ('{"scores": {}, "label": ["+dipole"]}', "label", "expected a string, got a list"),
+    # Compared between rows ("sensor N"): "2" and 2 were two receivers.
+    ('{"scores": {}, "sensor": "2"}', "sensor", "expected the receiver's whole number, got a string"),
+    ('{"scores": {}, "sensor": 1.5}', "sensor", "expected the receiver's whole number, got a number"),
+    ('{"scores": {}, "sensor": NaN}', "sensor", "expected the receiver's whole number, got a number"),
 ])
 def test_history_malformed_entry_names_file_line_and_field(tmp_path, capsys, line, field, what):
     from trackcal import cli

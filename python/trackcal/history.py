@@ -170,6 +170,12 @@ def _entry_problem(e) -> Optional[Tuple[str, str]]:
     terms = e.get("terms")
     if "terms" in e and not (isinstance(terms, list) and all(isinstance(t, str) for t in terms)):
         return "terms", "expected a list of term names"
+    if "label" in e and not isinstance(e["label"], str):
+        return "label", f"expected a string, got {_kind(e['label'])}"
+    sensor = e.get("sensor")
+    # Any whole number: a capture's sensor column may count from 0, and validate records it as is.
+    if "sensor" in e and not (_is_number(sensor) and math.isfinite(sensor) and sensor == int(sensor)):
+        return "sensor", f"expected the receiver's whole number, got {_kind(sensor)}"
     if "time_utc" in e and not isinstance(e["time_utc"], str):
         return "time_utc", f"expected a string, got {_kind(e['time_utc'])}"
     if "calibration" in e and not isinstance(e["calibration"], dict):
