@@ -370,7 +370,8 @@ int main(int argc, char** argv) {
       const double us = time_loop(kind == Kind::kPhysical ? in_room : plain, corrector.get());
       if (kind == Kind::kPolynomial4) poly_us = us;
       std::printf(
-          "correction per pose, %-8s: %.3f us CPU (%.2fx the polynomial's; loop without it: %.3f us)\n",
+          "correction per pose, %-8s: %.3f us CPU (%.2fx the polynomial's; loop without it: %.3f "
+          "us)\n",
           KindName(kind), us, us / poly_us, loop_us);
     }
     std::printf("(checksum %.3g)\n", sink);
