@@ -883,6 +883,50 @@ TEST_F(FitCliTest, RegisterWithPosesLabelsAndFlagsTheDistortion) {
             2);
 }
 
+// Stations that give no reference pose are counted with why on stderr; when none gives one the
+// command fails without writing. A marker body on one line registers (the tracker gives each
+// station's orientation) but every station's pose is degenerate: that used to be "Wrote 0 poses",
+// exit 0, a header-only poses.csv and nothing saying why.
+TEST_F(FitCliTest, RegisterSaysWhyStationsGiveNoPose) {
+  std::ofstream(dir_ / "collinear.yaml") << "base: ideal\nreference:\n  markers_in_body:\n"
+                                            "    - [0.06, 0, 0]\n    - [-0.06, 0, 0]\n"
+                                            "    - [0.03, 0, 0]\n    - [-0.03, 0, 0]\n";
+  ASSERT_EQ(RunCommand((BinaryDir() / "sim" / "trackcal-simulate").string() + " --scene " +
+                       (dir_ / "collinear.yaml").string() + " -o " + (dir_ / "collinear").string() +
+                       " > /dev/null"),
+            0);
+  const fs::path err = dir_ / "err.txt", out = dir_ / "collinear_poses.csv";
+  const fs::path cap = dir_ / "collinear";
+  EXPECT_EQ(
+      RunCommand(fit_ + " register --markers " + (cap / "markers.csv").string() + " --tracker " +
+                 (cap / "tracker.csv").string() + " --poses " + (cap / "poses.csv").string() +
+                 " -o " + out.string() + " > /dev/null 2> " + err.string()),
+      1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("markers.csv: no station gives a reference pose: 620 "
+                                   "degenerate (e.g. station 1: visible markers nearly collinear"));
+  EXPECT_FALSE(fs::exists(out));
+
+  // One calibration station of the paper capture down to two markers: its pose is missing, and
+  // the warning says so.
+  MarkerCapture markers = ReadMarkers(dir_ / "cap" / "markers.csv");
+  const int station = markers.records.front().station;
+  int seen = 0;
+  std::erase_if(markers.records,
+                [&](const MarkerRecord& m) { return m.station == station && ++seen > 2; });
+  WriteMarkers(dir_ / "two.csv", markers);
+  EXPECT_EQ(RunCommand(fit_ + " register --markers " + (dir_ / "two.csv").string() + " --tracker " +
+                       (dir_ / "cap" / "tracker.csv").string() + " --poses " +
+                       (dir_ / "cap" / "poses.csv").string() + " -o " +
+                       (dir_ / "two_poses.csv").string() + " > /dev/null 2> " + err.string()),
+            0);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("two.csv: 1 of 620 stations give no reference pose: 1 "
+                                   "too_few_markers (e.g. station " +
+                                   std::to_string(station) + ": 2 marker(s) visible, need 3)"));
+  EXPECT_EQ(ReadPoses(dir_ / "two_poses.csv").records.size(), 619u);
+}
+
 // The options of each command in `trackcal-fit --help` and in the synopsis that opens docs/fit.md
 // (the block a user copies) are the same: a user reads one or the other, and an option the usage
 // leaves out (diagnose's --sensor was) looks like one the command does not take.
