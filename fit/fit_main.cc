@@ -18,7 +18,6 @@
 // and a message naming file, line and field; bad usage exits with 2. A registration that is not
 // identifiable exits with 3 and writes no poses (unless --allow-unidentifiable).
 
-#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -723,18 +722,7 @@ int RunRegister(int argc, char** argv) {
   // Why stations give no pose, said: "Wrote 0 poses" was all a capture whose marker body is
   // collinear got (every station degenerate), exit 0, and fit then failed on the empty file.
   if (!left_out.empty()) {
-    std::map<std::string, std::pair<int, const ExtractedPose*>> why;  // status -> count, first
-    for (const ExtractedPose& e : extracted) {
-      if (std::find(left_out.begin(), left_out.end(), e.station) == left_out.end()) continue;
-      auto& entry = why.emplace(PoseStatusName(e.status), std::make_pair(0, &e)).first->second;
-      ++entry.first;
-    }
-    std::string summary;
-    for (const auto& [status, entry] : why) {
-      summary += (summary.empty() ? "" : "; ") + std::to_string(entry.first) + " " + status +
-                 " (e.g. station " + std::to_string(entry.second->station) +
-                 (entry.second->message.empty() ? "" : ": " + entry.second->message) + ")";
-    }
+    const std::string summary = NoPoseSummary(extracted, left_out);
     if (poses.records.empty()) {
       throw std::invalid_argument(markers_path.string() + ": no station gives a reference pose: " +
                                   summary + "; " + output.string() + " not written");

@@ -5,6 +5,7 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <set>
 #include <sstream>
 #include <stdexcept>
@@ -240,6 +241,23 @@ std::string SymmetricMarkersWarning(const std::vector<ExtractedPose>& poses,
       << " mm bad-fit limit): a swapped label there gives a pose turned up to 180 deg that no "
          "check catches; keep four or more asymmetrically placed markers in view";
   return out.str();
+}
+
+std::string NoPoseSummary(const std::vector<ExtractedPose>& poses,
+                          const std::vector<int>& stations) {
+  const std::set<int> wanted(stations.begin(), stations.end());
+  std::map<std::string, std::pair<int, const ExtractedPose*>> why;  // status -> count, first
+  for (const ExtractedPose& e : poses) {
+    if (!wanted.count(e.station)) continue;
+    ++why.emplace(PoseStatusName(e.status), std::make_pair(0, &e)).first->second.first;
+  }
+  std::string summary;
+  for (const auto& [status, entry] : why) {
+    summary += (summary.empty() ? "" : "; ") + std::to_string(entry.first) + " " + status +
+               " (e.g. station " + std::to_string(entry.second->station) +
+               (entry.second->message.empty() ? "" : ": " + entry.second->message) + ")";
+  }
+  return summary;
 }
 
 }  // namespace trackcal::fit

@@ -86,4 +86,11 @@ std::vector<ExtractedPose> ExtractPoses(const std::vector<RegistrationStation>& 
 std::string SymmetricMarkersWarning(const std::vector<ExtractedPose>& poses,
                                     const PoseExtractionOptions& options = {});
 
+// "" when `stations` is empty; else, for the poses of those stations (the ones given no pose
+// record, e.g. MakePoseRecords' left_out), how many per status with the first station and its
+// message: "620 degenerate (e.g. station 1: visible markers nearly collinear (spread 0.000 mm))".
+// For warnings and errors.
+std::string NoPoseSummary(const std::vector<ExtractedPose>& poses,
+                          const std::vector<int>& stations);
+
 }  // namespace trackcal::fit

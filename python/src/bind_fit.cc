@@ -617,6 +617,10 @@ void BindFit(py::module_& m) {
       .def_property_readonly(
           "symmetry_warning",
           [](const RegistrationRun& r) { return fit::SymmetricMarkersWarning(r.extracted); })
+      .def_property_readonly(
+          "no_pose_summary",
+          [](const RegistrationRun& r) { return fit::NoPoseSummary(r.extracted, r.left_out); },
+          "\"\" or why the stations in left_out give no pose, counted per status.")
       .def_property_readonly("converged",
                              [](const RegistrationRun& r) { return r.registration.converged; })
       .def_property_readonly("identifiable",

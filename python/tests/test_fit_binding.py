@@ -476,6 +476,30 @@ def test_register_warns_when_not_identifiable(capture_dir, tmp_path):
     assert not (tmp_path / "poses.csv").exists()
 
 
+def test_register_warns_why_stations_give_no_pose(capture_dir, tmp_path):
+    """A station down to two markers gives no pose: the Python call says so and why, as
+    trackcal-fit register does on stderr (it used to leave it to ``left_out``, without a reason)."""
+    with open(capture_dir / "markers.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    station = rows[0]["station"]
+    kept, seen = [], 0
+    for row in rows:
+        if row["station"] == station:
+            seen += 1
+            if seen > 2:
+                continue
+        kept.append(row)
+    with open(tmp_path / "markers.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(kept)
+    with pytest.warns(UserWarning, match=rf"1 of \d+ stations give no reference pose: 1 too_few_markers "
+                                         rf"\(e\.g\. station {station}: 2 marker\(s\) visible, need 3\)"):
+        reg = trackcal.register(tmp_path / "markers.csv", capture_dir / "tracker.csv",
+                                poses=capture_dir / "poses.csv")
+    assert reg.left_out == [int(station)]
+
+
 def test_station_with_a_tracker_reading_far_off_is_left_out_with_a_warning(capture_dir, tmp_path):
     """One registration station's tracker reading 0.5 m off (metal near the receiver): it used to
     move the registration by degrees with no message; Python and the command line leave it out and
@@ -533,9 +557,15 @@ def test_station_with_swapped_marker_labels_is_left_out_with_a_warning(capture_d
     assert f"station {station} left out of the registration" in done.stderr
     assert json.loads(done.stdout)["registration"]["rejected_stations"][0]["station"] == int(station)
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no warning when every station is kept on request
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         kept = trackcal.register(tmp_path / "markers.csv", tmp_path / "tracker.csv", reject_bad_stations=False)
+    # No station left out when every station is kept on request; the swapped one still gives no
+    # pose (its markers misfit the registered body: bad_fit), and that is said.
+    assert not [w for w in caught if "left out of the registration" in str(w.message)]
+    no_pose = [str(w.message) for w in caught if "give no reference pose" in str(w.message)]
+    assert len(no_pose) == 1 and (f"1 bad_fit (e.g. station {station}: marker residual RMS"
+                                  in no_pose[0]), no_pose
     assert kept.rejected_stations == [] and kept.chi_square > reg.chi_square
     # Any three of the paper's six markers are symmetric: a swap among them fits as well, unseen.
     assert "so symmetric that two labels swapped would fit as well" in reg.symmetry_warning

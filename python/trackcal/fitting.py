@@ -334,7 +334,9 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     misidentified label), or whose tracker reading is far off the others' (a hemisphere flip, a
     reading metres off near metal), is left out of the registration, at most 20 % of them, with a
     warning naming it and why (``rejected_stations``, ``reason``); ``reject_bad_stations=False`` keeps every station, as
-    ``--keep-all-stations``."""
+    ``--keep-all-stations``. Stations that give no reference pose (``left_out``) warn with how many
+    per reason (too few markers, degenerate, bad fit) and an example, as ``trackcal-fit register``
+    says on stderr."""
     markers, tracker = _input_file(markers, "markers.csv"), _input_file(tracker, "tracker.csv")
     poses = _input_file(poses, "poses.csv")
     native = _core.register(markers, tracker, sensor=sensor, set=set, optical_noise_m=optical_noise_m,
@@ -347,6 +349,12 @@ def register(markers: PathLike, tracker: PathLike, *, sensor: int = 1, set: str 
     for left_out in result.rejected_stations:
         warnings.warn(f"{markers}: station {left_out['station']} left out of the registration: "
                       f"{left_out['message']}", UserWarning, stacklevel=2)
+    if result.left_out:
+        # As trackcal-fit register says on stderr (which refuses to write when no station has a
+        # pose: a marker body on one line makes every station degenerate).
+        total = len(result.left_out) + len(result.poses.station)
+        warnings.warn(f"{markers}: {len(result.left_out)} of {total} stations give no reference pose: "
+                      f"{native.no_pose_summary}", UserWarning, stacklevel=2)
     if not result.identifiable:
         flagged = ", ".join(f["coordinate"] for f in result.identifiability_flags) or "none named"
         warnings.warn(f"{markers}: the registration is not identifiable (poorly identified: {flagged}); "
