@@ -1248,40 +1248,6 @@ double WilcoxonSmallestP(int n) {
   return WilcoxonSignedRankGreater(d);
 }
 
-namespace {
-constexpr int kMinSamplesPerBlock = 5;  // TimeClusters' minimum
-// A block spans at least the pairing's correlation window (its Newey-West window, 0.5 s): on a
-// 3 s stream, 32 blocks of 0.09 s would be as correlated as the samples themselves.
-constexpr double kMinBlockSeconds = 0.5;
-}  // namespace
-
-std::vector<int> SerialTestBlocks(const std::vector<FitStation>& stations, int serial_blocks,
-                                  int folds) {
-  if (serial_blocks <= 0 || !SerialSamples(stations)) return {};
-  const int n = static_cast<int>(stations.size());
-  double first = std::numeric_limits<double>::infinity(), last = -first;
-  for (const auto& s : stations) {
-    if (!std::isfinite(s.time)) continue;
-    first = std::min(first, s.time);
-    last = std::max(last, s.time);
-  }
-  const double duration = last > first ? last - first : 0.0;
-  int blocks = std::min({serial_blocks, n / kMinSamplesPerBlock,
-                         static_cast<int>(std::floor(duration / kMinBlockSeconds))});
-  // Never fewer blocks than folds, nor back to per-sample folds and tests: a short stream gets
-  // `folds` blocks, whose test cannot reach a small p (5 blocks: 1/32), which is what it can show.
-  blocks = std::max(blocks, folds);
-  if (n < blocks) return {};
-  std::vector<int> block = TimeClusters(stations, blocks, /*min_per_cluster=*/1);
-  // Numbered densely (samples sharing a time stay together and can skip a number).
-  std::map<int, int> dense;
-  for (int b : block) dense.emplace(b, 0);
-  int next = 0;
-  for (auto& [b, d] : dense) d = next++;
-  for (int& b : block) b = dense[b];
-  return block;
-}
-
 RankPick RankFirst(const std::vector<RankEntry>& entries, double family_alpha,
                    double max_delta_bic, const std::vector<int>& block_of) {
   RankPick pick;
@@ -2430,8 +2396,9 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       while (needed < 100000 && !(WilcoxonSmallestP(needed) < d.p_threshold)) ++needed;
       std::ostringstream v;
       v << "The paired test has " << n
-        << (blocks ? " blocks of time (at least " + FormatNumber(kMinBlockSeconds, 1) + " s and " +
-                         std::to_string(kMinSamplesPerBlock) + " samples each) on this stream"
+        << (blocks ? " blocks of time (at least " + FormatNumber(kSerialBlockMinSeconds, 1) +
+                         " s and " + std::to_string(kSerialBlockMinSamples) +
+                         " samples each) on this stream"
                    : std::string(" stations"))
         << ": its smallest p (every one favouring a candidate) is "
         << FormatSignificant(d.paired_test_smallest_p, 2) << ", not below the threshold "
@@ -2441,8 +2408,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
            "test), whatever they show. ";
       if (blocks && needed <= options.serial_blocks) {
         v << "Record a longer stream (" << needed << " blocks: at least "
-          << FormatNumber(needed * kMinBlockSeconds, 1) << " s and " << needed * kMinSamplesPerBlock
-          << " samples)";
+          << FormatNumber(needed * kSerialBlockMinSeconds, 1) << " s and "
+          << needed * kSerialBlockMinSamples << " samples)";
       } else if (!blocks) {
         v << "Capture more stations (at least " << needed << ")";
       } else {

@@ -238,7 +238,7 @@ struct CandidateOptions {
   // are nearly independent: on the paper room's 20 and 60 s streams every candidate the room does
   // not have got p >= 0.012 (docs/diagnose.md). 0: the static treatment (folds i mod k,
   // per-station test) for every capture.
-  int serial_blocks = 32;
+  int serial_blocks = kDefaultSerialBlocks;
   // Cross-validation method. false (default): each fold's model is re-estimated from the fit on all
   // stations by Gauss-Newton steps with the fold's rows removed (fit/fit_engine.h,
   // RefitFoldsFromFull: one step is exact for terms linear in their parameters, physical terms take
@@ -442,12 +442,6 @@ double WilcoxonSignedRankGreater(const std::vector<double>& differences);
 // most a paired test over n stations or blocks can show (5: 0.030, 9: 0.0046, 32: 4e-7). 1 for
 // n <= 0.
 double WilcoxonSmallestP(int n);
-
-// The blocks of the held-out comparison of serial stations (CandidateOptions::serial_blocks): the
-// block of time of each station (contiguous, about equal count, 0 ... blocks - 1), or empty for
-// static stations (SerialSamples false) and for streams too short for `folds` blocks of 5 samples.
-std::vector<int> SerialTestBlocks(const std::vector<FitStation>& stations, int serial_blocks,
-                                  int folds);
 
 // p that the held-out errors `a` are larger than `b`, paired by station (stations without both
 // finite left out). `block_of` empty: WilcoxonSignedRankGreater on the stations' differences a - b.

@@ -834,6 +834,45 @@ std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_c
   return cluster;
 }
 
+std::vector<int> SerialTestBlocks(const std::vector<FitStation>& stations, int serial_blocks,
+                                  int folds) {
+  if (serial_blocks <= 0 || !SerialSamples(stations)) return {};
+  const int n = static_cast<int>(stations.size());
+  double first = std::numeric_limits<double>::infinity(), last = -first;
+  for (const auto& s : stations) {
+    if (!std::isfinite(s.time)) continue;
+    first = std::min(first, s.time);
+    last = std::max(last, s.time);
+  }
+  const double duration = last > first ? last - first : 0.0;
+  int blocks = std::min({serial_blocks, n / kSerialBlockMinSamples,
+                         static_cast<int>(std::floor(duration / kSerialBlockMinSeconds))});
+  // Never fewer blocks than folds, nor back to per-sample folds and tests: a short stream gets
+  // `folds` blocks, whose test cannot reach a small p (5 blocks: 1/32), which is what it can show.
+  blocks = std::max(blocks, folds);
+  if (n < blocks) return {};
+  std::vector<int> block = TimeClusters(stations, blocks, /*min_per_cluster=*/1);
+  // Numbered densely (samples sharing a time stay together and can skip a number).
+  std::map<int, int> dense;
+  for (int b : block) dense.emplace(b, 0);
+  int next = 0;
+  for (auto& [b, d] : dense) d = next++;
+  for (int& b : block) b = dense[b];
+  return block;
+}
+
+std::vector<int> CrossValidationFolds(const std::vector<FitStation>& stations, int folds,
+                                      int serial_blocks, bool* by_blocks) {
+  const std::vector<int> block = SerialTestBlocks(stations, serial_blocks, folds);
+  if (by_blocks) *by_blocks = !block.empty();
+  std::vector<int> fold_of(stations.size());
+  for (size_t i = 0; i < stations.size(); ++i) {
+    fold_of[i] =
+        block.empty() ? static_cast<int>(i % static_cast<size_t>(folds)) : block[i] % folds;
+  }
+  return fold_of;
+}
+
 std::string TimeOffsetMimicryNote(double variance_inflation) {
   auto fixed1 = [](double v) {
     char buf[32];
@@ -2003,12 +2042,20 @@ Table1 CrossValidate(const std::vector<FitStation>& stations,
                                 std::to_string(stations.size()) + ") than folds (" +
                                 std::to_string(folds) + ")");
   }
+  // Stream samples by blocks of time: with folds i % k every held-out sample's neighbours, a few
+  // ms away and sharing its misfit, were trained on, and the "held-out" error was the in-sample
+  // one (paper room, 30 s stream, sensor offset + degree-4 polynomial: 0.917 mm against 0.913 mm
+  // in-sample, while a second stream of the same room was corrected to 1.46 mm; by blocks 2.33 mm,
+  // docs/fit.md "Cross-validation of a stream").
+  bool by_blocks = false;
+  const std::vector<int> fold_of =
+      CrossValidationFolds(stations, folds, kDefaultSerialBlocks, &by_blocks);
   std::vector<Rigid3d> reported, corrected, reference;
   for (int f = 0; f < folds; ++f) {
     if (on_fold) on_fold(f);
     std::vector<FitStation> train, test;
     for (size_t i = 0; i < stations.size(); ++i) {
-      (static_cast<int>(i % static_cast<size_t>(folds)) == f ? test : train).push_back(stations[i]);
+      (fold_of[i] == f ? test : train).push_back(stations[i]);
     }
     ModelSpec spec = make_spec();
     FitOptions options;
@@ -2026,8 +2073,9 @@ Table1 CrossValidate(const std::vector<FitStation>& stations,
       reference.push_back(s.reference);
     }
   }
-  return MakeTable1("cross-validation (" + std::to_string(folds) + "-fold)", reported, corrected,
-                    reference);
+  return MakeTable1("cross-validation (" + std::to_string(folds) + "-fold" +
+                        (by_blocks ? ", blocks of time" : "") + ")",
+                    reported, corrected, reference);
 }
 
 namespace {

@@ -198,8 +198,9 @@ struct FitResult {
 
 // True for stations that are samples of a stream rather than static stations: most of them
 // less than 0.5 s after the previous one of the same sensor. Stations without distinct times
-// (all 0) count as static. The fit's covariance, and trackcal-fit diagnose's folds and paired
-// test (fit/candidates.h, SerialTestBlocks), treat such samples as serially correlated.
+// (all 0) count as static. The fit's covariance, the cross-validation's folds and trackcal-fit
+// diagnose's folds and paired test (SerialTestBlocks below) treat such samples as serially
+// correlated.
 bool SerialSamples(const std::vector<FitStation>& stations);
 
 // Contiguous runs of about equal count in time (the run of each station, 0 ... max_clusters - 1),
@@ -208,6 +209,32 @@ bool SerialSamples(const std::vector<FitStation>& stations);
 // (ModelSpec::stream_clusters).
 std::vector<int> TimeClusters(const std::vector<FitStation>& stations, int max_clusters,
                               int min_per_cluster = 5);
+
+// The default number of blocks of time serial stations are cut into for held-out comparisons
+// (CandidateOptions::serial_blocks, CrossValidationFolds): the fit's sandwich clusters of stream
+// samples (ModelSpec::stream_clusters) treat the same runs as independent.
+constexpr int kDefaultSerialBlocks = 32;
+// The least a block of time holds where the stream allows: TimeClusters' minimum of samples, and
+// the pairing's correlation window (its Newey-West window, 0.5 s): on a 3 s stream, 32 blocks of
+// 0.09 s would be as correlated as the samples themselves.
+constexpr int kSerialBlockMinSamples = 5;
+constexpr double kSerialBlockMinSeconds = 0.5;
+
+// The blocks of the held-out comparison of serial stations (trackcal-fit fit's cross-validation,
+// trackcal-fit diagnose's folds and paired test): the block of time of each station (contiguous,
+// about equal count, at least 5 samples and 0.5 s each where the stream allows, 0 ... blocks - 1,
+// never fewer blocks than `folds`), or empty for static stations (SerialSamples false), for
+// `serial_blocks` 0 and for streams of fewer than `folds` samples.
+std::vector<int> SerialTestBlocks(const std::vector<FitStation>& stations, int serial_blocks,
+                                  int folds);
+
+// The fold (0 ... folds - 1) of each station of a k-fold cross-validation. Static stations: station
+// i in fold i % k. Serial stations (SerialTestBlocks not empty): block of time b in fold b % k, so
+// that a held-out stream sample's neighbours, which share the model's misfit along the path, are
+// held out with it rather than trained on. `by_blocks` (optional) says which rule was taken.
+std::vector<int> CrossValidationFolds(const std::vector<FitStation>& stations, int folds,
+                                      int serial_blocks = kDefaultSerialBlocks,
+                                      bool* by_blocks = nullptr);
 
 // Fits `spec`'s terms to `stations` (the calibration set). The terms keep the fitted values. Throws
 // std::invalid_argument for too few stations or inconsistent settings.
@@ -232,9 +259,11 @@ bool EvaluateStationResidual(const ModelSpec& spec, const FitStation& station,
 Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,
                       const std::string& set_name);
 
-// k-fold cross-validation: station i goes to fold i % k (deterministic, stations in file order);
-// each fold is corrected by a model fitted on the others (made fresh by make_spec), and the errors
-// of all folds form one table "cross-validation (k-fold)" (MakeTable1: hemisphere flips left out).
+// k-fold cross-validation, folds by CrossValidationFolds (deterministic): static stations i % k
+// (stations in file order), serial stations (stream samples) contiguous blocks of time b % k; each
+// fold is corrected by a model fitted on the others (made fresh by make_spec), and the errors of
+// all folds form one table "cross-validation (k-fold)", for serial stations "cross-validation
+// (k-fold, blocks of time)" (MakeTable1: hemisphere flips left out).
 // Throws std::invalid_argument if a training set is too small, std::runtime_error naming the fold
 // if a fold's fit failed (FitResult::Failed()).
 Table1 CrossValidate(const std::vector<FitStation>& stations,

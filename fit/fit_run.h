@@ -101,7 +101,8 @@ struct FitModelSource {
 };
 
 struct FitRunOptions {
-  // k-fold cross-validation (>= 2) adds a "cross-validation (k-fold)" table; 0: none.
+  // k-fold cross-validation (>= 2) adds a "cross-validation (k-fold)" table ("cross-validation
+  // (k-fold, blocks of time)" for stream samples, CrossValidate); 0: none.
   int folds = 0;
   // false: cross-validate only when the capture has no `valid` set (the command line).
   bool cross_validate_with_validation_set = true;
