@@ -394,8 +394,8 @@ def _diagnosis(args, term):
     if model and not args.calibration:
         # Without a validation set the "after" errors are in-sample: the fit's cross-validation
         # gives the held-out table, as `trackcal fit` does (unless --cross-validate asks for one).
-        # Not on streams: their samples are milliseconds apart, so folds of every k-th sample
-        # would train on each test sample's neighbours (the ranking's held-out errors stand).
+        # Not on streams: the ranking's held-out errors, over the same blocks of time as the fit's
+        # cross-validation of a stream (docs/fit.md), stand.
         has_valid = "valid" in registered[0].sets if registered else _has_valid_set(args.capture)
         streams = not registered and captures.capture_kind(args.capture) == "streams"
         held_out = 0 if getattr(args, "cross_validate", 0) or has_valid or streams else 5

@@ -254,7 +254,8 @@ def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None,
     ``data``: capture folder (poses.csv, or tracker/reference streams paired with the model's
     time offset), poses.csv path, or a :class:`trackcal.captures.PoseCapture`. ``model``: model
     file path or its YAML text. ``folds`` >= 2 adds a k-fold cross-validation table (station i in
-    fold i mod k, as ``trackcal-fit``); the validation set, when present, is always evaluated.
+    fold i mod k; stream samples by blocks of time, "cross-validation (k-fold, blocks of time)", as
+    ``trackcal-fit``); the validation set, when present, is always evaluated.
     ``progress(stage, done, total)`` is called after each solver iteration (stage "fit") and
     cross-validation fold (stage "cross-validation"); an exception it raises stops the run.
     ``sensor``: the receiver (the capture's ``sensor`` column, from 1) whose stations are fitted;

@@ -1265,8 +1265,9 @@ def fit_polynomial(capture: PoseCapture, degree: int = 3):
 def cross_validate(capture: PoseCapture, model=None, folds: int = 5) -> Table1:
     """k-fold cross-validation of a model (path or YAML text; default: degree-3 polynomial) on the
     non-registration stations, by the engine: station i is corrected by the model fitted on the
-    stations of the other folds (fold i mod k). Returns the Table 1 of the held-out corrections,
-    its set named by the model ("cross-validation (5-fold, degree-3 polynomial)")."""
+    stations of the other folds (fold i mod k; stream samples by blocks of time, docs/fit.md). Returns
+    the Table 1 of the held-out corrections, its set named by the model ("cross-validation (5-fold,
+    degree-3 polynomial)"; "cross-validation (5-fold, blocks of time, degree-3 polynomial)")."""
     from trackcal.fitting import fit
     folds = _whole_number(folds, "cross-validation folds")
     if folds < 2:
