@@ -20,7 +20,26 @@ from trackcal import _core
 PathLike = Union[str, os.PathLike]
 
 
-@dataclasses.dataclass
+def _capture_summary(capture) -> str:
+    """"path='.../poses.csv', 480 rows (calib 300, valid 180), sensor 1, extra_columns=[...]"."""
+    n = len(capture.station)
+    sets = [str(s) for s in np.asarray(capture.set, dtype=object).ravel()]
+    counts = {}
+    for name in sets:
+        counts[name] = counts.get(name, 0) + 1
+    parts = [f"path={str(capture.path)!r}" if capture.path is not None else "path=None",
+             f"{n} rows" + (f" ({', '.join(f'{k} {v}' for k, v in counts.items())})" if counts else "")]
+    try:
+        sensors = sorted({int(v) for v in np.asarray(capture.sensor).ravel()})
+        parts.append(f"sensor{'s' if len(sensors) != 1 else ''} {', '.join(map(str, sensors))}")
+    except (TypeError, ValueError):  # a hand-built capture not checked yet: not repr's to refuse
+        parts.append(f"sensor {np.asarray(capture.sensor)!r}")
+    if capture.extra_columns:
+        parts.append(f"extra_columns={list(capture.extra_columns)!r}")
+    return ", ".join(parts)
+
+
+@dataclasses.dataclass(repr=False)
 class PoseCapture:
     """Paired static stations of a poses.csv: the tracker's report and the reference, per row.
 
@@ -51,6 +70,11 @@ class PoseCapture:
 
     def __len__(self) -> int:
         return len(self.station)
+
+    def __repr__(self) -> str:
+        # The dataclass repr printed every array: 18 kB and 257 lines for the paper's 480 stations,
+        # in a notebook cell or a log line that wanted to know which capture this is.
+        return f"PoseCapture({_capture_summary(self)})"
 
     def subset(self, mask) -> "PoseCapture":
         """Rows selected by a boolean mask or index array (same file)."""

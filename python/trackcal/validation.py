@@ -729,7 +729,7 @@ def region_breakdown(positions: np.ndarray, before: Residuals, after: Optional[R
 # ---------------------------------------------------------------------------------------------
 # The whole validation
 
-@dataclasses.dataclass
+@dataclasses.dataclass(repr=False)
 class Validation:
     capture: PoseCapture
     calibration: Optional[object]
@@ -764,6 +764,18 @@ class Validation:
     # Samples paired from streams: the worst list holds the worst sample of distinct moments, at
     # least this many seconds apart per sensor (None: static stations, the worst ones as they are).
     worst_separation_s: Optional[float] = None
+
+    def __repr__(self) -> str:
+        # The dataclass repr printed the capture's and every residual's arrays: 84 kB for the
+        # paper's 480 stations.
+        tables = "; ".join(
+            f"{t.set_name}: {t.after_position_mm['mean']:.3f} mm / {t.after_orientation_deg['mean']:.3f} deg"
+            if t.after_position_mm is not None else
+            f"{t.set_name}: {t.before_position_mm['mean']:.3f} mm / {t.before_orientation_deg['mean']:.3f} deg uncorrected"
+            for t in self.tables)
+        return (f"Validation({len(self.extrapolated)} {self.points} of {self.capture.path}, "
+                f"calibration={self.calibration!r}, {tables}, "
+                f"{int(np.sum(self.extrapolated))} outside the calibrated volume)")
 
     @property
     def points(self) -> str:
