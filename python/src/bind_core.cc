@@ -51,9 +51,11 @@ std::string ExpectedShape(const std::vector<py::ssize_t>& shape) {
   return s.str();
 }
 
-// A C-contiguous float64 view of `obj` with the given shape (-1: any length); ValueError otherwise.
+// A C-contiguous float64 view of `obj` with the given shape (-1: any length); ValueError otherwise
+// (TypeError for values that are not real numbers).
 DoubleArray AsArray(const py::handle& obj, const std::string& name,
                     const std::vector<py::ssize_t>& shape, const std::string& note = "") {
+  CheckRealNumbers(obj, name);
   DoubleArray a = DoubleArray::ensure(obj);
   if (!a) {
     PyErr_Clear();
@@ -196,6 +198,19 @@ Calibration MakeCalibration(const std::vector<std::shared_ptr<Correction>>& corr
 }
 
 }  // namespace
+
+void CheckRealNumbers(const py::handle& obj, const std::string& name) {
+  const py::array raw = py::array::ensure(obj);  // no cast: the dtype numpy gives the values
+  if (!raw) {
+    PyErr_Clear();  // not an array at all: the float64 conversion names it
+    return;
+  }
+  const char kind = raw.dtype().kind();
+  if (kind == 'c' || kind == 'M' || kind == 'm' || kind == 'V') {
+    throw py::type_error(name + " must hold real numbers, got an array of dtype " +
+                         py::str(raw.dtype()).cast<std::string>());
+  }
+}
 
 void BindCore(py::module_& m) {
   m.def(

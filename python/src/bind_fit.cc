@@ -159,6 +159,7 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
   // column ((N, 1) from a DataFrame) was an IndexError "index dimension mismatch", and a
   // transposed (3, N) positions array was "every array needs one row per station", naming none.
   const auto array = [&obj](const char* attr, const char* what) {
+    CheckRealNumbers(obj.attr(attr), std::string("PoseCapture: ") + attr);
     const DoubleArray a = DoubleArray::ensure(obj.attr(attr));
     if (!a) {
       PyErr_Clear();
@@ -207,6 +208,7 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
         CastAttribute<std::vector<std::string>>(obj, "extra_columns", "a list of column names");
     num_extra = static_cast<py::ssize_t>(capture.extra_columns.size());
     if (num_extra > 0) {
+      CheckRealNumbers(obj.attr("extra"), "PoseCapture: extra");
       extra = DoubleArray::ensure(obj.attr("extra"));
       if (!*extra || extra->ndim() != 2 || extra->shape(0) != n || extra->shape(1) != num_extra) {
         PyErr_Clear();

@@ -3,6 +3,8 @@
 
 #include <pybind11/pybind11.h>
 
+#include <string>
+
 #include "core/capture.h"
 
 namespace trackcal::python {
@@ -11,6 +13,11 @@ void BindCore(pybind11::module_& m);
 void BindCapture(pybind11::module_& m);
 void BindFit(pybind11::module_& m);
 void BindVrpn(pybind11::module_& m);
+
+// TypeError naming `name` unless `obj` (an array or what numpy makes one of) holds real numbers:
+// forcecast to float64 dropped a complex array's imaginary parts (a ComplexWarning at most) and
+// turned datetime64 / timedelta64 values into counts of their unit, silently.
+void CheckRealNumbers(const pybind11::handle& obj, const std::string& name);
 
 // A poses.csv capture as the dict of arrays trackcal.captures.PoseCapture is built from (station,
 // set, sensor, time, reported_/reference_positions, ..._quaternions_xyzw, extra_columns, extra).

@@ -130,6 +130,26 @@ def test_accepts_other_dtypes_and_layouts():
     assert empty[0].shape == (0, 3) and empty[1].shape == (0, 4) and empty[2].shape == (0,)
 
 
+def test_values_that_are_not_real_numbers_are_a_type_error_naming_the_argument():
+    """float64 conversion dropped a complex array's imaginary parts (with a ComplexWarning at most)
+    and turned datetime64 / timedelta64 values into counts of their unit: a corrected pose or a
+    fit from values that were never positions. Now a TypeError naming the argument and the dtype;
+    real dtypes (int, float32, big-endian, object arrays of numbers) still convert."""
+    cal = trackcal.Calibration.load(EXAMPLE)
+    positions, quats = random_poses(np.random.default_rng(4), 6)
+    expected = cal.correct(positions, quats)
+    for bad in (positions + 1e-3j, positions.astype("M8[ns]"), positions.astype("m8[s]"),
+                [[1 + 1j, 0, 0]] * 6):
+        with pytest.raises(TypeError, match=r"positions must hold real numbers, got an array of dtype"):
+            cal.correct(bad, quats)
+    with pytest.raises(TypeError, match=r"quaternions_xyzw must hold real numbers.*complex128"):
+        cal.correct(positions, quats.astype(complex))
+    with pytest.raises(TypeError, match=r"a_xyzw must hold real numbers"):
+        trackcal.angular_distance(np.array([0, 0, 0, 1], dtype=complex), [0, 0, 0, 1])
+    for ok in (positions.astype(">f8"), positions.astype(object)):
+        np.testing.assert_array_equal(cal.correct(ok, quats)[0], expected[0])
+
+
 def test_error_magnitudes_refuse_a_zero_quaternion():
     """The Table 1 errors (validation.residuals, _core.error_magnitudes): a zero quaternion stayed
     zero through normalisation and its orientation error came out 0 deg, a perfect station."""

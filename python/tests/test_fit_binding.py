@@ -430,6 +430,19 @@ def test_ctrl_c_stops_a_fit_without_a_progress_callback(capture_dir):
     assert again.converged
 
 
+def test_a_pose_capture_of_values_that_are_not_real_numbers_is_a_type_error(capture_dir):
+    """A capture whose times are datetime64 (from pandas) fitted as if they were numbers: counts of
+    nanoseconds since 1970, the order the fit sorts stations by and the clock drift's time base.
+    A complex array lost its imaginary parts. Both are now a TypeError naming the field."""
+    import dataclasses
+    cap = captures.load_poses(capture_dir).select_set("calib")
+    stamps = np.datetime64("2026-01-01T00:00:00", "ns") + (cap.time * 1e9).astype("m8[ns]")
+    with pytest.raises(TypeError, match=r"PoseCapture: time must hold real numbers, got an array of dtype datetime64"):
+        trackcal.fit(dataclasses.replace(cap, time=stamps), MODEL)
+    with pytest.raises(TypeError, match=r"PoseCapture: reference_positions must hold real numbers"):
+        trackcal.fit(dataclasses.replace(cap, reference_positions=cap.reference_positions + 0j), MODEL)
+
+
 def test_register_and_pair_match_the_command_line(capture_dir, tmp_path):
     cli = run_fit_cli("register", "--markers", capture_dir / "markers.csv", "--tracker",
                       capture_dir / "tracker.csv", "-o", tmp_path / "cli_reg.csv", "--json")
