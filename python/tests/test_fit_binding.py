@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import trackcal
-from trackcal import captures, validation
+from trackcal import captures, diagnosis, validation
 from understand_support import simulate, stream_only, two_receivers, write_poses
 
 MODEL = "terms:\n  - type: polynomial\n    degree: 3\n"
@@ -441,6 +441,20 @@ def test_a_pose_capture_of_values_that_are_not_real_numbers_is_a_type_error(capt
         trackcal.fit(dataclasses.replace(cap, time=stamps), MODEL)
     with pytest.raises(TypeError, match=r"PoseCapture: reference_positions must hold real numbers"):
         trackcal.fit(dataclasses.replace(cap, reference_positions=cap.reference_positions + 0j), MODEL)
+
+
+def test_progress_and_sensor_of_the_wrong_type_are_type_errors_naming_them(capture_dir):
+    """progress=5 was accepted and a fit that never called it (a polynomial solved in closed form,
+    no folds) returned as if nothing were wrong; sensor="1" failed inside a comparison ("'<' not
+    supported between instances of 'str' and 'int'"), naming no argument."""
+    with pytest.raises(TypeError, match=r"progress must be a callable or None, got 5"):
+        trackcal.fit(capture_dir, MODEL, progress=5)
+    with pytest.raises(TypeError, match=r"sensor must be a receiver number \(1, 2, ...\) or None, got '1'"):
+        trackcal.fit(capture_dir, MODEL, sensor="1")
+    if diagnosis.candidates_available():
+        with pytest.raises(TypeError, match=r"progress must be a callable or None"):
+            diagnosis.diagnose_candidates(capture_dir, MODEL, progress="verbose")
+    assert trackcal.fit(capture_dir, MODEL, sensor=np.int64(1)).converged
 
 
 def test_register_and_pair_match_the_command_line(capture_dir, tmp_path):

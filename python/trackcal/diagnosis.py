@@ -58,10 +58,10 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
             # as "every effect": say so instead of ranking what was not asked for.
             raise ValueError("effects: an empty list restricts the catalog to nothing; pass None "
                              "for every effect")
-    from trackcal.fitting import _sensor_arg
+    from trackcal.fitting import _progress_arg, _sensor_arg
     kwargs = {"folds": folds, "effects": effects,
               "cross_validate_top": cross_validate_top, "sensor": _sensor_arg(sensor)}
-    if progress is not None:
+    if _progress_arg(progress) is not None:
         kwargs["progress"] = progress
     return _core.diagnose_candidates(data, model, **kwargs)
 

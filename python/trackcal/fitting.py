@@ -17,6 +17,7 @@ and field (``model.yaml:3:5: terms[0].degree: ...``).
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import os
 import pathlib
 import warnings
@@ -242,9 +243,22 @@ def _sensor_arg(sensor) -> int:
     """``sensor`` of fit/diagnose_candidates as the engine takes it (0: none given)."""
     if sensor is None:
         return 0
+    # A string ("1", from argv) failed inside the comparison: "'<' not supported between instances
+    # of 'str' and 'int'", naming no argument.
+    if not isinstance(sensor, numbers.Real):
+        raise TypeError(f"sensor must be a receiver number (1, 2, ...) or None, got {sensor!r}")
     if isinstance(sensor, bool) or not float(sensor).is_integer() or sensor < 1:
         raise ValueError(f"sensor must be a receiver number (1, 2, ...), got {sensor!r}")
     return int(sensor)
+
+
+def _progress_arg(progress):
+    """``progress`` of fit/diagnose_candidates: None or a callable. Anything else was accepted and
+    failed only when first called, if ever (a fit solved in closed form returned as if it had
+    been a callback)."""
+    if progress is not None and not callable(progress):
+        raise TypeError(f"progress must be a callable or None, got {progress!r}")
+    return progress
 
 
 def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None,
@@ -263,7 +277,7 @@ def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None,
     refused, naming them, as ``trackcal-fit fit --sensor N``).
     """
     info = _core.parse_model(model)
-    native = _core.fit(_data_arg(data), model, folds=folds, progress=progress,
+    native = _core.fit(_data_arg(data), model, folds=folds, progress=_progress_arg(progress),
                        sensor=_sensor_arg(sensor))
     return FitReport(native, info)
 
