@@ -197,6 +197,36 @@ Calibration MakeCalibration(const std::vector<std::shared_ptr<Correction>>& corr
   return cal;
 }
 
+// "PolynomialCorrection(degree=4, input_offset=[0, 0, 0.3], input_scale=[0.5, 0.5, 0.5])",
+// "TrilinearLutCorrection(5 x 6 x 4 nodes, x 0.1..0.9 m, y ..., z ...)",
+// "Correction(type='physical')".
+std::string CorrectionRepr(const Correction& c) {
+  std::ostringstream s;
+  s.precision(6);
+  const auto vec = [&s](const Eigen::Vector3d& v) {
+    s << "[" << v.x() << ", " << v.y() << ", " << v.z() << "]";
+  };
+  if (const auto* p = dynamic_cast<const PolynomialCorrection*>(&c)) {
+    s << "PolynomialCorrection(degree=" << p->degree() << ", input_offset=";
+    vec(p->input_offset());
+    s << ", input_scale=";
+    vec(p->input_scale());
+    s << ")";
+  } else if (const auto* l = dynamic_cast<const TrilinearLutCorrection*>(&c)) {
+    const LutGrid& g = l->grid();
+    s << "TrilinearLutCorrection(" << g.size(0) << " x " << g.size(1) << " x " << g.size(2)
+      << " nodes";
+    for (int k = 0; k < 3; ++k) {
+      s << ", "
+        << "xyz"[k] << " " << g.axis(k).front() << ".." << g.axis(k).back() << " m";
+    }
+    s << ")";
+  } else {
+    s << "Correction(type='" << c.TypeName() << "')";
+  }
+  return s.str();
+}
+
 }  // namespace
 
 void CheckRealNumbers(const py::handle& obj, const std::string& name) {
@@ -299,7 +329,10 @@ void BindCore(py::module_& m) {
                      CorrectionStatus* st) { c.ApplyBatchWithStatus(n, p, q, po, qo, f, st); });
           },
           py::arg("positions"), py::arg("quaternions_xyzw"), py::arg("return_status") = false,
-          term_correct_doc.c_str());
+          term_correct_doc.c_str())
+      // The default repr named only the address ("<trackcal._core.PolynomialCorrection object at
+      // 0x7f...>"), in cal.corrections of a notebook.
+      .def("__repr__", [](const Correction& c) { return CorrectionRepr(c); });
 
   py::class_<PolynomialCorrection, Correction, std::shared_ptr<PolynomialCorrection>>(
       m, "PolynomialCorrection",
@@ -392,15 +425,18 @@ void BindCore(py::module_& m) {
           "load", [](const std::filesystem::path& path) { return ReadCalibrationFile(path); },
           py::arg("path"), "Reads a calibration file; errors name the file and the JSON path.")
       .def_static("from_json", &ParseCalibrationJson, py::arg("text"),
-                  py::arg("source_name") = "<string>")
+                  py::arg("source_name") = "<string>",
+                  "Parses a calibration file's text; errors (ValueError) name source_name and the "
+                  "JSON path.")
       .def(
           "save",
           [](const Calibration& c, const std::filesystem::path& path) {
             WriteCalibrationFile(path, c);
           },
           py::arg("path"),
-          "Writes atomically; refuses to overwrite an input listed in the provenance.")
-      .def("to_json", &CalibrationToJsonText)
+          "Writes atomically; refuses to overwrite an input listed in the provenance or an "
+          "existing file that is not a trackcal calibration (ValueError).")
+      .def("to_json", &CalibrationToJsonText, "The calibration file's text (JSON).")
       // Through its file text (which reads back to the same file, core/calibration_file_test.cc):
       // a validation script's process pool, copy.deepcopy.
       .def(py::pickle(

@@ -150,6 +150,19 @@ def test_values_that_are_not_real_numbers_are_a_type_error_naming_the_argument()
         np.testing.assert_array_equal(cal.correct(ok, quats)[0], expected[0])
 
 
+def test_repr_of_a_term_says_what_it_is():
+    """A term's repr named only its address ("<trackcal._core.PolynomialCorrection object at
+    0x7f...>"): cal.corrections in a notebook said nothing of the degree or the grid."""
+    poly = trackcal.PolynomialCorrection(2, np.zeros((10, 3)), np.zeros((10, 3)),
+                                         input_offset=(0.0, 0.0, 0.3), input_scale=(0.5, 0.5, 0.25))
+    assert repr(poly) == "PolynomialCorrection(degree=2, input_offset=[0, 0, 0.3], input_scale=[0.5, 0.5, 0.25])"
+    zeros = np.zeros((2, 3, 4, 3))
+    lut = trackcal.TrilinearLutCorrection([0.1, 0.9], [-0.5, 0.0, 0.5], [0.0, 0.1, 0.2, 0.3], zeros, zeros)
+    cal = trackcal.Calibration([poly, lut], (-1, -1, -1), (1, 1, 1))
+    assert [repr(c) for c in cal.corrections] == [
+        repr(poly), "TrilinearLutCorrection(2 x 3 x 4 nodes, x 0.1..0.9 m, y -0.5..0.5 m, z 0..0.3 m)"]
+
+
 def test_error_magnitudes_refuse_a_zero_quaternion():
     """The Table 1 errors (validation.residuals, _core.error_magnitudes): a zero quaternion stayed
     zero through normalisation and its orientation error came out 0 deg, a perfect station."""
