@@ -5,10 +5,13 @@
 // what the server applies.
 #include <gtest/gtest.h>
 
+#include <Eigen/Dense>
 #include <algorithm>
+#include <array>
 #include <chrono>
-#include <ctime>
+#include <cmath>
 #include <cstdlib>
+#include <ctime>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
@@ -18,6 +21,7 @@
 
 #include "core/calibration_file.h"
 #include "core/error_statistics.h"
+#include "core/polynomial.h"
 #include "fit/chain_builder.h"
 #include "fit/fit_engine.h"
 #include "fit/model_file.h"
@@ -190,8 +194,14 @@ constexpr const char* kNoise =
     "orientation_range_exponent: 3}\n"
     "solver: {max_iterations: 300, covariance: false}\n";
 
-// The paper's method: a degree-4 polynomial alone.
+// The paper's method: a degree-4 polynomial alone, fitted by plain least squares (eq. 8-9: every
+// station weighted alike). Without kNoise: its range exponents weight a station by r^-8 (position)
+// and r^-6 (orientation), which is not the paper's fit; the baseline fitted so was 10.0 mm on seed
+// 1 against 2.77 mm unweighted (PaperBaselineIsPlainLeastSquares).
 constexpr const char* kPaperPolynomial = "terms:\n  - type: polynomial\n    degree: 4\n";
+
+// The model file every baseline of this file fits as "the paper's".
+std::string PaperBaselineModel() { return kPaperPolynomial; }
 
 // Validation means over the floor's, measured with the calibration file as trackcal-fit writes it
 // (the polynomial clamped outside the calibrated volume, the physical group at the actual pose;
@@ -211,9 +221,11 @@ constexpr const char* kPaperPolynomial = "terms:\n  - type: polynomial\n    degr
 //     outside the box ............................. 3.54x / 3.28x   4.82x / 3.65x   6.03x / 2.60x
 //     reach 0.01 / 0.03 / 1 m, position, all ...... 2.25 2.09 2.03  3.98 3.78 3.73  4.28 3.79 2.91
 //     fade over 0.1 m ............................. 3.26x / 2.30x   6.16x / 3.75x   10.2x / 5.08x
-//     the paper's degree-4 polynomial alone, clamp / linear 0.1 m / fade 0.1 m, position, all:
-//                                           111/124/116x    118/143/143x    115/142/119x
-//     (so trackcal-fit writes linear only for chains with a physical term: fit_engine.cc VolumeOf)
+//     the paper's degree-4 polynomial alone (unweighted, as the paper fits it), clamp / linear
+//     0.1 m / fade 0.1 m, position, all:   30.8/28.6/48.7x 29.6/26.6/73.9x 31.5/31.3/51.1x
+//     (the 111/124/116x, 118/143/143x, 115/142/119x measured here before were of the polynomial
+//     fitted with kNoise's range weights, not the paper's fit; trackcal-fit writes linear only for
+//     chains with a physical term, fit_engine.cc VolumeOf, a choice made on those figures)
 //     seed 3's station 583 (57 mm out): 13.4 mm clamped, 1.66 mm linear; seed 2's worst outside
 //     stations (578: 3.7 mm, 56 mm out) do not change: what is left there is not the extrapolation
 //     of the explicit terms.
@@ -509,7 +521,9 @@ TEST(BestChainOnPaperPreset, SaveFits) {
     // The best chain (seed<N>.json) and the paper's degree-4 polynomial (seed<N>_paper.json).
     for (const auto& [model, suffix] :
          std::vector<std::pair<std::string, std::string>>{{kBestChain, ""}, {kPaperPolynomial, "_paper"}}) {
-      ModelSpec spec = ParseModelYaml(std::string(kNoise) + model, "model");
+      // The paper's polynomial unweighted, as the paper fits it (kPaperPolynomial).
+      ModelSpec spec = ParseModelYaml(
+          suffix == "_paper" ? PaperBaselineModel() : std::string(kNoise) + model, "model");
       FitOptions options;
       options.compute_covariance = false;
       const FitResult fit = FitModel(data.calibration, &spec, options);
@@ -593,6 +607,54 @@ Outcome BuildAndValidate(const PaperCapture& data, const ChainBuilderOptions& op
   return o;
 }
 
+// The baseline this file calls the paper's is the paper's fit: eq. 8-9 by plain least squares,
+// every calibration station weighted alike. Solved here independently of fit/: complete degree-4
+// monomials of the reported position in metres about the stations' mean (an affine change of the
+// variable spans the same polynomials, so the fit is the same whatever the engine's normalisation).
+// A range-weighted fit (kNoise's exponents) moves the corrected calibration poses by millimetres.
+TEST(BestChainOnPaperPreset, PaperBaselineIsPlainLeastSquares) {
+  const PaperCapture data = Simulate(1);
+  ModelSpec spec = ParseModelYaml(PaperBaselineModel(), "paper");
+  FitOptions options;
+  options.compute_covariance = false;
+  const FitResult fit = FitModel(data.calibration, &spec, options);
+
+  const std::vector<std::array<int, 3>> exponents = PolynomialTermExponents(4);
+  const int n = static_cast<int>(data.calibration.size());
+  const int r = static_cast<int>(exponents.size());
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+  for (const FitStation& s : data.calibration) centre += s.reported.translation / n;
+  Eigen::MatrixXd a(n, r), b(n, 6);
+  for (int i = 0; i < n; ++i) {
+    const FitStation& s = data.calibration[i];
+    const Eigen::Vector3d u = s.reported.translation - centre;
+    for (int j = 0; j < r; ++j) {
+      a(i, j) = std::pow(u.x(), exponents[j][0]) * std::pow(u.y(), exponents[j][1]) *
+                std::pow(u.z(), exponents[j][2]);
+    }
+    const PoseError e = ComputePoseError(s.reported, s.reference);  // eq. 1, 3
+    b.row(i) << e.position.transpose(), e.orientation.transpose();
+  }
+  const Eigen::MatrixXd c = a.colPivHouseholderQr().solve(b);
+  const Eigen::MatrixXd predicted = a * c;
+  double worst_position_m = 0, worst_angle_rad = 0;
+  for (int i = 0; i < n; ++i) {
+    Rigid3d expected = data.calibration[i].reported;
+    ApplyPoseError<double>(predicted.row(i).head<3>().transpose(),
+                           predicted.row(i).tail<3>().transpose(), &expected.translation,
+                           &expected.rotation);  // eq. 4
+    const Rigid3d corrected = fit.chain.Apply(data.calibration[i].reported).pose;
+    worst_position_m = std::max(worst_position_m, PositionErrorNorm(corrected, expected));
+    worst_angle_rad = std::max(worst_angle_rad, OrientationErrorAngle(corrected, expected));
+  }
+  std::cout << "paper baseline against plain least squares: " << worst_position_m << " m, "
+            << worst_angle_rad << " rad\n";
+  // Measured 1.7e-16 m and 3.5e-16 rad apart (the two solvers' rounding); the range-weighted fit
+  // (kNoise + kPaperPolynomial) was 36 mm and 4.1 deg apart. 1e-9 is far from both.
+  EXPECT_LT(worst_position_m, 1e-9);
+  EXPECT_LT(worst_angle_rad, 1e-9);
+}
+
 // Issue #5's acceptance: the chain trackcal-fit build makes (fit/chain_builder.h: sources added
 // while the blocked cross-validation of the explicit term after them improves, then the explicit
 // term's degree and weights chosen the same way on what the final group leaves, the group held)
@@ -622,8 +684,7 @@ TEST(BestChainOnPaperPreset, TheChainBuiltByHeldOutError) {
   for (const Bound& bound : bounds) {
     SCOPED_TRACE("seed " + std::to_string(bound.seed));
     const PaperCapture data = Simulate(bound.seed);
-    const Outcome paper =
-        FitAndValidate(data, std::string(kNoise) + kPaperPolynomial, "paper degree 4");
+    const Outcome paper = FitAndValidate(data, PaperBaselineModel(), "paper degree 4");
     const Outcome best = BuildAndValidate(data, options, "built chain");
     // The paper's polynomial is far above the floor (the issue: ~30x), so this test can fail.
     EXPECT_GT(paper.position_ratio, 10.0);
