@@ -426,8 +426,10 @@ class StatisticalConvergence : public ceres::IterationCallback {
 // The calibrated volume of `chain`: the box of the stations' reported positions. Outside it the
 // explicit terms continue to first order (linear) when they follow a physical term, whose residual
 // they model (paper preset's best chain, validation over the floor: 2.03-3.73x against 2.34-4.59x
-// clamped), and are clamped when they model the whole distortion alone (the paper's degree-4
-// polynomial: 111-118x clamped, 124-143x linear; fit/best_chain_sim_test.cc).
+// clamped), and are clamped when they model the whole distortion alone. That choice was made on a
+// range-weighted degree-4 polynomial (111-118x clamped, 124-143x linear); the paper's unweighted
+// fit measures 29.6-31.5x clamped, 26.6-31.3x linear (fit/best_chain_sim_test.cc, seeds 1-3), so
+// linear would not be worse there: open (docs/calibration-file.md).
 CalibratedVolume VolumeOf(const std::vector<FitStation>& stations, const CorrectionChain& chain) {
   CalibratedVolume volume;
   volume.extrapolation = ExtrapolationPolicy::kClamp;
