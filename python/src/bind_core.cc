@@ -113,11 +113,20 @@ py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quater
               " (N = " + std::to_string(n) + " rows like positions, columns x, y, z, w)");
   // A zero quaternion is no orientation: it came back zero, with status converged. NaN rows
   // (dropped samples) still give NaN out, as numpy does.
+  // An infinite value is no pose either: [0, 0, 0, inf] came back as [-inf, -inf, -inf, inf].
   for (py::ssize_t i = 0; i < n; ++i) {
     const double* q = quaternions.data() + 4 * i;
     if (q[0] == 0.0 && q[1] == 0.0 && q[2] == 0.0 && q[3] == 0.0) {
       throw py::value_error("quaternions_xyzw: row " + std::to_string(i) +
                             " is zero, not a rotation");
+    }
+    const double* p = positions.data() + 3 * i;
+    const bool bad_q = std::any_of(q, q + 4, [](double v) { return std::isinf(v); });
+    if (bad_q || std::any_of(p, p + 3, [](double v) { return std::isinf(v); })) {
+      throw py::value_error(std::string(bad_q ? "quaternions_xyzw" : "positions") + ": row " +
+                            std::to_string(i) +
+                            " holds an infinite value (a dropped sample is NaN, which comes "
+                            "back NaN)");
     }
   }
   py::array_t<double> out_positions({n, py::ssize_t{3}});

@@ -210,6 +210,22 @@ def test_correct_refuses_a_zero_quaternion():
     assert np.isnan(q[1]).all() and np.isfinite(q[[0, 2]]).all()
 
 
+def test_correct_refuses_an_infinite_value():
+    """[0, 0, 0, inf] came back as [-inf, -inf, -inf, inf] without a word; an infinite position
+    came back infinite. Neither is a pose (a dropped sample is NaN)."""
+    cal = trackcal.Calibration.load(EXAMPLE)
+    positions, quats = random_poses(np.random.default_rng(7), 3)
+    inf_q = quats.copy()
+    inf_q[2] = [0.0, 0.0, 0.0, np.inf]
+    inf_p = positions.copy()
+    inf_p[0, 1] = -np.inf
+    for target in (cal, cal.corrections[0]):
+        with pytest.raises(ValueError, match=r"^quaternions_xyzw: row 2 holds an infinite value"):
+            target.correct(positions, inf_q)
+        with pytest.raises(ValueError, match=r"^positions: row 0 holds an infinite value"):
+            target.correct(inf_p, quats)
+
+
 def test_file_errors_are_value_errors_naming_path(tmp_path):
     doc = json.loads(EXAMPLE.read_text())
     doc["corrections"][0]["position_coefficients"].pop()
