@@ -548,3 +548,29 @@ def test_a_recording_against_a_reference_clock_from_zero_estimates_around_a_give
     # No offset: estimated around 0, as before; asking for no estimate without an offset is refused.
     with pytest.raises(ValueError, match="estimate_time_offset=False needs a time_offset"):
         validation.validate_recording(raw, reference, estimate_time_offset=False)
+
+
+def test_an_ignored_sighup_while_saving_does_not_mark_the_recording_interrupted(fake_recorders, tmp_path,
+                                                                                   monkeypatch):
+    """Under nohup SIGHUP is ignored. While the recorders stop and the files are saved the handlers
+    are replaced to defer Ctrl-C, SIGTERM and SIGHUP; an ignored SIGHUP was replaced too, so a
+    terminal closed at that moment marked a full-length recording 'interrupted' (trackcal record
+    then said 'recording interrupted (Ctrl-C)', exit 130, and its lost-connection and gap checks
+    were skipped). An ignored signal stays ignored throughout."""
+    import os
+    import signal
+    from trackcal import record
+
+    class HangUpWhileStopping(FakeRecorder):
+        def stop(self):
+            super().stop()
+            os.kill(os.getpid(), signal.SIGHUP)  # the terminal closes while the recording is saved
+    monkeypatch.setattr(record._core, "TrackerRecorder", HangUpWhileStopping)
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec", 0.2)
+        assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+    assert HangUpWhileStopping.instances[0].stopped
+    assert not out.interrupted and list(out) == ["raw"]

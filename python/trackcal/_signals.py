@@ -13,14 +13,17 @@ from typing import Iterator, Sequence, Set
 def signals_deferred(signals: Sequence[int]) -> Iterator[Set[int]]:
     """Inside the block the given signals neither raise nor stop the process; the set it yields
     holds those that arrived, for the caller to act on afterwards. The previous handlers are back
-    after the block. Outside the main thread, where handlers cannot be set, the block runs
-    unprotected (and the set stays empty)."""
+    after the block. A signal that is ignored (SIGHUP under nohup, SIGINT of a background job) is
+    left ignored and never counted: caught here, a terminal closed while a recording was saved
+    marked it interrupted although nohup had asked for the hang-up to be ignored. Outside the main
+    thread, where handlers cannot be set, the block runs unprotected (and the set stays empty)."""
     arrived: Set[int] = set()
     if threading.current_thread() is not threading.main_thread():
         yield arrived
         return
     previous = {s: signal.getsignal(s) for s in signals}
-    for s in signals:
+    previous = {s: h for s, h in previous.items() if h != signal.SIG_IGN}
+    for s in previous:
         signal.signal(s, lambda signum, _frame: arrived.add(signum))
     try:
         yield arrived
