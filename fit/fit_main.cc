@@ -256,7 +256,9 @@ int RunFit(int argc, char** argv) {
     static constexpr char kTakes[] =
         "--start takes the JSON that `trackcal-fit fit --json` printed for an earlier fit";
     const std::string text = ReadFileToString(start_path);
-    const size_t first = text.find_first_not_of(" \t\r\n");
+    // After a UTF-8 byte order mark (the JSON parser skips one, as the calibration reader does).
+    const size_t first =
+        text.find_first_not_of(" \t\r\n", text.rfind("\xEF\xBB\xBF", 0) == 0 ? 3 : 0);
     if (first == std::string::npos) {
       throw std::invalid_argument(start_path.string() + ": empty file; " + kTakes);
     }
