@@ -8,9 +8,9 @@
 // that one effect is
 // fitted and scored against the model itself:
 //   - k-fold cross-validation with the same folds for the base and every candidate (station i in
-//   fold
-//     i % k, as fit/fit_engine.h's CrossValidate): held-out mean position [mm] and orientation
-//     [deg] errors and their drop in percent;
+//     fold i % k; serial stream samples by contiguous blocks of time, block b in fold b % k, the
+//     rule of fit/fit_engine.h's CrossValidationFolds): held-out mean position [mm] and
+//     orientation [deg] errors and their drop in percent;
 //   - a one-sided Wilcoxon signed-rank test of the per-station held-out whitened squared errors
 //     (base minus candidate > 0): p_value;
 //   - BIC with the noise scale profiled out, n ln(chi2 / n) + k ln(n), over the n = 6 N whitened
