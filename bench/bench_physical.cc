@@ -10,7 +10,6 @@
 //
 //   build/bench/bench_physical --benchmark_min_time=0.5
 #include <benchmark/benchmark.h>
-
 #include <ceres/jet.h>
 
 #include <Eigen/Eigenvalues>
@@ -18,6 +17,7 @@
 #include <random>
 #include <vector>
 
+#include "bench/paper_room.h"
 #include "core/physical_correction.h"
 #include "core/polynomial.h"
 #include "core/tracker_solver.h"
@@ -27,25 +27,6 @@ namespace {
 
 constexpr size_t kNumPoses = 1024;
 
-FieldModel RoomField() {
-  FieldModel field;
-  field.transmitter_octupole_m2 = Eigen::Vector3d(-0.000675, -0.0006, -0.00075);
-  field.planes.push_back({"floor", Eigen::Vector3d(0, 0, 0.8), Eigen::Vector3d(0, 0, 1), 0.27});
-  field.planes.push_back({"door", Eigen::Vector3d(0, -2.1, 0), Eigen::Vector3d(0, 1, 0), 0.18});
-  field.objects.push_back({"crt1", Eigen::Vector3d(1.6, 1.0, -0.5), 0.04});
-  field.objects.push_back({"crt2", Eigen::Vector3d(0.5, 1.8, -0.5), 0.04});
-  field.objects.push_back({"crt3", Eigen::Vector3d(-1.5, 1.2, -0.4), 0.04});
-  field.objects.push_back({"frame", Eigen::Vector3d(0.5, 0.0, 0.35), -0.009});
-  field.objects.push_back({"toolbox", Eigen::Vector3d(0.6, 0.95, -0.5), 0.002});
-  return field;
-}
-
-Eigen::Matrix3d Gain() {
-  Eigen::Matrix3d g;
-  g << 1.03, 0.01, -0.02, 0.0, 0.97, 0.015, 0.01, -0.01, 1.01;
-  return g;
-}
-
 const std::vector<Rigid3d>& Reports() {
   static const std::vector<Rigid3d> reports = [] {
     std::vector<Rigid3d> out;
@@ -54,12 +35,13 @@ const std::vector<Rigid3d>& Reports() {
     std::normal_distribution<double> n(0.0, 1.0);
     TrackerSolverOptions solver;
     solver.hemisphere_in_transmitter = Eigen::Vector3d(0, 0, -1);
-    const FieldModel field = RoomField();
+    const FieldModel field = PaperRoomField();
     while (out.size() < kNumPoses) {
       const Eigen::Quaterniond q = QuaternionFromXyzw(n(rng), n(rng), n(rng), n(rng)).normalized();
       const Eigen::Vector3d p(x(rng), y(rng), z(rng));
       const TrackerSolution s = SolveFreeSpacePose(
-          SignalMatrix<double>(Gain(), q.toRotationMatrix(), field.Field<double>(p)), solver);
+          SignalMatrix<double>(PaperRoomGain(), q.toRotationMatrix(), field.Field<double>(p)),
+          solver);
       if (s.converged) out.push_back(s.transmitter_from_receiver);
     }
     return out;
@@ -217,15 +199,15 @@ void BM_Polynomial4(benchmark::State& state) {  // baseline
 BENCHMARK(BM_Polynomial4);
 
 void BM_PreBoundedInverse(benchmark::State& state) {  // baseline of the bounded inverse
-  const PreBoundedInverse baseline(RoomField(), Gain(), SensorOffset());
+  const PreBoundedInverse baseline(PaperRoomField(), PaperRoomGain(), SensorOffset());
   RunPerPose(state, baseline);
 }
 BENCHMARK(BM_PreBoundedInverse);
 
 void BM_PhysicalPaperRoom(benchmark::State& state) {
-  const PhysicalCorrection physical(RoomField(), Gain(), SensorOffset());
+  const PhysicalCorrection physical(PaperRoomField(), PaperRoomGain(), SensorOffset());
   RunPerPose(state, physical);
-  const PreBoundedInverse baseline(RoomField(), Gain(), SensorOffset());
+  const PreBoundedInverse baseline(PaperRoomField(), PaperRoomGain(), SensorOffset());
   double iterations = 0, ambiguous = 0, max_difference = 0;
   for (const Rigid3d& reported : Reports()) {
     const PhysicalCorrection::Inverse inverse = physical.Invert(reported);
@@ -251,7 +233,7 @@ BENCHMARK(BM_PhysicalPaperRoom);
 void BM_PhysicalPaperRoomFitSteps(benchmark::State& state) {
   PhysicalCorrectionOptions options;
   options.max_iterations = 50;
-  const PhysicalCorrection physical(RoomField(), Gain(), SensorOffset(), options);
+  const PhysicalCorrection physical(PaperRoomField(), PaperRoomGain(), SensorOffset(), options);
   RunPerPose(state, physical);
   double unresolved = 0;
   for (const Rigid3d& reported : Reports()) {
@@ -265,7 +247,7 @@ BENCHMARK(BM_PhysicalPaperRoomFitSteps);
 void BM_PhysicalPaperRoomNoFoldSearch(benchmark::State& state) {
   PhysicalCorrectionOptions options;
   options.fold_reach = 0.0;
-  const PhysicalCorrection physical(RoomField(), Gain(), SensorOffset(), options);
+  const PhysicalCorrection physical(PaperRoomField(), PaperRoomGain(), SensorOffset(), options);
   RunPerPose(state, physical);
 }
 BENCHMARK(BM_PhysicalPaperRoomNoFoldSearch);
@@ -278,7 +260,7 @@ BENCHMARK(BM_PhysicalPaperRoomNoFoldSearch);
 PhysicalCorrection FitInverse() {
   PhysicalCorrectionOptions options;
   options.max_iterations = 50;
-  return PhysicalCorrection(RoomField(), Gain(), SensorOffset(), options);
+  return PhysicalCorrection(PaperRoomField(), PaperRoomGain(), SensorOffset(), options);
 }
 
 void BM_InvertFull(benchmark::State& state) {
@@ -310,12 +292,12 @@ BENCHMARK(BM_InvertReportRootOnly);
 // Its ratio to BM_PhysicalPaperRoom is what the background costs per pose (the poses are the
 // room's reports; the correction is a different model of them, so only the cost is compared).
 void BM_PhysicalNearRoomWithBackground(benchmark::State& state) {
-  FieldModel field = RoomField();
+  FieldModel field = PaperRoomField();
   field.planes.resize(1);                                          // the floor
   field.objects.erase(field.objects.begin(), field.objects.begin() + 3);  // frame, toolbox
   field.background.degree = 1;
   for (int k = 0; k < 24; ++k) field.background.coefficients.push_back(1e-3 * ((k % 5) - 2));
-  const PhysicalCorrection physical(field, Gain(), SensorOffset());
+  const PhysicalCorrection physical(field, PaperRoomGain(), SensorOffset());
   RunPerPose(state, physical);
 }
 BENCHMARK(BM_PhysicalNearRoomWithBackground);
