@@ -33,9 +33,11 @@
 #include <ctime>
 #include <map>
 #include <mutex>
+#include <string_view>
 #include <thread>
 #include <vector>
 
+#include "bench/paper_room.h"
 #include "bench/vrpn_bench_clients.h"
 #include "core/calibration_file.h"
 #include "core/field.h"
@@ -92,27 +94,6 @@ std::int64_t RecordNumber(const TrackerReport& r) {
   return NumberOf(r.transmitter_from_receiver.translation);
 }
 
-// The paper room of bench/bench_physical.cc (planes, CRTs, frame, toolbox) and a skewed receiver
-// gain: what the physical kind's calibration holds and the emulator's tracker measures in.
-FieldModel RoomField() {
-  FieldModel field;
-  field.transmitter_octupole_m2 = Eigen::Vector3d(-0.000675, -0.0006, -0.00075);
-  field.planes.push_back({"floor", Eigen::Vector3d(0, 0, 0.8), Eigen::Vector3d(0, 0, 1), 0.27});
-  field.planes.push_back({"door", Eigen::Vector3d(0, -2.1, 0), Eigen::Vector3d(0, 1, 0), 0.18});
-  field.objects.push_back({"crt1", Eigen::Vector3d(1.6, 1.0, -0.5), 0.04});
-  field.objects.push_back({"crt2", Eigen::Vector3d(0.5, 1.8, -0.5), 0.04});
-  field.objects.push_back({"crt3", Eigen::Vector3d(-1.5, 1.2, -0.4), 0.04});
-  field.objects.push_back({"frame", Eigen::Vector3d(0.5, 0.0, 0.35), -0.009});
-  field.objects.push_back({"toolbox", Eigen::Vector3d(0.6, 0.95, -0.5), 0.002});
-  return field;
-}
-
-Eigen::Matrix3d RoomGain() {
-  Eigen::Matrix3d g;
-  g << 1.03, 0.01, -0.02, 0.0, 0.97, 0.015, 0.01, -0.01, 1.01;
-  return g;
-}
-
 // What a Fastrak in the room reports for a receiver truly at `true_pose` (its free-space solver on
 // the distorted signal, no noise); the true pose itself while off. In the room the record's time
 // is noted again after the solve: the emulator's physics (~15 us) is not the server's latency.
@@ -127,10 +108,10 @@ class RoomTracker : public emulator::MeasurementModel {
     return reported;
   }
   static Rigid3d Measure(const Rigid3d& true_pose) {
-    static const FieldModel field = RoomField();
-    const TrackerSolution s =
-        SolveFreeSpacePose(SignalMatrix<double>(RoomGain(), true_pose.rotation.toRotationMatrix(),
-                                                field.Field<double>(true_pose.translation)));
+    static const FieldModel field = PaperRoomField();
+    const TrackerSolution s = SolveFreeSpacePose(
+        SignalMatrix<double>(PaperRoomGain(), true_pose.rotation.toRotationMatrix(),
+                             field.Field<double>(true_pose.translation)));
     return s.transmitter_from_receiver;
   }
   void set_in_room(bool in_room) { in_room_.store(in_room); }
@@ -180,7 +161,7 @@ void WriteCalibration(const std::filesystem::path& path, Kind kind) {
     cal.chain.Append(
         TrilinearLutCorrection::FromPositionAndOrientation(std::move(grid), position, orientation));
   } else if (kind == Kind::kPhysical) {
-    cal.chain.Append(PhysicalCorrection(RoomField(), RoomGain()).Clone());
+    cal.chain.Append(PhysicalCorrection(PaperRoomField(), PaperRoomGain()).Clone());
   }
   CalibratedVolume volume;
   volume.min = Eigen::Vector3d(-1, -1, -1);
@@ -243,7 +224,17 @@ double RecoverySeconds(emulator::BackgroundEmulator& emu, const std::string& por
 int main(int argc, char** argv) {
   using namespace trackcal;
   using namespace trackcal::vrpn;
-  const double seconds = argc > 1 ? std::atof(argv[1]) : 5.0;
+  // `--help` (or any word) was read by atof as 0 s per row: every row failed after a full run.
+  const char* usage =
+      "usage: vrpn_e2e_latency_bench [SECONDS_PER_ROW (default 5)] [RT_PRIORITY (default 0)] "
+      "[SKIP_RECOVERY 0|1]\n";
+  char* end = nullptr;
+  const double seconds = argc > 1 ? std::strtod(argv[1], &end) : 5.0;
+  if (argc > 4 || (argc > 1 && (end == argv[1] || *end != '\0' || !(seconds > 0.0) ||
+                                !std::isfinite(seconds)))) {
+    std::fputs(usage, argc > 1 && std::string_view(argv[1]) == "--help" ? stdout : stderr);
+    return argc > 1 && std::string_view(argv[1]) == "--help" ? 0 : 2;
+  }
   const int rt = argc > 2 ? std::atoi(argv[2]) : 0;
   const bool skip_recovery = argc > 3 && std::atoi(argv[3]) != 0;
   // Forks the client process first, before any thread exists.
