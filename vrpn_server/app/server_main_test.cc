@@ -173,6 +173,38 @@ TEST(TrackcalServerMain, CalibrationRawNameAndReloadOnChangeAndSighup) {
   EXPECT_NE(err.find("rejected"), std::string::npos) << err;
 }
 
+// A trackcal-server on dir/cfg/vrpn.cfg (a NULL tracker at 100 Hz whose calibration is
+// cfg/calib.json, which the test makes a symbolic link) and a client of its corrected Tracker0
+// noting the x of the last pose: the NULL tracker reports the origin, so x is the offset served.
+struct ServedCalibrationLink {
+  explicit ServedCalibrationLink(const std::filesystem::path& dir)
+      : port(FreePort()),
+        server(
+            [&] {
+              std::ofstream(dir / "cfg" / "vrpn.cfg")
+                  << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
+                     "trackcal_Calibration Tracker0 calib.json\n";
+              return std::vector<std::string>{
+                  ServerBinary(),       "-f",     (dir / "cfg" / "vrpn.cfg").string(),
+                  std::to_string(port), "--bind", "127.0.0.1"};
+            }(),
+            dir / "stderr.txt"),
+        corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port)) {
+    corrected.SetPoseCallback(
+        [this](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
+  }
+  // True once the served x equals `expected` (within 15 s).
+  bool WaitFor(double expected) {
+    const auto end = Clock::now() + std::chrono::seconds(15);
+    while (Clock::now() < end && x != expected) corrected.Poll(0.005);
+    return x == expected;
+  }
+  int port;
+  Process server;
+  VrpnTrackerClient corrected;
+  double x = NAN;
+};
+
 // A calibration given as a symbolic link into another directory (calib.json ->
 // ../releases/lab.json) is reloaded when the target changes: the server used to watch only the
 // link's directory, which sees no event, and kept serving the old correction until a SIGHUP.
@@ -182,26 +214,12 @@ TEST(TrackcalServerMain, CalibrationSymlinkTargetChangeIsReloaded) {
   std::filesystem::create_directories(dir / "releases");
   WriteOffsetCalibration(dir / "releases" / "lab.json", Eigen::Vector3d(0.1, 0, 0));
   std::filesystem::create_symlink("../releases/lab.json", dir / "cfg" / "calib.json");
-  std::ofstream(dir / "cfg" / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
-                                             "trackcal_Calibration Tracker0 calib.json\n";
-  const int port = FreePort();
-  Process server({ServerBinary(), "-f", (dir / "cfg" / "vrpn.cfg").string(), std::to_string(port),
-                  "--bind", "127.0.0.1"},
-                 dir / "stderr.txt");
-  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
-  double x = NAN;
-  corrected.SetPoseCallback(
-      [&](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
-  auto wait_for = [&](double expected) {
-    const auto end = Clock::now() + std::chrono::seconds(15);
-    while (Clock::now() < end && x != expected) corrected.Poll(0.005);
-    return x == expected;
-  };
-  EXPECT_TRUE(wait_for(0.1)) << server.Stderr();
+  ServedCalibrationLink served(dir);
+  EXPECT_TRUE(served.WaitFor(0.1)) << served.server.Stderr();
   WriteOffsetCalibration(dir / "releases" / "lab.json", Eigen::Vector3d(0.2, 0, 0));
-  EXPECT_TRUE(wait_for(0.2)) << server.Stderr();
-  ::kill(server.pid, SIGTERM);
-  EXPECT_EQ(server.Wait(), 0);
+  EXPECT_TRUE(served.WaitFor(0.2)) << served.server.Stderr();
+  ::kill(served.server.pid, SIGTERM);
+  EXPECT_EQ(served.server.Wait(), 0);
 }
 
 // A release process that re-points the link (calib.json -> ../releases/v2/lab.json, swapped by
@@ -216,31 +234,17 @@ TEST(TrackcalServerMain, CalibrationSymlinkRepointedToAnotherDirectoryIsWatched)
   WriteOffsetCalibration(dir / "releases" / "v1" / "lab.json", Eigen::Vector3d(0.1, 0, 0));
   WriteOffsetCalibration(dir / "releases" / "v2" / "lab.json", Eigen::Vector3d(0.2, 0, 0));
   std::filesystem::create_symlink("../releases/v1/lab.json", dir / "cfg" / "calib.json");
-  std::ofstream(dir / "cfg" / "vrpn.cfg") << "vrpn_Tracker_NULL Tracker0 1 100.0\n"
-                                             "trackcal_Calibration Tracker0 calib.json\n";
-  const int port = FreePort();
-  Process server({ServerBinary(), "-f", (dir / "cfg" / "vrpn.cfg").string(), std::to_string(port),
-                  "--bind", "127.0.0.1"},
-                 dir / "stderr.txt");
-  VrpnTrackerClient corrected("Tracker0@tcp://127.0.0.1:" + std::to_string(port));
-  double x = NAN;
-  corrected.SetPoseCallback(
-      [&](const TrackerReport& r) { x = r.transmitter_from_receiver.translation.x(); });
-  auto wait_for = [&](double expected) {
-    const auto end = Clock::now() + std::chrono::seconds(15);
-    while (Clock::now() < end && x != expected) corrected.Poll(0.005);
-    return x == expected;
-  };
-  EXPECT_TRUE(wait_for(0.1)) << server.Stderr();
+  ServedCalibrationLink served(dir);
+  EXPECT_TRUE(served.WaitFor(0.1)) << served.server.Stderr();
   // Atomic re-point, as `ln -sfn` does it: a new link renamed over the old one.
   std::filesystem::create_symlink("../releases/v2/lab.json", dir / "cfg" / "calib.json.new");
   std::filesystem::rename(dir / "cfg" / "calib.json.new", dir / "cfg" / "calib.json");
-  EXPECT_TRUE(wait_for(0.2)) << server.Stderr();
+  EXPECT_TRUE(served.WaitFor(0.2)) << served.server.Stderr();
   // The new target is rewritten in place of itself (atomically, in its own directory).
   WriteOffsetCalibration(dir / "releases" / "v2" / "lab.json", Eigen::Vector3d(0.3, 0, 0));
-  EXPECT_TRUE(wait_for(0.3)) << server.Stderr();
-  ::kill(server.pid, SIGTERM);
-  EXPECT_EQ(server.Wait(), 0);
+  EXPECT_TRUE(served.WaitFor(0.3)) << served.server.Stderr();
+  ::kill(served.server.pid, SIGTERM);
+  EXPECT_EQ(served.server.Wait(), 0);
 }
 
 // A calibration is fitted for one receiver (its sensor offset and coil gains belong to that
