@@ -10,6 +10,9 @@ namespace Trackcal
     public class TrackcalButton : MonoBehaviour
     {
         [Tooltip("VRPN button device: Stylus0@host, Stylus0@host:port or Stylus0@tcp://host:port.")]
+#if UNITY_5_4_OR_NEWER
+        [Delayed]  // a change made while playing takes effect on Enter, not on every keystroke
+#endif
         public string deviceName = "Stylus0@localhost";
 
         [Tooltip("Button index on the device (0 for the Fastrak stylus's switch).")]
@@ -24,6 +27,8 @@ namespace Trackcal
         public bool IsKnown { get; private set; }
 
         private TrackcalTracker device;
+        // The name the device was acquired for: changed while playing, it is reopened.
+        private string acquiredName;
         private ulong pressesAtEnable;
         private bool firstRead;
         private ulong pressesCarried;
@@ -32,6 +37,7 @@ namespace Trackcal
         private void OnEnable()
         {
             if (!TrackcalComponents.IndexValid(this, "button", button)) return;
+            acquiredName = deviceName;
             // Axes do not matter to buttons; the default keeps one connection per device.
             device = TrackcalComponents.Acquire(this, deviceName, null);
             if (device == null) return;
@@ -53,6 +59,24 @@ namespace Trackcal
             if (device == null) return;
             // Changed in the Inspector while playing: an exception every frame otherwise.
             if (!TrackcalComponents.IndexValid(this, "button", button)) return;
+            // deviceName changed in the Inspector (or by a script) while playing: the component kept
+            // reading the old device while the Inspector showed the new one. String equality, no
+            // allocation per frame; a bad new name disables the component.
+            if (deviceName != acquiredName)
+            {
+                TrackcalTracker old = device;
+                device = null;  // OnDisable, after a bad new name, has nothing more to release
+                acquiredName = deviceName;
+                // Acquired before the old one is released, as TrackcalTrackedObject does.
+                TrackcalTracker renewed = TrackcalComponents.Acquire(this, deviceName, null);
+                TrackcalConnections.Release(old);
+                if (renewed == null) return;
+                device = renewed;
+                // Another connection's count (names are its key): carry ours over, as for a
+                // renewed handle below.
+                pressesCarried = Presses;
+                firstRead = true;
+            }
             TrackcalTracker current = TrackcalConnections.Renew(device);
             if (current != device || button != buttonRead)
             {

@@ -365,6 +365,45 @@ public static class TrackcalCsharpTest
         Check(keeper.Presses >= 1 && switched.Presses == presses1 && !switched.PressedThisFrame,
               "a button index changed to 0 keeps the presses: " + presses1 + " -> " +
               switched.Presses + ", PressedThisFrame " + switched.PressedThisFrame);
+        // The device changed in the Inspector while playing (the same server spelt by host name):
+        // the component reads a connection of its own (it kept the old one, and Unity showed the
+        // new name), keeper keeps the old one, and the presses so far are carried over rather than
+        // read against the old connection's baseline (above 0: keeper's connection has seen a
+        // press) on the new connection, which counts from 0 (an underflow: billions of presses).
+        string respelt = stylusName.Replace("127.0.0.1", "localhost");
+        Check(respelt != stylusName, "the test's device name has 127.0.0.1 to respell: " + stylusName);
+        var renamed = new TrackcalButton { deviceName = stylusName, button = 1 };
+        Invoke(renamed, "OnEnable");
+        Invoke(renamed, "Update");
+        ulong pressesBefore = renamed.Presses;
+        renamed.deviceName = respelt;
+        Invoke(renamed, "Update");
+        Check(TrackcalTrackedObject.SharedConnections == 2 && renamed.Presses == pressesBefore &&
+              !renamed.PressedThisFrame,
+              "a device renamed while playing: " + TrackcalTrackedObject.SharedConnections +
+              " connection(s) (2: its own and keeper's), presses " + pressesBefore + " -> " +
+              renamed.Presses);
+        // 20 s: the server's button changes about every 0.1 s; a new connection needs well under 1 s.
+        DateTime renamedUntil = DateTime.UtcNow.AddSeconds(20);
+        while (renamed.Presses < pressesBefore + 2 && DateTime.UtcNow < renamedUntil)
+        {
+            Invoke(renamed, "Update");
+            Thread.Sleep(5);
+        }
+        // 20 s at 10 presses a second is at most a few hundred; an underflow about 2^64.
+        Check(renamed.IsKnown && renamed.Presses >= pressesBefore + 2 &&
+              renamed.Presses < pressesBefore + 1000,
+              "presses on the renamed device continue from " + pressesBefore + ": " + renamed.Presses);
+        // A bad name typed while playing: logged once and the component disabled, its connection
+        // released (keeper's stays).
+        int renameErrors = UnityEngine.Debug.Errors.Count;
+        renamed.deviceName = "no host name";
+        Invoke(renamed, "Update");
+        Check(!renamed.enabled && UnityEngine.Debug.Errors.Count == renameErrors + 1 &&
+              TrackcalTrackedObject.SharedConnections == 1,
+              "a bad device name typed while playing disables the component and logs: " +
+              TrackcalTrackedObject.SharedConnections + " connection(s)");
+        Invoke(renamed, "OnDisable");
         Invoke(switched, "OnDisable");
         Invoke(keeper, "OnDisable");
         Check(TrackcalTrackedObject.SharedConnections == 0, "the switched button's connection closed");
