@@ -6,17 +6,18 @@
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <Eigen/SVD>
-
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <exception>
+#include <limits>
 #include <map>
 #include <memory>
 #include <numeric>
-#include <limits>
 #include <optional>
 #include <set>
 #include <stdexcept>
+#include <utility>
 
 #include "fit/pose_metric.h"
 #include "fit/terms_time_offset.h"
@@ -389,17 +390,35 @@ ceres::LossFunction* MakeLoss(const LossOptions& loss) {
   return nullptr;
 }
 
+// Calls FitOptions::progress after each iteration. An exception it throws (the Python binding's
+// stop on Ctrl-C) is kept and the solve aborted, then rethrown after ceres::Solve returns
+// (SolveWithProgress): Ceres does not promise to be exception-safe through its callbacks.
 class ProgressCallback : public ceres::IterationCallback {
  public:
   explicit ProgressCallback(std::function<void(int, double)> f) : f_(std::move(f)) {}
   ceres::CallbackReturnType operator()(const ceres::IterationSummary& s) override {
-    f_(s.iteration, s.cost);
+    try {
+      f_(s.iteration, s.cost);
+    } catch (...) {
+      thrown_ = std::current_exception();
+      return ceres::SOLVER_ABORT;
+    }
     return ceres::SOLVER_CONTINUE;
+  }
+  void RethrowIfThrown() {
+    if (thrown_) std::rethrow_exception(std::exchange(thrown_, nullptr));
   }
 
  private:
   std::function<void(int, double)> f_;
+  std::exception_ptr thrown_;
 };
+
+void SolveWithProgress(const ceres::Solver::Options& options, ceres::Problem* problem,
+                       ceres::Solver::Summary* summary, ProgressCallback* progress) {
+  ceres::Solve(options, problem, summary);
+  progress->RethrowIfThrown();
+}
 
 // Statistical convergence: stops the solver once a successful step lowers the cost (0.5 chi2) by
 // less than `fraction` times the chi2 per degree of freedom at that point, i.e. when what is left
@@ -1313,7 +1332,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
   }
   double first_initial_cost = 0.0;
   if (!linear_solution && num_free > 0) {
-    ceres::Solve(solver_options, built.problem.get(), &summary);
+    SolveWithProgress(solver_options, built.problem.get(), &summary, &callback);
     result.linear_solver = ceres::LinearSolverTypeToString(solver_options.linear_solver_type);
     first_initial_cost = summary.initial_cost >= 0.0 ? summary.initial_cost
                                                      : std::numeric_limits<double>::quiet_NaN();
@@ -1328,7 +1347,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
                                        time_offset0, &built.report_form);
       if (!MetricChanged(built, next)) break;
       built = std::move(next);
-      ceres::Solve(solver_options, built.problem.get(), &summary);
+      SolveWithProgress(solver_options, built.problem.get(), &summary, &callback);
       result.iterations += static_cast<int>(summary.iterations.size()) - 1;
     }
   }
@@ -1353,7 +1372,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
           fitted = &stations;
           built = BuildProblem(stations, spec, nullptr, time_offset0);
           num_free = built.num_free;
-          ceres::Solve(solver_options, built.problem.get(), &summary);
+          SolveWithProgress(solver_options, built.problem.get(), &summary, &callback);
           result.iterations += static_cast<int>(summary.iterations.size()) - 1;
         }
         break;
@@ -1367,7 +1386,7 @@ FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
       fitted = &kept_stations;
       built = BuildProblem(*fitted, spec, nullptr, time_offset0);
       num_free = built.num_free;
-      ceres::Solve(solver_options, built.problem.get(), &summary);
+      SolveWithProgress(solver_options, built.problem.get(), &summary, &callback);
       result.iterations += static_cast<int>(summary.iterations.size()) - 1;
     }
     for (size_t i = 0; i < stations.size(); ++i) {

@@ -461,6 +461,30 @@ TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {
                std::invalid_argument);
 }
 
+// A progress callback that throws (the Python binding's stop on Ctrl-C) stops the solve at that
+// iteration: the exception reaches FitModel's caller, kept while Ceres aborts the solve rather
+// than thrown through it, and the callback is not called again.
+TEST(FitModel, AnExceptionFromProgressStopsTheSolveAndReachesTheCaller) {
+  std::mt19937 rng(5);
+  const auto truth = RandomPolynomial(3, &rng);
+  auto stations = NoiseFreeStations(*truth, 300, &rng);
+  std::normal_distribution<double> noise(0.0, 1e-3);
+  for (auto& s : stations) {
+    s.reference.translation += Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
+  }
+  struct Stop {};
+  ModelSpec spec =
+      ParseModelYaml("terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 3\n", "m");
+  int calls = 0;
+  FitOptions options;
+  options.progress = [&calls](int iteration, double) {
+    ++calls;
+    if (iteration >= 1) throw Stop();
+  };
+  EXPECT_THROW(FitModel(stations, &spec, options), Stop);
+  EXPECT_EQ(calls, 2);  // iterations 0 and 1; none after the throw
+}
+
 // A set with no error before (error-free data, or a set the model reproduces exactly) has no
 // defined improvement. ImprovementPercent gives -inf (an error where there was none) or NaN; in
 // the calibration file's fit_statistics they are null, since that file holds finite numbers only
