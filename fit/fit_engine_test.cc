@@ -46,6 +46,19 @@ std::unique_ptr<Correction> RandomPolynomial(int degree, std::mt19937* rng) {
       degree, Eigen::Vector3d(0, 0, 0.3), Eigen::Vector3d(0.5, 0.5, 0.5), p, q);
 }
 
+// `n` stations of a random degree-`degree` polynomial distortion (seed `seed`), their reference
+// positions with 1 mm of white noise per axis.
+std::vector<FitStation> NoisyPolynomialStations(unsigned seed, int degree, int n) {
+  std::mt19937 rng(seed);
+  const auto truth = RandomPolynomial(degree, &rng);
+  auto stations = NoiseFreeStations(*truth, n, &rng);
+  std::normal_distribution<double> noise(0.0, 1e-3);
+  for (auto& s : stations) {
+    s.reference.translation += Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
+  }
+  return stations;
+}
+
 TEST(FitModel, Nominal_NoiseFreePolynomialRecoveredTo1e6Relative) {
   std::mt19937 rng(5);
   const auto truth = RandomPolynomial(3, &rng);
@@ -392,13 +405,7 @@ TEST(FitModel, TheLossScaleIsInSigmasOfTheStationsRms) {
 // coefficient of the block) is far above the two factorisations' rounding (~1e-13 measured) and
 // far below any statistical meaning.
 TEST(FitModel, DenseSolverChoiceGivesTheSparseSolversParameters) {
-  std::mt19937 rng(11);
-  const auto truth = RandomPolynomial(6, &rng);
-  auto stations = NoiseFreeStations(*truth, 400, &rng);
-  std::normal_distribution<double> noise(0.0, 1e-3);
-  for (auto& s : stations) {
-    s.reference.translation += Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
-  }
+  const auto stations = NoisyPolynomialStations(11, 6, 400);
   const char* model = R"(terms:
   - type: sensor_offset
   - type: polynomial
@@ -432,13 +439,7 @@ TEST(FitModel, DenseSolverChoiceGivesTheSparseSolversParameters) {
 // Ceres' function tolerance alone, at parameters within a tenth of their standard deviation of
 // that solution (the rule's meaning: ~0.1 sigma left to gain; 0.1 allows for it).
 TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {
-  std::mt19937 rng(5);
-  const auto truth = RandomPolynomial(3, &rng);
-  auto stations = NoiseFreeStations(*truth, 300, &rng);
-  std::normal_distribution<double> noise(0.0, 1e-3);
-  for (auto& s : stations) {
-    s.reference.translation += Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
-  }
+  const auto stations = NoisyPolynomialStations(5, 3, 300);
   const std::string model = "terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 3\n";
   ModelSpec stat_spec = ParseModelYaml("solver: {statistical_tolerance: 5.0e-3}\n" + model, "m");
   ModelSpec tight_spec = ParseModelYaml(model, "m");
@@ -465,13 +466,7 @@ TEST(FitModel, StatisticalToleranceStopsWithinATenthOfASigma) {
 // iteration: the exception reaches FitModel's caller, kept while Ceres aborts the solve rather
 // than thrown through it, and the callback is not called again.
 TEST(FitModel, AnExceptionFromProgressStopsTheSolveAndReachesTheCaller) {
-  std::mt19937 rng(5);
-  const auto truth = RandomPolynomial(3, &rng);
-  auto stations = NoiseFreeStations(*truth, 300, &rng);
-  std::normal_distribution<double> noise(0.0, 1e-3);
-  for (auto& s : stations) {
-    s.reference.translation += Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
-  }
+  const auto stations = NoisyPolynomialStations(5, 3, 300);
   struct Stop {};
   ModelSpec spec =
       ParseModelYaml("terms:\n  - type: sensor_offset\n  - type: polynomial\n    degree: 3\n", "m");
