@@ -17,6 +17,7 @@
 
 #include "fit/model_file.h"
 #include "fit/registration.h"
+#include "fit/sim_test_support.h"
 
 namespace trackcal::fit {
 namespace {
@@ -680,34 +681,17 @@ terms:
   EXPECT_NEAR(spec.time_offset->value, 0.037, 1e-9);
 }
 
-// Stream samples (100 Hz, 20 s) whose reference is off by a misfit that wanders in time: per axis
-// an Ornstein-Uhlenbeck process, standard deviation 0.3 mm, correlation time 0.5 s (neighbouring
-// samples share it, as they share a model's misfit along a stream's path), zero mean, plus white
-// noise; `offset` a constant position offset on top. The base model has no position terms.
+// testing::WanderingMisfitStream (100 Hz, 20 s, a misfit of 0.3 mm wandering with a 0.5 s
+// correlation time) along a path in +z, with white noise of kPositionNoise and `offset` a constant
+// position offset on top. The base model has no position terms.
 std::vector<FitStation> WanderingStream(const Eigen::Vector3d& offset, unsigned seed) {
-  constexpr int kSamples = 2000;
-  constexpr double kDt = 0.01, kTau = 0.5, kSigma = 3e-4;
-  std::mt19937 rng(seed);
-  std::normal_distribution<double> g;
-  const double a = std::exp(-kDt / kTau), b = kSigma * std::sqrt(1.0 - a * a);
-  Eigen::Vector3d misfit(kSigma * g(rng), kSigma * g(rng), kSigma * g(rng));
-  std::vector<FitStation> out;
-  for (int i = 0; i < kSamples; ++i) {
-    const double t = kDt * i;
-    FitStation s;
-    s.station = i + 1;
-    s.time = t;
-    s.reported = Rigid3d(
+  const auto path = [](double t) {
+    return Rigid3d(
         Eigen::Quaterniond(Eigen::AngleAxisd(0.8 * std::sin(0.9 * t), Eigen::Vector3d::UnitZ())),
         Eigen::Vector3d(0.3 * std::sin(1.1 * t), 0.3 * std::cos(0.7 * t),
                         0.5 + 0.1 * std::sin(0.4 * t)));
-    s.reference = s.reported;
-    s.reference.translation +=
-        offset + misfit + kPositionNoise * Eigen::Vector3d(g(rng), g(rng), g(rng));
-    out.push_back(s);
-    misfit = a * misfit + b * Eigen::Vector3d(g(rng), g(rng), g(rng));
-  }
-  return out;
+  };
+  return testing::WanderingMisfitStream(path, seed, kPositionNoise, offset);
 }
 
 // The model of WanderingStream: no position terms (a constant orientation correction).

@@ -581,33 +581,18 @@ TEST(CrossValidate, AFailedFoldIsAnErrorNamingIt) {
   }
 }
 
-// A stream (100 Hz, 20 s) along a Lissajous path whose reference is off by a misfit that wanders in
-// time (per axis an Ornstein-Uhlenbeck process, standard deviation 0.3 mm, correlation time 0.5 s:
-// neighbouring samples share it, as they share a model's misfit along a real stream's path) plus
-// white noise of 0.05 mm. `times` false: the same samples without times (static stations).
+// testing::WanderingMisfitStream (100 Hz, 20 s, a misfit of 0.3 mm wandering with a 0.5 s
+// correlation time) along a Lissajous path, with white noise of 0.05 mm. `times` false: the same
+// samples without times (static stations).
 std::vector<FitStation> WanderingMisfitStream(unsigned seed, bool times = true) {
-  constexpr int kSamples = 2000;
-  constexpr double kDt = 0.01, kTau = 0.5, kSigma = 3e-4, kWhite = 5e-5;
-  std::mt19937 rng(seed);
-  std::normal_distribution<double> g;
-  const double a = std::exp(-kDt / kTau), b = kSigma * std::sqrt(1.0 - a * a);
-  Eigen::Vector3d misfit(kSigma * g(rng), kSigma * g(rng), kSigma * g(rng));
-  std::vector<FitStation> out;
-  for (int i = 0; i < kSamples; ++i) {
-    const double t = kDt * i;
-    FitStation s;
-    s.station = i + 1;
-    s.time = times ? t : 0.0;
-    s.reported = Rigid3d(
+  const auto lissajous = [](double t) {
+    return Rigid3d(
         Eigen::Quaterniond(Eigen::AngleAxisd(0.8 * std::sin(0.9 * t), Eigen::Vector3d::UnitZ())),
         Eigen::Vector3d(0.3 * std::sin(2 * M_PI * t / 7), 0.3 * std::sin(2 * M_PI * t / 5 + 1),
                         -0.5 + 0.1 * std::sin(2 * M_PI * t / 11)));
-    s.reference = s.reported;
-    s.reference.translation += misfit + kWhite * Eigen::Vector3d(g(rng), g(rng), g(rng));
-    out.push_back(s);
-    misfit = a * misfit + b * Eigen::Vector3d(g(rng), g(rng), g(rng));
-  }
-  return out;
+  };
+  return testing::WanderingMisfitStream(lissajous, seed, /*white_sigma=*/5e-5,
+                                        Eigen::Vector3d::Zero(), times);
 }
 
 TEST(CrossValidationFolds, StaticStationsByIndexStreamSamplesByBlocksOfTime) {

@@ -1,9 +1,11 @@
 // Test support for the fit/ tests on simulated scenes: model-file snippets of a scene's true room,
-// lookups in a fit's parameter report and a grid of stations on four heights. Header-only; tests
-// only.
+// lookups in a fit's parameter report, a grid of stations on four heights and a stream whose
+// misfit wanders in time. Header-only; tests only.
 #pragma once
 
 #include <Eigen/Core>
+#include <cmath>
+#include <functional>
 #include <iomanip>
 #include <random>
 #include <sstream>
@@ -78,6 +80,37 @@ inline std::vector<FitStation> FourHeightGrid(const Correction& truth, std::mt19
     }
   }
   return stations;
+}
+
+// Stream samples (100 Hz, 20 s) along `path` (the reported pose at time t) whose reference is off
+// by a misfit that wanders in time: per axis an Ornstein-Uhlenbeck process, standard deviation
+// 0.3 mm, correlation time 0.5 s (neighbouring samples share it, as they share a model's misfit
+// along a real stream's path), zero mean; plus `offset` and white noise of `white_sigma` [m] per
+// axis. `times` false: the same samples at time 0 (static stations).
+inline std::vector<FitStation> WanderingMisfitStream(const std::function<Rigid3d(double)>& path,
+                                                     unsigned seed, double white_sigma,
+                                                     const Eigen::Vector3d& offset,
+                                                     bool times = true) {
+  constexpr int kSamples = 2000;
+  constexpr double kDt = 0.01, kTau = 0.5, kSigma = 3e-4;
+  std::mt19937 rng(seed);
+  std::normal_distribution<double> g;
+  const double a = std::exp(-kDt / kTau), b = kSigma * std::sqrt(1.0 - a * a);
+  Eigen::Vector3d misfit(kSigma * g(rng), kSigma * g(rng), kSigma * g(rng));
+  std::vector<FitStation> out;
+  for (int i = 0; i < kSamples; ++i) {
+    const double t = kDt * i;
+    FitStation s;
+    s.station = i + 1;
+    s.time = times ? t : 0.0;
+    s.reported = path(t);
+    s.reference = s.reported;
+    s.reference.translation +=
+        offset + misfit + white_sigma * Eigen::Vector3d(g(rng), g(rng), g(rng));
+    out.push_back(s);
+    misfit = a * misfit + b * Eigen::Vector3d(g(rng), g(rng), g(rng));
+  }
+  return out;
 }
 
 }  // namespace trackcal::fit::testing
