@@ -73,6 +73,12 @@ VrpnName ParseVrpnName(const std::string& name) {
       break;
     }
   }
+  // Any other scheme ("udp://", "mpi://") would otherwise be read as a host and a bad port.
+  if (const auto scheme_end = rest.find("://"); scheme_end != std::string::npos) {
+    throw std::invalid_argument("VRPN name '" + name + "': unknown scheme '" +
+                                rest.substr(0, scheme_end) +
+                                "://' (a VRPN name takes tcp:// or x-vrpn://, or none)");
+  }
   const auto colon = rest.rfind(':');
   if (colon != std::string::npos) {
     n.port = ParsePort(rest.substr(colon + 1), name);

@@ -102,6 +102,16 @@ TEST(ParseVrpnName, Nominal) {
   EXPECT_EQ(ParseVrpnName("Head@lab-pc_2.example.org").host, "lab-pc_2.example.org");
 }
 
+TEST(ParseVrpnName, UnknownSchemeIsNamed) {
+  // Before, "udp://host" was read as host "udp" with a bad port "//host".
+  try {
+    ParseVrpnName("Tracker0@udp://host:3883");
+    FAIL() << "accepted an unknown scheme";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("unknown scheme 'udp://'"), std::string::npos) << e.what();
+  }
+}
+
 TEST(VrpnServer, NominalDirectTcp) {
   VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
   server.Start();
