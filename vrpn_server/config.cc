@@ -188,7 +188,7 @@ class Parser {
                  "' (trackcal's own lines are trackcal_Calibration and "
                  "trackcal_Tracker_Passthrough; names are case-sensitive)");
       } else {
-        const int skipped = SkipContinuation(ContinuationOf(line.text));
+        const int skipped = SkipContinuation(ContinuationOf(line.text), keyword);
         std::string message = "unknown device type '" + keyword + "'; line ignored";
         if (skipped > 0) {
           message += " with its " + std::to_string(skipped) + " continuation line(s)";
@@ -226,21 +226,49 @@ class Parser {
     }
   }
 
-  // Next line that is not a comment (comments are allowed inside continuation blocks), or null.
-  const Line* NextContinuationLine() {
+  // Next line of the continuation block of `block` (what it continues, for the warning) that is
+  // not a comment (comments are allowed inside continuation blocks), or null at the end of the file
+  // or at a line that starts with a device type (see StartsDeviceLine): that line is left for the
+  // main loop, since a block whose last line was commented out ("#u" below "H1,1,0,0\") is
+  // otherwise still open and would swallow the next device line, while the reference, which sends
+  // the comment as a command, ends the block there.
+  const Line* NextContinuationLine(std::string_view block) {
     while (next_ < lines_.size()) {
-      const Line& line = lines_[next_++];
+      const Line& line = lines_[next_];
       const std::string_view t = Trim(line.text);
-      if (!t.empty() && t.front() == '#') continue;
+      if (!t.empty() && t.front() == '#') {
+        ++next_;
+        continue;
+      }
+      if (StartsDeviceLine(t)) {
+        const std::string keyword(t.substr(0, t.find_first_of(kWhitespace)));
+        config_.warnings.push_back(
+            {Where(line), "'" + keyword +
+                              "' starts a device line inside the continuation block of " +
+                              std::string(block) +
+                              " (its last line that is not a comment ends with '\\' or '/'; was "
+                              "the block's last line commented out?): the block ends before this "
+                              "line, which is read as a device line"});
+        return nullptr;
+      }
+      ++next_;
       return &line;
     }
     return nullptr;
   }
 
-  int SkipContinuation(char continuation) {
+  // Whether the trimmed line starts with a device type: the reference's all start with "vrpn_",
+  // trackcal's with "trackcal_". No tracker command, button line (FTStylus, Stylus, Wand) or
+  // continuation line of another device does.
+  static bool StartsDeviceLine(std::string_view trimmed) {
+    const std::string_view keyword = trimmed.substr(0, trimmed.find_first_of(kWhitespace));
+    return keyword.substr(0, 5) == "vrpn_" || IsTrackcalKeyword(keyword);
+  }
+
+  int SkipContinuation(char continuation, std::string_view keyword) {
     int skipped = 0;
     while (continuation != 0) {
-      const Line* line = NextContinuationLine();
+      const Line* line = NextContinuationLine("the ignored '" + std::string(keyword) + "' line");
       if (line == nullptr) break;
       ++skipped;
       continuation = ContinuationOf(line->text);
@@ -335,8 +363,14 @@ class Parser {
     RegisterName(spec.name, where, "name");
 
     // '\' lines: extra reset commands; the last one may end with '/' to start device lines.
+    const std::string commands_of = "'" + spec.name + "' (extra commands)";
+    const std::string devices_of = "'" + spec.name + "' (device lines)";
     while (continuation == '\\') {
-      const Line* cmd_line = NextContinuationLine();
+      const Line* cmd_line = NextContinuationLine(commands_of);
+      if (cmd_line == nullptr && next_ < lines_.size()) {  // at a device line (warned)
+        continuation = 0;
+        break;
+      }
       if (cmd_line == nullptr) {
         Fail(where, "extra commands", "the line ends with '\\' but the file ends before the command line");
       }
@@ -358,7 +392,8 @@ class Parser {
 
     // '/' lines: button devices on this tracker's sensors.
     while (continuation == '/') {
-      const Line* dev_line = NextContinuationLine();
+      const Line* dev_line = NextContinuationLine(devices_of);
+      if (dev_line == nullptr && next_ < lines_.size()) break;  // at a device line (warned)
       if (dev_line == nullptr) {
         Fail(where, "device line", "a line ends with '/' but the file ends before the device line");
       }

@@ -559,6 +559,49 @@ TEST(ParseVrpnConfig, EmptyCommandLineIsWarnedAndSkipped) {
   EXPECT_EQ(config.warnings.size(), 2u);
 }
 
+// Comment lines inside a continuation block are skipped, so a lab that comments out the LAST
+// command or device line of a block ("#u" below "H1,1,0,0\\") left the block open: the next device
+// line was swallowed, silently sent to the tracker as an extra command (a trackcal_Calibration line
+// too: the tracker was served uncorrected) or skipped with an unknown device. The reference sends
+// the comment line as a command and reads the next line as a device line.
+TEST(ParseVrpnConfig, ADeviceLineEndsABlockWhoseLastLineWasCommentedOut) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyUSB0 115200 \\\r\n"  // 1
+      "H1,1,0,0\\\r\n"                                            // 2
+      "#u\r\n"                                                    // 3
+      "trackcal_Calibration Tracker0 calib.json\r\n"              // 4
+      "vrpn_Tracker_Liberty Lib0 /dev/ttyUSB1 115200 \\\r\n"      // 5
+      "#*2\r\n"                                                   // 6
+      "vrpn_Tracker_Fastrak Tracker1 /dev/ttyUSB2 9600 /\r\n"     // 7
+      "FTStylus Stylus1 0 /\r\n"                                  // 8
+      "# FTStylus Spare 0\r\n"                                    // 9
+      "vrpn_Tracker_NULL Null0 1 10\r\n",                         // 10
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 2u);
+  EXPECT_EQ(config.fastrak_trackers[0].extra_commands, std::vector<std::string>{"H1,1,0,0"});
+  ASSERT_EQ(config.calibrations.size(), 1u);
+  EXPECT_EQ(config.calibrations[0].tracker, "Tracker0");
+  EXPECT_EQ(config.calibrations[0].location.line, 4);
+  EXPECT_EQ(config.fastrak_trackers[1].location.line, 7);
+  ASSERT_EQ(config.fastrak_trackers[1].buttons.size(), 1u);
+  EXPECT_EQ(config.fastrak_trackers[1].buttons[0].name, "Stylus1");
+  ASSERT_EQ(config.null_trackers.size(), 1u);
+  EXPECT_EQ(config.null_trackers[0].location.line, 10);
+  // Each block that ran into a device line is warned at that line; the Liberty at its own line.
+  std::vector<int> lines;
+  for (const ConfigWarning& w : config.warnings) lines.push_back(w.location.line);
+  EXPECT_EQ(lines, (std::vector<int>{4, 7, 5, 10})) << ::testing::PrintToString(lines);
+  EXPECT_NE(config.warnings[0].ToString().find(
+                "lab.cfg:4: warning: 'trackcal_Calibration' starts a device line"),
+            std::string::npos)
+      << config.warnings[0].ToString();
+  EXPECT_NE(config.warnings[0].message.find("continuation block of 'Tracker0' (extra commands)"),
+            std::string::npos)
+      << config.warnings[0].message;
+  EXPECT_NE(config.warnings[2].message.find("line ignored (other devices"), std::string::npos)
+      << config.warnings[2].message;
+}
+
 TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
 }
