@@ -581,7 +581,17 @@ class FastrakDriver::Session {
     SetState(DriverState::kResetting);
     const int attempt = ++reset_attempts_;
     Count(&DriverStats::resets_started);
-    Emit(Severity::kWarning, "resetting the tracker (attempt " + std::to_string(attempt) + ")");
+    // The failed attempt's error came just before this text, often within the rate limit's
+    // interval of the text before it: held, it was replaced by this one, and clients and the
+    // server log never learnt why the resets failed (nor the baud-rate hint). Say it here too.
+    std::string resetting = "resetting the tracker (attempt " + std::to_string(attempt) + ")";
+    Severity resetting_severity = Severity::kWarning;
+    if (attempt > 1 && !last_reset_failure_.empty()) {
+      resetting += "; attempt " + std::to_string(attempt - 1) + ": " + last_reset_failure_;
+      resetting_severity = Severity::kError;
+    }
+    last_reset_failure_.clear();
+    Emit(resetting_severity, std::move(resetting));
     const std::array<bool, kMaxStations> stylus = StylusStations(options_);
     if (!stylus_lists_written_) {
       // The reference writes the stylus output list once at configuration time, before any reset.
@@ -615,13 +625,14 @@ class FastrakDriver::Session {
     std::string why;
     const std::optional<StatusRecord> status = ParseStatusRecord(reply, &why);
     if (!status) {
-      std::string text = "bad status report (" + (reply.empty() ? std::string("no reply") : why) +
-                         "), retrying reset";
-      if (attempt >= 4) {
-        text += "; if this persists, check the cable and that the baud rate matches the unit's "
-                "switches, then power-cycle the Fastrak";
-      }
-      Emit(Severity::kError, text);
+      const std::string reason =
+          "bad status report (" + (reply.empty() ? std::string("no reply") : why) + ")";
+      const std::string hint =
+          attempt >= 4 ? "; if this persists, check the cable and that the baud rate matches the "
+                         "unit's switches, then power-cycle the Fastrak"
+                       : "";
+      last_reset_failure_ = reason + hint;
+      Emit(Severity::kError, reason + ", retrying reset" + hint);
       return false;
     }
     reset_attempts_ = 0;
@@ -887,6 +898,7 @@ class FastrakDriver::Session {
   bool after_loss_ = false;  // the stream or the port was lost since the last short restart
   bool stylus_lists_written_ = false;
   std::string unit_status_reply_;  // the last status reply accepted before a Configure()
+  std::string last_reset_failure_;  // why the last reset attempt failed, for the next one's text
   SystemClock::time_point wake_time_;
   std::array<std::optional<bool>, kMaxStations> last_button_;
 };

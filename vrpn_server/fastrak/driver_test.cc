@@ -389,6 +389,37 @@ TEST(FastrakDriver, BadStatusIsRejectedAndRetried) {
   EXPECT_EQ(fake.received().substr(0, 4), "cS\rc");  // attempt 1 failed, attempt 2 escalated
 }
 
+// Why a reset failed must reach the clients and the server log (the on_message texts), not only
+// on_log. The failed status is followed at once by the next "resetting the tracker" text, which
+// replaced the held error in the rate limiter every time the error came within the interval of
+// the previous text: with a unit whose line delivers noise (a baud rate that does not match its
+// switches), the log showed "got N characters ..." and "resetting the tracker (attempt N)" for
+// ever, never the bad status nor, from attempt 4, the hint to check the baud rate.
+TEST(FastrakDriver, WhyAResetFailedIsNotLostToTheRateLimit) {
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrakOptions fake_options;
+  fake_options.status_record = "?\x93\x05\r\n";  // noise ending in LF: refused at once
+  FakeFastrak fake(dir / "tty", fake_options);
+  Collector collector;
+  FastrakOptions options = FastOptions(dir / "tty");
+  ASSERT_EQ(options.timings.message_interval_s, 1.0);  // the default, as trackcal-server uses it
+  FastrakDriver driver(options, collector.Callbacks());
+  driver.Start();
+  // Attempt 4 gives the baud-rate hint; each fast attempt takes well under the 1 s interval.
+  ASSERT_TRUE(WaitUntil([&] { return fake.status_requests() >= 5; }, 20.0));
+  ASSERT_TRUE(collector.HasLog("check the cable and that the baud rate matches"));
+  // One interval more for a held text to go out.
+  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  driver.Stop();
+  bool reason = false, hint = false;
+  for (const Collector::Message& m : collector.messages()) {
+    reason |= m.text.find("bad status report") != std::string::npos;
+    hint |= m.text.find("baud rate matches") != std::string::npos;
+  }
+  EXPECT_TRUE(reason);
+  EXPECT_TRUE(hint);
+}
+
 // An IS-900-style status reply: the Fastrak's with one character less of the system id (54 bytes,
 // FASTRAK.md section 4), so its fields are not in the Fastrak's layout.
 std::string Is900StatusRecord() {
