@@ -387,6 +387,16 @@ class Parser {
         const double seconds = ParseDouble(command.substr(1), cmd_where, "sleep");
         if (seconds < 0.0) Fail(cmd_where, "sleep", "a '*N' sleep must not be negative");
       }
+      // Only whole lines are comments: the reference sends this one as it is, and a unit may refuse
+      // the whole command (the emulator does: a hemisphere line silently not set).
+      if (command.find('#') != std::string::npos) {
+        config_.warnings.push_back(
+            {cmd_where,
+             "extra command '" + command +
+                 "' contains '#': it is sent to the tracker as it is, comment included "
+                 "(as by the reference; vrpn.cfg has whole-line comments only), and the "
+                 "tracker may refuse the command; put the comment on a line of its own"});
+      }
       spec.extra_commands.push_back(command);
     }
 

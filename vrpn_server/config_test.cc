@@ -602,6 +602,30 @@ TEST(ParseVrpnConfig, ADeviceLineEndsABlockWhoseLastLineWasCommentedOut) {
       << config.warnings[2].message;
 }
 
+// vrpn.cfg has whole-line comments only: a comment after an extra command is part of the command
+// and is sent to the tracker with it, as by the reference. With the emulator,
+// "H1,-1,0,0   # hemisphere -x" was refused whole ("bad component"), so the hemisphere was not set
+// and a receiver on the -x side was served mirrored, without a word. It is kept (the reference's
+// bytes) but warned, naming the line.
+TEST(ParseVrpnConfig, ACommentAfterAnExtraCommandIsWarned) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyUSB0 115200 \\\r\n"
+      "H1,-1,0,0   # hemisphere -x \\\r\n"
+      "*1\\\r\n"
+      "u\t# centimetres\r\n",
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 1u);
+  EXPECT_EQ(config.fastrak_trackers[0].extra_commands,
+            (std::vector<std::string>{"H1,-1,0,0   # hemisphere -x", "*1", "u\t# centimetres"}));
+  ASSERT_EQ(config.warnings.size(), 2u);
+  EXPECT_EQ(config.warnings[0].location.line, 2);
+  EXPECT_EQ(config.warnings[1].location.line, 4);
+  EXPECT_NE(config.warnings[0].ToString().find(
+                "lab.cfg:2: warning: extra command 'H1,-1,0,0   # hemisphere -x' contains '#'"),
+            std::string::npos)
+      << config.warnings[0].ToString();
+}
+
 TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
 }
