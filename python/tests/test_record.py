@@ -574,3 +574,57 @@ def test_an_ignored_sighup_while_saving_does_not_mark_the_recording_interrupted(
         signal.signal(signal.SIGHUP, previous)
     assert HangUpWhileStopping.instances[0].stopped
     assert not out.interrupted and list(out) == ["raw"]
+
+
+class Arriving(FakeRecorder):
+    """A TrackerRecorder whose reports arrive as the recording looks at it (len): 25 at each look,
+    none after the second look when its name starts with 'frozen'. take() hands out, in order,
+    the reports not taken yet, and ``after_start`` counts those that arrived after the first take
+    (the synchronised start)."""
+
+    def __init__(self, name):
+        super().__init__(name)
+        self.looks, self.arrived, self.taken, self.first = 0, 0, 0, None
+
+    def __len__(self):
+        self.looks += 1
+        if not (self.name.startswith("frozen") and self.looks > 2):
+            self.arrived += 25
+        return self.arrived - self.taken
+
+    def take(self):
+        i = np.arange(self.taken, self.arrived)
+        self.taken = self.arrived
+        if self.first is None:
+            self.first = self.taken
+        # Varying poses and sensors, so that a row written twice, lost or reordered shows.
+        angle = 0.01 * i
+        return {"time": 1796098746.0 + 0.001 * i, "sensor": (i % 2).astype(np.int32),
+                "positions": np.column_stack([0.1 + i / 7e3, -0.2 - i / 3e4, 0.3 + np.sin(i)]),
+                "quaternions_xyzw": np.column_stack([np.zeros_like(angle), np.zeros_like(angle),
+                                                     np.sin(angle / 2), np.cos(angle / 2)])}
+
+    @property
+    def after_start(self):
+        return self.taken - self.first
+
+
+def test_a_gap_before_an_interruption_is_judged_on_the_time_recorded(fake_recorders, tmp_path, monkeypatch):
+    """A silence is a gap when longer than max(1 s, 10 mean intervals between reports). The mean
+    was taken over the duration asked for, also when Ctrl-C ended the recording early: stopped
+    2 s into an hour, 25 reports made the mean interval 144 s instead of 0.08 s, and a device frozen
+    for the whole 2 s was no gap. It is the time recorded."""
+    from trackcal import record
+    monkeypatch.setattr(record._core, "TrackerRecorder", Arriving)
+
+    def ctrl_c_after_2_s(done, total):
+        if done > 2.0:
+            raise KeyboardInterrupt
+    out = record_streams({"raw": "Tracker0_raw@tcp://h:1", "corrected": "frozen@tcp://h:1"}, tmp_path / "rec",
+                         3600.0, progress=ctrl_c_after_2_s)
+    assert out.interrupted
+    # 'frozen' sent its 25 reports at the start and nothing for the ~2 s after (the 1 s floor,
+    # with ~1 s of margin for a loaded machine); 'raw' grew at every 0.1 s look.
+    assert list(out.gaps) == ["corrected"]
+    start, length = out.gaps["corrected"]
+    assert start < 0.5 and length > 1.5

@@ -24,7 +24,7 @@ class Recording(dict):
     ``lost``: label -> seconds into the recording when the device's connection dropped (its
     recording has a gap or ends early); ``gaps``: label -> (start, length) [s] of a silence of a
     device that stayed connected (a frozen server, a lost network) longer than max(1 s, 10 of its
-    mean intervals between reports)."""
+    mean intervals between reports over the time recorded, up to an interruption)."""
 
     interrupted: bool = False
     empty: Sequence[str] = ()
@@ -170,6 +170,9 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
     started = False
     lost: Dict[str, float] = {}
     silent: Dict[str, Tuple[float, float]] = {}
+    recorded_s = 0.0  # how long the recording ran: the duration, or until an interruption
+    counts: Dict[str, int] = {}  # label -> reports at the last look
+    heard: Dict[str, float] = {}  # label -> seconds into the recording of the last growth
     for r in recorders.values():
         r.start()
     try:
@@ -187,9 +190,10 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         # A server that freezes or whose network goes (a pulled cable) keeps its connection open
         # until the client's liveness timeout (10 s): the recording just stopped growing and was
         # saved as if complete. Each device's longest silence is watched too.
-        counts = {label: len(r) for label, r in recorders.items()}
-        heard = dict.fromkeys(recorders, 0.0)  # seconds into the recording of the last growth
+        counts.update({label: len(r) for label, r in recorders.items()})
+        heard.update(dict.fromkeys(recorders, 0.0))
         while (elapsed := time.monotonic() - t0) < duration_s:
+            recorded_s = elapsed
             # A server that goes away mid-recording: the client reconnects on its own, so the
             # recording just stopped growing and was saved as if complete.
             for label, r in recorders.items():
@@ -199,12 +203,17 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             if progress:
                 progress(elapsed, duration_s)
             time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
+        recorded_s = duration_s
         for label, r in recorders.items():
             _watch_silence(label, len(r), duration_s, counts, heard, silent)
         if progress:
             progress(duration_s, duration_s)  # the bar ends at 100 % (and its line) before the summary
     except KeyboardInterrupt:  # Ctrl-C: stop recording and keep what was recorded
         out.interrupted = True
+        if heard:  # the silence up to the interruption counts, as up to the end of a full one
+            recorded_s = min(max(recorded_s, time.monotonic() - t0), duration_s)
+            for label, r in recorders.items():
+                _watch_silence(label, len(r), recorded_s, counts, heard, silent)
     except BaseException:  # a device that never connected: nothing recorded
         for r in recorders.values():
             r.stop()
@@ -215,7 +224,8 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         try:
             for r in recorders.values():
                 r.stop()
-            return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, ctrl_c)
+            return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, recorded_s,
+                           ctrl_c)
         finally:
             terminated.update(ctrl_c - {signal.SIGINT})
 
@@ -236,7 +246,7 @@ def _keep_beside(target: pathlib.Path, stream: TrackerStream) -> Optional[pathli
 
 
 def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, silent, duration_s: float,
-            ctrl_c: Set[int]) -> "Recording":
+            recorded_s: float, ctrl_c: Set[int]) -> "Recording":
     """Saves every recording after the recording stopped; the problems are raised after saving."""
     if not started:
         return out
@@ -271,7 +281,9 @@ def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, 
         n = out_counts.get(label, 0)
         if label in empty or label in lost or n == 0:
             continue
-        if length > max(_MIN_GAP_S, 10.0 * duration_s / n):
+        # Mean intervals over the time recorded: Ctrl-C 60 s into an hour made them 60 times the
+        # true ones, and a device frozen for most of the 60 s had no gap.
+        if length > max(_MIN_GAP_S, 10.0 * recorded_s / n):
             gaps[label] = (start, length)
     out.gaps = gaps
     out.interrupted = out.interrupted or bool(ctrl_c)
