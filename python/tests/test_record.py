@@ -628,3 +628,22 @@ def test_a_gap_before_an_interruption_is_judged_on_the_time_recorded(fake_record
     assert list(out.gaps) == ["corrected"]
     start, length = out.gaps["corrected"]
     assert start < 0.5 and length > 1.5
+
+
+def test_a_recording_whose_partial_file_exists_is_refused_before_it_records(fake_recorders, tmp_path):
+    """LABEL_tracker_stream.csv.partial holds a recording kept beside a file that appeared under its
+    name (a second `trackcal record` into the folder). A third one under that name was refused at
+    its save for both names and lost its whole recording, the error saying only that the file
+    exists. A .partial is now a recording like the finished file: refused before anything is
+    recorded, and left as it was."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "raw_tracker_stream.csv.partial").write_text("the second recording\n")
+
+    def first_recording_ends(done, total):
+        if not (rec / "raw_tracker_stream.csv").exists():
+            (rec / "raw_tracker_stream.csv").write_text("the first recording\n")
+    with pytest.raises(ValueError, match=r"raw_tracker_stream\.csv\.partial: exists .*never overwritten"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 0.2, progress=first_recording_ends)
+    assert (rec / "raw_tracker_stream.csv.partial").read_text() == "the second recording\n"
+    assert not fake_recorders  # refused before any device was contacted

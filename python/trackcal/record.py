@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import pathlib
 import re
 import signal
@@ -165,6 +166,12 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
     for p in targets.values():
         if p.exists():
             raise ValueError(f"{p}: exists; recordings are never overwritten")
+        # Where a recording is kept when a file appeared under its name: a recording too (as
+        # trackcal-server --record refuses both names).
+        partial = p.with_name(p.name + ".partial")
+        if os.path.lexists(partial):
+            raise ValueError(f"{partial}: exists (a recording kept beside {p.name}); recordings are "
+                             "never overwritten: move it away or record into another folder")
     recorders = {label: _core.TrackerRecorder(name) for label, name in devices.items()}
     out = Recording()
     started = False
