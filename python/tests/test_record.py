@@ -220,6 +220,40 @@ def fake_recorders(monkeypatch):
     return FakeRecorder.instances
 
 
+class Arriving(FakeRecorder):
+    """A TrackerRecorder whose reports arrive as the recording looks at it (len): 25 at each look,
+    none after the second look when its name starts with 'frozen'. take() hands out, in order,
+    the reports not taken yet, and ``after_start`` counts those that arrived after the first take
+    (the synchronised start)."""
+
+    def __init__(self, name):
+        super().__init__(name)
+        self.looks, self.arrived, self.taken, self.first = 0, 0, 0, None
+
+    def __len__(self):
+        self.looks += 1
+        if not (self.name.startswith("frozen") and self.looks > 2):
+            self.arrived += 25
+        return self.arrived - self.taken
+
+    def take(self):
+        self.takes += 1
+        i = np.arange(self.taken, self.arrived)
+        self.taken = self.arrived
+        if self.first is None:
+            self.first = self.taken
+        # Varying poses and sensors, so that a row written twice, lost or reordered shows.
+        angle = 0.01 * i
+        return {"time": 1796098746.0 + 0.001 * i, "sensor": (i % 2).astype(np.int32),
+                "positions": np.column_stack([0.1 + i / 7e3, -0.2 - i / 3e4, 0.3 + np.sin(i)]),
+                "quaternions_xyzw": np.column_stack([np.zeros_like(angle), np.zeros_like(angle),
+                                                     np.sin(angle / 2), np.cos(angle / 2)])}
+
+    @property
+    def after_start(self):
+        return self.taken - self.first
+
+
 def test_an_empty_device_is_reported_after_the_others_are_saved(fake_recorders, tmp_path):
     rec = tmp_path / "rec"
     with pytest.raises(RuntimeError, match=r"no report during the recording from: corrected "
@@ -408,31 +442,18 @@ def test_a_device_that_goes_quiet_while_connected_is_reported_after_saving(fake_
     error naming the device, raised after every recording is saved."""
     from trackcal import record
 
-    class Quieting(FakeRecorder):
-        def __init__(self, name):
-            super().__init__(name)
-            self.polls = 0
-
-        def __len__(self):  # one report per look; 'frozen' stops after its second look
-            self.polls += 1
-            return 3 + (min(self.polls, 2) if self.name.startswith("frozen") else self.polls)
-
-        def take(self):  # 50 reports after the start: 10 mean intervals are 0.4 s of the 2 s
-            self.takes += 1
-            n = 3 if self.takes == 1 else 50
-            return {"time": 100.0 + 0.01 * np.arange(n), "sensor": np.zeros(n, dtype=np.int32),
-                    "positions": np.full((n, 3), 0.25), "quaternions_xyzw": np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))}
-
-    monkeypatch.setattr(record._core, "TrackerRecorder", Quieting)
+    monkeypatch.setattr(record._core, "TrackerRecorder", Arriving)
     rec = tmp_path / "rec"
-    # 'frozen' is silent from ~0.1 s to the end at 2 s (> the 1 s floor by ~0.9 s, a margin for a
-    # loaded machine); 'raw' grows at every 0.1 s look, so its silences stay far below 1 s.
+    # 'frozen' is silent from the start to the end at 2 s (> the 1 s floor by ~1 s, a margin for a
+    # loaded machine; its 25 reports make 10 mean intervals 0.8 s); 'raw' grows at every 0.1 s
+    # look, so its silences stay far below 1 s.
     with pytest.raises(RuntimeError, match=r"no report for a while during the recording from: corrected "
                                            r"\(frozen@tcp://h:1\) for [0-9.]+ s from [0-9.]+ s of 2 s .*"
                                            r"\(saved: .*raw_tracker_stream\.csv, .*corrected_tracker_stream\.csv\)"):
         record_streams({"raw": "Tracker0_raw@tcp://h:1", "corrected": "frozen@tcp://h:1"}, rec, 2.0)
-    assert len(captures.load_tracker_stream(rec / "corrected_tracker_stream.csv")) == 50
-    assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv")) == 50
+    raw, frozen = fake_recorders
+    assert len(captures.load_tracker_stream(rec / "corrected_tracker_stream.csv")) == frozen.after_start == 25
+    assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv")) == raw.after_start > 25
     # A device that keeps reporting is not reported.
     out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec2", 1.5)
     assert list(out) == ["raw"] and out.gaps == {}
@@ -576,39 +597,6 @@ def test_an_ignored_sighup_while_saving_does_not_mark_the_recording_interrupted(
     assert not out.interrupted and list(out) == ["raw"]
 
 
-class Arriving(FakeRecorder):
-    """A TrackerRecorder whose reports arrive as the recording looks at it (len): 25 at each look,
-    none after the second look when its name starts with 'frozen'. take() hands out, in order,
-    the reports not taken yet, and ``after_start`` counts those that arrived after the first take
-    (the synchronised start)."""
-
-    def __init__(self, name):
-        super().__init__(name)
-        self.looks, self.arrived, self.taken, self.first = 0, 0, 0, None
-
-    def __len__(self):
-        self.looks += 1
-        if not (self.name.startswith("frozen") and self.looks > 2):
-            self.arrived += 25
-        return self.arrived - self.taken
-
-    def take(self):
-        i = np.arange(self.taken, self.arrived)
-        self.taken = self.arrived
-        if self.first is None:
-            self.first = self.taken
-        # Varying poses and sensors, so that a row written twice, lost or reordered shows.
-        angle = 0.01 * i
-        return {"time": 1796098746.0 + 0.001 * i, "sensor": (i % 2).astype(np.int32),
-                "positions": np.column_stack([0.1 + i / 7e3, -0.2 - i / 3e4, 0.3 + np.sin(i)]),
-                "quaternions_xyzw": np.column_stack([np.zeros_like(angle), np.zeros_like(angle),
-                                                     np.sin(angle / 2), np.cos(angle / 2)])}
-
-    @property
-    def after_start(self):
-        return self.taken - self.first
-
-
 def test_a_gap_before_an_interruption_is_judged_on_the_time_recorded(fake_recorders, tmp_path, monkeypatch):
     """A silence is a gap when longer than max(1 s, 10 mean intervals between reports). The mean
     was taken over the duration asked for, also when Ctrl-C ended the recording early: stopped
@@ -647,3 +635,86 @@ def test_a_recording_whose_partial_file_exists_is_refused_before_it_records(fake
         record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 0.2, progress=first_recording_ends)
     assert (rec / "raw_tracker_stream.csv.partial").read_text() == "the second recording\n"
     assert not fake_recorders  # refused before any device was contacted
+
+
+def test_a_recording_goes_to_disk_as_it_records_in_the_format_of_one_write(fake_recorders, tmp_path,
+                                                                           monkeypatch):
+    """Every report was held in memory until the end and written then: ~330 MB held for an hour of
+    4 sensors at 120 Hz raw and corrected, ~1.2 GB at the save, and all of it lost to a SIGKILL, the
+    OOM killer or a crash. The rows are now appended to LABEL_tracker_stream.csv.partial at least
+    every second and the file is moved to its name at the end, byte for byte the file one write of
+    all the rows gives."""
+    from trackcal import record
+    from trackcal.captures import TrackerStream, save_tracker_stream
+    monkeypatch.setattr(record._core, "TrackerRecorder", Arriving)
+    rec = tmp_path / "rec"
+    on_disk = []
+
+    def look(done, total):
+        if done > 1.5 and not on_disk:  # after the first flush (1 s), before the end
+            on_disk.append(len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv.partial")))
+            on_disk.append(fake_recorders[0].taken - fake_recorders[0].first)
+    out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 2.5, progress=look)
+    assert list(out) == ["raw"] and out.gaps == {}
+    # Written while recording: every report taken from the recorder is in the file.
+    written, taken = on_disk
+    assert written == taken > 0
+    assert fake_recorders[0].takes >= 3  # the start, a flush, the end
+    one_write = tmp_path / "one_write.csv"
+    r = fake_recorders[0]
+    all_rows = Arriving("x")
+    all_rows.taken, all_rows.arrived = r.first, r.taken
+    d = all_rows.take()
+    save_tracker_stream(one_write, TrackerStream(d["time"], d["sensor"] + 1, d["positions"], d["quaternions_xyzw"]))
+    assert (rec / "raw_tracker_stream.csv").read_bytes() == one_write.read_bytes()
+    assert sorted(p.name for p in rec.iterdir()) == ["raw_tracker_stream.csv"]
+
+
+def test_a_killed_recording_keeps_its_rows_up_to_the_last_second(server, tmp_path):
+    """SIGKILL (the OOM killer, a crash) cannot be caught: the rows written so far stay in
+    LABEL_tracker_stream.csv.partial, a tracker stream file, and the label is refused until it is
+    moved away."""
+    import os
+    import signal
+    import sys
+    out = tmp_path / "rec"
+    script = ("from trackcal.record import record_streams\n"
+              "def progress(done, total):\n"
+              "    if done > 2.5:\n"
+              "        print('recording', flush=True)\n"
+              f"record_streams({{'raw': 'Tracker0_raw@tcp://127.0.0.1:{server}'}}, {str(out)!r}, 60.0,\n"
+              "              progress=progress)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline() == "recording\n", proc.stderr.read()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    raw = captures.load_tracker_stream(out / "raw_tracker_stream.csv.partial")
+    # 2 NULL sensors at 100 Hz, flushed at 1 s and 2 s (2.5 s in when killed): >= 200 rows; a
+    # third of that on a loaded machine.
+    assert len(raw) > 60 and set(raw.sensor) == {1, 2}
+    assert not (out / "raw_tracker_stream.csv").exists()
+    with pytest.raises(ValueError, match=r"raw_tracker_stream\.csv\.partial: exists \(a recording killed"):
+        record_streams({"raw": f"Tracker0_raw@tcp://127.0.0.1:{server}"}, out, 0.1)
+
+
+def test_ctrl_c_during_a_flush_keeps_the_reports_it_took(fake_recorders, tmp_path, monkeypatch):
+    """Reports taken from the recorder and not yet written are in no file: Ctrl-C (or SIGTERM)
+    arriving then waits until they are written, then ends the recording as anywhere else."""
+    import os
+    import signal
+    from trackcal import record
+
+    class CtrlCWhileFlushing(Arriving):
+        def take(self):
+            d = super().take()
+            if self.takes == 2:  # the first flush, 1 s in
+                os.kill(os.getpid(), signal.SIGINT)
+            return d
+    monkeypatch.setattr(record._core, "TrackerRecorder", CtrlCWhileFlushing)
+    out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec", 3600.0)
+    assert out.interrupted and list(out) == ["raw"]
+    assert len(captures.load_tracker_stream(out["raw"])) == fake_recorders[0].after_start > 0

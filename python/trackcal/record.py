@@ -10,9 +10,12 @@ import os
 import pathlib
 import re
 import signal
+import tempfile
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
+
+import numpy as np
 
 from trackcal import _core
 from trackcal._signals import signals_deferred
@@ -36,10 +39,12 @@ class Recording(dict):
 def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, connect_timeout_s: float = 10.0,
                    progress: Optional[Callable[[float, float], None]] = None) -> Recording:
     """Records every named device (label -> 'Tracker0@tcp://host:port') for ``duration_s`` seconds
-    after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir (which must
-    not hold such files already: recordings are never overwritten; one that appears there during the
-    recording is kept, and the recording saved beside it as ``<label>_tracker_stream.csv.partial``,
-    named in the error). Returns label -> path.
+    after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir. The reports
+    are appended to ``<label>_tracker_stream.csv.partial`` every second as they arrive (a killed
+    process leaves them there) and the file takes its name at the end. Recordings are never
+    overwritten: out_dir must hold neither name already (ValueError), and a file that appears under
+    the name during the recording is kept, this recording staying in its .partial, named in the
+    error. Returns label -> path.
     Raises RuntimeError if a device does not connect (nothing is recorded then), sends no report
     during the recording, loses its connection during it (a server that stopped or went away: its
     recording is saved but has a gap or ends early), or sends nothing for longer than max(1 s, 10
@@ -158,6 +163,13 @@ def _remove_empty_folders(folders: Sequence[pathlib.Path]) -> None:
             return
 
 
+# Rows leave memory for the recording's .partial file at least this often [s]: a process killed
+# outright (SIGKILL, the OOM killer, a crash) leaves every row up to the last flush on disk, and a
+# recorder holds at most about this long of reports. Kept in memory to the end, an hour of 4 sensors
+# at 120 Hz, raw and corrected, grew the process by ~330 MB and to ~1.2 GB while it was saved.
+_FLUSH_S = 1.0
+
+
 def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, connect_timeout_s: float,
             progress: Optional[Callable[[float, float], None]], terminated: Set[int]) -> Recording:
     """record_streams into the existing folder out_dir; a SIGTERM or SIGHUP that arrives while it
@@ -166,12 +178,21 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
     for p in targets.values():
         if p.exists():
             raise ValueError(f"{p}: exists; recordings are never overwritten")
-        # Where a recording is kept when a file appeared under its name: a recording too (as
-        # trackcal-server --record refuses both names).
-        partial = p.with_name(p.name + ".partial")
-        if os.path.lexists(partial):
-            raise ValueError(f"{partial}: exists (a recording kept beside {p.name}); recordings are "
-                             "never overwritten: move it away or record into another folder")
+    files: Dict[str, _StreamFile] = {}
+    with tempfile.TemporaryDirectory(prefix="trackcal-record-") as scratch:
+        try:
+            for label, p in targets.items():
+                files[label] = _StreamFile(p, pathlib.Path(scratch))
+            return _record_into(files, devices, duration_s, connect_timeout_s, progress, terminated)
+        finally:  # a .partial still open holds no row (nothing recorded, or an empty device)
+            for f in files.values():
+                f.discard()
+
+
+def _record_into(files: Dict[str, "_StreamFile"], devices: Dict[str, str], duration_s: float,
+                 connect_timeout_s: float, progress: Optional[Callable[[float, float], None]],
+                 terminated: Set[int]) -> Recording:
+    """_record once every recording's .partial file is made."""
     recorders = {label: _core.TrackerRecorder(name) for label, name in devices.items()}
     out = Recording()
     started = False
@@ -180,6 +201,9 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
     recorded_s = 0.0  # how long the recording ran: the duration, or until an interruption
     counts: Dict[str, int] = {}  # label -> reports at the last look
     heard: Dict[str, float] = {}  # label -> seconds into the recording of the last growth
+
+    def received(label: str) -> int:  # reports since the start: written, and waiting in the recorder
+        return files[label].rows + len(recorders[label])
     for r in recorders.values():
         r.start()
     try:
@@ -194,10 +218,11 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             r.take()  # start all streams at the same moment
         started = True
         t0 = time.monotonic()
+        flushed = 0.0
         # A server that freezes or whose network goes (a pulled cable) keeps its connection open
         # until the client's liveness timeout (10 s): the recording just stopped growing and was
         # saved as if complete. Each device's longest silence is watched too.
-        counts.update({label: len(r) for label, r in recorders.items()})
+        counts.update({label: received(label) for label in recorders})
         heard.update(dict.fromkeys(recorders, 0.0))
         while (elapsed := time.monotonic() - t0) < duration_s:
             recorded_s = elapsed
@@ -206,21 +231,24 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             for label, r in recorders.items():
                 if label not in lost and not getattr(r, "connected", True):
                     lost[label] = elapsed
-                _watch_silence(label, len(r), elapsed, counts, heard, silent)
+                _watch_silence(label, received(label), elapsed, counts, heard, silent)
+            if elapsed - flushed >= _FLUSH_S:
+                _flush(files, recorders, terminated)
+                flushed = elapsed
             if progress:
                 progress(elapsed, duration_s)
             time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
         recorded_s = duration_s
-        for label, r in recorders.items():
-            _watch_silence(label, len(r), duration_s, counts, heard, silent)
+        for label in recorders:
+            _watch_silence(label, received(label), duration_s, counts, heard, silent)
         if progress:
             progress(duration_s, duration_s)  # the bar ends at 100 % (and its line) before the summary
     except KeyboardInterrupt:  # Ctrl-C: stop recording and keep what was recorded
         out.interrupted = True
         if heard:  # the silence up to the interruption counts, as up to the end of a full one
             recorded_s = min(max(recorded_s, time.monotonic() - t0), duration_s)
-            for label, r in recorders.items():
-                _watch_silence(label, len(r), recorded_s, counts, heard, silent)
+            for label in recorders:
+                _watch_silence(label, received(label), recorded_s, counts, heard, silent)
     except BaseException:  # a device that never connected: nothing recorded
         for r in recorders.values():
             r.stop()
@@ -231,29 +259,111 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         try:
             for r in recorders.values():
                 r.stop()
-            return _finish(out, recorders, targets, devices, started, lost, silent, duration_s, recorded_s,
+            return _finish(out, recorders, files, devices, started, lost, silent, duration_s, recorded_s,
                            ctrl_c)
         finally:
             terminated.update(ctrl_c - {signal.SIGINT})
 
 
-def _keep_beside(target: pathlib.Path, stream: TrackerStream) -> Optional[pathlib.Path]:
-    """The recording saved as ``<target>.partial`` when a file appeared under the target's name
-    during the recording (a second recording into the same folder), as trackcal-server --record
-    keeps its own; that file is never replaced. None when the target is not there (a full disk, no
-    permission: the same folder would refuse this too) or the .partial cannot be written either."""
-    if not target.exists():
-        return None
-    partial = target.with_name(target.name + ".partial")
-    try:
-        save_tracker_stream(partial, stream)
-    except (ValueError, RuntimeError, OSError):
-        return None
-    return partial
+def _flush(files: Dict[str, "_StreamFile"], recorders, terminated: Set[int]) -> None:
+    """Appends every recorder's reports so far to its .partial file. Ctrl-C, SIGTERM and SIGHUP wait
+    until they are written (taken and not written, they were lost), then end the recording."""
+    with signals_deferred((signal.SIGINT, *_TERMINATIONS)) as arrived:
+        for label, r in recorders.items():
+            files[label].append(r.take())
+    if arrived:
+        terminated.update(arrived - {signal.SIGINT})
+        raise KeyboardInterrupt
 
 
-def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, silent, duration_s: float,
-            recorded_s: float, ctrl_c: Set[int]) -> "Recording":
+class _StreamFile:
+    """One device's recording, appended as it arrives to ``<target>.partial`` and moved to the
+    target when it ends. The .partial is made new: one that exists (a recording killed before it
+    ended, one kept beside a file that appeared under its name, or one still running into the same
+    folder) is never touched, and refuses the start. The rows are formatted by the capture writer
+    (save_tracker_stream) a flush at a time, so the file is the one it writes of all at once."""
+
+    def __init__(self, target: pathlib.Path, scratch: pathlib.Path):
+        self.target = target
+        self.partial = target.with_name(target.name + ".partial")
+        self.rows = 0
+        self.error: Optional[str] = None  # a write that failed (a full disk): the rows before it are kept
+        self._fd: Optional[int] = None
+        self._scratch = scratch / target.name
+        header = self._csv(TrackerStream(np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
+                                         np.zeros((0, 4))))
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
+        try:
+            self._fd = os.open(self.partial, flags, 0o666)
+        except FileExistsError:
+            raise ValueError(f"{self.partial}: exists (a recording killed before it ended, kept beside "
+                             f"{target.name}, or still running into this folder); recordings are never "
+                             "overwritten: move it away or record into another folder") from None
+        except OSError as e:
+            raise ValueError(f"{self.partial}: cannot create the recording ({e.strerror})") from None
+        try:
+            self._write(header)
+        except OSError as e:
+            self.discard()
+            raise ValueError(f"{self.partial}: cannot write the recording ({e.strerror})") from None
+
+    def _csv(self, stream: TrackerStream) -> bytes:
+        save_tracker_stream(self._scratch, stream)
+        try:
+            return self._scratch.read_bytes()
+        finally:
+            self._scratch.unlink()
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(self._fd, view):]
+
+    def append(self, d) -> None:
+        """Appends the reports of one take() (VRPN numbers sensors from 0, capture files from 1).
+        After a failed write the reports are dropped (the error is reported at the end)."""
+        n = len(d["time"])
+        if n == 0 or self._fd is None or self.error:
+            return
+        stream = TrackerStream(d["time"], d["sensor"] + 1, d["positions"], d["quaternions_xyzw"])
+        try:
+            rows = self._csv(stream)
+            self._write(rows[rows.index(b"\n") + 1:])  # the rows without the header
+        except (ValueError, RuntimeError, OSError) as e:
+            self.error = str(e)
+            return
+        self.rows += n
+
+    def close(self) -> Optional[str]:
+        """Moves the finished recording to the target; None, or why it stays in the .partial."""
+        fd, self._fd = self._fd, None
+        try:
+            os.fsync(fd)
+        except OSError as e:
+            self.error = self.error or f"{self.partial}: write failed: {e.strerror}"
+        finally:
+            os.close(fd)
+        if self.error:
+            return self.error
+        try:
+            os.link(self.partial, self.target)  # fails when the target exists, however late it came
+        except FileExistsError:
+            return f"{self.target}: exists; recordings are never overwritten (it appeared during the recording)"
+        except OSError as e:  # a file system without hard links: nothing that could replace the file
+            return f"{self.target}: not written ({e.strerror})"
+        os.unlink(self.partial)
+        return None
+
+    def discard(self) -> None:
+        """Removes the .partial while it is open: it holds no row then."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+            self.partial.unlink(missing_ok=True)
+
+
+def _finish(out: "Recording", recorders, files: Dict[str, _StreamFile], devices, started: bool, lost, silent,
+            duration_s: float, recorded_s: float, ctrl_c: Set[int]) -> "Recording":
     """Saves every recording after the recording stopped; the problems are raised after saving."""
     if not started:
         return out
@@ -261,23 +371,19 @@ def _finish(out: "Recording", recorders, targets, devices, started: bool, lost, 
     failed: List[str] = []
     out_counts: Dict[str, int] = {}
     for label, r in recorders.items():  # every recording is saved before an empty one is reported
-        d = r.take()
-        out_counts[label] = len(d["time"])
-        if len(d["time"]) == 0:
+        f = files[label]
+        f.append(r.take())
+        out_counts[label] = f.rows
+        if f.rows == 0 and not f.error:
             empty.append(label)
+            f.discard()
             continue
-        # VRPN numbers sensors from 0; capture files (and trackcal-server --record) from 1.
-        stream = TrackerStream(d["time"], d["sensor"] + 1, d["positions"], d["quaternions_xyzw"])
-        try:
-            save_tracker_stream(targets[label], stream)
-        except (ValueError, RuntimeError, OSError) as e:  # still save the others
-            kept = _keep_beside(targets[label], stream)
-            failed.append(str(e) + (f" (it appeared during the recording: this recording is kept in {kept})"
-                                    if kept else ""))
-            if kept:
-                out[label] = kept
+        why = f.close()
+        if why:  # the recording stays in its .partial, named in the message
+            failed.append(f"{why}: this recording ({f.rows} rows) is kept in {f.partial}")
+            out[label] = f.partial
             continue
-        out[label] = targets[label]
+        out[label] = f.target
     out.empty = empty
     out.lost = lost
     gone = [label for label in lost if label not in empty]
