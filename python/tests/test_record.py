@@ -718,3 +718,26 @@ def test_ctrl_c_during_a_flush_keeps_the_reports_it_took(fake_recorders, tmp_pat
     out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec", 3600.0)
     assert out.interrupted and list(out) == ["raw"]
     assert len(captures.load_tracker_stream(out["raw"])) == fake_recorders[0].after_start > 0
+
+
+def test_a_report_the_capture_writer_refuses_costs_that_report_only(fake_recorders, tmp_path, monkeypatch):
+    """A report with a non-finite value (a driver's bad record, passed on by the server) made the
+    save at the end refuse the whole file: an hour of recording lost for one row, the error naming
+    record 2 of nothing that was written. The other rows are recorded; the error says how many
+    reports were left out and why, naming the recording."""
+    from trackcal import record
+
+    class OneBadReport(Arriving):
+        def take(self):
+            d = super().take()
+            if self.takes == 2 and len(d["time"]) > 3:  # the reports after the start
+                d["positions"][2, 0] = np.nan
+            return d
+    monkeypatch.setattr(record._core, "TrackerRecorder", OneBadReport)
+    rec = tmp_path / "rec"
+    with pytest.raises(RuntimeError, match=r"raw_tracker_stream\.csv: 1 report left out \(the first, report 2 "
+                                           r"of the recording: column x: nan is not a finite number\)"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 0.3)
+    raw = captures.load_tracker_stream(rec / "raw_tracker_stream.csv")
+    assert len(raw) == fake_recorders[0].after_start - 1 > 0
+    assert sorted(p.name for p in rec.iterdir()) == ["raw_tracker_stream.csv"]

@@ -49,8 +49,9 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     during the recording, loses its connection during it (a server that stopped or went away: its
     recording is saved but has a gap or ends early), or sends nothing for longer than max(1 s, 10
     of its mean intervals between reports) while connected (a frozen server or a lost network,
-    which the client notices only after its 10 s liveness timeout), after saving every recording
-    (the message names them).
+    which the client notices only after its 10 s liveness timeout), or sends reports the capture
+    writer refuses (a non-finite value, a quaternion of norm not 1: left out, the rest recorded),
+    after saving every recording (the message names them).
 
     Ctrl-C (KeyboardInterrupt) ends the recording early and returns normally with ``interrupted``
     set: every device's reports until then are saved (none if it came before all had connected,
@@ -288,6 +289,9 @@ class _StreamFile:
         self.partial = target.with_name(target.name + ".partial")
         self.rows = 0
         self.error: Optional[str] = None  # a write that failed (a full disk): the rows before it are kept
+        self.seen = 0  # reports given to append
+        self.refused = 0  # reports the capture writer refused, left out
+        self.first_refusal = ""
         self._fd: Optional[int] = None
         self._scratch = scratch / target.name
         header = self._csv(TrackerStream(np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
@@ -320,19 +324,50 @@ class _StreamFile:
             view = view[os.write(self._fd, view):]
 
     def append(self, d) -> None:
-        """Appends the reports of one take() (VRPN numbers sensors from 0, capture files from 1).
-        After a failed write the reports are dropped (the error is reported at the end)."""
+        """Appends the reports of one take() (VRPN numbers sensors from 0, capture files from 1). A
+        report the capture writer refuses (a non-finite value, a quaternion that is not a rotation)
+        is left out and counted. After a failed write the reports are dropped (reported at the end)."""
         n = len(d["time"])
         if n == 0 or self._fd is None or self.error:
             return
         stream = TrackerStream(d["time"], d["sensor"] + 1, d["positions"], d["quaternions_xyzw"])
         try:
-            rows = self._csv(stream)
+            try:
+                rows = self._csv(stream)
+            except ValueError as refusal:
+                stream, rows = self._without_refused(stream, refusal)
             self._write(rows[rows.index(b"\n") + 1:])  # the rows without the header
-        except (ValueError, RuntimeError, OSError) as e:
-            self.error = str(e)
+        except OSError as e:
+            self.error = f"{self.partial}: write failed: {e.strerror}"
             return
-        self.rows += n
+        except (ValueError, RuntimeError) as e:
+            self.error = str(e).replace(str(self._scratch), str(self.partial))
+            return
+        finally:
+            self.seen += n
+        self.rows += len(stream.time)
+
+    def _without_refused(self, stream: TrackerStream, refusal: ValueError) -> Tuple[TrackerStream, bytes]:
+        """The stream without the reports the capture writer refuses, and its rows; the first
+        refusal is kept for the error (which numbers the reports of the recording from 0)."""
+        q_norm = np.linalg.norm(stream.quaternions_xyzw, axis=1)
+        good = (np.isfinite(stream.time) & np.isfinite(stream.positions).all(axis=1)
+                & np.isfinite(stream.quaternions_xyzw).all(axis=1) & (np.abs(q_norm - 1.0) <= 1e-3))
+        if good.all():  # refused for another reason: not a report's fault
+            raise refusal
+        if self.refused == 0:
+            first = int(np.flatnonzero(~good)[0])
+            try:
+                self._csv(TrackerStream(stream.time[first:first + 1], stream.sensor[first:first + 1],
+                                        stream.positions[first:first + 1],
+                                        stream.quaternions_xyzw[first:first + 1]))
+            except ValueError as e:  # "<scratch>: record 0: column x: nan is not a finite number"
+                why = str(e).split(": record 0: ", 1)[-1]
+                self.first_refusal = f"report {self.seen + first} of the recording: {why}"
+        self.refused += int((~good).sum())
+        kept = TrackerStream(stream.time[good], stream.sensor[good], stream.positions[good],
+                             stream.quaternions_xyzw[good])
+        return kept, self._csv(kept)
 
     def close(self) -> Optional[str]:
         """Moves the finished recording to the target; None, or why it stays in the .partial."""
@@ -374,7 +409,7 @@ def _finish(out: "Recording", recorders, files: Dict[str, _StreamFile], devices,
         f = files[label]
         f.append(r.take())
         out_counts[label] = f.rows
-        if f.rows == 0 and not f.error:
+        if f.rows == 0 and not f.error and not f.refused:
             empty.append(label)
             f.discard()
             continue
@@ -384,6 +419,9 @@ def _finish(out: "Recording", recorders, files: Dict[str, _StreamFile], devices,
             out[label] = f.partial
             continue
         out[label] = f.target
+        if f.refused:
+            failed.append(f"{f.target}: {f.refused} report{'s' if f.refused > 1 else ''} left out (the first, "
+                          f"{f.first_refusal})")
     out.empty = empty
     out.lost = lost
     gone = [label for label in lost if label not in empty]
