@@ -97,17 +97,39 @@ def test_a_failed_recording_removes_only_the_empty_folders_it_made(tmp_path):
     assert sorted(p.name for p in (tmp_path / "notes").iterdir()) == ["todo.txt"]
 
 
-def test_trackcal_record_without_a_server_leaves_no_folder(tmp_path, monkeypatch, capsys):
-    from trackcal import cli, record
-    # The command waits 10 s for a device; 0.5 s is as conclusive when nothing listens.
-    monkeypatch.setattr(record, "record_streams",
-                        functools.partial(record.record_streams, connect_timeout_s=0.5))
+def test_trackcal_record_without_a_server_leaves_no_folder(tmp_path, capsys):
+    from trackcal import cli
     out = tmp_path / "run1"
+    # The command waits 10 s for a device; 0.5 s is as conclusive when nothing listens.
     argv = ["record", "--device", f"raw=Tracker0@tcp://127.0.0.1:{free_port()}", "--duration", "1",
-            "-o", str(out)]
+            "--connect-timeout", "0.5", "-o", str(out)]
     assert cli.main(argv) == 2
     assert "no report within 0.5 s from: raw" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_trackcal_record_waits_for_the_first_reports_as_long_as_connect_timeout_says(tmp_path, capsys):
+    """`trackcal record` waited 10 s for every device's first report, silently, a time no option
+    changed and the help did not give: a mistyped host or port failed after 10 s of nothing, and a
+    server still resetting its Fastrak (the driver's ~7 s of sleeps, more with a slow serial line)
+    could not be waited for. --connect-timeout S sets it, and the error says how to wait longer."""
+    from trackcal import cli
+    out = tmp_path / "run1"
+    argv = ["record", "--device", f"raw=Tracker0@tcp://127.0.0.1:{free_port()}", "--duration", "1",
+            "-o", str(out), "--connect-timeout"]
+    started = time.monotonic()
+    assert cli.main(argv + ["0.5"]) == 2
+    err = capsys.readouterr().err
+    assert "no report within 0.5 s from: raw (Tracker0@tcp://127.0.0.1:" in err
+    assert "--connect-timeout S to wait longer" in err
+    # 0.5 s, the 20 ms polls and the client's stop: 5 s of slack for a loaded machine.
+    assert time.monotonic() - started < 5.0
+    for bad in ("0", "-1", "nan", "inf"):
+        assert cli.main(argv + [bad]) == 2
+        assert f"--connect-timeout {float(bad)}: must be a positive number of seconds" in capsys.readouterr().err
+    assert not out.exists()
+    sub = cli.build_parser()._subparsers._group_actions[0].choices["record"]
+    assert "default 10" in sub.format_help()
 
 
 def test_device_labels_name_one_file_each_inside_the_folder(tmp_path, capsys):

@@ -621,7 +621,7 @@ def cmd_history(args, term) -> int:
 
 
 def cmd_record(args, term) -> int:
-    from trackcal.record import record_streams
+    from trackcal.record import NoFirstReport, record_streams
     devices = {}
     for spec in args.device:
         if "=" not in spec:
@@ -631,7 +631,11 @@ def cmd_record(args, term) -> int:
             raise ValueError(f"--device {spec!r}: label {label!r} is given twice (each recording is "
                              f"<label>_tracker_stream.csv: one label per device)")
         devices[label] = name
-    out = record_streams(devices, args.output, args.duration, progress=term.progress("recording"))
+    try:
+        out = record_streams(devices, args.output, args.duration, connect_timeout_s=args.connect_timeout,
+                             progress=term.progress("recording"))
+    except NoFirstReport as e:  # a server still starting (a Fastrak reset) may need longer
+        raise RuntimeError(f"{e} (--connect-timeout S to wait longer)") from None
     if out.interrupted:
         term.end_progress()
     for label, p in out.items():
@@ -730,6 +734,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--device", action="append", required=True,
                     help="LABEL=Tracker0@tcp://host:port (repeat: e.g. raw=... corrected=...)")
     sp.add_argument("--duration", type=float, required=True, help="seconds")
+    sp.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
+                    help="seconds to wait for every device's first report before giving up (default 10); "
+                         "the recording starts when all have sent one")
     sp.add_argument("-o", "--output", required=True, help="output folder")
     return p
 
@@ -769,6 +776,8 @@ def _check_args(args) -> None:
         raise ValueError(f"--top {args.top}: must be 0 or more")
     if args.command == "record" and not (args.duration > 0 and math.isfinite(args.duration)):
         raise ValueError(f"--duration {args.duration}: must be a positive number of seconds")
+    if args.command == "record" and not (args.connect_timeout > 0 and math.isfinite(args.connect_timeout)):
+        raise ValueError(f"--connect-timeout {args.connect_timeout}: must be a positive number of seconds")
     if args.command == "validate" and args.workdir and not args.calibration:
         # Refused after the covariate tests (minutes) otherwise: a history records a calibration.
         raise ValueError("--workdir records a fit: give its calibration with -c")

@@ -22,6 +22,10 @@ from trackcal._signals import signals_deferred
 from trackcal.captures import TrackerStream, save_tracker_stream
 
 
+class NoFirstReport(RuntimeError):
+    """A device sent no report within the connect timeout: nothing was recorded."""
+
+
 class Recording(dict):
     """label -> path of each saved recording. ``interrupted``: Ctrl-C ended it before the duration;
     ``empty``: the labels of devices that sent nothing before the interruption (no file);
@@ -45,7 +49,8 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     overwritten: out_dir must hold neither name already (ValueError), and a file that appears under
     the name during the recording is kept, this recording staying in its .partial, named in the
     error. Returns label -> path.
-    Raises RuntimeError if a device does not connect (nothing is recorded then), sends no report
+    Raises NoFirstReport (a RuntimeError) if a device sends no report within connect_timeout_s
+    (nothing is recorded then), and RuntimeError if one sends no report
     during the recording, loses its connection during it (a server that stopped or went away: its
     recording is saved but has a gap or ends early), or sends nothing for longer than max(1 s, 10
     of its mean intervals between reports) while connected (a frozen server or a lost network,
@@ -213,7 +218,7 @@ def _record_into(files: Dict[str, "_StreamFile"], devices: Dict[str, str], durat
             if time.monotonic() > deadline:
                 missing = [f"{label} ({devices[label]}{_why_silent(r)})" for label, r in recorders.items()
                            if len(r) == 0]
-                raise RuntimeError(f"no report within {connect_timeout_s} s from: {', '.join(missing)}")
+                raise NoFirstReport(f"no report within {connect_timeout_s} s from: {', '.join(missing)}")
             time.sleep(0.02)
         for r in recorders.values():
             r.take()  # start all streams at the same moment
