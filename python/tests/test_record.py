@@ -763,3 +763,22 @@ def test_a_report_the_capture_writer_refuses_costs_that_report_only(fake_recorde
     raw = captures.load_tracker_stream(rec / "raw_tracker_stream.csv")
     assert len(raw) == fake_recorders[0].after_start - 1 > 0
     assert sorted(p.name for p in rec.iterdir()) == ["raw_tracker_stream.csv"]
+
+
+def test_an_error_that_ends_a_recording_leaves_its_rows_in_the_partial_file(fake_recorders, tmp_path,
+                                                                             monkeypatch):
+    """An exception other than an interruption (here from the progress callback) ends the
+    recording without saving it. The rows already written stay in LABEL_tracker_stream.csv.partial
+    (removing an open .partial is only for one that holds no row)."""
+    from trackcal import record
+    monkeypatch.setattr(record._core, "TrackerRecorder", Arriving)
+    rec = tmp_path / "rec"
+
+    def fails_after_a_flush(done, total):
+        if done > 1.5:
+            raise RuntimeError("the progress display failed")
+    with pytest.raises(RuntimeError, match="the progress display failed"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 3600.0, progress=fails_after_a_flush)
+    r = fake_recorders[0]
+    assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv.partial")) == r.after_start > 0
+    assert r.stopped

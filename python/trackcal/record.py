@@ -190,7 +190,7 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
             for label, p in targets.items():
                 files[label] = _StreamFile(p, pathlib.Path(scratch))
             return _record_into(files, devices, duration_s, connect_timeout_s, progress, terminated)
-        finally:  # a .partial still open holds no row (nothing recorded, or an empty device)
+        finally:  # one still open after an error: removed when it holds no row, else kept
             for f in files.values():
                 f.discard()
 
@@ -395,11 +395,13 @@ class _StreamFile:
         return None
 
     def discard(self) -> None:
-        """Removes the .partial while it is open: it holds no row then."""
+        """Closes the .partial if still open, and removes it when it holds no row (nothing was
+        recorded); rows stay in it (an error that ended the recording left it behind)."""
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
-            self.partial.unlink(missing_ok=True)
+            if self.rows == 0:
+                self.partial.unlink(missing_ok=True)
 
 
 def _finish(out: "Recording", recorders, files: Dict[str, _StreamFile], devices, started: bool, lost, silent,
