@@ -674,3 +674,23 @@ def test_stream_report_counts_samples_and_moments_not_stations(stream_validation
     assert re.search(r"<h3>calib \(\d+ stations\)</h3>", station_page) and "<th>station</th>" in station_page
     assert "Stations outside the calibrated volume" in station_page and "error per station" in station_page
     assert v.points == "samples" and v.point == "sample" and v.worst_points == "moments"
+
+
+def test_report_names_the_receiver_it_is_of(tmp_path):
+    """A colleague reads the page, not the terminal: the sensor the report is of is on the page.
+    Before, two reports of a two-receiver capture (--sensor 1, --sensor 2) had the same header."""
+    from trackcal import cli
+    from understand_support import two_receivers, write_poses
+    mixed, _ = two_receivers(simulate(tmp_path / "capture", seed=37))
+    both = write_poses(tmp_path / "both.csv", mixed)
+    cal = validation.fit_polynomial(mixed.subset((mixed.sensor == 1) & (mixed.set == "calib")), degree=2)
+    cal.sensor = 1
+    cal_path = tmp_path / "cal1.json"
+    cal.save(cal_path)
+    common = [str(both), "-c", str(cal_path), "--no-covariates"]
+    assert cli.main(["report", *common, "--sensor", "1", "-o", str(tmp_path / "own")]) == 0
+    own = (tmp_path / "own" / "report.html").read_text()
+    assert "(sensor 1)" in own and "fitted for sensor 1" in own
+    assert cli.main(["report", *common, "--sensor", "2", "-o", str(tmp_path / "other")]) == 0
+    other = (tmp_path / "other" / "report.html").read_text()
+    assert "(sensor 2)" in other

@@ -127,6 +127,21 @@ if(document.readyState==='complete'){check();}else{window.addEventListener('load
 """
 
 
+def _sensors_text(capture) -> str:
+    """" (sensor N)": the receiver whose stations the report is of. Reports of each receiver of one
+    capture (--sensor 1, --sensor 2) had the same header, one page told from the other by nothing."""
+    sensors = sorted(int(s) for s in np.unique(np.asarray(capture.sensor))) if len(capture) else []
+    if not sensors:
+        return ""
+    return f" (sensor{'s' if len(sensors) > 1 else ''} {', '.join(map(str, sensors))})"
+
+
+def _fitted_for_text(calibration) -> str:
+    """" (fitted for sensor N)" when the calibration records its receiver (files before it do not)."""
+    sensor = int(getattr(calibration, "sensor", 0) or 0) if calibration is not None else 0
+    return f" (fitted for sensor {sensor})" if sensor else ""
+
+
 def _sensor_offset_mm(calibration) -> float:
     """The length [mm] of the largest sensor offset (a physical term's receiver_from_body
     translation) in the calibration, 0 without one."""
@@ -245,8 +260,9 @@ def write_report(v, out_dir, *, title: str = "trackcal report", inputs: Sequence
              f"<style>{STYLE}</style></head><body>",
              f"<h1>{html.escape(title)}</h1>",
              f"<p>Generated {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}. "
-             f"Capture: {html.escape(str(v.capture.path))}; calibration: "
-             f"{html.escape(str(getattr(v.calibration, 'description', None) or ('none' if v.calibration is None else 'yes')))}.</p>",
+             f"Capture: {html.escape(str(v.capture.path))}{_sensors_text(v.capture)}; calibration: "
+             f"{html.escape(str(getattr(v.calibration, 'description', None) or ('none' if v.calibration is None else 'yes')))}"
+             f"{_fitted_for_text(v.calibration)}.</p>",
              "<h2>Table 1: errors before and after</h2>"]
     from trackcal.captures import describe_origin
     origin = describe_origin(v.capture)
