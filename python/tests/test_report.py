@@ -676,9 +676,11 @@ def test_stream_report_counts_samples_and_moments_not_stations(stream_validation
     assert v.points == "samples" and v.point == "sample" and v.worst_points == "moments"
 
 
-def test_report_names_the_receiver_it_is_of(tmp_path):
-    """A colleague reads the page, not the terminal: the sensor the report is of is on the page.
-    Before, two reports of a two-receiver capture (--sensor 1, --sensor 2) had the same header."""
+def test_report_names_the_receiver_it_is_of_and_a_calibration_fitted_for_another(tmp_path, capsys):
+    """A colleague reads the page, not the terminal: the sensor the report is of, and a
+    calibration fitted for another receiver (validate's warning), are on the page. Before, two
+    reports of a two-receiver capture (--sensor 1, --sensor 2) had the same header, and the other
+    receiver's calibration was a Python warning with a source line on stderr alone."""
     from trackcal import cli
     from understand_support import two_receivers, write_poses
     mixed, _ = two_receivers(simulate(tmp_path / "capture", seed=37))
@@ -691,6 +693,14 @@ def test_report_names_the_receiver_it_is_of(tmp_path):
     assert cli.main(["report", *common, "--sensor", "1", "-o", str(tmp_path / "own")]) == 0
     own = (tmp_path / "own" / "report.html").read_text()
     assert "(sensor 1)" in own and "fitted for sensor 1" in own
+    assert "fitted for sensor 1 (receiver 1)" not in own  # its own receiver: no note
+    capsys.readouterr()
     assert cli.main(["report", *common, "--sensor", "2", "-o", str(tmp_path / "other")]) == 0
+    printed = capsys.readouterr()
     other = (tmp_path / "other" / "report.html").read_text()
     assert "(sensor 2)" in other
+    note = "stations of sensor 2, but the calibration was fitted for sensor 1"
+    assert re.search(r"<p><b>Note:</b> [^<]*" + note, other), other[:3000]
+    # A note on the terminal, as the others: no "UserWarning" and no source line.
+    assert f"note: {both}: {note}" in printed.out, printed.out
+    assert "UserWarning" not in printed.err and "v = validate(" not in printed.err, printed.err

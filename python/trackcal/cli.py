@@ -383,7 +383,7 @@ def _diagnosis(args, term):
     no calibration is given, the candidate ranking (with --model) and the verdict."""
     import trackcal
     from trackcal import captures, diagnosis
-    from trackcal.validation import validate
+    from trackcal.validation import OtherReceiverWarning, other_receiver_text, validate
     model = getattr(args, "model", None)
     fit_report = None
     # Registered markers: the model is fitted and ranked on the references they give, the ones the
@@ -406,16 +406,20 @@ def _diagnosis(args, term):
     else:
         capture, cal = _load(args, fit_report)
     covariates = not getattr(args, "no_covariates", False)
-    v = validate(capture, cal, analyse_covariates=covariates,
-                 covariate_options={"n_permutations": args.permutations, "seed": args.seed} if covariates else None,
-                 progress=term.progress("covariates") if covariates else None)
+    with warnings.catch_warnings():
+        # Said as a note instead (first of them): the report's page carries the notes, and a reader
+        # of the page had no word of a calibration fitted for another receiver.
+        warnings.simplefilter("ignore", OtherReceiverWarning)
+        v = validate(capture, cal, analyse_covariates=covariates,
+                     covariate_options={"n_permutations": args.permutations, "seed": args.seed} if covariates else None,
+                     progress=term.progress("covariates") if covariates else None)
     if fit_report is not None:
         v.tables.extend(t for t in fit_report.tables if t.set_name.startswith("cross-validation"))
     if getattr(args, "cross_validate", 0):
         from trackcal.validation import cross_validate
         v.tables.append(cross_validate(capture, model=model, folds=args.cross_validate))
     doc = None
-    notes = []
+    notes = [n for n in (other_receiver_text(capture, cal),) if n]
     if model:
         if diagnosis.candidates_available():
             effects = [e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None
@@ -823,10 +827,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         with warnings.catch_warnings():
             from trackcal.history import HistoryWarning
+            from trackcal.validation import OtherReceiverWarning
             _show = warnings.showwarning
 
             def show(message, category, *rest, **kw):
-                if issubclass(category, HistoryWarning):  # one line, like the errors
+                if issubclass(category, (HistoryWarning, OtherReceiverWarning)):  # one line, like the errors
                     print(term.ce("warning: ", "33") + str(message), file=sys.stderr)
                 else:
                     _show(message, category, *rest, **kw)

@@ -965,20 +965,33 @@ def _as_calibration(calibration):
                     f"got {type(calibration).__name__}")
 
 
-def _warn_other_receiver(capture: PoseCapture, calibration) -> None:
-    """Warns when the calibration records the receiver it was fitted for (Calibration.sensor, the
-    capture's 1-based sensor column) and the capture's stations are another receiver's: every
+class OtherReceiverWarning(UserWarning):
+    """The capture's stations are another receiver's than the calibration was fitted for
+    (``other_receiver_text``): the commands print it as a note, and the report shows it."""
+
+
+def other_receiver_text(capture: PoseCapture, calibration) -> Optional[str]:
+    """What to say when the calibration records the receiver it was fitted for (Calibration.sensor,
+    the capture's 1-based sensor column) and the capture's stations are another receiver's: every
     receiver has its own sensor offset and coil gains, so the tables would measure a correction
-    meant for another receiver (deliberate in a comparison, a mix-up otherwise)."""
+    meant for another receiver (deliberate in a comparison, a mix-up otherwise). None else."""
     fitted_for = int(getattr(calibration, "sensor", 0) or 0)
-    if fitted_for == 0 or len(capture) == 0:
-        return
+    if calibration is None or fitted_for == 0 or len(capture) == 0:
+        return None
     others = sorted(int(s) for s in np.unique(capture.sensor) if int(s) != fitted_for)
-    if others:
-        warnings.warn(f"{capture.path or 'the capture'}: stations of sensor {', '.join(map(str, others))}, but the calibration "
-                      f"was fitted for sensor {fitted_for} (receiver {fitted_for}): its correction is "
-                      f"another receiver's there; validate each receiver with its own calibration "
-                      f"(trackcal validate --sensor N)", UserWarning, stacklevel=3)
+    if not others:
+        return None
+    return (f"{capture.path or 'the capture'}: stations of sensor {', '.join(map(str, others))}, but the calibration "
+            f"was fitted for sensor {fitted_for} (receiver {fitted_for}): its correction is "
+            f"another receiver's there; validate each receiver with its own calibration "
+            f"(trackcal validate --sensor N)")
+
+
+def _warn_other_receiver(capture: PoseCapture, calibration) -> None:
+    """Warns (OtherReceiverWarning) with ``other_receiver_text``, if there is something to say."""
+    text = other_receiver_text(capture, calibration)
+    if text:
+        warnings.warn(text, OtherReceiverWarning, stacklevel=3)
 
 
 def _checked_capture(capture: PoseCapture) -> PoseCapture:
