@@ -467,6 +467,21 @@ def test_extrapolated_stations_are_named_in_a_note():
     assert diagnosis.extrapolation_note(v) is None
 
 
+def test_a_capture_wholly_outside_the_calibrated_volume_is_named_in_a_note():
+    # A capture 5 m from the calibrated volume (another room's, a wrong calibration file): the
+    # report listed "600 of 600" outside and a worse-regions note, but no note said that no
+    # station lies inside, since the note compared the outside error with an inside one.
+    from types import SimpleNamespace
+    n = 40
+    v = SimpleNamespace(after=SimpleNamespace(position_mm=np.full(n, 80.0)), calibration=object(),
+                        flipped=np.zeros(n, bool), extrapolated=np.ones(n, bool))
+    note = diagnosis.extrapolation_note(v)
+    assert note and note.startswith("all 40 stations lie outside the calibrated volume"), note
+    # A hemisphere flip left out is not counted, as in the tables.
+    v.flipped[0] = True
+    assert diagnosis.extrapolation_note(v).startswith("all 39 stations"), diagnosis.extrapolation_note(v)
+
+
 def test_a_crlf_model_keeps_its_line_endings():
     # A model file written on Windows: the change adds its lines with CRLF, the diff shows only them.
     text = "terms:\r\n  - type: polynomial\r\n    degree: 3\r\n"

@@ -22,6 +22,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 
 from trackcal import _core
+from trackcal._format import fixed
 
 CandidatesDoc = Dict[str, object]
 
@@ -194,6 +195,16 @@ def extrapolation_note(v) -> Optional[str]:
     kept = ~np.asarray(v.flipped, bool) if getattr(v, "flipped", None) is not None else np.ones(len(v.extrapolated), bool)
     out = np.asarray(v.extrapolated, bool) & kept
     inside = ~np.asarray(v.extrapolated, bool) & kept
+    if out.any() and not inside.any():
+        # No station to compare with: the worst case (another room's capture, a wrong calibration
+        # file) said nothing, where every table and figure measured an extrapolation.
+        points, _ = _points_words(v)
+        lo, hi = getattr(v.calibration, "volume_min", None), getattr(v.calibration, "volume_max", None)
+        box = (" (" + ", ".join(f"{a} {fixed(l, '{:.2f}')} to {fixed(h, '{:.2f}')}"
+                                for a, l, h in zip("xyz", lo, hi)) + " m)") if lo is not None and hi is not None else ""
+        return (f"all {int(out.sum())} {points} lie outside the calibrated volume{box}: the correction "
+                "extrapolates at every one, so the errors after measure no part of the volume it was fitted "
+                "over; check that the capture and the calibration belong together")
     if not out.any() or not inside.any():
         return None
     e_out = float(np.mean(v.after.position_mm[out]))
