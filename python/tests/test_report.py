@@ -704,3 +704,26 @@ def test_report_names_the_receiver_it_is_of_and_a_calibration_fitted_for_another
     # A note on the terminal, as the others: no "UserWarning" and no source line.
     assert f"note: {both}: {note}" in printed.out, printed.out
     assert "UserWarning" not in printed.err and "v = validate(" not in printed.err, printed.err
+
+
+def test_report_of_a_model_fitted_to_a_capture_without_validation_set_says_the_errors_after_are_in_sample(
+        tmp_path):
+    # --model without -c on calibration stations alone: Table 1's "corrected" and figures 4 and 5
+    # are the fit's own stations (a degree-6 polynomial: 0.64 mm in-sample, 0.85 mm held out on a
+    # paper capture); the page said nothing of it.
+    from trackcal import cli
+    from understand_support import write_poses
+    cap = captures.load_poses(simulate(tmp_path / "capture", seed=38))
+    calib = write_poses(tmp_path / "calib.csv", cap.select_set("calib"))
+    model = tmp_path / "poly.yaml"
+    model.write_text("terms:\n  - type: polynomial\n    degree: 3\n")
+    assert cli.main(["report", str(calib), "--model", str(model), "--effects", "sensor_offset", "--folds", "2",
+                     "--no-covariates", "-o", str(tmp_path / "out")]) == 0
+    page = (tmp_path / "out" / "report.html").read_text()
+    assert re.search(r"<p><b>Note:</b> the model was fitted to these stations and the capture has no "
+                     r"validation set: the errors after [^<]* are in-sample", page), page[:3000]
+    assert "the cross-validation table" in page.split("are in-sample", 1)[1].split("</p>", 1)[0]
+    # With a validation set the tables and figures tell the sets apart: no such note.
+    assert cli.main(["report", str(tmp_path / "capture"), "--model", str(model), "--effects", "sensor_offset", "--folds", "2",
+                     "--no-covariates", "-o", str(tmp_path / "both")]) == 0
+    assert "are in-sample" not in (tmp_path / "both" / "report.html").read_text()

@@ -433,6 +433,18 @@ def _diagnosis(args, term):
     else:
         notes.append("catalog effects not tested: give --model to rank them")
     notes += diagnosis.validation_notes(v)  # outside the volume; regions the correction makes worse
+    if fit_report is not None and "valid" not in set(capture.sets):
+        # Figures 4 and 5 drew these "after" points as the correction's errors, with nothing to say
+        # the fit had seen every one (a polynomial of degree 6: 0.64 mm in-sample, 0.85 held out).
+        held = [name for name, there in (
+            ("the cross-validation table", any(t.set_name.startswith("cross-validation") for t in v.tables)),
+            ("the candidate table's model alone", bool(doc and (doc.get("base") or {}).get("cv_position_mm_mean"))))
+            if there]
+        notes.append(f"the model was fitted to these {v.points} and the capture has no validation set: the errors "
+                     f"after (Table 1, figures 4, 5 and 7, the residual maps) are in-sample, lower than on "
+                     f"{v.points} the fit did not see"
+                     + (f"; {' and '.join(held)} give{'' if len(held) > 1 else 's'} the held-out error"
+                        if held else ""))
     if fit_report is not None:  # the diagnosed calibration is the model's fit to the calib stations
         gap = diagnosis.set_gap_note(v.tables, doc)
         if gap:
