@@ -428,7 +428,10 @@ def candidate_bars(doc: dict, *, top: int = 12):
     if base is not None:
         ax.axvline(float(base), color="k", lw=1, ls="--")
     ax.set_xlabel("held-out mean position error [mm]")
-    ax.set_title("Candidate effects (orange = significant)")
+    # A pale bar can have a tiny p-value (a located source BIC does not prefer, a stand-in): the
+    # table gives the reason, which the title points to.
+    ax.set_title("Candidate effects\n(orange = significant; the table says why a pale bar is not)",
+                 fontsize=10)
     ax.grid(alpha=0.3, axis="x")
     fig.tight_layout()
     return fig
