@@ -481,9 +481,34 @@ void BindCore(py::module_& m) {
       .def_property_readonly("fade_distance",
                              [](const Calibration& c) { return c.volume().fade_distance; })
       .def_readwrite("description", &Calibration::description)
-      .def_readwrite("sensor", &Calibration::sensor,
-                     "The receiver the calibration was fitted for: the capture's 1-based sensor "
-                     "column (Fastrak station n; VRPN sensor n - 1); 0 when not recorded.")
+      // Checked on assignment, as Calibration::Check() checks it: cal.sensor = -3 was accepted and
+      // refused only by a later save() ("calibration: sensor must be ..."), far from the mistake.
+      .def_property(
+          "sensor", [](const Calibration& c) { return c.sensor; },
+          [](Calibration& c, const py::handle& value) {
+            const std::string range =
+                "0 (not recorded) or 1.." + std::to_string(kMaxCalibrationSensor);
+            // Any integer (a numpy one too, capture.sensor[0]); not a bool, not a float.
+            PyObject* index =
+                py::isinstance<py::bool_>(value) ? nullptr : PyNumber_Index(value.ptr());
+            if (index == nullptr) {
+              PyErr_Clear();
+              throw py::type_error("Calibration.sensor must be an integer, " + range + ", got " +
+                                   py::repr(value).cast<std::string>());
+            }
+            const py::int_ as_int = py::reinterpret_steal<py::int_>(index);
+            int overflow = 0;  // beyond long long: out of range like -3
+            const long long sensor = PyLong_AsLongLongAndOverflow(as_int.ptr(), &overflow);
+            if (overflow != 0 || sensor < 0 || sensor > kMaxCalibrationSensor) {
+              throw py::value_error("Calibration.sensor must be " + range +
+                                    " (the capture's sensor column), got " +
+                                    py::repr(value).cast<std::string>());
+            }
+            c.sensor = static_cast<int>(sensor);
+          },
+          "The receiver the calibration was fitted for: the capture's 1-based sensor "
+          "column (Fastrak station n; VRPN sensor n - 1); 0 when not recorded. Assigning "
+          "anything else raises ValueError (TypeError for a value that is not an integer).")
       .def_property_readonly("fit_statistics",
                              [](const Calibration& c) { return JsonToPython(c.fit_statistics); })
       .def_property_readonly(

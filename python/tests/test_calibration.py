@@ -193,6 +193,24 @@ def test_a_calibration_pickles_and_deep_copies_to_the_same_correction():
             np.testing.assert_array_equal(a, b)
 
 
+def test_assigning_a_sensor_outside_the_file_rules_is_refused_at_once(tmp_path):
+    """cal.sensor = -3 (or 65) was accepted and refused only by a later save(), naming no
+    assignment; the rule is the calibration file's (0: not recorded, or 1..64)."""
+    cal = trackcal.Calibration.load(EXAMPLE)
+    for bad in (-3, 65, 2**70):
+        with pytest.raises(ValueError, match=r"^Calibration\.sensor must be 0 \(not recorded\) or 1\.\.64 "):
+            cal.sensor = bad
+        assert cal.sensor == 0  # unchanged
+    for bad in (2.0, "2", True, None):
+        with pytest.raises(TypeError, match=r"^Calibration\.sensor must be an integer"):
+            cal.sensor = bad
+    cal.sensor = np.int64(3)  # a capture's sensor column is numpy's
+    assert cal.sensor == 3 and type(cal.sensor) is int
+    cal.sensor = 64
+    cal.save(tmp_path / "c.json")
+    assert trackcal.Calibration.load(tmp_path / "c.json").sensor == 64
+
+
 def test_correct_refuses_a_zero_quaternion():
     """Calibration.correct and Correction.correct of a zero quaternion returned a zero quaternion
     with status converged; NaN rows (dropped samples) still pass through as NaN."""
