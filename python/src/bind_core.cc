@@ -23,6 +23,9 @@ namespace {
 
 using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
 
+// How far from 1 a quaternion's norm may be, as the capture readers allow (core/capture.cc).
+constexpr double kQuaternionNormTolerance = 1e-3;
+
 std::string ShapeString(const py::array& a) {
   std::ostringstream s;
   s << "(";
@@ -114,6 +117,11 @@ py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quater
   // A zero quaternion is no orientation: it came back zero, with status converged. NaN rows
   // (dropped samples) still give NaN out, as numpy does.
   // An infinite value is no pose either: [0, 0, 0, inf] came back as [-inf, -inf, -inf, inf].
+  // A quaternion's norm is 1 within the capture readers' tolerance (core/capture.cc: a few digits
+  // of a hand-edited or low-precision file), and such a row is normalised as they normalise it;
+  // further from 1 it is no rotation and refused: the terms keep the norm, so [0, 0, 0, 2] came
+  // back with norm 2 and 1.0005 with norm 1.0005.
+  std::vector<double> normalised;  // a copy of the quaternions, made when a row needs it
   for (py::ssize_t i = 0; i < n; ++i) {
     const double* q = quaternions.data() + 4 * i;
     if (q[0] == 0.0 && q[1] == 0.0 && q[2] == 0.0 && q[3] == 0.0) {
@@ -128,6 +136,19 @@ py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quater
                             " holds an infinite value (a dropped sample is NaN, which comes "
                             "back NaN)");
     }
+    const double norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    if (std::abs(norm - 1.0) > kQuaternionNormTolerance) {  // false for a NaN row
+      std::ostringstream s;
+      s.precision(6);
+      s << "quaternions_xyzw: row " << i << " has norm " << norm
+        << ", not 1 (a rotation's quaternion x, y, z, w is unit; within "
+        << kQuaternionNormTolerance << " it is normalised, as a capture file's)";
+      throw py::value_error(s.str());
+    }
+    if (std::abs(norm - 1.0) > 1e-12) {  // unit rows are kept bit for bit, as the readers do
+      if (normalised.empty()) normalised.assign(quaternions.data(), quaternions.data() + 4 * n);
+      for (int k = 0; k < 4; ++k) normalised[4 * i + k] = q[k] / norm;
+    }
   }
   py::array_t<double> out_positions({n, py::ssize_t{3}});
   py::array_t<double> out_quaternions({n, py::ssize_t{4}});
@@ -137,7 +158,7 @@ py::tuple CorrectBatch(const py::handle& positions_obj, const py::handle& quater
   static_assert(sizeof(CorrectionStatus) == sizeof(uint8_t));
   {
     const double* p = positions.data();
-    const double* q = quaternions.data();
+    const double* q = normalised.empty() ? quaternions.data() : normalised.data();
     double* po = out_positions.mutable_data();
     double* qo = out_quaternions.mutable_data();
     auto* flags = reinterpret_cast<uint8_t*>(extrapolated.mutable_data());

@@ -111,9 +111,21 @@ ModelSource ResolveModel(const py::handle& model) {
 // for bit.
 // A zero quaternion comes back NaN: Eigen's normalize() leaves it zero, which is finite and
 // passed the check of PoseCaptureFromPython ("or a quaternion is zero") into the fit.
-Eigen::Quaterniond UnitQuaternion(double x, double y, double z, double w) {
+// A norm further from 1 than the reader allows (1e-3, core/capture.cc) is refused as the reader
+// refuses it, naming the station, row and array: [0, 0, 0, 2] was normalised silently, so an
+// in-memory capture fitted what its poses.csv could not even be read as.
+Eigen::Quaterniond UnitQuaternion(double x, double y, double z, double w, const char* attr,
+                                  int station, py::ssize_t row) {
   Eigen::Quaterniond q = QuaternionFromXyzw(x, y, z, w);
   if (q.norm() == 0.0) q.coeffs().setConstant(std::numeric_limits<double>::quiet_NaN());
+  if (std::abs(q.norm() - 1.0) > 1e-3) {  // false for NaN: refused below as not finite
+    std::ostringstream s;
+    s.precision(6);
+    s << "PoseCapture: station " << station << " (row " << row << "): " << attr << " ["
+      << x << ", " << y << ", " << z << ", " << w << "] has norm " << q.norm()
+      << ", not 1 (within 1e-3, as poses.csv)";
+    throw py::value_error(s.str());
+  }
   if (std::abs(q.norm() - 1.0) > 1e-12) q.normalize();
   return q;
 }
@@ -251,9 +263,11 @@ PoseCapture PoseCaptureFromPython(const py::handle& obj) {
                             r.set + "' is not one of calib, valid, reg");
     }
     r.reported.translation = Eigen::Vector3d(rp.at(i, 0), rp.at(i, 1), rp.at(i, 2));
-    r.reported.rotation = UnitQuaternion(rq.at(i, 0), rq.at(i, 1), rq.at(i, 2), rq.at(i, 3));
+    r.reported.rotation = UnitQuaternion(rq.at(i, 0), rq.at(i, 1), rq.at(i, 2), rq.at(i, 3),
+                                         "reported_quaternions_xyzw", r.station, i);
     r.reference.translation = Eigen::Vector3d(fp.at(i, 0), fp.at(i, 1), fp.at(i, 2));
-    r.reference.rotation = UnitQuaternion(fq.at(i, 0), fq.at(i, 1), fq.at(i, 2), fq.at(i, 3));
+    r.reference.rotation = UnitQuaternion(fq.at(i, 0), fq.at(i, 1), fq.at(i, 2), fq.at(i, 3),
+                                          "reference_quaternions_xyzw", r.station, i);
     for (py::ssize_t k = 0; k < num_extra; ++k) r.extra.push_back(extra->at(i, k));
     if (!r.reported.translation.allFinite() || !r.reference.translation.allFinite() ||
         !r.reported.rotation.coeffs().allFinite() || !r.reference.rotation.coeffs().allFinite()) {

@@ -228,6 +228,31 @@ def test_correct_refuses_a_zero_quaternion():
     assert np.isnan(q[1]).all() and np.isfinite(q[[0, 2]]).all()
 
 
+def test_correct_normalises_a_nearly_unit_quaternion_and_refuses_one_that_is_not():
+    """The terms keep a quaternion's norm: [0, 0, 0, 2] came back with norm 2, and 1.0005 with
+    1.0005. As a capture file is read (core/capture.cc): within 1e-3 of 1 the row is normalised,
+    further it is no rotation (ValueError naming the row); unit rows are corrected bit for bit as
+    before."""
+    cal = trackcal.Calibration.load(EXAMPLE)
+    positions, quats = random_poses(np.random.default_rng(8), 4)
+    for target in (cal, cal.corrections[0]):
+        for scale in (2.0, 0.5, 1.0 + 1.5e-3):
+            bad = quats.copy()
+            bad[2] *= scale
+            with pytest.raises(ValueError, match=rf"^quaternions_xyzw: row 2 has norm {scale:g}, not 1"):
+                target.correct(positions, bad)
+        near = quats.copy()
+        near[1] *= 1.0 + 9e-4
+        near[3] *= 1.0 - 9e-4
+        p_near, q_near, _ = target.correct(positions, near)
+        p_unit, q_unit, _ = target.correct(positions, quats)
+        # 1e-12: the rounding of the division by the norm, carried through one correction.
+        np.testing.assert_allclose(np.linalg.norm(q_near, axis=1), 1.0, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(q_near, q_unit, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(p_near, p_unit, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(q_near[[0, 2]], q_unit[[0, 2]])  # untouched rows: same bits
+
+
 def test_correct_refuses_an_infinite_value():
     """[0, 0, 0, inf] came back as [-inf, -inf, -inf, inf] without a word; an infinite position
     came back infinite. Neither is a pose (a dropped sample is NaN)."""

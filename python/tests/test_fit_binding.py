@@ -218,15 +218,25 @@ def test_a_model_file_that_is_not_yaml_text_is_a_value_error_naming_file_and_lin
 def test_an_in_memory_zero_quaternion_is_refused(capture_dir):
     """A zero quaternion has no rotation; the binding's check says it refuses one ("pose is not
     finite (or a quaternion is zero)"), but Eigen's normalize() left it zero, finite, and the fit
-    ran with it. NaN was refused already; a quaternion of another norm is normalised (as documented)."""
+    ran with it. NaN was refused already. A norm within the poses.csv reader's 1e-3 of 1 is
+    normalised, as the reader normalises it; further from 1 (2: normalised silently, a capture
+    whose poses.csv the reader refuses) it is refused as the reader refuses it, naming the
+    station and the array."""
     for bad in (np.zeros(4), np.full(4, np.nan)):
         cap = captures.load_poses(capture_dir)
         cap.reported_quaternions_xyzw[3] = bad
         with pytest.raises(ValueError, match=rf"station {cap.station[3]}: pose is not finite \(or a quaternion is zero\)"):
             trackcal.fit(cap, MODEL)
+    for scale in (2.0, 1.0 - 1.5e-3):
+        cap = captures.load_poses(capture_dir)
+        cap.reference_quaternions_xyzw[3] *= scale
+        with pytest.raises(ValueError, match=rf"^PoseCapture: station {cap.station[3]} \(row 3\): "
+                                             rf"reference_quaternions_xyzw \[.*\] has norm {scale:g}, not 1"):
+            trackcal.fit(cap, MODEL)
     cap = captures.load_poses(capture_dir)
-    cap.reference_quaternions_xyzw[3] *= 2.0
-    trackcal.fit(cap, MODEL)
+    cap.reference_quaternions_xyzw[3] *= 1.0 + 5e-4  # a few digits short: as poses.csv, normalised
+    unit = trackcal.fit(captures.load_poses(capture_dir), MODEL).table("calib").after_position_mm["mean"]
+    assert trackcal.fit(cap, MODEL).table("calib").after_position_mm["mean"] == pytest.approx(unit, rel=1e-9)
 
 
 def test_an_in_memory_capture_with_bad_fields_is_a_value_error_naming_them(capture_dir):
