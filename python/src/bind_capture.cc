@@ -198,7 +198,9 @@ py::dict PoseCaptureToDict(const PoseCapture& c) {
 void BindCapture(py::module_& m) {
   m.def(
       "read_poses",
-      [](const std::filesystem::path& path) { return PoseCaptureToDict(ReadPoses(path)); },
+      [](const py::handle& path) {
+        return PoseCaptureToDict(ReadPoses(PathArgument(path, "path")));
+      },
       py::arg("path"),
       "Reads poses.csv (core/capture.h) into a dict of arrays: station, set (list), sensor, time, "
       "reported_/reference_positions (N, 3) [m], reported_/reference_quaternions_xyzw (N, 4), "
@@ -207,8 +209,8 @@ void BindCapture(py::module_& m) {
 
   m.def(
       "read_tracker_stream",
-      [](const std::filesystem::path& path) {
-        const TrackerStream c = ReadTrackerStream(path);
+      [](const py::handle& path) {
+        const TrackerStream c = ReadTrackerStream(PathArgument(path, "path"));
         py::dict d = StreamToDict(c, [](const TrackerStreamSample& r) -> const Rigid3d& {
           return r.transmitter_from_receiver;
         });
@@ -221,8 +223,8 @@ void BindCapture(py::module_& m) {
 
   m.def(
       "read_reference_stream",
-      [](const std::filesystem::path& path) {
-        return StreamToDict(ReadReferenceStream(path),
+      [](const py::handle& path) {
+        return StreamToDict(ReadReferenceStream(PathArgument(path, "path")),
                             [](const ReferenceStreamSample& r) -> const Rigid3d& {
                               return r.transmitter_from_body;
                             });
@@ -232,10 +234,11 @@ void BindCapture(py::module_& m) {
 
   m.def(
       "write_tracker_stream",
-      [](const std::filesystem::path& path, const py::handle& time_obj,
+      [](const py::handle& path_obj, const py::handle& time_obj,
          const py::handle& sensor_obj, const py::handle& positions, const py::handle& quaternions,
          bool overwrite, const std::vector<std::string>& extra_columns, const py::handle& extra_obj,
          const std::map<std::string, std::vector<std::string>>& extra_labels) {
+        const std::filesystem::path path = PathArgument(path_obj, "path");
         const std::vector<Rigid3d> poses = ToPoses(positions, quaternions, "write_tracker_stream",
                                                    /*normalize_any=*/false);
         const py::ssize_t n = static_cast<py::ssize_t>(poses.size());

@@ -259,6 +259,23 @@ std::string CorrectionRepr(const Correction& c) {
 
 }  // namespace
 
+std::filesystem::path PathArgument(const py::handle& obj, const std::string& name) {
+  const bool path_like =
+      py::isinstance<py::str>(obj) || py::isinstance<py::bytes>(obj) ||
+      py::isinstance(obj, py::module_::import("os").attr("PathLike"));
+  if (!path_like) {
+    throw py::type_error(name + " must be a path (str or os.PathLike such as pathlib.Path), got " +
+                         std::string(py::str(py::type::of(obj).attr("__name__"))));
+  }
+  const py::object fspath = py::module_::import("os").attr("fspath")(obj);
+  if (py::isinstance<py::bytes>(fspath)) {
+    throw py::type_error(name + " must be a str or os.PathLike path, got bytes " +
+                         py::repr(fspath).cast<std::string>() +
+                         ": decode it with os.fsdecode()");
+  }
+  return fspath.cast<std::filesystem::path>();
+}
+
 void CheckRealNumbers(const py::handle& obj, const std::string& name) {
   const py::array raw = py::array::ensure(obj);  // no cast: the dtype numpy gives the values
   if (!raw) {
@@ -320,9 +337,15 @@ void BindCore(py::module_& m) {
       py::arg("degree"),
       "(R, 3) powers of x, y, z of every term in the canonical order (graded by total degree, then "
       "descending power of x, then of y).");
-  m.def("sha256_file", &Sha256HexOfFile, py::arg("path"),
+  m.def(
+      "sha256_file",
+      [](const py::handle& path) { return Sha256HexOfFile(PathArgument(path, "path")); },
+      py::arg("path"),
         "Lower-case hex SHA-256 of a file (for provenance inputs).");
-  m.def("check_calibration_output", &CheckCalibrationOutput, py::arg("path"),
+  m.def(
+      "check_calibration_output",
+      [](const py::handle& path) { CheckCalibrationOutput(PathArgument(path, "path")); },
+      py::arg("path"),
         "Raises ValueError unless a calibration file can be written at path: its folder exists "
         "and an existing file there is a trackcal calibration (checked before a long fit).");
 
@@ -452,7 +475,8 @@ void BindCore(py::module_& m) {
            "Builds a calibration from correction terms (applied in order) and the box of reported "
            "positions they are valid in; extrapolation is 'clamp' or 'fade'.")
       .def_static(
-          "load", [](const std::filesystem::path& path) { return ReadCalibrationFile(path); },
+          "load",
+          [](const py::handle& path) { return ReadCalibrationFile(PathArgument(path, "path")); },
           py::arg("path"), "Reads a calibration file; errors name the file and the JSON path.")
       .def_static("from_json", &ParseCalibrationJson, py::arg("text"),
                   py::arg("source_name") = "<string>",
@@ -460,8 +484,8 @@ void BindCore(py::module_& m) {
                   "JSON path.")
       .def(
           "save",
-          [](const Calibration& c, const std::filesystem::path& path) {
-            WriteCalibrationFile(path, c);
+          [](const Calibration& c, const py::handle& path) {
+            WriteCalibrationFile(PathArgument(path, "path"), c);
           },
           py::arg("path"),
           "Writes atomically; refuses to overwrite an input listed in the provenance or an "

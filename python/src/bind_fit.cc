@@ -62,13 +62,10 @@ py::object JsonToPython(const nlohmann::json& j) {
   return py::module_::import("json").attr("loads")(j.dump());
 }
 
+// bytes counts as a path here so that PathArgument refuses it by name.
 bool IsPathLike(const py::handle& obj) {
-  return py::isinstance<py::str>(obj) ||
+  return py::isinstance<py::str>(obj) || py::isinstance<py::bytes>(obj) ||
          py::isinstance(obj, py::module_::import("os").attr("PathLike"));
-}
-
-fs::path ToPath(const py::handle& obj) {
-  return fs::path(py::str(py::module_::import("os").attr("fspath")(obj)).cast<std::string>());
 }
 
 // A model given as a path or as YAML text: a path object is a path; a string is a path when it
@@ -83,8 +80,18 @@ struct ModelSource {
 
 ModelSource ResolveModel(const py::handle& model) {
   ModelSource out;
-  if (py::isinstance<py::str>(model)) {
-    const std::string s = model.cast<std::string>();
+  // A str that is not UTF-8 text (a file name with surrogates, from os.listdir) is a path.
+  bool text_like = py::isinstance<py::str>(model);
+  std::string s;
+  if (text_like) {
+    try {
+      s = model.cast<std::string>();
+    } catch (const py::cast_error&) {
+      PyErr_Clear();
+      text_like = false;
+    }
+  }
+  if (text_like) {
     std::error_code ec;
     const size_t first = s.find_first_not_of(" \t");
     const bool looks_like_text =
@@ -97,7 +104,7 @@ ModelSource ResolveModel(const py::handle& model) {
       return out;
     }
   } else if (IsPathLike(model)) {
-    out.path = ToPath(model);
+    out.path = PathArgument(model, "model");
   } else {
     throw py::value_error("model must be a model file path or its YAML text (docs/model-file.md)");
   }
@@ -287,11 +294,11 @@ DataSource ResolveData(const py::handle& data, int sensor = 0) {
   DataSource out;
   out.sensor = sensor;
   if (IsPathLike(data)) {
-    out.path = ToPath(data);
+    out.path = PathArgument(data, "data");
   } else {
     out.in_memory = PoseCaptureFromPython(data);
     if (py::hasattr(data, "path") && !data.attr("path").is_none()) {
-      out.loaded_from = ToPath(data.attr("path"));
+      out.loaded_from = PathArgument(data.attr("path"), "PoseCapture.path");
     }
   }
   return out;
@@ -398,6 +405,8 @@ template <typename F>
 auto ValueErrors(F&& f) -> decltype(f()) {
   try {
     return f();
+  } catch (const py::builtin_exception&) {
+    throw;  // already the Python exception it must be (a TypeError stays one)
   } catch (const std::runtime_error& e) {
     throw py::value_error(e.what());
   }
@@ -548,7 +557,8 @@ void BindFit(py::module_& m) {
           "Why the fit may not be saved (the solver failed), naming model and data; '' otherwise.")
       .def(
           "save",
-          [](FitRun& r, const fs::path& path, const std::string& command_line) {
+          [](FitRun& r, const py::handle& path_obj, const std::string& command_line) {
+            const fs::path path = PathArgument(path_obj, "path");
             ValueErrors([&] {
               if (!r.failure.empty()) throw std::runtime_error(r.failure);
               CheckNotAnInput(path, r.protected_paths);
@@ -685,7 +695,8 @@ void BindFit(py::module_& m) {
       .def("summary", [](const RegistrationRun& r) { return r.registration.ToString(); })
       .def(
           "save",
-          [](RegistrationRun& r, const fs::path& path) {
+          [](RegistrationRun& r, const py::handle& path_obj) {
+            const fs::path path = PathArgument(path_obj, "path");
             ValueErrors([&] { WritePosesChecked(path, r.poses, r.inputs); });
             r.output = path;
           },
@@ -698,10 +709,11 @@ void BindFit(py::module_& m) {
          double tracker_orientation_noise_deg, int min_markers_per_station, const py::object& poses,
          bool reject_bad_stations) {
         auto run = std::make_shared<RegistrationRun>();
-        const fs::path markers_path = ToPath(markers), tracker_path = ToPath(tracker);
+        const fs::path markers_path = PathArgument(markers, "markers");
+        const fs::path tracker_path = PathArgument(tracker, "tracker");
         run->inputs = {markers_path, tracker_path};
         const bool labelled = !poses.is_none();
-        const fs::path poses_path = labelled ? ToPath(poses) : fs::path();
+        const fs::path poses_path = labelled ? PathArgument(poses, "poses") : fs::path();
         if (labelled) run->inputs.push_back(poses_path);
         fit::RegistrationOptions options;
         options.optical_noise_m = optical_noise_m;
@@ -800,7 +812,8 @@ void BindFit(py::module_& m) {
       .def_property_readonly("cost", [](const PairRun& r) { return r.result.cost; })
       .def(
           "save",
-          [](PairRun& r, const fs::path& path) {
+          [](PairRun& r, const py::handle& path_obj) {
+            const fs::path path = PathArgument(path_obj, "path");
             ValueErrors([&] { WritePosesChecked(path, r.result.poses, r.inputs); });
             r.output = path;
           },
@@ -813,7 +826,8 @@ void BindFit(py::module_& m) {
          const std::string& set, int decimate, double clock_drift,
          std::optional<double> clock_drift_origin) {
         auto run = std::make_shared<PairRun>();
-        const fs::path tracker_path = ToPath(tracker), reference_path = ToPath(reference);
+        const fs::path tracker_path = PathArgument(tracker, "tracker");
+        const fs::path reference_path = PathArgument(reference, "reference");
         run->inputs = {tracker_path, reference_path};
         fit::StreamPairingOptions options;
         options.time_offset = time_offset;

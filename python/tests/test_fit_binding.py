@@ -3,6 +3,7 @@ command line on the same data: same tables, same parameters, same calibration, s
 
 import csv
 import json
+import os
 import pathlib
 import re
 import shutil
@@ -237,6 +238,42 @@ def test_an_in_memory_zero_quaternion_is_refused(capture_dir):
     cap.reference_quaternions_xyzw[3] *= 1.0 + 5e-4  # a few digits short: as poses.csv, normalised
     unit = trackcal.fit(captures.load_poses(capture_dir), MODEL).table("calib").after_position_mm["mean"]
     assert trackcal.fit(cap, MODEL).table("calib").after_position_mm["mean"] == pytest.approx(unit, rel=1e-9)
+
+
+def test_paths_are_str_or_pathlike_everywhere_and_bytes_is_a_type_error(capture_dir, tmp_path):
+    """Calibration.load and save took bytes, fit() refused it as "data must be a capture folder",
+    and register() and pair() read b'/x/markers.csv' as a file named "b'/x/markers.csv'". Every
+    path argument now takes str or os.PathLike and refuses bytes (TypeError naming it), as pathlib
+    and the Python modules do. A str holding a file name that is not UTF-8 (os.listdir's
+    surrogates) names that file: fit() raised RuntimeError "Unable to cast Python instance"."""
+    odd = tmp_path / os.fsdecode(b"caf\xe9.csv")
+    shutil.copy(capture_dir / "poses.csv", odd)
+    report = trackcal.fit(str(odd), MODEL)
+    cal_path = report.save(tmp_path / os.fsdecode(b"cal\xe9.json"))
+    assert trackcal.Calibration.load(str(cal_path)).to_json() == report.calibration.to_json()
+    as_bytes = os.fsencode
+    model = tmp_path / "model.yaml"
+    model.write_text(MODEL)
+    calls = [
+        ("path", lambda: trackcal.Calibration.load(as_bytes(cal_path))),
+        ("path", lambda: report.calibration.save(as_bytes(tmp_path / "new.json"))),
+        ("path", lambda: trackcal.sha256_file(as_bytes(cal_path))),
+        ("data", lambda: trackcal.fit(as_bytes(odd), MODEL)),
+        ("model", lambda: trackcal.fit(odd, as_bytes(model))),
+        ("markers", lambda: trackcal.register(as_bytes(tmp_path / "m.csv"), tmp_path / "t.csv")),
+        ("tracker", lambda: trackcal.register(tmp_path / "m.csv", as_bytes(tmp_path / "t.csv"))),
+        ("tracker", lambda: trackcal.pair(as_bytes(tmp_path / "t.csv"), tmp_path / "r.csv")),
+        ("reference", lambda: trackcal.pair(tmp_path / "t.csv", as_bytes(tmp_path / "r.csv"))),
+    ]
+    for name, call in calls:
+        with pytest.raises(TypeError, match=rf"^{name} must be a str or os.PathLike path, got bytes b'.*': "
+                                            r"decode it with os.fsdecode\(\)$"):
+            call()
+    assert not (tmp_path / "new.json").exists()
+    # The Python modules refuse bytes as pathlib does.
+    for call in (lambda: captures.load_poses(as_bytes(odd)), lambda: report.save(as_bytes(tmp_path / "x.json"))):
+        with pytest.raises(TypeError, match="bytes"):
+            call()
 
 
 def test_an_in_memory_capture_with_bad_fields_is_a_value_error_naming_them(capture_dir):

@@ -232,7 +232,7 @@ def format_parameters(parameters: List[Parameter], max_values: int = 12) -> str:
 
 
 def _data_arg(data):
-    if isinstance(data, (str, os.PathLike)):
+    if isinstance(data, (str, bytes, os.PathLike)):  # bytes: refused by name in C++, as everywhere
         return data
     if isinstance(data, PoseCapture) or hasattr(data, "reported_positions"):
         return data
@@ -322,7 +322,10 @@ def _input_file(path, file_name: str):
     """``path``, or ``path/file_name`` when it is a folder, as ``trackcal.captures.load_*`` read a
     capture folder: given a folder, the C++ readers failed with "basic_filebuf::underflow error
     reading the file: Is a directory", a ValueError that names no file."""
-    if path is None or not isinstance(path, (str, os.PathLike)) or not os.path.isdir(path):
+    # bytes is passed on to be refused by name (TypeError), as every path argument refuses it.
+    if path is None or not isinstance(path, (str, os.PathLike)) or isinstance(os.fspath(path), bytes):
+        return path
+    if not os.path.isdir(path):
         return path
     return pathlib.Path(path) / file_name
 
