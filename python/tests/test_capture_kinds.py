@@ -621,3 +621,42 @@ def test_a_label_that_is_not_utf8_names_its_file_line_and_column(sim, tmp_path):
         captures.load_tracker_stream(streams)
     with pytest.raises(ValueError, match=header):
         captures.load(streams, time_offset=0.0)
+
+
+def test_captures_and_streams_compare_with_equals_and_refuse_equality_with_a_hint(sim):
+    """capture == capture raised numpy's "The truth value of an array with more than one element is
+    ambiguous" (the dataclass compared tuples of arrays), as did TrackerStream, ReferenceStream and
+    FitReport.parameters' Parameter. == is now a TypeError pointing to equals(), which compares
+    every array (NaN equal to NaN: a missing extra value) and leaves out where a capture came from
+    (path, origin)."""
+    import copy
+    cap_dir, streams, _ = sim
+    a = captures.load_poses(cap_dir)
+    b = captures.load(cap_dir)  # origin set
+    assert a.equals(b) and b.equals(a) and a.equals(a.subset(np.arange(len(a))))
+    assert not a.equals(a.select_set("calib")) and not a.equals(None) and not a.equals("poses.csv")
+    c = copy.deepcopy(a)
+    c.reported_positions[5, 1] += 1e-9
+    assert not a.equals(c)
+    c = copy.deepcopy(a)
+    c.set[0] = "valid" if c.set[0] != "valid" else "calib"
+    assert not a.equals(c)
+    with_nan = copy.deepcopy(a)
+    with_nan.extra_columns = ["operator_height"]
+    with_nan.extra = np.full((len(a), 1), np.nan)
+    assert with_nan.equals(copy.deepcopy(with_nan)) and not with_nan.equals(a)
+    tracker = captures.load_tracker_stream(streams)
+    reference = captures.load_reference_stream(streams)
+    assert tracker.equals(captures.load_tracker_stream(streams)) and not tracker.equals(a)
+    assert reference.equals(captures.load_reference_stream(streams))
+    for x, y in ((a, b), (tracker, tracker), (reference, captures.load_reference_stream(streams))):
+        with pytest.raises(TypeError, match=r"== .* is not defined \(they hold numpy arrays\): use a\.equals\(b\)"):
+            x == y  # noqa: B015
+        with pytest.raises(TypeError, match=r"use a\.equals\(b\)"):
+            x != y  # noqa: B015
+    # Identity still finds a capture in a list; other types compare unequal, as before.
+    assert a in [a] and a != 3 and not (a == None)  # noqa: E711
+    param = trackcal.fit(cap_dir, "terms:\n  - type: polynomial\n    degree: 1\n").parameters[0]
+    assert param.equals(copy.deepcopy(param))
+    with pytest.raises(TypeError, match=r"Parameter == Parameter is not defined"):
+        param == copy.deepcopy(param)  # noqa: B015

@@ -39,8 +39,49 @@ def _capture_summary(capture) -> str:
     return ", ".join(parts)
 
 
-@dataclasses.dataclass(repr=False)
-class PoseCapture:
+def _same_values(a, b) -> bool:
+    """Whether two field values are equal: arrays of the same shape element by element, NaN equal
+    to NaN (an extra column's missing value), anything else by ==."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        if a is None or b is None:
+            return False
+        a, b = np.asarray(a), np.asarray(b)
+        if a.shape != b.shape:
+            return False
+        nan_aware = a.dtype.kind in "fc" and b.dtype.kind in "fc"
+        return bool(np.array_equal(a, b, equal_nan=nan_aware))
+    return bool(a == b)
+
+
+class _ArrayFields:
+    """Equality of a dataclass that holds numpy arrays. ``==`` is refused with a hint: the
+    dataclass's == compared tuples of arrays and failed with numpy's "The truth value of an array
+    with more than one element is ambiguous", and an element-wise answer has no meaning for a whole
+    capture; ``equals(other)`` says whether every compared field holds the same values, as pandas'
+    and xarray's ``equals`` do."""
+
+    _not_compared: tuple = ()
+
+    def equals(self, other) -> bool:
+        """True when ``other`` is of the same class and every field holds the same values (arrays
+        element by element, NaN equal to NaN)."""
+        if type(other) is not type(self):
+            return False
+        return all(_same_values(getattr(self, f.name), getattr(other, f.name))
+                   for f in dataclasses.fields(self) if f.name not in self._not_compared)
+
+    def __eq__(self, other):
+        if not isinstance(other, _ArrayFields):
+            return NotImplemented
+        raise TypeError(f"{type(self).__name__} == {type(other).__name__} is not defined (they hold numpy "
+                        "arrays): use a.equals(b) for whether they hold the same values, or compare "
+                        "their arrays, e.g. np.array_equal(a.time, b.time)")
+
+    __hash__ = None  # mutable arrays, as the dataclass had it
+
+
+@dataclasses.dataclass(repr=False, eq=False)
+class PoseCapture(_ArrayFields):
     """Paired static stations of a poses.csv: the tracker's report and the reference, per row.
 
     Quaternions are (N, 4) ordered x, y, z, w; positions (N, 3) in metres, transmitter frame.
@@ -67,6 +108,9 @@ class PoseCapture:
     origin: Optional[dict] = None
     # {column: sorted labels} for the extra columns that hold labels rather than numbers.
     extra_labels: dict = dataclasses.field(default_factory=dict)
+
+    # Where the stations came from, not what they are: equals() leaves them out.
+    _not_compared = ("path", "origin")
 
     def __len__(self) -> int:
         return len(self.station)
@@ -406,8 +450,8 @@ class _StreamColumns:
         return _column(self, name)
 
 
-@dataclasses.dataclass
-class TrackerStream(_StreamColumns):
+@dataclasses.dataclass(eq=False)
+class TrackerStream(_StreamColumns, _ArrayFields):
     """Unaveraged tracker samples (tracker_stream.csv): time [s], sensor, poses."""
 
     time: np.ndarray
@@ -444,8 +488,8 @@ def load_tracker_stream(path: PathLike) -> TrackerStream:
                          extra=d["extra"], extra_labels=dict(d["extra_labels"]))
 
 
-@dataclasses.dataclass
-class ReferenceStream(_StreamColumns):
+@dataclasses.dataclass(eq=False)
+class ReferenceStream(_StreamColumns, _ArrayFields):
     """Unaveraged reference samples (reference_stream.csv) on the reference clock: time [s], poses
     (transmitter_from_body, registered into the transmitter frame)."""
 

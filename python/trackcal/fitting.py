@@ -26,7 +26,7 @@ from typing import Callable, Dict, List, Optional, Union
 import numpy as np
 
 from trackcal import _core
-from trackcal.captures import PoseCapture, not_utf8_inputs
+from trackcal.captures import PoseCapture, _ArrayFields, not_utf8_inputs
 
 PathLike = Union[str, os.PathLike]
 Progress = Callable[[str, int, int], None]
@@ -51,8 +51,8 @@ def _capture_from_dict(d: dict, path=None) -> PoseCapture:
                        extra_labels=dict(d.get("extra_labels", {})))
 
 
-@dataclasses.dataclass
-class Parameter:
+@dataclasses.dataclass(eq=False)
+class Parameter(_ArrayFields):
     """One parameter block of a fitted term: values with standard deviations (NaN: none, as ``null``
     in ``to_dict()``: a fixed block, a coordinate the data leave undetermined (named in
     ``identifiability_flags``), or a manifold block, whose uncertainty is that of its tangent
