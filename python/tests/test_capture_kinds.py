@@ -660,3 +660,25 @@ def test_captures_and_streams_compare_with_equals_and_refuse_equality_with_a_hin
     assert param.equals(copy.deepcopy(param))
     with pytest.raises(TypeError, match=r"Parameter == Parameter is not defined"):
         param == copy.deepcopy(param)  # noqa: B015
+
+
+def test_registration_and_pairing_have_one_line_reprs(sim):
+    """Their repr was the default "<trackcal.fitting.Registration object at 0x7f...>", beside the
+    one-line reprs of FitReport, PoseCapture and Calibration."""
+    import warnings
+    cap_dir, streams, _ = sim
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        reg = trackcal.register(cap_dir, cap_dir)
+        paired = trackcal.pair(streams, streams, estimate_time_offset=True)
+    text = repr(reg)
+    assert re.fullmatch(r"Registration\(\d+ poses, \d+ left out, \d+ rejected, chi-square [\d.]+ for \d+ "
+                        r"degrees of freedom, (NOT )?converged, (NOT )?identifiable\)", text), text
+    assert f"Registration({len(reg.poses)} poses, {len(reg.left_out)} left out" in text
+    text = repr(paired)
+    assert re.fullmatch(r"Pairing\(\d+ poses of sensor \d+, time offset -?[\d.]+ ms \(estimated, \+- [\d.e-]+ ms\)"
+                        r"(, clock drift -?[\d.]+ ppm)?, \d+ dropped(, warning)?\)", text), text
+    assert text.startswith(f"Pairing({len(paired.poses)} poses") and "\n" not in text
+    given = trackcal.pair(streams, streams, time_offset=0.0125)
+    assert re.fullmatch(r"Pairing\(\d+ poses of sensor \d+, time offset 12\.500 ms, \d+ dropped(, warning)?\)",
+                        repr(given)), repr(given)

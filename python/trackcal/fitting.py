@@ -307,6 +307,14 @@ class Registration:
     def summary(self) -> str:
         return self._native.summary()
 
+    def __repr__(self) -> str:
+        # The default named only the address ("<trackcal.fitting.Registration object at 0x7f...>").
+        state = ", ".join(("converged" if self.converged else "NOT converged",
+                           "identifiable" if self.identifiable else "NOT identifiable"))
+        return (f"Registration({len(self.poses)} poses, {len(self.left_out)} left out, "
+                f"{len(self.rejected_stations)} rejected, chi-square {self.chi_square:.1f} for "
+                f"{self.nu:.0f} degrees of freedom, {state})")
+
     def save(self, path: PathLike) -> pathlib.Path:
         """Writes poses.csv atomically; refuses an existing file or an input."""
         p = pathlib.Path(path)
@@ -414,6 +422,20 @@ class Pairing:
         # An estimated offset the streams identify poorly, or the sensor chosen among several:
         # what ``trackcal-fit pair`` prints on stderr.
         self.warning: str = str(doc["warning"])
+        # Whether time_offset_s was estimated (else given).
+        self.estimated: bool = bool(doc.get("estimated", False))
+
+    def __repr__(self) -> str:
+        # The default named only the address ("<trackcal.fitting.Pairing object at 0x7f...>").
+        from trackcal._format import fixed
+        offset = f"time offset {fixed(1e3 * self.time_offset_s, '{:.3f}')} ms"
+        if self.estimated:
+            offset += f" (estimated, +- {1e3 * self.time_offset_stddev_s:.3g} ms)"
+        if self.clock_drift_applied:
+            offset += f", clock drift {1e6 * self.clock_drift_applied:.1f} ppm"
+        sensor = f" of sensor {int(self.poses.sensor[0])}" if len(self.poses) else ""
+        return (f"Pairing({len(self.poses)} poses{sensor}, {offset}, {self.dropped} dropped"
+                + (", warning" if self.warning else "") + ")")
 
     def save(self, path: PathLike) -> pathlib.Path:
         p = pathlib.Path(path)
