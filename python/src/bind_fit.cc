@@ -617,6 +617,20 @@ void BindFit(py::module_& m) {
       "messages.");
 #endif
 
+  // What save() of a registration or a pairing does, for one that was pickled (its native run
+  // does not pickle; trackcal.fitting keeps its poses as a PoseCapture).
+  m.def(
+      "write_poses",
+      [](const py::handle& path, const py::handle& capture, const py::handle& inputs) {
+        const fs::path out = PathArgument(path, "path");
+        const PoseCapture poses = PoseCaptureFromPython(capture);
+        std::vector<fs::path> protected_paths;
+        for (const py::handle& in : inputs) protected_paths.push_back(PathArgument(in, "inputs"));
+        ValueErrors([&] { WritePosesChecked(out, poses, protected_paths); });
+      },
+      py::arg("path"), py::arg("capture"), py::arg("inputs"),
+      "Writes a PoseCapture as poses.csv atomically; never over an existing file or an input.");
+
   m.def(
       "parse_model",
       [](const py::object& model) {
@@ -693,6 +707,9 @@ void BindFit(py::module_& m) {
                                return out;
                              })
       .def("summary", [](const RegistrationRun& r) { return r.registration.ToString(); })
+      .def_property_readonly(
+          "inputs", [](const RegistrationRun& r) { return r.inputs; },
+          "The files read (markers.csv, tracker.csv, poses.csv): save() never writes over one.")
       .def(
           "save",
           [](RegistrationRun& r, const py::handle& path_obj) {
@@ -810,6 +827,9 @@ void BindFit(py::module_& m) {
       .def_property_readonly("time_offset_s", [](const PairRun& r) { return r.result.time_offset; })
       .def_property_readonly("dropped", [](const PairRun& r) { return r.result.dropped; })
       .def_property_readonly("cost", [](const PairRun& r) { return r.result.cost; })
+      .def_property_readonly(
+          "inputs", [](const PairRun& r) { return r.inputs; },
+          "The streams read: save() never writes over one.")
       .def(
           "save",
           [](PairRun& r, const py::handle& path_obj) {

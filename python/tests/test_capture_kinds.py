@@ -682,3 +682,57 @@ def test_registration_and_pairing_have_one_line_reprs(sim):
     given = trackcal.pair(streams, streams, time_offset=0.0125)
     assert re.fullmatch(r"Pairing\(\d+ poses of sensor \d+, time offset 12\.500 ms, \d+ dropped(, warning)?\)",
                         repr(given)), repr(given)
+
+
+def _fit_in_a_worker(cap_dir):
+    return trackcal.fit(cap_dir, "terms:\n  - type: polynomial\n    degree: 2\n")
+
+
+def test_fit_reports_registrations_and_pairings_pickle_for_process_pools(sim, tmp_path):
+    """A process pool's worker could not return a fit: "cannot pickle
+    'trackcal._core.NativeFitReport' object" (nor a Registration or a Pairing), while
+    report.calibration pickled. They pickle now with their document, calibration and poses, and a
+    pickled one saves the same file as the original and refuses what it refuses."""
+    import concurrent.futures
+    import multiprocessing
+    import pickle
+    import warnings
+    cap_dir, streams, _ = sim
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        pooled = pool.submit(_fit_in_a_worker, cap_dir).result(timeout=300)
+    report = _fit_in_a_worker(cap_dir)
+    copy_ = pickle.loads(pickle.dumps(pickle.loads(pickle.dumps(report))))  # twice: a copy pickles too
+    for other in (pooled, copy_):
+        assert repr(other) == repr(report) and other.format().split("Fit:")[0] == report.format().split("Fit:")[0]
+        assert other.calibration.to_json().split('"provenance"')[0] == report.calibration.to_json().split('"provenance"')[0]
+        assert other.to_dict()["fit"]["parameters"] == report.to_dict()["fit"]["parameters"]
+    assert copy_.to_dict() == report.to_dict()
+    a = report.save(tmp_path / "a.json", "trackcal fit x")
+    b = copy_.save(tmp_path / "b.json", "trackcal fit x")
+    assert json.loads(a.read_text()) == json.loads(b.read_text())
+    assert copy_.output == b and copy_.to_dict()["output"] == str(b)
+    assert report.to_dict()["output"] == str(a)
+    assert pickle.loads(pickle.dumps(copy_)).to_dict()["output"] == str(b)
+    with pytest.raises(ValueError, match="output would overwrite the input"):
+        copy_.save(cap_dir / "poses.csv")
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="notes.txt"):
+        copy_.save(tmp_path / "notes.txt")
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        results = [trackcal.register(cap_dir, cap_dir), trackcal.pair(streams, streams, estimate_time_offset=True)]
+    for k, result in enumerate(results):
+        copied = pickle.loads(pickle.dumps(result))
+        assert repr(copied) == repr(result) and copied.to_dict() == result.to_dict()
+        assert copied.poses.equals(result.poses)
+        if k == 0:
+            assert copied.summary() == result.summary()
+        native_file = result.save(tmp_path / f"native{k}.csv")
+        copied_file = copied.save(tmp_path / f"copied{k}.csv")
+        assert native_file.read_bytes() == copied_file.read_bytes()
+        assert copied.to_dict()["output"] == str(copied_file)
+        with pytest.raises(ValueError, match="exists"):
+            copied.save(copied_file)
+        with pytest.raises(ValueError, match="output would overwrite the input"):
+            copied.save((cap_dir / "markers.csv") if k == 0 else (streams / "tracker_stream.csv"))

@@ -16,7 +16,9 @@ and field (``model.yaml:3:5: terms[0].degree: ...``).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import json
 import numbers
 import os
 import pathlib
@@ -83,6 +85,66 @@ def _parameter(p: dict) -> Parameter:
                      [t["name"] for t in tangent], _stddevs(tangent), p.get("tangent_unit", ""))
 
 
+class _Detached:
+    """What a result keeps of its native run (a C++ object, which does not pickle) when it is
+    pickled: a process pool's worker returns a FitReport, Registration or Pairing to its parent.
+    It answers what the wrappers ask of the native run (to_dict, summary, calibration, output,
+    failure, save) from the run's document, calibration and poses, and save() refuses what the
+    native one refuses (a failed fit, an input, an existing poses.csv or a file that is not a
+    calibration)."""
+
+    def __init__(self, native, kind: str):
+        if isinstance(native, _Detached):  # pickled again
+            self.__dict__.update(native.__dict__)
+            return
+        self.kind = kind
+        self._doc = native.to_dict()
+        self.output = native.output if kind == "fit" else (
+            pathlib.Path(self._doc["output"]) if self._doc.get("output") else None)
+        if kind == "fit":
+            self._calibration = native.calibration
+            self.failure = native.failure
+            self._inputs = [str(p) for p in native.protected_paths]
+        else:
+            self._poses = _capture_from_dict(native.poses)
+            self._inputs = [str(p) for p in native.inputs]
+            self._summary = native.summary() if kind == "registration" else ""
+
+    @property
+    def calibration(self):
+        return copy.deepcopy(self._calibration)  # a copy each time, as the native run gives
+
+    def summary(self) -> str:
+        return self._summary
+
+    def to_dict(self) -> dict:
+        doc = copy.deepcopy(self._doc)
+        doc["output"] = str(self.output) if self.output is not None else None
+        return doc
+
+    def save(self, path, command_line: str = "") -> None:
+        if self.kind != "fit":
+            _core.write_poses(path, self._poses, self._inputs)
+            self.output = pathlib.Path(path)
+            return
+        if self.failure:
+            raise ValueError(self.failure)
+        out = pathlib.Path(path)
+        for given in self._inputs:  # as the native save's CheckNotAnInput
+            try:
+                same = out.exists() and os.path.samefile(out, given)
+            except OSError:
+                same = False
+            if same:
+                raise ValueError(f"{out}: output would overwrite the input {given}")
+        doc = json.loads(self._calibration.to_json())
+        doc["provenance"].pop("command_line", None)
+        if command_line:
+            doc["provenance"]["command_line"] = command_line
+        _core.Calibration.from_json(json.dumps(doc), str(out)).save(out)
+        self.output = out
+
+
 class FitReport:
     """The result of :func:`fit`.
 
@@ -133,6 +195,12 @@ class FitReport:
     def calibration(self):
         """The fitted correction chain with its calibrated volume (a ``trackcal.Calibration``)."""
         return self._native.calibration
+
+    def __getstate__(self):
+        # The native run does not pickle ("cannot pickle 'trackcal._core.NativeFitReport'
+        # object"): a process pool's fit could not be returned. Its document, calibration and
+        # what save() checks go instead.
+        return {**self.__dict__, "_native": _Detached(self._native, "fit")}
 
     @property
     def output(self) -> Optional[pathlib.Path]:
@@ -325,6 +393,9 @@ class Registration:
         """The document ``trackcal-fit register --json`` prints."""
         return self._native.to_dict()
 
+    def __getstate__(self):  # as FitReport's: the native run does not pickle
+        return {**self.__dict__, "_native": _Detached(self._native, "registration")}
+
 
 def _input_file(path, file_name: str):
     """``path``, or ``path/file_name`` when it is a folder, as ``trackcal.captures.load_*`` read a
@@ -445,6 +516,9 @@ class Pairing:
     def to_dict(self) -> dict:
         """The document ``trackcal-fit pair --json`` prints."""
         return self._native.to_dict()
+
+    def __getstate__(self):  # as FitReport's: the native run does not pickle
+        return {**self.__dict__, "_native": _Detached(self._native, "pairing")}
 
 
 def pair(tracker: PathLike, reference: PathLike, *, time_offset: float = 0.0,
