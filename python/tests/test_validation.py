@@ -324,6 +324,31 @@ def test_a_capture_of_the_wrong_shape_or_not_finite_is_refused_naming_the_field(
     assert v.tables == base.tables
 
 
+def test_a_capture_quaternion_that_is_not_unit_is_refused_naming_station_and_field(tmp_path):
+    """As poses.csv is read and trackcal.fit checks a capture: a norm within 1e-3 of 1 is
+    normalised, further it is refused. validate() normalised [0, 0, 0, 2] silently without a
+    calibration, and with one the error came from correct(), naming a row index only."""
+    import dataclasses
+    cap = captures.load_poses(hand_capture(tmp_path))
+    cal = trackcal.Calibration([trackcal.PolynomialCorrection(0, np.zeros((1, 3)), np.zeros((1, 3)))],
+                               [-2, -2, -2], [2, 2, 2])
+    for calibration in (None, cal):
+        q = cap.reference_quaternions_xyzw.copy()
+        q[2] *= 2.0
+        with pytest.raises(ValueError, match=r"^PoseCapture: station 3 \(row 2\): reference_quaternions_xyzw "
+                                             r"\[.*\] has norm 2, not 1"):
+            validation.validate(dataclasses.replace(cap, reference_quaternions_xyzw=q), calibration,
+                                analyse_covariates=False)
+        q = cap.reported_quaternions_xyzw.copy()
+        q[1] *= 1.0 + 5e-4  # within the readers' tolerance: normalised, the same tables
+        near = validation.validate(dataclasses.replace(cap, reported_quaternions_xyzw=q), calibration,
+                                   analyse_covariates=False)
+        unit = validation.validate(cap, calibration, analyse_covariates=False)
+        # 1e-9 deg: the rounding of the normalisation through an angle of a few degrees.
+        assert near.tables[0].before_orientation_deg["mean"] == pytest.approx(
+            unit.tables[0].before_orientation_deg["mean"], abs=1e-9)
+
+
 def test_residuals_of_arrays_of_the_wrong_shape_name_the_array_and_its_shape():
     """validation.residuals (the C++ error_magnitudes) said "estimated: positions must be (N, 3)
     and quaternions (N, 4) x, y, z, w" for any wrong array: not which one, nor the shape it had."""

@@ -1027,6 +1027,16 @@ def _checked_capture(capture: PoseCapture) -> PoseCapture:
             if len(bad):
                 i = bad[0]
                 raise ValueError(f"PoseCapture: station {capture.station[i]}: {name} {a[i].tolist()} is not finite")
+        if cols == 4:
+            # As poses.csv is read and trackcal.fit checks a capture: norm 1 within 1e-3 (normalised
+            # by the readers). [0, 0, 0, 2] was normalised silently without a calibration, and with
+            # one refused by correct() naming a row index, not the station or the array.
+            norm = np.linalg.norm(a, axis=1)
+            bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+            if len(bad):
+                i = bad[0]
+                raise ValueError(f"PoseCapture: station {capture.station[i]} (row {i}): {name} {a[i].tolist()} "
+                                 f"has norm {norm[i]:g}, not 1 (within 1e-3, as poses.csv)")
         fields[name] = a
     return dataclasses.replace(capture, **fields)
 
