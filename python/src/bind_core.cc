@@ -257,6 +257,20 @@ std::string CorrectionRepr(const Correction& c) {
   return s.str();
 }
 
+// A term pickles through its entry of the file's corrections array, read back by the registry
+// as a calibration file's terms are: "cannot pickle 'trackcal._core.PolynomialCorrection'
+// object" while the Calibration holding it pickled.
+template <typename T>
+std::shared_ptr<T> CorrectionFromPickle(const std::string& text) {
+  std::shared_ptr<Correction> c = CorrectionRegistry::Global().Parse(
+      nlohmann::json::parse(text), "<pickle>", "$");
+  std::shared_ptr<T> out = std::dynamic_pointer_cast<T>(c);
+  if (!out) throw py::value_error("<pickle>: the term is a '" + c->TypeName() + "'");
+  return out;
+}
+
+std::string CorrectionToPickle(const Correction& c) { return c.ToJson().dump(); }
+
 }  // namespace
 
 std::filesystem::path PathArgument(const py::handle& obj, const std::string& name) {
@@ -385,7 +399,8 @@ void BindCore(py::module_& m) {
           term_correct_doc.c_str())
       // The default repr named only the address ("<trackcal._core.PolynomialCorrection object at
       // 0x7f...>"), in cal.corrections of a notebook.
-      .def("__repr__", [](const Correction& c) { return CorrectionRepr(c); });
+      .def("__repr__", [](const Correction& c) { return CorrectionRepr(c); })
+      .def(py::pickle(&CorrectionToPickle, &CorrectionFromPickle<Correction>));
 
   py::class_<PolynomialCorrection, Correction, std::shared_ptr<PolynomialCorrection>>(
       m, "PolynomialCorrection",
@@ -410,6 +425,7 @@ void BindCore(py::module_& m) {
            py::arg("input_offset") = py::make_tuple(0.0, 0.0, 0.0),
            py::arg("input_scale") = py::make_tuple(1.0, 1.0, 1.0),
            "Coefficients are (R, 3) arrays in the canonical term order (polynomial_term_exponents).")
+      .def(py::pickle(&CorrectionToPickle, &CorrectionFromPickle<PolynomialCorrection>))
       .def_property_readonly("degree", &PolynomialCorrection::degree)
       .def_property_readonly("input_offset",
                              [](const PolynomialCorrection& p) { return ToArray(p.input_offset()); })
@@ -445,6 +461,7 @@ void BindCore(py::module_& m) {
            py::arg("x"), py::arg("y"), py::arg("z"), py::arg("position_error"),
            py::arg("orientation_error"),
            "Axes: strictly increasing node coordinates [m]; errors: (nx, ny, nz, 3) arrays.")
+      .def(py::pickle(&CorrectionToPickle, &CorrectionFromPickle<TrilinearLutCorrection>))
       .def_property_readonly("axes",
                              [](const TrilinearLutCorrection& l) {
                                py::list axes;

@@ -193,6 +193,33 @@ def test_a_calibration_pickles_and_deep_copies_to_the_same_correction():
             np.testing.assert_array_equal(a, b)
 
 
+def test_a_correction_term_pickles_to_the_same_term():
+    """cal.corrections[0] did not pickle ("cannot pickle 'trackcal._core.PolynomialCorrection'
+    object") while the Calibration holding it did; a term goes through its file entry, as the
+    calibration through its file text, and comes back of its own class."""
+    import copy
+    import pickle
+    cal = trackcal.Calibration.load(EXAMPLE)
+    positions, quats = random_poses(np.random.default_rng(9), 20)
+    for term in cal.corrections:
+        for other in (pickle.loads(pickle.dumps(term)), copy.deepcopy(term)):
+            assert type(other) is type(term) and other.to_json() == term.to_json()
+            for a, b in zip(other.correct(positions, quats), term.correct(positions, quats)):
+                np.testing.assert_array_equal(a, b)
+    # A term of a class not bound by itself (a physical one) comes back as a Correction of its type.
+    physical = {"type": "physical", "field_constant": 1.0, "fold_reach": 3.0, "max_correction_fraction": 0.5,
+                "max_iterations": 50, "max_noise_gain": 10.0, "objects": [], "planes": [],
+                "receiver_from_body": {"rotation_xyzw": [0, 0, 0, 1], "translation": [0.01, -0.02, 0.03]},
+                "receiver_gain_matrix": np.eye(3).tolist(), "tolerance_m": 1e-12,
+                "transmitter_octupole_m2": [0, 0, 0]}
+    term = trackcal.Calibration.from_json(json.dumps({**json.loads(EXAMPLE.read_text()),
+                                                      "corrections": [physical]})).corrections[0]
+    other = pickle.loads(pickle.dumps(term))
+    assert repr(other) == repr(term) == "Correction(type='physical')" and other.to_json() == term.to_json()
+    for a, b in zip(other.correct(positions, quats), term.correct(positions, quats)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_assigning_a_sensor_outside_the_file_rules_is_refused_at_once(tmp_path):
     """cal.sensor = -3 (or 65) was accepted and refused only by a later save(), naming no
     assignment; the rule is the calibration file's (0: not recorded, or 1..64)."""
