@@ -205,7 +205,8 @@ void BindCapture(py::module_& m) {
       "Reads poses.csv (core/capture.h) into a dict of arrays: station, set (list), sensor, time, "
       "reported_/reference_positions (N, 3) [m], reported_/reference_quaternions_xyzw (N, 4), "
       "extra_columns (list), extra (N, K) and extra_labels ({column: labels} for the columns that "
-      "hold labels; their values index the labels, NaN where missing). Errors: ValueError 'file:line: column c: problem'.");
+      "hold labels; their values index the labels, NaN where missing). Errors: ValueError "
+      "'file:line: column c: problem'.");
 
   m.def(
       "read_tracker_stream",
@@ -219,7 +220,8 @@ void BindCapture(py::module_& m) {
         d["sensor"] = sensor;
         return d;
       },
-      py::arg("path"), "Reads tracker_stream.csv into time, sensor, positions, quaternions_xyzw, extra.");
+      py::arg("path"),
+      "Reads tracker_stream.csv into time, sensor, positions, quaternions_xyzw, extra.");
 
   m.def(
       "read_reference_stream",
@@ -230,13 +232,14 @@ void BindCapture(py::module_& m) {
                             });
       },
       py::arg("path"),
-      "Reads reference_stream.csv (reference clock) into time, positions, quaternions_xyzw, extra.");
+      "Reads reference_stream.csv (reference clock) into time, positions, quaternions_xyzw, "
+      "extra.");
 
   m.def(
       "write_tracker_stream",
-      [](const py::handle& path_obj, const py::handle& time_obj,
-         const py::handle& sensor_obj, const py::handle& positions, const py::handle& quaternions,
-         bool overwrite, const std::vector<std::string>& extra_columns, const py::handle& extra_obj,
+      [](const py::handle& path_obj, const py::handle& time_obj, const py::handle& sensor_obj,
+         const py::handle& positions, const py::handle& quaternions, bool overwrite,
+         const std::vector<std::string>& extra_columns, const py::handle& extra_obj,
          const std::map<std::string, std::vector<std::string>>& extra_labels) {
         const std::filesystem::path path = PathArgument(path_obj, "path");
         const std::vector<Rigid3d> poses = ToPoses(positions, quaternions, "write_tracker_stream",

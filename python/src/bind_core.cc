@@ -262,8 +262,8 @@ std::string CorrectionRepr(const Correction& c) {
 // object" while the Calibration holding it pickled.
 template <typename T>
 std::shared_ptr<T> CorrectionFromPickle(const std::string& text) {
-  std::shared_ptr<Correction> c = CorrectionRegistry::Global().Parse(
-      nlohmann::json::parse(text), "<pickle>", "$");
+  std::shared_ptr<Correction> c =
+      CorrectionRegistry::Global().Parse(nlohmann::json::parse(text), "<pickle>", "$");
   std::shared_ptr<T> out = std::dynamic_pointer_cast<T>(c);
   if (!out) throw py::value_error("<pickle>: the term is a '" + c->TypeName() + "'");
   return out;
@@ -274,9 +274,8 @@ std::string CorrectionToPickle(const Correction& c) { return c.ToJson().dump(); 
 }  // namespace
 
 std::filesystem::path PathArgument(const py::handle& obj, const std::string& name) {
-  const bool path_like =
-      py::isinstance<py::str>(obj) || py::isinstance<py::bytes>(obj) ||
-      py::isinstance(obj, py::module_::import("os").attr("PathLike"));
+  const bool path_like = py::isinstance<py::str>(obj) || py::isinstance<py::bytes>(obj) ||
+                         py::isinstance(obj, py::module_::import("os").attr("PathLike"));
   if (!path_like) {
     throw py::type_error(name + " must be a path (str or os.PathLike such as pathlib.Path), got " +
                          std::string(py::str(py::type::of(obj).attr("__name__"))));
@@ -284,8 +283,7 @@ std::filesystem::path PathArgument(const py::handle& obj, const std::string& nam
   const py::object fspath = py::module_::import("os").attr("fspath")(obj);
   if (py::isinstance<py::bytes>(fspath)) {
     throw py::type_error(name + " must be a str or os.PathLike path, got bytes " +
-                         py::repr(fspath).cast<std::string>() +
-                         ": decode it with os.fsdecode()");
+                         py::repr(fspath).cast<std::string>() + ": decode it with os.fsdecode()");
   }
   return fspath.cast<std::filesystem::path>();
 }
@@ -354,14 +352,13 @@ void BindCore(py::module_& m) {
   m.def(
       "sha256_file",
       [](const py::handle& path) { return Sha256HexOfFile(PathArgument(path, "path")); },
-      py::arg("path"),
-        "Lower-case hex SHA-256 of a file (for provenance inputs).");
+      py::arg("path"), "Lower-case hex SHA-256 of a file (for provenance inputs).");
   m.def(
       "check_calibration_output",
       [](const py::handle& path) { CheckCalibrationOutput(PathArgument(path, "path")); },
       py::arg("path"),
-        "Raises ValueError unless a calibration file can be written at path: its folder exists "
-        "and an existing file there is a trackcal calibration (checked before a long fit).");
+      "Raises ValueError unless a calibration file can be written at path: its folder exists "
+      "and an existing file there is a trackcal calibration (checked before a long fit).");
 
   // pybind11 copies docstrings; these outlive the definitions anyway.
   const std::string term_correct_doc =
@@ -424,11 +421,12 @@ void BindCore(py::module_& m) {
            py::arg("degree"), py::arg("position_coefficients"), py::arg("orientation_coefficients"),
            py::arg("input_offset") = py::make_tuple(0.0, 0.0, 0.0),
            py::arg("input_scale") = py::make_tuple(1.0, 1.0, 1.0),
-           "Coefficients are (R, 3) arrays in the canonical term order (polynomial_term_exponents).")
+           "Coefficients are (R, 3) arrays in the canonical term order "
+           "(polynomial_term_exponents).")
       .def(py::pickle(&CorrectionToPickle, &CorrectionFromPickle<PolynomialCorrection>))
       .def_property_readonly("degree", &PolynomialCorrection::degree)
-      .def_property_readonly("input_offset",
-                             [](const PolynomialCorrection& p) { return ToArray(p.input_offset()); })
+      .def_property_readonly(
+          "input_offset", [](const PolynomialCorrection& p) { return ToArray(p.input_offset()); })
       .def_property_readonly("input_scale",
                              [](const PolynomialCorrection& p) { return ToArray(p.input_scale()); })
       .def_property_readonly("position_coefficients",

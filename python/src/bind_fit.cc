@@ -128,8 +128,8 @@ Eigen::Quaterniond UnitQuaternion(double x, double y, double z, double w, const 
   if (std::abs(q.norm() - 1.0) > 1e-3) {  // false for NaN: refused below as not finite
     std::ostringstream s;
     s.precision(6);
-    s << "PoseCapture: station " << station << " (row " << row << "): " << attr << " ["
-      << x << ", " << y << ", " << z << ", " << w << "] has norm " << q.norm()
+    s << "PoseCapture: station " << station << " (row " << row << "): " << attr << " [" << x << ", "
+      << y << ", " << z << ", " << w << "] has norm " << q.norm()
       << ", not 1 (within 1e-3, as poses.csv)";
     throw py::value_error(s.str());
   }
