@@ -1918,11 +1918,11 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     const auto it = std::upper_bound(block_start.begin(), block_start.end(), time);
     return std::max(0, static_cast<int>(it - block_start.begin()) - 1);
   };
-  std::vector<int> base_folds(stations.size());
-  for (size_t i = 0; i < stations.size(); ++i) {
-    base_folds[i] = serial_block.empty() ? static_cast<int>(i) % options.folds
-                                         : fold_of_block(serial_block[i]);
-  }
+  // The rule of trackcal-fit fit's cross-validation (CrossValidate), so the base's held-out table
+  // is the fit's and carries its name (at the default serial_blocks, the fit's own folds).
+  bool base_by_blocks = false;
+  const std::vector<int> base_folds =
+      CrossValidationFolds(stations, options.folds, options.serial_blocks, &base_by_blocks);
   const int threads = options.num_threads > 0
                           ? options.num_threads
                           : std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
@@ -1956,8 +1956,8 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
       reported.push_back(s.reported);
       reference.push_back(s.reference);
     }
-    d.base.table1 = MakeTable1("cross-validation (" + std::to_string(options.folds) + "-fold)",
-                               reported, base_cv.corrected, reference);
+    d.base.table1 = MakeTable1(CrossValidationTableName(options.folds, base_by_blocks), reported,
+                               base_cv.corrected, reference);
     d.base.cv_position_mm_mean = Mean(base_cv.position_mm);
     d.base.cv_orientation_deg_mean = Mean(base_cv.orientation_deg);
     d.base.seconds += base_cv_seconds;  // full fit and cross-validation

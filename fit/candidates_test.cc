@@ -747,6 +747,35 @@ TEST(DiagnoseCandidates, StreamSamplesAreTestedOverBlocksOfTime) {
   std::cout << "per sample: " << per_sample.candidates[0].reason << "\n";
 }
 
+// The base's held-out table of a stream is trackcal-fit fit's cross-validation of it: the same
+// folds (CrossValidationFolds, blocks of time) and the same name. Before, the ranking built its
+// folds itself and named the table "cross-validation (5-fold)" while the fit said "(5-fold,
+// blocks of time)" for the same held-out errors, so a user saw two names for one table. The base
+// model is linear (a polynomial), so its folds are fitted exactly (CrossValidateStations, no fast
+// refit) and the two tables agree to the solver's precision: 1e-9 mm on means of ~0.4 mm.
+TEST(DiagnoseCandidates, TheBaseTableOfAStreamIsTheFitsCrossValidation) {
+  const auto stream = WanderingStream(Eigen::Vector3d(3e-4, -2e-4, 0.0), 1);
+  auto make = [] { return ParseModelYaml(kNoPositionModel, "model.yaml"); };
+  CandidateOptions o = TestOptions();
+  o.effects = {"position_offset"};
+  o.flexible.clear();
+  for (int serial_blocks : {kDefaultSerialBlocks, 8, 0}) {
+    o.serial_blocks = serial_blocks;
+    const Diagnosis d = DiagnoseCandidates(stream, kNoPositionModel, "model.yaml", "streams", o);
+    const Table1 fit = CrossValidate(stream, make, o.folds, {}, serial_blocks);
+    EXPECT_EQ(d.base.table1.set_name, fit.set_name) << serial_blocks;
+    EXPECT_EQ(d.base.table1.set_name, serial_blocks > 0
+                                          ? "cross-validation (5-fold, blocks of time)"
+                                          : "cross-validation (5-fold)");
+    EXPECT_EQ(d.base.table1.after.position_mm.count, fit.after.position_mm.count);
+    EXPECT_NEAR(d.base.table1.after.position_mm.mean, fit.after.position_mm.mean, 1e-9)
+        << serial_blocks;
+    EXPECT_NEAR(d.base.table1.after.orientation_deg.mean, fit.after.orientation_deg.mean, 1e-9)
+        << serial_blocks;
+    EXPECT_EQ(d.ToJson()["base"]["table1"]["set"], fit.set_name);
+  }
+}
+
 // A stream too short for the paired test to reach the threshold: the diagnosis says so, and what
 // would lift the limit, rather than only "nothing significant". The real offset of
 // StreamSamplesAreTestedOverBlocksOfTime on its first 3.5 s (350 samples 10 ms apart: 6 blocks of

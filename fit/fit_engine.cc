@@ -894,6 +894,11 @@ std::vector<int> CrossValidationFolds(const std::vector<FitStation>& stations, i
   return fold_of;
 }
 
+std::string CrossValidationTableName(int folds, bool by_blocks) {
+  return "cross-validation (" + std::to_string(folds) + "-fold" +
+         (by_blocks ? ", blocks of time" : "") + ")";
+}
+
 std::string TimeOffsetMimicryNote(double variance_inflation) {
   auto fixed1 = [](double v) {
     char buf[32];
@@ -2056,7 +2061,7 @@ Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation
 
 Table1 CrossValidate(const std::vector<FitStation>& stations,
                      const std::function<ModelSpec()>& make_spec, int folds,
-                     const std::function<void(int)>& on_fold) {
+                     const std::function<void(int)>& on_fold, int serial_blocks) {
   if (folds < 2) throw std::invalid_argument("cross-validation needs at least 2 folds");
   if (static_cast<int>(stations.size()) < folds) {
     throw std::invalid_argument("cross-validation: fewer stations (" +
@@ -2069,8 +2074,7 @@ Table1 CrossValidate(const std::vector<FitStation>& stations,
   // in-sample, while a second stream of the same room was corrected to 1.46 mm; by blocks 2.33 mm,
   // docs/fit.md "Cross-validation of a stream").
   bool by_blocks = false;
-  const std::vector<int> fold_of =
-      CrossValidationFolds(stations, folds, kDefaultSerialBlocks, &by_blocks);
+  const std::vector<int> fold_of = CrossValidationFolds(stations, folds, serial_blocks, &by_blocks);
   std::vector<Rigid3d> reported, corrected, reference;
   for (int f = 0; f < folds; ++f) {
     if (on_fold) on_fold(f);
@@ -2094,9 +2098,7 @@ Table1 CrossValidate(const std::vector<FitStation>& stations,
       reference.push_back(s.reference);
     }
   }
-  return MakeTable1("cross-validation (" + std::to_string(folds) + "-fold" +
-                        (by_blocks ? ", blocks of time" : "") + ")",
-                    reported, corrected, reference);
+  return MakeTable1(CrossValidationTableName(folds, by_blocks), reported, corrected, reference);
 }
 
 namespace {

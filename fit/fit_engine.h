@@ -236,6 +236,12 @@ std::vector<int> CrossValidationFolds(const std::vector<FitStation>& stations, i
                                       int serial_blocks = kDefaultSerialBlocks,
                                       bool* by_blocks = nullptr);
 
+// The name of the held-out table of a k-fold cross-validation whose folds CrossValidationFolds
+// made: "cross-validation (5-fold)", "cross-validation (5-fold, blocks of time)" when `by_blocks`.
+// trackcal-fit fit's table (CrossValidate) and trackcal-fit diagnose's base table use it, so one
+// set of folds has one name.
+std::string CrossValidationTableName(int folds, bool by_blocks);
+
 // Fits `spec`'s terms to `stations` (the calibration set). The terms keep the fitted values. Throws
 // std::invalid_argument for too few stations or inconsistent settings.
 FitResult FitModel(const std::vector<FitStation>& stations, ModelSpec* spec,
@@ -259,16 +265,17 @@ bool EvaluateStationResidual(const ModelSpec& spec, const FitStation& station,
 Table1 EvaluateTable1(const CorrectionChain& chain, const std::vector<FitStation>& stations,
                       const std::string& set_name);
 
-// k-fold cross-validation, folds by CrossValidationFolds (deterministic): static stations i % k
-// (stations in file order), serial stations (stream samples) contiguous blocks of time b % k; each
-// fold is corrected by a model fitted on the others (made fresh by make_spec), and the errors of
-// all folds form one table "cross-validation (k-fold)", for serial stations "cross-validation
-// (k-fold, blocks of time)" (MakeTable1: hemisphere flips left out).
+// k-fold cross-validation, folds by CrossValidationFolds (deterministic; `serial_blocks` as
+// there): static stations i % k (stations in file order), serial stations (stream samples)
+// contiguous blocks of time b % k; each fold is corrected by a model fitted on the others (made
+// fresh by make_spec), and the errors of all folds form one table named by
+// CrossValidationTableName (MakeTable1: hemisphere flips left out).
 // Throws std::invalid_argument if a training set is too small, std::runtime_error naming the fold
 // if a fold's fit failed (FitResult::Failed()).
 Table1 CrossValidate(const std::vector<FitStation>& stations,
                      const std::function<ModelSpec()>& make_spec, int folds,
-                     const std::function<void(int)>& on_fold = {});
+                     const std::function<void(int)>& on_fold = {},
+                     int serial_blocks = kDefaultSerialBlocks);
 
 // Fast k-fold refits from a fit on all stations (trackcal-fit diagnose, docs/diagnose.md "Speed").
 // Each fold's model is re-estimated on the stations outside the fold, starting from the full fit's
