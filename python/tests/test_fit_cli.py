@@ -160,6 +160,28 @@ def test_fit_on_a_short_stream_says_how_it_paired_and_warns(tmp_path):
     assert "poorly identified" in r.stderr
 
 
+def test_a_receiver_without_valid_stations_is_cross_validated_beside_one_with_them(capture_dir, tmp_path):
+    # The head (sensor 1) has calib and valid stations, the hand (sensor 2) calib stations only. fit
+    # and diagnose --sensor 2 asked whether the capture had a valid set, found sensor 1's, and skipped
+    # the cross-validation: sensor 2's only table was its in-sample calib table (4 hand stations and
+    # a degree-4 polynomial: 0.000 mm, "100.0 %"), with nothing held out. Whose valid stations count
+    # is the receiver's fitted.
+    from understand_support import two_receivers, write_poses
+    mixed, _ = two_receivers(capture_dir)
+    hand_valid = (mixed.sensor == 2) & (mixed.set == "valid")
+    assert hand_valid.any() and ((mixed.sensor == 1) & (mixed.set == "valid")).any()
+    data = write_poses(tmp_path / "mixed.csv", mixed.subset(~hand_valid))
+    model = tmp_path / "model.yaml"
+    model.write_text(POLY)
+    for sensor, held_out in (("2", "cross-validation (5-fold)"), ("1", "valid")):
+        fitted = json.loads(run_cli("fit", "--data", data, "--model", model, "-o", tmp_path / f"s{sensor}.json",
+                                    "--sensor", sensor, "--json").stdout)
+        assert [t["set"] for t in fitted["tables"]] == ["calib", held_out], (sensor, fitted["tables"])
+        doc = json.loads(run_cli("diagnose", data, "--model", model, "--sensor", sensor, "--permutations", "0",
+                                 "--effects", "sensor_offset", "--folds", "2", "--json").stdout)
+        assert held_out in [t["set_name"] for t in doc["tables"]], (sensor, doc["tables"])
+
+
 def test_a_capture_of_several_receivers_is_refused_or_used_one_receiver_at_a_time(capture_dir, tmp_path):
     # A poses.csv with the head (sensor 1) and hand (sensor 2) receivers: validate and diagnose
     # corrected both with one receiver's calibration and printed one table over both, without a

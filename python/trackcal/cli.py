@@ -242,13 +242,20 @@ def _record_history(args, v) -> Optional[dict]:
                       fields=fields)
 
 
-def _has_valid_set(data) -> bool:
+def _has_valid_set(data, sensor: Optional[int] = None) -> bool:
+    """Whether the poses.csv of ``data`` has validation stations of ``sensor`` (None: of any): the
+    receiver fitted (--sensor) decides, since another receiver's valid stations do not hold its
+    calibration out (before, sensor 2's fit on a capture whose valid stations were sensor 1's got
+    neither a valid table nor a cross-validation: its only table was in-sample)."""
     p = pathlib.Path(data)
     poses = p / "poses.csv" if p.is_dir() else p
     if not poses.is_file():
         return False
     from trackcal.captures import load_poses
-    return "valid" in load_poses(poses).sets
+    capture = load_poses(poses)
+    if sensor is not None:
+        capture = capture.subset(capture.sensor == int(sensor))
+    return "valid" in capture.sets
 
 
 def _colour_table(term, t, held_out: bool) -> str:
@@ -294,7 +301,8 @@ def cmd_fit(args, term) -> int:
     markers = _markers_capture(args.data, args.sensor)
     data = markers if markers is not None else args.data
     folds = args.folds if args.folds is not None else (
-        (0 if "valid" in markers.sets else 5) if markers is not None else (0 if _has_valid_set(args.data) else 5))
+        (0 if "valid" in markers.sets else 5) if markers is not None else
+        (0 if _has_valid_set(args.data, args.sensor) else 5))
     report = trackcal.fit(data, args.model, folds=folds, progress=term.stage_progress(),
                           sensor=args.sensor)
     if report.pairing_warning:  # on stderr, so --json stays one document
@@ -396,7 +404,8 @@ def _diagnosis(args, term):
         # gives the held-out table, as `trackcal fit` does (unless --cross-validate asks for one).
         # Not on streams: the ranking's held-out errors, over the same blocks of time as the fit's
         # cross-validation of a stream (docs/fit.md), stand.
-        has_valid = "valid" in registered[0].sets if registered else _has_valid_set(args.capture)
+        has_valid = ("valid" in registered[0].sets if registered
+                     else _has_valid_set(args.capture, args.sensor))
         streams = not registered and captures.capture_kind(args.capture) == "streams"
         held_out = 0 if getattr(args, "cross_validate", 0) or has_valid or streams else 5
         fit_report = trackcal.fit(data, model, folds=held_out, progress=term.stage_progress(),
