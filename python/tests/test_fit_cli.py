@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 import trackcal
@@ -179,7 +180,13 @@ def test_a_receiver_without_valid_stations_is_cross_validated_beside_one_with_th
         assert [t["set"] for t in fitted["tables"]] == ["calib", held_out], (sensor, fitted["tables"])
         doc = json.loads(run_cli("diagnose", data, "--model", model, "--sensor", sensor, "--permutations", "0",
                                  "--effects", "sensor_offset", "--folds", "2", "--json").stdout)
-        assert held_out in [t["set_name"] for t in doc["tables"]], (sensor, doc["tables"])
+        assert held_out.replace("5-fold", "2-fold") in [t["set_name"] for t in doc["tables"]], (sensor, doc["tables"])
+    # A receiver of 4 stations: --folds 2 reaches the ranking's own refusal (it said "give fewer
+    # folds" after --folds 2, as the fit's cross-validation here kept 5 folds).
+    hand = np.flatnonzero((mixed.sensor == 2) & (mixed.set == "calib"))[:4]
+    few = write_poses(tmp_path / "few.csv", mixed.subset((mixed.sensor == 1) | np.isin(np.arange(len(mixed)), hand)))
+    r = run_cli("diagnose", few, "--model", model, "--sensor", "2", "--permutations", "0", "--folds", "2", check=False)
+    assert r.returncode == 2 and "needs at least 12 calibration stations, got 4" in r.stderr, r.stderr
 
 
 def test_a_capture_of_several_receivers_is_refused_or_used_one_receiver_at_a_time(capture_dir, tmp_path):

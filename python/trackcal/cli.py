@@ -407,7 +407,9 @@ def _diagnosis(args, term):
         has_valid = ("valid" in registered[0].sets if registered
                      else _has_valid_set(args.capture, args.sensor))
         streams = not registered and captures.capture_kind(args.capture) == "streams"
-        held_out = 0 if getattr(args, "cross_validate", 0) or has_valid or streams else 5
+        # On the ranking's folds (--folds): a receiver of 4 stations said "give fewer folds" when
+        # --folds 2 had been given, since this cross-validation kept 5.
+        held_out = 0 if getattr(args, "cross_validate", 0) or has_valid or streams else (args.folds or 5)
         fit_report = trackcal.fit(data, model, folds=held_out, progress=term.stage_progress(),
                                   sensor=args.sensor)
     if registered:
