@@ -242,7 +242,9 @@ const CalibratedVolume& Calibration::volume() const {
   return *chain.volume();
 }
 
-Calibration ParseCalibrationJson(const std::string& text, const std::string& source_name) {
+namespace {
+
+Calibration ParseCalibrationJsonAtPaths(const std::string& text, const std::string& source_name) {
   nlohmann::json doc;
   try {
     doc = ParseJsonText(text, source_name);
@@ -330,6 +332,14 @@ Calibration ParseCalibrationJson(const std::string& text, const std::string& sou
   cal.provenance = ParseProvenance(root.Object("provenance"));
   root.CheckNoUnknownKeys();
   return cal;
+}
+
+}  // namespace
+
+Calibration ParseCalibrationJson(const std::string& text, const std::string& source_name) {
+  // A JSON path alone ("$.corrections[1].position_error[417][2]") made a hand editor count
+  // entries; the line and column take an editor there, as for a syntax error.
+  return LocateJsonErrors(text, [&] { return ParseCalibrationJsonAtPaths(text, source_name); });
 }
 
 Calibration ReadCalibrationFile(const std::filesystem::path& path) {

@@ -5,8 +5,10 @@
 #include <algorithm>
 #include <fstream>
 #include <functional>
+#include <regex>
 
 #include "core/file_util.h"
+#include "core/json_reader.h"
 #include "core/lut.h"
 #include "core/polynomial.h"
 #include "core/printable_text.h"
@@ -23,6 +25,17 @@ std::filesystem::path ExamplePath() {
 
 nlohmann::json ExampleJson() { return nlohmann::json::parse(ReadFileToString(ExamplePath())); }
 
+// An error at a JSON path without its line and column ("calib.json:1:1913: $.format: ..." ->
+// "calib.json: $.format: ..."): the tests of what each error says edit one-line dumps, where the
+// column is a byte count no reader checks by eye. The locations have their own tests
+// (ParseCalibrationJson.ErrorsNameLineAndColumn); syntax errors ("calib.json:27:18: invalid
+// JSON: ...") are left as they are.
+std::string WithoutPathLocation(const std::string& error) {
+  static const std::regex located(R"(^calib\.json:[0-9]+:[0-9]+: \$)");
+  return std::regex_replace(error, located, "calib.json: $$",
+                            std::regex_constants::format_first_only);
+}
+
 // Parses the example after `edit` and returns the error message ("" if it parsed).
 std::string ErrorAfterEdit(const std::function<void(nlohmann::json&)>& edit) {
   nlohmann::json j = ExampleJson();
@@ -30,12 +43,29 @@ std::string ErrorAfterEdit(const std::function<void(nlohmann::json&)>& edit) {
   try {
     ParseCalibrationJson(j.dump(), "calib.json");
   } catch (const JsonInputError& e) {
-    return e.what();
+    return WithoutPathLocation(e.what());
   }
   return "";
 }
 
 std::string ErrorForText(const std::string& text) {
+  try {
+    ParseCalibrationJson(text, "calib.json");
+  } catch (const JsonInputError& e) {
+    return WithoutPathLocation(e.what());
+  }
+  return "";
+}
+
+// The error for the example's text with `from` (which must occur once) replaced by `to`, as a
+// hand edit makes it: the file keeps its lines.
+std::string ErrorForExampleEdit(const std::string& from, const std::string& to) {
+  std::string text = ReadFileToString(ExamplePath());
+  const size_t at = text.find(from);
+  EXPECT_NE(at, std::string::npos) << from;
+  EXPECT_EQ(text.find(from, at + 1), std::string::npos) << from;
+  if (at == std::string::npos) return "";
+  text.replace(at, from.size(), to);
   try {
     ParseCalibrationJson(text, "calib.json");
   } catch (const JsonInputError& e) {
@@ -375,6 +405,66 @@ TEST(ParseCalibrationJson, RejectsDeepNesting) {
         for (int i = 0; i < 62; ++i) levels += "[0]";
         return levels;
       }() + ": nested more than 64 levels deep");
+}
+
+TEST(ParseCalibrationJson, ErrorsNameLineAndColumn) {
+  // A hand editor of a file with a LUT of thousands of entries needs the line, not only the JSON
+  // path: every error at a path names the line and column of its key (an object's field) or value
+  // (an array entry) in the example's text, as syntax errors and the model file's errors do.
+  // A misspelt field: at its key (line 16 of the example: `    "fade_distance": 0.15`).
+  EXPECT_EQ(
+      ErrorForExampleEdit("\"fade_distance\": 0.15", "\"fade_distance\": 0.15, \"outisde\": 1"),
+      "calib.json:16:28: $.calibrated_volume.outisde: unknown field");
+  // A wrong type, deep in the chain: the entry's line (27, the second coefficient row).
+  EXPECT_EQ(ErrorForExampleEdit("[0.0102, 0.0007, -0.0011]", "[0.0102, \"0.0007\", -0.0011]"),
+            "calib.json:27:18: $.corrections[0].position_coefficients[1][1]: expected a number, "
+            "got string \"0.0007\"");
+  // A non-monotonic LUT axis: at the offending value.
+  EXPECT_EQ(ErrorForExampleEdit("\"z\": [-0.1, 0.2, 0.7]", "\"z\": [-0.1, 0.7, 0.2]"),
+            "calib.json:56:26: $.corrections[1].axes.z[2]: axis values must be strictly "
+            "increasing: 0.2 at index 2 follows 0.7");
+  // A missing field: at the object that lacks it (the `{` of the first correction).
+  EXPECT_EQ(ErrorForExampleEdit("\"term_order\": \"graded_x_y_z\",", ""),
+            "calib.json:19:5: $.corrections[0].term_order: missing required field");
+  // A future version.
+  EXPECT_EQ(ErrorForExampleEdit("\"version\": 1", "\"version\": 2"),
+            "calib.json:3:3: $.version: unsupported version 2; this reader supports version 1");
+  // A key given twice: at the second one.
+  EXPECT_EQ(ErrorForExampleEdit("\"role\": \"model_file\"",
+                                "\"role\": \"model_file\",\n        \"role\": \"capture\""),
+            "calib.json:108:9: $.provenance.inputs[0].role: given twice (a key may appear once per "
+            "object)");
+  // CRLF line ends (a file edited on Windows) count the same lines.
+  std::string crlf;
+  for (const char c : ReadFileToString(ExamplePath())) {
+    if (c == '\n') crlf += '\r';
+    crlf += c;
+  }
+  crlf.replace(crlf.find("\"version\": 1"), 12, "\"version\": 2");
+  EXPECT_EQ(ErrorForText(crlf).rfind("calib.json: $.version: unsupported version 2", 0), 0u);
+  try {
+    ParseCalibrationJson(crlf, "calib.json");
+  } catch (const JsonInputError& e) {
+    EXPECT_EQ(std::string(e.what()).rfind("calib.json:3:3: $.version: ", 0), 0u) << e.what();
+  }
+}
+
+TEST(LocateJsonPath, FindsKeysPastStringsEscapesAndBom) {
+  const auto at = [](const std::string& text, const std::string& path) {
+    const std::optional<JsonTextPosition> p = LocateJsonPath(text, path);
+    return p ? std::to_string(p->line) + ":" + std::to_string(p->column) : std::string("none");
+  };
+  // Brackets, braces and quotes inside strings are skipped; a key is matched decoded.
+  const std::string text = "{\"a\": \"{[\\\"]}\", \"b\\u002ec\": [1, {\"d\": 2}],\n \"e\": {}}";
+  EXPECT_EQ(at(text, "$.b.c[1].d"), "1:34");
+  EXPECT_EQ(at(text, "$.b.c[1]"), "1:33");
+  EXPECT_EQ(at(text, "$.e.missing"), "2:2");  // the deepest part that exists: "e"
+  EXPECT_EQ(at(text, "$.a"), "1:2");
+  EXPECT_EQ(at(text, "$"), "1:1");
+  EXPECT_EQ(at("\xEF\xBB\xBF{\"a\": 1}", "$.a"), "1:5");  // bytes, the BOM's three included
+  EXPECT_EQ(at("{\"a\": 1, \"a\": 2}", "$.a"), "1:10");   // a key given twice: the last
+  EXPECT_EQ(at("", "$.a"), "none");
+  EXPECT_EQ(at("{\"a\": [1, 2", "$.a[5]"), "1:2");  // text that ends early: what was found
 }
 
 TEST(ParseCalibrationJson, RejectsAKeyGivenTwice) {

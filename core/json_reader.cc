@@ -83,7 +83,155 @@ std::string WithoutParserPrefix(std::string what) {
   return what;
 }
 
+// A scanner for LocateJsonPath: it walks only the containers on the way to the target path and
+// skips everything else, so a large LUT costs one pass over the text. It trusts nothing: on text
+// that is not JSON (a parse stopped early by a key given twice) it stops and keeps what it found.
+class PathLocator {
+ public:
+  PathLocator(const std::string& text, const std::string& target) : text_(text), target_(target) {}
+
+  std::optional<size_t> Locate() {
+    pos_ = text_.rfind("\xEF\xBB\xBF", 0) == 0 ? 3 : 0;  // the parser skips a UTF-8 BOM too
+    SkipSpace();
+    if (pos_ >= text_.size()) return std::nullopt;
+    best_ = pos_;
+    Descend("$", 0);
+    return best_;
+  }
+
+ private:
+  // True if `path` is `target_` or the start of it up to a segment boundary.
+  bool OnTheWay(const std::string& path) const {
+    return target_.compare(0, path.size(), path) == 0 &&
+           (target_.size() == path.size() || target_[path.size()] == '.' ||
+            target_[path.size()] == '[');
+  }
+
+  void SkipSpace() {
+    while (pos_ < text_.size() && (text_[pos_] == ' ' || text_[pos_] == '\t' ||
+                                   text_[pos_] == '\n' || text_[pos_] == '\r')) {
+      ++pos_;
+    }
+  }
+
+  // Moves past the string token at pos_ (the opening quote); false if there is none.
+  bool SkipString() {
+    if (pos_ >= text_.size() || text_[pos_] != '"') return false;
+    for (++pos_; pos_ < text_.size(); ++pos_) {
+      if (text_[pos_] == '\\') {
+        ++pos_;
+      } else if (text_[pos_] == '"') {
+        ++pos_;
+        return true;
+      }
+    }
+    return false;
+  }
+
+  // The string token at pos_, decoded (a key may hold escapes); nullopt if it is not one.
+  std::optional<std::string> ReadString() {
+    const size_t start = pos_;
+    if (!SkipString()) return std::nullopt;
+    try {
+      return nlohmann::json::parse(text_.substr(start, pos_ - start)).get<std::string>();
+    } catch (const nlohmann::json::exception&) {
+      return std::nullopt;
+    }
+  }
+
+  // Skips the value at pos_; false if the text ends or is not JSON there.
+  bool SkipValue() {
+    if (pos_ >= text_.size()) return false;
+    if (text_[pos_] == '"') return SkipString();
+    if (text_[pos_] != '{' && text_[pos_] != '[') {
+      while (pos_ < text_.size() &&
+             std::string_view(",]} \t\r\n").find(text_[pos_]) == std::string_view::npos) {
+        ++pos_;
+      }
+      return true;
+    }
+    size_t depth = 0;
+    while (pos_ < text_.size()) {
+      const char c = text_[pos_];
+      if (c == '"') {
+        if (!SkipString()) return false;
+        continue;
+      }
+      ++pos_;
+      if (c == '{' || c == '[') {
+        ++depth;
+      } else if ((c == '}' || c == ']') && --depth == 0) {
+        return true;
+      }
+    }
+    return false;
+  }
+
+  // At the value (pos_) of the element at `path`, which is on the way: looks inside it.
+  void Descend(const std::string& path, size_t depth) {
+    if (path.size() >= target_.size() || depth > kMaxJsonDepth) return;
+    const bool object = text_[pos_] == '{';
+    if (!object && text_[pos_] != '[') return;
+    ++pos_;
+    for (size_t index = 0;; ++index) {
+      SkipSpace();
+      if (pos_ >= text_.size() || text_[pos_] == '}' || text_[pos_] == ']') return;
+      const size_t element_start = pos_;
+      std::string child;
+      if (object) {
+        const std::optional<std::string> key = ReadString();
+        if (!key) return;
+        SkipSpace();
+        if (pos_ >= text_.size() || text_[pos_] != ':') return;
+        ++pos_;
+        SkipSpace();
+        child = JsonKeyPath(path, *key);
+      } else {
+        child = JsonIndexPath(path, index);
+      }
+      if (pos_ >= text_.size()) return;
+      if (OnTheWay(child)) {
+        best_ = element_start;
+        const size_t value_start = pos_;
+        Descend(child, depth + 1);
+        // Of a key given twice, the last: keep looking in this object (the reader fails at the
+        // second occurrence, and a document without repeats has only one).
+        pos_ = value_start;
+        if (!object) return;
+      }
+      if (!SkipValue()) return;
+      SkipSpace();
+      if (pos_ >= text_.size() || text_[pos_] != ',') return;
+      ++pos_;
+    }
+  }
+
+  const std::string& text_;
+  const std::string& target_;
+  size_t pos_ = 0;
+  size_t best_ = 0;
+};
+
 }  // namespace
+
+JsonInputError::JsonInputError(const std::string& source, const std::string& json_path,
+                               const std::string& problem)
+    : std::invalid_argument(source + ": " + json_path + ": " + problem),
+      source_(source),
+      json_path_(json_path),
+      problem_(problem) {}
+
+std::optional<JsonTextPosition> LocateJsonPath(const std::string& text,
+                                               const std::string& json_path) {
+  if (json_path.rfind('$', 0) != 0) return std::nullopt;
+  const std::optional<size_t> offset = PathLocator(text, json_path).Locate();
+  if (!offset) return std::nullopt;
+  const size_t line_start = text.rfind('\n', *offset == 0 ? 0 : *offset - 1);
+  JsonTextPosition at;
+  at.line = 1 + static_cast<size_t>(std::count(text.begin(), text.begin() + *offset, '\n'));
+  at.column = line_start == std::string::npos || *offset == 0 ? *offset + 1 : *offset - line_start;
+  return at;
+}
 
 nlohmann::json ParseJsonText(const std::string& text, const std::string& source_name) {
   // nlohmann keeps the last of two values of a key: a key given twice (a hand edit that added a
@@ -195,7 +343,7 @@ std::string JsonKeyPath(const std::string& path, const std::string& key) {
 
 void ThrowJsonError(const std::string& source, const std::string& path,
                     const std::string& message) {
-  throw JsonInputError(source + ": " + path + ": " + message);
+  throw JsonInputError(source, path, message);
 }
 
 std::string JsonSnippet(const nlohmann::json& value) {

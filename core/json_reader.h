@@ -5,7 +5,9 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cstddef>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <set>
 #include <stdexcept>
 #include <string>
@@ -17,6 +19,20 @@ namespace trackcal {
 class JsonInputError : public std::invalid_argument {
  public:
   using std::invalid_argument::invalid_argument;
+  // An error at a JSON path (ThrowJsonError): "<source>: <json_path>: <problem>", with its parts
+  // kept so that a reader holding the text can say where the path is (LocateJsonErrors).
+  JsonInputError(const std::string& source, const std::string& json_path,
+                 const std::string& problem);
+
+  // Empty for an error that is not at a JSON path (a syntax error, which has its line already).
+  const std::string& source() const { return source_; }
+  const std::string& json_path() const { return json_path_; }
+  const std::string& problem() const { return problem_; }
+
+ private:
+  std::string source_;
+  std::string json_path_;
+  std::string problem_;
 };
 
 // Parses JSON text; a syntax error names the source, line and column. NaN/Infinity literals are
@@ -24,6 +40,24 @@ class JsonInputError : public std::invalid_argument {
 // one object is an error naming its JSON path (the parser alone would keep the last value), and so
 // is nesting deeper than 64 objects and arrays (the recursive checks would exhaust the stack).
 nlohmann::json ParseJsonText(const std::string& text, const std::string& source_name);
+
+// Where the element at `json_path` (as the readers write paths: "$.corrections[1].axes.z[2]") is
+// in `text`: 1-based line and byte column of its key for an object member, of its value for an
+// array element or the root. For a path that does not exist (a missing field) the deepest element
+// of it that does; of a key given twice, its last occurrence. nullopt if nothing of the path is
+// found (text that is not JSON).
+struct JsonTextPosition {
+  size_t line = 0;
+  size_t column = 0;
+};
+std::optional<JsonTextPosition> LocateJsonPath(const std::string& text,
+                                               const std::string& json_path);
+
+// Runs `read` (which parses `text`); a JsonInputError at a JSON path is rethrown with the path's
+// line and column: "<source>:<line>:<column>: <json_path>: <problem>", as a syntax error and the
+// model file's errors are, so that a hand editor can jump to it.
+template <typename Read>
+auto LocateJsonErrors(const std::string& text, Read&& read) -> decltype(read());
 
 // "$.a.b" + "[3]" style path helpers.
 std::string JsonIndexPath(const std::string& path, size_t index);
@@ -82,5 +116,18 @@ class JsonObjectReader {
   std::string path_;
   mutable std::set<std::string> read_keys_;
 };
+
+template <typename Read>
+auto LocateJsonErrors(const std::string& text, Read&& read) -> decltype(read()) {
+  try {
+    return read();
+  } catch (const JsonInputError& e) {
+    if (e.json_path().empty()) throw;
+    const std::optional<JsonTextPosition> at = LocateJsonPath(text, e.json_path());
+    if (!at) throw;
+    throw JsonInputError(e.source() + ":" + std::to_string(at->line) + ":" +
+                         std::to_string(at->column) + ": " + e.json_path() + ": " + e.problem());
+  }
+}
 
 }  // namespace trackcal
