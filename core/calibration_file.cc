@@ -434,6 +434,15 @@ void CheckCalibrationOutput(const std::filesystem::path& path) {
   if (std::filesystem::is_directory(path, ec)) {
     throw std::invalid_argument(path.string() + ": is a folder; give a file name");
   }
+  // A calibration made read-only (chmod a-w, to keep it) was replaced all the same: a rename needs
+  // only the folder to be writable. Decided on the mode, not access(), which lets root write all.
+  const std::filesystem::perms perms = std::filesystem::status(path, ec).permissions();
+  if (!ec && (perms & (std::filesystem::perms::owner_write | std::filesystem::perms::group_write |
+                       std::filesystem::perms::others_write)) == std::filesystem::perms::none) {
+    throw std::invalid_argument(path.string() +
+                                ": is read-only; refusing to replace it (make it writable to "
+                                "replace it, or write the calibration to another file)");
+  }
   bool is_calibration = false;
   try {
     const nlohmann::json existing = nlohmann::json::parse(ReadFileToString(path));

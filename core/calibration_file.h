@@ -80,7 +80,9 @@ void WriteCalibrationFile(const std::filesystem::path& path, const Calibration& 
 
 // The checks WriteCalibrationFile can make before the calibration exists, for tools to call before
 // a long fit (so a bad -o fails in a second, not after the fit): the folder exists, and an existing
-// file at `path` is a trackcal calibration file. Throws std::invalid_argument naming the path.
+// file at `path` is a trackcal calibration file that is not read-only (no write permission for
+// anyone: a file kept on purpose). Throws std::invalid_argument naming the path. A file replaced
+// keeps its mode (WriteFileAtomically).
 void CheckCalibrationOutput(const std::filesystem::path& path);
 
 // Reads a "provenance" object (as in the file) with errors naming `source` and `path`.

@@ -1,6 +1,7 @@
 #include "core/calibration_file.h"
 
 #include <gtest/gtest.h>
+#include <sys/stat.h>
 
 #include <algorithm>
 #include <fstream>
@@ -636,6 +637,39 @@ TEST(WriteCalibrationFile, NeverOverwritesAnInput) {
   cal.description = "second";
   WriteCalibrationFile(out, cal);
   EXPECT_EQ(ReadCalibrationFile(out).description, "second");
+}
+
+// A calibration kept on purpose (chmod a-w) was replaced by the next fit written over it: a
+// rename needs only the folder to be writable, whoever runs it. And a file replaced had the
+// umask's mode, not its own.
+TEST(WriteCalibrationFile, RefusesAReadOnlyFileAndKeepsTheModeOfOneItReplaces) {
+  const auto dir = testing::MakeTempDir("calib");
+  Calibration cal = RandomCalibration();
+  const auto kept = dir / "kept.json";
+  WriteCalibrationFile(kept, cal);
+  const std::string before = ReadFileToString(kept);
+  ASSERT_EQ(::chmod(kept.c_str(), 0444), 0);
+  cal.description = "second";
+  try {
+    WriteCalibrationFile(kept, cal);
+    ADD_FAILURE() << "a read-only calibration was replaced";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_EQ(std::string(e.what()),
+              kept.string() +
+                  ": is read-only; refusing to replace it (make it writable to "
+                  "replace it, or write the calibration to another file)");
+  }
+  EXPECT_THROW(CheckCalibrationOutput(kept), std::invalid_argument);  // before a long fit
+  EXPECT_TRUE(ReadFileToString(kept) == before) << "the read-only file changed";
+  // Writable by its group only (0460): not read-only.
+  const auto shared = dir / "shared.json";
+  WriteCalibrationFile(shared, cal);
+  for (const std::filesystem::perms mode :
+       {std::filesystem::perms(0664), std::filesystem::perms(0460)}) {
+    std::filesystem::permissions(shared, mode);
+    WriteCalibrationFile(shared, cal);
+    EXPECT_EQ(std::filesystem::status(shared).permissions(), mode);
+  }
 }
 
 // A folder as the output said "read error: Is a directory" (the inputs' SHA-256 check read it)

@@ -118,6 +118,11 @@ void WriteFileAtomically(const std::filesystem::path& path, std::string_view con
   }
   const std::filesystem::path dir =
       path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
+  // A file replaced keeps its mode and group: a lab's group-writable 0664 calibration became 0644
+  // (the umask's), and a colleague could no longer refit it.
+  struct stat replaced {};
+  const bool replacing =
+      overwrite && ::stat(path.c_str(), &replaced) == 0 && S_ISREG(replaced.st_mode);
   std::string temp;
   const int fd = CreateTemporaryFileBeside(path, &temp);
   if (fd < 0) {
@@ -133,6 +138,16 @@ void WriteFileAtomically(const std::filesystem::path& path, std::string_view con
       throw std::runtime_error(path.string() + ": write failed: " + ErrnoText());
     }
     written += static_cast<size_t>(n);
+  }
+  if (replacing) {
+    // The group first: it fails unless the writer is in that group (or root), and the writer's
+    // group then stays, as for a new file. Then the mode, which fchown may have cleared bits of.
+    // A mode that cannot be set is an error: the file would be more open than the user's.
+    [[maybe_unused]] const int group_kept = ::fchown(fd, static_cast<uid_t>(-1), replaced.st_gid);
+    if (::fchmod(fd, replaced.st_mode & 07777) != 0) {
+      throw std::runtime_error(path.string() + ": cannot give the new file the mode of the one " +
+                               "it replaces: " + ErrnoText());
+    }
   }
   if (::fsync(fd) != 0) throw std::runtime_error(path.string() + ": fsync failed: " + ErrnoText());
   if (::close(guard.ReleaseFd()) != 0) {

@@ -19,11 +19,12 @@ std::string ReadFileToString(const std::filesystem::path& path);
 // Writes `contents` to `path` atomically: a temporary file in the same directory is written and
 // fsync'ed, then renamed over `path` (overwrite) or hard-linked to it (no overwrite: link() fails
 // if `path` exists, even if it appeared meanwhile, so nothing is ever replaced), then the directory
-// is fsync'ed. Readers see either the old or the new file. The new file gets mode 0666 minus the
-// umask. Throws std::runtime_error naming the path and the cause on failure (the temporary file is
-// removed); without overwrite, "<path>: exists; refusing to overwrite it" for an existing file, and
-// a message saying so on a file system without hard links (FAT): no fallback could guarantee that
-// nothing is replaced.
+// is fsync'ed. Readers see either the old or the new file. A new file gets mode 0666 minus the
+// umask; a regular file replaced (overwrite) passes its mode, and its group where the writer may
+// set it, to the new one. Throws std::runtime_error naming the path and the cause on failure (the
+// temporary file is removed); without overwrite, "<path>: exists; refusing to overwrite it" for an
+// existing file, and a message saying so on a file system without hard links (FAT): no fallback
+// could guarantee that nothing is replaced.
 void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents,
                          bool overwrite = true);
 

@@ -197,6 +197,34 @@ TEST(WriteFileAtomically, WithoutOverwriteNeverReplacesAndLeavesNoTemporary) {
   EXPECT_EQ(st.st_mode & 0777, 0666 & ~mask);
 }
 
+TEST(WriteFileAtomically, ReplacingKeepsTheModeAndGroup) {
+  // A rename puts a new file in place: it had the umask's mode (0644 under 022) whatever the file
+  // it replaced had, so a group-writable calibration a lab shares (0664) or a private one (0600)
+  // changed on every refit.
+  const auto dir = testing::MakeTempDir("atomic_mode");
+  const auto path = dir / "calib.json";
+  const mode_t old_mask = ::umask(022);
+  for (const mode_t mode : {mode_t{0664}, mode_t{0600}, mode_t{0640}}) {
+    WriteFileAtomically(path, "first");
+    ASSERT_EQ(::chmod(path.c_str(), mode), 0);
+    WriteFileAtomically(path, "second");
+    EXPECT_EQ(ReadFileToString(path), "second");
+    struct stat st;
+    ASSERT_EQ(::stat(path.c_str(), &st), 0);
+    EXPECT_EQ(st.st_mode & 07777, mode);
+  }
+  ::umask(old_mask);
+  // The group, where the writer may set it (root may set any).
+  if (::geteuid() == 0) {
+    ASSERT_EQ(::chown(path.c_str(), static_cast<uid_t>(-1), 4242), 0);
+    WriteFileAtomically(path, "third");
+    struct stat st;
+    ASSERT_EQ(::stat(path.c_str(), &st), 0);
+    EXPECT_EQ(st.st_gid, 4242u);
+    EXPECT_EQ(st.st_mode & 07777, 0640u);
+  }
+}
+
 TEST(WriteFileAtomically, MissingDirectoryThrowsNamingPath) {
   const auto dir = testing::MakeTempDir("atomic");
   const auto path = dir / "no" / "such" / "out.txt";

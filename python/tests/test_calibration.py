@@ -397,6 +397,27 @@ def test_build_save_load_round_trip(tmp_path):
     assert capture.read_text() == "t,x\n0,1\n"
 
 
+def test_save_refuses_a_read_only_file_and_keeps_the_mode_of_one_it_replaces(tmp_path):
+    """A calibration kept with chmod a-w was replaced by the next save over it (a rename needs only
+    the folder to be writable), and a file replaced got the umask's mode (0664 became 0644)."""
+    cal = trackcal.Calibration.load(EXAMPLE)
+    kept = tmp_path / "kept.json"
+    cal.save(kept)
+    before = kept.read_bytes()
+    kept.chmod(0o444)
+    with pytest.raises(ValueError, match=r"kept\.json: is read-only; refusing to replace it"):
+        cal.save(kept)
+    assert kept.read_bytes() == before
+    with pytest.raises(ValueError, match="is read-only"):
+        trackcal._core.check_calibration_output(kept)  # what trackcal fit -o checks before fitting
+    shared = tmp_path / "shared.json"
+    cal.save(shared)
+    for mode in (0o664, 0o600):
+        shared.chmod(mode)
+        cal.save(shared)
+        assert shared.stat().st_mode & 0o7777 == mode
+
+
 def test_constructor_errors():
     poly = trackcal.PolynomialCorrection(0, np.zeros((1, 3)), np.zeros((1, 3)))
     with pytest.raises(ValueError, match="empty volume"):
