@@ -529,7 +529,9 @@ TEST(DiagnoseCandidatesPaperSmall, FarMonitorsAreNotClaimedAsAPlane) {
   EXPECT_EQ(d.verdict_effect.value_or("none"), "background_field") << d.verdict_text;
   const Candidate* plane = nullptr;
   for (const Candidate& c : d.candidates) {
-    if (c.effect != "background_field") EXPECT_FALSE(c.significant) << c.effect << ": " << c.reason;
+    if (c.effect != "background_field") {
+      EXPECT_FALSE(c.significant) << c.effect << ": " << c.reason;
+    }
     if (c.effect == "plane" && c.replaces.empty()) plane = &c;  // the addition, not a swap
   }
   ASSERT_NE(plane, nullptr);

@@ -761,7 +761,7 @@ TEST_F(FitCliTest, SeveralReceiversAreRefusedOrFittedOneAtATime) {
   const std::string model = " --model " + (dir_ / "model.yaml").string();
   const std::string mixed_data = " --data " + (dir_ / "mixed.csv").string();
   std::ofstream(dir_ / "settings.yaml") << "noise:\n  position_mm: 1\n";
-  for (const std::string command :
+  for (const std::string& command :
        {fit_ + " fit" + mixed_data + model + " -o " + (dir_ / "m.json").string(),
         fit_ + " build" + mixed_data + " --model " + (dir_ / "settings.yaml").string() + " -o " +
             (dir_ / "b.json").string(),

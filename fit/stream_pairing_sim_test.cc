@@ -21,6 +21,13 @@
 namespace trackcal::fit {
 namespace {
 
+// The FitData of a capture folder (every other field at its default).
+FitData FolderData(const std::filesystem::path& folder) {
+  FitData data;
+  data.path = folder;
+  return data;
+}
+
 sim::SimulatedCapture Streams(uint64_t seed, const std::vector<std::string>& hidden) {
   sim::Scene scene = sim::LoadScene("paper");
   scene.seed = seed;
@@ -300,7 +307,8 @@ TEST(TimeOffsetInTheFit, Nominal_SandwichOverTimeRunsCoversTheOffsetOverSeeds) {
     double z[2] = {0, 0};
     for (int k = 0; k < 2; ++k) {
       const std::string text = yaml + (k == 0 ? "" : "solver: {stream_clusters: 0}\n");
-      const LoadedFitData data = LoadFitData({folder}, ParseModelYaml(text, "model.yaml"));
+      const LoadedFitData data =
+          LoadFitData(FolderData(folder), ParseModelYaml(text, "model.yaml"));
       const FitRunResult run = RunFit(data, {text, "model.yaml", std::nullopt});
       ASSERT_TRUE(run.result.converged) << run.result.solver_message;
       const ParameterReport& dt = run.result.parameters.back();
@@ -342,7 +350,7 @@ TEST(TimeOffsetInTheFit, APolynomialThatMimicsATimeShiftIsFlagged) {
   auto fit = [&](int degree) {
     const std::string text = "time_offset: {value: 0, fixed: false}\nterms:\n  - type: polynomial\n"
                              "    degree: " + std::to_string(degree) + "\n";
-    const LoadedFitData data = LoadFitData({folder}, ParseModelYaml(text, "model.yaml"));
+    const LoadedFitData data = LoadFitData(FolderData(folder), ParseModelYaml(text, "model.yaml"));
     return RunFit(data, {text, "model.yaml", std::nullopt}).result;
   };
   auto flagged = [](const FitResult& r) {
@@ -367,7 +375,7 @@ TEST(TimeOffsetInTheFit, APolynomialThatMimicsATimeShiftIsFlagged) {
     const std::string text = "terms:\n  - type: polynomial\n    degree: " +
                              std::to_string(degree) + "\n";
     const ModelSpec spec = ParseModelYaml(text, "model.yaml");
-    const LoadedFitData data = LoadFitData({folder, std::nullopt, std::nullopt}, spec);
+    const LoadedFitData data = LoadFitData(FolderData(folder), spec);
     CandidateOptions options;
     options.effects = {"time_offset"};
     options.num_threads = 1;
@@ -399,7 +407,7 @@ TEST(TimeOffsetInTheFit, DiagnosisPairsAtTheFittedOffset) {
       "time_offset: {value: 0, fixed: false}\nterms:\n  - type: polynomial\n    degree: 3\n";
   const FitModelSource model{text, "model.yaml", std::nullopt};
   const ModelSpec spec = ParseModelYaml(text, "model.yaml");
-  const LoadedFitData searched = LoadFitData({folder, std::nullopt, std::nullopt}, spec);
+  const LoadedFitData searched = LoadFitData(FolderData(folder), spec);
   const double fitted = *RunFit(searched, model).time_offset;
   double reported = 0.0;
   const LoadedFitData held = PairAtFittedOffset(searched, model, &reported);
@@ -430,7 +438,7 @@ TEST(TimeOffsetInTheFit, DiagnosisPairsAtTheFittedOffset) {
   // A fixed offset (or static data) is left as paired.
   const std::string fixed_text = "terms:\n  - type: polynomial\n    degree: 3\n";
   const LoadedFitData plain =
-      LoadFitData({folder, std::nullopt, std::nullopt}, ParseModelYaml(fixed_text, "fixed.yaml"));
+      LoadFitData(FolderData(folder), ParseModelYaml(fixed_text, "fixed.yaml"));
   const LoadedFitData same =
       PairAtFittedOffset(plain, {fixed_text, "fixed.yaml", std::nullopt}, &reported);
   EXPECT_EQ(*same.time_offset, *plain.time_offset);
@@ -453,7 +461,7 @@ TEST(TimeOffsetInTheFit, ACorrectedDriftSurvivesPairingAtTheFittedOffset) {
       "time_offset: {value: 0, fixed: false}\nterms:\n  - type: polynomial\n    degree: 3\n";
   const FitModelSource model{text, "model.yaml", std::nullopt};
   const ModelSpec spec = ParseModelYaml(text, "model.yaml");
-  const LoadedFitData searched = LoadFitData({folder, std::nullopt, std::nullopt}, spec);
+  const LoadedFitData searched = LoadFitData(FolderData(folder), spec);
   EXPECT_THAT(searched.pairing_warning, ::testing::HasSubstr("corrected"));
   ASSERT_TRUE(searched.pairing.has_value());
   EXPECT_NEAR(searched.pairing->clock_drift, 1e-3, 1e-4);
