@@ -318,6 +318,26 @@ class Parser {
                  " (a button may share only the name of the tracker it is attached to)");
   }
 
+  // Two drivers on one serial port each read part of the other's bytes (and reset the unit under
+  // the other), so neither is served: an error naming both lines. The port is compared by its
+  // canonical path when it exists (a symbolic link such as /dev/serial/by-id/..., or
+  // /dev/./ttyUSB0, names the same device as /dev/ttyUSB0), else by its lexically normal form.
+  void RegisterSerialPort(const std::string& tracker, const std::string& port,
+                          const ConfigLocation& where) {
+    std::error_code ec;
+    std::filesystem::path key = std::filesystem::canonical(port, ec);
+    if (ec) key = std::filesystem::path(port).lexically_normal();
+    const auto [it, inserted] = ports_.emplace(key.string(), PortUse{tracker, port, where});
+    if (inserted) return;
+    const PortUse& first = it->second;
+    std::string same = "'" + port + "'";
+    if (first.port != port) same += " (the same device as '" + first.port + "')";
+    Fail(where, "serial_port",
+         "serial port " + same + " is already opened by tracker '" + first.tracker + "' at " +
+             first.location.ToString() +
+             "; two drivers on one port read each other's bytes (one line per unit)");
+  }
+
   void ParseFastrak(const Line& line) {
     const ConfigLocation where = Where(line);
     std::string_view body = line.text;
@@ -361,6 +381,7 @@ class Parser {
       }
     }
     RegisterName(spec.name, where, "name");
+    RegisterSerialPort(spec.name, spec.port, where);
 
     // '\' lines: extra reset commands; the last one may end with '/' to start device lines.
     const std::string commands_of = "'" + spec.name + "' (extra commands)";
@@ -707,6 +728,13 @@ class Parser {
     std::optional<ConfigLocation> button;
   };
   std::map<std::string, NameUse> names_;
+  // Serial ports of the Fastrak lines, by canonical path (RegisterSerialPort).
+  struct PortUse {
+    std::string tracker;
+    std::string port;  // as written
+    ConfigLocation location;
+  };
+  std::map<std::string, PortUse> ports_;
   VrpnConfig config_;
 };
 

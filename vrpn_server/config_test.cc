@@ -626,6 +626,44 @@ TEST(ParseVrpnConfig, ACommentAfterAnExtraCommandIsWarned) {
       << config.warnings[0].ToString();
 }
 
+// Two tracker lines on one serial port: two drivers on one port read each other's bytes and
+// reset the unit under each other, so neither tracker is served; it was accepted without a word.
+// Spellings of one device (a symbolic link, "/./") are the same port.
+TEST(ParseVrpnConfig, TwoTrackersOnOneSerialPortAreAnErrorNamingBothLines) {
+  EXPECT_EQ(ParseError("vrpn_Tracker_Fastrak T0 /dev/ttyUSB0 115200\n"
+                       "# the second unit\n"
+                       "vrpn_Tracker_Fastrak T1 /dev/ttyUSB0 9600\n"),
+            "lab.cfg:3: field 'serial_port': serial port '/dev/ttyUSB0' is already opened by "
+            "tracker 'T0' at lab.cfg:1; two drivers on one port read each other's bytes (one line "
+            "per unit)");
+  // A port that does not exist (unplugged at start) is compared by its normal form.
+  EXPECT_NE(ParseError("vrpn_Tracker_Fastrak T0 /dev/ttyUSB7 115200\n"
+                       "vrpn_Tracker_Fastrak T1 /dev/./ttyUSB7 115200\n")
+                .find("lab.cfg:2: field 'serial_port': serial port '/dev/./ttyUSB7' (the same "
+                      "device as '/dev/ttyUSB7') is already opened by tracker 'T0' at lab.cfg:1"),
+            std::string::npos);
+  // An existing one by its canonical path: a symbolic link (as /dev/serial/by-id/ holds) is the
+  // device it points to.
+  const std::filesystem::path dir = testing::MakeTempDir("config_port_test");
+  const std::filesystem::path device = dir / "ttyS9";
+  std::ofstream(device).put('\n');
+  std::filesystem::create_symlink(device, dir / "fastrak");
+  const std::string first = "vrpn_Tracker_Fastrak T0 " + device.string() + " 115200\n";
+  for (const std::string& other : {(dir / "fastrak").string(), (dir / "." / "ttyS9").string()}) {
+    SCOPED_TRACE(other);
+    const std::string error = ParseError(
+        first + "vrpn_Tracker_NULL N 1 10\nvrpn_Tracker_Fastrak T1 " + other + " 9600\n");
+    EXPECT_EQ(error.rfind("lab.cfg:3: field 'serial_port': serial port '" + other + "'", 0), 0u)
+        << error;
+    EXPECT_NE(error.find("already opened by tracker 'T0' at lab.cfg:1"), std::string::npos)
+        << error;
+  }
+  // Different ports, and one port in two files, are fine.
+  EXPECT_EQ(ParseError(first + "vrpn_Tracker_Fastrak T1 " + (dir / "ttyS8").string() + " 9600\n"),
+            "");
+  EXPECT_EQ(ParseError(first), "");
+}
+
 TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
 }
