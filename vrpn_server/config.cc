@@ -226,17 +226,30 @@ class Parser {
     }
   }
 
+  // Why NextContinuationLine returned no line.
+  enum class BlockEnd {
+    kEndOfFile,            // nothing after the line that continues (the caller decides)
+    kCommentsToEndOfFile,  // only comment lines up to the end of the file (warned)
+    kDeviceLine,           // at a line that starts with a device type (warned, left for Parse)
+  };
+
   // Next line of the continuation block of `block` (what it continues, for the warning) that is
-  // not a comment (comments are allowed inside continuation blocks), or null at the end of the file
-  // or at a line that starts with a device type (see StartsDeviceLine): that line is left for the
-  // main loop, since a block whose last line was commented out ("#u" below "H1,1,0,0\") is
-  // otherwise still open and would swallow the next device line, while the reference, which sends
-  // the comment as a command, ends the block there.
-  const Line* NextContinuationLine(std::string_view block) {
+  // not a comment (comments are allowed inside continuation blocks), or null (`end` says why):
+  // - at a line that starts with a device type (see StartsDeviceLine): that line is left for the
+  //   main loop, since a block whose last line was commented out ("#u" below "H1,1,0,0\") is
+  //   otherwise still open and would swallow the next device line, while the reference, which
+  //   sends the comment as a command, ends the block there;
+  // - at the end of the file after comment lines only: the same block, at the end of the file
+  //   (warned; it used to end without a word, or as "the file ends before the command line").
+  const Line* NextContinuationLine(std::string_view block, BlockEnd* end = nullptr) {
+    BlockEnd ignored;
+    if (end == nullptr) end = &ignored;
+    std::optional<ConfigLocation> first_comment;
     while (next_ < lines_.size()) {
       const Line& line = lines_[next_];
       const std::string_view t = Trim(line.text);
       if (!t.empty() && t.front() == '#') {
+        if (!first_comment) first_comment = Where(line);
         ++next_;
         continue;
       }
@@ -249,10 +262,20 @@ class Parser {
                               " (its last line that is not a comment ends with '\\' or '/'; was "
                               "the block's last line commented out?): the block ends before this "
                               "line, which is read as a device line"});
+        *end = BlockEnd::kDeviceLine;
         return nullptr;
       }
       ++next_;
       return &line;
+    }
+    *end = BlockEnd::kEndOfFile;
+    if (first_comment) {
+      *end = BlockEnd::kCommentsToEndOfFile;
+      config_.warnings.push_back(
+          {*first_comment, "the continuation block of " + std::string(block) +
+                               " has only comment lines from here to the end of the file (its "
+                               "last line that is not a comment ends with '\\' or '/'; was the "
+                               "block's last line commented out?): the block ends here"});
     }
     return nullptr;
   }
@@ -387,13 +410,15 @@ class Parser {
     const std::string commands_of = "'" + spec.name + "' (extra commands)";
     const std::string devices_of = "'" + spec.name + "' (device lines)";
     while (continuation == '\\') {
-      const Line* cmd_line = NextContinuationLine(commands_of);
-      if (cmd_line == nullptr && next_ < lines_.size()) {  // at a device line (warned)
+      BlockEnd end;
+      const Line* cmd_line = NextContinuationLine(commands_of, &end);
+      if (cmd_line == nullptr && end == BlockEnd::kEndOfFile) {
+        Fail(where, "extra commands",
+             "the line ends with '\\' but the file ends before the command line");
+      }
+      if (cmd_line == nullptr) {  // a device line or comments to the end of the file (warned)
         continuation = 0;
         break;
-      }
-      if (cmd_line == nullptr) {
-        Fail(where, "extra commands", "the line ends with '\\' but the file ends before the command line");
       }
       const ConfigLocation cmd_where = Where(*cmd_line);
       std::string_view text = cmd_line->text;
@@ -423,11 +448,12 @@ class Parser {
 
     // '/' lines: button devices on this tracker's sensors.
     while (continuation == '/') {
-      const Line* dev_line = NextContinuationLine(devices_of);
-      if (dev_line == nullptr && next_ < lines_.size()) break;  // at a device line (warned)
-      if (dev_line == nullptr) {
+      BlockEnd end;
+      const Line* dev_line = NextContinuationLine(devices_of, &end);
+      if (dev_line == nullptr && end == BlockEnd::kEndOfFile) {
         Fail(where, "device line", "a line ends with '/' but the file ends before the device line");
       }
+      if (dev_line == nullptr) break;  // a device line or comments to the end of the file (warned)
       const ConfigLocation dev_where = Where(*dev_line);
       std::string_view text = dev_line->text;
       continuation = ContinuationOf(text);

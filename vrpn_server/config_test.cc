@@ -664,6 +664,45 @@ TEST(ParseVrpnConfig, TwoTrackersOnOneSerialPortAreAnErrorNamingBothLines) {
   EXPECT_EQ(ParseError(first), "");
 }
 
+// A block whose lines after its last command are all comments, at the end of the file ("#u" below
+// "H1,1,0,0\" as the file's last line): the Fastrak's was refused as "the file ends before the
+// command line", an unknown device's ended without a word. It ends at the end of the file, warned
+// at the first comment line, as a device line ends such a block.
+TEST(ParseVrpnConfig, ABlockWithOnlyCommentsToTheEndOfTheFileEndsWithAWarning) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak Tracker0 /dev/ttyUSB0 115200 \\\n"  // 1
+      "H1,1,0,0\\\n"                                            // 2
+      "#u\n"                                                    // 3
+      "# end of the lab's file\n",                              // 4
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 1u);
+  EXPECT_EQ(config.fastrak_trackers[0].extra_commands, std::vector<std::string>{"H1,1,0,0"});
+  ASSERT_EQ(config.warnings.size(), 1u);
+  EXPECT_EQ(config.warnings[0].ToString().rfind(
+                "lab.cfg:3: warning: the continuation block of 'Tracker0' (extra commands) has "
+                "only comment lines from here to the end of the file",
+                0),
+            0u)
+      << config.warnings[0].ToString();
+
+  const VrpnConfig buttons = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak T /dev/a 115200 /\nFTStylus S 0 /\n# FTStylus Spare 0\n", "lab.cfg");
+  ASSERT_EQ(buttons.fastrak_trackers.at(0).buttons.size(), 1u);
+  ASSERT_EQ(buttons.warnings.size(), 1u);
+  EXPECT_EQ(buttons.warnings[0].location.line, 3);
+
+  const VrpnConfig unknown =
+      ParseVrpnConfig("vrpn_Tracker_Liberty L /dev/a 115200 \\\n#H1,1,0,0\n", "lab.cfg");
+  std::vector<int> lines;
+  for (const ConfigWarning& w : unknown.warnings) lines.push_back(w.location.line);
+  EXPECT_EQ(lines, (std::vector<int>{2, 1})) << ::testing::PrintToString(lines);
+  // Nothing at all after the line that continues is still an error.
+  EXPECT_NE(ParseError("vrpn_Tracker_Fastrak T /dev/a 115200 \\\n")
+                .find("lab.cfg:1: field "
+                      "'extra commands'"),
+            std::string::npos);
+}
+
 TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
 }
