@@ -11,6 +11,7 @@
 #include <set>
 #include <sstream>
 #include <stdexcept>
+#include <utility>
 
 #include "core/printable_text.h"
 
@@ -172,6 +173,15 @@ class Parser {
       const ConfigLocation where = Where(line);
       const std::vector<std::string> tokens = Tokenize(line.text);
       const std::string& keyword = tokens.front();
+      if (std::optional<BlankLineEnd> blank = std::exchange(blank_line_end_, std::nullopt);
+          blank && !StartsDeviceLine(Trim(line.text))) {
+        // A command or device line of the block that the blank line ended: as an unknown device it
+        // was dropped with a warning (a hemisphere command not sent, a stylus not served).
+        Fail(where, "device type",
+             "'" + keyword + "' is not a device line: it follows the continuation block of " +
+                 blank->block + ", which the blank line at " + blank->location.ToString() +
+                 " ended; remove the blank line to continue the block");
+      }
       if (keyword == "vrpn_Tracker_Fastrak") {
         ParseFastrak(line);
       } else if (keyword == "vrpn_Tracker_NULL") {
@@ -231,6 +241,7 @@ class Parser {
     kEndOfFile,            // nothing after the line that continues (the caller decides)
     kCommentsToEndOfFile,  // only comment lines up to the end of the file (warned)
     kDeviceLine,           // at a line that starts with a device type (warned, left for Parse)
+    kBlankLine,            // a blank line ended the block (warned, consumed)
   };
 
   // Next line of the continuation block of `block` (what it continues, for the warning) that is
@@ -240,7 +251,10 @@ class Parser {
   //   otherwise still open and would swallow the next device line, while the reference, which
   //   sends the comment as a command, ends the block there;
   // - at the end of the file after comment lines only: the same block, at the end of the file
-  //   (warned; it used to end without a word, or as "the file ends before the command line").
+  //   (warned; it used to end without a word, or as "the file ends before the command line");
+  // - at a blank line, which ends the block (the reference sends it as an empty command and ends
+  //   the block, or misreads it as a device line): warned, and a line after it that does not
+  //   start a device is an error in Parse (it was meant to continue the block).
   const Line* NextContinuationLine(std::string_view block, BlockEnd* end = nullptr) {
     BlockEnd ignored;
     if (end == nullptr) end = &ignored;
@@ -252,6 +266,16 @@ class Parser {
         if (!first_comment) first_comment = Where(line);
         ++next_;
         continue;
+      }
+      if (t.empty()) {
+        *end = BlockEnd::kBlankLine;
+        config_.warnings.push_back(
+            {Where(line), "a blank line ends the continuation block of " + std::string(block) +
+                              " (the line before it ends with '\\' or '/'); a line after it "
+                              "is read as a device line"});
+        blank_line_end_ = BlankLineEnd{std::string(block), Where(line)};
+        ++next_;
+        return nullptr;
       }
       if (StartsDeviceLine(t)) {
         const std::string keyword(t.substr(0, t.find_first_of(kWhitespace)));
@@ -416,7 +440,7 @@ class Parser {
         Fail(where, "extra commands",
              "the line ends with '\\' but the file ends before the command line");
       }
-      if (cmd_line == nullptr) {  // a device line or comments to the end of the file (warned)
+      if (cmd_line == nullptr) {  // a device line, a blank line or comments to the end (warned)
         continuation = 0;
         break;
       }
@@ -453,7 +477,8 @@ class Parser {
       if (dev_line == nullptr && end == BlockEnd::kEndOfFile) {
         Fail(where, "device line", "a line ends with '/' but the file ends before the device line");
       }
-      if (dev_line == nullptr) break;  // a device line or comments to the end of the file (warned)
+      if (dev_line == nullptr)
+        break;  // a device line, a blank line or comments to the end (warned)
       const ConfigLocation dev_where = Where(*dev_line);
       std::string_view text = dev_line->text;
       continuation = ContinuationOf(text);
@@ -761,6 +786,12 @@ class Parser {
     ConfigLocation location;
   };
   std::map<std::string, PortUse> ports_;
+  // The continuation block that a blank line ended, until the next line that is not a comment.
+  struct BlankLineEnd {
+    std::string block;
+    ConfigLocation location;  // of the blank line
+  };
+  std::optional<BlankLineEnd> blank_line_end_;
   VrpnConfig config_;
 };
 

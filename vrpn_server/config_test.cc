@@ -703,6 +703,52 @@ TEST(ParseVrpnConfig, ABlockWithOnlyCommentsToTheEndOfTheFileEndsWithAWarning) {
             std::string::npos);
 }
 
+// A blank line inside a block ends it (the reference sends it as an empty command and ends the
+// block): the commands after it were read as unknown devices and dropped with a warning (a
+// hemisphere not set, the unit left in inches), and a '/' block stopped the server ("empty device
+// line") even when a device line followed. The blank line is warned; a line after it that does not
+// start a device is an error naming its line.
+TEST(ParseVrpnConfig, ABlankLineEndsABlockAndAStrayLineAfterItIsAnError) {
+  const VrpnConfig config = ParseVrpnConfig(
+      "vrpn_Tracker_Fastrak T0 /dev/a 115200 \\\n"  // 1
+      "H1,1,0,0/\n"                                 // 2
+      "\n"                                          // 3
+      "vrpn_Tracker_NULL N 1 10\n"                  // 4
+      "vrpn_Tracker_Fastrak T1 /dev/b 115200 /\n"   // 5
+      "  \t\n"                                      // 6
+      "# the second tracker's stylus is broken\n"   // 7
+      "trackcal_Calibration T1 c.json\n",           // 8
+      "lab.cfg");
+  ASSERT_EQ(config.fastrak_trackers.size(), 2u);
+  EXPECT_EQ(config.fastrak_trackers[0].extra_commands, std::vector<std::string>{"H1,1,0,0"});
+  EXPECT_TRUE(config.fastrak_trackers[0].buttons.empty());
+  EXPECT_EQ(config.null_trackers.size(), 1u);
+  EXPECT_EQ(config.calibrations.size(), 1u);
+  ASSERT_EQ(config.warnings.size(), 2u);
+  EXPECT_EQ(config.warnings[0].ToString().rfind(
+                "lab.cfg:3: warning: a blank line ends the continuation block of 'T0' (device "
+                "lines)",
+                0),
+            0u)
+      << config.warnings[0].ToString();
+  EXPECT_EQ(config.warnings[1].location.line, 6);
+
+  EXPECT_EQ(ParseError("vrpn_Tracker_Fastrak T /dev/a 115200 \\\n"
+                       "H1,1,0,0\\\n"
+                       "\n"
+                       "u\n"),
+            "lab.cfg:4: field 'device type': 'u' is not a device line: it follows the "
+            "continuation block of 'T' (extra commands), which the blank line at lab.cfg:3 ended; "
+            "remove the blank line to continue the block");
+  EXPECT_NE(ParseError("vrpn_Tracker_Fastrak T /dev/a 115200 /\n\n# pen\nFTStylus S 0\n")
+                .find("lab.cfg:4: field 'device type': 'FTStylus' is not a device line"),
+            std::string::npos);
+  // A blank line outside a block is not warned, and an unknown line after it is one as before.
+  EXPECT_EQ(ParseVrpnConfig("vrpn_Tracker_Fastrak T /dev/a 115200 \\\nu\n\nJoy0 1\n", "lab.cfg")
+                .warnings.size(),
+            1u);
+}
+
 TEST(ReadVrpnConfig, MissingFileThrows) {
   EXPECT_THROW(ReadVrpnConfig("/nonexistent/trackcal/vrpn.cfg"), std::runtime_error);
 }
