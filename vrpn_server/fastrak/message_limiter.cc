@@ -25,6 +25,9 @@ std::optional<DriverMessage> MessageLimiter::Submit(DriverMessage message, Clock
   if (held_) {
     ++dropped_while_held_;
     ++dropped_by_severity_[static_cast<size_t>(held_->severity)];
+    if (held_->severity == Severity::kError && !first_dropped_error_) {
+      first_dropped_error_ = std::move(held_->text);
+    }
   }
   held_ = std::move(message);
   return Poll(now);
@@ -45,12 +48,17 @@ std::optional<DriverMessage> MessageLimiter::Poll(Clock::time_point now) {
       if (!counts.empty()) counts += ", ";
       counts += std::string(SeverityName(static_cast<Severity>(s))) + " " + std::to_string(n);
     }
+    // The first error says why the trouble began (the watchdog's "no record for 2 s; reopening"),
+    // which the errors after it ("cannot open ...") and the final state do not.
+    const std::string first_error =
+        first_dropped_error_ ? "; the first error: '" + *first_dropped_error_ + "'" : "";
     message.text += " (" + std::to_string(dropped_while_held_) + " earlier message" +
                     (dropped_while_held_ == 1 ? "" : "s") +
-                    " suppressed by the rate limit: " + counts + ")";
+                    " suppressed by the rate limit: " + counts + first_error + ")";
   }
   dropped_while_held_ = 0;
   dropped_by_severity_.fill(0);
+  first_dropped_error_.reset();
   last_emitted_ = now;
   return message;
 }

@@ -3,7 +3,8 @@
 // an older held one) and goes out when the interval has passed, saying how many messages were
 // dropped and of which severities, so the latest state always reaches clients within one interval.
 // It keeps its own severity: an info text ("opened at 115200 baud") that replaced errors is not
-// labelled an error; the note counts the errors it replaced. (The reference sent 2,663 texts per
+// labelled an error; the note counts the errors it replaced and quotes the first of them (why the
+// trouble began, e.g. the watchdog's reopen). (The reference sent 2,663 texts per
 // client during a 5 s unplug.)
 
 #pragma once
@@ -46,6 +47,7 @@ class MessageLimiter {
   std::optional<DriverMessage> held_;
   int dropped_while_held_ = 0;  // messages replaced by a newer held one
   std::array<int, 3> dropped_by_severity_{};  // the same, indexed by Severity
+  std::optional<std::string> first_dropped_error_;  // text of the first error among them
   uint64_t suppressed_total_ = 0;
 };
 

@@ -69,7 +69,7 @@ TEST(MessageLimiter, HeldTextKeepsItsSeverityAndCountsWhatItReplacedBySeverity) 
   EXPECT_EQ(held->severity, Severity::kInfo);
   EXPECT_EQ(held->text,
             "opened at 115200 baud (3 earlier messages suppressed by the rate limit: error 2, "
-            "warning 1)");
+            "warning 1; the first error: 'cannot open 2')");
   EXPECT_EQ(limiter.suppressed(), 3u);
   // The counts start again for the next held text.
   ASSERT_FALSE(limiter.Submit({Severity::kWarning, "w"}, t0 + milliseconds(1100)));
@@ -78,6 +78,37 @@ TEST(MessageLimiter, HeldTextKeepsItsSeverityAndCountsWhatItReplacedBySeverity) 
   ASSERT_TRUE(next.has_value());
   EXPECT_EQ(next->severity, Severity::kError);
   EXPECT_EQ(next->text, "e (1 earlier message suppressed by the rate limit: warning 1)");
+}
+
+// The watchdog's text says why the port is reopened; the "cannot open" errors of the reopen
+// replaced it while it was held, and then "opened at ..." replaced those: clients and the log saw
+// "opened at 115200 baud (4 earlier messages suppressed ...: error 4)" and never the reason. The
+// note quotes the first error it replaced.
+TEST(MessageLimiter, TheFirstErrorAHeldTextReplacedIsQuoted) {
+  MessageLimiter limiter(milliseconds(1000));
+  const Clock::time_point t0{};
+  ASSERT_TRUE(limiter.Submit({Severity::kInfo, "streaming"}, t0).has_value());
+  const std::string watchdog = "no record for 2 s; reopening and resetting the tracker";
+  EXPECT_FALSE(limiter.Submit({Severity::kWarning, "skipped 3 bytes"}, t0 + milliseconds(50)));
+  EXPECT_FALSE(limiter.Submit({Severity::kError, watchdog}, t0 + milliseconds(100)));
+  for (int i = 0; i < 3; ++i) {
+    EXPECT_FALSE(limiter.Submit({Severity::kError, "cannot open: No such file or directory"},
+                                t0 + milliseconds(200 + 100 * i)));
+  }
+  EXPECT_FALSE(limiter.Submit({Severity::kInfo, "opened at 115200 baud"}, t0 + milliseconds(600)));
+  const auto held = limiter.Poll(t0 + milliseconds(1000));
+  ASSERT_TRUE(held.has_value());
+  EXPECT_EQ(held->severity, Severity::kInfo);
+  EXPECT_EQ(held->text,
+            "opened at 115200 baud (5 earlier messages suppressed by the rate limit: error 4, "
+            "warning 1; the first error: '" +
+                watchdog + "')");
+  // Forgotten with the note: the next held text quotes its own first error, or none.
+  ASSERT_FALSE(limiter.Submit({Severity::kWarning, "w1"}, t0 + milliseconds(1100)));
+  ASSERT_FALSE(limiter.Submit({Severity::kWarning, "w2"}, t0 + milliseconds(1200)));
+  const auto next = limiter.Poll(t0 + milliseconds(2000));
+  ASSERT_TRUE(next.has_value());
+  EXPECT_EQ(next->text, "w2 (1 earlier message suppressed by the rate limit: warning 1)");
 }
 
 }  // namespace
