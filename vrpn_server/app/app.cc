@@ -397,6 +397,9 @@ std::string TrackcalServerApp::StatusLine() const {
       line += share;
     }
     line += ", " + std::to_string(t->device->unresolved_poses()) + " unresolved";
+    if (const std::uint64_t n = t->device->non_finite_poses(); n > 0) {
+      line += ", " + std::to_string(n) + " not finite (not served)";
+    }
   }
   return line;
 }

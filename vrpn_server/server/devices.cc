@@ -6,6 +6,7 @@
 
 #include <cerrno>
 #include <chrono>
+#include <cmath>
 #include <cstring>
 #include <iomanip>
 #include <stdexcept>
@@ -119,6 +120,7 @@ TrackerDevice::TrackerDevice(VrpnServer* server, int tracker, std::optional<int>
 void TrackerDevice::SetCorrector(std::shared_ptr<const PoseCorrector> corrector) {
   std::lock_guard<std::mutex> lock(mutex_);
   corrector_ = std::move(corrector);
+  non_finite_told_ = false;  // a new correction's first non-finite pose is told again
 }
 
 void TrackerDevice::SetSensorCorrector(int sensor, std::shared_ptr<const PoseCorrector> corrector) {
@@ -129,6 +131,7 @@ void TrackerDevice::SetSensorCorrector(int sensor, std::shared_ptr<const PoseCor
     sensor_correctors_.resize(static_cast<std::size_t>(sensor) + 1);
   }
   sensor_correctors_[static_cast<std::size_t>(sensor)] = std::move(corrector);
+  non_finite_told_ = false;
 }
 
 std::shared_ptr<const PoseCorrector> TrackerDevice::corrector() const {
@@ -148,6 +151,26 @@ void TrackerDevice::OnReport(int sensor, const Rigid3d& reported, Timestamp time
   OnReports(std::span<const SensorReport>(&report, 1));
 }
 
+namespace {
+
+// The pose with its rotation scaled to a unit quaternion. VRPN clients take the wire's quaternion
+// as a rotation without normalising it (Unity, the reference's vrpn_Tracker_Remote): a Fastrak's
+// record is accepted with |q| off by up to 1e-3 (4 printed decimals), and a pass-through source
+// sends what it got. A quaternion of no finite, positive norm is left as it is (not finite: not
+// served as a corrected pose).
+Rigid3d WithUnitRotation(const Rigid3d& pose) {
+  const double norm = pose.rotation.norm();
+  if (!(norm > 0.0) || !std::isfinite(norm) || norm == 1.0) return pose;
+  return Rigid3d(Eigen::Quaterniond(pose.rotation.coeffs() / norm), pose.translation);
+}
+
+bool IsFinite(const Rigid3d& pose) {
+  return pose.translation.allFinite() && pose.rotation.coeffs().allFinite() &&
+         pose.rotation.norm() > 0.0;
+}
+
+}  // namespace
+
 void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
   if (reports.empty()) return;
   // Reused per device thread: no allocation per report once warm.
@@ -159,28 +182,44 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
     by_sensor.assign(sensor_correctors_.begin(), sensor_correctors_.end());
   }
   thread_local std::vector<PoseUpdate> updates;
-  thread_local std::vector<Rigid3d> corrected;
+  thread_local std::vector<Rigid3d> reported, corrected;
   updates.clear();
+  reported.clear();
   corrected.clear();
   std::uint64_t extrapolated = 0;
   std::uint64_t unresolved = 0;
   std::uint64_t num_corrected = 0;
+  std::uint64_t non_finite = 0;
+  std::string first_non_finite;  // what the first one of this batch was, for the notice
   for (const SensorReport& r : reports) {
+    // Served and corrected as a rotation: the correction's q_e * q keeps |q| off by what the
+    // report's was.
+    reported.push_back(WithUnitRotation(r.transmitter_from_receiver));
     if (raw_tracker_)
-      updates.push_back(PoseUpdate{*raw_tracker_, r.sensor, r.transmitter_from_receiver, r.time});
+      updates.push_back(PoseUpdate{*raw_tracker_, r.sensor, reported.back(), r.time});
     const PoseCorrector* sensor_corrector = corrector.get();
     if (r.sensor >= 0 && static_cast<std::size_t>(r.sensor) < by_sensor.size() &&
         by_sensor[static_cast<std::size_t>(r.sensor)]) {
       sensor_corrector = by_sensor[static_cast<std::size_t>(r.sensor)].get();
     }
     if (sensor_corrector) {
-      const CorrectionResult c = sensor_corrector->CorrectWithFlag(r.transmitter_from_receiver);
+      const CorrectionResult c = sensor_corrector->CorrectWithFlag(reported.back());
+      corrected.push_back(WithUnitRotation(c.pose));
+      if (!IsFinite(corrected.back()) && IsFinite(reported.back())) {
+        // A NaN reaches a client as a pose (Unity moves the object to NaN and it vanishes): not
+        // served, and told once, then counted (a line per report would flood the log at 120 Hz).
+        if (non_finite++ == 0) {
+          first_non_finite = "sensor " + std::to_string(r.sensor) + ": the correction " +
+                             sensor_corrector->Describe() + " gave " + corrected.back().ToString() +
+                             " for the reported " + reported.back().ToString();
+        }
+        continue;
+      }
       extrapolated += c.extrapolated ? 1 : 0;
       unresolved += c.status != CorrectionStatus::kConverged ? 1 : 0;
       ++num_corrected;
-      corrected.push_back(c.pose);
     } else {
-      corrected.push_back(r.transmitter_from_receiver);
+      corrected.push_back(reported.back());
     }
     updates.push_back(PoseUpdate{tracker_, r.sensor, corrected.back(), r.time});
   }
@@ -188,11 +227,25 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
   std::lock_guard<std::mutex> lock(mutex_);
   for (std::size_t i = 0; i < reports.size(); ++i) {
     const SensorReport& r = reports[i];
-    if (raw_recorder_) raw_recorder_->Write(r.sensor, r.transmitter_from_receiver, r.time);
-    if (corrected_recorder_) corrected_recorder_->Write(r.sensor, corrected[i], r.time);
+    if (raw_recorder_) raw_recorder_->Write(r.sensor, reported[i], r.time);
+    if (corrected_recorder_ && IsFinite(corrected[i])) {
+      corrected_recorder_->Write(r.sensor, corrected[i], r.time);
+    }
   }
   by_sensor.clear();  // does not keep a replaced correction alive until the next batch
   corrected_total_ += num_corrected;
+  if (non_finite > 0) {
+    non_finite_total_ += non_finite;
+    if (!non_finite_told_) {
+      non_finite_told_ = true;
+      const std::string text =
+          first_non_finite +
+          ", which is not finite: such corrected poses are not served (said once per correction; "
+          "the server's status line, on SIGUSR1 and at stop, counts them)";
+      server_->PublishText(tracker_, TextSeverity::kError, text);
+      if (log_) log_(text);
+    }
+  }
   CountExtrapolated(extrapolated, unresolved);
 }
 

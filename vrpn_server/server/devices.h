@@ -3,6 +3,7 @@
 // - TrackerDevice: one physical tracker served as its corrected device under the configured name
 //   and, on request, its raw device under a second name (so a validation run records both live).
 //   The correction is swappable at any time (calibration reload) without touching the clients.
+//   Quaternions are scaled to unit length before they are corrected and served.
 // - NullTracker: identity (or fixed) poses at a fixed rate, like vrpn_Tracker_NULL; for tests,
 //   demos and replaying the reference transcripts.
 // - StreamRecorder: writes raw and corrected reports to CSV files in the tracker stream format
@@ -130,6 +131,10 @@ class TrackerDevice {
   // Likewise the corrected poses whose model inverse was not converged or ambiguous (counted and
   // reported in the same notice).
   std::uint64_t unresolved_poses() const { return unresolved_total_.load(); }
+  // Corrections that gave a pose that is not finite (NaN or infinite) for a finite report: not
+  // served (nor recorded); the first one of each correction is told to the corrected name's
+  // clients and the log at error severity, the others only counted here.
+  std::uint64_t non_finite_poses() const { return non_finite_total_.load(); }
   static constexpr std::chrono::steady_clock::duration kExtrapolationNoticeInterval =
       std::chrono::seconds(1);
   int tracker() const { return tracker_; }
@@ -149,6 +154,8 @@ class TrackerDevice {
   std::atomic<std::uint64_t> corrected_total_{0};
   std::atomic<std::uint64_t> extrapolated_total_{0};
   std::atomic<std::uint64_t> unresolved_total_{0};
+  std::atomic<std::uint64_t> non_finite_total_{0};
+  bool non_finite_told_ = false;  // guarded by mutex_; reset when the correction is replaced
   // Guarded by mutex_: poses extrapolated / unresolved since the last notice, and when that notice
   // went out.
   std::uint64_t extrapolated_pending_ = 0;

@@ -5,6 +5,7 @@
 #include <chrono>
 #include <fstream>
 #include <functional>
+#include <limits>
 #include <mutex>
 #include <thread>
 
@@ -261,6 +262,110 @@ TEST(TrackerDevice, CountsUnresolvedPosesOfAPhysicalInverse) {
   EXPECT_NE(texts[0].find("1 corrected pose(s) unresolved"), std::string::npos) << texts[0];
   // The unresolved pose is still served, finite.
   for (const TrackerReport& r : poses) EXPECT_TRUE(r.transmitter_from_receiver.translation.allFinite());
+}
+
+// A Fastrak record is accepted with |q| off by up to 1e-3 (kMaxQuaternionNormError), and a
+// pass-through source sends what it got; clients use the wire's quaternion as a rotation without
+// normalising it, and the correction q_e * q kept the error. Both names serve unit quaternions,
+// and the correction is fed one.
+TEST(TrackerDevice, ServesUnitQuaternionsAndCorrectsAUnitOne) {
+  Fixture f;
+  TrackerDevice device(f.server.get(), f.corrected, f.raw);
+  const Rigid3d offset(testing::RandomRotation(testing::TestRng()),
+                       Eigen::Vector3d(0.01, -0.02, 0.03));
+  device.SetCorrector(std::make_shared<OffsetCorrector>(offset));
+  VrpnTrackerClient corrected_client(f.Name("Tracker0"));
+  VrpnTrackerClient raw_client(f.Name("Tracker0_raw"));
+  std::vector<TrackerReport> corrected, raw;
+  corrected_client.SetPoseCallback([&](const TrackerReport& r) { corrected.push_back(r); });
+  raw_client.SetPoseCallback([&](const TrackerReport& r) { raw.push_back(r); });
+  ASSERT_TRUE(PollUntil({&corrected_client, &raw_client}, [&] {
+    return corrected_client.pong_received() && raw_client.pong_received();
+  }));
+  const Eigen::Quaterniond unit = testing::RandomRotation(testing::TestRng());
+  for (const double scale : {1.0 + 9e-4, 1.0 - 9e-4, 3.0}) {
+    device.OnReport(
+        0, Rigid3d(Eigen::Quaterniond(unit.coeffs() * scale), Eigen::Vector3d(0.3, 0.1, -0.2)),
+        Timestamp{100, 0});
+  }
+  ASSERT_TRUE(PollUntil({&corrected_client, &raw_client},
+                        [&] { return corrected.size() == 3 && raw.size() == 3; }));
+  for (std::size_t i = 0; i < 3; ++i) {
+    SCOPED_TRACE(i);
+    // Tolerance: a few ulps of the division by the norm and of one quaternion product.
+    const double kTol = 1e-14;
+    EXPECT_NEAR(raw[i].transmitter_from_receiver.rotation.norm(), 1.0, kTol);
+    EXPECT_NEAR(corrected[i].transmitter_from_receiver.rotation.norm(), 1.0, kTol);
+    EXPECT_NEAR(AngularDistance(raw[i].transmitter_from_receiver.rotation, unit), 0.0, 1e-7);
+    EXPECT_NEAR(
+        AngularDistance(corrected[i].transmitter_from_receiver.rotation, offset.rotation * unit),
+        0.0, 1e-7);  // 1e-7 rad: acos near 1 loses half the digits of 1e-14
+  }
+}
+
+// Gives a pose that is not finite for reports with x > 0.5 m (a correction evaluated where its
+// math breaks down), the report itself elsewhere.
+class NanCorrector : public PoseCorrector {
+ public:
+  Rigid3d Correct(const Rigid3d& reported) const override {
+    if (reported.translation.x() <= 0.5) return reported;
+    Rigid3d bad = reported;
+    bad.translation.y() = std::numeric_limits<double>::quiet_NaN();
+    return bad;
+  }
+  std::string Describe() const override { return "nan.json"; }
+};
+
+// A corrected pose that is not finite went to clients as it was (a Unity object moved to NaN and
+// vanished). It is not served: the first one is told to the corrected name's clients and the log,
+// the others are only counted; the raw name still serves the report.
+TEST(TrackerDevice, ANonFiniteCorrectedPoseIsNotServedToldOnceAndCounted) {
+  Fixture f;
+  TrackerDevice device(f.server.get(), f.corrected, f.raw);
+  device.SetCorrector(std::make_shared<NanCorrector>());
+  std::vector<std::string> log;
+  std::mutex log_mutex;
+  device.SetLog([&](const std::string& line) {
+    std::lock_guard<std::mutex> lock(log_mutex);
+    log.push_back(line);
+  });
+  VrpnTrackerClient client(f.Name("Tracker0"));
+  VrpnTrackerClient raw_client(f.Name("Tracker0_raw"));
+  std::vector<TrackerReport> poses, raw_poses;
+  std::vector<std::string> texts;
+  client.SetPoseCallback([&](const TrackerReport& r) { poses.push_back(r); });
+  raw_client.SetPoseCallback([&](const TrackerReport& r) { raw_poses.push_back(r); });
+  client.SetMessageCallback([&](const ReceivedMessage& m) {
+    if (m.type == kTextType) texts.push_back(DecodeText(m.payload)->text);
+  });
+  ASSERT_TRUE(PollUntil({&client, &raw_client},
+                        [&] { return client.pong_received() && raw_client.pong_received(); }));
+  const Rigid3d good(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.2, 0, 0));
+  const Rigid3d bad(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.7, 0, 0));
+  for (int i = 0; i < 50; ++i) device.OnReport(1, bad, Timestamp{1, static_cast<std::uint32_t>(i)});
+  device.OnReport(1, good, Timestamp{2, 0});
+  ASSERT_TRUE(PollUntil({&client, &raw_client}, [&] {
+    return poses.size() == 1 && raw_poses.size() == 51 && !texts.empty();
+  }));
+  for (auto* c : {&client, &raw_client}) c->Poll(0.1);  // anything else sent would arrive now
+  ASSERT_EQ(poses.size(), 1u);
+  EXPECT_EQ(poses[0].time, (Timestamp{2, 0}));
+  EXPECT_EQ(device.non_finite_poses(), 50u);
+  EXPECT_EQ(device.corrected_poses(), 1u);
+  ASSERT_EQ(texts.size(), 1u);
+  EXPECT_EQ(texts[0].rfind("sensor 1: the correction nan.json gave ", 0), 0u) << texts[0];
+  EXPECT_NE(texts[0].find("not finite: such corrected poses are not served"), std::string::npos)
+      << texts[0];
+  {
+    std::lock_guard<std::mutex> lock(log_mutex);
+    EXPECT_EQ(log, texts);
+  }
+  // A new correction's first one is told again.
+  device.SetCorrector(std::make_shared<NanCorrector>());
+  device.OnReport(0, bad, Timestamp{3, 0});
+  ASSERT_TRUE(PollUntil({&client}, [&] { return texts.size() == 2; }));
+  EXPECT_EQ(device.non_finite_poses(), 51u);
+  EXPECT_EQ(poses.size(), 1u);
 }
 
 TEST(NullTracker, ReportsEverySensorAtRate) {
