@@ -400,6 +400,9 @@ std::string TrackcalServerApp::StatusLine() const {
     if (const std::uint64_t n = t->device->non_finite_poses(); n > 0) {
       line += ", " + std::to_string(n) + " not finite (not served)";
     }
+    if (const std::uint64_t n = t->device->bad_reports(); n > 0) {
+      line += ", " + std::to_string(n) + " report(s) not a pose (not served)";
+    }
   }
   return line;
 }

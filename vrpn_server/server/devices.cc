@@ -189,12 +189,23 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
   std::uint64_t extrapolated = 0;
   std::uint64_t unresolved = 0;
   std::uint64_t num_corrected = 0;
-  std::uint64_t non_finite = 0;
-  std::string first_non_finite;  // what the first one of this batch was, for the notice
+  std::uint64_t non_finite = 0, bad_reports = 0;
+  std::string first_non_finite, first_bad_report;  // the first of this batch, for the notice
   for (const SensorReport& r : reports) {
     // Served and corrected as a rotation: the correction's q_e * q keeps |q| off by what the
     // report's was.
     reported.push_back(WithUnitRotation(r.transmitter_from_receiver));
+    if (!IsFinite(reported.back())) {
+      // A pass-through source forwards what its server sent (a Fastrak record with NaN is refused
+      // by the driver): it went to raw clients as it was, and a clamping correction could turn it
+      // into a finite, wrong pose. Served under neither name, nor corrected.
+      if (bad_reports++ == 0) {
+        first_bad_report = "sensor " + std::to_string(r.sensor) + ": the source reported " +
+                           r.transmitter_from_receiver.ToString();
+      }
+      corrected.push_back(reported.back());  // kept aligned with `reports`, never written
+      continue;
+    }
     if (raw_tracker_)
       updates.push_back(PoseUpdate{*raw_tracker_, r.sensor, reported.back(), r.time});
     const PoseCorrector* sensor_corrector = corrector.get();
@@ -205,7 +216,7 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
     if (sensor_corrector) {
       const CorrectionResult c = sensor_corrector->CorrectWithFlag(reported.back());
       corrected.push_back(WithUnitRotation(c.pose));
-      if (!IsFinite(corrected.back()) && IsFinite(reported.back())) {
+      if (!IsFinite(corrected.back())) {
         // A NaN reaches a client as a pose (Unity moves the object to NaN and it vanishes): not
         // served, and told once, then counted (a line per report would flood the log at 120 Hz).
         if (non_finite++ == 0) {
@@ -227,7 +238,7 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
   std::lock_guard<std::mutex> lock(mutex_);
   for (std::size_t i = 0; i < reports.size(); ++i) {
     const SensorReport& r = reports[i];
-    if (raw_recorder_) raw_recorder_->Write(r.sensor, reported[i], r.time);
+    if (raw_recorder_ && IsFinite(reported[i])) raw_recorder_->Write(r.sensor, reported[i], r.time);
     if (corrected_recorder_ && IsFinite(corrected[i])) {
       corrected_recorder_->Write(r.sensor, corrected[i], r.time);
     }
@@ -243,6 +254,20 @@ void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
           ", which is not finite: such corrected poses are not served (said once per correction; "
           "the server's status line, on SIGUSR1 and at stop, counts them)";
       server_->PublishText(tracker_, TextSeverity::kError, text);
+      if (log_) log_(text);
+    }
+  }
+  if (bad_reports > 0) {
+    bad_reports_total_ += bad_reports;
+    if (!bad_report_told_) {
+      bad_report_told_ = true;
+      const std::string text =
+          first_bad_report +
+          ", which is not a pose (not finite, or a zero quaternion): such reports are served "
+          "under neither name (said once; the server's status line, on SIGUSR1 and at stop, "
+          "counts them)";
+      server_->PublishText(tracker_, TextSeverity::kError, text);
+      if (raw_tracker_) server_->PublishText(*raw_tracker_, TextSeverity::kError, text);
       if (log_) log_(text);
     }
   }

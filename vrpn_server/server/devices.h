@@ -135,6 +135,10 @@ class TrackerDevice {
   // served (nor recorded); the first one of each correction is told to the corrected name's
   // clients and the log at error severity, the others only counted here.
   std::uint64_t non_finite_poses() const { return non_finite_total_.load(); }
+  // Reports that are not a pose (not finite, or a zero quaternion; a pass-through source forwards
+  // what its server sent): served under neither name, nor corrected or recorded; the first one is
+  // told to the clients of both names and the log, the others only counted here.
+  std::uint64_t bad_reports() const { return bad_reports_total_.load(); }
   static constexpr std::chrono::steady_clock::duration kExtrapolationNoticeInterval =
       std::chrono::seconds(1);
   int tracker() const { return tracker_; }
@@ -156,6 +160,8 @@ class TrackerDevice {
   std::atomic<std::uint64_t> unresolved_total_{0};
   std::atomic<std::uint64_t> non_finite_total_{0};
   bool non_finite_told_ = false;  // guarded by mutex_; reset when the correction is replaced
+  std::atomic<std::uint64_t> bad_reports_total_{0};
+  bool bad_report_told_ = false;  // guarded by mutex_
   // Guarded by mutex_: poses extrapolated / unresolved since the last notice, and when that notice
   // went out.
   std::uint64_t extrapolated_pending_ = 0;

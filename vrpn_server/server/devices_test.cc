@@ -368,6 +368,61 @@ TEST(TrackerDevice, ANonFiniteCorrectedPoseIsNotServedToldOnceAndCounted) {
   EXPECT_EQ(poses.size(), 1u);
 }
 
+// A pass-through source forwards what its server sent: a NaN (or a zero quaternion) went to the
+// raw name's clients as it was, and through a correction (BoxCorrector leaves it as it is; a
+// clamping one can make it finite and wrong) to the corrected name's. Neither name serves it; both
+// are told once, the log once, the rest counted.
+TEST(TrackerDevice, AReportThatIsNotAPoseIsServedUnderNeitherName) {
+  Fixture f;
+  TrackerDevice device(f.server.get(), f.corrected, f.raw);
+  device.SetCorrector(std::make_shared<BoxCorrector>());
+  std::vector<std::string> log;
+  std::mutex log_mutex;
+  device.SetLog([&](const std::string& line) {
+    std::lock_guard<std::mutex> lock(log_mutex);
+    log.push_back(line);
+  });
+  VrpnTrackerClient client(f.Name("Tracker0"));
+  VrpnTrackerClient raw_client(f.Name("Tracker0_raw"));
+  std::vector<TrackerReport> poses, raw_poses;
+  std::vector<std::string> texts, raw_texts;
+  client.SetPoseCallback([&](const TrackerReport& r) { poses.push_back(r); });
+  raw_client.SetPoseCallback([&](const TrackerReport& r) { raw_poses.push_back(r); });
+  client.SetMessageCallback([&](const ReceivedMessage& m) {
+    if (m.type == kTextType) texts.push_back(DecodeText(m.payload)->text);
+  });
+  raw_client.SetMessageCallback([&](const ReceivedMessage& m) {
+    if (m.type == kTextType) raw_texts.push_back(DecodeText(m.payload)->text);
+  });
+  ASSERT_TRUE(PollUntil({&client, &raw_client},
+                        [&] { return client.pong_received() && raw_client.pong_received(); }));
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  std::vector<SensorReport> batch = {
+      {0, Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(nan, 0, 0)), Timestamp{1, 0}},
+      {0, Rigid3d(Eigen::Quaterniond(0, 0, 0, 0), Eigen::Vector3d(0.1, 0, 0)), Timestamp{1, 1}},
+      {1, Rigid3d(Eigen::Quaterniond(nan, 0, 0, 1), Eigen::Vector3d(0.1, 0, 0)), Timestamp{1, 2}},
+      {1, Rigid3d(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.2, 0, 0)), Timestamp{1, 3}},
+  };
+  device.OnReports(batch);
+  device.OnReports(std::span<const SensorReport>(batch.data(), 1));
+  ASSERT_TRUE(PollUntil({&client, &raw_client}, [&] {
+    return poses.size() == 1 && raw_poses.size() == 1 && !texts.empty() && !raw_texts.empty();
+  }));
+  for (auto* c : {&client, &raw_client}) c->Poll(0.1);  // anything else sent would arrive now
+  ASSERT_EQ(poses.size(), 1u);
+  ASSERT_EQ(raw_poses.size(), 1u);
+  EXPECT_EQ(poses[0].time, (Timestamp{1, 3}));
+  EXPECT_EQ(raw_poses[0].time, (Timestamp{1, 3}));
+  EXPECT_EQ(device.bad_reports(), 4u);
+  EXPECT_EQ(device.corrected_poses(), 1u);
+  ASSERT_EQ(texts.size(), 1u);
+  EXPECT_EQ(raw_texts, texts);
+  EXPECT_EQ(texts[0].rfind("sensor 0: the source reported ", 0), 0u) << texts[0];
+  EXPECT_NE(texts[0].find("which is not a pose"), std::string::npos) << texts[0];
+  std::lock_guard<std::mutex> lock(log_mutex);
+  EXPECT_EQ(log, texts);
+}
+
 TEST(NullTracker, ReportsEverySensorAtRate) {
   Fixture f;
   TrackerDevice device(f.server.get(), f.corrected, std::nullopt);
