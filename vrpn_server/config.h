@@ -13,7 +13,9 @@
 //
 // Differences from the reference parser: trailing spaces/tabs and CRLF line ends do not end a
 // continuation, comment lines inside a continuation block are skipped, an unknown device line is a
-// warning (with its continuation lines skipped) instead of a fatal error.
+// warning (with its continuation lines skipped) instead of a fatal error, a blank line ends a
+// continuation block with a warning (a line after it that starts no device is an error), and two
+// Fastrak lines on one serial port (compared by canonical path) are an error naming both lines.
 // Device names must be 1-95 printable bytes without '@' (what a client can address as Name@host);
 // one that is not UTF-8 is served with a warning (a client must send its bytes). Errors throw
 // std::invalid_argument "file:line: field 'x': what". Errors and warnings quote the file with
