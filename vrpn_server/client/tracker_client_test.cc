@@ -562,9 +562,10 @@ TEST(VrpnServer, ReferenceClientBytesSplitAnywhereGetTheReferenceServersAnswers)
 
 // Sends `server` a lob request from the UDP socket `udp` naming a listener on 127.0.0.1 and returns
 // the server's call-back connection (invalid if none came within 10 s).
-UniqueFd AcceptLobCallback(const VrpnServer& server, int udp) {
+UniqueFd AcceptLobCallback(const VrpnServer& server, int udp,
+                           const std::string& address = "127.0.0.1") {
   UniqueFd listener(::socket(AF_INET, SOCK_STREAM, 0));
-  sockaddr_in la = MakeSockaddr(*ParseIpv4("127.0.0.1"), 0);
+  sockaddr_in la = MakeSockaddr(*ParseIpv4(address), 0);
   if (::bind(listener.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)) != 0 ||
       ::listen(listener.get(), 1) != 0) {
     return UniqueFd();
@@ -572,7 +573,7 @@ UniqueFd AcceptLobCallback(const VrpnServer& server, int udp) {
   socklen_t len = sizeof(la);
   ::getsockname(listener.get(), reinterpret_cast<sockaddr*>(&la), &len);
   const sockaddr_in dst = MakeSockaddr(*ParseIpv4("127.0.0.1"), server.port());
-  const auto lob = EncodeLobRequest(LobRequest{"127.0.0.1", ntohs(la.sin_port)});
+  const auto lob = EncodeLobRequest(LobRequest{address, ntohs(la.sin_port)});
   if (::sendto(udp, lob.data(), lob.size(), 0, reinterpret_cast<const sockaddr*>(&dst),
                sizeof(dst)) <= 0) {
     return UniqueFd();
@@ -623,6 +624,110 @@ TEST(VrpnServer, AForeignUdpDescriptionIsLoggedOnceNotOnEveryRead) {
   }
   EXPECT_EQ(pongs, kPings);
   EXPECT_EQ(ignored_lines.load(), 1);
+}
+
+// A lob client made of raw sockets on `address` (a loopback address): it takes the server's
+// call-back and describes a UDP data port, either its own open socket or (udp_reachable false) a
+// port nobody listens on, so the server's datagrams there come back as ICMP port unreachable.
+// Counts the Pos_Quat reports that reach it on each channel.
+class RawLobClient {
+ public:
+  RawLobClient(const VrpnServer& server, bool udp_reachable,
+               const std::string& address = "127.0.0.1") {
+    data_ = UniqueFd(::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK, 0));
+    sockaddr_in ua = MakeSockaddr(*ParseIpv4(address), 0);
+    if (::bind(data_.get(), reinterpret_cast<sockaddr*>(&ua), sizeof(ua)) != 0) return;
+    socklen_t len = sizeof(ua);
+    ::getsockname(data_.get(), reinterpret_cast<sockaddr*>(&ua), &len);
+    udp_port_ = ntohs(ua.sin_port);
+    if (!udp_reachable) data_.Reset();  // the port is closed: datagrams to it are refused
+    UniqueFd lob(::socket(AF_INET, SOCK_DGRAM, 0));
+    sockaddr_in la = MakeSockaddr(*ParseIpv4(address), 0);
+    if (::bind(lob.get(), reinterpret_cast<sockaddr*>(&la), sizeof(la)) != 0) return;
+    tcp_ = AcceptLobCallback(server, lob.get(), address);
+    if (!tcp_.valid()) return;
+    names_ = std::make_shared<NameRegistry>();
+    const std::int32_t tracker = names_->AddSender("Tracker0");
+    const std::int32_t ping = names_->AddType(kPingType);
+    conn_ = std::make_unique<Connection>(names_, Connection::Options{});
+    conn_->Start(std::make_pair(address, udp_port_));
+    // The pong tells that the server has read our UDP description (sent before the ping).
+    conn_->Pack(tracker, ping, Timestamp::Now(), {});
+    auto& out = conn_->tcp_output();
+    if (::send(tcp_.get(), out.data(), out.size(), 0) != static_cast<ssize_t>(out.size())) return;
+    out.clear();
+    ReadUntil([this] { return pongs_ > 0; }, 10.0);
+  }
+
+  bool ready() const { return pongs_ > 0; }
+  int udp_port() const { return udp_port_; }
+  int tcp_reports() const { return tcp_reports_; }
+  int udp_reports() const { return udp_reports_; }
+
+  // Reads both sockets until done() holds or timeout_s passes; false if the connection broke.
+  bool ReadUntil(const std::function<bool()>& done, double timeout_s) {
+    const auto end = Clock::now() + std::chrono::duration<double>(timeout_s);
+    std::uint8_t buf[65536];
+    const auto count = [this](const ReceivedMessage& m) {
+      if (m.type == kPongType) ++pongs_;
+      if (m.type == kPosQuatType) ++(m.via_udp ? udp_reports_ : tcp_reports_);
+    };
+    while (!done() && Clock::now() < end) {
+      pollfd p[2] = {{tcp_.get(), POLLIN, 0}, {data_.get(), POLLIN, 0}};
+      if (::poll(p, data_.valid() ? 2 : 1, 10) <= 0) continue;
+      if (p[0].revents) {
+        const ssize_t n = ::recv(tcp_.get(), buf, sizeof(buf), 0);
+        if (n <= 0) return false;
+        if (!conn_->OnTcpBytes(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)),
+                               count)) {
+          return false;
+        }
+      }
+      if (data_.valid() && p[1].revents) {
+        const ssize_t n = ::recv(data_.get(), buf, sizeof(buf), 0);
+        if (n > 0) {
+          conn_->OnDatagram(std::span<const std::uint8_t>(buf, static_cast<std::size_t>(n)), count);
+        }
+      }
+    }
+    return done();
+  }
+
+ private:
+  UniqueFd data_;
+  UniqueFd tcp_;
+  int udp_port_ = 0;
+  std::shared_ptr<NameRegistry> names_;
+  std::unique_ptr<Connection> conn_;
+  int pongs_ = 0;
+  int tcp_reports_ = 0;
+  int udp_reports_ = 0;
+};
+
+TEST(VrpnServer, ALobClientWhoseUdpPortIsUnreachableGetsItsReportsOverTcp) {
+  // A lob client whose UDP port cannot be reached (a firewall rejecting it, a client that closed
+  // the socket it described) got no report at all: the server kept sending datagrams into ICMP
+  // port unreachable for ever. Now the first such error moves that client to TCP, said once.
+  std::atomic<int> switch_lines{0};
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [&](const std::string& line) {
+    if (line.find("UDP port unreachable") != std::string::npos) ++switch_lines;
+  });
+  server.Start();
+  RawLobClient client(server, /*udp_reachable=*/false);
+  ASSERT_TRUE(client.ready());
+  // The first report goes to the dead port (UDP may lose it): the error comes back from it.
+  server.PublishPose(0, 0, RandomPose(), Timestamp::Now());
+  const auto end = Clock::now() + std::chrono::seconds(10);
+  while (switch_lines.load() == 0 && Clock::now() < end) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  constexpr int kReports = 80;
+  for (int i = 0; i < kReports; ++i) server.PublishPose(0, 0, RandomPose(), Timestamp::Now());
+  client.ReadUntil([&] { return client.tcp_reports() >= kReports; }, 10.0);
+  // Every report published after the switch arrives; the first one, sent over UDP, may or may not.
+  EXPECT_GE(client.tcp_reports(), kReports);
+  EXPECT_EQ(client.udp_reports(), 0);
+  EXPECT_EQ(switch_lines.load(), 1);
 }
 
 TEST(VrpnServer, AStrangersDatagramToAClientsDataPortIsIgnored) {

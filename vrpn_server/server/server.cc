@@ -2,6 +2,8 @@
 
 #include <arpa/inet.h>
 #include <fcntl.h>
+#include <linux/errqueue.h>
+#include <netinet/in.h>
 #include <netinet/tcp.h>
 #include <pthread.h>
 #include <sched.h>
@@ -187,6 +189,8 @@ struct VrpnServer::Endpoint {
   // Since when output has waited with the client taking none of it (max(): none waits).
   Clock::time_point unread_since = Clock::time_point::max();
   std::optional<sockaddr_in> udp_peer;
+  // The client's UDP port was unreachable (ICMP): its reports go over TCP from then on.
+  bool udp_unreachable = false;
   // An unusable UDP description was logged (once: the check runs after every read).
   bool udp_description_logged = false;
   std::vector<std::uint8_t> datagram;
@@ -383,6 +387,10 @@ void VrpnServer::Start() {
   UniqueFd udp(::socket(AF_INET, SOCK_DGRAM | SOCK_NONBLOCK | SOCK_CLOEXEC, 0));
   if (!udp.valid()) throw std::runtime_error("socket: " + ErrnoText(errno));
   ::setsockopt(udp.get(), SOL_SOCKET, SO_REUSEADDR, &one, sizeof(one));
+  // The lob clients' datagrams leave from this socket: without IP_RECVERR the kernel drops the
+  // ICMP errors they cause (an unconnected socket), and a client whose UDP port is unreachable
+  // would get no report, ever.
+  ::setsockopt(udp.get(), IPPROTO_IP, IP_RECVERR, &one, sizeof(one));
   sa = MakeSockaddr(bind_ip, port_);
   if (::bind(udp.get(), reinterpret_cast<sockaddr*>(&sa), sizeof(sa)) != 0) {
     throw std::runtime_error("cannot bind UDP " + options_.bind_address + ":" +
@@ -582,6 +590,7 @@ void VrpnServer::Run() {
           HandleAccept();
           break;
         case kUdpLob:
+          if (events[i].events & EPOLLERR) HandleUdpErrors();
           HandleLob();
           break;
         case kWake: {
@@ -710,7 +719,12 @@ void VrpnServer::HandleLob() {
     sockaddr_in src{};
     socklen_t len = sizeof(src);
     const ssize_t n = ::recvfrom(udp_fd_, buf, sizeof(buf), 0, reinterpret_cast<sockaddr*>(&src), &len);
-    if (n < 0) return;
+    if (n < 0) {
+      if (errno == EAGAIN || errno == EWOULDBLOCK) return;
+      // The pending error of a datagram we sent (ICMP), reported once instead of a datagram.
+      HandleUdpErrors();
+      continue;
+    }
     auto refuse = [&](const std::string& why) {
       std::lock_guard<std::mutex> lock(stats_mutex_);
       ++stats_.refused;
@@ -781,6 +795,41 @@ void VrpnServer::HandleLob() {
     Endpoint& ref = *e;
     impl_->endpoints.emplace(e->id, std::move(e));
     if (rc == 0) OnConnected(ref);
+  }
+}
+
+void VrpnServer::HandleUdpErrors() {
+  for (int burst = 0; burst < 256; ++burst) {
+    sockaddr_in target{};  // where the datagram that caused the error went
+    std::uint8_t data[64];
+    iovec iov{data, sizeof(data)};
+    alignas(cmsghdr) char control[256];
+    msghdr msg{};
+    msg.msg_name = &target;
+    msg.msg_namelen = sizeof(target);
+    msg.msg_iov = &iov;
+    msg.msg_iovlen = 1;
+    msg.msg_control = control;
+    msg.msg_controllen = sizeof(control);
+    if (::recvmsg(udp_fd_, &msg, MSG_ERRQUEUE | MSG_DONTWAIT) < 0) return;
+    for (cmsghdr* c = CMSG_FIRSTHDR(&msg); c != nullptr; c = CMSG_NXTHDR(&msg, c)) {
+      if (c->cmsg_level != IPPROTO_IP || c->cmsg_type != IP_RECVERR) continue;
+      sock_extended_err err;
+      std::memcpy(&err, CMSG_DATA(c), sizeof(err));
+      if (err.ee_origin != SO_EE_ORIGIN_ICMP) continue;
+      for (auto& [id, e] : impl_->endpoints) {
+        if (!e->udp_peer || e->udp_peer->sin_addr.s_addr != target.sin_addr.s_addr ||
+            e->udp_peer->sin_port != target.sin_port) {
+          continue;
+        }
+        e->udp_peer.reset();
+        e->udp_unreachable = true;
+        if (ConnectionLogAllowed()) {
+          Log(e->label + ": UDP port unreachable (" + FormatEndpoint(target) + ": " +
+              ErrnoText(static_cast<int>(err.ee_errno)) + "); its reports go over TCP");
+        }
+      }
+    }
   }
 }
 
@@ -903,7 +952,8 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
         e.deadline = Clock::time_point::max();
       }
       // Use the client's UDP port once described, if it is on the client's own address.
-      if (e.udp_fd.valid() && !e.udp_peer && e.session->connection().peer_udp()) {
+      if (e.udp_fd.valid() && !e.udp_peer && !e.udp_unreachable &&
+          e.session->connection().peer_udp()) {
         const auto& [host, port] = *e.session->connection().peer_udp();
         const auto ip = ParseIpv4(host);
         if (ip && ip->s_addr == e.peer.sin_addr.s_addr) {

@@ -186,6 +186,9 @@ class VrpnServer {
   void SetAccepting(bool on);
   void DetectDeadClient(int fd);  // options_.dead_client_timeout_s on a client socket
   void HandleLob();
+  // Reads the errors the kernel queued on the shared UDP socket for datagrams sent from it (ICMP):
+  // a client whose UDP port is unreachable gets its reports over TCP from then on (logged once).
+  void HandleUdpErrors();
   void HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp);
   void OnConnected(Endpoint& e);
   void StartSession(Endpoint& e);
