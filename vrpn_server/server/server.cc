@@ -225,6 +225,7 @@ struct VrpnServer::Impl {
   std::vector<mmsghdr> mmsg;     // DrainEvents scratch
   std::vector<iovec> iovs;
   std::vector<std::uint64_t> ids;
+  std::vector<std::uint64_t> owners;  // the endpoint of each datagram in mmsg
 };
 
 namespace {
@@ -1190,13 +1191,20 @@ void VrpnServer::DrainEvents() {
       if (!wanted) continue;
       if (low_latency && e->udp_peer) {
         if (e->datagram.size() + msg.size() > kMaxDatagramSize) {
-          // Flush a full datagram before adding more.
-          if (::sendto(e->udp_fd.get(), e->datagram.data(), e->datagram.size(), MSG_DONTWAIT,
-                       reinterpret_cast<const sockaddr*>(&*e->udp_peer), sizeof(sockaddr_in)) < 0) {
-            std::lock_guard<std::mutex> lock(stats_mutex_);
-            ++stats_.udp_send_failures;
-          }
+          // Flush a full datagram before adding more (from the shared socket, as the rest: its
+          // errors are read there).
+          mmsghdr h{};
+          iovec iov{e->datagram.data(), e->datagram.size()};
+          h.msg_hdr.msg_name = &*e->udp_peer;
+          h.msg_hdr.msg_namelen = sizeof(sockaddr_in);
+          h.msg_hdr.msg_iov = &iov;
+          h.msg_hdr.msg_iovlen = 1;
+          SendDatagrams(std::span<mmsghdr>(&h, 1), std::span<const std::uint64_t>(&e->id, 1));
           e->datagram.clear();
+          if (!e->udp_peer) {  // its port was found unreachable: the rest goes over TCP
+            e->session->connection().PackEncoded(msg);
+            continue;
+          }
         }
         e->session->connection().PackEncodedUdp(msg, &e->datagram);
       } else {
@@ -1224,8 +1232,11 @@ void VrpnServer::DrainEvents() {
     if (!e->datagram.empty()) iovs.push_back(iovec{e->datagram.data(), e->datagram.size()});
   }
   std::size_t k = 0;
+  std::vector<std::uint64_t>& owners = impl_->owners;
+  owners.clear();
   for (auto& [id, e] : impl_->endpoints) {
     if (e->datagram.empty()) continue;
+    owners.push_back(id);
     mmsghdr h{};
     h.msg_hdr.msg_name = &*e->udp_peer;
     h.msg_hdr.msg_namelen = sizeof(sockaddr_in);
@@ -1233,18 +1244,7 @@ void VrpnServer::DrainEvents() {
     h.msg_hdr.msg_iovlen = 1;
     headers.push_back(h);
   }
-  for (std::size_t sent = 0; sent < headers.size();) {
-    const int n = ::sendmmsg(udp_fd_, headers.data() + sent, static_cast<unsigned>(headers.size() - sent),
-                             MSG_DONTWAIT);
-    if (n <= 0) {
-      // Skip the datagram that failed (full buffer, unreachable client) and carry on.
-      std::lock_guard<std::mutex> lock(stats_mutex_);
-      ++stats_.udp_send_failures;
-      ++sent;
-      continue;
-    }
-    sent += static_cast<std::size_t>(n);
-  }
+  SendDatagrams(headers, owners);
   for (auto& [id, e] : impl_->endpoints) e->datagram.clear();
   for (std::uint64_t id : ids) {
     auto it = impl_->endpoints.find(id);
@@ -1254,6 +1254,52 @@ void VrpnServer::DrainEvents() {
   const float us = std::chrono::duration<float, std::micro>(Clock::now() - first_enqueued).count();
   std::lock_guard<std::mutex> lock(stats_mutex_);
   if (impl_->fanout_us.size() < 1000000) impl_->fanout_us.push_back(us);
+}
+
+void VrpnServer::SendDatagrams(std::span<mmsghdr> headers, std::span<const std::uint64_t> owners) {
+  std::size_t end = headers.size();
+  bool retried = false;
+  for (std::size_t sent = 0; sent < end;) {
+    const int n =
+        ::sendmmsg(udp_fd_, headers.data() + sent, static_cast<unsigned>(end - sent), MSG_DONTWAIT);
+    if (n > 0) {
+      sent += static_cast<std::size_t>(n);
+      retried = false;
+      continue;
+    }
+    // The kernel reports the ICMP error of an earlier datagram (to any client) at the next send
+    // from the socket, and sends nothing: read the queued errors (a client whose port is
+    // unreachable moves to TCP) and send this datagram again, once, so that one client's error
+    // never costs another client a report.
+    if (!retried && errno != EAGAIN && errno != EWOULDBLOCK) {
+      HandleUdpErrors();
+      retried = true;
+      // The datagrams not sent yet of a client just moved to TCP go there.
+      std::size_t kept = sent;
+      for (std::size_t k = sent; k < end; ++k) {
+        auto it = impl_->endpoints.find(owners[k]);
+        if (it != impl_->endpoints.end() && !it->second->udp_peer && it->second->session) {
+          const auto* p = static_cast<const std::uint8_t*>(headers[k].msg_hdr.msg_iov->iov_base);
+          const std::size_t size = headers[k].msg_hdr.msg_iov->iov_len;
+          for (std::size_t at = 0; at + kHeaderSize <= size;) {
+            const std::size_t wire = std::min(size - at, DecodeHeader(p + at).wire_size());
+            it->second->session->connection().PackEncoded(std::span(p + at, wire));
+            at += wire;
+          }
+          continue;
+        }
+        headers[kept] = headers[k];
+        ++kept;
+      }
+      end = kept;
+      continue;
+    }
+    // Still failing (full send buffer, a datagram the path cannot carry): skip it, carry on.
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    ++stats_.udp_send_failures;
+    ++sent;
+    retried = false;
+  }
 }
 
 std::vector<float> VrpnServer::TakeFanoutMicros() {

@@ -17,6 +17,8 @@
 
 #pragma once
 
+#include <sys/socket.h>
+
 #include <atomic>
 #include <chrono>
 #include <cstdint>
@@ -189,6 +191,10 @@ class VrpnServer {
   // Reads the errors the kernel queued on the shared UDP socket for datagrams sent from it (ICMP):
   // a client whose UDP port is unreachable gets its reports over TCP from then on (logged once).
   void HandleUdpErrors();
+  // Sends datagrams from the shared UDP socket (sendmmsg), owners[k] the endpoint of headers[k];
+  // a send that fails is sent again once after HandleUdpErrors, as the failure may be another
+  // datagram's ICMP error (the datagrams of a client that moved to TCP then go over TCP).
+  void SendDatagrams(std::span<mmsghdr> headers, std::span<const std::uint64_t> owners);
   void HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp);
   void OnConnected(Endpoint& e);
   void StartSession(Endpoint& e);
