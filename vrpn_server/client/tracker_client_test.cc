@@ -758,6 +758,70 @@ TEST(VrpnServer, AnUnreachableClientCostsAnotherClientNoReport) {
   EXPECT_GE(unreachable.tcp_reports(), kReports - 2);
 }
 
+// Sends the server's UDP socket (on 127.0.0.1) an ICMP "fragmentation needed" about a datagram
+// it sent to client:client_port, as a router on a path with a smaller MTU does. False without
+// CAP_NET_RAW. `mtu` is what the router reports; 65535 leaves the kernel's path MTU for the
+// client's address as it is in practice (no IPv4 packet is larger).
+bool InjectFragmentationNeeded(int server_port, const std::string& client, int client_port,
+                               int mtu) {
+  UniqueFd raw(::socket(AF_INET, SOCK_RAW, IPPROTO_ICMP));
+  if (!raw.valid()) return false;
+  std::uint8_t packet[8 + 20 + 8] = {};
+  packet[0] = 3;  // destination unreachable
+  packet[1] = 4;  // fragmentation needed and DF set
+  packet[6] = static_cast<std::uint8_t>(mtu >> 8);
+  packet[7] = static_cast<std::uint8_t>(mtu);
+  // The start of the datagram the ICMP message is about: its IPv4 and UDP headers.
+  std::uint8_t* ip = packet + 8;
+  ip[0] = 0x45;
+  ip[2] = 0x05;  // total length 1500
+  ip[3] = 0xdc;
+  ip[6] = 0x40;  // DF
+  ip[8] = 64;    // TTL
+  ip[9] = IPPROTO_UDP;
+  const in_addr server_ip = *ParseIpv4("127.0.0.1");
+  const in_addr client_ip = *ParseIpv4(client);
+  std::memcpy(ip + 12, &server_ip, 4);
+  std::memcpy(ip + 16, &client_ip, 4);
+  std::uint8_t* udp = ip + 20;
+  udp[0] = static_cast<std::uint8_t>(server_port >> 8);
+  udp[1] = static_cast<std::uint8_t>(server_port);
+  udp[2] = static_cast<std::uint8_t>(client_port >> 8);
+  udp[3] = static_cast<std::uint8_t>(client_port);
+  udp[4] = 0x05;  // length 1480
+  udp[5] = 0xc8;
+  std::uint32_t sum = 0;
+  for (std::size_t i = 0; i < sizeof(packet); i += 2) sum += (packet[i] << 8) | packet[i + 1];
+  while (sum >> 16) sum = (sum & 0xffff) + (sum >> 16);
+  packet[2] = static_cast<std::uint8_t>(~sum >> 8);
+  packet[3] = static_cast<std::uint8_t>(~sum);
+  const sockaddr_in dst = MakeSockaddr(server_ip, 0);
+  return ::sendto(raw.get(), packet, sizeof(packet), 0, reinterpret_cast<const sockaddr*>(&dst),
+                  sizeof(dst)) == static_cast<ssize_t>(sizeof(packet));
+}
+
+TEST(VrpnServer, FragmentationNeededKeepsAClientOnUdp) {
+  // An ICMP "fragmentation needed" says a datagram was too large for a hop, not that the
+  // client's port is closed: the client stays on UDP and loses no report.
+  std::atomic<int> switch_lines{0};
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [&](const std::string& line) {
+    if (line.find("UDP port unreachable") != std::string::npos) ++switch_lines;
+  });
+  server.Start();
+  // Its own loopback address: the kernel notes the reported MTU for that address only.
+  RawLobClient client(server, /*udp_reachable=*/true, "127.0.0.9");
+  ASSERT_TRUE(client.ready());
+  if (!InjectFragmentationNeeded(server.port(), "127.0.0.9", client.udp_port(), 65535)) {
+    GTEST_SKIP() << "needs CAP_NET_RAW to send an ICMP message";
+  }
+  constexpr int kReports = 20;
+  for (int i = 0; i < kReports; ++i) server.PublishPose(0, 0, RandomPose(), Timestamp::Now());
+  client.ReadUntil([&] { return client.udp_reports() + client.tcp_reports() >= kReports; }, 10.0);
+  EXPECT_EQ(client.udp_reports(), kReports);
+  EXPECT_EQ(client.tcp_reports(), 0);
+  EXPECT_EQ(switch_lines.load(), 0);
+}
+
 TEST(VrpnServer, AStrangersDatagramToAClientsDataPortIsIgnored) {
   // The server's UDP data socket for a lob client takes datagrams from anyone who finds its port.
   // Only the client's own host may speak for the client there: a stranger's ping (with the

@@ -4,6 +4,7 @@
 #include <fcntl.h>
 #include <linux/errqueue.h>
 #include <netinet/in.h>
+#include <netinet/ip_icmp.h>
 #include <netinet/tcp.h>
 #include <pthread.h>
 #include <sched.h>
@@ -112,6 +113,16 @@ bool IsAddressOfThisHost(in_addr address) {
   sockaddr_in local = MakeSockaddr(address, 0);
   return probe.valid() &&
          ::bind(probe.get(), reinterpret_cast<sockaddr*>(&local), sizeof(local)) == 0;
+}
+
+// Whether an ICMP error says the client's UDP port cannot be reached: port unreachable, or
+// communication administratively prohibited (a firewall rejecting it). Not "fragmentation needed"
+// (a hop with a smaller MTU: the kernel lowers its path MTU and later datagrams pass), nor host or
+// network unreachable (the TCP connection fails too, and is closed on its own).
+bool UdpPortUnreachable(const sock_extended_err& err) {
+  if (err.ee_origin != SO_EE_ORIGIN_ICMP || err.ee_type != ICMP_DEST_UNREACH) return false;
+  return err.ee_code == ICMP_PORT_UNREACH || err.ee_code == ICMP_NET_ANO ||
+         err.ee_code == ICMP_HOST_ANO || err.ee_code == ICMP_PKT_FILTERED;
 }
 
 }  // namespace
@@ -817,7 +828,7 @@ void VrpnServer::HandleUdpErrors() {
       if (c->cmsg_level != IPPROTO_IP || c->cmsg_type != IP_RECVERR) continue;
       sock_extended_err err;
       std::memcpy(&err, CMSG_DATA(c), sizeof(err));
-      if (err.ee_origin != SO_EE_ORIGIN_ICMP) continue;
+      if (!UdpPortUnreachable(err)) continue;
       for (auto& [id, e] : impl_->endpoints) {
         if (!e->udp_peer || e->udp_peer->sin_addr.s_addr != target.sin_addr.s_addr ||
             e->udp_peer->sin_port != target.sin_port) {
