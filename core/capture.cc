@@ -556,6 +556,7 @@ class CsvWriter {
     names_.insert(names_.end(), extra_columns.begin(), extra_columns.end());
     for (size_t i = 0; i < names_.size(); ++i) out_ << (i ? "," : "") << names_[i];
     out_ << '\n';
+    header_size_ = static_cast<size_t>(out_.tellp());
   }
   CsvWriter& Int(int v) {
     Sep();
@@ -639,6 +640,11 @@ class CsvWriter {
   void Commit(const std::filesystem::path& path, const CaptureWriteOptions& options) {
     WriteFileAtomically(path, out_.str(), options.overwrite);
   }
+  // The text so far, with or without the header line.
+  std::string Contents(bool header) const {
+    std::string text = out_.str();
+    return header ? text : text.substr(header_size_);
+  }
 
  private:
   void Sep() {
@@ -655,6 +661,7 @@ class CsvWriter {
   size_t extra_count_;
   std::vector<std::vector<std::string>> extra_labels_;
   std::ostringstream out_;
+  size_t header_size_ = 0;  // length of the header line in out_
   size_t field_ = 0;   // fields written of the current record
   size_t record_ = 0;  // index of the current record
   std::map<std::pair<int, int>, size_t> keys_;  // key columns' values -> first record
@@ -813,15 +820,30 @@ void WriteTracker(const std::filesystem::path& path, const TrackerCapture& captu
   w.Commit(path, options);
 }
 
-void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& capture,
-                        const CaptureWriteOptions& options) {
-  CsvWriter w(path, kTrackerStreamColumns, capture.extra_columns, capture.extra_labels);
+namespace {
+
+void AddTrackerStream(const TrackerStream& capture, CsvWriter& w) {
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const TrackerStreamSample& r = capture.records[i];
     w.Num(r.time).Int(r.sensor).Pose(r.transmitter_from_receiver);
     w.End(r.extra, i);
   }
+}
+
+}  // namespace
+
+void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& capture,
+                        const CaptureWriteOptions& options) {
+  CsvWriter w(path, kTrackerStreamColumns, capture.extra_columns, capture.extra_labels);
+  AddTrackerStream(capture, w);
   w.Commit(path, options);
+}
+
+std::string FormatTrackerStream(const TrackerStream& capture, const std::string& name,
+                                bool header) {
+  CsvWriter w(name, kTrackerStreamColumns, capture.extra_columns, capture.extra_labels);
+  AddTrackerStream(capture, w);
+  return w.Contents(header);
 }
 
 void WriteReferenceStream(const std::filesystem::path& path, const ReferenceStream& capture,

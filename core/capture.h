@@ -131,6 +131,13 @@ void WriteTrackerStream(const std::filesystem::path& path, const TrackerStream& 
 void WriteReferenceStream(const std::filesystem::path& path, const ReferenceStream& capture,
                           const CaptureWriteOptions& options = {});
 
+// The text WriteTrackerStream writes for `capture` (the header line, then one line per record),
+// refusing what it refuses with the same std::invalid_argument, `name` standing for the file
+// ("name: record 2: column x: ..."). Without the header when !header: the rows to append to a
+// file that has it (a live recording), byte for byte the file one write of all the rows gives.
+std::string FormatTrackerStream(const TrackerStream& capture, const std::string& name,
+                                bool header = true);
+
 // Shortest decimal text that reads back to exactly `value`.
 std::string FormatNumber(double value);
 

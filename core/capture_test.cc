@@ -717,6 +717,36 @@ TEST(OtherCaptureFiles, ReferenceStreamTimesMustIncrease) {
                 "increase)");
 }
 
+TEST(FormatTrackerStream, Nominal) {
+  // The text is the file WriteTrackerStream writes, and the rows alone are it without the header:
+  // a recording appended a chunk at a time is byte for byte the file of one write.
+  const auto dir = MakeTempDir("capture_test");
+  TrackerStream stream;
+  for (int i = 0; i < 20; ++i) {
+    stream.records.push_back({1796098746.0 + i / 120.0,
+                              1 + i % 2,
+                              Rigid3d(RandomRotation(TestRng()), Eigen::Vector3d(1.0 / 3, -0.2, i)),
+                              {}});
+  }
+  WriteTrackerStream(dir / kTrackerStreamCsv, stream);
+  const std::string file = ReadText(dir / kTrackerStreamCsv);
+  EXPECT_EQ(FormatTrackerStream(stream, "rec"), file);
+  TrackerStream first = stream, second = stream;
+  first.records.resize(7);
+  second.records.erase(second.records.begin(), second.records.begin() + 7);
+  EXPECT_EQ(FormatTrackerStream(first, "rec") + FormatTrackerStream(second, "rec", false), file);
+  EXPECT_EQ(FormatTrackerStream(TrackerStream{}, "rec"), "time,sensor,x,y,z,qw,qx,qy,qz\n");
+  EXPECT_EQ(FormatTrackerStream(TrackerStream{}, "rec", false), "");
+}
+
+TEST(FormatTrackerStream, RefusesWhatTheWriterRefusesNamingTheText) {
+  TrackerStream stream;
+  stream.records.resize(3);
+  stream.records[2].transmitter_from_receiver.rotation.coeffs() << 0.0, 0.0, 0.0, 2.0;
+  EXPECT_EQ(ErrorOf([&] { FormatTrackerStream(stream, "raw.partial", false); }),
+            "raw.partial: record 2: columns qw, qx, qy, qz: quaternion norm 2 is not 1");
+}
+
 TEST(FormatNumber, ShortestRoundTrip) {
   EXPECT_EQ(FormatNumber(0.1), "0.1");
   EXPECT_EQ(FormatNumber(-2.5e-7), "-2.5e-07");

@@ -167,6 +167,63 @@ ErrorSummary SummaryFromDict(const py::dict& d) {
   return s;
 }
 
+// The stream the arrays describe, for write_tracker_stream and format_tracker_stream (`function`
+// in shape errors, `name` for the file in value errors).
+TrackerStream ToTrackerStream(const std::string& function, const std::string& name,
+                              const py::handle& time_obj, const py::handle& sensor_obj,
+                              const py::handle& positions, const py::handle& quaternions,
+                              const std::vector<std::string>& extra_columns,
+                              const py::handle& extra_obj,
+                              const std::map<std::string, std::vector<std::string>>& extra_labels) {
+  const std::vector<Rigid3d> poses = ToPoses(positions, quaternions, function,
+                                             /*normalize_any=*/false);
+  const py::ssize_t n = static_cast<py::ssize_t>(poses.size());
+  const DoubleArray time = DoubleArray::ensure(time_obj);
+  // Read as numbers and checked: the int cast truncated a sensor of 1.7 to 1.
+  const DoubleArray sensor = DoubleArray::ensure(sensor_obj);
+  if (!time || !sensor || time.ndim() != 1 || sensor.ndim() != 1 || time.shape(0) != n ||
+      sensor.shape(0) != n) {
+    PyErr_Clear();
+    throw py::value_error(function + ": time and sensor must be (N,) like positions");
+  }
+  // The extra columns (a temperature, an operator's label) were dropped without a word.
+  TrackerStream s;
+  s.extra_columns = extra_columns;
+  const py::ssize_t num_extra = static_cast<py::ssize_t>(extra_columns.size());
+  DoubleArray extra;
+  if (num_extra > 0) {
+    extra = DoubleArray::ensure(extra_obj);
+    if (!extra || extra.ndim() != 2 || extra.shape(0) != n || extra.shape(1) != num_extra) {
+      PyErr_Clear();
+      throw py::value_error(function + ": extra must be (N, len(extra_columns))");
+    }
+  }
+  if (!extra_labels.empty()) s.extra_labels.resize(extra_columns.size());
+  for (const auto& [column, labels] : extra_labels) {
+    const auto it = std::find(extra_columns.begin(), extra_columns.end(), column);
+    if (it == extra_columns.end()) {
+      throw py::value_error(function + ": extra_labels names " + column +
+                            ", which is not in extra_columns");
+    }
+    s.extra_labels[it - extra_columns.begin()] = labels;
+  }
+  s.records.resize(poses.size());
+  for (size_t i = 0; i < poses.size(); ++i) {
+    const double id = sensor.at(i);
+    if (!(std::isfinite(id) && id == std::trunc(id) && id >= std::numeric_limits<int>::min() &&
+          id <= std::numeric_limits<int>::max())) {
+      std::ostringstream message;
+      message << name << ": record " << i << ": column sensor: " << id << " is not an integer";
+      throw py::value_error(message.str());
+    }
+    s.records[i].time = time.at(i);
+    s.records[i].sensor = static_cast<int>(id);
+    s.records[i].transmitter_from_receiver = poses[i];
+    for (py::ssize_t k = 0; k < num_extra; ++k) s.records[i].extra.push_back(extra.at(i, k));
+  }
+  return s;
+}
+
 }  // namespace
 
 py::dict PoseCaptureToDict(const PoseCapture& c) {
@@ -242,53 +299,9 @@ void BindCapture(py::module_& m) {
          const std::vector<std::string>& extra_columns, const py::handle& extra_obj,
          const std::map<std::string, std::vector<std::string>>& extra_labels) {
         const std::filesystem::path path = PathArgument(path_obj, "path");
-        const std::vector<Rigid3d> poses = ToPoses(positions, quaternions, "write_tracker_stream",
-                                                   /*normalize_any=*/false);
-        const py::ssize_t n = static_cast<py::ssize_t>(poses.size());
-        const DoubleArray time = DoubleArray::ensure(time_obj);
-        // Read as numbers and checked: the int cast truncated a sensor of 1.7 to 1.
-        const DoubleArray sensor = DoubleArray::ensure(sensor_obj);
-        if (!time || !sensor || time.ndim() != 1 || sensor.ndim() != 1 || time.shape(0) != n ||
-            sensor.shape(0) != n) {
-          PyErr_Clear();
-          throw py::value_error("write_tracker_stream: time and sensor must be (N,) like positions");
-        }
-        // The extra columns (a temperature, an operator's label) were dropped without a word.
-        TrackerStream s;
-        s.extra_columns = extra_columns;
-        const py::ssize_t num_extra = static_cast<py::ssize_t>(extra_columns.size());
-        DoubleArray extra;
-        if (num_extra > 0) {
-          extra = DoubleArray::ensure(extra_obj);
-          if (!extra || extra.ndim() != 2 || extra.shape(0) != n || extra.shape(1) != num_extra) {
-            PyErr_Clear();
-            throw py::value_error("write_tracker_stream: extra must be (N, len(extra_columns))");
-          }
-        }
-        if (!extra_labels.empty()) s.extra_labels.resize(extra_columns.size());
-        for (const auto& [name, labels] : extra_labels) {
-          const auto it = std::find(extra_columns.begin(), extra_columns.end(), name);
-          if (it == extra_columns.end()) {
-            throw py::value_error("write_tracker_stream: extra_labels names " + name +
-                                  ", which is not in extra_columns");
-          }
-          s.extra_labels[it - extra_columns.begin()] = labels;
-        }
-        s.records.resize(poses.size());
-        for (size_t i = 0; i < poses.size(); ++i) {
-          const double id = sensor.at(i);
-          if (!(std::isfinite(id) && id == std::trunc(id) &&
-                id >= std::numeric_limits<int>::min() && id <= std::numeric_limits<int>::max())) {
-            std::ostringstream message;
-            message << path.string() << ": record " << i << ": column sensor: " << id
-                    << " is not an integer";
-            throw py::value_error(message.str());
-          }
-          s.records[i].time = time.at(i);
-          s.records[i].sensor = static_cast<int>(id);
-          s.records[i].transmitter_from_receiver = poses[i];
-          for (py::ssize_t k = 0; k < num_extra; ++k) s.records[i].extra.push_back(extra.at(i, k));
-        }
+        const TrackerStream s =
+            ToTrackerStream("write_tracker_stream", path.string(), time_obj, sensor_obj, positions,
+                            quaternions, extra_columns, extra_obj, extra_labels);
         WriteTrackerStream(path, s, CaptureWriteOptions{.overwrite = overwrite});
       },
       py::arg("path"), py::arg("time"), py::arg("sensor"), py::arg("positions"),
@@ -298,6 +311,24 @@ void BindCapture(py::module_& m) {
       "Writes tracker_stream.csv atomically; refuses to replace an existing file unless overwrite. "
       "extra (N, K) holds the extra columns extra_columns names; a column of labels holds indices "
       "into extra_labels[name] (as read_tracker_stream gives them).");
+
+  m.def(
+      "format_tracker_stream",
+      [](const py::handle& time_obj, const py::handle& sensor_obj, const py::handle& positions,
+         const py::handle& quaternions, const std::string& name, bool header,
+         const std::vector<std::string>& extra_columns, const py::handle& extra_obj,
+         const std::map<std::string, std::vector<std::string>>& extra_labels) {
+        const TrackerStream s =
+            ToTrackerStream("format_tracker_stream", name, time_obj, sensor_obj, positions,
+                            quaternions, extra_columns, extra_obj, extra_labels);
+        return py::bytes(FormatTrackerStream(s, name, header));
+      },
+      py::arg("time"), py::arg("sensor"), py::arg("positions"), py::arg("quaternions_xyzw"),
+      py::kw_only(), py::arg("name"), py::arg("header") = true,
+      py::arg("extra_columns") = std::vector<std::string>{}, py::arg("extra") = py::none(),
+      py::arg("extra_labels") = std::map<std::string, std::vector<std::string>>{},
+      "The bytes write_tracker_stream writes, without a file (name stands for it in the errors, "
+      "which are the writer's); the rows alone when not header, to append to a file that has it.");
 
   m.def(
       "summarize_errors",

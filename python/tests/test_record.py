@@ -782,3 +782,43 @@ def test_an_error_that_ends_a_recording_leaves_its_rows_in_the_partial_file(fake
     r = fake_recorders[0]
     assert len(captures.load_tracker_stream(rec / "raw_tracker_stream.csv.partial")) == r.after_start > 0
     assert r.stopped
+
+
+def test_the_rows_are_formatted_without_a_scratch_folder(fake_recorders, tmp_path, monkeypatch):
+    """Every flush wrote its rows to a file in a folder under /tmp (tempfile.TemporaryDirectory,
+    made for the whole recording) and read them back: a SIGKILL left the folder there, a /tmp on
+    another (or a full) file system failed the recording, and the round trip halved the writer's
+    speed. The rows are formatted in memory by the capture writer's C++ (format_tracker_stream)."""
+    import tempfile
+    from trackcal import record
+    monkeypatch.setattr(record._core, "TrackerRecorder", Arriving)
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    seen = []
+    out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "rec", 1.3,
+                         progress=lambda done, total: seen.extend(p.name for p in scratch.iterdir()))
+    assert list(out) == ["raw"] and seen == []
+    assert len(captures.load_tracker_stream(out["raw"])) == fake_recorders[0].after_start > 0
+
+
+def test_format_tracker_stream_gives_the_bytes_of_the_file(tmp_path):
+    """format_tracker_stream is save_tracker_stream without the file: the same bytes, the rows alone
+    without the header (appended, they make the file of one write), the same refusals naming
+    ``name`` where the writer names the file."""
+    from trackcal.captures import TrackerStream, format_tracker_stream, save_tracker_stream
+    rng = np.random.default_rng(7)
+    n = 40
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    stream = TrackerStream(1796098746.0 + np.arange(n) / 120.0, 1 + np.arange(n) % 2, rng.normal(size=(n, 3)), q)
+    save_tracker_stream(tmp_path / "one.csv", stream)
+    whole = (tmp_path / "one.csv").read_bytes()
+    assert format_tracker_stream(stream) == whole
+    first = TrackerStream(stream.time[:9], stream.sensor[:9], stream.positions[:9], stream.quaternions_xyzw[:9])
+    rest = TrackerStream(stream.time[9:], stream.sensor[9:], stream.positions[9:], stream.quaternions_xyzw[9:])
+    assert format_tracker_stream(first) + format_tracker_stream(rest, header=False) == whole
+    bad = TrackerStream(stream.time[:3], stream.sensor[:3], stream.positions[:3].copy(), stream.quaternions_xyzw[:3])
+    bad.positions[1, 2] = np.inf
+    with pytest.raises(ValueError, match=r"^raw\.partial: record 1: column z: inf is not a finite number$"):
+        format_tracker_stream(bad, name="raw.partial", header=False)

@@ -516,3 +516,15 @@ def save_tracker_stream(path: PathLike, stream: TrackerStream, overwrite: bool =
     _user_errors(_core.write_tracker_stream, pathlib.Path(path), stream.time, stream.sensor, stream.positions,
                  stream.quaternions_xyzw, overwrite, extra_columns,
                  stream.extra if extra_columns else None, dict(stream.extra_labels or {}))
+
+
+def format_tracker_stream(stream: TrackerStream, *, name: str = "tracker_stream.csv", header: bool = True) -> bytes:
+    """The bytes save_tracker_stream writes for the stream, without a file (in memory, in C++):
+    refused as it refuses, ValueError naming ``name`` where it names the file. Without the header
+    line when not ``header``: the rows to append to a file that has it, which then holds the bytes
+    one write of all the rows gives (a live recording, trackcal.record)."""
+    extra_columns = list(stream.extra_columns or [])
+    return _core.format_tracker_stream(stream.time, stream.sensor, stream.positions, stream.quaternions_xyzw,
+                                       name=str(name), header=header, extra_columns=extra_columns,
+                                       extra=stream.extra if extra_columns else None,
+                                       extra_labels=dict(stream.extra_labels or {}))

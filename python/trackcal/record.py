@@ -10,7 +10,6 @@ import os
 import pathlib
 import re
 import signal
-import tempfile
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
@@ -19,7 +18,7 @@ import numpy as np
 
 from trackcal import _core
 from trackcal._signals import signals_deferred
-from trackcal.captures import TrackerStream, save_tracker_stream
+from trackcal.captures import TrackerStream, format_tracker_stream
 
 
 class NoFirstReport(RuntimeError):
@@ -185,14 +184,13 @@ def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, c
         if p.exists():
             raise ValueError(f"{p}: exists; recordings are never overwritten")
     files: Dict[str, _StreamFile] = {}
-    with tempfile.TemporaryDirectory(prefix="trackcal-record-") as scratch:
-        try:
-            for label, p in targets.items():
-                files[label] = _StreamFile(p, pathlib.Path(scratch))
-            return _record_into(files, devices, duration_s, connect_timeout_s, progress, terminated)
-        finally:  # one still open after an error: removed when it holds no row, else kept
-            for f in files.values():
-                f.discard()
+    try:
+        for label, p in targets.items():
+            files[label] = _StreamFile(p)
+        return _record_into(files, devices, duration_s, connect_timeout_s, progress, terminated)
+    finally:  # one still open after an error: removed when it holds no row, else kept
+        for f in files.values():
+            f.discard()
 
 
 def _record_into(files: Dict[str, "_StreamFile"], devices: Dict[str, str], duration_s: float,
@@ -286,10 +284,12 @@ class _StreamFile:
     """One device's recording, appended as it arrives to ``<target>.partial`` and moved to the
     target when it ends. The .partial is made new: one that exists (a recording killed before it
     ended, one kept beside a file that appeared under its name, or one still running into the same
-    folder) is never touched, and refuses the start. The rows are formatted by the capture writer
-    (save_tracker_stream) a flush at a time, so the file is the one it writes of all at once."""
+    folder) is never touched, and refuses the start. The rows are formatted in memory by the capture
+    writer's C++ (format_tracker_stream) a flush at a time, so the file is the one it writes of all
+    at once. (Written to a file under /tmp and read back, they took twice as long, and a SIGKILL left
+    the folder there.)"""
 
-    def __init__(self, target: pathlib.Path, scratch: pathlib.Path):
+    def __init__(self, target: pathlib.Path):
         self.target = target
         self.partial = target.with_name(target.name + ".partial")
         self.rows = 0
@@ -298,9 +298,8 @@ class _StreamFile:
         self.refused = 0  # reports the capture writer refused, left out
         self.first_refusal = ""
         self._fd: Optional[int] = None
-        self._scratch = scratch / target.name
         header = self._csv(TrackerStream(np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
-                                         np.zeros((0, 4))))
+                                         np.zeros((0, 4))), header=True)
         flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
         try:
             self._fd = os.open(self.partial, flags, 0o666)
@@ -316,12 +315,9 @@ class _StreamFile:
             self.discard()
             raise ValueError(f"{self.partial}: cannot write the recording ({e.strerror})") from None
 
-    def _csv(self, stream: TrackerStream) -> bytes:
-        save_tracker_stream(self._scratch, stream)
-        try:
-            return self._scratch.read_bytes()
-        finally:
-            self._scratch.unlink()
+    def _csv(self, stream: TrackerStream, header: bool = False) -> bytes:
+        """The stream's rows as the capture writer writes them; its refusals name the .partial."""
+        return format_tracker_stream(stream, name=str(self.partial), header=header)
 
     def _write(self, data: bytes) -> None:
         view = memoryview(data)
@@ -341,12 +337,12 @@ class _StreamFile:
                 rows = self._csv(stream)
             except ValueError as refusal:
                 stream, rows = self._without_refused(stream, refusal)
-            self._write(rows[rows.index(b"\n") + 1:])  # the rows without the header
+            self._write(rows)
         except OSError as e:
             self.error = f"{self.partial}: write failed: {e.strerror}"
             return
         except (ValueError, RuntimeError) as e:
-            self.error = str(e).replace(str(self._scratch), str(self.partial))
+            self.error = str(e)
             return
         finally:
             self.seen += n
@@ -366,7 +362,7 @@ class _StreamFile:
                 self._csv(TrackerStream(stream.time[first:first + 1], stream.sensor[first:first + 1],
                                         stream.positions[first:first + 1],
                                         stream.quaternions_xyzw[first:first + 1]))
-            except ValueError as e:  # "<scratch>: record 0: column x: nan is not a finite number"
+            except ValueError as e:  # "<partial>: record 0: column x: nan is not a finite number"
                 why = str(e).split(": record 0: ", 1)[-1]
                 self.first_refusal = f"report {self.seen + first} of the recording: {why}"
         self.refused += int((~good).sum())
