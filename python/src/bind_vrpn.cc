@@ -64,6 +64,8 @@ class TrackerRecorder {
   }
   bool connected() const { return client_.connected(); }
   bool pong_received() const { return client_.pong_received(); }
+  bool host_unknown() const { return client_.host_unknown(); }
+  std::string host() const { return client_.name().host; }
 
  private:
   vrpn::VrpnTrackerClient client_;
@@ -93,7 +95,10 @@ void BindVrpn(py::module_& m) {
            "(sensor number on the wire), positions (N, 3) [m], quaternions_xyzw (N, 4).")
       .def("__len__", &TrackerRecorder::Size)
       .def_property_readonly("connected", &TrackerRecorder::connected)
-      .def_property_readonly("pong_received", &TrackerRecorder::pong_received);
+      .def_property_readonly("pong_received", &TrackerRecorder::pong_received)
+      .def_property_readonly("host_unknown", &TrackerRecorder::host_unknown,
+                             "The host name did not resolve to an address (a typo, or no DNS).")
+      .def_property_readonly("host", &TrackerRecorder::host);
 }
 
 }  // namespace trackcal::python

@@ -275,9 +275,11 @@ bool VrpnTrackerClient::ResolveServer() {
     return true;
   }
   if (!parsed) {
+    host_unknown_ = true;
     impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
     return false;
   }
+  host_unknown_ = false;
   impl_->server = MakeSockaddr(*parsed, name_.port);
   return true;
 }

@@ -97,6 +97,9 @@ class VrpnTrackerClient {
 
   bool connected() const { return connected_; }  // cookie exchange done
   bool pong_received() const { return pong_received_; }
+  // The last look-up of the host name found no address, and none was found before: a mistyped or
+  // unknown host (or no DNS), not a server that is down. Never for a dotted IPv4 address.
+  bool host_unknown() const { return host_unknown_; }
   bool udp_active() const { return udp_active_; }  // a report came over UDP
   std::uint64_t reports() const { return reports_; }
   std::uint64_t connections() const { return connections_; }
@@ -121,6 +124,7 @@ class VrpnTrackerClient {
   std::unique_ptr<Impl> impl_;
   std::atomic<bool> connected_{false};
   std::atomic<bool> pong_received_{false};
+  std::atomic<bool> host_unknown_{false};
   std::atomic<bool> udp_active_{false};
   std::atomic<std::uint64_t> reports_{0};
   std::atomic<std::uint64_t> connections_{0};

@@ -1212,6 +1212,28 @@ TEST(VrpnTrackerClient, AHostNameIsResolvedOffTheClientThread) {
   EXPECT_FALSE(*on_polling_thread);
 }
 
+TEST(VrpnTrackerClient, AHostNameThatDoesNotResolveIsToldApartFromAServerThatIsDown) {
+  // `trackcal record` said "no connection; is a server running at that address?" for a mistyped
+  // host name: the client knows the name did not resolve.
+  TrackerClientOptions options;
+  options.reconnect_delay_s = 0.1;
+  options.resolve_host = [](const std::string& host) -> std::optional<std::string> {
+    return host == "tracker.lab" ? std::optional<std::string>("127.0.0.1") : std::nullopt;
+  };
+  VrpnTrackerClient typo("Tracker0@tcp://traker.lab:3883", options);
+  EXPECT_TRUE(PollUntil({&typo}, [&] { return typo.host_unknown(); }));
+  EXPECT_FALSE(typo.connected());
+  // A name that resolves and a dotted address, with no server at the port (1: nothing listens on
+  // it here), are not unknown hosts: their connects are tried and fail.
+  VrpnTrackerClient known("Tracker0@tcp://tracker.lab:1", options);
+  VrpnTrackerClient dotted("Tracker0@tcp://127.0.0.1:1", options);
+  // 1 s: each tries a connect within milliseconds; a wrong host_unknown would show by then.
+  EXPECT_FALSE(PollUntil(
+      {&known, &dotted}, [&] { return known.host_unknown() || dotted.host_unknown(); }, 1.0));
+  EXPECT_GE(known.connect_attempts(), 1u);
+  EXPECT_GE(dotted.connect_attempts(), 1u);
+}
+
 TEST(VrpnTrackerClient, StopDoesNotWaitForADnsServerThatDoesNotAnswer) {
   TrackerClientOptions options;
   auto release = std::make_shared<std::atomic<bool>>(false);
