@@ -822,3 +822,119 @@ def test_format_tracker_stream_gives_the_bytes_of_the_file(tmp_path):
     bad.positions[1, 2] = np.inf
     with pytest.raises(ValueError, match=r"^raw\.partial: record 1: column z: inf is not a finite number$"):
         format_tracker_stream(bad, name="raw.partial", header=False)
+
+
+def test_a_recording_killed_while_it_waits_for_the_first_report_leaves_no_partial_file(tmp_path):
+    """The .partial files were made before the wait for every device's first report: a recording
+    killed then (SIGKILL; a server not up yet, a typo in its address) left LABEL_tracker_stream.csv
+    .partial holding only the header, and every later recording with the label was refused ("a
+    recording killed before it ended"). They are made when the first reports have come."""
+    import os
+    import signal
+    import sys
+    out = tmp_path / "rec"
+    script = ("from trackcal.record import record_streams\n"
+              f"record_streams({{'raw': 'Tracker0_raw@tcp://127.0.0.1:{free_port()}'}}, {str(out)!r}, 1.0,\n"
+              "              connect_timeout_s=30.0)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 30.0  # the import and the folder: well below on a loaded machine
+        while not out.exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert out.exists(), proc.stderr.read() if proc.poll() is not None else "no folder after 30 s"
+        time.sleep(0.5)  # into the wait (nothing listens on the port: it lasts 30 s)
+        assert proc.poll() is None
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert list(out.iterdir()) == []
+
+
+def test_a_partial_file_made_during_the_wait_is_refused_and_left_alone(fake_recorders, tmp_path, monkeypatch):
+    """Made when the first reports have come, the .partial can be taken in between by another
+    recording into the folder: its file is refused (ValueError naming it) and left as it was, and
+    the devices are let go."""
+    from trackcal import record
+    rec = tmp_path / "rec"
+
+    class AnotherRecordingStarts(FakeRecorder):
+        def __len__(self):
+            (rec / "raw_tracker_stream.csv.partial").write_text("the other recording\n")
+            return super().__len__()
+    monkeypatch.setattr(record._core, "TrackerRecorder", AnotherRecordingStarts)
+    with pytest.raises(ValueError, match=r"raw_tracker_stream\.csv\.partial: exists .*never overwritten"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 0.2)
+    assert (rec / "raw_tracker_stream.csv.partial").read_text() == "the other recording\n"
+    assert all(r.stopped for r in fake_recorders)
+
+
+def test_the_wait_for_the_first_report_says_so_after_a_second(fake_recorders, tmp_path, capsys):
+    """`trackcal record` waited silently for the first reports, up to --connect-timeout (a server
+    resetting its Fastrak takes ~7 s): it looked hung. After 1 s it prints one line naming the
+    devices still silent; ``waiting`` redirects it (a callable given the line) or silences it (None)."""
+    lines = []
+    with pytest.raises(RuntimeError, match="no report within 1.5 s"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1", "x": "silent@tcp://h:2"}, tmp_path / "a", 0.1,
+                       connect_timeout_s=1.5, waiting=lines.append)
+    assert lines == ["waiting up to 1.5 s for the first report from: x (silent@tcp://h:2)"]
+    with pytest.raises(RuntimeError, match="no report within 1.2 s"):
+        record_streams({"x": "silent@tcp://h:2"}, tmp_path / "a", 0.1, connect_timeout_s=1.2)
+    assert capsys.readouterr().err == "waiting up to 1.2 s for the first report from: x (silent@tcp://h:2)\n"
+    with pytest.raises(RuntimeError, match="no report within 1.2 s"):
+        record_streams({"x": "silent@tcp://h:2"}, tmp_path / "a", 0.1, connect_timeout_s=1.2, waiting=None)
+    assert capsys.readouterr().err == ""
+    # Devices that report at once: no line.
+    record_streams({"raw": "Tracker0_raw@tcp://h:1"}, tmp_path / "b", 0.1, waiting=lines.append)
+    assert len(lines) == 1
+
+
+def test_the_partial_file_is_synced_to_disk_while_it_records(fake_recorders, tmp_path, monkeypatch):
+    """The rows appended every second stayed in the page cache until the end (fsync only at the
+    save): a power cut or a kernel crash an hour in could lose the whole recording, which the
+    .partial is there to keep. The .partial (and, once, its folder) is now fsynced every 5 s."""
+    import os
+    from trackcal import record
+    monkeypatch.setattr(record._core, "TrackerRecorder", Arriving)
+    monkeypatch.setattr(record, "_FSYNC_S", 0.2)  # in place of 5 s, to keep the test short
+    real_fsync = os.fsync
+    synced = []
+
+    def fsync(fd):
+        synced.append(os.readlink(f"/proc/self/fd/{fd}"))
+        real_fsync(fd)
+    monkeypatch.setattr(os, "fsync", fsync)
+    rec = tmp_path / "rec"
+    while_recording = []
+
+    def look(done, total):
+        if done > 1.4 and not while_recording:  # after the first flush (1 s) and the sync after it
+            while_recording.extend(synced)
+    out = record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 1.8, progress=look)
+    assert list(out) == ["raw"]
+    assert str(rec / "raw_tracker_stream.csv.partial") in while_recording
+    assert str(rec) in while_recording
+
+
+def test_an_unknown_host_name_is_named_as_such(fake_recorders, tmp_path, monkeypatch):
+    """A mistyped host name ('traker.lab') said "no connection; is a server running at that
+    address?", sending the user to check a server that was fine. The client knows the name did not
+    resolve (TrackerRecorder.host_unknown), and the error names the host."""
+    from trackcal import record
+
+    class UnknownHost(FakeRecorder):
+        connected, pong_received = False, False
+        host = "traker.lab"
+
+        @property
+        def host_unknown(self):
+            return self.name.startswith("Typo")
+
+        def __len__(self):
+            return 0 if self.name.startswith("Typo") else super().__len__()
+    monkeypatch.setattr(record._core, "TrackerRecorder", UnknownHost)
+    with pytest.raises(RuntimeError, match=r"^no report within 0\.1 s from: raw \(Typo@tcp://traker\.lab:3883: "
+                                           r"unknown host 'traker\.lab' \(the name does not resolve to an "
+                                           r"address: a typo, or no DNS\?\)\)$"):
+        record_streams({"raw": "Typo@tcp://traker.lab:3883", "ok": "Tracker0@tcp://h:1"}, tmp_path / "rec", 0.1,
+                       connect_timeout_s=0.1)

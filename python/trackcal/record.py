@@ -10,6 +10,7 @@ import os
 import pathlib
 import re
 import signal
+import sys
 import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Set, Tuple
@@ -39,17 +40,27 @@ class Recording(dict):
     gaps: Dict[str, Tuple[float, float]] = {}
 
 
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, connect_timeout_s: float = 10.0,
-                   progress: Optional[Callable[[float, float], None]] = None) -> Recording:
+                   progress: Optional[Callable[[float, float], None]] = None,
+                   waiting: Optional[Callable[[str], None]] = _to_stderr) -> Recording:
     """Records every named device (label -> 'Tracker0@tcp://host:port') for ``duration_s`` seconds
     after all have connected, and writes ``<label>_tracker_stream.csv`` into out_dir. The reports
     are appended to ``<label>_tracker_stream.csv.partial`` every second as they arrive (a killed
-    process leaves them there) and the file takes its name at the end. Recordings are never
+    process leaves them there; they are fsynced every 5 s, so a power cut keeps them too) and the
+    file takes its name at the end. The .partial files are made when every device has sent its
+    first report (a process killed while it waits leaves none). Recordings are never
     overwritten: out_dir must hold neither name already (ValueError), and a file that appears under
     the name during the recording is kept, this recording staying in its .partial, named in the
     error. Returns label -> path.
     Raises NoFirstReport (a RuntimeError) if a device sends no report within connect_timeout_s
-    (nothing is recorded then), and RuntimeError if one sends no report
+    (nothing is recorded then; the message says of each whether its host name is unknown, no
+    server answered, or the server did not serve its name). A wait longer than 1 s is announced by
+    one line, "waiting up to N s for the first report from: LABEL (NAME), ...", given to
+    ``waiting`` (default: printed to stderr; None: not said). RuntimeError if one sends no report
     during the recording, loses its connection during it (a server that stopped or went away: its
     recording is saved but has a gap or ends early), or sends nothing for longer than max(1 s, 10
     of its mean intervals between reports) while connected (a frozen server or a lost network,
@@ -92,7 +103,7 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     terminated: Set[int] = set()
     try:
         with _terminations_interrupt(terminated):
-            return _record(devices, out_dir, duration_s, connect_timeout_s, progress, terminated)
+            return _record(devices, out_dir, duration_s, connect_timeout_s, progress, waiting, terminated)
     finally:
         _remove_empty_folders(created)
         if terminated:  # saved: now the signal does what it would have done (its handler is back)
@@ -130,11 +141,15 @@ def _terminations_interrupt(arrived: Set[int]):
 
 
 def _why_silent(recorder) -> str:
-    """Why a device sent no report, as its client sees it: no connection (no server there), no
-    answer to the pings for its name (a name the server does not serve), or served and quiet."""
+    """Why a device sent no report, as its client sees it: a host name that does not resolve, no
+    connection (no server there), no answer to the pings for its name (a name the server does not
+    serve), or served and quiet."""
     connected = getattr(recorder, "connected", None)
     if connected is None:  # a recorder that does not say
         return ""
+    if not connected and getattr(recorder, "host_unknown", False):  # not a server that is down
+        return (f": unknown host {getattr(recorder, 'host', '')!r} (the name does not resolve to an address: "
+                "a typo, or no DNS?)")
     if not connected:
         return ": no connection; is a server running at that address?"
     if not getattr(recorder, "pong_received", True):
@@ -175,28 +190,40 @@ def _remove_empty_folders(folders: Sequence[pathlib.Path]) -> None:
 _FLUSH_S = 1.0
 
 
+# The .partial files are fsynced this often [s]: appended every second, the rows stayed in the page
+# cache until the save, and a power cut or a kernel crash could take the whole recording with it.
+# Measured by bench/bench_record_writer.py: see docs/benchmarks.md.
+_FSYNC_S = 5.0
+
+# A wait for the first reports longer than this is announced [s] (it looked hung).
+_WAITING_NOTICE_S = 1.0
+
+
 def _record(devices: Dict[str, str], out_dir: pathlib.Path, duration_s: float, connect_timeout_s: float,
-            progress: Optional[Callable[[float, float], None]], terminated: Set[int]) -> Recording:
+            progress: Optional[Callable[[float, float], None]], waiting: Optional[Callable[[str], None]],
+            terminated: Set[int]) -> Recording:
     """record_streams into the existing folder out_dir; a SIGTERM or SIGHUP that arrives while it
     saves is added to ``terminated``."""
     targets = {label: out_dir / f"{label}_tracker_stream.csv" for label in devices}
     for p in targets.values():
         if p.exists():
             raise ValueError(f"{p}: exists; recordings are never overwritten")
+        if _StreamFile.partial_of(p).exists():  # refused before any device is contacted
+            raise ValueError(_StreamFile.partial_exists(p))
     files: Dict[str, _StreamFile] = {}
     try:
-        for label, p in targets.items():
-            files[label] = _StreamFile(p)
-        return _record_into(files, devices, duration_s, connect_timeout_s, progress, terminated)
+        return _record_into(targets, files, devices, duration_s, connect_timeout_s, progress, waiting,
+                            terminated)
     finally:  # one still open after an error: removed when it holds no row, else kept
         for f in files.values():
             f.discard()
 
 
-def _record_into(files: Dict[str, "_StreamFile"], devices: Dict[str, str], duration_s: float,
-                 connect_timeout_s: float, progress: Optional[Callable[[float, float], None]],
-                 terminated: Set[int]) -> Recording:
-    """_record once every recording's .partial file is made."""
+def _record_into(targets: Dict[str, pathlib.Path], files: Dict[str, "_StreamFile"], devices: Dict[str, str],
+                 duration_s: float, connect_timeout_s: float, progress: Optional[Callable[[float, float], None]],
+                 waiting: Optional[Callable[[str], None]], terminated: Set[int]) -> Recording:
+    """_record once the targets are checked; makes each recording's .partial file into ``files``
+    when every device has sent its first report."""
     recorders = {label: _core.TrackerRecorder(name) for label, name in devices.items()}
     out = Recording()
     started = False
@@ -211,18 +238,30 @@ def _record_into(files: Dict[str, "_StreamFile"], devices: Dict[str, str], durat
     for r in recorders.values():
         r.start()
     try:
-        deadline = time.monotonic() + connect_timeout_s
+        begun = time.monotonic()
+        deadline = begun + connect_timeout_s
+        announced = waiting is None
         while not all(len(r) > 0 for r in recorders.values()):
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 missing = [f"{label} ({devices[label]}{_why_silent(r)})" for label, r in recorders.items()
                            if len(r) == 0]
                 raise NoFirstReport(f"no report within {connect_timeout_s} s from: {', '.join(missing)}")
+            if not announced and now - begun >= _WAITING_NOTICE_S:
+                announced = True
+                silent_devices = [f"{label} ({devices[label]})" for label, r in recorders.items() if len(r) == 0]
+                waiting(f"waiting up to {connect_timeout_s:g} s for the first report from: "
+                        f"{', '.join(silent_devices)}")
             time.sleep(0.02)
+        # Made now, not before the wait: a process killed while it waited (a server not up yet)
+        # left a .partial holding only the header, which refused every later recording of the label.
+        for label, p in targets.items():
+            files[label] = _StreamFile(p)
         for r in recorders.values():
             r.take()  # start all streams at the same moment
         started = True
         t0 = time.monotonic()
-        flushed = 0.0
+        flushed = synced = 0.0
         # A server that freezes or whose network goes (a pulled cable) keeps its connection open
         # until the client's liveness timeout (10 s): the recording just stopped growing and was
         # saved as if complete. Each device's longest silence is watched too.
@@ -239,6 +278,10 @@ def _record_into(files: Dict[str, "_StreamFile"], devices: Dict[str, str], durat
             if elapsed - flushed >= _FLUSH_S:
                 _flush(files, recorders, terminated)
                 flushed = elapsed
+            if elapsed - synced >= _FSYNC_S:
+                for f in files.values():
+                    f.sync()
+                synced = elapsed
             if progress:
                 progress(elapsed, duration_s)
             time.sleep(min(0.1, duration_s - elapsed) if duration_s > elapsed else 0)
@@ -286,12 +329,24 @@ class _StreamFile:
     ended, one kept beside a file that appeared under its name, or one still running into the same
     folder) is never touched, and refuses the start. The rows are formatted in memory by the capture
     writer's C++ (format_tracker_stream) a flush at a time, so the file is the one it writes of all
-    at once. (Written to a file under /tmp and read back, they took twice as long, and a SIGKILL left
-    the folder there.)"""
+    at once. (Written to a file under /tmp and read back, they took 2.5-12 times as long, and a
+    SIGKILL left the folder there.)"""
+
+    @staticmethod
+    def partial_of(target: pathlib.Path) -> pathlib.Path:
+        return target.with_name(target.name + ".partial")
+
+    @staticmethod
+    def partial_exists(target: pathlib.Path) -> str:
+        """The error for a .partial that is there before the recording makes it."""
+        return (f"{_StreamFile.partial_of(target)}: exists (a recording killed before it ended, kept beside "
+                f"{target.name}, or still running into this folder); recordings are never overwritten: "
+                "move it away or record into another folder")
 
     def __init__(self, target: pathlib.Path):
         self.target = target
-        self.partial = target.with_name(target.name + ".partial")
+        self.partial = self.partial_of(target)
+        self._folder_synced = False
         self.rows = 0
         self.error: Optional[str] = None  # a write that failed (a full disk): the rows before it are kept
         self.seen = 0  # reports given to append
@@ -304,9 +359,7 @@ class _StreamFile:
         try:
             self._fd = os.open(self.partial, flags, 0o666)
         except FileExistsError:
-            raise ValueError(f"{self.partial}: exists (a recording killed before it ended, kept beside "
-                             f"{target.name}, or still running into this folder); recordings are never "
-                             "overwritten: move it away or record into another folder") from None
+            raise ValueError(self.partial_exists(target)) from None
         except OSError as e:
             raise ValueError(f"{self.partial}: cannot create the recording ({e.strerror})") from None
         try:
@@ -369,6 +422,27 @@ class _StreamFile:
         kept = TrackerStream(stream.time[good], stream.sensor[good], stream.positions[good],
                              stream.quaternions_xyzw[good])
         return kept, self._csv(kept)
+
+    def sync(self) -> None:
+        """fsyncs the rows written so far (and, the first time, the folder's entry for the file), so
+        a power cut keeps them. A failure is the recording's error, as a failed write is."""
+        if self._fd is None or self.error:
+            return
+        try:
+            os.fsync(self._fd)
+        except OSError as e:
+            self.error = f"{self.partial}: write failed: {e.strerror}"
+            return
+        if not self._folder_synced:
+            self._folder_synced = True
+            try:  # best effort: some systems (Windows) cannot open or fsync a folder
+                folder = os.open(self.partial.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+                try:
+                    os.fsync(folder)
+                finally:
+                    os.close(folder)
+            except OSError:
+                pass
 
     def close(self) -> Optional[str]:
         """Moves the finished recording to the target; None, or why it stays in the .partial."""
