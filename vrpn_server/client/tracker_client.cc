@@ -188,7 +188,19 @@ void VrpnTrackerClient::Start() {
   if (running_.exchange(true)) return;
   if (!impl_->wake_socket.valid()) impl_->wake_socket = OpenWakeSocket();
   thread_ = std::thread([this] {
-    while (running_) Poll(0.05);
+    while (running_) {
+      try {
+        Poll(0.05);
+      } catch (...) {
+        // Leaving this thread, it would reach std::terminate and end the process (a Unity player,
+        // through the plugin): a callback that throws, std::thread failing to start a host-name
+        // lookup, bad_alloc. Poll stopped part-way, so the connection is made again.
+        try {
+          Reset("exception");
+        } catch (...) {
+        }
+      }
+    }
   });
 }
 

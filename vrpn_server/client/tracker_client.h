@@ -6,7 +6,9 @@
 // device name is not served), decodes Pos_Quat into poses and reconnects on its own.
 //
 // Single-threaded: call Poll() from one thread, or Start() a background thread that does. Callbacks
-// run on that thread.
+// run on that thread. On Start()'s thread an exception from Poll() (a callback's, a failure to
+// start a thread or to allocate) drops the connection, which is made again, rather than ending the
+// process; Poll() itself lets it through.
 
 #pragma once
 

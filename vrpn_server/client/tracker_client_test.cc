@@ -22,6 +22,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <stdexcept>
 #include <string_view>
 #include <thread>
 
@@ -1417,6 +1418,32 @@ TEST(VrpnTrackerClient, AServerThatGoesSilentIsLeftAndFoundAgain) {
   ASSERT_TRUE(PollUntil({&client}, [&] {
     return client.connections() >= 2 && client.pong_received();
   })) << "connections " << client.connections();
+}
+
+// Start()'s thread runs Poll: an exception leaving it (a callback that throws, std::thread failing
+// to start a host-name lookup, bad_alloc) would reach std::terminate and end the whole process (a
+// Unity player, through the plugin). The client drops the connection and makes it again instead.
+TEST(VrpnTrackerClient, AnExceptionOnTheClientThreadCostsTheConnectionNotTheProcess) {
+  VrpnServer server(MakeCatalog(), LoopbackOptions(), [](const std::string&) {});
+  server.Start();
+  TrackerClientOptions options;
+  options.reconnect_delay_s = 0.1;
+  VrpnTrackerClient client("Tracker0@tcp://127.0.0.1:" + std::to_string(server.port()), options);
+  std::atomic<int> reports{0};
+  client.SetPoseCallback([&reports](const TrackerReport&) {
+    if (++reports == 1) throw std::runtime_error("a callback that throws");
+  });
+  client.Start();
+  const Rigid3d pose = RandomPose();
+  // Published until a report arrives after the one that threw, on a connection made again.
+  const auto end = Clock::now() + std::chrono::seconds(20);  // generous: a loaded test machine
+  while (Clock::now() < end && !(reports >= 3 && client.connections() >= 2)) {
+    server.PublishPose(0, 0, pose, Timestamp::Now());
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  EXPECT_GE(reports, 3);
+  EXPECT_GE(client.connections(), 2u);
+  client.Stop();
 }
 
 // A client of Tracker0@tcp://tracker.lab whose host names `resolve` (called with the lookup's
