@@ -4,6 +4,8 @@
 
 #include <cmath>
 #include <random>
+#include <string>
+#include <utility>
 
 #include "tests/test_utils.h"
 
@@ -82,6 +84,114 @@ TEST(ToUnity, MapsEveryPointOfTheReceiverAsTheTrackerDoes) {
       EXPECT_NEAR((unity_of_tracker_point - unity_point).norm(), 0.0, kTol) << spec;
       EXPECT_EQ(std::signbit(up.rotation.w()), std::signbit(pose.rotation.w()));  // continuity
     }
+  }
+}
+
+// UnityEngine.Quaternion * Vector3 as Unity's C# reference source writes it (Quaternion.cs).
+Eigen::Vector3d UnityRotate(const Eigen::Quaterniond& q, const Eigen::Vector3d& p) {
+  const double x = q.x() * 2, y = q.y() * 2, z = q.z() * 2;
+  const double xx = q.x() * x, yy = q.y() * y, zz = q.z() * z;
+  const double xy = q.x() * y, xz = q.x() * z, yz = q.y() * z;
+  const double wx = q.w() * x, wy = q.w() * y, wz = q.w() * z;
+  return {(1 - (yy + zz)) * p.x() + (xy - wz) * p.y() + (xz + wy) * p.z(),
+          (xy + wz) * p.x() + (1 - (xx + zz)) * p.y() + (yz - wx) * p.z(),
+          (xz - wy) * p.x() + (yz + wx) * p.y() + (1 - (xx + yy)) * p.z()};
+}
+
+// Forward, right and up of a frame, in its coordinates (the columns).
+Eigen::Matrix3d Directions(const Eigen::Vector3d& forward, const Eigen::Vector3d& right,
+                           const Eigen::Vector3d& up) {
+  Eigen::Matrix3d f;
+  f << forward, right, up;
+  return f;
+}
+
+// Turns described by where they send forward, right and up (coordinates: forward, right, up), so
+// with no handedness of their own: the same words give each frame its rotation.
+Eigen::Matrix3d YawRight(double a) {  // forward turns towards right, seen from above
+  Eigen::Matrix3d n;
+  n << std::cos(a), -std::sin(a), 0, std::sin(a), std::cos(a), 0, 0, 0, 1;
+  return n;
+}
+Eigen::Matrix3d PitchUp(double a) {  // forward turns towards up
+  Eigen::Matrix3d n;
+  n << std::cos(a), 0, -std::sin(a), 0, 1, 0, std::sin(a), 0, std::cos(a);
+  return n;
+}
+Eigen::Matrix3d RollRight(double a) {  // the right side goes down
+  Eigen::Matrix3d n;
+  n << 1, 0, 0, 0, std::cos(a), std::sin(a), 0, -std::sin(a), std::cos(a);
+  return n;
+}
+
+// From first principles, per docs/unity.md's table: a receiver placed and turned as words say
+// (forward, right, up of the source) is placed and turned as the same words say in Unity, one turn
+// about each axis and a composite, and every point of the receiver's body lands where the words put
+// it; the rotation checked with Unity's own rule for Quaternion * Vector3.
+TEST(ToUnity, ATurnAboutEachAxisIsTheSameTurnInUnity) {
+  const Eigen::Matrix3d unity =
+      Directions(Eigen::Vector3d::UnitZ(), Eigen::Vector3d::UnitX(), Eigen::Vector3d::UnitY());
+  struct Row {
+    const char* axes;
+    Eigen::Matrix3d tracker;  // the tracker frame's forward, right and up
+  };
+  const Row rows[] = {
+      // The source as the manual shows: x forward, y right, z down.
+      {"y,-z,x", Directions({1, 0, 0}, {0, 1, 0}, {0, 0, -1})},
+      // A right-handed y-up frame: x right, y up, z backwards.
+      {"x,y,-z", Directions({0, 0, -1}, {1, 0, 0}, {0, 1, 0})},
+      // The source upside down: x forward, y left, z up.
+      {"-y,z,x", Directions({1, 0, 0}, {0, -1, 0}, {0, 0, 1})},
+  };
+  const double a = 30.0 * M_PI / 180.0;
+  const std::pair<const char*, Eigen::Matrix3d> turns[] = {
+      {"yaw right", YawRight(a)},
+      {"pitch up", PitchUp(a)},
+      {"roll right", RollRight(a)},
+      {"yaw, pitch, roll", YawRight(a) * PitchUp(-2 * a) * RollRight(1.5 * a)},
+  };
+  // The receiver 0.4 m forward, 0.1 m right and 0.2 m up of the source; a point 5 cm in front of
+  // it, 2 cm to its right and 1 cm above it (its own forward, right, up).
+  const Eigen::Vector3d placed(0.4, 0.1, 0.2), body_point(0.05, 0.02, 0.01);
+  for (const Row& row : rows) {
+    const AxisMap axes = ParseAxisMap(row.axes);
+    const Eigen::Matrix3d& f = row.tracker;
+    for (const auto& [what, words] : turns) {
+      SCOPED_TRACE(std::string(row.axes) + ", " + what);
+      const Eigen::Matrix3d tracker_rotation = f * words * f.transpose();
+      ASSERT_NEAR(tracker_rotation.determinant(), 1.0, kTol);
+      const UnityPose u = ToUnity(axes, Rigid3d(Eigen::Quaterniond(tracker_rotation), f * placed));
+      EXPECT_NEAR((u.position - unity * placed).norm(), 0.0, kTol);
+      const Eigen::Matrix3d expected = unity * words * unity.transpose();
+      for (int i = 0; i < 3; ++i) {
+        const Eigen::Vector3d e = Eigen::Vector3d::Unit(i);
+        EXPECT_NEAR((UnityRotate(u.rotation, e) - expected * e).norm(), 0.0, kTol) << i;
+      }
+      const Eigen::Vector3d point_in_unity =
+          UnityRotate(u.rotation, unity * body_point) + u.position;
+      EXPECT_NEAR((point_in_unity - unity * (placed + words * body_point)).norm(), 0.0, kTol);
+    }
+  }
+}
+
+// A stream of continuous quaternions (a receiver turning twice round, through w = 0 and beyond)
+// stays continuous: consecutive Unity quaternions never jump to the other sign, which a script
+// interpolating between frames would see as a turn the long way round.
+TEST(ToUnity, AContinuousStreamOfQuaternionsStaysContinuous) {
+  const AxisMap axes = ParseAxisMap(kDefaultAxes);
+  const Eigen::Vector3d axis = Eigen::Vector3d(0.3, -0.5, 0.8).normalized();
+  Eigen::Quaterniond previous_in = Eigen::Quaterniond::Identity(), previous_out = previous_in;
+  for (int i = 0; i <= 720; ++i) {
+    const Eigen::Quaterniond q(Eigen::AngleAxisd(i * M_PI / 180.0, axis));  // w < 0 past 180 deg
+    const UnityPose u = ToUnity(axes, Rigid3d(q, Eigen::Vector3d::Zero()));
+    EXPECT_NEAR(u.rotation.norm(), 1.0, kTol);
+    if (i > 0) {
+      // A signed permutation keeps dot products: the step is the tracker's, about 1 deg.
+      EXPECT_NEAR(u.rotation.dot(previous_out), q.dot(previous_in), kTol) << i;
+      EXPECT_GT(u.rotation.dot(previous_out), 0.9) << i;
+    }
+    previous_in = q;
+    previous_out = u.rotation;
   }
 }
 
