@@ -1,5 +1,7 @@
 #include "core/printable_text.h"
 
+#include <algorithm>
+#include <cctype>
 #include <cstddef>
 
 namespace trackcal {
@@ -95,6 +97,45 @@ std::string Utf16TextProblem(std::string_view text, std::string_view kind) {
   }
   if (text.substr(0, 2) != "\xFF\xFE" && text.substr(0, 2) != "\xFE\xFF") return "";
   return "UTF-16 text (a byte order mark FF FE or FE FF)" + save;
+}
+
+std::string ClosestName(std::string_view word, const std::vector<std::string>& candidates) {
+  const auto lower = [](std::string_view s) {
+    std::string out(s);
+    for (char& c : out) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    return out;
+  };
+  const std::string a = lower(word);
+  std::string best;
+  size_t best_distance = std::string::npos;
+  for (const std::string& candidate : candidates) {
+    if (candidate == word || word.empty()) continue;
+    const std::string b = lower(candidate);
+    const size_t allowed = b.size() <= 2 ? 0 : b.size() <= 5 ? 1 : 2;
+    if (a.size() > b.size() + allowed || b.size() > a.size() + allowed) continue;
+    // Optimal string alignment distance (Damerau-Levenshtein without repeated edits of a
+    // substring), three rows.
+    std::vector<size_t> before(b.size() + 1), previous(b.size() + 1), current(b.size() + 1);
+    for (size_t j = 0; j <= b.size(); ++j) previous[j] = j;
+    for (size_t i = 1; i <= a.size(); ++i) {
+      current[0] = i;
+      for (size_t j = 1; j <= b.size(); ++j) {
+        const size_t cost = a[i - 1] == b[j - 1] ? 0 : 1;
+        current[j] = std::min({previous[j] + 1, current[j - 1] + 1, previous[j - 1] + cost});
+        if (i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1]) {
+          current[j] = std::min(current[j], before[j - 2] + 1);
+        }
+      }
+      before.swap(previous);
+      previous.swap(current);
+    }
+    const size_t distance = previous[b.size()];
+    if (distance <= allowed && distance < best_distance) {
+      best = candidate;
+      best_distance = distance;
+    }
+  }
+  return best;
 }
 
 }  // namespace trackcal

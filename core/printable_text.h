@@ -7,6 +7,7 @@
 #include <cstddef>
 #include <string>
 #include <string_view>
+#include <vector>
 
 namespace trackcal {
 
@@ -43,6 +44,14 @@ size_t FirstNonUtf8Byte(std::string_view text);
 // files read such a file as gibberish: "not a calibration file", "column station: missing from the
 // header", or a model parsed without a word.
 std::string Utf16TextProblem(std::string_view text, std::string_view kind);
+
+// The one of `candidates` that `word` most likely misspells, for a "did you mean" hint in an error
+// about an unknown key, a missing field or a missing column: the nearest by edit distance
+// (inserting, deleting or replacing a letter, or swapping two neighbours, count 1 each; letter case
+// is ignored), if it is within 0 edits of a name of 1-2 characters, 1 of 3-5 and 2 of longer ones
+// (short names are a letter apart from many others: "min" is no misspelt "max"). The first of
+// equally near ones; "" if none is near enough. `word` itself is never suggested.
+std::string ClosestName(std::string_view word, const std::vector<std::string>& candidates);
 
 // Printable(text, PrintableFor::kMessage).
 inline std::string PrintableForMessage(std::string_view text) {

@@ -95,5 +95,30 @@ TEST(FirstNonUtf8Byte, IsWherePrintableEscapesTheFirstByteAboveAscii) {
   EXPECT_EQ(FirstNonUtf8Byte("\xf4\x90\x80\x80"), 0u);  // above U+10FFFF
 }
 
+TEST(ClosestName, Nominal) {
+  // A key, field or column misspelt by one or two letters names the one meant.
+  EXPECT_EQ(ClosestName("verison", {"format", "version", "description"}), "version");  // swap
+  EXPECT_EQ(ClosestName("term", {"noise", "terms", "loss"}), "terms");                 // dropped
+  EXPECT_EQ(ClosestName("rep_xq", {"station", "rep_qx", "rep_qy"}), "rep_qx");
+  EXPECT_EQ(ClosestName("Degree", {"degree", "ridge"}), "degree");  // letter case alone
+}
+
+TEST(ClosestName, NothingNearEnoughIsNoSuggestion) {
+  EXPECT_EQ(ClosestName("temperature", {"station", "set", "sensor"}), "");
+  EXPECT_EQ(ClosestName("", {"a", "b"}), "");
+  EXPECT_EQ(ClosestName("x", {}), "");
+  // Short names are one edit apart from many others: "min" is not a misspelt "max", nor "y" "x".
+  EXPECT_EQ(ClosestName("min", {"max"}), "");
+  EXPECT_EQ(ClosestName("y", {"x", "z"}), "");
+  EXPECT_EQ(ClosestName("Y", {"y"}), "y");
+  // A name is not its own suggestion.
+  EXPECT_EQ(ClosestName("terms", {"terms"}), "");
+}
+
+TEST(ClosestName, NearestWinsAndTiesGoToTheFirst) {
+  EXPECT_EQ(ClosestName("degre", {"degrees", "degree"}), "degree");  // 1 edit before 2
+  EXPECT_EQ(ClosestName("rep_q", {"rep_qx", "rep_qy"}), "rep_qx");
+}
+
 }  // namespace
 }  // namespace trackcal
