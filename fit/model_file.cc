@@ -87,10 +87,23 @@ bool YamlMapReader::Has(const std::string& key) const {
   return node_[key].IsDefined();
 }
 
+void YamlMapReader::FailMissing(const std::string& key) const {
+  // Keys given and not read yet: one of them may be the required key misspelt.
+  for (const auto& item : node_) {
+    if (!item.first.IsScalar() || read_.count(item.first.Scalar())) continue;
+    if (ClosestName(item.first.Scalar(), {key}) == key) {
+      throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ + "." +
+                                  item.first.Scalar() + ": unknown key; did you mean '" + key +
+                                  "' (a required field)?");
+    }
+  }
+  Fail(key, "missing required field");
+}
+
 YAML::Node YamlMapReader::Get(const std::string& key) const {
   read_.insert(key);
   const YAML::Node value = node_[key];
-  if (!value.IsDefined()) Fail(key, "missing required field");
+  if (!value.IsDefined()) FailMissing(key);
   if (value.IsNull()) Fail(key, "no value given (write one, or leave the key out for the default)");
   return value;
 }
@@ -174,8 +187,15 @@ void YamlMapReader::Finish() const {
     }
     const std::string key = item.first.Scalar();
     if (!read_.count(key)) {
+      // The keys this mapping takes that it does not hold: a misspelt key meant one of them.
+      std::vector<std::string> absent;
+      for (const std::string& known : read_) {
+        if (!node_[known].IsDefined()) absent.push_back(known);
+      }
+      const std::string meant = ClosestName(key, absent);
       throw std::invalid_argument(MarkString(source_, item.first.Mark()) + ": " + path_ + "." +
-                                  key + ": unknown key");
+                                  key + ": unknown key" +
+                                  (meant.empty() ? "" : "; did you mean '" + meant + "'?"));
     }
   }
 }
@@ -225,9 +245,14 @@ std::unique_ptr<ModelTerm> TermRegistry::Create(const std::string& type,
     }
   }
   if (!factory) {
+    std::vector<std::string> types = Types();
+    types.push_back("time_offset");
     std::string known;
-    for (const auto& t : Types()) known += (known.empty() ? "" : ", ") + t;
-    reader.Fail("type", "unknown term type '" + type + "' (known: " + known + ", time_offset)");
+    for (const auto& t : types) known += (known.empty() ? "" : ", ") + t;
+    const std::string meant = ClosestName(type, types);
+    reader.Fail("type", "unknown term type '" + type + "'" +
+                            (meant.empty() ? "" : "; did you mean '" + meant + "'?") +
+                            " (known: " + known + ")");
   }
   return factory(reader);
 }
@@ -510,7 +535,8 @@ ModelSpec ParseModel(const std::string& text, const std::string& source_name, bo
         "calibration to start from");
   }
   if (!terms.IsDefined() || !terms.IsSequence()) {
-    top.Fail("terms", terms.IsDefined() ? "expected a list of terms" : "missing required field");
+    if (!terms.IsDefined()) top.FailMissing("terms");
+    top.Fail("terms", "expected a list of terms");
   }
   std::set<std::string> names;
   bool saw_explicit = false;  // physical terms must come before polynomial / LUT terms

@@ -68,6 +68,10 @@ class YamlMapReader {
 
   // Throws "FILE:LINE:COLUMN: PATH.key: message" at `key` (or at the map if key is empty).
   [[noreturn]] void Fail(const std::string& key, const std::string& message) const;
+  // Throws for a required `key` that is absent: at a key of the mapping that misspells it ("PATH.
+  // term: unknown key; did you mean 'terms' (a required field)?"), else "PATH.key: missing
+  // required field" at the mapping.
+  [[noreturn]] void FailMissing(const std::string& key) const;
 
  private:
   YAML::Node Get(const std::string& key) const;

@@ -109,16 +109,40 @@ TEST(ParseModelYaml, ErrorsShowTheValueAndNameACalibrationFile) {
                 "file"));
 }
 
+// A misspelt key said "unknown key", and a misspelt required one "missing required field" at the
+// top of its mapping (line 1 for `terms`): the error names the line of the key as written and the
+// valid name it most likely meant.
+TEST(ParseModelYaml, MisspeltKeysNameTheLineAndTheClosestValidName) {
+  EXPECT_EQ(ErrorOf("noise: {position_mm: 1}\nterm:\n  - type: polynomial\n"),
+            "model.yaml:2:1: $.term: unknown key; did you mean 'terms' (a required field)?");
+  EXPECT_EQ(ErrorOf("terms:\n  - tpye: polynomial\n    degree: 4\n"),
+            "model.yaml:2:5: $.terms[0].tpye: unknown key; did you mean 'type' (a required "
+            "field)?");
+  EXPECT_EQ(ErrorOf("terms:\n  - type: polynomial\n    degre: 4\n"),
+            "model.yaml:3:5: $.terms[0].degre: unknown key; did you mean 'degree'?");
+  EXPECT_EQ(ErrorOf("solver: {max_iteration: 5}\nterms: [{type: polynomial}]\n"),
+            "model.yaml:1:10: $.solver.max_iteration: unknown key; did you mean "
+            "'max_iterations'?");
+  EXPECT_EQ(ErrorOf("terms:\n  - type: polynomal\n"),
+            "model.yaml:2:11: $.terms[0].type: unknown term type 'polynomal'; did you mean "
+            "'polynomial'? (known: polynomial, lut, sensor_offset, receiver_gain, dipole, plane, "
+            "near_field, background_field, time_offset)");
+  // Nothing near: no suggestion, and a missing field is still named where its mapping starts.
+  EXPECT_EQ(ErrorOf("terms: [{type: polynomial}]\nextra: 1\n"),
+            "model.yaml:2:1: $.extra: unknown key");
+  EXPECT_EQ(ErrorOf("noise: {position_mm: 1}\n"), "model.yaml:1:1: $.terms: missing required field");
+}
+
 TEST(ParseModelYaml, ErrorsQuotingBytesThatAreNotUtf8ArePrintable) {
   // A key typed in a Latin-1 editor: the message quoted it raw, and in Python (trackcal.fit,
   // trackcal fit) it failed as it became a str, "'utf-8' codec can't decode byte 0xe9", naming no
   // file. A Latin-1 comment is no error.
   EXPECT_EQ(ErrorOf("terms:\n  - type: polynomial\n    degr\xe9"
                     "e: 4\n"),
-            "model.yaml:3:5: $.terms[0].degr\\xe9e: unknown key");
+            "model.yaml:3:5: $.terms[0].degr\\xe9e: unknown key; did you mean 'degree'?");
   EXPECT_EQ(ErrorOf("terms:\n  - type: polyn\xf4mial\n"),
-            "model.yaml:2:11: $.terms[0].type: unknown term type 'polyn\\xf4mial' (known: "
-            "polynomial, lut, sensor_offset, receiver_gain, dipole, plane, near_field, "
+            "model.yaml:2:11: $.terms[0].type: unknown term type 'polyn\\xf4mial'; did you mean "
+            "'polynomial'? (known: polynomial, lut, sensor_offset, receiver_gain, dipole, plane, near_field, "
             "background_field, time_offset)");
   EXPECT_EQ(ErrorOf("# Kalibrierung f\xfcr Raum B\nterms:\n  - type: polynomial\n"), "");
 }
