@@ -450,6 +450,23 @@ TEST(ParseCalibrationJson, ErrorsNameLineAndColumn) {
   }
 }
 
+TEST(ParseCalibrationJson, MisspeltFieldsNameTheirLineAndTheClosestValidName) {
+  // A misspelt required field said "missing required field" at the `{` of its object, a misspelt
+  // optional one "unknown field": the error is at the key as written and names the field meant.
+  EXPECT_EQ(ErrorForExampleEdit("\"version\": 1", "\"verison\": 1"),
+            "calib.json:3:3: $.verison: unknown field; did you mean \"version\" (a required "
+            "field)?");
+  EXPECT_EQ(ErrorForExampleEdit("\"term_order\"", "\"term_ordre\""),
+            "calib.json:22:7: $.corrections[0].term_ordre: unknown field; did you mean "
+            "\"term_order\" (a required field)?");
+  EXPECT_EQ(ErrorForExampleEdit("\"description\"", "\"descripton\""),
+            "calib.json:4:3: $.descripton: unknown field; did you mean \"description\"?");
+  // Nothing near: as before.
+  EXPECT_EQ(
+      ErrorForExampleEdit("\"fade_distance\": 0.15", "\"fade_distance\": 0.15, \"outisde\": 1"),
+      "calib.json:16:28: $.calibrated_volume.outisde: unknown field");
+}
+
 TEST(LocateJsonPath, FindsKeysPastStringsEscapesAndBom) {
   const auto at = [](const std::string& text, const std::string& path) {
     const std::optional<JsonTextPosition> p = LocateJsonPath(text, path);

@@ -397,11 +397,23 @@ void JsonObjectReader::Fail(const std::string& key, const std::string& message) 
   ThrowJsonError(source_, key.empty() ? path_ : PathOf(key), message);
 }
 
-bool JsonObjectReader::Has(const std::string& key) const { return value_.contains(key); }
+bool JsonObjectReader::Has(const std::string& key) const {
+  asked_keys_.insert(key);
+  return value_.contains(key);
+}
 
 const nlohmann::json& JsonObjectReader::Get(const std::string& key) const {
+  asked_keys_.insert(key);
   const auto it = value_.find(key);
-  if (it == value_.end()) Fail(key, "missing required field");
+  if (it == value_.end()) {
+    // A key given and not read: the required one misspelt ("verison").
+    for (const auto& [given, unused] : value_.items()) {
+      if (read_keys_.count(given) == 0 && ClosestName(given, {key}) == key) {
+        Fail(given, "unknown field; did you mean \"" + key + "\" (a required field)?");
+      }
+    }
+    Fail(key, "missing required field");
+  }
   read_keys_.insert(key);
   return *it;
 }
@@ -502,7 +514,13 @@ std::vector<double> JsonObjectReader::Vector3Array(const std::string& key, size_
 
 void JsonObjectReader::CheckNoUnknownKeys() const {
   for (const auto& [key, unused] : value_.items()) {
-    if (read_keys_.count(key) == 0) Fail(key, "unknown field");
+    if (read_keys_.count(key) != 0) continue;
+    std::vector<std::string> absent;
+    for (const std::string& known : asked_keys_) {
+      if (!value_.contains(known)) absent.push_back(known);
+    }
+    const std::string meant = ClosestName(key, absent);
+    Fail(key, "unknown field" + (meant.empty() ? "" : "; did you mean \"" + meant + "\"?"));
   }
 }
 

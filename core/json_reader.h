@@ -90,8 +90,11 @@ class JsonObjectReader {
   // Error at this object (key empty) or at one of its keys.
   [[noreturn]] void Fail(const std::string& key, const std::string& message) const;
 
+  // Whether the object holds `key`; the key is then one the object takes (for CheckNoUnknownKeys's
+  // suggestion of the field a misspelt key meant).
   bool Has(const std::string& key) const;
-  // The raw value of a required key (marks it read).
+  // The raw value of a required key (marks it read). Absent, the error is at a key of the object
+  // that misspells it ("unknown field; did you mean \"key\" (a required field)?") if there is one.
   const nlohmann::json& Get(const std::string& key) const;
   JsonObjectReader Object(const std::string& key) const;
   std::string String(const std::string& key) const;
@@ -107,7 +110,8 @@ class JsonObjectReader {
   std::vector<double> Vector3Array(const std::string& key, size_t expected_count,
                                    const std::string& what) const;
 
-  // Throws naming the first key that was never read.
+  // Throws naming the first key that was never read, and the absent key asked for (Has, Get) that
+  // it most likely misspells.
   void CheckNoUnknownKeys() const;
 
  private:
@@ -115,6 +119,7 @@ class JsonObjectReader {
   std::string source_;
   std::string path_;
   mutable std::set<std::string> read_keys_;
+  mutable std::set<std::string> asked_keys_;  // by Has() or Get(), present or not
 };
 
 template <typename Read>
