@@ -399,6 +399,14 @@ class CsvTable {
                " alone; values are read in metres and seconds)";
       }
     }
+    // A misspelt name (rep_xq, staion): a column the file has that no standard one is, near it.
+    for (const std::string& name : header_) {
+      if (std::find(required.begin(), required.end(), name) == required.end() &&
+          ClosestName(name, {column}) == column) {
+        return " (the header has '" + name + "': is it " + column + " misspelt? rename it " +
+               column + ")";
+      }
+    }
     // Metadata or comment lines above the header: a later line names every standard column.
     for (size_t i = 0; i < rows_.size() && i < 50; ++i) {
       const std::vector<std::string>& fields = rows_[i].fields;

@@ -332,6 +332,13 @@ TEST(PosesCsv, HeaderAsLabSoftwareExportsItSaysWhatToChange) {
   EXPECT_EQ(error_for(header + "1,calib,1,0,0,1,0,2,0,3,1,0,0,0,0,1,0,2,0,3,1,0,0,0\n"),
             "poses.csv:2: row: expected 18 fields, found 24 (no '.' in the line: is ',' its "
             "decimal point? export with '.' as the decimal point)");
+  // A misspelt name (the letters of a quaternion column swapped, a letter left out).
+  EXPECT_EQ(error_for(replaced(header, "rep_qx", "rep_xq") + good),
+            "poses.csv:1: column rep_qx: missing from the header (the header has 'rep_xq': is it "
+            "rep_qx misspelt? rename it rep_qx)");
+  EXPECT_EQ(error_for(replaced(header, "station", "staion") + good),
+            "poses.csv:1: column station: missing from the header (the header has 'staion': is it "
+            "station misspelt? rename it station)");
   // No hint where nothing explains the missing column.
   EXPECT_EQ(error_for("station,set\n1,calib\n"),
             "poses.csv:1: column sensor: missing from the header");
