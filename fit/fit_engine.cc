@@ -19,6 +19,7 @@
 #include <stdexcept>
 #include <utility>
 
+#include "core/json_reader.h"
 #include "fit/pose_metric.h"
 #include "fit/terms_time_offset.h"
 
@@ -1045,22 +1046,24 @@ FitStart TakeFitStart(const ModelSpec& fitted) {
   return start;
 }
 
-FitStart FitStartFromJson(const nlohmann::json& fit, const std::string& source) {
+FitStart FitStartFromJson(const nlohmann::json& fit, const std::string& source,
+                          const std::string& json_path) {
+  // `field`: the path below `fit` ("" for fit itself, ".terms[0]").
   auto fail = [&](const std::string& field, const std::string& what) {
-    throw std::invalid_argument(source + ": " + field + ": " + what +
-                                " (expected the \"fit\" of trackcal-fit fit --json)");
+    throw JsonInputError(source, json_path + field,
+                         what + " (expected the \"fit\" of trackcal-fit fit --json)");
   };
-  if (!fit.is_object()) fail("fit", "not an object");
-  if (!fit.contains("terms") || !fit["terms"].is_array()) fail("fit.terms", "missing");
+  if (!fit.is_object()) fail("", "not an object");
+  if (!fit.contains("terms") || !fit["terms"].is_array()) fail(".terms", "missing");
   if (!fit.contains("parameters") || !fit["parameters"].is_array()) {
-    fail("fit.parameters", "missing");
+    fail(".parameters", "missing");
   }
   FitStart start;
   start.source = source;
   std::map<std::string, std::string> type_of;  // model-file term name -> type
   for (size_t i = 0; i < fit["terms"].size(); ++i) {
     const nlohmann::json& t = fit["terms"][i];
-    const std::string at = "fit.terms[" + std::to_string(i) + "]";
+    const std::string at = ".terms[" + std::to_string(i) + "]";
     if (!t.is_object() || !t.contains("name") || !t["name"].is_string() || !t.contains("type") ||
         !t["type"].is_string()) {
       fail(at, "needs a name and a type");
@@ -1079,7 +1082,7 @@ FitStart FitStartFromJson(const nlohmann::json& fit, const std::string& source) 
   }
   for (size_t i = 0; i < fit["parameters"].size(); ++i) {
     const nlohmann::json& p = fit["parameters"][i];
-    const std::string at = "fit.parameters[" + std::to_string(i) + "]";
+    const std::string at = ".parameters[" + std::to_string(i) + "]";
     if (!p.is_object() || !p.contains("term") || !p["term"].is_string() || !p.contains("block") ||
         !p["block"].is_string() || !p.contains("values") || !p["values"].is_array()) {
       fail(at, "needs a term, a block and values");

@@ -278,8 +278,11 @@ int RunFit(int argc, char** argv) {
     // again at the start, with the previous coefficients, it was 31.6 instead of 1 on the full
     // paper capture (seed 1, the floor plane added after the frame and the toolbox), and the fit
     // ended at cost 2224 against 652, its validation error 3.20 mm against 0.71.
-    options.start = std::make_shared<const FitStart>(FitStartFromJson(
-        doc.is_object() && doc.contains("fit") ? doc["fit"] : doc, start_path.string()));
+    const bool wrapped = doc.is_object() && doc.contains("fit");
+    options.start = std::make_shared<const FitStart>(LocateJsonErrors(text, [&] {
+      return FitStartFromJson(wrapped ? doc["fit"] : doc, start_path.string(),
+                              wrapped ? "$.fit" : "$");
+    }));
   }
   options.tool = "trackcal-fit";
   options.tool_version = kVersion;

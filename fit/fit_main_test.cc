@@ -361,8 +361,26 @@ TEST_F(FitCliTest, StartFromAPreviousFit) {
                        " -o " + (dir_ / "x.json").string() + " --start " +
                        (dir_ / "not_a_fit.json").string() + " --quiet 2> " + err.string()),
             1);
-  EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr("not_a_fit.json: fit.terms: missing"));
+  // An error in the document names its line and column, as the calibration file's do (it said
+  // "not_a_fit.json: fit.terms: missing", leaving a hand editor to search a long document).
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("not_a_fit.json:1:10: $.fit.terms: missing"));
   EXPECT_FALSE(fs::exists(dir_ / "x.json"));
+  std::ofstream(dir_ / "bad_value.json")
+      << "{\"fit\": {\"terms\": [{\"name\": \"polynomial\", \"type\": \"polynomial\"}],\n"
+      << "  \"parameters\": [{\"term\": \"polynomial\", \"block\": \"position_coefficients\",\n"
+      << "    \"values\": [{\"value\": \"x\"}]}]}}\n";
+  std::ofstream(dir_ / "bare_fit.json") << "{\"terms\": 3}\n";  // the "fit" alone
+  for (const auto& [start, message] : std::vector<std::pair<std::string, std::string>>{
+           {"bad_value.json", ":3:5: $.fit.parameters[0].values: each needs a numeric value"},
+           {"bare_fit.json", ":1:2: $.terms: missing"}}) {
+    EXPECT_EQ(RunCommand(fit_ + " fit" + data + " --model " + (dir_ / "more.yaml").string() +
+                         " -o " + (dir_ / "x.json").string() + " --start " +
+                         (dir_ / start).string() + " --quiet 2> " + err.string()),
+              1)
+        << start;
+    EXPECT_THAT(ReadFileToString(err), ::testing::HasSubstr((dir_ / start).string() + message));
+  }
 
   // A model file, an empty file and a cut document: the parser's raw text ("[json.exception.
   // parse_error.101] parse error at line 1, column 2") named no line:column and not what --start
