@@ -109,13 +109,40 @@ bool CreateTemporaryFolderBeside(const std::filesystem::path& path, std::string*
                       [](const std::string& name) { return ::mkdir(name.c_str(), 0777); }) >= 0;
 }
 
-void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents,
+namespace {
+
+// The file a write to `path` lands in: `path`, or where the symbolic link(s) it names lead (a link
+// to a file not made yet leads to where it will be). Throws naming `path` for a loop of links.
+std::filesystem::path FollowSymlinks(const std::filesystem::path& path) {
+  std::filesystem::path at = path;
+  for (int hops = 0; hops < 40; ++hops) {  // Linux's own limit (ELOOP)
+    struct stat st {};
+    if (::lstat(at.c_str(), &st) != 0 || !S_ISLNK(st.st_mode)) return at;
+    std::error_code ec;
+    const std::filesystem::path next = std::filesystem::read_symlink(at, ec);
+    if (ec) {
+      throw std::runtime_error(path.string() + ": cannot read the symbolic link " + at.string() +
+                               ": " + ec.message());
+    }
+    at = next.is_absolute() ? next : at.parent_path() / next;
+  }
+  throw std::runtime_error(path.string() + ": " + std::strerror(ELOOP));
+}
+
+}  // namespace
+
+void WriteFileAtomically(const std::filesystem::path& given, std::string_view contents,
                          bool overwrite) {
   static constexpr char kExists[] = ": exists; refusing to overwrite it";
   std::error_code ec;
-  if (!overwrite && std::filesystem::exists(std::filesystem::symlink_status(path, ec))) {
-    throw std::runtime_error(path.string() + kExists);  // before the work of writing it
+  if (!overwrite && std::filesystem::exists(std::filesystem::symlink_status(given, ec))) {
+    throw std::runtime_error(given.string() + kExists);  // before the work of writing it
   }
+  // Replacing a symbolic link writes through it and keeps it (calib.json -> a dated file a server
+  // reads through the link): renamed over the link, the new file replaced the link itself and the
+  // file it led to kept the old contents. Messages still name the path given.
+  const std::filesystem::path path = overwrite ? FollowSymlinks(given) : given;
+  const std::string name = given.string();
   const std::filesystem::path dir =
       path.has_parent_path() ? path.parent_path() : std::filesystem::path(".");
   // A file replaced keeps its mode and group: a lab's group-writable 0664 calibration became 0644
@@ -126,7 +153,7 @@ void WriteFileAtomically(const std::filesystem::path& path, std::string_view con
   std::string temp;
   const int fd = CreateTemporaryFileBeside(path, &temp);
   if (fd < 0) {
-    throw std::runtime_error(path.string() + ": cannot create a temporary file in " + dir.string() +
+    throw std::runtime_error(name + ": cannot create a temporary file in " + dir.string() +
                              ": " + ErrnoText());
   }
   TempFileGuard guard(fd, temp);
@@ -135,7 +162,7 @@ void WriteFileAtomically(const std::filesystem::path& path, std::string_view con
     const ssize_t n = ::write(fd, contents.data() + written, contents.size() - written);
     if (n < 0) {
       if (errno == EINTR) continue;
-      throw std::runtime_error(path.string() + ": write failed: " + ErrnoText());
+      throw std::runtime_error(name + ": write failed: " + ErrnoText());
     }
     written += static_cast<size_t>(n);
   }
@@ -145,31 +172,31 @@ void WriteFileAtomically(const std::filesystem::path& path, std::string_view con
     // A mode that cannot be set is an error: the file would be more open than the user's.
     [[maybe_unused]] const int group_kept = ::fchown(fd, static_cast<uid_t>(-1), replaced.st_gid);
     if (::fchmod(fd, replaced.st_mode & 07777) != 0) {
-      throw std::runtime_error(path.string() + ": cannot give the new file the mode of the one " +
+      throw std::runtime_error(name + ": cannot give the new file the mode of the one " +
                                "it replaces: " + ErrnoText());
     }
   }
-  if (::fsync(fd) != 0) throw std::runtime_error(path.string() + ": fsync failed: " + ErrnoText());
+  if (::fsync(fd) != 0) throw std::runtime_error(name + ": fsync failed: " + ErrnoText());
   if (::close(guard.ReleaseFd()) != 0) {
-    throw std::runtime_error(path.string() + ": close failed: " + ErrnoText());
+    throw std::runtime_error(name + ": close failed: " + ErrnoText());
   }
   if (overwrite) {
     if (::rename(temp.c_str(), path.c_str()) != 0) {
-      throw std::runtime_error(path.string() +
+      throw std::runtime_error(name +
                                ": cannot rename the temporary file into place: " + ErrnoText());
     }
     guard.Release();
   } else if (::link(temp.c_str(), path.c_str()) != 0) {  // the guard removes the temporary
     const int error = errno;
-    if (error == EEXIST) throw std::runtime_error(path.string() + kExists);
+    if (error == EEXIST) throw std::runtime_error(name + kExists);
     if (error == EPERM || error == EOPNOTSUPP || error == ENOSYS || error == EMLINK) {
-      throw std::runtime_error(path.string() + ": not written: the file system of " + dir.string() +
+      throw std::runtime_error(name + ": not written: the file system of " + dir.string() +
                                " has no hard links (" + std::strerror(error) +
                                "), which trackcal needs to write a file without risking replacing "
                                "another; write it to another folder");
     }
     throw std::runtime_error(
-        path.string() + ": cannot link the temporary file into place: " + std::strerror(error));
+        name + ": cannot link the temporary file into place: " + std::strerror(error));
   }
   // The link made: the guard unlinks the temporary name, the file stays under `path`.
   // Persist the rename or link itself; failure here does not lose data, so it is not an error.

@@ -225,6 +225,54 @@ TEST(WriteFileAtomically, ReplacingKeepsTheModeAndGroup) {
   }
 }
 
+// A calibration a server reads through a link (calib.json -> calibrations/2026-12-01.json) was
+// replaced by a regular file: the rename put the new file in place of the link, so the dated file
+// kept the old calibration and the link was gone. Written through the link, as any editor does.
+TEST(WriteFileAtomically, ReplacingWritesThroughASymlinkAndKeepsIt) {
+  const auto dir = testing::MakeTempDir("atomic_link");
+  std::filesystem::create_directory(dir / "calibrations");
+  const auto target = dir / "calibrations" / "dated.json";
+  WriteFileAtomically(target, "old");
+  ASSERT_EQ(::chmod(target.c_str(), 0640), 0);
+  std::filesystem::create_symlink("calibrations/dated.json", dir / "calib.json");  // relative
+  std::filesystem::create_symlink(dir / "calib.json", dir / "current.json");      // a chain
+  for (const char* link : {"calib.json", "current.json"}) {
+    WriteFileAtomically(dir / link, std::string("new through ") + link);
+    EXPECT_TRUE(std::filesystem::is_symlink(dir / link)) << link;
+    EXPECT_EQ(ReadFileToString(target), std::string("new through ") + link);
+    struct stat st;
+    ASSERT_EQ(::stat(target.c_str(), &st), 0);
+    EXPECT_EQ(st.st_mode & 07777, 0640u);  // the target's mode, kept
+  }
+  EXPECT_EQ(std::filesystem::read_symlink(dir / "calib.json"), "calibrations/dated.json");
+  // A link to a file not written yet creates it, as writing through a link does.
+  std::filesystem::create_symlink("calibrations/next.json", dir / "next.json");
+  WriteFileAtomically(dir / "next.json", "first");
+  EXPECT_TRUE(std::filesystem::is_symlink(dir / "next.json"));
+  EXPECT_EQ(ReadFileToString(dir / "calibrations" / "next.json"), "first");
+  // No temporary file is left in either folder.
+  for (const auto& folder : {dir, dir / "calibrations"}) {
+    for (const auto& entry : std::filesystem::directory_iterator(folder)) {
+      EXPECT_EQ(entry.path().filename().string().find(".tmp-"), std::string::npos)
+          << entry.path();
+    }
+  }
+  // Without overwrite a link is an existing file, refused as before.
+  EXPECT_THROW(WriteFileAtomically(dir / "calib.json", "x", /*overwrite=*/false),
+               std::runtime_error);
+  EXPECT_EQ(ReadFileToString(target), "new through current.json");
+  // A loop of links is an error naming the path, not a hang.
+  std::filesystem::create_symlink("loop_b", dir / "loop_a");
+  std::filesystem::create_symlink("loop_a", dir / "loop_b");
+  try {
+    WriteFileAtomically(dir / "loop_a", "x");
+    FAIL() << "expected an exception";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find((dir / "loop_a").string()), std::string::npos) << e.what();
+  }
+  EXPECT_TRUE(std::filesystem::is_symlink(dir / "loop_a"));
+}
+
 TEST(WriteFileAtomically, MissingDirectoryThrowsNamingPath) {
   const auto dir = testing::MakeTempDir("atomic");
   const auto path = dir / "no" / "such" / "out.txt";
