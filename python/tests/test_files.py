@@ -84,3 +84,44 @@ def test_a_failed_write_names_the_file_asked_for_and_leaves_nothing(tmp_path, mo
         assert e.value.strerror == "write failed: No space left on device"
         assert e.value.errno == errno.ENOSPC
     assert list(tmp_path.iterdir()) == []
+
+
+def test_replacing_writes_through_a_symlink_and_keeps_it(tmp_path):
+    """A report or history kept in a dated folder and reached through a link (latest.html ->
+    runs/12-01/report.html) was replaced by a regular file: the rename put the new file in place of
+    the link, and the file it led to kept the old contents. Written through the link, as the C++
+    writer (core/file_util.cc) and any editor do."""
+    (tmp_path / "runs").mkdir()
+    target = tmp_path / "runs" / "report.html"
+    target.write_bytes(b"old")
+    (tmp_path / "latest.html").symlink_to("runs/report.html")           # relative
+    (tmp_path / "current.html").symlink_to(tmp_path / "latest.html")    # a chain
+    for link in ("latest.html", "current.html"):
+        _files.replace_atomically(tmp_path / link, f"new through {link}".encode())
+        assert (tmp_path / link).is_symlink()
+        assert target.read_bytes() == f"new through {link}".encode()
+    assert os.readlink(tmp_path / "latest.html") == "runs/report.html"
+    # A link to a file not written yet creates it.
+    (tmp_path / "next.html").symlink_to("runs/next.html")
+    _files.replace_atomically(tmp_path / "next.html", b"first")
+    assert (tmp_path / "next.html").is_symlink() and (tmp_path / "runs" / "next.html").read_bytes() == b"first"
+    assert not [p for p in tmp_path.rglob("*") if ".tmp-" in p.name]
+    # write_new still refuses a link, dangling or not: it is an existing name.
+    with pytest.raises(ValueError, match="exists"):
+        _files.write_new(tmp_path / "latest.html", b"x")
+
+
+def test_replacing_keeps_the_mode_of_the_file_replaced(tmp_path):
+    """As the C++ writer does: a history or report made group-writable (0664) for a lab, or private
+    (0600), got the umask's mode on every rewrite."""
+    path = tmp_path / "history.jsonl"
+    old = os.umask(0o022)
+    try:
+        for mode in (0o664, 0o600):
+            _files.replace_atomically(path, b"first")
+            os.chmod(path, mode)
+            _files.replace_atomically(path, b"second")
+            assert stat.S_IMODE(path.stat().st_mode) == mode
+            assert path.read_bytes() == b"second"
+    finally:
+        os.umask(old)

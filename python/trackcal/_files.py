@@ -20,6 +20,7 @@ import errno
 import os
 import pathlib
 import secrets
+import stat
 
 # link() errors that mean the file system has no hard links (FAT, some network and FUSE mounts).
 _NO_HARD_LINKS = {errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS, errno.EMLINK}
@@ -87,15 +88,31 @@ def _synced_temporary(path: pathlib.Path, data: bytes) -> str:
 
 def replace_atomically(path, data: bytes) -> pathlib.Path:
     """Writes ``data`` to ``path`` by a rename over it (see the module comment): the caller decides
-    that an existing ``path`` may be replaced."""
-    path = pathlib.Path(path)
+    that an existing ``path`` may be replaced. A symbolic link is written through and kept; the file
+    replaced keeps its mode. Returns ``path`` as given."""
+    given = path = pathlib.Path(path)
+    # A symbolic link is written through and kept (latest.html -> runs/12-01/report.html): renamed
+    # over the link, the new file replaced the link and the file it led to kept the old contents.
+    # A link to a file not made yet leads to where it will be; a loop is the OSError it is.
+    if path.is_symlink():
+        path = pathlib.Path(os.path.realpath(path, strict=False))
+        if path.is_symlink():
+            raise OSError(errno.ELOOP, os.strerror(errno.ELOOP), str(given))
     if not path.parent.is_dir():  # else the error would name the temporary file
-        raise ValueError(f"{path}: {path.parent} is not an existing folder")
+        raise ValueError(f"{given}: {path.parent} is not an existing folder")
     tmp = _synced_temporary(path, data)
     try:
+        # The file replaced passes its mode on (a lab's group-writable 0664 history, a private
+        # 0600 report), as the C++ writer's does; a new file has the umask's.
+        try:
+            st = os.stat(path)
+        except FileNotFoundError:
+            st = None
+        if st is not None and stat.S_ISREG(st.st_mode):
+            os.chmod(tmp, stat.S_IMODE(st.st_mode))
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
-    return path
+    return given
