@@ -1,6 +1,9 @@
 #include "core/calibration_file.h"
 
+#include <unistd.h>
+
 #include <algorithm>
+#include <cerrno>
 #include <ctime>
 #include <regex>
 #include <stdexcept>
@@ -429,6 +432,22 @@ void CheckCalibrationOutput(const std::filesystem::path& path) {
   if (!std::filesystem::is_directory(folder, ec)) {
     throw std::invalid_argument(path.string() + ": cannot write here: the folder " +
                                 folder.string() + " does not exist");
+  }
+  // The temporary file is made in the folder of the file written (through a link, the link's
+  // target's): a folder the user may not write in failed only after the fit, its result lost.
+  // access() is right here, unlike for the read-only file below: root may write in any folder,
+  // except on a read-only mount, which access() reports too.
+  std::filesystem::path written = path;
+  if (std::filesystem::is_symlink(std::filesystem::symlink_status(path, ec))) {
+    written = std::filesystem::weakly_canonical(path, ec);
+  }
+  const std::filesystem::path written_folder =
+      written.parent_path().empty() ? std::filesystem::path(".") : written.parent_path();
+  if (::access(written_folder.c_str(), W_OK | X_OK) != 0) {
+    const int error = errno;
+    throw std::invalid_argument(path.string() + ": cannot write here: the folder " +
+                                written_folder.string() + " is not writable (" +
+                                SystemErrorText(error) + ")");
   }
   if (!std::filesystem::exists(path, ec)) return;
   if (std::filesystem::is_directory(path, ec)) {

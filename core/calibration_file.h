@@ -79,7 +79,8 @@ std::string CalibrationToJsonText(const Calibration& calibration);
 void WriteCalibrationFile(const std::filesystem::path& path, const Calibration& calibration);
 
 // The checks WriteCalibrationFile can make before the calibration exists, for tools to call before
-// a long fit (so a bad -o fails in a second, not after the fit): the folder exists, and an existing
+// a long fit (so a bad -o fails in a second, not after the fit): the folder exists and the user may
+// write in it (access(); the link target's folder for a symbolic link), and an existing
 // file at `path` is a trackcal calibration file that is not read-only (no write permission for
 // anyone: a file kept on purpose). Throws std::invalid_argument naming the path. A file replaced
 // keeps its mode (WriteFileAtomically).

@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <fstream>
@@ -687,6 +689,45 @@ TEST(WriteCalibrationFile, RefusesAReadOnlyFileAndKeepsTheModeOfOneItReplaces) {
     WriteCalibrationFile(shared, cal);
     EXPECT_EQ(std::filesystem::status(shared).permissions(), mode);
   }
+}
+
+// An output folder the user may not write in (a shared read-only folder, a read-only mount)
+// passed the checks made before a fit, which then ran for minutes and failed at the end, its
+// result lost: it is refused before the fit, naming the folder.
+TEST(CheckCalibrationOutput, RefusesAFolderTheUserCannotWriteIn) {
+  const auto dir = testing::MakeTempDir("calib_folder");
+  const auto read_only = dir / "read_only";
+  const auto writable = dir / "writable";
+  std::filesystem::create_directory(read_only);
+  std::filesystem::create_directory(writable);
+  ASSERT_EQ(::chmod(dir.c_str(), 0755), 0);
+  ASSERT_EQ(::chmod(read_only.c_str(), 0555), 0);
+  ASSERT_EQ(::chmod(writable.c_str(), 0777), 0);
+  // The outcome of the checks as the user "nobody" (root writes in any folder): 0 refused naming
+  // the folder, 1 accepted, 2 refused for another reason.
+  const auto outcome = [](const std::filesystem::path& out) {
+    try {
+      CheckCalibrationOutput(out);
+      return 1;
+    } catch (const std::invalid_argument& e) {
+      const std::string expected = out.string() + ": cannot write here: the folder " +
+                                   out.parent_path().string() + " is not writable";
+      return std::string(e.what()).rfind(expected, 0) == 0 ? 0 : 2;
+    }
+  };
+  const auto as_nobody = [&outcome](const std::filesystem::path& out) {
+    if (::geteuid() != 0) return outcome(out);
+    const pid_t child = ::fork();
+    if (child == 0) {
+      if (::setgid(65534) != 0 || ::setuid(65534) != 0) ::_exit(3);
+      ::_exit(outcome(out));
+    }
+    int status = 0;
+    ::waitpid(child, &status, 0);
+    return WIFEXITED(status) ? WEXITSTATUS(status) : 4;
+  };
+  EXPECT_EQ(as_nobody(read_only / "calib.json"), 0);
+  EXPECT_EQ(as_nobody(writable / "calib.json"), 1);
 }
 
 // A folder as the output said "read error: Is a directory" (the inputs' SHA-256 check read it)
