@@ -429,3 +429,31 @@ def test_a_calibration_given_as_a_path_is_loaded_and_anything_else_is_named(tmp_
         validation.validate(cap, 3, analyse_covariates=False)
     with pytest.raises(ValueError, match="missing.json"):
         validation.validate(cap, str(tmp_path / "missing.json"), analyse_covariates=False)
+
+
+def test_validation_and_residuals_compare_with_equals_and_refuse_equality_with_a_hint(tmp_path):
+    """Validation and Residuals hold numpy arrays, as PoseCapture and Parameter do, but kept the
+    dataclass ==: it failed with numpy's "The truth value of an array with more than one element is
+    ambiguous", naming neither class. They now have equals() (every field, arrays element by
+    element, NaN equal to NaN, the capture and calibration by their contents) and == is a TypeError
+    pointing to it."""
+    path = hand_capture(tmp_path)
+    poly = trackcal.PolynomialCorrection(0, [[1e-3, 0.0, 0.0]], [[0.0, 0.0, 0.0]])
+    cal = trackcal.Calibration([poly], (-1, -1, -1), (1, 1, 1))
+    a = validation.validate(captures.load_poses(path), cal, analyse_covariates=False)
+    b = validation.validate(captures.load_poses(path), trackcal.Calibration.from_json(cal.to_json(), "c"),
+                            analyse_covariates=False)
+    assert a.equals(b) and b.equals(a) and a.before.equals(b.before) and a.after.equals(b.after)
+    other = trackcal.Calibration([trackcal.PolynomialCorrection(0, [[2e-3, 0.0, 0.0]], [[0.0, 0.0, 0.0]])],
+                                 (-1, -1, -1), (1, 1, 1))
+    c = validation.validate(captures.load_poses(path), other, analyse_covariates=False)
+    assert not a.equals(c) and not a.after.equals(c.after) and a.before.equals(c.before)
+    assert not a.equals(None) and not a.before.equals(a) and not a.equals(a.before)
+    for x, y, name in ((a, b, "Validation"), (a.before, b.before, "Residuals")):
+        with pytest.raises(TypeError, match=rf"{name} == {name} is not defined \(they hold numpy arrays\): "
+                                            r"use a\.equals\(b\)"):
+            x == y  # noqa: B015
+    # A NaN in a summary (the std of one station) is equal to itself, as in the arrays.
+    one = captures.load_poses(path).subset([0])
+    assert validation.validate(one, cal, analyse_covariates=False).equals(
+        validation.validate(one, cal, analyse_covariates=False))

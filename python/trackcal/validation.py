@@ -19,7 +19,7 @@ import numpy as np
 
 from trackcal import _core
 from trackcal._core import correction_status_names
-from trackcal.captures import PoseCapture
+from trackcal.captures import PoseCapture, _ArrayFields
 from trackcal.numpy_reference import quaternion_multiply_xyzw
 
 
@@ -51,9 +51,10 @@ def rotation_matrices(q: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Residuals and Table 1
 
-@dataclasses.dataclass
-class Residuals:
-    """Per-station errors of an estimate against the reference."""
+@dataclasses.dataclass(eq=False)
+class Residuals(_ArrayFields):
+    """Per-station errors of an estimate against the reference. ``a.equals(b)`` compares them
+    (``==`` is a TypeError saying so, as for a PoseCapture)."""
 
     position: np.ndarray      # (N, 3) p_ref - p [m]
     orientation: np.ndarray   # (N, 3) vector part of q_ref conj(q)
@@ -729,8 +730,11 @@ def region_breakdown(positions: np.ndarray, before: Residuals, after: Optional[R
 # ---------------------------------------------------------------------------------------------
 # The whole validation
 
-@dataclasses.dataclass(repr=False)
-class Validation:
+@dataclasses.dataclass(repr=False, eq=False)
+class Validation(_ArrayFields):
+    """A validation run (``validate``). ``a.equals(b)``: the same capture, calibration (its file
+    text) and results, arrays element by element; ``==`` is a TypeError saying so."""
+
     capture: PoseCapture
     calibration: Optional[object]
     corrected_positions: Optional[np.ndarray]
