@@ -802,3 +802,40 @@ def test_a_model_file_with_a_latin1_comment_fits_and_is_recorded_byte_for_byte(c
     with pytest.raises(ValueError, match=r"^line 1, column 17: byte \\xfc is not UTF-8 text"):
         diagnosis.check_model_text_is_utf8(report.model["text"])
     diagnosis.check_model_text_is_utf8(MODEL)  # UTF-8 text passes
+
+
+def test_arguments_of_the_wrong_type_are_a_type_error_naming_the_argument(capture_dir):
+    """fit(123, ...) was a ValueError, fit(..., folds="5") pybind11's "incompatible function
+    arguments" listing the C++ signature, captures.load(123) Python's "expected str, bytes or
+    os.PathLike object, not int" and validate(123) an AttributeError: none named the argument.
+    Each is now a TypeError naming it and what it takes; a value of the right type that is wrong
+    (folds=2.5) is a ValueError."""
+    calls = [
+        ("data", lambda: trackcal.fit(123, MODEL)),
+        ("data", lambda: trackcal.fit(None, MODEL)),
+        ("data", lambda: trackcal.fit([1, 2], MODEL)),
+        ("model", lambda: trackcal.fit(capture_dir, 123)),
+        ("model", lambda: trackcal.fit(capture_dir, None)),
+        ("folds", lambda: trackcal.fit(capture_dir, MODEL, folds="5")),
+        ("folds", lambda: trackcal.fit(capture_dir, MODEL, folds=None)),
+        ("time_offset", lambda: trackcal.pair(capture_dir, capture_dir, time_offset="0.1")),
+        ("decimate", lambda: trackcal.pair(capture_dir, capture_dir, decimate="2")),
+        ("path", lambda: captures.load(123)),
+        ("path", lambda: captures.load_poses(123)),
+        ("capture", lambda: validation.validate(123)),
+        ("capture", lambda: validation.validate(str(capture_dir / "poses.csv"))),
+    ]
+    if diagnosis.candidates_available():
+        calls += [("data", lambda: trackcal.diagnose_candidates(123, MODEL)),
+                  ("folds", lambda: trackcal.diagnose_candidates(capture_dir, MODEL, folds="a")),
+                  ("cross_validate_top", lambda: trackcal.diagnose_candidates(capture_dir, MODEL,
+                                                                              cross_validate_top=None))]
+    for name, call in calls:
+        with pytest.raises(TypeError, match=rf"^{name} must be ") as e:
+            call()
+        assert "incompatible function arguments" not in str(e.value)
+    with pytest.raises(ValueError, match=r"^folds 2\.5: must be a whole number"):
+        trackcal.fit(capture_dir, MODEL, folds=2.5)
+    # Right types still work: a whole float, a numpy integer.
+    assert trackcal.fit(capture_dir, MODEL, folds=np.int64(2)).table("cross-validation (2-fold)")
+    assert trackcal.fit(capture_dir, MODEL, folds=2.0).table("cross-validation (2-fold)")

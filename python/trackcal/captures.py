@@ -231,8 +231,21 @@ def not_utf8_message(path: PathLike) -> str:
     return f"{p}: not UTF-8 text (save the file as UTF-8)"
 
 
+def _path_arg(path, name: str = "path") -> pathlib.Path:
+    """A path argument as pathlib.Path. Another type was Python's "expected str, bytes or
+    os.PathLike object, not int", naming no argument: a TypeError naming it, in the words of the
+    C++ functions' (bytes too: pathlib refuses it)."""
+    if isinstance(path, bytes):
+        raise TypeError(f"{name} must be a str or os.PathLike path, got bytes {path!r:.80}: decode it "
+                        "with os.fsdecode()")
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"{name} must be a path (str or os.PathLike such as pathlib.Path), got "
+                        f"{type(path).__name__}")
+    return pathlib.Path(path)
+
+
 def _resolve(path: PathLike, file_name: str) -> pathlib.Path:
-    p = pathlib.Path(path)
+    p = _path_arg(path)
     return p / file_name if p.is_dir() else p
 
 
@@ -321,8 +334,8 @@ def load(path: PathLike, *, time_offset: Optional[float] = None, search_range: f
     ``origin`` says which, with the offset used (and its source) or the registration's chi-square.
     """
     from trackcal.fitting import pair, register
-    kind = capture_kind(path)
-    p = pathlib.Path(path)
+    p = _path_arg(path)
+    kind = capture_kind(p)
     labels = None
     if register_markers:
         if not (p.is_dir() and all((p / n).is_file() for n in MARKER_FILES)):

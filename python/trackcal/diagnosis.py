@@ -50,6 +50,9 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
     if not candidates_available():
         raise NotImplementedError("this trackcal build has no candidate ranking (fit/candidates.h); "
                                   "the covariate analysis (trackcal diagnose) still works")
+    from trackcal.fitting import _data_arg, _int_arg, _model_arg, _progress_arg, _sensor_arg
+    data, model = _data_arg(data), _model_arg(model)
+    folds, cross_validate_top = _int_arg(folds, "folds"), _int_arg(cross_validate_top, "cross_validate_top")
     if cross_validate_top < 0:
         raise ValueError("cross_validate_top must be >= 0")
     if effects is not None:
@@ -59,7 +62,6 @@ def diagnose_candidates(data, model, folds: int = 5, effects: Optional[Sequence[
             # as "every effect": say so instead of ranking what was not asked for.
             raise ValueError("effects: an empty list restricts the catalog to nothing; pass None "
                              "for every effect")
-    from trackcal.fitting import _progress_arg, _sensor_arg
     kwargs = {"folds": folds, "effects": effects,
               "cross_validate_top": cross_validate_top, "sensor": _sensor_arg(sensor)}
     if _progress_arg(progress) is not None:

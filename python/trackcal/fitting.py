@@ -304,7 +304,38 @@ def _data_arg(data):
         return data
     if isinstance(data, PoseCapture) or hasattr(data, "reported_positions"):
         return data
-    raise ValueError("data must be a capture folder, a poses.csv path or a trackcal.captures.PoseCapture")
+    # A ValueError said nothing of the type the argument had.
+    raise TypeError("data must be a capture folder or a poses.csv path (str or os.PathLike) or a "
+                    f"trackcal.captures.PoseCapture, got {type(data).__name__}")
+
+
+def _model_arg(model):
+    """``model`` of fit/diagnose_candidates: a path or the YAML text (bytes: refused by name in C++)."""
+    if isinstance(model, (str, bytes, os.PathLike)):
+        return model
+    raise TypeError("model must be a model file's path (str or os.PathLike) or its YAML text "
+                    f"(docs/model-file.md), got {type(model).__name__}")
+
+
+def _int_arg(value, name: str) -> int:
+    """An integer argument (a whole float, a numpy integer too) as the engine takes it. Another type
+    was pybind11's "incompatible function arguments" listing the C++ signature, naming no argument:
+    a TypeError naming it; a fraction a ValueError."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a whole number, got {type(value).__name__} {value!r:.40}")
+    if not float(value).is_integer():
+        raise ValueError(f"{name} {value!r}: must be a whole number")
+    return int(value)
+
+
+def _float_arg(value, name: str, optional: bool = False):
+    """A real-number argument (None too when ``optional``), as ``_int_arg``."""
+    if optional and value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a number{' or None' if optional else ''}, got "
+                        f"{type(value).__name__} {value!r:.40}")
+    return float(value)
 
 
 def _sensor_arg(sensor) -> int:
@@ -344,8 +375,10 @@ def fit(data, model, *, folds: int = 0, progress: Optional[Progress] = None,
     None: the data must hold one sensor (a calibration is one receiver's: stations of several are
     refused, naming them, as ``trackcal-fit fit --sensor N``).
     """
+    data, model = _data_arg(data), _model_arg(model)
+    folds = _int_arg(folds, "folds")
     info = _core.parse_model(model)
-    native = _core.fit(_data_arg(data), model, folds=folds, progress=_progress_arg(progress),
+    native = _core.fit(data, model, folds=folds, progress=_progress_arg(progress),
                        sensor=_sensor_arg(sensor))
     return FitReport(native, info)
 
@@ -534,6 +567,10 @@ def pair(tracker: PathLike, reference: PathLike, *, time_offset: float = 0.0,
     origin being the tracker time at which the offset holds (None: the middle of the samples)."""
     tracker = _input_file(tracker, "tracker_stream.csv")
     reference = _input_file(reference, "reference_stream.csv")
+    time_offset, search_range = _float_arg(time_offset, "time_offset"), _float_arg(search_range, "search_range")
+    max_gap_s, clock_drift = _float_arg(max_gap_s, "max_gap_s"), _float_arg(clock_drift, "clock_drift")
+    clock_drift_origin_s = _float_arg(clock_drift_origin_s, "clock_drift_origin_s", optional=True)
+    sensor, decimate = _int_arg(sensor, "sensor"), _int_arg(decimate, "decimate")
     native = _core.pair(tracker, reference, time_offset=time_offset,
                         estimate_time_offset=estimate_time_offset, search_range=search_range,
                         max_gap_s=max_gap_s, sensor=sensor, set=set, decimate=decimate,

@@ -1006,6 +1006,10 @@ def _checked_capture(capture: PoseCapture) -> PoseCapture:
     registration stations ("estimated: positions must be (N, 3) ...", naming none of the capture's
     fields); an infinite reported position was silently left out as a hemisphere flip and a NaN one
     made every mean NaN."""
+    # Anything else (a number, a poses.csv's path) was an AttributeError deep in the checks.
+    if not all(hasattr(capture, f) for f in ("station", "set", "reported_positions")):
+        raise TypeError("capture must be a trackcal.captures.PoseCapture (captures.load(path) reads "
+                        f"one), got {type(capture).__name__}")
     n = np.shape(capture.station)
     if len(n) != 1:
         raise ValueError(f"PoseCapture: station must have shape (N,), one id per station, got {n}")
