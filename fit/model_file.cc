@@ -420,6 +420,16 @@ ModelSpec ParseModel(const std::string& text, const std::string& source_name, bo
                        : "the model file must be a mapping with 'terms'"));
   }
   const YamlMapReader top(root, source_name, "$");
+  // Before anything else: a newer file's keys and term types are not the error to report.
+  // Optional, 1 when absent (every model file written before it existed).
+  if (top.Has("version")) {
+    const int version = top.GetInt("version");
+    if (version != kModelFileVersion) {
+      top.Fail("version", "model file version " + std::to_string(version) +
+                              "; this trackcal reads version " + std::to_string(kModelFileVersion) +
+                              " (a newer file needs a newer trackcal)");
+    }
+  }
   ModelSpec spec;
   spec.source = source_name;
   if (top.Has("noise")) {

@@ -192,6 +192,9 @@ struct ModelSpec {
   std::vector<ModelFileTerm> file_terms;
 };
 
+// The model file version this parser reads: a file's optional top-level `version` (absent: 1).
+inline constexpr int kModelFileVersion = 1;
+
 // Parses the model file; throws std::invalid_argument "FILE:LINE:COLUMN: PATH: message".
 ModelSpec ParseModelYaml(const std::string& text, const std::string& source_name);
 ModelSpec ReadModelFile(const std::filesystem::path& path);

@@ -133,6 +133,25 @@ TEST(ParseModelYaml, MisspeltKeysNameTheLineAndTheClosestValidName) {
   EXPECT_EQ(ErrorOf("noise: {position_mm: 1}\n"), "model.yaml:1:1: $.terms: missing required field");
 }
 
+// A model file had no version: `version: 2` (a file written for a newer trackcal) said only
+// "$.version: unknown key", as a typo would. Version 1 may be given; none means 1 (every file
+// written so far); another is refused as the calibration file refuses one.
+TEST(ParseModelYaml, VersionIsOneOrAbsentAndANewerOneIsNamed) {
+  EXPECT_EQ(ErrorOf("version: 1\nterms: [{type: polynomial}]\n"), "");
+  EXPECT_EQ(ErrorOf("terms: [{type: polynomial}]\n"), "");
+  EXPECT_EQ(ErrorOf("version: 2\nterms: [{type: polynomial}]\n"),
+            "model.yaml:1:10: $.version: model file version 2; this trackcal reads version 1 (a "
+            "newer file needs a newer trackcal)");
+  EXPECT_EQ(ErrorOf("version: 1.1\nterms: [{type: polynomial}]\n"),
+            "model.yaml:1:10: $.version: expected an integer, got '1.1'");
+  // Checked first: a newer file's unknown keys or term types are not what to report.
+  EXPECT_EQ(ErrorOf("terms: [{type: spline}]\nversion: 3\n"),
+            "model.yaml:2:10: $.version: model file version 3; this trackcal reads version 1 (a "
+            "newer file needs a newer trackcal)");
+  // build's settings file takes it too.
+  EXPECT_NO_THROW(ParseModelSettingsYaml("version: 1\nnoise: {position_mm: 1}\n", "s.yaml"));
+}
+
 TEST(ParseModelYaml, ErrorsQuotingBytesThatAreNotUtf8ArePrintable) {
   // A key typed in a Latin-1 editor: the message quoted it raw, and in Python (trackcal.fit,
   // trackcal fit) it failed as it became a str, "'utf-8' codec can't decode byte 0xe9", naming no
