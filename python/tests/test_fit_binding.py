@@ -164,7 +164,7 @@ def test_user_errors_name_file_line_and_field(capture_dir, tmp_path):
     with pytest.raises(ValueError) as info:
         trackcal.fit(capture_dir, latin1)
     assert type(info.value) is ValueError  # not its subclass UnicodeDecodeError
-    assert str(info.value) == f"{latin1}:3:5: $.terms[0].degr\\xe9e: unknown key"
+    assert str(info.value) == f"{latin1}:3:5: $.terms[0].degr\\xe9e: unknown key; did you mean 'degree'?"
     with pytest.raises(ValueError, match=r"<string>:2:\d+: .*nonsense"):
         trackcal.fit(capture_dir, "terms:\n  - type: nonsense\n")
     with pytest.raises(ValueError, match="missing.yaml"):
