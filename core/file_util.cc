@@ -153,8 +153,8 @@ void WriteFileAtomically(const std::filesystem::path& given, std::string_view co
   std::string temp;
   const int fd = CreateTemporaryFileBeside(path, &temp);
   if (fd < 0) {
-    throw std::runtime_error(name + ": cannot create a temporary file in " + dir.string() +
-                             ": " + ErrnoText());
+    throw std::runtime_error(name + ": cannot create a temporary file in " + dir.string() + ": " +
+                             ErrnoText());
   }
   TempFileGuard guard(fd, temp);
   size_t written = 0;

@@ -22,10 +22,11 @@ std::string ReadFileToString(const std::filesystem::path& path);
 // is fsync'ed. Readers see either the old or the new file. A new file gets mode 0666 minus the
 // umask; a regular file replaced (overwrite) passes its mode, and its group where the writer may
 // set it, to the new one. A symbolic link replaced (overwrite) is written through and kept: the
-// file it leads to (through a chain of links; made if it does not exist) is replaced. Throws std::runtime_error naming the path and the cause on failure (the
-// temporary file is removed); without overwrite, "<path>: exists; refusing to overwrite it" for an
-// existing file, and a message saying so on a file system without hard links (FAT): no fallback
-// could guarantee that nothing is replaced.
+// file it leads to (through a chain of links; made if it does not exist) is replaced. Throws
+// std::runtime_error naming the path and the cause on failure (the temporary file is removed);
+// without overwrite, "<path>: exists; refusing to overwrite it" for an existing file, and a message
+// saying so on a file system without hard links (FAT): no fallback could guarantee that nothing is
+// replaced.
 void WriteFileAtomically(const std::filesystem::path& path, std::string_view contents,
                          bool overwrite = true);
 

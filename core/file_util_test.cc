@@ -235,7 +235,7 @@ TEST(WriteFileAtomically, ReplacingWritesThroughASymlinkAndKeepsIt) {
   WriteFileAtomically(target, "old");
   ASSERT_EQ(::chmod(target.c_str(), 0640), 0);
   std::filesystem::create_symlink("calibrations/dated.json", dir / "calib.json");  // relative
-  std::filesystem::create_symlink(dir / "calib.json", dir / "current.json");      // a chain
+  std::filesystem::create_symlink(dir / "calib.json", dir / "current.json");       // a chain
   for (const char* link : {"calib.json", "current.json"}) {
     WriteFileAtomically(dir / link, std::string("new through ") + link);
     EXPECT_TRUE(std::filesystem::is_symlink(dir / link)) << link;
@@ -253,8 +253,7 @@ TEST(WriteFileAtomically, ReplacingWritesThroughASymlinkAndKeepsIt) {
   // No temporary file is left in either folder.
   for (const auto& folder : {dir, dir / "calibrations"}) {
     for (const auto& entry : std::filesystem::directory_iterator(folder)) {
-      EXPECT_EQ(entry.path().filename().string().find(".tmp-"), std::string::npos)
-          << entry.path();
+      EXPECT_EQ(entry.path().filename().string().find(".tmp-"), std::string::npos) << entry.path();
     }
   }
   // Without overwrite a link is an existing file, refused as before.

@@ -48,9 +48,9 @@ struct FitStart {
 FitStart TakeFitStart(const ModelSpec& fitted);
 // The start a fit's JSON gives (FitResult::ToJson(), the "fit" of `trackcal-fit fit --json`: its
 // parameters, and its terms with their "prepared" states and a physical group's "effects").
-// Throws a JsonInputError (a std::invalid_argument) naming `source` and the field's JSON path, below
-// `json_path` (where `fit` is in its document: "$" for a document that is the fit itself), when the
-// document is not one; LocateJsonErrors adds the line and column.
+// Throws a JsonInputError (a std::invalid_argument) naming `source` and the field's JSON path,
+// below `json_path` (where `fit` is in its document: "$" for a document that is the fit itself),
+// when the document is not one; LocateJsonErrors adds the line and column.
 FitStart FitStartFromJson(const nlohmann::json& fit, const std::string& source,
                           const std::string& json_path = "$.fit");
 

@@ -130,7 +130,8 @@ TEST(ParseModelYaml, MisspeltKeysNameTheLineAndTheClosestValidName) {
   // Nothing near: no suggestion, and a missing field is still named where its mapping starts.
   EXPECT_EQ(ErrorOf("terms: [{type: polynomial}]\nextra: 1\n"),
             "model.yaml:2:1: $.extra: unknown key");
-  EXPECT_EQ(ErrorOf("noise: {position_mm: 1}\n"), "model.yaml:1:1: $.terms: missing required field");
+  EXPECT_EQ(ErrorOf("noise: {position_mm: 1}\n"),
+            "model.yaml:1:1: $.terms: missing required field");
 }
 
 // A model file had no version: `version: 2` (a file written for a newer trackcal) said only
@@ -161,7 +162,8 @@ TEST(ParseModelYaml, ErrorsQuotingBytesThatAreNotUtf8ArePrintable) {
             "model.yaml:3:5: $.terms[0].degr\\xe9e: unknown key; did you mean 'degree'?");
   EXPECT_EQ(ErrorOf("terms:\n  - type: polyn\xf4mial\n"),
             "model.yaml:2:11: $.terms[0].type: unknown term type 'polyn\\xf4mial'; did you mean "
-            "'polynomial'? (known: polynomial, lut, sensor_offset, receiver_gain, dipole, plane, near_field, "
+            "'polynomial'? (known: polynomial, lut, sensor_offset, receiver_gain, dipole, plane, "
+            "near_field, "
             "background_field, time_offset)");
   EXPECT_EQ(ErrorOf("# Kalibrierung f\xfcr Raum B\nterms:\n  - type: polynomial\n"), "");
 }
