@@ -755,10 +755,22 @@ TrackerStream ReadTrackerStream(const std::filesystem::path& path) {
   TrackerStream c;
   c.extra_columns = t.extra_columns();
   c.extra_labels = t.extra_labels();
+  // Rows may come in any order (receivers interleave, streams get merged): the pairing and the
+  // speed take each sensor's samples in time order. One sensor's time twice is a frame written
+  // twice or a clock that did not tick, two poses at one instant: silently it paired both with one
+  // reference pose and gave a speed from a zero time step, so it is the file's error.
+  std::map<std::pair<int, double>, int> seen;  // (sensor, time) -> line
   for (const auto& row : t.rows()) {
     TrackerStreamSample r;
     r.time = t.Number(row, "time");
     r.sensor = t.Integer(row, "sensor");
+    const auto [it, inserted] = seen.emplace(std::make_pair(r.sensor, r.time), row.line);
+    if (!inserted) {
+      t.Fail(row.line, "columns time, sensor",
+             "time " + FormatNumber(r.time) + " of sensor " + std::to_string(r.sensor) +
+                 " repeats line " + std::to_string(it->second) +
+                 " (one sample per sensor and time)");
+    }
     r.transmitter_from_receiver = t.Pose(row, "");
     r.extra = t.Extras(row);
     c.records.push_back(std::move(r));

@@ -754,6 +754,25 @@ TEST(FormatTrackerStream, RefusesWhatTheWriterRefusesNamingTheText) {
             "raw.partial: record 2: columns qw, qx, qy, qz: quaternion norm 2 is not 1");
 }
 
+TEST(OtherCaptureFiles, TrackerStreamTimeRepeatedForOneSensorIsAnErrorNamingBothLines) {
+  // Receivers interleave (one frame's sensors share its time) and rows may come out of time order
+  // (the pairing and the speed take each sensor's samples in time order), but one sensor's time
+  // twice is a frame written twice or a clock that did not tick: two poses at one instant, paired
+  // with one reference pose, and a speed from a zero time step. Named by both lines when read.
+  const auto dir = MakeTempDir("capture_test");
+  const std::string header = "time,sensor,x,y,z,qw,qx,qy,qz\n";
+  const std::string pose = ",0,0,0,1,0,0,0\n";
+  WriteText(dir / kTrackerStreamCsv, header + "0.02,1" + pose + "0.02,2" + pose + "0.01,1" + pose +
+                                         "0.01,2" + pose + "0.03,1" + pose);
+  EXPECT_EQ(ReadTrackerStream(dir / kTrackerStreamCsv).records.size(), 5u);
+  WriteText(dir / kTrackerStreamCsv, header + "0.01,1" + pose + "0.02,1" + pose + "0.02,2" + pose +
+                                         "\n0.03,1" + pose + "0.02,1" + pose);
+  EXPECT_EQ(ErrorOf([&] { ReadTrackerStream(dir / kTrackerStreamCsv); }),
+            std::string(kTrackerStreamCsv) +
+                ":7: columns time, sensor: time 0.02 of sensor 1 repeats line 3 (one sample per "
+                "sensor and time)");
+}
+
 TEST(FormatNumber, ShortestRoundTrip) {
   EXPECT_EQ(FormatNumber(0.1), "0.1");
   EXPECT_EQ(FormatNumber(-2.5e-7), "-2.5e-07");
