@@ -764,3 +764,46 @@ def test_fit_reports_registrations_and_pairings_pickle_for_process_pools(sim, tm
             copied.save(copied_file)
         with pytest.raises(ValueError, match="output would overwrite the input"):
             copied.save((cap_dir / "markers.csv") if k == 0 else (streams / "tracker_stream.csv"))
+
+
+def _write_streams(folder, t_tracker, p_tracker, t_reference, p_reference):
+    """A tracker stream of sensor 1 and a reference stream, identity orientations."""
+    folder.mkdir()
+    rows = ["time,sensor,x,y,z,qw,qx,qy,qz"] + [f"{a!r},1,{b[0]!r},{b[1]!r},{b[2]!r},1,0,0,0"
+                                              for a, b in zip(t_tracker.tolist(), p_tracker.tolist())]
+    (folder / "tracker_stream.csv").write_text("\n".join(rows) + "\n")
+    rows = ["time,x,y,z,qw,qx,qy,qz"] + [f"{a!r},{b[0]!r},{b[1]!r},{b[2]!r},1,0,0,0"
+                                         for a, b in zip(t_reference.tolist(), p_reference.tolist())]
+    (folder / "reference_stream.csv").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+def test_a_repeated_tracker_time_is_an_error_naming_its_lines(tmp_path):
+    """One sensor's time twice (a frame written twice, a clock that did not tick) was paired twice
+    with one reference pose and gave the next sample a speed of 0.067 m/s on a 0.100 m/s motion."""
+    n = 200
+    t = 100.0 + 0.01 * np.arange(n)
+    p = np.column_stack([0.3 + 0.1 * np.sin(t), np.full(n, 0.2), np.full(n, -0.5)])
+    repeated = t.copy()
+    repeated[50] = repeated[49]  # rows 51 and 52 of the file (after the header)
+    folder = _write_streams(tmp_path / "repeated", repeated, p, t, p)
+    with pytest.raises(ValueError, match=r"tracker_stream\.csv:52: columns time, sensor: time 100\.49 of "
+                                         r"sensor 1 repeats line 51"):
+        captures.load(folder, time_offset=0.0)
+
+
+def test_a_gap_in_the_tracker_stream_is_named_and_no_speed_is_taken_across_it(tmp_path):
+    """A tracker stream without samples for 1 s (a dropout): the speed covariate of the samples on
+    either side came from a central difference across the gap (0.069 m/s against 0.097 before it,
+    0.069 against 0.030 after it), and nothing said there was a gap."""
+    n = 200
+    t = 100.0 + 0.01 * np.arange(n)
+    p = np.column_stack([0.3 + 0.1 * np.sin(t), np.full(n, 0.2), np.full(n, -0.5)])  # speed 0.1 |cos t|
+    keep = np.r_[0:80, 180:n]  # no tracker sample between 100.79 and 101.80: a step of 1.01 s
+    cap = captures.load(_write_streams(tmp_path / "gap", t[keep], p[keep], t, p), time_offset=0.0)
+    order = np.argsort(cap.time)
+    # One-sided differences over one 10 ms step: within 1e-3 m/s of the true speed (the motion's
+    # acceleration 0.1 m/s^2 times half a step is 5e-4 m/s).
+    np.testing.assert_allclose(cap.speed[order], 0.1 * np.abs(np.cos(cap.time[order])), atol=1e-3)
+    line = captures.describe_origin(cap)
+    assert "1 gap " in line and "sensor 1: no sample from t = 100.790 to 101.800 s (1.010 s)" in line, line

@@ -1214,7 +1214,7 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
     Returns a Validation (Table 1 before and after, breakdowns, worst samples, ``capture.origin``
     with the offset); ValueError if no corrected report matches a raw one."""
     import pathlib
-    from trackcal.captures import carry_stream_columns, load_tracker_stream, nearest_samples
+    from trackcal.captures import carry_stream_columns, load_tracker_stream, nearest_samples, with_gaps
     from trackcal.fitting import pair
     if estimate_time_offset is None:
         estimate = time_offset is None
@@ -1243,7 +1243,7 @@ def validate_recording(raw, reference, *, corrected=None, calibration=None, time
                   "time_offset_s": float(pairing.time_offset_s),
                   "time_offset_source": "estimated" if estimate else "given",
                   "paired": len(cap), "dropped": int(pairing.dropped), "sensor": sensor,
-                  "warning": pairing.warning}
+                  "warning": with_gaps(pairing.warning, raw, sensor)}
     corrected_poses = None
     if corrected is not None:
         stream = load_tracker_stream(corrected)
