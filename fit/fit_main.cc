@@ -534,8 +534,11 @@ int RunDiagnose(int argc, char** argv) {
   if (calib.empty()) {
     throw std::invalid_argument(loaded.source + ": no stations with set 'calib'");
   }
-  Diagnosis diagnosis =
-      DiagnoseCandidates(calib, model_text, model_path.string(), data.string(), options);
+  // Named with the receiver chosen out of several (its stations are the ones counted).
+  const int sensor = SensorOption(args, 0);
+  Diagnosis diagnosis = DiagnoseCandidates(
+      calib, model_text, model_path.string(),
+      data.string() + (sensor != 0 ? " (sensor " + std::to_string(sensor) + ")" : ""), options);
   diagnosis.time_offset_s = loaded.time_offset;
   if (args.Flag("--json")) {
     std::cout << diagnosis.ToJson().dump(2) << "\n";

@@ -319,6 +319,43 @@ TEST_F(FitCliTest, MoreFoldsThanStationsAreRefusedBeforeTheFit) {
   EXPECT_FALSE(fs::exists(out));
 }
 
+// In a capture of several receivers, the refusals about too few stations name the receiver they
+// counted (--sensor): "few.csv: 12 calibration stations" left the user to guess which, while the
+// file holds 24.
+TEST_F(FitCliTest, TooFewStationsOfOneReceiverNameIt) {
+  std::ifstream in(dir_ / "cap" / "poses.csv");
+  std::ofstream few(dir_ / "two.csv");
+  std::string line;
+  std::getline(in, line);
+  ASSERT_EQ(line.rfind("station,set,sensor,", 0), 0u) << line;
+  few << line << "\n";
+  std::vector<std::string> rows;
+  while (rows.size() < 12 && std::getline(in, line)) {
+    if (line.find(",calib,1,") != std::string::npos) rows.push_back(line);
+  }
+  ASSERT_EQ(rows.size(), 12u);
+  for (const std::string& r : rows) few << r << "\n";
+  for (const std::string& r : rows) {  // the same poses as receiver 2, stations 100000 + id
+    few << "100000" << r.substr(0, r.find(",calib,1,")) << ",calib,2,"
+        << r.substr(r.find(",calib,1,") + 9) << "\n";
+  }
+  few.close();
+  std::ofstream(dir_ / "linear.yaml") << "terms:\n  - type: polynomial\n    degree: 1\n";
+  const fs::path err = dir_ / "err.txt", out = dir_ / "out.json";
+  const std::string data = " --data " + (dir_ / "two.csv").string() + " --model " +
+                           (dir_ / "linear.yaml").string() + " --sensor 2";
+  EXPECT_EQ(RunCommand(fit_ + " fit" + data + " --folds 20 -o " + out.string() + " --quiet 2> " +
+                       err.string()),
+            1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("two.csv (sensor 2): 12 calibration stations cannot be split "
+                                   "into 20 cross-validation folds"));
+  EXPECT_EQ(RunCommand(fit_ + " diagnose" + data + " --folds 7 --quiet 2> " + err.string()), 1);
+  EXPECT_THAT(ReadFileToString(err),
+              ::testing::HasSubstr("two.csv (sensor 2): diagnose needs at least 14 calibration "
+                                   "stations, got 12"));
+}
+
 // --start: a fit of a model with an added term starts at a previous fit's optimum (its --json
 // document), so its first cost is that fit's final cost; a file that is not one is refused by name.
 TEST_F(FitCliTest, StartFromAPreviousFit) {

@@ -62,7 +62,9 @@ void SelectSensor(PoseCapture* poses, int sensor, const std::string& source) {
   std::erase_if(poses->records, [sensor](const PoseRecord& r) { return r.sensor != sensor; });
 }
 
-LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
+namespace {
+
+LoadedFitData LoadFitDataOfFiles(const FitData& data, const ModelSpec& spec) {
   if (data.sensor < 0) throw std::invalid_argument("sensor must be 0 (the only one) or >= 1");
   LoadedFitData out;
   out.name = "in-memory capture";
@@ -136,6 +138,17 @@ LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
   out.name = poses_path.filename().string();
   out.source = poses_path.string();
   SelectSensor(&out.poses, data.sensor, out.source);
+  return out;
+}
+
+}  // namespace
+
+LoadedFitData LoadFitData(const FitData& data, const ModelSpec& spec) {
+  LoadedFitData out = LoadFitDataOfFiles(data, spec);
+  // The receiver chosen out of several: a refusal about its stations ("12 calibration stations
+  // cannot be split into 20 cross-validation folds") named only the file, which holds every
+  // receiver's stations.
+  if (data.sensor != 0) out.source += " (sensor " + std::to_string(data.sensor) + ")";
   return out;
 }
 

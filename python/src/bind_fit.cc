@@ -507,7 +507,10 @@ nlohmann::json DiagnoseCandidatesJson(const DataSource& data, const ModelSource&
         const auto calib = fit::StationsOfSet(loaded.poses, "calib");
         if (calib.empty())
           throw std::invalid_argument(loaded.name + ": no stations with set 'calib'");
-        const std::string data_name = data.path ? data.path->string() : loaded.name;
+        // Named with the receiver chosen out of several (its stations are the ones counted).
+        const std::string data_name =
+            (data.path ? data.path->string() : loaded.name) +
+            (data.sensor != 0 ? " (sensor " + std::to_string(data.sensor) + ")" : "");
         // The time_offset candidate pairs the streams again with its own offset setting.
         options.pair_streams = fit::StreamRepairing(loaded, spec);
         fit::Diagnosis d =

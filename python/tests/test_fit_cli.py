@@ -186,7 +186,13 @@ def test_a_receiver_without_valid_stations_is_cross_validated_beside_one_with_th
     hand = np.flatnonzero((mixed.sensor == 2) & (mixed.set == "calib"))[:4]
     few = write_poses(tmp_path / "few.csv", mixed.subset((mixed.sensor == 1) | np.isin(np.arange(len(mixed)), hand)))
     r = run_cli("diagnose", few, "--model", model, "--sensor", "2", "--permutations", "0", "--folds", "2", check=False)
-    assert r.returncode == 2 and "needs at least 12 calibration stations, got 4" in r.stderr, r.stderr
+    # Named with the receiver whose stations were counted: few.csv holds sensor 1's as well.
+    assert r.returncode == 2 and "few.csv (sensor 2): diagnose needs at least 12 calibration stations, got 4" \
+        in r.stderr, r.stderr
+    r = run_cli("fit", "--data", few, "--model", model, "-o", tmp_path / "few.json", "--sensor", "2",
+                "--folds", "5", check=False)
+    assert r.returncode != 0 and "few.csv (sensor 2): 4 calibration stations cannot be split into 5 " \
+        "cross-validation folds" in r.stderr, r.stderr
 
 
 def test_a_capture_of_several_receivers_is_refused_or_used_one_receiver_at_a_time(capture_dir, tmp_path):
