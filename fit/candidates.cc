@@ -2762,6 +2762,12 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
     // claimed (measured, ferromagnetic_object seed 1: an unconverged plane 0.37 m from the
     // transmitter, 0.09 m from the workbench frame, passed them at 13.6 sigma and was spurious).
     const bool converged_ok = c.converged || !ev.assessed;
+    // A fit that did not converge stopped at the iteration limit (a failed one is not fitted).
+    const std::string stopped = "stopped at solver.max_iterations (" +
+                                std::to_string(base_spec.max_iterations) + ") before converging";
+    const std::string raise = "raise solver.max_iterations in " +
+                              (d.model == "<string>" ? std::string("the model") : d.model) +
+                              " to let it finish";
     c.significant = p_ok && drop_ok && bic_ok && outliers_ok && ev.supported() && converged_ok;
     std::ostringstream r;
     const bool removal = c.kind == CandidateKind::kRemoval;
@@ -2827,12 +2833,17 @@ Diagnosis DiagnoseCandidates(const std::vector<FitStation>& stations, const std:
             " % of the stations exceed the loss scale: that is structure the model lacks, "
             "not outliers");
       }
-      if (!converged_ok)
-        why.push_back("its fit did not converge, so its standard deviations are not at an optimum");
+      if (!converged_ok) {
+        why.push_back("its fit (the model with it, on every station) " + stopped +
+                      ", so its standard deviations are not at an optimum (" + raise + ")");
+      }
       r << ". Not claimed: ";
       for (size_t i = 0; i < why.size(); ++i) r << (i ? ", " : "") << why[i];
     }
-    if (!c.converged && converged_ok) r << " (the fit did not converge)";
+    if (!c.converged && converged_ok) {
+      r << " (its fit, the model with it on every station, " << stopped
+        << ": its numbers are the best the solver found, not the optimum; " << raise << ")";
+    }
     c.reason = r.str();
   };
 

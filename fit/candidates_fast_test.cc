@@ -260,6 +260,39 @@ TEST(FastCrossValidation, NestedFitsAboveTheBaseFailed) {
   EXPECT_DOUBLE_EQ(d.p_threshold, options.family_alpha / 2);
 }
 
+// A candidate whose fit stops at the solver's iteration limit: its reason said only "(the fit did
+// not converge)" or "its fit did not converge", neither which fit (the model with the candidate,
+// on every station) nor what to do about it. It names the limit and the setting to raise.
+TEST(FastCrossValidation, AFitAtTheIterationLimitSaysWhichAndWhatToRaise) {
+  const auto stations = PaperSmallStations("sensor_offset", 1);
+  CandidateOptions options;
+  options.num_threads = 1;
+  // Not the sensor offset: nothing is claimed, so the flexible fallback is fitted too (its reason
+  // had the bare "(the fit did not converge)"; receiver_gain's, "its fit did not converge").
+  options.effects = {"receiver_gain"};
+  const Diagnosis d = DiagnoseCandidates(
+      stations, "solver: {max_iterations: 2}\nterms:\n  - type: polynomial\n    degree: 3\n",
+      "model.yaml", "paper_small", options);
+  int stopped = 0, stopped_unassessed = 0;
+  for (const auto* list : {&d.candidates, &d.flexible}) {
+    for (const Candidate& c : *list) {
+      std::cout << c.effect << ": fitted " << c.fitted << ", converged " << c.converged
+                << ", reason: " << c.reason << "\n";
+      if (!c.fitted || c.converged) continue;
+      ++stopped;
+      stopped_unassessed += c.evidence.assessed ? 0 : 1;
+      EXPECT_EQ(c.reason.find("(the fit did not converge)"), std::string::npos) << c.reason;
+      EXPECT_NE(c.reason.find("stopped at solver.max_iterations (2) before converging"),
+                std::string::npos)
+          << c.reason;
+      EXPECT_NE(c.reason.find("raise solver.max_iterations in model.yaml"), std::string::npos)
+          << c.reason;
+    }
+  }
+  EXPECT_GT(stopped, stopped_unassessed);  // a physical term (its standard deviations)
+  EXPECT_GT(stopped_unassessed, 0);        // the flexible fallback (no physical evidence)
+}
+
 // Numbers equal to 1e-9 relative, everything else exactly.
 void ExpectJsonNear(const nlohmann::json& a, const nlohmann::json& b, const std::string& path) {
   if (a.is_number() && b.is_number()) {
