@@ -585,10 +585,16 @@ def test_stream_rows_out_of_time_order_give_each_station_its_own_speed_and_colum
         (folder / "reference_stream.csv").write_text("\n".join(rows) + "\n")
         cap = captures.load(folder, time_offset=0.0)
         by_time = np.argsort(cap.time)
+        notes.append(captures.describe_origin(cap))
         return cap.time[by_time], cap.speed[by_time], cap.column("frame")[by_time]
 
+    notes = []
     t_sorted, speed_sorted, frame_sorted = write(tmp_path / "sorted", np.arange(n))
     t_mixed, speed_mixed, frame_mixed = write(tmp_path / "mixed", np.random.default_rng(3).permutation(n))
+    # Taken in time order, and said so: two recordings concatenated into one file interleave.
+    assert "warning" not in notes[0], notes[0]
+    assert "sensor 1's samples are not in time order in the file" in notes[1], notes[1]
+    assert "taken in time order" in notes[1], notes[1]
     np.testing.assert_array_equal(t_mixed, t_sorted)
     np.testing.assert_allclose(speed_sorted, 0.1 * np.abs(np.cos(t_sorted)), atol=1e-3)
     np.testing.assert_allclose(speed_mixed, speed_sorted, atol=1e-12)

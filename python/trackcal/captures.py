@@ -546,11 +546,18 @@ def _gap_steps(step: np.ndarray) -> np.ndarray:
 
 
 def with_gaps(warning: str, tracker_stream: PathLike, sensor: int) -> str:
-    """A pairing's warning with the gaps of the tracker stream's samples of ``sensor`` said after
-    it (the pairing takes every sample alone, but the speed covariate and a reader of the tables
-    need to know the stream has holes)."""
-    gaps = [g for g in load_tracker_stream(tracker_stream).gaps() if g[0] == sensor]
-    return "; ".join(w for w in (warning, gaps_text(gaps) if gaps else "") if w)
+    """A pairing's warning with what the tracker stream's samples of ``sensor`` hold that the pairing
+    does not say: rows out of time order (taken in time order; two recordings concatenated into
+    one file interleave) and gaps (the pairing takes every sample alone, but the speed covariate
+    and a reader of the tables need to know the stream has holes)."""
+    stream = load_tracker_stream(tracker_stream)
+    t = stream.time[stream.sensor == sensor]
+    back = np.flatnonzero(np.diff(t) < 0)
+    order = (f"sensor {sensor}'s samples are not in time order in the file ({len(back)} go back in "
+             f"time, the first t = {t[back[0] + 1]:.3f} s after t = {t[back[0]]:.3f} s): taken in time "
+             f"order (a file of two recordings interleaves them)") if len(back) else ""
+    gaps = [g for g in stream.gaps() if g[0] == sensor]
+    return "; ".join(w for w in (warning, order, gaps_text(gaps) if gaps else "") if w)
 
 
 def gaps_text(gaps: List[Tuple[int, float, float]], limit: int = 5) -> str:
