@@ -343,7 +343,9 @@ TEST(PhysicalTermsOnSimulator, APolynomialAfterTheRoomHoldsWhatFourHeightsCannot
     const ParameterReport& p = FindParameter(fit, "polynomial", "position_coefficients");
     ASSERT_EQ(p.stddev.size(), p.values.size());  // the values' own, mapped from the subspace
     for (double sd : p.stddev) EXPECT_TRUE(std::isfinite(sd) && sd >= 0);
-    if (held) EXPECT_EQ(fit.num_free_parameters, 2 * 3 * (35 - 1));
+    if (held) {
+      EXPECT_EQ(fit.num_free_parameters, 2 * 3 * (35 - 1));
+    }
   }
   std::cout << "validation RMS position error: room " << room * 1e3 << " mm, room + polynomial "
             << error[1] * 1e3 << " mm, fitting every direction " << error[0] * 1e3 << " mm\n";
