@@ -257,9 +257,9 @@ std::string Stamped(const std::string& line) {
 // The lines of LogToStderr, written to fd 2 by a thread of their own. The network thread logs every
 // connection: a blocking write() there stopped every client's reports, and SIGTERM, while stderr
 // was not read (a terminal paused with Ctrl-S, a pipe to a stalled reader). Lines wait here
-// instead, up to kMaxQueuedBytes; beyond that they are counted, dropped, and the count is logged
-// once stderr takes lines again. Never destroyed: its thread may be blocked in write() when the
-// process exits.
+// instead, up to kMaxQueuedBytes (the batch being written included); beyond that they are counted,
+// dropped, and the count is logged once stderr takes lines again. Never destroyed: its thread may
+// be blocked in write() when the process exits.
 class StderrWriter {
  public:
   static StderrWriter& Get() {
@@ -332,7 +332,6 @@ class StderrWriter {
       std::string text;
       while (!lines_.empty()) {
         text += lines_.front();
-        queued_bytes_ -= lines_.front().size();
         lines_.pop_front();
       }
       writing_ = true;
@@ -340,6 +339,9 @@ class StderrWriter {
       WriteAll(text);
       lock.lock();
       writing_ = false;
+      // The batch counts against the queue until it is written: released when taken, another
+      // kMaxQueuedBytes was queued behind a batch blocked in write(), twice the bound.
+      queued_bytes_ -= text.size();
       if (lines_.empty() && dropped_ == 0) idle_.notify_all();
     }
   }
