@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <limits>
 
 namespace trackcal::vrpn {
 
@@ -14,9 +15,15 @@ Timestamp Timestamp::Now() {
 }
 
 Timestamp Timestamp::FromSeconds(double seconds) {
+  // The double -> uint32 conversions below are only defined inside [0, 2^32): saturate first.
+  constexpr std::uint32_t kMaxSec = std::numeric_limits<std::uint32_t>::max();
+  if (!(seconds > 0.0)) return Timestamp{0, 0};  // NaN and negative times included
+  if (seconds >= 4294967296.0) return Timestamp{kMaxSec, 999999};
   double whole = std::floor(seconds);
   double usec = std::round((seconds - whole) * 1e6);
   if (usec >= 1e6) {
+    // Rounded up to the next second, which does not exist past the last one.
+    if (whole >= kMaxSec) return Timestamp{kMaxSec, 999999};
     whole += 1.0;
     usec -= 1e6;
   }

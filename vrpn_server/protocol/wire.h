@@ -47,6 +47,8 @@ struct Timestamp {
   std::uint32_t usec = 0;
 
   static Timestamp Now();
+  // Rounded to the microsecond; outside the wire's range [0, 2^32) s it saturates to the nearest
+  // end ({0, 0} or {2^32 - 1, 999999}), and NaN gives {0, 0}.
   static Timestamp FromSeconds(double seconds);
   double Seconds() const { return sec + 1e-6 * usec; }
   bool operator==(const Timestamp&) const = default;

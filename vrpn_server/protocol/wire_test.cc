@@ -2,7 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstring>
+#include <limits>
 
 namespace trackcal::vrpn {
 namespace {
@@ -75,6 +77,28 @@ TEST(Timestamp, FromSecondsRoundTrips) {
   EXPECT_EQ(t.usec, 934813u);
   EXPECT_EQ(Timestamp::FromSeconds(1.9999999).usec, 0u);
   EXPECT_EQ(Timestamp::FromSeconds(1.9999999).sec, 2u);
+}
+
+TEST(Timestamp, FromSecondsSaturatesOutsideTheWireRange) {
+  // The wire's seconds are an unsigned 32-bit count: converting a double outside [0, 2^32) to it
+  // was undefined behaviour (x86-64 gave 4294967295 for -1 s and 705032704 for 5e9 s). Such a
+  // time now saturates to the nearest end, and NaN gives the epoch.
+  constexpr std::uint32_t kMax = std::numeric_limits<std::uint32_t>::max();
+  const double inf = std::numeric_limits<double>::infinity();
+  EXPECT_EQ(Timestamp::FromSeconds(-1.0), (Timestamp{0, 0}));
+  EXPECT_EQ(Timestamp::FromSeconds(-0.25), (Timestamp{0, 0}));
+  EXPECT_EQ(Timestamp::FromSeconds(-1e300), (Timestamp{0, 0}));
+  EXPECT_EQ(Timestamp::FromSeconds(-inf), (Timestamp{0, 0}));
+  EXPECT_EQ(Timestamp::FromSeconds(std::nan("")), (Timestamp{0, 0}));
+  EXPECT_EQ(Timestamp::FromSeconds(5e9), (Timestamp{kMax, 999999}));
+  EXPECT_EQ(Timestamp::FromSeconds(inf), (Timestamp{kMax, 999999}));
+  // The last representable microsecond, and a value that rounds past it.
+  EXPECT_EQ(Timestamp::FromSeconds(4294967295.999999), (Timestamp{kMax, 999999}));
+  EXPECT_EQ(Timestamp::FromSeconds(4294967295.9999999), (Timestamp{kMax, 999999}));
+  // The ends themselves are exact.
+  EXPECT_EQ(Timestamp::FromSeconds(0.0), (Timestamp{0, 0}));
+  EXPECT_EQ(Timestamp::FromSeconds(-0.0), (Timestamp{0, 0}));
+  EXPECT_EQ(Timestamp::FromSeconds(4294967295.0), (Timestamp{kMax, 0}));
 }
 
 }  // namespace
