@@ -950,7 +950,7 @@ void VrpnServer::HandleEndpoint(std::uint64_t id, std::uint32_t events, bool udp
       }
       if (n < 0) {
         if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) break;
-        Close(id, "read: " + ErrnoText(errno));
+        CloseOnSocketError(id, "read", errno);
         return;
       }
       const bool was_done = e.session->connection().handshake_done();
@@ -1010,7 +1010,7 @@ void VrpnServer::Flush(Endpoint& e) {
     if (n < 0) {
       if (errno == EAGAIN || errno == EWOULDBLOCK) break;
       if (errno == EINTR) continue;
-      Close(e.id, "write: " + ErrnoText(errno));
+      CloseOnSocketError(e.id, "write", errno);
       return;
     }
     e.out_offset += static_cast<std::size_t>(n);
@@ -1108,6 +1108,25 @@ bool VrpnServer::RoomForNewClient() {
             " s while the client limit was reached: made room for a new client",
         LineKind::kRefusal);
   return true;
+}
+
+void VrpnServer::CloseOnSocketError(std::uint64_t id, const char* op, int err) {
+  if (err != ETIMEDOUT) {
+    Close(id, std::string(op) + ": " + ErrnoText(err));
+    return;
+  }
+  // Only DetectDeadClient's limits time a connection out: the TCP user timeout (nothing
+  // acknowledged, or the client's receive window closed, for that long) or unanswered keepalive
+  // probes. "read: Connection timed out" did not say that a client that stopped reading ends so
+  // (on loopback, long before unread_output_timeout_s), and it was not counted as dropped.
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    ++stats_.dropped_slow;
+  }
+  std::ostringstream timeout;
+  timeout << options_.dead_client_timeout_s;
+  Close(id, "nothing acknowledged for " + timeout.str() +
+                " s (not reading, or its host is gone): dropped");
 }
 
 void VrpnServer::Close(std::uint64_t id, const std::string& why, LineKind kind) {

@@ -103,8 +103,9 @@ struct ServerStats {
   std::uint64_t connections_total = 0;
   std::uint64_t refused = 0;          // allow-list, client limit, bad lob requests, strangers'
                                       // datagrams to a client's data port
-  std::uint64_t dropped_slow = 0;     // closed because the output buffer overflowed or the client
-                                      // took none of it for unread_output_timeout_s
+  std::uint64_t dropped_slow = 0;     // closed because the output buffer overflowed, the client
+                                      // took none of it for unread_output_timeout_s, or the kernel
+                                      // timed it out (dead_client_timeout_s: not reading, or gone)
   std::uint64_t closed_protocol = 0;  // closed for a bad cookie or length field, or a message left
                                       // incomplete for incomplete_message_timeout_s
   std::uint64_t evicted = 0;          // closed, stalled, to make room for a new client
@@ -202,6 +203,8 @@ class VrpnServer {
   enum class LineKind { kConnection, kRefusal, kNone };
   // Logs "closed <client>: why", within the cap of the lines of `kind` (kNone: not at all).
   void Close(std::uint64_t id, const std::string& why, LineKind kind = LineKind::kConnection);
+  // Closes a client whose read() or send() failed with `err` ("read", "write": `op`).
+  void CloseOnSocketError(std::uint64_t id, const char* op, int err);
   void DrainEvents();
   void CheckDeadlines();
   void UpdateInterest(Endpoint& e);

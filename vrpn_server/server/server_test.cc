@@ -193,6 +193,38 @@ TEST(VrpnServerSlots, AClientThatTakesNoneOfItsOutputIsDropped) {
   EXPECT_EQ(server.stats().clients, 1);
 }
 
+// A client that stops reading with a small receive buffer is ended by the kernel (the TCP user
+// timeout of dead_client_timeout_s, its window staying closed) before unread_output_timeout_s:
+// that close was logged as "read: Connection timed out" and not counted as dropped for not
+// reading (a live run: 5 deaf clients closed so, status "0 dropped for not reading").
+TEST(VrpnServerSlots, AClientTheKernelTimesOutIsSaidToHaveStoppedReading) {
+  ServerOptions options = LoopbackOptions();
+  options.dead_client_timeout_s = 1.0;      // the kernel's limit, reached first
+  options.unread_output_timeout_s = 600.0;  // far beyond the test
+  options.max_output_bytes = 256 << 20;     // never reached here
+  Lines log;
+  VrpnServer server(MakeCatalog(), options, log.Sink());
+  server.Start();
+  VrpnTrackerClient good("Tracker0@tcp://127.0.0.1:" + std::to_string(server.port()));
+  ASSERT_TRUE(PollUntil({&good}, [&] { return good.pong_received(); }));
+  const auto deaf = RawConnect(server.port(), /*rcvbuf=*/4096);
+  SendAll(deaf, Cookie());
+  ASSERT_TRUE(PollUntil({&good}, [&] { return server.stats().clients == 2; }));
+  // Reports at about 10 kHz until the deaf client is gone; its window closes within milliseconds.
+  // Generous against a loaded machine: the kernel acts after 1 s (measured 1.2 s).
+  const auto end = Clock::now() + std::chrono::seconds(20);
+  while (server.stats().clients == 2 && Clock::now() < end) {
+    for (int i = 0; i < 10; ++i) server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
+    good.Poll(0.001);
+  }
+  EXPECT_EQ(server.stats().clients, 1);
+  EXPECT_TRUE(good.connected());
+  EXPECT_EQ(server.stats().dropped_slow, 1u);
+  EXPECT_EQ(log.Count("Connection timed out"), 0);
+  EXPECT_EQ(log.Count(": nothing acknowledged for 1 s (not reading, or its host is gone): dropped"),
+            1);
+}
+
 // Served connections stuck halfway through a message filled max_clients and every new client was
 // refused (only connections waiting for their handshake made room). The one stalled longest now
 // makes room; a client being served is never closed for another.
