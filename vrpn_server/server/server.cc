@@ -93,6 +93,13 @@ class LineLimiter {
     unlogged_ = 0;
   }
 
+  // Logs the count of the lines left out so far, if any, whether or not the window has ended
+  // (the server is stopping: the window's end will not come).
+  void ReportNow(const Sink& log) {
+    if (unlogged_ > 0) log(std::to_string(unlogged_) + " " + unlogged_what_ + " were not logged");
+    unlogged_ = 0;
+  }
+
   // When Report has a count to log; max() when it has none.
   Clock::time_point report_due(double window_s) const {
     return unlogged_ > 0 ? window_start_ + Seconds(window_s) : Clock::time_point::max();
@@ -441,6 +448,9 @@ void VrpnServer::Stop() {
   [[maybe_unused]] auto n = ::write(event_fd_, &one, sizeof(one));
   if (thread_.joinable()) thread_.join();
   std::lock_guard<std::mutex> net(impl_->net_mutex);
+  for (LineLimiter* limiter : {&impl_->refusal_lines, &impl_->connection_lines}) {
+    limiter->ReportNow([this](const std::string& line) { Log(line); });
+  }
   impl_->endpoints.clear();
   impl_->callback_keys.clear();
   for (int* fd : {&tcp_fd_, &udp_fd_, &event_fd_, &epoll_fd_}) {
