@@ -583,6 +583,8 @@ GainMatrixParts SplitGainMatrix(const ParameterReport& g) {
   return parts;
 }
 
+}  // namespace
+
 // Statements of the physical term types (block names of fit/terms_physical.h); empty if a block is
 // missing (then the generic statement is used).
 std::string PhysicalStatement(const std::string& type, const std::vector<ParameterReport>& p) {
@@ -637,9 +639,15 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
     if (!d || !n || !a || n->values.size() != 3 || a->values.empty()) return "";
     double sigma_deg = NAN;  // the normal's tangent-space stddev: two angles [rad]
     if (n->stddev.size() >= 2) sigma_deg = std::hypot(n->stddev[0], n->stddev[1]) * kDegPerRad;
-    const ParameterReport normal = Derived(*n, n->block, "", n->values, {});
-    std::string out = std::string(a->values[0] >= 0 ? "a conducting" : "a permeable") +
-                      " plane " + BlockStatement(*d, 1.0, "m") +
+    // (d, n) and (-d, -n) are the same plane: state the distance from the transmitter as positive.
+    const double sign = d->values.empty() || d->values[0] >= 0 ? 1.0 : -1.0;
+    ParameterReport distance = *d;
+    for (double& v : distance.values) v *= sign;
+    std::vector<double> normal_values = n->values;
+    for (double& v : normal_values) v *= sign;
+    const ParameterReport normal = Derived(*n, n->block, "", normal_values, {});
+    std::string out = std::string(a->values[0] >= 0 ? "a conducting" : "a permeable") + " plane " +
+                      BlockStatement(distance, 1.0, "m") +
                       " from the transmitter along the normal " + BlockStatement(normal, 1.0, "");
     if (std::isfinite(sigma_deg)) out += " +- " + FormatNumber(sigma_deg, 2) + " deg";
     return out + ", attenuation " + BlockStatement(*a, 1.0, "");
@@ -681,6 +689,8 @@ std::string PhysicalStatement(const std::string& type, const std::vector<Paramet
   }
   return "";
 }
+
+namespace {
 
 YAML::Node FlowList(const std::vector<double>& v, int precision) {
   YAML::Node list(YAML::NodeType::Sequence);

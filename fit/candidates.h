@@ -163,6 +163,13 @@ PhysicalEvidence AssessPhysicalEvidence(const std::string& term_type,
                                         double min_strength_sigma = 3.0, double noise_scale = 1.0,
                                         double max_normal_sigma_rad = 0.1, int num_clusters = 0);
 
+// A fitted physical term stated with units and +- 1 sigma ("a conducting plane 0.80 m +- 0.04
+// from the transmitter along the normal (0.000, 0.000, 1.000) +- 1.7 deg, attenuation ..."), the
+// candidates' `statement`; empty when `parameters` lack a block of `term_type`
+// (fit/terms_physical.h block names).
+std::string PhysicalStatement(const std::string& term_type,
+                              const std::vector<ParameterReport>& parameters);
+
 // P(T^2 > w) for Hotelling's T^2 of `dof` coordinates from a covariance estimated over `clusters`
 // independent clusters: FDistributionUpperTail(w (G - k) / ((G - 1) k), k, G - k)
 // (fit/registration.h); 1 when G <= k.

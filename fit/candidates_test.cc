@@ -1200,6 +1200,32 @@ std::vector<Eigen::Vector3d> PaperSmallVolume() {
   return {Eigen::Vector3d(-0.525, -0.375, -0.875), Eigen::Vector3d(0.525, 0.375, -0.275)};
 }
 
+// A plane is the same at (d, n) and (-d, -n) (docs/physical-model.md), and a fit may end at either:
+// a reviewer's scene with a tilted sheet 1.25 m above the transmitter (z down) was stated as "a
+// conducting plane -1.301 m +- 0.021 from the transmitter along the normal (-0.457, 0.217, 0.862)".
+// A distance from the transmitter reads as positive: the statement takes the normal that makes it
+// so.
+TEST(PhysicalStatement, Nominal_APlaneIsStatedAtItsDistanceFromTheTransmitter) {
+  const std::vector<ParameterReport> floor = {
+      Report("distance_m", {0.832}, {0.038}),
+      Report("normal_in_transmitter", {0.01, -0.02, 0.9997}, {0.004, 0.005}),
+      Report("attenuation", {0.27}, {0.04})};
+  EXPECT_THAT(PhysicalStatement("plane", floor),
+              ::testing::HasSubstr("plane 0.832 m +- 0.038 from the transmitter along the normal "
+                                   "(0.010, -0.020, 1.000)"));
+}
+
+TEST(PhysicalStatement, APlaneFittedAtANegativeDistanceIsStatedAlongTheOppositeNormal) {
+  const std::vector<ParameterReport> sheet = {
+      Report("distance_m", {-1.301}, {0.021}),
+      Report("normal_in_transmitter", {-0.457, 0.217, 0.862}, {0.003, 0.004}),
+      Report("attenuation", {0.601}, {0.053})};
+  const std::string s = PhysicalStatement("plane", sheet);
+  EXPECT_THAT(s, ::testing::HasSubstr("a conducting plane 1.301 m +- 0.021 from the transmitter "
+                                      "along the normal (0.457, -0.217, -0.862)"));
+  EXPECT_THAT(s, ::testing::HasSubstr("attenuation 0.601 +- 0.053"));  // not a sign of the plane
+}
+
 // The numbers of the workflow loop before this rule (docs/diagnose.md): after the sensor offset and
 // the workbench frame, the floor was "found" as a dipole whose polarisability is 0.5 sigma from 0.
 TEST(AssessPhysicalEvidence, Nominal_AVagueDipoleIsNotSupported) {
