@@ -64,6 +64,12 @@ TEST(TrackcalUnity, BadArgumentsReturnAnErrorThatSaysWhy) {
   EXPECT_EQ(trackcal_unity_open("Tracker0", nullptr), nullptr);  // no "@host"
   EXPECT_NE(std::string(trackcal_unity_last_error()).find("Tracker0"), std::string::npos)
       << trackcal_unity_last_error();
+  // A stray blank (an Inspector field typed with a leading space) names where it is.
+  EXPECT_EQ(trackcal_unity_open(" Tracker0@localhost", nullptr), nullptr);
+  EXPECT_NE(
+      std::string(trackcal_unity_last_error()).find("blank or control character at position 1"),
+      std::string::npos)
+      << trackcal_unity_last_error();
   EXPECT_EQ(trackcal_unity_open("Tracker0@localhost", "x,y,z"), nullptr);
   EXPECT_NE(std::string(trackcal_unity_last_error()).find("mirrored"), std::string::npos);
 

@@ -63,6 +63,17 @@ VrpnName ParseVrpnName(const std::string& name) {
                                 "': a second '@' (the device is the text before the first '@', as "
                                 "VRPN clients read it; a device name cannot hold '@')");
   }
+  // vrpn.cfg splits its lines at blanks, so no served device name holds a blank or a control byte:
+  // a client asking for one would wait for ever for a device that cannot exist.
+  for (std::size_t i = 0; i < at; ++i) {
+    const auto c = static_cast<unsigned char>(name[i]);
+    if (c <= 0x20 || c == 0x7f) {
+      throw std::invalid_argument(
+          "VRPN name '" + name +
+          "': the device name holds a blank or control character at position " +
+          std::to_string(i + 1) + " (a served device name never does; is there a stray space?)");
+    }
+  }
   VrpnName n;
   n.device = name.substr(0, at);
   std::string rest = name.substr(at + 1);

@@ -103,6 +103,25 @@ TEST(ParseVrpnName, Nominal) {
   EXPECT_EQ(ParseVrpnName("Head@lab-pc_2.example.org").host, "lab-pc_2.example.org");
 }
 
+// A served device name never holds a blank or a control byte (vrpn.cfg splits its lines at blanks),
+// so a client asking for " Tracker0" or "Tracker0\t" would wait for ever for a device that cannot
+// exist: the name is refused, and the message shows where the blank is.
+TEST(ParseVrpnName, BlankOrControlInDeviceIsRefused) {
+  for (const std::string bad :
+       std::vector<std::string>{" Tracker0@localhost", "Tracker0 @localhost", "Track er0@localhost",
+                                "Tracker0\t@localhost", std::string("Tra\x01ker0@localhost")}) {
+    try {
+      ParseVrpnName(bad);
+      ADD_FAILURE() << "no error for '" << bad << "'";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("device name"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find("blank or control"), std::string::npos) << e.what();
+    }
+  }
+  // A name that is not ASCII is not refused: the reference serves any printable bytes.
+  EXPECT_EQ(ParseVrpnName("Ger\xc3\xa4t@localhost").device, "Ger\xc3\xa4t");
+}
+
 TEST(ParseVrpnName, UnknownSchemeIsNamed) {
   // Before, "udp://host" was read as host "udp" with a bad port "//host".
   try {
