@@ -286,8 +286,11 @@ int32_t trackcal_unity_last_text(TrackcalUnityTracker* tracker, char* buffer, in
   return Guarded("trackcal_unity_last_text", [&]() -> int32_t {
     std::lock_guard lock(tracker->mutex);
     if (buffer_size > 0) {
-      const std::size_t n =
-          std::min(tracker->text.size(), static_cast<std::size_t>(buffer_size - 1));
+      std::size_t n = std::min(tracker->text.size(), static_cast<std::size_t>(buffer_size - 1));
+      // A cut backs off to the start of a UTF-8 character, so the caller never decodes half of one.
+      if (n < tracker->text.size()) {
+        while (n > 0 && (static_cast<unsigned char>(tracker->text[n]) & 0xc0) == 0x80) --n;
+      }
       std::memcpy(buffer, tracker->text.data(), n);
       buffer[n] = '\0';
     }

@@ -94,8 +94,8 @@ TRACKCAL_UNITY_API int32_t trackcal_unity_get_status(TrackcalUnityTracker* track
                                                      TrackcalUnityStatus* out);
 
 /* The last text message the server sent for this device ("resetting the tracker", ...), written
- * NUL-terminated and cut to buffer_size bytes. Returns its full length in bytes (0: none yet), or
- * an error. *severity: 0 normal, 1 warning, 2 error. */
+ * NUL-terminated and cut to at most buffer_size bytes (never inside a UTF-8 character). Returns its
+ * full length in bytes (0: none yet), or an error. *severity: 0 normal, 1 warning, 2 error. */
 TRACKCAL_UNITY_API int32_t trackcal_unity_last_text(TrackcalUnityTracker* tracker, char* buffer,
                                                     int32_t buffer_size, int32_t* severity);
 

@@ -172,6 +172,16 @@ void ExpectServedPoses(const std::string& name, bool udp) {
   char small[5];
   EXPECT_EQ(trackcal_unity_last_text(h.t, small, sizeof(small), nullptr), 21);  // the full length
   EXPECT_STREQ(small, "Rese");
+  // A cut never splits a UTF-8 character (C# would decode half of one as U+FFFD): "Ger\xc3\xa4t"
+  // in 5 bytes is "Ger", not "Ger\xc3".
+  ASSERT_TRUE(PublishUntil(
+      [&] { server->PublishText(0, vrpn::TextSeverity::kNormal, "Ger\xc3\xa4t bereit"); },
+      [&] {
+        return trackcal_unity_last_text(h.t, text, sizeof(text), &severity) > 0 &&
+               std::string(text).starts_with("Ger");
+      }));
+  EXPECT_EQ(trackcal_unity_last_text(h.t, small, sizeof(small), nullptr), 13);  // the full length
+  EXPECT_STREQ(small, "Ger");
 
   TrackcalUnityStatus status;
   ASSERT_EQ(trackcal_unity_get_status(h.t, &status), TRACKCAL_UNITY_OK);
