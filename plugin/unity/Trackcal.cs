@@ -130,6 +130,11 @@ namespace Trackcal
         public const string DefaultAxes = "y,-z,x";    // the Polhemus source frame in Unity
 
         private readonly TrackcalHandle handle;
+        private readonly object textLock = new object();
+        private byte[] textBytes = new byte[512];      // LastText's read buffer, kept between calls
+        private byte[] textDecoded = new byte[512];    // the bytes `text` was decoded from
+        private int textDecodedLength = 0;
+        private string text = "";
 
         public string VrpnName { get; private set; }
         public string Axes { get; private set; }
@@ -190,17 +195,41 @@ namespace Trackcal
         }
 
         // The server's last text for this device ("" if none); severity 0 normal, 1 warning, 2 error.
+        // Called every frame, it allocates nothing while the text is unchanged: the bytes are read
+        // into a buffer kept between calls and the string is decoded only when they change.
         public string LastText(out int severity)
         {
-            byte[] buffer = new byte[512];
-            int length = TrackcalNative.LastText(Handle(), buffer, buffer.Length, out severity);
-            if (length < 0) throw new InvalidOperationException(TrackcalNative.LastError());
-            if (length >= buffer.Length)
+            lock (textLock)
             {
-                buffer = new byte[length + 1];
-                length = TrackcalNative.LastText(Handle(), buffer, buffer.Length, out severity);
+                int length = TrackcalNative.LastText(Handle(), textBytes, textBytes.Length, out severity);
+                if (length < 0) throw new InvalidOperationException(TrackcalNative.LastError());
+                if (length >= textBytes.Length)
+                {
+                    textBytes = new byte[length + 1];
+                    length = TrackcalNative.LastText(Handle(), textBytes, textBytes.Length, out severity);
+                    if (length < 0) throw new InvalidOperationException(TrackcalNative.LastError());
+                }
+                // A text that grew between the two calls comes cut at a character boundary.
+                length = Math.Min(length, textBytes.Length - 1);
+                if (!SameBytes(textBytes, length, textDecoded))
+                {
+                    if (textDecoded.Length < length) textDecoded = new byte[textBytes.Length];
+                    Buffer.BlockCopy(textBytes, 0, textDecoded, 0, length);
+                    textDecodedLength = length;
+                    text = Encoding.UTF8.GetString(textBytes, 0, length);
+                }
+                return text;
             }
-            return Encoding.UTF8.GetString(buffer, 0, Math.Min(length, buffer.Length - 1));
+        }
+
+        private bool SameBytes(byte[] bytes, int length, byte[] decoded)
+        {
+            if (length != textDecodedLength) return false;
+            for (int i = 0; i < length; i++)
+            {
+                if (bytes[i] != decoded[i]) return false;
+            }
+            return true;
         }
 
         // A tracker-frame pose in Unity's axes, as TryGetPose converts it.

@@ -139,6 +139,12 @@ public static class TrackcalCsharpTest
                 }
                 Thread.Sleep(10);
             }
+            // No text yet: "" with severity 0, and the same string each call (nothing allocated
+            // per frame while the text is unchanged).
+            int severity;
+            string first = tracker.LastText(out severity);
+            Check(first == "" && severity == 0, "no text yet: \"" + first + "\", severity " + severity);
+            Check(ReferenceEquals(tracker.LastText(out severity), first), "LastText reuses its string");
             Check(got.Count == expected.Count, "poses of every sensor within 20 s (" + got.Count + " of " +
                                                    expected.Count + ")");
             foreach (var kv in got)
