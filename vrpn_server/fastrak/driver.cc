@@ -28,6 +28,10 @@ namespace {
 using SteadyClock = std::chrono::steady_clock;
 using SystemClock = std::chrono::system_clock;
 
+// While the port cannot be opened, the same error reaches clients and the server's log at most
+// this often (the first failure and the reopen are always reported).
+constexpr std::chrono::seconds kOutageReminder{60};
+
 // Waits are clamped to 1e9 s (32 years): longer ones ("*N" sleeps and timings are any finite
 // N >= 0) would overflow the clock's 64-bit nanoseconds, or a deadline computed from now.
 SteadyClock::duration Seconds(double s) {
@@ -389,6 +393,12 @@ class FastrakDriver::Session {
     UpdateSuppressedCount();
   }
 
+  // For texts that repeat one already delivered: the caller's own log only.
+  void LogOnly(Severity severity, const std::string& text) {
+    if (driver_->callbacks_.on_log)
+      driver_->callbacks_.on_log(severity, "Fastrak " + options_.port + ": " + text);
+  }
+
   void PollLimiter() {
     if (auto m = limiter_.Poll(SteadyClock::now())) {
       Deliver(*m);
@@ -498,19 +508,49 @@ class FastrakDriver::Session {
     SetState(DriverState::kOpening);
     Sleep(loss_backoff_s_);
     double delay = timings_.reopen_backoff_min_s;
+    // An outage (cable out, adapter gone) is reported once: its first failed open, then again
+    // only when the error changes or every kOutageReminder, and its end says how long it lasted.
+    // Every attempt still goes to on_log.
+    int failed = 0;
+    std::string last_error;
+    SteadyClock::time_point first_failure, last_reported;
     while (true) {
       if (driver_->stop_.load()) throw StopRequested{};
       Count(&DriverStats::open_attempts);
       std::string error;
       fd_ = OpenSerialPort(options_.port, options_.baud, &error);
+      const auto now = SteadyClock::now();
       if (fd_ >= 0) {
         Count(&DriverStats::opens);
         empty_reads_ = 0;
         records_since_open_ = false;
-        Emit(Severity::kInfo, "opened at " + std::to_string(options_.baud) + " baud");
+        std::string text = "opened at " + std::to_string(options_.baud) + " baud";
+        if (failed > 0) {
+          text += " after " + std::to_string(failed) + " failed attempts over " +
+                  FormatSeconds(std::chrono::duration<double>(now - first_failure).count()) +
+                  " (last: " + last_error + ")";
+        }
+        Emit(Severity::kInfo, text);
         return;
       }
-      Emit(Severity::kError, "cannot open (" + error + "); next attempt in " + FormatSeconds(delay));
+      const std::string text =
+          "cannot open (" + error + "); next attempt in " + FormatSeconds(delay);
+      if (failed == 0) first_failure = now;
+      ++failed;
+      if (failed == 1 || error != last_error) {
+        Emit(Severity::kError, text + "; retrying every " +
+                                   FormatSeconds(timings_.reopen_backoff_max_s) +
+                                   " at most, reported again when it opens or the error changes");
+        last_reported = now;
+      } else if (now - last_reported >= kOutageReminder) {
+        Emit(Severity::kError,
+             "still " + text + " (" + std::to_string(failed) + " failed attempts over " +
+                 FormatSeconds(std::chrono::duration<double>(now - first_failure).count()) + ")");
+        last_reported = now;
+      } else {
+        LogOnly(Severity::kError, text);
+      }
+      last_error = error;
       Sleep(delay);
       delay = std::min(2.0 * delay, timings_.reopen_backoff_max_s);
     }

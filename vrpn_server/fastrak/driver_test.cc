@@ -14,6 +14,7 @@
 
 #include <atomic>
 #include <condition_variable>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <memory>
@@ -796,6 +797,44 @@ TEST(FastrakDriver, MissingPortIsRetriedWithBackoffAndRateLimitedTexts) {
   EXPECT_EQ(messages[0].severity, Severity::kError);
 }
 
+TEST(FastrakDriver, AnOutageIsReportedOnceAndItsEndSaysHowLongItLasted) {
+  // A cable out for 4.5 s: the same failed open every second reached clients and the server's log
+  // as a new error line each time (3,600 identical lines an hour for an adapter left unplugged).
+  // Now: the loss and the first failed open, then nothing until the port opens again, which says
+  // how many attempts failed and for how long.
+  const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
+  FakeFastrak fake(dir / "tty", FakeFastrakOptions{});
+  Collector collector;
+  FastrakDriver driver(FastOptions(dir / "tty"), collector.Callbacks());
+  driver.Start();
+  ASSERT_TRUE(collector.WaitForReports(10, 10.0));
+  const size_t messages_before = collector.messages().size();
+  fake.Unplug();
+  std::this_thread::sleep_for(std::chrono::milliseconds(4500));
+  const uint64_t failed_opens = driver.stats().open_attempts - driver.stats().opens;
+  const size_t reports_before = collector.reports().size();
+  fake.Plug(/*power_cycled=*/false);
+  ASSERT_TRUE(collector.WaitForReports(reports_before + 10, 5.0));
+  driver.Stop();
+  // Back-off 0.1, 0.2, 0.4, 0.8, 1, 1, 1 s: at least 5 failed opens in 4.5 s.
+  EXPECT_GE(failed_opens, 5u);
+  int cannot_open = 0;
+  std::string reopened;
+  const auto messages = collector.messages();
+  for (size_t i = messages_before; i < messages.size(); ++i) {
+    const std::string& text = messages[i].text;
+    if (text.find("cannot open") != std::string::npos &&
+        text.find("failed attempts") == std::string::npos) {
+      ++cannot_open;
+    }
+    if (text.find("opened at") != std::string::npos) reopened = text;
+  }
+  EXPECT_EQ(cannot_open, 1);
+  EXPECT_NE(reopened.find("failed attempts"), std::string::npos) << reopened;
+  // The unthrottled log still has every failed attempt.
+  EXPECT_GE(collector.log_lines(), failed_opens);
+}
+
 TEST(FastrakDriver, PortThatHangsUpRightAfterEveryOpenIsReopenedWithBackoff) {
   // A port that opens but is hung up at once, again and again (a USB adapter going away, a getty
   // or another program hanging up the line): every open succeeds, so the open back-off alone never
@@ -843,18 +882,25 @@ TEST(FastrakDriver, PortThatHangsUpRightAfterEveryOpenIsReopenedWithBackoff) {
 }
 
 TEST(FastrakDriver, SuppressedTextCountExcludesAHeldTextDeliveredLater) {
-  // Failed opens at 0, 0.3, 0.9 and 2.1 s; texts at most once per second: the first goes out, the
-  // next two are held (the second replacing the first), the held one goes out at 1 s. At 1.5 s
-  // every text but the replaced one has been delivered: one suppressed, not two.
+  // Failed opens at 0, 0.3, 0.9 and 2.1 s, each with another error (a repeated one is not sent
+  // again): missing, a regular file (not a serial port), missing. Texts at most once per second:
+  // the first goes out, the next two are held (the second replacing the first), the held one goes
+  // out at 1 s. At 1.5 s every text but the replaced one has been delivered: one suppressed, not
+  // two.
   const auto dir = trackcal::testing::MakeTempDir("fastrak_driver");
   Collector collector;
-  FastrakOptions options = FastOptions(dir / "no_such_tty");
+  const auto path = dir / "no_such_tty";
+  FastrakOptions options = FastOptions(path);
   options.timings.reopen_backoff_min_s = 0.3;
   options.timings.reopen_backoff_max_s = 10.0;
   options.timings.message_interval_s = 1.0;
   FastrakDriver driver(options, collector.Callbacks());
   driver.Start();
-  std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+  std::this_thread::sleep_for(std::chrono::milliseconds(150));
+  std::ofstream(path).put('x');
+  std::this_thread::sleep_for(std::chrono::milliseconds(450));
+  std::filesystem::remove(path);
+  std::this_thread::sleep_for(std::chrono::milliseconds(900));
   const DriverStats stats = driver.stats();
   const size_t logged = collector.log_lines();
   const size_t delivered = collector.messages().size();
