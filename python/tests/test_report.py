@@ -80,15 +80,32 @@ def test_report_renders_every_figure(written_report, tmp_path):
     assert not re.search(r"<body[^>]*data-figures-broken", dom)
 
 
-def test_render_check_detects_a_broken_figure(written_report, tmp_path):
+def _blank_png() -> bytes:
+    import matplotlib.pyplot as plt
+    fig = plt.figure(figsize=(2, 2))  # nothing drawn: one colour
+    try:
+        return figures.png_bytes(fig)
+    finally:
+        plt.close(fig)
+
+
+# A figure that does not render, three ways. A cut PNG (its header and the first third of its
+# data: a write or a copy cut short) has its size and decodes as far as it goes, so Chromium
+# marks it complete with its natural width, and the check counted it as rendered (measured: a
+# page with figure 4 cut so gave data-figures-ok="10"). A figure with nothing drawn is one colour.
+@pytest.mark.parametrize("breakage,why", [("not a png", "not decoded"), ("cut short", "not fully decoded"),
+                                          ("nothing drawn", "blank")])
+def test_render_check_detects_a_broken_figure(written_report, tmp_path, breakage, why):
     text = written_report.read_text()
     first = re.search(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", text)
-    broken = text.replace(first.group(1), base64.b64encode(b"not a png").decode(), 1)
+    data = base64.b64decode(first.group(1))
+    bad = {"not a png": b"not a png", "cut short": data[:len(data) // 3], "nothing drawn": _blank_png()}[breakage]
+    broken = text.replace(first.group(1), base64.b64encode(bad).decode(), 1)
     page = tmp_path / "broken.html"
     page.write_text(broken)
     dom = dump_dom(page, tmp_path / "profile")
     m = re.search(r'<body[^>]*\sdata-figures-broken="([^"]*)"', dom)
-    assert m and m.group(1) == "fig4_position_error_vs_distance.png"
+    assert m and m.group(1) == f"fig4_position_error_vs_distance.png ({why})", dom[:300]
     assert not re.search(r"<body[^>]*data-figures-ok", dom)
 
 

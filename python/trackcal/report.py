@@ -3,7 +3,8 @@ resource, opens offline) and also written as a PNG file next to it. Files are wr
 the report never replaces one of its inputs (a capture, a calibration).
 
 The page carries a small script that, once every image has loaded, writes
-``data-figures-ok="<count>"`` (or ``data-figures-broken``) on <body>: headless browsers and tests read it.
+``data-figures-ok="<count>"`` (or ``data-figures-broken="<name> (<why>)|..."``: not decoded, not
+fully decoded, blank) on <body>: headless browsers and tests read it.
 """
 
 from __future__ import annotations
@@ -118,9 +119,21 @@ figure{display:inline-block;margin:.5em;vertical-align:top}figcaption{font-size:
 img{max-width:100%;border:1px solid #ddd}.sig{color:#b35900;font-weight:bold}
 """
 
+# Once the page has loaded, each image is drawn into a canvas and read back: a PNG cut short (a write
+# or a copy cut short) keeps its size and decodes as far as it goes, so the browser marked it
+# complete with its natural width and the check counted it as rendered; its undecoded rows are
+# transparent, where every figure is opaque. A figure of one colour has nothing drawn. A data: image
+# does not taint the canvas, so its pixels can be read back.
 CHECK_SCRIPT = """
-(function(){function check(){var imgs=document.images,ok=0,bad=[];
-for(var i=0;i<imgs.length;i++){if(imgs[i].complete&&imgs[i].naturalWidth>0){ok++;}else{bad.push(imgs[i].alt);}}
+(function(){function drawn(img){var c=document.createElement('canvas');
+c.width=img.naturalWidth;c.height=img.naturalHeight;var g=c.getContext('2d');g.drawImage(img,0,0);
+var d=g.getImageData(0,0,c.width,c.height).data,same=true;
+for(var i=0;i<d.length;i+=4){if(d[i+3]!==255){return 'not fully decoded';}
+if(same&&(d[i]!==d[0]||d[i+1]!==d[1]||d[i+2]!==d[2])){same=false;}}
+return same?'blank':'';}
+function check(){var imgs=document.images,ok=0,bad=[];
+for(var i=0;i<imgs.length;i++){var why=imgs[i].complete&&imgs[i].naturalWidth>0?drawn(imgs[i]):'not decoded';
+if(why){bad.push(imgs[i].alt+' ('+why+')');}else{ok++;}}
 if(bad.length){document.body.setAttribute('data-figures-broken',bad.join('|'));}
 else{document.body.setAttribute('data-figures-ok',String(ok));}}
 if(document.readyState==='complete'){check();}else{window.addEventListener('load',check);}})();
