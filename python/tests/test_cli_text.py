@@ -99,6 +99,48 @@ def test_history_plot_joins_only_comparable_rows():
     plt.close(fig)
 
 
+def test_history_plot_says_why_a_row_is_not_joined_to_the_one_before():
+    # A work folder of fits on two captures and of two sets: the table says "other data" and
+    # "other set", but the plot only broke the line, so a reader of the report's figure took the
+    # fall from row 3 to row 4 for a change of the model (measured on a work folder: 29.0 mm with
+    # a LUT on capture 1, then 4.7 mm with a sensor offset on capture 2).
+    rows = [entry("a", 25.6, 3.2), entry("b", 4.1, 0.6), entry("c", 29.0, 3.8), entry("d", 4.7, 0.7),
+            entry("e", 4.0, 0.5, "cross-validation (5-fold)")]
+    for r, sha in zip(rows, ["1", "1", "1", "2", "2"]):
+        r["data"] = [{"sha256": sha}]
+    import matplotlib.pyplot as plt
+    fig = figures.history_plot(rows)
+    fig.canvas.draw()
+    left = fig.axes[0]
+    flags = {t.get_text(): t for t in left.texts}
+    assert set(flags) == {"other data", "other set"}, list(flags)
+    # Each at the break it names, between the two rows (in data coordinates along x).
+    assert 3 < flags["other data"].get_position()[0] < 4
+    assert 4 < flags["other set"].get_position()[0] < 5
+    dividers = [seg[0][0] for c in left.collections for seg in c.get_segments() if seg[0][0] == seg[1][0]]
+    assert sorted(dividers) == [3.5, 4.5]  # a divider at each
+    plt.close(fig)
+
+
+def test_history_plot_legend_hides_no_point():
+    # Row 3 is the highest on both axes, at the right: the legend (upper right, inside the axes)
+    # was drawn over its markers.
+    rows = [entry("a", 25.6, 3.2), entry("b", 4.1, 0.6), entry("c", 29.0, 3.8), entry("d", 4.7, 0.7)]
+    import matplotlib.pyplot as plt
+    fig = figures.history_plot(rows)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    legends = [a.get_legend() for a in fig.axes if a.get_legend()] + list(fig.legends)
+    assert len(legends) == 1
+    box = legends[0].get_window_extent(renderer)
+    for axis in fig.axes:
+        for line in axis.get_lines():
+            for x, y in axis.transData.transform(line.get_xydata()):
+                # 6 px: the largest marker's half-width at the figure's 100 dpi (9 pt squares).
+                assert not (box.x0 - 6 < x < box.x1 + 6 and box.y0 - 6 < y < box.y1 + 6), (x, y, box)
+    plt.close(fig)
+
+
 def test_history_table_shows_the_median_fall_that_gross_errors_hide_from_the_mean():
     # Measured, workflow loop with hidden hemisphere flips (seed 2): the validation set holds
     # flipped reports, 2 |p| off whatever the calibration, so the mean rose 16.0 -> 19.4 mm when the

@@ -361,13 +361,21 @@ def history_plot(entries: Sequence[dict]):
     set are not joined to the previous one."""
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     x = np.arange(1, len(entries) + 1)
-    from trackcal.history import comparable, comparable_key, headline_scores, headline_set
+    from trackcal.history import comparable_key, comparison_break, headline_scores, headline_set
     pos = [headline_scores(e)[0] for e in entries]
     ori = [headline_scores(e)[1] for e in entries]
     # A line joins only rows the table compares (same capture files, same headline set): a step to
     # other data is not a step of the loop.
     keys = [comparable_key(e) for e in entries]
-    starts = [0] + [i for i in range(1, len(entries)) if not comparable(keys[i], keys[i - 1])]
+    breaks = {i: comparison_break(keys[i], keys[i - 1]) for i in range(1, len(entries))}
+    starts = [0] + [i for i, why in breaks.items() if why]
+    # Each break is a divider between the two rows, named as the table names it: the broken line
+    # alone was read as a change of the model (29.0 mm with a LUT on one capture, 4.7 mm with a
+    # sensor offset on another, drawn side by side).
+    for i in starts[1:]:
+        ax.vlines(i + 0.5, 0, 1, transform=ax.get_xaxis_transform(), colors="0.5", linestyles=":", lw=1)
+        ax.text(i + 0.5, 0.98, breaks[i], transform=ax.get_xaxis_transform(), rotation=90, ha="right",
+                va="top", fontsize=7, color="0.35")
     runs = list(zip(starts, starts[1:] + [len(entries)]))
     many = len(entries) > _MAX_LABELLED_FITS  # smaller markers: 200 hollow squares hid the lines
     for k, (a, b) in enumerate(runs):
@@ -398,11 +406,13 @@ def history_plot(entries: Sequence[dict]):
         ax.set_xlim(0.5, len(entries) + 0.5)
         ax.set_xlabel("fit # (the row of `trackcal history`, which gives its label)")
     sets = sorted({headline_set(e) for e in entries} - {None})
-    ax.set_title("Error after each change" + (f" ({', '.join(sets)})" if sets else ""))
-    # One legend for the two axes' lines (only the axis labels' colours told them apart).
+    # One legend for the two axes' lines (only the axis labels' colours told them apart), in a row
+    # between the title and the axes: inside (upper right) it hid the markers of a high last fit.
     handles = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
     if handles:
-        ax.legend(handles=handles, loc="upper right", fontsize=8)
+        ax.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, fontsize=8,
+                  frameon=False)
+    ax.set_title("Error after each change" + (f" ({', '.join(sets)})" if sets else ""), pad=20 if handles else 6)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return fig

@@ -434,6 +434,14 @@ def comparable(key, previous) -> bool:
             and (key[2] is None or previous[2] is None or key[2] == previous[2]))
 
 
+def comparison_break(key, previous) -> str:
+    """'' when rows of comparable_key ``key`` and ``previous`` may be compared, else what differs, as
+    the history's table and plot say it: "other data", "other set" or "sensor N"."""
+    if comparable(key, previous):
+        return ""
+    return "other data" if key[0] != previous[0] else "other set" if key[1] != previous[1] else f"sensor {key[2]}"
+
+
 def history_table(entries: Sequence[dict], first: int = 1) -> str:
     """Plain-text table: one row per fit with the headline error (``set``: which set's, held-out
     first) and its change from the previous. The position median beside the mean: a few gross
@@ -458,8 +466,7 @@ def history_table(entries: Sequence[dict], first: int = 1) -> str:
             dm = _change(med, prev[1] if prev else None)
             do = _change(o, prev[2] if prev else None)
         else:
-            dp = dm = do = ("other data" if key[0] != prev_key[0] else
-                            "other set" if key[1] != prev_key[1] else f"sensor {key[2]}")
+            dp = dm = do = comparison_break(key, prev_key)
         med_text = "" if math.isnan(med) else f"{med:.3f}"
         m = e.get("model") or {}
         model = pathlib.Path(m.get("path", "")).name + (f" @{m['sha256'][:8]}" if m.get("sha256") else "")
