@@ -29,11 +29,14 @@ class Terminal:
     def __init__(self, out=None, err=None):
         self.out = out or sys.stdout
         self.err = err or sys.stderr
-        self.colour = self.out.isatty() and os.environ.get("NO_COLOR") is None
+        # no-color.org: NO_COLOR set and not empty turns colour off (NO_COLOR= leaves it on).
+        no_color = bool(os.environ.get("NO_COLOR"))
+        self.colour = self.out.isatty() and not no_color
         # Each stream by itself: `2> errors.log` from a terminal must get plain text.
-        self.err_colour = self.err.isatty() and os.environ.get("NO_COLOR") is None
+        self.err_colour = self.err.isatty() and not no_color
         self.progress_enabled = self.err.isatty()
         self._t0 = None
+        self._line_open = False  # a bar or a message drawn on stderr, its line not ended yet
 
     def c(self, text: str, code: str) -> str:
         """``text`` in colour for stdout (when it is a terminal)."""
@@ -53,6 +56,7 @@ class Terminal:
             frac = min(1.0, done / total) if total else 1.0
             bar = "#" * int(30 * frac)
             self.err.write(f"\r{label} [{bar:<30}] {100 * frac:5.1f}%")
+            self._line_open = frac < 1.0
             if frac >= 1.0:
                 self.err.write("\n")
             self.err.flush()
@@ -70,17 +74,24 @@ class Terminal:
 
 
     def message_progress(self) -> Callable[[str], None]:
-        """A callback showing the latest progress message on stderr (on a terminal only)."""
+        """A callback showing the latest progress message on stderr (on a terminal only, after work
+        has run for 1 s, as the bars)."""
+        start = time.monotonic()
+
         def update(message):
-            if self.progress_enabled:
+            if self.progress_enabled and time.monotonic() - start >= 1.0:
                 self.err.write("\r\033[K" + str(message)[:120])
                 self.err.flush()
+                self._line_open = True
         return update
 
     def end_progress(self) -> None:
-        if self.progress_enabled:
+        """Clears a bar or a message left part-drawn (an error or a warning then starts its own
+        line, not after "... 25.0%")."""
+        if self.progress_enabled and self._line_open:
             self.err.write("\r\033[K")
             self.err.flush()
+        self._line_open = False
 
 
 def _time_offset(args, cal, fit_report=None):
@@ -868,6 +879,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
             def show(message, category, *rest, **kw):
                 if issubclass(category, (HistoryWarning, OtherReceiverWarning)):  # one line, like the errors
+                    term.end_progress()
                     print(term.ce("warning: ", "33") + str(message), file=sys.stderr)
                 else:
                     _show(message, category, *rest, **kw)
@@ -877,12 +889,14 @@ def main(argv: Optional[List[str]] = None) -> int:
             return COMMANDS[args.command](args, term)
     except (ValueError, KeyError, RuntimeError, NotImplementedError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        term.end_progress()
         print(term.ce("error: ", "31") + str(msg), file=sys.stderr)
         return 2
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
     except OSError as e:  # a file the system refuses (missing, a folder, no permission): one line
+        term.end_progress()
         print(term.ce("error: ", "31") + _os_error_text(e), file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # Ctrl-C: no traceback (record saves what it recorded first)

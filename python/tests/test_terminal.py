@@ -1,0 +1,85 @@
+"""What the terminal shows: colour only on a terminal and without NO_COLOR (no-color.org: set and
+not empty), progress only on a terminal and once work has run for a second, and an error or a
+warning on a line of its own after a bar left part-drawn."""
+
+import io
+import sys
+
+import pytest
+
+from trackcal import cli
+
+
+class Tty(io.StringIO):
+    def isatty(self):
+        return True
+
+
+class Clock:
+    """time.monotonic as the cli module sees it, moved by hand."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    c = Clock()
+    monkeypatch.setattr(cli.time, "monotonic", c)
+    return c
+
+
+@pytest.mark.parametrize("value,coloured", [(None, True), ("1", False), ("", True)])
+def test_terminal_colour_follows_no_color(monkeypatch, value, coloured):
+    if value is None:
+        monkeypatch.delenv("NO_COLOR", raising=False)
+    else:
+        monkeypatch.setenv("NO_COLOR", value)
+    term = cli.Terminal(out=Tty(), err=Tty())
+    assert (term.c("x", "31") != "x") == coloured
+    assert (term.ce("x", "31") != "x") == coloured
+    # Not on a pipe, whatever NO_COLOR says.
+    piped = cli.Terminal(out=io.StringIO(), err=io.StringIO())
+    assert piped.c("x", "31") == "x" and piped.ce("x", "31") == "x"
+
+
+@pytest.mark.parametrize("kind", ["bar", "message"])
+def test_progress_only_on_a_terminal_after_a_second(clock, kind):
+    for err, shown in ((Tty(), True), (io.StringIO(), False)):
+        term = cli.Terminal(out=io.StringIO(), err=err)
+        if kind == "bar":
+            bar = term.progress("figures")
+            update = lambda: bar(1, 4)  # noqa: E731
+        else:
+            message = term.message_progress()
+            update = lambda: message("fitting +dipole")  # noqa: E731
+        clock.now += 0.5
+        update()
+        assert err.getvalue() == ""  # work of half a second: no bar
+        clock.now += 0.6
+        update()
+        assert (err.getvalue() != "") == shown, err.getvalue()
+
+
+def test_an_error_after_a_part_drawn_bar_starts_a_line_of_its_own(clock, monkeypatch, tmp_path):
+    # A bar left at 25 % (a fit that failed, a figure refused) and the error printed on after it:
+    # "figures [#######                       ]  25.0%error: ..." on the terminal.
+    err = Tty()
+    monkeypatch.setattr(sys, "stderr", err)
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+
+    def failing(args, term):
+        bar = term.progress("figures")
+        clock.now += 2.0
+        bar(1, 4)
+        raise ValueError("report.html: exists")
+    monkeypatch.setitem(cli.COMMANDS, "history", failing)
+    (tmp_path / "work").mkdir()
+    assert cli.main(["history", str(tmp_path / "work")]) == 2
+    text = err.getvalue()
+    assert "25.0%" in text
+    last = text.rsplit("\r", 1)[-1]
+    assert last.replace("\033[K", "").startswith("\033[31merror: \033[0mreport.html: exists"), repr(text)
