@@ -157,6 +157,54 @@ def test_history_round_trip(tmp_path):
     assert (tmp_path / "h.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_history_says_which_captures_were_changed_or_deleted_since_their_fits(tmp_path):
+    # A row's scores are of the capture as it was fitted (its SHA-256). Re-exported or deleted
+    # since, nothing said so: a user refitting "the same capture" got other numbers, or could not
+    # find the file the rows name.
+    kept, changed, gone = (tmp_path / f"{n}.csv" for n in ("kept", "changed", "gone"))
+    for f in (kept, changed, gone):
+        f.write_text(f"{f.name}\n")
+    scores = {"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}}
+    work = tmp_path / "work"
+    for data in (kept, changed, changed, gone, kept):
+        history.record_fit(work, model=None, data=[(data, "calibration_capture")], scores=scores)
+    changed.write_text("re-exported\n")
+    gone.unlink()
+    entries = history.load_history(work)
+    assert history.data_changed_notes(entries) == [
+        f"{changed} (rows 2, 3): changed since it was fitted; the rows' scores are of the file as it was",
+        f"{gone} (row 4): deleted since it was fitted; the row's scores are of the file as it was"]
+    r = run_cli("history", work)
+    assert r.stdout.splitlines()[-2:] == [f"note: {n}" for n in history.data_changed_notes(entries)]
+    assert f"{kept} " not in r.stdout
+
+
+def test_report_with_a_history_of_captures_changed_since_says_so(tmp_path, monkeypatch, capsys):
+    # The report's history table and plot show the rows as recorded: its notes say which rows'
+    # captures are no longer what they fitted, as `trackcal history` does.
+    import types
+    from trackcal import cli, report
+    gone = tmp_path / "gone.csv"
+    gone.write_text("x\n")
+    history.record_fit(tmp_path / "work", model=None, data=[(gone, "calibration_capture")],
+                       scores={"valid": {"position_mm": {"mean": 1.0}, "orientation_deg": {"mean": 0.1}}})
+    gone.unlink()
+    (tmp_path / "poses.csv").write_text("station\n")
+    monkeypatch.setattr(cli, "_diagnosis", lambda args, term: (
+        types.SimpleNamespace(origin=None, path=None), None, object(), None, None, None, None, []))
+    written = {}
+
+    def write_report(v, out_dir, **kw):
+        written.update(kw)
+        return pathlib.Path(out_dir) / "report.html"
+    monkeypatch.setattr(report, "write_report", write_report)
+    assert cli.main(["report", str(tmp_path / "poses.csv"), "-o", str(tmp_path / "out"),
+                     "--workdir", str(tmp_path / "work")]) == 0
+    note = f"history: {gone} (row 1): deleted since it was fitted; the row's scores are of the file as it was"
+    assert note in written["notes"], written["notes"]
+    assert f"note: {note}" in capsys.readouterr().out
+
+
 def test_history_bad_line_names_file_and_line(tmp_path):
     (tmp_path / "history.jsonl").write_text('{"scores": {}}\n{"scores": \n')
     with pytest.raises(ValueError, match=r"history\.jsonl:2: column \d+: not JSON"):

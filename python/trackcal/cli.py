@@ -630,6 +630,9 @@ def cmd_report(args, term) -> int:
     if args.workdir and not hist:  # asked for, but there is none to show
         notes.append(f"{pathlib.Path(args.workdir) / 'history.jsonl'}: no fits recorded: the report "
                      "has no history")
+    if hist:  # the history's rows are of their captures as fitted: say which are no longer
+        from trackcal.history import data_changed_notes
+        notes += [f"history: {n}" for n in data_changed_notes(hist)]
     for n in notes:
         print(term.c("note: ", "33") + n)
     path = write_report(v, args.output, inputs=inputs, history_entries=hist, candidates=doc,
@@ -650,6 +653,8 @@ def cmd_history(args, term) -> int:
         print(f"{args.workdir}: no fits recorded (history.jsonl)")
         return 0
     print(history_table(entries))
+    for n in history.data_changed_notes(entries):
+        print(term.c("note: ", "33") + n)
     if args.plot:
         from trackcal import figures
         work = pathlib.Path(args.workdir)

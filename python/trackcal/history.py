@@ -414,6 +414,45 @@ def headline_median_mm(entry: dict) -> float:
     return float(value) if value is not None else math.nan
 
 
+def _rows_text(rows: Sequence[int]) -> str:
+    """'row 4', 'rows 2, 3', 'rows 1-60, 62' of sorted 1-based row numbers."""
+    runs = []
+    for r in rows:
+        if runs and r == runs[-1][1] + 1:
+            runs[-1][1] = r
+        else:
+            runs.append([r, r])
+    parts = [f"{a}" if a == b else f"{a}, {b}" if b == a + 1 else f"{a}-{b}" for a, b in runs]
+    return f"row{'s' if len(rows) > 1 else ''} {', '.join(parts)}"
+
+
+def data_changed_notes(entries: Sequence[dict], first: int = 1) -> List[str]:
+    """One note per capture file a row names that is no longer what the row fitted: changed since
+    (its SHA-256 now differs from the row's) or deleted, with the rows (numbered from ``first``).
+    A row's scores are of the file as it was: a refit of "the same capture" gives other numbers.
+    Each file is hashed once."""
+    rows: Dict[str, List[Tuple[int, str]]] = {}
+    for i, e in enumerate(entries, first):
+        for d in e.get("data") or []:
+            if isinstance(d, dict) and isinstance(d.get("path"), str) and isinstance(d.get("sha256"), str):
+                rows.setdefault(d["path"], []).append((i, d["sha256"]))
+    notes = []
+    for path, recorded in rows.items():
+        now, what = None, "deleted"
+        if os.path.lexists(path):
+            try:
+                now, what = _sha(path), "changed"
+            except (OSError, ValueError, RuntimeError) as err:  # a folder, no permission: say why
+                what = f"not readable now ({err})"
+        stale = sorted({i for i, sha in recorded if sha != now})
+        if not stale:
+            continue
+        whose = "rows'" if len(stale) > 1 else "row's"
+        notes.append(f"{path} ({_rows_text(stale)}): {what} since it was fitted; the {whose} scores are of "
+                     "the file as it was")
+    return notes
+
+
 def _change(now: float, before: Optional[float]) -> str:
     if before is None or not before or math.isnan(before) or math.isnan(now):
         return ""
