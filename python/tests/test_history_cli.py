@@ -617,6 +617,29 @@ def test_report_workdir_without_a_history_is_not_silently_ignored(tmp_path, monk
     assert "no fits recorded" in capsys.readouterr().out
 
 
+def test_report_over_an_earlier_one_says_it_replaced_it(tmp_path, monkeypatch, capsys):
+    # An earlier trackcal report in -o is replaced (a user's page there is refused): the command
+    # said only "wrote out/report.html", as for a new folder, and the earlier page was gone.
+    import types
+    from trackcal import cli, report
+    (tmp_path / "poses.csv").write_text("station\n")
+    monkeypatch.setattr(cli, "_diagnosis", lambda args, term: (
+        types.SimpleNamespace(origin=None, path=None), None, object(), None, None, None, None, []))
+
+    def write_report(v, out_dir, **kw):
+        (pathlib.Path(out_dir) / "report.html").write_text(f"<html><head>{report.GENERATOR_META}</head></html>")
+        return pathlib.Path(out_dir) / "report.html"
+    monkeypatch.setattr(report, "write_report", write_report)
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = ["report", str(tmp_path / "poses.csv"), "-o", str(out)]
+    assert cli.main(argv) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == f"wrote {out / 'report.html'}"
+    assert cli.main(argv) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        f"wrote {out / 'report.html'} (replaced the earlier trackcal report there, and its figures)")
+
+
 def test_validate_records_the_calibration_by_its_full_path(tmp_path, monkeypatch):
     """validate --workdir recorded -c as given: a relative path ("cal.json") named a file only from
     the folder validate ran in, while the capture files beside it and trackcal fit's rows carry

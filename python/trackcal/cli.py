@@ -635,10 +635,13 @@ def cmd_report(args, term) -> int:
         notes += [f"history: {n}" for n in data_changed_notes(hist)]
     for n in notes:
         print(term.c("note: ", "33") + n)
+    # Only an earlier trackcal report is ever replaced (any other file is refused): say so, the
+    # earlier page and its figures are gone.
+    replaced = (pathlib.Path(args.output) / "report.html").exists()
     path = write_report(v, args.output, inputs=inputs, history_entries=hist, candidates=doc,
                         verdict=verdict, model_change=change, progress=term.progress("figures"),
                         notes=notes)
-    print(f"wrote {path}")
+    print(f"wrote {path}" + (" (replaced the earlier trackcal report there, and its figures)" if replaced else ""))
     return 0
 
 
