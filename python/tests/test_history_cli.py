@@ -560,6 +560,23 @@ def test_history_truncated_last_line_keeps_earlier_entries(tmp_path, capsys):
     assert len(history.load_history(tmp_path)) == 2
 
 
+def test_history_last_line_that_no_write_began_is_an_error_not_dropped(tmp_path):
+    """Only a line that starts as an entry (a JSON object, '{') can be a write cut short: any
+    other unterminated last line (a file a tool or a person put there) is an error naming it, and
+    recording a fit keeps it instead of replacing it."""
+    path = tmp_path / "history.jsonl"
+    whole = json.dumps({"label": "first", "scores": GOOD, "model": None}) + "\n"
+    junk = "notes: refit after moving the cart"
+    path.write_text(whole + junk)
+    with pytest.raises(ValueError, match=r"history\.jsonl:2: column 1: not JSON"):
+        history.load_history(tmp_path)
+    model = tmp_path / "m.json"
+    model.write_text("{}")
+    with pytest.raises(ValueError, match=r"history\.jsonl:2: column 1: not JSON"):
+        history.record_fit(tmp_path, model=model, data=[], scores=GOOD, label=lambda entries: "x")
+    assert path.read_text() == whole + junk
+
+
 def test_malformed_history_fails_before_the_work(tmp_path, monkeypatch, capsys):
     """report --workdir and fit --workdir read the history before the diagnosis or the fit: a
     malformed one fails at once, and fit writes no calibration it then cannot record."""

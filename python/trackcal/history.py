@@ -62,11 +62,13 @@ class HistoryWarning(UserWarning):
 
 def _truncated_tail(data: bytes) -> int:
     """Length of an unterminated last line of ``data`` that is not a whole JSON value (a write cut
-    short), else 0. An entry is a JSON object, so a prefix of one never parses."""
+    short), else 0. An entry is a JSON object, so a prefix of one never parses, and it starts with
+    '{': a line that does not (notes a person or a tool put there) is not a cut write, and is left
+    for the reader to refuse by its line rather than dropped."""
     if not data or data.endswith(b"\n"):
         return 0
     tail = data[data.rfind(b"\n") + 1:]
-    if not tail.strip():
+    if not tail.strip() or not tail.lstrip().startswith(b"{"):
         return 0
     try:
         json.loads(tail.decode("utf-8"))
