@@ -1,6 +1,6 @@
-"""What the terminal shows: colour only on a terminal and without NO_COLOR (no-color.org: set and
-not empty), progress only on a terminal and once work has run for a second, and an error or a
-warning on a line of its own after a bar left part-drawn."""
+"""What the terminal shows: colour only on a terminal (not TERM=dumb) and without NO_COLOR
+(no-color.org: set and not empty), progress only on a terminal and once work has run for a second,
+and an error or a warning on a line of its own after a bar left part-drawn."""
 
 import io
 import sys
@@ -44,6 +44,20 @@ def test_terminal_colour_follows_no_color(monkeypatch, value, coloured):
     # Not on a pipe, whatever NO_COLOR says.
     piped = cli.Terminal(out=io.StringIO(), err=io.StringIO())
     assert piped.c("x", "31") == "x" and piped.ce("x", "31") == "x"
+
+
+@pytest.mark.parametrize("term_value,coloured",
+                         [("dumb", False), ("xterm-256color", True), (None, True)])
+def test_terminal_colour_off_on_a_dumb_terminal(monkeypatch, term_value, coloured):
+    """TERM=dumb (Emacs' shell, some CI consoles) shows escape codes as text: no colour there."""
+    monkeypatch.delenv("NO_COLOR", raising=False)
+    if term_value is None:
+        monkeypatch.delenv("TERM", raising=False)
+    else:
+        monkeypatch.setenv("TERM", term_value)
+    term = cli.Terminal(out=Tty(), err=Tty())
+    assert (term.c("x", "31") != "x") == coloured
+    assert (term.ce("x", "31") != "x") == coloured
 
 
 @pytest.mark.parametrize("kind", ["bar", "message"])

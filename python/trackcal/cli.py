@@ -29,8 +29,9 @@ class Terminal:
     def __init__(self, out=None, err=None):
         self.out = out or sys.stdout
         self.err = err or sys.stderr
-        # no-color.org: NO_COLOR set and not empty turns colour off (NO_COLOR= leaves it on).
-        no_color = bool(os.environ.get("NO_COLOR"))
+        # no-color.org: NO_COLOR set and not empty turns colour off (NO_COLOR= leaves it on). A
+        # dumb terminal (TERM=dumb: Emacs' shell) prints escape codes as text.
+        no_color = bool(os.environ.get("NO_COLOR")) or os.environ.get("TERM") == "dumb"
         self.colour = self.out.isatty() and not no_color
         # Each stream by itself: `2> errors.log` from a terminal must get plain text.
         self.err_colour = self.err.isatty() and not no_color
