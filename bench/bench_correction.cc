@@ -7,6 +7,8 @@
 //
 // BM_Calibration_*: the server's per-report path (chain and calibrated volume) inside the volume,
 // and outside it under `clamp` and `linear` (report the outside cases as ratios to the inside one).
+// BM_ServerReport_*: the server's whole per-report path (unit quaternion, finiteness checks,
+// correction, Pos_Quat message), with and without the normalisation, as ratios to BM_Calibration_*.
 #include <benchmark/benchmark.h>
 
 #include <algorithm>
@@ -17,6 +19,9 @@
 #include "core/calibration_file.h"
 #include "core/lut.h"
 #include "core/polynomial.h"
+#include "vrpn_server/protocol/payloads.h"
+#include "vrpn_server/protocol/wire.h"
+#include "vrpn_server/server/devices.h"
 
 namespace trackcal {
 namespace {
@@ -279,6 +284,84 @@ void BM_Calibration_Lut21_OutsideLinear(benchmark::State& state) {
 }
 BENCHMARK(BM_Calibration_Lut21_OutsideLinear);
 
+// The server's per-report path as TrackerDevice::OnReports and the network thread run it, on
+// reports as the Fastrak driver hands them over (the quaternion printed with 4 decimals, so |q| is
+// off by up to ~1e-4 and the normalisation does its division): the report scaled to a unit
+// quaternion and checked finite, corrected, the corrected pose scaled and checked again, then
+// encoded as a Pos_Quat message into a reused buffer. `normalise` false drops the two
+// WithUnitRotation calls (the path before the server served unit quaternions): the ratio of the two
+// is what the normalisation costs per report, the ratio to BM_Calibration_* what the server adds
+// to the correction.
+const std::vector<Rigid3d>& DriverReports() {
+  static const std::vector<Rigid3d> reports = [] {
+    std::vector<Rigid3d> r;
+    const Poses& poses = TestPoses();
+    for (size_t i = 0; i < kNumPoses; ++i) {
+      Eigen::Vector4d q = poses.rotations[i].coeffs();
+      for (int k = 0; k < 4; ++k) q[k] = std::round(q[k] * 1e4) * 1e-4;
+      r.emplace_back(Eigen::Quaterniond(q), poses.positions[i]);
+    }
+    return r;
+  }();
+  return reports;
+}
+
+void RunServerReport(benchmark::State& state, const Calibration& cal, bool normalise) {
+  const std::vector<Rigid3d>& reports = DriverReports();
+  std::vector<uint8_t> message;
+  message.reserve(256);
+  size_t i = 0;
+  int64_t not_served = 0;
+  for (auto _ : state) {
+    message.clear();
+    Rigid3d reported = reports[i];
+    if (normalise) reported = vrpn::WithUnitRotation(reported);
+    i = (i + 1) % kNumPoses;
+    if (!vrpn::IsFinite(reported)) {
+      ++not_served;
+      continue;
+    }
+    Rigid3d corrected = cal.Apply(reported).pose;
+    if (normalise) corrected = vrpn::WithUnitRotation(corrected);
+    if (!vrpn::IsFinite(corrected)) {
+      ++not_served;
+      continue;
+    }
+    uint8_t payload[vrpn::kPosQuatSize];
+    vrpn::EncodePosQuatInto(vrpn::PosQuat{0, corrected}, payload);
+    vrpn::AppendMessage(&message, vrpn::Timestamp{1, static_cast<uint32_t>(i)}, 0, 2, 0, payload);
+    benchmark::DoNotOptimize(message.data());
+    benchmark::ClobberMemory();
+  }
+  state.SetItemsProcessed(state.iterations());
+  // 0 here (every report finite): otherwise the loop timed less than the whole path.
+  state.counters["not_served"] = static_cast<double>(not_served);
+}
+
+void BM_ServerReport_Polynomial4(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Degree4(), ExtrapolationPolicy::kLinear);
+  RunServerReport(state, cal, true);
+}
+BENCHMARK(BM_ServerReport_Polynomial4);
+
+void BM_ServerReport_Polynomial4_NoNormalise(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Degree4(), ExtrapolationPolicy::kLinear);
+  RunServerReport(state, cal, false);
+}
+BENCHMARK(BM_ServerReport_Polynomial4_NoNormalise);
+
+void BM_ServerReport_Lut21(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Lut(), ExtrapolationPolicy::kLinear);
+  RunServerReport(state, cal, true);
+}
+BENCHMARK(BM_ServerReport_Lut21);
+
+void BM_ServerReport_Lut21_NoNormalise(benchmark::State& state) {
+  static const Calibration cal = CalibrationOf(Lut(), ExtrapolationPolicy::kLinear);
+  RunServerReport(state, cal, false);
+}
+BENCHMARK(BM_ServerReport_Lut21_NoNormalise);
+
 // Batch path on raw arrays (what the Python binding calls), per pose.
 void BM_Polynomial4_Batch(benchmark::State& state) {
   const Poses& poses = TestPoses();
@@ -293,6 +376,7 @@ void BM_Polynomial4_Batch(benchmark::State& state) {
     Degree4().ApplyBatch(kNumPoses, pos.data(), quat.data(), out_pos.data(), out_quat.data(),
                          flags.data());
     benchmark::DoNotOptimize(out_pos.data());
+    benchmark::DoNotOptimize(out_quat.data());
     benchmark::ClobberMemory();
   }
   state.SetItemsProcessed(state.iterations() * kNumPoses);

@@ -151,13 +151,9 @@ void TrackerDevice::OnReport(int sensor, const Rigid3d& reported, Timestamp time
   OnReports(std::span<const SensorReport>(&report, 1));
 }
 
-namespace {
-
-// The pose with its rotation scaled to a unit quaternion. VRPN clients take the wire's quaternion
-// as a rotation without normalising it (Unity, the reference's vrpn_Tracker_Remote): a Fastrak's
-// record is accepted with |q| off by up to 1e-3 (4 printed decimals), and a pass-through source
-// sends what it got. A quaternion of no finite, positive norm is left as it is (not finite: not
-// served as a corrected pose).
+// VRPN clients take the wire's quaternion as a rotation without normalising it (Unity, the
+// reference's vrpn_Tracker_Remote): a Fastrak's record is accepted with |q| off by up to 1e-3 (4
+// printed decimals), and a pass-through source sends what it got.
 Rigid3d WithUnitRotation(const Rigid3d& pose) {
   const double norm = pose.rotation.norm();
   if (!(norm > 0.0) || !std::isfinite(norm) || norm == 1.0) return pose;
@@ -168,8 +164,6 @@ bool IsFinite(const Rigid3d& pose) {
   return pose.translation.allFinite() && pose.rotation.coeffs().allFinite() &&
          pose.rotation.norm() > 0.0;
 }
-
-}  // namespace
 
 void TrackerDevice::OnReports(std::span<const SensorReport> reports) {
   if (reports.empty()) return;

@@ -42,6 +42,14 @@ struct CorrectionResult {
   CorrectionStatus status = CorrectionStatus::kConverged;
 };
 
+// The per-report steps of TrackerDevice::OnReports around the correction (public so that
+// bench/bench_correction times the server's per-report path with the code the server runs).
+// The pose with its rotation scaled to a unit quaternion; a quaternion of no finite, positive norm
+// is returned as it is (IsFinite then refuses it).
+Rigid3d WithUnitRotation(const Rigid3d& pose);
+// Whether a pose can be served: finite position and quaternion, and a non-zero quaternion.
+bool IsFinite(const Rigid3d& pose);
+
 // Maps a reported pose (transmitter_from_receiver) to the corrected pose. Apply may be called from
 // several device threads at once; implementations must be immutable after construction.
 class PoseCorrector {
