@@ -72,8 +72,16 @@ function(trackcal_add_benchmark)
   if(NOT TRACKCAL_BUILD_BENCHMARKS)
     return()
   endif()
-  cmake_parse_arguments(ARG "" "NAME" "SRCS;LINK_LIBS" ${ARGN})
+  cmake_parse_arguments(ARG "" "NAME" "SRCS;LINK_LIBS;SMOKE_ARGS" ${ARGN})
   add_executable(${ARG_NAME} ${ARG_SRCS})
   trackcal_set_common_options(${ARG_NAME})
   target_link_libraries(${ARG_NAME} PRIVATE ${ARG_LINK_LIBS} benchmark::benchmark)
+  # SMOKE_ARGS: ctest `bench/<name>` runs the program once with these arguments (label `bench`),
+  # so that a benchmark the docs quote keeps running; keep it to a second or so (no figures).
+  if(ARG_SMOKE_ARGS AND TRACKCAL_BUILD_TESTS)
+    add_test(NAME "bench/${ARG_NAME}" COMMAND ${ARG_NAME} ${ARG_SMOKE_ARGS})
+    set_tests_properties("bench/${ARG_NAME}" PROPERTIES
+      ENVIRONMENT "TRACKCAL_SOURCE_DIR=${PROJECT_SOURCE_DIR};TRACKCAL_BINARY_DIR=${PROJECT_BINARY_DIR}"
+      LABELS bench TIMEOUT 120)
+  endif()
 endfunction()
