@@ -4,7 +4,8 @@ numpy implementation of the same degree-4 polynomial (trackcal.numpy_reference),
 
     .venv/bin/python bench/bench_python_batch.py [--poses 1000000] [--repeats 5]
 
-Prints the best-of-repeats time per pose of each and their ratio. Pin to one core for the
+Prints the best-of-repeats CPU time per pose of each (the two alternating) and their ratio, with
+the wall times in brackets. Pin to one core for the
 single-core figure: `taskset -c 0 .venv/bin/python bench/bench_python_batch.py`.
 """
 
@@ -26,12 +27,20 @@ import trackcal  # noqa: E402
 from trackcal import numpy_reference  # noqa: E402
 
 
-def best_time(fn, repeats: int) -> float:
-    best = float("inf")
+def best_times(fns, repeats: int) -> list[tuple[float, float]]:
+    """Best (CPU seconds, wall seconds) of each function over `repeats` rounds, the functions
+    alternating within a round so that both sides see the same machine load. CPU time is the
+    figure: on a shared, loaded machine the wall time of the slower side (seconds per call) is
+    preempted more often than the faster side's, which inflated the ratio (2026-12-02, load average
+    9 on 2 cores, pinned: 50.1x by the wall-time best of 5 of each side in turn, then 23.8x CPU and
+    27.5x wall alternating, a minute apart). With more than one BLAS thread CPU time sums them."""
+    best = [(float("inf"), float("inf")) for _ in fns]
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
+        for i, fn in enumerate(fns):
+            cpu, wall = time.process_time(), time.perf_counter()
+            fn()
+            cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+            best[i] = (min(best[i][0], cpu), min(best[i][1], wall))
     return best
 
 
@@ -61,18 +70,20 @@ def main() -> int:
                                                     positions[:1000], quats[:1000])
     assert np.abs(p_native - p_np).max() < 1e-14 and np.abs(q_native - q_np).max() < 1e-14
 
-    t_native = best_time(lambda: cal.correct(positions, quats), args.repeats)
-    t_numpy = best_time(
-        lambda: numpy_reference.correct_polynomial(args.degree, pc, oc, offset, scale, positions,
-                                                   quats),
+    (c_native, w_native), (c_numpy, w_numpy) = best_times(
+        [lambda: cal.correct(positions, quats),
+         lambda: numpy_reference.correct_polynomial(args.degree, pc, oc, offset, scale, positions,
+                                                    quats)],
         args.repeats)
     affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else "?"
     print(f"degree-{args.degree} polynomial, position + orientation, {n} poses, best of "
-          f"{args.repeats}, {affinity} CPU(s) allowed, OPENBLAS_NUM_THREADS="
-          f"{os.environ['OPENBLAS_NUM_THREADS']}")
-    print(f"  trackcal Calibration.correct: {t_native * 1e3:9.1f} ms  {t_native / n * 1e9:7.1f} ns/pose")
-    print(f"  numpy reference             : {t_numpy * 1e3:9.1f} ms  {t_numpy / n * 1e9:7.1f} ns/pose")
-    print(f"  ratio numpy / trackcal      : {t_numpy / t_native:9.1f} x")
+          f"{args.repeats} (alternating), {affinity} CPU(s) allowed, OPENBLAS_NUM_THREADS="
+          f"{os.environ['OPENBLAS_NUM_THREADS']}; CPU time (wall in brackets)")
+    print(f"  trackcal Calibration.correct: {c_native * 1e3:9.1f} ms  {c_native / n * 1e9:7.1f} ns/pose"
+          f"  ({w_native / n * 1e9:.1f} ns/pose wall)")
+    print(f"  numpy reference             : {c_numpy * 1e3:9.1f} ms  {c_numpy / n * 1e9:7.1f} ns/pose"
+          f"  ({w_numpy / n * 1e9:.1f} ns/pose wall)")
+    print(f"  ratio numpy / trackcal      : {c_numpy / c_native:9.1f} x  ({w_numpy / w_native:.1f} x wall)")
     return 0
 
 
