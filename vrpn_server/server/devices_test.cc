@@ -86,6 +86,30 @@ struct Fixture {
   }
 };
 
+TEST(WithUnitRotation, Nominal) {
+  // A Fastrak record's quaternion, |q| = 1.0003 after its 4 printed decimals.
+  const Rigid3d reported(QuaternionFromXyzw(0.1, -0.2, 0.3, 0.9286),
+                         Eigen::Vector3d(0.1, 0.2, 0.3));
+  ASSERT_NE(reported.rotation.norm(), 1.0);
+  const Rigid3d unit = WithUnitRotation(reported);
+  // 1e-15: one division by the norm, a few ulps.
+  EXPECT_NEAR(unit.rotation.norm(), 1.0, 1e-15);
+  EXPECT_NEAR(AngularDistance(unit.rotation, reported.rotation.normalized()), 0.0, 1e-15);
+  EXPECT_EQ(unit.translation, reported.translation);
+  EXPECT_TRUE(IsFinite(unit));
+}
+
+TEST(WithUnitRotation, LeavesWhatIsNoRotationForIsFiniteToRefuse) {
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const Rigid3d zero(QuaternionFromXyzw(0.0, 0.0, 0.0, 0.0), Eigen::Vector3d(0.1, 0.2, 0.3));
+  EXPECT_EQ(WithUnitRotation(zero).rotation.coeffs(), zero.rotation.coeffs());
+  EXPECT_FALSE(IsFinite(WithUnitRotation(zero)));
+  const Rigid3d nan_q(QuaternionFromXyzw(nan, 0.0, 0.0, 1.0), Eigen::Vector3d(0.1, 0.2, 0.3));
+  EXPECT_FALSE(IsFinite(WithUnitRotation(nan_q)));
+  const Rigid3d nan_p(Eigen::Quaterniond::Identity(), Eigen::Vector3d(nan, 0.2, 0.3));
+  EXPECT_FALSE(IsFinite(WithUnitRotation(nan_p)));
+}
+
 TEST(TrackerDevice, ServesCorrectedAndRawNames) {
   Fixture f;
   TrackerDevice device(f.server.get(), f.corrected, f.raw);
