@@ -70,3 +70,16 @@ def test_bench_diagnose_runs_without_gnu_time(tmp_path):
         assert "fast" in line and "exact" in line and "speed-up" in line, proc.stdout
     assert "verdict sensor_offset (exact: sensor_offset)" in proc.stdout, proc.stdout
     assert "same;" in proc.stdout, proc.stdout
+
+
+def test_bench_python_batch_runs_and_prints_cpu_and_wall_ratios():
+    """bench/bench_python_batch.py on a few poses: the same-answer check, the alternating rounds and
+    the CPU / wall report (its figure is the CPU ratio; docs/benchmarks.md). No time is asserted."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_python_batch.py"),
+                           "--poses", "2000", "--repeats", "2"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    ratio = [line for line in proc.stdout.splitlines() if "ratio numpy / trackcal" in line]
+    assert len(ratio) == 1 and "x wall)" in ratio[0], proc.stdout
+    assert "best of 2 (alternating)" in proc.stdout, proc.stdout
