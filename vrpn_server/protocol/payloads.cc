@@ -236,10 +236,13 @@ std::vector<std::uint8_t> EncodeDescription(std::string_view name) {
 }
 
 std::optional<std::string> DecodeDescription(std::span<const std::uint8_t> payload) {
+  // At most 100 bytes, as the reference (sizeof(cName)).
   if (payload.size() > 4 + kMaxNameLength + 1 || payload.size() < 6) return std::nullopt;
   ByteReader r(payload);
   const std::uint32_t n = r.GetU32();
-  if (n != r.remaining() || n < 2) return std::nullopt;
+  // Bytes after the N name bytes are ignored, as by the reference (it puts the NUL at N): a peer
+  // that counts the padding in the header length sends them.
+  if (n > r.remaining() || n < 2) return std::nullopt;
   auto bytes = r.GetBytes(n);
   if (bytes[n - 1] != 0) return std::nullopt;
   std::string name(bytes.begin(), bytes.end() - 1);

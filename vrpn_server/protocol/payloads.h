@@ -120,7 +120,8 @@ std::optional<double> DecodeSetUpdateRate(std::span<const std::uint8_t> payload)
 // Sender/type description payload: uint32 N = strlen(name) + 1, name, NUL.
 // Throws std::invalid_argument for an empty name, a name with a NUL or longer than kMaxNameLength.
 std::vector<std::uint8_t> EncodeDescription(std::string_view name);
-// nullopt for a payload over 100 bytes, an N that disagrees with the payload or a missing NUL.
+// nullopt for a payload over 100 bytes, an N beyond the payload, or no NUL ending the N name bytes.
+// Bytes after those N are ignored, as by the reference.
 std::optional<std::string> DecodeDescription(std::span<const std::uint8_t> payload);
 
 // UDP description payload: dotted IPv4 + NUL (the port travels in the header's sender field).

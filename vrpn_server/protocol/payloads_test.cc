@@ -147,6 +147,19 @@ TEST(Description, InvalidRejected) {
   EXPECT_FALSE(DecodeDescription(huge));
 }
 
+TEST(Description, BytesAfterTheNamedLengthAreIgnoredAsByTheReference) {
+  // The reference copies the payload and puts the NUL at N (vrpn_Connection.C,
+  // handle_sender_message and handle_type_message): bytes after the N name bytes are ignored. A
+  // peer written from VRPN's outdated Format_Of_Protocol.txt counts the padding in the header
+  // length, so its descriptions carry up to 7 bytes more than 4 + N.
+  auto d = EncodeDescription("vrpn_Tracker Pos_Quat");  // 26 bytes
+  d.resize(Ceil8(d.size()), 0);                         // 32: the padding inside the payload
+  EXPECT_EQ(DecodeDescription(d), "vrpn_Tracker Pos_Quat");
+  d = EncodeDescription("Tracker0");
+  d.push_back('x');  // not a NUL after it either
+  EXPECT_EQ(DecodeDescription(d), "Tracker0");
+}
+
 TEST(LobRequest, Nominal) {
   // Transcript 02 datagram.
   const auto bytes = Hex("3132372e302e302e3120333733383500");

@@ -170,6 +170,37 @@ TEST(ServerSession, GarbageAndOversizedCloseOnlyWithLog) {
   for (const std::string& line : log) EXPECT_EQ(line.find("over the limit"), std::string::npos);
 }
 
+// Appends a message whose header length counts the padding (VRPN's outdated Format_Of_Protocol.txt
+// says so; the reference reads such a peer fine, as the padding then is part of the payload).
+void AppendPaddedLengthMessage(std::vector<std::uint8_t>* out, std::int32_t sender,
+                               std::int32_t type, std::span<const std::uint8_t> payload) {
+  std::vector<std::uint8_t> padded(payload.begin(), payload.end());
+  padded.resize(Ceil8(padded.size()), 0);
+  AppendMessage(out, Timestamp{}, sender, type, 0, padded);
+}
+
+TEST(ServerSession, AClientWhoseLengthsCountThePaddingIsUnderstood) {
+  auto catalog = std::make_shared<ServerCatalog>();
+  catalog->AddTracker(Tracker0());
+  ServerSession session(catalog, Connection::Options{}, "peer", nullptr);
+  session.Start(std::nullopt, {});
+  const auto cookie = MakeCookie();
+  std::vector<std::uint8_t> bytes(cookie.begin(), cookie.end());
+  // "Tracker0" (4 + 9 bytes) and the ping type (4 + 23 bytes) both need padding.
+  AppendPaddedLengthMessage(&bytes, 3, kSenderDescription, EncodeDescription("Tracker0"));
+  AppendPaddedLengthMessage(&bytes, 7, kTypeDescription, EncodeDescription(kPingType));
+  AppendPaddedLengthMessage(&bytes, 8, kTypeDescription, EncodeDescription(kRequestWorkspaceType));
+  AppendPaddedLengthMessage(&bytes, 3, 7, {});
+  AppendPaddedLengthMessage(&bytes, 3, 8, {});
+  ASSERT_TRUE(session.OnTcpBytes(bytes));
+  EXPECT_EQ(session.connection().counters().bad_description, 0u);
+  EXPECT_EQ(session.pings_answered(), 1u);
+  EXPECT_EQ(RepliesIn(session.connection().tcp_output()),
+            (std::multiset<Reply>{{"Tracker0", std::string(kPongType), 0},
+                                  {"Tracker0", std::string(kWorkspaceType), kWorkspaceSize}}));
+  EXPECT_EQ(session.dropped_messages(), 0u);
+}
+
 TEST(ServerSession, StateChangingRequestsAreIgnoredAndLogSpamIsCapped) {
   auto catalog = std::make_shared<ServerCatalog>();
   catalog->AddTracker(Tracker0());
