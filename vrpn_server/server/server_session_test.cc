@@ -201,6 +201,35 @@ TEST(ServerSession, AClientWhoseLengthsCountThePaddingIsUnderstood) {
   EXPECT_EQ(session.dropped_messages(), 0u);
 }
 
+TEST(ServerSession, RequestsAreAnsweredWhateverTheirPayloadAsByTheReference) {
+  // The reference's handlers (vrpn_Tracker::handle_t2r_request, handle_u2s_request,
+  // handle_workspace_request) never look at the payload: a client that sends one gets its answer.
+  auto catalog = std::make_shared<ServerCatalog>();
+  TrackerSpec tracker = Tracker0();
+  tracker.num_sensors = 2;
+  catalog->AddTracker(tracker);
+  ServerSession session(catalog, Connection::Options{}, "peer", nullptr);
+  session.Start(std::nullopt, {});
+  auto names = std::make_shared<NameRegistry>();
+  const int32_t t0 = names->AddSender("Tracker0");
+  const int32_t to_room = names->AddType(kRequestToRoomType);
+  const int32_t unit_to_sensor = names->AddType(kRequestUnitToSensorType);
+  const int32_t workspace = names->AddType(kRequestWorkspaceType);
+  Connection client(names, Connection::Options{});
+  client.Start();
+  const std::vector<std::uint8_t> eight(8, 0);
+  client.Pack(t0, to_room, Timestamp{}, eight);
+  client.Pack(t0, unit_to_sensor, Timestamp{}, std::vector<std::uint8_t>(3, 1));
+  client.Pack(t0, workspace, Timestamp{}, eight);
+  ASSERT_TRUE(session.OnTcpBytes(client.tcp_output()));
+  EXPECT_EQ(RepliesIn(session.connection().tcp_output()),
+            (std::multiset<Reply>{{"Tracker0", std::string(kToRoomType), kToRoomSize},
+                                  {"Tracker0", std::string(kUnitToSensorType), kUnitToSensorSize},
+                                  {"Tracker0", std::string(kUnitToSensorType), kUnitToSensorSize},
+                                  {"Tracker0", std::string(kWorkspaceType), kWorkspaceSize}}));
+  EXPECT_EQ(session.dropped_messages(), 0u);
+}
+
 TEST(ServerSession, StateChangingRequestsAreIgnoredAndLogSpamIsCapped) {
   auto catalog = std::make_shared<ServerCatalog>();
   catalog->AddTracker(Tracker0());
