@@ -94,6 +94,67 @@ TEST(ServerSession, RepliesToReferenceClientMatchReferenceServer) {
   EXPECT_EQ(compared, 9);
 }
 
+TEST(ServerSession, AClientLeftWithoutPongsIsAnsweredEveryPingAndItsWarningsAreLogged) {
+  // Capture 10: the reference client, unanswered by a minimal server, pinged once a second and
+  // from the third second sent "No response from server" warnings. Every one of those pings gets a
+  // pong from us, and the warnings reach the log; nothing is dropped.
+  const auto dir = testing::TranscriptDir() / "10_independent_server_no_pong";
+  const auto client = testing::ReadBytes(dir / "client_to_server.bin");
+  int pings = 0;
+  int warnings = 0;
+  {
+    Connection reader(std::make_shared<NameRegistry>(), Connection::Options{});
+    ASSERT_TRUE(reader.OnTcpBytes(client, [&](const ReceivedMessage& m) {
+      if (m.type == kPingType) ++pings;
+      if (m.type == kTextType) ++warnings;
+    }));
+  }
+  ASSERT_GE(pings, 4);
+  ASSERT_GE(warnings, 1);
+  std::vector<std::string> log;
+  ServerSession session(CatalogFor(dir.filename().string()), Connection::Options{}, "peer",
+                        [&](const std::string& l) { log.push_back(l); });
+  session.Start(std::nullopt, {});
+  ASSERT_TRUE(session.OnTcpBytes(client));
+  EXPECT_EQ(session.pings_answered(), static_cast<std::uint64_t>(pings));
+  std::multiset<Reply> pongs;
+  for (int i = 0; i < pings; ++i) pongs.insert({"Tracker0", std::string(kPongType), 0});
+  EXPECT_EQ(RepliesIn(session.connection().tcp_output()), pongs);
+  ASSERT_EQ(log.size(), static_cast<std::size_t>(warnings));
+  for (const auto& line : log) {
+    EXPECT_EQ(line, "peer: client says (Tracker0): No response from server for >= 3 seconds");
+  }
+  EXPECT_EQ(session.dropped_messages(), 0u);
+}
+
+TEST(ServerSession, AClientAskingForRemoteLoggingIsServedWithoutIt) {
+  // Cookie log mode '3' asks the peer to log both directions and is followed by a log description
+  // (type -4, sender field = the mode, payload: two int32 lengths and two names). We do not log
+  // for clients: the description is ignored and the client served as any other.
+  auto catalog = std::make_shared<ServerCatalog>();
+  catalog->AddTracker(Tracker0());
+  ServerSession session(catalog, Connection::Options{}, "peer", nullptr);
+  session.Start(std::nullopt, {});
+  const auto cookie = MakeCookie('3');
+  std::vector<std::uint8_t> bytes(cookie.begin(), cookie.end());
+  std::vector<std::uint8_t> log_description;
+  ByteWriter w(&log_description);
+  w.PutI32(6);
+  w.PutI32(7);
+  w.PutString("in.log");
+  w.PutZeros(1);
+  w.PutString("out.log");
+  w.PutZeros(1);
+  AppendMessage(&bytes, Timestamp{}, 3, kLogDescription, 0, log_description);
+  AppendMessage(&bytes, Timestamp{}, 0, kSenderDescription, 1, EncodeDescription("Tracker0"));
+  AppendMessage(&bytes, Timestamp{}, 0, kTypeDescription, 2, EncodeDescription(kPingType));
+  AppendMessage(&bytes, Timestamp{}, 0, 0, 3, {});
+  ASSERT_TRUE(session.OnTcpBytes(bytes));
+  EXPECT_EQ(session.connection().counters().unknown_system, 1u);
+  EXPECT_EQ(session.pings_answered(), 1u);
+  EXPECT_EQ(session.dropped_messages(), 0u);
+}
+
 TEST(ServerSession, NoPongForUnservedDevice) {
   auto catalog = std::make_shared<ServerCatalog>();
   catalog->AddTracker(Tracker0());
