@@ -136,6 +136,32 @@ TEST(VrpnServerSlots, AClientStuckHalfwayThroughAMessageIsClosed) {
   EXPECT_EQ(server.stats().clients, 1);
 }
 
+// A client that connects and sends nothing gets our cookie at once (both sides write theirs without
+// waiting, as the reference does) and is closed when handshake_timeout_s ends; a client whose
+// cookie comes in two pieces, a while apart, completes its handshake and is served.
+TEST(VrpnServerSlots, AClientThatSendsNoCookieIsClosedOneWhoseCookieIsSplitIsServed) {
+  ServerOptions options = LoopbackOptions();
+  options.handshake_timeout_s = 0.5;
+  Lines lines;
+  VrpnServer server(MakeCatalog(), options, lines.Sink());
+  server.Start();
+  const auto silent = RawConnect(server.port());
+  const auto split = RawConnect(server.port());
+  const auto cookie = Cookie();
+  SendAll(split, std::vector<std::uint8_t>(cookie.begin(), cookie.begin() + 10));
+  std::vector<std::uint8_t> first(kCookieSize);
+  ASSERT_EQ(::recv(silent.get(), first.data(), first.size(), MSG_WAITALL),
+            static_cast<ssize_t>(kCookieSize));
+  EXPECT_EQ(first, cookie);
+  std::this_thread::sleep_for(std::chrono::milliseconds(200));
+  SendAll(split, std::vector<std::uint8_t>(cookie.begin() + 10, cookie.end()));
+  EXPECT_TRUE(ClosedByServer(silent, 5.0));
+  EXPECT_EQ(lines.Count("handshake timed out"), 1);
+  // Well past the split client's own handshake deadline.
+  EXPECT_FALSE(ClosedByServer(split, 0.8));
+  EXPECT_EQ(server.stats().clients, 1);
+}
+
 // A stream that is never between two messages, each of which completes in time, is not a stall:
 // the clock restarts with every whole message.
 TEST(VrpnServerSlots, MessagesThatEachCompleteInTimeKeepTheConnection) {
