@@ -155,6 +155,56 @@ TEST(ServerSession, AClientAskingForRemoteLoggingIsServedWithoutIt) {
   EXPECT_EQ(session.dropped_messages(), 0u);
 }
 
+// Our cookie, UDP description and descriptions are the reference server's bytes (PROTOCOL.md
+// sections 2, 4 and 5), but for the header timestamp and the ids, which are each side's own.
+TEST(ServerSession, CookieAndSystemMessagesAreTheReferenceServersBytes) {
+  ServerSession session(CatalogFor("02"), Connection::Options{}, "peer", nullptr);
+  // Capture 02's server announced UDP port 37077 on 127.0.0.1.
+  session.Start(std::make_pair(std::string("127.0.0.1"), 37077), {});
+  const auto& ours = session.connection().tcp_output();
+  const auto reference = testing::ReadBytes(testing::TranscriptDir() / "02_null_tracker_udp_lob" /
+                                            "server_to_client.bin");
+  ASSERT_GE(ours.size(), 64u);
+  EXPECT_TRUE(std::equal(ours.begin(), ours.begin() + kCookieSize, reference.begin()));
+  // The UDP description: length 34, sender field = port, type -3, sequence 0, "127.0.0.1\0", pad.
+  auto without_time = [](std::span<const std::uint8_t> m) {
+    std::vector<std::uint8_t> v(m.begin(), m.end());
+    std::fill(v.begin() + 4, v.begin() + 12, 0);
+    return v;
+  };
+  EXPECT_EQ(without_time(std::span(ours).subspan(kCookieSize, 40)),
+            without_time(std::span(reference).subspan(kCookieSize, 40)));
+  // Every description we send is byte for byte one the reference sent (length, type, payload),
+  // with the header's id and sequence set aside. Not the padding: the reference's is not always
+  // zero (capture 05: the names it describes back carry stack bytes there).
+  auto descriptions = [](std::span<const std::uint8_t> stream) {
+    std::map<std::string, std::vector<std::uint8_t>> out;
+    MessageStreamParser parser;
+    parser.Feed(stream, [&](const Message& m) {
+      if (m.header.type != kSenderDescription && m.header.type != kTypeDescription) return;
+      const std::uint8_t* begin = m.payload.data() - kHeaderSize;
+      std::vector<std::uint8_t> bytes(begin, begin + m.header.length);
+      std::fill(bytes.begin() + 4, bytes.begin() + 16, 0);   // time, described id
+      std::fill(bytes.begin() + 20, bytes.begin() + 24, 0);  // sequence
+      out[*DecodeDescription(m.payload)] = bytes;
+    });
+    return out;
+  };
+  const auto our_descriptions = descriptions(ours);
+  // Button types are described only by capture 08's server (the Fastrak with a stylus).
+  std::map<std::string, std::vector<std::uint8_t>> reference_descriptions;
+  for (const auto& dir : testing::TranscriptScenarios()) {
+    reference_descriptions.merge(descriptions(testing::ReadBytes(dir / "server_to_client.bin")));
+  }
+  ASSERT_GE(our_descriptions.size(), 10u);
+  for (const auto& [name, bytes] : our_descriptions) {
+    SCOPED_TRACE(name);
+    const auto it = reference_descriptions.find(name);
+    ASSERT_NE(it, reference_descriptions.end());
+    EXPECT_EQ(bytes, it->second);
+  }
+}
+
 TEST(ServerSession, NoPongForUnservedDevice) {
   auto catalog = std::make_shared<ServerCatalog>();
   catalog->AddTracker(Tracker0());
