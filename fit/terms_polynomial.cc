@@ -604,7 +604,7 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     block.identifiability_note.clear();
   }
   const int n = static_cast<int>(inputs.size());
-  if (n < num_terms_) return false;
+  if (n == 0) return false;
   Eigen::MatrixXd a(n, num_terms_), u(n, 3);
   Eigen::MatrixXd b_position(n, 3), b_orientation(n, 3);
   std::vector<double> monomials(static_cast<size_t>(num_terms_));
@@ -649,6 +649,13 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
         // leave-one-out errors; the largest weight within one SE of the best.
         std::vector<double> grid = RidgeGrid(), mean, se;
         for (double l : grid) {
+          if (l == 0.0 && n <= num_terms_) {
+            // Unshrunk with no more stations than terms, every station fits itself (leverage 1):
+            // its leave-one-out error is undefined, and the hat matrix's formula read it as ~0.
+            mean.push_back(std::numeric_limits<double>::infinity());
+            se.push_back(0.0);
+            continue;
+          }
           solver.Solve(b, l, &loo);
           const double m = loo.mean();
           mean.push_back(m);
@@ -672,6 +679,9 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
     inverse_normal_diagonal_.resize(0);  // no linear covariance: the engine's covariance serves
     return true;
   }
+  // Without a ridge, fewer stations than terms leave eq. 8 under-determined (the paper: N > R).
+  // With one, the shrunk coefficients are determined by the prior, so the check comes after it.
+  if (n < num_terms_) return false;
   // The directions the stations determine (FindDeterminedSubspace): when some are not, the
   // coefficients are the least-squares solution within the fitted subspace, and the fit moves
   // them only within it. Bounds would act after the manifold's step and leave the subspace: a
