@@ -969,7 +969,8 @@ TEST_F(FitCliTest, RegisterSaysWhyStationsGiveNoPose) {
       1);
   EXPECT_THAT(ReadFileToString(err),
               ::testing::HasSubstr("markers.csv: no station gives a reference pose: 620 "
-                                   "degenerate (e.g. station 1: visible markers nearly collinear"));
+                                   "degenerate (e.g. station 1, line 2: visible markers nearly "
+                                   "collinear"));
   EXPECT_FALSE(fs::exists(out));
 
   // One calibration station of the paper capture down to two markers: its pose is missing, and
@@ -980,6 +981,10 @@ TEST_F(FitCliTest, RegisterSaysWhyStationsGiveNoPose) {
   std::erase_if(markers.records,
                 [&](const MarkerRecord& m) { return m.station == station && ++seen > 2; });
   WriteMarkers(dir_ / "two.csv", markers);
+  // The station's first marker row (after the header) is the line the message points at.
+  const auto first_row = std::find_if(markers.records.begin(), markers.records.end(),
+                                      [&](const MarkerRecord& m) { return m.station == station; });
+  const int line = static_cast<int>(first_row - markers.records.begin()) + 2;
   EXPECT_EQ(RunCommand(fit_ + " register --markers " + (dir_ / "two.csv").string() + " --tracker " +
                        (dir_ / "cap" / "tracker.csv").string() + " --poses " +
                        (dir_ / "cap" / "poses.csv").string() + " -o " +
@@ -988,7 +993,8 @@ TEST_F(FitCliTest, RegisterSaysWhyStationsGiveNoPose) {
   EXPECT_THAT(ReadFileToString(err),
               ::testing::HasSubstr("two.csv: 1 of 620 stations give no reference pose: 1 "
                                    "too_few_markers (e.g. station " +
-                                   std::to_string(station) + ": 2 marker(s) visible, need 3)"));
+                                   std::to_string(station) + ", line " + std::to_string(line) +
+                                   ": 2 marker(s) visible, need 3)"));
   EXPECT_EQ(ReadPoses(dir_ / "two_poses.csv").records.size(), 619u);
 }
 

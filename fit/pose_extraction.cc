@@ -66,6 +66,9 @@ ExtractedPose ExtractPose(int station, const std::vector<MarkerObservation>& mar
   ExtractedPose pose;
   pose.station = station;
   pose.num_markers = static_cast<int>(markers.size());
+  for (const MarkerObservation& m : markers) {
+    if (m.line > 0 && (pose.line == 0 || m.line < pose.line)) pose.line = m.line;
+  }
   // Before the marker ids: a station with too few markers has no pose whatever they are, and a
   // marker seen only at such a station is not in the registration either (it skipped the station).
   if (pose.num_markers < options.min_markers) {
@@ -253,8 +256,11 @@ std::string NoPoseSummary(const std::vector<ExtractedPose>& poses,
   }
   std::string summary;
   for (const auto& [status, entry] : why) {
+    // The line too: a markers file is found by line, and its station ids need not be in order.
+    const int line = entry.second->line;
     summary += (summary.empty() ? "" : "; ") + std::to_string(entry.first) + " " + status +
                " (e.g. station " + std::to_string(entry.second->station) +
+               (line > 0 ? ", line " + std::to_string(line) : "") +
                (entry.second->message.empty() ? "" : ": " + entry.second->message) + ")";
   }
   return summary;

@@ -48,6 +48,7 @@ const char* PoseStatusName(PoseStatus status);
 
 struct ExtractedPose {
   int station = 0;
+  int line = 0;  // markers.csv line of the station's first marker row (0: made in memory)
   PoseStatus status = PoseStatus::kTooFewMarkers;
   Rigid3d transmitter_from_receiver;  // valid for kOk and kBadFit
   int num_markers = 0;
@@ -87,8 +88,9 @@ std::string SymmetricMarkersWarning(const std::vector<ExtractedPose>& poses,
                                     const PoseExtractionOptions& options = {});
 
 // "" when `stations` is empty; else, for the poses of those stations (the ones given no pose
-// record, e.g. MakePoseRecords' left_out), how many per status with the first station and its
-// message: "620 degenerate (e.g. station 1: visible markers nearly collinear (spread 0.000 mm))".
+// record, e.g. MakePoseRecords' left_out), how many per status with the first station, its line
+// in markers.csv when known, and its message: "620 degenerate (e.g. station 1, line 2: visible
+// markers nearly collinear (spread 0.000 mm))".
 // For warnings and errors.
 std::string NoPoseSummary(const std::vector<ExtractedPose>& poses,
                           const std::vector<int>& stations);

@@ -608,7 +608,8 @@ def test_register_warns_why_stations_give_no_pose(capture_dir, tmp_path):
         w.writeheader()
         w.writerows(kept)
     with pytest.warns(UserWarning, match=rf"1 of \d+ stations give no reference pose: 1 too_few_markers "
-                                         rf"\(e\.g\. station {station}: 2 marker\(s\) visible, need 3\)"):
+                                         rf"\(e\.g\. station {station}, line 2: 2 marker\(s\) visible, "
+                                         rf"need 3\)"):  # its first row follows the header
         reg = trackcal.register(tmp_path / "markers.csv", capture_dir / "tracker.csv",
                                 poses=capture_dir / "poses.csv")
     assert reg.left_out == [int(station)]
@@ -678,8 +679,9 @@ def test_station_with_swapped_marker_labels_is_left_out_with_a_warning(capture_d
     # pose (its markers misfit the registered body: bad_fit), and that is said.
     assert not [w for w in caught if "left out of the registration" in str(w.message)]
     no_pose = [str(w.message) for w in caught if "give no reference pose" in str(w.message)]
-    assert len(no_pose) == 1 and (f"1 bad_fit (e.g. station {station}: marker residual RMS"
-                                  in no_pose[0]), no_pose
+    # The station's first marker row is line first + 2 (after the header).
+    assert len(no_pose) == 1 and (f"1 bad_fit (e.g. station {station}, line {first + 2}: marker "
+                                  "residual RMS" in no_pose[0]), no_pose
     assert kept.rejected_stations == [] and kept.chi_square > reg.chi_square
     # Any three of the paper's six markers are symmetric: a swap among them fits as well, unseen.
     assert "so symmetric that two labels swapped would fit as well" in reg.symmetry_warning
