@@ -933,8 +933,41 @@ def test_an_unknown_host_name_is_named_as_such(fake_recorders, tmp_path, monkeyp
         def __len__(self):
             return 0 if self.name.startswith("Typo") else super().__len__()
     monkeypatch.setattr(record._core, "TrackerRecorder", UnknownHost)
-    with pytest.raises(RuntimeError, match=r"^no report within 0\.1 s from: raw \(Typo@tcp://traker\.lab:3883: "
+    with pytest.raises(RuntimeError, match=r"^no report from: raw \(Typo@tcp://traker\.lab:3883: "
                                            r"unknown host 'traker\.lab' \(the name does not resolve to an "
                                            r"address: a typo, or no DNS\?\)\)$"):
         record_streams({"raw": "Typo@tcp://traker.lab:3883", "ok": "Tracker0@tcp://h:1"}, tmp_path / "rec", 0.1,
                        connect_timeout_s=0.1)
+
+
+def test_an_unknown_host_fails_at_once_not_after_the_connect_timeout(fake_recorders, tmp_path, monkeypatch, capsys):
+    """A host name that does not resolve waited out the whole connect timeout (10 s by default, as
+    long as the user asked for) before failing, though the client knew at once that no server can
+    be reached under that name. The recording fails as soon as the look-up has failed, naming the
+    host, and `trackcal record` does not suggest a longer --connect-timeout for it."""
+    from trackcal import cli, record
+
+    class UnknownHost(FakeRecorder):
+        connected, pong_received = False, False
+        host = "traker.lab"
+
+        @property
+        def host_unknown(self):
+            return self.name.startswith("Typo")
+
+        def __len__(self):
+            return 0 if self.name.startswith("Typo") else super().__len__()
+    monkeypatch.setattr(record._core, "TrackerRecorder", UnknownHost)
+    begun = time.monotonic()
+    with pytest.raises(record.NoFirstReport, match=r"^no report from: raw \(Typo@tcp://traker\.lab:3883: unknown "
+                                                    r"host 'traker\.lab' \(the name does not resolve to an address: "
+                                                    r"a typo, or no DNS\?\)\)$"):
+        record_streams({"raw": "Typo@tcp://traker.lab:3883", "ok": "Tracker0@tcp://h:1"}, tmp_path / "rec", 0.1,
+                       connect_timeout_s=30)
+    # 5 s: far below the 30 s timeout, far above the 20 ms polling step on a loaded machine.
+    assert time.monotonic() - begun < 5
+    assert not (tmp_path / "rec").exists()
+    assert cli.main(["record", "--device", "raw=Typo@tcp://traker.lab:3883", "--duration", "1",
+                     "--connect-timeout", "30", "-o", str(tmp_path / "rec")]) != 0
+    err = capsys.readouterr().err
+    assert "unknown host 'traker.lab'" in err and "--connect-timeout" not in err

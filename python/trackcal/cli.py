@@ -681,7 +681,7 @@ def cmd_history(args, term) -> int:
 
 
 def cmd_record(args, term) -> int:
-    from trackcal.record import NoFirstReport, record_streams
+    from trackcal.record import NoFirstReport, UnknownHost, record_streams
     devices = {}
     for spec in args.device:
         if "=" not in spec:
@@ -694,6 +694,8 @@ def cmd_record(args, term) -> int:
     try:
         out = record_streams(devices, args.output, args.duration, connect_timeout_s=args.connect_timeout,
                              progress=term.progress("recording"))
+    except UnknownHost as e:  # waiting longer would not help
+        raise RuntimeError(str(e)) from None
     except NoFirstReport as e:  # a server still starting (a Fastrak reset) may need longer
         raise RuntimeError(f"{e} (--connect-timeout S to wait longer)") from None
     if out.interrupted:

@@ -26,6 +26,11 @@ class NoFirstReport(RuntimeError):
     """A device sent no report within the connect timeout: nothing was recorded."""
 
 
+class UnknownHost(NoFirstReport):
+    """A device's host name does not resolve: failed at once, not after the connect timeout (a
+    longer one would not help)."""
+
+
 class Recording(dict):
     """label -> path of each saved recording. ``interrupted``: Ctrl-C ended it before the duration;
     ``empty``: the labels of devices that sent nothing before the interruption (no file);
@@ -58,7 +63,8 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     error. Returns label -> path.
     Raises NoFirstReport (a RuntimeError) if a device sends no report within connect_timeout_s
     (nothing is recorded then; the message says of each whether its host name is unknown, no
-    server answered, or the server did not serve its name). A wait longer than 1 s is announced by
+    server answered, or the server did not serve its name), and its UnknownHost as soon as a
+    device's host name fails to resolve, without waiting out the timeout. A wait longer than 1 s is announced by
     one line, "waiting up to N s for the first report from: LABEL (NAME), ...", given to
     ``waiting`` (default: printed to stderr; None: not said). RuntimeError if one sends no report
     during the recording, loses its connection during it (a server that stopped or went away: its
@@ -243,6 +249,12 @@ def _record_into(targets: Dict[str, pathlib.Path], files: Dict[str, "_StreamFile
         announced = waiting is None
         while not all(len(r) > 0 for r in recorders.values()):
             now = time.monotonic()
+            # A name that does not resolve reaches no server however long we wait: waiting out the
+            # connect timeout (as long as the user asked for) only delayed the same error.
+            unknown = [f"{label} ({devices[label]}{_why_silent(r)})" for label, r in recorders.items()
+                       if len(r) == 0 and getattr(r, "host_unknown", False)]
+            if unknown:
+                raise UnknownHost(f"no report from: {', '.join(unknown)}")
             if now > deadline:
                 missing = [f"{label} ({devices[label]}{_why_silent(r)})" for label, r in recorders.items()
                            if len(r) == 0]
