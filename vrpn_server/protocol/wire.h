@@ -50,7 +50,12 @@ struct Timestamp {
   // Rounded to the microsecond; outside the wire's range [0, 2^32) s it saturates to the nearest
   // end ({0, 0} or {2^32 - 1, 999999}), and NaN gives {0, 0}.
   static Timestamp FromSeconds(double seconds);
-  double Seconds() const { return sec + 1e-6 * usec; }
+  // usec as VRPN sends it: a signed 32-bit field, which an upstream server may send unnormalised
+  // (1,000,000 or more, or negative). Both give the time the header means.
+  double Seconds() const { return sec + 1e-6 * static_cast<std::int32_t>(usec); }
+  std::int64_t Microseconds() const {
+    return std::int64_t{sec} * 1'000'000 + static_cast<std::int32_t>(usec);
+  }
   bool operator==(const Timestamp&) const = default;
 };
 

@@ -79,6 +79,19 @@ TEST(Timestamp, FromSecondsRoundTrips) {
   EXPECT_EQ(Timestamp::FromSeconds(1.9999999).sec, 2u);
 }
 
+// VRPN's tv_usec is a signed 32-bit field that an upstream server may send unnormalised: the time
+// is the one it means (Seconds() read -250,000 us as +4294.717296 s).
+TEST(Timestamp, ReadsAnUnnormalisedMicrosecondFieldAsSigned) {
+  const Timestamp late{12, 1'500'000};
+  const Timestamp negative{12, static_cast<std::uint32_t>(-250'000)};
+  EXPECT_EQ(late.Microseconds(), 13'500'000);
+  EXPECT_EQ(negative.Microseconds(), 11'750'000);
+  EXPECT_EQ((Timestamp{0, static_cast<std::uint32_t>(-1)}).Microseconds(), -1);
+  // 1e-15 s: the double sum's rounding at 12 s (about 2e-15).
+  EXPECT_NEAR(late.Seconds(), 13.5, 1e-14);
+  EXPECT_NEAR(negative.Seconds(), 11.75, 1e-14);
+}
+
 TEST(Timestamp, FromSecondsSaturatesOutsideTheWireRange) {
   // The wire's seconds are an unsigned 32-bit count: converting a double outside [0, 2^32) to it
   // was undefined behaviour (x86-64 gave 4294967295 for -1 s and 705032704 for 5e9 s). Such a

@@ -76,9 +76,15 @@ void StreamRecorder::Write(int sensor, const Rigid3d& pose, Timestamp time) {
   if (!out_.is_open()) return;
   const auto& t = pose.translation;
   const auto& q = pose.rotation;
-  out_ << time.sec << '.' << std::setw(6) << std::setfill('0') << time.usec << std::setfill(' ')
-       << ',' << sensor + 1 << ',' << t.x() << ',' << t.y() << ',' << t.z() << ',' << q.w() << ','
-       << q.x() << ',' << q.y() << ',' << q.z() << '\n';
+  // Normalised: a pass-through forwards its upstream's tv_usec as it came, which may be 1,000,000
+  // or more, or negative (setw(6) wrote 12 s + 1,500,000 us as 12.1500000).
+  const std::int64_t us = time.Microseconds();
+  const std::uint64_t magnitude =
+      us < 0 ? static_cast<std::uint64_t>(-us) : static_cast<std::uint64_t>(us);
+  out_ << (us < 0 ? "-" : "") << magnitude / 1'000'000 << '.' << std::setw(6) << std::setfill('0')
+       << magnitude % 1'000'000 << std::setfill(' ') << ',' << sensor + 1 << ',' << t.x() << ','
+       << t.y() << ',' << t.z() << ',' << q.w() << ',' << q.x() << ',' << q.y() << ',' << q.z()
+       << '\n';
 }
 
 void StreamRecorder::Close() {

@@ -490,6 +490,33 @@ TEST(StreamRecorder, WritesStreamFormatAndNeverOverwrites) {
   EXPECT_THROW(StreamRecorder(dir, "Tracker0"), std::invalid_argument);
 }
 
+// A pass-through source forwards its upstream server's header time as it came: VRPN sends tv_usec
+// as a signed 32-bit field, and a server may send 1,000,000 or more (an unnormalised timeval) or a
+// negative value. Written with setw(6), 12 s + 1,500,000 us became "12.1500000" (12.15 s) and
+// -250,000 us "12.4294717296"; the recording holds the time the header means.
+TEST(StreamRecorder, WritesAnUnnormalisedHeaderTimeAsTheTimeItMeans) {
+  const auto dir = testing::MakeTempDir("recorder_usec");
+  {
+    StreamRecorder rec(dir, "Tracker0");
+    rec.Write(0, Rigid3d(), Timestamp{12, 1'500'000});
+    rec.Write(1, Rigid3d(), Timestamp{12, static_cast<std::uint32_t>(-250'000)});
+    rec.Write(2, Rigid3d(), Timestamp{0, static_cast<std::uint32_t>(-250'000)});
+    rec.Write(3, Rigid3d(), Timestamp{4'294'967'295u, 999'999});
+  }
+  std::ifstream in(dir / "Tracker0_tracker_stream.csv");
+  std::string line;
+  std::vector<std::string> times;
+  std::getline(in, line);  // header
+  while (std::getline(in, line)) times.push_back(line.substr(0, line.find(',')));
+  EXPECT_EQ(times,
+            (std::vector<std::string>{"13.500000", "11.750000", "-0.250000", "4294967295.999999"}));
+  const TrackerStream stream = ReadTrackerStream(dir / "Tracker0_tracker_stream.csv");
+  ASSERT_EQ(stream.records.size(), 4u);
+  EXPECT_EQ(stream.records[0].time, 13.5);
+  EXPECT_EQ(stream.records[1].time, 11.75);
+  EXPECT_EQ(stream.records[2].time, -0.25);
+}
+
 std::string RecorderError(const std::filesystem::path& dir) {
   try {
     StreamRecorder rec(dir, "Tracker0");
