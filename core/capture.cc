@@ -637,6 +637,17 @@ class CsvWriter {
                " (one record per " + first + " and " + second + ")");
     }
   }
+  // As ReadTrackerStream: one record per sensor and time. After the time's Num(), so a non-finite
+  // time is named as such (and never compared).
+  void RequireUniqueSensorTime(int sensor, double time) {
+    const auto [it, inserted] = sensor_times_.emplace(std::make_pair(sensor, time), record_);
+    if (!inserted) {
+      Fail("columns time, sensor", "time " + FormatNumber(time) + " of sensor " +
+                                       std::to_string(sensor) + " repeats record " +
+                                       std::to_string(it->second) +
+                                       " (one sample per sensor and time)");
+    }
+  }
   // As ReadReferenceStream: times must increase from record to record.
   void RequireIncreasingTime(double time) {
     if (record_ > 0 && !(time > previous_time_)) {
@@ -673,6 +684,7 @@ class CsvWriter {
   size_t field_ = 0;   // fields written of the current record
   size_t record_ = 0;  // index of the current record
   std::map<std::pair<int, int>, size_t> keys_;  // key columns' values -> first record
+  std::map<std::pair<int, double>, size_t> sensor_times_;  // (sensor, time) -> first record
   double previous_time_ = 0.0;
 };
 
@@ -845,7 +857,9 @@ namespace {
 void AddTrackerStream(const TrackerStream& capture, CsvWriter& w) {
   for (size_t i = 0; i < capture.records.size(); ++i) {
     const TrackerStreamSample& r = capture.records[i];
-    w.Num(r.time).Int(r.sensor).Pose(r.transmitter_from_receiver);
+    w.Num(r.time).Int(r.sensor);
+    w.RequireUniqueSensorTime(r.sensor, r.time);
+    w.Pose(r.transmitter_from_receiver);
     w.End(r.extra, i);
   }
 }

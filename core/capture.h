@@ -117,7 +117,8 @@ ReferenceStream ReadReferenceStream(const std::filesystem::path& path);
 
 // Writers throw std::invalid_argument, before anything is written, on records the readers would
 // refuse (extra values not matching extra_columns, unknown set, a non-finite number other than an
-// extra's nan, a quaternion whose norm is not 1 within 1e-3), and std::runtime_error when the file
+// extra's nan, a quaternion whose norm is not 1 within 1e-3, a repeated key: station and sensor,
+// station and marker, a tracker stream's sensor and time), and std::runtime_error when the file
 // exists (without overwrite) or cannot be written. Numbers are written in shortest round-trip
 // form, so read(write(x)) == x.
 void WritePoses(const std::filesystem::path& path, const PoseCapture& capture,

@@ -592,6 +592,7 @@ TEST(CaptureWriters, RefuseWhatTheReadersRefuse) {
   // The streams' writers share the check.
   TrackerStream stream;
   stream.records.resize(2);
+  stream.records[1].time = 0.01;
   stream.records[1].transmitter_from_receiver.translation.z() = nan;
   EXPECT_EQ(ErrorOf([&] { WriteTrackerStream(dir / kTrackerStreamCsv, stream); }),
             std::string(kTrackerStreamCsv) + ": record 1: column z: nan is not a finite number");
@@ -642,6 +643,27 @@ TEST(CaptureWriters, RefuseFilesTheReadersRefuse) {
                 ": record 2: column time: 0.02 is not after the previous record's 0.02 (times "
                 "must increase)");
   EXPECT_FALSE(std::filesystem::exists(dir / kReferenceStreamCsv));
+
+  // One sensor's time twice: ReadTrackerStream refuses it, so the writer does (it saved a live
+  // recording that then failed to load). Another sensor at that time, or an earlier time, is fine.
+  TrackerStream samples;
+  samples.records.resize(4);
+  samples.records[0].time = 0.02;
+  samples.records[1].time = 0.02;
+  samples.records[1].sensor = 2;  // the others are sensor 1
+  samples.records[2].time = 0.01;
+  samples.records[3].time = 0.02;
+  const std::string repeat =
+      ": record 3: columns time, sensor: time 0.02 of sensor 1 repeats record 0 (one sample per "
+      "sensor and time)";
+  EXPECT_EQ(ErrorOf([&] { WriteTrackerStream(dir / kTrackerStreamCsv, samples); }),
+            std::string(kTrackerStreamCsv) + repeat);
+  EXPECT_FALSE(std::filesystem::exists(dir / kTrackerStreamCsv));
+  EXPECT_EQ(ErrorOf([&] { FormatTrackerStream(samples, "live.csv.partial", false); }),
+            "live.csv.partial" + repeat);
+  samples.records.pop_back();
+  WriteTrackerStream(dir / kTrackerStreamCsv, samples);
+  EXPECT_EQ(ReadTrackerStream(dir / kTrackerStreamCsv).records.size(), 3u);
 
   for (const std::vector<std::string>& columns :
        std::vector<std::vector<std::string>>{{"temperature_c", "temperature_c"}, {" room"}}) {
@@ -749,6 +771,7 @@ TEST(FormatTrackerStream, Nominal) {
 TEST(FormatTrackerStream, RefusesWhatTheWriterRefusesNamingTheText) {
   TrackerStream stream;
   stream.records.resize(3);
+  for (size_t i = 0; i < stream.records.size(); ++i) stream.records[i].time = 0.01 * i;
   stream.records[2].transmitter_from_receiver.rotation.coeffs() << 0.0, 0.0, 0.0, 2.0;
   EXPECT_EQ(ErrorOf([&] { FormatTrackerStream(stream, "raw.partial", false); }),
             "raw.partial: record 2: columns qw, qx, qy, qz: quaternion norm 2 is not 1");
