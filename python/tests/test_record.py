@@ -229,7 +229,9 @@ class FakeRecorder:
     def take(self):
         self.takes += 1
         n = 3 if self.takes == 1 else (0 if self.name.startswith(("empty", "silent")) else 5)
-        return {"time": 100.0 + 0.01 * np.arange(n), "sensor": np.zeros(n, dtype=np.int32),
+        # Times go on from take to take, as a server's do: one sensor's time twice is not recorded.
+        first, self.sent = getattr(self, "sent", 0), getattr(self, "sent", 0) + n
+        return {"time": 100.0 + 0.01 * np.arange(first, first + n), "sensor": np.zeros(n, dtype=np.int32),
                 "positions": np.full((n, 3), 0.25), "quaternions_xyzw": np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))}
 
 
@@ -971,3 +973,54 @@ def test_an_unknown_host_fails_at_once_not_after_the_connect_timeout(fake_record
                      "--connect-timeout", "30", "-o", str(tmp_path / "rec")]) != 0
     err = capsys.readouterr().err
     assert "unknown host 'traker.lab'" in err and "--connect-timeout" not in err
+
+
+def test_a_time_a_sensor_already_had_is_left_out_and_told_and_the_recording_loads(fake_recorders, tmp_path,
+                                                                                   monkeypatch):
+    """A server whose clock did not tick between two reports of a sensor (or stepped back onto a time
+    it had given), or a report sent twice, gave one sensor's time twice: the recording was saved and
+    then failed to load ("time ... of sensor 1 repeats line ..."), all of it lost to the tools. Such a
+    report is left out (the file holds one sample per sensor and time, and always loads), and the
+    error after saving says how many and the first: nothing is lost silently. A time earlier than the
+    sensor's last but new (a clock stepped back) is kept: it loses nothing, and the pairing names the
+    order (docs/captures.md)."""
+    from trackcal import record
+
+    class Repeating(Arriving):
+        previous_last, repeats, back = None, 0, 0
+
+        def take(self):
+            d = super().take()
+            n = len(d["time"])
+            if self.takes < 2 or n < 2:  # the first take is the synchronised start (not written)
+                return d
+            def rows(first, last, shift=0.0):
+                return {k: v[first:last] + (shift if k == "positions" else 0) for k, v in d.items()}
+            # The first report again with another pose (a clock that did not tick), the previous
+            # take's last report again (already on disk), and a new time 1 s back (a clock stepped back).
+            parts = [rows(0, 1), rows(0, 1, 0.5), rows(1, n)]
+            self.repeats += 1
+            if self.previous_last is not None:
+                parts.insert(0, {k: v + (0.5 if k == "positions" else 0) for k, v in self.previous_last.items()})
+                self.repeats += 1
+            back = rows(n - 1, n)
+            back["time"] = back["time"] - 1.0
+            parts.append(back)
+            self.back += 1
+            self.previous_last = rows(n - 1, n)
+            return {k: np.concatenate([p[k] for p in parts]) for k in d}
+    monkeypatch.setattr(record._core, "TrackerRecorder", Repeating)
+    rec = tmp_path / "rec"
+    # 2.3 s: the reports go to disk in three takes (flushes at 1 s and 2 s, and the end), so repeats
+    # within a take and across takes (already on disk) are both seen.
+    with pytest.raises(RuntimeError, match=r"raw_tracker_stream\.csv: [0-9]+ reports left out \(the first, report 1 "
+                                           r"of the recording: time [0-9.]+ of sensor [12] repeats an earlier "
+                                           r"report's \(one sample per sensor and time"):
+        record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 2.3)
+    fake = fake_recorders[0]
+    assert fake.takes >= 4 and fake.repeats >= 3
+    raw = captures.load_tracker_stream(rec / "raw_tracker_stream.csv")
+    # The repeats, and the previous take's last report given again (already on disk), are left out;
+    # the new times 1 s back are kept.
+    assert len(raw) == fake.after_start + fake.back
+    np.testing.assert_array_less(raw.positions[:, 0], 0.5)  # no repeated report's pose was written

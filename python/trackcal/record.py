@@ -72,7 +72,9 @@ def record_streams(devices: Dict[str, str], out_dir, duration_s: float, *, conne
     of its mean intervals between reports) while connected (a frozen server or a lost network,
     which the client notices only after its 10 s liveness timeout), or sends reports the capture
     writer refuses (a non-finite value, a quaternion of norm not 1: left out, the rest recorded),
-    after saving every recording (the message names them).
+    or a report at a time its sensor already had (a server clock that did not tick or stepped back
+    onto it, a report sent twice: left out, so that the recording loads), after saving every
+    recording (the message names them).
 
     Ctrl-C (KeyboardInterrupt) ends the recording early and returns normally with ``interrupted``
     set: every device's reports until then are saved (none if it came before all had connected,
@@ -364,6 +366,12 @@ class _StreamFile:
         self.seen = 0  # reports given to append
         self.refused = 0  # reports the capture writer refused, left out
         self.first_refusal = ""
+        self.repeated = 0  # reports at a time their sensor already had, left out
+        self.first_repeat = ""
+        # sensor -> the times recorded (8 bytes a report), and the latest of them: a time a sensor
+        # already had is left out, so that the recording loads (one sample per sensor and time).
+        self._times: Dict[int, List[np.ndarray]] = {}
+        self._latest: Dict[int, float] = {}
         self._fd: Optional[int] = None
         header = self._csv(TrackerStream(np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
                                          np.zeros((0, 4))), header=True)
@@ -397,6 +405,7 @@ class _StreamFile:
         if n == 0 or self._fd is None or self.error:
             return
         stream = TrackerStream(d["time"], d["sensor"] + 1, d["positions"], d["quaternions_xyzw"])
+        stream = self._without_repeats(stream)
         try:
             try:
                 rows = self._csv(stream)
@@ -413,12 +422,52 @@ class _StreamFile:
             self.seen += n
         self.rows += len(stream.time)
 
+    @staticmethod
+    def _writable(stream: TrackerStream) -> np.ndarray:
+        """Which reports the capture writer takes, one by one (finite, a unit quaternion)."""
+        q_norm = np.linalg.norm(stream.quaternions_xyzw, axis=1)
+        return (np.isfinite(stream.time) & np.isfinite(stream.positions).all(axis=1)
+                & np.isfinite(stream.quaternions_xyzw).all(axis=1) & (np.abs(q_norm - 1.0) <= 1e-3))
+
+    def _without_repeats(self, stream: TrackerStream) -> TrackerStream:
+        """The stream without the reports at a time their sensor already had (in this take, or
+        recorded before): a server clock that did not tick, or stepped back onto a time it gave, or
+        a report sent twice. Kept, they made a recording that saved and then failed to load
+        (docs/captures.md). They are counted, and the first is kept for the error. A time before the
+        sensor's latest that it never had (a clock stepped back) is kept: nothing repeats."""
+        writable = self._writable(stream)  # the others are the writer's refusals, counted there
+        keep = np.ones(len(stream.time), dtype=bool)
+        for sensor in np.unique(stream.sensor[writable]):
+            rows = np.flatnonzero(writable & (stream.sensor == sensor))
+            t = stream.time[rows]
+            key = int(sensor)
+            latest = self._latest.get(key, -math.inf)
+            if not (t[0] > latest and (len(t) < 2 or (np.diff(t) > 0).all())):  # not simply in order
+                earlier = np.concatenate(self._times[key]) if key in self._times else np.zeros(0)
+                new = np.zeros(len(t), dtype=bool)
+                new[np.unique(t, return_index=True)[1]] = True  # the first of equal times in the take
+                new &= ~np.isin(t, earlier)
+                keep[rows[~new]] = False
+                t = t[new]
+            if len(t):
+                self._times.setdefault(key, []).append(t)
+                self._latest[key] = max(latest, float(t.max()))
+        if keep.all():
+            return stream
+        if self.repeated == 0:
+            first = int(np.flatnonzero(~keep)[0])
+            self.first_repeat = (f"report {self.seen + first} of the recording: time {float(stream.time[first])!r} of "
+                                 f"sensor {int(stream.sensor[first])} repeats an earlier report's (one sample per "
+                                 "sensor and time: a server clock that did not tick or went back, or a report "
+                                 "sent twice)")
+        self.repeated += int((~keep).sum())
+        return TrackerStream(stream.time[keep], stream.sensor[keep], stream.positions[keep],
+                             stream.quaternions_xyzw[keep])
+
     def _without_refused(self, stream: TrackerStream, refusal: ValueError) -> Tuple[TrackerStream, bytes]:
         """The stream without the reports the capture writer refuses, and its rows; the first
         refusal is kept for the error (which numbers the reports of the recording from 0)."""
-        q_norm = np.linalg.norm(stream.quaternions_xyzw, axis=1)
-        good = (np.isfinite(stream.time) & np.isfinite(stream.positions).all(axis=1)
-                & np.isfinite(stream.quaternions_xyzw).all(axis=1) & (np.abs(q_norm - 1.0) <= 1e-3))
+        good = self._writable(stream)
         if good.all():  # refused for another reason: not a report's fault
             raise refusal
         if self.refused == 0:
@@ -498,7 +547,7 @@ def _finish(out: "Recording", recorders, files: Dict[str, _StreamFile], devices,
         f = files[label]
         f.append(r.take())
         out_counts[label] = f.rows
-        if f.rows == 0 and not f.error and not f.refused:
+        if f.rows == 0 and not f.error and not f.refused and not f.repeated:
             empty.append(label)
             f.discard()
             continue
@@ -511,6 +560,9 @@ def _finish(out: "Recording", recorders, files: Dict[str, _StreamFile], devices,
         if f.refused:
             failed.append(f"{f.target}: {f.refused} report{'s' if f.refused > 1 else ''} left out (the first, "
                           f"{f.first_refusal})")
+        if f.repeated:
+            failed.append(f"{f.target}: {f.repeated} report{'s' if f.repeated > 1 else ''} left out (the first, "
+                          f"{f.first_repeat})")
     out.empty = empty
     out.lost = lost
     gone = [label for label in lost if label not in empty]
