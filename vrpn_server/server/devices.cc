@@ -9,10 +9,25 @@
 #include <cmath>
 #include <cstring>
 #include <iomanip>
+#include <sstream>
 #include <stdexcept>
 #include <system_error>
 
 namespace trackcal::vrpn {
+
+namespace {
+
+// A time in microseconds as seconds with six decimals ("-0.250000").
+std::string FormatSeconds(std::int64_t us) {
+  const std::uint64_t magnitude =
+      us < 0 ? static_cast<std::uint64_t>(-us) : static_cast<std::uint64_t>(us);
+  std::ostringstream text;
+  text << (us < 0 ? "-" : "") << magnitude / 1'000'000 << '.' << std::setw(6) << std::setfill('0')
+       << magnitude % 1'000'000;
+  return text.str();
+}
+
+}  // namespace
 
 StreamRecorder::StreamRecorder(const std::filesystem::path& dir, const std::string& device_name) {
   // The folder is made like `mkdir DIR` (one level; the parent must exist), as `trackcal record -o`
@@ -79,18 +94,43 @@ void StreamRecorder::Write(int sensor, const Rigid3d& pose, Timestamp time) {
   // Normalised: a pass-through forwards its upstream's tv_usec as it came, which may be 1,000,000
   // or more, or negative (setw(6) wrote 12 s + 1,500,000 us as 12.1500000).
   const std::int64_t us = time.Microseconds();
-  const std::uint64_t magnitude =
-      us < 0 ? static_cast<std::uint64_t>(-us) : static_cast<std::uint64_t>(us);
-  out_ << (us < 0 ? "-" : "") << magnitude / 1'000'000 << '.' << std::setw(6) << std::setfill('0')
-       << magnitude % 1'000'000 << std::setfill(' ') << ',' << sensor + 1 << ',' << t.x() << ','
-       << t.y() << ',' << t.z() << ',' << q.w() << ',' << q.x() << ',' << q.y() << ',' << q.z()
-       << '\n';
+  // One sample per sensor and time, or the recording saves and then fails to load. Not after the
+  // sensor's latest time (a source clock that did not tick or stepped back, a report sent twice):
+  // left out and counted. Only the latest is kept, so memory does not grow with the recording
+  // (which runs as long as the server); a clock stepped back loses the reports until it is past
+  // the latest again, said by the log line and the count.
+  const auto [latest, first] = latest_us_.try_emplace(sensor, us);
+  if (!first) {
+    if (us <= latest->second) {
+      if (left_out_++ == 0) {
+        LogToStderr("recording " + partial_path_.filename().string() + ": sensor " +
+                    std::to_string(sensor + 1) + "'s report at " + FormatSeconds(us) +
+                    " s is not after its latest recorded time " + FormatSeconds(latest->second) +
+                    " s (one sample per sensor and time): left out, as the next ones that are not "
+                    "(counted when the recording ends)");
+      }
+      return;
+    }
+    latest->second = us;
+  }
+  out_ << FormatSeconds(us) << ',' << sensor + 1 << ',' << t.x() << ',' << t.y() << ',' << t.z()
+       << ',' << q.w() << ',' << q.x() << ',' << q.y() << ',' << q.z() << '\n';
+}
+
+std::uint64_t StreamRecorder::left_out() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return left_out_;
 }
 
 void StreamRecorder::Close() {
   std::lock_guard<std::mutex> lock(mutex_);
   if (!out_.is_open()) return;
   out_.close();
+  if (left_out_ > 0) {
+    LogToStderr("recording " + final_path_.filename().string() + ": " + std::to_string(left_out_) +
+                " report" + (left_out_ > 1 ? "s" : "") +
+                " left out, not after their sensor's latest recorded time");
+  }
   const bool written = !out_.fail();
   // Never replaces a file that appeared under the final name while recording: renameat2's
   // RENAME_NOREPLACE, or a hard link where the file system lacks it. Otherwise (or on a write

@@ -18,6 +18,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -85,15 +86,20 @@ class StreamRecorder {
   // creates the first, so that a refused start leaves no header-only recording behind.
   static void CheckNotRecorded(const std::filesystem::path& dir, const std::string& device_name);
   ~StreamRecorder();
+  // A report whose time is not after its sensor's latest written one (a repeat, or a clock stepped
+  // back) is left out and counted: the first is logged, and the count when the recording closes.
   void Write(int sensor, const Rigid3d& pose, Timestamp time);
   void Close();
+  std::uint64_t left_out() const;
   const std::filesystem::path& path() const { return final_path_; }
 
  private:
-  std::mutex mutex_;
+  mutable std::mutex mutex_;
   std::filesystem::path final_path_;
   std::filesystem::path partial_path_;
   std::ofstream out_;
+  std::map<int, std::int64_t> latest_us_;  // sensor -> latest written time [us]
+  std::uint64_t left_out_ = 0;
 };
 
 // One report of a source: 0-based sensor, pose as the tracker reported it, header timestamp.

@@ -517,6 +517,31 @@ TEST(StreamRecorder, WritesAnUnnormalisedHeaderTimeAsTheTimeItMeans) {
   EXPECT_EQ(stream.records[2].time, -0.25);
 }
 
+// One sensor's time twice (a source clock that did not tick, or stepped back onto a time it gave,
+// a report sent twice) made a recording that saved and then failed to load ("time 1 of sensor 1
+// repeats line 2"). A report not after its sensor's latest recorded time is left out and counted
+// (logged once, and the count when the recording closes), so the recording loads; memory stays one
+// time per sensor however long the server records.
+TEST(StreamRecorder, LeavesOutAReportNotAfterItsSensorsLatestTimeAndCountsIt) {
+  const auto dir = testing::MakeTempDir("recorder_repeat");
+  const Rigid3d moved(Eigen::Quaterniond::Identity(), Eigen::Vector3d(0.5, 0.0, 0.0));
+  std::uint64_t left_out = 0;
+  {
+    StreamRecorder rec(dir, "Tracker0");
+    rec.Write(0, Rigid3d(), Timestamp{1, 0});
+    rec.Write(1, Rigid3d(), Timestamp{1, 0});    // another sensor at that time: kept
+    rec.Write(0, moved, Timestamp{1, 0});        // repeats sensor 1's time
+    rec.Write(0, moved, Timestamp{0, 500'000});  // a clock stepped back
+    rec.Write(0, Rigid3d(), Timestamp{1, 8'333});
+    left_out = rec.left_out();
+  }
+  EXPECT_EQ(left_out, 2u);
+  const TrackerStream stream = ReadTrackerStream(dir / "Tracker0_tracker_stream.csv");
+  ASSERT_EQ(stream.records.size(), 3u);
+  EXPECT_EQ(stream.records[2].time, 1.008333);
+  for (const auto& r : stream.records) EXPECT_EQ(r.transmitter_from_receiver.translation.x(), 0.0);
+}
+
 std::string RecorderError(const std::filesystem::path& dir) {
   try {
     StreamRecorder rec(dir, "Tracker0");
