@@ -379,6 +379,8 @@ std::string TrackcalServerApp::StatusLine() const {
   std::string line = "status: " + std::to_string(stats.clients) + " client(s), " +
                      std::to_string(stats.connections_total) + " connection(s) so far, " +
                      std::to_string(stats.dropped_slow) + " dropped for not reading, " +
+                     std::to_string(stats.dropped_over_total) +
+                     " dropped with the most output waiting over the total, " +
                      std::to_string(stats.evicted) + " closed to make room, " +
                      std::to_string(stats.closed_protocol) + " closed for protocol errors, " +
                      std::to_string(stats.refused) + " refused, " +

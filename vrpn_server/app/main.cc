@@ -45,6 +45,9 @@ the calibration files attached with trackcal_Calibration lines (docs/vrpn.md, do
   --record DIR     record raw and corrected streams of every tracker to DIR as CSV (DIR is
                    made if missing, like mkdir; earlier recordings are never overwritten)
   --max-clients N  refuse connections beyond N (default 256)
+  --max-total-output MIB
+                   past MIB MiB of output waiting for all clients together, drop the client
+                   with the most waiting (default 64)
   --realtime-priority P
                    run the network thread SCHED_FIFO at priority P (1-99; needs CAP_SYS_NICE)
   -h, --help       this text
@@ -114,6 +117,9 @@ Args ParseArgs(int argc, char** argv) {
       a.app.record_dir = value(arg);
     } else if (arg == "--max-clients") {
       a.app.server.max_clients = ParseInt(value(arg), arg, 1, 100000);
+    } else if (arg == "--max-total-output") {
+      a.app.server.max_total_output_bytes =
+          static_cast<std::size_t>(ParseInt(value(arg), arg, 1, 65536)) << 20;
     } else if (arg == "--realtime-priority") {
       a.app.server.realtime_priority = ParseInt(value(arg), arg, 1, 99);
     } else if (arg == "-warn" || arg == "-v" || arg == "-q") {

@@ -145,6 +145,9 @@ void ServerOptions::Check() const {
   if (max_output_bytes < 4096) {
     throw std::invalid_argument("ServerOptions.max_output_bytes: must be >= 4096");
   }
+  if (max_total_output_bytes < 4096) {
+    throw std::invalid_argument("ServerOptions.max_total_output_bytes: must be >= 4096");
+  }
   if (max_message_length < kHeaderSize + kTextSize) {
     throw std::invalid_argument("ServerOptions.max_message_length: must hold a text message (1056)");
   }
@@ -244,6 +247,7 @@ struct VrpnServer::Impl {
   std::vector<iovec> iovs;
   std::vector<std::uint64_t> ids;
   std::vector<std::uint64_t> owners;  // the endpoint of each datagram in mmsg
+  std::vector<std::pair<std::size_t, std::uint64_t>> waiting;  // LimitTotalOutput: bytes, id
 };
 
 namespace {
@@ -1056,6 +1060,32 @@ void VrpnServer::Flush(Endpoint& e) {
   }
 }
 
+void VrpnServer::LimitTotalOutput() {
+  std::size_t total = 0;
+  std::vector<std::pair<std::size_t, std::uint64_t>>& waiting = impl_->waiting;  // bytes, id
+  waiting.clear();
+  for (const auto& [id, e] : impl_->endpoints) {
+    if (e->connecting || !e->session) continue;
+    const std::size_t pending = e->session->connection().tcp_output().size() - e->out_offset;
+    total += pending;
+    if (pending > 0) waiting.emplace_back(pending, id);
+  }
+  if (total <= options_.max_total_output_bytes) return;
+  // The most first: a client that reads holds next to nothing, one that stopped holds the most.
+  std::sort(waiting.begin(), waiting.end(), std::greater<>());
+  for (const auto& [pending, id] : waiting) {
+    if (total <= options_.max_total_output_bytes) break;
+    {
+      std::lock_guard<std::mutex> lock(stats_mutex_);
+      ++stats_.dropped_over_total;
+    }
+    Close(id, "the most unsent output of all clients (" + std::to_string(pending) + " of " +
+                  std::to_string(total) + " bytes waiting, over the total of " +
+                  std::to_string(options_.max_total_output_bytes) + "): dropped");
+    total -= pending;
+  }
+}
+
 bool VrpnServer::RefusalLogAllowed() {
   const bool allowed = impl_->refusal_lines.Allow(Clock::now(), options_.refusal_log_window_s,
                                                   [this](const std::string& line) { Log(line); });
@@ -1293,6 +1323,7 @@ void VrpnServer::DrainEvents() {
     if (it == impl_->endpoints.end()) continue;
     Flush(*it->second);
   }
+  LimitTotalOutput();
   const float us = std::chrono::duration<float, std::micro>(Clock::now() - first_enqueued).count();
   std::lock_guard<std::mutex> lock(stats_mutex_);
   if (impl_->fanout_us.size() < 1000000) impl_->fanout_us.push_back(us);

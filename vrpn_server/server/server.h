@@ -48,6 +48,11 @@ struct ServerOptions {
   int max_clients = 256;
   // Per-client bytes waiting to be written; a client that lets more pile up is dropped.
   std::size_t max_output_bytes = 1 << 20;
+  // Bytes waiting to be written to all clients together; past it the client with the most waiting
+  // is dropped (and the next, until the total is under it). Half-open or non-reading clients each
+  // holding max_output_bytes came to 256 MiB at max_clients 256; clients that read hold next to
+  // nothing. Below max_output_bytes it is the lower per-client limit too.
+  std::size_t max_total_output_bytes = 64 << 20;
   // Largest accepted message from a client (header length field); larger closes that client.
   std::uint32_t max_message_length = kDefaultMaxMessageLength;
   // Send Pos_Quat over UDP to lob clients that describe a UDP port.
@@ -109,6 +114,8 @@ struct ServerStats {
   std::uint64_t closed_protocol = 0;  // closed for a bad cookie or length field, or a message left
                                       // incomplete for incomplete_message_timeout_s
   std::uint64_t evicted = 0;          // closed, stalled, to make room for a new client
+  std::uint64_t dropped_over_total = 0;  // closed with the most output waiting while all clients'
+                                         // together passed max_total_output_bytes
   std::uint64_t reports_published = 0;
   std::uint64_t udp_send_failures = 0;
 };
@@ -174,6 +181,9 @@ class VrpnServer {
   // message or not reading) cannot lock new clients out until their timeouts. A client that
   // finished its handshake and is not stalled is never closed to make room.
   bool RoomForNewClient();
+  // Past max_total_output_bytes waiting for all clients, drops the clients with the most until the
+  // total is under it again.
+  void LimitTotalOutput();
   // Whether a refusal may be logged now (ServerOptions::refusal_log_window_s).
   bool RefusalLogAllowed();
   // Whether a connection line (connected, closed, a client's misbehaviour) may be logged now.

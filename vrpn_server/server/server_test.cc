@@ -219,6 +219,56 @@ TEST(VrpnServerSlots, AClientThatTakesNoneOfItsOutputIsDropped) {
   EXPECT_EQ(server.stats().clients, 1);
 }
 
+// Each client could hold max_output_bytes (1 MiB) of unsent output: 256 MiB at --max-clients 256
+// with half-open clients. Past max_total_output_bytes across clients, the client with the most
+// unsent output is dropped, with one line, and counted; a client that reads is not affected, nor
+// is a non-reading client with less waiting while the total is back under the cap.
+TEST(VrpnServerSlots, TheClientWithTheMostUnsentOutputIsDroppedPastTheTotalCap) {
+  ServerOptions options = LoopbackOptions();
+  options.max_output_bytes = 256 << 20;      // never reached here: only the total can drop one
+  options.max_total_output_bytes = 8 << 20;  // reached by the two deaf clients together
+  options.unread_output_timeout_s = 600.0;   // far beyond the test
+  options.dead_client_timeout_s = 0.0;       // the kernel does not time them out either
+  ServerOptions tiny = options;
+  tiny.max_total_output_bytes = 100;
+  EXPECT_THROW(tiny.Check(), std::invalid_argument);
+  Lines log;
+  VrpnServer server(MakeCatalog(), options, log.Sink());
+  server.Start();
+  VrpnTrackerClient good("Tracker0@tcp://127.0.0.1:" + std::to_string(server.port()));
+  int reports = 0;
+  good.SetPoseCallback([&](const TrackerReport&) { ++reports; });
+  ASSERT_TRUE(PollUntil({&good}, [&] { return good.pong_received(); }));
+  int published = 0;
+  const auto publish = [&](int n) {
+    for (int i = 0; i < n; ++i, ++published) {
+      server.PublishPose(0, 0, Rigid3d(), Timestamp::Now());
+      if (published % 1000 == 999) good.Poll(0.0);
+    }
+  };
+  const auto most = RawConnect(server.port(), /*rcvbuf=*/4096);
+  SendAll(most, Cookie());
+  ASSERT_TRUE(PollUntil({&good}, [&] { return server.stats().clients == 2; }));
+  // 100000 reports (8.8 MB) fill the kernel's buffers towards `most` (4 MB at most of send buffer
+  // on Linux, tcp_wmem) and leave several MB waiting in the server: under the cap alone.
+  publish(100000);
+  EXPECT_EQ(server.stats().clients, 2);
+  const auto less = RawConnect(server.port(), /*rcvbuf=*/4096);
+  SendAll(less, Cookie());
+  ASSERT_TRUE(PollUntil({&good}, [&] { return server.stats().clients == 3; }));
+  // Both now get every report, `most` always with more waiting: published until the total passes
+  // the cap (at most 8 MiB more: `most` alone would pass it).
+  for (int batch = 0; batch < 100 && server.stats().dropped_over_total == 0; ++batch) publish(1000);
+  EXPECT_EQ(server.stats().dropped_over_total, 1u);
+  EXPECT_TRUE(ClosedByServer(most, 5.0));
+  EXPECT_TRUE(PollUntil(
+      {&good}, [&] { return reports == published; }, 30.0));
+  EXPECT_TRUE(good.connected());
+  EXPECT_EQ(server.stats().clients, 2);  // the good client and `less`
+  EXPECT_EQ(server.stats().dropped_slow, 0u);
+  EXPECT_EQ(log.Count("the most unsent output of all clients"), 1);
+}
+
 // A client that stops reading with a small receive buffer is ended by the kernel (the TCP user
 // timeout of dead_client_timeout_s, its window staying closed) before unread_output_timeout_s:
 // that close was logged as "read: Connection timed out" and not counted as dropped for not
