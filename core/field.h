@@ -119,8 +119,10 @@ Matrix3<T> InducedDipoleField(const T& field_constant, const Vector3<T>& locatio
 // over the regular solid harmonics h_k of degrees 1 .. L + 1 (a field of polynomial degree L):
 // 3 + 5 + 7 = 15 per coil for L = 2, 8 for L = 1, 3 (a uniform field) for L = 0. The harmonic
 // polynomials of bounded degree are closed under translation, so the expansion about the
-// transmitter spans the same fields as one about the data's centre. Coefficients are in field units
-// (k m^-3); coefficient c_jk is element j * BackgroundBasisSize(L) + k.
+// transmitter spans the same fields as one about the data's centre. Coefficients are in units of
+// the field constant k (k m^-3, the field of distant sources the transmitter drives):
+// FieldModel::Field multiplies them by k like every other source, so k cancels between S and the
+// tracker's free-space signal. Coefficient c_jk is element j * BackgroundBasisSize(L) + k.
 constexpr int kMaxBackgroundDegree = 2;
 constexpr int BackgroundBasisSize(int degree) { return (degree + 1) * (degree + 3); }
 
@@ -228,8 +230,9 @@ struct FieldModel {
                                  T(object.polarisability_m3), p_in_transmitter);
     }
     if (background.present()) {
-      b += BackgroundFieldMatrix<T>(background.degree, background.coefficients.data(),
-                                    p_in_transmitter);
+      // Driven by the transmitter like every other source: the coefficients are in units of k.
+      b += k * BackgroundFieldMatrix<T>(background.degree, background.coefficients.data(),
+                                        p_in_transmitter);
     }
     return b;
   }

@@ -241,6 +241,29 @@ TEST(FieldModel, BackgroundAddsItsExpansion) {
   }
 }
 
+TEST(FieldModel, EverySourceScalesWithTheFieldConstant) {
+  // k is the transmitter's strength: every distorting source (an image, an induced dipole, the
+  // smooth field of distant sources) is driven by the transmitter, so B(p) is k times the field of
+  // the same model at k = 1. That is what lets the fit hold k = 1 (docs/physical-model.md): k then
+  // cancels between the measured signal and the free-space signal the tracker's solver assumes.
+  FieldModel unit;
+  unit.transmitter_octupole_m2 = Eigen::Vector3d(-6e-4, -7e-4, -5e-4);
+  unit.planes.push_back({"floor", Eigen::Vector3d(0, 0, 0.8), Eigen::Vector3d(0, 0, 1), 0.27});
+  unit.objects.push_back({"toolbox", Eigen::Vector3d(0.6, 0.95, -0.5), 0.002});
+  unit.background.degree = 2;
+  std::uniform_real_distribution<double> c(-1e-3, 1e-3);
+  for (int i = 0; i < 3 * BackgroundBasisSize(2); ++i) {
+    unit.background.coefficients.push_back(c(TestRng()));
+  }
+  FieldModel strong = unit;
+  strong.field_constant = 2.5;
+  for (int trial = 0; trial < 20; ++trial) {
+    const Eigen::Vector3d x = RandomPoint(-0.8, 0.8);
+    // Rounding only: the same sums, each term multiplied by k once.
+    EXPECT_TRUE(strong.Field<double>(x).isApprox(2.5 * unit.Field<double>(x), 1e-13));
+  }
+}
+
 TEST(SignalMatrix, IsGRTransposeB) {
   const Eigen::Matrix3d rotation = testing::RandomRotation(TestRng()).toRotationMatrix();
   Eigen::Matrix3d g = Eigen::Matrix3d::Identity();

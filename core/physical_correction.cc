@@ -160,8 +160,9 @@ void PhysicalCorrection::NormalEquations(const ReportFrame& frame, const Eigen::
     }
   }
   if (field_.background.present()) {
-    b += BackgroundFieldMatrix<Jet3>(field_.background.degree,
-                                     field_.background.coefficients.data(), pj);
+    // In units of k, as in FieldModel::Field.
+    b += Jet3(k) * BackgroundFieldMatrix<Jet3>(field_.background.degree,
+                                               field_.background.coefficients.data(), pj);
   }
   const Eigen::Matrix3d gain_rt = receiver_gain_matrix_ * rotation.transpose();
   Eigen::Matrix3d b_value;

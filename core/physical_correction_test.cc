@@ -199,6 +199,28 @@ TEST(PhysicalCorrection, BackgroundFieldInvertsAndRoundTrips) {
   EXPECT_GT((without.Apply(reported).pose.translation - truth.translation).norm(), 1e-5);
 }
 
+TEST(PhysicalCorrection, TheFieldConstantCancels) {
+  // The calibration file's field_constant k scales the measured signal and the free-space signal
+  // the tracker's solver assumes alike, so the true pose behind a report does not depend on it,
+  // with a background field as with every other source (the fit writes k = 1; a file may say
+  // otherwise).
+  const FieldModel unit = RoomFieldWithBackground();
+  FieldModel strong = unit;
+  strong.field_constant = 2.5;
+  const PhysicalCorrection at_unit(unit, SkewedGain());
+  const PhysicalCorrection at_strong(strong, SkewedGain());
+  for (int i = 0; i < 10; ++i) {
+    const Rigid3d truth = RandomTruePose();
+    const Rigid3d reported = NoiseFreeReport(truth, unit, SkewedGain());
+    Rigid3d x_unit, x_strong;
+    ASSERT_TRUE(at_unit.InvertReport(reported, &x_unit));
+    ASSERT_TRUE(at_strong.InvertReport(reported, &x_strong));
+    // Both Newton inverses converge to 1e-12; 1e-9 leaves room for the conditioning.
+    EXPECT_TRUE(testing::PosesNear(x_unit, x_strong, 1e-9, 1e-9))
+        << (x_unit.translation - x_strong.translation).norm();
+  }
+}
+
 // Parses `j` and expects a JSON input error whose message contains `expected`.
 void ExpectRejected(const nlohmann::json& j, const std::string& expected) {
   try {

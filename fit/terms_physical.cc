@@ -198,7 +198,7 @@ struct GroupModel {
         b += InducedDipoleField<T>(k, Vector3<T>(l[0], l[1], l[2]),
                                    v[e.first_block + kDipolePolarisability][0], p);
       } else if (e.kind == PhysicalEffect::kBackground) {
-        b += BackgroundFieldMatrix<T>(e.degree, v[e.first_block + kBackgroundCoefficients], p);
+        b += k * BackgroundFieldMatrix<T>(e.degree, v[e.first_block + kBackgroundCoefficients], p);
       }
     }
     return b;
