@@ -83,3 +83,49 @@ def test_bench_python_batch_runs_and_prints_cpu_and_wall_ratios():
     ratio = [line for line in proc.stdout.splitlines() if "ratio numpy / trackcal" in line]
     assert len(ratio) == 1 and "x wall)" in ratio[0], proc.stdout
     assert "best of 2 (alternating)" in proc.stdout, proc.stdout
+
+
+def test_bench_report_figures_reference_puts_the_two_slow_paths_back():
+    """bench/bench_report_figures.py's old side (slow_paths): on the figures the report draws, the
+    legend of figures 4 and 5 goes back inside the axes at loc "best" and the residual maps' dots get
+    back area 14 and the default edge; everything else stays. On figures without them it raises
+    rather than time two identical sides."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+    import numpy as np
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import bench_report_figures as bench
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    from trackcal import figures
+
+    rng = np.random.default_rng(3)
+    n = 300
+    distance = rng.uniform(0.2, 1.2, n)
+    figs = [(name, "", figures.error_vs_distance(distance, 30 * distance, 3 * distance,
+                                                 held_out=rng.random(n) < 0.3))
+            for name in bench._SLOW_LEGENDS]
+    figs += [(name, "", figures.residual_map(rng.normal(size=(n, 3)), rng.uniform(0, 5, n)))
+             for name in bench._SLOW_DOTS]
+    labels_before = [sorted(t.get_text() for t in fig.legends[0].get_texts()) for _, _, fig in figs[:2]]
+    try:
+        bench.slow_paths(figs)
+        for (_, _, fig), labels in zip(figs[:2], labels_before):
+            legend = fig.axes[0].get_legend()
+            assert not fig.legends and legend is not None
+            assert legend._loc == 0  # "best"
+            assert sorted(t.get_text() for t in legend.get_texts()) == labels
+            fig.canvas.draw()  # the old figure still draws
+        for _, _, fig in figs[2:]:
+            for ax in fig.axes[:2]:
+                dots = ax.collections[0]
+                assert np.allclose(dots.get_sizes(), 14.0)
+                assert np.allclose(dots.get_linewidths(), matplotlib.rcParams["patch.linewidth"])
+                assert dots.get_array() is not None  # still colour-mapped
+        # A second time there is nothing left to put back.
+        with pytest.raises(RuntimeError, match="fig4_position_error_vs_distance"):
+            bench.slow_paths(figs)
+    finally:
+        for _, _, fig in figs:
+            plt.close(fig)
