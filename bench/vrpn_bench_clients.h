@@ -54,6 +54,11 @@ struct ClientRunResult {
   std::uint64_t received = 0;  // reports with a sequence number in the range, over all clients
   std::uint64_t missing = 0;   // (client, sequence number in the range) pairs never decoded
   std::int32_t ready = 0;      // all clients connected (and on UDP in lob mode) in time
+  // Per report: the time until the last client had decoded it (the slowest client's latency), over
+  // the reports in the range that every client decoded (`complete` of them).
+  double last_p50_us = NAN;
+  double last_p99_us = NAN;
+  std::uint64_t complete = 0;
 };
 
 class ClientProcess {
@@ -190,13 +195,18 @@ class ClientProcess {
         ClientRunResult r;
         r.ready = 1;
         std::vector<double> all;
+        const auto range = static_cast<std::size_t>(std::max<std::int64_t>(c.end - c.begin, 0));
+        std::vector<float> last_us(range, -1.0f);  // per report: the slowest client so far
+        std::vector<std::uint32_t> clients_seen(range, 0);
         for (auto& s : samples) {
-          std::vector<char> seen(
-              static_cast<std::size_t>(std::max<std::int64_t>(c.end - c.begin, 0)), 0);
+          std::vector<char> seen(range, 0);
           for (const Sample& x : s) {
             if (x.seq < c.begin || x.seq >= c.end) continue;
             all.push_back(x.us);
-            seen[static_cast<std::size_t>(x.seq - c.begin)] = 1;
+            const auto k = static_cast<std::size_t>(x.seq - c.begin);
+            if (!seen[k]) ++clients_seen[k];
+            seen[k] = 1;
+            last_us[k] = std::max(last_us[k], x.us);
           }
           for (char v : seen) r.missing += v ? 0 : 1;
         }
@@ -204,6 +214,13 @@ class ClientProcess {
         r.p50_us = Percentile(all, 0.50);
         r.p99_us = Percentile(all, 0.99);
         r.max_us = all.empty() ? NAN : *std::max_element(all.begin(), all.end());
+        std::vector<double> last;
+        for (std::size_t k = 0; k < range; ++k) {
+          if (clients_seen[k] == samples.size()) last.push_back(last_us[k]);
+        }
+        r.complete = last.size();
+        r.last_p50_us = Percentile(last, 0.50);
+        r.last_p99_us = Percentile(last, 0.99);
         clients.clear();
         [[maybe_unused]] auto n = ::write(out, &r, sizeof(r));
       }
