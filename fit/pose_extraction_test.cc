@@ -213,7 +213,9 @@ TEST(RegistrationThenExtraction, MarkerSeenOnlyAtASkippedStationIsNotAnError) {
   ASSERT_NO_THROW(poses = ExtractPoses(data.stations, r.registration, {}, "markers.csv"));
   EXPECT_EQ(poses[2].status, PoseStatus::kTooFewMarkers) << poses[2].message;
   for (std::size_t i = 0; i < poses.size(); ++i) {
-    if (i != 2) EXPECT_EQ(poses[i].status, PoseStatus::kOk) << "station " << i;
+    if (i != 2) {
+      EXPECT_EQ(poses[i].status, PoseStatus::kOk) << "station " << i;
+    }
   }
   // With enough markers in view, an id the registration lacks is still an error naming the line.
   sparse.markers = data.stations[3].markers;

@@ -107,7 +107,7 @@ TEST(ParseVrpnName, Nominal) {
 // so a client asking for " Tracker0" or "Tracker0\t" would wait for ever for a device that cannot
 // exist: the name is refused, and the message shows where the blank is.
 TEST(ParseVrpnName, BlankOrControlInDeviceIsRefused) {
-  for (const std::string bad :
+  for (const std::string& bad :
        std::vector<std::string>{" Tracker0@localhost", "Tracker0 @localhost", "Track er0@localhost",
                                 "Tracker0\t@localhost", std::string("Tra\x01ker0@localhost")}) {
     try {
