@@ -767,6 +767,31 @@ def test_a_report_the_capture_writer_refuses_costs_that_report_only(fake_recorde
     assert sorted(p.name for p in rec.iterdir()) == ["raw_tracker_stream.csv"]
 
 
+def test_a_refused_report_after_a_repeat_in_its_take_is_numbered_in_the_recording(fake_recorders, tmp_path,
+                                                                                     monkeypatch):
+    """The repeats of a take are left out before the capture writer sees it, and the writer's first
+    refusal was numbered in what was left: a take of (a report, its time again, a report with a NaN)
+    named the NaN "report 1", which is the repeat. Both errors number the reports as they came."""
+    from trackcal import record
+
+    class RepeatThenBad(Arriving):
+        def take(self):
+            d = super().take()
+            if self.takes == 2 and len(d["time"]) > 3:  # the reports after the start
+                d["time"][1], d["sensor"][1] = d["time"][0], d["sensor"][0]  # report 1 repeats report 0
+                d["positions"][2, 0] = np.nan  # report 2 is refused by the writer
+            return d
+    monkeypatch.setattr(record._core, "TrackerRecorder", RepeatThenBad)
+    rec = tmp_path / "rec"
+    with pytest.raises(RuntimeError) as e:
+        record_streams({"raw": "Tracker0_raw@tcp://h:1"}, rec, 0.3)
+    assert "1 report left out (the first, report 2 of the recording: column x: nan is not a finite number)" \
+        in str(e.value)
+    assert "1 report left out (the first, report 1 of the recording: time " in str(e.value)
+    raw = captures.load_tracker_stream(rec / "raw_tracker_stream.csv")
+    assert len(raw) == fake_recorders[0].after_start - 2 > 0
+
+
 def test_an_error_that_ends_a_recording_leaves_its_rows_in_the_partial_file(fake_recorders, tmp_path,
                                                                              monkeypatch):
     """An exception other than an interruption (here from the progress callback) ends the

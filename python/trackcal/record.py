@@ -405,12 +405,14 @@ class _StreamFile:
         if n == 0 or self._fd is None or self.error:
             return
         stream = TrackerStream(d["time"], d["sensor"] + 1, d["positions"], d["quaternions_xyzw"])
-        stream = self._without_repeats(stream)
+        # numbers: each row's place in the take, so that a refusal after a repeat left out is
+        # numbered as the reports came.
+        stream, numbers = self._without_repeats(stream)
         try:
             try:
                 rows = self._csv(stream)
             except ValueError as refusal:
-                stream, rows = self._without_refused(stream, refusal)
+                stream, rows = self._without_refused(stream, refusal, numbers)
             self._write(rows)
         except OSError as e:
             self.error = f"{self.partial}: write failed: {e.strerror}"
@@ -429,12 +431,13 @@ class _StreamFile:
         return (np.isfinite(stream.time) & np.isfinite(stream.positions).all(axis=1)
                 & np.isfinite(stream.quaternions_xyzw).all(axis=1) & (np.abs(q_norm - 1.0) <= 1e-3))
 
-    def _without_repeats(self, stream: TrackerStream) -> TrackerStream:
+    def _without_repeats(self, stream: TrackerStream) -> Tuple[TrackerStream, np.ndarray]:
         """The stream without the reports at a time their sensor already had (in this take, or
         recorded before): a server clock that did not tick, or stepped back onto a time it gave, or
         a report sent twice. Kept, they made a recording that saved and then failed to load
         (docs/captures.md). They are counted, and the first is kept for the error. A time before the
-        sensor's latest that it never had (a clock stepped back) is kept: nothing repeats."""
+        sensor's latest that it never had (a clock stepped back) is kept: nothing repeats. Also
+        returns the kept rows' indices in ``stream``."""
         writable = self._writable(stream)  # the others are the writer's refusals, counted there
         keep = np.ones(len(stream.time), dtype=bool)
         for sensor in np.unique(stream.sensor[writable]):
@@ -453,7 +456,7 @@ class _StreamFile:
                 self._times.setdefault(key, []).append(t)
                 self._latest[key] = max(latest, float(t.max()))
         if keep.all():
-            return stream
+            return stream, np.arange(len(stream.time))
         if self.repeated == 0:
             first = int(np.flatnonzero(~keep)[0])
             self.first_repeat = (f"report {self.seen + first} of the recording: time {float(stream.time[first])!r} of "
@@ -461,12 +464,14 @@ class _StreamFile:
                                  "sensor and time: a server clock that did not tick or went back, or a report "
                                  "sent twice)")
         self.repeated += int((~keep).sum())
-        return TrackerStream(stream.time[keep], stream.sensor[keep], stream.positions[keep],
-                             stream.quaternions_xyzw[keep])
+        return (TrackerStream(stream.time[keep], stream.sensor[keep], stream.positions[keep],
+                              stream.quaternions_xyzw[keep]), np.flatnonzero(keep))
 
-    def _without_refused(self, stream: TrackerStream, refusal: ValueError) -> Tuple[TrackerStream, bytes]:
+    def _without_refused(self, stream: TrackerStream, refusal: ValueError,
+                         numbers: np.ndarray) -> Tuple[TrackerStream, bytes]:
         """The stream without the reports the capture writer refuses, and its rows; the first
-        refusal is kept for the error (which numbers the reports of the recording from 0)."""
+        refusal is kept for the error (which numbers the reports of the recording from 0; ``numbers``:
+        each row's place in the take, which differs from its row after a repeat left out)."""
         good = self._writable(stream)
         if good.all():  # refused for another reason: not a report's fault
             raise refusal
@@ -478,7 +483,7 @@ class _StreamFile:
                                         stream.quaternions_xyzw[first:first + 1]))
             except ValueError as e:  # "<partial>: record 0: column x: nan is not a finite number"
                 why = str(e).split(": record 0: ", 1)[-1]
-                self.first_refusal = f"report {self.seen + first} of the recording: {why}"
+                self.first_refusal = f"report {self.seen + int(numbers[first])} of the recording: {why}"
         self.refused += int((~good).sum())
         kept = TrackerStream(stream.time[good], stream.sensor[good], stream.positions[good],
                              stream.quaternions_xyzw[good])
