@@ -1049,3 +1049,46 @@ def test_a_time_a_sensor_already_had_is_left_out_and_told_and_the_recording_load
     # the new times 1 s back are kept.
     assert len(raw) == fake.after_start + fake.back
     np.testing.assert_array_less(raw.positions[:, 0], 0.5)  # no repeated report's pose was written
+
+
+def test_the_repeat_check_agrees_with_every_time_kept_across_takes_with_clock_steps(tmp_path):
+    """_StreamFile leaves out a report at a time its sensor already had, in its take or any before,
+    and keeps every other (a new time earlier than the latest too). Takes of two sensors with
+    in-order runs, a clock that does not tick, reports sent twice and clocks stepped back (onto
+    times given and between them), seed fixed, against a set of every kept (sensor, time)."""
+    from trackcal import record
+    rng = np.random.default_rng(20261202)
+    f = record._StreamFile(tmp_path / "raw_tracker_stream.csv")
+    kept_times, latest, backwards_kept = set(), {}, 0
+    clock = {1: 100.0, 2: 100.0}
+    for take in range(60):
+        times, sensors = [], []
+        for _ in range(int(rng.integers(1, 12))):
+            s = int(rng.integers(1, 3))
+            kind = rng.random()
+            if kind < 0.55:  # in order
+                clock[s] += 0.25
+            elif kind < 0.7:  # the clock did not tick
+                pass
+            elif kind < 0.85:  # stepped back onto a time given (quarter seconds)
+                clock[s] = max(100.0, clock[s] - 0.25 * int(rng.integers(1, 9)))
+            else:  # stepped back between the times given
+                clock[s] -= 0.125 + 0.25 * int(rng.integers(0, 4))
+            times.append(clock[s])
+            sensors.append(s)
+        n = len(times)
+        q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        stream = record.TrackerStream(np.array(times), np.array(sensors, dtype=np.int32), np.zeros((n, 3)), q)
+        expected = []
+        for s, t in zip(sensors, times):
+            expected.append((s, t) not in kept_times)
+            kept_times.add((s, t))
+        out, numbers = f._without_repeats(stream)
+        assert [i in set(numbers.tolist()) for i in range(n)] == expected, f"take {take}"
+        for s, t, e in zip(sensors, times, expected):
+            backwards_kept += e and t < latest.get(s, -np.inf)
+            latest[s] = max(latest.get(s, -np.inf), t)
+        assert out.time.tolist() == [t for t, e in zip(times, expected) if e]
+    # Each kind happened: some left out, and some kept before their sensor's latest time.
+    assert f.repeated > 20 and backwards_kept > 20
+    f.discard()
