@@ -370,7 +370,12 @@ class _StreamFile:
         self.first_repeat = ""
         # sensor -> the times recorded (8 bytes a report), and the latest of them: a time a sensor
         # already had is left out, so that the recording loads (one sample per sensor and time).
-        self._times: Dict[int, List[np.ndarray]] = {}
+        # The times are one sorted array and the in-order takes appended since (each after all
+        # before it), joined only when a take is not simply after its sensor's latest time: looked
+        # up by bisection there, instead of every time recorded concatenated and sorted again for
+        # each such take (after a clock stepped back, every take until it is past its latest).
+        self._sorted_times: Dict[int, np.ndarray] = {}
+        self._times_after: Dict[int, List[np.ndarray]] = {}
         self._latest: Dict[int, float] = {}
         self._fd: Optional[int] = None
         header = self._csv(TrackerStream(np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
@@ -445,16 +450,23 @@ class _StreamFile:
             t = stream.time[rows]
             key = int(sensor)
             latest = self._latest.get(key, -math.inf)
-            if not (t[0] > latest and (len(t) < 2 or (np.diff(t) > 0).all())):  # not simply in order
-                earlier = np.concatenate(self._times[key]) if key in self._times else np.zeros(0)
-                new = np.zeros(len(t), dtype=bool)
-                new[np.unique(t, return_index=True)[1]] = True  # the first of equal times in the take
-                new &= ~np.isin(t, earlier)
-                keep[rows[~new]] = False
-                t = t[new]
+            if t[0] > latest and (len(t) < 2 or (np.diff(t) > 0).all()):  # simply in order
+                self._times_after.setdefault(key, []).append(t)
+                self._latest[key] = float(t[-1])
+                continue
+            earlier = self._sorted_times.get(key, np.zeros(0))
+            if key in self._times_after:  # sorted too: each take after every time before it
+                earlier = np.concatenate([earlier] + self._times_after.pop(key))
+            new = np.zeros(len(t), dtype=bool)
+            new[np.unique(t, return_index=True)[1]] = True  # the first of equal times in the take
+            if len(earlier):
+                at = np.minimum(np.searchsorted(earlier, t), len(earlier) - 1)
+                new &= earlier[at] != t
+            keep[rows[~new]] = False
+            t = np.sort(t[new])
+            self._sorted_times[key] = np.insert(earlier, np.searchsorted(earlier, t), t)
             if len(t):
-                self._times.setdefault(key, []).append(t)
-                self._latest[key] = max(latest, float(t.max()))
+                self._latest[key] = max(latest, float(t[-1]))
         if keep.all():
             return stream, np.arange(len(stream.time))
         if self.repeated == 0:
