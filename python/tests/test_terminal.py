@@ -97,3 +97,39 @@ def test_an_error_after_a_part_drawn_bar_starts_a_line_of_its_own(clock, monkeyp
     assert "25.0%" in text
     last = text.rsplit("\r", 1)[-1]
     assert last.replace("\033[K", "").startswith("\033[31merror: \033[0mreport.html: exists"), repr(text)
+
+
+def test_a_dumb_terminal_gets_no_escape_code_from_progress_either(clock, monkeypatch, tmp_path):
+    """TERM=dumb prints escape codes as text, which is why it gets no colour; the progress
+    messages and the clearing of a part-drawn line before an error wrote the erase-line code
+    "\\033[K" there all the same. They clear with blanks instead, as wide as what was drawn."""
+    monkeypatch.delenv("NO_COLOR", raising=False)
+    monkeypatch.setenv("TERM", "dumb")
+    err = Tty()
+    monkeypatch.setattr(sys, "stderr", err)
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+
+    def failing(args, term):
+        message = term.message_progress()
+        clock.now += 2.0
+        message("fitting +dipole, +plane (candidate 3 of 9)")
+        message("fitting +dipole")
+        raise ValueError("model.yaml:3: field type: unknown")
+    monkeypatch.setitem(cli.COMMANDS, "history", failing)
+    (tmp_path / "work").mkdir()
+    assert cli.main(["history", str(tmp_path / "work")]) == 2
+    text = err.getvalue()
+    assert "\033" not in text, repr(text)
+    # What was drawn is blanked before the next text: nothing of the longer message is left.
+    first = "fitting +dipole, +plane (candidate 3 of 9)"
+    blank = " " * len(first)
+    assert text.split("\r") == ["", first, blank, "fitting +dipole", blank,
+                                "error: model.yaml:3: field type: unknown\n"], repr(text)
+    # A terminal that knows the code still gets it (one write, no blanks).
+    monkeypatch.setenv("TERM", "xterm-256color")
+    term = cli.Terminal(out=io.StringIO(), err=Tty())
+    message = term.message_progress()
+    clock.now += 2.0
+    message("fitting +dipole")
+    term.end_progress()
+    assert term.err.getvalue() == "\r\033[Kfitting +dipole\r\033[K"

@@ -31,13 +31,18 @@ class Terminal:
         self.err = err or sys.stderr
         # no-color.org: NO_COLOR set and not empty turns colour off (NO_COLOR= leaves it on). A
         # dumb terminal (TERM=dumb: Emacs' shell) prints escape codes as text.
-        no_color = bool(os.environ.get("NO_COLOR")) or os.environ.get("TERM") == "dumb"
+        dumb = os.environ.get("TERM") == "dumb"
+        no_color = bool(os.environ.get("NO_COLOR")) or dumb
         self.colour = self.out.isatty() and not no_color
         # Each stream by itself: `2> errors.log` from a terminal must get plain text.
         self.err_colour = self.err.isatty() and not no_color
         self.progress_enabled = self.err.isatty()
         self._t0 = None
         self._line_open = False  # a bar or a message drawn on stderr, its line not ended yet
+        # Clearing that line: the erase-line code, or on a dumb terminal (which prints it as text)
+        # blanks as wide as the widest text drawn on it.
+        self._erase = not dumb
+        self._line_width = 0
 
     def c(self, text: str, code: str) -> str:
         """``text`` in colour for stdout (when it is a terminal)."""
@@ -56,8 +61,10 @@ class Terminal:
                 return
             frac = min(1.0, done / total) if total else 1.0
             bar = "#" * int(30 * frac)
-            self.err.write(f"\r{label} [{bar:<30}] {100 * frac:5.1f}%")
+            text = f"{label} [{bar:<30}] {100 * frac:5.1f}%"
+            self.err.write(f"\r{text}")
             self._line_open = frac < 1.0
+            self._line_width = max(self._line_width, len(text)) if self._line_open else 0
             if frac >= 1.0:
                 self.err.write("\n")
             self.err.flush()
@@ -81,18 +88,27 @@ class Terminal:
 
         def update(message):
             if self.progress_enabled and time.monotonic() - start >= 1.0:
-                self.err.write("\r\033[K" + str(message)[:120])
+                text = str(message)[:120]
+                self.err.write(self._clear_line() + text)
                 self.err.flush()
                 self._line_open = True
+                self._line_width = max(self._line_width, len(text))
         return update
 
     def end_progress(self) -> None:
         """Clears a bar or a message left part-drawn (an error or a warning then starts its own
         line, not after "... 25.0%")."""
         if self.progress_enabled and self._line_open:
-            self.err.write("\r\033[K")
+            self.err.write(self._clear_line())
             self.err.flush()
         self._line_open = False
+        self._line_width = 0
+
+    def _clear_line(self) -> str:
+        """Back to the start of the line, what was drawn on it cleared."""
+        if self._erase:
+            return "\r\033[K"
+        return "\r" + " " * self._line_width + "\r" if self._line_width else "\r"
 
 
 def _time_offset(args, cal, fit_report=None):
