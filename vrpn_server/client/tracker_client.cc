@@ -29,14 +29,22 @@ int ParsePort(const std::string& text, const std::string& name) {
   return port;
 }
 
-// getaddrinfo's first IPv4 address of `host`.
+// getaddrinfo's first IPv4 address of `host`; nullopt when the name has no address; throws when
+// the lookup failed for now (EAI_AGAIN: no network or DNS server yet), to be tried again.
 std::optional<std::string> ResolveWithGetaddrinfo(const std::string& host) {
   addrinfo hints{};
   hints.ai_family = AF_INET;
   hints.ai_socktype = SOCK_STREAM;
   addrinfo* res = nullptr;
-  if (::getaddrinfo(host.c_str(), nullptr, &hints, &res) != 0 || res == nullptr)
+  const int rc = ::getaddrinfo(host.c_str(), nullptr, &hints, &res);
+  if (rc == EAI_NONAME || rc == EAI_FAIL
+#ifdef EAI_NODATA
+      || rc == EAI_NODATA
+#endif
+      || (rc == 0 && res == nullptr)) {
     return std::nullopt;
+  }
+  if (rc != 0) throw std::runtime_error(::gai_strerror(rc));
   const std::string address = FormatIpv4(reinterpret_cast<sockaddr_in*>(res->ai_addr)->sin_addr);
   ::freeaddrinfo(res);
   return address;
@@ -47,6 +55,7 @@ struct Lookup {
   std::mutex mutex;
   bool done = false;                   // guarded by mutex
   std::optional<std::string> address;  // guarded by mutex
+  bool failed_for_now = false;         // guarded by mutex: the resolver threw
 };
 
 }  // namespace
@@ -270,18 +279,21 @@ bool VrpnTrackerClient::ResolveServer() {
     auto resolve = options_.resolve_host ? options_.resolve_host : ResolveWithGetaddrinfo;
     std::thread([lookup, resolve, host = name_.host] {
       std::optional<std::string> address;
+      bool failed_for_now = false;
       try {
         address = resolve(host);
       } catch (...) {
-        // An unknown host, as far as the client is concerned.
+        failed_for_now = true;  // not an unknown host: looked up again at the next retry
       }
       std::lock_guard lock(lookup->mutex);
       lookup->address = std::move(address);
+      lookup->failed_for_now = failed_for_now;
       lookup->done = true;
     }).detach();
     impl_->lookup = std::move(lookup);
   }
   std::optional<std::string> address;
+  bool failed_for_now = false;
   {
     std::lock_guard lock(impl_->lookup->mutex);
     if (!impl_->lookup->done) {
@@ -289,6 +301,7 @@ bool VrpnTrackerClient::ResolveServer() {
       return false;
     }
     address = impl_->lookup->address;
+    failed_for_now = impl_->lookup->failed_for_now;
   }
   impl_->lookup.reset();
   const auto parsed = address ? ParseIpv4(*address) : std::nullopt;
@@ -298,7 +311,7 @@ bool VrpnTrackerClient::ResolveServer() {
     return true;
   }
   if (!parsed) {
-    host_unknown_ = true;
+    host_unknown_ = !failed_for_now;
     impl_->next_retry = Clock::now() + Seconds(options_.reconnect_delay_s);
     return false;
   }

@@ -61,7 +61,8 @@ struct TrackerClientOptions {
   // of its own that Stop() does not wait for, so a DNS server that does not answer never holds up
   // Stop() (Unity's OnDisable), and may outlive the client: capture by value or shared_ptr, never
   // references to the caller's locals or to the client. A dotted address is used as is. Called
-  // again before each reconnect; when that fails, the address found before is tried.
+  // again before each reconnect; when that fails, the address found before is tried. nullopt:
+  // the name has no address (host_unknown()); a throw: the lookup failed for now, tried again.
   std::function<std::optional<std::string>(const std::string& host)> resolve_host;
   void Check() const;
 };
@@ -100,7 +101,8 @@ class VrpnTrackerClient {
   bool connected() const { return connected_; }  // cookie exchange done
   bool pong_received() const { return pong_received_; }
   // The last look-up of the host name found no address, and none was found before: a mistyped or
-  // unknown host (or no DNS), not a server that is down. Never for a dotted IPv4 address.
+  // unknown host, not a server that is down. Never for a dotted IPv4 address, nor for a look-up
+  // that failed for now (EAI_AGAIN: the network or DNS server not up yet), which is retried.
   bool host_unknown() const { return host_unknown_; }
   bool udp_active() const { return udp_active_; }  // a report came over UDP
   std::uint64_t reports() const { return reports_; }

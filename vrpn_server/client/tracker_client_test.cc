@@ -1254,6 +1254,24 @@ TEST(VrpnTrackerClient, AHostNameThatDoesNotResolveIsToldApartFromAServerThatIsD
   EXPECT_GE(dotted.connect_attempts(), 1u);
 }
 
+TEST(VrpnTrackerClient, ALookUpThatFailsForNowIsNotAnUnknownHost) {
+  // A lookup that fails for now (getaddrinfo's EAI_AGAIN: the network or the DNS server not up
+  // yet; resolve_host throws) is retried without calling the host unknown, so `trackcal record
+  // --connect-timeout 60` started while a laptop joins the network waits instead of failing.
+  auto count = std::make_shared<std::atomic<int>>(0);
+  TrackerClientOptions options;
+  options.reconnect_delay_s = 0.05;
+  options.resolve_host = [count](const std::string&) -> std::optional<std::string> {
+    ++*count;
+    throw std::runtime_error("Temporary failure in name resolution");
+  };
+  VrpnTrackerClient client("Tracker0@tcp://tracker.lab:3883", options);
+  // 1 s: 0.05 s apart, the lookup is tried many times; one wrong host_unknown would show.
+  EXPECT_FALSE(PollUntil(
+      {&client}, [&] { return client.host_unknown(); }, 1.0));
+  EXPECT_GE(*count, 2);
+}
+
 TEST(VrpnTrackerClient, StopDoesNotWaitForADnsServerThatDoesNotAnswer) {
   TrackerClientOptions options;
   auto release = std::make_shared<std::atomic<bool>>(false);
