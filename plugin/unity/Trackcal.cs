@@ -209,8 +209,11 @@ namespace Trackcal
                     length = TrackcalNative.LastText(Handle(), textBytes, textBytes.Length, out severity);
                     if (length < 0) throw new InvalidOperationException(TrackcalNative.LastError());
                 }
-                // A text that grew between the two calls comes cut at a character boundary.
+                // A text that grew between the two calls comes cut at a character boundary, so
+                // shorter than its length: it ends at its NUL.
                 length = Math.Min(length, textBytes.Length - 1);
+                int nul = Array.IndexOf(textBytes, (byte)0, 0, length);
+                if (nul >= 0) length = nul;
                 if (!SameBytes(textBytes, length, textDecoded))
                 {
                     if (textDecoded.Length < length) textDecoded = new byte[textBytes.Length];
