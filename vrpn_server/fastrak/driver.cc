@@ -526,7 +526,8 @@ class FastrakDriver::Session {
         records_since_open_ = false;
         std::string text = "opened at " + std::to_string(options_.baud) + " baud";
         if (failed > 0) {
-          text += " after " + std::to_string(failed) + " failed attempts over " +
+          text += " after " + std::to_string(failed) +
+                  (failed == 1 ? " failed attempt over " : " failed attempts over ") +
                   FormatSeconds(std::chrono::duration<double>(now - first_failure).count()) +
                   " (last: " + last_error + ")";
         }
