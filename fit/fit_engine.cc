@@ -485,15 +485,19 @@ void FinishResult(const std::vector<FitStation>& stations, ModelSpec* spec,
                              "the final cost is not finite (" + std::to_string(result.final_cost) +
                              "): the whitened residuals overflow or cannot be evaluated";
   }
+  // A term's own note explains what the covariance's per-coordinate flags show (thousands of
+  // them for an undetermined polynomial), so the notes come first.
+  std::vector<IdentifiabilityFlag> notes;
   for (const auto& term : spec->terms) {
     for (const auto& block : term->blocks()) {
       if (!block.identifiability_note.empty() && !block.fixed) {
-        result.identifiability_flags.push_back(
-            {(block.term.empty() ? term->name() : block.term) + "." + block.name,
-             block.identifiability_note});
+        notes.push_back({(block.term.empty() ? term->name() : block.term) + "." + block.name,
+                         block.identifiability_note});
       }
     }
   }
+  result.identifiability_flags.insert(result.identifiability_flags.begin(), notes.begin(),
+                                      notes.end());
   for (const auto& term : spec->terms) {
     for (const auto& block : term->blocks()) {
       ParameterReport r;

@@ -681,7 +681,19 @@ bool PolynomialTerm::InitializeLinear(const std::vector<FitStation>& inputs,
   }
   // Without a ridge, fewer stations than terms leave eq. 8 under-determined (the paper: N > R).
   // With one, the shrunk coefficients are determined by the prior, so the check comes after it.
-  if (n < num_terms_) return false;
+  if (n <= num_terms_) {
+    // The fit still runs (a cross-validation fold may hit this), but its report says it first.
+    const std::string note =
+        std::to_string(n) + " stations for " + std::to_string(num_terms_) + " terms (degree " +
+        std::to_string(options_.degree) +
+        "): the polynomial passes through every station, noise included, and is not determined "
+        "between them (eq. 8 needs more stations than terms); use ridge: auto or a lower degree "
+        "(docs/model-file.md)";
+    for (int index : {position_block_, orientation_block_}) {
+      if (index >= 0) blocks_[static_cast<size_t>(index)].identifiability_note = note;
+    }
+    if (n < num_terms_) return false;
+  }
   // The directions the stations determine (FindDeterminedSubspace): when some are not, the
   // coefficients are the least-squares solution within the fitted subspace, and the fit moves
   // them only within it. Bounds would act after the manifold's step and leave the subspace: a
@@ -765,7 +777,8 @@ bool PolynomialTerm::InitializeInSubspace(const Eigen::MatrixXd& a,
       }
     }
     block.tangent_unit = block.unit;
-    block.identifiability_note = note.str();
+    // After the note of a fit with no more stations than terms, when there is one.
+    block.identifiability_note += (block.identifiability_note.empty() ? "" : "; ") + note.str();
   };
   store(position_block_, b_position);
   store(orientation_block_, b_orientation);

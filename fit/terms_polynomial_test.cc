@@ -597,6 +597,39 @@ TEST(PolynomialTerm, RidgeAutoWithFewerStationsThanTermsChoosesAWeight) {
   }
 }
 
+TEST(PolynomialTerm, NoMoreStationsThanTermsWithoutARidgeIsTheFirstFlag) {
+  // Degree 4 (35 terms) on 30 or 35 stations without a ridge passes through every station, noise
+  // included (eq. 8 needs N > R): the fit says so first among its flags (the report shows the first
+  // ten, and the covariance's per-coordinate flags number thousands here), with what to do.
+  std::mt19937 rng(43);
+  const PolynomialTerm truth = RandomTruth(1, &rng);
+  for (const int count : {30, 35}) {
+    SCOPED_TRACE(std::to_string(count) + " stations");
+    std::vector<FitStation> stations = MakeStations(truth, count, &rng);
+    std::normal_distribution<double> noise(0.0, 0.5e-3);
+    for (size_t i = 0; i < stations.size(); ++i) {
+      stations[i].station = static_cast<int>(i);
+      stations[i].reference.translation += Eigen::Vector3d(noise(rng), noise(rng), noise(rng));
+    }
+    ModelSpec spec = ParseModelYaml("terms: [{type: polynomial, degree: 4}]", "m.yaml");
+    FitResult result;
+    ASSERT_NO_THROW(result = FitModel(stations, &spec));
+    ASSERT_FALSE(result.identifiability_flags.empty());
+    const std::string& reason = result.identifiability_flags[0].reason;
+    EXPECT_NE(reason.find(std::to_string(count) + " stations for 35 terms"), std::string::npos)
+        << reason;
+    EXPECT_NE(reason.find("ridge: auto"), std::string::npos) << reason;
+  }
+  // With a ridge, or with more stations than terms, no such flag.
+  std::vector<FitStation> stations = MakeStations(truth, 30, &rng);
+  ModelSpec ridged =
+      ParseModelYaml("terms: [{type: polynomial, degree: 4, ridge: auto}]", "m.yaml");
+  const FitResult result = FitModel(stations, &ridged);
+  for (const auto& f : result.identifiability_flags) {
+    EXPECT_EQ(f.reason.find("terms"), std::string::npos) << f.reason;
+  }
+}
+
 TEST(PolynomialTerm, RidgeAndAmplificationErrorsNameFileLineAndField) {
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: auto\n", "m.yaml"));
   EXPECT_NO_THROW(ParseModelYaml("terms:\n  - type: polynomial\n    ridge: 0.1\n", "m.yaml"));
