@@ -457,3 +457,26 @@ def test_validation_and_residuals_compare_with_equals_and_refuse_equality_with_a
     one = captures.load_poses(path).subset([0])
     assert validation.validate(one, cal, analyse_covariates=False).equals(
         validation.validate(one, cal, analyse_covariates=False))
+
+
+def test_table1_and_covariate_effects_with_nan_equal_their_copies():
+    """A summary of no stations and an untested covariate hold NaN; == compares field by field with
+    NaN equal to NaN, so a result equals one computed again (the dataclass == said it did not: two
+    NaN objects are not ==)."""
+    from trackcal.validation import CovariateEffect, Table1
+
+    def empty():
+        nan = float("nan")  # a new NaN object each time, as a second computation makes
+        return {"count": 0, "mean": nan, "std": nan, "max": nan, "rms": nan, "median": nan, "p95": nan}
+
+    def table(mean):
+        return Table1("valid", empty(), dict(empty(), count=3, mean=mean))
+    assert table(1.5) == table(1.5)
+    assert table(1.5) != table(1.6)
+    assert table(1.5) != "valid"
+
+    def effect(count):
+        return CovariateEffect("temperature", "position_mm", float("nan"), float("nan"), False, count,
+                               levels=[{"label": "a", "offset": float("nan")}])
+    assert effect(12) == effect(12)
+    assert effect(12) != effect(13)

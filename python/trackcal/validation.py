@@ -19,7 +19,7 @@ import numpy as np
 
 from trackcal import _core
 from trackcal._core import correction_status_names
-from trackcal.captures import PoseCapture, _ArrayFields
+from trackcal.captures import PoseCapture, _ArrayFields, _same_values
 from trackcal.numpy_reference import quaternion_multiply_xyzw
 
 
@@ -71,8 +71,21 @@ def residuals(positions, quaternions_xyzw, reference_positions, reference_quater
                      position_mm=pos_mm, orientation_deg=ori_deg)
 
 
-@dataclasses.dataclass
-class Table1:
+class _NanEqual:
+    """== field by field with NaN equal to NaN (captures._same_values): a summary of an empty set
+    or a covariate's undefined p-value is NaN, and the dataclass == said a result differed from
+    its own copy."""
+
+    def __eq__(self, other):
+        if type(other) is not type(self):
+            return NotImplemented
+        return _same_values(self, other)
+
+    __hash__ = None
+
+
+@dataclasses.dataclass(eq=False)
+class Table1(_NanEqual):
     """The paper's Table 1 for one set: summaries (count, mean, std, max, rms, median, p95)."""
 
     set_name: str
@@ -227,8 +240,8 @@ def _bin_ids(x: np.ndarray, n_bins: int, categorical: bool) -> np.ndarray:
     return np.searchsorted(edges, x, side="right")
 
 
-@dataclasses.dataclass
-class CovariateEffect:
+@dataclasses.dataclass(eq=False)
+class CovariateEffect(_NanEqual):
     covariate: str
     target: str           # which residual: position_mm, position_vector, orientation_deg, orientation_vector
     r2: float             # cross-validated share of the residual variance the covariate explains
