@@ -943,23 +943,27 @@ def test_the_partial_file_is_synced_to_disk_while_it_records(fake_recorders, tmp
     assert str(rec) in while_recording
 
 
+class TypoHostRecorder(FakeRecorder):
+    """A device named Typo* whose host name ('traker.lab') does not resolve: it never connects and
+    sends nothing; the others report as FakeRecorder does."""
+    connected, pong_received = False, False
+    host = "traker.lab"
+
+    @property
+    def host_unknown(self):
+        return self.name.startswith("Typo")
+
+    def __len__(self):
+        return 0 if self.name.startswith("Typo") else super().__len__()
+
+
 def test_an_unknown_host_name_is_named_as_such(fake_recorders, tmp_path, monkeypatch):
     """A mistyped host name ('traker.lab') said "no connection; is a server running at that
     address?", sending the user to check a server that was fine. The client knows the name did not
     resolve (TrackerRecorder.host_unknown), and the error names the host."""
     from trackcal import record
 
-    class UnknownHost(FakeRecorder):
-        connected, pong_received = False, False
-        host = "traker.lab"
-
-        @property
-        def host_unknown(self):
-            return self.name.startswith("Typo")
-
-        def __len__(self):
-            return 0 if self.name.startswith("Typo") else super().__len__()
-    monkeypatch.setattr(record._core, "TrackerRecorder", UnknownHost)
+    monkeypatch.setattr(record._core, "TrackerRecorder", TypoHostRecorder)
     with pytest.raises(RuntimeError, match=r"^no report from: raw \(Typo@tcp://traker\.lab:3883: "
                                            r"unknown host 'traker\.lab' \(the name does not resolve to an "
                                            r"address: a typo, or no DNS\?\)\)$"):
@@ -974,17 +978,7 @@ def test_an_unknown_host_fails_at_once_not_after_the_connect_timeout(fake_record
     host, and `trackcal record` does not suggest a longer --connect-timeout for it."""
     from trackcal import cli, record
 
-    class UnknownHost(FakeRecorder):
-        connected, pong_received = False, False
-        host = "traker.lab"
-
-        @property
-        def host_unknown(self):
-            return self.name.startswith("Typo")
-
-        def __len__(self):
-            return 0 if self.name.startswith("Typo") else super().__len__()
-    monkeypatch.setattr(record._core, "TrackerRecorder", UnknownHost)
+    monkeypatch.setattr(record._core, "TrackerRecorder", TypoHostRecorder)
     begun = time.monotonic()
     with pytest.raises(record.NoFirstReport, match=r"^no report from: raw \(Typo@tcp://traker\.lab:3883: unknown "
                                                     r"host 'traker\.lab' \(the name does not resolve to an address: "
